@@ -1,0 +1,178 @@
+"""One exception hierarchy for the whole toolkit.
+
+Every error the toolkit raises on bad input derives from :class:`BondGraphError`.
+Graph errors carry the names of the elements and bonds involved (``elements``,
+``bonds`` attributes) so that tools and tests can point at the culprit, and
+their message names them too.
+
+::
+
+    BondGraphError
+    ├── GraphError                 malformed declaration (validate())
+    │   ├── DuplicateNameError
+    │   ├── ConnectionError
+    │   ├── DanglingPortError
+    │   ├── JunctionError
+    │   ├── PortCountError
+    │   ├── UndeclaredSymbolError
+    │   └── UnitMismatchError
+    ├── CausalityError             SCAP could not give an explicit ODE
+    │   ├── CausalConflictError
+    │   ├── AlgebraicLoopError
+    │   └── DerivativeCausalityError
+    ├── CodegenError
+    │   └── StaleGeneratedCodeError
+    ├── ModelError                 loading / using a generated model
+    ├── DataError                  experiment files (line and column named)
+    └── NumericalError             diverging simulation or filter
+        └── FilterDivergenceError
+"""
+
+from __future__ import annotations
+
+from typing import Iterable, Sequence
+
+
+class BondGraphError(Exception):
+    """Base class of every error raised by the toolkit.
+
+    Parameters
+    ----------
+    message : str
+        Human-readable message; it names the culprit.
+    elements : sequence of str, optional
+        Names of the elements involved.
+    bonds : sequence of str, optional
+        Names of the bonds involved.
+    hint : str, optional
+        A suggested remedy, appended to the message.
+    """
+
+    def __init__(self, message: str, *, elements: Iterable[str] = (),
+                 bonds: Iterable[str] = (), hint: str | None = None):
+        self.elements: tuple[str, ...] = tuple(elements)
+        self.bonds: tuple[str, ...] = tuple(bonds)
+        self.hint = hint
+        text = message
+        if hint:
+            text = f"{message}\n  Remedy: {hint}"
+        super().__init__(text)
+
+
+class GraphError(BondGraphError):
+    """A malformed graph declaration (raised by ``BondGraph.validate``)."""
+
+
+class DuplicateNameError(GraphError):
+    """Two elements, parameters, inputs, sensors or states share a name."""
+
+
+class ConnectionError(GraphError):  # noqa: A001 - deliberate, namespaced by the package
+    """A bond that cannot be made (port in use, two-port without a port, ...)."""
+
+
+class DanglingPortError(GraphError):
+    """An element port without a bond."""
+
+
+class JunctionError(GraphError):
+    """A junction with fewer than two bonds."""
+
+
+class PortCountError(GraphError):
+    """A two-port (TF, GY, MTF, MGY) without exactly one bond per port."""
+
+
+class UndeclaredSymbolError(GraphError):
+    """An expression uses a symbol that the graph does not declare."""
+
+
+class UnitMismatchError(GraphError):
+    """Units that do not fit: effort x flow is not power on a bond, or two
+    ends of a bond declare different units."""
+
+
+class CausalityError(BondGraphError):
+    """Causality assignment or equation derivation failed."""
+
+
+class CausalConflictError(CausalityError):
+    """Sources (or a source and the junction structure) impose contradicting
+    causality. The message lists the causal path."""
+
+
+class AlgebraicLoopError(CausalityError):
+    """A zero-order causal loop that sympy could not solve. The message lists
+    the loop's elements and bonds."""
+
+
+class DerivativeCausalityError(CausalityError):
+    """A storage element in derivative causality that cannot be eliminated
+    (non-invertible law, multiport field, higher index)."""
+
+
+class CodegenError(BondGraphError):
+    """Code generation failed."""
+
+
+class StaleGeneratedCodeError(CodegenError):
+    """A module in ``generated/`` differs from what its graph produces."""
+
+
+class ModelError(BondGraphError):
+    """A generated model was used wrongly (unknown name, wrong shape, ...)."""
+
+
+class DataError(BondGraphError):
+    """A bad experiment or data file.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong.
+    path : str, optional
+        File concerned.
+    line : int, optional
+        1-based line number in the file (header is line 1).
+    column : str, optional
+        Column name concerned.
+    """
+
+    def __init__(self, message: str, *, path: str | None = None,
+                 line: int | None = None, column: str | None = None,
+                 hint: str | None = None):
+        self.path = path
+        self.line = line
+        self.column = column
+        where = []
+        if path is not None:
+            where.append(str(path))
+        if line is not None:
+            where.append(f"line {line}")
+        if column is not None:
+            where.append(f"column '{column}'")
+        prefix = (", ".join(where) + ": ") if where else ""
+        super().__init__(prefix + message, hint=hint)
+
+
+class NumericalError(BondGraphError):
+    """A simulation or filter produced non-finite numbers."""
+
+
+class FilterDivergenceError(NumericalError):
+    """The UKF diverged: a non-positive-definite covariance or a non-finite
+    state. ``step`` is the sample index, ``reason`` the cause."""
+
+    def __init__(self, message: str, *, step: int | None = None,
+                 reason: str | None = None, hint: str | None = None):
+        self.step = step
+        self.reason = reason
+        super().__init__(message, hint=hint)
+
+
+def join_names(names: Sequence[str]) -> str:
+    """Quote and join names for messages: ``'a', 'b' and 'c'``."""
+    quoted = [f"'{n}'" for n in names]
+    if len(quoted) <= 1:
+        return "".join(quoted)
+    return ", ".join(quoted[:-1]) + " and " + quoted[-1]

@@ -1,0 +1,203 @@
+"""Symbols of a bond graph: parameters, inputs, states and port variables.
+
+All are ``sympy.Symbol`` subclasses (real), so users write constitutive laws
+with ordinary sympy arithmetic, e.g. ``Fc * sympy.tanh(v / eps)``. Each
+carries its metadata (default value, unit, bounds, description).
+
+Symbols are created uncached, so two graphs may declare a parameter ``m``
+with different defaults; inside one graph names are unique.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import sympy as sp
+
+
+class _MetaSymbol(sp.Symbol):
+    """Uncached real symbol carrying metadata in ``__dict__``."""
+
+    _meta_fields: tuple[str, ...] = ()
+
+    def __new__(cls, name: str, *args: Any, **kwargs: Any):
+        # sympy's cache would return one shared object per name; metadata
+        # must not leak between graphs, so bypass it.
+        obj = sp.Symbol.__xnew__(cls, name, real=True)
+        return obj
+
+    def __getnewargs_ex__(self):  # pickling / deepcopy
+        return ((self.name,), {})
+
+    def __reduce_ex__(self, protocol):
+        state = {k: getattr(self, k, None) for k in self._meta_fields}
+        return (_rebuild_symbol, (type(self), self.name, state))
+
+    def meta(self) -> dict[str, Any]:
+        """Metadata as a plain dict (for generated code and reports)."""
+        return {"name": self.name, **{k: getattr(self, k, None) for k in self._meta_fields}}
+
+
+def _rebuild_symbol(cls, name, state):
+    obj = sp.Symbol.__xnew__(cls, name, real=True)
+    for k, v in state.items():
+        setattr(obj, k, v)
+    return obj
+
+
+class Parameter(_MetaSymbol):
+    """A model parameter θ_i.
+
+    Parameters
+    ----------
+    name : str
+        Name, unique in the graph (namespaced by fragments, e.g. ``engine.J``).
+    default : float
+        Nominal value, in ``unit``.
+    unit : str, optional
+        Unit string understood by pint (``"kg*m^2"``).
+    bounds : (float, float), optional
+        Box for estimation; defaults to (default/10, default*10) for positive
+        defaults, (default-1, default+1) otherwise.
+    description : str, optional
+        Meaning, shown in parameter tables.
+    source : str, optional
+        Where the value comes from (measurement, literature, guess).
+    """
+
+    _meta_fields = ("default", "unit", "bounds", "description", "source")
+
+    def __new__(cls, name: str, default: float = 1.0, unit: str | None = None,
+                bounds: tuple[float, float] | None = None, description: str = "",
+                source: str = ""):
+        obj = super().__new__(cls, name)
+        obj.default = float(default)
+        obj.unit = unit or ""
+        if bounds is None:
+            d = float(default)
+            if d > 0:
+                bounds = (d / 10.0, d * 10.0)
+            elif d < 0:
+                bounds = (d * 10.0, d / 10.0)
+            else:
+                bounds = (-1.0, 1.0)
+        lo, hi = float(bounds[0]), float(bounds[1])
+        if not (lo <= hi) or not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(f"parameter '{name}': bounds {bounds} are not a finite interval")
+        obj.bounds = (lo, hi)
+        obj.description = description
+        obj.source = source
+        return obj
+
+    def with_name(self, name: str) -> "Parameter":
+        """Copy with another name (used when fragments are namespaced)."""
+        return Parameter(name, self.default, self.unit, self.bounds, self.description, self.source)
+
+
+class Input(_MetaSymbol):
+    """An input signal u_j (throttle, voltage, road grade, ...).
+
+    Parameters
+    ----------
+    name : str
+        Name, unique in the graph.
+    unit : str, optional
+        Unit string.
+    default : float, optional
+        Value used when an experiment does not give the input.
+    description : str, optional
+    derivative_of : Input, optional
+        Set on the automatically created ``der(u)`` inputs that derivative
+        causality through a time-varying modulus needs.
+    """
+
+    _meta_fields = ("unit", "default", "description", "derivative_of")
+
+    def __new__(cls, name: str, unit: str | None = None, default: float = 0.0,
+                description: str = "", derivative_of: "Input | None" = None):
+        obj = super().__new__(cls, name)
+        obj.unit = unit or ""
+        obj.default = float(default)
+        obj.description = description
+        obj.derivative_of = derivative_of
+        return obj
+
+    def with_name(self, name: str) -> "Input":
+        return Input(name, self.unit, self.default, self.description, self.derivative_of)
+
+
+class StateVar(_MetaSymbol):
+    """A state x_i: momentum of an I, displacement of a C, or a signal state.
+
+    ``state_kind`` is ``"momentum"``, ``"displacement"``, ``"signal"`` or
+    ``"integral"`` (integrator added for a displacement or momentum sensor).
+    """
+
+    _meta_fields = ("state_kind", "element", "unit", "initial", "description")
+
+    def __new__(cls, name: str, kind: str = "signal", element: str | None = None,
+                unit: str | None = None, initial: float = 0.0, description: str = ""):
+        obj = super().__new__(cls, name)
+        obj.state_kind = kind
+        obj.element = element
+        obj.unit = unit or ""
+        obj.initial = float(initial)
+        obj.description = description
+        return obj
+
+    def with_name(self, name: str, element: str | None = None) -> "StateVar":
+        return StateVar(name, self.state_kind, element if element is not None else self.element,
+                        self.unit, self.initial, self.description)
+
+
+class Var(_MetaSymbol):
+    """A port or junction variable (effort or flow) usable in laws and sensors.
+
+    ``var_kind`` is ``"effort"`` or ``"flow"``; ``owner`` names the element or
+    junction. These symbols are replaced by their solved expressions during
+    equation derivation.
+    """
+
+    _meta_fields = ("var_kind", "owner")
+
+    def __new__(cls, name: str, kind: str = "effort", owner: str | None = None):
+        obj = super().__new__(cls, name)
+        obj.var_kind = kind
+        obj.owner = owner
+        return obj
+
+    def with_name(self, name: str, owner: str | None = None) -> "Var":
+        return Var(name, self.var_kind, owner if owner is not None else self.owner)
+
+
+def rename(sym: sp.Symbol, name: str, owner: str | None = None) -> sp.Symbol:
+    """Copy a toolkit symbol under a new name (fragments' namespacing)."""
+    if isinstance(sym, (StateVar, Var)):
+        return sym.with_name(name, owner)
+    if isinstance(sym, (Parameter, Input)):
+        return sym.with_name(name)
+    return sp.Symbol(name, real=True)
+
+
+def identifier(name: str) -> str:
+    """A Python identifier for a (possibly dotted) toolkit name.
+
+    ``engine.J_e`` -> ``engine__J_e``; other characters become ``_``.
+    """
+    out = []
+    for ch in name:
+        if ch.isalnum() or ch == "_":
+            out.append(ch)
+        elif ch == ".":
+            out.append("__")
+        else:
+            out.append("_")
+    text = "".join(out)
+    if not text or text[0].isdigit():
+        text = "_" + text
+    import keyword
+
+    if keyword.iskeyword(text):
+        text += "_"
+    return text
