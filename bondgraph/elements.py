@@ -10,8 +10,11 @@ element, never from the order of arguments to ``connect``:
 * two-ports (TF, GY, MTF, MGY) pass power through: into port ``p1``, out of
   port ``p2``;
 * between two junctions the bond points from the first argument of
-  ``connect`` to the second; this choice only flips the sign of that bond's
-  internal variable, never the state equations.
+  ``connect`` to the second. That direction is part of the model, not an
+  accident of argument order: it sets the sign with which the bond enters
+  both junction sums (1(v1) -> 0 -> 1(v2) makes the 0-junction's third bond
+  carry v1 - v2), exactly as the half-arrow drawn between two junctions does
+  in a hand-drawn graph.
 
 Constitutive laws (all power-in conventions):
 

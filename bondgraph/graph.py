@@ -148,8 +148,10 @@ class BondGraph:
     -----
     The power sign convention is documented in :mod:`bondgraph.elements`.
     Elements are processed by SCAP in sorted-name order and the half-arrow of
-    a bond is fixed by its end elements, so the derived equations do not
-    depend on the order of declaration or of ``connect`` arguments.
+    a bond to an element is fixed by the element, so the derived equations do
+    not depend on the order of declaration or of ``connect`` arguments; only
+    a bond between two junctions takes its direction from ``connect(a, b)``
+    (a -> b), which is part of the model.
     """
 
     def __init__(self, name: str, description: str = ""):
@@ -426,8 +428,10 @@ class BondGraph:
         Notes
         -----
         The half-arrow follows the element convention (see
-        :mod:`bondgraph.elements`); only between two junctions does the
-        argument order pick the direction.
+        :mod:`bondgraph.elements`), whatever the argument order. Between two
+        junctions it points from ``a`` to ``b``: there the direction is a
+        modelling choice (it sets the signs of the junction sums), so write
+        ``connect(a, b)`` in the direction of positive power.
         """
         pa = self._resolve(a)
         pb = self._resolve(b)
@@ -835,19 +839,20 @@ def _xrep(v, subs):
     return v
 
 
-def expr_unit(expr: sp.Expr):
+def expr_unit(expr: sp.Expr, _factor: bool = False):
     """Dimension (pint dimensionality) of ``expr`` from its symbols' units, or
-    None when some symbol has no unit. Raises UnitMismatchError when a sum
-    adds different dimensions or a function gets a dimensioned argument."""
+    None when unknown (a symbol without unit, or a bare number: numbers are
+    dimensionless only as factors). Raises UnitMismatchError when a sum adds
+    different dimensions."""
     if expr.is_Number or expr in (sp.pi, sp.E):
-        return _units.dimensionality("1")
+        return _units.dimensionality("1") if _factor else None
     if isinstance(expr, sp.Symbol):
         u = getattr(expr, "unit", None)
         if not u:
             return None  # no unit declared: unknown, not dimensionless
         return _units.dimensionality(u)
     if expr.is_Add:
-        dims = [expr_unit(a) for a in expr.args]
+        dims = [expr_unit(a) for a in expr.args if not a.is_Number]
         known = [d for d in dims if d is not None]
         if len(known) < len(dims):
             return None
@@ -858,14 +863,14 @@ def expr_unit(expr: sp.Expr):
     if expr.is_Mul:
         out = _units.parse("1")
         for a in expr.args:
-            d = expr_unit(a)
+            d = expr_unit(a, _factor=True)
             if d is None:
                 return None
             out = out * _dim_quantity(d)
         return out.dimensionality
     if expr.is_Pow:
         base, ex = expr.args
-        d = expr_unit(base)
+        d = expr_unit(base, _factor=True)
         if d is None:
             return None
         if ex.is_Number:

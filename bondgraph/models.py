@@ -206,11 +206,15 @@ def mass_chain(n: int = 5) -> BondGraph:
     for i in range(1, n):
         ki = g.param(f"k{i}", 100.0 + 5.0 * i, "N/m", None, f"stiffness {i}")
         ci = g.param(f"c{i}", 0.5 + 0.05 * i, "N*s/m", None, f"damping {i}")
+        # 0-junction forms the relative velocity v_i - v_i+1; the spring and the
+        # damper share it on a 1-junction (parallel, Kelvin-Voigt)
         z = g.zero(f"s{i}", domain="translation")
         g.connect(js[i - 1], z)
         g.connect(z, js[i])
-        g.connect(z, g.C(f"K{i}", stiffness=ki))
-        g.connect(z, g.R(f"D{i}", ci))
+        rel = g.one(f"dv{i}", domain="translation")
+        g.connect(z, rel)
+        g.connect(rel, g.C(f"K{i}", stiffness=ki))
+        g.connect(rel, g.R(f"D{i}", ci))
     g.sensor("v_last", js[-1].f, unit="m/s", noise_std=0.01, description=f"speed of mass {n}")
     return g
 
