@@ -1,0 +1,288 @@
+"""Declaring graphs: validation errors, the exception hierarchy, fragments,
+and independence from declaration and connection order."""
+
+import itertools
+
+import pytest
+import sympy as sp
+
+import bondgraph as bg
+from bondgraph import errors
+from bondgraph.models import dc_motor_compliant
+
+
+def test_exception_hierarchy():
+    for cls in (errors.DanglingPortError, errors.JunctionError, errors.PortCountError,
+                errors.UndeclaredSymbolError, errors.UnitMismatchError,
+                errors.DuplicateNameError, errors.ConnectionError):
+        assert issubclass(cls, errors.GraphError)
+    for cls in (errors.CausalConflictError, errors.AlgebraicLoopError,
+                errors.DerivativeCausalityError):
+        assert issubclass(cls, errors.CausalityError)
+    for cls in (errors.GraphError, errors.CausalityError, errors.DataError,
+                errors.NumericalError, errors.CodegenError, errors.ModelError):
+        assert issubclass(cls, errors.BondGraphError)
+
+
+def _msd(order=0, flip=False):
+    """Mass-spring-damper declared in one of several orders; ``flip`` swaps
+    the arguments of every connect call."""
+    g = bg.BondGraph("msd")
+    m = g.param("m", 2.0, "kg")
+    k = g.param("k", 50.0, "N/m")
+    c = g.param("c", 1.5, "N*s/m")
+    F = g.input("F", "N")
+    makers = [
+        lambda: g.Se("force", F),
+        lambda: g.I("mass", m),
+        lambda: g.C("spring", stiffness=k),
+        lambda: g.R("damper", c),
+    ]
+    perm = list(itertools.permutations(range(4)))[order]
+    els = {}
+    for i in perm:
+        el = makers[i]()
+        els[el.name] = el
+    v = g.one("v", domain="translation")
+    for name in [["force", "mass", "spring", "damper"][i] for i in perm]:
+        a, b = (els[name], v) if not flip else (v, els[name])
+        g.connect(a, b)
+    return g
+
+
+@pytest.mark.parametrize("order,flip", [(0, False), (0, True), (5, False), (17, True), (23, True)])
+def test_equations_independent_of_declaration_and_argument_order(order, flip):
+    ref = _msd(0, False).derive()
+    ss = _msd(order, flip).derive()
+    assert [s.name for s in ss.states] == sorted([s.name for s in ss.states], key=[
+        s.name for s in ss.states].index)
+    ref_f = {s.name: f for s, f in zip(ref.states, ref.f)}
+    for s, f in zip(ss.states, ss.f):
+        assert sp.simplify(f - ref_f[s.name]) == 0
+
+
+def test_power_direction_follows_element_convention():
+    g = _msd(0, True)  # junction passed first everywhere
+    for b in g.bonds:
+        if b.tail.element.name == "force":
+            assert b.head.element.name == "v"
+        else:
+            assert b.tail.element.name == "v"  # storages and R absorb power
+
+
+def test_junction_to_junction_bond_direction_is_part_of_the_model():
+    """Between two junctions the half-arrow follows connect(a, b): reversing
+    the bond 0 -> 1(w_L) of the compliant shaft makes the shaft twist rate
+    w_m + w_L instead of w_m - w_L (a different model), so the direction is
+    not left to chance."""
+    a = dc_motor_compliant()
+    shaft_bonds = [b for b in a.bonds if {b.tail.element.name, b.head.element.name} ==
+                   {"shaft", "w_L"}]
+    assert len(shaft_bonds) == 1 and shaft_bonds[0].tail.element.name == "shaft"
+    g = a.copy("flipped")
+    bd = [b for b in g.bonds if b.name == shaft_bonds[0].name][0]
+    bd.tail, bd.head = bd.head, bd.tail
+    ss = g.derive()
+    pm, pL = ss.state("p_J_m"), ss.state("p_J_L")
+    Jm, JL = g.params["J_m"], g.params["J_L"]
+    assert sp.simplify(ss.rhs("q_k_s") - (pm / Jm + pL / JL)) == 0
+
+
+def test_dangling_port_names_element():
+    g = bg.BondGraph("x")
+    j = g.one("j")
+    g.connect(g.Se("src", 1), j)
+    g.connect(j, g.I("m", 1))
+    g.R("loose", 1)
+    with pytest.raises(errors.DanglingPortError) as e:
+        g.validate()
+    assert "loose" in str(e.value) and e.value.elements == ("loose",)
+
+
+def test_junction_with_one_bond():
+    g = bg.BondGraph("x")
+    j = g.one("j")
+    j2 = g.zero("lonely")
+    g.connect(g.Se("src", 1), j)
+    g.connect(j, g.I("m", 1))
+    g.connect(j2, g.C("c", 1))
+    with pytest.raises(errors.JunctionError) as e:
+        g.validate()
+    assert "lonely" in str(e.value) and "1 bond" in str(e.value)
+
+
+def test_two_port_needs_both_ports():
+    g = bg.BondGraph("x")
+    j = g.one("j")
+    g.connect(g.Se("src", 1), j)
+    tf = g.TF("tf", 2)
+    g.connect(j, tf.p1)
+    with pytest.raises(errors.PortCountError) as e:
+        g.validate()
+    assert "tf" in str(e.value) and "p2" in str(e.value)
+
+
+def test_two_port_without_explicit_port_and_reused_port():
+    g = bg.BondGraph("x")
+    j = g.one("j")
+    tf = g.TF("tf", 2)
+    with pytest.raises(errors.ConnectionError, match="tf.p1"):
+        g.connect(j, tf)
+    g.connect(j, tf.p1)
+    with pytest.raises(errors.ConnectionError, match="already bonded"):
+        g.connect(g.one("j2"), tf.p1)
+
+
+def test_bonding_two_absorbers_directly_is_refused():
+    g = bg.BondGraph("x")
+    with pytest.raises(errors.ConnectionError, match="through a 0- or 1-junction"):
+        g.connect(g.I("m", 1), g.C("c", 1))
+
+
+def test_varying_modulus_on_plain_tf_is_refused():
+    g = bg.BondGraph("x")
+    r = g.input("r")
+    j1, j2 = g.one("a"), g.one("b")
+    g.connect(g.Se("s", 1), j1)
+    tf = g.TF("tf", r)
+    g.connect(j1, tf.p1)
+    g.connect(tf.p2, j2)
+    g.connect(j2, g.I("m", 1))
+    with pytest.raises(errors.PortCountError, match="MTF"):
+        g.validate()
+
+
+def test_undeclared_symbol_is_named():
+    g = bg.BondGraph("x")
+    ghost = sp.Symbol("ghost")
+    j = g.one("j")
+    g.connect(g.Se("src", 1), j)
+    g.connect(j, g.R("fric", effort=lambda v: ghost * v))
+    g.connect(j, g.I("m", 1))
+    with pytest.raises(errors.UndeclaredSymbolError) as e:
+        g.validate()
+    assert "ghost" in str(e.value) and "fric" in str(e.value)
+
+
+def test_duplicate_names():
+    g = bg.BondGraph("x")
+    g.param("a", 1)
+    with pytest.raises(errors.DuplicateNameError):
+        g.param("a", 2)
+    g.I("m", 1)
+    with pytest.raises(errors.DuplicateNameError):
+        g.I("m", 2)
+
+
+def test_bond_units_must_make_power():
+    g = bg.BondGraph("x")
+    j = g.one("j", effort_unit="N", flow_unit="rad/s")
+    g.connect(g.Se("src", 1), j)
+    g.connect(j, g.I("m", 1))
+    with pytest.raises(errors.UnitMismatchError) as e:
+        g.validate()
+    assert "src -> j" in str(e.value) and "not a power" in str(e.value)
+
+
+def test_ends_of_bond_must_agree_on_units():
+    g = bg.BondGraph("x")
+    a = g.one("a", domain="translation")
+    b = g.zero("b", domain="rotation")
+    g.connect(g.Se("src", 1), a)
+    g.connect(a, b)
+    g.connect(b, g.C("k", 1))
+    g.connect(a, g.I("m", 1))
+    with pytest.raises(errors.UnitMismatchError) as e:
+        g.validate()
+    assert "a -> b" in str(e.value)
+
+
+def test_parameter_unit_must_fit_bond():
+    g = bg.BondGraph("x")
+    m = g.param("m", 1.0, "kg*m^2")  # an inertia on a translational bond
+    j = g.one("j", domain="translation")
+    g.connect(g.Se("src", 1), j)
+    g.connect(j, g.I("mass", m))
+    with pytest.raises(errors.UnitMismatchError, match="mass"):
+        g.validate()
+    # the right unit passes
+    g2 = bg.BondGraph("y")
+    m2 = g2.param("m", 1.0, "kg")
+    j2 = g2.one("j", domain="translation")
+    g2.connect(g2.Se("src", 1), j2)
+    g2.connect(j2, g2.I("mass", m2))
+    g2.validate()
+
+
+def _wheel(J_default):
+    f = bg.Fragment("wheel")
+    J = f.param("J", J_default, "kg*m^2", description="wheel inertia")
+    b = f.param("b", 0.1, "N*m*s/rad")
+    w = f.one("w", domain="rotation")
+    f.connect(w, f.I("inertia", J))
+    f.connect(w, f.R("bearing", b))
+    f.sensor("speed", w.f, unit="rad/s")
+    f.expose("hub", w)
+    return f
+
+
+def test_fragments_are_namespaced_and_composable():
+    g = bg.BondGraph("two_wheels")
+    T = g.input("T", "N*m")
+    shaft = g.zero("shaft", domain="rotation")
+    g.connect(g.Se("motor", T), g.one("m_j", domain="rotation"))
+    g.connect("m_j", shaft)
+    left = g.include(_wheel(1.0), "left")
+    right = g.include(_wheel(2.0), "right")
+    g.connect(shaft, left.port("hub"))
+    g.connect(shaft, right.port("hub"))
+    g.connect(shaft, g.C("twist", stiffness=g.param("k", 100.0, "N*m/rad")))
+    assert "left.J" in g.params and "right.J" in g.params
+    assert g.params["left.J"].default == 1.0 and g.params["right.J"].default == 2.0
+    assert "left.inertia" in g.elements and "right.speed" in g.sensors
+    ss = g.derive()
+    names = [s.name for s in ss.states]
+    assert "left.p_inertia" in names and "right.p_inertia" in names
+    # the sensor of the right wheel reads the right wheel's momentum / J
+    out = {o.name: o.expr for o in ss.outputs}
+    pr = ss.state("right.p_inertia")
+    assert sp.simplify(out["right.speed"] - pr / g.params["right.J"]) == 0
+    with pytest.raises(errors.GraphError, match="no port 'axle'"):
+        left.port("axle")
+
+
+def test_fragment_symbol_passed_in_is_kept():
+    g = bg.BondGraph("shared")
+    mu = g.param("mu", 0.8)
+    f = bg.Fragment("tyre")
+    j = f.one("j", domain="translation")
+    f.connect(j, f.R("slip", effort=lambda v: mu * v))
+    f.connect(j, f.I("m", f.param("m", 10.0, "kg")))
+    f.expose("road", j)
+    h = g.include(f, "front")
+    g.connect(g.Se("push", 1.0), h.port("road"))
+    law = g.elements["front.slip"].law
+    assert mu in law.free_symbols  # shared parameter not renamed
+    g.validate()
+
+
+def test_nonlinear_laws_and_sensor_on_displacement_of_a_junction():
+    g = bg.BondGraph("nl")
+    F = g.input("F", "N")
+    Fc = g.param("Fc", 2.0, "N")
+    eps = g.param("eps", 0.01, "m/s")
+    k3 = g.param("k3", 5.0, "N/m^3")
+    v = g.one("v", domain="translation")
+    g.connect(g.Se("f", F), v)
+    g.connect(v, g.I("m", 1.5))
+    g.connect(v, g.R("coulomb", effort=lambda u: Fc * sp.tanh(u / eps)))
+    spring = g.C("hard", effort=lambda q: k3 * q**3)
+    g.connect(v, spring)
+    xpos = g.displacement(v)
+    g.sensor("x", xpos, unit="m")
+    ss = g.derive()
+    p, q = ss.state("p_m"), ss.state("q_hard")
+    expect = F - Fc * sp.tanh(p / 1.5 / eps) - k3 * q**3
+    assert sp.simplify(ss.rhs("p_m") - expect) == 0
+    assert sp.simplify(ss.rhs("q_v") - p / 1.5) == 0
+    assert sp.simplify(ss.energy - (p**2 / 3 + k3 * q**4 / 4)) == 0
