@@ -150,6 +150,18 @@ class _Gen:
         text = self.printer.doprint(expr)
         return text.replace("numpy.", "np.")
 
+    def assign(self, target: str, e: sp.Expr) -> str:
+        """``target = e``; a top-level sum or product writes straight into the
+        output row through the ufunc's ``out=`` (one memory pass less than a
+        temporary followed by a copy)."""
+        if e.is_Add and len(e.args) >= 2:
+            first, rest = e.args[0], sp.Add(*e.args[1:])
+            return f"np.add({self.pr(rest)}, {self.pr(first)}, out={target})"
+        if e.is_Mul and len(e.args) >= 2 and not any(a.is_Number for a in e.args[1:]):
+            first, rest = e.args[0], sp.Mul(*e.args[1:])
+            return f"np.multiply({self.pr(first)}, {self.pr(rest)}, out={target})"
+        return f"{target} = {self.pr(e)}"
+
     def _unpack(self, syms, allowed=("x", "u", "theta")) -> list[str]:
         lines = []
         for kind in ("x", "u", "theta"):
@@ -187,21 +199,38 @@ class _Gen:
         lines = self._unpack(syms, allowed)
         for s, e in repl:
             lines.append(f"{s} = {self.pr(e)}")
-        shape_args = ", ".join(f"{a}.shape[:-1]" for a in shape_of)
-        lines.append(f"_shape = np.broadcast_shapes({shape_args})")
+        sizes = {"x": len(self.ss.states), "u": len(self.ss.inputs), "theta": len(self.ss.params)}
+        if all(sizes[a] > 0 for a in shape_of):
+            # np.broadcast(...).shape is ~2 us cheaper per call than broadcast_shapes
+            shape_args = ", ".join(f"{a}[..., 0]" for a in shape_of)
+            lines.append(f"_shape = np.broadcast({shape_args}).shape")
+        else:
+            shape_args = ", ".join(f"{a}.shape[:-1]" for a in shape_of)
+            lines.append(f"_shape = np.broadcast_shapes({shape_args})")
+        # Outputs are filled "state-major" (component axes first, so each
+        # assignment writes one contiguous row) and returned as a view with the
+        # component axes last: shape (..., n) as documented, memory laid out so
+        # that a caller feeding the result back reads contiguous columns.
         k = 0
         for name, entries, suffix in outputs:
             dense = len(entries) == _prod(suffix)
             alloc = "np.empty" if dense else "np.zeros"
-            lines.append(f"{name} = {alloc}(_shape + {tuple(suffix)!r})")
+            if len(suffix) == 0:
+                lines.append(f"{name} = {alloc}(_shape)")
+            else:
+                lines.append(f"{name} = {alloc}({tuple(suffix)!r} + _shape)")
             for idx, _ in entries:
                 e = reduced[k]
                 k += 1
                 index = ", ".join(str(i) for i in idx)
                 if len(suffix) == 0:
-                    lines.append(f"{name}[...] = {self.pr(e)}")
+                    lines.append(self.assign(f"{name}[...]", e))
                 else:
-                    lines.append(f"{name}[..., {index}] = {self.pr(e)}")
+                    lines.append(self.assign(f"{name}[{index}, ...]", e))
+            if len(suffix) == 1:
+                lines.append(f"{name} = {name}.transpose((*range(1, len(_shape) + 1), 0))")
+            elif len(suffix) == 2:
+                lines.append(f"{name} = {name}.transpose((*range(2, len(_shape) + 2), 0, 1))")
         return lines
 
     def function(self, name: str, args: str, doc: str, outputs, returns: str,

@@ -172,12 +172,13 @@ def f(x, u, theta):
     _t1 = 1/L_a
     _t2 = k_s*q_k_s
     _t3 = p_J_L/J_L
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (4,))
-    _dxdt[..., 0] = V - R_a*p_L_a*_t1 - k_m*_t0
-    _dxdt[..., 1] = -b_m*_t0 + k_m*p_L_a*_t1 - _t2
-    _dxdt[..., 2] = _t0 - _t3
-    _dxdt[..., 3] = -T_L - b_L*_t3 + _t2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((4,) + _shape)
+    np.add(V - R_a*p_L_a*_t1, -k_m*_t0, out=_dxdt[0, ...])
+    np.add(-b_m*_t0 + k_m*p_L_a*_t1, -_t2, out=_dxdt[1, ...])
+    np.add(-_t3, _t0, out=_dxdt[2, ...])
+    np.add(-T_L - b_L*_t3, _t2, out=_dxdt[3, ...])
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
 
@@ -195,10 +196,11 @@ def h(x, u, theta):
     p_J_L = x[..., 3]
     L_a = theta[..., 1]
     J_L = theta[..., 6]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _y = np.empty(_shape + (2,))
-    _y[..., 0] = p_J_L/J_L
-    _y[..., 1] = p_L_a/L_a
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _y = np.empty((2,) + _shape)
+    np.multiply(1/J_L, p_J_L, out=_y[0, ...])
+    np.multiply(1/L_a, p_L_a, out=_y[1, ...])
+    _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
 
@@ -219,17 +221,18 @@ def dfdx(x, u, theta):
     _t0 = 1/L_a
     _t1 = 1/J_m
     _t2 = 1/J_L
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (4, 4))
-    _J[..., 0, 0] = -R_a*_t0
-    _J[..., 0, 1] = -k_m*_t1
-    _J[..., 1, 0] = k_m*_t0
-    _J[..., 1, 1] = -b_m*_t1
-    _J[..., 1, 2] = -k_s
-    _J[..., 2, 1] = _t1
-    _J[..., 2, 3] = -_t2
-    _J[..., 3, 2] = k_s
-    _J[..., 3, 3] = -b_L*_t2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((4, 4) + _shape)
+    np.multiply(-1, R_a*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, k_m*_t1, out=_J[0, 1, ...])
+    np.multiply(_t0, k_m, out=_J[1, 0, ...])
+    np.multiply(-1, b_m*_t1, out=_J[1, 1, ...])
+    np.multiply(-1, k_s, out=_J[1, 2, ...])
+    _J[2, 1, ...] = _t1
+    np.multiply(-1, _t2, out=_J[2, 3, ...])
+    _J[3, 2, ...] = k_s
+    np.multiply(-1, b_L*_t2, out=_J[3, 3, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -255,22 +258,23 @@ def dfdtheta(x, u, theta):
     _t2 = -p_J_m/J_m
     _t3 = p_J_m/J_m**2
     _t4 = p_J_L/J_L**2
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (4, 8))
-    _J[..., 0, 0] = -_t0
-    _J[..., 0, 1] = R_a*_t1
-    _J[..., 0, 2] = _t2
-    _J[..., 0, 3] = k_m*_t3
-    _J[..., 1, 1] = -k_m*_t1
-    _J[..., 1, 2] = _t0
-    _J[..., 1, 3] = b_m*_t3
-    _J[..., 1, 4] = _t2
-    _J[..., 1, 5] = -q_k_s
-    _J[..., 2, 3] = -_t3
-    _J[..., 2, 6] = _t4
-    _J[..., 3, 5] = q_k_s
-    _J[..., 3, 6] = b_L*_t4
-    _J[..., 3, 7] = -p_J_L/J_L
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((4, 8) + _shape)
+    np.multiply(-1, _t0, out=_J[0, 0, ...])
+    np.multiply(_t1, R_a, out=_J[0, 1, ...])
+    _J[0, 2, ...] = _t2
+    np.multiply(_t3, k_m, out=_J[0, 3, ...])
+    np.multiply(-1, k_m*_t1, out=_J[1, 1, ...])
+    _J[1, 2, ...] = _t0
+    np.multiply(_t3, b_m, out=_J[1, 3, ...])
+    _J[1, 4, ...] = _t2
+    np.multiply(-1, q_k_s, out=_J[1, 5, ...])
+    np.multiply(-1, _t3, out=_J[2, 3, ...])
+    _J[2, 6, ...] = _t4
+    _J[3, 5, ...] = q_k_s
+    np.multiply(_t4, b_L, out=_J[3, 6, ...])
+    np.multiply(-1, p_J_L/J_L, out=_J[3, 7, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -282,10 +286,11 @@ def dhdx(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     L_a = theta[..., 1]
     J_L = theta[..., 6]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (2, 4))
-    _J[..., 0, 3] = 1/J_L
-    _J[..., 1, 0] = 1/L_a
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((2, 4) + _shape)
+    _J[0, 3, ...] = 1/J_L
+    _J[1, 0, ...] = 1/L_a
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -299,10 +304,11 @@ def dhdtheta(x, u, theta):
     p_J_L = x[..., 3]
     L_a = theta[..., 1]
     J_L = theta[..., 6]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (2, 8))
-    _J[..., 0, 6] = -p_J_L/J_L**2
-    _J[..., 1, 1] = -p_L_a/L_a**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((2, 8) + _shape)
+    np.multiply(-1, p_J_L/J_L**2, out=_J[0, 6, ...])
+    np.multiply(-1, p_L_a/L_a**2, out=_J[1, 1, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -337,22 +343,24 @@ def f_dfdx(x, u, theta):
     _t4 = k_s*q_k_s
     _t5 = 1/J_L
     _t6 = p_J_L*_t5
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (4,))
-    _dxdt[..., 0] = V - k_m*_t1 - p_L_a*_t3
-    _dxdt[..., 1] = -b_m*_t1 + k_m*p_L_a*_t2 - _t4
-    _dxdt[..., 2] = _t1 - _t6
-    _dxdt[..., 3] = -T_L - b_L*_t6 + _t4
-    _J = np.zeros(_shape + (4, 4))
-    _J[..., 0, 0] = -_t3
-    _J[..., 0, 1] = -k_m*_t0
-    _J[..., 1, 0] = k_m*_t2
-    _J[..., 1, 1] = -b_m*_t0
-    _J[..., 1, 2] = -k_s
-    _J[..., 2, 1] = _t0
-    _J[..., 2, 3] = -_t5
-    _J[..., 3, 2] = k_s
-    _J[..., 3, 3] = -b_L*_t5
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((4,) + _shape)
+    np.add(V - p_L_a*_t3, -k_m*_t1, out=_dxdt[0, ...])
+    np.add(-b_m*_t1 + k_m*p_L_a*_t2, -_t4, out=_dxdt[1, ...])
+    np.add(-_t6, _t1, out=_dxdt[2, ...])
+    np.add(-T_L - b_L*_t6, _t4, out=_dxdt[3, ...])
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
+    _J = np.zeros((4, 4) + _shape)
+    np.multiply(-1, _t3, out=_J[0, 0, ...])
+    np.multiply(-1, k_m*_t0, out=_J[0, 1, ...])
+    np.multiply(_t2, k_m, out=_J[1, 0, ...])
+    np.multiply(-1, b_m*_t0, out=_J[1, 1, ...])
+    np.multiply(-1, k_s, out=_J[1, 2, ...])
+    _J[2, 1, ...] = _t0
+    np.multiply(-1, _t5, out=_J[2, 3, ...])
+    _J[3, 2, ...] = k_s
+    np.multiply(-1, b_L*_t5, out=_J[3, 3, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
 
@@ -370,9 +378,9 @@ def energy(x, u, theta):
     J_m = theta[..., 3]
     k_s = theta[..., 5]
     J_L = theta[..., 6]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = (0.5)*k_s*q_k_s**2 + (0.5)*p_L_a**2/L_a + (0.5)*p_J_m**2/J_m + (0.5)*p_J_L**2/J_L
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add((0.5)*k_s*q_k_s**2 + (0.5)*p_L_a**2/L_a + (0.5)*p_J_m**2/J_m, (0.5)*p_J_L**2/J_L, out=_out[...])
     return _out
 
 
@@ -388,9 +396,9 @@ def power_sources(x, u, theta):
     T_L = u[..., 1]
     L_a = theta[..., 1]
     J_L = theta[..., 6]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = -T_L*p_J_L/J_L + V*p_L_a/L_a
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(-T_L*p_J_L/J_L, V*p_L_a/L_a, out=_out[...])
     return _out
 
 
@@ -409,9 +417,9 @@ def power_dissipated(x, u, theta):
     b_m = theta[..., 4]
     J_L = theta[..., 6]
     b_L = theta[..., 7]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = R_a*p_L_a**2/L_a**2 + b_m*p_J_m**2/J_m**2 + b_L*p_J_L**2/J_L**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(R_a*p_L_a**2/L_a**2 + b_m*p_J_m**2/J_m**2, b_L*p_J_L**2/J_L**2, out=_out[...])
     return _out
 
 
@@ -440,9 +448,9 @@ def energy_rate(x, u, theta):
     _t2 = p_J_m/J_m
     _t3 = 1/L_a
     _t4 = p_L_a*_t3
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = _t0*(-_t1 + _t2) + _t1*(-T_L - b_L*_t1 + _t0) + _t2*(-b_m*_t2 + k_m*p_L_a*_t3 - _t0) + _t4*(V - R_a*_t4 - k_m*_t2)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(_t1*(-T_L - b_L*_t1 + _t0) + _t2*(-b_m*_t2 + k_m*p_L_a*_t3 - _t0) + _t4*(V - R_a*_t4 - k_m*_t2), _t0*(-_t1 + _t2), out=_out[...])
     return _out
 
 
@@ -450,10 +458,11 @@ def meas_std(theta):
     """Measurement-noise standard deviations, shape (..., 2), in output units.
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (2,))
-    _out[..., 0] = 0.500000000000000
-    _out[..., 1] = 0.0500000000000000
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((2,) + _shape)
+    _out[0, ...] = 0.500000000000000
+    _out[1, ...] = 0.0500000000000000
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 
@@ -462,12 +471,13 @@ def proc_std(theta):
     (the covariance added over a step dt is diag(proc_std**2) * dt).
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (4,))
-    _out[..., 0] = 0
-    _out[..., 1] = 0
-    _out[..., 2] = 0
-    _out[..., 3] = 0
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((4,) + _shape)
+    _out[0, ...] = 0
+    _out[1, ...] = 0
+    _out[2, ...] = 0
+    _out[3, ...] = 0
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 

@@ -144,10 +144,11 @@ def f(x, u, theta):
     _t1 = 1/J_L
     _t2 = p_J_L*_t1
     _t3 = k_m*n
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (2,))
-    _dxdt[..., 0] = V - R_a*_t0 - _t2*_t3
-    _dxdt[..., 1] = (-b_L*_t2 + _t0*_t3)/(J_m*n**2*_t1 + 1)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((2,) + _shape)
+    np.add(V - _t2*_t3, -R_a*_t0, out=_dxdt[0, ...])
+    np.multiply(1/(J_m*n**2*_t1 + 1), -b_L*_t2 + _t0*_t3, out=_dxdt[1, ...])
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
 
@@ -163,9 +164,10 @@ def h(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     p_J_L = x[..., 1]
     J_L = theta[..., 5]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _y = np.empty(_shape + (1,))
-    _y[..., 0] = p_J_L/J_L
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _y = np.empty((1,) + _shape)
+    np.multiply(1/J_L, p_J_L, out=_y[0, ...])
+    _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
 
@@ -186,12 +188,13 @@ def dfdx(x, u, theta):
     _t1 = 1/J_L
     _t2 = k_m*n
     _t3 = 1/(J_m*n**2*_t1 + 1)
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.empty(_shape + (2, 2))
-    _J[..., 0, 0] = -R_a*_t0
-    _J[..., 0, 1] = -_t1*_t2
-    _J[..., 1, 0] = _t0*_t2*_t3
-    _J[..., 1, 1] = -b_L*_t1*_t3
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.empty((2, 2) + _shape)
+    np.multiply(-1, R_a*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, _t1*_t2, out=_J[0, 1, ...])
+    np.multiply(_t0, _t2*_t3, out=_J[1, 0, ...])
+    np.multiply(-1, b_L*_t1*_t3, out=_J[1, 1, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -224,19 +227,20 @@ def dfdtheta(x, u, theta):
     _t11 = _t0*_t10
     _t12 = (-b_L*_t3 + _t0*_t4)/_t9**2
     _t13 = J_m*_t12
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (2, 7))
-    _J[..., 0, 0] = -_t0
-    _J[..., 0, 1] = R_a*_t1
-    _J[..., 0, 2] = -n*_t3
-    _J[..., 0, 4] = -k_m*_t3
-    _J[..., 0, 5] = _t4*_t6
-    _J[..., 1, 1] = -_t1*_t10*_t4
-    _J[..., 1, 2] = n*_t11
-    _J[..., 1, 3] = -_t12*_t8
-    _J[..., 1, 4] = k_m*_t11 - 2*n*_t13*_t2
-    _J[..., 1, 5] = b_L*_t10*_t6 + _t13*_t5*_t7
-    _J[..., 1, 6] = -_t10*_t3
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((2, 7) + _shape)
+    np.multiply(-1, _t0, out=_J[0, 0, ...])
+    np.multiply(_t1, R_a, out=_J[0, 1, ...])
+    np.multiply(-1, n*_t3, out=_J[0, 2, ...])
+    np.multiply(-1, k_m*_t3, out=_J[0, 4, ...])
+    np.multiply(_t4, _t6, out=_J[0, 5, ...])
+    np.multiply(-1, _t1*_t10*_t4, out=_J[1, 1, ...])
+    np.multiply(_t11, n, out=_J[1, 2, ...])
+    np.multiply(-1, _t12*_t8, out=_J[1, 3, ...])
+    np.add(-2*n*_t13*_t2, k_m*_t11, out=_J[1, 4, ...])
+    np.add(_t13*_t5*_t7, b_L*_t10*_t6, out=_J[1, 5, ...])
+    np.multiply(-1, _t10*_t3, out=_J[1, 6, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -247,9 +251,10 @@ def dhdx(x, u, theta):
     u = np.asarray(u, dtype=float)
     theta = np.asarray(theta, dtype=float)
     J_L = theta[..., 5]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (1, 2))
-    _J[..., 0, 1] = 1/J_L
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((1, 2) + _shape)
+    _J[0, 1, ...] = 1/J_L
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -261,9 +266,10 @@ def dhdtheta(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     p_J_L = x[..., 1]
     J_L = theta[..., 5]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (1, 7))
-    _J[..., 0, 5] = -p_J_L/J_L**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((1, 7) + _shape)
+    np.multiply(-1, p_J_L/J_L**2, out=_J[0, 5, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -295,15 +301,17 @@ def f_dfdx(x, u, theta):
     _t5 = 1/(J_m*n**2*_t2 + 1)
     _t6 = b_L*_t2
     _t7 = _t0*_t3
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (2,))
-    _dxdt[..., 0] = V - p_J_L*_t4 - p_L_a*_t1
-    _dxdt[..., 1] = _t5*(-p_J_L*_t6 + p_L_a*_t7)
-    _J = np.empty(_shape + (2, 2))
-    _J[..., 0, 0] = -_t1
-    _J[..., 0, 1] = -_t4
-    _J[..., 1, 0] = _t5*_t7
-    _J[..., 1, 1] = -_t5*_t6
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((2,) + _shape)
+    np.add(V - p_J_L*_t4, -p_L_a*_t1, out=_dxdt[0, ...])
+    np.multiply(_t5, -p_J_L*_t6 + p_L_a*_t7, out=_dxdt[1, ...])
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
+    _J = np.empty((2, 2) + _shape)
+    np.multiply(-1, _t1, out=_J[0, 0, ...])
+    np.multiply(-1, _t4, out=_J[0, 1, ...])
+    np.multiply(_t5, _t7, out=_J[1, 0, ...])
+    np.multiply(-1, _t5*_t6, out=_J[1, 1, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
 
@@ -320,9 +328,9 @@ def energy(x, u, theta):
     n = theta[..., 4]
     J_L = theta[..., 5]
     _t0 = (0.5)*p_J_L**2
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = (0.5)*p_L_a**2/L_a + _t0/J_L + J_m*n**2*_t0/J_L**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add((0.5)*p_L_a**2/L_a + J_m*n**2*_t0/J_L**2, _t0/J_L, out=_out[...])
     return _out
 
 
@@ -335,9 +343,9 @@ def power_sources(x, u, theta):
     p_L_a = x[..., 0]
     V = u[..., 0]
     L_a = theta[..., 1]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = V*p_L_a/L_a
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.multiply(1/L_a, V*p_L_a, out=_out[...])
     return _out
 
 
@@ -353,9 +361,9 @@ def power_dissipated(x, u, theta):
     L_a = theta[..., 1]
     J_L = theta[..., 5]
     b_L = theta[..., 6]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = R_a*p_L_a**2/L_a**2 + b_L*p_J_L**2/J_L**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(R_a*p_L_a**2/L_a**2, b_L*p_J_L**2/J_L**2, out=_out[...])
     return _out
 
 
@@ -381,9 +389,9 @@ def energy_rate(x, u, theta):
     _t3 = k_m*n
     _t4 = J_m*n**2
     _t5 = (-b_L*_t2 + _t0*_t3)/(_t1*_t4 + 1)
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = _t0*(V - R_a*_t0 - _t2*_t3) + _t2*_t5 + p_J_L*_t4*_t5/J_L**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(_t2*_t5 + p_J_L*_t4*_t5/J_L**2, _t0*(V - R_a*_t0 - _t2*_t3), out=_out[...])
     return _out
 
 
@@ -391,9 +399,10 @@ def meas_std(theta):
     """Measurement-noise standard deviations, shape (..., 1), in output units.
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (1,))
-    _out[..., 0] = 0.200000000000000
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((1,) + _shape)
+    _out[0, ...] = 0.200000000000000
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 
@@ -402,10 +411,11 @@ def proc_std(theta):
     (the covariance added over a step dt is diag(proc_std**2) * dt).
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (2,))
-    _out[..., 0] = 0
-    _out[..., 1] = 0
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((2,) + _shape)
+    _out[0, ...] = 0
+    _out[1, ...] = 0
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 

@@ -238,17 +238,18 @@ def f(x, u, theta):
     _t11 = _t7 - p_M5/m5
     _t12 = c4*_t11
     _t13 = k4*q_K4
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (9,))
-    _dxdt[..., 0] = F - _t2
-    _dxdt[..., 1] = _t2 - _t5 - _t6
-    _dxdt[..., 2] = -_t10 + _t5 + _t6 - _t9
-    _dxdt[..., 3] = _t10 - _t12 - _t13 + _t9
-    _dxdt[..., 4] = _t12 + _t13
-    _dxdt[..., 5] = _t1
-    _dxdt[..., 6] = _t4
-    _dxdt[..., 7] = _t8
-    _dxdt[..., 8] = _t11
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((9,) + _shape)
+    np.add(F, -_t2, out=_dxdt[0, ...])
+    np.add(-_t5 - _t6, _t2, out=_dxdt[1, ...])
+    np.add(-_t10 + _t6 - _t9, _t5, out=_dxdt[2, ...])
+    np.add(-_t12 - _t13 + _t9, _t10, out=_dxdt[3, ...])
+    np.add(_t13, _t12, out=_dxdt[4, ...])
+    _dxdt[5, ...] = _t1
+    _dxdt[6, ...] = _t4
+    _dxdt[7, ...] = _t8
+    _dxdt[8, ...] = _t11
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
 
@@ -264,9 +265,10 @@ def h(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     p_M5 = x[..., 4]
     m5 = theta[..., 4]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _y = np.empty(_shape + (1,))
-    _y[..., 0] = p_M5/m5
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _y = np.empty((1,) + _shape)
+    np.multiply(1/m5, p_M5, out=_y[0, ...])
+    _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
 
@@ -302,37 +304,38 @@ def dfdx(x, u, theta):
     _t10 = c4*_t8
     _t11 = 1/m5
     _t12 = c4*_t11
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (9, 9))
-    _J[..., 0, 0] = -_t1
-    _J[..., 0, 1] = _t3
-    _J[..., 0, 5] = -k1
-    _J[..., 1, 0] = _t1
-    _J[..., 1, 1] = -_t3 - _t4
-    _J[..., 1, 2] = _t6
-    _J[..., 1, 5] = k1
-    _J[..., 1, 6] = -k2
-    _J[..., 2, 1] = _t4
-    _J[..., 2, 2] = -_t6 - _t7
-    _J[..., 2, 3] = _t9
-    _J[..., 2, 6] = k2
-    _J[..., 2, 7] = -k3
-    _J[..., 3, 2] = _t7
-    _J[..., 3, 3] = -_t10 - _t9
-    _J[..., 3, 4] = _t12
-    _J[..., 3, 7] = k3
-    _J[..., 3, 8] = -k4
-    _J[..., 4, 3] = _t10
-    _J[..., 4, 4] = -_t12
-    _J[..., 4, 8] = k4
-    _J[..., 5, 0] = _t0
-    _J[..., 5, 1] = -_t2
-    _J[..., 6, 1] = _t2
-    _J[..., 6, 2] = -_t5
-    _J[..., 7, 2] = _t5
-    _J[..., 7, 3] = -_t8
-    _J[..., 8, 3] = _t8
-    _J[..., 8, 4] = -_t11
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((9, 9) + _shape)
+    np.multiply(-1, _t1, out=_J[0, 0, ...])
+    _J[0, 1, ...] = _t3
+    np.multiply(-1, k1, out=_J[0, 5, ...])
+    _J[1, 0, ...] = _t1
+    np.add(-_t4, -_t3, out=_J[1, 1, ...])
+    _J[1, 2, ...] = _t6
+    _J[1, 5, ...] = k1
+    np.multiply(-1, k2, out=_J[1, 6, ...])
+    _J[2, 1, ...] = _t4
+    np.add(-_t7, -_t6, out=_J[2, 2, ...])
+    _J[2, 3, ...] = _t9
+    _J[2, 6, ...] = k2
+    np.multiply(-1, k3, out=_J[2, 7, ...])
+    _J[3, 2, ...] = _t7
+    np.add(-_t9, -_t10, out=_J[3, 3, ...])
+    _J[3, 4, ...] = _t12
+    _J[3, 7, ...] = k3
+    np.multiply(-1, k4, out=_J[3, 8, ...])
+    _J[4, 3, ...] = _t10
+    np.multiply(-1, _t12, out=_J[4, 4, ...])
+    _J[4, 8, ...] = k4
+    _J[5, 0, ...] = _t0
+    np.multiply(-1, _t2, out=_J[5, 1, ...])
+    _J[6, 1, ...] = _t2
+    np.multiply(-1, _t5, out=_J[6, 2, ...])
+    _J[7, 2, ...] = _t5
+    np.multiply(-1, _t8, out=_J[7, 3, ...])
+    _J[8, 3, ...] = _t8
+    np.multiply(-1, _t11, out=_J[8, 4, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -380,45 +383,46 @@ def dfdtheta(x, u, theta):
     _t17 = p_M5/m5**2
     _t18 = c4*_t17
     _t19 = -_t14 + p_M5/m5
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (9, 13))
-    _J[..., 0, 0] = _t1
-    _J[..., 0, 1] = -_t3
-    _J[..., 0, 5] = -q_K1
-    _J[..., 0, 6] = _t5
-    _J[..., 1, 0] = -_t1
-    _J[..., 1, 1] = _t3 + _t6
-    _J[..., 1, 2] = -_t8
-    _J[..., 1, 5] = q_K1
-    _J[..., 1, 6] = -_t5
-    _J[..., 1, 7] = -q_K2
-    _J[..., 1, 8] = _t10
-    _J[..., 2, 1] = -_t6
-    _J[..., 2, 2] = _t11 + _t8
-    _J[..., 2, 3] = -_t13
-    _J[..., 2, 7] = q_K2
-    _J[..., 2, 8] = -_t10
-    _J[..., 2, 9] = -q_K3
-    _J[..., 2, 10] = _t15
-    _J[..., 3, 2] = -_t11
-    _J[..., 3, 3] = _t13 + _t16
-    _J[..., 3, 4] = -_t18
-    _J[..., 3, 9] = q_K3
-    _J[..., 3, 10] = -_t15
-    _J[..., 3, 11] = -q_K4
-    _J[..., 3, 12] = _t19
-    _J[..., 4, 3] = -_t16
-    _J[..., 4, 4] = _t18
-    _J[..., 4, 11] = q_K4
-    _J[..., 4, 12] = -_t19
-    _J[..., 5, 0] = -_t0
-    _J[..., 5, 1] = _t2
-    _J[..., 6, 1] = -_t2
-    _J[..., 6, 2] = _t7
-    _J[..., 7, 2] = -_t7
-    _J[..., 7, 3] = _t12
-    _J[..., 8, 3] = -_t12
-    _J[..., 8, 4] = _t17
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((9, 13) + _shape)
+    _J[0, 0, ...] = _t1
+    np.multiply(-1, _t3, out=_J[0, 1, ...])
+    np.multiply(-1, q_K1, out=_J[0, 5, ...])
+    _J[0, 6, ...] = _t5
+    np.multiply(-1, _t1, out=_J[1, 0, ...])
+    np.add(_t6, _t3, out=_J[1, 1, ...])
+    np.multiply(-1, _t8, out=_J[1, 2, ...])
+    _J[1, 5, ...] = q_K1
+    np.multiply(-1, _t5, out=_J[1, 6, ...])
+    np.multiply(-1, q_K2, out=_J[1, 7, ...])
+    _J[1, 8, ...] = _t10
+    np.multiply(-1, _t6, out=_J[2, 1, ...])
+    np.add(_t8, _t11, out=_J[2, 2, ...])
+    np.multiply(-1, _t13, out=_J[2, 3, ...])
+    _J[2, 7, ...] = q_K2
+    np.multiply(-1, _t10, out=_J[2, 8, ...])
+    np.multiply(-1, q_K3, out=_J[2, 9, ...])
+    _J[2, 10, ...] = _t15
+    np.multiply(-1, _t11, out=_J[3, 2, ...])
+    np.add(_t16, _t13, out=_J[3, 3, ...])
+    np.multiply(-1, _t18, out=_J[3, 4, ...])
+    _J[3, 9, ...] = q_K3
+    np.multiply(-1, _t15, out=_J[3, 10, ...])
+    np.multiply(-1, q_K4, out=_J[3, 11, ...])
+    _J[3, 12, ...] = _t19
+    np.multiply(-1, _t16, out=_J[4, 3, ...])
+    _J[4, 4, ...] = _t18
+    _J[4, 11, ...] = q_K4
+    np.multiply(-1, _t19, out=_J[4, 12, ...])
+    np.multiply(-1, _t0, out=_J[5, 0, ...])
+    _J[5, 1, ...] = _t2
+    np.multiply(-1, _t2, out=_J[6, 1, ...])
+    _J[6, 2, ...] = _t7
+    np.multiply(-1, _t7, out=_J[7, 2, ...])
+    _J[7, 3, ...] = _t12
+    np.multiply(-1, _t12, out=_J[8, 3, ...])
+    _J[8, 4, ...] = _t17
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -429,9 +433,10 @@ def dhdx(x, u, theta):
     u = np.asarray(u, dtype=float)
     theta = np.asarray(theta, dtype=float)
     m5 = theta[..., 4]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (1, 9))
-    _J[..., 0, 4] = 1/m5
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((1, 9) + _shape)
+    _J[0, 4, ...] = 1/m5
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -443,9 +448,10 @@ def dhdtheta(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     p_M5 = x[..., 4]
     m5 = theta[..., 4]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (1, 13))
-    _J[..., 0, 4] = -p_M5/m5**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((1, 13) + _shape)
+    np.multiply(-1, p_M5/m5**2, out=_J[0, 4, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -509,47 +515,49 @@ def f_dfdx(x, u, theta):
     _t24 = c3*_t10
     _t25 = c4*_t10
     _t26 = c4*_t15
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (9,))
-    _dxdt[..., 0] = F - _t4
-    _dxdt[..., 1] = _t4 - _t8 - _t9
-    _dxdt[..., 2] = -_t13 - _t14 + _t8 + _t9
-    _dxdt[..., 3] = _t13 + _t14 - _t17 - _t18
-    _dxdt[..., 4] = _t17 + _t18
-    _dxdt[..., 5] = _t3
-    _dxdt[..., 6] = _t7
-    _dxdt[..., 7] = _t12
-    _dxdt[..., 8] = _t16
-    _J = np.zeros(_shape + (9, 9))
-    _J[..., 0, 0] = -_t19
-    _J[..., 0, 1] = _t20
-    _J[..., 0, 5] = -k1
-    _J[..., 1, 0] = _t19
-    _J[..., 1, 1] = -_t20 - _t21
-    _J[..., 1, 2] = _t22
-    _J[..., 1, 5] = k1
-    _J[..., 1, 6] = -k2
-    _J[..., 2, 1] = _t21
-    _J[..., 2, 2] = -_t22 - _t23
-    _J[..., 2, 3] = _t24
-    _J[..., 2, 6] = k2
-    _J[..., 2, 7] = -k3
-    _J[..., 3, 2] = _t23
-    _J[..., 3, 3] = -_t24 - _t25
-    _J[..., 3, 4] = _t26
-    _J[..., 3, 7] = k3
-    _J[..., 3, 8] = -k4
-    _J[..., 4, 3] = _t25
-    _J[..., 4, 4] = -_t26
-    _J[..., 4, 8] = k4
-    _J[..., 5, 0] = _t2
-    _J[..., 5, 1] = -_t0
-    _J[..., 6, 1] = _t0
-    _J[..., 6, 2] = -_t5
-    _J[..., 7, 2] = _t5
-    _J[..., 7, 3] = -_t10
-    _J[..., 8, 3] = _t10
-    _J[..., 8, 4] = -_t15
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((9,) + _shape)
+    np.add(F, -_t4, out=_dxdt[0, ...])
+    np.add(-_t8 - _t9, _t4, out=_dxdt[1, ...])
+    np.add(-_t13 - _t14 + _t9, _t8, out=_dxdt[2, ...])
+    np.add(_t14 - _t17 - _t18, _t13, out=_dxdt[3, ...])
+    np.add(_t18, _t17, out=_dxdt[4, ...])
+    _dxdt[5, ...] = _t3
+    _dxdt[6, ...] = _t7
+    _dxdt[7, ...] = _t12
+    _dxdt[8, ...] = _t16
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
+    _J = np.zeros((9, 9) + _shape)
+    np.multiply(-1, _t19, out=_J[0, 0, ...])
+    _J[0, 1, ...] = _t20
+    np.multiply(-1, k1, out=_J[0, 5, ...])
+    _J[1, 0, ...] = _t19
+    np.add(-_t21, -_t20, out=_J[1, 1, ...])
+    _J[1, 2, ...] = _t22
+    _J[1, 5, ...] = k1
+    np.multiply(-1, k2, out=_J[1, 6, ...])
+    _J[2, 1, ...] = _t21
+    np.add(-_t23, -_t22, out=_J[2, 2, ...])
+    _J[2, 3, ...] = _t24
+    _J[2, 6, ...] = k2
+    np.multiply(-1, k3, out=_J[2, 7, ...])
+    _J[3, 2, ...] = _t23
+    np.add(-_t25, -_t24, out=_J[3, 3, ...])
+    _J[3, 4, ...] = _t26
+    _J[3, 7, ...] = k3
+    np.multiply(-1, k4, out=_J[3, 8, ...])
+    _J[4, 3, ...] = _t25
+    np.multiply(-1, _t26, out=_J[4, 4, ...])
+    _J[4, 8, ...] = k4
+    _J[5, 0, ...] = _t2
+    np.multiply(-1, _t0, out=_J[5, 1, ...])
+    _J[6, 1, ...] = _t0
+    np.multiply(-1, _t5, out=_J[6, 2, ...])
+    _J[7, 2, ...] = _t5
+    np.multiply(-1, _t10, out=_J[7, 3, ...])
+    _J[8, 3, ...] = _t10
+    np.multiply(-1, _t15, out=_J[8, 4, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
 
@@ -577,9 +585,9 @@ def energy(x, u, theta):
     k2 = theta[..., 7]
     k3 = theta[..., 9]
     k4 = theta[..., 11]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = (0.5)*k1*q_K1**2 + (0.5)*k2*q_K2**2 + (0.5)*k3*q_K3**2 + (0.5)*k4*q_K4**2 + (0.5)*p_M5**2/m5 + (0.5)*p_M4**2/m4 + (0.5)*p_M3**2/m3 + (0.5)*p_M2**2/m2 + (0.5)*p_M1**2/m1
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add((0.5)*k1*q_K1**2 + (0.5)*k2*q_K2**2 + (0.5)*k3*q_K3**2 + (0.5)*k4*q_K4**2 + (0.5)*p_M5**2/m5 + (0.5)*p_M4**2/m4 + (0.5)*p_M3**2/m3 + (0.5)*p_M2**2/m2, (0.5)*p_M1**2/m1, out=_out[...])
     return _out
 
 
@@ -592,9 +600,9 @@ def power_sources(x, u, theta):
     p_M1 = x[..., 0]
     F = u[..., 0]
     m1 = theta[..., 0]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = F*p_M1/m1
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.multiply(1/m1, F*p_M1, out=_out[...])
     return _out
 
 
@@ -621,9 +629,9 @@ def power_dissipated(x, u, theta):
     _t0 = p_M2/m2
     _t1 = p_M3/m3
     _t2 = p_M4/m4
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = c1*(-_t0 + p_M1/m1)**2 + c2*(_t0 - _t1)**2 + c3*(_t1 - _t2)**2 + c4*(_t2 - p_M5/m5)**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(c1*(-_t0 + p_M1/m1)**2 + c3*(_t1 - _t2)**2 + c4*(_t2 - p_M5/m5)**2, c2*(_t0 - _t1)**2, out=_out[...])
     return _out
 
 
@@ -673,9 +681,9 @@ def energy_rate(x, u, theta):
     _t14 = -_t13 + _t9
     _t15 = c4*_t14
     _t16 = k4*q_K4
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = p_M1*_t1*(F - _t4) + _t0*(_t4 - _t7 - _t8) + _t10*_t12 + _t13*(_t15 + _t16) + _t14*_t16 + _t2*_t3 + _t5*(-_t11 - _t12 + _t7 + _t8) + _t6*_t8 + _t9*(_t11 + _t12 - _t15 - _t16)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(p_M1*_t1*(F - _t4) + _t10*_t12 + _t13*(_t15 + _t16) + _t14*_t16 + _t2*_t3 + _t5*(-_t11 - _t12 + _t7 + _t8) + _t6*_t8 + _t9*(_t11 + _t12 - _t15 - _t16), _t0*(_t4 - _t7 - _t8), out=_out[...])
     return _out
 
 
@@ -683,9 +691,10 @@ def meas_std(theta):
     """Measurement-noise standard deviations, shape (..., 1), in output units.
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (1,))
-    _out[..., 0] = 0.0100000000000000
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((1,) + _shape)
+    _out[0, ...] = 0.0100000000000000
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 
@@ -694,17 +703,18 @@ def proc_std(theta):
     (the covariance added over a step dt is diag(proc_std**2) * dt).
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (9,))
-    _out[..., 0] = 0
-    _out[..., 1] = 0
-    _out[..., 2] = 0
-    _out[..., 3] = 0
-    _out[..., 4] = 0
-    _out[..., 5] = 0
-    _out[..., 6] = 0
-    _out[..., 7] = 0
-    _out[..., 8] = 0
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((9,) + _shape)
+    _out[0, ...] = 0
+    _out[1, ...] = 0
+    _out[2, ...] = 0
+    _out[3, ...] = 0
+    _out[4, ...] = 0
+    _out[5, ...] = 0
+    _out[6, ...] = 0
+    _out[7, ...] = 0
+    _out[8, ...] = 0
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 

@@ -120,10 +120,11 @@ def f(x, u, theta):
     k = theta[..., 1]
     c = theta[..., 2]
     _t0 = p_mass/m
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (2,))
-    _dxdt[..., 0] = F - c*_t0 - k*q_spring
-    _dxdt[..., 1] = _t0
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((2,) + _shape)
+    np.add(F - k*q_spring, -c*_t0, out=_dxdt[0, ...])
+    _dxdt[1, ...] = _t0
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
 
@@ -140,10 +141,11 @@ def h(x, u, theta):
     p_mass = x[..., 0]
     q_spring = x[..., 1]
     m = theta[..., 0]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _y = np.empty(_shape + (2,))
-    _y[..., 0] = q_spring
-    _y[..., 1] = p_mass/m
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _y = np.empty((2,) + _shape)
+    _y[0, ...] = q_spring
+    np.multiply(1/m, p_mass, out=_y[1, ...])
+    _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
 
@@ -157,11 +159,12 @@ def dfdx(x, u, theta):
     k = theta[..., 1]
     c = theta[..., 2]
     _t0 = 1/m
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (2, 2))
-    _J[..., 0, 0] = -c*_t0
-    _J[..., 0, 1] = -k
-    _J[..., 1, 0] = _t0
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((2, 2) + _shape)
+    np.multiply(-1, c*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, k, out=_J[0, 1, ...])
+    _J[1, 0, ...] = _t0
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -176,12 +179,13 @@ def dfdtheta(x, u, theta):
     m = theta[..., 0]
     c = theta[..., 2]
     _t0 = p_mass/m**2
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (2, 3))
-    _J[..., 0, 0] = c*_t0
-    _J[..., 0, 1] = -q_spring
-    _J[..., 0, 2] = -p_mass/m
-    _J[..., 1, 0] = -_t0
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((2, 3) + _shape)
+    np.multiply(_t0, c, out=_J[0, 0, ...])
+    np.multiply(-1, q_spring, out=_J[0, 1, ...])
+    np.multiply(-1, p_mass/m, out=_J[0, 2, ...])
+    np.multiply(-1, _t0, out=_J[1, 0, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -192,10 +196,11 @@ def dhdx(x, u, theta):
     u = np.asarray(u, dtype=float)
     theta = np.asarray(theta, dtype=float)
     m = theta[..., 0]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (2, 2))
-    _J[..., 0, 1] = 1
-    _J[..., 1, 0] = 1/m
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((2, 2) + _shape)
+    _J[0, 1, ...] = 1
+    _J[1, 0, ...] = 1/m
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -207,9 +212,10 @@ def dhdtheta(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     p_mass = x[..., 0]
     m = theta[..., 0]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (2, 3))
-    _J[..., 1, 0] = -p_mass/m**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((2, 3) + _shape)
+    np.multiply(-1, p_mass/m**2, out=_J[1, 0, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -231,14 +237,16 @@ def f_dfdx(x, u, theta):
     c = theta[..., 2]
     _t0 = 1/m
     _t1 = p_mass*_t0
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (2,))
-    _dxdt[..., 0] = F - c*_t1 - k*q_spring
-    _dxdt[..., 1] = _t1
-    _J = np.zeros(_shape + (2, 2))
-    _J[..., 0, 0] = -c*_t0
-    _J[..., 0, 1] = -k
-    _J[..., 1, 0] = _t0
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((2,) + _shape)
+    np.add(F - k*q_spring, -c*_t1, out=_dxdt[0, ...])
+    _dxdt[1, ...] = _t1
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
+    _J = np.zeros((2, 2) + _shape)
+    np.multiply(-1, c*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, k, out=_J[0, 1, ...])
+    _J[1, 0, ...] = _t0
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
 
@@ -252,9 +260,9 @@ def energy(x, u, theta):
     q_spring = x[..., 1]
     m = theta[..., 0]
     k = theta[..., 1]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = (0.5)*k*q_spring**2 + (0.5)*p_mass**2/m
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add((0.5)*k*q_spring**2, (0.5)*p_mass**2/m, out=_out[...])
     return _out
 
 
@@ -267,9 +275,9 @@ def power_sources(x, u, theta):
     p_mass = x[..., 0]
     F = u[..., 0]
     m = theta[..., 0]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = F*p_mass/m
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.multiply(1/m, F*p_mass, out=_out[...])
     return _out
 
 
@@ -282,9 +290,9 @@ def power_dissipated(x, u, theta):
     p_mass = x[..., 0]
     m = theta[..., 0]
     c = theta[..., 2]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = c*p_mass**2/m**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.multiply(1/m**2, c*p_mass**2, out=_out[...])
     return _out
 
 
@@ -302,9 +310,9 @@ def energy_rate(x, u, theta):
     c = theta[..., 2]
     _t0 = k*q_spring
     _t1 = p_mass/m
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = _t0*_t1 + _t1*(F - c*_t1 - _t0)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(_t1*(F - c*_t1 - _t0), _t0*_t1, out=_out[...])
     return _out
 
 
@@ -312,10 +320,11 @@ def meas_std(theta):
     """Measurement-noise standard deviations, shape (..., 2), in output units.
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (2,))
-    _out[..., 0] = 0.00200000000000000
-    _out[..., 1] = 0.0100000000000000
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((2,) + _shape)
+    _out[0, ...] = 0.00200000000000000
+    _out[1, ...] = 0.0100000000000000
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 
@@ -324,10 +333,11 @@ def proc_std(theta):
     (the covariance added over a step dt is diag(proc_std**2) * dt).
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (2,))
-    _out[..., 0] = 0
-    _out[..., 1] = 0
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((2,) + _shape)
+    _out[0, ...] = 0
+    _out[1, ...] = 0
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 

@@ -114,9 +114,10 @@ def f(x, u, theta):
     R2 = theta[..., 1]
     L = theta[..., 2]
     _t0 = 1/L
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (1,))
-    _dxdt[..., 0] = V - R1*(p_L*_t0 + (-V + R1*p_L*_t0)/(-R1 - R2))
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((1,) + _shape)
+    np.add(V, -R1*(p_L*_t0 + (-V + R1*p_L*_t0)/(-R1 - R2)), out=_dxdt[0, ...])
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
 
@@ -137,10 +138,11 @@ def h(x, u, theta):
     L = theta[..., 2]
     _t0 = 1/L
     _t1 = p_L*_t0
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _y = np.empty(_shape + (2,))
-    _y[..., 0] = _t1
-    _y[..., 1] = V - R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2))
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _y = np.empty((2,) + _shape)
+    _y[0, ...] = _t1
+    np.add(V, -R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2)), out=_y[1, ...])
+    _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
 
@@ -154,9 +156,10 @@ def dfdx(x, u, theta):
     R2 = theta[..., 1]
     L = theta[..., 2]
     _t0 = 1/L
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.empty(_shape + (1, 1))
-    _J[..., 0, 0] = -R1*(R1*_t0/(-R1 - R2) + _t0)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.empty((1, 1) + _shape)
+    np.multiply(-1, R1*(R1*_t0/(-R1 - R2) + _t0), out=_J[0, 0, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -178,11 +181,12 @@ def dfdtheta(x, u, theta):
     _t4 = p_L*_t2
     _t5 = _t3/_t0**2
     _t6 = p_L/L**2
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.empty(_shape + (1, 3))
-    _J[..., 0, 0] = -R1*(_t1*_t4 + _t5) - _t1*_t3 - _t4
-    _J[..., 0, 1] = -R1*_t5
-    _J[..., 0, 2] = -R1*(-R1*_t1*_t6 - _t6)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.empty((1, 3) + _shape)
+    np.add(-R1*(_t1*_t4 + _t5) - _t1*_t3, -_t4, out=_J[0, 0, ...])
+    np.multiply(-1, R1*_t5, out=_J[0, 1, ...])
+    np.multiply(-1, R1*(-R1*_t1*_t6 - _t6), out=_J[0, 2, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -196,10 +200,11 @@ def dhdx(x, u, theta):
     R2 = theta[..., 1]
     L = theta[..., 2]
     _t0 = 1/L
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.empty(_shape + (2, 1))
-    _J[..., 0, 0] = _t0
-    _J[..., 1, 0] = -R1*(R1*_t0/(-R1 - R2) + _t0)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.empty((2, 1) + _shape)
+    _J[0, 0, ...] = _t0
+    np.multiply(-1, R1*(R1*_t0/(-R1 - R2) + _t0), out=_J[1, 0, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -221,12 +226,13 @@ def dhdtheta(x, u, theta):
     _t4 = -V + R1*p_L*_t3
     _t5 = p_L*_t3
     _t6 = _t4/_t1**2
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (2, 3))
-    _J[..., 0, 2] = -_t0
-    _J[..., 1, 0] = -R1*(_t2*_t5 + _t6) - _t2*_t4 - _t5
-    _J[..., 1, 1] = -R1*_t6
-    _J[..., 1, 2] = -R1*(-R1*_t0*_t2 - _t0)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((2, 3) + _shape)
+    np.multiply(-1, _t0, out=_J[0, 2, ...])
+    np.add(-R1*(_t2*_t5 + _t6) - _t2*_t4, -_t5, out=_J[1, 0, ...])
+    np.multiply(-1, R1*_t6, out=_J[1, 1, ...])
+    np.multiply(-1, R1*(-R1*_t0*_t2 - _t0), out=_J[1, 2, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -247,11 +253,13 @@ def f_dfdx(x, u, theta):
     L = theta[..., 2]
     _t0 = 1/(-R1 - R2)
     _t1 = 1/L
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (1,))
-    _dxdt[..., 0] = V - R1*(p_L*_t1 + _t0*(-V + R1*p_L*_t1))
-    _J = np.empty(_shape + (1, 1))
-    _J[..., 0, 0] = -R1*(R1*_t0*_t1 + _t1)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((1,) + _shape)
+    np.add(V, -R1*(p_L*_t1 + _t0*(-V + R1*p_L*_t1)), out=_dxdt[0, ...])
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
+    _J = np.empty((1, 1) + _shape)
+    np.multiply(-1, R1*(R1*_t0*_t1 + _t1), out=_J[0, 0, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
 
@@ -263,9 +271,9 @@ def energy(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     p_L = x[..., 0]
     L = theta[..., 2]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = (0.5)*p_L**2/L
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.multiply(0.5, p_L**2/L, out=_out[...])
     return _out
 
 
@@ -281,9 +289,9 @@ def power_sources(x, u, theta):
     R2 = theta[..., 1]
     L = theta[..., 2]
     _t0 = 1/L
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = V*(p_L*_t0 + (-V + R1*p_L*_t0)/(-R1 - R2))
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.multiply(p_L*_t0 + (-V + R1*p_L*_t0)/(-R1 - R2), V, out=_out[...])
     return _out
 
 
@@ -301,9 +309,9 @@ def power_dissipated(x, u, theta):
     _t0 = 1/L
     _t1 = (-V + R1*p_L*_t0)/(-R1 - R2)
     _t2 = p_L*_t0 + _t1
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = R1*_t2**2 + _t1*(V - R1*_t2)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(R1*_t2**2, _t1*(V - R1*_t2), out=_out[...])
     return _out
 
 
@@ -320,9 +328,9 @@ def energy_rate(x, u, theta):
     L = theta[..., 2]
     _t0 = 1/L
     _t1 = p_L*_t0
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = _t1*(V - R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2)))
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.multiply(_t1, V - R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2)), out=_out[...])
     return _out
 
 
@@ -330,10 +338,11 @@ def meas_std(theta):
     """Measurement-noise standard deviations, shape (..., 2), in output units.
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (2,))
-    _out[..., 0] = 0.00100000000000000
-    _out[..., 1] = 0.0100000000000000
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((2,) + _shape)
+    _out[0, ...] = 0.00100000000000000
+    _out[1, ...] = 0.0100000000000000
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 
@@ -342,9 +351,10 @@ def proc_std(theta):
     (the covariance added over a step dt is diag(proc_std**2) * dt).
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (1,))
-    _out[..., 0] = 0
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((1,) + _shape)
+    _out[0, ...] = 0
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 

@@ -125,9 +125,10 @@ def f(x, u, theta):
     c = theta[..., 2]
     _t0 = 1/m
     _t1 = J_e*_t0/r**2
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (1,))
-    _dxdt[..., 0] = (-c*p_m*_t0 + (T + der_r_*p_m*_t1)/r)/(_t1 + 1)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((1,) + _shape)
+    np.multiply(1/(_t1 + 1), -c*p_m*_t0 + (T + der_r_*p_m*_t1)/r, out=_dxdt[0, ...])
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
 
@@ -145,10 +146,11 @@ def h(x, u, theta):
     r = u[..., 1]
     m = theta[..., 1]
     _t0 = p_m/m
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _y = np.empty(_shape + (2,))
-    _y[..., 0] = _t0
-    _y[..., 1] = _t0/r
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _y = np.empty((2,) + _shape)
+    _y[0, ...] = _t0
+    np.multiply(_t0, 1/r, out=_y[1, ...])
+    _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
 
@@ -165,9 +167,10 @@ def dfdx(x, u, theta):
     c = theta[..., 2]
     _t0 = 1/m
     _t1 = J_e*_t0
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.empty(_shape + (1, 1))
-    _J[..., 0, 0] = (der_r_*_t1/r**3 - c*_t0)/(1 + _t1/r**2)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.empty((1, 1) + _shape)
+    np.multiply(1/(1 + _t1/r**2), der_r_*_t1/r**3 - c*_t0, out=_J[0, 0, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -196,11 +199,12 @@ def dfdtheta(x, u, theta):
     _t9 = p_m*_t1*_t8
     _t10 = 1/m**2
     _t11 = J_e*_t10
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.empty(_shape + (1, 3))
-    _J[..., 0, 0] = der_r_*_t7*_t9 - _t2*_t6
-    _J[..., 0, 1] = _t0*_t11*_t6 + _t8*(c*p_m*_t10 - _t11*_t5*_t7)
-    _J[..., 0, 2] = -_t9
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.empty((1, 3) + _shape)
+    np.add(der_r_*_t7*_t9, -_t2*_t6, out=_J[0, 0, ...])
+    np.add(_t0*_t11*_t6, _t8*(c*p_m*_t10 - _t11*_t5*_t7), out=_J[0, 1, ...])
+    np.multiply(-1, _t9, out=_J[0, 2, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -213,10 +217,11 @@ def dhdx(x, u, theta):
     r = u[..., 1]
     m = theta[..., 1]
     _t0 = 1/m
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.empty(_shape + (2, 1))
-    _J[..., 0, 0] = _t0
-    _J[..., 1, 0] = _t0/r
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.empty((2, 1) + _shape)
+    _J[0, 0, ...] = _t0
+    np.multiply(_t0, 1/r, out=_J[1, 0, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -230,10 +235,11 @@ def dhdtheta(x, u, theta):
     r = u[..., 1]
     m = theta[..., 1]
     _t0 = p_m/m**2
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _J = np.zeros(_shape + (2, 3))
-    _J[..., 0, 1] = -_t0
-    _J[..., 1, 1] = -_t0/r
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _J = np.zeros((2, 3) + _shape)
+    np.multiply(-1, _t0, out=_J[0, 1, ...])
+    np.multiply(-1, _t0/r, out=_J[1, 1, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
 
@@ -259,11 +265,13 @@ def f_dfdx(x, u, theta):
     _t2 = _t1/r**2
     _t3 = 1/(_t2 + 1)
     _t4 = c*_t0
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _dxdt = np.empty(_shape + (1,))
-    _dxdt[..., 0] = _t3*(-p_m*_t4 + (T + der_r_*p_m*_t2)/r)
-    _J = np.empty(_shape + (1, 1))
-    _J[..., 0, 0] = _t3*(der_r_*_t1/r**3 - _t4)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _dxdt = np.empty((1,) + _shape)
+    np.multiply(_t3, -p_m*_t4 + (T + der_r_*p_m*_t2)/r, out=_dxdt[0, ...])
+    _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
+    _J = np.empty((1, 1) + _shape)
+    np.multiply(_t3, der_r_*_t1/r**3 - _t4, out=_J[0, 0, ...])
+    _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
 
@@ -278,9 +286,9 @@ def energy(x, u, theta):
     J_e = theta[..., 0]
     m = theta[..., 1]
     _t0 = (0.5)*p_m**2
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = _t0/m + J_e*_t0/(r**2*m**2)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(J_e*_t0/(r**2*m**2), _t0/m, out=_out[...])
     return _out
 
 
@@ -294,9 +302,9 @@ def power_sources(x, u, theta):
     T = u[..., 0]
     r = u[..., 1]
     m = theta[..., 1]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = T*p_m/(r*m)
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.multiply(1/r, T*p_m/m, out=_out[...])
     return _out
 
 
@@ -309,9 +317,9 @@ def power_dissipated(x, u, theta):
     p_m = x[..., 0]
     m = theta[..., 1]
     c = theta[..., 2]
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = c*p_m**2/m**2
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.multiply(1/m**2, c*p_m**2, out=_out[...])
     return _out
 
 
@@ -334,9 +342,9 @@ def energy_rate(x, u, theta):
     _t3 = _t0*_t2
     _t4 = (-c*_t1 + (T + der_r_*p_m*_t3)/r)/(_t3 + 1)
     _t5 = 1/m**2
-    _shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], theta.shape[:-1])
-    _out = np.empty(_shape + ())
-    _out[...] = -der_r_*J_e*p_m**2*_t5/r**3 + p_m*_t2*_t4*_t5 + _t1*_t4
+    _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
+    _out = np.empty(_shape)
+    np.add(-der_r_*J_e*p_m**2*_t5/r**3 + p_m*_t2*_t4*_t5, _t1*_t4, out=_out[...])
     return _out
 
 
@@ -344,10 +352,11 @@ def meas_std(theta):
     """Measurement-noise standard deviations, shape (..., 2), in output units.
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (2,))
-    _out[..., 0] = 0.0500000000000000
-    _out[..., 1] = 1.00000000000000
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((2,) + _shape)
+    _out[0, ...] = 0.0500000000000000
+    _out[1, ...] = 1.00000000000000
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 
@@ -356,9 +365,10 @@ def proc_std(theta):
     (the covariance added over a step dt is diag(proc_std**2) * dt).
     """
     theta = np.asarray(theta, dtype=float)
-    _shape = np.broadcast_shapes(theta.shape[:-1])
-    _out = np.empty(_shape + (1,))
-    _out[..., 0] = 0
+    _shape = np.broadcast(theta[..., 0]).shape
+    _out = np.empty((1,) + _shape)
+    _out[0, ...] = 0
+    _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out
 
 
