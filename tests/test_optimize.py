@@ -1,0 +1,127 @@
+"""Particle swarm and differential evolution behind one batched interface
+(bondgraph.optimize): standard test functions, exact evaluation counts,
+checkpoint/resume bit for bit, +inf handling, DE path, local polish."""
+
+import numpy as np
+import pytest
+
+from bondgraph.optimize import de, minimize_batched, pso
+from bondgraph.ukf import OptionError
+
+
+def sphere(X):
+    return np.sum((X - 0.3) ** 2, axis=1)
+
+
+def rosenbrock(X):
+    return np.sum(100.0 * (X[:, 1:] - X[:, :-1] ** 2) ** 2 + (1.0 - X[:, :-1]) ** 2, axis=1)
+
+
+class Counting:
+    def __init__(self, f):
+        self.f, self.sets, self.calls = f, 0, 0
+
+    def __call__(self, X):
+        self.sets += X.shape[0]
+        self.calls += 1
+        return self.f(X)
+
+
+def test_pso_sphere_and_exact_counts():
+    f = Counting(sphere)
+    r = pso(f, [-5.0] * 8, [5.0] * 8, particles=80, iterations=100, seed=3, progress=False)
+    assert r.nfev == 8080 == f.sets and r.ncalls == 101 == f.calls and r.nit == 100
+    assert len(r.history) == 101 and np.all(np.diff(r.history) <= 0)
+    np.testing.assert_allclose(r.x, 0.3, atol=2e-3)
+    assert r.fun < 1e-5
+
+
+def test_pso_rosenbrock():
+    r = pso(rosenbrock, [-2.0] * 3, [2.0] * 3, particles=60, iterations=400, seed=1,
+            progress=False)
+    np.testing.assert_allclose(r.x, 1.0, atol=0.05)
+    # polish from the swarm's best point reaches the minimum
+    x, fx, nfev, _ = minimize_batched(rosenbrock, r.x, [-2.0] * 3, [2.0] * 3)
+    np.testing.assert_allclose(x, 1.0, atol=1e-4)
+    assert fx < 1e-8 and nfev % 7 == 0          # 2k+1 = 7 sets per gradient call
+
+
+def test_pso_stall_rule():
+    r = pso(sphere, [-1.0] * 2, [1.0] * 2, particles=20, iterations=1000, seed=0,
+            stall_iterations=15, ftol=1e-12, progress=False)
+    assert r.nit < 1000 and r.stop_reason.startswith("stalled")
+    assert r.nfev == 20 * (r.nit + 1)
+
+
+def test_pso_checkpoint_resume_bit_for_bit(tmp_path):
+    kw = dict(particles=25, iterations=30, seed=11, progress=False)
+    full = pso(rosenbrock, [-2.0] * 4, [2.0] * 4, **kw)
+    ck = tmp_path / "pso.npz"
+
+    class Crash(Exception):
+        pass
+
+    def crash_at_12(it, x, f):
+        if it == 12:
+            raise Crash
+
+    with pytest.raises(Crash):
+        pso(rosenbrock, [-2.0] * 4, [2.0] * 4, checkpoint=ck, callback=crash_at_12, **kw)
+    assert ck.exists()
+    res = pso(rosenbrock, [-2.0] * 4, [2.0] * 4, checkpoint=ck, resume=True, **kw)
+    assert res.resumed_from == 12
+    assert np.array_equal(res.x, full.x) and res.fun == full.fun
+    assert np.array_equal(res.history, full.history)
+    assert res.nfev == full.nfev == 25 * 31
+    # a checkpoint written with other settings is refused
+    with pytest.raises(OptionError, match="other PSO settings"):
+        pso(rosenbrock, [-2.0] * 4, [2.0] * 4, checkpoint=ck, resume=True,
+            **{**kw, "seed": 12})
+
+
+def test_inf_and_nan_do_not_crash():
+    def f(X):
+        out = rosenbrock(X)
+        out[X[:, 0] > 1.5] = np.inf
+        out[X[:, 1] < -1.5] = np.nan
+        return out
+
+    r = pso(f, [-2.0] * 2, [2.0] * 2, particles=30, iterations=150, seed=2, progress=False)
+    assert np.isfinite(r.fun) and r.n_inf > 0
+    np.testing.assert_allclose(r.x, 1.0, atol=0.05)
+    d = de(f, [-2.0] * 2, [2.0] * 2, popsize=15, iterations=150, seed=2, progress=False)
+    assert np.isfinite(d.fun) and d.n_inf > 0
+    np.testing.assert_allclose(d.x, 1.0, atol=0.05)
+    # a criterion that fails everywhere: +inf result, no exception
+    r = pso(lambda X: np.full(X.shape[0], np.inf), [0.0], [1.0], particles=5, iterations=3,
+            progress=False)
+    assert np.isinf(r.fun) and r.n_inf == 20
+
+
+def test_de_counts_and_minimum():
+    f = Counting(rosenbrock)
+    r = de(f, [-2.0] * 8, [2.0] * 8, popsize=10, iterations=100, seed=4, progress=False)
+    # 80 members: initial population + one batched call per generation
+    assert r.nfev == f.sets == 80 * (r.nit + 1) and r.ncalls == f.calls == r.nit + 1
+    assert r.nit == 100 and r.nfev == 8080
+    assert r.fun < rosenbrock(np.zeros((1, 8)))[0]
+    r2 = de(rosenbrock, [-2.0] * 2, [2.0] * 2, popsize=20, iterations=300, seed=4, tol=1e-12,
+            progress=False)
+    np.testing.assert_allclose(r2.x, 1.0, atol=1e-3)
+
+
+def test_de_checkpoint_resume(tmp_path):
+    ck = tmp_path / "de.npz"
+    r1 = de(rosenbrock, [-2.0] * 3, [2.0] * 3, popsize=10, iterations=20, seed=5, progress=False,
+            checkpoint=ck)
+    assert ck.exists() and int(np.load(ck)["it"]) == 20
+    r2 = de(rosenbrock, [-2.0] * 3, [2.0] * 3, popsize=10, iterations=60, seed=5, progress=False,
+            checkpoint=ck, resume=True)
+    assert r2.resumed_from == 20 and r2.nit == 60 and r2.fun <= r1.fun
+
+
+def test_bad_bounds():
+    with pytest.raises(OptionError, match="bound 1"):
+        pso(sphere, [0.0, 1.0], [1.0, 1.0], progress=False)
+    with pytest.raises(OptionError, match="resume"):
+        pso(sphere, [0.0], [1.0], resume=True, checkpoint=None, progress=False)
