@@ -1,0 +1,289 @@
+"""Simulation (bondgraph/simulate.py) against independent references: scipy
+solve_ivp of hand-written ODEs, matrix exponentials of linear models, analytic
+eigenvalues; convergence order and L-stability of the fixed-step methods."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+from scipy.linalg import expm
+
+from bondgraph import integrators
+from bondgraph.data import Experiment
+from bondgraph.errors import DataError, ModelError, NumericalError
+from bondgraph.model import Model
+from bondgraph.simulate import InputSignals, simulate, stiffness_report
+
+
+@pytest.fixture(scope="module")
+def msd():
+    return Model.load("mass_spring_damper")
+
+
+@pytest.fixture(scope="module")
+def motor():
+    return Model.load("dc_motor_compliant")
+
+
+def msd_matrices(m, k, c):
+    """Hand-derived linear MSD: x = [p, q], dx/dt = A x + B F."""
+    A = np.array([[-c / m, -k], [1.0 / m, 0.0]])
+    B = np.array([1.0, 0.0])
+    return A, B
+
+
+def exact_linear(A, B, x0, u, t):
+    """Exact solution for a constant input u (augmented matrix exponential)."""
+    n = A.shape[0]
+    M = np.zeros((n + 1, n + 1))
+    M[:n, :n] = A
+    M[:n, n] = B * u
+    out = []
+    for tk in t:
+        z = expm(M * (tk - t[0])) @ np.concatenate([x0, [1.0]])
+        out.append(z[:n])
+    return np.array(out)
+
+
+# --------------------------------------------- against hand-written ODEs
+@pytest.mark.parametrize("method", ["BDF", "Radau", "LSODA"])
+def test_msd_matches_hand_written_ode(msd, method):
+    m, k, c = 2.4, 60.0, 1.2
+    F = lambda t: 5.0 * np.sin(3.0 * t) + 2.0  # noqa: E731
+
+    def ref_rhs(t, x):
+        p, q = x
+        return [F(t) - k * q - c * p / m, p / m]
+
+    t = np.linspace(0.0, 6.0, 301)
+    x0 = np.array([0.3, -0.01])
+    ref = solve_ivp(ref_rhs, (0, 6), x0, t_eval=t, method="DOP853", rtol=1e-12, atol=1e-14)
+    res = simulate(msd, t, u={"F": F}, x0=x0, theta={"m": m, "k": k, "c": c}, method=method,
+                   rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(res.x, ref.y.T, rtol=0, atol=2e-8 * np.abs(ref.y).max())
+    # outputs: position q and velocity p/m
+    np.testing.assert_allclose(res.output("x"), ref.y[1], atol=1e-9)
+    np.testing.assert_allclose(res.output("v"), ref.y[0] / m, atol=1e-8)
+    assert res.stats["nfev"] > 0 and res.method == method
+
+
+def test_dc_motor_matches_hand_written_ode(motor):
+    th = {"R_a": 1.4, "L_a": 0.005, "k_m": 0.08, "J_m": 2e-4, "b_m": 1e-4, "k_s": 40.0,
+          "J_L": 6e-3, "b_L": 2e-3}
+    V = lambda t: 12.0 * (1.0 - np.exp(-t / 0.01))  # noqa: E731
+    TL = lambda t: 0.05 * np.sin(5.0 * t)  # noqa: E731
+
+    def ref_rhs(t, x):
+        lam, pm, phi, pl = x
+        return [V(t) - th["R_a"] * lam / th["L_a"] - th["k_m"] * pm / th["J_m"],
+                th["k_m"] * lam / th["L_a"] - th["b_m"] * pm / th["J_m"] - th["k_s"] * phi,
+                pm / th["J_m"] - pl / th["J_L"],
+                th["k_s"] * phi - th["b_L"] * pl / th["J_L"] - TL(t)]
+
+    t = np.linspace(0.0, 0.5, 501)
+    ref = solve_ivp(ref_rhs, (0, 0.5), np.zeros(4), t_eval=t, method="DOP853", rtol=1e-12,
+                    atol=1e-15)
+    res = simulate(motor, t, u={"V": V, "T_L": TL}, theta=th, method="BDF", rtol=1e-10,
+                   atol=1e-13)
+    scale = np.abs(ref.y).max(axis=1)
+    np.testing.assert_allclose(res.x / scale, ref.y.T / scale, atol=1e-6)
+    np.testing.assert_allclose(res.output("w_L"), ref.y[3] / th["J_L"],
+                               atol=1e-6 * np.abs(ref.y[3] / th["J_L"]).max())
+    np.testing.assert_allclose(res.output("i"), ref.y[0] / th["L_a"],
+                               atol=1e-6 * np.abs(ref.y[0] / th["L_a"]).max())
+
+
+def test_step_input_zoh_all_methods_agree_with_expm(msd):
+    # constant force from t = 0: every method must give the exact solution
+    A, B = msd_matrices(2.0, 50.0, 1.5)
+    t = np.arange(0, 3.0001, 0.01)
+    x0 = np.array([0.0, 0.02])
+    exact = exact_linear(A, B, x0, 10.0, t)
+    for method, sub, tol in (("BDF", 1, 1e-6), ("LSODA", 1, 1e-6), ("rk4", 4, 1e-8),
+                             ("ros2", 16, 1e-4)):
+        res = simulate(msd, t, u=np.full((t.size, 1), 10.0), x0=x0, method=method,
+                       substeps=sub)
+        err = np.abs(res.x - exact).max() / np.abs(exact).max()
+        assert err < tol, (method, err)
+
+
+# --------------------------------------------------- order and stability
+def _fixed_errors(msd, method, subs, dt=0.05, T=2.0):
+    A, B = msd_matrices(2.0, 50.0, 1.5)
+    t = np.arange(0, T + dt / 2, dt)
+    x0 = np.array([1.0, 0.05])
+    exact = exact_linear(A, B, x0, 3.0, t)
+    errs = []
+    for s in subs:
+        res = simulate(msd, t, u=np.full((t.size, 1), 3.0), x0=x0, method=method, substeps=s)
+        errs.append(np.abs(res.x - exact).max())
+    return np.array(errs)
+
+
+def test_ros2_is_second_order(msd):
+    errs = _fixed_errors(msd, "ros2", [2, 4, 8, 16])
+    ratios = errs[:-1] / errs[1:]
+    # halving the step divides the error by ~4 (order 2)
+    assert np.all((ratios > 3.5) & (ratios < 4.6)), ratios
+
+
+def test_rk4_is_fourth_order(msd):
+    errs = _fixed_errors(msd, "rk4", [1, 2, 4])
+    ratios = errs[:-1] / errs[1:]
+    assert np.all((ratios > 13.0) & (ratios < 19.0)), ratios
+
+
+def test_ros2_l_stable_where_rk4_explodes():
+    rr = Model.load("rr_loop")
+    # single mode λ = -R1 R2 / ((R1 + R2) L) = -80 1/s at the defaults
+    R1, R2, L = rr.theta0[[rr.param_index(n) for n in ("R1", "R2", "L")]]
+    lam = -R1 * R2 / ((R1 + R2) * L)
+    assert lam == pytest.approx(-80.0)
+    h = 1e6 / abs(lam)  # h λ = -1e6
+    t = np.arange(20) * h
+    res = simulate(rr, t, x0=[1.0], method="ros2")
+    x = res.x[:, 0]
+    assert np.all(np.isfinite(x))
+    # L-stable: |R(hλ)| -> 0 as hλ -> -inf; at -1e6 the mode is damped ~1e6-fold per step
+    assert abs(x[1]) < 1e-5 and np.all(np.abs(x[2:]) <= np.abs(x[1:-1]) + 1e-300)
+    with pytest.raises(NumericalError, match=r"state 'p_L' .* became .* at t = ") as ei:
+        simulate(rr, t, x0=[1.0], method="rk4")
+    assert "rk4" in str(ei.value)
+
+
+# ----------------------------------------------------------- stiffness
+def test_stiffness_report_analytic_eigenvalues(msd):
+    m, k, c = 2.4, 60.0, 1.2
+    t = np.linspace(0, 2, 201)
+    res = simulate(msd, t, u={"F": 1.0}, theta={"m": m, "k": k, "c": c}, method="LSODA")
+    rep, table = stiffness_report(msd, res)
+    # λ = -c/(2m) ± i sqrt(k/m - (c/2m)^2) (characteristic polynomial m s^2 + c s + k)
+    re, im = -c / (2 * m), np.sqrt(k / m - (c / (2 * m)) ** 2)
+    for s in rep["samples"]:
+        np.testing.assert_allclose(sorted(s["eigenvalues"], key=lambda z: z[1]),
+                                   [[re, -im], [re, im]], rtol=1e-12)
+    assert rep["max_abs_re"] == pytest.approx(abs(re), rel=1e-12)
+    h = integrators.rk4_stable_step(np.array([re + 1j * im, re - 1j * im]))
+    assert rep["rk4_stable_step"] == pytest.approx(h, rel=1e-12)
+    assert rep["rk4_substeps_needed"] == 1
+    json.dumps(rep)  # JSON-able
+    assert "max |Re λ|" in table and f"{abs(re):.6g}" in table
+
+
+def test_stiffness_report_substeps_are_right():
+    rr = Model.load("rr_loop")
+    th = rr.theta({"L": 1e-4})  # λ = -8e4 1/s
+    t = np.arange(0, 0.2, 1e-3)
+    V = np.where(t > 0.05, 1.0, 0.0)
+    res = simulate(rr, t, u={"V": V}, theta=th, method="BDF")
+    rep, _ = stiffness_report(rr, res)
+    assert rep["max_abs_re"] == pytest.approx(8e4, rel=1e-12)
+    need = rep["rk4_substeps_needed"]
+    assert need == int(np.ceil(1e-3 * 8e4 / 2.785293563))  # RK4 real-axis limit 2.7853
+    ok = simulate(rr, t, u={"V": V}, theta=th, method="rk4", substeps=need)
+    ref = simulate(rr, t, u={"V": V}, theta=th, method="BDF", hold="zoh")
+    # stable (at the edge of the region: |R| ~ 0.99 per sub-step, so slow to
+    # damp, bounded, and settled on the steady state by the end)
+    assert np.all(np.abs(ok.x) <= np.abs(ref.x).max() * (1 + 1e-9))
+    np.testing.assert_allclose(ok.y[-20:], ref.y[-20:], atol=1e-9)
+    with pytest.raises(NumericalError, match="substeps per sample"):
+        simulate(rr, t, u={"V": V}, theta=th, method="rk4", substeps=need // 2)
+
+
+# ----------------------------------------------------------- input forms
+def test_input_forms_agree():
+    cvt = Model.load("toy_cvt")
+    t = np.arange(0, 4.0001, 0.05)
+    T = lambda tt: np.where(tt >= 0.5, 40.0, 0.0)  # noqa: E731
+    r = lambda tt: np.interp(tt, [1.0, 3.0], [0.05, 0.09])  # noqa: E731
+    a = InputSignals(cvt, t, {"T": T, "r": r})
+    b = InputSignals(cvt, t, {"T": T(t), "r": r(t)})
+    c = InputSignals(cvt, t, np.column_stack([T(t), r(t)]))
+    d = InputSignals(cvt, t, lambda tt: np.array([T(tt), r(tt)]))
+    for s in (a, b, c, d):
+        np.testing.assert_array_equal(s.samples[:, :2], a.samples[:, :2])
+    inside = (t > 1.06) & (t < 2.94)
+    for s in (a, b, c, d):  # der(r) = slope 0.02 inside the ramp, 0 outside
+        np.testing.assert_allclose(s.samples[inside, 2], 0.02, rtol=1e-6)
+        np.testing.assert_allclose(s.samples[t < 0.94, 2], 0.0, atol=1e-12)
+    assert a.source["der(r)"].startswith("central difference")
+    assert b.source["der(r)"].startswith("numpy.gradient")
+    # full-width array: der(r) taken as given
+    full = np.column_stack([T(t), r(t), np.full(t.size, 7.0)])
+    np.testing.assert_array_equal(InputSignals(cvt, t, full).samples[:, 2], 7.0)
+    # defaults
+    e = InputSignals(cvt, t, None)
+    np.testing.assert_array_equal(e.samples, np.broadcast_to(cvt.u0, e.samples.shape))
+
+
+def test_zoh_hold_matches_fixed_step(msd):
+    rng = np.random.default_rng(3)
+    t = np.arange(0, 2.0001, 0.02)
+    F = np.repeat(rng.choice([-5.0, 5.0], size=t.size // 5 + 1), 5)[:t.size]  # PRBS
+    a = simulate(msd, t, u={"F": F}, method="BDF", hold="zoh", rtol=1e-10, atol=1e-12)
+    b = simulate(msd, t, u={"F": F}, method="rk4", substeps=20)
+    assert a.stats["segments"] == np.count_nonzero(np.diff(F[:-1])) + 1
+    np.testing.assert_allclose(a.x, b.x, atol=1e-8)
+    lin = simulate(msd, t, u={"F": F}, method="BDF", hold="linear")
+    assert np.abs(lin.x - a.x).max() > 1e-3  # linear interpolation is a different signal
+
+
+def test_bad_arguments(msd):
+    t = np.linspace(0, 1, 11)
+    with pytest.raises(ModelError, match="unknown simulation method 'Euler'"):
+        simulate(msd, t, method="Euler")
+    with pytest.raises(ModelError, match=r"input array has shape \(11, 3\)"):
+        simulate(msd, t, u=np.zeros((11, 3)))
+    with pytest.raises(ModelError, match="has no input 'G'"):
+        simulate(msd, t, u={"G": 1.0})
+    with pytest.raises(DataError, match="input 'F' is nan at sample 4"):
+        simulate(msd, t, u={"F": np.where(np.arange(11) == 4, np.nan, 1.0)})
+    with pytest.raises(DataError, match="must increase strictly"):
+        simulate(msd, [0.0, 0.2, 0.1])
+    with pytest.raises(ModelError, match=r"x0 has shape \(3,\)"):
+        simulate(msd, t, x0=[0, 0, 0])
+    with pytest.raises(ModelError, match="has no parameter 'mass'"):
+        simulate(msd, t, theta={"mass": 1.0})
+
+
+# ------------------------------------------------------- output and CLI
+def test_save_csv_round_trip(tmp_path, msd):
+    t = np.linspace(0, 1, 51)
+    res = simulate(msd, t, u={"F": 3.0}, x0={"q_spring": 0.01}, method="ros2", substeps=4)
+    p = res.save_csv(tmp_path / "sim.csv")
+    exp = Experiment.load(p)
+    np.testing.assert_array_equal(exp.outputs_for(msd), res.y)
+    np.testing.assert_array_equal(exp.inputs_for(msd), res.u)
+    np.testing.assert_array_equal(exp["state.q_spring"], res.state("q_spring"))
+    assert exp.meta["x0"] == {"p_mass": 0.0, "q_spring": 0.01}
+    assert exp.meta["method"] == "ros2"
+    df = res.to_dataframe()
+    assert list(df.columns) == ["t", "F", "x", "v", "state.p_mass", "state.q_spring"]
+
+
+def test_cli_simulate(tmp_path, capsys):
+    from bondgraph.cli import main
+
+    out = tmp_path / "msd.csv"
+    assert main(["simulate", "mass_spring_damper", "--experiment", "msd_force_step", "-o",
+                 str(out), "--stiffness"]) == 0
+    exp = Experiment.load(out)
+    assert len(exp) == 1001 and exp.meta["parameters"]["k"] == 60.0
+    rep = json.loads(out.with_suffix(".stiffness.json").read_text())
+    assert rep["model"] == "mass_spring_damper"
+    # from a record CSV, fixed-step
+    out2 = tmp_path / "again.csv"
+    assert main(["simulate", "mass_spring_damper", "-e", str(out), "-o", str(out2),
+                 "--method", "rk4", "--substeps", "2", "--record-params"]) == 0
+    np.testing.assert_allclose(Experiment.load(out2)["x"], exp["x"], atol=1e-6)
+    # defaults for a duration, with a constant input
+    out3 = tmp_path / "def.csv"
+    assert main(["simulate", "mass_spring_damper", "--duration", "1", "--dt", "0.1",
+                 "--input", "F=2", "-o", str(out3)]) == 0
+    e3 = Experiment.load(out3)
+    assert len(e3) == 11 and np.all(e3["F"] == 2.0)
+    assert main(["simulate", "mass_spring_damper", "-e", "no_such_experiment"]) == 1
+    assert "unknown experiment 'no_such_experiment'" in capsys.readouterr().err
