@@ -8,10 +8,10 @@ Arrays are batched over leading axes: x (..., 5), u (..., 1),
 theta (..., 18) broadcast together.
 
 States x:
-      0 body.p_m [-] momentum of body.m
-      1 pitch.p_I [-] momentum of pitch.I
-      2 pitch.q_k [-] displacement of pitch.k
-      3 wheels.p_J [-] momentum of wheels.J
+      0 body.p_m [N*s] momentum of body.m
+      1 pitch.p_I [N*m*s] momentum of pitch.I
+      2 pitch.q_k [rad] displacement of pitch.k
+      3 wheels.p_J [N*m*s] momentum of wheels.J
       4 theta_g [rad] signal
 Inputs u:
       0 brake [-] brake command u_b in [0, 1]
@@ -56,10 +56,10 @@ STATES = (
     'theta_g',
 )
 STATE_UNITS = (
-    '',
-    '',
-    '',
-    '',
+    'N*s',
+    'N*m*s',
+    'rad',
+    'N*m*s',
     'rad',
 )
 STATE_KINDS = (

@@ -29,7 +29,7 @@ Parameters theta:
       4 w_max = 680.678 [rad/s] rev-limiter speed (6500 rpm): torque fades above it
       5 T_f0 = 5 [N*m] constant part of friction + pumping torque
       6 b_e = 0.012 [N*m*s/rad] speed-proportional friction + pumping coefficient
-      7 w_idle = 127.758 [rad/s] idle-governor set speed (1220 rpm; with the droop the engine idles at ~1190 rpm)
+      7 w_idle = 127.758 [rad/s] idle-governor set speed (1220 rpm; with the droop the engine idles at ~1210 rpm)
       8 K_idle = 2 [N*m*s/rad] idle-governor gain (torque per rad/s below the set speed)
       9 w_eng = 136.136 [rad/s] clutch engagement speed (1300 rpm): flyweight force = primary-spring preload
      10 k_fw = 0.044 [N*s^2] flyweight force per engine speed squared, F_fw = k_fw w_e^2
@@ -245,8 +245,8 @@ PARAM_UNITS = (
     'rad',
 )
 PARAM_DEFAULTS = np.array([0.12, 65.0, 418.87902047863906, 523.5987755982989, 680.6784082777884, 5.0, 0.012, 127.75810124598492, 2.0, 136.1356816555577, 0.044, 0.9, 0.04, 5.0, 50000.0, 1320.0, 160000.0, 25.0, 20000.0, 0.02, 3.0, 0.7, 0.05, 0.01, 2.5, 4.0, 15000.0, 40.0, 0.31, 1.5, 0.02, 0.9, 15.0, 1.65, 0.0, 1000.0, 1200.0, 9.81, 1.8, 2.05, 1.26, 0.6, 0.01, 1093.0, 100000.0, 6000.0, 0.0])
-PARAM_LOWER = np.array([0.05, 45.0, 314.1592653589793, 366.51914291880917, 628.3185307179587, 0.0, 0.0, 115.19173063162575, 0.5, 125.66370614359172, 0.02, 0.5, 0.03, 1.0, 20000.0, 500.0, 50000.0, 10.0, 5000.0, 0.015, 2.6, 0.6, 0.02, 0.001, 2.25, 3.5, 5000.0, 10.0, 0.28, 1.0, 0.005, 0.2, 5.0, 1.3, -1.0, 500.0, 1100.0, 9.78, 1.0, 2.0, 1.2, 0.4, 0.001, 800.0, 40000.0, 2600.0, -0.035])
-PARAM_UPPER = np.array([0.2, 90.0, 523.5987755982989, 733.0382858376183, 733.0382858376183, 15.0, 0.05, 136.1356816555577, 10.0, 167.5516081914556, 0.08, 1.2, 0.06, 20.0, 150000.0, 3000.0, 400000.0, 50.0, 100000.0, 0.025, 3.4, 0.8, 0.08, 0.05, 6.187500000000001, 4.5, 30000.0, 150.0, 0.35, 2.0, 0.15, 1.1, 20.0, 1.9, 0.5, 1500.0, 1300.0, 9.83, 2.8, 2.1, 1.32, 0.8, 0.05, 1400.0, 170000.0, 11000.0, 0.035])
+PARAM_LOWER = np.array([0.05, 45.0, 314.1592653589793, 366.51914291880917, 628.3185307179587, 0.0, 0.0, 115.19173063162575, 0.5, 125.66370614359172, 0.02, 0.5, 0.03, 2.0, 20000.0, 500.0, 50000.0, 10.0, 5000.0, 0.015, 2.6, 0.6, 0.02, 0.001, 2.25, 3.5, 5000.0, 10.0, 0.28, 1.0, 0.005, 0.2, 5.0, 1.3, -1.0, 500.0, 1100.0, 9.78, 1.0, 2.0, 1.2, 0.4, 0.001, 800.0, 40000.0, 2600.0, -0.035])
+PARAM_UPPER = np.array([0.2, 90.0, 523.5987755982989, 733.0382858376183, 733.0382858376183, 15.0, 0.05, 136.1356816555577, 10.0, 167.5516081914556, 0.08, 1.2, 0.06, 10.0, 150000.0, 3000.0, 400000.0, 50.0, 100000.0, 0.025, 3.4, 0.8, 0.08, 0.05, 6.187500000000001, 4.5, 30000.0, 150.0, 0.35, 2.0, 0.15, 1.1, 20.0, 1.9, 0.5, 1500.0, 1300.0, 9.83, 2.8, 2.1, 1.32, 0.8, 0.05, 1400.0, 170000.0, 11000.0, 0.035])
 PARAM_DESCRIPTIONS = (
     'engine + primary-clutch inertia',
     'peak full-throttle torque of the map T_wot',
@@ -255,7 +255,7 @@ PARAM_DESCRIPTIONS = (
     'rev-limiter speed (6500 rpm): torque fades above it',
     'constant part of friction + pumping torque',
     'speed-proportional friction + pumping coefficient',
-    'idle-governor set speed (1220 rpm; with the droop the engine idles at ~1190 rpm)',
+    'idle-governor set speed (1220 rpm; with the droop the engine idles at ~1210 rpm)',
     'idle-governor gain (torque per rad/s below the set speed)',
     'clutch engagement speed (1300 rpm): flyweight force = primary-spring preload',
     'flyweight force per engine speed squared, F_fw = k_fw w_e^2',

@@ -58,9 +58,11 @@ def initial_state(model, theta=None, *, v: float = 0.0, grade: float = 0.0,
     u : dict, optional
         Input values during settling (default: model defaults, i.e. zero
         throttle and brake).
-    settle : sequence of str, optional
+    settle : sequence of str or "all", optional
         States to put in equilibrium (default: those of pitch, engine and
-        sheave present in the model).
+        sheave present in the model). ``"all"``: every state but the grade,
+        i.e. a steady state (e.g. held by the brake on a slope: the tanh
+        brake's steady creep).
 
     Returns
     -------
@@ -94,6 +96,8 @@ def initial_state(model, theta=None, *, v: float = 0.0, grade: float = 0.0,
     if settle is None:
         settle = [n for n in ("pitch.p_I", "pitch.q_k", "engine.p_J", "cvt.q_springs")
                   if n in idx]
+    elif settle == "all":
+        settle = [n for n in names if n != "theta_g"]
     sel = np.array([idx[n] for n in settle], dtype=int)
     if sel.size:
         for _ in range(60):

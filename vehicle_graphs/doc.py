@@ -6,7 +6,8 @@ exactly this text); ``python -m vehicle_graphs.doc models`` the state and
 output lists of the registered models; ``python -m vehicle_graphs.doc
 stiffness`` simulates every registered experiment (noise-free truth) and
 prints the largest Jacobian eigenvalue along it and the RK4 sub-steps that
-stability needs at 25 ms (takes ~30 s).
+stability needs at 25 ms (takes ~30 s); ``python -m vehicle_graphs.doc update
+[params models stiffness]`` rewrites those blocks of docs/vehicle.md.
 """
 
 from __future__ import annotations
@@ -78,12 +79,64 @@ def stiffness_table() -> str:
     return "\n".join(rows)
 
 
+#: blocks of docs/vehicle.md written by :func:`update_docs`
+BLOCKS = {"PARAMS": param_table, "MODELS": models_table, "STIFFNESS": stiffness_table}
+
+
+def doc_path():
+    """Path of docs/vehicle.md (next to this package in the checkout)."""
+    from pathlib import Path
+
+    return Path(__file__).resolve().parent.parent / "docs" / "vehicle.md"
+
+
+def _block_match(text: str, block: str):
+    import re
+
+    m = re.search(rf"<!-- BEGIN {block}\b[^>]*-->\n(.*?)\n<!-- END {block} -->", text, re.S)
+    if not m:
+        raise KeyError(f"docs/vehicle.md has no block {block}")
+    return m
+
+
+def doc_block(text: str, block: str) -> str:
+    """Content between ``<!-- BEGIN block ... -->`` and ``<!-- END block -->``.
+
+    Raises
+    ------
+    KeyError
+        If the markers are missing.
+    """
+    return _block_match(text, block).group(1)
+
+
+def update_docs(blocks=("PARAMS", "MODELS"), path=None) -> list[str]:
+    """Rewrite the generated blocks of docs/vehicle.md; returns the blocks
+    that changed. ``STIFFNESS`` runs every experiment (~30 s)."""
+    path = path or doc_path()
+    text = path.read_text()
+    changed = []
+    for b in blocks:
+        m = _block_match(text, b)
+        new = BLOCKS[b]()
+        if m.group(1) != new:
+            text = text[:m.start(1)] + new + text[m.end(1):]
+            changed.append(b)
+    path.write_text(text)
+    return changed
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     what = argv[0] if argv else "params"
     table = {"params": param_table, "models": models_table, "stiffness": stiffness_table}
+    if what == "update":
+        blocks = [b.upper() for b in argv[1:]] or ["PARAMS", "MODELS"]
+        print("updated:", ", ".join(update_docs(blocks)) or "nothing")
+        return 0
     if what not in table:
-        print(f"usage: python -m vehicle_graphs.doc [{'|'.join(table)}]", file=sys.stderr)
+        print(f"usage: python -m vehicle_graphs.doc [{'|'.join(table)}|update [blocks]]",
+              file=sys.stderr)
         return 2
     print(table[what]())
     return 0

@@ -190,7 +190,7 @@ def hill_climb() -> ExperimentSpec:
         name="vehicle_hill_climb", model="vehicle_full_low", duration=20.0,
         inputs={"throttle": profile([(2.0, 0.0), (2.3, 1.0)]),
                 "brake": profile([(1.9, 1.0), (2.2, 0.0)])},
-        x0=_x0("vehicle_full_low", params, grade=HILL_GRADE, u={"brake": 1.0}),
+        x0=_x0("vehicle_full_low", params, grade=HILL_GRADE, u={"brake": 1.0}, settle="all"),
         params=params, seed=26,
         description="Hill climb on a constant 15 % grade in Low range: brake held to 2 s, "
                     "then full throttle.")

@@ -274,7 +274,9 @@ def clutch_cvt(P: Params, w_e, num: Numerics = Numerics(), *, belt_slip: bool = 
         g.connect(bnode, sec)
     else:
         g.connect(belt.p2, sec)
-    g.connect(sec, g.I("J_s", P["J_s"]))
+    # priority 1: without shaft compliance the driven wheels keep their state
+    # and J_s is lumped into them (derivative causality)
+    g.connect(sec, g.I("J_s", P["J_s"], priority=1))
     g.connect(sec, g.R("drag", P["b_s"]))
     T_s = belt.p2.e
     g.connect(g.MSe("flyweights", P["k_fw"] * w_e**2), sheave)
