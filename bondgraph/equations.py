@@ -605,6 +605,35 @@ def _solve_system(residuals: list, unknowns: list):
     return [sols[0][u] for u in unknowns]
 
 
+def _assign_state_units(graph: BondGraph, states) -> None:
+    """Units of storage states from their bond units: momentum = effort x s,
+    displacement = flow x s (kept if the user gave one)."""
+    from . import units as _units
+
+    try:
+        bu = graph.bond_units()
+    except Exception:  # unit problems are reported by validate()
+        return
+    for el in graph.elements.values():
+        if isinstance(el, (I, C)) and el.state in states and not el.state.unit:
+            e, f = bu.get(el.port.bond.name, (None, None))
+            if isinstance(el, I) and e:
+                el.state.unit = _canonical_unit(_units.product(e, "s"))
+            elif isinstance(el, C) and f:
+                el.state.unit = _canonical_unit(_units.product(f, "s"))
+
+
+def _canonical_unit(text: str) -> str:
+    """Readable unit of a product with s: '(N)*(s)' -> 'N*s', '(m/s)*(s)' -> 'm'."""
+    inner = text
+    if text.startswith("(") and text.endswith(")*(s)"):
+        inner = text[1:-5]
+        if inner.endswith("/s") and "/" not in inner[:-2]:
+            return inner[:-2]
+        return f"{inner}*s"
+    return text
+
+
 def derive(graph: BondGraph, *, causality: Causality | None = None,
            validate: bool = True) -> StateSpace:
     """Derive the explicit state equations of a bond graph.
@@ -638,6 +667,7 @@ def derive(graph: BondGraph, *, causality: Causality | None = None,
         causality = assign_causality(graph, validate=validate)
     d = _Deriver(graph, causality)
     d.build()
+    _assign_state_units(graph, d.states)
     solved = d.solve()
     states = d.states
     f = []

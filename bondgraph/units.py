@@ -102,11 +102,15 @@ def factor(from_unit: str, to_unit: str, *, what: str = "value") -> float:
         offset units (degC), which need more than a factor.
     """
     try:
-        q = parse(from_unit).to(parse(to_unit).units)
-        scale_to = parse(to_unit).magnitude
-        return float(q.magnitude) / float(scale_to)
+        src, dst = parse(from_unit), parse(to_unit)
+        q = src.to(dst.units)
+        zero = registry().Quantity(0.0, src.units).to(dst.units).magnitude
     except UnitMismatchError:
         raise DataError(f"{what}: unknown unit '{from_unit}' (expected '{to_unit}')") from None
     except Exception:
         raise DataError(
             f"{what}: unit '{from_unit}' cannot be converted to '{to_unit}'") from None
+    if zero != 0.0:
+        raise DataError(f"{what}: '{from_unit}' -> '{to_unit}' is an offset conversion (e.g. "
+                        f"degC), not a factor; convert the values first")
+    return float(q.magnitude) / float(dst.magnitude)

@@ -8,9 +8,9 @@ Arrays are batched over leading axes: x (..., 3), u (..., 1),
 theta (..., 8) broadcast together.
 
 States x:
-      0 p_L_a [-] momentum of L_a
-      1 q_spring [-] displacement of spring
-      2 p_J_p [-] momentum of J_p
+      0 p_L_a [V*s] momentum of L_a
+      1 q_spring [rad] displacement of spring
+      2 p_J_p [N*m*s] momentum of J_p
 Inputs u:
       0 u [V] sum of the two motor voltages
 Parameters theta:
@@ -38,9 +38,9 @@ STATES = (
     'p_J_p',
 )
 STATE_UNITS = (
-    '',
-    '',
-    '',
+    'V*s',
+    'rad',
+    'N*m*s',
 )
 STATE_KINDS = (
     'momentum',

@@ -8,10 +8,10 @@ Arrays are batched over leading axes: x (..., 4), u (..., 2),
 theta (..., 8) broadcast together.
 
 States x:
-      0 p_L_a [-] momentum of L_a
-      1 p_J_m [-] momentum of J_m
-      2 q_k_s [-] displacement of k_s
-      3 p_J_L [-] momentum of J_L
+      0 p_L_a [V*s] momentum of L_a
+      1 p_J_m [N*m*s] momentum of J_m
+      2 q_k_s [rad] displacement of k_s
+      3 p_J_L [N*m*s] momentum of J_L
 Inputs u:
       0 V [V] armature voltage
       1 T_L [N*m] load torque
@@ -42,10 +42,10 @@ STATES = (
     'p_J_L',
 )
 STATE_UNITS = (
-    '',
-    '',
-    '',
-    '',
+    'V*s',
+    'N*m*s',
+    'rad',
+    'N*m*s',
 )
 STATE_KINDS = (
     'momentum',

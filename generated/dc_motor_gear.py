@@ -9,8 +9,8 @@ theta (..., 7) broadcast together.
 Storages eliminated by derivative causality: J_m.
 
 States x:
-      0 p_L_a [-] momentum of L_a
-      1 p_J_L [-] momentum of J_L
+      0 p_L_a [V*s] momentum of L_a
+      1 p_J_L [N*m*s] momentum of J_L
 Inputs u:
       0 V [V] armature voltage
 Parameters theta:
@@ -36,8 +36,8 @@ STATES = (
     'p_J_L',
 )
 STATE_UNITS = (
-    '',
-    '',
+    'V*s',
+    'N*m*s',
 )
 STATE_KINDS = (
     'momentum',

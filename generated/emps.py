@@ -8,7 +8,7 @@ Arrays are batched over leading axes: x (..., 2), u (..., 1),
 theta (..., 8) broadcast together.
 
 States x:
-      0 p_M [-] momentum of M
+      0 p_M [N*s] momentum of M
       1 q [m] integral
 Inputs u:
       0 vir [V] drive command (controller output); force = gtau*vir
@@ -36,7 +36,7 @@ STATES = (
     'q',
 )
 STATE_UNITS = (
-    '',
+    'N*s',
     'm',
 )
 STATE_KINDS = (

@@ -8,15 +8,15 @@ Arrays are batched over leading axes: x (..., 9), u (..., 1),
 theta (..., 13) broadcast together.
 
 States x:
-      0 p_M1 [-] momentum of M1
-      1 p_M2 [-] momentum of M2
-      2 p_M3 [-] momentum of M3
-      3 p_M4 [-] momentum of M4
-      4 p_M5 [-] momentum of M5
-      5 q_K1 [-] displacement of K1
-      6 q_K2 [-] displacement of K2
-      7 q_K3 [-] displacement of K3
-      8 q_K4 [-] displacement of K4
+      0 p_M1 [N*s] momentum of M1
+      1 p_M2 [N*s] momentum of M2
+      2 p_M3 [N*s] momentum of M3
+      3 p_M4 [N*s] momentum of M4
+      4 p_M5 [N*s] momentum of M5
+      5 q_K1 [m] displacement of K1
+      6 q_K2 [m] displacement of K2
+      7 q_K3 [m] displacement of K3
+      8 q_K4 [m] displacement of K4
 Inputs u:
       0 F [N] force on the first mass
 Parameters theta:
@@ -55,15 +55,15 @@ STATES = (
     'q_K4',
 )
 STATE_UNITS = (
-    '',
-    '',
-    '',
-    '',
-    '',
-    '',
-    '',
-    '',
-    '',
+    'N*s',
+    'N*s',
+    'N*s',
+    'N*s',
+    'N*s',
+    'm',
+    'm',
+    'm',
+    'm',
 )
 STATE_KINDS = (
     'momentum',

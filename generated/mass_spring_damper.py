@@ -8,8 +8,8 @@ Arrays are batched over leading axes: x (..., 2), u (..., 1),
 theta (..., 3) broadcast together.
 
 States x:
-      0 p_mass [-] momentum of mass
-      1 q_spring [-] displacement of spring
+      0 p_mass [N*s] momentum of mass
+      1 q_spring [m] displacement of spring
 Inputs u:
       0 F [N] applied force
 Parameters theta:
@@ -32,8 +32,8 @@ STATES = (
     'q_spring',
 )
 STATE_UNITS = (
-    '',
-    '',
+    'N*s',
+    'm',
 )
 STATE_KINDS = (
     'momentum',

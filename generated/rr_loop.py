@@ -9,7 +9,7 @@ theta (..., 3) broadcast together.
 Algebraic loops solved symbolically: 1.
 
 States x:
-      0 p_L [-] momentum of L
+      0 p_L [V*s] momentum of L
 Inputs u:
       0 V [V] source voltage
 Parameters theta:
@@ -31,7 +31,7 @@ STATES = (
     'p_L',
 )
 STATE_UNITS = (
-    '',
+    'V*s',
 )
 STATE_KINDS = (
     'momentum',

@@ -9,7 +9,7 @@ theta (..., 3) broadcast together.
 Storages eliminated by derivative causality: J_e.
 
 States x:
-      0 p_m [-] momentum of m
+      0 p_m [N*s] momentum of m
 Inputs u:
       0 T [N*m] engine torque
       1 r [m/rad] ratio v/ω_e (wheel radius over overall ratio)
@@ -33,7 +33,7 @@ STATES = (
     'p_m',
 )
 STATE_UNITS = (
-    '',
+    'N*s',
 )
 STATE_KINDS = (
     'momentum',

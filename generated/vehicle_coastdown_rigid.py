@@ -8,8 +8,8 @@ Arrays are batched over leading axes: x (..., 3), u (..., 1),
 theta (..., 13) broadcast together.
 
 States x:
-      0 body.p_m [-] momentum of body.m
-      1 wheels.p_J [-] momentum of wheels.J
+      0 body.p_m [N*s] momentum of body.m
+      1 wheels.p_J [N*m*s] momentum of wheels.J
       2 theta_g [rad] signal
 Inputs u:
       0 brake [-] brake command u_b in [0, 1]
@@ -47,8 +47,8 @@ STATES = (
     'theta_g',
 )
 STATE_UNITS = (
-    '',
-    '',
+    'N*s',
+    'N*m*s',
     'rad',
 )
 STATE_KINDS = (

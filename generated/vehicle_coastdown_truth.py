@@ -8,11 +8,11 @@ Arrays are batched over leading axes: x (..., 6), u (..., 1),
 theta (..., 19) broadcast together.
 
 States x:
-      0 body.p_m [-] momentum of body.m
-      1 pitch.p_I [-] momentum of pitch.I
-      2 pitch.q_k [-] displacement of pitch.k
-      3 rear.p_J [-] momentum of rear.J
-      4 front.p_J [-] momentum of front.J
+      0 body.p_m [N*s] momentum of body.m
+      1 pitch.p_I [N*m*s] momentum of pitch.I
+      2 pitch.q_k [rad] displacement of pitch.k
+      3 rear.p_J [N*m*s] momentum of rear.J
+      4 front.p_J [N*m*s] momentum of front.J
       5 theta_g [rad] signal
 Inputs u:
       0 brake [-] brake command u_b in [0, 1]
@@ -59,11 +59,11 @@ STATES = (
     'theta_g',
 )
 STATE_UNITS = (
-    '',
-    '',
-    '',
-    '',
-    '',
+    'N*s',
+    'N*m*s',
+    'rad',
+    'N*m*s',
+    'N*m*s',
     'rad',
 )
 STATE_KINDS = (

@@ -8,15 +8,15 @@ Arrays are batched over leading axes: x (..., 10), u (..., 2),
 theta (..., 47) broadcast together.
 
 States x:
-      0 body.p_m [-] momentum of body.m
-      1 pitch.p_I [-] momentum of pitch.I
-      2 pitch.q_k [-] displacement of pitch.k
-      3 rear.p_J [-] momentum of rear.J
-      4 front.p_J [-] momentum of front.J
-      5 engine.p_J [-] momentum of engine.J
-      6 cvt.q_springs [-] displacement of cvt.springs
-      7 cvt.p_J_s [-] momentum of cvt.J_s
-      8 driveline.q_k_rear [-] displacement of driveline.k_rear
+      0 body.p_m [N*s] momentum of body.m
+      1 pitch.p_I [N*m*s] momentum of pitch.I
+      2 pitch.q_k [rad] displacement of pitch.k
+      3 rear.p_J [N*m*s] momentum of rear.J
+      4 front.p_J [N*m*s] momentum of front.J
+      5 engine.p_J [N*m*s] momentum of engine.J
+      6 cvt.q_springs [m] displacement of cvt.springs
+      7 cvt.p_J_s [N*m*s] momentum of cvt.J_s
+      8 driveline.q_k_rear [rad] displacement of driveline.k_rear
       9 theta_g [rad] signal
 Inputs u:
       0 brake [-] brake command u_b in [0, 1]
@@ -98,15 +98,15 @@ STATES = (
     'theta_g',
 )
 STATE_UNITS = (
-    '',
-    '',
-    '',
-    '',
-    '',
-    '',
-    '',
-    '',
-    '',
+    'N*s',
+    'N*m*s',
+    'rad',
+    'N*m*s',
+    'N*m*s',
+    'N*m*s',
+    'm',
+    'N*m*s',
+    'rad',
     'rad',
 )
 STATE_KINDS = (
