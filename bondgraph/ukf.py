@@ -253,23 +253,46 @@ class UKFResult:
 
 
 # ---------------------------------------------------------------- helpers
-def _cholesky_batch(A: np.ndarray):
-    """Lower Cholesky factors of A (B, n, n); returns (L, ok (B,))."""
+def _cholesky_batch(A: np.ndarray, regularise: bool = True):
+    """Lower Cholesky factors of symmetric A (B, n, n).
+
+    A matrix that fails is retried with relative diagonal loading
+    A + ε diag(A), ε = 1e-12, 1e-9 (scale-invariant: each state in its own
+    units), which absorbs the rounding-level indefiniteness of covariances
+    contracted by fast stable modes without process noise. Returns
+    ``(L, ok (B,), n_regularised)``; failing entries of L are identity.
+    """
     ok = np.isfinite(A).all(axis=(-2, -1))
     if ok.all():
         try:
-            return np.linalg.cholesky(A), ok
+            return np.linalg.cholesky(A), ok, 0
         except np.linalg.LinAlgError:
             pass
     L = np.zeros_like(A)
     n = A.shape[-1]
+    nreg = 0
     for b in np.flatnonzero(ok):
         try:
             L[b] = np.linalg.cholesky(A[b])
+            continue
         except np.linalg.LinAlgError:
+            pass
+        done = False
+        if regularise:
+            d = np.diagonal(A[b]).copy()
+            if (d > 0).all():
+                for eps in (1e-12, 1e-9):
+                    try:
+                        L[b] = np.linalg.cholesky(A[b] + np.diag(eps * d))
+                        done = True
+                        nreg += 1
+                        break
+                    except np.linalg.LinAlgError:
+                        pass
+        if not done:
             ok[b] = False
     L[~ok] = np.eye(n)
-    return L, ok
+    return L, ok, nreg
 
 
 def _as_batch_matrix(M, P: int, n: int, what: str) -> np.ndarray | None:
@@ -306,7 +329,7 @@ def default_P0(model, x0: np.ndarray | None = None, rel: float = 0.05) -> np.nda
     return np.diag(sd ** 2)
 
 
-def _transition(model, method: str, substeps: int):
+def _transition(model, method: str, substeps: int, jacobian: str = "mean"):
     """Batched x(t+dt) for sigma points; see :mod:`bondgraph.integrators`."""
     if substeps < 1:
         raise OptionError(f"substeps must be >= 1, got {substeps}")
@@ -326,18 +349,32 @@ def _transition(model, method: str, substeps: int):
         f_dfdx = model.f_dfdx
         n = model.n_x
         eye = np.eye(n)
+        if jacobian not in ("mean", "sigma"):
+            raise OptionError(f"unknown ROS2 Jacobian option '{jacobian}' (use 'mean' or 'sigma')")
 
         def step(x, u, th, dt):
             h = dt / substeps
-            F0, J = f_dfdx(x, u, th)
-            W = eye - (GAMMA * h) * J
-            for s in range(substeps):
-                if s > 0:
+            if jacobian == "sigma" or x.ndim < 3:
+                F0, J = f_dfdx(x, u, th)
+                Winv = np.linalg.inv(eye - (GAMMA * h) * J)          # (..., n, n)
+                def solve(r):
+                    return (Winv @ r[..., None])[..., 0]
+            else:
+                # W-method: one Jacobian per parameter set, at the central
+                # sigma point, shared by all its sigma points
+                _, J = f_dfdx(x[:, 0], u, th[:, 0])                 # (P, n, n)
+                WinvT = np.swapaxes(np.linalg.inv(eye - (GAMMA * h) * J), -1, -2)
+                F0 = f(x, u, th)
+
+                def solve(r):
+                    return r @ WinvT                                # (P, 2n+1, n)
+            for s_ in range(substeps):
+                if s_ > 0:
                     F0 = f(x, u, th)
-                # W k1 = F0 ; W k2 = f(x + h k1) - 2 k1  (frozen Jacobian, ROS2)
-                k1 = np.linalg.solve(W, F0[..., None])[..., 0]
+                # W k1 = F0 ; W k2 = f(x + h k1) - 2 k1  (ROS2, frozen W)
+                k1 = solve(F0)
                 F1 = f(x + h * k1, u, th)
-                k2 = np.linalg.solve(W, (F1 - 2.0 * k1)[..., None])[..., 0]
+                k2 = solve(F1 - 2.0 * k1)
                 x = x + (1.5 * h) * k1 + (0.5 * h) * k2
             return x
         return step
@@ -385,7 +422,8 @@ def _check_inputs(model, t, u, y):
 # ------------------------------------------------------------------ filter
 def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
             alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
-            method: str = "ros2", substeps: int = 1, store: bool | str = False) -> UKFResult:
+            method: str = "ros2", substeps: int = 1, jacobian: str = "mean",
+            store: bool | str = False) -> UKFResult:
     """Run the batched UKF over a record and return the NLL of each parameter set.
 
     Parameters
@@ -417,6 +455,11 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
         Discretisation of the prediction between samples.
     substeps : int
         Integration steps per sample interval.
+    jacobian : {"mean", "sigma"}
+        ROS2 only: evaluate df/dx once per parameter set at the central
+        sigma point and share W⁻¹ = (I − γh J)⁻¹ among its sigma points
+        (default; ROS2 is a W-method, second order for any J), or at every
+        sigma point (``"sigma"``, 2n+1 times the Jacobian cost).
     store : bool or "full"
         Keep innovations, S, predicted and filtered outputs, filtered
         states, per-sample NLL terms and NIS (``"full"``: also the filtered
@@ -453,7 +496,7 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
                          f"(parameters {model.params}), got {np.shape(theta)}")
     Pn, n, ny, N = th.shape[0], model.n_x, model.n_y, t.size
     wts = merwe_weights(n, alpha, beta, kappa)
-    step = _transition(model, method, int(substeps))
+    step = _transition(model, method, int(substeps), jacobian)
     c, w, cc = wts.c, wts.w, wts.center_cov
 
     # ---- priors
@@ -519,7 +562,7 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
     Qa = None if Qx is None else np.asarray(Qx)[act]
     Ra_full = None if Rfix is None else np.asarray(Rfix)[act]
     Rda = None if Rdiag is None else Rdiag[act]
-    eye_idx = np.arange(n)
+    n_reg = 0
 
     def drop(mask_bad, k, why):
         """Mark active sets (mask over the active arrays) as failed."""
@@ -540,7 +583,9 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
         return keep
 
     def sigma_points(k, what):
-        L, ok = _cholesky_batch(Pc)
+        nonlocal n_reg
+        L, ok, nr = _cholesky_batch(Pc)
+        n_reg += nr
         if not ok.all():
             keep = drop(~ok, k, f"{what} covariance P not positive definite")
             L = L[keep]
@@ -571,7 +616,7 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
             D = X[:, 1:] - X[:, :1]                                    # (A, 2n, n)
             m = w * D.sum(axis=1)                                      # (A, n)
             x = X[:, 0] + m
-            Pc = w * np.einsum("aki,akj->aij", D, D) + cc * (m[:, :, None] * m[:, None, :])
+            Pc = w * (np.swapaxes(D, 1, 2) @ D) + cc * (m[:, :, None] * m[:, None, :])
             Pc.reshape(Pc.shape[0], n * n)[:, ::n + 1] += q2a * dt
             if Qa is not None:
                 Pc += Qa
@@ -598,7 +643,7 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
             E = Y[:, 1:] - Y[:, :1]                                    # (A, 2n, m)
             my = w * E.sum(axis=1)
             yhat = Y[:, 0] + my
-            S = w * np.einsum("aki,akj->aij", E, E) + cc * (my[:, :, None] * my[:, None, :])
+            S = w * (np.swapaxes(E, 1, 2) @ E) + cc * (my[:, :, None] * my[:, None, :])
             if Rda is not None:
                 rd = Rda if idx is None else Rda[:, idx]
                 mm = rd.shape[1]
@@ -607,8 +652,9 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
                 S += Ra_full if idx is None else Ra_full[:, idx][:, :, idx]
             # cross covariance: sigma points are symmetric about x, so
             # P_xy = W Σ_i cL_i (E_+i − E_−i)ᵀ exactly (the mean term vanishes)
-            Pxy = w * np.einsum("aki,akj->aij", cL, E[:, :n] - E[:, n:])
-            Ls, ok = _cholesky_batch(S)
+            Pxy = w * (np.swapaxes(cL, 1, 2) @ (E[:, :n] - E[:, n:]))
+            Ls, ok, nr = _cholesky_batch(S)
+            n_reg += nr
             if not ok.all():
                 keep = drop(~ok, k, "innovation covariance S not positive definite")
                 Ls, S, Pxy, yhat = Ls[keep], S[keep], Pxy[keep], yhat[keep]
@@ -624,8 +670,9 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
             maha = (z * z).sum(axis=1)
             term = 0.5 * (logdet + maha + mm * LOG_2PI)
             nll[act] += term
-            x = x + np.einsum("aji,aj->ai", Gt, z)
-            Pc = Pc - np.einsum("aki,akj->aij", Gt, Gt)
+            GtT = np.swapaxes(Gt, 1, 2)
+            x = x + (GtT @ z[:, :, None])[:, :, 0]
+            Pc = Pc - GtT @ Gt
             Pc = 0.5 * (Pc + np.swapaxes(Pc, 1, 2))
             if st:
                 sel = slice(None) if idx is None else idx
@@ -657,7 +704,8 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
     res = UKFResult(nll=nll, failed=failed, reasons=reasons, fail_step=fail_step, n_obs=n_obs,
                     t=t, outputs=list(model.outputs), states=list(model.states),
                     settings=dict(alpha=alpha, beta=beta, kappa=kappa, method=method,
-                                  substeps=int(substeps)))
+                                  substeps=int(substeps), jacobian=jacobian,
+                                  n_regularised=int(n_reg)))
     if st:
         for arr in (inn, S_st, yp_st, yf_st, xf_st, nis):
             for p in np.flatnonzero(failed):
