@@ -131,3 +131,22 @@ def test_ukf_maximum_likelihood_suspension_bias(coast_spec, coast_record):
     assert np.all(np.abs(ok) < 0.01), ok
     assert np.all((rigid > 0.05) & (rigid < 0.09)), rigid
     assert np.all(np.abs(rigid) > 10 * crb)
+
+
+@pytest.mark.parametrize("name", ["vehicle_full_throttle_high", "vehicle_braking"])
+def test_full_filter_model_is_consistent_in_the_ukf(name):
+    """At the true parameters the batched UKF (ROS2, one step per sample)
+    runs through the driving records with the full filter model: finite
+    NLL, and a mean normalised innovation squared near n_y (7), i.e. the
+    declared sensor noise and the model explain the record."""
+    spec = get_experiment(name)
+    exp = run_experiment(spec)
+    m = Model.load(spec.model)
+    th = m.theta(spec.params)
+    x0 = m.state(spec.x0)
+    P0 = np.diag(np.maximum((0.01 * np.abs(x0)) ** 2, 1e-8))
+    r = ukf_nll(m, exp.t, exp.inputs_for(m), exp.outputs_for(m), th, x0, P0, method="ros2",
+                substeps=1, store=True)
+    assert np.isfinite(r.nll).all(), r
+    nis = float(np.nanmean(r.nis))
+    assert 0.8 * m.n_y < nis < 1.2 * m.n_y, nis

@@ -139,6 +139,49 @@ def test_full_model_matches_hand_derived_equations():
     np.testing.assert_allclose(y_gen, y_ref, rtol=1e-11, atol=1e-12)
 
 
+def hand_coastdown(x, u, P, rigid=False):
+    """Coast-down filter model (one lumped wheel of 4 J_w, dynamic or no pitch)."""
+    if rigid:
+        p_m, p_w, th_g = x.T
+        p_I = th_s = 0 * p_m
+    else:
+        p_m, p_I, th_s, p_w, th_g = x.T
+    brake = u[:, 0]
+    m, g = P["m"], P["g"]
+    v, w = p_m / m, p_w / (4 * P["J_w"])
+    d = NUM.v_delta
+    a = np.sqrt(v * v + d * d)
+    den = 0.5 * (a + NUM.v_eps + np.sqrt((a - NUM.v_eps) ** 2 + d * d))
+    Fz = m * g * np.cos(th_g)
+    Fx = _mf((P["r_dyn"] * w - v) / den, Fz, P)
+    F_aero = 0.5 * RHO * P["C_dA"] * v * a
+    dp_m = Fx - F_aero - m * g * np.sin(th_g)
+    tw = np.tanh(w / NUM.w_eps_wheel)
+    dp_w = -P["r_dyn"] * Fx - 4 * P["T_bmax"] * brake * tw - P["f_r"] * Fz * P["r_dyn"] * tw
+    pitch = th_g + th_s + P["theta_off"]
+    a_x = dp_m / m + g * np.sin(th_g + th_s)
+    y = np.stack([w, w, v, pitch, a_x], axis=-1)
+    if rigid:
+        return np.stack([dp_m, dp_w, 0 * th_g], axis=-1), y
+    dth = p_I / P["I_theta"]
+    dp_I = -P["k_theta"] * th_s - P["c_theta"] * dth + P["h_cg"] * (Fx - F_aero)
+    return np.stack([dp_m, dp_I, dth, dp_w, 0 * th_g], axis=-1), y
+
+
+@pytest.mark.parametrize("name", ["vehicle_coastdown", "vehicle_coastdown_rigid"])
+def test_coastdown_models_match_hand_derived_equations(name):
+    model = Model.load(name)
+    rigid = name.endswith("rigid")
+    assert model.states == (["body.p_m", "wheels.p_J", "theta_g"] if rigid else
+                            ["body.p_m", "pitch.p_I", "pitch.q_k", "wheels.p_J", "theta_g"])
+    rng = np.random.default_rng(9)
+    X, U, th = _random_points(model, 300, rng)
+    P = {n: th[:, j] for j, n in enumerate(model.params)}
+    f_ref, y_ref = hand_coastdown(X, U, P, rigid=rigid)
+    np.testing.assert_allclose(model.f(X, U, th), f_ref, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(model.h(X, U, th), y_ref, rtol=1e-11, atol=1e-12)
+
+
 def test_low_range_differs_only_by_the_gear_ratio():
     hi, lo = Model.load("vehicle_full"), Model.load("vehicle_full_low")
     assert hi.params == lo.params and hi.states == lo.states
