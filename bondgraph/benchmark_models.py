@@ -166,3 +166,83 @@ def ced_linear() -> BondGraph:
 #: defaults of :func:`ced_linear` (R_a, b_m, k_b, k_y fitted to eq. (9) of the report)
 CED_DEFAULTS = {"R_a": 0.690777, "L_a": 0.1, "k_m": 0.05, "b_m": 0.0887117, "k_b": 0.450329,
                 "J_p": 1e-3, "b_p": 1e-5, "k_y": 2.337023}
+
+
+# ------------------------------------------------------------------ EMPS helpers
+def emps_arrays(experiment=None, decimate: int = 5):
+    """EMPS record as filter arrays, decimated.
+
+    Parameters
+    ----------
+    experiment : Experiment, optional
+        From :func:`bondgraph.datasets.emps` (default: loaded from the local
+        data folder, no download).
+    decimate : int
+        Keep every ``decimate``-th position sample; the input over each
+        interval is the mean of ``vir`` over its ``decimate`` 1-kHz samples,
+        which is what a zero-order hold over the interval should carry (the
+        force impulse is preserved).
+
+    Returns
+    -------
+    (t (N,), u (N, 1) [V], y (N, 1) [m])
+    """
+    import numpy as np
+
+    if experiment is None:
+        from .datasets import emps as _load
+
+        experiment = _load("estimation", download=False)
+    t, q, vir = experiment.t, experiment["qm"], experiment["vir"]
+    n = (t.size // decimate) * decimate
+    return (t[:n:decimate].copy(), vir[:n].reshape(-1, decimate).mean(axis=1)[:, None],
+            q[:n:decimate][:, None].copy())
+
+
+def emps_filtered_signals(experiment=None, cutoff: float = 100.0, edge: int = 50, step: int = 10):
+    """q, q̇, q̈ and τ = gtau·vir as in the benchmark's inverse-model protocol.
+
+    4th-order Butterworth low-pass at ``cutoff`` Hz applied forward and
+    backward (filtfilt) to qm, central differences for q̇ and q̈, ``edge``
+    samples dropped at both ends, decimation by ``step`` (README of
+    ``../shared/data/emps``, reproducing Janot et al. 2019).
+
+    Returns
+    -------
+    dict with arrays ``q, qd, qdd, tau`` (M,) in SI units.
+    """
+    import numpy as np
+    from scipy.signal import butter, filtfilt
+
+    if experiment is None:
+        from .datasets import emps as _load
+
+        experiment = _load("estimation", download=False)
+    t, q, vir = experiment.t, experiment["qm"], experiment["vir"]
+    dt = float(np.median(np.diff(t)))
+    b, a = butter(4, cutoff / (0.5 / dt))
+    qf = filtfilt(b, a, q)
+    qd = np.gradient(qf, dt)
+    qdd = np.gradient(qd, dt)
+    sl = slice(edge, t.size - edge, step)
+    return dict(q=qf[sl], qd=qd[sl], qdd=qdd[sl], tau=EMPS_GTAU * vir[sl])
+
+
+def emps_force_relerr(M: float, Fv: float, Fc: float, offset: float, signals: dict) -> float:
+    """Force relative error of the inverse model, ||τ − τ̂|| / ||τ|| [%], with
+    τ̂ = M q̈ + Fv q̇ + Fc sign(q̇) + offset on :func:`emps_filtered_signals`."""
+    import numpy as np
+
+    s = signals
+    tau_hat = M * s["qdd"] + Fv * s["qd"] + Fc * np.sign(s["qd"]) + offset
+    return float(100.0 * np.linalg.norm(s["tau"] - tau_hat) / np.linalg.norm(s["tau"]))
+
+
+def emps_idim_ls(signals: dict) -> dict[str, float]:
+    """Inverse-dynamic-model least squares (IDIM-LS): τ = [q̈, q̇, sign(q̇), 1]·θ."""
+    import numpy as np
+
+    s = signals
+    A = np.column_stack([s["qdd"], s["qd"], np.sign(s["qd"]), np.ones_like(s["qd"])])
+    th, *_ = np.linalg.lstsq(A, s["tau"], rcond=None)
+    return dict(zip(("M", "Fv", "Fc", "offset"), map(float, th)))
