@@ -825,9 +825,34 @@ def configure_estimate(p) -> None:
     p.add_argument("--beta", type=float, default=2.0)
     p.add_argument("--kappa", type=float, default=0.0)
     p.add_argument("--stall", type=int, default=None, help="stop after N iterations without progress")
+    p.add_argument("--x0", default=None,
+                   help="name=value,... initial states (default: the record's state columns or "
+                        "sidecar x0 for states the model has, else the model's X0)")
+    p.add_argument("--p0-rel", type=float, default=0.05,
+                   help="prior std of each initial state, relative to max(|x0|, 1)")
     p.add_argument("--no-polish", action="store_true")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def initial_state_from_record(model, experiment) -> np.ndarray:
+    """Initial state for a record: the first value of each ``state.<name>``
+    column, else the sidecar's ``x0[name]``, for the model's states; the
+    model's X0 for the others.
+
+    Returns
+    -------
+    ndarray (n_x,)
+    """
+    x0 = model.x0.copy()
+    cols = experiment.states() if hasattr(experiment, "states") else {}
+    meta_x0 = (experiment.meta or {}).get("x0") or {}
+    for i, name in enumerate(model.states):
+        if name in cols and np.isfinite(cols[name][0]):
+            x0[i] = float(cols[name][0])
+        elif isinstance(meta_x0, Mapping) and name in meta_x0:
+            x0[i] = float(meta_x0[name])
+    return x0
 
 
 def run_estimate(args) -> int:
@@ -840,6 +865,9 @@ def run_estimate(args) -> int:
     out = Path(args.out) if args.out else Path(f"estimate_{model.name}_{Path(args.data).stem}")
     out.mkdir(parents=True, exist_ok=True)
     ck = Path(args.checkpoint) if args.checkpoint else out / "checkpoint.npz"
+    x0 = initial_state_from_record(model, exp)
+    for k, v in _parse_fixed(args.x0).items():
+        x0[model.state_index(k)] = v
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
         res = estimate(model, exp, params, optimizer=args.optimizer, particles=args.particles,
@@ -847,13 +875,13 @@ def run_estimate(args) -> int:
                        resume=args.resume, fixed=_parse_fixed(args.fixed), method=args.method,
                        substeps=args.substeps, alpha=args.alpha, beta=args.beta, kappa=args.kappa,
                        polish=not args.no_polish, stall_iterations=args.stall,
-                       progress=not args.quiet)
+                       progress=not args.quiet, x0=x0, P0=default_P0(model, x0, args.p0_rel))
     res.settings["data"] = str(args.data)
     rpath = out / "result.json"
     res.to_json(rpath)
     print(res.table())
     print(f"wrote {rpath}")
     if not args.no_plots:
-        for pth in plot_fit(model, exp, res, out):
+        for pth in plot_fit(model, exp, res, out, P0=default_P0(model, x0, args.p0_rel)):
             print(f"wrote {pth}")
     return 0

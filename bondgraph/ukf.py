@@ -257,7 +257,7 @@ def _cholesky_batch(A: np.ndarray, regularise: bool = True):
     """Lower Cholesky factors of symmetric A (B, n, n).
 
     A matrix that fails is retried with relative diagonal loading
-    A + ε diag(A), ε = 1e-12, 1e-9 (scale-invariant: each state in its own
+    A + ε diag(A), ε = 1e-12, 1e-9, 1e-6 (scale-invariant: each state in its own
     units), which absorbs the rounding-level indefiniteness of covariances
     contracted by fast stable modes without process noise. Returns
     ``(L, ok (B,), n_regularised)``; failing entries of L are identity.
@@ -281,7 +281,7 @@ def _cholesky_batch(A: np.ndarray, regularise: bool = True):
         if regularise:
             d = np.diagonal(A[b]).copy()
             if (d > 0).all():
-                for eps in (1e-12, 1e-9):
+                for eps in (1e-12, 1e-9, 1e-6):
                     try:
                         L[b] = np.linalg.cholesky(A[b] + np.diag(eps * d))
                         done = True
