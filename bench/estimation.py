@@ -160,7 +160,8 @@ def protocol(args) -> dict:
                             dict(x0=x0, P0=default_P0(model, x0, 0.01))))
     t0 = time.perf_counter()
     res = two_stage(stages, particles=args.particles, iterations=args.iterations, seed=args.seed,
-                    method=args.method, substeps=args.substeps, progress=False)
+                    method=args.method, substeps=args.substeps, progress=False,
+                    workers=args.workers)
     out = dict(protocol_wall_s=time.perf_counter() - t0, stages=[])
     for st, r in zip(stages, res):
         print(f"\n== stage {st.name}: {r.model} on {r.experiment}")
@@ -193,6 +194,7 @@ def main(argv=None) -> int:
     p.add_argument("--baseline-steps", type=int, default=60)
     p.add_argument("--line-plot", default=None, help="PNG of the NLL along a line (α sweep)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=1, help="processes per batched evaluation")
     p.add_argument("--protocol", action="store_true",
                    help="run the two-stage protocol on the synthetic vehicle records instead")
     p.add_argument("--out", default=None, help="directory for the protocol's JSON results")
@@ -217,12 +219,13 @@ def main(argv=None) -> int:
           f"{np.max(dc['one_step']):.3g} noise std (worst output)")
 
     crit = Criterion(model, t, u, y, PARAMS, truth, x0, P0,
-                     dict(method=args.method, substeps=args.substeps))
+                     dict(method=args.method, substeps=args.substeps), workers=args.workers)
     lo, hi = model.bounds(PARAMS)
     t0 = time.perf_counter()
     res = pso(crit, lo, hi, particles=args.particles, iterations=iterations, seed=args.seed,
               progress=False)
     wall = time.perf_counter() - t0
+    crit.close()
     s_per_eval = wall / res.nfev
     print(f"toolkit: {res.nfev} evaluations in {res.ncalls} calls, {wall:.1f} s, "
           f"{s_per_eval * 1e3:.2f} ms per evaluation; best NLL {res.fun:.3f}; "
@@ -240,6 +243,7 @@ def main(argv=None) -> int:
         model=model.name, experiment=args.experiment, record_s=record_s, samples=int(t.size),
         particles=args.particles, iterations=iterations, evaluations=int(res.nfev),
         calls=int(res.ncalls), wall_s=round(wall, 3), s_per_eval=s_per_eval,
+        workers=args.workers,
         minutes_for_8080=s_per_eval * 8080 / 60, method=args.method, substeps=args.substeps,
         baseline_s_per_eval=b_rk4, baseline="filterpy UKF, fx = RK4(8) over generated f",
         speedup=b_rk4 / s_per_eval,

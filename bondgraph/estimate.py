@@ -74,6 +74,10 @@ class Criterion:
         method, substeps, Q, R``).
     chunk : int, optional
         Evaluate at most this many parameter sets per UKF run.
+    workers : int
+        Processes that share each batch (``fork`` start method; each runs
+        the batched UKF on its share of the parameter sets). 1: in-process.
+        Results do not depend on ``workers``.
 
     Attributes
     ----------
@@ -86,7 +90,8 @@ class Criterion:
     """
 
     def __init__(self, model, t, u, y, params: Sequence[str], base, x0=None, P0=None,
-                 ukf: Mapping[str, Any] | None = None, chunk: int | None = None):
+                 ukf: Mapping[str, Any] | None = None, chunk: int | None = None,
+                 workers: int = 1):
         self.model = model
         self.t, self.u, self.y = t, u, y
         self.params = list(params)
@@ -95,6 +100,8 @@ class Criterion:
         self.x0, self.P0 = x0, P0
         self.ukf = dict(ukf or {})
         self.chunk = chunk
+        self.workers = max(1, int(workers))
+        self._pool = None
         self.evaluations = 0
         self.calls = 0
         self.failures: Counter = Counter()
@@ -108,19 +115,62 @@ class Criterion:
         return ukf_nll(self.model, self.t, self.u, self.y, self.theta(X), self.x0, self.P0,
                        store=store, **self.ukf)
 
-    def __call__(self, X) -> np.ndarray:
-        X = np.atleast_2d(np.asarray(X, dtype=float))
+    def _evaluate(self, X):
         S = X.shape[0]
         out = np.empty(S)
+        fails: Counter = Counter()
         step = self.chunk or S
         for a in range(0, S, step):
             r = self.run(X[a:a + step])
             out[a:a + step] = r.nll
-            for why, n in r.failure_summary().items():
-                self.failures[why] += n
+            fails.update(r.failure_summary())
+        return out, fails
+
+    def __call__(self, X) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        S = X.shape[0]
+        if self.workers > 1 and S >= 2 * self.workers:
+            if self._pool is None:
+                import multiprocessing as mp
+
+                global _WORKER_CRITERION
+                _WORKER_CRITERION = self
+                self._pool = mp.get_context("fork").Pool(self.workers)
+            parts = self._pool.map(_worker_evaluate, np.array_split(X, self.workers))
+            out = np.concatenate([p[0] for p in parts])
+            for p in parts:
+                self.failures.update(p[1])
+        else:
+            out, fails = self._evaluate(X)
+            self.failures.update(fails)
         self.evaluations += S
         self.calls += 1
         return out
+
+    def close(self) -> None:
+        """Stop the worker processes (if any)."""
+        if self._pool is not None:
+            self._pool.close()
+            self._pool.join()
+            self._pool = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d["_pool"] = None
+        return d
+
+
+_WORKER_CRITERION: Criterion | None = None
+
+
+def _worker_evaluate(X):
+    return _WORKER_CRITERION._evaluate(X)
 
 
 # ------------------------------------------------------------------- Hessian
@@ -422,7 +472,7 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
              method: str = "ros2", substeps: int = 1, Q=None, R=None,
              polish: bool = True, hessian: bool = True, stall_iterations: int | None = None,
              start=None, progress: bool = True, chunk: int | None = None,
-             check_discretisation: bool = True) -> EstimationResult:
+             check_discretisation: bool = True, workers: int = 1) -> EstimationResult:
     """Maximum-likelihood estimate of ``params`` from one record.
 
     Parameters
@@ -466,6 +516,8 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
         tqdm progress bar.
     chunk : int, optional
         Maximum parameter sets per UKF run (memory bound).
+    workers : int
+        Processes sharing each batched evaluation (see :class:`Criterion`).
     check_discretisation : bool
         At the estimate, compare the one-step output error of the filter's
         discretisation with a fine reference, in units of the measurement
@@ -517,7 +569,8 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
     P0a = default_P0(model, x0a) if P0 is None else P0
     ukf_opts = dict(alpha=alpha, beta=beta, kappa=kappa, method=method, substeps=substeps,
                     Q=Q, R=R)
-    crit = Criterion(model, t, u, y, params, base, x0a, P0a, ukf_opts, chunk=chunk)
+    crit = Criterion(model, t, u, y, params, base, x0a, P0a, ukf_opts, chunk=chunk,
+                     workers=workers)
     k = len(params)
     S = int(particles) if particles else 10 * k
 
@@ -588,6 +641,7 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
         if truth:
             z = np.array([(x_best[i] - truth[p]) / cr["std"][i] if p in truth else np.nan
                           for i, p in enumerate(params)])
+    crit.close()
     theta = base.copy()
     theta[model.param_indices(params)] = x_best
     return EstimationResult(
@@ -832,6 +886,7 @@ def configure_estimate(p) -> None:
                    help="prior std of each initial state, relative to max(|x0|, 1)")
     p.add_argument("--no-polish", action="store_true")
     p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--workers", type=int, default=1, help="processes per batched evaluation")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -875,7 +930,8 @@ def run_estimate(args) -> int:
                        resume=args.resume, fixed=_parse_fixed(args.fixed), method=args.method,
                        substeps=args.substeps, alpha=args.alpha, beta=args.beta, kappa=args.kappa,
                        polish=not args.no_polish, stall_iterations=args.stall,
-                       progress=not args.quiet, x0=x0, P0=default_P0(model, x0, args.p0_rel))
+                       progress=not args.quiet, x0=x0, P0=default_P0(model, x0, args.p0_rel),
+                       workers=args.workers)
     res.settings["data"] = str(args.data)
     rpath = out / "result.json"
     res.to_json(rpath)

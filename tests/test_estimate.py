@@ -260,3 +260,20 @@ def test_cli_bad_parameter_name(msd_csv, capsys):
                "--params", "m,stiffness", "--quiet"])
     assert rc == 1
     assert "stiffness" in capsys.readouterr().err
+
+
+def test_workers_give_identical_results(msd_record):
+    """The criterion split over 2 processes returns exactly the in-process values."""
+    from bondgraph.estimate import Criterion
+
+    m, t, u, y, _, truth = msd_record
+    X = np.array([[2.5, 80.0, 2.0], [2.0, 60.0, 1.0], [3.0, 90.0, 3.0], [2.2, 70.0, np.nan],
+                  [2.6, 85.0, 2.5]])
+    kw = dict(ukf=dict(method="rk4", substeps=2))
+    a = Criterion(m, t, u, y, ["m", "k", "c"], m.theta0, np.zeros(2), np.diag([1e-8, 1e-10]), **kw)
+    b = Criterion(m, t, u, y, ["m", "k", "c"], m.theta0, np.zeros(2), np.diag([1e-8, 1e-10]),
+                  workers=2, **kw)
+    fa, fb = a(X), b(X)
+    b.close()
+    assert np.array_equal(fa, fb) and np.isinf(fa[3])
+    assert a.failures == b.failures and b.evaluations == 5
