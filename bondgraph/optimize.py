@@ -372,7 +372,7 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 
         if ck is None or not ck.exists():
             raise OptionError(f"cannot resume: checkpoint {ck} does not exist")
         d = np.load(ck)
-        init = (d["population"] - lo) / (hi - lo) * (hi - lo) + lo
+        init = np.asarray(d["population"], dtype=float)
         it0 = int(d["it"])
         history = [float(v) for v in d["history"]]
         best[0] = float(d["best"])
