@@ -786,11 +786,13 @@ def proc_std(theta):
     (the covariance added over a step dt is diag(proc_std**2) * dt).
     """
     theta = np.asarray(theta, dtype=float)
+    J_w = theta[..., 1]
+    m = theta[..., 8]
     q_grade = theta[..., 11]
     _shape = np.broadcast(theta[..., 0]).shape
     _out = np.empty((3,) + _shape)
-    _out[0, ...] = 0
-    _out[1, ...] = 0
+    np.multiply(0.004, m, out=_out[0, ...])
+    np.multiply(0.132, J_w, out=_out[1, ...])
     _out[2, ...] = q_grade
     _out = _out.transpose((*range(1, len(_shape) + 1), 0))
     return _out

@@ -2188,17 +2188,22 @@ def proc_std(theta):
     (the covariance added over a step dt is diag(proc_std**2) * dt).
     """
     theta = np.asarray(theta, dtype=float)
+    J_e = theta[..., 0]
+    J_s = theta[..., 22]
+    J_w = theta[..., 29]
+    m = theta[..., 36]
     q_grade = theta[..., 42]
+    _t0 = (0.066)*J_w
     _shape = np.broadcast(theta[..., 0]).shape
     _out = np.empty((10,) + _shape)
-    _out[0, ...] = 0
+    np.multiply(0.004, m, out=_out[0, ...])
     _out[1, ...] = 0
     _out[2, ...] = 0
-    _out[3, ...] = 0
-    _out[4, ...] = 0
-    _out[5, ...] = 0
+    _out[3, ...] = _t0
+    _out[4, ...] = _t0
+    np.multiply(0.4, J_e, out=_out[5, ...])
     _out[6, ...] = 0
-    _out[7, ...] = 0
+    np.multiply(0.2, J_s, out=_out[7, ...])
     _out[8, ...] = 0
     _out[9, ...] = q_grade
     _out = _out.transpose((*range(1, len(_shape) + 1), 0))

@@ -344,9 +344,23 @@ def test_sensor_noise_is_declared_and_documented():
     std = m.meas_std(m.theta0)
     for j, o in enumerate(m.outputs):
         assert std[j] == SENSOR_NOISE[o] > 0
+    from vehicle_graphs.vehicle import PROCESS_NOISE
+
     q = m.proc_std(m.theta0)
-    assert q[m.state_index("theta_g")] == pytest.approx(m.theta0[m.param_index("q_grade")])
-    assert np.count_nonzero(q) == 1
+    P = dict(zip(m.params, m.theta0))
+    expected = {"theta_g": P["q_grade"], "body.p_m": P["m"] * PROCESS_NOISE["v"],
+                "rear.p_J": 2 * P["J_w"] * PROCESS_NOISE["w_wheel"],
+                "front.p_J": 2 * P["J_w"] * PROCESS_NOISE["w_wheel"],
+                "engine.p_J": P["J_e"] * PROCESS_NOISE["w_e"],
+                "cvt.p_J_s": P["J_s"] * PROCESS_NOISE["w_s"]}
+    for j, s in enumerate(m.states):
+        assert q[j] == pytest.approx(expected.get(s, 0.0), rel=1e-12), s
+    # switched off on request
+    m0 = Model.from_graph(build_vehicle("v", gear="N", powertrain=False, wheels="lumped",
+                                        process_noise={}))
+    assert np.count_nonzero(m0.proc_std(m0.theta0)) == 1
+    with pytest.raises(ValueError, match="w_x"):
+        build_vehicle("v", process_noise={"w_x": 1.0})
 
 
 def test_static_normal_loads_match_the_measured_axle_loads():

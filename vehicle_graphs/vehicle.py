@@ -59,6 +59,23 @@ SENSOR_DESCRIPTIONS: dict[str, str] = {
 }
 
 
+#: continuous-time process-noise intensities of the mechanical speeds, in
+#: flow units per sqrt(s) (the momentum states get inertia x intensity):
+#: unmodelled disturbances (road roughness, torque ripple). They are small
+#: (over one 25 ms sample the body speed gets 0.6 mm/s, the engine 0.06 rad/s
+#: of standard deviation, well below the sensor noise) and keep the UKF's
+#: predicted covariance positive definite where the dynamics contract
+#: strongly (brake held at standstill); see docs/vehicle.md. The grade's
+#: random walk (parameter q_grade) is the main process noise, as in the
+#: original work.
+PROCESS_NOISE: dict[str, float] = {
+    "v": 0.004,        # m/s/sqrt(s), body speed
+    "w_wheel": 0.033,  # rad/s/sqrt(s), wheel speeds
+    "w_e": 0.4,        # rad/s/sqrt(s), engine speed
+    "w_s": 0.2,        # rad/s/sqrt(s), secondary speed
+}
+
+
 class _LazyParams(dict):
     """Declares a parameter of the table in the graph on first use."""
 
@@ -83,8 +100,8 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
                   suspension: str = "dynamic", shaft_compliance: bool = True,
                   aero: bool = True, brake_drag: bool = False, pitch_offset: bool = True,
                   belt_slip: bool = False, manifold_lag: bool = False, grade: str = "state",
-                  numerics: Numerics = Numerics(), description: str | None = None
-                  ) -> BondGraph:
+                  numerics: Numerics = Numerics(), description: str | None = None,
+                  process_noise: dict[str, float] | None = None) -> BondGraph:
     """Build the vehicle's bond graph.
 
     Parameters
@@ -131,6 +148,11 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
     numerics : Numerics
         Regularisation widths.
     description : str, optional
+    process_noise : dict, optional
+        Intensities of the speed disturbances ``{"v", "w_wheel", "w_e",
+        "w_s"}`` in flow units per sqrt(s) (default :data:`PROCESS_NOISE`;
+        a missing key or 0 declares none). The grade's intensity is the
+        parameter ``q_grade``.
 
     Returns
     -------
@@ -237,6 +259,24 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
             g.connect(hd.port("rear"), axles["rear"].port("hub"))
             if drive == "AWD":
                 g.connect(hd.port("front"), axles["front"].port("hub"))
+
+    # ---- process noise: speed disturbances on the momenta (inertia x intensity)
+    qn = PROCESS_NOISE if process_noise is None else process_noise
+    unknown = set(qn) - set(PROCESS_NOISE)
+    if unknown:
+        raise ValueError(f"process_noise has unknown keys {sorted(unknown)} "
+                         f"(known: {', '.join(PROCESS_NOISE)})")
+
+    def _set_q(element, key):
+        if qn.get(key):
+            g.set_process_noise(element.state, element.inertance * const(qn[key]))
+
+    _set_q(hb["m"], "v")
+    for h in axles.values():
+        _set_q(h["J"], "w_wheel")
+    if powertrain:
+        _set_q(he["J"], "w_e")
+        _set_q(hc["J_s"], "w_s")
 
     # ---- sensors (40 Hz)
     def sensor(nm, expr):
