@@ -112,6 +112,17 @@ def test_record_round_trip_and_bad_files(coast_record, tmp_path):
         Experiment.load(p3)
 
 
+def test_write_records(tmp_path, coast_record):
+    from vehicle_graphs.experiments import write_records
+
+    paths = write_records(tmp_path, ["vehicle_coastdown"])
+    assert [p.name for p in paths] == ["vehicle_coastdown.csv"]
+    assert (tmp_path / "vehicle_coastdown.json").exists()
+    back = Experiment.load(paths[0])
+    np.testing.assert_array_equal(back.columns["pitch"], coast_record.columns["pitch"])
+    assert back.meta["true_parameters"]["f_r"] == pytest.approx(0.022)
+
+
 def test_seed_makes_records_reproducible(coast_record):
     again = run_experiment("vehicle_coastdown")
     np.testing.assert_array_equal(again.columns["pitch"], coast_record.columns["pitch"])

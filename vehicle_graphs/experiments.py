@@ -194,3 +194,52 @@ def hill_climb() -> ExperimentSpec:
         params=params, seed=26,
         description="Hill climb on a constant 15 % grade in Low range: brake held to 2 s, "
                     "then full throttle.")
+
+
+# ------------------------------------------------------------------ records
+def write_records(directory, names: Sequence[str] | None = None) -> list:
+    """Simulate registered vehicle experiments and save their noisy records.
+
+    Parameters
+    ----------
+    directory : str or Path
+        Target directory (created); each record is ``<name>.csv`` plus the
+        JSON sidecar ``<name>.json`` (true parameters, x0, noise, seed,
+        units; docs/data_format.md).
+    names : sequence of str, optional
+        Experiments (default: all of :data:`vehicle_graphs.EXPERIMENTS`).
+
+    Returns
+    -------
+    list of Path
+        The CSV files written.
+
+    Raises
+    ------
+    bondgraph.errors.ModelError
+        For an unknown experiment name.
+    """
+    from pathlib import Path
+
+    from bondgraph.experiments import run_experiment
+
+    from . import EXPERIMENTS
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    out = []
+    for name in (names or list(EXPERIMENTS)):
+        exp = run_experiment(name)
+        out.append(exp.save(directory / f"{name}.csv"))
+    return out
+
+
+if __name__ == "__main__":  # pragma: no cover
+    import sys
+
+    args = sys.argv[1:]
+    if not args:
+        print("usage: python -m vehicle_graphs.experiments DIR [EXPERIMENT ...]", file=sys.stderr)
+        sys.exit(2)
+    for p in write_records(args[0], args[1:] or None):
+        print(f"wrote {p}")
