@@ -409,13 +409,23 @@ class Stribeck(_JunctionLaw):
 
 
 class ConstantEffort(_JunctionLaw):
-    """A constant force or torque on a 1-junction: an actuator offset (on a
-    junction driven by a source) or an unmeasured constant load."""
+    """A constant force or torque offset of an actuator: attaches to the
+    1-junctions that an input-driven effort source drives. (On other
+    junctions a constant force opposing a motion that keeps its direction is
+    indistinguishable from Coulomb friction, which the library has.)"""
 
     name = "offset"
-    title = "constant force/torque (actuator offset or constant load)"
+    title = "actuator offset (constant force/torque)"
     params = (EffectParam("F0", "{effort}", "constant effort on the junction (along the flow)"),)
     mechanical_only = False
+
+    def targets(self, graph):
+        out = []
+        for t in ActuatorGain().targets(graph):
+            j = source_junction(graph, graph.element(t.name))
+            if isinstance(j, One) and Target("junction", j.name) not in out:
+                out.append(Target("junction", j.name))
+        return out
 
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
@@ -444,8 +454,13 @@ class ActuatorGain(Effect):
         out = []
         for name in sorted(graph.elements):
             el = graph.elements[name]
+            # actuators: effort sources driven by an input (not gravity, which
+            # reads a state, nor constant sources)
+            from .symbols import Input
+
             if isinstance(el, Source) and el.variable == "effort" and not name.startswith(
-                    ("offset.", "probe.")) and el.value.free_symbols - set(graph.params.values()):
+                    ("offset.", "probe.")) and any(isinstance(s, Input)
+                                                    for s in el.value.free_symbols):
                 if source_junction(graph, el) is not None:
                     out.append(Target("source", name))
         return out
@@ -575,31 +590,60 @@ def _transmission_bonds(graph: BondGraph) -> list[Target]:
     return out
 
 
-def _inertia_near(graph: BondGraph, bond: Bond) -> float:
-    """Default of an inertia on a junction at either end of the bond (for
-    scaling a slip or stiffness box), 1.0 if none."""
-    vals = []
+def _inertance_near(graph: BondGraph, bond: Bond):
+    """Inertance expression of an inertia on a junction at either end of the
+    bond (the largest by default value), or None."""
+    best, best_val = None, -1.0
     for p in (bond.tail, bond.head):
         el = p.element
-        if isinstance(el, Junction):
-            for q in el.ports:
-                if q.bond is None:
+        if not isinstance(el, Junction):
+            continue
+        for q in el.ports:
+            if q.bond is None:
+                continue
+            o = q.bond.other(q).element
+            if isinstance(o, I) and o.inertance is not None:
+                try:
+                    v = float(o.inertance.subs({s: s.default for s in o.inertance.free_symbols
+                                                if isinstance(s, Parameter)}))
+                except (TypeError, ValueError):
                     continue
-                o = q.bond.other(q).element
-                if isinstance(o, I) and o.inertance is not None:
-                    try:
-                        vals.append(float(o.inertance.subs({s: s.default for s in
-                                                            o.inertance.free_symbols
-                                                            if isinstance(s, Parameter)})))
-                    except (TypeError, ValueError):
-                        pass
-    return max(vals) if vals else 1.0
+                if v > best_val:
+                    best, best_val = o.inertance, v
+    return best
+
+
+def _inertia_near(graph: BondGraph, bond: Bond) -> float:
+    """Default value of :func:`_inertance_near` (1.0 if none), for scaling boxes."""
+    J = _inertance_near(graph, bond)
+    if J is None:
+        return 1.0
+    return float(J.subs({s: s.default for s in J.free_symbols if isinstance(s, Parameter)}))
+
+
+def _side_inertia(graph: BondGraph, z: Junction, J, fraction: float, tag: str) -> None:
+    """Give the two-port side of a coupling cut at 0-junction ``z`` a small
+    inertia (``fraction`` x J): the sheave, belt or hub that the cut separates.
+    Without it two resistive laws in series form an algebraic loop."""
+    if J is None:
+        return
+    for b in graph.bonds_of(z):
+        other = b.head if b.tail.element is z else b.tail
+        if isinstance(other.element, TwoPort):
+            side = split_bond(graph, b, "1", f"{tag}.side")
+            graph.connect(side, graph.I(f"{tag}.J", fraction * J, priority=-1))
+            return
 
 
 class Slip(_Structural):
     """Belt or clutch slip: the rigid coupling of a transmission bond becomes
     a slip law T = c_s·Δω (creep: torque proportional to the slip speed);
-    the two sides get their own speeds."""
+    the two sides get their own speeds. The side cut off from the two-port
+    gets a small inertia (belt, sheave) of ``inertia_fraction`` times the
+    inertia beyond the coupling, so that no algebraic loop of two resistors
+    appears."""
+
+    inertia_fraction = 0.05
 
     name = "slip"
     title = "belt or clutch slip"
@@ -624,8 +668,10 @@ class Slip(_Structural):
         cs = _new_param(graph, self.pname(target, "cs"), values.get("cs", 1.0),
                         _unit("{effort}/{flow}", eu, fu), (1e-9, 1e12),
                         f"slip coefficient at {target.name}", "added by the residual-tracing loop")
+        J = _inertance_near(graph, bond)
         z = split_bond(graph, bond, "0", f"{self.name}.{target.tag}.j")
         graph.connect(z, graph.R(f"{self.name}.{target.tag}", effort=lambda f: cs * f))
+        _side_inertia(graph, z, J, self.inertia_fraction, f"{self.name}.{target.tag}")
         return {"cs": cs}
 
 
@@ -658,11 +704,15 @@ class Compliance(_Structural):
                        _unit("{effort}/({flow}*s)", eu, fu), (1e-9, 1e15),
                        f"added stiffness at {target.name}", "added by the residual-tracing loop")
         zeta = values.get("zeta", 0.2)
+        Jx = _inertance_near(graph, bond)
         z = split_bond(graph, bond, "0", f"{self.name}.{target.tag}.j")
+        _side_inertia(graph, z, Jx, Slip.inertia_fraction, f"{self.name}.{target.tag}")
         rel = graph.one(f"{self.name}.{target.tag}.rel")
         graph.connect(z, rel)
         graph.connect(rel, graph.C(f"{self.name}.{target.tag}.C", stiffness=k))
-        graph.connect(rel, graph.R(f"{self.name}.{target.tag}.R", 2 * zeta * sp.sqrt(k * J)))
+        # damping ratio zeta of the added mode with the nearby inertia
+        graph.connect(rel, graph.R(f"{self.name}.{target.tag}.R",
+                                   2 * zeta * sp.sqrt(k * (Jx if Jx is not None else J))))
         return {"k": k}
 
 

@@ -567,7 +567,9 @@ def _solve_for(residual: sp.Expr, var: sp.Symbol):
         if d == 0:
             return None
         return [-(residual.xreplace({var: 0})) / d]
-    if sp.count_ops(residual) > 400:
+    # sympy.solve on large transcendental loops can run for minutes and rarely
+    # succeeds: only small nonlinear equations are attempted
+    if sp.count_ops(residual) > 120:
         return None
     try:
         sols = sp.solve(residual, var, dict=False)
@@ -594,7 +596,7 @@ def _solve_system(residuals: list, unknowns: list):
     except Exception as exc:  # nonlinear
         if type(exc).__name__ != "NonlinearError":
             raise
-    if sum(sp.count_ops(r) for r in residuals) > 600:
+    if sum(sp.count_ops(r) for r in residuals) > 150:
         return None
     try:
         sols = sp.solve(residuals, unknowns, dict=True)

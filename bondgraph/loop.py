@@ -91,6 +91,10 @@ class Candidate:
     values: dict = field(default_factory=dict)
     confirmed_statistic: float | None = None
     last_resort: bool = False
+    #: candidates whose innovation signatures are indistinguishable from this
+    #: one in this record (|correlation| > 0.999 after the estimated
+    #: parameters are partialled out): the data cannot tell them apart
+    equivalent: list = field(default_factory=list)
 
     @property
     def label(self) -> str:
@@ -179,10 +183,13 @@ class LoopSettings:
     effects: Sequence[Effect] = DEFAULT_EFFECTS
     x0: Any = None
     P0: Any = None
+    P0_std: dict = field(default_factory=dict)
     ukf: dict = field(default_factory=lambda: {"method": "ros2", "substeps": 1, "alpha": 1.0})
     sim_method: str = "BDF"
-    fit_iterations: int = 25
+    fit_iterations: int = 10
+    confirm_iterations: int = 6
     metric_tolerance: float = 1.1
+    structural_threshold: float = 0.5
     chunk: int = 48
     metric_name: str | None = None
 
@@ -322,14 +329,24 @@ class Loop:
         return x
 
     def P0_for(self, model: Model, x0) -> np.ndarray:
+        """UKF prior covariance: ``P0`` if it fits the model, else the default
+        (5 % of |x0|), with the standard deviations of ``P0_std`` (by state
+        name) imposed, e.g. a level test track: {"theta_g": 0.002}."""
         from .ukf import default_P0
 
         if self.s.P0 is not None:
             P = np.asarray(self.s.P0, dtype=float)
             if P.shape in ((model.n_x,), (model.n_x, model.n_x)):
                 return np.diag(P) if P.ndim == 1 else P
-            # states added by effects get a default variance
-        return default_P0(model, x0)
+            # states added by effects: fall back to the default variance
+        P = default_P0(model, x0)
+        for name, sd in (self.s.P0_std or {}).items():
+            if name in model.states:
+                i = model.state_index(name)
+                P[i, :] = 0.0
+                P[:, i] = 0.0
+                P[i, i] = float(sd) ** 2
+        return P
 
     def criterion(self, model: Model, names: Sequence[str], base: np.ndarray):
         from .estimate import Criterion
@@ -359,14 +376,25 @@ class Loop:
                 theta[model.param_index(k)] = v
         params = [p for p in params if p in model.params]
         iters = self.s.fit_iterations if iterations is None else int(iterations)
-        if params and iters > 0:
-            crit = self.criterion(model, params, theta)
-            x0 = np.array([theta[model.param_index(n)] for n in params])
-            lo, hi = self.bounds_for(model, params, theta)
-            x, f, nfev, msg = minimize_batched(crit, x0, lo, hi, maxiter=iters)
-            theta = crit.theta(x[None, :])[0]
         t, u, y = self.data.arrays(model)
         x0 = self.x0_for(model)
+        std: dict = {}
+        if params and iters > 0:
+            from .fisher import fisher_scoring
+
+            idx = [model.param_index(n) for n in params]
+            lo, hi = self.bounds_for(model, params, theta)
+            try:
+                theta, _, F, runs = fisher_scoring(model, t, u, y, theta, idx, lo, hi, x0,
+                                                   self.P0_for(model, x0), ukf_options=self.s.ukf,
+                                                   max_iter=iters)
+                std = _cr_std(F, params)
+            except (FloatingPointError, np.linalg.LinAlgError) as exc:
+                self.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
+                crit = self.criterion(model, params, theta)
+                xs = np.array([theta[model.param_index(n)] for n in params])
+                x, f, nfev, msg = minimize_batched(crit, xs, lo, hi, maxiter=iters)
+                theta = crit.theta(x[None, :])[0]
         res = ukf_nll(model, t, u, y, theta[None, :], x0, self.P0_for(model, x0), store=True,
                       **self.s.ukf)
         nll = float(res.nll[0])
@@ -378,7 +406,7 @@ class Loop:
 
         rep = analyze(res, model, t, u, y, sim_y=sim_y)
         fit = Fit(graph, model, list(params), theta, nll, res, rep, float("nan"), sim_y,
-                  n_obs=int(res.n_obs.sum()))
+                  std=std, n_obs=int(res.n_obs.sum()))
         fit.metric = _compute_metric(self.s, fit, self.data)
         return fit
 
@@ -452,6 +480,11 @@ class Loop:
         x0 = self.x0_for(pm)
         P0 = self.P0_for(pm, x0)
         idx = [pm.param_index(c.param) for c in cols]
+        # the currently estimated parameters: their signatures are partialled
+        # out (efficient score test: the nuisance parameters re-adjust)
+        nuis = [pm.param_index(n) for n in fit.params]
+        nuis_delta = [1e-4 * max(abs(base[j]), 1e-3 * (pm.upper[j] - pm.lower[j]), 1e-12)
+                      for j in nuis]
         # the size of a nudge: make each column's one-sample state (or output)
         # change small against the state (output) scale, then check linearity
         X = fit.ukf.x_filt[:, 0, :]
@@ -479,7 +512,13 @@ class Loop:
                 th = base.copy()
                 th[j] = d * s
                 sets.append(th)
+        for j, d in zip(nuis, nuis_delta):
+            th = base.copy()
+            th[j] = base[j] + d
+            sets.append(th)
         sets = np.array(sets)
+        n_lad = 1 + len(idx) * len(ladder)
+        Dn = np.empty((len(nuis), t.size, pm.n_y))
         eps0 = S0 = None
         D = np.empty((len(ladder), len(cols)) + (t.size, pm.n_y))
         for a in range(0, len(sets), self.s.chunk):
@@ -490,16 +529,22 @@ class Loop:
                     eps0 = r.innovations[:, 0, :].copy()
                     S0 = r.S[:, 0, :, :].copy()
                     continue
+                if gi >= n_lad:
+                    Dn[gi - n_lad] = r.innovations[:, q, :] if np.isfinite(r.nll[q]) else np.nan
+                    continue
                 c, l = divmod(gi - 1, len(ladder))
                 D[l, c] = r.innovations[:, q, :] if np.isfinite(r.nll[q]) else np.nan
         # innovation signatures, with a linearity check between the two nudges
-        J = np.empty((t.size, pm.n_y, len(cols)))
+        nn = len(nuis)
+        J = np.empty((t.size, pm.n_y, nn + len(cols)))
+        for a_, d in enumerate(nuis_delta):
+            J[:, :, a_] = (Dn[a_] - eps0) / d
         for c in range(len(cols)):
             j_big = (D[0, c] - eps0) / (deltas[c] * ladder[0])
             j_small = (D[1, c] - eps0) / (deltas[c] * ladder[1])
             use_small = ~np.all(np.isfinite(j_big)) or (
                 np.nanmax(np.abs(j_big - j_small)) > 0.05 * np.nanmax(np.abs(j_small)) + 1e-300)
-            J[:, :, c] = j_small if use_small else j_big
+            J[:, :, nn + c] = j_small if use_small else j_big
         # whiten with the innovation covariance, skip missing entries
         e = np.nan_to_num(eps0)
         valid = np.isfinite(eps0)
@@ -513,31 +558,73 @@ class Loop:
         else:
             ew = np.linalg.solve(L, e[:, :, None])[:, :, 0]
             Gw = np.linalg.solve(L, Jv)
+        Gw = np.where(np.isfinite(Gw), Gw, 0.0)
         total = float(np.sum(ew**2))
         A = np.einsum("kic,kid->cd", Gw, Gw)
         b = np.einsum("kic,ki->c", Gw, ew)
+        # columns are scaled to unit norm before solving (conditioning)
+        norm = np.sqrt(np.maximum(np.diag(A), 1e-300))
+        An = A / np.outer(norm, norm)
+        bn = b / norm
+        base_cols = list(range(nn))
+
+        def explained(cs):
+            if not cs:
+                return 0.0, np.zeros(0)
+            sol = np.linalg.lstsq(An[np.ix_(cs, cs)], bn[cs], rcond=1e-9)[0]
+            return float(bn[cs] @ sol), sol / norm[cs]
+
+        e_base, _ = explained(base_cols)
+        col_of: dict = {}
         out = []
         groups: dict[tuple, list[int]] = {}
         for c, col in enumerate(cols):
-            groups.setdefault((col.effect, col.target), []).append(c)
+            groups.setdefault((col.effect, col.target), []).append(nn + c)
         for (ename, tgt), cs in groups.items():
             eff = get_effect(ename, self.s.effects)
-            Acc = A[np.ix_(cs, cs)]
-            bc = b[cs]
             try:
-                sol = np.linalg.lstsq(Acc, bc, rcond=1e-10)[0]
+                e_all, sol = explained(base_cols + cs)
             except np.linalg.LinAlgError:
                 continue
-            lm = float(bc @ sol)
+            lm = max(0.0, e_all - e_base)
             if not np.isfinite(lm):
                 continue
             k = len(cs)
-            beta = -sol
+            col_of[(ename, tgt)] = cs
+            beta = -sol[nn:]
             est = [p.name for p in eff.params if p.estimated]
             values = {est[i]: float(beta[i]) for i in range(min(k, len(est)))}
             out.append(Candidate(ename, eff.title, tgt, "score", lm, k, float(chi2.sf(lm, k)),
                                  lm - 2 * k, lm / total if total > 0 else None, values))
+        self._mark_equivalent(out, col_of, An, base_cols)
         return out
+
+    @staticmethod
+    def _mark_equivalent(cands, col_of, An, base_cols, tol: float = 0.999) -> None:
+        """Fill ``Candidate.equivalent`` for single-column candidates whose
+        signatures, with the estimated parameters partialled out, have
+        |correlation| > ``tol``."""
+        B = list(base_cols)
+        ABB = An[np.ix_(B, B)] if B else None
+
+        def resid(a, b):
+            v = An[a, b]
+            if B:
+                v -= An[a, B] @ np.linalg.lstsq(ABB, An[B, b], rcond=1e-9)[0]
+            return v
+
+        singles = [c for c in cands if len(col_of[(c.effect, c.target)]) == 1]
+        idx = {id(c): col_of[(c.effect, c.target)][0] for c in singles}
+        var = {id(c): resid(idx[id(c)], idx[id(c)]) for c in singles}
+        for i, a in enumerate(singles):
+            for b in singles[i + 1:]:
+                va, vb = var[id(a)], var[id(b)]
+                if va <= 0 or vb <= 0:
+                    continue
+                r = resid(idx[id(a)], idx[id(b)]) / np.sqrt(va * vb)
+                if abs(r) > tol:
+                    a.equivalent.append(b.label)
+                    b.equivalent.append(a.label)
 
     def score_structural(self, fit: Fit, scales: Scales, effects) -> list[Candidate]:
         from scipy.stats import chi2
@@ -616,8 +703,10 @@ class Loop:
         try:
             model = self.model_of(g)
             start = self.grid_refine(model, new, start)
-            f1 = self.fit(g, new, start, f"confirming {cand.label}", model=model,
-                          iterations=0 if len(new) == 1 else 10)
+            # all parameters re-adjust (the nuisance ones absorbed part of the
+            # missing effect): the confirmed fit is the candidate's final fit
+            f1 = self.fit(g, list(fit.params) + new, start, f"confirming {cand.label}",
+                          model=model, iterations=self.s.confirm_iterations)
         except BondGraphError as exc:
             self.log(f"  confirmation of {cand.label} failed: {str(exc).splitlines()[0]}")
             return None
@@ -681,18 +770,30 @@ class Loop:
             scales = self.scales(current)
             t_ev = time.perf_counter()
             cands = self.score_additive(current, scales, s.effects)
-            if s.structural:
-                cands += self.score_structural(current, scales, s.effects)
+            best_expl = max([c.explained or 0.0 for c in cands] + [0.0])
+            physical_fx = [e for e in s.effects if not getattr(e, "last_resort", False)]
+            resort_fx = [e for e in s.effects if getattr(e, "last_resort", False)]
+            if s.structural == "always" or (s.structural and best_expl < s.structural_threshold):
+                cands += self.score_structural(current, scales, physical_fx)
+            elif s.structural:
+                self.log(f"  structural candidates not scored: an additive effect explains "
+                         f"{100 * best_expl:.0f} % of the innovation energy")
             n_c = max(len(cands), 1)
-            physical = [c for c in cands if not c.last_resort]
-            significant = [c for c in physical if c.p_value * n_c < s.significance]
-            if not significant:
+            significant = [c for c in cands if c.p_value * n_c < s.significance]
+            if not significant and s.structural and resort_fx:
+                self.log("  no physical effect is significant: scoring the last-resort "
+                         "effects (unmeasured disturbances)")
+                cands += self.score_structural(current, scales, resort_fx)
+                n_c = max(len(cands), 1)
                 significant = [c for c in cands if c.p_value * n_c < s.significance]
             ranking = sorted(cands, key=lambda c: -c.score)
             self.rankings.append(ranking)
             self.log(f"step {step + 1}: {len(cands)} candidates scored in "
                      f"{time.perf_counter() - t_ev:.1f} s; best: " + "; ".join(
                          f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})" for c in ranking[:5]))
+            if ranking and ranking[0].equivalent:
+                self.log(f"  note: {ranking[0].label} is indistinguishable in this record from "
+                         f"{', '.join(ranking[0].equivalent)} (signatures correlated > 0.999)")
             if not significant:
                 self.log("nothing significant left: stop")
                 break
@@ -711,11 +812,12 @@ class Loop:
             accepted = False
             for _, c, f1, info in confirmed:
                 names = list(current.params) + info["new_params"]
-                start = {n: float(f1.theta[f1.model.param_index(n)]) for n in f1.model.params}
-                after = self.fit(f1.graph, names, start, f"re-estimating with {c.label}",
-                                 model=f1.model)
+                after = f1
                 better_ic = self._crit(after) < self._crit(current)
-                whiter = after.residuals.whiteness < current.residuals.whiteness
+                # "whiteness improves": the Ljung-Box total decreases, or the
+                # innovations are white already (within noise of χ²(dof))
+                whiter = (after.residuals.whiteness < current.residuals.whiteness
+                          or after.residuals.is_white())
                 # guard: a step may not wreck the reported error (e.g. a
                 # friction law that makes the free-run simulation stick)
                 metric_ok = not (np.isfinite(current.metric) and
@@ -776,11 +878,14 @@ class Loop:
         return fit.bic() if self.s.criterion == "bic" else fit.aic()
 
     def std(self, fit: Fit) -> dict:
-        """Cramér-Rao standard deviations of the estimated parameters."""
+        """Cramér-Rao standard deviations of the estimated parameters (from the
+        Fisher information of the last scoring step, else a batched Hessian)."""
         from .estimate import cramer_rao, hessian_batched
 
         if not fit.params:
             return {}
+        if fit.std and all(n in fit.std for n in fit.params):
+            return fit.std
         crit = self.criterion(fit.model, fit.params, fit.theta)
         x = np.array([fit.theta[fit.model.param_index(n)] for n in fit.params])
         h = 1e-4 * np.maximum(np.abs(x), 1e-6)
@@ -821,6 +926,17 @@ class LoopResult:
             rows.append(f"| {i} | {s.effect} | {s.attached_to} | {s.error_before:.4g} | "
                         f"{s.error_after:.4g} | {s.nll_before:.1f} | {s.nll_after:.1f} |")
         return "\n".join(rows)
+
+
+def _cr_std(F: np.ndarray, names: Sequence[str]) -> dict:
+    """Cramér-Rao standard deviations sqrt(diag(F⁻¹)); None where F is singular."""
+    try:
+        C = np.linalg.inv(F)
+        d = np.diag(C)
+        return {n: (float(np.sqrt(v)) if v > 0 and np.isfinite(v) else None)
+                for n, v in zip(names, d)}
+    except np.linalg.LinAlgError:
+        return {n: None for n in names}
 
 
 def run_loop(graph: BondGraph, experiment, params: Sequence[str], *, out_dir=None,

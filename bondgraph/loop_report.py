@@ -217,14 +217,20 @@ def _write_markdown(loop, current, report, pngs) -> None:
         L.append("None: no candidate was significant and improved both the criterion and the "
                  "whiteness.")
     L.append("")
-    L.append("## Evidence (last ranking)")
+    L.append("## Evidence (ranking of every step)")
     L.append("")
     if loop.rankings:
-        L.append("| candidate | test | χ² | k | p-value | explained |")
-        L.append("|---|---|---|---|---|---|")
-        for c in loop.rankings[-1][:12]:
-            ex = f"{100 * c.explained:.1f} %" if c.explained is not None else "-"
-            L.append(f"| {c.label} | {c.kind} | {c.statistic:.1f} | {c.dof} | {c.p_value:.2g} | {ex} |")
+        for k, ranking in enumerate(loop.rankings, 1):
+            L.append(f"Step {k}:")
+            L.append("")
+            L.append("| candidate | test | χ² | k | p-value | explained | indistinguishable from |")
+            L.append("|---|---|---|---|---|---|---|")
+            for c in ranking[:10]:
+                ex = f"{100 * c.explained:.1f} %" if c.explained is not None else "-"
+                eq = ", ".join(c.equivalent) if c.equivalent else ""
+                L.append(f"| {c.label} | {c.kind} | {c.statistic:.1f} | {c.dof} | {c.p_value:.2g} "
+                         f"| {ex} | {eq} |")
+            L.append("")
     L.append("")
     L.append("## Residuals of the final model")
     L.append("")

@@ -94,6 +94,18 @@ class ResidualReport:
     whiteness: float
     settings: dict = field(default_factory=dict)
 
+    @property
+    def whiteness_dof(self) -> float:
+        """Degrees of freedom of :attr:`whiteness` (lags x outputs): a sum of
+        Ljung-Box statistics of white innovations is about χ²(dof)."""
+        return float(self.settings.get("whiteness_dof", 0.0))
+
+    def is_white(self, z: float = 3.0) -> bool:
+        """Whiteness statistic within ``z`` standard deviations of its
+        expectation under white innovations (χ²(dof): mean dof, var 2 dof)."""
+        d = self.whiteness_dof
+        return d > 0 and self.whiteness <= d + z * np.sqrt(2 * d)
+
     def to_dict(self) -> dict[str, Any]:
         from dataclasses import asdict
 
@@ -246,4 +258,6 @@ def analyze(ukf, model, t, u, y, *, p: int = 0, sim_y: np.ndarray | None = None,
                 if means_s:
                     regions.append(Region(name, f"sign({vname})", [-1.0, 0.0, 1.0], means_s, e2s))
     white = float(np.nansum([o.ljung_box_q for o in outs]))
-    return ResidualReport(outs, regions, nis_mean, dof / nk, bounds, white, {"lags": lags, "p": p})
+    white_dof = float(lags * sum(1 for o in outs if np.isfinite(o.ljung_box_q)))
+    return ResidualReport(outs, regions, nis_mean, dof / nk, bounds, white,
+                          {"lags": lags, "p": p, "whiteness_dof": white_dof})
