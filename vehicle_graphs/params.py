@@ -188,7 +188,7 @@ PARAMS: tuple[ParamSpec, ...] = (
        "[O] from axle loads (rear: L_wb - l_f = 0.79 m)"),
     _p("body", "h_cg", 0.60, "m", (0.4, 0.8), "centre-of-mass height",
        "[O] educated guess, not measured"),
-    _p("body", "q_grade", 0.01, "rad/s^0.5", (0.001, 0.05),
+    _p("body", "q_grade", 0.01, "rad/s^0.5", (1e-5, 0.05),
        "grade random-walk intensity (filter models)", "[L] §2.2 0.005-0.05 by terrain"),
     # ------------------------------------------------------------------- pitch
     _p("pitch", "I_theta", 1093.0, "kg*m^2", (800.0, 1400.0), "pitch moment of inertia",

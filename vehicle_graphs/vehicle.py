@@ -237,11 +237,17 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
         g.connect(h.port("ground"), hb.port("v"))
     F_tires = sp.Add(*[h["tire"].e for h in axles.values()])
 
-    # ---- pitch drive: longitudinal force at the centre-of-mass height
+    # ---- pitch drive: longitudinal force at the centre-of-mass height.
+    # Ground forces (tires) pitch the body about its centre of mass; forces
+    # acting on the body itself (gravity along the grade, aerodynamic drag,
+    # any force added later at the body junction) do not. The ground force is
+    # the body's net force minus the gravity component: h_cg (m dv/dt - F_grav)
+    # = h_cg (F_tires - F_aero) for this graph, but written from the junction
+    # so it stays right when forces are added to the body.
     if hp is not None:
-        F_aero = hb["aero"].e if aero else sp.Integer(0)
-        drive_src = g.MSe("pitch_drive", P["h_cg"] * (F_tires - F_aero))
+        drive_src = g.MSe("pitch_drive", P["h_cg"] * (hb["m"].e - hb["gravity"].e))
         g.connect(drive_src, hp.port("rate"))
+    del F_tires
 
     # ---- power train and drive line
     he = None
