@@ -654,7 +654,8 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
         settings=dict(ukf={k_: v for k_, v in ukf_opts.items() if k_ not in ("Q", "R")},
                       Q_given=Q is not None, R_given=R is not None, samples=int(t.size),
                       duration_s=float(t[-1] - t[0]), particles=S, iterations=iterations,
-                      seed=seed, x0=x0a.tolist(), discretisation=disc),
+                      seed=seed, x0=x0a.tolist(), P0=np.asarray(P0a, float).tolist(),
+                      discretisation=disc),
         units=[model.param_units[i] for i in model.param_indices(params)])
 
 
@@ -802,7 +803,9 @@ def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
     t, u, y, name, _ = record_arrays(model, experiment)
     opts = dict(result.settings.get("ukf", {}))
     x0a = np.asarray(result.settings.get("x0"), float) if x0 is None else _x0_array(model, x0)
-    P0a = default_P0(model, x0a) if P0 is None else P0
+    if P0 is None:
+        P0 = result.settings.get("P0")
+    P0a = default_P0(model, x0a) if P0 is None else np.asarray(P0, float)
     r = ukf_nll(model, t, u, y, result.theta[None, :], x0a, P0a, store=True, **opts)
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
