@@ -472,7 +472,8 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
              method: str = "ros2", substeps: int = 1, Q=None, R=None,
              polish: bool = True, hessian: bool = True, stall_iterations: int | None = None,
              start=None, progress: bool = True, chunk: int | None = None,
-             check_discretisation: bool = True, workers: int = 1) -> EstimationResult:
+             check_discretisation: bool = True, workers: int = 1,
+             polish_maxiter: int = 50) -> EstimationResult:
     """Maximum-likelihood estimate of ``params`` from one record.
 
     Parameters
@@ -506,6 +507,8 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
         UKF options (:func:`bondgraph.ukf.ukf_nll`).
     polish : bool
         Refine the optimizer's best point with bounded L-BFGS-B.
+    polish_maxiter : int
+        Iterations of the polish.
     hessian : bool
         Compute the Hessian, Cramér-Rao standard deviations and correlations.
     stall_iterations : int, optional
@@ -587,7 +590,7 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
     warn_list: list[str] = []
     pol: dict = {}
     if polish and np.isfinite(f_best):
-        xp, fp, nfp, msg = minimize_batched(crit, x_best, lo, hi)
+        xp, fp, nfp, msg = minimize_batched(crit, x_best, lo, hi, maxiter=polish_maxiter)
         pol = dict(nfev=nfp, message=msg, nll_before=f_best, nll_after=fp)
         if fp <= f_best:
             x_best, f_best = xp, fp
