@@ -176,7 +176,7 @@ def protocol(args) -> dict:
     t0 = time.perf_counter()
     res = two_stage(stages, particles=None, iterations=args.iterations, seed=args.seed,
                     method=args.method, substeps=args.substeps, progress=False,
-                    workers=args.workers)
+                    workers=args.workers, hold=args.hold)
     out = dict(protocol_wall_s=time.perf_counter() - t0, stages=[])
     for st, r in zip(stages, res):
         print(f"\n== stage {st.name}: {r.model} on {r.experiment}")
@@ -209,6 +209,8 @@ def main(argv=None) -> int:
     p.add_argument("--baseline-steps", type=int, default=60)
     p.add_argument("--line-plot", default=None, help="PNG of the NLL along a line (α sweep)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--hold", choices=("zoh", "mean"), default="zoh",
+                   help="protocol: UKF input hold (mean: interval mean of ramps)")
     p.add_argument("--workers", type=int, default=1, help="processes per batched evaluation")
     p.add_argument("--protocol", action="store_true",
                    help="run the two-stage protocol on the synthetic vehicle records instead")

@@ -469,7 +469,7 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
              checkpoint: str | Path | None = None, resume: bool = False,
              fixed: Mapping[str, float] | None = None, bounds: Mapping[str, tuple] | None = None,
              x0=None, P0=None, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
-             method: str = "ros2", substeps: int = 1, Q=None, R=None,
+             method: str = "ros2", substeps: int = 1, Q=None, R=None, hold: str = "zoh",
              polish: bool = True, hessian: bool = True, stall_iterations: int | None = None,
              start=None, progress: bool = True, chunk: int | None = None,
              check_discretisation: bool = True, workers: int = 1,
@@ -503,7 +503,7 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
         Prior state at the first sample (default ``model.x0``).
     P0 : array (n_x, n_x) or (n_x,), optional
         Prior covariance (default :func:`bondgraph.ukf.default_P0`).
-    alpha, beta, kappa, method, substeps, Q, R :
+    alpha, beta, kappa, method, substeps, Q, R, hold :
         UKF options (:func:`bondgraph.ukf.ukf_nll`).
     polish : bool
         Refine the optimizer's best point with bounded L-BFGS-B.
@@ -571,7 +571,7 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
     x0a = _x0_array(model, x0)
     P0a = default_P0(model, x0a) if P0 is None else P0
     ukf_opts = dict(alpha=alpha, beta=beta, kappa=kappa, method=method, substeps=substeps,
-                    Q=Q, R=R)
+                    Q=Q, R=R, hold=hold)
     crit = Criterion(model, t, u, y, params, base, x0a, P0a, ukf_opts, chunk=chunk,
                      workers=workers)
     k = len(params)
@@ -751,7 +751,7 @@ def _propagate(model, st, res, prop, cov_all, opts):
     x0a = _x0_array(model, opts.get("x0"))
     P0 = opts.get("P0")
     P0a = default_P0(model, x0a) if P0 is None else P0
-    ukf_keys = ("alpha", "beta", "kappa", "method", "substeps", "Q", "R")
+    ukf_keys = ("alpha", "beta", "kappa", "method", "substeps", "Q", "R", "hold")
     ukf_opts = {k: opts[k] for k in ukf_keys if k in opts}
     names = list(res.params) + list(prop)
     crit = Criterion(model, t, u, y, names, res.theta, x0a, P0a, ukf_opts)
@@ -881,6 +881,8 @@ def configure_estimate(p) -> None:
     p.add_argument("--fixed", default=None, help="name=value,... parameters held at given values")
     p.add_argument("--method", choices=("ros2", "rk4"), default="ros2", help="discretisation")
     p.add_argument("--substeps", type=int, default=1)
+    p.add_argument("--hold", choices=("zoh", "mean"), default="zoh",
+                   help="input over a sample interval: u_k or (u_k + u_k+1)/2")
     p.add_argument("--alpha", type=float, default=1.0)
     p.add_argument("--beta", type=float, default=2.0)
     p.add_argument("--kappa", type=float, default=0.0)
@@ -935,6 +937,7 @@ def run_estimate(args) -> int:
                        iterations=args.iterations, seed=args.seed, checkpoint=ck,
                        resume=args.resume, fixed=_parse_fixed(args.fixed), method=args.method,
                        substeps=args.substeps, alpha=args.alpha, beta=args.beta, kappa=args.kappa,
+                       hold=args.hold,
                        polish=not args.no_polish, stall_iterations=args.stall,
                        progress=not args.quiet, x0=x0, P0=default_P0(model, x0, args.p0_rel),
                        workers=args.workers)

@@ -254,3 +254,21 @@ def test_discretisation_check_orders():
     # 4 (1/4)³ = 1/16 of the one-step error
     assert 10 < a["one_step"].max() / b["one_step"].max() < 25
     assert c["one_step"].max() < 1e-2 * a["one_step"].max()
+
+
+def test_input_hold_mean():
+    """hold="mean" predicts with (u_k + u_k+1)/2 over [t_k, t_k+1] (h of this
+    model does not read u, so it equals ZOH on the averaged input)."""
+    m = Model.load("mass_spring_damper")
+    t = np.arange(60) * 0.02
+    u = np.linspace(0.0, 30.0, 60)[:, None]
+    y = np.zeros((60, 2))
+    kw = dict(x0=np.zeros(2), P0=np.diag([1e-4, 1e-6]), method="rk4")
+    umid = u.copy()
+    umid[:-1] = 0.5 * (u[:-1] + u[1:])
+    a = ukf_nll(m, t, u, y, m.theta0, hold="mean", **kw).nll
+    b = ukf_nll(m, t, umid, y, m.theta0, **kw).nll
+    c = ukf_nll(m, t, u, y, m.theta0, **kw).nll
+    assert a[0] == b[0] and a[0] != c[0]
+    with pytest.raises(OptionError, match="hold"):
+        ukf_nll(m, t, u, y, m.theta0, hold="foh")
