@@ -567,9 +567,10 @@ def _solve_for(residual: sp.Expr, var: sp.Symbol):
         if d == 0:
             return None
         return [-(residual.xreplace({var: 0})) / d]
-    # sympy.solve on large transcendental loops can run for minutes and rarely
-    # succeeds: only small nonlinear equations are attempted
-    if sp.count_ops(residual) > 120:
+    # sympy.solve on transcendental loops (tanh, atan, sin ... of the unknown)
+    # can run for minutes and practically never succeeds: only small equations
+    # in which the unknown appears polynomially or inside exp/log are tried
+    if sp.count_ops(residual) > 120 or not _solvable_shape(residual, [var]):
         return None
     try:
         sols = sp.solve(residual, var, dict=False)
@@ -577,6 +578,16 @@ def _solve_for(residual: sp.Expr, var: sp.Symbol):
         return None
     sols = [s for s in sols if not s.has(sp.I)] or sols
     return sols or None
+
+
+def _solvable_shape(expr: sp.Expr, unknowns) -> bool:
+    """True if the unknowns appear in ``expr`` only through +, *, powers,
+    exp and log (where sympy finds closed forms, e.g. LambertW)."""
+    unknowns = set(unknowns)
+    for f in expr.atoms(sp.Function):
+        if f.free_symbols & unknowns and not isinstance(f, (sp.exp, sp.log)):
+            return False
+    return True
 
 
 def _solve_system(residuals: list, unknowns: list):
@@ -596,7 +607,8 @@ def _solve_system(residuals: list, unknowns: list):
     except Exception as exc:  # nonlinear
         if type(exc).__name__ != "NonlinearError":
             raise
-    if sum(sp.count_ops(r) for r in residuals) > 150:
+    if sum(sp.count_ops(r) for r in residuals) > 150 or not all(
+            _solvable_shape(r, unknowns) for r in residuals):
         return None
     try:
         sols = sp.solve(residuals, unknowns, dict=True)
