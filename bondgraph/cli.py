@@ -61,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         mod = importlib.import_module(modname)
         configure = getattr(mod, f"configure_{cmd}")
-        run = getattr(mod, f"run_{cmd}")
+        # a module may name its handler run_<cmd>_cli when run_<cmd> is its API
+        run = getattr(mod, f"run_{cmd}_cli", None) or getattr(mod, f"run_{cmd}")
     except (ImportError, AttributeError) as exc:
         print(f"bondgraph {cmd}: not available in this installation ({exc})", file=sys.stderr)
         return 2

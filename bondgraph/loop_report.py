@@ -156,7 +156,8 @@ def _plots(loop, current) -> list[str]:
             ax.plot(t, e / sd, lw=0.6, color=col, alpha=0.8, label=lab)
         ax.set_ylabel(f"{current.model.outputs[i]}\nε/√S", fontsize=8)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
+    if axes[0, 0].get_legend_handles_labels()[0]:
+        axes[0, 0].legend(fontsize=8)
     axes[-1, 0].set_xlabel("t [s]")
     fig.suptitle("Standardised UKF innovations before and after", fontsize=10)
     fig.tight_layout()
