@@ -245,6 +245,11 @@ class Effect:
         effect equals Σ β_k b_k (sign convention of the probe element)."""
         raise NotImplementedError
 
+    def natural_points(self, target: Target) -> list[dict[str, float]]:
+        """Values of the estimated parameters worth trying in the line probe
+        besides multiples of the one-step estimate (e.g. full rectification)."""
+        return []
+
     def pname(self, target: Target, local: str) -> str:
         return f"{self.name}.{target.tag}.{local}"
 
@@ -257,10 +262,16 @@ class Effect:
 
 
 def _one_junctions(graph: BondGraph, mechanical_only: bool = True) -> list[Target]:
+    """1-junctions carrying an inertia (the velocity of a mass): where a
+    velocity-dependent force can act. Massless junctions (a sheave whose
+    speed a damper sets) are skipped: a second resistive law there closes an
+    algebraic loop."""
     out = []
     for name in sorted(graph.elements):
         el = graph.elements[name]
         if not isinstance(el, One):
+            continue
+        if not any(isinstance(p.bond.other(p).element, I) for p in el.ports if p.bond is not None):
             continue
         # a junction whose flow is imposed by a flow source gets no force effects
         if any(isinstance(b.other(p).element, Source) and b.other(p).element.variable == "flow"
@@ -553,6 +564,9 @@ class SensorRectification(_SensorEffect):
     def shape_values(self, graph, target, scales):
         return {"eps": 0.01 * max(float(scales.output_rms.get(target.name, 1.0)), 1e-9)}
 
+    def natural_points(self, target):
+        return [{"lam": 1.0}, {"lam": 0.5}]
+
     def transform(self, y, P, S):
         return y + P["lam"] * (sp.sqrt(y**2 + S["eps"] ** 2) - y)
 
@@ -585,6 +599,11 @@ def _transmission_bonds(graph: BondGraph) -> list[Target]:
             j = c if isinstance(c, One) else a
             _, fu = junction_units(graph, j)
             if mechanical(fu) is False:
+                continue
+            # only where the junction carries an inertia: a coupling to a
+            # massless junction (a sheave set by a damper) has nothing to twist
+            # against, and a slip there closes an algebraic loop of two laws
+            if _inertance_near(graph, b) is None:
                 continue
             out.append(Target("bond", b.name))
     return out
@@ -630,6 +649,14 @@ def _side_inertia(graph: BondGraph, z: Junction, J, fraction: float, tag: str) -
     for b in graph.bonds_of(z):
         other = b.head if b.tail.element is z else b.tail
         if isinstance(other.element, TwoPort):
+            tp = other.element
+            # the two-port's far side: if an inertia sits there, it moves with
+            # this side through the transformer and no extra inertia is needed
+            far = tp.p1 if other is tp.p2 else tp.p2
+            fj = far.bond.other(far).element if far.bond is not None else None
+            if isinstance(fj, Junction) and any(
+                    isinstance(q.bond.other(q).element, I) for q in fj.ports if q.bond is not None):
+                return
             side = split_bond(graph, b, "1", f"{tag}.side")
             graph.connect(side, graph.I(f"{tag}.J", fraction * J, priority=-1))
             return
@@ -939,7 +966,8 @@ class ProbeColumn:
     basis: sp.Expr
 
 
-def probe_graph(graph: BondGraph, effects, scales: Scales) -> tuple[BondGraph, list[ProbeColumn]]:
+def probe_graph(graph: BondGraph, effects, scales: Scales,
+                exclude: set | None = None) -> tuple[BondGraph, list[ProbeColumn]]:
     """A copy of ``graph`` with every additive effect at every target added
     as Σ β_k b_k with β = 0 (neutral), one parameter per basis function.
 
@@ -958,7 +986,7 @@ def probe_graph(graph: BondGraph, effects, scales: Scales) -> tuple[BondGraph, l
         if not eff.additive:
             continue
         for tgt in eff.targets(graph):
-            if eff.present(graph, tgt):
+            if eff.present(graph, tgt) or tgt.name in (exclude or ()):
                 continue
             bases = eff.basis(g, tgt, scales)
             for k, b in enumerate(bases):

@@ -130,7 +130,7 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0, ukf_options=None) -
 
 
 def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_options=None,
-                   max_iter: int = 12, rtol: float = 1e-6, log=None):
+                   max_iter: int = 12, rtol: float = 1e-6, log=None, log_scale=None):
     """Maximise the UKF likelihood over the parameters ``index`` by
     Levenberg-damped Fisher scoring within the box [lower, upper].
 
@@ -150,6 +150,10 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
     max_iter : int
     rtol : float
         Stop when the NLL improves by less than ``rtol * (1 + |NLL|)``.
+    log_scale : array of bool (k,), optional
+        Parameters optimised in log θ (scale parameters such as noise
+        intensities, whose likelihood is far from quadratic in θ near zero).
+        Default: positive boxes spanning more than two decades.
 
     Returns
     -------
@@ -163,6 +167,9 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
     index = list(index)
     th = np.asarray(theta, dtype=float).copy()
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    if log_scale is None:
+        log_scale = (lo > 0) & (hi > 100 * lo)
+    L = np.asarray(log_scale, dtype=bool)
     width = np.maximum(hi - lo, 1e-300)
     runs = 0
     lam = 1e-3
@@ -173,13 +180,27 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
         steps = np.where(x + steps > hi, -steps, steps)
         D = derivatives(model, t, u, y, th, index, steps, x0, P0, ukf_options)
         runs += 1
-        F = D.F + lam * np.diag(np.diag(D.F) + 1e-300)
+        # chain rule to z = log θ for the scale parameters: ∂/∂z = θ ∂/∂θ
+        jac = np.where(L, x, 1.0)
+        grad = D.grad * jac
+        Fz = D.F * np.outer(jac, jac)
+        F = Fz + lam * np.diag(np.diag(Fz) + 1e-300)
         try:
-            step = -np.linalg.solve(F, D.grad)
+            step = -np.linalg.solve(F, grad)
         except np.linalg.LinAlgError:
-            step = -np.linalg.lstsq(F, D.grad, rcond=1e-12)[0]
+            step = -np.linalg.lstsq(F, grad, rcond=1e-12)[0]
         alphas = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 2.0])
-        cand = np.clip(x[None, :] + alphas[:, None] * step[None, :], lo, hi)
+        z = np.where(L, np.log(np.maximum(x, 1e-300)), x)
+        zc = z[None, :] + alphas[:, None] * step[None, :]
+        cand = np.clip(np.where(L, np.exp(np.minimum(zc, 700.0)), zc), lo, hi)
+        # scale parameters also get decade-sized coordinate moves: when the
+        # model is misspecified, the expected information of a noise intensity
+        # overstates its curvature and the scoring step is far too short
+        moves = [np.clip(np.where(np.arange(x.size) == i, x * f, x), lo, hi)
+                 for i in np.flatnonzero(L) for f in (0.1, 0.3, 3.0, 10.0)]
+        if moves:
+            cand = np.vstack([cand, np.array(moves)])
+            alphas = np.concatenate([alphas, np.full(len(moves), np.nan)])
         sets = np.repeat(th[None, :], alphas.size, axis=0)
         sets[:, index] = cand
         r = ukf_nll(model, t, u, y, sets, x0, P0, **(ukf_options or {}))
@@ -187,7 +208,8 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
         best = int(np.argmin(np.where(np.isfinite(r.nll), r.nll, np.inf)))
         f_new = float(r.nll[best])
         if log:
-            log(f"    scoring {it + 1}: NLL {D.nll:.3f} -> {f_new:.3f} (step x{alphas[best]:g})")
+            how = f"step x{alphas[best]:g}" if np.isfinite(alphas[best]) else "scale move"
+            log(f"    scoring {it + 1}: NLL {D.nll:.3f} -> {f_new:.3f} ({how})")
         if not np.isfinite(f_new) or f_new >= D.nll:
             lam *= 10.0
             if lam > 1e6:

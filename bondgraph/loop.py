@@ -73,6 +73,11 @@ from .model import Model
 
 CANDIDATE_FUNCTIONS = ("f", "h", "dfdx", "f_dfdx")
 
+#: factors applied to the estimated noise intensities when a candidate is
+#: screened: a missing effect inflates them, so a candidate's likelihood is
+#: profiled over them (their likelihood is far from quadratic near zero)
+NOISE_FACTORS = (1.0, 0.3, 0.1, 0.01, 0.001)
+
 
 # ----------------------------------------------------------------- records
 @dataclass
@@ -184,11 +189,13 @@ class LoopSettings:
     x0: Any = None
     P0: Any = None
     P0_std: dict = field(default_factory=dict)
+    fixed: dict = field(default_factory=dict)
+    initial_params: list | None = None
     ukf: dict = field(default_factory=lambda: {"method": "ros2", "substeps": 1, "alpha": 1.0})
     sim_method: str = "BDF"
     fit_iterations: int = 10
     confirm_iterations: int = 6
-    metric_tolerance: float = 1.1
+    metric_tolerance: float = float("inf")
     structural_threshold: float = 0.5
     chunk: int = 48
     metric_name: str | None = None
@@ -371,7 +378,7 @@ class Loop:
 
         model = model or self.model_of(graph)
         theta = model.theta0.copy()
-        for k, v in (theta_start or {}).items():
+        for k, v in {**self.s.fixed, **(theta_start or {})}.items():
             if k in model.params:
                 theta[model.param_index(k)] = v
         params = [p for p in params if p in model.params]
@@ -428,6 +435,39 @@ class Loop:
             self.log(f"  free-run simulation failed ({str(exc).splitlines()[0]})")
             return None
 
+    @staticmethod
+    def noise_params(graph: BondGraph) -> set:
+        """Names of parameters that appear only in process- or measurement-
+        noise declarations (scale parameters of the filter, profiled by
+        decades when candidates are screened)."""
+        used_noise, used_model = set(), set()
+        for v in list(graph.process_noise.values()) + [s.noise_std for s in graph.sensors.values()]:
+            if isinstance(v, sp.Basic):
+                used_noise |= {x.name for x in v.free_symbols}
+        for el in graph.elements.values():
+            for ex in el.expressions():
+                used_model |= {x.name for x in ex.free_symbols}
+        for s_ in graph.sensors.values():
+            used_model |= {x.name for x in s_.expr.free_symbols}
+        for ss in graph.signal_states.values():
+            used_model |= {x.name for x in ss.rhs.free_symbols}
+        return (used_noise - used_model) & set(graph.params)
+
+    def _noise_variants(self, model: Model, fit: Fit, base: np.ndarray, factors) -> list:
+        """Copies of ``base`` with the estimated noise intensities scaled by
+        each factor (clipped to their box)."""
+        names = [n for n in fit.params if n in self.noise_params(fit.graph) and n in model.params]
+        if not names:
+            return [base]
+        out = []
+        for f in factors:
+            th = base.copy()
+            for n in names:
+                j = model.param_index(n)
+                th[j] = float(np.clip(base[j] * f, model.lower[j], model.upper[j]))
+            out.append(th)
+        return out
+
     # ------------------------------------------------------------ scales
     def scales(self, fit: Fit) -> Scales:
         ss = fit.graph.derive()
@@ -469,10 +509,23 @@ class Loop:
 
         from .ukf import ukf_nll
 
-        pg, cols = probe_graph(fit.graph, effects, scales)
-        if not cols:
-            return []
-        pm = self.model_of(pg)
+        exclude: set = set()
+        while True:
+            pg, cols = probe_graph(fit.graph, effects, scales, exclude)
+            if not cols:
+                return []
+            try:
+                pm = self.model_of(pg)
+                break
+            except BondGraphError as exc:
+                # drop the targets on the failing causal path and retry
+                bad = {e.replace("probe.", "", 1) for e in exc.elements} & \
+                    {c.target.name for c in cols}
+                if not bad:
+                    raise
+                self.log(f"  probe: no additive effects at {', '.join(sorted(bad))} "
+                         f"({str(exc).splitlines()[0][:120]})")
+                exclude |= bad
         base = pm.theta0.copy()
         for n in fit.model.params:
             base[pm.param_index(n)] = fit.theta[fit.model.param_index(n)]
@@ -597,7 +650,63 @@ class Loop:
             out.append(Candidate(ename, eff.title, tgt, "score", lm, k, float(chi2.sf(lm, k)),
                                  lm - 2 * k, lm / total if total > 0 else None, values))
         self._mark_equivalent(out, col_of, An, base_cols)
+        self._fit_for_probe = fit
+        self._line_probe(pm, base, cols, out, t, u, y, x0, P0, fit.nll)
         return out
+
+    def _line_probe(self, pm, base, cols, cands, t, u, y, x0, P0, nll0) -> None:
+        """Second batched run: every additive candidate at multiples of its
+        one-step estimate and at its natural values, nuisance parameters held.
+        The likelihood gain found (LR, a lower bound of the candidate's full
+        LR) replaces the score statistic where it is larger: the score test is
+        local and misses effects to which the filter reacts nonlinearly (at
+        λ = 0 a filter bends its states towards a rectified measurement)."""
+        from scipy.stats import chi2
+
+        from .ukf import ukf_nll
+
+        index = {(c.effect, c.target): [] for c in cands}
+        for c, col in enumerate(cols):
+            if (col.effect, col.target) in index:
+                index[(col.effect, col.target)].append(pm.param_index(col.param))
+        sets, owner = [], []
+        for cand in cands:
+            eff = get_effect(cand.effect, self.s.effects)
+            est = [p.name for p in eff.params if p.estimated]
+            js = index[(cand.effect, cand.target)]
+            beta = np.array([cand.values.get(n, 0.0) for n in est[:len(js)]])
+            trials = [beta * f for f in (0.5, 1.0, 2.0)] if np.any(beta) else []
+            for pt in eff.natural_points(cand.target):
+                trials.append(np.array([pt.get(n, b) for n, b in zip(est, beta)]))
+            for tr in trials:
+                th = base.copy()
+                th[js] = tr
+                for thv in self._noise_variants(pm, self._fit_for_probe, th, (1.0, 0.1, 0.01)):
+                    sets.append(thv)
+                    owner.append((cand, tr))
+        if not sets:
+            return
+        sets = np.array(sets)
+        nll = np.empty(len(sets))
+        for a in range(0, len(sets), self.s.chunk):
+            nll[a:a + self.s.chunk] = ukf_nll(pm, t, u, y, sets[a:a + self.s.chunk], x0, P0,
+                                             **self.s.ukf).nll
+        best: dict = {}
+        for (cand, tr), v in zip(owner, nll):
+            if np.isfinite(v) and (id(cand) not in best or v < best[id(cand)][0]):
+                best[id(cand)] = (v, tr)
+        for cand in cands:
+            if id(cand) not in best:
+                continue
+            v, tr = best[id(cand)]
+            lr = 2.0 * (nll0 - v)
+            if lr > cand.statistic:
+                eff = get_effect(cand.effect, self.s.effects)
+                est = [p.name for p in eff.params if p.estimated]
+                cand.statistic = float(lr)
+                cand.p_value = float(chi2.sf(lr, cand.dof))
+                cand.score = float(lr - 2 * cand.dof)
+                cand.values.update({n: float(x) for n, x in zip(est, tr)})
 
     @staticmethod
     def _mark_equivalent(cands, col_of, An, base_cols, tol: float = 0.999) -> None:
@@ -651,23 +760,28 @@ class Loop:
                     if n in model.params:
                         base[model.param_index(n)] = fit.theta[fit.model.param_index(n)]
                 sets = []
+                grid_of = []
                 for vals in grid:
                     th = base.copy()
                     for k, v in vals.items():
                         if k in P:
                             th[model.param_index(P[k].name)] = v
-                    sets.append(th)
+                    for thv in self._noise_variants(model, fit, th, NOISE_FACTORS):
+                        sets.append(thv)
+                        grid_of.append(vals)
                 t, u, y = self.data.arrays(model)
                 x0 = self.x0_for(model)
                 r = ukf_nll(model, t, u, y, np.array(sets), x0, self.P0_for(model, x0),
                             **self.s.ukf)
                 if not np.any(np.isfinite(r.nll)):
                     continue
-                i = int(np.nanargmin(r.nll))
-                lr = max(0.0, 2 * (fit.nll - float(r.nll[i])))
+                net = np.where(np.isfinite(r.nll), r.nll, np.inf)
+                i = int(np.argmin(net))
+                lr = max(0.0, 2 * (fit.nll - float(net[i])))
+                best_vals = grid_of[i]
                 k = sum(1 for p in eff.params if p.estimated)
                 out.append(Candidate(eff.name, eff.title, tgt, "likelihood ratio", lr, k,
-                                     float(chi2.sf(lr, k)), lr - 2 * k, None, dict(grid[i]),
+                                     float(chi2.sf(lr, k)), lr - 2 * k, None, dict(best_vals),
                                      last_resort=getattr(eff, "last_resort", False)))
         return out
 
@@ -758,8 +872,11 @@ class Loop:
                      "do not show as local innovations and the likelihood is poorly "
                      "conditioned. Declare process noise (g.set_process_noise) on the states "
                      "where forces are unmodelled, ideally as an estimated parameter.")
-        current = self.fit(self.user_graph.copy(self.user_graph.name), list(s.params), None,
+        first = list(s.params) if s.initial_params is None else list(s.initial_params)
+        current = self.fit(self.user_graph.copy(self.user_graph.name), first, None,
                            "initial fit")
+        # later steps re-estimate every parameter of ``params``
+        current.params = list(s.params)
         mname = _metric_name(s, current.model)
         self.initial = current
         self.log(f"initial fit: NLL {current.nll:.2f}, {s.criterion.upper()} "
@@ -855,7 +972,8 @@ class Loop:
                                       "whiteness_after": after.residuals.whiteness})
                 self.log(f"reject {c.label}: {s.criterion.upper()} {self._crit(current):.2f} -> "
                          f"{self._crit(after):.2f}, whiteness {current.residuals.whiteness:.1f} -> "
-                         f"{after.residuals.whiteness:.1f}")
+                         f"{after.residuals.whiteness:.1f}, error {current.metric:.4g} -> "
+                         f"{after.metric:.4g}")
             for c in ranking:
                 if not any(st.effect == c.effect and st.attached_to == c.target.name
                            for st in self.steps):
@@ -920,7 +1038,8 @@ class LoopResult:
     out_dir: Path | None
 
     def table(self) -> str:
-        rows = [f"| step | effect | attached to | {self.metric} before | after | NLL before | after |",
+        """Markdown table of the accepted steps (error = :attr:`metric`)."""
+        rows = ["| step | effect | attached to | error before | error after | NLL before | NLL after |",
                 "|---|---|---|---|---|---|---|"]
         for i, s in enumerate(self.steps, 1):
             rows.append(f"| {i} | {s.effect} | {s.attached_to} | {s.error_before:.4g} | "
@@ -981,3 +1100,91 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *, out_dir=Non
                          f"(known: {', '.join(graph.params)})")
     s = LoopSettings(params=list(params), **settings)
     return Loop(graph, experiment, s, out_dir, log, progress).run()
+
+
+# ------------------------------------------------------------------- CLI
+def configure_loop(p) -> None:
+    from .loop_cases import CASES, DEFAULT_CASE
+
+    p.add_argument("--case", default=None,
+                   help=f"bundled case ({', '.join(CASES)}; default {DEFAULT_CASE} when no "
+                        f"--model is given)")
+    p.add_argument("--model", help="declared model: a registered name or module:function "
+                                   "returning a BondGraph")
+    p.add_argument("--data", help="record (CSV in the experiment format, see docs/data_format.md)")
+    p.add_argument("--params", help="comma-separated parameters to estimate (default: the "
+                                    "case's, or all parameters of the model)")
+    p.add_argument("--out", default="bondgraph-report", help="report directory "
+                                                             "(default ./bondgraph-report)")
+    p.add_argument("--metric", default=None,
+                   help="error measure: nrmse_sim (default), rmse_sim, rmse_pred")
+    p.add_argument("--criterion", choices=("aic", "bic"), default="aic")
+    p.add_argument("--max-steps", type=int, default=None)
+    p.add_argument("--significance", type=float, default=None)
+    p.add_argument("--no-structural", action="store_true",
+                   help="score only additive effects (faster)")
+    p.add_argument("--quiet", action="store_true")
+
+
+def _builder(spec: str):
+    from .registry import build, registered, resolve
+
+    if spec in registered():
+        return lambda: build(spec)
+    if ":" in spec:
+        fn = resolve(spec)
+
+        def make():
+            g = fn()
+            g.source = spec
+            return g
+        return make
+    raise ModelError(f"unknown model '{spec}': give a registered name "
+                     f"({', '.join(sorted(registered()))}) or module:function")
+
+
+def run_loop_cli(args) -> int:
+    from .loop_cases import DEFAULT_CASE, get_case
+
+    settings: dict = {}
+    if args.model:
+        if not args.data:
+            raise ModelError("--model needs --data FILE.csv (the measured record)")
+        from .data import Experiment
+
+        make = _builder(args.model)
+        graph = make()
+        record = Experiment.load(args.data)
+        params = args.params.split(",") if args.params else list(graph.params)
+        name = graph.name
+    else:
+        case = get_case(args.case or DEFAULT_CASE)
+        print(f"bondgraph loop: bundled case '{case.name}': {case.description}")
+        graph = case.declared()
+        record = case.record()
+        params = args.params.split(",") if args.params else case.params
+        settings.update(case.settings)
+        name = case.name
+    if args.metric:
+        settings["metric"] = args.metric
+    settings["criterion"] = args.criterion
+    if args.max_steps is not None:
+        settings["max_steps"] = args.max_steps
+    if args.significance is not None:
+        settings["significance"] = args.significance
+    if args.no_structural:
+        settings["structural"] = False
+    log = (lambda m: None) if args.quiet else print
+    res = run_loop(graph, record, params, out_dir=args.out, log=log, **settings)
+    print()
+    print(f"{name}: {res.metric}")
+    print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
+    if res.steps:
+        print(res.table())
+    else:
+        print("  no effect accepted (nothing significant left)")
+    print(f"report: {Path(args.out) / 'report.md'} (and report.json, PNG plots, "
+          f"augmented_model.py)")
+    return 0
+
+
