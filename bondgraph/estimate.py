@@ -866,11 +866,38 @@ def _parse_fixed(text: str | None) -> dict[str, float]:
     return out
 
 
+def parse_params_option(text: str, model=None) -> list[str]:
+    """Parameters of ``--params``: ``a,b,c`` or ``recommended:<sensitivity.json>``
+    (the recommended set of :func:`bondgraph.sensitivity.recommended_params`).
+
+    Raises
+    ------
+    OptionError
+        Empty list.
+    bondgraph.sensitivity.SensitivityError
+        Missing or malformed sensitivity file.
+    ModelError
+        A recommended parameter the model does not have.
+    """
+    text = (text or "").strip()
+    if text.startswith("recommended:"):
+        from .sensitivity import recommended_params
+
+        return recommended_params(text[len("recommended:"):], model)
+    params = [s.strip() for s in text.split(",") if s.strip()]
+    if not params:
+        raise OptionError("--params: no parameter names given")
+    return params
+
+
 def configure_estimate(p) -> None:
     """Options of ``bondgraph estimate``."""
     p.add_argument("--model", required=True, help="registered filter model")
     p.add_argument("--data", required=True, help="record CSV (with optional JSON sidecar)")
-    p.add_argument("--params", required=True, help="comma-separated parameters to estimate")
+    p.add_argument("--params", required=True,
+                   help="comma-separated parameters to estimate, or recommended:FILE for the "
+                        "set recommended in a `bondgraph sensitivity` result (sensitivity.json "
+                        "or its directory)")
     p.add_argument("--optimizer", choices=("pso", "de"), default="pso")
     p.add_argument("--particles", type=int, default=None, help="swarm / population size (10 k)")
     p.add_argument("--iterations", type=int, default=100)
@@ -924,7 +951,7 @@ def run_estimate(args) -> int:
 
     model = _resolve_model(args.model)
     exp = Experiment.load(args.data)
-    params = [s.strip() for s in args.params.split(",") if s.strip()]
+    params = parse_params_option(args.params, model)
     out = Path(args.out) if args.out else Path(f"estimate_{model.name}_{Path(args.data).stem}")
     out.mkdir(parents=True, exist_ok=True)
     ck = Path(args.checkpoint) if args.checkpoint else out / "checkpoint.npz"
