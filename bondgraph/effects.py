@@ -683,8 +683,10 @@ class Slip(_Structural):
 
     def grid(self, graph, target, scales):
         J = _inertia_near(graph, graph.bond(target.name))
-        # slip time constants J/cs from 2 samples to the record length
-        taus = [2 * scales.dt * (scales.duration / (2 * scales.dt)) ** (k / 7) for k in range(8)]
+        # slip time constants J/cs from a tenth of a sample (creep of a stiff
+        # belt: quasi-static within a sample) to half the record length
+        lo, hi = 0.1 * scales.dt, 0.5 * scales.duration
+        taus = [lo * (hi / lo) ** (k / 8) for k in range(9)]
         return [{"cs": J / tau} for tau in taus]
 
     def apply(self, graph, target, values=None, scales=None):
