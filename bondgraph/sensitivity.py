@@ -761,7 +761,9 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
                   N: int, *, second_order: bool = True, seed: int | None = 0,
                   chunk: int | None = None, conf_level: float = 0.95, num_resamples: int = 100,
                   output_names: Sequence[str] | None = None, progress: bool = False,
-                  desc: str = "sobol") -> dict:
+                  desc: str = "sobol",
+                  transforms: Mapping[str, Callable[[np.ndarray], np.ndarray]] | None = None
+                  ) -> dict:
     """Sobol' indices of a batched function over a box (SALib).
 
     Parameters
@@ -787,6 +789,9 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
     output_names : sequence of str (m), optional
     progress : bool
         tqdm progress bar over the chunks.
+    transforms : dict output name -> callable, optional
+        Applied to an output's whole column (after non-finite values are
+        replaced) before the analysis, e.g. :func:`log_excess`.
 
     Returns
     -------
@@ -843,6 +848,8 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
             raise SensitivityError(f"every evaluation of '{on}' is non-finite")
         if bad.any():
             yc[bad] = np.max(yc[~bad])
+        if transforms and on in transforms:
+            yc = np.asarray(transforms[on](yc), dtype=float)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             Si = sobol_analyze.analyze(problem, yc, calc_second_order=second_order,
@@ -855,6 +862,21 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
         d["variance"] = float(np.var(yc))
         out["indices"][on] = d
     return out
+
+
+def log_excess(y: np.ndarray) -> np.ndarray:
+    """ln(1 + y − min y): a monotone transform of the NLL for Sobol' indices.
+
+    Over a wide parameter box the NLL spans orders of magnitude (sets that
+    drive the filter far from the data reach 10⁶-10⁹ nats); its variance,
+    and so its Sobol' indices and their bootstrap intervals, is then
+    decided by a handful of such sets. On the log scale every decade of
+    misfit counts alike. (Sobol' indices are not invariant under nonlinear
+    transforms: they answer "which parameters decide how many orders of
+    magnitude the fit is off".)
+    """
+    y = np.asarray(y, dtype=float)
+    return np.log1p(y - np.min(y))
 
 
 def simulate_batch(model, t, u, thetas, x0, *, method: str = "ros2", substeps: int = 2,
@@ -904,7 +926,7 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
                        outputs: Sequence[str] = (), box: tuple | None = None,
                        box_rel: float | None = None, chunk: int = 256, seed: int | None = 0,
                        second_order: bool = True, progress: bool = False,
-                       conf_level: float = 0.95) -> dict:
+                       conf_level: float = 0.95, nll_transform: str = "log") -> dict:
     """Sobol' indices of the UKF NLL (and of the time-means of chosen
     outputs) over a parameter box.
 
@@ -931,13 +953,18 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
         Parameter sets per batched UKF run.
     seed, second_order, progress, conf_level :
         See :func:`sobol_indices`.
+    nll_transform : {"log", "none"}
+        Indices of ln(1 + NLL − min NLL) (:func:`log_excess`, default) or of
+        the NLL itself.
 
     Returns
     -------
     dict
         As :func:`sobol_indices`, outputs named ``"NLL"`` and
-        ``"mean(<output>)"``.
+        ``"mean(<output>)"``; ``nll_transform``, ``nll_min``, ``nll_max``.
     """
+    if nll_transform not in ("log", "none"):
+        raise SensitivityError(f"unknown NLL transform '{nll_transform}' (log, none)")
     from .ukf import default_P0, ukf_nll
 
     params = check_params(model, params)
@@ -970,9 +997,17 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
         return np.column_stack(cols)
 
     onames = ["NLL"] + [f"mean({o})" for o in outputs]
+    seen: dict[str, float] = {}
+
+    def tr(yv):
+        seen.update(nll_min=float(np.min(yv)), nll_max=float(np.max(yv)))
+        return log_excess(yv) if nll_transform == "log" else yv
+
     res = sobol_indices(fun, params, lo, hi, N, second_order=second_order, seed=seed,
                         chunk=chunk, conf_level=conf_level, output_names=onames,
-                        progress=progress, desc="Sobol NLL")
+                        progress=progress, desc="Sobol NLL", transforms={"NLL": tr})
+    res.update(nll_transform="ln(1 + NLL - min NLL)" if nll_transform == "log" else "none",
+               **seen)
     res["box"] = "custom" if box is not None else (f"theta*(1±{box_rel:g})" if box_rel
                                                    else "model bounds")
     return res
@@ -1079,13 +1114,20 @@ class SensitivityReport:
         if g:
             ind = g["indices"]["NLL"]
             order = np.argsort(-np.asarray(ind["ST"]))
-            lines.append(f"Sobol' indices of the NLL (N = {g['N']}, {g['evaluations']} "
+            what = "ln(1 + NLL - min)" if g.get("nll_transform", "none") != "none" else "the NLL"
+            lines.append(f"Sobol' indices of {what} (N = {g['N']}, {g['evaluations']} "
                          f"evaluations, {g['failed'].get('NLL', 0)} failed; "
                          f"{int(100 * g['conf_level'])} % confidence):")
             for i in order:
                 lines.append(f"  {g['names'][i]:<14} S1 {ind['S1'][i]:+.3f} ± "
                              f"{ind['S1_conf'][i]:.3f}   ST {ind['ST'][i]:.3f} ± "
                              f"{ind['ST_conf'][i]:.3f}")
+            for on, ind in g["indices"].items():
+                if on == "NLL":
+                    continue
+                lines.append(f"Sobol' indices of {on}: " + ", ".join(
+                    f"{nm} S1 {ind['S1'][i]:+.2f} ST {ind['ST'][i]:.2f}"
+                    for i, nm in enumerate(g["names"]) if ind["ST"][i] >= 0.01))
         return "\n".join(lines)
 
 
@@ -1095,7 +1137,8 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
             outputs: Sequence[str] = (), box_rel: float | None = None, chunk: int = 256,
             seed: int = 0, rel_crb_max: float = REL_CRB_MAX, corr_max: float = CORR_MAX,
             sensitivities: bool = True, sens_method: str = "LSODA", sens_rtol: float = 1e-6,
-            sens_atol: float = 1e-8, progress: bool = False, log=None) -> SensitivityReport:
+            sens_atol: float = 1e-8, progress: bool = False, log=None,
+            nll_transform: str = "log") -> SensitivityReport:
     """Local (and optionally global) sensitivity and identifiability analysis
     of one record, with a recommendation of the parameters to estimate.
 
@@ -1124,6 +1167,9 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         Sobol' box θ (1 ± box_rel) instead of the model's bounds.
     chunk : int
         Parameter sets per batched UKF run in the global analysis.
+    nll_transform : {"log", "none"}
+        Sobol' indices of ln(1 + NLL − min NLL) or of the NLL
+        (:func:`global_sensitivity`).
     rel_crb_max, corr_max : float
         Selection thresholds (:func:`recommend`).
     sensitivities : bool
@@ -1216,7 +1262,8 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         say(f"Sobol' indices: N = {_pow2(global_N)} ...")
         glob = global_sensitivity(model, t, u, y, params, global_N, theta=th, x0=x0a, P0=P0a,
                                   ukf_options=opts, outputs=outputs, box_rel=box_rel,
-                                  chunk=chunk, seed=seed, progress=progress)
+                                  chunk=chunk, seed=seed, progress=progress,
+                                  nll_transform=nll_transform)
         timing["global_s"] = time.perf_counter() - t0
     return SensitivityReport(
         model=model.name, experiment=ename, params=list(params),
@@ -1228,6 +1275,28 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
                       theta_full=th.tolist(), timing=timing,
                       units=[model.param_units[i] for i in model.param_indices(params)]),
         sensitivities=sens)
+
+
+def recommend_experiments(cases: Mapping[str, tuple], **options) -> dict[str, SensitivityReport]:
+    """:func:`analyse` for several experiments, e.g. the vehicle's coast-down,
+    acceleration and braking records: which parameters to estimate from
+    each.
+
+    Parameters
+    ----------
+    cases : dict label -> (model, experiment, candidates)
+        ``candidates`` may be None (every free parameter).
+    **options
+        Keyword arguments of :func:`analyse` shared by all cases.
+
+    Returns
+    -------
+    dict label -> SensitivityReport
+        ``report.recommendation["estimate"]`` is the list to pass to
+        :func:`bondgraph.estimate.estimate` (or :func:`recommended_params`).
+    """
+    return {label: analyse(model, exp, params, **options)
+            for label, (model, exp, params) in cases.items()}
 
 
 def recommended_params(source, model=None) -> list[str]:
@@ -1316,7 +1385,8 @@ def plot_report(report: SensitivityReport, outdir: str | Path) -> list[Path]:
                 color="C1", capsize=2)
         ax.barh(yy - 0.2, S1[order], 0.4, xerr=np.asarray(ind["S1_conf"])[order],
                 label="first-order S1", color="C0", capsize=2)
-        ax.set_xlabel(f"Sobol' index of the NLL ({int(100 * g['conf_level'])} % confidence bars)")
+        what = "ln(1 + NLL − min)" if g.get("nll_transform", "none") != "none" else "the NLL"
+        ax.set_xlabel(f"Sobol' index of {what} ({int(100 * g['conf_level'])} % confidence bars)")
         ax.set_title(f"{title}\nSobol' indices, N = {g['N']} ({g['evaluations']} UKF runs)",
                      fontsize=9)
         ax.legend(loc="lower right", fontsize=8)
@@ -1340,8 +1410,12 @@ def plot_report(report: SensitivityReport, outdir: str | Path) -> list[Path]:
     # second-order heat map
     if g and g.get("second_order"):
         S2 = np.asarray(g["indices"]["NLL"]["S2"], float)
+        C2 = np.asarray(g["indices"]["NLL"]["S2_conf"], float)
         M = np.where(np.isfinite(S2), S2, 0.0)
         M = M + M.T
+        Cf = np.where(np.isfinite(C2), C2, 0.0)
+        Cf = Cf + Cf.T
+        sig = np.abs(M) > Cf                       # outside its confidence interval
         fig, ax = plt.subplots(figsize=(0.45 * k + 3.0, 0.45 * k + 2.4))
         vmax = max(float(np.abs(M).max()), 1e-6)
         im = ax.imshow(M, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
@@ -1352,9 +1426,13 @@ def plot_report(report: SensitivityReport, outdir: str | Path) -> list[Path]:
         for i in range(k):
             for j in range(k):
                 if i != j and abs(M[i, j]) >= 0.01:
-                    ax.text(j, i, f"{M[i, j]:.2f}", ha="center", va="center", fontsize=6)
+                    ax.text(j, i, f"{M[i, j]:.2f}" if sig[i, j] else f"({M[i, j]:.2f})",
+                            ha="center", va="center", fontsize=6,
+                            color="k" if sig[i, j] else "0.45")
         fig.colorbar(im, ax=ax, shrink=0.8, label="S2")
-        ax.set_title(f"{title}\nsecond-order Sobol' indices of the NLL", fontsize=9)
+        ax.set_title(f"{title}\nsecond-order Sobol' indices of the NLL (in parentheses: "
+                     f"within the {int(100 * g['conf_level'])} % confidence interval of 0)",
+                     fontsize=8)
         fig.tight_layout()
         p = outdir / "heatmap_s2.png"
         fig.savefig(p, dpi=110)
@@ -1442,6 +1520,8 @@ def configure_sensitivity(p) -> None:
     p.add_argument("--box-rel", type=float, default=None,
                    help="Sobol' box theta*(1 ± BOX_REL) instead of the model bounds")
     p.add_argument("--chunk", type=int, default=256, help="parameter sets per batched UKF run")
+    p.add_argument("--nll-transform", choices=("log", "none"), default="log",
+                   help="Sobol' indices of ln(1 + NLL - min NLL) (default) or of the NLL")
     p.add_argument("--out", default=None, help="output directory (default sensitivity_<model>_<data>)")
     p.add_argument("--fixed", default=None,
                    help="name=value,... parameter values of the analysis (default: model "
@@ -1509,7 +1589,7 @@ def run_sensitivity(args) -> int:
                   global_N=args.global_N, outputs=outputs, box_rel=args.box_rel,
                   chunk=args.chunk, seed=args.seed, rel_crb_max=args.rel_crb,
                   corr_max=args.corr_max, sensitivities=not args.no_sensitivities,
-                  progress=not args.quiet, log=log)
+                  progress=not args.quiet, log=log, nll_transform=args.nll_transform)
     rep.settings["data"] = str(args.data)
     rep.settings["wall_s"] = time.perf_counter() - t0
     path = out / "sensitivity.json"

@@ -202,13 +202,14 @@ def test_cli_writes_json_plots_and_feeds_estimate(tmp_path, msd_csv, capsys):
                "--p0-rel", "0.001"])
     assert rc == 0
     text = capsys.readouterr().out
-    assert "recommended" in text and "Sobol' indices of the NLL" in text
+    assert "recommended" in text and "Sobol' indices of ln(1 + NLL - min)" in text
     d = json.loads((out / "sensitivity.json").read_text())
     assert d["params"] == ["m", "k", "c"]
     assert set(d["recommendation"]["estimate"]) == {"m", "k", "c"}
     assert d["recommendation"]["check"]["full_rank"]
     g = d["global"]
     assert g["evaluations"] == 16 * (2 * 3 + 2)
+    assert g["nll_transform"].startswith("ln") and g["nll_max"] > g["nll_min"]
     assert set(g["indices"]["NLL"]) >= {"S1", "S1_conf", "ST", "ST_conf", "S2", "S2_conf"}
     for png in ("tornado.png", "heatmap_s2.png", "correlation.png", "sensitivities.png"):
         assert (out / png).stat().st_size > 1000, png
