@@ -738,51 +738,51 @@ class Loop:
     def score_structural(self, fit: Fit, scales: Scales, effects) -> list[Candidate]:
         from scipy.stats import chi2
 
+        from tqdm.auto import tqdm
+
         from .ukf import ukf_nll
 
+        todo = [(eff, tgt) for eff in effects if not eff.additive
+                for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)]
         out = []
-        for eff in effects:
-            if eff.additive:
+        for eff, tgt in tqdm(todo, desc="structural candidates", unit="cand", leave=False,
+                             disable=not self.progress):
+            try:
+                g = fit.graph.copy(f"{fit.graph.name}__{eff.name}")
+                grid = eff.grid(g, tgt, scales)
+                P = eff.apply(g, tgt, grid[0], scales)
+                model = self.model_of(g)
+            except BondGraphError as exc:
+                self.log(f"  skip {eff.name} @ {tgt.name}: {str(exc).splitlines()[0]}")
                 continue
-            for tgt in eff.targets(fit.graph):
-                if eff.present(fit.graph, tgt):
-                    continue
-                try:
-                    g = fit.graph.copy(f"{fit.graph.name}__{eff.name}")
-                    grid = eff.grid(g, tgt, scales)
-                    P = eff.apply(g, tgt, grid[0], scales)
-                    model = self.model_of(g)
-                except BondGraphError as exc:
-                    self.log(f"  skip {eff.name} @ {tgt.name}: {str(exc).splitlines()[0]}")
-                    continue
-                base = model.theta0.copy()
-                for n in fit.model.params:
-                    if n in model.params:
-                        base[model.param_index(n)] = fit.theta[fit.model.param_index(n)]
-                sets = []
-                grid_of = []
-                for vals in grid:
-                    th = base.copy()
-                    for k, v in vals.items():
-                        if k in P:
-                            th[model.param_index(P[k].name)] = v
-                    for thv in self._noise_variants(model, fit, th, NOISE_FACTORS):
-                        sets.append(thv)
-                        grid_of.append(vals)
-                t, u, y = self.data.arrays(model)
-                x0 = self.x0_for(model)
-                r = ukf_nll(model, t, u, y, np.array(sets), x0, self.P0_for(model, x0),
-                            **self.s.ukf)
-                if not np.any(np.isfinite(r.nll)):
-                    continue
-                net = np.where(np.isfinite(r.nll), r.nll, np.inf)
-                i = int(np.argmin(net))
-                lr = max(0.0, 2 * (fit.nll - float(net[i])))
-                best_vals = grid_of[i]
-                k = sum(1 for p in eff.params if p.estimated)
-                out.append(Candidate(eff.name, eff.title, tgt, "likelihood ratio", lr, k,
-                                     float(chi2.sf(lr, k)), lr - 2 * k, None, dict(best_vals),
-                                     last_resort=getattr(eff, "last_resort", False)))
+            base = model.theta0.copy()
+            for n in fit.model.params:
+                if n in model.params:
+                    base[model.param_index(n)] = fit.theta[fit.model.param_index(n)]
+            sets = []
+            grid_of = []
+            for vals in grid:
+                th = base.copy()
+                for k, v in vals.items():
+                    if k in P:
+                        th[model.param_index(P[k].name)] = v
+                for thv in self._noise_variants(model, fit, th, NOISE_FACTORS):
+                    sets.append(thv)
+                    grid_of.append(vals)
+            t, u, y = self.data.arrays(model)
+            x0 = self.x0_for(model)
+            r = ukf_nll(model, t, u, y, np.array(sets), x0, self.P0_for(model, x0),
+                        **self.s.ukf)
+            if not np.any(np.isfinite(r.nll)):
+                continue
+            net = np.where(np.isfinite(r.nll), r.nll, np.inf)
+            i = int(np.argmin(net))
+            lr = max(0.0, 2 * (fit.nll - float(net[i])))
+            best_vals = grid_of[i]
+            k = sum(1 for p in eff.params if p.estimated)
+            out.append(Candidate(eff.name, eff.title, tgt, "likelihood ratio", lr, k,
+                                 float(chi2.sf(lr, k)), lr - 2 * k, None, dict(best_vals),
+                                 last_resort=getattr(eff, "last_resort", False)))
         return out
 
     def confirm(self, fit: Fit, cand: Candidate, scales: Scales) -> tuple[Fit, dict] | None:
@@ -1175,7 +1175,8 @@ def run_loop_cli(args) -> int:
     if args.no_structural:
         settings["structural"] = False
     log = (lambda m: None) if args.quiet else print
-    res = run_loop(graph, record, params, out_dir=args.out, log=log, **settings)
+    res = run_loop(graph, record, params, out_dir=args.out, log=log, progress=not args.quiet,
+                   **settings)
     print()
     print(f"{name}: {res.metric}")
     print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
