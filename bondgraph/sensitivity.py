@@ -163,27 +163,15 @@ def parameter_scale(model, params: Sequence[str], theta) -> np.ndarray:
 
 
 def _theta_vector(model, theta) -> np.ndarray:
-    if theta is None:
-        return model.theta0.copy()
-    if isinstance(theta, Mapping):
-        return model.theta(dict(theta))
-    th = np.asarray(theta, dtype=float)
-    if th.shape != (model.n_theta,):
-        raise ModelError(f"theta must have shape ({model.n_theta},) for model '{model.name}', "
-                         f"got {th.shape}")
-    return th.copy()
+    from .simulate import _vector
+
+    return _vector(model, theta, "theta")
 
 
 def _state_vector(model, x0) -> np.ndarray:
-    if x0 is None:
-        return model.x0.copy()
-    if isinstance(x0, Mapping):
-        return model.state(dict(x0))
-    x = np.asarray(x0, dtype=float)
-    if x.shape != (model.n_x,):
-        raise ModelError(f"x0 must have shape ({model.n_x},) for model '{model.name}', "
-                         f"got {x.shape}")
-    return x.copy()
+    from .simulate import _vector
+
+    return _vector(model, x0, "x0")
 
 
 # ------------------------------------------------- forward sensitivities
