@@ -391,10 +391,15 @@ class Loop:
 
             idx = [model.param_index(n) for n in params]
             lo, hi = self.bounds_for(model, params, theta)
+            # log scale and decade moves for the noise intensities only: a
+            # physical parameter with a wide box (R_a in [0.05, 10]) is no scale
+            # parameter, and decade jumps strand it on a bound
+            noise = self.noise_params(graph)
+            scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
             try:
                 theta, _, F, runs = fisher_scoring(model, t, u, y, theta, idx, lo, hi, x0,
                                                    self.P0_for(model, x0), ukf_options=self.s.ukf,
-                                                   max_iter=iters)
+                                                   max_iter=iters, log_scale=scale)
                 std = _cr_std(F, params)
             except (FloatingPointError, np.linalg.LinAlgError) as exc:
                 self.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
@@ -817,10 +822,25 @@ class Loop:
         try:
             model = self.model_of(g)
             start = self.grid_refine(model, new, start)
+            # the effect's natural values (full rectification, ...) are extra
+            # starts: its likelihood may have two basins (a half-rectified
+            # sensor is a compromise the nuisance parameters can settle in)
+            starts = [start]
+            for pt in eff.natural_points(cand.target):
+                alt, moved = dict(start), False
+                for k, v in pt.items():
+                    if k in P and P[k].name in new:
+                        old_v = float(start.get(P[k].name, np.nan))
+                        moved |= not abs(old_v - v) <= 0.05 * max(abs(v), 1e-12)
+                        alt[P[k].name] = float(v)
+                if moved:
+                    starts.append(alt)
             # all parameters re-adjust (the nuisance ones absorbed part of the
             # missing effect): the confirmed fit is the candidate's final fit
-            f1 = self.fit(g, list(fit.params) + new, start, f"confirming {cand.label}",
-                          model=model, iterations=self.s.confirm_iterations)
+            fits = [self.fit(g, list(fit.params) + new, s0, f"confirming {cand.label}",
+                             model=model, iterations=self.s.confirm_iterations)
+                    for s0 in starts]
+            f1 = min(fits, key=lambda f: f.nll if np.isfinite(f.nll) else np.inf)
         except BondGraphError as exc:
             self.log(f"  confirmation of {cand.label} failed: {str(exc).splitlines()[0]}")
             return None

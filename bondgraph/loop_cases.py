@@ -321,8 +321,10 @@ def emps_closed_loop(graph: BondGraph) -> BondGraph:
     vir = g.inputs.pop("vir")
     q = g.signal_states["q"].state
     v = g.element("v").f
+    vmax = g.param("vir_max", 10.0, "V", (5.0, 15.0), "drive command saturation")
     nu = kp * kv * (qg - q) - kv * v + pulse
-    motor.value = motor.value.xreplace({vir: smooth_clip(nu, -10, 10, 0.01)})
+    # saturation in per-unit of vmax, so that the clip's constants are dimensionless
+    motor.value = motor.value.xreplace({vir: vmax * smooth_clip(nu / vmax, -1, 1, 0.001)})
     return g
 
 
