@@ -170,12 +170,30 @@ class LoopSettings:
     x0, P0 : arrays, optional
         UKF prior (default: the record's true x0 if it has one, else the
         model's X0; :func:`bondgraph.ukf.default_P0`).
+    P0_std : dict
+        Prior standard deviations of named initial states (e.g. the grade on
+        a level track), overriding ``P0``'s diagonal.
+    fixed : dict
+        Known parameter values (name -> value) set before every fit.
+    initial_params : list of str, optional
+        Parameters of the initial fit (default ``params``; later steps
+        re-estimate all of ``params``). CED fits only its noise intensity
+        first, so that "before" is the published linear model.
     ukf : dict
         Options of :func:`bondgraph.ukf.ukf_nll` (alpha, method, substeps ...).
     sim_method : str
         Solver of the free-run simulations (:func:`bondgraph.simulate.simulate`).
-    fit_iterations : int
-        L-BFGS-B iterations of each warm-started re-estimation.
+    fit_iterations, confirm_iterations : int
+        Fisher-scoring iterations of each warm-started re-estimation and of
+        each candidate's confirmation fit (L-BFGS-B if scoring fails).
+    metric_tolerance : float
+        Reject an effect whose reported error grows by more than this factor
+        (default: no limit; acceptance rests on the criterion and whiteness).
+    structural_threshold : float
+        Skip the (slow) structural candidates when an additive effect already
+        explains more than this share of the innovation energy.
+    chunk : int
+        Parameter sets per batched UKF run.
     """
 
     params: list[str]
