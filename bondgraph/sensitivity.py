@@ -1569,7 +1569,6 @@ def run_sensitivity(args) -> int:
     for o in outputs:
         model.output_index(o)
     out = Path(args.out) if args.out else Path(f"sensitivity_{model.name}_{Path(args.data).stem}")
-    out.mkdir(parents=True, exist_ok=True)
     log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     rep = analyse(model, exp, params, theta=th, x0=x0, p0_rel=args.p0_rel, initial=args.initial,
@@ -1580,6 +1579,8 @@ def run_sensitivity(args) -> int:
                   progress=not args.quiet, log=log, nll_transform=args.nll_transform)
     rep.settings["data"] = str(args.data)
     rep.settings["wall_s"] = time.perf_counter() - t0
+    # created only now: a run that fails on its input leaves no empty folder
+    out.mkdir(parents=True, exist_ok=True)
     path = out / "sensitivity.json"
     rep.to_json(path)
     print(rep.table())
