@@ -106,6 +106,9 @@ class EffectParam:
     description: str = ""
     estimated: bool = True
     nonnegative: bool = False
+    #: fixed box of a dimensionless fraction (e.g. (0, 1)); None: the loop
+    #: sets the box around the start value
+    bounds: tuple[float, float] | None = None
 
 
 # ------------------------------------------------------------------ helpers
@@ -558,7 +561,7 @@ class SensorRectification(_SensorEffect):
 
     name = "sensor_rectification"
     title = "sensor rectification |y| (sign-blind sensor)"
-    params = (EffectParam("lam", "", "rectification fraction (1 = |y|)"),
+    params = (EffectParam("lam", "", "rectification fraction (1 = |y|)", bounds=(0.0, 1.0)),
               EffectParam("eps", "{y}", "smoothing width of |y|", estimated=False))
 
     def shape_values(self, graph, target, scales):
@@ -802,58 +805,64 @@ class Disturbance(_Structural):
         return {"q": q}
 
 
-class ActuatorSaturation(_Structural):
+class _SourceShaping(_Structural):
+    """A static nonlinearity of an effort source: an MSe on the source's
+    junction adds ``shaped(value) - value``; one parameter, its grid in
+    fractions of the source's largest value in the record."""
+
+    target_kind = "source"
+    #: grid of the parameter, as fractions of the source's largest value
+    fractions: tuple[float, ...] = ()
+    what = ""
+
+    def targets(self, graph):
+        return ActuatorGain().targets(graph)
+
+    def grid(self, graph, target, scales):
+        m = max(float(scales.source_max.get(target.name, 1.0)), 1e-9)
+        p = self.params[0].name
+        return [{p: m * f} for f in self.fractions]
+
+    def shaped_minus_value(self, v, p):
+        raise NotImplementedError
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        src = graph.element(target.name)
+        j = source_junction(graph, src)
+        eu, _ = junction_units(graph, j)
+        name = self.params[0].name
+        p = _new_param(graph, self.pname(target, name), values.get(name, 1.0), eu, (1e-9, 1e12),
+                       f"{self.what} of {target.name}", "added by the residual-tracing loop")
+        graph.connect(graph.MSe(f"{self.name}.{target.tag}", self.shaped_minus_value(src.value, p)),
+                      j)
+        return {name: p}
+
+
+class ActuatorSaturation(_SourceShaping):
     """Smooth saturation of an effort source: value -> value/sqrt(1 + (value/L)^2)."""
 
     name = "actuator_saturation"
     title = "actuator saturation"
-    target_kind = "source"
     params = (EffectParam("L", "{effort}", "saturation level", nonnegative=True),)
+    fractions = (0.3, 0.5, 0.7, 0.85, 1.0, 1.3, 2.0)
+    what = "saturation level"
 
-    def targets(self, graph):
-        return ActuatorGain().targets(graph)
-
-    def grid(self, graph, target, scales):
-        m = max(float(scales.source_max.get(target.name, 1.0)), 1e-9)
-        return [{"L": m * f} for f in (0.3, 0.5, 0.7, 0.85, 1.0, 1.3, 2.0)]
-
-    def apply(self, graph, target, values=None, scales=None):
-        values = dict(values or {})
-        src = graph.element(target.name)
-        j = source_junction(graph, src)
-        eu, _ = junction_units(graph, j)
-        L = _new_param(graph, self.pname(target, "L"), values.get("L", 1.0), eu, (1e-9, 1e12),
-                       f"saturation level of {target.name}", "added by the residual-tracing loop")
-        v = src.value
-        graph.connect(graph.MSe(f"{self.name}.{target.tag}", v / sp.sqrt(1 + (v / L) ** 2) - v), j)
-        return {"L": L}
+    def shaped_minus_value(self, v, L):
+        return v / sp.sqrt(1 + (v / L) ** 2) - v
 
 
-class ActuatorDeadZone(_Structural):
+class ActuatorDeadZone(_SourceShaping):
     """Smooth dead zone of an effort source: value -> value - d·tanh(value/d)."""
 
     name = "actuator_deadzone"
     title = "actuator dead zone"
-    target_kind = "source"
     params = (EffectParam("d", "{effort}", "dead-zone half width", nonnegative=True),)
+    fractions = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
+    what = "dead-zone half width"
 
-    def targets(self, graph):
-        return ActuatorGain().targets(graph)
-
-    def grid(self, graph, target, scales):
-        m = max(float(scales.source_max.get(target.name, 1.0)), 1e-9)
-        return [{"d": m * f} for f in (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)]
-
-    def apply(self, graph, target, values=None, scales=None):
-        values = dict(values or {})
-        src = graph.element(target.name)
-        j = source_junction(graph, src)
-        eu, _ = junction_units(graph, j)
-        d = _new_param(graph, self.pname(target, "d"), values.get("d", 1.0), eu, (1e-9, 1e12),
-                       f"dead-zone half width of {target.name}", "added by the residual-tracing loop")
-        v = src.value
-        graph.connect(graph.MSe(f"{self.name}.{target.tag}", -d * sp.tanh(v / d)), j)
-        return {"d": d}
+    def shaped_minus_value(self, v, d):
+        return -d * sp.tanh(v / d)
 
 
 def _storage_targets(graph: BondGraph) -> list[Target]:

@@ -833,10 +833,12 @@ class Loop:
                 par = P[p.name]
                 v = float(par.default)
                 span = max(abs(v) * 20.0, 1e-6)
-                par.bounds = (0.0 if p.nonnegative else -span, span) if not (
-                    eff.name in ("sensor_rectification",)) else (0.0, 1.0)
-                if eff.name == "slip" or eff.name == "compliance" or not eff.additive:
-                    par.bounds = (v / 100.0, v * 100.0) if v > 0 else par.bounds
+                if p.bounds is not None:
+                    par.bounds = tuple(p.bounds)
+                elif not eff.additive and v > 0:
+                    par.bounds = (v / 100.0, v * 100.0)
+                else:
+                    par.bounds = (0.0 if p.nonnegative else -span, span)
         try:
             model = self.model_of(g)
             start = self.grid_refine(model, new, start)
