@@ -343,16 +343,7 @@ def output_sensitivities(model, t, u=None, theta=None, x0=None,
     totals = {"nfev": 0, "njev": 0, "nlu": 0}
     t_wall = time.perf_counter()
     for a, b in segments:
-        if hold == "zoh":
-            cols = sig._array_cols
-            ua = sig.samples[a]
-
-            def u_at(tq, _ua=ua, _cols=cols):
-                v = sig.at(tq)
-                v[_cols] = _ua[_cols]
-                return v
-        else:
-            u_at = sig.at
+        u_at = sig.segment_input(a, hold)
         rhs, jac = make(u_at)
         if method in ("BDF", "Radau", "LSODA"):
             kw["jac"] = jac

@@ -315,6 +315,20 @@ class InputSignals:
         return np.array([float(np.asarray(fn(np.array([tq]))).reshape(-1)[0])
                          for fn in self._fns])
 
+    def segment_input(self, a: int, hold: str) -> Callable[[float], np.ndarray]:
+        """Input function of the segment starting at sample ``a``: with
+        ``hold="zoh"`` the sampled-array inputs are held at sample ``a``
+        (callables still vary inside the segment), else :meth:`at`."""
+        if hold != "zoh":
+            return self.at
+        ua, cols = self.samples[a], self._array_cols
+
+        def u_at(tq: float) -> np.ndarray:
+            v = self.at(tq)
+            v[cols] = ua[cols]
+            return v
+        return u_at
+
     def change_points(self) -> np.ndarray:
         """Sample indices k where a sampled-array input differs from sample k-1
         (plus 0): the segments integrated separately with ``hold="zoh"``."""
@@ -498,17 +512,7 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, rtol, atol, max_step
     x = np.array(x0, dtype=float)
     X[0] = x
     for a, b in segments:
-        if sig.hold == "zoh":
-            u_a = sig.samples[a]
-            # callables still vary inside the segment; arrays are held
-            const_cols = sig._array_cols
-
-            def u_at(tq, _ua=u_a, _cols=const_cols):
-                v = sig.at(tq)
-                v[_cols] = _ua[_cols]
-                return v
-        else:
-            u_at = sig.at
+        u_at = sig.segment_input(a, sig.hold)
 
         th1 = th[None, :]
 
