@@ -17,6 +17,18 @@ from vehicle_graphs.analysis import initial_state
 from vehicle_graphs.params import DR_DX, RPM
 from vehicle_graphs.subsystems import Numerics
 
+
+def _run_experiment(name):
+    """A registered vehicle experiment simulated with BDF at its true
+    parameters: (model, theta, SimResult)."""
+    spec = get_experiment(name)
+    model = Model.load(spec.model)
+    th = model.theta(spec.params)
+    res = simulate(model, sample_times(spec), u=spec.inputs, x0=spec.x0, theta=th,
+                   rtol=1e-7, atol=1e-9)
+    return model, th, res
+
+
 NUM = Numerics()
 
 #: documented plausible ranges (docs/vehicle.md, "Plausibility checks")
@@ -83,12 +95,7 @@ def test_vehicle_starts_to_roll_between_1200_and_1400_rpm():
 # --------------------------------------------------------------------- CVT
 @pytest.fixture(scope="module")
 def full_throttle():
-    spec = get_experiment("vehicle_full_throttle_high")
-    model = Model.load(spec.model)
-    th = model.theta(spec.params)
-    res = simulate(model, sample_times(spec), u=spec.inputs, x0=spec.x0, theta=th,
-                   rtol=1e-7, atol=1e-9)
-    return model, th, res
+    return _run_experiment("vehicle_full_throttle_high")
 
 
 def test_cvt_upshifts_as_speed_rises(full_throttle):
@@ -192,11 +199,7 @@ def test_coastdown_energy_lost_equals_work_of_resistances(coast):
 
 # ---------------------------------------------------------- braking, hill
 def test_braking_deceleration_and_stop():
-    spec = get_experiment("vehicle_braking")
-    model = Model.load(spec.model)
-    th = model.theta(spec.params)
-    res = simulate(model, sample_times(spec), u=spec.inputs, x0=spec.x0, theta=th,
-                   rtol=1e-7, atol=1e-9)
+    model, th, res = _run_experiment("vehicle_braking")
     v, t = res.output("v_gnss"), res.t
     assert v.max() > 10.0
     P = dict(zip(model.params, th))
@@ -212,11 +215,7 @@ def test_braking_deceleration_and_stop():
 
 
 def test_hill_climb_low_range():
-    spec = get_experiment("vehicle_hill_climb")
-    model = Model.load(spec.model)
-    th = model.theta(spec.params)
-    res = simulate(model, sample_times(spec), u=spec.inputs, x0=spec.x0, theta=th,
-                   rtol=1e-7, atol=1e-9)
+    model, th, res = _run_experiment("vehicle_hill_climb")
     v = res.output("v_gnss")
     # held by the brake: the smooth (tanh) brake lets it creep back at ~0.1 m/s
     assert v[res.t < 1.9].min() > -0.15
