@@ -21,8 +21,8 @@ import sys
 
 CHILD = r"""
 import json, sys, time
-from bondgraph.models import mass_chain, mass_spring_damper
-from bondgraph.codegen import generate_source
+from bondgraph.catalog.reference import mass_chain, mass_spring_damper
+from bondgraph.core.codegen import generate_source
 generate_source(mass_spring_damper().derive())   # warm-up: imports, unit registry
 n = int(sys.argv[1])
 t0 = time.perf_counter()

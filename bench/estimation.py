@@ -6,13 +6,13 @@ UKF likelihood over a 60 s, 40 Hz record of the full vehicle model.
 
 Measured in the same run:
 
-* the toolkit: :func:`bondgraph.estimate.Criterion` (batched UKF, one call per
-  swarm) inside :func:`bondgraph.optimize.pso`, the full 8080 evaluations;
+* the toolkit: :func:`bondgraph.inference.estimate.Criterion` (batched UKF, one call per
+  swarm) inside :func:`bondgraph.inference.optimize.pso`, the full 8080 evaluations;
 * the baseline: filterpy's ``UnscentedKalmanFilter`` (``MerweScaledSigmaPoints``)
   evaluated particle by particle over the same model and data, as a user
   would write it: ``fx`` = RK4 with 8 sub-steps over the generated model
   function (the filterpy + RK4 set-up of the original work); and, for a
-  like-for-like ratio, ``fx`` = ROS2 (bondgraph.integrators.ros2, Jacobian at
+  like-for-like ratio, ``fx`` = ROS2 (bondgraph.numerics.integrators.ros2, Jacobian at
   each sigma point). A few particles over the first samples are timed and
   scaled to the full record.
 
@@ -41,17 +41,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bondgraph.estimate import Criterion  # noqa: E402
-from bondgraph.model import Model  # noqa: E402
-from bondgraph.optimize import pso  # noqa: E402
-from bondgraph.ukf import default_P0, discretisation_check  # noqa: E402
+from bondgraph.inference.estimate import Criterion  # noqa: E402
+from bondgraph.numerics.model import Model  # noqa: E402
+from bondgraph.inference.optimize import pso  # noqa: E402
+from bondgraph.inference.ukf import default_P0, discretisation_check  # noqa: E402
 
 #: stage-2 candidates of the vehicle (engine map, clutch, CVT shift, tire)
 PARAMS = ["T_pk", "k_fw", "k_h", "w_eng", "mu_cl", "c_cl", "k_slip", "J_e"]
 
 
 def load_record(experiment: str, model: Model, seconds: float | None):
-    from bondgraph.experiments import run_experiment
+    from bondgraph.data.experiments import run_experiment
 
     exp = run_experiment(experiment)
     t, u, y = exp.t, exp.inputs_for(model), exp.outputs_for(model)
@@ -69,7 +69,7 @@ def baseline_seconds(model, t, u, y, thetas, x0, P0, fx_kind, n_steps, alpha=1.0
     from timing ``len(thetas)`` particles over the first ``n_steps`` samples."""
     from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
-    from bondgraph.integrators import ros2
+    from bondgraph.numerics.integrators import ros2
 
     n = model.n_x
     mod = model.module
@@ -152,13 +152,13 @@ STAGE1 = ["f_r", "C_dA", "r_dyn", "theta_off"]
 
 
 def protocol(args) -> dict:
-    """Two-stage protocol on synthetic vehicle records (bondgraph.estimate.two_stage),
+    """Two-stage protocol on synthetic vehicle records (bondgraph.inference.estimate.two_stage),
     10 particles per parameter, ``--iterations`` iterations per stage:
     stage 1 = STAGE1 with ``vehicle_coastdown`` on ``vehicle_coastdown``;
     stage 2 = PARAMS with ``vehicle_full`` on ``vehicle_throttle_steps_high``,
     stage-1 values fixed and their uncertainty propagated."""
-    from bondgraph.estimate import Stage, two_stage
-    from bondgraph.experiments import run_experiment
+    from bondgraph.inference.estimate import Stage, two_stage
+    from bondgraph.data.experiments import run_experiment
 
     stages = []
     for name, model_name, exp_name, params in (

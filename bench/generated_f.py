@@ -16,8 +16,8 @@ import timeit
 import numpy as np
 import sympy as sp
 
-from bondgraph.model import Model
-from bondgraph.models import dc_motor_compliant
+from bondgraph.numerics.model import Model
+from bondgraph.catalog.reference import dc_motor_compliant
 
 
 def main() -> None:

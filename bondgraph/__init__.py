@@ -1,13 +1,76 @@
-"""bondgraph: declare -> causality -> equations -> codegen -> model -> simulate / filter /
-estimate -> diagnose."""
+"""bondgraph: declare a bond graph, assign causality, derive and generate its
+state equations, simulate, filter and estimate, trace residuals to missing
+effects.
 
-from .errors import *  # noqa: F401,F403
-from .symbols import Input, Parameter, StateVar, Var  # noqa: F401
-from .elements import (C, CField, GY, I, IField, MGY, MTF, One, R, RField, Se, Sf, TF,  # noqa: F401
-                       Zero)
-from .graph import Bond, BondGraph, Fragment, Handle, Sensor  # noqa: F401
-from .causality import Causality, assign_causality  # noqa: F401
-from .equations import StateSpace, derive  # noqa: F401
-from . import smooth  # noqa: F401
+The package is layered along the data flow (``docs/ARCHITECTURE.md``); each
+layer imports only the layers below it:
+
+``core`` (declare, causality, equations, codegen) <- ``numerics`` (model,
+registry, integrators, simulate) <- ``data`` (records, benchmark data,
+synthetic experiments) <- ``inference`` (UKF, optimisers, estimation, Fisher)
+<- ``sensitivity`` <- ``diagnose`` (residuals, effects, the loop) <- ``report``
+(plots, drawings, loop report) <- ``cli``.
+
+This module re-exports the public API of every stage. Names are imported on
+first use, so ``import bondgraph`` stays cheap.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
+
+#: public name -> module that defines it
+_API: dict[str, str] = {}
+
+
+def _export(module: str, *names: str) -> None:
+    for n in names:
+        _API[n] = module
+
+
+# declare
+_export("bondgraph.core.symbols", "Input", "Parameter", "StateVar", "Var")
+_export("bondgraph.core.elements", "C", "CField", "GY", "I", "IField", "MGY", "MTF", "One", "R",
+        "RField", "Se", "Sf", "TF", "Zero")
+_export("bondgraph.core.graph", "Bond", "BondGraph", "Fragment", "Handle", "Sensor")
+# causality, equations, code generation
+_export("bondgraph.core.causality", "Causality", "assign_causality")
+_export("bondgraph.core.equations", "StateSpace", "derive")
+_export("bondgraph.core.codegen", "generate_source", "load_module", "write_module")
+# model, simulation
+_export("bondgraph.numerics.model", "Model")
+_export("bondgraph.numerics.simulate", "SimResult", "simulate", "stiffness_report")
+# records
+_export("bondgraph.data.records", "Experiment")
+_export("bondgraph.data.experiments", "ExperimentSpec", "get_experiment", "run_experiment")
+# filter, estimation
+_export("bondgraph.inference.ukf", "UKFResult", "ukf_nll")
+_export("bondgraph.inference.optimize", "de", "pso")
+_export("bondgraph.inference.estimate", "EstimationResult", "Stage", "estimate", "two_stage")
+# sensitivity, diagnosis
+_export("bondgraph.sensitivity.analysis", "analyse")
+_export("bondgraph.diagnose.effects", "Effect", "apply_effect")
+_export("bondgraph.diagnose.loop", "LoopResult", "LoopSettings", "run_loop")
+
+#: sub-modules reachable as attributes (``bondgraph.smooth.smooth_sign``)
+_MODULES = {"smooth": "bondgraph.core.smooth", "errors": "bondgraph.errors"}
+
+__all__ = sorted(_API) + sorted(_MODULES) + ["__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _API:
+        value = getattr(importlib.import_module(_API[name]), name)
+    elif name in _MODULES:
+        value = importlib.import_module(_MODULES[name])
+    else:
+        raise AttributeError(f"module 'bondgraph' has no attribute '{name}'")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return __all__

@@ -170,6 +170,21 @@ class FilterDivergenceError(NumericalError):
         super().__init__(message, hint=hint)
 
 
+class OptionError(BondGraphError, ValueError):
+    """An invalid option value for filtering or estimation (α ≤ 0, unknown
+    method, wrong array shape of a noise matrix, ...)."""
+
+
+class SensitivityError(BondGraphError, ValueError):
+    """Invalid options of a sensitivity analysis (unknown parameter names, an
+    empty parameter list, a malformed recommendation file, ...)."""
+
+
+class IdentifiabilityWarning(UserWarning):
+    """The Hessian of the NLL is not positive definite at the estimate: some
+    direction of the parameter space is not identified by the record."""
+
+
 def join_names(names: Sequence[str]) -> str:
     """Quote and join names for messages: ``'a', 'b' and 'c'``."""
     quoted = [f"'{n}'" for n in names]

@@ -1,7 +1,7 @@
 """Estimate the EMPS drive (M, Fv, Fc, offset) with the UKF likelihood and
 compare with the published IDIM-LS values (Janot, Gautier & Brunot 2019).
 
-The filter model is the ``emps`` bond graph (bondgraph/benchmark_models.py):
+The filter model is the ``emps`` bond graph (bondgraph/catalog/benchmarks.py):
 force source gtau·vir, mass M, viscous friction Fv, Coulomb friction
 Fc·tanh(v/1 mm/s), force offset; position sensor qm. Unmodelled forces
 enter as process noise of intensity q_F on the momentum (estimated with the
@@ -32,17 +32,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bondgraph.benchmark_models import (EMPS_IDIM_LS, EMPS_IDIM_RELERR, emps_arrays,  # noqa: E402
+from bondgraph.catalog.benchmarks import (EMPS_IDIM_LS, EMPS_IDIM_RELERR, emps_arrays,  # noqa: E402
                                         emps_filtered_signals, emps_force_relerr, emps_idim_ls)
-from bondgraph.estimate import estimate, plot_fit  # noqa: E402
-from bondgraph.model import Model  # noqa: E402
+from bondgraph.inference.estimate import estimate, plot_fit  # noqa: E402
+from bondgraph.numerics.model import Model  # noqa: E402
 
 PARAMS = ["M", "Fv", "Fc", "offset", "q_F"]
 FIXED = {"sigma_q": 1.5e-8}
 
 
 def run(decimations, particles, iterations, out: Path, seed=0):
-    from bondgraph.datasets import emps
+    from bondgraph.data.datasets import emps
 
     exp = emps("estimation", download=False)
     model = Model.load("emps")

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from bondgraph.causality import assign_causality
-from bondgraph.codegen import load_module, write_module
-from bondgraph.equations import derive
-from bondgraph.graph import BondGraph
-from bondgraph.model import Model
-from bondgraph.simulate import simulate
+from bondgraph.core.causality import assign_causality
+from bondgraph.core.codegen import load_module, write_module
+from bondgraph.core.equations import derive
+from bondgraph.core.graph import BondGraph
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
 
 # --- declare: a DC motor (voltage source, armature R and L, gyrator) driving a
 # load inertia with viscous friction

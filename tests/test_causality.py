@@ -4,7 +4,8 @@ import pytest
 import sympy as sp
 
 import bondgraph as bg
-from bondgraph import errors, models
+from bondgraph import errors
+from bondgraph.catalog import reference as models
 
 
 def test_strokes_of_mass_spring_damper():

@@ -7,11 +7,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 import sympy as sp
 
-from bondgraph import codegen, models, registry
-from bondgraph.model import Model
+from bondgraph.core import codegen
+from bondgraph.catalog import reference as models
+from bondgraph.numerics import registry
+from bondgraph.numerics.model import Model
 
 
 def test_generated_dir_is_up_to_date():
@@ -34,7 +35,7 @@ def test_check_detects_a_stale_file(tmp_path):
 def test_cli_check_exits_nonzero_naming_the_stale_model(tmp_path):
     registry.generate(["toy_cvt"], directory=tmp_path, verbose=False)
     (tmp_path / "toy_cvt.py").write_text("# edited by hand\n")
-    r = subprocess.run([sys.executable, "-m", "bondgraph.cli", "generate", "--check", "toy_cvt",
+    r = subprocess.run([sys.executable, "-m", "bondgraph.cli.main", "generate", "--check", "toy_cvt",
                         "--out", str(tmp_path)], capture_output=True, text=True)
     assert r.returncode == 1
     assert "toy_cvt" in r.stderr
@@ -45,7 +46,7 @@ def test_module_imports_only_numpy_and_names_its_source():
     tree = ast.parse(text)
     imports = [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
     assert [a.name for n in imports for a in n.names] == ["numpy"]
-    assert "bondgraph.models:dc_motor_compliant" in text
+    assert "bondgraph.catalog.reference:dc_motor_compliant" in text
     assert "bondgraph generate" in text and "DO NOT EDIT" in text
 
 
@@ -99,7 +100,7 @@ def test_metadata_and_noise_functions():
 
 
 def test_filterpy_adapter_matches_rk4():
-    from bondgraph.integrators import rk4
+    from bondgraph.numerics.integrators import rk4
 
     model = Model.load("mass_spring_damper")
     x = np.array([0.3, -0.01])
@@ -137,16 +138,16 @@ def test_in_memory_model_and_written_module_agree(tmp_path):
 
 def test_cli_draw_and_equations(tmp_path):
     out = tmp_path / "g.png"
-    r = subprocess.run([sys.executable, "-m", "bondgraph.cli", "draw", "dc_motor_gear", "-o",
+    r = subprocess.run([sys.executable, "-m", "bondgraph.cli.main", "draw", "dc_motor_gear", "-o",
                         str(out)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert out.stat().st_size > 10_000
-    r = subprocess.run([sys.executable, "-m", "bondgraph.cli", "equations", "rr_loop",
+    r = subprocess.run([sys.executable, "-m", "bondgraph.cli.main", "equations", "rr_loop",
                         "--causality"], capture_output=True, text=True)
     assert r.returncode == 0 and "dp_L/dt" in r.stdout and "stroke at" in r.stdout
 
 
 def test_cli_unknown_model_is_a_clear_error():
-    r = subprocess.run([sys.executable, "-m", "bondgraph.cli", "equations", "no_such_model"],
+    r = subprocess.run([sys.executable, "-m", "bondgraph.cli.main", "equations", "no_such_model"],
                        capture_output=True, text=True)
     assert r.returncode == 1 and "unknown model 'no_such_model'" in r.stderr

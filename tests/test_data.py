@@ -1,4 +1,4 @@
-"""Experiment format (bondgraph/data.py): loading, every DataError kind with its
+"""Experiment format (bondgraph/data/records.py): loading, every DataError kind with its
 line and column, unit conversion, der(u) inputs, save/load round trips."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bondgraph.data import FORMAT, Experiment, convert, parse_header, read_table
+from bondgraph.data.records import FORMAT, Experiment, convert, parse_header, read_table
 from bondgraph.errors import DataError
-from bondgraph.model import Model
+from bondgraph.numerics.model import Model
 
 
 @pytest.fixture(scope="module")

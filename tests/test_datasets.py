@@ -1,4 +1,4 @@
-"""Loaders of the public benchmarks (bondgraph/datasets.py), checked against
+"""Loaders of the public benchmarks (bondgraph/data/datasets.py), checked against
 the numbers in /work/shared/data/*/README.md and independent readers
 (scipy.io.loadmat, numpy), plus checksum verification and the pooch fetch
 path driven by a local downloader (no network here)."""
@@ -14,7 +14,7 @@ import pytest
 from scipy.io import loadmat
 from scipy.signal import lfilter
 
-from bondgraph import datasets as D
+from bondgraph.data import datasets as D
 from bondgraph.errors import DataError
 
 DATA = D.default_data_dir()
@@ -22,7 +22,7 @@ pytestmark = [
     pytest.mark.data,
     pytest.mark.skipif(DATA is None or not (DATA / "emps").is_dir(),
                        reason="real data sets absent: set BONDGRAPH_DATA or provide "
-                              "../shared/data beside the project (see bondgraph/datasets.py)"),
+                              "../shared/data beside the project (see bondgraph/data/datasets.py)"),
 ]
 
 

@@ -8,7 +8,7 @@ import sympy as sp
 
 import bondgraph as bg
 from bondgraph import errors
-from bondgraph.models import dc_motor_compliant
+from bondgraph.catalog.reference import dc_motor_compliant
 
 
 def test_exception_hierarchy():

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from bondgraph import models
-from bondgraph.effects import (DEFAULT_EFFECTS, Scales, Target, apply_effect, get_effect,
+from bondgraph.catalog import reference as models
+from bondgraph.diagnose.effects import (DEFAULT_EFFECTS, Scales, Target, apply_effect, get_effect,
                                probe_graph)
 from bondgraph.errors import GraphError
-from bondgraph.model import Model
+from bondgraph.numerics.model import Model
 
 
 def test_library_has_the_listed_effects():

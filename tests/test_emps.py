@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bondgraph.benchmark_models import (EMPS_GTAU, EMPS_IDIM_LS, emps_arrays,
+from bondgraph.catalog.benchmarks import (EMPS_GTAU, EMPS_IDIM_LS, emps_arrays,
                                         emps_filtered_signals, emps_force_relerr, emps_idim_ls)
-from bondgraph.model import Model
+from bondgraph.numerics.model import Model
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
 needs_data = pytest.mark.skipif(not (DATA / "emps_estimation.csv").exists(),
@@ -71,7 +71,7 @@ def test_ukf_ml_estimate_against_published():
     100 / 200 / 500 Hz estimates), started from this code's IDIM-LS estimate
     (a swarm member), lands within 1-2 % of the published IDIM-LS values, and
     its inverse-model force error is within 0.2 points of theirs."""
-    from bondgraph.estimate import estimate
+    from bondgraph.inference.estimate import estimate
 
     m = Model.load("emps")
     t, u, y = emps_arrays(decimate=5)

@@ -1,4 +1,4 @@
-"""Experiment registry and run_experiment (bondgraph/experiments.py)."""
+"""Experiment registry and run_experiment (bondgraph/data/experiments.py)."""
 
 from __future__ import annotations
 
@@ -8,19 +8,19 @@ import types
 import numpy as np
 import pytest
 
-from bondgraph import experiments as E
-from bondgraph.data import Experiment
+from bondgraph.data import experiments as E
+from bondgraph.data.records import Experiment
 from bondgraph.errors import ModelError
-from bondgraph.experiments import (ExperimentSpec, get_experiment, registered_experiments,
+from bondgraph.data.experiments import (ExperimentSpec, get_experiment, registered_experiments,
                                    run_experiment)
-from bondgraph.model import Model
-from bondgraph.simulate import simulate
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
 
 
 def test_registry_lists_reference_experiments():
     reg = registered_experiments()
     for name in ("msd_force_step", "dc_motor_voltage_step", "toy_cvt_torque_ratio_ramp"):
-        assert reg[name] == f"bondgraph.experiments:{name}"
+        assert reg[name] == f"bondgraph.data.experiments:{name}"
         spec = get_experiment(name)
         assert isinstance(spec, ExperimentSpec) and spec.name == name
         Model.load(spec.model)  # every spec names a generated model
@@ -30,10 +30,10 @@ def test_registry_rejects_duplicates_and_unknown(monkeypatch):
     fake = types.ModuleType("_fake_experiments")
     fake.EXPERIMENTS = {"msd_force_step": "_fake_experiments:other"}
     monkeypatch.setitem(sys.modules, "_fake_experiments", fake)
-    monkeypatch.setattr(E, "EXPERIMENT_MODULES", ("bondgraph.experiments", "_fake_experiments"))
+    monkeypatch.setattr(E, "EXPERIMENT_MODULES", ("bondgraph.data.experiments", "_fake_experiments"))
     with pytest.raises(ModelError, match="'msd_force_step' registered twice"):
         registered_experiments()
-    monkeypatch.setattr(E, "EXPERIMENT_MODULES", ("bondgraph.experiments",))
+    monkeypatch.setattr(E, "EXPERIMENT_MODULES", ("bondgraph.data.experiments",))
     with pytest.raises(ModelError, match="unknown experiment 'nope'.*msd_force_step"):
         get_experiment("nope")
 

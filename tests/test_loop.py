@@ -17,11 +17,10 @@ Tests that need ../shared/data skip with a clear reason when it is absent.
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from bondgraph.loop import run_loop
-from bondgraph.loop_cases import get_case
+from bondgraph.diagnose.loop import run_loop
+from bondgraph.diagnose.cases import get_case
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 needs_data = pytest.mark.skipif(not (DATA / "emps").exists() or not (DATA / "ced").exists(),
@@ -58,7 +57,7 @@ def test_bundled_default_via_cli_writes_the_report(tmp_path):
     """`bondgraph loop` (the README's main job) on the bundled case: the
     missing aerodynamic drag is ranked first and accepted, the error drops,
     and report.json holds the documented fields."""
-    from bondgraph.cli import main
+    from bondgraph.cli.main import main
 
     out = tmp_path / "report"
     assert main(["loop", "--out", str(out), "--quiet"]) == 0
@@ -88,7 +87,7 @@ def test_augmented_model_file_rebuilds_the_graph(tmp_path):
     rebuilds the user's graph plus the named effects, and derives."""
     import importlib.util
 
-    from bondgraph.cli import main
+    from bondgraph.cli.main import main
 
     out = tmp_path / "r"
     main(["loop", "--out", str(out), "--quiet", "--max-steps", "1", "--no-structural"])
@@ -130,8 +129,8 @@ def test_vehicle_belt_slip_found_on_the_full_model(tmp_path):
 def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
     """No false positives: the coast-down record fitted with the true
     structure leaves nothing significant."""
-    from bondgraph.data import Experiment  # noqa: F401 (record type)
-    from bondgraph.loop_cases import COAST, LEVEL_TRACK, _coastdown_record, _vehicle
+    from bondgraph.data.records import Experiment  # noqa: F401 (record type)
+    from bondgraph.diagnose.cases import COAST, LEVEL_TRACK, _coastdown_record, _vehicle
 
     truth = _vehicle("truth_aero", aero=True, **COAST)
     rec = _coastdown_record(truth, _vehicle("truth_aero", aero=True, **COAST), "nothing", seed=105)
@@ -146,7 +145,7 @@ def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
 @pytest.mark.data
 @pytest.mark.slow
 def test_emps_finds_coulomb_then_asymmetric_friction(tmp_path):
-    from bondgraph.loop_cases import emps_validation_error
+    from bondgraph.diagnose.cases import emps_validation_error
 
     case, res = _run("emps", tmp_path, max_steps=2, confirm_top=2)
     effects = [(s.effect, s.attached_to) for s in res.steps]

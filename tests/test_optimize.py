@@ -1,12 +1,12 @@
 """Particle swarm and differential evolution behind one batched interface
-(bondgraph.optimize): standard test functions, exact evaluation counts,
+(bondgraph.inference.optimize): standard test functions, exact evaluation counts,
 checkpoint/resume bit for bit, +inf handling, DE path, local polish."""
 
 import numpy as np
 import pytest
 
-from bondgraph.optimize import de, minimize_batched, pso
-from bondgraph.ukf import OptionError
+from bondgraph.inference.optimize import de, minimize_batched, pso
+from bondgraph.errors import OptionError
 
 
 def sphere(X):

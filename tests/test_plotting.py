@@ -1,4 +1,4 @@
-"""PNG plots (bondgraph/plotting.py): files exist and hold real drawings."""
+"""PNG plots (bondgraph/report/plots.py): files exist and hold real drawings."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from bondgraph.data import Experiment
+from bondgraph.data.records import Experiment
 from bondgraph.errors import DataError
-from bondgraph.experiments import get_experiment, run_experiment
-from bondgraph.model import Model
-from bondgraph.plotting import plot_record
-from bondgraph.simulate import simulate
+from bondgraph.data.experiments import get_experiment, run_experiment
+from bondgraph.numerics.model import Model
+from bondgraph.report.plots import plot_record
+from bondgraph.numerics.simulate import simulate
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +97,7 @@ def test_bad_input(tmp_path):
 
 
 def test_cli_plot(tmp_path, record, capsys):
-    from bondgraph.cli import main
+    from bondgraph.cli.main import main
 
     csv = record.save(tmp_path / "rec.csv")
     assert main(["plot", str(csv), "-o", str(tmp_path / "figs")]) == 0

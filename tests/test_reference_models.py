@@ -7,8 +7,8 @@ import pytest
 import sympy as sp
 from scipy.integrate import solve_ivp
 
-from bondgraph import models
-from bondgraph.model import Model
+from bondgraph.catalog import reference as models
+from bondgraph.numerics.model import Model
 
 
 def _syms(ss):

@@ -1,4 +1,4 @@
-"""Sensitivity and identifiability (bondgraph.sensitivity): forward
+"""Sensitivity and identifiability (bondgraph.sensitivity.analysis): forward
 sensitivities against finite differences of scipy simulations, the
 output-error information against the UKF's, a product-only parameter pair
 flagged and one of them kept, Yao's ranking against Gram-Schmidt, Sobol'
@@ -13,12 +13,11 @@ import numpy as np
 import pytest
 
 from bondgraph.errors import ModelError
-from bondgraph.graph import BondGraph
-from bondgraph.model import Model
-from bondgraph.sensitivity import (SensitivityError, analyse, identifiability,
-                                   orthogonal_ranking, output_sensitivities, recommend,
-                                   recommended_params, sobol_indices, ukf_fisher)
-from bondgraph.simulate import simulate
+from bondgraph.core.graph import BondGraph
+from bondgraph.numerics.model import Model
+from bondgraph.sensitivity.analysis import (analyse, identifiability, orthogonal_ranking, output_sensitivities, recommend, recommended_params, sobol_indices, ukf_fisher)
+from bondgraph.errors import SensitivityError
+from bondgraph.numerics.simulate import simulate
 
 
 @pytest.fixture(scope="module")
@@ -180,7 +179,7 @@ def test_errors(msd):
 # ----------------------------------------------------------------------- CLI
 @pytest.fixture()
 def msd_csv(tmp_path, msd):
-    from bondgraph.data import Experiment
+    from bondgraph.data.records import Experiment
 
     m, t, u, th, x0 = msd
     s = output_sensitivities(m, t, u, th, x0, ["m"], hold="zoh")
@@ -194,7 +193,7 @@ def msd_csv(tmp_path, msd):
 
 
 def test_cli_writes_json_plots_and_feeds_estimate(tmp_path, msd_csv, capsys):
-    from bondgraph.cli import main
+    from bondgraph.cli.main import main
 
     out = tmp_path / "sens"
     rc = main(["sensitivity", "--model", "mass_spring_damper", "--data", str(msd_csv),
@@ -227,7 +226,7 @@ def test_cli_writes_json_plots_and_feeds_estimate(tmp_path, msd_csv, capsys):
 
 
 def test_cli_unknown_parameter(msd_csv, capsys):
-    from bondgraph.cli import main
+    from bondgraph.cli.main import main
 
     rc = main(["sensitivity", "--model", "mass_spring_damper", "--data", str(msd_csv),
                "--params", "m,spring", "--quiet", "--no-plots"])
@@ -246,9 +245,9 @@ def test_vehicle_acceleration_stage2_recommendation_identifiable():
     the recommended stage-2 set has a full-rank information and every relative
     Cramér-Rao bound under 10 %; checked independently with the central-
     difference Hessian of the NLL (observed information) at the truth."""
-    from bondgraph.estimate import Criterion, cramer_rao, hessian_batched
-    from bondgraph.experiments import run_experiment
-    from bondgraph.ukf import default_P0
+    from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
+    from bondgraph.data.experiments import run_experiment
+    from bondgraph.inference.ukf import default_P0
 
     model = Model.load("vehicle_full")
     exp = run_experiment("vehicle_throttle_steps_high")
@@ -279,7 +278,7 @@ def test_vehicle_acceleration_stage2_recommendation_identifiable():
 
 @pytest.mark.slow
 def test_vehicle_coastdown_stage1():
-    from bondgraph.experiments import run_experiment
+    from bondgraph.data.experiments import run_experiment
 
     model = Model.load("vehicle_coastdown")
     exp = run_experiment("vehicle_coastdown")

@@ -1,4 +1,4 @@
-"""Simulation (bondgraph/simulate.py) against independent references: scipy
+"""Simulation (bondgraph/numerics/simulate.py) against independent references: scipy
 solve_ivp of hand-written ODEs, matrix exponentials of linear models, analytic
 eigenvalues; convergence order and L-stability of the fixed-step methods."""
 
@@ -11,11 +11,11 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from bondgraph import integrators
-from bondgraph.data import Experiment
+from bondgraph.numerics import integrators
+from bondgraph.data.records import Experiment
 from bondgraph.errors import DataError, ModelError, NumericalError
-from bondgraph.model import Model
-from bondgraph.simulate import InputSignals, simulate, stiffness_report
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import InputSignals, simulate, stiffness_report
 
 
 @pytest.fixture(scope="module")
@@ -265,7 +265,7 @@ def test_save_csv_round_trip(tmp_path, msd):
 
 
 def test_cli_simulate(tmp_path, capsys):
-    from bondgraph.cli import main
+    from bondgraph.cli.main import main
 
     out = tmp_path / "msd.csv"
     assert main(["simulate", "mass_spring_damper", "--experiment", "msd_force_step", "-o",

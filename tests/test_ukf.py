@@ -1,4 +1,4 @@
-"""Batched UKF and its negative log-likelihood (bondgraph.ukf).
+"""Batched UKF and its negative log-likelihood (bondgraph.inference.ukf).
 
 References: filterpy 2.0's UnscentedKalmanFilter + MerweScaledSigmaPoints
 (same model, data and settings), a direct numpy evaluation of the NLL
@@ -10,10 +10,10 @@ import pytest
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from bondgraph.errors import DataError, ModelError
-from bondgraph.integrators import ros2
-from bondgraph.model import Model
-from bondgraph.ukf import (OptionError, discretisation_check, merwe_weights,
-                           nll_from_innovations, ukf_nll)
+from bondgraph.numerics.integrators import ros2
+from bondgraph.numerics.model import Model
+from bondgraph.inference.ukf import (discretisation_check, merwe_weights, nll_from_innovations, ukf_nll)
+from bondgraph.errors import OptionError
 
 
 def _motor_record(N=150, dt=0.002, seed=1):
@@ -81,7 +81,7 @@ def test_agrees_with_filterpy_rk4(alpha, kappa):
 
 
 def test_agrees_with_filterpy_ros2():
-    """The filter's inlined ROS2 step equals bondgraph.integrators.ros2 used as fx."""
+    """The filter's inlined ROS2 step equals bondgraph.numerics.integrators.ros2 used as fx."""
     m, t, u, y = _motor_record(N=80)
     th = m.theta0
     x0 = np.zeros(m.n_x)

@@ -10,10 +10,10 @@ import sys
 import numpy as np
 import pytest
 
-from bondgraph.data import Experiment
+from bondgraph.data.records import Experiment
 from bondgraph.errors import DataError
-from bondgraph.experiments import get_experiment, registered_experiments, run_experiment
-from bondgraph.model import Model
+from bondgraph.data.experiments import get_experiment, registered_experiments, run_experiment
+from bondgraph.numerics.model import Model
 from vehicle_graphs import EXPERIMENTS, MODELS
 from vehicle_graphs.vehicle import SENSOR_NOISE, SENSOR_UNITS
 
@@ -131,7 +131,7 @@ def test_seed_makes_records_reproducible(coast_record):
 def test_simulate_and_plot_commands_of_the_docs(tmp_path):
     """The two commands docs/vehicle.md gives for one experiment."""
     out = tmp_path / "full_throttle.csv"
-    r = subprocess.run([sys.executable, "-m", "bondgraph.cli", "simulate", "vehicle_full",
+    r = subprocess.run([sys.executable, "-m", "bondgraph.cli.main", "simulate", "vehicle_full",
                         "--experiment", "vehicle_full_throttle_high", "-o", str(out),
                         "--rtol", "1e-6", "--atol", "1e-8"],
                        capture_output=True, text=True, timeout=300)
@@ -139,7 +139,7 @@ def test_simulate_and_plot_commands_of_the_docs(tmp_path):
     sim = Experiment.load(out)
     v = sim.columns["v_gnss"]
     assert 15.0 < v.max() < 22.0  # 25 s of full throttle in High
-    r = subprocess.run([sys.executable, "-m", "bondgraph.cli", "plot", str(out), "-o",
+    r = subprocess.run([sys.executable, "-m", "bondgraph.cli.main", "plot", str(out), "-o",
                         str(tmp_path / "plots")], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))

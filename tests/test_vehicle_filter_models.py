@@ -5,10 +5,10 @@ cover, and the suspension-approximation bias of the coast-down estimates
 import numpy as np
 import pytest
 
-from bondgraph.experiments import get_experiment, run_experiment, sample_times
-from bondgraph.model import Model
-from bondgraph.simulate import simulate
-from bondgraph.ukf import ukf_nll
+from bondgraph.data.experiments import get_experiment, run_experiment, sample_times
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
+from bondgraph.inference.ukf import ukf_nll
 from vehicle_graphs import build_vehicle
 from vehicle_graphs.analysis import coastdown_road_load, initial_state
 

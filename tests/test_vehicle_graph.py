@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bondgraph.errors import DerivativeCausalityError  # noqa: F401  (hierarchy import check)
-from bondgraph.model import Model
+from bondgraph.numerics.model import Model
 from vehicle_graphs import MODELS, build_vehicle
 from vehicle_graphs.params import DR_DX, PARAMS, RHO
 from vehicle_graphs.subsystems import Numerics
@@ -264,8 +264,8 @@ def test_registered_models_and_sizes():
 def test_full_model_is_an_explicit_ode_and_derives_fast():
     """No algebraic loop, no storage in derivative causality; derivation +
     code generation of the full model well under 10 s."""
-    from bondgraph.codegen import generate_source
-    from bondgraph.registry import build
+    from bondgraph.core.codegen import generate_source
+    from bondgraph.numerics.registry import build
 
     t0 = time.perf_counter()
     g = build("vehicle_full")

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from bondgraph.experiments import get_experiment, sample_times
-from bondgraph.model import Model
-from bondgraph.simulate import simulate, stiffness_report
+from bondgraph.data.experiments import get_experiment, sample_times
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate, stiffness_report
 from vehicle_graphs.analysis import initial_state
 from vehicle_graphs.params import DR_DX, RPM
 from vehicle_graphs.subsystems import Numerics

@@ -29,7 +29,7 @@ MODELS: dict[str, str] = {
 }
 
 #: registered synthetic experiments (``name -> "module:function"`` returning an
-#: :class:`bondgraph.experiments.ExperimentSpec`)
+#: :class:`bondgraph.data.experiments.ExperimentSpec`)
 EXPERIMENTS: dict[str, str] = {
     "vehicle_coastdown": "vehicle_graphs.experiments:coastdown",
     "vehicle_full_throttle_high": "vehicle_graphs.experiments:full_throttle_high",

@@ -2,7 +2,7 @@
 the coast-down road-load least squares (suspension-approximation bias), and
 stiffness at operating points.
 
-All functions work on a loaded :class:`bondgraph.model.Model` of one of the
+All functions work on a loaded :class:`bondgraph.numerics.model.Model` of one of the
 vehicle graphs (state names follow :func:`vehicle_graphs.build_vehicle`).
 """
 
@@ -13,7 +13,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bondgraph.errors import ModelError, NumericalError
-from bondgraph.integrators import rk4_stable_step
+from bondgraph.numerics.integrators import rk4_stable_step
 
 from .params import RHO
 

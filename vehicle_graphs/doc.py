@@ -40,7 +40,7 @@ def param_table() -> str:
 def models_table() -> str:
     """Markdown list of the registered vehicle models: states, inputs,
     outputs, number of parameters (from the generated modules)."""
-    from bondgraph.model import Model
+    from bondgraph.numerics.model import Model
 
     from . import MODELS
 
@@ -58,9 +58,9 @@ def stiffness_table() -> str:
     stability needs (maximum and median over the trajectory)."""
     import numpy as np
 
-    from bondgraph.experiments import get_experiment, sample_times
-    from bondgraph.model import Model
-    from bondgraph.simulate import simulate, stiffness_report
+    from bondgraph.data.experiments import get_experiment, sample_times
+    from bondgraph.numerics.model import Model
+    from bondgraph.numerics.simulate import simulate, stiffness_report
 
     from . import EXPERIMENTS
 

@@ -1,7 +1,7 @@
 """Synthetic experiments with the vehicle at 40 Hz.
 
-Each function returns a :class:`bondgraph.experiments.ExperimentSpec`;
-:func:`bondgraph.experiments.run_experiment` simulates the truth model (BDF
+Each function returns a :class:`bondgraph.data.experiments.ExperimentSpec`;
+:func:`bondgraph.data.experiments.run_experiment` simulates the truth model (BDF
 with the generated Jacobian), samples it every 25 ms and adds Gaussian
 sensor noise (standard deviations: :data:`vehicle_graphs.vehicle.SENSOR_NOISE`,
 the models' ``meas_std``). ``bondgraph simulate MODEL --experiment NAME -o
@@ -39,7 +39,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from bondgraph.experiments import ExperimentSpec
+from bondgraph.data.experiments import ExperimentSpec
 
 #: true parameters of the coast-down records (others: table defaults)
 TRUE_COASTDOWN: dict[str, float] = {
@@ -91,7 +91,7 @@ def steps(levels: Sequence[tuple[float, float]], ramp: float = 0.2
 
 
 def _x0(model_name: str, params: dict, **kw) -> dict[str, float]:
-    from bondgraph.model import Model
+    from bondgraph.numerics.model import Model
 
     from .analysis import initial_state
 
@@ -221,7 +221,7 @@ def write_records(directory, names: Sequence[str] | None = None) -> list:
     """
     from pathlib import Path
 
-    from bondgraph.experiments import run_experiment
+    from bondgraph.data.experiments import run_experiment
 
     from . import EXPERIMENTS
 

@@ -1,0 +1,247 @@
+"""Bond graphs of the public real-data benchmarks in ``../shared/data``.
+
+* ``emps`` — Electro-Mechanical Positioning System (Janot, Gautier & Brunot
+  2019): a DC motor and ball screw moving a load, in a closed PD loop. The
+  drive force is τ = gtau·vir; the rigid inverse model of the benchmark is
+  τ = M q̈ + Fv q̇ + Fc sign(q̇) + offset::
+
+      MSe(gtau·vir) → 1(v) ← I: M, R: Fv, R: Fc·tanh(v/v_eps), Se: −offset
+                       └→ ∫ → q (position sensor qm)
+
+  Filter model for the UKF: force noise of intensity ``q_F`` on the
+  momentum (unmodelled forces), encoder noise ``sigma_q`` on qm.
+* ``emps_viscous`` — the starting graph of a residual-tracing loop: mass and
+  viscous friction only (no Coulomb friction, no offset).
+* ``ced_linear`` — Coupled Electric Drives (Wigren & Schoukens 2017), the
+  linear part of the benchmark's reference model,
+  y = k ω0² / ((s + a)(s² + 2ζω0 s + ω0²)) u, as a bond graph::
+
+      Se(u) → 1(i) ← R: R_a, I: L_a
+               └→ GY: k_m → 1(ω_m) ← R: b_m
+                              └→ 0(belt) ← C: 1/k_b   (belt and tensioner spring)
+                                   └→ 1(ω_p) ← I: J_p, R: b_p   (pulley)
+      sensor: speed = k_y·ω_p
+
+  Defaults reproduce the continuous-time poles and gain of the report's
+  eq. (9) discrete model (a = 7.21 1/s, ω0 = 21.2 rad/s, ζ = 0.12, DC gain
+  1.83): see :func:`ced_linear`. The sign-blind counter (|speed|) and the
+  anti-alias filter are the benchmark's undeclared effects and are not in
+  this graph.
+
+References
+----------
+Janot, A., Gautier, M., Brunot, M. (2019). Data set and reference models of
+EMPS. Nonlinear System Identification Benchmarks workshop, Eindhoven.
+Wigren, T., Schoukens, M. (2017). Coupled electric drives data set and
+reference models. Technical Report 2017-024, Uppsala University.
+"""
+
+from __future__ import annotations
+
+import sympy as sp
+
+from bondgraph.core.graph import BondGraph
+
+#: registered for ``bondgraph generate`` (see :mod:`bondgraph.numerics.registry`)
+MODELS: dict[str, str] = {
+    "emps": "bondgraph.catalog.benchmarks:emps",
+    "emps_viscous": "bondgraph.catalog.benchmarks:emps_viscous",
+    "ced_linear": "bondgraph.catalog.benchmarks:ced_linear",
+}
+
+#: force constant of the EMPS drive [N/V] (stored in DATA_EMPS.mat)
+EMPS_GTAU = 35.15065
+
+#: published IDIM-LS estimates, symmetric friction (Janot et al. 2019)
+EMPS_IDIM_LS = {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "offset": -3.1648}
+#: published force relative error of that model on the estimation record [%]
+EMPS_IDIM_RELERR = 4.08
+
+
+def _emps_base(name: str, description: str):
+    g = BondGraph(name, description)
+    vir = g.input("vir", "V", 0.0, "drive command (controller output); force = gtau*vir")
+    gtau = g.param("gtau", EMPS_GTAU, "N/V", (30.0, 40.0), "drive force constant (known)",
+                   source="Janot et al. 2019, DATA_EMPS.mat")
+    M = g.param("M", 95.0, "kg", (50.0, 150.0), "moving mass (motor, screw and load)")
+    Fv = g.param("Fv", 200.0, "N*s/m", (50.0, 400.0), "viscous friction")
+    qF = g.param("q_F", 5.0, "", (0.05, 100.0),
+                 "process-noise intensity on the momentum [N*sqrt(s)]: unmodelled forces")
+    sq = g.param("sigma_q", 2e-7, "m", (1e-8, 1e-4),
+                 "position measurement noise (encoder step 5e-8 m)")
+    v = g.one("v", domain="translation")
+    g.connect(g.MSe("motor", gtau * vir), v)
+    mass = g.I("M", M)
+    g.connect(v, mass)
+    g.connect(v, g.R("Fv", Fv))
+    g.set_process_noise(mass.p, qF)
+    return g, v, sq
+
+
+def emps() -> BondGraph:
+    """EMPS drive: mass, viscous and Coulomb friction, force offset (3 parameters
+    of friction + mass, 2 of noise; 2 states: momentum of M and position).
+
+    Hand-derived (p = M q̇)::
+
+        dp/dt = gtau·vir − Fv p/M − Fc tanh(p/(M v_eps)) − offset
+        dq/dt = p/M,            y = q (qm)
+
+    ``v_eps`` (default 1 mm/s, fixed) regularises sign(q̇); the benchmark's
+    velocities reach 0.13 m/s.
+    """
+    g, v, sq = _emps_base("emps", "EMPS drive: mass, viscous + Coulomb friction, force offset, "
+                                  "position sensor (Janot et al. 2019).")
+    Fc = g.param("Fc", 20.0, "N", (0.0, 50.0), "Coulomb friction")
+    off = g.param("offset", -3.0, "N", (-15.0, 15.0), "force offset")
+    eps = g.param("v_eps", 1e-3, "m/s", (1e-4, 1e-2), "tanh width of the Coulomb law (fixed)")
+    g.connect(v, g.R("coulomb", effort=lambda f: Fc * sp.tanh(f / eps)))
+    g.connect(g.Se("offset", -off), v)
+    q = g.displacement(v, name="q", unit="m")
+    g.sensor("qm", q, unit="m", noise_std=sq, description="motor position (load side)")
+    return g
+
+
+def emps_viscous() -> BondGraph:
+    """EMPS starting graph: mass and viscous friction only (no Coulomb
+    friction, no offset), for the residual-tracing loop::
+
+        dp/dt = gtau·vir − Fv p/M,   dq/dt = p/M,   y = q
+    """
+    g, v, sq = _emps_base("emps_viscous", "EMPS drive, starting graph: mass and viscous "
+                                          "friction only.")
+    q = g.displacement(v, name="q", unit="m")
+    g.sensor("qm", q, unit="m", noise_std=sq, description="motor position (load side)")
+    return g
+
+
+def ced_linear() -> BondGraph:
+    """CED belt-and-pulley drive, linear part (3 states: flux linkage of L_a,
+    belt deflection, pulley momentum).
+
+    Hand-derived (λ = L_a i, φ belt deflection, p = J_p ω_p; the motor
+    junction has no inertia, so ω_m = (k_m i − k_b φ)/b_m)::
+
+        dλ/dt = u − R_a λ/L_a − k_m ω_m
+        dφ/dt = ω_m − p/J_p
+        dp/dt = k_b φ − b_p p/J_p,         y = k_y p/J_p
+
+    Defaults (L_a, k_m, J_p, b_p chosen; R_a, b_m, k_b, k_y fitted) give
+    poles −7.21 and −2.53 ± 21.04j 1/s and DC gain 1.83, the continuous
+    equivalents of the report's eq. (9) H(z) at Ts = 20 ms.
+    """
+    g = BondGraph("ced_linear", "CED coupled electric drives: motor lag, belt compliance, "
+                                "spring-held pulley (linear part; Wigren & Schoukens 2017).")
+    u = g.input("u", "V", 0.0, "sum of the two motor voltages")
+    Ra = g.param("R_a", CED_DEFAULTS["R_a"], "ohm", (0.05, 10.0), "armature resistance")
+    La = g.param("L_a", CED_DEFAULTS["L_a"], "H", (0.01, 1.0), "armature inductance")
+    km = g.param("k_m", CED_DEFAULTS["k_m"], "N*m/A", (0.005, 0.5), "motor torque constant")
+    bm = g.param("b_m", CED_DEFAULTS["b_m"], "N*m*s/rad", (0.005, 1.0), "motor-side damping")
+    kb = g.param("k_b", CED_DEFAULTS["k_b"], "N*m/rad", (0.05, 5.0),
+                 "belt and tensioner-spring stiffness")
+    Jp = g.param("J_p", CED_DEFAULTS["J_p"], "kg*m^2", (1e-4, 1e-2), "pulley inertia")
+    bp = g.param("b_p", CED_DEFAULTS["b_p"], "N*m*s/rad", (0.0, 1e-2), "pulley damping")
+    ky = g.param("k_y", CED_DEFAULTS["k_y"], "", (0.1, 10.0), "counter scale (speed units per rad/s)")
+    ji = g.one("i", domain="electrical")
+    g.connect(g.Se("drive", u), ji)
+    g.connect(ji, g.R("R_a", Ra))
+    g.connect(ji, g.I("L_a", La))
+    gy = g.GY("motor", km)
+    g.connect(ji, gy.p1)
+    jm = g.one("w_m", domain="rotation")
+    g.connect(gy.p2, jm)
+    g.connect(jm, g.R("b_m", bm))
+    belt = g.zero("belt", domain="rotation")
+    g.connect(jm, belt)
+    g.connect(belt, g.C("spring", stiffness=kb))
+    jp = g.one("w_p", domain="rotation")
+    g.connect(belt, jp)
+    g.connect(jp, g.I("J_p", Jp))
+    g.connect(jp, g.R("b_p", bp))
+    g.sensor("speed", ky * jp.f, unit="", noise_std=0.02,
+             description="pulley speed from the pulse counter (signed here)")
+    return g
+
+
+#: defaults of :func:`ced_linear` (R_a, b_m, k_b, k_y fitted to eq. (9) of the report)
+CED_DEFAULTS = {"R_a": 0.690777, "L_a": 0.1, "k_m": 0.05, "b_m": 0.0887117, "k_b": 0.450329,
+                "J_p": 1e-3, "b_p": 1e-5, "k_y": 2.337023}
+
+
+# ------------------------------------------------------------------ EMPS helpers
+def emps_arrays(experiment=None, decimate: int = 5):
+    """EMPS record as filter arrays, decimated.
+
+    Parameters
+    ----------
+    experiment : Experiment, optional
+        From :func:`bondgraph.data.datasets.emps` (default: loaded from the local
+        data folder, no download).
+    decimate : int
+        Keep every ``decimate``-th position sample; the input over each
+        interval is the mean of ``vir`` over its ``decimate`` 1-kHz samples,
+        which is what a zero-order hold over the interval should carry (the
+        force impulse is preserved).
+
+    Returns
+    -------
+    (t (N,), u (N, 1) [V], y (N, 1) [m])
+    """
+
+    if experiment is None:
+        from bondgraph.data.datasets import emps as _load
+
+        experiment = _load("estimation", download=False)
+    t, q, vir = experiment.t, experiment["qm"], experiment["vir"]
+    n = (t.size // decimate) * decimate
+    return (t[:n:decimate].copy(), vir[:n].reshape(-1, decimate).mean(axis=1)[:, None],
+            q[:n:decimate][:, None].copy())
+
+
+def emps_filtered_signals(experiment=None, cutoff: float = 100.0, edge: int = 50, step: int = 10):
+    """q, q̇, q̈ and τ = gtau·vir as in the benchmark's inverse-model protocol.
+
+    4th-order Butterworth low-pass at ``cutoff`` Hz applied forward and
+    backward (filtfilt) to qm, central differences for q̇ and q̈, ``edge``
+    samples dropped at both ends, decimation by ``step`` (README of
+    ``../shared/data/emps``, reproducing Janot et al. 2019).
+
+    Returns
+    -------
+    dict with arrays ``q, qd, qdd, tau`` (M,) in SI units.
+    """
+    import numpy as np
+    from scipy.signal import butter, filtfilt
+
+    if experiment is None:
+        from bondgraph.data.datasets import emps as _load
+
+        experiment = _load("estimation", download=False)
+    t, q, vir = experiment.t, experiment["qm"], experiment["vir"]
+    dt = float(np.median(np.diff(t)))
+    b, a = butter(4, cutoff / (0.5 / dt))
+    qf = filtfilt(b, a, q)
+    qd = np.gradient(qf, dt)
+    qdd = np.gradient(qd, dt)
+    sl = slice(edge, t.size - edge, step)
+    return dict(q=qf[sl], qd=qd[sl], qdd=qdd[sl], tau=EMPS_GTAU * vir[sl])
+
+
+def emps_force_relerr(M: float, Fv: float, Fc: float, offset: float, signals: dict) -> float:
+    """Force relative error of the inverse model, ||τ − τ̂|| / ||τ|| [%], with
+    τ̂ = M q̈ + Fv q̇ + Fc sign(q̇) + offset on :func:`emps_filtered_signals`."""
+    import numpy as np
+
+    s = signals
+    tau_hat = M * s["qdd"] + Fv * s["qd"] + Fc * np.sign(s["qd"]) + offset
+    return float(100.0 * np.linalg.norm(s["tau"] - tau_hat) / np.linalg.norm(s["tau"]))
+
+
+def emps_idim_ls(signals: dict) -> dict[str, float]:
+    """Inverse-dynamic-model least squares (IDIM-LS): τ = [q̈, q̇, sign(q̇), 1]·θ."""
+    import numpy as np
+
+    s = signals
+    A = np.column_stack([s["qdd"], s["qd"], np.sign(s["qd"]), np.ones_like(s["qd"])])
+    th, *_ = np.linalg.lstsq(A, s["tau"], rcond=None)
+    return dict(zip(("M", "Fv", "Fc", "offset"), map(float, th)))

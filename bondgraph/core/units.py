@@ -1,0 +1,116 @@
+"""Units: parsing, dimension checks and conversion factors (via ``pint``).
+
+Units are optional everywhere. Where they are given, the toolkit checks that
+effort x flow is a power on every bond, that both ends of a bond agree, and
+data loaders convert columns to the units a model expects.
+
+Radians are dimensionless (pint's convention), so ``N*m`` x ``rad/s`` is ``W``.
+"""
+
+from __future__ import annotations
+
+import functools
+
+from bondgraph.errors import DataError, UnitMismatchError
+
+#: Effort and flow units of the usual energy domains (Karnopp, Margolis &
+#: Rosenberg, *System Dynamics*, Table 1.1 / ch. 2).
+DOMAINS: dict[str, tuple[str, str]] = {
+    "translation": ("N", "m/s"),
+    "rotation": ("N*m", "rad/s"),
+    "electrical": ("V", "A"),
+    "hydraulic": ("Pa", "m^3/s"),
+    "thermal": ("K", "W/K"),
+}
+
+
+@functools.lru_cache(maxsize=1)
+def registry():
+    """The shared pint ``UnitRegistry`` (created on first use)."""
+    import pint
+
+    ureg = pint.UnitRegistry()
+    return ureg
+
+
+@functools.lru_cache(maxsize=512)
+def parse(unit: str):
+    """Parse a unit string to a pint ``Quantity`` of magnitude 1 (or the
+    unit's scale).
+
+    Parameters
+    ----------
+    unit : str
+        E.g. ``"N*m"``, ``"rad/s"``, ``"kg m^2"``; ``""`` or ``"1"`` is
+        dimensionless.
+
+    Raises
+    ------
+    UnitMismatchError
+        If pint does not know the unit.
+    """
+    ureg = registry()
+    text = (unit or "").strip()
+    if text in ("", "1", "-"):
+        return ureg.Quantity(1.0, "dimensionless")
+    try:
+        q = ureg.parse_expression(text)
+    except Exception as exc:  # pint raises several types
+        raise UnitMismatchError(f"unknown unit '{unit}': {exc}") from None
+    if not hasattr(q, "dimensionality"):
+        q = ureg.Quantity(float(q), "dimensionless")
+    return q
+
+
+def dimensionality(unit: str):
+    """Return pint's dimensionality of ``unit`` (hashable, comparable)."""
+    return parse(unit).dimensionality
+
+
+def same_dimension(a: str, b: str) -> bool:
+    """True if the two unit strings have the same dimension."""
+    return dimensionality(a) == dimensionality(b)
+
+
+def is_power(effort_unit: str, flow_unit: str) -> bool:
+    """True if ``effort_unit * flow_unit`` has the dimension of watts."""
+    q = parse(effort_unit) * parse(flow_unit)
+    return q.dimensionality == parse("W").dimensionality
+
+
+def product(*units: str) -> str:
+    """Unit string of a product, e.g. ``product("N*m", "s") == "N*m*s"``."""
+    parts = [f"({u})" for u in units if u and u.strip() not in ("1", "")]
+    return "*".join(parts) if parts else "1"
+
+
+def quotient(num: str, den: str) -> str:
+    """Unit string of a quotient."""
+    n = num if num and num.strip() else "1"
+    if not den or den.strip() in ("", "1"):
+        return n
+    return f"({n})/({den})"
+
+
+def factor(from_unit: str, to_unit: str, *, what: str = "value") -> float:
+    """Multiplicative factor converting ``from_unit`` to ``to_unit``.
+
+    Raises
+    ------
+    DataError
+        If the units are not convertible (different dimension) or are
+        offset units (degC), which need more than a factor.
+    """
+    try:
+        src, dst = parse(from_unit), parse(to_unit)
+        q = src.to(dst.units)
+        zero = registry().Quantity(0.0, src.units).to(dst.units).magnitude
+    except UnitMismatchError:
+        raise DataError(f"{what}: unknown unit '{from_unit}' (expected '{to_unit}')") from None
+    except Exception:
+        raise DataError(
+            f"{what}: unit '{from_unit}' cannot be converted to '{to_unit}'") from None
+    if zero != 0.0:
+        raise DataError(f"{what}: '{from_unit}' -> '{to_unit}' is an offset conversion (e.g. "
+                        f"degC), not a factor; convert the values first")
+    return float(q.magnitude) / float(dst.magnitude)

@@ -1,0 +1,318 @@
+"""Synthetic experiments: what to simulate, with which inputs, truth and noise.
+
+An :class:`ExperimentSpec` names a model (the filter model whose outputs are
+recorded), optionally a different *truth* model to simulate (e.g. a graph
+with an effect the filter model lacks), input signals as vectorised
+functions of time, initial state, true parameter overrides, noise and seed.
+Registered specs live in the ``EXPERIMENTS`` dicts (``name ->
+"module:function"``) of the modules in :data:`EXPERIMENT_MODULES`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+#: modules whose ``EXPERIMENTS`` dict is registered (missing modules skipped)
+EXPERIMENT_MODULES: tuple[str, ...] = ("bondgraph.data.experiments", "vehicle_graphs")
+
+
+@dataclass
+class ExperimentSpec:
+    """A synthetic experiment.
+
+    Parameters
+    ----------
+    name : str
+    model : str
+        Registered model whose inputs/outputs define the record's columns.
+    duration : float
+        Record length [s].
+    dt : float
+        Sample interval [s] (0.025 s = 40 Hz for the vehicle).
+    inputs : dict of str -> callable
+        Input name -> vectorised function of time ``t (N,) -> (N,)`` in the
+        model's input units; inputs not given take the model default.
+    x0 : dict of str -> float
+        Initial state overrides (model units).
+    params : dict of str -> float
+        True parameter values (overrides of the truth model's defaults).
+    noise_std : dict of str -> float, optional
+        Measurement-noise standard deviation per output (default: the
+        model's ``meas_std`` at the true parameters).
+    seed : int
+        Seed of the noise generator.
+    description : str
+    truth_model : str, optional
+        Registered model to simulate instead of ``model`` (it must have the
+        same output names).
+    """
+
+    name: str
+    model: str
+    duration: float
+    dt: float = 0.025
+    inputs: dict[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
+    x0: dict[str, float] = field(default_factory=dict)
+    params: dict[str, float] = field(default_factory=dict)
+    noise_std: dict[str, float] | None = None
+    seed: int = 0
+    description: str = ""
+    truth_model: str | None = None
+
+
+# ---------------------------------------------------------------- registry
+def registered_experiments() -> dict[str, str]:
+    """All registered experiments: the ``EXPERIMENTS`` dicts (``name ->
+    "module:function"``) of :data:`EXPERIMENT_MODULES`.
+
+    Raises
+    ------
+    ModelError
+        If a name is registered twice with different targets.
+    """
+    import importlib
+
+    from bondgraph.errors import ModelError
+
+    out: dict[str, str] = {}
+    where: dict[str, str] = {}
+    for modname in EXPERIMENT_MODULES:
+        try:
+            mod = importlib.import_module(modname)
+        except ModuleNotFoundError as exc:
+            if exc.name == modname:
+                continue
+            raise
+        for k, v in (getattr(mod, "EXPERIMENTS", None) or {}).items():
+            if k in out and out[k] != v:
+                raise ModelError(f"experiment '{k}' registered twice: {out[k]} (in {where[k]}) "
+                                 f"and {v} (in {modname}); experiment names must be unique")
+            out[k] = v
+            where[k] = modname
+    return out
+
+
+def get_experiment(name: str) -> ExperimentSpec:
+    """The :class:`ExperimentSpec` of a registered experiment.
+
+    Raises
+    ------
+    ModelError
+        Unknown name (the message lists the registered ones), or a
+        registered function that does not return a spec of that name.
+    """
+    from bondgraph.errors import ModelError
+    from bondgraph.numerics.registry import resolve
+
+    reg = registered_experiments()
+    if name not in reg:
+        raise ModelError(f"unknown experiment '{name}' (registered: "
+                         f"{', '.join(sorted(reg)) or 'none'})")
+    spec = resolve(reg[name])()
+    if not isinstance(spec, ExperimentSpec):
+        raise ModelError(f"{reg[name]} returned {type(spec).__name__}, not an ExperimentSpec")
+    if spec.name != name:
+        raise ModelError(f"{reg[name]} is registered as '{name}' but its spec is named "
+                         f"'{spec.name}'")
+    return spec
+
+
+# ------------------------------------------------------------------ running
+def sample_times(spec: ExperimentSpec) -> np.ndarray:
+    """The sample grid of a spec: ``k * dt`` for k = 0 .. round(duration/dt)."""
+    from bondgraph.errors import ModelError
+
+    if not (spec.dt > 0 and spec.duration > 0):
+        raise ModelError(f"experiment '{spec.name}': dt ({spec.dt}) and duration "
+                         f"({spec.duration}) must be positive")
+    n = int(round(spec.duration / spec.dt)) + 1
+    return np.arange(n) * spec.dt
+
+
+def run_experiment(spec: ExperimentSpec | str, *, method: str = "BDF", rtol: float = 1e-8,
+                   atol: float = 1e-10, max_step: float | None = None):
+    """Simulate a synthetic experiment and return the noisy record.
+
+    The truth model (``spec.truth_model`` or ``spec.model``) is simulated at
+    the true parameters (its defaults overridden by ``spec.params``) from
+    ``spec.x0`` with the input callables, by a stiff-safe adaptive solver
+    (BDF with the generated Jacobian by default); callables are evaluated at
+    the exact solver times. The record is sampled every ``dt``. Gaussian,
+    independent, zero-mean noise from ``numpy.random.default_rng(seed)`` is
+    added to the outputs of ``spec.model``; its standard deviation is
+    ``spec.noise_std[name]`` or, for outputs not listed, the filter model's
+    ``meas_std`` at the true parameters.
+
+    Columns: every input of the filter and truth models (including the
+    ``der(.)`` inputs, as used by the simulation), the noisy outputs of
+    ``spec.model``, and the truth states as ``state.<name>``.
+
+    Parameters
+    ----------
+    spec : ExperimentSpec or str
+        A spec or a registered experiment name.
+    method : str
+        Solver of :func:`bondgraph.numerics.simulate.simulate` (``BDF``, ``Radau``,
+        ``LSODA``, ...).
+    rtol, atol, max_step
+        Solver settings.
+
+    Returns
+    -------
+    Experiment
+        ``meta`` holds ``name, model, truth_model, description, dt,
+        duration, true_parameters`` (all truth parameters by name), ``x0``
+        (all truth states), ``noise`` (``{distribution, std}``), ``seed``,
+        ``method``; the output columns carry ``noise_std``.
+
+    Raises
+    ------
+    ModelError
+        Unknown models, inputs, parameters, states or noise entries, or a
+        truth model lacking an output of ``spec.model``.
+    NumericalError
+        If the simulation diverges.
+    """
+    from bondgraph.data.records import Experiment
+    from bondgraph.errors import ModelError
+    from bondgraph.numerics.model import Model
+    from bondgraph.numerics.simulate import simulate
+
+    if isinstance(spec, str):
+        spec = get_experiment(spec)
+    filt = Model.load(spec.model)
+    truth = Model.load(spec.truth_model) if spec.truth_model else filt
+    ctx = f"experiment '{spec.name}'"
+    unknown = [k for k in spec.inputs if k not in truth.inputs and k not in filt.inputs]
+    if unknown:
+        raise ModelError(f"{ctx}: inputs {', '.join(unknown)} are not inputs of "
+                         f"'{truth.name}' ({', '.join(truth.inputs)})")
+    lacking = [y for y in filt.outputs if y not in truth.outputs]
+    if lacking:
+        raise ModelError(f"{ctx}: truth model '{truth.name}' lacks outputs "
+                         f"{', '.join(lacking)} of '{filt.name}'")
+    try:
+        theta = truth.theta(spec.params)
+        x0 = truth.state(spec.x0)
+    except ModelError as exc:
+        raise ModelError(f"{ctx}: {exc}") from None
+    t = sample_times(spec)
+    u_truth = {k: fn for k, fn in spec.inputs.items() if k in truth.inputs}
+    sim = simulate(truth, t, u=u_truth, x0=x0, theta=theta, method=method, rtol=rtol,
+                   atol=atol, max_step=max_step)
+    # noise
+    theta_f = filt.theta({k: v for k, v in spec.params.items() if k in filt.params})
+    std = np.asarray(filt.meas_std(theta_f), dtype=float).reshape(-1) if filt.n_y else np.zeros(0)
+    for k, v in (spec.noise_std or {}).items():
+        if k not in filt.outputs:
+            raise ModelError(f"{ctx}: noise_std given for '{k}', which is not an output of "
+                             f"'{filt.name}' ({', '.join(filt.outputs)})")
+        if not (np.isfinite(v) and v >= 0):
+            raise ModelError(f"{ctx}: noise_std['{k}'] = {v!r} must be finite and >= 0")
+        std[filt.output_index(k)] = float(v)
+    rng = np.random.default_rng(spec.seed)
+    n = t.size
+    y_true = np.column_stack([sim.output(k) for k in filt.outputs]) if filt.n_y else \
+        np.zeros((n, 0))
+    y = y_true + rng.standard_normal((n, filt.n_y)) * std
+    # columns
+    columns, units, roles = {}, {}, {}
+    for mdl in (filt, truth):
+        fsig = None
+        for j, name in enumerate(mdl.inputs):
+            if name in columns:
+                continue
+            if name in truth.inputs:
+                vals = sim.input(name)
+            else:  # an input only the filter model has
+                if fsig is None:
+                    from bondgraph.numerics.simulate import InputSignals
+
+                    fsig = InputSignals(filt, t, {k: v for k, v in spec.inputs.items()
+                                                  if k in filt.inputs})
+                vals = fsig.samples[:, j]
+            columns[name] = vals
+            units[name] = mdl.input_units[j] or None
+            roles[name] = "input"
+    for j, name in enumerate(filt.outputs):
+        columns[name] = y[:, j]
+        units[name] = filt.output_units[j] or None
+        roles[name] = "output"
+    from bondgraph.data.records import STATE_PREFIX
+
+    for j, name in enumerate(truth.states):
+        columns[STATE_PREFIX + name] = sim.x[:, j]
+        units[STATE_PREFIX + name] = truth.state_units[j] or None
+        roles[STATE_PREFIX + name] = "state"
+    noise = {name: float(std[j]) for j, name in enumerate(filt.outputs)}
+    meta = {
+        "name": spec.name,
+        "model": filt.name,
+        "truth_model": truth.name,
+        "description": spec.description,
+        "dt": float(spec.dt),
+        "duration": float(t[-1]),
+        "true_parameters": {p: float(v) for p, v in zip(truth.params, theta)},
+        "x0": {s: float(v) for s, v in zip(truth.states, x0)},
+        "noise": {"distribution": "gaussian", "independent": True, "mean": 0.0, "std": noise},
+        "seed": int(spec.seed),
+        "method": method,
+        "generator": "bondgraph.data.experiments.run_experiment",
+    }
+    return Experiment.from_arrays(t, columns, units=units, roles=roles, noise_std=noise,
+                                  meta=meta)
+
+
+# ------------------------------------------------- reference experiments
+def step(t0: float, value: float, before: float = 0.0) -> Callable[[np.ndarray], np.ndarray]:
+    """Vectorised step ``before`` for t < t0, ``value`` from t0 on."""
+    return lambda t: np.where(np.asarray(t) >= t0, value, before)
+
+
+def ramp(t0: float, t1: float, v0: float, v1: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Vectorised ramp: ``v0`` before ``t0``, linear to ``v1`` at ``t1``, then ``v1``."""
+    return lambda t: np.interp(t, [t0, t1], [v0, v1])
+
+
+def msd_force_step() -> ExperimentSpec:
+    """Mass-spring-damper: a 10 N force step at t = 0.5 s, 10 s at 100 Hz."""
+    return ExperimentSpec(
+        name="msd_force_step", model="mass_spring_damper", duration=10.0, dt=0.01,
+        inputs={"F": step(0.5, 10.0)},
+        params={"m": 2.4, "k": 60.0, "c": 1.2}, seed=1,
+        description="Mass-spring-damper, 10 N force step at t = 0.5 s; true m, k, c "
+                    "differ from the defaults.")
+
+
+def dc_motor_voltage_step() -> ExperimentSpec:
+    """DC motor with compliant shaft: 12 V step at 0.05 s, a 0.1 N·m load
+    torque step at 0.6 s, 1 s at 1 kHz."""
+    return ExperimentSpec(
+        name="dc_motor_voltage_step", model="dc_motor_compliant", duration=1.0, dt=0.001,
+        inputs={"V": step(0.05, 12.0), "T_L": step(0.6, 0.1)},
+        params={"R_a": 1.4, "k_s": 40.0, "J_L": 6e-3}, seed=2,
+        description="DC motor (compliant shaft): 12 V armature step at 0.05 s, 0.1 N*m load "
+                    "torque step at 0.6 s.")
+
+
+def toy_cvt_torque_ratio_ramp() -> ExperimentSpec:
+    """Toy CVT: 50 N·m engine torque from 0.5 s, ratio ramp 0.05 -> 0.1 m/rad
+    over 5-15 s, 20 s at 40 Hz. The ratio change moves power between the
+    engine and vehicle inertias (the J_e v ṙ / r³ term)."""
+    return ExperimentSpec(
+        name="toy_cvt_torque_ratio_ramp", model="toy_cvt", duration=20.0, dt=0.025,
+        inputs={"T": step(0.5, 50.0), "r": ramp(5.0, 15.0, 0.05, 0.1)},
+        params={"J_e": 0.15, "m": 1350.0, "c": 25.0}, seed=3,
+        description="Toy CVT: 50 N*m torque step at 0.5 s, ratio ramp 0.05 -> 0.1 m/rad over "
+                    "5-15 s.")
+
+
+#: registered reference experiments (names unique across EXPERIMENT_MODULES)
+EXPERIMENTS: dict[str, str] = {
+    "msd_force_step": "bondgraph.data.experiments:msd_force_step",
+    "dc_motor_voltage_step": "bondgraph.data.experiments:dc_motor_voltage_step",
+    "toy_cvt_torque_ratio_ramp": "bondgraph.data.experiments:toy_cvt_torque_ratio_ramp",
+}

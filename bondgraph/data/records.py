@@ -1,0 +1,954 @@
+"""Experiment records: the documented CSV + JSON-sidecar format.
+
+One format serves synthetic records (:func:`bondgraph.data.experiments.run_experiment`,
+:meth:`bondgraph.numerics.simulate.SimResult.save_csv`) and user data alike; it is
+specified in ``docs/data_format.md``. In short:
+
+* **CSV**: the first line is the header; the first column is ``t`` (time, in
+  s unless the header says otherwise, e.g. ``t [ms]``); headers may carry a
+  unit in brackets, ``v_gnss [m/s]``; an empty cell in an output column is a
+  missing sample. A trailing comma at the end of every line is accepted (the
+  CED benchmark files have one).
+* **JSON sidecar** (same stem, ``.json``; optional): ``format:
+  "bondgraph-experiment/1"``, ``name, model, truth_model, description, dt,
+  columns: {col: {unit, role, noise_std}}, true_parameters, x0, noise,
+  seed``. Unknown keys are kept in :attr:`Experiment.meta`.
+
+Every defect of a file raises :class:`~bondgraph.errors.DataError` naming the
+file, the 1-based line (the header is line 1) and the column: non-numeric
+cells, NaN/inf in time or inputs, NaN in outputs when ``allow_missing`` is
+False, non-increasing or repeated time, gaps, unknown units, units of the
+wrong dimension, columns a model needs but the file lacks.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from bondgraph.core import units as _units
+from bondgraph.errors import DataError, UnitMismatchError, join_names
+
+#: value of the sidecar's ``format`` key
+FORMAT = "bondgraph-experiment/1"
+#: column roles
+ROLES = ("time", "input", "output", "state", "other")
+#: prefix of state columns (``state.p_mass``), so states never collide with
+#: input or output names
+STATE_PREFIX = "state."
+#: default gap criterion: a time step above this multiple of the median step
+GAP_FACTOR = 1.5
+
+_HEADER_RE = re.compile(r"^(?P<name>[^\[\]]*?)\s*(?:\[(?P<unit>[^\[\]]*)\])?\s*$")
+
+
+# ------------------------------------------------------------------ helpers
+def _json_safe(obj: Any) -> Any:
+    """Convert numpy scalars/arrays (recursively) to JSON types; NaN/inf -> None."""
+    if isinstance(obj, Mapping):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return [_json_safe(v) for v in obj.tolist()]
+    if isinstance(obj, (np.bool_, bool)):
+        return bool(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    return obj
+
+
+def parse_header(cell: str) -> tuple[str, str | None]:
+    """Split a header cell ``"v_gnss [m/s]"`` into ``("v_gnss", "m/s")``.
+
+    A header without brackets gives unit ``None`` (unspecified: the column is
+    taken to be in the model's units). ``[1]`` or ``[]`` means dimensionless.
+    """
+    m = _HEADER_RE.match(cell.strip())
+    if m is None:
+        return cell.strip(), None
+    name = m.group("name").strip().strip('"').strip()
+    unit = m.group("unit")
+    return name, (unit.strip() if unit is not None else None)
+
+
+def format_header(name: str, unit: str | None) -> str:
+    """Inverse of :func:`parse_header`."""
+    return name if unit is None else f"{name} [{unit}]"
+
+
+def convert(values: np.ndarray, from_unit: str | None, to_unit: str | None, *,
+            path: str | None = None, column: str | None = None,
+            what: str = "column") -> np.ndarray:
+    """Convert ``values`` from ``from_unit`` to ``to_unit`` with pint.
+
+    Offset units (``degC``) are converted properly (pint quantities), not by
+    a factor. ``from_unit=None`` (unspecified) returns the values unchanged.
+
+    Raises
+    ------
+    DataError
+        Unknown unit or a unit of another dimension (line 1, the column).
+    """
+    values = np.asarray(values, dtype=float)
+    if from_unit is None:
+        return values
+    to_unit = to_unit or ""
+    try:
+        q_from = _units.parse(from_unit)
+    except UnitMismatchError:
+        raise DataError(f"unknown unit '{from_unit}'", path=path, line=1, column=column) from None
+    try:
+        q_to = _units.parse(to_unit)
+    except UnitMismatchError:
+        raise DataError(f"unknown target unit '{to_unit}'", path=path, line=1,
+                        column=column) from None
+    if q_from.dimensionality != q_to.dimensionality:
+        raise DataError(
+            f"unit '{from_unit}' ({q_from.dimensionality}) cannot be converted to "
+            f"'{to_unit or '1'}' ({q_to.dimensionality}) for {what}",
+            path=path, line=1, column=column)
+    ureg = _units.registry()
+    try:
+        if q_from._ok_for_muldiv() and q_to._ok_for_muldiv():
+            fac = float(q_from.to(q_to.units).magnitude) / float(q_to.magnitude)
+            return values if fac == 1.0 else values * fac
+        out = ureg.Quantity(values * q_from.magnitude, q_from.units).to(q_to.units).magnitude
+        return np.asarray(out, dtype=float) / float(q_to.magnitude)
+    except Exception as exc:  # pint raises several types
+        raise DataError(f"cannot convert '{from_unit}' to '{to_unit}': {exc}", path=path,
+                        line=1, column=column) from None
+
+
+def check_time(t: np.ndarray, *, path: str | None = None, lines: np.ndarray | None = None,
+               gap_factor: float | None = GAP_FACTOR, column: str = "t") -> None:
+    """Check a time vector: finite, strictly increasing, no gaps.
+
+    Parameters
+    ----------
+    t : array (N,)
+        Times [s].
+    path : str, optional
+        File named in errors.
+    lines : int array (N,), optional
+        File line of each sample (default: sample ``i`` is on line ``i + 2``).
+    gap_factor : float or None
+        A step larger than ``gap_factor`` x the median step is a gap
+        (``None`` disables the check).
+
+    Raises
+    ------
+    DataError
+        Naming the line of the first bad sample.
+    """
+    t = np.asarray(t, dtype=float)
+    if lines is None:
+        lines = np.arange(t.size) + 2
+    if t.ndim != 1 or t.size < 2:
+        raise DataError(f"a record needs at least 2 samples, got {t.size}", path=path,
+                        column=column)
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        i = int(bad[0])
+        raise DataError(f"time is {float(t[i])!r}; time must be finite", path=path,
+                        line=int(lines[i]), column=column)
+    dt = np.diff(t)
+    bad = np.flatnonzero(dt <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        kind = "repeated" if dt[i - 1] == 0 else "decreasing"
+        raise DataError(f"{kind} time: t = {float(t[i])!r} after t = {float(t[i - 1])!r} on line "
+                        f"{int(lines[i - 1])}; time must increase strictly",
+                        path=path, line=int(lines[i]), column=column)
+    if gap_factor is not None:
+        med = float(np.median(dt))
+        bad = np.flatnonzero(dt > gap_factor * med)
+        if bad.size:
+            i = int(bad[0]) + 1
+            raise DataError(
+                f"gap in time: step {dt[i - 1]:.6g} s from t = {float(t[i - 1])!r} to "
+                f"t = {float(t[i])!r} exceeds {gap_factor:g} x the median step {med:.6g} s",
+                path=path, line=int(lines[i]), column=column,
+                hint="split the record at the gap, or fill the missing samples with "
+                     "empty output cells (inputs must still be given)")
+
+
+# --------------------------------------------------------------- the class
+@dataclass
+class Experiment:
+    """A measured or synthetic record: time, named columns, units, metadata.
+
+    Build one with :meth:`load`, :meth:`from_arrays`,
+    :func:`bondgraph.data.experiments.run_experiment` or a loader of
+    :mod:`bondgraph.data.datasets`; give it to a model with :meth:`inputs_for` and
+    :meth:`outputs_for`.
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+        Sample times [s].
+    columns : dict of str -> ndarray (N,)
+        Every column except ``t``, in file units; NaN marks a missing sample.
+    units : dict of str -> str or None
+        Unit of each column (``None``: unspecified, i.e. the model's units).
+    meta : dict
+        Sidecar content (``name, model, description, dt, columns{unit, role,
+        noise_std}, true_parameters, x0, noise, seed, ...``).
+    path : Path or None
+        CSV file the record was loaded from or last saved to.
+    lines : int ndarray (N,) or None
+        File line of each sample (for error messages; None if not loaded).
+    """
+
+    t: np.ndarray
+    columns: dict[str, np.ndarray]
+    units: dict[str, str | None] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+    path: Path | None = None
+    lines: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def _line(self, i: int) -> int | None:
+        if self.lines is not None:
+            return int(self.lines[i])
+        return i + 2 if self.path is not None else None
+
+    # ------------------------------------------------------------ basics
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+    def __contains__(self, name: str) -> bool:
+        return name == "t" or name in self.columns
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name == "t":
+            return self.t
+        try:
+            return self.columns[name]
+        except KeyError:
+            raise DataError(f"no column '{name}' (columns: {', '.join(self.columns)})",
+                            path=self._where()) from None
+
+    def _where(self) -> str | None:
+        return str(self.path) if self.path is not None else None
+
+    @property
+    def name(self) -> str:
+        """Record name (sidecar ``name``, else the file stem, else ``"experiment"``)."""
+        if self.meta.get("name"):
+            return str(self.meta["name"])
+        return self.path.stem if self.path is not None else "experiment"
+
+    @property
+    def model_name(self) -> str | None:
+        """The model named in the sidecar (``meta["model"]``), if any."""
+        return self.meta.get("model")
+
+    @property
+    def dt(self) -> float:
+        """Sample interval [s]: sidecar ``dt`` or the median time step."""
+        if self.meta.get("dt"):
+            return float(self.meta["dt"])
+        return float(np.median(np.diff(self.t)))
+
+    @property
+    def duration(self) -> float:
+        """``t[-1] - t[0]`` [s]."""
+        return float(self.t[-1] - self.t[0])
+
+    @property
+    def roles(self) -> dict[str, str | None]:
+        """Column name -> role (``input|output|state|other``; ``None`` if unknown)."""
+        info = self.meta.get("columns", {}) or {}
+        out = {}
+        for c in self.columns:
+            role = (info.get(c) or {}).get("role")
+            if role is None and c.startswith(STATE_PREFIX):
+                role = "state"
+            out[c] = role
+        return out
+
+    @property
+    def noise_std(self) -> dict[str, float]:
+        """Column name -> declared measurement-noise standard deviation (file units)."""
+        info = self.meta.get("columns", {}) or {}
+        return {c: float(v["noise_std"]) for c, v in info.items()
+                if isinstance(v, Mapping) and v.get("noise_std") is not None and c in self.columns}
+
+    def names(self, role: str | None = None) -> list[str]:
+        """Column names (without ``t``), optionally only those of one role."""
+        if role is None:
+            return list(self.columns)
+        return [c for c, r in self.roles.items() if r == role]
+
+    def states(self) -> dict[str, np.ndarray]:
+        """State columns by state name (prefix ``state.`` removed)."""
+        return {c[len(STATE_PREFIX):]: v for c, v in self.columns.items()
+                if c.startswith(STATE_PREFIX)}
+
+    # ------------------------------------------------------- construction
+    @classmethod
+    def from_arrays(cls, t, columns: Mapping[str, Any] | None = None, *, model=None,
+                    u=None, y=None, x=None, units: Mapping[str, str | None] | None = None,
+                    roles: Mapping[str, str] | None = None,
+                    noise_std: Mapping[str, float] | None = None,
+                    meta: Mapping[str, Any] | None = None, name: str | None = None,
+                    check_gaps: bool = False) -> "Experiment":
+        """Build a record from arrays.
+
+        Parameters
+        ----------
+        t : array (N,)
+            Sample times [s], strictly increasing.
+        columns : dict of str -> array (N,) or scalar, optional
+            Named columns (scalars are broadcast).
+        model : Model or str, optional
+            With ``u``, ``y``, ``x``: columns are named after the model's
+            inputs, outputs and states (``state.<name>``), with its units
+            and roles.
+        u : array (N, n_u), optional
+        y : array (N, n_y), optional
+        x : array (N, n_x), optional
+        units, roles, noise_std : dict of str -> ..., optional
+            Per-column unit strings, roles and noise standard deviations
+            (override what the model gives).
+        meta : dict, optional
+            Sidecar metadata (``name, model, description, ...``).
+        name : str, optional
+            Shortcut for ``meta["name"]``.
+        check_gaps : bool
+            Also apply the gap check of :meth:`load` (default off: simulations
+            may use any increasing time grid).
+
+        Raises
+        ------
+        DataError
+            Wrong lengths, duplicate names, non-increasing or non-finite time,
+            unknown roles or units.
+        """
+        t = np.array(t, dtype=float).reshape(-1)
+        check_time(t, gap_factor=GAP_FACTOR if check_gaps else None)
+        n = t.size
+        cols: dict[str, np.ndarray] = {}
+        unit_map: dict[str, str | None] = {}
+        role_map: dict[str, str] = {}
+
+        def add(cname, values, unit=None, role=None):
+            if cname == "t" or cname in cols:
+                raise DataError(f"duplicate column name '{cname}'", column=cname)
+            arr = np.array(values, dtype=float)
+            if arr.ndim == 0:
+                arr = np.full(n, float(arr))
+            arr = arr.reshape(-1) if arr.ndim > 1 and arr.size == n else arr
+            if arr.shape != (n,):
+                raise DataError(f"column has shape {arr.shape}, expected ({n},) like t",
+                                column=cname)
+            cols[cname] = arr
+            unit_map[cname] = unit
+            if role is not None:
+                role_map[cname] = role
+
+        if model is not None:
+            from bondgraph.numerics.model import Model
+
+            mdl = Model.load(model) if isinstance(model, str) else model
+            for arr, names, munits, role, prefix in (
+                    (u, mdl.inputs, mdl.input_units, "input", ""),
+                    (y, mdl.outputs, mdl.output_units, "output", ""),
+                    (x, mdl.states, mdl.state_units, "state", STATE_PREFIX)):
+                if arr is None:
+                    continue
+                arr = np.asarray(arr, dtype=float)
+                if arr.shape != (n, len(names)):
+                    raise DataError(f"{role} array has shape {arr.shape}, expected "
+                                    f"({n}, {len(names)}) for model '{mdl.name}'")
+                for j, nm in enumerate(names):
+                    add(prefix + nm, arr[:, j], (munits[j] or None), role)
+            meta = {"model": mdl.name, **(meta or {})}
+        elif any(a is not None for a in (u, y, x)):
+            raise DataError("u, y and x arrays need a model to name their columns")
+        for cname, values in (columns or {}).items():
+            add(cname, values)
+        for cname, unit in (units or {}).items():
+            if cname not in cols:
+                raise DataError(f"unit given for unknown column '{cname}'", column=cname)
+            unit_map[cname] = unit
+        for cname, role in (roles or {}).items():
+            if cname not in cols:
+                raise DataError(f"role given for unknown column '{cname}'", column=cname)
+            role_map[cname] = role
+        meta = copy.deepcopy(dict(meta or {}))
+        if name is not None:
+            meta["name"] = name
+        info = meta.setdefault("columns", {})
+        for cname in cols:
+            entry = dict(info.get(cname) or {})
+            if cname in role_map:
+                entry["role"] = role_map[cname]
+            if noise_std and cname in noise_std:
+                entry["noise_std"] = float(noise_std[cname])
+            entry["unit"] = unit_map[cname]
+            info[cname] = entry
+        for cname in list(info):
+            if cname not in cols and cname != "t":
+                del info[cname]
+        info["t"] = {"unit": "s", "role": "time"}
+        exp = cls(t=t, columns=cols, units=unit_map, meta=meta)
+        exp._validate_meta()
+        for cname, unit in unit_map.items():
+            if unit is not None:
+                _check_unit(unit, None, cname)
+        return exp
+
+    def _validate_meta(self, path: str | None = None) -> None:
+        for cname, entry in (self.meta.get("columns") or {}).items():
+            role = (entry or {}).get("role")
+            if role is not None and role not in ROLES:
+                raise DataError(f"unknown role '{role}' (use one of {', '.join(ROLES)})",
+                                path=path, column=cname)
+            std = (entry or {}).get("noise_std")
+            if std is not None and not (isinstance(std, (int, float)) and std >= 0
+                                        and math.isfinite(std)):
+                raise DataError(f"noise_std must be a finite number >= 0, got {std!r}",
+                                path=path, column=cname)
+
+    # -------------------------------------------------------------- load
+    @classmethod
+    def load(cls, path: str | Path, *, allow_missing: bool = True,
+             gap_factor: float | None = GAP_FACTOR) -> "Experiment":
+        """Read a CSV record and its JSON sidecar (if present).
+
+        Parameters
+        ----------
+        path : str or Path
+            The ``.csv`` file (or its ``.json`` sidecar).
+        allow_missing : bool
+            If True (default), empty cells and ``NaN`` in non-input columns
+            are missing samples (NaN in :attr:`columns`). If False, every cell
+            must hold a finite number.
+        gap_factor : float or None
+            Time steps above ``gap_factor`` x the median step are gaps
+            (``None`` disables the check).
+
+        Returns
+        -------
+        Experiment
+
+        Raises
+        ------
+        DataError
+            Naming the file, line and column: no header, missing or misplaced
+            ``t``, duplicate names, rows of the wrong length, non-numeric
+            cells, NaN/inf in time or inputs, NaN in any column when
+            ``allow_missing`` is False, inf anywhere, non-increasing or
+            repeated time, gaps, unknown units, a time unit that is not a
+            time, a sidecar of the wrong format or inconsistent with the CSV.
+        """
+        path = Path(path)
+        if path.suffix.lower() == ".json":
+            path = path.with_suffix(".csv")
+        where = str(path)
+        if not path.exists():
+            raise DataError("no such file", path=where)
+        meta = _read_sidecar(path)
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            rows: list[list[str]] = []
+            lines: list[int] = []
+            header: list[str] | None = None
+            header_line = 1
+            for row in reader:
+                if not row or all(not c.strip() for c in row):
+                    continue
+                if header is None:
+                    header = row
+                    header_line = reader.line_num
+                    continue
+                rows.append(row)
+                lines.append(reader.line_num)
+        if header is None:
+            raise DataError("empty file: no header line", path=where)
+        # trailing comma: an empty last header cell
+        trailing = len(header) > 1 and header[-1].strip() == ""
+        if trailing:
+            header = header[:-1]
+        parsed = [parse_header(h) for h in header]
+        names = [p[0] for p in parsed]
+        for j, nm in enumerate(names):
+            if not nm:
+                raise DataError(f"empty column name in header position {j + 1}", path=where,
+                                line=header_line)
+            if nm in names[:j]:
+                raise DataError("duplicate column name", path=where, line=header_line,
+                                column=nm)
+        if names[0] != "t":
+            if "t" in names:
+                raise DataError(f"'t' must be the first column (it is column {names.index('t') + 1})",
+                                path=where, line=header_line, column="t")
+            raise DataError(f"first column must be the time 't', found '{names[0]}'",
+                            path=where, line=header_line, column=names[0],
+                            hint="name the time column 't' (unit in brackets, e.g. 't [s]')")
+        ncol = len(names)
+        for i, row in enumerate(rows):
+            if trailing and len(row) == ncol + 1:
+                if row[-1].strip():
+                    raise DataError(f"value '{row[-1]}' in the unnamed trailing column",
+                                    path=where, line=lines[i])
+                row.pop()
+            if len(row) != ncol:
+                raise DataError(f"row has {len(row)} cells, the header has {ncol} columns",
+                                path=where, line=lines[i])
+        if len(rows) < 2:
+            raise DataError(f"a record needs at least 2 samples, found {len(rows)}", path=where)
+        line_arr = np.asarray(lines)
+        cells = np.array(rows, dtype=str)
+        # units: header, then sidecar
+        side_cols = (meta.get("columns") or {}) if meta else {}
+        for cname in side_cols:
+            if cname not in names:
+                raise DataError(f"the sidecar describes column '{cname}', which the CSV lacks",
+                                path=str(path.with_suffix(".json")), column=cname)
+        units: dict[str, str | None] = {}
+        for (nm, unit) in parsed:
+            side_unit = (side_cols.get(nm) or {}).get("unit")
+            if unit is not None and side_unit is not None and unit != side_unit:
+                try:
+                    same = _units.factor(unit, side_unit) == 1.0
+                except Exception:
+                    same = False
+                if not same:
+                    raise DataError(f"header unit '{unit}' differs from the sidecar's "
+                                    f"'{side_unit}'", path=where, line=header_line, column=nm)
+            units[nm] = unit if unit is not None else side_unit
+            if units[nm] is not None:
+                _check_unit(units[nm], where, nm)
+        roles = {nm: (side_cols.get(nm) or {}).get("role") for nm in names}
+        # values
+        data: dict[str, np.ndarray] = {}
+        for j, nm in enumerate(names):
+            col = np.char.strip(cells[:, j])
+            empty = col == ""
+            try:
+                vals = np.where(empty, "nan", col).astype(float)
+            except ValueError:
+                for i, s in enumerate(col):
+                    if s:
+                        try:
+                            float(s)
+                        except ValueError:
+                            raise DataError(f"non-numeric cell '{s}'", path=where,
+                                            line=int(line_arr[i]), column=nm) from None
+                raise  # pragma: no cover - numpy and float() disagree
+            if nm == "t":
+                if empty.any():
+                    i = int(np.flatnonzero(empty)[0])
+                    raise DataError("empty time cell", path=where, line=int(line_arr[i]),
+                                    column=nm)
+            else:
+                inf = np.flatnonzero(np.isinf(vals))
+                if inf.size:
+                    i = int(inf[0])
+                    raise DataError(f"infinite value '{col[i]}'", path=where,
+                                    line=int(line_arr[i]), column=nm)
+                nan = np.flatnonzero(np.isnan(vals))
+                if nan.size and (not allow_missing or roles.get(nm) == "input"):
+                    i = int(nan[0])
+                    what = "empty cell" if empty[i] else f"'{col[i]}'"
+                    why = ("inputs must be given at every sample" if roles.get(nm) == "input"
+                           else "missing samples are not allowed (allow_missing=False)")
+                    raise DataError(f"{what}: {why}", path=where, line=int(line_arr[i]),
+                                    column=nm)
+            data[nm] = vals
+        # time: units and checks
+        t = data.pop("t")
+        t_unit = units.pop("t")
+        if t_unit is not None:
+            try:
+                t = convert(t, t_unit, "s", path=where, column="t", what="time")
+            except DataError:
+                raise DataError(f"time unit '{t_unit}' is not a time", path=where,
+                                line=header_line, column="t") from None
+        check_time(t, path=where, lines=line_arr, gap_factor=gap_factor)
+        meta = meta or {}
+        info = meta.setdefault("columns", {})
+        for nm in names:
+            entry = dict(info.get(nm) or {})
+            entry["unit"] = units.get(nm, "s") if nm != "t" else "s"
+            if nm == "t":
+                entry["role"] = "time"
+            info[nm] = entry
+        exp = cls(t=t, columns=data, units=units, meta=meta, path=path, lines=line_arr)
+        exp._validate_meta(str(path.with_suffix(".json")))
+        if meta.get("dt"):
+            med = float(np.median(np.diff(t)))
+            if abs(med - float(meta["dt"])) > 0.01 * float(meta["dt"]):
+                raise DataError(f"sidecar dt = {meta['dt']} s but the median time step is "
+                                f"{med:.6g} s", path=str(path.with_suffix(".json")))
+        return exp
+
+    # -------------------------------------------------------------- save
+    def save(self, path: str | Path, *, precision: int | None = None,
+             sidecar: bool = True) -> Path:
+        """Write the CSV (and the JSON sidecar).
+
+        Parameters
+        ----------
+        path : str or Path
+            Target ``.csv`` (the suffix is added if missing).
+        precision : int, optional
+            Significant digits (``%.{precision}g``). Default: the shortest
+            text that reads back to the identical float64 (Python ``repr``),
+            so a save/load round trip is bit-exact. Missing samples (NaN)
+            are written as empty cells.
+        sidecar : bool
+            Also write ``<stem>.json``.
+
+        Returns
+        -------
+        Path
+            The CSV path.
+        """
+        path = Path(path)
+        if path.suffix.lower() != ".csv":
+            path = path.with_name(path.name + ".csv")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        names = ["t", *self.columns]
+        header = [format_header("t", "s")] + [format_header(c, self.units.get(c))
+                                              for c in self.columns]
+        cols = []
+        for arr in [self.t, *self.columns.values()]:
+            arr = np.asarray(arr, dtype=float)
+            if precision is None:
+                txt = [repr(v) for v in arr.tolist()]
+            else:
+                txt = np.char.mod(f"%.{int(precision)}g", arr).tolist()
+            for i in np.flatnonzero(np.isnan(arr)):
+                txt[i] = ""
+            cols.append(txt)
+        with open(path, "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(header)
+            w.writerows(zip(*cols))
+        if sidecar:
+            meta = copy.deepcopy(self.meta)
+            meta = {"format": FORMAT, **{k: v for k, v in meta.items() if k != "format"}}
+            meta.setdefault("name", self.name)
+            info = meta.setdefault("columns", {})
+            for c in names:
+                entry = dict(info.get(c) or {})
+                entry["unit"] = "s" if c == "t" else self.units.get(c)
+                if c == "t":
+                    entry["role"] = "time"
+                first = {k: entry[k] for k in ("unit", "role", "noise_std") if k in entry}
+                info[c] = {**first, **entry}
+            meta["columns"] = {c: info[c] for c in names}
+            order = ("format", "name", "model", "truth_model", "description", "dt", "columns",
+                     "true_parameters", "x0", "noise", "seed")
+            meta = {**{k: meta[k] for k in order if k in meta},
+                    **{k: v for k, v in meta.items() if k not in order}}
+            with open(path.with_suffix(".json"), "w", encoding="utf-8") as fh:
+                json.dump(_json_safe(meta), fh, indent=2)
+                fh.write("\n")
+        self.path = path
+        self.lines = None
+        return path
+
+    # ---------------------------------------------------------- for models
+    def _model(self, model):
+        from bondgraph.numerics.model import Model
+
+        if isinstance(model, str):
+            return Model.load(model)
+        return model
+
+    def missing_inputs(self, model) -> list[str]:
+        """Inputs of ``model`` (not ``der(.)`` ones) that the record lacks."""
+        mdl = self._model(model)
+        out = []
+        for name in mdl.inputs:
+            src = mdl.derivative_inputs.get(name)
+            if src is not None:
+                if name in self.columns:
+                    continue
+                name = src
+            if name not in self.columns and name not in out:
+                out.append(name)
+        return out
+
+    def inputs_for(self, model, defaults_ok: bool = False) -> np.ndarray:
+        """Input array for a model, in the model's units.
+
+        Columns are matched to ``model.inputs`` by name and converted from
+        the file's units to the model's (pint). A derivative input
+        ``der(r)`` (``model.derivative_inputs``) is taken from a ``der(r)``
+        column if the record has one, else computed from ``r`` by
+        ``numpy.gradient`` (second-order central differences inside, one-sided
+        at the ends; non-uniform steps allowed).
+
+        Parameters
+        ----------
+        model : Model or str
+        defaults_ok : bool
+            If True, an input the record lacks is held at the model default
+            (``model.u0``); if False (default) that is a :class:`DataError`.
+
+        Returns
+        -------
+        ndarray (N, n_u)
+
+        Raises
+        ------
+        DataError
+            Missing columns (all named, unless ``defaults_ok``), NaN/inf in
+            an input column (line and column named), unknown units or units
+            of the wrong dimension.
+        """
+        mdl = self._model(model)
+        where = self._where()
+        missing = self.missing_inputs(mdl)
+        if missing and not defaults_ok:
+            raise DataError(
+                f"missing column(s) {join_names(missing)} needed by model '{mdl.name}' "
+                f"(its inputs: {', '.join(mdl.inputs)}; the record has: "
+                f"{', '.join(self.columns) or 'no columns'})",
+                path=where, line=1, column=missing[0],
+                hint="add the column(s), or call inputs_for(model, defaults_ok=True) to hold "
+                     "them at the model defaults")
+        n = len(self)
+        U = np.empty((n, mdl.n_u))
+        base: dict[str, np.ndarray] = {}
+
+        def base_value(name: str) -> np.ndarray:
+            if name not in base:
+                j = mdl.input_index(name)
+                if name in self.columns:
+                    vals = self._input_column(name, mdl.input_units[j], mdl)
+                else:
+                    vals = np.full(n, float(mdl.u0[j]))
+                base[name] = vals
+            return base[name]
+
+        for j, name in enumerate(mdl.inputs):
+            src = mdl.derivative_inputs.get(name)
+            if src is None:
+                U[:, j] = base_value(name)
+            elif name in self.columns:
+                U[:, j] = self._input_column(name, mdl.input_units[j], mdl)
+            else:
+                U[:, j] = np.gradient(base_value(src), self.t)
+        return U
+
+    def _input_column(self, name: str, unit: str, mdl) -> np.ndarray:
+        vals = self.columns[name]
+        bad = np.flatnonzero(~np.isfinite(vals))
+        if bad.size:
+            i = int(bad[0])
+            raise DataError(f"input value is {float(vals[i])!r} (at t = {float(self.t[i])!r}); inputs must "
+                            f"be finite at every sample", path=self._where(),
+                            line=self._line(i), column=name)
+        return convert(vals, self.units.get(name), unit, path=self._where(), column=name,
+                       what=f"input '{name}' of model '{mdl.name}'")
+
+    def outputs_for(self, model) -> np.ndarray:
+        """Measurement array for a model, in the model's units.
+
+        Parameters
+        ----------
+        model : Model or str
+
+        Returns
+        -------
+        ndarray (N, n_y)
+            NaN where the record lacks an output column or a sample is
+            missing.
+
+        Raises
+        ------
+        DataError
+            If the record has no column for any model output, or a column's
+            unit is unknown or of the wrong dimension.
+        """
+        mdl = self._model(model)
+        n = len(self)
+        Y = np.full((n, mdl.n_y), np.nan)
+        found = 0
+        for j, name in enumerate(mdl.outputs):
+            if name in self.columns:
+                Y[:, j] = convert(self.columns[name], self.units.get(name), mdl.output_units[j],
+                                  path=self._where(), column=name,
+                                  what=f"output '{name}' of model '{mdl.name}'")
+                found += 1
+        if mdl.n_y and not found:
+            raise DataError(f"the record has no column for any output of model '{mdl.name}' "
+                            f"({', '.join(mdl.outputs)}); its columns: "
+                            f"{', '.join(self.columns)}", path=self._where(), line=1)
+        return Y
+
+    def noise_std_for(self, model) -> np.ndarray:
+        """Declared noise standard deviations of the model's outputs, in model
+        units; NaN where the record declares none. Shape (n_y,)."""
+        mdl = self._model(model)
+        out = np.full(mdl.n_y, np.nan)
+        std = self.noise_std
+        for j, name in enumerate(mdl.outputs):
+            if name in std:
+                out[j] = float(convert(np.array([std[name]]), self.units.get(name),
+                                       mdl.output_units[j], path=self._where(), column=name)[0])
+        return out
+
+    # ------------------------------------------------------------- other
+    def segment(self, start: int, stop: int | None = None, *, name: str | None = None
+                ) -> "Experiment":
+        """Samples ``start:stop`` as a new record (meta copied, name suffixed)."""
+        sl = slice(start, stop)
+        t = self.t[sl]
+        if t.size < 2:
+            raise DataError(f"segment [{start}:{stop}] has {t.size} samples; need >= 2",
+                            path=self._where())
+        meta = copy.deepcopy(self.meta)
+        meta["name"] = name or f"{self.name}[{start}:{'' if stop is None else stop}]"
+        meta["segment"] = [int(start), None if stop is None else int(stop)]
+        return Experiment(t=t.copy(), columns={k: v[sl].copy() for k, v in self.columns.items()},
+                          units=dict(self.units), meta=meta, path=None)
+
+    def to_dataframe(self):
+        """A pandas DataFrame with ``t`` and every column (headers with units)."""
+        import pandas as pd
+
+        data = {format_header("t", "s"): self.t}
+        for c, v in self.columns.items():
+            data[format_header(c, self.units.get(c))] = v
+        return pd.DataFrame(data)
+
+    def summary(self) -> str:
+        """Text summary: name, model, size, sample time and a column table."""
+        dts = np.diff(self.t)
+        lines = [f"Experiment '{self.name}'" + (f" ({self.path})" if self.path else "")]
+        for key in ("model", "truth_model", "description"):
+            if self.meta.get(key):
+                lines.append(f"  {key}: {self.meta[key]}")
+        lines.append(f"  {len(self)} samples, t = {self.t[0]:.6g} .. {self.t[-1]:.6g} s, "
+                     f"dt median {np.median(dts):.6g} s (min {dts.min():.6g}, max {dts.max():.6g})")
+        if self.meta.get("seed") is not None:
+            lines.append(f"  seed: {self.meta['seed']}")
+        if self.meta.get("true_parameters"):
+            tp = ", ".join(f"{k}={v:.6g}" for k, v in self.meta["true_parameters"].items()
+                           if isinstance(v, (int, float)))
+            lines.append(f"  true parameters: {tp}")
+        roles, std = self.roles, self.noise_std
+        w = max([len(c) for c in self.columns] + [6])
+        lines.append(f"  {'column':<{w}}  {'unit':<10} {'role':<7} {'missing':>7} "
+                     f"{'min':>11} {'mean':>11} {'max':>11} {'noise_std':>10}")
+        for c, v in self.columns.items():
+            miss = int(np.isnan(v).sum())
+            ok = v[~np.isnan(v)]
+            lo, mu, hi = ((ok.min(), ok.mean(), ok.max()) if ok.size else (np.nan,) * 3)
+            s = f"{std[c]:.4g}" if c in std else "-"
+            unit = self.units.get(c)
+            lines.append(f"  {c:<{w}}  {(unit if unit is not None else '?'):<10} "
+                         f"{(roles.get(c) or '?'):<7} {miss:>7d} {lo:>11.5g} {mu:>11.5g} "
+                         f"{hi:>11.5g} {s:>10}")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return (f"<Experiment '{self.name}': {len(self)} samples, {self.duration:.6g} s, "
+                f"columns {', '.join(self.columns)}>")
+
+
+# ------------------------------------------------------------- internals
+def _check_unit(unit: str, path: str | None, column: str) -> None:
+    try:
+        _units.parse(unit)
+    except UnitMismatchError:
+        raise DataError(f"unknown unit '{unit}'", path=path, line=1, column=column,
+                        hint="use a unit pint understands, e.g. m/s, km/h, N*m, rad/s, rpm, 1"
+                        ) from None
+
+
+def _read_sidecar(csv_path: Path) -> dict[str, Any]:
+    side = csv_path.with_suffix(".json")
+    if not side.exists():
+        return {}
+    try:
+        meta = json.loads(side.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise DataError(f"invalid JSON: {exc.msg}", path=str(side), line=exc.lineno) from None
+    if not isinstance(meta, dict):
+        raise DataError("the sidecar must hold a JSON object", path=str(side))
+    fmt = meta.get("format")
+    if fmt != FORMAT:
+        raise DataError(f"sidecar format is {fmt!r}, expected '{FORMAT}'", path=str(side))
+    if not isinstance(meta.get("columns", {}) or {}, dict):
+        raise DataError("sidecar 'columns' must be an object {column: {unit, role, noise_std}}",
+                        path=str(side))
+    return meta
+
+
+def load(path: str | Path, **kw) -> Experiment:
+    """Shortcut for :meth:`Experiment.load`."""
+    return Experiment.load(path, **kw)
+
+
+def read_table(path: str | Path, *, encoding: str = "utf-8-sig") -> tuple[list[str], np.ndarray]:
+    """Read a plain numeric CSV (no ``t`` required): header names and an
+    (N, n) float array. Accepts a trailing comma on every line (the CED
+    benchmark files) and quoted header cells; empty cells become NaN.
+
+    Raises
+    ------
+    DataError
+        Naming the line and column of a non-numeric cell or a row of the
+        wrong length.
+    """
+    path = Path(path)
+    where = str(path)
+    with open(path, newline="", encoding=encoding) as fh:
+        reader = csv.reader(fh)
+        header = None
+        rows, lines = [], []
+        for row in reader:
+            if not row or all(not c.strip() for c in row):
+                continue
+            if header is None:
+                header = [c.strip() for c in row]
+                continue
+            rows.append(row)
+            lines.append(reader.line_num)
+    if header is None:
+        raise DataError("empty file: no header line", path=where)
+    trailing = len(header) > 1 and header[-1] == ""
+    if trailing:
+        header = header[:-1]
+    n = len(header)
+    out = np.empty((len(rows), n))
+    for i, row in enumerate(rows):
+        if trailing and len(row) == n + 1 and not row[-1].strip():
+            row = row[:-1]
+        if len(row) != n:
+            raise DataError(f"row has {len(row)} cells, the header has {n} columns", path=where,
+                            line=lines[i])
+        for j, cell in enumerate(row):
+            s = cell.strip()
+            if not s:
+                out[i, j] = np.nan
+                continue
+            try:
+                out[i, j] = float(s)
+            except ValueError:
+                raise DataError(f"non-numeric cell '{s}'", path=where, line=lines[i],
+                                column=header[j]) from None
+    return header, out
+
+
+__all__ = ["Experiment", "FORMAT", "ROLES", "STATE_PREFIX", "GAP_FACTOR", "load", "convert",
+           "check_time", "parse_header", "format_header", "read_table"]

@@ -1,0 +1,263 @@
+"""Residual analysis of a fitted model: what the innovations say.
+
+For each output: bias, RMS, whiteness of the standardised innovations
+(Ljung-Box, statsmodels), normalised-innovation-squared (NIS) consistency,
+spectral peaks (Welch periodogram, scipy), and where in the record the
+residual is large: the correlation ratio η² of the squared standardised
+innovation over bins of each operating variable (states, inputs, outputs,
+and the sign of flows that change sign).
+
+References
+----------
+Ljung, G. M., Box, G. E. P. (1978). On a measure of lack of fit in time
+series models. Biometrika 65(2), 297-303.
+Bar-Shalom, Y., Li, X. R., Kirubarajan, T. (2001). Estimation with
+Applications to Tracking and Navigation, §5.4 (NIS consistency test).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class OutputResiduals:
+    """Residual statistics of one output.
+
+    Attributes
+    ----------
+    name, unit : str
+    n : int
+        Number of samples with a measurement.
+    bias, rms : float
+        Mean and RMS of the innovation [output unit].
+    bias_sigma : float
+        Bias over its standard error (|z| > 3 is a significant bias).
+    ljung_box_q, ljung_box_p : float
+        Ljung-Box statistic of the standardised innovation at ``lags`` and
+        its p-value (small p: not white).
+    lags : int
+    nis_mean : float
+        Mean of ε²/S for this output (1 for a consistent filter).
+    peak_hz, peak_ratio : float
+        Frequency of the largest spectral peak of the standardised
+        innovation and its power over the median power.
+    sim_rms : float or None
+        RMS of the free-run simulation error, if a simulation was given.
+    """
+
+    name: str
+    unit: str
+    n: int
+    bias: float
+    rms: float
+    bias_sigma: float
+    ljung_box_q: float
+    ljung_box_p: float
+    lags: int
+    nis_mean: float
+    peak_hz: float
+    peak_ratio: float
+    sim_rms: float | None = None
+    sim_bias: float | None = None
+
+
+@dataclass
+class Region:
+    """Where the residual is large: output, operating variable, bin edges,
+    mean squared standardised innovation per bin, η² (fraction of the
+    variance of the squared innovation explained by the bins)."""
+
+    output: str
+    variable: str
+    edges: list[float]
+    mean_sq: list[float]
+    eta2: float
+
+    def worst_bin(self) -> tuple[float, float, float]:
+        i = int(np.argmax(self.mean_sq))
+        return self.edges[i], self.edges[i + 1], self.mean_sq[i]
+
+
+@dataclass
+class ResidualReport:
+    """Result of :func:`analyze`."""
+
+    outputs: list[OutputResiduals]
+    regions: list[Region]
+    nis_mean: float
+    nis_dof: float
+    nis_bounds: tuple[float, float]
+    whiteness: float
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def whiteness_dof(self) -> float:
+        """Degrees of freedom of :attr:`whiteness` (lags x outputs): a sum of
+        Ljung-Box statistics of white innovations is about χ²(dof)."""
+        return float(self.settings.get("whiteness_dof", 0.0))
+
+    def is_white(self, z: float = 3.0) -> bool:
+        """Whiteness statistic within ``z`` standard deviations of its
+        expectation under white innovations (χ²(dof): mean dof, var 2 dof)."""
+        d = self.whiteness_dof
+        return d > 0 and self.whiteness <= d + z * np.sqrt(2 * d)
+
+    def to_dict(self) -> dict[str, Any]:
+        from dataclasses import asdict
+
+        return {"outputs": [asdict(o) for o in self.outputs],
+                "regions": [asdict(r) for r in self.regions],
+                "nis_mean": self.nis_mean, "nis_dof": self.nis_dof,
+                "nis_bounds": list(self.nis_bounds), "whiteness": self.whiteness}
+
+    def table(self) -> str:
+        rows = ["| output | bias | RMS | bias/σ | Ljung-Box p | NIS | peak Hz |",
+                "|---|---|---|---|---|---|---|"]
+        for o in self.outputs:
+            rows.append(f"| {o.name} | {o.bias:.4g} | {o.rms:.4g} | {o.bias_sigma:.1f} | "
+                        f"{o.ljung_box_p:.2g} | {o.nis_mean:.2f} | {o.peak_hz:.3g} |")
+        return "\n".join(rows)
+
+    def top_regions(self, k: int = 5) -> list[Region]:
+        return sorted(self.regions, key=lambda r: -r.eta2)[:k]
+
+
+def _ljung_box(z: np.ndarray, lags: int) -> tuple[float, float]:
+    from statsmodels.stats.diagnostic import acorr_ljungbox
+
+    z = z[np.isfinite(z)]
+    if z.size < lags + 5 or np.std(z) == 0:
+        return float("nan"), float("nan")
+    df = acorr_ljungbox(z - z.mean(), lags=[lags], return_df=True)
+    return float(df["lb_stat"].iloc[0]), float(df["lb_pvalue"].iloc[0])
+
+
+def _peak(z: np.ndarray, fs: float) -> tuple[float, float]:
+    from scipy.signal import welch
+
+    z = z[np.isfinite(z)]
+    if z.size < 32:
+        return float("nan"), float("nan")
+    f, p = welch(z - z.mean(), fs=fs, nperseg=min(256, z.size // 2))
+    if p.size < 3:
+        return float("nan"), float("nan")
+    i = int(np.argmax(p[1:])) + 1
+    med = float(np.median(p[1:])) or 1e-300
+    return float(f[i]), float(p[i] / med)
+
+
+def _eta2(v: np.ndarray, s: np.ndarray, bins: int = 5) -> tuple[float, list, list]:
+    ok = np.isfinite(v) & np.isfinite(s)
+    v, s = v[ok], s[ok]
+    if v.size < 4 * bins or np.ptp(v) == 0 or np.var(s) == 0:
+        return 0.0, [], []
+    edges = np.unique(np.quantile(v, np.linspace(0, 1, bins + 1)))
+    if edges.size < 3:
+        return 0.0, [], []
+    idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, edges.size - 2)
+    means, counts = [], []
+    for b in range(edges.size - 1):
+        m = idx == b
+        means.append(float(s[m].mean()) if m.any() else 0.0)
+        counts.append(int(m.sum()))
+    grand = s.mean()
+    between = sum(c * (m - grand) ** 2 for c, m in zip(counts, means))
+    total = float(((s - grand) ** 2).sum())
+    return float(between / total) if total > 0 else 0.0, edges.tolist(), means
+
+
+def analyze(ukf, model, t, u, y, *, p: int = 0, sim_y: np.ndarray | None = None,
+            lags: int | None = None) -> ResidualReport:
+    """Analyse the innovations of parameter set ``p`` of a stored UKF run.
+
+    Parameters
+    ----------
+    ukf : UKFResult
+        From :func:`bondgraph.inference.ukf.ukf_nll` with ``store=True``.
+    model : Model
+    t : array (N,)
+    u : array (N, n_u)
+    y : array (N, n_y)
+        Measurements (NaN where missing).
+    p : int
+        Which parameter set of the run.
+    sim_y : array (N, n_y), optional
+        Free-run simulated outputs, for simulation-error statistics.
+    lags : int, optional
+        Ljung-Box lag (default min(20, N/10)).
+
+    Returns
+    -------
+    ResidualReport
+    """
+    eps = ukf.innovations[:, p, :]
+    S = ukf.S[:, p, :, :]
+    N, ny = eps.shape
+    sd = np.sqrt(np.maximum(np.einsum("kii->ki", S), 1e-300))
+    z = eps / sd
+    dt = float(np.median(np.diff(t))) if N > 1 else 1.0
+    lags = lags or int(max(5, min(20, N // 10)))
+    outs = []
+    for i, name in enumerate(model.outputs):
+        e = eps[:, i]
+        ok = np.isfinite(e)
+        n = int(ok.sum())
+        if n == 0:
+            outs.append(OutputResiduals(name, model.output_units[i], 0, *([float("nan")] * 4), lags,
+                                        float("nan"), float("nan"), float("nan")))
+            continue
+        bias = float(e[ok].mean())
+        rms = float(np.sqrt(np.mean(e[ok] ** 2)))
+        se = float(e[ok].std(ddof=1) / np.sqrt(n)) if n > 1 else float("inf")
+        q, pv = _ljung_box(z[:, i], lags)
+        fpk, ratio = _peak(z[:, i], 1.0 / dt)
+        o = OutputResiduals(name, model.output_units[i], n, bias, rms, bias / se if se > 0 else 0.0,
+                            q, pv, lags, float(np.nanmean(z[ok, i] ** 2)), fpk, ratio)
+        if sim_y is not None:
+            d = y[:, i] - sim_y[:, i]
+            okd = np.isfinite(d)
+            if okd.any():
+                o.sim_rms = float(np.sqrt(np.mean(d[okd] ** 2)))
+                o.sim_bias = float(d[okd].mean())
+        outs.append(o)
+    # NIS consistency over the record: N * mean(NIS) ~ chi2(sum m_k)
+    nis = ukf.nis[:, p] if ukf.nis is not None else np.nansum(z**2, axis=1)
+    used = ukf.n_obs > 0
+    dof = float(ukf.n_obs[used].sum())
+    tot = float(np.nansum(nis[used]))
+    from scipy.stats import chi2
+
+    lo, hi = chi2.ppf([0.025, 0.975], dof) if dof > 0 else (0.0, 0.0)
+    nk = max(int(used.sum()), 1)
+    nis_mean = tot / nk
+    bounds = (float(lo / nk), float(hi / nk))
+    # regions: squared standardised innovation over operating variables
+    variables: dict[str, np.ndarray] = {}
+    if ukf.x_filt is not None:
+        for j, s in enumerate(model.states):
+            variables[s] = ukf.x_filt[:, p, j]
+    for j, nme in enumerate(model.inputs):
+        if u is not None and u.shape[1] > j and np.ptp(u[:, j]) > 0:
+            variables[nme] = u[:, j]
+    for j, nme in enumerate(model.outputs):
+        variables[f"{nme} (measured)"] = y[:, j]
+    regions = []
+    for i, name in enumerate(model.outputs):
+        s2 = z[:, i] ** 2
+        for vname, v in variables.items():
+            e2, edges, means = _eta2(v, s2)
+            if edges:
+                regions.append(Region(name, vname, edges, means, e2))
+            if np.nanmin(v) < 0 < np.nanmax(v):
+                sgn = np.sign(v)
+                e2s, _, means_s = _eta2(sgn + 1e-9 * np.arange(sgn.size) / sgn.size, s2, bins=2)
+                if means_s:
+                    regions.append(Region(name, f"sign({vname})", [-1.0, 0.0, 1.0], means_s, e2s))
+    white = float(np.nansum([o.ljung_box_q for o in outs]))
+    white_dof = float(lags * sum(1 for o in outs if np.isfinite(o.ljung_box_q)))
+    return ResidualReport(outs, regions, nis_mean, dof / nk, bounds, white,
+                          {"lags": lags, "p": p, "whiteness_dof": white_dof})

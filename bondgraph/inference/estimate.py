@@ -1,0 +1,976 @@
+"""Maximum-likelihood parameter estimation: UKF likelihood + PSO/DE + polish + Cramér-Rao.
+
+::
+
+    criterion   θ (S, k) -> NLL (S,)       one batched UKF run (bondgraph.inference.ukf)
+    optimizer   pso | de                   (bondgraph.inference.optimize), whole population per call
+    polish      bounded L-BFGS-B, central-difference gradients in one batched call
+    Hessian     central differences of the NLL, all 1 + 2k² points in one batched call
+    Cramér-Rao  cov = H⁻¹ (H: observed Fisher information), std = sqrt(diag), correlation
+
+The negative log-likelihood is that of the prediction-error decomposition
+(Schweppe 1965; Kristensen, Madsen & Jørgensen 2004), so at the maximum
+the inverse Hessian is the asymptotic covariance of the estimate
+(Cramér-Rao bound; e.g. Ljung 1999, §9.3).
+
+:func:`two_stage` chains estimations: each stage fixes the parameters
+estimated by the stages before it (the coast-down / driving protocol of the
+vehicle: stage 1 with the reduced model on the coast-down record, stage 2
+with the full model on a driving record).
+
+The ``bondgraph estimate`` command (:func:`configure_estimate`,
+:func:`run_estimate`) writes ``result.json`` and PNG fit plots.
+
+References
+----------
+Schweppe, F. C. (1965). Evaluation of likelihood functions for Gaussian
+signals. IEEE Trans. Inf. Theory 11(1), 61-70.
+Kristensen, N. R., Madsen, H., Jørgensen, S. B. (2004). Parameter estimation
+in stochastic grey-box models. Automatica 40(2), 225-237.
+Ljung, L. (1999). System Identification: Theory for the User, 2nd ed.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from bondgraph.errors import IdentifiabilityWarning, ModelError
+from bondgraph.inference.optimize import de, minimize_batched, pso
+from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
+from bondgraph.errors import OptionError
+
+
+
+
+# ----------------------------------------------------------------- criterion
+class Criterion:
+    """Batched NLL of a subset of parameters: ``crit(X (S, k)) -> (S,)``.
+
+    Parameters
+    ----------
+    model : Model
+    t : array (N,)
+    u : array (N, n_u)
+    y : array (N, n_y)
+    params : sequence of str
+        Estimated parameters (k).
+    base : array (n_theta,)
+        Values of all parameters; the estimated ones are overwritten.
+    x0, P0 : arrays, optional
+        Prior state and covariance at ``t[0]`` (see :func:`bondgraph.inference.ukf.ukf_nll`).
+    ukf : dict, optional
+        Options of :func:`bondgraph.inference.ukf.ukf_nll` (``alpha, beta, kappa,
+        method, substeps, Q, R``).
+    chunk : int, optional
+        Evaluate at most this many parameter sets per UKF run.
+    workers : int
+        Processes that share each batch (``fork`` start method; each runs
+        the batched UKF on its share of the parameter sets). 1: in-process.
+        Results do not depend on ``workers``.
+
+    Attributes
+    ----------
+    evaluations : int
+        Parameter sets evaluated so far.
+    calls : int
+        Batched calls so far.
+    failures : Counter
+        Failure cause -> count over all evaluations.
+    """
+
+    def __init__(self, model, t, u, y, params: Sequence[str], base, x0=None, P0=None,
+                 ukf: Mapping[str, Any] | None = None, chunk: int | None = None,
+                 workers: int = 1):
+        self.model = model
+        self.t, self.u, self.y = t, u, y
+        self.params = list(params)
+        self.idx = model.param_indices(self.params)
+        self.base = np.asarray(base, dtype=float)
+        self.x0, self.P0 = x0, P0
+        self.ukf = dict(ukf or {})
+        self.chunk = chunk
+        self.workers = max(1, int(workers))
+        self._pool = None
+        self.evaluations = 0
+        self.calls = 0
+        self.failures: Counter = Counter()
+
+    def theta(self, X) -> np.ndarray:
+        """Full parameter arrays (S, n_theta) for values X (S, k)."""
+        return self.model.expand_theta(self.params, np.atleast_2d(X), self.base)
+
+    def run(self, X, store: bool | str = False) -> UKFResult:
+        """The UKF result (all arrays) for parameter values X (S, k)."""
+        return ukf_nll(self.model, self.t, self.u, self.y, self.theta(X), self.x0, self.P0,
+                       store=store, **self.ukf)
+
+    def _evaluate(self, X):
+        S = X.shape[0]
+        out = np.empty(S)
+        fails: Counter = Counter()
+        step = self.chunk or S
+        for a in range(0, S, step):
+            r = self.run(X[a:a + step])
+            out[a:a + step] = r.nll
+            fails.update(r.failure_summary())
+        return out, fails
+
+    def __call__(self, X) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        S = X.shape[0]
+        if self.workers > 1 and S >= 2 * self.workers:
+            if self._pool is None:
+                import multiprocessing as mp
+
+                global _WORKER_CRITERION
+                _WORKER_CRITERION = self
+                self._pool = mp.get_context("fork").Pool(self.workers)
+            parts = self._pool.map(_worker_evaluate, np.array_split(X, self.workers))
+            out = np.concatenate([p[0] for p in parts])
+            for p in parts:
+                self.failures.update(p[1])
+        else:
+            out, fails = self._evaluate(X)
+            self.failures.update(fails)
+        self.evaluations += S
+        self.calls += 1
+        return out
+
+    def close(self) -> None:
+        """Stop the worker processes (if any)."""
+        if self._pool is not None:
+            self._pool.close()
+            self._pool.join()
+            self._pool = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d["_pool"] = None
+        return d
+
+
+_WORKER_CRITERION: Criterion | None = None
+
+
+def _worker_evaluate(X):
+    return _WORKER_CRITERION._evaluate(X)
+
+
+# ------------------------------------------------------------------- Hessian
+def hessian_batched(fun: Callable[[np.ndarray], np.ndarray], x, h) -> tuple[np.ndarray, float, int]:
+    """Hessian of a batched scalar function by central differences.
+
+    Parameters
+    ----------
+    fun : callable
+        ``fun(X (S, k)) -> (S,)``.
+    x : array (k,)
+    h : array (k,)
+        Step per coordinate.
+
+    Returns
+    -------
+    (H (k, k), f(x), evaluations)
+        All 1 + 2k² points are evaluated in one call. H contains NaN where
+        a needed value was not finite.
+
+    Notes
+    -----
+    H_ii = (f(x+h_i) − 2f(x) + f(x−h_i)) / h_i²;
+    H_ij = (f(+,+) − f(+,−) − f(−,+) + f(−,−)) / (4 h_i h_j).
+    """
+    x = np.asarray(x, dtype=float)
+    h = np.asarray(h, dtype=float)
+    k = x.size
+    E = np.diag(h)
+    pts = [x]
+    for i in range(k):
+        pts += [x + E[i], x - E[i]]
+    pairs = [(i, j) for i in range(k) for j in range(i + 1, k)]
+    for i, j in pairs:
+        pts += [x + E[i] + E[j], x + E[i] - E[j], x - E[i] + E[j], x - E[i] - E[j]]
+    F = np.asarray(fun(np.array(pts)), dtype=float)
+    f0 = F[0]
+    H = np.empty((k, k))
+    for i in range(k):
+        H[i, i] = (F[1 + 2 * i] - 2.0 * f0 + F[2 + 2 * i]) / h[i] ** 2
+    base = 1 + 2 * k
+    for n, (i, j) in enumerate(pairs):
+        a, b, c, d = F[base + 4 * n: base + 4 * n + 4]
+        H[i, j] = H[j, i] = (a - b - c + d) / (4.0 * h[i] * h[j])
+    H[~np.isfinite(H)] = np.nan
+    return H, float(f0), len(pts)
+
+
+def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1e-6) -> dict:
+    """Cramér-Rao standard deviations and correlations from the NLL Hessian.
+
+    Parameters
+    ----------
+    H : array (k, k)
+        Hessian of the NLL (observed Fisher information).
+    names : sequence of str
+    scale : array (k,), optional
+        Coordinate scales (e.g. the widths of the search box): the test of
+        positive definiteness and the unidentified direction are in
+        coordinates θ_i / scale_i (default: 1).
+    rcond : float
+        A direction is unidentified when its eigenvalue of the Hessian in
+        relative coordinates is below ``rcond`` times the largest (the
+        difference Hessian of an exactly singular problem has a relative
+        eigenvalue of ~1e-8, not 0).
+
+    Returns
+    -------
+    dict
+        ``std (k,)``, ``corr (k, k)``, ``cov (k, k)``, ``eigenvalues``,
+        ``positive_definite``, ``warning`` (str or None naming the weakest
+        direction). Entries are NaN when H is not positive definite.
+    """
+    k = len(names)
+    out = dict(std=np.full(k, np.nan), corr=np.full((k, k), np.nan), cov=np.full((k, k), np.nan),
+               eigenvalues=np.full(k, np.nan), positive_definite=False, warning=None)
+    if H is None or not np.isfinite(H).all():
+        bad = [names[i] for i in range(k) if not np.isfinite(H[i]).all()] if H is not None else names
+        out["warning"] = (f"Hessian of the NLL is not finite for {', '.join(bad)} (a difference "
+                          f"point failed); no Cramér-Rao bound")
+        return out
+    s = np.ones(k) if scale is None else np.where(np.abs(scale) > 0, np.abs(scale), 1.0)
+    Hs = H * np.outer(s, s)                       # Hessian in relative coordinates
+    Hs = 0.5 * (Hs + Hs.T)
+    lam, V = np.linalg.eigh(Hs)
+    out["eigenvalues"] = lam
+    if lam[0] <= rcond * max(abs(lam[-1]), 1e-300):
+        v = V[:, 0]
+        order = np.argsort(-np.abs(v))
+        terms = [f"{v[i]:+.2f}·{names[i]}" for i in order if abs(v[i]) > 0.1]
+        out["warning"] = (f"Hessian of the NLL is not positive definite (smallest eigenvalue "
+                          f"{lam[0]:.3g}, largest {lam[-1]:.3g}, in scaled coordinates): the "
+                          f"direction {' '.join(terms)} (scaled coordinates) is not identified "
+                          f"by this record")
+        return out
+    cov_s = (V / lam) @ V.T
+    cov = cov_s * np.outer(s, s)
+    std = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(std, std)
+    out.update(std=std, cov=cov, corr=corr, positive_definite=True)
+    iu = np.triu_indices(k, 1)
+    strong = [(names[i], names[j], corr[i, j]) for i, j in zip(*iu) if abs(corr[i, j]) > 0.999]
+    if strong:
+        out["warning"] = "nearly unidentified: " + ", ".join(
+            f"corr({a}, {b}) = {c:+.4f}" for a, b, c in strong)
+    return out
+
+
+# -------------------------------------------------------------------- result
+@dataclass
+class EstimationResult:
+    """Outcome of :func:`estimate` (JSON-able with :meth:`to_json`).
+
+    Attributes
+    ----------
+    model : str
+    experiment : str
+        Record name.
+    params : list of str
+    estimates : ndarray (k,)
+        Maximum-likelihood estimates (after polish), model units.
+    std : ndarray (k,)
+        Cramér-Rao standard deviations sqrt(diag(H⁻¹)); NaN if H is not
+        positive definite.
+    corr : ndarray (k, k)
+        Correlation matrix of the estimates.
+    hessian : ndarray (k, k)
+        Hessian of the NLL at the estimate.
+    nll : float
+        NLL at the estimate [nats].
+    nll_optimizer : float
+        Best NLL found by the global optimizer (before polish).
+    evaluations : int
+        Parameter sets evaluated by the global optimizer (e.g. 8080).
+    evaluations_total : int
+        Including polish and Hessian.
+    wall_s : float
+        Wall time of the whole estimation [s].
+    optimizer : str
+    theta : ndarray (n_theta,)
+        Full parameter vector at the estimate.
+    fixed : dict
+        Parameters held at given values (other than defaults).
+    lower, upper : ndarray (k,)
+    truth : dict or None
+        True values of the estimated parameters (synthetic records).
+    z : ndarray (k,) or None
+        (estimate − truth) / std.
+    """
+
+    model: str
+    experiment: str
+    params: list
+    estimates: np.ndarray
+    std: np.ndarray
+    corr: np.ndarray
+    hessian: np.ndarray
+    nll: float
+    nll_optimizer: float
+    evaluations: int
+    evaluations_total: int
+    wall_s: float
+    optimizer: str
+    theta: np.ndarray
+    fixed: dict = field(default_factory=dict)
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
+    truth: dict | None = None
+    z: np.ndarray | None = None
+    at_bound: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    failures: dict = field(default_factory=dict)
+    optimizer_result: dict = field(default_factory=dict)
+    polish: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
+    units: list = field(default_factory=list)
+    std_total: np.ndarray | None = None
+    propagated: dict = field(default_factory=dict)
+
+    def estimate_dict(self) -> dict[str, float]:
+        """Parameter name -> estimate."""
+        return {p: float(v) for p, v in zip(self.params, self.estimates)}
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return _json_ready(d)
+
+    def to_json(self, path: str | Path | None = None, indent: int = 2) -> str:
+        """JSON text (also written to ``path`` if given). Non-finite numbers
+        become ``null``."""
+        text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        if path is not None:
+            Path(path).write_text(text + "\n")
+        return text
+
+    @classmethod
+    def from_json(cls, text_or_path) -> "EstimationResult":
+        p = Path(text_or_path) if not str(text_or_path).lstrip().startswith("{") else None
+        d = json.loads(p.read_text() if p is not None else text_or_path)
+        for key in ("estimates", "std", "corr", "hessian", "theta", "lower", "upper", "z",
+                    "std_total"):
+            if d.get(key) is not None:
+                d[key] = np.array(d[key], dtype=float)
+        return cls(**d)
+
+    def table(self) -> str:
+        """Plain-text table of estimates, standard deviations and truth."""
+        has_truth = self.truth is not None
+        head = f"{'parameter':<22}{'estimate':>14}{'CR std':>12}{'rel std':>9}"
+        tot = self.std_total is not None
+        if tot:
+            head += f"{'total std':>12}"
+        if has_truth:
+            head += f"{'truth':>14}{'z':>7}"
+        lines = [head, "-" * len(head)]
+        for i, p in enumerate(self.params):
+            e, s = self.estimates[i], self.std[i]
+            rel = abs(s / e) if e != 0 and np.isfinite(s) else np.nan
+            row = f"{p:<22}{e:>14.6g}{s:>12.3g}{rel:>9.2%}"
+            if tot:
+                row += f"{self.std_total[i]:>12.3g}"
+            if has_truth:
+                tv = self.truth.get(p, np.nan)
+                zz = self.z[i] if self.z is not None else np.nan
+                row += f"{tv:>14.6g}{zz:>7.2f}"
+            lines.append(row)
+        lines.append(f"NLL {self.nll:.6f} (optimizer {self.nll_optimizer:.6f}); "
+                     f"{self.evaluations} optimizer evaluations ({self.optimizer}), "
+                     f"{self.evaluations_total} in total; {self.wall_s:.1f} s")
+        for w in self.warnings:
+            lines.append(f"WARNING: {w}")
+        return "\n".join(lines)
+
+
+def _json_ready(obj):
+    if isinstance(obj, dict):
+        return {str(k): _json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_ready(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if np.isfinite(v) else None
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+# ----------------------------------------------------------------- estimation
+def _resolve_model(model):
+    from bondgraph.numerics.model import Model
+
+    return Model.load(model) if isinstance(model, str) else model
+
+
+def record_arrays(model, experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, dict]:
+    """``(t, u, y, name, meta)`` of a record for a model.
+
+    Parameters
+    ----------
+    model : Model
+    experiment : Experiment, str/Path of a CSV, or tuple ``(t, u, y)``
+
+    Raises
+    ------
+    DataError
+        Via :meth:`bondgraph.data.records.Experiment.load` / ``inputs_for`` /
+        ``outputs_for``.
+    """
+    if isinstance(experiment, tuple):
+        t, u, y = experiment
+        return np.asarray(t, float), np.asarray(u, float), np.asarray(y, float), "arrays", {}
+    if isinstance(experiment, (str, Path)):
+        from bondgraph.data.records import Experiment
+
+        experiment = Experiment.load(experiment)
+    t = np.asarray(experiment.t, dtype=float)
+    u = experiment.inputs_for(model)
+    y = experiment.outputs_for(model)
+    return t, u, y, experiment.name, dict(experiment.meta or {})
+
+
+def _x0_array(model, x0):
+    if x0 is None:
+        return model.x0.copy()
+    if isinstance(x0, Mapping):
+        return model.state(dict(x0))
+    return np.asarray(x0, dtype=float)
+
+
+def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso",
+             particles: int | None = None, iterations: int = 100, seed: int | None = 0,
+             checkpoint: str | Path | None = None, resume: bool = False,
+             fixed: Mapping[str, float] | None = None, bounds: Mapping[str, tuple] | None = None,
+             x0=None, P0=None, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
+             method: str = "ros2", substeps: int = 1, Q=None, R=None, hold: str = "zoh",
+             polish: bool = True, hessian: bool = True, stall_iterations: int | None = None,
+             start=None, progress: bool = True, chunk: int | None = None,
+             check_discretisation: bool = True, workers: int = 1,
+             polish_maxiter: int = 50) -> EstimationResult:
+    """Maximum-likelihood estimate of ``params`` from one record.
+
+    Parameters
+    ----------
+    model : Model or str
+        Filter model (registered name or :class:`~bondgraph.numerics.model.Model`).
+    experiment : Experiment, path of a CSV record, or tuple (t, u, y)
+    params : sequence of str
+        Parameters to estimate (k).
+    optimizer : {"pso", "de"}
+    particles : int, optional
+        PSO swarm size (default 10 k); for DE the population is
+        ``particles`` members too (popsize = particles // k).
+    iterations : int
+        PSO iterations / DE generations after the initial population.
+    seed : int
+    checkpoint : path, optional
+        Optimizer checkpoint, written after every iteration.
+    resume : bool
+        Continue from ``checkpoint`` (PSO: bit-for-bit the same result).
+    fixed : dict, optional
+        Values for parameters that are not estimated (default: model
+        defaults).
+    bounds : dict name -> (lower, upper), optional
+        Search box (default: the model's bounds).
+    x0 : array (n_x,) or dict, optional
+        Prior state at the first sample (default ``model.x0``).
+    P0 : array (n_x, n_x) or (n_x,), optional
+        Prior covariance (default :func:`bondgraph.inference.ukf.default_P0`).
+    alpha, beta, kappa, method, substeps, Q, R, hold :
+        UKF options (:func:`bondgraph.inference.ukf.ukf_nll`).
+    polish : bool
+        Refine the optimizer's best point with bounded L-BFGS-B.
+    polish_maxiter : int
+        Iterations of the polish.
+    hessian : bool
+        Compute the Hessian, Cramér-Rao standard deviations and correlations.
+    stall_iterations : int, optional
+        PSO stopping rule (see :func:`bondgraph.inference.optimize.pso`).
+    start : array (k,), optional
+        A starting point placed in the initial population.
+    progress : bool
+        tqdm progress bar.
+    chunk : int, optional
+        Maximum parameter sets per UKF run (memory bound).
+    workers : int
+        Processes sharing each batched evaluation (see :class:`Criterion`).
+    check_discretisation : bool
+        At the estimate, compare the one-step output error of the filter's
+        discretisation with a fine reference, in units of the measurement
+        noise (:func:`bondgraph.inference.ukf.discretisation_check`); warn above 0.1.
+
+    Returns
+    -------
+    EstimationResult
+
+    Raises
+    ------
+    ModelError
+        Unknown parameter names, or a fixed parameter that is also estimated.
+    OptionError
+        Unknown optimizer or invalid options.
+    DataError
+        Problems of the record (from :mod:`bondgraph.data.records`).
+
+    Warns
+    -----
+    IdentifiabilityWarning
+        If the Hessian is not positive definite (the unidentified direction
+        is named) or an estimate lies on a bound of the box.
+    """
+    t_start = time.perf_counter()
+    model = _resolve_model(model)
+    params = list(params)
+    if not params:
+        raise OptionError("no parameters to estimate")
+    if len(set(params)) != len(params):
+        raise OptionError(f"parameter listed twice in {params}")
+    model.param_indices(params)                    # ModelError for unknown names
+    fixed = dict(fixed or {})
+    both = sorted(set(fixed) & set(params))
+    if both:
+        raise ModelError(f"parameter(s) {', '.join(both)} both fixed and estimated")
+    base = model.theta(fixed)
+    lo, hi = model.bounds(params)
+    for name, (a, b) in (bounds or {}).items():
+        i = params.index(name) if name in params else None
+        if i is None:
+            raise ModelError(f"bounds given for '{name}', which is not estimated ({params})")
+        lo[i], hi[i] = float(a), float(b)
+    if optimizer not in ("pso", "de"):
+        raise OptionError(f"unknown optimizer '{optimizer}' (use 'pso' or 'de')")
+
+    t, u, y, ename, meta = record_arrays(model, experiment)
+    x0a = _x0_array(model, x0)
+    P0a = default_P0(model, x0a) if P0 is None else P0
+    ukf_opts = dict(alpha=alpha, beta=beta, kappa=kappa, method=method, substeps=substeps,
+                    Q=Q, R=R, hold=hold)
+    crit = Criterion(model, t, u, y, params, base, x0a, P0a, ukf_opts, chunk=chunk,
+                     workers=workers)
+    k = len(params)
+    S = int(particles) if particles else 10 * k
+
+    if optimizer == "pso":
+        opt = pso(crit, lo, hi, particles=S, iterations=iterations, seed=seed,
+                  checkpoint=checkpoint, resume=resume, progress=progress,
+                  stall_iterations=stall_iterations, x0=start)
+    else:
+        popsize = max(1, S // k)
+        opt = de(crit, lo, hi, popsize=popsize, iterations=iterations, seed=seed,
+                 progress=progress, x0=start, checkpoint=checkpoint, resume=resume)
+    opt_evals = opt.nfev
+    x_best, f_best = opt.x.copy(), opt.fun
+    warn_list: list[str] = []
+    pol: dict = {}
+    if polish and np.isfinite(f_best):
+        xp, fp, nfp, msg = minimize_batched(crit, x_best, lo, hi, maxiter=polish_maxiter)
+        pol = dict(nfev=nfp, message=msg, nll_before=f_best, nll_after=fp)
+        if fp <= f_best:
+            x_best, f_best = xp, fp
+    width = hi - lo
+    rel_pos = (x_best - lo) / width
+    at_bound = [params[i] for i in range(k) if rel_pos[i] < 1e-6 or rel_pos[i] > 1 - 1e-6]
+    if at_bound:
+        warn_list.append(f"estimate at the bound of the search box for {', '.join(at_bound)}; "
+                         f"the Cramér-Rao bound does not apply there")
+    H = np.full((k, k), np.nan)
+    cr = dict(std=np.full(k, np.nan), corr=np.full((k, k), np.nan), warning=None)
+    if hessian and np.isfinite(f_best):
+        mag = np.where(np.abs(x_best) > 0, np.abs(x_best), width)
+        scale = width
+        h = 1e-4 * np.minimum(mag, width)
+        H, f0, ne = hessian_batched(crit, x_best, h)
+        cr = cramer_rao(H, params, scale)
+        if cr["positive_definite"]:
+            # second pass: steps of a fraction of the standard deviation, where
+            # the NLL changes by O(0.01) nats (truncation and rounding balanced)
+            h2 = np.clip(0.1 * cr["std"], 1e-8 * mag, 0.05 * width)
+            H2, _, ne2 = hessian_batched(crit, x_best, h2)
+            cr2 = cramer_rao(H2, params, scale)
+            if cr2["positive_definite"]:
+                H, cr = H2, cr2
+        if cr["warning"]:
+            warn_list.append(cr["warning"])
+    elif not np.isfinite(f_best):
+        warn_list.append("no finite NLL found: every evaluated parameter set failed "
+                         f"({dict(crit.failures)})")
+    disc = None
+    if check_discretisation and np.isfinite(f_best):
+        th_best = crit.theta(x_best)[0]
+        dc = discretisation_check(model, t, u, th_best, x0a, method=method, substeps=substeps)
+        disc = dict(one_step=dc["one_step"].tolist(), free_run=dc["free_run"].tolist(),
+                    reference=dc["reference"])
+        worst = float(np.max(dc["one_step"]))
+        if worst > 0.1:
+            warn_list.append(f"discretisation error of {method}({substeps}) is {worst:.2g} "
+                             f"measurement-noise standard deviations per sample at the "
+                             f"estimate: a model error that biases the estimate; use more "
+                             f"substeps or method='rk4'")
+    for w in warn_list:
+        warnings.warn(w, IdentifiabilityWarning, stacklevel=2)
+
+    truth = None
+    z = None
+    tp = meta.get("true_parameters") if isinstance(meta, Mapping) else None
+    if tp:
+        truth = {p: float(tp[p]) for p in params if p in tp}
+        if truth:
+            z = np.array([(x_best[i] - truth[p]) / cr["std"][i] if p in truth else np.nan
+                          for i, p in enumerate(params)])
+    crit.close()
+    theta = base.copy()
+    theta[model.param_indices(params)] = x_best
+    return EstimationResult(
+        model=model.name, experiment=ename, params=params, estimates=x_best, std=cr["std"],
+        corr=cr["corr"], hessian=H, nll=float(f_best), nll_optimizer=float(opt.fun),
+        evaluations=int(opt_evals), evaluations_total=int(crit.evaluations),
+        wall_s=time.perf_counter() - t_start, optimizer=optimizer, theta=theta, fixed=fixed,
+        lower=lo, upper=hi, truth=truth, z=z, at_bound=at_bound, warnings=warn_list,
+        failures=dict(crit.failures), optimizer_result=opt.to_dict(), polish=pol,
+        settings=dict(ukf={k_: v for k_, v in ukf_opts.items() if k_ not in ("Q", "R")},
+                      Q_given=Q is not None, R_given=R is not None, samples=int(t.size),
+                      duration_s=float(t[-1] - t[0]), particles=S, iterations=iterations,
+                      seed=seed, x0=x0a.tolist(), P0=np.asarray(P0a, float).tolist(),
+                      discretisation=disc),
+        units=[model.param_units[i] for i in model.param_indices(params)])
+
+
+# ---------------------------------------------------------------- two stages
+@dataclass
+class Stage:
+    """One stage of a multi-stage estimation.
+
+    Parameters
+    ----------
+    name : str
+    model : Model or str
+    experiment : Experiment, path or (t, u, y)
+    params : list of str
+    options : dict
+        Keyword arguments of :func:`estimate` for this stage.
+    """
+
+    name: str
+    model: Any
+    experiment: Any
+    params: list
+    options: dict = field(default_factory=dict)
+
+
+def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = None,
+              propagate: bool = True, **common) -> list[EstimationResult]:
+    """Run stages in order; each fixes what the earlier stages estimated.
+
+    Parameters
+    ----------
+    stages : sequence of Stage
+        Typically two: the coast-down parameters with the reduced model on
+        the coast-down record, then the drive-line parameters with the full
+        model on a driving record (Auby 2016).
+    fixed : dict, optional
+        Values fixed in every stage (where the stage's model has them).
+    propagate : bool
+        Propagate the uncertainty of the carried estimates into each later
+        stage (see Notes); sets ``result.std_total``, and ``result.z`` uses it.
+    **common
+        Options of :func:`estimate` shared by every stage (a stage's own
+        ``options`` win).
+
+    Returns
+    -------
+    list of EstimationResult
+        One per stage; ``result.fixed`` shows what each stage held fixed.
+
+    Notes
+    -----
+    A later stage's Cramér-Rao bound ``std`` is conditional on the fixed
+    values of the earlier stages. Their estimation errors δθ₁ shift the
+    later estimate by G δθ₁ with G = −H₂₂⁻¹ H₂₁, the mixed second derivatives
+    of the later stage's NLL (implicit-function theorem; the two-step
+    estimator covariance of Murphy & Topel 1985). So
+    ``cov_total = H₂₂⁻¹ + G Σ₁ Gᵀ`` with Σ₁ the covariance of the carried
+    estimates. Ignoring this term makes the second stage look biased by
+    several standard deviations even on synthetic data (tests/test_estimate.py).
+    """
+    carried: dict[str, float] = dict(fixed or {})
+    carried_cov: dict[str, tuple[np.ndarray, list]] = {}      # stage name -> (cov, names)
+    cov_all: dict[tuple[str, str], float] = {}
+    out = []
+    for st in stages:
+        model = _resolve_model(st.model)
+        fx = {p: v for p, v in carried.items() if p in model.params and p not in st.params}
+        opts = {**common, **st.options}
+        res = estimate(model, st.experiment, st.params, fixed=fx, **opts)
+        res.settings["stage"] = st.name
+        prop = [p for p in fx if (p, p) in cov_all]
+        if propagate and prop and np.isfinite(res.std).all():
+            _propagate(model, st, res, prop, cov_all, opts)
+        # covariance of this stage's estimates (total if propagated)
+        cov = res.propagated.get("cov_total") if res.propagated else None
+        cov = np.asarray(cov) if cov is not None else (
+            np.outer(res.std, res.std) * res.corr if np.isfinite(res.std).all() else None)
+        if cov is not None:
+            for i, a_ in enumerate(res.params):
+                for j, b_ in enumerate(res.params):
+                    cov_all[(a_, b_)] = float(cov[i, j])
+        out.append(res)
+        carried.update(res.estimate_dict())
+    return out
+
+
+def _propagate(model, st, res, prop, cov_all, opts):
+    """Add the carried parameters' covariance to a stage's Cramér-Rao bound."""
+    t, u, y, _, _ = record_arrays(model, st.experiment)
+    x0a = _x0_array(model, opts.get("x0"))
+    P0 = opts.get("P0")
+    P0a = default_P0(model, x0a) if P0 is None else P0
+    ukf_keys = ("alpha", "beta", "kappa", "method", "substeps", "Q", "R", "hold")
+    ukf_opts = {k: opts[k] for k in ukf_keys if k in opts}
+    names = list(res.params) + list(prop)
+    crit = Criterion(model, t, u, y, names, res.theta, x0a, P0a, ukf_opts)
+    x = res.theta[model.param_indices(names)]
+    S1 = np.array([[cov_all[(a, b)] for b in prop] for a in prop])
+    h = np.concatenate([0.1 * res.std, 0.1 * np.sqrt(np.diag(S1))])
+    H, _, _ = hessian_batched(crit, x, h)
+    k2 = len(res.params)
+    H22, H21 = H[:k2, :k2], H[:k2, k2:]
+    if not np.isfinite(H).all():
+        res.warnings.append("uncertainty of the fixed parameters not propagated: the mixed "
+                            "Hessian is not finite")
+        return
+    G = -np.linalg.solve(H22, H21)
+    cov_total = np.linalg.inv(H22) + G @ S1 @ G.T
+    std_total = np.sqrt(np.diag(cov_total))
+    res.std_total = std_total
+    res.propagated = dict(from_params=list(prop), sensitivity=G.tolist(),
+                          cov_total=cov_total.tolist(), evaluations=int(crit.evaluations))
+    res.evaluations_total += int(crit.evaluations)
+    if res.truth:
+        res.z = np.array([(res.estimates[i] - res.truth[p]) / std_total[i] if p in res.truth
+                          else np.nan for i, p in enumerate(res.params)])
+
+
+# --------------------------------------------------------------------- plots
+def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
+             x0=None, P0=None, prefix: str = "") -> list[Path]:
+    """PNG plots of the fit at the estimate: measured vs predicted and
+    filtered outputs, and innovations with ±2 sqrt(S) bands.
+
+    Parameters
+    ----------
+    model : Model or str
+    experiment : Experiment, path or (t, u, y)
+    result : EstimationResult
+    outdir : path
+    x0, P0 : optional
+        As given to :func:`estimate` (default: from ``result.settings``).
+
+    Returns
+    -------
+    list of Path
+        ``fit_outputs.png`` and ``innovations.png`` (with ``prefix``).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    model = _resolve_model(model)
+    t, u, y, name, _ = record_arrays(model, experiment)
+    opts = dict(result.settings.get("ukf", {}))
+    x0a = np.asarray(result.settings.get("x0"), float) if x0 is None else _x0_array(model, x0)
+    if P0 is None:
+        P0 = result.settings.get("P0")
+    P0a = default_P0(model, x0a) if P0 is None else np.asarray(P0, float)
+    r = ukf_nll(model, t, u, y, result.theta[None, :], x0a, P0a, store=True, **opts)
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    ny = model.n_y
+    fig, axes = plt.subplots(ny, 1, figsize=(10, 2.6 * ny + 0.6), sharex=True, squeeze=False)
+    for j in range(ny):
+        ax = axes[j, 0]
+        ax.plot(t, y[:, j], ".", ms=2, color="0.5", label="measured")
+        ax.plot(t, r.y_pred[:, 0, j], lw=1.0, label="predicted ŷ(k|k-1)")
+        ax.plot(t, r.y_filt[:, 0, j], lw=0.8, ls="--", label="filtered h(x̂(k|k))")
+        ax.set_ylabel(f"{model.outputs[j]} [{model.output_units[j]}]")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="best", fontsize=8)
+    axes[0, 0].set_title(f"{model.name} on {name}: NLL {result.nll:.2f}")
+    axes[-1, 0].set_xlabel("t [s]")
+    fig.tight_layout()
+    p1 = outdir / f"{prefix}fit_outputs.png"
+    fig.savefig(p1, dpi=110)
+    plt.close(fig)
+    fig, axes = plt.subplots(ny, 1, figsize=(10, 2.4 * ny + 0.6), sharex=True, squeeze=False)
+    for j in range(ny):
+        ax = axes[j, 0]
+        e = r.innovations[:, 0, j]
+        s = np.sqrt(r.S[:, 0, j, j])
+        ax.plot(t, e, lw=0.6, label="innovation ε")
+        ax.fill_between(t, -2 * s, 2 * s, color="C1", alpha=0.25, label="±2 sqrt(S)")
+        inside = np.mean(np.abs(e[np.isfinite(e)]) <= 2 * s[np.isfinite(e)]) if np.isfinite(e).any() else np.nan
+        ax.set_ylabel(f"ε {model.outputs[j]}")
+        ax.set_title(f"{model.outputs[j]}: {inside:.1%} within ±2σ", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="best", fontsize=8)
+    axes[-1, 0].set_xlabel("t [s]")
+    fig.tight_layout()
+    p2 = outdir / f"{prefix}innovations.png"
+    fig.savefig(p2, dpi=110)
+    plt.close(fig)
+    return [p1, p2]
+
+
+# ----------------------------------------------------------------------- CLI
+def _parse_fixed(text: str | None) -> dict[str, float]:
+    out: dict[str, float] = {}
+    if not text:
+        return out
+    for item in text.split(","):
+        if not item.strip():
+            continue
+        if "=" not in item:
+            raise OptionError(f"--fixed expects name=value pairs separated by commas, got '{item}'")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = float(v)
+        except ValueError:
+            raise OptionError(f"--fixed: value of '{k.strip()}' is not a number: '{v}'") from None
+    return out
+
+
+def parse_params_option(text: str, model=None) -> list[str]:
+    """Parameters of ``--params``: ``a,b,c`` or ``recommended:<sensitivity.json>``
+    (the recommended set of :func:`bondgraph.sensitivity.analysis.recommended_params`).
+
+    Raises
+    ------
+    OptionError
+        Empty list.
+    bondgraph.sensitivity.analysis.SensitivityError
+        Missing or malformed sensitivity file.
+    ModelError
+        A recommended parameter the model does not have.
+    """
+    text = (text or "").strip()
+    if text.startswith("recommended:"):
+        from bondgraph.sensitivity.analysis import recommended_params
+
+        return recommended_params(text[len("recommended:"):], model)
+    params = [s.strip() for s in text.split(",") if s.strip()]
+    if not params:
+        raise OptionError("--params: no parameter names given")
+    return params
+
+
+def configure_estimate(p) -> None:
+    """Options of ``bondgraph estimate``."""
+    p.add_argument("--model", required=True, help="registered filter model")
+    p.add_argument("--data", required=True, help="record CSV (with optional JSON sidecar)")
+    p.add_argument("--params", required=True,
+                   help="comma-separated parameters to estimate, or recommended:FILE for the "
+                        "set recommended in a `bondgraph sensitivity` result (sensitivity.json "
+                        "or its directory)")
+    p.add_argument("--optimizer", choices=("pso", "de"), default="pso")
+    p.add_argument("--particles", type=int, default=None, help="swarm / population size (10 k)")
+    p.add_argument("--iterations", type=int, default=100)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default=None, help="output directory (default estimate_<model>_<data>)")
+    p.add_argument("--checkpoint", default=None, help="checkpoint file (default <out>/checkpoint.npz)")
+    p.add_argument("--resume", action="store_true", help="continue from the checkpoint")
+    p.add_argument("--fixed", default=None, help="name=value,... parameters held at given values")
+    p.add_argument("--method", choices=("ros2", "rk4"), default="ros2", help="discretisation")
+    p.add_argument("--substeps", type=int, default=1)
+    p.add_argument("--hold", choices=("zoh", "mean"), default="zoh",
+                   help="input over a sample interval: u_k or (u_k + u_k+1)/2")
+    p.add_argument("--alpha", type=float, default=1.0)
+    p.add_argument("--beta", type=float, default=2.0)
+    p.add_argument("--kappa", type=float, default=0.0)
+    p.add_argument("--stall", type=int, default=None, help="stop after N iterations without progress")
+    p.add_argument("--x0", default=None,
+                   help="name=value,... initial states (default: the record's state columns or "
+                        "sidecar x0 for states the model has, else the model's X0)")
+    p.add_argument("--p0-rel", type=float, default=0.05,
+                   help="prior std of each initial state, relative to max(|x0|, 1)")
+    p.add_argument("--no-polish", action="store_true")
+    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--workers", type=int, default=1, help="processes per batched evaluation")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def initial_state_from_record(model, experiment) -> np.ndarray:
+    """Initial state for a record: the first value of each ``state.<name>``
+    column, else the sidecar's ``x0[name]``, for the model's states; the
+    model's X0 for the others.
+
+    Returns
+    -------
+    ndarray (n_x,)
+    """
+    x0 = model.x0.copy()
+    cols = experiment.states() if hasattr(experiment, "states") else {}
+    meta_x0 = (experiment.meta or {}).get("x0") or {}
+    for i, name in enumerate(model.states):
+        if name in cols and np.isfinite(cols[name][0]):
+            x0[i] = float(cols[name][0])
+        elif isinstance(meta_x0, Mapping) and name in meta_x0:
+            x0[i] = float(meta_x0[name])
+    return x0
+
+
+def run_estimate(args) -> int:
+    """``bondgraph estimate``: estimate, write ``result.json`` and PNG fit plots."""
+    from bondgraph.data.records import Experiment
+
+    model = _resolve_model(args.model)
+    exp = Experiment.load(args.data)
+    params = parse_params_option(args.params, model)
+    out = Path(args.out) if args.out else Path(f"estimate_{model.name}_{Path(args.data).stem}")
+    out.mkdir(parents=True, exist_ok=True)
+    ck = Path(args.checkpoint) if args.checkpoint else out / "checkpoint.npz"
+    x0 = initial_state_from_record(model, exp)
+    for k, v in _parse_fixed(args.x0).items():
+        x0[model.state_index(k)] = v
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        res = estimate(model, exp, params, optimizer=args.optimizer, particles=args.particles,
+                       iterations=args.iterations, seed=args.seed, checkpoint=ck,
+                       resume=args.resume, fixed=_parse_fixed(args.fixed), method=args.method,
+                       substeps=args.substeps, alpha=args.alpha, beta=args.beta, kappa=args.kappa,
+                       hold=args.hold,
+                       polish=not args.no_polish, stall_iterations=args.stall,
+                       progress=not args.quiet, x0=x0, P0=default_P0(model, x0, args.p0_rel),
+                       workers=args.workers)
+    res.settings["data"] = str(args.data)
+    rpath = out / "result.json"
+    res.to_json(rpath)
+    print(res.table())
+    print(f"wrote {rpath}")
+    if not args.no_plots:
+        for pth in plot_fit(model, exp, res, out, P0=default_P0(model, x0, args.p0_rel)):
+            print(f"wrote {pth}")
+    return 0

@@ -1,0 +1,220 @@
+"""A generated model, loaded for numerical work.
+
+:class:`Model` wraps a generated module (``generated/<name>.py`` or one built
+in memory) and gives names, defaults, bounds and parameter-vector helpers.
+Everything downstream (simulation, UKF, estimation, diagnosis) works on a
+:class:`Model`, never on sympy.
+"""
+
+from __future__ import annotations
+
+import importlib
+import types
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+
+from bondgraph.errors import ModelError
+
+
+class Model:
+    """Numerical model from a generated module.
+
+    Parameters
+    ----------
+    module : module
+        A module written by :mod:`bondgraph.core.codegen`.
+
+    Attributes
+    ----------
+    name : str
+    states, inputs, params, outputs : list of str
+    f, h, dfdx, dfdtheta, dhdx, dhdtheta, f_dfdx : callables
+        Batched functions of ``(x, u, theta)``; see :mod:`bondgraph.core.codegen`.
+    theta0 : ndarray (n_theta,)
+        Parameter defaults.
+    lower, upper : ndarray (n_theta,)
+        Parameter bounds.
+    """
+
+    def __init__(self, module: types.ModuleType):
+        self.module = module
+        m = module
+        self.name: str = m.NAME
+        self.source: str = getattr(m, "SOURCE", "")
+        self.description: str = getattr(m, "DESCRIPTION", "")
+        self.states = list(m.STATES)
+        self.state_units = list(m.STATE_UNITS)
+        self.state_kinds = list(m.STATE_KINDS)
+        self.inputs = list(m.INPUTS)
+        self.input_units = list(m.INPUT_UNITS)
+        self.params = list(m.PARAMS)
+        self.param_units = list(m.PARAM_UNITS)
+        self.param_descriptions = list(getattr(m, "PARAM_DESCRIPTIONS", [""] * len(self.params)))
+        self.outputs = list(m.OUTPUTS)
+        self.output_units = list(m.OUTPUT_UNITS)
+        self.derivative_inputs = dict(getattr(m, "DERIVATIVE_INPUTS", {}))
+        self.x0 = np.array(m.X0, dtype=float)
+        self.u0 = np.array(m.INPUT_DEFAULTS, dtype=float)
+        self.theta0 = np.array(m.PARAM_DEFAULTS, dtype=float)
+        self.lower = np.array(m.PARAM_LOWER, dtype=float)
+        self.upper = np.array(m.PARAM_UPPER, dtype=float)
+        for fn in ("f", "h", "dfdx", "dfdtheta", "dhdx", "dhdtheta", "f_dfdx", "energy",
+                   "power_sources", "power_dissipated", "energy_rate", "meas_std", "proc_std",
+                   "fx", "hx"):
+            if hasattr(m, fn):
+                setattr(self, fn, getattr(m, fn))
+
+    # ----------------------------------------------------------- loading
+    @classmethod
+    def load(cls, name: str, directory: str | Path | None = None) -> "Model":
+        """Load ``generated/<name>.py`` (or ``<directory>/<name>.py``).
+
+        Raises
+        ------
+        ModelError
+            If no such generated module exists; the message lists the
+            registered models.
+        """
+        if directory is not None:
+            from bondgraph.core.codegen import load_module
+
+            path = Path(directory) / f"{name}.py"
+            if not path.exists():
+                raise ModelError(f"no generated model '{name}' in {directory}")
+            return cls(load_module(path))
+        try:
+            mod = importlib.import_module(f"generated.{name}")
+        except ModuleNotFoundError:
+            from bondgraph.numerics.registry import registered
+
+            names = ", ".join(sorted(registered()))
+            raise ModelError(f"no generated model '{name}' (registered: {names}); run "
+                             f"`bondgraph generate`") from None
+        return cls(mod)
+
+    @classmethod
+    def from_graph(cls, graph, *, functions=None, name: str | None = None) -> "Model":
+        """Derive, generate and load a model in memory from a BondGraph."""
+        from bondgraph.core.codegen import ALL_FUNCTIONS, generate_source, module_from_source
+
+        ss = graph.derive()
+        text = generate_source(ss, source=graph.source or f"<graph {graph.name}>",
+                               functions=functions or ALL_FUNCTIONS)
+        mod = module_from_source(text, name or f"_bondgraph_mem_{graph.name}")
+        mod.__source_text__ = text
+        return cls(mod)
+
+    # ------------------------------------------------------------- sizes
+    @property
+    def n_x(self) -> int:
+        return len(self.states)
+
+    @property
+    def n_u(self) -> int:
+        return len(self.inputs)
+
+    @property
+    def n_theta(self) -> int:
+        return len(self.params)
+
+    @property
+    def n_y(self) -> int:
+        return len(self.outputs)
+
+    # ------------------------------------------------------------ lookup
+    def _index(self, names: list[str], name: str, what: str) -> int:
+        try:
+            return names.index(name)
+        except ValueError:
+            close = [n for n in names if name.split(".")[-1] in n]
+            hint = f" Did you mean {', '.join(close[:5])}?" if close else ""
+            raise ModelError(f"model '{self.name}' has no {what} '{name}'.{hint} "
+                             f"Known: {', '.join(names)}") from None
+
+    def state_index(self, name: str) -> int:
+        return self._index(self.states, name, "state")
+
+    def input_index(self, name: str) -> int:
+        return self._index(self.inputs, name, "input")
+
+    def param_index(self, name: str) -> int:
+        return self._index(self.params, name, "parameter")
+
+    def output_index(self, name: str) -> int:
+        return self._index(self.outputs, name, "output")
+
+    def param_indices(self, names: Iterable[str]) -> np.ndarray:
+        return np.array([self.param_index(n) for n in names], dtype=int)
+
+    # ------------------------------------------------------------ vectors
+    def theta(self, values: Mapping[str, float] | None = None, **kw: float) -> np.ndarray:
+        """Full parameter vector: defaults with named overrides.
+
+        >>> th = model.theta({"m": 2.0})  # doctest: +SKIP
+        """
+        th = self.theta0.copy()
+        for k, v in {**(values or {}), **kw}.items():
+            th[self.param_index(k)] = float(v)
+        return th
+
+    def state(self, values: Mapping[str, float] | None = None, **kw: float) -> np.ndarray:
+        """State vector: X0 with named overrides."""
+        x = self.x0.copy()
+        for k, v in {**(values or {}), **kw}.items():
+            x[self.state_index(k)] = float(v)
+        return x
+
+    def input(self, values: Mapping[str, float] | None = None, **kw: float) -> np.ndarray:
+        """Input vector: defaults with named overrides."""
+        u = self.u0.copy()
+        for k, v in {**(values or {}), **kw}.items():
+            u[self.input_index(k)] = float(v)
+        return u
+
+    def expand_theta(self, names: Sequence[str], values: np.ndarray,
+                     base: np.ndarray | None = None) -> np.ndarray:
+        """Full parameter arrays from values of a subset.
+
+        Parameters
+        ----------
+        names : sequence of str
+            Estimated parameters (length k).
+        values : array (..., k)
+        base : array (n_theta,), optional
+            Values of the other parameters (default ``theta0``).
+
+        Returns
+        -------
+        array (..., n_theta)
+        """
+        values = np.asarray(values, dtype=float)
+        base = self.theta0 if base is None else np.asarray(base, dtype=float)
+        idx = self.param_indices(names)
+        if values.shape[-1] != len(idx):
+            raise ModelError(f"expected {len(idx)} values for {list(names)}, got shape {values.shape}")
+        out = np.broadcast_to(base, values.shape[:-1] + base.shape).copy()
+        out[..., idx] = values
+        return out
+
+    def bounds(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        idx = self.param_indices(names)
+        return self.lower[idx].copy(), self.upper[idx].copy()
+
+    def param_table(self) -> str:
+        """Markdown table of the parameters."""
+        rows = ["| parameter | default | unit | bounds | description |", "|---|---|---|---|---|"]
+        for i, n in enumerate(self.params):
+            rows.append(f"| {n} | {self.theta0[i]:.6g} | {self.param_units[i]} | "
+                        f"[{self.lower[i]:.4g}, {self.upper[i]:.4g}] | {self.param_descriptions[i]} |")
+        return "\n".join(rows)
+
+    def __repr__(self) -> str:
+        return (f"<Model {self.name}: {self.n_x} states, {self.n_u} inputs, "
+                f"{self.n_theta} parameters, {self.n_y} outputs>")
+
+
+def load(name: str, directory: str | Path | None = None) -> Model:
+    """Shortcut for :meth:`Model.load`."""
+    return Model.load(name, directory)

@@ -1,0 +1,797 @@
+"""Simulation of a generated model: adaptive (scipy) or fixed-step (RK4, ROS2).
+
+:func:`simulate` integrates ``dx/dt = f(x, u, θ)`` of a
+:class:`~bondgraph.numerics.model.Model` on a sample grid ``t`` and evaluates the
+outputs ``y = h(x, u, θ)`` at every sample.
+
+Methods
+-------
+``BDF``, ``Radau``, ``LSODA``
+    :func:`scipy.integrate.solve_ivp` with the generated Jacobian
+    ``model.dfdx`` (stiff-safe; the default is ``BDF``).
+``RK45``, ``RK23``, ``DOP853``
+    :func:`scipy.integrate.solve_ivp`, explicit, no Jacobian.
+``rk4``, ``ros2``
+    :func:`bondgraph.numerics.integrators.rk4` / :func:`~bondgraph.numerics.integrators.ros2`
+    with ``substeps`` steps per sample interval, inputs held at the sample
+    value over the interval (zero-order hold), exactly what the UKF sees.
+
+Inputs
+------
+``u`` may be an array ``(N, n_u)`` (or ``(N, n_base)`` without the
+``der(.)`` inputs), a dict ``name -> array (N,) | scalar | vectorised
+callable t -> array``, or a callable ``t -> (n_u,)`` (or ``(n_base,)``).
+Inputs not given take the model default. Derivative inputs ``der(r)``
+(``model.derivative_inputs``) are computed from ``r`` unless given: by
+``numpy.gradient`` of sampled arrays, by a central difference of callables.
+
+Between samples the adaptive solvers see callables evaluated exactly at any
+time, and sampled arrays interpolated linearly (``hold="linear"``, the
+default) or held (``hold="zoh"``; the record is then integrated piecewise
+between the samples where an input changes, so the solver never steps over a
+discontinuity). The fixed-step methods always hold the sample value.
+
+References
+----------
+Hairer, E., Wanner, G. (1996). *Solving Ordinary Differential Equations II:
+Stiff and Differential-Algebraic Problems*, 2nd ed., Springer (stiffness,
+stability regions, Rosenbrock methods). Verwer et al. (1999) for ROS2, see
+:mod:`bondgraph.numerics.integrators`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from bondgraph.numerics import integrators
+from bondgraph.errors import DataError, ModelError, NumericalError
+
+#: solve_ivp methods that receive the generated Jacobian
+IMPLICIT_METHODS = ("BDF", "Radau", "LSODA")
+#: solve_ivp methods without a Jacobian
+EXPLICIT_METHODS = ("RK45", "RK23", "DOP853")
+#: fixed-step methods of :mod:`bondgraph.numerics.integrators`
+FIXED_METHODS = ("rk4", "ros2")
+METHODS = IMPLICIT_METHODS + EXPLICIT_METHODS + FIXED_METHODS
+
+
+# ------------------------------------------------------------------ result
+@dataclass
+class SimResult:
+    """A simulated trajectory.
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+        Sample times [s].
+    x : ndarray (N, n_x)
+        States (model units).
+    u : ndarray (N, n_u)
+        Inputs at the samples, including ``der(.)`` inputs.
+    y : ndarray (N, n_y)
+        Noise-free outputs ``h(x, u, θ)``.
+    model : Model
+    theta : ndarray (n_theta,)
+    method : str
+    stats : dict
+        Solver statistics (``nfev``, ``njev``, ``nlu``, ``wall_time_s``,
+        ``substeps``, ``hold``, ``segments``, ``message``).
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    model: Any
+    theta: np.ndarray
+    method: str
+    stats: dict = field(default_factory=dict)
+
+    def state(self, name: str) -> np.ndarray:
+        """Trajectory of one state, (N,)."""
+        return self.x[:, self.model.state_index(name)]
+
+    def output(self, name: str) -> np.ndarray:
+        """Trajectory of one output, (N,)."""
+        return self.y[:, self.model.output_index(name)]
+
+    def input(self, name: str) -> np.ndarray:
+        """One input signal at the samples, (N,)."""
+        return self.u[:, self.model.input_index(name)]
+
+    def to_experiment(self, name: str | None = None, meta: Mapping | None = None):
+        """The trajectory as an :class:`~bondgraph.data.records.Experiment` (inputs,
+        noise-free outputs and ``state.<name>`` columns, model units)."""
+        from bondgraph.data.records import Experiment
+
+        m = self.model
+        info = {
+            "name": name or f"{m.name}_sim",
+            "description": f"noise-free simulation of {m.name} ({self.method})",
+            "dt": float(np.median(np.diff(self.t))),
+            "parameters": {p: float(v) for p, v in zip(m.params, self.theta)},
+            "x0": {s: float(v) for s, v in zip(m.states, self.x[0])},
+            "method": self.method,
+            "solver_stats": {k: v for k, v in self.stats.items()
+                             if isinstance(v, (int, float, str, bool)) or v is None},
+            **(meta or {}),
+        }
+        return Experiment.from_arrays(self.t, model=m, u=self.u, y=self.y, x=self.x, meta=info)
+
+    def to_dataframe(self):
+        """pandas DataFrame: ``t``, inputs, outputs and ``state.<name>`` columns."""
+        import pandas as pd
+
+        from bondgraph.data.records import STATE_PREFIX
+
+        m = self.model
+        data = {"t": self.t}
+        for j, n in enumerate(m.inputs):
+            data[n] = self.u[:, j]
+        for j, n in enumerate(m.outputs):
+            data[n] = self.y[:, j]
+        for j, n in enumerate(m.states):
+            data[STATE_PREFIX + n] = self.x[:, j]
+        return pd.DataFrame(data)
+
+    def save_csv(self, path: str | Path, *, precision: int | None = None) -> Path:
+        """Write the trajectory in the experiment format (CSV + JSON sidecar).
+
+        Returns
+        -------
+        Path
+            The CSV file.
+        """
+        return self.to_experiment(name=Path(path).stem).save(path, precision=precision)
+
+    def __repr__(self) -> str:
+        return (f"<SimResult {self.model.name} {self.method}: {self.t.size} samples, "
+                f"t = {self.t[0]:.6g} .. {self.t[-1]:.6g} s>")
+
+
+# ------------------------------------------------------------------ inputs
+def _central_diff(fn: Callable, t: np.ndarray, scale: float) -> np.ndarray:
+    h = 1e-6 * max(scale, 1e-3)
+    return (np.asarray(fn(t + h), dtype=float) - np.asarray(fn(t - h), dtype=float)) / (2 * h)
+
+
+class InputSignals:
+    """The input vector of a model as a function of time.
+
+    Built by :func:`simulate` from any of the accepted forms of ``u``;
+    ``samples`` holds the inputs at the sample times, ``at(tq)`` evaluates
+    them at any time for the adaptive solvers (callables exactly, arrays by
+    linear interpolation or zero-order hold).
+
+    Parameters
+    ----------
+    model : Model
+    t : array (N,)
+    u : None, array, dict or callable
+    hold : {"linear", "zoh"}
+
+    Raises
+    ------
+    ModelError
+        Unknown input names, arrays of the wrong shape.
+    DataError
+        Non-finite input values (the input and sample are named).
+    """
+
+    def __init__(self, model, t: np.ndarray, u=None, hold: str = "linear"):
+        if hold not in ("linear", "zoh"):
+            raise ModelError(f"unknown hold '{hold}' (use 'linear' or 'zoh')")
+        self.model = model
+        self.t = t
+        self.hold = hold
+        n = t.size
+        nu = model.n_u
+        scale = float(np.median(np.diff(t)))
+        der = model.derivative_inputs
+        base_names = [nm for nm in model.inputs if nm not in der]
+        # per input: ("const", value) | ("array", samples) | ("fn", callable)
+        spec: dict[str, tuple[str, Any]] = {}
+        if u is None:
+            pass
+        elif callable(u) and not isinstance(u, Mapping):
+            probe = np.asarray(u(float(t[0])), dtype=float).reshape(-1)
+            if probe.size == nu:
+                names = list(model.inputs)
+            elif probe.size == len(base_names):
+                names = base_names
+            else:
+                raise ModelError(f"the input callable returns {probe.size} values; model "
+                                 f"'{model.name}' expects {nu} ({', '.join(model.inputs)})"
+                                 + (f" or {len(base_names)} ({', '.join(base_names)})"
+                                    if der else ""))
+            vec = np.array([np.asarray(u(float(tk)), dtype=float).reshape(-1) for tk in t])
+
+            def vector_fn(tq, _u=u):
+                tq = np.atleast_1d(np.asarray(tq, dtype=float))
+                return np.array([np.asarray(_u(float(s)), dtype=float).reshape(-1)
+                                 for s in tq])
+
+            for j, nm in enumerate(names):
+                spec[nm] = ("fn_sampled", (lambda tq, j=j: vector_fn(tq)[:, j], vec[:, j]))
+        elif isinstance(u, Mapping):
+            for nm, val in u.items():
+                model.input_index(nm)  # raises ModelError naming the input
+                if callable(val):
+                    spec[nm] = ("fn", val)
+                else:
+                    arr = np.asarray(val, dtype=float)
+                    if arr.ndim == 0:
+                        spec[nm] = ("const", float(arr))
+                    elif arr.shape == (n,):
+                        spec[nm] = ("array", arr)
+                    else:
+                        raise ModelError(f"input '{nm}' has shape {arr.shape}; expected a "
+                                         f"scalar, ({n},) like t, or a callable")
+        else:
+            arr = np.asarray(u, dtype=float)
+            if arr.ndim == 1 and arr.size in (nu, len(base_names)):
+                arr = np.broadcast_to(arr, (n, arr.size))
+            if arr.ndim == 2 and arr.shape == (n, nu):
+                names = list(model.inputs)
+            elif arr.ndim == 2 and der and arr.shape == (n, len(base_names)):
+                names = base_names
+            else:
+                raise ModelError(
+                    f"input array has shape {arr.shape}; model '{model.name}' expects "
+                    f"({n}, {nu}) for inputs {', '.join(model.inputs)}"
+                    + (f" or ({n}, {len(base_names)}) without the derivative inputs"
+                       if der else ""))
+            for j, nm in enumerate(names):
+                spec[nm] = ("array", np.array(arr[:, j]))
+        # resolve every model input
+        self._fns: list[Callable[[np.ndarray], np.ndarray]] = []
+        self.samples = np.empty((n, nu))
+        self.source: dict[str, str] = {}
+        self._array_cols: list[int] = []
+        for j, nm in enumerate(model.inputs):
+            src = der.get(nm)
+            kind, val = spec.get(nm, (None, None))
+            if kind is None and src is not None:
+                skind, sval = spec.get(src, ("const", None))
+                if skind == "const":
+                    kind, val = "const", 0.0
+                    self.source[nm] = f"0 (d/dt of constant {src})"
+                elif skind == "array":
+                    kind, val = "array", np.gradient(sval, t)
+                    self.source[nm] = f"numpy.gradient of {src}"
+                elif skind == "fn":
+                    kind, val = "fn", (lambda tq, f=sval: _central_diff(f, tq, scale))
+                    self.source[nm] = f"central difference of {src}(t)"
+                else:  # fn_sampled
+                    f = sval[0]
+                    kind, val = "fn", (lambda tq, f=f: _central_diff(f, tq, scale))
+                    self.source[nm] = f"central difference of {src}(t)"
+            elif kind is None:
+                kind, val = "const", float(model.u0[j])
+                self.source[nm] = "model default"
+            else:
+                self.source.setdefault(nm, "given")
+            if kind == "const":
+                self.samples[:, j] = val
+                self._fns.append(lambda tq, v=val: np.full(np.shape(tq), v))
+            elif kind == "array":
+                self.samples[:, j] = val
+                self._array_cols.append(j)
+                self._fns.append(self._array_fn(val))
+            elif kind == "fn":
+                self.samples[:, j] = np.broadcast_to(np.asarray(val(t), dtype=float), (n,))
+                self._fns.append(lambda tq, f=val: np.asarray(f(tq), dtype=float))
+            else:  # fn_sampled
+                f, vals = val
+                self.samples[:, j] = vals
+                self._fns.append(f)
+        bad = np.argwhere(~np.isfinite(self.samples))
+        if bad.size:
+            i, j = bad[0]
+            raise DataError(f"input '{model.inputs[j]}' is {float(self.samples[i, j])!r} at sample {i} "
+                            f"(t = {float(t[i])!r}); inputs must be finite")
+
+    def _array_fn(self, vals: np.ndarray) -> Callable:
+        t = self.t
+        if self.hold == "linear":
+            return lambda tq: np.interp(tq, t, vals)
+
+        def zoh(tq):
+            k = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, t.size - 1)
+            return vals[k]
+        return zoh
+
+    def at(self, tq: float) -> np.ndarray:
+        """Input vector (n_u,) at time ``tq``."""
+        return np.array([float(np.asarray(fn(np.array([tq]))).reshape(-1)[0])
+                         for fn in self._fns])
+
+    def segment_input(self, a: int, hold: str) -> Callable[[float], np.ndarray]:
+        """Input function of the segment starting at sample ``a``: with
+        ``hold="zoh"`` the sampled-array inputs are held at sample ``a``
+        (callables still vary inside the segment), else :meth:`at`."""
+        if hold != "zoh":
+            return self.at
+        ua, cols = self.samples[a], self._array_cols
+
+        def u_at(tq: float) -> np.ndarray:
+            v = self.at(tq)
+            v[cols] = ua[cols]
+            return v
+        return u_at
+
+    def change_points(self) -> np.ndarray:
+        """Sample indices k where a sampled-array input differs from sample k-1
+        (plus 0): the segments integrated separately with ``hold="zoh"``."""
+        if not self._array_cols:
+            return np.array([0])
+        s = self.samples[:, self._array_cols]
+        ch = np.flatnonzero(np.any(s[1:] != s[:-1], axis=1)) + 1
+        return np.concatenate([[0], ch])
+
+
+# ---------------------------------------------------------------- simulate
+def _as_model(model):
+    from bondgraph.numerics.model import Model
+
+    if isinstance(model, str):
+        return Model.load(model)
+    return model
+
+
+def _vector(model, value, kind: str) -> np.ndarray:
+    if kind == "theta":
+        names, default, build = model.params, model.theta0, model.theta
+    else:
+        names, default, build = model.states, model.x0, model.state
+    if value is None:
+        return default.copy()
+    if isinstance(value, Mapping):
+        return build(dict(value))
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape != (len(names),):
+        raise ModelError(f"{kind} has shape {np.shape(value)}; model '{model.name}' expects "
+                         f"({len(names)},) for {', '.join(names)}")
+    return arr.copy()
+
+
+def _check_t(t) -> np.ndarray:
+    t = np.asarray(t, dtype=float)
+    if t.ndim != 1 or t.size < 2:
+        raise DataError(f"t must be a 1-D array of at least 2 sample times, got shape {t.shape}")
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise DataError(f"t[{bad[0]}] is {float(t[bad[0]])!r}; sample times must be finite")
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise DataError(f"t[{i}] = {float(t[i])!r} does not follow t[{i - 1}] = {float(t[i - 1])!r}; "
+                        f"sample times must increase strictly")
+    return t
+
+
+def _nonfinite_error(model, t, X, method, extra="") -> NumericalError:
+    bad = np.argwhere(~np.isfinite(X))
+    i, j = bad[0]
+    return NumericalError(
+        f"state '{model.states[j]}' of model '{model.name}' became {float(X[i, j])!r} at "
+        f"t = {t[i]:.6g} s (sample {i}) with method {method}{extra}",
+        hint="the step is too large for the stiffest mode (see stiffness_report): use more "
+             "substeps, method='ros2' or an implicit solver (BDF, Radau, LSODA); or the "
+             "parameters make the model unstable")
+
+
+def simulate(model, t, u=None, x0=None, theta=None, method: str = "BDF", rtol: float = 1e-8,
+             atol: float = 1e-10, substeps: int = 1, max_step: float | None = None, *,
+             hold: str = "linear", progress: bool | None = None) -> SimResult:
+    """Simulate a model on the sample grid ``t``.
+
+    Parameters
+    ----------
+    model : Model or str
+        A generated model (or its registered name).
+    t : array (N,)
+        Sample times [s], strictly increasing; the simulation starts at
+        ``t[0]`` from ``x0``.
+    u : None, array (N, n_u) or (N, n_base), dict, or callable
+        Inputs, in model units (see the module docstring); default: the
+        model's input defaults.
+    x0 : array (n_x,) or dict, optional
+        Initial state (default ``model.x0``; a dict overrides named states).
+    theta : array (n_theta,) or dict, optional
+        Parameters (default ``model.theta0``; a dict overrides named ones).
+    method : str
+        ``BDF`` (default), ``Radau``, ``LSODA`` (with the generated Jacobian),
+        ``RK45``, ``RK23``, ``DOP853``, or fixed-step ``rk4``, ``ros2``.
+    rtol, atol : float
+        Tolerances of the adaptive solvers.
+    substeps : int
+        Fixed-step methods: steps per sample interval.
+    max_step : float, optional
+        Largest step of the adaptive solvers [s] (default: unlimited; set it
+        below the shortest input pulse that a callable input contains).
+    hold : {"linear", "zoh"}
+        How adaptive solvers see sampled-array inputs between samples.
+    progress : bool, optional
+        tqdm progress bar for fixed-step loops (default: only for long runs,
+        more than 2e5 sub-steps, and only on a terminal).
+
+    Returns
+    -------
+    SimResult
+        ``x (N, n_x)``, ``u (N, n_u)``, ``y (N, n_y)`` at the samples.
+
+    Raises
+    ------
+    ModelError
+        Unknown method, input names, or arrays of the wrong shape.
+    DataError
+        Non-finite or non-increasing times, non-finite inputs.
+    NumericalError
+        A state became non-finite (the message names the time and the
+        state) or the adaptive solver failed.
+    """
+    model = _as_model(model)
+    if method not in METHODS:
+        raise ModelError(f"unknown simulation method '{method}' (use one of {', '.join(METHODS)})")
+    t = _check_t(t)
+    th = _vector(model, theta, "theta")
+    x_init = _vector(model, x0, "x0")
+    if not np.all(np.isfinite(x_init)):
+        raise DataError(f"x0 is not finite: {x_init}")
+    sig = InputSignals(model, t, u, hold=hold)
+    U = sig.samples
+    stats: dict[str, Any] = {"method": method}
+    t_wall = time.perf_counter()
+    if method in FIXED_METHODS:
+        substeps = int(substeps)
+        if substeps < 1:
+            raise ModelError(f"substeps must be >= 1, got {substeps}")
+        X = _fixed_step(model, t, U, th, x_init, method, substeps, progress)
+        stats.update(substeps=substeps, hold="zoh",
+                     nfev=(4 if method == "rk4" else 2) * substeps * (t.size - 1),
+                     njev=(t.size - 1) if method == "ros2" else 0)
+    else:
+        X = _solve_ivp(model, t, sig, th, x_init, method, rtol, atol, max_step, stats)
+        stats.update(rtol=rtol, atol=atol, hold=hold)
+    stats["wall_time_s"] = time.perf_counter() - t_wall
+    with np.errstate(all="ignore"):
+        Y = np.asarray(model.h(X, U, th), dtype=float)
+    return SimResult(t=t, x=X, u=U, y=Y, model=model, theta=th, method=method, stats=stats)
+
+
+def _fixed_step(model, t, U, th, x, method, substeps, progress):
+    n = t.size
+    X = np.empty((n, model.n_x))
+    X[0] = x
+    step = integrators.make_step(model, method, substeps)
+    steps = range(n - 1)
+    if progress is None:
+        progress = (n - 1) * substeps > 200_000
+    if progress:
+        from tqdm.auto import tqdm
+
+        steps = tqdm(steps, desc=f"simulate {model.name} ({method})", unit="sample",
+                     disable=None, leave=False)
+    # a batch axis of 1: the generated functions are used in their batched form
+    x = np.asarray(x, dtype=float)[None, :]
+    th1 = th[None, :]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        for k in steps:
+            x = step(x, U[k:k + 1], th1, t[k + 1] - t[k])
+            X[k + 1] = x[0]
+            if not np.all(np.isfinite(x)):
+                raise _nonfinite_error(model, t, X[:k + 2], method,
+                                       f" ({substeps} substeps per sample)")
+    return X
+
+
+def _solve_ivp(model, t, sig: InputSignals, th, x0, method, rtol, atol, max_step, stats):
+    from scipy.integrate import solve_ivp
+
+    n = t.size
+    X = np.empty((n, model.n_x))
+    kw = dict(method=method, rtol=rtol, atol=atol)
+    if max_step is not None:
+        kw["max_step"] = float(max_step)
+    if sig.hold == "zoh":
+        bounds = list(sig.change_points()) + [n - 1]
+        segments = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    else:
+        segments = [(0, n - 1)]
+    totals = {"nfev": 0, "njev": 0, "nlu": 0}
+    x = np.array(x0, dtype=float)
+    X[0] = x
+    for a, b in segments:
+        u_at = sig.segment_input(a, sig.hold)
+
+        th1 = th[None, :]
+
+        def rhs(tq, xq, _u=u_at):
+            return model.f(xq[None, :], _u(tq)[None, :], th1)[0]
+
+        if method in IMPLICIT_METHODS:
+            kw["jac"] = lambda tq, xq, _u=u_at: model.dfdx(xq[None, :], _u(tq)[None, :], th1)[0]
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            sol = solve_ivp(rhs, (t[a], t[b]), x, t_eval=t[a:b + 1], **kw)
+        for k in totals:
+            totals[k] += int(getattr(sol, k, 0) or 0)
+        if sol.status != 0 or sol.y.shape[1] != b - a + 1:
+            got = sol.y.shape[1]
+            t_fail = float(sol.t[-1]) if got else float(t[a])
+            Xs = sol.y.T
+            if Xs.size and not np.all(np.isfinite(Xs)):
+                X[a:a + got] = Xs
+                raise _nonfinite_error(model, t, X[:a + got], method)
+            last = Xs[-1] if got else x
+            j = int(np.argmax(np.abs(last))) if last.size else 0
+            raise NumericalError(
+                f"{method} failed for model '{model.name}' near t = {t_fail:.6g} s: "
+                f"{sol.message} (largest state there: '{model.states[j]}' = {last[j]:.6g})",
+                hint="check the inputs and parameters; try method='Radau' or 'LSODA', "
+                     "looser tolerances, or max_step")
+        X[a:b + 1] = sol.y.T
+        if not np.all(np.isfinite(X[a:b + 1])):
+            raise _nonfinite_error(model, t, X[:b + 1], method)
+        x = X[b]
+    stats.update(totals, segments=len(segments), message="ok")
+    return X
+
+
+# ------------------------------------------------------------- stiffness
+def _finite_or_none(v: float):
+    return float(v) if np.isfinite(v) else None
+
+
+def stiffness_report(model, result: SimResult, theta=None, *, every: int | None = None,
+                     max_samples: int = 200) -> tuple[dict, str]:
+    """Eigenvalues of ``df/dx`` along a trajectory and what they mean for RK4.
+
+    At every ``every``-th sample of ``result`` the generated Jacobian is
+    evaluated and its eigenvalues λ computed. Reported per sample and
+    overall: max |Re λ| (the fastest mode), the stiffness ratio
+    max |Re λ| / min |Re λ| over the decaying modes (Re λ < 0), the largest
+    step for which RK4 is stable on every mode (h·λ inside RK4's stability
+    region, :func:`bondgraph.numerics.integrators.rk4_stable_step`) and the RK4
+    sub-steps per sample interval that stability needs,
+    ``ceil(Δt / h_stable)``. Growing modes (Re λ > 0) are physics, not a
+    step limit; they are counted separately.
+
+    Parameters
+    ----------
+    model : Model or str
+    result : SimResult
+    theta : array (n_theta,) or dict, optional
+        Default ``result.theta``.
+    every : int, optional
+        Sample stride (default: at most ``max_samples`` samples).
+    max_samples : int
+
+    Returns
+    -------
+    report : dict
+        JSON-able: ``model, every, n_checked, dt, max_abs_re, t_max_abs_re,
+        stiffness_ratio, rk4_stable_step, rk4_substeps_needed,
+        n_growing_modes, samples: [{t, eigenvalues: [[re, im], ...],
+        max_abs_re, stiffness_ratio, rk4_stable_step, rk4_substeps}]``.
+    table : str
+        The same as a text table.
+
+    References
+    ----------
+    Hairer & Wanner (1996), ch. IV.2 (stability function of explicit RK
+    methods) and IV.1 (stiffness ratio).
+    """
+    model = _as_model(model)
+    th = result.theta if theta is None else _vector(model, theta, "theta")
+    n = result.t.size
+    every = int(every) if every else max(1, int(math.ceil(n / max_samples)))
+    idx = np.arange(0, n, every)
+    J = np.asarray(model.dfdx(result.x[idx], result.u[idx], th), dtype=float)
+    lam = np.linalg.eigvals(J) if model.n_x else np.zeros((idx.size, 0), complex)
+    dts = np.diff(result.t)
+    samples = []
+    worst = (-1.0, None)
+    h_min, sub_max, ratio_max, growing = math.inf, 1, 0.0, 0
+    for k, i in enumerate(idx):
+        ev = lam[k]
+        re = ev.real
+        scale = np.abs(ev).max() if ev.size else 0.0
+        decaying = re[re < -1e-12 * max(scale, 1e-300)]
+        max_abs = float(np.abs(re).max()) if ev.size else 0.0
+        ratio = float(np.abs(decaying).max() / np.abs(decaying).min()) if decaying.size else 1.0
+        h = integrators.rk4_stable_step(ev)
+        dt = float(dts[min(i, dts.size - 1)])
+        sub = int(math.ceil(dt / h - 1e-12)) if np.isfinite(h) and h > 0 else 1
+        sub = max(sub, 1)
+        growing = max(growing, int(np.sum(re > 1e-12 * max(scale, 1e-300))))
+        samples.append({
+            "t": float(result.t[i]),
+            "eigenvalues": [[float(z.real), float(z.imag)] for z in sorted(ev, key=lambda z: z.real)],
+            "max_abs_re": max_abs,
+            "stiffness_ratio": _finite_or_none(ratio),
+            "rk4_stable_step": _finite_or_none(h),
+            "rk4_substeps": sub,
+        })
+        if max_abs > worst[0]:
+            worst = (max_abs, float(result.t[i]))
+        h_min = min(h_min, h)
+        sub_max = max(sub_max, sub)
+        ratio_max = max(ratio_max, ratio)
+    report = {
+        "model": model.name,
+        "method": result.method,
+        "every": every,
+        "n_checked": int(idx.size),
+        "dt": float(np.median(dts)),
+        "max_abs_re": worst[0],
+        "t_max_abs_re": worst[1],
+        "stiffness_ratio": _finite_or_none(ratio_max),
+        "rk4_stable_step": _finite_or_none(h_min),
+        "rk4_substeps_needed": sub_max,
+        "n_growing_modes": growing,
+        "samples": samples,
+    }
+    return report, _stiffness_table(report)
+
+
+def _stiffness_table(rep: dict, rows: int = 12) -> str:
+    s = rep["samples"]
+    h = rep["rk4_stable_step"]
+    lines = [
+        f"Stiffness of {rep['model']} along the trajectory ({rep['n_checked']} samples, "
+        f"every {rep['every']}; dt = {rep['dt']:.6g} s)",
+        f"  max |Re λ| = {rep['max_abs_re']:.6g} 1/s at t = {rep['t_max_abs_re']:.6g} s; "
+        f"stiffness ratio up to {rep['stiffness_ratio'] or float('nan'):.4g}",
+        f"  largest stable RK4 step {h if h is not None else float('inf'):.6g} s -> "
+        f"RK4 needs >= {rep['rk4_substeps_needed']} substeps per sample",
+    ]
+    if rep["n_growing_modes"]:
+        lines.append(f"  note: up to {rep['n_growing_modes']} growing mode(s) (Re λ > 0)")
+    lines.append(f"  {'t [s]':>10} {'max|Re λ| [1/s]':>16} {'ratio':>10} {'h_RK4 [s]':>11} "
+                 f"{'substeps':>8}  eigenvalues")
+    pick = np.unique(np.concatenate([np.linspace(0, len(s) - 1, min(rows, len(s))).astype(int),
+                                     [int(np.argmax([r['max_abs_re'] for r in s]))]]))
+    for i in pick:
+        r = s[i]
+        ev = ", ".join(f"{re:.4g}{im:+.4g}j" if im else f"{re:.4g}" for re, im in r["eigenvalues"])
+        hr = r["rk4_stable_step"]
+        lines.append(f"  {r['t']:>10.4g} {r['max_abs_re']:>16.6g} "
+                     f"{(r['stiffness_ratio'] or float('nan')):>10.4g} "
+                     f"{(hr if hr is not None else float('inf')):>11.4g} {r['rk4_substeps']:>8d}"
+                     f"  {ev}")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------- CLI
+def _pairs(items, what) -> dict[str, float]:
+    out = {}
+    for it in items or []:
+        name, sep, val = it.partition("=")
+        if not sep:
+            raise ModelError(f"--{what} expects NAME=VALUE, got '{it}'")
+        try:
+            out[name.strip()] = float(val)
+        except ValueError:
+            raise ModelError(f"--{what} {name}: '{val}' is not a number") from None
+    return out
+
+
+def configure_simulate(p: argparse.ArgumentParser) -> None:
+    """Options of ``bondgraph simulate``."""
+    p.add_argument("model", help="registered model name")
+    p.add_argument("--experiment", "-e", metavar="NAME",
+                   help="registered experiment (its inputs, x0 and parameters) or a record "
+                        "CSV (its inputs and time grid); default: model defaults for --duration")
+    p.add_argument("-o", "--output", default=None, help="output CSV (default MODEL_sim.csv)")
+    p.add_argument("--method", default="BDF", choices=METHODS, help="integration method")
+    p.add_argument("--substeps", type=int, default=1, help="rk4/ros2 steps per sample")
+    p.add_argument("--duration", type=float, default=10.0,
+                   help="record length [s] without --experiment")
+    p.add_argument("--dt", type=float, default=0.025,
+                   help="sample interval [s] without --experiment")
+    p.add_argument("--param", action="append", metavar="NAME=VALUE", help="parameter override")
+    p.add_argument("--record-params", action="store_true",
+                   help="with a record CSV: use the parameters stored in its sidecar "
+                        "(true_parameters or parameters) that the model has")
+    p.add_argument("--input", action="append", metavar="NAME=VALUE",
+                   help="constant input (model units) without --experiment")
+    p.add_argument("--rtol", type=float, default=1e-8)
+    p.add_argument("--atol", type=float, default=1e-10)
+    p.add_argument("--max-step", type=float, default=None, help="adaptive solvers' largest step")
+    p.add_argument("--hold", choices=("linear", "zoh"), default="linear",
+                   help="sampled inputs between samples for adaptive solvers")
+    p.add_argument("--plot", metavar="DIR", help="also write PNG plots to DIR")
+    p.add_argument("--stiffness", action="store_true",
+                   help="print the stiffness report and write OUTPUT.stiffness.json")
+
+
+def run_simulate(args) -> int:
+    """Run ``bondgraph simulate`` (see :func:`configure_simulate`)."""
+    from bondgraph.numerics.model import Model
+
+    model = Model.load(args.model)
+    overrides = _pairs(args.param, "param")
+    measured = None
+    notes = []
+    if args.experiment:
+        path = Path(args.experiment)
+        if path.suffix.lower() in (".csv", ".json") or path.exists():
+            from bondgraph.data.records import Experiment
+
+            measured = Experiment.load(path)
+            t = measured.t
+            missing = measured.missing_inputs(model)
+            if missing:
+                notes.append(f"inputs {', '.join(missing)} not in the record: model defaults")
+            u = measured.inputs_for(model, defaults_ok=True)
+            x0 = {k: v for k, v in (measured.meta.get("x0") or {}).items() if k in model.states}
+            stored = {}
+            if args.record_params:
+                stored = (measured.meta.get("true_parameters") or measured.meta.get("parameters")
+                          or {})
+                stored = {k: v for k, v in stored.items() if k in model.params}
+                if not stored:
+                    notes.append("the record stores no parameters of this model")
+            theta = model.theta({**stored, **overrides})
+        else:
+            from bondgraph.data.experiments import get_experiment
+
+            spec = get_experiment(args.experiment)
+            n = int(round(spec.duration / spec.dt)) + 1
+            t = np.arange(n) * spec.dt
+            u = {k: fn for k, fn in spec.inputs.items() if k in model.inputs}
+            skipped = [k for k in spec.inputs if k not in model.inputs]
+            if skipped:
+                notes.append(f"experiment inputs {', '.join(skipped)} are not inputs of "
+                             f"{model.name}: ignored")
+            x0 = {k: v for k, v in spec.x0.items() if k in model.states}
+            params = {k: v for k, v in spec.params.items() if k in model.params}
+            theta = model.theta({**params, **overrides})
+    else:
+        n = int(round(args.duration / args.dt)) + 1
+        t = np.arange(n) * args.dt
+        u = _pairs(args.input, "input") or None
+        x0 = None
+        theta = model.theta(overrides)
+    res = simulate(model, t, u=u, x0=x0 or None, theta=theta, method=args.method,
+                   rtol=args.rtol, atol=args.atol, substeps=args.substeps,
+                   max_step=args.max_step, hold=args.hold)
+    out = Path(args.output or f"{model.name}_sim.csv")
+    res.save_csv(out)
+    for note in notes:
+        print(f"note: {note}")
+    st = res.stats
+    print(f"wrote {out} ({t.size} samples, {t[-1] - t[0]:.6g} s, {args.method}, "
+          f"{st.get('nfev', 0)} f evaluations, {st['wall_time_s']:.3g} s)")
+    if args.stiffness:
+        rep, table = stiffness_report(model, res)
+        print(table)
+        jpath = out.with_suffix(".stiffness.json")
+        jpath.write_text(json.dumps(rep, indent=1) + "\n")
+        print(f"wrote {jpath}")
+    if args.plot:
+        from bondgraph.report.plots import plot_record
+
+        if measured is not None:
+            paths = plot_record(measured, args.plot, simulated=res, model=model)
+        else:
+            paths = plot_record(res, args.plot)
+        for pth in paths:
+            print(f"wrote {pth}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    from bondgraph.cli.main.main import main
+
+    sys.exit(main(["simulate", *sys.argv[1:]]))

@@ -1,0 +1,191 @@
+"""PNG plots of records and simulations (matplotlib, Agg canvas, no pyplot).
+
+:func:`plot_record` draws one figure per group of columns — states, inputs,
+outputs (measurements) — with one axis per column labelled ``name [unit]``
+against ``t [s]``. Given a second record (``simulated=``), its columns of the
+same names are drawn over the first: measured vs simulated.
+
+CLI: ``bondgraph plot RECORD.csv [-o DIR] [--simulated SIM.csv] [--model NAME]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bondgraph.errors import DataError
+
+#: group order and titles
+GROUPS = (("state", "states"), ("input", "inputs"), ("output", "outputs"),
+          ("other", "other signals"))
+
+
+def _as_experiment(obj: Any):
+    """Experiment from a path, an Experiment or a SimResult (+ whether measured)."""
+    from bondgraph.data.records import Experiment
+    from bondgraph.numerics.simulate import SimResult
+
+    if isinstance(obj, Experiment):
+        return obj, "solver_stats" not in obj.meta
+    if isinstance(obj, SimResult):
+        return obj.to_experiment(), False
+    if isinstance(obj, (str, Path)):
+        exp = Experiment.load(obj)
+        return exp, "solver_stats" not in exp.meta
+    raise DataError(f"cannot plot a {type(obj).__name__}; give a CSV path, an Experiment or a "
+                    f"SimResult")
+
+
+def _roles(exp, model) -> dict[str, str]:
+    """Role of every column: sidecar role, else from the model, else 'other'."""
+    from bondgraph.data.records import STATE_PREFIX
+
+    known = exp.roles
+    mdl = model
+    if mdl is None and exp.model_name:
+        try:
+            from bondgraph.numerics.model import Model
+
+            mdl = Model.load(exp.model_name)
+        except Exception:  # the record's model need not be generated here
+            mdl = None
+    out = {}
+    for c, r in known.items():
+        if r is None:
+            if c.startswith(STATE_PREFIX):
+                r = "state"
+            elif mdl is not None and c in mdl.inputs:
+                r = "input"
+            elif mdl is not None and c in mdl.outputs:
+                r = "output"
+            else:
+                r = "other"
+        out[c] = r if r in ("state", "input", "output") else "other"
+    return out
+
+
+def _label(name: str, unit: str | None) -> str:
+    return f"{name} [{unit}]" if unit not in (None, "") else name
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "record"
+
+
+def plot_record(record, out_dir: str | Path, *, simulated=None, model=None,
+                prefix: str | None = None, max_per_figure: int = 8, dpi: int = 110,
+                max_points: int = 20000) -> list[Path]:
+    """Plot a record to PNG files, one figure per group of columns.
+
+    Parameters
+    ----------
+    record : str, Path, Experiment or SimResult
+        A CSV record (with its sidecar), an experiment or a simulation.
+    out_dir : str or Path
+        Directory for the PNGs (created).
+    simulated : str, Path, Experiment or SimResult, optional
+        A second record drawn over ``record`` (columns of the same names):
+        measured (markers or thin line) vs simulated (line).
+    model : Model or str, optional
+        Classifies columns the sidecar gives no role (default: the record's
+        ``meta["model"]`` if it is generated here).
+    prefix : str, optional
+        File-name prefix (default: the record name).
+    max_per_figure : int
+        Axes per figure; larger groups are split over numbered files.
+    dpi : int
+    max_points : int
+        Longer records are decimated (every k-th sample) for drawing.
+
+    Returns
+    -------
+    list of Path
+        The PNG files written (``<prefix>_<group>[_<k>].png``).
+
+    Raises
+    ------
+    DataError
+        Unreadable record, or an object that is not a record.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if isinstance(model, str):
+        from bondgraph.numerics.model import Model
+
+        model = Model.load(model)
+    exp, measured = _as_experiment(record)
+    sim = _as_experiment(simulated)[0] if simulated is not None else None
+    roles = _roles(exp, model)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    prefix = _safe(prefix or exp.name)
+    stride = max(1, int(np.ceil(len(exp) / max_points)))
+    paths: list[Path] = []
+    for role, title in GROUPS:
+        cols = [c for c, r in roles.items() if r == role]
+        if not cols:
+            continue
+        chunks = [cols[i:i + max_per_figure] for i in range(0, len(cols), max_per_figure)]
+        for k, chunk in enumerate(chunks):
+            n = len(chunk)
+            fig = Figure(figsize=(9.0, 1.9 * n + 0.9), dpi=dpi, layout="constrained")
+            FigureCanvasAgg(fig)
+            axes = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
+            group_title = ("measurements" if (role == "output" and measured) else title)
+            fig.suptitle(f"{exp.name}: {group_title}"
+                         + (f" ({k + 1}/{len(chunks)})" if len(chunks) > 1 else ""))
+            for ax, c in zip(axes, chunk):
+                v = exp.columns[c][::stride]
+                tt = exp.t[::stride]
+                name = c[len("state."):] if c.startswith("state.") else c
+                has_sim = sim is not None and c in sim.columns
+                gaps = np.isnan(v).any()
+                if has_sim or gaps:
+                    ax.plot(tt, v, ".", ms=2.0, color="C0",
+                            label=("measured" if measured and role == "output"
+                                   else "recorded" if measured else exp.name))
+                else:
+                    ax.plot(tt, v, "-", lw=1.0, color="C0")
+                if has_sim:
+                    s_stride = max(1, int(np.ceil(len(sim) / max_points)))
+                    ax.plot(sim.t[::s_stride], sim.columns[c][::s_stride], "-", lw=1.2,
+                            color="C3", label="simulated")
+                    ax.legend(loc="best", fontsize="small")
+                ax.set_ylabel(_label(name, exp.units.get(c)))
+                ax.grid(True, alpha=0.3)
+                if gaps:
+                    ax.set_title(f"{int(np.isnan(exp.columns[c]).sum())} missing samples",
+                                 fontsize="small", loc="right")
+            axes[-1].set_xlabel("t [s]")
+            suffix = f"_{k + 1}" if len(chunks) > 1 else ""
+            path = out_dir / f"{prefix}_{title.split()[0]}{suffix}.png"
+            fig.savefig(path)
+            paths.append(path)
+    if not paths:
+        raise DataError(f"record '{exp.name}' has no columns to plot", path=exp._where())
+    return paths
+
+
+# --------------------------------------------------------------------- CLI
+def configure_plot(p: argparse.ArgumentParser) -> None:
+    """Options of ``bondgraph plot``."""
+    p.add_argument("record", help="record CSV (experiment or simulation)")
+    p.add_argument("-o", "--output", default=None, metavar="DIR",
+                   help="output directory (default RECORD_plots)")
+    p.add_argument("--simulated", default=None, metavar="CSV",
+                   help="a simulation CSV to draw over the record")
+    p.add_argument("--model", default=None, help="model classifying columns without a role")
+
+
+def run_plot(args) -> int:
+    """Run ``bondgraph plot``."""
+    rec = Path(args.record)
+    out = args.output or str(rec.with_suffix("")) + "_plots"
+    for p in plot_record(rec, out, simulated=args.simulated, model=args.model):
+        print(f"wrote {p}")
+    return 0
