@@ -18,6 +18,7 @@ import sympy as sp
 
 from bondgraph.numerics.model import Model
 from bondgraph.catalog.reference import dc_motor_compliant
+from bondgraph.core.equations import derive
 
 
 def main() -> None:
@@ -26,7 +27,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=40)
     args = ap.parse_args()
     model = Model.load("dc_motor_compliant")
-    ss = dc_motor_compliant().derive()
+    ss = derive(dc_motor_compliant())
     rng = np.random.default_rng(0)
     N = args.batch
     lam = sp.lambdify((ss.states, ss.inputs, ss.params), ss.f, modules="numpy", cse=True)

@@ -34,7 +34,8 @@ sys.path.insert(0, str(ROOT))
 
 from bondgraph.catalog.benchmarks import (EMPS_IDIM_LS, EMPS_IDIM_RELERR, emps_arrays,  # noqa: E402
                                         emps_filtered_signals, emps_force_relerr, emps_idim_ls)
-from bondgraph.inference.estimate import estimate, plot_fit  # noqa: E402
+from bondgraph.inference.estimate import estimate  # noqa: E402
+from bondgraph.report.estimation import plot_fit  # noqa: E402
 from bondgraph.numerics.model import Model  # noqa: E402
 
 PARAMS = ["M", "Fv", "Fc", "offset", "q_F"]

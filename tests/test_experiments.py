@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-import types
 
 import numpy as np
 import pytest
@@ -13,6 +11,7 @@ from bondgraph.data.records import Experiment
 from bondgraph.errors import ModelError
 from bondgraph.data.experiments import (ExperimentSpec, get_experiment, registered_experiments,
                                    run_experiment)
+from bondgraph.core import plugins
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -20,20 +19,21 @@ from bondgraph.numerics.simulate import simulate
 def test_registry_lists_reference_experiments():
     reg = registered_experiments()
     for name in ("msd_force_step", "dc_motor_voltage_step", "toy_cvt_torque_ratio_ramp"):
-        assert reg[name] == f"bondgraph.data.experiments:{name}"
+        assert reg[name] == f"bondgraph.catalog.reference:{name}"
         spec = get_experiment(name)
         assert isinstance(spec, ExperimentSpec) and spec.name == name
         Model.load(spec.model)  # every spec names a generated model
 
 
-def test_registry_rejects_duplicates_and_unknown(monkeypatch):
-    fake = types.ModuleType("_fake_experiments")
-    fake.EXPERIMENTS = {"msd_force_step": "_fake_experiments:other"}
-    monkeypatch.setitem(sys.modules, "_fake_experiments", fake)
-    monkeypatch.setattr(E, "EXPERIMENT_MODULES", ("bondgraph.data.experiments", "_fake_experiments"))
+def test_registry_rejects_duplicates_and_unknown():
     with pytest.raises(ModelError, match="'msd_force_step' registered twice"):
-        registered_experiments()
-    monkeypatch.setattr(E, "EXPERIMENT_MODULES", ("bondgraph.data.experiments",))
+        plugins.register("experiments", {"msd_force_step": "_fake_experiments:other"})
+    plugins.register("experiments", {"msd_other": "_fake_experiments:other"})
+    try:
+        assert registered_experiments()["msd_other"] == "_fake_experiments:other"
+    finally:
+        plugins.unregister("experiments", "msd_other")
+    assert "msd_other" not in registered_experiments()
     with pytest.raises(ModelError, match="unknown experiment 'nope'.*msd_force_step"):
         get_experiment("nope")
 

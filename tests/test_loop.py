@@ -21,6 +21,8 @@ import pytest
 
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.cases import get_case
+from bondgraph.report.loop_report import LoopReporter
+from bondgraph.core.equations import derive
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 needs_data = pytest.mark.skipif(not (DATA / "emps").exists() or not (DATA / "ced").exists(),
@@ -31,8 +33,9 @@ needs_data = pytest.mark.skipif(not (DATA / "emps").exists() or not (DATA / "ced
 def _run(name, tmp_path, **over):
     case = get_case(name)
     settings = {**case.settings, **over}
-    res = run_loop(case.declared(), case.record(), case.params, out_dir=tmp_path / name,
-                   log=lambda m: None, **settings)
+    reporter = LoopReporter(tmp_path / name)
+    res = run_loop(case.declared(), case.record(), case.params, log=reporter.log,
+                   on_update=reporter.update, **settings)
     return case, res
 
 
@@ -96,7 +99,7 @@ def test_augmented_model_file_rebuilds_the_graph(tmp_path):
     spec.loader.exec_module(mod)
     g = mod.build()
     assert "quadratic_drag.body.v" in g.elements
-    ss = g.derive()
+    ss = derive(g)
     assert len(ss.states) == 5
     assert g.params["quadratic_drag.body.v.c"].default == pytest.approx(
         mod.ESTIMATES["quadratic_drag.body.v.c"])
@@ -130,7 +133,7 @@ def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
     """No false positives: the coast-down record fitted with the true
     structure leaves nothing significant."""
     from bondgraph.data.records import Experiment  # noqa: F401 (record type)
-    from bondgraph.diagnose.cases import COAST, LEVEL_TRACK, _coastdown_record, _vehicle
+    from vehicle_graphs.cases import COAST, LEVEL_TRACK, _coastdown_record, _vehicle
 
     truth = _vehicle("truth_aero", aero=True, **COAST)
     rec = _coastdown_record(truth, _vehicle("truth_aero", aero=True, **COAST), "nothing", seed=105)
@@ -145,7 +148,7 @@ def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
 @pytest.mark.data
 @pytest.mark.slow
 def test_emps_finds_coulomb_then_asymmetric_friction(tmp_path):
-    from bondgraph.diagnose.cases import emps_validation_error
+    from bondgraph.catalog.cases import emps_validation_error
 
     case, res = _run("emps", tmp_path, max_steps=2, confirm_top=2)
     effects = [(s.effect, s.attached_to) for s in res.steps]

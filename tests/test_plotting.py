@@ -62,7 +62,7 @@ def test_from_csv_and_simresult(tmp_path):
     chain = Model.load("mass_chain_5")
     t = np.linspace(0, 2, 201)
     sim = simulate(chain, t, u={"F": 1.0}, method="LSODA")
-    csv = sim.save_csv(tmp_path / "chain.csv")
+    csv = Experiment.from_simulation(sim, name="chain").save(tmp_path / "chain.csv")
     a = plot_record(csv, tmp_path / "a", max_per_figure=4)
     # 9 states -> 3 figures, 1 input, 1 output
     assert sorted(p.name for p in a) == sorted(

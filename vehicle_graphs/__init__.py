@@ -16,8 +16,8 @@
 See ``docs/vehicle.md``.
 """
 
-from .vehicle import build_vehicle  # noqa: F401
 from .subsystems import Numerics  # noqa: F401
+from .vehicle import build_vehicle  # noqa: F401
 
 #: registered models (``bondgraph generate`` writes ``generated/<name>.py``)
 MODELS: dict[str, str] = {

@@ -42,7 +42,7 @@ import sympy as sp
 
 from bondgraph.core.graph import BondGraph
 
-#: registered for ``bondgraph generate`` (see :mod:`bondgraph.numerics.registry`)
+#: registered models (``bondgraph.models`` entry point; ``bondgraph generate``)
 MODELS: dict[str, str] = {
     "emps": "bondgraph.catalog.benchmarks:emps",
     "emps_viscous": "bondgraph.catalog.benchmarks:emps_viscous",

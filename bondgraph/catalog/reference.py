@@ -7,8 +7,9 @@ hand-derived equations (for the tests) are given in the docstrings.
 from __future__ import annotations
 
 from bondgraph.core.graph import BondGraph
+from bondgraph.data.experiments import ExperimentSpec, ramp, step
 
-#: registered for ``bondgraph generate`` (see :mod:`bondgraph.numerics.registry`)
+#: registered models (``bondgraph.models`` entry point; ``bondgraph generate``)
 MODELS: dict[str, str] = {
     "mass_spring_damper": "bondgraph.catalog.reference:mass_spring_damper",
     "dc_motor_compliant": "bondgraph.catalog.reference:dc_motor_compliant",
@@ -222,3 +223,45 @@ def mass_chain(n: int = 5) -> BondGraph:
 def mass_chain_5() -> BondGraph:
     """:func:`mass_chain` with 5 masses (9 states), registered for generation."""
     return mass_chain(5)
+
+
+# ------------------------------------------------- reference experiments
+def msd_force_step() -> ExperimentSpec:
+    """Mass-spring-damper: a 10 N force step at t = 0.5 s, 10 s at 100 Hz."""
+    return ExperimentSpec(
+        name="msd_force_step", model="mass_spring_damper", duration=10.0, dt=0.01,
+        inputs={"F": step(0.5, 10.0)},
+        params={"m": 2.4, "k": 60.0, "c": 1.2}, seed=1,
+        description="Mass-spring-damper, 10 N force step at t = 0.5 s; true m, k, c "
+                    "differ from the defaults.")
+
+
+def dc_motor_voltage_step() -> ExperimentSpec:
+    """DC motor with compliant shaft: 12 V step at 0.05 s, a 0.1 N·m load
+    torque step at 0.6 s, 1 s at 1 kHz."""
+    return ExperimentSpec(
+        name="dc_motor_voltage_step", model="dc_motor_compliant", duration=1.0, dt=0.001,
+        inputs={"V": step(0.05, 12.0), "T_L": step(0.6, 0.1)},
+        params={"R_a": 1.4, "k_s": 40.0, "J_L": 6e-3}, seed=2,
+        description="DC motor (compliant shaft): 12 V armature step at 0.05 s, 0.1 N*m load "
+                    "torque step at 0.6 s.")
+
+
+def toy_cvt_torque_ratio_ramp() -> ExperimentSpec:
+    """Toy CVT: 50 N·m engine torque from 0.5 s, ratio ramp 0.05 -> 0.1 m/rad
+    over 5-15 s, 20 s at 40 Hz. The ratio change moves power between the
+    engine and vehicle inertias (the J_e v ṙ / r³ term)."""
+    return ExperimentSpec(
+        name="toy_cvt_torque_ratio_ramp", model="toy_cvt", duration=20.0, dt=0.025,
+        inputs={"T": step(0.5, 50.0), "r": ramp(5.0, 15.0, 0.05, 0.1)},
+        params={"J_e": 0.15, "m": 1350.0, "c": 25.0}, seed=3,
+        description="Toy CVT: 50 N*m torque step at 0.5 s, ratio ramp 0.05 -> 0.1 m/rad over "
+                    "5-15 s.")
+
+
+#: registered reference experiments (``bondgraph.experiments`` entry point)
+EXPERIMENTS: dict[str, str] = {
+    "msd_force_step": "bondgraph.catalog.reference:msd_force_step",
+    "dc_motor_voltage_step": "bondgraph.catalog.reference:dc_motor_voltage_step",
+    "toy_cvt_torque_ratio_ramp": "bondgraph.catalog.reference:toy_cvt_torque_ratio_ramp",
+}

@@ -20,10 +20,23 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from bondgraph.core.elements import (C, CField, Element, GY, I, IField, Junction, R,
-                       RField, Se, Source, TwoPort, Zero)
+from bondgraph.core.elements import (
+    GY,
+    C,
+    CField,
+    Element,
+    I,
+    IField,
+    Junction,
+    R,
+    RField,
+    Se,
+    Source,
+    TwoPort,
+    Zero,
+)
+from bondgraph.core.graph import Bond, BondGraph
 from bondgraph.errors import CausalConflictError, join_names
-from bondgraph.core.graph import BondGraph, Bond
 
 
 @dataclass

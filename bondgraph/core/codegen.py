@@ -28,8 +28,8 @@ import sympy as sp
 from sympy.printing.numpy import NumPyPrinter
 
 from bondgraph.core.equations import StateSpace
-from bondgraph.errors import CodegenError
 from bondgraph.core.symbols import identifier
+from bondgraph.errors import CodegenError
 
 # argument and module names used inside generated functions; generated locals
 # start with "_" (user names never do), so only these can collide

@@ -35,11 +35,30 @@ import networkx as nx
 import sympy as sp
 
 from bondgraph.core.causality import Causality, assign_causality
-from bondgraph.core.elements import (C, CField, Field, GY, I, IField, Junction, OnePort, R,
-                       RField, Se, Source, TwoPort, Zero)
-from bondgraph.errors import AlgebraicLoopError, CausalityError, DerivativeCausalityError, join_names
+from bondgraph.core.elements import (
+    GY,
+    C,
+    CField,
+    Field,
+    I,
+    IField,
+    Junction,
+    OnePort,
+    R,
+    RField,
+    Se,
+    Source,
+    TwoPort,
+    Zero,
+)
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.symbols import Input, Parameter, StateVar
+from bondgraph.errors import (
+    AlgebraicLoopError,
+    CausalityError,
+    DerivativeCausalityError,
+    join_names,
+)
 
 
 def diff(expr: sp.Expr, sym: sp.Symbol) -> sp.Expr:

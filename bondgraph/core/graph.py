@@ -32,12 +32,40 @@ from typing import Any, Callable
 import sympy as sp
 
 from bondgraph.core import units as _units
-from bondgraph.core.elements import (GY, MGY, MTF, TF, C, CField, Element, I, IField, Junction,
-                       One, OnePort, Port, R, RField, Se, Sf, Source, TwoPort, Zero)
-from bondgraph.errors import (ConnectionError, DanglingPortError, DuplicateNameError, GraphError,
-                     JunctionError, PortCountError, UndeclaredSymbolError,
-                     UnitMismatchError, join_names)
+from bondgraph.core.elements import (
+    GY,
+    MGY,
+    MTF,
+    TF,
+    C,
+    CField,
+    Element,
+    I,
+    IField,
+    Junction,
+    One,
+    OnePort,
+    Port,
+    R,
+    RField,
+    Se,
+    Sf,
+    Source,
+    TwoPort,
+    Zero,
+)
 from bondgraph.core.symbols import Input, Parameter, StateVar, Var
+from bondgraph.errors import (
+    ConnectionError,
+    DanglingPortError,
+    DuplicateNameError,
+    GraphError,
+    JunctionError,
+    PortCountError,
+    UndeclaredSymbolError,
+    UnitMismatchError,
+    join_names,
+)
 
 
 class Bond:
@@ -810,19 +838,6 @@ class BondGraph:
             raise UnitMismatchError(
                 f"{el.kind} '{el.name}': {what} has dimension {have}, the bond needs "
                 f"[{want}] = {_units.dimensionality(want)}", elements=[el.name], bonds=bonds)
-
-    # ------------------------------------------------------ derived steps
-    def assign_causality(self):
-        """Run SCAP; see :func:`bondgraph.core.causality.assign_causality`."""
-        from bondgraph.core.causality import assign_causality
-
-        return assign_causality(self)
-
-    def derive(self, **kw):
-        """Derive the state equations; see :func:`bondgraph.core.equations.derive`."""
-        from bondgraph.core.equations import derive
-
-        return derive(self, **kw)
 
     def __repr__(self) -> str:
         return (f"<BondGraph {self.name}: {len(self.elements)} elements, {len(self.bonds)} bonds, "

@@ -4,8 +4,9 @@ An :class:`ExperimentSpec` names a model (the filter model whose outputs are
 recorded), optionally a different *truth* model to simulate (e.g. a graph
 with an effect the filter model lacks), input signals as vectorised
 functions of time, initial state, true parameter overrides, noise and seed.
-Registered specs live in the ``EXPERIMENTS`` dicts (``name ->
-"module:function"``) of the modules in :data:`EXPERIMENT_MODULES`.
+Specs are registered like models (:mod:`bondgraph.core.plugins`, kind
+``experiments``): the toolkit's reference experiments are in
+:mod:`bondgraph.catalog.reference`, the vehicle's in ``vehicle_graphs``.
 """
 
 from __future__ import annotations
@@ -15,8 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-#: modules whose ``EXPERIMENTS`` dict is registered (missing modules skipped)
-EXPERIMENT_MODULES: tuple[str, ...] = ("bondgraph.data.experiments", "vehicle_graphs")
+from bondgraph.core import plugins
 
 
 @dataclass
@@ -65,34 +65,14 @@ class ExperimentSpec:
 
 # ---------------------------------------------------------------- registry
 def registered_experiments() -> dict[str, str]:
-    """All registered experiments: the ``EXPERIMENTS`` dicts (``name ->
-    "module:function"``) of :data:`EXPERIMENT_MODULES`.
+    """All registered experiments, ``name -> "module:function"``.
 
     Raises
     ------
     ModelError
         If a name is registered twice with different targets.
     """
-    import importlib
-
-    from bondgraph.errors import ModelError
-
-    out: dict[str, str] = {}
-    where: dict[str, str] = {}
-    for modname in EXPERIMENT_MODULES:
-        try:
-            mod = importlib.import_module(modname)
-        except ModuleNotFoundError as exc:
-            if exc.name == modname:
-                continue
-            raise
-        for k, v in (getattr(mod, "EXPERIMENTS", None) or {}).items():
-            if k in out and out[k] != v:
-                raise ModelError(f"experiment '{k}' registered twice: {out[k]} (in {where[k]}) "
-                                 f"and {v} (in {modname}); experiment names must be unique")
-            out[k] = v
-            where[k] = modname
-    return out
+    return plugins.registered("experiments")
 
 
 def get_experiment(name: str) -> ExperimentSpec:
@@ -105,13 +85,12 @@ def get_experiment(name: str) -> ExperimentSpec:
         registered function that does not return a spec of that name.
     """
     from bondgraph.errors import ModelError
-    from bondgraph.numerics.registry import resolve
 
     reg = registered_experiments()
     if name not in reg:
         raise ModelError(f"unknown experiment '{name}' (registered: "
                          f"{', '.join(sorted(reg)) or 'none'})")
-    spec = resolve(reg[name])()
+    spec = plugins.resolve(reg[name])()
     if not isinstance(spec, ExperimentSpec):
         raise ModelError(f"{reg[name]} returned {type(spec).__name__}, not an ExperimentSpec")
     if spec.name != name:
@@ -275,44 +254,3 @@ def step(t0: float, value: float, before: float = 0.0) -> Callable[[np.ndarray],
 def ramp(t0: float, t1: float, v0: float, v1: float) -> Callable[[np.ndarray], np.ndarray]:
     """Vectorised ramp: ``v0`` before ``t0``, linear to ``v1`` at ``t1``, then ``v1``."""
     return lambda t: np.interp(t, [t0, t1], [v0, v1])
-
-
-def msd_force_step() -> ExperimentSpec:
-    """Mass-spring-damper: a 10 N force step at t = 0.5 s, 10 s at 100 Hz."""
-    return ExperimentSpec(
-        name="msd_force_step", model="mass_spring_damper", duration=10.0, dt=0.01,
-        inputs={"F": step(0.5, 10.0)},
-        params={"m": 2.4, "k": 60.0, "c": 1.2}, seed=1,
-        description="Mass-spring-damper, 10 N force step at t = 0.5 s; true m, k, c "
-                    "differ from the defaults.")
-
-
-def dc_motor_voltage_step() -> ExperimentSpec:
-    """DC motor with compliant shaft: 12 V step at 0.05 s, a 0.1 N·m load
-    torque step at 0.6 s, 1 s at 1 kHz."""
-    return ExperimentSpec(
-        name="dc_motor_voltage_step", model="dc_motor_compliant", duration=1.0, dt=0.001,
-        inputs={"V": step(0.05, 12.0), "T_L": step(0.6, 0.1)},
-        params={"R_a": 1.4, "k_s": 40.0, "J_L": 6e-3}, seed=2,
-        description="DC motor (compliant shaft): 12 V armature step at 0.05 s, 0.1 N*m load "
-                    "torque step at 0.6 s.")
-
-
-def toy_cvt_torque_ratio_ramp() -> ExperimentSpec:
-    """Toy CVT: 50 N·m engine torque from 0.5 s, ratio ramp 0.05 -> 0.1 m/rad
-    over 5-15 s, 20 s at 40 Hz. The ratio change moves power between the
-    engine and vehicle inertias (the J_e v ṙ / r³ term)."""
-    return ExperimentSpec(
-        name="toy_cvt_torque_ratio_ramp", model="toy_cvt", duration=20.0, dt=0.025,
-        inputs={"T": step(0.5, 50.0), "r": ramp(5.0, 15.0, 0.05, 0.1)},
-        params={"J_e": 0.15, "m": 1350.0, "c": 25.0}, seed=3,
-        description="Toy CVT: 50 N*m torque step at 0.5 s, ratio ramp 0.05 -> 0.1 m/rad over "
-                    "5-15 s.")
-
-
-#: registered reference experiments (names unique across EXPERIMENT_MODULES)
-EXPERIMENTS: dict[str, str] = {
-    "msd_force_step": "bondgraph.data.experiments:msd_force_step",
-    "dc_motor_voltage_step": "bondgraph.data.experiments:dc_motor_voltage_step",
-    "toy_cvt_torque_ratio_ramp": "bondgraph.data.experiments:toy_cvt_torque_ratio_ramp",
-}

@@ -42,11 +42,21 @@ from typing import Mapping
 import sympy as sp
 
 from bondgraph.core import units as _units
-from bondgraph.core.elements import (C, GY, I, Junction, One, OnePort, Port, Source, TwoPort)
-from bondgraph.errors import GraphError
+from bondgraph.core.elements import (
+    GY,
+    C,
+    I,
+    Junction,
+    One,
+    OnePort,
+    Port,
+    Source,
+    TwoPort,
+)
 from bondgraph.core.graph import Bond, BondGraph
 from bondgraph.core.smooth import softplus
 from bondgraph.core.symbols import Parameter
+from bondgraph.errors import GraphError
 
 
 # ------------------------------------------------------------------ targets

@@ -59,15 +59,22 @@ import math
 import time
 import warnings
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import sympy as sp
 
-from bondgraph.diagnose.effects import (DEFAULT_EFFECTS, Effect, Scales, Target, get_effect, probe_graph)
-from bondgraph.errors import BondGraphError, ModelError
+from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
+from bondgraph.diagnose.effects import (
+    DEFAULT_EFFECTS,
+    Effect,
+    Scales,
+    Target,
+    get_effect,
+    probe_graph,
+)
+from bondgraph.errors import BondGraphError, ModelError
 from bondgraph.numerics.model import Model
 
 CANDIDATE_FUNCTIONS = ("f", "h", "dfdx", "f_dfdx")
@@ -310,17 +317,13 @@ class Loop:
     :func:`run_loop`."""
 
     def __init__(self, graph: BondGraph, experiment, settings: LoopSettings,
-                 out_dir: str | Path | None = None, log: Callable[[str], None] | None = None,
-                 progress: bool = True):
+                 log: Callable[[str], None] | None = None, progress: bool = True,
+                 on_update: Callable[["Loop", "Fit", bool], None] | None = None):
         self.user_graph = graph
         self.data = _Data(experiment)
         self.s = settings
-        self.out = Path(out_dir) if out_dir is not None else None
         self.progress = progress
-        self._logf = None
-        if self.out is not None:
-            self.out.mkdir(parents=True, exist_ok=True)
-            self._logf = open(self.out / "loop.log", "w")
+        self.on_update = on_update
         self._print = log if log is not None else print
         self.steps: list[Step] = []
         self.rejected: list[dict] = []
@@ -330,11 +333,7 @@ class Loop:
 
     # ------------------------------------------------------------ logging
     def log(self, msg: str) -> None:
-        line = f"[{time.perf_counter() - self.t0:7.1f} s] {msg}"
-        self._print(line)
-        if self._logf:
-            self._logf.write(line + "\n")
-            self._logf.flush()
+        self._print(f"[{time.perf_counter() - self.t0:7.1f} s] {msg}")
 
     # ------------------------------------------------------------ models
     def model_of(self, graph: BondGraph) -> Model:
@@ -492,7 +491,7 @@ class Loop:
 
     # ------------------------------------------------------------ scales
     def scales(self, fit: Fit) -> Scales:
-        ss = fit.graph.derive()
+        ss = derive(fit.graph)
         model = fit.model
         t, u, y = self.data.arrays(model)
         X = fit.ukf.x_filt[:, 0, :]
@@ -759,7 +758,6 @@ class Loop:
 
     def score_structural(self, fit: Fit, scales: Scales, effects) -> list[Candidate]:
         from scipy.stats import chi2
-
         from tqdm.auto import tqdm
 
         from bondgraph.inference.ukf import ukf_nll
@@ -1026,10 +1024,8 @@ class Loop:
             current.std = self.std(current)
         self.write_report(current, final=True)
         self.log(f"done in {time.perf_counter() - self.t0:.1f} s")
-        if self._logf:
-            self._logf.close()
         return LoopResult(self.steps, self.rejected, self.rankings, self.initial, self.final,
-                          mname, self.out)
+                          mname)
 
     def _crit(self, fit: Fit) -> float:
         return fit.bic() if self.s.criterion == "bic" else fit.aic()
@@ -1057,11 +1053,10 @@ class Loop:
 
     # ------------------------------------------------------------ report
     def write_report(self, current: Fit, final: bool = False) -> None:
-        if self.out is None:
-            return
-        from bondgraph.report import loop_report
-
-        loop_report.write(self, current, final)
+        """Hand the state of the loop to ``on_update`` (the report writer), after
+        the initial fit, after every step and at the end."""
+        if self.on_update is not None:
+            self.on_update(self, current, final)
 
 
 @dataclass
@@ -1074,7 +1069,6 @@ class LoopResult:
     initial: Fit
     final: Fit
     metric: str
-    out_dir: Path | None
 
     def table(self) -> str:
         """Markdown table of the accepted steps (error = :attr:`metric`)."""
@@ -1097,10 +1091,11 @@ def _cr_std(F: np.ndarray, names: Sequence[str]) -> dict:
         return {n: None for n in names}
 
 
-def run_loop(graph: BondGraph, experiment, params: Sequence[str], *, out_dir=None,
+def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
              log: Callable[[str], None] | None = None, progress: bool = True,
+             on_update: Callable[[Loop, Fit, bool], None] | None = None,
              **settings) -> LoopResult:
-    """Trace residuals to missing effects, add them, re-estimate, report.
+    """Trace residuals to missing effects, add them, re-estimate.
 
     Parameters
     ----------
@@ -1110,11 +1105,15 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *, out_dir=Non
         The measured record (:class:`bondgraph.data.records.Experiment`).
     params : sequence of str
         Parameters of the declared model to estimate.
-    out_dir : path, optional
-        Where to write ``report.json``, ``report.md``, the plots, the log and
-        the augmented model; nothing is written if None.
     log : callable, optional
         Line logger (default ``print``).
+    progress : bool
+        Progress bars on long steps.
+    on_update : callable, optional
+        ``on_update(loop, current_fit, finished)``, called after the initial
+        fit, after every step and at the end; the report writer
+        (:class:`bondgraph.report.loop_report.LoopReporter`) uses it, so that an
+        interrupted run keeps its work.
     **settings
         Fields of :class:`LoopSettings` (metric, criterion, max_steps,
         significance, confirm_top, structural, effects, x0, P0, ukf, ...).
@@ -1138,93 +1137,4 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *, out_dir=Non
         raise ModelError(f"graph '{graph.name}' has no parameter(s) {missing} "
                          f"(known: {', '.join(graph.params)})")
     s = LoopSettings(params=list(params), **settings)
-    return Loop(graph, experiment, s, out_dir, log, progress).run()
-
-
-# ------------------------------------------------------------------- CLI
-def configure_loop(p) -> None:
-    from bondgraph.diagnose.cases import CASES, DEFAULT_CASE
-
-    p.add_argument("--case", default=None,
-                   help=f"bundled case ({', '.join(CASES)}; default {DEFAULT_CASE} when no "
-                        f"--model is given)")
-    p.add_argument("--model", help="declared model: a registered name or module:function "
-                                   "returning a BondGraph")
-    p.add_argument("--data", help="record (CSV in the experiment format, see docs/data_format.md)")
-    p.add_argument("--params", help="comma-separated parameters to estimate (default: the "
-                                    "case's, or all parameters of the model)")
-    p.add_argument("--out", default="bondgraph-report", help="report directory "
-                                                             "(default ./bondgraph-report)")
-    p.add_argument("--metric", default=None,
-                   help="error measure: nrmse_sim (default), rmse_sim, rmse_pred")
-    p.add_argument("--criterion", choices=("aic", "bic"), default="aic")
-    p.add_argument("--max-steps", type=int, default=None)
-    p.add_argument("--significance", type=float, default=None)
-    p.add_argument("--no-structural", action="store_true",
-                   help="score only additive effects (faster)")
-    p.add_argument("--quiet", action="store_true")
-
-
-def _builder(spec: str):
-    from bondgraph.numerics.registry import build, registered, resolve
-
-    if spec in registered():
-        return lambda: build(spec)
-    if ":" in spec:
-        fn = resolve(spec)
-
-        def make():
-            g = fn()
-            g.source = spec
-            return g
-        return make
-    raise ModelError(f"unknown model '{spec}': give a registered name "
-                     f"({', '.join(sorted(registered()))}) or module:function")
-
-
-def run_loop_cli(args) -> int:
-    from bondgraph.diagnose.cases import DEFAULT_CASE, get_case
-
-    settings: dict = {}
-    if args.model:
-        if not args.data:
-            raise ModelError("--model needs --data FILE.csv (the measured record)")
-        from bondgraph.data.records import Experiment
-
-        make = _builder(args.model)
-        graph = make()
-        record = Experiment.load(args.data)
-        params = args.params.split(",") if args.params else list(graph.params)
-        name = graph.name
-    else:
-        case = get_case(args.case or DEFAULT_CASE)
-        print(f"bondgraph loop: bundled case '{case.name}': {case.description}")
-        graph = case.declared()
-        record = case.record()
-        params = args.params.split(",") if args.params else case.params
-        settings.update(case.settings)
-        name = case.name
-    if args.metric:
-        settings["metric"] = args.metric
-    settings["criterion"] = args.criterion
-    if args.max_steps is not None:
-        settings["max_steps"] = args.max_steps
-    if args.significance is not None:
-        settings["significance"] = args.significance
-    if args.no_structural:
-        settings["structural"] = False
-    log = (lambda m: None) if args.quiet else print
-    res = run_loop(graph, record, params, out_dir=args.out, log=log, progress=not args.quiet,
-                   **settings)
-    print()
-    print(f"{name}: {res.metric}")
-    print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
-    if res.steps:
-        print(res.table())
-    else:
-        print("  no effect accepted (nothing significant left)")
-    print(f"report: {Path(args.out) / 'report.md'} (and report.json, PNG plots, "
-          f"augmented_model.py)")
-    return 0
-
-
+    return Loop(graph, experiment, s, log, progress, on_update).run()

@@ -15,6 +15,13 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from bondgraph.core.codegen import (
+    ALL_FUNCTIONS,
+    generate_source,
+    load_module,
+    module_from_source,
+)
+from bondgraph.core.equations import derive
 from bondgraph.errors import ModelError
 
 
@@ -69,7 +76,9 @@ class Model:
     # ----------------------------------------------------------- loading
     @classmethod
     def load(cls, name: str, directory: str | Path | None = None) -> "Model":
-        """Load ``generated/<name>.py`` (or ``<directory>/<name>.py``).
+        """Load the generated code of a registered model (the registered
+        ``generated`` package, :func:`bondgraph.numerics.registry.generated_dir`)
+        or ``<directory>/<name>.py``.
 
         Raises
         ------
@@ -77,29 +86,46 @@ class Model:
             If no such generated module exists; the message lists the
             registered models.
         """
-        if directory is not None:
-            from bondgraph.core.codegen import load_module
+        from bondgraph.numerics import registry
 
+        if directory is not None:
             path = Path(directory) / f"{name}.py"
             if not path.exists():
                 raise ModelError(f"no generated model '{name}' in {directory}")
             return cls(load_module(path))
-        try:
-            mod = importlib.import_module(f"generated.{name}")
-        except ModuleNotFoundError:
-            from bondgraph.numerics.registry import registered
+        reg = registry.registered()
+        path = registry.generated_dir() / f"{name}.py"
+        if name not in reg or not path.exists():
+            names = ", ".join(sorted(reg))
+            hint = ("run `bondgraph generate`" if name in reg else
+                    "give a registered name, module:function or path/to/file.py:function")
+            raise ModelError(f"no generated model '{name}' (registered: {names}); {hint}")
+        pkg = registry.generated_dir().name
+        return cls(importlib.import_module(f"{pkg}.{name}"))
 
-            names = ", ".join(sorted(registered()))
-            raise ModelError(f"no generated model '{name}' (registered: {names}); run "
-                             f"`bondgraph generate`") from None
-        return cls(mod)
+    @classmethod
+    def from_spec(cls, spec: "str | Model", *, functions=None) -> "Model":
+        """A model from a registered name (its generated code), or from a graph
+        builder ``module:function`` / ``path/to/file.py:function`` (derived and
+        generated in memory); a Model is returned as is.
+
+        Raises
+        ------
+        ModelError
+            Unknown name, builder not importable or not returning a BondGraph.
+        """
+        from bondgraph.numerics import registry
+
+        if isinstance(spec, Model):
+            return spec
+        if spec in registry.registered():
+            return cls.load(spec)
+        return cls.from_graph(registry.graph_builder(spec)(), functions=functions)
 
     @classmethod
     def from_graph(cls, graph, *, functions=None, name: str | None = None) -> "Model":
         """Derive, generate and load a model in memory from a BondGraph."""
-        from bondgraph.core.codegen import ALL_FUNCTIONS, generate_source, module_from_source
-
-        ss = graph.derive()
+        ss = derive(graph)
         text = generate_source(ss, source=graph.source or f"<graph {graph.name}>",
                                functions=functions or ALL_FUNCTIONS)
         mod = module_from_source(text, name or f"_bondgraph_mem_{graph.name}")

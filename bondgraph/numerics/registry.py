@@ -1,11 +1,13 @@
 """Registered models: ``name -> "module:function"`` building a BondGraph.
 
-``bondgraph generate`` writes ``generated/<name>.py`` for every registered
-model; ``bondgraph generate --check`` fails, naming the stale model, when a
-file differs from what its graph produces (a test runs it).
+``bondgraph generate`` writes ``<generated package>/<name>.py`` for every
+registered model; ``bondgraph generate --check`` fails, naming the stale model,
+when a file differs from what its graph produces (a test runs it).
 
-The toolkit's reference models live in :mod:`bondgraph.catalog.reference`; the vehicle's
-graphs and filter models register themselves in ``vehicle_graphs.MODELS``.
+Models are registered through :mod:`bondgraph.core.plugins` (entry points of the
+group ``bondgraph.models``, or :func:`bondgraph.core.plugins.register`): the
+toolkit's reference and benchmark graphs (:mod:`bondgraph.catalog`) and any
+installed application package (the vehicle's ``vehicle_graphs``).
 """
 
 from __future__ import annotations
@@ -15,44 +17,33 @@ import importlib
 import time
 from pathlib import Path
 
+from bondgraph.core import plugins
+from bondgraph.core.codegen import generate_source
+from bondgraph.core.equations import derive
 from bondgraph.errors import ModelError, StaleGeneratedCodeError
-
-#: modules whose ``MODELS`` dict (name -> "module:function") is registered;
-#: a module that is not installed is skipped
-MODEL_MODULES: tuple[str, ...] = (
-    "bondgraph.catalog.reference",            # reference models of the toolkit
-    "bondgraph.catalog.benchmarks",  # graphs of the public real-data benchmarks
-    "vehicle_graphs",              # the vehicle's graphs and filter models
-)
 
 COMMAND = "bondgraph generate"
 
 
 def registered() -> dict[str, str]:
-    """All registered models: the ``MODELS`` dicts of :data:`MODEL_MODULES`."""
-    out: dict[str, str] = {}
-    for modname in MODEL_MODULES:
-        try:
-            mod = importlib.import_module(modname)
-        except ModuleNotFoundError as exc:
-            if exc.name == modname:
-                continue
-            raise
-        for k, v in getattr(mod, "MODELS", {}).items():
-            if k in out and out[k] != v:
-                raise ModelError(f"model '{k}' registered twice ({out[k]} and {v})")
-            out[k] = v
-    return out
+    """All registered models, ``name -> "module:function"``."""
+    return plugins.registered("models")
 
 
 def resolve(spec: str):
-    """Import ``module:function``."""
-    mod, _, fn = spec.partition(":")
-    return getattr(importlib.import_module(mod), fn)
+    """Import ``module:function`` or ``path/file.py:function``
+    (:func:`bondgraph.core.plugins.resolve`)."""
+    return plugins.resolve(spec)
 
 
 def build(name: str):
-    """Build the BondGraph of a registered model (``graph.source`` is set)."""
+    """Build the BondGraph of a registered model (``graph.source`` is set).
+
+    Raises
+    ------
+    ModelError
+        Unknown name (the registered ones are listed).
+    """
     reg = registered()
     if name not in reg:
         raise ModelError(f"unknown model '{name}' (registered: {', '.join(sorted(reg))})")
@@ -63,19 +54,60 @@ def build(name: str):
     return g
 
 
-def generated_dir() -> Path:
-    """The ``generated/`` package directory."""
-    import generated
+def graph_builder(spec: str):
+    """A function building the graph named by ``spec``: a registered model
+    name, ``module:function`` or ``path/to/file.py:function`` (the current
+    directory is on the import path).
 
-    return Path(generated.__file__).parent
+    The builder is checked before it is called: it must be callable, and what
+    it returns must be a :class:`~bondgraph.core.graph.BondGraph`.
+
+    Raises
+    ------
+    ModelError
+        Unknown name, module not importable, attribute missing, not callable,
+        or not returning a BondGraph.
+    """
+    from bondgraph.core.graph import BondGraph
+
+    if spec in registered():
+        return lambda: build(spec)
+    if ":" not in spec:
+        raise ModelError(f"unknown model '{spec}': give a registered name "
+                         f"({', '.join(sorted(registered()))}), module:function or "
+                         f"path/to/file.py:function")
+    fn = resolve(spec)
+    if not callable(fn) or isinstance(fn, type) and not issubclass(fn, BondGraph):
+        raise ModelError(f"'{spec}' is a {type(fn).__name__}, not a function returning a "
+                         f"BondGraph")
+
+    def make():
+        try:
+            g = fn()
+        except TypeError as exc:
+            raise ModelError(f"'{spec}' could not be called without arguments ({exc})") from exc
+        if not isinstance(g, BondGraph):
+            raise ModelError(f"'{spec}' returned a {type(g).__name__}, not a BondGraph")
+        g.source = spec
+        return g
+    return make
+
+
+def generated_dir() -> Path:
+    """The package directory that holds generated code of registered models
+    (registered as kind ``generated``)."""
+    pkgs = plugins.registered("generated")
+    if not pkgs:
+        raise ModelError("no package for generated code is registered (entry point group "
+                         "'bondgraph.generated')")
+    mod = importlib.import_module(pkgs[sorted(pkgs)[0]])
+    return Path(mod.__file__).parent
 
 
 def render(name: str) -> str:
     """Source text that ``bondgraph generate`` writes for model ``name``."""
-    from bondgraph.core.codegen import generate_source
-
     g = build(name)
-    ss = g.derive()
+    ss = derive(g)
     return generate_source(ss, source=g.source, command=COMMAND)
 
 

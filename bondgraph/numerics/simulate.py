@@ -41,19 +41,15 @@ stability regions, Rosenbrock methods). Verwer et al. (1999) for ROS2, see
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from bondgraph.numerics import integrators
 from bondgraph.errors import DataError, ModelError, NumericalError
+from bondgraph.numerics import integrators
 
 #: solve_ivp methods that receive the generated Jacobian
 IMPLICIT_METHODS = ("BDF", "Radau", "LSODA")
@@ -107,51 +103,6 @@ class SimResult:
     def input(self, name: str) -> np.ndarray:
         """One input signal at the samples, (N,)."""
         return self.u[:, self.model.input_index(name)]
-
-    def to_experiment(self, name: str | None = None, meta: Mapping | None = None):
-        """The trajectory as an :class:`~bondgraph.data.records.Experiment` (inputs,
-        noise-free outputs and ``state.<name>`` columns, model units)."""
-        from bondgraph.data.records import Experiment
-
-        m = self.model
-        info = {
-            "name": name or f"{m.name}_sim",
-            "description": f"noise-free simulation of {m.name} ({self.method})",
-            "dt": float(np.median(np.diff(self.t))),
-            "parameters": {p: float(v) for p, v in zip(m.params, self.theta)},
-            "x0": {s: float(v) for s, v in zip(m.states, self.x[0])},
-            "method": self.method,
-            "solver_stats": {k: v for k, v in self.stats.items()
-                             if isinstance(v, (int, float, str, bool)) or v is None},
-            **(meta or {}),
-        }
-        return Experiment.from_arrays(self.t, model=m, u=self.u, y=self.y, x=self.x, meta=info)
-
-    def to_dataframe(self):
-        """pandas DataFrame: ``t``, inputs, outputs and ``state.<name>`` columns."""
-        import pandas as pd
-
-        from bondgraph.data.records import STATE_PREFIX
-
-        m = self.model
-        data = {"t": self.t}
-        for j, n in enumerate(m.inputs):
-            data[n] = self.u[:, j]
-        for j, n in enumerate(m.outputs):
-            data[n] = self.y[:, j]
-        for j, n in enumerate(m.states):
-            data[STATE_PREFIX + n] = self.x[:, j]
-        return pd.DataFrame(data)
-
-    def save_csv(self, path: str | Path, *, precision: int | None = None) -> Path:
-        """Write the trajectory in the experiment format (CSV + JSON sidecar).
-
-        Returns
-        -------
-        Path
-            The CSV file.
-        """
-        return self.to_experiment(name=Path(path).stem).save(path, precision=precision)
 
     def __repr__(self) -> str:
         return (f"<SimResult {self.model.name} {self.method}: {self.t.size} samples, "
@@ -670,128 +621,3 @@ def _stiffness_table(rep: dict, rows: int = 12) -> str:
                      f"{(hr if hr is not None else float('inf')):>11.4g} {r['rk4_substeps']:>8d}"
                      f"  {ev}")
     return "\n".join(lines)
-
-
-# --------------------------------------------------------------------- CLI
-def _pairs(items, what) -> dict[str, float]:
-    out = {}
-    for it in items or []:
-        name, sep, val = it.partition("=")
-        if not sep:
-            raise ModelError(f"--{what} expects NAME=VALUE, got '{it}'")
-        try:
-            out[name.strip()] = float(val)
-        except ValueError:
-            raise ModelError(f"--{what} {name}: '{val}' is not a number") from None
-    return out
-
-
-def configure_simulate(p: argparse.ArgumentParser) -> None:
-    """Options of ``bondgraph simulate``."""
-    p.add_argument("model", help="registered model name")
-    p.add_argument("--experiment", "-e", metavar="NAME",
-                   help="registered experiment (its inputs, x0 and parameters) or a record "
-                        "CSV (its inputs and time grid); default: model defaults for --duration")
-    p.add_argument("-o", "--output", default=None, help="output CSV (default MODEL_sim.csv)")
-    p.add_argument("--method", default="BDF", choices=METHODS, help="integration method")
-    p.add_argument("--substeps", type=int, default=1, help="rk4/ros2 steps per sample")
-    p.add_argument("--duration", type=float, default=10.0,
-                   help="record length [s] without --experiment")
-    p.add_argument("--dt", type=float, default=0.025,
-                   help="sample interval [s] without --experiment")
-    p.add_argument("--param", action="append", metavar="NAME=VALUE", help="parameter override")
-    p.add_argument("--record-params", action="store_true",
-                   help="with a record CSV: use the parameters stored in its sidecar "
-                        "(true_parameters or parameters) that the model has")
-    p.add_argument("--input", action="append", metavar="NAME=VALUE",
-                   help="constant input (model units) without --experiment")
-    p.add_argument("--rtol", type=float, default=1e-8)
-    p.add_argument("--atol", type=float, default=1e-10)
-    p.add_argument("--max-step", type=float, default=None, help="adaptive solvers' largest step")
-    p.add_argument("--hold", choices=("linear", "zoh"), default="linear",
-                   help="sampled inputs between samples for adaptive solvers")
-    p.add_argument("--plot", metavar="DIR", help="also write PNG plots to DIR")
-    p.add_argument("--stiffness", action="store_true",
-                   help="print the stiffness report and write OUTPUT.stiffness.json")
-
-
-def run_simulate(args) -> int:
-    """Run ``bondgraph simulate`` (see :func:`configure_simulate`)."""
-    from bondgraph.numerics.model import Model
-
-    model = Model.load(args.model)
-    overrides = _pairs(args.param, "param")
-    measured = None
-    notes = []
-    if args.experiment:
-        path = Path(args.experiment)
-        if path.suffix.lower() in (".csv", ".json") or path.exists():
-            from bondgraph.data.records import Experiment
-
-            measured = Experiment.load(path)
-            t = measured.t
-            missing = measured.missing_inputs(model)
-            if missing:
-                notes.append(f"inputs {', '.join(missing)} not in the record: model defaults")
-            u = measured.inputs_for(model, defaults_ok=True)
-            x0 = {k: v for k, v in (measured.meta.get("x0") or {}).items() if k in model.states}
-            stored = {}
-            if args.record_params:
-                stored = (measured.meta.get("true_parameters") or measured.meta.get("parameters")
-                          or {})
-                stored = {k: v for k, v in stored.items() if k in model.params}
-                if not stored:
-                    notes.append("the record stores no parameters of this model")
-            theta = model.theta({**stored, **overrides})
-        else:
-            from bondgraph.data.experiments import get_experiment
-
-            spec = get_experiment(args.experiment)
-            n = int(round(spec.duration / spec.dt)) + 1
-            t = np.arange(n) * spec.dt
-            u = {k: fn for k, fn in spec.inputs.items() if k in model.inputs}
-            skipped = [k for k in spec.inputs if k not in model.inputs]
-            if skipped:
-                notes.append(f"experiment inputs {', '.join(skipped)} are not inputs of "
-                             f"{model.name}: ignored")
-            x0 = {k: v for k, v in spec.x0.items() if k in model.states}
-            params = {k: v for k, v in spec.params.items() if k in model.params}
-            theta = model.theta({**params, **overrides})
-    else:
-        n = int(round(args.duration / args.dt)) + 1
-        t = np.arange(n) * args.dt
-        u = _pairs(args.input, "input") or None
-        x0 = None
-        theta = model.theta(overrides)
-    res = simulate(model, t, u=u, x0=x0 or None, theta=theta, method=args.method,
-                   rtol=args.rtol, atol=args.atol, substeps=args.substeps,
-                   max_step=args.max_step, hold=args.hold)
-    out = Path(args.output or f"{model.name}_sim.csv")
-    res.save_csv(out)
-    for note in notes:
-        print(f"note: {note}")
-    st = res.stats
-    print(f"wrote {out} ({t.size} samples, {t[-1] - t[0]:.6g} s, {args.method}, "
-          f"{st.get('nfev', 0)} f evaluations, {st['wall_time_s']:.3g} s)")
-    if args.stiffness:
-        rep, table = stiffness_report(model, res)
-        print(table)
-        jpath = out.with_suffix(".stiffness.json")
-        jpath.write_text(json.dumps(rep, indent=1) + "\n")
-        print(f"wrote {jpath}")
-    if args.plot:
-        from bondgraph.report.plots import plot_record
-
-        if measured is not None:
-            paths = plot_record(measured, args.plot, simulated=res, model=model)
-        else:
-            paths = plot_record(res, args.plot)
-        for pth in paths:
-            print(f"wrote {pth}")
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    from bondgraph.cli.main.main import main
-
-    sys.exit(main(["simulate", *sys.argv[1:]]))

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bondgraph.core.causality import assign_causality
 from bondgraph.core.graph import BondGraph
 
 
@@ -43,7 +44,7 @@ def draw(graph: BondGraph, path: str | Path | None = None, *, causality=None, ax
     err = None
     if causality is None:
         try:
-            causality = graph.assign_causality()
+            causality = assign_causality(graph)
         except Exception as exc:  # draw anyway, show why
             err = str(exc).splitlines()[0]
     G = nx.Graph()

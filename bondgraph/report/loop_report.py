@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from bondgraph.core.codegen import generate_source
+from bondgraph.core.equations import derive
+from bondgraph.report.plots import pyplot
 
 
 def _fit_summary(fit) -> dict:
@@ -30,13 +32,48 @@ def _fit_summary(fit) -> dict:
     })
 
 
-def write(loop, current, final: bool = False) -> None:
-    from bondgraph.diagnose.loop import _jsonable
+class LoopReporter:
+    """Writes the loop's log and report into one folder while the loop runs.
 
-    out: Path = loop.out
-    mname = getattr(loop, "_mname", None) or (loop.steps[0].metric if loop.steps else None)
-    from bondgraph.diagnose.loop import _metric_name
+    Pass :meth:`log` and :meth:`update` to
+    :func:`bondgraph.diagnose.loop.run_loop`: every log line goes to
+    ``loop.log`` (and to ``echo``), and the report is rewritten after the
+    initial fit, after every step and at the end, so that an interrupted run
+    keeps its work.
 
+    Parameters
+    ----------
+    out_dir : path
+        The report folder (created).
+    echo : callable, optional
+        Also print each log line with it (e.g. ``print``).
+    """
+
+    def __init__(self, out_dir, echo=None):
+        self.out = Path(out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.echo = echo
+        self.log_path = self.out / "loop.log"
+        self.log_path.write_text("")
+
+    def log(self, line: str) -> None:
+        """Append one line to ``loop.log`` (and echo it)."""
+        if self.echo is not None:
+            self.echo(line)
+        with open(self.log_path, "a") as fh:
+            fh.write(line + "\n")
+
+    def update(self, loop, current, final: bool = False) -> None:
+        """Rewrite the report from the loop's state."""
+        write(loop, current, final, self.out)
+
+
+def write(loop, current, final: bool, out: Path) -> None:
+    """Write ``report.json``, ``report.md``, the PNGs and the augmented model
+    into ``out``."""
+    from bondgraph.diagnose.loop import _jsonable, _metric_name
+
+    out = Path(out)
     mname = _metric_name(loop.s, current.model)
     report = {
         "model": loop.user_graph.name,
@@ -58,13 +95,12 @@ def write(loop, current, final: bool = False) -> None:
                      "effects": [e.name for e in loop.s.effects]},
     }
     (out / "report.json").write_text(json.dumps(_jsonable(report), indent=2))
-    _write_augmented(loop, current)
-    pngs = _plots(loop, current)
-    _write_markdown(loop, current, report, pngs)
+    _write_augmented(loop, current, out)
+    pngs = _plots(loop, current, out)
+    _write_markdown(loop, current, report, pngs, out)
 
 
-def _write_augmented(loop, current) -> None:
-    out: Path = loop.out
+def _write_augmented(loop, current, out: Path) -> None:
     if not loop.applied:
         return
     src = loop.user_graph.source
@@ -107,19 +143,15 @@ def _write_augmented(loop, current) -> None:
     for k, v in est.items():
         if k in g.params:
             g.params[k].default = float(v)
-    ss = g.derive()
+    ss = derive(g)
     (gen / f"{name}.py").write_text(generate_source(
         ss, source=f"{out / 'augmented_model.py'}:build",
         command="bondgraph loop (see report.md)"))
 
 
-def _plots(loop, current) -> list[str]:
-    import matplotlib
+def _plots(loop, current, out: Path) -> list[str]:
+    plt = pyplot()
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out: Path = loop.out
     pngs = []
     init = loop.initial
     t, u, y = loop.data.arrays(current.model)
@@ -187,8 +219,7 @@ def _plots(loop, current) -> list[str]:
     return pngs
 
 
-def _write_markdown(loop, current, report, pngs) -> None:
-    out: Path = loop.out
+def _write_markdown(loop, current, report, pngs, out: Path) -> None:
     init = loop.initial
     L = [f"# Residual-tracing report: {loop.user_graph.name}", ""]
     L.append(f"Record: `{report['record']}`. Metric: {report['metric']}. "

@@ -10,7 +10,6 @@ CLI: ``bondgraph plot RECORD.csv [-o DIR] [--simulated SIM.csv] [--model NAME]``
 
 from __future__ import annotations
 
-import argparse
 import re
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,19 @@ import numpy as np
 
 from bondgraph.errors import DataError
 
+
 #: group order and titles
+def pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (files only; no
+    display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 GROUPS = (("state", "states"), ("input", "inputs"), ("output", "outputs"),
           ("other", "other signals"))
 
@@ -32,7 +43,7 @@ def _as_experiment(obj: Any):
     if isinstance(obj, Experiment):
         return obj, "solver_stats" not in obj.meta
     if isinstance(obj, SimResult):
-        return obj.to_experiment(), False
+        return Experiment.from_simulation(obj), False
     if isinstance(obj, (str, Path)):
         exp = Experiment.load(obj)
         return exp, "solver_stats" not in exp.meta
@@ -169,23 +180,3 @@ def plot_record(record, out_dir: str | Path, *, simulated=None, model=None,
     if not paths:
         raise DataError(f"record '{exp.name}' has no columns to plot", path=exp._where())
     return paths
-
-
-# --------------------------------------------------------------------- CLI
-def configure_plot(p: argparse.ArgumentParser) -> None:
-    """Options of ``bondgraph plot``."""
-    p.add_argument("record", help="record CSV (experiment or simulation)")
-    p.add_argument("-o", "--output", default=None, metavar="DIR",
-                   help="output directory (default RECORD_plots)")
-    p.add_argument("--simulated", default=None, metavar="CSV",
-                   help="a simulation CSV to draw over the record")
-    p.add_argument("--model", default=None, help="model classifying columns without a role")
-
-
-def run_plot(args) -> int:
-    """Run ``bondgraph plot``."""
-    rec = Path(args.record)
-    out = args.output or str(rec.with_suffix("")) + "_plots"
-    for p in plot_record(rec, out, simulated=args.simulated, model=args.model):
-        print(f"wrote {p}")
-    return 0

@@ -82,7 +82,6 @@ Engineering 11(3), 563-588.
 from __future__ import annotations
 
 import json
-import sys
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -91,7 +90,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from bondgraph.errors import DataError, ModelError, NumericalError, SensitivityError
+from bondgraph.errors import DataError, NumericalError, SensitivityError
 
 #: defaults of the selection rules
 REL_CRB_MAX = 0.10
@@ -100,8 +99,6 @@ CORR_MAX = 0.95
 PARALLEL_TOL = 1e-6
 #: relative eigenvalue of the normalised information below which it is singular
 RCOND = 1e-9
-
-
 
 
 # --------------------------------------------------------------- helpers
@@ -990,49 +987,16 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
 
 
 # ---------------------------------------------------------- full analysis
-def initial_state(model, experiment, theta=None, how: str = "auto") -> tuple[np.ndarray, str]:
-    """Initial state of a record for a filter model.
-
-    Parameters
-    ----------
-    model : Model
-    experiment : Experiment
-    theta : array (n_theta,), optional
-    how : {"auto", "record", "vehicle"}
-        ``"record"``: the record's state columns / sidecar x0
-        (:func:`bondgraph.inference.estimate.initial_state_from_record`);
-        ``"vehicle"``: the vehicle's consistent initial state at the first
-        measured GNSS speed (:func:`vehicle_graphs.analysis.initial_state`,
-        engine at idle equilibrium, wheels rolling, pitch settled);
-        ``"auto"``: ``"vehicle"`` for models registered by
-        :mod:`vehicle_graphs` when the record has ``v_gnss``, else
-        ``"record"``.
+def initial_state(model, experiment) -> tuple[np.ndarray, str]:
+    """Initial state of the analysis: the record's rule
+    (:meth:`bondgraph.data.records.Experiment.initial_state`: state columns,
+    else sidecar x0, else the model's X0).
 
     Returns
     -------
     (x0 (n_x,), description)
     """
-    from bondgraph.inference.estimate import initial_state_from_record
-
-    if how not in ("auto", "record", "vehicle"):
-        raise SensitivityError(f"unknown initial-state rule '{how}' (auto, record, vehicle)")
-    if how == "auto":
-        try:
-            import vehicle_graphs
-
-            veh = model.name in getattr(vehicle_graphs, "MODELS", {})
-        except ImportError:
-            veh = False
-        has_v = hasattr(experiment, "columns") and "v_gnss" in experiment.columns
-        how = "vehicle" if veh and has_v else "record"
-    if how == "vehicle":
-        from vehicle_graphs.analysis import initial_state as vis
-
-        v = np.asarray(experiment["v_gnss"], float)
-        v0 = float(v[np.isfinite(v)][0])
-        x0 = model.state(vis(model, theta, v=v0))
-        return x0, f"vehicle consistent initial state at v = {v0:.3g} m/s"
-    return initial_state_from_record(model, experiment), "record state columns / sidecar x0"
+    return experiment.initial_state(model), "record state columns / sidecar x0"
 
 
 @dataclass
@@ -1108,7 +1072,7 @@ class SensitivityReport:
 
 
 def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=None, x0=None,
-            P0=None, p0_rel: float = 0.05, initial: str = "auto",
+            P0=None, p0_rel: float = 0.05,
             ukf_options: Mapping[str, Any] | None = None, global_N: int | None = None,
             outputs: Sequence[str] = (), box_rel: float | None = None, chunk: int = 256,
             seed: int = 0, rel_crb_max: float = REL_CRB_MAX, corr_max: float = CORR_MAX,
@@ -1129,7 +1093,7 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         Parameter values of the analysis (default: model defaults; a dict
         overrides named ones).
     x0 : array (n_x,) or dict, optional
-        Initial state (default: :func:`initial_state` with ``initial``).
+        Initial state (default: :func:`initial_state`, the record's rule).
     P0 : array, optional
         UKF prior covariance (default ``default_P0(model, x0, p0_rel)``).
     ukf_options : dict
@@ -1184,7 +1148,7 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
                 from bondgraph.data.records import Experiment
 
                 exp = Experiment.load(exp)
-            x0a, x0_how = initial_state(model, exp, th, initial)
+            x0a, x0_how = initial_state(model, exp)
     else:
         x0a, x0_how = _state_vector(model, x0), "given"
     P0a = default_P0(model, x0a, p0_rel) if P0 is None else np.asarray(P0, float)
@@ -1321,261 +1285,4 @@ def recommended_params(source, model=None) -> list[str]:
     return names
 
 
-# ------------------------------------------------------------------ plots
-def plot_report(report: SensitivityReport, outdir: str | Path) -> list[Path]:
-    """PNG plots of a :class:`SensitivityReport`.
-
-    ``tornado.png``: first-order and total Sobol' indices of the NLL with
-    confidence bars (global), or the relative information sqrt(F̃_jj) per
-    parameter (local only); ``heatmap_s2.png``: second-order indices
-    (global only); ``correlation.png``: |cos| between scaled sensitivity
-    directions of all candidates and the Cramér-Rao correlations of the
-    recommended set; ``sensitivities.png``: scaled output sensitivities
-    s_j ∂y/∂θ_j / σ along the record (when integrated).
-
-    Returns
-    -------
-    list of Path
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    names = report.params
-    rec = report.recommendation
-    g = report.global_
-    title = f"{report.model} on {report.experiment}"
-    k = len(names)
-    # tornado
-    fig, ax = plt.subplots(figsize=(7.5, 0.38 * k + 1.6))
-    if g:
-        ind = g["indices"]["NLL"]
-        ST, S1 = np.asarray(ind["ST"]), np.asarray(ind["S1"])
-        order = np.argsort(ST)
-        yy = np.arange(k)
-        ax.barh(yy + 0.2, ST[order], 0.4, xerr=np.asarray(ind["ST_conf"])[order], label="total ST",
-                color="C1", capsize=2)
-        ax.barh(yy - 0.2, S1[order], 0.4, xerr=np.asarray(ind["S1_conf"])[order],
-                label="first-order S1", color="C0", capsize=2)
-        what = "ln(1 + NLL − min)" if g.get("nll_transform", "none") != "none" else "the NLL"
-        ax.set_xlabel(f"Sobol' index of {what} ({int(100 * g['conf_level'])} % confidence bars)")
-        ax.set_title(f"{title}\nSobol' indices, N = {g['N']} ({g['evaluations']} UKF runs)",
-                     fontsize=9)
-        ax.legend(loc="lower right", fontsize=8)
-    else:
-        v = np.asarray(report.local["relative_information"], float)
-        v = v / (v.max() if v.max() > 0 else 1.0)
-        order = np.argsort(v)
-        yy = np.arange(k)
-        est = set(rec["estimate"])
-        ax.barh(yy, v[order], color=["C2" if names[i] in est else "0.6" for i in order])
-        ax.set_xlabel("relative information sqrt(F̃_jj), normalised (green: recommended)")
-        ax.set_title(f"{title}\nlocal sensitivity of the UKF likelihood", fontsize=9)
-    ax.set_yticks(yy)
-    ax.set_yticklabels([names[i] for i in order])
-    ax.grid(axis="x", alpha=0.3)
-    fig.tight_layout()
-    p = outdir / "tornado.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    paths.append(p)
-    # second-order heat map
-    if g and g.get("second_order"):
-        S2 = np.asarray(g["indices"]["NLL"]["S2"], float)
-        C2 = np.asarray(g["indices"]["NLL"]["S2_conf"], float)
-        M = np.where(np.isfinite(S2), S2, 0.0)
-        M = M + M.T
-        Cf = np.where(np.isfinite(C2), C2, 0.0)
-        Cf = Cf + Cf.T
-        sig = np.abs(M) > Cf                       # outside its confidence interval
-        fig, ax = plt.subplots(figsize=(0.45 * k + 3.0, 0.45 * k + 2.4))
-        vmax = max(float(np.abs(M).max()), 1e-6)
-        im = ax.imshow(M, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
-        ax.set_xticks(range(k))
-        ax.set_yticks(range(k))
-        ax.set_xticklabels(names, rotation=60, ha="right", fontsize=8)
-        ax.set_yticklabels(names, fontsize=8)
-        for i in range(k):
-            for j in range(k):
-                if i != j and abs(M[i, j]) >= 0.01:
-                    ax.text(j, i, f"{M[i, j]:.2f}" if sig[i, j] else f"({M[i, j]:.2f})",
-                            ha="center", va="center", fontsize=6,
-                            color="k" if sig[i, j] else "0.45")
-        fig.colorbar(im, ax=ax, shrink=0.8, label="S2")
-        ax.set_title(f"{title}\nsecond-order Sobol' indices of the NLL (in parentheses: "
-                     f"within the {int(100 * g['conf_level'])} % confidence interval of 0)",
-                     fontsize=8)
-        fig.tight_layout()
-        p = outdir / "heatmap_s2.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
-    # correlation / collinearity
-    C = np.asarray(report.local["identifiability"]["cosine"], float)
-    ck = rec.get("check")
-    est = rec["estimate"]
-    ncol = 2 if ck and len(est) > 1 else 1
-    fig, axes = plt.subplots(1, ncol, figsize=(0.42 * k * ncol + 3.5 * ncol, 0.42 * k + 2.6),
-                             squeeze=False)
-    ax = axes[0, 0]
-    im = ax.imshow(C, cmap="RdBu_r", vmin=-1, vmax=1)
-    ax.set_xticks(range(k))
-    ax.set_yticks(range(k))
-    ax.set_xticklabels(names, rotation=60, ha="right", fontsize=7)
-    ax.set_yticklabels(names, fontsize=7)
-    ax.set_title("cos between scaled sensitivity directions\n(all candidates)", fontsize=9)
-    fig.colorbar(im, ax=ax, shrink=0.8)
-    if ncol == 2:
-        ax = axes[0, 1]
-        R = np.asarray(ck["corr"], float)
-        im = ax.imshow(R, cmap="RdBu_r", vmin=-1, vmax=1)
-        ke = len(est)
-        ax.set_xticks(range(ke))
-        ax.set_yticks(range(ke))
-        ax.set_xticklabels(est, rotation=60, ha="right", fontsize=8)
-        ax.set_yticklabels(est, fontsize=8)
-        for i in range(ke):
-            for j in range(ke):
-                ax.text(j, i, f"{R[i, j]:.2f}", ha="center", va="center", fontsize=6)
-        ax.set_title("Cramér-Rao correlations\n(recommended set)", fontsize=9)
-        fig.colorbar(im, ax=ax, shrink=0.8)
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    p = outdir / "correlation.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    paths.append(p)
-    # sensitivities along the record
-    s = report.sensitivities
-    if s is not None:
-        from bondgraph.numerics.model import Model
-
-        try:
-            sigma = np.asarray(Model.load(report.model).meas_std(s.theta), float)
-        except ModelError:
-            sigma = np.ones(len(s.outputs))
-        Z = s.scaled(sigma)
-        ny = len(s.outputs)
-        strength = np.sqrt(np.nansum(Z ** 2, axis=(0, 1)))
-        top = np.argsort(-strength)[:6]
-        fig, axes = plt.subplots(ny, 1, figsize=(10, 1.9 * ny + 0.8), sharex=True, squeeze=False)
-        for j in range(ny):
-            ax = axes[j, 0]
-            for c_, i in enumerate(top):
-                ax.plot(s.t, Z[:, j, i], lw=0.8, color=f"C{c_}", label=names[i])
-            ax.set_ylabel(f"{s.outputs[j]}", fontsize=8)
-            ax.grid(alpha=0.3)
-        axes[0, 0].legend(fontsize=7, ncol=3, loc="best")
-        axes[0, 0].set_title(f"{title}: scaled sensitivities θ_j ∂y/∂θ_j / σ_y (largest 6)",
-                             fontsize=9)
-        axes[-1, 0].set_xlabel("t [s]")
-        fig.tight_layout()
-        p = outdir / "sensitivities.png"
-        fig.savefig(p, dpi=100)
-        plt.close(fig)
-        paths.append(p)
-    return paths
-
-
 # -------------------------------------------------------------------- CLI
-def configure_sensitivity(p) -> None:
-    """Options of ``bondgraph sensitivity``."""
-    p.add_argument("--model", required=True, help="registered filter model")
-    p.add_argument("--data", required=True, help="record CSV (with optional JSON sidecar)")
-    p.add_argument("--params", default=None,
-                   help="comma-separated candidate parameters (default: every parameter with "
-                        "a proper box)")
-    p.add_argument("--global", dest="global_N", type=int, default=None, metavar="N",
-                   help="also Sobol' indices with base sample N (N (2k+2) UKF evaluations)")
-    p.add_argument("--outputs", default="",
-                   help="comma-separated outputs whose time-means also get Sobol' indices")
-    p.add_argument("--box-rel", type=float, default=None,
-                   help="Sobol' box theta*(1 ± BOX_REL) instead of the model bounds")
-    p.add_argument("--chunk", type=int, default=256, help="parameter sets per batched UKF run")
-    p.add_argument("--nll-transform", choices=("log", "none"), default="log",
-                   help="Sobol' indices of ln(1 + NLL - min NLL) (default) or of the NLL")
-    p.add_argument("--out", default=None, help="output directory (default sensitivity_<model>_<data>)")
-    p.add_argument("--fixed", default=None,
-                   help="name=value,... parameter values of the analysis (default: model "
-                        "defaults)")
-    p.add_argument("--at-truth", action="store_true",
-                   help="analyse at the record's true parameters (synthetic records)")
-    p.add_argument("--x0", default=None, help="name=value,... initial-state overrides")
-    p.add_argument("--initial", choices=("auto", "record", "vehicle"), default="auto",
-                   help="initial state: record columns/sidecar, or the vehicle's consistent "
-                        "state (auto: vehicle models)")
-    p.add_argument("--p0-rel", type=float, default=0.05,
-                   help="prior std of each initial state, relative to max(|x0|, 1)")
-    p.add_argument("--seconds", type=float, default=None, help="use only the first SECONDS")
-    p.add_argument("--method", choices=("ros2", "rk4"), default="ros2", help="UKF discretisation")
-    p.add_argument("--substeps", type=int, default=1)
-    p.add_argument("--hold", choices=("zoh", "mean"), default="zoh")
-    p.add_argument("--rel-crb", type=float, default=REL_CRB_MAX,
-                   help="largest relative Cramér-Rao bound of a recommended parameter")
-    p.add_argument("--corr-max", type=float, default=CORR_MAX,
-                   help="largest |correlation| within the recommended set")
-    p.add_argument("--no-sensitivities", action="store_true",
-                   help="skip the forward sensitivity equations")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-plots", action="store_true")
-    p.add_argument("--quiet", action="store_true", help="no progress messages")
-
-
-def run_sensitivity(args) -> int:
-    """``bondgraph sensitivity``: analyse, write ``sensitivity.json`` and PNGs."""
-    from bondgraph.data.records import Experiment
-    from bondgraph.inference.estimate import _parse_fixed
-
-    model = _resolve_model(args.model)
-    exp = Experiment.load(args.data)
-    if args.seconds is not None:
-        n = int(np.searchsorted(exp.t, exp.t[0] + args.seconds, side="right"))
-        if n < 2:
-            raise SensitivityError(f"--seconds {args.seconds} leaves fewer than 2 samples")
-        exp = exp.segment(0, n, name=exp.name)
-    params = None
-    if args.params:
-        params = [s.strip() for s in args.params.split(",") if s.strip()]
-    values = {}
-    if args.at_truth:
-        tp = (exp.meta or {}).get("true_parameters") or {}
-        if not tp:
-            raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
-        values.update({k: float(v) for k, v in tp.items() if k in model.params})
-    values.update(_parse_fixed(args.fixed))
-    th = model.theta(values)
-    x0 = None
-    if args.x0:
-        x0, _ = initial_state(model, exp, th, args.initial)
-        for k_, v in _parse_fixed(args.x0).items():
-            x0[model.state_index(k_)] = v
-    outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
-    for o in outputs:
-        model.output_index(o)
-    out = Path(args.out) if args.out else Path(f"sensitivity_{model.name}_{Path(args.data).stem}")
-    log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    t0 = time.perf_counter()
-    rep = analyse(model, exp, params, theta=th, x0=x0, p0_rel=args.p0_rel, initial=args.initial,
-                  ukf_options=dict(method=args.method, substeps=args.substeps, hold=args.hold),
-                  global_N=args.global_N, outputs=outputs, box_rel=args.box_rel,
-                  chunk=args.chunk, seed=args.seed, rel_crb_max=args.rel_crb,
-                  corr_max=args.corr_max, sensitivities=not args.no_sensitivities,
-                  progress=not args.quiet, log=log, nll_transform=args.nll_transform)
-    rep.settings["data"] = str(args.data)
-    rep.settings["wall_s"] = time.perf_counter() - t0
-    # created only now: a run that fails on its input leaves no empty folder
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "sensitivity.json"
-    rep.to_json(path)
-    print(rep.table())
-    print(f"wrote {path}")
-    if not args.no_plots:
-        for p in plot_report(rep, out):
-            print(f"wrote {p}")
-    print(f"estimate these with: bondgraph estimate --model {model.name} --data {args.data} "
-          f"--params recommended:{path}")
-    return 0

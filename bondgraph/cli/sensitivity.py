@@ -1,0 +1,109 @@
+"""``bondgraph sensitivity``: local and global sensitivity and identifiability
+of a record, writing ``sensitivity.json`` and PNG plots."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bondgraph.cli.common import (
+    add_data,
+    add_discretisation,
+    add_fixed,
+    add_initial_state,
+    add_model,
+    add_quiet,
+    initial_state,
+    load_model,
+    parse_names,
+    parse_pairs,
+)
+from bondgraph.data.records import Experiment
+from bondgraph.errors import SensitivityError
+from bondgraph.report.sensitivity import plot_report
+from bondgraph.sensitivity.analysis import CORR_MAX, REL_CRB_MAX, analyse
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    """Options of ``bondgraph sensitivity``."""
+    add_model(p)
+    add_data(p)
+    p.add_argument("--params", default=None,
+                   help="comma-separated candidate parameters (default: every parameter with "
+                        "a proper box)")
+    p.add_argument("--global", dest="global_N", type=int, default=None, metavar="N",
+                   help="also Sobol' indices with base sample N (N (2k+2) UKF evaluations)")
+    p.add_argument("--outputs", default="",
+                   help="comma-separated outputs whose time-means also get Sobol' indices")
+    p.add_argument("--box-rel", type=float, default=None,
+                   help="Sobol' box theta*(1 ± BOX_REL) instead of the model bounds")
+    p.add_argument("--chunk", type=int, default=256, help="parameter sets per batched UKF run")
+    p.add_argument("--nll-transform", choices=("log", "none"), default="log",
+                   help="Sobol' indices of ln(1 + NLL - min NLL) (default) or of the NLL")
+    p.add_argument("--out", default=None, help="output directory (default sensitivity_<model>_<data>)")
+    add_fixed(p)
+    p.add_argument("--at-truth", action="store_true",
+                   help="analyse at the record's true parameters (synthetic records)")
+    add_initial_state(p)
+    p.add_argument("--seconds", type=float, default=None, help="use only the first SECONDS")
+    add_discretisation(p)
+    p.add_argument("--rel-crb", type=float, default=REL_CRB_MAX,
+                   help="largest relative Cramér-Rao bound of a recommended parameter")
+    p.add_argument("--corr-max", type=float, default=CORR_MAX,
+                   help="largest |correlation| within the recommended set")
+    p.add_argument("--no-sensitivities", action="store_true",
+                   help="skip the forward sensitivity equations")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-plots", action="store_true")
+    add_quiet(p)
+
+
+def run(args) -> int:
+    """Analyse, write ``sensitivity.json`` and the PNGs; print the table."""
+    model = load_model(args.model)
+    exp = Experiment.load(args.data)
+    if args.seconds is not None:
+        n = int(np.searchsorted(exp.t, exp.t[0] + args.seconds, side="right"))
+        if n < 2:
+            raise SensitivityError(f"--seconds {args.seconds} leaves fewer than 2 samples")
+        exp = exp.segment(0, n, name=exp.name)
+    params = parse_names(args.params, "--params") or None
+    values = {}
+    if args.at_truth:
+        tp = (exp.meta or {}).get("true_parameters") or {}
+        if not tp:
+            raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
+        values.update({k: float(v) for k, v in tp.items() if k in model.params})
+    values.update(parse_pairs(args.fixed, "--fixed"))
+    th = model.theta(values)
+    x0 = initial_state(model, exp, args.x0) if args.x0 else None
+    outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
+    for o in outputs:
+        model.output_index(o)
+    out = Path(args.out) if args.out else Path(f"sensitivity_{model.name}_{Path(args.data).stem}")
+    log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    t0 = time.perf_counter()
+    rep = analyse(model, exp, params, theta=th, x0=x0, p0_rel=args.p0_rel,
+                  ukf_options=dict(method=args.method, substeps=args.substeps, hold=args.hold),
+                  global_N=args.global_N, outputs=outputs, box_rel=args.box_rel,
+                  chunk=args.chunk, seed=args.seed, rel_crb_max=args.rel_crb,
+                  corr_max=args.corr_max, sensitivities=not args.no_sensitivities,
+                  progress=not args.quiet, log=log, nll_transform=args.nll_transform)
+    rep.settings["data"] = str(args.data)
+    rep.settings["wall_s"] = time.perf_counter() - t0
+    # created only now: a run that fails on its input leaves no empty folder
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "sensitivity.json"
+    rep.to_json(path)
+    print(rep.table())
+    print(f"wrote {path}")
+    if not args.no_plots:
+        for p in plot_report(rep, out):
+            print(f"wrote {p}")
+    print(f"estimate these with: bondgraph estimate --model {model.name} --data {args.data} "
+          f"--params recommended:{path}")
+    return 0

@@ -1,0 +1,113 @@
+"""``bondgraph simulate``: simulate a model on a registered experiment, a
+record's inputs, or constant inputs, and write the trajectory as a record."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from bondgraph.cli.common import add_model, load_model, parse_pairs
+from bondgraph.data.experiments import get_experiment
+from bondgraph.data.records import Experiment
+from bondgraph.numerics.simulate import METHODS, simulate, stiffness_report
+from bondgraph.report.plots import plot_record
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    """Options of ``bondgraph simulate``."""
+    add_model(p, positional=True)
+    p.add_argument("--experiment", "-e", metavar="NAME",
+                   help="registered experiment (its inputs, x0 and parameters) or a record "
+                        "CSV (its inputs and time grid); default: model defaults for --duration")
+    p.add_argument("-o", "--output", default=None, help="output CSV (default MODEL_sim.csv)")
+    p.add_argument("--method", default="BDF", choices=METHODS, help="integration method")
+    p.add_argument("--substeps", type=int, default=1, help="rk4/ros2 steps per sample")
+    p.add_argument("--duration", type=float, default=10.0,
+                   help="record length [s] without --experiment")
+    p.add_argument("--dt", type=float, default=0.025,
+                   help="sample interval [s] without --experiment")
+    p.add_argument("--param", action="append", metavar="NAME=VALUE", help="parameter override")
+    p.add_argument("--record-params", action="store_true",
+                   help="with a record CSV: use the parameters stored in its sidecar "
+                        "(true_parameters or parameters) that the model has")
+    p.add_argument("--input", action="append", metavar="NAME=VALUE",
+                   help="constant input (model units) without --experiment")
+    p.add_argument("--rtol", type=float, default=1e-8)
+    p.add_argument("--atol", type=float, default=1e-10)
+    p.add_argument("--max-step", type=float, default=None, help="adaptive solvers' largest step")
+    p.add_argument("--hold", choices=("linear", "zoh"), default="linear",
+                   help="sampled inputs between samples for adaptive solvers")
+    p.add_argument("--plot", metavar="DIR", help="also write PNG plots to DIR")
+    p.add_argument("--stiffness", action="store_true",
+                   help="print the stiffness report and write OUTPUT.stiffness.json")
+
+
+def run(args) -> int:
+    """Run ``bondgraph simulate`` (see :func:`configure`)."""
+    model = load_model(args.model)
+    overrides = parse_pairs(args.param, "--param")
+    measured = None
+    notes = []
+    if args.experiment:
+        path = Path(args.experiment)
+        if path.suffix.lower() in (".csv", ".json") or path.exists():
+            measured = Experiment.load(path)
+            t = measured.t
+            missing = measured.missing_inputs(model)
+            if missing:
+                notes.append(f"inputs {', '.join(missing)} not in the record: model defaults")
+            u = measured.inputs_for(model, defaults_ok=True)
+            x0 = {k: v for k, v in (measured.meta.get("x0") or {}).items() if k in model.states}
+            stored = {}
+            if args.record_params:
+                stored = (measured.meta.get("true_parameters") or measured.meta.get("parameters")
+                          or {})
+                stored = {k: v for k, v in stored.items() if k in model.params}
+                if not stored:
+                    notes.append("the record stores no parameters of this model")
+            theta = model.theta({**stored, **overrides})
+        else:
+            spec = get_experiment(args.experiment)
+            n = int(round(spec.duration / spec.dt)) + 1
+            t = np.arange(n) * spec.dt
+            u = {k: fn for k, fn in spec.inputs.items() if k in model.inputs}
+            skipped = [k for k in spec.inputs if k not in model.inputs]
+            if skipped:
+                notes.append(f"experiment inputs {', '.join(skipped)} are not inputs of "
+                             f"{model.name}: ignored")
+            x0 = {k: v for k, v in spec.x0.items() if k in model.states}
+            params = {k: v for k, v in spec.params.items() if k in model.params}
+            theta = model.theta({**params, **overrides})
+    else:
+        n = int(round(args.duration / args.dt)) + 1
+        t = np.arange(n) * args.dt
+        u = parse_pairs(args.input, "--input") or None
+        x0 = None
+        theta = model.theta(overrides)
+    res = simulate(model, t, u=u, x0=x0 or None, theta=theta, method=args.method,
+                   rtol=args.rtol, atol=args.atol, substeps=args.substeps,
+                   max_step=args.max_step, hold=args.hold)
+    out = Path(args.output or f"{model.name}_sim.csv")
+    Experiment.from_simulation(res, name=out.stem).save(out)
+    for note in notes:
+        print(f"note: {note}")
+    st = res.stats
+    print(f"wrote {out} ({t.size} samples, {t[-1] - t[0]:.6g} s, {args.method}, "
+          f"{st.get('nfev', 0)} f evaluations, {st['wall_time_s']:.3g} s)")
+    if args.stiffness:
+        rep, table = stiffness_report(model, res)
+        print(table)
+        jpath = out.with_suffix(".stiffness.json")
+        jpath.write_text(json.dumps(rep, indent=1) + "\n")
+        print(f"wrote {jpath}")
+    if args.plot:
+        if measured is not None:
+            paths = plot_record(measured, args.plot, simulated=res, model=model)
+        else:
+            paths = plot_record(res, args.plot)
+        for pth in paths:
+            print(f"wrote {pth}")
+    return 0
