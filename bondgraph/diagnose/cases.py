@@ -22,7 +22,10 @@ import numpy as np
 
 from bondgraph.core import plugins
 from bondgraph.core.graph import BondGraph
+from bondgraph.data.records import Experiment
 from bondgraph.errors import ModelError
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
 
 
 def declared_builder(fn: Callable[[], BondGraph]) -> Callable[[], BondGraph]:
@@ -63,10 +66,6 @@ def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
         Inputs, noisy outputs, true states (``state.<name>``) and meta
         (true parameters, x0, seed, noise).
     """
-    from bondgraph.data.records import Experiment
-    from bondgraph.numerics.model import Model
-    from bondgraph.numerics.simulate import simulate
-
     tm = Model.from_graph(truth)
     dm = Model.from_graph(declared)
     th = tm.theta({k: v for k, v in params.items() if k in tm.params})

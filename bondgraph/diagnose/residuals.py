@@ -17,10 +17,13 @@ Applications to Tracking and Navigation, §5.4 (NIS consistency test).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.signal import welch
+from scipy.stats import chi2
+from statsmodels.stats.diagnostic import acorr_ljungbox
 
 
 @dataclass
@@ -78,6 +81,7 @@ class Region:
     eta2: float
 
     def worst_bin(self) -> tuple[float, float, float]:
+        """Lower and upper edge and mean ε²/S of the bin with the largest mean."""
         i = int(np.argmax(self.mean_sq))
         return self.edges[i], self.edges[i + 1], self.mean_sq[i]
 
@@ -107,14 +111,14 @@ class ResidualReport:
         return d > 0 and self.whiteness <= d + z * np.sqrt(2 * d)
 
     def to_dict(self) -> dict[str, Any]:
-        from dataclasses import asdict
-
+        """JSON-ready statistics (outputs, regions, NIS, whiteness)."""
         return {"outputs": [asdict(o) for o in self.outputs],
                 "regions": [asdict(r) for r in self.regions],
                 "nis_mean": self.nis_mean, "nis_dof": self.nis_dof,
                 "nis_bounds": list(self.nis_bounds), "whiteness": self.whiteness}
 
     def table(self) -> str:
+        """Markdown table of the per-output statistics."""
         rows = ["| output | bias | RMS | bias/σ | Ljung-Box p | NIS | peak Hz |",
                 "|---|---|---|---|---|---|---|"]
         for o in self.outputs:
@@ -123,12 +127,11 @@ class ResidualReport:
         return "\n".join(rows)
 
     def top_regions(self, k: int = 5) -> list[Region]:
+        """The ``k`` regions with the largest η²."""
         return sorted(self.regions, key=lambda r: -r.eta2)[:k]
 
 
 def _ljung_box(z: np.ndarray, lags: int) -> tuple[float, float]:
-    from statsmodels.stats.diagnostic import acorr_ljungbox
-
     z = z[np.isfinite(z)]
     if z.size < lags + 5 or np.std(z) == 0:
         return float("nan"), float("nan")
@@ -137,8 +140,6 @@ def _ljung_box(z: np.ndarray, lags: int) -> tuple[float, float]:
 
 
 def _peak(z: np.ndarray, fs: float) -> tuple[float, float]:
-    from scipy.signal import welch
-
     z = z[np.isfinite(z)]
     if z.size < 32:
         return float("nan"), float("nan")
@@ -188,11 +189,13 @@ def analyze(ukf, model, t, u, y, *, p: int = 0, sim_y: np.ndarray | None = None,
     sim_y : array (N, n_y), optional
         Free-run simulated outputs, for simulation-error statistics.
     lags : int, optional
-        Ljung-Box lag (default min(20, N/10)).
+        Ljung-Box lag (default min(20, N/10), at least 5).
 
     Returns
     -------
     ResidualReport
+        Per-output statistics, operating regions, NIS consistency and the
+        whiteness total (sum of the Ljung-Box statistics, Ljung & Box 1978).
     """
     eps = ukf.innovations[:, p, :]
     S = ukf.S[:, p, :, :]
@@ -201,41 +204,56 @@ def analyze(ukf, model, t, u, y, *, p: int = 0, sim_y: np.ndarray | None = None,
     z = eps / sd
     dt = float(np.median(np.diff(t))) if N > 1 else 1.0
     lags = lags or int(max(5, min(20, N // 10)))
-    outs = []
-    for i, name in enumerate(model.outputs):
-        e = eps[:, i]
-        ok = np.isfinite(e)
-        n = int(ok.sum())
-        if n == 0:
-            outs.append(OutputResiduals(name, model.output_units[i], 0, *([float("nan")] * 4), lags,
-                                        float("nan"), float("nan"), float("nan")))
-            continue
-        bias = float(e[ok].mean())
-        rms = float(np.sqrt(np.mean(e[ok] ** 2)))
-        se = float(e[ok].std(ddof=1) / np.sqrt(n)) if n > 1 else float("inf")
-        q, pv = _ljung_box(z[:, i], lags)
-        fpk, ratio = _peak(z[:, i], 1.0 / dt)
-        o = OutputResiduals(name, model.output_units[i], n, bias, rms, bias / se if se > 0 else 0.0,
-                            q, pv, lags, float(np.nanmean(z[ok, i] ** 2)), fpk, ratio)
-        if sim_y is not None:
-            d = y[:, i] - sim_y[:, i]
-            okd = np.isfinite(d)
-            if okd.any():
-                o.sim_rms = float(np.sqrt(np.mean(d[okd] ** 2)))
-                o.sim_bias = float(d[okd].mean())
-        outs.append(o)
-    # NIS consistency over the record: N * mean(NIS) ~ chi2(sum m_k)
+    outs = [_output_residuals(model, i, eps[:, i], z[:, i], lags, dt, y, sim_y)
+            for i in range(ny)]
+    nis_mean, nis_dof, bounds = _nis_consistency(ukf, p, z)
+    regions = _regions(model, z, _operating_variables(ukf, model, p, u, y))
+    white = float(np.nansum([o.ljung_box_q for o in outs]))
+    white_dof = float(lags * sum(1 for o in outs if np.isfinite(o.ljung_box_q)))
+    return ResidualReport(outs, regions, nis_mean, nis_dof, bounds, white,
+                          {"lags": lags, "p": p, "whiteness_dof": white_dof})
+
+
+def _output_residuals(model, i: int, e: np.ndarray, z: np.ndarray, lags: int, dt: float,
+                      y: np.ndarray, sim_y: np.ndarray | None) -> OutputResiduals:
+    """Statistics of output ``i`` from its innovation ``e`` (N,) and
+    standardised innovation ``z`` (N,); simulation error if ``sim_y``."""
+    name = model.outputs[i]
+    ok = np.isfinite(e)
+    n = int(ok.sum())
+    if n == 0:
+        return OutputResiduals(name, model.output_units[i], 0, *([float("nan")] * 4), lags,
+                               float("nan"), float("nan"), float("nan"))
+    bias = float(e[ok].mean())
+    rms = float(np.sqrt(np.mean(e[ok] ** 2)))
+    se = float(e[ok].std(ddof=1) / np.sqrt(n)) if n > 1 else float("inf")
+    q, pv = _ljung_box(z, lags)
+    fpk, ratio = _peak(z, 1.0 / dt)
+    o = OutputResiduals(name, model.output_units[i], n, bias, rms, bias / se if se > 0 else 0.0,
+                        q, pv, lags, float(np.nanmean(z[ok] ** 2)), fpk, ratio)
+    if sim_y is not None:
+        d = y[:, i] - sim_y[:, i]
+        okd = np.isfinite(d)
+        if okd.any():
+            o.sim_rms = float(np.sqrt(np.mean(d[okd] ** 2)))
+            o.sim_bias = float(d[okd].mean())
+    return o
+
+
+def _nis_consistency(ukf, p: int, z: np.ndarray) -> tuple[float, float, tuple[float, float]]:
+    """Mean NIS per filter step, its degrees of freedom per step, and the 95 %
+    bounds of the mean: N · mean(NIS) ~ χ²(Σ m_k) (Bar-Shalom et al. 2001)."""
     nis = ukf.nis[:, p] if ukf.nis is not None else np.nansum(z**2, axis=1)
     used = ukf.n_obs > 0
     dof = float(ukf.n_obs[used].sum())
     tot = float(np.nansum(nis[used]))
-    from scipy.stats import chi2
-
     lo, hi = chi2.ppf([0.025, 0.975], dof) if dof > 0 else (0.0, 0.0)
     nk = max(int(used.sum()), 1)
-    nis_mean = tot / nk
-    bounds = (float(lo / nk), float(hi / nk))
-    # regions: squared standardised innovation over operating variables
+    return tot / nk, dof / nk, (float(lo / nk), float(hi / nk))
+
+
+def _operating_variables(ukf, model, p: int, u, y) -> dict[str, np.ndarray]:
+    """Filtered states, varying inputs and measured outputs, by name."""
     variables: dict[str, np.ndarray] = {}
     if ukf.x_filt is not None:
         for j, s in enumerate(model.states):
@@ -245,6 +263,12 @@ def analyze(ukf, model, t, u, y, *, p: int = 0, sim_y: np.ndarray | None = None,
             variables[nme] = u[:, j]
     for j, nme in enumerate(model.outputs):
         variables[f"{nme} (measured)"] = y[:, j]
+    return variables
+
+
+def _regions(model, z: np.ndarray, variables: dict[str, np.ndarray]) -> list[Region]:
+    """η² of each output's squared standardised innovation over quantile bins
+    of each operating variable, and over its sign where it changes sign."""
     regions = []
     for i, name in enumerate(model.outputs):
         s2 = z[:, i] ** 2
@@ -257,7 +281,4 @@ def analyze(ukf, model, t, u, y, *, p: int = 0, sim_y: np.ndarray | None = None,
                 e2s, _, means_s = _eta2(sgn + 1e-9 * np.arange(sgn.size) / sgn.size, s2, bins=2)
                 if means_s:
                     regions.append(Region(name, f"sign({vname})", [-1.0, 0.0, 1.0], means_s, e2s))
-    white = float(np.nansum([o.ljung_box_q for o in outs]))
-    white_dof = float(lags * sum(1 for o in outs if np.isfinite(o.ljung_box_q)))
-    return ResidualReport(outs, regions, nis_mean, dof / nk, bounds, white,
-                          {"lags": lags, "p": p, "whiteness_dof": white_dof})
+    return regions
