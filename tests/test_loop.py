@@ -160,7 +160,7 @@ def test_emps_finds_coulomb_then_asymmetric_friction(tmp_path):
     p = res.steps[1].parameters
     # viscous asymmetry: published Fv+ = 166.71, Fv- = 240.42 -> half difference -36.9
     assert p["asymmetric_friction.v.dv"]["estimate"] == pytest.approx(-36.9, abs=6.0)
-    val = emps_validation_error(res.final.graph, res.final.estimates())
+    val = emps_validation_error(res.final_graph, res.final.estimates)
     assert val["position_relerr_percent"] < 1.0
 
 

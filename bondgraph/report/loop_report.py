@@ -18,28 +18,19 @@ import numpy as np
 
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.equations import derive
+from bondgraph.diagnose.result import LoopResult
 from bondgraph.report.plots import pyplot
-
-
-def _fit_summary(fit) -> dict:
-    from bondgraph.diagnose.loop import _jsonable
-
-    return _jsonable({
-        "model": fit.graph.name, "nll": fit.nll, "aic": fit.aic(), "bic": fit.bic(),
-        "metric": fit.metric, "whiteness": fit.residuals.whiteness,
-        "estimates": fit.estimates(), "std": fit.std,
-        "residuals": fit.residuals.to_dict(),
-    })
 
 
 class LoopReporter:
     """Writes the loop's log and report into one folder while the loop runs.
 
     Pass :meth:`log` and :meth:`update` to
-    :func:`bondgraph.diagnose.loop.run_loop`: every log line goes to
-    ``loop.log`` (and to ``echo``), and the report is rewritten after the
-    initial fit, after every step and at the end, so that an interrupted run
-    keeps its work.
+    :func:`bondgraph.diagnose.loop.run_loop` (``log=``, ``on_update=``): every
+    log line goes to ``loop.log`` (and to ``echo``), and the report is
+    rewritten from the partial :class:`~bondgraph.diagnose.result.LoopResult`
+    after the initial fit, after every step and at the end, so that an
+    interrupted run keeps its work.
 
     Parameters
     ----------
@@ -63,51 +54,36 @@ class LoopReporter:
         with open(self.log_path, "a") as fh:
             fh.write(line + "\n")
 
-    def update(self, loop, current, final: bool = False) -> None:
-        """Rewrite the report from the loop's state."""
-        write(loop, current, final, self.out)
+    def update(self, result: LoopResult) -> None:
+        """Rewrite the report from the loop's (partial) result."""
+        write(result, self.out)
 
 
-def write(loop, current, final: bool, out: Path) -> None:
-    """Write ``report.json``, ``report.md``, the PNGs and the augmented model
-    into ``out``."""
-    from bondgraph.diagnose.loop import _jsonable, _metric_name
-
+def write(result: LoopResult, out) -> None:
+    """Write ``report.json``, ``report.md``, the PNGs and (once an effect is
+    accepted) the augmented model with its generated code into ``out``."""
     out = Path(out)
-    mname = _metric_name(loop.s, current.model)
-    report = {
-        "model": loop.user_graph.name,
-        "source": loop.user_graph.source,
-        "record": getattr(loop.data.exp, "name", None),
-        "metric": mname,
-        "criterion": loop.s.criterion,
-        "finished": bool(final),
-        "error_before": loop.initial.metric,
-        "error_after": current.metric,
-        "steps": [dict(vars(s)) for s in loop.steps],
-        "rejected": [r for r in loop.rejected],
-        "rankings": [[c.to_dict() for c in r[:25]] for r in loop.rankings],
-        "initial_fit": _fit_summary(loop.initial),
-        "final_fit": _fit_summary(current),
-        "augmented_model": "augmented_model.py" if loop.applied else None,
-        "settings": {"params": loop.s.params, "max_steps": loop.s.max_steps,
-                     "significance": loop.s.significance, "ukf": loop.s.ukf,
-                     "effects": [e.name for e in loop.s.effects]},
-    }
-    (out / "report.json").write_text(json.dumps(_jsonable(report), indent=2))
-    _write_augmented(loop, current, out)
-    pngs = _plots(loop, current, out)
-    _write_markdown(loop, current, report, pngs, out)
+    report = result.to_dict()
+    settings = report.pop("settings")   # keep "settings" last, after the file name
+    report["augmented_model"] = "augmented_model.py" if result.applied else None
+    report["settings"] = settings
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    if result.applied:
+        (out / "augmented_model.py").write_text(augmented_source(result))
+        _write_generated(result, out)
+    pngs = _plots(result, out)
+    (out / "report.md").write_text(markdown(result, pngs))
 
 
-def _write_augmented(loop, current, out: Path) -> None:
-    if not loop.applied:
-        return
-    src = loop.user_graph.source
-    name = f"{loop.user_graph.name}_augmented"
+def augmented_source(result: LoopResult) -> str:
+    """Source of ``augmented_model.py``: a declared model whose ``build()``
+    rebuilds the user's graph (imported from ``result.source``) and applies
+    the accepted effects in order with their values, then the final
+    estimates (``ESTIMATES``) as defaults."""
+    src = result.source
     lines = [f'"""Augmented declared model written by `bondgraph loop`.',
              "",
-             f"It rebuilds the declared model '{loop.user_graph.name}' unchanged and adds the",
+             f"It rebuilds the declared model '{result.model}' unchanged and adds the",
              "effects the loop accepted, in order, with their estimated values. The declared",
              'model\'s own source is not modified."""',
              "",
@@ -119,28 +95,37 @@ def _write_augmented(loop, current, out: Path) -> None:
         lines.append("# the declared graph was passed in memory: set _declared to its builder")
         lines.append("_declared = None")
     lines += ["", "", "def build():",
-              f'    """{loop.user_graph.name} + ' +
-              " + ".join(f"{a['effect']} @ {a['target'].name}" for a in loop.applied) + '."""',
+              f'    """{result.model} + ' +
+              " + ".join(f"{a.effect} @ {a.target.name}" for a in result.applied) + '."""',
               "    g = _declared()",
-              f"    g.name = {name!r}"]
-    for a in loop.applied:
-        vals = {k: float(v) for k, v in a["values"].items()}
-        lines.append(f"    apply_effect(g, {a['effect']!r}, Target({a['target'].kind!r}, "
-                     f"{a['target'].name!r}), {vals!r})")
-    est = current.estimates()
+              f"    g.name = {_augmented_name(result)!r}"]
+    for a in result.applied:
+        vals = {k: float(v) for k, v in a.values.items()}
+        lines.append(f"    apply_effect(g, {a.effect!r}, Target({a.target.kind!r}, "
+                     f"{a.target.name!r}), {vals!r})")
     lines += ["    for name, value in ESTIMATES.items():",
               "        g.params[name].default = value",
               "    return g", "",
               "",
               "#: parameter estimates of the final fit (applied as defaults by build())",
               "ESTIMATES = {"]
-    lines += [f"    {k!r}: {float(v)!r}," for k, v in est.items()]
+    lines += [f"    {k!r}: {float(v)!r}," for k, v in result.final.estimates.items()]
     lines += ["}", ""]
-    (out / "augmented_model.py").write_text("\n".join(lines))
+    return "\n".join(lines)
+
+
+def _augmented_name(result: LoopResult) -> str:
+    return f"{result.model}_augmented"
+
+
+def _write_generated(result: LoopResult, out: Path) -> None:
+    """Generated code of the final augmented graph (estimates as defaults)
+    in ``out/generated``."""
+    name = _augmented_name(result)
     gen = out / "generated"
     gen.mkdir(exist_ok=True)
-    g = current.graph.copy(name)
-    for k, v in est.items():
+    g = result.final_graph.copy(name)
+    for k, v in result.final.estimates.items():
         if k in g.params:
             g.params[k].default = float(v)
     ss = derive(g)
@@ -149,126 +134,157 @@ def _write_augmented(loop, current, out: Path) -> None:
         command="bondgraph loop (see report.md)"))
 
 
-def _plots(loop, current, out: Path) -> list[str]:
-    plt = pyplot()
+def _plots(result: LoopResult, out: Path) -> list[str]:
+    """Draw the PNGs; returns their file names."""
+    pngs = [_plot_fit(result, out), _plot_innovations(result, out)]
+    for k, ranking in enumerate(result.rankings, 1):
+        if ranking:
+            pngs.append(_plot_evidence(result, k, ranking, out))
+    return pngs
 
-    pngs = []
-    init = loop.initial
-    t, u, y = loop.data.arrays(current.model)
+
+def _augmented(result: LoopResult) -> bool:
+    """Whether the final model differs from the declared one."""
+    return bool(result.steps)
+
+
+def _save(fig, path: Path) -> str:
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    pyplot().close(fig)
+    return path.name
+
+
+def _plot_fit(result: LoopResult, out: Path) -> str:
+    """Measured outputs vs the free-run simulations before and after."""
+    plt = pyplot()
+    init, final = result.initial, result.final
+    t, y = result.time, result.measured
     ny = y.shape[1]
-    # measured vs model (free-run simulation) before and after
     fig, axes = plt.subplots(ny, 1, figsize=(10, 2.4 * ny + 0.6), sharex=True, squeeze=False)
     for i in range(ny):
         ax = axes[i, 0]
         ax.plot(t, y[:, i], ".", ms=2, color="0.55", label="measured")
         if init.sim_y is not None:
             ax.plot(t, init.sim_y[:, i], lw=1.2, color="tab:red", label="declared model (fitted)")
-        if current is not init and current.sim_y is not None:
-            ax.plot(t, current.sim_y[:, i], lw=1.2, color="tab:blue", label="augmented model")
-        unit = current.model.output_units[i]
-        ax.set_ylabel(f"{current.model.outputs[i]}\n[{unit or '-'}]", fontsize=8)
+        if _augmented(result) and final.sim_y is not None:
+            ax.plot(t, final.sim_y[:, i], lw=1.2, color="tab:blue", label="augmented model")
+        unit = result.output_units[i]
+        ax.set_ylabel(f"{result.outputs[i]}\n[{unit or '-'}]", fontsize=8)
         ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8, loc="best")
     axes[-1, 0].set_xlabel("t [s]")
     fig.suptitle("Measured vs free-run simulation, before and after the loop", fontsize=10)
-    fig.tight_layout()
-    p = out / "fit_before_after.png"
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
-    pngs.append(p.name)
-    # residuals before and after (one-step innovations, standardised)
+    return _save(fig, out / "fit_before_after.png")
+
+
+def _plot_innovations(result: LoopResult, out: Path) -> str:
+    """Standardised one-step innovations ε/√S before and after."""
+    plt = pyplot()
+    t, ny = result.time, result.measured.shape[1]
+    fits = [(result.initial, "tab:red", "declared")]
+    if _augmented(result):
+        fits.append((result.final, "tab:blue", "augmented"))
     fig, axes = plt.subplots(ny, 1, figsize=(10, 2.2 * ny + 0.6), sharex=True, squeeze=False)
     for i in range(ny):
         ax = axes[i, 0]
-        for fit, col, lab in ((init, "tab:red", "declared"), (current, "tab:blue", "augmented")):
-            if fit is current and current is init:
-                continue
-            e = fit.ukf.innovations[:, 0, i]
-            sd = np.sqrt(fit.ukf.S[:, 0, i, i])
+        for fit, col, lab in fits:
+            e = fit.innovations[:, i]
+            sd = np.sqrt(fit.innovation_var[:, i])
             ax.plot(t, e / sd, lw=0.6, color=col, alpha=0.8, label=lab)
-        ax.set_ylabel(f"{current.model.outputs[i]}\nε/√S", fontsize=8)
+        ax.set_ylabel(f"{result.outputs[i]}\nε/√S", fontsize=8)
         ax.grid(alpha=0.3)
     if axes[0, 0].get_legend_handles_labels()[0]:
         axes[0, 0].legend(fontsize=8)
     axes[-1, 0].set_xlabel("t [s]")
     fig.suptitle("Standardised UKF innovations before and after", fontsize=10)
-    fig.tight_layout()
-    p = out / "residuals_before_after.png"
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
-    pngs.append(p.name)
-    # evidence ranking of every step
-    for k, ranking in enumerate(loop.rankings, 1):
-        top = ranking[:15][::-1]
-        if not top:
-            continue
-        fig, ax = plt.subplots(figsize=(9, 0.32 * len(top) + 1.2))
-        vals = [max(c.score, -5) for c in top]
-        cols = ["tab:green" if any(s.effect == c.effect and s.attached_to == c.target.name
-                                   for s in loop.steps) else "tab:gray" for c in top]
-        ax.barh([c.label for c in top], vals, color=cols)
-        ax.set_xlabel("evidence: χ² statistic − 2k (predicted AIC decrease)")
-        ax.set_xscale("symlog", linthresh=10)
-        ax.tick_params(axis="y", labelsize=7)
-        ax.set_title(f"Step {k}: candidate effects (green: accepted)", fontsize=10)
-        fig.tight_layout()
-        p = out / f"evidence_step{k}.png"
-        fig.savefig(p, dpi=100)
-        plt.close(fig)
-        pngs.append(p.name)
-    return pngs
+    return _save(fig, out / "residuals_before_after.png")
 
 
-def _write_markdown(loop, current, report, pngs, out: Path) -> None:
-    init = loop.initial
-    L = [f"# Residual-tracing report: {loop.user_graph.name}", ""]
-    L.append(f"Record: `{report['record']}`. Metric: {report['metric']}. "
-             f"Criterion: {loop.s.criterion.upper()}.")
+def _plot_evidence(result: LoopResult, k: int, ranking, out: Path) -> str:
+    """The 15 best candidates of step ``k`` by evidence (accepted in green)."""
+    plt = pyplot()
+    top = ranking[:15][::-1]
+    fig, ax = plt.subplots(figsize=(9, 0.32 * len(top) + 1.2))
+    vals = [max(c.score, -5) for c in top]
+    cols = ["tab:green" if any(s.effect == c.effect and s.attached_to == c.target.name
+                               for s in result.steps) else "tab:gray" for c in top]
+    ax.barh([c.label for c in top], vals, color=cols)
+    ax.set_xlabel("evidence: χ² statistic − 2k (predicted AIC decrease)")
+    ax.set_xscale("symlog", linthresh=10)
+    ax.tick_params(axis="y", labelsize=7)
+    ax.set_title(f"Step {k}: candidate effects (green: accepted)", fontsize=10)
+    return _save(fig, out / f"evidence_step{k}.png")
+
+
+def markdown(result: LoopResult, pngs: list[str]) -> str:
+    """``report.md``: error before/after, accepted effects and final
+    parameters, every step's evidence, the final residuals, the plots and
+    the rejected candidates."""
+    L = [f"# Residual-tracing report: {result.model}", ""]
+    L.append(f"Record: `{result.record}`. Metric: {result.metric}. "
+             f"Criterion: {result.criterion.upper()}.")
     L.append("")
-    L.append(f"**Error before: {init.metric:.4g}; after: {current.metric:.4g}.**")
+    L.append(f"**Error before: {result.initial.metric:.4g}; after: {result.final.metric:.4g}.**")
     L.append("")
-    L.append("## Accepted effects")
-    L.append("")
-    if loop.steps:
-        L.append("| step | effect | attached to | error before | error after | NLL before | "
-                 "NLL after | whiteness before | after |")
-        L.append("|---|---|---|---|---|---|---|---|---|")
-        for i, s in enumerate(loop.steps, 1):
-            L.append(f"| {i} | {s.effect} | {s.attached_to} | {s.error_before:.4g} | "
-                     f"{s.error_after:.4g} | {s.nll_before:.1f} | {s.nll_after:.1f} | "
-                     f"{s.whiteness_before:.1f} | {s.whiteness_after:.1f} |")
-        L.append("")
-        L.append("Parameters of the final model:")
-        L.append("")
-        L.append("| parameter | estimate | Cramér-Rao std |")
-        L.append("|---|---|---|")
-        for n, v in current.estimates().items():
-            sd = current.std.get(n)
-            L.append(f"| {n} | {v:.6g} | {sd:.3g} |" if sd is not None else f"| {n} | {v:.6g} | - |")
-    else:
-        L.append("None: no candidate was significant and improved both the criterion and the "
-                 "whiteness.")
+    L += _md_accepted(result)
     L.append("")
     L.append("## Evidence (ranking of every step)")
     L.append("")
-    if loop.rankings:
-        for k, ranking in enumerate(loop.rankings, 1):
-            L.append(f"Step {k}:")
-            L.append("")
-            L.append("| candidate | test | χ² | k | p-value | explained | indistinguishable from |")
-            L.append("|---|---|---|---|---|---|---|")
-            for c in ranking[:10]:
-                ex = f"{100 * c.explained:.1f} %" if c.explained is not None else "-"
-                eq = ", ".join(c.equivalent) if c.equivalent else ""
-                L.append(f"| {c.label} | {c.kind} | {c.statistic:.1f} | {c.dof} | {c.p_value:.2g} "
-                         f"| {ex} | {eq} |")
-            L.append("")
+    for k, ranking in enumerate(result.rankings, 1):
+        L += _md_ranking(k, ranking)
     L.append("")
-    L.append("## Residuals of the final model")
+    L += _md_residuals(result)
     L.append("")
-    L.append(current.residuals.table())
+    for p in pngs:
+        L.append(f"![{p}]({p})")
     L.append("")
-    reg = current.residuals.top_regions(5)
+    if result.rejected:
+        L.append("## Rejected candidates")
+        L.append("")
+        for r in result.rejected:
+            L.append(f"- step {r.step}: {r.candidate.label} — {r.reason}")
+    return "\n".join(L) + "\n"
+
+
+def _md_accepted(result: LoopResult) -> list[str]:
+    L = ["## Accepted effects", ""]
+    if not result.steps:
+        L.append("None: no candidate was significant and improved both the criterion and the "
+                 "whiteness.")
+        return L
+    L.append("| step | effect | attached to | error before | error after | NLL before | "
+             "NLL after | whiteness before | after |")
+    L.append("|---|---|---|---|---|---|---|---|---|")
+    for i, s in enumerate(result.steps, 1):
+        L.append(f"| {i} | {s.effect} | {s.attached_to} | {s.error_before:.4g} | "
+                 f"{s.error_after:.4g} | {s.nll_before:.1f} | {s.nll_after:.1f} | "
+                 f"{s.whiteness_before:.1f} | {s.whiteness_after:.1f} |")
+    L += ["", "Parameters of the final model:", "",
+          "| parameter | estimate | Cramér-Rao std |", "|---|---|---|"]
+    for n, v in result.final.estimates.items():
+        sd = result.final.std.get(n)
+        L.append(f"| {n} | {v:.6g} | {sd:.3g} |" if sd is not None else f"| {n} | {v:.6g} | - |")
+    return L
+
+
+def _md_ranking(k: int, ranking) -> list[str]:
+    L = [f"Step {k}:", "",
+         "| candidate | test | χ² | k | p-value | explained | indistinguishable from |",
+         "|---|---|---|---|---|---|---|"]
+    for c in ranking[:10]:
+        ex = f"{100 * c.explained:.1f} %" if c.explained is not None else "-"
+        eq = ", ".join(c.equivalent) if c.equivalent else ""
+        L.append(f"| {c.label} | {c.kind} | {c.statistic:.1f} | {c.dof} | {c.p_value:.2g} "
+                 f"| {ex} | {eq} |")
+    L.append("")
+    return L
+
+
+def _md_residuals(result: LoopResult) -> list[str]:
+    res = result.final.residuals
+    L = ["## Residuals of the final model", "", res.table(), ""]
+    reg = res.top_regions(5)
     if reg:
         L.append("Where the remaining residual is largest (η²: share of the squared standardised "
                  "innovation explained by the operating variable):")
@@ -277,13 +293,4 @@ def _write_markdown(loop, current, report, pngs, out: Path) -> None:
             lo, hi, m = r.worst_bin()
             L.append(f"- {r.output}: {r.variable} in [{lo:.4g}, {hi:.4g}] (mean ε²/S = {m:.2f}, "
                      f"η² = {r.eta2:.2f})")
-    L.append("")
-    for p in pngs:
-        L.append(f"![{p}]({p})")
-    L.append("")
-    if loop.rejected:
-        L.append("## Rejected candidates")
-        L.append("")
-        for r in loop.rejected:
-            L.append(f"- step {r['step']}: {r['label']} — {r['reason']}")
-    (out / "report.md").write_text("\n".join(L) + "\n")
+    return L

@@ -1,0 +1,356 @@
+"""Fitting one model of the loop: the :class:`Fit` record, the UKF prior
+(x0/P0 policy), the warm-started maximum-likelihood fit (Fisher scoring,
+L-BFGS-B if it fails), the free-run simulation, Cramér-Rao standard
+deviations and the detection of noise-intensity parameters.
+
+The likelihood is the batched UKF's (Wan & van der Merwe 2000); the fit is
+Levenberg-damped Fisher scoring on it (Rao 1973, §5g; Cramér 1946 and Rao
+1945 for the bound), all through :mod:`bondgraph.diagnose.inference_calls`.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+import sympy as sp
+
+from bondgraph.core.graph import BondGraph
+from bondgraph.diagnose.inference_calls import (
+    fisher_fit,
+    hessian_cramer_rao,
+    lbfgsb_polish,
+    make_criterion,
+    prior_covariance,
+    run_ukf,
+)
+from bondgraph.diagnose.metric import compute_metric
+from bondgraph.diagnose.residuals import analyze
+from bondgraph.diagnose.result import FitSummary
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import BondGraphError
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
+
+#: generated functions of every model the loop builds
+CANDIDATE_FUNCTIONS = ("f", "h", "dfdx", "f_dfdx")
+
+
+class Record:
+    """The measured record, resolved for one model at a time.
+
+    Attributes
+    ----------
+    exp : Experiment
+        The record (:class:`bondgraph.data.records.Experiment`).
+    """
+
+    def __init__(self, experiment):
+        self.exp = experiment
+
+    @property
+    def name(self) -> str | None:
+        """The record's name (None if it has none)."""
+        return getattr(self.exp, "name", None)
+
+    def arrays(self, model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Times t (N,) [s], inputs u (N, n_u) and measured outputs y (N, n_y)
+        in the order and units of ``model`` (inputs the record lacks at their
+        defaults; NaN where an output is missing)."""
+        t = np.asarray(self.exp.t, dtype=float)
+        u = self.exp.inputs_for(model, defaults_ok=True) if model.n_u else np.zeros((t.size, 0))
+        y = self.exp.outputs_for(model)
+        return t, u, y
+
+
+@dataclass
+class Context:
+    """What every step of the loop reads: the record, the settings, the
+    (time-stamped) line logger and whether progress bars are shown."""
+
+    record: Record
+    settings: LoopSettings
+    log: Callable[[str], None] = print
+    progress: bool = True
+
+
+@dataclass
+class Fit:
+    """A fitted model: graph, generated model, estimated names, full θ
+    (n_theta,), NLL, stored UKF run, residual report, metric value, free-run
+    outputs (N, n_y) or None, Cramér-Rao std by name, number of scalar
+    observations."""
+
+    graph: BondGraph
+    model: Model
+    params: list[str]
+    theta: np.ndarray
+    nll: float
+    ukf: Any
+    residuals: Any
+    metric: float
+    sim_y: np.ndarray | None
+    std: dict = field(default_factory=dict)
+    n_obs: int = 0
+
+    @property
+    def k(self) -> int:
+        """Number of estimated parameters."""
+        return len(self.params)
+
+    def aic(self) -> float:
+        """Akaike's criterion 2 NLL + 2k (Akaike 1974)."""
+        return 2 * self.nll + 2 * self.k
+
+    def bic(self) -> float:
+        """Schwarz's criterion 2 NLL + k log n (Schwarz 1978)."""
+        return 2 * self.nll + self.k * math.log(max(self.n_obs, 1))
+
+    def information(self, criterion: str) -> float:
+        """:meth:`bic` if ``criterion`` is ``"bic"``, else :meth:`aic`."""
+        return self.bic() if criterion == "bic" else self.aic()
+
+    def estimates(self) -> dict:
+        """Estimated parameters, name -> value."""
+        return {n: float(self.theta[self.model.param_index(n)]) for n in self.params}
+
+    def summary(self) -> FitSummary:
+        """The fit as a report sees it (:class:`FitSummary`)."""
+        S = self.ukf.S[:, 0, :, :]
+        return FitSummary(self.graph.name, self.nll, self.aic(), self.bic(), self.metric,
+                          self.residuals.whiteness, self.estimates(), dict(self.std),
+                          self.residuals, self.sim_y, self.ukf.innovations[:, 0, :],
+                          np.diagonal(S, axis1=1, axis2=2).copy())
+
+
+# ----------------------------------------------------------------- models
+def model_of(graph: BondGraph) -> Model:
+    """Generate the model of one of the loop's graphs (in memory)."""
+    return Model.from_graph(graph, functions=CANDIDATE_FUNCTIONS, name=f"_loop_{graph.name}")
+
+
+def prior_mean(ctx: Context, model: Model) -> np.ndarray:
+    """UKF prior mean x0 (n_x,): ``settings.x0`` if it fits the model, else
+    the model's initial state with the record's true initial states
+    (``meta["x0"]``, by state name) imposed."""
+    if ctx.settings.x0 is not None:
+        x = np.asarray(ctx.settings.x0, dtype=float)
+        if x.shape == (model.n_x,):
+            return x
+    x = model.x0.copy()
+    meta_x0 = (getattr(ctx.record.exp, "meta", {}) or {}).get("x0") or {}
+    for k, v in meta_x0.items():
+        if k in model.states:
+            x[model.state_index(k)] = float(v)
+    return x
+
+
+def prior_cov(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
+    """UKF prior covariance (n_x, n_x): ``settings.P0`` if it fits the model
+    (a vector is a diagonal), else the default (5 % of max(|x0|, 1)), with the
+    standard deviations of ``settings.P0_std`` (by state name) imposed, e.g. a
+    level test track: {"theta_g": 0.002}."""
+    s = ctx.settings
+    if s.P0 is not None:
+        P = np.asarray(s.P0, dtype=float)
+        if P.shape in ((model.n_x,), (model.n_x, model.n_x)):
+            return np.diag(P) if P.ndim == 1 else P
+        # states added by effects: fall back to the default variance
+    P = prior_covariance(model, x0)
+    for name, sd in (s.P0_std or {}).items():
+        if name in model.states:
+            i = model.state_index(name)
+            P[i, :] = 0.0
+            P[:, i] = 0.0
+            P[i, i] = float(sd) ** 2
+    return P
+
+
+def prior(ctx: Context, model: Model) -> tuple[np.ndarray, np.ndarray]:
+    """The UKF prior (x0, P0) of ``model``: :func:`prior_mean`, :func:`prior_cov`."""
+    x0 = prior_mean(ctx, model)
+    return x0, prior_cov(ctx, model, x0)
+
+
+def criterion_for(ctx: Context, model: Model, names: Sequence[str], base: np.ndarray):
+    """Batched NLL of ``names`` (others at ``base`` (n_theta,)) on the record,
+    with the loop's prior and UKF options."""
+    t, u, y = ctx.record.arrays(model)
+    x0, P0 = prior(ctx, model)
+    return make_criterion(model, t, u, y, names, base, x0, P0, ctx.settings)
+
+
+def bounds_around(model: Model, names: Sequence[str], theta: np.ndarray):
+    """The declared boxes (k,) of ``names``, widened to contain their current
+    values in ``theta``."""
+    lo, hi = model.bounds(names)
+    x = np.array([theta[model.param_index(n)] for n in names])
+    return np.minimum(lo, x), np.maximum(hi, x)
+
+
+def noise_params(graph: BondGraph) -> set:
+    """Names of parameters that appear only in process- or measurement-noise
+    declarations (scale parameters of the filter: fitted in log scale,
+    profiled by decades when candidates are screened)."""
+    used_noise, used_model = set(), set()
+    for v in list(graph.process_noise.values()) + [s.noise_std for s in graph.sensors.values()]:
+        if isinstance(v, sp.Basic):
+            used_noise |= {x.name for x in v.free_symbols}
+    for el in graph.elements.values():
+        for ex in el.expressions():
+            used_model |= {x.name for x in ex.free_symbols}
+    for s_ in graph.sensors.values():
+        used_model |= {x.name for x in s_.expr.free_symbols}
+    for ss in graph.signal_states.values():
+        used_model |= {x.name for x in ss.rhs.free_symbols}
+    return (used_noise - used_model) & set(graph.params)
+
+
+def cr_std(F: np.ndarray, names: Sequence[str]) -> dict:
+    """Cramér-Rao standard deviations sqrt(diag(F⁻¹)) from the Fisher
+    information F (k, k); None where F is singular or a variance is not
+    positive (Cramér 1946; Rao 1945)."""
+    try:
+        C = np.linalg.inv(F)
+        d = np.diag(C)
+        return {n: (float(np.sqrt(v)) if v > 0 and np.isfinite(v) else None)
+                for n, v in zip(names, d)}
+    except np.linalg.LinAlgError:
+        return {n: None for n in names}
+
+
+# ----------------------------------------------------------------- fitting
+def fit_model(ctx: Context, graph: BondGraph, params: list[str],
+              start: Mapping[str, float] | None, what: str, model: Model | None = None,
+              iterations: int | None = None) -> Fit:
+    """Warm-started maximum-likelihood fit of ``params``, everything else fixed.
+
+    Parameters
+    ----------
+    ctx : Context
+    graph : BondGraph
+    params : list of str
+        Parameters to estimate (those ``graph`` lacks are dropped).
+    start : dict, optional
+        Start values by name (over ``settings.fixed``, over the defaults).
+    what : str
+        Name of the fit in log lines and errors.
+    model : Model, optional
+        ``graph``'s generated model, if already built.
+    iterations : int, optional
+        Fisher-scoring iterations (default ``settings.fit_iterations``; 0:
+        evaluate at the start).
+
+    Returns
+    -------
+    Fit
+
+    Raises
+    ------
+    BondGraphError
+        If the UKF fails at the fitted parameters.
+    """
+    model = model or model_of(graph)
+    theta = model.theta0.copy()
+    for k, v in {**ctx.settings.fixed, **(start or {})}.items():
+        if k in model.params:
+            theta[model.param_index(k)] = v
+    params = [p for p in params if p in model.params]
+    iters = ctx.settings.fit_iterations if iterations is None else int(iterations)
+    std: dict = {}
+    if params and iters > 0:
+        theta, std = _maximize(ctx, graph, model, params, theta, iters, what)
+    return evaluate_fit(ctx, graph, model, params, theta, what, std)
+
+
+def _maximize(ctx: Context, graph: BondGraph, model: Model, params: list[str],
+              theta: np.ndarray, iters: int, what: str) -> tuple[np.ndarray, dict]:
+    """Fisher scoring of ``params`` from ``theta`` (noise intensities in log
+    scale), L-BFGS-B if it fails numerically; returns θ and the Cramér-Rao
+    std (empty after the fallback)."""
+    t, u, y = ctx.record.arrays(model)
+    x0, P0 = prior(ctx, model)
+    idx = [model.param_index(n) for n in params]
+    lo, hi = bounds_around(model, params, theta)
+    # log scale and decade moves for the noise intensities only: a physical
+    # parameter with a wide box (R_a in [0.05, 10]) is no scale parameter,
+    # and decade jumps strand it on a bound
+    noise = noise_params(graph)
+    scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
+    try:
+        theta, F = fisher_fit(model, t, u, y, theta, idx, lo, hi, x0, P0, ctx.settings, iters,
+                              scale)
+        return theta, cr_std(F, params)
+    except (FloatingPointError, np.linalg.LinAlgError) as exc:
+        ctx.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
+        crit = criterion_for(ctx, model, params, theta)
+        xs = np.array([theta[model.param_index(n)] for n in params])
+        x = lbfgsb_polish(crit, xs, lo, hi, iters)
+        return crit.theta(x[None, :])[0], {}
+
+
+def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str],
+                 theta: np.ndarray, what: str, std: dict) -> Fit:
+    """The :class:`Fit` at ``theta``: one stored UKF run, the free-run
+    simulation, the residual analysis and the metric.
+
+    Raises
+    ------
+    BondGraphError
+        If the UKF fails at ``theta`` (the reason is named).
+    """
+    t, u, y = ctx.record.arrays(model)
+    x0, P0 = prior(ctx, model)
+    res = run_ukf(model, t, u, y, theta[None, :], x0, P0, ctx.settings, store=True)
+    nll = float(res.nll[0])
+    if not np.isfinite(nll):
+        raise BondGraphError(f"{what}: the UKF failed at the fitted parameters "
+                             f"({res.reasons[0]})")
+    sim_y = free_run(ctx, model, theta, res)
+    rep = analyze(res, model, t, u, y, sim_y=sim_y)
+    fit = Fit(graph, model, list(params), theta, nll, res, rep, float("nan"), sim_y,
+              std=std, n_obs=int(res.n_obs.sum()))
+    fit.metric = compute_metric(ctx.settings, fit, ctx.record)
+    return fit
+
+
+def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res) -> np.ndarray | None:
+    """Free-run simulation (N, n_y) from the first filtered state with the
+    measured inputs (``settings.sim_method``, rtol 1e-6, atol 1e-9); None
+    (logged) if the model cannot be simulated freely."""
+    t, u, y = ctx.record.arrays(model)
+    x0 = ukf_res.x_filt[0, 0, :]
+    if not np.all(np.isfinite(x0)):
+        x0 = prior_mean(ctx, model)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sim = simulate(model, t, u, x0=x0, theta=theta, method=ctx.settings.sim_method,
+                           rtol=1e-6, atol=1e-9)
+        return sim.y
+    except Exception as exc:  # a model that cannot be simulated freely
+        ctx.log(f"  free-run simulation failed ({str(exc).splitlines()[0]})")
+        return None
+
+
+def parameter_std(ctx: Context, fit: Fit) -> dict:
+    """Cramér-Rao standard deviations of the estimated parameters: those of
+    the last scoring step if complete, else from a batched difference Hessian
+    (relative step 1e-4); {} (logged) if unavailable."""
+    if not fit.params:
+        return {}
+    if fit.std and all(n in fit.std for n in fit.params):
+        return fit.std
+    crit = criterion_for(ctx, fit.model, fit.params, fit.theta)
+    x = np.array([fit.theta[fit.model.param_index(n)] for n in fit.params])
+    h = 1e-4 * np.maximum(np.abs(x), 1e-6)
+    try:
+        cr = hessian_cramer_rao(crit, x, h, fit.params)
+        return {n: (float(v) if v is not None and np.isfinite(v) else None)
+                for n, v in zip(fit.params, cr.get("std", [None] * len(fit.params)))}
+    except Exception as exc:
+        ctx.log(f"  Cramér-Rao bounds unavailable ({str(exc).splitlines()[0]})")
+        return {}

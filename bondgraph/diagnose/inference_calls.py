@@ -1,0 +1,117 @@
+"""The loop's only door into :mod:`bondgraph.inference`.
+
+Every call of the loop into the batched UKF (Wan & van der Merwe 2000),
+its criterion, Fisher scoring, the L-BFGS-B polish, the difference Hessian
+and the Cramér-Rao bounds goes through the small functions of this module,
+which are also the only place where the UKF options of
+:class:`~bondgraph.diagnose.settings.LoopSettings` (``settings.ukf``) are
+handed to the inference layer. Changing how the options are passed (a dict
+today) touches this module only.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
+from bondgraph.inference.fisher import fisher_scoring
+from bondgraph.inference.optimize import minimize_batched
+from bondgraph.inference.ukf import UKFResult, default_P0, ukf_nll
+
+
+def run_ukf(model, t, u, y, thetas: np.ndarray, x0, P0, settings: LoopSettings, *,
+            store: bool = False) -> UKFResult:
+    """One batched UKF run with the loop's filter options.
+
+    Parameters
+    ----------
+    model : Model
+    t : array (N,)
+        Sample times [s].
+    u : array (N, n_u)
+    y : array (N, n_y)
+        Measurements (NaN where missing).
+    thetas : array (P, n_theta)
+        Full parameter vectors, one per set.
+    x0 : array (n_x,)
+        Prior state mean.
+    P0 : array (n_x, n_x)
+        Prior state covariance.
+    settings : LoopSettings
+        Supplies the UKF options (``settings.ukf``).
+    store : bool
+        Keep innovations, their covariances and the filtered states.
+
+    Returns
+    -------
+    UKFResult
+        :func:`bondgraph.inference.ukf.ukf_nll`'s result (NLL per set).
+    """
+    return ukf_nll(model, t, u, y, thetas, x0, P0, store=store, **settings.ukf)
+
+
+def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P0,
+                   settings: LoopSettings) -> Criterion:
+    """Batched NLL of the parameters ``names`` (everything else at ``base``),
+    ``crit(X (S, k)) -> (S,)``, evaluated ``settings.chunk`` sets per UKF run
+    (:class:`bondgraph.inference.estimate.Criterion`)."""
+    return Criterion(model, t, u, y, names, base, x0, P0, ukf=settings.ukf, chunk=settings.chunk)
+
+
+def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, upper, x0, P0,
+               settings: LoopSettings, iterations: int, log_scale) -> tuple[np.ndarray, np.ndarray]:
+    """Maximum-likelihood fit by Levenberg-damped Fisher scoring
+    (:func:`bondgraph.inference.fisher.fisher_scoring`).
+
+    Parameters
+    ----------
+    theta : array (n_theta,)
+        Start; only the entries ``index`` (k) move, within [lower, upper].
+    iterations : int
+        Scoring iterations.
+    log_scale : array of bool (k,)
+        Parameters moved in log θ (noise intensities).
+
+    Returns
+    -------
+    theta : array (n_theta,)
+    F : array (k, k)
+        Fisher information at the result.
+
+    Raises
+    ------
+    FloatingPointError, numpy.linalg.LinAlgError
+        When the scoring fails numerically (the caller falls back to L-BFGS-B).
+    """
+    theta, _, F, _ = fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0,
+                                    ukf_options=settings.ukf, max_iter=iterations,
+                                    log_scale=log_scale)
+    return theta, F
+
+
+def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:
+    """Bounded L-BFGS-B minimisation of ``crit`` from ``x`` (k,), batched
+    central-difference gradients (:func:`bondgraph.inference.optimize.minimize_batched`);
+    returns the minimiser (k,)."""
+    x, _, _, _ = minimize_batched(crit, x, lower, upper, maxiter=iterations)
+    return x
+
+
+def hessian_cramer_rao(crit: Criterion, x: np.ndarray, h: np.ndarray,
+                       names: Sequence[str]) -> dict:
+    """Cramér-Rao bounds from the batched difference Hessian of ``crit`` at
+    ``x`` (k,) with steps ``h`` (k,)
+    (:func:`bondgraph.inference.estimate.hessian_batched`,
+    :func:`bondgraph.inference.estimate.cramer_rao`): a dict with ``std``
+    (k,) among others."""
+    H, _, _ = hessian_batched(crit, x, h)
+    return cramer_rao(H, names)
+
+
+def prior_covariance(model, x0: np.ndarray) -> np.ndarray:
+    """The default UKF prior covariance (n_x, n_x): 5 % of max(|x0|, 1)
+    (:func:`bondgraph.inference.ukf.default_P0`)."""
+    return default_P0(model, x0)

@@ -1,0 +1,67 @@
+"""The error measure the loop reports before and after (``LoopSettings.metric``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bondgraph.diagnose.settings import LoopSettings
+
+_NAMES = {"nrmse_sim": "free-run simulation NRMSE (RMS error / std of the measurement, "
+                       "mean over outputs)",
+          "rmse_sim": "free-run simulation RMS error (over outputs, output units)",
+          "rmse_pred": "RMS of the one-step-ahead innovations (output units)"}
+
+
+def metric_name(settings: LoopSettings) -> str:
+    """Name of the metric in logs and reports: ``settings.metric_name``, the
+    ``name`` (or ``__name__``) of a callable metric, or the description of a
+    built-in one."""
+    if settings.metric_name:
+        return settings.metric_name
+    m = settings.metric
+    if callable(m):
+        return getattr(m, "name", getattr(m, "__name__", "custom metric"))
+    return _NAMES.get(m, str(m))
+
+
+def compute_metric(settings: LoopSettings, fit, record) -> float:
+    """The reported error of a fit.
+
+    Parameters
+    ----------
+    settings : LoopSettings
+        ``settings.metric``: ``"nrmse_sim"`` (mean over outputs of the RMS
+        free-run simulation error over the std of the measurement),
+        ``"rmse_sim"`` (RMS over outputs, output units), ``"rmse_pred"``
+        (RMS of the one-step innovations), or ``metric(fit, record)``.
+    fit : Fit
+        Needs ``model``, ``ukf`` (stored run) and ``sim_y`` (N, n_y) or None.
+    record : Record
+        The measured record (:class:`bondgraph.diagnose.fit.Record`).
+
+    Returns
+    -------
+    float
+        The error; inf when the free run failed (``sim_y`` None) or no
+        output has two measured samples.
+    """
+    m = settings.metric
+    t, u, y = record.arrays(fit.model)
+    if callable(m):
+        return float(m(fit, record))
+    if m == "rmse_pred":
+        e = fit.ukf.innovations[:, 0, :]
+        return float(np.sqrt(np.nanmean(e**2)))
+    if fit.sim_y is None:
+        return float("inf")
+    err = y - fit.sim_y
+    if m == "rmse_sim":
+        return float(np.sqrt(np.nanmean(err**2)))
+    vals = []
+    for i in range(y.shape[1]):
+        ok = np.isfinite(err[:, i])
+        if ok.sum() < 2:
+            continue
+        sd = np.nanstd(y[ok, i])
+        vals.append(np.sqrt(np.mean(err[ok, i] ** 2)) / (sd if sd > 0 else 1.0))
+    return float(np.mean(vals)) if vals else float("inf")

@@ -1,0 +1,257 @@
+"""The residual-tracing loop's orchestration: fit, score, confirm, accept,
+repeat (see :mod:`bondgraph.diagnose.loop` for the method), with the log
+lines and the ``on_update`` hand-over of the partial :class:`LoopResult`."""
+
+from __future__ import annotations
+
+import time
+from typing import Callable, Sequence
+
+from bondgraph.core.graph import BondGraph
+from bondgraph.diagnose.accept import (
+    accepted_step,
+    applied_effect,
+    decide,
+    rejection,
+    significant,
+)
+from bondgraph.diagnose.confirm import Confirmation, confirm
+from bondgraph.diagnose.effects import Scales, get_effect
+from bondgraph.diagnose.fit import Context, Fit, Record, fit_model, parameter_std
+from bondgraph.diagnose.metric import metric_name
+from bondgraph.diagnose.result import Candidate, LoopResult
+from bondgraph.diagnose.scoring import operating_scales, score_additive, score_structural
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import ModelError
+
+#: outcomes of one step
+ACCEPTED, NONE_ACCEPTED, NOTHING_SIGNIFICANT = "accepted", "none accepted", "nothing significant"
+
+OnUpdate = Callable[[LoopResult], None]
+
+
+def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
+             log: Callable[[str], None] | None = None, progress: bool = True,
+             on_update: OnUpdate | None = None, **settings) -> LoopResult:
+    """Trace residuals to missing effects, add them, re-estimate.
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared model (never modified).
+    experiment : Experiment
+        The measured record (:class:`bondgraph.data.records.Experiment`).
+    params : sequence of str
+        Parameters of the declared model to estimate.
+    log : callable, optional
+        Line logger (default ``print``); lines are stamped with the time since
+        the start.
+    progress : bool
+        Progress bars on long steps.
+    on_update : callable, optional
+        ``on_update(result)`` with the current (partial) :class:`LoopResult`,
+        called after the initial fit, after every step and at the end
+        (``result.finished`` True); the report writer
+        (:meth:`bondgraph.report.loop_report.LoopReporter.update`) uses it,
+        so that an interrupted run keeps its report.
+    **settings
+        Fields of :class:`LoopSettings` (metric, criterion, max_steps,
+        significance, confirm_top, structural, effects, x0, P0, ukf, ...).
+
+    Returns
+    -------
+    LoopResult
+        Accepted steps (error before/after, NLL, parameters), rejected
+        candidates, the evidence ranking of every step, initial and final fits.
+
+    Raises
+    ------
+    ModelError
+        Unknown parameter names.
+    BondGraphError
+        If the declared model cannot be fitted at all (UKF failure).
+    """
+    missing = [p for p in params if p not in set(graph.params)]
+    if missing:
+        raise ModelError(f"graph '{graph.name}' has no parameter(s) {missing} "
+                         f"(known: {', '.join(graph.params)})")
+    s = LoopSettings(params=list(params), **settings)
+    t0 = time.perf_counter()
+    ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
+                  progress)
+    initial = initial_fit(ctx, graph)
+    result = LoopResult(graph.name, graph.source, ctx.record.name, metric_name(s), s.criterion,
+                        s.summary())
+    publish(ctx, result, initial, initial, on_update)
+    current = initial
+    for step in range(1, s.max_steps + 1):
+        current, outcome = run_step(ctx, result, current, step, graph.name)
+        if outcome == NOTHING_SIGNIFICANT:
+            break
+        publish(ctx, result, initial, current, on_update)
+        if outcome == NONE_ACCEPTED:
+            ctx.log("no candidate improved both the criterion and the whiteness: stop")
+            break
+    if not current.std:
+        current.std = parameter_std(ctx, current)
+    result.finished = True
+    publish(ctx, result, initial, current, on_update)
+    ctx.log(f"done in {time.perf_counter() - t0:.1f} s")
+    return result
+
+
+def _stamped(log: Callable[[str], None], t0: float) -> Callable[[str], None]:
+    """``log`` with each line prefixed by the seconds since ``t0``."""
+    def emit(msg: str) -> None:
+        log(f"[{time.perf_counter() - t0:7.1f} s] {msg}")
+    return emit
+
+
+def publish(ctx: Context, result: LoopResult, initial: Fit, current: Fit,
+            on_update: OnUpdate | None) -> None:
+    """Bring ``result`` up to date with the initial and current fits (their
+    summaries, the current graph, the record arrays of the current model) and
+    hand it to ``on_update``."""
+    result.initial = initial.summary()
+    result.final = current.summary()
+    result.final_graph = current.graph
+    t, _, y = ctx.record.arrays(current.model)
+    result.time, result.measured = t, y
+    result.outputs = list(current.model.outputs)
+    result.output_units = list(current.model.output_units)
+    if on_update is not None:
+        on_update(result)
+
+
+def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
+    """Fit the declared model (``initial_params``, default ``params``) on a
+    copy of ``graph``; the returned fit counts all of ``params`` as
+    estimated (later steps re-estimate them all). Logs the start, a warning
+    when the filter model declares no process noise, and the fit."""
+    s = ctx.settings
+    ctx.log(f"loop on model '{graph.name}', record "
+            f"'{getattr(ctx.record.exp, 'name', '?')}', estimating {', '.join(s.params)}")
+    if not graph.process_noise and not any(
+            ss.process_noise is not None for ss in graph.signal_states.values()):
+        ctx.log("warning: the filter model declares no process noise; model errors then "
+                "do not show as local innovations and the likelihood is poorly "
+                "conditioned. Declare process noise (g.set_process_noise) on the states "
+                "where forces are unmodelled, ideally as an estimated parameter.")
+    first = list(s.params) if s.initial_params is None else list(s.initial_params)
+    fit = fit_model(ctx, graph.copy(graph.name), first, None, "initial fit")
+    fit.params = list(s.params)
+    ctx.log(f"initial fit: NLL {fit.nll:.2f}, {s.criterion.upper()} "
+            f"{fit.information(s.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
+            f"{metric_name(s)} = {fit.metric:.4g}")
+    return fit
+
+
+def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
+             name: str) -> tuple[Fit, str]:
+    """One step: score every candidate, confirm the best significant ones,
+    accept the best confirmed one that passes :func:`decide`. Appends the
+    ranking, the step or the rejections to ``result``.
+
+    Returns
+    -------
+    (Fit, str)
+        The new current fit and the outcome (:data:`ACCEPTED`,
+        :data:`NONE_ACCEPTED`, :data:`NOTHING_SIGNIFICANT`).
+    """
+    scales = operating_scales(ctx, current)
+    t_ev = time.perf_counter()
+    ranking, signif = gather_evidence(ctx, current, scales)
+    result.rankings.append(ranking)
+    ctx.log(f"step {step}: {len(ranking)} candidates scored in "
+            f"{time.perf_counter() - t_ev:.1f} s; best: " + "; ".join(
+                f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})" for c in ranking[:5]))
+    if ranking and ranking[0].equivalent:
+        ctx.log(f"  note: {ranking[0].label} is indistinguishable in this record from "
+                f"{', '.join(ranking[0].equivalent)} (signatures correlated > 0.999)")
+    if not signif:
+        ctx.log("nothing significant left: stop")
+        return current, NOTHING_SIGNIFICANT
+    confirmed = confirm_best(ctx, current, signif, scales,
+                             f"{name}_step{len(result.steps) + 1}")
+    after = accept_best(ctx, result, current, confirmed, step)
+    return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
+
+
+def gather_evidence(ctx: Context, current: Fit,
+                    scales: Scales) -> tuple[list[Candidate], list[Candidate]]:
+    """Score the additive candidates; the structural ones too unless an
+    additive effect explains more than ``structural_threshold`` of the
+    innovation energy; the last-resort ones (unmeasured disturbances) only
+    when no physical effect is significant.
+
+    Returns
+    -------
+    (ranking, significant)
+        All candidates by decreasing score, and the significant ones.
+    """
+    s = ctx.settings
+    cands = score_additive(ctx, current, scales, s.effects)
+    best_expl = max([c.explained or 0.0 for c in cands] + [0.0])
+    physical_fx = [e for e in s.effects if not getattr(e, "last_resort", False)]
+    resort_fx = [e for e in s.effects if getattr(e, "last_resort", False)]
+    if s.structural == "always" or (s.structural and best_expl < s.structural_threshold):
+        cands += score_structural(ctx, current, scales, physical_fx)
+    elif s.structural:
+        ctx.log(f"  structural candidates not scored: an additive effect explains "
+                f"{100 * best_expl:.0f} % of the innovation energy")
+    signif = significant(cands, s.significance)
+    if not signif and s.structural and resort_fx:
+        ctx.log("  no physical effect is significant: scoring the last-resort "
+                "effects (unmeasured disturbances)")
+        cands += score_structural(ctx, current, scales, resort_fx)
+        signif = significant(cands, s.significance)
+    return sorted(cands, key=lambda c: -c.score), signif
+
+
+def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Scales,
+                 name: str) -> list[tuple[Candidate, Confirmation]]:
+    """Confirm the ``confirm_top`` best significant candidates by refits
+    (:func:`bondgraph.diagnose.confirm.confirm`, graphs named ``name``); set
+    their likelihood-ratio statistic; return them by decreasing LR − 2k."""
+    todo = sorted(signif, key=lambda c: -c.score)[: ctx.settings.confirm_top]
+    confirmed = []
+    for c in todo:
+        r = confirm(ctx, current, c, scales, name)
+        if r is None:
+            continue
+        c.confirmed_statistic = max(0.0, 2 * (current.nll - r.fit.nll))
+        confirmed.append((c.confirmed_statistic - 2 * c.dof, c, r))
+        ctx.log(f"  confirmed {c.label}: LR {c.confirmed_statistic:.1f} "
+                f"(score test {c.statistic:.1f}), values {r.values}")
+    confirmed.sort(key=lambda z: -z[0])
+    return [(c, r) for _, c, r in confirmed]
+
+
+def accept_best(ctx: Context, result: LoopResult, current: Fit,
+                confirmed: list[tuple[Candidate, Confirmation]], step: int) -> Fit | None:
+    """Accept the first confirmed candidate that passes
+    :func:`bondgraph.diagnose.accept.decide` (its step, applied effect and
+    Cramér-Rao std recorded); record and log the rejected ones before it.
+    Returns the accepted fit, or None."""
+    s = ctx.settings
+    crit = s.criterion.upper()
+    for c, conf in confirmed:
+        names = list(current.params) + conf.new_params
+        after = conf.fit
+        d = decide(current, after, s)
+        if d.accepted:
+            new_std = parameter_std(ctx, after)
+            result.steps.append(accepted_step(c, d, current, after, names, new_std,
+                                              result.metric))
+            result.applied.append(applied_effect(get_effect(c.effect, s.effects), c, after))
+            after.std = new_std
+            ctx.log(f"ACCEPT {c.label}: {result.metric} {d.error_before:.4g} -> "
+                    f"{d.error_after:.4g}, NLL {current.nll:.2f} -> {after.nll:.2f}, {crit} "
+                    f"{d.criterion_before:.2f} -> {d.criterion_after:.2f}, whiteness "
+                    f"{d.whiteness_before:.1f} -> {d.whiteness_after:.1f}")
+            return after
+        result.rejected.append(rejection(step, c, d))
+        ctx.log(f"reject {c.label}: {crit} {d.criterion_before:.2f} -> "
+                f"{d.criterion_after:.2f}, whiteness {d.whiteness_before:.1f} -> "
+                f"{d.whiteness_after:.1f}, error {d.error_before:.4g} -> {d.error_after:.4g}")
+    return None

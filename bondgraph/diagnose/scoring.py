@@ -1,0 +1,513 @@
+"""Evidence for the candidate effects of one loop step.
+
+* **Additive** effects (friction laws, drags, offsets, gains, sensor
+  offset/gain/rectification) are all added at once to a *probe* model at
+  their neutral value β = 0 (:func:`bondgraph.diagnose.effects.probe_graph`).
+  One batched UKF run with each β nudged gives the innovation signatures
+  J = ∂ε/∂β; with whitened innovations e and signatures G the efficient score
+  (Lagrange-multiplier) statistic of a candidate with columns c, the
+  currently estimated parameters partialled out, is LM = bᵀ A⁻¹ b with
+  b = Σ G_cᵀ e, A = Σ G_cᵀ G_c: how much of the innovation energy the
+  candidate's signature explains; under "the effect is absent" LM ~ χ²(k)
+  (Rao 1948; Engle 1984). A second batched run, the *line probe*, evaluates
+  each candidate at multiples of its one-step estimate and replaces the score
+  statistic by the likelihood gain where that is larger. Candidates whose
+  signatures are indistinguishable are grouped (``Candidate.equivalent``).
+* **Structural** effects (slip, compliance, low-pass, saturation, dead zone,
+  end stops, backlash, disturbance) have no neutral value: each is built and
+  evaluated over a grid of its parameter in one batched UKF run, profiled over
+  factors of the estimated noise intensities, giving the likelihood-ratio
+  statistic LR = 2 (NLL₀ − NLL₁) ~ χ²(k) (Wilks 1938).
+
+Both statistics are χ²(k): candidates are ranked by the predicted decrease of
+AIC, statistic − 2k (Akaike 1974), which is comparable between them.
+
+References
+----------
+Rao, C. R. (1948). Large sample tests of statistical hypotheses concerning
+several parameters. Proc. Cambridge Phil. Soc. 44, 50-57. Engle, R. F. (1984).
+Wald, likelihood ratio and Lagrange multiplier tests in econometrics.
+Handbook of Econometrics II, ch. 13. Wilks, S. S. (1938). The large-sample
+distribution of the likelihood ratio. Ann. Math. Stat. 9, 60-62. Akaike, H.
+(1974). A new look at the statistical model identification. IEEE TAC 19(6),
+716-723.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import sympy as sp
+from scipy.stats import chi2
+from tqdm.auto import tqdm
+
+from bondgraph.core.elements import C, One, Source
+from bondgraph.core.equations import derive
+from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
+from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, prior
+from bondgraph.diagnose.inference_calls import run_ukf
+from bondgraph.diagnose.result import Candidate
+from bondgraph.errors import BondGraphError
+from bondgraph.numerics.model import Model
+
+#: factors applied to the estimated noise intensities when a structural
+#: candidate is screened: a missing effect inflates them, so a candidate's
+#: likelihood is profiled over them (their likelihood is far from quadratic
+#: near zero)
+NOISE_FACTORS = (1.0, 0.3, 0.1, 0.01, 0.001)
+#: the same for the line probe of the additive candidates
+LINE_NOISE_FACTORS = (1.0, 0.1, 0.01)
+#: two nudge sizes of each probe parameter (linearity check of the signature)
+LADDER = (1.0, 1e-2)
+
+
+def noise_variants(model: Model, fit: Fit, base: np.ndarray, factors) -> list:
+    """Copies of ``base`` (n_theta,) with the estimated noise intensities of
+    ``fit`` (:func:`bondgraph.diagnose.fit.noise_params`) scaled by each
+    factor, clipped to their box; ``[base]`` if none is estimated."""
+    names = [n for n in fit.params if n in noise_params(fit.graph) and n in model.params]
+    if not names:
+        return [base]
+    out = []
+    for f in factors:
+        th = base.copy()
+        for n in names:
+            j = model.param_index(n)
+            th[j] = float(np.clip(base[j] * f, model.lower[j], model.upper[j]))
+        out.append(th)
+    return out
+
+
+def operating_scales(ctx: Context, fit: Fit) -> Scales:
+    """Data-driven scales of the effects (smoothing widths, search boxes):
+    RMS and maximum of every 1-junction's flow, maximum of every source and
+    stored quantity along the filtered states, RMS of every measured output,
+    record duration and median sample interval."""
+    ss = derive(fit.graph)
+    model = fit.model
+    t, u, y = ctx.record.arrays(model)
+    X = fit.ukf.x_filt[:, 0, :]
+    sc = Scales(duration=float(t[-1] - t[0]) or 1.0, dt=float(np.median(np.diff(t))))
+    args = (list(ss.states), list(ss.inputs), list(ss.params))
+
+    def evaluate(expr):
+        fn = sp.lambdify(args, expr, "numpy")
+        vals = fn(X.T, u.T if u.size else np.zeros((0, t.size)), fit.theta)
+        return np.broadcast_to(np.asarray(vals, dtype=float), t.shape)
+
+    for name, el in fit.graph.elements.items():
+        try:
+            if isinstance(el, One):
+                v = evaluate(ss.variable(el.f))
+                sc.flow_rms[name] = float(np.sqrt(np.nanmean(v**2)))
+                sc.flow_max[name] = float(np.nanmax(np.abs(v)))
+            elif isinstance(el, Source):
+                v = evaluate(ss.variable(el.value))
+                sc.source_max[name] = float(np.nanmax(np.abs(v)))
+            elif isinstance(el, C) and el.q in ss.states:
+                v = X[:, ss.states.index(el.q)]
+                sc.storage_max[name] = float(np.nanmax(np.abs(v)))
+        except Exception:
+            continue
+    for i, o in enumerate(model.outputs):
+        sc.output_rms[o] = float(np.sqrt(np.nanmean(y[:, i] ** 2)))
+    return sc
+
+
+# --------------------------------------------------------------- additive
+@dataclass
+class Probe:
+    """The probe model of one step and what the score test needs of it:
+    its columns (:class:`bondgraph.diagnose.effects.ProbeColumn`), θ with the
+    current estimates and every β = 0, the record arrays, the UKF prior, and
+    the θ indices of the probe parameters and of the estimated ones."""
+
+    model: Model
+    cols: list
+    base: np.ndarray
+    t: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    x0: np.ndarray
+    P0: np.ndarray
+    idx: list
+    nuis: list
+
+
+def build_probe(ctx: Context, fit: Fit, scales: Scales, effects) -> Probe | None:
+    """The probe model of ``fit``'s graph with every additive effect of
+    ``effects`` at β = 0; targets on a causal path the model cannot be built
+    with are dropped (logged). None if no additive candidate is left.
+
+    Raises
+    ------
+    BondGraphError
+        If the probe model fails for a reason no target explains.
+    """
+    exclude: set = set()
+    while True:
+        pg, cols = probe_graph(fit.graph, effects, scales, exclude)
+        if not cols:
+            return None
+        try:
+            pm = model_of(pg)
+            break
+        except BondGraphError as exc:
+            # drop the targets on the failing causal path and retry
+            bad = {e.replace("probe.", "", 1) for e in exc.elements} & \
+                {c.target.name for c in cols}
+            if not bad:
+                raise
+            ctx.log(f"  probe: no additive effects at {', '.join(sorted(bad))} "
+                    f"({str(exc).splitlines()[0][:120]})")
+            exclude |= bad
+    base = pm.theta0.copy()
+    for n in fit.model.params:
+        base[pm.param_index(n)] = fit.theta[fit.model.param_index(n)]
+    t, u, y = ctx.record.arrays(pm)
+    x0, P0 = prior(ctx, pm)
+    return Probe(pm, cols, base, t, u, y, x0, P0, [pm.param_index(c.param) for c in cols],
+                 [pm.param_index(n) for n in fit.params])
+
+
+def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Candidate]:
+    """Efficient score test (Rao 1948) of every additive candidate with one
+    probe model, then the line probe (:func:`line_probe`) and the
+    equivalence groups (:func:`mark_equivalent`).
+
+    Parameters
+    ----------
+    ctx : Context
+    fit : Fit
+        The current model's fit (its estimated parameters are nuisance
+        parameters, partialled out).
+    scales : Scales
+    effects : sequence of Effect
+        Only the additive ones are scored.
+
+    Returns
+    -------
+    list of Candidate
+        One per (effect, target), ``kind="score"``, ``values`` the one-step
+        estimates, ``explained`` the share of the whitened innovation energy.
+    """
+    probe = build_probe(ctx, fit, scales, effects)
+    if probe is None:
+        return []
+    deltas, nuis_delta = nudge_sizes(probe, fit, scales.dt)
+    eps0, S0, D, Dn = signature_runs(ctx, probe, deltas, nuis_delta)
+    J = signatures(eps0, D, Dn, deltas, nuis_delta)
+    ew, Gw = whiten(eps0, S0, J)
+    total = float(np.sum(ew**2))
+    A = np.einsum("kic,kid->cd", Gw, Gw)
+    b = np.einsum("kic,ki->c", Gw, ew)
+    # columns are scaled to unit norm before solving (conditioning)
+    norm = np.sqrt(np.maximum(np.diag(A), 1e-300))
+    An = A / np.outer(norm, norm)
+    bn = b / norm
+    out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total)
+    mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
+    line_probe(ctx, probe, fit, out)
+    return out
+
+
+def nudge_sizes(probe: Probe, fit: Fit, dt: float) -> tuple[np.ndarray, list]:
+    """Nudge of each probe parameter (makes its one-sample state or output
+    change 1e-3 of the state or output scale along the filtered states) and
+    of each estimated parameter (1e-4 relative)."""
+    pm, base, u, y = probe.model, probe.base, probe.u, probe.y
+    nuis_delta = [1e-4 * max(abs(base[j]), 1e-3 * (pm.upper[j] - pm.lower[j]), 1e-12)
+                  for j in probe.nuis]
+    X = fit.ukf.x_filt[:, 0, :]
+    ok = np.all(np.isfinite(X), axis=1)
+    sel = np.flatnonzero(ok)[:: max(1, ok.sum() // 200)]
+    xs, us = X[sel], u[sel]
+    xscale = np.maximum(np.nanstd(X, axis=0), 1e-9)
+    yscale = np.maximum(np.nanstd(y, axis=0), 1e-12)
+    F0 = pm.f(xs, us, base)
+    H0 = pm.h(xs, us, base)
+    deltas = []
+    for j in probe.idx:
+        th = base.copy()
+        th[j] = 1.0
+        dF = np.nanmax(np.abs((pm.f(xs, us, th) - F0) * dt / xscale))
+        dH = np.nanmax(np.abs((pm.h(xs, us, th) - H0) / yscale))
+        sens = max(dF, dH, 1e-300)
+        deltas.append(1e-3 / sens)
+    return np.array(deltas), nuis_delta
+
+
+def signature_runs(ctx: Context, probe: Probe, deltas: np.ndarray, nuis_delta: list):
+    """Batched UKF runs at β = 0, at each probe parameter nudged by each
+    :data:`LADDER` step, and at each estimated parameter nudged.
+
+    Returns
+    -------
+    eps0 : array (N, n_y)
+        Innovations at β = 0; ``S0`` (N, n_y, n_y) their covariances.
+    D : array (len(LADDER), n_cols, N, n_y)
+        Innovations with each probe parameter nudged (NaN where the UKF failed).
+    Dn : array (n_nuis, N, n_y)
+        Innovations with each estimated parameter nudged.
+    """
+    pm, base, t = probe.model, probe.base, probe.t
+    sets = [base]
+    for j, d in zip(probe.idx, deltas):
+        for s in LADDER:
+            th = base.copy()
+            th[j] = d * s
+            sets.append(th)
+    for j, d in zip(probe.nuis, nuis_delta):
+        th = base.copy()
+        th[j] = base[j] + d
+        sets.append(th)
+    sets = np.array(sets)
+    n_lad = 1 + len(probe.idx) * len(LADDER)
+    Dn = np.empty((len(probe.nuis), t.size, pm.n_y))
+    eps0 = S0 = None
+    D = np.empty((len(LADDER), len(probe.cols)) + (t.size, pm.n_y))
+    chunk = ctx.settings.chunk
+    for a in range(0, len(sets), chunk):
+        r = run_ukf(pm, t, probe.u, probe.y, sets[a:a + chunk], probe.x0, probe.P0,
+                    ctx.settings, store=True)
+        for q in range(r.nll.size):
+            gi = a + q
+            if gi == 0:
+                eps0 = r.innovations[:, 0, :].copy()
+                S0 = r.S[:, 0, :, :].copy()
+                continue
+            if gi >= n_lad:
+                Dn[gi - n_lad] = r.innovations[:, q, :] if np.isfinite(r.nll[q]) else np.nan
+                continue
+            c, l = divmod(gi - 1, len(LADDER))
+            D[l, c] = r.innovations[:, q, :] if np.isfinite(r.nll[q]) else np.nan
+    return eps0, S0, D, Dn
+
+
+def signatures(eps0, D, Dn, deltas, nuis_delta) -> np.ndarray:
+    """Innovation signatures J (N, n_y, n_nuis + n_cols) by forward
+    differences: estimated parameters first, then the probe columns, each
+    from the larger nudge unless it is nonlinear (differs from the smaller by
+    more than 5 %) or failed."""
+    nn = len(nuis_delta)
+    J = np.empty(eps0.shape + (nn + D.shape[1],))
+    for a_, d in enumerate(nuis_delta):
+        J[:, :, a_] = (Dn[a_] - eps0) / d
+    for c in range(D.shape[1]):
+        j_big = (D[0, c] - eps0) / (deltas[c] * LADDER[0])
+        j_small = (D[1, c] - eps0) / (deltas[c] * LADDER[1])
+        use_small = ~np.all(np.isfinite(j_big)) or (
+            np.nanmax(np.abs(j_big - j_small)) > 0.05 * np.nanmax(np.abs(j_small)) + 1e-300)
+        J[:, :, nn + c] = j_small if use_small else j_big
+    return J
+
+
+def whiten(eps0: np.ndarray, S0: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened innovations e (N, n_y) and signatures G (N, n_y, m): by the
+    Cholesky factor of S, or by its diagonal when outputs are missing
+    (missing entries are zero)."""
+    e = np.nan_to_num(eps0)
+    valid = np.isfinite(eps0)
+    n_y = eps0.shape[1]
+    L = np.linalg.cholesky(np.where(np.isfinite(S0), S0, 0) + np.eye(n_y) * 1e-300)
+    Jv = np.where(valid[:, :, None] & np.isfinite(J), J, 0.0)
+    # rows of missing outputs: remove from S too (use the diagonal then)
+    if not valid.all():
+        sd = np.sqrt(np.einsum("kii->ki", S0))
+        ew = np.where(valid, e / sd, 0.0)
+        Gw = Jv / sd[:, :, None]
+    else:
+        ew = np.linalg.solve(L, e[:, :, None])[:, :, 0]
+        Gw = np.linalg.solve(L, Jv)
+    return ew, np.where(np.isfinite(Gw), Gw, 0.0)
+
+
+def _explained(An: np.ndarray, bn: np.ndarray, norm: np.ndarray, cs: list):
+    """Innovation energy explained by the columns ``cs`` (least squares on
+    the normalised normal equations) and their coefficients."""
+    if not cs:
+        return 0.0, np.zeros(0)
+    sol = np.linalg.lstsq(An[np.ix_(cs, cs)], bn[cs], rcond=1e-9)[0]
+    return float(bn[cs] @ sol), sol / norm[cs]
+
+
+def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float):
+    """One :class:`Candidate` per (effect, target) of the probe columns: LM =
+    energy explained with its columns minus that of the ``nn`` estimated
+    parameters alone, χ²(k) p-value, one-step estimates β = −coefficients.
+
+    Returns
+    -------
+    (list of Candidate, dict (effect, target) -> column indices)
+    """
+    base_cols = list(range(nn))
+    e_base, _ = _explained(An, bn, norm, base_cols)
+    col_of: dict = {}
+    out = []
+    groups: dict[tuple, list[int]] = {}
+    for c, col in enumerate(cols):
+        groups.setdefault((col.effect, col.target), []).append(nn + c)
+    for (ename, tgt), cs in groups.items():
+        eff = get_effect(ename, ctx.settings.effects)
+        try:
+            e_all, sol = _explained(An, bn, norm, base_cols + cs)
+        except np.linalg.LinAlgError:
+            continue
+        lm = max(0.0, e_all - e_base)
+        if not np.isfinite(lm):
+            continue
+        k = len(cs)
+        col_of[(ename, tgt)] = cs
+        beta = -sol[nn:]
+        est = [p.name for p in eff.params if p.estimated]
+        values = {est[i]: float(beta[i]) for i in range(min(k, len(est)))}
+        out.append(Candidate(ename, eff.title, tgt, "score", lm, k, float(chi2.sf(lm, k)),
+                             lm - 2 * k, lm / total if total > 0 else None, values))
+    return out, col_of
+
+
+def mark_equivalent(cands, col_of, An, base_cols, tol: float = 0.999) -> None:
+    """Fill ``Candidate.equivalent`` for single-column candidates whose
+    signatures, with the estimated parameters (``base_cols``) partialled out,
+    have |correlation| > ``tol`` (from the normalised Gram matrix ``An``)."""
+    B = list(base_cols)
+    ABB = An[np.ix_(B, B)] if B else None
+
+    def resid(a, b):
+        v = An[a, b]
+        if B:
+            v -= An[a, B] @ np.linalg.lstsq(ABB, An[B, b], rcond=1e-9)[0]
+        return v
+
+    singles = [c for c in cands if len(col_of[(c.effect, c.target)]) == 1]
+    idx = {id(c): col_of[(c.effect, c.target)][0] for c in singles}
+    var = {id(c): resid(idx[id(c)], idx[id(c)]) for c in singles}
+    for i, a in enumerate(singles):
+        for b in singles[i + 1:]:
+            va, vb = var[id(a)], var[id(b)]
+            if va <= 0 or vb <= 0:
+                continue
+            r = resid(idx[id(a)], idx[id(b)]) / np.sqrt(va * vb)
+            if abs(r) > tol:
+                a.equivalent.append(b.label)
+                b.equivalent.append(a.label)
+
+
+def line_probe(ctx: Context, probe: Probe, fit: Fit, cands: list[Candidate]) -> None:
+    """Second batched run: every additive candidate at 0.5, 1 and 2 times its
+    one-step estimate and at its natural values, nuisance parameters held,
+    profiled over :data:`LINE_NOISE_FACTORS`. The likelihood gain found (LR, a
+    lower bound of the candidate's full LR) replaces the score statistic
+    (and ``values``) where it is larger: the score test is local and misses
+    effects to which the filter reacts nonlinearly (at λ = 0 a filter bends
+    its states towards a rectified measurement)."""
+    sets, owner = _line_sets(ctx, probe, fit, cands)
+    if not sets:
+        return
+    sets = np.array(sets)
+    nll = np.empty(len(sets))
+    chunk = ctx.settings.chunk
+    for a in range(0, len(sets), chunk):
+        nll[a:a + chunk] = run_ukf(probe.model, probe.t, probe.u, probe.y, sets[a:a + chunk],
+                                   probe.x0, probe.P0, ctx.settings).nll
+    best: dict = {}
+    for (cand, tr), v in zip(owner, nll):
+        if np.isfinite(v) and (id(cand) not in best or v < best[id(cand)][0]):
+            best[id(cand)] = (v, tr)
+    for cand in cands:
+        if id(cand) not in best:
+            continue
+        v, tr = best[id(cand)]
+        lr = 2.0 * (fit.nll - v)
+        if lr > cand.statistic:
+            eff = get_effect(cand.effect, ctx.settings.effects)
+            est = [p.name for p in eff.params if p.estimated]
+            cand.statistic = float(lr)
+            cand.p_value = float(chi2.sf(lr, cand.dof))
+            cand.score = float(lr - 2 * cand.dof)
+            cand.values.update({n: float(x) for n, x in zip(est, tr)})
+
+
+def _line_sets(ctx: Context, probe: Probe, fit: Fit, cands: list[Candidate]):
+    """Parameter sets (n_theta,) of the line probe and, for each, the
+    (candidate, trial β) it evaluates."""
+    pm = probe.model
+    index = {(c.effect, c.target): [] for c in cands}
+    for col in probe.cols:
+        if (col.effect, col.target) in index:
+            index[(col.effect, col.target)].append(pm.param_index(col.param))
+    sets, owner = [], []
+    for cand in cands:
+        eff = get_effect(cand.effect, ctx.settings.effects)
+        est = [p.name for p in eff.params if p.estimated]
+        js = index[(cand.effect, cand.target)]
+        beta = np.array([cand.values.get(n, 0.0) for n in est[:len(js)]])
+        trials = [beta * f for f in (0.5, 1.0, 2.0)] if np.any(beta) else []
+        for pt in eff.natural_points(cand.target):
+            trials.append(np.array([pt.get(n, b) for n, b in zip(est, beta)]))
+        for tr in trials:
+            th = probe.base.copy()
+            th[js] = tr
+            for thv in noise_variants(pm, fit, th, LINE_NOISE_FACTORS):
+                sets.append(thv)
+                owner.append((cand, tr))
+    return sets, owner
+
+
+# ------------------------------------------------------------- structural
+def score_structural(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Candidate]:
+    """Likelihood-ratio statistic of every structural effect of ``effects``
+    at every place it can attach (and is not yet present), each from one
+    batched UKF run over its grid (:func:`structural_candidate`); a progress
+    bar when ``ctx.progress``."""
+    todo = [(eff, tgt) for eff in effects if not eff.additive
+            for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)]
+    out = []
+    for eff, tgt in tqdm(todo, desc="structural candidates", unit="cand", leave=False,
+                         disable=not ctx.progress):
+        cand = structural_candidate(ctx, fit, scales, eff, tgt)
+        if cand is not None:
+            out.append(cand)
+    return out
+
+
+def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Candidate | None:
+    """Build ``fit``'s graph plus ``eff`` at ``tgt`` and evaluate the NLL over
+    the effect's grid × :data:`NOISE_FACTORS` (current estimates held) in one
+    batched UKF run; the best point gives LR = 2 (NLL₀ − NLL₁), χ²(k) with k
+    the effect's estimated parameters. None (logged) if the effect cannot be
+    built there, or if the UKF fails everywhere."""
+    try:
+        g = fit.graph.copy(f"{fit.graph.name}__{eff.name}")
+        grid = eff.grid(g, tgt, scales)
+        P = eff.apply(g, tgt, grid[0], scales)
+        model = model_of(g)
+    except BondGraphError as exc:
+        ctx.log(f"  skip {eff.name} @ {tgt.name}: {str(exc).splitlines()[0]}")
+        return None
+    base = model.theta0.copy()
+    for n in fit.model.params:
+        if n in model.params:
+            base[model.param_index(n)] = fit.theta[fit.model.param_index(n)]
+    sets, grid_of = [], []
+    for vals in grid:
+        th = base.copy()
+        for k, v in vals.items():
+            if k in P:
+                th[model.param_index(P[k].name)] = v
+        for thv in noise_variants(model, fit, th, NOISE_FACTORS):
+            sets.append(thv)
+            grid_of.append(vals)
+    t, u, y = ctx.record.arrays(model)
+    x0, P0 = prior(ctx, model)
+    r = run_ukf(model, t, u, y, np.array(sets), x0, P0, ctx.settings)
+    if not np.any(np.isfinite(r.nll)):
+        return None
+    net = np.where(np.isfinite(r.nll), r.nll, np.inf)
+    i = int(np.argmin(net))
+    lr = max(0.0, 2 * (fit.nll - float(net[i])))
+    k = sum(1 for p in eff.params if p.estimated)
+    return Candidate(eff.name, eff.title, tgt, "likelihood ratio", lr, k, float(chi2.sf(lr, k)),
+                     lr - 2 * k, None, dict(grid_of[i]),
+                     last_resort=getattr(eff, "last_resort", False))

@@ -1,0 +1,98 @@
+"""Options of the residual-tracing loop (:func:`bondgraph.diagnose.runner.run_loop`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Effect
+
+
+@dataclass
+class LoopSettings:
+    """Options of :func:`bondgraph.diagnose.runner.run_loop`.
+
+    Attributes
+    ----------
+    params : list of str
+        Parameters of the declared model estimated at every step.
+    metric : str or callable
+        Error measure reported before/after: ``"nrmse_sim"`` (mean over
+        outputs of RMS(free-run simulation error)/std(measurement)),
+        ``"rmse_sim"`` (RMS over outputs, output units), ``"rmse_pred"``
+        (RMS of the one-step innovations), or a callable
+        ``metric(fit, data) -> float`` with attribute ``name``
+        (``data``: a :class:`bondgraph.diagnose.fit.Record`).
+    criterion : {"aic", "bic"}
+        Information criterion of the accept decision (Akaike 1974; Schwarz 1978).
+    max_steps : int
+    significance : float
+        Family-wise level for "a significant effect is left" (Bonferroni over
+        the candidates evaluated).
+    confirm_top : int
+        Candidates confirmed by a real fit per step.
+    structural : bool or "always"
+        Evaluate structural effects (slower: one model each); ``"always"``
+        scores them even when an additive effect explains most of the
+        innovation energy.
+    effects : sequence of Effect
+    x0, P0 : arrays, optional
+        UKF prior (default: the record's true x0 if it has one, else the
+        model's X0; :func:`bondgraph.inference.ukf.default_P0`).
+    P0_std : dict
+        Prior standard deviations of named initial states (e.g. the grade on
+        a level track), overriding ``P0``'s diagonal.
+    fixed : dict
+        Known parameter values (name -> value) set before every fit.
+    initial_params : list of str, optional
+        Parameters of the initial fit (default ``params``; later steps
+        re-estimate all of ``params``). CED fits only its noise intensity
+        first, so that "before" is the published linear model.
+    ukf : dict
+        Options of :func:`bondgraph.inference.ukf.ukf_nll` (alpha, method, substeps ...),
+        passed on only by :mod:`bondgraph.diagnose.inference_calls`.
+    sim_method : str
+        Solver of the free-run simulations (:func:`bondgraph.numerics.simulate.simulate`).
+    fit_iterations, confirm_iterations : int
+        Fisher-scoring iterations of each warm-started re-estimation and of
+        each candidate's confirmation fit (L-BFGS-B if scoring fails).
+    metric_tolerance : float
+        Reject an effect whose reported error grows by more than this factor
+        (default: no limit; acceptance rests on the criterion and whiteness).
+    structural_threshold : float
+        Skip the (slow) structural candidates when an additive effect already
+        explains more than this share of the innovation energy.
+    chunk : int
+        Parameter sets per batched UKF run.
+    metric_name : str, optional
+        Name of the metric in logs and reports (default: derived from ``metric``).
+    """
+
+    params: list[str]
+    metric: Any = "nrmse_sim"
+    criterion: str = "aic"
+    max_steps: int = 4
+    significance: float = 0.01
+    confirm_top: int = 3
+    structural: Any = True
+    effects: Sequence[Effect] = DEFAULT_EFFECTS
+    x0: Any = None
+    P0: Any = None
+    P0_std: dict = field(default_factory=dict)
+    fixed: dict = field(default_factory=dict)
+    initial_params: list | None = None
+    ukf: dict = field(default_factory=lambda: {"method": "ros2", "substeps": 1, "alpha": 1.0})
+    sim_method: str = "BDF"
+    fit_iterations: int = 10
+    confirm_iterations: int = 6
+    metric_tolerance: float = float("inf")
+    structural_threshold: float = 0.5
+    chunk: int = 48
+    metric_name: str | None = None
+
+    def summary(self) -> dict:
+        """The settings a report records: estimated parameters, step limit,
+        significance level, UKF options, names of the effect library."""
+        return {"params": self.params, "max_steps": self.max_steps,
+                "significance": self.significance, "ukf": self.ukf,
+                "effects": [e.name for e in self.effects]}
