@@ -5,13 +5,19 @@ against a brute-force likelihood ratio."""
 import numpy as np
 import pytest
 import sympy as sp
+from scipy.optimize import minimize_scalar
 
 from bondgraph.catalog import reference as models
-from bondgraph.diagnose.effects import (DEFAULT_EFFECTS, Scales, Target, apply_effect, get_effect,
-                               probe_graph)
-from bondgraph.errors import GraphError
-from bondgraph.numerics.model import Model
 from bondgraph.core.equations import derive
+from bondgraph.diagnose.cases import synthesize
+from bondgraph.diagnose.effects import (DEFAULT_EFFECTS, Scales, Target, apply_effect, get_effect,
+                                        probe_graph)
+from bondgraph.diagnose.fit import Context, Record, fit_model, prior
+from bondgraph.diagnose.scoring import operating_scales, score_additive
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import GraphError
+from bondgraph.inference.ukf import ukf_nll
+from bondgraph.numerics.model import Model
 
 
 def test_library_has_the_listed_effects():
@@ -110,3 +116,43 @@ def test_probe_model_at_neutral_values_equals_the_base_model():
     wL = x[:, j] / base.theta0[base.param_index("J_L")]
     eps = float(col.basis.atoms(sp.Float).pop()) if col.basis.atoms(sp.Float) else None
     np.testing.assert_allclose(d[:, j], -0.7 * np.tanh(wL / eps), rtol=1e-10)
+
+
+def test_score_test_equals_the_likelihood_ratio_of_a_sensor_offset():
+    """An output offset on a linear model shifts the UKF innovations linearly
+    and leaves S unchanged, so the NLL is quadratic in the offset: the score
+    statistic (Rao 1948) equals the brute-force likelihood ratio
+    2 (NLL(0) − min_b NLL(b)) (scipy's minimize_scalar over ukf_nll of the
+    augmented model), and the one-step estimate is the minimiser."""
+    truth = models.mass_spring_damper()
+    apply_effect(truth, "sensor_offset", ("sensor", "x"), {"b": 0.003})
+    declared = models.mass_spring_damper()
+    t = np.arange(0.0, 10.0, 0.01)
+    rec = synthesize(truth, declared, t,
+                     {"F": lambda t: 5.0 * np.sin(1.3 * t) + 3.0 * np.sign(np.sin(0.4 * t))},
+                     {}, {}, 3, "offset", "mass-spring-damper with a position sensor offset")
+    ctx = Context(Record(rec), LoopSettings(params=[], effects=[get_effect("sensor_offset")]),
+                  log=lambda m: None, progress=False)
+    fit = fit_model(ctx, declared, [], None, "declared")
+    cands = score_additive(ctx, fit, operating_scales(ctx, fit), ctx.settings.effects)
+    assert {c.target.name for c in cands} == {"x", "v"}
+    c = next(c for c in cands if c.target.name == "x")
+    g = declared.copy("augmented")
+    apply_effect(g, "sensor_offset", ("sensor", "x"), {"b": 0.0})
+    m = Model.from_graph(g)
+    x0, P0 = prior(ctx, m)
+    j = m.param_index("sensor_offset.x.b")
+
+    def nll(b):
+        th = m.theta0.copy()
+        th[j] = b
+        return ukf_nll(m, rec.t, rec.inputs_for(m, defaults_ok=True), rec.outputs_for(m),
+                       th[None, :], x0, P0, method="ros2", substeps=1, alpha=1.0).nll[0]
+
+    assert nll(0.0) == pytest.approx(fit.nll, rel=1e-12)
+    best = minimize_scalar(nll, bracket=(0.0, 0.001), tol=1e-10)
+    lr = 2.0 * (fit.nll - best.fun)
+    assert lr > 100.0                                    # the offset is plainly there
+    assert c.statistic == pytest.approx(lr, rel=1e-6)
+    assert c.values["b"] == pytest.approx(best.x, rel=1e-5)
+    assert best.x == pytest.approx(0.003, abs=5e-4)

@@ -11,18 +11,32 @@
 * Real CED: from the linear drive the loop finds the sign-blind speed sensor
   (published RMS 2.10 -> 0.166 with eq. (9) of the report).
 
+* The loop's pieces against hand-derived numbers: the accept decision
+  (AIC/BIC, whiteness, error guard), the Bonferroni selection, the JSON
+  conversion of the report, the residual analysis (Ljung-Box, NIS bounds, η²).
+
 Tests that need ../shared/data skip with a clear reason when it is absent.
 """
 
 import json
+import math
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
+from scipy.stats import chi2
 
-from bondgraph.diagnose.loop import run_loop
-from bondgraph.diagnose.cases import get_case
-from bondgraph.report.loop_report import LoopReporter
 from bondgraph.core.equations import derive
+from bondgraph.diagnose.accept import decide, significant
+from bondgraph.diagnose.cases import get_case
+from bondgraph.diagnose.effects import Target
+from bondgraph.diagnose.fit import Fit
+from bondgraph.diagnose.loop import run_loop
+from bondgraph.diagnose.residuals import ResidualReport, analyze
+from bondgraph.diagnose.result import Candidate, to_jsonable
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.report.loop_report import LoopReporter
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 needs_data = pytest.mark.skipif(not (DATA / "emps").exists() or not (DATA / "ced").exists(),
@@ -53,6 +67,108 @@ def _rank_of(ranking, effect, target):
         if f"{effect} @ {target}" in group:
             return place
     return None
+
+
+# ------------------------------------------------- decisions and records
+def _fit(nll, k, whiteness, metric, n_obs=100, whiteness_dof=20.0):
+    """A Fit with only what the accept decision reads."""
+    rep = ResidualReport([], [], 1.0, 1.0, (0.9, 1.1), whiteness,
+                         {"whiteness_dof": whiteness_dof})
+    return Fit(None, None, [f"p{i}" for i in range(k)], np.zeros(k), nll, None, rep, metric,
+               None, n_obs=n_obs)
+
+
+def test_accept_decision_follows_the_criterion_whiteness_and_error_guard():
+    s = LoopSettings(params=[], metric_tolerance=1.5)
+    cur = _fit(-100.0, 2, 50.0, 1.0)                        # AIC -196
+    # one more parameter for one nat: AIC -196 -> -196, not better
+    d = decide(cur, _fit(-101.0, 3, 40.0, 0.5), s)
+    assert (d.accepted, d.reason) == (False, "information criterion did not improve")
+    assert (d.criterion_before, d.criterion_after) == (-196.0, -196.0)
+    # two nats: AIC -198 < -196, but whiteness 60 > 50 and not white
+    # (χ²(20): 60 > 20 + 3 sqrt(40) = 38.97)
+    d = decide(cur, _fit(-102.0, 3, 60.0, 0.5), s)
+    assert (d.accepted, d.reason) == (False, "whiteness did not improve")
+    # whiteness 38 > 25 but within noise of white: accepted
+    d = decide(_fit(-100.0, 2, 25.0, 1.0), _fit(-102.0, 3, 38.0, 0.5), s)
+    assert d.accepted and d.reason is None
+    # the error guard: 1.0 -> 1.6 > 1.5 x 1.0
+    d = decide(cur, _fit(-102.0, 3, 40.0, 1.6), s)
+    assert (d.accepted, d.reason) == (False, "the error grew (1 -> 1.6)")
+    assert (d.error_before, d.error_after, d.whiteness_after) == (1.0, 1.6, 40.0)
+    # BIC with n = 100: k log n costs log(100) = 4.61 per parameter, so two
+    # nats (2 NLL = 4) do not pay for it, five (10) do
+    sb = LoopSettings(params=[], criterion="bic")
+    assert not decide(cur, _fit(-102.0, 3, 40.0, 0.5), sb).accepted
+    d = decide(cur, _fit(-105.0, 3, 40.0, 0.5), sb)
+    assert d.accepted
+    assert d.criterion_after == pytest.approx(-210.0 + 3 * math.log(100))
+
+
+def test_significance_is_bonferroni_over_all_candidates():
+    def cand(p):
+        return Candidate("viscous", "", Target("junction", "v"), "score", 0.0, 1, p, 0.0)
+
+    cs = [cand(0.001), cand(0.004), cand(0.02)]
+    # 3 candidates: p · 3 < 0.01 only for p = 0.001 (0.003); 0.004 · 3 = 0.012
+    assert significant(cs, 0.01) == [cs[0]]
+    assert significant(cs, 0.05) == cs[:2]
+    assert significant([], 0.01) == []
+
+
+def test_report_json_conversion():
+    d = to_jsonable({1: np.float32(0.5), "n": np.int64(3), "a": np.array([1.0, np.nan]),
+                     "t": (Target("sensor", "a_x"), float("inf"), -np.inf)})
+    assert d == {"1": 0.5, "n": 3, "a": [1.0, None],
+                 "t": [{"kind": "sensor", "name": "a_x"}, "inf", "-inf"]}
+    assert json.loads(json.dumps(d)) == d
+    c = Candidate("coulomb", "Coulomb friction", Target("junction", "v"), "score", 12.5, 1,
+                  4e-4, 10.5, None, {"F_c": np.float64(2.0)})
+    cd = c.to_dict()
+    assert cd["label"] == "coulomb @ v" and cd["target"] == {"kind": "junction", "name": "v"}
+    assert cd["values"] == {"F_c": 2.0} and cd["explained"] is None
+
+
+def _ljung_box_by_hand(z, lags):
+    z = z - z.mean()
+    n = z.size
+    r = np.array([np.sum(z[k:] * z[:-k]) for k in range(1, lags + 1)]) / np.sum(z * z)
+    return n * (n + 2) * np.sum(r**2 / (n - np.arange(1, lags + 1)))
+
+
+def test_residual_analysis_against_hand_computed_statistics():
+    """Innovations with variance S = 4, three times larger where the state x
+    is positive: bias, RMS, Ljung-Box Q (Ljung & Box 1978, by its formula),
+    NIS mean and its χ² bounds, and η² of ε²/S over sign(x)."""
+    rng = np.random.default_rng(7)
+    N = 400
+    t = np.arange(N) * 0.1
+    # ten periods, half of the samples positive (the sign bins are the two
+    # halves of the record by rank of the sign)
+    x = np.sin(2 * np.pi * np.arange(N) / 40 + 0.1)
+    eps = 2.0 * rng.normal(size=N) * np.where(x > 0, 3.0, 1.0)
+    ukf = SimpleNamespace(innovations=eps[:, None, None], S=np.full((N, 1, 1, 1), 4.0),
+                          nis=None, n_obs=np.ones(N, dtype=int), x_filt=x[:, None, None])
+    model = SimpleNamespace(outputs=["y"], output_units=["m"], states=["x"], inputs=[])
+    y = eps.copy()[:, None]
+    rep = analyze(ukf, model, t, np.zeros((N, 0)), y, sim_y=np.zeros((N, 1)))
+    o = rep.outputs[0]
+    z = eps / 2.0
+    assert o.n == N and o.lags == 20
+    assert o.bias == pytest.approx(eps.mean()) and o.rms == pytest.approx(np.sqrt(np.mean(eps**2)))
+    assert o.bias_sigma == pytest.approx(eps.mean() / (eps.std(ddof=1) / np.sqrt(N)))
+    assert o.ljung_box_q == pytest.approx(_ljung_box_by_hand(z, 20), rel=1e-10)
+    assert rep.whiteness == o.ljung_box_q and rep.whiteness_dof == 20.0
+    assert o.sim_rms == pytest.approx(np.sqrt(np.mean(eps**2)))   # y - 0
+    assert rep.nis_mean == pytest.approx(np.mean(z**2)) and rep.nis_dof == 1.0
+    assert rep.nis_bounds == pytest.approx(tuple(chi2.ppf([0.025, 0.975], N) / N))
+    sign = next(r for r in rep.regions if r.variable == "sign(x)")
+    s2 = z**2
+    neg, pos = s2[x <= 0], s2[x > 0]
+    assert sign.mean_sq == pytest.approx([neg.mean(), pos.mean()])
+    between = neg.size * (neg.mean() - s2.mean())**2 + pos.size * (pos.mean() - s2.mean())**2
+    assert sign.eta2 == pytest.approx(between / np.sum((s2 - s2.mean())**2))
+    assert rep.top_regions(1)[0].eta2 >= sign.eta2 > 0.1
 
 
 # ------------------------------------------------------------------ vehicle
@@ -137,10 +253,16 @@ def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
 
     truth = _vehicle("truth_aero", aero=True, **COAST)
     rec = _coastdown_record(truth, _vehicle("truth_aero", aero=True, **COAST), "nothing", seed=105)
+    updates = []
     res = run_loop(_vehicle("declared_true", aero=True, **COAST), rec,
                    ["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"], log=lambda m: None,
+                   on_update=lambda r: updates.append((r.finished, len(r.rankings), r.final.nll)),
                    P0_std={"theta_g": LEVEL_TRACK})
     assert res.steps == []
+    # the partial result after the initial fit, then the final one (a step
+    # that finds nothing significant hands nothing over)
+    assert updates == [(False, 0, res.initial.nll), (True, 1, res.initial.nll)]
+    assert res.finished and res.final.nll == res.initial.nll
 
 
 # ---------------------------------------------------------------- real data
