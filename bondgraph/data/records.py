@@ -35,6 +35,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from bondgraph.core import units as _units
+from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import DataError, UnitMismatchError, join_names
 
 #: value of the sidecar's ``format`` key
@@ -48,25 +49,6 @@ STATE_PREFIX = "state."
 GAP_FACTOR = 1.5
 
 _HEADER_RE = re.compile(r"^(?P<name>[^\[\]]*?)\s*(?:\[(?P<unit>[^\[\]]*)\])?\s*$")
-
-
-# ------------------------------------------------------------------ helpers
-def _json_safe(obj: Any) -> Any:
-    """Convert numpy scalars/arrays (recursively) to JSON types; NaN/inf -> None."""
-    if isinstance(obj, Mapping):
-        return {str(k): _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return [_json_safe(v) for v in obj.tolist()]
-    if isinstance(obj, (np.bool_, bool)):
-        return bool(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    return obj
 
 
 def parse_header(cell: str) -> tuple[str, str | None]:
@@ -692,7 +674,7 @@ class Experiment:
             meta = {**{k: meta[k] for k in order if k in meta},
                     **{k: v for k, v in meta.items() if k not in order}}
             with open(path.with_suffix(".json"), "w", encoding="utf-8") as fh:
-                json.dump(_json_safe(meta), fh, indent=2)
+                json.dump(to_jsonable(meta), fh, indent=2, allow_nan=False)
                 fh.write("\n")
         self.path = path
         self.lines = None
@@ -942,7 +924,7 @@ def _read_sidecar(csv_path: Path) -> dict[str, Any]:
     if not side.exists():
         return {}
     try:
-        meta = json.loads(side.read_text(encoding="utf-8"))
+        meta = from_jsonable(json.loads(side.read_text(encoding="utf-8")))
     except json.JSONDecodeError as exc:
         raise DataError(f"invalid JSON: {exc.msg}", path=str(side), line=exc.lineno) from None
     if not isinstance(meta, dict):

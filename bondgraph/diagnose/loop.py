@@ -66,6 +66,7 @@ import sympy as sp
 
 from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
+from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.effects import (
     DEFAULT_EFFECTS,
     Effect,
@@ -115,7 +116,7 @@ class Candidate:
         d = asdict(self)
         d["target"] = {"kind": self.target.kind, "name": self.target.name}
         d["label"] = self.label
-        return _jsonable(d)
+        return to_jsonable(d)
 
 
 @dataclass
@@ -246,23 +247,6 @@ class Step:
 
 
 # ----------------------------------------------------------------- helpers
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else (None if math.isnan(v) else ("inf" if v > 0 else "-inf"))
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, Target):
-        return {"kind": obj.kind, "name": obj.name}
-    return obj
-
-
 class _Data:
     """The record, resolved for one model at a time."""
 

@@ -18,13 +18,12 @@ import numpy as np
 
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.equations import derive
+from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.report.plots import pyplot
 
 
 def _fit_summary(fit) -> dict:
-    from bondgraph.diagnose.loop import _jsonable
-
-    return _jsonable({
+    return to_jsonable({
         "model": fit.graph.name, "nll": fit.nll, "aic": fit.aic(), "bic": fit.bic(),
         "metric": fit.metric, "whiteness": fit.residuals.whiteness,
         "estimates": fit.estimates(), "std": fit.std,
@@ -71,7 +70,7 @@ class LoopReporter:
 def write(loop, current, final: bool, out: Path) -> None:
     """Write ``report.json``, ``report.md``, the PNGs and the augmented model
     into ``out``."""
-    from bondgraph.diagnose.loop import _jsonable, _metric_name
+    from bondgraph.diagnose.loop import _metric_name
 
     out = Path(out)
     mname = _metric_name(loop.s, current.model)
@@ -94,7 +93,7 @@ def write(loop, current, final: bool, out: Path) -> None:
                      "significance": loop.s.significance, "ukf": loop.s.ukf,
                      "effects": [e.name for e in loop.s.effects]},
     }
-    (out / "report.json").write_text(json.dumps(_jsonable(report), indent=2))
+    (out / "report.json").write_text(json.dumps(to_jsonable(report), indent=2))
     _write_augmented(loop, current, out)
     pngs = _plots(loop, current, out)
     _write_markdown(loop, current, report, pngs, out)
