@@ -126,11 +126,11 @@ def test_layer_list_matches_the_contract():
 
 
 # ---------------------------------------------------------- function length
-def long_functions(roots=("bondgraph", "vehicle_graphs"), limit: int = MAX_LINES
-                   ) -> dict[str, int]:
+def long_functions(roots=("bondgraph", "vehicle_graphs"), limit: int = MAX_LINES,
+                   base: Path = ROOT) -> dict[str, int]:
     """``"path:Qual.name" -> lines`` of every function (methods and nested
     functions too) longer than ``limit`` lines, counted from ``def`` to the
-    last line of the body, docstring included."""
+    last line of the body, docstring included; paths relative to ``base``."""
     out: dict[str, int] = {}
 
     def walk(node, path: str, prefix: str) -> None:
@@ -144,22 +144,34 @@ def long_functions(roots=("bondgraph", "vehicle_graphs"), limit: int = MAX_LINES
                 walk(ch, path, f"{prefix}{ch.name}.")
 
     for root in roots:
-        for p in sorted((ROOT / root).rglob("*.py")):
-            rel = p.relative_to(ROOT).as_posix()
+        for p in sorted((base / root).rglob("*.py")):
+            rel = p.relative_to(base).as_posix()
             walk(ast.parse(p.read_text(encoding="utf-8"), filename=rel), rel, "")
     return out
 
 
-def test_length_counter_counts_def_to_last_line():
-    src = "class A:\n    def f(self):\n        '''doc\n        doc'''\n        return 1\n"
-    tree = ast.parse(src)
-    f = tree.body[0].body[0]
-    assert f.end_lineno - f.lineno + 1 == 4
-    assert long_functions(limit=10_000) == {}
-    # the counter sees methods and nested functions (qualified names)
-    found = long_functions(limit=40)
-    assert "bondgraph/data/records.py:Experiment.save" in found
-    assert all(":" in k and k.split(":")[0].endswith(".py") for k in found)
+def test_length_counter(tmp_path):
+    """Lines from ``def`` to the last line, docstring and blank lines
+    included, decorators not; methods and nested functions by qualified name."""
+    stmts = [f"x{i} = {i}" for i in range(76)]
+    lines = ["import functools", "",
+             "def short():",                       # 1 + 2 + 76 = 79 lines
+             "    '''doc", "    more'''"] + ["    " + s for s in stmts] + ["",
+             "class A:",
+             "    @functools.cache",
+             "    def method(self):",              # 3 + 76 + 82 (inner) + 1 = 162 lines
+             "        '''doc'''",
+             ""] + ["        " + s for s in stmts] + [
+             "        def inner():",               # 1 + 81 = 82 lines
+             ] + ["            " + s for s in [f"y{i} = {i}" for i in range(81)]] + [
+             "        return inner"]
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "m.py").write_text("\n".join(lines) + "\n")
+    found = long_functions(("pkg",), base=tmp_path)
+    assert found == {"pkg/m.py:A.method": 1 + 1 + 1 + 76 + 82 + 1,
+                     "pkg/m.py:A.method.inner": 82}
+    assert long_functions(("pkg",), limit=78, base=tmp_path)["pkg/m.py:short"] == 79
+    assert "pkg/m.py:short" not in long_functions(("pkg",), limit=79, base=tmp_path)
 
 
 def test_no_function_over_80_lines():
