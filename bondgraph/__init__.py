@@ -40,6 +40,7 @@ _export("bondgraph.core.graph", "Bond", "BondGraph", "Fragment", "Handle", "Sens
 _export("bondgraph.core.causality", "Causality", "assign_causality")
 _export("bondgraph.core.equations", "StateSpace", "derive")
 _export("bondgraph.core.codegen", "generate_source", "load_module", "write_module")
+_export("bondgraph.core.jsonsafe", "from_jsonable", "to_jsonable")
 # model, simulation
 _export("bondgraph.numerics.model", "Model")
 _export("bondgraph.numerics.simulate", "SimResult", "simulate", "stiffness_report")

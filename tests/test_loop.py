@@ -34,7 +34,8 @@ from bondgraph.diagnose.effects import Target
 from bondgraph.diagnose.fit import Fit
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.residuals import ResidualReport, analyze
-from bondgraph.diagnose.result import Candidate, to_jsonable
+from bondgraph.core.jsonsafe import to_jsonable
+from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.report.loop_report import LoopReporter
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Mapping, Sequence
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from bondgraph.errors import ModelError, NumericalError
 from bondgraph.numerics.integrators import rk4_stable_step
@@ -171,35 +172,48 @@ def coastdown_road_load(t: np.ndarray, v: np.ndarray, pitch: np.ndarray, *, m: f
     ----------
     SAE J2263 (coast-down road load); vehicle_physics.md §3.9-3.10.
     """
-    from scipy.signal import savgol_filter
-
     if suspension not in ("quasi_static", "rigid"):
         raise ValueError(f"suspension must be 'quasi_static' or 'rigid', not {suspension!r}")
     t, v, pitch = (np.asarray(a, dtype=float) for a in (t, v, pitch))
     if not (t.shape == v.shape == pitch.shape):
         raise ValueError(f"t, v and pitch must have one shape (got {t.shape}, {v.shape}, "
                          f"{pitch.shape})")
-    dt = float(np.median(np.diff(t)))
-    n_win = max(5, int(round(window / dt)) | 1)
-    vs = savgol_filter(v, n_win, 3)
-    dv = savgol_filter(v, n_win, 3, deriv=1, delta=dt)
-    ps = savgol_filter(pitch, n_win, 3)
+    vs, dv, ps, n_win = _smoothed(t, v, pitch, window)
     if suspension == "rigid":
         th_g = ps - theta_off
     else:
         th_g = (ps - theta_off - h_cg * m * dv / k_theta) / (1.0 + h_cg * m * g / k_theta)
-    m_eff = m + 4.0 * J_w / r_dyn**2
     keep = np.ones(t.size, bool)
     keep[: n_win // 2] = False
     keep[-(n_win // 2):] = False
     keep &= vs > v_min
     if keep.sum() < 10:
         raise ValueError(f"only {int(keep.sum())} samples above v_min = {v_min} m/s")
+    return _road_load_fit(vs[keep], dv[keep], th_g[keep], m=m, m_eff=m + 4.0 * J_w / r_dyn**2,
+                          g=g)
+
+
+def _smoothed(t: np.ndarray, v: np.ndarray, pitch: np.ndarray, window: float):
+    """Savitzky-Golay smoothing (cubic, ``window`` seconds, an odd number >= 5
+    of samples): speed, its derivative [m/s^2] and pitch, each (N,), and the
+    window length in samples."""
+    dt = float(np.median(np.diff(t)))
+    n_win = max(5, int(round(window / dt)) | 1)
+    vs = savgol_filter(v, n_win, 3)
+    dv = savgol_filter(v, n_win, 3, deriv=1, delta=dt)
+    ps = savgol_filter(pitch, n_win, 3)
+    return vs, dv, ps, n_win
+
+
+def _road_load_fit(vs: np.ndarray, dv: np.ndarray, th_g: np.ndarray, *, m: float,
+                   m_eff: float, g: float) -> dict[str, float]:
+    """Least squares of m_eff dv/dt + m g sin(theta_g) = -f_r m g cos(theta_g)
+    - 1/2 rho C_dA v^2 over the given samples: ``f_r, C_dA, n, rms``."""
     y = m_eff * dv + m * g * np.sin(th_g)
     A = np.column_stack([-m * g * np.cos(th_g), -0.5 * RHO * vs**2])
-    coef, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
-    res = y[keep] - A[keep] @ coef
-    return {"f_r": float(coef[0]), "C_dA": float(coef[1]), "n": int(keep.sum()),
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    res = y - A @ coef
+    return {"f_r": float(coef[0]), "C_dA": float(coef[1]), "n": int(vs.size),
             "rms": float(np.sqrt(np.mean(res**2)))}
 
 

@@ -193,19 +193,10 @@ def clutch_cvt(P: Params, w_e, num: Numerics = Numerics(), *, belt_slip: bool = 
         Psi(x)  = k_fw w_eng^2 + F_s0 + (k_p + k_s) x
                   + k_stop [ramp(x - x_max) - ramp(-x)]              (end stops)
 
-    The clamp (and so the torque capacity) is zero below the engagement speed
-    w_eng (flyweight force = primary-spring preload) and grows with w_e^2
-    above it. The slip law is a regularised Coulomb law whose width grows
-    with the capacity, so its slope never exceeds c_cl (clutch + belt creep
-    lumped): this caps the clutch mode at -c_cl (1/J_e + i^2/J_s) instead of
-    the -T_cap/w_eps (1/J_e + i^2/J_s) of a fixed-width tanh (~3e4 1/s when
-    locked). The shift force balance follows the speed- and torque-controlled
-    variator of Cammalleri (2005): flyweights (~w_e^2) close the primary
-    against its spring, the secondary spring and the helix torque feedback
-    (~T_s); more load backshifts. The ratio map is linear in the sheave
-    travel (linearised belt geometry), smoothly clipped to the stops. The MTF modulus is a signal from x_p:
-    the power of the belt's radial motion is neglected, and the flyweight and
-    helix sources take no power from the shafts (vehicle_physics.md §3.3).
+    The reasons for these laws are given with the steps that build them:
+    :func:`_cvt_clamp_and_ratio` (engagement, ratio map), :func:`_cvt_clutch_and_belt`
+    (the slip law's width), :func:`_cvt_shift_forces` (the variator's force
+    balance, neglected powers); vehicle_physics.md §3.3.
 
     Parameters
     ----------
@@ -226,6 +217,25 @@ def clutch_cvt(P: Params, w_e, num: Numerics = Numerics(), *, belt_slip: bool = 
         junction to it) and ``secondary`` (the 1-junction of w_s).
     """
     g = BondGraph("cvt", "Centrifugal clutch and rubber-belt CVT with shift dynamics.")
+    sheave, x = _cvt_sheave(g, P, num)
+    i_cvt, T_cap = _cvt_clamp_and_ratio(P, w_e, x, num)
+    node, belt, sec = _cvt_clutch_and_belt(g, P, i_cvt, T_cap, num, belt_slip=belt_slip)
+    # priority 1: without shaft compliance the driven wheels keep their state
+    # and J_s is lumped into them (derivative causality)
+    g.connect(sec, g.I("J_s", P["J_s"], priority=1))
+    g.connect(sec, g.R("drag", P["b_s"]))
+    _cvt_shift_forces(g, P, w_e, belt.p2.e, sheave)
+    g.expose("engine", node)
+    g.expose("secondary", sec)
+    g.metadata["ratio"] = i_cvt
+    g.metadata["T_cap"] = T_cap
+    return g
+
+
+def _cvt_sheave(g: BondGraph, P: Params, num: Numerics):
+    """The primary sheave's 1-junction (dx_p/dt) with the springs C: force
+    Psi(x) (preloads, rates, end-stop ramps) and its exact energy. Returns the
+    junction and the sheave travel x_p (the C's state)."""
     xmax = P["x_max"]
     ks = const(num.k_stop)
     xd = num.x_delta
@@ -245,7 +255,19 @@ def clutch_cvt(P: Params, w_e, num: Numerics = Numerics(), *, belt_slip: bool = 
     sheave = g.one("sheave", domain="translation")
     springs = g.C("springs", effort=psi, energy=energy)
     g.connect(sheave, springs)
-    x = springs.q
+    return sheave, springs.q
+
+
+def _cvt_clamp_and_ratio(P: Params, w_e, x, num: Numerics):
+    """The ratio i_cvt and the clutch's torque capacity T_cap from the sheave
+    travel ``x`` and the engine speed ``w_e``.
+
+    The clamp (and so the torque capacity) is zero below the engagement speed
+    w_eng (flyweight force = primary-spring preload) and grows with w_e^2
+    above it. The ratio map is linear in the sheave travel (linearised belt
+    geometry), smoothly clipped to the stops.
+    """
+    xmax = P["x_max"]
     s_rel = x / xmax
     # ratio from the sheave position, smoothly clipped at the stops (the stop
     # springs keep x_p near [0, x_max]; the clip keeps i_cvt in [i_min, i_max])
@@ -254,8 +276,22 @@ def clutch_cvt(P: Params, w_e, num: Numerics = Numerics(), *, belt_slip: bool = 
     F_clamp = ramp(P["k_fw"] * (w_e**2 - P["w_eng"]**2) - P["k_p"] * x, num.F_delta)
     r_p = P["r_p0"] + const(DR_DX) * x  # pitch radius grows with x_p: 1/(2 tan beta)
     T_cap = P["mu_cl"] * r_p * F_clamp
-    weps = const(num.w_eps_clutch)
+    return i_cvt, T_cap
 
+
+def _cvt_clutch_and_belt(g: BondGraph, P: Params, i_cvt, T_cap, num: Numerics, *,
+                         belt_slip: bool):
+    """Clutch node with the slip law R, primary 1-junction, the belt MTF
+    1/i_cvt and the secondary 1-junction (through J_b and the creep law with
+    ``belt_slip``). Returns the clutch node, the belt and the secondary.
+
+    The slip law is a regularised Coulomb law whose width grows with the
+    capacity, so its slope never exceeds c_cl (clutch + belt creep lumped):
+    this caps the clutch mode at -c_cl (1/J_e + i^2/J_s) instead of the
+    -T_cap/w_eps (1/J_e + i^2/J_s) of a fixed-width tanh (~3e4 1/s when
+    locked).
+    """
+    weps = const(num.w_eps_clutch)
     node = g.zero("clutch_node", domain="rotation")
     clutch = g.R("clutch", effort=lambda f: T_cap * sp.tanh(f / (weps + T_cap / P["c_cl"])))
     g.connect(node, clutch)
@@ -274,19 +310,23 @@ def clutch_cvt(P: Params, w_e, num: Numerics = Numerics(), *, belt_slip: bool = 
         g.connect(bnode, sec)
     else:
         g.connect(belt.p2, sec)
-    # priority 1: without shaft compliance the driven wheels keep their state
-    # and J_s is lumped into them (derivative causality)
-    g.connect(sec, g.I("J_s", P["J_s"], priority=1))
-    g.connect(sec, g.R("drag", P["b_s"]))
-    T_s = belt.p2.e
+    return node, belt, sec
+
+
+def _cvt_shift_forces(g: BondGraph, P: Params, w_e, T_s, sheave) -> None:
+    """The shift force balance on the sheave: flyweights k_fw w_e^2, helix
+    feedback -k_h T_s (``T_s`` the belt's secondary torque), damping b_sh.
+
+    It follows the speed- and torque-controlled variator of Cammalleri
+    (2005): flyweights (~w_e^2) close the primary against its spring, the
+    secondary spring and the helix torque feedback (~T_s); more load
+    backshifts. The MTF modulus is a signal from x_p: the power of the belt's
+    radial motion is neglected, and the flyweight and helix sources take no
+    power from the shafts (vehicle_physics.md §3.3).
+    """
     g.connect(g.MSe("flyweights", P["k_fw"] * w_e**2), sheave)
     g.connect(g.MSe("helix", -P["k_h"] * T_s), sheave)
     g.connect(sheave, g.R("damping", P["b_sh"]))
-    g.expose("engine", node)
-    g.expose("secondary", sec)
-    g.metadata["ratio"] = i_cvt
-    g.metadata["T_cap"] = T_cap
-    return g
 
 
 # ----------------------------------------------------------------- driveline

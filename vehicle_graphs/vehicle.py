@@ -164,64 +164,109 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
         For an unknown or inconsistent configuration (the message names the
         argument).
     """
-    if gear not in GEARS:
-        raise ValueError(f"gear must be one of {GEARS}, not {gear!r}")
-    if wheels not in ("axles", "lumped"):
-        raise ValueError(f"wheels must be 'axles' or 'lumped', not {wheels!r}")
-    if suspension not in ("dynamic", "rigid"):
-        raise ValueError(f"suspension must be 'dynamic' or 'rigid', not {suspension!r}")
-    if grade not in ("state", "input"):
-        raise ValueError(f"grade must be 'state' or 'input', not {grade!r}")
-    if drive not in ("2WD", "AWD"):
-        raise ValueError(f"drive must be '2WD' or 'AWD', not {drive!r}")
-    if wheels == "lumped" and gear != "N":
-        raise ValueError("wheels='lumped' (one wheel for the vehicle) needs gear='N': a driven "
-                         "axle has its own wheel speed")
-    if not powertrain and gear != "N":
-        raise ValueError(f"powertrain=False needs gear='N' (got gear={gear!r})")
-    if belt_slip and not powertrain:
-        raise ValueError("belt_slip=True needs powertrain=True")
-    if manifold_lag and not powertrain:
-        raise ValueError("manifold_lag=True needs powertrain=True")
-
     config = dict(gear=gear, drive=drive, powertrain=powertrain, wheels=wheels,
                   suspension=suspension, shaft_compliance=shaft_compliance, aero=aero,
                   brake_drag=brake_drag, pitch_offset=pitch_offset, belt_slip=belt_slip,
                   manifold_lag=manifold_lag, grade=grade)
+    _check_config(config)
+    g = _new_graph(name, description, config, numerics)
+    _assemble(g, config, numerics, process_noise)
+    return g
+
+
+def _new_graph(name: str, description: str | None, config: dict,
+               numerics: Numerics) -> BondGraph:
+    """The empty graph, its configuration and numerics in ``metadata``; the
+    default description lists the configuration."""
     if description is None:
         description = "CVT utility vehicle (Polaris Ranger UGV), longitudinal dynamics: " + \
             ", ".join(f"{k}={v}" for k, v in config.items()) + "."
     g = BondGraph(name, description)
     g.metadata["config"] = config
     g.metadata["numerics"] = numerics
-    overrides = {"i_g": _params.I_LOW} if gear == "L" else {}
-    P = _LazyParams(g, overrides)
+    return g
 
-    # ---- inputs and grade
+
+def _assemble(g: BondGraph, c: dict, numerics: Numerics,
+              process_noise: dict[str, float] | None) -> None:
+    """Inputs and grade, body, pitch, wheels, pitch drive, power train and
+    drive line, process noise, sensors, in this order (the order of the
+    states and bonds); then the parameters in table order (a stable theta
+    layout)."""
+    overrides = {"i_g": _params.I_LOW} if c["gear"] == "L" else {}
+    P = _LazyParams(g, overrides)
     brake = g.input("brake", "", 0.0, "brake command u_b in [0, 1]")
-    throttle = g.input("throttle", "", 0.0, "throttle command u_th in [0, 1]") if powertrain \
-        else None
-    if grade == "state":
+    throttle = g.input("throttle", "", 0.0, "throttle command u_th in [0, 1]") \
+        if c["powertrain"] else None
+    if c["grade"] == "state":
         theta_g = g.state("theta_g", 0, unit="rad", process_noise=P["q_grade"],
                           description="road grade (random walk), positive uphill")
     else:
         theta_g = g.input("grade", "rad", 0.0, "road grade, positive uphill")
-    cos_g, sin_g = sp.cos(theta_g), sp.sin(theta_g)
-
-    # ---- body and pitch
-    hb = g.include(sub.body(P, theta_g, numerics, aero=aero), "body")
+    hb = g.include(sub.body(P, theta_g, numerics, aero=c["aero"]), "body")
     v = hb.port("v").f
-    if suspension == "dynamic":
-        hp = g.include(sub.pitch(P), "pitch")
-        theta_s = hp["k"].q
-        dF = (P["k_theta"] * theta_s + P["c_theta"] * hp.port("rate").f) / P["L_wb"]
-    else:
-        hp = None
-        theta_s = sp.Integer(0)
-        dF = sp.Integer(0)
+    hp, theta_s, dF = _pitch(g, P, c["suspension"])
+    axles = _axles(g, P, hb, v, theta_g, dF, brake, wheels=c["wheels"], numerics=numerics,
+                   brake_drag=c["brake_drag"])
+    if hp is not None:
+        _pitch_drive(g, P, hb, hp)
+    he = hc = None
+    if c["powertrain"]:
+        he, hc = _powertrain(g, P, throttle, axles, numerics, gear=c["gear"], drive=c["drive"],
+                             shaft_compliance=c["shaft_compliance"], belt_slip=c["belt_slip"],
+                             manifold_lag=c["manifold_lag"])
+    _process_noise(g, process_noise, [(hb["m"], "v")]
+                   + [(h["J"], "w_wheel") for h in axles.values()]
+                   + ([(he["J"], "w_e"), (hc["J_s"], "w_s")] if he is not None else []))
+    _sensors(g, P, hb, v, axles, he, hc, theta_g, theta_s, pitch_offset=c["pitch_offset"])
+    order = {p.name: i for i, p in enumerate(_params.PARAMS)}
+    g.params = dict(sorted(g.params.items(), key=lambda kv: order[kv[0]]))
 
-    # ---- wheels and tires; normal loads (load transfer from the pitch state, §3.8)
-    mg_cos = P["m"] * P["g"] * cos_g
+
+def _check_config(c: dict) -> None:
+    """Raise ValueError, naming the argument, for an unknown or inconsistent
+    configuration of :func:`build_vehicle`."""
+    gear = c["gear"]
+    if gear not in GEARS:
+        raise ValueError(f"gear must be one of {GEARS}, not {gear!r}")
+    if c["wheels"] not in ("axles", "lumped"):
+        raise ValueError(f"wheels must be 'axles' or 'lumped', not {c['wheels']!r}")
+    if c["suspension"] not in ("dynamic", "rigid"):
+        raise ValueError(f"suspension must be 'dynamic' or 'rigid', not {c['suspension']!r}")
+    if c["grade"] not in ("state", "input"):
+        raise ValueError(f"grade must be 'state' or 'input', not {c['grade']!r}")
+    if c["drive"] not in ("2WD", "AWD"):
+        raise ValueError(f"drive must be '2WD' or 'AWD', not {c['drive']!r}")
+    if c["wheels"] == "lumped" and gear != "N":
+        raise ValueError("wheels='lumped' (one wheel for the vehicle) needs gear='N': a driven "
+                         "axle has its own wheel speed")
+    if not c["powertrain"] and gear != "N":
+        raise ValueError(f"powertrain=False needs gear='N' (got gear={gear!r})")
+    if c["belt_slip"] and not c["powertrain"]:
+        raise ValueError("belt_slip=True needs powertrain=True")
+    if c["manifold_lag"] and not c["powertrain"]:
+        raise ValueError("manifold_lag=True needs powertrain=True")
+
+
+def _pitch(g: BondGraph, P, suspension: str):
+    """The suspension pitch fragment (``"dynamic"``) or none (``"rigid"``):
+    its handle, the pitch angle theta_s and the load transfer dF between the
+    axles it causes (§3.8); 0 and 0 without it."""
+    if suspension != "dynamic":
+        return None, sp.Integer(0), sp.Integer(0)
+    hp = g.include(sub.pitch(P), "pitch")
+    theta_s = hp["k"].q
+    dF = (P["k_theta"] * theta_s + P["c_theta"] * hp.port("rate").f) / P["L_wb"]
+    return hp, theta_s, dF
+
+
+def _axles(g: BondGraph, P, hb, v, theta_g, dF, brake, *, wheels: str, numerics: Numerics,
+           brake_drag: bool) -> dict:
+    """Wheels and tires connected to the body (speed ``v``): one lumped wheel
+    (all four), or rear and front axles with their static loads plus/minus
+    the load transfer ``dF``. Returns the handles by name (``wheels`` or
+    ``rear``, ``front``)."""
+    mg_cos = P["m"] * P["g"] * sp.cos(theta_g)
     axles = {}
     if wheels == "lumped":
         axles["wheels"] = g.include(sub.axle(P, n_wheels=4, F_z=mg_cos, v=v, brake=brake,
@@ -235,80 +280,83 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
                                             num=numerics, brake_drag=brake_drag), "front")
     for h in axles.values():
         g.connect(h.port("ground"), hb.port("v"))
-    F_tires = sp.Add(*[h["tire"].e for h in axles.values()])
+    return axles
 
-    # ---- pitch drive: longitudinal force at the centre-of-mass height.
-    # Ground forces (tires) pitch the body about its centre of mass; forces
-    # acting on the body itself (gravity along the grade, aerodynamic drag,
-    # any force added later at the body junction) do not. The ground force is
-    # the body's net force minus the gravity component: h_cg (m dv/dt - F_grav)
-    # = h_cg (F_tires - F_aero) for this graph, but written from the junction
-    # so it stays right when forces are added to the body.
-    if hp is not None:
-        drive_src = g.MSe("pitch_drive", P["h_cg"] * (hb["m"].e - hb["gravity"].e))
-        g.connect(drive_src, hp.port("rate"))
-    del F_tires
 
-    # ---- power train and drive line
-    he = None
-    hc = None
-    if powertrain:
-        he = g.include(sub.engine(P, throttle, numerics, manifold_lag=manifold_lag), "engine")
-        w_e = he.port("shaft").f
-        cvt_frag = sub.clutch_cvt(P, w_e, numerics, belt_slip=belt_slip)
-        hc = g.include(cvt_frag, "cvt")
-        g.connect(he.port("shaft"), hc.port("engine"))
-        if gear != "N":
-            hd = g.include(sub.driveline(P, drive=drive, shaft_compliance=shaft_compliance),
-                           "driveline")
-            g.connect(hc.port("secondary"), hd.port("input"))
-            g.connect(hd.port("rear"), axles["rear"].port("hub"))
-            if drive == "AWD":
-                g.connect(hd.port("front"), axles["front"].port("hub"))
+def _pitch_drive(g: BondGraph, P, hb, hp) -> None:
+    """Pitch drive: the longitudinal ground force at the centre-of-mass height.
 
-    # ---- process noise: speed disturbances on the momenta (inertia x intensity)
+    Ground forces (tires) pitch the body about its centre of mass; forces
+    acting on the body itself (gravity along the grade, aerodynamic drag, any
+    force added later at the body junction) do not. The ground force is the
+    body's net force minus the gravity component: h_cg (m dv/dt - F_grav) =
+    h_cg (F_tires - F_aero) for this graph, but written from the junction so
+    it stays right when forces are added to the body.
+    """
+    drive_src = g.MSe("pitch_drive", P["h_cg"] * (hb["m"].e - hb["gravity"].e))
+    g.connect(drive_src, hp.port("rate"))
+
+
+def _powertrain(g: BondGraph, P, throttle, axles: dict, numerics: Numerics, *, gear: str,
+                drive: str, shaft_compliance: bool, belt_slip: bool, manifold_lag: bool):
+    """Engine and clutch/CVT, and (gear L or H) the drive line to the rear (and,
+    AWD, front) hubs. Returns the engine and CVT handles."""
+    he = g.include(sub.engine(P, throttle, numerics, manifold_lag=manifold_lag), "engine")
+    w_e = he.port("shaft").f
+    hc = g.include(sub.clutch_cvt(P, w_e, numerics, belt_slip=belt_slip), "cvt")
+    g.connect(he.port("shaft"), hc.port("engine"))
+    if gear != "N":
+        hd = g.include(sub.driveline(P, drive=drive, shaft_compliance=shaft_compliance),
+                       "driveline")
+        g.connect(hc.port("secondary"), hd.port("input"))
+        g.connect(hd.port("rear"), axles["rear"].port("hub"))
+        if drive == "AWD":
+            g.connect(hd.port("front"), axles["front"].port("hub"))
+    return he, hc
+
+
+def _process_noise(g: BondGraph, process_noise: dict[str, float] | None, inertias) -> None:
+    """Speed disturbances on the momenta: inertia x intensity, for each
+    ``(inertia element, key)`` whose intensity (default :data:`PROCESS_NOISE`)
+    is given and non-zero.
+
+    Raises
+    ------
+    ValueError
+        Unknown keys.
+    """
     qn = PROCESS_NOISE if process_noise is None else process_noise
     unknown = set(qn) - set(PROCESS_NOISE)
     if unknown:
         raise ValueError(f"process_noise has unknown keys {sorted(unknown)} "
                          f"(known: {', '.join(PROCESS_NOISE)})")
-
-    def _set_q(element, key):
+    for element, key in inertias:
         if qn.get(key):
             g.set_process_noise(element.state, element.inertance * const(qn[key]))
 
-    _set_q(hb["m"], "v")
-    for h in axles.values():
-        _set_q(h["J"], "w_wheel")
-    if powertrain:
-        _set_q(he["J"], "w_e")
-        _set_q(hc["J_s"], "w_s")
 
-    # ---- sensors (40 Hz)
+def _sensors(g: BondGraph, P, hb, v, axles: dict, he, hc, theta_g, theta_s, *,
+             pitch_offset: bool) -> None:
+    """The 40 Hz sensors: engine and secondary speeds (with a power train),
+    front and rear wheel speeds, GNSS speed, pitch (grade + suspension pitch
+    + offset) and the longitudinal accelerometer (specific force)."""
     def sensor(nm, expr):
         g.sensor(nm, expr, unit=SENSOR_UNITS[nm], noise_std=SENSOR_NOISE[nm],
                  description=SENSOR_DESCRIPTIONS[nm])
 
-    if powertrain:
+    if he is not None:
         sensor("w_e", he.port("shaft").f)
         sensor("w_s", hc.port("secondary").f)
-    if wheels == "lumped":
-        sensor("w_wf", axles["wheels"].port("hub").f)
-        sensor("w_wr", axles["wheels"].port("hub").f)
-    else:
-        sensor("w_wf", axles["front"].port("hub").f)
-        sensor("w_wr", axles["rear"].port("hub").f)
+    front, rear = (axles["wheels"], axles["wheels"]) if "wheels" in axles else \
+        (axles["front"], axles["rear"])
+    sensor("w_wf", front.port("hub").f)
+    sensor("w_wr", rear.port("hub").f)
     sensor("v_gnss", v)
     pitch_meas = theta_g + theta_s
     if pitch_offset:
         pitch_meas = pitch_meas + P["theta_off"]
     sensor("pitch", pitch_meas)
     sensor("a_x", hb["m"].e / P["m"] + P["g"] * sp.sin(theta_g + theta_s))
-
-    # parameters in table order (stable theta layout)
-    order = {p.name: i for i, p in enumerate(_params.PARAMS)}
-    g.params = dict(sorted(g.params.items(), key=lambda kv: order[kv[0]]))
-    return g
 
 
 # ------------------------------------------------------------ registered

@@ -34,6 +34,7 @@ from typing import Any
 import networkx as nx
 import sympy as sp
 
+from bondgraph.core import units as _units
 from bondgraph.core.causality import Causality, assign_causality
 from bondgraph.core.elements import (
     GY,
@@ -261,9 +262,37 @@ class _Deriver:
         self.eqs[eq.var] = eq
 
     def build(self) -> None:
-        g, cz = self.g, self.cz
+        """One defining equation per bond variable and state derivative, from
+        every element in name order (then the signal states)."""
+        self._build_aliases()
+        self._build_states()
+        for name in sorted(self.g.elements):
+            el = self.g.elements[name]
+            if isinstance(el, Junction):
+                self._junction(el)
+            elif isinstance(el, Source):
+                b = el.port.bond
+                var = b.e if isinstance(el, Se) else b.f
+                self._add(_Eq(var, rhs=self._bond_vars(el.value), origin=el.name, bond=b.name))
+            elif isinstance(el, (I, C)):
+                self._storage(el)
+            elif isinstance(el, (CField, IField)):
+                self._storage_field(el)
+            elif isinstance(el, R):
+                self._resistor(el)
+            elif isinstance(el, RField):
+                self._resistor_field(el)
+            elif isinstance(el, TwoPort):
+                self._twoport(el, self._bond_vars(el.modulus))
+            else:  # pragma: no cover
+                raise CausalityError(f"unknown element type {type(el).__name__}")
+        for ss in self.g.signal_states.values():
+            self._add(_Eq(self.xdot[ss.state], rhs=self._bond_vars(ss.rhs), origin=ss.state.name))
+
+    def _build_aliases(self) -> None:
+        """Element port variables (and junction variables) -> bond variables."""
         alias: dict = {}
-        for el in g.elements.values():
+        for el in self.g.elements.values():
             if isinstance(el, OnePort):
                 b = el.port.bond
                 alias[el.e] = b.e
@@ -273,101 +302,92 @@ class _Deriver:
                     alias[p.e] = p.bond.e
                     alias[p.f] = p.bond.f
             elif isinstance(el, Junction):
-                bonds = g.bonds_of(el)
+                bonds = self.g.bonds_of(el)
                 alias[el.var] = bonds[0].e if isinstance(el, Zero) else bonds[0].f
         self.alias = alias
-        A = lambda ex: sp.sympify(ex).xreplace(alias)  # noqa: E731
 
+    def _bond_vars(self, ex) -> sp.Expr:
+        """``ex`` in bond variables (port variables replaced by :attr:`alias`)."""
+        return sp.sympify(ex).xreplace(self.alias)
+
+    def _build_states(self) -> None:
+        """States: storages in integral causality, then the signal states."""
         self.states: list[StateVar] = []
-        for el in g.elements.values():
-            if isinstance(el, (I, C, CField, IField)) and el.name not in cz.derivative:
+        for el in self.g.elements.values():
+            if isinstance(el, (I, C, CField, IField)) and el.name not in self.cz.derivative:
                 self.states += el.states()
-        for ss in g.signal_states.values():
+        for ss in self.g.signal_states.values():
             self.states.append(ss.state)
         self.xdot = {s: _xdot(s) for s in self.states}
 
-        for name in sorted(g.elements):
-            el = g.elements[name]
-            if isinstance(el, Junction):
-                self._junction(el)
-            elif isinstance(el, Source):
-                b = el.port.bond
-                var = b.e if isinstance(el, Se) else b.f
-                self._add(_Eq(var, rhs=A(el.value), origin=el.name, bond=b.name))
-            elif isinstance(el, I):
-                b = el.port.bond
-                if el.name not in cz.derivative:
-                    self._add(_Eq(b.f, rhs=A(el.law), origin=el.name, bond=b.name))
-                    self._add(_Eq(self.xdot[el.state], rhs=b.e, origin=el.name, bond=b.name))
-                else:
-                    W = self._invert_law(el, A(el.law), el.state, b.f)
-                    dt = sp.Symbol(f"Dt[{el.name}]", real=True)
-                    self.dt_targets[dt] = (W, el.name)
-                    self._add(_Eq(b.e, rhs=dt, origin=el.name, bond=b.name))
-            elif isinstance(el, C):
-                b = el.port.bond
-                if el.name not in cz.derivative:
-                    self._add(_Eq(b.e, rhs=A(el.law), origin=el.name, bond=b.name))
-                    self._add(_Eq(self.xdot[el.state], rhs=b.f, origin=el.name, bond=b.name))
-                else:
-                    W = self._invert_law(el, A(el.law), el.state, b.e)
-                    dt = sp.Symbol(f"Dt[{el.name}]", real=True)
-                    self.dt_targets[dt] = (W, el.name)
-                    self._add(_Eq(b.f, rhs=dt, origin=el.name, bond=b.name))
-            elif isinstance(el, (CField, IField)):
-                if el.name in cz.derivative:
-                    raise DerivativeCausalityError(
-                        f"multiport field '{el.name}' is in derivative causality on some port; "
-                        f"fields must be in integral causality",
-                        elements=[el.name], bonds=[p.bond.name for p in el.ports],
-                        hint="add a compliance or inertia between the field and the rigid "
-                             "constraint, or merge the storages")
-                for st, law, p in zip(el.states(), el.laws, el.ports):
-                    b = p.bond
-                    if isinstance(el, CField):
-                        self._add(_Eq(b.e, rhs=A(law), origin=el.name, bond=b.name))
-                        self._add(_Eq(self.xdot[st], rhs=b.f, origin=el.name, bond=b.name))
-                    else:
-                        self._add(_Eq(b.f, rhs=A(law), origin=el.name, bond=b.name))
-                        self._add(_Eq(self.xdot[st], rhs=b.e, origin=el.name, bond=b.name))
-            elif isinstance(el, R):
-                b = el.port.bond
-                law = A(el.law)
-                recv = cz.receives_effort(b, el)
-                if el.form == "effort":
-                    if not recv:
-                        self._add(_Eq(b.e, rhs=law, origin=el.name, bond=b.name))
-                    else:
-                        self._add(_Eq(b.f, residual=b.e - law, origin=el.name, bond=b.name))
-                else:
-                    if recv:
-                        self._add(_Eq(b.f, rhs=law, origin=el.name, bond=b.name))
-                    else:
-                        self._add(_Eq(b.e, residual=b.f - law, origin=el.name, bond=b.name))
-            elif isinstance(el, RField):
-                for law, p in zip(el.laws, el.ports):
-                    b = p.bond
-                    if not cz.receives_effort(b, el):
-                        self._add(_Eq(b.e, rhs=A(law), origin=el.name, bond=b.name))
-                    else:
-                        self._add(_Eq(b.f, residual=b.e - A(law), origin=el.name, bond=b.name))
-            elif isinstance(el, TwoPort):
-                self._twoport(el, A(el.modulus))
-            else:  # pragma: no cover
-                raise CausalityError(f"unknown element type {type(el).__name__}")
-        for ss in g.signal_states.values():
-            self._add(_Eq(self.xdot[ss.state], rhs=A(ss.rhs), origin=ss.state.name))
+    def _storage(self, el) -> None:
+        """I or C. Integral causality: the law gives the flow (I) or effort
+        (C), the conjugate variable is the state derivative. Derivative
+        causality: the conjugate is ``Dt[name]``, the time derivative of the
+        inverted law (expanded by the chain rule in :meth:`solve`)."""
+        b = el.port.bond
+        law_var, rate_var = (b.f, b.e) if isinstance(el, I) else (b.e, b.f)
+        if el.name not in self.cz.derivative:
+            self._add(_Eq(law_var, rhs=self._bond_vars(el.law), origin=el.name, bond=b.name))
+            self._add(_Eq(self.xdot[el.state], rhs=rate_var, origin=el.name, bond=b.name))
+        else:
+            W = self._invert_law(el, self._bond_vars(el.law), el.state, law_var)
+            dt = sp.Symbol(f"Dt[{el.name}]", real=True)
+            self.dt_targets[dt] = (W, el.name)
+            self._add(_Eq(rate_var, rhs=dt, origin=el.name, bond=b.name))
+
+    def _storage_field(self, el) -> None:
+        """C- or I-field: one law and one state per port, integral causality only."""
+        if el.name in self.cz.derivative:
+            raise DerivativeCausalityError(
+                f"multiport field '{el.name}' is in derivative causality on some port; "
+                f"fields must be in integral causality",
+                elements=[el.name], bonds=[p.bond.name for p in el.ports],
+                hint="add a compliance or inertia between the field and the rigid "
+                     "constraint, or merge the storages")
+        for st, law, p in zip(el.states(), el.laws, el.ports):
+            b = p.bond
+            if isinstance(el, CField):
+                self._add(_Eq(b.e, rhs=self._bond_vars(law), origin=el.name, bond=b.name))
+                self._add(_Eq(self.xdot[st], rhs=b.f, origin=el.name, bond=b.name))
+            else:
+                self._add(_Eq(b.f, rhs=self._bond_vars(law), origin=el.name, bond=b.name))
+                self._add(_Eq(self.xdot[st], rhs=b.e, origin=el.name, bond=b.name))
+
+    def _resistor(self, el: R) -> None:
+        """R: explicit when causality matches the law's form, else a residual
+        solved for the other variable."""
+        b = el.port.bond
+        law = self._bond_vars(el.law)
+        recv = self.cz.receives_effort(b, el)
+        if el.form == "effort":
+            if not recv:
+                self._add(_Eq(b.e, rhs=law, origin=el.name, bond=b.name))
+            else:
+                self._add(_Eq(b.f, residual=b.e - law, origin=el.name, bond=b.name))
+        else:
+            if recv:
+                self._add(_Eq(b.f, rhs=law, origin=el.name, bond=b.name))
+            else:
+                self._add(_Eq(b.e, residual=b.f - law, origin=el.name, bond=b.name))
+
+    def _resistor_field(self, el: RField) -> None:
+        """R-field: effort laws per port, explicit or residual like :meth:`_resistor`."""
+        for law, p in zip(el.laws, el.ports):
+            b = p.bond
+            if not self.cz.receives_effort(b, el):
+                self._add(_Eq(b.e, rhs=self._bond_vars(law), origin=el.name, bond=b.name))
+            else:
+                self._add(_Eq(b.f, residual=b.e - self._bond_vars(law), origin=el.name, bond=b.name))
 
     def _invert_law(self, el, law, state, port_var) -> sp.Expr:
         """Solve ``port_var = law(state)`` for the state (derivative causality)."""
-        inv = el.inertance if isinstance(el, I) else getattr(el, "compliance", None)
         if isinstance(el, I) and el.inertance is not None:
             return el.inertance * port_var
         if isinstance(el, C) and el.compliance is not None:
             return el.compliance * port_var
         if isinstance(el, C) and el.stiffness is not None:
             return port_var / el.stiffness
-        del inv
         sols = _solve_for(law - port_var, state)
         if sols is None or len(sols) != 1:
             raise DerivativeCausalityError(
@@ -641,8 +661,6 @@ def _solve_system(residuals: list, unknowns: list):
 def _assign_state_units(graph: BondGraph, states) -> None:
     """Units of storage states from their bond units: momentum = effort x s,
     displacement = flow x s (kept if the user gave one)."""
-    from bondgraph.core import units as _units
-
     try:
         bu = graph.bond_units()
     except Exception:  # unit problems are reported by validate()
@@ -703,18 +721,47 @@ def derive(graph: BondGraph, *, causality: Causality | None = None,
     _assign_state_units(graph, d.states)
     solved = d.solve()
     states = d.states
-    f = []
+    f = _state_derivatives(d, solved)
+    A = lambda ex: sp.sympify(ex).xreplace(d.alias).xreplace(solved)  # noqa: E731
+    outputs = [Output(s.name, A(s.expr), s.unit, s.description,
+                      A(s.noise_std) if isinstance(s.noise_std, sp.Basic) else s.noise_std)
+               for s in graph.sensors.values()]
+    H_terms = _energy_terms(graph, causality, d, solved)
+    P_src, P_diss = _powers(graph, solved)
+    rate = _energy_rate(H_terms, d, f)
+    inputs = list(graph.inputs.values()) + list(d.der_inputs.values())
+    noise = []
     for s in states:
+        v = graph.process_noise.get(s.name, 0)
+        noise.append(A(v) if isinstance(v, sp.Basic) else v)
+    ss = StateSpace(
+        name=graph.name, description=graph.description, source=graph.source,
+        states=states, inputs=inputs, params=list(graph.params.values()), f=f,
+        outputs=outputs, energy=sp.Add(*H_terms), power_sources=P_src, power_dissipated=P_diss,
+        energy_rate=rate, process_noise=noise, causality=causality,
+        derivative_elements=list(causality.derivative), algebraic_loops=d.loops, solved=solved)
+    ss._alias = d.alias
+    return ss
+
+
+def _state_derivatives(d: _Deriver, solved: dict) -> list[sp.Expr]:
+    """f: the solved ẋ of every state, in states and inputs only."""
+    f = []
+    for s in d.states:
         ex = solved[d.xdot[s]]
         leftover = [x for x in ex.free_symbols if x in d.eqs or x in d.dt_targets]
         if leftover:  # pragma: no cover - guarded by the solver
             raise CausalityError(f"internal: d{s.name}/dt still depends on {leftover}")
         f.append(ex)
-    A = lambda ex: sp.sympify(ex).xreplace(d.alias).xreplace(solved)  # noqa: E731
-    outputs = [Output(s.name, A(s.expr), s.unit, s.description,
-                      A(s.noise_std) if isinstance(s.noise_std, sp.Basic) else s.noise_std)
-               for s in graph.sensors.values()]
-    # energy, one term per storage (differentiated term by term below)
+    return f
+
+
+def _energy_terms(graph: BondGraph, causality: Causality, d: _Deriver,
+                  solved: dict) -> list[sp.Expr]:
+    """Stored energy, one term per storage (differentiated term by term in
+    :func:`_energy_rate`). A storage without a given energy gets
+    ∫ law d(state); one in derivative causality is expressed through the
+    inverted law."""
     H_terms: list[sp.Expr] = []
     for el in graph.elements.values():
         if isinstance(el, (I, C)):
@@ -728,7 +775,11 @@ def derive(graph: BondGraph, *, causality: Causality | None = None,
             H_terms.append(energy.xreplace(d.alias).xreplace(solved))
         elif isinstance(el, (CField, IField)):
             H_terms.append(el.energy.xreplace(d.alias).xreplace(solved))
-    H = sp.Add(*H_terms)
+    return H_terms
+
+
+def _powers(graph: BondGraph, solved: dict) -> tuple[sp.Expr, sp.Expr]:
+    """Power delivered by the sources and absorbed by the R elements (e·f)."""
     src_terms, diss_terms = [], []
     for name in sorted(graph.elements):
         el = graph.elements[name]
@@ -738,26 +789,16 @@ def derive(graph: BondGraph, *, causality: Causality | None = None,
         elif isinstance(el, (R, RField)):
             for p in el.ports:
                 diss_terms.append(solved[p.bond.e] * solved[p.bond.f])
-    P_src = sp.Add(*src_terms)
-    P_diss = sp.Add(*diss_terms)
-    f_of = {s: fi for s, fi in zip(states, f)}
+    return sp.Add(*src_terms), sp.Add(*diss_terms)
+
+
+def _energy_rate(H_terms: list[sp.Expr], d: _Deriver, f: list[sp.Expr]) -> sp.Expr:
+    """dH/dt by the chain rule: Σ ∂H/∂x_i ẋ_i + Σ ∂H/∂u_j u̇_j (``der(u)`` inputs)."""
+    f_of = {s: fi for s, fi in zip(d.states, f)}
     for u, du in d.der_inputs.items():
         f_of[u] = du
     rate_terms = []
     for term in H_terms:
         for s in sorted(term.free_symbols & set(f_of), key=lambda s: s.name):
             rate_terms.append(diff(term, s) * f_of[s])
-    rate = sp.Add(*rate_terms)
-    inputs = list(graph.inputs.values()) + list(d.der_inputs.values())
-    noise = []
-    for s in states:
-        v = graph.process_noise.get(s.name, 0)
-        noise.append(A(v) if isinstance(v, sp.Basic) else v)
-    ss = StateSpace(
-        name=graph.name, description=graph.description, source=graph.source,
-        states=states, inputs=inputs, params=list(graph.params.values()), f=f,
-        outputs=outputs, energy=H, power_sources=P_src, power_dissipated=P_diss,
-        energy_rate=rate, process_noise=noise, causality=causality,
-        derivative_elements=list(causality.derivative), algebraic_loops=d.loops, solved=solved)
-    ss._alias = d.alias
-    return ss
+    return sp.Add(*rate_terms)

@@ -17,6 +17,10 @@ from typing import Callable
 import numpy as np
 
 from bondgraph.core import plugins
+from bondgraph.data.records import STATE_PREFIX, Experiment
+from bondgraph.errors import ModelError
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import InputSignals, simulate
 
 
 @dataclass
@@ -84,8 +88,6 @@ def get_experiment(name: str) -> ExperimentSpec:
         Unknown name (the message lists the registered ones), or a
         registered function that does not return a spec of that name.
     """
-    from bondgraph.errors import ModelError
-
     reg = registered_experiments()
     if name not in reg:
         raise ModelError(f"unknown experiment '{name}' (registered: "
@@ -102,8 +104,6 @@ def get_experiment(name: str) -> ExperimentSpec:
 # ------------------------------------------------------------------ running
 def sample_times(spec: ExperimentSpec) -> np.ndarray:
     """The sample grid of a spec: ``k * dt`` for k = 0 .. round(duration/dt)."""
-    from bondgraph.errors import ModelError
-
     if not (spec.dt > 0 and spec.duration > 0):
         raise ModelError(f"experiment '{spec.name}': dt ({spec.dt}) and duration "
                          f"({spec.duration}) must be positive")
@@ -155,24 +155,10 @@ def run_experiment(spec: ExperimentSpec | str, *, method: str = "BDF", rtol: flo
     NumericalError
         If the simulation diverges.
     """
-    from bondgraph.data.records import Experiment
-    from bondgraph.errors import ModelError
-    from bondgraph.numerics.model import Model
-    from bondgraph.numerics.simulate import simulate
-
     if isinstance(spec, str):
         spec = get_experiment(spec)
-    filt = Model.load(spec.model)
-    truth = Model.load(spec.truth_model) if spec.truth_model else filt
+    filt, truth = _spec_models(spec)
     ctx = f"experiment '{spec.name}'"
-    unknown = [k for k in spec.inputs if k not in truth.inputs and k not in filt.inputs]
-    if unknown:
-        raise ModelError(f"{ctx}: inputs {', '.join(unknown)} are not inputs of "
-                         f"'{truth.name}' ({', '.join(truth.inputs)})")
-    lacking = [y for y in filt.outputs if y not in truth.outputs]
-    if lacking:
-        raise ModelError(f"{ctx}: truth model '{truth.name}' lacks outputs "
-                         f"{', '.join(lacking)} of '{filt.name}'")
     try:
         theta = truth.theta(spec.params)
         x0 = truth.state(spec.x0)
@@ -182,50 +168,9 @@ def run_experiment(spec: ExperimentSpec | str, *, method: str = "BDF", rtol: flo
     u_truth = {k: fn for k, fn in spec.inputs.items() if k in truth.inputs}
     sim = simulate(truth, t, u=u_truth, x0=x0, theta=theta, method=method, rtol=rtol,
                    atol=atol, max_step=max_step)
-    # noise
-    theta_f = filt.theta({k: v for k, v in spec.params.items() if k in filt.params})
-    std = np.asarray(filt.meas_std(theta_f), dtype=float).reshape(-1) if filt.n_y else np.zeros(0)
-    for k, v in (spec.noise_std or {}).items():
-        if k not in filt.outputs:
-            raise ModelError(f"{ctx}: noise_std given for '{k}', which is not an output of "
-                             f"'{filt.name}' ({', '.join(filt.outputs)})")
-        if not (np.isfinite(v) and v >= 0):
-            raise ModelError(f"{ctx}: noise_std['{k}'] = {v!r} must be finite and >= 0")
-        std[filt.output_index(k)] = float(v)
-    rng = np.random.default_rng(spec.seed)
-    n = t.size
-    y_true = np.column_stack([sim.output(k) for k in filt.outputs]) if filt.n_y else \
-        np.zeros((n, 0))
-    y = y_true + rng.standard_normal((n, filt.n_y)) * std
-    # columns
-    columns, units, roles = {}, {}, {}
-    for mdl in (filt, truth):
-        fsig = None
-        for j, name in enumerate(mdl.inputs):
-            if name in columns:
-                continue
-            if name in truth.inputs:
-                vals = sim.input(name)
-            else:  # an input only the filter model has
-                if fsig is None:
-                    from bondgraph.numerics.simulate import InputSignals
-
-                    fsig = InputSignals(filt, t, {k: v for k, v in spec.inputs.items()
-                                                  if k in filt.inputs})
-                vals = fsig.samples[:, j]
-            columns[name] = vals
-            units[name] = mdl.input_units[j] or None
-            roles[name] = "input"
-    for j, name in enumerate(filt.outputs):
-        columns[name] = y[:, j]
-        units[name] = filt.output_units[j] or None
-        roles[name] = "output"
-    from bondgraph.data.records import STATE_PREFIX
-
-    for j, name in enumerate(truth.states):
-        columns[STATE_PREFIX + name] = sim.x[:, j]
-        units[STATE_PREFIX + name] = truth.state_units[j] or None
-        roles[STATE_PREFIX + name] = "state"
+    std = _noise_std(spec, filt)
+    y = _noisy_outputs(spec, filt, sim, std)
+    columns, units, roles = _record_columns(spec, filt, truth, sim, y)
     noise = {name: float(std[j]) for j, name in enumerate(filt.outputs)}
     meta = {
         "name": spec.name,
@@ -243,6 +188,83 @@ def run_experiment(spec: ExperimentSpec | str, *, method: str = "BDF", rtol: flo
     }
     return Experiment.from_arrays(t, columns, units=units, roles=roles, noise_std=noise,
                                   meta=meta)
+
+
+def _spec_models(spec: ExperimentSpec) -> tuple[Model, Model]:
+    """The filter model and the truth model of a spec, checked against each
+    other: every given input belongs to one of them, the truth model has every
+    output of the filter model."""
+    filt = Model.load(spec.model)
+    truth = Model.load(spec.truth_model) if spec.truth_model else filt
+    ctx = f"experiment '{spec.name}'"
+    unknown = [k for k in spec.inputs if k not in truth.inputs and k not in filt.inputs]
+    if unknown:
+        raise ModelError(f"{ctx}: inputs {', '.join(unknown)} are not inputs of "
+                         f"'{truth.name}' ({', '.join(truth.inputs)})")
+    lacking = [y for y in filt.outputs if y not in truth.outputs]
+    if lacking:
+        raise ModelError(f"{ctx}: truth model '{truth.name}' lacks outputs "
+                         f"{', '.join(lacking)} of '{filt.name}'")
+    return filt, truth
+
+
+def _noise_std(spec: ExperimentSpec, filt: Model) -> np.ndarray:
+    """Noise standard deviation per filter-model output (n_y,): ``spec.noise_std``,
+    else the model's ``meas_std`` at the true parameters."""
+    ctx = f"experiment '{spec.name}'"
+    theta_f = filt.theta({k: v for k, v in spec.params.items() if k in filt.params})
+    std = np.asarray(filt.meas_std(theta_f), dtype=float).reshape(-1) if filt.n_y else np.zeros(0)
+    for k, v in (spec.noise_std or {}).items():
+        if k not in filt.outputs:
+            raise ModelError(f"{ctx}: noise_std given for '{k}', which is not an output of "
+                             f"'{filt.name}' ({', '.join(filt.outputs)})")
+        if not (np.isfinite(v) and v >= 0):
+            raise ModelError(f"{ctx}: noise_std['{k}'] = {v!r} must be finite and >= 0")
+        std[filt.output_index(k)] = float(v)
+    return std
+
+
+def _noisy_outputs(spec: ExperimentSpec, filt: Model, sim, std: np.ndarray) -> np.ndarray:
+    """The filter model's outputs (N, n_y) from the truth simulation plus
+    independent Gaussian noise of standard deviation ``std`` (n_y,), drawn from
+    ``numpy.random.default_rng(spec.seed)``."""
+    rng = np.random.default_rng(spec.seed)
+    n = sim.t.size
+    y_true = np.column_stack([sim.output(k) for k in filt.outputs]) if filt.n_y else \
+        np.zeros((n, 0))
+    return y_true + rng.standard_normal((n, filt.n_y)) * std
+
+
+def _record_columns(spec: ExperimentSpec, filt: Model, truth: Model, sim,
+                    y: np.ndarray) -> tuple[dict, dict, dict]:
+    """Columns, units and roles of the record: the inputs of both models (as
+    simulated; an input only the filter model has from its callable or
+    default), the noisy outputs ``y (N, n_y)``, the truth states."""
+    columns, units, roles = {}, {}, {}
+    for mdl in (filt, truth):
+        fsig = None
+        for j, name in enumerate(mdl.inputs):
+            if name in columns:
+                continue
+            if name in truth.inputs:
+                vals = sim.input(name)
+            else:  # an input only the filter model has
+                if fsig is None:
+                    fsig = InputSignals(filt, sim.t, {k: v for k, v in spec.inputs.items()
+                                                      if k in filt.inputs})
+                vals = fsig.samples[:, j]
+            columns[name] = vals
+            units[name] = mdl.input_units[j] or None
+            roles[name] = "input"
+    for j, name in enumerate(filt.outputs):
+        columns[name] = y[:, j]
+        units[name] = filt.output_units[j] or None
+        roles[name] = "output"
+    for j, name in enumerate(truth.states):
+        columns[STATE_PREFIX + name] = sim.x[:, j]
+        units[STATE_PREFIX + name] = truth.state_units[j] or None
+        roles[STATE_PREFIX + name] = "state"
+    return columns, units, roles
 
 
 # ------------------------------------------------- reference experiments

@@ -35,7 +35,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from bondgraph.core import units as _units
+from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import DataError, UnitMismatchError, join_names
+from bondgraph.numerics.model import Model
 
 #: value of the sidecar's ``format`` key
 FORMAT = "bondgraph-experiment/1"
@@ -48,25 +50,6 @@ STATE_PREFIX = "state."
 GAP_FACTOR = 1.5
 
 _HEADER_RE = re.compile(r"^(?P<name>[^\[\]]*?)\s*(?:\[(?P<unit>[^\[\]]*)\])?\s*$")
-
-
-# ------------------------------------------------------------------ helpers
-def _json_safe(obj: Any) -> Any:
-    """Convert numpy scalars/arrays (recursively) to JSON types; NaN/inf -> None."""
-    if isinstance(obj, Mapping):
-        return {str(k): _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return [_json_safe(v) for v in obj.tolist()]
-    if isinstance(obj, (np.bool_, bool)):
-        return bool(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    return obj
 
 
 def parse_header(cell: str) -> tuple[str, str | None]:
@@ -338,74 +321,24 @@ class Experiment:
         """
         t = np.array(t, dtype=float).reshape(-1)
         check_time(t, gap_factor=GAP_FACTOR if check_gaps else None)
-        n = t.size
-        cols: dict[str, np.ndarray] = {}
-        unit_map: dict[str, str | None] = {}
-        role_map: dict[str, str] = {}
-
-        def add(cname, values, unit=None, role=None):
-            if cname == "t" or cname in cols:
-                raise DataError(f"duplicate column name '{cname}'", column=cname)
-            arr = np.array(values, dtype=float)
-            if arr.ndim == 0:
-                arr = np.full(n, float(arr))
-            arr = arr.reshape(-1) if arr.ndim > 1 and arr.size == n else arr
-            if arr.shape != (n,):
-                raise DataError(f"column has shape {arr.shape}, expected ({n},) like t",
-                                column=cname)
-            cols[cname] = arr
-            unit_map[cname] = unit
-            if role is not None:
-                role_map[cname] = role
-
+        cols = _Columns(t.size)
         if model is not None:
-            from bondgraph.numerics.model import Model
-
             mdl = Model.load(model) if isinstance(model, str) else model
-            for arr, names, munits, role, prefix in (
-                    (u, mdl.inputs, mdl.input_units, "input", ""),
-                    (y, mdl.outputs, mdl.output_units, "output", ""),
-                    (x, mdl.states, mdl.state_units, "state", STATE_PREFIX)):
-                if arr is None:
-                    continue
-                arr = np.asarray(arr, dtype=float)
-                if arr.shape != (n, len(names)):
-                    raise DataError(f"{role} array has shape {arr.shape}, expected "
-                                    f"({n}, {len(names)}) for model '{mdl.name}'")
-                for j, nm in enumerate(names):
-                    add(prefix + nm, arr[:, j], (munits[j] or None), role)
+            cols.add_model_arrays(mdl, u, y, x)
             meta = {"model": mdl.name, **(meta or {})}
         elif any(a is not None for a in (u, y, x)):
             raise DataError("u, y and x arrays need a model to name their columns")
         for cname, values in (columns or {}).items():
-            add(cname, values)
-        for cname, unit in (units or {}).items():
-            if cname not in cols:
-                raise DataError(f"unit given for unknown column '{cname}'", column=cname)
-            unit_map[cname] = unit
-        for cname, role in (roles or {}).items():
-            if cname not in cols:
-                raise DataError(f"role given for unknown column '{cname}'", column=cname)
-            role_map[cname] = role
+            cols.add(cname, values)
+        cols.override(units or {}, cols.units, "unit")
+        cols.override(roles or {}, cols.roles, "role")
         meta = copy.deepcopy(dict(meta or {}))
         if name is not None:
             meta["name"] = name
-        info = meta.setdefault("columns", {})
-        for cname in cols:
-            entry = dict(info.get(cname) or {})
-            if cname in role_map:
-                entry["role"] = role_map[cname]
-            if noise_std and cname in noise_std:
-                entry["noise_std"] = float(noise_std[cname])
-            entry["unit"] = unit_map[cname]
-            info[cname] = entry
-        for cname in list(info):
-            if cname not in cols and cname != "t":
-                del info[cname]
-        info["t"] = {"unit": "s", "role": "time"}
-        exp = cls(t=t, columns=cols, units=unit_map, meta=meta)
+        cols.describe_in(meta, noise_std)
+        exp = cls(t=t, columns=cols.values, units=cols.units, meta=meta)
         exp._validate_meta()
-        for cname, unit in unit_map.items():
+        for cname, unit in cols.units.items():
             if unit is not None:
                 _check_unit(unit, None, cname)
         return exp
@@ -495,116 +428,21 @@ class Experiment:
         where = str(path)
         if not path.exists():
             raise DataError("no such file", path=where)
+        side = str(path.with_suffix(".json"))
         meta = _read_sidecar(path)
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            reader = csv.reader(fh)
-            rows: list[list[str]] = []
-            lines: list[int] = []
-            header: list[str] | None = None
-            header_line = 1
-            for row in reader:
-                if not row or all(not c.strip() for c in row):
-                    continue
-                if header is None:
-                    header = row
-                    header_line = reader.line_num
-                    continue
-                rows.append(row)
-                lines.append(reader.line_num)
-        if header is None:
-            raise DataError("empty file: no header line", path=where)
-        # trailing comma: an empty last header cell
-        trailing = len(header) > 1 and header[-1].strip() == ""
-        if trailing:
-            header = header[:-1]
-        parsed = [parse_header(h) for h in header]
+        header, header_line, rows, lines = _read_csv_rows(path)
+        parsed, trailing = _parse_header_row(header, where, header_line)
         names = [p[0] for p in parsed]
-        for j, nm in enumerate(names):
-            if not nm:
-                raise DataError(f"empty column name in header position {j + 1}", path=where,
-                                line=header_line)
-            if nm in names[:j]:
-                raise DataError("duplicate column name", path=where, line=header_line,
-                                column=nm)
-        if names[0] != "t":
-            if "t" in names:
-                raise DataError(f"'t' must be the first column (it is column {names.index('t') + 1})",
-                                path=where, line=header_line, column="t")
-            raise DataError(f"first column must be the time 't', found '{names[0]}'",
-                            path=where, line=header_line, column=names[0],
-                            hint="name the time column 't' (unit in brackets, e.g. 't [s]')")
-        ncol = len(names)
-        for i, row in enumerate(rows):
-            if trailing and len(row) == ncol + 1:
-                if row[-1].strip():
-                    raise DataError(f"value '{row[-1]}' in the unnamed trailing column",
-                                    path=where, line=lines[i])
-                row.pop()
-            if len(row) != ncol:
-                raise DataError(f"row has {len(row)} cells, the header has {ncol} columns",
-                                path=where, line=lines[i])
-        if len(rows) < 2:
-            raise DataError(f"a record needs at least 2 samples, found {len(rows)}", path=where)
+        _check_row_lengths(rows, lines, len(names), trailing, where)
         line_arr = np.asarray(lines)
         cells = np.array(rows, dtype=str)
-        # units: header, then sidecar
         side_cols = (meta.get("columns") or {}) if meta else {}
-        for cname in side_cols:
-            if cname not in names:
-                raise DataError(f"the sidecar describes column '{cname}', which the CSV lacks",
-                                path=str(path.with_suffix(".json")), column=cname)
-        units: dict[str, str | None] = {}
-        for (nm, unit) in parsed:
-            side_unit = (side_cols.get(nm) or {}).get("unit")
-            if unit is not None and side_unit is not None and unit != side_unit:
-                try:
-                    same = _units.factor(unit, side_unit) == 1.0
-                except Exception:
-                    same = False
-                if not same:
-                    raise DataError(f"header unit '{unit}' differs from the sidecar's "
-                                    f"'{side_unit}'", path=where, line=header_line, column=nm)
-            units[nm] = unit if unit is not None else side_unit
-            if units[nm] is not None:
-                _check_unit(units[nm], where, nm)
+        units = _column_units(parsed, side_cols, where, side, header_line)
         roles = {nm: (side_cols.get(nm) or {}).get("role") for nm in names}
-        # values
         data: dict[str, np.ndarray] = {}
         for j, nm in enumerate(names):
-            col = np.char.strip(cells[:, j])
-            empty = col == ""
-            try:
-                vals = np.where(empty, "nan", col).astype(float)
-            except ValueError:
-                for i, s in enumerate(col):
-                    if s:
-                        try:
-                            float(s)
-                        except ValueError:
-                            raise DataError(f"non-numeric cell '{s}'", path=where,
-                                            line=int(line_arr[i]), column=nm) from None
-                raise  # pragma: no cover - numpy and float() disagree
-            if nm == "t":
-                if empty.any():
-                    i = int(np.flatnonzero(empty)[0])
-                    raise DataError("empty time cell", path=where, line=int(line_arr[i]),
-                                    column=nm)
-            else:
-                inf = np.flatnonzero(np.isinf(vals))
-                if inf.size:
-                    i = int(inf[0])
-                    raise DataError(f"infinite value '{col[i]}'", path=where,
-                                    line=int(line_arr[i]), column=nm)
-                nan = np.flatnonzero(np.isnan(vals))
-                if nan.size and (not allow_missing or roles.get(nm) == "input"):
-                    i = int(nan[0])
-                    what = "empty cell" if empty[i] else f"'{col[i]}'"
-                    why = ("inputs must be given at every sample" if roles.get(nm) == "input"
-                           else "missing samples are not allowed (allow_missing=False)")
-                    raise DataError(f"{what}: {why}", path=where, line=int(line_arr[i]),
-                                    column=nm)
-            data[nm] = vals
-        # time: units and checks
+            data[nm] = _column_values(np.char.strip(cells[:, j]), nm, roles.get(nm),
+                                      allow_missing, where, line_arr)
         t = data.pop("t")
         t_unit = units.pop("t")
         if t_unit is not None:
@@ -623,12 +461,12 @@ class Experiment:
                 entry["role"] = "time"
             info[nm] = entry
         exp = cls(t=t, columns=data, units=units, meta=meta, path=path, lines=line_arr)
-        exp._validate_meta(str(path.with_suffix(".json")))
+        exp._validate_meta(side)
         if meta.get("dt"):
             med = float(np.median(np.diff(t)))
             if abs(med - float(meta["dt"])) > 0.01 * float(meta["dt"]):
                 raise DataError(f"sidecar dt = {meta['dt']} s but the median time step is "
-                                f"{med:.6g} s", path=str(path.with_suffix(".json")))
+                                f"{med:.6g} s", path=side)
         return exp
 
     # -------------------------------------------------------------- save
@@ -692,7 +530,7 @@ class Experiment:
             meta = {**{k: meta[k] for k in order if k in meta},
                     **{k: v for k, v in meta.items() if k not in order}}
             with open(path.with_suffix(".json"), "w", encoding="utf-8") as fh:
-                json.dump(_json_safe(meta), fh, indent=2)
+                json.dump(to_jsonable(meta), fh, indent=2, allow_nan=False)
                 fh.write("\n")
         self.path = path
         self.lines = None
@@ -700,8 +538,6 @@ class Experiment:
 
     # ---------------------------------------------------------- for models
     def _model(self, model):
-        from bondgraph.numerics.model import Model
-
         if isinstance(model, str):
             return Model.load(model)
         return model
@@ -928,6 +764,82 @@ class Experiment:
 
 
 # ------------------------------------------------------------- internals
+class _Columns:
+    """Columns being assembled by :meth:`Experiment.from_arrays`: values (N,),
+    units and roles by column name, in insertion order."""
+
+    def __init__(self, n: int):
+        self.n = n
+        self.values: dict[str, np.ndarray] = {}
+        self.units: dict[str, str | None] = {}
+        self.roles: dict[str, str] = {}
+
+    def add(self, cname: str, values, unit: str | None = None, role: str | None = None) -> None:
+        """Add a column (a scalar is broadcast to N samples).
+
+        Raises
+        ------
+        DataError
+            Duplicate name, or values not of shape (N,).
+        """
+        n = self.n
+        if cname == "t" or cname in self.values:
+            raise DataError(f"duplicate column name '{cname}'", column=cname)
+        arr = np.array(values, dtype=float)
+        if arr.ndim == 0:
+            arr = np.full(n, float(arr))
+        arr = arr.reshape(-1) if arr.ndim > 1 and arr.size == n else arr
+        if arr.shape != (n,):
+            raise DataError(f"column has shape {arr.shape}, expected ({n},) like t",
+                            column=cname)
+        self.values[cname] = arr
+        self.units[cname] = unit
+        if role is not None:
+            self.roles[cname] = role
+
+    def add_model_arrays(self, mdl, u, y, x) -> None:
+        """Columns named after the model's inputs ``u (N, n_u)``, outputs
+        ``y (N, n_y)`` and states ``x (N, n_x)`` (``state.<name>``), with its
+        units and roles; ``None`` arrays are skipped."""
+        for arr, names, munits, role, prefix in (
+                (u, mdl.inputs, mdl.input_units, "input", ""),
+                (y, mdl.outputs, mdl.output_units, "output", ""),
+                (x, mdl.states, mdl.state_units, "state", STATE_PREFIX)):
+            if arr is None:
+                continue
+            arr = np.asarray(arr, dtype=float)
+            if arr.shape != (self.n, len(names)):
+                raise DataError(f"{role} array has shape {arr.shape}, expected "
+                                f"({self.n}, {len(names)}) for model '{mdl.name}'")
+            for j, nm in enumerate(names):
+                self.add(prefix + nm, arr[:, j], (munits[j] or None), role)
+
+    def override(self, given: Mapping, target: dict, what: str) -> None:
+        """Set units or roles given by the caller; each must name a column."""
+        for cname, value in given.items():
+            if cname not in self.values:
+                raise DataError(f"{what} given for unknown column '{cname}'", column=cname)
+            target[cname] = value
+
+    def describe_in(self, meta: dict, noise_std: Mapping[str, float] | None) -> None:
+        """Write ``meta["columns"]``: role, noise_std and unit of every column
+        (over what ``meta`` already says), ``t`` in s, no entries for absent
+        columns."""
+        info = meta.setdefault("columns", {})
+        for cname in self.values:
+            entry = dict(info.get(cname) or {})
+            if cname in self.roles:
+                entry["role"] = self.roles[cname]
+            if noise_std and cname in noise_std:
+                entry["noise_std"] = float(noise_std[cname])
+            entry["unit"] = self.units[cname]
+            info[cname] = entry
+        for cname in list(info):
+            if cname not in self.values and cname != "t":
+                del info[cname]
+        info["t"] = {"unit": "s", "role": "time"}
+
+
 def _check_unit(unit: str, path: str | None, column: str) -> None:
     try:
         _units.parse(unit)
@@ -937,12 +849,171 @@ def _check_unit(unit: str, path: str | None, column: str) -> None:
                         ) from None
 
 
+def _read_csv_rows(path: Path) -> tuple[list[str], int, list[list[str]], list[int]]:
+    """The header row, its line, the data rows and their lines (blank lines
+    skipped; a UTF-8 byte-order mark is dropped).
+
+    Raises
+    ------
+    DataError
+        An empty file.
+    """
+    with open(path, newline="", encoding="utf-8-sig") as fh:
+        reader = csv.reader(fh)
+        rows: list[list[str]] = []
+        lines: list[int] = []
+        header: list[str] | None = None
+        header_line = 1
+        for row in reader:
+            if not row or all(not c.strip() for c in row):
+                continue
+            if header is None:
+                header = row
+                header_line = reader.line_num
+                continue
+            rows.append(row)
+            lines.append(reader.line_num)
+    if header is None:
+        raise DataError("empty file: no header line", path=str(path))
+    return header, header_line, rows, lines
+
+
+def _parse_header_row(header: list[str], where: str,
+                      header_line: int) -> tuple[list[tuple[str, str | None]], bool]:
+    """``(name, unit)`` per header cell and whether the lines end in a
+    trailing comma (an empty last header cell).
+
+    Raises
+    ------
+    DataError
+        Empty or duplicate names, ``t`` missing or not first.
+    """
+    trailing = len(header) > 1 and header[-1].strip() == ""
+    if trailing:
+        header = header[:-1]
+    parsed = [parse_header(h) for h in header]
+    names = [p[0] for p in parsed]
+    for j, nm in enumerate(names):
+        if not nm:
+            raise DataError(f"empty column name in header position {j + 1}", path=where,
+                            line=header_line)
+        if nm in names[:j]:
+            raise DataError("duplicate column name", path=where, line=header_line,
+                            column=nm)
+    if names[0] != "t":
+        if "t" in names:
+            raise DataError(f"'t' must be the first column (it is column {names.index('t') + 1})",
+                            path=where, line=header_line, column="t")
+        raise DataError(f"first column must be the time 't', found '{names[0]}'",
+                        path=where, line=header_line, column=names[0],
+                        hint="name the time column 't' (unit in brackets, e.g. 't [s]')")
+    return parsed, trailing
+
+
+def _check_row_lengths(rows: list[list[str]], lines: list[int], ncol: int, trailing: bool,
+                       where: str) -> None:
+    """Every row has ``ncol`` cells (an empty trailing cell is dropped in
+    place); at least 2 rows.
+
+    Raises
+    ------
+    DataError
+        A row of another length, a value in the unnamed trailing column, fewer
+        than 2 samples.
+    """
+    for i, row in enumerate(rows):
+        if trailing and len(row) == ncol + 1:
+            if row[-1].strip():
+                raise DataError(f"value '{row[-1]}' in the unnamed trailing column",
+                                path=where, line=lines[i])
+            row.pop()
+        if len(row) != ncol:
+            raise DataError(f"row has {len(row)} cells, the header has {ncol} columns",
+                            path=where, line=lines[i])
+    if len(rows) < 2:
+        raise DataError(f"a record needs at least 2 samples, found {len(rows)}", path=where)
+
+
+def _column_units(parsed: list[tuple[str, str | None]], side_cols: Mapping, where: str,
+                  side: str, header_line: int) -> dict[str, str | None]:
+    """Unit of each column: the header's, else the sidecar's.
+
+    Raises
+    ------
+    DataError
+        A sidecar column the CSV lacks, header and sidecar units that differ,
+        an unknown unit.
+    """
+    names = [p[0] for p in parsed]
+    for cname in side_cols:
+        if cname not in names:
+            raise DataError(f"the sidecar describes column '{cname}', which the CSV lacks",
+                            path=side, column=cname)
+    units: dict[str, str | None] = {}
+    for (nm, unit) in parsed:
+        side_unit = (side_cols.get(nm) or {}).get("unit")
+        if unit is not None and side_unit is not None and unit != side_unit:
+            try:
+                same = _units.factor(unit, side_unit) == 1.0
+            except Exception:
+                same = False
+            if not same:
+                raise DataError(f"header unit '{unit}' differs from the sidecar's "
+                                f"'{side_unit}'", path=where, line=header_line, column=nm)
+        units[nm] = unit if unit is not None else side_unit
+        if units[nm] is not None:
+            _check_unit(units[nm], where, nm)
+    return units
+
+
+def _column_values(col: np.ndarray, nm: str, role: str | None, allow_missing: bool,
+                   where: str, line_arr: np.ndarray) -> np.ndarray:
+    """Floats of one column's stripped cells ``col`` (N,); empty cells are NaN.
+
+    Raises
+    ------
+    DataError
+        Naming the line: a non-numeric cell, an empty time cell, inf, NaN in
+        an input or (``allow_missing=False``) in any column.
+    """
+    empty = col == ""
+    try:
+        vals = np.where(empty, "nan", col).astype(float)
+    except ValueError:
+        for i, s in enumerate(col):
+            if s:
+                try:
+                    float(s)
+                except ValueError:
+                    raise DataError(f"non-numeric cell '{s}'", path=where,
+                                    line=int(line_arr[i]), column=nm) from None
+        raise  # pragma: no cover - numpy and float() disagree
+    if nm == "t":
+        if empty.any():
+            i = int(np.flatnonzero(empty)[0])
+            raise DataError("empty time cell", path=where, line=int(line_arr[i]), column=nm)
+        return vals
+    inf = np.flatnonzero(np.isinf(vals))
+    if inf.size:
+        i = int(inf[0])
+        raise DataError(f"infinite value '{col[i]}'", path=where, line=int(line_arr[i]),
+                        column=nm)
+    nan = np.flatnonzero(np.isnan(vals))
+    if nan.size and (not allow_missing or role == "input"):
+        i = int(nan[0])
+        what = "empty cell" if empty[i] else f"'{col[i]}'"
+        why = ("inputs must be given at every sample" if role == "input"
+               else "missing samples are not allowed (allow_missing=False)")
+        raise DataError(f"{what}: {why}", path=where, line=int(line_arr[i]), column=nm)
+    return vals
+
+
 def _read_sidecar(csv_path: Path) -> dict[str, Any]:
     side = csv_path.with_suffix(".json")
     if not side.exists():
         return {}
     try:
-        meta = json.loads(side.read_text(encoding="utf-8"))
+        meta = from_jsonable(json.loads(side.read_text(encoding="utf-8")))
     except json.JSONDecodeError as exc:
         raise DataError(f"invalid JSON: {exc.msg}", path=str(side), line=exc.lineno) from None
     if not isinstance(meta, dict):

@@ -5,34 +5,14 @@ holds everything a report of the loop needs (the report writer,
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from bondgraph.core.graph import BondGraph
+from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.effects import Target
 from bondgraph.diagnose.residuals import ResidualReport
-
-
-def to_jsonable(obj):
-    """``obj`` with numpy scalars and arrays as Python numbers and lists, NaN as
-    None, ±inf as "inf"/"-inf", :class:`Target` as {kind, name} and dict keys
-    as str (ready for :func:`json.dumps`)."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else (None if math.isnan(v) else ("inf" if v > 0 else "-inf"))
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, Target):
-        return {"kind": obj.kind, "name": obj.name}
-    return obj
 
 
 @dataclass

@@ -42,6 +42,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import IdentifiabilityWarning, ModelError, OptionError
 from bondgraph.inference.optimize import de, minimize_batched, pso
 from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
@@ -350,11 +351,11 @@ class EstimationResult:
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        return _json_ready(d)
+        return to_jsonable(d)
 
     def to_json(self, path: str | Path | None = None, indent: int = 2) -> str:
-        """JSON text (also written to ``path`` if given). Non-finite numbers
-        become ``null``."""
+        """JSON text (also written to ``path`` if given). NaN becomes ``null``,
+        ±inf ``"inf"``/``"-inf"`` (:mod:`bondgraph.core.jsonsafe`)."""
         text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
         if path is not None:
             Path(path).write_text(text + "\n")
@@ -363,7 +364,7 @@ class EstimationResult:
     @classmethod
     def from_json(cls, text_or_path) -> "EstimationResult":
         p = Path(text_or_path) if not str(text_or_path).lstrip().startswith("{") else None
-        d = json.loads(p.read_text() if p is not None else text_or_path)
+        d = from_jsonable(json.loads(p.read_text() if p is not None else text_or_path))
         for key in ("estimates", "std", "corr", "hessian", "theta", "lower", "upper", "z",
                     "std_total"):
             if d.get(key) is not None:
@@ -397,23 +398,6 @@ class EstimationResult:
         for w in self.warnings:
             lines.append(f"WARNING: {w}")
         return "\n".join(lines)
-
-
-def _json_ready(obj):
-    if isinstance(obj, dict):
-        return {str(k): _json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_ready(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _json_ready(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
 
 
 # ----------------------------------------------------------------- estimation

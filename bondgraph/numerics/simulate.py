@@ -47,9 +47,12 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 import numpy as np
+from scipy.integrate import solve_ivp
+from tqdm.auto import tqdm
 
 from bondgraph.errors import DataError, ModelError, NumericalError
 from bondgraph.numerics import integrators
+from bondgraph.numerics.model import Model
 
 #: solve_ivp methods that receive the generated Jacobian
 IMPLICIT_METHODS = ("BDF", "Radau", "LSODA")
@@ -144,112 +147,144 @@ class InputSignals:
         self.model = model
         self.t = t
         self.hold = hold
-        n = t.size
-        nu = model.n_u
-        scale = float(np.median(np.diff(t)))
-        der = model.derivative_inputs
-        base_names = [nm for nm in model.inputs if nm not in der]
-        # per input: ("const", value) | ("array", samples) | ("fn", callable)
-        spec: dict[str, tuple[str, Any]] = {}
-        if u is None:
-            pass
-        elif callable(u) and not isinstance(u, Mapping):
-            probe = np.asarray(u(float(t[0])), dtype=float).reshape(-1)
-            if probe.size == nu:
-                names = list(model.inputs)
-            elif probe.size == len(base_names):
-                names = base_names
-            else:
-                raise ModelError(f"the input callable returns {probe.size} values; model "
-                                 f"'{model.name}' expects {nu} ({', '.join(model.inputs)})"
-                                 + (f" or {len(base_names)} ({', '.join(base_names)})"
-                                    if der else ""))
-            vec = np.array([np.asarray(u(float(tk)), dtype=float).reshape(-1) for tk in t])
-
-            def vector_fn(tq, _u=u):
-                tq = np.atleast_1d(np.asarray(tq, dtype=float))
-                return np.array([np.asarray(_u(float(s)), dtype=float).reshape(-1)
-                                 for s in tq])
-
-            for j, nm in enumerate(names):
-                spec[nm] = ("fn_sampled", (lambda tq, j=j: vector_fn(tq)[:, j], vec[:, j]))
-        elif isinstance(u, Mapping):
-            for nm, val in u.items():
-                model.input_index(nm)  # raises ModelError naming the input
-                if callable(val):
-                    spec[nm] = ("fn", val)
-                else:
-                    arr = np.asarray(val, dtype=float)
-                    if arr.ndim == 0:
-                        spec[nm] = ("const", float(arr))
-                    elif arr.shape == (n,):
-                        spec[nm] = ("array", arr)
-                    else:
-                        raise ModelError(f"input '{nm}' has shape {arr.shape}; expected a "
-                                         f"scalar, ({n},) like t, or a callable")
-        else:
-            arr = np.asarray(u, dtype=float)
-            if arr.ndim == 1 and arr.size in (nu, len(base_names)):
-                arr = np.broadcast_to(arr, (n, arr.size))
-            if arr.ndim == 2 and arr.shape == (n, nu):
-                names = list(model.inputs)
-            elif arr.ndim == 2 and der and arr.shape == (n, len(base_names)):
-                names = base_names
-            else:
-                raise ModelError(
-                    f"input array has shape {arr.shape}; model '{model.name}' expects "
-                    f"({n}, {nu}) for inputs {', '.join(model.inputs)}"
-                    + (f" or ({n}, {len(base_names)}) without the derivative inputs"
-                       if der else ""))
-            for j, nm in enumerate(names):
-                spec[nm] = ("array", np.array(arr[:, j]))
-        # resolve every model input
+        self._scale = float(np.median(np.diff(t)))
         self._fns: list[Callable[[np.ndarray], np.ndarray]] = []
-        self.samples = np.empty((n, nu))
+        self.samples = np.empty((t.size, model.n_u))
         self.source: dict[str, str] = {}
         self._array_cols: list[int] = []
+        spec = self._parse(u)
         for j, nm in enumerate(model.inputs):
-            src = der.get(nm)
-            kind, val = spec.get(nm, (None, None))
-            if kind is None and src is not None:
-                skind, sval = spec.get(src, ("const", None))
-                if skind == "const":
-                    kind, val = "const", 0.0
-                    self.source[nm] = f"0 (d/dt of constant {src})"
-                elif skind == "array":
-                    kind, val = "array", np.gradient(sval, t)
-                    self.source[nm] = f"numpy.gradient of {src}"
-                elif skind == "fn":
-                    kind, val = "fn", (lambda tq, f=sval: _central_diff(f, tq, scale))
-                    self.source[nm] = f"central difference of {src}(t)"
-                else:  # fn_sampled
-                    f = sval[0]
-                    kind, val = "fn", (lambda tq, f=f: _central_diff(f, tq, scale))
-                    self.source[nm] = f"central difference of {src}(t)"
-            elif kind is None:
-                kind, val = "const", float(model.u0[j])
-                self.source[nm] = "model default"
-            else:
-                self.source.setdefault(nm, "given")
-            if kind == "const":
-                self.samples[:, j] = val
-                self._fns.append(lambda tq, v=val: np.full(np.shape(tq), v))
-            elif kind == "array":
-                self.samples[:, j] = val
-                self._array_cols.append(j)
-                self._fns.append(self._array_fn(val))
-            elif kind == "fn":
-                self.samples[:, j] = np.broadcast_to(np.asarray(val(t), dtype=float), (n,))
-                self._fns.append(lambda tq, f=val: np.asarray(f(tq), dtype=float))
-            else:  # fn_sampled
-                f, vals = val
-                self.samples[:, j] = vals
-                self._fns.append(f)
+            kind, val = self._resolve(j, nm, spec)
+            self._install(j, kind, val)
         bad = np.argwhere(~np.isfinite(self.samples))
         if bad.size:
             i, j = bad[0]
             raise DataError(f"input '{model.inputs[j]}' is {float(self.samples[i, j])!r} at sample {i} "
                             f"(t = {float(t[i])!r}); inputs must be finite")
+
+    def _base_names(self) -> list[str]:
+        """Inputs that are not ``der(.)`` inputs."""
+        der = self.model.derivative_inputs
+        return [nm for nm in self.model.inputs if nm not in der]
+
+    def _parse(self, u) -> dict[str, tuple[str, Any]]:
+        """The given inputs by name: ``("const", value) | ("array", samples) |
+        ("fn", callable) | ("fn_sampled", (callable, samples))``."""
+        if u is None:
+            return {}
+        if callable(u) and not isinstance(u, Mapping):
+            return self._parse_callable(u)
+        if isinstance(u, Mapping):
+            return self._parse_mapping(u)
+        return self._parse_array(u)
+
+    def _parse_callable(self, u: Callable) -> dict[str, tuple[str, Any]]:
+        """``u(t) -> (n_u,)`` or ``(n_base,)``: sampled once, kept for :meth:`at`."""
+        model, t = self.model, self.t
+        nu, base_names = model.n_u, self._base_names()
+        probe = np.asarray(u(float(t[0])), dtype=float).reshape(-1)
+        if probe.size == nu:
+            names = list(model.inputs)
+        elif probe.size == len(base_names):
+            names = base_names
+        else:
+            raise ModelError(f"the input callable returns {probe.size} values; model "
+                             f"'{model.name}' expects {nu} ({', '.join(model.inputs)})"
+                             + (f" or {len(base_names)} ({', '.join(base_names)})"
+                                if model.derivative_inputs else ""))
+        vec = np.array([np.asarray(u(float(tk)), dtype=float).reshape(-1) for tk in t])
+
+        def vector_fn(tq, _u=u):
+            tq = np.atleast_1d(np.asarray(tq, dtype=float))
+            return np.array([np.asarray(_u(float(s)), dtype=float).reshape(-1)
+                             for s in tq])
+
+        return {nm: ("fn_sampled", (lambda tq, j=j: vector_fn(tq)[:, j], vec[:, j]))
+                for j, nm in enumerate(names)}
+
+    def _parse_mapping(self, u: Mapping) -> dict[str, tuple[str, Any]]:
+        """``{name: callable | scalar | array (N,)}``."""
+        n = self.t.size
+        spec: dict[str, tuple[str, Any]] = {}
+        for nm, val in u.items():
+            self.model.input_index(nm)  # raises ModelError naming the input
+            if callable(val):
+                spec[nm] = ("fn", val)
+                continue
+            arr = np.asarray(val, dtype=float)
+            if arr.ndim == 0:
+                spec[nm] = ("const", float(arr))
+            elif arr.shape == (n,):
+                spec[nm] = ("array", arr)
+            else:
+                raise ModelError(f"input '{nm}' has shape {arr.shape}; expected a "
+                                 f"scalar, ({n},) like t, or a callable")
+        return spec
+
+    def _parse_array(self, u) -> dict[str, tuple[str, Any]]:
+        """An array ``(N, n_u)`` or ``(N, n_base)`` (or one row, broadcast)."""
+        model, n = self.model, self.t.size
+        nu, base_names, der = model.n_u, self._base_names(), model.derivative_inputs
+        arr = np.asarray(u, dtype=float)
+        if arr.ndim == 1 and arr.size in (nu, len(base_names)):
+            arr = np.broadcast_to(arr, (n, arr.size))
+        if arr.ndim == 2 and arr.shape == (n, nu):
+            names = list(model.inputs)
+        elif arr.ndim == 2 and der and arr.shape == (n, len(base_names)):
+            names = base_names
+        else:
+            raise ModelError(
+                f"input array has shape {arr.shape}; model '{model.name}' expects "
+                f"({n}, {nu}) for inputs {', '.join(model.inputs)}"
+                + (f" or ({n}, {len(base_names)}) without the derivative inputs"
+                   if der else ""))
+        return {nm: ("array", np.array(arr[:, j])) for j, nm in enumerate(names)}
+
+    def _resolve(self, j: int, nm: str, spec: dict) -> tuple[str, Any]:
+        """Kind and value of model input ``j``: given, the derivative of a
+        given input (``der(.)``), or the model default; records the source."""
+        src = self.model.derivative_inputs.get(nm)
+        kind, val = spec.get(nm, (None, None))
+        if kind is None and src is not None:
+            scale = self._scale
+            skind, sval = spec.get(src, ("const", None))
+            if skind == "const":
+                kind, val = "const", 0.0
+                self.source[nm] = f"0 (d/dt of constant {src})"
+            elif skind == "array":
+                kind, val = "array", np.gradient(sval, self.t)
+                self.source[nm] = f"numpy.gradient of {src}"
+            elif skind == "fn":
+                kind, val = "fn", (lambda tq, f=sval: _central_diff(f, tq, scale))
+                self.source[nm] = f"central difference of {src}(t)"
+            else:  # fn_sampled
+                f = sval[0]
+                kind, val = "fn", (lambda tq, f=f: _central_diff(f, tq, scale))
+                self.source[nm] = f"central difference of {src}(t)"
+        elif kind is None:
+            kind, val = "const", float(self.model.u0[j])
+            self.source[nm] = "model default"
+        else:
+            self.source.setdefault(nm, "given")
+        return kind, val
+
+    def _install(self, j: int, kind: str, val) -> None:
+        """Fill column ``j`` of :attr:`samples` and its function of time."""
+        if kind == "const":
+            self.samples[:, j] = val
+            self._fns.append(lambda tq, v=val: np.full(np.shape(tq), v))
+        elif kind == "array":
+            self.samples[:, j] = val
+            self._array_cols.append(j)
+            self._fns.append(self._array_fn(val))
+        elif kind == "fn":
+            self.samples[:, j] = np.broadcast_to(np.asarray(val(self.t), dtype=float),
+                                                 (self.t.size,))
+            self._fns.append(lambda tq, f=val: np.asarray(f(tq), dtype=float))
+        else:  # fn_sampled
+            f, vals = val
+            self.samples[:, j] = vals
+            self._fns.append(f)
 
     def _array_fn(self, vals: np.ndarray) -> Callable:
         t = self.t
@@ -292,8 +327,6 @@ class InputSignals:
 
 # ---------------------------------------------------------------- simulate
 def _as_model(model):
-    from bondgraph.numerics.model import Model
-
     if isinstance(model, str):
         return Model.load(model)
     return model
@@ -429,8 +462,6 @@ def _fixed_step(model, t, U, th, x, method, substeps, progress):
     if progress is None:
         progress = (n - 1) * substeps > 200_000
     if progress:
-        from tqdm.auto import tqdm
-
         steps = tqdm(steps, desc=f"simulate {model.name} ({method})", unit="sample",
                      disable=None, leave=False)
     # a batch axis of 1: the generated functions are used in their batched form
@@ -447,8 +478,6 @@ def _fixed_step(model, t, U, th, x, method, substeps, progress):
 
 
 def _solve_ivp(model, t, sig: InputSignals, th, x0, method, rtol, atol, max_step, stats):
-    from scipy.integrate import solve_ivp
-
     n = t.size
     X = np.empty((n, model.n_x))
     kw = dict(method=method, rtol=rtol, atol=atol)
@@ -499,10 +528,6 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, rtol, atol, max_step
 
 
 # ------------------------------------------------------------- stiffness
-def _finite_or_none(v: float):
-    return float(v) if np.isfinite(v) else None
-
-
 def stiffness_report(model, result: SimResult, theta=None, *, every: int | None = None,
                      max_samples: int = 200) -> tuple[dict, str]:
     """Eigenvalues of ``df/dx`` along a trajectory and what they mean for RK4.
@@ -530,10 +555,13 @@ def stiffness_report(model, result: SimResult, theta=None, *, every: int | None 
     Returns
     -------
     report : dict
-        JSON-able: ``model, every, n_checked, dt, max_abs_re, t_max_abs_re,
+        ``model, every, n_checked, dt, max_abs_re, t_max_abs_re,
         stiffness_ratio, rk4_stable_step, rk4_substeps_needed,
         n_growing_modes, samples: [{t, eigenvalues: [[re, im], ...],
-        max_abs_re, stiffness_ratio, rk4_stable_step, rk4_substeps}]``.
+        max_abs_re, stiffness_ratio, rk4_stable_step, rk4_substeps}]``,
+        plain Python numbers; ``rk4_stable_step`` is ``inf`` where no
+        decaying mode limits the step. Write it with
+        :func:`bondgraph.core.jsonsafe.to_jsonable` (``inf`` -> ``"inf"``).
     table : str
         The same as a text table.
 
@@ -550,49 +578,50 @@ def stiffness_report(model, result: SimResult, theta=None, *, every: int | None 
     J = np.asarray(model.dfdx(result.x[idx], result.u[idx], th), dtype=float)
     lam = np.linalg.eigvals(J) if model.n_x else np.zeros((idx.size, 0), complex)
     dts = np.diff(result.t)
-    samples = []
-    worst = (-1.0, None)
-    h_min, sub_max, ratio_max, growing = math.inf, 1, 0.0, 0
+    samples, growing = [], 0
     for k, i in enumerate(idx):
-        ev = lam[k]
-        re = ev.real
-        scale = np.abs(ev).max() if ev.size else 0.0
-        decaying = re[re < -1e-12 * max(scale, 1e-300)]
-        max_abs = float(np.abs(re).max()) if ev.size else 0.0
-        ratio = float(np.abs(decaying).max() / np.abs(decaying).min()) if decaying.size else 1.0
-        h = integrators.rk4_stable_step(ev)
-        dt = float(dts[min(i, dts.size - 1)])
-        sub = int(math.ceil(dt / h - 1e-12)) if np.isfinite(h) and h > 0 else 1
-        sub = max(sub, 1)
-        growing = max(growing, int(np.sum(re > 1e-12 * max(scale, 1e-300))))
-        samples.append({
-            "t": float(result.t[i]),
-            "eigenvalues": [[float(z.real), float(z.imag)] for z in sorted(ev, key=lambda z: z.real)],
-            "max_abs_re": max_abs,
-            "stiffness_ratio": _finite_or_none(ratio),
-            "rk4_stable_step": _finite_or_none(h),
-            "rk4_substeps": sub,
-        })
-        if max_abs > worst[0]:
-            worst = (max_abs, float(result.t[i]))
-        h_min = min(h_min, h)
-        sub_max = max(sub_max, sub)
-        ratio_max = max(ratio_max, ratio)
+        sample, n_grow = _sample_stiffness(float(result.t[i]), lam[k],
+                                           float(dts[min(i, dts.size - 1)]))
+        samples.append(sample)
+        growing = max(growing, n_grow)
+    worst = max(samples, key=lambda r: r["max_abs_re"])  # the first of equal maxima
     report = {
         "model": model.name,
         "method": result.method,
         "every": every,
         "n_checked": int(idx.size),
         "dt": float(np.median(dts)),
-        "max_abs_re": worst[0],
-        "t_max_abs_re": worst[1],
-        "stiffness_ratio": _finite_or_none(ratio_max),
-        "rk4_stable_step": _finite_or_none(h_min),
-        "rk4_substeps_needed": sub_max,
+        "max_abs_re": worst["max_abs_re"],
+        "t_max_abs_re": worst["t"],
+        "stiffness_ratio": max([0.0] + [r["stiffness_ratio"] for r in samples]),
+        "rk4_stable_step": min([math.inf] + [r["rk4_stable_step"] for r in samples]),
+        "rk4_substeps_needed": max([1] + [r["rk4_substeps"] for r in samples]),
         "n_growing_modes": growing,
         "samples": samples,
     }
     return report, _stiffness_table(report)
+
+
+def _sample_stiffness(t: float, ev: np.ndarray, dt: float) -> tuple[dict, int]:
+    """Stiffness figures at one sample from the eigenvalues ``ev`` (n_x,) of
+    ``df/dx`` and the sample interval ``dt`` [s]: the sample's report entry and
+    its number of growing modes (Re λ > 0)."""
+    re = ev.real
+    scale = np.abs(ev).max() if ev.size else 0.0
+    decaying = re[re < -1e-12 * max(scale, 1e-300)]
+    max_abs = float(np.abs(re).max()) if ev.size else 0.0
+    ratio = float(np.abs(decaying).max() / np.abs(decaying).min()) if decaying.size else 1.0
+    h = integrators.rk4_stable_step(ev)
+    sub = int(math.ceil(dt / h - 1e-12)) if np.isfinite(h) and h > 0 else 1
+    sample = {
+        "t": t,
+        "eigenvalues": [[float(z.real), float(z.imag)] for z in sorted(ev, key=lambda z: z.real)],
+        "max_abs_re": max_abs,
+        "stiffness_ratio": ratio,
+        "rk4_stable_step": float(h),
+        "rk4_substeps": max(sub, 1),
+    }
+    return sample, int(np.sum(re > 1e-12 * max(scale, 1e-300)))
 
 
 def _stiffness_table(rep: dict, rows: int = 12) -> str:
@@ -602,8 +631,8 @@ def _stiffness_table(rep: dict, rows: int = 12) -> str:
         f"Stiffness of {rep['model']} along the trajectory ({rep['n_checked']} samples, "
         f"every {rep['every']}; dt = {rep['dt']:.6g} s)",
         f"  max |Re λ| = {rep['max_abs_re']:.6g} 1/s at t = {rep['t_max_abs_re']:.6g} s; "
-        f"stiffness ratio up to {rep['stiffness_ratio'] or float('nan'):.4g}",
-        f"  largest stable RK4 step {h if h is not None else float('inf'):.6g} s -> "
+        f"stiffness ratio up to {rep['stiffness_ratio']:.4g}",
+        f"  largest stable RK4 step {h:.6g} s -> "
         f"RK4 needs >= {rep['rk4_substeps_needed']} substeps per sample",
     ]
     if rep["n_growing_modes"]:
@@ -615,9 +644,8 @@ def _stiffness_table(rep: dict, rows: int = 12) -> str:
     for i in pick:
         r = s[i]
         ev = ", ".join(f"{re:.4g}{im:+.4g}j" if im else f"{re:.4g}" for re, im in r["eigenvalues"])
-        hr = r["rk4_stable_step"]
         lines.append(f"  {r['t']:>10.4g} {r['max_abs_re']:>16.6g} "
-                     f"{(r['stiffness_ratio'] or float('nan')):>10.4g} "
-                     f"{(hr if hr is not None else float('inf')):>11.4g} {r['rk4_substeps']:>8d}"
+                     f"{r['stiffness_ratio']:>10.4g} "
+                     f"{r['rk4_stable_step']:>11.4g} {r['rk4_substeps']:>8d}"
                      f"  {ev}")
     return "\n".join(lines)

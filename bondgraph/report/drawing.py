@@ -9,10 +9,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import networkx as nx
 import numpy as np
 
 from bondgraph.core.causality import assign_causality
 from bondgraph.core.graph import BondGraph
+from bondgraph.report.plots import pyplot
 
 
 def draw(graph: BondGraph, path: str | Path | None = None, *, causality=None, ax=None,
@@ -35,28 +37,15 @@ def draw(graph: BondGraph, path: str | Path | None = None, *, causality=None, ax
     -------
     matplotlib.figure.Figure
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-    import networkx as nx
-
+    plt = pyplot()
     err = None
     if causality is None:
         try:
             causality = assign_causality(graph)
         except Exception as exc:  # draw anyway, show why
             err = str(exc).splitlines()[0]
-    G = nx.Graph()
-    for name in graph.elements:
-        G.add_node(name)
-    for b in graph.bonds:
-        G.add_edge(b.tail.element.name, b.head.element.name)
-    try:
-        pos = nx.kamada_kawai_layout(G)
-    except Exception:
-        pos = nx.spring_layout(G, seed=seed)
-    n = max(len(G), 1)
+    pos = _layout(graph, seed)
+    n = max(len(graph.elements), 1)
     size = min(4 + 0.45 * n, 30)
     if ax is None:
         fig, ax = plt.subplots(figsize=(size, size * 0.75))
@@ -65,34 +54,10 @@ def draw(graph: BondGraph, path: str | Path | None = None, *, causality=None, ax
     lengths = [np.linalg.norm(np.subtract(pos[b.tail.element.name], pos[b.head.element.name]))
                for b in graph.bonds]
     ref = float(np.median(lengths)) if lengths else 1.0
-    bar = 0.07 * ref
-    shrink = 0.22 * ref
     for b in graph.bonds:
-        p0 = np.array(pos[b.tail.element.name])
-        p1 = np.array(pos[b.head.element.name])
-        d = p1 - p0
-        L = np.linalg.norm(d) or 1.0
-        u = d / L
-        a = p0 + u * shrink
-        c = p1 - u * shrink
-        ax.plot([a[0], c[0]], [a[1], c[1]], color="k", lw=1.2, zorder=1)
-        # half-arrow at head
-        perp = np.array([-u[1], u[0]])
-        tip = c
-        barb = c - u * 1.6 * bar + perp * 1.1 * bar
-        ax.plot([tip[0], barb[0]], [tip[1], barb[1]], color="k", lw=1.2, zorder=1)
-        if causality is not None:
-            end = causality.stroke[b.name]
-            q = c if end == b.head.element.name else a
-            s0, s1 = q + perp * 1.2 * bar, q - perp * 1.2 * bar
-            ax.plot([s0[0], s1[0]], [s0[1], s1[1]], color="tab:red", lw=2.2, zorder=2)
+        _draw_bond(ax, b, pos, causality, bar=0.07 * ref, shrink=0.22 * ref)
     deriv = set(causality.derivative) if causality is not None else set()
-    for name, el in graph.elements.items():
-        x, y = pos[name]
-        label = el.kind if el.kind in ("0", "1") else f"{el.kind}:{name}"
-        color = "#fde2e2" if name in deriv else ("#e8f0fe" if el.kind in ("0", "1") else "white")
-        ax.text(x, y, label, ha="center", va="center", fontsize=8, zorder=3,
-                bbox=dict(boxstyle="round,pad=0.25", fc=color, ec="0.5", lw=0.6))
+    _draw_elements(ax, graph, pos, deriv)
     ax.set_axis_off()
     t = title or f"{graph.name}: half-arrow = power direction, red bar = causal stroke"
     if deriv:
@@ -106,3 +71,51 @@ def draw(graph: BondGraph, path: str | Path | None = None, *, causality=None, ax
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=110)
     return fig
+
+
+def _layout(graph: BondGraph, seed: int) -> dict:
+    """Element name -> (x, y): Kamada-Kawai layout of the element graph,
+    else a seeded spring layout."""
+    G = nx.Graph()
+    for name in graph.elements:
+        G.add_node(name)
+    for b in graph.bonds:
+        G.add_edge(b.tail.element.name, b.head.element.name)
+    try:
+        return nx.kamada_kawai_layout(G)
+    except Exception:
+        return nx.spring_layout(G, seed=seed)
+
+
+def _draw_bond(ax, b, pos: dict, causality, *, bar: float, shrink: float) -> None:
+    """A bond: a line shortened by ``shrink`` at both ends, a half-arrow at the
+    head, and the causal stroke (a red bar) at the end that receives effort."""
+    p0 = np.array(pos[b.tail.element.name])
+    p1 = np.array(pos[b.head.element.name])
+    d = p1 - p0
+    L = np.linalg.norm(d) or 1.0
+    u = d / L
+    a = p0 + u * shrink
+    c = p1 - u * shrink
+    ax.plot([a[0], c[0]], [a[1], c[1]], color="k", lw=1.2, zorder=1)
+    # half-arrow at head
+    perp = np.array([-u[1], u[0]])
+    tip = c
+    barb = c - u * 1.6 * bar + perp * 1.1 * bar
+    ax.plot([tip[0], barb[0]], [tip[1], barb[1]], color="k", lw=1.2, zorder=1)
+    if causality is not None:
+        end = causality.stroke[b.name]
+        q = c if end == b.head.element.name else a
+        s0, s1 = q + perp * 1.2 * bar, q - perp * 1.2 * bar
+        ax.plot([s0[0], s1[0]], [s0[1], s1[1]], color="tab:red", lw=2.2, zorder=2)
+
+
+def _draw_elements(ax, graph: BondGraph, pos: dict, deriv: set) -> None:
+    """Element labels in boxes: junctions blue, storages in derivative
+    causality red, the others white."""
+    for name, el in graph.elements.items():
+        x, y = pos[name]
+        label = el.kind if el.kind in ("0", "1") else f"{el.kind}:{name}"
+        color = "#fde2e2" if name in deriv else ("#e8f0fe" if el.kind in ("0", "1") else "white")
+        ax.text(x, y, label, ha="center", va="center", fontsize=8, zorder=3,
+                bbox=dict(boxstyle="round,pad=0.25", fc=color, ec="0.5", lw=0.6))

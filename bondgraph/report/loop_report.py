@@ -67,7 +67,7 @@ def write(result: LoopResult, out) -> None:
     settings = report.pop("settings")   # keep "settings" last, after the file name
     report["augmented_model"] = "augmented_model.py" if result.applied else None
     report["settings"] = settings
-    (out / "report.json").write_text(json.dumps(report, indent=2))
+    (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
     if result.applied:
         (out / "augmented_model.py").write_text(augmented_source(result))
         _write_generated(result, out)

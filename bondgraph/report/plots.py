@@ -15,11 +15,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
+from bondgraph.data.records import STATE_PREFIX, Experiment
 from bondgraph.errors import DataError
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import SimResult
 
 
-#: group order and titles
 def pyplot():
     """``matplotlib.pyplot`` on the non-interactive Agg backend (files only; no
     display needed)."""
@@ -31,15 +35,13 @@ def pyplot():
     return plt
 
 
+#: group order and titles
 GROUPS = (("state", "states"), ("input", "inputs"), ("output", "outputs"),
           ("other", "other signals"))
 
 
 def _as_experiment(obj: Any):
     """Experiment from a path, an Experiment or a SimResult (+ whether measured)."""
-    from bondgraph.data.records import Experiment
-    from bondgraph.numerics.simulate import SimResult
-
     if isinstance(obj, Experiment):
         return obj, "solver_stats" not in obj.meta
     if isinstance(obj, SimResult):
@@ -53,14 +55,10 @@ def _as_experiment(obj: Any):
 
 def _roles(exp, model) -> dict[str, str]:
     """Role of every column: sidecar role, else from the model, else 'other'."""
-    from bondgraph.data.records import STATE_PREFIX
-
     known = exp.roles
     mdl = model
     if mdl is None and exp.model_name:
         try:
-            from bondgraph.numerics.model import Model
-
             mdl = Model.load(exp.model_name)
         except Exception:  # the record's model need not be generated here
             mdl = None
@@ -122,12 +120,7 @@ def plot_record(record, out_dir: str | Path, *, simulated=None, model=None,
     DataError
         Unreadable record, or an object that is not a record.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     if isinstance(model, str):
-        from bondgraph.numerics.model import Model
-
         model = Model.load(model)
     exp, measured = _as_experiment(record)
     sim = _as_experiment(simulated)[0] if simulated is not None else None
@@ -135,7 +128,6 @@ def plot_record(record, out_dir: str | Path, *, simulated=None, model=None,
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     prefix = _safe(prefix or exp.name)
-    stride = max(1, int(np.ceil(len(exp) / max_points)))
     paths: list[Path] = []
     for role, title in GROUPS:
         cols = [c for c, r in roles.items() if r == role]
@@ -143,36 +135,10 @@ def plot_record(record, out_dir: str | Path, *, simulated=None, model=None,
             continue
         chunks = [cols[i:i + max_per_figure] for i in range(0, len(cols), max_per_figure)]
         for k, chunk in enumerate(chunks):
-            n = len(chunk)
-            fig = Figure(figsize=(9.0, 1.9 * n + 0.9), dpi=dpi, layout="constrained")
-            FigureCanvasAgg(fig)
-            axes = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
             group_title = ("measurements" if (role == "output" and measured) else title)
-            fig.suptitle(f"{exp.name}: {group_title}"
-                         + (f" ({k + 1}/{len(chunks)})" if len(chunks) > 1 else ""))
-            for ax, c in zip(axes, chunk):
-                v = exp.columns[c][::stride]
-                tt = exp.t[::stride]
-                name = c[len("state."):] if c.startswith("state.") else c
-                has_sim = sim is not None and c in sim.columns
-                gaps = np.isnan(v).any()
-                if has_sim or gaps:
-                    ax.plot(tt, v, ".", ms=2.0, color="C0",
-                            label=("measured" if measured and role == "output"
-                                   else "recorded" if measured else exp.name))
-                else:
-                    ax.plot(tt, v, "-", lw=1.0, color="C0")
-                if has_sim:
-                    s_stride = max(1, int(np.ceil(len(sim) / max_points)))
-                    ax.plot(sim.t[::s_stride], sim.columns[c][::s_stride], "-", lw=1.2,
-                            color="C3", label="simulated")
-                    ax.legend(loc="best", fontsize="small")
-                ax.set_ylabel(_label(name, exp.units.get(c)))
-                ax.grid(True, alpha=0.3)
-                if gaps:
-                    ax.set_title(f"{int(np.isnan(exp.columns[c]).sum())} missing samples",
-                                 fontsize="small", loc="right")
-            axes[-1].set_xlabel("t [s]")
+            suptitle = (f"{exp.name}: {group_title}"
+                        + (f" ({k + 1}/{len(chunks)})" if len(chunks) > 1 else ""))
+            fig = _group_figure(exp, sim, chunk, role, measured, suptitle, dpi, max_points)
             suffix = f"_{k + 1}" if len(chunks) > 1 else ""
             path = out_dir / f"{prefix}_{title.split()[0]}{suffix}.png"
             fig.savefig(path)
@@ -180,3 +146,47 @@ def plot_record(record, out_dir: str | Path, *, simulated=None, model=None,
     if not paths:
         raise DataError(f"record '{exp.name}' has no columns to plot", path=exp._where())
     return paths
+
+
+def _group_figure(exp, sim, chunk: list[str], role: str, measured: bool, suptitle: str,
+                  dpi: int, max_points: int) -> Figure:
+    """One figure (Agg canvas) with an axis per column of ``chunk`` against t;
+    the simulated record's column of the same name is drawn over it."""
+    n = len(chunk)
+    stride = max(1, int(np.ceil(len(exp) / max_points)))
+    fig = Figure(figsize=(9.0, 1.9 * n + 0.9), dpi=dpi, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
+    fig.suptitle(suptitle)
+    for ax, c in zip(axes, chunk):
+        _draw_column(ax, exp, sim, c, role, measured, stride, max_points)
+    axes[-1].set_xlabel("t [s]")
+    return fig
+
+
+def _draw_column(ax, exp, sim, c: str, role: str, measured: bool, stride: int,
+                 max_points: int) -> None:
+    """Column ``c`` (every ``stride``-th sample): markers where it has gaps or
+    a simulation to compare with, else a line; the simulation as a red line;
+    the number of missing samples in the title."""
+    v = exp.columns[c][::stride]
+    tt = exp.t[::stride]
+    name = c[len("state."):] if c.startswith("state.") else c
+    has_sim = sim is not None and c in sim.columns
+    gaps = np.isnan(v).any()
+    if has_sim or gaps:
+        ax.plot(tt, v, ".", ms=2.0, color="C0",
+                label=("measured" if measured and role == "output"
+                       else "recorded" if measured else exp.name))
+    else:
+        ax.plot(tt, v, "-", lw=1.0, color="C0")
+    if has_sim:
+        s_stride = max(1, int(np.ceil(len(sim) / max_points)))
+        ax.plot(sim.t[::s_stride], sim.columns[c][::s_stride], "-", lw=1.2,
+                color="C3", label="simulated")
+        ax.legend(loc="best", fontsize="small")
+    ax.set_ylabel(_label(name, exp.units.get(c)))
+    ax.grid(True, alpha=0.3)
+    if gaps:
+        ax.set_title(f"{int(np.isnan(exp.columns[c]).sum())} missing samples",
+                     fontsize="small", loc="right")

@@ -30,13 +30,24 @@ def plot_report(report: SensitivityReport, outdir: str | Path) -> list[Path]:
     plt = pyplot()
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    paths = []
+    title = f"{report.model} on {report.experiment}"
+    paths = [_tornado(plt, report, title, outdir / "tornado.png")]
+    g = report.global_
+    if g and g.get("second_order"):
+        paths.append(_heatmap_s2(plt, report, title, outdir / "heatmap_s2.png"))
+    paths.append(_correlation(plt, report, title, outdir / "correlation.png"))
+    if report.sensitivities is not None:
+        paths.append(_sensitivities(plt, report, title, outdir / "sensitivities.png"))
+    return paths
+
+
+def _tornado(plt, report: SensitivityReport, title: str, p: Path) -> Path:
+    """Sobol' indices S1 and ST of the NLL with confidence bars (global), or
+    the normalised relative information per parameter (local only)."""
     names = report.params
     rec = report.recommendation
     g = report.global_
-    title = f"{report.model} on {report.experiment}"
     k = len(names)
-    # tornado
     fig, ax = plt.subplots(figsize=(7.5, 0.38 * k + 1.6))
     if g:
         ind = g["indices"]["NLL"]
@@ -65,42 +76,53 @@ def plot_report(report: SensitivityReport, outdir: str | Path) -> list[Path]:
     ax.set_yticklabels([names[i] for i in order])
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
-    p = outdir / "tornado.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)
-    paths.append(p)
-    # second-order heat map
-    if g and g.get("second_order"):
-        S2 = np.asarray(g["indices"]["NLL"]["S2"], float)
-        C2 = np.asarray(g["indices"]["NLL"]["S2_conf"], float)
-        M = np.where(np.isfinite(S2), S2, 0.0)
-        M = M + M.T
-        Cf = np.where(np.isfinite(C2), C2, 0.0)
-        Cf = Cf + Cf.T
-        sig = np.abs(M) > Cf                       # outside its confidence interval
-        fig, ax = plt.subplots(figsize=(0.45 * k + 3.0, 0.45 * k + 2.4))
-        vmax = max(float(np.abs(M).max()), 1e-6)
-        im = ax.imshow(M, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
-        ax.set_xticks(range(k))
-        ax.set_yticks(range(k))
-        ax.set_xticklabels(names, rotation=60, ha="right", fontsize=8)
-        ax.set_yticklabels(names, fontsize=8)
-        for i in range(k):
-            for j in range(k):
-                if i != j and abs(M[i, j]) >= 0.01:
-                    ax.text(j, i, f"{M[i, j]:.2f}" if sig[i, j] else f"({M[i, j]:.2f})",
-                            ha="center", va="center", fontsize=6,
-                            color="k" if sig[i, j] else "0.45")
-        fig.colorbar(im, ax=ax, shrink=0.8, label="S2")
-        ax.set_title(f"{title}\nsecond-order Sobol' indices of the NLL (in parentheses: "
-                     f"within the {int(100 * g['conf_level'])} % confidence interval of 0)",
-                     fontsize=8)
-        fig.tight_layout()
-        p = outdir / "heatmap_s2.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
-        paths.append(p)
-    # correlation / collinearity
+    return p
+
+
+def _heatmap_s2(plt, report: SensitivityReport, title: str, p: Path) -> Path:
+    """Second-order Sobol' indices (symmetrised); those within their confidence
+    interval of 0 in parentheses."""
+    names = report.params
+    g = report.global_
+    k = len(names)
+    S2 = np.asarray(g["indices"]["NLL"]["S2"], float)
+    C2 = np.asarray(g["indices"]["NLL"]["S2_conf"], float)
+    M = np.where(np.isfinite(S2), S2, 0.0)
+    M = M + M.T
+    Cf = np.where(np.isfinite(C2), C2, 0.0)
+    Cf = Cf + Cf.T
+    sig = np.abs(M) > Cf                       # outside its confidence interval
+    fig, ax = plt.subplots(figsize=(0.45 * k + 3.0, 0.45 * k + 2.4))
+    vmax = max(float(np.abs(M).max()), 1e-6)
+    im = ax.imshow(M, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+    ax.set_xticks(range(k))
+    ax.set_yticks(range(k))
+    ax.set_xticklabels(names, rotation=60, ha="right", fontsize=8)
+    ax.set_yticklabels(names, fontsize=8)
+    for i in range(k):
+        for j in range(k):
+            if i != j and abs(M[i, j]) >= 0.01:
+                ax.text(j, i, f"{M[i, j]:.2f}" if sig[i, j] else f"({M[i, j]:.2f})",
+                        ha="center", va="center", fontsize=6,
+                        color="k" if sig[i, j] else "0.45")
+    fig.colorbar(im, ax=ax, shrink=0.8, label="S2")
+    ax.set_title(f"{title}\nsecond-order Sobol' indices of the NLL (in parentheses: "
+                 f"within the {int(100 * g['conf_level'])} % confidence interval of 0)",
+                 fontsize=8)
+    fig.tight_layout()
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
+def _correlation(plt, report: SensitivityReport, title: str, p: Path) -> Path:
+    """|cos| between the scaled sensitivity directions of all candidates and,
+    for a recommended set of two or more, its Cramér-Rao correlations."""
+    names = report.params
+    rec = report.recommendation
+    k = len(names)
     C = np.asarray(report.local["identifiability"]["cosine"], float)
     ck = rec.get("check")
     est = rec["estimate"]
@@ -131,35 +153,36 @@ def plot_report(report: SensitivityReport, outdir: str | Path) -> list[Path]:
         fig.colorbar(im, ax=ax, shrink=0.8)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    p = outdir / "correlation.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)
-    paths.append(p)
-    # sensitivities along the record
+    return p
+
+
+def _sensitivities(plt, report: SensitivityReport, title: str, p: Path) -> Path:
+    """Scaled output sensitivities θ_j ∂y/∂θ_j / σ_y along the record, the six
+    strongest parameters, one axis per output."""
+    names = report.params
     s = report.sensitivities
-    if s is not None:
-        try:
-            sigma = np.asarray(Model.load(report.model).meas_std(s.theta), float)
-        except ModelError:
-            sigma = np.ones(len(s.outputs))
-        Z = s.scaled(sigma)
-        ny = len(s.outputs)
-        strength = np.sqrt(np.nansum(Z ** 2, axis=(0, 1)))
-        top = np.argsort(-strength)[:6]
-        fig, axes = plt.subplots(ny, 1, figsize=(10, 1.9 * ny + 0.8), sharex=True, squeeze=False)
-        for j in range(ny):
-            ax = axes[j, 0]
-            for c_, i in enumerate(top):
-                ax.plot(s.t, Z[:, j, i], lw=0.8, color=f"C{c_}", label=names[i])
-            ax.set_ylabel(f"{s.outputs[j]}", fontsize=8)
-            ax.grid(alpha=0.3)
-        axes[0, 0].legend(fontsize=7, ncol=3, loc="best")
-        axes[0, 0].set_title(f"{title}: scaled sensitivities θ_j ∂y/∂θ_j / σ_y (largest 6)",
-                             fontsize=9)
-        axes[-1, 0].set_xlabel("t [s]")
-        fig.tight_layout()
-        p = outdir / "sensitivities.png"
-        fig.savefig(p, dpi=100)
-        plt.close(fig)
-        paths.append(p)
-    return paths
+    try:
+        sigma = np.asarray(Model.load(report.model).meas_std(s.theta), float)
+    except ModelError:
+        sigma = np.ones(len(s.outputs))
+    Z = s.scaled(sigma)
+    ny = len(s.outputs)
+    strength = np.sqrt(np.nansum(Z ** 2, axis=(0, 1)))
+    top = np.argsort(-strength)[:6]
+    fig, axes = plt.subplots(ny, 1, figsize=(10, 1.9 * ny + 0.8), sharex=True, squeeze=False)
+    for j in range(ny):
+        ax = axes[j, 0]
+        for c_, i in enumerate(top):
+            ax.plot(s.t, Z[:, j, i], lw=0.8, color=f"C{c_}", label=names[i])
+        ax.set_ylabel(f"{s.outputs[j]}", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, ncol=3, loc="best")
+    axes[0, 0].set_title(f"{title}: scaled sensitivities θ_j ∂y/∂θ_j / σ_y (largest 6)",
+                         fontsize=9)
+    axes[-1, 0].set_xlabel("t [s]")
+    fig.tight_layout()
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p

@@ -1015,13 +1015,13 @@ class SensitivityReport:
     sensitivities: Sensitivities | None = None
 
     def to_dict(self) -> dict:
-        from bondgraph.inference.estimate import _json_ready
+        from bondgraph.core.jsonsafe import to_jsonable
 
         d = dict(format="bondgraph-sensitivity/1", model=self.model, experiment=self.experiment,
                  params=self.params, theta=self.theta, scale=self.scale, local=self.local,
                  recommendation=self.recommendation, settings=self.settings)
         d["global"] = self.global_
-        return _json_ready(d)
+        return to_jsonable(d)
 
     def to_json(self, path: str | Path | None = None) -> str:
         text = json.dumps(self.to_dict(), indent=2, allow_nan=False)
