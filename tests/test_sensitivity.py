@@ -17,6 +17,7 @@ from bondgraph.core.graph import BondGraph
 from bondgraph.numerics.model import Model
 from bondgraph.sensitivity.analysis import (analyse, identifiability, orthogonal_ranking, output_sensitivities, recommend, recommended_params, sobol_indices, ukf_fisher)
 from bondgraph.errors import SensitivityError
+from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.simulate import simulate
 
 
@@ -62,7 +63,7 @@ def test_output_error_information_matches_ukf_fisher(msd):
     s = output_sensitivities(m, t, u, th, x0, names, hold="zoh")
     y = s.y + np.random.default_rng(1).normal(size=s.y.shape) * m.meas_std(th)
     D = ukf_fisher(m, t, u, y, th, names, x0, np.diag([1e-12, 1e-14]),
-                   dict(method="rk4", substeps=4))
+                   UKFOptions(method="rk4", substeps=4))
     F_oe = s.information(m.meas_std(th)) / np.outer(s.scale, s.scale)
     np.testing.assert_allclose(D.F, F_oe, rtol=2e-3)
 
@@ -90,7 +91,7 @@ def test_product_parameters_flagged_and_one_kept():
     y = simulate(model, t, u, np.zeros(1), model.theta0, hold="zoh").y
     y = y + np.random.default_rng(0).normal(size=y.shape) * 0.01
     rep = analyse(model, (t, u, y), ["a", "b", "c"], x0=np.zeros(1), P0=np.diag([1e-8]),
-                  ukf_options=dict(method="rk4"))
+                  ukf=UKFOptions(method="rk4"))
     ident = rep.local["identifiability"]
     kinds = {(f["type"], tuple(sorted(f["params"]))) for f in ident["flags"]}
     assert ("product", ("a", "b")) in kinds

@@ -75,6 +75,7 @@ from bondgraph.diagnose.effects import (
     probe_graph,
 )
 from bondgraph.errors import BondGraphError, ModelError
+from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.model import Model
 
 CANDIDATE_FUNCTIONS = ("f", "h", "dfdx", "f_dfdx")
@@ -185,7 +186,7 @@ class LoopSettings:
         Parameters of the initial fit (default ``params``; later steps
         re-estimate all of ``params``). CED fits only its noise intensity
         first, so that "before" is the published linear model.
-    ukf : dict
+    ukf : UKFOptions
         Options of :func:`bondgraph.inference.ukf.ukf_nll` (alpha, method, substeps ...).
     sim_method : str
         Solver of the free-run simulations (:func:`bondgraph.numerics.simulate.simulate`).
@@ -215,7 +216,7 @@ class LoopSettings:
     P0_std: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
     initial_params: list | None = None
-    ukf: dict = field(default_factory=lambda: {"method": "ros2", "substeps": 1, "alpha": 1.0})
+    ukf: UKFOptions = field(default_factory=UKFOptions)     # ros2, 1 substep, alpha 1
     sim_method: str = "BDF"
     fit_iterations: int = 10
     confirm_iterations: int = 6
@@ -376,8 +377,8 @@ class Loop:
 
         t, u, y = self.data.arrays(model)
         x0 = self.x0_for(model)
-        return Criterion(model, t, u, y, names, base, x0, self.P0_for(model, x0), ukf=self.s.ukf,
-                         chunk=self.s.chunk)
+        return Criterion(model, t, u, y, names, base, x0, self.P0_for(model, x0),
+                         options=self.s.ukf, chunk=self.s.chunk)
 
     def bounds_for(self, model: Model, names, theta) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = model.bounds(names)
@@ -414,7 +415,7 @@ class Loop:
             scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
             try:
                 theta, _, F, runs = fisher_scoring(model, t, u, y, theta, idx, lo, hi, x0,
-                                                   self.P0_for(model, x0), ukf_options=self.s.ukf,
+                                                   self.P0_for(model, x0), options=self.s.ukf,
                                                    max_iter=iters, log_scale=scale)
                 std = _cr_std(F, params)
             except (FloatingPointError, np.linalg.LinAlgError) as exc:
@@ -424,7 +425,7 @@ class Loop:
                 x, f, nfev, msg = minimize_batched(crit, xs, lo, hi, maxiter=iters)
                 theta = crit.theta(x[None, :])[0]
         res = ukf_nll(model, t, u, y, theta[None, :], x0, self.P0_for(model, x0), store=True,
-                      **self.s.ukf)
+                      options=self.s.ukf)
         nll = float(res.nll[0])
         if not np.isfinite(nll):
             raise BondGraphError(f"{what}: the UKF failed at the fitted parameters "
@@ -596,7 +597,8 @@ class Loop:
         eps0 = S0 = None
         D = np.empty((len(ladder), len(cols)) + (t.size, pm.n_y))
         for a in range(0, len(sets), self.s.chunk):
-            r = ukf_nll(pm, t, u, y, sets[a:a + self.s.chunk], x0, P0, store=True, **self.s.ukf)
+            r = ukf_nll(pm, t, u, y, sets[a:a + self.s.chunk], x0, P0, store=True,
+                        options=self.s.ukf)
             for q in range(r.nll.size):
                 gi = a + q
                 if gi == 0:
@@ -711,7 +713,7 @@ class Loop:
         nll = np.empty(len(sets))
         for a in range(0, len(sets), self.s.chunk):
             nll[a:a + self.s.chunk] = ukf_nll(pm, t, u, y, sets[a:a + self.s.chunk], x0, P0,
-                                             **self.s.ukf).nll
+                                             options=self.s.ukf).nll
         best: dict = {}
         for (cand, tr), v in zip(owner, nll):
             if np.isfinite(v) and (id(cand) not in best or v < best[id(cand)][0]):
@@ -792,7 +794,7 @@ class Loop:
             t, u, y = self.data.arrays(model)
             x0 = self.x0_for(model)
             r = ukf_nll(model, t, u, y, np.array(sets), x0, self.P0_for(model, x0),
-                        **self.s.ukf)
+                        options=self.s.ukf)
             if not np.any(np.isfinite(r.nll)):
                 continue
             net = np.where(np.isfinite(r.nll), r.nll, np.inf)

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf import ukf_nll
 
 
@@ -73,7 +74,8 @@ def _clean(eps, S):
     return e, S, miss
 
 
-def derivatives(model, t, u, y, theta, index, steps, x0, P0, ukf_options=None) -> Derivatives:
+def derivatives(model, t, u, y, theta, index, steps, x0, P0,
+                options: UKFOptions | None = None) -> Derivatives:
     """NLL, gradient and Fisher information at ``theta`` for the parameters
     ``index`` (forward differences with ``steps``), from one batched UKF run.
 
@@ -87,7 +89,8 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0, ukf_options=None) -
     steps : array (k,)
         Difference steps (signed).
     x0, P0 : UKF prior
-    ukf_options : dict
+    options : UKFOptions, optional
+        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
 
     Returns
     -------
@@ -98,12 +101,11 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0, ukf_options=None) -
     FloatingPointError
         If the UKF fails at ``theta`` itself.
     """
-    opts = dict(ukf_options or {})
     k = len(index)
     sets = np.repeat(np.asarray(theta, float)[None, :], k + 1, axis=0)
     for i, (j, h) in enumerate(zip(index, steps)):
         sets[i + 1, j] += h
-    r = ukf_nll(model, t, u, y, sets, x0, P0, store=True, **opts)
+    r = ukf_nll(model, t, u, y, sets, x0, P0, options=options, store=True)
     if not np.isfinite(r.nll[0]):
         raise FloatingPointError(f"UKF failed at the expansion point: {r.reasons[0]}")
     e0, S0, miss = _clean(r.innovations[:, 0, :], r.S[:, 0])
@@ -129,7 +131,8 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0, ukf_options=None) -
     return Derivatives(float(r.nll[0]), e0, S0, dE, dS, grad, F)
 
 
-def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_options=None,
+def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *,
+                   options: UKFOptions | None = None,
                    max_iter: int = 12, rtol: float = 1e-6, log=None, log_scale=None):
     """Maximise the UKF likelihood over the parameters ``index`` by
     Levenberg-damped Fisher scoring within the box [lower, upper].
@@ -146,7 +149,8 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
     index : sequence of int (k,)
     lower, upper : arrays (k,)
     x0, P0 : UKF prior
-    ukf_options : dict
+    options : UKFOptions, optional
+        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
     max_iter : int
     rtol : float
         Stop when the NLL improves by less than ``rtol * (1 + |NLL|)``.
@@ -178,7 +182,7 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
         x = th[index]
         steps = 1e-6 * np.maximum(np.abs(x), 1e-3 * width)
         steps = np.where(x + steps > hi, -steps, steps)
-        D = derivatives(model, t, u, y, th, index, steps, x0, P0, ukf_options)
+        D = derivatives(model, t, u, y, th, index, steps, x0, P0, options)
         runs += 1
         # chain rule to z = log θ for the scale parameters: ∂/∂z = θ ∂/∂θ
         jac = np.where(L, x, 1.0)
@@ -203,7 +207,7 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
             alphas = np.concatenate([alphas, np.full(len(moves), np.nan)])
         sets = np.repeat(th[None, :], alphas.size, axis=0)
         sets[:, index] = cand
-        r = ukf_nll(model, t, u, y, sets, x0, P0, **(ukf_options or {}))
+        r = ukf_nll(model, t, u, y, sets, x0, P0, options=options)
         runs += 1
         best = int(np.argmin(np.where(np.isfinite(r.nll), r.nll, np.inf)))
         f_new = float(r.nll[best])
@@ -223,6 +227,6 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
     x = th[index]
     steps = 1e-6 * np.maximum(np.abs(x), 1e-3 * width)
     steps = np.where(x + steps > hi, -steps, steps)
-    D = derivatives(model, t, u, y, th, index, steps, x0, P0, ukf_options)
+    D = derivatives(model, t, u, y, th, index, steps, x0, P0, options)
     runs += 1
     return th, D.nll, D.F, runs

@@ -69,6 +69,7 @@ from typing import Any
 import numpy as np
 
 from bondgraph.errors import DataError, ModelError, OptionError
+from bondgraph.inference.options import UKFOptions, ukf_options
 from bondgraph.numerics.integrators import GAMMA
 
 LOG_2PI = float(np.log(2.0 * np.pi))
@@ -417,10 +418,8 @@ def _check_inputs(model, t, u, y):
 
 
 # ------------------------------------------------------------------ filter
-def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
-            alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
-            method: str = "ros2", substeps: int = 1, jacobian: str = "mean",
-            hold: str = "zoh", store: bool | str = False) -> UKFResult:
+def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | None = None,
+            Q=None, R=None, store: bool | str = False) -> UKFResult:
     """Run the batched UKF over a record and return the NLL of each parameter set.
 
     Parameters
@@ -446,25 +445,11 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
         top of ``diag(proc_std(theta)**2) * dt``.
     R : array (n_y, n_y) or (P, n_y, n_y), optional
         Measurement-noise covariance (default ``diag(meas_std(theta)**2)``).
-    alpha, beta, kappa : float
-        Scaled sigma-point parameters (Wan & van der Merwe 2000).
-    method : {"ros2", "rk4"}
-        Discretisation of the prediction between samples.
-    substeps : int
-        Integration steps per sample interval.
-    jacobian : {"mean", "sigma"}
-        ROS2 only: evaluate df/dx once per parameter set at the central
-        sigma point and share W⁻¹ = (I − γh J)⁻¹ among its sigma points
-        (default; ROS2 is a W-method, second order for any J), or at every
-        sigma point (``"sigma"``, 2n+1 times the Jacobian cost).
-    hold : {"zoh", "mean"}
-        Input over a prediction interval [t_k, t_k+1]: ``u_k`` (zero-order
-        hold, the sampled-data convention) or ``(u_k + u_k+1)/2`` (the
-        interval mean of a linearly interpolated input). For records of
-        continuous inputs (ramps) the zero-order hold lags them by half a
-        sample on average: a model error that biases inertias (the vehicle's
-        engine inertia came out 3 % = 4 standard deviations low on the
-        synthetic throttle-steps record with "zoh", within 1 with "mean").
+    options : UKFOptions, optional
+        Sigma-point scaling (α, β, κ), discretisation (``method``,
+        ``substeps``, ROS2 ``jacobian``) and input ``hold``; default
+        ``UKFOptions()`` (α = 1, β = 2, κ = 0, ROS2 with one step per sample,
+        Jacobian at the central sigma point, zero-order hold).
     store : bool or "full"
         Keep innovations, S, predicted and filtered outputs, filtered
         states, per-sample NLL terms and NIS (``"full"``: also the filtered
@@ -481,7 +466,8 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
         Non-increasing or non-finite times, non-finite inputs, infinite
         outputs or wrong array shapes.
     OptionError
-        Invalid α, κ, method, substeps or noise-matrix shapes.
+        ``options`` not a :class:`UKFOptions`, n + κ <= 0, or wrong shapes
+        of ``x0``, ``P0``, ``Q``, ``R``.
 
     Notes
     -----
@@ -492,6 +478,9 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
     one for the update, one of (P, m, m) for S, and ``substeps`` x 2 (ROS2)
     or x 4 (RK4) calls of ``f`` on (P, 2n+1, n) arrays.
     """
+    opts = ukf_options(options)
+    alpha, beta, kappa = opts.alpha, opts.beta, opts.kappa
+    method, substeps, jacobian, hold = opts.method, opts.substeps, opts.jacobian, opts.hold
     t, u, y = _check_inputs(model, t, u, y)
     if hold == "zoh":
         u_pred = u
@@ -715,9 +704,7 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
     nll[failed] = np.inf
     res = UKFResult(nll=nll, failed=failed, reasons=reasons, fail_step=fail_step, n_obs=n_obs,
                     t=t, outputs=list(model.outputs), states=list(model.states),
-                    settings=dict(alpha=alpha, beta=beta, kappa=kappa, method=method,
-                                  substeps=int(substeps), jacobian=jacobian, hold=hold,
-                                  n_regularised=int(n_reg)))
+                    settings=dict(opts.to_dict(), n_regularised=int(n_reg)))
     if st:
         for arr in (inn, S_st, yp_st, yf_st, xf_st, nis):
             for p in np.flatnonzero(failed):

@@ -91,7 +91,7 @@ def write(loop, current, final: bool, out: Path) -> None:
         "final_fit": _fit_summary(current),
         "augmented_model": "augmented_model.py" if loop.applied else None,
         "settings": {"params": loop.s.params, "max_steps": loop.s.max_steps,
-                     "significance": loop.s.significance, "ukf": loop.s.ukf,
+                     "significance": loop.s.significance, "ukf": loop.s.ukf.to_dict(),
                      "effects": [e.name for e in loop.s.effects]},
     }
     (out / "report.json").write_text(json.dumps(_jsonable(report), indent=2))

@@ -91,6 +91,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from bondgraph.errors import DataError, NumericalError, SensitivityError
+from bondgraph.inference.options import UKFOptions, ukf_options
 
 #: defaults of the selection rules
 REL_CRB_MAX = 0.10
@@ -370,7 +371,7 @@ def output_sensitivities(model, t, u=None, theta=None, x0=None,
 
 # -------------------------------------------------- UKF Fisher information
 def ukf_fisher(model, t, u, y, theta, params: Sequence[str], x0=None, P0=None,
-               ukf_options: Mapping[str, Any] | None = None, rel_step: float = 1e-6):
+               options: UKFOptions | None = None, rel_step: float = 1e-6):
     """Expected Fisher information of the UKF likelihood for ``params``.
 
     One batched UKF run over θ and its k nudged copies
@@ -385,8 +386,8 @@ def ukf_fisher(model, t, u, y, theta, params: Sequence[str], x0=None, P0=None,
     theta : array (n_theta,)
     params : sequence of str (k)
     x0, P0 : UKF prior (default ``model.x0``, :func:`bondgraph.inference.ukf.default_P0`)
-    ukf_options : dict
-        Options of :func:`bondgraph.inference.ukf.ukf_nll` (method, substeps, hold, ...).
+    options : UKFOptions, optional
+        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
     rel_step : float
 
     Returns
@@ -412,7 +413,7 @@ def ukf_fisher(model, t, u, y, theta, params: Sequence[str], x0=None, P0=None,
     xv = th[idx]
     steps = rel_step * np.maximum(np.abs(xv), 1e-3 * width)
     steps = np.where((xv + steps > hi) & (xv - steps >= lo), -steps, steps)
-    return derivatives(model, t, u, y, th, idx, steps, x0a, P0a, dict(ukf_options or {}))
+    return derivatives(model, t, u, y, th, idx, steps, x0a, P0a, options)
 
 
 # ------------------------------------------------------ identifiability
@@ -895,7 +896,7 @@ def simulate_batch(model, t, u, thetas, x0, *, method: str = "ros2", substeps: i
 
 
 def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=None, x0=None,
-                       P0=None, ukf_options: Mapping[str, Any] | None = None,
+                       P0=None, ukf: UKFOptions | None = None,
                        outputs: Sequence[str] = (), box: tuple | None = None,
                        box_rel: float | None = None, chunk: int = 256, seed: int | None = 0,
                        second_order: bool = True, progress: bool = False,
@@ -914,8 +915,9 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
     theta : array (n_theta,), optional
         Values of the parameters outside ``params``.
     x0, P0 : UKF prior / initial state
-    ukf_options : dict
-        Options of :func:`bondgraph.inference.ukf.ukf_nll`.
+    ukf : UKFOptions, optional
+        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`); the
+        outputs' simulation uses its method, substeps and hold too.
     outputs : sequence of str
         Model outputs whose time-mean over the record (noise-free, batched
         fixed-step simulation with the UKF's method and substeps) also gets
@@ -945,7 +947,7 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
     th = _theta_vector(model, theta)
     x0a = _state_vector(model, x0)
     P0a = default_P0(model, x0a) if P0 is None else P0
-    opts = dict(ukf_options or {})
+    ukf = ukf_options(ukf)
     oidx = [model.output_index(o) for o in outputs]
     if box is not None:
         lo, hi = (np.asarray(b, float) for b in box)
@@ -959,12 +961,11 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
 
     def fun(X):
         sets = model.expand_theta(params, X, th)
-        r = ukf_nll(model, t, u, y, sets, x0a, P0a, **opts)
+        r = ukf_nll(model, t, u, y, sets, x0a, P0a, options=ukf)
         cols = [r.nll]
         if oidx:
-            Ys = simulate_batch(model, t, u, sets, x0a, method=opts.get("method", "ros2"),
-                                substeps=max(int(opts.get("substeps", 1)), 1),
-                                hold=opts.get("hold", "zoh"))
+            Ys = simulate_batch(model, t, u, sets, x0a, method=ukf.method,
+                                substeps=ukf.substeps, hold=ukf.hold)
             for j in oidx:
                 cols.append(np.mean(Ys[:, :, j], axis=0))
         return np.column_stack(cols)
@@ -1073,7 +1074,7 @@ class SensitivityReport:
 
 def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=None, x0=None,
             P0=None, p0_rel: float = 0.05,
-            ukf_options: Mapping[str, Any] | None = None, global_N: int | None = None,
+            ukf: UKFOptions | None = None, global_N: int | None = None,
             outputs: Sequence[str] = (), box_rel: float | None = None, chunk: int = 256,
             seed: int = 0, rel_crb_max: float = REL_CRB_MAX, corr_max: float = CORR_MAX,
             sensitivities: bool = True, sens_method: str = "LSODA", sens_rtol: float = 1e-6,
@@ -1096,9 +1097,8 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         Initial state (default: :func:`initial_state`, the record's rule).
     P0 : array, optional
         UKF prior covariance (default ``default_P0(model, x0, p0_rel)``).
-    ukf_options : dict
-        Options of :func:`bondgraph.inference.ukf.ukf_nll` (method, substeps, hold,
-        alpha, ...).
+    ukf : UKFOptions, optional
+        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
     global_N : int, optional
         Base sample size of the Sobol' analysis (None: local only).
     outputs : sequence of str
@@ -1152,13 +1152,13 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
     else:
         x0a, x0_how = _state_vector(model, x0), "given"
     P0a = default_P0(model, x0a, p0_rel) if P0 is None else np.asarray(P0, float)
-    opts = dict(ukf_options or {})
+    ukf = ukf_options(ukf)
     scale = parameter_scale(model, params, th)
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     say(f"UKF Fisher information: {len(params) + 1} parameter sets in one batched run ...")
     try:
-        D = ukf_fisher(model, t, u, y, th, params, x0a, P0a, opts)
+        D = ukf_fisher(model, t, u, y, th, params, x0a, P0a, ukf)
     except FloatingPointError as exc:
         raise NumericalError(f"UKF fails at the analysis point: {exc}") from None
     timing["ukf_fisher_s"] = time.perf_counter() - t0
@@ -1178,7 +1178,7 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         t0 = time.perf_counter()
         say(f"forward sensitivities ({sens_method}, {model.n_x} + {model.n_x}·{len(params)} "
             f"states) ...")
-        hold = "zoh" if opts.get("hold", "zoh") == "zoh" else "linear"
+        hold = "zoh" if ukf.hold == "zoh" else "linear"
         sens = output_sensitivities(model, t, u, th, x0a, params, method=sens_method,
                                     rtol=sens_rtol, atol=sens_atol, hold=hold)
         timing["sensitivities_s"] = time.perf_counter() - t0
@@ -1201,7 +1201,7 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         t0 = time.perf_counter()
         say(f"Sobol' indices: N = {_pow2(global_N)} ...")
         glob = global_sensitivity(model, t, u, y, params, global_N, theta=th, x0=x0a, P0=P0a,
-                                  ukf_options=opts, outputs=outputs, box_rel=box_rel,
+                                  ukf=ukf, outputs=outputs, box_rel=box_rel,
                                   chunk=chunk, seed=seed, progress=progress,
                                   nll_transform=nll_transform)
         timing["global_s"] = time.perf_counter() - t0
@@ -1211,7 +1211,7 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         scale=scale.tolist(), local=local, recommendation=rec, global_=glob,
         settings=dict(samples=int(t.size), duration_s=float(t[-1] - t[0]), x0=x0a.tolist(),
                       x0_rule=x0_how, P0_diag=np.diag(P0a).tolist(),
-                      ukf={k_: v for k_, v in opts.items() if k_ not in ("Q", "R")},
+                      ukf=ukf.to_dict(),
                       theta_full=th.tolist(), timing=timing,
                       units=[model.param_units[i] for i in model.param_indices(params)]),
         sensitivities=sens)
