@@ -12,7 +12,8 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 from bondgraph.errors import DataError, ModelError
 from bondgraph.numerics.integrators import ros2
 from bondgraph.numerics.model import Model
-from bondgraph.inference.ukf import (discretisation_check, merwe_weights, nll_from_innovations, ukf_nll)
+from bondgraph.inference.sigma import merwe_weights
+from bondgraph.inference.ukf import discretisation_check, nll_from_innovations, ukf_nll
 from bondgraph.errors import OptionError
 from bondgraph.inference.options import UKFOptions
 
@@ -82,7 +83,8 @@ def test_agrees_with_filterpy_rk4(alpha, kappa):
 
 
 def test_agrees_with_filterpy_ros2():
-    """The filter's inlined ROS2 step equals bondgraph.numerics.integrators.ros2 used as fx."""
+    """With the Jacobian at every sigma point, the filter's transition is
+    bondgraph.numerics.integrators.ros2 used as filterpy's fx."""
     m, t, u, y = _motor_record(N=80)
     th = m.theta0
     x0 = np.zeros(m.n_x)
@@ -96,6 +98,32 @@ def test_agrees_with_filterpy_ros2():
     ll, xs = _filterpy_run(m, t, u, y, th, x0, P0, Qd, 0.8, 2.0, 0.0, fx)
     assert r.nll[0] == pytest.approx(-ll, rel=1e-9)
     np.testing.assert_allclose(r.x_filt[:, 0], xs, rtol=1e-9, atol=1e-12)
+
+
+def test_shared_jacobian_ros2_step_by_hand():
+    """integrators.ros2(jacobian="shared"), the filter's default transition:
+    per group of points, W = I − γhJ(first point) and the two stages solved
+    point by point with numpy.linalg.solve (Verwer et al. 1999, eq. ROS2)."""
+    m = Model.load("dc_motor_compliant")
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(3, 9, m.n_x)) * [1.0, 1e-3, 1.0, 1e-2]
+    th = np.array([m.theta0, m.theta0 * 1.1, m.theta0 * 0.9])[:, None, :]
+    u, dt, gamma = np.array([5.0, 0.01]), 2e-3, 1.0 + 1.0 / np.sqrt(2.0)
+    got = ros2(m.f_dfdx, x, u, th, dt, 1, f=m.f, jacobian="shared")
+    want = np.empty_like(x)
+    for p in range(3):
+        J = m.f_dfdx(x[p, :1], u, th[p])[1][0]
+        W = np.eye(m.n_x) - gamma * dt * J
+        for i in range(9):
+            k1 = np.linalg.solve(W, m.f(x[p, i][None], u, th[p])[0])
+            f1 = m.f((x[p, i] + dt * k1)[None], u, th[p])[0]
+            k2 = np.linalg.solve(W, f1 - 2.0 * k1)
+            want[p, i] = x[p, i] + 1.5 * dt * k1 + 0.5 * dt * k2
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    # a group of one point: the shared Jacobian is the point's own
+    one = ros2(m.f_dfdx, x[:, :1], u, th, dt, 3, f=m.f, jacobian="shared")
+    np.testing.assert_allclose(one, ros2(m.f_dfdx, x[:, :1], u, th, dt, 3, f=m.f),
+                               rtol=1e-13, atol=1e-15)
 
 
 def test_nll_equals_formula_from_innovations():
