@@ -302,3 +302,22 @@ def test_options_validated_on_construction(msd_record):
                                      jacobian="mean", hold="zoh")
     assert r.settings["particles"] == 4 and r.evaluations == 4 * 2
     json.loads(r.to_json())
+
+
+def test_initial_state_from_the_record(msd_record):
+    """Without x0, the filter starts at the record's initial state
+    (Experiment.initial_state: state columns, else the sidecar's x0), not at
+    the model's X0; checked against ukf_nll run with that state."""
+    from bondgraph.data.records import Experiment
+    from bondgraph.inference.ukf import ukf_nll
+
+    m, t, u, y, _, _ = msd_record
+    exp = Experiment.from_arrays(t, model=m, u=u, y=y, meta={"name": "msd", "x0": {"p_mass": 0.3}})
+    fit = FitOptions(particles=4, iterations=0, progress=False, polish=False, hessian=False,
+                     check_discretisation=False)
+    r = estimate(m, exp, ["k"], ukf=UKF, P0=P0, fit=fit)
+    x0 = m.state(p_mass=0.3)
+    assert r.settings["x0"] == x0.tolist() and x0[0] != m.x0[0]
+    want = ukf_nll(m, t, u, y, r.theta, x0, P0, options=UKF).nll[0]
+    assert r.nll == pytest.approx(want, rel=1e-12)
+    assert r.nll != pytest.approx(ukf_nll(m, t, u, y, r.theta, m.x0, P0, options=UKF).nll[0])

@@ -45,7 +45,9 @@ import numpy as np
 from bondgraph.errors import IdentifiabilityWarning, ModelError, OptionError
 from bondgraph.inference.optimize import de, minimize_batched, pso
 from bondgraph.inference.options import FitOptions, UKFOptions, fit_options, ukf_options
+from bondgraph.inference.record import as_record, initial_state, record_arrays
 from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
+from bondgraph.numerics.model import Model
 
 
 # ----------------------------------------------------------------- criterion
@@ -353,8 +355,7 @@ class EstimationResult:
         return {p: float(v) for p, v in zip(self.params, self.estimates)}
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        return _json_ready(d)
+        return json_ready(asdict(self))
 
     def to_json(self, path: str | Path | None = None, indent: int = 2) -> str:
         """JSON text (also written to ``path`` if given). Non-finite numbers
@@ -403,13 +404,15 @@ class EstimationResult:
         return "\n".join(lines)
 
 
-def _json_ready(obj):
+def json_ready(obj):
+    """``obj`` with numpy arrays and scalars as lists and Python numbers, dict
+    keys as str, and non-finite floats as None (for ``json.dumps(allow_nan=False)``)."""
     if isinstance(obj, dict):
-        return {str(k): _json_ready(v) for k, v in obj.items()}
+        return {str(k): json_ready(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_json_ready(v) for v in obj]
+        return [json_ready(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _json_ready(obj.tolist())
+        return json_ready(obj.tolist())
     if isinstance(obj, (np.floating, float)):
         v = float(obj)
         return v if np.isfinite(v) else None
@@ -421,47 +424,6 @@ def _json_ready(obj):
 
 
 # ----------------------------------------------------------------- estimation
-def _resolve_model(model):
-    from bondgraph.numerics.model import Model
-
-    return Model.load(model) if isinstance(model, str) else model
-
-
-def record_arrays(model, experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, dict]:
-    """``(t, u, y, name, meta)`` of a record for a model.
-
-    Parameters
-    ----------
-    model : Model
-    experiment : Experiment, str/Path of a CSV, or tuple ``(t, u, y)``
-
-    Raises
-    ------
-    DataError
-        Via :meth:`bondgraph.data.records.Experiment.load` / ``inputs_for`` /
-        ``outputs_for``.
-    """
-    if isinstance(experiment, tuple):
-        t, u, y = experiment
-        return np.asarray(t, float), np.asarray(u, float), np.asarray(y, float), "arrays", {}
-    if isinstance(experiment, (str, Path)):
-        from bondgraph.data.records import Experiment
-
-        experiment = Experiment.load(experiment)
-    t = np.asarray(experiment.t, dtype=float)
-    u = experiment.inputs_for(model)
-    y = experiment.outputs_for(model)
-    return t, u, y, experiment.name, dict(experiment.meta or {})
-
-
-def _x0_array(model, x0):
-    if x0 is None:
-        return model.x0.copy()
-    if isinstance(x0, Mapping):
-        return model.state(dict(x0))
-    return np.asarray(x0, dtype=float)
-
-
 def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None = None,
              ukf: UKFOptions | None = None, fixed: Mapping[str, float] | None = None,
              bounds: Mapping[str, tuple] | None = None, x0=None, P0=None, Q=None, R=None,
@@ -476,8 +438,7 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     params : sequence of str
         Parameters to estimate (k).
     fit : FitOptions, optional
-        How to search: optimizer, swarm size, iterations, seed, checkpoint,
-        polish, Hessian, discretisation check, chunks, workers.
+        How to search (optimizer, swarm, iterations, seed, checkpoint, polish, ...).
     ukf : UKFOptions, optional
         Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
     fixed : dict, optional
@@ -485,7 +446,9 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     bounds : dict name -> (lower, upper), optional
         Search box (default: the model's bounds).
     x0 : array (n_x,) or dict, optional
-        Prior state at the first sample (default ``model.x0``).
+        Prior state at the first sample (default: the record's initial
+        state, :func:`bondgraph.inference.record.initial_state`; the model's
+        X0 for bare arrays).
     P0 : array (n_x, n_x) or (n_x,), optional
         Prior covariance (default :func:`bondgraph.inference.ukf.default_P0`).
     Q, R : arrays, optional
@@ -501,25 +464,22 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     ------
     ModelError
         Unknown parameter names, or a fixed parameter that is also estimated.
-    OptionError
-        Invalid options.
-    DataError
-        Problems of the record (from :mod:`bondgraph.data.records`).
+    OptionError, DataError
+        Invalid options; problems of the record (:mod:`bondgraph.data.records`).
 
     Warns
     -----
     IdentifiabilityWarning
-        If the Hessian is not positive definite (the unidentified direction
-        is named), an estimate lies on a bound of the box, no finite NLL was
-        found, or the discretisation error at the estimate exceeds 0.1
-        measurement-noise standard deviations.
+        Hessian not positive definite (the unidentified direction named), an
+        estimate on a bound, no finite NLL, or a discretisation error > 0.1 σ.
     """
     t_start = time.perf_counter()
     fit, ukf = fit_options(fit), ukf_options(ukf)
-    model = _resolve_model(model)
+    model = Model.from_spec(model)
     params, fixed, base, lo, hi = _search_box(model, params, fixed, bounds)
-    t, u, y, ename, meta = record_arrays(model, experiment)
-    x0a = _x0_array(model, x0)
+    rec = as_record(experiment)
+    t, u, y, ename, meta = record_arrays(model, rec)
+    x0a, _ = initial_state(model, rec, x0)
     P0a = default_P0(model, x0a) if P0 is None else P0
     crit = Criterion(model, t, u, y, params, base, x0a, P0a, options=ukf, Q=Q, R=R,
                      chunk=fit.chunk, workers=fit.workers)
@@ -542,12 +502,17 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
         theta=_full_theta(model, params, base, x_best), fixed=fixed, lower=lo, upper=hi,
         truth=truth, z=z, at_bound=_at_bound(params, x_best, lo, hi), warnings=warn_list,
         failures=dict(crit.failures), optimizer_result=opt.to_dict(), polish=pol,
-        settings=dict(ukf=ukf.to_dict(), Q_given=Q is not None, R_given=R is not None,
-                      samples=int(t.size), duration_s=float(t[-1] - t[0]),
-                      particles=_swarm_size(fit, len(params)), iterations=fit.iterations,
-                      seed=fit.seed, x0=x0a.tolist(), P0=np.asarray(P0a, float).tolist(),
-                      discretisation=disc),
+        settings=_settings(fit, ukf, Q, R, t, len(params), x0a, P0a, disc),
         units=[model.param_units[i] for i in model.param_indices(params)])
+
+
+def _settings(fit: FitOptions, ukf: UKFOptions, Q, R, t, k: int, x0, P0, disc) -> dict:
+    """``EstimationResult.settings``: the UKF options as a dict, the search's
+    size, the record's length, the prior and the discretisation check."""
+    return dict(ukf=ukf.to_dict(), Q_given=Q is not None, R_given=R is not None,
+                samples=int(t.size), duration_s=float(t[-1] - t[0]),
+                particles=_swarm_size(fit, k), iterations=fit.iterations, seed=fit.seed,
+                x0=x0.tolist(), P0=np.asarray(P0, float).tolist(), discretisation=disc)
 
 
 def _search_box(model, params, fixed, bounds):
@@ -758,7 +723,7 @@ def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = No
     cov_all: dict[tuple[str, str], float] = {}
     out = []
     for st in stages:
-        model = _resolve_model(st.model)
+        model = Model.from_spec(st.model)
         fx = {p: v for p, v in carried.items() if p in model.params and p not in st.params}
         st_ukf = st.ukf if st.ukf is not None else ukf
         res = estimate(model, st.experiment, st.params, fit=st.fit if st.fit is not None else fit,
@@ -783,8 +748,9 @@ def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = No
 
 def _propagate(model, st: Stage, res, prop, cov_all, ukf: UKFOptions):
     """Add the carried parameters' covariance to a stage's Cramér-Rao bound."""
-    t, u, y, _, _ = record_arrays(model, st.experiment)
-    x0a = _x0_array(model, st.x0)
+    rec = as_record(st.experiment)
+    t, u, y, _, _ = record_arrays(model, rec)
+    x0a, _ = initial_state(model, rec, st.x0)
     P0a = default_P0(model, x0a) if st.P0 is None else st.P0
     names = list(res.params) + list(prop)
     crit = Criterion(model, t, u, y, names, res.theta, x0a, P0a, options=ukf, Q=st.Q, R=st.R)

@@ -6,8 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bondgraph.inference.estimate import EstimationResult, _x0_array, record_arrays
+from bondgraph.inference.estimate import EstimationResult
 from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.record import record_arrays, state_vector
 from bondgraph.inference.ukf import default_P0, ukf_nll
 from bondgraph.numerics.model import Model
 from bondgraph.report.plots import pyplot
@@ -36,7 +37,7 @@ def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
     model = Model.from_spec(model)
     t, u, y, name, _ = record_arrays(model, experiment)
     opts = UKFOptions(**result.settings.get("ukf", {}))
-    x0a = np.asarray(result.settings.get("x0"), float) if x0 is None else _x0_array(model, x0)
+    x0a = np.asarray(result.settings.get("x0"), float) if x0 is None else state_vector(model, x0)
     if P0 is None:
         P0 = result.settings.get("P0")
     P0a = default_P0(model, x0a) if P0 is None else np.asarray(P0, float)

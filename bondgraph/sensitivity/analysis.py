@@ -1016,13 +1016,13 @@ class SensitivityReport:
     sensitivities: Sensitivities | None = None
 
     def to_dict(self) -> dict:
-        from bondgraph.inference.estimate import _json_ready
+        from bondgraph.inference.estimate import json_ready
 
         d = dict(format="bondgraph-sensitivity/1", model=self.model, experiment=self.experiment,
                  params=self.params, theta=self.theta, scale=self.scale, local=self.local,
                  recommendation=self.recommendation, settings=self.settings)
         d["global"] = self.global_
-        return _json_ready(d)
+        return json_ready(d)
 
     def to_json(self, path: str | Path | None = None) -> str:
         text = json.dumps(self.to_dict(), indent=2, allow_nan=False)
@@ -1131,7 +1131,7 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
     NumericalError
         If the UKF fails at θ.
     """
-    from bondgraph.inference.estimate import record_arrays
+    from bondgraph.inference.record import record_arrays
     from bondgraph.inference.ukf import default_P0
 
     say = log or (lambda *_: None)
