@@ -1,4 +1,5 @@
-"""Sensitivity and identifiability (bondgraph.sensitivity.analysis): forward
+"""Sensitivity and identifiability (bondgraph.sensitivity, and the forward
+sensitivity equations of bondgraph.numerics.forward_sensitivity): forward
 sensitivities against finite differences of scipy simulations, the
 output-error information against the UKF's, a product-only parameter pair
 flagged and one of them kept, Yao's ranking against Gram-Schmidt, Sobol'
@@ -15,7 +16,11 @@ import pytest
 from bondgraph.errors import ModelError
 from bondgraph.core.graph import BondGraph
 from bondgraph.numerics.model import Model
-from bondgraph.sensitivity.analysis import (analyse, identifiability, orthogonal_ranking, output_sensitivities, recommend, recommended_params, sobol_indices, ukf_fisher)
+from bondgraph.numerics.forward_sensitivity import output_sensitivities
+from bondgraph.sensitivity.analysis import analyse, recommended_params
+from bondgraph.sensitivity.identifiability import (identifiability, orthogonal_ranking, recommend,
+                                                   ukf_fisher)
+from bondgraph.sensitivity.sobol import sobol_indices
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.simulate import simulate

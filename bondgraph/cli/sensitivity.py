@@ -26,7 +26,8 @@ from bondgraph.data.records import Experiment
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.options import UKFOptions
 from bondgraph.report.sensitivity import plot_report
-from bondgraph.sensitivity.analysis import CORR_MAX, REL_CRB_MAX, analyse
+from bondgraph.sensitivity.analysis import analyse
+from bondgraph.sensitivity.identifiability import CORR_MAX, REL_CRB_MAX
 
 
 def configure(p: argparse.ArgumentParser) -> None:
