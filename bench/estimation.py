@@ -42,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bondgraph.inference.estimate import Criterion  # noqa: E402
+from bondgraph.inference.options import FitOptions, UKFOptions  # noqa: E402
 from bondgraph.numerics.model import Model  # noqa: E402
 from bondgraph.inference.optimize import pso  # noqa: E402
 from bondgraph.inference.ukf import default_P0, discretisation_check  # noqa: E402
@@ -131,7 +132,7 @@ def line_plot(model, t, u, y, base, x0, P0, path, method, substeps, npts=41):
     out = {}
     for alpha in (1e-3, 1e-2, 0.1, 1.0):
         crit = Criterion(model, t, u, y, PARAMS, base, x0, P0,
-                         dict(alpha=alpha, method=method, substeps=substeps))
+                         options=UKFOptions(alpha=alpha, method=method, substeps=substeps))
         f = crit(lo + s[:, None] * (hi - lo))
         out[alpha] = f
         ax.plot(s, f, label=f"α = {alpha:g}" + ("" if np.isfinite(f).all() else
@@ -171,12 +172,12 @@ def protocol(args) -> dict:
         # the filter's own consistent initial state at the first measured
         # speed, from its default parameters (it does not know the truth)
         x0 = model.state(initial_state(model, None, v=float(exp["v_gnss"][0])))
-        stages.append(Stage(name, model, exp, params,
-                            dict(x0=x0, P0=default_P0(model, x0, 0.01))))
+        stages.append(Stage(name, model, exp, params, x0=x0, P0=default_P0(model, x0, 0.01)))
     t0 = time.perf_counter()
-    res = two_stage(stages, particles=None, iterations=args.iterations, seed=args.seed,
-                    method=args.method, substeps=args.substeps, progress=False,
-                    workers=args.workers, hold=args.hold)
+    res = two_stage(stages,
+                    fit=FitOptions(iterations=args.iterations, seed=args.seed, progress=False,
+                                   workers=args.workers),
+                    ukf=UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold))
     out = dict(protocol_wall_s=time.perf_counter() - t0, stages=[])
     for st, r in zip(stages, res):
         print(f"\n== stage {st.name}: {r.model} on {r.experiment}")
@@ -236,7 +237,8 @@ def main(argv=None) -> int:
           f"{np.max(dc['one_step']):.3g} noise std (worst output)")
 
     crit = Criterion(model, t, u, y, PARAMS, truth, x0, P0,
-                     dict(method=args.method, substeps=args.substeps), workers=args.workers)
+                     options=UKFOptions(method=args.method, substeps=args.substeps),
+                     workers=args.workers)
     lo, hi = model.bounds(PARAMS)
     t0 = time.perf_counter()
     res = pso(crit, lo, hi, particles=args.particles, iterations=iterations, seed=args.seed,

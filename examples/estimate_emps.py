@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT))
 from bondgraph.catalog.benchmarks import (EMPS_IDIM_LS, EMPS_IDIM_RELERR, emps_arrays,  # noqa: E402
                                         emps_filtered_signals, emps_force_relerr, emps_idim_ls)
 from bondgraph.inference.estimate import estimate  # noqa: E402
+from bondgraph.inference.options import FitOptions, UKFOptions  # noqa: E402
 from bondgraph.report.estimation import plot_fit  # noqa: E402
 from bondgraph.numerics.model import Model  # noqa: E402
 
@@ -60,10 +61,11 @@ def run(decimations, particles, iterations, out: Path, seed=0):
         x0 = np.array([0.0, y[0, 0]])
         P0 = np.diag([1.0, 1e-10])
         t0 = time.perf_counter()
-        res = estimate(model, (t, u, y), PARAMS, fixed=FIXED, x0=x0, P0=P0, method="rk4",
-                       substeps=substeps, particles=particles,
-                       iterations=iterations if start is None else 0, start=start, seed=seed,
-                       bounds={"q_F": (0.01, 20.0)}, progress=False)
+        fit = FitOptions(particles=particles, iterations=iterations if start is None else 0,
+                         seed=seed, progress=False)
+        res = estimate(model, (t, u, y), PARAMS, fit=fit,
+                       ukf=UKFOptions(method="rk4", substeps=substeps), fixed=FIXED, x0=x0,
+                       P0=P0, bounds={"q_F": (0.01, 20.0)}, start=start)
         res.settings["decimate"] = k
         res.settings["rate_hz"] = 1.0 / float(np.median(np.diff(t)))
         e = res.estimate_dict()

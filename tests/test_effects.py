@@ -16,6 +16,7 @@ from bondgraph.diagnose.fit import Context, Record, fit_model, prior
 from bondgraph.diagnose.scoring import operating_scales, score_additive
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import GraphError
+from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf import ukf_nll
 from bondgraph.numerics.model import Model
 
@@ -147,7 +148,8 @@ def test_score_test_equals_the_likelihood_ratio_of_a_sensor_offset():
         th = m.theta0.copy()
         th[j] = b
         return ukf_nll(m, rec.t, rec.inputs_for(m, defaults_ok=True), rec.outputs_for(m),
-                       th[None, :], x0, P0, method="ros2", substeps=1, alpha=1.0).nll[0]
+                       th[None, :], x0, P0, options=UKFOptions(method="ros2", substeps=1,
+                                                               alpha=1.0)).nll[0]
 
     assert nll(0.0) == pytest.approx(fit.nll, rel=1e-12)
     best = minimize_scalar(nll, bracket=(0.0, 0.001), tol=1e-10)

@@ -72,6 +72,7 @@ def test_ukf_ml_estimate_against_published():
     (a swarm member), lands within 1-2 % of the published IDIM-LS values, and
     its inverse-model force error is within 0.2 points of theirs."""
     from bondgraph.inference.estimate import estimate
+    from bondgraph.inference.options import FitOptions, UKFOptions
 
     m = Model.load("emps")
     t, u, y = emps_arrays(decimate=5)
@@ -79,11 +80,12 @@ def test_ukf_ml_estimate_against_published():
     sig = emps_filtered_signals()
     ls = emps_idim_ls(sig)
     x0 = np.array([0.0, y[0, 0]])
-    r = estimate(m, (t, u, y), ["M", "Fv", "Fc", "offset", "q_F"], fixed={"sigma_q": 1.5e-8},
-                 x0=x0, P0=np.diag([1.0, 1e-10]), method="rk4", substeps=2, particles=8,
-                 iterations=2, seed=0, bounds={"q_F": (0.01, 20.0)}, progress=False,
-                 start=[ls["M"], ls["Fv"], ls["Fc"], ls["offset"], 0.2],
-                 hessian=False, check_discretisation=False, polish_maxiter=20)
+    fit = FitOptions(particles=8, iterations=2, seed=0, progress=False, hessian=False,
+                     check_discretisation=False, polish_maxiter=20)
+    r = estimate(m, (t, u, y), ["M", "Fv", "Fc", "offset", "q_F"], fit=fit,
+                 ukf=UKFOptions(method="rk4", substeps=2), fixed={"sigma_q": 1.5e-8},
+                 x0=x0, P0=np.diag([1.0, 1e-10]), bounds={"q_F": (0.01, 20.0)},
+                 start=[ls["M"], ls["Fv"], ls["Fc"], ls["offset"], 0.2])
     assert r.polish["nll_after"] < r.polish["nll_before"]
     e = r.estimate_dict()
     assert e["M"] == pytest.approx(95.11, rel=0.015)

@@ -11,7 +11,8 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from bondgraph.inference.estimate import (EstimationResult, Stage, cramer_rao, estimate, hessian_batched, two_stage)
-from bondgraph.errors import IdentifiabilityWarning
+from bondgraph.errors import IdentifiabilityWarning, OptionError
+from bondgraph.inference.options import FitOptions, UKFOptions
 from bondgraph.core.graph import BondGraph
 from bondgraph.numerics.model import Model
 
@@ -43,12 +44,14 @@ def msd_record():
     return m, t, u, y, y0, truth
 
 
-OPTS = dict(method="rk4", substeps=2, P0=np.diag([1e-8, 1e-10]), progress=False)
+UKF = UKFOptions(method="rk4", substeps=2)
+P0 = np.diag([1e-8, 1e-10])
 
 
 def test_pso_recovers_truth_within_3_cramer_rao(msd_record):
     m, t, u, y, _, truth = msd_record
-    r = estimate(m, (t, u, y), ["m", "k", "c"], particles=30, iterations=40, seed=2, **OPTS)
+    r = estimate(m, (t, u, y), ["m", "k", "c"], ukf=UKF, P0=P0,
+                 fit=FitOptions(particles=30, iterations=40, seed=2, progress=False))
     assert r.evaluations == 30 * 41
     assert r.evaluations_total > r.evaluations
     assert np.isfinite(r.std).all() and (r.std > 0).all()
@@ -84,15 +87,16 @@ def test_cramer_rao_matches_fisher_information(msd_record):
     Rinv = 1.0 / m.meas_std(th) ** 2
     fim = np.einsum("nyi,y,nyj->ij", J, Rinv, J)
     std_fim = np.sqrt(np.diag(np.linalg.inv(fim)))
-    r = estimate(m, (t, u, y), names, particles=20, iterations=10, seed=1, start=list(truth.values()),
-                 **OPTS)
+    r = estimate(m, (t, u, y), names, ukf=UKF, P0=P0, start=list(truth.values()),
+                 fit=FitOptions(particles=20, iterations=10, seed=1, progress=False))
     np.testing.assert_allclose(r.std, std_fim, rtol=0.1)
 
 
 def test_de_path(msd_record):
     m, t, u, y, _, truth = msd_record
-    r = estimate(m, (t, u, y), ["k", "c"], optimizer="de", particles=20, iterations=15, seed=3,
-                 fixed={"m": truth["m"]}, **OPTS)
+    r = estimate(m, (t, u, y), ["k", "c"], ukf=UKF, P0=P0, fixed={"m": truth["m"]},
+                 fit=FitOptions(optimizer="de", particles=20, iterations=15, seed=3,
+                                progress=False))
     assert r.optimizer == "de" and r.evaluations == 20 * 16
     for i, p in enumerate(r.params):
         assert abs(r.estimates[i] - truth[p]) < 3 * r.std[i]
@@ -129,8 +133,8 @@ def test_unidentifiable_pair_warns(msd_record):
     y = simulate_zoh(model, t, u, model.theta0, np.zeros(1))
     y = y + np.random.default_rng(0).normal(size=y.shape) * 0.01
     with pytest.warns(IdentifiabilityWarning, match="not identified"):
-        r = estimate(model, (t, u, y), ["c1", "c2"], particles=10, iterations=5,
-                     method="rk4", P0=np.diag([1e-8]), progress=False)
+        r = estimate(model, (t, u, y), ["c1", "c2"], ukf=UKFOptions(method="rk4"),
+                     P0=np.diag([1e-8]), fit=FitOptions(particles=10, iterations=5, progress=False))
     assert any("c1" in w and "c2" in w for w in r.warnings)
 
 
@@ -189,13 +193,12 @@ def test_two_stage_protocol_on_reduced_models():
     x20 = full.state({full.states[0]: 1200.0 * 5.0})
     y2 = simulate_zoh(full, t2, u2, th2, x20)
     y2 = y2 + rng.normal(size=y2.shape) * full.meas_std(th2)
-    common = dict(particles=16, iterations=20, seed=0, method="rk4", progress=False)
     res = two_stage([
         Stage("coast-down", red, (t1, np.zeros((400, 0)), y1), ["c_d", "F_0"],
-              dict(x0=[1200.0 * 20.0], P0=np.diag([100.0 ** 2]))),
-        Stage("driving", full, (t2, u2, y2), ["J_e", "T_max"],
-              dict(x0=x20, P0=np.diag([100.0 ** 2]))),
-    ], **common)
+              x0=[1200.0 * 20.0], P0=np.diag([100.0 ** 2])),
+        Stage("driving", full, (t2, u2, y2), ["J_e", "T_max"], x0=x20, P0=np.diag([100.0 ** 2])),
+    ], fit=FitOptions(particles=16, iterations=20, seed=0, progress=False),
+        ukf=UKFOptions(method="rk4"))
     s1, s2 = res
     assert s2.fixed == {"c_d": s1.estimates[0], "F_0": s1.estimates[1]}
     for i, p in enumerate(s1.params):
@@ -268,7 +271,7 @@ def test_workers_give_identical_results(msd_record):
     m, t, u, y, _, truth = msd_record
     X = np.array([[2.5, 80.0, 2.0], [2.0, 60.0, 1.0], [3.0, 90.0, 3.0], [2.2, 70.0, np.nan],
                   [2.6, 85.0, 2.5]])
-    kw = dict(ukf=dict(method="rk4", substeps=2))
+    kw = dict(options=UKFOptions(method="rk4", substeps=2))
     a = Criterion(m, t, u, y, ["m", "k", "c"], m.theta0, np.zeros(2), np.diag([1e-8, 1e-10]), **kw)
     b = Criterion(m, t, u, y, ["m", "k", "c"], m.theta0, np.zeros(2), np.diag([1e-8, 1e-10]),
                   workers=2, **kw)
@@ -276,3 +279,45 @@ def test_workers_give_identical_results(msd_record):
     b.close()
     assert np.array_equal(fa, fb) and np.isinf(fa[3])
     assert a.failures == b.failures and b.evaluations == 5
+
+
+def test_options_validated_on_construction(msd_record):
+    """A bad option fails where it is written, naming the option and its value."""
+    with pytest.raises(OptionError, match="optimizer = 'cmaes'"):
+        FitOptions(optimizer="cmaes")
+    with pytest.raises(OptionError, match="particles"):
+        FitOptions(particles=1)
+    with pytest.raises(OptionError, match="resume"):
+        FitOptions(resume=True)
+    with pytest.raises(OptionError, match="workers"):
+        FitOptions(workers=0)
+    m, t, u, y, _, _ = msd_record
+    with pytest.raises(OptionError, match="FitOptions"):
+        estimate(m, (t, u, y), ["m"], fit=dict(iterations=1))
+    # the options land in the result's settings as plain dicts
+    r = estimate(m, (t, u, y), ["k"], ukf=UKF, P0=P0,
+                 fit=FitOptions(particles=4, iterations=1, progress=False, polish=False,
+                                hessian=False, check_discretisation=False))
+    assert r.settings["ukf"] == dict(alpha=1.0, beta=2.0, kappa=0.0, method="rk4", substeps=2,
+                                     jacobian="mean", hold="zoh")
+    assert r.settings["particles"] == 4 and r.evaluations == 4 * 2
+    json.loads(r.to_json())
+
+
+def test_initial_state_from_the_record(msd_record):
+    """Without x0, the filter starts at the record's initial state
+    (Experiment.initial_state: state columns, else the sidecar's x0), not at
+    the model's X0; checked against ukf_nll run with that state."""
+    from bondgraph.data.records import Experiment
+    from bondgraph.inference.ukf import ukf_nll
+
+    m, t, u, y, _, _ = msd_record
+    exp = Experiment.from_arrays(t, model=m, u=u, y=y, meta={"name": "msd", "x0": {"p_mass": 0.3}})
+    fit = FitOptions(particles=4, iterations=0, progress=False, polish=False, hessian=False,
+                     check_discretisation=False)
+    r = estimate(m, exp, ["k"], ukf=UKF, P0=P0, fit=fit)
+    x0 = m.state(p_mass=0.3)
+    assert r.settings["x0"] == x0.tolist() and x0[0] != m.x0[0]
+    want = ukf_nll(m, t, u, y, r.theta, x0, P0, options=UKF).nll[0]
+    assert r.nll == pytest.approx(want, rel=1e-12)
+    assert r.nll != pytest.approx(ukf_nll(m, t, u, y, r.theta, m.x0, P0, options=UKF).nll[0])

@@ -1,4 +1,5 @@
-"""Sensitivity and identifiability (bondgraph.sensitivity.analysis): forward
+"""Sensitivity and identifiability (bondgraph.sensitivity, and the forward
+sensitivity equations of bondgraph.numerics.forward_sensitivity): forward
 sensitivities against finite differences of scipy simulations, the
 output-error information against the UKF's, a product-only parameter pair
 flagged and one of them kept, Yao's ranking against Gram-Schmidt, Sobol'
@@ -15,8 +16,13 @@ import pytest
 from bondgraph.errors import ModelError
 from bondgraph.core.graph import BondGraph
 from bondgraph.numerics.model import Model
-from bondgraph.sensitivity.analysis import (analyse, identifiability, orthogonal_ranking, output_sensitivities, recommend, recommended_params, sobol_indices, ukf_fisher)
+from bondgraph.numerics.forward_sensitivity import output_sensitivities
+from bondgraph.sensitivity.analysis import analyse, recommended_params
+from bondgraph.sensitivity.identifiability import (identifiability, orthogonal_ranking, recommend,
+                                                   ukf_fisher)
+from bondgraph.sensitivity.sobol import sobol_indices
 from bondgraph.errors import SensitivityError
+from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.simulate import simulate
 
 
@@ -62,7 +68,7 @@ def test_output_error_information_matches_ukf_fisher(msd):
     s = output_sensitivities(m, t, u, th, x0, names, hold="zoh")
     y = s.y + np.random.default_rng(1).normal(size=s.y.shape) * m.meas_std(th)
     D = ukf_fisher(m, t, u, y, th, names, x0, np.diag([1e-12, 1e-14]),
-                   dict(method="rk4", substeps=4))
+                   UKFOptions(method="rk4", substeps=4))
     F_oe = s.information(m.meas_std(th)) / np.outer(s.scale, s.scale)
     np.testing.assert_allclose(D.F, F_oe, rtol=2e-3)
 
@@ -90,7 +96,7 @@ def test_product_parameters_flagged_and_one_kept():
     y = simulate(model, t, u, np.zeros(1), model.theta0, hold="zoh").y
     y = y + np.random.default_rng(0).normal(size=y.shape) * 0.01
     rep = analyse(model, (t, u, y), ["a", "b", "c"], x0=np.zeros(1), P0=np.diag([1e-8]),
-                  ukf_options=dict(method="rk4"))
+                  ukf=UKFOptions(method="rk4"))
     ident = rep.local["identifiability"]
     kinds = {(f["type"], tuple(sorted(f["params"]))) for f in ident["flags"]}
     assert ("product", ("a", "b")) in kinds

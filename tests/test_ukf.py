@@ -12,8 +12,10 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 from bondgraph.errors import DataError, ModelError
 from bondgraph.numerics.integrators import ros2
 from bondgraph.numerics.model import Model
-from bondgraph.inference.ukf import (discretisation_check, merwe_weights, nll_from_innovations, ukf_nll)
+from bondgraph.inference.sigma import merwe_weights
+from bondgraph.inference.ukf import discretisation_check, nll_from_innovations, ukf_nll
 from bondgraph.errors import OptionError
+from bondgraph.inference.options import UKFOptions
 
 
 def _motor_record(N=150, dt=0.002, seed=1):
@@ -66,8 +68,8 @@ def test_agrees_with_filterpy_rk4(alpha, kappa):
     x0 = np.zeros(m.n_x)
     P0 = np.diag([1e-4, 1e-8, 1e-4, 1e-6])
     Qd = np.diag([1e-6, 1e-9, 1e-6, 1e-8])
-    r = ukf_nll(m, t, u, y, thetas, x0, P0, Q=Qd, alpha=alpha, kappa=kappa, method="rk4",
-                substeps=4, store=True)
+    r = ukf_nll(m, t, u, y, thetas, x0, P0, Q=Qd, store=True,
+                options=UKFOptions(alpha=alpha, kappa=kappa, method="rk4", substeps=4))
     assert not r.failed.any()
     for p in range(3):
         def fx(s, dt, u, theta):
@@ -81,14 +83,15 @@ def test_agrees_with_filterpy_rk4(alpha, kappa):
 
 
 def test_agrees_with_filterpy_ros2():
-    """The filter's inlined ROS2 step equals bondgraph.numerics.integrators.ros2 used as fx."""
+    """With the Jacobian at every sigma point, the filter's transition is
+    bondgraph.numerics.integrators.ros2 used as filterpy's fx."""
     m, t, u, y = _motor_record(N=80)
     th = m.theta0
     x0 = np.zeros(m.n_x)
     P0 = np.diag([1e-4, 1e-8, 1e-4, 1e-6])
     Qd = np.diag([1e-6, 1e-9, 1e-6, 1e-8])
-    r = ukf_nll(m, t, u, y, th, x0, P0, Q=Qd, alpha=0.8, method="ros2", substeps=2,
-                jacobian="sigma", store=True)
+    r = ukf_nll(m, t, u, y, th, x0, P0, Q=Qd, store=True,
+                options=UKFOptions(alpha=0.8, method="ros2", substeps=2, jacobian="sigma"))
 
     def fx(s, dt, u, theta):
         return ros2(m.f_dfdx, s[None], u, theta, dt, 2, f=m.f)[0]
@@ -97,11 +100,38 @@ def test_agrees_with_filterpy_ros2():
     np.testing.assert_allclose(r.x_filt[:, 0], xs, rtol=1e-9, atol=1e-12)
 
 
+def test_shared_jacobian_ros2_step_by_hand():
+    """integrators.ros2(jacobian="shared"), the filter's default transition:
+    per group of points, W = I − γhJ(first point) and the two stages solved
+    point by point with numpy.linalg.solve (Verwer et al. 1999, eq. ROS2)."""
+    m = Model.load("dc_motor_compliant")
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(3, 9, m.n_x)) * [1.0, 1e-3, 1.0, 1e-2]
+    th = np.array([m.theta0, m.theta0 * 1.1, m.theta0 * 0.9])[:, None, :]
+    u, dt, gamma = np.array([5.0, 0.01]), 2e-3, 1.0 + 1.0 / np.sqrt(2.0)
+    got = ros2(m.f_dfdx, x, u, th, dt, 1, f=m.f, jacobian="shared")
+    want = np.empty_like(x)
+    for p in range(3):
+        J = m.f_dfdx(x[p, :1], u, th[p])[1][0]
+        W = np.eye(m.n_x) - gamma * dt * J
+        for i in range(9):
+            k1 = np.linalg.solve(W, m.f(x[p, i][None], u, th[p])[0])
+            f1 = m.f((x[p, i] + dt * k1)[None], u, th[p])[0]
+            k2 = np.linalg.solve(W, f1 - 2.0 * k1)
+            want[p, i] = x[p, i] + 1.5 * dt * k1 + 0.5 * dt * k2
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    # a group of one point: the shared Jacobian is the point's own
+    one = ros2(m.f_dfdx, x[:, :1], u, th, dt, 3, f=m.f, jacobian="shared")
+    np.testing.assert_allclose(one, ros2(m.f_dfdx, x[:, :1], u, th, dt, 3, f=m.f),
+                               rtol=1e-13, atol=1e-15)
+
+
 def test_nll_equals_formula_from_innovations():
     m, t, u, y = _motor_record(N=60)
     thetas = np.array([m.theta0, m.theta0 * 1.05])
     r = ukf_nll(m, t, u, y, thetas, np.zeros(m.n_x), np.diag([1e-4, 1e-8, 1e-4, 1e-6]),
-                Q=np.diag([1e-6, 1e-9, 1e-6, 1e-8]), method="rk4", substeps=4, store=True)
+                Q=np.diag([1e-6, 1e-9, 1e-6, 1e-8]), store=True,
+                options=UKFOptions(method="rk4", substeps=4))
     direct = nll_from_innovations(r.innovations, r.S)
     np.testing.assert_allclose(r.nll, direct, rtol=1e-11)
     np.testing.assert_allclose(r.nll, r.nll_terms.sum(axis=0), rtol=1e-12)
@@ -120,7 +150,7 @@ def test_diverging_set_gets_inf_and_reason_others_unaffected():
     nan_set = m.theta(b_L=np.nan)
     batch = np.array([good1, stiff, good2, nan_set])
     opts = dict(x0=np.zeros(m.n_x), P0=np.diag([1e-4, 1e-8, 1e-4, 1e-6]),
-                Q=np.diag([1e-6, 1e-9, 1e-6, 1e-8]), method="rk4", substeps=1)
+                Q=np.diag([1e-6, 1e-9, 1e-6, 1e-8]), options=UKFOptions(method="rk4"))
     r = ukf_nll(m, t, u, y, batch, **opts)
     assert np.isinf(r.nll[1]) and np.isinf(r.nll[3])
     assert r.n_failed == 2 and list(r.failed) == [False, True, False, True]
@@ -132,7 +162,7 @@ def test_diverging_set_gets_inf_and_reason_others_unaffected():
     np.testing.assert_allclose(r.nll[[0, 2]], single.nll, rtol=1e-13)
     assert sum(r.failure_summary().values()) == 2
     # the same stiff set survives with the L-stable Rosenbrock step
-    r2 = ukf_nll(m, t, u, y, stiff, **{**opts, "method": "ros2"})
+    r2 = ukf_nll(m, t, u, y, stiff, **{**opts, "options": UKFOptions(method="ros2")})
     assert np.isfinite(r2.nll[0])
 
 
@@ -148,7 +178,8 @@ def test_nll_smooth_over_stiff_box_grid_convergence():
         s = np.linspace(0.0, 1.0, npts)
         thetas = np.exp(lo + s[:, None] * (hi - lo))
         r = ukf_nll(m, t, u, y, thetas, np.zeros(m.n_x), np.diag([1e-2, 1e-6, 1e-2, 1e-4]),
-                    Q=np.diag([1e-6, 1e-9, 1e-6, 1e-8]), method="ros2", substeps=2)
+                    Q=np.diag([1e-6, 1e-9, 1e-6, 1e-8]),
+                    options=UKFOptions(method="ros2", substeps=2))
         assert np.isfinite(r.nll).all(), r.reasons
         d3max.append(np.abs(np.diff(r.nll, 3)).max())
     assert 40 < d3max[0] / d3max[1] < 100          # 4³ = 64
@@ -179,7 +210,8 @@ def test_nll_finite_and_smooth_for_small_alpha(alpha):
     m, t, u, y, th = _emps_record()
     idx = m.param_indices(["M", "Fv", "Fc", "offset"])
     lo, hi = m.lower[idx], m.upper[idx]
-    kw = dict(x0=np.zeros(2), P0=np.diag([1.0, 1e-8]), alpha=alpha, method="ros2", substeps=2)
+    kw = dict(x0=np.zeros(2), P0=np.diag([1.0, 1e-8]),
+              options=UKFOptions(alpha=alpha, method="ros2", substeps=2))
     s = np.linspace(0.0, 1.0, 41)
     line = np.repeat(th[None], s.size, 0)
     line[:, idx] = lo + s[:, None] * (hi - lo)
@@ -201,10 +233,10 @@ def test_small_alpha_converges():
     """As α -> 0 the criterion converges (α = 1e-3 and 1e-2 agree to 1e-5
     relative, 10x closer than α = 1e-2 and 1)."""
     m, t, u, y, th = _emps_record()
-    kw = dict(x0=np.zeros(2), P0=np.diag([1.0, 1e-8]), method="ros2", substeps=2)
-    a = ukf_nll(m, t, u, y, th, alpha=1e-3, **kw).nll[0]
-    b = ukf_nll(m, t, u, y, th, alpha=1e-2, **kw).nll[0]
-    c = ukf_nll(m, t, u, y, th, alpha=1.0, **kw).nll[0]
+    kw = dict(x0=np.zeros(2), P0=np.diag([1.0, 1e-8]))
+    a, b, c = (ukf_nll(m, t, u, y, th, **kw,
+                       options=UKFOptions(alpha=al, method="ros2", substeps=2)).nll[0]
+               for al in (1e-3, 1e-2, 1.0))
     assert np.isfinite(a) and abs(a - b) < 1e-5 * abs(a)
     assert abs(a - b) < 0.1 * abs(b - c)
 
@@ -221,9 +253,15 @@ def test_weights_match_filterpy():
 def test_bad_input_errors():
     m, t, u, y = _motor_record(N=20)
     with pytest.raises(OptionError, match="alpha"):
-        ukf_nll(m, t, u, y, m.theta0, alpha=0.0)
-    with pytest.raises(OptionError, match="method"):
-        ukf_nll(m, t, u, y, m.theta0, method="euler")
+        UKFOptions(alpha=0.0)
+    with pytest.raises(OptionError, match="method = 'euler'"):
+        UKFOptions(method="euler")
+    with pytest.raises(OptionError, match="substeps"):
+        UKFOptions(substeps=0)
+    with pytest.raises(OptionError, match="UKFOptions"):
+        ukf_nll(m, t, u, y, m.theta0, options=dict(method="rk4"))
+    with pytest.raises(OptionError, match="kappa"):
+        ukf_nll(m, t, u, y, m.theta0, options=UKFOptions(kappa=-m.n_x))
     with pytest.raises(ModelError, match="theta"):
         ukf_nll(m, t, u, y, m.theta0[:3])
     t2 = t.copy()
@@ -263,12 +301,12 @@ def test_input_hold_mean():
     t = np.arange(60) * 0.02
     u = np.linspace(0.0, 30.0, 60)[:, None]
     y = np.zeros((60, 2))
-    kw = dict(x0=np.zeros(2), P0=np.diag([1e-4, 1e-6]), method="rk4")
+    kw = dict(x0=np.zeros(2), P0=np.diag([1e-4, 1e-6]))
     umid = u.copy()
     umid[:-1] = 0.5 * (u[:-1] + u[1:])
-    a = ukf_nll(m, t, u, y, m.theta0, hold="mean", **kw).nll
-    b = ukf_nll(m, t, umid, y, m.theta0, **kw).nll
-    c = ukf_nll(m, t, u, y, m.theta0, **kw).nll
+    a = ukf_nll(m, t, u, y, m.theta0, options=UKFOptions(method="rk4", hold="mean"), **kw).nll
+    b = ukf_nll(m, t, umid, y, m.theta0, options=UKFOptions(method="rk4"), **kw).nll
+    c = ukf_nll(m, t, u, y, m.theta0, options=UKFOptions(method="rk4"), **kw).nll
     assert a[0] == b[0] and a[0] != c[0]
     with pytest.raises(OptionError, match="hold"):
-        ukf_nll(m, t, u, y, m.theta0, hold="foh")
+        UKFOptions(hold="foh")

@@ -8,6 +8,7 @@ import pytest
 from bondgraph.data.experiments import get_experiment, run_experiment, sample_times
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
+from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf import ukf_nll
 from vehicle_graphs import build_vehicle
 from vehicle_graphs.analysis import coastdown_road_load, initial_state
@@ -110,7 +111,7 @@ def _ukf_road_load(model_name, spec, record):
     x0 = np.array([initial_state(m, th0, v=22.0)[s] for s in m.states])
     P0 = np.diag(np.maximum((0.02 * np.abs(x0)) ** 2, 1e-6))
     res = ukf_nll(m, record.t, record.inputs_for(m), record.outputs_for(m), TH, x0, P0,
-                  method="ros2", substeps=1)
+                  options=UKFOptions(method="ros2", substeps=1))
     assert np.all(np.isfinite(res.nll)), res
     A = np.column_stack([np.ones_like(a), a, b, a * a, a * b, b * b])
     c, *_ = np.linalg.lstsq(A, res.nll, rcond=None)
@@ -145,8 +146,8 @@ def test_full_filter_model_is_consistent_in_the_ukf(name):
     th = m.theta(spec.params)
     x0 = m.state(spec.x0)
     P0 = np.diag(np.maximum((0.01 * np.abs(x0)) ** 2, 1e-8))
-    r = ukf_nll(m, exp.t, exp.inputs_for(m), exp.outputs_for(m), th, x0, P0, method="ros2",
-                substeps=1, store=True)
+    r = ukf_nll(m, exp.t, exp.inputs_for(m), exp.outputs_for(m), th, x0, P0,
+                options=UKFOptions(method="ros2", substeps=1), store=True)
     assert np.isfinite(r.nll).all(), r
     nis = float(np.nanmean(r.nis))
     assert 0.8 * m.n_y < nis < 1.2 * m.n_y, nis

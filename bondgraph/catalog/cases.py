@@ -23,6 +23,7 @@ from bondgraph.core.smooth import smooth_clip
 from bondgraph.data.datasets import ced, emps
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.cases import LoopCase, declared_builder
+from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -126,8 +127,8 @@ def case_emps() -> LoopCase:
         _emps_record,
         ["M", "Fv", "q_F"],
         {"metric": EmpsForceError(), "fixed": {"sigma_q": 1.5e-8},
-         "P0_std": {"p_M": 1.0, "q": 1e-5}, "ukf": {"method": "rk4", "substeps": 2, "alpha": 1.0},
-         "structural": False},
+         "P0_std": {"p_M": 1.0, "q": 1e-5},
+         "ukf": UKFOptions(method="rk4", substeps=2, alpha=1.0), "structural": False},
         ("coulomb", "v"))
 
 

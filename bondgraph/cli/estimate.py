@@ -22,6 +22,7 @@ from bondgraph.cli.common import (
 from bondgraph.data.records import Experiment
 from bondgraph.errors import IdentifiabilityWarning
 from bondgraph.inference.estimate import estimate
+from bondgraph.inference.options import FitOptions, UKFOptions
 from bondgraph.inference.ukf import default_P0
 from bondgraph.report.estimation import plot_fit
 
@@ -64,15 +65,16 @@ def run(args) -> int:
     ck = Path(args.checkpoint) if args.checkpoint else out / "checkpoint.npz"
     x0 = initial_state(model, exp, args.x0)
     P0 = default_P0(model, x0, args.p0_rel)
+    fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
+                     iterations=args.iterations, seed=args.seed, checkpoint=ck,
+                     resume=args.resume, polish=not args.no_polish, stall_iterations=args.stall,
+                     progress=not args.quiet, workers=args.workers)
+    ukf = UKFOptions(alpha=args.alpha, beta=args.beta, kappa=args.kappa, method=args.method,
+                     substeps=args.substeps, hold=args.hold)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
-        res = estimate(model, exp, params, optimizer=args.optimizer, particles=args.particles,
-                       iterations=args.iterations, seed=args.seed, checkpoint=ck,
-                       resume=args.resume, fixed=parse_pairs(args.fixed, "--fixed"),
-                       method=args.method, substeps=args.substeps, alpha=args.alpha,
-                       beta=args.beta, kappa=args.kappa, hold=args.hold,
-                       polish=not args.no_polish, stall_iterations=args.stall,
-                       progress=not args.quiet, x0=x0, P0=P0, workers=args.workers)
+        res = estimate(model, exp, params, fit=fit, ukf=ukf,
+                       fixed=parse_pairs(args.fixed, "--fixed"), x0=x0, P0=P0)
     res.settings["data"] = str(args.data)
     rpath = out / "result.json"
     res.to_json(rpath)

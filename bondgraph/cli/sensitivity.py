@@ -24,8 +24,10 @@ from bondgraph.cli.common import (
 )
 from bondgraph.data.records import Experiment
 from bondgraph.errors import SensitivityError
+from bondgraph.inference.options import UKFOptions
 from bondgraph.report.sensitivity import plot_report
-from bondgraph.sensitivity.analysis import CORR_MAX, REL_CRB_MAX, analyse
+from bondgraph.sensitivity.analysis import analyse
+from bondgraph.sensitivity.identifiability import CORR_MAX, REL_CRB_MAX
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -88,7 +90,7 @@ def run(args) -> int:
     log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     rep = analyse(model, exp, params, theta=th, x0=x0, p0_rel=args.p0_rel,
-                  ukf_options=dict(method=args.method, substeps=args.substeps, hold=args.hold),
+                  ukf=UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold),
                   global_N=args.global_N, outputs=outputs, box_rel=args.box_rel,
                   chunk=args.chunk, seed=args.seed, rel_crb_max=args.rel_crb,
                   corr_max=args.corr_max, sensitivities=not args.no_sensitivities,

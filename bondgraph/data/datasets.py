@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from scipy.io import loadmat
 
 from bondgraph.data.records import Experiment, read_table
 from bondgraph.errors import DataError
@@ -102,6 +103,8 @@ def _files(*items: DataFile) -> dict[str, DataFile]:
 
 _EMPS_ZIP = "https://www.nonlinearbenchmark.org/FILES/BENCHMARKS/EMPS/EMPS.zip"
 _CED_ZIP = "https://uu.diva-portal.org/smash/get/diva2:1165531/FULLTEXT01.zip"
+_SILVERBOX_ZIP = ("https://www.nonlinearbenchmark.org/FILES/BENCHMARKS/SILVERBOX/"
+                  "SilverboxFiles.zip")
 
 #: the data sets, their publishers and the SHA-256 of every file
 DATASETS: dict[str, Dataset] = {
@@ -144,6 +147,27 @@ DATASETS: dict[str, Dataset] = {
             DataFile("DATAUNIF.MAT",
                      "102c8d8012d6e850d50c13227b8c2280fe69f8bc4a845177f8bc3d761d152c89",
                      _CED_ZIP, archive="FULLTEXT01.zip"),
+        )),
+    "silverbox": Dataset(
+        key="silverbox", folder="silverbox",
+        title="Silverbox: electronic Duffing oscillator, fs = 610.35 Hz",
+        landing="https://www.nonlinearbenchmark.org/benchmarks/silverbox",
+        citation="T. Wigren, J. Schoukens, Three free data sets for development and "
+                 "benchmarking in nonlinear system identification, European Control "
+                 "Conference, Zurich, 2013, pp. 2933-2938.",
+        files=_files(
+            DataFile("SNLS80mV.mat",
+                     "5c7413a52255af0cb4e2f93fb6903beb92b08965ba1e6ad0a6ffedfed8477ed4",
+                     _SILVERBOX_ZIP, archive="SilverboxFiles.zip"),
+            DataFile("SNLS80mV.csv",
+                     "ae62d5a91230c10f76e6dd02c8a4fac3c9d4d8a95fbf50e87cb0c4885003e0f1",
+                     _SILVERBOX_ZIP, archive="SilverboxFiles.zip"),
+            DataFile("Schroeder80mV.mat",
+                     "ec5a9740a4789aa20b9d84f387424c0218e843844807b30b367c218778339fb6",
+                     _SILVERBOX_ZIP, archive="SilverboxFiles.zip"),
+            DataFile("Schroeder80mV.csv",
+                     "b22cbcba9c59d9b4b1b379967b669dc32959e515b24784da3254505f8563e36c",
+                     _SILVERBOX_ZIP, archive="SilverboxFiles.zip"),
         )),
     "camry": Dataset(
         key="camry", folder="anl_d3_camry2018",
@@ -188,6 +212,26 @@ CED_RUNS: dict[str, tuple[str, str, str, str]] = {
     "unif_11": ("DATAUNIF", "u11", "z11", "PRBS with uniform random amplitude in [-1.5, 2.5] V"),
     "unif_12": ("DATAUNIF", "u12", "z12", "PRBS with uniform random amplitude in [-1.0, 3.0] V"),
 }
+#: Silverbox sample period [s]: fs = 10^7 / 2^14 Hz
+SILVERBOX_TS = 2.0 ** 14 / 1e7
+#: Silverbox record parts: name -> (0-based, half-open sample range of SNLS80mV,
+#: description); the official split of nonlinearbenchmark.org (Silverbox())
+SILVERBOX_PARTS: dict[str, tuple[int, int, str]] = {
+    "full": (0, 131072, "the whole SNLS80mV record"),
+    "train": (40650, 105712, "train + validation: the first 75 % of the multisine block"),
+    "test_multisine": (105712, 127400, "test: multisine"),
+    "test_arrow": (100, 40575, "test: the arrow (filtered Gaussian noise with rising RMS), "
+                               "full, including the amplitude extrapolation"),
+    "test_arrow_noextrap": (100, 32100, "test: the arrow without amplitude extrapolation"),
+}
+#: samples at the start of a Silverbox test part that may be used to
+#: initialise the state (the published protocol scores the rest)
+SILVERBOX_INIT_SAMPLES = 50
+#: published simulation RMS errors on the arrow [mV] (secondary compilation,
+#: see the data README): best linear approximation, physical-parameter model,
+#: best black box
+SILVERBOX_PUBLISHED_MV = {"bla": 13.7, "physical": 0.96, "best": 0.26}
+
 #: ANL D3 Camry tests: id -> cycle (README)
 CAMRY_TESTS: dict[str, str] = {
     "61811011": "cold-start UDDS, 628 s key-off soak, hot UDDS",
@@ -429,8 +473,6 @@ def emps(which: str = "estimation", data_dir: str | Path | None = None, *, verif
                   cache=cache, downloader=downloader)
     consts = dict(EMPS_CONSTANTS)
     if path.suffix.lower() == ".mat":
-        from scipy.io import loadmat
-
         m = loadmat(path)
         cols = {k: np.asarray(m[k], dtype=float).reshape(-1)
                 for k in ("t", "qm", "qg", "vir", "pulses_N") if k in m}
@@ -508,8 +550,6 @@ def ced(run: str = "prbs_1", data_dir: str | Path | None = None, *, verify: bool
         header = [h.strip('"') for h in header]
         data = {h: arr[:, j] for j, h in enumerate(header)}
     else:
-        from scipy.io import loadmat
-
         m = loadmat(path)
         data = {k: np.asarray(v, dtype=float).reshape(-1) for k, v in m.items()
                 if not k.startswith("__")}
@@ -547,6 +587,75 @@ def _ced_key(run: str) -> str:
 def ced_runs(data_dir: str | Path | None = None, **kw) -> dict[str, Experiment]:
     """All five CED runs by name (see :func:`ced`)."""
     return {k: ced(k, data_dir, **kw) for k in CED_RUNS}
+
+
+# ------------------------------------------------------------------ Silverbox
+def silverbox(part: str = "train", data_dir: str | Path | None = None, *, verify: bool = True,
+              download: bool | None = None, cache=None, downloader=None) -> Experiment:
+    """One part of the Silverbox record SNLS80mV (Wigren & Schoukens 2013): an
+    electronic Duffing oscillator, input V1 [V] (the "force"), output V2 [V]
+    (the "displacement"), Ts = 2^14 / 10^7 s.
+
+    Parameters
+    ----------
+    part : str
+        A key of :data:`SILVERBOX_PARTS`: ``train`` (the official train +
+        validation block), ``test_multisine``, ``test_arrow``,
+        ``test_arrow_noextrap`` or ``full``.
+    data_dir, verify, download, cache, downloader
+        See :func:`locate`.
+
+    Returns
+    -------
+    Experiment
+        Columns ``V1 [V]`` (input) and ``V2 [V]`` (output) of the samples of
+        ``part``, ``t = k Ts`` with k the sample index in the whole record (so
+        parts keep their place in time). ``meta["split"]`` gives the range,
+        and for test parts ``meta["init_samples"]`` = 50: the published
+        protocol may use them to initialise the state and scores the
+        simulation RMS error [mV] on the rest.
+
+    Raises
+    ------
+    DataError
+        Unknown part, missing columns, or a file that fails its checksum.
+
+    Notes
+    -----
+    Reads the ``.mat`` file (full precision) with scipy, else the CSV (5
+    significant digits). The raw voltages carry offsets of a few mV (the
+    upstream README removes the means); they are left in the record.
+    """
+    if part not in SILVERBOX_PARTS:
+        raise DataError(f"unknown Silverbox part '{part}' (parts: {', '.join(SILVERBOX_PARTS)})")
+    i0, i1, desc = SILVERBOX_PARTS[part]
+    path = locate("silverbox", ("SNLS80mV.mat", "SNLS80mV.csv"), data_dir,
+                  verify_checksum=verify, download=download, cache=cache,
+                  downloader=downloader)
+    if path.suffix.lower() == ".mat":
+        m = loadmat(path)
+        data = {k: np.asarray(v, dtype=float).reshape(-1) for k, v in m.items()
+                if not k.startswith("__")}
+    else:
+        header, arr = read_table(path)
+        data = {h.strip('"'): arr[:, j] for j, h in enumerate(header) if h.strip('"')}
+    for c in ("V1", "V2"):
+        if c not in data:
+            raise DataError(f"Silverbox file lacks column '{c}'", path=str(path), column=c)
+    k = np.arange(i0, i1)
+    meta = {
+        "name": f"silverbox_{part}",
+        "description": f"Silverbox SNLS80mV samples [{i0}, {i1}): {desc}. V1: input voltage "
+                       f"(force), V2: output voltage (displacement).",
+        "dt": SILVERBOX_TS,
+        "split": [i0, i1],
+        "source": _source("silverbox", path, DATASETS["silverbox"].files[path.name]),
+    }
+    if part.startswith("test"):
+        meta["init_samples"] = SILVERBOX_INIT_SAMPLES
+    return Experiment.from_arrays(k * SILVERBOX_TS, {"V1": data["V1"][k], "V2": data["V2"][k]},
+                                  units={"V1": "V", "V2": "V"},
+                                  roles={"V1": "input", "V2": "output"}, meta=meta)
 
 
 # ------------------------------------------------------------- Camry, EPA
@@ -629,6 +738,8 @@ def road_load_si(df):
 
 
 __all__ = ["DATASETS", "DataFile", "Dataset", "EMPS_CONSTANTS", "CED_TS", "CED_RUNS",
+           "SILVERBOX_TS", "SILVERBOX_PARTS", "SILVERBOX_INIT_SAMPLES", "SILVERBOX_PUBLISHED_MV",
+           "silverbox",
            "CAMRY_TESTS", "emps", "ced", "ced_runs", "camry_dyno", "epa_test_cars",
            "road_load_si", "locate", "fetch", "verify", "sha256", "default_data_dir",
            "find_local", "cache_dir"]

@@ -11,7 +11,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from bondgraph.diagnose.effects import Effect, Scales, get_effect
-from bondgraph.diagnose.fit import Context, Fit, bounds_around, criterion_for, fit_model, model_of
+from bondgraph.diagnose.fit import (
+    Context,
+    Fit,
+    bounds_around,
+    criterion_for,
+    fit_model,
+    model_of,
+)
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError
 from bondgraph.numerics.model import Model

@@ -5,8 +5,7 @@ its criterion, Fisher scoring, the L-BFGS-B polish, the difference Hessian
 and the Cramér-Rao bounds goes through the small functions of this module,
 which are also the only place where the UKF options of
 :class:`~bondgraph.diagnose.settings.LoopSettings` (``settings.ukf``) are
-handed to the inference layer. Changing how the options are passed (a dict
-today) touches this module only.
+handed to the inference layer (a :class:`~bondgraph.inference.options.UKFOptions`).
 """
 
 from __future__ import annotations
@@ -50,7 +49,7 @@ def run_ukf(model, t, u, y, thetas: np.ndarray, x0, P0, settings: LoopSettings, 
     UKFResult
         :func:`bondgraph.inference.ukf.ukf_nll`'s result (NLL per set).
     """
-    return ukf_nll(model, t, u, y, thetas, x0, P0, store=store, **settings.ukf)
+    return ukf_nll(model, t, u, y, thetas, x0, P0, options=settings.ukf, store=store)
 
 
 def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P0,
@@ -58,7 +57,8 @@ def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P
     """Batched NLL of the parameters ``names`` (everything else at ``base``),
     ``crit(X (S, k)) -> (S,)``, evaluated ``settings.chunk`` sets per UKF run
     (:class:`bondgraph.inference.estimate.Criterion`)."""
-    return Criterion(model, t, u, y, names, base, x0, P0, ukf=settings.ukf, chunk=settings.chunk)
+    return Criterion(model, t, u, y, names, base, x0, P0, options=settings.ukf,
+                     chunk=settings.chunk)
 
 
 def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, upper, x0, P0,
@@ -87,7 +87,7 @@ def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, u
         When the scoring fails numerically (the caller falls back to L-BFGS-B).
     """
     theta, _, F, _ = fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0,
-                                    ukf_options=settings.ukf, max_iter=iterations,
+                                    options=settings.ukf, max_iter=iterations,
                                     log_scale=log_scale)
     return theta, F
 

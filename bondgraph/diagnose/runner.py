@@ -20,7 +20,11 @@ from bondgraph.diagnose.effects import Scales, get_effect
 from bondgraph.diagnose.fit import Context, Fit, Record, fit_model, parameter_std
 from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.result import Candidate, LoopResult
-from bondgraph.diagnose.scoring import operating_scales, score_additive, score_structural
+from bondgraph.diagnose.scoring import (
+    operating_scales,
+    score_additive,
+    score_structural,
+)
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import ModelError
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Effect
+from bondgraph.inference.options import UKFOptions
 
 
 @dataclass
@@ -48,7 +49,7 @@ class LoopSettings:
         Parameters of the initial fit (default ``params``; later steps
         re-estimate all of ``params``). CED fits only its noise intensity
         first, so that "before" is the published linear model.
-    ukf : dict
+    ukf : UKFOptions
         Options of :func:`bondgraph.inference.ukf.ukf_nll` (alpha, method, substeps ...),
         passed on only by :mod:`bondgraph.diagnose.inference_calls`.
     sim_method : str
@@ -81,7 +82,7 @@ class LoopSettings:
     P0_std: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
     initial_params: list | None = None
-    ukf: dict = field(default_factory=lambda: {"method": "ros2", "substeps": 1, "alpha": 1.0})
+    ukf: UKFOptions = field(default_factory=UKFOptions)
     sim_method: str = "BDF"
     fit_iterations: int = 10
     confirm_iterations: int = 6
@@ -94,5 +95,5 @@ class LoopSettings:
         """The settings a report records: estimated parameters, step limit,
         significance level, UKF options, names of the effect library."""
         return {"params": self.params, "max_steps": self.max_steps,
-                "significance": self.significance, "ukf": self.ukf,
+                "significance": self.significance, "ukf": self.ukf.to_dict(),
                 "effects": [e.name for e in self.effects]}

@@ -18,8 +18,8 @@ estimated by the stages before it (the coast-down / driving protocol of the
 vehicle: stage 1 with the reduced model on the coast-down record, stage 2
 with the full model on a driving record).
 
-The ``bondgraph estimate`` command (:func:`configure_estimate`,
-:func:`run_estimate`) writes ``result.json`` and PNG fit plots.
+The ``bondgraph estimate`` command (:mod:`bondgraph.cli.estimate`) writes
+``result.json`` and PNG fit plots.
 
 References
 ----------
@@ -45,7 +45,10 @@ import numpy as np
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import IdentifiabilityWarning, ModelError, OptionError
 from bondgraph.inference.optimize import de, minimize_batched, pso
+from bondgraph.inference.options import FitOptions, UKFOptions, fit_options, ukf_options
+from bondgraph.inference.record import as_record, initial_state, record_arrays
 from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
+from bondgraph.numerics.model import Model
 
 
 # ----------------------------------------------------------------- criterion
@@ -64,9 +67,11 @@ class Criterion:
         Values of all parameters; the estimated ones are overwritten.
     x0, P0 : arrays, optional
         Prior state and covariance at ``t[0]`` (see :func:`bondgraph.inference.ukf.ukf_nll`).
-    ukf : dict, optional
-        Options of :func:`bondgraph.inference.ukf.ukf_nll` (``alpha, beta, kappa,
-        method, substeps, Q, R``).
+    options : UKFOptions, optional
+        Filter options (default ``UKFOptions()``).
+    Q, R : arrays, optional
+        Extra process-noise and measurement-noise covariances
+        (:func:`bondgraph.inference.ukf.ukf_nll`).
     chunk : int, optional
         Evaluate at most this many parameter sets per UKF run.
     workers : int
@@ -84,8 +89,8 @@ class Criterion:
         Failure cause -> count over all evaluations.
     """
 
-    def __init__(self, model, t, u, y, params: Sequence[str], base, x0=None, P0=None,
-                 ukf: Mapping[str, Any] | None = None, chunk: int | None = None,
+    def __init__(self, model, t, u, y, params: Sequence[str], base, x0=None, P0=None, *,
+                 options: UKFOptions | None = None, Q=None, R=None, chunk: int | None = None,
                  workers: int = 1):
         self.model = model
         self.t, self.u, self.y = t, u, y
@@ -93,7 +98,8 @@ class Criterion:
         self.idx = model.param_indices(self.params)
         self.base = np.asarray(base, dtype=float)
         self.x0, self.P0 = x0, P0
-        self.ukf = dict(ukf or {})
+        self.options = ukf_options(options)
+        self.Q, self.R = Q, R
         self.chunk = chunk
         self.workers = max(1, int(workers))
         self._pool = None
@@ -108,7 +114,7 @@ class Criterion:
     def run(self, X, store: bool | str = False) -> UKFResult:
         """The UKF result (all arrays) for parameter values X (S, k)."""
         return ukf_nll(self.model, self.t, self.u, self.y, self.theta(X), self.x0, self.P0,
-                       store=store, **self.ukf)
+                       options=self.options, Q=self.Q, R=self.R, store=store)
 
     def _evaluate(self, X):
         S = X.shape[0]
@@ -401,108 +407,37 @@ class EstimationResult:
 
 
 # ----------------------------------------------------------------- estimation
-def _resolve_model(model):
-    from bondgraph.numerics.model import Model
-
-    return Model.load(model) if isinstance(model, str) else model
-
-
-def record_arrays(model, experiment) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, dict]:
-    """``(t, u, y, name, meta)`` of a record for a model.
-
-    Parameters
-    ----------
-    model : Model
-    experiment : Experiment, str/Path of a CSV, or tuple ``(t, u, y)``
-
-    Raises
-    ------
-    DataError
-        Via :meth:`bondgraph.data.records.Experiment.load` / ``inputs_for`` /
-        ``outputs_for``.
-    """
-    if isinstance(experiment, tuple):
-        t, u, y = experiment
-        return np.asarray(t, float), np.asarray(u, float), np.asarray(y, float), "arrays", {}
-    if isinstance(experiment, (str, Path)):
-        from bondgraph.data.records import Experiment
-
-        experiment = Experiment.load(experiment)
-    t = np.asarray(experiment.t, dtype=float)
-    u = experiment.inputs_for(model)
-    y = experiment.outputs_for(model)
-    return t, u, y, experiment.name, dict(experiment.meta or {})
-
-
-def _x0_array(model, x0):
-    if x0 is None:
-        return model.x0.copy()
-    if isinstance(x0, Mapping):
-        return model.state(dict(x0))
-    return np.asarray(x0, dtype=float)
-
-
-def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso",
-             particles: int | None = None, iterations: int = 100, seed: int | None = 0,
-             checkpoint: str | Path | None = None, resume: bool = False,
-             fixed: Mapping[str, float] | None = None, bounds: Mapping[str, tuple] | None = None,
-             x0=None, P0=None, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
-             method: str = "ros2", substeps: int = 1, Q=None, R=None, hold: str = "zoh",
-             polish: bool = True, hessian: bool = True, stall_iterations: int | None = None,
-             start=None, progress: bool = True, chunk: int | None = None,
-             check_discretisation: bool = True, workers: int = 1,
-             polish_maxiter: int = 50) -> EstimationResult:
+def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None = None,
+             ukf: UKFOptions | None = None, fixed: Mapping[str, float] | None = None,
+             bounds: Mapping[str, tuple] | None = None, x0=None, P0=None, Q=None, R=None,
+             start=None) -> EstimationResult:
     """Maximum-likelihood estimate of ``params`` from one record.
 
     Parameters
     ----------
     model : Model or str
-        Filter model (registered name or :class:`~bondgraph.numerics.model.Model`).
+        Filter model (:meth:`~bondgraph.numerics.model.Model.from_spec`).
     experiment : Experiment, path of a CSV record, or tuple (t, u, y)
     params : sequence of str
         Parameters to estimate (k).
-    optimizer : {"pso", "de"}
-    particles : int, optional
-        PSO swarm size (default 10 k); for DE the population is
-        ``particles`` members too (popsize = particles // k).
-    iterations : int
-        PSO iterations / DE generations after the initial population.
-    seed : int
-    checkpoint : path, optional
-        Optimizer checkpoint, written after every iteration.
-    resume : bool
-        Continue from ``checkpoint`` (PSO: bit-for-bit the same result).
+    fit : FitOptions, optional
+        How to search (optimizer, swarm, iterations, seed, checkpoint, polish, ...).
+    ukf : UKFOptions, optional
+        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
     fixed : dict, optional
-        Values for parameters that are not estimated (default: model
-        defaults).
+        Values for parameters that are not estimated (default: model defaults).
     bounds : dict name -> (lower, upper), optional
         Search box (default: the model's bounds).
     x0 : array (n_x,) or dict, optional
-        Prior state at the first sample (default ``model.x0``).
+        Prior state at the first sample (default: the record's initial
+        state, :func:`bondgraph.inference.record.initial_state`; the model's
+        X0 for bare arrays).
     P0 : array (n_x, n_x) or (n_x,), optional
         Prior covariance (default :func:`bondgraph.inference.ukf.default_P0`).
-    alpha, beta, kappa, method, substeps, Q, R, hold :
-        UKF options (:func:`bondgraph.inference.ukf.ukf_nll`).
-    polish : bool
-        Refine the optimizer's best point with bounded L-BFGS-B.
-    polish_maxiter : int
-        Iterations of the polish.
-    hessian : bool
-        Compute the Hessian, Cramér-Rao standard deviations and correlations.
-    stall_iterations : int, optional
-        PSO stopping rule (see :func:`bondgraph.inference.optimize.pso`).
+    Q, R : arrays, optional
+        Extra process-noise / measurement-noise covariance of the filter.
     start : array (k,), optional
         A starting point placed in the initial population.
-    progress : bool
-        tqdm progress bar.
-    chunk : int, optional
-        Maximum parameter sets per UKF run (memory bound).
-    workers : int
-        Processes sharing each batched evaluation (see :class:`Criterion`).
-    check_discretisation : bool
-        At the estimate, compare the one-step output error of the filter's
-        discretisation with a fine reference, in units of the measurement
-        noise (:func:`bondgraph.inference.ukf.discretisation_check`); warn above 0.1.
 
     Returns
     -------
@@ -512,19 +447,59 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
     ------
     ModelError
         Unknown parameter names, or a fixed parameter that is also estimated.
-    OptionError
-        Unknown optimizer or invalid options.
-    DataError
-        Problems of the record (from :mod:`bondgraph.data.records`).
+    OptionError, DataError
+        Invalid options; problems of the record (:mod:`bondgraph.data.records`).
 
     Warns
     -----
     IdentifiabilityWarning
-        If the Hessian is not positive definite (the unidentified direction
-        is named) or an estimate lies on a bound of the box.
+        Hessian not positive definite (the unidentified direction named), an
+        estimate on a bound, no finite NLL, or a discretisation error > 0.1 σ.
     """
     t_start = time.perf_counter()
-    model = _resolve_model(model)
+    fit, ukf = fit_options(fit), ukf_options(ukf)
+    model = Model.from_spec(model)
+    params, fixed, base, lo, hi = _search_box(model, params, fixed, bounds)
+    rec = as_record(experiment)
+    t, u, y, ename, meta = record_arrays(model, rec)
+    x0a, _ = initial_state(model, rec, x0)
+    P0a = default_P0(model, x0a) if P0 is None else P0
+    crit = Criterion(model, t, u, y, params, base, x0a, P0a, options=ukf, Q=Q, R=R,
+                     chunk=fit.chunk, workers=fit.workers)
+    try:
+        opt = _global_search(crit, lo, hi, fit, start)
+        x_best, f_best, pol = _polish(crit, opt, lo, hi, fit)
+        warn_list = _bound_warnings(params, x_best, lo, hi)
+        H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list)
+        disc = _discretisation_at(crit, x_best, f_best, x0a, fit, ukf, warn_list)
+    finally:
+        crit.close()
+    for w in warn_list:
+        warnings.warn(w, IdentifiabilityWarning, stacklevel=2)
+    truth, z = _truth(meta, params, x_best, cr["std"])
+    return EstimationResult(
+        model=model.name, experiment=ename, params=params, estimates=x_best, std=cr["std"],
+        corr=cr["corr"], hessian=H, nll=float(f_best), nll_optimizer=float(opt.fun),
+        evaluations=int(opt.nfev), evaluations_total=int(crit.evaluations),
+        wall_s=time.perf_counter() - t_start, optimizer=fit.optimizer,
+        theta=_full_theta(model, params, base, x_best), fixed=fixed, lower=lo, upper=hi,
+        truth=truth, z=z, at_bound=_at_bound(params, x_best, lo, hi), warnings=warn_list,
+        failures=dict(crit.failures), optimizer_result=opt.to_dict(), polish=pol,
+        settings=_settings(fit, ukf, Q, R, t, len(params), x0a, P0a, disc),
+        units=[model.param_units[i] for i in model.param_indices(params)])
+
+
+def _settings(fit: FitOptions, ukf: UKFOptions, Q, R, t, k: int, x0, P0, disc) -> dict:
+    """``EstimationResult.settings``: the UKF options as a dict, the search's
+    size, the record's length, the prior and the discretisation check."""
+    return dict(ukf=ukf.to_dict(), Q_given=Q is not None, R_given=R is not None,
+                samples=int(t.size), duration_s=float(t[-1] - t[0]),
+                particles=_swarm_size(fit, k), iterations=fit.iterations, seed=fit.seed,
+                x0=x0.tolist(), P0=np.asarray(P0, float).tolist(), discretisation=disc)
+
+
+def _search_box(model, params, fixed, bounds):
+    """``(params, fixed, base θ, lower, upper)`` of an estimation, checked."""
     params = list(params)
     if not params:
         raise OptionError("no parameters to estimate")
@@ -538,106 +513,127 @@ def estimate(model, experiment, params: Sequence[str], *, optimizer: str = "pso"
     base = model.theta(fixed)
     lo, hi = model.bounds(params)
     for name, (a, b) in (bounds or {}).items():
-        i = params.index(name) if name in params else None
-        if i is None:
+        if name not in params:
             raise ModelError(f"bounds given for '{name}', which is not estimated ({params})")
+        i = params.index(name)
         lo[i], hi[i] = float(a), float(b)
-    if optimizer not in ("pso", "de"):
-        raise OptionError(f"unknown optimizer '{optimizer}' (use 'pso' or 'de')")
+    return params, fixed, base, lo, hi
 
-    t, u, y, ename, meta = record_arrays(model, experiment)
-    x0a = _x0_array(model, x0)
-    P0a = default_P0(model, x0a) if P0 is None else P0
-    ukf_opts = dict(alpha=alpha, beta=beta, kappa=kappa, method=method, substeps=substeps,
-                    Q=Q, R=R, hold=hold)
-    crit = Criterion(model, t, u, y, params, base, x0a, P0a, ukf_opts, chunk=chunk,
-                     workers=workers)
-    k = len(params)
-    S = int(particles) if particles else 10 * k
 
-    if optimizer == "pso":
-        opt = pso(crit, lo, hi, particles=S, iterations=iterations, seed=seed,
-                  checkpoint=checkpoint, resume=resume, progress=progress,
-                  stall_iterations=stall_iterations, x0=start)
-    else:
-        popsize = max(1, S // k)
-        opt = de(crit, lo, hi, popsize=popsize, iterations=iterations, seed=seed,
-                 progress=progress, x0=start, checkpoint=checkpoint, resume=resume)
-    opt_evals = opt.nfev
+def _full_theta(model, params, base, x) -> np.ndarray:
+    """The full parameter vector: ``base`` with the estimated ``params`` set to ``x``."""
+    theta = base.copy()
+    theta[model.param_indices(params)] = x
+    return theta
+
+
+def _swarm_size(fit: FitOptions, k: int) -> int:
+    """PSO particles / DE members: ``fit.particles``, default 10 k."""
+    return int(fit.particles) if fit.particles else 10 * k
+
+
+def _global_search(crit, lo, hi, fit: FitOptions, start):
+    """The optimizer's run (:func:`pso` or :func:`de`) over the box."""
+    S = _swarm_size(fit, lo.size)
+    if fit.optimizer == "pso":
+        return pso(crit, lo, hi, particles=S, iterations=fit.iterations, seed=fit.seed,
+                   checkpoint=fit.checkpoint, resume=fit.resume, progress=fit.progress,
+                   stall_iterations=fit.stall_iterations, x0=start)
+    return de(crit, lo, hi, popsize=max(1, S // lo.size), iterations=fit.iterations,
+              seed=fit.seed, progress=fit.progress, x0=start, checkpoint=fit.checkpoint,
+              resume=fit.resume)
+
+
+def _polish(crit, opt, lo, hi, fit: FitOptions):
+    """L-BFGS-B from the optimizer's best point: ``(x, f, polish summary)``;
+    the polished point is kept only if it is not worse."""
     x_best, f_best = opt.x.copy(), opt.fun
-    warn_list: list[str] = []
     pol: dict = {}
-    if polish and np.isfinite(f_best):
-        xp, fp, nfp, msg = minimize_batched(crit, x_best, lo, hi, maxiter=polish_maxiter)
+    if fit.polish and np.isfinite(f_best):
+        xp, fp, nfp, msg = minimize_batched(crit, x_best, lo, hi, maxiter=fit.polish_maxiter)
         pol = dict(nfev=nfp, message=msg, nll_before=f_best, nll_after=fp)
         if fp <= f_best:
             x_best, f_best = xp, fp
-    width = hi - lo
-    rel_pos = (x_best - lo) / width
-    at_bound = [params[i] for i in range(k) if rel_pos[i] < 1e-6 or rel_pos[i] > 1 - 1e-6]
-    if at_bound:
-        warn_list.append(f"estimate at the bound of the search box for {', '.join(at_bound)}; "
-                         f"the Cramér-Rao bound does not apply there")
+    return x_best, f_best, pol
+
+
+def _at_bound(params, x, lo, hi) -> list[str]:
+    """Parameters whose estimate is within 1e-6 of the box width of a bound."""
+    rel_pos = (x - lo) / (hi - lo)
+    return [p for i, p in enumerate(params) if rel_pos[i] < 1e-6 or rel_pos[i] > 1 - 1e-6]
+
+
+def _bound_warnings(params, x, lo, hi) -> list[str]:
+    at_bound = _at_bound(params, x, lo, hi)
+    if not at_bound:
+        return []
+    return [f"estimate at the bound of the search box for {', '.join(at_bound)}; "
+            f"the Cramér-Rao bound does not apply there"]
+
+
+def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list):
+    """Hessian of the NLL and Cramér-Rao bounds at the estimate.
+
+    A first pass with steps of 1e-4 of the parameter (or box) scale; when it
+    is positive definite, a second pass with steps of 0.1 standard deviation,
+    where the NLL changes by O(0.01) nats (truncation and rounding balanced).
+    Appends the warnings to ``warn_list``.
+    """
+    k = x_best.size
     H = np.full((k, k), np.nan)
     cr = dict(std=np.full(k, np.nan), corr=np.full((k, k), np.nan), warning=None)
-    if hessian and np.isfinite(f_best):
-        mag = np.where(np.abs(x_best) > 0, np.abs(x_best), width)
-        scale = width
-        h = 1e-4 * np.minimum(mag, width)
-        H, f0, ne = hessian_batched(crit, x_best, h)
-        cr = cramer_rao(H, params, scale)
-        if cr["positive_definite"]:
-            # second pass: steps of a fraction of the standard deviation, where
-            # the NLL changes by O(0.01) nats (truncation and rounding balanced)
-            h2 = np.clip(0.1 * cr["std"], 1e-8 * mag, 0.05 * width)
-            H2, _, ne2 = hessian_batched(crit, x_best, h2)
-            cr2 = cramer_rao(H2, params, scale)
-            if cr2["positive_definite"]:
-                H, cr = H2, cr2
-        if cr["warning"]:
-            warn_list.append(cr["warning"])
-    elif not np.isfinite(f_best):
+    if not np.isfinite(f_best):
         warn_list.append("no finite NLL found: every evaluated parameter set failed "
                          f"({dict(crit.failures)})")
-    disc = None
-    if check_discretisation and np.isfinite(f_best):
-        th_best = crit.theta(x_best)[0]
-        dc = discretisation_check(model, t, u, th_best, x0a, method=method, substeps=substeps)
-        disc = dict(one_step=dc["one_step"].tolist(), free_run=dc["free_run"].tolist(),
-                    reference=dc["reference"])
-        worst = float(np.max(dc["one_step"]))
-        if worst > 0.1:
-            warn_list.append(f"discretisation error of {method}({substeps}) is {worst:.2g} "
-                             f"measurement-noise standard deviations per sample at the "
-                             f"estimate: a model error that biases the estimate; use more "
-                             f"substeps or method='rk4'")
-    for w in warn_list:
-        warnings.warn(w, IdentifiabilityWarning, stacklevel=2)
+        return H, cr
+    if not fit.hessian:
+        return H, cr
+    width = hi - lo
+    mag = np.where(np.abs(x_best) > 0, np.abs(x_best), width)
+    H, _, _ = hessian_batched(crit, x_best, 1e-4 * np.minimum(mag, width))
+    cr = cramer_rao(H, crit.params, width)
+    if cr["positive_definite"]:
+        h2 = np.clip(0.1 * cr["std"], 1e-8 * mag, 0.05 * width)
+        H2, _, _ = hessian_batched(crit, x_best, h2)
+        cr2 = cramer_rao(H2, crit.params, width)
+        if cr2["positive_definite"]:
+            H, cr = H2, cr2
+    if cr["warning"]:
+        warn_list.append(cr["warning"])
+    return H, cr
 
-    truth = None
-    z = None
+
+def _discretisation_at(crit, x_best, f_best, x0, fit: FitOptions, ukf: UKFOptions,
+                       warn_list: list) -> dict | None:
+    """:func:`discretisation_check` at the estimate (summary dict, or None);
+    a warning above 0.1 measurement-noise standard deviations per sample."""
+    if not (fit.check_discretisation and np.isfinite(f_best)):
+        return None
+    th_best = crit.theta(x_best)[0]
+    dc = discretisation_check(crit.model, crit.t, crit.u, th_best, x0, method=ukf.method,
+                              substeps=ukf.substeps)
+    worst = float(np.max(dc["one_step"]))
+    if worst > 0.1:
+        warn_list.append(f"discretisation error of {ukf.method}({ukf.substeps}) is {worst:.2g} "
+                         f"measurement-noise standard deviations per sample at the "
+                         f"estimate: a model error that biases the estimate; use more "
+                         f"substeps or method='rk4'")
+    return dict(one_step=dc["one_step"].tolist(), free_run=dc["free_run"].tolist(),
+                reference=dc["reference"])
+
+
+def _truth(meta, params, x, std):
+    """True values of the estimated parameters (synthetic records) and
+    z = (estimate − truth) / std; ``(None, None)`` without truth."""
     tp = meta.get("true_parameters") if isinstance(meta, Mapping) else None
-    if tp:
-        truth = {p: float(tp[p]) for p in params if p in tp}
-        if truth:
-            z = np.array([(x_best[i] - truth[p]) / cr["std"][i] if p in truth else np.nan
-                          for i, p in enumerate(params)])
-    crit.close()
-    theta = base.copy()
-    theta[model.param_indices(params)] = x_best
-    return EstimationResult(
-        model=model.name, experiment=ename, params=params, estimates=x_best, std=cr["std"],
-        corr=cr["corr"], hessian=H, nll=float(f_best), nll_optimizer=float(opt.fun),
-        evaluations=int(opt_evals), evaluations_total=int(crit.evaluations),
-        wall_s=time.perf_counter() - t_start, optimizer=optimizer, theta=theta, fixed=fixed,
-        lower=lo, upper=hi, truth=truth, z=z, at_bound=at_bound, warnings=warn_list,
-        failures=dict(crit.failures), optimizer_result=opt.to_dict(), polish=pol,
-        settings=dict(ukf={k_: v for k_, v in ukf_opts.items() if k_ not in ("Q", "R")},
-                      Q_given=Q is not None, R_given=R is not None, samples=int(t.size),
-                      duration_s=float(t[-1] - t[0]), particles=S, iterations=iterations,
-                      seed=seed, x0=x0a.tolist(), P0=np.asarray(P0a, float).tolist(),
-                      discretisation=disc),
-        units=[model.param_units[i] for i in model.param_indices(params)])
+    if not tp:
+        return None, None
+    truth = {p: float(tp[p]) for p in params if p in tp}
+    if not truth:
+        return truth, None
+    z = np.array([(x[i] - truth[p]) / std[i] if p in truth else np.nan
+                  for i, p in enumerate(params)])
+    return truth, z
 
 
 # ---------------------------------------------------------------- two stages
@@ -651,19 +647,29 @@ class Stage:
     model : Model or str
     experiment : Experiment, path or (t, u, y)
     params : list of str
-    options : dict
-        Keyword arguments of :func:`estimate` for this stage.
+    fit, ukf : FitOptions, UKFOptions, optional
+        This stage's options (default: those given to :func:`two_stage`).
+    x0, P0, Q, R, bounds, start : optional
+        As for :func:`estimate`, for this stage's model and record.
     """
 
     name: str
     model: Any
     experiment: Any
     params: list
-    options: dict = field(default_factory=dict)
+    fit: FitOptions | None = None
+    ukf: UKFOptions | None = None
+    x0: Any = None
+    P0: Any = None
+    Q: Any = None
+    R: Any = None
+    bounds: Mapping | None = None
+    start: Any = None
 
 
 def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = None,
-              propagate: bool = True, **common) -> list[EstimationResult]:
+              propagate: bool = True, fit: FitOptions | None = None,
+              ukf: UKFOptions | None = None) -> list[EstimationResult]:
     """Run stages in order; each fixes what the earlier stages estimated.
 
     Parameters
@@ -677,9 +683,8 @@ def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = No
     propagate : bool
         Propagate the uncertainty of the carried estimates into each later
         stage (see Notes); sets ``result.std_total``, and ``result.z`` uses it.
-    **common
-        Options of :func:`estimate` shared by every stage (a stage's own
-        ``options`` win).
+    fit, ukf : FitOptions, UKFOptions, optional
+        Options of every stage that does not set its own.
 
     Returns
     -------
@@ -698,18 +703,19 @@ def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = No
     several standard deviations even on synthetic data (tests/test_estimate.py).
     """
     carried: dict[str, float] = dict(fixed or {})
-    carried_cov: dict[str, tuple[np.ndarray, list]] = {}      # stage name -> (cov, names)
     cov_all: dict[tuple[str, str], float] = {}
     out = []
     for st in stages:
-        model = _resolve_model(st.model)
+        model = Model.from_spec(st.model)
         fx = {p: v for p, v in carried.items() if p in model.params and p not in st.params}
-        opts = {**common, **st.options}
-        res = estimate(model, st.experiment, st.params, fixed=fx, **opts)
+        st_ukf = st.ukf if st.ukf is not None else ukf
+        res = estimate(model, st.experiment, st.params, fit=st.fit if st.fit is not None else fit,
+                       ukf=st_ukf, fixed=fx, bounds=st.bounds, x0=st.x0, P0=st.P0, Q=st.Q,
+                       R=st.R, start=st.start)
         res.settings["stage"] = st.name
         prop = [p for p in fx if (p, p) in cov_all]
         if propagate and prop and np.isfinite(res.std).all():
-            _propagate(model, st, res, prop, cov_all, opts)
+            _propagate(model, st, res, prop, cov_all, ukf_options(st_ukf))
         # covariance of this stage's estimates (total if propagated)
         cov = res.propagated.get("cov_total") if res.propagated else None
         cov = np.asarray(cov) if cov is not None else (
@@ -723,16 +729,14 @@ def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = No
     return out
 
 
-def _propagate(model, st, res, prop, cov_all, opts):
+def _propagate(model, st: Stage, res, prop, cov_all, ukf: UKFOptions):
     """Add the carried parameters' covariance to a stage's Cramér-Rao bound."""
-    t, u, y, _, _ = record_arrays(model, st.experiment)
-    x0a = _x0_array(model, opts.get("x0"))
-    P0 = opts.get("P0")
-    P0a = default_P0(model, x0a) if P0 is None else P0
-    ukf_keys = ("alpha", "beta", "kappa", "method", "substeps", "Q", "R", "hold")
-    ukf_opts = {k: opts[k] for k in ukf_keys if k in opts}
+    rec = as_record(st.experiment)
+    t, u, y, _, _ = record_arrays(model, rec)
+    x0a, _ = initial_state(model, rec, st.x0)
+    P0a = default_P0(model, x0a) if st.P0 is None else st.P0
     names = list(res.params) + list(prop)
-    crit = Criterion(model, t, u, y, names, res.theta, x0a, P0a, ukf_opts)
+    crit = Criterion(model, t, u, y, names, res.theta, x0a, P0a, options=ukf, Q=st.Q, R=st.R)
     x = res.theta[model.param_indices(names)]
     S1 = np.array([[cov_all[(a, b)] for b in prop] for a in prop])
     h = np.concatenate([0.1 * res.std, 0.1 * np.sqrt(np.diag(S1))])
@@ -753,12 +757,3 @@ def _propagate(model, st, res, prop, cov_all, opts):
     if res.truth:
         res.z = np.array([(res.estimates[i] - res.truth[p]) / std_total[i] if p in res.truth
                           else np.nan for i, p in enumerate(res.params)])
-
-
-# ----------------------------------------------------------------------- CLI
-
-
-
-
-
-

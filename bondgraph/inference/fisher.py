@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf import ukf_nll
 
 
@@ -73,7 +74,8 @@ def _clean(eps, S):
     return e, S, miss
 
 
-def derivatives(model, t, u, y, theta, index, steps, x0, P0, ukf_options=None) -> Derivatives:
+def derivatives(model, t, u, y, theta, index, steps, x0, P0,
+                options: UKFOptions | None = None) -> Derivatives:
     """NLL, gradient and Fisher information at ``theta`` for the parameters
     ``index`` (forward differences with ``steps``), from one batched UKF run.
 
@@ -87,7 +89,8 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0, ukf_options=None) -
     steps : array (k,)
         Difference steps (signed).
     x0, P0 : UKF prior
-    ukf_options : dict
+    options : UKFOptions, optional
+        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
 
     Returns
     -------
@@ -98,12 +101,11 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0, ukf_options=None) -
     FloatingPointError
         If the UKF fails at ``theta`` itself.
     """
-    opts = dict(ukf_options or {})
     k = len(index)
     sets = np.repeat(np.asarray(theta, float)[None, :], k + 1, axis=0)
     for i, (j, h) in enumerate(zip(index, steps)):
         sets[i + 1, j] += h
-    r = ukf_nll(model, t, u, y, sets, x0, P0, store=True, **opts)
+    r = ukf_nll(model, t, u, y, sets, x0, P0, options=options, store=True)
     if not np.isfinite(r.nll[0]):
         raise FloatingPointError(f"UKF failed at the expansion point: {r.reasons[0]}")
     e0, S0, miss = _clean(r.innovations[:, 0, :], r.S[:, 0])
@@ -129,13 +131,15 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0, ukf_options=None) -
     return Derivatives(float(r.nll[0]), e0, S0, dE, dS, grad, F)
 
 
-def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_options=None,
+def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *,
+                   options: UKFOptions | None = None,
                    max_iter: int = 12, rtol: float = 1e-6, log=None, log_scale=None):
     """Maximise the UKF likelihood over the parameters ``index`` by
     Levenberg-damped Fisher scoring within the box [lower, upper].
 
     Each iteration: one batched UKF run for the derivatives (k + 1 sets) and
-    one for a line search over damped steps (6 sets).
+    one for a line search over damped steps (6 sets, plus decade moves of
+    the log-scale parameters).
 
     Parameters
     ----------
@@ -146,10 +150,13 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
     index : sequence of int (k,)
     lower, upper : arrays (k,)
     x0, P0 : UKF prior
-    ukf_options : dict
+    options : UKFOptions, optional
+        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
     max_iter : int
     rtol : float
         Stop when the NLL improves by less than ``rtol * (1 + |NLL|)``.
+    log : callable, optional
+        Progress lines.
     log_scale : array of bool (k,), optional
         Parameters optimised in log θ (scale parameters such as noise
         intensities, whose likelihood is far from quadratic in θ near zero).
@@ -171,40 +178,15 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
         log_scale = (lo > 0) & (hi > 100 * lo)
     L = np.asarray(log_scale, dtype=bool)
     width = np.maximum(hi - lo, 1e-300)
-    runs = 0
-    lam = 1e-3
-    D = None
+    runs, lam = 0, 1e-3
     for it in range(max_iter):
         x = th[index]
-        steps = 1e-6 * np.maximum(np.abs(x), 1e-3 * width)
-        steps = np.where(x + steps > hi, -steps, steps)
-        D = derivatives(model, t, u, y, th, index, steps, x0, P0, ukf_options)
-        runs += 1
-        # chain rule to z = log θ for the scale parameters: ∂/∂z = θ ∂/∂θ
-        jac = np.where(L, x, 1.0)
-        grad = D.grad * jac
-        Fz = D.F * np.outer(jac, jac)
-        F = Fz + lam * np.diag(np.diag(Fz) + 1e-300)
-        try:
-            step = -np.linalg.solve(F, grad)
-        except np.linalg.LinAlgError:
-            step = -np.linalg.lstsq(F, grad, rcond=1e-12)[0]
-        alphas = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 2.0])
-        z = np.where(L, np.log(np.maximum(x, 1e-300)), x)
-        zc = z[None, :] + alphas[:, None] * step[None, :]
-        cand = np.clip(np.where(L, np.exp(np.minimum(zc, 700.0)), zc), lo, hi)
-        # scale parameters also get decade-sized coordinate moves: when the
-        # model is misspecified, the expected information of a noise intensity
-        # overstates its curvature and the scoring step is far too short
-        moves = [np.clip(np.where(np.arange(x.size) == i, x * f, x), lo, hi)
-                 for i in np.flatnonzero(L) for f in (0.1, 0.3, 3.0, 10.0)]
-        if moves:
-            cand = np.vstack([cand, np.array(moves)])
-            alphas = np.concatenate([alphas, np.full(len(moves), np.nan)])
+        D = derivatives(model, t, u, y, th, index, _steps(x, hi, width), x0, P0, options)
+        alphas, cand = _candidates(x, _scoring_step(D, x, L, lam), L, lo, hi)
         sets = np.repeat(th[None, :], alphas.size, axis=0)
         sets[:, index] = cand
-        r = ukf_nll(model, t, u, y, sets, x0, P0, **(ukf_options or {}))
-        runs += 1
+        r = ukf_nll(model, t, u, y, sets, x0, P0, options=options)
+        runs += 2
         best = int(np.argmin(np.where(np.isfinite(r.nll), r.nll, np.inf)))
         f_new = float(r.nll[best])
         if log:
@@ -220,9 +202,43 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *, ukf_op
         if D.nll - f_new < rtol * (1.0 + abs(f_new)):
             break
     # information at the final point
-    x = th[index]
+    D = derivatives(model, t, u, y, th, index, _steps(th[index], hi, width), x0, P0, options)
+    return th, D.nll, D.F, runs + 1
+
+
+def _steps(x, hi, width) -> np.ndarray:
+    """Forward-difference steps 1e-6 max(|x|, 1e-3 width), downwards near the upper bound."""
     steps = 1e-6 * np.maximum(np.abs(x), 1e-3 * width)
-    steps = np.where(x + steps > hi, -steps, steps)
-    D = derivatives(model, t, u, y, th, index, steps, x0, P0, ukf_options)
-    runs += 1
-    return th, D.nll, D.F, runs
+    return np.where(x + steps > hi, -steps, steps)
+
+
+def _scoring_step(D: Derivatives, x, L, lam: float) -> np.ndarray:
+    """Levenberg-damped scoring step −(F + λ diag F)⁻¹ g, in z = log θ for
+    the scale parameters ``L`` (chain rule ∂/∂z = θ ∂/∂θ)."""
+    jac = np.where(L, x, 1.0)
+    grad = D.grad * jac
+    Fz = D.F * np.outer(jac, jac)
+    F = Fz + lam * np.diag(np.diag(Fz) + 1e-300)
+    try:
+        return -np.linalg.solve(F, grad)
+    except np.linalg.LinAlgError:
+        return -np.linalg.lstsq(F, grad, rcond=1e-12)[0]
+
+
+def _candidates(x, step, L, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """Line-search points ``(alphas, cand (c, k))``: damped steps, and
+    decade-sized coordinate moves of the scale parameters (alpha NaN).
+
+    When the model is misspecified, the expected information of a noise
+    intensity overstates its curvature and the scoring step is far too short.
+    """
+    alphas = np.array([1.0, 0.5, 0.25, 0.1, 0.03, 2.0])
+    z = np.where(L, np.log(np.maximum(x, 1e-300)), x)
+    zc = z[None, :] + alphas[:, None] * step[None, :]
+    cand = np.clip(np.where(L, np.exp(np.minimum(zc, 700.0)), zc), lo, hi)
+    moves = [np.clip(np.where(np.arange(x.size) == i, x * f, x), lo, hi)
+             for i in np.flatnonzero(L) for f in (0.1, 0.3, 3.0, 10.0)]
+    if moves:
+        cand = np.vstack([cand, np.array(moves)])
+        alphas = np.concatenate([alphas, np.full(len(moves), np.nan)])
+    return alphas, cand

@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from scipy.optimize import differential_evolution, minimize
 
 from bondgraph.errors import OptionError
 
@@ -130,13 +131,117 @@ def _save_checkpoint(path: Path, state: dict) -> None:
     os.replace(tmp, path)
 
 
+def _progress_bar(progress: bool, total: int, initial: int, desc: str, unit: str):
+    """A tqdm bar, or None without ``progress``."""
+    if not progress:
+        return None
+    from tqdm.auto import tqdm  # 0.2 s to import: only when a bar is shown
+
+    return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True)
+
+
+class _Swarm:
+    """State of a PSO run in normalised coordinates z ∈ [0, 1]^k: positions
+    ``Z`` and velocities ``V`` (S, k), personal bests, the global best ``g``,
+    counters, history and the random generator. A checkpoint stores all of
+    it, so a resumed run continues bit for bit."""
+
+    #: arrays of the checkpoint besides the settings key and the RNG state
+    FIELDS = ("Z", "V", "pbest", "pbest_f", "g", "gf", "it", "nfev", "ncalls", "n_inf",
+              "history", "stall")
+
+    def __init__(self, rng, **state):
+        self.rng = rng
+        self.__dict__.update(state)
+
+    @classmethod
+    def start(cls, fun, lo, hi, S: int, seed, vmax: float, x0) -> "_Swarm":
+        """Uniform positions in the box, velocities within ±vmax/2, ``x0``
+        (if given) as particle 0; one evaluation of the swarm."""
+        k = lo.size
+        rng = np.random.default_rng(seed)
+        Z = rng.random((S, k))
+        V = (rng.random((S, k)) * 2.0 - 1.0) * vmax * 0.5
+        if x0 is not None:
+            Z[0] = np.clip((np.asarray(x0, float) - lo) / (hi - lo), 0.0, 1.0)
+        f = _evaluate(fun, lo + Z * (hi - lo))
+        i = int(np.argmin(f))
+        return cls(rng, Z=Z, V=V, pbest=Z.copy(), pbest_f=f.copy(), g=Z[i].copy(),
+                   gf=float(f[i]), it=0, nfev=S, ncalls=1,
+                   n_inf=int(np.count_nonzero(~np.isfinite(f))), history=[float(f[i])], stall=0)
+
+    @classmethod
+    def load(cls, path: Path | None, key: str) -> "_Swarm":
+        """The swarm of a checkpoint written with the same settings ``key``.
+
+        Raises
+        ------
+        OptionError
+            Missing checkpoint, or one written with other settings.
+        """
+        if path is None or not path.exists():
+            raise OptionError(f"cannot resume: checkpoint {path} does not exist")
+        d = np.load(path, allow_pickle=False)
+        if str(d["key"]) != key:
+            raise OptionError(f"checkpoint {path} was written with other PSO settings "
+                              f"(particles, seed, coefficients or bounds differ); not resuming")
+        rng = np.random.Generator(np.random.PCG64())
+        rng.bit_generator.state = json.loads(str(d["rng"]))
+        return cls(rng, Z=d["Z"].copy(), V=d["V"].copy(), pbest=d["pbest"].copy(),
+                   pbest_f=d["pbest_f"].copy(), g=d["g"].copy(), gf=float(d["gf"]),
+                   it=int(d["it"]), nfev=int(d["nfev"]), ncalls=int(d["ncalls"]),
+                   n_inf=int(d["n_inf"]), history=list(d["history"]), stall=int(d["stall"]))
+
+    def save(self, path: Path | None, key: str) -> None:
+        """Write the checkpoint (atomically); nothing without a path."""
+        if path is None:
+            return
+        state = {name: np.asarray(getattr(self, name)) for name in self.FIELDS}
+        _save_checkpoint(path, dict(key=np.array(key),
+                                    rng=np.array(json.dumps(self.rng.bit_generator.state)),
+                                    **state))
+
+    def iterate(self, fun, lo, hi, w: float, c1: float, c2: float, vmax: float,
+                ftol: float) -> None:
+        """One PSO iteration (velocity and position update, evaluation, bests)."""
+        S, k = self.Z.shape
+        r1 = self.rng.random((S, k))
+        r2 = self.rng.random((S, k))
+        V = w * self.V + c1 * r1 * (self.pbest - self.Z) + c2 * r2 * (self.g - self.Z)
+        np.clip(V, -vmax, vmax, out=V)
+        Z = self.Z + V
+        out = (Z < 0.0) | (Z > 1.0)
+        if out.any():
+            Z = np.clip(Z, 0.0, 1.0)
+            V[out] = 0.0
+        self.Z, self.V = Z, V
+        f = _evaluate(fun, lo + Z * (hi - lo))
+        self.nfev += S
+        self.ncalls += 1
+        self.n_inf += int(np.count_nonzero(~np.isfinite(f)))
+        better = f < self.pbest_f
+        self.pbest[better] = Z[better]
+        self.pbest_f[better] = f[better]
+        i = int(np.argmin(self.pbest_f))
+        old = self.gf
+        if self.pbest_f[i] < self.gf:
+            self.g, self.gf = self.pbest[i].copy(), float(self.pbest_f[i])
+        self.it += 1
+        self.history.append(self.gf)
+        if np.isfinite(old) and old - self.gf <= ftol * (1.0 + abs(self.gf)):
+            self.stall += 1
+        else:
+            self.stall = 0
+
+
 def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int | None = None,
         iterations: int = 100, seed: int | None = 0, w: float = CONSTRICTION_W,
         c1: float = CONSTRICTION_C, c2: float = CONSTRICTION_C, vmax: float = 0.5,
         stall_iterations: int | None = None, ftol: float = 1e-8,
         checkpoint: str | Path | None = None, resume: bool = False, progress: bool = True,
         x0=None, callback: Callable | None = None) -> OptimizeResult:
-    """Minimise a batched criterion by particle swarm optimisation.
+    """Minimise a batched criterion by particle swarm optimisation
+    (Kennedy & Eberhart 1995; constriction of Clerc & Kennedy 2002).
 
     Parameters
     ----------
@@ -146,7 +251,7 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
     lower, upper : array (k,)
         Box bounds (finite, lower < upper).
     particles : int, optional
-        Swarm size (default 10 k).
+        Swarm size S (default 10 k).
     iterations : int
         Maximum iterations after the initial swarm.
     seed : int or None
@@ -155,10 +260,9 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
         Inertia (constriction) and acceleration coefficients.
     vmax : float
         Velocity clamp as a fraction of the box width (normalised units).
-    stall_iterations : int, optional
+    stall_iterations, ftol :
         Stop when the best value improved by less than
-        ``ftol * (1 + |best|)`` over this many iterations.
-    ftol : float
+        ``ftol * (1 + |best|)`` over ``stall_iterations`` iterations.
     checkpoint : path, optional
         ``.npz`` file written (atomically) after every iteration.
     resume : bool
@@ -168,8 +272,7 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
     x0 : array (k,), optional
         A point placed into the initial swarm (replaces particle 0).
     callback : callable, optional
-        ``callback(it, best_x, best_f)`` after every iteration; return True
-        to stop.
+        ``callback(it, best_x, best_f)`` after every iteration; True stops.
 
     Returns
     -------
@@ -191,121 +294,112 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
     from one generator whose state is checkpointed.
     """
     lo, hi = _check_box(lower, upper)
-    k = lo.size
-    S = int(particles) if particles is not None else 10 * k
+    S = int(particles) if particles is not None else 10 * lo.size
+    settings, key = _pso_settings(lo, hi, S, iterations, seed, w, c1, c2, vmax, x0,
+                                  stall_iterations)
+    ck = Path(checkpoint) if checkpoint is not None else None
+    t0 = time.perf_counter()
+    sw = _Swarm.load(ck, key) if resume else _Swarm.start(fun, lo, hi, S, seed, vmax, x0)
+    if not resume:
+        sw.save(ck, key)
+    it0 = sw.it
+    bar = _progress_bar(progress, iterations, min(it0, iterations), "PSO", "it")
+    if bar is not None:
+        bar.set_postfix(best=f"{sw.gf:.6g}")
+    stop_reason = _pso_iterations(sw, fun, lo, hi, (w, c1, c2, vmax, ftol), iterations,
+                                  stall_iterations, (ck, key), bar, callback)
+    if bar is not None:
+        bar.close()
+    return OptimizeResult(x=lo + sw.g * (hi - lo), fun=sw.gf, nfev=sw.nfev, ncalls=sw.ncalls,
+                          nit=sw.it, n_inf=sw.n_inf, stop_reason=stop_reason,
+                          history=np.array(sw.history), method="pso",
+                          wall_s=time.perf_counter() - t0, resumed_from=it0, settings=settings)
+
+
+def _pso_settings(lo, hi, S, iterations, seed, w, c1, c2, vmax, x0, stall_iterations):
+    """``(settings, checkpoint key)``; the key covers what a resumed run
+    must share with the interrupted one (not the iteration budget).
+
+    Raises
+    ------
+    OptionError
+        Fewer than 2 particles or negative iterations.
+    """
     if S < 2:
         raise OptionError(f"PSO needs at least 2 particles, got {S}")
     if iterations < 0:
         raise OptionError(f"iterations must be >= 0, got {iterations}")
-    width = hi - lo
     settings = dict(method="pso", particles=S, seed=seed, w=w, c1=c1, c2=c2, vmax=vmax,
                     lower=lo.tolist(), upper=hi.tolist(),
                     x0=None if x0 is None else np.asarray(x0, float).tolist())
     key = _settings_key(settings)
     settings["iterations"] = iterations
     settings["stall_iterations"] = stall_iterations
-    ck = Path(checkpoint) if checkpoint is not None else None
+    return settings, key
 
-    def to_phys(Z):
-        return lo + Z * width
 
-    t0 = time.perf_counter()
-    if resume:
-        if ck is None or not ck.exists():
-            raise OptionError(f"cannot resume: checkpoint {ck} does not exist")
-        d = np.load(ck, allow_pickle=False)
-        if str(d["key"]) != key:
-            raise OptionError(f"checkpoint {ck} was written with other PSO settings "
-                              f"(particles, seed, coefficients or bounds differ); not resuming")
-        rng = np.random.Generator(np.random.PCG64())
-        rng.bit_generator.state = json.loads(str(d["rng"]))
-        Z, V = d["Z"].copy(), d["V"].copy()
-        pbest, pbest_f = d["pbest"].copy(), d["pbest_f"].copy()
-        g, gf = d["g"].copy(), float(d["gf"])
-        it0 = int(d["it"])
-        nfev, ncalls, n_inf = int(d["nfev"]), int(d["ncalls"]), int(d["n_inf"])
-        history = list(d["history"])
-        stall = int(d["stall"])
-    else:
-        rng = np.random.default_rng(seed)
-        Z = rng.random((S, k))
-        V = (rng.random((S, k)) * 2.0 - 1.0) * vmax * 0.5
-        if x0 is not None:
-            Z[0] = np.clip((np.asarray(x0, float) - lo) / width, 0.0, 1.0)
-        f = _evaluate(fun, to_phys(Z))
-        nfev, ncalls, n_inf = S, 1, int(np.count_nonzero(~np.isfinite(f)))
-        pbest, pbest_f = Z.copy(), f.copy()
-        i = int(np.argmin(f))
-        g, gf = Z[i].copy(), float(f[i])
-        it0 = 0
-        history = [gf]
-        stall = 0
+def _pso_iterations(sw: _Swarm, fun, lo, hi, coeffs, iterations, stall_iterations, ck_key,
+                    bar, callback) -> str:
+    """Iterate until ``iterations``, the stall rule or the callback; returns
+    the stop reason. Checkpoints after every iteration."""
+    stalled = f"stalled {stall_iterations} iterations"
+    if stall_iterations is not None and sw.stall >= stall_iterations:
+        return stalled
+    while sw.it < iterations:
+        sw.iterate(fun, lo, hi, *coeffs)
+        sw.save(*ck_key)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(best=f"{sw.gf:.6g}")
+        if callback is not None and callback(sw.it, lo + sw.g * (hi - lo), sw.gf):
+            return "callback"
+        if stall_iterations is not None and sw.stall >= stall_iterations:
+            return stalled
+    return "max iterations"
 
-    def write(it):
-        if ck is None:
-            return
-        _save_checkpoint(ck, dict(key=np.array(key), rng=np.array(json.dumps(rng.bit_generator.state)),
-                                  Z=Z, V=V, pbest=pbest, pbest_f=pbest_f, g=g, gf=np.array(gf),
-                                  it=np.array(it), nfev=np.array(nfev), ncalls=np.array(ncalls),
-                                  n_inf=np.array(n_inf), history=np.array(history),
-                                  stall=np.array(stall)))
 
-    if not resume:
-        write(0)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+class _DEMonitor:
+    """The criterion as scipy's vectorised DE sees it, with exact counts,
+    the best value, its history and the checkpoint after every generation.
 
-        bar = tqdm(total=iterations, initial=min(it0, iterations), desc="PSO", unit="it",
-                   dynamic_ncols=True)
-        bar.set_postfix(best=f"{gf:.6g}")
-    stop_reason = "max iterations"
-    it = it0
-    if stall_iterations is not None and stall >= stall_iterations:
-        stop_reason = f"stalled {stall_iterations} iterations"
-    else:
-        while it < iterations:
-            r1 = rng.random((S, k))
-            r2 = rng.random((S, k))
-            V = w * V + c1 * r1 * (pbest - Z) + c2 * r2 * (g - Z)
-            np.clip(V, -vmax, vmax, out=V)
-            Z = Z + V
-            out = (Z < 0.0) | (Z > 1.0)
-            if out.any():
-                Z = np.clip(Z, 0.0, 1.0)
-                V[out] = 0.0
-            f = _evaluate(fun, to_phys(Z))
-            nfev += S
-            ncalls += 1
-            n_inf += int(np.count_nonzero(~np.isfinite(f)))
-            better = f < pbest_f
-            pbest[better] = Z[better]
-            pbest_f[better] = f[better]
-            i = int(np.argmin(pbest_f))
-            old = gf
-            if pbest_f[i] < gf:
-                g, gf = pbest[i].copy(), float(pbest_f[i])
-            it += 1
-            history.append(gf)
-            if np.isfinite(old) and old - gf <= ftol * (1.0 + abs(gf)):
-                stall += 1
-            else:
-                stall = 0
-            write(it)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(best=f"{gf:.6g}")
-            if callback is not None and callback(it, to_phys(g), gf):
-                stop_reason = "callback"
-                break
-            if stall_iterations is not None and stall >= stall_iterations:
-                stop_reason = f"stalled {stall_iterations} iterations"
-                break
-    if bar is not None:
-        bar.close()
-    return OptimizeResult(x=to_phys(g), fun=gf, nfev=nfev, ncalls=ncalls, nit=it, n_inf=n_inf,
-                          stop_reason=stop_reason, history=np.array(history), method="pso",
-                          wall_s=time.perf_counter() - t0, resumed_from=it0, settings=settings)
+    Infinite values are replaced by a finite penalty for scipy's bookkeeping
+    (its convergence test takes a standard deviation of the energies).
+    """
+
+    PENALTY = 1e100
+
+    def __init__(self, fun, ck: Path | None, it0: int, history: list, best: float,
+                 resumed: bool, bar):
+        self.fun, self.ck, self.gen, self.history, self.best = fun, ck, it0, history, best
+        self.resumed, self.bar = resumed, bar
+        self.nfev = self.ncalls = self.n_inf = 0
+
+    def __call__(self, Xt):
+        X = np.atleast_2d(np.asarray(Xt, dtype=float).T)
+        f = _evaluate(self.fun, X)
+        self.nfev += X.shape[0]
+        self.ncalls += 1
+        bad = ~np.isfinite(f)
+        self.n_inf += int(np.count_nonzero(bad))
+        if (~bad).any():
+            self.best = min(self.best, float(np.min(f[~bad])))
+        if self.ncalls == 1 and not self.resumed:
+            self.history.append(self.best)          # best of the initial population
+        return np.where(bad, self.PENALTY, f)
+
+    def callback(self, intermediate_result) -> bool:
+        self.gen += 1
+        self.history.append(self.best)
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix(best=f"{self.best:.6g}")
+        if self.ck is not None:
+            tmp = self.ck.with_name(self.ck.name + ".tmp.npz")
+            np.savez(tmp, population=np.asarray(intermediate_result.population),
+                     it=np.array(self.gen), history=np.array(self.history),
+                     best=np.array(self.best))
+            os.replace(tmp, self.ck)
+        return False
 
 
 def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 10,
@@ -313,7 +407,8 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 
        mutation=(0.5, 1.0), recombination: float = 0.7, strategy: str = "best1bin",
        progress: bool = True, x0=None, checkpoint: str | Path | None = None,
        resume: bool = False) -> OptimizeResult:
-    """Minimise a batched criterion with scipy's differential evolution.
+    """Minimise a batched criterion with scipy's differential evolution
+    (Storn & Price 1997).
 
     Parameters
     ----------
@@ -343,92 +438,58 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 
     Returns
     -------
     OptimizeResult
-        ``nfev`` counts members (scipy's own ``nfev`` counts members too in
-        recent versions; ours is counted in the wrapper), ``ncalls`` the
+        ``nfev`` counts members (counted in the wrapper), ``ncalls`` the
         batched calls: 80 + 100 x 80 = 8080 for the settings above.
 
     Notes
     -----
     With ``vectorized=True`` scipy passes ``X`` with shape (k, S) and
     ``updating='deferred'``; the wrapper transposes it. Infinite values
-    are replaced by a finite penalty (1e300) for scipy's bookkeeping
-    (its convergence test takes a standard deviation of the energies) and
-    counted in ``n_inf``.
+    are replaced by a finite penalty (1e100) and counted in ``n_inf``.
     """
-    from scipy.optimize import differential_evolution
-
     lo, hi = _check_box(lower, upper)
     k = lo.size
     if popsize < 1 or popsize * k < 5:
         raise OptionError(f"DE needs a population of at least 5 members (popsize * k), "
                           f"got {popsize} x {k}")
-    counts = dict(nfev=0, ncalls=0, n_inf=0)
-    history: list[float] = []
-    best = [np.inf]
     ck = Path(checkpoint) if checkpoint is not None else None
-    it0 = 0
-    init: object = "latinhypercube"
-    if resume:
-        if ck is None or not ck.exists():
-            raise OptionError(f"cannot resume: checkpoint {ck} does not exist")
-        d = np.load(ck)
-        init = np.asarray(d["population"], dtype=float)
-        it0 = int(d["it"])
-        history = [float(v) for v in d["history"]]
-        best[0] = float(d["best"])
-    PEN = 1e100
-
-    def wrapped(Xt):
-        X = np.atleast_2d(np.asarray(Xt, dtype=float).T)
-        f = _evaluate(fun, X)
-        counts["nfev"] += X.shape[0]
-        counts["ncalls"] += 1
-        bad = ~np.isfinite(f)
-        counts["n_inf"] += int(np.count_nonzero(bad))
-        if (~bad).any():
-            best[0] = min(best[0], float(np.min(f[~bad])))
-        if counts["ncalls"] == 1 and not resume:
-            history.append(best[0])          # best of the initial population
-        return np.where(bad, PEN, f)
-
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=iterations, initial=it0, desc="DE", unit="gen", dynamic_ncols=True)
-    gen = [it0]
-
-    def cb(intermediate_result):
-        gen[0] += 1
-        history.append(best[0])
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(best=f"{best[0]:.6g}")
-        if ck is not None:
-            tmp = ck.with_name(ck.name + ".tmp.npz")
-            np.savez(tmp, population=np.asarray(intermediate_result.population),
-                     it=np.array(gen[0]), history=np.array(history), best=np.array(best[0]))
-            os.replace(tmp, ck)
-        return False
-
+    init, it0, history, best = _de_start(ck) if resume else ("latinhypercube", 0, [], np.inf)
+    mon = _DEMonitor(fun, ck, it0, history, best, resume,
+                     _progress_bar(progress, iterations, it0, "DE", "gen"))
     t0 = time.perf_counter()
     kw = dict(strategy=strategy, maxiter=max(iterations - it0, 0), popsize=popsize, tol=tol,
               atol=atol, mutation=mutation, recombination=recombination, polish=False,
-              init=init, vectorized=True, updating="deferred", callback=cb)
+              init=init, vectorized=True, updating="deferred", callback=mon.callback)
     if x0 is not None and not resume:
         kw["x0"] = np.clip(np.asarray(x0, float), lo, hi)
-    res = differential_evolution(wrapped, list(zip(lo, hi)), rng=seed, **kw)
-    if bar is not None:
-        bar.close()
-    fun_best = float(res.fun) if res.fun < PEN else np.inf
+    res = differential_evolution(mon, list(zip(lo, hi)), rng=seed, **kw)
+    if mon.bar is not None:
+        mon.bar.close()
     settings = dict(method="de", popsize=popsize, members=popsize * k, seed=seed,
                     iterations=iterations, strategy=strategy,
                     mutation=[float(v) for v in np.atleast_1d(mutation)],
                     recombination=recombination, lower=lo.tolist(), upper=hi.tolist())
-    return OptimizeResult(x=np.asarray(res.x, dtype=float), fun=fun_best, nfev=counts["nfev"],
-                          ncalls=counts["ncalls"], nit=gen[0], n_inf=counts["n_inf"],
-                          stop_reason=str(res.message), history=np.array(history), method="de",
-                          wall_s=time.perf_counter() - t0, resumed_from=it0, settings=settings)
+    return OptimizeResult(x=np.asarray(res.x, dtype=float),
+                          fun=float(res.fun) if res.fun < mon.PENALTY else np.inf,
+                          nfev=mon.nfev, ncalls=mon.ncalls, nit=mon.gen, n_inf=mon.n_inf,
+                          stop_reason=str(res.message), history=np.array(mon.history),
+                          method="de", wall_s=time.perf_counter() - t0, resumed_from=it0,
+                          settings=settings)
+
+
+def _de_start(ck: Path | None):
+    """``(init population, generation, history, best)`` of a DE checkpoint.
+
+    Raises
+    ------
+    OptionError
+        Missing checkpoint.
+    """
+    if ck is None or not ck.exists():
+        raise OptionError(f"cannot resume: checkpoint {ck} does not exist")
+    d = np.load(ck)
+    return (np.asarray(d["population"], dtype=float), int(d["it"]),
+            [float(v) for v in d["history"]], float(d["best"]))
 
 
 def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, *,
@@ -462,8 +523,6 @@ def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, 
     Works in normalised coordinates z = (x − lower)/(upper − lower); at a
     bound the difference uses the points inside the box (one-sided).
     """
-    from scipy.optimize import minimize
-
     lo, hi = _check_box(lower, upper)
     width = hi - lo
     k = lo.size

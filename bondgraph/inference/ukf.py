@@ -6,30 +6,20 @@ points), and each stage of the discretisation is one call of the generated
 model functions for the whole batch. There is no Python loop over particles
 or sigma points; the only loop is over the samples of the record.
 
-Filter (additive process and measurement noise; Wan & van der Merwe 2000,
-scaled sigma points of Julier 2002, the parametrisation of
-``filterpy.kalman.MerweScaledSigmaPoints``)::
-
-    λ = α²(n + κ) − n,  c = sqrt(n + λ) = α sqrt(n + κ)
-    χ_0 = x̂,  χ_i = x̂ + c L_i,  χ_n+i = x̂ − c L_i     (L L^T = P, Cholesky)
-    W_0^m = λ/(n+λ),  W_0^c = W_0^m + 1 − α² + β,  W_i = 1/(2(n+λ))
-
+Filter (additive process and measurement noise; Wan & van der Merwe 2000),
+with the scaled sigma points and the difference form of the unscented
+moments of :mod:`bondgraph.inference.sigma` (accurate for α from 1e-3 to 1).
 The sequence of operations is that of filterpy 2.0's
-``UnscentedKalmanFilter``: ``predict`` propagates sigma points drawn from the
-posterior and forms the prior (x⁻, P⁻ + Q); ``update`` re-draws sigma points
-from the prior, passes them through h, forms ŷ, S = P_yy + R, the cross
-covariance P_xy, K = P_xy S⁻¹, x⁺ = x⁻ + K ε, P⁺ = P⁻ − K S Kᵀ. The prior at
-``t[0]`` is ``(x0, P0)``: sample 0 is an update without a predict.
+``UnscentedKalmanFilter``:
 
-Means and covariances are formed from differences to the central sigma
-point. With Σ W^m = 1 and equal weights W off the centre, the weighted sums
-are exactly (d_i = χ_i − χ_0, m = W Σ d_i)::
+* :func:`predict` propagates sigma points drawn from the posterior through
+  the discretised state equations and forms the prior (x⁻, P⁻ + Q);
+* :func:`update` re-draws sigma points from the prior, passes them through
+  h, forms ŷ, S = P_yy + R, the cross covariance P_xy, K = P_xy S⁻¹,
+  x⁺ = x⁻ + K ε, P⁺ = P⁻ − K S Kᵀ, and adds the sample's NLL term.
 
-    mean = χ_0 + m,   cov = W Σ d_i d_iᵀ + (β − α²) m mᵀ
-
-which is the same quantity as Σ W_i^c (χ_i − mean)(χ_i − mean)ᵀ but does not
-subtract numbers of size 1/α² (about 10⁶ at α = 1e-3): the criterion stays
-accurate and smooth for α from 1e-3 to 1.
+The prior at ``t[0]`` is ``(x0, P0)``: sample 0 is an update without a
+predict.
 
 Likelihood (prediction-error decomposition; Schweppe 1965, Särkkä 2013
 ch. 12), over the samples k with at least one measured output::
@@ -45,10 +35,12 @@ Missing samples (NaN in an output) are skipped: the update uses the measured
 subset of outputs (rows and columns of R), and no update is made when
 nothing is measured.
 
-Discretisation between samples (inputs held over the interval):
-``"rk4"`` (classical Runge-Kutta with sub-steps) or ``"ros2"`` (the L-stable
-linearly implicit Rosenbrock method of :func:`bondgraph.numerics.integrators.ros2`,
-generated Jacobian evaluated once per sample interval).
+Discretisation between samples (inputs held over the interval,
+:func:`bondgraph.numerics.integrators.hold_inputs`): the transition of
+:func:`bondgraph.numerics.integrators.make_step`, ``"rk4"`` (classical
+Runge-Kutta with sub-steps) or ``"ros2"`` (the L-stable linearly implicit
+Rosenbrock method, generated Jacobian evaluated once per sample interval at
+the central sigma point of each parameter set, or at every sigma point).
 
 References
 ----------
@@ -64,109 +56,25 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from bondgraph.errors import DataError, ModelError, OptionError
-from bondgraph.numerics.integrators import GAMMA
+from bondgraph.inference.options import UKFOptions, ukf_options
+from bondgraph.inference.sigma import (
+    SigmaWeights,
+    cholesky_batch,
+    merwe_weights,
+    sigma_points,
+    unscented_moments,
+)
+from bondgraph.numerics.integrators import hold_inputs, make_step
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
-
-
-
-# --------------------------------------------------------------- weights
-@dataclass(frozen=True)
-class SigmaWeights:
-    """Scaled sigma-point weights (Merwe parametrisation).
-
-    Attributes
-    ----------
-    n : int
-        State dimension.
-    alpha, beta, kappa : float
-    lam : float
-        λ = α²(n + κ) − n.
-    c : float
-        Spread factor sqrt(n + λ): sigma points at x̂ ± c·L_i.
-    w : float
-        Weight of every non-central point, 1 / (2(n + λ)).
-    wm0, wc0 : float
-        Central weights for the mean and the covariance.
-    """
-
-    n: int
-    alpha: float
-    beta: float
-    kappa: float
-
-    @property
-    def lam(self) -> float:
-        return self.alpha ** 2 * (self.n + self.kappa) - self.n
-
-    @property
-    def c(self) -> float:
-        return float(np.sqrt(self.n + self.lam))
-
-    @property
-    def w(self) -> float:
-        return 0.5 / (self.n + self.lam)
-
-    @property
-    def wm0(self) -> float:
-        return self.lam / (self.n + self.lam)
-
-    @property
-    def wc0(self) -> float:
-        return self.wm0 + 1.0 - self.alpha ** 2 + self.beta
-
-    @property
-    def center_cov(self) -> float:
-        """Coefficient β − α² of m mᵀ in the difference form of the covariance."""
-        return self.beta - self.alpha ** 2
-
-    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(Wm, Wc)`` of length 2n+1, as filterpy's ``MerweScaledSigmaPoints``."""
-        Wm = np.full(2 * self.n + 1, self.w)
-        Wc = Wm.copy()
-        Wm[0] = self.wm0
-        Wc[0] = self.wc0
-        return Wm, Wc
-
-
-def merwe_weights(n: int, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0) -> SigmaWeights:
-    """Scaled sigma-point weights of Wan & van der Merwe (2000).
-
-    Parameters
-    ----------
-    n : int
-        State dimension (>= 1).
-    alpha : float
-        Spread, 0 < α <= 1 typically (1e-3 ... 1 supported).
-    beta : float
-        Prior-distribution term (2 is optimal for a Gaussian).
-    kappa : float
-        Secondary scaling; n + κ must be positive.
-
-    Returns
-    -------
-    SigmaWeights
-
-    Raises
-    ------
-    OptionError
-        If α <= 0 or n + κ <= 0.
-    """
-    if n < 1:
-        raise OptionError(f"sigma points need a state dimension >= 1, got {n}")
-    if not np.isfinite(alpha) or alpha <= 0:
-        raise OptionError(f"UKF alpha must be > 0, got {alpha}")
-    if not np.isfinite(kappa) or n + kappa <= 0:
-        raise OptionError(f"UKF kappa must make n + kappa > 0 (n = {n}), got kappa = {kappa}")
-    if not np.isfinite(beta):
-        raise OptionError(f"UKF beta must be finite, got {beta}")
-    return SigmaWeights(int(n), float(alpha), float(beta), float(kappa))
+#: UKFOptions.jacobian -> where integrators.ros2 evaluates df/dx
+_ROS2_JACOBIAN = {"mean": "shared", "sigma": "once"}
 
 
 # ---------------------------------------------------------------- result
@@ -250,48 +158,6 @@ class UKFResult:
 
 
 # ---------------------------------------------------------------- helpers
-def _cholesky_batch(A: np.ndarray, regularise: bool = True):
-    """Lower Cholesky factors of symmetric A (B, n, n).
-
-    A matrix that fails is retried with relative diagonal loading
-    A + ε diag(A), ε = 1e-12, 1e-9, 1e-6 (scale-invariant: each state in its own
-    units), which absorbs the rounding-level indefiniteness of covariances
-    contracted by fast stable modes without process noise. Returns
-    ``(L, ok (B,), n_regularised)``; failing entries of L are identity.
-    """
-    ok = np.isfinite(A).all(axis=(-2, -1))
-    if ok.all():
-        try:
-            return np.linalg.cholesky(A), ok, 0
-        except np.linalg.LinAlgError:
-            pass
-    L = np.zeros_like(A)
-    n = A.shape[-1]
-    nreg = 0
-    for b in np.flatnonzero(ok):
-        try:
-            L[b] = np.linalg.cholesky(A[b])
-            continue
-        except np.linalg.LinAlgError:
-            pass
-        done = False
-        if regularise:
-            d = np.diagonal(A[b]).copy()
-            if (d > 0).all():
-                for eps in (1e-12, 1e-9, 1e-6):
-                    try:
-                        L[b] = np.linalg.cholesky(A[b] + np.diag(eps * d))
-                        done = True
-                        nreg += 1
-                        break
-                    except np.linalg.LinAlgError:
-                        pass
-        if not done:
-            ok[b] = False
-    L[~ok] = np.eye(n)
-    return L, ok, nreg
-
-
 def _as_batch_matrix(M, P: int, n: int, what: str) -> np.ndarray | None:
     if M is None:
         return None
@@ -324,58 +190,6 @@ def default_P0(model, x0: np.ndarray | None = None, rel: float = 0.05) -> np.nda
     x0 = model.x0 if x0 is None else np.asarray(x0, dtype=float)
     sd = rel * np.maximum(np.abs(x0), 1.0)
     return np.diag(sd ** 2)
-
-
-def _transition(model, method: str, substeps: int, jacobian: str = "mean"):
-    """Batched x(t+dt) for sigma points; see :mod:`bondgraph.numerics.integrators`."""
-    if substeps < 1:
-        raise OptionError(f"substeps must be >= 1, got {substeps}")
-    f = model.f
-    if method == "rk4":
-        def step(x, u, th, dt):
-            h = dt / substeps
-            for _ in range(substeps):
-                k1 = f(x, u, th)
-                k2 = f(x + (0.5 * h) * k1, u, th)
-                k3 = f(x + (0.5 * h) * k2, u, th)
-                k4 = f(x + h * k3, u, th)
-                x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-            return x
-        return step
-    if method == "ros2":
-        f_dfdx = model.f_dfdx
-        n = model.n_x
-        eye = np.eye(n)
-        if jacobian not in ("mean", "sigma"):
-            raise OptionError(f"unknown ROS2 Jacobian option '{jacobian}' (use 'mean' or 'sigma')")
-
-        def step(x, u, th, dt):
-            h = dt / substeps
-            if jacobian == "sigma" or x.ndim < 3:
-                F0, J = f_dfdx(x, u, th)
-                Winv = np.linalg.inv(eye - (GAMMA * h) * J)          # (..., n, n)
-                def solve(r):
-                    return (Winv @ r[..., None])[..., 0]
-            else:
-                # W-method: one Jacobian per parameter set, at the central
-                # sigma point, shared by all its sigma points
-                _, J = f_dfdx(x[:, 0], u, th[:, 0])                 # (P, n, n)
-                WinvT = np.swapaxes(np.linalg.inv(eye - (GAMMA * h) * J), -1, -2)
-                F0 = f(x, u, th)
-
-                def solve(r):
-                    return r @ WinvT                                # (P, 2n+1, n)
-            for s_ in range(substeps):
-                if s_ > 0:
-                    F0 = f(x, u, th)
-                # W k1 = F0 ; W k2 = f(x + h k1) - 2 k1  (ROS2, frozen W)
-                k1 = solve(F0)
-                F1 = f(x + h * k1, u, th)
-                k2 = solve(F1 - 2.0 * k1)
-                x = x + (1.5 * h) * k1 + (0.5 * h) * k2
-            return x
-        return step
-    raise OptionError(f"unknown discretisation method '{method}' (use 'rk4' or 'ros2')")
 
 
 def _check_inputs(model, t, u, y):
@@ -416,11 +230,342 @@ def _check_inputs(model, t, u, y):
     return t, u, y
 
 
+def _check_theta(model, theta) -> np.ndarray:
+    """Parameter sets as an array (P, n_theta).
+
+    Raises
+    ------
+    ModelError
+        Wrong shape.
+    """
+    th = np.asarray(theta, dtype=float)
+    if th.ndim == 1:
+        th = th[None, :]
+    if th.ndim != 2 or th.shape[1] != model.n_theta:
+        raise ModelError(f"theta must have shape (P, {model.n_theta}) for model '{model.name}' "
+                         f"(parameters {model.params}), got {np.shape(theta)}")
+    return th
+
+
+def _priors(model, Pn: int, x0, P0, Q, R):
+    """Prior mean (P, n) and covariance (P, n, n) at t[0], and the noise
+    matrices Q (P, n, n), R (P, n_y, n_y) (None when not given).
+
+    Raises
+    ------
+    OptionError
+        Wrong shapes.
+    """
+    n = model.n_x
+    x0 = model.x0 if x0 is None else np.asarray(x0, dtype=float)
+    if x0.shape == (n,):
+        x = np.broadcast_to(x0, (Pn, n)).copy()
+    elif x0.shape == (Pn, n):
+        x = x0.copy()
+    else:
+        raise OptionError(f"x0 must have shape ({n},) or ({Pn}, {n}), got {x0.shape}")
+    P0 = default_P0(model, x0 if x0.ndim == 1 else None) if P0 is None else P0
+    P = np.array(_as_batch_matrix(P0, Pn, n, "P0"), dtype=float)
+    return x, P, _as_batch_matrix(Q, Pn, n, "Q"), _as_batch_matrix(R, Pn, model.n_y, "R")
+
+
+# ------------------------------------------------------------- the batch
+class FilterBatch:
+    """The parameter sets of one filter run: the working arrays of the sets
+    still active and the bookkeeping of the failed ones.
+
+    The working arrays hold the active sets only, in the order of ``act``
+    (indices into the whole batch); a failing set is dropped from all of
+    them at once by :meth:`drop`, which records when and why it failed.
+
+    Attributes
+    ----------
+    act : ndarray of int (A,)
+        Active sets.
+    x, P : ndarray (A, n), (A, n, n)
+        Current mean and covariance of the active sets.
+    th : ndarray (A, n_theta)
+    q2 : ndarray (A, n)
+        Process-noise intensities proc_std(θ)² (variance per second).
+    Q, R : ndarray (A, n, n), (A, n_y, n_y) or None
+        Given noise matrices.
+    Rd : ndarray (A, n_y) or None
+        Measurement-noise variances meas_std(θ)² (when R is not given).
+    nll : ndarray (P,)
+        Accumulated NLL of every set (+inf once failed).
+    failed, fail_step, reasons :
+        Which set failed, at which sample index (-1: did not) and why.
+    n_reg : int
+        Covariances that needed diagonal loading to factorise.
+    """
+
+    def __init__(self, model, t: np.ndarray, th: np.ndarray, x, P, Q, R):
+        Pn = th.shape[0]
+        self.t = t
+        self.nll = np.zeros(Pn)
+        self.failed = np.zeros(Pn, dtype=bool)
+        self.fail_step = np.full(Pn, -1, dtype=int)
+        self.reasons: list[Any] = [None] * Pn
+        self.n_reg = 0
+        q2, Rd = self._check_parameters(model, th, R is None)
+        act = np.flatnonzero(~self.failed)
+        self.act = act
+        self.x, self.P, self.th, self.q2 = x[act], P[act], th[act], q2[act]
+        self.Q = None if Q is None else np.asarray(Q)[act]
+        self.R = None if R is None else np.asarray(R)[act]
+        self.Rd = None if Rd is None else Rd[act]
+
+    def _check_parameters(self, model, th, need_r: bool):
+        """Fail (at sample 0) the sets with a non-finite parameter, process
+        noise or measurement-noise variance; returns ``(q2, Rd)``."""
+        for p in np.flatnonzero(~np.isfinite(th).all(axis=1)):
+            j = int(np.flatnonzero(~np.isfinite(th[p]))[0])
+            self._fail_at_start(p, f"non-finite parameter '{model.params[j]}' = {th[p, j]}")
+        with np.errstate(all="ignore"):
+            q2 = np.asarray(model.proc_std(th), dtype=float) ** 2          # (P, n)
+            Rd = np.asarray(model.meas_std(th), dtype=float) ** 2 if need_r else None
+        for p in np.flatnonzero(~np.isfinite(q2).all(axis=1) & ~self.failed):
+            self._fail_at_start(p, "non-finite process-noise intensity proc_std(theta)")
+        if Rd is not None:
+            bad = ~np.isfinite(Rd).all(axis=1) | (Rd <= 0).any(axis=1)
+            for p in np.flatnonzero(bad & ~self.failed):
+                self._fail_at_start(p, "measurement-noise variance meas_std(theta)**2 not "
+                                       "positive")
+        return q2, Rd
+
+    def _fail_at_start(self, p: int, why: str) -> None:
+        self.failed[p], self.fail_step[p] = True, 0
+        self.reasons[p] = f"sample 0: {why}"
+
+    @property
+    def size(self) -> int:
+        """Number of active sets."""
+        return int(self.act.size)
+
+    @property
+    def th_b(self) -> np.ndarray:
+        """Parameters of the active sets with a sigma-point axis, (A, 1, n_theta)."""
+        return self.th[:, None, :]
+
+    def drop(self, bad: np.ndarray, k: int, why: str) -> np.ndarray:
+        """Fail the active sets where ``bad`` (A,) at sample ``k``; returns
+        the mask of the sets kept (to filter the caller's own arrays)."""
+        for a in np.flatnonzero(bad):
+            p = self.act[a]
+            self.failed[p], self.fail_step[p] = True, k
+            self.nll[p] = np.inf
+            self.reasons[p] = f"sample {k} (t = {self.t[k]:.6g} s): {why}"
+        keep = ~bad
+        self.act = self.act[keep]
+        for name in ("x", "P", "th", "q2", "Q", "R", "Rd"):
+            v = getattr(self, name)
+            if v is not None:
+                setattr(self, name, v[keep])
+        return keep
+
+    def result(self, model, t: np.ndarray, y: np.ndarray, settings: dict) -> UKFResult:
+        """The :class:`UKFResult` of the run (NLL +inf for the failed sets)."""
+        self.nll[self.failed] = np.inf
+        return UKFResult(nll=self.nll, failed=self.failed, reasons=self.reasons,
+                         fail_step=self.fail_step, n_obs=np.isfinite(y).sum(axis=1), t=t,
+                         outputs=list(model.outputs), states=list(model.states),
+                         settings=settings)
+
+    def sigma_points(self, k: int, what: str, c: float) -> tuple[np.ndarray, np.ndarray]:
+        """Sigma points of the active sets (:func:`bondgraph.inference.sigma.sigma_points`);
+        a set whose covariance cannot be factorised is dropped first."""
+        L, ok, nr = cholesky_batch(self.P)
+        self.n_reg += nr
+        if not ok.all():
+            L = L[self.drop(~ok, k, f"{what} covariance P not positive definite")]
+        return sigma_points(self.x, L, c)
+
+
+# -------------------------------------------------------- predict / update
+def predict(batch: FilterBatch, step: Callable, u: np.ndarray, dt: float, wts: SigmaWeights,
+            k: int) -> None:
+    """Prediction from sample k−1 to k (Wan & van der Merwe 2000).
+
+    Sigma points of the posterior at k−1 go through the transition ``step``
+    (input ``u`` held over the interval ``dt``); their unscented mean and
+    covariance plus the process noise, ``diag(proc_std(θ)²)·dt`` and the
+    given ``Q``, are the prior at k (``batch.x``, ``batch.P``). Sets whose
+    posterior covariance is not positive definite or whose propagated
+    sigma points are not finite are dropped.
+    """
+    chi, _ = batch.sigma_points(k, "posterior", wts.c)
+    if not batch.size:
+        return
+    with np.errstate(all="ignore"):
+        X = step(chi, u, batch.th_b, dt)
+    fin = np.isfinite(X).all(axis=(1, 2))
+    if not fin.all():
+        X = X[batch.drop(~fin, k, "non-finite state in the prediction (sigma point diverged)")]
+        if not batch.size:
+            return
+    x, P, _ = unscented_moments(X, wts)
+    n = x.shape[1]
+    P.reshape(P.shape[0], n * n)[:, ::n + 1] += batch.q2 * dt
+    if batch.Q is not None:
+        P += batch.Q
+    batch.x, batch.P = x, P
+
+
+@dataclass
+class Innovation:
+    """What one :func:`update` computed for the active sets (A) over the
+    measured outputs (m).
+
+    Attributes
+    ----------
+    idx : ndarray of int (m,) or None
+        The measured outputs (None: all of them).
+    eps, yhat : ndarray (A, m)
+        Innovations ε = y − ŷ and predicted outputs ŷ.
+    S : ndarray (A, m, m)
+        Innovation covariances.
+    term, maha : ndarray (A,)
+        NLL contributions and ε S⁻¹ ε.
+    """
+
+    idx: np.ndarray | None
+    eps: np.ndarray
+    yhat: np.ndarray
+    S: np.ndarray
+    term: np.ndarray
+    maha: np.ndarray
+
+
+def update(batch: FilterBatch, model, u: np.ndarray, y: np.ndarray, wts: SigmaWeights,
+           k: int) -> Innovation | None:
+    """Measurement update at sample k with the measured outputs of ``y`` (n_y,).
+
+    Sigma points of the prior go through h; the unscented mean ŷ, the
+    innovation covariance S = P_yy + R and the cross covariance P_xy give
+    the gain; the sample's NLL term is added to ``batch.nll``. Sets with a
+    non-finite h or an S that is not positive definite are dropped.
+
+    Returns
+    -------
+    Innovation, or None when no set is left.
+    """
+    chi, cL = batch.sigma_points(k, "prior", wts.c)
+    if not batch.size:
+        return None
+    with np.errstate(all="ignore"):
+        Y = model.h(chi, u, batch.th_b)                               # (A, 2n+1, ny)
+    obs = np.isfinite(y)
+    idx = None if obs.all() else np.flatnonzero(obs)
+    if idx is not None:
+        Y, y = Y[..., idx], y[idx]
+    fin = np.isfinite(Y).all(axis=(1, 2))
+    if not fin.all():
+        keep = batch.drop(~fin, k, "non-finite predicted output h(sigma point)")
+        Y, cL = Y[keep], cL[keep]
+        if not batch.size:
+            return None
+    yhat, S, E = unscented_moments(Y, wts)
+    _add_measurement_noise(S, batch, idx)
+    # cross covariance: sigma points are symmetric about x, so
+    # P_xy = W Σ_i cL_i (E_+i − E_−i)ᵀ exactly (the mean term vanishes)
+    n = cL.shape[1]
+    Pxy = wts.w * (np.swapaxes(cL, 1, 2) @ (E[:, :n] - E[:, n:]))
+    Ls, ok, nr = cholesky_batch(S)
+    batch.n_reg += nr
+    if not ok.all():
+        keep = batch.drop(~ok, k, "innovation covariance S not positive definite")
+        Ls, S, Pxy, yhat = Ls[keep], S[keep], Pxy[keep], yhat[keep]
+        if not batch.size:
+            return None
+    return _correct(batch, Ls, S, Pxy, y - yhat, yhat, idx)
+
+
+def _add_measurement_noise(S: np.ndarray, batch: FilterBatch, idx) -> None:
+    """S += R over the measured outputs ``idx`` (in place)."""
+    if batch.Rd is not None:
+        rd = batch.Rd if idx is None else batch.Rd[:, idx]
+        mm = rd.shape[1]
+        S.reshape(S.shape[0], mm * mm)[:, ::mm + 1] += rd
+    else:
+        S += batch.R if idx is None else batch.R[:, idx][:, :, idx]
+
+
+def _correct(batch: FilterBatch, Ls, S, Pxy, eps, yhat, idx) -> Innovation:
+    """Kalman correction and NLL term from the Cholesky factor Ls of S."""
+    n, mm = Pxy.shape[1], eps.shape[1]
+    # one triangular solve for [Pxyᵀ | ε]: G = Pxy Ls⁻ᵀ, z = Ls⁻¹ ε
+    rhs = np.concatenate([np.swapaxes(Pxy, 1, 2), eps[:, :, None]], axis=2)
+    sol = np.linalg.solve(Ls, rhs)
+    Gt, z = sol[:, :, :n], sol[:, :, n]
+    logdet = 2.0 * np.log(np.diagonal(Ls, axis1=1, axis2=2)).sum(axis=1)
+    maha = (z * z).sum(axis=1)
+    term = 0.5 * (logdet + maha + mm * LOG_2PI)
+    batch.nll[batch.act] += term
+    GtT = np.swapaxes(Gt, 1, 2)
+    batch.x = batch.x + (GtT @ z[:, :, None])[:, :, 0]
+    P = batch.P - GtT @ Gt
+    batch.P = 0.5 * (P + np.swapaxes(P, 1, 2))
+    return Innovation(idx, eps, yhat, S, term, maha)
+
+
+# ------------------------------------------------------------------ storage
+class FilterStorage:
+    """The per-sample arrays of ``store=True`` (see :class:`UKFResult`):
+    NaN where nothing was computed."""
+
+    def __init__(self, N: int, Pn: int, model, *, full: bool):
+        n, ny = model.n_x, model.n_y
+        self.innovations = np.full((N, Pn, ny), np.nan)
+        self.S = np.full((N, Pn, ny, ny), np.nan)
+        self.y_pred = np.full((N, Pn, ny), np.nan)
+        self.y_filt = np.full((N, Pn, ny), np.nan)
+        self.x_filt = np.full((N, Pn, n), np.nan)
+        self.P_filt = np.full((N, Pn, n, n), np.nan) if full else None
+        self.nll_terms = np.zeros((N, Pn))
+        self.nis = np.full((N, Pn), np.nan)
+
+    def innovation(self, k: int, act: np.ndarray, inn: Innovation) -> None:
+        """Store an update's innovations, predictions, S, NLL terms and NIS."""
+        if inn.idx is None:
+            self.innovations[k, act] = inn.eps
+            self.y_pred[k, act] = inn.yhat
+            self.S[k, act] = inn.S
+        else:
+            ny, idx = self.innovations.shape[2], inn.idx
+            tmp = np.full((act.size, ny), np.nan)
+            tmp[:, idx] = inn.eps
+            self.innovations[k, act] = tmp
+            tmp = np.full((act.size, ny), np.nan)
+            tmp[:, idx] = inn.yhat
+            self.y_pred[k, act] = tmp
+            tmpS = np.full((act.size, ny, ny), np.nan)
+            tmpS[:, idx[:, None], idx[None, :]] = inn.S
+            self.S[k, act] = tmpS
+        self.nll_terms[k, act] = inn.term
+        self.nis[k, act] = inn.maha
+
+    def filtered(self, k: int, batch: FilterBatch, model, u: np.ndarray) -> None:
+        """Store the filtered states, their outputs and covariances at k."""
+        self.x_filt[k, batch.act] = batch.x
+        with np.errstate(all="ignore"):
+            self.y_filt[k, batch.act] = model.h(batch.x, u, batch.th)
+        if self.P_filt is not None:
+            self.P_filt[k, batch.act] = batch.P
+
+    def into(self, res: UKFResult) -> None:
+        """Blank every sample from a set's failure on and attach the arrays to ``res``."""
+        for arr in (self.innovations, self.S, self.y_pred, self.y_filt, self.x_filt, self.nis):
+            for p in np.flatnonzero(res.failed):
+                arr[res.fail_step[p]:, p] = np.nan
+        res.innovations, res.S, res.y_pred, res.y_filt = (self.innovations, self.S,
+                                                          self.y_pred, self.y_filt)
+        res.x_filt, res.P_filt = self.x_filt, self.P_filt
+        res.nll_terms, res.nis = self.nll_terms, self.nis
+
+
 # ------------------------------------------------------------------ filter
-def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
-            alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
-            method: str = "ros2", substeps: int = 1, jacobian: str = "mean",
-            hold: str = "zoh", store: bool | str = False) -> UKFResult:
+def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | None = None,
+            Q=None, R=None, store: bool | str = False) -> UKFResult:
     """Run the batched UKF over a record and return the NLL of each parameter set.
 
     Parameters
@@ -431,8 +576,8 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
     t : array (N,)
         Sample times [s], strictly increasing (the step may vary).
     u : array (N, n_u) or None
-        Inputs at the samples in model units, held constant from t_k to
-        t_k+1 (zero-order hold). None: the model's default inputs.
+        Inputs at the samples in model units (None: the model's defaults),
+        held over each interval as ``options.hold`` says.
     y : array (N, n_y)
         Measured outputs in model units; NaN marks a missing sample.
     theta : array (P, n_theta) or (n_theta,)
@@ -441,30 +586,15 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
         Prior mean of the state at ``t[0]`` (default ``model.x0``).
     P0 : array (n_x, n_x), (P, n_x, n_x) or (n_x,) (diagonal), optional
         Prior covariance at ``t[0]`` (default :func:`default_P0`).
+    options : UKFOptions, optional
+        Sigma-point scaling, discretisation and input hold (default
+        ``UKFOptions()``: α = 1, β = 2, κ = 0, ROS2 with one step per
+        sample and the Jacobian at the central sigma point, zero-order hold).
     Q : array (n_x, n_x) or (P, n_x, n_x), optional
         Extra discrete process-noise covariance added at every predict, on
         top of ``diag(proc_std(theta)**2) * dt``.
     R : array (n_y, n_y) or (P, n_y, n_y), optional
         Measurement-noise covariance (default ``diag(meas_std(theta)**2)``).
-    alpha, beta, kappa : float
-        Scaled sigma-point parameters (Wan & van der Merwe 2000).
-    method : {"ros2", "rk4"}
-        Discretisation of the prediction between samples.
-    substeps : int
-        Integration steps per sample interval.
-    jacobian : {"mean", "sigma"}
-        ROS2 only: evaluate df/dx once per parameter set at the central
-        sigma point and share W⁻¹ = (I − γh J)⁻¹ among its sigma points
-        (default; ROS2 is a W-method, second order for any J), or at every
-        sigma point (``"sigma"``, 2n+1 times the Jacobian cost).
-    hold : {"zoh", "mean"}
-        Input over a prediction interval [t_k, t_k+1]: ``u_k`` (zero-order
-        hold, the sampled-data convention) or ``(u_k + u_k+1)/2`` (the
-        interval mean of a linearly interpolated input). For records of
-        continuous inputs (ramps) the zero-order hold lags them by half a
-        sample on average: a model error that biases inertias (the vehicle's
-        engine inertia came out 3 % = 4 standard deviations low on the
-        synthetic throttle-steps record with "zoh", within 1 with "mean").
     store : bool or "full"
         Keep innovations, S, predicted and filtered outputs, filtered
         states, per-sample NLL terms and NIS (``"full"``: also the filtered
@@ -473,257 +603,45 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, Q=None, R=None,
     Returns
     -------
     UKFResult
-        ``nll`` (P,) and, when stored, arrays (N, P, ...).
+        ``nll`` (P,) and, when stored, arrays (N, P, ...). A set that fails
+        gets +inf and a reason; the failure never raises.
 
     Raises
     ------
     DataError
         Non-increasing or non-finite times, non-finite inputs, infinite
         outputs or wrong array shapes.
+    ModelError
+        ``theta`` of the wrong shape.
     OptionError
-        Invalid α, κ, method, substeps or noise-matrix shapes.
-
-    Notes
-    -----
-    A parameter set that fails (non-finite parameter, non-finite propagated
-    sigma point, a covariance P or an innovation covariance S that is not
-    positive definite) gets +inf and a reason; the failure never raises.
-    Cost per sample: one Cholesky of (P, n, n) for the prior sigma points,
-    one for the update, one of (P, m, m) for S, and ``substeps`` x 2 (ROS2)
-    or x 4 (RK4) calls of ``f`` on (P, 2n+1, n) arrays.
+        ``options`` not a :class:`UKFOptions`, n + κ <= 0, or wrong shapes
+        of ``x0``, ``P0``, ``Q``, ``R``.
     """
+    opts = ukf_options(options)
     t, u, y = _check_inputs(model, t, u, y)
-    if hold == "zoh":
-        u_pred = u
-    elif hold == "mean":
-        u_pred = u.copy()
-        u_pred[:-1] = 0.5 * (u[:-1] + u[1:])
-    else:
-        raise OptionError(f"unknown input hold '{hold}' (use 'zoh' or 'mean')")
-    th = np.asarray(theta, dtype=float)
-    if th.ndim == 1:
-        th = th[None, :]
-    if th.ndim != 2 or th.shape[1] != model.n_theta:
-        raise ModelError(f"theta must have shape (P, {model.n_theta}) for model '{model.name}' "
-                         f"(parameters {model.params}), got {np.shape(theta)}")
-    Pn, n, ny, N = th.shape[0], model.n_x, model.n_y, t.size
-    wts = merwe_weights(n, alpha, beta, kappa)
-    step = _transition(model, method, int(substeps), jacobian)
-    c, w, cc = wts.c, wts.w, wts.center_cov
-
-    # ---- priors
-    x0 = model.x0 if x0 is None else np.asarray(x0, dtype=float)
-    if x0.shape == (n,):
-        x = np.broadcast_to(x0, (Pn, n)).copy()
-    elif x0.shape == (Pn, n):
-        x = x0.copy()
-    else:
-        raise OptionError(f"x0 must have shape ({n},) or ({Pn}, {n}), got {x0.shape}")
-    P0 = default_P0(model, x0 if x0.ndim == 1 else None) if P0 is None else P0
-    Pc = np.array(_as_batch_matrix(P0, Pn, n, "P0"), dtype=float)
-    Qx = _as_batch_matrix(Q, Pn, n, "Q")
-    Rfix = _as_batch_matrix(R, Pn, ny, "R")
-
-    # ---- bookkeeping
-    nll = np.zeros(Pn)
-    failed = np.zeros(Pn, dtype=bool)
-    fail_step = np.full(Pn, -1, dtype=int)
-    reasons: list[Any] = [None] * Pn
-    bad_th = ~np.isfinite(th).all(axis=1)
-    for p in np.flatnonzero(bad_th):
-        j = int(np.flatnonzero(~np.isfinite(th[p]))[0])
-        failed[p], fail_step[p] = True, 0
-        reasons[p] = f"sample 0: non-finite parameter '{model.params[j]}' = {th[p, j]}"
-    with np.errstate(all="ignore"):
-        q2 = np.asarray(model.proc_std(th), dtype=float) ** 2          # (P, n)
-        Rdiag = np.asarray(model.meas_std(th), dtype=float) ** 2 if Rfix is None else None
-    bad_q = ~np.isfinite(q2).all(axis=1) & ~failed
-    for p in np.flatnonzero(bad_q):
-        failed[p], fail_step[p] = True, 0
-        reasons[p] = "sample 0: non-finite process-noise intensity proc_std(theta)"
-    if Rdiag is not None:
-        bad_r = (~np.isfinite(Rdiag).all(axis=1) | (Rdiag <= 0).any(axis=1)) & ~failed
-        for p in np.flatnonzero(bad_r):
-            failed[p], fail_step[p] = True, 0
-            reasons[p] = "sample 0: measurement-noise variance meas_std(theta)**2 not positive"
-    act = np.flatnonzero(~failed)                                      # active set indices
-
-    obs = np.isfinite(y)
-    n_obs = obs.sum(axis=1)
-    full_obs = n_obs == ny
+    u_held = hold_inputs(u, opts.hold)
+    th = _check_theta(model, theta)
+    wts = merwe_weights(model.n_x, opts.alpha, opts.beta, opts.kappa)
+    step = make_step(model, opts.method, opts.substeps, jacobian=_ROS2_JACOBIAN[opts.jacobian])
+    batch = FilterBatch(model, t, th, *_priors(model, th.shape[0], x0, P0, Q, R))
+    kept = FilterStorage(t.size, th.shape[0], model, full=store == "full") if store else None
     dts = np.diff(t)
-
-    st = bool(store)
-    if st:
-        nanf = np.full
-        inn = nanf((N, Pn, ny), np.nan)
-        S_st = nanf((N, Pn, ny, ny), np.nan)
-        yp_st = nanf((N, Pn, ny), np.nan)
-        yf_st = nanf((N, Pn, ny), np.nan)
-        xf_st = nanf((N, Pn, n), np.nan)
-        Pf_st = nanf((N, Pn, n, n), np.nan) if store == "full" else None
-        terms = np.zeros((N, Pn))
-        nis = nanf((N, Pn), np.nan)
-
-    # active working arrays
-    x = x[act]
-    Pc = Pc[act]
-    tha = th[act]
-    th_b = tha[:, None, :]                                             # (A, 1, nθ)
-    q2a = q2[act]
-    Qa = None if Qx is None else np.asarray(Qx)[act]
-    Ra_full = None if Rfix is None else np.asarray(Rfix)[act]
-    Rda = None if Rdiag is None else Rdiag[act]
-    n_reg = 0
-
-    def drop(mask_bad, k, why):
-        """Mark active sets (mask over the active arrays) as failed."""
-        nonlocal act, x, Pc, tha, th_b, q2a, Qa, Ra_full, Rda
-        for a in np.flatnonzero(mask_bad):
-            p = act[a]
-            failed[p], fail_step[p] = True, k
-            nll[p] = np.inf
-            reasons[p] = f"sample {k} (t = {t[k]:.6g} s): {why}"
-        keep = ~mask_bad
-        act = act[keep]
-        x, Pc, tha = x[keep], Pc[keep], tha[keep]
-        th_b = tha[:, None, :]
-        q2a = q2a[keep]
-        Qa = None if Qa is None else Qa[keep]
-        Ra_full = None if Ra_full is None else Ra_full[keep]
-        Rda = None if Rda is None else Rda[keep]
-        return keep
-
-    def sigma_points(k, what):
-        nonlocal n_reg
-        L, ok, nr = _cholesky_batch(Pc)
-        n_reg += nr
-        if not ok.all():
-            keep = drop(~ok, k, f"{what} covariance P not positive definite")
-            L = L[keep]
-        cL = c * np.swapaxes(L, -1, -2)                                # rows = scaled columns of L
-        chi = np.empty((x.shape[0], 2 * n + 1, n))
-        chi[:, 0] = x
-        chi[:, 1:n + 1] = x[:, None, :] + cL
-        chi[:, n + 1:] = x[:, None, :] - cL
-        return chi, cL
-
-    for k in range(N):
-        if act.size == 0:
+    for k in range(t.size):
+        if k > 0 and batch.size:
+            predict(batch, step, u_held[k - 1], dts[k - 1], wts, k)
+        if not batch.size:
             break
-        # ------------------------------------------------ predict (k-1 -> k)
-        if k > 0:
-            dt = dts[k - 1]
-            chi, _ = sigma_points(k, "posterior")
-            if act.size == 0:
+        if np.isfinite(y[k]).any():
+            inn = update(batch, model, u[k], y[k], wts, k)
+            if inn is None:
                 break
-            with np.errstate(all="ignore"):
-                X = step(chi, u_pred[k - 1], th_b, dt)
-            fin = np.isfinite(X).all(axis=(1, 2))
-            if not fin.all():
-                keep = drop(~fin, k, "non-finite state in the prediction (sigma point diverged)")
-                X = X[keep]
-                if act.size == 0:
-                    break
-            D = X[:, 1:] - X[:, :1]                                    # (A, 2n, n)
-            m = w * D.sum(axis=1)                                      # (A, n)
-            x = X[:, 0] + m
-            Pc = w * (np.swapaxes(D, 1, 2) @ D) + cc * (m[:, :, None] * m[:, None, :])
-            Pc.reshape(Pc.shape[0], n * n)[:, ::n + 1] += q2a * dt
-            if Qa is not None:
-                Pc += Qa
-        # ------------------------------------------------ update at k
-        if n_obs[k] > 0:
-            chi, cL = sigma_points(k, "prior")
-            if act.size == 0:
-                break
-            with np.errstate(all="ignore"):
-                Y = model.h(chi, u[k], th_b)                           # (A, 2n+1, ny)
-            if full_obs[k]:
-                idx = None
-                yk = y[k]
-            else:
-                idx = np.flatnonzero(obs[k])
-                Y = Y[..., idx]
-                yk = y[k, idx]
-            fin = np.isfinite(Y).all(axis=(1, 2))
-            if not fin.all():
-                keep = drop(~fin, k, "non-finite predicted output h(sigma point)")
-                Y, cL = Y[keep], cL[keep]
-                if act.size == 0:
-                    break
-            E = Y[:, 1:] - Y[:, :1]                                    # (A, 2n, m)
-            my = w * E.sum(axis=1)
-            yhat = Y[:, 0] + my
-            S = w * (np.swapaxes(E, 1, 2) @ E) + cc * (my[:, :, None] * my[:, None, :])
-            if Rda is not None:
-                rd = Rda if idx is None else Rda[:, idx]
-                mm = rd.shape[1]
-                S.reshape(S.shape[0], mm * mm)[:, ::mm + 1] += rd
-            else:
-                S += Ra_full if idx is None else Ra_full[:, idx][:, :, idx]
-            # cross covariance: sigma points are symmetric about x, so
-            # P_xy = W Σ_i cL_i (E_+i − E_−i)ᵀ exactly (the mean term vanishes)
-            Pxy = w * (np.swapaxes(cL, 1, 2) @ (E[:, :n] - E[:, n:]))
-            Ls, ok, nr = _cholesky_batch(S)
-            n_reg += nr
-            if not ok.all():
-                keep = drop(~ok, k, "innovation covariance S not positive definite")
-                Ls, S, Pxy, yhat = Ls[keep], S[keep], Pxy[keep], yhat[keep]
-                if act.size == 0:
-                    break
-            eps = yk - yhat                                            # (A, m)
-            mm = eps.shape[1]
-            # one triangular solve for [Pxyᵀ | ε]: G = Pxy Ls⁻ᵀ, z = Ls⁻¹ ε
-            rhs = np.concatenate([np.swapaxes(Pxy, 1, 2), eps[:, :, None]], axis=2)
-            sol = np.linalg.solve(Ls, rhs)
-            Gt, z = sol[:, :, :n], sol[:, :, n]
-            logdet = 2.0 * np.log(np.diagonal(Ls, axis1=1, axis2=2)).sum(axis=1)
-            maha = (z * z).sum(axis=1)
-            term = 0.5 * (logdet + maha + mm * LOG_2PI)
-            nll[act] += term
-            GtT = np.swapaxes(Gt, 1, 2)
-            x = x + (GtT @ z[:, :, None])[:, :, 0]
-            Pc = Pc - GtT @ Gt
-            Pc = 0.5 * (Pc + np.swapaxes(Pc, 1, 2))
-            if st:
-                sel = slice(None) if idx is None else idx
-                if idx is None:
-                    inn[k, act] = eps
-                    yp_st[k, act] = yhat
-                    S_st[k, act] = S
-                else:
-                    tmp = np.full((act.size, ny), np.nan)
-                    tmp[:, idx] = eps
-                    inn[k, act] = tmp
-                    tmp = np.full((act.size, ny), np.nan)
-                    tmp[:, idx] = yhat
-                    yp_st[k, act] = tmp
-                    tmpS = np.full((act.size, ny, ny), np.nan)
-                    tmpS[:, sel[:, None], sel[None, :]] = S
-                    S_st[k, act] = tmpS
-                terms[k, act] = term
-                nis[k, act] = maha
-        if st:
-            xf_st[k, act] = x
-            with np.errstate(all="ignore"):
-                yf_st[k, act] = model.h(x, u[k], tha)
-            if Pf_st is not None:
-                Pf_st[k, act] = Pc
-        # a non-finite posterior is caught by the next Cholesky (finite check)
-
-    nll[failed] = np.inf
-    res = UKFResult(nll=nll, failed=failed, reasons=reasons, fail_step=fail_step, n_obs=n_obs,
-                    t=t, outputs=list(model.outputs), states=list(model.states),
-                    settings=dict(alpha=alpha, beta=beta, kappa=kappa, method=method,
-                                  substeps=int(substeps), jacobian=jacobian, hold=hold,
-                                  n_regularised=int(n_reg)))
-    if st:
-        for arr in (inn, S_st, yp_st, yf_st, xf_st, nis):
-            for p in np.flatnonzero(failed):
-                arr[fail_step[p]:, p] = np.nan
-        res.innovations, res.S, res.y_pred, res.y_filt = inn, S_st, yp_st, yf_st
-        res.x_filt, res.P_filt, res.nll_terms, res.nis = xf_st, Pf_st, terms, nis
+            if kept is not None:
+                kept.innovation(k, batch.act, inn)
+        if kept is not None:
+            kept.filtered(k, batch, model, u[k])
+    res = batch.result(model, t, y, settings=dict(opts.to_dict(), n_regularised=batch.n_reg))
+    if kept is not None:
+        kept.into(res)
     return res
 
 
@@ -792,19 +710,9 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
     u = np.asarray(u, float)
     th = np.asarray(theta, float)[None, :]
     x = (model.x0 if x0 is None else np.asarray(x0, float))[None, :]
-    step = _transition(model, method, substeps)
-    refm = reference_method
-    ref = None
+    step = make_step(model, method, substeps)
     with np.errstate(all="ignore"):
-        for cand in ([refm] if refm else ["rk4", "ros2"]):
-            rstep = _transition(model, cand, reference_substeps)
-            xr = [x]
-            for k in range(t.size - 1):
-                xr.append(rstep(xr[-1], u[k], th, t[k + 1] - t[k]))
-            xr = np.concatenate(xr)
-            if np.isfinite(xr).all():
-                ref = cand
-                break
+        xr, ref = _reference_trajectory(model, t, u, th, x, reference_method, reference_substeps)
         if ref is None:
             return dict(one_step=np.full(model.n_y, np.inf), free_run=np.full(model.n_y, np.inf),
                         reference=None)
@@ -820,3 +728,18 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
             one = np.maximum(one, np.abs(model.h(xs, u[k + 1], th)[0] - yr) / sig)
             free = np.maximum(free, np.abs(model.h(xf, u[k + 1], th)[0] - yr) / sig)
     return dict(one_step=one, free_run=np.where(np.isfinite(free), free, np.inf), reference=ref)
+
+
+def _reference_trajectory(model, t, u, th, x, method, substeps):
+    """``(states (N, n_x), method)`` of the fine reference of
+    :func:`discretisation_check`: ``method`` (default RK4 if its trajectory
+    is finite, else ROS2) with ``substeps``; ``(None, None)`` if none is finite."""
+    for cand in ([method] if method else ["rk4", "ros2"]):
+        rstep = make_step(model, cand, substeps)
+        xr = [x]
+        for k in range(t.size - 1):
+            xr.append(rstep(xr[-1], u[k], th, t[k + 1] - t[k]))
+        xr = np.concatenate(xr)
+        if np.isfinite(xr).all():
+            return xr, cand
+    return None, None

@@ -16,8 +16,15 @@ every parameter set in one call.
 
   It keeps order 2 for any matrix J (a W-method), so the generated Jacobian
   is evaluated once per interval and reused over the sub-steps ("frozen"),
-  or re-evaluated every sub-step (``jacobian="each"``). Stiff modes are
-  damped, never amplified, whatever the step.
+  or re-evaluated every sub-step (``jacobian="each"``), or evaluated at one
+  point of a group and shared by the group (``jacobian="shared"``: the
+  UKF's sigma points of one parameter set share the Jacobian at their
+  mean). Stiff modes are damped, never amplified, whatever the step.
+
+The UKF (:mod:`bondgraph.inference.ukf`), the fixed-step simulation
+(:mod:`bondgraph.numerics.simulate`) and the batched simulation of the
+Sobol' analysis all step with :func:`make_step`; :func:`hold_inputs` gives
+the input over each interval (zero-order hold or the interval mean).
 
 References
 ----------
@@ -31,6 +38,8 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
+
+from bondgraph.errors import OptionError
 
 GAMMA = 1.0 + 1.0 / np.sqrt(2.0)
 
@@ -71,6 +80,30 @@ def _w_inverse(J: np.ndarray, h: float) -> np.ndarray:
     return np.linalg.inv(W)
 
 
+def _first_point(a: np.ndarray, ndim: int) -> np.ndarray:
+    """``a[..., 0, :]`` if ``a`` has the point axis of an ``ndim``-dimensional
+    state array, else ``a`` (broadcast over the points)."""
+    a = np.asarray(a)
+    return a[..., 0, :] if a.ndim == ndim else a
+
+
+#: where ROS2 evaluates df/dx (see :func:`ros2`)
+JACOBIANS = ("once", "each", "shared")
+
+
+def _ros2_solver(f_dfdx, fx, x, u, theta, h, jacobian):
+    """``(F0 = f(x), solve)`` with ``solve(r) = W⁻¹ r`` for the Jacobian option."""
+    if jacobian == "shared":
+        # one Jacobian per group of points, at its first point, shared by the
+        # group: a stack of rows times W⁻ᵀ
+        _, J = f_dfdx(x[..., 0, :], _first_point(u, x.ndim), _first_point(theta, x.ndim))
+        WinvT = np.swapaxes(_w_inverse(J, h), -1, -2)
+        return fx(x, u, theta), lambda r: r @ WinvT
+    F0, J = f_dfdx(x, u, theta)
+    Winv = _w_inverse(J, h)
+    return F0, lambda r: (Winv @ r[..., None])[..., 0]
+
+
 def ros2(f_dfdx: Callable, x: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: float,
          substeps: int = 1, *, f: Callable | None = None, jacobian: str = "once") -> np.ndarray:
     """Advance ``x`` by ``dt`` with ``substeps`` ROS2 steps.
@@ -84,33 +117,45 @@ def ros2(f_dfdx: Callable, x: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: 
     substeps : int
     f : callable, optional
         ``f(x, u, theta)``; used for the second stage (cheaper than f_dfdx).
-    jacobian : {"once", "each"}
-        Evaluate df/dx once per interval (frozen W-method, default) or at
-        every sub-step.
+    jacobian : {"once", "each", "shared"}
+        ``"once"``: df/dx at every point at the start of the interval, frozen
+        over the sub-steps (W-method, default); ``"each"``: re-evaluated at
+        every sub-step; ``"shared"``: ``x`` has shape (..., m, n), df/dx is
+        evaluated once per group of m points at its first point (``u`` and
+        ``theta`` with a point axis are taken at their first point too) and
+        shared by the group, frozen — the UKF evaluates it at the central
+        sigma point of each parameter set. ROS2 keeps order 2 for any W.
 
     Returns
     -------
     array (..., n_x)
+
+    Raises
+    ------
+    OptionError
+        For an unknown ``jacobian``.
     """
+    if jacobian not in JACOBIANS:
+        raise OptionError(f"unknown ROS2 Jacobian option '{jacobian}' (use "
+                          f"{', '.join(repr(j) for j in JACOBIANS)})")
     h = dt / substeps
     fx = f if f is not None else (lambda x_, u_, t_: f_dfdx(x_, u_, t_)[0])
-    F0, J = f_dfdx(x, u, theta)
-    Winv = _w_inverse(J, h)
+    F0, solve = _ros2_solver(f_dfdx, fx, x, u, theta, h, jacobian)
     for s in range(substeps):
         if s > 0:
             if jacobian == "each":
-                F0, J = f_dfdx(x, u, theta)
-                Winv = _w_inverse(J, h)
+                F0, solve = _ros2_solver(f_dfdx, fx, x, u, theta, h, jacobian)
             else:
                 F0 = fx(x, u, theta)
-        k1 = np.einsum("...ij,...j->...i", Winv, F0)
+        k1 = solve(F0)
         F1 = fx(x + h * k1, u, theta)
-        k2 = np.einsum("...ij,...j->...i", Winv, F1 - 2.0 * k1)
+        k2 = solve(F1 - 2.0 * k1)
         x = x + (1.5 * h) * k1 + (0.5 * h) * k2
     return x
 
 
-def make_step(model, method: str = "ros2", substeps: int = 1, **kw) -> Callable:
+def make_step(model, method: str = "ros2", substeps: int = 1, *,
+              jacobian: str = "once") -> Callable:
     """A transition ``step(x, u, theta, dt) -> x_next`` for a generated model.
 
     Parameters
@@ -118,17 +163,62 @@ def make_step(model, method: str = "ros2", substeps: int = 1, **kw) -> Callable:
     model : Model
     method : {"rk4", "ros2"}
     substeps : int
+        Steps per interval (>= 1).
+    jacobian : {"once", "each", "shared"}
+        ROS2 only (:func:`ros2`).
 
     Raises
     ------
-    ValueError
-        For an unknown method.
+    OptionError
+        For an unknown method or Jacobian option, or substeps < 1.
     """
+    if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
+        raise OptionError(f"substeps must be an integer >= 1, got {substeps!r}")
+    substeps = int(substeps)
     if method == "rk4":
         return lambda x, u, th, dt: rk4(model.f, x, u, th, dt, substeps)
     if method == "ros2":
-        return lambda x, u, th, dt: ros2(model.f_dfdx, x, u, th, dt, substeps, f=model.f, **kw)
-    raise ValueError(f"unknown integration method '{method}' (use 'rk4' or 'ros2')")
+        if jacobian not in JACOBIANS:
+            raise OptionError(f"unknown ROS2 Jacobian option '{jacobian}' (use "
+                              f"{', '.join(repr(j) for j in JACOBIANS)})")
+        return lambda x, u, th, dt: ros2(model.f_dfdx, x, u, th, dt, substeps, f=model.f,
+                                         jacobian=jacobian)
+    raise OptionError(f"unknown integration method '{method}' (use 'rk4' or 'ros2')")
+
+
+#: input holds over a sample interval (see :func:`hold_inputs`)
+HOLDS = ("zoh", "mean")
+
+
+def hold_inputs(u: np.ndarray, hold: str = "zoh") -> np.ndarray:
+    """The input held over each sample interval [t_k, t_k+1].
+
+    Parameters
+    ----------
+    u : array (N, n_u)
+        Sampled inputs.
+    hold : {"zoh", "mean"}
+        ``"zoh"``: u_k (zero-order hold, the sampled-data convention);
+        ``"mean"``: (u_k + u_k+1)/2, the interval mean of a linearly
+        interpolated input (the last row stays u_N-1).
+
+    Returns
+    -------
+    ndarray (N, n_u)
+        Row k is the input over [t_k, t_k+1] (``u`` itself for "zoh").
+
+    Raises
+    ------
+    OptionError
+        For an unknown hold.
+    """
+    if hold == "zoh":
+        return u
+    if hold != "mean":
+        raise OptionError(f"unknown input hold '{hold}' (use 'zoh' or 'mean')")
+    out = np.array(u, dtype=float)
+    out[:-1] = 0.5 * (u[:-1] + u[1:])
+    return out
 
 
 def rk4_stable_step(eigenvalues: np.ndarray) -> float:

@@ -6,7 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bondgraph.inference.estimate import EstimationResult, _x0_array, record_arrays
+from bondgraph.inference.estimate import EstimationResult
+from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.record import record_arrays, state_vector
 from bondgraph.inference.ukf import default_P0, ukf_nll
 from bondgraph.numerics.model import Model
 from bondgraph.report.plots import pyplot
@@ -34,12 +36,12 @@ def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
     plt = pyplot()
     model = Model.from_spec(model)
     t, u, y, name, _ = record_arrays(model, experiment)
-    opts = dict(result.settings.get("ukf", {}))
-    x0a = np.asarray(result.settings.get("x0"), float) if x0 is None else _x0_array(model, x0)
+    opts = UKFOptions(**result.settings.get("ukf", {}))
+    x0a = np.asarray(result.settings.get("x0"), float) if x0 is None else state_vector(model, x0)
     if P0 is None:
         P0 = result.settings.get("P0")
     P0a = default_P0(model, x0a) if P0 is None else np.asarray(P0, float)
-    r = ukf_nll(model, t, u, y, result.theta[None, :], x0a, P0a, store=True, **opts)
+    r = ukf_nll(model, t, u, y, result.theta[None, :], x0a, P0a, options=opts, store=True)
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     ny = model.n_y
