@@ -134,18 +134,13 @@ def model_of(graph: BondGraph) -> Model:
 
 def prior_mean(ctx: Context, model: Model) -> np.ndarray:
     """UKF prior mean x0 (n_x,): ``settings.x0`` if it fits the model, else
-    the model's initial state with the record's true initial states
-    (``meta["x0"]``, by state name) imposed."""
+    the record's initial state (:meth:`bondgraph.data.records.Experiment.initial_state`:
+    state columns, else the sidecar's x0, else the model's X0)."""
     if ctx.settings.x0 is not None:
         x = np.asarray(ctx.settings.x0, dtype=float)
         if x.shape == (model.n_x,):
             return x
-    x = model.x0.copy()
-    meta_x0 = (getattr(ctx.record.exp, "meta", {}) or {}).get("x0") or {}
-    for k, v in meta_x0.items():
-        if k in model.states:
-            x[model.state_index(k)] = float(v)
-    return x
+    return ctx.record.exp.initial_state(model)
 
 
 def prior_cov(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
