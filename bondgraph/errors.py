@@ -185,6 +185,13 @@ class IdentifiabilityWarning(UserWarning):
     direction of the parameter space is not identified by the record."""
 
 
+class BackendWarning(UserWarning):
+    """The compiled (numba) likelihood could not be used for a model (numba
+    missing, a function numba cannot compile, no generated kernels); the
+    numpy path, the reference, ran instead. The message names the model and
+    the cause."""
+
+
 def join_names(names: Sequence[str]) -> str:
     """Quote and join names for messages: ``'a', 'b' and 'c'``."""
     quoted = [f"'{n}'" for n in names]

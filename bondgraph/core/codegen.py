@@ -14,6 +14,13 @@ Rosenbrock steps), ``energy``, ``power_sources``, ``power_dissipated``,
 with ``sympy.cse``; state, input, parameter and output indices are named
 module constants; metadata (names, units, defaults, bounds) are module
 constants too.
+
+:func:`generate_numba_source` writes the compiled counterpart from the same
+sympy expressions: per-point kernels ``f``, ``h`` and ``f_dfdx`` (one state
+vector per call, results written into caller-owned arrays) decorated with
+``numba.njit`` with explicit signatures and ``cache=True``, which the fused
+UKF kernel (:mod:`bondgraph.inference.ukf_numba`) calls as first-class
+functions. The numpy module stays the reference and the fallback.
 """
 
 from __future__ import annotations
@@ -92,6 +99,28 @@ class _Printer(NumPyPrinter):
         return super()._print_Pow(expr, rational=rational)
 
 
+class _ScalarPrinter(_Printer):
+    """Scalar code for numba point kernels: non-integer powers through
+    ``np.power`` (numpy's nan/inf semantics; numba's ``**`` raises on a
+    zero base with a negative exponent) and Piecewise as conditional
+    expressions (``np.select`` needs arrays)."""
+
+    def _print_Pow(self, expr, rational=False):
+        b, e = expr.args
+        if e.is_Integer or e == sp.Rational(1, 2) or e == -sp.Rational(1, 2):
+            return super()._print_Pow(expr, rational=rational)
+        return f"np.power({self._print(b)}, {self._print(e)})"
+
+    def _print_Piecewise(self, expr):
+        out = "np.nan"
+        for value, cond in reversed(expr.args):
+            if cond == sp.true:
+                out = self._print(value)
+            else:
+                out = f"({self._print(value)} if {self._print(cond)} else {out})"
+        return out
+
+
 class _Namer:
     """Unique identifiers for model symbols."""
 
@@ -162,7 +191,7 @@ class _Gen:
             return f"np.multiply({self.pr(first)}, {self.pr(rest)}, out={target})"
         return f"{target} = {self.pr(e)}"
 
-    def _unpack(self, syms, allowed=("x", "u", "theta")) -> list[str]:
+    def _unpack(self, syms, allowed=("x", "u", "theta"), point: bool = False) -> list[str]:
         lines = []
         for kind in ("x", "u", "theta"):
             chosen = sorted((s for s in syms if s in self.sym_index and self.sym_index[s][0] == kind),
@@ -172,7 +201,7 @@ class _Gen:
                     raise CodegenError(f"model '{self.ss.name}': {s.name} may not appear here "
                                        f"(only {', '.join(allowed)})")
                 arr, i = self.sym_index[s]
-                lines.append(f"{self.namer.names[s]} = {arr}[..., {i}]")
+                lines.append(f"{self.namer.names[s]} = {arr}[{'' if point else '..., '}{i}]")
         unknown = [s for s in syms if s not in self.sym_index and not str(s).startswith("_t")]
         if unknown:
             raise CodegenError(f"model '{self.ss.name}': symbols {sorted(map(str, unknown))} are not "
@@ -451,6 +480,101 @@ _FILTERPY_ADAPTER = textwrap.dedent('''
     ''')
 
 
+#: per-point kernels of the numba module (called by bondgraph.inference.ukf_numba)
+NUMBA_FUNCTIONS = ("f", "h", "f_dfdx")
+#: version of the numba code generator: part of the key of compiled kernels
+#: built in memory (bump it when the generated numba text changes)
+NUMBA_CODEGEN_VERSION = 1
+
+
+class _NumbaGen(_Gen):
+    """Scalar per-point kernels for numba from the same expressions and names
+    as the numpy module (:func:`generate_numba_source`)."""
+
+    def __init__(self, ss: StateSpace, *, source: str | None, command: str):
+        super().__init__(ss, source=source, command=command)
+        self.printer = _ScalarPrinter(self.namer.names)
+
+    def point_body(self, outputs) -> list[str]:
+        """Lines computing ``outputs`` ([(array name, [(index, expr)], dense)])
+        for one point, with one shared CSE, written into the given arrays."""
+        flat = [e for _, entries, _ in outputs for _, e in entries]
+        repl, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_t"), optimizations=None,
+                               order="none")
+        syms = set()
+        for e in list(reduced) + [e for _, e in repl]:
+            syms |= e.free_symbols
+        lines = self._unpack({s for s in syms if not str(s).startswith("_t")}, point=True)
+        lines += [f"{s} = {self.pr(e)}" for s, e in repl]
+        k = 0
+        for name, entries, dense in outputs:
+            if not dense:
+                lines.append(f"{name}[:, :] = 0.0")
+            for idx, _ in entries:
+                lines.append(f"{name}[{', '.join(str(i) for i in idx)}] = {self.pr(reduced[k])}")
+                k += 1
+        return lines or ["return"]
+
+    def point_function(self, name: str, sig: str, args: str, doc: str, outputs) -> str:
+        """A ``@njit(sig, cache=True)`` point kernel."""
+        body = "\n".join("    " + ln for ln in self.point_body(outputs))
+        return (f"@njit({sig}, cache=True, nogil=True, error_model=\"numpy\")\n"
+                f"def {name}({args}):\n    \"\"\"{doc}\"\"\"\n{body}\n")
+
+    def numba_module(self) -> str:
+        """Source text of the numba module: header, sizes, signatures, kernels."""
+        ss = self.ss
+        nx, ny = len(ss.states), len(ss.outputs)
+        J = self.ss.dfdx()
+        jac = [((i, j), J[i, j]) for i in range(nx) for j in range(nx) if J[i, j] != 0]
+        f_entries = self._f_entries()
+        h_entries = [((i,), e) for i, e in enumerate(ss.h)]
+        parts = [self._numba_header(),
+                 self.point_function("f", "SIG_POINT", "x, u, theta, _dxdt",
+                                     f"dx/dt = f(x, u, theta) at one point into _dxdt ({nx},).",
+                                     [("_dxdt", f_entries, True)]),
+                 self.point_function("h", "SIG_POINT", "x, u, theta, _y",
+                                     f"Outputs y = h(x, u, theta) at one point into _y ({ny},).",
+                                     [("_y", h_entries, True)]),
+                 self.point_function("f_dfdx", "SIG_F_DFDX", "x, u, theta, _dxdt, _J",
+                                     f"f into _dxdt ({nx},) and df/dx into _J ({nx}, {nx}) "
+                                     f"(shared subexpressions).",
+                                     [("_dxdt", f_entries, True),
+                                      ("_J", jac, len(jac) == nx * nx)])]
+        return "\n\n".join(p.rstrip("\n") + "\n" for p in parts)
+
+    def _numba_header(self) -> str:
+        ss = self.ss
+        nx, nu, npar, ny = (len(ss.states), len(ss.inputs), len(ss.params), len(ss.outputs))
+        return f'''"""Numba point kernels of '{ss.name}': f, h and f_dfdx for one state vector.
+
+Generated by bondgraph from {self.source}
+(graph '{ss.name}'), from the same sympy expressions as the numpy module
+{ss.name}.py one directory up.
+DO NOT EDIT: regenerate with `{self.command}`; `bondgraph generate --check`
+fails when this file differs from what the graph produces.
+
+One point per call: x ({nx},), u ({nu},), theta ({npar},) are C-contiguous float64
+vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
+writes its result into the arrays it is given. Compiled on import with
+explicit signatures and cached on disk (cache=True); the fused UKF kernel
+(bondgraph.inference.ukf_numba) calls them as first-class functions.
+"""
+
+import numpy as np
+from numba import njit, types
+
+NAME = {ss.name!r}
+N_X, N_U, N_THETA, N_Y = {nx}, {nu}, {npar}, {ny}
+
+_V = types.float64[::1]
+_M = types.float64[:, ::1]
+#: f and h: (x, u, theta, out); f_dfdx: (x, u, theta, out, jacobian)
+SIG_POINT = types.void(_V, _V, _V, _V)
+SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
+'''
+
+
 def _prod(t) -> int:
     out = 1
     for v in t:
@@ -478,6 +602,29 @@ def generate_source(ss: StateSpace, *, source: str | None = None,
     str
     """
     return _Gen(ss, source=source, command=command).module(functions)
+
+
+def generate_numba_source(ss: StateSpace, *, source: str | None = None,
+                          command: str = "bondgraph generate") -> str:
+    """Source text of the numba module of ``ss``: per-point kernels ``f``,
+    ``h`` and ``f_dfdx`` (:data:`NUMBA_FUNCTIONS`) from the same sympy
+    expressions, CSE and names as :func:`generate_source`.
+
+    Parameters
+    ----------
+    ss : StateSpace
+    source : str, optional
+        ``module:function`` that builds the graph (for the header).
+    command : str
+        Command that regenerates the file (for the header).
+
+    Returns
+    -------
+    str
+        A module that imports numpy and numba only; importing it compiles
+        the kernels (or loads them from numba's on-disk cache).
+    """
+    return _NumbaGen(ss, source=source, command=command).numba_module()
 
 
 def write_module(ss: StateSpace, path: str | Path, **kw) -> Path:

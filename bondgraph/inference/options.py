@@ -20,6 +20,7 @@ back is turned into options with ``UKFOptions(**d)``.
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import numbers
 from dataclasses import asdict, dataclass
@@ -33,6 +34,10 @@ UKF_METHODS = ("ros2", "rk4")
 UKF_JACOBIANS = ("mean", "sigma")
 #: input over a prediction interval: u_k, or (u_k + u_k+1)/2
 UKF_HOLDS = ("zoh", "mean")
+#: implementations of the UKF likelihood: the numpy reference, the fused numba kernel
+UKF_BACKENDS = ("numba", "numpy")
+#: the default backend: numba when it is installed
+DEFAULT_BACKEND = "numba" if importlib.util.find_spec("numba") is not None else "numpy"
 #: global optimizers of :func:`bondgraph.inference.estimate.estimate`
 OPTIMIZERS = ("pso", "de")
 
@@ -106,6 +111,14 @@ class UKFOptions:
         sample on average: a model error that biases inertias (the vehicle's
         engine inertia came out 3 % = 4 standard deviations low on the
         synthetic throttle-steps record with "zoh", within 1 with "mean").
+    backend : {"numba", "numpy"}
+        The fused, compiled UKF kernel (:mod:`bondgraph.inference.ukf_numba`,
+        parallel over parameter sets) or the batched numpy filter, the
+        reference (equal NLL within 1e-9 relative). Default: numba when it
+        is installed. A model the numba backend cannot serve (or a
+        one-shot in-memory model for which compiling does not pay,
+        :func:`bondgraph.numerics.compiled.compile_pays`) runs on numpy; the
+        result's settings say which backend ran.
 
     Raises
     ------
@@ -120,6 +133,7 @@ class UKFOptions:
     substeps: int = 1
     jacobian: str = "mean"
     hold: str = "zoh"
+    backend: str = DEFAULT_BACKEND
 
     def __post_init__(self):
         _real(self, "alpha", positive=True)
@@ -129,6 +143,10 @@ class UKFOptions:
         _integer(self, "substeps", 1)
         _choice(self, "jacobian", UKF_JACOBIANS)
         _choice(self, "hold", UKF_HOLDS)
+        _choice(self, "backend", UKF_BACKENDS)
+        if self.backend == "numba" and importlib.util.find_spec("numba") is None:
+            raise OptionError("UKFOptions.backend = 'numba' but numba is not installed "
+                              "(pip install numba, or backend='numpy')")
 
     def to_dict(self) -> dict:
         """The options as a plain dict (JSON-able)."""

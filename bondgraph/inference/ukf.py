@@ -54,13 +54,16 @@ Särkkä, S. (2013). Bayesian Filtering and Smoothing. Cambridge UP, ch. 12.
 
 from __future__ import annotations
 
+import time
+import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
-from bondgraph.errors import DataError, ModelError, OptionError
+from bondgraph.errors import BackendWarning, DataError, ModelError, OptionError
+from bondgraph.inference import ukf_numba
 from bondgraph.inference.options import UKFOptions, ukf_options
 from bondgraph.inference.sigma import (
     SigmaWeights,
@@ -69,6 +72,7 @@ from bondgraph.inference.sigma import (
     sigma_points,
     unscented_moments,
 )
+from bondgraph.numerics.compiled import compile_estimate, compile_pays, point_kernels
 from bondgraph.numerics.integrators import hold_inputs, make_step
 
 LOG_2PI = float(np.log(2.0 * np.pi))
@@ -619,12 +623,34 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | No
     """
     opts = ukf_options(options)
     t, u, y = _check_inputs(model, t, u, y)
-    u_held = hold_inputs(u, opts.hold)
     th = _check_theta(model, theta)
     wts = merwe_weights(model.n_x, opts.alpha, opts.beta, opts.kappa)
     step = make_step(model, opts.method, opts.substeps, jacobian=_ROS2_JACOBIAN[opts.jacobian])
+    u_held = hold_inputs(u, opts.hold)
     batch = FilterBatch(model, t, th, *_priors(model, th.shape[0], x0, P0, Q, R))
     kept = FilterStorage(t.size, th.shape[0], model, full=store == "full") if store else None
+    kernels, note, compile_s = _backend_for(model, opts, t.size, th.shape[0])
+    t0 = time.perf_counter()
+    if kernels is not None:
+        compile_s += ukf_numba.run(kernels, t, u, y, batch, opts, wts, kept)
+    else:
+        _filter_numpy(model, batch, step, t, u, u_held, y, wts, kept)
+        model.numpy_seconds = getattr(model, "numpy_seconds", 0.0) + time.perf_counter() - t0
+    settings = dict(opts.to_dict(), n_regularised=batch.n_reg,
+                    backend_used="numba" if kernels is not None else "numpy",
+                    compile_s=compile_s, run_s=time.perf_counter() - t0 - compile_s)
+    if note:
+        settings["backend_note"] = note
+    res = batch.result(model, t, y, settings=settings)
+    if kept is not None:
+        kept.into(res)
+    return res
+
+
+def _filter_numpy(model, batch: FilterBatch, step: Callable, t, u, u_held, y,
+                  wts: SigmaWeights, kept: "FilterStorage | None") -> None:
+    """The numpy filter over the record (predict/update per sample for the
+    whole batch), filling ``batch`` and ``kept``."""
     dts = np.diff(t)
     for k in range(t.size):
         if k > 0 and batch.size:
@@ -639,10 +665,44 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | No
                 kept.innovation(k, batch.act, inn)
         if kept is not None:
             kept.filtered(k, batch, model, u[k])
-    res = batch.result(model, t, y, settings=dict(opts.to_dict(), n_regularised=batch.n_reg))
-    if kept is not None:
-        kept.into(res)
-    return res
+
+
+#: numpy UKF cost model for the compile decision: seconds per sample, and
+#: per sample, sigma point and f-evaluation pair (measured, 2-core machine)
+_NUMPY_S_PER_SAMPLE, _NUMPY_S_PER_POINT = 4e-4, 1.5e-6
+#: models already warned about (BackendWarning once per model and cause)
+_WARNED: set = set()
+
+
+def _backend_for(model, opts: UKFOptions, N: int, P: int):
+    """``(point kernels or None, note, compile seconds)``: the numba kernels
+    of ``model`` when ``opts.backend`` is numba, the kernel supports the
+    options and compiling pays (:func:`bondgraph.numerics.compiled.compile_pays`);
+    None (numpy) otherwise, with the reason. A model numba cannot serve
+    warns (:class:`~bondgraph.errors.BackendWarning`) once."""
+    if opts.backend != "numba":
+        return None, None, 0.0
+    unsupported = ukf_numba.unsupported(opts)
+    if unsupported:
+        return None, unsupported, 0.0
+    per_eval = 2.0 * opts.substeps if opts.method == "rk4" else 1.0 * opts.substeps
+    est = N * (_NUMPY_S_PER_SAMPLE + _NUMPY_S_PER_POINT * P * (2 * model.n_x + 1) * per_eval)
+    if not compile_pays(model, est):
+        return None, (f"in-memory model not compiled: its numpy time so far and this run's "
+                      f"(~{est:.2g} s) stay below the estimated compile time "
+                      f"({compile_estimate(model):.2g} s)"), 0.0
+    try:
+        pk = point_kernels(model)
+    except Exception as exc:  # numba missing or unable to compile a function
+        note = f"numba kernels of '{model.name}' unavailable ({type(exc).__name__}: " \
+               f"{str(exc).splitlines()[0] if str(exc) else ''}); numpy ran instead"
+        if (model.name, type(exc).__name__) not in _WARNED:
+            _WARNED.add((model.name, type(exc).__name__))
+            warnings.warn(note, BackendWarning, stacklevel=3)
+        return None, note, 0.0
+    first = not getattr(pk, "_reported", False)
+    pk._reported = True
+    return pk, None, pk.compile_s if first else 0.0
 
 
 def nll_from_innovations(innovations: np.ndarray, S: np.ndarray) -> np.ndarray:

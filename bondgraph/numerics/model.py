@@ -43,6 +43,9 @@ class Model:
         Parameter defaults.
     lower, upper : ndarray (n_theta,)
         Parameter bounds.
+    numpy_seconds : float
+        Numpy UKF time spent on this model so far (decides when compiling
+        its numba kernels pays, :func:`bondgraph.numerics.compiled.compile_pays`).
     """
 
     def __init__(self, module: types.ModuleType):
@@ -67,6 +70,8 @@ class Model:
         self.theta0 = np.array(m.PARAM_DEFAULTS, dtype=float)
         self.lower = np.array(m.PARAM_LOWER, dtype=float)
         self.upper = np.array(m.PARAM_UPPER, dtype=float)
+        #: seconds of numpy UKF time spent on this model (bondgraph.numerics.compiled)
+        self.numpy_seconds = 0.0
         for fn in ("f", "h", "dfdx", "dfdtheta", "dhdx", "dhdtheta", "f_dfdx", "energy",
                    "power_sources", "power_dissipated", "energy_rate", "meas_std", "proc_std",
                    "fx", "hx"):
@@ -130,6 +135,7 @@ class Model:
                                functions=functions or ALL_FUNCTIONS)
         mod = module_from_source(text, name or f"_bondgraph_mem_{graph.name}")
         mod.__source_text__ = text
+        mod.__state_space__ = ss       # for the numba kernels (bondgraph.numerics.compiled)
         return cls(mod)
 
     # ------------------------------------------------------------- sizes

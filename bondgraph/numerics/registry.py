@@ -1,8 +1,10 @@
 """Registered models: ``name -> "module:function"`` building a BondGraph.
 
-``bondgraph generate`` writes ``<generated package>/<name>.py`` for every
-registered model; ``bondgraph generate --check`` fails, naming the stale model,
-when a file differs from what its graph produces (a test runs it).
+``bondgraph generate`` writes ``<generated package>/<name>.py`` (numpy) and
+``<generated package>/numba_kernels/<name>.py`` (numba point kernels, from the
+same derivation) for every registered model; ``bondgraph generate --check``
+fails, naming the stale model, when either file differs from what its graph
+produces (a test runs it).
 
 Models are registered through :mod:`bondgraph.core.plugins` (entry points of the
 group ``bondgraph.models``, or :func:`bondgraph.core.plugins.register`): the
@@ -18,7 +20,7 @@ import time
 from pathlib import Path
 
 from bondgraph.core import plugins
-from bondgraph.core.codegen import generate_source
+from bondgraph.core.codegen import generate_numba_source, generate_source
 from bondgraph.core.equations import derive
 from bondgraph.errors import ModelError, StaleGeneratedCodeError
 
@@ -106,9 +108,28 @@ def generated_dir() -> Path:
 
 def render(name: str) -> str:
     """Source text that ``bondgraph generate`` writes for model ``name``."""
+    return render_files(name)[f"{name}.py"]
+
+
+#: sub-package of the generated package holding the numba point kernels
+NUMBA_DIR = "numba_kernels"
+
+
+def render_files(name: str) -> dict[str, str]:
+    """Every file ``bondgraph generate`` writes for model ``name``, by path
+    relative to the generated package: the numpy module ``<name>.py`` and
+    its numba point kernels ``numba_kernels/<name>.py``, both from one
+    derivation."""
     g = build(name)
     ss = derive(g)
-    return generate_source(ss, source=g.source, command=COMMAND)
+    return {f"{name}.py": generate_source(ss, source=g.source, command=COMMAND),
+            f"{NUMBA_DIR}/{name}.py": generate_numba_source(ss, source=g.source,
+                                                           command=COMMAND)}
+
+
+def numba_path(name: str, directory: Path | None = None) -> Path:
+    """Path of the numba point kernels of a registered model."""
+    return Path(directory or generated_dir()) / NUMBA_DIR / f"{name}.py"
 
 
 def generate(names=None, *, check: bool = False, directory: Path | None = None,
@@ -120,7 +141,8 @@ def generate(names=None, *, check: bool = False, directory: Path | None = None,
     names : list of str, optional
         Models to process (default: all registered).
     check : bool
-        Do not write; return the names whose file is missing or differs.
+        Do not write; return the names of which a file (numpy module or numba
+        kernels) is missing or differs.
     directory : Path, optional
         Target directory (default :func:`generated_dir`).
 
@@ -132,35 +154,62 @@ def generate(names=None, *, check: bool = False, directory: Path | None = None,
     directory = Path(directory) if directory else generated_dir()
     names = sorted(registered()) if not names else list(names)
     out = []
+    init = directory / NUMBA_DIR / "__init__.py"
+    if not check and not init.exists():
+        init.parent.mkdir(parents=True, exist_ok=True)
+        init.write_text("")
     for n in names:
         t0 = time.perf_counter()
-        text = render(n)
-        path = directory / f"{n}.py"
+        files = render_files(n)
         if check:
-            old = path.read_text() if path.exists() else None
-            if old != text:
-                out.append(n)
+            stale = [rel for rel, text in files.items()
+                     if not _same_file(directory / rel, text, verbose)]
+            if not init.exists():
+                stale.append(f"{NUMBA_DIR}/__init__.py")
                 if verbose:
-                    if old is None:
-                        print(f"STALE {n}: {path} is missing")
-                    else:
-                        diff = list(difflib.unified_diff(old.splitlines(), text.splitlines(),
-                                                         f"{path} (on disk)", f"{path} (from graph)",
-                                                         lineterm="", n=1))
-                        print(f"STALE {n}: {path} differs from its graph "
-                              f"({sum(1 for d in diff if d[:1] in '+-')} changed lines):")
-                        print("\n".join(diff[:20]))
+                    print(f"STALE {n}: {init} is missing")
+            if stale:
+                out.append(n)
             elif verbose:
                 print(f"ok    {n}")
-        else:
-            if not path.exists() or path.read_text() != text:
-                path.write_text(text)
-                out.append(n)
-                if verbose:
-                    print(f"wrote {path} ({time.perf_counter() - t0:.2f} s)")
-            elif verbose:
-                print(f"same  {path}")
+            continue
+        written = [rel for rel, text in files.items() if _write_if_changed(directory / rel, text)]
+        if written:
+            out.append(n)
+        if verbose:
+            for rel in files:
+                state = "wrote" if rel in written else "same "
+                print(f"{state} {directory / rel}"
+                      + (f" ({time.perf_counter() - t0:.2f} s)" if rel in written else ""))
     return out
+
+
+def _same_file(path: Path, text: str, verbose: bool) -> bool:
+    """Whether ``path`` holds ``text``; prints the start of the diff if not."""
+    old = path.read_text() if path.exists() else None
+    if old == text:
+        return True
+    if verbose:
+        name = path.stem
+        if old is None:
+            print(f"STALE {name}: {path} is missing")
+        else:
+            diff = list(difflib.unified_diff(old.splitlines(), text.splitlines(),
+                                             f"{path} (on disk)", f"{path} (from graph)",
+                                             lineterm="", n=1))
+            print(f"STALE {name}: {path} differs from its graph "
+                  f"({sum(1 for d in diff if d[:1] in '+-')} changed lines):")
+            print("\n".join(diff[:20]))
+    return False
+
+
+def _write_if_changed(path: Path, text: str) -> bool:
+    """Write ``text`` to ``path`` unless it is already there; True if written."""
+    if path.exists() and path.read_text() == text:
+        return False
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return True
 
 
 def check_or_raise(names=None) -> None:

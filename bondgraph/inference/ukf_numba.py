@@ -1,0 +1,637 @@
+"""The fused UKF likelihood kernel (numba): one particle per thread.
+
+The same filter as :mod:`bondgraph.inference.ukf` (Wan & van der Merwe 2000;
+the difference form of :mod:`bondgraph.inference.sigma`), written for one
+parameter set at a time and run over the sets with ``numba.prange``:
+sigma points, the transition (RK4 or ROS2 with the Jacobian at the central
+sigma point or at every point, :mod:`bondgraph.numerics.integrators`), the
+measurement update over the measured outputs, and the NLL accumulation.
+Each set's arithmetic depends on nothing but its own data, so results do
+not depend on the batch, the thread count or the split over workers.
+
+Failure handling is that of the numpy path: the same checks at the same
+places, with the same reasons (:data:`FAIL_REASONS`, formatted by the
+caller), +inf NLL from the failing sample on, and the same diagonal loading
+of covariances that are indefinite at rounding level
+(:func:`bondgraph.inference.sigma.cholesky_batch`). The only documented
+difference: an exactly singular ROS2 matrix W, which numpy's ``inv`` raises
+on, gives a non-finite state here (a measure-zero event).
+
+The kernel is model independent: the model's point kernels
+(:mod:`bondgraph.numerics.compiled`) are passed as first-class functions of
+fixed signature, so it is compiled once per installation and cached on disk
+(``cache=True``), and a new model costs only the compilation of its own
+small point kernels.
+
+The input hold over a sample interval is one small function,
+:func:`_held_input` (codes :data:`HOLD_CODES`); a hold that varies within
+the interval gets a code from :data:`FIRST_VARYING_HOLD` on and is then
+evaluated at every stage time of the integrators.
+
+References
+----------
+Wan, E. A., van der Merwe, R. (2000). The unscented Kalman filter for
+nonlinear estimation. Proc. IEEE AS-SPCC, 153-158.
+Verwer, J. G., Spee, E. J., Blom, J. G., Hundsdorfer, W. (1999). A
+second-order Rosenbrock method applied to photochemical dispersion problems.
+SIAM J. Sci. Comput. 20(4), 1456-1480.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import namedtuple
+
+import numpy as np
+
+from bondgraph.numerics.integrators import GAMMA
+
+try:  # numba is a regular dependency; the numpy path is the fallback without it
+    import numba
+    from numba import types
+except ImportError:  # pragma: no cover - exercised only without numba
+    numba = None
+    types = None
+
+LOG_2PI = float(np.log(2.0 * np.pi))
+
+#: failure codes of the kernel -> the numpy path's reasons
+FAIL_REASONS = {
+    1: "posterior covariance P not positive definite",
+    2: "prior covariance P not positive definite",
+    3: "non-finite state in the prediction (sigma point diverged)",
+    4: "non-finite predicted output h(sigma point)",
+    5: "innovation covariance S not positive definite",
+}
+#: UKFOptions.method -> code
+METHOD_CODES = {"rk4": 0, "ros2": 1}
+#: UKFOptions.jacobian -> code: 0 at the central sigma point, shared by the
+#: set's points ("mean"); 1 at every point, frozen over the sub-steps
+#: ("sigma"); 2 at every point and sub-step (integrators' "each")
+JACOBIAN_CODES = {"mean": 0, "sigma": 1, "each": 2}
+#: UKFOptions.hold -> code (see _held_input)
+HOLD_CODES = {"zoh": 0, "mean": 1}
+#: holds with codes from here on vary within the interval (evaluated per stage)
+FIRST_VARYING_HOLD = 2
+#: layout of the integer options array of the kernel
+IOPT = ("method", "substeps", "jacobian", "hold", "use_R", "use_Q", "store")
+
+
+def _jit(fn):
+    """``numba.njit`` with numpy's error model (inf/nan, no exceptions), or
+    the plain function without numba."""
+    if numba is None:  # pragma: no cover
+        return fn
+    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+
+
+Work = namedtuple("Work", ["L", "cL", "chi", "X", "D", "mean", "cov", "xs", "xt", "k1", "k2",
+                           "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Y", "Ym", "idx",
+                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg"])
+
+
+@_jit
+def _work(n, ny, nu):
+    """Per-particle work arrays (allocated once per particle)."""
+    npt = 2 * n + 1
+    m = max(n, ny)
+    return Work(np.zeros((n, n)), np.zeros((n, n)), np.zeros((npt, n)), np.zeros((npt, n)),
+                np.zeros((npt, m)), np.zeros(m), np.zeros((m, m)), np.zeros(n), np.zeros(n),
+                np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n),
+                np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, 2 * n)), np.zeros(nu),
+                np.zeros((npt, ny)), np.zeros((npt, ny)), np.zeros(ny, dtype=np.int64),
+                np.zeros((n, ny)), np.zeros((ny, n)), np.zeros(ny), np.zeros(ny),
+                np.zeros((ny, ny)), np.zeros(ny), np.zeros(1, dtype=np.int64))
+
+
+# ------------------------------------------------------------ linear algebra
+@_jit
+def _chol_plain(A, m, eps, L):
+    """Lower Cholesky factor of A[:m, :m] + eps diag(A) (lower triangle used)
+    into L; False where LAPACK's potrf fails (a pivot not > 0, or NaN)."""
+    for j in range(m):
+        s = A[j, j] + eps * A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, m):
+            v = A[i, j]
+            for k in range(j):
+                v -= L[i, k] * L[j, k]
+            L[i, j] = v / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@_jit
+def _chol(A, m, L):
+    """:func:`bondgraph.inference.sigma.cholesky_batch` for one matrix:
+    0 failed (not finite, or not positive definite even with relative
+    diagonal loading 1e-12, 1e-9, 1e-6), 1 factorised, 2 factorised with
+    loading."""
+    for i in range(m):
+        for j in range(m):
+            if not np.isfinite(A[i, j]):
+                return 0
+    if _chol_plain(A, m, 0.0, L):
+        return 1
+    for i in range(m):
+        if not A[i, i] > 0.0:
+            return 0
+    for eps in (1e-12, 1e-9, 1e-6):
+        if _chol_plain(A, m, eps, L):
+            return 2
+    return 0
+
+
+@_jit
+def _inverse_w(J, h, wk):
+    """wk.Winv = (I − γ h J)⁻¹ by Gauss-Jordan elimination with partial
+    pivoting (ROS2's W; numpy: ``np.linalg.inv``)."""
+    n = J.shape[0]
+    A = wk.A
+    g = GAMMA * h
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = (1.0 if i == j else 0.0) - g * J[i, j]
+            A[i, n + j] = 1.0 if i == j else 0.0
+    for c in range(n):
+        p = c
+        for i in range(c + 1, n):
+            if abs(A[i, c]) > abs(A[p, c]):
+                p = i
+        if p != c:
+            for j in range(2 * n):
+                A[c, j], A[p, j] = A[p, j], A[c, j]
+        d = A[c, c]
+        for j in range(2 * n):
+            A[c, j] /= d
+        for i in range(n):
+            if i != c:
+                q = A[i, c]
+                for j in range(2 * n):
+                    A[i, j] -= q * A[c, j]
+    for i in range(n):
+        for j in range(n):
+            wk.Winv[i, j] = A[i, n + j]
+
+
+@_jit
+def _matvec(M, v, out):
+    n = v.shape[0]
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += M[i, j] * v[j]
+        out[i] = s
+
+
+# ------------------------------------------------------------ sigma points
+@_jit
+def _sigma(x, L, c, wk):
+    """Scaled sigma points χ_0 = x, χ_i = x + c L_i, χ_n+i = x − c L_i into
+    wk.chi, the offsets c L_i as rows of wk.cL."""
+    n = x.shape[0]
+    for i in range(n):
+        for a in range(n):
+            wk.cL[i, a] = c * L[a, i]
+    for a in range(n):
+        wk.chi[0, a] = x[a]
+    for i in range(n):
+        for a in range(n):
+            wk.chi[1 + i, a] = x[a] + wk.cL[i, a]
+            wk.chi[1 + n + i, a] = x[a] - wk.cL[i, a]
+
+
+@_jit
+def _moments(Z, m, w, cc, mean, cov, D):
+    """Difference-form unscented mean and covariance of Z[:, :m]
+    (:func:`bondgraph.inference.sigma.unscented_moments`); D = Z_i − Z_0."""
+    npt = Z.shape[0]
+    for i in range(1, npt):
+        for a in range(m):
+            D[i - 1, a] = Z[i, a] - Z[0, a]
+    for a in range(m):
+        s = 0.0
+        for i in range(npt - 1):
+            s += D[i, a]
+        mean[a] = w * s
+    for a in range(m):
+        for b in range(a + 1):
+            s = 0.0
+            for i in range(npt - 1):
+                s += D[i, a] * D[i, b]
+            v = w * s + cc * (mean[a] * mean[b])
+            cov[a, b] = v
+            cov[b, a] = v
+    for a in range(m):
+        mean[a] = Z[0, a] + mean[a]
+
+
+# ------------------------------------------------------------ transition
+@_jit
+def _held_input(u, k, frac, hold, out):
+    """The input over the interval [t_k, t_k+1] at the fraction ``frac`` of
+    it (numpy: :func:`bondgraph.numerics.integrators.hold_inputs`): hold 0
+    (zoh) u_k; 1 (mean) (u_k + u_k+1)/2, u_k on the last row. A new hold is
+    one more branch here (and a code in HOLD_CODES)."""
+    last = k + 1 >= u.shape[0]
+    for j in range(u.shape[1]):
+        if hold == 1 and not last:
+            out[j] = 0.5 * (u[k, j] + u[k + 1, j])
+        else:
+            out[j] = u[k, j]
+
+
+@_jit
+def _stage_input(u, k, s, cst, nsub, hold, out):
+    """Re-evaluate a varying hold at stage ``s + cst`` of ``nsub`` sub-steps
+    (constant holds need nothing)."""
+    if hold >= FIRST_VARYING_HOLD:
+        _held_input(u, k, (s + cst) / nsub, hold, out)
+
+
+@_jit
+def _rk4_point(f, x, u, k, hold, th, h, nsub, wk):
+    """``nsub`` classical RK4 steps of one point x (in place)
+    (:func:`bondgraph.numerics.integrators.rk4`)."""
+    n = x.shape[0]
+    ub = wk.ub
+    for s in range(nsub):
+        _stage_input(u, k, s, 0.0, nsub, hold, ub)
+        f(x, ub, th, wk.k1)
+        for a in range(n):
+            wk.xt[a] = x[a] + (0.5 * h) * wk.k1[a]
+        _stage_input(u, k, s, 0.5, nsub, hold, ub)
+        f(wk.xt, ub, th, wk.k2)
+        for a in range(n):
+            wk.xt[a] = x[a] + (0.5 * h) * wk.k2[a]
+        f(wk.xt, ub, th, wk.k3)
+        for a in range(n):
+            wk.xt[a] = x[a] + h * wk.k3[a]
+        _stage_input(u, k, s, 1.0, nsub, hold, ub)
+        f(wk.xt, ub, th, wk.k4)
+        for a in range(n):
+            x[a] = x[a] + (h / 6.0) * (wk.k1[a] + 2.0 * wk.k2[a] + 2.0 * wk.k3[a] + wk.k4[a])
+
+
+@_jit
+def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, wk):
+    """``nsub`` ROS2 steps of one point x (in place)
+    (:func:`bondgraph.numerics.integrators.ros2`); jac 0: wk.Winv is given
+    (shared), 1: df/dx at x at the start, frozen, 2: at every sub-step."""
+    n = x.shape[0]
+    ub = wk.ub
+    for s in range(nsub):
+        _stage_input(u, k, s, 0.0, nsub, hold, ub)
+        if jac == 2 or (jac == 1 and s == 0):
+            fj(x, ub, th, wk.F0, wk.J)
+            _inverse_w(wk.J, h, wk)
+        else:
+            f(x, ub, th, wk.F0)
+        _matvec(wk.Winv, wk.F0, wk.k1)
+        for a in range(n):
+            wk.xt[a] = x[a] + h * wk.k1[a]
+        _stage_input(u, k, s, 1.0, nsub, hold, ub)
+        f(wk.xt, ub, th, wk.F1)
+        for a in range(n):
+            wk.F1[a] = wk.F1[a] - 2.0 * wk.k1[a]
+        _matvec(wk.Winv, wk.F1, wk.k2)
+        for a in range(n):
+            x[a] = x[a] + (1.5 * h) * wk.k1[a] + (0.5 * h) * wk.k2[a]
+
+
+@_jit
+def _transition(f, fj, u, k, th, dt, ip, wk):
+    """Every sigma point of wk.chi through the transition over interval k
+    into wk.X (:func:`bondgraph.numerics.integrators.make_step`)."""
+    method, nsub, jac, hold = ip[0], ip[1], ip[2], ip[3]
+    h = dt / nsub
+    npt, n = wk.chi.shape
+    _held_input(u, k, 0.0, hold, wk.ub)
+    if method == 1 and jac == 0:
+        fj(wk.chi[0], wk.ub, th, wk.F0, wk.J)
+        _inverse_w(wk.J, h, wk)
+    for j in range(npt):
+        for a in range(n):
+            wk.X[j, a] = wk.chi[j, a]
+        if j > 0:
+            _held_input(u, k, 0.0, hold, wk.ub)
+        if method == 0:
+            _rk4_point(f, wk.X[j], u, k, hold, th, h, nsub, wk)
+        else:
+            _ros2_point(f, fj, wk.X[j], u, k, hold, th, h, nsub, jac, wk)
+
+
+# ------------------------------------------------------------ predict / update
+@_jit
+def _predict(f, fj, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
+    """Prediction over interval k (to sample k + 1) in place; 0 or a failure code."""
+    n = x.shape[0]
+    r = _chol(P, n, wk.L)
+    if r == 0:
+        return 1
+    wk.nreg[0] += r == 2
+    _sigma(x, wk.L, fp[0], wk)
+    _transition(f, fj, u, k, th, dt, ip, wk)
+    for j in range(wk.X.shape[0]):
+        for a in range(n):
+            if not np.isfinite(wk.X[j, a]):
+                return 3
+    _moments(wk.X, n, fp[1], fp[2], x, P, wk.D)
+    for a in range(n):
+        P[a, a] += q2[a] * dt
+    if ip[5]:
+        for a in range(n):
+            for b in range(n):
+                P[a, b] += Q[a, b]
+    return 0
+
+
+@_jit
+def _measured_outputs(h, x, P, th, uk, yk, fp, wk):
+    """Sigma points of the prior through h, restricted to the measured outputs
+    of yk (their indices in wk.idx); returns (m, failure code)."""
+    n = x.shape[0]
+    r = _chol(P, n, wk.L)
+    if r == 0:
+        return 0, 2
+    wk.nreg[0] += r == 2
+    _sigma(x, wk.L, fp[0], wk)
+    for j in range(wk.chi.shape[0]):
+        h(wk.chi[j], uk, th, wk.Y[j])
+    m = 0
+    for b in range(yk.shape[0]):
+        if np.isfinite(yk[b]):
+            wk.idx[m] = b
+            m += 1
+    for j in range(wk.chi.shape[0]):
+        for b in range(m):
+            v = wk.Y[j, wk.idx[b]]
+            if not np.isfinite(v):
+                return m, 4
+            wk.Ym[j, b] = v
+    return m, 0
+
+
+@_jit
+def _update(h, x, P, th, uk, yk, Rd, R, ip, fp, wk):
+    """Measurement update at one sample in place: (NLL term, maha, m, failure code)."""
+    n = x.shape[0]
+    m, code = _measured_outputs(h, x, P, th, uk, yk, fp, wk)
+    if code:
+        return 0.0, 0.0, m, code
+    S, D, w = wk.cov, wk.D, fp[1]
+    _moments(wk.Ym, m, w, fp[2], wk.yf, S, D)
+    for a in range(m):
+        if ip[4]:
+            for b in range(m):
+                S[a, b] += R[wk.idx[a], wk.idx[b]]
+        else:
+            S[a, a] += Rd[wk.idx[a]]
+    for a in range(n):
+        for b in range(m):
+            s = 0.0
+            for i in range(n):
+                s += wk.cL[i, a] * (D[i, b] - D[n + i, b])
+            wk.Pxy[a, b] = w * s
+    r = _chol(S, m, wk.Ls)
+    if r == 0:
+        return 0.0, 0.0, m, 5
+    wk.nreg[0] += r == 2
+    for b in range(m):
+        wk.eps[b] = yk[wk.idx[b]] - wk.yf[b]
+    term, maha = _correct(x, P, m, wk)
+    return term, maha, m, 0
+
+
+@_jit
+def _forward(Ls, m, b, out):
+    """Solve Ls out = b (lower triangular, m x m)."""
+    for i in range(m):
+        s = b[i]
+        for j in range(i):
+            s -= Ls[i, j] * out[j]
+        out[i] = s / Ls[i, i]
+
+
+@_jit
+def _correct(x, P, m, wk):
+    """Kalman correction from the Cholesky factor of S: G = Pxy Ls⁻ᵀ,
+    z = Ls⁻¹ ε, x += G z, P −= G Gᵀ (symmetrised); (NLL term, ε S⁻¹ ε)."""
+    n = x.shape[0]
+    Ls, Gt = wk.Ls, wk.Gt
+    for a in range(n):
+        _forward(Ls, m, wk.Pxy[a], wk.xt)
+        for b in range(m):
+            Gt[b, a] = wk.xt[b]
+    _forward(Ls, m, wk.eps, wk.z)
+    logdet, maha = 0.0, 0.0
+    for b in range(m):
+        logdet += np.log(Ls[b, b])
+        maha += wk.z[b] * wk.z[b]
+    term = 0.5 * (2.0 * logdet + maha + m * LOG_2PI)
+    for a in range(n):
+        s = 0.0
+        for b in range(m):
+            s += Gt[b, a] * wk.z[b]
+        x[a] = x[a] + s
+    for a in range(n):
+        for c in range(a + 1):
+            s = 0.0
+            for b in range(m):
+                s += Gt[b, a] * Gt[b, c]
+            v = 0.5 * ((P[a, c] - s) + (P[c, a] - s))
+            P[a, c] = v
+            P[c, a] = v
+    return term, maha
+
+
+# ------------------------------------------------------------ storage
+@_jit
+def _store_update(st, k, p, m, term, maha, wk):
+    """Innovations, predicted outputs, S (measured block), NLL term and NIS at k."""
+    for a in range(m):
+        ia = wk.idx[a]
+        st[0][k, p, ia] = wk.eps[a]
+        st[2][k, p, ia] = wk.yf[a]
+        for b in range(m):
+            st[1][k, p, ia, wk.idx[b]] = wk.cov[a, b]
+    st[6][k, p] = term
+    st[7][k, p] = maha
+
+
+@_jit
+def _store_filtered(h, st, k, p, x, P, uk, th, full, wk):
+    """Filtered state, its outputs h(x̂, u_k) and (full) covariance at k."""
+    n = x.shape[0]
+    for a in range(n):
+        st[4][k, p, a] = x[a]
+    h(x, uk, th, wk.Y[0])
+    for b in range(wk.Y.shape[1]):
+        st[3][k, p, b] = wk.Y[0, b]
+    if full:
+        for a in range(n):
+            for b in range(n):
+                st[5][k, p, a, b] = P[a, b]
+
+
+# ------------------------------------------------------------ one set, all sets
+@_jit
+def _filter_one(a, f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i,
+                st):
+    """The whole record for parameter set ``a``: NLL into out_f[a]; failing
+    sample (-1: none), failure code and loaded factorisations into out_i[a]."""
+    n, ny, nu = x0.shape[1], y.shape[1], u.shape[1]
+    wk = _work(n, ny, nu)
+    x, P, tha = x0[a].copy(), P0[a].copy(), th[a].copy()
+    Qa, Ra, Rda = Q[a * ip[5]], R[a * ip[4]], Rd[a * (1 - ip[4])]
+    p = act[a]
+    nll = 0.0
+    out_i[a, 0], out_i[a, 1] = -1, 0
+    for k in range(t.shape[0]):
+        code = 0
+        if k > 0:
+            code = _predict(f, fj, x, P, u, k - 1, tha, t[k] - t[k - 1], q2[a], Qa, ip, fp, wk)
+        if code == 0 and _any_finite(y[k]):
+            term, maha, m, code = _update(h, x, P, tha, u[k], y[k], Rda, Ra, ip, fp, wk)
+            if code == 0:
+                nll += term
+                if ip[6]:
+                    _store_update(st, k, p, m, term, maha, wk)
+        if code:
+            out_i[a, 0], out_i[a, 1] = k, code
+            nll = np.inf
+            break
+        if ip[6]:
+            _store_filtered(h, st, k, p, x, P, u[k], tha, ip[6] == 2, wk)
+    out_f[a] = nll
+    out_i[a, 2] = wk.nreg[0]
+
+
+@_jit
+def _any_finite(v):
+    for i in range(v.shape[0]):
+        if np.isfinite(v[i]):
+            return True
+    return False
+
+
+def _kernel_py(f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i, st):
+    """Every parameter set in parallel (``prange``): :func:`_filter_one`."""
+    for a in numba.prange(th.shape[0]):
+        _filter_one(np.int64(a), f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
+                    out_i, st)
+
+
+def _signature():
+    """The kernel's explicit signature (first-class function types for the
+    model's point kernels: compiled once for every model)."""
+    V, M = types.float64[::1], types.float64[:, ::1]
+    A3, A4 = types.float64[:, :, ::1], types.float64[:, :, :, ::1]
+    point = types.FunctionType(types.void(V, V, V, V))
+    jac = types.FunctionType(types.void(V, V, V, V, M))
+    store = types.Tuple((A3, A4, A3, A3, A3, A4, M, M))
+    return types.void(point, point, jac, V, M, M, M, M, A3, M, M, A3, A3, types.int64[::1],
+                      types.int64[::1], V, V, types.int64[:, ::1], store)
+
+
+_LOCK = threading.Lock()
+_KERNEL: list = []
+
+
+def kernel() -> tuple[object, float]:
+    """The compiled kernel and the seconds this call spent compiling it (or
+    loading it from numba's cache; 0 once loaded in this process).
+
+    Raises
+    ------
+    ImportError
+        numba is not installed.
+    """
+    if numba is None:
+        raise ImportError("numba is not installed (pip install numba)")
+    with _LOCK:
+        if _KERNEL:
+            return _KERNEL[0], 0.0
+        t0 = time.perf_counter()
+        k = numba.njit(_signature(), cache=True, parallel=True, nogil=True,
+                       error_model="numpy")(_kernel_py)
+        _KERNEL.append(k)
+        return k, time.perf_counter() - t0
+
+
+def unsupported(opts) -> str | None:
+    """Why the kernel cannot run with UKFOptions ``opts`` (None if it can)."""
+    for name, codes in (("method", METHOD_CODES), ("jacobian", JACOBIAN_CODES),
+                        ("hold", HOLD_CODES)):
+        if getattr(opts, name) not in codes:
+            return f"the numba kernel has no {name} {getattr(opts, name)!r}; numpy ran instead"
+    return None
+
+
+def _empty_store() -> tuple:
+    z3, z4, z2 = np.zeros((0, 0, 0)), np.zeros((0, 0, 0, 0)), np.zeros((0, 0))
+    return (z3, z4, z3, z3, z3, z4, z2, z2)
+
+
+def _store_arrays(kept) -> tuple:
+    """The storage arrays of a FilterStorage (writable, C-contiguous)."""
+    if kept is None:
+        return _empty_store()
+    P_filt = kept.P_filt if kept.P_filt is not None else np.zeros((0, 0, 0, 0))
+    return (kept.innovations, kept.S, kept.y_pred, kept.y_filt, kept.x_filt, P_filt,
+            kept.nll_terms, kept.nis)
+
+
+def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
+    """Filter the active sets of ``batch`` (a
+    :class:`bondgraph.inference.ukf.FilterBatch` after its start checks) with
+    the compiled kernel, filling its NLL, failures and reasons, and ``kept``
+    (a FilterStorage or None) as the numpy path does.
+
+    Parameters
+    ----------
+    kernels : bondgraph.numerics.compiled.PointKernels
+    t, u, y : arrays (N,), (N, n_u), (N, n_y)
+    opts : UKFOptions
+    wts : SigmaWeights
+
+    Returns
+    -------
+    float
+        Seconds spent compiling (or loading) the kernel in this call.
+    """
+    kern, compile_s = kernel()
+    A = batch.size
+    if A == 0:
+        return compile_s
+    c = np.ascontiguousarray
+    n, ny = batch.x.shape[1], y.shape[1]
+    ip = np.array([METHOD_CODES[opts.method], opts.substeps, JACOBIAN_CODES[opts.jacobian],
+                   HOLD_CODES[opts.hold], batch.R is not None, batch.Q is not None,
+                   0 if kept is None else (2 if kept.P_filt is not None else 1)], dtype=np.int64)
+    fp = np.array([wts.c, wts.w, wts.center_cov])
+    R = c(batch.R, dtype=float) if batch.R is not None else np.zeros((1, ny, ny))
+    Rd = c(batch.Rd, dtype=float) if batch.Rd is not None else np.zeros((1, ny))
+    Q = c(batch.Q, dtype=float) if batch.Q is not None else np.zeros((1, n, n))
+    out_f, out_i = np.empty(A), np.empty((A, 3), dtype=np.int64)
+    kern(kernels.f, kernels.h, kernels.f_dfdx, c(t, dtype=float), c(u, dtype=float),
+         c(y, dtype=float), c(batch.th, dtype=float), c(batch.x, dtype=float),
+         c(batch.P, dtype=float), c(batch.q2, dtype=float), Rd, R, Q,
+         c(batch.act, dtype=np.int64), ip, fp, out_f, out_i, _store_arrays(kept))
+    for a, p in enumerate(batch.act):
+        k, code = int(out_i[a, 0]), int(out_i[a, 1])
+        if k >= 0:
+            batch.failed[p], batch.fail_step[p] = True, k
+            batch.reasons[p] = f"sample {k} (t = {t[k]:.6g} s): {FAIL_REASONS[code]}"
+            batch.nll[p] = np.inf
+        else:
+            batch.nll[p] = out_f[a]
+    batch.n_reg += int(out_i[:, 2].sum())
+    return compile_s

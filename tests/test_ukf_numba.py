@@ -1,0 +1,181 @@
+"""The numba backend: generated point kernels and the fused UKF likelihood
+kernel (bondgraph.numerics.compiled, bondgraph.inference.ukf_numba).
+
+Reference: the numpy path (the batched numpy filter and the generated numpy
+module), which is itself checked against filterpy in test_ukf.py. The NLL of
+every registered model must agree within 1e-9 relative on random parameter
+sets drawn from the model's box, with identical failures (same sets, same
+sample, same reason). The test uses NSETS sets per model to keep CI time
+small; bench/numba_equality.py runs the same comparison with 100 sets.
+"""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from bondgraph.errors import BackendWarning
+from bondgraph.inference import ukf as ukf_module
+from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.ukf import ukf_nll
+from bondgraph.numerics import compiled, registry
+from bondgraph.numerics.model import Model
+
+pytest.importorskip("numba")
+
+NSETS = 12
+MODELS = sorted(registry.registered())
+
+
+def _record(m: Model, N=120, dt=0.01, seed=0):
+    """A record of ``m`` at its defaults: inputs around INPUT_DEFAULTS (a
+    slow sine modulation), RK4(8) truth, measurement noise, one missing
+    sample and one partially missing sample."""
+    t = np.arange(N) * dt
+    mod = 1.0 + 0.3 * np.sin(np.arange(N) / 7.0)
+    u = m.u0[None, :] * mod[:, None] + 0.1 * np.sin(np.arange(N) / 5.0)[:, None]
+    x = m.x0[None].copy()
+    ys = []
+    for k in range(N):
+        ys.append(m.h(x, u[k], m.theta0)[0])
+        x = m.module.fx(x, dt, u[k], m.theta0, 8)
+    rng = np.random.default_rng(seed)
+    y = np.array(ys) + rng.normal(size=(N, m.n_y)) * m.meas_std(m.theta0[None])[0]
+    y[3] = np.nan
+    y[10, 0] = np.nan
+    return t, u, y
+
+
+def box_sets(m: Model, n: int, seed: int) -> np.ndarray:
+    """``n`` parameter sets uniform in the model's finite box (defaults
+    where a bound is infinite)."""
+    rng = np.random.default_rng(seed)
+    th = np.tile(m.theta0, (n, 1))
+    fin = np.isfinite(m.lower) & np.isfinite(m.upper)
+    th[:, fin] = m.lower[fin] + rng.random((n, int(fin.sum()))) * (m.upper[fin] - m.lower[fin])
+    return th
+
+
+def assert_same(a, b, rel=1e-9):
+    """Same failures (sets, samples, reasons) and NLL within ``rel``."""
+    np.testing.assert_array_equal(a.failed, b.failed)
+    np.testing.assert_array_equal(a.fail_step, b.fail_step)
+    assert a.reasons == b.reasons
+    ok = ~a.failed
+    np.testing.assert_allclose(b.nll[ok], a.nll[ok], rtol=rel, atol=0)
+    assert np.isposinf(b.nll[a.failed]).all()
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_point_kernels_equal_numpy_module(name):
+    """f, h and f_dfdx of the generated numba kernels equal the numpy module's
+    f, h, f and dfdx at random points (the same expressions)."""
+    m = Model.load(name)
+    pk = compiled.point_kernels(m)
+    rng = np.random.default_rng(3)
+    th = box_sets(m, 3, seed=1)
+    for p in range(3):
+        x = m.x0 + rng.normal(size=m.n_x) * (np.abs(m.x0) + 0.1)
+        u = m.u0 + rng.normal(size=m.n_u) * 0.1
+        dx, yv, J = np.empty(m.n_x), np.empty(m.n_y), np.empty((m.n_x, m.n_x))
+        pk.f(x, u, th[p], dx)
+        pk.h(x, u, th[p], yv)
+        dx2 = np.empty(m.n_x)
+        pk.f_dfdx(x, u, th[p], dx2, J)
+        with np.errstate(all="ignore"):
+            np.testing.assert_allclose(dx, m.f(x, u, th[p]), rtol=1e-12, atol=1e-300)
+            np.testing.assert_allclose(dx2, dx, rtol=1e-12)
+            np.testing.assert_allclose(yv, m.h(x, u, th[p]), rtol=1e-12, atol=1e-300)
+            np.testing.assert_allclose(J, m.dfdx(x, u, th[p]), rtol=1e-12, atol=1e-300)
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_numba_nll_equals_numpy_on_the_box(name):
+    """Default options (ROS2, Jacobian at the central point, zero-order hold):
+    NLL within 1e-9 relative, identical failures, on NSETS box sets."""
+    m = Model.load(name)
+    t, u, y = _record(m)
+    th = box_sets(m, NSETS, seed=7)
+    a = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numpy"))
+    b = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numba"))
+    assert a.settings["backend_used"] == "numpy" and b.settings["backend_used"] == "numba"
+    assert_same(a, b)
+
+
+@pytest.mark.parametrize("opts", [dict(method="rk4", substeps=20, hold="mean"),
+                                  dict(method="ros2", substeps=3, jacobian="sigma"),
+                                  dict(method="ros2", substeps=2, alpha=0.5, kappa=1.0)])
+def test_numba_equals_numpy_for_other_options(opts):
+    """RK4 (stable step), ROS2 with per-point Jacobians, other sigma scaling,
+    the mean input hold, on the stiff vehicle model; stored arrays too."""
+    m = Model.load("vehicle_coastdown")
+    t, u, y = _record(m, N=60)
+    th = box_sets(m, 6, seed=11)
+    a = ukf_nll(m, t, u, y, th, store="full", options=UKFOptions(backend="numpy", **opts))
+    b = ukf_nll(m, t, u, y, th, store="full", options=UKFOptions(backend="numba", **opts))
+    assert_same(a, b)
+    for key in ("innovations", "S", "y_pred", "y_filt", "x_filt", "P_filt", "nll_terms", "nis"):
+        A, B = getattr(a, key), getattr(b, key)
+        np.testing.assert_array_equal(np.isnan(A), np.isnan(B), err_msg=key)
+        scale = np.nanmax(np.abs(A)) if np.isfinite(A).any() else 1.0
+        np.testing.assert_allclose(B, A, rtol=1e-8, atol=1e-9 * scale, err_msg=key)
+
+
+def test_failures_are_handled_as_numpy():
+    """Sets failing at the start (non-finite parameter, non-positive noise) and
+    during the record (diverging states): same sets, samples and reasons."""
+    m = Model.load("rr_loop")
+    t, u, y = _record(m)
+    th = box_sets(m, 8, seed=2)
+    th[1, 0] = np.nan
+    th[2] = m.theta0 * 1e6
+    a = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numpy"))
+    b = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numba"))
+    assert a.failed[1] and a.fail_step[1] == 0
+    assert a.failed.sum() >= 2
+    assert_same(a, b)
+
+
+def test_fallback_to_numpy_when_kernels_do_not_load(monkeypatch):
+    """numba missing (point_kernels raising ImportError): a BackendWarning
+    naming the model, and the numpy result."""
+    m = Model.load("mass_spring_damper")
+    t, u, y = _record(m, N=40)
+    ref = ukf_nll(m, t, u, y, m.theta0, options=UKFOptions(backend="numpy"))
+
+    def broken(model):
+        raise ImportError("numba is not installed")
+    monkeypatch.setattr(ukf_module, "point_kernels", broken)
+    monkeypatch.setattr(ukf_module, "_WARNED", set())
+    with pytest.warns(BackendWarning, match="mass_spring_damper"):
+        r = ukf_nll(m, t, u, y, m.theta0, options=UKFOptions(backend="numba"))
+    assert r.settings["backend_used"] == "numpy"
+    assert r.nll[0] == ref.nll[0]
+
+
+def test_in_memory_model_compiles_into_the_cache(tmp_path, monkeypatch):
+    """A model built in memory gets its kernels written to the cache
+    directory (keyed by its source) once compiling pays, and equal NLLs."""
+    monkeypatch.setenv(compiled.CACHE_ENV, str(tmp_path))
+    m = Model.from_spec("bondgraph.catalog.reference:mass_spring_damper")
+    t, u, y = _record(m, N=40)
+    th = box_sets(m, 4, seed=5)
+    m.numpy_seconds = 1e9          # compiling pays now
+    a = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numpy"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", BackendWarning)
+        b = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numba"))
+    assert b.settings["backend_used"] == "numba"
+    assert list(tmp_path.glob("mass_spring_damper_*.py"))
+    assert_same(a, b)
+
+
+def test_generate_check_covers_the_numba_kernels(tmp_path):
+    """`bondgraph generate --check` names a model whose numba file changed."""
+    registry.generate(["mass_spring_damper"], directory=tmp_path, verbose=False)
+    assert registry.generate(["mass_spring_damper"], check=True, directory=tmp_path,
+                             verbose=False) == []
+    p = registry.numba_path("mass_spring_damper", tmp_path)
+    p.write_text(p.read_text().replace("k*q_spring", "k*q_spring*1.0001", 1))
+    assert registry.generate(["mass_spring_damper"], check=True, directory=tmp_path,
+                             verbose=False) == ["mass_spring_damper"]
