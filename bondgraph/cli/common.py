@@ -3,7 +3,7 @@
 Every command that takes a model accepts a registered name,
 ``module:function`` or ``path/to/file.py:function`` (the current directory is
 on the import path); ``--fixed``, ``--x0``, ``--p0-rel``, ``--method``,
-``--substeps`` and ``--hold`` mean the same in every command.
+``--substeps``, ``--hold`` and ``--backend`` mean the same in every command.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import argparse
 from typing import Iterable
 
 from bondgraph.errors import OptionError
+from bondgraph.inference.options import DEFAULT_BACKEND, UKF_BACKENDS
 
 MODEL_HELP = ("model: a registered name (`bondgraph models`), module:function or "
               "path/to/file.py:function returning a BondGraph (modules are imported from "
@@ -134,6 +135,15 @@ def add_discretisation(p: argparse.ArgumentParser, *, hold_default: str = "zoh")
     p.add_argument("--substeps", type=int, default=1, help="integrator steps per sample")
     p.add_argument("--hold", choices=("zoh", "mean"), default=hold_default,
                    help="input over a sample interval: u_k or (u_k + u_k+1)/2")
+    add_backend(p)
+
+
+def add_backend(p: argparse.ArgumentParser) -> None:
+    """``--backend``: the implementation of the UKF likelihood
+    (:attr:`bondgraph.inference.options.UKFOptions.backend`)."""
+    p.add_argument("--backend", choices=UKF_BACKENDS, default=DEFAULT_BACKEND,
+                   help="UKF likelihood: the compiled numba kernel or the numpy reference "
+                        f"(default {DEFAULT_BACKEND}: numba when it is installed)")
 
 
 def add_quiet(p: argparse.ArgumentParser) -> None:

@@ -70,7 +70,7 @@ def run(args) -> int:
                      resume=args.resume, polish=not args.no_polish, stall_iterations=args.stall,
                      progress=not args.quiet, workers=args.workers)
     ukf = UKFOptions(alpha=args.alpha, beta=args.beta, kappa=args.kappa, method=args.method,
-                     substeps=args.substeps, hold=args.hold)
+                     substeps=args.substeps, hold=args.hold, backend=args.backend)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
         res = estimate(model, exp, params, fit=fit, ukf=ukf,

@@ -6,13 +6,15 @@ and after. Without ``--model`` it runs a bundled case (default
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
-from bondgraph.cli.common import MODEL_HELP, add_quiet, parse_params
+from bondgraph.cli.common import MODEL_HELP, add_backend, add_quiet, parse_params
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.errors import ModelError
+from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.loop_report import LoopReporter
 
@@ -38,6 +40,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--significance", type=float, default=None)
     p.add_argument("--no-structural", action="store_true",
                    help="score only additive effects (faster)")
+    add_backend(p)
     add_quiet(p)
 
 
@@ -72,6 +75,8 @@ def run(args) -> int:
         settings["significance"] = args.significance
     if args.no_structural:
         settings["structural"] = False
+    settings["ukf"] = dataclasses.replace(settings.get("ukf") or UKFOptions(),
+                                          backend=args.backend)
     reporter = LoopReporter(args.out, echo=None if args.quiet else print)
     res = run_loop(graph, record, params, log=reporter.log, progress=not args.quiet,
                    on_update=reporter.update, **settings)

@@ -90,7 +90,8 @@ def run(args) -> int:
     log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     rep = analyse(model, exp, params, theta=th, x0=x0, p0_rel=args.p0_rel,
-                  ukf=UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold),
+                  ukf=UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold,
+                                 backend=args.backend),
                   global_N=args.global_N, outputs=outputs, box_rel=args.box_rel,
                   chunk=args.chunk, seed=args.seed, rel_crb_max=args.rel_crb,
                   corr_max=args.corr_max, sensitivities=not args.no_sensitivities,

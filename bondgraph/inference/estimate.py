@@ -47,7 +47,15 @@ from bondgraph.errors import IdentifiabilityWarning, ModelError, OptionError
 from bondgraph.inference.optimize import de, minimize_batched, pso
 from bondgraph.inference.options import FitOptions, UKFOptions, fit_options, ukf_options
 from bondgraph.inference.record import as_record, initial_state, record_arrays
-from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
+from bondgraph.inference.ukf import (
+    GUARD_REL,
+    GUARD_SUBSTEPS,
+    UKFResult,
+    default_P0,
+    discretisation_check,
+    nll_guard,
+    ukf_nll,
+)
 from bondgraph.numerics.model import Model
 
 
@@ -454,7 +462,10 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     -----
     IdentifiabilityWarning
         Hessian not positive definite (the unidentified direction named), an
-        estimate on a bound, no finite NLL, or a discretisation error > 0.1 σ.
+        estimate on a bound, no finite NLL, a discretisation error > 0.1 σ, or
+        an NLL at the estimate more than 1e-3 relative from the RK4(40)
+        reference (:func:`bondgraph.inference.ukf.nll_guard`; the message says
+        how many substeps agree).
     """
     t_start = time.perf_counter()
     fit, ukf = fit_options(fit), ukf_options(ukf)
@@ -618,8 +629,27 @@ def _discretisation_at(crit, x_best, f_best, x0, fit: FitOptions, ukf: UKFOption
                          f"measurement-noise standard deviations per sample at the "
                          f"estimate: a model error that biases the estimate; use more "
                          f"substeps or method='rk4'")
+    guard = nll_guard(crit.model, crit.t, crit.u, crit.y, th_best, crit.x0, crit.P0,
+                      options=ukf, Q=crit.Q, R=crit.R, nll=f_best)
+    if not guard["ok"]:
+        warn_list.append(_guard_message(guard, ukf))
     return dict(one_step=dc["one_step"].tolist(), free_run=dc["free_run"].tolist(),
-                reference=dc["reference"])
+                reference=dc["reference"], nll_guard=guard)
+
+
+def _guard_message(guard: dict, ukf: UKFOptions) -> str:
+    """The warning of the NLL discretisation guard (:func:`nll_guard`)."""
+    if not np.isfinite(guard["nll_reference"]):
+        return (f"the {guard['reference']} reference of the NLL failed at the estimate (NLL "
+                f"{guard['nll']:.10g} with {ukf.method}({ukf.substeps})): the discretisation "
+                f"could not be checked")
+    need = (f"{ukf.method} needs {guard['substeps_needed']} substeps to agree"
+            if guard["substeps_needed"] else
+            f"{ukf.method} does not agree even with {GUARD_SUBSTEPS} substeps (use method='rk4' "
+            f"with {GUARD_SUBSTEPS})")
+    return (f"NLL at the estimate with {ukf.method}({ukf.substeps}) is {guard['nll']:.10g}, "
+            f"{guard['rel_diff']:.2g} relative from the {guard['reference']} reference "
+            f"{guard['nll_reference']:.10g} (> {GUARD_REL:g}): {need}")
 
 
 def _truth(meta, params, x, std):

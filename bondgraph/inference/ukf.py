@@ -57,7 +57,7 @@ from __future__ import annotations
 import time
 import warnings
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -803,3 +803,67 @@ def _reference_trajectory(model, t, u, th, x, method, substeps):
         if np.isfinite(xr).all():
             return xr, cand
     return None, None
+
+
+#: the discretisation guard's reference: RK4 with this many sub-steps per sample
+GUARD_SUBSTEPS = 40
+#: relative NLL difference above which the guard warns
+GUARD_REL = 1e-3
+
+
+def nll_guard(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | None = None,
+              Q=None, R=None, nll: float | None = None) -> dict:
+    """Discretisation guard of the likelihood: the NLL at ``theta`` with the
+    filter's discretisation against a reference with RK4 and
+    :data:`GUARD_SUBSTEPS` sub-steps per sample (everything else equal).
+
+    If they differ by more than :data:`GUARD_REL` relative, the filter's
+    method is tried with 2, 4, 8 ... times its sub-steps (up to
+    GUARD_SUBSTEPS) until its NLL is within GUARD_REL of the reference.
+
+    Parameters
+    ----------
+    model, t, u, y, x0, P0, Q, R :
+        As for :func:`ukf_nll`.
+    theta : array (n_theta,)
+        One full parameter vector (the estimate).
+    options : UKFOptions, optional
+        The filter's options (method, substeps, backend ...).
+    nll : float, optional
+        The NLL at ``theta`` with ``options`` if already known.
+
+    Returns
+    -------
+    dict
+        ``nll``, ``nll_reference`` (RK4(40)), ``rel_diff`` (|Δ| / |reference|,
+        inf when only one is finite), ``ok`` (rel_diff <= GUARD_REL),
+        ``substeps_needed`` (int, or None when ok, when GUARD_SUBSTEPS of
+        the method are not enough, or when the reference failed: then no
+        sub-steps are tried), ``tried`` {substeps: nll}.
+    """
+    opts = ukf_options(options)
+    th = np.asarray(theta, float)[None, :]
+
+    def at(o):
+        return float(ukf_nll(model, t, u, y, th, x0, P0, options=o, Q=Q, R=R).nll[0])
+
+    value = at(opts) if nll is None else float(nll)
+    ref = at(replace(opts, method="rk4", substeps=GUARD_SUBSTEPS))
+    out = dict(nll=value, nll_reference=ref, rel_diff=_rel_diff(value, ref), ok=True,
+               substeps_needed=None, tried={}, reference=f"rk4({GUARD_SUBSTEPS})")
+    out["ok"] = bool(out["rel_diff"] <= GUARD_REL)
+    s = opts.substeps
+    while not out["ok"] and np.isfinite(ref) and s < GUARD_SUBSTEPS:
+        s = min(2 * s, GUARD_SUBSTEPS)
+        out["tried"][s] = at(replace(opts, substeps=s))
+        if _rel_diff(out["tried"][s], ref) <= GUARD_REL:
+            out["substeps_needed"] = s
+            break
+    return out
+
+
+def _rel_diff(a: float, ref: float) -> float:
+    """|a − ref| / |ref|; 0 when both are the same infinity, inf when only one is finite."""
+    if not (np.isfinite(a) and np.isfinite(ref)):
+        return 0.0 if a == ref else float("inf")
+    return abs(a - ref) / max(abs(ref), np.finfo(float).tiny)
