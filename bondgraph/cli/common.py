@@ -146,6 +146,14 @@ def add_backend(p: argparse.ArgumentParser) -> None:
                         f"(default {DEFAULT_BACKEND}: numba when it is installed)")
 
 
+def add_scheduler(p: argparse.ArgumentParser) -> None:
+    """``--scheduler``: an existing Dask cluster for the batched evaluations
+    (:class:`bondgraph.inference.executor.Executor`)."""
+    p.add_argument("--scheduler", default=None,
+                   help="Dask scheduler address tcp://HOST:PORT (default: $BONDGRAPH_SCHEDULER, "
+                        "else this machine; start one with `dask scheduler` and `dask worker`)")
+
+
 def add_quiet(p: argparse.ArgumentParser) -> None:
     """``--quiet``."""
     p.add_argument("--quiet", action="store_true", help="no progress output")

@@ -14,6 +14,7 @@ from bondgraph.cli.common import (
     add_initial_state,
     add_model,
     add_quiet,
+    add_scheduler,
     initial_state,
     load_model,
     parse_pairs,
@@ -51,7 +52,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_initial_state(p)
     p.add_argument("--no-polish", action="store_true")
     p.add_argument("--no-plots", action="store_true")
-    p.add_argument("--workers", type=int, default=1, help="processes per batched evaluation")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local Dask worker processes per batched evaluation (1: in process)")
+    add_scheduler(p)
     add_quiet(p)
 
 
@@ -68,7 +71,8 @@ def run(args) -> int:
     fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
                      iterations=args.iterations, seed=args.seed, checkpoint=ck,
                      resume=args.resume, polish=not args.no_polish, stall_iterations=args.stall,
-                     progress=not args.quiet, workers=args.workers)
+                     progress=not args.quiet, workers=args.workers,
+                     scheduler=args.scheduler)
     ukf = UKFOptions(alpha=args.alpha, beta=args.beta, kappa=args.kappa, method=args.method,
                      substeps=args.substeps, hold=args.hold, backend=args.backend)
     with warnings.catch_warnings():

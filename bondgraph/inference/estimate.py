@@ -47,6 +47,7 @@ from bondgraph.errors import IdentifiabilityWarning, ModelError, OptionError
 from bondgraph.inference.optimize import de, minimize_batched, pso
 from bondgraph.inference.options import FitOptions, UKFOptions, fit_options, ukf_options
 from bondgraph.inference.record import as_record, initial_state, record_arrays
+from bondgraph.inference.executor import Executor
 from bondgraph.inference.ukf import (
     GUARD_REL,
     GUARD_SUBSTEPS,
@@ -83,9 +84,12 @@ class Criterion:
     chunk : int, optional
         Evaluate at most this many parameter sets per UKF run.
     workers : int
-        Processes that share each batch (``fork`` start method; each runs
-        the batched UKF on its share of the parameter sets). 1: in-process.
+        Worker processes of the embedded Dask cluster that share each batch
+        (:class:`bondgraph.inference.executor.Executor`). 1: in process.
         Results do not depend on ``workers``.
+    scheduler : str, optional
+        Address of an existing Dask scheduler (``tcp://HOST:PORT``; default
+        ``$BONDGRAPH_SCHEDULER``): the batch's chunks run on its workers.
 
     Attributes
     ----------
@@ -99,7 +103,7 @@ class Criterion:
 
     def __init__(self, model, t, u, y, params: Sequence[str], base, x0=None, P0=None, *,
                  options: UKFOptions | None = None, Q=None, R=None, chunk: int | None = None,
-                 workers: int = 1):
+                 workers: int = 1, scheduler: str | None = None):
         self.model = model
         self.t, self.u, self.y = t, u, y
         self.params = list(params)
@@ -110,7 +114,7 @@ class Criterion:
         self.Q, self.R = Q, R
         self.chunk = chunk
         self.workers = max(1, int(workers))
-        self._pool = None
+        self._executor = Executor(self.workers, scheduler)
         self.evaluations = 0
         self.calls = 0
         self.failures: Counter = Counter()
@@ -138,14 +142,9 @@ class Criterion:
     def __call__(self, X) -> np.ndarray:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         S = X.shape[0]
-        if self.workers > 1 and S >= 2 * self.workers:
-            if self._pool is None:
-                import multiprocessing as mp
-
-                global _WORKER_CRITERION
-                _WORKER_CRITERION = self
-                self._pool = mp.get_context("fork").Pool(self.workers)
-            parts = self._pool.map(_worker_evaluate, np.array_split(X, self.workers))
+        if self._executor.distributed and S >= 2:
+            parts = self._executor.map(_evaluate_chunk, self, _chunks(X, self.chunk,
+                                                                       self.workers))
             out = np.concatenate([p[0] for p in parts])
             for p in parts:
                 self.failures.update(p[1])
@@ -157,11 +156,8 @@ class Criterion:
         return out
 
     def close(self) -> None:
-        """Stop the worker processes (if any)."""
-        if self._pool is not None:
-            self._pool.close()
-            self._pool.join()
-            self._pool = None
+        """Stop the Dask client and the embedded workers (if any)."""
+        self._executor.close()
 
     def __del__(self):
         try:
@@ -169,17 +165,22 @@ class Criterion:
         except Exception:
             pass
 
-    def __getstate__(self):
-        d = dict(self.__dict__)
-        d["_pool"] = None
-        return d
+
+#: parameter sets per chunk sent to a worker when no chunk size is given
+DEFAULT_CHUNK = 16
 
 
-_WORKER_CRITERION: Criterion | None = None
+def _chunks(X: np.ndarray, chunk: int | None, workers: int) -> list[np.ndarray]:
+    """Rows of X in chunks of ``chunk`` (default: at most DEFAULT_CHUNK, and
+    at least two chunks per worker when there are enough rows)."""
+    S = X.shape[0]
+    step = chunk or max(1, min(DEFAULT_CHUNK, -(-S // (2 * workers))))
+    return [X[a:a + step] for a in range(0, S, step)]
 
 
-def _worker_evaluate(X):
-    return _WORKER_CRITERION._evaluate(X)
+def _evaluate_chunk(crit: "Criterion", X: np.ndarray):
+    """``(nll, failures)`` of one chunk on a worker (:meth:`Criterion._evaluate`)."""
+    return crit._evaluate(X)
 
 
 # ------------------------------------------------------------------- Hessian
@@ -461,11 +462,8 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     Warns
     -----
     IdentifiabilityWarning
-        Hessian not positive definite (the unidentified direction named), an
-        estimate on a bound, no finite NLL, a discretisation error > 0.1 σ, or
-        an NLL at the estimate more than 1e-3 relative from the RK4(40)
-        reference (:func:`bondgraph.inference.ukf.nll_guard`; the message says
-        how many substeps agree).
+        Hessian not positive definite (direction named), an estimate on a bound, no
+        finite NLL, a discretisation error > 0.1 σ, an NLL 1e-3 off RK4(40) (nll_guard).
     """
     t_start = time.perf_counter()
     fit, ukf = fit_options(fit), ukf_options(ukf)
@@ -476,7 +474,7 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     x0a, _ = initial_state(model, rec, x0)
     P0a = default_P0(model, x0a) if P0 is None else P0
     crit = Criterion(model, t, u, y, params, base, x0a, P0a, options=ukf, Q=Q, R=R,
-                     chunk=fit.chunk, workers=fit.workers)
+                     chunk=fit.chunk, workers=fit.workers, scheduler=fit.scheduler)
     try:
         opt = _global_search(crit, lo, hi, fit, start)
         x_best, f_best, pol = _polish(crit, opt, lo, hi, fit)

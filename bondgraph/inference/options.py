@@ -190,8 +190,12 @@ class FitOptions:
     chunk : int, optional
         Largest number of parameter sets per UKF run (memory bound).
     workers : int
-        Processes sharing each batched evaluation
-        (:class:`bondgraph.inference.estimate.Criterion`).
+        Worker processes of the embedded Dask cluster sharing each batched
+        evaluation (:class:`bondgraph.inference.estimate.Criterion`,
+        :class:`bondgraph.inference.executor.Executor`); 1: in process.
+    scheduler : str, optional
+        Address of an existing Dask scheduler, ``tcp://HOST:PORT`` (default:
+        ``$BONDGRAPH_SCHEDULER``, else none). Results do not depend on it.
 
     Raises
     ------
@@ -213,6 +217,7 @@ class FitOptions:
     progress: bool = True
     chunk: int | None = None
     workers: int = 1
+    scheduler: str | None = None
 
     def __post_init__(self):
         _choice(self, "optimizer", OPTIMIZERS)
@@ -223,6 +228,9 @@ class FitOptions:
         _integer(self, "polish_maxiter", 1)
         _integer(self, "chunk", 1, optional=True)
         _integer(self, "workers", 1)
+        if self.scheduler is not None and not isinstance(self.scheduler, str):
+            raise OptionError(f"FitOptions.scheduler = {self.scheduler!r} must be an address "
+                              f"string (tcp://HOST:PORT) or None")
         for name in ("resume", "polish", "hessian", "check_discretisation", "progress"):
             _flag(self, name)
         if self.resume and self.checkpoint is None:

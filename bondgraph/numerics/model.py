@@ -138,6 +138,18 @@ class Model:
         mod.__state_space__ = ss       # for the numba kernels (bondgraph.numerics.compiled)
         return cls(mod)
 
+    # ------------------------------------------------------------- pickling
+    def __reduce__(self):
+        """Pickle by reference to the generated code (modules do not pickle):
+        a module built in memory travels as its source text (and state
+        space, for its numba kernels), a generated file as its import name
+        and path. Used by the Dask executor to send criteria to workers."""
+        m = self.module
+        text = getattr(m, "__source_text__", None)
+        if text is not None:
+            return (_model_from_text, (text, m.__name__, getattr(m, "__state_space__", None)))
+        return (_model_from_file, (m.__name__, getattr(m, "__file__", None)))
+
     # ------------------------------------------------------------- sizes
     @property
     def n_x(self) -> int:
@@ -250,3 +262,22 @@ class Model:
 def load(name: str, directory: str | Path | None = None) -> Model:
     """Shortcut for :meth:`Model.load`."""
     return Model.load(name, directory)
+
+
+def _model_from_text(text: str, name: str, ss=None) -> Model:
+    """Unpickle a model built in memory (:meth:`Model.__reduce__`)."""
+    mod = module_from_source(text, name)
+    mod.__source_text__ = text
+    mod.__state_space__ = ss
+    return Model(mod)
+
+
+def _model_from_file(name: str, file: str | None) -> Model:
+    """Unpickle a model loaded from generated code (:meth:`Model.__reduce__`):
+    by import name when it imports, else from its file."""
+    try:
+        return Model(importlib.import_module(name))
+    except ImportError:
+        if not file:
+            raise ModelError(f"cannot rebuild model module '{name}' (no file)") from None
+        return Model(load_module(file, name))

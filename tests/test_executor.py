@@ -1,0 +1,114 @@
+"""The Dask executor of batched likelihood evaluations
+(bondgraph.inference.executor, bondgraph.inference.estimate.Criterion).
+
+Reference: the serial in-process evaluation; results must be identical
+(bit for bit) on a 2-worker LocalCluster, on the embedded cluster, and for
+any chunking.
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from dask.distributed import LocalCluster
+
+from bondgraph.errors import OptionError
+from bondgraph.inference.estimate import Criterion, _chunks
+from bondgraph.inference.executor import SCHEDULER_ENV, Executor
+from bondgraph.inference.options import UKFOptions
+from bondgraph.numerics.model import Model
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_ukf_numba import _record, box_sets  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None, env={"NUMBA_NUM_THREADS": "1"}) as c:
+        yield c
+
+
+def _criterion(m, backend, **kw):
+    t, u, y = _record(m, N=80)
+    params = list(m.params[:3])
+    return Criterion(m, t, u, y, params, m.theta0, options=UKFOptions(backend=backend), **kw)
+
+
+def _X(m, n=21):
+    th = box_sets(m, n, seed=4)
+    th[5, 0] = -th[5, 0]                      # some sets fail: same failures expected
+    return th[:, :3]
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_two_worker_cluster_equals_serial(cluster, backend):
+    m = Model.load("vehicle_coastdown")
+    X = _X(m)
+    serial = _criterion(m, backend)
+    ref = serial(X)
+    dist = _criterion(m, backend, scheduler=cluster.scheduler_address)
+    assert dist._executor.distributed
+    got = dist(X)
+    got2 = dist(X[:7])                          # the criterion is sent once, reused
+    dist.close()
+    np.testing.assert_array_equal(got, ref)
+    np.testing.assert_array_equal(got2, ref[:7])
+    assert dist.failures == serial.failures + _criterion(m, backend)._evaluate(X[:7])[1]
+    assert dist.evaluations == 28 and dist.calls == 2
+
+
+def test_in_memory_model_on_the_cluster(cluster):
+    """A module:function model (generated in memory) travels to the workers."""
+    m = Model.from_spec("bondgraph.catalog.reference:mass_spring_damper")
+    X = _X(m, n=9)
+    ref = _criterion(m, "numpy")(X)
+    dist = _criterion(m, "numpy", scheduler=cluster.scheduler_address, chunk=2)
+    got = dist(X)
+    dist.close()
+    np.testing.assert_array_equal(got, ref)
+
+
+def test_scheduler_from_the_environment(cluster, monkeypatch):
+    monkeypatch.setenv(SCHEDULER_ENV, cluster.scheduler_address)
+    m = Model.load("mass_spring_damper")
+    X = _X(m, n=6)
+    dist = _criterion(m, "numba")
+    assert dist._executor.scheduler == cluster.scheduler_address
+    got = dist(X)
+    dist.close()
+    monkeypatch.delenv(SCHEDULER_ENV)
+    np.testing.assert_array_equal(got, _criterion(m, "numba")(X))
+
+
+def test_embedded_cluster_equals_serial():
+    """workers=2 without a scheduler starts a local cluster of its own."""
+    m = Model.load("dc_motor_gear")
+    X = _X(m, n=10)
+    emb = _criterion(m, "numba", workers=2)
+    got = emb(X)
+    assert emb._executor._cluster is not None
+    emb.close()
+    assert emb._executor._cluster is None
+    np.testing.assert_array_equal(got, _criterion(m, "numba")(X))
+
+
+def test_chunks_do_not_depend_on_what_is_evaluated():
+    X = np.arange(40.0).reshape(20, 2)
+    for workers in (1, 2, 5):
+        parts = _chunks(X, None, workers)
+        np.testing.assert_array_equal(np.concatenate(parts), X)
+    assert [len(p) for p in _chunks(X, 6, 2)] == [6, 6, 6, 2]
+
+
+def test_bad_scheduler_addresses(monkeypatch):
+    with pytest.raises(OptionError, match="not a Dask scheduler address"):
+        Executor(scheduler="localhost:8786")
+    monkeypatch.setenv(SCHEDULER_ENV, "nonsense")
+    with pytest.raises(OptionError, match=SCHEDULER_ENV):
+        Executor()
+    with pytest.raises(OptionError):
+        Executor(workers=0)
+    monkeypatch.delenv(SCHEDULER_ENV)
+    assert not Executor().distributed and Executor(workers=2).distributed
