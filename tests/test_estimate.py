@@ -12,7 +12,7 @@ from scipy.integrate import solve_ivp
 
 from bondgraph.inference.estimate import (EstimationResult, Stage, cramer_rao, estimate, hessian_batched, two_stage)
 from bondgraph.errors import IdentifiabilityWarning, OptionError
-from bondgraph.inference.options import FitOptions, UKFOptions
+from bondgraph.inference.options import DEFAULT_BACKEND, FitOptions, UKFOptions
 from bondgraph.core.graph import BondGraph
 from bondgraph.numerics.model import Model
 
@@ -299,7 +299,7 @@ def test_options_validated_on_construction(msd_record):
                  fit=FitOptions(particles=4, iterations=1, progress=False, polish=False,
                                 hessian=False, check_discretisation=False))
     assert r.settings["ukf"] == dict(alpha=1.0, beta=2.0, kappa=0.0, method="rk4", substeps=2,
-                                     jacobian="mean", hold="zoh")
+                                     jacobian="mean", hold="zoh", backend=DEFAULT_BACKEND)
     assert r.settings["particles"] == 4 and r.evaluations == 4 * 2
     json.loads(r.to_json())
 
