@@ -112,3 +112,47 @@ def test_bad_scheduler_addresses(monkeypatch):
         Executor(workers=0)
     monkeypatch.delenv(SCHEDULER_ENV)
     assert not Executor().distributed and Executor(workers=2).distributed
+
+
+@pytest.mark.parametrize("cmd", ["estimate", "sensitivity", "loop"])
+def test_cli_backend_option(cmd):
+    """`--backend` is declared once (cli/common.add_backend) on every command
+    that evaluates a likelihood; `--scheduler` on estimate."""
+    import argparse
+    import importlib
+
+    mod = importlib.import_module(f"bondgraph.cli.{cmd}")
+    p = argparse.ArgumentParser()
+    mod.configure(p)
+    base = {"estimate": ["--model", "m", "--data", "d.csv", "--params", "a"],
+            "sensitivity": ["--model", "m", "--data", "d.csv"], "loop": []}[cmd]
+    try:
+        args = p.parse_args(base + ["--backend", "numpy"])
+    except SystemExit:  # a command with other required options
+        pytest.skip(f"{cmd}: other required options")
+    assert args.backend == "numpy"
+    assert p.parse_args(base).backend == UKFOptions().backend
+    if cmd == "estimate":
+        assert p.parse_args(base + ["--scheduler", "tcp://h:1"]).scheduler == "tcp://h:1"
+
+
+def test_cli_estimate_runs_on_the_numpy_backend(tmp_path, monkeypatch):
+    """The estimate command hands --backend and --scheduler to the options."""
+    from bondgraph.cli import estimate as cli_estimate
+
+    seen = {}
+
+    def fake(model, exp, params, *, fit, ukf, **kw):
+        seen.update(backend=ukf.backend, scheduler=fit.scheduler, workers=fit.workers)
+        raise OptionError("stop here")
+    monkeypatch.setattr(cli_estimate, "estimate", fake)
+    from bondgraph.cli.main import main
+    csv = tmp_path / "r.csv"
+    m = Model.load("mass_spring_damper")
+    t, u, y = _record(m, N=20)
+    rows = ["t,F,x,v"] + [f"{t[k]},{u[k, 0]},{y[k, 0]},{y[k, 1]}" for k in range(t.size)]
+    csv.write_text("\n".join(rows).replace("nan", ""))
+    rc = main(["estimate", "--model", "mass_spring_damper", "--data", str(csv), "--params", "m",
+               "--backend", "numpy", "--scheduler", "tcp://127.0.0.1:9", "--workers", "2",
+               "--out", str(tmp_path / "o"), "--quiet"])
+    assert rc == 1 and seen == dict(backend="numpy", scheduler="tcp://127.0.0.1:9", workers=2)
