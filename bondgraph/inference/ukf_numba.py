@@ -150,11 +150,10 @@ def _chol(A, m, L):
 
 
 @_jit
-def _inverse_w(J, h, wk):
-    """wk.Winv = (I − γ h J)⁻¹ by Gauss-Jordan elimination with partial
-    pivoting (ROS2's W; numpy: ``np.linalg.inv``)."""
+def _inverse_w(J, h, A, Winv):
+    """Winv = (I − γ h J)⁻¹ by Gauss-Jordan elimination with partial
+    pivoting on the work array A (n, 2n) (ROS2's W; numpy: ``np.linalg.inv``)."""
     n = J.shape[0]
-    A = wk.A
     g = GAMMA * h
     for i in range(n):
         for j in range(n):
@@ -178,7 +177,7 @@ def _inverse_w(J, h, wk):
                     A[i, j] -= q * A[c, j]
     for i in range(n):
         for j in range(n):
-            wk.Winv[i, j] = A[i, n + j]
+            Winv[i, j] = A[i, n + j]
 
 
 @_jit
@@ -193,19 +192,19 @@ def _matvec(M, v, out):
 
 # ------------------------------------------------------------ sigma points
 @_jit
-def _sigma(x, L, c, wk):
+def _sigma(x, L, c, cL, chi):
     """Scaled sigma points χ_0 = x, χ_i = x + c L_i, χ_n+i = x − c L_i into
-    wk.chi, the offsets c L_i as rows of wk.cL."""
+    chi, the offsets c L_i as rows of cL."""
     n = x.shape[0]
     for i in range(n):
         for a in range(n):
-            wk.cL[i, a] = c * L[a, i]
+            cL[i, a] = c * L[a, i]
     for a in range(n):
-        wk.chi[0, a] = x[a]
+        chi[0, a] = x[a]
     for i in range(n):
         for a in range(n):
-            wk.chi[1 + i, a] = x[a] + wk.cL[i, a]
-            wk.chi[1 + n + i, a] = x[a] - wk.cL[i, a]
+            chi[1 + i, a] = x[a] + cL[i, a]
+            chi[1 + n + i, a] = x[a] - cL[i, a]
 
 
 @_jit
@@ -257,53 +256,53 @@ def _stage_input(u, k, s, cst, nsub, hold, out):
 
 
 @_jit
-def _rk4_point(f, x, u, k, hold, th, h, nsub, wk):
+def _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4):
     """``nsub`` classical RK4 steps of one point x (in place)
-    (:func:`bondgraph.numerics.integrators.rk4`)."""
+    (:func:`bondgraph.numerics.integrators.rk4`); the work vectors are
+    passed one by one (passing the whole work tuple per point costs the
+    reference counting of all its arrays)."""
     n = x.shape[0]
-    ub = wk.ub
     for s in range(nsub):
         _stage_input(u, k, s, 0.0, nsub, hold, ub)
-        f(x, ub, th, wk.k1)
+        f(x, ub, th, k1)
         for a in range(n):
-            wk.xt[a] = x[a] + (0.5 * h) * wk.k1[a]
+            xt[a] = x[a] + (0.5 * h) * k1[a]
         _stage_input(u, k, s, 0.5, nsub, hold, ub)
-        f(wk.xt, ub, th, wk.k2)
+        f(xt, ub, th, k2)
         for a in range(n):
-            wk.xt[a] = x[a] + (0.5 * h) * wk.k2[a]
-        f(wk.xt, ub, th, wk.k3)
+            xt[a] = x[a] + (0.5 * h) * k2[a]
+        f(xt, ub, th, k3)
         for a in range(n):
-            wk.xt[a] = x[a] + h * wk.k3[a]
+            xt[a] = x[a] + h * k3[a]
         _stage_input(u, k, s, 1.0, nsub, hold, ub)
-        f(wk.xt, ub, th, wk.k4)
+        f(xt, ub, th, k4)
         for a in range(n):
-            x[a] = x[a] + (h / 6.0) * (wk.k1[a] + 2.0 * wk.k2[a] + 2.0 * wk.k3[a] + wk.k4[a])
+            x[a] = x[a] + (h / 6.0) * (k1[a] + 2.0 * k2[a] + 2.0 * k3[a] + k4[a])
 
 
 @_jit
-def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, wk):
+def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, J, Winv, A):
     """``nsub`` ROS2 steps of one point x (in place)
-    (:func:`bondgraph.numerics.integrators.ros2`); jac 0: wk.Winv is given
+    (:func:`bondgraph.numerics.integrators.ros2`); jac 0: Winv is given
     (shared), 1: df/dx at x at the start, frozen, 2: at every sub-step."""
     n = x.shape[0]
-    ub = wk.ub
     for s in range(nsub):
         _stage_input(u, k, s, 0.0, nsub, hold, ub)
         if jac == 2 or (jac == 1 and s == 0):
-            fj(x, ub, th, wk.F0, wk.J)
-            _inverse_w(wk.J, h, wk)
+            fj(x, ub, th, F0, J)
+            _inverse_w(J, h, A, Winv)
         else:
-            f(x, ub, th, wk.F0)
-        _matvec(wk.Winv, wk.F0, wk.k1)
+            f(x, ub, th, F0)
+        _matvec(Winv, F0, k1)
         for a in range(n):
-            wk.xt[a] = x[a] + h * wk.k1[a]
+            xt[a] = x[a] + h * k1[a]
         _stage_input(u, k, s, 1.0, nsub, hold, ub)
-        f(wk.xt, ub, th, wk.F1)
+        f(xt, ub, th, F1)
         for a in range(n):
-            wk.F1[a] = wk.F1[a] - 2.0 * wk.k1[a]
-        _matvec(wk.Winv, wk.F1, wk.k2)
+            F1[a] = F1[a] - 2.0 * k1[a]
+        _matvec(Winv, F1, k2)
         for a in range(n):
-            x[a] = x[a] + (1.5 * h) * wk.k1[a] + (0.5 * h) * wk.k2[a]
+            x[a] = x[a] + (1.5 * h) * k1[a] + (0.5 * h) * k2[a]
 
 
 @_jit
@@ -316,16 +315,18 @@ def _transition(f, fj, u, k, th, dt, ip, wk):
     _held_input(u, k, 0.0, hold, wk.ub)
     if method == 1 and jac == 0:
         fj(wk.chi[0], wk.ub, th, wk.F0, wk.J)
-        _inverse_w(wk.J, h, wk)
+        _inverse_w(wk.J, h, wk.A, wk.Winv)
+    ub, xt, X = wk.ub, wk.xt, wk.X
     for j in range(npt):
         for a in range(n):
-            wk.X[j, a] = wk.chi[j, a]
+            X[j, a] = wk.chi[j, a]
         if j > 0:
-            _held_input(u, k, 0.0, hold, wk.ub)
+            _held_input(u, k, 0.0, hold, ub)
         if method == 0:
-            _rk4_point(f, wk.X[j], u, k, hold, th, h, nsub, wk)
+            _rk4_point(f, X[j], u, k, hold, th, h, nsub, ub, xt, wk.k1, wk.k2, wk.k3, wk.k4)
         else:
-            _ros2_point(f, fj, wk.X[j], u, k, hold, th, h, nsub, jac, wk)
+            _ros2_point(f, fj, X[j], u, k, hold, th, h, nsub, jac, ub, xt, wk.F0, wk.F1,
+                        wk.k1, wk.k2, wk.J, wk.Winv, wk.A)
 
 
 # ------------------------------------------------------------ predict / update
@@ -337,7 +338,7 @@ def _predict(f, fj, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
     if r == 0:
         return 1
     wk.nreg[0] += r == 2
-    _sigma(x, wk.L, fp[0], wk)
+    _sigma(x, wk.L, fp[0], wk.cL, wk.chi)
     _transition(f, fj, u, k, th, dt, ip, wk)
     for j in range(wk.X.shape[0]):
         for a in range(n):
@@ -362,7 +363,7 @@ def _measured_outputs(h, x, P, th, uk, yk, fp, wk):
     if r == 0:
         return 0, 2
     wk.nreg[0] += r == 2
-    _sigma(x, wk.L, fp[0], wk)
+    _sigma(x, wk.L, fp[0], wk.cL, wk.chi)
     for j in range(wk.chi.shape[0]):
         h(wk.chi[j], uk, th, wk.Y[j])
     m = 0
