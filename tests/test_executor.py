@@ -155,4 +155,4 @@ def test_cli_estimate_runs_on_the_numpy_backend(tmp_path, monkeypatch):
     rc = main(["estimate", "--model", "mass_spring_damper", "--data", str(csv), "--params", "m",
                "--backend", "numpy", "--scheduler", "tcp://127.0.0.1:9", "--workers", "2",
                "--out", str(tmp_path / "o"), "--quiet"])
-    assert rc == 1 and seen == dict(backend="numpy", scheduler="tcp://127.0.0.1:9", workers=2)
+    assert rc != 0 and seen == dict(backend="numpy", scheduler="tcp://127.0.0.1:9", workers=2)
