@@ -222,8 +222,10 @@ def _output_residuals(model, i: int, e: np.ndarray, z: np.ndarray, lags: int, dt
     ok = np.isfinite(e)
     n = int(ok.sum())
     if n == 0:
-        return OutputResiduals(name, model.output_units[i], 0, *([float("nan")] * 4), lags,
-                               float("nan"), float("nan"), float("nan"))
+        nan = float("nan")
+        return OutputResiduals(name, model.output_units[i], 0, bias=nan, rms=nan,
+                               bias_sigma=nan, ljung_box_q=nan, ljung_box_p=nan, lags=lags,
+                               nis_mean=nan, peak_hz=nan, peak_ratio=nan)
     bias = float(e[ok].mean())
     rms = float(np.sqrt(np.mean(e[ok] ** 2)))
     se = float(e[ok].std(ddof=1) / np.sqrt(n)) if n > 1 else float("inf")
