@@ -122,6 +122,9 @@ class ResidualReport:
         rows = ["| output | bias | RMS | bias/σ | Ljung-Box p | NIS | peak Hz |",
                 "|---|---|---|---|---|---|---|"]
         for o in self.outputs:
+            if not o.n:
+                rows.append(f"| {o.name} | not in the record | | | | | |")
+                continue
             rows.append(f"| {o.name} | {o.bias:.4g} | {o.rms:.4g} | {o.bias_sigma:.1f} | "
                         f"{o.ljung_box_p:.2g} | {o.nis_mean:.2f} | {o.peak_hz:.3g} |")
         return "\n".join(rows)
@@ -264,7 +267,8 @@ def _operating_variables(ukf, model, p: int, u, y) -> dict[str, np.ndarray]:
         if u is not None and u.shape[1] > j and np.ptp(u[:, j]) > 0:
             variables[nme] = u[:, j]
     for j, nme in enumerate(model.outputs):
-        variables[f"{nme} (measured)"] = y[:, j]
+        if np.isfinite(y[:, j]).any():          # an output the record lacks is all NaN
+            variables[f"{nme} (measured)"] = y[:, j]
     return variables
 
 

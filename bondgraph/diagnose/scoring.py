@@ -111,7 +111,8 @@ def operating_scales(ctx: Context, fit: Fit) -> Scales:
         except Exception:
             continue
     for i, o in enumerate(model.outputs):
-        sc.output_rms[o] = float(np.sqrt(np.nanmean(y[:, i] ** 2)))
+        ok = np.isfinite(y[:, i])               # an output the record lacks: no scale
+        sc.output_rms[o] = float(np.sqrt(np.mean(y[ok, i] ** 2))) if ok.any() else float("nan")
     return sc
 
 
