@@ -9,8 +9,11 @@ on the import path); ``--fixed``, ``--x0``, ``--p0-rel``, ``--method``,
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Iterable
 
+from bondgraph.core.atomic import OutputFolder
+from bondgraph.data.records import Experiment
 from bondgraph.errors import OptionError
 
 MODEL_HELP = ("model: a registered name (`bondgraph models`), module:function or "
@@ -139,6 +142,46 @@ def add_discretisation(p: argparse.ArgumentParser, *, hold_default: str = "zoh")
 def add_quiet(p: argparse.ArgumentParser) -> None:
     """``--quiet``."""
     p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def add_overwrite(p: argparse.ArgumentParser) -> None:
+    """``--overwrite``: replace a non-empty output folder."""
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a non-empty output folder (as a whole; without it such a "
+                        "folder is refused)")
+
+
+def output_folder(path, args, option: str = "--out") -> OutputFolder:
+    """The command's output folder (:class:`bondgraph.core.atomic.OutputFolder`),
+    checked now, before any work.
+
+    Raises
+    ------
+    OutputError
+        A non-empty folder without ``--overwrite``, a file, or not writable.
+    """
+    return OutputFolder(path, overwrite=getattr(args, "overwrite", False), option=option)
+
+
+def load_record(path, model) -> Experiment:
+    """The record of ``--data`` (:meth:`Experiment.load`), with a
+    :class:`~bondgraph.errors.ColumnWarning` for columns that match none of
+    the model's names while some of its outputs are absent.
+
+    Raises
+    ------
+    DataError
+        A defect of the file or its sidecar (file, line and column named).
+    """
+    exp = Experiment.load(path)
+    exp.check_columns(model)
+    return exp
+
+
+def published(folder: OutputFolder, staged: Iterable) -> list[Path]:
+    """The paths that files written into a staging folder have once the
+    folder is published (for ``wrote ...`` lines)."""
+    return [folder.path / Path(p).name for p in staged]
 
 
 def load_model(spec: str):
