@@ -10,9 +10,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Iterable
 
 from bondgraph.core.atomic import OutputFolder
+from bondgraph.core.equations import derive
+from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
 from bondgraph.errors import OptionError
 
@@ -151,22 +154,28 @@ def add_overwrite(p: argparse.ArgumentParser) -> None:
                         "folder is refused)")
 
 
-def output_folder(path, args, option: str = "--out") -> OutputFolder:
+def output_folder(path, args, option: str = "--out", *,
+                  overwrite: bool | None = None) -> OutputFolder:
     """The command's output folder (:class:`bondgraph.core.atomic.OutputFolder`),
-    checked now, before any work.
+    checked now, before any work; ``overwrite`` defaults to ``--overwrite``.
 
     Raises
     ------
     OutputError
         A non-empty folder without ``--overwrite``, a file, or not writable.
     """
-    return OutputFolder(path, overwrite=getattr(args, "overwrite", False), option=option)
+    if overwrite is None:
+        overwrite = getattr(args, "overwrite", False)
+    return OutputFolder(path, overwrite=overwrite, option=option)
 
 
 def load_record(path, model) -> Experiment:
     """The record of ``--data`` (:meth:`Experiment.load`), with a
     :class:`~bondgraph.errors.ColumnWarning` for columns that match none of
-    the model's names while some of its outputs are absent.
+    the model's names while some of its outputs are absent. ``model`` is a
+    :class:`~bondgraph.numerics.model.Model` or a
+    :class:`~bondgraph.core.graph.BondGraph` (its sensors are the outputs;
+    derived for its state names only when an output is absent).
 
     Raises
     ------
@@ -174,6 +183,12 @@ def load_record(path, model) -> Experiment:
         A defect of the file or its sidecar (file, line and column named).
     """
     exp = Experiment.load(path)
+    if isinstance(model, BondGraph):
+        if all(o in exp.columns for o in model.sensors):
+            return exp
+        model = SimpleNamespace(name=model.name, inputs=list(model.inputs),
+                                outputs=list(model.sensors),
+                                states=[str(x) for x in derive(model).states])
     exp.check_columns(model)
     return exp
 

@@ -204,14 +204,23 @@ class OutputFolder:
                 continue
             shutil.rmtree(q, ignore_errors=True)
 
-    def work_dir(self) -> Path:
+    def work_dir(self, create: bool = True) -> Path:
         """The persistent working folder ``.NAME.work`` beside the target
-        (created); it survives an interrupted run."""
+        (created unless ``create`` is False); it survives an interrupted run.
+
+        Raises
+        ------
+        OutputError
+            The folder cannot be created (``--out`` named).
+        """
         w = self.path.with_name(f".{self.path.name}.work")
+        if not create:
+            return w
         try:
             w.mkdir(exist_ok=True)
         except OSError as exc:
-            raise OutputError(f"cannot create {w}: {exc.strerror or exc}", path=w) from exc
+            raise OutputError(f"{self.option} {self.path}: cannot create the working folder "
+                              f"{w}: {exc.strerror or exc}", path=self.path) from exc
         return w
 
     def remove_work_dir(self) -> None:
