@@ -95,8 +95,8 @@ def convert(values: np.ndarray, from_unit: str | None, to_unit: str | None, *,
     to_unit = to_unit or ""
     try:
         q_from = _units.parse(from_unit)
-    except UnitMismatchError:
-        raise DataError(f"unknown unit '{from_unit}'", path=path, line=1, column=column) from None
+    except UnitMismatchError as exc:
+        raise DataError(str(exc), path=path, line=1, column=column) from None
     try:
         q_to = _units.parse(to_unit)
     except UnitMismatchError:
@@ -910,8 +910,8 @@ class _Columns:
 def _check_unit(unit: str, path: str | None, column: str) -> None:
     try:
         _units.parse(unit)
-    except UnitMismatchError:
-        raise DataError(f"unknown unit '{unit}'", path=path, line=1, column=column,
+    except UnitMismatchError as exc:
+        raise DataError(str(exc), path=path, line=1, column=column,
                         hint="use a unit pint understands, e.g. m/s, km/h, N*m, rad/s, rpm, 1"
                         ) from None
 
