@@ -11,6 +11,7 @@ their message names them too.
     ├── GraphError                 malformed declaration (validate())
     │   ├── InvalidNameError       an empty name, or one with white space
     │   ├── ParameterError         default not a number / outside its bounds, bad bounds
+    │   ├── ElementError           an element's law missing or given twice, a bad domain
     │   ├── DuplicateNameError
     │   ├── ConnectionError
     │   ├── DanglingPortError
@@ -86,6 +87,12 @@ class ParameterError(GraphError, ValueError):
     """A parameter declaration that cannot be estimated or simulated: a
     default that is not a finite number, bounds that are not a finite
     interval (reversed, NaN), or a default outside its bounds."""
+
+
+class ElementError(GraphError, ValueError):
+    """An element declared wrongly: none or several of its alternative laws
+    (``inertance=`` / ``flow=``), an unknown junction domain, a field without
+    ports or with the wrong number of expressions."""
 
 
 class DuplicateNameError(GraphError):

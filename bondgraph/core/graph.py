@@ -537,7 +537,7 @@ class BondGraph:
             ``handle.port(name)`` gives the targets of the exposed ports.
         """
         if not prefix or any(c.isspace() for c in prefix):
-            raise ValueError(f"invalid fragment prefix {prefix!r}")
+            raise InvalidNameError(f"invalid fragment prefix {prefix!r}")
         subs: dict = {}
         for p in fragment.params.values():
             new = p.with_name(f"{prefix}.{p.name}")
