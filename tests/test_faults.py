@@ -262,7 +262,13 @@ def test_fault_is_a_named_error_with_exit_code_2(kind, argv, needles, d, capsys,
     rc = main([a.replace("{d}", str(d)) for a in argv])
     err = capsys.readouterr().err
     assert rc == 2, err
-    assert "error:" in err and "Traceback" not in err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    errors = [ln for ln in lines if ln.startswith("bondgraph") and ": error: " in ln]
+    assert len(errors) == 1, err                   # one line names the fault ...
+    rest = lines[lines.index(errors[0]) + 1:]
+    assert all(ln.startswith("  Remedy: ") for ln in rest), err      # ... then at most a remedy
+    assert len(rest) <= 1, err
     for needle in needles:
         assert needle in err, f"{needle!r} not in {err!r}"
 

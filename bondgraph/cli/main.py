@@ -38,7 +38,7 @@ class _Parser(argparse.ArgumentParser):
     exiting, so that every user mistake takes the same path (exit code 2)."""
 
     def error(self, message: str):
-        raise UsageError(f"{message}\n{self.format_usage().strip()}")
+        raise UsageError(f"{message} (see `{self.prog} --help`)")
 
 
 def _parser() -> argparse.ArgumentParser:
