@@ -12,7 +12,7 @@ from bondgraph.cli.common import MODEL_HELP, add_overwrite, add_quiet, load_reco
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.errors import ModelError, UsageError
+from bondgraph.errors import ModelError, OptionError, UsageError
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.loop_report import LoopReporter
 
@@ -78,7 +78,13 @@ def run(args) -> int:
         settings["significance"] = args.significance
     if args.no_structural:
         settings["structural"] = False
-    LoopSettings.from_options(params, settings)      # bad settings fail before any output
+    try:                                             # bad settings fail before any output
+        LoopSettings.from_options(params, settings)
+    except OptionError as exc:                       # named as the options the user typed
+        text = str(exc)
+        for key in ("metric", "criterion", "max_steps", "significance"):
+            text = text.replace(f"LoopSettings.{key}", "--" + key.replace("_", "-"))
+        raise OptionError(text) from exc
     reporter = LoopReporter(args.out, echo=None if args.quiet else print,
                             overwrite=args.overwrite)
     res = run_loop(graph, record, params, log=reporter.log, progress=not args.quiet,
