@@ -9,6 +9,7 @@ on the import path); ``--fixed``, ``--x0``, ``--p0-rel``, ``--method``,
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterable
@@ -42,7 +43,7 @@ def parse_pairs(items: str | Iterable[str] | None, option: str) -> dict[str, flo
     Raises
     ------
     OptionError
-        An item without ``=`` or a value that is not a number.
+        An item without ``=`` or a value that is not a finite number.
     """
     if not items:
         return {}
@@ -62,6 +63,9 @@ def parse_pairs(items: str | Iterable[str] | None, option: str) -> dict[str, flo
             except ValueError:
                 raise OptionError(f"{option}: value of '{name.strip()}' is not a number: "
                                   f"'{val}'") from None
+            if not math.isfinite(out[name.strip()]):
+                raise OptionError(f"{option}: value of '{name.strip()}' is not a finite "
+                                  f"number: '{val.strip()}'")
     return out
 
 
