@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from bondgraph.cli.common import add_model, load_model, parse_pairs
+from bondgraph.core import atomic
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.data.experiments import get_experiment, run_experiment
 from bondgraph.data.records import Experiment
@@ -110,7 +111,7 @@ def run(args) -> int:
         rep, table = stiffness_report(model, res)
         print(table)
         jpath = out.with_suffix(".stiffness.json")
-        jpath.write_text(json.dumps(to_jsonable(rep), indent=1, allow_nan=False) + "\n")
+        atomic.write_text(jpath, json.dumps(to_jsonable(rep), indent=1, allow_nan=False) + "\n")
         print(f"wrote {jpath}")
     if args.plot:
         if measured is not None:

@@ -1,10 +1,12 @@
 """Outputs that are never half-written: files replaced atomically, and output
 folders built in a staging folder and swapped into place.
 
-Every command that writes results uses this one mechanism (``bondgraph
-loop``, ``estimate``, ``sensitivity``, ``simulate --plot``, ``plot``; the
-record files of ``simulate`` and ``experiments write``; the optimizer's
-checkpoints):
+The commands write their results through this one mechanism: ``bondgraph
+loop``, ``estimate`` and ``sensitivity`` publish their output folders with
+:class:`OutputFolder`; records (:meth:`bondgraph.data.records.Experiment.save`,
+so ``simulate -o`` and ``simulate --noise``), ``simulate --stiffness``'s JSON
+and the optimizer's checkpoints are atomic files. (The PNG folders of
+``bondgraph plot`` and ``simulate --plot`` are still written in place.)
 
 * :func:`write_text` / :func:`write_bytes` / :func:`replace_file` write a
   file next to its target under a temporary name and ``os.replace`` it into
