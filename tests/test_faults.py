@@ -16,7 +16,6 @@ import textwrap
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from bondgraph.cli.main import main

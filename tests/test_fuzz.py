@@ -16,7 +16,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
@@ -28,7 +27,8 @@ from bondgraph.inference.record import record_arrays
 from bondgraph.numerics.model import Model
 
 #: examples per fuzz test: small in CI; BONDGRAPH_FUZZ_EXAMPLES=5000 for a long local run
-FUZZ = settings(max_examples=int(os.environ.get("BONDGRAPH_FUZZ_EXAMPLES", "80")), deadline=None,
+FUZZ = settings(max_examples=int(os.environ.get("BONDGRAPH_FUZZ_EXAMPLES", "80")),
+                deadline=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
 
 MSD = Model.load("mass_spring_damper")

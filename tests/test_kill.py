@@ -17,9 +17,7 @@ minutes. It is part of the default run (marked ``slow``, not skipped).
 from __future__ import annotations
 
 import json
-import os
 import random
-import shutil
 import subprocess
 import sys
 import time
