@@ -43,8 +43,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--particles", type=int, default=None, help="swarm / population size (10 k)")
     p.add_argument("--iterations", type=int, default=100)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=None, help="output directory (default estimate_<model>_<data>); "
-                                               "refused when not empty, unless --overwrite")
+    p.add_argument("--out", default=None,
+                   help="output directory (default estimate_<model>_<data>); refused when not "
+                        "empty, unless --overwrite")
     add_overwrite(p)
     p.add_argument("--checkpoint", default=None,
                    help="checkpoint file (default .<out>.work/checkpoint.npz beside --out while "
