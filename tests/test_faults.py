@@ -355,3 +355,13 @@ def test_model_module_is_imported_from_the_current_folder(d, monkeypatch, capsys
                  "--out", "{d}/g1"], d) == 0
     res = json.loads((d / "g1" / "result.json").read_text())
     assert res["model"] == "my_msd"
+
+
+def test_loop_warns_about_a_misspelt_column_of_its_graph(d, capsys):
+    """The loop reads the record against the declared graph (its sensors and
+    derived states): the same ColumnWarning, before any fit (here the run
+    then stops at a bad --metric)."""
+    rc = _run([*LOOP, "--data", "{d}/xpos.csv", "--metric", "bogus", "--out", "{d}/lw"], d)
+    err = capsys.readouterr().err
+    assert rc == 2 and "bondgraph loop: warning:" in err and "'xpos' -> 'x'" in err
+    assert "state.p_mass" not in err            # state columns are known (derived states)
