@@ -60,6 +60,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from bondgraph.core.progress import long_range
 from bondgraph.errors import DataError, ModelError, OptionError
 from bondgraph.inference.options import UKFOptions, ukf_options
 from bondgraph.inference.sigma import (
@@ -626,7 +627,7 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | No
     batch = FilterBatch(model, t, th, *_priors(model, th.shape[0], x0, P0, Q, R))
     kept = FilterStorage(t.size, th.shape[0], model, full=store == "full") if store else None
     dts = np.diff(t)
-    for k in range(t.size):
+    for k in long_range(t.size, f"UKF pass: {th.shape[0]} parameter sets x {t.size} samples"):
         if k > 0 and batch.size:
             predict(batch, step, u_held[k - 1], dts[k - 1], wts, k)
         if not batch.size:
