@@ -9,6 +9,9 @@ their message names them too.
 
     BondGraphError
     ├── GraphError                 malformed declaration (validate())
+    │   ├── InvalidNameError       an empty name, or one with white space
+    │   ├── ParameterError         default not a number / outside its bounds, bad bounds
+    │   ├── ElementError           an element's law missing or given twice, a bad domain
     │   ├── DuplicateNameError
     │   ├── ConnectionError
     │   ├── DanglingPortError
@@ -24,8 +27,21 @@ their message names them too.
     │   └── StaleGeneratedCodeError
     ├── ModelError                 loading / using a generated model
     ├── DataError                  experiment files (line and column named)
-    └── NumericalError             diverging simulation or filter
-        └── FilterDivergenceError
+    ├── NumericalError             diverging simulation or filter
+    │   ├── FilterDivergenceError
+    │   └── EstimationError        no parameter set of an estimation had a finite NLL
+    ├── OptionError                invalid option value (also a ValueError)
+    │   ├── UsageError             a command line argparse rejects
+    │   └── CheckpointError        a missing checkpoint, or one of another problem
+    ├── SensitivityError           invalid sensitivity options (also a ValueError)
+    └── OutputError                an output folder that is not empty or not writable
+
+    BondGraphWarning (UserWarning)
+    ├── IdentifiabilityWarning     Hessian not positive definite, estimate on a bound
+    └── ColumnWarning              record columns that match no model name
+
+The command line (:mod:`bondgraph.cli.main`) turns every :class:`BondGraphError`
+into exit code 2 with its message.
 """
 
 from __future__ import annotations
@@ -61,6 +77,22 @@ class BondGraphError(Exception):
 
 class GraphError(BondGraphError):
     """A malformed graph declaration (raised by ``BondGraph.validate``)."""
+
+
+class InvalidNameError(GraphError, ValueError):
+    """A name that is not a non-empty string without white space."""
+
+
+class ParameterError(GraphError, ValueError):
+    """A parameter declaration that cannot be estimated or simulated: a
+    default that is not a finite number, bounds that are not a finite
+    interval (reversed, NaN), or a default outside its bounds."""
+
+
+class ElementError(GraphError, ValueError):
+    """An element declared wrongly: none or several of its alternative laws
+    (``inertance=`` / ``flow=``), an unknown junction domain, a field without
+    ports or with the wrong number of expressions."""
 
 
 class DuplicateNameError(GraphError):
@@ -170,9 +202,39 @@ class FilterDivergenceError(NumericalError):
         super().__init__(message, hint=hint)
 
 
+class EstimationError(NumericalError):
+    """An estimation found no parameter set with a finite negative
+    log-likelihood: every evaluation failed (the causes are listed)."""
+
+
 class OptionError(BondGraphError, ValueError):
     """An invalid option value for filtering or estimation (α ≤ 0, unknown
     method, wrong array shape of a noise matrix, ...)."""
+
+
+class UsageError(OptionError):
+    """A command line that argparse rejects (unknown option, missing
+    argument, a value of the wrong type or not among the choices)."""
+
+
+class CheckpointError(OptionError):
+    """``--resume`` without a checkpoint, or with a checkpoint written for
+    another problem. ``differs`` lists what differs (data, model, parameter
+    list, options, ...)."""
+
+    def __init__(self, message: str, *, differs: Iterable[str] = (), hint: str | None = None):
+        self.differs: tuple[str, ...] = tuple(differs)
+        super().__init__(message, hint=hint)
+
+
+class OutputError(BondGraphError):
+    """An output folder or file that cannot be written: not empty (without
+    ``--overwrite``), not writable, or a file where a folder is needed.
+    ``path`` is the culprit."""
+
+    def __init__(self, message: str, *, path=None, hint: str | None = None):
+        self.path = None if path is None else str(path)
+        super().__init__(message, hint=hint)
 
 
 class SensitivityError(BondGraphError, ValueError):
@@ -180,7 +242,18 @@ class SensitivityError(BondGraphError, ValueError):
     empty parameter list, a malformed recommendation file, ...)."""
 
 
-class IdentifiabilityWarning(UserWarning):
+class BondGraphWarning(UserWarning):
+    """Base class of the toolkit's warnings (the command line prints them as
+    ``bondgraph CMD: warning: ...``)."""
+
+
+class ColumnWarning(BondGraphWarning):
+    """Columns of a record that match no input, output or state of the model
+    (a misspelt name, e.g. ``xpos`` for ``x``); the message names them and
+    the closest model names."""
+
+
+class IdentifiabilityWarning(BondGraphWarning):
     """The Hessian of the NLL is not positive definite at the estimate: some
     direction of the parameter space is not identified by the record."""
 

@@ -151,4 +151,4 @@ def test_cli_draw_and_equations(tmp_path):
 def test_cli_unknown_model_is_a_clear_error():
     r = subprocess.run([sys.executable, "-m", "bondgraph.cli.main", "equations", "no_such_model"],
                        capture_output=True, text=True)
-    assert r.returncode == 1 and "unknown model 'no_such_model'" in r.stderr
+    assert r.returncode == 2 and "unknown model 'no_such_model'" in r.stderr

@@ -260,7 +260,7 @@ def test_cli_bad_parameter_name(msd_csv, capsys):
 
     rc = main(["estimate", "--model", "mass_spring_damper", "--data", str(msd_csv),
                "--params", "m,stiffness", "--quiet"])
-    assert rc == 1
+    assert rc == 2
     assert "stiffness" in capsys.readouterr().err
 
 

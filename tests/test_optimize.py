@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bondgraph.inference.optimize import de, minimize_batched, pso
-from bondgraph.errors import OptionError
+from bondgraph.errors import CheckpointError, OptionError
 
 
 def sphere(X):
@@ -74,7 +74,7 @@ def test_pso_checkpoint_resume_bit_for_bit(tmp_path):
     assert np.array_equal(res.history, full.history)
     assert res.nfev == full.nfev == 25 * 31
     # a checkpoint written with other settings is refused
-    with pytest.raises(OptionError, match="other PSO settings"):
+    with pytest.raises(CheckpointError, match=r"seed \(checkpoint: 11, now: 12\) differs"):
         pso(rosenbrock, [-2.0] * 4, [2.0] * 4, checkpoint=ck, resume=True,
             **{**kw, "seed": 12})
 

@@ -236,7 +236,7 @@ def test_cli_unknown_parameter(msd_csv, capsys):
 
     rc = main(["sensitivity", "--model", "mass_spring_damper", "--data", str(msd_csv),
                "--params", "m,spring", "--quiet", "--no-plots"])
-    assert rc == 1
+    assert rc == 2
     assert "no parameter 'spring'" in capsys.readouterr().err
 
 

@@ -287,5 +287,25 @@ def test_cli_simulate(tmp_path, capsys):
                  "--input", "F=2", "-o", str(out3)]) == 0
     e3 = Experiment.load(out3)
     assert len(e3) == 11 and np.all(e3["F"] == 2.0)
-    assert main(["simulate", "mass_spring_damper", "-e", "no_such_experiment"]) == 1
+    assert main(["simulate", "mass_spring_damper", "-e", "no_such_experiment"]) == 2
     assert "unknown experiment 'no_such_experiment'" in capsys.readouterr().err
+
+
+def test_cli_simulate_noise_writes_the_experiments_record(tmp_path, capsys):
+    """`simulate MODEL -e NAME --noise -o FILE.csv` writes the noisy record of
+    run_experiment (the README's msd_force_step.csv): same numbers, the true
+    parameters in the sidecar, and noise of the declared size on x."""
+    from bondgraph.cli.main import main
+    from bondgraph.data.experiments import run_experiment
+
+    out = tmp_path / "msd_force_step.csv"
+    assert main(["simulate", "mass_spring_damper", "-e", "msd_force_step", "--noise",
+                 "-o", str(out)]) == 0
+    got, ref = Experiment.load(out), run_experiment("msd_force_step")
+    np.testing.assert_array_equal(got["x"], ref["x"])
+    assert got.meta["true_parameters"] == ref.meta["true_parameters"]
+    noise = got["x"] - got["state.q_spring"]          # x is the spring's displacement
+    assert np.std(noise) == pytest.approx(0.002, rel=0.1)
+    assert main(["simulate", "dc_motor", "-e", "msd_force_step", "--noise"]) == 2
+    assert "model 'mass_spring_damper'" in capsys.readouterr().err
+    assert main(["simulate", "mass_spring_damper", "--noise"]) == 2

@@ -9,8 +9,15 @@ on the import path); ``--fixed``, ``--x0``, ``--p0-rel``, ``--method``,
 from __future__ import annotations
 
 import argparse
+import math
+from pathlib import Path
+from types import SimpleNamespace
 from typing import Iterable
 
+from bondgraph.core.atomic import OutputFolder
+from bondgraph.core.equations import derive
+from bondgraph.core.graph import BondGraph
+from bondgraph.data.records import Experiment
 from bondgraph.errors import OptionError
 from bondgraph.inference.options import DEFAULT_BACKEND, UKF_BACKENDS
 
@@ -37,7 +44,7 @@ def parse_pairs(items: str | Iterable[str] | None, option: str) -> dict[str, flo
     Raises
     ------
     OptionError
-        An item without ``=`` or a value that is not a number.
+        An item without ``=`` or a value that is not a finite number.
     """
     if not items:
         return {}
@@ -57,6 +64,9 @@ def parse_pairs(items: str | Iterable[str] | None, option: str) -> dict[str, flo
             except ValueError:
                 raise OptionError(f"{option}: value of '{name.strip()}' is not a number: "
                                   f"'{val}'") from None
+            if not math.isfinite(out[name.strip()]):
+                raise OptionError(f"{option}: value of '{name.strip()}' is not a finite "
+                                  f"number: '{val.strip()}'")
     return out
 
 
@@ -157,6 +167,58 @@ def add_scheduler(p: argparse.ArgumentParser) -> None:
 def add_quiet(p: argparse.ArgumentParser) -> None:
     """``--quiet``."""
     p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def add_overwrite(p: argparse.ArgumentParser) -> None:
+    """``--overwrite``: replace a non-empty output folder."""
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a non-empty output folder (as a whole; without it such a "
+                        "folder is refused)")
+
+
+def output_folder(path, args, option: str = "--out", *,
+                  overwrite: bool | None = None) -> OutputFolder:
+    """The command's output folder (:class:`bondgraph.core.atomic.OutputFolder`),
+    checked now, before any work; ``overwrite`` defaults to ``--overwrite``.
+
+    Raises
+    ------
+    OutputError
+        A non-empty folder without ``--overwrite``, a file, or not writable.
+    """
+    if overwrite is None:
+        overwrite = getattr(args, "overwrite", False)
+    return OutputFolder(path, overwrite=overwrite, option=option)
+
+
+def load_record(path, model) -> Experiment:
+    """The record of ``--data`` (:meth:`Experiment.load`), with a
+    :class:`~bondgraph.errors.ColumnWarning` for columns that match none of
+    the model's names while some of its outputs are absent. ``model`` is a
+    :class:`~bondgraph.numerics.model.Model` or a
+    :class:`~bondgraph.core.graph.BondGraph` (its sensors are the outputs;
+    derived for its state names only when an output is absent).
+
+    Raises
+    ------
+    DataError
+        A defect of the file or its sidecar (file, line and column named).
+    """
+    exp = Experiment.load(path)
+    if isinstance(model, BondGraph):
+        if all(o in exp.columns for o in model.sensors):
+            return exp
+        model = SimpleNamespace(name=model.name, inputs=list(model.inputs),
+                                outputs=list(model.sensors),
+                                states=[str(x) for x in derive(model).states])
+    exp.check_columns(model)
+    return exp
+
+
+def published(folder: OutputFolder, staged: Iterable) -> list[Path]:
+    """The paths that files written into a staging folder have once the
+    folder is published (for ``wrote ...`` lines)."""
+    return [folder.path / Path(p).name for p in staged]
 
 
 def load_model(spec: str):

@@ -4,6 +4,7 @@ DE), writing ``result.json`` and PNG fit plots."""
 from __future__ import annotations
 
 import argparse
+import shutil
 import warnings
 from pathlib import Path
 
@@ -13,15 +14,18 @@ from bondgraph.cli.common import (
     add_fixed,
     add_initial_state,
     add_model,
+    add_overwrite,
     add_quiet,
     add_scheduler,
     initial_state,
     load_model,
+    load_record,
+    output_folder,
     parse_pairs,
     parse_params,
+    published,
 )
-from bondgraph.data.records import Experiment
-from bondgraph.errors import IdentifiabilityWarning
+from bondgraph.errors import EstimationError, IdentifiabilityWarning
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.options import FitOptions, UKFOptions
 from bondgraph.inference.ukf import default_P0
@@ -40,8 +44,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--particles", type=int, default=None, help="swarm / population size (10 k)")
     p.add_argument("--iterations", type=int, default=100)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=None, help="output directory (default estimate_<model>_<data>)")
-    p.add_argument("--checkpoint", default=None, help="checkpoint file (default <out>/checkpoint.npz)")
+    p.add_argument("--out", default=None,
+                   help="output directory (default estimate_<model>_<data>); refused when not "
+                        "empty, unless --overwrite")
+    add_overwrite(p)
+    p.add_argument("--checkpoint", default=None,
+                   help="checkpoint file (default .<out>.work/checkpoint.npz beside --out while "
+                        "running; copied into <out> at the end)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint")
     add_fixed(p)
     add_discretisation(p)
@@ -59,13 +68,28 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    """Estimate, write ``result.json`` and the fit plots; print the table."""
+    """Estimate, then publish ``--out`` as one complete folder (fit plots,
+    ``checkpoint.npz``, and ``result.json`` last); print the table.
+
+    The optimizer's checkpoint lives in the working folder ``.OUT.work``
+    beside ``--out`` until the result is published, so a killed run leaves
+    ``--out`` as it was and ``--resume`` continues from the checkpoint.
+
+    Raises
+    ------
+    OutputError
+        ``--out`` is not empty (without ``--overwrite`` or ``--resume``) or
+        not writable; checked before the estimation.
+    EstimationError
+        No parameter set had a finite NLL.
+    """
     model = load_model(args.model)
-    exp = Experiment.load(args.data)
+    exp = load_record(args.data, model)
     params = parse_params(args.params, model)
-    out = Path(args.out) if args.out else Path(f"estimate_{model.name}_{Path(args.data).stem}")
-    out.mkdir(parents=True, exist_ok=True)
-    ck = Path(args.checkpoint) if args.checkpoint else out / "checkpoint.npz"
+    folder = output_folder(args.out or f"estimate_{model.name}_{Path(args.data).stem}", args,
+                           overwrite=args.overwrite or args.resume)
+    ck = (Path(args.checkpoint) if args.checkpoint
+          else folder.work_dir(create=False) / "checkpoint.npz")
     x0 = initial_state(model, exp, args.x0)
     P0 = default_P0(model, x0, args.p0_rel)
     fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
@@ -75,16 +99,39 @@ def run(args) -> int:
                      scheduler=args.scheduler)
     ukf = UKFOptions(alpha=args.alpha, beta=args.beta, kappa=args.kappa, method=args.method,
                      substeps=args.substeps, hold=args.hold, backend=args.backend)
+    if not args.checkpoint:
+        _prepare_checkpoint(folder, args.resume)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
-        res = estimate(model, exp, params, fit=fit, ukf=ukf,
-                       fixed=parse_pairs(args.fixed, "--fixed"), x0=x0, P0=P0)
+        try:
+            res = estimate(model, exp, params, fit=fit, ukf=ukf,
+                           fixed=parse_pairs(args.fixed, "--fixed"), x0=x0, P0=P0)
+        except EstimationError:
+            if not args.checkpoint:
+                folder.remove_work_dir()      # nothing worth resuming
+            raise
     res.settings["data"] = str(args.data)
-    rpath = out / "result.json"
-    res.to_json(rpath)
+
+    def version(d: Path) -> list:
+        pngs = [] if args.no_plots else list(plot_fit(model, exp, res, d, P0=P0))
+        if ck.exists():
+            shutil.copyfile(ck, d / "checkpoint.npz")
+        res.to_json(d / "result.json")          # last: its presence means complete
+        return pngs
+    pngs = folder.publish(version)
+    if not args.checkpoint:
+        folder.remove_work_dir()
     print(res.table())
-    print(f"wrote {rpath}")
-    if not args.no_plots:
-        for pth in plot_fit(model, exp, res, out, P0=P0):
-            print(f"wrote {pth}")
+    for pth in [folder.path / "result.json", *published(folder, pngs)]:
+        print(f"wrote {pth}")
     return 0
+
+
+def _prepare_checkpoint(folder, resume: bool) -> None:
+    """Create the working folder of the default checkpoint
+    ``.OUT.work/checkpoint.npz``; with ``--resume`` and no such file, the
+    published ``OUT/checkpoint.npz`` of a finished run is copied there."""
+    ck = folder.work_dir() / "checkpoint.npz"
+    done = folder.path / "checkpoint.npz"
+    if resume and not ck.exists() and done.exists():
+        shutil.copyfile(done, ck)

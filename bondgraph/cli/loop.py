@@ -9,11 +9,18 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from bondgraph.cli.common import MODEL_HELP, add_backend, add_quiet, parse_params
-from bondgraph.data.records import Experiment
+from bondgraph.cli.common import (
+    MODEL_HELP,
+    add_backend,
+    add_overwrite,
+    add_quiet,
+    load_record,
+    parse_params,
+)
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.loop import run_loop
-from bondgraph.errors import ModelError
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import ModelError, OptionError, UsageError
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.loop_report import LoopReporter
@@ -32,7 +39,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", help="comma-separated parameters to estimate (default: the "
                                     "case's, or all parameters of the model)")
     p.add_argument("--out", default="bondgraph-report", help="report directory "
-                                                             "(default ./bondgraph-report)")
+                                                             "(default ./bondgraph-report); "
+                                                             "refused when not empty, unless "
+                                                             "--overwrite")
+    add_overwrite(p)
     p.add_argument("--metric", default=None,
                    help="error measure: nrmse_sim (default), rmse_sim, rmse_pred")
     p.add_argument("--criterion", choices=("aic", "bic"), default="aic")
@@ -51,11 +61,14 @@ def run(args) -> int:
         for name, spec in sorted(registered_cases().items()):
             print(f"{name:24s} {spec}")
         return 0
+    if args.data and not args.model:
+        raise UsageError(f"--data {args.data} needs --model (the model to fit to it); without "
+                         f"both, a bundled case runs")
     if args.model:
         if not args.data:
             raise ModelError("--model needs --data FILE.csv (the measured record)")
         graph = graph_builder(args.model)()
-        record = Experiment.load(args.data)
+        record = load_record(args.data, graph)
         params = parse_params(args.params) if args.params else list(graph.params)
         name = graph.name
     else:
@@ -77,7 +90,15 @@ def run(args) -> int:
         settings["structural"] = False
     settings["ukf"] = dataclasses.replace(settings.get("ukf") or UKFOptions(),
                                           backend=args.backend)
-    reporter = LoopReporter(args.out, echo=None if args.quiet else print)
+    try:                                             # bad settings fail before any output
+        LoopSettings.from_options(params, settings)
+    except OptionError as exc:                       # named as the options the user typed
+        text = str(exc)
+        for key in ("metric", "criterion", "max_steps", "significance"):
+            text = text.replace(f"LoopSettings.{key}", "--" + key.replace("_", "-"))
+        raise OptionError(text) from exc
+    reporter = LoopReporter(args.out, echo=None if args.quiet else print,
+                            overwrite=args.overwrite)
     res = run_loop(graph, record, params, log=reporter.log, progress=not args.quiet,
                    on_update=reporter.update, **settings)
     print()

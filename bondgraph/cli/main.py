@@ -9,11 +9,14 @@ command it runs, so ``bondgraph --help`` is fast).
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import sys
+import warnings
 
 from bondgraph import __version__
-from bondgraph.errors import BondGraphError
+from bondgraph.core import progress
+from bondgraph.errors import BondGraphError, BondGraphWarning, UsageError
 
 #: command -> one-line help; the command's module is ``bondgraph.cli.<command>``
 COMMANDS: dict[str, str] = {
@@ -30,8 +33,16 @@ COMMANDS: dict[str, str] = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse that raises :class:`~bondgraph.errors.UsageError` instead of
+    exiting, so that every user mistake takes the same path (exit code 2)."""
+
+    def error(self, message: str):
+        raise UsageError(f"{message} (see `{self.prog} --help`)")
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="bondgraph",
         description="Bond-graph modeling with code generation, UKF maximum-likelihood "
                     "estimation and residual tracing.",
@@ -42,8 +53,29 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _show_warning(cmd: str):
+    """``warnings.showwarning`` printing the toolkit's warnings as
+    ``bondgraph CMD: warning: ...`` (others as Python does)."""
+    default = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, BondGraphWarning):
+            print(f"bondgraph {cmd}: warning: {message}", file=sys.stderr)
+        else:
+            default(message, category, filename, lineno, file, line)
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``bondgraph`` console script."""
+    """Entry point of the ``bondgraph`` console script.
+
+    Exit codes: 0 success; 2 a user mistake or a typed error of
+    :mod:`bondgraph.errors` (bad option, input, model, data, an output folder
+    that is not empty or writable, a failed estimation), printed as
+    ``bondgraph CMD: error: MESSAGE``; 1 a check that found a problem
+    (``generate --check``: stale code); 130 interrupted. Anything else is a
+    bug and shows its traceback.
+    """
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
         _parser().print_help()
@@ -54,19 +86,22 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if cmd not in COMMANDS:
         _parser().print_usage(sys.stderr)
-        print(f"bondgraph: unknown command '{cmd}' (commands: {', '.join(COMMANDS)})",
-              file=sys.stderr)
+        close = difflib.get_close_matches(cmd, list(COMMANDS), n=1)
+        print(f"bondgraph: error: unknown command '{cmd}' (commands: {', '.join(COMMANDS)})"
+              + (f"; did you mean '{close[0]}'?" if close else ""), file=sys.stderr)
         return 2
     mod = importlib.import_module(f"bondgraph.cli.{cmd}")
-    parser = argparse.ArgumentParser(prog=f"bondgraph {cmd}", description=COMMANDS[cmd])
+    parser = _Parser(prog=f"bondgraph {cmd}", description=COMMANDS[cmd])
     mod.configure(parser)
-    args = parser.parse_args(argv[1:])
-    run = mod.run
     try:
-        return int(run(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning(cmd)
+            args = parser.parse_args(argv[1:])
+            with progress.enabled(not getattr(args, "quiet", False)):
+                return int(mod.run(args) or 0)
     except BondGraphError as exc:
         print(f"bondgraph {cmd}: error: {exc}", file=sys.stderr)
-        return 1
+        return 2
     except KeyboardInterrupt:
         print(f"bondgraph {cmd}: interrupted", file=sys.stderr)
         return 130

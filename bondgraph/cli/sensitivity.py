@@ -16,13 +16,16 @@ from bondgraph.cli.common import (
     add_fixed,
     add_initial_state,
     add_model,
+    add_overwrite,
     add_quiet,
     initial_state,
     load_model,
+    load_record,
+    output_folder,
     parse_names,
     parse_pairs,
+    published,
 )
-from bondgraph.data.records import Experiment
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.options import UKFOptions
 from bondgraph.report.sensitivity import plot_report
@@ -46,7 +49,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk", type=int, default=256, help="parameter sets per batched UKF run")
     p.add_argument("--nll-transform", choices=("log", "none"), default="log",
                    help="Sobol' indices of ln(1 + NLL - min NLL) (default) or of the NLL")
-    p.add_argument("--out", default=None, help="output directory (default sensitivity_<model>_<data>)")
+    p.add_argument("--out", default=None, help="output directory (default "
+                                               "sensitivity_<model>_<data>); refused when not "
+                                               "empty, unless --overwrite")
+    add_overwrite(p)
     add_fixed(p)
     p.add_argument("--at-truth", action="store_true",
                    help="analyse at the record's true parameters (synthetic records)")
@@ -67,7 +73,7 @@ def configure(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     """Analyse, write ``sensitivity.json`` and the PNGs; print the table."""
     model = load_model(args.model)
-    exp = Experiment.load(args.data)
+    exp = load_record(args.data, model)
     if args.seconds is not None:
         n = int(np.searchsorted(exp.t, exp.t[0] + args.seconds, side="right"))
         if n < 2:
@@ -86,7 +92,7 @@ def run(args) -> int:
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
     for o in outputs:
         model.output_index(o)
-    out = Path(args.out) if args.out else Path(f"sensitivity_{model.name}_{Path(args.data).stem}")
+    folder = output_folder(args.out or f"sensitivity_{model.name}_{Path(args.data).stem}", args)
     log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     rep = analyse(model, exp, params, theta=th, x0=x0, p0_rel=args.p0_rel,
@@ -98,15 +104,16 @@ def run(args) -> int:
                   progress=not args.quiet, log=log, nll_transform=args.nll_transform)
     rep.settings["data"] = str(args.data)
     rep.settings["wall_s"] = time.perf_counter() - t0
-    # created only now: a run that fails on its input leaves no empty folder
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "sensitivity.json"
-    rep.to_json(path)
+
+    def version(d: Path) -> list:
+        pngs = [] if args.no_plots else list(plot_report(rep, d))
+        rep.to_json(d / "sensitivity.json")      # last
+        return pngs
+    pngs = folder.publish(version)
+    path = folder.path / "sensitivity.json"
     print(rep.table())
-    print(f"wrote {path}")
-    if not args.no_plots:
-        for p in plot_report(rep, out):
-            print(f"wrote {p}")
+    for p in [path, *published(folder, pngs)]:
+        print(f"wrote {p}")
     print(f"estimate these with: bondgraph estimate --model {model.name} --data {args.data} "
           f"--params recommended:{path}")
     return 0

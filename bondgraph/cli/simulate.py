@@ -10,9 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from bondgraph.cli.common import add_model, load_model, parse_pairs
+from bondgraph.core import atomic
 from bondgraph.core.jsonsafe import to_jsonable
-from bondgraph.data.experiments import get_experiment
+from bondgraph.data.experiments import get_experiment, run_experiment
 from bondgraph.data.records import Experiment
+from bondgraph.errors import ModelError, UsageError
 from bondgraph.numerics.simulate import METHODS, simulate, stiffness_report
 from bondgraph.report.plots import plot_record
 
@@ -41,6 +43,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-step", type=float, default=None, help="adaptive solvers' largest step")
     p.add_argument("--hold", choices=("linear", "zoh"), default="linear",
                    help="sampled inputs between samples for adaptive solvers")
+    p.add_argument("--noise", action="store_true",
+                   help="with a registered experiment: write its noisy synthetic record (the "
+                        "experiment's noise and seed, true parameters and states in the JSON "
+                        "sidecar), e.g. `bondgraph simulate mass_spring_damper -e msd_force_step "
+                        "--noise -o msd_force_step.csv`")
     p.add_argument("--plot", metavar="DIR", help="also write PNG plots to DIR")
     p.add_argument("--stiffness", action="store_true",
                    help="print the stiffness report and write OUTPUT.stiffness.json")
@@ -48,6 +55,8 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     """Run ``bondgraph simulate`` (see :func:`configure`)."""
+    if args.noise:
+        return _noisy_record(args)
     model = load_model(args.model)
     overrides = parse_pairs(args.param, "--param")
     measured = None
@@ -102,7 +111,7 @@ def run(args) -> int:
         rep, table = stiffness_report(model, res)
         print(table)
         jpath = out.with_suffix(".stiffness.json")
-        jpath.write_text(json.dumps(to_jsonable(rep), indent=1, allow_nan=False) + "\n")
+        atomic.write_text(jpath, json.dumps(to_jsonable(rep), indent=1, allow_nan=False) + "\n")
         print(f"wrote {jpath}")
     if args.plot:
         if measured is not None:
@@ -110,5 +119,38 @@ def run(args) -> int:
         else:
             paths = plot_record(res, args.plot)
         for pth in paths:
+            print(f"wrote {pth}")
+    return 0
+
+
+def _noisy_record(args) -> int:
+    """``--noise``: the registered experiment's synthetic record
+    (:func:`bondgraph.data.experiments.run_experiment`), saved atomically.
+
+    Raises
+    ------
+    UsageError
+        No registered experiment, or options that the record ignores.
+    ModelError
+        An unknown experiment, or a model other than the experiment's.
+    """
+    if not args.experiment or Path(args.experiment).suffix.lower() in (".csv", ".json"):
+        raise UsageError("--noise needs --experiment NAME, a registered experiment "
+                         "(`bondgraph simulate MODEL -e NAME --noise -o FILE.csv`)")
+    if args.param or args.input or args.record_params:
+        raise UsageError("--noise writes the experiment's record at its true parameters and "
+                         "inputs: --param, --input and --record-params do not apply")
+    spec = get_experiment(args.experiment)
+    if args.model != spec.model:
+        raise ModelError(f"experiment '{spec.name}' is a record of model '{spec.model}', "
+                         f"not of '{args.model}'")
+    exp = run_experiment(spec, method=args.method, rtol=args.rtol, atol=args.atol,
+                         max_step=args.max_step)
+    out = Path(args.output or f"{spec.name}.csv")
+    exp.save(out)
+    print(f"wrote {out} and {out.with_suffix('.json')} ({exp.t.size} samples, noise seed "
+          f"{spec.seed})")
+    if args.plot:
+        for pth in plot_record(exp, args.plot):
             print(f"wrote {pth}")
     return 0

@@ -42,6 +42,7 @@ from typing import Callable, Sequence
 import sympy as sp
 
 from bondgraph.core.symbols import StateVar, Var
+from bondgraph.errors import ElementError, InvalidNameError
 
 
 def local_state_name(element_name: str, letter: str, index: int | None = None) -> str:
@@ -109,7 +110,7 @@ class Element:
     def __init__(self, name: str, *, effort_unit: str | None = None,
                  flow_unit: str | None = None, description: str = ""):
         if not isinstance(name, str) or not name or any(c.isspace() for c in name) or "->" in name:
-            raise ValueError(f"invalid element name {name!r}: use a non-empty name without spaces")
+            raise InvalidNameError(f"invalid element name {name!r}: use a non-empty name without spaces")
         self.name = name
         self.description = description
         self.effort_unit = effort_unit
@@ -252,7 +253,7 @@ class I(OnePort):  # noqa: E742 - bond-graph name
         self.state = StateVar(local_state_name(name, "p"), "momentum", name, initial=initial)
         self.priority = priority
         if (inertance is None) == (flow is None):
-            raise ValueError(f"I '{name}': give exactly one of inertance= or flow=")
+            raise ElementError(f"I '{name}': give exactly one of inertance= or flow=")
         self.inertance = _as_expr(inertance) if inertance is not None else None
         p = self.state
         self.law = (p / self.inertance) if flow is None else _as_expr(flow(p))
@@ -323,7 +324,7 @@ class C(OnePort):
         self.priority = priority
         given = [v is not None for v in (compliance, stiffness, effort)]
         if sum(given) != 1:
-            raise ValueError(f"C '{name}': give exactly one of compliance=, stiffness= or effort=")
+            raise ElementError(f"C '{name}': give exactly one of compliance=, stiffness= or effort=")
         q = self.state
         self.compliance = _as_expr(compliance) if compliance is not None else None
         self.stiffness = _as_expr(stiffness) if stiffness is not None else None
@@ -395,7 +396,7 @@ class R(OnePort):
         super().__init__(name, **kw)
         given = [v is not None for v in (resistance, effort, flow)]
         if sum(given) != 1:
-            raise ValueError(f"R '{name}': give exactly one of resistance=, effort= or flow=")
+            raise ElementError(f"R '{name}': give exactly one of resistance=, effort= or flow=")
         self.resistance = _as_expr(resistance) if resistance is not None else None
         if flow is not None:
             self.form = "flow"
@@ -503,7 +504,7 @@ class Junction(Element):
             from bondgraph.core.units import DOMAINS
 
             if domain not in DOMAINS:
-                raise ValueError(f"junction '{name}': unknown domain '{domain}' "
+                raise ElementError(f"junction '{name}': unknown domain '{domain}' "
                                  f"(known: {', '.join(DOMAINS)})")
             e_u, f_u = DOMAINS[domain]
             self.effort_unit = self.effort_unit or e_u
@@ -569,7 +570,7 @@ class Field(Element):
 
     def __init__(self, name: str, n: int, **kw):
         if n < 1:
-            raise ValueError(f"field '{name}' needs at least one port")
+            raise ElementError(f"field '{name}' needs at least one port")
         self.n_ports = n
         super().__init__(name, **kw)
 
@@ -674,7 +675,7 @@ class RField(Field):
         super().__init__(name, n, **kw)
         laws = effort(*[p.f for p in self.ports])
         if len(laws) != n:
-            raise ValueError(f"R field '{name}': effort() must return {n} expressions")
+            raise ElementError(f"R field '{name}': effort() must return {n} expressions")
         self.laws = [_as_expr(v) for v in laws]
 
     def expressions(self):

@@ -60,6 +60,7 @@ from bondgraph.errors import (
     DanglingPortError,
     DuplicateNameError,
     GraphError,
+    InvalidNameError,
     JunctionError,
     PortCountError,
     UndeclaredSymbolError,
@@ -317,7 +318,8 @@ class BondGraph:
 
     def _check_free_name(self, name: str, table: dict, what: str) -> None:
         if not isinstance(name, str) or not name or any(c.isspace() for c in name):
-            raise ValueError(f"invalid {what} name {name!r}")
+            raise InvalidNameError(f"graph '{self.name}': invalid {what} name {name!r} (a "
+                                   f"non-empty string without white space)")
         if name in table:
             raise DuplicateNameError(f"graph '{self.name}': {what} '{name}' declared twice")
 
@@ -535,7 +537,7 @@ class BondGraph:
             ``handle.port(name)`` gives the targets of the exposed ports.
         """
         if not prefix or any(c.isspace() for c in prefix):
-            raise ValueError(f"invalid fragment prefix {prefix!r}")
+            raise InvalidNameError(f"invalid fragment prefix {prefix!r}")
         subs: dict = {}
         for p in fragment.params.values():
             new = p.with_name(f"{prefix}.{p.name}")

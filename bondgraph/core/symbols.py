@@ -15,6 +15,8 @@ from typing import Any
 
 import sympy as sp
 
+from bondgraph.errors import GraphError, ParameterError
+
 
 class _MetaSymbol(sp.Symbol):
     """Uncached real symbol carrying metadata in ``__dict__``."""
@@ -37,6 +39,23 @@ class _MetaSymbol(sp.Symbol):
     def meta(self) -> dict[str, Any]:
         """Metadata as a plain dict (for generated code and reports)."""
         return {"name": self.name, **{k: getattr(self, k, None) for k in self._meta_fields}}
+
+
+def _number(value: Any, what: str, error=GraphError) -> float:
+    """``float(value)`` for a declaration, finite.
+
+    Raises
+    ------
+    GraphError (or ``error``)
+        Naming ``what`` and the value.
+    """
+    try:
+        v = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise error(f"{what} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise error(f"{what} must be finite, got {value!r}")
+    return v
 
 
 def _rebuild_symbol(cls, name, state):
@@ -72,20 +91,10 @@ class Parameter(_MetaSymbol):
                 bounds: tuple[float, float] | None = None, description: str = "",
                 source: str = ""):
         obj = super().__new__(cls, name)
-        obj.default = float(default)
+        d = _number(default, f"parameter '{name}': the default", ParameterError)
+        obj.default = d
         obj.unit = unit or ""
-        if bounds is None:
-            d = float(default)
-            if d > 0:
-                bounds = (d / 10.0, d * 10.0)
-            elif d < 0:
-                bounds = (d * 10.0, d / 10.0)
-            else:
-                bounds = (-1.0, 1.0)
-        lo, hi = float(bounds[0]), float(bounds[1])
-        if not (lo <= hi) or not (math.isfinite(lo) and math.isfinite(hi)):
-            raise ValueError(f"parameter '{name}': bounds {bounds} are not a finite interval")
-        obj.bounds = (lo, hi)
+        obj.bounds = _bounds(name, d, bounds)
         obj.description = description
         obj.source = source
         return obj
@@ -93,6 +102,39 @@ class Parameter(_MetaSymbol):
     def with_name(self, name: str) -> "Parameter":
         """Copy with another name (used when fragments are namespaced)."""
         return Parameter(name, self.default, self.unit, self.bounds, self.description, self.source)
+
+
+def _bounds(name: str, default: float, bounds) -> tuple[float, float]:
+    """The estimation box of a parameter: ``bounds`` checked, or the default
+    box (default/10, default*10) for positive defaults, (default*10,
+    default/10) for negative ones, (-1, 1) for zero.
+
+    Raises
+    ------
+    ParameterError
+        Bounds that are not a pair of finite numbers, reversed bounds, or a
+        default outside them (the parameter, bounds and default named).
+    """
+    if bounds is None:
+        if default > 0:
+            return default / 10.0, default * 10.0
+        if default < 0:
+            return default * 10.0, default / 10.0
+        return -1.0, 1.0
+    try:
+        lo_, hi_ = bounds
+    except (TypeError, ValueError):
+        raise ParameterError(f"parameter '{name}': bounds must be a pair (lower, upper), got "
+                             f"{bounds!r}") from None
+    lo = _number(lo_, f"parameter '{name}': the lower bound", ParameterError)
+    hi = _number(hi_, f"parameter '{name}': the upper bound", ParameterError)
+    if lo > hi:
+        raise ParameterError(f"parameter '{name}': bounds ({lo:g}, {hi:g}) are reversed "
+                             f"(lower > upper)", hint=f"write bounds=({hi:g}, {lo:g})")
+    if not lo <= default <= hi:
+        raise ParameterError(f"parameter '{name}': default {default:g} lies outside its "
+                             f"bounds ({lo:g}, {hi:g})")
+    return lo, hi
 
 
 class Input(_MetaSymbol):
@@ -118,7 +160,7 @@ class Input(_MetaSymbol):
                 description: str = "", derivative_of: "Input | None" = None):
         obj = super().__new__(cls, name)
         obj.unit = unit or ""
-        obj.default = float(default)
+        obj.default = _number(default, f"input '{name}': the default")
         obj.description = description
         obj.derivative_of = derivative_of
         return obj
@@ -142,7 +184,7 @@ class StateVar(_MetaSymbol):
         obj.state_kind = kind
         obj.element = element
         obj.unit = unit or ""
-        obj.initial = float(initial)
+        obj.initial = _number(initial, f"state '{name}': the initial value")
         obj.description = description
         return obj
 

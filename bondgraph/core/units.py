@@ -10,8 +10,20 @@ Radians are dimensionless (pint's convention), so ``N*m`` x ``rad/s`` is ``W``.
 from __future__ import annotations
 
 import functools
+import re
 
 from bondgraph.errors import DataError, UnitMismatchError
+
+#: largest |exponent| accepted in a unit string (``m**2``, ``s^-1``, ``m**(1/2)``);
+#: pint evaluates exponents as Python numbers, so ``2**2**2**2**2**2**2`` would
+#: not finish
+MAX_EXPONENT = 12
+#: longest unit string accepted (characters)
+MAX_UNIT_LENGTH = 200
+
+_POWER = re.compile(r"\*\*|\^")
+_EXPONENT = re.compile(r"\s*(\()?\s*([-+]?\s*(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)"
+                       r"(?:\s*/\s*(\d+\.?\d*|\.\d+))?\s*(\))?")
 
 #: Effort and flow units of the usual energy domains (Karnopp, Margolis &
 #: Rosenberg, *System Dynamics*, Table 1.1 / ch. 2).
@@ -53,6 +65,7 @@ def parse(unit: str):
     text = (unit or "").strip()
     if text in ("", "1", "-"):
         return ureg.Quantity(1.0, "dimensionless")
+    check_exponents(text)
     try:
         q = ureg.parse_expression(text)
     except Exception as exc:  # pint raises several types
@@ -60,6 +73,38 @@ def parse(unit: str):
     if not hasattr(q, "dimensionality"):
         q = ureg.Quantity(float(q), "dimensionless")
     return q
+
+
+def check_exponents(text: str) -> None:
+    """Reject a unit string before pint evaluates it: longer than
+    :data:`MAX_UNIT_LENGTH`, an exponent that is not a plain number or
+    fraction (``m**x``), a power of a power (``2**2**2``), or an exponent
+    beyond ±:data:`MAX_EXPONENT`.
+
+    Raises
+    ------
+    UnitMismatchError
+        Naming the unit string and the offending exponent.
+    """
+    if len(text) > MAX_UNIT_LENGTH:
+        raise UnitMismatchError(f"unknown unit '{text[:40]}...': longer than "
+                                f"{MAX_UNIT_LENGTH} characters")
+    for op in _POWER.finditer(text):
+        m = _EXPONENT.match(text, op.end())
+        if m is None or bool(m.group(1)) != bool(m.group(4)):
+            raise UnitMismatchError(f"unknown unit '{text}': the exponent after "
+                                    f"'{op.group()}' at position {op.start() + 1} is not a "
+                                    f"number or a fraction (n/m) in parentheses")
+        value = float(m.group(2).replace(" ", ""))
+        if m.group(3) is not None:
+            den = float(m.group(3))
+            value = value / den if den else float("inf")
+        if not abs(value) <= MAX_EXPONENT:
+            raise UnitMismatchError(f"unknown unit '{text}': exponent {m.group().strip()} is "
+                                    f"beyond ±{MAX_EXPONENT}")
+        if _POWER.match(text[m.end():].lstrip()):
+            raise UnitMismatchError(f"unknown unit '{text}': a power of a power "
+                                    f"('{text[op.start():].strip()[:30]}') is not a unit")
 
 
 def dimensionality(unit: str):

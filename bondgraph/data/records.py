@@ -25,18 +25,23 @@ from __future__ import annotations
 
 import copy
 import csv
+import difflib
+import io
 import json
 import math
+import numbers
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
+from bondgraph.core import atomic
 from bondgraph.core import units as _units
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
-from bondgraph.errors import DataError, UnitMismatchError, join_names
+from bondgraph.errors import ColumnWarning, DataError, UnitMismatchError, join_names
 from bondgraph.numerics.model import Model
 
 #: value of the sidecar's ``format`` key
@@ -90,8 +95,8 @@ def convert(values: np.ndarray, from_unit: str | None, to_unit: str | None, *,
     to_unit = to_unit or ""
     try:
         q_from = _units.parse(from_unit)
-    except UnitMismatchError:
-        raise DataError(f"unknown unit '{from_unit}'", path=path, line=1, column=column) from None
+    except UnitMismatchError as exc:
+        raise DataError(str(exc), path=path, line=1, column=column) from None
     try:
         q_to = _units.parse(to_unit)
     except UnitMismatchError:
@@ -344,6 +349,7 @@ class Experiment:
         return exp
 
     def _validate_meta(self, path: str | None = None) -> None:
+        check_sidecar_types(self.meta, path)
         for cname, entry in (self.meta.get("columns") or {}).items():
             role = (entry or {}).get("role")
             if role is not None and role not in ROLES:
@@ -508,33 +514,40 @@ class Experiment:
             for i in np.flatnonzero(np.isnan(arr)):
                 txt[i] = ""
             cols.append(txt)
-        with open(path, "w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh, lineterminator="\n")
-            w.writerow(header)
-            w.writerows(zip(*cols))
-        if sidecar:
-            meta = copy.deepcopy(self.meta)
-            meta = {"format": FORMAT, **{k: v for k, v in meta.items() if k != "format"}}
-            meta.setdefault("name", self.name)
-            info = meta.setdefault("columns", {})
-            for c in names:
-                entry = dict(info.get(c) or {})
-                entry["unit"] = "s" if c == "t" else self.units.get(c)
-                if c == "t":
-                    entry["role"] = "time"
-                first = {k: entry[k] for k in ("unit", "role", "noise_std") if k in entry}
-                info[c] = {**first, **entry}
-            meta["columns"] = {c: info[c] for c in names}
-            order = ("format", "name", "model", "truth_model", "description", "dt", "columns",
-                     "true_parameters", "x0", "noise", "seed")
-            meta = {**{k: meta[k] for k in order if k in meta},
-                    **{k: v for k, v in meta.items() if k not in order}}
-            with open(path.with_suffix(".json"), "w", encoding="utf-8") as fh:
-                json.dump(to_jsonable(meta), fh, indent=2, allow_nan=False)
-                fh.write("\n")
+        buf = io.StringIO(newline="")
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(header)
+        w.writerows(zip(*cols))
+        side_text = self._sidecar_text(names) if sidecar else None
+        # never a new CSV beside the old sidecar: the old one goes first
+        path.with_suffix(".json").unlink(missing_ok=True)
+        atomic.write_text(path, buf.getvalue())
+        if side_text is not None:
+            atomic.write_text(path.with_suffix(".json"), side_text)
         self.path = path
         self.lines = None
         return path
+
+    def _sidecar_text(self, names: list[str]) -> str:
+        """The JSON sidecar of :meth:`save` (``format`` first, the documented
+        keys in their order, then the others)."""
+        meta = copy.deepcopy(self.meta)
+        meta = {"format": FORMAT, **{k: v for k, v in meta.items() if k != "format"}}
+        meta.setdefault("name", self.name)
+        info = meta.setdefault("columns", {})
+        for c in names:
+            entry = dict(info.get(c) or {})
+            entry["unit"] = "s" if c == "t" else self.units.get(c)
+            if c == "t":
+                entry["role"] = "time"
+            first = {k: entry[k] for k in ("unit", "role", "noise_std") if k in entry}
+            info[c] = {**first, **entry}
+        meta["columns"] = {c: info[c] for c in names}
+        order = ("format", "name", "model", "truth_model", "description", "dt", "columns",
+                 "true_parameters", "x0", "noise", "seed")
+        meta = {**{k: meta[k] for k in order if k in meta},
+                **{k: v for k, v in meta.items() if k not in order}}
+        return json.dumps(to_jsonable(meta), indent=2, allow_nan=False) + "\n"
 
     # ---------------------------------------------------------- for models
     def _model(self, model):
@@ -687,10 +700,64 @@ class Experiment:
                                   what=f"output '{name}' of model '{mdl.name}'")
                 found += 1
         if mdl.n_y and not found:
+            close = self._closest_names(mdl)
             raise DataError(f"the record has no column for any output of model '{mdl.name}' "
                             f"({', '.join(mdl.outputs)}); its columns: "
-                            f"{', '.join(self.columns)}", path=self._where(), line=1)
+                            f"{', '.join(self.columns)}", path=self._where(), line=1,
+                            hint=f"rename the column(s): {close}" if close else None)
         return Y
+
+    def unmatched_columns(self, model) -> list[str]:
+        """Columns that match no input (nor ``der(.)`` input), output or
+        state (``state.<name>``) of ``model``, other than those the sidecar
+        marks ``role: other``."""
+        mdl = self._model(model)
+        known = {*mdl.inputs, *mdl.outputs, *(STATE_PREFIX + x for x in mdl.states)}
+        roles = self.roles
+        return [c for c in self.columns if c not in known and roles.get(c) != "other"]
+
+    def _closest_names(self, mdl) -> str:
+        """``'xpos' -> 'x'; ...`` for the unmatched columns that resemble a
+        name of the model (difflib ratio >= 0.3, or one name contains the
+        other); empty if none does."""
+        names = [*mdl.outputs, *mdl.inputs, *(STATE_PREFIX + x for x in mdl.states)]
+        pairs = []
+        for c in self.unmatched_columns(mdl):
+            close = difflib.get_close_matches(c, names, n=3, cutoff=0.3)
+            close += [n for n in names if n not in close and (n.lower() in c.lower()
+                                                              or c.lower() in n.lower())]
+            if close:
+                pairs.append(f"'{c}' -> {' or '.join(repr(n) for n in close[:3])}")
+        return "; ".join(pairs)
+
+    def check_columns(self, model) -> list[str]:
+        """Warn when outputs of ``model`` are absent from the record while
+        some columns match none of its names (a misspelt column, ``xpos``
+        for ``x``, would otherwise be ignored).
+
+        Returns
+        -------
+        list of str
+            The unmatched columns warned about (empty: no warning).
+
+        Warns
+        -----
+        ColumnWarning
+            Naming the unmatched columns, the closest model names and the
+            absent outputs.
+        """
+        mdl = self._model(model)
+        absent = [o for o in mdl.outputs if o not in self.columns]
+        extra = self.unmatched_columns(mdl)
+        if not (absent and extra):
+            return []
+        close = self._closest_names(mdl)
+        warnings.warn(
+            f"{self._where() or self.name}: column(s) {join_names(extra)} match no input, "
+            f"output or state of model '{mdl.name}' and are ignored, while its output(s) "
+            f"{join_names(absent)} are not in the record"
+            + (f"; closest model names: {close}" if close else ""), ColumnWarning, stacklevel=2)
+        return extra
 
     def noise_std_for(self, model) -> np.ndarray:
         """Declared noise standard deviations of the model's outputs, in model
@@ -843,8 +910,8 @@ class _Columns:
 def _check_unit(unit: str, path: str | None, column: str) -> None:
     try:
         _units.parse(unit)
-    except UnitMismatchError:
-        raise DataError(f"unknown unit '{unit}'", path=path, line=1, column=column,
+    except UnitMismatchError as exc:
+        raise DataError(str(exc), path=path, line=1, column=column,
                         hint="use a unit pint understands, e.g. m/s, km/h, N*m, rad/s, rpm, 1"
                         ) from None
 
@@ -1021,10 +1088,68 @@ def _read_sidecar(csv_path: Path) -> dict[str, Any]:
     fmt = meta.get("format")
     if fmt != FORMAT:
         raise DataError(f"sidecar format is {fmt!r}, expected '{FORMAT}'", path=str(side))
-    if not isinstance(meta.get("columns", {}) or {}, dict):
-        raise DataError("sidecar 'columns' must be an object {column: {unit, role, noise_std}}",
-                        path=str(side))
+    check_sidecar_types(meta, str(side))
     return meta
+
+
+#: sidecar keys holding text
+_TEXT_KEYS = ("name", "model", "truth_model", "description")
+#: sidecar keys holding {name: finite number}
+_NUMBER_MAPS = ("true_parameters", "parameters", "x0")
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def check_sidecar_types(meta: Mapping, path: str | None = None) -> None:
+    """Check the types of the documented sidecar keys (before any work uses
+    them): text for ``name, model, truth_model, description``; a positive
+    number for ``dt``; ``{name: finite number}`` for ``true_parameters``,
+    ``parameters`` and ``x0``; an integer ``seed``; objects for ``columns``
+    (one object per column, a text ``unit``) and ``noise``. Other keys are free.
+
+    Raises
+    ------
+    DataError
+        Naming the sidecar file and the key (and entry) of the wrong type.
+    """
+    def bad(msg: str, column: str | None = None):
+        return DataError(f"sidecar {msg}", path=path, column=column)
+
+    for key in _TEXT_KEYS:
+        if meta.get(key) is not None and not isinstance(meta[key], str):
+            raise bad(f"'{key}' must be text, got {meta[key]!r}")
+    dt = meta.get("dt")
+    if dt is not None and not (_is_number(dt) and dt > 0):
+        raise bad(f"'dt' must be a positive number of seconds, got {dt!r}")
+    for key in _NUMBER_MAPS:
+        val = meta.get(key)
+        if val is None:
+            continue
+        if not isinstance(val, Mapping):
+            raise bad(f"'{key}' must be an object {{name: number}}, got {val!r}")
+        for name, v in val.items():
+            if not _is_number(v):
+                raise bad(f"'{key}': the value of '{name}' must be a finite number, got {v!r}")
+    seed = meta.get("seed")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
+        raise bad(f"'seed' must be an integer, got {seed!r}")
+    if meta.get("noise") is not None and not isinstance(meta["noise"], Mapping):
+        raise bad(f"'noise' must be an object, got {meta['noise']!r}")
+    cols = meta.get("columns")
+    if cols is None:
+        return
+    if not isinstance(cols, Mapping):
+        raise bad("'columns' must be an object {column: {unit, role, noise_std}}")
+    for cname, entry in cols.items():
+        if entry is not None and not isinstance(entry, Mapping):
+            raise bad(f"'columns': the entry of '{cname}' must be an object "
+                      f"{{unit, role, noise_std}}, got {entry!r}", column=cname)
+        unit = (entry or {}).get("unit")
+        if unit is not None and not isinstance(unit, str):
+            raise bad(f"'columns': the unit of '{cname}' must be text, got {unit!r}",
+                      column=cname)
 
 
 def load(path: str | Path, **kw) -> Experiment:

@@ -122,6 +122,9 @@ class ResidualReport:
         rows = ["| output | bias | RMS | bias/σ | Ljung-Box p | NIS | peak Hz |",
                 "|---|---|---|---|---|---|---|"]
         for o in self.outputs:
+            if not o.n:
+                rows.append(f"| {o.name} | not in the record | | | | | |")
+                continue
             rows.append(f"| {o.name} | {o.bias:.4g} | {o.rms:.4g} | {o.bias_sigma:.1f} | "
                         f"{o.ljung_box_p:.2g} | {o.nis_mean:.2f} | {o.peak_hz:.3g} |")
         return "\n".join(rows)
@@ -222,8 +225,10 @@ def _output_residuals(model, i: int, e: np.ndarray, z: np.ndarray, lags: int, dt
     ok = np.isfinite(e)
     n = int(ok.sum())
     if n == 0:
-        return OutputResiduals(name, model.output_units[i], 0, *([float("nan")] * 4), lags,
-                               float("nan"), float("nan"), float("nan"))
+        nan = float("nan")
+        return OutputResiduals(name, model.output_units[i], 0, bias=nan, rms=nan,
+                               bias_sigma=nan, ljung_box_q=nan, ljung_box_p=nan, lags=lags,
+                               nis_mean=nan, peak_hz=nan, peak_ratio=nan)
     bias = float(e[ok].mean())
     rms = float(np.sqrt(np.mean(e[ok] ** 2)))
     se = float(e[ok].std(ddof=1) / np.sqrt(n)) if n > 1 else float("inf")
@@ -262,7 +267,8 @@ def _operating_variables(ukf, model, p: int, u, y) -> dict[str, np.ndarray]:
         if u is not None and u.shape[1] > j and np.ptp(u[:, j]) > 0:
             variables[nme] = u[:, j]
     for j, nme in enumerate(model.outputs):
-        variables[f"{nme} (measured)"] = y[:, j]
+        if np.isfinite(y[:, j]).any():          # an output the record lacks is all NaN
+            variables[f"{nme} (measured)"] = y[:, j]
     return variables
 
 

@@ -79,7 +79,7 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     if missing:
         raise ModelError(f"graph '{graph.name}' has no parameter(s) {missing} "
                          f"(known: {', '.join(graph.params)})")
-    s = LoopSettings(params=list(params), **settings)
+    s = LoopSettings.from_options(params, settings)
     t0 = time.perf_counter()
     ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
                   progress)

@@ -111,7 +111,8 @@ def operating_scales(ctx: Context, fit: Fit) -> Scales:
         except Exception:
             continue
     for i, o in enumerate(model.outputs):
-        sc.output_rms[o] = float(np.sqrt(np.nanmean(y[:, i] ** 2)))
+        ok = np.isfinite(y[:, i])               # an output the record lacks: no scale
+        sc.output_rms[o] = float(np.sqrt(np.mean(y[ok, i] ** 2))) if ok.any() else float("nan")
     return sc
 
 
@@ -224,7 +225,9 @@ def nudge_sizes(probe: Probe, fit: Fit, dt: float) -> tuple[np.ndarray, list]:
     sel = np.flatnonzero(ok)[:: max(1, ok.sum() // 200)]
     xs, us = X[sel], u[sel]
     xscale = np.maximum(np.nanstd(X, axis=0), 1e-9)
-    yscale = np.maximum(np.nanstd(y, axis=0), 1e-12)
+    measured = np.isfinite(y).any(axis=0)     # an output the record lacks: NaN, ignored below
+    yscale = np.full(y.shape[1], np.nan)
+    yscale[measured] = np.maximum(np.nanstd(y[:, measured], axis=0), 1e-12)
     F0 = pm.f(xs, us, base)
     H0 = pm.h(xs, us, base)
     deltas = []

@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Effect
+from bondgraph.errors import OptionError
 from bondgraph.inference.options import UKFOptions
+
+#: the built-in error measures (``LoopSettings.metric``; bondgraph.diagnose.metric)
+METRICS = ("nrmse_sim", "rmse_sim", "rmse_pred")
+#: information criteria of the accept decision
+CRITERIA = ("aic", "bic")
 
 
 @dataclass
@@ -91,9 +98,61 @@ class LoopSettings:
     chunk: int = 48
     metric_name: str | None = None
 
+    def __post_init__(self):
+        check_settings(self)
+
+    @classmethod
+    def from_options(cls, params, options: dict) -> "LoopSettings":
+        """Settings from ``run_loop``'s keywords.
+
+        Raises
+        ------
+        OptionError
+            An unknown keyword (the known ones listed) or a bad value.
+        """
+        known = set(cls.__dataclass_fields__) - {"params"}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise OptionError(f"unknown loop setting(s) {', '.join(unknown)} (known: "
+                              f"{', '.join(sorted(known))})")
+        return cls(params=list(params), **options)
+
     def summary(self) -> dict:
         """The settings a report records: estimated parameters, step limit,
         significance level, UKF options, names of the effect library."""
         return {"params": self.params, "max_steps": self.max_steps,
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
                 "effects": [e.name for e in self.effects]}
+
+
+def _integer(name: str, v, minimum: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < minimum:
+        raise OptionError(f"LoopSettings.{name} must be an integer >= {minimum}, got {v!r}")
+
+
+def check_settings(s: LoopSettings) -> None:
+    """Validate the loop's options where they are given (``--metric bogus``,
+    ``--max-steps -1`` ...), not after a long fit.
+
+    Raises
+    ------
+    OptionError
+        Naming the option, the value and what is allowed.
+    """
+    if not callable(s.metric) and s.metric not in METRICS:
+        raise OptionError(f"LoopSettings.metric = {s.metric!r} is not one of "
+                          f"{', '.join(METRICS)} (or a callable metric(fit, record))")
+    if s.criterion not in CRITERIA:
+        raise OptionError(f"LoopSettings.criterion = {s.criterion!r} is not one of "
+                          f"{', '.join(CRITERIA)}")
+    for name, minimum in (("max_steps", 0), ("confirm_top", 1), ("fit_iterations", 0),
+                          ("confirm_iterations", 0), ("chunk", 1)):
+        _integer(name, getattr(s, name), minimum)
+    sig = s.significance
+    if isinstance(sig, bool) or not isinstance(sig, numbers.Real) or not 0 < sig < 1:
+        raise OptionError(f"LoopSettings.significance must lie in (0, 1), got {sig!r}")
+    if s.structural not in (True, False, "always"):
+        raise OptionError(f"LoopSettings.structural must be True, False or 'always', got "
+                          f"{s.structural!r}")
+    if not isinstance(s.ukf, UKFOptions):
+        raise OptionError(f"LoopSettings.ukf must be a UKFOptions, got {type(s.ukf).__name__}")

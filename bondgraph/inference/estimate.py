@@ -42,8 +42,10 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from bondgraph.core import progress
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
-from bondgraph.errors import IdentifiabilityWarning, ModelError, OptionError
+from bondgraph.errors import EstimationError, IdentifiabilityWarning, ModelError, OptionError
+from bondgraph.inference.checkpoint import problem_fingerprint
 from bondgraph.inference.optimize import de, minimize_batched, pso
 from bondgraph.inference.options import FitOptions, UKFOptions, fit_options, ukf_options
 from bondgraph.inference.record import as_record, initial_state, record_arrays
@@ -456,14 +458,14 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     ------
     ModelError
         Unknown parameter names, or a fixed parameter that is also estimated.
-    OptionError, DataError
-        Invalid options; problems of the record (:mod:`bondgraph.data.records`).
+    OptionError, DataError, EstimationError
+        Invalid options, a checkpoint of another problem; a bad record; no finite NLL.
 
     Warns
     -----
     IdentifiabilityWarning
-        Hessian not positive definite (direction named), an estimate on a bound, no
-        finite NLL, a discretisation error > 0.1 σ, an NLL 1e-3 off RK4(40) (nll_guard).
+        Hessian not positive definite (direction named), an estimate on a bound, a
+        discretisation error > 0.1 σ, or an NLL 1e-3 off RK4(40) (nll_guard).
     """
     t_start = time.perf_counter()
     fit, ukf = fit_options(fit), ukf_options(ukf)
@@ -542,15 +544,34 @@ def _swarm_size(fit: FitOptions, k: int) -> int:
 
 
 def _global_search(crit, lo, hi, fit: FitOptions, start):
-    """The optimizer's run (:func:`pso` or :func:`de`) over the box."""
+    """The optimizer's run (:func:`pso` or :func:`de`) over the box; its
+    checkpoint carries the problem's fingerprint
+    (:func:`bondgraph.inference.checkpoint.problem_fingerprint`), and long
+    UKF passes show bars when ``fit.progress`` (:mod:`bondgraph.core.progress`).
+
+    Raises
+    ------
+    EstimationError
+        No evaluated parameter set had a finite NLL (the causes are listed).
+    """
     S = _swarm_size(fit, lo.size)
-    if fit.optimizer == "pso":
-        return pso(crit, lo, hi, particles=S, iterations=fit.iterations, seed=fit.seed,
-                   checkpoint=fit.checkpoint, resume=fit.resume, progress=fit.progress,
-                   stall_iterations=fit.stall_iterations, x0=start)
-    return de(crit, lo, hi, popsize=max(1, S // lo.size), iterations=fit.iterations,
-              seed=fit.seed, progress=fit.progress, x0=start, checkpoint=fit.checkpoint,
-              resume=fit.resume)
+    fp = problem_fingerprint(crit)
+    with progress.enabled(fit.progress):
+        if fit.optimizer == "pso":
+            opt = pso(crit, lo, hi, particles=S, iterations=fit.iterations, seed=fit.seed,
+                      checkpoint=fit.checkpoint, resume=fit.resume, progress=fit.progress,
+                      stall_iterations=fit.stall_iterations, x0=start, fingerprint=fp)
+        else:
+            opt = de(crit, lo, hi, popsize=max(1, S // lo.size), iterations=fit.iterations,
+                     seed=fit.seed, progress=fit.progress, x0=start, checkpoint=fit.checkpoint,
+                     resume=fit.resume, fingerprint=fp)
+    if not np.isfinite(opt.fun):
+        causes = ", ".join(f"{k}: {v}" for k, v in crit.failures.most_common()) or "none recorded"
+        raise EstimationError(
+            f"no finite NLL: all {opt.nfev} parameter sets evaluated for "
+            f"{', '.join(crit.params)} of model '{crit.model.name}' failed (causes: {causes})",
+            hint="check the search box (bounds), the prior x0/P0 and the record's units")
+    return opt
 
 
 def _polish(crit, opt, lo, hi, fit: FitOptions):

@@ -32,18 +32,18 @@ Storn, R., Price, K. (1997). Differential evolution. J. Global Optim. 11,
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Mapping
 
 import numpy as np
 from scipy.optimize import differential_evolution, minimize
 
-from bondgraph.errors import OptionError
+from bondgraph.core import atomic
+from bondgraph.errors import CheckpointError, OptionError
+from bondgraph.inference import checkpoint as fingerprints
 
 #: Clerc-Kennedy constriction coefficients
 CONSTRICTION_W = 0.7298
@@ -121,14 +121,30 @@ def _evaluate(fun, X):
     return f
 
 
-def _settings_key(d: dict) -> str:
-    return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
-
-
 def _save_checkpoint(path: Path, state: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **state)
-    os.replace(tmp, path)
+    """``np.savez`` of ``state`` to ``path``, atomically."""
+    atomic.replace_file(path, lambda tmp: np.savez(tmp, **state))
+
+
+def _load_checkpoint(path: Path | None, fingerprint: Mapping[str, str]):
+    """The arrays of a checkpoint written for the problem ``fingerprint``.
+
+    Raises
+    ------
+    CheckpointError
+        Missing or unreadable file, or a fingerprint that differs (the
+        differing components named, :func:`bondgraph.inference.checkpoint.check`).
+    """
+    if path is None or not path.exists():
+        raise CheckpointError(f"cannot resume: checkpoint {path} does not exist",
+                              hint="run without --resume first")
+    try:
+        d = dict(np.load(path, allow_pickle=False))
+    except Exception as exc:            # zip, npy and OS errors of a damaged file
+        raise CheckpointError(f"cannot resume: checkpoint {path} is not readable "
+                              f"({type(exc).__name__}: {exc})") from None
+    fingerprints.check(path, d.get("fingerprint"), fingerprint)
+    return d
 
 
 def _progress_bar(progress: bool, total: int, initial: int, desc: str, unit: str):
@@ -171,20 +187,16 @@ class _Swarm:
                    n_inf=int(np.count_nonzero(~np.isfinite(f))), history=[float(f[i])], stall=0)
 
     @classmethod
-    def load(cls, path: Path | None, key: str) -> "_Swarm":
-        """The swarm of a checkpoint written with the same settings ``key``.
+    def load(cls, path: Path | None, fingerprint: Mapping[str, str]) -> "_Swarm":
+        """The swarm of a checkpoint written for the same ``fingerprint``.
 
         Raises
         ------
-        OptionError
-            Missing checkpoint, or one written with other settings.
+        CheckpointError
+            Missing checkpoint, or one written for another problem or with
+            other settings (what differs is named).
         """
-        if path is None or not path.exists():
-            raise OptionError(f"cannot resume: checkpoint {path} does not exist")
-        d = np.load(path, allow_pickle=False)
-        if str(d["key"]) != key:
-            raise OptionError(f"checkpoint {path} was written with other PSO settings "
-                              f"(particles, seed, coefficients or bounds differ); not resuming")
+        d = _load_checkpoint(path, fingerprint)
         rng = np.random.Generator(np.random.PCG64())
         rng.bit_generator.state = json.loads(str(d["rng"]))
         return cls(rng, Z=d["Z"].copy(), V=d["V"].copy(), pbest=d["pbest"].copy(),
@@ -192,12 +204,12 @@ class _Swarm:
                    it=int(d["it"]), nfev=int(d["nfev"]), ncalls=int(d["ncalls"]),
                    n_inf=int(d["n_inf"]), history=list(d["history"]), stall=int(d["stall"]))
 
-    def save(self, path: Path | None, key: str) -> None:
+    def save(self, path: Path | None, fingerprint: Mapping[str, str]) -> None:
         """Write the checkpoint (atomically); nothing without a path."""
         if path is None:
             return
         state = {name: np.asarray(getattr(self, name)) for name in self.FIELDS}
-        _save_checkpoint(path, dict(key=np.array(key),
+        _save_checkpoint(path, dict(fingerprint=fingerprints.encode(fingerprint),
                                     rng=np.array(json.dumps(self.rng.bit_generator.state)),
                                     **state))
 
@@ -239,7 +251,8 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
         c1: float = CONSTRICTION_C, c2: float = CONSTRICTION_C, vmax: float = 0.5,
         stall_iterations: int | None = None, ftol: float = 1e-8,
         checkpoint: str | Path | None = None, resume: bool = False, progress: bool = True,
-        x0=None, callback: Callable | None = None) -> OptimizeResult:
+        x0=None, callback: Callable | None = None,
+        fingerprint: Mapping[str, str] | None = None) -> OptimizeResult:
     """Minimise a batched criterion by particle swarm optimisation
     (Kennedy & Eberhart 1995; constriction of Clerc & Kennedy 2002).
 
@@ -266,13 +279,16 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
     checkpoint : path, optional
         ``.npz`` file written (atomically) after every iteration.
     resume : bool
-        Continue from ``checkpoint`` (must exist and match the settings).
+        Continue from ``checkpoint`` (must exist and match the fingerprint).
     progress : bool
         Show a tqdm bar with the best criterion.
     x0 : array (k,), optional
         A point placed into the initial swarm (replaces particle 0).
     callback : callable, optional
         ``callback(it, best_x, best_f)`` after every iteration; True stops.
+    fingerprint : dict, optional
+        Problem components a resumed run must share, besides the swarm's
+        settings (:func:`bondgraph.inference.checkpoint.problem_fingerprint`).
 
     Returns
     -------
@@ -281,7 +297,8 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
     Raises
     ------
     OptionError
-        Bad bounds, sizes, or a checkpoint that does not match the settings.
+        Bad bounds or sizes; a missing checkpoint or one of another problem
+        (:class:`~bondgraph.errors.CheckpointError`, what differs named).
 
     Notes
     -----
@@ -296,29 +313,26 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
     lo, hi = _check_box(lower, upper)
     S = int(particles) if particles is not None else 10 * lo.size
     settings, key = _pso_settings(lo, hi, S, iterations, seed, w, c1, c2, vmax, x0,
-                                  stall_iterations)
+                                  stall_iterations, fingerprint)
     ck = Path(checkpoint) if checkpoint is not None else None
     t0 = time.perf_counter()
     sw = _Swarm.load(ck, key) if resume else _Swarm.start(fun, lo, hi, S, seed, vmax, x0)
     if not resume:
         sw.save(ck, key)
     it0 = sw.it
-    bar = _progress_bar(progress, iterations, min(it0, iterations), "PSO", "it")
-    if bar is not None:
-        bar.set_postfix(best=f"{sw.gf:.6g}")
     stop_reason = _pso_iterations(sw, fun, lo, hi, (w, c1, c2, vmax, ftol), iterations,
-                                  stall_iterations, (ck, key), bar, callback)
-    if bar is not None:
-        bar.close()
+                                  stall_iterations, (ck, key), progress, callback)
     return OptimizeResult(x=lo + sw.g * (hi - lo), fun=sw.gf, nfev=sw.nfev, ncalls=sw.ncalls,
                           nit=sw.it, n_inf=sw.n_inf, stop_reason=stop_reason,
                           history=np.array(sw.history), method="pso",
                           wall_s=time.perf_counter() - t0, resumed_from=it0, settings=settings)
 
 
-def _pso_settings(lo, hi, S, iterations, seed, w, c1, c2, vmax, x0, stall_iterations):
-    """``(settings, checkpoint key)``; the key covers what a resumed run
-    must share with the interrupted one (not the iteration budget).
+def _pso_settings(lo, hi, S, iterations, seed, w, c1, c2, vmax, x0, stall_iterations,
+                  problem: Mapping[str, str] | None):
+    """``(settings, checkpoint fingerprint)``; the fingerprint covers what a
+    resumed run must share with the interrupted one: the ``problem``
+    components and the swarm's settings (not the iteration budget).
 
     Raises
     ------
@@ -332,16 +346,46 @@ def _pso_settings(lo, hi, S, iterations, seed, w, c1, c2, vmax, x0, stall_iterat
     settings = dict(method="pso", particles=S, seed=seed, w=w, c1=c1, c2=c2, vmax=vmax,
                     lower=lo.tolist(), upper=hi.tolist(),
                     x0=None if x0 is None else np.asarray(x0, float).tolist())
-    key = _settings_key(settings)
+    key = _search_fingerprint(problem, "pso", particles=str(S), seed=str(seed),
+                              coefficients=f"w={w!r} c1={c1!r} c2={c2!r} vmax={vmax!r}",
+                              box=(lo, hi), start=x0)
     settings["iterations"] = iterations
     settings["stall_iterations"] = stall_iterations
     return settings, key
 
 
+def _search_fingerprint(problem: Mapping[str, str] | None, method: str, *, box, start,
+                        **settings: str) -> dict[str, str]:
+    """The checkpoint fingerprint: the problem's components, the optimizer,
+    its settings, the search box and the start point (hashed)."""
+    fp = dict(problem or {})
+    fp["optimizer"] = method
+    fp.update(settings)
+    fp["search box (bounds)"] = fingerprints.digest(*box)
+    fp["start point"] = fingerprints.digest(start)
+    return fp
+
+
 def _pso_iterations(sw: _Swarm, fun, lo, hi, coeffs, iterations, stall_iterations, ck_key,
-                    bar, callback) -> str:
+                    progress: bool, callback) -> str:
     """Iterate until ``iterations``, the stall rule or the callback; returns
-    the stop reason. Checkpoints after every iteration."""
+    the stop reason. Checkpoints after every iteration; a bar (iterations
+    done, time left, best criterion) with ``progress``."""
+    bar = _progress_bar(progress, iterations, min(sw.it, iterations),
+                        f"PSO: {sw.Z.shape[0]} particles x {lo.size} parameters", "it")
+    try:
+        if bar is not None:
+            bar.set_postfix(best=f"{sw.gf:.6g}")
+        return _pso_loop(sw, fun, lo, hi, coeffs, iterations, stall_iterations, ck_key, bar,
+                         callback)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _pso_loop(sw: _Swarm, fun, lo, hi, coeffs, iterations, stall_iterations, ck_key,
+              bar, callback) -> str:
+    """The iterations of :func:`_pso_iterations`."""
     stalled = f"stalled {stall_iterations} iterations"
     if stall_iterations is not None and sw.stall >= stall_iterations:
         return stalled
@@ -369,9 +413,9 @@ class _DEMonitor:
     PENALTY = 1e100
 
     def __init__(self, fun, ck: Path | None, it0: int, history: list, best: float,
-                 resumed: bool, bar):
+                 resumed: bool, bar, fingerprint: Mapping[str, str]):
         self.fun, self.ck, self.gen, self.history, self.best = fun, ck, it0, history, best
-        self.resumed, self.bar = resumed, bar
+        self.resumed, self.bar, self.fingerprint = resumed, bar, fingerprint
         self.nfev = self.ncalls = self.n_inf = 0
 
     def __call__(self, Xt):
@@ -394,11 +438,10 @@ class _DEMonitor:
             self.bar.update(1)
             self.bar.set_postfix(best=f"{self.best:.6g}")
         if self.ck is not None:
-            tmp = self.ck.with_name(self.ck.name + ".tmp.npz")
-            np.savez(tmp, population=np.asarray(intermediate_result.population),
-                     it=np.array(self.gen), history=np.array(self.history),
-                     best=np.array(self.best))
-            os.replace(tmp, self.ck)
+            _save_checkpoint(self.ck, dict(
+                population=np.asarray(intermediate_result.population), it=np.array(self.gen),
+                history=np.array(self.history), best=np.array(self.best),
+                fingerprint=fingerprints.encode(self.fingerprint)))
         return False
 
 
@@ -406,7 +449,7 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 
        iterations: int = 100, seed: int | None = 0, tol: float = 0.0, atol: float = 0.0,
        mutation=(0.5, 1.0), recombination: float = 0.7, strategy: str = "best1bin",
        progress: bool = True, x0=None, checkpoint: str | Path | None = None,
-       resume: bool = False) -> OptimizeResult:
+       resume: bool = False, fingerprint: Mapping[str, str] | None = None) -> OptimizeResult:
     """Minimise a batched criterion with scipy's differential evolution
     (Storn & Price 1997).
 
@@ -434,6 +477,8 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 
         Restart from the checkpointed population (``init=``) for the
         remaining generations. Unlike :func:`pso`, this is not bit-for-bit
         the uninterrupted run: scipy's generator state is not restored.
+    fingerprint : dict, optional
+        Components of the problem a resumed run must share (as for :func:`pso`).
 
     Returns
     -------
@@ -453,9 +498,14 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 
         raise OptionError(f"DE needs a population of at least 5 members (popsize * k), "
                           f"got {popsize} x {k}")
     ck = Path(checkpoint) if checkpoint is not None else None
-    init, it0, history, best = _de_start(ck) if resume else ("latinhypercube", 0, [], np.inf)
+    fp = _search_fingerprint(fingerprint, "de", box=(lo, hi), start=x0, popsize=str(popsize),
+                             seed=str(seed), strategy=f"{strategy} mutation={mutation!r} "
+                                                      f"recombination={recombination!r}")
+    init, it0, history, best = (_de_start(ck, fp) if resume
+                                else ("latinhypercube", 0, [], np.inf))
     mon = _DEMonitor(fun, ck, it0, history, best, resume,
-                     _progress_bar(progress, iterations, it0, "DE", "gen"))
+                     _progress_bar(progress, iterations, it0,
+                                   f"DE: {popsize * k} members x {k} parameters", "gen"), fp)
     t0 = time.perf_counter()
     kw = dict(strategy=strategy, maxiter=max(iterations - it0, 0), popsize=popsize, tol=tol,
               atol=atol, mutation=mutation, recombination=recombination, polish=False,
@@ -477,17 +527,15 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 
                           settings=settings)
 
 
-def _de_start(ck: Path | None):
+def _de_start(ck: Path | None, fingerprint: Mapping[str, str]):
     """``(init population, generation, history, best)`` of a DE checkpoint.
 
     Raises
     ------
-    OptionError
-        Missing checkpoint.
+    CheckpointError
+        Missing checkpoint, or one of another problem (:func:`_load_checkpoint`).
     """
-    if ck is None or not ck.exists():
-        raise OptionError(f"cannot resume: checkpoint {ck} does not exist")
-    d = np.load(ck)
+    d = _load_checkpoint(ck, fingerprint)
     return (np.asarray(d["population"], dtype=float), int(d["it"]),
             [float(v) for v in d["history"]], float(d["best"]))
 

@@ -62,6 +62,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from bondgraph.core.progress import long_range
 from bondgraph.errors import BackendWarning, DataError, ModelError, OptionError
 from bondgraph.inference import ukf_numba
 from bondgraph.inference.options import UKFOptions, ukf_options
@@ -652,7 +653,7 @@ def _filter_numpy(model, batch: FilterBatch, step: Callable, t, u, u_held, y,
     """The numpy filter over the record (predict/update per sample for the
     whole batch), filling ``batch`` and ``kept``."""
     dts = np.diff(t)
-    for k in range(t.size):
+    for k in long_range(t.size, f"UKF pass: {batch.nll.size} parameter sets x {t.size} samples"):
         if k > 0 and batch.size:
             predict(batch, step, u_held[k - 1], dts[k - 1], wts, k)
         if not batch.size:

@@ -16,13 +16,15 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import inspect
 import time
 from pathlib import Path
 
 from bondgraph.core import plugins
 from bondgraph.core.codegen import generate_numba_source, generate_source
 from bondgraph.core.equations import derive
-from bondgraph.errors import ModelError, StaleGeneratedCodeError
+from bondgraph.core.graph import BondGraph
+from bondgraph.errors import BondGraphError, ModelError, StaleGeneratedCodeError
 
 COMMAND = "bondgraph generate"
 
@@ -61,38 +63,84 @@ def graph_builder(spec: str):
     name, ``module:function`` or ``path/to/file.py:function`` (the current
     directory is on the import path).
 
-    The builder is checked before it is called: it must be callable, and what
-    it returns must be a :class:`~bondgraph.core.graph.BondGraph`.
+    The builder is checked before it is called (:func:`check_builder`), and
+    what it returns must be a :class:`~bondgraph.core.graph.BondGraph`.
 
     Raises
     ------
     ModelError
-        Unknown name, module not importable, attribute missing, not callable,
-        or not returning a BondGraph.
+        Unknown name, module not importable, attribute missing, not a
+        function that can be called without arguments, a builder that fails
+        (the cause named) or does not return a BondGraph.
     """
-    from bondgraph.core.graph import BondGraph
-
     if spec in registered():
         return lambda: build(spec)
     if ":" not in spec:
+        close = difflib.get_close_matches(spec, list(registered()), n=3, cutoff=0.5)
         raise ModelError(f"unknown model '{spec}': give a registered name "
                          f"({', '.join(sorted(registered()))}), module:function or "
-                         f"path/to/file.py:function")
-    fn = resolve(spec)
-    if not callable(fn) or isinstance(fn, type) and not issubclass(fn, BondGraph):
-        raise ModelError(f"'{spec}' is a {type(fn).__name__}, not a function returning a "
-                         f"BondGraph")
+                         f"path/to/file.py:function",
+                         hint=f"did you mean {' or '.join(repr(c) for c in close)}?"
+                         if close else None)
+    fn = check_builder(spec, resolve(spec))
 
     def make():
         try:
             g = fn()
-        except TypeError as exc:
-            raise ModelError(f"'{spec}' could not be called without arguments ({exc})") from exc
+        except BondGraphError:
+            raise
+        except Exception as exc:
+            raise ModelError(f"building the graph with '{spec}' failed: "
+                             f"{type(exc).__name__}: {exc}") from exc
         if not isinstance(g, BondGraph):
-            raise ModelError(f"'{spec}' returned a {type(g).__name__}, not a BondGraph")
+            raise ModelError(f"'{spec}' returned {_a(type(g).__name__)}, not a BondGraph")
         g.source = spec
         return g
     return make
+
+
+#: return annotations that cannot be a BondGraph
+_NOT_GRAPHS = ("None", "int", "float", "str", "bool", "dict", "list", "tuple", "set", "bytes")
+
+
+def _a(word: str) -> str:
+    return f"{'an' if word[:1].lower() in 'aeiou' else 'a'} {word}"
+
+
+def check_builder(spec: str, fn):
+    """``fn`` if it can be a graph builder: a function (or BondGraph class)
+    callable without arguments whose return annotation, if any, is not a
+    type other than BondGraph. Checked without calling it.
+
+    Raises
+    ------
+    ModelError
+        Naming ``spec`` and what ``fn`` is.
+    """
+    if isinstance(fn, type):
+        if issubclass(fn, BondGraph):
+            return fn
+        raise ModelError(f"'{spec}' is the class {fn.__name__}, not a function returning a "
+                         f"BondGraph")
+    if not callable(fn):
+        raise ModelError(f"'{spec}' is {_a(type(fn).__name__)}, not a function returning a "
+                         f"BondGraph")
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return fn                       # a builtin without a signature: try it
+    needed = [p.name for p in sig.parameters.values()
+              if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+    if needed:
+        raise ModelError(f"'{spec}' needs the argument(s) {', '.join(needed)}; a graph builder "
+                         f"is called without arguments",
+                         hint="wrap it: def build(): return " + spec.rsplit(":", 1)[1] + "(...)")
+    ret = sig.return_annotation
+    name = ret if isinstance(ret, str) else getattr(ret, "__name__", None)
+    if ret is not sig.empty and (name in _NOT_GRAPHS or ret is None or (
+            isinstance(ret, type) and not issubclass(ret, BondGraph))):
+        raise ModelError(f"'{spec}' is annotated to return {name or ret!r}, not a BondGraph")
+    return fn
 
 
 def generated_dir() -> Path:

@@ -51,7 +51,7 @@ def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
         ax.plot(t, y[:, j], ".", ms=2, color="0.5", label="measured")
         ax.plot(t, r.y_pred[:, 0, j], lw=1.0, label="predicted ŷ(k|k-1)")
         ax.plot(t, r.y_filt[:, 0, j], lw=0.8, ls="--", label="filtered h(x̂(k|k))")
-        ax.set_ylabel(f"{model.outputs[j]} [{model.output_units[j]}]")
+        ax.set_ylabel(f"{model.outputs[j]} [{model.output_units[j] or '-'}]")
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc="best", fontsize=8)
     axes[0, 0].set_title(f"{model.name} on {name}: NLL {result.nll:.2f}")
@@ -68,7 +68,7 @@ def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
         ax.plot(t, e, lw=0.6, label="innovation ε")
         ax.fill_between(t, -2 * s, 2 * s, color="C1", alpha=0.25, label="±2 sqrt(S)")
         inside = np.mean(np.abs(e[np.isfinite(e)]) <= 2 * s[np.isfinite(e)]) if np.isfinite(e).any() else np.nan
-        ax.set_ylabel(f"ε {model.outputs[j]}")
+        ax.set_ylabel(f"ε {model.outputs[j]} [{model.output_units[j] or '-'}]")
         ax.set_title(f"{model.outputs[j]}: {inside:.1%} within ±2σ", fontsize=9)
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc="best", fontsize=8)

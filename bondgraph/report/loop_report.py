@@ -12,10 +12,13 @@ initial and final fits, and the residual analyses.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
+from matplotlib.ticker import FuncFormatter
 
+from bondgraph.core.atomic import OutputFolder
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.result import LoopResult
@@ -26,25 +29,39 @@ class LoopReporter:
     """Writes the loop's log and report into one folder while the loop runs.
 
     Pass :meth:`log` and :meth:`update` to
-    :func:`bondgraph.diagnose.loop.run_loop` (``log=``, ``on_update=``): every
-    log line goes to ``loop.log`` (and to ``echo``), and the report is
-    rewritten from the partial :class:`~bondgraph.diagnose.result.LoopResult`
-    after the initial fit, after every step and at the end, so that an
-    interrupted run keeps its work.
+    :func:`bondgraph.diagnose.loop.run_loop` (``log=``, ``on_update=``).
+    The report is published from the partial
+    :class:`~bondgraph.diagnose.result.LoopResult` after the initial fit,
+    after every step and at the end, each time as a complete folder swapped
+    into place (:class:`bondgraph.core.atomic.OutputFolder`): the folder
+    always holds one whole version of the report, an intermediate one
+    (``report.json``: ``"finished": false``) while the loop runs and after an
+    interruption, the final one (``"finished": true``) at the end, never a
+    mix of two versions or two runs. Log lines go to ``loop.log`` in the
+    working folder ``.<out>.work`` beside it (and to ``echo``); each version
+    of the report carries a copy of the log up to that point.
 
     Parameters
     ----------
     out_dir : path
-        The report folder (created).
+        The report folder.
     echo : callable, optional
         Also print each log line with it (e.g. ``print``).
+    overwrite : bool
+        Replace a non-empty ``out_dir`` (otherwise refused).
+
+    Raises
+    ------
+    OutputError
+        ``out_dir`` is not empty (without ``overwrite``) or not writable;
+        raised here, before the loop runs.
     """
 
-    def __init__(self, out_dir, echo=None):
+    def __init__(self, out_dir, echo=None, *, overwrite: bool = False):
+        self.folder = OutputFolder(out_dir, overwrite=overwrite)
         self.out = Path(out_dir)
-        self.out.mkdir(parents=True, exist_ok=True)
         self.echo = echo
-        self.log_path = self.out / "loop.log"
+        self.log_path = self.folder.work_dir() / "loop.log"
         self.log_path.write_text("")
 
     def log(self, line: str) -> None:
@@ -55,24 +72,33 @@ class LoopReporter:
             fh.write(line + "\n")
 
     def update(self, result: LoopResult) -> None:
-        """Rewrite the report from the loop's (partial) result."""
-        write(result, self.out)
+        """Publish the report of the loop's (partial) result; after the final
+        one, later log lines are appended to the published ``loop.log``."""
+        def version(folder: Path) -> None:
+            shutil.copyfile(self.log_path, folder / "loop.log")
+            write(result, folder, final=self.out)
+        self.folder.publish(version)
+        if result.finished:
+            self.log_path = self.out / "loop.log"
+            self.folder.remove_work_dir()
 
 
-def write(result: LoopResult, out) -> None:
-    """Write ``report.json``, ``report.md``, the PNGs and (once an effect is
-    accepted) the augmented model with its generated code into ``out``."""
+def write(result: LoopResult, out, *, final=None) -> None:
+    """Write ``report.md``, the PNGs, (once an effect is accepted) the
+    augmented model with its generated code, and ``report.json`` last, into
+    ``out``; ``final`` is where the folder will be published (named in the
+    generated code; default ``out``)."""
     out = Path(out)
     report = result.to_dict()
     settings = report.pop("settings")   # keep "settings" last, after the file name
     report["augmented_model"] = "augmented_model.py" if result.applied else None
     report["settings"] = settings
-    (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
     if result.applied:
         (out / "augmented_model.py").write_text(augmented_source(result))
-        _write_generated(result, out)
+        _write_generated(result, out, Path(final) if final is not None else out)
     pngs = _plots(result, out)
     (out / "report.md").write_text(markdown(result, pngs))
+    (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
 
 
 def augmented_source(result: LoopResult) -> str:
@@ -118,9 +144,9 @@ def _augmented_name(result: LoopResult) -> str:
     return f"{result.model}_augmented"
 
 
-def _write_generated(result: LoopResult, out: Path) -> None:
+def _write_generated(result: LoopResult, out: Path, final: Path) -> None:
     """Generated code of the final augmented graph (estimates as defaults)
-    in ``out/generated``."""
+    in ``out/generated``; its source is named as ``final/augmented_model.py``."""
     name = _augmented_name(result)
     gen = out / "generated"
     gen.mkdir(exist_ok=True)
@@ -130,7 +156,7 @@ def _write_generated(result: LoopResult, out: Path) -> None:
             g.params[k].default = float(v)
     ss = derive(g)
     (gen / f"{name}.py").write_text(generate_source(
-        ss, source=f"{out / 'augmented_model.py'}:build",
+        ss, source=f"{final / 'augmented_model.py'}:build",
         command="bondgraph loop (see report.md)"))
 
 
@@ -156,12 +182,16 @@ def _save(fig, path: Path) -> str:
 
 
 def _plot_fit(result: LoopResult, out: Path) -> str:
-    """Measured outputs vs the free-run simulations before and after."""
+    """Measured outputs vs the free-run simulations before and after; a
+    simulation that failed is said on the plot (not silently left out)."""
     plt = pyplot()
     init, final = result.initial, result.final
     t, y = result.time, result.measured
     ny = y.shape[1]
     fig, axes = plt.subplots(ny, 1, figsize=(10, 2.4 * ny + 0.6), sharex=True, squeeze=False)
+    failed = [lab for fit, lab, shown in ((init, "declared model", True),
+                                          (final, "augmented model", _augmented(result)))
+              if shown and fit.sim_y is None]
     for i in range(ny):
         ax = axes[i, 0]
         ax.plot(t, y[:, i], ".", ms=2, color="0.55", label="measured")
@@ -169,12 +199,18 @@ def _plot_fit(result: LoopResult, out: Path) -> str:
             ax.plot(t, init.sim_y[:, i], lw=1.2, color="tab:red", label="declared model (fitted)")
         if _augmented(result) and final.sim_y is not None:
             ax.plot(t, final.sim_y[:, i], lw=1.2, color="tab:blue", label="augmented model")
+        if failed:
+            ax.text(0.5, 0.5, f"free-run simulation of the {' and the '.join(failed)} failed: "
+                    f"not drawn", transform=ax.transAxes, ha="center", va="center",
+                    fontsize=9, color="tab:red", bbox=dict(fc="white", ec="tab:red", alpha=0.9))
         unit = result.output_units[i]
         ax.set_ylabel(f"{result.outputs[i]}\n[{unit or '-'}]", fontsize=8)
         ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8, loc="best")
     axes[-1, 0].set_xlabel("t [s]")
-    fig.suptitle("Measured vs free-run simulation, before and after the loop", fontsize=10)
+    fig.suptitle("Measured vs free-run simulation, before and after the loop"
+                 + (f" ({' and '.join(failed)}: simulation failed)" if failed else ""),
+                 fontsize=10)
     return _save(fig, out / "fit_before_after.png")
 
 
@@ -192,7 +228,7 @@ def _plot_innovations(result: LoopResult, out: Path) -> str:
             e = fit.innovations[:, i]
             sd = np.sqrt(fit.innovation_var[:, i])
             ax.plot(t, e / sd, lw=0.6, color=col, alpha=0.8, label=lab)
-        ax.set_ylabel(f"{result.outputs[i]}\nε/√S", fontsize=8)
+        ax.set_ylabel(f"{result.outputs[i]}\nε/√S [-]", fontsize=8)
         ax.grid(alpha=0.3)
     if axes[0, 0].get_legend_handles_labels()[0]:
         axes[0, 0].legend(fontsize=8)
@@ -202,18 +238,24 @@ def _plot_innovations(result: LoopResult, out: Path) -> str:
 
 
 def _plot_evidence(result: LoopResult, k: int, ranking, out: Path) -> str:
-    """The 15 best candidates of step ``k`` by evidence (accepted in green)."""
+    """The 15 best candidates of step ``k`` by evidence; the one accepted at
+    this step in green (the title says when none was)."""
     plt = pyplot()
     top = ranking[:15][::-1]
     fig, ax = plt.subplots(figsize=(9, 0.32 * len(top) + 1.2))
     vals = [max(c.score, -5) for c in top]
-    cols = ["tab:green" if any(s.effect == c.effect and s.attached_to == c.target.name
-                               for s in result.steps) else "tab:gray" for c in top]
-    ax.barh([c.label for c in top], vals, color=cols)
+    acc = result.steps[k - 1] if k <= len(result.steps) else None   # steps stop at a refusal
+    green = [acc is not None and (acc.effect, acc.attached_to) == (c.effect, c.target.name)
+             for c in top]
+    ax.barh([c.label for c in top], vals, color=["tab:green" if g else "tab:gray" for g in green])
     ax.set_xlabel("evidence: χ² statistic − 2k (predicted AIC decrease)")
     ax.set_xscale("symlog", linthresh=10)
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     ax.tick_params(axis="y", labelsize=7)
-    ax.set_title(f"Step {k}: candidate effects (green: accepted)", fontsize=10)
+    note = (f"green: accepted ({acc.effect} @ {acc.attached_to})" if any(green) else
+            f"accepted: {acc.effect} @ {acc.attached_to}, not among these" if acc is not None
+            else "none accepted")
+    ax.set_title(f"Step {k}: candidate effects ({note})", fontsize=10)
     return _save(fig, out / f"evidence_step{k}.png")
 
 

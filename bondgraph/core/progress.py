@@ -1,0 +1,105 @@
+"""Signs of life on long computations: tqdm bars that appear only when a
+pass takes long.
+
+A long record makes a single UKF pass take minutes; the bars of this module
+say what is being done (``"UKF pass: 30 parameter sets x 200000 samples"``),
+how far it is and how long is left. A bar is shown only
+
+* when bars are switched on (:func:`enabled`; the command line switches them
+  on unless ``--quiet``, :func:`bondgraph.inference.estimate.estimate`
+  follows ``FitOptions.progress``), and
+* once the pass has run for ``delay`` seconds, so short passes (the usual
+  case, thousands per estimation) cost one clock read every ``every`` steps
+  and print nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+from contextvars import ContextVar
+
+from tqdm import tqdm
+
+#: whether long passes show bars (off by default in the library)
+_ENABLED: ContextVar[bool] = ContextVar("bondgraph_progress", default=False)
+
+
+@contextlib.contextmanager
+def enabled(flag: bool = True):
+    """Switch the bars of long passes on (or off) inside a ``with`` block."""
+    token = _ENABLED.set(bool(flag))
+    try:
+        yield
+    finally:
+        _ENABLED.reset(token)
+
+
+def is_enabled() -> bool:
+    """Whether bars are switched on here."""
+    return _ENABLED.get()
+
+
+def long_range(total: int, desc: str, unit: str = "sample", **kw):
+    """``range(total)`` with a :class:`LongPass` bar; the bar is removed when
+    the loop ends or is left (``break``)."""
+    bar = LongPass(total, desc, unit, **kw)
+    try:
+        for k in range(int(total)):
+            bar.step(k)
+            yield k
+    finally:
+        bar.close()
+
+
+class LongPass:
+    """Progress of one long loop: call :meth:`step` with the index of every
+    step; a bar appears after ``delay`` seconds (if bars are enabled) and is
+    removed by :meth:`close`.
+
+    Parameters
+    ----------
+    total : int
+        Number of steps.
+    desc : str
+        What is being done.
+    unit : str
+        Name of a step (``"sample"``).
+    delay : float
+        Seconds before a bar is shown.
+    every : int
+        Steps between two looks at the clock.
+    """
+
+    def __init__(self, total: int, desc: str, unit: str = "step", *, delay: float = 2.0,
+                 every: int = 64):
+        self.total, self.desc, self.unit = int(total), desc, unit
+        self.delay, self.every = delay, max(1, int(every))
+        self.on = is_enabled()
+        self.t0 = time.monotonic()
+        self.bar = None
+
+    def step(self, k: int) -> None:
+        """Step ``k`` (0-based) is done or under way."""
+        if not self.on or k % self.every:
+            return
+        if self.bar is None:
+            if time.monotonic() - self.t0 < self.delay:
+                return
+            self.bar = tqdm(total=self.total, initial=k, desc=self.desc, unit=self.unit,
+                            leave=False, dynamic_ncols=True, file=sys.stderr, mininterval=0.5)
+            return
+        self.bar.update(k - self.bar.n)
+
+    def close(self) -> None:
+        """Remove the bar (if one was shown)."""
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def __enter__(self) -> "LongPass":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

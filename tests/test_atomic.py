@@ -1,0 +1,134 @@
+"""Atomic outputs (bondgraph.core.atomic) and checkpoint fingerprints
+(bondgraph.inference.checkpoint), issue 13 items 2 and 3."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bondgraph.core import atomic
+from bondgraph.core.atomic import OutputFolder
+from bondgraph.errors import CheckpointError, OutputError
+from bondgraph.inference import checkpoint
+from bondgraph.inference.optimize import pso
+
+
+def _files(folder):
+    return {p.name: p.read_text() for p in folder.iterdir()}
+
+
+def test_write_text_replaces_and_leaves_no_temporary(tmp_path):
+    p = tmp_path / "a.txt"
+    atomic.write_text(p, "one")
+    atomic.write_text(p, "two")
+    assert p.read_text() == "two" and [q.name for q in tmp_path.iterdir()] == ["a.txt"]
+    with pytest.raises(OutputError, match="no_dir"):
+        atomic.write_text(tmp_path / "no_dir" / "b.txt", "x")
+
+
+def test_replace_file_keeps_the_old_file_when_the_writer_fails(tmp_path):
+    p = tmp_path / "c.npz"
+    atomic.replace_file(p, lambda tmp: np.savez(tmp, a=np.arange(3)))
+
+    def broken(tmp):
+        tmp.write_bytes(b"half")
+        raise RuntimeError("writer died")
+    with pytest.raises(RuntimeError, match="writer died"):
+        atomic.replace_file(p, broken)
+    assert list(np.load(p)["a"]) == [0, 1, 2]
+    assert [q.name for q in tmp_path.iterdir()] == ["c.npz"]
+
+
+def test_output_folder_refuses_a_non_empty_folder_or_a_file(tmp_path):
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "old.md").write_text("old")
+    with pytest.raises(OutputError, match=r"--out .*full is not empty \(it holds old.md\)"):
+        OutputFolder(tmp_path / "full")
+    (tmp_path / "f").write_text("")
+    with pytest.raises(OutputError, match="is a file"):
+        OutputFolder(tmp_path / "f", overwrite=True)
+    OutputFolder(tmp_path / "full", overwrite=True)           # allowed, nothing written yet
+    assert _files(tmp_path / "full") == {"old.md": "old"}
+    (tmp_path / "empty").mkdir()
+    OutputFolder(tmp_path / "empty")                           # an empty folder is fine
+
+
+@pytest.mark.parametrize("swap", ["exchange", "two renames"])
+def test_publish_replaces_the_folder_as_a_whole(tmp_path, monkeypatch, swap):
+    if swap == "two renames":
+        monkeypatch.setattr(atomic, "exchange", lambda a, b: False)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "augmented_model.py").write_text("previous run")
+    folder = OutputFolder(out, overwrite=True)
+    assert folder.publish(lambda d: (d / "report.json").write_text("v1")) == 2
+    assert _files(out) == {"report.json": "v1"}
+    folder.publish(lambda d: [(d / "report.md").write_text("m2"),
+                              (d / "report.json").write_text("v2")])
+    assert _files(out) == {"report.json": "v2", "report.md": "m2"}
+
+    def dies(d):
+        (d / "report.json").write_text("v3, half")
+        raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        folder.publish(dies)
+    assert _files(out) == {"report.json": "v2", "report.md": "m2"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"], "staging left behind"
+
+
+def test_stale_staging_of_a_dead_process_is_removed(tmp_path):
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True).stdout.strip()
+    stale = tmp_path / f".out.staging-{dead}-0"
+    stale.mkdir()
+    live = tmp_path / f".out.staging-{os.getpid()}-99"
+    live.mkdir()
+    OutputFolder(tmp_path / "out")
+    assert not stale.exists() and live.exists()
+
+
+def test_work_dir_is_beside_the_folder(tmp_path):
+    folder = OutputFolder(tmp_path / "out")
+    w = folder.work_dir(create=False)
+    assert w == tmp_path / ".out.work" and not w.exists()
+    assert folder.work_dir().is_dir()
+    folder.remove_work_dir()
+    assert not w.exists()
+
+
+def test_fingerprint_check_names_what_differs(tmp_path):
+    a = {"data (t, u, y arrays)": checkpoint.digest(np.arange(3.0)), "parameter list": "m, k"}
+    same = dict(a)
+    checkpoint.check(tmp_path / "ck.npz", checkpoint.encode(a), same)
+    b = {"data (t, u, y arrays)": checkpoint.digest(np.arange(3.0) + 1e-12),
+         "parameter list": "m, c"}
+    with pytest.raises(CheckpointError) as e:
+        checkpoint.check(tmp_path / "ck.npz", checkpoint.encode(a), b)
+    assert set(e.value.differs) == {"data (t, u, y arrays)", "parameter list"}
+    msg = str(e.value)
+    assert "ck.npz" in msg and "parameter list (checkpoint: m, k, now: m, c)" in msg
+    assert a["data (t, u, y arrays)"] not in msg                 # hashes are not shown
+    with pytest.raises(CheckpointError, match="no fingerprint"):
+        checkpoint.check(tmp_path / "ck.npz", None, b)
+
+
+def test_pso_resume_refuses_another_problem_and_continues_the_same(tmp_path):
+    ck = tmp_path / "ck.npz"
+
+    def f(X):
+        return np.sum((X - 0.3) ** 2, axis=1)
+    kw = dict(particles=6, seed=2, checkpoint=ck, progress=False)
+    full = pso(f, [-1.0] * 2, [1.0] * 2, iterations=6, **kw, fingerprint={"data": "A"})
+    pso(f, [-1.0] * 2, [1.0] * 2, iterations=3, **kw, fingerprint={"data": "A"})
+    with pytest.raises(CheckpointError, match="data"):
+        pso(f, [-1.0] * 2, [1.0] * 2, iterations=6, resume=True, **kw, fingerprint={"data": "B"})
+    with pytest.raises(CheckpointError):
+        pso(f, [-1.0] * 2, [2.0] * 2, iterations=6, resume=True, **kw, fingerprint={"data": "A"})
+    resumed = pso(f, [-1.0] * 2, [1.0] * 2, iterations=6, resume=True, **kw,
+                  fingerprint={"data": "A"})
+    np.testing.assert_array_equal(resumed.x, full.x)
+    assert resumed.fun == full.fun and resumed.resumed_from == 3

@@ -1,0 +1,118 @@
+"""What the report plots say (issue 13, item 8): readable evidence ticks, an
+'accepted' legend only when something was accepted, units on the
+innovation axes, and a failed augmented simulation stated on the plot."""
+
+from __future__ import annotations
+
+import copy
+import re
+from types import SimpleNamespace
+
+import matplotlib.figure
+import numpy as np
+import pytest
+
+from bondgraph.data.experiments import run_experiment
+from bondgraph.diagnose.loop import run_loop
+from bondgraph.inference.estimate import estimate
+from bondgraph.inference.options import FitOptions, UKFOptions
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.registry import build
+from bondgraph.report import loop_report
+from bondgraph.report.estimation import plot_fit
+
+
+@pytest.fixture
+def figures(monkeypatch):
+    """Every figure saved while the test runs."""
+    saved = []
+    original = matplotlib.figure.Figure.savefig
+
+    def keep(self, *args, **kw):
+        saved.append(self)
+        return original(self, *args, **kw)
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    return saved
+
+
+@pytest.fixture(scope="module")
+def record():
+    return run_experiment("msd_force_step").segment(0, 120, name="short")
+
+
+@pytest.fixture(scope="module")
+def loop_result(record):
+    """The loop on a record the declared model explains (nothing accepted)."""
+    return run_loop(build("mass_spring_damper"), record, ["m", "k", "c"], max_steps=1,
+                    structural=False, progress=False)
+
+
+def _texts(fig) -> list[str]:
+    return [t.get_text() for t in fig.findobj(matplotlib.text.Text)]
+
+
+def _evidence(result, out, figures):
+    figures.clear()
+    loop_report._plot_evidence(result, 1, result.rankings[0], out)
+    (fig,) = figures
+    return fig, fig.axes[0]
+
+
+def test_evidence_ticks_are_plain_numbers_and_nothing_accepted_is_said(loop_result, tmp_path,
+                                                                       figures):
+    assert not loop_result.steps and loop_result.rankings[0]
+    fig, ax = _evidence(loop_result, tmp_path, figures)
+    labels = [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
+    assert labels
+    for lab in labels:
+        assert "×" not in lab and "$" not in lab and "10^" not in lab, lab
+        float(lab.replace("−", "-"))                  # a plain number
+    title = ax.get_title()
+    assert "none accepted" in title and "green" not in title
+    colours = {tuple(np.round(p.get_facecolor()[:3], 3)) for p in ax.patches}
+    green = tuple(np.round(matplotlib.colors.to_rgb("tab:green"), 3))
+    assert green not in colours
+
+
+def test_evidence_title_names_the_accepted_effect(loop_result, tmp_path, figures):
+    res = copy.copy(loop_result)
+    top = res.rankings[0][0]
+    res.steps = [SimpleNamespace(effect=top.effect, attached_to=top.target.name)]
+    fig, ax = _evidence(res, tmp_path, figures)
+    assert ax.get_title().endswith(f"(green: accepted ({top.effect} @ {top.target.name}))")
+    green = matplotlib.colors.to_rgba("tab:green")
+    assert sum(np.allclose(p.get_facecolor(), green) for p in ax.patches) == 1
+
+
+def test_failed_augmented_simulation_is_stated_on_the_fit_plot(loop_result, tmp_path, figures):
+    res = copy.copy(loop_result)
+    top = res.rankings[0][0]
+    res.steps = [SimpleNamespace(effect=top.effect, attached_to=top.target.name)]
+    res.final = copy.copy(res.final)
+    res.final.sim_y = None                         # the augmented model's simulation failed
+    figures.clear()
+    loop_report._plot_fit(res, tmp_path)
+    (fig,) = figures
+    texts = " ".join(_texts(fig))
+    assert "free-run simulation of the augmented model failed" in texts
+    assert "augmented model: simulation failed" in fig._suptitle.get_text()
+    # the declared model's simulation is drawn, and no failure is claimed without one
+    figures.clear()
+    loop_report._plot_fit(loop_result, tmp_path)
+    assert not any("failed" in t for t in _texts(figures[0]))
+
+
+def test_innovation_axes_carry_units(record, tmp_path, figures):
+    model = Model.load("mass_spring_damper")
+    res = estimate(model, record, ["k"], ukf=UKFOptions(method="rk4"),
+                   fit=FitOptions(particles=4, iterations=1, polish=False, progress=False,
+                                  hessian=False, check_discretisation=False))
+    figures.clear()
+    paths = plot_fit(model, record, res, tmp_path)
+    assert [p.name for p in paths] == ["fit_outputs.png", "innovations.png"]
+    innovations = figures[1]
+    ylabels = [ax.get_ylabel() for ax in innovations.axes]
+    assert ylabels == ["ε x [m]", "ε v [m/s]"]
+    assert all(ax.get_xlabel() in ("", "t [s]") for ax in innovations.axes)
+    assert innovations.axes[-1].get_xlabel() == "t [s]"
+    assert re.fullmatch(r"x: \d+\.\d% within ±2σ", innovations.axes[0].get_title())
