@@ -74,7 +74,8 @@ from bondgraph.numerics.integrators import hold_inputs, make_step
 LOG_2PI = float(np.log(2.0 * np.pi))
 
 #: UKFOptions.jacobian -> where integrators.ros2 evaluates df/dx
-_ROS2_JACOBIAN = {"mean": "shared", "sigma": "once"}
+ROS2_JACOBIAN = {"mean": "shared", "sigma": "once"}
+_ROS2_JACOBIAN = ROS2_JACOBIAN
 
 
 # ---------------------------------------------------------------- result
