@@ -8,11 +8,20 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from bondgraph.cli.common import MODEL_HELP, add_quiet, parse_params
+from bondgraph.cli.common import (
+    MODEL_HELP,
+    add_discretisation,
+    add_fixed,
+    add_initial_state,
+    add_quiet,
+    parse_pairs,
+    parse_params,
+)
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.errors import ModelError
+from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.loop_report import LoopReporter
 
@@ -38,6 +47,16 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--significance", type=float, default=None)
     p.add_argument("--no-structural", action="store_true",
                    help="score only additive effects (faster)")
+    p.add_argument("--validate", default=None, metavar="FILE",
+                   help="held-out record (CSV): the accept decision and the report's error "
+                        "before/after use the free-run error on it")
+    p.add_argument("--metric-tolerance", type=float, default=None,
+                   help="accept an effect only if the error grows by at most this factor "
+                        "(default 1.0: it may not rise)")
+    add_fixed(p)
+    add_initial_state(p)
+    p.set_defaults(p0_rel=None)        # the loop's own P0 policy unless given
+    add_discretisation(p)
     add_quiet(p)
 
 
@@ -62,6 +81,8 @@ def run(args) -> int:
         record = case.record()
         params = parse_params(args.params) if args.params else case.params
         settings.update(case.settings)
+        if case.true_effect is not None:
+            settings["true_effect"] = case.true_effect
         name = case.name
     if args.metric:
         settings["metric"] = args.metric
@@ -72,12 +93,16 @@ def run(args) -> int:
         settings["significance"] = args.significance
     if args.no_structural:
         settings["structural"] = False
+    settings.update(numerics_settings(args, settings, graph))
     reporter = LoopReporter(args.out, echo=None if args.quiet else print)
     res = run_loop(graph, record, params, log=reporter.log, progress=not args.quiet,
                    on_update=reporter.update, **settings)
     print()
     print(f"{name}: {res.metric}")
     print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
+    if res.final.validation_metric is not None:
+        print(f"  on the validation record: before {res.initial.validation_metric:.4g}   "
+              f"after {res.final.validation_metric:.4g}")
     if res.steps:
         print(res.table())
     else:
@@ -85,3 +110,35 @@ def run(args) -> int:
     print(f"report: {Path(args.out) / 'report.md'} (and report.json, PNG plots, "
           f"augmented_model.py)")
     return 0
+
+
+def numerics_settings(args, settings: dict, graph) -> dict:
+    """Loop settings from the shared options: ``--fixed`` (over the case's),
+    ``--x0`` (by state name, over the record's initial state), ``--p0-rel``,
+    ``--method``/``--substeps``/``--hold`` (the case's UKF options otherwise
+    kept), ``--validate`` and ``--metric-tolerance``.
+
+    Raises
+    ------
+    OptionError
+        Malformed pairs; ModelError: a state the graph lacks.
+    """
+    out: dict = {}
+    fixed = parse_pairs(args.fixed, "--fixed")
+    if fixed:
+        out["fixed"] = {**settings.get("fixed", {}), **fixed}
+    x0 = parse_pairs(args.x0, "--x0")
+    if x0:
+        out["x0_overrides"] = x0
+    if args.p0_rel is not None:
+        out["p0_rel"] = float(args.p0_rel)
+    base = settings.get("ukf") or UKFOptions()
+    given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
+             if getattr(args, k) != {"method": "ros2", "substeps": 1, "hold": "zoh"}[k]}
+    if given:
+        out["ukf"] = UKFOptions(**{**base.to_dict(), **given})
+    if args.validate:
+        out["validation"] = Experiment.load(args.validate)
+    if args.metric_tolerance is not None:
+        out["metric_tolerance"] = float(args.metric_tolerance)
+    return out

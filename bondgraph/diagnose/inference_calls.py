@@ -16,9 +16,10 @@ import numpy as np
 
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
-from bondgraph.inference.fisher import fisher_scoring
+from bondgraph.inference.estimand import Estimand
+from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
-from bondgraph.inference.ukf import UKFResult, default_P0, ukf_nll
+from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
 
 
 def run_ukf(model, t, u, y, thetas: np.ndarray, x0, P0, settings: LoopSettings, *,
@@ -62,34 +63,42 @@ def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P
 
 
 def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, upper, x0, P0,
-               settings: LoopSettings, iterations: int, log_scale) -> tuple[np.ndarray, np.ndarray]:
+               settings: LoopSettings, iterations: int, log_scale,
+               tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray, bool, int]:
     """Maximum-likelihood fit by Levenberg-damped Fisher scoring
-    (:func:`bondgraph.inference.fisher.fisher_scoring`).
+    (:func:`bondgraph.inference.fisher.estimand_scoring`).
 
     Parameters
     ----------
     theta : array (n_theta,)
         Start; only the entries ``index`` (k) move, within [lower, upper].
     iterations : int
-        Scoring iterations.
+        Maximum scoring iterations.
     log_scale : array of bool (k,)
         Parameters moved in log θ (noise intensities).
+    tolerance : float
+        Stop when a full scoring step predicts less than this NLL decrease
+        [nats] (0: only the relative NLL change, 1e-6 (1 + |NLL|), stops).
 
     Returns
     -------
     theta : array (n_theta,)
     F : array (k, k)
         Fisher information at the result.
+    converged : bool
+        Stopped by a convergence criterion rather than by ``iterations``.
+    used : int
+        Iterations used.
 
     Raises
     ------
     FloatingPointError, numpy.linalg.LinAlgError
         When the scoring fails numerically (the caller falls back to L-BFGS-B).
     """
-    theta, _, F, _ = fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0,
-                                    options=settings.ukf, max_iter=iterations,
-                                    log_scale=log_scale)
-    return theta, F
+    est = Estimand(model, [model.params[j] for j in index], theta=theta, x0=x0)
+    r = estimand_scoring(model, t, u, y, est, lower, upper, P0, options=settings.ukf,
+                         max_iter=iterations, atol=tolerance, log_scale=log_scale)
+    return r.estimand.theta, r.F, r.converged, r.iterations
 
 
 def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:
@@ -111,7 +120,18 @@ def hessian_cramer_rao(crit: Criterion, x: np.ndarray, h: np.ndarray,
     return cramer_rao(H, names)
 
 
-def prior_covariance(model, x0: np.ndarray) -> np.ndarray:
-    """The default UKF prior covariance (n_x, n_x): 5 % of max(|x0|, 1)
-    (:func:`bondgraph.inference.ukf.default_P0`)."""
-    return default_P0(model, x0)
+def prior_covariance(model, x0: np.ndarray, rel: float | None = None) -> np.ndarray:
+    """The default UKF prior covariance (n_x, n_x): ``rel`` (default 5 %) of
+    max(|x0|, 1) (:func:`bondgraph.inference.ukf.default_P0`)."""
+    return default_P0(model, x0) if rel is None else default_P0(model, x0, float(rel))
+
+
+def discretisation(model, t, u, theta: np.ndarray, x0, settings: LoopSettings,
+                   substeps: int | None = None) -> dict:
+    """:func:`bondgraph.inference.ukf.discretisation_check` of the loop's
+    filter options (``substeps`` overriding theirs): ``one_step`` and
+    ``free_run`` (n_y,) in measurement-noise standard deviations."""
+    o = settings.ukf
+    return discretisation_check(model, t, u, theta, x0, method=o.method,
+                                substeps=o.substeps if substeps is None else substeps,
+                                hold=o.hold)

@@ -196,7 +196,7 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     if probe is None:
         return []
     deltas, nuis_delta = nudge_sizes(probe, fit, scales.dt)
-    eps0, S0, D, Dn = signature_runs(ctx, probe, deltas, nuis_delta)
+    eps0, S0, D, Dn, fails = signature_runs(ctx, probe, deltas, nuis_delta)
     J = signatures(eps0, D, Dn, deltas, nuis_delta)
     ew, Gw = whiten(eps0, S0, J)
     total = float(np.sum(ew**2))
@@ -206,7 +206,7 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     norm = np.sqrt(np.maximum(np.diag(A), 1e-300))
     An = A / np.outer(norm, norm)
     bn = b / norm
-    out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total)
+    out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total, fails)
     mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
     line_probe(ctx, probe, fit, out)
     return out
@@ -250,6 +250,9 @@ def signature_runs(ctx: Context, probe: Probe, deltas: np.ndarray, nuis_delta: l
         Innovations with each probe parameter nudged (NaN where the UKF failed).
     Dn : array (n_nuis, N, n_y)
         Innovations with each estimated parameter nudged.
+    fails : dict
+        Probe column -> the filter's failure reason, for the columns whose
+        nudged runs all failed (their candidates are reported as failed).
     """
     pm, base, t = probe.model, probe.base, probe.t
     sets = [base]
@@ -268,9 +271,13 @@ def signature_runs(ctx: Context, probe: Probe, deltas: np.ndarray, nuis_delta: l
     eps0 = S0 = None
     D = np.empty((len(LADDER), len(probe.cols)) + (t.size, pm.n_y))
     chunk = ctx.settings.chunk
+    reasons: dict = {}
     for a in range(0, len(sets), chunk):
         r = run_ukf(pm, t, probe.u, probe.y, sets[a:a + chunk], probe.x0, probe.P0,
                     ctx.settings, store=True)
+        for q in range(r.nll.size):
+            if 0 < a + q < n_lad and not np.isfinite(r.nll[q]):
+                reasons.setdefault((a + q - 1) // len(LADDER), []).append(str(r.reasons[q]))
         for q in range(r.nll.size):
             gi = a + q
             if gi == 0:
@@ -282,7 +289,8 @@ def signature_runs(ctx: Context, probe: Probe, deltas: np.ndarray, nuis_delta: l
                 continue
             c, l = divmod(gi - 1, len(LADDER))
             D[l, c] = r.innovations[:, q, :] if np.isfinite(r.nll[q]) else np.nan
-    return eps0, S0, D, Dn
+    fails = {c: why[0] for c, why in reasons.items() if len(why) == len(LADDER)}
+    return eps0, S0, D, Dn, fails
 
 
 def signatures(eps0, D, Dn, deltas, nuis_delta) -> np.ndarray:
@@ -332,10 +340,13 @@ def _explained(An: np.ndarray, bn: np.ndarray, norm: np.ndarray, cs: list):
     return float(bn[cs] @ sol), sol / norm[cs]
 
 
-def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float):
+def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float,
+                 fails: dict | None = None):
     """One :class:`Candidate` per (effect, target) of the probe columns: LM =
     energy explained with its columns minus that of the ``nn`` estimated
     parameters alone, χ²(k) p-value, one-step estimates β = −coefficients.
+    A candidate with a column in ``fails`` (column -> reason: its filter
+    runs failed) is reported as failed: NaN statistic, the reason named.
 
     Returns
     -------
@@ -350,6 +361,11 @@ def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float):
         groups.setdefault((col.effect, col.target), []).append(nn + c)
     for (ename, tgt), cs in groups.items():
         eff = get_effect(ename, ctx.settings.effects)
+        why = [fails[c - nn] for c in cs if fails and (c - nn) in fails]
+        if why:
+            col_of[(ename, tgt)] = cs
+            out.append(failed_candidate(eff, tgt, "score", len(cs), why[0]))
+            continue
         try:
             e_all, sol = _explained(An, bn, norm, base_cols + cs)
         except np.linalg.LinAlgError:
@@ -365,6 +381,15 @@ def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float):
         out.append(Candidate(ename, eff.title, tgt, "score", lm, k, float(chi2.sf(lm, k)),
                              lm - 2 * k, lm / total if total > 0 else None, values))
     return out, col_of
+
+
+def failed_candidate(eff, tgt, kind: str, dof: int, reason: str) -> Candidate:
+    """A candidate whose test could not be computed (the filter failed):
+    NaN statistic, p-value and score, and the reason."""
+    nan = float("nan")
+    return Candidate(eff.name, eff.title, tgt, kind, nan, dof, nan, nan, None, {},
+                     last_resort=getattr(eff, "last_resort", False),
+                     failed=f"the filter failed: {reason}")
 
 
 def mark_equivalent(cands, col_of, An, base_cols, tol: float = 0.999) -> None:
@@ -477,7 +502,8 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
     the effect's grid × :data:`NOISE_FACTORS` (current estimates held) in one
     batched UKF run; the best point gives LR = 2 (NLL₀ − NLL₁), χ²(k) with k
     the effect's estimated parameters. None (logged) if the effect cannot be
-    built there, or if the UKF fails everywhere."""
+    built there; a failed candidate (:func:`failed_candidate`) if the UKF
+    fails at every grid point."""
     try:
         g = fit.graph.copy(f"{fit.graph.name}__{eff.name}")
         grid = eff.grid(g, tgt, scales)
@@ -502,12 +528,12 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
     t, u, y = ctx.record.arrays(model)
     x0, P0 = prior(ctx, model)
     r = run_ukf(model, t, u, y, np.array(sets), x0, P0, ctx.settings)
+    k = sum(1 for p in eff.params if p.estimated)
     if not np.any(np.isfinite(r.nll)):
-        return None
+        return failed_candidate(eff, tgt, "likelihood ratio", k, str(r.reasons[0]))
     net = np.where(np.isfinite(r.nll), r.nll, np.inf)
     i = int(np.argmin(net))
     lr = max(0.0, 2 * (fit.nll - float(net[i])))
-    k = sum(1 for p in eff.params if p.estimated)
     return Candidate(eff.name, eff.title, tgt, "likelihood ratio", lr, k, float(chi2.sf(lr, k)),
                      lr - 2 * k, None, dict(grid_of[i]),
                      last_resort=getattr(eff, "last_resort", False))

@@ -40,6 +40,12 @@ class LoopSettings:
     x0, P0 : arrays, optional
         UKF prior (default: the record's true x0 if it has one, else the
         model's X0; :func:`bondgraph.inference.ukf.default_P0`).
+    x0_overrides : dict
+        Initial states by name (``--x0``) imposed on the prior mean of every
+        model that has them (over ``x0`` and the record's initial state).
+    p0_rel : float, optional
+        Prior std of each initial state relative to max(|x0|, 1) (``--p0-rel``;
+        default 0.05, :func:`bondgraph.inference.ukf.default_P0`).
     P0_std : dict
         Prior standard deviations of named initial states (e.g. the grade on
         a level track), overriding ``P0``'s diagonal.
@@ -54,12 +60,23 @@ class LoopSettings:
         passed on only by :mod:`bondgraph.diagnose.inference_calls`.
     sim_method : str
         Solver of the free-run simulations (:func:`bondgraph.numerics.simulate.simulate`).
-    fit_iterations, confirm_iterations : int
-        Fisher-scoring iterations of each warm-started re-estimation and of
-        each candidate's confirmation fit (L-BFGS-B if scoring fails).
+    fit_iterations : int
+        Fisher-scoring iterations of each warm-started re-estimation
+        (L-BFGS-B if scoring fails).
+    confirm_iterations : int
+        Maximum Fisher-scoring iterations of a candidate's confirmation fit;
+        it stops earlier at convergence (``confirm_tolerance``).
+    confirm_tolerance : float
+        Convergence of a confirmation fit [nats]: the predicted NLL decrease
+        of a full scoring step, or the last step's decrease relative to
+        1 + |NLL| times 1e-3 of it, below this.
     metric_tolerance : float
-        Reject an effect whose reported error grows by more than this factor
-        (default: no limit; acceptance rests on the criterion and whiteness).
+        Reject an effect whose error (on ``validation`` if given, else the
+        free-run error on the record) grows by more than this factor
+        (default 1.0: the error may not rise).
+    validation : Experiment, optional
+        A held-out record: the accept decision compares the free-run error on
+        it (the filter's first state on it starts the free run).
     structural_threshold : float
         Skip the (slow) structural candidates when an additive effect already
         explains more than this share of the innovation energy.
@@ -67,6 +84,9 @@ class LoopSettings:
         Parameter sets per batched UKF run.
     metric_name : str, optional
         Name of the metric in logs and reports (default: derived from ``metric``).
+    true_effect : TrueEffect or (kind, target), optional
+        A synthetic record's true effect: the result records its rank at
+        every step (:func:`bondgraph.diagnose.result.rank_of`).
     """
 
     params: list[str]
@@ -79,21 +99,31 @@ class LoopSettings:
     effects: Sequence[Effect] = DEFAULT_EFFECTS
     x0: Any = None
     P0: Any = None
+    x0_overrides: dict = field(default_factory=dict)
+    p0_rel: float | None = None
     P0_std: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
     initial_params: list | None = None
     ukf: UKFOptions = field(default_factory=UKFOptions)
     sim_method: str = "BDF"
     fit_iterations: int = 10
-    confirm_iterations: int = 6
-    metric_tolerance: float = float("inf")
+    confirm_iterations: int = 40
+    confirm_tolerance: float = 1e-2
+    metric_tolerance: float = 1.0
+    validation: Any = None
     structural_threshold: float = 0.5
     chunk: int = 48
     metric_name: str | None = None
+    true_effect: Any = None
 
     def summary(self) -> dict:
         """The settings a report records: estimated parameters, step limit,
         significance level, UKF options, names of the effect library."""
         return {"params": self.params, "max_steps": self.max_steps,
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
+                "metric_tolerance": self.metric_tolerance,
+                "confirm_iterations": self.confirm_iterations,
+                "confirm_tolerance": self.confirm_tolerance,
+                "validation": getattr(self.validation, "name", None)
+                if self.validation is not None else None,
                 "effects": [e.name for e in self.effects]}

@@ -206,7 +206,7 @@ def _plot_evidence(result: LoopResult, k: int, ranking, out: Path) -> str:
     plt = pyplot()
     top = ranking[:15][::-1]
     fig, ax = plt.subplots(figsize=(9, 0.32 * len(top) + 1.2))
-    vals = [max(c.score, -5) for c in top]
+    vals = [max(c.score, -5) if not c.failed else 0.0 for c in top]
     cols = ["tab:green" if any(s.effect == c.effect and s.attached_to == c.target.name
                                for s in result.steps) else "tab:gray" for c in top]
     ax.barh([c.label for c in top], vals, color=cols)
@@ -275,6 +275,9 @@ def _md_ranking(k: int, ranking) -> list[str]:
     for c in ranking[:10]:
         ex = f"{100 * c.explained:.1f} %" if c.explained is not None else "-"
         eq = ", ".join(c.equivalent) if c.equivalent else ""
+        if c.failed:
+            L.append(f"| {c.label} | {c.kind} | failed | {c.dof} | - | - | {c.failed} |")
+            continue
         L.append(f"| {c.label} | {c.kind} | {c.statistic:.1f} | {c.dof} | {c.p_value:.2g} "
                  f"| {ex} | {eq} |")
     L.append("")

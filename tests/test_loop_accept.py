@@ -1,0 +1,213 @@
+"""The loop's honest accept rule, boxes, failed tests and the failed-fit stop
+(issue 11), against hand-derived numbers."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from bondgraph.catalog.reference import mass_spring_damper
+from bondgraph.data.records import Experiment
+from bondgraph.diagnose.accept import confirmed_record, decide
+from bondgraph.diagnose.confirm import start_values
+from bondgraph.diagnose.effects import Target, get_effect
+from bondgraph.diagnose.fit import Context, Fit, Record, bounds_around, clip_into_box, on_bound
+from bondgraph.diagnose.loop import run_loop
+from bondgraph.diagnose.residuals import ResidualReport
+from bondgraph.diagnose.result import Candidate
+from bondgraph.diagnose.runner import check_declared_fit
+from bondgraph.diagnose.scoring import failed_candidate
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import DeclaredFitError
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
+
+
+def _fit(nll, k, whiteness, metric, n_obs=100, validation=None):
+    rep = ResidualReport([], [], 1.0, 1.0, (0.9, 1.1), whiteness, {"whiteness_dof": 20.0})
+    f = Fit(None, None, [f"p{i}" for i in range(k)], np.zeros(k), nll, None, rep, metric,
+            None, n_obs=n_obs)
+    f.validation_metric = validation
+    return f
+
+
+def test_whiteness_never_vetoes_an_effect_whose_aic_and_error_fall():
+    """Issue 11: sensor_gain with AIC −1550 and the error 15× lower was
+    rejected because whiteness rose. Now it is accepted."""
+    s = LoopSettings(params=[])
+    cur = _fit(-1000.0, 2, 100.0, 1.5)
+    d = decide(cur, _fit(-1775.0, 3, 900.0, 0.1), s)
+    assert d.accepted and d.reason is None
+    assert d.criterion_before - d.criterion_after == pytest.approx(1548.0)
+    assert d.lr == pytest.approx(1550.0)
+
+
+def test_the_error_may_not_rise_by_default_and_validation_decides():
+    """Issue 11: sensor_offset then sensor_rectification accepted while the
+    error went 1.41 -> 1.55 -> 2.82. Default tolerance 1.0."""
+    s = LoopSettings(params=[])
+    assert s.metric_tolerance == 1.0
+    cur = _fit(-1000.0, 2, 100.0, 1.41)
+    d = decide(cur, _fit(-1100.0, 3, 50.0, 1.55), s)
+    assert (d.accepted, d.reason) == (False, "the error grew (1.41 -> 1.55)")
+    # with a validation record its error decides, not the record's
+    cur_v = _fit(-1000.0, 2, 100.0, 1.41, validation=0.80)
+    d = decide(cur_v, _fit(-1100.0, 3, 50.0, 1.00, validation=0.81), s)
+    assert (d.accepted, d.reason) == (False, "the error grew on the validation record "
+                                             "(0.8 -> 0.81)")
+    d = decide(cur_v, _fit(-1100.0, 3, 50.0, 1.55, validation=0.79), s)
+    assert d.accepted and (d.error_before, d.error_after) == (0.80, 0.79)
+    # a non-finite refit is never accepted (negative mass: error inf)
+    d = decide(cur, _fit(-1100.0, 3, 50.0, math.inf), s)
+    assert not d.accepted and d.reason.startswith("the refit is not finite")
+
+
+def test_confirmed_record_keeps_the_refit_numbers():
+    s = LoopSettings(params=[])
+    cur, aft = _fit(-100.0, 2, 50.0, 1.0), _fit(-110.0, 3, 70.0, 0.5)
+    aft.converged, aft.iterations = True, 7
+    d = decide(cur, aft, s)
+    rec = confirmed_record(cur, aft, 1, {"lam": 0.9}, s, d)
+    assert rec["lr"] == 20.0 and rec["p_value"] == pytest.approx(chi2.sf(20.0, 1))
+    assert rec["criterion"] == pytest.approx(2 * -110.0 + 6)
+    assert (rec["error"], rec["whiteness"], rec["values"]) == (0.5, 70.0, {"lam": 0.9})
+    assert (rec["converged"], rec["iterations"], rec["accepted"]) == (True, 7, True)
+
+
+def test_score_test_start_is_clipped_into_the_declared_box():
+    """Issue 11: λ = 1159 from the score test for λ ∈ [0, 1]."""
+    eff = get_effect("sensor_rectification")
+    lam = [p for p in eff.params if p.name == "lam"][0]
+    assert tuple(lam.bounds) == (0.0, 1.0)
+    cand = Candidate("sensor_rectification", "", Target("sensor", "y"), "score", 50.0, 1,
+                     1e-12, 48.0, None, {"lam": 1159.0})
+    assert start_values(eff, cand)["lam"] == 1.0
+    cand.values["lam"] = -3.0
+    assert start_values(eff, cand)["lam"] == 0.0
+
+
+def test_boxes_are_never_widened_and_bounds_flagged():
+    m = Model.load("mass_spring_damper")
+    th = m.theta0.copy()
+    j = m.param_index("k")
+    lo, hi = m.bounds(["k"])
+    th[j] = hi[0] * 10
+    lo2, hi2 = bounds_around(m, ["k"], th)
+    assert (lo2[0], hi2[0]) == (lo[0], hi[0])
+    logs = []
+    ctx = Context(Record(None), LoopSettings(params=["k"]), logs.append)
+    th2 = clip_into_box(ctx, m, ["k"], th, "test")
+    assert th2[j] == hi[0] and "outside its box" in logs[0]
+    assert on_bound(m, ["k", "m"], th2) == ["k"]
+    th2[j] = hi[0] - 1e-3 * (hi[0] - lo[0])
+    assert on_bound(m, ["k"], th2) == []
+
+
+def test_failed_score_test_is_reported_failed_not_zero():
+    eff = get_effect("sensor_offset")
+    c = failed_candidate(eff, Target("sensor", "x"), "score", 1,
+                         "posterior covariance P not positive definite")
+    ok = Candidate("coulomb", "", Target("junction", "v"), "score", 0.0, 1, 1.0, -2.0)
+    assert sorted([c, ok], key=lambda z: z.rank_key) == [ok, c]
+    d = c.to_dict()
+    assert d["statistic"] is None and d["p_value"] is None
+    assert d["failed"] == "the filter failed: posterior covariance P not positive definite"
+
+
+def _msd_record(seed=0, n=400, dt=0.01):
+    m = Model.load("mass_spring_damper")
+    t = np.arange(n) * dt
+    u = np.repeat(np.random.default_rng(seed).normal(0.0, 20.0, n // 20), 20)[:, None]
+    th = m.theta(m=2.0, k=50.0, c=1.5)
+    y = simulate(m, t, u, np.zeros(2), th, rtol=1e-9, atol=1e-12).y
+    y = y + np.random.default_rng(seed + 1).normal(size=y.shape) * m.meas_std(th)
+    return Experiment.from_arrays(t, model=m, u=u, y=y, name="msd")
+
+
+def test_negative_mass_stops_the_loop_with_a_typed_error():
+    """Issue 11: with a negative mass the loop accepted three effects while
+    the error went to inf, and exited 0. With m = -2 the spring makes
+    q'' = +25 q: over 100 s the free run overflows (e^500)."""
+    g = mass_spring_damper()
+    with pytest.raises(DeclaredFitError, match="free-run error = inf"):
+        run_loop(g, _msd_record(n=2000, dt=0.05), ["c"], log=lambda s: None, progress=False,
+                 fixed={"m": -2.0}, max_steps=1, structural=False)
+    f = _fit(-1.0, 1, 1.0, math.inf)
+    with pytest.raises(DeclaredFitError):
+        check_declared_fit(f)
+    f.metric, f.validation_metric = 1.0, float("nan")
+    with pytest.raises(DeclaredFitError, match="validation error = nan"):
+        check_declared_fit(f)
+    f.validation_metric = 0.5
+    check_declared_fit(f)
+
+
+MYMOD = '''
+from bondgraph.catalog.reference import mass_spring_damper
+
+
+def build():
+    g = mass_spring_damper()
+    g.name = "my_msd"
+    return g
+'''
+
+
+def test_loop_cli_numerics_validation_and_module_spec(tmp_path, monkeypatch):
+    """`bondgraph loop --model mymod:build` with mymod.py in the current
+    directory, --fixed, --x0, --method/--substeps/--hold and --validate: the
+    settings reach the report, and the validation errors are reported."""
+    from bondgraph.cli.main import main
+    import json
+
+    _msd_record(seed=0).save(tmp_path / "est.csv")
+    _msd_record(seed=7).save(tmp_path / "val.csv")
+    (tmp_path / "mymod.py").write_text(MYMOD)
+    monkeypatch.chdir(tmp_path)
+    rc = main(["loop", "--model", "mymod:build", "--data", "est.csv", "--validate", "val.csv",
+               "--params", "c,k", "--fixed", "m=2.0", "--x0", "p_mass=0.0",
+               "--method", "rk4", "--substeps", "2", "--hold", "linear",
+               "--max-steps", "1", "--no-structural", "--out", "rep", "--quiet"])
+    assert rc == 0
+    rep = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert rep["settings"]["ukf"]["method"] == "rk4"
+    assert rep["settings"]["ukf"]["substeps"] == 2 and rep["settings"]["ukf"]["hold"] == "linear"
+    assert rep["settings"]["validation"] == "msd"
+    v0 = rep["validation_error_before"]
+    assert v0 is not None and 0 < v0 < 0.2      # the declared model is the truth
+    assert rep["initial_fit"]["estimates"]["k"] == pytest.approx(50.0, rel=0.05)
+    # nothing is missing: no effect may be accepted
+    assert rep["steps"] == []
+    # a negative mass: the typed error gives exit code 1
+    _msd_record(n=2000, dt=0.05).save(tmp_path / "long.csv")
+    assert main(["loop", "--model", "mymod:build", "--data", "long.csv", "--params", "c",
+                 "--fixed", "m=-2", "--max-steps", "1", "--no-structural", "--out", "rep2",
+                 "--quiet"]) == 1
+
+
+def test_true_effect_and_rank_of_truth():
+    from bondgraph.diagnose.cases import LoopCase, TrueEffect
+    from bondgraph.diagnose.result import rank_of
+
+    case = LoopCase("c", "", lambda: None, lambda: None, [], {}, ("coulomb", "v"))
+    assert isinstance(case.true_effect, TrueEffect)
+    kind, target = case.true_effect
+    assert (kind, target, case.true_effect.values) == ("coulomb", "v", {})
+    te = TrueEffect("actuator_saturation", "engine", {"level": 270.0})
+    assert te.to_dict() == {"kind": "actuator_saturation", "target": "engine",
+                            "values": {"level": 270.0}}
+
+    def cand(effect, target, score, eq=()):
+        c = Candidate(effect, "", Target("junction", target), "score", score + 2, 1, 0.0,
+                      score)
+        c.equivalent = list(eq)
+        return c
+
+    ranking = [cand("viscous", "v", 50.0, ["quadratic_drag @ v"]),
+               cand("quadratic_drag", "v", 49.0, ["viscous @ v"]),
+               cand("coulomb", "v", 10.0), cand("sensor_offset", "x", 1.0)]
+    assert rank_of(ranking, "quadratic_drag", "v") == 1      # one group, one place
+    assert rank_of(ranking, "coulomb", "v") == 2
+    assert rank_of(ranking, "sensor_offset", "x") == 3
+    assert rank_of(ranking, "dead_zone", "v") is None
