@@ -63,7 +63,7 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
         ctx.log(f"  cannot apply {cand.label}: {str(exc).splitlines()[0]}")
         return None
     new = [P[p.name].name for p in eff.params if p.estimated and p.name in P]
-    start = dict(fit.estimates())
+    start = {**fit.estimates(), **cand.profile}
     for n in fit.model.params:
         start.setdefault(n, float(fit.theta[fit.model.param_index(n)]))
     widen_boxes(eff, P)

@@ -45,6 +45,10 @@ class Candidate:
         Candidates whose innovation signatures are indistinguishable from this
         one in this record (|correlation| > 0.999 with the estimated
         parameters partialled out): the data cannot tell them apart.
+    profile : dict
+        Declared parameters re-fitted together with a structural candidate
+        when it was scored (name -> value; empty if they stayed frozen); its
+        confirmation starts from them.
     failed : str or None
         Why the candidate could not be scored (the filter failed: its reason);
         its statistic, p-value and score are then NaN, never a χ² of 0.
@@ -70,6 +74,7 @@ class Candidate:
     equivalent: list = field(default_factory=list)
     failed: str | None = None
     confirmed: dict | None = None
+    profile: dict = field(default_factory=dict)
 
     @property
     def rank_key(self) -> float:

@@ -46,7 +46,7 @@ from bondgraph.core.elements import C, One, Source
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
 from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, prior
-from bondgraph.diagnose.inference_calls import run_ukf
+from bondgraph.diagnose.inference_calls import fisher_fit, run_ukf
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError
 from bondgraph.numerics.model import Model
@@ -497,11 +497,49 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Ca
     return out
 
 
+def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta: np.ndarray,
+                     nll: float) -> tuple[float, np.ndarray] | None:
+    """A few Fisher-scoring steps (``settings.structural_refit``) over the
+    declared estimated parameters together with the effect's ``new`` ones,
+    from the best grid point ``theta`` (n_theta,), all inside their declared
+    boxes: the declared fit may have moved a parameter to compensate for the
+    missing effect (a peak torque lowered for a saturation), which a score
+    with the declared parameters frozen cannot undo.
+
+    Returns
+    -------
+    (nll, theta) or None
+        The profiled point when it improves on ``nll``; None when it does not,
+        when ``structural_refit`` is 0, or when the scoring fails.
+    """
+    iters = int(ctx.settings.structural_refit)
+    names = [n for n in fit.params if n in model.params] + list(new)
+    if iters <= 0 or not names:
+        return None
+    t, u, y = ctx.record.arrays(model)
+    x0, P0 = prior(ctx, model)
+    lo, hi = model.bounds(names)
+    idx = [model.param_index(n) for n in names]
+    th = theta.copy()
+    th[idx] = np.clip(th[idx], lo, hi)
+    noise = noise_params(fit.graph)
+    scale = np.array([n in noise and lo[j] > 0 for j, n in enumerate(names)])
+    try:
+        th, _, _, _ = fisher_fit(model, t, u, y, th, idx, lo, hi, x0, P0, ctx.settings, iters,
+                                 scale)
+    except (FloatingPointError, np.linalg.LinAlgError):
+        return None
+    f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])
+    return (f, th) if np.isfinite(f) and f < nll else None
+
+
 def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Candidate | None:
     """Build ``fit``'s graph plus ``eff`` at ``tgt`` and evaluate the NLL over
     the effect's grid × :data:`NOISE_FACTORS` (current estimates held) in one
-    batched UKF run; the best point gives LR = 2 (NLL₀ − NLL₁), χ²(k) with k
-    the effect's estimated parameters. None (logged) if the effect cannot be
+    batched UKF run; from the best point a few scoring steps over the
+    declared and the effect's parameters (:func:`profile_declared`); the
+    result gives LR = 2 (NLL₀ − NLL₁), χ²(k) with k the effect's estimated
+    parameters. None (logged) if the effect cannot be
     built there; a failed candidate (:func:`failed_candidate`) if the UKF
     fails at every grid point."""
     try:
@@ -533,7 +571,14 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
         return failed_candidate(eff, tgt, "likelihood ratio", k, str(r.reasons[0]))
     net = np.where(np.isfinite(r.nll), r.nll, np.inf)
     i = int(np.argmin(net))
-    lr = max(0.0, 2 * (fit.nll - float(net[i])))
+    best, values, declared = float(net[i]), dict(grid_of[i]), {}
+    new = {p.name: P[p.name].name for p in eff.params if p.estimated and p.name in P}
+    prof = profile_declared(ctx, fit, model, list(new.values()), np.array(sets[i]), best)
+    if prof is not None:
+        best, th = prof
+        values.update({k: float(th[model.param_index(n)]) for k, n in new.items()})
+        declared = {n: float(th[model.param_index(n)]) for n in fit.params if n in model.params}
+    lr = max(0.0, 2 * (fit.nll - best))
     return Candidate(eff.name, eff.title, tgt, "likelihood ratio", lr, k, float(chi2.sf(lr, k)),
-                     lr - 2 * k, None, dict(grid_of[i]),
-                     last_resort=getattr(eff, "last_resort", False))
+                     lr - 2 * k, None, values,
+                     last_resort=getattr(eff, "last_resort", False), profile=declared)

@@ -77,6 +77,10 @@ class LoopSettings:
     validation : Experiment, optional
         A held-out record: the accept decision compares the free-run error on
         it (the filter's first state on it starts the free run).
+    structural_refit : int
+        Fisher-scoring iterations over the declared estimated parameters
+        together with a structural candidate's own, from its best grid point,
+        when it is scored (0: the declared parameters stay frozen).
     structural_threshold : float
         Skip the (slow) structural candidates when an additive effect already
         explains more than this share of the innovation energy.
@@ -112,6 +116,7 @@ class LoopSettings:
     metric_tolerance: float = 1.0
     validation: Any = None
     structural_threshold: float = 0.5
+    structural_refit: int = 2
     chunk: int = 48
     metric_name: str | None = None
     true_effect: Any = None
