@@ -268,3 +268,54 @@ def test_structural_score_refits_the_declared_parameters():
     tt, u, y = ctx.record.arrays(m)
     nll = ukf_nll(m, tt, u, y, th[None], x0, P0, options=ctx.settings.ukf).nll[0]
     assert prof.statistic == pytest.approx(2 * (fit.nll - nll), rel=1e-9)
+
+
+MYFX = '''
+from bondgraph.diagnose.effects import SensorOffset
+
+
+class MyOffset(SensorOffset):
+    name = "my_offset"
+    title = "a user-supplied sensor offset"
+'''
+
+
+def test_augmented_model_rebuilds_in_memory_graph_with_user_effect(tmp_path, monkeypatch):
+    """Issue 11: for a graph built in memory `_declared = None` and a
+    user-supplied effect gave `unknown effect`. The written file rebuilds
+    both (the graph from its pickle, the effect from its module:Class)."""
+    import importlib.util
+    import sys
+
+    from bondgraph.core.equations import derive
+    from bondgraph.diagnose.cases import synthesize
+    from bondgraph.diagnose.effects import apply_effect
+    from bondgraph.report.loop_report import LoopReporter
+
+    (tmp_path / "myfx.py").write_text(MYFX)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from myfx import MyOffset
+
+    declared, truth = mass_spring_damper(), mass_spring_damper()
+    declared.source = None
+    truth.name = "truth"
+    apply_effect(truth, "sensor_offset", ("sensor", "x"), {"b": 0.05})
+    levels = np.random.default_rng(0).normal(0, 20, 20)
+    t = np.arange(400) * 0.01
+    exp = synthesize(truth, declared, t,
+                     {"F": lambda tt: levels[np.minimum((np.asarray(tt) / 0.2).astype(int), 19)]},
+                     {}, {"m": 2.0, "k": 50.0, "c": 1.5}, 5, "offset", "")
+    rep = LoopReporter(tmp_path / "r")
+    res = run_loop(declared, exp, ["m", "k", "c"], log=rep.log, on_update=rep.update,
+                   progress=False, effects=[MyOffset()], structural=False, max_steps=1)
+    assert [(a.effect, a.spec) for a in res.applied] == [("my_offset", "myfx:MyOffset")]
+    assert res.applied[0].values["b"] == pytest.approx(0.05, abs=0.002)
+    spec = importlib.util.spec_from_file_location("aug", tmp_path / "r" / "augmented_model.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    g = mod.build()
+    assert sys.modules["myfx"].MyOffset is MyOffset
+    name = [p for p in g.params if p.startswith("my_offset")][0]
+    assert g.params[name].default == pytest.approx(mod.ESTIMATES[name])
+    assert len(derive(g).states) == 2

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from bondgraph.diagnose.effects import Effect
+from bondgraph.diagnose.effects import BY_NAME, Effect
 from bondgraph.diagnose.fit import Fit
 from bondgraph.diagnose.result import AppliedEffect, Candidate, Rejection, Step
 from bondgraph.diagnose.settings import LoopSettings
@@ -103,11 +103,15 @@ def accepted_step(cand: Candidate, d: Decision, current: Fit, after: Fit, names:
 
 def applied_effect(eff: Effect, cand: Candidate, after: Fit) -> AppliedEffect:
     """The accepted effect with its fitted values by local name, as the
-    augmented model file re-applies it."""
+    augmented model file re-applies it (with the ``module:Class`` of a
+    user-supplied effect)."""
     names = {p.name: eff.pname(cand.target, p.name) for p in eff.params}
+    own = BY_NAME.get(eff.name)
+    spec = None if own is not None and type(own) is type(eff) else \
+        f"{type(eff).__module__}:{type(eff).__qualname__}"
     return AppliedEffect(cand.effect, cand.target,
                          {p: float(after.theta[after.model.param_index(n)])
-                          for p, n in names.items() if n in after.model.params})
+                          for p, n in names.items() if n in after.model.params}, spec)
 
 
 def rejection(step: int, cand: Candidate, d: Decision) -> Rejection:

@@ -147,11 +147,14 @@ class Rejection:
 
 @dataclass
 class AppliedEffect:
-    """An accepted effect as the augmented model file re-applies it."""
+    """An accepted effect as the augmented model file re-applies it;
+    ``spec`` is ``module:Class`` of a user-supplied effect (None for the
+    library's own effects, found by name)."""
 
     effect: str
     target: Target
     values: dict
+    spec: str | None = None
 
 
 @dataclass
@@ -243,6 +246,9 @@ class LoopResult:
         The synthetic truth's effect (kind, target, values), if known.
     truth_ranks : list of (int or None)
         Rank of the true effect in every step's ranking (:func:`rank_of`).
+    declared_graph : BondGraph or None
+        A copy of the declared graph (the augmented model file rebuilds it
+        from a pickle when the graph has no ``module:function`` source).
     """
 
     model: str
@@ -266,6 +272,7 @@ class LoopResult:
     warnings: list[str] = field(default_factory=list)
     true_effect: dict | None = None
     truth_ranks: list = field(default_factory=list)
+    declared_graph: BondGraph | None = None
 
     def table(self) -> str:
         """Markdown table of the accepted steps (error = :attr:`metric`)."""

@@ -93,6 +93,7 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     initial = initial_fit(ctx, graph)
     result = LoopResult(graph.name, graph.source, ctx.record.name, metric_name(s), s.criterion,
                         s.summary())
+    result.declared_graph = graph.copy(graph.name)
     te = s.true_effect
     if te is not None:
         result.true_effect = (te.to_dict() if hasattr(te, "to_dict")

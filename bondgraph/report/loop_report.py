@@ -12,6 +12,7 @@ initial and final fits, and the residual analyses.
 from __future__ import annotations
 
 import json
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -70,30 +71,53 @@ def write(result: LoopResult, out) -> None:
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
     if result.applied:
         (out / "augmented_model.py").write_text(augmented_source(result))
+        if not (result.source and ":" in result.source) and result.declared_graph is not None:
+            (out / DECLARED_PICKLE).write_bytes(pickle.dumps(result.declared_graph))
         _write_generated(result, out)
     pngs = _plots(result, out)
     (out / "report.md").write_text(markdown(result, pngs))
 
 
+#: pickle of the declared graph next to augmented_model.py, for a graph
+#: passed in memory (no module:function source)
+DECLARED_PICKLE = "declared_graph.pkl"
+
+
+def declared_import(source: str | None) -> list[str]:
+    """Lines of ``augmented_model.py`` that define ``_declared``: the
+    builder named by ``source`` (``module:function``, or ``file.py:function``
+    made absolute) through :func:`bondgraph.core.plugins.resolve`, else the
+    pickled declared graph (:data:`DECLARED_PICKLE`) beside the file."""
+    if source and ":" in source:
+        mod, fn = source.rsplit(":", 1)
+        if mod.endswith(".py") or "/" in mod:
+            mod = str(Path(mod).resolve())
+        return [f"_declared = resolve({f'{mod}:{fn}'!r})"]
+    return ["# the declared graph was passed in memory: rebuilt from its pickle",
+            "def _declared():",
+            f"    with open(Path(__file__).with_name({DECLARED_PICKLE!r}), 'rb') as fh:",
+            "        return pickle.load(fh)"]
+
+
 def augmented_source(result: LoopResult) -> str:
     """Source of ``augmented_model.py``: a declared model whose ``build()``
-    rebuilds the user's graph (imported from ``result.source``) and applies
-    the accepted effects in order with their values, then the final
-    estimates (``ESTIMATES``) as defaults."""
-    src = result.source
+    rebuilds the user's graph (:func:`declared_import`) and applies the
+    accepted effects in order with their values (a user-supplied effect by
+    its recorded ``module:Class``), then the final estimates
+    (``ESTIMATES``) as defaults."""
     lines = [f'"""Augmented declared model written by `bondgraph loop`.',
              "",
              f"It rebuilds the declared model '{result.model}' unchanged and adds the",
              "effects the loop accepted, in order, with their estimated values. The declared",
              'model\'s own source is not modified."""',
              "",
-             "from bondgraph.diagnose.effects import Target, apply_effect"]
-    if src and ":" in src:
-        mod, fn = src.split(":", 1)
-        lines.append(f"from {mod} import {fn} as _declared")
-    else:
-        lines.append("# the declared graph was passed in memory: set _declared to its builder")
-        lines.append("_declared = None")
+             "import pickle",
+             "from pathlib import Path",
+             "",
+             "from bondgraph.core.plugins import resolve",
+             "from bondgraph.diagnose.effects import Target, apply_effect",
+             "", ""]
+    lines += declared_import(result.source)
     lines += ["", "", "def build():",
               f'    """{result.model} + ' +
               " + ".join(f"{a.effect} @ {a.target.name}" for a in result.applied) + '."""',
@@ -101,7 +125,8 @@ def augmented_source(result: LoopResult) -> str:
               f"    g.name = {_augmented_name(result)!r}"]
     for a in result.applied:
         vals = {k: float(v) for k, v in a.values.items()}
-        lines.append(f"    apply_effect(g, {a.effect!r}, Target({a.target.kind!r}, "
+        eff = repr(a.effect) if a.spec is None else f"resolve({a.spec!r})()"
+        lines.append(f"    apply_effect(g, {eff}, Target({a.target.kind!r}, "
                      f"{a.target.name!r}), {vals!r})")
     lines += ["    for name, value in ESTIMATES.items():",
               "        g.params[name].default = value",
