@@ -58,3 +58,31 @@ def test_output_error_fit_errors(record):
         output_error_fit(m, t, u, y[:, :1], ["m"])
     with pytest.raises(ModelError, match="outside its box"):
         output_error_fit(m, t, u, y, ["m"], theta=m.theta(m=1e9, k=80.0, c=2.0))
+
+
+def test_estimate_cli_fit_sim(record, tmp_path):
+    """`bondgraph estimate --fit sim --estimate-x0 p_mass` writes the same
+    numbers as output_error_fit called directly."""
+    import json
+
+    from bondgraph.cli.main import main
+    from bondgraph.data.records import Experiment
+
+    m, t, u, y, truth, x0 = record
+    Experiment.from_arrays(t, model=m, u=u, y=y, name="msd",
+                           meta={"x0": {"p_mass": 0.0, "q_spring": 0.01}}).save(
+        tmp_path / "msd.csv")
+    rc = main(["estimate", "--model", "mass_spring_damper", "--data", str(tmp_path / "msd.csv"),
+               "--params", "k,c", "--fit", "sim", "--estimate-x0", "p_mass", "--hold", "zoh",
+               "--fixed", "m=2.5", "--out", str(tmp_path / "o"), "--quiet"])
+    assert rc == 0
+    d = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert d["names"] == ["k", "c", "x0.p_mass"] and d["fit"] == "sim"
+    th = m.theta0.copy()
+    th[m.param_index("m")] = 2.5
+    r = output_error_fit(m, t, u, y, ["k", "c"], theta=th, x0=np.array([0.0, 0.01]),
+                         x0_states=["p_mass"], hold="zoh")
+    for n, v in r.estimates().items():
+        assert d["estimates"][n] == pytest.approx(v, rel=1e-9)
+    assert d["estimates"]["k"] == pytest.approx(80.0, rel=0.01)
+    assert d["estimates"]["x0.p_mass"] == pytest.approx(0.3, abs=0.03)
