@@ -319,3 +319,40 @@ def test_augmented_model_rebuilds_in_memory_graph_with_user_effect(tmp_path, mon
     name = [p for p in g.params if p.startswith("my_offset")][0]
     assert g.params[name].default == pytest.approx(mod.ESTIMATES[name])
     assert len(derive(g).states) == 2
+
+
+def test_score_groups_reports_failed_columns():
+    """A candidate whose nudged filter runs all failed is reported failed
+    with the reason; the others get their LM statistic (hand computed: one
+    column orthogonal to the nuisance column explains b²/A)."""
+    from bondgraph.diagnose.effects import ProbeColumn
+    from bondgraph.diagnose.scoring import score_groups
+
+    cols = [ProbeColumn("p1", "coulomb", Target("junction", "v"), 0, None),
+            ProbeColumn("p2", "sensor_offset", Target("sensor", "x"), 0, None)]
+    ctx = Context(Record(None), LoopSettings(params=[]), lambda s: None)
+    An = np.eye(3)                        # nuisance, coulomb, offset: orthonormal
+    bn = np.array([1.0, 3.0, 0.0])
+    out, col_of = score_groups(ctx, cols, 1, An, bn, np.ones(3), 20.0,
+                               {1: "posterior covariance P not positive definite"})
+    by = {c.effect: c for c in out}
+    assert by["coulomb"].statistic == pytest.approx(9.0) and by["coulomb"].failed is None
+    assert by["coulomb"].explained == pytest.approx(9.0 / 20.0)
+    off = by["sensor_offset"]
+    assert math.isnan(off.statistic) and off.failed.endswith("not positive definite")
+
+
+def test_fit_flags_an_estimate_on_its_bound():
+    """c boxed to [0.1, 0.5] while the truth is 1.5: the fit stops on the
+    bound, flags it, and reports no Cramér-Rao std for it."""
+    g = mass_spring_damper()
+    g.params["c"].bounds = (0.1, 0.5)
+    logs = []
+    ctx = Context(Record(_msd_record()), LoopSettings(params=["k", "c"]), logs.append, False)
+    from bondgraph.diagnose.fit import fit_model
+
+    f = fit_model(ctx, g, ["k", "c"], None, "bounded")
+    assert f.at_bound == ["c"] and f.theta[f.model.param_index("c")] == pytest.approx(0.5)
+    assert f.std["c"] is None and f.std["k"] > 0
+    assert any("on a bound" in s for s in logs)
+    assert f.summary().at_bound == ["c"]

@@ -250,8 +250,7 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
     L.append(f"Record: `{result.record}`. Metric: {result.metric}. "
              f"Criterion: {result.criterion.upper()}.")
     L.append("")
-    L.append(f"**Error before: {result.initial.metric:.4g}; after: {result.final.metric:.4g}.**")
-    L.append("")
+    L += _md_errors(result)
     L += _md_accepted(result)
     L.append("")
     L.append("## Evidence (ranking of every step)")
@@ -268,8 +267,35 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
         L.append("## Rejected candidates")
         L.append("")
         for r in result.rejected:
-            L.append(f"- step {r.step}: {r.candidate.label} — {r.reason}")
+            L.append(f"- step {r.step}: {r.candidate.label} — {r.reason}" + _md_refit(r.candidate))
     return "\n".join(L) + "\n"
+
+
+def _md_errors(result: LoopResult) -> list[str]:
+    """The error before/after (the validation record's first when there is
+    one, the estimation record's beside it) and the warnings."""
+    i, f = result.initial, result.final
+    if i.validation_metric is not None:
+        L = [f"**Error on the validation record before: {i.validation_metric:.4g}; after: "
+             f"{f.validation_metric:.4g}** (on the estimation record: {i.metric:.4g} -> "
+             f"{f.metric:.4g}).", ""]
+    else:
+        L = [f"**Error before: {i.metric:.4g}; after: {f.metric:.4g}.**", ""]
+    for w in result.warnings:
+        L.append(f"- warning: {w}")
+    if result.warnings:
+        L.append("")
+    return L
+
+
+def _md_refit(c) -> str:
+    """The confirmed refit's numbers of a rejected candidate (or '')."""
+    r = c.confirmed
+    if not r:
+        return ""
+    v = f", validation error {r['validation_error']:.4g}" if r.get("validation_error") else ""
+    return (f" (refit: LR {r['lr']:.1f}, criterion {r['criterion']:.2f}, error "
+            f"{r['error']:.4g}{v})")
 
 
 def _md_accepted(result: LoopResult) -> list[str]:
