@@ -356,3 +356,31 @@ def test_fit_flags_an_estimate_on_its_bound():
     assert f.std["c"] is None and f.std["k"] > 0
     assert any("on a bound" in s for s in logs)
     assert f.summary().at_bound == ["c"]
+
+
+def test_state_scaled_prior_in_the_loop():
+    """p0_scale="state": the loop's prior is record_prior's (each state's
+    free-run RMS times p0_rel), not 5 % of max(|x0|, 1); a sidecar's x0_std
+    is imposed."""
+    from bondgraph.diagnose.fit import prior
+    from bondgraph.errors import OptionError
+    from bondgraph.inference.prior import record_prior
+
+    exp = _msd_record()
+    exp.meta = {**(exp.meta or {}), "x0_std": {"q_spring": 0.004}}
+    m = Model.load("mass_spring_damper")
+    ctx = Context(Record(exp), LoopSettings(params=["c"], p0_scale="state", p0_rel=0.1),
+                  lambda s: None, False)
+    x0, P0 = prior(ctx, m)
+    t, u, y = ctx.record.arrays(m)
+    ref, info = record_prior(m, t, u, y, m.theta0, x0, rel=0.1, x0_std={"q_spring": 0.004},
+                             substeps=2)
+    np.testing.assert_allclose(P0, ref)
+    assert P0[1, 1] == pytest.approx(0.004 ** 2)
+    assert P0[0, 0] == pytest.approx((0.1 * info["scales"]["p_mass"]) ** 2)
+    assert info["rules"]["p_mass"] == "simulation"
+    # the free-run RMS of the momentum, from an independent BDF simulation
+    xs = simulate(m, t, u, x0, m.theta0, hold="zoh", rtol=1e-9, atol=1e-12).x
+    assert info["scales"]["p_mass"] == pytest.approx(np.sqrt(np.mean(xs[:, 0] ** 2)), rel=0.01)
+    with pytest.raises(OptionError, match="p0_scale"):
+        LoopSettings(params=[], p0_scale="big")

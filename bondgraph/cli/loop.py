@@ -56,6 +56,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_fixed(p)
     add_initial_state(p)
     p.set_defaults(p0_rel=None)        # the loop's own P0 policy unless given
+    p.add_argument("--p0", choices=("magnitude", "state"), default=None,
+                   help="scale of each initial state's prior std: max(|x0|, 1) (magnitude, "
+                        "default) or the state's own scale along the record (state: free-run "
+                        "RMS, process-noise walk, sensors; a sidecar's x0_std imposed)")
     add_discretisation(p)
     add_quiet(p)
 
@@ -132,6 +136,8 @@ def numerics_settings(args, settings: dict, graph) -> dict:
         out["x0_overrides"] = x0
     if args.p0_rel is not None:
         out["p0_rel"] = float(args.p0_rel)
+    if args.p0 is not None:
+        out["p0_scale"] = args.p0
     base = settings.get("ukf") or UKFOptions()
     given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
              if getattr(args, k) != {"method": "ros2", "substeps": 1, "hold": "zoh"}[k]}

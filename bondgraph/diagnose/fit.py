@@ -27,6 +27,7 @@ from bondgraph.diagnose.inference_calls import (
     make_criterion,
     prior_covariance,
     run_ukf,
+    state_prior,
 )
 from bondgraph.diagnose.metric import compute_metric
 from bondgraph.diagnose.residuals import analyze
@@ -70,12 +71,14 @@ class Record:
 @dataclass
 class Context:
     """What every step of the loop reads: the record, the settings, the
-    (time-stamped) line logger and whether progress bars are shown."""
+    (time-stamped) line logger, whether progress bars are shown, and a cache
+    (the state-scaled priors of the models seen)."""
 
     record: Record
     settings: LoopSettings
     log: Callable[[str], None] = print
     progress: bool = True
+    cache: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -176,7 +179,10 @@ def prior_cov(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
         if P.shape in ((model.n_x,), (model.n_x, model.n_x)):
             return np.diag(P) if P.ndim == 1 else P
         # states added by effects: fall back to the default variance
-    P = prior_covariance(model, x0, s.p0_rel)
+    if s.p0_scale == "state":
+        P = _state_prior(ctx, model, x0)
+    else:
+        P = prior_covariance(model, x0, s.p0_rel)
     for name, sd in (s.P0_std or {}).items():
         if name in model.states:
             i = model.state_index(name)
@@ -184,6 +190,22 @@ def prior_cov(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
             P[:, i] = 0.0
             P[i, i] = float(sd) ** 2
     return P
+
+
+def _state_prior(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
+    """:func:`~bondgraph.diagnose.inference_calls.state_prior` at the model's
+    defaults with ``settings.fixed``, cached per model and prior mean (every
+    candidate's model asks again)."""
+    key = (id(model), x0.tobytes())
+    if key not in ctx.cache:
+        theta = model.theta0.copy()
+        for k, v in ctx.settings.fixed.items():
+            if k in model.params:
+                theta[model.param_index(k)] = v
+        t, u, y = ctx.record.arrays(model)
+        ctx.cache[key] = (model, state_prior(model, t, u, y, theta, x0, ctx.settings,
+                                             ctx.record.exp.initial_state_std(model)))
+    return ctx.cache[key][1].copy()
 
 
 def prior(ctx: Context, model: Model) -> tuple[np.ndarray, np.ndarray]:

@@ -19,6 +19,7 @@ from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.estimand import Estimand
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
+from bondgraph.inference.prior import record_prior
 from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
 
 
@@ -124,6 +125,19 @@ def prior_covariance(model, x0: np.ndarray, rel: float | None = None) -> np.ndar
     """The default UKF prior covariance (n_x, n_x): ``rel`` (default 5 %) of
     max(|x0|, 1) (:func:`bondgraph.inference.ukf.default_P0`)."""
     return default_P0(model, x0) if rel is None else default_P0(model, x0, float(rel))
+
+
+def state_prior(model, t, u, y, theta: np.ndarray, x0, settings: LoopSettings,
+                x0_std=None) -> np.ndarray:
+    """The prior covariance (n_x, n_x) by each state's own scale along the
+    record (:func:`bondgraph.inference.prior.record_prior`, the loop's
+    discretisation and hold; ``settings.p0_rel``, default 5 %, of it)."""
+    o = settings.ukf
+    P0, _ = record_prior(model, t, u, y, theta, x0,
+                         rel=0.05 if settings.p0_rel is None else float(settings.p0_rel),
+                         x0_std=x0_std, method=o.method, substeps=max(o.substeps, 2),
+                         hold=o.hold)
+    return P0
 
 
 def discretisation(model, t, u, theta: np.ndarray, x0, settings: LoopSettings,

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Effect
+from bondgraph.errors import OptionError
 from bondgraph.inference.options import UKFOptions
 
 
@@ -44,8 +45,14 @@ class LoopSettings:
         Initial states by name (``--x0``) imposed on the prior mean of every
         model that has them (over ``x0`` and the record's initial state).
     p0_rel : float, optional
-        Prior std of each initial state relative to max(|x0|, 1) (``--p0-rel``;
-        default 0.05, :func:`bondgraph.inference.ukf.default_P0`).
+        Prior std of each initial state relative to its scale (``--p0-rel``;
+        default 0.05).
+    p0_scale : {"magnitude", "state"}
+        The scale of each initial state's prior std: ``max(|x0|, 1)``
+        (:func:`bondgraph.inference.ukf.default_P0`, the default), or the
+        state's own scale along the record (:func:`bondgraph.inference.prior.record_prior`:
+        free-run RMS, process-noise walk, sensors; a sidecar's ``x0_std``
+        imposed).
     P0_std : dict
         Prior standard deviations of named initial states (e.g. the grade on
         a level track), overriding ``P0``'s diagonal.
@@ -105,6 +112,7 @@ class LoopSettings:
     P0: Any = None
     x0_overrides: dict = field(default_factory=dict)
     p0_rel: float | None = None
+    p0_scale: str = "magnitude"
     P0_std: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
     initial_params: list | None = None
@@ -121,12 +129,22 @@ class LoopSettings:
     metric_name: str | None = None
     true_effect: Any = None
 
+    def __post_init__(self):
+        if self.p0_scale not in ("magnitude", "state"):
+            raise OptionError(f"LoopSettings.p0_scale must be 'magnitude' or 'state', got "
+                              f"{self.p0_scale!r}")
+        if not self.metric_tolerance > 0:
+            raise OptionError(f"LoopSettings.metric_tolerance must be > 0, got "
+                              f"{self.metric_tolerance!r}")
+        if int(self.confirm_iterations) < 1:
+            raise OptionError("LoopSettings.confirm_iterations must be >= 1")
+
     def summary(self) -> dict:
         """The settings a report records: estimated parameters, step limit,
         significance level, UKF options, names of the effect library."""
         return {"params": self.params, "max_steps": self.max_steps,
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
-                "metric_tolerance": self.metric_tolerance,
+                "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale,
                 "confirm_iterations": self.confirm_iterations,
                 "confirm_tolerance": self.confirm_tolerance,
                 "validation": getattr(self.validation, "name", None)
