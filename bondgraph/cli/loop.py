@@ -56,6 +56,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_fixed(p)
     add_initial_state(p)
     p.set_defaults(p0_rel=None)        # the loop's own P0 policy unless given
+    p.add_argument("--fit", choices=("nll", "sim"), default=None,
+                   help="declared fit: UKF likelihood (nll, default) or an output-error "
+                        "(free-run least-squares) fit of the non-noise parameters first, "
+                        "whose estimates start the likelihood fit (sim)")
     p.add_argument("--p0", choices=("magnitude", "state"), default=None,
                    help="scale of each initial state's prior std: max(|x0|, 1) (magnitude, "
                         "default) or the state's own scale along the record (state: free-run "
@@ -138,6 +142,8 @@ def numerics_settings(args, settings: dict, graph) -> dict:
         out["p0_rel"] = float(args.p0_rel)
     if args.p0 is not None:
         out["p0_scale"] = args.p0
+    if args.fit is not None:
+        out["fit"] = args.fit
     base = settings.get("ukf") or UKFOptions()
     given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
              if getattr(args, k) != {"method": "ros2", "substeps": 1, "hold": "zoh"}[k]}

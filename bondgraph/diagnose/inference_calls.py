@@ -19,6 +19,7 @@ from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.estimand import Estimand
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
+from bondgraph.inference.output_error import output_error_fit
 from bondgraph.inference.prior import record_prior
 from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
 
@@ -138,6 +139,15 @@ def state_prior(model, t, u, y, theta: np.ndarray, x0, settings: LoopSettings,
                          x0_std=x0_std, method=o.method, substeps=max(o.substeps, 2),
                          hold=o.hold)
     return P0
+
+
+def output_error(model, t, u, y, names: Sequence[str], theta: np.ndarray, x0,
+                 settings: LoopSettings):
+    """The output-error (free-run least-squares) fit of ``names`` from
+    ``theta`` (:func:`bondgraph.inference.output_error.output_error_fit`,
+    the loop's input hold): an :class:`~bondgraph.inference.output_error.OutputErrorResult`."""
+    return output_error_fit(model, t, u, y, list(names), theta=theta, x0=x0,
+                            hold=settings.ukf.hold)
 
 
 def discretisation(model, t, u, theta: np.ndarray, x0, settings: LoopSettings,

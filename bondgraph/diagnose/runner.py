@@ -20,8 +20,16 @@ from bondgraph.diagnose.accept import (
 )
 from bondgraph.diagnose.confirm import Confirmation, confirm
 from bondgraph.diagnose.effects import Scales, get_effect
-from bondgraph.diagnose.fit import Context, Fit, Record, fit_model, parameter_std, prior_mean
-from bondgraph.diagnose.inference_calls import discretisation
+from bondgraph.diagnose.fit import (
+    Context,
+    Fit,
+    Record,
+    fit_model,
+    noise_params,
+    parameter_std,
+    prior_mean,
+)
+from bondgraph.diagnose.inference_calls import discretisation, output_error
 from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.result import Candidate, LoopResult, rank_of
 from bondgraph.diagnose.scoring import (
@@ -30,7 +38,8 @@ from bondgraph.diagnose.scoring import (
     score_structural,
 )
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.errors import DeclaredFitError, ModelError, NumericalError
+from bondgraph.numerics.model import Model
+from bondgraph.errors import BondGraphError, DeclaredFitError, ModelError, NumericalError
 
 #: outcomes of one step
 ACCEPTED, NONE_ACCEPTED, NOTHING_SIGNIFICANT = "accepted", "none accepted", "nothing significant"
@@ -158,8 +167,9 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
                 "conditioned. Declare process noise (g.set_process_noise) on the states "
                 "where forces are unmodelled, ideally as an estimated parameter.")
     first = list(s.params) if s.initial_params is None else list(s.initial_params)
+    start = sim_start(ctx, graph, first) if s.fit == "sim" else None
     try:
-        fit = fit_model(ctx, graph.copy(graph.name), first, None, "initial fit")
+        fit = fit_model(ctx, graph.copy(graph.name), first, start, "initial fit")
     except NumericalError as exc:
         raise DeclaredFitError(f"the declared model cannot be fitted: {exc}; no effect is "
                                f"scored") from exc
@@ -169,6 +179,32 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
             f"{fit.information(s.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
             f"{metric_name(s)} = {fit.metric:.4g}")
     return fit
+
+
+def sim_start(ctx: Context, graph: BondGraph, names: list[str]) -> dict | None:
+    """Start values of the declared fit from the output-error fit of its
+    non-noise parameters ``names`` (``settings.fit == "sim"``); None (logged)
+    if that fit fails."""
+    # all generated functions: the forward sensitivities need ∂f/∂θ and ∂h/∂θ
+    model = Model.from_graph(graph, name=f"_loop_sim_{graph.name}")
+    noise = noise_params(graph)
+    phys = [n for n in names if n not in noise]
+    if not phys:
+        return None
+    theta = model.theta0.copy()
+    for k, v in ctx.settings.fixed.items():
+        if k in model.params:
+            theta[model.param_index(k)] = v
+    t, u, y = ctx.record.arrays(model)
+    try:
+        r = output_error(model, t, u, y, phys, theta, prior_mean(ctx, model), ctx.settings)
+    except (BondGraphError, ValueError) as exc:   # ValueError: least_squares at a bad start
+        ctx.log(f"  output-error fit failed ({str(exc).splitlines()[0]}); the likelihood fit "
+                f"starts from the defaults")
+        return None
+    ctx.log(f"output-error fit: RMS free-run error {', '.join(f'{v:.4g}' for v in r.rmse)}; "
+            f"estimates {', '.join(f'{k} = {v:.4g}' for k, v in r.estimates().items())}")
+    return r.estimates()
 
 
 def check_declared_fit(fit: Fit) -> None:

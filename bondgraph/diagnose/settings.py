@@ -47,6 +47,14 @@ class LoopSettings:
     p0_rel : float, optional
         Prior std of each initial state relative to its scale (``--p0-rel``;
         default 0.05).
+    fit : {"nll", "sim"}
+        How the declared model is fitted first: by the UKF likelihood alone
+        (``"nll"``), or by the output-error fit of its non-noise parameters
+        (free-run least squares with forward sensitivities,
+        :func:`bondgraph.inference.output_error.output_error_fit`) whose
+        estimates then start the likelihood fit (``"sim"``; for a
+        deterministic model whose likelihood fit starts far off). Effects are
+        always scored and confirmed by the likelihood.
     p0_scale : {"magnitude", "state"}
         The scale of each initial state's prior std: ``max(|x0|, 1)``
         (:func:`bondgraph.inference.ukf.default_P0`, the default), or the
@@ -113,6 +121,7 @@ class LoopSettings:
     x0_overrides: dict = field(default_factory=dict)
     p0_rel: float | None = None
     p0_scale: str = "magnitude"
+    fit: str = "nll"
     P0_std: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
     initial_params: list | None = None
@@ -133,6 +142,8 @@ class LoopSettings:
         if self.p0_scale not in ("magnitude", "state"):
             raise OptionError(f"LoopSettings.p0_scale must be 'magnitude' or 'state', got "
                               f"{self.p0_scale!r}")
+        if self.fit not in ("nll", "sim"):
+            raise OptionError(f"LoopSettings.fit must be 'nll' or 'sim', got {self.fit!r}")
         if not self.metric_tolerance > 0:
             raise OptionError(f"LoopSettings.metric_tolerance must be > 0, got "
                               f"{self.metric_tolerance!r}")
@@ -145,6 +156,7 @@ class LoopSettings:
         return {"params": self.params, "max_steps": self.max_steps,
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
                 "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale,
+                "fit": self.fit,
                 "confirm_iterations": self.confirm_iterations,
                 "confirm_tolerance": self.confirm_tolerance,
                 "validation": getattr(self.validation, "name", None)
