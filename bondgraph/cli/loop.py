@@ -56,6 +56,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_fixed(p)
     add_initial_state(p)
     p.set_defaults(p0_rel=None)        # the loop's own P0 policy unless given
+    p.add_argument("--estimate-x0", default=None, metavar="STATES",
+                   help="initial states estimated jointly with the parameters at every fit "
+                        "(comma-separated, or all)")
     p.add_argument("--fit", choices=("nll", "sim"), default=None,
                    help="declared fit: UKF likelihood (nll, default) or an output-error "
                         "(free-run least-squares) fit of the non-noise parameters first, "
@@ -144,6 +147,8 @@ def numerics_settings(args, settings: dict, graph) -> dict:
         out["p0_scale"] = args.p0
     if args.fit is not None:
         out["fit"] = args.fit
+    if args.estimate_x0:
+        out["estimate_x0"] = [n.strip() for n in args.estimate_x0.split(",") if n.strip()]
     base = settings.get("ukf") or UKFOptions()
     given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
              if getattr(args, k) != {"method": "ros2", "substeps": 1, "hold": "zoh"}[k]}

@@ -21,6 +21,7 @@ import sympy as sp
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
+    X0_TOKEN,
     fisher_fit,
     hessian_cramer_rao,
     lbfgsb_polish,
@@ -72,13 +73,16 @@ class Record:
 class Context:
     """What every step of the loop reads: the record, the settings, the
     (time-stamped) line logger, whether progress bars are shown, and a cache
-    (the state-scaled priors of the models seen)."""
+    (the state-scaled priors of the models seen), and the initial states
+    estimated with the current fit (``settings.estimate_x0``; by name), which
+    every later filter run conditions on."""
 
     record: Record
     settings: LoopSettings
     log: Callable[[str], None] = print
     progress: bool = True
     cache: dict = field(default_factory=dict)
+    x0_estimates: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -103,6 +107,7 @@ class Fit:
     std: dict = field(default_factory=dict)
     n_obs: int = 0
     at_bound: list = field(default_factory=list)
+    x0_est: dict = field(default_factory=dict)
     converged: bool | None = None
     iterations: int | None = None
     validation_metric: float | None = None
@@ -135,7 +140,7 @@ class Fit:
                           self.residuals.whiteness, self.estimates(), dict(self.std),
                           self.residuals, self.sim_y, self.ukf.innovations[:, 0, :],
                           np.diagonal(S, axis1=1, axis2=2).copy(), list(self.at_bound),
-                          self.validation_metric)
+                          self.validation_metric, dict(self.x0_est))
 
     @property
     def accept_metric(self) -> float:
@@ -161,7 +166,7 @@ def prior_mean(ctx: Context, model: Model) -> np.ndarray:
         x = x.copy() if x.shape == (model.n_x,) else None
     if x is None:
         x = np.asarray(ctx.record.exp.initial_state(model), dtype=float).copy()
-    for name, v in (ctx.settings.x0_overrides or {}).items():
+    for name, v in {**(ctx.settings.x0_overrides or {}), **ctx.x0_estimates}.items():
         if name in model.states:
             x[model.state_index(name)] = float(v)
     return x
@@ -208,10 +213,31 @@ def _state_prior(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
     return ctx.cache[key][1].copy()
 
 
-def prior(ctx: Context, model: Model) -> tuple[np.ndarray, np.ndarray]:
-    """The UKF prior (x0, P0) of ``model``: :func:`prior_mean`, :func:`prior_cov`."""
+def prior(ctx: Context, model: Model, shrink: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The UKF prior (x0, P0) of ``model``: :func:`prior_mean`, :func:`prior_cov`;
+    the initial states estimated with the current fit (``ctx.x0_estimates``)
+    at their estimates with a token spread (X0_TOKEN of their prior std:
+    the likelihood is conditional on them) unless ``shrink`` is False."""
     x0 = prior_mean(ctx, model)
-    return x0, prior_cov(ctx, model, x0)
+    P = prior_cov(ctx, model, x0)
+    if shrink:
+        for name in ctx.x0_estimates:
+            if name in model.states:
+                i = model.state_index(name)
+                sd = X0_TOKEN * math.sqrt(max(P[i, i], 0.0))
+                P[i, :] = 0.0
+                P[:, i] = 0.0
+                P[i, i] = sd ** 2
+    return x0, P
+
+
+def x0_states(ctx: Context, model: Model) -> list[str]:
+    """The initial states of ``model`` estimated with θ (``settings.estimate_x0``;
+    ``["all"]``: every state)."""
+    want = list(ctx.settings.estimate_x0 or [])
+    if want == ["all"]:
+        return list(model.states)
+    return [s for s in want if s in model.states]
 
 
 def prior_on(record: Record, settings: LoopSettings, model: Model):
@@ -345,10 +371,19 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     iters = ctx.settings.fit_iterations if iterations is None else int(iterations)
     std: dict = {}
     conv: tuple = (None, None)
+    x0_est = {s: ctx.x0_estimates[s] for s in x0_states(ctx, model) if s in ctx.x0_estimates}
     if params and iters > 0:
-        theta, std, conv = _maximize(ctx, graph, model, params, theta, iters, what, tolerance)
-    fit = evaluate_fit(ctx, graph, model, params, theta, what, std)
+        theta, std, conv, x0_new = _maximize(ctx, graph, model, params, theta, iters, what,
+                                             tolerance)
+        x0_est.update(x0_new)
+    kept = ctx.x0_estimates
+    ctx.x0_estimates = {**kept, **x0_est}
+    try:
+        fit = evaluate_fit(ctx, graph, model, params, theta, what, std)
+    finally:
+        ctx.x0_estimates = kept
     fit.converged, fit.iterations = conv
+    fit.x0_est = x0_est
     fit.at_bound = on_bound(model, params, theta)
     if fit.at_bound:
         ctx.log(f"  warning: {what}: estimate(s) on a bound of their box: "
@@ -361,12 +396,15 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
 
 def _maximize(ctx: Context, graph: BondGraph, model: Model, params: list[str],
               theta: np.ndarray, iters: int, what: str,
-              tolerance: float = 0.0) -> tuple[np.ndarray, dict, tuple]:
+              tolerance: float = 0.0) -> tuple[np.ndarray, dict, tuple, dict]:
     """Fisher scoring of ``params`` from ``theta`` (noise intensities in log
-    scale), L-BFGS-B if it fails numerically; returns θ, the Cramér-Rao
-    std (empty after the fallback) and (converged, iterations)."""
+    scale), the initial states of :func:`x0_states` jointly, L-BFGS-B (θ
+    only) if it fails numerically; returns θ, the Cramér-Rao std (empty
+    after the fallback; ``x0.<state>`` for the states), (converged,
+    iterations) and the estimated initial states by name."""
     t, u, y = ctx.record.arrays(model)
-    x0, P0 = prior(ctx, model)
+    states = x0_states(ctx, model)
+    x0, P0 = prior(ctx, model, shrink=not states)
     idx = [model.param_index(n) for n in params]
     lo, hi = bounds_around(model, params, theta)
     # log scale and decade moves for the noise intensities only: a physical
@@ -375,15 +413,18 @@ def _maximize(ctx: Context, graph: BondGraph, model: Model, params: list[str],
     noise = noise_params(graph)
     scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
     try:
-        theta, F, conv, used = fisher_fit(model, t, u, y, theta, idx, lo, hi, x0, P0,
-                                          ctx.settings, iters, scale, tolerance)
-        return theta, cr_std(F, params), (conv, used)
+        theta, F, conv, used, x0n = fisher_fit(
+            model, t, u, y, theta, idx, lo, hi, x0, P0, ctx.settings, iters, scale, tolerance,
+            states, np.sqrt(np.maximum(np.diag(P0), 1e-300)))
+        names = list(params) + [f"x0.{s_}" for s_ in states]
+        return (theta, cr_std(F, names), (conv, used),
+                {s_: float(x0n[model.state_index(s_)]) for s_ in states})
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
         ctx.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
         crit = criterion_for(ctx, model, params, theta)
         xs = np.array([theta[model.param_index(n)] for n in params])
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
-        return crit.theta(x[None, :])[0], {}, (None, None)
+        return crit.theta(x[None, :])[0], {}, (None, None), {}
 
 
 def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str],

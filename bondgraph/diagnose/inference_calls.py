@@ -16,12 +16,15 @@ import numpy as np
 
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
-from bondgraph.inference.estimand import Estimand
+from bondgraph.inference.estimand import X0_TOKEN, Estimand
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.output_error import output_error_fit
 from bondgraph.inference.prior import record_prior
 from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
+
+
+__all__ = ["X0_TOKEN"]  # re-exported: the token spread of a jointly estimated initial state
 
 
 def run_ukf(model, t, u, y, thetas: np.ndarray, x0, P0, settings: LoopSettings, *,
@@ -65,10 +68,11 @@ def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P
 
 
 def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, upper, x0, P0,
-               settings: LoopSettings, iterations: int, log_scale,
-               tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray, bool, int]:
+               settings: LoopSettings, iterations: int, log_scale, tolerance: float = 0.0,
+               states: Sequence[str] = (), x0_scale=None):
     """Maximum-likelihood fit by Levenberg-damped Fisher scoring
-    (:func:`bondgraph.inference.fisher.estimand_scoring`).
+    (:func:`bondgraph.inference.fisher.estimand_scoring`), the initial states
+    ``states`` estimated jointly (:class:`~bondgraph.inference.estimand.Estimand`).
 
     Parameters
     ----------
@@ -81,26 +85,34 @@ def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, u
     tolerance : float
         Stop when a full scoring step predicts less than this NLL decrease
         [nats] (0: only the relative NLL change, 1e-6 (1 + |NLL|), stops).
+    states : sequence of str
+        Initial states estimated with θ (their prior shrinks to a token
+        spread; box: ± 100 of their prior std ``x0_scale`` (n_x,)).
 
     Returns
     -------
     theta : array (n_theta,)
-    F : array (k, k)
-        Fisher information at the result.
+    F : array (k + m, k + m)
+        Fisher information at the result (parameters, then states).
     converged : bool
         Stopped by a convergence criterion rather than by ``iterations``.
     used : int
         Iterations used.
+    x0 : array (n_x,)
+        The initial state (the estimated entries moved).
 
     Raises
     ------
     FloatingPointError, numpy.linalg.LinAlgError
         When the scoring fails numerically (the caller falls back to L-BFGS-B).
     """
-    est = Estimand(model, [model.params[j] for j in index], theta=theta, x0=x0)
-    r = estimand_scoring(model, t, u, y, est, lower, upper, P0, options=settings.ukf,
-                         max_iter=iterations, atol=tolerance, log_scale=log_scale)
-    return r.estimand.theta, r.F, r.converged, r.iterations
+    est = Estimand(model, [model.params[j] for j in index], states=list(states), theta=theta,
+                   x0=x0, x0_scale=x0_scale)
+    lo, hi = est.bounds(lower, upper)
+    scale = np.concatenate([np.asarray(log_scale, bool), np.zeros(len(states), bool)])
+    r = estimand_scoring(model, t, u, y, est, lo, hi, P0, options=settings.ukf,
+                         max_iter=iterations, atol=tolerance, log_scale=scale)
+    return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0
 
 
 def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:

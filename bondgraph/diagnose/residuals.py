@@ -222,7 +222,8 @@ def _output_residuals(model, i: int, e: np.ndarray, z: np.ndarray, lags: int, dt
     ok = np.isfinite(e)
     n = int(ok.sum())
     if n == 0:
-        return OutputResiduals(name, model.output_units[i], 0, *([float("nan")] * 4), lags,
+        # an output never measured: bias, rms, bias/se, Q, p; lags; NIS, peak, ratio
+        return OutputResiduals(name, model.output_units[i], 0, *([float("nan")] * 5), lags,
                                float("nan"), float("nan"), float("nan"))
     bias = float(e[ok].mean())
     rms = float(np.sqrt(np.mean(e[ok] ** 2)))

@@ -179,6 +179,9 @@ class FitSummary:
         Estimates on a bound of their box (their std is None).
     validation_metric : float or None
         The metric on the validation record (None without one).
+    x0_estimates : dict
+        Initial states estimated with θ (state name -> value); their
+        Cramér-Rao std in ``std`` as ``x0.<state>``.
     """
 
     model: str
@@ -195,13 +198,14 @@ class FitSummary:
     innovation_var: np.ndarray
     at_bound: list = field(default_factory=list)
     validation_metric: float | None = None
+    x0_estimates: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
         return to_jsonable({"model": self.model, "nll": self.nll, "aic": self.aic,
                             "bic": self.bic, "metric": self.metric, "whiteness": self.whiteness,
                             "validation_metric": self.validation_metric,
-                            "at_bound": self.at_bound,
+                            "at_bound": self.at_bound, "x0_estimates": self.x0_estimates,
                             "estimates": self.estimates, "std": self.std,
                             "residuals": self.residuals.to_dict()})
 

@@ -112,8 +112,10 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
                            for n in initial.at_bound)
     publish(ctx, result, initial, initial, on_update)
     current = initial
+    ctx.x0_estimates = dict(initial.x0_est)
     for step in range(1, s.max_steps + 1):
         current, outcome = run_step(ctx, result, current, step, graph.name)
+        ctx.x0_estimates = dict(current.x0_est)
         if outcome == NOTHING_SIGNIFICANT:
             break
         publish(ctx, result, initial, current, on_update)

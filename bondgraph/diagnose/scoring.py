@@ -525,8 +525,8 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
     noise = noise_params(fit.graph)
     scale = np.array([n in noise and lo[j] > 0 for j, n in enumerate(names)])
     try:
-        th, _, _, _ = fisher_fit(model, t, u, y, th, idx, lo, hi, x0, P0, ctx.settings, iters,
-                                 scale)
+        th, _, _, _, _ = fisher_fit(model, t, u, y, th, idx, lo, hi, x0, P0, ctx.settings,
+                                    iters, scale)
     except (FloatingPointError, np.linalg.LinAlgError):
         return None
     f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])

@@ -41,6 +41,10 @@ class LoopSettings:
     x0, P0 : arrays, optional
         UKF prior (default: the record's true x0 if it has one, else the
         model's X0; :func:`bondgraph.inference.ukf.default_P0`).
+    estimate_x0 : list of str
+        Initial states estimated jointly with θ at every fit (``["all"]``:
+        every state); later filter runs condition on the current fit's
+        estimates (their prior shrinks to a token spread).
     x0_overrides : dict
         Initial states by name (``--x0``) imposed on the prior mean of every
         model that has them (over ``x0`` and the record's initial state).
@@ -118,6 +122,7 @@ class LoopSettings:
     effects: Sequence[Effect] = DEFAULT_EFFECTS
     x0: Any = None
     P0: Any = None
+    estimate_x0: list = field(default_factory=list)
     x0_overrides: dict = field(default_factory=dict)
     p0_rel: float | None = None
     p0_scale: str = "magnitude"
