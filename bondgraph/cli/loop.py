@@ -68,6 +68,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "default) or the state's own scale along the record (state: free-run "
                         "RMS, process-noise walk, sensors; a sidecar's x0_std imposed)")
     add_discretisation(p)
+    p.set_defaults(method=None, substeps=None, hold=None)   # a case's own options unless given
     add_quiet(p)
 
 
@@ -151,7 +152,7 @@ def numerics_settings(args, settings: dict, graph) -> dict:
         out["estimate_x0"] = [n.strip() for n in args.estimate_x0.split(",") if n.strip()]
     base = settings.get("ukf") or UKFOptions()
     given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
-             if getattr(args, k) != {"method": "ros2", "substeps": 1, "hold": "zoh"}[k]}
+             if getattr(args, k) is not None}
     if given:
         out["ukf"] = UKFOptions(**{**base.to_dict(), **given})
     if args.validate:
