@@ -100,16 +100,7 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
                   progress)
     initial = initial_fit(ctx, graph)
-    result = LoopResult(graph.name, graph.source, ctx.record.name, metric_name(s), s.criterion,
-                        s.summary())
-    result.declared_graph = graph.copy(graph.name)
-    te = s.true_effect
-    if te is not None:
-        result.true_effect = (te.to_dict() if hasattr(te, "to_dict")
-                              else {"kind": te[0], "target": te[1], "values": {}})
-    result.warnings.extend(check_discretisation(ctx, initial))
-    result.warnings.extend(f"initial fit: {n} on a bound of its box (no Cramér-Rao std)"
-                           for n in initial.at_bound)
+    result = new_result(ctx, graph, initial)
     publish(ctx, result, initial, initial, on_update)
     current = initial
     ctx.x0_estimates = dict(initial.x0_est)
@@ -128,6 +119,24 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     result.finished = True
     publish(ctx, result, initial, current, on_update)
     ctx.log(f"done in {time.perf_counter() - t0:.1f} s")
+    return result
+
+
+def new_result(ctx: Context, graph: BondGraph, initial: Fit) -> LoopResult:
+    """The :class:`LoopResult` after the declared fit: names, settings, a copy
+    of the declared graph, the true effect if known, and the warnings (the
+    discretisation check, estimates on a bound)."""
+    s = ctx.settings
+    result = LoopResult(graph.name, graph.source, ctx.record.name, metric_name(s), s.criterion,
+                        s.summary())
+    result.declared_graph = graph.copy(graph.name)
+    te = s.true_effect
+    if te is not None:
+        result.true_effect = (te.to_dict() if hasattr(te, "to_dict")
+                              else {"kind": te[0], "target": te[1], "values": {}})
+    result.warnings.extend(check_discretisation(ctx, initial))
+    result.warnings.extend(f"initial fit: {n} on a bound of its box (no Cramér-Rao std)"
+                           for n in initial.at_bound)
     return result
 
 
