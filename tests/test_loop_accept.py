@@ -456,3 +456,14 @@ def test_loop_estimates_an_unmeasured_initial_state():
     ctx.x0_estimates = dict(f.x0_est)
     x0, P0 = prior(ctx, f.model)
     assert x0[0] == p0 and P0[0, 0] == pytest.approx((1e-6 * 0.05) ** 2)
+
+
+def test_holdout_splits_the_record():
+    exp = _msd_record()
+    res = run_loop(mass_spring_damper(), exp, ["k", "c"], log=lambda s: None, progress=False,
+                   holdout=0.25, structural=False, max_steps=1)
+    assert res.time.size == 300 and res.settings["validation"] == "msd[300:]"
+    assert res.initial.validation_metric is not None and res.initial.validation_metric < 0.2
+    from bondgraph.errors import OptionError
+    with pytest.raises(OptionError, match="holdout"):
+        LoopSettings(params=[], holdout=1.5)

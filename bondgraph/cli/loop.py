@@ -50,6 +50,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--validate", default=None, metavar="FILE",
                    help="held-out record (CSV): the accept decision and the report's error "
                         "before/after use the free-run error on it")
+    p.add_argument("--holdout", type=float, default=None, metavar="FRACTION",
+                   help="without --validate: the last FRACTION of the record is held out as "
+                        "the validation record (the fits use the rest)")
     p.add_argument("--metric-tolerance", type=float, default=None,
                    help="accept an effect only if the error grows by at most this factor "
                         "(default 1.0: it may not rise)")
@@ -157,6 +160,8 @@ def numerics_settings(args, settings: dict, graph) -> dict:
         out["ukf"] = UKFOptions(**{**base.to_dict(), **given})
     if args.validate:
         out["validation"] = Experiment.load(args.validate)
+    if args.holdout is not None:
+        out["holdout"] = float(args.holdout)
     if args.metric_tolerance is not None:
         out["metric_tolerance"] = float(args.metric_tolerance)
     return out

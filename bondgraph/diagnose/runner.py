@@ -5,6 +5,7 @@ lines and the ``on_update`` hand-over of the partial :class:`LoopResult`."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 from typing import Callable, Sequence
@@ -96,6 +97,7 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
         raise ModelError(f"graph '{graph.name}' has no parameter(s) {missing} "
                          f"(known: {', '.join(graph.params)})")
     s = LoopSettings(params=list(params), **settings)
+    experiment, s = held_out(experiment, s)
     t0 = time.perf_counter()
     ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
                   progress)
@@ -120,6 +122,16 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     publish(ctx, result, initial, current, on_update)
     ctx.log(f"done in {time.perf_counter() - t0:.1f} s")
     return result
+
+
+def held_out(experiment, s: LoopSettings):
+    """``(record, settings)`` with the last ``s.holdout`` of the record as the
+    validation record when none is given (the rest is fitted)."""
+    if s.validation is not None or not s.holdout:
+        return experiment, s
+    n = len(experiment.t)
+    cut = int(round(n * (1.0 - s.holdout)))
+    return experiment.segment(0, cut), replace(s, validation=experiment.segment(cut))
 
 
 def new_result(ctx: Context, graph: BondGraph, initial: Fit) -> LoopResult:

@@ -96,6 +96,11 @@ class LoopSettings:
     validation : Experiment, optional
         A held-out record: the accept decision compares the free-run error on
         it (the filter's first state on it starts the free run).
+    holdout : float
+        Without ``validation``: the fraction of the record, at its end, held
+        out as the validation record (0: none; the fits use the rest; its
+        prior mean is the record's initial-state rule on the segment, state
+        columns if the record has them).
     structural_refit : int
         Fisher-scoring iterations over the declared estimated parameters
         together with a structural candidate's own, from its best grid point,
@@ -137,6 +142,7 @@ class LoopSettings:
     confirm_tolerance: float = 1e-2
     metric_tolerance: float = 1.0
     validation: Any = None
+    holdout: float = 0.0
     structural_threshold: float = 0.5
     structural_refit: int = 2
     chunk: int = 48
@@ -149,6 +155,8 @@ class LoopSettings:
                               f"{self.p0_scale!r}")
         if self.fit not in ("nll", "sim"):
             raise OptionError(f"LoopSettings.fit must be 'nll' or 'sim', got {self.fit!r}")
+        if not 0.0 <= float(self.holdout) < 0.9:
+            raise OptionError(f"LoopSettings.holdout must be in [0, 0.9), got {self.holdout!r}")
         if not self.metric_tolerance > 0:
             raise OptionError(f"LoopSettings.metric_tolerance must be > 0, got "
                               f"{self.metric_tolerance!r}")
@@ -160,7 +168,7 @@ class LoopSettings:
         significance level, UKF options, names of the effect library."""
         return {"params": self.params, "max_steps": self.max_steps,
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
-                "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale,
+                "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale, "holdout": self.holdout,
                 "fit": self.fit,
                 "confirm_iterations": self.confirm_iterations,
                 "confirm_tolerance": self.confirm_tolerance,
