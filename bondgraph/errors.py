@@ -207,6 +207,12 @@ class EstimationError(NumericalError):
     log-likelihood: every evaluation failed (the causes are listed)."""
 
 
+class DeclaredFitError(NumericalError):
+    """The loop's fit of the declared model is unusable (a non-finite
+    likelihood or free-run error on the record or the validation record):
+    the loop stops before it scores or accepts any effect."""
+
+
 class OptionError(BondGraphError, ValueError):
     """An invalid option value for filtering or estimation (α ≤ 0, unknown
     method, wrong array shape of a noise matrix, ...)."""

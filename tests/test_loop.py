@@ -79,22 +79,23 @@ def _fit(nll, k, whiteness, metric, n_obs=100, whiteness_dof=20.0):
                None, n_obs=n_obs)
 
 
-def test_accept_decision_follows_the_criterion_whiteness_and_error_guard():
+def test_accept_decision_follows_the_criterion_lr_test_and_error_guard():
     s = LoopSettings(params=[], metric_tolerance=1.5)
     cur = _fit(-100.0, 2, 50.0, 1.0)                        # AIC -196
     # one more parameter for one nat: AIC -196 -> -196, not better
     d = decide(cur, _fit(-101.0, 3, 40.0, 0.5), s)
     assert (d.accepted, d.reason) == (False, "information criterion did not improve")
     assert (d.criterion_before, d.criterion_after) == (-196.0, -196.0)
-    # two nats: AIC -198 < -196, but whiteness 60 > 50 and not white
-    # (χ²(20): 60 > 20 + 3 sqrt(40) = 38.97)
+    # two nats: AIC -198 < -196, LR 4 has p = chi2.sf(4, 1) = 0.0455 > 0.01
     d = decide(cur, _fit(-102.0, 3, 60.0, 0.5), s)
-    assert (d.accepted, d.reason) == (False, "whiteness did not improve")
-    # whiteness 38 > 25 but within noise of white: accepted
-    d = decide(_fit(-100.0, 2, 25.0, 1.0), _fit(-102.0, 3, 38.0, 0.5), s)
+    assert d.reason == "likelihood-ratio test not passed (LR 4, p 0.046)"
+    assert d.lr == 4.0 and d.lr_p_value == pytest.approx(chi2.sf(4.0, 1))
+    # five nats: LR 10, p = 0.00157 < 0.01; whiteness 60 > 50 does not veto
+    d = decide(cur, _fit(-105.0, 3, 60.0, 0.5), s)
     assert d.accepted and d.reason is None
+    assert (d.whiteness_before, d.whiteness_after) == (50.0, 60.0)
     # the error guard: 1.0 -> 1.6 > 1.5 x 1.0
-    d = decide(cur, _fit(-102.0, 3, 40.0, 1.6), s)
+    d = decide(cur, _fit(-105.0, 3, 40.0, 1.6), s)
     assert (d.accepted, d.reason) == (False, "the error grew (1 -> 1.6)")
     assert (d.error_before, d.error_after, d.whiteness_after) == (1.0, 1.6, 40.0)
     # BIC with n = 100: k log n costs log(100) = 4.61 per parameter, so two

@@ -143,8 +143,10 @@ def add_discretisation(p: argparse.ArgumentParser, *, hold_default: str = "zoh")
     p.add_argument("--method", choices=("ros2", "rk4"), default="ros2",
                    help="UKF discretisation of the state equations")
     p.add_argument("--substeps", type=int, default=1, help="integrator steps per sample")
-    p.add_argument("--hold", choices=("zoh", "mean"), default=hold_default,
-                   help="input over a sample interval: u_k or (u_k + u_k+1)/2")
+    p.add_argument("--hold", choices=("zoh", "mean", "linear"), default=hold_default,
+                   help="input over a sample interval: u_k (zoh), (u_k + u_k+1)/2 (mean), or "
+                        "the first-order hold u_k + s (u_k+1 - u_k) (linear; for inputs sampled "
+                        "from a continuous signal)")
     add_backend(p)
 
 

@@ -4,6 +4,7 @@ DE), writing ``result.json`` and PNG fit plots."""
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import warnings
 from pathlib import Path
@@ -21,12 +22,16 @@ from bondgraph.cli.common import (
     load_model,
     load_record,
     output_folder,
+    parse_names,
     parse_pairs,
     parse_params,
     published,
 )
+from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import EstimationError, IdentifiabilityWarning
 from bondgraph.inference.estimate import estimate
+from bondgraph.inference.output_error import output_error_fit
+from bondgraph.inference.record import as_record, record_arrays
 from bondgraph.inference.options import FitOptions, UKFOptions
 from bondgraph.inference.ukf import default_P0
 from bondgraph.report.estimation import plot_fit
@@ -64,6 +69,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=1,
                    help="local Dask worker processes per batched evaluation (1: in process)")
     add_scheduler(p)
+    p.add_argument("--fit", choices=("nll", "sim"), default="nll",
+                   help="criterion: the UKF negative log-likelihood (nll: process noise, "
+                        "unmeasured disturbances, global search) or the free-run simulation "
+                        "error by least squares with forward sensitivities (sim: a "
+                        "deterministic model, a local search from the defaults)")
+    p.add_argument("--estimate-x0", default=None, metavar="STATES",
+                   help="with --fit sim: initial states estimated too (comma-separated, or all)")
     add_quiet(p)
 
 
@@ -91,6 +103,8 @@ def run(args) -> int:
     ck = (Path(args.checkpoint) if args.checkpoint
           else folder.work_dir(create=False) / "checkpoint.npz")
     x0 = initial_state(model, exp, args.x0)
+    if args.fit == "sim":
+        return run_output_error(args, model, exp, params, x0, folder)
     P0 = default_P0(model, x0, args.p0_rel)
     fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
                      iterations=args.iterations, seed=args.seed, checkpoint=ck,
@@ -135,3 +149,34 @@ def _prepare_checkpoint(folder, resume: bool) -> None:
     done = folder.path / "checkpoint.npz"
     if resume and not ck.exists() and done.exists():
         shutil.copyfile(done, ck)
+
+
+def run_output_error(args, model, exp, params, x0, folder) -> int:
+    """``--fit sim``: the output-error fit
+    (:func:`bondgraph.inference.output_error.output_error_fit`) from the
+    model's defaults with ``--fixed`` and ``--x0``, the initial states of
+    ``--estimate-x0`` estimated too; writes ``result.json``."""
+    theta = model.theta0.copy()
+    for k, v in parse_pairs(args.fixed, "--fixed").items():
+        theta[model.param_index(k)] = v
+    t, u, y, _, _ = record_arrays(model, as_record(exp))
+    states = parse_names(args.estimate_x0, "--estimate-x0") if args.estimate_x0 else []
+    if states == ["all"]:
+        states = list(model.states)
+    r = output_error_fit(model, t, u, y, params, theta=theta, x0=x0, x0_states=states,
+                         hold=args.hold)
+    doc = {"model": model.name, "data": str(args.data), "fit": "sim", "names": r.names,
+           "estimates": r.estimates(), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,
+           "rmse": dict(zip(model.outputs, r.rmse.tolist())), "nfev": r.nfev,
+           "status": r.status, "message": r.message}
+    text = json.dumps(to_jsonable(doc), indent=2, allow_nan=False)
+    folder.publish(lambda d: (d / "result.json").write_text(text))
+    rpath = folder.path / "result.json"
+    for n in r.names:
+        sd = r.std.get(n)
+        print(f"{n:24s} {r.estimates()[n]:.6g}" + (f" ± {sd:.3g}" if sd is not None else
+                                                    " (on a bound)" if n in r.at_bound else ""))
+    print(f"free-run RMS error: " + ", ".join(f"{o} {v:.4g}" for o, v in
+                                              zip(model.outputs, r.rmse)))
+    print(f"wrote {rpath}")
+    return 0

@@ -11,12 +11,16 @@ from pathlib import Path
 
 from bondgraph.cli.common import (
     MODEL_HELP,
-    add_backend,
+    add_discretisation,
+    add_fixed,
+    add_initial_state,
     add_overwrite,
     add_quiet,
     load_record,
+    parse_pairs,
     parse_params,
 )
+from bondgraph.data.records import Experiment
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.settings import LoopSettings
@@ -50,7 +54,31 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--significance", type=float, default=None)
     p.add_argument("--no-structural", action="store_true",
                    help="score only additive effects (faster)")
-    add_backend(p)
+    p.add_argument("--validate", default=None, metavar="FILE",
+                   help="held-out record (CSV): the accept decision and the report's error "
+                        "before/after use the free-run error on it")
+    p.add_argument("--holdout", type=float, default=None, metavar="FRACTION",
+                   help="without --validate: the last FRACTION of the record is held out as "
+                        "the validation record (the fits use the rest)")
+    p.add_argument("--metric-tolerance", type=float, default=None,
+                   help="accept an effect only if the error grows by at most this factor "
+                        "(default 1.0: it may not rise)")
+    add_fixed(p)
+    add_initial_state(p)
+    p.set_defaults(p0_rel=None)        # the loop's own P0 policy unless given
+    p.add_argument("--estimate-x0", default=None, metavar="STATES",
+                   help="initial states estimated jointly with the parameters at every fit "
+                        "(comma-separated, or all)")
+    p.add_argument("--fit", choices=("nll", "sim"), default=None,
+                   help="declared fit: UKF likelihood (nll, default) or an output-error "
+                        "(free-run least-squares) fit of the non-noise parameters first, "
+                        "whose estimates start the likelihood fit (sim)")
+    p.add_argument("--p0", choices=("magnitude", "state"), default=None,
+                   help="scale of each initial state's prior std: max(|x0|, 1) (magnitude, "
+                        "default) or the state's own scale along the record (state: free-run "
+                        "RMS, process-noise walk, sensors; a sidecar's x0_std imposed)")
+    add_discretisation(p)          # with --backend
+    p.set_defaults(method=None, substeps=None, hold=None)   # a case's own options unless given
     add_quiet(p)
 
 
@@ -78,6 +106,8 @@ def run(args) -> int:
         record = case.record()
         params = parse_params(args.params) if args.params else case.params
         settings.update(case.settings)
+        if case.true_effect is not None:
+            settings["true_effect"] = case.true_effect
         name = case.name
     if args.metric:
         settings["metric"] = args.metric
@@ -88,6 +118,7 @@ def run(args) -> int:
         settings["significance"] = args.significance
     if args.no_structural:
         settings["structural"] = False
+    settings.update(numerics_settings(args, settings, graph))
     settings["ukf"] = dataclasses.replace(settings.get("ukf") or UKFOptions(),
                                           backend=args.backend)
     try:                                             # bad settings fail before any output
@@ -104,6 +135,9 @@ def run(args) -> int:
     print()
     print(f"{name}: {res.metric}")
     print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
+    if res.final.validation_metric is not None:
+        print(f"  on the validation record: before {res.initial.validation_metric:.4g}   "
+              f"after {res.final.validation_metric:.4g}")
     if res.steps:
         print(res.table())
     else:
@@ -111,3 +145,43 @@ def run(args) -> int:
     print(f"report: {Path(args.out) / 'report.md'} (and report.json, PNG plots, "
           f"augmented_model.py)")
     return 0
+
+
+def numerics_settings(args, settings: dict, graph) -> dict:
+    """Loop settings from the shared options: ``--fixed`` (over the case's),
+    ``--x0`` (by state name, over the record's initial state), ``--p0-rel``,
+    ``--method``/``--substeps``/``--hold`` (the case's UKF options otherwise
+    kept), ``--validate`` and ``--metric-tolerance``.
+
+    Raises
+    ------
+    OptionError
+        Malformed pairs; ModelError: a state the graph lacks.
+    """
+    out: dict = {}
+    fixed = parse_pairs(args.fixed, "--fixed")
+    if fixed:
+        out["fixed"] = {**settings.get("fixed", {}), **fixed}
+    x0 = parse_pairs(args.x0, "--x0")
+    if x0:
+        out["x0_overrides"] = x0
+    if args.p0_rel is not None:
+        out["p0_rel"] = float(args.p0_rel)
+    if args.p0 is not None:
+        out["p0_scale"] = args.p0
+    if args.fit is not None:
+        out["fit"] = args.fit
+    if args.estimate_x0:
+        out["estimate_x0"] = [n.strip() for n in args.estimate_x0.split(",") if n.strip()]
+    base = settings.get("ukf") or UKFOptions()
+    given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
+             if getattr(args, k) is not None}
+    if given:
+        out["ukf"] = UKFOptions(**{**base.to_dict(), **given})
+    if args.validate:
+        out["validation"] = Experiment.load(args.validate)
+    if args.holdout is not None:
+        out["holdout"] = float(args.holdout)
+    if args.metric_tolerance is not None:
+        out["metric_tolerance"] = float(args.metric_tolerance)
+    return out

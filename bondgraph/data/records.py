@@ -544,7 +544,7 @@ class Experiment:
             info[c] = {**first, **entry}
         meta["columns"] = {c: info[c] for c in names}
         order = ("format", "name", "model", "truth_model", "description", "dt", "columns",
-                 "true_parameters", "x0", "noise", "seed")
+                 "true_parameters", "x0", "x0_std", "noise", "seed")
         meta = {**{k: meta[k] for k in order if k in meta},
                 **{k: v for k, v in meta.items() if k not in order}}
         return json.dumps(to_jsonable(meta), indent=2, allow_nan=False) + "\n"
@@ -581,6 +581,33 @@ class Experiment:
             elif isinstance(meta_x0, Mapping) and name in meta_x0:
                 x0[i] = float(meta_x0[name])
         return x0
+
+    def initial_state_std(self, model) -> dict[str, float]:
+        """The declared spread of the initial state: the sidecar's ``x0_std``
+        (state name -> standard deviation of the prior whose mean is
+        :meth:`initial_state`), for the states ``model`` has.
+
+        Raises
+        ------
+        DataError
+            ``x0_std`` not a mapping of finite numbers >= 0.
+        """
+        raw = (self.meta or {}).get("x0_std") or {}
+        if not isinstance(raw, Mapping):
+            raise DataError("sidecar 'x0_std' must be an object {state: std}",
+                            path=str(self.path) if self.path else None)
+        out = {}
+        for name, v in raw.items():
+            try:
+                sd = float(v)
+            except (TypeError, ValueError):
+                sd = float("nan")
+            if not np.isfinite(sd) or sd < 0:
+                raise DataError(f"sidecar x0_std of '{name}' must be a finite number >= 0, "
+                                f"got {v!r}", path=str(self.path) if self.path else None)
+            if name in model.states:
+                out[name] = sd
+        return out
 
     def missing_inputs(self, model) -> list[str]:
         """Inputs of ``model`` (not ``der(.)`` ones) that the record lacks."""

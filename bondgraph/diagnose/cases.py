@@ -40,10 +40,35 @@ def declared_builder(fn: Callable[[], BondGraph]) -> Callable[[], BondGraph]:
     return make
 
 
+@dataclass(frozen=True)
+class TrueEffect:
+    """The effect a synthetic case's truth has: the declared graph plus
+    effect ``kind`` (a name of :mod:`bondgraph.diagnose.effects`) at
+    ``target`` (a target name) with parameter ``values`` (by the effect's
+    local parameter names). Unpacks as ``(kind, target)``."""
+
+    kind: str
+    target: str
+    values: dict = field(default_factory=dict)
+
+    def __iter__(self):
+        return iter((self.kind, self.target))
+
+    @property
+    def label(self) -> str:
+        """``"kind @ target"``, as a candidate's label."""
+        return f"{self.kind} @ {self.target}"
+
+    def to_dict(self) -> dict:
+        """JSON-ready: kind, target, values."""
+        return {"kind": self.kind, "target": self.target, "values": dict(self.values)}
+
+
 @dataclass
 class LoopCase:
     """A declared model, a record, the parameters to estimate, loop settings,
-    and (for synthetic cases) the effect the truth has."""
+    and (for synthetic cases) the effect the truth has (a :class:`TrueEffect`;
+    a ``(kind, target)`` tuple is converted)."""
 
     name: str
     description: str
@@ -51,7 +76,11 @@ class LoopCase:
     record: Callable[[], Any]
     params: list[str]
     settings: dict = field(default_factory=dict)
-    true_effect: tuple[str, str] | None = None   # (effect name, target name)
+    true_effect: TrueEffect | None = None
+
+    def __post_init__(self):
+        if self.true_effect is not None and not isinstance(self.true_effect, TrueEffect):
+            self.true_effect = TrueEffect(*self.true_effect)
 
 
 def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,

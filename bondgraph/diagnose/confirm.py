@@ -63,7 +63,7 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
         ctx.log(f"  cannot apply {cand.label}: {str(exc).splitlines()[0]}")
         return None
     new = [P[p.name].name for p in eff.params if p.estimated and p.name in P]
-    start = dict(fit.estimates())
+    start = {**fit.estimates(), **cand.profile}
     for n in fit.model.params:
         start.setdefault(n, float(fit.theta[fit.model.param_index(n)]))
     widen_boxes(eff, P)
@@ -74,7 +74,8 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
         # all parameters re-adjust (the nuisance ones absorbed part of the
         # missing effect): the confirmed fit is the candidate's final fit
         fits = [fit_model(ctx, g, list(fit.params) + new, s0, f"confirming {cand.label}",
-                          model=model, iterations=ctx.settings.confirm_iterations)
+                          model=model, iterations=ctx.settings.confirm_iterations,
+                          tolerance=ctx.settings.confirm_tolerance)
                 for s0 in starts]
         f1 = min(fits, key=lambda f: f.nll if np.isfinite(f.nll) else np.inf)
     except BondGraphError as exc:
@@ -88,12 +89,16 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
 def start_values(eff: Effect, cand: Candidate) -> dict:
     """The candidate's values, with the physical sign imposed on an additive
     effect's nonnegative parameters (friction coefficients of R laws; 1e-9
-    instead of 0)."""
+    instead of 0), clipped into the effect's declared boxes (a score-test
+    value of λ = 1159 for λ ∈ [0, 1] starts at 1: boxes are never widened)."""
     values = {k: v for k, v in cand.values.items()}
-    if eff.additive:
-        for p in eff.params:
-            if p.nonnegative and p.name in values:
-                values[p.name] = abs(values[p.name]) or 1e-9
+    for p in eff.params:
+        if p.name not in values:
+            continue
+        if eff.additive and p.nonnegative:
+            values[p.name] = abs(values[p.name]) or 1e-9
+        if p.bounds is not None:
+            values[p.name] = float(np.clip(values[p.name], *p.bounds))
     return values
 
 
@@ -136,8 +141,9 @@ def natural_starts(eff: Effect, cand: Candidate, P: dict, new: list[str],
 def grid_refine(ctx: Context, model: Model, names: list[str], start: dict) -> dict:
     """Improve the start values of ``names`` (the new parameters) by two
     batched coordinate grid searches (13 factors in [0.05, 20], then 9 in
-    [0.6, 1.66], both signs where the box allows) with everything else fixed:
-    two UKF calls per parameter instead of an optimizer's dozens.
+    [0.6, 1.66], both signs where the box allows, all clipped into the
+    declared boxes) with everything else fixed: two UKF calls per parameter
+    instead of an optimizer's dozens.
 
     Returns
     -------
@@ -156,7 +162,7 @@ def grid_refine(ctx: Context, model: Model, names: list[str], start: dict) -> di
         return start
     crit = criterion_for(ctx, model, names, theta)
     lo, hi = bounds_around(model, names, theta)
-    x = np.array([start[n] for n in names], dtype=float)
+    x = np.clip(np.array([start[n] for n in names], dtype=float), lo, hi)
     for factors in (np.geomspace(0.05, 20.0, 13), np.geomspace(0.6, 1.66, 9)):
         for i in range(len(names)):
             xs = np.repeat(x[None, :], factors.size + 1, axis=0)

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -20,18 +21,20 @@ import sympy as sp
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
+    X0_TOKEN,
     fisher_fit,
     hessian_cramer_rao,
     lbfgsb_polish,
     make_criterion,
     prior_covariance,
     run_ukf,
+    state_prior,
 )
 from bondgraph.diagnose.metric import compute_metric
 from bondgraph.diagnose.residuals import analyze
 from bondgraph.diagnose.result import FitSummary
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.errors import BondGraphError
+from bondgraph.errors import BondGraphError, NumericalError
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -69,20 +72,28 @@ class Record:
 @dataclass
 class Context:
     """What every step of the loop reads: the record, the settings, the
-    (time-stamped) line logger and whether progress bars are shown."""
+    (time-stamped) line logger, whether progress bars are shown, and a cache
+    (the state-scaled priors of the models seen), and the initial states
+    estimated with the current fit (``settings.estimate_x0``; by name), which
+    every later filter run conditions on."""
 
     record: Record
     settings: LoopSettings
     log: Callable[[str], None] = print
     progress: bool = True
+    cache: dict = field(default_factory=dict)
+    x0_estimates: dict = field(default_factory=dict)
 
 
 @dataclass
 class Fit:
     """A fitted model: graph, generated model, estimated names, full θ
     (n_theta,), NLL, stored UKF run, residual report, metric value, free-run
-    outputs (N, n_y) or None, Cramér-Rao std by name, number of scalar
-    observations."""
+    outputs (N, n_y) or None, Cramér-Rao std by name (None for an estimate
+    at a bound), number of scalar observations; the estimates on a bound of
+    their box (``at_bound``), whether the scoring converged and in how many
+    iterations (None: not fitted by scoring), and the free-run error on the
+    validation record (None without one)."""
 
     graph: BondGraph
     model: Model
@@ -95,6 +106,11 @@ class Fit:
     sim_y: np.ndarray | None
     std: dict = field(default_factory=dict)
     n_obs: int = 0
+    at_bound: list = field(default_factory=list)
+    x0_est: dict = field(default_factory=dict)
+    converged: bool | None = None
+    iterations: int | None = None
+    validation_metric: float | None = None
 
     @property
     def k(self) -> int:
@@ -123,7 +139,14 @@ class Fit:
         return FitSummary(self.graph.name, self.nll, self.aic(), self.bic(), self.metric,
                           self.residuals.whiteness, self.estimates(), dict(self.std),
                           self.residuals, self.sim_y, self.ukf.innovations[:, 0, :],
-                          np.diagonal(S, axis1=1, axis2=2).copy())
+                          np.diagonal(S, axis1=1, axis2=2).copy(), list(self.at_bound),
+                          self.validation_metric, dict(self.x0_est))
+
+    @property
+    def accept_metric(self) -> float:
+        """The error the accept decision compares: the validation error if
+        there is a validation record, else the record's free-run error."""
+        return self.metric if self.validation_metric is None else self.validation_metric
 
 
 # ----------------------------------------------------------------- models
@@ -135,17 +158,24 @@ def model_of(graph: BondGraph) -> Model:
 def prior_mean(ctx: Context, model: Model) -> np.ndarray:
     """UKF prior mean x0 (n_x,): ``settings.x0`` if it fits the model, else
     the record's initial state (:meth:`bondgraph.data.records.Experiment.initial_state`:
-    state columns, else the sidecar's x0, else the model's X0)."""
+    state columns, else the sidecar's x0, else the model's X0), with
+    ``settings.x0_overrides`` (by state name) imposed."""
+    x = None
     if ctx.settings.x0 is not None:
         x = np.asarray(ctx.settings.x0, dtype=float)
-        if x.shape == (model.n_x,):
-            return x
-    return ctx.record.exp.initial_state(model)
+        x = x.copy() if x.shape == (model.n_x,) else None
+    if x is None:
+        x = np.asarray(ctx.record.exp.initial_state(model), dtype=float).copy()
+    for name, v in {**(ctx.settings.x0_overrides or {}), **ctx.x0_estimates}.items():
+        if name in model.states:
+            x[model.state_index(name)] = float(v)
+    return x
 
 
 def prior_cov(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
     """UKF prior covariance (n_x, n_x): ``settings.P0`` if it fits the model
-    (a vector is a diagonal), else the default (5 % of max(|x0|, 1)), with the
+    (a vector is a diagonal), else the default (``settings.p0_rel``, default
+    5 %, of max(|x0|, 1)), with the
     standard deviations of ``settings.P0_std`` (by state name) imposed, e.g. a
     level test track: {"theta_g": 0.002}."""
     s = ctx.settings
@@ -154,7 +184,10 @@ def prior_cov(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
         if P.shape in ((model.n_x,), (model.n_x, model.n_x)):
             return np.diag(P) if P.ndim == 1 else P
         # states added by effects: fall back to the default variance
-    P = prior_covariance(model, x0)
+    if s.p0_scale == "state":
+        P = _state_prior(ctx, model, x0)
+    else:
+        P = prior_covariance(model, x0, s.p0_rel)
     for name, sd in (s.P0_std or {}).items():
         if name in model.states:
             i = model.state_index(name)
@@ -164,10 +197,56 @@ def prior_cov(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
     return P
 
 
-def prior(ctx: Context, model: Model) -> tuple[np.ndarray, np.ndarray]:
-    """The UKF prior (x0, P0) of ``model``: :func:`prior_mean`, :func:`prior_cov`."""
+def _state_prior(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
+    """:func:`~bondgraph.diagnose.inference_calls.state_prior` at the model's
+    defaults with ``settings.fixed``, cached per model and prior mean (every
+    candidate's model asks again)."""
+    key = (id(model), x0.tobytes())
+    if key not in ctx.cache:
+        theta = model.theta0.copy()
+        for k, v in ctx.settings.fixed.items():
+            if k in model.params:
+                theta[model.param_index(k)] = v
+        t, u, y = ctx.record.arrays(model)
+        ctx.cache[key] = (model, state_prior(model, t, u, y, theta, x0, ctx.settings,
+                                             ctx.record.exp.initial_state_std(model)))
+    return ctx.cache[key][1].copy()
+
+
+def prior(ctx: Context, model: Model, shrink: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The UKF prior (x0, P0) of ``model``: :func:`prior_mean`, :func:`prior_cov`;
+    the initial states estimated with the current fit (``ctx.x0_estimates``)
+    at their estimates with a token spread (X0_TOKEN of their prior std:
+    the likelihood is conditional on them) unless ``shrink`` is False."""
     x0 = prior_mean(ctx, model)
-    return x0, prior_cov(ctx, model, x0)
+    P = prior_cov(ctx, model, x0)
+    if shrink:
+        for name in ctx.x0_estimates:
+            if name in model.states:
+                i = model.state_index(name)
+                sd = X0_TOKEN * math.sqrt(max(P[i, i], 0.0))
+                P[i, :] = 0.0
+                P[:, i] = 0.0
+                P[i, i] = sd ** 2
+    return x0, P
+
+
+def x0_states(ctx: Context, model: Model) -> list[str]:
+    """The initial states of ``model`` estimated with θ (``settings.estimate_x0``;
+    ``["all"]``: every state)."""
+    want = list(ctx.settings.estimate_x0 or [])
+    if want == ["all"]:
+        return list(model.states)
+    return [s for s in want if s in model.states]
+
+
+def prior_on(record: Record, settings: LoopSettings, model: Model):
+    """The UKF prior (x0, P0) of ``model`` on another record (the validation
+    record): its own initial state, the loop's covariance policy (a given
+    ``settings.x0`` belongs to the estimation record and is not used)."""
+    x0 = record.exp.initial_state(model)
+    view = Context(record, replace(settings, x0=None))
+    return x0, prior_cov(view, model, x0)
 
 
 def criterion_for(ctx: Context, model: Model, names: Sequence[str], base: np.ndarray):
@@ -179,11 +258,40 @@ def criterion_for(ctx: Context, model: Model, names: Sequence[str], base: np.nda
 
 
 def bounds_around(model: Model, names: Sequence[str], theta: np.ndarray):
-    """The declared boxes (k,) of ``names``, widened to contain their current
-    values in ``theta``."""
+    """The declared boxes (k,) of ``names`` (never widened: a start value
+    outside its box is clipped into it by :func:`clip_into_box`; ``theta``
+    is accepted for the callers' convenience)."""
+    return model.bounds(names)
+
+
+def clip_into_box(ctx: Context, model: Model, names: Sequence[str], theta: np.ndarray,
+                  what: str) -> np.ndarray:
+    """``theta`` (n_theta,) with the values of ``names`` clipped into their
+    declared boxes (each move logged)."""
+    theta = theta.copy()
     lo, hi = model.bounds(names)
-    x = np.array([theta[model.param_index(n)] for n in names])
-    return np.minimum(lo, x), np.maximum(hi, x)
+    for n, a, b in zip(names, lo, hi):
+        j = model.param_index(n)
+        v = float(np.clip(theta[j], a, b))
+        if v != theta[j]:
+            ctx.log(f"  {what}: start {n} = {theta[j]:.4g} outside its box [{a:.4g}, {b:.4g}]; "
+                    f"clipped to {v:.4g}")
+            theta[j] = v
+    return theta
+
+
+def on_bound(model: Model, names: Sequence[str], theta: np.ndarray,
+             rel: float = 1e-6) -> list[str]:
+    """Names whose value in ``theta`` lies within ``rel`` of its box's width
+    (or of its own magnitude, for an unbounded side) of a bound of its box."""
+    lo, hi = model.bounds(names)
+    out = []
+    for n, a, b in zip(names, lo, hi):
+        v = float(theta[model.param_index(n)])
+        tol = rel * (b - a if np.isfinite(b - a) else max(abs(v), 1e-300))
+        if (np.isfinite(a) and v - a <= tol) or (np.isfinite(b) and b - v <= tol):
+            out.append(n)
+    return out
 
 
 def noise_params(graph: BondGraph) -> set:
@@ -220,7 +328,7 @@ def cr_std(F: np.ndarray, names: Sequence[str]) -> dict:
 # ----------------------------------------------------------------- fitting
 def fit_model(ctx: Context, graph: BondGraph, params: list[str],
               start: Mapping[str, float] | None, what: str, model: Model | None = None,
-              iterations: int | None = None) -> Fit:
+              iterations: int | None = None, tolerance: float = 0.0) -> Fit:
     """Warm-started maximum-likelihood fit of ``params``, everything else fixed.
 
     Parameters
@@ -236,12 +344,17 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     model : Model, optional
         ``graph``'s generated model, if already built.
     iterations : int, optional
-        Fisher-scoring iterations (default ``settings.fit_iterations``; 0:
-        evaluate at the start).
+        Maximum Fisher-scoring iterations (default ``settings.fit_iterations``;
+        0: evaluate at the start).
+    tolerance : float
+        Convergence of the scoring [nats] (:func:`~bondgraph.diagnose.inference_calls.fisher_fit`).
 
     Returns
     -------
     Fit
+        Start values outside their declared boxes are clipped into them;
+        estimates on a bound are listed in ``at_bound`` (logged) and get no
+        Cramér-Rao std.
 
     Raises
     ------
@@ -254,20 +367,44 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
         if k in model.params:
             theta[model.param_index(k)] = v
     params = [p for p in params if p in model.params]
+    theta = clip_into_box(ctx, model, params, theta, what)
     iters = ctx.settings.fit_iterations if iterations is None else int(iterations)
     std: dict = {}
+    conv: tuple = (None, None)
+    x0_est = {s: ctx.x0_estimates[s] for s in x0_states(ctx, model) if s in ctx.x0_estimates}
     if params and iters > 0:
-        theta, std = _maximize(ctx, graph, model, params, theta, iters, what)
-    return evaluate_fit(ctx, graph, model, params, theta, what, std)
+        theta, std, conv, x0_new = _maximize(ctx, graph, model, params, theta, iters, what,
+                                             tolerance)
+        x0_est.update(x0_new)
+    kept = ctx.x0_estimates
+    ctx.x0_estimates = {**kept, **x0_est}
+    try:
+        fit = evaluate_fit(ctx, graph, model, params, theta, what, std)
+    finally:
+        ctx.x0_estimates = kept
+    fit.converged, fit.iterations = conv
+    fit.x0_est = x0_est
+    fit.at_bound = on_bound(model, params, theta)
+    if fit.at_bound:
+        ctx.log(f"  warning: {what}: estimate(s) on a bound of their box: "
+                f"{', '.join(f'{n} = {fit.theta[model.param_index(n)]:.4g}' for n in fit.at_bound)}"
+                f" (no Cramér-Rao std; widen the box or fix the parameter)")
+        for n in fit.at_bound:
+            fit.std[n] = None
+    return fit
 
 
 def _maximize(ctx: Context, graph: BondGraph, model: Model, params: list[str],
-              theta: np.ndarray, iters: int, what: str) -> tuple[np.ndarray, dict]:
+              theta: np.ndarray, iters: int, what: str,
+              tolerance: float = 0.0) -> tuple[np.ndarray, dict, tuple, dict]:
     """Fisher scoring of ``params`` from ``theta`` (noise intensities in log
-    scale), L-BFGS-B if it fails numerically; returns θ and the Cramér-Rao
-    std (empty after the fallback)."""
+    scale), the initial states of :func:`x0_states` jointly, L-BFGS-B (θ
+    only) if it fails numerically; returns θ, the Cramér-Rao std (empty
+    after the fallback; ``x0.<state>`` for the states), (converged,
+    iterations) and the estimated initial states by name."""
     t, u, y = ctx.record.arrays(model)
-    x0, P0 = prior(ctx, model)
+    states = x0_states(ctx, model)
+    x0, P0 = prior(ctx, model, shrink=not states)
     idx = [model.param_index(n) for n in params]
     lo, hi = bounds_around(model, params, theta)
     # log scale and decade moves for the noise intensities only: a physical
@@ -276,15 +413,18 @@ def _maximize(ctx: Context, graph: BondGraph, model: Model, params: list[str],
     noise = noise_params(graph)
     scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
     try:
-        theta, F = fisher_fit(model, t, u, y, theta, idx, lo, hi, x0, P0, ctx.settings, iters,
-                              scale)
-        return theta, cr_std(F, params)
+        theta, F, conv, used, x0n = fisher_fit(
+            model, t, u, y, theta, idx, lo, hi, x0, P0, ctx.settings, iters, scale, tolerance,
+            states, np.sqrt(np.maximum(np.diag(P0), 1e-300)))
+        names = list(params) + [f"x0.{s_}" for s_ in states]
+        return (theta, cr_std(F, names), (conv, used),
+                {s_: float(x0n[model.state_index(s_)]) for s_ in states})
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
         ctx.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
         crit = criterion_for(ctx, model, params, theta)
         xs = np.array([theta[model.param_index(n)] for n in params])
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
-        return crit.theta(x[None, :])[0], {}
+        return crit.theta(x[None, :])[0], {}, (None, None), {}
 
 
 def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str],
@@ -294,7 +434,7 @@ def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str]
 
     Raises
     ------
-    BondGraphError
+    NumericalError
         If the UKF fails at ``theta`` (the reason is named).
     """
     t, u, y = ctx.record.arrays(model)
@@ -302,24 +442,45 @@ def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str]
     res = run_ukf(model, t, u, y, theta[None, :], x0, P0, ctx.settings, store=True)
     nll = float(res.nll[0])
     if not np.isfinite(nll):
-        raise BondGraphError(f"{what}: the UKF failed at the fitted parameters "
+        raise NumericalError(f"{what}: the UKF failed at the fitted parameters "
                              f"({res.reasons[0]})")
     sim_y = free_run(ctx, model, theta, res)
     rep = analyze(res, model, t, u, y, sim_y=sim_y)
     fit = Fit(graph, model, list(params), theta, nll, res, rep, float("nan"), sim_y,
               std=std, n_obs=int(res.n_obs.sum()))
     fit.metric = compute_metric(ctx.settings, fit, ctx.record)
+    if ctx.settings.validation is not None:
+        fit.validation_metric = validation_metric(ctx, model, theta)
     return fit
 
 
-def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res) -> np.ndarray | None:
-    """Free-run simulation (N, n_y) from the first filtered state with the
-    measured inputs (``settings.sim_method``, rtol 1e-6, atol 1e-9); None
-    (logged) if the model cannot be simulated freely."""
-    t, u, y = ctx.record.arrays(model)
+def validation_metric(ctx: Context, model: Model, theta: np.ndarray) -> float:
+    """The loop's metric on the validation record (``settings.validation``):
+    one UKF run on it gives the first filtered state, from which the model
+    runs freely with the record's inputs; inf if the filter or the free run
+    fails there."""
+    rec = Record(ctx.settings.validation)
+    t, u, y = rec.arrays(model)
+    x0, P0 = prior_on(rec, ctx.settings, model)
+    res = run_ukf(model, t, u, y, theta[None, :], x0, P0, ctx.settings, store=True)
+    if not np.isfinite(res.nll[0]):
+        return float("inf")
+    sim_y = free_run(ctx, model, theta, res, rec)
+    view = SimpleNamespace(model=model, ukf=res, sim_y=sim_y)
+    return compute_metric(ctx.settings, view, rec)
+
+
+def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res,
+             record: Record | None = None) -> np.ndarray | None:
+    """Free-run simulation (N, n_y) of ``record`` (default the loop's) from
+    the first filtered state with the measured inputs
+    (``settings.sim_method``, rtol 1e-6, atol 1e-9); None (logged) if the
+    model cannot be simulated freely."""
+    record = ctx.record if record is None else record
+    t, u, y = record.arrays(model)
     x0 = ukf_res.x_filt[0, 0, :]
     if not np.all(np.isfinite(x0)):
-        x0 = prior_mean(ctx, model)
+        x0 = prior_on(record, ctx.settings, model)[0]
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -344,7 +505,8 @@ def parameter_std(ctx: Context, fit: Fit) -> dict:
     h = 1e-4 * np.maximum(np.abs(x), 1e-6)
     try:
         cr = hessian_cramer_rao(crit, x, h, fit.params)
-        return {n: (float(v) if v is not None and np.isfinite(v) else None)
+        return {n: (float(v) if v is not None and np.isfinite(v) and n not in fit.at_bound
+                    else None)
                 for n, v in zip(fit.params, cr.get("std", [None] * len(fit.params)))}
     except Exception as exc:
         ctx.log(f"  Cramér-Rao bounds unavailable ({str(exc).splitlines()[0]})")

@@ -16,9 +16,15 @@ import numpy as np
 
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
-from bondgraph.inference.fisher import fisher_scoring
+from bondgraph.inference.estimand import X0_TOKEN, Estimand
+from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
-from bondgraph.inference.ukf import UKFResult, default_P0, ukf_nll
+from bondgraph.inference.output_error import output_error_fit
+from bondgraph.inference.prior import record_prior
+from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
+
+
+__all__ = ["X0_TOKEN"]  # re-exported: the token spread of a jointly estimated initial state
 
 
 def run_ukf(model, t, u, y, thetas: np.ndarray, x0, P0, settings: LoopSettings, *,
@@ -62,34 +68,51 @@ def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P
 
 
 def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, upper, x0, P0,
-               settings: LoopSettings, iterations: int, log_scale) -> tuple[np.ndarray, np.ndarray]:
+               settings: LoopSettings, iterations: int, log_scale, tolerance: float = 0.0,
+               states: Sequence[str] = (), x0_scale=None):
     """Maximum-likelihood fit by Levenberg-damped Fisher scoring
-    (:func:`bondgraph.inference.fisher.fisher_scoring`).
+    (:func:`bondgraph.inference.fisher.estimand_scoring`), the initial states
+    ``states`` estimated jointly (:class:`~bondgraph.inference.estimand.Estimand`).
 
     Parameters
     ----------
     theta : array (n_theta,)
         Start; only the entries ``index`` (k) move, within [lower, upper].
     iterations : int
-        Scoring iterations.
+        Maximum scoring iterations.
     log_scale : array of bool (k,)
         Parameters moved in log θ (noise intensities).
+    tolerance : float
+        Stop when a full scoring step predicts less than this NLL decrease
+        [nats] (0: only the relative NLL change, 1e-6 (1 + |NLL|), stops).
+    states : sequence of str
+        Initial states estimated with θ (their prior shrinks to a token
+        spread; box: ± 100 of their prior std ``x0_scale`` (n_x,)).
 
     Returns
     -------
     theta : array (n_theta,)
-    F : array (k, k)
-        Fisher information at the result.
+    F : array (k + m, k + m)
+        Fisher information at the result (parameters, then states).
+    converged : bool
+        Stopped by a convergence criterion rather than by ``iterations``.
+    used : int
+        Iterations used.
+    x0 : array (n_x,)
+        The initial state (the estimated entries moved).
 
     Raises
     ------
     FloatingPointError, numpy.linalg.LinAlgError
         When the scoring fails numerically (the caller falls back to L-BFGS-B).
     """
-    theta, _, F, _ = fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0,
-                                    options=settings.ukf, max_iter=iterations,
-                                    log_scale=log_scale)
-    return theta, F
+    est = Estimand(model, [model.params[j] for j in index], states=list(states), theta=theta,
+                   x0=x0, x0_scale=x0_scale)
+    lo, hi = est.bounds(lower, upper)
+    scale = np.concatenate([np.asarray(log_scale, bool), np.zeros(len(states), bool)])
+    r = estimand_scoring(model, t, u, y, est, lo, hi, P0, options=settings.ukf,
+                         max_iter=iterations, atol=tolerance, log_scale=scale)
+    return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0
 
 
 def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:
@@ -111,7 +134,40 @@ def hessian_cramer_rao(crit: Criterion, x: np.ndarray, h: np.ndarray,
     return cramer_rao(H, names)
 
 
-def prior_covariance(model, x0: np.ndarray) -> np.ndarray:
-    """The default UKF prior covariance (n_x, n_x): 5 % of max(|x0|, 1)
-    (:func:`bondgraph.inference.ukf.default_P0`)."""
-    return default_P0(model, x0)
+def prior_covariance(model, x0: np.ndarray, rel: float | None = None) -> np.ndarray:
+    """The default UKF prior covariance (n_x, n_x): ``rel`` (default 5 %) of
+    max(|x0|, 1) (:func:`bondgraph.inference.ukf.default_P0`)."""
+    return default_P0(model, x0) if rel is None else default_P0(model, x0, float(rel))
+
+
+def state_prior(model, t, u, y, theta: np.ndarray, x0, settings: LoopSettings,
+                x0_std=None) -> np.ndarray:
+    """The prior covariance (n_x, n_x) by each state's own scale along the
+    record (:func:`bondgraph.inference.prior.record_prior`, the loop's
+    discretisation and hold; ``settings.p0_rel``, default 5 %, of it)."""
+    o = settings.ukf
+    P0, _ = record_prior(model, t, u, y, theta, x0,
+                         rel=0.05 if settings.p0_rel is None else float(settings.p0_rel),
+                         x0_std=x0_std, method=o.method, substeps=max(o.substeps, 2),
+                         hold=o.hold)
+    return P0
+
+
+def output_error(model, t, u, y, names: Sequence[str], theta: np.ndarray, x0,
+                 settings: LoopSettings):
+    """The output-error (free-run least-squares) fit of ``names`` from
+    ``theta`` (:func:`bondgraph.inference.output_error.output_error_fit`,
+    the loop's input hold): an :class:`~bondgraph.inference.output_error.OutputErrorResult`."""
+    return output_error_fit(model, t, u, y, list(names), theta=theta, x0=x0,
+                            hold=settings.ukf.hold)
+
+
+def discretisation(model, t, u, theta: np.ndarray, x0, settings: LoopSettings,
+                   substeps: int | None = None) -> dict:
+    """:func:`bondgraph.inference.ukf.discretisation_check` of the loop's
+    filter options (``substeps`` overriding theirs): ``one_step`` and
+    ``free_run`` (n_y,) in measurement-noise standard deviations."""
+    o = settings.ukf
+    return discretisation_check(model, t, u, theta, x0, method=o.method,
+                                substeps=o.substeps if substeps is None else substeps,
+                                hold=o.hold)

@@ -45,6 +45,18 @@ class Candidate:
         Candidates whose innovation signatures are indistinguishable from this
         one in this record (|correlation| > 0.999 with the estimated
         parameters partialled out): the data cannot tell them apart.
+    profile : dict
+        Declared parameters re-fitted together with a structural candidate
+        when it was scored (name -> value; empty if they stayed frozen); its
+        confirmation starts from them.
+    failed : str or None
+        Why the candidate could not be scored (the filter failed: its reason);
+        its statistic, p-value and score are then NaN, never a χ² of 0.
+    confirmed : dict or None
+        The confirmation refit: ``lr``, ``dof``, ``nll``, ``criterion``
+        (after), ``error`` (free-run, record), ``validation_error``,
+        ``whiteness``, ``values``, ``converged``, ``iterations``,
+        ``at_bound``, and once decided ``accepted`` and ``reason``.
     """
 
     effect: str
@@ -60,6 +72,14 @@ class Candidate:
     confirmed_statistic: float | None = None
     last_resort: bool = False
     equivalent: list = field(default_factory=list)
+    failed: str | None = None
+    confirmed: dict | None = None
+    profile: dict = field(default_factory=dict)
+
+    @property
+    def rank_key(self) -> float:
+        """Sort key, best first: −score, failed (NaN) candidates last."""
+        return -self.score if np.isfinite(self.score) else float("inf")
 
     @property
     def label(self) -> str:
@@ -76,9 +96,13 @@ class Candidate:
 
 @dataclass
 class Step:
-    """One accepted effect: the reported error, NLL, information criterion
-    and whiteness before and after, the parameters after (estimate and
-    Cramér-Rao std), and the candidate's statistic."""
+    """One accepted effect: the accept error (the validation record's
+    free-run error if there is one, else the record's), NLL, information
+    criterion and whiteness before and after, the parameters after (estimate
+    and Cramér-Rao std), the candidate's statistic; the record's own
+    free-run error before and after, whether the error is the validation
+    record's, the confirmed likelihood ratio and its p-value, the target's
+    kind and the effect's parameter names."""
 
     effect: str
     attached_to: str
@@ -94,6 +118,13 @@ class Step:
     parameters: dict
     statistic: float
     p_value: float
+    estimation_error_before: float | None = None
+    estimation_error_after: float | None = None
+    validated: bool = False
+    lr: float | None = None
+    lr_p_value: float | None = None
+    target_kind: str | None = None
+    effect_params: list = field(default_factory=list)
 
 
 @dataclass
@@ -116,11 +147,14 @@ class Rejection:
 
 @dataclass
 class AppliedEffect:
-    """An accepted effect as the augmented model file re-applies it."""
+    """An accepted effect as the augmented model file re-applies it;
+    ``spec`` is ``module:Class`` of a user-supplied effect (None for the
+    library's own effects, found by name)."""
 
     effect: str
     target: Target
     values: dict
+    spec: str | None = None
 
 
 @dataclass
@@ -141,6 +175,13 @@ class FitSummary:
         Free-run simulated outputs.
     innovations, innovation_var : arrays (N, n_y)
         One-step UKF innovations and their variances (diagonal of S).
+    at_bound : list of str
+        Estimates on a bound of their box (their std is None).
+    validation_metric : float or None
+        The metric on the validation record (None without one).
+    x0_estimates : dict
+        Initial states estimated with θ (state name -> value); their
+        Cramér-Rao std in ``std`` as ``x0.<state>``.
     """
 
     model: str
@@ -155,11 +196,16 @@ class FitSummary:
     sim_y: np.ndarray | None
     innovations: np.ndarray
     innovation_var: np.ndarray
+    at_bound: list = field(default_factory=list)
+    validation_metric: float | None = None
+    x0_estimates: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
         return to_jsonable({"model": self.model, "nll": self.nll, "aic": self.aic,
                             "bic": self.bic, "metric": self.metric, "whiteness": self.whiteness,
+                            "validation_metric": self.validation_metric,
+                            "at_bound": self.at_bound, "x0_estimates": self.x0_estimates,
                             "estimates": self.estimates, "std": self.std,
                             "residuals": self.residuals.to_dict()})
 
@@ -197,6 +243,16 @@ class LoopResult:
     outputs, output_units : list of str
     finished : bool
         False for the partial results handed to ``on_update`` during the run.
+    warnings : list of str
+        Warnings about the declared fit (discretisation error, estimates on
+        a bound).
+    true_effect : dict or None
+        The synthetic truth's effect (kind, target, values), if known.
+    truth_ranks : list of (int or None)
+        Rank of the true effect in every step's ranking (:func:`rank_of`).
+    declared_graph : BondGraph or None
+        A copy of the declared graph (the augmented model file rebuilds it
+        from a pickle when the graph has no ``module:function`` source).
     """
 
     model: str
@@ -217,6 +273,10 @@ class LoopResult:
     outputs: list[str] = field(default_factory=list)
     output_units: list[str] = field(default_factory=list)
     finished: bool = False
+    warnings: list[str] = field(default_factory=list)
+    true_effect: dict | None = None
+    truth_ranks: list = field(default_factory=list)
+    declared_graph: BondGraph | None = None
 
     def table(self) -> str:
         """Markdown table of the accepted steps (error = :attr:`metric`)."""
@@ -227,18 +287,38 @@ class LoopResult:
                         f"{s.error_after:.4g} | {s.nll_before:.1f} | {s.nll_after:.1f} |")
         return "\n".join(rows)
 
-    def to_dict(self, ranked: int = 25) -> dict:
+    def to_dict(self, ranked: int | None = None) -> dict:
         """JSON-ready content of ``report.json``: model, source, record,
-        metric, criterion, finished, error before/after, steps, rejected,
-        the ``ranked`` best candidates of every step, initial and final
-        fits, settings."""
+        metric, criterion, finished, error before/after (the record's
+        free-run error) and the validation error before/after (None without
+        a validation record), steps, rejected, every step's ranking (all
+        candidates, or the ``ranked`` best), initial and final fits, settings."""
         return to_jsonable({
             "model": self.model, "source": self.source, "record": self.record,
             "metric": self.metric, "criterion": self.criterion, "finished": bool(self.finished),
             "error_before": self.initial.metric, "error_after": self.final.metric,
+            "validation_error_before": self.initial.validation_metric,
+            "validation_error_after": self.final.validation_metric,
             "steps": [dict(vars(s)) for s in self.steps],
             "rejected": [r.to_dict() for r in self.rejected],
             "rankings": [[c.to_dict() for c in r[:ranked]] for r in self.rankings],
             "initial_fit": self.initial.to_dict(), "final_fit": self.final.to_dict(),
-            "settings": self.settings,
+            "settings": self.settings, "warnings": list(self.warnings),
+            "true_effect": self.true_effect, "truth_ranks": list(self.truth_ranks),
         })
+
+
+def rank_of(ranking: list[Candidate], kind: str, target: str) -> int | None:
+    """1-based rank of the candidate ``kind @ target`` in ``ranking`` (best
+    first), a group of indistinguishable candidates (``equivalent``)
+    counting as one place; None if it is not in the ranking."""
+    place, seen, label = 0, set(), f"{kind} @ {target}"
+    for c in ranking:
+        if c.label in seen:
+            continue
+        place += 1
+        group = {c.label, *c.equivalent}
+        seen |= group
+        if label in group:
+            return place
+    return None

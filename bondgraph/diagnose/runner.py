@@ -5,28 +5,42 @@ lines and the ``on_update`` hand-over of the partial :class:`LoopResult`."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
+
+import numpy as np
 from typing import Callable, Sequence
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.accept import (
     accepted_step,
     applied_effect,
+    confirmed_record,
     decide,
     rejection,
     significant,
 )
 from bondgraph.diagnose.confirm import Confirmation, confirm
 from bondgraph.diagnose.effects import Scales, get_effect
-from bondgraph.diagnose.fit import Context, Fit, Record, fit_model, parameter_std
+from bondgraph.diagnose.fit import (
+    Context,
+    Fit,
+    Record,
+    fit_model,
+    noise_params,
+    parameter_std,
+    prior_mean,
+)
+from bondgraph.diagnose.inference_calls import discretisation, output_error
 from bondgraph.diagnose.metric import metric_name
-from bondgraph.diagnose.result import Candidate, LoopResult
+from bondgraph.diagnose.result import Candidate, LoopResult, rank_of
 from bondgraph.diagnose.scoring import (
     operating_scales,
     score_additive,
     score_structural,
 )
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.errors import ModelError
+from bondgraph.numerics.model import Model
+from bondgraph.errors import BondGraphError, DeclaredFitError, ModelError, NumericalError
 
 #: outcomes of one step
 ACCEPTED, NONE_ACCEPTED, NOTHING_SIGNIFICANT = "accepted", "none accepted", "nothing significant"
@@ -72,6 +86,9 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     ------
     ModelError
         Unknown parameter names.
+    DeclaredFitError
+        If the declared model's fit has a non-finite NLL or free-run error
+        (on the record or the validation record): no effect is scored.
     BondGraphError
         If the declared model cannot be fitted at all (UKF failure).
     """
@@ -80,27 +97,58 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
         raise ModelError(f"graph '{graph.name}' has no parameter(s) {missing} "
                          f"(known: {', '.join(graph.params)})")
     s = LoopSettings.from_options(params, settings)
+    experiment, s = held_out(experiment, s)
     t0 = time.perf_counter()
     ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
                   progress)
     initial = initial_fit(ctx, graph)
-    result = LoopResult(graph.name, graph.source, ctx.record.name, metric_name(s), s.criterion,
-                        s.summary())
+    result = new_result(ctx, graph, initial)
     publish(ctx, result, initial, initial, on_update)
     current = initial
+    ctx.x0_estimates = dict(initial.x0_est)
     for step in range(1, s.max_steps + 1):
         current, outcome = run_step(ctx, result, current, step, graph.name)
+        ctx.x0_estimates = dict(current.x0_est)
         if outcome == NOTHING_SIGNIFICANT:
             break
         publish(ctx, result, initial, current, on_update)
         if outcome == NONE_ACCEPTED:
-            ctx.log("no candidate improved both the criterion and the whiteness: stop")
+            ctx.log("no confirmed candidate passed the accept rule (criterion, likelihood "
+                    "ratio, error): stop")
             break
     if not current.std:
         current.std = parameter_std(ctx, current)
     result.finished = True
     publish(ctx, result, initial, current, on_update)
     ctx.log(f"done in {time.perf_counter() - t0:.1f} s")
+    return result
+
+
+def held_out(experiment, s: LoopSettings):
+    """``(record, settings)`` with the last ``s.holdout`` of the record as the
+    validation record when none is given (the rest is fitted)."""
+    if s.validation is not None or not s.holdout:
+        return experiment, s
+    n = len(experiment.t)
+    cut = int(round(n * (1.0 - s.holdout)))
+    return experiment.segment(0, cut), replace(s, validation=experiment.segment(cut))
+
+
+def new_result(ctx: Context, graph: BondGraph, initial: Fit) -> LoopResult:
+    """The :class:`LoopResult` after the declared fit: names, settings, a copy
+    of the declared graph, the true effect if known, and the warnings (the
+    discretisation check, estimates on a bound)."""
+    s = ctx.settings
+    result = LoopResult(graph.name, graph.source, ctx.record.name, metric_name(s), s.criterion,
+                        s.summary())
+    result.declared_graph = graph.copy(graph.name)
+    te = s.true_effect
+    if te is not None:
+        result.true_effect = (te.to_dict() if hasattr(te, "to_dict")
+                              else {"kind": te[0], "target": te[1], "values": {}})
+    result.warnings.extend(check_discretisation(ctx, initial))
+    result.warnings.extend(f"initial fit: {n} on a bound of its box (no Cramér-Rao std)"
+                           for n in initial.at_bound)
     return result
 
 
@@ -142,12 +190,84 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
                 "conditioned. Declare process noise (g.set_process_noise) on the states "
                 "where forces are unmodelled, ideally as an estimated parameter.")
     first = list(s.params) if s.initial_params is None else list(s.initial_params)
-    fit = fit_model(ctx, graph.copy(graph.name), first, None, "initial fit")
+    start = sim_start(ctx, graph, first) if s.fit == "sim" else None
+    try:
+        fit = fit_model(ctx, graph.copy(graph.name), first, start, "initial fit")
+    except NumericalError as exc:
+        raise DeclaredFitError(f"the declared model cannot be fitted: {exc}; no effect is "
+                               f"scored") from exc
     fit.params = list(s.params)
+    check_declared_fit(fit)
     ctx.log(f"initial fit: NLL {fit.nll:.2f}, {s.criterion.upper()} "
             f"{fit.information(s.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
             f"{metric_name(s)} = {fit.metric:.4g}")
     return fit
+
+
+def sim_start(ctx: Context, graph: BondGraph, names: list[str]) -> dict | None:
+    """Start values of the declared fit from the output-error fit of its
+    non-noise parameters ``names`` (``settings.fit == "sim"``); None (logged)
+    if that fit fails."""
+    # all generated functions: the forward sensitivities need ∂f/∂θ and ∂h/∂θ
+    model = Model.from_graph(graph, name=f"_loop_sim_{graph.name}")
+    noise = noise_params(graph)
+    phys = [n for n in names if n not in noise]
+    if not phys:
+        return None
+    theta = model.theta0.copy()
+    for k, v in ctx.settings.fixed.items():
+        if k in model.params:
+            theta[model.param_index(k)] = v
+    t, u, y = ctx.record.arrays(model)
+    try:
+        r = output_error(model, t, u, y, phys, theta, prior_mean(ctx, model), ctx.settings)
+    except (BondGraphError, ValueError) as exc:   # ValueError: least_squares at a bad start
+        ctx.log(f"  output-error fit failed ({str(exc).splitlines()[0]}); the likelihood fit "
+                f"starts from the defaults")
+        return None
+    ctx.log(f"output-error fit: RMS free-run error {', '.join(f'{v:.4g}' for v in r.rmse)}; "
+            f"estimates {', '.join(f'{k} = {v:.4g}' for k, v in r.estimates().items())}")
+    return r.estimates()
+
+
+def check_declared_fit(fit: Fit) -> None:
+    """Raise :class:`~bondgraph.errors.DeclaredFitError` when the declared
+    model's fit is unusable: a non-finite NLL, free-run error on the record
+    or error on the validation record (a negative mass, a box that lets the
+    model go unstable ...): effects scored against it would be meaningless."""
+    bad = [(what, v) for what, v in (("NLL", fit.nll), ("free-run error", fit.metric),
+                                     ("validation error", fit.validation_metric))
+           if v is not None and not np.isfinite(v)]
+    if bad:
+        raise DeclaredFitError(
+            f"the declared model's fit is unusable: {', '.join(f'{w} = {v}' for w, v in bad)}; "
+            f"no effect is scored. Check the declared parameters and their boxes "
+            f"(signs, units) and the initial state",
+            hint="fit the declared model alone (bondgraph estimate) and fix it first")
+
+
+def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1) -> list[str]:
+    """The filter's discretisation error at the declared fit
+    (:func:`bondgraph.inference.ukf.discretisation_check` with the loop's
+    method, substeps and hold) in measurement-noise stds per sample; above
+    ``limit`` a warning (logged and returned) recommending the fewest substeps
+    among 2, 4, 8, 16, 32 that bring it below."""
+    t, u, _ = ctx.record.arrays(fit.model)
+    x0 = prior_mean(ctx, fit.model)
+    o = ctx.settings.ukf
+    worst = float(np.max(discretisation(fit.model, t, u, fit.theta, x0, ctx.settings)
+                         ["one_step"]))
+    if not worst > limit:
+        return []
+    rec = next((n for n in (2, 4, 8, 16, 32) if n > o.substeps and float(np.max(
+        discretisation(fit.model, t, u, fit.theta, x0, ctx.settings, n)["one_step"])) <= limit),
+        None)
+    msg = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} measurement-noise "
+           f"stds per sample at the declared fit (a model error that biases the fit and the "
+           f"scores); " + (f"use --substeps {rec}" if rec else "use --method rk4 and more "
+                           "substeps, or a shorter sample interval"))
+    ctx.log("warning: " + msg)
+    return [msg]
 
 
 def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
@@ -166,9 +286,17 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     t_ev = time.perf_counter()
     ranking, signif = gather_evidence(ctx, current, scales)
     result.rankings.append(ranking)
+    if ctx.settings.true_effect is not None:
+        kind, target = ctx.settings.true_effect
+        result.truth_ranks.append(rank_of(ranking, kind, target))
+        ctx.log(f"  the true effect {kind} @ {target} ranks {result.truth_ranks[-1]}")
     ctx.log(f"step {step}: {len(ranking)} candidates scored in "
             f"{time.perf_counter() - t_ev:.1f} s; best: " + "; ".join(
                 f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})" for c in ranking[:5]))
+    failed = [c for c in ranking if c.failed]
+    if failed:
+        ctx.log(f"  {len(failed)} candidate(s) could not be scored (filter failed): " + "; ".join(
+            f"{c.label}: {c.failed}" for c in failed[:5]))
     if ranking and ranking[0].equivalent:
         ctx.log(f"  note: {ranking[0].label} is indistinguishable in this record from "
                 f"{', '.join(ranking[0].equivalent)} (signatures correlated > 0.999)")
@@ -209,7 +337,7 @@ def gather_evidence(ctx: Context, current: Fit,
                 "effects (unmeasured disturbances)")
         cands += score_structural(ctx, current, scales, resort_fx)
         signif = significant(cands, s.significance)
-    return sorted(cands, key=lambda c: -c.score), signif
+    return sorted(cands, key=lambda c: c.rank_key), signif
 
 
 def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Scales,
@@ -217,16 +345,20 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
     """Confirm the ``confirm_top`` best significant candidates by refits
     (:func:`bondgraph.diagnose.confirm.confirm`, graphs named ``name``); set
     their likelihood-ratio statistic; return them by decreasing LR − 2k."""
-    todo = sorted(signif, key=lambda c: -c.score)[: ctx.settings.confirm_top]
+    todo = sorted(signif, key=lambda c: c.rank_key)[: ctx.settings.confirm_top]
     confirmed = []
     for c in todo:
         r = confirm(ctx, current, c, scales, name)
         if r is None:
             continue
         c.confirmed_statistic = max(0.0, 2 * (current.nll - r.fit.nll))
+        c.confirmed = confirmed_record(current, r.fit, len(r.new_params), r.values, ctx.settings)
         confirmed.append((c.confirmed_statistic - 2 * c.dof, c, r))
+        how = ("converged" if r.fit.converged else
+               "NOT converged" if r.fit.converged is False else "L-BFGS-B")
         ctx.log(f"  confirmed {c.label}: LR {c.confirmed_statistic:.1f} "
-                f"(score test {c.statistic:.1f}), values {r.values}")
+                f"(score test {c.statistic:.1f}), values {r.values} ({how}, "
+                f"{r.fit.iterations} iterations)")
     confirmed.sort(key=lambda z: -z[0])
     return [(c, r) for _, c, r in confirmed]
 
@@ -242,7 +374,8 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
     for c, conf in confirmed:
         names = list(current.params) + conf.new_params
         after = conf.fit
-        d = decide(current, after, s)
+        d = decide(current, after, s, dof=len(conf.new_params))
+        c.confirmed = confirmed_record(current, after, len(conf.new_params), conf.values, s, d)
         if d.accepted:
             new_std = parameter_std(ctx, after)
             result.steps.append(accepted_step(c, d, current, after, names, new_std,
@@ -252,10 +385,11 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
             ctx.log(f"ACCEPT {c.label}: {result.metric} {d.error_before:.4g} -> "
                     f"{d.error_after:.4g}, NLL {current.nll:.2f} -> {after.nll:.2f}, {crit} "
                     f"{d.criterion_before:.2f} -> {d.criterion_after:.2f}, whiteness "
-                    f"{d.whiteness_before:.1f} -> {d.whiteness_after:.1f}")
+                    f"{d.whiteness_before:.1f} -> {d.whiteness_after:.1f} (information only), "
+                    f"LR {d.lr:.1f} (p {d.lr_p_value:.2g})")
             return after
         result.rejected.append(rejection(step, c, d))
-        ctx.log(f"reject {c.label}: {crit} {d.criterion_before:.2f} -> "
+        ctx.log(f"reject {c.label} ({d.reason}): {crit} {d.criterion_before:.2f} -> "
                 f"{d.criterion_after:.2f}, whiteness {d.whiteness_before:.1f} -> "
                 f"{d.whiteness_after:.1f}, error {d.error_before:.4g} -> {d.error_after:.4g}")
     return None

@@ -46,7 +46,7 @@ from bondgraph.core.elements import C, One, Source
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
 from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, prior
-from bondgraph.diagnose.inference_calls import run_ukf
+from bondgraph.diagnose.inference_calls import fisher_fit, run_ukf
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError
 from bondgraph.numerics.model import Model
@@ -197,7 +197,7 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     if probe is None:
         return []
     deltas, nuis_delta = nudge_sizes(probe, fit, scales.dt)
-    eps0, S0, D, Dn = signature_runs(ctx, probe, deltas, nuis_delta)
+    eps0, S0, D, Dn, fails = signature_runs(ctx, probe, deltas, nuis_delta)
     J = signatures(eps0, D, Dn, deltas, nuis_delta)
     ew, Gw = whiten(eps0, S0, J)
     total = float(np.sum(ew**2))
@@ -207,7 +207,7 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     norm = np.sqrt(np.maximum(np.diag(A), 1e-300))
     An = A / np.outer(norm, norm)
     bn = b / norm
-    out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total)
+    out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total, fails)
     mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
     line_probe(ctx, probe, fit, out)
     return out
@@ -253,6 +253,9 @@ def signature_runs(ctx: Context, probe: Probe, deltas: np.ndarray, nuis_delta: l
         Innovations with each probe parameter nudged (NaN where the UKF failed).
     Dn : array (n_nuis, N, n_y)
         Innovations with each estimated parameter nudged.
+    fails : dict
+        Probe column -> the filter's failure reason, for the columns whose
+        nudged runs all failed (their candidates are reported as failed).
     """
     pm, base, t = probe.model, probe.base, probe.t
     sets = [base]
@@ -271,9 +274,13 @@ def signature_runs(ctx: Context, probe: Probe, deltas: np.ndarray, nuis_delta: l
     eps0 = S0 = None
     D = np.empty((len(LADDER), len(probe.cols)) + (t.size, pm.n_y))
     chunk = ctx.settings.chunk
+    reasons: dict = {}
     for a in range(0, len(sets), chunk):
         r = run_ukf(pm, t, probe.u, probe.y, sets[a:a + chunk], probe.x0, probe.P0,
                     ctx.settings, store=True)
+        for q in range(r.nll.size):
+            if 0 < a + q < n_lad and not np.isfinite(r.nll[q]):
+                reasons.setdefault((a + q - 1) // len(LADDER), []).append(str(r.reasons[q]))
         for q in range(r.nll.size):
             gi = a + q
             if gi == 0:
@@ -285,7 +292,8 @@ def signature_runs(ctx: Context, probe: Probe, deltas: np.ndarray, nuis_delta: l
                 continue
             c, l = divmod(gi - 1, len(LADDER))
             D[l, c] = r.innovations[:, q, :] if np.isfinite(r.nll[q]) else np.nan
-    return eps0, S0, D, Dn
+    fails = {c: why[0] for c, why in reasons.items() if len(why) == len(LADDER)}
+    return eps0, S0, D, Dn, fails
 
 
 def signatures(eps0, D, Dn, deltas, nuis_delta) -> np.ndarray:
@@ -335,10 +343,13 @@ def _explained(An: np.ndarray, bn: np.ndarray, norm: np.ndarray, cs: list):
     return float(bn[cs] @ sol), sol / norm[cs]
 
 
-def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float):
+def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float,
+                 fails: dict | None = None):
     """One :class:`Candidate` per (effect, target) of the probe columns: LM =
     energy explained with its columns minus that of the ``nn`` estimated
     parameters alone, χ²(k) p-value, one-step estimates β = −coefficients.
+    A candidate with a column in ``fails`` (column -> reason: its filter
+    runs failed) is reported as failed: NaN statistic, the reason named.
 
     Returns
     -------
@@ -353,6 +364,11 @@ def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float):
         groups.setdefault((col.effect, col.target), []).append(nn + c)
     for (ename, tgt), cs in groups.items():
         eff = get_effect(ename, ctx.settings.effects)
+        why = [fails[c - nn] for c in cs if fails and (c - nn) in fails]
+        if why:
+            col_of[(ename, tgt)] = cs
+            out.append(failed_candidate(eff, tgt, "score", len(cs), why[0]))
+            continue
         try:
             e_all, sol = _explained(An, bn, norm, base_cols + cs)
         except np.linalg.LinAlgError:
@@ -368,6 +384,15 @@ def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float):
         out.append(Candidate(ename, eff.title, tgt, "score", lm, k, float(chi2.sf(lm, k)),
                              lm - 2 * k, lm / total if total > 0 else None, values))
     return out, col_of
+
+
+def failed_candidate(eff, tgt, kind: str, dof: int, reason: str) -> Candidate:
+    """A candidate whose test could not be computed (the filter failed):
+    NaN statistic, p-value and score, and the reason."""
+    nan = float("nan")
+    return Candidate(eff.name, eff.title, tgt, kind, nan, dof, nan, nan, None, {},
+                     last_resort=getattr(eff, "last_resort", False),
+                     failed=f"the filter failed: {reason}")
 
 
 def mark_equivalent(cands, col_of, An, base_cols, tol: float = 0.999) -> None:
@@ -475,12 +500,51 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Ca
     return out
 
 
+def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta: np.ndarray,
+                     nll: float) -> tuple[float, np.ndarray] | None:
+    """A few Fisher-scoring steps (``settings.structural_refit``) over the
+    declared estimated parameters together with the effect's ``new`` ones,
+    from the best grid point ``theta`` (n_theta,), all inside their declared
+    boxes: the declared fit may have moved a parameter to compensate for the
+    missing effect (a peak torque lowered for a saturation), which a score
+    with the declared parameters frozen cannot undo.
+
+    Returns
+    -------
+    (nll, theta) or None
+        The profiled point when it improves on ``nll``; None when it does not,
+        when ``structural_refit`` is 0, or when the scoring fails.
+    """
+    iters = int(ctx.settings.structural_refit)
+    names = [n for n in fit.params if n in model.params] + list(new)
+    if iters <= 0 or not names:
+        return None
+    t, u, y = ctx.record.arrays(model)
+    x0, P0 = prior(ctx, model)
+    lo, hi = model.bounds(names)
+    idx = [model.param_index(n) for n in names]
+    th = theta.copy()
+    th[idx] = np.clip(th[idx], lo, hi)
+    noise = noise_params(fit.graph)
+    scale = np.array([n in noise and lo[j] > 0 for j, n in enumerate(names)])
+    try:
+        th, _, _, _, _ = fisher_fit(model, t, u, y, th, idx, lo, hi, x0, P0, ctx.settings,
+                                    iters, scale)
+    except (FloatingPointError, np.linalg.LinAlgError):
+        return None
+    f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])
+    return (f, th) if np.isfinite(f) and f < nll else None
+
+
 def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Candidate | None:
     """Build ``fit``'s graph plus ``eff`` at ``tgt`` and evaluate the NLL over
     the effect's grid × :data:`NOISE_FACTORS` (current estimates held) in one
-    batched UKF run; the best point gives LR = 2 (NLL₀ − NLL₁), χ²(k) with k
-    the effect's estimated parameters. None (logged) if the effect cannot be
-    built there, or if the UKF fails everywhere."""
+    batched UKF run; from the best point a few scoring steps over the
+    declared and the effect's parameters (:func:`profile_declared`); the
+    result gives LR = 2 (NLL₀ − NLL₁), χ²(k) with k the effect's estimated
+    parameters. None (logged) if the effect cannot be
+    built there; a failed candidate (:func:`failed_candidate`) if the UKF
+    fails at every grid point."""
     try:
         g = fit.graph.copy(f"{fit.graph.name}__{eff.name}")
         grid = eff.grid(g, tgt, scales)
@@ -505,12 +569,19 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
     t, u, y = ctx.record.arrays(model)
     x0, P0 = prior(ctx, model)
     r = run_ukf(model, t, u, y, np.array(sets), x0, P0, ctx.settings)
+    k = sum(1 for p in eff.params if p.estimated)
     if not np.any(np.isfinite(r.nll)):
-        return None
+        return failed_candidate(eff, tgt, "likelihood ratio", k, str(r.reasons[0]))
     net = np.where(np.isfinite(r.nll), r.nll, np.inf)
     i = int(np.argmin(net))
-    lr = max(0.0, 2 * (fit.nll - float(net[i])))
-    k = sum(1 for p in eff.params if p.estimated)
+    best, values, declared = float(net[i]), dict(grid_of[i]), {}
+    new = {p.name: P[p.name].name for p in eff.params if p.estimated and p.name in P}
+    prof = profile_declared(ctx, fit, model, list(new.values()), np.array(sets[i]), best)
+    if prof is not None:
+        best, th = prof
+        values.update({k: float(th[model.param_index(n)]) for k, n in new.items()})
+        declared = {n: float(th[model.param_index(n)]) for n in fit.params if n in model.params}
+    lr = max(0.0, 2 * (fit.nll - best))
     return Candidate(eff.name, eff.title, tgt, "likelihood ratio", lr, k, float(chi2.sf(lr, k)),
-                     lr - 2 * k, None, dict(grid_of[i]),
-                     last_resort=getattr(eff, "last_resort", False))
+                     lr - 2 * k, None, values,
+                     last_resort=getattr(eff, "last_resort", False), profile=declared)

@@ -47,6 +47,30 @@ class LoopSettings:
     x0, P0 : arrays, optional
         UKF prior (default: the record's true x0 if it has one, else the
         model's X0; :func:`bondgraph.inference.ukf.default_P0`).
+    estimate_x0 : list of str
+        Initial states estimated jointly with θ at every fit (``["all"]``:
+        every state); later filter runs condition on the current fit's
+        estimates (their prior shrinks to a token spread).
+    x0_overrides : dict
+        Initial states by name (``--x0``) imposed on the prior mean of every
+        model that has them (over ``x0`` and the record's initial state).
+    p0_rel : float, optional
+        Prior std of each initial state relative to its scale (``--p0-rel``;
+        default 0.05).
+    fit : {"nll", "sim"}
+        How the declared model is fitted first: by the UKF likelihood alone
+        (``"nll"``), or by the output-error fit of its non-noise parameters
+        (free-run least squares with forward sensitivities,
+        :func:`bondgraph.inference.output_error.output_error_fit`) whose
+        estimates then start the likelihood fit (``"sim"``; for a
+        deterministic model whose likelihood fit starts far off). Effects are
+        always scored and confirmed by the likelihood.
+    p0_scale : {"magnitude", "state"}
+        The scale of each initial state's prior std: ``max(|x0|, 1)``
+        (:func:`bondgraph.inference.ukf.default_P0`, the default), or the
+        state's own scale along the record (:func:`bondgraph.inference.prior.record_prior`:
+        free-run RMS, process-noise walk, sensors; a sidecar's ``x0_std``
+        imposed).
     P0_std : dict
         Prior standard deviations of named initial states (e.g. the grade on
         a level track), overriding ``P0``'s diagonal.
@@ -61,12 +85,32 @@ class LoopSettings:
         passed on only by :mod:`bondgraph.diagnose.inference_calls`.
     sim_method : str
         Solver of the free-run simulations (:func:`bondgraph.numerics.simulate.simulate`).
-    fit_iterations, confirm_iterations : int
-        Fisher-scoring iterations of each warm-started re-estimation and of
-        each candidate's confirmation fit (L-BFGS-B if scoring fails).
+    fit_iterations : int
+        Fisher-scoring iterations of each warm-started re-estimation
+        (L-BFGS-B if scoring fails).
+    confirm_iterations : int
+        Maximum Fisher-scoring iterations of a candidate's confirmation fit;
+        it stops earlier at convergence (``confirm_tolerance``).
+    confirm_tolerance : float
+        Convergence of a confirmation fit [nats]: the predicted NLL decrease
+        of a full scoring step, or the last step's decrease relative to
+        1 + |NLL| times 1e-3 of it, below this.
     metric_tolerance : float
-        Reject an effect whose reported error grows by more than this factor
-        (default: no limit; acceptance rests on the criterion and whiteness).
+        Reject an effect whose error (on ``validation`` if given, else the
+        free-run error on the record) grows by more than this factor
+        (default 1.0: the error may not rise).
+    validation : Experiment, optional
+        A held-out record: the accept decision compares the free-run error on
+        it (the filter's first state on it starts the free run).
+    holdout : float
+        Without ``validation``: the fraction of the record, at its end, held
+        out as the validation record (0: none; the fits use the rest; its
+        prior mean is the record's initial-state rule on the segment, state
+        columns if the record has them).
+    structural_refit : int
+        Fisher-scoring iterations over the declared estimated parameters
+        together with a structural candidate's own, from its best grid point,
+        when it is scored (0: the declared parameters stay frozen).
     structural_threshold : float
         Skip the (slow) structural candidates when an additive effect already
         explains more than this share of the innovation energy.
@@ -74,6 +118,9 @@ class LoopSettings:
         Parameter sets per batched UKF run.
     metric_name : str, optional
         Name of the metric in logs and reports (default: derived from ``metric``).
+    true_effect : TrueEffect or (kind, target), optional
+        A synthetic record's true effect: the result records its rank at
+        every step (:func:`bondgraph.diagnose.result.rank_of`).
     """
 
     params: list[str]
@@ -86,17 +133,41 @@ class LoopSettings:
     effects: Sequence[Effect] = DEFAULT_EFFECTS
     x0: Any = None
     P0: Any = None
+    estimate_x0: list = field(default_factory=list)
+    x0_overrides: dict = field(default_factory=dict)
+    p0_rel: float | None = None
+    p0_scale: str = "magnitude"
+    fit: str = "nll"
     P0_std: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)
     initial_params: list | None = None
     ukf: UKFOptions = field(default_factory=UKFOptions)
     sim_method: str = "BDF"
     fit_iterations: int = 10
-    confirm_iterations: int = 6
-    metric_tolerance: float = float("inf")
+    confirm_iterations: int = 40
+    confirm_tolerance: float = 1e-2
+    metric_tolerance: float = 1.0
+    validation: Any = None
+    holdout: float = 0.0
     structural_threshold: float = 0.5
+    structural_refit: int = 2
     chunk: int = 48
     metric_name: str | None = None
+    true_effect: Any = None
+
+    def __post_init__(self):
+        if self.p0_scale not in ("magnitude", "state"):
+            raise OptionError(f"LoopSettings.p0_scale must be 'magnitude' or 'state', got "
+                              f"{self.p0_scale!r}")
+        if self.fit not in ("nll", "sim"):
+            raise OptionError(f"LoopSettings.fit must be 'nll' or 'sim', got {self.fit!r}")
+        if not 0.0 <= float(self.holdout) < 0.9:
+            raise OptionError(f"LoopSettings.holdout must be in [0, 0.9), got {self.holdout!r}")
+        if not self.metric_tolerance > 0:
+            raise OptionError(f"LoopSettings.metric_tolerance must be > 0, got "
+                              f"{self.metric_tolerance!r}")
+        if int(self.confirm_iterations) < 1:
+            raise OptionError("LoopSettings.confirm_iterations must be >= 1")
 
     def __post_init__(self):
         check_settings(self)
@@ -122,6 +193,12 @@ class LoopSettings:
         significance level, UKF options, names of the effect library."""
         return {"params": self.params, "max_steps": self.max_steps,
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
+                "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale, "holdout": self.holdout,
+                "fit": self.fit,
+                "confirm_iterations": self.confirm_iterations,
+                "confirm_tolerance": self.confirm_tolerance,
+                "validation": getattr(self.validation, "name", None)
+                if self.validation is not None else None,
                 "effects": [e.name for e in self.effects]}
 
 

@@ -641,7 +641,7 @@ def _discretisation_at(crit, x_best, f_best, x0, fit: FitOptions, ukf: UKFOption
         return None
     th_best = crit.theta(x_best)[0]
     dc = discretisation_check(crit.model, crit.t, crit.u, th_best, x0, method=ukf.method,
-                              substeps=ukf.substeps)
+                              substeps=ukf.substeps, hold=ukf.hold)
     worst = float(np.max(dc["one_step"]))
     if worst > 0.1:
         warn_list.append(f"discretisation error of {ukf.method}({ukf.substeps}) is {worst:.2g} "

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bondgraph.inference.estimand import Estimand
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf import ukf_nll
 
@@ -101,11 +102,28 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0,
     FloatingPointError
         If the UKF fails at ``theta`` itself.
     """
-    k = len(index)
-    sets = np.repeat(np.asarray(theta, float)[None, :], k + 1, axis=0)
-    for i, (j, h) in enumerate(zip(index, steps)):
-        sets[i + 1, j] += h
-    r = ukf_nll(model, t, u, y, sets, x0, P0, options=options, store=True)
+    est = Estimand(model, [model.params[j] for j in index], theta=theta,
+                   x0=model.x0 if x0 is None else x0)
+    return estimand_derivatives(model, t, u, y, est, steps, P0, options)
+
+
+def estimand_derivatives(model, t, u, y, est: Estimand, steps, P0,
+                         options: UKFOptions | None = None) -> Derivatives:
+    """NLL, gradient and Fisher information of the quantities of ``est``
+    (parameters, initial states, noise stds; :class:`~bondgraph.inference.estimand.Estimand`)
+    at their current values, by forward differences with ``steps`` (k,),
+    from one batched UKF run of k + 1 sets.
+
+    Raises
+    ------
+    FloatingPointError
+        If the UKF fails at the expansion point (its reason named).
+    """
+    k = est.k
+    Z = np.repeat(est.value()[None, :], k + 1, axis=0)
+    Z[1:] += np.diag(np.asarray(steps, float))
+    th, x0s, R = est.expand(Z)
+    r = ukf_nll(model, t, u, y, th, x0s, est.prior_cov(P0), options=options, R=R, store=True)
     if not np.isfinite(r.nll[0]):
         raise FloatingPointError(f"UKF failed at the expansion point: {r.reasons[0]}")
     e0, S0, miss = _clean(r.innovations[:, 0, :], r.S[:, 0])
@@ -119,6 +137,12 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0,
         dE[i] = (ei - e0) / h
         dS[i] = (Si - S0) / h
     dE[:, miss] = 0.0
+    return _information(float(r.nll[0]), e0, S0, dE, dS)
+
+
+def _information(nll, e0, S0, dE, dS) -> Derivatives:
+    """Gradient and expected information from the innovation derivatives
+    (module docstring; Kristensen et al. 2004 eq. 15-16)."""
     L = np.linalg.cholesky(S0)
     Sinv = np.linalg.inv(S0)
     a = np.einsum("kij,kj->ki", Sinv, e0)                      # S⁻¹ ε
@@ -128,18 +152,43 @@ def derivatives(model, t, u, y, theta, index, steps, x0, P0,
             - 0.5 * np.einsum("ka,ikab,kb->i", a, dS, a))
     W = np.linalg.solve(L, dE.transpose(1, 2, 0))              # L⁻¹ ∂ε, (N, m, k)
     F = np.einsum("kai,kaj->ij", W, W) + 0.5 * np.einsum("ikab,jkba->ij", SdS, SdS)
-    return Derivatives(float(r.nll[0]), e0, S0, dE, dS, grad, F)
+    return Derivatives(nll, e0, S0, dE, dS, grad, F)
+
+
+@dataclass
+class Scoring:
+    """What :func:`estimand_scoring` returns.
+
+    Attributes
+    ----------
+    estimand : Estimand
+        At the result.
+    nll : float
+    F : ndarray (k, k)
+        Fisher information at the result (Cramér-Rao: inv(F)).
+    runs : int
+        Batched UKF runs used.
+    iterations : int
+    converged : bool
+        The last accepted step improved the NLL by less than the tolerance,
+        or the predicted decrease of a full scoring step at the result,
+        ½ gᵀ F⁻¹ g, is below it; False when ``max_iter`` ran out first.
+    """
+
+    estimand: Estimand
+    nll: float
+    F: np.ndarray
+    runs: int
+    iterations: int
+    converged: bool
 
 
 def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *,
                    options: UKFOptions | None = None,
                    max_iter: int = 12, rtol: float = 1e-6, log=None, log_scale=None):
     """Maximise the UKF likelihood over the parameters ``index`` by
-    Levenberg-damped Fisher scoring within the box [lower, upper].
-
-    Each iteration: one batched UKF run for the derivatives (k + 1 sets) and
-    one for a line search over damped steps (6 sets, plus decade moves of
-    the log-scale parameters).
+    Levenberg-damped Fisher scoring within the box [lower, upper]
+    (:func:`estimand_scoring` for parameters only).
 
     Parameters
     ----------
@@ -171,39 +220,87 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *,
     runs : int
         Batched UKF runs used.
     """
-    index = list(index)
-    th = np.asarray(theta, dtype=float).copy()
+    est = Estimand(model, [model.params[j] for j in index], theta=theta,
+                   x0=model.x0 if x0 is None else x0)
+    r = estimand_scoring(model, t, u, y, est, lower, upper, P0, options=options,
+                         max_iter=max_iter, rtol=rtol, atol=0.0, log=log, log_scale=log_scale)
+    return r.estimand.theta, r.nll, r.F, r.runs
+
+
+def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
+                     options: UKFOptions | None = None, max_iter: int = 12,
+                     rtol: float = 1e-6, atol: float = 1e-3, log=None,
+                     log_scale=None) -> Scoring:
+    """Maximise the UKF likelihood over the quantities of ``est``
+    (parameters, initial states, noise stds) by Levenberg-damped Fisher
+    scoring within the box [lower, upper] (k,).
+
+    Each iteration: one batched UKF run for the derivatives (k + 1 sets) and
+    one for a line search over damped steps (6 sets, plus decade moves of
+    the log-scale quantities). Stops when a step improves the NLL by less
+    than ``rtol (1 + |NLL|)``, when the predicted decrease of a full step is
+    below ``atol`` nats (converged), or after ``max_iter`` iterations.
+
+    Returns
+    -------
+    Scoring
+
+    Raises
+    ------
+    FloatingPointError
+        If the UKF fails at the start.
+    """
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    z = np.clip(est.value(), lo, hi)
     if log_scale is None:
         log_scale = (lo > 0) & (hi > 100 * lo)
     L = np.asarray(log_scale, dtype=bool)
     width = np.maximum(hi - lo, 1e-300)
-    runs, lam = 0, 1e-3
-    for it in range(max_iter):
-        x = th[index]
-        D = derivatives(model, t, u, y, th, index, _steps(x, hi, width), x0, P0, options)
-        alphas, cand = _candidates(x, _scoring_step(D, x, L, lam), L, lo, hi)
-        sets = np.repeat(th[None, :], alphas.size, axis=0)
-        sets[:, index] = cand
-        r = ukf_nll(model, t, u, y, sets, x0, P0, options=options)
+    runs, lam, converged, it = 0, 1e-3, False, 0
+    for it in range(1, max_iter + 1):
+        D = estimand_derivatives(model, t, u, y, est.at(z), _steps(z, hi, width), P0, options)
+        step = _scoring_step(D, z, L, lam)
+        if _predicted_decrease(D, z, L) < atol:
+            converged = True
+            break
+        alphas, cand = _candidates(z, step, L, lo, hi)
+        th, x0s, R = est.expand(cand)
+        r = ukf_nll(model, t, u, y, th, x0s, est.prior_cov(P0), options=options, R=R)
         runs += 2
         best = int(np.argmin(np.where(np.isfinite(r.nll), r.nll, np.inf)))
         f_new = float(r.nll[best])
         if log:
             how = f"step x{alphas[best]:g}" if np.isfinite(alphas[best]) else "scale move"
-            log(f"    scoring {it + 1}: NLL {D.nll:.3f} -> {f_new:.3f} ({how})")
+            log(f"    scoring {it}: NLL {D.nll:.3f} -> {f_new:.3f} ({how})")
         if not np.isfinite(f_new) or f_new >= D.nll:
             lam *= 10.0
             if lam > 1e6:
+                converged = True    # no step improves: a stationary point within the box
                 break
             continue
-        th[index] = cand[best]
+        z = cand[best]
         lam = max(lam / 3.0, 1e-6)
         if D.nll - f_new < rtol * (1.0 + abs(f_new)):
+            converged = True
             break
     # information at the final point
-    D = derivatives(model, t, u, y, th, index, _steps(th[index], hi, width), x0, P0, options)
-    return th, D.nll, D.F, runs + 1
+    est = est.at(z)
+    D = estimand_derivatives(model, t, u, y, est, _steps(z, hi, width), P0, options)
+    return Scoring(est, D.nll, D.F, runs + 1, it, converged)
+
+
+def _predicted_decrease(D: Derivatives, x, L) -> float:
+    """½ gᵀ F⁻¹ g in the scoring coordinates (log θ for ``L``): the NLL
+    decrease a full, undamped scoring step predicts."""
+    jac = np.where(L, x, 1.0)
+    g = D.grad * jac
+    F = D.F * np.outer(jac, jac)
+    try:
+        sol = np.linalg.lstsq(F, g, rcond=1e-12)[0]
+    except np.linalg.LinAlgError:
+        return float("inf")
+    v = 0.5 * float(g @ sol)
+    return v if np.isfinite(v) else float("inf")
 
 
 def _steps(x, hi, width) -> np.ndarray:

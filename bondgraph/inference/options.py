@@ -32,8 +32,9 @@ from bondgraph.errors import OptionError
 UKF_METHODS = ("ros2", "rk4")
 #: where ROS2 evaluates df/dx: at the central sigma point, or at every one
 UKF_JACOBIANS = ("mean", "sigma")
-#: input over a prediction interval: u_k, or (u_k + u_k+1)/2
-UKF_HOLDS = ("zoh", "mean")
+#: input over a prediction interval: u_k, (u_k + u_k+1)/2, or the first-order
+#: hold (bondgraph.numerics.integrators.hold_inputs)
+UKF_HOLDS = ("zoh", "mean", "linear")
 #: implementations of the UKF likelihood: the numpy reference, the fused numba kernel
 UKF_BACKENDS = ("numba", "numpy")
 #: the default backend: numba when it is installed
@@ -103,10 +104,12 @@ class UKFOptions:
         ROS2 only: df/dx once per parameter set at the central sigma point,
         shared by its sigma points (a W-method, second order for any J), or
         at every sigma point.
-    hold : {"zoh", "mean"}
+    hold : {"zoh", "mean", "linear"}
         Input over a prediction interval [t_k, t_k+1]: ``u_k`` (zero-order
-        hold, the sampled-data convention) or ``(u_k + u_k+1)/2`` (the
-        interval mean of a linearly interpolated input). For records of
+        hold, the sampled-data convention), ``(u_k + u_k+1)/2`` (the
+        interval mean of a linearly interpolated input) or the first-order
+        hold ``u_k + s (u_k+1 − u_k)`` seen by every integrator stage at its
+        own time (:func:`bondgraph.numerics.integrators.hold_inputs`). For records of
         continuous inputs (ramps) the zero-order hold lags them by half a
         sample on average: a model error that biases inertias (the vehicle's
         engine inertia came out 3 % = 4 standard deviations low on the

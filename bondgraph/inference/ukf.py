@@ -79,7 +79,8 @@ from bondgraph.numerics.integrators import hold_inputs, make_step
 LOG_2PI = float(np.log(2.0 * np.pi))
 
 #: UKFOptions.jacobian -> where integrators.ros2 evaluates df/dx
-_ROS2_JACOBIAN = {"mean": "shared", "sigma": "once"}
+ROS2_JACOBIAN = {"mean": "shared", "sigma": "once"}
+_ROS2_JACOBIAN = ROS2_JACOBIAN
 
 
 # ---------------------------------------------------------------- result
@@ -388,11 +389,12 @@ class FilterBatch:
 
 # -------------------------------------------------------- predict / update
 def predict(batch: FilterBatch, step: Callable, u: np.ndarray, dt: float, wts: SigmaWeights,
-            k: int) -> None:
+            k: int, du: np.ndarray | None = None) -> None:
     """Prediction from sample k−1 to k (Wan & van der Merwe 2000).
 
     Sigma points of the posterior at k−1 go through the transition ``step``
-    (input ``u`` held over the interval ``dt``); their unscented mean and
+    (input ``u`` at the start of the interval ``dt``, changing by ``du`` over
+    it with a first-order hold); their unscented mean and
     covariance plus the process noise, ``diag(proc_std(θ)²)·dt`` and the
     given ``Q``, are the prior at k (``batch.x``, ``batch.P``). Sets whose
     posterior covariance is not positive definite or whose propagated
@@ -402,7 +404,7 @@ def predict(batch: FilterBatch, step: Callable, u: np.ndarray, dt: float, wts: S
     if not batch.size:
         return
     with np.errstate(all="ignore"):
-        X = step(chi, u, batch.th_b, dt)
+        X = step(chi, u, batch.th_b, dt, du)
     fin = np.isfinite(X).all(axis=(1, 2))
     if not fin.all():
         X = X[batch.drop(~fin, k, "non-finite state in the prediction (sigma point diverged)")]
@@ -655,7 +657,8 @@ def _filter_numpy(model, batch: FilterBatch, step: Callable, t, u, u_held, y,
     dts = np.diff(t)
     for k in long_range(t.size, f"UKF pass: {batch.nll.size} parameter sets x {t.size} samples"):
         if k > 0 and batch.size:
-            predict(batch, step, u_held[k - 1], dts[k - 1], wts, k)
+            u_k, du_k = u_held.interval(k - 1)
+            predict(batch, step, u_k, dts[k - 1], wts, k, du_k)
         if not batch.size:
             break
         if np.isfinite(y[k]).any():
@@ -737,7 +740,8 @@ def nll_from_innovations(innovations: np.ndarray, S: np.ndarray) -> np.ndarray:
 
 
 def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", substeps: int = 1,
-                         reference_substeps: int = 32, reference_method: str | None = None) -> dict:
+                         reference_substeps: int = 32, reference_method: str | None = None,
+                         hold: str = "zoh", sigma=None) -> dict:
     """Error of the filter's discretisation along a noise-free trajectory, in
     units of the measurement-noise standard deviation.
 
@@ -745,8 +749,10 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
     filter's step (``method``, ``substeps``) and with a fine reference
     (``reference_method`` with ``reference_substeps``, default: RK4 if it is
     stable there, i.e. finite, else ROS2), both restarted from the reference
-    state at every sample, as inside the filter. The one-step output error is
-    compared with ``meas_std(theta)``.
+    state at every sample, as inside the filter, and both with the input
+    hold ``hold`` (:func:`bondgraph.numerics.integrators.hold_inputs`). The
+    one-step output error is compared with ``sigma`` (default
+    ``meas_std(theta)``).
 
     Parameters
     ----------
@@ -758,6 +764,9 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
     method, substeps : discretisation under test
     reference_substeps : int
     reference_method : {"rk4", "ros2"}, optional
+    hold : {"zoh", "mean", "linear"}
+    sigma : array (n_y,), optional
+        Output scale of the comparison (default the measurement-noise std).
 
     Returns
     -------
@@ -768,38 +777,45 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
         absorb); ``reference``: the reference used.
     """
     t = np.asarray(t, float)
-    u = np.asarray(u, float)
+    u = np.asarray(u, float).reshape(t.size, -1)
     th = np.asarray(theta, float)[None, :]
     x = (model.x0 if x0 is None else np.asarray(x0, float))[None, :]
     step = make_step(model, method, substeps)
+    held = hold_inputs(u, hold)
     with np.errstate(all="ignore"):
-        xr, ref = _reference_trajectory(model, t, u, th, x, reference_method, reference_substeps)
+        xr, ref = _reference_trajectory(model, t, held, th, x, reference_method,
+                                        reference_substeps)
         if ref is None:
             return dict(one_step=np.full(model.n_y, np.inf), free_run=np.full(model.n_y, np.inf),
                         reference=None)
-        sig = np.asarray(model.meas_std(th), float)[0]
+        sig = (np.asarray(model.meas_std(th), float)[0] if sigma is None
+               else np.broadcast_to(np.asarray(sigma, float), (model.n_y,)))
         one = np.zeros(model.n_y)
         free = np.zeros(model.n_y)
         xf = x
         for k in range(t.size - 1):
             dt = t[k + 1] - t[k]
-            xs = step(xr[k:k + 1], u[k], th, dt)
-            xf = step(xf, u[k], th, dt)
+            uk, duk = held.interval(k)
+            xs = step(xr[k:k + 1], uk, th, dt, duk)
+            xf = step(xf, uk, th, dt, duk)
             yr = model.h(xr[k + 1:k + 2], u[k + 1], th)[0]
             one = np.maximum(one, np.abs(model.h(xs, u[k + 1], th)[0] - yr) / sig)
             free = np.maximum(free, np.abs(model.h(xf, u[k + 1], th)[0] - yr) / sig)
     return dict(one_step=one, free_run=np.where(np.isfinite(free), free, np.inf), reference=ref)
 
 
-def _reference_trajectory(model, t, u, th, x, method, substeps):
+def _reference_trajectory(model, t, held, th, x, method, substeps):
     """``(states (N, n_x), method)`` of the fine reference of
     :func:`discretisation_check`: ``method`` (default RK4 if its trajectory
-    is finite, else ROS2) with ``substeps``; ``(None, None)`` if none is finite."""
+    is finite, else ROS2) with ``substeps`` and the inputs ``held``
+    (:class:`~bondgraph.numerics.integrators.HeldInputs`); ``(None, None)``
+    if none is finite."""
     for cand in ([method] if method else ["rk4", "ros2"]):
         rstep = make_step(model, cand, substeps)
         xr = [x]
         for k in range(t.size - 1):
-            xr.append(rstep(xr[-1], u[k], th, t[k + 1] - t[k]))
+            uk, duk = held.interval(k)
+            xr.append(rstep(xr[-1], uk, th, t[k + 1] - t[k], duk))
         xr = np.concatenate(xr)
         if np.isfinite(xr).all():
             return xr, cand

@@ -111,6 +111,12 @@ class Sensitivities:
     outputs : list of str
     stats : dict
         Solver statistics (nfev, njev, nlu, wall time, ...).
+    x0_states : list of str
+        Initial states differentiated (``x0_states`` of :func:`output_sensitivities`).
+    dxdx0 : ndarray (N, n_x, m) or None
+        ∂x/∂x0_i of those states (the state-transition columns).
+    dydx0 : ndarray (N, n_y, m) or None
+        ∂y/∂x0_i.
     """
 
     t: np.ndarray
@@ -123,6 +129,9 @@ class Sensitivities:
     scale: np.ndarray
     outputs: list
     stats: dict = field(default_factory=dict)
+    x0_states: list = field(default_factory=list)
+    dxdx0: np.ndarray | None = None
+    dydx0: np.ndarray | None = None
 
     def scaled(self, sigma=None) -> np.ndarray:
         """Scaled (dimensionless) sensitivities s_j ∂y_i/∂θ_j / σ_i.
@@ -165,7 +174,8 @@ class Sensitivities:
 def output_sensitivities(model, t, u=None, theta=None, x0=None,
                          params: Sequence[str] | None = None, *, method: str = "LSODA",
                          rtol: float = 1e-8, atol: float = 1e-10, hold: str = "linear",
-                         max_step: float | None = None) -> Sensitivities:
+                         max_step: float | None = None, x0_states: Sequence[str] = (),
+                         x0_scale=None) -> Sensitivities:
     """Output sensitivities dy/dθ along a record by the forward sensitivity
     equations (not finite differences; Dickinson & Gelinas 1976).
 
@@ -182,7 +192,8 @@ def output_sensitivities(model, t, u=None, theta=None, x0=None,
     x0 : array (n_x,) or dict, optional
         Initial state, taken as independent of θ (S(t0) = 0).
     params : sequence of str, optional
-        Parameters differentiated (default :func:`free_parameters`).
+        Parameters differentiated (default :func:`free_parameters`; an empty
+        list with ``x0_states`` differentiates the initial states only).
     method : {"BDF", "Radau", "LSODA"} or an explicit solve_ivp method
         Implicit methods get the Jacobian of the augmented system
         (block-diagonal: ∂f/∂x on every block; the second-derivative
@@ -195,6 +206,13 @@ def output_sensitivities(model, t, u=None, theta=None, x0=None,
         Sampled inputs between samples (``"zoh"``: integrated segment by
         segment, as the UKF's default sees them).
     max_step : float, optional
+    x0_states : sequence of str
+        Initial states also differentiated: columns ∂x/∂x0_i with
+        ∂x/∂x0_i (t0) = e_i and d/dt ∂x/∂x0_i = ∂f/∂x · ∂x/∂x0_i (the
+        state-transition matrix), integrated with the parameters' columns.
+    x0_scale : array (n_x,), optional
+        Scales of the initial states for the integration tolerance of their
+        columns (default max(|x0_i|, 1e-6 max|x0|, 1e-12)).
 
     Returns
     -------
@@ -212,86 +230,140 @@ def output_sensitivities(model, t, u=None, theta=None, x0=None,
         If the solver fails (time and message given).
     """
     model = Model.from_spec(model)
-    params = check_params(model, params)
-    idx = model.param_indices(params)
-    th = _vector(model, theta, "theta")
-    x_init = _vector(model, x0, "x0")
-    t = np.asarray(t, dtype=float)
-    if t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0):
-        raise DataError("t must be a strictly increasing 1-D array of at least 2 samples")
-    sc = parameter_scale(model, params, th)
+    x0_states = list(x0_states)
+    params, t, th, x_init, cols = _prepare(model, t, theta, x0, params, x0_states, x0_scale)
+    idx, sidx, sc = cols.idx, cols.sidx, cols.sc
     sig = InputSignals(model, t, u, hold=hold)
     kw: dict[str, Any] = dict(method=method, rtol=rtol, atol=atol)
     if max_step is not None:
         kw["max_step"] = float(max_step)
     t_wall = time.perf_counter()
-    Z, segments, totals = _integrate(model, t, sig, th, idx, sc, x_init, hold, kw)
-    n, k, N = model.n_x, len(idx), t.size
+    Z, segments, totals = _integrate(model, t, sig, th, cols, x_init, hold, kw)
+    X, dx, dy = _outputs(model, Z, sig.samples, th, cols)
+    n, k, m = model.n_x, len(idx), len(sidx)
+    stats = dict(method=method, rtol=rtol, atol=atol, hold=hold, segments=segments,
+                 augmented_states=n + n * (k + m), wall_time_s=time.perf_counter() - t_wall,
+                 **totals)
+    with np.errstate(all="ignore"):
+        Y = np.asarray(model.h(X, sig.samples, th[None, :]), dtype=float)
+    return Sensitivities(t=t, x=X, y=Y, dxdtheta=dx[:, :, :k], dydtheta=dy[:, :, :k],
+                         params=list(params), theta=th, scale=sc, outputs=list(model.outputs),
+                         stats=stats, x0_states=x0_states,
+                         dxdx0=dx[:, :, k:] if m else None, dydx0=dy[:, :, k:] if m else None)
+
+
+def _outputs(model, Z, U, th, cols: "_Columns"):
+    """States X (N, n_x) and unscaled state and output sensitivity columns
+    (N, n_x, c), (N, n_y, c) from the integrated augmented system Z
+    (dy = ∂h/∂x · dx + ∂h/∂θ for the parameter columns)."""
+    N, n, k = Z.shape[0], model.n_x, len(cols.idx)
     X = Z[:, :n]
-    St = Z[:, n:].reshape(N, n, k)                      # scaled: s_j ∂x/∂θ_j
-    U = sig.samples
+    St = Z[:, n:].reshape(N, n, cols.count)              # scaled columns
     th1 = th[None, :]
     with np.errstate(all="ignore"):
-        Y = np.asarray(model.h(X, U, th1), dtype=float)
         Hx = model.dhdx(X, U, th1)                     # (N, n_y, n_x)
-        Ht = model.dhdtheta(X, U, th1)[:, :, idx]      # (N, n_y, k)
-    dY_scaled = Hx @ St + Ht * sc
-    stats = dict(method=method, rtol=rtol, atol=atol, hold=hold, segments=segments,
-                 augmented_states=n + n * k, wall_time_s=time.perf_counter() - t_wall, **totals)
-    return Sensitivities(t=t, x=X, y=Y, dxdtheta=St / sc, dydtheta=dY_scaled / sc,
-                         params=list(params), theta=th, scale=sc, outputs=list(model.outputs),
-                         stats=stats)
+        Ht = model.dhdtheta(X, U, th1)[:, :, cols.idx]  # (N, n_y, k)
+    allsc = np.concatenate([cols.sc, cols.xs])
+    dY_scaled = Hx @ St
+    dY_scaled[:, :, :k] += Ht * cols.sc
+    return X, St / allsc, dY_scaled / allsc
 
 
-def _augmented_system(model, th, idx, sc, u_at):
-    """Right-hand side and Jacobian of [x; S̃] for solve_ivp, inputs ``u_at(t)``."""
-    n, k = model.n_x, len(idx)
+def _prepare(model, t, theta, x0, params, x0_states, x0_scale):
+    """Checked parameters, times, θ, x0 and the sensitivity columns of
+    :func:`output_sensitivities` (DataError, ModelError as documented there)."""
+    params = list(params) if (params is not None and not params and x0_states) else \
+        check_params(model, params)
+    th = _vector(model, theta, "theta")
+    x_init = _vector(model, x0, "x0")
+    t = np.asarray(t, dtype=float)
+    if t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0):
+        raise DataError("t must be a strictly increasing 1-D array of at least 2 samples")
+    sc = parameter_scale(model, params, th) if params else np.zeros(0)
+    sidx = [model.state_index(s) for s in x0_states]
+    xs = _x0_column_scale(x_init, x0_scale)[sidx]
+    return params, t, th, x_init, _Columns(model.param_indices(params), sc, sidx, xs)
+
+
+def _x0_column_scale(x_init: np.ndarray, x0_scale) -> np.ndarray:
+    """Scale of each initial state's sensitivity column (n_x,)."""
+    if x0_scale is not None:
+        s = np.abs(np.asarray(x0_scale, dtype=float))
+    else:
+        s = np.maximum(np.abs(x_init), 1e-6 * np.max(np.abs(x_init), initial=0.0))
+    return np.where(s > 0, s, 1e-12)
+
+
+@dataclass
+class _Columns:
+    """The sensitivity columns of the augmented system: parameter indices and
+    scales, initial-state indices and scales."""
+
+    idx: np.ndarray
+    sc: np.ndarray
+    sidx: list
+    xs: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.idx) + len(self.sidx)
+
+
+def _augmented_system(model, th, cols: _Columns, u_at):
+    """Right-hand side and Jacobian of [x; S̃] for solve_ivp, inputs ``u_at(t)``
+    (S̃: the parameter columns, then the initial-state columns)."""
+    n, k, c = model.n_x, len(cols.idx), cols.count
     th1 = th[None, :]
-    eye_k = np.eye(k)
+    eye_c = np.eye(c)
 
     def rhs(tq, z):
         x = z[:n][None, :]
         uq = u_at(tq)[None, :]
         fx = model.f(x, uq, th1)[0]
         A = model.dfdx(x, uq, th1)[0]
-        B = model.dfdtheta(x, uq, th1)[0][:, idx] * sc
-        S = z[n:].reshape(n, k)
-        return np.concatenate([fx, (A @ S + B).ravel()])
+        S = z[n:].reshape(n, c)
+        dS = A @ S
+        if k:
+            dS[:, :k] += model.dfdtheta(x, uq, th1)[0][:, cols.idx] * cols.sc
+        return np.concatenate([fx, dS.ravel()])
 
     def jac(tq, z):
         A = model.dfdx(z[:n][None, :], u_at(tq)[None, :], th1)[0]
-        J = np.zeros((n + n * k, n + n * k))
+        J = np.zeros((n + n * c, n + n * c))
         J[:n, :n] = A
-        J[n:, n:] = np.kron(A, eye_k)
+        J[n:, n:] = np.kron(A, eye_c)
         return J
     return rhs, jac
 
 
-def _integrate(model, t, sig, th, idx, sc, x_init, hold, kw):
+def _integrate(model, t, sig, th, cols: _Columns, x_init, hold, kw):
     """Integrate the augmented system over the record, segment by segment
     for a zero-order hold (restarting at every input change).
 
     Returns
     -------
-    (Z (N, n + n k), number of segments, solver counters)
+    (Z (N, n + n c), number of segments, solver counters)
 
     Raises
     ------
     NumericalError
         A segment that fails or turns non-finite.
     """
-    N, n = t.size, model.n_x
+    N, n, c = t.size, model.n_x, cols.count
     if hold == "zoh":
         bounds = list(sig.change_points()) + [N - 1]
         segments = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
     else:
         segments = [(0, N - 1)]
-    Z = np.empty((N, n + n * len(idx)))
-    z = np.concatenate([x_init, np.zeros(n * len(idx))])
+    Z = np.empty((N, n + n * c))
+    S0 = np.zeros((n, c))
+    for j, (i, s) in enumerate(zip(cols.sidx, cols.xs)):
+        S0[i, len(cols.idx) + j] = s
+    z = np.concatenate([x_init, S0.ravel()])
     Z[0] = z
     totals = {"nfev": 0, "njev": 0, "nlu": 0}
     for a, b in segments:
-        rhs, jac = _augmented_system(model, th, idx, sc, sig.segment_input(a, hold))
+        rhs, jac = _augmented_system(model, th, cols, sig.segment_input(a, hold))
         if kw["method"] in IMPLICIT_METHODS:
             kw["jac"] = jac
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):

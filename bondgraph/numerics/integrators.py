@@ -1,4 +1,5 @@
-"""Batched fixed-step integrators over a sample interval (zero-order-hold inputs).
+"""Batched fixed-step integrators over a sample interval (inputs held
+constant or, with a first-order hold, varying linearly over the interval).
 
 Both work on any leading batch shape, so a UKF propagates every sigma point of
 every parameter set in one call.
@@ -24,7 +25,8 @@ every parameter set in one call.
 The UKF (:mod:`bondgraph.inference.ukf`), the fixed-step simulation
 (:mod:`bondgraph.numerics.simulate`) and the batched simulation of the
 Sobol' analysis all step with :func:`make_step`; :func:`hold_inputs` gives
-the input over each interval (zero-order hold or the interval mean).
+the input over each interval (zero-order hold, the interval mean, or the
+first-order (linear) hold).
 
 References
 ----------
@@ -35,6 +37,7 @@ SIAM J. Sci. Comput. 20(4), 1456-1480.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -44,8 +47,14 @@ from bondgraph.errors import OptionError
 GAMMA = 1.0 + 1.0 / np.sqrt(2.0)
 
 
+def _stage_input(u: np.ndarray, du: np.ndarray | None, s: float) -> np.ndarray:
+    """The input at fraction ``s`` of the interval: ``u + s·du`` (``u`` when
+    the input is held constant, ``du`` None)."""
+    return u if du is None or s == 0.0 else u + s * du
+
+
 def rk4(f: Callable, x: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: float,
-        substeps: int = 1) -> np.ndarray:
+        substeps: int = 1, du: np.ndarray | None = None) -> np.ndarray:
     """Advance ``x`` by ``dt`` with ``substeps`` classical RK4 steps.
 
     Parameters
@@ -54,22 +63,29 @@ def rk4(f: Callable, x: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: float,
         ``f(x, u, theta) -> dx/dt`` batched (a generated model's ``f``).
     x : array (..., n_x)
     u : array (..., n_u)
-        Held constant over the interval.
+        Input at the start of the interval (held constant when ``du`` is None).
     theta : array (..., n_theta)
     dt : float
         Interval [s].
     substeps : int
+    du : array (..., n_u), optional
+        Change of the input over the interval (first-order hold: the input
+        at fraction s of the interval is ``u + s·du``; each stage sees it at
+        its own time, so the hold is integrated to the method's order).
 
     Returns
     -------
     array (..., n_x)
     """
     h = dt / substeps
-    for _ in range(substeps):
-        k1 = f(x, u, theta)
-        k2 = f(x + (0.5 * h) * k1, u, theta)
-        k3 = f(x + (0.5 * h) * k2, u, theta)
-        k4 = f(x + h * k3, u, theta)
+    for j in range(substeps):
+        s0, s1 = j / substeps, (j + 1) / substeps
+        u0, um, u1 = (_stage_input(u, du, s0), _stage_input(u, du, 0.5 * (s0 + s1)),
+                      _stage_input(u, du, s1))
+        k1 = f(x, u0, theta)
+        k2 = f(x + (0.5 * h) * k1, um, theta)
+        k3 = f(x + (0.5 * h) * k2, um, theta)
+        k4 = f(x + h * k3, u1, theta)
         x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
     return x
 
@@ -105,7 +121,8 @@ def _ros2_solver(f_dfdx, fx, x, u, theta, h, jacobian):
 
 
 def ros2(f_dfdx: Callable, x: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: float,
-         substeps: int = 1, *, f: Callable | None = None, jacobian: str = "once") -> np.ndarray:
+         substeps: int = 1, *, f: Callable | None = None, jacobian: str = "once",
+         du: np.ndarray | None = None) -> np.ndarray:
     """Advance ``x`` by ``dt`` with ``substeps`` ROS2 steps.
 
     Parameters
@@ -113,6 +130,7 @@ def ros2(f_dfdx: Callable, x: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: 
     f_dfdx : callable
         ``f_dfdx(x, u, theta) -> (f, df/dx)`` batched (generated).
     x, u, theta : arrays (..., n)
+        ``u`` is the input at the start of the interval.
     dt : float
     substeps : int
     f : callable, optional
@@ -125,6 +143,12 @@ def ros2(f_dfdx: Callable, x: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: 
         ``theta`` with a point axis are taken at their first point too) and
         shared by the group, frozen — the UKF evaluates it at the central
         sigma point of each parameter set. ROS2 keeps order 2 for any W.
+    du : array (..., n_u), optional
+        Change of the input over the interval (first-order hold): the first
+        stage sees the input at the start of a sub-step, the second at its
+        end. That is ROS2 on the autonomous system (x, t) with the time
+        column of the Jacobian left out, which a W-method allows: order 2
+        is kept without a ∂f/∂t term.
 
     Returns
     -------
@@ -142,13 +166,14 @@ def ros2(f_dfdx: Callable, x: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: 
     fx = f if f is not None else (lambda x_, u_, t_: f_dfdx(x_, u_, t_)[0])
     F0, solve = _ros2_solver(f_dfdx, fx, x, u, theta, h, jacobian)
     for s in range(substeps):
+        ua, ub = _stage_input(u, du, s / substeps), _stage_input(u, du, (s + 1) / substeps)
         if s > 0:
             if jacobian == "each":
-                F0, solve = _ros2_solver(f_dfdx, fx, x, u, theta, h, jacobian)
+                F0, solve = _ros2_solver(f_dfdx, fx, x, ua, theta, h, jacobian)
             else:
-                F0 = fx(x, u, theta)
+                F0 = fx(x, ua, theta)
         k1 = solve(F0)
-        F1 = fx(x + h * k1, u, theta)
+        F1 = fx(x + h * k1, ub, theta)
         k2 = solve(F1 - 2.0 * k1)
         x = x + (1.5 * h) * k1 + (0.5 * h) * k2
     return x
@@ -156,7 +181,9 @@ def ros2(f_dfdx: Callable, x: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: 
 
 def make_step(model, method: str = "ros2", substeps: int = 1, *,
               jacobian: str = "once") -> Callable:
-    """A transition ``step(x, u, theta, dt) -> x_next`` for a generated model.
+    """A transition ``step(x, u, theta, dt, du=None) -> x_next`` for a
+    generated model (``u`` the input at the start of the interval, ``du`` its
+    change over the interval for a first-order hold, see :func:`hold_inputs`).
 
     Parameters
     ----------
@@ -176,49 +203,88 @@ def make_step(model, method: str = "ros2", substeps: int = 1, *,
         raise OptionError(f"substeps must be an integer >= 1, got {substeps!r}")
     substeps = int(substeps)
     if method == "rk4":
-        return lambda x, u, th, dt: rk4(model.f, x, u, th, dt, substeps)
+        return lambda x, u, th, dt, du=None: rk4(model.f, x, u, th, dt, substeps, du)
     if method == "ros2":
         if jacobian not in JACOBIANS:
             raise OptionError(f"unknown ROS2 Jacobian option '{jacobian}' (use "
                               f"{', '.join(repr(j) for j in JACOBIANS)})")
-        return lambda x, u, th, dt: ros2(model.f_dfdx, x, u, th, dt, substeps, f=model.f,
-                                         jacobian=jacobian)
+        return lambda x, u, th, dt, du=None: ros2(model.f_dfdx, x, u, th, dt, substeps,
+                                                  f=model.f, jacobian=jacobian, du=du)
     raise OptionError(f"unknown integration method '{method}' (use 'rk4' or 'ros2')")
 
 
 #: input holds over a sample interval (see :func:`hold_inputs`)
-HOLDS = ("zoh", "mean")
+HOLDS = ("zoh", "mean", "linear")
 
 
-def hold_inputs(u: np.ndarray, hold: str = "zoh") -> np.ndarray:
+@dataclass(frozen=True)
+class HeldInputs:
+    """The input over every sample interval [t_k, t_k+1], as
+    :func:`hold_inputs` gives it: at fraction s ∈ [0, 1] of interval k the
+    input is ``start[k] + s·change[k]`` (``start[k]`` when ``change`` is None).
+
+    Attributes
+    ----------
+    start : ndarray (N, n_u)
+        Input at the start of each interval.
+    change : ndarray (N, n_u) or None
+        Change over each interval (first-order hold; 0 on the last row), or
+        None when the input is held constant.
+    hold : str
+        The hold that made it.
+    """
+
+    start: np.ndarray
+    change: np.ndarray | None
+    hold: str
+
+    def interval(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(u, du)`` of interval k, the arguments of a :func:`make_step` transition."""
+        return self.start[k], (None if self.change is None else self.change[k])
+
+
+def hold_inputs(u: np.ndarray, hold: str = "zoh") -> HeldInputs:
     """The input held over each sample interval [t_k, t_k+1].
+
+    This is the one definition of the input holds: the UKF, the fixed-step
+    batched simulations and the discretisation check use it (a compiled
+    filter kernel must mirror it).
 
     Parameters
     ----------
     u : array (N, n_u)
         Sampled inputs.
-    hold : {"zoh", "mean"}
+    hold : {"zoh", "mean", "linear"}
         ``"zoh"``: u_k (zero-order hold, the sampled-data convention);
-        ``"mean"``: (u_k + u_k+1)/2, the interval mean of a linearly
-        interpolated input (the last row stays u_N-1).
+        ``"mean"``: (u_k + u_k+1)/2 held constant, the interval mean of a
+        linearly interpolated input; ``"linear"``: the first-order hold
+        u_k + s·(u_k+1 − u_k), s ∈ [0, 1], seen by every integrator stage at
+        its own time (for inputs sampled from a continuous signal, e.g. an
+        anti-alias-filtered voltage: the zero-order hold lags such an input
+        by half a sample, the mean hold removes the lag but flattens its
+        slope within the interval). The last row is held at u_N-1.
 
     Returns
     -------
-    ndarray (N, n_u)
-        Row k is the input over [t_k, t_k+1] (``u`` itself for "zoh").
+    HeldInputs
 
     Raises
     ------
     OptionError
         For an unknown hold.
     """
+    if hold not in HOLDS:
+        raise OptionError(f"unknown input hold '{hold}' (use {', '.join(repr(h) for h in HOLDS)})")
+    u = np.asarray(u, dtype=float)
     if hold == "zoh":
-        return u
-    if hold != "mean":
-        raise OptionError(f"unknown input hold '{hold}' (use 'zoh' or 'mean')")
-    out = np.array(u, dtype=float)
-    out[:-1] = 0.5 * (u[:-1] + u[1:])
-    return out
+        return HeldInputs(u, None, hold)
+    if hold == "mean":
+        out = np.array(u, dtype=float)
+        out[:-1] = 0.5 * (u[:-1] + u[1:])
+        return HeldInputs(out, None, hold)
+    change = np.zeros_like(u)
+    change[:-1] = u[1:] - u[:-1]
+    return HeldInputs(u, change, hold)
 
 
 def rk4_stable_step(eigenvalues: np.ndarray) -> float:

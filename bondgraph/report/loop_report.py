@@ -12,6 +12,7 @@ initial and final fits, and the residual analyses.
 from __future__ import annotations
 
 import json
+import pickle
 import shutil
 from pathlib import Path
 
@@ -95,31 +96,54 @@ def write(result: LoopResult, out, *, final=None) -> None:
     report["settings"] = settings
     if result.applied:
         (out / "augmented_model.py").write_text(augmented_source(result))
+        if not (result.source and ":" in result.source) and result.declared_graph is not None:
+            (out / DECLARED_PICKLE).write_bytes(pickle.dumps(result.declared_graph))
         _write_generated(result, out, Path(final) if final is not None else out)
     pngs = _plots(result, out)
     (out / "report.md").write_text(markdown(result, pngs))
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
 
 
+#: pickle of the declared graph next to augmented_model.py, for a graph
+#: passed in memory (no module:function source)
+DECLARED_PICKLE = "declared_graph.pkl"
+
+
+def declared_import(source: str | None) -> list[str]:
+    """Lines of ``augmented_model.py`` that define ``_declared``: the
+    builder named by ``source`` (``module:function``, or ``file.py:function``
+    made absolute) through :func:`bondgraph.core.plugins.resolve`, else the
+    pickled declared graph (:data:`DECLARED_PICKLE`) beside the file."""
+    if source and ":" in source:
+        mod, fn = source.rsplit(":", 1)
+        if mod.endswith(".py") or "/" in mod:
+            mod = str(Path(mod).resolve())
+        return [f"_declared = resolve({f'{mod}:{fn}'!r})"]
+    return ["# the declared graph was passed in memory: rebuilt from its pickle",
+            "def _declared():",
+            f"    with open(Path(__file__).with_name({DECLARED_PICKLE!r}), 'rb') as fh:",
+            "        return pickle.load(fh)"]
+
+
 def augmented_source(result: LoopResult) -> str:
     """Source of ``augmented_model.py``: a declared model whose ``build()``
-    rebuilds the user's graph (imported from ``result.source``) and applies
-    the accepted effects in order with their values, then the final
-    estimates (``ESTIMATES``) as defaults."""
-    src = result.source
+    rebuilds the user's graph (:func:`declared_import`) and applies the
+    accepted effects in order with their values (a user-supplied effect by
+    its recorded ``module:Class``), then the final estimates
+    (``ESTIMATES``) as defaults."""
     lines = [f'"""Augmented declared model written by `bondgraph loop`.',
              "",
              f"It rebuilds the declared model '{result.model}' unchanged and adds the",
              "effects the loop accepted, in order, with their estimated values. The declared",
              'model\'s own source is not modified."""',
              "",
-             "from bondgraph.diagnose.effects import Target, apply_effect"]
-    if src and ":" in src:
-        mod, fn = src.split(":", 1)
-        lines.append(f"from {mod} import {fn} as _declared")
-    else:
-        lines.append("# the declared graph was passed in memory: set _declared to its builder")
-        lines.append("_declared = None")
+             "import pickle",
+             "from pathlib import Path",
+             "",
+             "from bondgraph.core.plugins import resolve",
+             "from bondgraph.diagnose.effects import Target, apply_effect",
+             "", ""]
+    lines += declared_import(result.source)
     lines += ["", "", "def build():",
               f'    """{result.model} + ' +
               " + ".join(f"{a.effect} @ {a.target.name}" for a in result.applied) + '."""',
@@ -127,7 +151,8 @@ def augmented_source(result: LoopResult) -> str:
               f"    g.name = {_augmented_name(result)!r}"]
     for a in result.applied:
         vals = {k: float(v) for k, v in a.values.items()}
-        lines.append(f"    apply_effect(g, {a.effect!r}, Target({a.target.kind!r}, "
+        eff = repr(a.effect) if a.spec is None else f"resolve({a.spec!r})()"
+        lines.append(f"    apply_effect(g, {eff}, Target({a.target.kind!r}, "
                      f"{a.target.name!r}), {vals!r})")
     lines += ["    for name, value in ESTIMATES.items():",
               "        g.params[name].default = value",
@@ -243,7 +268,7 @@ def _plot_evidence(result: LoopResult, k: int, ranking, out: Path) -> str:
     plt = pyplot()
     top = ranking[:15][::-1]
     fig, ax = plt.subplots(figsize=(9, 0.32 * len(top) + 1.2))
-    vals = [max(c.score, -5) for c in top]
+    vals = [max(c.score, -5) if not c.failed else 0.0 for c in top]
     acc = result.steps[k - 1] if k <= len(result.steps) else None   # steps stop at a refusal
     green = [acc is not None and (acc.effect, acc.attached_to) == (c.effect, c.target.name)
              for c in top]
@@ -267,8 +292,7 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
     L.append(f"Record: `{result.record}`. Metric: {result.metric}. "
              f"Criterion: {result.criterion.upper()}.")
     L.append("")
-    L.append(f"**Error before: {result.initial.metric:.4g}; after: {result.final.metric:.4g}.**")
-    L.append("")
+    L += _md_errors(result)
     L += _md_accepted(result)
     L.append("")
     L.append("## Evidence (ranking of every step)")
@@ -285,8 +309,35 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
         L.append("## Rejected candidates")
         L.append("")
         for r in result.rejected:
-            L.append(f"- step {r.step}: {r.candidate.label} — {r.reason}")
+            L.append(f"- step {r.step}: {r.candidate.label} — {r.reason}" + _md_refit(r.candidate))
     return "\n".join(L) + "\n"
+
+
+def _md_errors(result: LoopResult) -> list[str]:
+    """The error before/after (the validation record's first when there is
+    one, the estimation record's beside it) and the warnings."""
+    i, f = result.initial, result.final
+    if i.validation_metric is not None:
+        L = [f"**Error on the validation record before: {i.validation_metric:.4g}; after: "
+             f"{f.validation_metric:.4g}** (on the estimation record: {i.metric:.4g} -> "
+             f"{f.metric:.4g}).", ""]
+    else:
+        L = [f"**Error before: {i.metric:.4g}; after: {f.metric:.4g}.**", ""]
+    for w in result.warnings:
+        L.append(f"- warning: {w}")
+    if result.warnings:
+        L.append("")
+    return L
+
+
+def _md_refit(c) -> str:
+    """The confirmed refit's numbers of a rejected candidate (or '')."""
+    r = c.confirmed
+    if not r:
+        return ""
+    v = f", validation error {r['validation_error']:.4g}" if r.get("validation_error") else ""
+    return (f" (refit: LR {r['lr']:.1f}, criterion {r['criterion']:.2f}, error "
+            f"{r['error']:.4g}{v})")
 
 
 def _md_accepted(result: LoopResult) -> list[str]:
@@ -317,6 +368,9 @@ def _md_ranking(k: int, ranking) -> list[str]:
     for c in ranking[:10]:
         ex = f"{100 * c.explained:.1f} %" if c.explained is not None else "-"
         eq = ", ".join(c.equivalent) if c.equivalent else ""
+        if c.failed:
+            L.append(f"| {c.label} | {c.kind} | failed | {c.dof} | - | - | {c.failed} |")
+            continue
         L.append(f"| {c.label} | {c.kind} | {c.statistic:.1f} | {c.dof} | {c.p_value:.2g} "
                  f"| {ex} | {eq} |")
     L.append("")

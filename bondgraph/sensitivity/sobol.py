@@ -203,8 +203,8 @@ def simulate_batch(model, t, u, thetas, x0, *, method: str = "ros2", substeps: i
     x0 : array (n_x,) or (P, n_x)
     method : {"ros2", "rk4"}
     substeps : int
-    hold : {"zoh", "mean"}
-        Input over an interval: u_k or (u_k + u_k+1)/2
+    hold : {"zoh", "mean", "linear"}
+        Input over an interval: u_k, (u_k + u_k+1)/2 or the first-order hold
         (:func:`bondgraph.numerics.integrators.hold_inputs`).
 
     Returns
@@ -222,7 +222,8 @@ def simulate_batch(model, t, u, thetas, x0, *, method: str = "ros2", substeps: i
     with np.errstate(all="ignore"):
         Y[0] = model.h(x, u[0][None], th)
         for k_ in range(t.size - 1):
-            x = step(x, u_held[k_][None], th, t[k_ + 1] - t[k_])
+            uk, duk = u_held.interval(k_)
+            x = step(x, uk[None], th, t[k_ + 1] - t[k_], None if duk is None else duk[None])
             bad = ~np.isfinite(x).all(axis=1)
             if bad.any():
                 x[bad] = np.nan

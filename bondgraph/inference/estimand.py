@@ -1,0 +1,310 @@
+"""What an estimation moves: model parameters θ, initial states x0 and
+measurement-noise standard deviations, as one vector z.
+
+An :class:`Estimand` maps values z (S, k) of its names to the arguments of
+the batched UKF (:func:`bondgraph.inference.ukf.ukf_nll`): full parameter
+vectors θ (S, n_θ), initial states x0 (S, n_x) and, when an output's noise
+level is estimated or declared by the record, the measurement-noise
+covariances R (S, n_y, n_y). Names:
+
+* a parameter by its own name (``"m"``);
+* an initial state as ``"x0.<state>"``: estimated jointly with θ, its prior
+  covariance in the filter shrinks to a token spread so that the likelihood
+  is conditional on it (the approach of Kristensen, Madsen & Jørgensen 2004);
+* a measurement-noise standard deviation as ``"noise.<output>"`` (output
+  units), for an output whose sensor declares a fixed number.
+
+:func:`noise_plan` decides which noise levels an estimation moves when the
+record does not declare them (the default of estimate and loop): parameters
+that change only the noise intensities (proc_std, meas_std), and the noise
+level of every output whose sensor noise is a fixed number the record does
+not declare.
+
+References
+----------
+Kristensen, N. R., Madsen, H., Jørgensen, S. B. (2004). Parameter estimation
+in stochastic grey-box models. Automatica 40(2), 225-237.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Sequence
+
+import numpy as np
+
+from bondgraph.errors import ModelError, OptionError
+from bondgraph.inference.ukf import default_P0
+
+X0_PREFIX = "x0."
+NOISE_PREFIX = "noise."
+#: a jointly estimated initial state keeps this fraction of its prior std in
+#: the filter (a token spread: the likelihood is conditional on x0)
+X0_TOKEN = 1e-6
+#: box of an estimated initial state: prior mean ± this many prior stds (or scales)
+X0_BOX = 100.0
+#: box of an estimated noise std: its start times / divided by this
+NOISE_BOX = 1e4
+
+
+@dataclass
+class Estimand:
+    """Parameters, initial states and noise levels estimated together.
+
+    Attributes
+    ----------
+    model : Model
+    params : list of str
+        Estimated parameters.
+    states : list of str
+        Estimated initial states.
+    noises : list of str
+        Outputs whose measurement-noise standard deviation is estimated.
+    theta : ndarray (n_theta,)
+        Values of all parameters.
+    x0 : ndarray (n_x,)
+        Initial state (the prior mean for the states not estimated).
+    sigma : ndarray (n_y,)
+        Measurement-noise standard deviations that override ``meas_std(θ)``
+        (NaN: not overridden). Declared noise levels and estimated ones.
+    x0_scale : ndarray (n_x,)
+        Spread of each initial state (the prior's std): sets the box of an
+        estimated one.
+    """
+
+    model: object
+    params: list
+    states: list = field(default_factory=list)
+    noises: list = field(default_factory=list)
+    theta: np.ndarray = None
+    x0: np.ndarray = None
+    sigma: np.ndarray = None
+    x0_scale: np.ndarray = None
+
+    def __post_init__(self):
+        m = self.model
+        self.params, self.states, self.noises = list(self.params), list(self.states), list(self.noises)
+        for what, names in (("parameter", self.params), ("state", self.states),
+                            ("output", self.noises)):
+            if len(set(names)) != len(names):
+                raise OptionError(f"{what} listed twice in {names}")
+        self.theta = np.array(m.theta0 if self.theta is None else self.theta, dtype=float)
+        self.x0 = np.array(m.x0 if self.x0 is None else self.x0, dtype=float)
+        self.sigma = (np.full(m.n_y, np.nan) if self.sigma is None
+                      else np.array(self.sigma, dtype=float))
+        self.x0_scale = (np.maximum(np.abs(self.x0), 1e-9) if self.x0_scale is None
+                         else np.array(self.x0_scale, dtype=float))
+        self.p_idx = m.param_indices(self.params)
+        self.s_idx = np.array([m.state_index(s) for s in self.states], dtype=int)
+        self.n_idx = np.array([m.output_index(o) for o in self.noises], dtype=int)
+        if np.any(~np.isfinite(self.sigma[self.n_idx])):
+            meas = np.asarray(m.meas_std(self.theta[None, :]), float)[0]
+            self.sigma[self.n_idx] = np.where(np.isfinite(self.sigma[self.n_idx]),
+                                              self.sigma[self.n_idx], meas[self.n_idx])
+
+    # ------------------------------------------------------------ names
+    @property
+    def names(self) -> list[str]:
+        """``params``, then ``x0.<state>``, then ``noise.<output>``."""
+        return (list(self.params) + [X0_PREFIX + s for s in self.states]
+                + [NOISE_PREFIX + o for o in self.noises])
+
+    @property
+    def k(self) -> int:
+        """Number of estimated quantities."""
+        return len(self.params) + len(self.states) + len(self.noises)
+
+    @property
+    def uses_R(self) -> bool:
+        """Whether some output's noise std overrides ``meas_std(θ)``."""
+        return bool(np.isfinite(self.sigma).any())
+
+    def value(self) -> np.ndarray:
+        """The current values z (k,)."""
+        return np.concatenate([self.theta[self.p_idx], self.x0[self.s_idx],
+                               self.sigma[self.n_idx]])
+
+    def at(self, z) -> "Estimand":
+        """A copy whose estimated quantities take the values ``z`` (k,)."""
+        th, x0, sig = self._split(np.asarray(z, float)[None, :])
+        return replace(self, theta=th[0], x0=x0[0], sigma=sig[0])
+
+    def values(self) -> dict[str, float]:
+        """Name -> current value."""
+        return dict(zip(self.names, self.value().tolist()))
+
+    # ------------------------------------------------------------ maps
+    def _split(self, Z: np.ndarray):
+        Z = np.atleast_2d(np.asarray(Z, float))
+        if Z.shape[1] != self.k:
+            raise ModelError(f"expected {self.k} values for {self.names}, got shape {Z.shape}")
+        S, a, b = Z.shape[0], len(self.params), len(self.params) + len(self.states)
+        th = np.repeat(self.theta[None, :], S, axis=0)
+        th[:, self.p_idx] = Z[:, :a]
+        x0 = np.repeat(self.x0[None, :], S, axis=0)
+        x0[:, self.s_idx] = Z[:, a:b]
+        sig = np.repeat(self.sigma[None, :], S, axis=0)
+        sig[:, self.n_idx] = Z[:, b:]
+        return th, x0, sig
+
+    def expand(self, Z) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """UKF arguments of the values ``Z`` (S, k): θ (S, n_θ), x0 (S, n_x),
+        and R (S, n_y, n_y) (``diag(σ²)``, σ from ``meas_std(θ)`` where not
+        overridden), or None when no noise level is overridden."""
+        th, x0, sig = self._split(Z)
+        if not self.uses_R:
+            return th, x0, None
+        with np.errstate(all="ignore"):
+            meas = np.asarray(self.model.meas_std(th), float)
+        s = np.where(np.isfinite(sig), sig, meas)
+        R = np.zeros(s.shape + (s.shape[1],))
+        idx = np.arange(s.shape[1])
+        R[:, idx, idx] = s ** 2
+        return th, x0, R
+
+    def prior_cov(self, P0: np.ndarray | None) -> np.ndarray | None:
+        """The filter's prior covariance with the estimated initial states
+        decoupled and shrunk to :data:`X0_TOKEN` of their spread (``P0``
+        None: the UKF's default, :func:`~bondgraph.inference.ukf.default_P0`)."""
+        if P0 is None and not self.s_idx.size:
+            return None
+        P = default_P0(self.model, self.x0) if P0 is None else np.array(P0, dtype=float)
+        if P.ndim == 1:
+            P = np.diag(P)
+        if P.ndim != 2:
+            raise OptionError(f"P0 must be (n_x,) or (n_x, n_x) with estimated initial "
+                              f"states, got shape {P.shape}")
+        for i in self.s_idx:
+            sd = X0_TOKEN * max(float(self.x0_scale[i]), 1e-300)
+            P[i, :] = 0.0
+            P[:, i] = 0.0
+            P[i, i] = sd ** 2
+        return P
+
+    # ------------------------------------------------------------ boxes
+    def bounds(self, lower=None, upper=None) -> tuple[np.ndarray, np.ndarray]:
+        """Box (k,) of every estimated quantity: the parameters' boxes
+        (``lower``/``upper`` of the parameters, default the model's), an
+        initial state ± :data:`X0_BOX` of its spread around its current value,
+        a noise std within a factor :data:`NOISE_BOX` of its current value."""
+        if lower is None or upper is None:
+            lower, upper = self.model.bounds(self.params)
+        xs, ss = self.x0[self.s_idx], self.x0_scale[self.s_idx]
+        sg = self.sigma[self.n_idx]
+        lo = np.concatenate([np.asarray(lower, float), xs - X0_BOX * ss, sg / NOISE_BOX])
+        hi = np.concatenate([np.asarray(upper, float), xs + X0_BOX * ss, sg * NOISE_BOX])
+        return lo, hi
+
+    def log_scale(self, noise_params: Sequence[str] = ()) -> np.ndarray:
+        """Which quantities move in log scale: noise-intensity parameters
+        (named in ``noise_params``) with a positive box, and noise stds."""
+        lo, _ = self.model.bounds(self.params)
+        np_set = set(noise_params)
+        par = [n in np_set and lo[i] > 0 for i, n in enumerate(self.params)]
+        return np.array(par + [False] * len(self.states) + [True] * len(self.noises), dtype=bool)
+
+
+def noise_parameters(model, theta, x=None, u=None, *, rel: float = 0.1) -> list[str]:
+    """Parameters that change the noise intensities (``proc_std`` or
+    ``meas_std``) but neither ``f`` nor ``h``: the noise intensities of the
+    filter, detected numerically (each parameter moved by ``rel``).
+
+    Parameters
+    ----------
+    model : Model
+    theta : array (n_theta,)
+    x, u : arrays (M, n_x), (M, n_u), optional
+        Points where f and h are compared (default: x0 and u0 and two
+        random perturbations of them).
+
+    Returns
+    -------
+    list of str
+    """
+    th = np.asarray(theta, float)
+    rng = np.random.default_rng(0)
+    if x is None:
+        base = np.asarray(model.x0, float)
+        x = base[None, :] * (1.0 + 0.1 * rng.standard_normal((3, model.n_x))) + \
+            0.1 * rng.standard_normal((3, model.n_x))
+    if u is None:
+        u = np.repeat(np.asarray(model.u0, float)[None, :], np.shape(x)[0], axis=0)
+    out = []
+    with np.errstate(all="ignore"):
+        f0, h0 = model.f(x, u, th[None]), model.h(x, u, th[None])
+        q0, r0 = np.asarray(model.proc_std(th), float), np.asarray(model.meas_std(th), float)
+        for j, name in enumerate(model.params):
+            t1 = th.copy()
+            t1[j] = th[j] * (1 + rel) if th[j] != 0 else rel
+            noise = (not np.allclose(np.asarray(model.proc_std(t1), float), q0)
+                     or not np.allclose(np.asarray(model.meas_std(t1), float), r0))
+            if not noise:
+                continue
+            if (np.allclose(model.f(x, u, t1[None]), f0, equal_nan=True)
+                    and np.allclose(model.h(x, u, t1[None]), h0, equal_nan=True)):
+                out.append(name)
+    return out
+
+
+def noise_plan(model, theta, params: Sequence[str], fixed: Sequence[str],
+               declared: np.ndarray) -> tuple[list[str], list[str], np.ndarray, list[str]]:
+    """Which noise levels an estimation moves by default.
+
+    Parameters
+    ----------
+    model : Model
+    theta : array (n_theta,)
+    params : sequence of str
+        Parameters the user estimates.
+    fixed : sequence of str
+        Parameters the user holds fixed.
+    declared : array (n_y,)
+        Noise stds the record declares (NaN where it declares none), model units.
+
+    Returns
+    -------
+    (noise_params, noise_outputs, sigma, notes)
+        Noise-intensity parameters added to the estimated ones (those not
+        listed or fixed); outputs whose noise std is estimated (a fixed number
+        in the model, undeclared by the record); the override vector σ (n_y,)
+        (declared values, NaN elsewhere); notes for the log.
+    """
+    th = np.asarray(theta, float)
+    declared = np.asarray(declared, float)
+    noise_p = noise_parameters(model, th)
+    meas_dep = _meas_dependent(model, th)
+    add = [p for p in noise_p if p not in params and p not in fixed
+           and not (p in meas_dep and np.isfinite(declared[meas_dep[p]]).all())]
+    sigma = np.full(model.n_y, np.nan)
+    outs, notes = [], []
+    param_driven = {j for js in meas_dep.values() for j in js}
+    for j, o in enumerate(model.outputs):
+        if np.isfinite(declared[j]):
+            if j in param_driven and any(p in params for p, js in meas_dep.items() if j in js):
+                notes.append(f"the record declares the noise of '{o}', but its noise parameter "
+                             f"is estimated: the declaration is not used")
+                continue
+            sigma[j] = declared[j]
+        elif j not in param_driven:
+            outs.append(o)
+    if add:
+        notes.append(f"noise intensities estimated (the record does not declare them): "
+                     f"{', '.join(add)}")
+    if outs:
+        notes.append(f"measurement-noise std estimated (the record does not declare it): "
+                     f"{', '.join(outs)}")
+    return add, outs, sigma, notes
+
+
+def _meas_dependent(model, th) -> dict[str, list[int]]:
+    """Parameter -> outputs whose ``meas_std`` it changes."""
+    out = {}
+    with np.errstate(all="ignore"):
+        r0 = np.asarray(model.meas_std(th), float)
+        for j, name in enumerate(model.params):
+            t1 = th.copy()
+            t1[j] = th[j] * 1.1 if th[j] != 0 else 0.1
+            d = np.flatnonzero(~np.isclose(np.asarray(model.meas_std(t1), float), r0))
+            if d.size:
+                out[name] = d.tolist()
+    return out

@@ -1,0 +1,148 @@
+"""Unscented Rauch-Tung-Striebel smoother: the states of a record given all
+of it, and with them the smoothed initial state.
+
+The forward pass is the toolkit's UKF (:func:`bondgraph.inference.ukf.ukf_nll`
+with ``store="full"``). The backward pass (Särkkä 2008, Algorithm 3.2)
+re-propagates sigma points of each filtered posterior (x̂_k|k, P_k|k)
+through the filter's own transition and input hold, and with their
+predicted mean m⁻, covariance P⁻ (+ the process noise) and the cross
+covariance C_k between x_k and x_k+1::
+
+    G_k = C_k (P⁻_k+1)⁻¹
+    x̂_k|N = x̂_k|k + G_k (x̂_k+1|N − m⁻_k+1)
+    P_k|N = P_k|k + G_k (P_k+1|N − P⁻_k+1) G_kᵀ
+
+x̂_0|N, P_0|N is the best estimate of the initial state the model and the
+whole record give (a start for estimating x0 jointly with θ).
+
+References
+----------
+Särkkä, S. (2008). Unscented Rauch-Tung-Striebel smoother. IEEE TAC 53(3),
+845-849. Rauch, H. E., Tung, F., Striebel, C. T. (1965). Maximum likelihood
+estimates of linear dynamic systems. AIAA J. 3(8), 1445-1450.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bondgraph.errors import NumericalError
+from bondgraph.inference.options import UKFOptions, ukf_options
+from bondgraph.inference.sigma import (
+    cholesky_batch,
+    merwe_weights,
+    sigma_points,
+    unscented_moments,
+)
+from bondgraph.inference.ukf import ROS2_JACOBIAN, ukf_nll
+from bondgraph.numerics.integrators import hold_inputs, make_step
+
+
+@dataclass
+class Smoothed:
+    """What :func:`rts_smooth` returns.
+
+    Attributes
+    ----------
+    x : ndarray (N, n_x)
+        Smoothed means x̂_k|N.
+    P : ndarray (N, n_x, n_x)
+        Smoothed covariances.
+    x_filt : ndarray (N, n_x)
+        Filtered means x̂_k|k (the forward pass).
+    nll : float
+        Negative log-likelihood of the forward pass.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    x_filt: np.ndarray
+    nll: float
+
+    @property
+    def x0(self) -> np.ndarray:
+        """The smoothed initial state x̂_0|N (n_x,)."""
+        return self.x[0].copy()
+
+    @property
+    def P0(self) -> np.ndarray:
+        """Its covariance P_0|N (n_x, n_x)."""
+        return self.P[0].copy()
+
+
+def rts_smooth(model, t, u, y, theta, x0, P0, *, options: UKFOptions | None = None,
+               R=None) -> Smoothed:
+    """UKF forward pass and unscented RTS backward pass at one parameter set.
+
+    Parameters
+    ----------
+    model : Model
+    t, u, y : arrays (N,), (N, n_u), (N, n_y)
+        The record (NaN where an output is missing).
+    theta : array (n_theta,)
+    x0 : array (n_x,)
+        Prior mean at ``t[0]``.
+    P0 : array (n_x, n_x)
+        Prior covariance.
+    options : UKFOptions, optional
+        The filter's options; the backward pass uses the same sigma points,
+        discretisation and input hold.
+    R : array (n_y, n_y), optional
+        Measurement-noise covariance (default ``diag(meas_std(θ)²)``).
+
+    Returns
+    -------
+    Smoothed
+
+    Raises
+    ------
+    NumericalError
+        If the forward pass fails (its reason named) or a predicted
+        covariance cannot be inverted.
+    """
+    opts = ukf_options(options)
+    th = np.asarray(theta, float)
+    res = ukf_nll(model, t, u, y, th[None, :], x0, P0, options=opts, R=R, store="full")
+    if not np.isfinite(res.nll[0]):
+        raise NumericalError(f"the UKF fails at the smoothing point: {res.reasons[0]}")
+    xf, Pf = res.x_filt[:, 0, :], res.P_filt[:, 0, :, :]
+    t = np.asarray(t, float)
+    u = np.asarray(u, float).reshape(t.size, -1) if model.n_u else np.zeros((t.size, 0))
+    xs, Ps = _backward(model, t, u, th, xf, Pf, opts)
+    return Smoothed(xs, Ps, xf.copy(), float(res.nll[0]))
+
+
+def _backward(model, t, u, th, xf, Pf, opts: UKFOptions):
+    """The RTS backward recursion (module docstring) over the filtered
+    means ``xf`` (N, n) and covariances ``Pf`` (N, n, n)."""
+    n, N = model.n_x, t.size
+    wts = merwe_weights(n, opts.alpha, opts.beta, opts.kappa)
+    step = make_step(model, opts.method, opts.substeps, jacobian=ROS2_JACOBIAN[opts.jacobian])
+    held = hold_inputs(u, opts.hold)
+    with np.errstate(all="ignore"):
+        q2 = np.asarray(model.proc_std(th[None, :]), float)[0] ** 2
+    xs, Ps = xf.copy(), Pf.copy()
+    for k in range(N - 2, -1, -1):
+        L, ok, _ = cholesky_batch(Pf[k][None])
+        if not ok[0]:
+            raise NumericalError(f"smoother: filtered covariance at sample {k} is not positive "
+                                 f"definite")
+        chi, cL = sigma_points(xf[k][None], L, wts.c)
+        uk, duk = held.interval(k)
+        dt = t[k + 1] - t[k]
+        with np.errstate(all="ignore"):
+            X = step(chi, uk, th[None, None, :], dt, duk)
+        m, Pm, D = unscented_moments(X, wts)
+        Pm = Pm[0] + np.diag(q2 * dt)
+        C = wts.w * (cL[0].T @ (D[0, :n] - D[0, n:]))
+        try:
+            G = np.linalg.solve(Pm.T, C.T).T
+        except np.linalg.LinAlgError as exc:
+            raise NumericalError(f"smoother: predicted covariance at sample {k + 1} is "
+                                 f"singular ({exc})") from None
+        xs[k] = xf[k] + G @ (xs[k + 1] - m[0])
+        Pk = Pf[k] + G @ (Ps[k + 1] - Pm) @ G.T
+        Ps[k] = 0.5 * (Pk + Pk.T)
+    return xs, Ps
