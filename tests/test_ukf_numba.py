@@ -111,15 +111,19 @@ def test_numba_nll_equals_numpy_on_the_box(name):
 
 @pytest.mark.parametrize("opts", [dict(method="rk4", substeps=20, hold="mean"),
                                   dict(method="ros2", substeps=3, jacobian="sigma"),
-                                  dict(method="ros2", substeps=2, alpha=0.5, kappa=1.0)])
+                                  dict(method="ros2", substeps=2, alpha=0.5, kappa=1.0),
+                                  dict(method="rk4", substeps=20, hold="linear"),
+                                  dict(method="ros2", substeps=3, hold="linear")])
 def test_numba_equals_numpy_for_other_options(opts):
     """RK4 (stable step), ROS2 with per-point Jacobians, other sigma scaling,
-    the mean input hold, on the stiff vehicle model; stored arrays too."""
+    the mean and the first-order (linear) input holds, on the stiff vehicle
+    model; stored arrays too."""
     m = Model.load("vehicle_coastdown")
     t, u, y = _record(m, N=60)
     th = box_sets(m, 6, seed=11)
     a = ukf_nll(m, t, u, y, th, store="full", options=UKFOptions(backend="numpy", **opts))
     b = ukf_nll(m, t, u, y, th, store="full", options=UKFOptions(backend="numba", **opts))
+    assert b.settings["backend_used"] == "numba"
     assert_same(a, b)
     for key in ("innovations", "S", "y_pred", "y_filt", "x_filt", "P_filt", "nll_terms", "nis"):
         A, B = getattr(a, key), getattr(b, key)

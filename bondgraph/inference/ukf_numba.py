@@ -71,7 +71,7 @@ METHOD_CODES = {"rk4": 0, "ros2": 1}
 #: ("sigma"); 2 at every point and sub-step (integrators' "each")
 JACOBIAN_CODES = {"mean": 0, "sigma": 1, "each": 2}
 #: UKFOptions.hold -> code (see _held_input)
-HOLD_CODES = {"zoh": 0, "mean": 1}
+HOLD_CODES = {"zoh": 0, "mean": 1, "linear": 2}
 #: holds with codes from here on vary within the interval (evaluated per stage)
 FIRST_VARYING_HOLD = 2
 #: layout of the integer options array of the kernel
@@ -237,12 +237,15 @@ def _moments(Z, m, w, cc, mean, cov, D):
 def _held_input(u, k, frac, hold, out):
     """The input over the interval [t_k, t_k+1] at the fraction ``frac`` of
     it (numpy: :func:`bondgraph.numerics.integrators.hold_inputs`): hold 0
-    (zoh) u_k; 1 (mean) (u_k + u_k+1)/2, u_k on the last row. A new hold is
-    one more branch here (and a code in HOLD_CODES)."""
+    (zoh) u_k; 1 (mean) (u_k + u_k+1)/2; 2 (linear, first-order hold)
+    u_k + frac·(u_k+1 − u_k); u_k on the last row. A new hold is one more
+    branch here (and a code in HOLD_CODES)."""
     last = k + 1 >= u.shape[0]
     for j in range(u.shape[1]):
         if hold == 1 and not last:
             out[j] = 0.5 * (u[k, j] + u[k + 1, j])
+        elif hold == 2 and not last:
+            out[j] = u[k, j] + frac * (u[k + 1, j] - u[k, j])
         else:
             out[j] = u[k, j]
 
