@@ -180,11 +180,11 @@ def test_loop_cli_numerics_validation_and_module_spec(tmp_path, monkeypatch):
     assert rep["initial_fit"]["estimates"]["k"] == pytest.approx(50.0, rel=0.05)
     # nothing is missing: no effect may be accepted
     assert rep["steps"] == []
-    # a negative mass: the typed error gives exit code 1
+    # a negative mass: the typed error gives exit code 2 (a bad declaration)
     _msd_record(n=2000, dt=0.05).save(tmp_path / "long.csv")
     assert main(["loop", "--model", "mymod:build", "--data", "long.csv", "--params", "c",
                  "--fixed", "m=-2", "--max-steps", "1", "--no-structural", "--out", "rep2",
-                 "--quiet"]) == 1
+                 "--quiet"]) == 2
 
 
 def test_true_effect_and_rank_of_truth():

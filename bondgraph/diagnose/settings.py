@@ -156,6 +156,7 @@ class LoopSettings:
     true_effect: Any = None
 
     def __post_init__(self):
+        check_settings(self)
         if self.p0_scale not in ("magnitude", "state"):
             raise OptionError(f"LoopSettings.p0_scale must be 'magnitude' or 'state', got "
                               f"{self.p0_scale!r}")
@@ -168,9 +169,6 @@ class LoopSettings:
                               f"{self.metric_tolerance!r}")
         if int(self.confirm_iterations) < 1:
             raise OptionError("LoopSettings.confirm_iterations must be >= 1")
-
-    def __post_init__(self):
-        check_settings(self)
 
     @classmethod
     def from_options(cls, params, options: dict) -> "LoopSettings":
@@ -193,7 +191,8 @@ class LoopSettings:
         significance level, UKF options, names of the effect library."""
         return {"params": self.params, "max_steps": self.max_steps,
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
-                "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale, "holdout": self.holdout,
+                "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale,
+                "holdout": self.holdout,
                 "fit": self.fit,
                 "confirm_iterations": self.confirm_iterations,
                 "confirm_tolerance": self.confirm_tolerance,
