@@ -128,7 +128,11 @@ def test_input_delay_is_the_pade_approximant():
     the delayed voltage (read from dλ/dt + Rλ/L + q/C) equals the [2/2]
     Padé approximant (1 − sτ/2 + (sτ)²/12)/(1 + sτ/2 + (sτ)²/12)."""
     tau = 0.013
-    base, m, th = augmented(models.rlc_circuit, "input_delay", ("input", "V"), {"tau": tau})
+    base, m, th = augmented(models.rlc_circuit, "input_delay", ("input", "V"),
+                            {"tau": tau, "qn": 0.5})
+    # a small process noise on the last Padé state only (keeps P definite)
+    q = m.proc_std(th)
+    assert q[m.state_index("input_delay.V.x2")] == 0.5 and q[m.state_index("input_delay.V.x1")] == 0
     R, L, C = (pcol(m, th, n) for n in ("R", "L", "C"))
     d = [m.state_index(s) for s in m.states if s.startswith("input_delay.V.")]
     assert len(d) == 2

@@ -337,7 +337,9 @@ class InputDelay(_Structural):
     name = "input_delay"
     title = "input (transport) delay"
     target_kind = "input"
-    params = (EffectParam("tau", "s", "delay", nonnegative=True),)
+    params = (EffectParam("tau", "s", "delay", nonnegative=True),
+              EffectParam("qn", "{u}/s^0.5", "process-noise intensity of the last Padé state",
+                          estimated=False))
 
     def __init__(self, order: int = 2):
         if order < 1:
@@ -347,8 +349,17 @@ class InputDelay(_Structural):
     def targets(self, graph):
         return input_targets(graph)
 
+    def shape_values(self, graph, target, scales):
+        """A small process noise on the Padé chain, std 10⁻³ of the largest
+        input in stationarity at τ = one sample (q = 10⁻³ u_max √(2/Ts)):
+        without it the input-driven states become exactly known and the
+        filter's covariance loses positive definiteness."""
+        return {"qn": 1e-3 * scales.get("input_max", target.name) * (2.0 / scales.dt) ** 0.5}
+
     def grid(self, graph, target, scales):
-        return [{"tau": f * scales.dt} for f in (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0)]
+        qn = self.shape_values(graph, target, scales)["qn"]
+        return [{"tau": f * scales.dt, "qn": qn} for f in (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0,
+                                                          5.0)]
 
     def box(self, graph, target, scales):
         return {"tau": (0.3 * scales.dt, 3.0 * scales.dt)}
@@ -356,8 +367,12 @@ class InputDelay(_Structural):
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
         u = graph.inputs[target.name]
+        shapes = self.shape_values(graph, target, scales) if scales is not None else {}
         tau = _new_param(graph, self.pname(target, "tau"), values.get("tau", 0.01), "s",
                          (1e-9, 1e9), f"transport delay of input {target.name}")
+        qn = _new_param(graph, self.pname(target, "qn"), values.get("qn", shapes.get("qn", 0.0)),
+                        f"({u.unit})/s^0.5" if u.unit else "", (0.0, 1e15),
+                        f"process noise of the Padé chain of input {target.name}")
         A, B, Cc, D = pade_realisation(self.order)
         names = [f"{self.name}.{target.tag}.x{k + 1}" for k in range(self.order)]
         xs = [sp.Symbol(n) for n in names]           # placeholders for the states
@@ -367,6 +382,7 @@ class InputDelay(_Structural):
         for k, n in enumerate(names):
             rhs = (sum(a * x for a, x in zip(A[k], xs)) + B[k] * u) / tau
             states.append(graph.state(n, rhs=rhs, unit=u.unit or None,
+                                      process_noise=qn if k == self.order - 1 else None,
                                       description=f"Padé state {k + 1} of the delay of {u.name}"))
         substitute(graph, dict(zip(xs, states)))
         return {"tau": tau}
