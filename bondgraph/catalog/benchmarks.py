@@ -47,6 +47,7 @@ MODELS: dict[str, str] = {
     "emps": "bondgraph.catalog.benchmarks:emps",
     "emps_viscous": "bondgraph.catalog.benchmarks:emps_viscous",
     "ced_linear": "bondgraph.catalog.benchmarks:ced_linear",
+    "silverbox_linear": "bondgraph.catalog.benchmarks:silverbox_linear",
 }
 
 #: force constant of the EMPS drive [N/V] (stored in DATA_EMPS.mat)
@@ -245,3 +246,46 @@ def emps_idim_ls(signals: dict) -> dict[str, float]:
     A = np.column_stack([s["qdd"], s["qd"], np.sign(s["qd"]), np.ones_like(s["qd"])])
     th, *_ = np.linalg.lstsq(A, s["tau"], rcond=None)
     return dict(zip(("M", "Fv", "Fc", "offset"), map(float, th)))
+
+
+#: defaults of :func:`silverbox_linear`: the continuous equivalent of a
+#: least-squares ARX(2, 2) fit to the Silverbox training block (ω0 = 436 rad/s,
+#: ζ = 0.048, DC gain 0.90)
+SILVERBOX_DEFAULTS = {"m": 5.8e-6, "d": 2.45e-4, "k": 1.11}
+
+
+def silverbox_linear() -> BondGraph:
+    """Silverbox (Wigren & Schoukens 2013), declared as a *linear*
+    mass-spring-damper driven by the input voltage V1 (ECC paper eq. 13 with
+    k(y) = a): the "force" is V1 [V], the "displacement" is the output V2
+    [V], so m is in s², d in s and k is dimensionless (1/k the DC gain).
+
+    Hand-derived (p = m ẏ, y the spring's displacement)::
+
+        dp/dt = V1 − k y − d p/m + w(t)
+        dy/dt = p/m,            output V2 = y
+
+    ``q_F`` is the intensity of the process noise w on the momentum (the
+    unmodelled forces; the cubic stiffness the loop must find), ``sigma_y``
+    the output noise (fixed: the published black-box models reach 0.26 mV
+    simulation error, so the noise is below that).
+    """
+    g = BondGraph("silverbox_linear", "Silverbox electronic Duffing oscillator, declared linear: "
+                                      "mass-spring-damper driven by the input voltage.")
+    V1 = g.input("V1", "V", 0.0, "input voltage (the force)")
+    m = g.param("m", SILVERBOX_DEFAULTS["m"], "s^2", (1e-7, 1e-4), "mass (V1 per d²y/dt²)")
+    d = g.param("d", SILVERBOX_DEFAULTS["d"], "s", (1e-6, 1e-2), "damping (V1 per dy/dt)")
+    k = g.param("k", SILVERBOX_DEFAULTS["k"], "", (0.1, 10.0), "linear stiffness (V1 per y)")
+    qF = g.param("q_F", 1e-3, "V*s^0.5", (1e-7, 1.0),
+                 "process-noise intensity on the momentum: unmodelled forces")
+    sy = g.param("sigma_y", 1e-4, "V", (1e-6, 1e-2), "output noise (fixed)")
+    v = g.one("v")
+    g.connect(g.Se("drive", V1), v)
+    mass = g.I("mass", m)
+    g.connect(v, mass)
+    spring = g.C("spring", stiffness=k)
+    g.connect(v, spring)
+    g.connect(v, g.R("damper", d))
+    g.set_process_noise(mass.p, qF)
+    g.sensor("V2", spring.q, unit="V", noise_std=sy, description="output voltage (displacement)")
+    return g

@@ -17,6 +17,9 @@ MODELS: dict[str, str] = {
     "rr_loop": "bondgraph.catalog.reference:rr_loop",
     "toy_cvt": "bondgraph.catalog.reference:toy_cvt",
     "mass_chain_5": "bondgraph.catalog.reference:mass_chain_5",
+    "rlc_circuit": "bondgraph.catalog.reference:rlc_circuit",
+    "hydraulic_tanks": "bondgraph.catalog.reference:hydraulic_tanks",
+    "thermal_two_node": "bondgraph.catalog.reference:thermal_two_node",
 }
 
 
@@ -223,6 +226,108 @@ def mass_chain(n: int = 5) -> BondGraph:
 def mass_chain_5() -> BondGraph:
     """:func:`mass_chain` with 5 masses (9 states), registered for generation."""
     return mass_chain(5)
+
+
+def rlc_circuit() -> BondGraph:
+    """Series RLC circuit driven by a voltage source (2 states).
+
+    Hand-derived (λ = L i, q = charge of the capacitor)::
+
+        dλ/dt = V - R λ/L - q/C
+        dq/dt = λ/L,        i = λ/L,  v_C = q/C
+
+    Defaults: ω0 = 1/√(LC) = 100 rad/s, ζ = (R/2)√(C/L) = 0.5.
+    """
+    g = BondGraph("rlc_circuit", "Series RLC circuit driven by a voltage source.")
+    V = g.input("V", "V", 0.0, "source voltage")
+    R = g.param("R", 10.0, "ohm", (1.0, 100.0), "resistance")
+    L = g.param("L", 0.1, "H", (0.01, 1.0), "inductance")
+    Cp = g.param("C", 1e-3, "F", (1e-4, 1e-2), "capacitance")
+    i = g.one("i", domain="electrical")
+    g.connect(g.Se("source", V), i)
+    g.connect(i, g.R("resistor", R))
+    g.connect(i, g.I("inductor", L))
+    cap = g.C("capacitor", Cp)
+    g.connect(i, cap)
+    g.sensor("i", i.f, unit="A", noise_std=0.005, description="loop current")
+    g.sensor("v_C", cap.q / Cp, unit="V", noise_std=0.02, description="capacitor voltage")
+    return g
+
+
+def hydraulic_tanks() -> BondGraph:
+    """Pump, two tanks, an orifice between them and an outlet (2 states).
+
+    Hand-derived (V_i = stored volumes, p_i = V_i/Ch_i the bottom pressures,
+    Ch_i = A_i/(ρ g)); the pump delivers the flow Q::
+
+        dV1/dt = Q - (p1 - p2)/Rh12
+        dV2/dt = (p1 - p2)/Rh12 - p2/Rh2
+
+    A pseudo-steady laminar (linear) orifice and outlet; sensors read the two
+    pressures.
+    """
+    g = BondGraph("hydraulic_tanks", "Pump, tank, orifice, tank, outlet (hydraulic).")
+    Q = g.input("Q", "m^3/s", 0.0, "pump flow")
+    C1 = g.param("Ch1", 1e-4, "m^3/Pa", (1e-5, 1e-3), "tank 1 capacitance A1/(rho g)")
+    C2 = g.param("Ch2", 2e-4, "m^3/Pa", (2e-5, 2e-3), "tank 2 capacitance A2/(rho g)")
+    R12 = g.param("Rh12", 1e5, "Pa*s/m^3", (1e4, 1e6), "orifice resistance between the tanks")
+    R2 = g.param("Rh2", 1e5, "Pa*s/m^3", (1e4, 1e6), "outlet resistance")
+    t1 = g.zero("tank1", domain="hydraulic")
+    g.connect(g.Sf("pump", Q), t1)
+    c1 = g.C("tank1_C", C1)
+    g.connect(t1, c1)
+    orifice = g.one("orifice", domain="hydraulic")
+    g.connect(t1, orifice)
+    g.connect(orifice, g.R("orifice_R", R12))
+    t2 = g.zero("tank2", domain="hydraulic")
+    g.connect(orifice, t2)
+    c2 = g.C("tank2_C", C2)
+    g.connect(t2, c2)
+    g.connect(t2, g.R("outlet", R2))
+    g.sensor("p1", t1.e, unit="Pa", noise_std=5.0, description="tank 1 bottom pressure")
+    g.sensor("p2", t2.e, unit="Pa", noise_std=5.0, description="tank 2 bottom pressure")
+    return g
+
+
+def thermal_two_node() -> BondGraph:
+    """Two thermal masses, a heater and the ambient (2 states), as a true
+    thermal bond graph linearised about T0: effort = temperature rise above
+    T0 [K], flow = entropy flow [W/K]; a heat capacity C_th is the C of
+    compliance C_th/T0, a thermal resistance R_th the R of resistance
+    T0·R_th, the heater power P the flow source P/T0.
+
+    Hand-derived (S_i = stored entropy, T_i = T0 S_i/C_i the temperature
+    rises; heat flows = T0 × entropy flows)::
+
+        Cth1 dT1/dt = P - (T1 - T2)/Rth12
+        Cth2 dT2/dt = (T1 - T2)/Rth12 - (T2 - T_a)/Rth2a
+    """
+    g = BondGraph("thermal_two_node", "Heater, two thermal masses, ambient (thermal).")
+    P = g.input("P", "W", 0.0, "heater power")
+    Ta = g.input("T_a", "K", 0.0, "ambient temperature rise above T0")
+    T0 = g.param("T0", 300.0, "K", (250.0, 350.0), "reference temperature (known)")
+    C1 = g.param("Cth1", 500.0, "J/K", (50.0, 5000.0), "heat capacity of node 1")
+    C2 = g.param("Cth2", 2000.0, "J/K", (200.0, 20000.0), "heat capacity of node 2")
+    R12 = g.param("Rth12", 0.05, "K/W", (0.005, 0.5), "thermal resistance node 1 - node 2")
+    R2a = g.param("Rth2a", 0.1, "K/W", (0.01, 1.0), "thermal resistance node 2 - ambient")
+    n1 = g.zero("node1", domain="thermal")
+    g.connect(g.Sf("heater", P / T0), n1)
+    g.connect(n1, g.C("mass1", C1 / T0))
+    b12 = g.one("path12", domain="thermal")
+    g.connect(n1, b12)
+    g.connect(b12, g.R("R12", T0 * R12))
+    n2 = g.zero("node2", domain="thermal")
+    g.connect(b12, n2)
+    g.connect(n2, g.C("mass2", C2 / T0))
+    b2a = g.one("path2a", domain="thermal")
+    g.connect(n2, b2a)
+    g.connect(b2a, g.R("R2a", T0 * R2a))
+    amb = g.zero("ambient_node", domain="thermal")
+    g.connect(b2a, amb)
+    g.connect(g.Se("ambient", Ta), amb)
+    g.sensor("T1", n1.e, unit="K", noise_std=0.05, description="temperature rise of node 1")
+    g.sensor("T2", n2.e, unit="K", noise_std=0.05, description="temperature rise of node 2")
+    return g
 
 
 # ------------------------------------------------- reference experiments

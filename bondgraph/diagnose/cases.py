@@ -85,9 +85,17 @@ class LoopCase:
 
 def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
                inputs: dict[str, Callable[[np.ndarray], np.ndarray]], x0: dict[str, float],
-               params: dict[str, float], seed: int, name: str, description: str):
+               params: dict[str, float], seed: int, name: str, description: str, *,
+               hold: str = "linear", method: str = "BDF", substeps: int = 1):
     """Simulate ``truth`` and record the outputs of ``declared`` with the
     declared sensors' noise (``numpy.random.default_rng(seed)``).
+
+    ``inputs`` maps input names to callables of t or to arrays (N,) sampled
+    at ``t``; ``hold`` is how :func:`bondgraph.numerics.simulate.simulate`
+    reads sampled arrays between samples (``"zoh"``: held, exactly what the
+    UKF's zero-order hold sees). ``method`` and ``substeps`` choose the
+    solver (default BDF, rtol 1e-8; ``"rk4"`` with ``substeps`` steps per
+    sample always holds the samples and is much faster on long records).
 
     Returns
     -------
@@ -100,7 +108,8 @@ def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
     th = tm.theta({k: v for k, v in params.items() if k in tm.params})
     u = {k: f for k, f in inputs.items() if k in tm.inputs}
     x = tm.state({k: v for k, v in x0.items() if k in tm.states})
-    sim = simulate(tm, t, u or None, x0=x, theta=th, method="BDF", rtol=1e-8, atol=1e-10)
+    sim = simulate(tm, t, u or None, x0=x, theta=th, method=method, rtol=1e-8, atol=1e-10,
+                   hold=hold, substeps=substeps)
     rng = np.random.default_rng(seed)
     thd = dm.theta({k: v for k, v in params.items() if k in dm.params})
     sd = dm.meas_std(thd)

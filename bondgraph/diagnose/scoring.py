@@ -38,16 +38,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import sympy as sp
 from scipy.stats import chi2
 from tqdm.auto import tqdm
 
-from bondgraph.core.elements import C, One, Source
-from bondgraph.core.equations import derive
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
 from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, prior
 from bondgraph.diagnose.inference_calls import fisher_fit, run_ukf
 from bondgraph.diagnose.result import Candidate
+from bondgraph.diagnose.scales import operating_scales  # noqa: F401 (public name)
 from bondgraph.errors import BondGraphError
 from bondgraph.numerics.model import Model
 
@@ -77,43 +75,6 @@ def noise_variants(model: Model, fit: Fit, base: np.ndarray, factors) -> list:
             th[j] = float(np.clip(base[j] * f, model.lower[j], model.upper[j]))
         out.append(th)
     return out
-
-
-def operating_scales(ctx: Context, fit: Fit) -> Scales:
-    """Data-driven scales of the effects (smoothing widths, search boxes):
-    RMS and maximum of every 1-junction's flow, maximum of every source and
-    stored quantity along the filtered states, RMS of every measured output,
-    record duration and median sample interval."""
-    ss = derive(fit.graph)
-    model = fit.model
-    t, u, y = ctx.record.arrays(model)
-    X = fit.ukf.x_filt[:, 0, :]
-    sc = Scales(duration=float(t[-1] - t[0]) or 1.0, dt=float(np.median(np.diff(t))))
-    args = (list(ss.states), list(ss.inputs), list(ss.params))
-
-    def evaluate(expr):
-        fn = sp.lambdify(args, expr, "numpy")
-        vals = fn(X.T, u.T if u.size else np.zeros((0, t.size)), fit.theta)
-        return np.broadcast_to(np.asarray(vals, dtype=float), t.shape)
-
-    for name, el in fit.graph.elements.items():
-        try:
-            if isinstance(el, One):
-                v = evaluate(ss.variable(el.f))
-                sc.flow_rms[name] = float(np.sqrt(np.nanmean(v**2)))
-                sc.flow_max[name] = float(np.nanmax(np.abs(v)))
-            elif isinstance(el, Source):
-                v = evaluate(ss.variable(el.value))
-                sc.source_max[name] = float(np.nanmax(np.abs(v)))
-            elif isinstance(el, C) and el.q in ss.states:
-                v = X[:, ss.states.index(el.q)]
-                sc.storage_max[name] = float(np.nanmax(np.abs(v)))
-        except Exception:
-            continue
-    for i, o in enumerate(model.outputs):
-        ok = np.isfinite(y[:, i])               # an output the record lacks: no scale
-        sc.output_rms[o] = float(np.sqrt(np.mean(y[ok, i] ** 2))) if ok.any() else float("nan")
-    return sc
 
 
 # --------------------------------------------------------------- additive

@@ -1,0 +1,317 @@
+"""Effect-recovery matrix: does the loop's ranking find the effect a record has?
+
+For each reference graph (translation, rotation + electrical, electrical,
+hydraulic, thermal, a two-mass chain) and each effect of the default library
+that attaches to it (one target each, drawn with the case's seed), a *truth*
+graph is the declared graph plus the effect with its parameters drawn
+uniformly inside the effect's declared box (:meth:`Effect.box`, from the
+operating scales of the declared model on the same excitation). A record is
+synthesised from the truth (:func:`bondgraph.diagnose.cases.synthesize`,
+declared sensor noise, seeded), the declared model is fitted, every
+candidate of the library is scored (:func:`bondgraph.diagnose.runner.gather_evidence`,
+the loop's own ranking), and the true candidate is confirmed by a refit
+(:func:`bondgraph.diagnose.confirm.confirm`).
+
+Reported per case and in total:
+
+* ``rank``: position of the truth in the ranking (1 = first); ``first``:
+  ranked first, or inside the equivalence group of the first candidate
+  (signatures indistinguishable in this record);
+* ``within_3crb``: every estimated effect parameter within 3 Cramér-Rao
+  standard deviations of its truth;
+* ``val_before``/``val_after``: free-run simulation error (mean over the
+  outputs of RMS error / std of the output) of the fitted declared and of the
+  fitted augmented model on a validation record (other excitation, other
+  noise seed);
+* ``seconds``: wall time of the case.
+
+Usage::
+
+    python bench/effect_recovery.py            # full matrix (every graph x effect)
+    python bench/effect_recovery.py --quick    # 4 cases, one per domain (~1.2 min CPU)
+
+A per-graph table is printed, then one JSON line (the last line).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+
+import numpy as np
+
+from bondgraph.catalog import reference as ref
+from bondgraph.diagnose.cases import synthesize
+from bondgraph.diagnose.confirm import confirm
+from bondgraph.diagnose.effects import DEFAULT_EFFECTS, get_effect
+from bondgraph.diagnose.fit import Context, Record, fit_model, parameter_std
+from bondgraph.diagnose.runner import gather_evidence
+from bondgraph.diagnose.scales import operating_scales
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.inference.options import UKFOptions
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
+
+
+def _chain2():
+    return ref.mass_chain(2)
+
+
+def _multisine(freqs, amps, phase):
+    """u(t) = Σ a_k sin(2π f_k t + φ_k) with φ shifted by ``phase``."""
+    def u(t):
+        return sum(a * np.sin(2 * np.pi * f * t + phase * (k + 1))
+                   for k, (f, a) in enumerate(zip(freqs, amps)))
+    return u
+
+
+def sampled(inputs, t):
+    """The inputs sampled at ``t`` (arrays (N,)): the truth is simulated with
+    them held over each interval (``hold="zoh"``), exactly what the UKF sees,
+    so that the estimates carry no discretisation bias of the input."""
+    return {k: np.broadcast_to(np.asarray(f(t), dtype=float), t.shape).copy()
+            for k, f in inputs.items()}
+
+
+def _steps(level, period, phase):
+    """A square wave between 0.2·level and level (period [s]) plus a slow sine."""
+    def u(t):
+        sq = np.where(np.sin(2 * np.pi * (t / period) + phase) > 0, 1.0, 0.2)
+        return level * (sq + 0.3 * np.sin(2 * np.pi * t / (2.7 * period) + phase))
+    return u
+
+
+#: graph name -> builder, estimated parameters, duration [s], dt [s],
+#: excitation (inputs as callables of t, for a phase), domain
+GRAPHS = {
+    "mass_spring_damper": dict(
+        build=ref.mass_spring_damper, params=["k", "c"], T=10.0, dt=0.01, domain="translation",
+        inputs=lambda ph: {"F": _multisine([0.4, 1.1, 1.9], [8.0, 5.0, 3.0], ph)}),
+    "dc_motor_compliant": dict(
+        build=ref.dc_motor_compliant, params=["R_a", "b_m", "b_L"], T=4.0, dt=0.005,
+        domain="electrical+rotation",
+        inputs=lambda ph: {"V": _multisine([0.5, 1.3, 3.1], [6.0, 3.0, 2.0], ph),
+                           "T_L": _multisine([0.7], [0.05], ph)}),
+    "rlc_circuit": dict(
+        build=ref.rlc_circuit, params=["R", "C"], T=1.0, dt=0.001, domain="electrical",
+        inputs=lambda ph: {"V": _multisine([3.0, 11.0, 23.0], [6.0, 4.0, 2.0], ph)}),
+    "hydraulic_tanks": dict(
+        build=ref.hydraulic_tanks, params=["Rh12", "Rh2"], T=200.0, dt=0.2, domain="hydraulic",
+        inputs=lambda ph: {"Q": _steps(1e-3, 40.0, ph)}),
+    "thermal_two_node": dict(
+        build=ref.thermal_two_node, params=["Rth12", "Rth2a"], T=2000.0, dt=2.0,
+        domain="thermal",
+        inputs=lambda ph: {"P": _steps(200.0, 300.0, ph), "T_a": _multisine([1 / 900], [1.0],
+                                                                              ph)}),
+    "mass_chain_2": dict(
+        build=_chain2, params=["k1", "c1"], T=10.0, dt=0.01, domain="translation",
+        inputs=lambda ph: {"F": _multisine([0.3, 0.9, 2.3], [6.0, 4.0, 2.0], ph)}),
+}
+
+#: the --quick subset: (graph, effect), one per domain
+QUICK = [("mass_spring_damper", "cubic_stiffness"), ("rlc_circuit", "sensor_offset"),
+         ("hydraulic_tanks", "sensor_gain"), ("thermal_two_node", "actuator_gain")]
+
+
+def settings_for(params):
+    """Loop settings of the benchmark: the default library, ROS2 UKF."""
+    return LoopSettings(params=list(params), effects=DEFAULT_EFFECTS, metric="nrmse_sim",
+                        ukf=UKFOptions(method="ros2", substeps=2, alpha=1.0))
+
+
+def quiet(_msg):
+    """Discard the loop's log lines."""
+
+
+def draw_truth(spec, eff, seed):
+    """(target, truth values) of ``eff`` on the graph of ``spec``: a target
+    drawn among the effect's targets, the estimated parameters uniform in
+    the box from the declared model's operating scales, shape constants
+    from the same scales. None if the effect has no target or no box."""
+    rng = np.random.default_rng(seed)
+    g = spec["build"]()
+    targets = eff.targets(g)
+    if not targets:
+        return None
+    tgt = targets[int(rng.integers(len(targets)))]
+    t = np.arange(0.0, spec["T"], spec["dt"])
+    rec = synthesize(g, spec["build"](), t, sampled(spec["inputs"](0.0), t), {}, {}, seed,
+                     "scales", "", hold="zoh", method="rk4", substeps=10)
+    ctx = Context(Record(rec), settings_for(spec["params"]), log=quiet, progress=False)
+    fit0 = fit_model(ctx, g, [], None, "declared at truth", iterations=0)
+    sc = operating_scales(ctx, fit0)
+    box = eff.box(g, tgt, sc)
+    est = [p.name for p in eff.params if p.estimated]
+    if not box or any(n not in box for n in est):
+        return None
+    vals = {n: float(rng.uniform(*sorted(box[n]))) for n in est}
+    sign = {"cubic_stiffness", "sensor_offset", "source_offset", "sensor_poly2",
+            "sensor_poly3", "offset"}
+    if eff.name in sign and rng.random() < 0.5:
+        vals = {k: -v for k, v in vals.items()}
+    vals.update(eff.shape_values(g, tgt, sc))
+    return tgt, vals
+
+
+def validation_error(model, theta, exp):
+    """Mean over outputs of RMS(free-run error)/std(output) on ``exp``."""
+    t, u, y = Record(exp).arrays(model)
+    x0 = model.x0
+    try:
+        sim = simulate(model, t, u if model.n_u else None, x0=x0, theta=theta, method="rk4",
+                       substeps=10)
+    except Exception:
+        return float("nan")
+    e = sim.y - y
+    return float(np.mean(np.sqrt(np.nanmean(e**2, axis=0)) / np.nanstd(y, axis=0)))
+
+
+def run_case(gname, ename, seed):
+    """One case of the matrix (a dict of results; ``skipped`` with a reason
+    if the effect does not apply)."""
+    t0 = time.perf_counter()
+    spec = GRAPHS[gname]
+    eff = get_effect(ename)
+    drawn = draw_truth(spec, eff, seed)
+    if drawn is None:
+        return {"graph": gname, "effect": ename, "skipped": "no target or no box"}
+    tgt, vals = drawn
+    truth = spec["build"]()
+    eff.apply(truth, tgt, vals)
+    declared = spec["build"]()
+    t = np.arange(0.0, spec["T"], spec["dt"])
+    rec = synthesize(truth, declared, t, sampled(spec["inputs"](0.0), t), {}, {}, seed, "train",
+                     "", hold="zoh", method="rk4", substeps=10)
+    val = synthesize(truth, declared, t, sampled(spec["inputs"](1.3), t), {}, {}, seed + 7919,
+                     "val", "", hold="zoh", method="rk4", substeps=10)
+    ctx = Context(Record(rec), settings_for(spec["params"]), log=quiet, progress=False)
+    fit = fit_model(ctx, declared, spec["params"], None, "declared")
+    sc = operating_scales(ctx, fit)
+    ranking, _ = gather_evidence(ctx, fit, sc)
+    labels = [(c.effect, c.target.name) for c in ranking]
+    key = (ename, tgt.name)
+    rank = labels.index(key) + 1 if key in labels else None
+    first = rank == 1 or (bool(ranking) and f"{ename} @ {tgt.name}" in
+                          (ranking[0].equivalent or []))
+    out = {"graph": gname, "domain": spec["domain"], "effect": ename, "target": tgt.name,
+           "seed": seed, "truth": {k: vals[k] for k in vals
+                                   if k in [p.name for p in eff.params if p.estimated]},
+           "rank": rank, "first": bool(first), "n_candidates": len(ranking),
+           "top": f"{ranking[0].effect} @ {ranking[0].target.name}" if ranking else None}
+    out.update(confirm_truth(ctx, fit, ranking, key, sc, eff, vals, val))
+    out["val_before"] = validation_error(fit.model, fit.theta, val)
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def confirm_truth(ctx, fit, ranking, key, sc, eff, vals, val):
+    """Refit with the true effect; its estimates, CRB std, whether each is
+    within 3 std of the truth, and the validation error after."""
+    cand = next((c for c in ranking if (c.effect, c.target.name) == key), None)
+    if cand is None:
+        return {"within_3crb": False, "val_after": float("nan"), "estimate": {}}
+    r = confirm(ctx, fit, cand, sc, "augmented")
+    if r is None:
+        return {"within_3crb": False, "val_after": float("nan"), "estimate": {}}
+    std = parameter_std(ctx, r.fit)
+    est, ok = {}, True
+    for p in eff.params:
+        if not p.estimated:
+            continue
+        full = eff.pname(cand.target, p.name)
+        s = std.get(full)
+        est[p.name] = {"value": r.values[p.name], "std": s}
+        ok = ok and s is not None and abs(r.values[p.name] - vals[p.name]) <= 3 * s
+    return {"within_3crb": bool(ok), "estimate": est,
+            "val_after": validation_error(r.fit.model, r.fit.theta, val)}
+
+
+def cases(quick: bool, graphs=None):
+    """The (graph, effect, seed) list of the matrix."""
+    if quick:
+        return [(g, e, 1000 + i) for i, (g, e) in enumerate(QUICK)]
+    out = []
+    for gi, g in enumerate(graphs or GRAPHS):
+        graph = GRAPHS[g]["build"]()
+        for ei, e in enumerate(DEFAULT_EFFECTS):
+            if e.targets(graph):
+                out.append((g, e.name, 1000 + 100 * gi + ei))
+    return out
+
+
+def summarise(results):
+    """Per-graph and total counts."""
+    done = [r for r in results if "skipped" not in r]
+    per = {}
+    for r in done:
+        d = per.setdefault(r["graph"], {"cases": 0, "first": 0, "within_3crb": 0, "seconds": 0.0})
+        d["cases"] += 1
+        d["first"] += int(r["first"])
+        d["within_3crb"] += int(r["within_3crb"])
+        d["seconds"] += r["seconds"]
+    n = max(len(done), 1)
+    total = {"cases": len(done), "skipped": len(results) - len(done),
+             "first": sum(int(r["first"]) for r in done),
+             "within_3crb": sum(int(r["within_3crb"]) for r in done),
+             "first_rate": sum(int(r["first"]) for r in done) / n,
+             "within_3crb_rate": sum(int(r["within_3crb"]) for r in done) / n,
+             "median_val_before": float(np.nanmedian([r["val_before"] for r in done]))
+             if done else None,
+             "median_val_after": float(np.nanmedian([r["val_after"] for r in done]))
+             if done else None,
+             "seconds": sum(r["seconds"] for r in done),
+             "graphs": len(per), "domains": len({r["domain"] for r in done})}
+    return per, total
+
+
+def print_table(results, per, total):
+    """The per-case lines and the per-graph table."""
+    for r in results:
+        if "skipped" in r:
+            print(f"  {r['graph']:20s} {r['effect']:22s} skipped: {r['skipped']}")
+            continue
+        print(f"  {r['graph']:20s} {r['effect']:22s} @ {r['target']:10s} rank {r['rank']!s:>4s}"
+              f" first {'yes' if r['first'] else 'no ':3s} 3CRB {'yes' if r['within_3crb'] else 'no '}"
+              f" val {r['val_before']:.3g} -> {r['val_after']:.3g}  {r['seconds']:.1f} s"
+              f"  (top: {r['top']})")
+    print(f"\n{'graph':22s} {'cases':>5s} {'first':>6s} {'3 CRB':>6s} {'time [s]':>9s}")
+    for g, d in per.items():
+        print(f"{g:22s} {d['cases']:5d} {d['first']:6d} {d['within_3crb']:6d} {d['seconds']:9.1f}")
+    print(f"{'total':22s} {total['cases']:5d} {total['first']:6d} {total['within_3crb']:6d} "
+          f"{total['seconds']:9.1f}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="the fixed subset (< 3 min)")
+    ap.add_argument("--graphs", default=None, help="comma-separated graph names (full run)")
+    ap.add_argument("--json-out", default=None, help="also write the per-case results here")
+    a = ap.parse_args(argv)
+    warnings.simplefilter("ignore")
+    results = []
+    todo = cases(a.quick, a.graphs.split(",") if a.graphs else None)
+    for k, (g, e, seed) in enumerate(todo):
+        try:
+            r = run_case(g, e, seed)
+        except Exception as exc:  # a case that fails counts as not recovered
+            r = {"graph": g, "domain": GRAPHS[g]["domain"], "effect": e, "target": "?",
+                 "seed": seed, "rank": None, "first": False, "within_3crb": False,
+                 "val_before": float("nan"), "val_after": float("nan"), "seconds": 0.0,
+                 "top": None, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0]}"}
+        results.append(r)
+        print(f"[{k + 1}/{len(todo)}] {g} {e}: rank {r.get('rank')} first {r.get('first')} "
+              f"3CRB {r.get('within_3crb')} {r.get('error', '')}", file=sys.stderr, flush=True)
+    per, total = summarise(results)
+    print_table(results, per, total)
+    if a.json_out:
+        with open(a.json_out, "w") as fh:
+            json.dump(results, fh, indent=1, default=str)
+    print(json.dumps({"quick": a.quick, "total": total, "per_graph": per}, default=str))
+    return total
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,165 @@
+"""Alternatives of an R element's constitutive law: linear ↔ square-root
+(orifice) ↔ quadratic ↔ cubic.
+
+An R has a causal input x and output y: the flow in and the effort out
+(``e = φ(f)``) when the graph imposes its flow, the effort in and the flow
+out (``f = φ(e)``) when it imposes its effort (a hydraulic orifice between
+two tanks, a resistor across a capacitor). The effects add a term to the
+law in that causal form,
+
+    y = law(x) + β·b(x),  b(x) ∈ { sgn(x)√|x|,  x|x|,  x³ },
+
+so that the law stays explicit (no algebraic loop). With β free and the
+linear coefficient re-estimated, the law moves from linear to any of the
+three; a pure square-root law is the limit R → ∞ of a conductance-form
+orifice f = e/R + β sgn(e)√|e|. The square root and the absolute value are
+smoothed over ε, 1 % of the RMS of x in the record (sgn(x)√|x| ≈
+x/(x² + ε²)^{1/4}, x|x| ≈ x√(x² + ε²)), so that the laws are smooth where
+sigma points cross zero. A linear R (``resistance=``) that receives effort
+is rewritten in conductance form, f = e/R, first.
+
+Sign convention: power into the R, so β > 0 adds dissipation.
+
+References
+----------
+Karnopp, Margolis & Rosenberg, *System Dynamics*, 5th ed., §4.1 (nonlinear
+resistances, causality of R elements) and §11 (orifice flow Q = C_d A
+√(2Δp/ρ)).
+"""
+
+from __future__ import annotations
+
+import sympy as sp
+
+from bondgraph.core.causality import assign_causality
+from bondgraph.core.elements import R
+from bondgraph.core.graph import BondGraph
+from bondgraph.diagnose.effects.base import (
+    Effect,
+    EffectParam,
+    Scales,
+    _new_param,
+    element_units,
+    fill_unit,
+    resistor_targets,
+)
+
+
+def causal_input(graph: BondGraph, el: R) -> str:
+    """``"flow"`` if SCAP gives the R its flow (it returns the effort),
+    ``"effort"`` otherwise."""
+    cz = assign_causality(graph, validate=False)
+    return "effort" if cz.receives_effort(el.port.bond, el) else "flow"
+
+
+def add_to_r_law(graph: BondGraph, el: R, term) -> None:
+    """Add ``term`` (an expression of the R's port variables, or a callable
+    of its causal input x) to the law of ``el`` in its causal form (x, see
+    :func:`causal_input`); a linear R that receives effort is first
+    rewritten as f = e/R.
+
+    Raises
+    ------
+    ValueError
+        If the law is nonlinear and written in the other causality.
+    """
+    inp = causal_input(graph, el)
+    if inp == "effort" and el.form == "effort":
+        if el.resistance is None:
+            raise ValueError(f"R '{el.name}': nonlinear effort law in effort-in causality")
+        el.form, el.law = "flow", el.e / el.resistance
+    elif inp == "flow" and el.form == "flow":
+        raise ValueError(f"R '{el.name}': flow law in flow-in causality")
+    x = el.e if inp == "effort" else el.f
+    el.law = el.law + (term(x) if callable(term) else term)
+
+
+class _RLawTerm(Effect):
+    """A term β·b(x) added to an R's law in its causal form."""
+
+    target_kind = "resistor"
+    additive = True
+
+    def targets(self, graph):
+        return resistor_targets(graph)
+
+    def shape_values(self, graph, target, scales):
+        el = graph.element(target.name)
+        table = "r_effort_rms" if causal_input(graph, el) == "effort" else "r_flow_rms"
+        return {"eps": 0.01 * scales.get(table, target.name)}
+
+    def term(self, x, S: dict):
+        """The basis function b(x)."""
+        raise NotImplementedError
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        el = graph.element(target.name)
+        eu, fu = element_units(graph, el)
+        inp = causal_input(graph, el)
+        xu, yu = (eu, fu) if inp == "effort" else (fu, eu)
+        shapes = self.shape_values(graph, target, scales or Scales())
+        P = {}
+        for spc in self.params:
+            unit = fill_unit(spc.unit, x=xu, y=yu)
+            default = values.get(spc.name, shapes.get(spc.name, 0.0))
+            bounds = (-1e15, 1e15) if spc.estimated else (1e-15, 1e15)
+            P[spc.name] = _new_param(graph, self.pname(target, spc.name), default, unit, bounds,
+                                     f"{spc.description} ({self.title} of {target.name})")
+        add_to_r_law(graph, el, lambda x: P[self.params[0].name] * self.term(x, P))
+        return P
+
+    def basis(self, graph, target, scales):
+        el = graph.element(target.name)
+        S = {k: sp.Float(v) for k, v in self.shape_values(graph, target, scales).items()}
+        x = el.e if causal_input(graph, el) == "effort" else el.f
+        return [self.term(x, S)]
+
+    def box(self, graph, target, scales):
+        """The term's output at the RMS input between 10 % and 50 % of the
+        R's RMS output."""
+        el = graph.element(target.name)
+        inp = causal_input(graph, el)
+        x = scales.get("r_effort_rms" if inp == "effort" else "r_flow_rms", target.name)
+        y = scales.get("r_flow_rms" if inp == "effort" else "r_effort_rms", target.name)
+        b = abs(float(self.term(sp.Float(x), {"eps": 0.01 * x})))
+        return {self.params[0].name: (0.1 * y / b, 0.5 * y / b)}
+
+
+class RSquareRoot(_RLawTerm):
+    """Square-root (orifice) law: y += β·sgn(x)√|x| (a turbulent orifice
+    written in conductance form, Q = K √Δp)."""
+
+    name = "r_sqrt"
+    title = "square-root (orifice) law of a resistor"
+    params = (EffectParam("beta", "{y}/{x}^0.5", "square-root law coefficient"),
+              EffectParam("eps", "{x}", "smoothing width of sgn(x)√|x|", estimated=False))
+
+    def term(self, x, S):
+        return x / (x**2 + S["eps"] ** 2) ** sp.Rational(1, 4)
+
+
+class RQuadratic(_RLawTerm):
+    """Quadratic law: y += β·x|x| (turbulent flow, drag)."""
+
+    name = "r_quadratic"
+    title = "quadratic law of a resistor"
+    params = (EffectParam("beta", "{y}/{x}^2", "quadratic law coefficient"),
+              EffectParam("eps", "{x}", "smoothing width of |x|", estimated=False))
+
+    def term(self, x, S):
+        return x * sp.sqrt(x**2 + S["eps"] ** 2)
+
+
+class RCubic(_RLawTerm):
+    """Cubic law: y += β·x³ (a progressive damper, a varistor-like resistor)."""
+
+    name = "r_cubic"
+    title = "cubic law of a resistor"
+    params = (EffectParam("beta", "{y}/{x}^3", "cubic law coefficient"),)
+
+    def shape_values(self, graph, target, scales):
+        return {}
+
+    def term(self, x, S):
+        return x**3

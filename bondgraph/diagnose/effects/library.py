@@ -1,0 +1,79 @@
+"""The default effect library and lookup by name."""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+from bondgraph.core.graph import BondGraph
+from bondgraph.core.symbols import Parameter
+from bondgraph.diagnose.effects.base import Effect, Target
+from bondgraph.diagnose.effects.coupling import Compliance, Slip
+from bondgraph.diagnose.effects.friction import (
+    AsymmetricFriction,
+    ConstantEffort,
+    Coulomb,
+    DahlFriction,
+    Disturbance,
+    QuadraticDrag,
+    Stribeck,
+    Viscous,
+)
+from bondgraph.diagnose.effects.laws import RCubic, RQuadratic, RSquareRoot
+from bondgraph.diagnose.effects.sensors import (
+    SensorGain,
+    SensorLowPass,
+    SensorOffset,
+    SensorPolynomial2,
+    SensorPolynomial3,
+    SensorQuantisation,
+    SensorRectification,
+)
+from bondgraph.diagnose.effects.sources import (
+    ActuatorDeadZone,
+    ActuatorGain,
+    ActuatorSaturation,
+    InputDelay,
+    SourceLag,
+    SourceOffset,
+    SourceRateLimit,
+)
+from bondgraph.diagnose.effects.storage import Backlash, CapacityLimit, CubicStiffness, EndStop
+from bondgraph.errors import GraphError
+
+#: the library used by :func:`bondgraph.diagnose.loop.run_loop` unless told otherwise
+DEFAULT_EFFECTS: tuple[Effect, ...] = (
+    Coulomb(), AsymmetricFriction(), Stribeck(), Viscous(), QuadraticDrag(), ConstantEffort(),
+    ActuatorGain(), SensorOffset(), SensorGain(), SensorRectification(),
+    Slip(), Compliance(), SensorLowPass(), Disturbance(), ActuatorSaturation(),
+    ActuatorDeadZone(), EndStop(), Backlash(),
+    # issue 12: every energy domain
+    SourceOffset(), SensorPolynomial2(), SensorPolynomial3(), CubicStiffness(), RSquareRoot(),
+    RQuadratic(), RCubic(), SourceLag(), SourceRateLimit(), InputDelay(), SensorQuantisation(),
+    CapacityLimit(), DahlFriction(),
+)
+
+BY_NAME: dict[str, Effect] = {e.name: e for e in DEFAULT_EFFECTS}
+
+
+def get_effect(name: str, library=None) -> Effect:
+    """The effect called ``name`` in ``library`` (default :data:`DEFAULT_EFFECTS`).
+
+    Raises
+    ------
+    GraphError
+        Unknown name (the library's names are listed).
+    """
+    lib = {e.name: e for e in (library or DEFAULT_EFFECTS)}
+    try:
+        return lib[name]
+    except KeyError:
+        raise GraphError(f"unknown effect '{name}' (library: {', '.join(sorted(lib))})") from None
+
+
+def apply_effect(graph: BondGraph, effect: str | Effect, target: Target | tuple[str, str],
+                 values: Mapping[str, float] | None = None) -> dict[str, Parameter]:
+    """Add a library effect to ``graph`` in place (used by the augmented model
+    files the loop writes). ``target`` is a :class:`Target` or ``(kind, name)``."""
+    eff = get_effect(effect) if isinstance(effect, str) else effect
+    tgt = target if isinstance(target, Target) else Target(*target)
+    return eff.apply(graph, tgt, values)

@@ -1,0 +1,253 @@
+"""Effects of a C element (a spring, a capacitor, a tank, a heat capacity):
+storage limits and alternatives of its constitutive law.
+
+* :class:`EndStop` — a stiff one-sided spring beyond ±q_max (end stops,
+  saturation of a travel);
+* :class:`CapacityLimit` — a capacity limit with overflow: above q_max the
+  excess flow leaves the storage through an overflow law, lost (an R to
+  the common effort) or routed to a named 0-junction (another tank);
+* :class:`Backlash` — a dead zone in a compliance;
+* :class:`CubicStiffness` — Duffing's cubic hardening (k3 > 0) or softening
+  (k3 < 0) term of the law, e = k q + k3 q³, with its energy k3 q⁴/4
+  (additive: probe-able at k3 = 0).
+
+References
+----------
+Duffing, G. (1918), Erzwungene Schwingungen bei veränderlicher
+Eigenfrequenz, Vieweg. Karnopp, Margolis & Rosenberg, *System Dynamics*,
+5th ed., §4.2 (nonlinear C elements) and §8 (hydraulic tanks and orifices).
+"""
+
+from __future__ import annotations
+
+import sympy as sp
+
+from bondgraph.core.elements import C, Zero
+from bondgraph.core.graph import BondGraph
+from bondgraph.core.smooth import softplus
+from bondgraph.diagnose.effects.base import (
+    Effect,
+    EffectParam,
+    Scales,
+    _new_param,
+    _Structural,
+    default_value,
+    element_units,
+    fill_unit,
+    mechanical,
+    split_bond,
+    storage_stiffness,
+    storage_targets,
+)
+
+
+def storage_unit(graph: BondGraph, el: C) -> str:
+    """Unit of a C element's displacement (flow unit × s; "" if unknown)."""
+    _, fu = element_units(graph, el)
+    return f"({fu})*s" if fu else ""
+
+
+def _force_on_storage(graph: BondGraph, el: C, tag: str):
+    """A 1-junction spliced into the bond of C element ``el`` (same flow as
+    the C), so that an extra effort can act on its displacement."""
+    return split_bond(graph, el.port.bond, "1", tag)
+
+
+def _k_default(el: C) -> float:
+    """Default value of the C's stiffness (1.0 if unknown)."""
+    v = default_value(storage_stiffness(el))
+    return abs(v) if v else 1.0
+
+
+class EndStop(_Structural):
+    """End stops (saturation) of a storage: a stiff one-sided spring beyond
+    ±q_max on the displacement of a C element. The stop is smooth
+    (softplus of width q_max/20), so it acts a little below its level: the
+    grid reaches beyond the largest displacement seen in the record."""
+
+    name = "end_stop"
+    title = "end stops / saturation of a storage"
+    target_kind = "storage"
+    params = (EffectParam("qmax", "{q}", "free travel each side", nonnegative=True),
+              EffectParam("kstop", "", "stop stiffness", estimated=False))
+
+    def targets(self, graph):
+        return storage_targets(graph)
+
+    def grid(self, graph, target, scales):
+        m = scales.get("storage_max", target.name)
+        return [{"qmax": m * f} for f in (0.3, 0.5, 0.7, 0.85, 1.0, 1.1, 1.25)]
+
+    def box(self, graph, target, scales):
+        m = scales.get("storage_max", target.name)
+        return {"qmax": (0.4 * m, 0.85 * m)}
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        el = graph.element(target.name)
+        qmax = _new_param(graph, self.pname(target, "qmax"), values.get("qmax", 1.0),
+                          fill_unit("{q}", q=storage_unit(graph, el)), (1e-12, 1e12),
+                          f"free travel of {target.name}")
+        ks = 100 * storage_stiffness(el)
+        q = el.q
+        w = qmax / 20
+        j = _force_on_storage(graph, el, f"{self.name}.{target.tag}.j")
+        stop = ks * w * (softplus((q - qmax) / w) - softplus((-q - qmax) / w))
+        graph.connect(graph.MSe(f"{self.name}.{target.tag}", -stop), j)
+        return {"qmax": qmax}
+
+
+class Backlash(_Structural):
+    """Backlash (dead zone) in a compliance of a mechanical domain:
+    e = k (q - g tanh(q/g))."""
+
+    name = "backlash"
+    title = "backlash / dead zone of a compliance"
+    target_kind = "storage"
+    params = (EffectParam("gap", "{q}", "half gap", nonnegative=True),)
+
+    def targets(self, graph):
+        return [t for t in storage_targets(graph)
+                if mechanical(element_units(graph, graph.element(t.name))[1]) is not False]
+
+    def grid(self, graph, target, scales):
+        m = scales.get("storage_max", target.name)
+        return [{"gap": m * f} for f in (0.02, 0.05, 0.1, 0.2, 0.4)]
+
+    def box(self, graph, target, scales):
+        m = scales.get("storage_max", target.name)
+        return {"gap": (0.05 * m, 0.3 * m)}
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        el = graph.element(target.name)
+        g_ = _new_param(graph, self.pname(target, "gap"), values.get("gap", 1.0),
+                        fill_unit("{q}", q=storage_unit(graph, el)), (1e-12, 1e12),
+                        f"half gap of {target.name}")
+        k = storage_stiffness(el)
+        j = _force_on_storage(graph, el, f"{self.name}.{target.tag}.j")
+        graph.connect(graph.MSe(f"{self.name}.{target.tag}", k * g_ * sp.tanh(el.q / g_)), j)
+        return {"gap": g_}
+
+
+class CapacityLimit(_Structural):
+    """A storage that cannot hold more than q_max: above it the excess
+    leaves through an overflow law Q = (w/τ)·softplus((q − q_max)/w), which
+    drains the excess within the time constant τ (one sample, fixed) and is
+    negligible a few widths w (2 % of the largest stored quantity) below the
+    limit: a tank's overflow weir, a clamp diode across a capacitor.
+
+    The overflow is an R element with that flow law on a 0-junction spliced
+    into the C's bond (so it sees the C's effort): its power e·Q is lost.
+    With ``routes={storage: junction}`` the overflow of that storage passes
+    instead through a 1-junction into the named 0-junction (the next tank),
+    the R then seeing the effort difference.
+
+    Parameters
+    ----------
+    routes : dict, optional
+        C element name -> name of the 0-junction its overflow goes to; only
+        those storages are targets. Default: every C, overflow lost.
+    name : str, optional
+        Effect name (default ``capacity_limit``, or ``capacity_overflow``
+        with routes).
+    """
+
+    title = "capacity limit with overflow"
+    target_kind = "storage"
+    params = (EffectParam("qmax", "{q}", "capacity (largest stored quantity)"),
+              EffectParam("w", "{q}", "width of the overflow onset", estimated=False),
+              EffectParam("tau", "s", "overflow time constant", estimated=False))
+
+    def __init__(self, routes: dict | None = None, name: str | None = None):
+        self.routes = dict(routes or {})
+        self.name = name or ("capacity_overflow" if self.routes else "capacity_limit")
+
+    def targets(self, graph):
+        out = storage_targets(graph)
+        if self.routes:
+            out = [t for t in out if t.name in self.routes]
+        return out
+
+    def shape_values(self, graph, target, scales):
+        return {"w": 0.02 * scales.get("storage_max", target.name), "tau": scales.dt}
+
+    def grid(self, graph, target, scales):
+        top = scales.get("storage_peak", target.name, scales.get("storage_max", target.name))
+        sh = self.shape_values(graph, target, scales)
+        return [{"qmax": top * f, **sh} for f in (0.5, 0.7, 0.85, 0.95, 1.0, 1.05, 1.15)]
+
+    def box(self, graph, target, scales):
+        top = scales.get("storage_peak", target.name, scales.get("storage_max", target.name))
+        return {"qmax": (0.5 * top, 0.9 * top)}
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        el = graph.element(target.name)
+        unit = fill_unit("{q}", q=storage_unit(graph, el))
+        shapes = self.shape_values(graph, target, scales or Scales())
+        P = {}
+        for spc, u in zip(self.params, (unit, unit, "s")):
+            P[spc.name] = _new_param(graph, self.pname(target, spc.name),
+                                     values.get(spc.name, shapes.get(spc.name, 1.0)), u,
+                                     (-1e15, 1e15) if spc.name == "qmax" else (1e-15, 1e15),
+                                     f"{spc.description} of {target.name}")
+        w, tau = P["w"], P["tau"]
+        overflow = w / tau * softplus((el.q - P["qmax"]) / w)
+        z = split_bond(graph, el.port.bond, "0", f"{self.name}.{target.tag}.j")
+        r = graph.R(f"{self.name}.{target.tag}", flow=lambda e: overflow)
+        dest = self.routes.get(target.name)
+        if dest is None:
+            graph.connect(z, r)
+        else:
+            j2 = graph.element(dest)
+            if not isinstance(j2, Zero):
+                raise TypeError(f"capacity overflow of '{target.name}' must go to a 0-junction, "
+                                f"'{dest}' is {j2.kind}")
+            one = graph.one(f"{self.name}.{target.tag}.path")
+            graph.connect(z, one)
+            graph.connect(one, j2)
+            graph.connect(one, r)
+        return P
+
+
+class CubicStiffness(Effect):
+    """Duffing's cubic stiffness of a C element: its law gains k3·q³ (its
+    energy k3·q⁴/4), hardening for k3 > 0, softening for k3 < 0: a
+    progressive spring, a nonlinear capacitor, a tank whose cross-section
+    changes with the level. Additive: probe-able at k3 = 0."""
+
+    name = "cubic_stiffness"
+    title = "cubic (Duffing) stiffness"
+    target_kind = "storage"
+    additive = True
+    params = (EffectParam("k3", "{effort}/{q}^3", "cubic stiffness coefficient"),)
+
+    def targets(self, graph):
+        return storage_targets(graph)
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        el = graph.element(target.name)
+        eu, _ = element_units(graph, el)
+        k3 = _new_param(graph, self.pname(target, "k3"), values.get("k3", 0.0),
+                        fill_unit("{effort}/{q}^3", effort=eu, q=storage_unit(graph, el)),
+                        (-1e15, 1e15), f"cubic stiffness of {target.name}")
+        add_to_storage_law(el, k3 * el.q**3, k3 * el.q**4 / 4)
+        return {"k3": k3}
+
+    def basis(self, graph, target, scales):
+        return [graph.element(target.name).q ** 3]
+
+    def box(self, graph, target, scales):
+        m = scales.get("storage_max", target.name)
+        k = _k_default(graph.element(target.name))
+        return {"k3": (0.05 * k / m**2, 0.3 * k / m**2)}
+
+
+def add_to_storage_law(el: C, effort: sp.Expr, energy: sp.Expr) -> None:
+    """Add ``effort`` (a function of the displacement) to a C element's law
+    and ``energy`` (its integral) to its stored energy."""
+    el.law = el.law + effort
+    if el.energy is not None:
+        el.energy = el.energy + energy
