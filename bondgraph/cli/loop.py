@@ -20,7 +20,6 @@ from bondgraph.cli.common import (
     parse_pairs,
     parse_params,
 )
-from bondgraph.data.records import Experiment
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.settings import LoopSettings
@@ -179,7 +178,7 @@ def numerics_settings(args, settings: dict, graph) -> dict:
     if given:
         out["ukf"] = UKFOptions(**{**base.to_dict(), **given})
     if args.validate:
-        out["validation"] = Experiment.load(args.validate)
+        out["validation"] = load_record(args.validate, graph)   # misspelt columns warned
     if args.holdout is not None:
         out["holdout"] = float(args.holdout)
     if args.metric_tolerance is not None:
