@@ -28,7 +28,8 @@ pytestmark = [
 def test_case_is_registered_and_its_record_is_the_averaged_training_block():
     assert "silverbox" in registered_cases()
     case = get_case("silverbox")
-    assert case.true_effect == ("cubic_stiffness", "spring")
+    kind, target = case.true_effect
+    assert (kind, target) == ("cubic_stiffness", "spring")
     rec = case.record()
     raw = loadmat(str(DATA / "silverbox" / "SNLS80mV.mat"))
     V1, V2 = raw["V1"].ravel(), raw["V2"].ravel()

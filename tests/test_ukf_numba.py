@@ -63,11 +63,24 @@ def box_sets(m: Model, n: int, seed: int) -> np.ndarray:
     return th
 
 
+def _round_off_breakdown(reason) -> bool:
+    return reason is not None and "not positive definite" in reason
+
+
 def assert_same(a, b, rel=1e-9):
-    """Same failures (sets, samples, reasons) and NLL within ``rel``."""
+    """Same failures (sets, samples, reasons) and NLL within ``rel``.
+
+    One exception, by construction of floating point: a set whose covariance
+    has collapsed to round-off (no process noise, P ~ 1e-39 after the
+    regularised factorisations) breaks down as "not positive definite" in
+    both backends, at a sample that round-off decides; such a set must fail
+    in both, for that reason, but the sample may differ."""
     np.testing.assert_array_equal(a.failed, b.failed)
-    np.testing.assert_array_equal(a.fail_step, b.fail_step)
-    assert a.reasons == b.reasons
+    both_pd = np.array([_round_off_breakdown(ra) and _round_off_breakdown(rb)
+                        for ra, rb in zip(a.reasons, b.reasons)], dtype=bool)
+    np.testing.assert_array_equal(a.fail_step[~both_pd], b.fail_step[~both_pd])
+    assert [r for r, x in zip(a.reasons, both_pd) if not x] == \
+        [r for r, x in zip(b.reasons, both_pd) if not x]
     ok = ~a.failed
     np.testing.assert_allclose(b.nll[ok], a.nll[ok], rtol=rel, atol=0)
     assert np.isposinf(b.nll[a.failed]).all()
