@@ -289,7 +289,10 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     if ctx.settings.true_effect is not None:
         kind, target = ctx.settings.true_effect
         result.truth_ranks.append(rank_of(ranking, kind, target))
-        ctx.log(f"  the true effect {kind} @ {target} ranks {result.truth_ranks[-1]}")
+        rank = result.truth_ranks[-1]
+        ctx.log(f"  the true effect {kind} @ {target} ranks {rank}" if rank is not None else
+                f"  the true effect {kind} @ {target} is not among the candidates (accepted "
+                f"already, or it cannot attach)")
     ctx.log(f"step {step}: {len(ranking)} candidates scored in "
             f"{time.perf_counter() - t_ev:.1f} s; best: " + "; ".join(
                 f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})" for c in ranking[:5]))
