@@ -379,6 +379,18 @@ def log_grid(lo: float, hi: float, n: int) -> list[float]:
     return [lo * (hi / lo) ** (k / (n - 1)) for k in range(n)]
 
 
+def time_constant_grid(scales: "Scales") -> list[dict[str, float]]:
+    """Grid of a first-order time constant ``tau`` (a lag or low-pass):
+    8 log-spaced values from half a sample to 5 % of the record."""
+    return [{"tau": t} for t in log_grid(0.5 * scales.dt, 0.05 * scales.duration, 8)]
+
+
+def time_constant_box(scales: "Scales") -> dict[str, tuple[float, float]]:
+    """Box of a first-order time constant ``tau``: one sample to
+    min(20 samples, 2 % of the record)."""
+    return {"tau": (scales.dt, min(20 * scales.dt, 0.02 * scales.duration))}
+
+
 # ------------------------------------------------------------ target finders
 def _flow_imposed(el: One) -> bool:
     """True if a flow source is bonded to the 1-junction ``el``."""

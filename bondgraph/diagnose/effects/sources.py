@@ -37,7 +37,8 @@ from bondgraph.diagnose.effects.base import (
     element_units,
     input_sources,
     input_targets,
-    log_grid,
+    time_constant_box,
+    time_constant_grid,
     source_junction,
 )
 
@@ -218,10 +219,10 @@ class SourceLag(_Structural):
         return input_sources(graph, None)
 
     def grid(self, graph, target, scales):
-        return [{"tau": t} for t in log_grid(0.5 * scales.dt, 0.05 * scales.duration, 8)]
+        return time_constant_grid(scales)
 
     def box(self, graph, target, scales):
-        return {"tau": (scales.dt, min(20 * scales.dt, 0.02 * scales.duration))}
+        return time_constant_box(scales)
 
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
