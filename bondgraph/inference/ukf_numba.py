@@ -86,9 +86,19 @@ def _jit(fn):
     return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
 
 
+def _jit_inline(fn):
+    """:func:`_jit` inlined into its caller at numba-IR level: for the
+    steps that take the per-particle work tuple, whose passing by value
+    (and the reference counts of its ~30 arrays) otherwise costs more than
+    the arithmetic of a step."""
+    if numba is None:  # pragma: no cover
+        return fn
+    return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(fn)
+
+
 Work = namedtuple("Work", ["L", "cL", "chi", "X", "D", "mean", "cov", "xs", "xt", "k1", "k2",
                            "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Y", "Ym", "idx",
-                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg"])
+                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk"])
 
 
 @_jit
@@ -102,7 +112,8 @@ def _work(n, ny, nu):
                 np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, 2 * n)), np.zeros(nu),
                 np.zeros((npt, ny)), np.zeros((npt, ny)), np.zeros(ny, dtype=np.int64),
                 np.zeros((n, ny)), np.zeros((ny, n)), np.zeros(ny), np.zeros(ny),
-                np.zeros((ny, ny)), np.zeros(ny), np.zeros(1, dtype=np.int64))
+                np.zeros((ny, ny)), np.zeros(ny), np.zeros(1, dtype=np.int64), np.zeros(ny),
+                np.zeros(nu), np.zeros(ny))
 
 
 # ------------------------------------------------------------ linear algebra
@@ -180,7 +191,7 @@ def _inverse_w(J, h, A, Winv):
             Winv[i, j] = A[i, n + j]
 
 
-@_jit
+@_jit_inline
 def _matvec(M, v, out):
     n = v.shape[0]
     for i in range(n):
@@ -191,7 +202,7 @@ def _matvec(M, v, out):
 
 
 # ------------------------------------------------------------ sigma points
-@_jit
+@_jit_inline
 def _sigma(x, L, c, cL, chi):
     """Scaled sigma points χ_0 = x, χ_i = x + c L_i, χ_n+i = x − c L_i into
     chi, the offsets c L_i as rows of cL."""
@@ -207,7 +218,7 @@ def _sigma(x, L, c, cL, chi):
             chi[1 + n + i, a] = x[a] - cL[i, a]
 
 
-@_jit
+@_jit_inline
 def _moments(Z, m, w, cc, mean, cov, D):
     """Difference-form unscented mean and covariance of Z[:, :m]
     (:func:`bondgraph.inference.sigma.unscented_moments`); D = Z_i − Z_0."""
@@ -233,7 +244,7 @@ def _moments(Z, m, w, cc, mean, cov, D):
 
 
 # ------------------------------------------------------------ transition
-@_jit
+@_jit_inline
 def _held_input(u, k, frac, hold, out):
     """The input over the interval [t_k, t_k+1] at the fraction ``frac`` of
     it (numpy: :func:`bondgraph.numerics.integrators.hold_inputs`): hold 0
@@ -250,7 +261,7 @@ def _held_input(u, k, frac, hold, out):
             out[j] = u[k, j]
 
 
-@_jit
+@_jit_inline
 def _stage_input(u, k, s, cst, nsub, hold, out):
     """Re-evaluate a varying hold at stage ``s + cst`` of ``nsub`` sub-steps
     (constant holds need nothing)."""
@@ -258,7 +269,7 @@ def _stage_input(u, k, s, cst, nsub, hold, out):
         _held_input(u, k, (s + cst) / nsub, hold, out)
 
 
-@_jit
+@_jit_inline
 def _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4):
     """``nsub`` classical RK4 steps of one point x (in place)
     (:func:`bondgraph.numerics.integrators.rk4`); the work vectors are
@@ -283,7 +294,7 @@ def _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4):
             x[a] = x[a] + (h / 6.0) * (k1[a] + 2.0 * k2[a] + 2.0 * k3[a] + k4[a])
 
 
-@_jit
+@_jit_inline
 def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, J, Winv, A):
     """``nsub`` ROS2 steps of one point x (in place)
     (:func:`bondgraph.numerics.integrators.ros2`); jac 0: Winv is given
@@ -308,7 +319,7 @@ def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, 
             x[a] = x[a] + (1.5 * h) * k1[a] + (0.5 * h) * k2[a]
 
 
-@_jit
+@_jit_inline
 def _transition(f, fj, u, k, th, dt, ip, wk):
     """Every sigma point of wk.chi through the transition over interval k
     into wk.X (:func:`bondgraph.numerics.integrators.make_step`)."""
@@ -319,21 +330,25 @@ def _transition(f, fj, u, k, th, dt, ip, wk):
     if method == 1 and jac == 0:
         fj(wk.chi[0], wk.ub, th, wk.F0, wk.J)
         _inverse_w(wk.J, h, wk.A, wk.Winv)
-    ub, xt, X = wk.ub, wk.xt, wk.X
+    ub, xt, X, xs, chi = wk.ub, wk.xt, wk.X, wk.xs, wk.chi
     for j in range(npt):
+        # each point is integrated in the contiguous work vector xs: a row
+        # view per call of a first-class function costs more than the copies
         for a in range(n):
-            X[j, a] = wk.chi[j, a]
+            xs[a] = chi[j, a]
         if j > 0:
             _held_input(u, k, 0.0, hold, ub)
         if method == 0:
-            _rk4_point(f, X[j], u, k, hold, th, h, nsub, ub, xt, wk.k1, wk.k2, wk.k3, wk.k4)
+            _rk4_point(f, xs, u, k, hold, th, h, nsub, ub, xt, wk.k1, wk.k2, wk.k3, wk.k4)
         else:
-            _ros2_point(f, fj, X[j], u, k, hold, th, h, nsub, jac, ub, xt, wk.F0, wk.F1,
+            _ros2_point(f, fj, xs, u, k, hold, th, h, nsub, jac, ub, xt, wk.F0, wk.F1,
                         wk.k1, wk.k2, wk.J, wk.Winv, wk.A)
+        for a in range(n):
+            X[j, a] = xs[a]
 
 
 # ------------------------------------------------------------ predict / update
-@_jit
+@_jit_inline
 def _predict(f, fj, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
     """Prediction over interval k (to sample k + 1) in place; 0 or a failure code."""
     n = x.shape[0]
@@ -357,7 +372,7 @@ def _predict(f, fj, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
     return 0
 
 
-@_jit
+@_jit_inline
 def _measured_outputs(h, x, P, th, uk, yk, fp, wk):
     """Sigma points of the prior through h, restricted to the measured outputs
     of yk (their indices in wk.idx); returns (m, failure code)."""
@@ -367,8 +382,13 @@ def _measured_outputs(h, x, P, th, uk, yk, fp, wk):
         return 0, 2
     wk.nreg[0] += r == 2
     _sigma(x, wk.L, fp[0], wk.cL, wk.chi)
-    for j in range(wk.chi.shape[0]):
-        h(wk.chi[j], uk, th, wk.Y[j])
+    xs, yv, Y, chi = wk.xs, wk.yv, wk.Y, wk.chi
+    for j in range(chi.shape[0]):
+        for a in range(n):
+            xs[a] = chi[j, a]
+        h(xs, uk, th, yv)
+        for b in range(yv.shape[0]):
+            Y[j, b] = yv[b]
     m = 0
     for b in range(yk.shape[0]):
         if np.isfinite(yk[b]):
@@ -383,7 +403,7 @@ def _measured_outputs(h, x, P, th, uk, yk, fp, wk):
     return m, 0
 
 
-@_jit
+@_jit_inline
 def _update(h, x, P, th, uk, yk, Rd, R, ip, fp, wk):
     """Measurement update at one sample in place: (NLL term, maha, m, failure code)."""
     n = x.shape[0]
@@ -414,7 +434,7 @@ def _update(h, x, P, th, uk, yk, Rd, R, ip, fp, wk):
     return term, maha, m, 0
 
 
-@_jit
+@_jit_inline
 def _forward(Ls, m, b, out):
     """Solve Ls out = b (lower triangular, m x m)."""
     for i in range(m):
@@ -424,7 +444,7 @@ def _forward(Ls, m, b, out):
         out[i] = s / Ls[i, i]
 
 
-@_jit
+@_jit_inline
 def _correct(x, P, m, wk):
     """Kalman correction from the Cholesky factor of S: G = Pxy Ls⁻ᵀ,
     z = Ls⁻¹ ε, x += G z, P −= G Gᵀ (symmetrised); (NLL term, ε S⁻¹ ε)."""
@@ -457,7 +477,7 @@ def _correct(x, P, m, wk):
 
 
 # ------------------------------------------------------------ storage
-@_jit
+@_jit_inline
 def _store_update(st, k, p, m, term, maha, wk):
     """Innovations, predicted outputs, S (measured block), NLL term and NIS at k."""
     for a in range(m):
@@ -470,15 +490,15 @@ def _store_update(st, k, p, m, term, maha, wk):
     st[7][k, p] = maha
 
 
-@_jit
+@_jit_inline
 def _store_filtered(h, st, k, p, x, P, uk, th, full, wk):
     """Filtered state, its outputs h(x̂, u_k) and (full) covariance at k."""
     n = x.shape[0]
     for a in range(n):
         st[4][k, p, a] = x[a]
-    h(x, uk, th, wk.Y[0])
-    for b in range(wk.Y.shape[1]):
-        st[3][k, p, b] = wk.Y[0, b]
+    h(x, uk, th, wk.yv)
+    for b in range(wk.yv.shape[0]):
+        st[3][k, p, b] = wk.yv[b]
     if full:
         for a in range(n):
             for b in range(n):
@@ -498,12 +518,19 @@ def _filter_one(a, f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out
     p = act[a]
     nll = 0.0
     out_i[a, 0], out_i[a, 1] = -1, 0
+    q2a, uk, yk = q2[a], wk.uk, wk.yk
     for k in range(t.shape[0]):
+        # copies of the shared rows u[k], y[k]: views of arrays shared by the
+        # threads would update one reference count from every thread
+        for j in range(uk.shape[0]):
+            uk[j] = u[k, j]
+        for j in range(yk.shape[0]):
+            yk[j] = y[k, j]
         code = 0
         if k > 0:
-            code = _predict(f, fj, x, P, u, k - 1, tha, t[k] - t[k - 1], q2[a], Qa, ip, fp, wk)
-        if code == 0 and _any_finite(y[k]):
-            term, maha, m, code = _update(h, x, P, tha, u[k], y[k], Rda, Ra, ip, fp, wk)
+            code = _predict(f, fj, x, P, u, k - 1, tha, t[k] - t[k - 1], q2a, Qa, ip, fp, wk)
+        if code == 0 and _any_finite(yk):
+            term, maha, m, code = _update(h, x, P, tha, uk, yk, Rda, Ra, ip, fp, wk)
             if code == 0:
                 nll += term
                 if ip[6]:
@@ -513,12 +540,12 @@ def _filter_one(a, f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out
             nll = np.inf
             break
         if ip[6]:
-            _store_filtered(h, st, k, p, x, P, u[k], tha, ip[6] == 2, wk)
+            _store_filtered(h, st, k, p, x, P, uk, tha, ip[6] == 2, wk)
     out_f[a] = nll
     out_i[a, 2] = wk.nreg[0]
 
 
-@_jit
+@_jit_inline
 def _any_finite(v):
     for i in range(v.shape[0]):
         if np.isfinite(v[i]):
