@@ -83,7 +83,7 @@ def _jit(fn):
     the plain function without numba."""
     if numba is None:  # pragma: no cover
         return fn
-    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    return numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)(fn)
 
 
 def _jit_inline(fn):
@@ -93,27 +93,61 @@ def _jit_inline(fn):
     the arithmetic of a step."""
     if numba is None:  # pragma: no cover
         return fn
-    return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(fn)
+    return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always",
+                      _nrt=False)(fn)
 
 
 Work = namedtuple("Work", ["L", "cL", "chi", "X", "D", "mean", "cov", "xs", "xt", "k1", "k2",
                            "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Y", "Ym", "idx",
-                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk"])
+                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols"])
+
+
+@_jit_inline
+def _carve(buf, o, r, c):
+    """The (r, c) block of the flat buffer ``buf`` from offset o, and the next offset."""
+    return buf[o:o + r * c].reshape((r, c)), o + r * c
 
 
 @_jit
-def _work(n, ny, nu):
-    """Per-particle work arrays (allocated once per particle)."""
-    npt = 2 * n + 1
-    m = max(n, ny)
-    return Work(np.zeros((n, n)), np.zeros((n, n)), np.zeros((npt, n)), np.zeros((npt, n)),
-                np.zeros((npt, m)), np.zeros(m), np.zeros((m, m)), np.zeros(n), np.zeros(n),
-                np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n),
-                np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, 2 * n)), np.zeros(nu),
-                np.zeros((npt, ny)), np.zeros((npt, ny)), np.zeros(ny, dtype=np.int64),
-                np.zeros((n, ny)), np.zeros((ny, n)), np.zeros(ny), np.zeros(ny),
-                np.zeros((ny, ny)), np.zeros(ny), np.zeros(1, dtype=np.int64), np.zeros(ny),
-                np.zeros(nu), np.zeros(ny))
+def _work_size(n, ny, nu, nth):
+    """Lengths of the float and integer work buffers of one parameter set
+    (:func:`_work`)."""
+    npt, m = 2 * n + 1, max(n, ny)
+    return (7 * n * n + 2 * npt * n + npt * m + m + m * m + 10 * n + 2 * nu + 2 * npt * ny
+            + 2 * n * ny + ny * ny + 5 * ny + nth, ny + 1 + 2 * n)
+
+
+@_jit_inline
+def _work(buf, ibuf, n, ny, nu, nth):
+    """Per-particle work arrays carved from its zeroed buffers (allocated by
+    the caller: the kernel allocates nothing and runs without numba's
+    reference counting), with the set's state x, covariance P and
+    parameters."""
+    npt, m = 2 * n + 1, max(n, ny)
+    L, o = _carve(buf, 0, n, n)
+    cL, o = _carve(buf, o, n, n)
+    chi, o = _carve(buf, o, npt, n)
+    X, o = _carve(buf, o, npt, n)
+    D, o = _carve(buf, o, npt, m)
+    cov, o = _carve(buf, o, m, m)
+    vn, o = _carve(buf, o, 9, n)
+    J, o = _carve(buf, o, n, n)
+    Winv, o = _carve(buf, o, n, n)
+    A, o = _carve(buf, o, n, 2 * n)
+    Y, o = _carve(buf, o, npt, ny)
+    Ym, o = _carve(buf, o, npt, ny)
+    Pxy, o = _carve(buf, o, n, ny)
+    Gt, o = _carve(buf, o, ny, n)
+    Ls, o = _carve(buf, o, ny, ny)
+    vy, o = _carve(buf, o, 5, ny)
+    vu, o = _carve(buf, o, 2, nu)
+    mean, o = _carve(buf, o, 1, m)
+    P, o = _carve(buf, o, n, n)
+    tha, o = _carve(buf, o, 1, nth)
+    wk = Work(L, cL, chi, X, D, mean[0], cov, vn[0], vn[1], vn[2], vn[3], vn[4], vn[5], vn[6],
+              vn[7], J, Winv, A, vu[0], Y, Ym, ibuf[:ny], Pxy, Gt, vy[0], vy[1], Ls, vy[2],
+              ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:])
+    return wk, vn[8], P, tha[0]
 
 
 # ------------------------------------------------------------ linear algebra
@@ -161,15 +195,23 @@ def _chol(A, m, L):
 
 
 @_jit
-def _inverse_w(J, h, A, Winv):
-    """Winv = (I − γ h J)⁻¹ by Gauss-Jordan elimination with partial
-    pivoting on the work array A (n, 2n) (ROS2's W; numpy: ``np.linalg.inv``)."""
+def _w_matrix(J, h, A):
+    """[I − γ h J | I] into the work array A (n, 2n)."""
     n = J.shape[0]
     g = GAMMA * h
     for i in range(n):
         for j in range(n):
             A[i, j] = (1.0 if i == j else 0.0) - g * J[i, j]
             A[i, n + j] = 1.0 if i == j else 0.0
+
+
+@_jit
+def _inverse_w_dense(J, h, A, Winv):
+    """Winv = (I − γ h J)⁻¹ by Gauss-Jordan elimination with partial
+    pivoting over every column of [W | I] (numpy: ``np.linalg.inv``): the
+    reference for :func:`_inverse_w`, and its path for non-finite values."""
+    n = J.shape[0]
+    _w_matrix(J, h, A)
     for c in range(n):
         p = c
         for i in range(c + 1, n):
@@ -185,6 +227,50 @@ def _inverse_w(J, h, A, Winv):
             if i != c:
                 q = A[i, c]
                 for j in range(2 * n):
+                    A[i, j] -= q * A[c, j]
+    for i in range(n):
+        for j in range(n):
+            Winv[i, j] = A[i, n + j]
+
+
+@_jit
+def _inverse_w(J, h, A, Winv, cols):
+    """Winv = (I − γ h J)⁻¹: :func:`_inverse_w_dense` restricted to the
+    columns it changes. After step c the columns <= c of W are never read
+    again, and a column whose pivot-row entry is exactly 0 is left as it is
+    (x − q·0 = x for finite q); so every entry of Winv is the same double
+    (up to the sign of zeros, which no later sum can see). A non-finite or
+    zero pivot or multiplier reruns the dense elimination, whose NaN/inf
+    pattern is then the reference's. ``cols``: int work vector (2n,)."""
+    n = J.shape[0]
+    _w_matrix(J, h, A)
+    for c in range(n):
+        p = c
+        for i in range(c + 1, n):
+            if abs(A[i, c]) > abs(A[p, c]):
+                p = i
+        d = A[c, c] if p == c else A[p, c]
+        if d == 0.0 or not np.isfinite(d):
+            _inverse_w_dense(J, h, A, Winv)
+            return
+        if p != c:
+            A[c, c], A[p, c] = A[p, c], A[c, c]
+        m = 0
+        for j in range(c + 1, 2 * n):
+            if p != c:
+                A[c, j], A[p, j] = A[p, j], A[c, j]
+            if A[c, j] != 0.0:
+                A[c, j] /= d
+                cols[m] = j
+                m += 1
+        for i in range(n):
+            if i != c:
+                q = A[i, c]
+                if not np.isfinite(q):
+                    _inverse_w_dense(J, h, A, Winv)
+                    return
+                for r in range(m):
+                    j = cols[r]
                     A[i, j] -= q * A[c, j]
     for i in range(n):
         for j in range(n):
@@ -295,7 +381,8 @@ def _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4):
 
 
 @_jit_inline
-def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, J, Winv, A):
+def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, J, Winv, A,
+                cols):
     """``nsub`` ROS2 steps of one point x (in place)
     (:func:`bondgraph.numerics.integrators.ros2`); jac 0: Winv is given
     (shared), 1: df/dx at x at the start, frozen, 2: at every sub-step."""
@@ -304,7 +391,7 @@ def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, 
         _stage_input(u, k, s, 0.0, nsub, hold, ub)
         if jac == 2 or (jac == 1 and s == 0):
             fj(x, ub, th, F0, J)
-            _inverse_w(J, h, A, Winv)
+            _inverse_w(J, h, A, Winv, cols)
         else:
             f(x, ub, th, F0)
         _matvec(Winv, F0, k1)
@@ -329,7 +416,7 @@ def _transition(f, fj, u, k, th, dt, ip, wk):
     _held_input(u, k, 0.0, hold, wk.ub)
     if method == 1 and jac == 0:
         fj(wk.chi[0], wk.ub, th, wk.F0, wk.J)
-        _inverse_w(wk.J, h, wk.A, wk.Winv)
+        _inverse_w(wk.J, h, wk.A, wk.Winv, wk.cols)
     ub, xt, X, xs, chi = wk.ub, wk.xt, wk.X, wk.xs, wk.chi
     for j in range(npt):
         # each point is integrated in the contiguous work vector xs: a row
@@ -342,7 +429,7 @@ def _transition(f, fj, u, k, th, dt, ip, wk):
             _rk4_point(f, xs, u, k, hold, th, h, nsub, ub, xt, wk.k1, wk.k2, wk.k3, wk.k4)
         else:
             _ros2_point(f, fj, xs, u, k, hold, th, h, nsub, jac, ub, xt, wk.F0, wk.F1,
-                        wk.k1, wk.k2, wk.J, wk.Winv, wk.A)
+                        wk.k1, wk.k2, wk.J, wk.Winv, wk.A, wk.cols)
         for a in range(n):
             X[j, a] = xs[a]
 
@@ -508,12 +595,17 @@ def _store_filtered(h, st, k, p, x, P, uk, th, full, wk):
 # ------------------------------------------------------------ one set, all sets
 @_jit
 def _filter_one(a, f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i,
-                st):
+                st, buf, ibuf):
     """The whole record for parameter set ``a``: NLL into out_f[a]; failing
     sample (-1: none), failure code and loaded factorisations into out_i[a]."""
     n, ny, nu = x0.shape[1], y.shape[1], u.shape[1]
-    wk = _work(n, ny, nu)
-    x, P, tha = x0[a].copy(), P0[a].copy(), th[a].copy()
+    wk, x, P, tha = _work(buf, ibuf, n, ny, nu, th.shape[1])
+    for i in range(n):
+        x[i] = x0[a, i]
+        for j in range(n):
+            P[i, j] = P0[a, i, j]
+    for i in range(th.shape[1]):
+        tha[i] = th[a, i]
     Qa, Ra, Rda = Q[a * ip[5]], R[a * ip[4]], Rd[a * (1 - ip[4])]
     p = act[a]
     nll = 0.0
@@ -553,11 +645,13 @@ def _any_finite(v):
     return False
 
 
-def _kernel_py(f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i, st):
-    """Every parameter set in parallel (``prange``): :func:`_filter_one`."""
+def _kernel_py(f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i, st,
+               buf, ibuf):
+    """Every parameter set in parallel (``prange``): :func:`_filter_one`
+    with its own rows of the work buffers ``buf``, ``ibuf``."""
     for a in numba.prange(th.shape[0]):
         _filter_one(np.int64(a), f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
-                    out_i, st)
+                    out_i, st, buf[a], ibuf[a])
 
 
 def _signature():
@@ -569,7 +663,8 @@ def _signature():
     jac = types.FunctionType(types.void(V, V, V, V, M))
     store = types.Tuple((A3, A4, A3, A3, A3, A4, M, M))
     return types.void(point, point, jac, V, M, M, M, M, A3, M, M, A3, A3, types.int64[::1],
-                      types.int64[::1], V, V, types.int64[:, ::1], store)
+                      types.int64[::1], V, V, types.int64[:, ::1], store, M,
+                      types.int64[:, ::1])
 
 
 _LOCK = threading.Lock()
@@ -592,7 +687,7 @@ def kernel() -> tuple[object, float]:
             return _KERNEL[0], 0.0
         t0 = time.perf_counter()
         k = numba.njit(_signature(), cache=True, parallel=True, nogil=True,
-                       error_model="numpy")(_kernel_py)
+                       error_model="numpy", _nrt=False)(_kernel_py)
         _KERNEL.append(k)
         return k, time.perf_counter() - t0
 
@@ -652,10 +747,12 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
     Rd = c(batch.Rd, dtype=float) if batch.Rd is not None else np.zeros((1, ny))
     Q = c(batch.Q, dtype=float) if batch.Q is not None else np.zeros((1, n, n))
     out_f, out_i = np.empty(A), np.empty((A, 3), dtype=np.int64)
+    nf, ni = _work_size(n, ny, u.shape[1], batch.th.shape[1])
+    buf, ibuf = np.zeros((A, nf)), np.zeros((A, ni), dtype=np.int64)
     kern(kernels.f, kernels.h, kernels.f_dfdx, c(t, dtype=float), c(u, dtype=float),
          c(y, dtype=float), c(batch.th, dtype=float), c(batch.x, dtype=float),
          c(batch.P, dtype=float), c(batch.q2, dtype=float), Rd, R, Q,
-         c(batch.act, dtype=np.int64), ip, fp, out_f, out_i, _store_arrays(kept))
+         c(batch.act, dtype=np.int64), ip, fp, out_f, out_i, _store_arrays(kept), buf, ibuf)
     for a, p in enumerate(batch.act):
         k, code = int(out_i[a, 0]), int(out_i[a, 1])
         if k >= 0:
