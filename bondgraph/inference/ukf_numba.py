@@ -99,7 +99,7 @@ def _jit_inline(fn):
 
 Work = namedtuple("Work", ["L", "cL", "chi", "X", "D", "mean", "cov", "xs", "xt", "k1", "k2",
                            "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Y", "Ym", "idx",
-                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols"])
+                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols", "FT", "K1", "K2"])
 
 
 @_jit_inline
@@ -114,7 +114,7 @@ def _work_size(n, ny, nu, nth):
     (:func:`_work`)."""
     npt, m = 2 * n + 1, max(n, ny)
     return (7 * n * n + 2 * npt * n + npt * m + m + m * m + 10 * n + 2 * nu + 2 * npt * ny
-            + 2 * n * ny + ny * ny + 5 * ny + nth, ny + 1 + 2 * n)
+            + 2 * n * ny + ny * ny + 5 * ny + nth + 3 * n * npt, ny + 1 + 2 * n)
 
 
 @_jit_inline
@@ -144,9 +144,12 @@ def _work(buf, ibuf, n, ny, nu, nth):
     mean, o = _carve(buf, o, 1, m)
     P, o = _carve(buf, o, n, n)
     tha, o = _carve(buf, o, 1, nth)
+    FT, o = _carve(buf, o, n, npt)
+    K1, o = _carve(buf, o, n, npt)
+    K2, o = _carve(buf, o, n, npt)
     wk = Work(L, cL, chi, X, D, mean[0], cov, vn[0], vn[1], vn[2], vn[3], vn[4], vn[5], vn[6],
               vn[7], J, Winv, A, vu[0], Y, Ym, ibuf[:ny], Pxy, Gt, vy[0], vy[1], Ls, vy[2],
-              ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:])
+              ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:], FT, K1, K2)
     return wk, vn[8], P, tha[0]
 
 
@@ -407,6 +410,55 @@ def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, 
 
 
 @_jit_inline
+def _times_w(W, F, K):
+    """K = W F for all points at once (F, K: (n, points), one column per
+    point): every entry is summed in the order of :func:`_matvec` (from 0.0,
+    j ascending), so it is the same double; the loop over points is the
+    inner, independent one, which the compiler can vectorise."""
+    n, npt = F.shape
+    for i in range(n):
+        for p in range(npt):
+            K[i, p] = 0.0
+        for j in range(n):
+            w = W[i, j]
+            for p in range(npt):
+                K[i, p] += w * F[j, p]
+
+
+@_jit_inline
+def _ros2_shared(f, u, k, hold, th, h, nsub, wk):
+    """:func:`_ros2_point` for every sigma point with the shared W⁻¹
+    (Jacobian at the central point, jac 0), stage by stage over the points:
+    the products with W⁻¹ become one matrix product per stage. Each point's
+    arithmetic is that of :func:`_ros2_point`, operation for operation."""
+    npt, n = wk.X.shape
+    X, chi, xs, F, ub, K1, K2, FT = wk.X, wk.chi, wk.xs, wk.F0, wk.ub, wk.K1, wk.K2, wk.FT
+    for j in range(npt):
+        for a in range(n):
+            X[j, a] = chi[j, a]
+    for s in range(nsub):
+        _stage_input(u, k, s, 0.0, nsub, hold, ub)
+        for j in range(npt):
+            for a in range(n):
+                xs[a] = X[j, a]
+            f(xs, ub, th, F)
+            for a in range(n):
+                FT[a, j] = F[a]
+        _times_w(wk.Winv, FT, K1)
+        _stage_input(u, k, s, 1.0, nsub, hold, ub)
+        for j in range(npt):
+            for a in range(n):
+                xs[a] = X[j, a] + h * K1[a, j]
+            f(xs, ub, th, F)
+            for a in range(n):
+                FT[a, j] = F[a] - 2.0 * K1[a, j]
+        _times_w(wk.Winv, FT, K2)
+        for j in range(npt):
+            for a in range(n):
+                X[j, a] = X[j, a] + (1.5 * h) * K1[a, j] + (0.5 * h) * K2[a, j]
+
+
+@_jit_inline
 def _transition(f, fj, u, k, th, dt, ip, wk):
     """Every sigma point of wk.chi through the transition over interval k
     into wk.X (:func:`bondgraph.numerics.integrators.make_step`)."""
@@ -417,6 +469,8 @@ def _transition(f, fj, u, k, th, dt, ip, wk):
     if method == 1 and jac == 0:
         fj(wk.chi[0], wk.ub, th, wk.F0, wk.J)
         _inverse_w(wk.J, h, wk.A, wk.Winv, wk.cols)
+        _ros2_shared(f, u, k, hold, th, h, nsub, wk)
+        return
     ub, xt, X, xs, chi = wk.ub, wk.xt, wk.X, wk.xs, wk.chi
     for j in range(npt):
         # each point is integrated in the contiguous work vector xs: a row
