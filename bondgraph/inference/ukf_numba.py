@@ -315,17 +315,24 @@ def _moments(Z, m, w, cc, mean, cov, D):
     for i in range(1, npt):
         for a in range(m):
             D[i - 1, a] = Z[i, a] - Z[0, a]
+    # sums from 0.0 over the points in ascending order (the reference's
+    # order), with the point loop outermost: the inner loops are
+    # independent accumulators the compiler can vectorise
     for a in range(m):
-        s = 0.0
-        for i in range(npt - 1):
-            s += D[i, a]
-        mean[a] = w * s
+        mean[a] = 0.0
+        for b in range(a + 1):
+            cov[a, b] = 0.0
+    for i in range(npt - 1):
+        for a in range(m):
+            mean[a] += D[i, a]
+            da = D[i, a]
+            for b in range(a + 1):
+                cov[a, b] += da * D[i, b]
+    for a in range(m):
+        mean[a] = w * mean[a]
     for a in range(m):
         for b in range(a + 1):
-            s = 0.0
-            for i in range(npt - 1):
-                s += D[i, a] * D[i, b]
-            v = w * s + cc * (mean[a] * mean[b])
+            v = w * cov[a, b] + cc * (mean[a] * mean[b])
             cov[a, b] = v
             cov[b, a] = v
     for a in range(m):
