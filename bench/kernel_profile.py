@@ -12,8 +12,10 @@ sets from the box, ROS2 x 1 (the bench's setting), and splits the time:
 * each with 1 thread and with all numba threads (does prange use both?);
 * the point kernels alone, called in a loop (cost per call).
 
-Reports µs per particle-step (one predict + update of one set), best of
-``--repeat`` runs (the machine is shared: say the load with ``uptime``).
+Reports µs per particle-step (one predict + update of one set), wall and
+process CPU time, best of ``--repeat`` runs (the machine is shared: say the
+load, printed as ``load``; with one thread the CPU time is the steadier
+figure under load).
 Last line: JSON.
 
 Usage::
@@ -79,14 +81,16 @@ def time_kernel(model, kernels, t, u, y, th, x0, P0, opts, repeat):
     orig = ukf_module._backend_for
     ukf_module._backend_for = lambda *a, **k: (kernels, None, 0.0)
     try:
-        best, nll = np.inf, None
+        best, cpu, nll = np.inf, np.inf, None
         for _ in range(repeat):
+            c0 = time.process_time()
             res = ukf_nll(model, t, u, y, th, x0, P0, options=opts)
+            cpu = min(cpu, time.process_time() - c0)
             best = min(best, res.settings["run_s"])
             nll = res.nll
     finally:
         ukf_module._backend_for = orig
-    return best, nll
+    return best, cpu, nll
 
 
 def time_points(pk, model, x0, th, n=20000):
@@ -142,8 +146,9 @@ def main(argv=None) -> int:
         for nt in (1, numba.config.NUMBA_NUM_THREADS):
             numba.set_num_threads(nt)
             ukf_nll(model, t[:3], u[:3], y[:3], th[:2], x0, P0, options=opts)  # warm
-            s, nll = time_kernel(model, kern, t, u, y, th, x0, P0, opts, args.repeat)
+            s, cpu, nll = time_kernel(model, kern, t, u, y, th, x0, P0, opts, args.repeat)
             out[f"{label}_us_per_particle_step_{nt}thr"] = s / steps * 1e6
+            out[f"{label}_cpu_us_per_particle_step_{nt}thr"] = cpu / steps * 1e6
             out[f"{label}_ms_per_eval_{nt}thr"] = s / args.particles * 1e3
             if label == "model" and nt == 1:
                 out["nll_sum_finite"] = float(np.sum(nll[np.isfinite(nll)]))
