@@ -23,6 +23,20 @@ fixed signature, so it is compiled once per installation and cached on disk
 (``cache=True``), and a new model costs only the compilation of its own
 small point kernels.
 
+Performance layout (measured with bench/kernel_profile.py; the numbers
+are bit-identical to the straightforward layout this replaced): the kernel
+allocates nothing and runs without numba's reference counting
+(``_nrt=False``): each set's work arrays are carved from rows of two zeroed
+buffers that :func:`run` allocates (:func:`_work_size`, :func:`_work`); the
+per-step helpers are inlined at numba-IR level, so the work tuple is never
+passed by value; shared rows u[k], y[k] are copied, not viewed; each sigma
+point is integrated in one contiguous work vector (a first-class function
+call on a row view is dearer than the copy); with the shared Jacobian
+(the default) ROS2 runs stage by stage over the points and its products
+with W⁻¹ are one matrix product per stage; W⁻¹'s Gauss-Jordan elimination
+skips the columns it cannot change; sums keep the reference's order (no
+fastmath), with the independent loop innermost.
+
 The input hold over a sample interval is one small function,
 :func:`_held_input` (codes :data:`HOLD_CODES`); a hold that varies within
 the interval gets a code from :data:`FIRST_VARYING_HOLD` on and is then
