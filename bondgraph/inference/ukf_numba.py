@@ -88,6 +88,9 @@ JACOBIAN_CODES = {"mean": 0, "sigma": 1, "each": 2}
 HOLD_CODES = {"zoh": 0, "mean": 1, "linear": 2}
 #: holds with codes from here on vary within the interval (evaluated per stage)
 FIRST_VARYING_HOLD = 2
+#: float64 entries of work buffer per kernel call (32 MiB): larger batches
+#: run in chunks of sets (each set's arithmetic is independent of the chunk)
+WORK_FLOATS = 1 << 22
 #: layout of the integer options array of the kernel
 IOPT = ("method", "substeps", "jacobian", "hold", "use_R", "use_Q", "store")
 
@@ -822,12 +825,20 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
     Rd = c(batch.Rd, dtype=float) if batch.Rd is not None else np.zeros((1, ny))
     Q = c(batch.Q, dtype=float) if batch.Q is not None else np.zeros((1, n, n))
     out_f, out_i = np.empty(A), np.empty((A, 3), dtype=np.int64)
+    per_set = [c(batch.th, dtype=float), c(batch.x, dtype=float), c(batch.P, dtype=float),
+               c(batch.q2, dtype=float)]
     nf, ni = _work_size(n, ny, u.shape[1], batch.th.shape[1])
-    buf, ibuf = np.zeros((A, nf)), np.zeros((A, ni), dtype=np.int64)
-    kern(kernels.f, kernels.h, kernels.f_dfdx, c(t, dtype=float), c(u, dtype=float),
-         c(y, dtype=float), c(batch.th, dtype=float), c(batch.x, dtype=float),
-         c(batch.P, dtype=float), c(batch.q2, dtype=float), Rd, R, Q,
-         c(batch.act, dtype=np.int64), ip, fp, out_f, out_i, _store_arrays(kept), buf, ibuf)
+    step = max(1, min(A, WORK_FLOATS // nf))
+    buf, ibuf = np.zeros((step, nf)), np.zeros((step, ni), dtype=np.int64)
+    act, st = c(batch.act, dtype=np.int64), _store_arrays(kept)
+    for a0 in range(0, A, step):  # chunks of sets: the work buffers stay bounded
+        s = slice(a0, min(A, a0 + step))
+        if a0:
+            buf[:], ibuf[:] = 0.0, 0
+        kern(kernels.f, kernels.h, kernels.f_dfdx, c(t, dtype=float), c(u, dtype=float),
+             c(y, dtype=float), *[v[s] for v in per_set], Rd if ip[4] else Rd[s],
+             R[s] if ip[4] else R, Q[s] if ip[5] else Q, act[s], ip, fp, out_f[s], out_i[s],
+             st, buf[:s.stop - a0], ibuf[:s.stop - a0])
     for a, p in enumerate(batch.act):
         k, code = int(out_i[a, 0]), int(out_i[a, 1])
         if k >= 0:
