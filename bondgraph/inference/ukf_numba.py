@@ -116,7 +116,8 @@ def _jit_inline(fn):
 
 Work = namedtuple("Work", ["L", "cL", "chi", "X", "D", "mean", "cov", "xs", "xt", "k1", "k2",
                            "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Y", "Ym", "idx",
-                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols", "FT", "K1", "K2"])
+                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols",
+                           "FT", "K1", "K2"])
 
 
 @_jit_inline
