@@ -160,6 +160,57 @@ def test_failures_are_handled_as_numpy():
     assert_same(a, b)
 
 
+def test_w_inverse_skips_only_unchanged_columns():
+    """ROS2's W⁻¹ in the kernel (Gauss-Jordan restricted to the columns it
+    changes) equals the dense Gauss-Jordan reference entry for entry (zeros'
+    signs aside), including NaN/inf patterns, and numpy's inverse to round-off."""
+    from bondgraph.inference import ukf_numba
+
+    rng = np.random.default_rng(1)
+    for trial in range(300):
+        n = int(rng.integers(1, 11))
+        J = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-3, 4)
+        kind = trial % 5
+        if kind == 1:
+            J[rng.random((n, n)) < 0.5] = 0.0
+        elif kind == 2:
+            J[rng.integers(n), rng.integers(n)] = (np.nan, np.inf)[trial % 2]
+        elif kind == 3:
+            J = np.diag(rng.normal(size=n))
+        h = 0.025
+        A1, A2, W1, W2 = np.zeros((n, 2 * n)), np.zeros((n, 2 * n)), np.zeros((n, n)), \
+            np.zeros((n, n))
+        ukf_numba._inverse_w_dense(J, h, A1, W1)
+        ukf_numba._inverse_w(J, h, A2, W2, np.zeros(2 * n, dtype=np.int64))
+        np.testing.assert_array_equal(W2, W1)   # NaN == NaN, -0.0 == 0.0 here
+        if np.isfinite(J).all():
+            W = np.eye(n) - ukf_numba.GAMMA * h * J
+            np.testing.assert_allclose(W2, np.linalg.inv(W), rtol=1e-9,
+                                       atol=1e-12 * np.abs(np.linalg.inv(W)).max())
+
+
+def test_chunks_of_sets_give_the_same_numbers(monkeypatch):
+    """A batch split into chunks (bounded work buffers) gives the NLLs,
+    reasons and stored arrays of one call, bit for bit, with R and Q given
+    per set."""
+    from bondgraph.inference import ukf_numba
+
+    m = Model.load("rr_loop")
+    t, u, y = _record(m)
+    th = box_sets(m, 7, seed=4)
+    R = np.tile(np.diag(m.meas_std(m.theta0[None])[0] ** 2), (7, 1, 1))
+    Q = np.tile(np.eye(m.n_x) * 1e-6, (7, 1, 1))
+    opts = UKFOptions(backend="numba")
+    a = ukf_nll(m, t, u, y, th, options=opts, R=R, Q=Q, store="full")
+    nf, _ = ukf_numba._work_size(m.n_x, m.n_y, m.n_u, m.theta0.size)
+    monkeypatch.setattr(ukf_numba, "WORK_FLOATS", 3 * nf)
+    b = ukf_nll(m, t, u, y, th, options=opts, R=R, Q=Q, store="full")
+    assert np.isfinite(a.nll).sum() >= 5
+    np.testing.assert_array_equal(b.nll, a.nll)
+    assert b.reasons == a.reasons
+    np.testing.assert_array_equal(b.P_filt, a.P_filt)
+
+
 def test_fallback_to_numpy_when_kernels_do_not_load(monkeypatch):
     """numba missing (point_kernels raising ImportError): a BackendWarning
     naming the model, and the numpy result."""

@@ -23,6 +23,20 @@ fixed signature, so it is compiled once per installation and cached on disk
 (``cache=True``), and a new model costs only the compilation of its own
 small point kernels.
 
+Performance layout (measured with bench/kernel_profile.py; the numbers
+are bit-identical to the straightforward layout this replaced): the kernel
+allocates nothing and runs without numba's reference counting
+(``_nrt=False``): each set's work arrays are carved from rows of two zeroed
+buffers that :func:`run` allocates (:func:`_work_size`, :func:`_work`); the
+per-step helpers are inlined at numba-IR level, so the work tuple is never
+passed by value; shared rows u[k], y[k] are copied, not viewed; each sigma
+point is integrated in one contiguous work vector (a first-class function
+call on a row view is dearer than the copy); with the shared Jacobian
+(the default) ROS2 runs stage by stage over the points and its products
+with W⁻¹ are one matrix product per stage; W⁻¹'s Gauss-Jordan elimination
+skips the columns it cannot change; sums keep the reference's order (no
+fastmath), with the independent loop innermost.
+
 The input hold over a sample interval is one small function,
 :func:`_held_input` (codes :data:`HOLD_CODES`); a hold that varies within
 the interval gets a code from :data:`FIRST_VARYING_HOLD` on and is then
@@ -74,6 +88,9 @@ JACOBIAN_CODES = {"mean": 0, "sigma": 1, "each": 2}
 HOLD_CODES = {"zoh": 0, "mean": 1, "linear": 2}
 #: holds with codes from here on vary within the interval (evaluated per stage)
 FIRST_VARYING_HOLD = 2
+#: float64 entries of work buffer per kernel call (32 MiB): larger batches
+#: run in chunks of sets (each set's arithmetic is independent of the chunk)
+WORK_FLOATS = 1 << 22
 #: layout of the integer options array of the kernel
 IOPT = ("method", "substeps", "jacobian", "hold", "use_R", "use_Q", "store")
 
@@ -83,26 +100,75 @@ def _jit(fn):
     the plain function without numba."""
     if numba is None:  # pragma: no cover
         return fn
-    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    return numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)(fn)
+
+
+def _jit_inline(fn):
+    """:func:`_jit` inlined into its caller at numba-IR level: for the
+    steps that take the per-particle work tuple, whose passing by value
+    (and the reference counts of its ~30 arrays) otherwise costs more than
+    the arithmetic of a step."""
+    if numba is None:  # pragma: no cover
+        return fn
+    return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always",
+                      _nrt=False)(fn)
 
 
 Work = namedtuple("Work", ["L", "cL", "chi", "X", "D", "mean", "cov", "xs", "xt", "k1", "k2",
                            "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Y", "Ym", "idx",
-                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg"])
+                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols",
+                           "FT", "K1", "K2"])
+
+
+@_jit_inline
+def _carve(buf, o, r, c):
+    """The (r, c) block of the flat buffer ``buf`` from offset o, and the next offset."""
+    return buf[o:o + r * c].reshape((r, c)), o + r * c
 
 
 @_jit
-def _work(n, ny, nu):
-    """Per-particle work arrays (allocated once per particle)."""
-    npt = 2 * n + 1
-    m = max(n, ny)
-    return Work(np.zeros((n, n)), np.zeros((n, n)), np.zeros((npt, n)), np.zeros((npt, n)),
-                np.zeros((npt, m)), np.zeros(m), np.zeros((m, m)), np.zeros(n), np.zeros(n),
-                np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n),
-                np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, 2 * n)), np.zeros(nu),
-                np.zeros((npt, ny)), np.zeros((npt, ny)), np.zeros(ny, dtype=np.int64),
-                np.zeros((n, ny)), np.zeros((ny, n)), np.zeros(ny), np.zeros(ny),
-                np.zeros((ny, ny)), np.zeros(ny), np.zeros(1, dtype=np.int64))
+def _work_size(n, ny, nu, nth):
+    """Lengths of the float and integer work buffers of one parameter set
+    (:func:`_work`)."""
+    npt, m = 2 * n + 1, max(n, ny)
+    return (7 * n * n + 2 * npt * n + npt * m + m + m * m + 10 * n + 2 * nu + 2 * npt * ny
+            + 2 * n * ny + ny * ny + 5 * ny + nth + 3 * n * npt, ny + 1 + 2 * n)
+
+
+@_jit_inline
+def _work(buf, ibuf, n, ny, nu, nth):
+    """Per-particle work arrays carved from its zeroed buffers (allocated by
+    the caller: the kernel allocates nothing and runs without numba's
+    reference counting), with the set's state x, covariance P and
+    parameters."""
+    npt, m = 2 * n + 1, max(n, ny)
+    L, o = _carve(buf, 0, n, n)
+    cL, o = _carve(buf, o, n, n)
+    chi, o = _carve(buf, o, npt, n)
+    X, o = _carve(buf, o, npt, n)
+    D, o = _carve(buf, o, npt, m)
+    cov, o = _carve(buf, o, m, m)
+    vn, o = _carve(buf, o, 9, n)
+    J, o = _carve(buf, o, n, n)
+    Winv, o = _carve(buf, o, n, n)
+    A, o = _carve(buf, o, n, 2 * n)
+    Y, o = _carve(buf, o, npt, ny)
+    Ym, o = _carve(buf, o, npt, ny)
+    Pxy, o = _carve(buf, o, n, ny)
+    Gt, o = _carve(buf, o, ny, n)
+    Ls, o = _carve(buf, o, ny, ny)
+    vy, o = _carve(buf, o, 5, ny)
+    vu, o = _carve(buf, o, 2, nu)
+    mean, o = _carve(buf, o, 1, m)
+    P, o = _carve(buf, o, n, n)
+    tha, o = _carve(buf, o, 1, nth)
+    FT, o = _carve(buf, o, n, npt)
+    K1, o = _carve(buf, o, n, npt)
+    K2, o = _carve(buf, o, n, npt)
+    wk = Work(L, cL, chi, X, D, mean[0], cov, vn[0], vn[1], vn[2], vn[3], vn[4], vn[5], vn[6],
+              vn[7], J, Winv, A, vu[0], Y, Ym, ibuf[:ny], Pxy, Gt, vy[0], vy[1], Ls, vy[2],
+              ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:], FT, K1, K2)
+    return wk, vn[8], P, tha[0]
 
 
 # ------------------------------------------------------------ linear algebra
@@ -150,15 +216,23 @@ def _chol(A, m, L):
 
 
 @_jit
-def _inverse_w(J, h, A, Winv):
-    """Winv = (I − γ h J)⁻¹ by Gauss-Jordan elimination with partial
-    pivoting on the work array A (n, 2n) (ROS2's W; numpy: ``np.linalg.inv``)."""
+def _w_matrix(J, h, A):
+    """[I − γ h J | I] into the work array A (n, 2n)."""
     n = J.shape[0]
     g = GAMMA * h
     for i in range(n):
         for j in range(n):
             A[i, j] = (1.0 if i == j else 0.0) - g * J[i, j]
             A[i, n + j] = 1.0 if i == j else 0.0
+
+
+@_jit
+def _inverse_w_dense(J, h, A, Winv):
+    """Winv = (I − γ h J)⁻¹ by Gauss-Jordan elimination with partial
+    pivoting over every column of [W | I] (numpy: ``np.linalg.inv``): the
+    reference for :func:`_inverse_w`, and its path for non-finite values."""
+    n = J.shape[0]
+    _w_matrix(J, h, A)
     for c in range(n):
         p = c
         for i in range(c + 1, n):
@@ -181,6 +255,50 @@ def _inverse_w(J, h, A, Winv):
 
 
 @_jit
+def _inverse_w(J, h, A, Winv, cols):
+    """Winv = (I − γ h J)⁻¹: :func:`_inverse_w_dense` restricted to the
+    columns it changes. After step c the columns <= c of W are never read
+    again, and a column whose pivot-row entry is exactly 0 is left as it is
+    (x − q·0 = x for finite q); so every entry of Winv is the same double
+    (up to the sign of zeros, which no later sum can see). A non-finite or
+    zero pivot or multiplier reruns the dense elimination, whose NaN/inf
+    pattern is then the reference's. ``cols``: int work vector (2n,)."""
+    n = J.shape[0]
+    _w_matrix(J, h, A)
+    for c in range(n):
+        p = c
+        for i in range(c + 1, n):
+            if abs(A[i, c]) > abs(A[p, c]):
+                p = i
+        d = A[c, c] if p == c else A[p, c]
+        if d == 0.0 or not np.isfinite(d):
+            _inverse_w_dense(J, h, A, Winv)
+            return
+        if p != c:
+            A[c, c], A[p, c] = A[p, c], A[c, c]
+        m = 0
+        for j in range(c + 1, 2 * n):
+            if p != c:
+                A[c, j], A[p, j] = A[p, j], A[c, j]
+            if A[c, j] != 0.0:
+                A[c, j] /= d
+                cols[m] = j
+                m += 1
+        for i in range(n):
+            if i != c:
+                q = A[i, c]
+                if not np.isfinite(q):
+                    _inverse_w_dense(J, h, A, Winv)
+                    return
+                for r in range(m):
+                    j = cols[r]
+                    A[i, j] -= q * A[c, j]
+    for i in range(n):
+        for j in range(n):
+            Winv[i, j] = A[i, n + j]
+
+
+@_jit_inline
 def _matvec(M, v, out):
     n = v.shape[0]
     for i in range(n):
@@ -191,7 +309,7 @@ def _matvec(M, v, out):
 
 
 # ------------------------------------------------------------ sigma points
-@_jit
+@_jit_inline
 def _sigma(x, L, c, cL, chi):
     """Scaled sigma points χ_0 = x, χ_i = x + c L_i, χ_n+i = x − c L_i into
     chi, the offsets c L_i as rows of cL."""
@@ -207,7 +325,7 @@ def _sigma(x, L, c, cL, chi):
             chi[1 + n + i, a] = x[a] - cL[i, a]
 
 
-@_jit
+@_jit_inline
 def _moments(Z, m, w, cc, mean, cov, D):
     """Difference-form unscented mean and covariance of Z[:, :m]
     (:func:`bondgraph.inference.sigma.unscented_moments`); D = Z_i − Z_0."""
@@ -215,17 +333,24 @@ def _moments(Z, m, w, cc, mean, cov, D):
     for i in range(1, npt):
         for a in range(m):
             D[i - 1, a] = Z[i, a] - Z[0, a]
+    # sums from 0.0 over the points in ascending order (the reference's
+    # order), with the point loop outermost: the inner loops are
+    # independent accumulators the compiler can vectorise
     for a in range(m):
-        s = 0.0
-        for i in range(npt - 1):
-            s += D[i, a]
-        mean[a] = w * s
+        mean[a] = 0.0
+        for b in range(a + 1):
+            cov[a, b] = 0.0
+    for i in range(npt - 1):
+        for a in range(m):
+            mean[a] += D[i, a]
+            da = D[i, a]
+            for b in range(a + 1):
+                cov[a, b] += da * D[i, b]
+    for a in range(m):
+        mean[a] = w * mean[a]
     for a in range(m):
         for b in range(a + 1):
-            s = 0.0
-            for i in range(npt - 1):
-                s += D[i, a] * D[i, b]
-            v = w * s + cc * (mean[a] * mean[b])
+            v = w * cov[a, b] + cc * (mean[a] * mean[b])
             cov[a, b] = v
             cov[b, a] = v
     for a in range(m):
@@ -233,7 +358,7 @@ def _moments(Z, m, w, cc, mean, cov, D):
 
 
 # ------------------------------------------------------------ transition
-@_jit
+@_jit_inline
 def _held_input(u, k, frac, hold, out):
     """The input over the interval [t_k, t_k+1] at the fraction ``frac`` of
     it (numpy: :func:`bondgraph.numerics.integrators.hold_inputs`): hold 0
@@ -250,7 +375,7 @@ def _held_input(u, k, frac, hold, out):
             out[j] = u[k, j]
 
 
-@_jit
+@_jit_inline
 def _stage_input(u, k, s, cst, nsub, hold, out):
     """Re-evaluate a varying hold at stage ``s + cst`` of ``nsub`` sub-steps
     (constant holds need nothing)."""
@@ -258,7 +383,7 @@ def _stage_input(u, k, s, cst, nsub, hold, out):
         _held_input(u, k, (s + cst) / nsub, hold, out)
 
 
-@_jit
+@_jit_inline
 def _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4):
     """``nsub`` classical RK4 steps of one point x (in place)
     (:func:`bondgraph.numerics.integrators.rk4`); the work vectors are
@@ -283,8 +408,9 @@ def _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4):
             x[a] = x[a] + (h / 6.0) * (k1[a] + 2.0 * k2[a] + 2.0 * k3[a] + k4[a])
 
 
-@_jit
-def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, J, Winv, A):
+@_jit_inline
+def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, J, Winv, A,
+                cols):
     """``nsub`` ROS2 steps of one point x (in place)
     (:func:`bondgraph.numerics.integrators.ros2`); jac 0: Winv is given
     (shared), 1: df/dx at x at the start, frozen, 2: at every sub-step."""
@@ -293,7 +419,7 @@ def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, 
         _stage_input(u, k, s, 0.0, nsub, hold, ub)
         if jac == 2 or (jac == 1 and s == 0):
             fj(x, ub, th, F0, J)
-            _inverse_w(J, h, A, Winv)
+            _inverse_w(J, h, A, Winv, cols)
         else:
             f(x, ub, th, F0)
         _matvec(Winv, F0, k1)
@@ -308,7 +434,56 @@ def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, 
             x[a] = x[a] + (1.5 * h) * k1[a] + (0.5 * h) * k2[a]
 
 
-@_jit
+@_jit_inline
+def _times_w(W, F, K):
+    """K = W F for all points at once (F, K: (n, points), one column per
+    point): every entry is summed in the order of :func:`_matvec` (from 0.0,
+    j ascending), so it is the same double; the loop over points is the
+    inner, independent one, which the compiler can vectorise."""
+    n, npt = F.shape
+    for i in range(n):
+        for p in range(npt):
+            K[i, p] = 0.0
+        for j in range(n):
+            w = W[i, j]
+            for p in range(npt):
+                K[i, p] += w * F[j, p]
+
+
+@_jit_inline
+def _ros2_shared(f, u, k, hold, th, h, nsub, wk):
+    """:func:`_ros2_point` for every sigma point with the shared W⁻¹
+    (Jacobian at the central point, jac 0), stage by stage over the points:
+    the products with W⁻¹ become one matrix product per stage. Each point's
+    arithmetic is that of :func:`_ros2_point`, operation for operation."""
+    npt, n = wk.X.shape
+    X, chi, xs, F, ub, K1, K2, FT = wk.X, wk.chi, wk.xs, wk.F0, wk.ub, wk.K1, wk.K2, wk.FT
+    for j in range(npt):
+        for a in range(n):
+            X[j, a] = chi[j, a]
+    for s in range(nsub):
+        _stage_input(u, k, s, 0.0, nsub, hold, ub)
+        for j in range(npt):
+            for a in range(n):
+                xs[a] = X[j, a]
+            f(xs, ub, th, F)
+            for a in range(n):
+                FT[a, j] = F[a]
+        _times_w(wk.Winv, FT, K1)
+        _stage_input(u, k, s, 1.0, nsub, hold, ub)
+        for j in range(npt):
+            for a in range(n):
+                xs[a] = X[j, a] + h * K1[a, j]
+            f(xs, ub, th, F)
+            for a in range(n):
+                FT[a, j] = F[a] - 2.0 * K1[a, j]
+        _times_w(wk.Winv, FT, K2)
+        for j in range(npt):
+            for a in range(n):
+                X[j, a] = X[j, a] + (1.5 * h) * K1[a, j] + (0.5 * h) * K2[a, j]
+
+
+@_jit_inline
 def _transition(f, fj, u, k, th, dt, ip, wk):
     """Every sigma point of wk.chi through the transition over interval k
     into wk.X (:func:`bondgraph.numerics.integrators.make_step`)."""
@@ -318,22 +493,28 @@ def _transition(f, fj, u, k, th, dt, ip, wk):
     _held_input(u, k, 0.0, hold, wk.ub)
     if method == 1 and jac == 0:
         fj(wk.chi[0], wk.ub, th, wk.F0, wk.J)
-        _inverse_w(wk.J, h, wk.A, wk.Winv)
-    ub, xt, X = wk.ub, wk.xt, wk.X
+        _inverse_w(wk.J, h, wk.A, wk.Winv, wk.cols)
+        _ros2_shared(f, u, k, hold, th, h, nsub, wk)
+        return
+    ub, xt, X, xs, chi = wk.ub, wk.xt, wk.X, wk.xs, wk.chi
     for j in range(npt):
+        # each point is integrated in the contiguous work vector xs: a row
+        # view per call of a first-class function costs more than the copies
         for a in range(n):
-            X[j, a] = wk.chi[j, a]
+            xs[a] = chi[j, a]
         if j > 0:
             _held_input(u, k, 0.0, hold, ub)
         if method == 0:
-            _rk4_point(f, X[j], u, k, hold, th, h, nsub, ub, xt, wk.k1, wk.k2, wk.k3, wk.k4)
+            _rk4_point(f, xs, u, k, hold, th, h, nsub, ub, xt, wk.k1, wk.k2, wk.k3, wk.k4)
         else:
-            _ros2_point(f, fj, X[j], u, k, hold, th, h, nsub, jac, ub, xt, wk.F0, wk.F1,
-                        wk.k1, wk.k2, wk.J, wk.Winv, wk.A)
+            _ros2_point(f, fj, xs, u, k, hold, th, h, nsub, jac, ub, xt, wk.F0, wk.F1,
+                        wk.k1, wk.k2, wk.J, wk.Winv, wk.A, wk.cols)
+        for a in range(n):
+            X[j, a] = xs[a]
 
 
 # ------------------------------------------------------------ predict / update
-@_jit
+@_jit_inline
 def _predict(f, fj, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
     """Prediction over interval k (to sample k + 1) in place; 0 or a failure code."""
     n = x.shape[0]
@@ -357,7 +538,7 @@ def _predict(f, fj, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
     return 0
 
 
-@_jit
+@_jit_inline
 def _measured_outputs(h, x, P, th, uk, yk, fp, wk):
     """Sigma points of the prior through h, restricted to the measured outputs
     of yk (their indices in wk.idx); returns (m, failure code)."""
@@ -367,8 +548,13 @@ def _measured_outputs(h, x, P, th, uk, yk, fp, wk):
         return 0, 2
     wk.nreg[0] += r == 2
     _sigma(x, wk.L, fp[0], wk.cL, wk.chi)
-    for j in range(wk.chi.shape[0]):
-        h(wk.chi[j], uk, th, wk.Y[j])
+    xs, yv, Y, chi = wk.xs, wk.yv, wk.Y, wk.chi
+    for j in range(chi.shape[0]):
+        for a in range(n):
+            xs[a] = chi[j, a]
+        h(xs, uk, th, yv)
+        for b in range(yv.shape[0]):
+            Y[j, b] = yv[b]
     m = 0
     for b in range(yk.shape[0]):
         if np.isfinite(yk[b]):
@@ -383,7 +569,7 @@ def _measured_outputs(h, x, P, th, uk, yk, fp, wk):
     return m, 0
 
 
-@_jit
+@_jit_inline
 def _update(h, x, P, th, uk, yk, Rd, R, ip, fp, wk):
     """Measurement update at one sample in place: (NLL term, maha, m, failure code)."""
     n = x.shape[0]
@@ -414,7 +600,7 @@ def _update(h, x, P, th, uk, yk, Rd, R, ip, fp, wk):
     return term, maha, m, 0
 
 
-@_jit
+@_jit_inline
 def _forward(Ls, m, b, out):
     """Solve Ls out = b (lower triangular, m x m)."""
     for i in range(m):
@@ -424,7 +610,7 @@ def _forward(Ls, m, b, out):
         out[i] = s / Ls[i, i]
 
 
-@_jit
+@_jit_inline
 def _correct(x, P, m, wk):
     """Kalman correction from the Cholesky factor of S: G = Pxy Ls⁻ᵀ,
     z = Ls⁻¹ ε, x += G z, P −= G Gᵀ (symmetrised); (NLL term, ε S⁻¹ ε)."""
@@ -457,7 +643,7 @@ def _correct(x, P, m, wk):
 
 
 # ------------------------------------------------------------ storage
-@_jit
+@_jit_inline
 def _store_update(st, k, p, m, term, maha, wk):
     """Innovations, predicted outputs, S (measured block), NLL term and NIS at k."""
     for a in range(m):
@@ -470,15 +656,15 @@ def _store_update(st, k, p, m, term, maha, wk):
     st[7][k, p] = maha
 
 
-@_jit
+@_jit_inline
 def _store_filtered(h, st, k, p, x, P, uk, th, full, wk):
     """Filtered state, its outputs h(x̂, u_k) and (full) covariance at k."""
     n = x.shape[0]
     for a in range(n):
         st[4][k, p, a] = x[a]
-    h(x, uk, th, wk.Y[0])
-    for b in range(wk.Y.shape[1]):
-        st[3][k, p, b] = wk.Y[0, b]
+    h(x, uk, th, wk.yv)
+    for b in range(wk.yv.shape[0]):
+        st[3][k, p, b] = wk.yv[b]
     if full:
         for a in range(n):
             for b in range(n):
@@ -488,22 +674,34 @@ def _store_filtered(h, st, k, p, x, P, uk, th, full, wk):
 # ------------------------------------------------------------ one set, all sets
 @_jit
 def _filter_one(a, f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i,
-                st):
+                st, buf, ibuf):
     """The whole record for parameter set ``a``: NLL into out_f[a]; failing
     sample (-1: none), failure code and loaded factorisations into out_i[a]."""
     n, ny, nu = x0.shape[1], y.shape[1], u.shape[1]
-    wk = _work(n, ny, nu)
-    x, P, tha = x0[a].copy(), P0[a].copy(), th[a].copy()
+    wk, x, P, tha = _work(buf, ibuf, n, ny, nu, th.shape[1])
+    for i in range(n):
+        x[i] = x0[a, i]
+        for j in range(n):
+            P[i, j] = P0[a, i, j]
+    for i in range(th.shape[1]):
+        tha[i] = th[a, i]
     Qa, Ra, Rda = Q[a * ip[5]], R[a * ip[4]], Rd[a * (1 - ip[4])]
     p = act[a]
     nll = 0.0
     out_i[a, 0], out_i[a, 1] = -1, 0
+    q2a, uk, yk = q2[a], wk.uk, wk.yk
     for k in range(t.shape[0]):
+        # copies of the shared rows u[k], y[k]: views of arrays shared by the
+        # threads would update one reference count from every thread
+        for j in range(uk.shape[0]):
+            uk[j] = u[k, j]
+        for j in range(yk.shape[0]):
+            yk[j] = y[k, j]
         code = 0
         if k > 0:
-            code = _predict(f, fj, x, P, u, k - 1, tha, t[k] - t[k - 1], q2[a], Qa, ip, fp, wk)
-        if code == 0 and _any_finite(y[k]):
-            term, maha, m, code = _update(h, x, P, tha, u[k], y[k], Rda, Ra, ip, fp, wk)
+            code = _predict(f, fj, x, P, u, k - 1, tha, t[k] - t[k - 1], q2a, Qa, ip, fp, wk)
+        if code == 0 and _any_finite(yk):
+            term, maha, m, code = _update(h, x, P, tha, uk, yk, Rda, Ra, ip, fp, wk)
             if code == 0:
                 nll += term
                 if ip[6]:
@@ -513,12 +711,12 @@ def _filter_one(a, f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out
             nll = np.inf
             break
         if ip[6]:
-            _store_filtered(h, st, k, p, x, P, u[k], tha, ip[6] == 2, wk)
+            _store_filtered(h, st, k, p, x, P, uk, tha, ip[6] == 2, wk)
     out_f[a] = nll
     out_i[a, 2] = wk.nreg[0]
 
 
-@_jit
+@_jit_inline
 def _any_finite(v):
     for i in range(v.shape[0]):
         if np.isfinite(v[i]):
@@ -526,11 +724,13 @@ def _any_finite(v):
     return False
 
 
-def _kernel_py(f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i, st):
-    """Every parameter set in parallel (``prange``): :func:`_filter_one`."""
+def _kernel_py(f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i, st,
+               buf, ibuf):
+    """Every parameter set in parallel (``prange``): :func:`_filter_one`
+    with its own rows of the work buffers ``buf``, ``ibuf``."""
     for a in numba.prange(th.shape[0]):
         _filter_one(np.int64(a), f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
-                    out_i, st)
+                    out_i, st, buf[a], ibuf[a])
 
 
 def _signature():
@@ -542,7 +742,8 @@ def _signature():
     jac = types.FunctionType(types.void(V, V, V, V, M))
     store = types.Tuple((A3, A4, A3, A3, A3, A4, M, M))
     return types.void(point, point, jac, V, M, M, M, M, A3, M, M, A3, A3, types.int64[::1],
-                      types.int64[::1], V, V, types.int64[:, ::1], store)
+                      types.int64[::1], V, V, types.int64[:, ::1], store, M,
+                      types.int64[:, ::1])
 
 
 _LOCK = threading.Lock()
@@ -565,7 +766,7 @@ def kernel() -> tuple[object, float]:
             return _KERNEL[0], 0.0
         t0 = time.perf_counter()
         k = numba.njit(_signature(), cache=True, parallel=True, nogil=True,
-                       error_model="numpy")(_kernel_py)
+                       error_model="numpy", _nrt=False)(_kernel_py)
         _KERNEL.append(k)
         return k, time.perf_counter() - t0
 
@@ -625,10 +826,20 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
     Rd = c(batch.Rd, dtype=float) if batch.Rd is not None else np.zeros((1, ny))
     Q = c(batch.Q, dtype=float) if batch.Q is not None else np.zeros((1, n, n))
     out_f, out_i = np.empty(A), np.empty((A, 3), dtype=np.int64)
-    kern(kernels.f, kernels.h, kernels.f_dfdx, c(t, dtype=float), c(u, dtype=float),
-         c(y, dtype=float), c(batch.th, dtype=float), c(batch.x, dtype=float),
-         c(batch.P, dtype=float), c(batch.q2, dtype=float), Rd, R, Q,
-         c(batch.act, dtype=np.int64), ip, fp, out_f, out_i, _store_arrays(kept))
+    per_set = [c(batch.th, dtype=float), c(batch.x, dtype=float), c(batch.P, dtype=float),
+               c(batch.q2, dtype=float)]
+    nf, ni = _work_size(n, ny, u.shape[1], batch.th.shape[1])
+    step = max(1, min(A, WORK_FLOATS // nf))
+    buf, ibuf = np.zeros((step, nf)), np.zeros((step, ni), dtype=np.int64)
+    act, st = c(batch.act, dtype=np.int64), _store_arrays(kept)
+    for a0 in range(0, A, step):  # chunks of sets: the work buffers stay bounded
+        s = slice(a0, min(A, a0 + step))
+        if a0:
+            buf[:], ibuf[:] = 0.0, 0
+        kern(kernels.f, kernels.h, kernels.f_dfdx, c(t, dtype=float), c(u, dtype=float),
+             c(y, dtype=float), *[v[s] for v in per_set], Rd if ip[4] else Rd[s],
+             R[s] if ip[4] else R, Q[s] if ip[5] else Q, act[s], ip, fp, out_f[s], out_i[s],
+             st, buf[:s.stop - a0], ibuf[:s.stop - a0])
     for a, p in enumerate(batch.act):
         k, code = int(out_i[a, 0]), int(out_i[a, 1])
         if k >= 0:
