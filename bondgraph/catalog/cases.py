@@ -317,7 +317,10 @@ def case_silverbox() -> LoopCase:
         "physical-parameter model 0.96 mV, best black-box 0.26 mV.",
         declared_builder(silverbox_linear),
         _silverbox_record,
-        ["m", "d", "k", "q_F"],
+        # the output noise is estimated too: held at its declared 0.1 mV the
+        # likelihood explains the cubic model's residual by process noise and
+        # the confirmed k3 came out 15 % low (3.30 vs 3.86; arrow 3.1 mV)
+        ["m", "d", "k", "q_F", "sigma_y"],
         {"metric": SilverboxError("test_arrow"), "P0_std": {"p_mass": 1e-4, "q_spring": 0.05},
          "ukf": UKFOptions(method="rk4", substeps=SILVERBOX_SUBSTEPS, hold=SILVERBOX_HOLD, alpha=1.0),
          "structural": False},
