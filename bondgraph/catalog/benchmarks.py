@@ -267,8 +267,9 @@ def silverbox_linear() -> BondGraph:
 
     ``q_F`` is the intensity of the process noise w on the momentum (the
     unmodelled forces; the cubic stiffness the loop must find), ``sigma_y``
-    the output noise (fixed: the published black-box models reach 0.26 mV
-    simulation error, so the noise is below that).
+    the output noise (its default 0.1 mV: the published black-box models
+    reach 0.26 mV simulation error, so the noise is below that; the bundled
+    case estimates it).
     """
     g = BondGraph("silverbox_linear", "Silverbox electronic Duffing oscillator, declared linear: "
                                       "mass-spring-damper driven by the input voltage.")
