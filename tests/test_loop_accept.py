@@ -227,7 +227,10 @@ def test_structural_score_refits_the_declared_parameters():
     raises the mass to 4.3 kg (truth 2) to compensate. Scored with the
     declared parameters frozen the saturation gains LR 95; re-fitting them
     with the level (4 scoring steps) gains more, and the statistic is the
-    likelihood ratio at the profiled point recomputed by the UKF."""
+    likelihood ratio at the profiled point recomputed by the UKF. One
+    declared-only step at each of the 3 best grid levels before that
+    (structural_starts, the default) gains much more (a profile likelihood
+    over the grid)."""
     from dataclasses import replace
 
     from bondgraph.diagnose.cases import synthesize
@@ -246,8 +249,8 @@ def test_structural_score_refits_the_declared_parameters():
                      {"F": lambda tt: levels[np.minimum((np.asarray(tt) / 0.2).astype(int), 39)]},
                      {}, {"m": 2.0, "k": 50.0, "c": 1.5}, 3, "sat", "")
     P = ["m", "k", "c", "q_F"]
-    ctx = Context(Record(exp), LoopSettings(params=P, structural_refit=0), lambda s: None,
-                  False)
+    ctx = Context(Record(exp), LoopSettings(params=P, structural_refit=0, structural_starts=0),
+                  lambda s: None, False)
     fit = fit_model(ctx, declared, P, None, "declared")
     assert fit.estimates()["m"] > 4.0                     # compensated
     sc = operating_scales(ctx, fit)
@@ -257,6 +260,12 @@ def test_structural_score_refits_the_declared_parameters():
     prof = structural_candidate(ctx, fit, sc, eff, tgt)
     assert set(prof.profile) == set(P)
     assert prof.statistic > frozen.statistic + 5.0, (frozen.statistic, prof.statistic)
+    # the default: the 3 best grid levels each get one declared-only step first
+    ctx.settings = replace(ctx.settings, structural_starts=3)
+    multi = structural_candidate(ctx, fit, sc, eff, tgt)
+    # measured: frozen 95.0, joint profile 108.6, declared-only steps at the
+    # 3 best grid levels first 170.5
+    assert multi.statistic > prof.statistic + 30.0, (prof.statistic, multi.statistic)
     g = declared.copy("check")
     PP = eff.apply(g, tgt, prof.values, sc)
     m = model_of(g)

@@ -119,6 +119,12 @@ class LoopSettings:
         Fisher-scoring iterations over the declared estimated parameters
         together with a structural candidate's own, from its best grid point,
         when it is scored (0: the declared parameters stay frozen).
+    structural_starts : int
+        The best grid values of a structural candidate (default 3) that each
+        get one Fisher-scoring step over the declared estimated (non-noise)
+        parameters, the effect's held, before the joint profile starts from
+        the best of them (0: the joint profile starts from the frozen grid's
+        best; :func:`bondgraph.diagnose.scoring.grid_starts`).
     structural_threshold : float
         Skip the (slow) structural candidates when an additive effect already
         explains more than this share of the innovation energy.
@@ -160,6 +166,7 @@ class LoopSettings:
     holdout: float = 0.0
     structural_threshold: float = 0.5
     structural_refit: int = 2
+    structural_starts: int = 3
     chunk: int = 48
     metric_name: str | None = None
     true_effect: Any = None
@@ -232,6 +239,7 @@ def check_settings(s: LoopSettings) -> None:
         raise OptionError(f"LoopSettings.criterion = {s.criterion!r} is not one of "
                           f"{', '.join(CRITERIA)}")
     for name, minimum in (("max_steps", 0), ("confirm_top", 1), ("fit_iterations", 0),
+                          ("structural_starts", 0),
                           ("confirm_iterations", 0), ("chunk", 1)):
         _integer(name, getattr(s, name), minimum)
     sig = s.significance
