@@ -33,11 +33,12 @@ accurate solver (``sim_method``), so an effect that only fits the filter's
 discretisation error, or the noise, leaves it unchanged within its
 uncertainty (0.02513 -> 0.02506 in that case: z 1.26, p 0.10), whereas a missing
 effect lowers it by many standard errors (the saturating engine torque of
-``vehicle_engine_saturation``: 0.3715 -> 0.1358, z 10.5). The same test
-refuses, on that record, ``input_delay @ brake`` (a delay of a brake input
-that is zero throughout: LR 23 000 from the process noise of its Padé
-states, free-run error 0.3715 -> 0.3715), which the rule without it
-accepted.
+``vehicle_engine_saturation``: 0.3715 -> 0.1358, z 10.5). Before the
+structural profile over the grid (:func:`~bondgraph.diagnose.scoring.grid_starts`)
+the rule without test 5 accepted, on that record, ``input_delay @ brake``
+(a delay of a brake input that is zero throughout: LR 23 000 from the
+process noise of its Padé states) with a free-run error unchanged
+(0.3715 -> 0.3715): the kind of step test 5 exists to refuse.
 
 The residual whiteness (sum of the Ljung-Box statistics, Ljung & Box 1978)
 is reported before and after but never vetoes.
