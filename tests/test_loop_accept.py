@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.signal import lfilter
 from scipy.stats import chi2
 
 from bondgraph.catalog.reference import mass_spring_damper
@@ -19,7 +20,7 @@ from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.runner import check_declared_fit
 from bondgraph.diagnose.scoring import failed_candidate
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.errors import DeclaredFitError
+from bondgraph.errors import DeclaredFitError, OptionError
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
@@ -226,7 +227,10 @@ def test_structural_score_refits_the_declared_parameters():
     raises the mass to 4.3 kg (truth 2) to compensate. Scored with the
     declared parameters frozen the saturation gains LR 95; re-fitting them
     with the level (4 scoring steps) gains more, and the statistic is the
-    likelihood ratio at the profiled point recomputed by the UKF."""
+    likelihood ratio at the profiled point recomputed by the UKF. One
+    declared-only step at each of the 3 best grid levels before that
+    (structural_starts, the default) gains much more (a profile likelihood
+    over the grid)."""
     from dataclasses import replace
 
     from bondgraph.diagnose.cases import synthesize
@@ -245,8 +249,8 @@ def test_structural_score_refits_the_declared_parameters():
                      {"F": lambda tt: levels[np.minimum((np.asarray(tt) / 0.2).astype(int), 39)]},
                      {}, {"m": 2.0, "k": 50.0, "c": 1.5}, 3, "sat", "")
     P = ["m", "k", "c", "q_F"]
-    ctx = Context(Record(exp), LoopSettings(params=P, structural_refit=0), lambda s: None,
-                  False)
+    ctx = Context(Record(exp), LoopSettings(params=P, structural_refit=0, structural_starts=0),
+                  lambda s: None, False)
     fit = fit_model(ctx, declared, P, None, "declared")
     assert fit.estimates()["m"] > 4.0                     # compensated
     sc = operating_scales(ctx, fit)
@@ -256,6 +260,12 @@ def test_structural_score_refits_the_declared_parameters():
     prof = structural_candidate(ctx, fit, sc, eff, tgt)
     assert set(prof.profile) == set(P)
     assert prof.statistic > frozen.statistic + 5.0, (frozen.statistic, prof.statistic)
+    # the default: the 3 best grid levels each get one declared-only step first
+    ctx.settings = replace(ctx.settings, structural_starts=3)
+    multi = structural_candidate(ctx, fit, sc, eff, tgt)
+    # measured: frozen 95.0, joint profile 108.6, declared-only steps at the
+    # 3 best grid levels first 170.5
+    assert multi.statistic > prof.statistic + 30.0, (prof.statistic, multi.statistic)
     g = declared.copy("check")
     PP = eff.apply(g, tgt, prof.values, sc)
     m = model_of(g)
@@ -405,13 +415,22 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
     # ROS2 with 2 steps per sample: the discretisation check's recommendation
     # below (with 1 step the filter's bias makes a 0.4 % sensor gain significant)
     res = run_loop(mass_spring_damper(), exp, ["m", "k", "c"], log=logs.append, progress=False,
-                   fit="sim", structural=False, max_steps=0,
+                   fit="sim", structural=False, max_steps=1,
                    ukf=UKFOptions(method="ros2", substeps=2))
-    # max_steps=0: this test is about the declared fit. With max_steps=1 the
-    # loop accepts sensor_poly3 @ x here (LR 15.6, k 2, p 4.2e-4 against a
-    # Bonferroni threshold of 0.01/21; error 0.02513 -> 0.02506): a family-wise
-    # ~1 % false positive on a truth-equals-declared record, left open in issue
-    # 11 (the accept rule has no floor on the size of the error decrease).
+    # nothing is missing, and nothing is accepted. The best candidate,
+    # sensor_poly3 @ x, passes the likelihood-ratio test (LR 15.6, k 2,
+    # p 4.2e-4 < 0.01/21: it absorbs what is left of ROS2 x 2's discretisation
+    # error) but its free-run error decrease (0.02513 -> 0.02506) is within
+    # its uncertainty (Diebold-Mariano z 1.26 < 1.645): rejected
+    assert res.steps == []
+    (rej,) = res.rejected
+    assert rej.candidate.label == "sensor_poly3 @ x"
+    assert rej.candidate.confirmed["lr"] == pytest.approx(15.6, abs=0.2)
+    assert rej.candidate.confirmed["p_value"] == pytest.approx(chi2.sf(15.6, 2), rel=0.1)
+    assert rej.candidate.confirmed["p_value"] * 21 < 0.01       # the LR test alone passes
+    assert "within its uncertainty" in rej.reason
+    z = rej.candidate.confirmed["error_z"]
+    assert 0.0 < z < 1.645
     assert any("output-error fit" in s for s in logs)
     oe = output_error_fit(m, t, u, y, ["m", "k", "c"], x0=np.zeros(2), hold="zoh")
     est = res.initial.estimates
@@ -419,7 +438,7 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
         assert est[n] == pytest.approx(v, rel=0.02)
         # the likelihood refit (ROS2, one step per sample) moves it by < 2.5 %
         assert est[n] == pytest.approx(oe.estimates()[n], rel=0.025)
-    assert res.settings["fit"] == "sim" and res.steps == []
+    assert res.settings["fit"] == "sim"
     assert res.warnings == []
     # one step per sample: 0.11 measurement-noise stds per sample, substeps 2 recommended
     from bondgraph.diagnose.fit import fit_model
@@ -472,3 +491,148 @@ def test_holdout_splits_the_record():
     from bondgraph.errors import OptionError
     with pytest.raises(OptionError, match="holdout"):
         LoopSettings(params=[], holdout=1.5)
+
+
+def test_error_decrease_test_variance_and_calibration():
+    """The Newey-West long-run variance equals statsmodels' HAC variance of a
+    mean (same Bartlett bandwidth); on autocorrelated loss differentials of
+    zero mean (AR(1), ρ 0.8) the one-sided 5 % test rejects about 5 % of the
+    time (a white-noise variance would reject ~25 %)."""
+    import statsmodels.api as sm
+
+    from bondgraph.diagnose.accept import (
+        andrews_bandwidth,
+        error_decrease_test,
+        long_run_variance,
+    )
+
+    rng = np.random.default_rng(3)
+
+    def ar1(n, rho):
+        e = rng.normal(size=n)
+        e[0] /= np.sqrt(1 - rho**2)          # stationary start
+        return lfilter([1.0], [1.0, -rho], e)
+
+    d = ar1(500, 0.8) + 0.3
+    L = andrews_bandwidth(d)
+    # Andrews (1991) AR(1) rule by hand
+    x = d - d.mean()
+    rho = (x[1:] @ x[:-1]) / (x @ x)
+    assert L == int(1.1447 * (4 * rho**2 / (1 - rho**2) ** 2 * 500) ** (1 / 3))
+    ols = sm.OLS(d, np.ones(500)).fit(cov_type="HAC",
+                                      cov_kwds={"maxlags": L, "use_correction": False})
+    assert long_run_variance(d) / 500 == pytest.approx(ols.bse[0] ** 2, rel=1e-10)
+    # calibration under the null: e0² − e1² of zero mean, autocorrelated
+    rejects = naive = 0
+    n_rep = 400
+    for _ in range(n_rep):
+        a, b = ar1(400, 0.8), ar1(400, 0.8)
+        e0 = np.column_stack([a])
+        e1 = np.column_stack([b])
+        z, p = error_decrease_test(e0, e1)
+        rejects += p < 0.05
+        dd = a**2 - b**2
+        naive += dd.mean() / (dd.std() / np.sqrt(dd.size)) > 1.645
+    assert 0.01 <= rejects / n_rep <= 0.10
+    assert naive / n_rep > 0.15
+    # a clear decrease is significant; a shape mismatch is an error
+    z, p = error_decrease_test(np.ones((50, 2)) + rng.normal(size=(50, 2)) * 0.1,
+                               rng.normal(size=(50, 2)) * 0.1)
+    assert z > 10 and p < 1e-10
+    with pytest.raises(ValueError, match="differ"):
+        error_decrease_test(np.ones((5, 2)), np.ones((5, 1)))
+
+
+def test_decide_rejects_an_error_decrease_within_its_uncertainty():
+    """decide: AIC, LR and 'the error may not rise' all pass, but the
+    per-sample free-run errors fall by a fraction of their uncertainty ->
+    rejected with the Diebold-Mariano statistic; with error_level=None the
+    old rule accepts."""
+    rng = np.random.default_rng(2)
+    e0 = rng.normal(size=(400, 1))
+    e1 = 0.99 * e0 + 0.1 * rng.normal(size=(400, 1))
+    r0, r1 = np.sqrt(np.mean(e0**2)), np.sqrt(np.mean(e1**2))
+    assert r1 < r0                                  # the error falls (1.0084 -> 1.0044)
+    cur, aft = _fit(-1000.0, 2, 40.0, r0), _fit(-1010.0, 3, 40.0, r1)
+    cur.sim_errors, aft.sim_errors = e0, e1
+    d = decide(cur, aft, LoopSettings(params=[]))
+    assert not d.accepted and "within its uncertainty" in d.reason
+    z_ref = (e0**2 - e1**2).mean() / np.sqrt(long_run_var_ref(
+        (e0**2 - e1**2)[:, 0]) / 400)
+    assert d.error_z == pytest.approx(z_ref, rel=1e-9)
+    assert 0 < d.error_z < 1.645
+    assert decide(cur, aft, LoopSettings(params=[], error_level=None)).accepted
+    # a consistent 0.1 % decrease is significant (every sample's error falls)
+    aft.sim_errors = 0.999 * e0
+    assert decide(cur, aft, LoopSettings(params=[])).accepted
+    with pytest.raises(OptionError, match="error_level"):
+        LoopSettings(params=[], error_level=1.5)
+
+
+def long_run_var_ref(d):
+    """Bartlett/Newey-West long-run variance written out (Andrews' bandwidth)."""
+    n = d.size
+    x = d - d.mean()
+    rho = np.clip((x[1:] @ x[:-1]) / (x @ x), -0.97, 0.97)
+    L = int(min(1.1447 * (4 * rho**2 / (1 - rho**2) ** 2 * n) ** (1 / 3), n // 2 - 1))
+    return sum((1.0 if j == 0 else 2 * (1 - j / (L + 1))) * (x[j:] @ x[: n - j]) / n
+               for j in range(L + 1))
+
+
+def test_loop_accepts_a_real_sensor_offset():
+    """The same record (declared = truth structure) with a sensor offset of
+    0.02 m on the position (~10 noise stds): the loop still accepts it; its
+    free-run error falls by many standard errors."""
+    m = Model.load("mass_spring_damper")
+    t = np.arange(400) * 0.01
+    u = np.repeat(np.random.default_rng(0).normal(0.0, 20.0, 20), 20)[:, None]
+    truth = m.theta(m=2.5, k=80.0, c=2.0)
+    y = simulate(m, t, u, np.zeros(2), truth, rtol=1e-10, atol=1e-12, hold="zoh").y
+    y = y + np.random.default_rng(1).normal(size=y.shape) * m.meas_std(truth)
+    y[:, m.output_index("x")] += 0.02
+    exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd_offset")
+    res = run_loop(mass_spring_damper(), exp, ["m", "k", "c"], log=lambda s: None,
+                   progress=False, structural=False, max_steps=1, fit="sim",
+                   ukf=UKFOptions(method="ros2", substeps=2))
+    (step,) = res.steps
+    assert (step.effect, step.attached_to) == ("sensor_offset", "x")
+    (name,) = step.effect_params
+    b = step.parameters[name]["estimate"]
+    assert b == pytest.approx(0.02, abs=0.002)
+    assert step.error_after < 0.5 * step.error_before
+
+
+def test_vehicle_engine_saturation_case_construction():
+    """Issue 11's acceptance case: registered; the truth is the declared full
+    vehicle plus actuator_saturation at the engine torque, level within
+    60-90 % of the peak torque; the torque the engine shaft receives is
+    v / sqrt(1 + (v/L)^2) of the map's v (hand-derived from the effect).
+    The loop run itself is too slow for CI (figures in the closing note)."""
+    from bondgraph.diagnose.cases import get_case
+    from vehicle_graphs.cases import engine_saturation_truth, vehicle_slip_declared
+    from vehicle_graphs.experiments import TRUE_DRIVING
+
+    case = get_case("vehicle_engine_saturation")
+    te = case.true_effect
+    assert (te.kind, te.target) == ("actuator_saturation", "engine.torque")
+    assert 0.6 * TRUE_DRIVING["T_pk"] <= te.values["L"] <= 0.9 * TRUE_DRIVING["T_pk"]
+    truth, declared = engine_saturation_truth(), vehicle_slip_declared()
+    name = "actuator_saturation.engine.torque.L"
+    assert name in truth.params and name not in declared.params
+    assert set(truth.params) - set(declared.params) == {name}
+    v = declared.element("engine.torque").value
+    total = truth.element("engine.torque").value + \
+        truth.element("actuator_saturation.engine.torque").value
+    rng = np.random.default_rng(0)
+    L = te.values["L"]
+    known = {**TRUE_DRIVING, "w_pk": 419.0, "dw_T": 524.0, "w_max": 681.0, "w_idle": 128.0,
+             "K_idle": 2.0, name: L}
+    for _ in range(3):
+        draw = {"throttle": rng.uniform(0.2, 1.0), "engine.w.f": rng.uniform(100, 500)}
+        vals = {s_: draw.get(s_.name, known.get(s_.name))
+                for s_ in total.free_symbols | v.free_symbols}
+        assert None not in vals.values(), vals
+        vv = float(v.subs(vals))
+        got = float(total.subs(vals))
+        assert got == pytest.approx(vv / np.sqrt(1 + (vv / L) ** 2), rel=1e-12)
+    assert case.params == ["T_pk", "q_grade"]

@@ -2,7 +2,7 @@
 
 Each record is simulated from a *truth* graph, the declared vehicle graph plus
 one physical effect (aerodynamic drag, residual brake drag, a pitch-sensor
-offset, CVT belt slip), with the documented sensor noise and a fixed seed.
+offset, CVT belt slip, a saturating engine torque), with the documented sensor noise and a fixed seed.
 ``vehicle_aero`` is the default case of ``bondgraph loop``.
 """
 
@@ -13,7 +13,8 @@ import math
 import numpy as np
 
 from bondgraph.core.graph import BondGraph
-from bondgraph.diagnose.cases import LoopCase, declared_builder, synthesize
+from bondgraph.diagnose.cases import LoopCase, TrueEffect, declared_builder, synthesize
+from bondgraph.diagnose.effects import apply_effect
 from bondgraph.numerics.model import Model
 
 from .analysis import initial_state
@@ -26,6 +27,7 @@ CASES: dict[str, str] = {
     "vehicle_brake_drag": "vehicle_graphs.cases:case_brake",
     "vehicle_pitch_offset": "vehicle_graphs.cases:case_pitch",
     "vehicle_belt_slip": "vehicle_graphs.cases:case_slip",
+    "vehicle_engine_saturation": "vehicle_graphs.cases:case_engine_saturation",
 }
 
 
@@ -158,3 +160,40 @@ def case_slip() -> LoopCase:
         ("slip", "cvt.belt.p2 -> cvt.w_s"))
 
 
+
+
+#: truth saturation level of the engine-torque case, as a fraction of the
+#: peak torque T_pk (the issue asks for 60-90 %)
+ENGINE_SATURATION = 0.7
+
+#: the engine-torque source of the full vehicle graph (a loop target)
+ENGINE_TORQUE = ("source", "engine.torque")
+
+
+def engine_saturation_truth() -> BondGraph:
+    """The declared full filter model plus ``actuator_saturation`` at the
+    engine torque, level ``ENGINE_SATURATION`` x T_pk (public effect API)."""
+    g = _vehicle("truth_engine_saturation", gear="H", drive="2WD")
+    apply_effect(g, "actuator_saturation", ENGINE_TORQUE,
+                 {"L": ENGINE_SATURATION * TRUE_DRIVING["T_pk"]})
+    return g
+
+
+def case_engine_saturation() -> LoopCase:
+    # as in the belt-slip case the parameters of stage 1 and the drive line
+    # are known; the declared fit can only lower the peak torque T_pk to
+    # compensate the saturation (issue 11: the effect must still rank first)
+    params = ["T_pk", "q_grade"]
+    fixed = {k: v for k, v in TRUE_DRIVING.items() if k not in params}
+    level = ENGINE_SATURATION * TRUE_DRIVING["T_pk"]
+    return LoopCase(
+        "vehicle_engine_saturation",
+        "Driving record (throttle steps, High range) of a vehicle whose engine torque "
+        f"saturates smoothly at {level:.1f} N m ({ENGINE_SATURATION:.0%} of the peak "
+        "torque); the declared full filter model has the unsaturated torque map.",
+        declared_builder(vehicle_slip_declared),
+        lambda: _driving_record(engine_saturation_truth(), vehicle_slip_declared(),
+                                "throttle_steps_engine_saturation", seed=105),
+        params,
+        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
+        TrueEffect("actuator_saturation", ENGINE_TORQUE[1], {"L": level}))

@@ -30,7 +30,7 @@ from bondgraph.diagnose.inference_calls import (
     run_ukf,
     state_prior,
 )
-from bondgraph.diagnose.metric import compute_metric
+from bondgraph.diagnose.metric import compute_metric, standardised_errors
 from bondgraph.diagnose.residuals import analyze
 from bondgraph.diagnose.result import FitSummary
 from bondgraph.diagnose.settings import LoopSettings
@@ -92,8 +92,11 @@ class Fit:
     outputs (N, n_y) or None, Cramér-Rao std by name (None for an estimate
     at a bound), number of scalar observations; the estimates on a bound of
     their box (``at_bound``), whether the scoring converged and in how many
-    iterations (None: not fitted by scoring), and the free-run error on the
-    validation record (None without one)."""
+    iterations (None: not fitted by scoring), the free-run error on the
+    validation record (None without one), and the per-sample standardised
+    free-run errors (N, n_y) of the record and of the validation record
+    (:func:`~bondgraph.diagnose.metric.standardised_errors`; None if the free
+    run failed or there is no validation record)."""
 
     graph: BondGraph
     model: Model
@@ -111,6 +114,8 @@ class Fit:
     converged: bool | None = None
     iterations: int | None = None
     validation_metric: float | None = None
+    sim_errors: np.ndarray | None = None
+    validation_errors: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -147,6 +152,12 @@ class Fit:
         """The error the accept decision compares: the validation error if
         there is a validation record, else the record's free-run error."""
         return self.metric if self.validation_metric is None else self.validation_metric
+
+    @property
+    def accept_errors(self) -> np.ndarray | None:
+        """The per-sample standardised free-run errors (N, n_y) behind
+        :attr:`accept_metric` (validation record if any, else the record)."""
+        return self.sim_errors if self.validation_metric is None else self.validation_errors
 
 
 # ----------------------------------------------------------------- models
@@ -449,8 +460,9 @@ def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str]
     fit = Fit(graph, model, list(params), theta, nll, res, rep, float("nan"), sim_y,
               std=std, n_obs=int(res.n_obs.sum()))
     fit.metric = compute_metric(ctx.settings, fit, ctx.record)
+    fit.sim_errors = standardised_errors(y, sim_y)
     if ctx.settings.validation is not None:
-        fit.validation_metric = validation_metric(ctx, model, theta)
+        fit.validation_metric, fit.validation_errors = validation_run(ctx, model, theta)
     return fit
 
 
@@ -459,15 +471,22 @@ def validation_metric(ctx: Context, model: Model, theta: np.ndarray) -> float:
     one UKF run on it gives the first filtered state, from which the model
     runs freely with the record's inputs; inf if the filter or the free run
     fails there."""
+    return validation_run(ctx, model, theta)[0]
+
+
+def validation_run(ctx: Context, model: Model,
+                   theta: np.ndarray) -> tuple[float, np.ndarray | None]:
+    """:func:`validation_metric` and the standardised free-run errors (N, n_y)
+    on the validation record (None if the filter or the free run fails)."""
     rec = Record(ctx.settings.validation)
     t, u, y = rec.arrays(model)
     x0, P0 = prior_on(rec, ctx.settings, model)
     res = run_ukf(model, t, u, y, theta[None, :], x0, P0, ctx.settings, store=True)
     if not np.isfinite(res.nll[0]):
-        return float("inf")
+        return float("inf"), None
     sim_y = free_run(ctx, model, theta, res, rec)
     view = SimpleNamespace(model=model, ukf=res, sim_y=sim_y)
-    return compute_metric(ctx.settings, view, rec)
+    return compute_metric(ctx.settings, view, rec), standardised_errors(y, sim_y)
 
 
 def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res,

@@ -65,3 +65,20 @@ def compute_metric(settings: LoopSettings, fit, record) -> float:
         sd = np.nanstd(y[ok, i])
         vals.append(np.sqrt(np.mean(err[ok, i] ** 2)) / (sd if sd > 0 else 1.0))
     return float(np.mean(vals)) if vals else float("inf")
+
+
+def standardised_errors(y: np.ndarray, sim_y: np.ndarray | None) -> np.ndarray | None:
+    """Free-run errors (N, n_y) ``y − sim_y``, each output divided by the std
+    of its measurement (the normalisation of ``nrmse_sim``); NaN where a
+    sample is missing. None if the free run failed (``sim_y`` None)."""
+    if sim_y is None:
+        return None
+    err = np.asarray(y, dtype=float) - np.asarray(sim_y, dtype=float)
+    out = np.full_like(err, np.nan)
+    for i in range(err.shape[1]):
+        ok = np.isfinite(err[:, i])
+        if ok.sum() < 2:
+            continue
+        sd = np.nanstd(y[ok, i])
+        out[:, i] = err[:, i] / (sd if sd > 0 else 1.0)
+    return out

@@ -389,7 +389,8 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
                     f"{d.error_after:.4g}, NLL {current.nll:.2f} -> {after.nll:.2f}, {crit} "
                     f"{d.criterion_before:.2f} -> {d.criterion_after:.2f}, whiteness "
                     f"{d.whiteness_before:.1f} -> {d.whiteness_after:.1f} (information only), "
-                    f"LR {d.lr:.1f} (p {d.lr_p_value:.2g})")
+                    f"LR {d.lr:.1f} (p {d.lr_p_value:.2g}), error decrease z {d.error_z:.2f} "
+                    f"(p {d.error_p_value:.2g})")
             return after
         result.rejected.append(rejection(step, c, d))
         ctx.log(f"reject {c.label} ({d.reason}): {crit} {d.criterion_before:.2f} -> "

@@ -461,6 +461,56 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Ca
     return out
 
 
+def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
+                net: np.ndarray) -> tuple[float, np.ndarray, int]:
+    """The best start of a structural candidate's profile: the
+    ``settings.structural_starts`` best grid values (each at its best noise
+    variant; NLLs ``net`` (n_sets,) of ``sets``) get one Fisher-scoring step
+    over the declared estimated parameters alone, the effect's held at the
+    grid value (a profile likelihood over the grid, Cox & Hinkley 1974,
+    §9.2 (iii)).
+
+    Why: the declared fit has already compensated for the missing effect
+    (a peak torque lowered to the level of a saturation), so with the
+    declared parameters frozen the grid favours the weakest effect values,
+    and a joint scoring step from there follows a curved valley slowly. On
+    the vehicle_engine_saturation record the frozen grid's best (L = 80 N m)
+    scores LR 10 300, 15 joint steps reach 19 400; one declared-only step
+    from L = 50 N m reaches 35 000 (the truth 38 000).
+
+    Returns
+    -------
+    (nll, theta, i)
+        The best NLL, its θ (n_theta,) and the index of its grid value in
+        ``grid_of`` (the frozen best when no profiled start improves on it).
+    """
+    i0 = int(np.argmin(net))
+    best, th_best, i_best = float(net[i0]), np.array(sets[i0]), i0
+    n = int(ctx.settings.structural_starts)
+    names = [p for p in fit.params if p in model.params and p not in noise_params(fit.graph)]
+    if n <= 0 or not names or not np.isfinite(best):
+        return best, th_best, i_best
+    first: dict = {}
+    for j in np.argsort(net):
+        key = tuple(sorted(grid_of[j].items()))
+        if np.isfinite(net[j]) and key not in first:
+            first[key] = int(j)
+    t, u, y = ctx.record.arrays(model)
+    x0, P0 = prior(ctx, model)
+    idx = [model.param_index(p) for p in names]
+    lo, hi = model.bounds(names)
+    for j in list(first.values())[:n]:
+        try:
+            th, _, _, _, _ = fisher_fit(model, t, u, y, np.array(sets[j]), idx, lo, hi, x0, P0,
+                                        ctx.settings, 1, np.zeros(len(idx), bool))
+        except (FloatingPointError, np.linalg.LinAlgError):
+            continue
+        f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])
+        if np.isfinite(f) and f < best:
+            best, th_best, i_best = f, th, j
+    return best, th_best, i_best
+
+
 def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta: np.ndarray,
                      nll: float) -> tuple[float, np.ndarray] | None:
     """A few Fisher-scoring steps (``settings.structural_refit``) over the
@@ -534,10 +584,13 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
     if not np.any(np.isfinite(r.nll)):
         return failed_candidate(eff, tgt, "likelihood ratio", k, str(r.reasons[0]))
     net = np.where(np.isfinite(r.nll), r.nll, np.inf)
-    i = int(np.argmin(net))
-    best, values, declared = float(net[i]), dict(grid_of[i]), {}
+    best, th_best, i = grid_starts(ctx, fit, model, sets, grid_of, net)
+    values, declared = dict(grid_of[i]), {}
+    if best < float(np.min(net)):
+        declared = {n: float(th_best[model.param_index(n)]) for n in fit.params
+                    if n in model.params}
     new = {p.name: P[p.name].name for p in eff.params if p.estimated and p.name in P}
-    prof = profile_declared(ctx, fit, model, list(new.values()), np.array(sets[i]), best)
+    prof = profile_declared(ctx, fit, model, list(new.values()), th_best, best)
     if prof is not None:
         best, th = prof
         values.update({k: float(th[model.param_index(n)]) for k, n in new.items()})

@@ -99,6 +99,14 @@ class LoopSettings:
         Reject an effect whose error (on ``validation`` if given, else the
         free-run error on the record) grows by more than this factor
         (default 1.0: the error may not rise).
+    error_level : float or None
+        The decrease of that free-run error must be significant at this
+        one-sided level (a Diebold-Mariano test on the paired per-sample
+        squared errors with a Newey-West variance,
+        :func:`bondgraph.diagnose.accept.error_decrease_test`); default
+        0.05; None: no such test (only ``metric_tolerance``). It keeps an
+        effect that fits only the filter's discretisation error or the noise
+        (an LR just past its threshold, an unchanged free-run error) out.
     validation : Experiment, optional
         A held-out record: the accept decision compares the free-run error on
         it (the filter's first state on it starts the free run).
@@ -111,6 +119,12 @@ class LoopSettings:
         Fisher-scoring iterations over the declared estimated parameters
         together with a structural candidate's own, from its best grid point,
         when it is scored (0: the declared parameters stay frozen).
+    structural_starts : int
+        The best grid values of a structural candidate (default 3) that each
+        get one Fisher-scoring step over the declared estimated (non-noise)
+        parameters, the effect's held, before the joint profile starts from
+        the best of them (0: the joint profile starts from the frozen grid's
+        best; :func:`bondgraph.diagnose.scoring.grid_starts`).
     structural_threshold : float
         Skip the (slow) structural candidates when an additive effect already
         explains more than this share of the innovation energy.
@@ -147,10 +161,12 @@ class LoopSettings:
     confirm_iterations: int = 40
     confirm_tolerance: float = 1e-2
     metric_tolerance: float = 1.0
+    error_level: float | None = 0.05
     validation: Any = None
     holdout: float = 0.0
     structural_threshold: float = 0.5
     structural_refit: int = 2
+    structural_starts: int = 3
     chunk: int = 48
     metric_name: str | None = None
     true_effect: Any = None
@@ -191,7 +207,8 @@ class LoopSettings:
         significance level, UKF options, names of the effect library."""
         return {"params": self.params, "max_steps": self.max_steps,
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
-                "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale,
+                "metric_tolerance": self.metric_tolerance, "error_level": self.error_level,
+                "p0_scale": self.p0_scale,
                 "holdout": self.holdout,
                 "fit": self.fit,
                 "confirm_iterations": self.confirm_iterations,
@@ -222,11 +239,17 @@ def check_settings(s: LoopSettings) -> None:
         raise OptionError(f"LoopSettings.criterion = {s.criterion!r} is not one of "
                           f"{', '.join(CRITERIA)}")
     for name, minimum in (("max_steps", 0), ("confirm_top", 1), ("fit_iterations", 0),
+                          ("structural_starts", 0),
                           ("confirm_iterations", 0), ("chunk", 1)):
         _integer(name, getattr(s, name), minimum)
     sig = s.significance
     if isinstance(sig, bool) or not isinstance(sig, numbers.Real) or not 0 < sig < 1:
         raise OptionError(f"LoopSettings.significance must lie in (0, 1), got {sig!r}")
+    lev = s.error_level
+    if lev is not None and (isinstance(lev, bool) or not isinstance(lev, numbers.Real)
+                            or not 0 < lev < 1):
+        raise OptionError(f"LoopSettings.error_level must lie in (0, 1) or be None, got "
+                          f"{lev!r}")
     if s.structural not in (True, False, "always"):
         raise OptionError(f"LoopSettings.structural must be True, False or 'always', got "
                           f"{s.structural!r}")
