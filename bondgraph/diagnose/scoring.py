@@ -359,7 +359,10 @@ def failed_candidate(eff, tgt, kind: str, dof: int, reason: str) -> Candidate:
 def mark_equivalent(cands, col_of, An, base_cols, tol: float = 0.999) -> None:
     """Fill ``Candidate.equivalent`` for single-column candidates whose
     signatures, with the estimated parameters (``base_cols``) partialled out,
-    have |correlation| > ``tol`` (from the normalised Gram matrix ``An``)."""
+    have |correlation| > ``tol`` (from the normalised Gram matrix ``An``),
+    and set ``Candidate.absorbed`` for those whose signature the estimated
+    parameters' span reproduces (multiple correlation > ``tol``: residual
+    share of the unit-norm column below 1 − tol²)."""
     B = list(base_cols)
     ABB = An[np.ix_(B, B)] if B else None
 
@@ -372,6 +375,9 @@ def mark_equivalent(cands, col_of, An, base_cols, tol: float = 0.999) -> None:
     singles = [c for c in cands if len(col_of[(c.effect, c.target)]) == 1]
     idx = {id(c): col_of[(c.effect, c.target)][0] for c in singles}
     var = {id(c): resid(idx[id(c)], idx[id(c)]) for c in singles}
+    for c in singles:
+        i = idx[id(c)]
+        c.absorbed = bool(B) and An[i, i] > 0.5 and var[id(c)] < 1.0 - tol**2
     for i, a in enumerate(singles):
         for b in singles[i + 1:]:
             va, vb = var[id(a)], var[id(b)]
@@ -445,19 +451,33 @@ def _line_sets(ctx: Context, probe: Probe, fit: Fit, cands: list[Candidate]):
 
 
 # ------------------------------------------------------------- structural
-def score_structural(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Candidate]:
+def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
+                     places: set | None = None) -> list[Candidate]:
     """Likelihood-ratio statistic of every structural effect of ``effects``
-    at every place it can attach (and is not yet present), each from one
-    batched UKF run over its grid (:func:`structural_candidate`); a progress
-    bar when ``ctx.progress``."""
+    at every place it can attach (and is not yet present; only the targets
+    in ``places``, a set of (kind, name), if given), each from one batched
+    UKF run over its grid (:func:`structural_candidate`); a progress bar
+    when ``ctx.progress``."""
     todo = [(eff, tgt) for eff in effects if not eff.additive
-            for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)]
+            for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)
+            and (places is None or (tgt.kind, tgt.name) in places)]
     out = []
     for eff, tgt in tqdm(todo, desc="structural candidates", unit="cand", leave=False,
                          disable=not ctx.progress):
         cand = structural_candidate(ctx, fit, scales, eff, tgt)
         if cand is not None:
             out.append(cand)
+    return out
+
+
+def places_of(graph, cand: Candidate) -> set:
+    """The places (kind, name) of ``cand``'s target: the target itself and,
+    for a source, the inputs its value reads (where an input delay attaches)."""
+    out = {(cand.target.kind, cand.target.name)}
+    if cand.target.kind == "source" and cand.target.name in graph.elements:
+        value = getattr(graph.element(cand.target.name), "value", None)
+        names = {s.name for s in getattr(value, "free_symbols", ())}
+        out |= {("input", n) for n in graph.inputs if n in names}
     return out
 
 

@@ -114,6 +114,13 @@ class LoopSettings:
     structural_threshold : float
         Skip the (slow) structural candidates when an additive effect already
         explains more than this share of the innovation energy.
+    structural_near_best : bool
+        When the structural candidates are skipped (``structural_threshold``),
+        still score those at the place of the best additive candidate (its
+        target, and for a source the inputs it reads): a saturation or a dead
+        zone of a source is first seen as a gain error of that source, and
+        would otherwise never be compared with it (default False: the
+        bundled cases' numbers unchanged; the effect-recovery bench sets it).
     chunk : int
         Parameter sets per batched UKF run.
     metric_name : str, optional
@@ -150,6 +157,7 @@ class LoopSettings:
     validation: Any = None
     holdout: float = 0.0
     structural_threshold: float = 0.5
+    structural_near_best: bool = False
     structural_refit: int = 2
     chunk: int = 48
     metric_name: str | None = None
