@@ -530,6 +530,8 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
         g = fit.graph.copy(f"{fit.graph.name}__{eff.name}")
         grid = eff.grid(g, tgt, scales)
         P = eff.apply(g, tgt, grid[0], scales)
+        for k, span in eff.grid_span(g, tgt, scales).items():
+            P[k].bounds = span
         model = model_of(g)
     except BondGraphError as exc:
         ctx.log(f"  skip {eff.name} @ {tgt.name}: {str(exc).splitlines()[0]}")
