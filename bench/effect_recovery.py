@@ -17,6 +17,14 @@ Reported per case and in total:
 * ``rank``: position of the truth in the ranking (1 = first); ``first``:
   ranked first, or inside the equivalence group of the first candidate
   (signatures indistinguishable in this record);
+* ``first_confirmed``: the truth leads after the loop's confirmation of its
+  ``confirm_top`` best significant candidates
+  (:func:`bondgraph.diagnose.runner.confirm_best`), the order the loop's
+  accept step works through (the accept rule itself left aside);
+* ``absorbed``: the truth's signature lies in the span of the estimated
+  parameters' (:attr:`Candidate.absorbed`, e.g. a viscous friction next to an
+  estimated damper): nothing is missing, so the case is counted apart and
+  left out of the rates;
 * ``within_3crb``: every estimated effect parameter within 3 Cramér-Rao
   standard deviations of its truth;
 * ``val_before``/``val_after``: free-run simulation error (mean over the
@@ -48,7 +56,7 @@ from bondgraph.diagnose.cases import synthesize
 from bondgraph.diagnose.confirm import confirm
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Scales, get_effect
 from bondgraph.diagnose.fit import Context, Record, fit_model, parameter_std
-from bondgraph.diagnose.runner import gather_evidence
+from bondgraph.diagnose.runner import confirm_best, gather_evidence
 from bondgraph.diagnose.scales import operating_scales
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.inference.options import UKFOptions
@@ -216,7 +224,7 @@ def run_case(gname, ename, seed):
     ctx = Context(Record(rec), settings_for(spec["params"]), log=quiet, progress=False)
     fit = fit_model(ctx, declared, spec["params"], None, "declared")
     sc = operating_scales(ctx, fit)
-    ranking, _ = gather_evidence(ctx, fit, sc)
+    ranking, signif = gather_evidence(ctx, fit, sc)
     labels = [(c.effect, c.target.name) for c in ranking]
     key = (ename, tgt.name)
     rank = labels.index(key) + 1 if key in labels else None
@@ -233,19 +241,36 @@ def run_case(gname, ename, seed):
                                   if vals.get(k)] + [0.0]),
            "top": f"{ranking[0].effect} @ {ranking[0].target.name}" if ranking else None,
            "top5": [[c.label, round(float(c.score), 2), c.equivalent] for c in ranking[:5]]}
-    out.update(confirm_truth(ctx, fit, ranking, key, sc, eff, vals, val))
+    confirmed = confirm_best(ctx, fit, signif, sc, "augmented")
+    out.update(loop_choice(confirmed, ename, tgt.name))
+    out.update(confirm_truth(ctx, fit, ranking, key, sc, eff, vals, val, confirmed))
     out["val_before"] = validation_error(fit.model, fit.theta, val)
     out["seconds"] = time.perf_counter() - t0
     return out
 
 
-def confirm_truth(ctx, fit, ranking, key, sc, eff, vals, val):
-    """Refit with the true effect; its estimates, CRB std, whether each is
+def loop_choice(confirmed, ename, tname):
+    """What the loop would pick (:func:`bondgraph.diagnose.runner.confirm_best`:
+    the ``confirm_top`` best significant candidates refitted, ordered by
+    confirmed LR − 2k; the accept rule left aside): ``first_confirmed`` if the
+    truth leads that order or lies in its leader's equivalence group."""
+    lead = confirmed[0][0] if confirmed else None
+    label = f"{ename} @ {tname}"
+    return {"first_confirmed": bool(lead is not None and (
+                lead.label == label or label in (lead.equivalent or []))),
+            "confirmed": [[c.label, round(float(c.confirmed_statistic), 2)]
+                          for c, _ in confirmed]}
+
+
+def confirm_truth(ctx, fit, ranking, key, sc, eff, vals, val, confirmed=()):
+    """Refit with the true effect (reusing the loop's confirmation of it in
+    ``confirmed`` if there is one); its estimates, CRB std, whether each is
     within 3 std of the truth, and the validation error after."""
     cand = next((c for c in ranking if (c.effect, c.target.name) == key), None)
     if cand is None:
         return {"within_3crb": False, "val_after": float("nan"), "estimate": {}}
-    r = confirm(ctx, fit, cand, sc, "augmented")
+    r = next((r for c, r in confirmed if c is cand), None) or \
+        confirm(ctx, fit, cand, sc, "augmented")
     if r is None:
         return {"within_3crb": False, "val_after": float("nan"), "estimate": {}}
     std = parameter_std(ctx, r.fit)
@@ -284,20 +309,25 @@ def summarise(results):
     per = {}
     for r in done:
         d = per.setdefault(r["graph"], {"cases": 0, "absorbed": 0, "first": 0,
-                                        "within_3crb": 0, "seconds": 0.0})
+                                        "first_confirmed": 0, "within_3crb": 0,
+                                        "seconds": 0.0})
         d["seconds"] += r["seconds"]
         if r.get("absorbed"):
             d["absorbed"] += 1
             continue
         d["cases"] += 1
         d["first"] += int(r["first"])
+        d["first_confirmed"] += int(r.get("first_confirmed", False))
         d["within_3crb"] += int(r["within_3crb"])
     n = max(len(scored), 1)
     total = {"cases": len(scored), "absorbed": len(done) - len(scored),
              "skipped": len(results) - len(done),
              "first": sum(int(r["first"]) for r in scored),
+             "first_confirmed": sum(int(r.get("first_confirmed", False)) for r in scored),
              "within_3crb": sum(int(r["within_3crb"]) for r in scored),
              "first_rate": sum(int(r["first"]) for r in scored) / n,
+             "first_confirmed_rate": sum(int(r.get("first_confirmed", False))
+                                         for r in scored) / n,
              "within_3crb_rate": sum(int(r["within_3crb"]) for r in scored) / n,
              "median_val_before": float(np.nanmedian([r["val_before"] for r in scored]))
              if scored else None,
@@ -316,16 +346,16 @@ def print_table(results, per, total):
             continue
         print(f"  {r['graph']:20s} {r['effect']:22s} @ {r['target']:10s} rank {r['rank']!s:>4s}"
               f"{' (absorbed)' if r.get('absorbed') else ''}"
-              f" first {'yes' if r['first'] else 'no ':3s} 3CRB {'yes' if r['within_3crb'] else 'no '}"
+              f" first {'yes' if r['first'] else 'no ':3s}"
+              f" conf {'yes' if r.get('first_confirmed') else 'no ':3s}"
+              f" 3CRB {'yes' if r['within_3crb'] else 'no '}"
               f" val {r['val_before']:.3g} -> {r['val_after']:.3g}  {r['seconds']:.1f} s"
               f"  (top: {r['top']})")
-    print(f"\n{'graph':22s} {'cases':>5s} {'first':>6s} {'3 CRB':>6s} {'absorbed':>9s} "
-          f"{'time [s]':>9s}")
-    for g, d in per.items():
-        print(f"{g:22s} {d['cases']:5d} {d['first']:6d} {d['within_3crb']:6d} "
-              f"{d['absorbed']:9d} {d['seconds']:9.1f}")
-    print(f"{'total':22s} {total['cases']:5d} {total['first']:6d} {total['within_3crb']:6d} "
-          f"{total['absorbed']:9d} {total['seconds']:9.1f}")
+    print(f"\n{'graph':22s} {'cases':>5s} {'first':>6s} {'1st conf':>8s} {'3 CRB':>6s} "
+          f"{'absorbed':>9s} {'time [s]':>9s}")
+    for g, d in list(per.items()) + [("total", total)]:
+        print(f"{g:22s} {d['cases']:5d} {d['first']:6d} {d['first_confirmed']:8d} "
+              f"{d['within_3crb']:6d} {d['absorbed']:9d} {d['seconds']:9.1f}")
 
 
 def main(argv=None):
@@ -347,7 +377,8 @@ def main(argv=None):
                  "top": None, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0]}"}
         results.append(r)
         print(f"[{k + 1}/{len(todo)}] {g} {e}: rank {r.get('rank')} first {r.get('first')} "
-              f"3CRB {r.get('within_3crb')} {r.get('error', '')}", file=sys.stderr, flush=True)
+              f"first confirmed {r.get('first_confirmed')} 3CRB {r.get('within_3crb')} "
+              f"{r.get('error', '')}", file=sys.stderr, flush=True)
     per, total = summarise(results)
     print_table(results, per, total)
     if a.json_out:
