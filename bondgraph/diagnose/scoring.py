@@ -171,7 +171,40 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total, fails)
     mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
     line_probe(ctx, probe, fit, out)
+    rank_nested(out, col_of, An, ctx.settings.significance)
     return out
+
+
+def rank_nested(cands, col_of, An, alpha: float, tol: float = 0.9999) -> list[tuple]:
+    """Rank a candidate that nests another one below it unless its extra
+    parameters are significant. Candidate A nests B when they share the
+    target and every column of B equals a column of A (|correlation| >
+    ``tol`` in the normalised Gram matrix ``An``; a 3rd-order sensor
+    calibration nests the 2nd-order one). A then leads only if its extra
+    likelihood gain passes the nested likelihood-ratio test,
+    stat_A − stat_B > χ²_{1−α}(k_A − k_B) (Wilks 1938); otherwise its score
+    becomes score_B − (critical − gain), just below B. AIC's penalty of 2
+    per parameter lets the larger model lead in 16 % of the records where
+    the smaller one is true.
+
+    Returns
+    -------
+    list of (A, B) pairs demoted (A's ``score`` changed in place)."""
+    demoted = []
+    for a in cands:
+        for b in cands:
+            ca, cb = col_of.get((a.effect, a.target)), col_of.get((b.effect, b.target))
+            if a is b or a.target != b.target or not ca or not cb or len(cb) >= len(ca) \
+                    or not np.isfinite(a.score) or not np.isfinite(b.score):
+                continue
+            if not all(max(abs(An[i, j]) for j in ca) > tol for i in cb):
+                continue
+            gain = a.statistic - b.statistic
+            crit = float(chi2.isf(alpha, len(ca) - len(cb)))
+            if a.score > b.score and gain <= crit:
+                a.score = b.score - (crit - gain)
+                demoted.append((a, b))
+    return demoted
 
 
 def nudge_sizes(probe: Probe, fit: Fit, dt: float) -> tuple[np.ndarray, list]:
