@@ -335,10 +335,10 @@ def gather_evidence(ctx: Context, current: Fit,
     elif s.structural:
         ctx.log(f"  structural candidates not scored: an additive effect explains "
                 f"{100 * best_expl:.0f} % of the innovation energy")
-        best = min(cands, key=lambda c: c.rank_key) if cands else None
-        if s.structural_near_best and best is not None:
-            places = places_of(current.graph, best)
-            ctx.log(f"  ... except at the place of {best.label}")
+        best = sorted(cands, key=lambda c: c.rank_key)[:3]
+        if s.structural_near_best and best:
+            places = set().union(*(places_of(current.graph, c) for c in best))
+            ctx.log(f"  ... except at the places of {', '.join(c.label for c in best)}")
             cands += score_structural(ctx, current, scales, physical_fx, places)
     signif = significant(cands, s.significance)
     if not signif and s.structural and resort_fx:

@@ -116,11 +116,12 @@ class LoopSettings:
         explains more than this share of the innovation energy.
     structural_near_best : bool
         When the structural candidates are skipped (``structural_threshold``),
-        still score those at the place of the best additive candidate (its
-        target, and for a source the inputs it reads): a saturation or a dead
-        zone of a source is first seen as a gain error of that source, and
-        would otherwise never be compared with it (default False: the
-        bundled cases' numbers unchanged; the effect-recovery bench sets it).
+        still score those at the places of the three best additive
+        candidates (their targets, and for a source the inputs it reads): a
+        saturation or a dead zone of a source is first seen as a gain error
+        of that source, and would otherwise never be compared with it
+        (default False: the bundled cases' numbers unchanged; the
+        effect-recovery bench sets it).
     chunk : int
         Parameter sets per batched UKF run.
     metric_name : str, optional
