@@ -182,8 +182,8 @@ def draw_truth(spec, eff, seed):
 def consistent_shapes(spec, eff, tgt, vals, seed) -> dict:
     """The effect's fixed shape constants (tanh widths, Stribeck velocity,
     overflow width...) as the loop computes them on the *truth's* record
-    (scales along the declared model's filtered states there), not on the
-    declared model's own record: a friction changes the flows, so the
+    (scales along the fitted declared model's filtered states there), not on
+    the declared model's own record: a friction changes the flows, so the
     constants would otherwise differ between the truth and every candidate
     (a model mismatch no estimate can remove, which biased the Coulomb and
     Stribeck estimates by 5-8 Cramér-Rao std). Empty if the effect has none."""
@@ -196,8 +196,8 @@ def consistent_shapes(spec, eff, tgt, vals, seed) -> dict:
     rec = synthesize(truth, spec["build"](), t, sampled(spec["inputs"](0.0), t), {}, {}, seed,
                      "shapes", "", hold="zoh", method="rk4", substeps=10)
     ctx = Context(Record(rec), settings_for(spec["params"]), log=quiet, progress=False)
-    return eff.shape_values(g, tgt, operating_scales(ctx, fit_model(ctx, g, [], None,
-                                                                    "declared", iterations=0)))
+    fit = fit_model(ctx, g, spec["params"], None, "declared")
+    return eff.shape_values(g, tgt, operating_scales(ctx, fit))
 
 
 def validation_error(model, theta, exp):
