@@ -66,7 +66,8 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
     start = {**fit.estimates(), **cand.profile}
     for n in fit.model.params:
         start.setdefault(n, float(fit.theta[fit.model.param_index(n)]))
-    widen_boxes(eff, P)
+    widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
+                if not eff.additive else {})
     try:
         model = model_of(g)
         start = grid_refine(ctx, model, new, start)
@@ -102,10 +103,12 @@ def start_values(eff: Effect, cand: Candidate) -> dict:
     return values
 
 
-def widen_boxes(eff: Effect, P: dict) -> None:
+def widen_boxes(eff: Effect, P: dict, spans: dict | None = None) -> None:
     """Set the search box of each new estimated parameter around its start
     value: the effect's declared box if any, a factor 100 either way for a
-    positive structural parameter, else ±20 |value| (from 0 if nonnegative)."""
+    positive structural parameter (within its grid's reach ``spans``, local
+    name -> (lo, hi), :meth:`Effect.grid_span`, when given), else
+    ±20 |value| (from 0 if nonnegative)."""
     for p in eff.params:
         if p.name in P and p.estimated:
             par = P[p.name]
@@ -114,7 +117,10 @@ def widen_boxes(eff: Effect, P: dict) -> None:
             if p.bounds is not None:
                 par.bounds = tuple(p.bounds)
             elif not eff.additive and v > 0:
-                par.bounds = (v / 100.0, v * 100.0)
+                lo, hi = (spans or {}).get(p.name, (0.0, np.inf))
+                v = float(np.clip(v, lo, hi))
+                par.default = v
+                par.bounds = (max(v / 100.0, lo), min(v * 100.0, hi))
             else:
                 par.bounds = (0.0 if p.nonnegative else -span, span)
 

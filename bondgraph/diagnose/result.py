@@ -45,6 +45,12 @@ class Candidate:
         Candidates whose innovation signatures are indistinguishable from this
         one in this record (|correlation| > 0.999 with the estimated
         parameters partialled out): the data cannot tell them apart.
+    absorbed : bool
+        The candidate's innovation signature lies in the span of the
+        estimated parameters' signatures (multiple correlation > 0.999,
+        score test only): the declared model with re-estimated parameters
+        reproduces the effect (a viscous friction next to an estimated
+        damper), so the record cannot show it as missing.
     profile : dict
         Declared parameters re-fitted together with a structural candidate
         when it was scored (name -> value; empty if they stayed frozen); its
@@ -72,6 +78,7 @@ class Candidate:
     confirmed_statistic: float | None = None
     last_resort: bool = False
     equivalent: list = field(default_factory=list)
+    absorbed: bool = False
     failed: str | None = None
     confirmed: dict | None = None
     profile: dict = field(default_factory=dict)

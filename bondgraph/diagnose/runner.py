@@ -35,6 +35,7 @@ from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.result import Candidate, LoopResult, rank_of
 from bondgraph.diagnose.scoring import (
     operating_scales,
+    places_of,
     score_additive,
     score_structural,
 )
@@ -334,6 +335,11 @@ def gather_evidence(ctx: Context, current: Fit,
     elif s.structural:
         ctx.log(f"  structural candidates not scored: an additive effect explains "
                 f"{100 * best_expl:.0f} % of the innovation energy")
+        best = sorted(cands, key=lambda c: c.rank_key)[:3]
+        if s.structural_near_best and best:
+            places = set().union(*(places_of(current.graph, c) for c in best))
+            ctx.log(f"  ... except at the places of {', '.join(c.label for c in best)}")
+            cands += score_structural(ctx, current, scales, physical_fx, places)
     signif = significant(cands, s.significance)
     if not signif and s.structural and resort_fx:
         ctx.log("  no physical effect is significant: scoring the last-resort "

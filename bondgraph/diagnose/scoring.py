@@ -171,7 +171,40 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total, fails)
     mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
     line_probe(ctx, probe, fit, out)
+    rank_nested(out, col_of, An, ctx.settings.significance)
     return out
+
+
+def rank_nested(cands, col_of, An, alpha: float, tol: float = 0.9999) -> list[tuple]:
+    """Rank a candidate that nests another one below it unless its extra
+    parameters are significant. Candidate A nests B when they share the
+    target and every column of B equals a column of A (|correlation| >
+    ``tol`` in the normalised Gram matrix ``An``; a 3rd-order sensor
+    calibration nests the 2nd-order one). A then leads only if its extra
+    likelihood gain passes the nested likelihood-ratio test,
+    stat_A − stat_B > χ²_{1−α}(k_A − k_B) (Wilks 1938); otherwise its score
+    becomes score_B − (critical − gain), just below B. AIC's penalty of 2
+    per parameter lets the larger model lead in 16 % of the records where
+    the smaller one is true.
+
+    Returns
+    -------
+    list of (A, B) pairs demoted (A's ``score`` changed in place)."""
+    demoted = []
+    for a in cands:
+        for b in cands:
+            ca, cb = col_of.get((a.effect, a.target)), col_of.get((b.effect, b.target))
+            if a is b or a.target != b.target or not ca or not cb or len(cb) >= len(ca) \
+                    or not np.isfinite(a.score) or not np.isfinite(b.score):
+                continue
+            if not all(max(abs(An[i, j]) for j in ca) > tol for i in cb):
+                continue
+            gain = a.statistic - b.statistic
+            crit = float(chi2.isf(alpha, len(ca) - len(cb)))
+            if a.score > b.score and gain <= crit:
+                a.score = b.score - (crit - gain)
+                demoted.append((a, b))
+    return demoted
 
 
 def nudge_sizes(probe: Probe, fit: Fit, dt: float) -> tuple[np.ndarray, list]:
@@ -359,7 +392,10 @@ def failed_candidate(eff, tgt, kind: str, dof: int, reason: str) -> Candidate:
 def mark_equivalent(cands, col_of, An, base_cols, tol: float = 0.999) -> None:
     """Fill ``Candidate.equivalent`` for single-column candidates whose
     signatures, with the estimated parameters (``base_cols``) partialled out,
-    have |correlation| > ``tol`` (from the normalised Gram matrix ``An``)."""
+    have |correlation| > ``tol`` (from the normalised Gram matrix ``An``),
+    and set ``Candidate.absorbed`` for those whose signature the estimated
+    parameters' span reproduces (multiple correlation > ``tol``: residual
+    share of the unit-norm column below 1 − tol²)."""
     B = list(base_cols)
     ABB = An[np.ix_(B, B)] if B else None
 
@@ -372,6 +408,9 @@ def mark_equivalent(cands, col_of, An, base_cols, tol: float = 0.999) -> None:
     singles = [c for c in cands if len(col_of[(c.effect, c.target)]) == 1]
     idx = {id(c): col_of[(c.effect, c.target)][0] for c in singles}
     var = {id(c): resid(idx[id(c)], idx[id(c)]) for c in singles}
+    for c in singles:
+        i = idx[id(c)]
+        c.absorbed = bool(B) and An[i, i] > 0.5 and var[id(c)] < 1.0 - tol**2
     for i, a in enumerate(singles):
         for b in singles[i + 1:]:
             va, vb = var[id(a)], var[id(b)]
@@ -445,13 +484,16 @@ def _line_sets(ctx: Context, probe: Probe, fit: Fit, cands: list[Candidate]):
 
 
 # ------------------------------------------------------------- structural
-def score_structural(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Candidate]:
+def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
+                     places: set | None = None) -> list[Candidate]:
     """Likelihood-ratio statistic of every structural effect of ``effects``
-    at every place it can attach (and is not yet present), each from one
-    batched UKF run over its grid (:func:`structural_candidate`); a progress
-    bar when ``ctx.progress``."""
+    at every place it can attach (and is not yet present; only the targets
+    in ``places``, a set of (kind, name), if given), each from one batched
+    UKF run over its grid (:func:`structural_candidate`); a progress bar
+    when ``ctx.progress``."""
     todo = [(eff, tgt) for eff in effects if not eff.additive
-            for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)]
+            for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)
+            and (places is None or (tgt.kind, tgt.name) in places)]
     out = []
     for eff, tgt in tqdm(todo, desc="structural candidates", unit="cand", leave=False,
                          disable=not ctx.progress):
@@ -511,6 +553,17 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
     return best, th_best, i_best
 
 
+def places_of(graph, cand: Candidate) -> set:
+    """The places (kind, name) of ``cand``'s target: the target itself and,
+    for a source, the inputs its value reads (where an input delay attaches)."""
+    out = {(cand.target.kind, cand.target.name)}
+    if cand.target.kind == "source" and cand.target.name in graph.elements:
+        value = getattr(graph.element(cand.target.name), "value", None)
+        names = {s.name for s in getattr(value, "free_symbols", ())}
+        out |= {("input", n) for n in graph.inputs if n in names}
+    return out
+
+
 def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta: np.ndarray,
                      nll: float) -> tuple[float, np.ndarray] | None:
     """A few Fisher-scoring steps (``settings.structural_refit``) over the
@@ -560,6 +613,8 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
         g = fit.graph.copy(f"{fit.graph.name}__{eff.name}")
         grid = eff.grid(g, tgt, scales)
         P = eff.apply(g, tgt, grid[0], scales)
+        for k, span in eff.grid_span(g, tgt, scales).items():
+            P[k].bounds = span
         model = model_of(g)
     except BondGraphError as exc:
         ctx.log(f"  skip {eff.name} @ {tgt.name}: {str(exc).splitlines()[0]}")

@@ -128,6 +128,14 @@ class LoopSettings:
     structural_threshold : float
         Skip the (slow) structural candidates when an additive effect already
         explains more than this share of the innovation energy.
+    structural_near_best : bool
+        When the structural candidates are skipped (``structural_threshold``),
+        still score those at the places of the three best additive
+        candidates (their targets, and for a source the inputs it reads): a
+        saturation or a dead zone of a source is first seen as a gain error
+        of that source, and would otherwise never be compared with it
+        (default False: the bundled cases' numbers unchanged; the
+        effect-recovery bench sets it).
     chunk : int
         Parameter sets per batched UKF run.
     metric_name : str, optional
@@ -165,6 +173,7 @@ class LoopSettings:
     validation: Any = None
     holdout: float = 0.0
     structural_threshold: float = 0.5
+    structural_near_best: bool = False
     structural_refit: int = 2
     structural_starts: int = 3
     chunk: int = 48

@@ -366,10 +366,29 @@ class _Structural(Effect):
     parameter)."""
 
     additive = False
+    #: how far beyond its grid a positive parameter may move when refitted
+    GRID_REACH = 4.0
 
     def grid(self, graph, target, scales) -> list[dict[str, float]]:
         """Values of the estimated parameters to evaluate (a list of dicts)."""
         raise NotImplementedError
+
+    def grid_span(self, graph, target, scales) -> dict[str, tuple[float, float]]:
+        """Box of each estimated parameter whose grid values are all
+        positive: from the smallest grid value / :attr:`GRID_REACH` to the
+        largest × :attr:`GRID_REACH`. The refits of a structural candidate
+        (profile, confirmation) stay inside it: the grid spans the values
+        the effect means, and beyond it a parameter can turn the effect
+        into another one (an input delay of 4.7 s on a 1 s record, whose
+        Padé states with their small process noise then act as an
+        unmeasured disturbance)."""
+        grid = self.grid(graph, target, scales)
+        out = {}
+        for p in self.params:
+            vals = [float(g[p.name]) for g in grid if p.name in g]
+            if p.estimated and vals and min(vals) > 0:
+                out[p.name] = (min(vals) / self.GRID_REACH, max(vals) * self.GRID_REACH)
+        return out
 
 
 def log_grid(lo: float, hi: float, n: int) -> list[float]:

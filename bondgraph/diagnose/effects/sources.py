@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from math import factorial
 
+import numpy as np
 import sympy as sp
 
 from bondgraph.core.elements import One, Source
@@ -264,8 +265,13 @@ class SourceRateLimit(_Structural):
         return [{"r": r * f, "tau_f": tf} for f in (0.1, 0.2, 0.4, 0.7, 1.0, 1.5, 2.5, 4.0)]
 
     def box(self, graph, target, scales):
+        """From 0.2 of the full-scale rate (largest value over 20 samples) to
+        twice it, but at most 0.6 of the command's largest rate in the record
+        (``source_rate``): above that the limit never acts, and the effect
+        left is the tracking lag τ_f alone."""
         r = self._rate(target, scales)
-        return {"r": (0.2 * r, 2.0 * r)}
+        top = min(2.0 * r, 0.6 * scales.get("source_rate", target.name, np.inf))
+        return {"r": (min(0.2 * r, 0.5 * top), top)}
 
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})

@@ -1,0 +1,57 @@
+"""Ranking rules of the score test (bondgraph.diagnose.scoring): nested
+candidates (the larger leads only if its extra columns pass the nested
+likelihood-ratio test) and candidates absorbed by the estimated parameters.
+The Gram matrices are built from explicit signature columns, so the
+correlations are known by construction."""
+
+import numpy as np
+from scipy.stats import chi2
+
+from bondgraph.diagnose.effects import Target
+from bondgraph.diagnose.result import Candidate
+from bondgraph.diagnose.scoring import mark_equivalent, rank_nested
+
+
+def _cand(effect, target, stat, k):
+    return Candidate(effect, effect, Target("sensor", target), "score", stat, k,
+                     float(chi2.sf(stat, k)), stat - 2 * k)
+
+
+def _gram(cols):
+    G = np.column_stack(cols)
+    A = G.T @ G
+    n = np.sqrt(np.diag(A))
+    return A / np.outer(n, n)
+
+
+def test_larger_candidate_needs_significant_extra_gain():
+    t = np.linspace(0.0, 1.0, 200)
+    # column 0: estimated parameter; 1: poly2's c2; 2, 3: poly3's c2 (same) and c3
+    An = _gram([np.sin(7 * t), t**2, t**2, t**3 - 0.5 * t])
+    col_of = {("sensor_poly2", Target("sensor", "y")): [1],
+              ("sensor_poly3", Target("sensor", "y")): [2, 3]}
+    crit = chi2.isf(0.01, 1)                       # 6.635
+    p2, p3 = _cand("sensor_poly2", "y", 100.0, 1), _cand("sensor_poly3", "y", 104.0, 2)
+    assert p3.score > p2.score                     # AIC alone: the larger one leads
+    demoted = rank_nested([p2, p3], col_of, An, 0.01)
+    assert demoted == [(p3, p2)]
+    assert np.isclose(p3.score, p2.score - (crit - 4.0))
+    assert p3.score < p2.score
+    # a significant extra gain keeps the larger candidate first
+    q2, q3 = _cand("sensor_poly2", "y", 100.0, 1), _cand("sensor_poly3", "y", 110.0, 2)
+    assert rank_nested([q2, q3], col_of, An, 0.01) == [] and q3.score == 106.0
+    # not nested (another target): untouched
+    r2, r3 = _cand("sensor_poly2", "y", 100.0, 1), _cand("sensor_poly3", "z", 104.0, 2)
+    col_z = {("sensor_poly2", Target("sensor", "y")): [1],
+             ("sensor_poly3", Target("sensor", "z")): [2, 3]}
+    assert rank_nested([r2, r3], col_z, An, 0.01) == [] and r3.score == 100.0
+
+
+def test_absorbed_when_signature_in_the_estimated_span():
+    t = np.linspace(0.0, 1.0, 300)
+    base = np.sin(5 * t)
+    An = _gram([base, 2.0 * base + 1e-4 * np.cos(40 * t), np.cos(3 * t) * t])
+    col_of = {("viscous", Target("sensor", "v")): [1], ("coulomb", Target("sensor", "v")): [2]}
+    a, b = _cand("viscous", "v", 0.1, 1), _cand("coulomb", "v", 50.0, 1)
+    mark_equivalent([a, b], col_of, An, [0])
+    assert a.absorbed and not b.absorbed
