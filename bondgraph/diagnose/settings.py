@@ -85,6 +85,12 @@ class LoopSettings:
         passed on only by :mod:`bondgraph.diagnose.inference_calls`.
     sim_method : str
         Solver of the free-run simulations (:func:`bondgraph.numerics.simulate.simulate`).
+    sim_hold : {"linear", "zoh", "filter"}
+        How the free-run simulations read the sampled inputs between samples:
+        linear interpolation (default), zero-order hold (inputs that are held
+        by a DAC: steps, PRBS), or ``"filter"``, the filter's own hold
+        (``ukf.hold``), so that the free-run error judges the model as the
+        likelihood fitted it (:func:`bondgraph.diagnose.fit.sim_inputs`).
     fit_iterations : int
         Fisher-scoring iterations of each warm-started re-estimation
         (L-BFGS-B if scoring fails).
@@ -143,6 +149,7 @@ class LoopSettings:
     initial_params: list | None = None
     ukf: UKFOptions = field(default_factory=UKFOptions)
     sim_method: str = "BDF"
+    sim_hold: str = "linear"
     fit_iterations: int = 10
     confirm_iterations: int = 40
     confirm_tolerance: float = 1e-2
@@ -160,6 +167,9 @@ class LoopSettings:
         if self.p0_scale not in ("magnitude", "state"):
             raise OptionError(f"LoopSettings.p0_scale must be 'magnitude' or 'state', got "
                               f"{self.p0_scale!r}")
+        if self.sim_hold not in ("linear", "zoh", "filter"):
+            raise OptionError(f"LoopSettings.sim_hold must be 'linear', 'zoh' or 'filter', got "
+                              f"{self.sim_hold!r}")
         if self.fit not in ("nll", "sim"):
             raise OptionError(f"LoopSettings.fit must be 'nll' or 'sim', got {self.fit!r}")
         if not 0.0 <= float(self.holdout) < 0.9:
@@ -193,7 +203,7 @@ class LoopSettings:
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
                 "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale,
                 "holdout": self.holdout,
-                "fit": self.fit,
+                "fit": self.fit, "sim_hold": self.sim_hold,
                 "confirm_iterations": self.confirm_iterations,
                 "confirm_tolerance": self.confirm_tolerance,
                 "validation": getattr(self.validation, "name", None)
