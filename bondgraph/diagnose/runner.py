@@ -306,10 +306,36 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     if not signif:
         ctx.log("nothing significant left: stop")
         return current, NOTHING_SIGNIFICANT
-    confirmed = confirm_best(ctx, current, signif, scales,
-                             f"{name}_step{len(result.steps) + 1}")
-    after = accept_best(ctx, result, current, confirmed, step)
+    after = confirm_in_rounds(ctx, result, current, signif, scales,
+                              f"{name}_step{len(result.steps) + 1}", step)
     return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
+
+
+def confirm_in_rounds(ctx: Context, result: LoopResult, current: Fit, signif: list[Candidate],
+                      scales: Scales, name: str, step: int) -> Fit | None:
+    """Confirm the significant candidates ``confirm_top`` at a time, best
+    first, and accept the first that passes the accept rule
+    (:func:`accept_best`); when none of a round does, confirm the next
+    ``confirm_top`` (at most ``confirm_rounds`` rounds). A candidate whose
+    score test ranks low can then still be accepted when the better-scoring
+    ones raise the error (on CED the input delay, below three sensor and
+    friction candidates that all raise the free-run error). Returns the
+    accepted fit, or None."""
+    s = ctx.settings
+    todo = sorted(signif, key=lambda c: c.rank_key)
+    per = s.confirm_top
+    for r in range(s.confirm_rounds):
+        batch = todo[r * per:(r + 1) * per]
+        if not batch:
+            break
+        if r:
+            ctx.log(f"  none of the confirmed candidates passed the accept rule: confirming the "
+                    f"next {len(batch)} (round {r + 1} of at most {s.confirm_rounds})")
+        after = accept_best(ctx, result, current, confirm_best(ctx, current, batch, scales, name),
+                            step)
+        if after is not None:
+            return after
+    return None
 
 
 def gather_evidence(ctx: Context, current: Fit,

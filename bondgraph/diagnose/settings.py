@@ -38,7 +38,12 @@ class LoopSettings:
         Family-wise level for "a significant effect is left" (Bonferroni over
         the candidates evaluated).
     confirm_top : int
-        Candidates confirmed by a real fit per step.
+        Candidates confirmed by a real fit per round.
+    confirm_rounds : int
+        Rounds of confirmation per step: when none of a round's confirmed
+        candidates passes the accept rule, the next ``confirm_top``
+        significant ones are confirmed, up to this many rounds (default 1:
+        the ``confirm_top`` best only).
     structural : bool or "always"
         Evaluate structural effects (slower: one model each); ``"always"``
         scores them even when an additive effect explains most of the
@@ -135,6 +140,7 @@ class LoopSettings:
     max_steps: int = 4
     significance: float = 0.01
     confirm_top: int = 3
+    confirm_rounds: int = 1
     structural: Any = True
     effects: Sequence[Effect] = DEFAULT_EFFECTS
     x0: Any = None
@@ -205,6 +211,7 @@ class LoopSettings:
                 "holdout": self.holdout,
                 "fit": self.fit, "sim_hold": self.sim_hold,
                 "confirm_iterations": self.confirm_iterations,
+                "confirm_top": self.confirm_top, "confirm_rounds": self.confirm_rounds,
                 "confirm_tolerance": self.confirm_tolerance,
                 "validation": getattr(self.validation, "name", None)
                 if self.validation is not None else None,
@@ -231,7 +238,8 @@ def check_settings(s: LoopSettings) -> None:
     if s.criterion not in CRITERIA:
         raise OptionError(f"LoopSettings.criterion = {s.criterion!r} is not one of "
                           f"{', '.join(CRITERIA)}")
-    for name, minimum in (("max_steps", 0), ("confirm_top", 1), ("fit_iterations", 0),
+    for name, minimum in (("max_steps", 0), ("confirm_top", 1), ("confirm_rounds", 1),
+                          ("fit_iterations", 0),
                           ("confirm_iterations", 0), ("chunk", 1)):
         _integer(name, getattr(s, name), minimum)
     sig = s.significance
