@@ -1,12 +1,15 @@
 """The free run's input hold (``LoopSettings.sim_hold``) and confirmation in
 rounds (``LoopSettings.confirm_rounds``), against hand-derived references."""
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from scipy.signal import cont2discrete
 
+from bondgraph.catalog.benchmarks import EMPS_IDIM_LS, emps, emps_force_relerr
+from bondgraph.catalog.cases import EmpsForceError
 from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose import runner
@@ -83,3 +86,25 @@ def test_confirmation_goes_on_in_rounds_until_one_is_accepted(monkeypatch):
     assert seen == [["a", "b"]]
     with pytest.raises(OptionError, match="confirm_rounds"):
         LoopSettings(params=[], confirm_rounds=0)
+
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.mark.skipif(not (DATA / "emps").exists(), reason=f"real data folder {DATA} is absent")
+def test_emps_force_error_at_the_sign_limit_is_the_published_protocol():
+    """The EMPS case metric on the full EMPS graph (tanh-regularised Coulomb
+    law, width v_eps) with the published symmetric IDIM-LS parameters equals
+    the hand-written inverse model τ̂ = M q̈ + Fv q̇ + Fc sign(q̇) + offset
+    (:func:`emps_force_relerr`) at the sign limit, on the estimation run and
+    on the force-pulse validation run; the smooth law reads higher."""
+    model = Model.from_graph(emps())
+    theta = model.theta(dict(EMPS_IDIM_LS))
+    fit = SimpleNamespace(model=model, theta=theta)
+    metric = EmpsForceError()
+    for part in ("estimation", "validation"):
+        data = SimpleNamespace(exp=SimpleNamespace(meta={"emps_part": part}))
+        ref = emps_force_relerr(**EMPS_IDIM_LS, signals=metric.signals(part))
+        assert metric(fit, data) == pytest.approx(ref, rel=1e-9)
+    smooth = EmpsForceError(sign_limit=False)(fit, SimpleNamespace(exp=SimpleNamespace(meta={})))
+    assert smooth > metric(fit, SimpleNamespace(exp=SimpleNamespace(meta={}))) + 0.1

@@ -68,11 +68,22 @@ class EmpsForceError:
     the measured q, q̇, q̈ (the model is affine in the input). The signals
     are those of the record's EMPS part (``meta["emps_part"]``, default the
     estimation run; ``"validation"``: the force-pulse run, the published
-    cross-validation, 5.98 % for the symmetric IDIM-LS model)."""
+    cross-validation, 5.98 % for the symmetric IDIM-LS model).
 
-    name = "EMPS force relative error of the inverse model [%] (Janot et al. 2019 protocol)"
+    With ``sign_limit`` (default) the tanh widths of the friction laws
+    (parameters named ``*eps``: fixed shape constants, 2 % of the speed
+    scale, that regularise sign(q̇) for the integrators) are taken to their
+    limit (1e-9) in the inverse model, whose law is then the published
+    protocol's sign(q̇); the fitted parameters are unchanged. Without it the
+    smooth law of the fitted model is evaluated (on the estimation run its
+    1.8 mm/s width alone costs 0.9 points: the loop's final model reads
+    4.18 % smooth, 3.34 % with sign(q̇)).
+    """
 
-    def __init__(self):
+    def __init__(self, sign_limit: bool = True):
+        self.sign_limit = bool(sign_limit)
+        self.name = ("EMPS force relative error of the inverse model [%] (Janot et al. 2019 "
+                     "protocol" + (", friction laws at their sign limit)" if sign_limit else ")"))
         self._sig = {"estimation": emps_filtered_signals()}
 
     def signals(self, part: str) -> dict:
@@ -83,7 +94,11 @@ class EmpsForceError:
 
     def __call__(self, fit, data) -> float:
         m = fit.model
-        th = fit.theta
+        th = np.array(fit.theta, dtype=float)
+        if self.sign_limit:
+            for j, n in enumerate(m.params):
+                if n.endswith("eps"):
+                    th[j] = 1e-9
         M = th[m.param_index("M")]
         gtau = th[m.param_index("gtau")]
         exp = getattr(data, "exp", None)
