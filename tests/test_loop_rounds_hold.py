@@ -108,3 +108,20 @@ def test_emps_force_error_at_the_sign_limit_is_the_published_protocol():
         assert metric(fit, data) == pytest.approx(ref, rel=1e-9)
     smooth = EmpsForceError(sign_limit=False)(fit, SimpleNamespace(exp=SimpleNamespace(meta={})))
     assert smooth > metric(fit, SimpleNamespace(exp=SimpleNamespace(meta={}))) + 0.1
+
+
+def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
+    """With ``auto_substeps`` a declared fit whose discretisation check
+    recommends 16 substeps is refitted with them (the settings of the rest of
+    the loop carry them); without it the loop only warns."""
+    calls = []
+    monkeypatch.setattr(runner, "recommended_substeps", lambda ctx, fit, limit=0.1:
+                        (6.7, 16) if ctx.settings.ukf.substeps == 1 else (0.05, None))
+    monkeypatch.setattr(runner, "initial_fit",
+                        lambda ctx, graph: calls.append(ctx.settings.ukf.substeps) or "refit")
+    for auto, want in ((True, "refit"), (False, "declared")):
+        calls.clear()
+        ctx = Context(None, LoopSettings(params=[], auto_substeps=auto), lambda s: None, False)
+        fit, warn = runner.resolved_fit(ctx, None, "declared")
+        assert fit == want and "use --substeps 16" in warn[0]
+        assert (ctx.settings.ukf.substeps, calls) == ((16, [16]) if auto else (1, []))

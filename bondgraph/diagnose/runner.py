@@ -101,8 +101,8 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     t0 = time.perf_counter()
     ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
                   progress)
-    initial = initial_fit(ctx, graph)
-    result = new_result(ctx, graph, initial)
+    initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
+    result = new_result(ctx, graph, initial, warn)
     publish(ctx, result, initial, initial, on_update)
     current = initial
     ctx.x0_estimates = dict(initial.x0_est)
@@ -134,10 +134,11 @@ def held_out(experiment, s: LoopSettings):
     return experiment.segment(0, cut), replace(s, validation=experiment.segment(cut))
 
 
-def new_result(ctx: Context, graph: BondGraph, initial: Fit) -> LoopResult:
+def new_result(ctx: Context, graph: BondGraph, initial: Fit,
+               warn: list[str] | None = None) -> LoopResult:
     """The :class:`LoopResult` after the declared fit: names, settings, a copy
     of the declared graph, the true effect if known, and the warnings (the
-    discretisation check, estimates on a bound)."""
+    discretisation check's ``warn``, estimates on a bound)."""
     s = ctx.settings
     result = LoopResult(graph.name, graph.source, ctx.record.name, metric_name(s), s.criterion,
                         s.summary())
@@ -146,7 +147,7 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit) -> LoopResult:
     if te is not None:
         result.true_effect = (te.to_dict() if hasattr(te, "to_dict")
                               else {"kind": te[0], "target": te[1], "values": {}})
-    result.warnings.extend(check_discretisation(ctx, initial))
+    result.warnings.extend(check_discretisation(ctx, initial) if warn is None else warn)
     result.warnings.extend(f"initial fit: {n} on a bound of its box (no Cramér-Rao std)"
                            for n in initial.at_bound)
     return result
@@ -252,22 +253,55 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1) -> list[str
     method, substeps and hold) in measurement-noise stds per sample; above
     ``limit`` a warning (logged and returned) recommending the fewest substeps
     among 2, 4, 8, 16, 32 that bring it below."""
-    t, u, _ = ctx.record.arrays(fit.model)
-    x0 = prior_mean(ctx, fit.model)
-    o = ctx.settings.ukf
-    worst = float(np.max(discretisation(fit.model, t, u, fit.theta, x0, ctx.settings)
-                         ["one_step"]))
+    worst, rec = recommended_substeps(ctx, fit, limit)
     if not worst > limit:
         return []
-    rec = next((n for n in (2, 4, 8, 16, 32) if n > o.substeps and float(np.max(
-        discretisation(fit.model, t, u, fit.theta, x0, ctx.settings, n)["one_step"])) <= limit),
-        None)
+    o = ctx.settings.ukf
     msg = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} measurement-noise "
            f"stds per sample at the declared fit (a model error that biases the fit and the "
            f"scores); " + (f"use --substeps {rec}" if rec else "use --method rk4 and more "
                            "substeps, or a shorter sample interval"))
     ctx.log("warning: " + msg)
     return [msg]
+
+
+def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[float, int | None]:
+    """``(worst, n)``: the filter's largest one-step discretisation error at
+    ``fit`` in measurement-noise stds per sample, and the fewest substeps
+    among 2, 4, 8, 16, 32 (above the current ones) that bring it to ``limit``
+    or below (None if the error is already below, or none does)."""
+    t, u, _ = ctx.record.arrays(fit.model)
+    x0 = prior_mean(ctx, fit.model)
+    o = ctx.settings.ukf
+    worst = float(np.max(discretisation(fit.model, t, u, fit.theta, x0, ctx.settings)
+                         ["one_step"]))
+    if not worst > limit:
+        return worst, None
+    rec = next((n for n in (2, 4, 8, 16, 32) if n > o.substeps and float(np.max(
+        discretisation(fit.model, t, u, fit.theta, x0, ctx.settings, n)["one_step"])) <= limit),
+        None)
+    return worst, rec
+
+
+def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, list[str]]:
+    """The declared fit and the discretisation warnings: with
+    ``settings.auto_substeps``, a filter whose discretisation error at the
+    declared fit exceeds 0.1 measurement-noise std per sample takes the
+    recommended substeps (for the rest of the loop: the likelihood then
+    judges the model, not its discretisation) and the declared model is
+    refitted (logged)."""
+    warn = check_discretisation(ctx, initial)
+    if not (warn and ctx.settings.auto_substeps):
+        return initial, warn
+    _, n = recommended_substeps(ctx, initial)
+    if n is None:
+        return initial, warn
+    ctx.settings = replace(ctx.settings, ukf=replace(ctx.settings.ukf, substeps=n))
+    ctx.log(f"auto_substeps: the filter now takes {n} substeps per sample; refitting the "
+            f"declared model")
+    ctx.cache.clear()
+    fit = initial_fit(ctx, graph)
+    return fit, warn + [f"auto_substeps: {n} substeps per sample from the declared fit on"]
 
 
 def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,

@@ -88,6 +88,11 @@ class LoopSettings:
     ukf : UKFOptions
         Options of :func:`bondgraph.inference.ukf.ukf_nll` (alpha, method, substeps ...),
         passed on only by :mod:`bondgraph.diagnose.inference_calls`.
+    auto_substeps : bool
+        Adopt the discretisation check's recommended substeps when the
+        filter's one-step discretisation error at the declared fit exceeds
+        0.1 measurement-noise std (the declared model is then refitted);
+        default False: only warn.
     sim_method : str
         Solver of the free-run simulations (:func:`bondgraph.numerics.simulate.simulate`).
     sim_hold : {"linear", "zoh", "filter"}
@@ -156,6 +161,7 @@ class LoopSettings:
     ukf: UKFOptions = field(default_factory=UKFOptions)
     sim_method: str = "BDF"
     sim_hold: str = "linear"
+    auto_substeps: bool = False
     fit_iterations: int = 10
     confirm_iterations: int = 40
     confirm_tolerance: float = 1e-2
@@ -209,7 +215,7 @@ class LoopSettings:
                 "significance": self.significance, "ukf": self.ukf.to_dict(),
                 "metric_tolerance": self.metric_tolerance, "p0_scale": self.p0_scale,
                 "holdout": self.holdout,
-                "fit": self.fit, "sim_hold": self.sim_hold,
+                "fit": self.fit, "sim_hold": self.sim_hold, "auto_substeps": self.auto_substeps,
                 "confirm_iterations": self.confirm_iterations,
                 "confirm_top": self.confirm_top, "confirm_rounds": self.confirm_rounds,
                 "confirm_tolerance": self.confirm_tolerance,
