@@ -466,7 +466,7 @@ def validation_metric(ctx: Context, model: Model, theta: np.ndarray) -> float:
     if not np.isfinite(res.nll[0]):
         return float("inf")
     sim_y = free_run(ctx, model, theta, res, rec)
-    view = SimpleNamespace(model=model, ukf=res, sim_y=sim_y)
+    view = SimpleNamespace(model=model, theta=theta, ukf=res, sim_y=sim_y)
     return compute_metric(ctx.settings, view, rec)
 
 

@@ -247,13 +247,15 @@ def check_declared_fit(fit: Fit) -> None:
             hint="fit the declared model alone (bondgraph estimate) and fix it first")
 
 
-def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1) -> list[str]:
+def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
+                         checked: tuple[float, int | None] | None = None) -> list[str]:
     """The filter's discretisation error at the declared fit
     (:func:`bondgraph.inference.ukf.discretisation_check` with the loop's
     method, substeps and hold) in measurement-noise stds per sample; above
     ``limit`` a warning (logged and returned) recommending the fewest substeps
-    among 2, 4, 8, 16, 32 that bring it below."""
-    worst, rec = recommended_substeps(ctx, fit, limit)
+    among 2, 4, 8, 16, 32 that bring it below (``checked``: the result of
+    :func:`recommended_substeps` if already known)."""
+    worst, rec = recommended_substeps(ctx, fit, limit) if checked is None else checked
     if not worst > limit:
         return []
     o = ctx.settings.ukf
@@ -290,11 +292,10 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     recommended substeps (for the rest of the loop: the likelihood then
     judges the model, not its discretisation) and the declared model is
     refitted (logged)."""
-    warn = check_discretisation(ctx, initial)
-    if not (warn and ctx.settings.auto_substeps):
-        return initial, warn
-    _, n = recommended_substeps(ctx, initial)
-    if n is None:
+    checked = recommended_substeps(ctx, initial)
+    warn = check_discretisation(ctx, initial, checked=checked)
+    n = checked[1]
+    if not (warn and ctx.settings.auto_substeps) or n is None:
         return initial, warn
     ctx.settings = replace(ctx.settings, ukf=replace(ctx.settings.ukf, substeps=n))
     ctx.log(f"auto_substeps: the filter now takes {n} substeps per sample; refitting the "
