@@ -49,33 +49,64 @@ def emps_declared() -> BondGraph:
     return emps_viscous()
 
 
-def _emps_record(decimate: int = 5):
-    exp = emps("estimation", download=False)
+def _emps_record(decimate: int = 5, part: str = "estimation"):
+    """The EMPS record ``part`` (``"estimation"``, or ``"validation"``: the
+    force-pulse run the benchmark cross-validates on) for the filter,
+    decimated; ``meta["emps_part"]`` names the part (:class:`EmpsForceError`
+    reads it)."""
+    exp = emps(part, download=False)
     t, u, y = emps_arrays(exp, decimate=decimate)
     dm = Model.from_graph(emps_declared())
-    meta = {"description": f"EMPS estimation record (Janot et al. 2019), decimated x{decimate} "
-                           f"(vir averaged over each interval)", "x0": {"q": float(y[0, 0])}}
+    meta = {"description": f"EMPS {part} record (Janot et al. 2019), decimated x{decimate} "
+                           f"(vir averaged over each interval)", "x0": {"q": float(y[0, 0])},
+            "emps_part": part}
+    tag = "estimation" if part == "estimation" else "validation_pulses"
     return Experiment.from_arrays(t, model=dm, u=u, y=y, meta=meta,
-                                  name=f"emps_estimation_{int(round(1 / (t[1] - t[0])))}Hz")
+                                  name=f"emps_{tag}_{int(round(1 / (t[1] - t[0])))}Hz")
 
 
 class EmpsForceError:
     """Force relative error of the fitted model's inverse dynamics on the
     benchmark's filtered signals, ||τ - τ̂|| / ||τ|| [%] (Janot et al. 2019):
     τ̂ is the drive force that makes the model's momentum equation hold for
-    the measured q, q̇, q̈ (the model is affine in the input)."""
+    the measured q, q̇, q̈ (the model is affine in the input). The signals
+    are those of the record's EMPS part (``meta["emps_part"]``, default the
+    estimation run; ``"validation"``: the force-pulse run, the published
+    cross-validation, 5.98 % for the symmetric IDIM-LS model).
 
-    name = "EMPS force relative error of the inverse model [%] (Janot et al. 2019 protocol)"
+    With ``sign_limit`` (default) the tanh widths of the friction laws
+    (parameters named ``*eps``: fixed shape constants, 2 % of the speed
+    scale, that regularise sign(q̇) for the integrators) are taken to their
+    limit (1e-9) in the inverse model, whose law is then the published
+    protocol's sign(q̇); the fitted parameters are unchanged. Without it the
+    smooth law of the fitted model is evaluated (on the estimation run its
+    1.8 mm/s width alone costs 0.9 points: the loop's final model reads
+    4.18 % smooth, 3.34 % with sign(q̇)).
+    """
 
-    def __init__(self):
-        self.sig = emps_filtered_signals()
+    def __init__(self, sign_limit: bool = True):
+        self.sign_limit = bool(sign_limit)
+        self.name = ("EMPS force relative error of the inverse model [%] (Janot et al. 2019 "
+                     "protocol" + (", friction laws at their sign limit)" if sign_limit else ")"))
+        self._sig = {"estimation": emps_filtered_signals()}
+
+    def signals(self, part: str) -> dict:
+        """The filtered signals of EMPS ``part`` (cached)."""
+        if part not in self._sig:
+            self._sig[part] = emps_filtered_signals(emps(part, download=False))
+        return self._sig[part]
 
     def __call__(self, fit, data) -> float:
         m = fit.model
-        th = fit.theta
+        th = np.array(fit.theta, dtype=float)
+        if self.sign_limit:
+            for j, n in enumerate(m.params):
+                if n.endswith("eps"):
+                    th[j] = 1e-9
         M = th[m.param_index("M")]
         gtau = th[m.param_index("gtau")]
-        s = self.sig
+        exp = getattr(data, "exp", None)
+        s = self.signals(getattr(exp, "meta", {}).get("emps_part", "estimation"))
         x = np.zeros((s["q"].size, m.n_x))
         x[:, m.state_index("p_M")] = M * s["qd"]
         x[:, m.state_index("q")] = s["q"]
@@ -136,7 +167,9 @@ def case_emps() -> LoopCase:
         declared_builder(emps_declared),
         _emps_record,
         ["M", "Fv", "q_F"],
+        # validation: the benchmark's force-pulse run (its own held-out record)
         {"metric": EmpsForceError(), "fixed": {"sigma_q": 1.5e-8},
+         "validation": _emps_record(part="validation"),
          "P0_std": {"p_M": 1.0, "q": 1e-5},
          "ukf": UKFOptions(method="rk4", substeps=2, alpha=1.0), "structural": False},
         ("coulomb", "v"))
@@ -167,13 +200,22 @@ def case_ced() -> LoopCase:
         "ced",
         "CED coupled electric drives (real data, Wigren & Schoukens 2017), PRBS run u1: "
         "starting from the linear drive, the loop must find the sign-blind speed sensor. "
-        "Published reference (report eq. 9): RMS 2.10 linear -> 0.166 with |.|.",
+        "Published reference (report eq. 9): RMS 2.10 linear -> 0.166 with |.| on u1; on the "
+        "held-out run u3 (A = 0.5 V) eq. 9 gives 0.906 -> 0.246.",
         declared_builder(ced_declared),
         _ced_record,
         ["R_a", "b_m", "k_b", "k_y", "q_T"],
         # the declared linear part is the report's eq. (9) model: evaluated as
-        # given (only the noise intensity fitted), as in the published baseline
-        {"metric": "rmse_sim", "initial_params": ["q_T"]},
+        # given (only the noise intensity fitted), as in the published baseline.
+        # Validation: the data set's own other PRBS run u3 (held out). The PRBS
+        # input is held by the drive between samples: the free run holds it as
+        # the filter does. The filter takes the substeps its discretisation
+        # check asks for (ROS2 with one step is 6.7 noise stds off per sample
+        # at the declared fit, enough to pull the likelihood fit onto the box
+        # edges), and the confirmation goes on in rounds, so that a candidate
+        # scoring below others that raise the error is still tried.
+        {"metric": "rmse_sim", "initial_params": ["q_T"], "validation": _ced_record("prbs_3"),
+         "sim_hold": "filter", "auto_substeps": True, "confirm_rounds": 3},
         ("sensor_rectification", "speed"))
 
 

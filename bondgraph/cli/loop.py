@@ -133,10 +133,14 @@ def run(args) -> int:
                    on_update=reporter.update, **settings)
     print()
     print(f"{name}: {res.metric}")
-    print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
     if res.final.validation_metric is not None:
-        print(f"  on the validation record: before {res.initial.validation_metric:.4g}   "
+        val = res.settings.get("validation") or "held out"
+        print(f"  on the validation record ({val}): before {res.initial.validation_metric:.4g}   "
               f"after {res.final.validation_metric:.4g}")
+        print(f"  on the estimation record ({res.record}): before {res.initial.metric:.4g}   "
+              f"after {res.final.metric:.4g}")
+    else:
+        print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
     if res.steps:
         print(res.table())
     else:

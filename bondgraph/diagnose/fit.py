@@ -485,18 +485,36 @@ def validation_run(ctx: Context, model: Model,
     if not np.isfinite(res.nll[0]):
         return float("inf"), None
     sim_y = free_run(ctx, model, theta, res, rec)
-    view = SimpleNamespace(model=model, ukf=res, sim_y=sim_y)
+    view = SimpleNamespace(model=model, theta=theta, ukf=res, sim_y=sim_y)
     return compute_metric(ctx.settings, view, rec), standardised_errors(y, sim_y)
+
+
+def sim_inputs(settings: LoopSettings, u: np.ndarray) -> tuple[str, np.ndarray]:
+    """The input hold of the free-run simulations and the inputs (N, n_u) it
+    holds: ``settings.sim_hold`` (``"linear"`` or ``"zoh"``), or with
+    ``"filter"`` the filter's own hold (``settings.ukf.hold``; its
+    ``"mean"`` hold, (u_k + u_k+1)/2 over each interval, is the zero-order
+    hold of the interval means, the last sample held), so that the free run
+    sees the inputs between samples as the likelihood fit did."""
+    hold = settings.sim_hold if settings.sim_hold != "filter" else settings.ukf.hold
+    if hold != "mean":
+        return hold, u
+    um = u.copy()
+    if len(um) > 1:
+        um[:-1] = 0.5 * (u[:-1] + u[1:])
+    return "zoh", um
 
 
 def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res,
              record: Record | None = None) -> np.ndarray | None:
     """Free-run simulation (N, n_y) of ``record`` (default the loop's) from
     the first filtered state with the measured inputs
-    (``settings.sim_method``, rtol 1e-6, atol 1e-9); None (logged) if the
-    model cannot be simulated freely."""
+    (``settings.sim_method``, rtol 1e-6, atol 1e-9, the input hold of
+    :func:`sim_inputs`); None (logged) if the model cannot be simulated
+    freely."""
     record = ctx.record if record is None else record
     t, u, y = record.arrays(model)
+    hold, u = sim_inputs(ctx.settings, u)
     x0 = ukf_res.x_filt[0, 0, :]
     if not np.all(np.isfinite(x0)):
         x0 = prior_on(record, ctx.settings, model)[0]
@@ -504,7 +522,7 @@ def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res,
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             sim = simulate(model, t, u, x0=x0, theta=theta, method=ctx.settings.sim_method,
-                           rtol=1e-6, atol=1e-9)
+                           rtol=1e-6, atol=1e-9, hold=hold)
         return sim.y
     except Exception as exc:  # a model that cannot be simulated freely
         ctx.log(f"  free-run simulation failed ({str(exc).splitlines()[0]})")

@@ -286,12 +286,19 @@ class LoopResult:
     declared_graph: BondGraph | None = None
 
     def table(self) -> str:
-        """Markdown table of the accepted steps (error = :attr:`metric`)."""
-        rows = ["| step | effect | attached to | error before | error after | NLL before | NLL after |",
-                "|---|---|---|---|---|---|---|"]
+        """Markdown table of the accepted steps (error = :attr:`metric`; with
+        a validation record, the validation error and the estimation
+        record's error beside it)."""
+        val = any(s.validated for s in self.steps)
+        head = ("| step | effect | attached to | validation error before | validation error after "
+                "| estimation error before | estimation error after |" if val else
+                "| step | effect | attached to | error before | error after |")
+        rows = [head + " NLL before | NLL after |", "|---" * (9 if val else 7) + "|"]
         for i, s in enumerate(self.steps, 1):
+            est = (f" {_num(s.estimation_error_before)} | {_num(s.estimation_error_after)} |"
+                   if val else "")
             rows.append(f"| {i} | {s.effect} | {s.attached_to} | {s.error_before:.4g} | "
-                        f"{s.error_after:.4g} | {s.nll_before:.1f} | {s.nll_after:.1f} |")
+                        f"{s.error_after:.4g} |{est} {s.nll_before:.1f} | {s.nll_after:.1f} |")
         return "\n".join(rows)
 
     def to_dict(self, ranked: int | None = None) -> dict:
@@ -313,6 +320,11 @@ class LoopResult:
             "settings": self.settings, "warnings": list(self.warnings),
             "true_effect": self.true_effect, "truth_ranks": list(self.truth_ranks),
         })
+
+
+def _num(v) -> str:
+    """``v`` with 4 significant digits, or "—" for None."""
+    return "—" if v is None else f"{v:.4g}"
 
 
 def rank_of(ranking: list[Candidate], kind: str, target: str) -> int | None:

@@ -102,8 +102,8 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     t0 = time.perf_counter()
     ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
                   progress)
-    initial = initial_fit(ctx, graph)
-    result = new_result(ctx, graph, initial)
+    initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
+    result = new_result(ctx, graph, initial, warn)
     publish(ctx, result, initial, initial, on_update)
     current = initial
     ctx.x0_estimates = dict(initial.x0_est)
@@ -135,10 +135,11 @@ def held_out(experiment, s: LoopSettings):
     return experiment.segment(0, cut), replace(s, validation=experiment.segment(cut))
 
 
-def new_result(ctx: Context, graph: BondGraph, initial: Fit) -> LoopResult:
+def new_result(ctx: Context, graph: BondGraph, initial: Fit,
+               warn: list[str] | None = None) -> LoopResult:
     """The :class:`LoopResult` after the declared fit: names, settings, a copy
     of the declared graph, the true effect if known, and the warnings (the
-    discretisation check, estimates on a bound)."""
+    discretisation check's ``warn``, estimates on a bound)."""
     s = ctx.settings
     result = LoopResult(graph.name, graph.source, ctx.record.name, metric_name(s), s.criterion,
                         s.summary())
@@ -147,7 +148,7 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit) -> LoopResult:
     if te is not None:
         result.true_effect = (te.to_dict() if hasattr(te, "to_dict")
                               else {"kind": te[0], "target": te[1], "values": {}})
-    result.warnings.extend(check_discretisation(ctx, initial))
+    result.warnings.extend(check_discretisation(ctx, initial) if warn is None else warn)
     result.warnings.extend(f"initial fit: {n} on a bound of its box (no Cramér-Rao std)"
                            for n in initial.at_bound)
     return result
@@ -247,28 +248,62 @@ def check_declared_fit(fit: Fit) -> None:
             hint="fit the declared model alone (bondgraph estimate) and fix it first")
 
 
-def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1) -> list[str]:
+def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
+                         checked: tuple[float, int | None] | None = None) -> list[str]:
     """The filter's discretisation error at the declared fit
     (:func:`bondgraph.inference.ukf.discretisation_check` with the loop's
     method, substeps and hold) in measurement-noise stds per sample; above
     ``limit`` a warning (logged and returned) recommending the fewest substeps
-    among 2, 4, 8, 16, 32 that bring it below."""
-    t, u, _ = ctx.record.arrays(fit.model)
-    x0 = prior_mean(ctx, fit.model)
-    o = ctx.settings.ukf
-    worst = float(np.max(discretisation(fit.model, t, u, fit.theta, x0, ctx.settings)
-                         ["one_step"]))
+    among 2, 4, 8, 16, 32 that bring it below (``checked``: the result of
+    :func:`recommended_substeps` if already known)."""
+    worst, rec = recommended_substeps(ctx, fit, limit) if checked is None else checked
     if not worst > limit:
         return []
-    rec = next((n for n in (2, 4, 8, 16, 32) if n > o.substeps and float(np.max(
-        discretisation(fit.model, t, u, fit.theta, x0, ctx.settings, n)["one_step"])) <= limit),
-        None)
+    o = ctx.settings.ukf
     msg = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} measurement-noise "
            f"stds per sample at the declared fit (a model error that biases the fit and the "
            f"scores); " + (f"use --substeps {rec}" if rec else "use --method rk4 and more "
                            "substeps, or a shorter sample interval"))
     ctx.log("warning: " + msg)
     return [msg]
+
+
+def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[float, int | None]:
+    """``(worst, n)``: the filter's largest one-step discretisation error at
+    ``fit`` in measurement-noise stds per sample, and the fewest substeps
+    among 2, 4, 8, 16, 32 (above the current ones) that bring it to ``limit``
+    or below (None if the error is already below, or none does)."""
+    t, u, _ = ctx.record.arrays(fit.model)
+    x0 = prior_mean(ctx, fit.model)
+    o = ctx.settings.ukf
+    worst = float(np.max(discretisation(fit.model, t, u, fit.theta, x0, ctx.settings)
+                         ["one_step"]))
+    if not worst > limit:
+        return worst, None
+    rec = next((n for n in (2, 4, 8, 16, 32) if n > o.substeps and float(np.max(
+        discretisation(fit.model, t, u, fit.theta, x0, ctx.settings, n)["one_step"])) <= limit),
+        None)
+    return worst, rec
+
+
+def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, list[str]]:
+    """The declared fit and the discretisation warnings: with
+    ``settings.auto_substeps``, a filter whose discretisation error at the
+    declared fit exceeds 0.1 measurement-noise std per sample takes the
+    recommended substeps (for the rest of the loop: the likelihood then
+    judges the model, not its discretisation) and the declared model is
+    refitted (logged)."""
+    checked = recommended_substeps(ctx, initial)
+    warn = check_discretisation(ctx, initial, checked=checked)
+    n = checked[1]
+    if not (warn and ctx.settings.auto_substeps) or n is None:
+        return initial, warn
+    ctx.settings = replace(ctx.settings, ukf=replace(ctx.settings.ukf, substeps=n))
+    ctx.log(f"auto_substeps: the filter now takes {n} substeps per sample; refitting the "
+            f"declared model")
+    ctx.cache.clear()
+    fit = initial_fit(ctx, graph)
+    return fit, warn + [f"auto_substeps: {n} substeps per sample from the declared fit on"]
 
 
 def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
@@ -307,10 +342,36 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     if not signif:
         ctx.log("nothing significant left: stop")
         return current, NOTHING_SIGNIFICANT
-    confirmed = confirm_best(ctx, current, signif, scales,
-                             f"{name}_step{len(result.steps) + 1}")
-    after = accept_best(ctx, result, current, confirmed, step)
+    after = confirm_in_rounds(ctx, result, current, signif, scales,
+                              f"{name}_step{len(result.steps) + 1}", step)
     return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
+
+
+def confirm_in_rounds(ctx: Context, result: LoopResult, current: Fit, signif: list[Candidate],
+                      scales: Scales, name: str, step: int) -> Fit | None:
+    """Confirm the significant candidates ``confirm_top`` at a time, best
+    first, and accept the first that passes the accept rule
+    (:func:`accept_best`); when none of a round does, confirm the next
+    ``confirm_top`` (at most ``confirm_rounds`` rounds). A candidate whose
+    score test ranks low can then still be accepted when the better-scoring
+    ones raise the error (on CED the input delay, below three sensor and
+    friction candidates that all raise the free-run error). Returns the
+    accepted fit, or None."""
+    s = ctx.settings
+    todo = sorted(signif, key=lambda c: c.rank_key)
+    per = s.confirm_top
+    for r in range(s.confirm_rounds):
+        batch = todo[r * per:(r + 1) * per]
+        if not batch:
+            break
+        if r:
+            ctx.log(f"  none of the confirmed candidates passed the accept rule: confirming the "
+                    f"next {len(batch)} (round {r + 1} of at most {s.confirm_rounds})")
+        after = accept_best(ctx, result, current, confirm_best(ctx, current, batch, scales, name),
+                            step)
+        if after is not None:
+            return after
+    return None
 
 
 def gather_evidence(ctx: Context, current: Fit,

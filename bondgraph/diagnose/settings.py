@@ -38,7 +38,12 @@ class LoopSettings:
         Family-wise level for "a significant effect is left" (Bonferroni over
         the candidates evaluated).
     confirm_top : int
-        Candidates confirmed by a real fit per step.
+        Candidates confirmed by a real fit per round.
+    confirm_rounds : int
+        Rounds of confirmation per step: when none of a round's confirmed
+        candidates passes the accept rule, the next ``confirm_top``
+        significant ones are confirmed, up to this many rounds (default 1:
+        the ``confirm_top`` best only).
     structural : bool or "always"
         Evaluate structural effects (slower: one model each); ``"always"``
         scores them even when an additive effect explains most of the
@@ -83,8 +88,19 @@ class LoopSettings:
     ukf : UKFOptions
         Options of :func:`bondgraph.inference.ukf.ukf_nll` (alpha, method, substeps ...),
         passed on only by :mod:`bondgraph.diagnose.inference_calls`.
+    auto_substeps : bool
+        Adopt the discretisation check's recommended substeps when the
+        filter's one-step discretisation error at the declared fit exceeds
+        0.1 measurement-noise std (the declared model is then refitted);
+        default False: only warn.
     sim_method : str
         Solver of the free-run simulations (:func:`bondgraph.numerics.simulate.simulate`).
+    sim_hold : {"linear", "zoh", "filter"}
+        How the free-run simulations read the sampled inputs between samples:
+        linear interpolation (default), zero-order hold (inputs that are held
+        by a DAC: steps, PRBS), or ``"filter"``, the filter's own hold
+        (``ukf.hold``), so that the free-run error judges the model as the
+        likelihood fitted it (:func:`bondgraph.diagnose.fit.sim_inputs`).
     fit_iterations : int
         Fisher-scoring iterations of each warm-started re-estimation
         (L-BFGS-B if scoring fails).
@@ -151,6 +167,7 @@ class LoopSettings:
     max_steps: int = 4
     significance: float = 0.01
     confirm_top: int = 3
+    confirm_rounds: int = 1
     structural: Any = True
     effects: Sequence[Effect] = DEFAULT_EFFECTS
     x0: Any = None
@@ -165,6 +182,8 @@ class LoopSettings:
     initial_params: list | None = None
     ukf: UKFOptions = field(default_factory=UKFOptions)
     sim_method: str = "BDF"
+    sim_hold: str = "linear"
+    auto_substeps: bool = False
     fit_iterations: int = 10
     confirm_iterations: int = 40
     confirm_tolerance: float = 1e-2
@@ -185,6 +204,9 @@ class LoopSettings:
         if self.p0_scale not in ("magnitude", "state"):
             raise OptionError(f"LoopSettings.p0_scale must be 'magnitude' or 'state', got "
                               f"{self.p0_scale!r}")
+        if self.sim_hold not in ("linear", "zoh", "filter"):
+            raise OptionError(f"LoopSettings.sim_hold must be 'linear', 'zoh' or 'filter', got "
+                              f"{self.sim_hold!r}")
         if self.fit not in ("nll", "sim"):
             raise OptionError(f"LoopSettings.fit must be 'nll' or 'sim', got {self.fit!r}")
         if not 0.0 <= float(self.holdout) < 0.9:
@@ -219,8 +241,9 @@ class LoopSettings:
                 "metric_tolerance": self.metric_tolerance, "error_level": self.error_level,
                 "p0_scale": self.p0_scale,
                 "holdout": self.holdout,
-                "fit": self.fit,
+                "fit": self.fit, "sim_hold": self.sim_hold, "auto_substeps": self.auto_substeps,
                 "confirm_iterations": self.confirm_iterations,
+                "confirm_top": self.confirm_top, "confirm_rounds": self.confirm_rounds,
                 "confirm_tolerance": self.confirm_tolerance,
                 "validation": getattr(self.validation, "name", None)
                 if self.validation is not None else None,
@@ -247,8 +270,8 @@ def check_settings(s: LoopSettings) -> None:
     if s.criterion not in CRITERIA:
         raise OptionError(f"LoopSettings.criterion = {s.criterion!r} is not one of "
                           f"{', '.join(CRITERIA)}")
-    for name, minimum in (("max_steps", 0), ("confirm_top", 1), ("fit_iterations", 0),
-                          ("structural_starts", 0),
+    for name, minimum in (("max_steps", 0), ("confirm_top", 1), ("confirm_rounds", 1),
+                          ("fit_iterations", 0), ("structural_starts", 0),
                           ("confirm_iterations", 0), ("chunk", 1)):
         _integer(name, getattr(s, name), minimum)
     sig = s.significance

@@ -1,0 +1,127 @@
+"""The free run's input hold (``LoopSettings.sim_hold``) and confirmation in
+rounds (``LoopSettings.confirm_rounds``), against hand-derived references."""
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.signal import cont2discrete
+
+from bondgraph.catalog.benchmarks import EMPS_IDIM_LS, emps, emps_force_relerr
+from bondgraph.catalog.cases import EmpsForceError
+from bondgraph.catalog.reference import mass_spring_damper
+from bondgraph.data.records import Experiment
+from bondgraph.diagnose import runner
+from bondgraph.diagnose.fit import Context, Record, free_run, sim_inputs
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import OptionError
+from bondgraph.inference.options import UKFOptions
+from bondgraph.numerics.model import Model
+
+
+def test_sim_inputs_follow_the_filter_hold():
+    u = np.array([[0.0], [2.0], [4.0], [10.0]])
+    s = LoopSettings(params=[], sim_hold="filter", ukf=UKFOptions(hold="mean"))
+    hold, um = sim_inputs(s, u)
+    assert hold == "zoh"
+    np.testing.assert_allclose(um[:, 0], [1.0, 3.0, 7.0, 10.0])   # (u_k + u_k+1)/2, last held
+    assert sim_inputs(LoopSettings(params=[], sim_hold="filter"), u)[0] == "zoh"
+    assert sim_inputs(LoopSettings(params=[]), u)[0] == "linear"        # the default, unchanged
+    with pytest.raises(OptionError, match="sim_hold"):
+        LoopSettings(params=[], sim_hold="cubic")
+
+
+def test_free_run_with_zero_order_hold_matches_the_exact_discretisation():
+    """Mass-spring-damper (m 2, k 50, c 1.5) under a held step sequence: the
+    free run with ``sim_hold="zoh"`` equals the exact zero-order-hold
+    discretisation of dp/dt = F − k q − c p/m, dq/dt = p/m (scipy
+    ``cont2discrete``); the linear hold does not."""
+    m, k, c, dt = 2.0, 50.0, 1.5, 0.05
+    t = np.arange(40) * dt
+    F = np.where((np.arange(40) // 5) % 2 == 0, 1.0, -1.0)
+    model = Model.from_graph(mass_spring_damper())
+    A = np.array([[-c / m, -k], [1.0 / m, 0.0]])                       # x = (p, q)
+    B = np.array([[1.0], [0.0]])
+    Ad, Bd, *_ = cont2discrete((A, B, np.eye(2), np.zeros((2, 1))), dt, method="zoh")
+    x, q_ref = np.zeros(2), []
+    for f in F:
+        q_ref.append(x[1])
+        x = Ad @ x + Bd[:, 0] * f
+    exp = Experiment.from_arrays(t, model=model, u=F[:, None], y=np.zeros((40, 2)), name="steps")
+    ukf_run = SimpleNamespace(x_filt=np.zeros((1, 1, model.n_x)))
+    ix = model.output_index("x")
+    out = {}
+    for hold in ("zoh", "linear"):
+        ctx = Context(Record(exp), LoopSettings(params=[], sim_hold=hold), lambda s: None, False)
+        y = free_run(ctx, model, model.theta0.copy(), ukf_run)
+        out[hold] = y[:, ix]
+    np.testing.assert_allclose(out["zoh"], q_ref, atol=2e-6)
+    assert np.max(np.abs(out["linear"] - q_ref)) > 1e-3
+
+
+def test_confirmation_goes_on_in_rounds_until_one_is_accepted(monkeypatch):
+    """With confirm_top 2 and confirm_rounds 3, seven significant candidates:
+    rounds {a, b}, {c, d} are refused, {e, f} has the accepted one; g is
+    never confirmed. With one round (the default) nothing is accepted."""
+    cands = [SimpleNamespace(label=n, rank_key=i) for i, n in enumerate("abcdefg")]
+    seen = []
+
+    def fake_confirm(ctx, current, batch, scales, name):
+        seen.append([c.label for c in batch])
+        return batch
+
+    def fake_accept(ctx, result, current, confirmed, step):
+        return "fit-e" if any(c.label == "e" for c in confirmed) else None
+
+    monkeypatch.setattr(runner, "confirm_best", fake_confirm)
+    monkeypatch.setattr(runner, "accept_best", fake_accept)
+    ctx = SimpleNamespace(settings=LoopSettings(params=[], confirm_top=2, confirm_rounds=3),
+                          log=lambda s: None)
+    got = runner.confirm_in_rounds(ctx, None, None, cands[::-1], None, "g", 1)
+    assert got == "fit-e" and seen == [["a", "b"], ["c", "d"], ["e", "f"]]
+    seen.clear()
+    ctx.settings = LoopSettings(params=[], confirm_top=2)
+    assert runner.confirm_in_rounds(ctx, None, None, cands, None, "g", 1) is None
+    assert seen == [["a", "b"]]
+    with pytest.raises(OptionError, match="confirm_rounds"):
+        LoopSettings(params=[], confirm_rounds=0)
+
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.mark.skipif(not (DATA / "emps").exists(), reason=f"real data folder {DATA} is absent")
+def test_emps_force_error_at_the_sign_limit_is_the_published_protocol():
+    """The EMPS case metric on the full EMPS graph (tanh-regularised Coulomb
+    law, width v_eps) with the published symmetric IDIM-LS parameters equals
+    the hand-written inverse model τ̂ = M q̈ + Fv q̇ + Fc sign(q̇) + offset
+    (:func:`emps_force_relerr`) at the sign limit, on the estimation run and
+    on the force-pulse validation run; the smooth law reads higher."""
+    model = Model.from_graph(emps())
+    theta = model.theta(dict(EMPS_IDIM_LS))
+    fit = SimpleNamespace(model=model, theta=theta)
+    metric = EmpsForceError()
+    for part in ("estimation", "validation"):
+        data = SimpleNamespace(exp=SimpleNamespace(meta={"emps_part": part}))
+        ref = emps_force_relerr(**EMPS_IDIM_LS, signals=metric.signals(part))
+        assert metric(fit, data) == pytest.approx(ref, rel=1e-9)
+    smooth = EmpsForceError(sign_limit=False)(fit, SimpleNamespace(exp=SimpleNamespace(meta={})))
+    assert smooth > metric(fit, SimpleNamespace(exp=SimpleNamespace(meta={}))) + 0.1
+
+
+def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
+    """With ``auto_substeps`` a declared fit whose discretisation check
+    recommends 16 substeps is refitted with them (the settings of the rest of
+    the loop carry them); without it the loop only warns."""
+    calls = []
+    monkeypatch.setattr(runner, "recommended_substeps", lambda ctx, fit, limit=0.1:
+                        (6.7, 16) if ctx.settings.ukf.substeps == 1 else (0.05, None))
+    monkeypatch.setattr(runner, "initial_fit",
+                        lambda ctx, graph: calls.append(ctx.settings.ukf.substeps) or "refit")
+    for auto, want in ((True, "refit"), (False, "declared")):
+        calls.clear()
+        ctx = Context(None, LoopSettings(params=[], auto_substeps=auto), lambda s: None, False)
+        fit, warn = runner.resolved_fit(ctx, None, "declared")
+        assert fit == want and "use --substeps 16" in warn[0]
+        assert (ctx.settings.ukf.substeps, calls) == ((16, [16]) if auto else (1, []))
