@@ -612,8 +612,11 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
     try:
         g = fit.graph.copy(f"{fit.graph.name}__{eff.name}")
         grid = eff.grid(g, tgt, scales)
+        # the span from the graph before the effect is applied: applying
+        # it may replace the target (a slip fragment replaces its bond)
+        spans = eff.grid_span(g, tgt, scales)
         P = eff.apply(g, tgt, grid[0], scales)
-        for k, span in eff.grid_span(g, tgt, scales).items():
+        for k, span in spans.items():
             P[k].bounds = span
         model = model_of(g)
     except BondGraphError as exc:
