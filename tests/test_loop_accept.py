@@ -263,9 +263,12 @@ def test_structural_score_refits_the_declared_parameters():
     # the default: the 3 best grid levels each get one declared-only step first
     ctx.settings = replace(ctx.settings, structural_starts=3)
     multi = structural_candidate(ctx, fit, sc, eff, tgt)
-    # measured: frozen 95.0, joint profile 108.6, declared-only steps at the
-    # 3 best grid levels first 170.5
-    assert multi.statistic > prof.statistic + 30.0, (prof.statistic, multi.statistic)
+    # measured: frozen 95.0; before the refits were kept inside the effect's
+    # grid span (Effect.grid_span) the joint profile reached 108.6 and the 3
+    # declared-only starts 170.5; inside the span the joint profile reaches
+    # 878.2 (m 2.04, truth 2) and the starts 877.7: they lose nothing of it
+    assert multi.statistic > prof.statistic - 2.0, (prof.statistic, multi.statistic)
+    assert abs(multi.profile["m"] - 2.0) < 0.2, multi.profile
     g = declared.copy("check")
     PP = eff.apply(g, tgt, prof.values, sc)
     m = model_of(g)
