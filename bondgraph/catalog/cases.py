@@ -97,6 +97,17 @@ class EmpsForceError:
         return self._sig[part]
 
     def __call__(self, fit, data) -> float:
+        tau, tau_hat = self.forces(fit, data)
+        return float(100.0 * np.linalg.norm(tau - tau_hat) / np.linalg.norm(tau))
+
+    def errors(self, fit, data) -> np.ndarray:
+        """Per-sample force errors (N, 1), (τ − τ̂) / RMS(τ): the errors whose
+        squares the accept rule's error-decrease test compares."""
+        tau, tau_hat = self.forces(fit, data)
+        return ((tau - tau_hat) / np.sqrt(np.mean(tau**2)))[:, None]
+
+    def forces(self, fit, data) -> tuple[np.ndarray, np.ndarray]:
+        """The measured drive force τ (N,) and the inverse model's τ̂ (N,) [N]."""
         m = fit.model
         th = np.array(fit.theta, dtype=float)
         if self.sign_limit:
@@ -114,8 +125,7 @@ class EmpsForceError:
         f0 = m.f(x, np.zeros((x.shape[0], m.n_u)), th)[:, i]
         f1 = m.f(x, np.ones((x.shape[0], m.n_u)), th)[:, i]
         vir_hat = (M * s["qdd"] - f0) / (f1 - f0)
-        tau_hat = gtau * vir_hat
-        return float(100.0 * np.linalg.norm(s["tau"] - tau_hat) / np.linalg.norm(s["tau"]))
+        return s["tau"], gtau * vir_hat
 
 
 def emps_closed_loop(graph: BondGraph) -> BondGraph:

@@ -30,7 +30,7 @@ from bondgraph.diagnose.inference_calls import (
     run_ukf,
     state_prior,
 )
-from bondgraph.diagnose.metric import compute_metric, standardised_errors
+from bondgraph.diagnose.metric import compute_metric, metric_errors
 from bondgraph.diagnose.residuals import analyze
 from bondgraph.diagnose.result import FitSummary
 from bondgraph.diagnose.settings import LoopSettings
@@ -95,7 +95,7 @@ class Fit:
     iterations (None: not fitted by scoring), the free-run error on the
     validation record (None without one), and the per-sample standardised
     free-run errors (N, n_y) of the record and of the validation record
-    (:func:`~bondgraph.diagnose.metric.standardised_errors`; None if the free
+    (:func:`~bondgraph.diagnose.metric.metric_errors`; None if the free
     run failed or there is no validation record)."""
 
     graph: BondGraph
@@ -460,7 +460,7 @@ def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str]
     fit = Fit(graph, model, list(params), theta, nll, res, rep, float("nan"), sim_y,
               std=std, n_obs=int(res.n_obs.sum()))
     fit.metric = compute_metric(ctx.settings, fit, ctx.record)
-    fit.sim_errors = standardised_errors(y, sim_y)
+    fit.sim_errors = metric_errors(ctx.settings, fit, ctx.record)
     if ctx.settings.validation is not None:
         fit.validation_metric, fit.validation_errors = validation_run(ctx, model, theta)
     return fit
@@ -486,7 +486,7 @@ def validation_run(ctx: Context, model: Model,
         return float("inf"), None
     sim_y = free_run(ctx, model, theta, res, rec)
     view = SimpleNamespace(model=model, theta=theta, ukf=res, sim_y=sim_y)
-    return compute_metric(ctx.settings, view, rec), standardised_errors(y, sim_y)
+    return compute_metric(ctx.settings, view, rec), metric_errors(ctx.settings, view, rec)
 
 
 def sim_inputs(settings: LoopSettings, u: np.ndarray) -> tuple[str, np.ndarray]:

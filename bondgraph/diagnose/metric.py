@@ -82,3 +82,22 @@ def standardised_errors(y: np.ndarray, sim_y: np.ndarray | None) -> np.ndarray |
         sd = np.nanstd(y[ok, i])
         out[:, i] = err[:, i] / (sd if sd > 0 else 1.0)
     return out
+
+
+def metric_errors(settings: LoopSettings, fit, record) -> np.ndarray | None:
+    """Per-sample errors (N, k) of the metric ``settings.metric`` that the
+    accept rule's error-decrease test compares between two fits (test 5 of
+    :mod:`bondgraph.diagnose.accept`): the standardised free-run errors for
+    ``nrmse_sim`` and ``rmse_sim``, the innovations for ``rmse_pred``, and
+    for a callable metric its ``errors(fit, record)`` method if it has one.
+    None when the metric has no per-sample errors (a callable without
+    ``errors``: the test is then not made, rather than made on errors the
+    metric does not measure) or the free run failed."""
+    m = settings.metric
+    if callable(m):
+        errors = getattr(m, "errors", None)
+        return None if errors is None else np.asarray(errors(fit, record), dtype=float)
+    if m == "rmse_pred":
+        return np.asarray(fit.ukf.innovations[:, 0, :], dtype=float)
+    _, _, y = record.arrays(fit.model)
+    return standardised_errors(y, fit.sim_y)
