@@ -114,6 +114,6 @@ def run(args) -> int:
     print(rep.table())
     for p in [path, *published(folder, pngs)]:
         print(f"wrote {p}")
-    print(f"estimate these with: bondgraph estimate --model {model.name} --data {args.data} "
+    print(f"estimate these with: bondgraph estimate --model {args.model} --data {args.data} "
           f"--params recommended:{path}")
     return 0

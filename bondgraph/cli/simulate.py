@@ -44,10 +44,17 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hold", choices=("linear", "zoh"), default="linear",
                    help="sampled inputs between samples for adaptive solvers")
     p.add_argument("--noise", action="store_true",
-                   help="with a registered experiment: write its noisy synthetic record (the "
-                        "experiment's noise and seed, true parameters and states in the JSON "
-                        "sidecar), e.g. `bondgraph simulate mass_spring_damper -e msd_force_step "
-                        "--noise -o msd_force_step.csv`")
+                   help="write a noisy synthetic record: with a registered experiment its own "
+                        "noise and seed (e.g. `bondgraph simulate mass_spring_damper -e "
+                        "msd_force_step --noise -o msd_force_step.csv`); otherwise the model's "
+                        "sensor noise (or --noise-std) drawn with --seed; the sidecar declares "
+                        "each output's noise_std and holds the true parameters and x0")
+    p.add_argument("--noise-std", action="append", metavar="OUTPUT=STD",
+                   help="with --noise and no registered experiment: an output's noise std "
+                        "(model units) instead of its sensor's")
+    p.add_argument("--seed", type=int, default=0,
+                   help="with --noise and no registered experiment: seed of "
+                        "numpy.random.default_rng (default 0)")
     p.add_argument("--plot", metavar="DIR", help="also write PNG plots to DIR")
     p.add_argument("--stiffness", action="store_true",
                    help="print the stiffness report and write OUTPUT.stiffness.json")
@@ -55,8 +62,10 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     """Run ``bondgraph simulate`` (see :func:`configure`)."""
-    if args.noise:
+    if args.noise and _registered_experiment(args.experiment):
         return _noisy_record(args)
+    if args.noise_std and not args.noise:
+        raise UsageError("--noise-std needs --noise")
     model = load_model(args.model)
     overrides = parse_pairs(args.param, "--param")
     measured = None
@@ -101,7 +110,9 @@ def run(args) -> int:
                    rtol=args.rtol, atol=args.atol, substeps=args.substeps,
                    max_step=args.max_step, hold=args.hold)
     out = Path(args.output or f"{model.name}_sim.csv")
-    Experiment.from_simulation(res, name=out.stem).save(out)
+    rec = _with_noise(res, args, out.stem) if args.noise else \
+        Experiment.from_simulation(res, name=out.stem)
+    rec.save(out)
     for note in notes:
         print(f"note: {note}")
     st = res.stats
@@ -123,6 +134,50 @@ def run(args) -> int:
     return 0
 
 
+def _registered_experiment(name: str | None) -> bool:
+    """True if ``name`` is a registered experiment (not a record file)."""
+    if not name or Path(name).suffix.lower() in (".csv", ".json") or Path(name).exists():
+        return False
+    return True
+
+
+def _with_noise(res, args, name: str) -> Experiment:
+    """``--noise`` without a registered experiment: the simulated outputs plus
+    independent Gaussian noise of each output's sensor std (the model's
+    ``meas_std`` at the simulated parameters, or ``--noise-std``), drawn from
+    ``numpy.random.default_rng(--seed)``; the sidecar declares each output's
+    ``noise_std`` and holds ``true_parameters``, ``x0``, ``noise`` and ``seed``.
+
+    Raises
+    ------
+    ModelError
+        ``--noise-std`` names an output the model does not have.
+    UsageError
+        A noise std that is not finite and >= 0.
+    """
+    m = res.model
+    std = np.asarray(m.meas_std(res.theta), float).reshape(-1) if m.n_y else np.zeros(0)
+    for k, v in parse_pairs(args.noise_std, "--noise-std").items():
+        if k not in m.outputs:
+            raise ModelError(f"--noise-std: '{k}' is not an output of {m.name} "
+                             f"({', '.join(m.outputs)})")
+        if not v >= 0:
+            raise UsageError(f"--noise-std: {k}={v!r} must be >= 0")
+        std[m.output_index(k)] = float(v)
+    rng = np.random.default_rng(args.seed)
+    y = res.y + rng.standard_normal(res.y.shape) * std
+    noise = {o: float(s) for o, s in zip(m.outputs, std)}
+    meta = {"description": f"simulation of {m.name} ({res.method}) with Gaussian sensor noise",
+            "true_parameters": {p: float(v) for p, v in zip(m.params, res.theta)},
+            "x0": {s: float(v) for s, v in zip(m.states, res.x[0])},
+            "noise": {"distribution": "gaussian", "independent": True, "mean": 0.0,
+                      "std": noise},
+            "seed": int(args.seed), "method": res.method,
+            "generator": "bondgraph simulate --noise"}
+    return Experiment.from_arrays(res.t, model=m, u=res.u, y=y, x=res.x, noise_std=noise,
+                                  meta=meta, name=name)
+
+
 def _noisy_record(args) -> int:
     """``--noise``: the registered experiment's synthetic record
     (:func:`bondgraph.data.experiments.run_experiment`), saved atomically.
@@ -134,12 +189,10 @@ def _noisy_record(args) -> int:
     ModelError
         An unknown experiment, or a model other than the experiment's.
     """
-    if not args.experiment or Path(args.experiment).suffix.lower() in (".csv", ".json"):
-        raise UsageError("--noise needs --experiment NAME, a registered experiment "
-                         "(`bondgraph simulate MODEL -e NAME --noise -o FILE.csv`)")
-    if args.param or args.input or args.record_params:
-        raise UsageError("--noise writes the experiment's record at its true parameters and "
-                         "inputs: --param, --input and --record-params do not apply")
+    if args.param or args.input or args.record_params or args.noise_std:
+        raise UsageError("--noise writes the experiment's record at its true parameters, "
+                         "inputs and noise: --param, --input, --record-params and --noise-std "
+                         "do not apply")
     spec = get_experiment(args.experiment)
     if args.model != spec.model:
         raise ModelError(f"experiment '{spec.name}' is a record of model '{spec.model}', "
