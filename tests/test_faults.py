@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from bondgraph.cli.main import main
+from bondgraph.diagnose.settings import DEFAULT_HOLDOUT
 from bondgraph.data.experiments import run_experiment
 
 #: the small record every entry uses: 120 samples of msd_force_step
@@ -129,7 +130,10 @@ CATALOGUE = [
      ["--data", "needs --model"]),
     ("usage", ["loop", "--model", "mass_spring_damper", "--out", "{d}/r_nodata"], ["--data"]),
     ("usage", [*LOOP, "--data", "{d}/good.csv", "--criterion", "aicc"], ["--criterion", "aicc"]),
-    ("usage", ["simulate", "mass_spring_damper", "--noise"], ["--noise", "--experiment"]),
+    ("usage", ["simulate", "mass_spring_damper", "--noise-std", "x=0.1", "-o", "{d}/n.csv"],
+     ["--noise-std needs --noise"]),
+    ("usage", ["simulate", "mass_spring_damper", "--noise", "--noise-std", "x=-1", "-o",
+               "{d}/n.csv"], ["--noise-std", "x=-1.0", ">= 0"]),
     # -- option values (issue 4)
     ("options", [*LOOP, "--data", "{d}/good.csv", "--metric", "bogus", "--out", "{d}/r1"],
      ["--metric = 'bogus'", "nrmse_sim"]),
@@ -310,7 +314,11 @@ def test_loop_on_a_record_without_one_output_runs(d, capsys):
     rep = json.loads((d / "xo" / "report.json").read_text())
     assert rep["finished"] is True
     by_name = {o["name"]: o for o in rep["initial_fit"]["residuals"]["outputs"]}
-    assert by_name["x"]["n"] == N_SAMPLES and by_name["x"]["rms"] > 0
+    # the fits use the record less its held-out end (DEFAULT_HOLDOUT without --validate)
+    fitted = int(round(N_SAMPLES * (1 - DEFAULT_HOLDOUT)))
+    assert by_name["x"]["n"] == fitted and by_name["x"]["rms"] > 0
+    assert rep["settings"]["holdout"] == DEFAULT_HOLDOUT
+    assert rep["validation_error_before"] is not None
     assert by_name["v"]["n"] == 0 and by_name["v"]["rms"] is None
     assert "| v | not in the record |" in (d / "xo" / "report.md").read_text()
 

@@ -22,7 +22,7 @@ from bondgraph.cli.common import (
 )
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.loop import run_loop
-from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import DEFAULT_HOLDOUT, LoopSettings
 from bondgraph.errors import ModelError, OptionError, UsageError
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.registry import graph_builder
@@ -58,7 +58,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "before/after use the free-run error on it")
     p.add_argument("--holdout", type=float, default=None, metavar="FRACTION",
                    help="without --validate: the last FRACTION of the record is held out as "
-                        "the validation record (the fits use the rest)")
+                        "the validation record (the fits use the rest; default "
+                        f"{DEFAULT_HOLDOUT} for --model/--data, 0 for a bundled case)")
     p.add_argument("--metric-tolerance", type=float, default=None,
                    help="accept an effect only if the error grows by at most this factor "
                         "(default 1.0: it may not rise)")
@@ -118,6 +119,11 @@ def run(args) -> int:
     if args.no_structural:
         settings["structural"] = False
     settings.update(numerics_settings(args, settings, graph))
+    if args.model and not args.validate and args.holdout is None:
+        settings["holdout"] = DEFAULT_HOLDOUT
+        print(f"bondgraph loop: no --validate record: the last {DEFAULT_HOLDOUT:.0%} of "
+              f"{args.data} is held out for the accept decision and the error before/after "
+              f"(--holdout FRACTION to change, --holdout 0 to fit all of it)")
     settings["ukf"] = dataclasses.replace(settings.get("ukf") or UKFOptions(),
                                           backend=args.backend)
     try:                                             # bad settings fail before any output

@@ -16,6 +16,12 @@ METRICS = ("nrmse_sim", "rmse_sim", "rmse_pred")
 CRITERIA = ("aic", "bic")
 
 
+#: the fraction of a user's record (``bondgraph loop --model M --data D``,
+#: no ``--validate``) held out at its end for the accept decision and the
+#: report's error before/after (``--holdout 0`` fits the whole record)
+DEFAULT_HOLDOUT = 0.25
+
+
 @dataclass
 class LoopSettings:
     """Options of :func:`bondgraph.diagnose.runner.run_loop`.
@@ -130,7 +136,9 @@ class LoopSettings:
         Without ``validation``: the fraction of the record, at its end, held
         out as the validation record (0: none; the fits use the rest; its
         prior mean is the record's initial-state rule on the segment, state
-        columns if the record has them).
+        columns if the record has them). ``bondgraph loop --model --data``
+        without ``--validate`` holds out :data:`DEFAULT_HOLDOUT` unless
+        ``--holdout`` says otherwise.
     structural_refit : int
         Fisher-scoring iterations over the declared estimated parameters
         together with a structural candidate's own, from its best grid point,
