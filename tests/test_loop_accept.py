@@ -117,6 +117,10 @@ def test_failed_score_test_is_reported_failed_not_zero():
     assert d["failed"] == "the filter failed: posterior covariance P not positive definite"
 
 
+#: sidecar of a record simulated from rest that says so (its initial state is given)
+AT_REST = {"x0": {"p_mass": 0.0, "q_spring": 0.0}}
+
+
 def _msd_record(seed=0, n=400, dt=0.01):
     m = Model.load("mass_spring_damper")
     t = np.arange(n) * dt
@@ -249,7 +253,10 @@ def test_structural_score_refits_the_declared_parameters():
                      {"F": lambda tt: levels[np.minimum((np.asarray(tt) / 0.2).astype(int), 39)]},
                      {}, {"m": 2.0, "k": 50.0, "c": 1.5}, 3, "sat", "")
     P = ["m", "k", "c", "q_F"]
-    ctx = Context(Record(exp), LoopSettings(params=P, structural_refit=0, structural_starts=0),
+    # p0_scale "magnitude": the statistic is recomputed below on a model built
+    # anew, whose state-scaled prior would follow its own default level
+    ctx = Context(Record(exp), LoopSettings(params=P, structural_refit=0, structural_starts=0,
+                                            p0_scale="magnitude"),
                   lambda s: None, False)
     fit = fit_model(ctx, declared, P, None, "declared")
     assert fit.estimates()["m"] > 4.0                     # compensated
@@ -378,7 +385,7 @@ def test_state_scaled_prior_in_the_loop():
     is imposed."""
     from bondgraph.diagnose.fit import prior
     from bondgraph.errors import OptionError
-    from bondgraph.inference.prior import record_prior
+    from bondgraph.inference.prior import UNKNOWN_REL, record_prior
 
     exp = _msd_record()
     exp.meta = {**(exp.meta or {}), "x0_std": {"q_spring": 0.004}}
@@ -387,11 +394,17 @@ def test_state_scaled_prior_in_the_loop():
                   lambda s: None, False)
     x0, P0 = prior(ctx, m)
     t, u, y = ctx.record.arrays(m)
+    # the record gives q_spring's spread (x0_std) but nothing of p_mass: its
+    # prior spans its whole scale (UNKNOWN_REL), not p0_rel of it
     ref, info = record_prior(m, t, u, y, m.theta0, x0, rel=0.1, x0_std={"q_spring": 0.004},
-                             substeps=2)
+                             substeps=2, unknown=["p_mass"])
     np.testing.assert_allclose(P0, ref)
     assert P0[1, 1] == pytest.approx(0.004 ** 2)
-    assert P0[0, 0] == pytest.approx((0.1 * info["scales"]["p_mass"]) ** 2)
+    assert P0[0, 0] == pytest.approx((UNKNOWN_REL * info["scales"]["p_mass"]) ** 2)
+    exp.meta["x0"] = {"p_mass": 0.0}                  # now the record gives it
+    ctx = Context(Record(exp), LoopSettings(params=["c"], p0_scale="state", p0_rel=0.1),
+                  lambda s: None, False)
+    assert prior(ctx, m)[1][0, 0] == pytest.approx((0.1 * info["scales"]["p_mass"]) ** 2)
     assert info["rules"]["p_mass"] == "simulation"
     # the free-run RMS of the momentum, from an independent BDF simulation
     xs = simulate(m, t, u, x0, m.theta0, hold="zoh", rtol=1e-9, atol=1e-12).x
@@ -413,7 +426,7 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
     truth = m.theta(m=2.5, k=80.0, c=2.0)
     y = simulate(m, t, u, np.zeros(2), truth, rtol=1e-10, atol=1e-12, hold="zoh").y
     y = y + np.random.default_rng(1).normal(size=y.shape) * m.meas_std(truth)
-    exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd")
+    exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd", meta=AT_REST)
     logs = []
     # ROS2 with 2 steps per sample: the discretisation check's recommendation
     # below (with 1 step the filter's bias makes a 0.4 % sensor gain significant)
@@ -470,15 +483,23 @@ def test_loop_estimates_an_unmeasured_initial_state():
     y[:, 1] = np.nan
     exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd_x")
     opts = UKFOptions(method="rk4", substeps=2)
-    plain = fit_model(Context(Record(exp), LoopSettings(params=["k", "c"], ukf=opts),
+    # the old prior (5 % of max(|x0|, 1) around the guess 0) trusts the guess
+    old = "magnitude"
+    plain = fit_model(Context(Record(exp), LoopSettings(params=["k", "c"], ukf=opts,
+                                                        p0_scale=old),
                               lambda s: None, False), mass_spring_damper(), ["k", "c"], None, "p")
-    ctx = Context(Record(exp), LoopSettings(params=["k", "c"], ukf=opts,
+    ctx = Context(Record(exp), LoopSettings(params=["k", "c"], ukf=opts, p0_scale=old,
                                             estimate_x0=["p_mass"]), lambda s: None, False)
     f = fit_model(ctx, mass_spring_damper(), ["k", "c"], None, "x0", iterations=20)
     p0, sd = f.x0_est["p_mass"], f.std["x0.p_mass"]
     assert abs(p0 - 0.6) < 3 * sd and sd < 0.05, (p0, sd)
     assert abs(f.estimates()["k"] - 50.0) < 3 * f.std["k"]
     assert f.nll < plain.nll - 50
+    # the default prior of a state the record does not give spans its scale:
+    # without estimating x0 the filter learns it and loses little
+    wide = fit_model(Context(Record(exp), LoopSettings(params=["k", "c"], ukf=opts),
+                             lambda s: None, False), mass_spring_damper(), ["k", "c"], None, "w")
+    assert wide.nll < plain.nll - 40 and abs(wide.nll - f.nll) < 10
     assert f.summary().x0_estimates == {"p_mass": p0}
     ctx.x0_estimates = dict(f.x0_est)
     x0, P0 = prior(ctx, f.model)
@@ -593,7 +614,7 @@ def test_loop_accepts_a_real_sensor_offset():
     y = simulate(m, t, u, np.zeros(2), truth, rtol=1e-10, atol=1e-12, hold="zoh").y
     y = y + np.random.default_rng(1).normal(size=y.shape) * m.meas_std(truth)
     y[:, m.output_index("x")] += 0.02
-    exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd_offset")
+    exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd_offset", meta=AT_REST)
     res = run_loop(mass_spring_damper(), exp, ["m", "k", "c"], log=lambda s: None,
                    progress=False, structural=False, max_steps=1, fit="sim",
                    ukf=UKFOptions(method="ros2", substeps=2))

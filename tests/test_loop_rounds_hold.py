@@ -48,7 +48,8 @@ def test_free_run_with_zero_order_hold_matches_the_exact_discretisation():
     for f in F:
         q_ref.append(x[1])
         x = Ad @ x + Bd[:, 0] * f
-    exp = Experiment.from_arrays(t, model=model, u=F[:, None], y=np.zeros((40, 2)), name="steps")
+    exp = Experiment.from_arrays(t, model=model, u=F[:, None], y=np.zeros((40, 2)), name="steps",
+                                 meta={"x0": {"p_mass": 0.0, "q_spring": 0.0}})   # from rest
     ukf_run = SimpleNamespace(x_filt=np.zeros((1, 1, model.n_x)))
     ix = model.output_index("x")
     out = {}

@@ -73,10 +73,11 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="declared fit: UKF likelihood (nll, default) or an output-error "
                         "(free-run least-squares) fit of the non-noise parameters first, "
                         "whose estimates start the likelihood fit (sim)")
-    p.add_argument("--p0", choices=("magnitude", "state"), default=None,
-                   help="scale of each initial state's prior std: max(|x0|, 1) (magnitude, "
-                        "default) or the state's own scale along the record (state: free-run "
-                        "RMS, process-noise walk, sensors; a sidecar's x0_std imposed)")
+    p.add_argument("--p0", choices=("state", "magnitude"), default=None,
+                   help="scale of each initial state's prior std: the state's own scale along "
+                        "the record (state, default: free-run RMS, process-noise walk, sensors; "
+                        "a sidecar's x0_std imposed; a state the record does not give gets its "
+                        "whole scale) or max(|x0|, 1) (magnitude, the old rule)")
     add_discretisation(p)          # with --backend
     p.set_defaults(method=None, substeps=None, hold=None)   # a case's own options unless given
     add_quiet(p)

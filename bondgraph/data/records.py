@@ -582,6 +582,30 @@ class Experiment:
                 x0[i] = float(meta_x0[name])
         return x0
 
+    def given_initial_states(self, model) -> list[str]:
+        """The states of ``model`` whose initial value this record gives: a
+        finite first value of its ``state.<name>`` column, the sidecar's
+        ``x0[name]`` or ``x0_std[name]``. For the others
+        :meth:`initial_state` falls back to the model's X0, a guess: the
+        prior of such a state is wide (:mod:`bondgraph.inference.prior`).
+
+        Parameters
+        ----------
+        model : Model
+            Anything with ``states`` (names).
+
+        Returns
+        -------
+        list of str
+            In the model's state order.
+        """
+        cols = self.states()
+        meta = self.meta or {}
+        x0 = meta.get("x0") if isinstance(meta.get("x0"), Mapping) else {}
+        std = meta.get("x0_std") if isinstance(meta.get("x0_std"), Mapping) else {}
+        return [n for n in model.states
+                if (n in cols and np.isfinite(cols[n][0])) or n in x0 or n in std]
+
     def initial_state_std(self, model) -> dict[str, float]:
         """The declared spread of the initial state: the sidecar's ``x0_std``
         (state name -> standard deviation of the prior whose mean is

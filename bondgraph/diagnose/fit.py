@@ -28,6 +28,7 @@ from bondgraph.diagnose.inference_calls import (
     make_criterion,
     prior_covariance,
     run_ukf,
+    smoothed_initial_state,
     state_prior,
 )
 from bondgraph.diagnose.metric import compute_metric, metric_errors
@@ -210,8 +211,9 @@ def prior_cov(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
 
 def _state_prior(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
     """:func:`~bondgraph.diagnose.inference_calls.state_prior` at the model's
-    defaults with ``settings.fixed``, cached per model and prior mean (every
-    candidate's model asks again)."""
+    defaults with ``settings.fixed``, the states of :func:`unknown_states`
+    with the spread of their whole scale, cached per model and prior mean
+    (every candidate's model asks again)."""
     key = (id(model), x0.tobytes())
     if key not in ctx.cache:
         theta = model.theta0.copy()
@@ -220,8 +222,22 @@ def _state_prior(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
                 theta[model.param_index(k)] = v
         t, u, y = ctx.record.arrays(model)
         ctx.cache[key] = (model, state_prior(model, t, u, y, theta, x0, ctx.settings,
-                                             ctx.record.exp.initial_state_std(model)))
+                                             ctx.record.exp.initial_state_std(model),
+                                             unknown_states(ctx, model)))
     return ctx.cache[key][1].copy()
+
+
+def unknown_states(ctx: Context, model: Model) -> list[str]:
+    """The states of ``model`` whose initial value on ``ctx.record`` nothing
+    gives: not in the record (state column, sidecar ``x0``/``x0_std``), not
+    set by the user (``settings.x0``, ``x0_overrides``) nor declared
+    (``settings.P0_std``). Their prior mean is the model's X0, a guess."""
+    s = ctx.settings
+    if s.x0 is not None:
+        return []
+    given = set(ctx.record.exp.given_initial_states(model)) | set(s.x0_overrides or {}) \
+        | set(s.P0_std or {})
+    return [n for n in model.states if n not in given]
 
 
 def prior(ctx: Context, model: Model, shrink: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -507,26 +523,47 @@ def sim_inputs(settings: LoopSettings, u: np.ndarray) -> tuple[str, np.ndarray]:
 
 def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res,
              record: Record | None = None) -> np.ndarray | None:
-    """Free-run simulation (N, n_y) of ``record`` (default the loop's) from
-    the first filtered state with the measured inputs
-    (``settings.sim_method``, rtol 1e-6, atol 1e-9, the input hold of
-    :func:`sim_inputs`); None (logged) if the model cannot be simulated
-    freely."""
+    """Free-run simulation (N, n_y) of ``record`` (default the loop's) with
+    the measured inputs (``settings.sim_method``, rtol 1e-6, atol 1e-9, the
+    input hold of :func:`sim_inputs`) from the first filtered state, or, when
+    the record does not give some initial states (:func:`unknown_states`, not
+    estimated with θ), from the RTS-smoothed initial state x̂_0|N (Särkkä
+    2008): the best start the model and the whole record give. None (logged)
+    if the model cannot be simulated freely."""
     record = ctx.record if record is None else record
     t, u, y = record.arrays(model)
-    hold, u = sim_inputs(ctx.settings, u)
+    hold, u_sim = sim_inputs(ctx.settings, u)
     x0 = ukf_res.x_filt[0, 0, :]
     if not np.all(np.isfinite(x0)):
         x0 = prior_on(record, ctx.settings, model)[0]
+    view = ctx if record is ctx.record else Context(record, replace(ctx.settings, x0=None))
+    if [n for n in unknown_states(view, model) if n not in ctx.x0_estimates or view is not ctx]:
+        x0 = _smoothed_start(ctx, model, theta, record, x0)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sim = simulate(model, t, u, x0=x0, theta=theta, method=ctx.settings.sim_method,
+            sim = simulate(model, t, u_sim, x0=x0, theta=theta, method=ctx.settings.sim_method,
                            rtol=1e-6, atol=1e-9, hold=hold)
         return sim.y
     except Exception as exc:  # a model that cannot be simulated freely
         ctx.log(f"  free-run simulation failed ({str(exc).splitlines()[0]})")
         return None
+
+
+def _smoothed_start(ctx: Context, model: Model, theta: np.ndarray, record: Record,
+                    fallback: np.ndarray) -> np.ndarray:
+    """x̂_0|N of ``record`` at ``theta`` from the loop's prior on it
+    (:func:`~bondgraph.diagnose.inference_calls.smoothed_initial_state`);
+    ``fallback`` (logged) if the smoother fails."""
+    t, u, y = record.arrays(model)
+    x0, P0 = prior(ctx, model) if record is ctx.record else prior_on(record, ctx.settings, model)
+    try:
+        xs = smoothed_initial_state(model, t, u, y, theta, x0, P0, ctx.settings)
+    except BondGraphError as exc:
+        ctx.log(f"  smoothed initial state unavailable ({str(exc).splitlines()[0]}): "
+                f"the free run starts from the first filtered state")
+        return fallback
+    return xs if np.all(np.isfinite(xs)) else fallback
 
 
 def parameter_std(ctx: Context, fit: Fit) -> dict:

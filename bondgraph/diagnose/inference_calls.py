@@ -21,6 +21,7 @@ from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.output_error import output_error_fit
 from bondgraph.inference.prior import record_prior
+from bondgraph.inference.smoother import rts_smooth
 from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
 
 
@@ -141,16 +142,32 @@ def prior_covariance(model, x0: np.ndarray, rel: float | None = None) -> np.ndar
 
 
 def state_prior(model, t, u, y, theta: np.ndarray, x0, settings: LoopSettings,
-                x0_std=None) -> np.ndarray:
+                x0_std=None, unknown: Sequence[str] = ()) -> np.ndarray:
     """The prior covariance (n_x, n_x) by each state's own scale along the
     record (:func:`bondgraph.inference.prior.record_prior`, the loop's
-    discretisation and hold; ``settings.p0_rel``, default 5 %, of it)."""
+    discretisation and hold; ``settings.p0_rel``, default 5 %, of it; the
+    whole scale for the ``unknown`` states, whose initial value nothing
+    gives)."""
     o = settings.ukf
     P0, _ = record_prior(model, t, u, y, theta, x0,
                          rel=0.05 if settings.p0_rel is None else float(settings.p0_rel),
                          x0_std=x0_std, method=o.method, substeps=max(o.substeps, 2),
-                         hold=o.hold)
+                         hold=o.hold, unknown=unknown)
     return P0
+
+
+def smoothed_initial_state(model, t, u, y, theta: np.ndarray, x0, P0,
+                           settings: LoopSettings) -> np.ndarray:
+    """The initial state given the whole record, x̂_0|N (n_x,), of the
+    unscented RTS smoother (:func:`bondgraph.inference.smoother.rts_smooth`,
+    Särkkä 2008) at ``theta`` with the loop's filter options.
+
+    Raises
+    ------
+    NumericalError
+        If the filter or the backward pass fails.
+    """
+    return rts_smooth(model, t, u, y, theta, x0, P0, options=settings.ukf).x[0]
 
 
 def output_error(model, t, u, y, names: Sequence[str], theta: np.ndarray, x0,

@@ -76,12 +76,14 @@ class LoopSettings:
         estimates then start the likelihood fit (``"sim"``; for a
         deterministic model whose likelihood fit starts far off). Effects are
         always scored and confirmed by the likelihood.
-    p0_scale : {"magnitude", "state"}
-        The scale of each initial state's prior std: ``max(|x0|, 1)``
-        (:func:`bondgraph.inference.ukf.default_P0`, the default), or the
-        state's own scale along the record (:func:`bondgraph.inference.prior.record_prior`:
+    p0_scale : {"state", "magnitude"}
+        The scale of each initial state's prior std: the state's own scale
+        along the record (the default; :func:`bondgraph.inference.prior.record_prior`:
         free-run RMS, process-noise walk, sensors; a sidecar's ``x0_std``
-        imposed).
+        imposed; a state whose initial value nothing gives gets its whole
+        scale, and the free run starts from the RTS-smoothed initial state),
+        or ``max(|x0|, 1)`` (:func:`bondgraph.inference.ukf.default_P0`, the
+        old rule).
     P0_std : dict
         Prior standard deviations of named initial states (e.g. the grade on
         a level track), overriding ``P0``'s diagonal.
@@ -183,7 +185,7 @@ class LoopSettings:
     estimate_x0: list = field(default_factory=list)
     x0_overrides: dict = field(default_factory=dict)
     p0_rel: float | None = None
-    p0_scale: str = "magnitude"
+    p0_scale: str = "state"
     fit: str = "nll"
     P0_std: dict = field(default_factory=dict)
     fixed: dict = field(default_factory=dict)

@@ -20,11 +20,16 @@ The prior covariance (:func:`prior_covariance`) is diagonal with
 ``(rel · scale_i)²``, except where the record declares a spread: a
 sidecar's ``x0_std`` (by state name) is the standard deviation of that
 state's prior, its ``x0`` the mean (:meth:`bondgraph.data.records.Experiment.initial_state`).
+A state whose initial value nothing gives (no state column, no sidecar
+``x0``/``x0_std``, no user value: its mean is the model's X0, a guess) gets
+the spread of its whole scale, ``UNKNOWN_REL · scale_i``: the filter then
+learns it from the data instead of trusting the guess, and the RTS-smoothed
+initial state (:mod:`bondgraph.inference.smoother`) estimates it.
 """
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -35,6 +40,8 @@ from bondgraph.numerics.integrators import hold_inputs, make_step
 SCALE_SAMPLES = 20000
 #: floor of a scale no rule could set (a state neither driven nor seen)
 SCALE_FLOOR = 1e-9
+#: prior std of an initial state nothing gives, relative to its scale
+UNKNOWN_REL = 1.0
 
 
 def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int = 2,
@@ -175,10 +182,11 @@ def declared_std(model, x0_std: Mapping[str, float] | None) -> np.ndarray:
 
 
 def prior_covariance(model, scales: np.ndarray, *, rel: float = 0.05,
-                     x0_std: Mapping[str, float] | None = None) -> np.ndarray:
+                     x0_std: Mapping[str, float] | None = None,
+                     unknown: Sequence[str] = ()) -> np.ndarray:
     """The prior covariance (n_x, n_x) of the initial state: diagonal,
-    ``(rel · scale_i)²``, with the declared spreads ``x0_std`` (name -> std)
-    imposed.
+    ``(rel · scale_i)²``, ``(UNKNOWN_REL · scale_i)²`` for the states in
+    ``unknown``, with the declared spreads ``x0_std`` (name -> std) imposed.
 
     Parameters
     ----------
@@ -190,6 +198,8 @@ def prior_covariance(model, scales: np.ndarray, *, rel: float = 0.05,
     x0_std : dict, optional
         Declared prior standard deviations by state name (a sidecar's
         ``x0_std``, a user's option).
+    unknown : sequence of str
+        States whose initial value nothing gives (their mean is a guess).
 
     Raises
     ------
@@ -204,6 +214,9 @@ def prior_covariance(model, scales: np.ndarray, *, rel: float = 0.05,
     if scales.shape != (model.n_x,):
         raise OptionError(f"state scales have shape {scales.shape}, expected ({model.n_x},)")
     sd = rel * scales
+    for name in unknown:
+        i = model.state_index(name)
+        sd[i] = UNKNOWN_REL * scales[i]
     dec = declared_std(model, x0_std)
     sd = np.where(np.isfinite(dec), dec, sd)
     return np.diag(sd ** 2)
@@ -211,20 +224,23 @@ def prior_covariance(model, scales: np.ndarray, *, rel: float = 0.05,
 
 def record_prior(model, t, u, y, theta, x0, *, rel: float = 0.05,
                  x0_std: Mapping[str, float] | None = None, method: str = "ros2",
-                 substeps: int = 2, hold: str = "zoh") -> tuple[np.ndarray, dict]:
-    """:func:`prior_covariance` with the scales of :func:`state_scales`.
+                 substeps: int = 2, hold: str = "zoh",
+                 unknown: Sequence[str] = ()) -> tuple[np.ndarray, dict]:
+    """:func:`prior_covariance` with the scales of :func:`state_scales`
+    (``unknown``: the states whose initial value nothing gives).
 
     Returns
     -------
     (P0 (n_x, n_x), info)
-        ``info``: ``scales`` and ``rules`` by state name, ``rel``.
+        ``info``: ``scales`` and ``rules`` by state name, ``rel``, ``unknown``.
     """
     if np.shape(x0) != (model.n_x,):
         raise ModelError(f"x0 has shape {np.shape(x0)}, expected ({model.n_x},)")
     scales, rules = state_scales(model, t, u, y, theta, x0, method=method, substeps=substeps,
                                  hold=hold)
-    P0 = prior_covariance(model, scales, rel=rel, x0_std=x0_std)
+    P0 = prior_covariance(model, scales, rel=rel, x0_std=x0_std, unknown=unknown)
     info = {"rel": float(rel), "scales": dict(zip(model.states, scales.tolist())),
+            "unknown": list(unknown),
             "rules": dict(zip(model.states, rules)),
             "declared_std": {k: float(v) for k, v in (x0_std or {}).items()}}
     return P0, info

@@ -114,6 +114,24 @@ def rts_smooth(model, t, u, y, theta, x0, P0, *, options: UKFOptions | None = No
     return Smoothed(xs, Ps, xf.copy(), float(res.nll[0]))
 
 
+def _gain(Pm: np.ndarray, C: np.ndarray, k: int) -> np.ndarray:
+    """The smoother gain G = C (P⁻)⁻¹ (n, n); where P⁻ is singular (a
+    direction no process noise reaches has collapsed to round-off) the
+    minimum-norm least-squares gain C (P⁻)⁺, the limit of the regular one.
+
+    Raises
+    ------
+    NumericalError
+        Non-finite covariances at sample ``k + 1``.
+    """
+    if not (np.all(np.isfinite(Pm)) and np.all(np.isfinite(C))):
+        raise NumericalError(f"smoother: predicted covariance at sample {k + 1} is not finite")
+    try:
+        return np.linalg.solve(Pm.T, C.T).T
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(Pm.T, C.T, rcond=None)[0].T
+
+
 def _backward(model, t, u, th, xf, Pf, opts: UKFOptions):
     """The RTS backward recursion (module docstring) over the filtered
     means ``xf`` (N, n) and covariances ``Pf`` (N, n, n)."""
@@ -137,11 +155,7 @@ def _backward(model, t, u, th, xf, Pf, opts: UKFOptions):
         m, Pm, D = unscented_moments(X, wts)
         Pm = Pm[0] + np.diag(q2 * dt)
         C = wts.w * (cL[0].T @ (D[0, :n] - D[0, n:]))
-        try:
-            G = np.linalg.solve(Pm.T, C.T).T
-        except np.linalg.LinAlgError as exc:
-            raise NumericalError(f"smoother: predicted covariance at sample {k + 1} is "
-                                 f"singular ({exc})") from None
+        G = _gain(Pm, C, k)
         xs[k] = xf[k] + G @ (xs[k + 1] - m[0])
         Pk = Pf[k] + G @ (Ps[k + 1] - Pm) @ G.T
         Ps[k] = 0.5 * (Pk + Pk.T)
