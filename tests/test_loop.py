@@ -251,10 +251,10 @@ def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
     """No false positives: the coast-down record fitted with the true
     structure leaves nothing significant."""
     from bondgraph.data.records import Experiment  # noqa: F401 (record type)
-    from vehicle_graphs.cases import COAST, LEVEL_TRACK, _coastdown_record, _vehicle
+    from vehicle_graphs.cases import COAST, LEVEL_TRACK, coastdown_record, _vehicle
 
     truth = _vehicle("truth_aero", aero=True, **COAST)
-    rec = _coastdown_record(truth, _vehicle("truth_aero", aero=True, **COAST), "nothing", seed=105)
+    rec = coastdown_record(truth, _vehicle("truth_aero", aero=True, **COAST), "nothing", seed=105)
     updates = []
     res = run_loop(_vehicle("declared_true", aero=True, **COAST), rec,
                    ["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"], log=lambda m: None,

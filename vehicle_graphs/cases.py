@@ -45,8 +45,21 @@ COAST = dict(gear="N", powertrain=False, wheels="lumped", suspension="dynamic")
 LEVEL_TRACK = math.radians(0.1)
 
 
-def _coastdown_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
-                      duration: float = 40.0, v0: float = 22.0):
+def coastdown_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
+                     duration: float = 40.0, v0: float = 22.0):
+    """A synthetic coast-down record: ``truth`` (any coast-down graph, e.g.
+    the declared one plus an effect by :func:`bondgraph.apply_effect`) rolls
+    out in neutral from ``v0`` [m/s] for ``duration`` [s] at 40 Hz, with the
+    parameters of ``TRUE_COASTDOWN``; the outputs of ``declared`` are recorded
+    with its sensors' noise, drawn with ``seed``
+    (:func:`bondgraph.diagnose.cases.synthesize`).
+
+    Returns
+    -------
+    Experiment
+        Inputs, noisy outputs, the true states (``state.<name>`` columns) and
+        the true parameters in the sidecar.
+    """
     tm = Model.from_graph(truth)
     th = tm.theta({k: v for k, v in TRUE_COASTDOWN.items() if k in tm.params})
     x0 = initial_state(tm, th, v=v0)
@@ -79,7 +92,7 @@ def case_aero() -> LoopCase:
         "filter model has none (the suspect list of the original work: drag leaking into "
         "rolling resistance).",
         declared_builder(vehicle_aero_declared),
-        lambda: _coastdown_record(_vehicle("truth_aero", aero=True, **COAST),
+        lambda: coastdown_record(_vehicle("truth_aero", aero=True, **COAST),
                                   vehicle_aero_declared(), "coastdown_aero", seed=101),
         ["f_r", "r_dyn", "theta_off", "q_grade"],
         {"metric": "nrmse_sim"},
@@ -93,7 +106,7 @@ def case_brake() -> LoopCase:
         "Coast-down record of a vehicle with a residual brake drag torque at the wheels; "
         "rolling resistance known from tire data, drag and dynamic radius estimated.",
         declared_builder(vehicle_brake_declared),
-        lambda: _coastdown_record(_vehicle("truth_brake", brake_drag=True, **COAST),
+        lambda: coastdown_record(_vehicle("truth_brake", brake_drag=True, **COAST),
                                   vehicle_brake_declared(), "coastdown_brake_drag", seed=102),
         ["C_dA", "r_dyn", "theta_off", "q_grade"],
         {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
@@ -106,7 +119,7 @@ def case_pitch() -> LoopCase:
         "Coast-down record with a 0.5 deg pitch-sensor mounting offset; the declared model "
         "reads the pitch sensor as grade + suspension pitch.",
         declared_builder(vehicle_pitch_declared),
-        lambda: _coastdown_record(_vehicle("truth_pitch", **COAST), vehicle_pitch_declared(),
+        lambda: coastdown_record(_vehicle("truth_pitch", **COAST), vehicle_pitch_declared(),
                                   "coastdown_pitch_offset", seed=103),
         ["f_r", "C_dA", "r_dyn", "q_grade"],
         {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
@@ -118,8 +131,20 @@ def vehicle_slip_declared() -> BondGraph:
     return _vehicle("vehicle_full", gear="H", drive="2WD")
 
 
-def _driving_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
-                    duration: float = 30.0, **truth_params: float):
+def driving_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
+                   duration: float = 30.0, **truth_params: float):
+    """A synthetic driving record: ``truth`` (a full vehicle graph in High
+    range, e.g. the declared one plus an effect by
+    :func:`bondgraph.apply_effect`) driven by throttle steps 0.35, 0.7, 0.2,
+    0.9 at 2, 9, 16 and 22 s for ``duration`` [s] at 40 Hz from its
+    equilibrium, parameters ``TRUE_DRIVING`` with ``truth_params`` over them;
+    the outputs of ``declared`` are recorded with its sensors' noise, drawn
+    with ``seed`` (:func:`bondgraph.diagnose.cases.synthesize`).
+
+    Returns
+    -------
+    Experiment
+    """
     tm = Model.from_graph(truth)
     params = dict(TRUE_DRIVING, **truth_params)
     th = tm.theta({k: v for k, v in params.items() if k in tm.params})
@@ -152,7 +177,7 @@ def case_slip() -> LoopCase:
         "Driving record (throttle steps, High range) of a vehicle whose CVT belt creeps on "
         "the secondary sheave; the declared full filter model has a rigid belt.",
         declared_builder(vehicle_slip_declared),
-        lambda: _driving_record(_vehicle("truth_belt_slip", gear="H", drive="2WD",
+        lambda: driving_record(_vehicle("truth_belt_slip", gear="H", drive="2WD",
                                          belt_slip=True), vehicle_slip_declared(),
                                 "throttle_steps_belt_slip", seed=104, c_bs=BELT_CREEP),
         params,
@@ -192,7 +217,7 @@ def case_engine_saturation() -> LoopCase:
         f"saturates smoothly at {level:.1f} N m ({ENGINE_SATURATION:.0%} of the peak "
         "torque); the declared full filter model has the unsaturated torque map.",
         declared_builder(vehicle_slip_declared),
-        lambda: _driving_record(engine_saturation_truth(), vehicle_slip_declared(),
+        lambda: driving_record(engine_saturation_truth(), vehicle_slip_declared(),
                                 "throttle_steps_engine_saturation", seed=105),
         params,
         {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
