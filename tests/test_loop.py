@@ -189,7 +189,9 @@ def test_bundled_default_via_cli_writes_the_report(tmp_path):
                 "nll_after", "parameters"):
         assert key in s0
     assert (s0["effect"], s0["attached_to"]) == ("quadratic_drag", "body.v")
-    assert s0["error_after"] < 0.3 * s0["error_before"]
+    # the free runs start from the record's initial state (measured 0.592 ->
+    # 0.322; from the first filtered state, as before, 2.545 -> 0.347)
+    assert s0["error_after"] < 0.6 * s0["error_before"]
     assert s0["nll_after"] < s0["nll_before"]
     c = s0["parameters"]["quadratic_drag.body.v.c"]
     # ½ ρ C_dA = 0.6 * 1.9 = 1.14 N s²/m² in the truth (its |v| smoothing differs)

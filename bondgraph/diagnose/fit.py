@@ -484,9 +484,8 @@ def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str]
 
 def validation_metric(ctx: Context, model: Model, theta: np.ndarray) -> float:
     """The loop's metric on the validation record (``settings.validation``):
-    one UKF run on it gives the first filtered state, from which the model
-    runs freely with the record's inputs; inf if the filter or the free run
-    fails there."""
+    the model runs freely with the record's inputs from its initial state
+    (:func:`free_run`); inf if the filter or the free run fails there."""
     return validation_run(ctx, model, theta)[0]
 
 
@@ -525,19 +524,22 @@ def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res,
              record: Record | None = None) -> np.ndarray | None:
     """Free-run simulation (N, n_y) of ``record`` (default the loop's) with
     the measured inputs (``settings.sim_method``, rtol 1e-6, atol 1e-9, the
-    input hold of :func:`sim_inputs`) from the first filtered state, or, when
-    the record does not give some initial states (:func:`unknown_states`, not
-    estimated with θ), from the RTS-smoothed initial state x̂_0|N (Särkkä
-    2008): the best start the model and the whole record give. None (logged)
-    if the model cannot be simulated freely."""
+    input hold of :func:`sim_inputs`) from the record's initial state (the
+    prior mean: state columns, sidecar ``x0``, ``--x0``, the jointly
+    estimated initial states), or, when the record does not give some initial
+    states (:func:`unknown_states`, not estimated with θ), from the
+    RTS-smoothed initial state x̂_0|N (Särkkä 2008): the best start the model
+    and the whole record give. The filter's prior spread does not enter
+    (the first filtered state did: one measurement update of it moved the
+    start by its own P0). None (logged) if the model cannot be simulated
+    freely. ``ukf_res`` is kept for the callers' signature."""
     record = ctx.record if record is None else record
     t, u, y = record.arrays(model)
     hold, u_sim = sim_inputs(ctx.settings, u)
-    x0 = ukf_res.x_filt[0, 0, :]
-    if not np.all(np.isfinite(x0)):
-        x0 = prior_on(record, ctx.settings, model)[0]
-    view = ctx if record is ctx.record else Context(record, replace(ctx.settings, x0=None))
-    if [n for n in unknown_states(view, model) if n not in ctx.x0_estimates or view is not ctx]:
+    own = record is ctx.record
+    view = ctx if own else Context(record, replace(ctx.settings, x0=None))
+    x0 = (prior(ctx, model) if own else prior_on(record, ctx.settings, model))[0]
+    if [n for n in unknown_states(view, model) if not own or n not in ctx.x0_estimates]:
         x0 = _smoothed_start(ctx, model, theta, record, x0)
     try:
         with warnings.catch_warnings():
@@ -561,7 +563,7 @@ def _smoothed_start(ctx: Context, model: Model, theta: np.ndarray, record: Recor
         xs = smoothed_initial_state(model, t, u, y, theta, x0, P0, ctx.settings)
     except BondGraphError as exc:
         ctx.log(f"  smoothed initial state unavailable ({str(exc).splitlines()[0]}): "
-                f"the free run starts from the first filtered state")
+                f"the free run starts from the prior mean")
         return fallback
     return xs if np.all(np.isfinite(xs)) else fallback
 

@@ -133,7 +133,7 @@ class LoopSettings:
         (an LR just past its threshold, an unchanged free-run error) out.
     validation : Experiment, optional
         A held-out record: the accept decision compares the free-run error on
-        it (the filter's first state on it starts the free run).
+        it (from its own initial state, :func:`bondgraph.diagnose.fit.free_run`).
     holdout : float
         Without ``validation``: the fraction of the record, at its end, held
         out as the validation record (0: none; the fits use the rest; its
