@@ -236,8 +236,8 @@ def noise_parameters(model, theta, x=None, u=None, *, rel: float = 0.1) -> list[
         for j, name in enumerate(model.params):
             t1 = th.copy()
             t1[j] = th[j] * (1 + rel) if th[j] != 0 else rel
-            noise = (not np.allclose(np.asarray(model.proc_std(t1), float), q0)
-                     or not np.allclose(np.asarray(model.meas_std(t1), float), r0))
+            noise = (not np.allclose(np.asarray(model.proc_std(t1), float), q0, atol=0.0)
+                     or not np.allclose(np.asarray(model.meas_std(t1), float), r0, atol=0.0))
             if not noise:
                 continue
             if (np.allclose(model.f(x, u, t1[None]), f0, equal_nan=True)
@@ -304,7 +304,7 @@ def _meas_dependent(model, th) -> dict[str, list[int]]:
         for j, name in enumerate(model.params):
             t1 = th.copy()
             t1[j] = th[j] * 1.1 if th[j] != 0 else 0.1
-            d = np.flatnonzero(~np.isclose(np.asarray(model.meas_std(t1), float), r0))
+            d = np.flatnonzero(~np.isclose(np.asarray(model.meas_std(t1), float), r0, atol=0.0))
             if d.size:
                 out[name] = d.tolist()
     return out
