@@ -123,7 +123,7 @@ def test_sensitivity_x0_crb_matches_forward_sensitivities(msd, tmp_path):
     assert rc == 0
     nu = json.loads((tmp_path / "s" / "sensitivity.json").read_text())["local"]["nuisance"]
     assert nu["names"] == ["x0.p_mass", "x0.q_spring"]
-    # reference: F = Σ_k J_kᵀ R⁻¹ J_k, J = [∂y/∂θ, ∂y/∂x0] of the forward sensitivity equations
+    # reference: F = Σ_k J_kᵀ R⁻¹ J_k, J = [∂y/∂θ, ∂y/∂x0] (forward sensitivity equations)
     th = msd.theta()
     s = output_sensitivities(msd, exp.t, exp.inputs_for(msd), th, np.array([0.6, 0.01]),
                              ["m", "k", "c"], x0_states=["p_mass", "q_spring"], hold="zoh",

@@ -21,12 +21,6 @@ from .analysis import initial_state
 from .experiments import TRUE_COASTDOWN, TRUE_DRIVING, steps
 from .vehicle import build_vehicle
 
-#: every case pins the graph's own noise levels: the synthetic records do not
-#: declare noise_std (synthesize records it in the sidecar's "noise" only),
-#: so noise="auto" would estimate every sensor's std and change the cases'
-#: figures, which were established with the graph's noise (the true one).
-MODEL_NOISE = "model"
-
 #: registered cases (``bondgraph.cases`` entry point)
 CASES: dict[str, str] = {
     "vehicle_aero": "vehicle_graphs.cases:case_aero",
@@ -88,7 +82,7 @@ def case_aero() -> LoopCase:
         lambda: _coastdown_record(_vehicle("truth_aero", aero=True, **COAST),
                                   vehicle_aero_declared(), "coastdown_aero", seed=101),
         ["f_r", "r_dyn", "theta_off", "q_grade"],
-        {"noise": MODEL_NOISE, "metric": "nrmse_sim"},
+        {"metric": "nrmse_sim"},
         ("quadratic_drag", "body.v"))
 
 
@@ -102,7 +96,7 @@ def case_brake() -> LoopCase:
         lambda: _coastdown_record(_vehicle("truth_brake", brake_drag=True, **COAST),
                                   vehicle_brake_declared(), "coastdown_brake_drag", seed=102),
         ["C_dA", "r_dyn", "theta_off", "q_grade"],
-        {"noise": MODEL_NOISE, "metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
+        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
         ("coulomb", "wheels.w"))
 
 
@@ -115,7 +109,7 @@ def case_pitch() -> LoopCase:
         lambda: _coastdown_record(_vehicle("truth_pitch", **COAST), vehicle_pitch_declared(),
                                   "coastdown_pitch_offset", seed=103),
         ["f_r", "C_dA", "r_dyn", "q_grade"],
-        {"noise": MODEL_NOISE, "metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
+        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
         ("sensor_offset", "pitch"))
 
 
@@ -162,7 +156,7 @@ def case_slip() -> LoopCase:
                                          belt_slip=True), vehicle_slip_declared(),
                                 "throttle_steps_belt_slip", seed=104, c_bs=BELT_CREEP),
         params,
-        {"noise": MODEL_NOISE, "metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
+        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
         ("slip", "cvt.belt.p2 -> cvt.w_s"))
 
 
@@ -201,5 +195,5 @@ def case_engine_saturation() -> LoopCase:
         lambda: _driving_record(engine_saturation_truth(), vehicle_slip_declared(),
                                 "throttle_steps_engine_saturation", seed=105),
         params,
-        {"noise": MODEL_NOISE, "metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
+        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
         TrueEffect("actuator_saturation", ENGINE_TORQUE[1], {"L": level}))

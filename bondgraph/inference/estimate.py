@@ -525,18 +525,14 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     P0 : array (n_x, n_x) or (n_x,), optional
         Prior covariance (default :func:`bondgraph.inference.ukf.default_P0`).
     Q, R : arrays, optional
-        Extra process-noise / measurement-noise covariance of the filter (a
-        given R replaces the noise policy).
+        Extra process-noise / measurement-noise covariance (R: no noise policy).
     start : array (k,), optional
         A starting point placed in the initial population.
     x0_states : sequence of str
-        Initial states estimated jointly with θ (``x0.<state>`` in the
-        result; ``["all"]``: every state): the filter's prior of each
-        shrinks to a token spread, so the likelihood is conditional on it
-        (Kristensen, Madsen & Jørgensen 2004); box ± 100 prior stds.
+        Initial states estimated with θ (``x0.<state>``; ``["all"]``): their
+        prior shrinks to a token spread (Kristensen, Madsen & Jørgensen 2004).
     log : callable, optional
-        Receives the notes of the noise policy (which levels are estimated
-        and why; default: none).
+        Receives the noise policy's notes (which levels are estimated, why).
 
     Returns
     -------
@@ -551,8 +547,7 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     ModelError
         Unknown parameter names, or a fixed parameter that is also estimated.
     OptionError, DataError, EstimationError
-        Invalid options or state names, a checkpoint of another problem; a
-        bad record; no finite NLL.
+        Bad options or state names, a checkpoint of another problem; a bad record; no finite NLL.
 
     Warns
     -----

@@ -213,20 +213,10 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         ``sens_atol`` (:func:`bondgraph.numerics.forward_sensitivity.output_sensitivities`).
     progress, log :
         Progress bar of the Sobol' sample; a callable for progress messages.
-    x0_states : sequence of str
-        Initial states estimated jointly with θ (``["all"]``: every state):
-        columns ``x0.<state>`` of the Fisher information (a token prior
-        spread, Kristensen, Madsen & Jørgensen 2004), their Cramér-Rao std
-        and correlations in ``local["nuisance"]``.
-    noise : {"model", "auto"}
-        ``"auto"``: noise levels the record declares are used, the others
-        (``noise.<output>`` and noise-intensity parameters not in ``params``
-        or ``fixed``) are nuisance columns of the Fisher information
-        (:func:`bondgraph.inference.estimand.noise_plan`); ``"model"``: the
-        graph's values. The parameters' identifiability is judged on the
-        efficient information F_pp − F_pn F_nn⁻¹ F_np (nuisance profiled out).
-    fixed : sequence of str
-        Parameters held fixed (never nuisance).
+    x0_states, noise, fixed :
+        Initial states estimated with θ (``["all"]``), the noise policy ("auto":
+        declared levels used, undeclared ones estimated; "model") and the fixed
+        parameters: nuisance columns of the Fisher information (:func:`_information`).
 
     Returns
     -------
@@ -257,16 +247,23 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
     sobol = dict(outputs=outputs, box_rel=box_rel, chunk=chunk, seed=seed, progress=progress,
                  nll_transform=nll_transform)
     glob = _global(pb, global_N, sobol) if global_N else None
+    return _report(pb, ename, scale, local, recommendation, glob, sens, dict(
+        x0_rule=x0_how, noise=noise, noise_notes=notes, x0_states=list(pb.estimand.states)))
+
+
+def _report(pb: _Problem, ename: str, scale, local, recommendation, glob, sens,
+            settings: dict) -> SensitivityReport:
+    """The :class:`SensitivityReport` of :func:`analyse`."""
+    model, params, t = pb.model, pb.params, pb.t
+    settings.update(samples=int(t.size), duration_s=float(t[-1] - t[0]), x0=pb.x0.tolist(),
+                    P0_diag=np.diag(pb.P0).tolist(), ukf=pb.ukf.to_dict(),
+                    theta_full=pb.theta.tolist(), timing=pb.timing,
+                    units=[model.param_units[i] for i in model.param_indices(params)])
     return SensitivityReport(
         model=model.name, experiment=ename, params=list(params),
         theta={p: float(pb.theta[model.param_index(p)]) for p in params},
         scale=scale.tolist(), local=local, recommendation=recommendation, global_=glob,
-        settings=dict(samples=int(t.size), duration_s=float(t[-1] - t[0]), x0=x0a.tolist(),
-                      x0_rule=x0_how, P0_diag=np.diag(P0a).tolist(), ukf=pb.ukf.to_dict(),
-                      theta_full=pb.theta.tolist(), timing=pb.timing, noise=noise,
-                      noise_notes=notes, x0_states=list(pb.estimand.states),
-                      units=[model.param_units[i] for i in model.param_indices(params)]),
-        sensitivities=sens)
+        settings=settings, sensitivities=sens)
 
 
 def _global(pb: _Problem, N: int, options: dict) -> dict:
