@@ -100,7 +100,7 @@ def test_cli_estimates_an_unmeasured_initial_state(msd, tmp_path, capsys):
     exp.save(tmp_path / "rec.csv")
     rc = main(["estimate", "--model", "mass_spring_damper", "--data", str(tmp_path / "rec.csv"),
                "--params", "k,c", "--fit", "nll", "--estimate-x0", "p_mass", "--method", "rk4",
-               "--particles", "20", "--iterations", "20", "--no-plots", "--quiet",
+               "--particles", "20", "--iterations", "20", "--quiet",
                "--fixed", "m=2", "--out", str(tmp_path / "out")])
     assert rc == 0, capsys.readouterr().err
     res = json.loads((tmp_path / "out" / "result.json").read_text())
@@ -111,6 +111,15 @@ def test_cli_estimates_an_unmeasured_initial_state(msd, tmp_path, capsys):
     assert abs(est - p0) < 3 * sd, (est, sd)
     assert res["settings"]["x0_states"] == ["p_mass"]
     assert res["settings"]["noise_levels"]["x"]["how"] == "declared"
+    assert (tmp_path / "out" / "fit_outputs.png").stat().st_size > 1000
+    # the plots' filter is the estimate's: x0 estimated (token spread), R as declared
+    from bondgraph.inference.estimate import EstimationResult
+    from bondgraph.report.estimation import filter_of
+
+    r = EstimationResult.from_json(tmp_path / "out" / "result.json")
+    x0, P0, R = filter_of(msd, r, np.zeros(2), np.diag([0.05 ** 2, 0.05 ** 2]))
+    assert x0[0] == est and P0[0, 0] == pytest.approx((1e-6 * 0.05) ** 2)
+    np.testing.assert_allclose(R[0], np.diag([0.002 ** 2, 0.01 ** 2]))
 
 
 def test_sensitivity_x0_crb_matches_forward_sensitivities(msd, tmp_path):
