@@ -160,3 +160,19 @@ def test_bad_state_or_noise_mode_is_a_clean_error(msd, tmp_path, capsys, cmd, ar
     assert rc == 2, err
     assert "Traceback" not in err
     assert f"bondgraph {cmd}: error:" in err and needle in err, err
+
+
+def test_loop_estimates_undeclared_noise_in_the_declared_fit(msd):
+    from bondgraph.catalog.reference import mass_spring_damper
+    from bondgraph.diagnose.loop import run_loop
+
+    exp = _record(msd)
+    logs = []
+    res = run_loop(mass_spring_damper(), exp, ["m", "k", "c"], max_steps=1, structural=False,
+                   progress=False, log=logs.append, ukf=UKF)
+    assert any("measurement-noise std estimated" in ln and "x, v" in ln for ln in logs)
+    d = res.initial.to_dict()
+    for j, o in enumerate(("x", "v")):
+        sd = d["std"][f"noise.{o}"]
+        assert abs(d["noise_estimates"][o] - TRUE_SD[j]) < 3 * sd, (o, d["noise_estimates"][o])
+    assert res.settings["noise"] == "auto" and res.settings["noise_outputs"] == ["x", "v"]

@@ -21,6 +21,7 @@ import sympy as sp
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
+    NOISE_BOX,
     X0_TOKEN,
     fisher_fit,
     hessian_cramer_rao,
@@ -261,6 +262,28 @@ def noise_outputs(ctx: Context, model: Model) -> list[str]:
     return [o for o in ctx.settings.noise_outputs if o in model.outputs]
 
 
+def noise_start(ctx: Context, model: Model, theta: np.ndarray) -> dict:
+    """Output -> start of its estimated noise std in a fit (the held level,
+    else ``meas_std(θ)``): the centre of its box (×/÷ NOISE_BOX)."""
+    meas = np.asarray(model.meas_std(theta[None, :]), float)[0]
+    return {o: float(ctx.settings.noise_levels.get(o, meas[model.output_index(o)]))
+            for o in noise_outputs(ctx, model)}
+
+
+def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: dict) -> None:
+    """Log a warning for estimated noise stds on a bound of their box (the
+    likelihood puts the output's variance elsewhere, e.g. into process noise);
+    their Cramér-Rao std becomes None."""
+    bad = [o for o, v in est.items() if o in start and start[o] > 0
+           and not start[o] / NOISE_BOX * (1 + 1e-6) < v < start[o] * NOISE_BOX * (1 - 1e-6)]
+    for o in bad:
+        std[f"noise.{o}"] = None
+    if bad:
+        ctx.log(f"  warning: {what}: measurement-noise std on a bound of its box: "
+                f"{', '.join(f'{o} = {est[o]:.3g}' for o in bad)} (not identified by the record "
+                f"beside the process noise; declare it in the record or use noise='model')")
+
+
 def resolve_noise(ctx: Context, graph: BondGraph) -> LoopSettings:
     """The settings with the noise policy resolved for the declared model
     (``settings.noise``): under ``"auto"``, the record's declared levels held
@@ -423,10 +446,12 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     noise_est = {o: ctx.settings.noise_levels[o] for o in noise_outputs(ctx, model)
                  if o in ctx.settings.noise_levels}
     if params and iters > 0:
+        start_sigma = noise_start(ctx, model, theta)
         theta, std, conv, x0_new, noise_new = _maximize(ctx, graph, model, params, theta,
                                                         iters, what, tolerance)
         x0_est.update(x0_new)
         noise_est.update(noise_new)
+        _noise_bound_warning(ctx, what, noise_new, start_sigma, std)
     kept, kept_s = ctx.x0_estimates, ctx.settings
     ctx.x0_estimates = {**kept, **x0_est}
     ctx.settings = replace(kept_s, noise_levels={**kept_s.noise_levels, **noise_est})

@@ -21,7 +21,7 @@ from bondgraph.inference.estimate import (
     cramer_rao,
     hessian_batched,
 )
-from bondgraph.inference.estimand import X0_TOKEN, Estimand, noise_plan
+from bondgraph.inference.estimand import NOISE_BOX, X0_TOKEN, Estimand, noise_plan
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.output_error import output_error_fit
@@ -29,7 +29,9 @@ from bondgraph.inference.prior import record_prior
 from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
 
 
-__all__ = ["X0_TOKEN"]  # re-exported: the token spread of a jointly estimated initial state
+# re-exported: the token spread of a jointly estimated initial state, and the
+# box of an estimated noise std (its start times / divided by NOISE_BOX)
+__all__ = ["NOISE_BOX", "X0_TOKEN"]
 
 
 def run_ukf(model, t, u, y, thetas: np.ndarray, x0, P0, settings: LoopSettings, *,
