@@ -128,7 +128,9 @@ def _msd_record(seed=0, n=400, dt=0.01):
     th = m.theta(m=2.0, k=50.0, c=1.5)
     y = simulate(m, t, u, np.zeros(2), th, rtol=1e-9, atol=1e-12).y
     y = y + np.random.default_rng(seed + 1).normal(size=y.shape) * m.meas_std(th)
-    return Experiment.from_arrays(t, model=m, u=u, y=y, name="msd")
+    # the record declares the noise it was drawn with (the loop holds it)
+    return Experiment.from_arrays(t, model=m, u=u, y=y, name="msd",
+                                  noise_std=dict(zip(m.outputs, m.meas_std(th))))
 
 
 def test_negative_mass_stops_the_loop_with_a_typed_error():
@@ -426,7 +428,8 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
     truth = m.theta(m=2.5, k=80.0, c=2.0)
     y = simulate(m, t, u, np.zeros(2), truth, rtol=1e-10, atol=1e-12, hold="zoh").y
     y = y + np.random.default_rng(1).normal(size=y.shape) * m.meas_std(truth)
-    exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd", meta=AT_REST)
+    exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd", meta=AT_REST,
+                                 noise_std=dict(zip(m.outputs, m.meas_std(truth))))
     logs = []
     # ROS2 with 2 steps per sample: the discretisation check's recommendation
     # below (with 1 step the filter's bias makes a 0.4 % sensor gain significant)

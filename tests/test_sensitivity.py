@@ -228,7 +228,9 @@ def test_cli_writes_json_plots_and_feeds_estimate(tmp_path, msd_csv, capsys):
                    "--method", "rk4"])
     assert rc == 0
     r = json.loads((est / "result.json").read_text())
-    assert r["params"] == d["recommendation"]["estimate"]
+    # the recommended parameters, and (--noise auto, the record declares no
+    # noise_std) the two sensors' noise stds
+    assert r["params"] == d["recommendation"]["estimate"] + ["noise.x", "noise.v"]
 
 
 def test_cli_unknown_parameter(msd_csv, capsys):

@@ -2,8 +2,9 @@
 
 Every command that takes a model accepts a registered name,
 ``module:function`` or ``path/to/file.py:function`` (the current directory is
-on the import path); ``--fixed``, ``--x0``, ``--p0-rel``, ``--method``,
-``--substeps``, ``--hold`` and ``--backend`` mean the same in every command.
+on the import path); ``--fixed``, ``--x0``, ``--p0-rel``, ``--estimate-x0``,
+``--noise`` (:func:`add_estimation_scope`), ``--method``, ``--substeps``,
+``--hold`` and ``--backend`` mean the same in every command.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
 from bondgraph.errors import OptionError
-from bondgraph.inference.options import DEFAULT_BACKEND, UKF_BACKENDS
+from bondgraph.inference.options import DEFAULT_BACKEND, NOISE_MODES, UKF_BACKENDS
 
 MODEL_HELP = ("model: a registered name (`bondgraph models`), module:function or "
               "path/to/file.py:function returning a BondGraph (modules are imported from "
@@ -136,6 +137,42 @@ def add_initial_state(p: argparse.ArgumentParser) -> None:
                         "sidecar x0 for states the model has, else the model's X0)")
     p.add_argument("--p0-rel", type=float, default=0.05,
                    help="prior std of each initial state, relative to max(|x0|, 1)")
+
+
+def add_estimation_scope(p: argparse.ArgumentParser) -> None:
+    """What an estimation moves besides ``--params``, the same in estimate,
+    loop and sensitivity: ``--fixed``, ``--x0``, ``--p0-rel`` (the UKF
+    prior), ``--estimate-x0`` (initial states estimated jointly with θ) and
+    ``--noise`` (the measurement-noise policy,
+    :func:`bondgraph.inference.estimand.noise_plan`)."""
+    add_fixed(p)
+    add_initial_state(p)
+    p.add_argument("--estimate-x0", default=None, metavar="STATES",
+                   help="initial states estimated jointly with the parameters (comma-separated "
+                        "state names, or all); their prior shrinks to a token spread, so the "
+                        "likelihood is conditional on them")
+    p.add_argument("--noise", choices=NOISE_MODES, default="auto",
+                   help="measurement-noise levels: auto (default) holds an output's noise std "
+                        "at the record's declaration (sidecar noise_std) and estimates the "
+                        "undeclared ones (noise.<output>, and noise-intensity parameters not "
+                        "in --params or --fixed); model: the graph's own sensor noise and "
+                        "noise-intensity values")
+
+
+def estimated_states(model, args) -> list[str]:
+    """The initial states of ``--estimate-x0`` (``all``: every state).
+
+    Raises
+    ------
+    OptionError
+        A state the model does not have (named), or no names.
+    """
+    from bondgraph.inference.estimand import x0_state_names
+
+    text = getattr(args, "estimate_x0", None)
+    if not text:
+        return []
+    return x0_state_names(model, parse_names(text, "--estimate-x0"))
 
 
 def add_discretisation(p: argparse.ArgumentParser, *, hold_default: str = "zoh") -> None:

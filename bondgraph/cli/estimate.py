@@ -6,23 +6,25 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 import warnings
 from pathlib import Path
+
+import numpy as np
 
 from bondgraph.cli.common import (
     add_data,
     add_discretisation,
-    add_fixed,
-    add_initial_state,
+    add_estimation_scope,
     add_model,
     add_overwrite,
     add_quiet,
     add_scheduler,
+    estimated_states,
     initial_state,
     load_model,
     load_record,
     output_folder,
-    parse_names,
     parse_pairs,
     parse_params,
     published,
@@ -57,13 +59,12 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="checkpoint file (default .<out>.work/checkpoint.npz beside --out while "
                         "running; copied into <out> at the end)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint")
-    add_fixed(p)
+    add_estimation_scope(p)
     add_discretisation(p)
     p.add_argument("--alpha", type=float, default=1.0)
     p.add_argument("--beta", type=float, default=2.0)
     p.add_argument("--kappa", type=float, default=0.0)
     p.add_argument("--stall", type=int, default=None, help="stop after N iterations without progress")
-    add_initial_state(p)
     p.add_argument("--no-polish", action="store_true")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--workers", type=int, default=1,
@@ -74,8 +75,6 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "unmeasured disturbances, global search) or the free-run simulation "
                         "error by least squares with forward sensitivities (sim: a "
                         "deterministic model, a local search from the defaults)")
-    p.add_argument("--estimate-x0", default=None, metavar="STATES",
-                   help="with --fit sim: initial states estimated too (comma-separated, or all)")
     add_quiet(p)
 
 
@@ -103,14 +102,15 @@ def run(args) -> int:
     ck = (Path(args.checkpoint) if args.checkpoint
           else folder.work_dir(create=False) / "checkpoint.npz")
     x0 = initial_state(model, exp, args.x0)
+    states = estimated_states(model, args)
     if args.fit == "sim":
-        return run_output_error(args, model, exp, params, x0, folder)
+        return run_output_error(args, model, exp, params, x0, folder, states)
     P0 = default_P0(model, x0, args.p0_rel)
     fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
                      iterations=args.iterations, seed=args.seed, checkpoint=ck,
                      resume=args.resume, polish=not args.no_polish, stall_iterations=args.stall,
                      progress=not args.quiet, workers=args.workers,
-                     scheduler=args.scheduler)
+                     scheduler=args.scheduler, noise=args.noise)
     ukf = UKFOptions(alpha=args.alpha, beta=args.beta, kappa=args.kappa, method=args.method,
                      substeps=args.substeps, hold=args.hold, backend=args.backend)
     if not args.checkpoint:
@@ -119,7 +119,8 @@ def run(args) -> int:
         warnings.simplefilter("ignore", IdentifiabilityWarning)
         try:
             res = estimate(model, exp, params, fit=fit, ukf=ukf,
-                           fixed=parse_pairs(args.fixed, "--fixed"), x0=x0, P0=P0)
+                           fixed=parse_pairs(args.fixed, "--fixed"), x0=x0, P0=P0,
+                           x0_states=states, log=None if args.quiet else _say)
         except EstimationError:
             if not args.checkpoint:
                 folder.remove_work_dir()      # nothing worth resuming
@@ -141,6 +142,11 @@ def run(args) -> int:
     return 0
 
 
+def _say(msg: str) -> None:
+    """A log line of the estimation (the noise policy) on stderr."""
+    print(msg, file=sys.stderr, flush=True)
+
+
 def _prepare_checkpoint(folder, resume: bool) -> None:
     """Create the working folder of the default checkpoint
     ``.OUT.work/checkpoint.npz``; with ``--resume`` and no such file, the
@@ -151,24 +157,26 @@ def _prepare_checkpoint(folder, resume: bool) -> None:
         shutil.copyfile(done, ck)
 
 
-def run_output_error(args, model, exp, params, x0, folder) -> int:
+def run_output_error(args, model, exp, params, x0, folder, states) -> int:
     """``--fit sim``: the output-error fit
     (:func:`bondgraph.inference.output_error.output_error_fit`) from the
     model's defaults with ``--fixed`` and ``--x0``, the initial states of
-    ``--estimate-x0`` estimated too; writes ``result.json``."""
+    ``--estimate-x0`` estimated too; writes ``result.json``. The output-error
+    criterion needs no noise level: ``--noise`` only decides what is
+    reported (the declared levels, or the RMS free-run error as the estimate
+    of an undeclared one)."""
     theta = model.theta0.copy()
     for k, v in parse_pairs(args.fixed, "--fixed").items():
         theta[model.param_index(k)] = v
     t, u, y, _, _ = record_arrays(model, as_record(exp))
-    states = parse_names(args.estimate_x0, "--estimate-x0") if args.estimate_x0 else []
-    if states == ["all"]:
-        states = list(model.states)
     r = output_error_fit(model, t, u, y, params, theta=theta, x0=x0, x0_states=states,
                          hold=args.hold)
+    noise = _sim_noise_levels(model, exp, r, theta, args.noise)
     doc = {"model": model.name, "data": str(args.data), "fit": "sim", "names": r.names,
            "estimates": r.estimates(), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,
            "rmse": dict(zip(model.outputs, r.rmse.tolist())), "nfev": r.nfev,
-           "status": r.status, "message": r.message}
+           "status": r.status, "message": r.message, "noise": args.noise,
+           "noise_levels": noise}
     text = json.dumps(to_jsonable(doc), indent=2, allow_nan=False)
     folder.publish(lambda d: (d / "result.json").write_text(text))
     rpath = folder.path / "result.json"
@@ -178,5 +186,25 @@ def run_output_error(args, model, exp, params, x0, folder) -> int:
                                                     " (on a bound)" if n in r.at_bound else ""))
     print(f"free-run RMS error: " + ", ".join(f"{o} {v:.4g}" for o, v in
                                               zip(model.outputs, r.rmse)))
+    print("noise levels: " + ", ".join(f"{o} {d['std']:.4g} ({d['how']})"
+                                       for o, d in noise.items()))
     print(f"wrote {rpath}")
     return 0
+
+
+def _sim_noise_levels(model, exp, r, theta, mode: str) -> dict:
+    """Output -> ``{"std", "how"}`` reported by the output-error fit: the
+    record's declaration (``declared``), else with ``--noise auto`` the RMS
+    free-run error (``estimated``: the output-error estimate of the noise std
+    when the model is right), else the model's sensor noise (``model``)."""
+    declared = exp.noise_std_for(model)
+    meas = np.asarray(model.meas_std(np.asarray(theta, float)[None, :]), float)[0]
+    out = {}
+    for j, o in enumerate(model.outputs):
+        if mode == "auto" and np.isfinite(declared[j]):
+            out[o] = dict(std=float(declared[j]), how="declared")
+        elif mode == "auto":
+            out[o] = dict(std=float(r.rmse[j]), how="estimated")
+        else:
+            out[o] = dict(std=float(meas[j]), how="model")
+    return out

@@ -8,22 +8,25 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from pathlib import Path
+from types import SimpleNamespace
 
 from bondgraph.cli.common import (
     MODEL_HELP,
     add_discretisation,
-    add_fixed,
-    add_initial_state,
+    add_estimation_scope,
     add_overwrite,
     add_quiet,
     load_record,
+    parse_names,
     parse_pairs,
     parse_params,
 )
+from bondgraph.core.equations import derive
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.settings import DEFAULT_HOLDOUT, LoopSettings
 from bondgraph.errors import ModelError, OptionError, UsageError
+from bondgraph.inference.estimand import x0_state_names
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.loop_report import LoopReporter
@@ -63,12 +66,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--metric-tolerance", type=float, default=None,
                    help="accept an effect only if the error grows by at most this factor "
                         "(default 1.0: it may not rise)")
-    add_fixed(p)
-    add_initial_state(p)
-    p.set_defaults(p0_rel=None)        # the loop's own P0 policy unless given
-    p.add_argument("--estimate-x0", default=None, metavar="STATES",
-                   help="initial states estimated jointly with the parameters at every fit "
-                        "(comma-separated, or all)")
+    add_estimation_scope(p)            # --fixed --x0 --p0-rel --estimate-x0 --noise
+    p.set_defaults(p0_rel=None, noise=None)   # the loop's own P0 policy, the case's noise
     p.add_argument("--fit", choices=("nll", "sim"), default=None,
                    help="declared fit: UKF likelihood (nll, default) or an output-error "
                         "(free-run least-squares) fit of the non-noise parameters first, "
@@ -157,6 +156,22 @@ def run(args) -> int:
     return 0
 
 
+def loop_states(graph, text: str) -> list[str]:
+    """The initial states of ``--estimate-x0`` checked against the declared
+    graph's states (``all``: every state of every model of the loop).
+
+    Raises
+    ------
+    OptionError
+        A state the graph does not have (named).
+    """
+    names = parse_names(text, "--estimate-x0")
+    if names == ["all"]:
+        return names
+    states = SimpleNamespace(name=graph.name, states=[str(x) for x in derive(graph).states])
+    return x0_state_names(states, names)
+
+
 def numerics_settings(args, settings: dict, graph) -> dict:
     """Loop settings from the shared options: ``--fixed`` (over the case's),
     ``--x0`` (by state name, over the record's initial state), ``--p0-rel``,
@@ -182,7 +197,9 @@ def numerics_settings(args, settings: dict, graph) -> dict:
     if args.fit is not None:
         out["fit"] = args.fit
     if args.estimate_x0:
-        out["estimate_x0"] = [n.strip() for n in args.estimate_x0.split(",") if n.strip()]
+        out["estimate_x0"] = loop_states(graph, args.estimate_x0)
+    if args.noise is not None:
+        out["noise"] = args.noise
     base = settings.get("ukf") or UKFOptions()
     given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
              if getattr(args, k) is not None}

@@ -13,11 +13,11 @@ import numpy as np
 from bondgraph.cli.common import (
     add_data,
     add_discretisation,
-    add_fixed,
-    add_initial_state,
+    add_estimation_scope,
     add_model,
     add_overwrite,
     add_quiet,
+    estimated_states,
     initial_state,
     load_model,
     load_record,
@@ -53,10 +53,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                                                "sensitivity_<model>_<data>); refused when not "
                                                "empty, unless --overwrite")
     add_overwrite(p)
-    add_fixed(p)
+    add_estimation_scope(p)
     p.add_argument("--at-truth", action="store_true",
                    help="analyse at the record's true parameters (synthetic records)")
-    add_initial_state(p)
     p.add_argument("--seconds", type=float, default=None, help="use only the first SECONDS")
     add_discretisation(p)
     p.add_argument("--rel-crb", type=float, default=REL_CRB_MAX,
@@ -86,7 +85,8 @@ def run(args) -> int:
         if not tp:
             raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
         values.update({k: float(v) for k, v in tp.items() if k in model.params})
-    values.update(parse_pairs(args.fixed, "--fixed"))
+    fixed = parse_pairs(args.fixed, "--fixed")
+    values.update(fixed)
     th = model.theta(values)
     x0 = initial_state(model, exp, args.x0) if args.x0 else None
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
@@ -101,7 +101,8 @@ def run(args) -> int:
                   global_N=args.global_N, outputs=outputs, box_rel=args.box_rel,
                   chunk=args.chunk, seed=args.seed, rel_crb_max=args.rel_crb,
                   corr_max=args.corr_max, sensitivities=not args.no_sensitivities,
-                  progress=not args.quiet, log=log, nll_transform=args.nll_transform)
+                  progress=not args.quiet, log=log, nll_transform=args.nll_transform,
+                  x0_states=estimated_states(model, args), noise=args.noise, fixed=list(fixed))
     rep.settings["data"] = str(args.data)
     rep.settings["wall_s"] = time.perf_counter() - t0
 

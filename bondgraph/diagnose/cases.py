@@ -101,7 +101,9 @@ def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
     -------
     Experiment
         Inputs, noisy outputs, true states (``state.<name>``) and meta
-        (true parameters, x0, seed, noise).
+        (true parameters, x0, seed, noise); every output declares the noise
+        std it was drawn with (``noise_std``), so that ``noise="auto"`` holds
+        the filter's noise at it.
     """
     tm = Model.from_graph(truth)
     dm = Model.from_graph(declared)
@@ -124,7 +126,8 @@ def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
             "true_parameters": {p: float(v) for p, v in zip(tm.params, th)},
             "x0": {s: float(v) for s, v in zip(tm.states, x) if s in dm.states},
             "noise": {o: float(v) for o, v in zip(dm.outputs, sd)}}
-    return Experiment.from_arrays(t, model=dm, u=ud, y=y, meta=meta, name=name)
+    return Experiment.from_arrays(t, model=dm, u=ud, y=y, meta=meta, name=name,
+                                  noise_std={o: float(v) for o, v in zip(dm.outputs, sd)})
 
 
 def registered_cases() -> dict[str, str]:

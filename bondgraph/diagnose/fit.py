@@ -21,11 +21,13 @@ import sympy as sp
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
+    NOISE_BOX,
     X0_TOKEN,
     fisher_fit,
     hessian_cramer_rao,
     lbfgsb_polish,
     make_criterion,
+    plan_noise,
     prior_covariance,
     run_ukf,
     smoothed_initial_state,
@@ -97,7 +99,9 @@ class Fit:
     validation record (None without one), and the per-sample standardised
     free-run errors (N, n_y) of the record and of the validation record
     (:func:`~bondgraph.diagnose.metric.metric_errors`; None if the free
-    run failed or there is no validation record)."""
+    run failed or there is no validation record), and the measurement-noise
+    stds estimated with θ by output (``noise_est``; their Cramér-Rao std in
+    ``std`` as ``noise.<output>``)."""
 
     graph: BondGraph
     model: Model
@@ -117,6 +121,7 @@ class Fit:
     validation_metric: float | None = None
     sim_errors: np.ndarray | None = None
     validation_errors: np.ndarray | None = None
+    noise_est: dict = field(default_factory=dict)
 
     @property
     def k(self) -> int:
@@ -146,7 +151,7 @@ class Fit:
                           self.residuals.whiteness, self.estimates(), dict(self.std),
                           self.residuals, self.sim_y, self.ukf.innovations[:, 0, :],
                           np.diagonal(S, axis1=1, axis2=2).copy(), list(self.at_bound),
-                          self.validation_metric, dict(self.x0_est))
+                          self.validation_metric, dict(self.x0_est), dict(self.noise_est))
 
     @property
     def accept_metric(self) -> float:
@@ -265,6 +270,61 @@ def x0_states(ctx: Context, model: Model) -> list[str]:
     if want == ["all"]:
         return list(model.states)
     return [s for s in want if s in model.states]
+
+
+def noise_outputs(ctx: Context, model: Model) -> list[str]:
+    """The outputs of ``model`` whose measurement-noise std every fit
+    estimates (``settings.noise_outputs``, resolved by :func:`resolve_noise`)."""
+    return [o for o in ctx.settings.noise_outputs if o in model.outputs]
+
+
+def noise_start(ctx: Context, model: Model, theta: np.ndarray) -> dict:
+    """Output -> start of its estimated noise std in a fit (the held level,
+    else ``meas_std(θ)``): the centre of its box (×/÷ NOISE_BOX)."""
+    meas = np.asarray(model.meas_std(theta[None, :]), float)[0]
+    return {o: float(ctx.settings.noise_levels.get(o, meas[model.output_index(o)]))
+            for o in noise_outputs(ctx, model)}
+
+
+def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: dict) -> None:
+    """Log a warning for estimated noise stds on a bound of their box (the
+    likelihood puts the output's variance elsewhere, e.g. into process noise);
+    their Cramér-Rao std becomes None."""
+    bad = [o for o, v in est.items() if o in start and start[o] > 0
+           and not start[o] / NOISE_BOX * (1 + 1e-6) < v < start[o] * NOISE_BOX * (1 - 1e-6)]
+    for o in bad:
+        std[f"noise.{o}"] = None
+    if bad:
+        ctx.log(f"  warning: {what}: measurement-noise std on a bound of its box: "
+                f"{', '.join(f'{o} = {est[o]:.3g}' for o in bad)} (not identified by the record "
+                f"beside the process noise; declare it in the record or use noise='model')")
+
+
+def resolve_noise(ctx: Context, graph: BondGraph) -> LoopSettings:
+    """The settings with the noise policy resolved for the declared model
+    (``settings.noise``): under ``"auto"``, the record's declared levels held
+    (``noise_levels``), the undeclared fixed sensor noises estimated
+    (``noise_outputs``) and the undeclared noise-intensity parameters added
+    to ``params`` (:func:`bondgraph.inference.estimand.noise_plan`); the
+    plan's notes logged."""
+    s = ctx.settings
+    if s.noise == "model":
+        ctx.log("noise levels: the model's own (noise='model')")
+        return s
+    model = model_of(graph)
+    theta = model.theta0.copy()
+    for k, v in s.fixed.items():
+        if k in model.params:
+            theta[model.param_index(k)] = v
+    declared = ctx.record.exp.noise_std_for(model)
+    add, outs, sigma, notes = plan_noise(model, theta, s.params, list(s.fixed), declared)
+    held = {o: float(sigma[j]) for j, o in enumerate(model.outputs) if np.isfinite(sigma[j])}
+    if held:
+        notes.append("measurement-noise std held at the record's declaration: " + ", ".join(
+            f"{o} = {v:.4g}" for o, v in held.items()))
+    for note in notes or ["noise levels: the model's own (nothing to estimate or hold)"]:
+        ctx.log(note)
+    return replace(s, params=list(s.params) + add, noise_levels=held, noise_outputs=outs)
 
 
 def prior_on(record: Record, settings: LoopSettings, model: Model):
@@ -399,18 +459,24 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     std: dict = {}
     conv: tuple = (None, None)
     x0_est = {s: ctx.x0_estimates[s] for s in x0_states(ctx, model) if s in ctx.x0_estimates}
+    noise_est = {o: ctx.settings.noise_levels[o] for o in noise_outputs(ctx, model)
+                 if o in ctx.settings.noise_levels}
     if params and iters > 0:
-        theta, std, conv, x0_new = _maximize(ctx, graph, model, params, theta, iters, what,
-                                             tolerance)
+        start_sigma = noise_start(ctx, model, theta)
+        theta, std, conv, x0_new, noise_new = _maximize(ctx, graph, model, params, theta,
+                                                        iters, what, tolerance)
         x0_est.update(x0_new)
-    kept = ctx.x0_estimates
+        noise_est.update(noise_new)
+        _noise_bound_warning(ctx, what, noise_new, start_sigma, std)
+    kept, kept_s = ctx.x0_estimates, ctx.settings
     ctx.x0_estimates = {**kept, **x0_est}
+    ctx.settings = replace(kept_s, noise_levels={**kept_s.noise_levels, **noise_est})
     try:
         fit = evaluate_fit(ctx, graph, model, params, theta, what, std)
     finally:
-        ctx.x0_estimates = kept
+        ctx.x0_estimates, ctx.settings = kept, kept_s
     fit.converged, fit.iterations = conv
-    fit.x0_est = x0_est
+    fit.x0_est, fit.noise_est = x0_est, noise_est
     fit.at_bound = on_bound(model, params, theta)
     if fit.at_bound:
         ctx.log(f"  warning: {what}: estimate(s) on a bound of their box: "
@@ -423,14 +489,16 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
 
 def _maximize(ctx: Context, graph: BondGraph, model: Model, params: list[str],
               theta: np.ndarray, iters: int, what: str,
-              tolerance: float = 0.0) -> tuple[np.ndarray, dict, tuple, dict]:
+              tolerance: float = 0.0) -> tuple[np.ndarray, dict, tuple, dict, dict]:
     """Fisher scoring of ``params`` from ``theta`` (noise intensities in log
-    scale), the initial states of :func:`x0_states` jointly, L-BFGS-B (θ
-    only) if it fails numerically; returns θ, the Cramér-Rao std (empty
-    after the fallback; ``x0.<state>`` for the states), (converged,
-    iterations) and the estimated initial states by name."""
+    scale), the initial states of :func:`x0_states` and the noise stds of
+    :func:`noise_outputs` jointly, L-BFGS-B (θ only) if it fails
+    numerically; returns θ, the Cramér-Rao std (empty after the fallback;
+    ``x0.<state>``, ``noise.<output>`` for the others), (converged,
+    iterations), the estimated initial states and noise stds by name."""
     t, u, y = ctx.record.arrays(model)
     states = x0_states(ctx, model)
+    noises = noise_outputs(ctx, model)
     x0, P0 = prior(ctx, model, shrink=not states)
     idx = [model.param_index(n) for n in params]
     lo, hi = bounds_around(model, params, theta)
@@ -440,18 +508,18 @@ def _maximize(ctx: Context, graph: BondGraph, model: Model, params: list[str],
     noise = noise_params(graph)
     scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
     try:
-        theta, F, conv, used, x0n = fisher_fit(
+        theta, F, conv, used, x0n, sig = fisher_fit(
             model, t, u, y, theta, idx, lo, hi, x0, P0, ctx.settings, iters, scale, tolerance,
-            states, np.sqrt(np.maximum(np.diag(P0), 1e-300)))
-        names = list(params) + [f"x0.{s_}" for s_ in states]
+            states, np.sqrt(np.maximum(np.diag(P0), 1e-300)), noises)
+        names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]
         return (theta, cr_std(F, names), (conv, used),
-                {s_: float(x0n[model.state_index(s_)]) for s_ in states})
+                {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
         ctx.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
         crit = criterion_for(ctx, model, params, theta)
         xs = np.array([theta[model.param_index(n)] for n in params])
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
-        return crit.theta(x[None, :])[0], {}, (None, None), {}
+        return crit.theta(x[None, :])[0], {}, (None, None), {}, {}
 
 
 def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str],

@@ -15,8 +15,13 @@ from typing import Sequence
 import numpy as np
 
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
-from bondgraph.inference.estimand import X0_TOKEN, Estimand
+from bondgraph.inference.estimate import (
+    Criterion,
+    EstimandCriterion,
+    cramer_rao,
+    hessian_batched,
+)
+from bondgraph.inference.estimand import NOISE_BOX, X0_TOKEN, Estimand, noise_plan
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.output_error import output_error_fit
@@ -25,7 +30,9 @@ from bondgraph.inference.smoother import rts_smooth
 from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check, ukf_nll
 
 
-__all__ = ["X0_TOKEN"]  # re-exported: the token spread of a jointly estimated initial state
+# re-exported: the token spread of a jointly estimated initial state, and the
+# box of an estimated noise std (its start times / divided by NOISE_BOX)
+__all__ = ["NOISE_BOX", "X0_TOKEN"]
 
 
 def run_ukf(model, t, u, y, thetas: np.ndarray, x0, P0, settings: LoopSettings, *,
@@ -56,7 +63,43 @@ def run_ukf(model, t, u, y, thetas: np.ndarray, x0, P0, settings: LoopSettings, 
     UKFResult
         :func:`bondgraph.inference.ukf.ukf_nll`'s result (NLL per set).
     """
-    return ukf_nll(model, t, u, y, thetas, x0, P0, options=settings.ukf, store=store)
+    return ukf_nll(model, t, u, y, thetas, x0, P0, options=settings.ukf, store=store,
+                   R=noise_cov(model, thetas, settings))
+
+
+def held_sigma(model, settings: LoopSettings) -> np.ndarray:
+    """The measurement-noise stds (n_y,) the loop holds
+    (``settings.noise_levels`` by output name; NaN: ``meas_std(θ)``)."""
+    lv = settings.noise_levels or {}
+    return np.array([float(lv.get(o, np.nan)) for o in model.outputs])
+
+
+def noise_cov(model, thetas, settings: LoopSettings) -> np.ndarray | None:
+    """The filter's measurement-noise covariances R (P, n_y, n_y) with the
+    held levels of ``settings.noise_levels`` (``diag(σ²)``, σ from
+    ``meas_std(θ)`` for the others), or None when no level is held."""
+    sig = held_sigma(model, settings)
+    if not np.isfinite(sig).any():
+        return None
+    return _noise_cov_batch(model, np.atleast_2d(np.asarray(thetas, float)), sig)
+
+
+def _noise_cov_batch(model, th: np.ndarray, sig: np.ndarray) -> np.ndarray:
+    """``diag(σ²)`` (P, n_y, n_y): σ held where finite, ``meas_std(θ)`` elsewhere."""
+    with np.errstate(all="ignore"):
+        meas = np.asarray(model.meas_std(th), float)
+    s = np.where(np.isfinite(sig)[None, :], sig[None, :], meas)
+    R = np.zeros(s.shape + (s.shape[1],))
+    idx = np.arange(s.shape[1])
+    R[:, idx, idx] = s ** 2
+    return R
+
+
+def plan_noise(model, theta, params: Sequence[str], fixed: Sequence[str], declared):
+    """The loop's noise policy under ``noise="auto"``
+    (:func:`bondgraph.inference.estimand.noise_plan`): ``(noise-intensity
+    parameters to add, outputs whose std is estimated, held σ (n_y,), notes)``."""
+    return noise_plan(model, theta, params, fixed, declared)
 
 
 def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P0,
@@ -64,13 +107,17 @@ def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P
     """Batched NLL of the parameters ``names`` (everything else at ``base``),
     ``crit(X (S, k)) -> (S,)``, evaluated ``settings.chunk`` sets per UKF run
     (:class:`bondgraph.inference.estimate.Criterion`)."""
-    return Criterion(model, t, u, y, names, base, x0, P0, options=settings.ukf,
-                     chunk=settings.chunk)
+    sig = held_sigma(model, settings)
+    if not np.isfinite(sig).any():
+        return Criterion(model, t, u, y, names, base, x0, P0, options=settings.ukf,
+                         chunk=settings.chunk)
+    est = Estimand(model, list(names), theta=base, x0=x0, sigma=sig)
+    return EstimandCriterion(model, t, u, y, est, P0, options=settings.ukf, chunk=settings.chunk)
 
 
 def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, upper, x0, P0,
                settings: LoopSettings, iterations: int, log_scale, tolerance: float = 0.0,
-               states: Sequence[str] = (), x0_scale=None):
+               states: Sequence[str] = (), x0_scale=None, noises: Sequence[str] = ()):
     """Maximum-likelihood fit by Levenberg-damped Fisher scoring
     (:func:`bondgraph.inference.fisher.estimand_scoring`), the initial states
     ``states`` estimated jointly (:class:`~bondgraph.inference.estimand.Estimand`).
@@ -89,18 +136,24 @@ def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, u
     states : sequence of str
         Initial states estimated with θ (their prior shrinks to a token
         spread; box: ± 100 of their prior std ``x0_scale`` (n_x,)).
+    noises : sequence of str
+        Outputs whose measurement-noise std is estimated with θ (log scale,
+        from the held level or ``meas_std(θ)``); the other held levels of
+        ``settings.noise_levels`` stay fixed.
 
     Returns
     -------
     theta : array (n_theta,)
-    F : array (k + m, k + m)
-        Fisher information at the result (parameters, then states).
+    F : array (k + m + r, k + m + r)
+        Fisher information at the result (parameters, states, noise stds).
     converged : bool
         Stopped by a convergence criterion rather than by ``iterations``.
     used : int
         Iterations used.
     x0 : array (n_x,)
         The initial state (the estimated entries moved).
+    sigma : dict
+        The estimated noise stds by output.
 
     Raises
     ------
@@ -108,12 +161,15 @@ def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, u
         When the scoring fails numerically (the caller falls back to L-BFGS-B).
     """
     est = Estimand(model, [model.params[j] for j in index], states=list(states), theta=theta,
-                   x0=x0, x0_scale=x0_scale)
+                   x0=x0, x0_scale=x0_scale, noises=list(noises),
+                   sigma=held_sigma(model, settings))
     lo, hi = est.bounds(lower, upper)
-    scale = np.concatenate([np.asarray(log_scale, bool), np.zeros(len(states), bool)])
+    scale = np.concatenate([np.asarray(log_scale, bool), np.zeros(len(states), bool),
+                            np.ones(len(noises), bool)])
     r = estimand_scoring(model, t, u, y, est, lo, hi, P0, options=settings.ukf,
                          max_iter=iterations, atol=tolerance, log_scale=scale)
-    return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0
+    sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
+    return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig
 
 
 def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:
@@ -160,14 +216,17 @@ def smoothed_initial_state(model, t, u, y, theta: np.ndarray, x0, P0,
                            settings: LoopSettings) -> np.ndarray:
     """The initial state given the whole record, x̂_0|N (n_x,), of the
     unscented RTS smoother (:func:`bondgraph.inference.smoother.rts_smooth`,
-    Särkkä 2008) at ``theta`` with the loop's filter options.
+    Särkkä 2008) at ``theta`` with the loop's filter options and held noise
+    levels (:func:`noise_cov`).
 
     Raises
     ------
     NumericalError
         If the filter or the backward pass fails.
     """
-    return rts_smooth(model, t, u, y, theta, x0, P0, options=settings.ukf).x[0]
+    R = noise_cov(model, np.asarray(theta, float)[None, :], settings)
+    return rts_smooth(model, t, u, y, theta, x0, P0, options=settings.ukf,
+                      R=None if R is None else R[0]).x[0]
 
 
 def output_error(model, t, u, y, names: Sequence[str], theta: np.ndarray, x0,

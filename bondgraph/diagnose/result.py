@@ -189,6 +189,9 @@ class FitSummary:
     x0_estimates : dict
         Initial states estimated with θ (state name -> value); their
         Cramér-Rao std in ``std`` as ``x0.<state>``.
+    noise_estimates : dict
+        Measurement-noise stds estimated with θ (output -> std, output
+        units); their Cramér-Rao std in ``std`` as ``noise.<output>``.
     """
 
     model: str
@@ -206,6 +209,7 @@ class FitSummary:
     at_bound: list = field(default_factory=list)
     validation_metric: float | None = None
     x0_estimates: dict = field(default_factory=dict)
+    noise_estimates: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
@@ -213,6 +217,7 @@ class FitSummary:
                             "bic": self.bic, "metric": self.metric, "whiteness": self.whiteness,
                             "validation_metric": self.validation_metric,
                             "at_bound": self.at_bound, "x0_estimates": self.x0_estimates,
+                            "noise_estimates": self.noise_estimates,
                             "estimates": self.estimates, "std": self.std,
                             "residuals": self.residuals.to_dict()})
 

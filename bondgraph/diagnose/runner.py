@@ -29,6 +29,7 @@ from bondgraph.diagnose.fit import (
     noise_params,
     parameter_std,
     prior_mean,
+    resolve_noise,
 )
 from bondgraph.diagnose.inference_calls import discretisation, output_error
 from bondgraph.diagnose.metric import metric_name
@@ -102,14 +103,15 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     t0 = time.perf_counter()
     ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
                   progress)
+    ctx.settings = resolve_noise(ctx, graph)
     initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
     result = new_result(ctx, graph, initial, warn)
     publish(ctx, result, initial, initial, on_update)
     current = initial
-    ctx.x0_estimates = dict(initial.x0_est)
+    condition_on(ctx, initial)
     for step in range(1, s.max_steps + 1):
         current, outcome = run_step(ctx, result, current, step, graph.name)
-        ctx.x0_estimates = dict(current.x0_est)
+        condition_on(ctx, current)
         if outcome == NOTHING_SIGNIFICANT:
             break
         publish(ctx, result, initial, current, on_update)
@@ -123,6 +125,15 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     publish(ctx, result, initial, current, on_update)
     ctx.log(f"done in {time.perf_counter() - t0:.1f} s")
     return result
+
+
+def condition_on(ctx: Context, fit: Fit) -> None:
+    """Later filter runs condition on ``fit``: its estimated initial states
+    and measurement-noise stds (score tests use them; confirmations refit them)."""
+    ctx.x0_estimates = dict(fit.x0_est)
+    if fit.noise_est:
+        ctx.settings = replace(ctx.settings,
+                               noise_levels={**ctx.settings.noise_levels, **fit.noise_est})
 
 
 def held_out(experiment, s: LoopSettings):

@@ -8,7 +8,7 @@ from typing import Any, Sequence
 
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Effect
 from bondgraph.errors import OptionError
-from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.options import NOISE_MODES, UKFOptions
 
 #: the built-in error measures (``LoopSettings.metric``; bondgraph.diagnose.metric)
 METRICS = ("nrmse_sim", "rmse_sim", "rmse_pred")
@@ -169,6 +169,21 @@ class LoopSettings:
     true_effect : TrueEffect or (kind, target), optional
         A synthetic record's true effect: the result records its rank at
         every step (:func:`bondgraph.diagnose.result.rank_of`).
+    noise : {"auto", "model"}
+        Measurement-noise levels (``--noise``;
+        :func:`bondgraph.inference.estimand.noise_plan`): ``"auto"`` (default)
+        holds an output's noise std at the record's declaration (sidecar
+        ``noise_std``) and estimates the undeclared ones with θ in every fit
+        of the declared model and in every confirmation (``noise.<output>``;
+        noise-intensity parameters not in ``params`` or ``fixed`` join
+        ``params``); the score tests condition on the current fit's levels.
+        ``"model"``: the graph's own sensor noise and noise-intensity values.
+    noise_levels : dict
+        Output -> measurement-noise std (output units) held in every filter
+        run; resolved by the runner (the declared levels, then the current
+        fit's estimates).
+    noise_outputs : list of str
+        Outputs whose noise std every fit estimates; resolved by the runner.
     """
 
     params: list[str]
@@ -208,9 +223,15 @@ class LoopSettings:
     chunk: int = 48
     metric_name: str | None = None
     true_effect: Any = None
+    noise: str = "auto"
+    noise_levels: dict = field(default_factory=dict)
+    noise_outputs: list = field(default_factory=list)
 
     def __post_init__(self):
         check_settings(self)
+        if self.noise not in NOISE_MODES:
+            raise OptionError(f"LoopSettings.noise must be one of {', '.join(NOISE_MODES)}, "
+                              f"got {self.noise!r}")
         if self.p0_scale not in ("magnitude", "state"):
             raise OptionError(f"LoopSettings.p0_scale must be 'magnitude' or 'state', got "
                               f"{self.p0_scale!r}")
@@ -252,6 +273,8 @@ class LoopSettings:
                 "p0_scale": self.p0_scale,
                 "holdout": self.holdout,
                 "fit": self.fit, "sim_hold": self.sim_hold, "auto_substeps": self.auto_substeps,
+                "noise": self.noise, "noise_levels": dict(self.noise_levels),
+                "noise_outputs": list(self.noise_outputs),
                 "confirm_iterations": self.confirm_iterations,
                 "confirm_top": self.confirm_top, "confirm_rounds": self.confirm_rounds,
                 "confirm_tolerance": self.confirm_tolerance,

@@ -63,7 +63,7 @@ def model_digest(model) -> str:
 def problem_fingerprint(crit) -> dict[str, str]:
     """The problem components of an estimation criterion
     (:class:`bondgraph.inference.estimate.Criterion`)."""
-    return {
+    fp = {
         "data (t, u, y arrays)": digest(crit.t, crit.u, crit.y),
         "model": model_digest(crit.model),
         "parameter list": ", ".join(crit.params),
@@ -72,6 +72,10 @@ def problem_fingerprint(crit) -> dict[str, str]:
         "noise Q, R": digest(crit.Q, crit.R),
         "UKF options": json.dumps(crit.options.to_dict(), sort_keys=True),
     }
+    est = getattr(crit, "est", None)
+    if est is not None:      # an EstimandCriterion: the held noise stds too
+        fp["measurement-noise stds held"] = digest(est.sigma)
+    return fp
 
 
 def encode(fingerprint: Mapping[str, str]) -> np.ndarray:

@@ -236,8 +236,8 @@ def noise_parameters(model, theta, x=None, u=None, *, rel: float = 0.1) -> list[
         for j, name in enumerate(model.params):
             t1 = th.copy()
             t1[j] = th[j] * (1 + rel) if th[j] != 0 else rel
-            noise = (not np.allclose(np.asarray(model.proc_std(t1), float), q0)
-                     or not np.allclose(np.asarray(model.meas_std(t1), float), r0))
+            noise = (not np.allclose(np.asarray(model.proc_std(t1), float), q0, atol=0.0)
+                     or not np.allclose(np.asarray(model.meas_std(t1), float), r0, atol=0.0))
             if not noise:
                 continue
             if (np.allclose(model.f(x, u, t1[None]), f0, equal_nan=True)
@@ -304,7 +304,109 @@ def _meas_dependent(model, th) -> dict[str, list[int]]:
         for j, name in enumerate(model.params):
             t1 = th.copy()
             t1[j] = th[j] * 1.1 if th[j] != 0 else 0.1
-            d = np.flatnonzero(~np.isclose(np.asarray(model.meas_std(t1), float), r0))
+            d = np.flatnonzero(~np.isclose(np.asarray(model.meas_std(t1), float), r0, atol=0.0))
             if d.size:
                 out[name] = d.tolist()
     return out
+
+
+def x0_state_names(model, names: Sequence[str] | None, option: str = "--estimate-x0") -> list[str]:
+    """The initial states to estimate: ``names`` checked against the model's
+    states (``["all"]``: every state; None or empty: none).
+
+    Parameters
+    ----------
+    model : Model
+    names : sequence of str or None
+    option : str
+        Name of the option, for messages.
+
+    Returns
+    -------
+    list of str
+
+    Raises
+    ------
+    OptionError
+        A name the model has no state of (the culprit and the states named),
+        or a name given twice.
+    """
+    names = [str(n).strip() for n in (names or []) if str(n).strip()]
+    if names == ["all"]:
+        return list(model.states)
+    bad = [n for n in names if n not in model.states]
+    if bad:
+        raise OptionError(f"{option}: model '{model.name}' has no state "
+                          f"{', '.join(repr(b) for b in bad)} (states: "
+                          f"{', '.join(model.states)}, or all)")
+    if len(set(names)) != len(names):
+        raise OptionError(f"{option}: a state is listed twice in {names}")
+    return names
+
+
+def check_noise_mode(mode: str, option: str = "--noise") -> str:
+    """``mode`` if it is ``"auto"`` or ``"model"``.
+
+    Raises
+    ------
+    OptionError
+        Anything else (the value and the choices named).
+    """
+    if mode not in ("auto", "model"):
+        raise OptionError(f"{option} = {mode!r} is not one of 'auto', 'model'")
+    return mode
+
+
+def plan_estimand(model, theta, params: Sequence[str], fixed: Sequence[str],
+                  declared, *, noise: str = "auto", states: Sequence[str] = (),
+                  x0=None, x0_scale=None) -> tuple[Estimand, list[str]]:
+    """The :class:`Estimand` of an estimation and the log notes saying which
+    noise levels it estimates and why.
+
+    Parameters
+    ----------
+    model : Model
+    theta : array (n_theta,)
+        Values of all parameters (start of the estimated ones).
+    params : sequence of str
+        Parameters the user estimates.
+    fixed : sequence of str
+        Parameters the user holds fixed.
+    declared : array (n_y,) or None
+        Noise stds the record declares, model units (NaN: none; None: no
+        record declarations, e.g. bare arrays).
+    noise : {"auto", "model"}
+        ``"auto"``: :func:`noise_plan` (declared levels held at the declared
+        value, undeclared ones estimated); ``"model"``: the graph's own
+        sensor noise and noise-intensity values (nothing added).
+    states : sequence of str
+        Initial states estimated jointly with θ (Kristensen, Madsen &
+        Jørgensen 2004).
+    x0, x0_scale : arrays (n_x,), optional
+        Prior mean and spread of the initial state (:class:`Estimand`).
+
+    Returns
+    -------
+    (Estimand, notes)
+
+    Raises
+    ------
+    OptionError
+        An unknown noise mode; ModelError: unknown names.
+    """
+    check_noise_mode(noise, "noise")
+    params, notes = list(params), []
+    if noise == "model":
+        return Estimand(model, params, states=list(states), theta=theta, x0=x0,
+                        x0_scale=x0_scale), ["noise levels: the model's own (--noise model)"]
+    dec = np.full(model.n_y, np.nan) if declared is None else np.asarray(declared, float)
+    add, outs, sigma, notes = noise_plan(model, theta, params, fixed, dec)
+    held = [o for j, o in enumerate(model.outputs) if np.isfinite(sigma[j])]
+    if held:
+        notes.append("measurement-noise std held at the record's declaration: " + ", ".join(
+            f"{o} = {sigma[model.output_index(o)]:.4g}" for o in held))
+    if not (add or outs or held):
+        notes.append("noise levels: the model's own (nothing to estimate or hold)")
+    est = Estimand(model, params + add, states=list(states), noises=outs, theta=theta, x0=x0,
+                   sigma=sigma, x0_scale=x0_scale)
+    return est, notes

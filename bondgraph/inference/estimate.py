@@ -46,6 +46,13 @@ from bondgraph.core import progress
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import EstimationError, IdentifiabilityWarning, ModelError, OptionError
 from bondgraph.inference.checkpoint import problem_fingerprint
+from bondgraph.inference.estimand import (
+    NOISE_PREFIX,
+    X0_PREFIX,
+    Estimand,
+    plan_estimand,
+    x0_state_names,
+)
 from bondgraph.inference.optimize import de, minimize_batched, pso
 from bondgraph.inference.options import FitOptions, UKFOptions, fit_options, ukf_options
 from bondgraph.inference.record import as_record, initial_state, record_arrays
@@ -125,6 +132,10 @@ class Criterion:
         """Full parameter arrays (S, n_theta) for values X (S, k)."""
         return self.model.expand_theta(self.params, np.atleast_2d(X), self.base)
 
+    def problem_at(self, x) -> tuple:
+        """``(θ (n_theta,), x0 (n_x,), P0, R or None)`` of the filter at one point x (k,)."""
+        return self.theta(np.atleast_2d(x))[0], self.x0, self.P0, self.R
+
     def run(self, X, store: bool | str = False) -> UKFResult:
         """The UKF result (all arrays) for parameter values X (S, k)."""
         return ukf_nll(self.model, self.t, self.u, self.y, self.theta(X), self.x0, self.P0,
@@ -183,6 +194,72 @@ def _chunks(X: np.ndarray, chunk: int | None, workers: int) -> list[np.ndarray]:
 def _evaluate_chunk(crit: "Criterion", X: np.ndarray):
     """``(nll, failures)`` of one chunk on a worker (:meth:`Criterion._evaluate`)."""
     return crit._evaluate(X)
+
+
+class EstimandCriterion(Criterion):
+    """Batched NLL of the quantities of an :class:`~bondgraph.inference.estimand.Estimand`
+    (parameters, initial states ``x0.<state>``, noise stds ``noise.<output>``):
+    ``crit(S (P, k)) -> (P,)`` in search coordinates, where a noise std moves
+    as its logarithm (a scale parameter: its likelihood is far from
+    quadratic near zero, and its box spans eight decades). The initial
+    states estimated get a token prior spread, so the likelihood is
+    conditional on them (Kristensen, Madsen & Jørgensen 2004).
+
+    Parameters
+    ----------
+    model : Model
+    t, u, y : arrays (N,), (N, n_u), (N, n_y)
+    est : Estimand
+    P0 : array (n_x, n_x) or (n_x,), optional
+        Prior covariance before the estimated states are shrunk.
+    options, Q, chunk, workers, scheduler :
+        As for :class:`Criterion`.
+
+    Attributes
+    ----------
+    params : list of str
+        The estimand's names (k).
+    log : ndarray of bool (k,)
+        Coordinates searched in log scale.
+    """
+
+    def __init__(self, model, t, u, y, est: Estimand, P0=None, *,
+                 options: UKFOptions | None = None, Q=None, chunk: int | None = None,
+                 workers: int = 1, scheduler: str | None = None):
+        super().__init__(model, t, u, y, est.params, est.theta, est.x0, P0, options=options,
+                         Q=Q, R=None, chunk=chunk, workers=workers, scheduler=scheduler)
+        self.est = est
+        self.params = est.names
+        self.sigma = est.sigma
+        self.log = np.array([n.startswith(NOISE_PREFIX) for n in est.names], dtype=bool)
+
+    def to_value(self, S) -> np.ndarray:
+        """Estimand values Z (P, k) of search coordinates S (P, k)."""
+        Z = np.array(np.atleast_2d(S), dtype=float)
+        Z[:, self.log] = np.exp(np.minimum(Z[:, self.log], 700.0))
+        return Z
+
+    def to_search(self, Z) -> np.ndarray:
+        """Search coordinates (P, k) of estimand values Z (P, k)."""
+        S = np.array(np.atleast_2d(Z), dtype=float)
+        S[:, self.log] = np.log(np.maximum(S[:, self.log], 1e-300))
+        return S
+
+    def theta(self, X) -> np.ndarray:
+        """Full parameter arrays (P, n_theta) of search coordinates X (P, k)."""
+        return self.est.expand(self.to_value(X))[0]
+
+    def problem_at(self, x) -> tuple:
+        """``(θ (n_theta,), x0 (n_x,), P0, R or None)`` of the filter at one
+        point x (k,) of search coordinates."""
+        th, x0s, R = self.est.expand(self.to_value(x))
+        return th[0], x0s[0], self.est.prior_cov(self.P0), None if R is None else R[0]
+
+    def run(self, X, store: bool | str = False) -> UKFResult:
+        """The UKF result for search coordinates X (P, k)."""
+        th, x0s, R = self.est.expand(self.to_value(X))
+        return ukf_nll(self.model, self.t, self.u, self.y, th, x0s, self.est.prior_cov(self.P0),
+                       options=self.options, Q=self.Q, R=R, store=store)
 
 
 # ------------------------------------------------------------------- Hessian
@@ -421,8 +498,9 @@ class EstimationResult:
 def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None = None,
              ukf: UKFOptions | None = None, fixed: Mapping[str, float] | None = None,
              bounds: Mapping[str, tuple] | None = None, x0=None, P0=None, Q=None, R=None,
-             start=None) -> EstimationResult:
-    """Maximum-likelihood estimate of ``params`` from one record.
+             start=None, x0_states: Sequence[str] = (), log=None) -> EstimationResult:
+    """Maximum-likelihood estimate of ``params`` from one record, with the
+    initial states ``x0_states`` and the noise levels of ``fit.noise``.
 
     Parameters
     ----------
@@ -432,7 +510,8 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     params : sequence of str
         Parameters to estimate (k).
     fit : FitOptions, optional
-        How to search (optimizer, swarm, iterations, seed, checkpoint, polish, ...).
+        How to search (optimizer, swarm, iterations, seed, checkpoint,
+        polish, ``noise`` policy ...).
     ukf : UKFOptions, optional
         Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
     fixed : dict, optional
@@ -446,20 +525,29 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     P0 : array (n_x, n_x) or (n_x,), optional
         Prior covariance (default :func:`bondgraph.inference.ukf.default_P0`).
     Q, R : arrays, optional
-        Extra process-noise / measurement-noise covariance of the filter.
+        Extra process-noise / measurement-noise covariance (R: no noise policy).
     start : array (k,), optional
         A starting point placed in the initial population.
+    x0_states : sequence of str
+        Initial states estimated with θ (``x0.<state>``; ``["all"]``): their
+        prior shrinks to a token spread (Kristensen, Madsen & Jørgensen 2004).
+    log : callable, optional
+        Receives the noise policy's notes (which levels are estimated, why).
 
     Returns
     -------
     EstimationResult
+        ``params`` lists every estimated quantity: the parameters, then
+        ``x0.<state>``, then ``noise.<output>`` (measurement-noise std,
+        output units); ``settings["noise_levels"]`` the level of every
+        output in the filter and how it was set.
 
     Raises
     ------
     ModelError
         Unknown parameter names, or a fixed parameter that is also estimated.
     OptionError, DataError, EstimationError
-        Invalid options, a checkpoint of another problem; a bad record; no finite NLL.
+        Bad options or state names, a checkpoint of another problem; a bad record; no finite NLL.
 
     Warns
     -----
@@ -469,35 +557,151 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     """
     t_start = time.perf_counter()
     fit, ukf = fit_options(fit), ukf_options(ukf)
+    pb = _problem(model, experiment, params, fit, fixed, bounds, x0, P0, R, x0_states)
+    for note in pb["notes"]:
+        (log or (lambda _m: None))(note)
+    crit = _criterion(pb, fit, ukf, Q, R)
+    lo, hi = pb["lo"], pb["hi"]
+    try:
+        opt = _global_search(crit, lo, hi, fit, _start(crit, pb, start))
+        x_best, f_best, pol = _polish(crit, opt, lo, hi, fit)
+        warn_list = _bound_warnings(crit.params, x_best, lo, hi)
+        H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list)
+        disc = _discretisation_at(crit, x_best, f_best, fit, ukf, warn_list)
+    finally:
+        crit.close()
+    for w in warn_list:
+        warnings.warn(w, IdentifiabilityWarning, stacklevel=2)
+    z_best, lo_v, hi_v, H, cr = _to_values(crit, x_best, lo, hi, H, cr)
+    return _result(pb, crit, fit, ukf, opt, z_best, f_best, pol, H, cr, lo_v, hi_v,
+                   warn_list, disc, Q, R, time.perf_counter() - t_start)
+
+
+def _problem(model, experiment, params, fit: FitOptions, fixed, bounds, x0, P0, R,
+             x0_states) -> dict:
+    """The pieces of an estimation: the model, the record's arrays, the
+    prior, the user's parameters and the :class:`~bondgraph.inference.estimand.Estimand`
+    (None for parameters only under ``noise="model"`` without initial
+    states), with the search box in search coordinates and the noise notes."""
     model = Model.from_spec(model)
     params, fixed, base, lo, hi = _search_box(model, params, fixed, bounds)
     rec = as_record(experiment)
     t, u, y, ename, meta = record_arrays(model, rec)
     x0a, _ = initial_state(model, rec, x0)
     P0a = default_P0(model, x0a) if P0 is None else P0
-    crit = Criterion(model, t, u, y, params, base, x0a, P0a, options=ukf, Q=Q, R=R,
-                     chunk=fit.chunk, workers=fit.workers, scheduler=fit.scheduler)
-    try:
-        opt = _global_search(crit, lo, hi, fit, start)
-        x_best, f_best, pol = _polish(crit, opt, lo, hi, fit)
-        warn_list = _bound_warnings(params, x_best, lo, hi)
-        H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list)
-        disc = _discretisation_at(crit, x_best, f_best, x0a, fit, ukf, warn_list)
-    finally:
-        crit.close()
-    for w in warn_list:
-        warnings.warn(w, IdentifiabilityWarning, stacklevel=2)
-    truth, z = _truth(meta, params, x_best, cr["std"])
+    states = x0_state_names(model, x0_states)
+    declared = None if isinstance(rec, tuple) else rec.noise_std_for(model)
+    mode = "model" if R is not None else fit.noise
+    P0d = np.asarray(P0a, float)
+    scale = np.sqrt(np.diag(P0d) if P0d.ndim == 2 else P0d)
+    est, notes = plan_estimand(model, base, params, list(fixed), declared, noise=mode,
+                               states=states, x0=x0a, x0_scale=np.maximum(scale, 1e-12))
+    if R is not None:
+        notes = ["noise levels: the given R"]
+    pb = dict(model=model, params=params, fixed=fixed, base=base, t=t, u=u, y=y, ename=ename,
+              meta=meta, x0=x0a, P0=P0a, est=None, notes=notes, lo=lo, hi=hi)
+    if est.k == len(params) and not est.uses_R:
+        return pb
+    extra = est.params[len(params):]
+    lo_e, hi_e = model.bounds(extra) if extra else (np.zeros(0), np.zeros(0))
+    lo_v, hi_v = est.bounds(np.concatenate([lo, lo_e]), np.concatenate([hi, hi_e]))
+    log = np.array([n.startswith(NOISE_PREFIX) for n in est.names], dtype=bool)
+    lo_v[log], hi_v[log] = np.log(lo_v[log]), np.log(hi_v[log])
+    pb.update(est=est, lo=lo_v, hi=hi_v)
+    return pb
+
+
+def _criterion(pb: dict, fit: FitOptions, ukf: UKFOptions, Q, R) -> Criterion:
+    """The batched NLL of the problem: a :class:`Criterion` of the parameters,
+    or an :class:`EstimandCriterion` when initial states or noise levels
+    take part."""
+    kw = dict(options=ukf, Q=Q, chunk=fit.chunk, workers=fit.workers, scheduler=fit.scheduler)
+    if pb["est"] is None:
+        return Criterion(pb["model"], pb["t"], pb["u"], pb["y"], pb["params"], pb["base"],
+                         pb["x0"], pb["P0"], R=R, **kw)
+    return EstimandCriterion(pb["model"], pb["t"], pb["u"], pb["y"], pb["est"], pb["P0"], **kw)
+
+
+def _start(crit: Criterion, pb: dict, start):
+    """The optimizer's start (search coordinates): ``start`` (k user
+    parameters) completed with the current values of the other estimated
+    quantities; None without ``start``."""
+    if start is None or pb["est"] is None:
+        return start
+    z = pb["est"].value()
+    z[:len(pb["params"])] = np.asarray(start, float)
+    return crit.to_search(z)[0]
+
+
+def _to_values(crit: Criterion, x, lo, hi, H, cr):
+    """Search coordinates back to estimand values: the estimate (k,), the
+    box (k,), and the Hessian and Cramér-Rao bounds by the delta method
+    (a log-scale coordinate s = ln z: ∂z/∂s = z)."""
+    if not isinstance(crit, EstimandCriterion):
+        return x, lo, hi, H, cr
+    z = crit.to_value(x)[0]
+    lo_v, hi_v = crit.to_value(lo)[0], crit.to_value(hi)[0]
+    J = np.where(crit.log, z, 1.0)
+    cr = dict(cr)
+    cr["std"] = np.asarray(cr["std"], float) * J
+    if cr.get("cov") is not None:
+        cr["cov"] = np.asarray(cr["cov"], float) * np.outer(J, J)
+    return z, lo_v, hi_v, np.asarray(H, float) / np.outer(J, J), cr
+
+
+def _result(pb: dict, crit, fit: FitOptions, ukf: UKFOptions, opt, z, f_best, pol, H, cr,
+            lo, hi, warn_list, disc, Q, R, wall: float) -> EstimationResult:
+    """The :class:`EstimationResult` of an estimation at the estimate ``z`` (k,)."""
+    model, names = pb["model"], list(crit.params)
+    est = pb["est"]
+    theta = (_full_theta(model, names, pb["base"], z) if est is None
+             else est.expand(z[None, :])[0][0])
+    truth, zs = _truth(pb["meta"], names, z, cr["std"])
+    settings = _settings(fit, ukf, Q, R, pb["t"], len(names), pb["x0"], pb["P0"], disc)
+    settings.update(noise=fit.noise if R is None else "R", noise_notes=list(pb["notes"]),
+                    noise_levels=_noise_levels(model, est, z, cr["std"], theta),
+                    x0_states=[] if est is None else list(est.states))
     return EstimationResult(
-        model=model.name, experiment=ename, params=params, estimates=x_best, std=cr["std"],
+        model=model.name, experiment=pb["ename"], params=names, estimates=z, std=cr["std"],
         corr=cr["corr"], hessian=H, nll=float(f_best), nll_optimizer=float(opt.fun),
-        evaluations=int(opt.nfev), evaluations_total=int(crit.evaluations),
-        wall_s=time.perf_counter() - t_start, optimizer=fit.optimizer,
-        theta=_full_theta(model, params, base, x_best), fixed=fixed, lower=lo, upper=hi,
-        truth=truth, z=z, at_bound=_at_bound(params, x_best, lo, hi), warnings=warn_list,
+        evaluations=int(opt.nfev), evaluations_total=int(crit.evaluations), wall_s=wall,
+        optimizer=fit.optimizer, theta=theta, fixed=pb["fixed"], lower=lo, upper=hi,
+        truth=truth, z=zs, at_bound=_at_bound(names, z, lo, hi), warnings=warn_list,
         failures=dict(crit.failures), optimizer_result=opt.to_dict(), polish=pol,
-        settings=_settings(fit, ukf, Q, R, t, len(params), x0a, P0a, disc),
-        units=[model.param_units[i] for i in model.param_indices(params)])
+        settings=settings, units=_units(model, names))
+
+
+def _units(model, names: Sequence[str]) -> list[str]:
+    """Units of the estimated quantities: parameter, state or output units."""
+    out = []
+    for n in names:
+        if n.startswith(X0_PREFIX):
+            out.append(model.state_units[model.state_index(n[len(X0_PREFIX):])])
+        elif n.startswith(NOISE_PREFIX):
+            out.append(model.output_units[model.output_index(n[len(NOISE_PREFIX):])])
+        else:
+            out.append(model.param_units[model.param_index(n)])
+    return out
+
+
+def _noise_levels(model, est: Estimand | None, z, std, theta) -> dict:
+    """Output -> ``{"std": level in the filter (output units), "how":
+    "estimated" | "declared" | "model", "crb": Cramér-Rao std or None}``."""
+    with np.errstate(all="ignore"):
+        meas = np.asarray(model.meas_std(np.asarray(theta, float)[None, :]), float)[0]
+    sig = np.full(model.n_y, np.nan) if est is None else est.at(z).sigma
+    names = [] if est is None else est.names
+    out = {}
+    for j, o in enumerate(model.outputs):
+        key = NOISE_PREFIX + o
+        if key in names:
+            sd = float(std[names.index(key)])
+            out[o] = dict(std=float(sig[j]), how="estimated", crb=sd if np.isfinite(sd) else None)
+        elif np.isfinite(sig[j]):
+            out[o] = dict(std=float(sig[j]), how="declared", crb=None)
+        else:
+            out[o] = dict(std=float(meas[j]), how="model", crb=None)
+    return out
 
 
 def _settings(fit: FitOptions, ukf: UKFOptions, Q, R, t, k: int, x0, P0, disc) -> dict:
@@ -633,13 +837,13 @@ def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list):
     return H, cr
 
 
-def _discretisation_at(crit, x_best, f_best, x0, fit: FitOptions, ukf: UKFOptions,
+def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
                        warn_list: list) -> dict | None:
     """:func:`discretisation_check` at the estimate (summary dict, or None);
     a warning above 0.1 measurement-noise standard deviations per sample."""
     if not (fit.check_discretisation and np.isfinite(f_best)):
         return None
-    th_best = crit.theta(x_best)[0]
+    th_best, x0, P0, R = crit.problem_at(x_best)
     dc = discretisation_check(crit.model, crit.t, crit.u, th_best, x0, method=ukf.method,
                               substeps=ukf.substeps, hold=ukf.hold)
     worst = float(np.max(dc["one_step"]))
@@ -648,8 +852,8 @@ def _discretisation_at(crit, x_best, f_best, x0, fit: FitOptions, ukf: UKFOption
                          f"measurement-noise standard deviations per sample at the "
                          f"estimate: a model error that biases the estimate; use more "
                          f"substeps or method='rk4'")
-    guard = nll_guard(crit.model, crit.t, crit.u, crit.y, th_best, crit.x0, crit.P0,
-                      options=ukf, Q=crit.Q, R=crit.R, nll=f_best)
+    guard = nll_guard(crit.model, crit.t, crit.u, crit.y, th_best, x0, P0,
+                      options=ukf, Q=crit.Q, R=R, nll=f_best)
     if not guard["ok"]:
         warn_list.append(_guard_message(guard, ukf))
     return dict(one_step=dc["one_step"].tolist(), free_run=dc["free_run"].tolist(),

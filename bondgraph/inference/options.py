@@ -41,6 +41,8 @@ UKF_BACKENDS = ("numba", "numpy")
 DEFAULT_BACKEND = "numba" if importlib.util.find_spec("numba") is not None else "numpy"
 #: global optimizers of :func:`bondgraph.inference.estimate.estimate`
 OPTIMIZERS = ("pso", "de")
+#: measurement-noise policies (FitOptions.noise, LoopSettings.noise, ``--noise``)
+NOISE_MODES = ("auto", "model")
 
 
 def _set(obj, name: str, value) -> None:
@@ -199,6 +201,14 @@ class FitOptions:
     scheduler : str, optional
         Address of an existing Dask scheduler, ``tcp://HOST:PORT`` (default:
         ``$BONDGRAPH_SCHEDULER``, else none). Results do not depend on it.
+    noise : {"model", "auto"}
+        Measurement-noise levels (:func:`bondgraph.inference.estimand.noise_plan`):
+        ``"model"`` (this function's default, so that bare (t, u, y) arrays
+        keep the graph's noise), the graph's sensor noise and noise-intensity
+        values; ``"auto"`` (the default of ``bondgraph estimate``), a level the
+        record declares (``noise_std`` in its sidecar) held at it, every other
+        one estimated with θ (``noise.<output>``; Kristensen, Madsen &
+        Jørgensen 2004).
 
     Raises
     ------
@@ -221,9 +231,11 @@ class FitOptions:
     chunk: int | None = None
     workers: int = 1
     scheduler: str | None = None
+    noise: str = "model"
 
     def __post_init__(self):
         _choice(self, "optimizer", OPTIMIZERS)
+        _choice(self, "noise", NOISE_MODES)
         _integer(self, "particles", 2, optional=True)
         _integer(self, "iterations", 0)
         _integer(self, "seed", 0, optional=True)

@@ -6,12 +6,33 @@ from pathlib import Path
 
 import numpy as np
 
+from bondgraph.inference.estimand import X0_PREFIX, Estimand
 from bondgraph.inference.estimate import EstimationResult
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.record import record_arrays, state_vector
 from bondgraph.inference.ukf import default_P0, ukf_nll
 from bondgraph.numerics.model import Model
 from bondgraph.report.plots import pyplot
+
+
+def filter_of(model, result: EstimationResult, x0: np.ndarray, P0: np.ndarray):
+    """The filter of the estimate: ``(x0 (n_x,), P0, R (1, n_y, n_y) or
+    None)`` with the estimated initial states (``x0.<state>``, token prior
+    spread) and the noise levels the estimation used
+    (``settings["noise_levels"]``, declared or estimated)."""
+    x0 = np.array(x0, dtype=float)
+    values = dict(zip(result.params, np.asarray(result.estimates, float).tolist()))
+    states = [n[len(X0_PREFIX):] for n in result.params if n.startswith(X0_PREFIX)]
+    for s_ in states:
+        x0[model.state_index(s_)] = values[X0_PREFIX + s_]
+    levels = result.settings.get("noise_levels") or {}
+    sigma = np.array([levels[o]["std"] if o in levels and levels[o].get("how") != "model"
+                      else np.nan for o in model.outputs], dtype=float)
+    P = np.asarray(P0, float)
+    scale = np.sqrt(np.diag(P) if P.ndim == 2 else P)
+    est = Estimand(model, [], states=states, theta=result.theta, x0=x0, sigma=sigma,
+                   x0_scale=scale)
+    return x0, (est.prior_cov(P) if states else P), est.expand(est.value()[None, :])[2]
 
 
 def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
@@ -41,7 +62,9 @@ def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
     if P0 is None:
         P0 = result.settings.get("P0")
     P0a = default_P0(model, x0a) if P0 is None else np.asarray(P0, float)
-    r = ukf_nll(model, t, u, y, result.theta[None, :], x0a, P0a, options=opts, store=True)
+    x0a, P0a, R = filter_of(model, result, x0a, P0a)
+    r = ukf_nll(model, t, u, y, result.theta[None, :], x0a, P0a, options=opts, R=R,
+                store=True)
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     ny = model.n_y

@@ -41,6 +41,8 @@ import numpy as np
 
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import NumericalError, SensitivityError
+from bondgraph.inference.estimand import plan_estimand, x0_state_names
+from bondgraph.inference.fisher import estimand_derivatives
 from bondgraph.inference.options import UKFOptions, ukf_options
 from bondgraph.inference.record import as_record, initial_state, record_arrays
 from bondgraph.inference.ukf import default_P0
@@ -112,6 +114,12 @@ class SensitivityReport:
             lines.append(f"check: full rank {ck['full_rank']}, condition {ck['condition']:.3g}, "
                          f"collinearity index {ck['collinearity_index']:.3g}, max rel CRB "
                          f"{ck['max_rel_crb']:.2%}, max |corr| {ck['max_abs_corr']:.3f}")
+        nu = self.local.get("nuisance")
+        if nu:
+            lines.append("estimated with the parameters (Cramér-Rao std, nuisance of the "
+                         "recommendation): " + ", ".join(
+                             f"{n} = {v:.4g} ± {s_:.3g}"
+                             for n, v, s_ in zip(nu["names"], nu["values"], nu["std"])))
         fl = self.local.get("identifiability", {}).get("flags", [])
         for f in fl:
             if f["type"] in ("product", "ratio", "singular", "correlated", "no_sensitivity"):
@@ -158,6 +166,7 @@ class _Problem:
     limits: dict
     say: Callable
     timing: dict
+    estimand: Any = None
 
 
 def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=None, x0=None,
@@ -167,7 +176,8 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
             rel_crb_max: float = REL_CRB_MAX, corr_max: float = CORR_MAX,
             sensitivities: bool = True, sens_method: str = "LSODA", sens_rtol: float = 1e-6,
             sens_atol: float = 1e-8, progress: bool = False, log=None,
-            nll_transform: str = "log") -> SensitivityReport:
+            nll_transform: str = "log", x0_states: Sequence[str] = (),
+            noise: str = "model", fixed: Sequence[str] = ()) -> SensitivityReport:
     """Local (and optionally global) sensitivity and identifiability analysis
     of one record, with a recommendation of the parameters to estimate.
 
@@ -203,6 +213,10 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         ``sens_atol`` (:func:`bondgraph.numerics.forward_sensitivity.output_sensitivities`).
     progress, log :
         Progress bar of the Sobol' sample; a callable for progress messages.
+    x0_states, noise, fixed :
+        Initial states estimated with θ (``["all"]``), the noise policy ("auto":
+        declared levels used, undeclared ones estimated; "model") and the fixed
+        parameters: nuisance columns of the Fisher information (:func:`_information`).
 
     Returns
     -------
@@ -224,21 +238,32 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
     pb = _Problem(model, t, u, y, _vector(model, theta, "theta"), params, x0a, P0a,
                   ukf_options(ukf), dict(corr_max=corr_max, rel_crb_max=rel_crb_max),
                   log or (lambda *_: None), {})
+    pb.estimand, notes = _estimand(pb, rec, x0_states, noise, fixed)
+    for note in notes:
+        pb.say(note)
     scale = parameter_scale(model, params, pb.theta)
     local, recommendation = _local(pb, scale, ename)
     sens = _output_error(pb, local, sens_method, sens_rtol, sens_atol) if sensitivities else None
     sobol = dict(outputs=outputs, box_rel=box_rel, chunk=chunk, seed=seed, progress=progress,
                  nll_transform=nll_transform)
     glob = _global(pb, global_N, sobol) if global_N else None
+    return _report(pb, ename, scale, local, recommendation, glob, sens, dict(
+        x0_rule=x0_how, noise=noise, noise_notes=notes, x0_states=list(pb.estimand.states)))
+
+
+def _report(pb: _Problem, ename: str, scale, local, recommendation, glob, sens,
+            settings: dict) -> SensitivityReport:
+    """The :class:`SensitivityReport` of :func:`analyse`."""
+    model, params, t = pb.model, pb.params, pb.t
+    settings.update(samples=int(t.size), duration_s=float(t[-1] - t[0]), x0=pb.x0.tolist(),
+                    P0_diag=np.diag(pb.P0).tolist(), ukf=pb.ukf.to_dict(),
+                    theta_full=pb.theta.tolist(), timing=pb.timing,
+                    units=[model.param_units[i] for i in model.param_indices(params)])
     return SensitivityReport(
         model=model.name, experiment=ename, params=list(params),
         theta={p: float(pb.theta[model.param_index(p)]) for p in params},
         scale=scale.tolist(), local=local, recommendation=recommendation, global_=glob,
-        settings=dict(samples=int(t.size), duration_s=float(t[-1] - t[0]), x0=x0a.tolist(),
-                      x0_rule=x0_how, P0_diag=np.diag(P0a).tolist(), ukf=pb.ukf.to_dict(),
-                      theta_full=pb.theta.tolist(), timing=pb.timing,
-                      units=[model.param_units[i] for i in model.param_indices(params)]),
-        sensitivities=sens)
+        settings=settings, sensitivities=sens)
 
 
 def _global(pb: _Problem, N: int, options: dict) -> dict:
@@ -251,13 +276,62 @@ def _global(pb: _Problem, N: int, options: dict) -> dict:
     return glob
 
 
+def _estimand(pb: _Problem, rec, x0_states, noise: str, fixed) -> tuple[Any, list[str]]:
+    """The :class:`~bondgraph.inference.estimand.Estimand` of the analysis
+    (the candidates, the initial states, the noise policy) and its notes."""
+    states = x0_state_names(pb.model, x0_states)
+    declared = None if isinstance(rec, tuple) else rec.noise_std_for(pb.model)
+    scale = np.sqrt(np.maximum(np.diag(np.atleast_2d(pb.P0)) if np.ndim(pb.P0) == 2
+                               else np.asarray(pb.P0, float), 1e-24))
+    return plan_estimand(pb.model, pb.theta, pb.params, list(fixed), declared, noise=noise,
+                         states=states, x0=pb.x0, x0_scale=scale)
+
+
+def _information(pb: _Problem):
+    """The UKF Fisher information of the parameters (efficient: the nuisance
+    columns profiled out, F_pp − F_pn F_nn⁻¹ F_np) and the report of the
+    nuisance quantities (None without any).
+
+    Raises
+    ------
+    FloatingPointError
+        If the UKF fails at the analysis point.
+    """
+    est = pb.estimand
+    k = len(pb.params)
+    if est is None or (est.k == k and not est.uses_R):
+        return ukf_fisher(pb.model, pb.t, pb.u, pb.y, pb.theta, pb.params, pb.x0, pb.P0,
+                          pb.ukf), None
+    lo, hi = est.bounds()
+    z = est.value()
+    steps = 1e-6 * np.maximum(np.abs(z), 1e-3 * np.maximum(hi - lo, 1e-300))
+    steps = np.where((z + steps > hi) & (z - steps >= lo), -steps, steps)
+    D = estimand_derivatives(pb.model, pb.t, pb.u, pb.y, est, steps, pb.P0, pb.ukf)
+    F = D.F
+    names = est.names
+    nuis = None
+    if est.k > k:
+        Fpp, Fpn, Fnn = F[:k, :k], F[:k, k:], F[k:, k:]
+        Feff = Fpp - Fpn @ np.linalg.pinv(Fnn) @ Fpn.T
+        cov = np.linalg.pinv(F)
+        std = np.sqrt(np.clip(np.diag(cov), 0, None))
+        corr = cov / np.outer(np.where(std > 0, std, 1), np.where(std > 0, std, 1))
+        nuis = dict(names=names[k:], values=z[k:], std=std[k:], corr=corr,
+                    corr_names=names, description="initial states and noise levels estimated "
+                    "with the parameters: Cramér-Rao std sqrt(diag(F⁻¹)) over all names")
+        D.F = Feff
+    D.grad = D.grad[:k]
+    return D, nuis
+
+
 def _local(pb: _Problem, scale, experiment: str) -> tuple[dict, dict]:
     """The UKF Fisher information, the identifiability analysis and ranking
     built on it, and the recommendation: ``(local, recommendation)``."""
     t0 = time.perf_counter()
-    pb.say(f"UKF Fisher information: {len(pb.params) + 1} parameter sets in one batched run ...")
+    k = 0 if pb.estimand is None else pb.estimand.k
+    pb.say(f"UKF Fisher information: {max(k, len(pb.params)) + 1} sets in one batched run ...")
     try:
-        D = ukf_fisher(pb.model, pb.t, pb.u, pb.y, pb.theta, pb.params, pb.x0, pb.P0, pb.ukf)
+        D, nuis = _information(pb)
     except FloatingPointError as exc:
         raise NumericalError(f"UKF fails at the analysis point: {exc}") from None
     pb.timing["ukf_fisher_s"] = time.perf_counter() - t0
@@ -269,6 +343,8 @@ def _local(pb: _Problem, scale, experiment: str) -> tuple[dict, dict]:
         identifiability={k_: ident[k_] for k_ in _IDENT_KEYS},
         ranking=[dict(param=p, orthogonal_norm=n_) for p, n_ in ranking],
         relative_information=np.sqrt(np.clip(np.diag(ident["F_rel"]), 0, None)))
+    if nuis is not None:
+        local["nuisance"] = nuis
     return local, rec
 
 

@@ -1,0 +1,178 @@
+"""Noise levels estimated by default, x0 estimated jointly with θ, in
+estimate and sensitivity (the noise/x0 issue).
+
+Every test uses the mass-spring-damper (two outputs with fixed sensor noise
+x 0.002 m, v 0.01 m/s, no process noise) on short records written with
+:meth:`Experiment.from_arrays`, and asserts numbers against an independent
+reference: the truth the record was simulated with, the noise std it was
+drawn with, or the output-error information Σ JᵀR⁻¹J of the forward
+sensitivity equations.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import bondgraph.inference.estimate as est_mod
+from bondgraph.cli.main import main
+from bondgraph.data.records import Experiment
+from bondgraph.inference.estimate import estimate
+from bondgraph.inference.options import FitOptions, UKFOptions
+from bondgraph.numerics.forward_sensitivity import output_sensitivities
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
+
+TRUTH = {"m": 2.0, "k": 50.0, "c": 1.5}
+#: the graph's sensor noise (x, v) and the record's true noise: 4 times it
+MODEL_SD = np.array([0.002, 0.01])
+TRUE_SD = 4 * MODEL_SD
+UKF = UKFOptions(method="rk4")
+
+
+@pytest.fixture(scope="module")
+def msd():
+    return Model.from_spec("mass_spring_damper")
+
+
+def _record(model, *, x0=None, sd=TRUE_SD, declare=None, seed=1, T=6.0):
+    """A record of the msd under a step-plus-sine force, noise ``sd``,
+    optionally declaring ``declare`` (column -> noise_std)."""
+    t = np.arange(0.0, T, 0.01)
+    u = 5.0 * (np.sin(2 * t) + (t > 1)).reshape(-1, 1)
+    x0 = model.x0 if x0 is None else np.asarray(x0, float)
+    sim = simulate(model, t, u, x0=x0, theta=model.theta(TRUTH), hold="zoh")
+    y = sim.y + sd * np.random.default_rng(seed).standard_normal(sim.y.shape)
+    return Experiment.from_arrays(t, model=model, u=u, y=y, noise_std=declare,
+                                  meta={"name": "msd_noise", "true_parameters": TRUTH})
+
+
+def _fit(noise):
+    return FitOptions(particles=30, iterations=30, seed=0, progress=False, noise=noise)
+
+
+def test_declared_noise_is_held_at_the_declared_value(msd, monkeypatch):
+    declared = {"x": 0.0065, "v": 0.031}
+    exp = _record(msd, declare=declared)
+    seen = []
+    real = est_mod.ukf_nll
+
+    def spy(*a, **kw):
+        seen.append(kw.get("R"))
+        return real(*a, **kw)
+    monkeypatch.setattr(est_mod, "ukf_nll", spy)
+    r = estimate(msd, exp, ["k"], fit=FitOptions(particles=4, iterations=1, seed=0,
+                                                  progress=False, polish=False, noise="auto"),
+                 ukf=UKF)
+    assert r.params == ["k"]                        # nothing estimated besides k
+    assert r.settings["noise_levels"]["x"] == {"std": 0.0065, "how": "declared", "crb": None}
+    assert r.settings["noise_levels"]["v"]["std"] == 0.031
+    # the filter's R is diag(declared²) in every evaluation
+    want = np.diag([0.0065 ** 2, 0.031 ** 2])
+    Rs = [R for R in seen if R is not None]
+    assert Rs and len(Rs) == len(seen)
+    for R in Rs:
+        np.testing.assert_allclose(R, np.broadcast_to(want, R.shape), rtol=1e-12)
+
+
+def test_undeclared_noise_is_estimated_and_improves_the_parameters(msd):
+    exp = _record(msd)
+    auto = estimate(msd, exp, ["m", "k", "c"], fit=_fit("auto"), ukf=UKF)
+    model = estimate(msd, exp, ["m", "k", "c"], fit=_fit("model"), ukf=UKF)
+    assert auto.params == ["m", "k", "c", "noise.x", "noise.v"]
+    assert model.params == ["m", "k", "c"]
+    for j, o in enumerate(("x", "v")):
+        i = auto.params.index(f"noise.{o}")
+        # within 3 Cramér-Rao std of the std the noise was drawn with
+        assert abs(auto.estimates[i] - TRUE_SD[j]) < 3 * auto.std[i], (o, auto.estimates[i])
+        assert auto.settings["noise_levels"][o]["how"] == "estimated"
+    # the model's noise (4x too small) makes the parameters' z-scores larger
+    za, zm = np.abs(auto.z[:3]), np.abs(model.z[:3])
+    assert np.all(za <= zm + 1e-9), (za, zm)
+    assert np.max(za) < 3.5 and np.max(zm) > 6.0, (za, zm)
+
+
+def test_cli_estimates_an_unmeasured_initial_state(msd, tmp_path, capsys):
+    p0 = 0.6                                       # true momentum p_mass at t0 (model X0: 0)
+    exp = _record(msd, x0=[p0, 0.0], sd=MODEL_SD, declare={"x": 0.002, "v": 0.01}, T=4.0)
+    exp.save(tmp_path / "rec.csv")
+    rc = main(["estimate", "--model", "mass_spring_damper", "--data", str(tmp_path / "rec.csv"),
+               "--params", "k,c", "--fit", "nll", "--estimate-x0", "p_mass", "--method", "rk4",
+               "--particles", "20", "--iterations", "20", "--quiet",
+               "--fixed", "m=2", "--out", str(tmp_path / "out")])
+    assert rc == 0, capsys.readouterr().err
+    res = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert res["params"] == ["k", "c", "x0.p_mass"]
+    i = res["params"].index("x0.p_mass")
+    est, sd = res["estimates"][i], res["std"][i]
+    assert sd is not None and 0 < sd < 0.05
+    assert abs(est - p0) < 3 * sd, (est, sd)
+    assert res["settings"]["x0_states"] == ["p_mass"]
+    assert res["settings"]["noise_levels"]["x"]["how"] == "declared"
+    assert (tmp_path / "out" / "fit_outputs.png").stat().st_size > 1000
+    # the plots' filter is the estimate's: x0 estimated (token spread), R as declared
+    from bondgraph.inference.estimate import EstimationResult
+    from bondgraph.report.estimation import filter_of
+
+    r = EstimationResult.from_json(tmp_path / "out" / "result.json")
+    x0, P0, R = filter_of(msd, r, np.zeros(2), np.diag([0.05 ** 2, 0.05 ** 2]))
+    assert x0[0] == est and P0[0, 0] == pytest.approx((1e-6 * 0.05) ** 2)
+    np.testing.assert_allclose(R[0], np.diag([0.002 ** 2, 0.01 ** 2]))
+
+
+def test_sensitivity_x0_crb_matches_forward_sensitivities(msd, tmp_path):
+    exp = _record(msd, x0=[0.6, 0.01], sd=MODEL_SD, declare={"x": 0.002, "v": 0.01}, T=3.0)
+    exp.save(tmp_path / "rec.csv")
+    rc = main(["sensitivity", "--model", "mass_spring_damper", "--data",
+               str(tmp_path / "rec.csv"), "--params", "m,k,c", "--estimate-x0", "all",
+               "--x0", "p_mass=0.6,q_spring=0.01", "--method", "rk4", "--substeps", "4",
+               "--no-plots", "--quiet", "--no-sensitivities", "--out", str(tmp_path / "s")])
+    assert rc == 0
+    nu = json.loads((tmp_path / "s" / "sensitivity.json").read_text())["local"]["nuisance"]
+    assert nu["names"] == ["x0.p_mass", "x0.q_spring"]
+    # reference: F = Σ_k J_kᵀ R⁻¹ J_k, J = [∂y/∂θ, ∂y/∂x0] (forward sensitivity equations)
+    th = msd.theta()
+    s = output_sensitivities(msd, exp.t, exp.inputs_for(msd), th, np.array([0.6, 0.01]),
+                             ["m", "k", "c"], x0_states=["p_mass", "q_spring"], hold="zoh",
+                             rtol=1e-9, atol=1e-12)
+    J = np.concatenate([s.dydtheta, s.dydx0], axis=2)          # (N, n_y, 5)
+    F = np.einsum("nik,i,nil->kl", J, 1.0 / MODEL_SD ** 2, J)
+    crb = np.sqrt(np.diag(np.linalg.inv(F)))[3:]
+    np.testing.assert_allclose(nu["std"], crb, rtol=1e-3)      # measured: 2e-8
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--estimate-x0", "p_mas"], "p_mas"),
+    (["--noise", "bogus"], "bogus"),
+])
+@pytest.mark.parametrize("cmd", ["estimate", "sensitivity", "loop"])
+def test_bad_state_or_noise_mode_is_a_clean_error(msd, tmp_path, capsys, cmd, argv, needle):
+    exp = _record(msd, sd=MODEL_SD, T=1.0)
+    exp.save(tmp_path / "rec.csv")
+    base = [cmd, "--model", "mass_spring_damper", "--data", str(tmp_path / "rec.csv"),
+            "--quiet", "--out", str(tmp_path / "o")]
+    if cmd != "sensitivity":
+        base += ["--params", "m,k,c"]
+    rc = main(base + argv)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "Traceback" not in err
+    assert f"bondgraph {cmd}: error:" in err and needle in err, err
+
+
+def test_loop_estimates_undeclared_noise_in_the_declared_fit(msd):
+    from bondgraph.catalog.reference import mass_spring_damper
+    from bondgraph.diagnose.loop import run_loop
+
+    exp = _record(msd)
+    logs = []
+    res = run_loop(mass_spring_damper(), exp, ["m", "k", "c"], max_steps=1, structural=False,
+                   progress=False, log=logs.append, ukf=UKF)
+    assert any("measurement-noise std estimated" in ln and "x, v" in ln for ln in logs)
+    d = res.initial.to_dict()
+    for j, o in enumerate(("x", "v")):
+        sd = d["std"][f"noise.{o}"]
+        assert abs(d["noise_estimates"][o] - TRUE_SD[j]) < 3 * sd, (o, d["noise_estimates"][o])
+    assert res.settings["noise"] == "auto" and res.settings["noise_outputs"] == ["x", "v"]
