@@ -163,11 +163,12 @@ def output_error(model, t, u, y, names: Sequence[str], theta: np.ndarray, x0,
 
 
 def discretisation(model, t, u, theta: np.ndarray, x0, settings: LoopSettings,
-                   substeps: int | None = None) -> dict:
+                   substeps: int | None = None, free_run: bool = True) -> dict:
     """:func:`bondgraph.inference.ukf.discretisation_check` of the loop's
     filter options (``substeps`` overriding theirs): ``one_step`` and
-    ``free_run`` (n_y,) in measurement-noise standard deviations."""
+    ``free_run`` (n_y,, NaN unless ``free_run``) in measurement-noise
+    standard deviations."""
     o = settings.ukf
     return discretisation_check(model, t, u, theta, x0, method=o.method,
                                 substeps=o.substeps if substeps is None else substeps,
-                                hold=o.hold)
+                                hold=o.hold, free_run=free_run)
