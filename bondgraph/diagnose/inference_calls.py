@@ -69,7 +69,7 @@ def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P
 
 def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, upper, x0, P0,
                settings: LoopSettings, iterations: int, log_scale, tolerance: float = 0.0,
-               states: Sequence[str] = (), x0_scale=None):
+               states: Sequence[str] = (), x0_scale=None, information: bool = True):
     """Maximum-likelihood fit by Levenberg-damped Fisher scoring
     (:func:`bondgraph.inference.fisher.estimand_scoring`), the initial states
     ``states`` estimated jointly (:class:`~bondgraph.inference.estimand.Estimand`).
@@ -88,11 +88,14 @@ def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, u
     states : sequence of str
         Initial states estimated with θ (their prior shrinks to a token
         spread; box: ± 100 of their prior std ``x0_scale`` (n_x,)).
+    information : bool
+        Compute the Fisher information at the result (False: ``F`` is None
+        when the last iteration moved; one batched UKF run fewer).
 
     Returns
     -------
     theta : array (n_theta,)
-    F : array (k + m, k + m)
+    F : array (k + m, k + m) or None
         Fisher information at the result (parameters, then states).
     converged : bool
         Stopped by a convergence criterion rather than by ``iterations``.
@@ -111,7 +114,8 @@ def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, u
     lo, hi = est.bounds(lower, upper)
     scale = np.concatenate([np.asarray(log_scale, bool), np.zeros(len(states), bool)])
     r = estimand_scoring(model, t, u, y, est, lo, hi, P0, options=settings.ukf,
-                         max_iter=iterations, atol=tolerance, log_scale=scale)
+                         max_iter=iterations, atol=tolerance, log_scale=scale,
+                         information=information)
     return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0
 
 

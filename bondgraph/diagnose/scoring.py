@@ -546,7 +546,8 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
     for j in list(first.values())[:n]:
         try:
             th, _, _, _, _ = fisher_fit(model, t, u, y, np.array(sets[j]), idx, lo, hi, x0, P0,
-                                        ctx.settings, 1, np.zeros(len(idx), bool))
+                                        ctx.settings, 1, np.zeros(len(idx), bool),
+                                        information=False)
         except (FloatingPointError, np.linalg.LinAlgError):
             continue
         f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])
@@ -595,7 +596,7 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
     scale = np.array([n in noise and lo[j] > 0 for j, n in enumerate(names)])
     try:
         th, _, _, _, _ = fisher_fit(model, t, u, y, th, idx, lo, hi, x0, P0, ctx.settings,
-                                    iters, scale)
+                                    iters, scale, information=False)
     except (FloatingPointError, np.linalg.LinAlgError):
         return None
     f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])
