@@ -54,7 +54,7 @@ def _coastdown_record(truth: BondGraph, declared: BondGraph, name: str, seed: in
     inputs = {"brake": lambda tt: np.zeros_like(tt)}
     return synthesize(truth, declared, t, inputs, x0, dict(TRUE_COASTDOWN), seed, name,
                       f"coast-down from {v0} m/s, {duration} s at 40 Hz, simulated from "
-                      f"'{truth.name}'")
+                      f"'{truth.name}'", truth_model=tm)
 
 
 def vehicle_aero_declared() -> BondGraph:
@@ -129,7 +129,7 @@ def _driving_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
     inputs = {"throttle": throttle, "brake": lambda tt: np.zeros_like(tt)}
     return synthesize(truth, declared, t, inputs, x0, params, seed, name,
                       f"throttle steps in High range, {duration} s at 40 Hz, simulated from "
-                      f"'{truth.name}'")
+                      f"'{truth.name}'", truth_model=tm)
 
 
 #: truth belt-creep coefficient of the belt-slip case [N m s/rad]: 8 gives a
