@@ -57,8 +57,8 @@ def coastdown_record(truth: BondGraph, declared: BondGraph, name: str, seed: int
     Returns
     -------
     Experiment
-        Inputs, noisy outputs, the true states (``state.<name>`` columns) and
-        the true parameters in the sidecar.
+        Inputs and noisy outputs (each declaring its noise std); the true
+        initial state ``x0`` and parameters in the sidecar.
     """
     tm = Model.from_graph(truth)
     th = tm.theta({k: v for k, v in TRUE_COASTDOWN.items() if k in tm.params})
@@ -67,7 +67,7 @@ def coastdown_record(truth: BondGraph, declared: BondGraph, name: str, seed: int
     inputs = {"brake": lambda tt: np.zeros_like(tt)}
     return synthesize(truth, declared, t, inputs, x0, dict(TRUE_COASTDOWN), seed, name,
                       f"coast-down from {v0} m/s, {duration} s at 40 Hz, simulated from "
-                      f"'{truth.name}'")
+                      f"'{truth.name}'", truth_model=tm)
 
 
 def vehicle_aero_declared() -> BondGraph:
@@ -154,7 +154,7 @@ def driving_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
     inputs = {"throttle": throttle, "brake": lambda tt: np.zeros_like(tt)}
     return synthesize(truth, declared, t, inputs, x0, params, seed, name,
                       f"throttle steps in High range, {duration} s at 40 Hz, simulated from "
-                      f"'{truth.name}'")
+                      f"'{truth.name}'", truth_model=tm)
 
 
 #: truth belt-creep coefficient of the belt-slip case [N m s/rad]: 8 gives a

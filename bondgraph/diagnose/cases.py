@@ -86,7 +86,8 @@ class LoopCase:
 def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
                inputs: dict[str, Callable[[np.ndarray], np.ndarray]], x0: dict[str, float],
                params: dict[str, float], seed: int, name: str, description: str, *,
-               hold: str = "linear", method: str = "BDF", substeps: int = 1):
+               hold: str = "linear", method: str = "BDF", substeps: int = 1,
+               truth_model: Model | None = None):
     """Simulate ``truth`` and record the outputs of ``declared`` with the
     declared sensors' noise (``numpy.random.default_rng(seed)``).
 
@@ -96,6 +97,8 @@ def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
     UKF's zero-order hold sees). ``method`` and ``substeps`` choose the
     solver (default BDF, rtol 1e-8; ``"rk4"`` with ``substeps`` steps per
     sample always holds the samples and is much faster on long records).
+    ``truth_model``: ``truth``'s model if the caller has built it already
+    (``Model.from_graph(truth)``; it is not derived again).
 
     Returns
     -------
@@ -105,7 +108,7 @@ def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
         std it was drawn with (``noise_std``), so that ``noise="auto"`` holds
         the filter's noise at it.
     """
-    tm = Model.from_graph(truth)
+    tm = Model.from_graph(truth) if truth_model is None else truth_model
     dm = Model.from_graph(declared)
     th = tm.theta({k: v for k, v in params.items() if k in tm.params})
     u = {k: f for k, f in inputs.items() if k in tm.inputs}

@@ -43,6 +43,9 @@ from bondgraph.numerics.simulate import simulate
 
 #: generated functions of every model the loop builds
 CANDIDATE_FUNCTIONS = ("f", "h", "dfdx", "f_dfdx")
+#: those generated only when first used (most candidates run on their
+#: compiled kernels and never need the numpy Jacobians)
+LAZY_FUNCTIONS = ("dfdx", "f_dfdx")
 
 
 class Record:
@@ -169,7 +172,8 @@ class Fit:
 # ----------------------------------------------------------------- models
 def model_of(graph: BondGraph) -> Model:
     """Generate the model of one of the loop's graphs (in memory)."""
-    return Model.from_graph(graph, functions=CANDIDATE_FUNCTIONS, name=f"_loop_{graph.name}")
+    return Model.from_graph(graph, functions=CANDIDATE_FUNCTIONS, name=f"_loop_{graph.name}",
+                            lazy=LAZY_FUNCTIONS)
 
 
 def prior_mean(ctx: Context, model: Model) -> np.ndarray:

@@ -117,7 +117,8 @@ def make_criterion(model, t, u, y, names: Sequence[str], base: np.ndarray, x0, P
 
 def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, upper, x0, P0,
                settings: LoopSettings, iterations: int, log_scale, tolerance: float = 0.0,
-               states: Sequence[str] = (), x0_scale=None, noises: Sequence[str] = ()):
+               states: Sequence[str] = (), x0_scale=None, noises: Sequence[str] = (),
+               information: bool = True):
     """Maximum-likelihood fit by Levenberg-damped Fisher scoring
     (:func:`bondgraph.inference.fisher.estimand_scoring`), the initial states
     ``states`` estimated jointly (:class:`~bondgraph.inference.estimand.Estimand`).
@@ -140,11 +141,14 @@ def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, u
         Outputs whose measurement-noise std is estimated with θ (log scale,
         from the held level or ``meas_std(θ)``); the other held levels of
         ``settings.noise_levels`` stay fixed.
+    information : bool
+        Compute the Fisher information at the result (False: ``F`` is None
+        when the last iteration moved; one batched UKF run fewer).
 
     Returns
     -------
     theta : array (n_theta,)
-    F : array (k + m + r, k + m + r)
+    F : array (k + m + r, k + m + r) or None
         Fisher information at the result (parameters, states, noise stds).
     converged : bool
         Stopped by a convergence criterion rather than by ``iterations``.
@@ -167,7 +171,8 @@ def fisher_fit(model, t, u, y, theta: np.ndarray, index: Sequence[int], lower, u
     scale = np.concatenate([np.asarray(log_scale, bool), np.zeros(len(states), bool),
                             np.ones(len(noises), bool)])
     r = estimand_scoring(model, t, u, y, est, lo, hi, P0, options=settings.ukf,
-                         max_iter=iterations, atol=tolerance, log_scale=scale)
+                         max_iter=iterations, atol=tolerance, log_scale=scale,
+                         information=information)
     sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
     return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig
 
@@ -239,11 +244,12 @@ def output_error(model, t, u, y, names: Sequence[str], theta: np.ndarray, x0,
 
 
 def discretisation(model, t, u, theta: np.ndarray, x0, settings: LoopSettings,
-                   substeps: int | None = None) -> dict:
+                   substeps: int | None = None, free_run: bool = True) -> dict:
     """:func:`bondgraph.inference.ukf.discretisation_check` of the loop's
     filter options (``substeps`` overriding theirs): ``one_step`` and
-    ``free_run`` (n_y,) in measurement-noise standard deviations."""
+    ``free_run`` (n_y,, NaN unless ``free_run``) in measurement-noise
+    standard deviations."""
     o = settings.ukf
     return discretisation_check(model, t, u, theta, x0, method=o.method,
                                 substeps=o.substeps if substeps is None else substeps,
-                                hold=o.hold)
+                                hold=o.hold, free_run=free_run)

@@ -287,13 +287,14 @@ def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[fl
     t, u, _ = ctx.record.arrays(fit.model)
     x0 = prior_mean(ctx, fit.model)
     o = ctx.settings.ukf
-    worst = float(np.max(discretisation(fit.model, t, u, fit.theta, x0, ctx.settings)
-                         ["one_step"]))
+    # the one-step error only: the free run is not needed here
+    worst = float(np.max(discretisation(fit.model, t, u, fit.theta, x0, ctx.settings,
+                                        free_run=False)["one_step"]))
     if not worst > limit:
         return worst, None
     rec = next((n for n in (2, 4, 8, 16, 32) if n > o.substeps and float(np.max(
-        discretisation(fit.model, t, u, fit.theta, x0, ctx.settings, n)["one_step"])) <= limit),
-        None)
+        discretisation(fit.model, t, u, fit.theta, x0, ctx.settings, n, free_run=False)
+        ["one_step"])) <= limit), None)
     return worst, rec
 
 

@@ -64,7 +64,8 @@ def noise_variants(model: Model, fit: Fit, base: np.ndarray, factors) -> list:
     """Copies of ``base`` (n_theta,) with the estimated noise intensities of
     ``fit`` (:func:`bondgraph.diagnose.fit.noise_params`) scaled by each
     factor, clipped to their box; ``[base]`` if none is estimated."""
-    names = [n for n in fit.params if n in noise_params(fit.graph) and n in model.params]
+    noise = noise_params(fit.graph)
+    names = [n for n in fit.params if n in noise and n in model.params]
     if not names:
         return [base]
     out = []
@@ -529,7 +530,8 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
     i0 = int(np.argmin(net))
     best, th_best, i_best = float(net[i0]), np.array(sets[i0]), i0
     n = int(ctx.settings.structural_starts)
-    names = [p for p in fit.params if p in model.params and p not in noise_params(fit.graph)]
+    noise = noise_params(fit.graph)
+    names = [p for p in fit.params if p in model.params and p not in noise]
     if n <= 0 or not names or not np.isfinite(best):
         return best, th_best, i_best
     first: dict = {}
@@ -544,7 +546,7 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
     for j in list(first.values())[:n]:
         try:
             th = fisher_fit(model, t, u, y, np.array(sets[j]), idx, lo, hi, x0, P0,
-                            ctx.settings, 1, np.zeros(len(idx), bool))[0]
+                            ctx.settings, 1, np.zeros(len(idx), bool), information=False)[0]
         except (FloatingPointError, np.linalg.LinAlgError):
             continue
         f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])
@@ -592,7 +594,8 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
     noise = noise_params(fit.graph)
     scale = np.array([n in noise and lo[j] > 0 for j, n in enumerate(names)])
     try:
-        th = fisher_fit(model, t, u, y, th, idx, lo, hi, x0, P0, ctx.settings, iters, scale)[0]
+        th = fisher_fit(model, t, u, y, th, idx, lo, hi, x0, P0, ctx.settings, iters, scale,
+                        information=False)[0]
     except (FloatingPointError, np.linalg.LinAlgError):
         return None
     f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])

@@ -34,8 +34,6 @@ import os
 import threading
 from typing import Any, Callable, Sequence
 
-from dask.distributed import Client, LocalCluster
-
 from bondgraph.errors import OptionError
 
 #: environment variable naming the Dask scheduler (tcp://HOST:PORT)
@@ -101,9 +99,12 @@ class Executor:
         return self.scheduler is not None or self.workers > 1
 
     def client(self):
-        """The Dask client (started on first use)."""
+        """The Dask client (started on first use; dask is imported then, not
+        by every in-process run)."""
         with self._lock:
             if self._client is None:
+                from dask.distributed import Client, LocalCluster
+
                 if self.scheduler is not None:
                     self._client = Client(self.scheduler)
                 else:

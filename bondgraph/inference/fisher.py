@@ -164,8 +164,9 @@ class Scoring:
     estimand : Estimand
         At the result.
     nll : float
-    F : ndarray (k, k)
-        Fisher information at the result (Cramér-Rao: inv(F)).
+    F : ndarray (k, k) or None
+        Fisher information at the result (Cramér-Rao: inv(F)); None when
+        not computed (``information=False``).
     runs : int
         Batched UKF runs used.
     iterations : int
@@ -230,7 +231,7 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *,
 def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
                      options: UKFOptions | None = None, max_iter: int = 12,
                      rtol: float = 1e-6, atol: float = 1e-3, log=None,
-                     log_scale=None) -> Scoring:
+                     log_scale=None, information: bool = True) -> Scoring:
     """Maximise the UKF likelihood over the quantities of ``est``
     (parameters, initial states, noise stds) by Levenberg-damped Fisher
     scoring within the box [lower, upper] (k,).
@@ -240,6 +241,10 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
     the log-scale quantities). Stops when a step improves the NLL by less
     than ``rtol (1 + |NLL|)``, when the predicted decrease of a full step is
     below ``atol`` nats (converged), or after ``max_iter`` iterations.
+    With ``information`` False the derivatives are not computed again at a
+    result the last iteration moved to (a caller that needs neither F nor
+    the NLL there saves that run): ``F`` is then None and ``nll`` the line
+    search's NLL at the result.
 
     Returns
     -------
@@ -256,9 +261,15 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
         log_scale = (lo > 0) & (hi > 100 * lo)
     L = np.asarray(log_scale, dtype=bool)
     width = np.maximum(hi - lo, 1e-300)
-    runs, lam, converged, it = 0, 1e-3, False, 0
+    runs, lam, converged, it, nll = 0, 1e-3, False, 0, None
+    # the derivatives at z are kept: after a refused step, and at the end
+    # when z did not move, they are not computed again (the same UKF run)
+    at, D = None, None
     for it in range(1, max_iter + 1):
-        D = estimand_derivatives(model, t, u, y, est.at(z), _steps(z, hi, width), P0, options)
+        if at is None or not np.array_equal(at, z):
+            D = estimand_derivatives(model, t, u, y, est.at(z), _steps(z, hi, width), P0,
+                                     options)
+            at, runs = z.copy(), runs + 1
         step = _scoring_step(D, z, L, lam)
         if _predicted_decrease(D, z, L) < atol:
             converged = True
@@ -266,7 +277,7 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
         alphas, cand = _candidates(z, step, L, lo, hi)
         th, x0s, R = est.expand(cand)
         r = ukf_nll(model, t, u, y, th, x0s, est.prior_cov(P0), options=options, R=R)
-        runs += 2
+        runs += 1
         best = int(np.argmin(np.where(np.isfinite(r.nll), r.nll, np.inf)))
         f_new = float(r.nll[best])
         if log:
@@ -278,15 +289,19 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
                 converged = True    # no step improves: a stationary point within the box
                 break
             continue
-        z = cand[best]
+        z, nll = cand[best], f_new
         lam = max(lam / 3.0, 1e-6)
         if D.nll - f_new < rtol * (1.0 + abs(f_new)):
             converged = True
             break
     # information at the final point
     est = est.at(z)
-    D = estimand_derivatives(model, t, u, y, est, _steps(z, hi, width), P0, options)
-    return Scoring(est, D.nll, D.F, runs + 1, it, converged)
+    if at is None or not np.array_equal(at, z):
+        if not information and at is not None:
+            return Scoring(est, nll, None, runs, it, converged)
+        D = estimand_derivatives(model, t, u, y, est, _steps(z, hi, width), P0, options)
+        runs += 1
+    return Scoring(est, D.nll, D.F, runs, it, converged)
 
 
 def _predicted_decrease(D: Derivatives, x, L) -> float:

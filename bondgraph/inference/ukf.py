@@ -73,7 +73,12 @@ from bondgraph.inference.sigma import (
     sigma_points,
     unscented_moments,
 )
-from bondgraph.numerics.compiled import compile_estimate, compile_pays, point_kernels
+from bondgraph.numerics.compiled import (
+    compile_estimate,
+    compile_pays,
+    is_compiled,
+    point_kernels,
+)
 from bondgraph.numerics.integrators import hold_inputs, make_step
 
 LOG_2PI = float(np.log(2.0 * np.pi))
@@ -741,7 +746,7 @@ def nll_from_innovations(innovations: np.ndarray, S: np.ndarray) -> np.ndarray:
 
 def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", substeps: int = 1,
                          reference_substeps: int = 32, reference_method: str | None = None,
-                         hold: str = "zoh", sigma=None) -> dict:
+                         hold: str = "zoh", sigma=None, free_run: bool = True) -> dict:
     """Error of the filter's discretisation along a noise-free trajectory, in
     units of the measurement-noise standard deviation.
 
@@ -752,7 +757,10 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
     state at every sample, as inside the filter, and both with the input
     hold ``hold`` (:func:`bondgraph.numerics.integrators.hold_inputs`). The
     one-step output error is compared with ``sigma`` (default
-    ``meas_std(theta)``).
+    ``meas_std(theta)``). The one-step transitions of all samples run as one
+    batch (per distinct sample interval); the RK4 reference runs in the
+    compiled kernel (:func:`bondgraph.inference.ukf_numba.rk4_trajectory`)
+    when the model's point kernels are compiled already.
 
     Parameters
     ----------
@@ -767,6 +775,8 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
     hold : {"zoh", "mean", "linear"}
     sigma : array (n_y,), optional
         Output scale of the comparison (default the measurement-noise std).
+    free_run : bool
+        Also propagate the free run (sequential; False: ``free_run`` is NaN).
 
     Returns
     -------
@@ -783,43 +793,76 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
     step = make_step(model, method, substeps)
     held = hold_inputs(u, hold)
     with np.errstate(all="ignore"):
-        xr, ref = _reference_trajectory(model, t, held, th, x, reference_method,
+        xr, ref = _reference_trajectory(model, t, u, hold, th, x, reference_method,
                                         reference_substeps)
         if ref is None:
             return dict(one_step=np.full(model.n_y, np.inf), free_run=np.full(model.n_y, np.inf),
                         reference=None)
         sig = (np.asarray(model.meas_std(th), float)[0] if sigma is None
                else np.broadcast_to(np.asarray(sigma, float), (model.n_y,)))
-        one = np.zeros(model.n_y)
-        free = np.zeros(model.n_y)
-        xf = x
-        for k in range(t.size - 1):
-            dt = t[k + 1] - t[k]
-            uk, duk = held.interval(k)
-            xs = step(xr[k:k + 1], uk, th, dt, duk)
-            xf = step(xf, uk, th, dt, duk)
-            yr = model.h(xr[k + 1:k + 2], u[k + 1], th)[0]
-            one = np.maximum(one, np.abs(model.h(xs, u[k + 1], th)[0] - yr) / sig)
-            free = np.maximum(free, np.abs(model.h(xf, u[k + 1], th)[0] - yr) / sig)
-    return dict(one_step=one, free_run=np.where(np.isfinite(free), free, np.inf), reference=ref)
+        yr = model.h(xr[1:], u[1:], th)
+        one = np.maximum(np.zeros(model.n_y), np.max(
+            np.abs(model.h(_one_steps(step, xr, held, th, t), u[1:], th) - yr) / sig,
+            axis=0, initial=0.0))
+        free = np.full(model.n_y, np.nan)
+        if free_run:
+            free = np.zeros(model.n_y)
+            xf = x
+            for k in range(t.size - 1):
+                uk, duk = held.interval(k)
+                xf = step(xf, uk, th, t[k + 1] - t[k], duk)
+                free = np.maximum(free, np.abs(model.h(xf, u[k + 1], th)[0] - yr[k]) / sig)
+            free = np.where(np.isfinite(free), free, np.inf)
+    return dict(one_step=one, free_run=free, reference=ref)
 
 
-def _reference_trajectory(model, t, held, th, x, method, substeps):
+def _one_steps(step: Callable, xr: np.ndarray, held, th: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """States (N-1, n_x) one ``step`` after each reference state ``xr[k]``
+    (k < N-1), over its own interval: one batched call per distinct
+    interval length (the same arithmetic as a call per sample)."""
+    dts = np.diff(t)
+    out = np.empty((dts.size, xr.shape[1]))
+    for dt in np.unique(dts):
+        ks = np.flatnonzero(dts == dt)
+        du = None if held.change is None else held.change[ks]
+        out[ks] = step(xr[ks], held.start[ks], th, dt, du)
+    return out
+
+
+def _reference_trajectory(model, t, u, hold, th, x, method, substeps):
     """``(states (N, n_x), method)`` of the fine reference of
     :func:`discretisation_check`: ``method`` (default RK4 if its trajectory
-    is finite, else ROS2) with ``substeps`` and the inputs ``held``
-    (:class:`~bondgraph.numerics.integrators.HeldInputs`); ``(None, None)``
-    if none is finite."""
+    is finite, else ROS2) with ``substeps`` and the inputs ``u`` held as
+    ``hold`` says; RK4 in the compiled kernel when the model's point kernels
+    are compiled (:func:`bondgraph.numerics.compiled.is_compiled`);
+    ``(None, None)`` if none is finite."""
+    held = hold_inputs(u, hold)
     for cand in ([method] if method else ["rk4", "ros2"]):
-        rstep = make_step(model, cand, substeps)
-        xr = [x]
-        for k in range(t.size - 1):
-            uk, duk = held.interval(k)
-            xr.append(rstep(xr[-1], uk, th, t[k + 1] - t[k], duk))
-        xr = np.concatenate(xr)
+        xr = _compiled_rk4(model, t, u, hold, th, x, substeps) if cand == "rk4" else None
+        if xr is None:
+            rstep = make_step(model, cand, substeps)
+            xr = [x]
+            for k in range(t.size - 1):
+                uk, duk = held.interval(k)
+                xr.append(rstep(xr[-1], uk, th, t[k + 1] - t[k], duk))
+            xr = np.concatenate(xr)
         if np.isfinite(xr).all():
             return xr, cand
     return None, None
+
+
+def _compiled_rk4(model, t, u, hold, th, x, substeps) -> np.ndarray | None:
+    """The RK4 reference (N, n_x) by the compiled trajectory kernel, or None
+    (numpy then) when numba, the model's compiled kernels or the hold are
+    unavailable."""
+    if not (ukf_numba.numba is not None and hold in ukf_numba.HOLD_CODES
+            and is_compiled(model)):
+        return None
+    try:
+        kernels = point_kernels(model)
+    except Exception:  # kernels that cannot be loaded: numpy
+        return None
+    return ukf_numba.rk4_trajectory(kernels, t, u, hold, th[0], x[0], substeps)
 
 
 #: the discretisation guard's reference: RK4 with this many sub-steps per sample

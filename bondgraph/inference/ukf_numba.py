@@ -771,6 +771,65 @@ def kernel() -> tuple[object, float]:
         return k, time.perf_counter() - t0
 
 
+def _trajectory_py(f, t, u, hold, th, x0, nsub, xr, wk, ub):
+    """RK4 (``nsub`` steps per interval) from ``x0`` over the record into
+    ``xr`` (N, n_x), the inputs held as ``hold`` says (work rows ``wk``
+    (6, n_x), input buffer ``ub`` (n_u,))."""
+    n = x0.shape[0]
+    x, xt, k1, k2, k3, k4 = wk[0], wk[1], wk[2], wk[3], wk[4], wk[5]
+    for a in range(n):
+        x[a] = x0[a]
+        xr[0, a] = x0[a]
+    for k in range(t.shape[0] - 1):
+        _held_input(u, k, 0.0, hold, ub)
+        _rk4_point(f, x, u, k, hold, th, (t[k + 1] - t[k]) / nsub, nsub, ub, xt, k1, k2, k3,
+                   k4)
+        for a in range(n):
+            xr[k + 1, a] = x[a]
+
+
+_TRAJECTORY: list = []
+
+
+def trajectory_kernel():
+    """The compiled RK4 trajectory kernel (:func:`rk4_trajectory`; compiled
+    once per installation, cached on disk, model independent like the
+    filter kernel).
+
+    Raises
+    ------
+    ImportError
+        numba is not installed.
+    """
+    if numba is None:
+        raise ImportError("numba is not installed (pip install numba)")
+    with _LOCK:
+        if not _TRAJECTORY:
+            V, M = types.float64[::1], types.float64[:, ::1]
+            point = types.FunctionType(types.void(V, V, V, V))
+            sig = types.void(point, V, M, types.int64, V, V, types.int64, M, M, V)
+            _TRAJECTORY.append(numba.njit(sig, cache=True, nogil=True, error_model="numpy",
+                                          _nrt=False)(_trajectory_py))
+        return _TRAJECTORY[0]
+
+
+def rk4_trajectory(kernels, t, u, hold: str, theta, x0, substeps: int) -> np.ndarray:
+    """States (N, n_x) of the noise-free trajectory from ``x0`` by classical
+    RK4 with ``substeps`` steps per sample interval, the inputs ``u`` (N, n_u)
+    held as ``hold`` says (:data:`HOLD_CODES`), with a model's compiled point
+    kernels (:class:`bondgraph.numerics.compiled.PointKernels`): the
+    arithmetic of :func:`bondgraph.numerics.integrators.rk4`, sample by
+    sample, without a Python call per stage."""
+    c = np.ascontiguousarray
+    x0 = c(x0, dtype=float)
+    n = x0.size
+    xr = np.empty((np.asarray(t).size, n))
+    trajectory_kernel()(kernels.f, c(t, dtype=float), c(u, dtype=float), HOLD_CODES[hold],
+                        c(theta, dtype=float), x0, int(substeps), xr, np.zeros((6, n)),
+                        np.zeros(max(np.asarray(u).shape[1], 1)))
+    return xr
+
+
 def unsupported(opts) -> str | None:
     """Why the kernel cannot run with UKFOptions ``opts`` (None if it can)."""
     for name, codes in (("method", METHOD_CODES), ("jacobian", JACOBIAN_CODES),

@@ -12,9 +12,11 @@ run does not compile again:
 * a model built in memory (``module:function``, the loop's candidates) has
   its kernels written once to the kernel cache directory
   (:func:`cache_dir`), under a name keyed by the hash of its generated numpy
-  source and :data:`~bondgraph.core.codegen.NUMBA_CODEGEN_VERSION`: the same
-  model in a later run finds its kernels, and their numba cache, without
-  any sympy work.
+  source (its code, not its default values and boxes:
+  :func:`kernel_key_text`) and
+  :data:`~bondgraph.core.codegen.NUMBA_CODEGEN_VERSION`: the same model in
+  a later run finds its kernels, and their numba cache, without any sympy
+  work.
 
 When compiling pays (:func:`compile_pays`): a registered model's kernels
 are compiled once per installation, always. An in-memory model not yet in
@@ -105,13 +107,36 @@ def kernel_source_path(model) -> Path | None:
     mod = model.module
     text = getattr(mod, "__source_text__", None)
     if text is not None:
-        key = hashlib.sha256(f"{NUMBA_CODEGEN_VERSION}\n{text}".encode()).hexdigest()[:20]
-        return cache_dir() / f"{_safe(model.name)}_{key}.py"
+        key = hashlib.sha256(f"{NUMBA_CODEGEN_VERSION}\n{kernel_key_text(text)}".encode())
+        return cache_dir() / f"{_safe(model.name)}_{key.hexdigest()[:20]}.py"
     file = getattr(mod, "__file__", None)
     if not file:
         return None
     path = Path(file).parent / "numba_kernels" / Path(file).name
     return path if path.exists() else None
+
+
+#: lines of a generated numpy module that carry values, not code: the
+#: numba kernels do not depend on them
+VALUE_LINES = ("X0 = ", "INPUT_DEFAULTS = ", "PARAM_DEFAULTS = ", "PARAM_LOWER = ",
+               "PARAM_UPPER = ")
+
+
+def kernel_key_text(text: str) -> str:
+    """The part of a generated numpy module's source ``text`` that its numba
+    kernels depend on: without the module docstring (it lists the default
+    values) and the lines of :data:`VALUE_LINES` (initial states, input and
+    parameter defaults, boxes).
+
+    A structural candidate of the loop is built with its grid's first value
+    as default and its grid span as box, both derived from the current fit:
+    keyed on the whole text, the same kernels got a new cache entry, and were
+    compiled again, in every run (and for every record)."""
+    body = text
+    if body.startswith('"""'):
+        end = body.find('"""', 3)
+        body = body[end + 3:] if end >= 0 else body
+    return "\n".join(line for line in body.splitlines() if not line.startswith(VALUE_LINES))
 
 
 def _safe(name: str) -> str:

@@ -128,15 +128,44 @@ class Model:
         return cls.from_graph(registry.graph_builder(spec)(), functions=functions)
 
     @classmethod
-    def from_graph(cls, graph, *, functions=None, name: str | None = None) -> "Model":
-        """Derive, generate and load a model in memory from a BondGraph."""
+    def from_graph(cls, graph, *, functions=None, name: str | None = None,
+                   lazy: Sequence[str] = ()) -> "Model":
+        """Derive, generate and load a model in memory from a BondGraph.
+
+        Parameters
+        ----------
+        graph : BondGraph
+        functions : sequence of str, optional
+            Generated functions (default all of them).
+        name : str, optional
+            Module name.
+        lazy : sequence of str
+            Those of ``functions`` generated only when first used (the
+            Jacobians of a model that may never need them: their symbolic
+            differentiation and code are most of the generation time).
+        """
         ss = derive(graph)
-        text = generate_source(ss, source=graph.source or f"<graph {graph.name}>",
-                               functions=functions or ALL_FUNCTIONS)
+        source = graph.source or f"<graph {graph.name}>"
+        lazy = tuple(fn for fn in lazy if fn in (functions or ALL_FUNCTIONS))
+        text = generate_source(ss, source=source, functions=tuple(
+            fn for fn in (functions or ALL_FUNCTIONS) if fn not in lazy))
         mod = module_from_source(text, name or f"_bondgraph_mem_{graph.name}")
         mod.__source_text__ = text
         mod.__state_space__ = ss       # for the numba kernels (bondgraph.numerics.compiled)
+        mod.__lazy_functions__ = lazy
         return cls(mod)
+
+    def __getattr__(self, name: str):
+        """A lazy function of a model built in memory (:meth:`from_graph`),
+        generated and loaded on first use."""
+        mod = self.__dict__.get("module")
+        if name.startswith("__") or name not in getattr(mod, "__lazy_functions__", ()):
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        ss = mod.__state_space__
+        text = generate_source(ss, source=getattr(mod, "SOURCE", None), functions=(name,))
+        fn = getattr(module_from_source(text, f"{mod.__name__}__{name}"), name)
+        setattr(self, name, fn)
+        return fn
 
     # ------------------------------------------------------------- pickling
     def __reduce__(self):
@@ -147,7 +176,8 @@ class Model:
         m = self.module
         text = getattr(m, "__source_text__", None)
         if text is not None:
-            return (_model_from_text, (text, m.__name__, getattr(m, "__state_space__", None)))
+            return (_model_from_text, (text, m.__name__, getattr(m, "__state_space__", None),
+                                       getattr(m, "__lazy_functions__", ())))
         return (_model_from_file, (m.__name__, getattr(m, "__file__", None)))
 
     # ------------------------------------------------------------- sizes
@@ -264,11 +294,12 @@ def load(name: str, directory: str | Path | None = None) -> Model:
     return Model.load(name, directory)
 
 
-def _model_from_text(text: str, name: str, ss=None) -> Model:
+def _model_from_text(text: str, name: str, ss=None, lazy=()) -> Model:
     """Unpickle a model built in memory (:meth:`Model.__reduce__`)."""
     mod = module_from_source(text, name)
     mod.__source_text__ = text
     mod.__state_space__ = ss
+    mod.__lazy_functions__ = tuple(lazy) if ss is not None else ()
     return Model(mod)
 
 

@@ -11,6 +11,7 @@ initial and final fits, and the residual analyses.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import pickle
 import shutil
@@ -64,6 +65,8 @@ class LoopReporter:
         self.echo = echo
         self.log_path = self.folder.work_dir() / "loop.log"
         self.log_path.write_text("")
+        #: files of earlier versions by the hash of what they show (:func:`write`)
+        self.cache: dict = {}
 
     def log(self, line: str) -> None:
         """Append one line to ``loop.log`` (and echo it)."""
@@ -77,19 +80,23 @@ class LoopReporter:
         one, later log lines are appended to the published ``loop.log``."""
         def version(folder: Path) -> None:
             shutil.copyfile(self.log_path, folder / "loop.log")
-            write(result, folder, final=self.out)
+            write(result, folder, final=self.out, cache=self.cache)
         self.folder.publish(version)
         if result.finished:
             self.log_path = self.out / "loop.log"
             self.folder.remove_work_dir()
 
 
-def write(result: LoopResult, out, *, final=None) -> None:
+def write(result: LoopResult, out, *, final=None, cache: dict | None = None) -> None:
     """Write ``report.md``, the PNGs, (once an effect is accepted) the
     augmented model with its generated code, and ``report.json`` last, into
     ``out``; ``final`` is where the folder will be published (named in the
-    generated code; default ``out``)."""
+    generated code; default ``out``). ``cache`` (a dict kept between the
+    versions of one report, :class:`LoopReporter`) gives back a plot or the
+    generated code whose inputs have not changed since an earlier version,
+    instead of drawing or deriving it again."""
     out = Path(out)
+    cache = {} if cache is None else cache
     report = result.to_dict()
     settings = report.pop("settings")   # keep "settings" last, after the file name
     report["augmented_model"] = "augmented_model.py" if result.applied else None
@@ -98,8 +105,8 @@ def write(result: LoopResult, out, *, final=None) -> None:
         (out / "augmented_model.py").write_text(augmented_source(result))
         if not (result.source and ":" in result.source) and result.declared_graph is not None:
             (out / DECLARED_PICKLE).write_bytes(pickle.dumps(result.declared_graph))
-        _write_generated(result, out, Path(final) if final is not None else out)
-    pngs = _plots(result, out)
+        _write_generated(result, out, Path(final) if final is not None else out, cache)
+    pngs = _plots(result, out, cache)
     (out / "report.md").write_text(markdown(result, pngs))
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
 
@@ -169,28 +176,74 @@ def _augmented_name(result: LoopResult) -> str:
     return f"{result.model}_augmented"
 
 
-def _write_generated(result: LoopResult, out: Path, final: Path) -> None:
+def _write_generated(result: LoopResult, out: Path, final: Path, cache: dict) -> None:
     """Generated code of the final augmented graph (estimates as defaults)
-    in ``out/generated``; its source is named as ``final/augmented_model.py``."""
+    in ``out/generated``; its source is named as ``final/augmented_model.py``
+    (the text from ``cache`` when the final graph, its estimates and
+    ``final`` are those of an earlier version)."""
     name = _augmented_name(result)
     gen = out / "generated"
     gen.mkdir(exist_ok=True)
-    g = result.final_graph.copy(name)
-    for k, v in result.final.estimates.items():
-        if k in g.params:
-            g.params[k].default = float(v)
-    ss = derive(g)
-    (gen / f"{name}.py").write_text(generate_source(
-        ss, source=f"{final / 'augmented_model.py'}:build",
-        command="bondgraph loop (see report.md)"))
+    key = ("generated", _digest(pickle.dumps(result.final_graph), name, str(final),
+                                sorted(result.final.estimates.items())))
+    if key not in cache:
+        g = result.final_graph.copy(name)
+        for k, v in result.final.estimates.items():
+            if k in g.params:
+                g.params[k].default = float(v)
+        cache[key] = generate_source(derive(g), source=f"{final / 'augmented_model.py'}:build",
+                                     command="bondgraph loop (see report.md)")
+    (gen / f"{name}.py").write_text(cache[key])
 
 
-def _plots(result: LoopResult, out: Path) -> list[str]:
-    """Draw the PNGs; returns their file names."""
-    pngs = [_plot_fit(result, out), _plot_innovations(result, out)]
+def _digest(*parts) -> str:
+    """Hash of ``parts``: arrays by dtype, shape and bytes, other objects by
+    ``repr`` (floats in full precision)."""
+    h = hashlib.sha256()
+    for p in parts:
+        if isinstance(p, np.ndarray):
+            h.update(f"{p.dtype}{p.shape}".encode())
+            h.update(np.ascontiguousarray(p).tobytes())
+        elif isinstance(p, bytes):
+            h.update(p)
+        else:
+            h.update(repr(p).encode())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def _cached_png(cache: dict, key: str, path: Path, draw) -> str:
+    """``path``'s name: the PNG of ``cache[key]`` written there, else
+    ``draw()`` (which saves it) and its bytes kept under ``key``."""
+    if key in cache:
+        path.write_bytes(cache[key])
+        return path.name
+    name = draw()
+    cache[key] = path.read_bytes()
+    return name
+
+
+def _plots(result: LoopResult, out: Path, cache: dict | None = None) -> list[str]:
+    """Draw the PNGs (a plot whose inputs are unchanged since an earlier
+    version of the report from ``cache``); returns their file names."""
+    cache = {} if cache is None else cache
+    init, final, aug = result.initial, result.final, _augmented(result)
+    shown = [result.time, result.measured, result.outputs, result.output_units, aug]
+    fits = [init.sim_y is None, init.sim_y] + ([final.sim_y is None, final.sim_y] if aug else [])
+    inns = [init.innovations, init.innovation_var] + (
+        [final.innovations, final.innovation_var] if aug else [])
+    pngs = [_cached_png(cache, _digest("fit", *shown, *fits), out / "fit_before_after.png",
+                        lambda: _plot_fit(result, out)),
+            _cached_png(cache, _digest("innovations", *shown, *inns),
+                        out / "residuals_before_after.png",
+                        lambda: _plot_innovations(result, out))]
     for k, ranking in enumerate(result.rankings, 1):
         if ranking:
-            pngs.append(_plot_evidence(result, k, ranking, out))
+            acc = result.steps[k - 1] if k <= len(result.steps) else None
+            key = _digest("evidence", k, [(c.label, c.score, c.failed) for c in ranking[:15]],
+                          None if acc is None else (acc.effect, acc.attached_to))
+            pngs.append(_cached_png(cache, key, out / f"evidence_step{k}.png",
+                                    lambda k=k, r=ranking: _plot_evidence(result, k, r, out)))
     return pngs
 
 
