@@ -15,12 +15,16 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterable
 
+import numpy as np
+
 from bondgraph.core.atomic import OutputFolder
 from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
 from bondgraph.errors import OptionError
 from bondgraph.inference.options import DEFAULT_BACKEND, NOISE_MODES, UKF_BACKENDS
+from bondgraph.inference.prior import record_prior
+from bondgraph.inference.ukf import default_P0
 
 MODEL_HELP = ("model: a registered name (`bondgraph models`), module:function or "
               "path/to/file.py:function returning a BondGraph (modules are imported from "
@@ -131,12 +135,19 @@ def add_fixed(p: argparse.ArgumentParser) -> None:
 
 
 def add_initial_state(p: argparse.ArgumentParser) -> None:
-    """``--x0`` and ``--p0-rel``: the UKF prior of the initial state."""
+    """``--x0``, ``--p0-rel`` and ``--p0``: the UKF prior of the initial state
+    (:func:`initial_prior`)."""
     p.add_argument("--x0", default=None,
                    help="name=value,... initial states (default: the record's state columns or "
                         "sidecar x0 for states the model has, else the model's X0)")
     p.add_argument("--p0-rel", type=float, default=0.05,
-                   help="prior std of each initial state, relative to max(|x0|, 1)")
+                   help="prior std of each initial state the record gives, relative to its "
+                        "scale (--p0; default 0.05)")
+    p.add_argument("--p0", choices=("state", "magnitude"), default="state",
+                   help="scale of each initial state's prior std: the state's own scale along "
+                        "the record (state, default: free-run RMS, process-noise walk, sensors; "
+                        "a sidecar's x0_std imposed; a state the record does not give gets its "
+                        "whole scale) or max(|x0|, 1) (magnitude, the old rule)")
 
 
 def add_estimation_scope(p: argparse.ArgumentParser) -> None:
@@ -266,6 +277,40 @@ def load_model(spec: str):
     from bondgraph.numerics.model import Model
 
     return Model.from_spec(spec)
+
+
+def initial_prior(model, experiment, x0: np.ndarray, args, theta: np.ndarray,
+                  ukf) -> np.ndarray:
+    """The UKF prior covariance P0 (n_x, n_x) of ``--p0`` and ``--p0-rel``:
+    ``state`` (:func:`bondgraph.inference.prior.record_prior`: each state's
+    scale along the record at ``theta``, the record's ``x0_std`` imposed, the
+    states neither the record nor ``--x0`` gives with their whole scale) or
+    ``magnitude`` (:func:`bondgraph.inference.ukf.default_P0`).
+
+    Parameters
+    ----------
+    model : Model
+    experiment : Experiment
+    x0 : array (n_x,)
+        Prior mean (:func:`initial_state`).
+    args : argparse.Namespace
+        ``p0``, ``p0_rel``, ``x0``.
+    theta : array (n_theta,)
+        Parameters of the free run that gives the scales.
+    ukf : UKFOptions
+        Its discretisation and hold run the free run.
+    """
+    rel = 0.05 if args.p0_rel is None else float(args.p0_rel)
+    if getattr(args, "p0", "state") == "magnitude":
+        return default_P0(model, x0, rel)
+    given = set(experiment.given_initial_states(model)) | set(parse_pairs(args.x0, "--x0"))
+    t = np.asarray(experiment.t, float)
+    u = experiment.inputs_for(model, defaults_ok=True) if model.n_u else np.zeros((t.size, 0))
+    P0, _ = record_prior(model, t, u, experiment.outputs_for(model), theta, x0, rel=rel,
+                         x0_std=experiment.initial_state_std(model), method=ukf.method,
+                         substeps=max(ukf.substeps, 2), hold=ukf.hold,
+                         unknown=[n for n in model.states if n not in given])
+    return P0
 
 
 def initial_state(model, experiment, x0_text: str | None):

@@ -21,6 +21,7 @@ from bondgraph.cli.common import (
     add_quiet,
     add_scheduler,
     estimated_states,
+    initial_prior,
     initial_state,
     load_model,
     load_record,
@@ -35,7 +36,6 @@ from bondgraph.inference.estimate import estimate
 from bondgraph.inference.output_error import output_error_fit
 from bondgraph.inference.record import as_record, record_arrays
 from bondgraph.inference.options import FitOptions, UKFOptions
-from bondgraph.inference.ukf import default_P0
 from bondgraph.report.estimation import plot_fit
 
 
@@ -105,14 +105,15 @@ def run(args) -> int:
     states = estimated_states(model, args)
     if args.fit == "sim":
         return run_output_error(args, model, exp, params, x0, folder, states)
-    P0 = default_P0(model, x0, args.p0_rel)
+    ukf = UKFOptions(alpha=args.alpha, beta=args.beta, kappa=args.kappa, method=args.method,
+                     substeps=args.substeps, hold=args.hold, backend=args.backend)
+    P0 = initial_prior(model, exp, x0, args, model.theta(parse_pairs(args.fixed, "--fixed")),
+                       ukf)
     fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
                      iterations=args.iterations, seed=args.seed, checkpoint=ck,
                      resume=args.resume, polish=not args.no_polish, stall_iterations=args.stall,
                      progress=not args.quiet, workers=args.workers,
                      scheduler=args.scheduler, noise=args.noise)
-    ukf = UKFOptions(alpha=args.alpha, beta=args.beta, kappa=args.kappa, method=args.method,
-                     substeps=args.substeps, hold=args.hold, backend=args.backend)
     if not args.checkpoint:
         _prepare_checkpoint(folder, args.resume)
     with warnings.catch_warnings():

@@ -66,17 +66,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--metric-tolerance", type=float, default=None,
                    help="accept an effect only if the error grows by at most this factor "
                         "(default 1.0: it may not rise)")
-    add_estimation_scope(p)            # --fixed --x0 --p0-rel --estimate-x0 --noise
-    p.set_defaults(p0_rel=None, noise=None)   # the loop's own P0 policy, the case's noise
+    add_estimation_scope(p)            # --fixed --x0 --p0-rel --p0 --estimate-x0 --noise
+    p.set_defaults(p0_rel=None, noise=None, p0=None)   # the case's own P0 policy and noise
     p.add_argument("--fit", choices=("nll", "sim"), default=None,
                    help="declared fit: UKF likelihood (nll, default) or an output-error "
                         "(free-run least-squares) fit of the non-noise parameters first, "
                         "whose estimates start the likelihood fit (sim)")
-    p.add_argument("--p0", choices=("state", "magnitude"), default=None,
-                   help="scale of each initial state's prior std: the state's own scale along "
-                        "the record (state, default: free-run RMS, process-noise walk, sensors; "
-                        "a sidecar's x0_std imposed; a state the record does not give gets its "
-                        "whole scale) or max(|x0|, 1) (magnitude, the old rule)")
     add_discretisation(p)          # with --backend
     p.set_defaults(method=None, substeps=None, hold=None)   # a case's own options unless given
     add_quiet(p)

@@ -18,6 +18,7 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     estimated_states,
+    initial_prior,
     initial_state,
     load_model,
     load_record,
@@ -88,16 +89,17 @@ def run(args) -> int:
     fixed = parse_pairs(args.fixed, "--fixed")
     values.update(fixed)
     th = model.theta(values)
-    x0 = initial_state(model, exp, args.x0) if args.x0 else None
+    x0 = initial_state(model, exp, args.x0)
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
     for o in outputs:
         model.output_index(o)
     folder = output_folder(args.out or f"sensitivity_{model.name}_{Path(args.data).stem}", args)
     log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
+    ukf = UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold,
+                     backend=args.backend)
     rep = analyse(model, exp, params, theta=th, x0=x0, p0_rel=args.p0_rel,
-                  ukf=UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold,
-                                 backend=args.backend),
+                  P0=initial_prior(model, exp, x0, args, th, ukf), ukf=ukf,
                   global_N=args.global_N, outputs=outputs, box_rel=args.box_rel,
                   chunk=args.chunk, seed=args.seed, rel_crb_max=args.rel_crb,
                   corr_max=args.corr_max, sensitivities=not args.no_sensitivities,
