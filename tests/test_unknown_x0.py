@@ -107,3 +107,8 @@ def test_loop_free_run_error_is_the_models_not_the_guessed_initial_level(case):
     assert res.initial.validation_metric < 1.5 * floor
     for k, v in TRUTH.items():
         assert res.initial.estimates[k] == pytest.approx(v, rel=0.03)
+    # the record declares no noise: its std is estimated (noise="auto"), after
+    # a first fit of θ with it held (joint from the defaults it stalled at a
+    # free-run NRMSE of 0.063 and the loop then accepted a dead zone)
+    sd = res.initial.std["noise.p2"]
+    assert abs(res.initial.noise_estimates["p2"] - NOISE) < 3 * sd and sd < 1.0
