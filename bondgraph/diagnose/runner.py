@@ -354,9 +354,52 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     if not signif:
         ctx.log("nothing significant left: stop")
         return current, NOTHING_SIGNIFICANT
-    after = confirm_in_rounds(ctx, result, current, signif, scales,
-                              f"{name}_step{len(result.steps) + 1}", step)
+    tag = f"{name}_step{len(result.steps) + 1}"
+    after = confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
+    if after is None and structural_skipped(ctx.settings, ranking):
+        after = second_chance(ctx, result, current, scales, tag, step)
     return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
+
+
+def structural_skipped(s: LoopSettings, cands: list[Candidate]) -> bool:
+    """True when :func:`gather_evidence` left the structural candidates out
+    because an additive one explains more than ``structural_threshold`` of
+    the innovation energy."""
+    best = max([c.explained or 0.0 for c in cands] + [0.0])
+    return bool(s.structural) and s.structural != "always" and best >= s.structural_threshold
+
+
+def second_chance(ctx: Context, result: LoopResult, current: Fit, scales: Scales, tag: str,
+                  step: int) -> Fit | None:
+    """No confirmed additive candidate passed the accept rule although one
+    explained most of the innovations: the structural candidates skipped
+    before are scored now (every place), ranked with the others (the
+    significance over all of them) and the significant ones confirmed. An
+    additive effect can stand in for a structural one in the innovations and
+    still fail on the free run (a user's two tanks whose pump saturates: a
+    pump-flow offset explained 70 % of the innovations and raised the
+    held-out error). Returns the accepted fit, or None."""
+    ctx.log("  none of the confirmed candidates passed the accept rule: scoring the structural "
+            "candidates skipped above")
+    physical = [e for e in ctx.settings.effects if not getattr(e, "last_resort", False)]
+    ranking = result.rankings[-1]
+    seen = {c.label for c in ranking}
+    extra = [c for c in score_structural(ctx, current, scales, physical) if c.label not in seen]
+    ranking = sorted(ranking + extra, key=lambda c: c.rank_key)
+    result.rankings[-1] = ranking
+    if ctx.settings.true_effect is not None and result.truth_ranks:
+        kind, target = ctx.settings.true_effect
+        result.truth_ranks[-1] = rank_of(ranking, kind, target)
+        ctx.log(f"  the true effect {kind} @ {target} now ranks {result.truth_ranks[-1]}")
+    new = {id(c) for c in extra}
+    signif = [c for c in significant(ranking, ctx.settings.significance) if id(c) in new]
+    ctx.log(f"  {len(extra)} structural candidates scored, {len(signif)} significant" +
+            ("; best: " + "; ".join(f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})"
+                                    for c in sorted(signif, key=lambda c: c.rank_key)[:3])
+             if signif else ""))
+    if not signif:
+        return None
+    return confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
 
 
 def confirm_in_rounds(ctx: Context, result: LoopResult, current: Fit, signif: list[Candidate],
