@@ -50,7 +50,7 @@ from estimation import PARAMS, load_record  # noqa: E402
 
 
 class _Trivial:
-    """Point kernels of the same signature as the generated ones."""
+    """Point kernels of the same signatures as the generated ones."""
 
     def __init__(self, ny):
         V, M = numba.types.float64[::1], numba.types.float64[:, ::1]
@@ -74,7 +74,21 @@ class _Trivial:
                 for b in range(n):
                     J[a, b] = -1.0 if a == b else 0.0
 
-        self.f, self.h, self.f_dfdx = f, h, fj
+        SIG_POINTS = numba.types.void(M, V, V, M)
+
+        @njit(SIG_POINTS, nogil=True, error_model="numpy")
+        def f_pts(X, u, th, FT):
+            for j in range(X.shape[0]):
+                for a in range(X.shape[1]):
+                    FT[a, j] = -X[j, a]
+
+        @njit(SIG_POINTS, nogil=True, error_model="numpy")
+        def h_pts(X, u, th, Y):
+            for j in range(X.shape[0]):
+                for b in range(Y.shape[1]):
+                    Y[j, b] = X[j, b]
+
+        self.f, self.h, self.f_dfdx, self.f_pts, self.h_pts = f, h, fj, f_pts, h_pts
 
 
 def time_kernel(model, kernels, t, u, y, th, x0, P0, opts, repeat):

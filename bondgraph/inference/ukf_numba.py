@@ -23,19 +23,24 @@ fixed signature, so it is compiled once per installation and cached on disk
 (``cache=True``), and a new model costs only the compilation of its own
 small point kernels.
 
-Performance layout (measured with bench/kernel_profile.py; the numbers
-are bit-identical to the straightforward layout this replaced): the kernel
-allocates nothing and runs without numba's reference counting
-(``_nrt=False``): each set's work arrays are carved from rows of two zeroed
-buffers that :func:`run` allocates (:func:`_work_size`, :func:`_work`); the
-per-step helpers are inlined at numba-IR level, so the work tuple is never
-passed by value; shared rows u[k], y[k] are copied, not viewed; each sigma
-point is integrated in one contiguous work vector (a first-class function
-call on a row view is dearer than the copy); with the shared Jacobian
-(the default) ROS2 runs stage by stage over the points and its products
-with W⁻¹ are one matrix product per stage; W⁻¹'s Gauss-Jordan elimination
-skips the columns it cannot change; sums keep the reference's order (no
-fastmath), with the independent loop innermost.
+Performance layout (measured with bench/kernel_profile.py and
+bench/kernel_phases.py): the kernel allocates nothing and runs without
+numba's reference counting (``_nrt=False``): each set's work arrays are
+carved from rows of two zeroed buffers that :func:`run` allocates
+(:func:`_work_size`, :func:`_work`); the per-step helpers are inlined at
+numba-IR level, so the work tuple is never passed by value; shared rows
+u[k], y[k] are copied, not viewed. With the shared Jacobian (the default)
+ROS2 runs stage by stage over the points: f of all points in one call of
+the model's ``f_pts`` (inputs, parameters and what depends on them alone
+computed once per call), h likewise (``h_pts``), and W = I − γhJ applied
+to all points by LU solves over rows of points (:func:`_lu_w`,
+:func:`_solve_w`; the Gauss-Jordan inverse :func:`_inverse_w` is the path
+for non-finite or singular W, whose NaN/inf pattern is the reference's).
+Sums are dot products over contiguous rows (points innermost), compiled
+with the LLVM fast-math flags reassociation, contraction and no signed
+zeros (:data:`FASTMATH`; never nnan/ninf: the failure checks rely on NaN
+and inf), so the NLL equals the numpy reference's to rounding, not to the
+bit (the equality tests allow 1e-9 relative).
 
 The input hold over a sample interval is one small function,
 :func:`_held_input` (codes :data:`HOLD_CODES`); a hold that varies within
@@ -93,6 +98,10 @@ FIRST_VARYING_HOLD = 2
 WORK_FLOATS = 1 << 22
 #: layout of the integer options array of the kernel
 IOPT = ("method", "substeps", "jacobian", "hold", "use_R", "use_Q", "store")
+#: LLVM fast-math flags of the kernel: reassociation (vectorised sums),
+#: contraction (fused multiply-add) and no signed zeros; never nnan/ninf,
+#: the failure checks rely on NaN and inf
+FASTMATH = {"reassoc", "contract", "nsz"}
 
 
 def _jit(fn):
@@ -100,7 +109,8 @@ def _jit(fn):
     the plain function without numba."""
     if numba is None:  # pragma: no cover
         return fn
-    return numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)(fn)
+    return numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False,
+                      fastmath=FASTMATH)(fn)
 
 
 def _jit_inline(fn):
@@ -111,13 +121,13 @@ def _jit_inline(fn):
     if numba is None:  # pragma: no cover
         return fn
     return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always",
-                      _nrt=False)(fn)
+                      _nrt=False, fastmath=FASTMATH)(fn)
 
 
 Work = namedtuple("Work", ["L", "cL", "chi", "X", "D", "mean", "cov", "xs", "xt", "k1", "k2",
                            "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Y", "Ym", "idx",
-                           "Pxy", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols",
-                           "FT", "K1", "K2"])
+                           "Pyx", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols",
+                           "FT", "K1", "K2", "XS"])
 
 
 @_jit_inline
@@ -132,7 +142,7 @@ def _work_size(n, ny, nu, nth):
     (:func:`_work`)."""
     npt, m = 2 * n + 1, max(n, ny)
     return (7 * n * n + 2 * npt * n + npt * m + m + m * m + 10 * n + 2 * nu + 2 * npt * ny
-            + 2 * n * ny + ny * ny + 5 * ny + nth + 3 * n * npt, ny + 1 + 2 * n)
+            + 2 * n * ny + ny * ny + 5 * ny + nth + 4 * n * npt, ny + 1 + 2 * n)
 
 
 @_jit_inline
@@ -146,7 +156,7 @@ def _work(buf, ibuf, n, ny, nu, nth):
     cL, o = _carve(buf, o, n, n)
     chi, o = _carve(buf, o, npt, n)
     X, o = _carve(buf, o, npt, n)
-    D, o = _carve(buf, o, npt, m)
+    D, o = _carve(buf, o, m, npt)
     cov, o = _carve(buf, o, m, m)
     vn, o = _carve(buf, o, 9, n)
     J, o = _carve(buf, o, n, n)
@@ -154,7 +164,7 @@ def _work(buf, ibuf, n, ny, nu, nth):
     A, o = _carve(buf, o, n, 2 * n)
     Y, o = _carve(buf, o, npt, ny)
     Ym, o = _carve(buf, o, npt, ny)
-    Pxy, o = _carve(buf, o, n, ny)
+    Pyx, o = _carve(buf, o, ny, n)
     Gt, o = _carve(buf, o, ny, n)
     Ls, o = _carve(buf, o, ny, ny)
     vy, o = _carve(buf, o, 5, ny)
@@ -165,13 +175,26 @@ def _work(buf, ibuf, n, ny, nu, nth):
     FT, o = _carve(buf, o, n, npt)
     K1, o = _carve(buf, o, n, npt)
     K2, o = _carve(buf, o, n, npt)
+    XS, o = _carve(buf, o, npt, n)
     wk = Work(L, cL, chi, X, D, mean[0], cov, vn[0], vn[1], vn[2], vn[3], vn[4], vn[5], vn[6],
-              vn[7], J, Winv, A, vu[0], Y, Ym, ibuf[:ny], Pxy, Gt, vy[0], vy[1], Ls, vy[2],
-              ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:], FT, K1, K2)
+              vn[7], J, Winv, A, vu[0], Y, Ym, ibuf[:ny], Pyx, Gt, vy[0], vy[1], Ls, vy[2],
+              ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:], FT, K1, K2, XS)
     return wk, vn[8], P, tha[0]
 
 
 # ------------------------------------------------------------ linear algebra
+@_jit_inline
+def _all_finite(A, r, c):
+    """Whether A[:r, :c] is finite: Σ A·0 is 0 for finite entries and NaN
+    otherwise, one branch-free sum the compiler vectorises (valid without
+    the nnan/ninf fast-math flags)."""
+    acc = 0.0
+    for i in range(r):
+        for j in range(c):
+            acc += A[i, j] * 0.0
+    return acc == 0.0
+
+
 @_jit
 def _chol_plain(A, m, eps, L):
     """Lower Cholesky factor of A[:m, :m] + eps diag(A) (lower triangle used)
@@ -200,10 +223,8 @@ def _chol(A, m, L):
     0 failed (not finite, or not positive definite even with relative
     diagonal loading 1e-12, 1e-9, 1e-6), 1 factorised, 2 factorised with
     loading."""
-    for i in range(m):
-        for j in range(m):
-            if not np.isfinite(A[i, j]):
-                return 0
+    if not _all_finite(A, m, m):
+        return 0
     if _chol_plain(A, m, 0.0, L):
         return 1
     for i in range(m):
@@ -298,6 +319,82 @@ def _inverse_w(J, h, A, Winv, cols):
             Winv[i, j] = A[i, n + j]
 
 
+@_jit
+def _lu_w(J, h, A, piv):
+    """LU factors (partial pivoting, row swaps in ``piv``) of W = I − γ h J
+    in A[:, :n]: unit lower L below the diagonal, U on and above it.
+    False (factors unusable) for a non-finite entry or a zero or
+    non-finite pivot: the caller then takes :func:`_inverse_w`, whose
+    NaN/inf pattern is the reference's."""
+    n = J.shape[0]
+    g = GAMMA * h
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = (1.0 if i == j else 0.0) - g * J[i, j]
+    if not _all_finite(A, n, n):
+        return False
+    for c in range(n):
+        p = c
+        for i in range(c + 1, n):
+            if abs(A[i, c]) > abs(A[p, c]):
+                p = i
+        piv[c] = p
+        d = A[p, c]
+        if d == 0.0 or not np.isfinite(d):
+            return False
+        if p != c:
+            for j in range(n):
+                A[c, j], A[p, j] = A[p, j], A[c, j]
+        for i in range(c + 1, n):
+            q = A[i, c] / d
+            A[i, c] = q
+            if q != 0.0:
+                for j in range(c + 1, n):
+                    A[i, j] -= q * A[c, j]
+    return True
+
+
+@_jit_inline
+def _solve_w(A, piv, F, K):
+    """K = W⁻¹ F for all points at once (F, K: (n, points), one column per
+    point) from the LU factors of :func:`_lu_w`: row swaps, forward and
+    back substitution, each a row operation over the points (contiguous,
+    vectorised); zero factors (the Jacobian's sparsity) are skipped."""
+    n, npt = F.shape
+    for i in range(n):
+        for p in range(npt):
+            K[i, p] = F[i, p]
+    for c in range(n):
+        r = piv[c]
+        if r != c:
+            for p in range(npt):
+                K[c, p], K[r, p] = K[r, p], K[c, p]
+    for i in range(1, n):
+        for j in range(i):
+            q = A[i, j]
+            if q != 0.0:
+                for p in range(npt):
+                    K[i, p] -= q * K[j, p]
+    for i in range(n - 1, -1, -1):
+        for j in range(i + 1, n):
+            q = A[i, j]
+            if q != 0.0:
+                for p in range(npt):
+                    K[i, p] -= q * K[j, p]
+        d = A[i, i]
+        for p in range(npt):
+            K[i, p] = K[i, p] / d
+
+
+@_jit_inline
+def _apply_w(lu, wk, F, K):
+    """K = W⁻¹ F: by the LU factors (lu) or the product with W⁻¹."""
+    if lu:
+        _solve_w(wk.A, wk.cols, F, K)
+    else:
+        _times_w(wk.Winv, F, K)
+
+
 @_jit_inline
 def _matvec(M, v, out):
     n = v.shape[0]
@@ -328,29 +425,25 @@ def _sigma(x, L, c, cL, chi):
 @_jit_inline
 def _moments(Z, m, w, cc, mean, cov, D):
     """Difference-form unscented mean and covariance of Z[:, :m]
-    (:func:`bondgraph.inference.sigma.unscented_moments`); D = Z_i − Z_0."""
+    (:func:`bondgraph.inference.sigma.unscented_moments`); D[a, i] =
+    Z_i+1,a − Z_0,a (one row per component, points contiguous: each sum
+    is a contiguous dot product, vectorised with reassociation)."""
     npt = Z.shape[0]
-    for i in range(1, npt):
-        for a in range(m):
-            D[i - 1, a] = Z[i, a] - Z[0, a]
-    # sums from 0.0 over the points in ascending order (the reference's
-    # order), with the point loop outermost: the inner loops are
-    # independent accumulators the compiler can vectorise
     for a in range(m):
-        mean[a] = 0.0
-        for b in range(a + 1):
-            cov[a, b] = 0.0
-    for i in range(npt - 1):
-        for a in range(m):
-            mean[a] += D[i, a]
-            da = D[i, a]
-            for b in range(a + 1):
-                cov[a, b] += da * D[i, b]
+        z0 = Z[0, a]
+        for i in range(1, npt):
+            D[a, i - 1] = Z[i, a] - z0
     for a in range(m):
-        mean[a] = w * mean[a]
+        s = 0.0
+        for i in range(npt - 1):
+            s += D[a, i]
+        mean[a] = w * s
     for a in range(m):
         for b in range(a + 1):
-            v = w * cov[a, b] + cc * (mean[a] * mean[b])
+            s = 0.0
+            for i in range(npt - 1):
+                s += D[a, i] * D[b, i]
+            v = w * s + cc * (mean[a] * mean[b])
             cov[a, b] = v
             cov[b, a] = v
     for a in range(m):
@@ -438,53 +531,78 @@ def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, 
 def _times_w(W, F, K):
     """K = W F for all points at once (F, K: (n, points), one column per
     point): every entry is summed in the order of :func:`_matvec` (from 0.0,
-    j ascending), so it is the same double; the loop over points is the
-    inner, independent one, which the compiler can vectorise."""
+    j ascending). Blocks of 8 points are accumulated in scalars (registers:
+    the work arrays share one buffer, so sums kept in K would be stored and
+    reloaded at every j), which the compiler packs into vector FMAs."""
     n, npt = F.shape
     for i in range(n):
-        for p in range(npt):
-            K[i, p] = 0.0
-        for j in range(n):
-            w = W[i, j]
-            for p in range(npt):
-                K[i, p] += w * F[j, p]
+        p = 0
+        while p + 8 <= npt:
+            s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
+            for j in range(n):
+                w = W[i, j]
+                s0 += w * F[j, p]
+                s1 += w * F[j, p + 1]
+                s2 += w * F[j, p + 2]
+                s3 += w * F[j, p + 3]
+                s4 += w * F[j, p + 4]
+                s5 += w * F[j, p + 5]
+                s6 += w * F[j, p + 6]
+                s7 += w * F[j, p + 7]
+            K[i, p], K[i, p + 1], K[i, p + 2], K[i, p + 3] = s0, s1, s2, s3
+            K[i, p + 4], K[i, p + 5], K[i, p + 6], K[i, p + 7] = s4, s5, s6, s7
+            p += 8
+        while p + 4 <= npt:
+            s0 = s1 = s2 = s3 = 0.0
+            for j in range(n):
+                w = W[i, j]
+                s0 += w * F[j, p]
+                s1 += w * F[j, p + 1]
+                s2 += w * F[j, p + 2]
+                s3 += w * F[j, p + 3]
+            K[i, p], K[i, p + 1], K[i, p + 2], K[i, p + 3] = s0, s1, s2, s3
+            p += 4
+        for q in range(p, npt):
+            s0 = 0.0
+            for j in range(n):
+                s0 += W[i, j] * F[j, q]
+            K[i, q] = s0
 
 
 @_jit_inline
-def _ros2_shared(f, u, k, hold, th, h, nsub, wk):
+def _ros2_shared(fpts, u, k, hold, th, h, nsub, wk, lu):
     """:func:`_ros2_point` for every sigma point with the shared W⁻¹
     (Jacobian at the central point, jac 0), stage by stage over the points:
-    the products with W⁻¹ become one matrix product per stage. Each point's
-    arithmetic is that of :func:`_ros2_point`, operation for operation."""
+    f of all points in one call of the model's ``f_pts`` (which computes
+    what depends on u and θ alone once), W⁻¹ applied to all points at once
+    (:func:`_apply_w`: LU solves, or the product with the inverse where the
+    factors are unusable). Each point's arithmetic is that of
+    :func:`_ros2_point` up to the rounding of the linear solves."""
     npt, n = wk.X.shape
-    X, chi, xs, F, ub, K1, K2, FT = wk.X, wk.chi, wk.xs, wk.F0, wk.ub, wk.K1, wk.K2, wk.FT
+    X, XS, chi, ub, K1, K2, FT = wk.X, wk.XS, wk.chi, wk.ub, wk.K1, wk.K2, wk.FT
     for j in range(npt):
         for a in range(n):
             X[j, a] = chi[j, a]
     for s in range(nsub):
         _stage_input(u, k, s, 0.0, nsub, hold, ub)
-        for j in range(npt):
-            for a in range(n):
-                xs[a] = X[j, a]
-            f(xs, ub, th, F)
-            for a in range(n):
-                FT[a, j] = F[a]
-        _times_w(wk.Winv, FT, K1)
+        fpts(X, ub, th, FT)
+        _apply_w(lu, wk, FT, K1)
         _stage_input(u, k, s, 1.0, nsub, hold, ub)
         for j in range(npt):
             for a in range(n):
-                xs[a] = X[j, a] + h * K1[a, j]
-            f(xs, ub, th, F)
-            for a in range(n):
-                FT[a, j] = F[a] - 2.0 * K1[a, j]
-        _times_w(wk.Winv, FT, K2)
+                XS[j, a] = X[j, a] + h * K1[a, j]
+        fpts(XS, ub, th, FT)
+        for a in range(n):
+            for j in range(npt):
+                FT[a, j] = FT[a, j] - 2.0 * K1[a, j]
+        _apply_w(lu, wk, FT, K2)
         for j in range(npt):
             for a in range(n):
                 X[j, a] = X[j, a] + (1.5 * h) * K1[a, j] + (0.5 * h) * K2[a, j]
 
 
 @_jit_inline
-def _transition(f, fj, u, k, th, dt, ip, wk):
+def _transition(f, fj, fpts, u, k, th, dt, ip, wk):
     """Every sigma point of wk.chi through the transition over interval k
     into wk.X (:func:`bondgraph.numerics.integrators.make_step`)."""
     method, nsub, jac, hold = ip[0], ip[1], ip[2], ip[3]
@@ -493,8 +611,10 @@ def _transition(f, fj, u, k, th, dt, ip, wk):
     _held_input(u, k, 0.0, hold, wk.ub)
     if method == 1 and jac == 0:
         fj(wk.chi[0], wk.ub, th, wk.F0, wk.J)
-        _inverse_w(wk.J, h, wk.A, wk.Winv, wk.cols)
-        _ros2_shared(f, u, k, hold, th, h, nsub, wk)
+        lu = _lu_w(wk.J, h, wk.A, wk.cols)
+        if not lu:
+            _inverse_w(wk.J, h, wk.A, wk.Winv, wk.cols)
+        _ros2_shared(fpts, u, k, hold, th, h, nsub, wk, lu)
         return
     ub, xt, X, xs, chi = wk.ub, wk.xt, wk.X, wk.xs, wk.chi
     for j in range(npt):
@@ -515,7 +635,7 @@ def _transition(f, fj, u, k, th, dt, ip, wk):
 
 # ------------------------------------------------------------ predict / update
 @_jit_inline
-def _predict(f, fj, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
+def _predict(f, fj, fpts, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
     """Prediction over interval k (to sample k + 1) in place; 0 or a failure code."""
     n = x.shape[0]
     r = _chol(P, n, wk.L)
@@ -523,11 +643,9 @@ def _predict(f, fj, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
         return 1
     wk.nreg[0] += r == 2
     _sigma(x, wk.L, fp[0], wk.cL, wk.chi)
-    _transition(f, fj, u, k, th, dt, ip, wk)
-    for j in range(wk.X.shape[0]):
-        for a in range(n):
-            if not np.isfinite(wk.X[j, a]):
-                return 3
+    _transition(f, fj, fpts, u, k, th, dt, ip, wk)
+    if not _all_finite(wk.X, wk.X.shape[0], n):
+        return 3
     _moments(wk.X, n, fp[1], fp[2], x, P, wk.D)
     for a in range(n):
         P[a, a] += q2[a] * dt
@@ -539,57 +657,48 @@ def _predict(f, fj, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
 
 
 @_jit_inline
-def _measured_outputs(h, x, P, th, uk, yk, fp, wk):
-    """Sigma points of the prior through h, restricted to the measured outputs
-    of yk (their indices in wk.idx); returns (m, failure code)."""
+def _measured_outputs(hpts, x, P, th, uk, yk, fp, wk):
+    """Sigma points of the prior through h into wk.Y, restricted to the
+    measured outputs of yk (their indices in wk.idx) in wk.Ym where some are
+    missing; returns (m, failure code)."""
     n = x.shape[0]
     r = _chol(P, n, wk.L)
     if r == 0:
         return 0, 2
     wk.nreg[0] += r == 2
     _sigma(x, wk.L, fp[0], wk.cL, wk.chi)
-    xs, yv, Y, chi = wk.xs, wk.yv, wk.Y, wk.chi
-    for j in range(chi.shape[0]):
-        for a in range(n):
-            xs[a] = chi[j, a]
-        h(xs, uk, th, yv)
-        for b in range(yv.shape[0]):
-            Y[j, b] = yv[b]
+    hpts(wk.chi, uk, th, wk.Y)
     m = 0
     for b in range(yk.shape[0]):
         if np.isfinite(yk[b]):
             wk.idx[m] = b
             m += 1
-    for j in range(wk.chi.shape[0]):
-        for b in range(m):
-            v = wk.Y[j, wk.idx[b]]
-            if not np.isfinite(v):
-                return m, 4
-            wk.Ym[j, b] = v
+    npt = wk.chi.shape[0]
+    if m < yk.shape[0]:
+        for j in range(npt):
+            for b in range(m):
+                wk.Ym[j, b] = wk.Y[j, wk.idx[b]]
+    if not _all_finite(wk.Ym if m < yk.shape[0] else wk.Y, npt, m):
+        return m, 4
     return m, 0
 
 
 @_jit_inline
-def _update(h, x, P, th, uk, yk, Rd, R, ip, fp, wk):
+def _update(hpts, x, P, th, uk, yk, Rd, R, ip, fp, wk):
     """Measurement update at one sample in place: (NLL term, maha, m, failure code)."""
     n = x.shape[0]
-    m, code = _measured_outputs(h, x, P, th, uk, yk, fp, wk)
+    m, code = _measured_outputs(hpts, x, P, th, uk, yk, fp, wk)
     if code:
         return 0.0, 0.0, m, code
-    S, D, w = wk.cov, wk.D, fp[1]
-    _moments(wk.Ym, m, w, fp[2], wk.yf, S, D)
+    S, w = wk.cov, fp[1]
+    _moments(wk.Ym if m < yk.shape[0] else wk.Y, m, w, fp[2], wk.yf, S, wk.D)
     for a in range(m):
         if ip[4]:
             for b in range(m):
                 S[a, b] += R[wk.idx[a], wk.idx[b]]
         else:
             S[a, a] += Rd[wk.idx[a]]
-    for a in range(n):
-        for b in range(m):
-            s = 0.0
-            for i in range(n):
-                s += wk.cL[i, a] * (D[i, b] - D[n + i, b])
-            wk.Pxy[a, b] = w * s
+    _cross_cov(n, m, w, fp[0], wk)
     r = _chol(S, m, wk.Ls)
     if r == 0:
         return 0.0, 0.0, m, 5
@@ -598,6 +707,23 @@ def _update(h, x, P, th, uk, yk, Rd, R, ip, fp, wk):
         wk.eps[b] = yk[wk.idx[b]] - wk.yf[b]
     term, maha = _correct(x, P, m, wk)
     return term, maha, m, 0
+
+
+@_jit_inline
+def _cross_cov(n, m, w, c, wk):
+    """Pxyᵀ into wk.Pyx (m, n): Pxy[a, b] = w Σ_i c L[a, i] (D_b,i − D_b,n+i)
+    (difference form, the central point cancels; L lower triangular, so
+    i <= a). Overwrites the first n columns of D with the differences."""
+    D, L = wk.D, wk.L
+    for b in range(m):
+        for i in range(n):
+            D[b, i] = D[b, i] - D[b, n + i]
+    for b in range(m):
+        for a in range(n):
+            s = 0.0
+            for i in range(a + 1):
+                s += L[a, i] * D[b, i]
+            wk.Pyx[b, a] = (w * c) * s
 
 
 @_jit_inline
@@ -612,34 +738,72 @@ def _forward(Ls, m, b, out):
 
 @_jit_inline
 def _correct(x, P, m, wk):
-    """Kalman correction from the Cholesky factor of S: G = Pxy Ls⁻ᵀ,
-    z = Ls⁻¹ ε, x += G z, P −= G Gᵀ (symmetrised); (NLL term, ε S⁻¹ ε)."""
-    n = x.shape[0]
-    Ls, Gt = wk.Ls, wk.Gt
+    """Kalman correction from the Cholesky factor of S: Gᵀ = Ls⁻¹ Pxyᵀ,
+    z = Ls⁻¹ ε, x += G z, P −= G Gᵀ (symmetrised); (NLL term, ε S⁻¹ ε).
+    In small helpers on the arrays they use (one inlined body ran 2.5x
+    slower: bench/kernel_phases.py)."""
+    _gain_t(wk.Pyx, wk.Ls, m, wk.Gt)
+    _forward(wk.Ls, m, wk.eps, wk.z)
+    term, maha = _nll_term(wk.Ls, wk.z, m)
+    _low_rank(wk.Gt, wk.z, m, wk.xt, wk.A)
+    _apply_correction(x, P, wk.xt, wk.A)
+    return term, maha
+
+
+@_jit_inline
+def _gain_t(Pyx, Ls, m, Gt):
+    """Gᵀ = Ls⁻¹ Pxyᵀ: one forward substitution over all n columns (rows
+    contiguous)."""
+    n = Gt.shape[1]
+    for b in range(m):
+        for a in range(n):
+            Gt[b, a] = Pyx[b, a]
+        for j in range(b):
+            q = Ls[b, j]
+            for a in range(n):
+                Gt[b, a] -= q * Gt[j, a]
+        d = Ls[b, b]
+        for a in range(n):
+            Gt[b, a] = Gt[b, a] / d
+
+
+@_jit_inline
+def _low_rank(Gt, z, m, xt, T):
+    """xt = G z and the lower triangle of T = G Gᵀ, summed over the outputs."""
+    n = Gt.shape[1]
     for a in range(n):
-        _forward(Ls, m, wk.Pxy[a], wk.xt)
-        for b in range(m):
-            Gt[b, a] = wk.xt[b]
-    _forward(Ls, m, wk.eps, wk.z)
+        xt[a] = 0.0
+        for c in range(a + 1):
+            T[a, c] = 0.0
+    for b in range(m):
+        zb = z[b]
+        for a in range(n):
+            g = Gt[b, a]
+            xt[a] += g * zb
+            for c in range(a + 1):
+                T[a, c] += g * Gt[b, c]
+
+
+@_jit_inline
+def _apply_correction(x, P, xt, T):
+    """x += xt, P −= T (lower triangle of T; P symmetrised)."""
+    n = x.shape[0]
+    for a in range(n):
+        x[a] = x[a] + xt[a]
+        for c in range(a + 1):
+            v = 0.5 * ((P[a, c] - T[a, c]) + (P[c, a] - T[a, c]))
+            P[a, c] = v
+            P[c, a] = v
+
+
+@_jit_inline
+def _nll_term(Ls, z, m):
+    """0.5 (log det S + zᵀz + m log 2π) and zᵀz from S = Ls Lsᵀ."""
     logdet, maha = 0.0, 0.0
     for b in range(m):
         logdet += np.log(Ls[b, b])
-        maha += wk.z[b] * wk.z[b]
-    term = 0.5 * (2.0 * logdet + maha + m * LOG_2PI)
-    for a in range(n):
-        s = 0.0
-        for b in range(m):
-            s += Gt[b, a] * wk.z[b]
-        x[a] = x[a] + s
-    for a in range(n):
-        for c in range(a + 1):
-            s = 0.0
-            for b in range(m):
-                s += Gt[b, a] * Gt[b, c]
-            v = 0.5 * ((P[a, c] - s) + (P[c, a] - s))
-            P[a, c] = v
-            P[c, a] = v
-    return term, maha
+        maha += z[b] * z[b]
+    return 0.5 * (2.0 * logdet + maha + m * LOG_2PI), maha
 
 
 # ------------------------------------------------------------ storage
@@ -673,7 +837,8 @@ def _store_filtered(h, st, k, p, x, P, uk, th, full, wk):
 
 # ------------------------------------------------------------ one set, all sets
 @_jit
-def _filter_one(a, f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i,
+def _filter_one(a, f, h, fj, fpts, hpts, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
+                out_i,
                 st, buf, ibuf):
     """The whole record for parameter set ``a``: NLL into out_f[a]; failing
     sample (-1: none), failure code and loaded factorisations into out_i[a]."""
@@ -699,9 +864,10 @@ def _filter_one(a, f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out
             yk[j] = y[k, j]
         code = 0
         if k > 0:
-            code = _predict(f, fj, x, P, u, k - 1, tha, t[k] - t[k - 1], q2a, Qa, ip, fp, wk)
+            code = _predict(f, fj, fpts, x, P, u, k - 1, tha, t[k] - t[k - 1], q2a, Qa, ip, fp,
+                            wk)
         if code == 0 and _any_finite(yk):
-            term, maha, m, code = _update(h, x, P, tha, uk, yk, Rda, Ra, ip, fp, wk)
+            term, maha, m, code = _update(hpts, x, P, tha, uk, yk, Rda, Ra, ip, fp, wk)
             if code == 0:
                 nll += term
                 if ip[6]:
@@ -724,13 +890,13 @@ def _any_finite(v):
     return False
 
 
-def _kernel_py(f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f, out_i, st,
-               buf, ibuf):
+def _kernel_py(f, h, fj, fpts, hpts, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
+               out_i, st, buf, ibuf):
     """Every parameter set in parallel (``prange``): :func:`_filter_one`
     with its own rows of the work buffers ``buf``, ``ibuf``."""
     for a in numba.prange(th.shape[0]):
-        _filter_one(np.int64(a), f, h, fj, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
-                    out_i, st, buf[a], ibuf[a])
+        _filter_one(np.int64(a), f, h, fj, fpts, hpts, t, u, y, th, x0, P0, q2, Rd, R, Q, act,
+                    ip, fp, out_f, out_i, st, buf[a], ibuf[a])
 
 
 def _signature():
@@ -740,9 +906,10 @@ def _signature():
     A3, A4 = types.float64[:, :, ::1], types.float64[:, :, :, ::1]
     point = types.FunctionType(types.void(V, V, V, V))
     jac = types.FunctionType(types.void(V, V, V, V, M))
+    points = types.FunctionType(types.void(M, V, V, M))
     store = types.Tuple((A3, A4, A3, A3, A3, A4, M, M))
-    return types.void(point, point, jac, V, M, M, M, M, A3, M, M, A3, A3, types.int64[::1],
-                      types.int64[::1], V, V, types.int64[:, ::1], store, M,
+    return types.void(point, point, jac, points, points, V, M, M, M, M, A3, M, M, A3, A3,
+                      types.int64[::1], types.int64[::1], V, V, types.int64[:, ::1], store, M,
                       types.int64[:, ::1])
 
 
@@ -766,7 +933,7 @@ def kernel() -> tuple[object, float]:
             return _KERNEL[0], 0.0
         t0 = time.perf_counter()
         k = numba.njit(_signature(), cache=True, parallel=True, nogil=True,
-                       error_model="numpy", _nrt=False)(_kernel_py)
+                       error_model="numpy", _nrt=False, fastmath=FASTMATH)(_kernel_py)
         _KERNEL.append(k)
         return k, time.perf_counter() - t0
 
@@ -895,7 +1062,8 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
         s = slice(a0, min(A, a0 + step))
         if a0:
             buf[:], ibuf[:] = 0.0, 0
-        kern(kernels.f, kernels.h, kernels.f_dfdx, c(t, dtype=float), c(u, dtype=float),
+        kern(kernels.f, kernels.h, kernels.f_dfdx, kernels.f_pts, kernels.h_pts,
+             c(t, dtype=float), c(u, dtype=float),
              c(y, dtype=float), *[v[s] for v in per_set], Rd if ip[4] else Rd[s],
              R[s] if ip[4] else R, Q[s] if ip[5] else Q, act[s], ip, fp, out_f[s], out_i[s],
              st, buf[:s.stop - a0], ibuf[:s.stop - a0])

@@ -72,6 +72,10 @@ class PointKernels:
     f, h, f_dfdx : numba dispatchers
         ``f(x, u, theta, out)``, ``h(x, u, theta, out)``,
         ``f_dfdx(x, u, theta, out, jac)`` on C-contiguous float64 vectors.
+    f_pts, h_pts : numba dispatchers
+        ``f_pts(X, u, theta, FT)``: f at every row of X (points, n_x) into
+        the columns of FT (n_x, points); ``h_pts(X, u, theta, Y)``: h into
+        the rows of Y (points, n_y).
     path : Path
         Source file of the kernels.
     compile_s : float
@@ -84,6 +88,8 @@ class PointKernels:
     f: object
     h: object
     f_dfdx: object
+    f_pts: object
+    h_pts: object
     path: Path
     compile_s: float
     from_cache: bool
@@ -237,6 +243,6 @@ def _import(path: Path) -> PointKernels:
         sys.modules.pop(name, None)
         raise
     dt = time.perf_counter() - t0
-    fns = (mod.f, mod.h, mod.f_dfdx)
+    fns = (mod.f, mod.h, mod.f_dfdx, mod.f_pts, mod.h_pts)
     hits = all(sum(fn.stats.cache_hits.values()) > 0 for fn in fns)
-    return PointKernels(mod.f, mod.h, mod.f_dfdx, path, dt, hits)
+    return PointKernels(*fns, path, dt, hits)
