@@ -308,4 +308,10 @@ def test_cli_simulate_noise_writes_the_experiments_record(tmp_path, capsys):
     assert np.std(noise) == pytest.approx(0.002, rel=0.1)
     assert main(["simulate", "dc_motor", "-e", "msd_force_step", "--noise"]) == 2
     assert "model 'mass_spring_damper'" in capsys.readouterr().err
-    assert main(["simulate", "mass_spring_damper", "--noise"]) == 2
+    # without a registered experiment: the model's own sensor noise (seed 0)
+    mine = tmp_path / "mine.csv"
+    assert main(["simulate", "mass_spring_damper", "--noise", "--duration", "20", "-o",
+                 str(mine)]) == 0
+    rec = Experiment.load(mine)
+    assert rec.noise_std == {"x": 0.002, "v": 0.01} and rec.meta["seed"] == 0
+    assert np.std(rec["x"] - rec["state.q_spring"]) == pytest.approx(0.002, rel=0.1)
