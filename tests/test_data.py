@@ -303,5 +303,9 @@ def test_segment_and_dataframe(tmp_path):
     seg = exp.segment(1, 3)
     np.testing.assert_array_equal(seg.t, [0.1, 0.2])
     assert seg.meta["segment"] == [1, 3]
+    # the sidecar's x0 describes the first sample: a later segment drops it
+    exp.meta["x0"], exp.meta["x0_std"] = {"p_mass": 0.3}, {"p_mass": 0.1}
+    assert "x0" not in exp.segment(1, 3).meta and "x0_std" not in exp.segment(1, 3).meta
+    assert exp.segment(0, 3).meta["x0"] == {"p_mass": 0.3}
     df = exp.to_dataframe()
     assert list(df.columns) == ["t [s]", "F [N]", "x [m]", "v [m/s]"]

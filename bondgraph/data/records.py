@@ -825,13 +825,19 @@ class Experiment:
     # ------------------------------------------------------------- other
     def segment(self, start: int, stop: int | None = None, *, name: str | None = None
                 ) -> "Experiment":
-        """Samples ``start:stop`` as a new record (meta copied, name suffixed)."""
+        """Samples ``start:stop`` as a new record (meta copied, name suffixed;
+        a segment that starts later drops the sidecar's ``x0`` and ``x0_std``,
+        which describe the record's first sample, not its own: its state
+        columns, if any, give its initial state)."""
         sl = slice(start, stop)
         t = self.t[sl]
         if t.size < 2:
             raise DataError(f"segment [{start}:{stop}] has {t.size} samples; need >= 2",
                             path=self._where())
         meta = copy.deepcopy(self.meta)
+        if t[0] != self.t[0]:
+            meta.pop("x0", None)
+            meta.pop("x0_std", None)
         meta["name"] = name or f"{self.name}[{start}:{'' if stop is None else stop}]"
         meta["segment"] = [int(start), None if stop is None else int(stop)]
         return Experiment(t=t.copy(), columns={k: v[sl].copy() for k, v in self.columns.items()},
