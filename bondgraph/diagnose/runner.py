@@ -355,10 +355,60 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
         ctx.log("nothing significant left: stop")
         return current, NOTHING_SIGNIFICANT
     tag = f"{name}_step{len(result.steps) + 1}"
+    if structural_skipped(ctx.settings, ranking):
+        signif = check_the_lead(ctx, result, current, signif, scales, tag)
     after = confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
-    if after is None and structural_skipped(ctx.settings, ranking):
+    if after is None and structural_skipped(ctx.settings, result.rankings[-1]) \
+            and not any(c.kind != "score" for c in result.rankings[-1]):
         after = second_chance(ctx, result, current, scales, tag, step)
     return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
+
+
+#: the structural candidates skipped for an additive lead are scored when the
+#: lead's refit reaches less than this fraction of its score statistic
+LEAD_SHORTFALL = 0.8
+
+
+def check_the_lead(ctx: Context, result: LoopResult, current: Fit, signif: list[Candidate],
+                   scales: Scales, tag: str) -> list[Candidate]:
+    """The structural candidates were skipped because an additive lead explains
+    most of the innovations: confirm the lead, and if its refit's likelihood
+    ratio falls short of its score statistic (below ``LEAD_SHORTFALL`` of
+    it: the effect's shape fits the residual worse than its first-order
+    signature promised) score the skipped structural candidates too. Returns
+    the significant candidates of the (possibly grown) ranking. (A full
+    vehicle whose engine torque saturates: asymmetric friction at the engine
+    led with χ² 32 523 but refitted to LR 19 885; the saturation, scored,
+    reaches LR 38 063.)"""
+    lead = sorted(signif, key=lambda c: c.rank_key)[0]
+    if not confirm_best(ctx, current, [lead], scales, tag) or lead.statistic <= 0:
+        return signif
+    ratio = lead.confirmed_statistic / lead.statistic
+    if ratio >= LEAD_SHORTFALL:
+        return signif
+    ctx.log(f"  {lead.label}: its refit reaches LR {lead.confirmed_statistic:.1f}, "
+            f"{100 * ratio:.0f} % of its score test: scoring the structural candidates "
+            f"skipped above")
+    ranking = _score_skipped(ctx, result, current, scales)
+    return significant(ranking, ctx.settings.significance)
+
+
+def _score_skipped(ctx: Context, result: LoopResult, current: Fit,
+                   scales: Scales) -> list[Candidate]:
+    """Score the structural candidates the step skipped (every place), rank
+    them with the others in ``result.rankings[-1]`` and return that ranking."""
+    physical = [e for e in ctx.settings.effects if not getattr(e, "last_resort", False)]
+    seen = {c.label for c in result.rankings[-1]}
+    extra = [c for c in score_structural(ctx, current, scales, physical) if c.label not in seen]
+    ranking = sorted(result.rankings[-1] + extra, key=lambda c: c.rank_key)
+    result.rankings[-1] = ranking
+    if ctx.settings.true_effect is not None and result.truth_ranks:
+        kind, target = ctx.settings.true_effect
+        result.truth_ranks[-1] = rank_of(ranking, kind, target)
+        ctx.log(f"  the true effect {kind} @ {target} now ranks {result.truth_ranks[-1]}")
+    ctx.log(f"  {len(extra)} structural candidates scored; best now: " + "; ".join(
+        f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})" for c in ranking[:3]))
+    return ranking
 
 
 def structural_skipped(s: LoopSettings, cands: list[Candidate]) -> bool:
@@ -381,22 +431,9 @@ def second_chance(ctx: Context, result: LoopResult, current: Fit, scales: Scales
     held-out error). Returns the accepted fit, or None."""
     ctx.log("  none of the confirmed candidates passed the accept rule: scoring the structural "
             "candidates skipped above")
-    physical = [e for e in ctx.settings.effects if not getattr(e, "last_resort", False)]
-    ranking = result.rankings[-1]
-    seen = {c.label for c in ranking}
-    extra = [c for c in score_structural(ctx, current, scales, physical) if c.label not in seen]
-    ranking = sorted(ranking + extra, key=lambda c: c.rank_key)
-    result.rankings[-1] = ranking
-    if ctx.settings.true_effect is not None and result.truth_ranks:
-        kind, target = ctx.settings.true_effect
-        result.truth_ranks[-1] = rank_of(ranking, kind, target)
-        ctx.log(f"  the true effect {kind} @ {target} now ranks {result.truth_ranks[-1]}")
-    new = {id(c) for c in extra}
-    signif = [c for c in significant(ranking, ctx.settings.significance) if id(c) in new]
-    ctx.log(f"  {len(extra)} structural candidates scored, {len(signif)} significant" +
-            ("; best: " + "; ".join(f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})"
-                                    for c in sorted(signif, key=lambda c: c.rank_key)[:3])
-             if signif else ""))
+    before = {id(c) for c in result.rankings[-1]}
+    ranking = _score_skipped(ctx, result, current, scales)
+    signif = [c for c in significant(ranking, ctx.settings.significance) if id(c) not in before]
     if not signif:
         return None
     return confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
