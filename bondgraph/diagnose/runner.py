@@ -506,11 +506,16 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
                  name: str) -> list[tuple[Candidate, Confirmation]]:
     """Confirm the ``confirm_top`` best significant candidates by refits
     (:func:`bondgraph.diagnose.confirm.confirm`, graphs named ``name``); set
-    their likelihood-ratio statistic; return them by decreasing LR − 2k."""
+    their likelihood-ratio statistic; return them by decreasing LR − 2k. A
+    candidate already confirmed against the same current fit (the lead of
+    :func:`check_the_lead`) is not refitted again."""
     todo = sorted(signif, key=lambda c: c.rank_key)[: ctx.settings.confirm_top]
     confirmed = []
     for c in todo:
-        r = confirm(ctx, current, c, scales, name)
+        key = ("confirmation", id(current), current.nll, c.label)   # the lead check's, reused
+        if key not in ctx.cache:
+            ctx.cache[key] = confirm(ctx, current, c, scales, name)
+        r = ctx.cache[key]
         if r is None:
             continue
         c.confirmed_statistic = max(0.0, 2 * (current.nll - r.fit.nll))
