@@ -64,7 +64,8 @@ def box_sets(m: Model, n: int, seed: int) -> np.ndarray:
 
 
 def _round_off_breakdown(reason) -> bool:
-    return reason is not None and "not positive definite" in reason
+    return reason is not None and any(w in reason for w in (
+        "not positive definite", "sigma point diverged", "non-finite predicted output"))
 
 
 def assert_same(a, b, rel=1e-9):
@@ -72,9 +73,11 @@ def assert_same(a, b, rel=1e-9):
 
     One exception, by construction of floating point: a set whose covariance
     has collapsed to round-off (no process noise, P ~ 1e-39 after the
-    regularised factorisations) breaks down as "not positive definite" in
-    both backends, at a sample that round-off decides; such a set must fail
-    in both, for that reason, but the sample may differ."""
+    regularised factorisations) breaks down as "not positive definite", and
+    a diverging set overflows (a non-finite state or output), in both
+    backends at a sample that round-off decides; such a set must fail in
+    both, for one of these reasons, but the sample and which of them may
+    differ."""
     np.testing.assert_array_equal(a.failed, b.failed)
     both_pd = np.array([_round_off_breakdown(ra) and _round_off_breakdown(rb)
                         for ra, rb in zip(a.reasons, b.reasons)], dtype=bool)
@@ -147,14 +150,17 @@ def test_numba_equals_numpy_for_other_options(opts):
 
 def test_failures_are_handled_as_numpy():
     """Sets failing at the start (non-finite parameter, non-positive noise) and
-    during the record (diverging states): same sets, samples and reasons."""
+    during the record (a state diverging: explicit RK4 on a time constant
+    of 3e-7 s at 10 ms steps): same sets, samples and reasons."""
     m = Model.load("rr_loop")
     t, u, y = _record(m)
     th = box_sets(m, 8, seed=2)
     th[1, 0] = np.nan
-    th[2] = m.theta0 * 1e6
-    a = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numpy"))
-    b = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numba"))
+    th[2] = m.theta0
+    th[2, m.param_index("L")] = 3e-6
+    a = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numpy", method="rk4"))
+    b = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numba", method="rk4"))
+    assert a.failed[2] and a.fail_step[2] > 0
     assert a.failed[1] and a.fail_step[1] == 0
     assert a.failed.sum() >= 2
     assert_same(a, b)
@@ -254,3 +260,65 @@ def test_generate_check_covers_the_numba_kernels(tmp_path):
     p.write_text(p.read_text().replace("k*q_spring", "k*q_spring*1.0001", 1))
     assert registry.generate(["mass_spring_damper"], check=True, directory=tmp_path,
                              verbose=False) == ["mass_spring_damper"]
+
+
+def test_collapsed_state_variance_is_known_not_a_failure(tmp_path, monkeypatch):
+    """A stable lag driven by the input alone, without process noise (the
+    loop's source_lag on an RLC circuit), is known to the filter after a
+    while: every sigma point of it rounds to the same value, its row and
+    column of P are exactly zero. Both backends then factorise P without it
+    (a semidefinite factor) instead of failing "prior covariance P not
+    positive definite" (before: inf at sample 104 of 1000 for τ = 3 ms), and
+    agree to 1e-9."""
+    from bondgraph import apply_effect
+    from bondgraph.catalog.reference import rlc_circuit
+
+    monkeypatch.setenv(compiled.CACHE_ENV, str(tmp_path))
+    g = rlc_circuit()
+    apply_effect(g, "source_lag", ("source", "source"), {"tau": 0.003})
+    m = Model.from_graph(g)
+    m.numpy_seconds = 1e9          # compiling pays
+    N, dt = 1000, 0.001
+    t = np.arange(N) * dt
+    u = (6 * np.sin(2 * np.pi * 3 * t) + 4 * np.sin(2 * np.pi * 11 * t))[:, None]
+    x = m.x0[None].copy()
+    ys = []
+    for k in range(N):
+        ys.append(m.h(x, u[k], m.theta0)[0])
+        x = m.module.fx(x, dt, u[k], m.theta0, 8)
+    y = np.array(ys) + np.random.default_rng(3).normal(size=(N, m.n_y)) \
+        * m.meas_std(m.theta0[None])[0]
+    P0 = np.diag([20.0 if s.startswith("source_lag") else 1e-7 for s in m.states])
+    th = np.tile(m.theta0, (3, 1))
+    th[:, m.param_index("source_lag.source.tau")] = [0.003, 0.006, 0.012]
+    a = ukf_nll(m, t, u, y, th, None, P0, options=UKFOptions(backend="numpy", method="ros2"))
+    b = ukf_nll(m, t, u, y, th, None, P0, options=UKFOptions(backend="numba", method="ros2"))
+    assert b.settings["backend_used"] == "numba"
+    assert not a.failed.any(), a.reasons
+    assert np.argmin(a.nll) == 0                   # the true lag fits best
+    assert_same(a, b)
+
+
+def test_semidefinite_factor_of_known_states():
+    """cholesky_batch(known=True): exactly zero rows/columns are zero in L
+    and L Lᵀ reproduces A (to the 1e-12 loading); an innovation covariance
+    (known=False) with a zero variance still fails; a negative variance
+    fails either way. The kernel's factorisation equals it."""
+    from bondgraph.inference import ukf_numba
+    from bondgraph.inference.sigma import cholesky_batch
+
+    A = np.array([[4.0, 0.0, 1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 2.0]])
+    L, ok, nr = cholesky_batch(A[None], known=True)
+    assert ok[0] and nr == 1
+    assert np.all(L[0][1] == 0) and np.all(L[0][:, 1] == 0)
+    np.testing.assert_allclose(L[0] @ L[0].T, A, rtol=1e-11, atol=0)
+    assert not cholesky_batch(A[None])[1][0]
+    B = A.copy()
+    B[1, 1] = -1e-30
+    assert not cholesky_batch(B[None], known=True)[1][0]
+    Lk = np.zeros((3, 3))
+    skip = np.zeros(3, np.int64)
+    assert ukf_numba._chol(A, 3, Lk, True, skip) == 2
+    np.testing.assert_allclose(Lk, L[0], rtol=1e-14, atol=0)
+    assert ukf_numba._chol(A, 3, Lk, False, skip) == 0
+    assert ukf_numba._chol(B, 3, Lk, True, skip) == 0

@@ -128,13 +128,23 @@ def merwe_weights(n: int, alpha: float = 1.0, beta: float = 2.0, kappa: float = 
     return SigmaWeights(int(n), float(alpha), float(beta), float(kappa))
 
 
-def cholesky_batch(A: np.ndarray, regularise: bool = True):
+def cholesky_batch(A: np.ndarray, regularise: bool = True, known: bool = False):
     """Lower Cholesky factors of symmetric matrices A (B, n, n).
 
     A matrix that fails is retried with relative diagonal loading
     A + ε diag(A), ε = 1e-12, 1e-9, 1e-6 (scale-invariant: each state in its
     own units), which absorbs the rounding-level indefiniteness of
     covariances contracted by fast stable modes without process noise.
+
+    With ``known`` (state covariances), a state whose row and column of A
+    are exactly zero is taken as known exactly: its row and column of L are
+    zero and the rest is factorised as above. Its variance collapsed below
+    the rounding of its mean (a stable lag driven by the input alone, without
+    process noise: every sigma point of it rounds to the same value), and a
+    semidefinite factor keeps its sigma points on the mean (Higham 1990,
+    "Analysis of the Cholesky decomposition of a semi-definite matrix").
+    Innovation covariances are never taken so: a zero variance there has
+    no likelihood.
 
     Returns
     -------
@@ -156,7 +166,7 @@ def cholesky_batch(A: np.ndarray, regularise: bool = True):
             continue
         except np.linalg.LinAlgError:
             pass
-        loaded = _loaded_cholesky(A[b]) if regularise else None
+        loaded = _loaded_cholesky(A[b], known) if regularise else None
         if loaded is None:
             ok[b] = False
         else:
@@ -166,17 +176,30 @@ def cholesky_batch(A: np.ndarray, regularise: bool = True):
     return L, ok, nreg
 
 
-def _loaded_cholesky(A: np.ndarray) -> np.ndarray | None:
+def _loaded_cholesky(A: np.ndarray, known: bool = False) -> np.ndarray | None:
     """Cholesky factor of A + ε diag(A) for the first ε of 1e-12, 1e-9, 1e-6
-    that works (None if none does or the diagonal is not positive)."""
+    that works (None if none does or the diagonal is not positive); with
+    ``known``, rows and columns that are exactly zero are left out of the
+    factorisation (zero in L)."""
     d = np.diagonal(A).copy()
-    if not (d > 0).all():
+    keep = np.ones(len(d), bool)
+    if known:
+        keep = (A != 0.0).any(axis=1)
+    if not keep.any():
+        return np.zeros_like(A)
+    if not (d[keep] > 0).all():
         return None
+    sub = A[np.ix_(keep, keep)]
     for eps in (1e-12, 1e-9, 1e-6):
         try:
-            return np.linalg.cholesky(A + np.diag(eps * d))
+            Ls = np.linalg.cholesky(sub + np.diag(eps * d[keep]))
         except np.linalg.LinAlgError:
-            pass
+            continue
+        if keep.all():
+            return Ls
+        L = np.zeros_like(A)
+        L[np.ix_(keep, keep)] = Ls
+        return L
     return None
 
 

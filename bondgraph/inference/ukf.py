@@ -385,7 +385,7 @@ class FilterBatch:
     def sigma_points(self, k: int, what: str, c: float) -> tuple[np.ndarray, np.ndarray]:
         """Sigma points of the active sets (:func:`bondgraph.inference.sigma.sigma_points`);
         a set whose covariance cannot be factorised is dropped first."""
-        L, ok, nr = cholesky_batch(self.P)
+        L, ok, nr = cholesky_batch(self.P, known=True)
         self.n_reg += nr
         if not ok.all():
             L = L[self.drop(~ok, k, f"{what} covariance P not positive definite")]

@@ -127,7 +127,7 @@ def _jit_inline(fn):
 Work = namedtuple("Work", ["L", "cL", "chi", "X", "D", "mean", "cov", "xs", "xt", "k1", "k2",
                            "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Y", "Ym", "idx",
                            "Pyx", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols",
-                           "FT", "K1", "K2", "XS"])
+                           "FT", "K1", "K2", "XS", "skip"])
 
 
 @_jit_inline
@@ -142,7 +142,7 @@ def _work_size(n, ny, nu, nth):
     (:func:`_work`)."""
     npt, m = 2 * n + 1, max(n, ny)
     return (7 * n * n + 2 * npt * n + npt * m + m + m * m + 10 * n + 2 * nu + 2 * npt * ny
-            + 2 * n * ny + ny * ny + 5 * ny + nth + 4 * n * npt, ny + 1 + 2 * n)
+            + 2 * n * ny + ny * ny + 5 * ny + nth + 4 * n * npt, ny + 1 + 2 * n + m)
 
 
 @_jit_inline
@@ -178,7 +178,8 @@ def _work(buf, ibuf, n, ny, nu, nth):
     XS, o = _carve(buf, o, npt, n)
     wk = Work(L, cL, chi, X, D, mean[0], cov, vn[0], vn[1], vn[2], vn[3], vn[4], vn[5], vn[6],
               vn[7], J, Winv, A, vu[0], Y, Ym, ibuf[:ny], Pyx, Gt, vy[0], vy[1], Ls, vy[2],
-              ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:], FT, K1, K2, XS)
+              ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:ny + 1 + 2 * n], FT, K1, K2, XS,
+              ibuf[ny + 1 + 2 * n:])
     return wk, vn[8], P, tha[0]
 
 
@@ -196,10 +197,15 @@ def _all_finite(A, r, c):
 
 
 @_jit
-def _chol_plain(A, m, eps, L):
+def _chol_plain(A, m, eps, L, skip):
     """Lower Cholesky factor of A[:m, :m] + eps diag(A) (lower triangle used)
-    into L; False where LAPACK's potrf fails (a pivot not > 0, or NaN)."""
+    into L; False where LAPACK's potrf fails (a pivot not > 0, or NaN).
+    Rows and columns j with ``skip[j]`` (exactly zero in A) are zero in L."""
     for j in range(m):
+        if skip[j]:
+            for i in range(m):
+                L[i, j] = 0.0
+            continue
         s = A[j, j] + eps * A[j, j]
         for k in range(j):
             s -= L[j, k] * L[j, k]
@@ -218,20 +224,33 @@ def _chol_plain(A, m, eps, L):
 
 
 @_jit
-def _chol(A, m, L):
+def _chol(A, m, L, known, skip):
     """:func:`bondgraph.inference.sigma.cholesky_batch` for one matrix:
     0 failed (not finite, or not positive definite even with relative
     diagonal loading 1e-12, 1e-9, 1e-6), 1 factorised, 2 factorised with
-    loading."""
+    loading. With ``known`` (state covariances) rows and columns that are
+    exactly zero are left out of the loaded factorisation (zero in L);
+    ``skip`` (m,) is work space."""
+    for i in range(m):
+        skip[i] = False
     if not _all_finite(A, m, m):
         return 0
-    if _chol_plain(A, m, 0.0, L):
+    if _chol_plain(A, m, 0.0, L, skip):
         return 1
     for i in range(m):
+        if known:
+            zero = True
+            for j in range(m):
+                if A[i, j] != 0.0:
+                    zero = False
+                    break
+            if zero:
+                skip[i] = True
+                continue
         if not A[i, i] > 0.0:
             return 0
     for eps in (1e-12, 1e-9, 1e-6):
-        if _chol_plain(A, m, eps, L):
+        if _chol_plain(A, m, eps, L, skip):
             return 2
     return 0
 
@@ -638,7 +657,7 @@ def _transition(f, fj, fpts, u, k, th, dt, ip, wk):
 def _predict(f, fj, fpts, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
     """Prediction over interval k (to sample k + 1) in place; 0 or a failure code."""
     n = x.shape[0]
-    r = _chol(P, n, wk.L)
+    r = _chol(P, n, wk.L, True, wk.skip)
     if r == 0:
         return 1
     wk.nreg[0] += r == 2
@@ -662,7 +681,7 @@ def _measured_outputs(hpts, x, P, th, uk, yk, fp, wk):
     measured outputs of yk (their indices in wk.idx) in wk.Ym where some are
     missing; returns (m, failure code)."""
     n = x.shape[0]
-    r = _chol(P, n, wk.L)
+    r = _chol(P, n, wk.L, True, wk.skip)
     if r == 0:
         return 0, 2
     wk.nreg[0] += r == 2
@@ -699,7 +718,7 @@ def _update(hpts, x, P, th, uk, yk, Rd, R, ip, fp, wk):
         else:
             S[a, a] += Rd[wk.idx[a]]
     _cross_cov(n, m, w, fp[0], wk)
-    r = _chol(S, m, wk.Ls)
+    r = _chol(S, m, wk.Ls, False, wk.skip)
     if r == 0:
         return 0.0, 0.0, m, 5
     wk.nreg[0] += r == 2
