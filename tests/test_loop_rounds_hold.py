@@ -64,7 +64,7 @@ def test_free_run_with_zero_order_hold_matches_the_exact_discretisation():
 def test_confirmation_goes_on_in_rounds_until_one_is_accepted(monkeypatch):
     """With confirm_top 2 and confirm_rounds 3, seven significant candidates:
     rounds {a, b}, {c, d} are refused, {e, f} has the accepted one; g is
-    never confirmed. With one round (the default) nothing is accepted."""
+    never confirmed. With one round nothing is accepted."""
     cands = [SimpleNamespace(label=n, rank_key=i) for i, n in enumerate("abcdefg")]
     seen = []
 
@@ -82,7 +82,7 @@ def test_confirmation_goes_on_in_rounds_until_one_is_accepted(monkeypatch):
     got = runner.confirm_in_rounds(ctx, None, None, cands[::-1], None, "g", 1)
     assert got == "fit-e" and seen == [["a", "b"], ["c", "d"], ["e", "f"]]
     seen.clear()
-    ctx.settings = LoopSettings(params=[], confirm_top=2)
+    ctx.settings = LoopSettings(params=[], confirm_top=2, confirm_rounds=1)
     assert runner.confirm_in_rounds(ctx, None, None, cands, None, "g", 1) is None
     assert seen == [["a", "b"]]
     with pytest.raises(OptionError, match="confirm_rounds"):

@@ -118,11 +118,14 @@ def test_pump_saturation_found_after_the_additive_candidates_fail():
     """The user's tanks, whose pump saturates (truth: the graph plus
     actuator_saturation at the pump, L = 2.5e-4 m^3/s, commands up to 4e-4);
     noise and initial levels undeclared, a held-out record. A pump-flow
-    offset explains most of the innovations, so the structural candidates are
-    skipped at first; every confirmed additive candidate raises the held-out
-    error and is refused; the skipped structural candidates are then scored
-    and the saturation is accepted with its level (measured on 5401-sample
-    records: L 2.497e-4, held-out NRMSE 0.356 -> 0.046)."""
+    offset explains most of the innovations, so with the skip rule on
+    (``structural_threshold=0.5``) the structural candidates are skipped at
+    first; every confirmed additive candidate raises the held-out error and
+    is refused; the skipped structural candidates are then scored and the
+    saturation is accepted with its level (measured on 5401-sample records:
+    L 2.497e-4, held-out NRMSE 0.356 -> 0.046). By default (never skipped)
+    the saturation ranks 7th behind six additive candidates that all raise
+    the held-out error, and is accepted in the third round of confirmations."""
     from bondgraph import apply_effect, synthesize
 
     recs = []
@@ -138,12 +141,15 @@ def test_pump_saturation_found_after_the_additive_candidates_fail():
         recs.append(Experiment.from_arrays(t, {"Q": Q, "p2": y}, units={"Q": "m^3/s", "p2": "Pa"},
                                            roles={"Q": "input", "p2": "output"},
                                            name=f"sat_{seed}"))
-    logs = []
-    res = run_loop(tanks(), recs[0], ["C1", "C2", "K1", "K2"], validation=recs[1], max_steps=1,
-                   log=logs.append, progress=False)
-    assert any("scoring the structural candidates skipped above" in s for s in logs)
-    (step,) = res.steps
-    assert (step.effect, step.attached_to) == ("actuator_saturation", "pump")
-    assert step.parameters["actuator_saturation.pump.L"]["estimate"] == pytest.approx(2.5e-4,
-                                                                                      rel=0.03)
-    assert step.validated and step.error_after < 0.3 * step.error_before
+    for threshold in (0.5, None):
+        logs = []
+        res = run_loop(tanks(), recs[0], ["C1", "C2", "K1", "K2"], validation=recs[1],
+                       max_steps=1, log=logs.append, progress=False,
+                       structural_threshold=threshold)
+        skipped = any("scoring the structural candidates skipped above" in s for s in logs)
+        assert skipped == (threshold is not None)
+        (step,) = res.steps
+        assert (step.effect, step.attached_to) == ("actuator_saturation", "pump")
+        assert step.parameters["actuator_saturation.pump.L"]["estimate"] == pytest.approx(
+            2.5e-4, rel=0.03)
+        assert step.validated and step.error_after < 0.3 * step.error_before

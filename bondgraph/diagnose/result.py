@@ -58,6 +58,10 @@ class Candidate:
     failed : str or None
         Why the candidate could not be scored (the filter failed: its reason);
         its statistic, p-value and score are then NaN, never a χ² of 0.
+    limit_of : list of str
+        Candidates this structural one became when scored: a parameter ended
+        on the end of its span where the effect is another one
+        (``Effect.limits``); marked equivalent to them once all are scored.
     confirmed : dict or None
         The confirmation refit: ``lr``, ``dof``, ``nll``, ``criterion``
         (after), ``error`` (free-run, record), ``validation_error``,
@@ -82,6 +86,7 @@ class Candidate:
     failed: str | None = None
     confirmed: dict | None = None
     profile: dict = field(default_factory=dict)
+    limit_of: list = field(default_factory=list)
 
     @property
     def rank_key(self) -> float:

@@ -35,6 +35,7 @@ from bondgraph.diagnose.inference_calls import discretisation, output_error
 from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.result import Candidate, LoopResult, rank_of
 from bondgraph.diagnose.scoring import (
+    mark_limits,
     operating_scales,
     places_of,
     score_additive,
@@ -401,6 +402,7 @@ def _score_skipped(ctx: Context, result: LoopResult, current: Fit,
     seen = {c.label for c in result.rankings[-1]}
     extra = [c for c in score_structural(ctx, current, scales, physical) if c.label not in seen]
     ranking = sorted(result.rankings[-1] + extra, key=lambda c: c.rank_key)
+    mark_limits(ranking)
     result.rankings[-1] = ranking
     if ctx.settings.true_effect is not None and result.truth_ranks:
         kind, target = ctx.settings.true_effect
@@ -416,7 +418,8 @@ def structural_skipped(s: LoopSettings, cands: list[Candidate]) -> bool:
     because an additive one explains more than ``structural_threshold`` of
     the innovation energy."""
     best = max([c.explained or 0.0 for c in cands] + [0.0])
-    return bool(s.structural) and s.structural != "always" and best >= s.structural_threshold
+    return (bool(s.structural) and s.structural != "always"
+            and s.structural_threshold is not None and best >= s.structural_threshold)
 
 
 def second_chance(ctx: Context, result: LoopResult, current: Fit, scales: Scales, tag: str,
@@ -483,7 +486,7 @@ def gather_evidence(ctx: Context, current: Fit,
     best_expl = max([c.explained or 0.0 for c in cands] + [0.0])
     physical_fx = [e for e in s.effects if not getattr(e, "last_resort", False)]
     resort_fx = [e for e in s.effects if getattr(e, "last_resort", False)]
-    if s.structural == "always" or (s.structural and best_expl < s.structural_threshold):
+    if s.structural and not structural_skipped(s, cands):
         cands += score_structural(ctx, current, scales, physical_fx)
     elif s.structural:
         ctx.log(f"  structural candidates not scored: an additive effect explains "
@@ -499,6 +502,7 @@ def gather_evidence(ctx: Context, current: Fit,
                 "effects (unmeasured disturbances)")
         cands += score_structural(ctx, current, scales, resort_fx)
         signif = significant(cands, s.significance)
+    mark_limits(cands)
     return sorted(cands, key=lambda c: c.rank_key), signif
 
 

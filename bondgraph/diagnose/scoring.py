@@ -658,4 +658,45 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
     lr = max(0.0, 2 * (fit.nll - best))
     return Candidate(eff.name, eff.title, tgt, "likelihood ratio", lr, k, float(chi2.sf(lr, k)),
                      lr - 2 * k, None, values,
-                     last_resort=getattr(eff, "last_resort", False), profile=declared)
+                     last_resort=getattr(eff, "last_resort", False), profile=declared,
+                     limit_of=at_limits(eff, tgt, values, spans))
+
+
+#: a parameter within this relative distance of an end of its span is on it
+LIMIT_REL = 1e-3
+
+
+def at_limits(eff, tgt, values: dict, spans: dict) -> list[str]:
+    """Labels of the candidates ``eff`` at ``tgt`` became with ``values``: a
+    parameter on the end of its span (within :data:`LIMIT_REL`) that
+    ``eff.limits`` names."""
+    out = []
+    for p, (side, other) in getattr(eff, "limits", {}).items():
+        v, span = values.get(p), spans.get(p)
+        if v is None or span is None:
+            continue
+        end = span[1] if side == "upper" else span[0]
+        if abs(v - end) <= LIMIT_REL * abs(end):
+            out.append(f"{other} @ {tgt.name}")
+    return out
+
+
+def mark_limits(cands: list[Candidate]) -> None:
+    """A structural candidate scored at a limit where it is another candidate
+    (``limit_of``) joins that candidate's equivalence group (both ways, with
+    the group's other members): the record showed the simpler effect (a Dahl
+    friction whose rest stiffness ran to the top of its span scored as the
+    Coulomb friction it then is, a little above it for its extra
+    parameter)."""
+    by = {c.label: c for c in cands}
+    for c in cands:
+        for label in c.limit_of:
+            other = by.get(label)
+            if other is None:
+                continue
+            group = [other, *(by[g] for g in other.equivalent if g in by)]
+            for o in group:
+                if o.label not in c.equivalent:
+                    c.equivalent.append(o.label)
+                if c.label not in o.equivalent:
+                    o.equivalent.append(c.label)

@@ -277,6 +277,12 @@ class Effect:
     last_resort : bool
         Considered only when no physical effect is significant (a
         random-walk disturbance can absorb any model error).
+    limits : dict
+        ``{parameter: (side, effect)}``: at that end (``"upper"`` or
+        ``"lower"``) of the parameter's span the effect becomes the other
+        effect at the same place (Dahl friction at an infinite rest stiffness
+        is Coulomb friction); a candidate scored there is reported
+        equivalent to it (:func:`bondgraph.diagnose.scoring.mark_limits`).
     """
 
     name = "effect"
@@ -285,6 +291,7 @@ class Effect:
     params: tuple[EffectParam, ...] = ()
     additive = False
     last_resort = False
+    limits: dict = {}
 
     # --- discovery
     def targets(self, graph: BondGraph) -> list[Target]:

@@ -281,6 +281,7 @@ class DahlFriction(_Structural):
               EffectParam("sigma", "{effort}/({flow}*s)", "rest stiffness dF/dx at F = 0",
                           nonnegative=True),
               EffectParam("eps", "{flow}", "tanh width of sign(v)", estimated=False))
+    limits = {"sigma": ("upper", "coulomb")}
 
     def targets(self, graph):
         return flow_junctions(graph, mechanical_only=True)
