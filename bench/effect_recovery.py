@@ -136,9 +136,9 @@ _substeps = [SUBSTEPS["full"]]
 
 def settings_for(params):
     """Loop settings of the benchmark: the default library, ROS2 UKF with
-    ``_substeps[0]`` substeps, the structural candidates at the best
-    additive candidates' places scored even when an additive one explains
-    most of the innovations (``structural_near_best``)."""
+    ``_substeps[0]`` substeps, structural candidates scored at every step
+    (the loop's default; ``structural_near_best`` only matters when a
+    ``structural_threshold`` is set)."""
     return LoopSettings(params=list(params), effects=DEFAULT_EFFECTS, metric="nrmse_sim",
                         ukf=UKFOptions(method="ros2", substeps=_substeps[0], alpha=1.0),
                         structural_near_best=True)

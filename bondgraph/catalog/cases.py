@@ -22,6 +22,7 @@ from scipy.signal import resample
 from bondgraph.catalog.benchmarks import (
     ced_linear,
     emps_arrays,
+    emps_decimate,
     emps_filtered_signals,
     emps_viscous,
     silverbox_linear,
@@ -107,7 +108,9 @@ class EmpsForceError:
         return ((tau - tau_hat) / np.sqrt(np.mean(tau**2)))[:, None]
 
     def forces(self, fit, data) -> tuple[np.ndarray, np.ndarray]:
-        """The measured drive force τ (N,) and the inverse model's τ̂ (N,) [N]."""
+        """The measured drive force τ (N,) and the inverse model's τ̂ (N,) [N],
+        τ̂ computed at the full rate and both decimated in parallel
+        (:func:`bondgraph.catalog.benchmarks.emps_decimate`, the protocol's)."""
         m = fit.model
         th = np.array(fit.theta, dtype=float)
         if self.sign_limit:
@@ -125,7 +128,7 @@ class EmpsForceError:
         f0 = m.f(x, np.zeros((x.shape[0], m.n_u)), th)[:, i]
         f1 = m.f(x, np.ones((x.shape[0], m.n_u)), th)[:, i]
         vir_hat = (M * s["qdd"] - f0) / (f1 - f0)
-        return s["tau"], gtau * vir_hat
+        return emps_decimate(s["tau"], s["step"]), emps_decimate(gtau * vir_hat, s["step"])
 
 
 def emps_closed_loop(graph: BondGraph) -> BondGraph:
