@@ -48,7 +48,8 @@ def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int
                   hold: str = "zoh", samples: int = SCALE_SAMPLES) -> np.ndarray:
     """RMS of every state along a fixed-step free run from ``x0`` with the
     record's inputs (the first ``samples`` samples; up to the first
-    non-finite state if the run diverges).
+    non-finite state if the run diverges, or up to a singular ROS2 matrix
+    I − γhJ).
 
     Parameters
     ----------
@@ -83,7 +84,10 @@ def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int
             count += 1
             if k < n - 1:
                 uk, duk = held.interval(k)
-                x = step(x, uk, th, t[k + 1] - t[k], duk)
+                try:
+                    x = step(x, uk, th, t[k + 1] - t[k], duk)
+                except np.linalg.LinAlgError:    # a singular ROS2 matrix: the run ends here
+                    break
     return np.sqrt(acc / count) if count else np.zeros(model.n_x)
 
 
