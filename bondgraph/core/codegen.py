@@ -121,6 +121,21 @@ class _ScalarPrinter(_Printer):
         return out
 
 
+class _ReusePrinter(_ScalarPrinter):
+    """:class:`_ScalarPrinter` that prints the given subexpressions (library
+    calls computed before, :meth:`_NumbaGen.points_body`) by their names."""
+
+    def __init__(self, names: dict, calls: dict):
+        super().__init__(names)
+        self._calls = calls
+
+    def _print(self, expr, **kwargs):
+        name = self._calls.get(expr)
+        if name is not None:
+            return name
+        return super()._print(expr, **kwargs)
+
+
 class _Namer:
     """Unique identifiers for model symbols."""
 
@@ -484,7 +499,12 @@ _FILTERPY_ADAPTER = textwrap.dedent('''
 NUMBA_FUNCTIONS = ("f", "h", "f_dfdx", "f_pts", "h_pts")
 #: version of the numba code generator: part of the key of compiled kernels
 #: built in memory (bump it when the generated numba text changes)
-NUMBA_CODEGEN_VERSION = 2
+NUMBA_CODEGEN_VERSION = 3
+#: functions whose calls the points kernels reuse between points that agree
+#: on every state the call's argument depends on (library calls: costly
+#: next to the arithmetic; sqrt and abs are single instructions)
+REUSED_CALLS = (sp.sin, sp.cos, sp.tan, sp.tanh, sp.sinh, sp.cosh, sp.atan, sp.asin, sp.acos,
+                sp.exp, sp.log, sp.atan2, sp.asinh, sp.acosh, sp.atanh)
 
 
 class _NumbaGen(_Gen):
@@ -521,11 +541,52 @@ class _NumbaGen(_Gen):
         ``name[i, _j]`` (transposed) or ``name[_j, i]``. The inputs,
         parameters and the shared subexpressions of them alone are computed
         once, before the loop over points; each value is the same double as
-        in the point kernel (the same expression, the same operations)."""
+        in the point kernel (the same expression, the same operations).
+
+        Library calls (:data:`REUSED_CALLS`) whose argument depends on the
+        states S alone are taken from point 0 at every later point whose
+        states in S are those of point 0 (the same doubles in, the same
+        double out: exact). Sigma points x ± c·L_i with a lower-triangular
+        factor L agree with x on every state before i, so a call on the
+        first states is computed at a fraction of the points; calls that
+        depend on the last state are never reused (no code is generated).
+        """
         flat = [e for _, entries in outputs for _, e in entries]
         repl, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_t"), optimizations=None,
                                order="none")
         xs = {s for s in self.sym_index if self.sym_index[s][0] == "x"}
+        n_x = len(self.ss.states)
+        deps = {s: {self.sym_index[s][1]} for s in xs}
+        for sym, e in repl:
+            d = set()
+            for a in e.free_symbols:
+                d |= deps.get(a, set())
+            if d:
+                deps[sym] = d
+
+        def state_deps(e):
+            d = set()
+            for a in e.free_symbols:
+                d |= deps.get(a, set())
+            return d
+
+        # the outermost reusable calls on states other than the last one
+        calls: dict = {}
+
+        def find(e):
+            if isinstance(e, sp.Function) and e.func in REUSED_CALLS:
+                d = state_deps(e)
+                if d and max(d) < n_x - 1:
+                    if e not in calls:
+                        calls[e] = (sp.Symbol(f"_e{len(calls)}"), tuple(sorted(d)))
+                    return
+            for a in e.args:
+                find(a)
+
+        for _, e in repl:
+            find(e)
+        for e in reduced:
+            find(e)
         varying = set(xs)
         for sym, e in repl:
             if e.free_symbols & varying:
@@ -534,16 +595,50 @@ class _NumbaGen(_Gen):
         for e in list(reduced) + [e for _, e in repl]:
             syms |= e.free_symbols
         used = {s for s in syms if not str(s).startswith("_t")}
+        # the calls are printed by name where they occur (the expressions, and
+        # so the order of their operations, stay those of the point kernel)
+        pr = _ReusePrinter(self.namer.names, {e: sym.name for e, (sym, _) in calls.items()})
+
+        def prr(e):
+            return pr.doprint(e).replace("numpy.", "np.")
+
         lines = self._unpack(used - xs, point=True)
         lines += [f"{s} = {self.pr(e)}" for s, e in repl if s not in varying]
+        sets = sorted({d for _, d in calls.values()})
+        ref = sorted({i for d in sets for i in d})
+        state_of = {self.sym_index[s][1]: s for s in xs}
+        lines += [f"_r{i} = 0.0" for i in ref]
+        lines += [f"_c{sym.name[2:]} = 0.0" for sym, _ in calls.values()]
         loop = [f"{self.namer.names[s]} = _X[_j, {self.sym_index[s][1]}]"
-                for s in sorted(used & xs, key=lambda s: self.sym_index[s][1])]
-        loop += [f"{s} = {self.pr(e)}" for s, e in repl if s in varying]
+                for s in sorted(used & xs | {state_of[i] for i in ref},
+                                key=lambda s: self.sym_index[s][1])]
+        if ref:
+            loop.append("if _j == 0:")
+            loop += [f"    _r{i} = {self.namer.names[state_of[i]]}" for i in ref]
+        for k, d in enumerate(sets):
+            same = " and ".join(f"{self.namer.names[state_of[i]]} == _r{i}" for i in d)
+            loop.append(f"_same{k} = _j > 0 and {same}")
+        pending = dict(calls)
+
+        def emit_calls(e):
+            for call, (sym, d) in list(pending.items()):
+                if e.has(call):
+                    del pending[call]
+                    c = f"_c{sym.name[2:]}"
+                    loop.append(f"{sym} = {c} if _same{sets.index(d)} else {self.pr(call)}")
+                    loop.append("if _j == 0:")
+                    loop.append(f"    {c} = {sym}")
+
+        for s, e in repl:
+            if s in varying:
+                emit_calls(e)
+                loop.append(f"{s} = {prr(e)}")
         k = 0
         for name, entries in outputs:
             for (i,), _ in entries:
+                emit_calls(reduced[k])
                 at = f"{i}, _j" if transposed else f"_j, {i}"
-                loop.append(f"{name}[{at}] = {self.pr(reduced[k])}")
+                loop.append(f"{name}[{at}] = {prr(reduced[k])}")
                 k += 1
         return lines + ["for _j in range(_X.shape[0]):"] + ["    " + ln for ln in loop]
 
@@ -605,7 +700,10 @@ One point per call: x ({nx},), u ({nu},), theta ({npar},) are C-contiguous float
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_pts and h_pts take the points
 as the rows of a C-contiguous matrix and compute what depends on u and theta
-alone once per call (the same doubles as the point kernels). Compiled on import with
+alone once per call, and take a library call (sin, tanh, ...) from point 0 at
+a point that has point 0's values of every state the call depends on (sigma
+points of a lower-triangular factor share the first states): the same doubles
+as the point kernels. Compiled on import with
 explicit signatures and cached on disk (cache=True); the fused UKF kernel
 (bondgraph.inference.ukf_numba) calls them as first-class functions.
 """
