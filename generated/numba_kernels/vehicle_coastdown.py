@@ -34,6 +34,16 @@ SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_POINTS = types.void(_M, _V, _V, _M)
 
 
+@njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
+def _tanh(x):
+    """tanh(x) by exp for |x| >= 0.55 (bondgraph.core.codegen.NUMBA_TANH)."""
+    a = abs(x)
+    if a < 0.55:
+        return np.tanh(x)
+    r = 1.0 - 2.0 / (np.exp(2.0 * a) + 1.0)
+    return r if x > 0 else -r
+
+
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
 def f(x, u, theta, _dxdt):
     """dx/dt = f(x, u, theta) at one point into _dxdt (5,)."""
@@ -69,7 +79,7 @@ def f(x, u, theta, _dxdt):
     _t8 = _t0*_t7
     _t9 = (0.6)*C_dA*_t1*_t2 + mu*_t6*_t8
     _t10 = pitch__p_I/I_theta
-    _t11 = np.tanh((0.125)*wheels__p_J*_t3)
+    _t11 = _tanh((0.125)*wheels__p_J*_t3)
     _dxdt[0] = -_t0*np.sin(theta_g) - _t9
     _dxdt[1] = -c_theta*_t10 - h_cg*_t9 - k_theta*pitch__q_k
     _dxdt[2] = _t10
@@ -161,7 +171,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t24 = _t10*_t23 + _t3*_t8
     _t25 = 1/I_theta
     _t26 = pitch__p_I*_t25
-    _t27 = np.tanh((0.125)*wheels__p_J*_t11)
+    _t27 = _tanh((0.125)*wheels__p_J*_t11)
     _t28 = brake*T_bmax
     _t29 = r_dyn*_t10
     _t30 = f_r*_t27
@@ -249,7 +259,7 @@ def f_pts(_X, u, theta, _dxdt):
         _t8 = _t0*_t7
         _t9 = (0.6)*C_dA*_t1*_t2 + mu*_t6*_t8
         _t10 = pitch__p_I/I_theta
-        _e1 = _c1 if _same1 else np.tanh((0.125)*wheels__p_J*_t3)
+        _e1 = _c1 if _same1 else _tanh((0.125)*wheels__p_J*_t3)
         if _j == 0:
             _c1 = _e1
         _t11 = _e1

@@ -34,6 +34,16 @@ SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_POINTS = types.void(_M, _V, _V, _M)
 
 
+@njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
+def _tanh(x):
+    """tanh(x) by exp for |x| >= 0.55 (bondgraph.core.codegen.NUMBA_TANH)."""
+    a = abs(x)
+    if a < 0.55:
+        return np.tanh(x)
+    r = 1.0 - 2.0 / (np.exp(2.0 * a) + 1.0)
+    return r if x > 0 else -r
+
+
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
 def f(x, u, theta, _dxdt):
     """dx/dt = f(x, u, theta) at one point into _dxdt (3,)."""
@@ -61,7 +71,7 @@ def f(x, u, theta, _dxdt):
     _t6 = np.sin(C_mf*np.arctan(E_mf*(-_t5 - np.arctan(_t4)) + _t5))
     _t7 = np.cos(theta_g)
     _t8 = _t0*_t7
-    _t9 = np.tanh((0.125)*wheels__p_J*_t3)
+    _t9 = _tanh((0.125)*wheels__p_J*_t3)
     _dxdt[0] = -0.6*C_dA*_t1*_t2 - mu*_t6*_t8 - _t0*np.sin(theta_g)
     _dxdt[1] = -4*brake*T_bmax*_t9 - f_r*r_dyn*_t8*_t9 + g*m*mu*r_dyn*_t6*_t7
     _dxdt[2] = 0
@@ -140,7 +150,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t21 = C_mf*np.arctan(_t20)
     _t22 = np.sin(_t21)
     _t23 = mu*_t22
-    _t24 = np.tanh((0.125)*wheels__p_J*_t11)
+    _t24 = _tanh((0.125)*wheels__p_J*_t11)
     _t25 = brake*T_bmax
     _t26 = r_dyn*_t10
     _t27 = f_r*_t24
@@ -210,7 +220,7 @@ def f_pts(_X, u, theta, _dxdt):
         _t6 = _e0
         _t7 = np.cos(theta_g)
         _t8 = _t0*_t7
-        _e1 = _c1 if _same1 else np.tanh((0.125)*wheels__p_J*_t3)
+        _e1 = _c1 if _same1 else _tanh((0.125)*wheels__p_J*_t3)
         if _j == 0:
             _c1 = _e1
         _t9 = _e1

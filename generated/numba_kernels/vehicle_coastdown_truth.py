@@ -34,6 +34,16 @@ SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_POINTS = types.void(_M, _V, _V, _M)
 
 
+@njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
+def _tanh(x):
+    """tanh(x) by exp for |x| >= 0.55 (bondgraph.core.codegen.NUMBA_TANH)."""
+    a = abs(x)
+    if a < 0.55:
+        return np.tanh(x)
+    r = 1.0 - 2.0 / (np.exp(2.0 * a) + 1.0)
+    return r if x > 0 else -r
+
+
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
 def f(x, u, theta, _dxdt):
     """dx/dt = f(x, u, theta) at one point into _dxdt (6,)."""
@@ -81,10 +91,10 @@ def f(x, u, theta, _dxdt):
     _t17 = np.sin(C_mf*np.arctan(E_mf*(-_t16 - np.arctan(_t15)) + _t16))
     _t18 = (0.6)*C_dA*_t7*_t9 + mu*_t13*_t6 + mu*_t14*_t17
     _t19 = (0.25)*_t8
-    _t20 = np.tanh(rear__p_J*_t19)
+    _t20 = _tanh(rear__p_J*_t19)
     _t21 = 2*brake*T_bmax
     _t22 = f_r*r_dyn
-    _t23 = np.tanh(front__p_J*_t19)
+    _t23 = _tanh(front__p_J*_t19)
     _dxdt[0] = -_t0*np.sin(theta_g) - _t18
     _dxdt[1] = -h_cg*_t18 - _t3
     _dxdt[2] = _t2
@@ -206,12 +216,12 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t37 = _t16*_t36
     _t38 = _t11*_t37 + _t26*_t9 + _t28*_t35
     _t39 = (0.25)*_t12
-    _t40 = np.tanh(rear__p_J*_t39)
+    _t40 = _tanh(rear__p_J*_t39)
     _t41 = brake*T_bmax
     _t42 = 2*_t41
     _t43 = f_r*r_dyn
     _t44 = _t40*_t43
-    _t45 = np.tanh(front__p_J*_t39)
+    _t45 = _tanh(front__p_J*_t39)
     _t46 = _t43*_t45
     _t47 = 1/_t16
     _t48 = 1/_t18**2
@@ -360,11 +370,11 @@ def f_pts(_X, u, theta, _dxdt):
             _c1 = _e1
         _t17 = _e1
         _t18 = (0.6)*C_dA*_t7*_t9 + mu*_t13*_t6 + mu*_t14*_t17
-        _e2 = _c2 if _same2 else np.tanh(rear__p_J*_t19)
+        _e2 = _c2 if _same2 else _tanh(rear__p_J*_t19)
         if _j == 0:
             _c2 = _e2
         _t20 = _e2
-        _e3 = _c3 if _same3 else np.tanh(front__p_J*_t19)
+        _e3 = _c3 if _same3 else _tanh(front__p_J*_t19)
         if _j == 0:
             _c3 = _e3
         _t23 = _e3
