@@ -562,50 +562,15 @@ class _NumbaGen(_Gen):
         once, before the loop over points; each value is the same double as
         in the point kernel (the same expression, the same operations).
 
-        Library calls (:data:`REUSED_CALLS`) whose argument depends on the
-        states S alone are taken from point 0 at every later point whose
-        states in S are those of point 0 (the same doubles in, the same
-        double out: exact). Sigma points x ± c·L_i with a lower-triangular
-        factor L agree with x on every state before i, so a call on the
-        first states is computed at a fraction of the points; calls that
-        depend on the last state are never reused (no code is generated).
+        Library calls (:meth:`_reusable_calls`) are taken from point 0 at
+        every later point that has point 0's values of the states they
+        depend on (the same doubles in, the same double out: exact).
         """
         flat = [e for _, entries in outputs for _, e in entries]
         repl, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_t"), optimizations=None,
                                order="none")
         xs = {s for s in self.sym_index if self.sym_index[s][0] == "x"}
-        n_x = len(self.ss.states)
-        deps = {s: {self.sym_index[s][1]} for s in xs}
-        for sym, e in repl:
-            d = set()
-            for a in e.free_symbols:
-                d |= deps.get(a, set())
-            if d:
-                deps[sym] = d
-
-        def state_deps(e):
-            d = set()
-            for a in e.free_symbols:
-                d |= deps.get(a, set())
-            return d
-
-        # the outermost reusable calls on states other than the last one
-        calls: dict = {}
-
-        def find(e):
-            if isinstance(e, sp.Function) and e.func in REUSED_CALLS:
-                d = state_deps(e)
-                if d and max(d) < n_x - 1:
-                    if e not in calls:
-                        calls[e] = (sp.Symbol(f"_e{len(calls)}"), tuple(sorted(d)))
-                    return
-            for a in e.args:
-                find(a)
-
-        for _, e in repl:
-            find(e)
-        for e in reduced:
-            find(e)
+        calls = self._reusable_calls(repl, reduced, xs)
         varying = set(xs)
         for sym, e in repl:
             if e.free_symbols & varying:
@@ -624,19 +589,8 @@ class _NumbaGen(_Gen):
         lines = self._unpack(used - xs, point=True)
         lines += [f"{s} = {self.pr(e)}" for s, e in repl if s not in varying]
         sets = sorted({d for _, d in calls.values()})
-        ref = sorted({i for d in sets for i in d})
-        state_of = {self.sym_index[s][1]: s for s in xs}
-        lines += [f"_r{i} = 0.0" for i in ref]
-        lines += [f"_c{sym.name[2:]} = 0.0" for sym, _ in calls.values()]
-        loop = [f"{self.namer.names[s]} = _X[_j, {self.sym_index[s][1]}]"
-                for s in sorted(used & xs | {state_of[i] for i in ref},
-                                key=lambda s: self.sym_index[s][1])]
-        if ref:
-            loop.append("if _j == 0:")
-            loop += [f"    _r{i} = {self.namer.names[state_of[i]]}" for i in ref]
-        for k, d in enumerate(sets):
-            same = " and ".join(f"{self.namer.names[state_of[i]]} == _r{i}" for i in d)
-            loop.append(f"_same{k} = _j > 0 and {same}")
+        head, loop = self._reuse_lines(calls, sets, used & xs)
+        lines += head
         pending = dict(calls)
 
         def emit_calls(e):
@@ -660,6 +614,64 @@ class _NumbaGen(_Gen):
                 loop.append(f"{name}[{at}] = {prr(reduced[k])}")
                 k += 1
         return lines + ["for _j in range(_X.shape[0]):"] + ["    " + ln for ln in loop]
+
+    def _reusable_calls(self, repl, reduced, xs) -> dict:
+        """The outermost library calls (:data:`REUSED_CALLS`) of the CSE
+        ``repl``, ``reduced`` whose argument depends on states S that do not
+        include the last one: ``{call: (name symbol, S as a sorted tuple)}``.
+        Sigma points x ± c·L_i of a lower-triangular factor L agree with x
+        on every state before i, so a call on the first states is computed
+        at a fraction of the points; a call on the last state never could
+        be reused (no code is generated for it)."""
+        n_x = len(self.ss.states)
+        deps = {s: {self.sym_index[s][1]} for s in xs}
+
+        def state_deps(e):
+            d = set()
+            for a in e.free_symbols:
+                d |= deps.get(a, set())
+            return d
+
+        for sym, e in repl:
+            d = state_deps(e)
+            if d:
+                deps[sym] = d
+        calls: dict = {}
+
+        def find(e):
+            if isinstance(e, sp.Function) and e.func in REUSED_CALLS:
+                d = state_deps(e)
+                if d and max(d) < n_x - 1:
+                    if e not in calls:
+                        calls[e] = (sp.Symbol(f"_e{len(calls)}"), tuple(sorted(d)))
+                    return
+            for a in e.args:
+                find(a)
+
+        for e in [e for _, e in repl] + list(reduced):
+            find(e)
+        return calls
+
+    def _reuse_lines(self, calls, sets, used_x) -> tuple[list[str], list[str]]:
+        """``(lines before the loop, first lines of the loop body)`` for the
+        reused ``calls``: point 0's values of their states (``_r<i>``) and
+        calls (``_c<k>``), the states of the point, and per set of states in
+        ``sets`` whether the point has point 0's values (``_same<k>``)."""
+        ref = sorted({i for d in sets for i in d})
+        state_of = {self.sym_index[s][1]: s for s in self.sym_index
+                    if self.sym_index[s][0] == "x"}
+        head = [f"_r{i} = 0.0" for i in ref]
+        head += [f"_c{sym.name[2:]} = 0.0" for sym, _ in calls.values()]
+        loop = [f"{self.namer.names[s]} = _X[_j, {self.sym_index[s][1]}]"
+                for s in sorted(used_x | {state_of[i] for i in ref},
+                                key=lambda s: self.sym_index[s][1])]
+        if ref:
+            loop.append("if _j == 0:")
+            loop += [f"    _r{i} = {self.namer.names[state_of[i]]}" for i in ref]
+        for k, d in enumerate(sets):
+            same = " and ".join(f"{self.namer.names[state_of[i]]} == _r{i}" for i in d)
+            loop.append(f"_same{k} = _j > 0 and {same}")
+        return head, loop
 
     def points_function(self, name: str, args: str, doc: str, outputs,
                         transposed: bool) -> str:
