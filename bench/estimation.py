@@ -23,6 +23,10 @@ Also writes a PNG of the NLL along a line through the parameter box for
 when it imports). The numba kernels are compiled (or loaded from numba's
 on-disk cache) before the timing starts; that time is reported separately
 as ``compile_s`` (``compile_from_cache`` says whether it was a cache load).
+``cpu_s`` is the process CPU time of the timed run (all threads of this
+process; not the Dask workers'), ``load_start``/``load_end`` the load average.
+With ``--workers`` > 1 one warm-up batch at the box centre starts the worker
+processes and loads their kernels before the timing too (``warmup_s``).
 
 Usage::
 
@@ -37,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import warnings
@@ -265,10 +270,17 @@ def main(argv=None) -> int:
                                         backend=args.backend),
                      workers=args.workers)
     lo, hi = model.bounds(PARAMS)
-    t0 = time.perf_counter()
+    warm_s, load0 = 0.0, os.getloadavg()[0]
+    if args.workers > 1:
+        # start the worker processes and load their kernels before the timing
+        # (one evaluation per chunk; reported as warmup_s, like compile_s)
+        t0 = time.perf_counter()
+        crit(np.tile(0.5 * (lo + hi), (args.particles, 1)))
+        warm_s = time.perf_counter() - t0
+    t0, c0 = time.perf_counter(), time.process_time()
     res = pso(crit, lo, hi, particles=args.particles, iterations=iterations, seed=args.seed,
               progress=False)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     crit.close()
     s_per_eval = wall / res.nfev
     print(f"toolkit: {res.nfev} evaluations in {res.ncalls} calls, {wall:.1f} s, "
@@ -285,9 +297,11 @@ def main(argv=None) -> int:
           f"{args.baseline_particles} particles, scaled to {t.size} samples)")
     out = dict(
         backend=args.backend, compile_s=compile_s, compile_from_cache=from_cache,
+        warmup_s=warm_s,
         model=model.name, experiment=args.experiment, record_s=record_s, samples=int(t.size),
         particles=args.particles, iterations=iterations, evaluations=int(res.nfev),
         calls=int(res.ncalls), wall_s=round(wall, 3), s_per_eval=s_per_eval,
+        cpu_s=round(cpu, 3), load_start=load0, load_end=os.getloadavg()[0],
         workers=args.workers,
         minutes_for_8080=s_per_eval * 8080 / 60, method=args.method, substeps=args.substeps,
         baseline_s_per_eval=b_rk4, baseline="filterpy UKF, fx = RK4(8) over generated f",

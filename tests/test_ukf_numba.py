@@ -113,6 +113,35 @@ def test_point_kernels_equal_numpy_module(name):
 
 
 @pytest.mark.parametrize("name", MODELS)
+def test_points_kernels_equal_the_point_kernels_bit_for_bit(name):
+    """f_pts and h_pts at sigma points x ± c L_i of a lower-triangular L (the
+    later points share their first states with point 0, and take the library
+    calls on those states from it) and at unstructured points give the same
+    doubles as f and h point by point."""
+    m = Model.load(name)
+    pk = compiled.point_kernels(m)
+    rng = np.random.default_rng(5)
+    th = box_sets(m, 2, seed=2)
+    n = m.n_x
+    x = m.x0 + rng.normal(size=n) * (np.abs(m.x0) + 0.1)
+    L = np.tril(rng.normal(size=(n, n))) * 0.1 * (np.abs(m.x0) + 0.1)[:, None]
+    sigma = np.vstack([x, x + L.T, x - L.T])
+    dense = x + rng.normal(size=(2 * n + 1, n)) * (np.abs(m.x0) + 0.1)
+    u = m.u0 + rng.normal(size=m.n_u) * 0.1
+    for p in range(2):
+        for X in (np.ascontiguousarray(sigma), np.ascontiguousarray(dense)):
+            FT, Y = np.empty((n, X.shape[0])), np.empty((X.shape[0], m.n_y))
+            pk.f_pts(X, u, th[p], FT)
+            pk.h_pts(X, u, th[p], Y)
+            for j in range(X.shape[0]):
+                dx, yv = np.empty(n), np.empty(m.n_y)
+                pk.f(np.ascontiguousarray(X[j]), u, th[p], dx)
+                pk.h(np.ascontiguousarray(X[j]), u, th[p], yv)
+                np.testing.assert_array_equal(FT[:, j], dx)
+                np.testing.assert_array_equal(Y[j], yv)
+
+
+@pytest.mark.parametrize("name", MODELS)
 def test_numba_nll_equals_numpy_on_the_box(name):
     """Default options (ROS2, Jacobian at the central point, zero-order hold):
     NLL within 1e-9 relative, identical failures, on NSETS box sets."""
@@ -322,3 +351,31 @@ def test_semidefinite_factor_of_known_states():
     np.testing.assert_allclose(Lk, L[0], rtol=1e-14, atol=0)
     assert ukf_numba._chol(A, 3, Lk, False, skip) == 0
     assert ukf_numba._chol(B, 3, Lk, True, skip) == 0
+
+
+@pytest.mark.parametrize("name", ["mass_spring_damper", "emps", "vehicle_coastdown", "toy_cvt"])
+def test_compiled_free_run_of_the_prior_equals_numpy(name):
+    """The prior's free-run scales (bondgraph.inference.prior.simulated_rms):
+    the compiled run equals the numpy steps to rounding, for ROS2 and RK4
+    and each hold."""
+    from bondgraph.inference.prior import simulated_rms
+
+    m = Model.load(name)
+    t, u, _ = _record(m, N=200)
+    for method, sub, hold in (("ros2", 2, "zoh"), ("rk4", 4, "mean"), ("ros2", 3, "linear")):
+        kw = dict(method=method, substeps=sub, hold=hold)
+        a = simulated_rms(m, t, u, m.theta0, m.x0, backend="numpy", **kw)
+        b = simulated_rms(m, t, u, m.theta0, m.x0, backend="numba", **kw)
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=0)
+
+
+def test_generated_tanh_equals_numpy_to_rounding():
+    """The numba modules' tanh (bondgraph.core.codegen.NUMBA_TANH: exp for
+    |x| >= 0.55) is np.tanh to a few 1e-16 relative, ±1 at ±inf, NaN at NaN."""
+    pk = compiled.point_kernels(Model.load("emps"))
+    tanh = pk.f.py_func.__globals__["_tanh"]
+    x = np.concatenate([np.linspace(-40.0, 40.0, 100001), [0.55, -0.55, 0.0, -0.0, 1e-300]])
+    got = np.array([tanh(v) for v in x])
+    np.testing.assert_allclose(got, np.tanh(x), rtol=5e-16, atol=0)
+    assert tanh(np.inf) == 1.0 and tanh(-np.inf) == -1.0 and tanh(1e308) == 1.0
+    assert np.isnan(tanh(np.nan))

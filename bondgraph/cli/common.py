@@ -309,7 +309,8 @@ def initial_prior(model, experiment, x0: np.ndarray, args, theta: np.ndarray,
     P0, _ = record_prior(model, t, u, experiment.outputs_for(model), theta, x0, rel=rel,
                          x0_std=experiment.initial_state_std(model), method=ukf.method,
                          substeps=max(ukf.substeps, 2), hold=ukf.hold,
-                         unknown=[n for n in model.states if n not in given])
+                         unknown=[n for n in model.states if n not in given],
+                         backend=ukf.backend)
     return P0
 
 

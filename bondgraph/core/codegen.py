@@ -102,14 +102,18 @@ class _Printer(NumPyPrinter):
 class _ScalarPrinter(_Printer):
     """Scalar code for numba point kernels: non-integer powers through
     ``np.power`` (numpy's nan/inf semantics; numba's ``**`` raises on a
-    zero base with a negative exponent) and Piecewise as conditional
-    expressions (``np.select`` needs arrays)."""
+    zero base with a negative exponent), Piecewise as conditional
+    expressions (``np.select`` needs arrays) and tanh as the module's
+    ``_tanh`` (:data:`NUMBA_TANH`)."""
 
     def _print_Pow(self, expr, rational=False):
         b, e = expr.args
         if e.is_Integer or e == sp.Rational(1, 2) or e == -sp.Rational(1, 2):
             return super()._print_Pow(expr, rational=rational)
         return f"np.power({self._print(b)}, {self._print(e)})"
+
+    def _print_tanh(self, expr):
+        return f"_tanh({self._print(expr.args[0])})"
 
     def _print_Piecewise(self, expr):
         out = "np.nan"
@@ -119,6 +123,21 @@ class _ScalarPrinter(_Printer):
             else:
                 out = f"({self._print(value)} if {self._print(cond)} else {out})"
         return out
+
+
+class _ReusePrinter(_ScalarPrinter):
+    """:class:`_ScalarPrinter` that prints the given subexpressions (library
+    calls computed before, :meth:`_NumbaGen.points_body`) by their names."""
+
+    def __init__(self, names: dict, calls: dict):
+        super().__init__(names)
+        self._calls = calls
+
+    def _print(self, expr, **kwargs):
+        name = self._calls.get(expr)
+        if name is not None:
+            return name
+        return super()._print(expr, **kwargs)
 
 
 class _Namer:
@@ -480,11 +499,31 @@ _FILTERPY_ADAPTER = textwrap.dedent('''
     ''')
 
 
+#: tanh of the numba modules: for |x| >= 0.55, 1 - 2/(exp(2|x|) + 1) with the sign
+#: of x (glibc's tanh takes expm1 there, 2.5x the time of exp: tanh was a
+#: sixth of the fused UKF kernel's time on vehicle_full, perf); np.tanh below.
+#: Within 4.3e-16 relative of np.tanh (1e6 points on [-30, 30]); ±1 at ±inf
+#: and for large |x|, NaN for NaN (the comparison is false, exp(NaN) is NaN).
+NUMBA_TANH = '''
+@njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
+def _tanh(x):
+    """tanh(x) by exp for |x| >= 0.55 (bondgraph.core.codegen.NUMBA_TANH)."""
+    a = abs(x)
+    if a < 0.55:
+        return np.tanh(x)
+    r = 1.0 - 2.0 / (np.exp(2.0 * a) + 1.0)
+    return r if x > 0 else -r
+'''
 #: per-point kernels of the numba module (called by bondgraph.inference.ukf_numba)
 NUMBA_FUNCTIONS = ("f", "h", "f_dfdx", "f_pts", "h_pts")
 #: version of the numba code generator: part of the key of compiled kernels
 #: built in memory (bump it when the generated numba text changes)
-NUMBA_CODEGEN_VERSION = 2
+NUMBA_CODEGEN_VERSION = 4
+#: functions whose calls the points kernels reuse between points that agree
+#: on every state the call's argument depends on (library calls: costly
+#: next to the arithmetic; sqrt and abs are single instructions)
+REUSED_CALLS = (sp.sin, sp.cos, sp.tan, sp.tanh, sp.sinh, sp.cosh, sp.atan, sp.asin, sp.acos,
+                sp.exp, sp.log, sp.atan2, sp.asinh, sp.acosh, sp.atanh)
 
 
 class _NumbaGen(_Gen):
@@ -521,11 +560,17 @@ class _NumbaGen(_Gen):
         ``name[i, _j]`` (transposed) or ``name[_j, i]``. The inputs,
         parameters and the shared subexpressions of them alone are computed
         once, before the loop over points; each value is the same double as
-        in the point kernel (the same expression, the same operations)."""
+        in the point kernel (the same expression, the same operations).
+
+        Library calls (:meth:`_reusable_calls`) are taken from point 0 at
+        every later point that has point 0's values of the states they
+        depend on (the same doubles in, the same double out: exact).
+        """
         flat = [e for _, entries in outputs for _, e in entries]
         repl, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_t"), optimizations=None,
                                order="none")
         xs = {s for s in self.sym_index if self.sym_index[s][0] == "x"}
+        calls = self._reusable_calls(repl, reduced, xs)
         varying = set(xs)
         for sym, e in repl:
             if e.free_symbols & varying:
@@ -534,18 +579,99 @@ class _NumbaGen(_Gen):
         for e in list(reduced) + [e for _, e in repl]:
             syms |= e.free_symbols
         used = {s for s in syms if not str(s).startswith("_t")}
+        # the calls are printed by name where they occur (the expressions, and
+        # so the order of their operations, stay those of the point kernel)
+        pr = _ReusePrinter(self.namer.names, {e: sym.name for e, (sym, _) in calls.items()})
+
+        def prr(e):
+            return pr.doprint(e).replace("numpy.", "np.")
+
         lines = self._unpack(used - xs, point=True)
         lines += [f"{s} = {self.pr(e)}" for s, e in repl if s not in varying]
-        loop = [f"{self.namer.names[s]} = _X[_j, {self.sym_index[s][1]}]"
-                for s in sorted(used & xs, key=lambda s: self.sym_index[s][1])]
-        loop += [f"{s} = {self.pr(e)}" for s, e in repl if s in varying]
+        sets = sorted({d for _, d in calls.values()})
+        head, loop = self._reuse_lines(calls, sets, used & xs)
+        lines += head
+        pending = dict(calls)
+
+        def emit_calls(e):
+            for call, (sym, d) in list(pending.items()):
+                if e.has(call):
+                    del pending[call]
+                    c = f"_c{sym.name[2:]}"
+                    loop.append(f"{sym} = {c} if _same{sets.index(d)} else {self.pr(call)}")
+                    loop.append("if _j == 0:")
+                    loop.append(f"    {c} = {sym}")
+
+        for s, e in repl:
+            if s in varying:
+                emit_calls(e)
+                loop.append(f"{s} = {prr(e)}")
         k = 0
         for name, entries in outputs:
             for (i,), _ in entries:
+                emit_calls(reduced[k])
                 at = f"{i}, _j" if transposed else f"_j, {i}"
-                loop.append(f"{name}[{at}] = {self.pr(reduced[k])}")
+                loop.append(f"{name}[{at}] = {prr(reduced[k])}")
                 k += 1
         return lines + ["for _j in range(_X.shape[0]):"] + ["    " + ln for ln in loop]
+
+    def _reusable_calls(self, repl, reduced, xs) -> dict:
+        """The outermost library calls (:data:`REUSED_CALLS`) of the CSE
+        ``repl``, ``reduced`` whose argument depends on states S that do not
+        include the last one: ``{call: (name symbol, S as a sorted tuple)}``.
+        Sigma points x ± c·L_i of a lower-triangular factor L agree with x
+        on every state before i, so a call on the first states is computed
+        at a fraction of the points; a call on the last state never could
+        be reused (no code is generated for it)."""
+        n_x = len(self.ss.states)
+        deps = {s: {self.sym_index[s][1]} for s in xs}
+
+        def state_deps(e):
+            d = set()
+            for a in e.free_symbols:
+                d |= deps.get(a, set())
+            return d
+
+        for sym, e in repl:
+            d = state_deps(e)
+            if d:
+                deps[sym] = d
+        calls: dict = {}
+
+        def find(e):
+            if isinstance(e, sp.Function) and e.func in REUSED_CALLS:
+                d = state_deps(e)
+                if d and max(d) < n_x - 1:
+                    if e not in calls:
+                        calls[e] = (sp.Symbol(f"_e{len(calls)}"), tuple(sorted(d)))
+                    return
+            for a in e.args:
+                find(a)
+
+        for e in [e for _, e in repl] + list(reduced):
+            find(e)
+        return calls
+
+    def _reuse_lines(self, calls, sets, used_x) -> tuple[list[str], list[str]]:
+        """``(lines before the loop, first lines of the loop body)`` for the
+        reused ``calls``: point 0's values of their states (``_r<i>``) and
+        calls (``_c<k>``), the states of the point, and per set of states in
+        ``sets`` whether the point has point 0's values (``_same<k>``)."""
+        ref = sorted({i for d in sets for i in d})
+        state_of = {self.sym_index[s][1]: s for s in self.sym_index
+                    if self.sym_index[s][0] == "x"}
+        head = [f"_r{i} = 0.0" for i in ref]
+        head += [f"_c{sym.name[2:]} = 0.0" for sym, _ in calls.values()]
+        loop = [f"{self.namer.names[s]} = _X[_j, {self.sym_index[s][1]}]"
+                for s in sorted(used_x | {state_of[i] for i in ref},
+                                key=lambda s: self.sym_index[s][1])]
+        if ref:
+            loop.append("if _j == 0:")
+            loop += [f"    _r{i} = {self.namer.names[state_of[i]]}" for i in ref]
+        for k, d in enumerate(sets):
+            same = " and ".join(f"{self.namer.names[state_of[i]]} == _r{i}" for i in d)
+            loop.append(f"_same{k} = _j > 0 and {same}")
+        return head, loop
 
     def points_function(self, name: str, args: str, doc: str, outputs,
                         transposed: bool) -> str:
@@ -587,6 +713,8 @@ class _NumbaGen(_Gen):
                  self.points_function("h_pts", "_X, u, theta, _y",
                                       f"h at every point (row) of _X (points, {nx}) into the rows "
                                       f"of _y (points, {ny}).", [("_y", h_entries)], False)]
+        if any("_tanh(" in p for p in parts[1:]):
+            parts.insert(1, NUMBA_TANH.lstrip("\n"))
         return "\n\n".join(p.rstrip("\n") + "\n" for p in parts)
 
     def _numba_header(self) -> str:
@@ -605,7 +733,10 @@ One point per call: x ({nx},), u ({nu},), theta ({npar},) are C-contiguous float
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_pts and h_pts take the points
 as the rows of a C-contiguous matrix and compute what depends on u and theta
-alone once per call (the same doubles as the point kernels). Compiled on import with
+alone once per call, and take a library call (sin, tanh, ...) from point 0 at
+a point that has point 0's values of every state the call depends on (sigma
+points of a lower-triangular factor share the first states): the same doubles
+as the point kernels. Compiled on import with
 explicit signatures and cached on disk (cache=True); the fused UKF kernel
 (bondgraph.inference.ukf_numba) calls them as first-class functions.
 """

@@ -29,11 +29,15 @@ initial state (:mod:`bondgraph.inference.smoother`) estimates it.
 
 from __future__ import annotations
 
+import time
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from bondgraph.errors import ModelError, OptionError
+from bondgraph.inference import ukf_numba
+from bondgraph.inference.options import DEFAULT_BACKEND
+from bondgraph.numerics import compiled
 from bondgraph.numerics.integrators import hold_inputs, make_step
 
 #: at most this many samples of the record are simulated for the scales
@@ -42,10 +46,15 @@ SCALE_SAMPLES = 20000
 SCALE_FLOOR = 1e-9
 #: prior std of an initial state nothing gives, relative to its scale
 UNKNOWN_REL = 1.0
+#: estimated seconds of one numpy step (one sub-step of one sample) of the
+#: free run (batch of one point: Python overhead; for the break-even rule
+#: of :func:`bondgraph.numerics.compiled.compile_pays`)
+NUMPY_S_PER_STEP = 2e-4
 
 
 def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int = 2,
-                  hold: str = "zoh", samples: int = SCALE_SAMPLES) -> np.ndarray:
+                  hold: str = "zoh", samples: int = SCALE_SAMPLES,
+                  backend: str = DEFAULT_BACKEND) -> np.ndarray:
     """RMS of every state along a fixed-step free run from ``x0`` with the
     record's inputs (the first ``samples`` samples; up to the first
     non-finite state if the run diverges, or up to a singular ROS2 matrix
@@ -61,6 +70,11 @@ def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int
     method, substeps, hold :
         The discretisation (:func:`bondgraph.numerics.integrators.make_step`,
         :func:`~bondgraph.numerics.integrators.hold_inputs`).
+    backend : {"numba", "numpy"}
+        numba: the compiled free run (:func:`bondgraph.inference.ukf_numba.free_run_rms`,
+        the same steps, values equal to rounding) where the model's kernels
+        are compiled or compiling pays (:func:`bondgraph.numerics.compiled.compile_pays`);
+        else the numpy steps, sample by sample.
 
     Returns
     -------
@@ -71,6 +85,10 @@ def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int
     t = np.asarray(t, float)[:n]
     u = np.asarray(u, float).reshape(np.size(t), -1) if model.n_u else np.zeros((n, 0))
     u = u[:n]
+    kernels = _free_run_kernels(model, backend, method, hold, n * substeps * NUMPY_S_PER_STEP)
+    if kernels is not None:
+        return ukf_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
+    t0 = time.perf_counter()
     held = hold_inputs(u, hold)
     step = make_step(model, method, substeps)
     th = np.asarray(theta, float)[None, :]
@@ -88,7 +106,24 @@ def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int
                     x = step(x, uk, th, t[k + 1] - t[k], duk)
                 except np.linalg.LinAlgError:    # a singular ROS2 matrix: the run ends here
                     break
+    if hasattr(model, "numpy_seconds"):
+        model.numpy_seconds += time.perf_counter() - t0
     return np.sqrt(acc / count) if count else np.zeros(model.n_x)
+
+
+def _free_run_kernels(model, backend: str, method: str, hold: str, numpy_s: float):
+    """The model's compiled point kernels for the free run, or None (numpy):
+    backend numpy, numba missing, a method or hold the kernel lacks, an
+    in-memory model whose compilation does not pay yet (``numpy_s``: the
+    estimated numpy time of this run), or kernels that do not load."""
+    if (backend != "numba" or not compiled.NUMBA_AVAILABLE
+            or method not in ukf_numba.METHOD_CODES or hold not in ukf_numba.HOLD_CODES
+            or not hasattr(model, "module") or not compiled.compile_pays(model, numpy_s)):
+        return None
+    try:
+        return compiled.point_kernels(model)
+    except Exception:  # no kernels for this model, or numba cannot compile them
+        return None
 
 
 def sensor_scales(model, u, y, theta, x0) -> np.ndarray:
@@ -119,7 +154,7 @@ def sensor_scales(model, u, y, theta, x0) -> np.ndarray:
 
 
 def state_scales(model, t, u, y, theta, x0, *, method: str = "ros2", substeps: int = 2,
-                 hold: str = "zoh") -> tuple[np.ndarray, list[str]]:
+                 hold: str = "zoh", backend: str = DEFAULT_BACKEND) -> tuple[np.ndarray, list[str]]:
     """The scale of every state along the record (module docstring, rules 1-4).
 
     Parameters
@@ -132,6 +167,8 @@ def state_scales(model, t, u, y, theta, x0, *, method: str = "ros2", substeps: i
         Prior mean.
     method, substeps, hold :
         Discretisation of the free run.
+    backend : {"numba", "numpy"}
+        Of the free run (:func:`simulated_rms`).
 
     Returns
     -------
@@ -142,7 +179,7 @@ def state_scales(model, t, u, y, theta, x0, *, method: str = "ros2", substeps: i
     x0 = np.asarray(x0, float)
     theta = np.asarray(theta, float)
     scale = np.maximum(simulated_rms(model, t, u, theta, x0, method=method, substeps=substeps,
-                                     hold=hold), np.abs(x0))
+                                     hold=hold, backend=backend), np.abs(x0))
     rules = ["simulation" if s > 0 and np.isfinite(s) else "" for s in scale]
     scale = np.where(np.isfinite(scale), scale, 0.0)
     duration = float(np.asarray(t, float)[-1] - np.asarray(t, float)[0]) if np.size(t) > 1 else 1.0
@@ -229,9 +266,11 @@ def prior_covariance(model, scales: np.ndarray, *, rel: float = 0.05,
 def record_prior(model, t, u, y, theta, x0, *, rel: float = 0.05,
                  x0_std: Mapping[str, float] | None = None, method: str = "ros2",
                  substeps: int = 2, hold: str = "zoh",
-                 unknown: Sequence[str] = ()) -> tuple[np.ndarray, dict]:
+                 unknown: Sequence[str] = (),
+                 backend: str = DEFAULT_BACKEND) -> tuple[np.ndarray, dict]:
     """:func:`prior_covariance` with the scales of :func:`state_scales`
-    (``unknown``: the states whose initial value nothing gives).
+    (``unknown``: the states whose initial value nothing gives; ``backend``:
+    of the free run, :func:`simulated_rms`).
 
     Returns
     -------
@@ -241,7 +280,7 @@ def record_prior(model, t, u, y, theta, x0, *, rel: float = 0.05,
     if np.shape(x0) != (model.n_x,):
         raise ModelError(f"x0 has shape {np.shape(x0)}, expected ({model.n_x},)")
     scales, rules = state_scales(model, t, u, y, theta, x0, method=method, substeps=substeps,
-                                 hold=hold)
+                                 hold=hold, backend=backend)
     P0 = prior_covariance(model, scales, rel=rel, x0_std=x0_std, unknown=unknown)
     info = {"rel": float(rel), "scales": dict(zip(model.states, scales.tolist())),
             "unknown": list(unknown),

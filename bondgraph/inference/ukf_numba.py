@@ -1016,6 +1016,96 @@ def rk4_trajectory(kernels, t, u, hold: str, theta, x0, substeps: int) -> np.nda
     return xr
 
 
+def _free_run_py(f, fj, t, u, hold, th, x0, method, nsub, acc, wk, J, Winv, A, cols, ub):
+    """Free run from ``x0`` over the record (``method`` 0: RK4, 1: ROS2 with
+    the Jacobian at the start of each interval, frozen over its ``nsub``
+    sub-steps, as :func:`bondgraph.numerics.integrators.make_step`), the
+    inputs held as ``hold`` says: the sum of x² over the samples into
+    ``acc`` (n_x,) up to the first non-finite state; returns the number of
+    samples summed (work rows ``wk`` (8, n_x), J, Winv (n_x, n_x), A
+    (n_x, 2 n_x), cols (2 n_x,), input buffer ``ub``)."""
+    n = x0.shape[0]
+    x, xt, k1, k2, k3, k4, F0, F1 = wk[0], wk[1], wk[2], wk[3], wk[4], wk[5], wk[6], wk[7]
+    for a in range(n):
+        x[a] = x0[a]
+    count = 0
+    for k in range(t.shape[0]):
+        if not _all_finite(wk, 1, n):
+            break
+        for a in range(n):
+            acc[a] += x[a] * x[a]
+        count += 1
+        if k < t.shape[0] - 1:
+            h = (t[k + 1] - t[k]) / nsub
+            _held_input(u, k, 0.0, hold, ub)
+            if method == 0:
+                _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4)
+            else:
+                _ros2_point(f, fj, x, u, k, hold, th, h, nsub, 1, ub, xt, F0, F1, k1, k2, J,
+                            Winv, A, cols)
+    return count
+
+
+_FREE_RUN: list = []
+
+
+def free_run_kernel():
+    """The compiled free-run kernel (:func:`free_run_rms`; compiled once per
+    installation, cached on disk, model independent).
+
+    Raises
+    ------
+    ImportError
+        numba is not installed.
+    """
+    if numba is None:
+        raise ImportError("numba is not installed (pip install numba)")
+    with _LOCK:
+        if not _FREE_RUN:
+            V, M = types.float64[::1], types.float64[:, ::1]
+            point = types.FunctionType(types.void(V, V, V, V))
+            jac = types.FunctionType(types.void(V, V, V, V, M))
+            sig = types.int64(point, jac, V, M, types.int64, V, V, types.int64, types.int64, V,
+                              M, M, M, M, types.int64[::1], V)
+            _FREE_RUN.append(numba.njit(sig, cache=True, nogil=True, error_model="numpy",
+                                        _nrt=False, fastmath=FASTMATH)(_free_run_py))
+        return _FREE_RUN[0]
+
+
+def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str, substeps: int) -> np.ndarray:
+    """RMS of every state along the free run from ``x0`` (:func:`_free_run_py`)
+    with a model's compiled point kernels: the compiled counterpart of
+    :func:`bondgraph.inference.prior.simulated_rms` (the same steps; the
+    linear algebra of ROS2 is the kernel's, so values agree to rounding).
+
+    Parameters
+    ----------
+    kernels : bondgraph.numerics.compiled.PointKernels
+    t, u : arrays (N,), (N, n_u)
+    hold : str
+        A key of :data:`HOLD_CODES`.
+    theta, x0 : arrays (n_theta,), (n_x,)
+    method : {"rk4", "ros2"}
+    substeps : int
+
+    Returns
+    -------
+    ndarray (n_x,)
+        0 where nothing finite was simulated.
+    """
+    c = np.ascontiguousarray
+    x0 = c(x0, dtype=float)
+    n = x0.size
+    u = c(u, dtype=float).reshape(np.size(t), -1) if np.size(u) else np.zeros((np.size(t), 0))
+    acc = np.zeros(n)
+    count = free_run_kernel()(kernels.f, kernels.f_dfdx, c(t, dtype=float), u, HOLD_CODES[hold],
+                              c(theta, dtype=float), x0, METHOD_CODES[method], int(substeps),
+                              acc, np.zeros((8, n)), np.zeros((n, n)), np.zeros((n, n)),
+                              np.zeros((n, 2 * n)), np.zeros(2 * n, dtype=np.int64),
+                              np.zeros(max(u.shape[1], 1)))
+    return np.sqrt(acc / count) if count else np.zeros(n)
+
+
 def unsupported(opts) -> str | None:
     """Why the kernel cannot run with UKFOptions ``opts`` (None if it can)."""
     for name, codes in (("method", METHOD_CODES), ("jacobian", JACOBIAN_CODES),

@@ -11,7 +11,10 @@ One point per call: x (3,), u (1,), theta (8,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_pts and h_pts take the points
 as the rows of a C-contiguous matrix and compute what depends on u and theta
-alone once per call (the same doubles as the point kernels). Compiled on import with
+alone once per call, and take a library call (sin, tanh, ...) from point 0 at
+a point that has point 0's values of every state the call depends on (sigma
+points of a lower-triangular factor share the first states): the same doubles
+as the point kernels. Compiled on import with
 explicit signatures and cached on disk (cache=True); the fused UKF kernel
 (bondgraph.inference.ukf_numba) calls them as first-class functions.
 """

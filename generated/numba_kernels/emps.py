@@ -11,7 +11,10 @@ One point per call: x (2,), u (1,), theta (8,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_pts and h_pts take the points
 as the rows of a C-contiguous matrix and compute what depends on u and theta
-alone once per call (the same doubles as the point kernels). Compiled on import with
+alone once per call, and take a library call (sin, tanh, ...) from point 0 at
+a point that has point 0's values of every state the call depends on (sigma
+points of a lower-triangular factor share the first states): the same doubles
+as the point kernels. Compiled on import with
 explicit signatures and cached on disk (cache=True); the fused UKF kernel
 (bondgraph.inference.ukf_numba) calls them as first-class functions.
 """
@@ -31,6 +34,16 @@ SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_POINTS = types.void(_M, _V, _V, _M)
 
 
+@njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
+def _tanh(x):
+    """tanh(x) by exp for |x| >= 0.55 (bondgraph.core.codegen.NUMBA_TANH)."""
+    a = abs(x)
+    if a < 0.55:
+        return np.tanh(x)
+    r = 1.0 - 2.0 / (np.exp(2.0 * a) + 1.0)
+    return r if x > 0 else -r
+
+
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
 def f(x, u, theta, _dxdt):
     """dx/dt = f(x, u, theta) at one point into _dxdt (2,)."""
@@ -43,7 +56,7 @@ def f(x, u, theta, _dxdt):
     offset = theta[6]
     v_eps = theta[7]
     _t0 = p_M/M
-    _dxdt[0] = vir*gtau - Fc*np.tanh(_t0/v_eps) - Fv*_t0 - offset
+    _dxdt[0] = vir*gtau - Fc*_tanh(_t0/v_eps) - Fv*_t0 - offset
     _dxdt[1] = _t0
 
 
@@ -68,7 +81,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t0 = 1/v_eps
     _t1 = 1/M
     _t2 = p_M*_t1
-    _t3 = np.tanh(_t0*_t2)
+    _t3 = _tanh(_t0*_t2)
     _dxdt[0] = vir*gtau - Fc*_t3 - Fv*_t2 - offset
     _dxdt[1] = _t2
     _J[:, :] = 0.0
@@ -86,10 +99,18 @@ def f_pts(_X, u, theta, _dxdt):
     Fc = theta[5]
     offset = theta[6]
     v_eps = theta[7]
+    _r0 = 0.0
+    _c0 = 0.0
     for _j in range(_X.shape[0]):
         p_M = _X[_j, 0]
+        if _j == 0:
+            _r0 = p_M
+        _same0 = _j > 0 and p_M == _r0
         _t0 = p_M/M
-        _dxdt[0, _j] = vir*gtau - Fc*np.tanh(_t0/v_eps) - Fv*_t0 - offset
+        _e0 = _c0 if _same0 else _tanh(_t0/v_eps)
+        if _j == 0:
+            _c0 = _e0
+        _dxdt[0, _j] = vir*gtau - Fc*_e0 - Fv*_t0 - offset
         _dxdt[1, _j] = _t0
 
 

@@ -11,7 +11,10 @@ One point per call: x (3,), u (1,), theta (13,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_pts and h_pts take the points
 as the rows of a C-contiguous matrix and compute what depends on u and theta
-alone once per call (the same doubles as the point kernels). Compiled on import with
+alone once per call, and take a library call (sin, tanh, ...) from point 0 at
+a point that has point 0's values of every state the call depends on (sigma
+points of a lower-triangular factor share the first states): the same doubles
+as the point kernels. Compiled on import with
 explicit signatures and cached on disk (cache=True); the fused UKF kernel
 (bondgraph.inference.ukf_numba) calls them as first-class functions.
 """
@@ -29,6 +32,16 @@ _M = types.float64[:, ::1]
 SIG_POINT = types.void(_V, _V, _V, _V)
 SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_POINTS = types.void(_M, _V, _V, _M)
+
+
+@njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
+def _tanh(x):
+    """tanh(x) by exp for |x| >= 0.55 (bondgraph.core.codegen.NUMBA_TANH)."""
+    a = abs(x)
+    if a < 0.55:
+        return np.tanh(x)
+    r = 1.0 - 2.0 / (np.exp(2.0 * a) + 1.0)
+    return r if x > 0 else -r
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -58,7 +71,7 @@ def f(x, u, theta, _dxdt):
     _t6 = np.sin(C_mf*np.arctan(E_mf*(-_t5 - np.arctan(_t4)) + _t5))
     _t7 = np.cos(theta_g)
     _t8 = _t0*_t7
-    _t9 = np.tanh((0.125)*wheels__p_J*_t3)
+    _t9 = _tanh((0.125)*wheels__p_J*_t3)
     _dxdt[0] = -0.6*C_dA*_t1*_t2 - mu*_t6*_t8 - _t0*np.sin(theta_g)
     _dxdt[1] = -4*brake*T_bmax*_t9 - f_r*r_dyn*_t8*_t9 + g*m*mu*r_dyn*_t6*_t7
     _dxdt[2] = 0
@@ -137,7 +150,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t21 = C_mf*np.arctan(_t20)
     _t22 = np.sin(_t21)
     _t23 = mu*_t22
-    _t24 = np.tanh((0.125)*wheels__p_J*_t11)
+    _t24 = _tanh((0.125)*wheels__p_J*_t11)
     _t25 = brake*T_bmax
     _t26 = r_dyn*_t10
     _t27 = f_r*_t24
@@ -184,18 +197,33 @@ def f_pts(_X, u, theta, _dxdt):
     C_dA = theta[10]
     _t0 = g*m
     _t3 = 1/J_w
+    _r0 = 0.0
+    _r1 = 0.0
+    _c0 = 0.0
+    _c1 = 0.0
     for _j in range(_X.shape[0]):
         body__p_m = _X[_j, 0]
         wheels__p_J = _X[_j, 1]
         theta_g = _X[_j, 2]
+        if _j == 0:
+            _r0 = body__p_m
+            _r1 = wheels__p_J
+        _same0 = _j > 0 and body__p_m == _r0 and wheels__p_J == _r1
+        _same1 = _j > 0 and wheels__p_J == _r1
         _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
         _t2 = body__p_m/m
         _t4 = k_slip*((0.25)*r_dyn*wheels__p_J*_t3 - _t2)/(C_mf*mu*((0.5)*_t1 + (0.5)*np.sqrt((_t1 - 2)**2 + 0.25) + 1))
         _t5 = -_t4
-        _t6 = np.sin(C_mf*np.arctan(E_mf*(-_t5 - np.arctan(_t4)) + _t5))
+        _e0 = _c0 if _same0 else np.sin(C_mf*np.arctan(E_mf*(-_t5 - np.arctan(_t4)) + _t5))
+        if _j == 0:
+            _c0 = _e0
+        _t6 = _e0
         _t7 = np.cos(theta_g)
         _t8 = _t0*_t7
-        _t9 = np.tanh((0.125)*wheels__p_J*_t3)
+        _e1 = _c1 if _same1 else _tanh((0.125)*wheels__p_J*_t3)
+        if _j == 0:
+            _c1 = _e1
+        _t9 = _e1
         _dxdt[0, _j] = -0.6*C_dA*_t1*_t2 - mu*_t6*_t8 - _t0*np.sin(theta_g)
         _dxdt[1, _j] = -4*brake*T_bmax*_t9 - f_r*r_dyn*_t8*_t9 + g*m*mu*r_dyn*_t6*_t7
         _dxdt[2, _j] = 0
@@ -216,10 +244,17 @@ def h_pts(_X, u, theta, _y):
     theta_off = theta[12]
     _t0 = 1/J_w
     _t2 = 1/m
+    _r0 = 0.0
+    _r1 = 0.0
+    _c0 = 0.0
     for _j in range(_X.shape[0]):
         body__p_m = _X[_j, 0]
         wheels__p_J = _X[_j, 1]
         theta_g = _X[_j, 2]
+        if _j == 0:
+            _r0 = body__p_m
+            _r1 = wheels__p_J
+        _same0 = _j > 0 and body__p_m == _r0 and wheels__p_J == _r1
         _t1 = (0.25)*wheels__p_J*_t0
         _t3 = body__p_m*_t2
         _t4 = g*np.sin(theta_g)
@@ -230,4 +265,7 @@ def h_pts(_X, u, theta, _y):
         _y[_j, 1] = _t1
         _y[_j, 2] = _t3
         _y[_j, 3] = theta_off + theta_g
-        _y[_j, 4] = _t2*(-0.6*C_dA*_t3*_t5 - g*m*mu*np.sin(C_mf*np.arctan(E_mf*(-_t7 - np.arctan(_t6)) + _t7))*np.cos(theta_g) - m*_t4) + _t4
+        _e0 = _c0 if _same0 else np.sin(C_mf*np.arctan(E_mf*(-_t7 - np.arctan(_t6)) + _t7))
+        if _j == 0:
+            _c0 = _e0
+        _y[_j, 4] = _t2*(-0.6*C_dA*_t3*_t5 - g*m*mu*_e0*np.cos(theta_g) - m*_t4) + _t4

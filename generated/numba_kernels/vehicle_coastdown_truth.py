@@ -11,7 +11,10 @@ One point per call: x (6,), u (1,), theta (19,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_pts and h_pts take the points
 as the rows of a C-contiguous matrix and compute what depends on u and theta
-alone once per call (the same doubles as the point kernels). Compiled on import with
+alone once per call, and take a library call (sin, tanh, ...) from point 0 at
+a point that has point 0's values of every state the call depends on (sigma
+points of a lower-triangular factor share the first states): the same doubles
+as the point kernels. Compiled on import with
 explicit signatures and cached on disk (cache=True); the fused UKF kernel
 (bondgraph.inference.ukf_numba) calls them as first-class functions.
 """
@@ -29,6 +32,16 @@ _M = types.float64[:, ::1]
 SIG_POINT = types.void(_V, _V, _V, _V)
 SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_POINTS = types.void(_M, _V, _V, _M)
+
+
+@njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
+def _tanh(x):
+    """tanh(x) by exp for |x| >= 0.55 (bondgraph.core.codegen.NUMBA_TANH)."""
+    a = abs(x)
+    if a < 0.55:
+        return np.tanh(x)
+    r = 1.0 - 2.0 / (np.exp(2.0 * a) + 1.0)
+    return r if x > 0 else -r
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -78,10 +91,10 @@ def f(x, u, theta, _dxdt):
     _t17 = np.sin(C_mf*np.arctan(E_mf*(-_t16 - np.arctan(_t15)) + _t16))
     _t18 = (0.6)*C_dA*_t7*_t9 + mu*_t13*_t6 + mu*_t14*_t17
     _t19 = (0.25)*_t8
-    _t20 = np.tanh(rear__p_J*_t19)
+    _t20 = _tanh(rear__p_J*_t19)
     _t21 = 2*brake*T_bmax
     _t22 = f_r*r_dyn
-    _t23 = np.tanh(front__p_J*_t19)
+    _t23 = _tanh(front__p_J*_t19)
     _dxdt[0] = -_t0*np.sin(theta_g) - _t18
     _dxdt[1] = -h_cg*_t18 - _t3
     _dxdt[2] = _t2
@@ -203,12 +216,12 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t37 = _t16*_t36
     _t38 = _t11*_t37 + _t26*_t9 + _t28*_t35
     _t39 = (0.25)*_t12
-    _t40 = np.tanh(rear__p_J*_t39)
+    _t40 = _tanh(rear__p_J*_t39)
     _t41 = brake*T_bmax
     _t42 = 2*_t41
     _t43 = f_r*r_dyn
     _t44 = _t40*_t43
-    _t45 = np.tanh(front__p_J*_t39)
+    _t45 = _tanh(front__p_J*_t39)
     _t46 = _t43*_t45
     _t47 = 1/_t16
     _t48 = 1/_t18**2
@@ -313,6 +326,13 @@ def f_pts(_X, u, theta, _dxdt):
     _t19 = (0.25)*_t8
     _t21 = 2*brake*T_bmax
     _t22 = f_r*r_dyn
+    _r0 = 0.0
+    _r3 = 0.0
+    _r4 = 0.0
+    _c0 = 0.0
+    _c1 = 0.0
+    _c2 = 0.0
+    _c3 = 0.0
     for _j in range(_X.shape[0]):
         body__p_m = _X[_j, 0]
         pitch__p_I = _X[_j, 1]
@@ -320,6 +340,14 @@ def f_pts(_X, u, theta, _dxdt):
         rear__p_J = _X[_j, 3]
         front__p_J = _X[_j, 4]
         theta_g = _X[_j, 5]
+        if _j == 0:
+            _r0 = body__p_m
+            _r3 = rear__p_J
+            _r4 = front__p_J
+        _same0 = _j > 0 and body__p_m == _r0 and rear__p_J == _r3
+        _same1 = _j > 0 and body__p_m == _r0 and front__p_J == _r4
+        _same2 = _j > 0 and rear__p_J == _r3
+        _same3 = _j > 0 and front__p_J == _r4
         _t2 = pitch__p_I/I_theta
         _t3 = c_theta*_t2 + k_theta*pitch__q_k
         _t4 = _t1*_t3
@@ -330,14 +358,26 @@ def f_pts(_X, u, theta, _dxdt):
         _t10 = k_slip/(C_mf*mu*((0.5)*_t9 + (0.5)*np.sqrt((_t9 - 2)**2 + 0.25) + 1))
         _t11 = _t10*((0.5)*r_dyn*rear__p_J*_t8 - _t7)
         _t12 = -_t11
-        _t13 = np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12))
+        _e0 = _c0 if _same0 else np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12))
+        if _j == 0:
+            _c0 = _e0
+        _t13 = _e0
         _t14 = -_t4 + _t5*(L_wb - l_f)
         _t15 = _t10*((0.5)*r_dyn*front__p_J*_t8 - _t7)
         _t16 = -_t15
-        _t17 = np.sin(C_mf*np.arctan(E_mf*(-_t16 - np.arctan(_t15)) + _t16))
+        _e1 = _c1 if _same1 else np.sin(C_mf*np.arctan(E_mf*(-_t16 - np.arctan(_t15)) + _t16))
+        if _j == 0:
+            _c1 = _e1
+        _t17 = _e1
         _t18 = (0.6)*C_dA*_t7*_t9 + mu*_t13*_t6 + mu*_t14*_t17
-        _t20 = np.tanh(rear__p_J*_t19)
-        _t23 = np.tanh(front__p_J*_t19)
+        _e2 = _c2 if _same2 else _tanh(rear__p_J*_t19)
+        if _j == 0:
+            _c2 = _e2
+        _t20 = _e2
+        _e3 = _c3 if _same3 else _tanh(front__p_J*_t19)
+        if _j == 0:
+            _c3 = _e3
+        _t23 = _e3
         _dxdt[0, _j] = -_t0*np.sin(theta_g) - _t18
         _dxdt[1, _j] = -h_cg*_t18 - _t3
         _dxdt[2, _j] = _t2
@@ -369,6 +409,11 @@ def h_pts(_X, u, theta, _y):
     _t2 = 1/m
     _t5 = 1/L_wb
     _t7 = g*m
+    _r0 = 0.0
+    _r3 = 0.0
+    _r4 = 0.0
+    _c0 = 0.0
+    _c1 = 0.0
     for _j in range(_X.shape[0]):
         body__p_m = _X[_j, 0]
         pitch__p_I = _X[_j, 1]
@@ -376,6 +421,12 @@ def h_pts(_X, u, theta, _y):
         rear__p_J = _X[_j, 3]
         front__p_J = _X[_j, 4]
         theta_g = _X[_j, 5]
+        if _j == 0:
+            _r0 = body__p_m
+            _r3 = rear__p_J
+            _r4 = front__p_J
+        _same0 = _j > 0 and body__p_m == _r0 and rear__p_J == _r3
+        _same1 = _j > 0 and body__p_m == _r0 and front__p_J == _r4
         _t3 = body__p_m*_t2
         _t4 = pitch__q_k + theta_g
         _t6 = _t5*(k_theta*pitch__q_k + c_theta*pitch__p_I/I_theta)
@@ -390,4 +441,10 @@ def h_pts(_X, u, theta, _y):
         _y[_j, 1] = rear__p_J*_t1
         _y[_j, 2] = _t3
         _y[_j, 3] = theta_off + _t4
-        _y[_j, 4] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t9 - mu*(-_t6 + _t8*(L_wb - l_f))*np.sin(C_mf*np.arctan(E_mf*(-_t14 - np.arctan(_t13)) + _t14)) - mu*(l_f*_t8 + _t6)*np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12)) - _t7*np.sin(theta_g))
+        _e0 = _c0 if _same0 else np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12))
+        if _j == 0:
+            _c0 = _e0
+        _e1 = _c1 if _same1 else np.sin(C_mf*np.arctan(E_mf*(-_t14 - np.arctan(_t13)) + _t14))
+        if _j == 0:
+            _c1 = _e1
+        _y[_j, 4] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t9 - mu*(-_t6 + _t8*(L_wb - l_f))*_e1 - mu*(l_f*_t8 + _t6)*_e0 - _t7*np.sin(theta_g))

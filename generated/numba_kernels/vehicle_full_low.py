@@ -11,7 +11,10 @@ One point per call: x (10,), u (2,), theta (47,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_pts and h_pts take the points
 as the rows of a C-contiguous matrix and compute what depends on u and theta
-alone once per call (the same doubles as the point kernels). Compiled on import with
+alone once per call, and take a library call (sin, tanh, ...) from point 0 at
+a point that has point 0's values of every state the call depends on (sigma
+points of a lower-triangular factor share the first states): the same doubles
+as the point kernels. Compiled on import with
 explicit signatures and cached on disk (cache=True); the fused UKF kernel
 (bondgraph.inference.ukf_numba) calls them as first-class functions.
 """
@@ -29,6 +32,16 @@ _M = types.float64[:, ::1]
 SIG_POINT = types.void(_V, _V, _V, _V)
 SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_POINTS = types.void(_M, _V, _V, _M)
+
+
+@njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
+def _tanh(x):
+    """tanh(x) by exp for |x| >= 0.55 (bondgraph.core.codegen.NUMBA_TANH)."""
+    a = abs(x)
+    if a < 0.55:
+        return np.tanh(x)
+    r = 1.0 - 2.0 / (np.exp(2.0 * a) + 1.0)
+    return r if x > 0 else -r
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -111,7 +124,7 @@ def f(x, u, theta, _dxdt):
     _t17 = np.sin(C_mf*np.arctan(E_mf*(-_t16 - np.arctan(_t15)) + _t16))
     _t18 = (0.6)*C_dA*_t7*_t9 + mu*_t14*_t17 + _t13
     _t19 = rear__p_J*_t8
-    _t20 = np.tanh((0.25)*_t19)
+    _t20 = _tanh((0.25)*_t19)
     _t21 = 2*brake*T_bmax
     _t22 = f_r*r_dyn
     _t23 = 1/J_s
@@ -119,7 +132,7 @@ def f(x, u, theta, _dxdt):
     _t25 = 1/i_g
     _t26 = cvt__p_J_s*_t23*_t24*_t25 - 0.5*_t19
     _t27 = c_ds*_t26 + k_ds*driveline__q_k_rear
-    _t28 = np.tanh((0.25)*front__p_J*_t8)
+    _t28 = _tanh((0.25)*front__p_J*_t8)
     _t29 = engine__p_J/J_e
     _t30 = -_t29
     _t31 = w_max + _t30
@@ -134,14 +147,14 @@ def f(x, u, theta, _dxdt):
     _t40 = cvt__q_springs**2
     _t41 = i_max - (i_max - i_min)*((0.5)*np.sqrt(0.0001 + _t40/x_max**2) - 0.5*np.sqrt((-1 + cvt__q_springs/x_max)**2 + 0.0001) + 0.5)
     _t42 = cvt__p_J_s*_t23
-    _t43 = np.tanh((-_t30 - _t41*_t42)/(2 + _t39/c_cl))
+    _t43 = _tanh((-_t30 - _t41*_t42)/(2 + _t39/c_cl))
     _t44 = _t39*_t43
     _dxdt[0] = -_t0*np.sin(theta_g) - _t18
     _dxdt[1] = -h_cg*_t18 - _t3
     _dxdt[2] = _t2
     _dxdt[3] = r_dyn*_t13 - _t20*_t21 - _t20*_t22*_t6 + _t27
     _dxdt[4] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t28 - _t21*_t28
-    _dxdt[5] = throttle*(T_pk*(1 - (-w_pk - _t30)**2/dw_T**2) + _t31 - np.sqrt(_t31**2 + 100)) + K_idle*((0.5)*w_idle - 0.5*_t29 + (0.5)*np.sqrt((w_idle + _t30)**2 + 25)) - T_f0*np.tanh((0.1)*_t29) - b_e*_t29 - _t44
+    _dxdt[5] = throttle*(T_pk*(1 - (-w_pk - _t30)**2/dw_T**2) + _t31 - np.sqrt(_t31**2 + 100)) + K_idle*((0.5)*w_idle - 0.5*_t29 + (0.5)*np.sqrt((w_idle + _t30)**2 + 25)) - T_f0*_tanh((0.1)*_t29) - b_e*_t29 - _t44
     _dxdt[6] = -(F_s0 + k_fw*_t33 - k_fw*_t34*_t35 + k_h*_t41*_t44 - 2500000*x_max + cvt__q_springs*(k_p + k_s) + 5000000*cvt__q_springs - 2500000*np.sqrt(_t40 + 4e-08) + 2500000*np.sqrt((-x_max + cvt__q_springs)**2 + 4e-08))/b_sh
     _dxdt[7] = -b_s*_t42 + mu_cl*_t32*_t38*_t41*_t43 - _t24*_t25*_t27
     _dxdt[8] = _t26
@@ -301,7 +314,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t38 = _t16*_t37
     _t39 = _t11*_t38 + _t27 + _t29*_t36
     _t40 = (0.25)*_t12
-    _t41 = np.tanh(rear__p_J*_t40)
+    _t41 = _tanh(rear__p_J*_t40)
     _t42 = brake*T_bmax
     _t43 = 2*_t42
     _t44 = f_r*r_dyn
@@ -312,11 +325,11 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t49 = 1/i_g
     _t50 = cvt__p_J_s*_t47*_t48*_t49 - rear__p_J*_t46
     _t51 = c_ds*_t50 + k_ds*driveline__q_k_rear
-    _t52 = np.tanh(front__p_J*_t40)
+    _t52 = _tanh(front__p_J*_t40)
     _t53 = _t44*_t52
     _t54 = 1/J_e
     _t55 = engine__p_J*_t54
-    _t56 = np.tanh((0.1)*_t55)
+    _t56 = _tanh((0.1)*_t55)
     _t57 = -_t55
     _t58 = np.sqrt((w_idle + _t57)**2 + 25)
     _t59 = w_max + _t57
@@ -343,7 +356,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t80 = np.sqrt((cvt__q_springs*_t79 - 1)**2 + 0.0001)
     _t81 = i_max - _t75*((0.5)*_t78 - 0.5*_t80 + 0.5)
     _t82 = -cvt__p_J_s*_t47*_t81 - _t57
-    _t83 = np.tanh(_t74*_t82)
+    _t83 = _tanh(_t74*_t82)
     _t84 = _t72*_t83
     _t85 = 1/b_sh
     _t86 = np.sqrt(_t77 + 4e-08)
@@ -532,6 +545,18 @@ def f_pts(_X, u, theta, _dxdt):
     _t25 = 1/i_g
     _t33 = w_eng**2
     _t34 = 1/J_e**2
+    _r0 = 0.0
+    _r3 = 0.0
+    _r4 = 0.0
+    _r5 = 0.0
+    _r6 = 0.0
+    _r7 = 0.0
+    _c0 = 0.0
+    _c1 = 0.0
+    _c2 = 0.0
+    _c3 = 0.0
+    _c4 = 0.0
+    _c5 = 0.0
     for _j in range(_X.shape[0]):
         body__p_m = _X[_j, 0]
         pitch__p_I = _X[_j, 1]
@@ -543,6 +568,19 @@ def f_pts(_X, u, theta, _dxdt):
         cvt__p_J_s = _X[_j, 7]
         driveline__q_k_rear = _X[_j, 8]
         theta_g = _X[_j, 9]
+        if _j == 0:
+            _r0 = body__p_m
+            _r3 = rear__p_J
+            _r4 = front__p_J
+            _r5 = engine__p_J
+            _r6 = cvt__q_springs
+            _r7 = cvt__p_J_s
+        _same0 = _j > 0 and body__p_m == _r0 and rear__p_J == _r3
+        _same1 = _j > 0 and body__p_m == _r0 and front__p_J == _r4
+        _same2 = _j > 0 and rear__p_J == _r3
+        _same3 = _j > 0 and front__p_J == _r4
+        _same4 = _j > 0 and engine__p_J == _r5
+        _same5 = _j > 0 and engine__p_J == _r5 and cvt__q_springs == _r6 and cvt__p_J_s == _r7
         _t2 = pitch__p_I/I_theta
         _t3 = c_theta*_t2 + k_theta*pitch__q_k
         _t4 = _t1*_t3
@@ -553,17 +591,29 @@ def f_pts(_X, u, theta, _dxdt):
         _t10 = k_slip/(C_mf*mu*((0.5)*_t9 + (0.5)*np.sqrt((_t9 - 2)**2 + 0.25) + 1))
         _t11 = _t10*((0.5)*r_dyn*rear__p_J*_t8 - _t7)
         _t12 = -_t11
-        _t13 = mu*_t6*np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12))
+        _e0 = _c0 if _same0 else np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12))
+        if _j == 0:
+            _c0 = _e0
+        _t13 = mu*_t6*_e0
         _t14 = -_t4 + _t5*(L_wb - l_f)
         _t15 = _t10*((0.5)*r_dyn*front__p_J*_t8 - _t7)
         _t16 = -_t15
-        _t17 = np.sin(C_mf*np.arctan(E_mf*(-_t16 - np.arctan(_t15)) + _t16))
+        _e1 = _c1 if _same1 else np.sin(C_mf*np.arctan(E_mf*(-_t16 - np.arctan(_t15)) + _t16))
+        if _j == 0:
+            _c1 = _e1
+        _t17 = _e1
         _t18 = (0.6)*C_dA*_t7*_t9 + mu*_t14*_t17 + _t13
         _t19 = rear__p_J*_t8
-        _t20 = np.tanh((0.25)*_t19)
+        _e2 = _c2 if _same2 else _tanh((0.25)*_t19)
+        if _j == 0:
+            _c2 = _e2
+        _t20 = _e2
         _t26 = cvt__p_J_s*_t23*_t24*_t25 - 0.5*_t19
         _t27 = c_ds*_t26 + k_ds*driveline__q_k_rear
-        _t28 = np.tanh((0.25)*front__p_J*_t8)
+        _e3 = _c3 if _same3 else _tanh((0.25)*front__p_J*_t8)
+        if _j == 0:
+            _c3 = _e3
+        _t28 = _e3
         _t29 = engine__p_J/J_e
         _t30 = -_t29
         _t31 = w_max + _t30
@@ -576,14 +626,20 @@ def f_pts(_X, u, theta, _dxdt):
         _t40 = cvt__q_springs**2
         _t41 = i_max - (i_max - i_min)*((0.5)*np.sqrt(0.0001 + _t40/x_max**2) - 0.5*np.sqrt((-1 + cvt__q_springs/x_max)**2 + 0.0001) + 0.5)
         _t42 = cvt__p_J_s*_t23
-        _t43 = np.tanh((-_t30 - _t41*_t42)/(2 + _t39/c_cl))
+        _e4 = _c4 if _same5 else _tanh((-_t30 - _t41*_t42)/(2 + _t39/c_cl))
+        if _j == 0:
+            _c4 = _e4
+        _t43 = _e4
         _t44 = _t39*_t43
         _dxdt[0, _j] = -_t0*np.sin(theta_g) - _t18
         _dxdt[1, _j] = -h_cg*_t18 - _t3
         _dxdt[2, _j] = _t2
         _dxdt[3, _j] = r_dyn*_t13 - _t20*_t21 - _t20*_t22*_t6 + _t27
         _dxdt[4, _j] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t28 - _t21*_t28
-        _dxdt[5, _j] = throttle*(T_pk*(1 - (-w_pk - _t30)**2/dw_T**2) + _t31 - np.sqrt(_t31**2 + 100)) + K_idle*((0.5)*w_idle - 0.5*_t29 + (0.5)*np.sqrt((w_idle + _t30)**2 + 25)) - T_f0*np.tanh((0.1)*_t29) - b_e*_t29 - _t44
+        _e5 = _c5 if _same4 else _tanh((0.1)*_t29)
+        if _j == 0:
+            _c5 = _e5
+        _dxdt[5, _j] = throttle*(T_pk*(1 - (-w_pk - _t30)**2/dw_T**2) + _t31 - np.sqrt(_t31**2 + 100)) + K_idle*((0.5)*w_idle - 0.5*_t29 + (0.5)*np.sqrt((w_idle + _t30)**2 + 25)) - T_f0*_e5 - b_e*_t29 - _t44
         _dxdt[6, _j] = -(F_s0 + k_fw*_t33 - k_fw*_t34*_t35 + k_h*_t41*_t44 - 2500000*x_max + cvt__q_springs*(k_p + k_s) + 5000000*cvt__q_springs - 2500000*np.sqrt(_t40 + 4e-08) + 2500000*np.sqrt((-x_max + cvt__q_springs)**2 + 4e-08))/b_sh
         _dxdt[7, _j] = -b_s*_t42 + mu_cl*_t32*_t38*_t41*_t43 - _t24*_t25*_t27
         _dxdt[8, _j] = _t26
@@ -615,6 +671,11 @@ def h_pts(_X, u, theta, _y):
     _t2 = 1/m
     _t5 = 1/L_wb
     _t7 = g*m
+    _r0 = 0.0
+    _r3 = 0.0
+    _r4 = 0.0
+    _c0 = 0.0
+    _c1 = 0.0
     for _j in range(_X.shape[0]):
         body__p_m = _X[_j, 0]
         pitch__p_I = _X[_j, 1]
@@ -624,6 +685,12 @@ def h_pts(_X, u, theta, _y):
         engine__p_J = _X[_j, 5]
         cvt__p_J_s = _X[_j, 7]
         theta_g = _X[_j, 9]
+        if _j == 0:
+            _r0 = body__p_m
+            _r3 = rear__p_J
+            _r4 = front__p_J
+        _same0 = _j > 0 and body__p_m == _r0 and rear__p_J == _r3
+        _same1 = _j > 0 and body__p_m == _r0 and front__p_J == _r4
         _t3 = body__p_m*_t2
         _t4 = pitch__q_k + theta_g
         _t6 = _t5*(k_theta*pitch__q_k + c_theta*pitch__p_I/I_theta)
@@ -640,4 +707,10 @@ def h_pts(_X, u, theta, _y):
         _y[_j, 3] = rear__p_J*_t1
         _y[_j, 4] = _t3
         _y[_j, 5] = theta_off + _t4
-        _y[_j, 6] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t9 - mu*(-_t6 + _t8*(L_wb - l_f))*np.sin(C_mf*np.arctan(E_mf*(-_t14 - np.arctan(_t13)) + _t14)) - mu*(l_f*_t8 + _t6)*np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12)) - _t7*np.sin(theta_g))
+        _e0 = _c0 if _same0 else np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12))
+        if _j == 0:
+            _c0 = _e0
+        _e1 = _c1 if _same1 else np.sin(C_mf*np.arctan(E_mf*(-_t14 - np.arctan(_t13)) + _t14))
+        if _j == 0:
+            _c1 = _e1
+        _y[_j, 6] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t9 - mu*(-_t6 + _t8*(L_wb - l_f))*_e1 - mu*(l_f*_t8 + _t6)*_e0 - _t7*np.sin(theta_g))
