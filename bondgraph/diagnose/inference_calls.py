@@ -213,7 +213,7 @@ def state_prior(model, t, u, y, theta: np.ndarray, x0, settings: LoopSettings,
     P0, _ = record_prior(model, t, u, y, theta, x0,
                          rel=0.05 if settings.p0_rel is None else float(settings.p0_rel),
                          x0_std=x0_std, method=o.method, substeps=max(o.substeps, 2),
-                         hold=o.hold, unknown=unknown)
+                         hold=o.hold, unknown=unknown, backend=o.backend)
     return P0
 
 
