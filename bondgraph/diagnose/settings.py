@@ -171,8 +171,8 @@ class LoopSettings:
         candidates (their targets, and for a source the inputs it reads): a
         saturation or a dead zone of a source is first seen as a gain error
         of that source, and would otherwise never be compared with it
-        (default False: the bundled cases' numbers unchanged; the
-        effect-recovery bench sets it).
+        (default False; it matters only when a ``structural_threshold`` is
+        set, since by default nothing is skipped).
     chunk : int
         Parameter sets per batched UKF run.
     metric_name : str, optional
