@@ -20,7 +20,9 @@ Reported per case and in total:
 * ``first_confirmed``: the truth leads after the loop's confirmation of its
   ``confirm_top`` best significant candidates
   (:func:`bondgraph.diagnose.runner.confirm_best`), the order the loop's
-  accept step works through (the accept rule itself left aside);
+  accept step works through (the accept rule itself left aside), or is
+  reported tied with the lead (Vuong's test, ``confirmed_tied``; the total
+  ``first_confirmed_tied`` counts these);
 * ``absorbed``: the truth's signature lies in the span of the estimated
   parameters' (:attr:`Candidate.absorbed`, e.g. a viscous friction next to an
   estimated damper); ``not_excited``: the noise-free difference the truth
@@ -273,11 +275,18 @@ def loop_choice(confirmed, ename, tname):
     """What the loop would pick (:func:`bondgraph.diagnose.runner.confirm_best`:
     the ``confirm_top`` best significant candidates refitted, ordered by
     confirmed LR − 2k; the accept rule left aside): ``first_confirmed`` if the
-    truth leads that order or lies in its leader's equivalence group."""
+    truth leads that order, lies in its leader's equivalence group, or is
+    reported tied with the leader (``tied``: Vuong's test cannot tell their
+    refits apart on the record, :func:`bondgraph.diagnose.accept.mark_ties`)."""
     lead = confirmed[0][0] if confirmed else None
     label = f"{ename} @ {tname}"
     return {"first_confirmed": bool(lead is not None and (
-                lead.label == label or label in (lead.equivalent or []))),
+                lead.label == label or label in (lead.equivalent or [])
+                or label in (lead.tied or []))),
+            "confirmed_tied": bool(lead is not None and lead.label != label
+                                   and label not in (lead.equivalent or [])
+                                   and label in (lead.tied or [])),
+            "tied": list(lead.tied) if lead is not None else [],
             "confirmed": [[c.label, round(float(c.confirmed_statistic), 2)]
                           for c, _ in confirmed]}
 
@@ -368,6 +377,7 @@ def summarise(results):
              "skipped": len(results) - len(done),
              "first": sum(int(r["first"]) for r in scored),
              "first_confirmed": sum(int(bool(r.get("first_confirmed"))) for r in scored),
+             "first_confirmed_tied": sum(int(bool(r.get("confirmed_tied"))) for r in scored),
              "within_3crb": sum(int(r["within_3crb"]) for r in scored),
              "first_rate": sum(int(r["first"]) for r in scored) / n,
              "first_confirmed_rate": sum(int(bool(r.get("first_confirmed")))

@@ -133,6 +133,88 @@ def error_decrease_test(e0: np.ndarray, e1: np.ndarray) -> tuple[float, float]:
     return float(z), float(norm.sf(z))
 
 
+def vuong_test(l_a: np.ndarray, l_b: np.ndarray, k_a: int, k_b: int) -> tuple[float, float]:
+    """Vuong's (1989) test of two non-nested models on the same record from
+    their per-sample negative log-likelihood contributions ``l_a``, ``l_b``
+    (N,) [nats] (the UKF's prediction-error terms, :attr:`UKFResult.nll_terms`)
+    and their numbers of estimated parameters.
+
+    d_t = l_b,t − l_a,t (positive where model a predicts better);
+    z = (Σ d_t − (k_a − k_b)) / sqrt(N · LRV(d)) with Akaike's correction of
+    the sum and the Newey-West long-run variance (:func:`long_run_variance`:
+    the terms of a misspecified filter are serially correlated; Rivers &
+    Vuong 2002). Under the null that both models are equally close to the
+    truth, z ~ N(0, 1).
+
+    Returns
+    -------
+    (z, p)
+        z > 0 favours model a; p the two-sided p-value 2 Φ(−|z|). (0, 1)
+        when the contributions are equal at every sample; (nan, nan) with
+        fewer than 3 samples both models scored.
+
+    Raises
+    ------
+    ValueError
+        If the shapes differ.
+    """
+    l_a, l_b = np.asarray(l_a, dtype=float), np.asarray(l_b, dtype=float)
+    if l_a.shape != l_b.shape:
+        raise ValueError(f"vuong_test: shapes {l_a.shape} and {l_b.shape} differ")
+    d = (l_b - l_a).ravel()
+    d = d[np.isfinite(d)]
+    if d.size < 3:
+        return float("nan"), float("nan")
+    lrv = long_run_variance(d)
+    total = float(d.sum()) - (k_a - k_b)
+    if lrv <= 0:
+        return (0.0, 1.0) if total == 0 else (float(np.sign(total) * np.inf), 0.0)
+    z = total / np.sqrt(d.size * lrv)
+    return float(z), float(2 * norm.sf(abs(z)))
+
+
+def mark_ties(confirmed: list, level: float) -> list[str]:
+    """Mark the confirmed candidates indistinguishable from the lead.
+
+    Parameters
+    ----------
+    confirmed : list of (Candidate, Fit, int)
+        Best first (by confirmed LR − 2k): each candidate, its refit (with a
+        stored UKF run) and its number of new parameters.
+    level : float
+        Two-sided level of :func:`vuong_test`; 0 marks none.
+
+    Returns
+    -------
+    list of str
+        Labels tied with the lead (also in the lead's ``tied``; each tied
+        candidate's ``confirmed`` gets ``tie_z``, ``tie_p``).
+    """
+    if len(confirmed) < 2 or level <= 0:
+        return []
+    lead, fa, ka = confirmed[0]
+    la = _terms(fa)
+    out = []
+    for c, fb, kb in confirmed[1:]:
+        lb = _terms(fb)
+        if la is None or lb is None or la.shape != lb.shape:
+            continue
+        z, p = vuong_test(la, lb, ka, kb)
+        if np.isfinite(p) and p >= level:
+            out.append(c.label)
+            if c.label not in lead.tied:
+                lead.tied.append(c.label)
+            if c.confirmed is not None:
+                c.confirmed.update(tie_z=z, tie_p=p)
+    return out
+
+
+def _terms(fit: Fit) -> np.ndarray | None:
+    """Per-sample NLL terms (N,) of a fit's stored UKF run, or None."""
+    t = getattr(fit.ukf, "nll_terms", None)
+    return None if t is None else np.asarray(t, dtype=float)[:, 0]
+
+
 @dataclass
 class Decision:
     """Accept or not, the reason of a rejection, and the quantities compared
@@ -207,7 +289,8 @@ def accepted_step(cand: Candidate, d: Decision, current: Fit, after: Fit, names:
                 d.whiteness_before, d.whiteness_after, P,
                 cand.confirmed_statistic or cand.statistic, cand.p_value,
                 current.metric, after.metric, after.validation_metric is not None,
-                d.lr, d.lr_p_value, cand.target.kind, [n for n in names if n not in current.params])
+                d.lr, d.lr_p_value, cand.target.kind, [n for n in names if n not in current.params],
+                list(cand.tied))
 
 
 def applied_effect(eff: Effect, cand: Candidate, after: Fit) -> AppliedEffect:

@@ -62,6 +62,11 @@ class Candidate:
         Candidates this structural one became when scored: a parameter ended
         on the end of its span where the effect is another one
         (``Effect.limits``); marked equivalent to them once all are scored.
+    tied : list of str
+        Confirmed candidates whose refits the record cannot tell from this
+        one's, the confirmed lead's (Vuong's test at ``settings.tie_level``,
+        :func:`bondgraph.diagnose.accept.vuong_test`; each one's ``confirmed``
+        holds ``tie_z`` and ``tie_p``).
     confirmed : dict or None
         The confirmation refit: ``lr``, ``dof``, ``nll``, ``criterion``
         (after), ``error`` (free-run, record), ``validation_error``,
@@ -87,6 +92,7 @@ class Candidate:
     confirmed: dict | None = None
     profile: dict = field(default_factory=dict)
     limit_of: list = field(default_factory=list)
+    tied: list = field(default_factory=list)
 
     @property
     def rank_key(self) -> float:
@@ -114,7 +120,8 @@ class Step:
     and Cramér-Rao std), the candidate's statistic; the record's own
     free-run error before and after, whether the error is the validation
     record's, the confirmed likelihood ratio and its p-value, the target's
-    kind and the effect's parameter names."""
+    kind and the effect's parameter names, and the confirmed candidates the
+    record could not tell from it (``tied``, Vuong's test)."""
 
     effect: str
     attached_to: str
@@ -137,6 +144,7 @@ class Step:
     lr_p_value: float | None = None
     target_kind: str | None = None
     effect_params: list = field(default_factory=list)
+    tied: list = field(default_factory=list)
 
 
 @dataclass

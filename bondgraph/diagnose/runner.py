@@ -16,6 +16,7 @@ from bondgraph.diagnose.accept import (
     applied_effect,
     confirmed_record,
     decide,
+    mark_ties,
     rejection,
     significant,
 )
@@ -531,6 +532,11 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
                 f"(score test {c.statistic:.1f}), values {r.values} ({how}, "
                 f"{r.fit.iterations} iterations)")
     confirmed.sort(key=lambda z: -z[0])
+    tied = mark_ties([(c, r.fit, len(r.new_params)) for _, c, r in confirmed],
+                     ctx.settings.tie_level)
+    if tied:
+        ctx.log(f"  the record cannot tell {confirmed[0][1].label} from {', '.join(tied)} "
+                f"(Vuong's test, p >= {ctx.settings.tie_level:g}): reported as tied")
     return [(c, r) for _, c, r in confirmed]
 
 
@@ -546,7 +552,9 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
         names = list(current.params) + conf.new_params
         after = conf.fit
         d = decide(current, after, s, dof=len(conf.new_params))
-        c.confirmed = confirmed_record(current, after, len(conf.new_params), conf.values, s, d)
+        tie = {k: v for k, v in (c.confirmed or {}).items() if k in ("tie_z", "tie_p")}
+        c.confirmed = {**confirmed_record(current, after, len(conf.new_params), conf.values, s,
+                                          d), **tie}
         if d.accepted:
             new_std = parameter_std(ctx, after)
             result.steps.append(accepted_step(c, d, current, after, names, new_std,

@@ -53,6 +53,12 @@ class LoopSettings:
         likelihood ratios of structural ones do not compare exactly; a
         user's two tanks whose pump saturates ranked the saturation 7th
         behind six additive candidates that all raised the held-out error).
+    tie_level : float
+        Level of Vuong's (1989) test between the confirmed lead and each
+        other confirmed candidate: a candidate whose per-sample likelihood
+        does not differ from the lead's at this two-sided level is reported
+        as tied with it (``Candidate.tied``; the record cannot tell them
+        apart, e.g. a source lag and a sensor low-pass on a linear graph).
     structural : bool or "always"
         Evaluate structural effects (slower: one model each); ``"always"``
         scores them even when an additive effect explains most of the
@@ -204,6 +210,7 @@ class LoopSettings:
     significance: float = 0.01
     confirm_top: int = 3
     confirm_rounds: int = 3
+    tie_level: float = 0.05
     structural: Any = True
     effects: Sequence[Effect] = DEFAULT_EFFECTS
     x0: Any = None
@@ -288,6 +295,7 @@ class LoopSettings:
                 "noise_outputs": list(self.noise_outputs),
                 "confirm_iterations": self.confirm_iterations,
                 "confirm_top": self.confirm_top, "confirm_rounds": self.confirm_rounds,
+                "tie_level": self.tie_level,
                 "confirm_tolerance": self.confirm_tolerance,
                 "validation": getattr(self.validation, "name", None)
                 if self.validation is not None else None,

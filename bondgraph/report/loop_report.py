@@ -406,6 +406,11 @@ def _md_accepted(result: LoopResult) -> list[str]:
         L.append(f"| {i} | {s.effect} | {s.attached_to} | {s.error_before:.4g} | "
                  f"{s.error_after:.4g} | {s.nll_before:.1f} | {s.nll_after:.1f} | "
                  f"{s.whiteness_before:.1f} | {s.whiteness_after:.1f} |")
+    for i, s in enumerate(result.steps, 1):
+        if getattr(s, "tied", None):
+            L += ["", f"Step {i}: the record cannot tell {s.effect} @ {s.attached_to} from "
+                  f"{', '.join(s.tied)} (Vuong's test on the confirmed refits); the choice "
+                  f"among them is not the data's — another record may decide."]
     L += ["", "Parameters of the final model:", "",
           "| parameter | estimate | Cramér-Rao std |", "|---|---|---|"]
     for n, v in result.final.estimates.items():
