@@ -16,6 +16,7 @@ from bondgraph.cli.common import (
     add_estimation_scope,
     add_overwrite,
     add_quiet,
+    add_scheduler,
     load_record,
     parse_names,
     parse_pairs,
@@ -74,6 +75,11 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "whose estimates start the likelihood fit (sim)")
     add_discretisation(p)          # with --backend
     p.set_defaults(method=None, substeps=None, hold=None)   # a case's own options unless given
+    p.add_argument("--workers", type=int, default=1,
+                   help="local Dask worker processes that score the structural candidates and "
+                        "run the confirmation refits, one candidate each (1: in process; the "
+                        "result does not depend on it)")
+    add_scheduler(p)
     add_quiet(p)
 
 
@@ -121,11 +127,12 @@ def run(args) -> int:
               f"(--holdout FRACTION to change, --holdout 0 to fit all of it)")
     settings["ukf"] = dataclasses.replace(settings.get("ukf") or UKFOptions(),
                                           backend=args.backend)
+    settings.update(workers=args.workers, scheduler=args.scheduler)
     try:                                             # bad settings fail before any output
         LoopSettings.from_options(params, settings)
     except OptionError as exc:                       # named as the options the user typed
         text = str(exc)
-        for key in ("metric", "criterion", "max_steps", "significance"):
+        for key in ("metric", "criterion", "max_steps", "significance", "workers"):
             text = text.replace(f"LoopSettings.{key}", "--" + key.replace("_", "-"))
         raise OptionError(text) from exc
     reporter = LoopReporter(args.out, echo=None if args.quiet else print,

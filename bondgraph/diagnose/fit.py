@@ -79,9 +79,11 @@ class Record:
 class Context:
     """What every step of the loop reads: the record, the settings, the
     (time-stamped) line logger, whether progress bars are shown, and a cache
-    (the state-scaled priors of the models seen), and the initial states
+    (the state-scaled priors of the models seen), the initial states
     estimated with the current fit (``settings.estimate_x0``; by name), which
-    every later filter run conditions on."""
+    every later filter run conditions on, and the executor the candidates'
+    scoring and confirmations run on (None: in process;
+    :mod:`bondgraph.diagnose.parallel`)."""
 
     record: Record
     settings: LoopSettings
@@ -89,6 +91,7 @@ class Context:
     progress: bool = True
     cache: dict = field(default_factory=dict)
     x0_estimates: dict = field(default_factory=dict)
+    executor: Any = None
 
 
 @dataclass

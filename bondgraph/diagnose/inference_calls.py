@@ -21,6 +21,7 @@ from bondgraph.inference.estimate import (
     cramer_rao,
     hessian_batched,
 )
+from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, X0_TOKEN, Estimand, noise_plan
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
@@ -34,6 +35,13 @@ from bondgraph.inference.ukf import UKFResult, default_P0, discretisation_check,
 # box of an estimated noise std (its start times / divided by NOISE_BOX)
 __all__ = ["NOISE_BOX", "X0_TOKEN"]
 
+
+
+def make_executor(workers: int, scheduler: str | None):
+    """The executor the loop's candidate tasks run on
+    (:class:`bondgraph.inference.executor.Executor`: in process with one
+    worker and no scheduler, else on Dask workers)."""
+    return Executor(workers, scheduler)
 
 def run_ukf(model, t, u, y, thetas: np.ndarray, x0, P0, settings: LoopSettings, *,
             store: bool = False) -> UKFResult:

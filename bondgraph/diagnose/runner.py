@@ -32,8 +32,9 @@ from bondgraph.diagnose.fit import (
     prior_mean,
     resolve_noise,
 )
-from bondgraph.diagnose.inference_calls import discretisation, output_error
+from bondgraph.diagnose.inference_calls import discretisation, make_executor, output_error
 from bondgraph.diagnose.metric import metric_name
+from bondgraph.diagnose.parallel import run_tasks
 from bondgraph.diagnose.result import Candidate, LoopResult, rank_of
 from bondgraph.diagnose.scoring import (
     mark_limits,
@@ -104,7 +105,16 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     experiment, s = held_out(experiment, s)
     t0 = time.perf_counter()
     ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
-                  progress)
+                  progress, executor=make_executor(s.workers, s.scheduler))
+    try:
+        return _run(ctx, graph, s, t0, on_update)
+    finally:
+        ctx.executor.close()
+
+
+def _run(ctx: Context, graph: BondGraph, s: LoopSettings, t0: float,
+         on_update: OnUpdate | None) -> LoopResult:
+    """The loop's steps (:func:`run_loop`)."""
     ctx.settings = resolve_noise(ctx, graph)
     initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
     result = new_result(ctx, graph, initial, warn)
@@ -516,10 +526,12 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
     :func:`check_the_lead`) is not refitted again."""
     todo = sorted(signif, key=lambda c: c.rank_key)[: ctx.settings.confirm_top]
     confirmed = []
-    for c in todo:
-        key = ("confirmation", id(current), current.nll, c.label)   # the lead check's, reused
-        if key not in ctx.cache:
-            ctx.cache[key] = confirm(ctx, current, c, scales, name)
+    keys = [("confirmation", id(current), current.nll, c.label) for c in todo]  # lead check's
+    fresh = [(k, c) for k, c in zip(keys, todo) if k not in ctx.cache]
+    for (k, _), r in zip(fresh, run_tasks(ctx, _confirm_task, (current, scales, name),
+                                          [c for _, c in fresh])):
+        ctx.cache[k] = r
+    for c, key in zip(todo, keys):
         r = ctx.cache[key]
         if r is None:
             continue
@@ -538,6 +550,13 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
         ctx.log(f"  the record cannot tell {confirmed[0][1].label} from {', '.join(tied)} "
                 f"(Vuong's test, p >= {ctx.settings.tie_level:g}): reported as tied")
     return [(c, r) for _, c, r in confirmed]
+
+
+def _confirm_task(ctx: Context, shared, cand: Candidate) -> Confirmation | None:
+    """:func:`bondgraph.diagnose.confirm.confirm` as a task of
+    :func:`bondgraph.diagnose.parallel.run_tasks`."""
+    current, scales, name = shared
+    return confirm(ctx, current, cand, scales, name)
 
 
 def accept_best(ctx: Context, result: LoopResult, current: Fit,

@@ -44,6 +44,7 @@ from tqdm.auto import tqdm
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
 from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, prior
 from bondgraph.diagnose.inference_calls import fisher_fit, run_ukf
+from bondgraph.diagnose.parallel import distributed, run_tasks
 from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.scales import operating_scales  # noqa: F401 (public name)
 from bondgraph.errors import BondGraphError
@@ -495,13 +496,21 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
     todo = [(eff, tgt) for eff in effects if not eff.additive
             for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)
             and (places is None or (tgt.kind, tgt.name) in places)]
-    out = []
-    for eff, tgt in tqdm(todo, desc="structural candidates", unit="cand", leave=False,
-                         disable=not ctx.progress):
-        cand = structural_candidate(ctx, fit, scales, eff, tgt)
-        if cand is not None:
-            out.append(cand)
-    return out
+    if distributed(ctx):
+        ctx.log(f"  scoring {len(todo)} structural candidates on the Dask workers")
+        found = run_tasks(ctx, _structural_task, (fit, scales), todo)
+    else:
+        found = [structural_candidate(ctx, fit, scales, eff, tgt)
+                 for eff, tgt in tqdm(todo, desc="structural candidates", unit="cand",
+                                      leave=False, disable=not ctx.progress)]
+    return [c for c in found if c is not None]
+
+
+def _structural_task(ctx: Context, shared, item) -> Candidate | None:
+    """:func:`structural_candidate` as a task of :func:`run_tasks`."""
+    fit, scales = shared
+    eff, tgt = item
+    return structural_candidate(ctx, fit, scales, eff, tgt)
 
 
 def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,

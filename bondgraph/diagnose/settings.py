@@ -8,6 +8,7 @@ from typing import Any, Sequence
 
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Effect
 from bondgraph.errors import OptionError
+from bondgraph.inference.executor import scheduler_address
 from bondgraph.inference.options import NOISE_MODES, UKFOptions
 
 #: the built-in error measures (``LoopSettings.metric``; bondgraph.diagnose.metric)
@@ -181,6 +182,14 @@ class LoopSettings:
         set, since by default nothing is skipped).
     chunk : int
         Parameter sets per batched UKF run.
+    workers : int
+        Processes of the embedded Dask cluster that score the structural
+        candidates and run the confirmation refits, one task each
+        (1: in process; :mod:`bondgraph.diagnose.parallel`). Results do not
+        depend on it.
+    scheduler : str, optional
+        Address of an existing Dask scheduler (``tcp://HOST:PORT``; default
+        ``$BONDGRAPH_SCHEDULER``): the candidates' tasks run on its workers.
     metric_name : str, optional
         Name of the metric in logs and reports (default: derived from ``metric``).
     true_effect : TrueEffect or (kind, target), optional
@@ -239,6 +248,8 @@ class LoopSettings:
     structural_refit: int = 2
     structural_starts: int = 3
     chunk: int = 48
+    workers: int = 1
+    scheduler: str | None = None
     metric_name: str | None = None
     true_effect: Any = None
     noise: str = "auto"
@@ -319,10 +330,12 @@ def check_settings(s: LoopSettings) -> None:
     if not callable(s.metric) and s.metric not in METRICS:
         raise OptionError(f"LoopSettings.metric = {s.metric!r} is not one of "
                           f"{', '.join(METRICS)} (or a callable metric(fit, record))")
+    scheduler_address(s.scheduler)      # a malformed address fails here, not after a fit
     if s.criterion not in CRITERIA:
         raise OptionError(f"LoopSettings.criterion = {s.criterion!r} is not one of "
                           f"{', '.join(CRITERIA)}")
     for name, minimum in (("max_steps", 0), ("confirm_top", 1), ("confirm_rounds", 1),
+                          ("workers", 1),
                           ("fit_iterations", 0), ("structural_starts", 0),
                           ("confirm_iterations", 0), ("chunk", 1)):
         _integer(name, getattr(s, name), minimum)

@@ -643,7 +643,8 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | No
         compile_s += ukf_numba.run(kernels, t, u, y, batch, opts, wts, kept)
     else:
         _filter_numpy(model, batch, step, t, u, u_held, y, wts, kept)
-        model.numpy_seconds = getattr(model, "numpy_seconds", 0.0) + time.perf_counter() - t0
+        model.numpy_seconds = getattr(model, "numpy_seconds", 0.0) + \
+            numpy_estimate(model, opts, t.size, th.shape[0])
     settings = dict(opts.to_dict(), n_regularised=batch.n_reg,
                     backend_used="numba" if kernels is not None else "numpy",
                     compile_s=compile_s, run_s=time.perf_counter() - t0 - compile_s)
@@ -683,6 +684,18 @@ _NUMPY_S_PER_SAMPLE, _NUMPY_S_PER_POINT = 4e-4, 1.5e-6
 _WARNED: set = set()
 
 
+def numpy_estimate(model, opts: UKFOptions, N: int, P: int) -> float:
+    """Estimated seconds of a numpy UKF run over N samples and P parameter
+    sets (:data:`_NUMPY_S_PER_SAMPLE`, :data:`_NUMPY_S_PER_POINT`): what the
+    break-even rule of :func:`bondgraph.numerics.compiled.compile_pays` adds up for an
+    in-memory model. An estimate, not a measured time, so that the choice of
+    backend, and with it the last digits of a result, depends only on the
+    calls made, not on the machine's load (the loop's candidates give the
+    same result in process and on Dask workers)."""
+    per_eval = 2.0 * opts.substeps if opts.method == "rk4" else 1.0 * opts.substeps
+    return N * (_NUMPY_S_PER_SAMPLE + _NUMPY_S_PER_POINT * P * (2 * model.n_x + 1) * per_eval)
+
+
 def _backend_for(model, opts: UKFOptions, N: int, P: int):
     """``(point kernels or None, note, compile seconds)``: the numba kernels
     of ``model`` when ``opts.backend`` is numba, the kernel supports the
@@ -694,8 +707,7 @@ def _backend_for(model, opts: UKFOptions, N: int, P: int):
     unsupported = ukf_numba.unsupported(opts)
     if unsupported:
         return None, unsupported, 0.0
-    per_eval = 2.0 * opts.substeps if opts.method == "rk4" else 1.0 * opts.substeps
-    est = N * (_NUMPY_S_PER_SAMPLE + _NUMPY_S_PER_POINT * P * (2 * model.n_x + 1) * per_eval)
+    est = numpy_estimate(model, opts, N, P)
     if not compile_pays(model, est):
         return None, (f"in-memory model not compiled: its numpy time so far and this run's "
                       f"(~{est:.2g} s) stay below the estimated compile time "

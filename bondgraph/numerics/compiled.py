@@ -20,7 +20,9 @@ run does not compile again:
 
 When compiling pays (:func:`compile_pays`): a registered model's kernels
 are compiled once per installation, always. An in-memory model not yet in
-the cache is compiled only once the numpy time it has cost, plus the
+the cache is compiled only once the numpy time it has cost (estimated
+from the runs' sizes, not measured: the choice must not depend on the
+machine's load), plus the
 estimated numpy time of the evaluation at hand, reaches the estimated
 compile time (the break-even rule of ski rental: never more than twice the
 better of the two choices made in hindsight; Karlin et al. 1988). A

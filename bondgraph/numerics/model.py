@@ -44,7 +44,8 @@ class Model:
     lower, upper : ndarray (n_theta,)
         Parameter bounds.
     numpy_seconds : float
-        Numpy UKF time spent on this model so far (decides when compiling
+        Estimated numpy time spent on this model so far (the estimates of
+        its numpy runs, not the clock: deterministic; decides when compiling
         its numba kernels pays, :func:`bondgraph.numerics.compiled.compile_pays`).
     """
 
