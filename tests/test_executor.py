@@ -156,3 +156,21 @@ def test_cli_estimate_runs_on_the_numpy_backend(tmp_path, monkeypatch):
                "--backend", "numpy", "--scheduler", "tcp://127.0.0.1:9", "--workers", "2",
                "--out", str(tmp_path / "o"), "--quiet"])
     assert rc != 0 and seen == dict(backend="numpy", scheduler="tcp://127.0.0.1:9", workers=2)
+
+
+def test_sobol_sample_on_the_cluster_equals_serial(cluster):
+    """The Sobol' sample's chunks on a 2-worker cluster: the NLL values and
+    the indices are the serial run's, bit for bit."""
+    from bondgraph.sensitivity.sobol import global_sensitivity
+
+    m = Model.load("mass_spring_damper")
+    t, u, y = _record(m, N=60)
+    kw = dict(theta=m.theta0, x0=np.zeros(m.n_x), ukf=UKFOptions(backend="numba"), chunk=8,
+              box_rel=0.3, seed=3)
+    ref = global_sensitivity(m, t, u, y, ["m", "k", "c"], 8, **kw)
+    got = global_sensitivity(m, t, u, y, ["m", "k", "c"], 8,
+                             scheduler=cluster.scheduler_address, **kw)
+    assert got["evaluations"] == ref["evaluations"] == 8 * (2 * 3 + 2)
+    for key in ("S1", "ST", "S2"):
+        np.testing.assert_array_equal(got["indices"]["NLL"][key], ref["indices"]["NLL"][key])
+    assert got["nll_min"] == ref["nll_min"] and got["nll_max"] == ref["nll_max"]

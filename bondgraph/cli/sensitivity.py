@@ -17,6 +17,7 @@ from bondgraph.cli.common import (
     add_model,
     add_overwrite,
     add_quiet,
+    add_scheduler,
     estimated_states,
     initial_prior,
     initial_state,
@@ -48,6 +49,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--box-rel", type=float, default=None,
                    help="Sobol' box theta*(1 ± BOX_REL) instead of the model bounds")
     p.add_argument("--chunk", type=int, default=256, help="parameter sets per batched UKF run")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local Dask worker processes that evaluate the Sobol' sample's chunks "
+                        "(1: in process; the indices do not depend on it)")
+    add_scheduler(p)
     p.add_argument("--nll-transform", choices=("log", "none"), default="log",
                    help="Sobol' indices of ln(1 + NLL - min NLL) (default) or of the NLL")
     p.add_argument("--out", default=None, help="output directory (default "
@@ -104,7 +109,8 @@ def run(args) -> int:
                   chunk=args.chunk, seed=args.seed, rel_crb_max=args.rel_crb,
                   corr_max=args.corr_max, sensitivities=not args.no_sensitivities,
                   progress=not args.quiet, log=log, nll_transform=args.nll_transform,
-                  x0_states=estimated_states(model, args), noise=args.noise, fixed=list(fixed))
+                  x0_states=estimated_states(model, args), noise=args.noise, fixed=list(fixed),
+                  workers=args.workers, scheduler=args.scheduler)
     rep.settings["data"] = str(args.data)
     rep.settings["wall_s"] = time.perf_counter() - t0
 

@@ -177,7 +177,8 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
             sensitivities: bool = True, sens_method: str = "LSODA", sens_rtol: float = 1e-6,
             sens_atol: float = 1e-8, progress: bool = False, log=None,
             nll_transform: str = "log", x0_states: Sequence[str] = (),
-            noise: str = "model", fixed: Sequence[str] = ()) -> SensitivityReport:
+            noise: str = "model", fixed: Sequence[str] = (), workers: int = 1,
+            scheduler: str | None = None) -> SensitivityReport:
     """Local (and optionally global) sensitivity and identifiability analysis
     of one record, with a recommendation of the parameters to estimate.
 
@@ -200,11 +201,13 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
     global_N : int, optional
         Base sample size of the Sobol' analysis (None: local only).
-    outputs, box_rel, chunk, seed, nll_transform :
+    outputs, box_rel, chunk, seed, nll_transform, workers, scheduler :
         Of the Sobol' analysis (:func:`bondgraph.sensitivity.sobol.global_sensitivity`):
         outputs whose time-means also get indices, box θ (1 ± box_rel)
         instead of the model's bounds, parameter sets per batched UKF run,
-        seed, and the transform of the NLL ("log": ln(1 + NLL − min NLL)).
+        seed, the transform of the NLL ("log": ln(1 + NLL − min NLL)), and
+        where the sample's chunks run (local Dask worker processes, or an
+        existing Dask scheduler's workers).
     rel_crb_max, corr_max : float
         Selection thresholds (:func:`recommend`).
     sensitivities : bool
@@ -245,7 +248,7 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
     local, recommendation = _local(pb, scale, ename)
     sens = _output_error(pb, local, sens_method, sens_rtol, sens_atol) if sensitivities else None
     sobol = dict(outputs=outputs, box_rel=box_rel, chunk=chunk, seed=seed, progress=progress,
-                 nll_transform=nll_transform)
+                 nll_transform=nll_transform, workers=workers, scheduler=scheduler)
     glob = _global(pb, global_N, sobol) if global_N else None
     return _report(pb, ename, scale, local, recommendation, glob, sens, dict(
         x0_rule=x0_how, noise=noise, noise_notes=notes, x0_states=list(pb.estimand.states)))

@@ -32,6 +32,7 @@ from SALib.analyze import sobol as sobol_analyze
 from SALib.sample import sobol as sobol_sample
 
 from bondgraph.errors import SensitivityError
+from bondgraph.inference.executor import Executor
 from bondgraph.inference.options import UKFOptions, ukf_options
 from bondgraph.inference.ukf import default_P0, ukf_nll
 from bondgraph.numerics.forward_sensitivity import check_params
@@ -52,8 +53,8 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
                   chunk: int | None = None, conf_level: float = 0.95, num_resamples: int = 100,
                   output_names: Sequence[str] | None = None, progress: bool = False,
                   desc: str = "sobol",
-                  transforms: Mapping[str, Callable[[np.ndarray], np.ndarray]] | None = None
-                  ) -> dict:
+                  transforms: Mapping[str, Callable[[np.ndarray], np.ndarray]] | None = None,
+                  executor: Executor | None = None) -> dict:
     """Sobol' indices of a batched function over a box (SALib; Saltelli 2002).
 
     Parameters
@@ -81,6 +82,10 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
     transforms : dict output name -> callable, optional
         Applied to an output's whole column (after non-finite values are
         replaced) before the analysis, e.g. :func:`log_excess`.
+    executor : Executor, optional
+        Where the chunks are evaluated (:class:`bondgraph.inference.executor.Executor`:
+        Dask workers when it is distributed; ``fun`` is sent to them once).
+        The chunks do not depend on it, nor do the results.
 
     Returns
     -------
@@ -107,7 +112,7 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
     problem = dict(num_vars=k, names=names, bounds=[[float(a), float(b)] for a, b in zip(lo, hi)])
     X = sobol_sample.sample(problem, Np, calc_second_order=second_order, seed=seed)
     t_wall = time.perf_counter()
-    Y = _evaluate_chunks(fun, X, chunk, progress, desc)
+    Y = _evaluate_chunks(fun, X, chunk, progress, desc, executor)
     m = Y.shape[1]
     onames = list(output_names) if output_names is not None else (
         ["y"] if m == 1 else [f"y{i}" for i in range(m)])
@@ -143,10 +148,15 @@ def _prepared_column(y: np.ndarray, name: str, transform) -> tuple[np.ndarray, i
     return yc, int(bad.sum())
 
 
-def _evaluate_chunks(fun, X, chunk, progress: bool, desc: str) -> np.ndarray:
-    """``fun`` over the sample X (S, k) in chunks: (S, m)."""
+def _evaluate_chunks(fun, X, chunk, progress: bool, desc: str,
+                     executor: Executor | None = None) -> np.ndarray:
+    """``fun`` over the sample X (S, k) in chunks: (S, m); on ``executor``'s
+    Dask workers when it is distributed (same chunks, same order)."""
     S = X.shape[0]
     step = int(chunk) if chunk else S
+    if executor is not None and executor.distributed:
+        parts = executor.map(_chunk_values, fun, [X[a:a + step] for a in range(0, S, step)])
+        return np.concatenate(parts, axis=0)
     parts = []
     it = range(0, S, step)
     if progress:
@@ -156,6 +166,11 @@ def _evaluate_chunks(fun, X, chunk, progress: bool, desc: str) -> np.ndarray:
     for a in it:
         parts.append(np.asarray(fun(X[a:a + step]), dtype=float).reshape(min(step, S - a), -1))
     return np.concatenate(parts, axis=0)
+
+
+def _chunk_values(fun, Xc: np.ndarray) -> np.ndarray:
+    """One chunk's values (rows of Xc, m) on a worker."""
+    return np.asarray(fun(Xc), dtype=float).reshape(Xc.shape[0], -1)
 
 
 def _analyse_output(problem, yc, second_order, conf_level, num_resamples, seed) -> dict:
@@ -236,7 +251,8 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
                        outputs: Sequence[str] = (), box: tuple | None = None,
                        box_rel: float | None = None, chunk: int = 256, seed: int | None = 0,
                        second_order: bool = True, progress: bool = False,
-                       conf_level: float = 0.95, nll_transform: str = "log") -> dict:
+                       conf_level: float = 0.95, nll_transform: str = "log",
+                       workers: int = 1, scheduler: str | None = None) -> dict:
     """Sobol' indices of the UKF NLL (and of the time-means of chosen
     outputs) over a parameter box (Sobol' 2001; Saltelli et al. 2010).
 
@@ -266,6 +282,13 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
     nll_transform : {"log", "none"}
         Indices of ln(1 + NLL − min NLL) (:func:`log_excess`, default) or of
         the NLL itself.
+    workers : int
+        Local Dask worker processes that evaluate the sample's chunks
+        (1: in process; :class:`bondgraph.inference.executor.Executor`).
+    scheduler : str, optional
+        Address of an existing Dask scheduler (default
+        ``$BONDGRAPH_SCHEDULER``): the chunks run on its workers. The
+        indices do not depend on where the chunks ran.
 
     Returns
     -------
@@ -292,10 +315,15 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
         seen.update(nll_min=float(np.min(yv)), nll_max=float(np.max(yv)))
         return log_excess(yv) if nll_transform == "log" else yv
 
-    res = sobol_indices(fun, params, lo, hi, N, second_order=second_order, seed=seed,
-                        chunk=chunk, conf_level=conf_level,
-                        output_names=["NLL"] + [f"mean({o})" for o in outputs],
-                        progress=progress, desc="Sobol NLL", transforms={"NLL": tr})
+    executor = Executor(workers, scheduler)
+    try:
+        res = sobol_indices(fun, params, lo, hi, N, second_order=second_order, seed=seed,
+                            chunk=chunk, conf_level=conf_level,
+                            output_names=["NLL"] + [f"mean({o})" for o in outputs],
+                            progress=progress, desc="Sobol NLL", transforms={"NLL": tr},
+                            executor=executor)
+    finally:
+        executor.close()
     res.update(nll_transform="ln(1 + NLL - min NLL)" if nll_transform == "log" else "none",
                **seen)
     res["box"] = "custom" if box is not None else (f"theta*(1±{box_rel:g})" if box_rel
