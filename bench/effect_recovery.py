@@ -52,16 +52,17 @@ import json
 import sys
 import time
 import warnings
+from dataclasses import replace
 
 import numpy as np
 from scipy.stats import chi2
 
 from bondgraph.catalog import reference as ref
 from bondgraph.diagnose.cases import synthesize
-from bondgraph.diagnose.confirm import confirm
+from bondgraph.diagnose.confirm import Confirmation, confirm
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Scales, get_effect
 from bondgraph.diagnose.fit import Context, Record, fit_model, parameter_std
-from bondgraph.diagnose.runner import confirm_best, gather_evidence
+from bondgraph.diagnose.runner import confirm_best, gather_evidence, recommended_substeps
 from bondgraph.diagnose.scales import operating_scales
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import NumericalError
@@ -319,6 +320,7 @@ def confirm_truth(ctx, fit, ranking, key, sc, eff, vals, val, confirmed=()):
         confirm(ctx, fit, cand, sc, "augmented")
     if r is None:
         return {"within_3crb": False, "val_after": float("nan"), "estimate": {}}
+    r, substeps = finer_if_needed(ctx, r)
     std = parameter_std(ctx, r.fit)
     est, ok = {}, True
     for p in eff.params:
@@ -328,8 +330,34 @@ def confirm_truth(ctx, fit, ranking, key, sc, eff, vals, val, confirmed=()):
         s = std.get(full)
         est[p.name] = {"value": r.values[p.name], "std": s}
         ok = ok and s is not None and abs(r.values[p.name] - vals[p.name]) <= 3 * s
-    return {"within_3crb": bool(ok), "estimate": est,
+    return {"within_3crb": bool(ok), "estimate": est, "substeps": substeps,
             "val_after": validation_error(r.fit.model, r.fit.theta, val)}
+
+
+def finer_if_needed(ctx, r):
+    """The confirmation refitted with the substeps the loop's discretisation
+    check recommends at it (:func:`bondgraph.diagnose.runner.checked_again`,
+    what ``auto_substeps`` does with an accepted effect), if the filter's
+    one-step discretisation error there exceeds 0.1 noise std; else as it
+    is. Returns (confirmation, substeps used)."""
+    n = recommended_substeps(ctx, r.fit)[1]
+    if n is None:
+        return r, ctx.settings.ukf.substeps
+    kept = ctx.settings
+    ctx.settings = replace(kept, ukf=replace(kept.ukf, substeps=n))
+    ctx.cache.clear()
+    try:
+        f = fit_model(ctx, r.fit.graph, list(r.fit.params), r.fit.estimates(), "finer",
+                      model=r.fit.model)
+    finally:
+        ctx.settings = kept
+        ctx.cache.clear()
+    values = dict(r.values)
+    for k in r.values:
+        full = [p for p in r.new_params if p.endswith("." + k)]
+        if full:
+            values[k] = float(f.theta[f.model.param_index(full[0])])
+    return Confirmation(f, values, r.new_params), n
 
 
 def cases(quick: bool, graphs=None):

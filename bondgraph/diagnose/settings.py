@@ -108,9 +108,9 @@ class LoopSettings:
         passed on only by :mod:`bondgraph.diagnose.inference_calls`.
     auto_substeps : bool
         Adopt the discretisation check's recommended substeps when the
-        filter's one-step discretisation error at the declared fit exceeds
-        0.1 measurement-noise std (the declared model is then refitted);
-        default False: only warn.
+        filter's one-step discretisation error at the declared fit, or at an
+        accepted fit, exceeds 0.1 measurement-noise std (that model is then
+        refitted); default False: only warn.
     sim_method : str
         Solver of the free-run simulations (:func:`bondgraph.numerics.simulate.simulate`).
     sim_hold : {"linear", "zoh", "filter"}
