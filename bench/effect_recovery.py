@@ -235,11 +235,11 @@ def run_case(gname, ename, seed, choice=True):
     try:
         rec = synthesize(truth, declared, t, sampled(spec["inputs"](0.0), t), {}, {}, seed,
                          "train", "", hold="zoh", method="rk4", substeps=10)
+        val = synthesize(truth, declared, t, sampled(spec["inputs"](1.3), t), {}, {},
+                         seed + 7919, "val", "", hold="zoh", method="rk4", substeps=10)
     except NumericalError as exc:      # a softening spring drawn strong enough to escape
         return {"graph": gname, "effect": ename, "target": tgt.name,
                 "skipped": f"the drawn truth has no record: {str(exc).splitlines()[0]}"}
-    val = synthesize(truth, declared, t, sampled(spec["inputs"](1.3), t), {}, {}, seed + 7919,
-                     "val", "", hold="zoh", method="rk4", substeps=10)
     oracle = oracle_chi2(spec, declared, rec, t, seed)
     ctx = Context(Record(rec), settings_for(spec["params"]), log=quiet, progress=False)
     fit = fit_model(ctx, declared, spec["params"], None, "declared")
