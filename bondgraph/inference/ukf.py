@@ -689,9 +689,8 @@ def numpy_estimate(model, opts: UKFOptions, N: int, P: int) -> float:
     sets (:data:`_NUMPY_S_PER_SAMPLE`, :data:`_NUMPY_S_PER_POINT`): what the
     break-even rule of :func:`bondgraph.numerics.compiled.compile_pays` adds up for an
     in-memory model. An estimate, not a measured time, so that the choice of
-    backend, and with it the last digits of a result, depends only on the
-    calls made, not on the machine's load (the loop's candidates give the
-    same result in process and on Dask workers)."""
+    backend, and with it the last digits of a result, depends on the calls
+    made and the kernels already in the cache, not on the machine's load."""
     per_eval = 2.0 * opts.substeps if opts.method == "rk4" else 1.0 * opts.substeps
     return N * (_NUMPY_S_PER_SAMPLE + _NUMPY_S_PER_POINT * P * (2 * model.n_x + 1) * per_eval)
 
