@@ -176,9 +176,9 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
             rel_crb_max: float = REL_CRB_MAX, corr_max: float = CORR_MAX,
             sensitivities: bool = True, sens_method: str = "LSODA", sens_rtol: float = 1e-6,
             sens_atol: float = 1e-8, progress: bool = False, log=None,
-            nll_transform: str = "log", x0_states: Sequence[str] = (),
-            noise: str = "model", fixed: Sequence[str] = (), workers: int = 1,
-            scheduler: str | None = None) -> SensitivityReport:
+            nll_transform: str = "log", x0_states: Sequence[str] = (), noise: str = "model",
+            fixed: Sequence[str] = (), workers: int = 1, scheduler: str | None = None
+            ) -> SensitivityReport:
     """Local (and optionally global) sensitivity and identifiability analysis
     of one record, with a recommendation of the parameters to estimate.
 
@@ -203,11 +203,9 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
         Base sample size of the Sobol' analysis (None: local only).
     outputs, box_rel, chunk, seed, nll_transform, workers, scheduler :
         Of the Sobol' analysis (:func:`bondgraph.sensitivity.sobol.global_sensitivity`):
-        outputs whose time-means also get indices, box θ (1 ± box_rel)
-        instead of the model's bounds, parameter sets per batched UKF run,
-        seed, the transform of the NLL ("log": ln(1 + NLL − min NLL)), and
-        where the sample's chunks run (local Dask worker processes, or an
-        existing Dask scheduler's workers).
+        outputs whose time-means also get indices, box θ (1 ± box_rel) instead of the
+        model's bounds, parameter sets per batched UKF run, seed, the transform of the NLL
+        ("log": ln(1 + NLL − min NLL)), where the chunks run (Dask processes or a scheduler's).
     rel_crb_max, corr_max : float
         Selection thresholds (:func:`recommend`).
     sensitivities : bool
@@ -227,10 +225,8 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
 
     Raises
     ------
-    ModelError, SensitivityError, DataError
-        Unknown names, bad options, bad records.
-    NumericalError
-        If the UKF fails at θ.
+    ModelError, SensitivityError, DataError, NumericalError
+        Unknown names, bad options, bad records; the UKF fails at θ.
     """
     model = Model.from_spec(model)
     params = check_params(model, params)

@@ -282,13 +282,9 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
     nll_transform : {"log", "none"}
         Indices of ln(1 + NLL − min NLL) (:func:`log_excess`, default) or of
         the NLL itself.
-    workers : int
-        Local Dask worker processes that evaluate the sample's chunks
-        (1: in process; :class:`bondgraph.inference.executor.Executor`).
-    scheduler : str, optional
-        Address of an existing Dask scheduler (default
-        ``$BONDGRAPH_SCHEDULER``): the chunks run on its workers. The
-        indices do not depend on where the chunks ran.
+    workers, scheduler : int, str
+        Where the sample's chunks run (:class:`bondgraph.inference.executor.Executor`:
+        local Dask processes, or an existing scheduler's workers); no effect on the result.
 
     Returns
     -------
