@@ -8,7 +8,12 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from bondgraph.inference.fisher import _predicted_decrease, _scoring_step, jacobi_solve
+from bondgraph.inference.fisher import (
+    _predicted_decrease,
+    _scoring_step,
+    jacobi_pinv,
+    jacobi_solve,
+)
 
 # information of a law coefficient of ~1e-9, a resistance of ~1e5 and an O(1)
 # parameter: F = S A S with A well conditioned, so F spans ~36 decades
@@ -46,3 +51,12 @@ def test_jacobi_solve_singular_falls_back_to_least_squares():
     x = jacobi_solve(F, g, lstsq=True)
     # minimum-norm solution in the scaled coordinates: (½, ½, 2) there
     assert np.allclose(S @ x, [0.5, 0.5, 2.0], rtol=1e-10)
+
+
+def test_jacobi_pinv_is_the_inverse_across_36_decades():
+    """(S A S)⁺ = S⁻¹ A⁻¹ S⁻¹; numpy's pinv of the unscaled matrix cuts
+    the small directions at its default rcond and is far off."""
+    ref = np.linalg.inv(S) @ np.linalg.inv(A) @ np.linalg.inv(S)
+    got = jacobi_pinv(S @ A @ S)
+    assert np.allclose(got, ref, rtol=1e-9, atol=0)
+    assert not np.allclose(np.linalg.pinv(S @ A @ S), ref, rtol=1e-3, atol=0)

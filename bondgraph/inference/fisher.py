@@ -335,12 +335,27 @@ def jacobi_solve(F: np.ndarray, g: np.ndarray, lstsq: bool = False,
     numpy.linalg.LinAlgError
         If F is singular (``lstsq`` False) or the SVD does not converge.
     """
-    d = np.sqrt(np.abs(np.diag(F)))
-    d = np.where((d > 0) & np.isfinite(d), d, 1.0)
+    d = _jacobi(F)
     Fs = F / np.outer(d, d)
     if lstsq:
         return np.linalg.lstsq(Fs, g / d, rcond=rcond)[0] / d
     return np.linalg.solve(Fs, g / d) / d
+
+
+def jacobi_pinv(F: np.ndarray) -> np.ndarray:
+    """Pseudo-inverse (k, k) of a symmetric information matrix F (k, k) in
+    the coordinates that give it a unit diagonal (:func:`jacobi_solve`): the
+    cut of small singular values then does not depend on the quantities'
+    units (initial states in metres beside noise levels in millivolts)."""
+    d = _jacobi(F)
+    dd = np.outer(d, d)
+    return np.linalg.pinv(F / dd) / dd
+
+
+def _jacobi(F: np.ndarray) -> np.ndarray:
+    """sqrt(|diag F|) (k,), 1 where it is zero or not finite."""
+    d = np.sqrt(np.abs(np.diag(F)))
+    return np.where((d > 0) & np.isfinite(d), d, 1.0)
 
 
 def _steps(x, hi, width) -> np.ndarray:

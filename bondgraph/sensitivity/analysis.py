@@ -42,7 +42,7 @@ import numpy as np
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import NumericalError, SensitivityError
 from bondgraph.inference.estimand import plan_estimand, x0_state_names
-from bondgraph.inference.fisher import estimand_derivatives
+from bondgraph.inference.fisher import estimand_derivatives, jacobi_pinv
 from bondgraph.inference.options import UKFOptions, ukf_options
 from bondgraph.inference.record import as_record, initial_state, record_arrays
 from bondgraph.inference.ukf import default_P0
@@ -311,8 +311,8 @@ def _information(pb: _Problem):
     nuis = None
     if est.k > k:
         Fpp, Fpn, Fnn = F[:k, :k], F[:k, k:], F[k:, k:]
-        Feff = Fpp - Fpn @ _scaled_pinv(Fnn) @ Fpn.T
-        cov = _scaled_pinv(F)
+        Feff = Fpp - Fpn @ jacobi_pinv(Fnn) @ Fpn.T
+        cov = jacobi_pinv(F)
         std = np.sqrt(np.clip(np.diag(cov), 0, None))
         corr = cov / np.outer(np.where(std > 0, std, 1), np.where(std > 0, std, 1))
         nuis = dict(names=names[k:], values=z[k:], std=std[k:], corr=corr,
@@ -441,13 +441,3 @@ def recommended_params(source, model=None) -> list[str]:
     if model is not None:
         Model.from_spec(model).param_indices(names)
     return names
-
-
-def _scaled_pinv(F: np.ndarray) -> np.ndarray:
-    """Pseudo-inverse of a symmetric information matrix F (k, k) in the
-    coordinates that give it a unit diagonal (Jacobi scaling): the cut of
-    small singular values then does not depend on the quantities' units
-    (initial states in metres beside noise levels in millivolts)."""
-    d = np.sqrt(np.abs(np.diag(F)))
-    d = np.where((d > 0) & np.isfinite(d), d, 1.0)
-    return np.linalg.pinv(F / np.outer(d, d)) / np.outer(d, d)
