@@ -117,7 +117,8 @@ def test_bad_scheduler_addresses(monkeypatch):
 @pytest.mark.parametrize("cmd", ["estimate", "sensitivity", "loop"])
 def test_cli_backend_option(cmd):
     """`--backend` is declared once (cli/common.add_backend) on every command
-    that evaluates a likelihood; `--scheduler` on estimate."""
+    that evaluates a likelihood; `--workers` and `--scheduler` on estimate,
+    sensitivity and loop."""
     import argparse
     import importlib
 
@@ -132,8 +133,36 @@ def test_cli_backend_option(cmd):
         pytest.skip(f"{cmd}: other required options")
     assert args.backend == "numpy"
     assert p.parse_args(base).backend == UKFOptions().backend
-    if cmd == "estimate":
-        assert p.parse_args(base + ["--scheduler", "tcp://h:1"]).scheduler == "tcp://h:1"
+    # --workers and --scheduler on every command that runs work on Dask workers
+    args = p.parse_args(base + ["--scheduler", "tcp://h:1", "--workers", "3"])
+    assert args.scheduler == "tcp://h:1" and args.workers == 3
+
+
+def test_cli_sensitivity_passes_and_checks_the_executor_options(tmp_path, monkeypatch):
+    """sensitivity hands --workers/--scheduler to the analysis, and a bad
+    value stops it before any work."""
+    from bondgraph.cli import sensitivity as cli_sens
+    from bondgraph.cli.main import main
+
+    seen = {}
+
+    def fake(model, exp, params, **kw):
+        seen.update(workers=kw["workers"], scheduler=kw["scheduler"])
+        raise OptionError("stop here")
+    monkeypatch.setattr(cli_sens, "analyse", fake)
+    csv = tmp_path / "r.csv"
+    m = Model.load("mass_spring_damper")
+    t, u, y = _record(m, N=20)
+    rows = ["t,F,x,v"] + [f"{t[k]},{u[k, 0]},{y[k, 0]},{y[k, 1]}" for k in range(t.size)]
+    csv.write_text("\n".join(rows).replace("nan", ""))
+    base = ["sensitivity", "--model", "mass_spring_damper", "--data", str(csv), "--quiet"]
+    assert main(base + ["--workers", "2", "--scheduler", "tcp://127.0.0.1:9",
+                        "--out", str(tmp_path / "a")]) != 0
+    assert seen == dict(workers=2, scheduler="tcp://127.0.0.1:9")
+    seen.clear()
+    assert main(base + ["--workers", "0", "--out", str(tmp_path / "b")]) != 0
+    assert main(base + ["--scheduler", "h:1", "--out", str(tmp_path / "c")]) != 0
+    assert seen == {}
 
 
 def test_cli_estimate_runs_on_the_numpy_backend(tmp_path, monkeypatch):

@@ -29,6 +29,7 @@ from bondgraph.cli.common import (
     published,
 )
 from bondgraph.errors import SensitivityError
+from bondgraph.inference.executor import Executor
 from bondgraph.inference.options import UKFOptions
 from bondgraph.report.sensitivity import plot_report
 from bondgraph.sensitivity.analysis import analyse
@@ -101,6 +102,7 @@ def run(args) -> int:
     folder = output_folder(args.out or f"sensitivity_{model.name}_{Path(args.data).stem}", args)
     log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
+    Executor(args.workers, args.scheduler)   # a bad --workers/--scheduler fails before any work
     ukf = UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold,
                      backend=args.backend)
     rep = analyse(model, exp, params, theta=th, x0=x0, p0_rel=args.p0_rel,
