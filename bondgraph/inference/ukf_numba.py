@@ -987,16 +987,30 @@ def trajectory_kernel():
     ImportError
         numba is not installed.
     """
+    def sig():
+        V, M = types.float64[::1], types.float64[:, ::1]
+        point = types.FunctionType(types.void(V, V, V, V))
+        return types.void(point, V, M, types.int64, V, V, types.int64, M, M, V)
+    return _compiled_once(_TRAJECTORY, _trajectory_py, sig)
+
+
+def _compiled_once(store: list, py, signature, **options):
+    """``py`` compiled (allocation-free, cached on disk, numba ``options``)
+    with the signature ``signature()`` builds, once per process (kept in
+    ``store``).
+
+    Raises
+    ------
+    ImportError
+        numba is not installed.
+    """
     if numba is None:
         raise ImportError("numba is not installed (pip install numba)")
     with _LOCK:
-        if not _TRAJECTORY:
-            V, M = types.float64[::1], types.float64[:, ::1]
-            point = types.FunctionType(types.void(V, V, V, V))
-            sig = types.void(point, V, M, types.int64, V, V, types.int64, M, M, V)
-            _TRAJECTORY.append(numba.njit(sig, cache=True, nogil=True, error_model="numpy",
-                                          _nrt=False)(_trajectory_py))
-        return _TRAJECTORY[0]
+        if not store:
+            store.append(numba.njit(signature(), cache=True, nogil=True, error_model="numpy",
+                                    _nrt=False, **options)(py))
+        return store[0]
 
 
 def rk4_trajectory(kernels, t, u, hold: str, theta, x0, substeps: int) -> np.ndarray:
@@ -1058,18 +1072,13 @@ def free_run_kernel():
     ImportError
         numba is not installed.
     """
-    if numba is None:
-        raise ImportError("numba is not installed (pip install numba)")
-    with _LOCK:
-        if not _FREE_RUN:
-            V, M = types.float64[::1], types.float64[:, ::1]
-            point = types.FunctionType(types.void(V, V, V, V))
-            jac = types.FunctionType(types.void(V, V, V, V, M))
-            sig = types.int64(point, jac, V, M, types.int64, V, V, types.int64, types.int64, V,
-                              M, M, M, M, types.int64[::1], V)
-            _FREE_RUN.append(numba.njit(sig, cache=True, nogil=True, error_model="numpy",
-                                        _nrt=False, fastmath=FASTMATH)(_free_run_py))
-        return _FREE_RUN[0]
+    def sig():
+        V, M = types.float64[::1], types.float64[:, ::1]
+        point = types.FunctionType(types.void(V, V, V, V))
+        jac = types.FunctionType(types.void(V, V, V, V, M))
+        return types.int64(point, jac, V, M, types.int64, V, V, types.int64, types.int64, V,
+                           M, M, M, M, types.int64[::1], V)
+    return _compiled_once(_FREE_RUN, _free_run_py, sig, fastmath=FASTMATH)
 
 
 def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str, substeps: int) -> np.ndarray:
