@@ -86,3 +86,21 @@ def test_mark_ties_marks_only_indistinguishable_candidates():
     assert lead.tied == ["b @ x"] and far.tied == [] and "tie_p" in near.confirmed
     assert near.confirmed["tie_p"] >= 0.05 and "tie_p" not in far.confirmed
     assert mark_ties(conf, 0.0) == []
+
+
+def test_report_names_the_tie_beside_the_accepted_effect():
+    """report.md says which confirmed candidates the record could not tell
+    from the accepted one (Step.tied)."""
+    from bondgraph.diagnose.result import Step
+    from bondgraph.report.loop_report import _md_accepted
+
+    step = Step("source_lag", "force", "nrmse", 0.3, 0.1, 10.0, 5.0, 22.0, 14.0, 3.0, 1.0,
+                {"source_lag.force.tau": {"estimate": 0.064, "std": 0.0001}}, 12.0, 1e-4,
+                tied=["sensor_lowpass @ v_last"])
+    final = SimpleNamespace(estimates={"source_lag.force.tau": 0.064},
+                            std={"source_lag.force.tau": 0.0001})
+    text = "\n".join(_md_accepted(SimpleNamespace(steps=[step], final=final)))
+    assert "cannot tell source_lag @ force from sensor_lowpass @ v_last" in text
+    step.tied = []
+    text = "\n".join(_md_accepted(SimpleNamespace(steps=[step], final=final)))
+    assert "cannot tell" not in text
