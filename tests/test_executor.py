@@ -138,6 +138,16 @@ def test_cli_backend_option(cmd):
     assert args.scheduler == "tcp://h:1" and args.workers == 3
 
 
+def _msd_csv(tmp_path):
+    """A short mass-spring-damper record as a CSV file (t, F, x, v)."""
+    csv = tmp_path / "r.csv"
+    m = Model.load("mass_spring_damper")
+    t, u, y = _record(m, N=20)
+    rows = ["t,F,x,v"] + [f"{t[k]},{u[k, 0]},{y[k, 0]},{y[k, 1]}" for k in range(t.size)]
+    csv.write_text("\n".join(rows).replace("nan", ""))
+    return csv
+
+
 def test_cli_sensitivity_passes_and_checks_the_executor_options(tmp_path, monkeypatch):
     """sensitivity hands --workers/--scheduler to the analysis, and a bad
     value stops it before any work."""
@@ -150,11 +160,7 @@ def test_cli_sensitivity_passes_and_checks_the_executor_options(tmp_path, monkey
         seen.update(workers=kw["workers"], scheduler=kw["scheduler"])
         raise OptionError("stop here")
     monkeypatch.setattr(cli_sens, "analyse", fake)
-    csv = tmp_path / "r.csv"
-    m = Model.load("mass_spring_damper")
-    t, u, y = _record(m, N=20)
-    rows = ["t,F,x,v"] + [f"{t[k]},{u[k, 0]},{y[k, 0]},{y[k, 1]}" for k in range(t.size)]
-    csv.write_text("\n".join(rows).replace("nan", ""))
+    csv = _msd_csv(tmp_path)
     base = ["sensitivity", "--model", "mass_spring_damper", "--data", str(csv), "--quiet"]
     assert main(base + ["--workers", "2", "--scheduler", "tcp://127.0.0.1:9",
                         "--out", str(tmp_path / "a")]) != 0
@@ -176,11 +182,7 @@ def test_cli_estimate_runs_on_the_numpy_backend(tmp_path, monkeypatch):
         raise OptionError("stop here")
     monkeypatch.setattr(cli_estimate, "estimate", fake)
     from bondgraph.cli.main import main
-    csv = tmp_path / "r.csv"
-    m = Model.load("mass_spring_damper")
-    t, u, y = _record(m, N=20)
-    rows = ["t,F,x,v"] + [f"{t[k]},{u[k, 0]},{y[k, 0]},{y[k, 1]}" for k in range(t.size)]
-    csv.write_text("\n".join(rows).replace("nan", ""))
+    csv = _msd_csv(tmp_path)
     rc = main(["estimate", "--model", "mass_spring_damper", "--data", str(csv), "--params", "m",
                "--backend", "numpy", "--scheduler", "tcp://127.0.0.1:9", "--workers", "2",
                "--out", str(tmp_path / "o"), "--quiet"])
