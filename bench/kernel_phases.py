@@ -50,7 +50,7 @@ PHASES = ("reset x, P", "chol P + sigma (predict)", "f_dfdx at the centre",
 
 
 @njit(error_model="numpy", fastmath=getattr(K, "FASTMATH", False), cache=True)
-def _levels(level, reps, f, h, fj, fpts, hpts, u, y, th, x0, P0, q2, Rd, ip, fp, buf, ibuf):
+def _levels(level, reps, f, h, fj, fcols, hcols, u, y, th, x0, P0, q2, Rd, ip, fp, buf, ibuf):
     n, ny, nu = x0.shape[0], y.shape[1], u.shape[1]
     wk, x, P, tha = K._work(buf, ibuf, n, ny, nu, th.shape[0])
     for i in range(th.shape[0]):
@@ -70,34 +70,34 @@ def _levels(level, reps, f, h, fj, fpts, hpts, u, y, th, x0, P0, q2, Rd, ip, fp,
                 P[i, j] = P0[i, j]
         lu = False
         if level >= 1:
-            K._chol(P, n, wk.L)
-            K._sigma(x, wk.L, fp[0], wk.cL, wk.chi)
+            K._chol(P, n, wk.L, True, wk.skip)
+            K._sigma(x, wk.L, fp[0], wk.XT)
         if level >= 2:
             K._held_input(u, k, 0.0, ip[3], wk.ub)
-            fj(wk.chi[0], wk.ub, tha, wk.F0, wk.J)
+            fj(x, wk.ub, tha, wk.F0, wk.J)
         if level >= 3:
             lu = K._lu_w(wk.J, hs, wk.A, wk.cols)
             if not lu:
                 K._inverse_w(wk.J, hs, wk.A, wk.Winv, wk.cols)
         if level >= 4:
-            K._ros2_shared(fpts, u, k, ip[3], tha, hs, ip[1], wk, lu)
+            K._ros2_shared(fcols, u, k, ip[3], tha, hs, ip[1], wk, lu)
         if level >= 5:
-            bad = not K._all_finite(wk.X, wk.X.shape[0], n)
-            K._moments(wk.X, n, fp[1], fp[2], x, P, wk.D)
+            bad = not K._all_finite(wk.XT, n, wk.XT.shape[1])
+            K._moments(wk.XT, n, fp[1], fp[2], x, P, wk.D)
             for a in range(n):
                 P[a, a] += q2[a] * dt
             acc += bad
         m = ny
         if level >= 6:
-            m, code = K._measured_outputs(hpts, x, P, tha, uk, yk, fp, wk)
+            m, code = K._measured_outputs(hcols, x, P, tha, uk, yk, fp, wk)
         if level >= 7:
-            K._moments(wk.Ym if m < ny else wk.Y, m, fp[1], fp[2], wk.yf, wk.cov, wk.D)
+            K._moments(wk.Ym if m < ny else wk.YT, m, fp[1], fp[2], wk.yf, wk.cov, wk.D)
             for a in range(m):
                 wk.cov[a, a] += Rd[wk.idx[a]]
         if level >= 8:
             K._cross_cov(n, m, fp[1], fp[0], wk)
         if level >= 9:
-            K._chol(wk.cov, m, wk.Ls)
+            K._chol(wk.cov, m, wk.Ls, False, wk.skip)
             for b in range(m):
                 wk.eps[b] = yk[wk.idx[b]] - wk.yf[b]
         if level >= 10:
@@ -139,7 +139,7 @@ def main(argv=None) -> int:
         cum = []
         for level in range(len(PHASES)):
             buf, ibuf = np.zeros(nf), np.zeros(ni, dtype=np.int64)
-            a = (kern.f, kern.h, kern.f_dfdx, kern.f_pts, kern.h_pts, np.ascontiguousarray(u),
+            a = (kern.f, kern.h, kern.f_dfdx, kern.f_cols, kern.h_cols, np.ascontiguousarray(u),
                  np.ascontiguousarray(y), th, np.ascontiguousarray(x0, dtype=float),
                  np.ascontiguousarray(P0), q2, Rd, ip, fp, buf, ibuf)
             _levels(level, 10, *a)

@@ -74,21 +74,17 @@ class _Trivial:
                 for b in range(n):
                     J[a, b] = -1.0 if a == b else 0.0
 
-        SIG_POINTS = numba.types.void(M, V, V, M)
+        @njit(SIG_POINT, nogil=True, error_model="numpy")
+        def f_cols(X, u, th, F):
+            for i in range(X.shape[0]):
+                F[i] = -X[i]
 
-        @njit(SIG_POINTS, nogil=True, error_model="numpy")
-        def f_pts(X, u, th, FT):
-            for j in range(X.shape[0]):
-                for a in range(X.shape[1]):
-                    FT[a, j] = -X[j, a]
+        @njit(SIG_POINT, nogil=True, error_model="numpy")
+        def h_cols(X, u, th, Y):
+            for i in range(Y.shape[0]):
+                Y[i] = X[i]
 
-        @njit(SIG_POINTS, nogil=True, error_model="numpy")
-        def h_pts(X, u, th, Y):
-            for j in range(X.shape[0]):
-                for b in range(Y.shape[1]):
-                    Y[j, b] = X[j, b]
-
-        self.f, self.h, self.f_dfdx, self.f_pts, self.h_pts = f, h, fj, f_pts, h_pts
+        self.f, self.h, self.f_dfdx, self.f_cols, self.h_cols = f, h, fj, f_cols, h_cols
 
 
 def time_kernel(model, kernels, t, u, y, th, x0, P0, opts, repeat):

@@ -112,12 +112,41 @@ def test_point_kernels_equal_numpy_module(name):
             np.testing.assert_allclose(J, m.dfdx(x, u, th[p]), rtol=1e-12, atol=1e-300)
 
 
+def _cols(pk, m, X, u, th):
+    """f_cols and h_cols at the rows of X (2 n_x + 1 points), as (points, n)."""
+    npt = X.shape[0]
+    F, Y = np.empty(m.n_x * npt), np.empty(m.n_y * npt)
+    XT = np.ascontiguousarray(X.T).ravel()
+    pk.f_cols(XT, u, th, F)
+    pk.h_cols(XT, u, th, Y)
+    return F.reshape(m.n_x, npt).T, Y.reshape(m.n_y, npt).T
+
+
+def _points_reference(pk, m, X, u, th):
+    F, Y = np.empty((X.shape[0], m.n_x)), np.empty((X.shape[0], m.n_y))
+    for j in range(X.shape[0]):
+        pk.f(np.ascontiguousarray(X[j]), u, th, F[j])
+        pk.h(np.ascontiguousarray(X[j]), u, th, Y[j])
+    return F, Y
+
+
+def _close_per_entry(got, ref):
+    """Within 1e-12 of each entry's largest magnitude over the points, and
+    1e-14 of the largest of all (the branch-free library functions are
+    within 2 ulp, then summed: an entry that cancels to 0 keeps a rounding)."""
+    ok = np.isfinite(ref)
+    np.testing.assert_array_equal(np.isfinite(got), ok)
+    scale = np.max(np.where(ok, np.abs(ref), 0.0), axis=0, keepdims=True)
+    tol = 1e-12 * (np.abs(ref) + scale) + 1e-14 * scale.max()
+    assert np.all(np.abs(got - ref)[ok] <= tol[ok])
+
+
 @pytest.mark.parametrize("name", MODELS)
-def test_points_kernels_equal_the_point_kernels_bit_for_bit(name):
-    """f_pts and h_pts at sigma points x ± c L_i of a lower-triangular L (the
-    later points share their first states with point 0, and take the library
-    calls on those states from it) and at unstructured points give the same
-    doubles as f and h point by point."""
+def test_column_kernels_equal_the_point_kernels(name):
+    """f_cols and h_cols (every sigma point at once, state-major, branch-free
+    sin/cos/atan/exp/tanh) at sigma points x ± c L_i and at unstructured
+    points give f and h of the point kernels (numpy's library functions) to
+    rounding."""
     m = Model.load(name)
     pk = compiled.point_kernels(m)
     rng = np.random.default_rng(5)
@@ -129,16 +158,30 @@ def test_points_kernels_equal_the_point_kernels_bit_for_bit(name):
     dense = x + rng.normal(size=(2 * n + 1, n)) * (np.abs(m.x0) + 0.1)
     u = m.u0 + rng.normal(size=m.n_u) * 0.1
     for p in range(2):
-        for X in (np.ascontiguousarray(sigma), np.ascontiguousarray(dense)):
-            FT, Y = np.empty((n, X.shape[0])), np.empty((X.shape[0], m.n_y))
-            pk.f_pts(X, u, th[p], FT)
-            pk.h_pts(X, u, th[p], Y)
-            for j in range(X.shape[0]):
-                dx, yv = np.empty(n), np.empty(m.n_y)
-                pk.f(np.ascontiguousarray(X[j]), u, th[p], dx)
-                pk.h(np.ascontiguousarray(X[j]), u, th[p], yv)
-                np.testing.assert_array_equal(FT[:, j], dx)
-                np.testing.assert_array_equal(Y[j], yv)
+        for X in (sigma, dense):
+            F, Y = _cols(pk, m, X, u, th[p])
+            Fr, Yr = _points_reference(pk, m, X, u, th[p])
+            with np.errstate(all="ignore"):
+                _close_per_entry(F, Fr)
+                _close_per_entry(Y, Yr)
+
+
+def test_column_kernels_take_numpy_sin_for_far_arguments():
+    """A sin or cos argument of 1e8 or more (the branch-free reduction's
+    limit) at any point: the column kernel recomputes every point with
+    numpy's functions (vehicle_full: sin and cos of the road grade state)."""
+    m = Model.load("vehicle_full")
+    pk = compiled.point_kernels(m)
+    n = m.n_x
+    grade = m.states.index("theta_g")
+    X = np.tile(m.x0, (2 * n + 1, 1)) * (1 + 0.01 * np.arange(2 * n + 1))[:, None]
+    X[7, grade] = 1.0e17
+    th, u = m.theta0, m.u0
+    F, Y = _cols(pk, m, X, u, th)
+    Fr, Yr = _points_reference(pk, m, X, u, th)
+    _close_per_entry(F, Fr)
+    _close_per_entry(Y, Yr)
+    assert abs(Fr[7, 0] - F[7, 0]) <= 1e-9 * abs(Fr[7, 0])
 
 
 @pytest.mark.parametrize("name", MODELS)

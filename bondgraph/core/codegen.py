@@ -25,7 +25,10 @@ functions. The numpy module stays the reference and the fallback.
 
 from __future__ import annotations
 
+import ast
+import copy
 import importlib.util
+import itertools
 import sys
 import textwrap
 import types
@@ -123,21 +126,6 @@ class _ScalarPrinter(_Printer):
             else:
                 out = f"({self._print(value)} if {self._print(cond)} else {out})"
         return out
-
-
-class _ReusePrinter(_ScalarPrinter):
-    """:class:`_ScalarPrinter` that prints the given subexpressions (library
-    calls computed before, :meth:`_NumbaGen.points_body`) by their names."""
-
-    def __init__(self, names: dict, calls: dict):
-        super().__init__(names)
-        self._calls = calls
-
-    def _print(self, expr, **kwargs):
-        name = self._calls.get(expr)
-        if name is not None:
-            return name
-        return super()._print(expr, **kwargs)
 
 
 class _Namer:
@@ -514,16 +502,225 @@ def _tanh(x):
     r = 1.0 - 2.0 / (np.exp(2.0 * a) + 1.0)
     return r if x > 0 else -r
 '''
-#: per-point kernels of the numba module (called by bondgraph.inference.ukf_numba)
-NUMBA_FUNCTIONS = ("f", "h", "f_dfdx", "f_pts", "h_pts")
+#: Branch-free sin, cos, atan, exp and tanh of the column kernels, emitted
+#: into each numba module that uses them: range reduction and rational or
+#: polynomial approximations after S. L. Moshier, *Methods and Programs for
+#: Mathematical Functions* (1989; the Cephes library), with conditional
+#: expressions for selects, so that LLVM vectorises a loop that calls them
+#: (numba's pip LLVM has no vector libm; a libm call keeps a loop scalar).
+#: Within 2 ulp of numpy (tests/test_vmath.py: 1e6 points per range, the
+#: non-finite values); sin and cos for |x| < 1e8 (the column kernels count
+#: larger arguments and recompute with numpy's functions). The sources are
+#: templates: :func:`vmath_inline` expands them, and the calls between
+#: them, into straight code at each call site of a column kernel.
+NUMBA_VMATH = {
+    "_vatan": '''
+def _vatan(x):
+    """atan(x): 3 ranges by selects, a 4/5 rational in x² (Moshier 1989)."""
+    a = abs(x)
+    big = a > 2.41421356237309504880
+    mid = a > 0.66
+    z0 = (-1.0 if big else (a - 1.0 if mid else a)) / (a if big else (a + 1.0 if mid else 1.0))
+    y0 = 1.5707963267948966 if big else (0.7853981633974483 if mid else 0.0)
+    mb = 6.123233995736765886130e-17 if big else (3.061616997868382943065e-17 if mid else 0.0)
+    z = z0 * z0
+    p = ((((-8.750608600031904122785e-1 * z - 1.615753718733365076637e1) * z
+           - 7.500855792314704667340e1) * z - 1.228866684490136173410e2) * z
+         - 6.485021904942025371773e1)
+    q = (((((z + 2.485846490142306297962e1) * z + 1.650270098316988542046e2) * z
+           + 4.328810604912902668951e2) * z + 4.853903996359136964868e2) * z
+         + 1.945506571482613964425e2)
+    r = y0 + ((z0 * (z * p / q) + z0) + mb)
+    return -r if x < 0 else r
+''',
+    "_vsincos": '''
+def _vsincos(a, shift):
+    """sin (shift 0) or cos (shift 2) of a >= 0 below 1e8: reduction by π/4 in
+    three parts, degree-6 polynomials in z² (Moshier 1989)."""
+    y = np.floor(a * 1.2732395447351628)
+    j = np.int64(y) if a < 1e15 else np.int64(0)
+    odd = (j & 1) == 1
+    j = j + 1 if odd else j
+    y = y + 1.0 if odd else y
+    j = (j + shift) & 7
+    neg = j > 3
+    j = j - 4 if neg else j
+    z = (((a - y * 7.85398125648498535156e-1) - y * 3.77489470793079817668e-8)
+         - y * 2.69515142907905952645e-15)
+    zz = z * z
+    c = 1.0 - 0.5 * zz + zz * zz * ((((((-1.13585365213876817300e-11 * zz
+                                         + 2.08757008419747316778e-9) * zz
+                                        - 2.75573141792967388112e-7) * zz
+                                       + 2.48015872888517045348e-5) * zz
+                                      - 1.38888888888730564116e-3) * zz
+                                     + 4.16666666666665929218e-2))
+    s = z + z * zz * ((((((1.58962301576546568060e-10 * zz - 2.50507477628578072866e-8) * zz
+                          + 2.75573136213857245213e-6) * zz - 1.98412698295895385996e-4) * zz
+                        + 8.33333333332211858878e-3) * zz - 1.66666666666666307295e-1))
+    r = c if (j == 1 or j == 2) else s
+    return -r if neg else r
+''',
+    "_vsin": '''
+def _vsin(x):
+    """sin(x) for |x| < 1e8 (_vsincos)."""
+    r = _vsincos(abs(x), 0)
+    return -r if x < 0 else r
+''',
+    "_vcos": '''
+def _vcos(x):
+    """cos(x) for |x| < 1e8 (_vsincos)."""
+    return _vsincos(abs(x), 2)
+''',
+    "_pow2": '''
+def _pow2(n):
+    """2**n for |n| <= 1022 from the bits of |n| (selects and exact products)."""
+    a = -n if n < 0 else n
+    neg = n < 0
+    p = (0.5 if neg else 2.0) if a & 1 else 1.0
+    p *= (0.25 if neg else 4.0) if a & 2 else 1.0
+    p *= (0.0625 if neg else 16.0) if a & 4 else 1.0
+    p *= (0.00390625 if neg else 256.0) if a & 8 else 1.0
+    p *= (1.52587890625e-05 if neg else 65536.0) if a & 16 else 1.0
+    p *= (2.3283064365386963e-10 if neg else 4294967296.0) if a & 32 else 1.0
+    p *= (5.421010862427522e-20 if neg else 1.8446744073709552e19) if a & 64 else 1.0
+    p *= (2.938735877055719e-39 if neg else 3.402823669209385e38) if a & 128 else 1.0
+    p *= (8.636168555094445e-78 if neg else 1.157920892373162e77) if a & 256 else 1.0
+    p *= (7.458340731200207e-155 if neg else 1.3407807929942597e154) if a & 512 else 1.0
+    return p
+''',
+    "_vexp": '''
+def _vexp(x):
+    """exp(x) = 2**n exp(r), |r| <= ln2/2, a 2/3 rational in r² (Moshier 1989);
+    inf above 709.78, 0 below -708.40 (numpy: a subnormal there), NaN for NaN."""
+    xc = 709.79 if x > 709.79 else (-708.4 if x < -708.4 else x)
+    fl = np.floor(1.4426950408889634 * xc + 0.5)
+    r = (xc - fl * 6.93145751953125e-1) - fl * 1.42860682030941723212e-6
+    n = np.int64(fl)
+    xx = r * r
+    px = r * ((1.26177193074810590878e-4 * xx + 3.02994407707441961300e-2) * xx
+              + 9.99999999999999999910e-1)
+    e = px / ((((3.00198505138664455042e-6 * xx + 2.52448340349684104192e-3) * xx
+                + 2.27265548208155028766e-1) * xx + 2.00000000000000000009e0) - px)
+    e = 1.0 + 2.0 * e
+    e = (e * 2.0) * _pow2(n - 1) if n > 1000 else e * _pow2(n)
+    e = np.inf if x > 7.09782712893383996843e2 else (0.0 if x < -7.08396418532264106224e2
+                                                     else e)
+    return x if x != x else e
+''',
+    "_vtanh": '''
+def _vtanh(x):
+    """tanh(x): x + x³ P(x²)/Q(x²) below |x| = 0.625 (Moshier 1989), else
+    1 − 2/(exp(2|x|) + 1) with the sign of x, exp(2|x|) = 2**n (q + p)/(q − p)
+    as in _vexp; one division for both branches (a select of numerator and
+    denominator); NaN for NaN."""
+    a = abs(x)
+    z = x * x
+    aa = 2.0 * (40.0 if a > 40.0 else a)
+    fl = np.floor(1.4426950408889634 * aa + 0.5)
+    r = (aa - fl * 6.93145751953125e-1) - fl * 1.42860682030941723212e-6
+    rr = r * r
+    p = r * ((1.26177193074810590878e-4 * rr + 3.02994407707441961300e-2) * rr
+             + 9.99999999999999999910e-1)
+    q = (((3.00198505138664455042e-6 * rr + 2.52448340349684104192e-3) * rr
+          + 2.27265548208155028766e-1) * rr + 2.00000000000000000009e0)
+    d = q - p
+    small = a < 0.625
+    num = (x * z * ((-9.64399179425052238628e-1 * z - 9.92877231001918586564e1) * z
+                    - 1.61468768441708447952e3) if small else 2.0 * d)
+    den = (((z + 1.12811678491632931402e2) * z + 2.23548839060100448583e3) * z
+           + 4.84406305325125486048e3 if small else _pow2(np.int64(fl)) * (q + p) + d)
+    t = num / den
+    big = 1.0 - t
+    return x + t if small else (-big if x < 0 else big)
+''',
+}
+#: LLVM fast-math flags of the column kernels: a division by a value the
+#: loop does not change becomes a product with its reciprocal (arcp; the
+#: vector divider is the loop's bottleneck), multiply-adds fuse (contract);
+#: never nnan/ninf (the filter's failure checks rely on NaN and inf)
+COLS_FASTMATH = ("arcp", "contract")
+#: vector functions whose argument must be below 1e8 in magnitude
+VMATH_LIMITED = ("_vsin", "_vcos")
+#: sigma point kernels of the numba module (called by bondgraph.inference.ukf_numba)
+NUMBA_FUNCTIONS = ("f", "h", "f_dfdx", "f_cols", "h_cols")
 #: version of the numba code generator: part of the key of compiled kernels
 #: built in memory (bump it when the generated numba text changes)
-NUMBA_CODEGEN_VERSION = 4
-#: functions whose calls the points kernels reuse between points that agree
-#: on every state the call's argument depends on (library calls: costly
-#: next to the arithmetic; sqrt and abs are single instructions)
-REUSED_CALLS = (sp.sin, sp.cos, sp.tan, sp.tanh, sp.sinh, sp.cosh, sp.atan, sp.asin, sp.acos,
-                sp.exp, sp.log, sp.atan2, sp.asinh, sp.acosh, sp.atanh)
+NUMBA_CODEGEN_VERSION = 5
+
+
+#: sympy functions the column kernels compute inline by :data:`NUMBA_VMATH`
+VMATH_CALLS = {sp.sin: "_vsin", sp.cos: "_vcos", sp.atan: "_vatan", sp.exp: "_vexp",
+               sp.tanh: "_vtanh"}
+
+
+def _vmath_def(name: str) -> ast.FunctionDef:
+    """The parsed :data:`NUMBA_VMATH` function ``name`` (decorator dropped)."""
+    fn = ast.parse(textwrap.dedent(NUMBA_VMATH[name])).body[0]
+    assert isinstance(fn, ast.FunctionDef) and fn.name == name
+    return fn
+
+
+class _Rename(ast.NodeTransformer):
+    def __init__(self, names: set, prefix: str):
+        self.names, self.prefix = names, prefix
+
+    def visit_Name(self, node):
+        if node.id in self.names:
+            return ast.copy_location(ast.Name(self.prefix + node.id, node.ctx), node)
+        return node
+
+
+class _Expand(ast.NodeTransformer):
+    """Calls of :data:`NUMBA_VMATH` functions replaced by their result
+    variables, their statements appended to ``lines``."""
+
+    def __init__(self, lines: list, counter):
+        self.lines, self.counter = lines, counter
+
+    def visit_Call(self, node):
+        self.generic_visit(node)
+        if isinstance(node.func, ast.Name) and node.func.id in NUMBA_VMATH:
+            body, res, _ = vmath_inline(node.func.id, [ast.unparse(a) for a in node.args],
+                                        self.counter)
+            self.lines += body
+            return ast.Name(res, ast.Load())
+        return node
+
+
+def vmath_inline(name: str, args, counter) -> tuple[list[str], str, str]:
+    """Statements that compute the :data:`NUMBA_VMATH` function ``name`` at
+    the argument expressions ``args`` (source text), with the calls it makes
+    expanded too: straight code, so that numba compiles a kernel with many
+    calls quickly (numba's IR-level inlining copies the callee's IR at every
+    call site: 4x the compile time of vehicle_full) and LLVM vectorises the
+    loop around it. Local names become ``_v<k>_<name>``, k from ``counter``.
+
+    Returns
+    -------
+    (lines, result variable, prefix of the locals)
+    """
+    fn = _vmath_def(name)
+    pre = f"_v{next(counter)}_"
+    params = [a.arg for a in fn.args.args]
+    local = set(params) | {n.id for n in ast.walk(fn)
+                           if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
+    lines = [f"{pre}{p} = {a}" for p, a in zip(params, args)]
+    body = fn.body[1:] if isinstance(fn.body[0], ast.Expr) else fn.body
+    for stmt in body:
+        stmt = _Rename(local, pre).visit(copy.deepcopy(stmt))
+        stmt = _Expand(lines, counter).visit(stmt)
+        if isinstance(stmt, ast.Return):
+            lines.append(f"{pre}r = {ast.unparse(stmt.value)}")
+        else:
+            lines.append(ast.unparse(stmt))
+    return lines, f"{pre}r", pre
+
+
+def vmath_function(name: str) -> str:
+    """Source of a plain function ``name(x)`` made of the inline statements
+    of :func:`vmath_inline` (what the column kernels run; for tests)."""
+    lines, res, _ = vmath_inline(name, ["x"], itertools.count())
+    return "\n".join([f"def {name}(x):"] + ["    " + ln for ln in lines + [f"return {res}"]])
 
 
 class _NumbaGen(_Gen):
@@ -554,23 +751,22 @@ class _NumbaGen(_Gen):
                 k += 1
         return lines or ["return"]
 
-    def points_body(self, outputs, transposed: bool) -> list[str]:
-        """Lines computing ``outputs`` ([(array name, [((i,), expr)])]) for
-        every row of ``_X`` (one point per row): the point's entry i into
-        ``name[i, _j]`` (transposed) or ``name[_j, i]``. The inputs,
-        parameters and the shared subexpressions of them alone are computed
-        once, before the loop over points; each value is the same double as
-        in the point kernel (the same expression, the same operations).
-
-        Library calls (:meth:`_reusable_calls`) are taken from point 0 at
-        every later point that has point 0's values of the states they
-        depend on (the same doubles in, the same double out: exact).
-        """
-        flat = [e for _, entries in outputs for _, e in entries]
-        repl, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_t"), optimizations=None,
-                               order="none")
+    def cols_function(self, name: str, out: str, doc: str, entries) -> str:
+        """A ``@njit(SIG_COLS, cache=True)`` column kernel: ``entries``
+        ([((i,), expr)]) at every sigma point, the point's state a read from
+        ``_X[a * N_PTS + j]`` and entry i written to ``out[i * N_PTS + j]``
+        (state- or output-major flat arrays: every access of an array is at
+        a constant distance from the others, so LLVM's loop vectoriser needs
+        one alias check per array pair). The inputs, parameters and the
+        subexpressions of them alone are computed once, before the loop;
+        sin, cos, atan, exp and tanh are the branch-free :data:`NUMBA_VMATH`
+        (the loop over points vectorises). An argument of sin or cos of
+        magnitude 1e8 or more (or inf) is counted and the loop is run again
+        with numpy's functions."""
+        npt = 2 * len(self.ss.states) + 1
+        repl, reduced = sp.cse([e for _, e in entries], symbols=sp.numbered_symbols("_t"),
+                               optimizations=None, order="none")
         xs = {s for s in self.sym_index if self.sym_index[s][0] == "x"}
-        calls = self._reusable_calls(repl, reduced, xs)
         varying = set(xs)
         for sym, e in repl:
             if e.free_symbols & varying:
@@ -579,106 +775,51 @@ class _NumbaGen(_Gen):
         for e in list(reduced) + [e for _, e in repl]:
             syms |= e.free_symbols
         used = {s for s in syms if not str(s).startswith("_t")}
-        # the calls are printed by name where they occur (the expressions, and
-        # so the order of their operations, stay those of the point kernel)
-        pr = _ReusePrinter(self.namer.names, {e: sym.name for e, (sym, _) in calls.items()})
+        head = self._unpack(used - xs, point=True)
+        head += [f"{s} = {self.pr(e)}" for s, e in repl if s not in varying]
+        loads = [f"{self.namer.names[s]} = _X[{self.sym_index[s][1] * npt} + _j]"
+                 for s in sorted(used & xs, key=lambda s: self.sym_index[s][1])]
+        counter, results, far = itertools.count(), set(), []
 
-        def prr(e):
-            return pr.doprint(e).replace("numpy.", "np.")
+        def expanded(e, out: list):
+            """``e`` with its calls of :data:`VMATH_CALLS` on varying values
+            replaced by the result variables of their inline code (appended
+            to ``out``, innermost first)."""
+            if e.is_Atom:
+                return e
+            args = [expanded(a, out) for a in e.args]
+            if any(a is not b for a, b in zip(args, e.args)):
+                e = e.func(*args)
+            name = VMATH_CALLS.get(e.func)
+            if name is not None and e.args[0].free_symbols & (varying | results):
+                code, res, pre = vmath_inline(name, [self.pr(e.args[0])], counter)
+                out += code
+                if name in VMATH_LIMITED:
+                    out.append(f"_far += abs({pre}x) >= 1e8")
+                    far.append(name)
+                results.add(sp.Symbol(res))
+                return sp.Symbol(res)
+            return e
 
-        lines = self._unpack(used - xs, point=True)
-        lines += [f"{s} = {self.pr(e)}" for s, e in repl if s not in varying]
-        sets = sorted({d for _, d in calls.values()})
-        head, loop = self._reuse_lines(calls, sets, used & xs)
-        lines += head
-        pending = dict(calls)
-
-        def emit_calls(e):
-            for call, (sym, d) in list(pending.items()):
-                if e.has(call):
-                    del pending[call]
-                    c = f"_c{sym.name[2:]}"
-                    loop.append(f"{sym} = {c} if _same{sets.index(d)} else {self.pr(call)}")
-                    loop.append("if _j == 0:")
-                    loop.append(f"    {c} = {sym}")
-
+        body = list(loads)
         for s, e in repl:
             if s in varying:
-                emit_calls(e)
-                loop.append(f"{s} = {prr(e)}")
-        k = 0
-        for name, entries in outputs:
-            for (i,), _ in entries:
-                emit_calls(reduced[k])
-                at = f"{i}, _j" if transposed else f"_j, {i}"
-                loop.append(f"{name}[{at}] = {prr(reduced[k])}")
-                k += 1
-        return lines + ["for _j in range(_X.shape[0]):"] + ["    " + ln for ln in loop]
-
-    def _reusable_calls(self, repl, reduced, xs) -> dict:
-        """The outermost library calls (:data:`REUSED_CALLS`) of the CSE
-        ``repl``, ``reduced`` whose argument depends on states S that do not
-        include the last one: ``{call: (name symbol, S as a sorted tuple)}``.
-        Sigma points x ± c·L_i of a lower-triangular factor L agree with x
-        on every state before i, so a call on the first states is computed
-        at a fraction of the points; a call on the last state never could
-        be reused (no code is generated for it)."""
-        n_x = len(self.ss.states)
-        deps = {s: {self.sym_index[s][1]} for s in xs}
-
-        def state_deps(e):
-            d = set()
-            for a in e.free_symbols:
-                d |= deps.get(a, set())
-            return d
-
-        for sym, e in repl:
-            d = state_deps(e)
-            if d:
-                deps[sym] = d
-        calls: dict = {}
-
-        def find(e):
-            if isinstance(e, sp.Function) and e.func in REUSED_CALLS:
-                d = state_deps(e)
-                if d and max(d) < n_x - 1:
-                    if e not in calls:
-                        calls[e] = (sp.Symbol(f"_e{len(calls)}"), tuple(sorted(d)))
-                    return
-            for a in e.args:
-                find(a)
-
-        for e in [e for _, e in repl] + list(reduced):
-            find(e)
-        return calls
-
-    def _reuse_lines(self, calls, sets, used_x) -> tuple[list[str], list[str]]:
-        """``(lines before the loop, first lines of the loop body)`` for the
-        reused ``calls``: point 0's values of their states (``_r<i>``) and
-        calls (``_c<k>``), the states of the point, and per set of states in
-        ``sets`` whether the point has point 0's values (``_same<k>``)."""
-        ref = sorted({i for d in sets for i in d})
-        state_of = {self.sym_index[s][1]: s for s in self.sym_index
-                    if self.sym_index[s][0] == "x"}
-        head = [f"_r{i} = 0.0" for i in ref]
-        head += [f"_c{sym.name[2:]} = 0.0" for sym, _ in calls.values()]
-        loop = [f"{self.namer.names[s]} = _X[_j, {self.sym_index[s][1]}]"
-                for s in sorted(used_x | {state_of[i] for i in ref},
-                                key=lambda s: self.sym_index[s][1])]
-        if ref:
-            loop.append("if _j == 0:")
-            loop += [f"    _r{i} = {self.namer.names[state_of[i]]}" for i in ref]
-        for k, d in enumerate(sets):
-            same = " and ".join(f"{self.namer.names[state_of[i]]} == _r{i}" for i in d)
-            loop.append(f"_same{k} = _j > 0 and {same}")
-        return head, loop
-
-    def points_function(self, name: str, args: str, doc: str, outputs,
-                        transposed: bool) -> str:
-        """A ``@njit(SIG_POINTS, cache=True)`` kernel over the rows of ``_X``."""
-        body = "\n".join("    " + ln for ln in self.points_body(outputs, transposed))
-        return (f"@njit(SIG_POINTS, cache=True, nogil=True, error_model=\"numpy\")\n"
-                f"def {name}({args}):\n    \"\"\"{doc}\"\"\"\n{body}\n")
+                body.append(f"{s} = {self.pr(expanded(e, body))}")
+        for ((i,), _), e in zip(entries, reduced):
+            body.append(f"{out}[{i * npt} + _j] = {self.pr(expanded(e, body))}")
+        lines = head + ["_far = 0"] * bool(far) + [f"for _j in range({npt}):"]
+        lines += ["    " + ln for ln in body]
+        if far:
+            plain = list(loads) + [f"{s} = {self.pr(e)}" for s, e in repl if s in varying]
+            plain += [f"{out}[{i * npt} + _j] = {self.pr(e)}"
+                      for ((i,), _), e in zip(entries, reduced)]
+            lines += ["if _far:", f"    for _j in range({npt}):"]
+            lines += ["        " + ln for ln in plain]
+        text = "\n".join("    " + ln for ln in lines)
+        fm = ", ".join(repr(f) for f in COLS_FASTMATH)
+        return (f"@njit(SIG_COLS, cache=True, nogil=True, error_model=\"numpy\", "
+                f"fastmath={{{fm}}})\n"
+                f"def {name}(_X, u, theta, {out}):\n    \"\"\"{doc}\"\"\"\n{text}\n")
 
     def point_function(self, name: str, sig: str, args: str, doc: str, outputs) -> str:
         """A ``@njit(sig, cache=True)`` point kernel."""
@@ -706,13 +847,14 @@ class _NumbaGen(_Gen):
                                      f"(shared subexpressions).",
                                      [("_dxdt", f_entries, True),
                                       ("_J", jac, len(jac) == nx * nx)]),
-                 self.points_function("f_pts", "_X, u, theta, _dxdt",
-                                      f"f at every point (row) of _X (points, {nx}) into the "
-                                      f"columns of _dxdt ({nx}, points).",
-                                      [("_dxdt", f_entries)], True),
-                 self.points_function("h_pts", "_X, u, theta, _y",
-                                      f"h at every point (row) of _X (points, {nx}) into the rows "
-                                      f"of _y (points, {ny}).", [("_y", h_entries)], False)]
+                 self.cols_function("f_cols", "_dxdt",
+                                    f"f at every sigma point: state a of point j at "
+                                    f"_X[a * N_PTS + j], dx_a/dt into _dxdt[a * N_PTS + j] "
+                                    f"(({nx} * N_PTS,) each).", f_entries),
+                 self.cols_function("h_cols", "_y",
+                                    f"h at every sigma point: state a of point j at "
+                                    f"_X[a * N_PTS + j], output b into _y[b * N_PTS + j] "
+                                    f"(({ny} * N_PTS,)).", h_entries)]
         if any("_tanh(" in p for p in parts[1:]):
             parts.insert(1, NUMBA_TANH.lstrip("\n"))
         return "\n\n".join(p.rstrip("\n") + "\n" for p in parts)
@@ -721,7 +863,7 @@ class _NumbaGen(_Gen):
         ss = self.ss
         nx, nu, npar, ny = (len(ss.states), len(ss.inputs), len(ss.params), len(ss.outputs))
         return f'''"""Numba point kernels of '{ss.name}': f, h and f_dfdx for one state vector,
-f_pts and h_pts for every sigma point at once.
+f_cols and h_cols for every sigma point at once.
 
 Generated by bondgraph from {self.source}
 (graph '{ss.name}'), from the same sympy expressions as the numpy module
@@ -731,14 +873,13 @@ fails when this file differs from what the graph produces.
 
 One point per call: x ({nx},), u ({nu},), theta ({npar},) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
-writes its result into the arrays it is given. f_pts and h_pts take the points
-as the rows of a C-contiguous matrix and compute what depends on u and theta
-alone once per call, and take a library call (sin, tanh, ...) from point 0 at
-a point that has point 0's values of every state the call depends on (sigma
-points of a lower-triangular factor share the first states): the same doubles
-as the point kernels. Compiled on import with
-explicit signatures and cached on disk (cache=True); the fused UKF kernel
-(bondgraph.inference.ukf_numba) calls them as first-class functions.
+writes its result into the arrays it is given. f_cols and h_cols take the
+N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
+(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+alone once per call, and loop over the points with branch-free sin, cos, atan,
+exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
+import with explicit signatures and cached on disk (cache=True); the fused UKF
+kernel (bondgraph.inference.ukf_numba) calls them as first-class functions.
 """
 
 import numpy as np
@@ -746,14 +887,15 @@ from numba import njit, types
 
 NAME = {ss.name!r}
 N_X, N_U, N_THETA, N_Y = {nx}, {nu}, {npar}, {ny}
+N_PTS = {2 * nx + 1}
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
 #: f and h: (x, u, theta, out); f_dfdx: (x, u, theta, out, jacobian);
-#: f_pts and h_pts: (points, u, theta, out) for every point (row) at once
+#: f_cols and h_cols: (points state-major, u, theta, out output-major)
 SIG_POINT = types.void(_V, _V, _V, _V)
 SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
-SIG_POINTS = types.void(_M, _V, _V, _M)
+SIG_COLS = types.void(_V, _V, _V, _V)
 '''
 
 

@@ -31,8 +31,10 @@ carved from rows of two zeroed buffers that :func:`run` allocates
 numba-IR level, so the work tuple is never passed by value; shared rows
 u[k], y[k] are copied, not viewed. With the shared Jacobian (the default)
 ROS2 runs stage by stage over the points: f of all points in one call of
-the model's ``f_pts`` (inputs, parameters and what depends on them alone
-computed once per call), h likewise (``h_pts``), and W = I − γhJ applied
+the model's ``f_cols`` (points state-major; inputs, parameters and what
+depends on them alone computed once per call; a loop over the points that
+LLVM vectorises, with branch-free sin, cos, atan, exp and tanh), h likewise
+(``h_cols``), and W = I − γhJ applied
 to all points by LU solves over rows of points (:func:`_lu_w`,
 :func:`_solve_w`; the Gauss-Jordan inverse :func:`_inverse_w` is the path
 for non-finite or singular W, whose NaN/inf pattern is the reference's).
@@ -124,10 +126,11 @@ def _jit_inline(fn):
                       _nrt=False, fastmath=FASTMATH)(fn)
 
 
-Work = namedtuple("Work", ["L", "cL", "chi", "X", "D", "mean", "cov", "xs", "xt", "k1", "k2",
-                           "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Y", "Ym", "idx",
+Work = namedtuple("Work", ["L", "D", "mean", "cov", "xs", "xt", "k1", "k2",
+                           "k3", "k4", "F0", "F1", "J", "Winv", "A", "ub", "Ym", "idx",
                            "Pyx", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols",
-                           "FT", "K1", "K2", "XS", "skip"])
+                           "FT", "K1", "K2", "XS", "skip", "XT", "XTf", "XSf", "FTf", "YT",
+                           "YTf"])
 
 
 @_jit_inline
@@ -141,8 +144,8 @@ def _work_size(n, ny, nu, nth):
     """Lengths of the float and integer work buffers of one parameter set
     (:func:`_work`)."""
     npt, m = 2 * n + 1, max(n, ny)
-    return (7 * n * n + 2 * npt * n + npt * m + m + m * m + 10 * n + 2 * nu + 2 * npt * ny
-            + 2 * n * ny + ny * ny + 5 * ny + nth + 4 * n * npt, ny + 1 + 2 * n + m)
+    return (6 * n * n + npt * m + m + m * m + 9 * n + 2 * nu + npt * ny + 2 * n * ny + ny * ny
+            + 5 * ny + nth + 5 * n * npt + ny * npt, ny + 1 + 2 * n + m)
 
 
 @_jit_inline
@@ -153,17 +156,13 @@ def _work(buf, ibuf, n, ny, nu, nth):
     parameters."""
     npt, m = 2 * n + 1, max(n, ny)
     L, o = _carve(buf, 0, n, n)
-    cL, o = _carve(buf, o, n, n)
-    chi, o = _carve(buf, o, npt, n)
-    X, o = _carve(buf, o, npt, n)
     D, o = _carve(buf, o, m, npt)
     cov, o = _carve(buf, o, m, m)
     vn, o = _carve(buf, o, 9, n)
     J, o = _carve(buf, o, n, n)
     Winv, o = _carve(buf, o, n, n)
     A, o = _carve(buf, o, n, 2 * n)
-    Y, o = _carve(buf, o, npt, ny)
-    Ym, o = _carve(buf, o, npt, ny)
+    Ym, o = _carve(buf, o, ny, npt)
     Pyx, o = _carve(buf, o, ny, n)
     Gt, o = _carve(buf, o, ny, n)
     Ls, o = _carve(buf, o, ny, ny)
@@ -172,14 +171,16 @@ def _work(buf, ibuf, n, ny, nu, nth):
     mean, o = _carve(buf, o, 1, m)
     P, o = _carve(buf, o, n, n)
     tha, o = _carve(buf, o, 1, nth)
-    FT, o = _carve(buf, o, n, npt)
-    K1, o = _carve(buf, o, n, npt)
+    FTf, FT = buf[o:o + n * npt], _carve(buf, o, n, npt)[0]
+    K1, o = _carve(buf, o + n * npt, n, npt)
     K2, o = _carve(buf, o, n, npt)
-    XS, o = _carve(buf, o, npt, n)
-    wk = Work(L, cL, chi, X, D, mean[0], cov, vn[0], vn[1], vn[2], vn[3], vn[4], vn[5], vn[6],
-              vn[7], J, Winv, A, vu[0], Y, Ym, ibuf[:ny], Pyx, Gt, vy[0], vy[1], Ls, vy[2],
+    XSf, XS = buf[o:o + n * npt], _carve(buf, o, n, npt)[0]
+    XTf, XT = buf[o + n * npt:o + 2 * n * npt], _carve(buf, o + n * npt, n, npt)[0]
+    YTf, YT = buf[o + 2 * n * npt:o + (2 * n + ny) * npt], _carve(buf, o + 2 * n * npt, ny, npt)[0]
+    wk = Work(L, D, mean[0], cov, vn[0], vn[1], vn[2], vn[3], vn[4], vn[5], vn[6],
+              vn[7], J, Winv, A, vu[0], Ym, ibuf[:ny], Pyx, Gt, vy[0], vy[1], Ls, vy[2],
               ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:ny + 1 + 2 * n], FT, K1, K2, XS,
-              ibuf[ny + 1 + 2 * n:])
+              ibuf[ny + 1 + 2 * n:], XT, XTf, XSf, FTf, YT, YTf)
     return wk, vn[8], P, tha[0]
 
 
@@ -400,9 +401,9 @@ def _solve_w(A, piv, F, K):
             if q != 0.0:
                 for p in range(npt):
                     K[i, p] -= q * K[j, p]
-        d = A[i, i]
+        d = 1.0 / A[i, i]
         for p in range(npt):
-            K[i, p] = K[i, p] / d
+            K[i, p] = K[i, p] * d
 
 
 @_jit_inline
@@ -426,32 +427,31 @@ def _matvec(M, v, out):
 
 # ------------------------------------------------------------ sigma points
 @_jit_inline
-def _sigma(x, L, c, cL, chi):
-    """Scaled sigma points χ_0 = x, χ_i = x + c L_i, χ_n+i = x − c L_i into
-    chi, the offsets c L_i as rows of cL."""
+def _sigma(x, L, c, XT):
+    """Scaled sigma points χ_0 = x, χ_i = x + c L_i, χ_n+i = x − c L_i
+    state-major into XT (n, 2n + 1): XT[a, j] is state a of point j."""
     n = x.shape[0]
-    for i in range(n):
-        for a in range(n):
-            cL[i, a] = c * L[a, i]
     for a in range(n):
-        chi[0, a] = x[a]
-    for i in range(n):
-        for a in range(n):
-            chi[1 + i, a] = x[a] + cL[i, a]
-            chi[1 + n + i, a] = x[a] - cL[i, a]
+        xa = x[a]
+        XT[a, 0] = xa
+        for i in range(n):
+            v = c * L[a, i]
+            XT[a, 1 + i] = xa + v
+            XT[a, 1 + n + i] = xa - v
 
 
 @_jit_inline
 def _moments(Z, m, w, cc, mean, cov, D):
-    """Difference-form unscented mean and covariance of Z[:, :m]
+    """Difference-form unscented mean and covariance of Z[:m] (m rows,
+    one per component; the points along the rows: state- or output-major)
     (:func:`bondgraph.inference.sigma.unscented_moments`); D[a, i] =
-    Z_i+1,a − Z_0,a (one row per component, points contiguous: each sum
-    is a contiguous dot product, vectorised with reassociation)."""
-    npt = Z.shape[0]
+    Z_a,i+1 − Z_a,0 (each sum is a contiguous dot product, vectorised with
+    reassociation)."""
+    npt = Z.shape[1]
     for a in range(m):
-        z0 = Z[0, a]
+        z0 = Z[a, 0]
         for i in range(1, npt):
-            D[a, i - 1] = Z[i, a] - z0
+            D[a, i - 1] = Z[a, i] - z0
     for a in range(m):
         s = 0.0
         for i in range(npt - 1):
@@ -466,7 +466,7 @@ def _moments(Z, m, w, cc, mean, cov, D):
             cov[a, b] = v
             cov[b, a] = v
     for a in range(m):
-        mean[a] = Z[0, a] + mean[a]
+        mean[a] = Z[a, 0] + mean[a]
 
 
 # ------------------------------------------------------------ transition
@@ -589,58 +589,59 @@ def _times_w(W, F, K):
 
 
 @_jit_inline
-def _ros2_shared(fpts, u, k, hold, th, h, nsub, wk, lu):
+def _ros2_shared(fcols, u, k, hold, th, h, nsub, wk, lu):
     """:func:`_ros2_point` for every sigma point with the shared W⁻¹
-    (Jacobian at the central point, jac 0), stage by stage over the points:
-    f of all points in one call of the model's ``f_pts`` (which computes
-    what depends on u and θ alone once), W⁻¹ applied to all points at once
+    (Jacobian at the central point, jac 0), stage by stage over the points,
+    state-major (wk.XT: state a of point j at XT[a, j]): f of all points in
+    one call of the model's ``f_cols``, W⁻¹ applied to all points at once
     (:func:`_apply_w`: LU solves, or the product with the inverse where the
     factors are unusable). Each point's arithmetic is that of
-    :func:`_ros2_point` up to the rounding of the linear solves."""
-    npt, n = wk.X.shape
-    X, XS, chi, ub, K1, K2, FT = wk.X, wk.XS, wk.chi, wk.ub, wk.K1, wk.K2, wk.FT
-    for j in range(npt):
-        for a in range(n):
-            X[j, a] = chi[j, a]
+    :func:`_ros2_point` up to the rounding of the linear solves and of the
+    column kernels' library functions (2 ulp)."""
+    n, npt = wk.XT.shape
+    XT, XS, ub, K1, K2, FT = wk.XT, wk.XS, wk.ub, wk.K1, wk.K2, wk.FT
     for s in range(nsub):
         _stage_input(u, k, s, 0.0, nsub, hold, ub)
-        fpts(X, ub, th, FT)
+        fcols(wk.XTf, ub, th, wk.FTf)
         _apply_w(lu, wk, FT, K1)
         _stage_input(u, k, s, 1.0, nsub, hold, ub)
-        for j in range(npt):
-            for a in range(n):
-                XS[j, a] = X[j, a] + h * K1[a, j]
-        fpts(XS, ub, th, FT)
+        for a in range(n):
+            for j in range(npt):
+                XS[a, j] = XT[a, j] + h * K1[a, j]
+        fcols(wk.XSf, ub, th, wk.FTf)
         for a in range(n):
             for j in range(npt):
                 FT[a, j] = FT[a, j] - 2.0 * K1[a, j]
         _apply_w(lu, wk, FT, K2)
-        for j in range(npt):
-            for a in range(n):
-                X[j, a] = X[j, a] + (1.5 * h) * K1[a, j] + (0.5 * h) * K2[a, j]
+        for a in range(n):
+            for j in range(npt):
+                XT[a, j] = XT[a, j] + (1.5 * h) * K1[a, j] + (0.5 * h) * K2[a, j]
 
 
 @_jit_inline
-def _transition(f, fj, fpts, u, k, th, dt, ip, wk):
-    """Every sigma point of wk.chi through the transition over interval k
-    into wk.X (:func:`bondgraph.numerics.integrators.make_step`)."""
+def _transition(f, fj, fcols, u, k, th, dt, ip, wk):
+    """Every sigma point (the columns of wk.XT) through the transition over
+    interval k, in place (:func:`bondgraph.numerics.integrators.make_step`)."""
     method, nsub, jac, hold = ip[0], ip[1], ip[2], ip[3]
     h = dt / nsub
-    npt, n = wk.chi.shape
+    n, npt = wk.XT.shape
     _held_input(u, k, 0.0, hold, wk.ub)
+    XT, xs = wk.XT, wk.xs
     if method == 1 and jac == 0:
-        fj(wk.chi[0], wk.ub, th, wk.F0, wk.J)
+        for a in range(n):
+            xs[a] = XT[a, 0]
+        fj(xs, wk.ub, th, wk.F0, wk.J)
         lu = _lu_w(wk.J, h, wk.A, wk.cols)
         if not lu:
             _inverse_w(wk.J, h, wk.A, wk.Winv, wk.cols)
-        _ros2_shared(fpts, u, k, hold, th, h, nsub, wk, lu)
+        _ros2_shared(fcols, u, k, hold, th, h, nsub, wk, lu)
         return
-    ub, xt, X, xs, chi = wk.ub, wk.xt, wk.X, wk.xs, wk.chi
+    ub, xt = wk.ub, wk.xt
     for j in range(npt):
-        # each point is integrated in the contiguous work vector xs: a row
-        # view per call of a first-class function costs more than the copies
+        # each point is integrated in the contiguous work vector xs: a view
+        # per call of a first-class function costs more than the copies
         for a in range(n):
-            xs[a] = chi[j, a]
+            xs[a] = XT[a, j]
         if j > 0:
             _held_input(u, k, 0.0, hold, ub)
         if method == 0:
@@ -649,23 +650,23 @@ def _transition(f, fj, fpts, u, k, th, dt, ip, wk):
             _ros2_point(f, fj, xs, u, k, hold, th, h, nsub, jac, ub, xt, wk.F0, wk.F1,
                         wk.k1, wk.k2, wk.J, wk.Winv, wk.A, wk.cols)
         for a in range(n):
-            X[j, a] = xs[a]
+            XT[a, j] = xs[a]
 
 
 # ------------------------------------------------------------ predict / update
 @_jit_inline
-def _predict(f, fj, fpts, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
+def _predict(f, fj, fcols, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
     """Prediction over interval k (to sample k + 1) in place; 0 or a failure code."""
     n = x.shape[0]
     r = _chol(P, n, wk.L, True, wk.skip)
     if r == 0:
         return 1
     wk.nreg[0] += r == 2
-    _sigma(x, wk.L, fp[0], wk.cL, wk.chi)
-    _transition(f, fj, fpts, u, k, th, dt, ip, wk)
-    if not _all_finite(wk.X, wk.X.shape[0], n):
+    _sigma(x, wk.L, fp[0], wk.XT)
+    _transition(f, fj, fcols, u, k, th, dt, ip, wk)
+    if not _all_finite(wk.XT, n, wk.XT.shape[1]):
         return 3
-    _moments(wk.X, n, fp[1], fp[2], x, P, wk.D)
+    _moments(wk.XT, n, fp[1], fp[2], x, P, wk.D)
     for a in range(n):
         P[a, a] += q2[a] * dt
     if ip[5]:
@@ -676,41 +677,42 @@ def _predict(f, fj, fpts, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
 
 
 @_jit_inline
-def _measured_outputs(hpts, x, P, th, uk, yk, fp, wk):
-    """Sigma points of the prior through h into wk.Y, restricted to the
-    measured outputs of yk (their indices in wk.idx) in wk.Ym where some are
-    missing; returns (m, failure code)."""
+def _measured_outputs(hcols, x, P, th, uk, yk, fp, wk):
+    """Sigma points of the prior through h into wk.YT (output-major: output
+    b of point j at YT[b, j]), restricted to the measured outputs of yk
+    (their indices in wk.idx) in the rows of wk.Ym where some are missing;
+    returns (m, failure code)."""
     n = x.shape[0]
     r = _chol(P, n, wk.L, True, wk.skip)
     if r == 0:
         return 0, 2
     wk.nreg[0] += r == 2
-    _sigma(x, wk.L, fp[0], wk.cL, wk.chi)
-    hpts(wk.chi, uk, th, wk.Y)
+    _sigma(x, wk.L, fp[0], wk.XT)
+    hcols(wk.XTf, uk, th, wk.YTf)
     m = 0
     for b in range(yk.shape[0]):
         if np.isfinite(yk[b]):
             wk.idx[m] = b
             m += 1
-    npt = wk.chi.shape[0]
+    npt = wk.YT.shape[1]
     if m < yk.shape[0]:
-        for j in range(npt):
-            for b in range(m):
-                wk.Ym[j, b] = wk.Y[j, wk.idx[b]]
-    if not _all_finite(wk.Ym if m < yk.shape[0] else wk.Y, npt, m):
+        for b in range(m):
+            for j in range(npt):
+                wk.Ym[b, j] = wk.YT[wk.idx[b], j]
+    if not _all_finite(wk.Ym if m < yk.shape[0] else wk.YT, m, npt):
         return m, 4
     return m, 0
 
 
 @_jit_inline
-def _update(hpts, x, P, th, uk, yk, Rd, R, ip, fp, wk):
+def _update(hcols, x, P, th, uk, yk, Rd, R, ip, fp, wk):
     """Measurement update at one sample in place: (NLL term, maha, m, failure code)."""
     n = x.shape[0]
-    m, code = _measured_outputs(hpts, x, P, th, uk, yk, fp, wk)
+    m, code = _measured_outputs(hcols, x, P, th, uk, yk, fp, wk)
     if code:
         return 0.0, 0.0, m, code
     S, w = wk.cov, fp[1]
-    _moments(wk.Ym if m < yk.shape[0] else wk.Y, m, w, fp[2], wk.yf, S, wk.D)
+    _moments(wk.Ym if m < yk.shape[0] else wk.YT, m, w, fp[2], wk.yf, S, wk.D)
     for a in range(m):
         if ip[4]:
             for b in range(m):
@@ -856,7 +858,7 @@ def _store_filtered(h, st, k, p, x, P, uk, th, full, wk):
 
 # ------------------------------------------------------------ one set, all sets
 @_jit
-def _filter_one(a, f, h, fj, fpts, hpts, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
+def _filter_one(a, f, h, fj, fcols, hcols, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
                 out_i,
                 st, buf, ibuf):
     """The whole record for parameter set ``a``: NLL into out_f[a]; failing
@@ -883,10 +885,10 @@ def _filter_one(a, f, h, fj, fpts, hpts, t, u, y, th, x0, P0, q2, Rd, R, Q, act,
             yk[j] = y[k, j]
         code = 0
         if k > 0:
-            code = _predict(f, fj, fpts, x, P, u, k - 1, tha, t[k] - t[k - 1], q2a, Qa, ip, fp,
+            code = _predict(f, fj, fcols, x, P, u, k - 1, tha, t[k] - t[k - 1], q2a, Qa, ip, fp,
                             wk)
         if code == 0 and _any_finite(yk):
-            term, maha, m, code = _update(hpts, x, P, tha, uk, yk, Rda, Ra, ip, fp, wk)
+            term, maha, m, code = _update(hcols, x, P, tha, uk, yk, Rda, Ra, ip, fp, wk)
             if code == 0:
                 nll += term
                 if ip[6]:
@@ -909,12 +911,12 @@ def _any_finite(v):
     return False
 
 
-def _kernel_py(f, h, fj, fpts, hpts, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
+def _kernel_py(f, h, fj, fcols, hcols, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
                out_i, st, buf, ibuf):
     """Every parameter set in parallel (``prange``): :func:`_filter_one`
     with its own rows of the work buffers ``buf``, ``ibuf``."""
     for a in numba.prange(th.shape[0]):
-        _filter_one(np.int64(a), f, h, fj, fpts, hpts, t, u, y, th, x0, P0, q2, Rd, R, Q, act,
+        _filter_one(np.int64(a), f, h, fj, fcols, hcols, t, u, y, th, x0, P0, q2, Rd, R, Q, act,
                     ip, fp, out_f, out_i, st, buf[a], ibuf[a])
 
 
@@ -925,9 +927,9 @@ def _signature():
     A3, A4 = types.float64[:, :, ::1], types.float64[:, :, :, ::1]
     point = types.FunctionType(types.void(V, V, V, V))
     jac = types.FunctionType(types.void(V, V, V, V, M))
-    points = types.FunctionType(types.void(M, V, V, M))
     store = types.Tuple((A3, A4, A3, A3, A3, A4, M, M))
-    return types.void(point, point, jac, points, points, V, M, M, M, M, A3, M, M, A3, A3,
+    # f_cols and h_cols take flat vectors, like the point kernels
+    return types.void(point, point, jac, point, point, V, M, M, M, M, A3, M, M, A3, A3,
                       types.int64[::1], types.int64[::1], V, V, types.int64[:, ::1], store, M,
                       types.int64[:, ::1])
 
@@ -1176,15 +1178,23 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
     step = max(1, min(A, WORK_FLOATS // nf))
     buf, ibuf = np.zeros((step, nf)), np.zeros((step, ni), dtype=np.int64)
     act, st = c(batch.act, dtype=np.int64), _store_arrays(kept)
-    for a0 in range(0, A, step):  # chunks of sets: the work buffers stay bounded
-        s = slice(a0, min(A, a0 + step))
-        if a0:
-            buf[:], ibuf[:] = 0.0, 0
-        kern(kernels.f, kernels.h, kernels.f_dfdx, kernels.f_pts, kernels.h_pts,
-             c(t, dtype=float), c(u, dtype=float),
-             c(y, dtype=float), *[v[s] for v in per_set], Rd if ip[4] else Rd[s],
-             R[s] if ip[4] else R, Q[s] if ip[5] else Q, act[s], ip, fp, out_f[s], out_i[s],
-             st, buf[:s.stop - a0], ibuf[:s.stop - a0])
+    # sets are handed to the threads one at a time (dynamic schedule): their
+    # costs differ (failures stop early, loaded factorisations retry), and a
+    # static split left a thread idle (full bench: 1.82 of 2 cores busy)
+    chunk = numba.get_parallel_chunksize()
+    numba.set_parallel_chunksize(1)
+    try:
+        for a0 in range(0, A, step):  # chunks of sets: the work buffers stay bounded
+            s = slice(a0, min(A, a0 + step))
+            if a0:
+                buf[:], ibuf[:] = 0.0, 0
+            kern(kernels.f, kernels.h, kernels.f_dfdx, kernels.f_cols, kernels.h_cols,
+                 c(t, dtype=float), c(u, dtype=float),
+                 c(y, dtype=float), *[v[s] for v in per_set], Rd if ip[4] else Rd[s],
+                 R[s] if ip[4] else R, Q[s] if ip[5] else Q, act[s], ip, fp, out_f[s],
+                 out_i[s], st, buf[:s.stop - a0], ibuf[:s.stop - a0])
+    finally:
+        numba.set_parallel_chunksize(chunk)
     for a, p in enumerate(batch.act):
         k, code = int(out_i[a, 0]), int(out_i[a, 1])
         if k >= 0:
