@@ -22,7 +22,8 @@ def _functions() -> dict:
     """Each function as the column kernels run it: the straight code that
     :func:`codegen.vmath_inline` expands at a call site, compiled with the
     column kernels' flags (inlined into the loops below)."""
-    ns = {"np": np}
+    ns = {"np": np, "intrinsic": numba.extending.intrinsic, "types": numba.types}
+    exec(codegen.NUMBA_SELECT, ns)
     for name in NAMES:
         exec(codegen.vmath_function(name), ns)
         ns[name] = numba.njit(error_model="numpy", inline="always",

@@ -520,9 +520,9 @@ def _vatan(x):
     a = abs(x)
     big = a > 2.41421356237309504880
     mid = a > 0.66
-    z0 = (-1.0 if big else (a - 1.0 if mid else a)) / (a if big else (a + 1.0 if mid else 1.0))
-    y0 = 1.5707963267948966 if big else (0.7853981633974483 if mid else 0.0)
-    mb = 6.123233995736765886130e-17 if big else (3.061616997868382943065e-17 if mid else 0.0)
+    z0 = _sel(big, -1.0, _sel(mid, a - 1.0, a)) / _sel(big, a, _sel(mid, a + 1.0, 1.0))
+    y0 = _sel(big, 1.5707963267948966, _sel(mid, 0.7853981633974483, 0.0))
+    mb = _sel(big, 6.123233995736765886130e-17, _sel(mid, 3.061616997868382943065e-17, 0.0))
     z = z0 * z0
     p = ((((-8.750608600031904122785e-1 * z - 1.615753718733365076637e1) * z
            - 7.500855792314704667340e1) * z - 1.228866684490136173410e2) * z
@@ -531,20 +531,20 @@ def _vatan(x):
            + 4.328810604912902668951e2) * z + 4.853903996359136964868e2) * z
          + 1.945506571482613964425e2)
     r = y0 + ((z0 * (z * p / q) + z0) + mb)
-    return -r if x < 0 else r
+    return _sel(x < 0, -r, r)
 ''',
     "_vsincos": '''
 def _vsincos(a, shift):
     """sin (shift 0) or cos (shift 2) of a >= 0 below 1e8: reduction by π/4 in
     three parts, degree-6 polynomials in z² (Moshier 1989)."""
-    y = np.floor(a * 1.2732395447351628)
-    j = np.int64(y) if a < 1e15 else np.int64(0)
-    odd = (j & 1) == 1
-    j = j + 1 if odd else j
-    y = y + 1.0 if odd else y
-    j = (j + shift) & 7
-    neg = j > 3
-    j = j - 4 if neg else j
+    y0 = np.floor(a * 1.2732395447351628)
+    j0 = _sel(a < 1e15, np.int64(y0), np.int64(0))
+    odd = (j0 & 1) == 1
+    j1 = _sel(odd, j0 + 1, j0)
+    y = _sel(odd, y0 + 1.0, y0)
+    j2 = (j1 + shift) & 7
+    neg = j2 > 3
+    j = _sel(neg, j2 - 4, j2)
     z = (((a - y * 7.85398125648498535156e-1) - y * 3.77489470793079817668e-8)
          - y * 2.69515142907905952645e-15)
     zz = z * z
@@ -557,14 +557,14 @@ def _vsincos(a, shift):
     s = z + z * zz * ((((((1.58962301576546568060e-10 * zz - 2.50507477628578072866e-8) * zz
                           + 2.75573136213857245213e-6) * zz - 1.98412698295895385996e-4) * zz
                         + 8.33333333332211858878e-3) * zz - 1.66666666666666307295e-1))
-    r = c if (j == 1 or j == 2) else s
-    return -r if neg else r
+    r = _sel((j == 1) | (j == 2), c, s)
+    return _sel(neg, -r, r)
 ''',
     "_vsin": '''
 def _vsin(x):
     """sin(x) for |x| < 1e8 (_vsincos)."""
     r = _vsincos(abs(x), 0)
-    return -r if x < 0 else r
+    return _sel(x < 0, -r, r)
 ''',
     "_vcos": '''
 def _vcos(x):
@@ -574,38 +574,38 @@ def _vcos(x):
     "_pow2": '''
 def _pow2(n):
     """2**n for |n| <= 1022 from the bits of |n| (selects and exact products)."""
-    a = -n if n < 0 else n
     neg = n < 0
-    p = (0.5 if neg else 2.0) if a & 1 else 1.0
-    p *= (0.25 if neg else 4.0) if a & 2 else 1.0
-    p *= (0.0625 if neg else 16.0) if a & 4 else 1.0
-    p *= (0.00390625 if neg else 256.0) if a & 8 else 1.0
-    p *= (1.52587890625e-05 if neg else 65536.0) if a & 16 else 1.0
-    p *= (2.3283064365386963e-10 if neg else 4294967296.0) if a & 32 else 1.0
-    p *= (5.421010862427522e-20 if neg else 1.8446744073709552e19) if a & 64 else 1.0
-    p *= (2.938735877055719e-39 if neg else 3.402823669209385e38) if a & 128 else 1.0
-    p *= (8.636168555094445e-78 if neg else 1.157920892373162e77) if a & 256 else 1.0
-    p *= (7.458340731200207e-155 if neg else 1.3407807929942597e154) if a & 512 else 1.0
-    return p
+    a = _sel(neg, -n, n)
+    p0 = _sel((a & 1) != 0, _sel(neg, 0.5, 2.0), 1.0)
+    p1 = p0 * _sel((a & 2) != 0, _sel(neg, 0.25, 4.0), 1.0)
+    p2 = p1 * _sel((a & 4) != 0, _sel(neg, 0.0625, 16.0), 1.0)
+    p3 = p2 * _sel((a & 8) != 0, _sel(neg, 0.00390625, 256.0), 1.0)
+    p4 = p3 * _sel((a & 16) != 0, _sel(neg, 1.52587890625e-05, 65536.0), 1.0)
+    p5 = p4 * _sel((a & 32) != 0, _sel(neg, 2.3283064365386963e-10, 4294967296.0), 1.0)
+    p6 = p5 * _sel((a & 64) != 0, _sel(neg, 5.421010862427522e-20, 1.8446744073709552e19), 1.0)
+    p7 = p6 * _sel((a & 128) != 0, _sel(neg, 2.938735877055719e-39, 3.402823669209385e38), 1.0)
+    p8 = p7 * _sel((a & 256) != 0, _sel(neg, 8.636168555094445e-78, 1.157920892373162e77), 1.0)
+    return p8 * _sel((a & 512) != 0, _sel(neg, 7.458340731200207e-155, 1.3407807929942597e154),
+                     1.0)
 ''',
     "_vexp": '''
 def _vexp(x):
     """exp(x) = 2**n exp(r), |r| <= ln2/2, a 2/3 rational in r² (Moshier 1989);
     inf above 709.78, 0 below -708.40 (numpy: a subnormal there), NaN for NaN."""
-    xc = 709.79 if x > 709.79 else (-708.4 if x < -708.4 else x)
+    xc = _sel(x > 709.79, 709.79, _sel(x < -708.4, -708.4, x))
     fl = np.floor(1.4426950408889634 * xc + 0.5)
     r = (xc - fl * 6.93145751953125e-1) - fl * 1.42860682030941723212e-6
     n = np.int64(fl)
     xx = r * r
     px = r * ((1.26177193074810590878e-4 * xx + 3.02994407707441961300e-2) * xx
               + 9.99999999999999999910e-1)
-    e = px / ((((3.00198505138664455042e-6 * xx + 2.52448340349684104192e-3) * xx
-                + 2.27265548208155028766e-1) * xx + 2.00000000000000000009e0) - px)
-    e = 1.0 + 2.0 * e
-    e = (e * 2.0) * _pow2(n - 1) if n > 1000 else e * _pow2(n)
-    e = np.inf if x > 7.09782712893383996843e2 else (0.0 if x < -7.08396418532264106224e2
-                                                     else e)
-    return x if x != x else e
+    e0 = 1.0 + 2.0 * (px / ((((3.00198505138664455042e-6 * xx + 2.52448340349684104192e-3) * xx
+                              + 2.27265548208155028766e-1) * xx + 2.00000000000000000009e0)
+                            - px))
+    big = n > 1000
+    e1 = _sel(big, e0 * 2.0, e0) * _pow2(_sel(big, n - 1, n))
+    e = _sel(x > 7.09782712893383996843e2, np.inf, _sel(x < -7.08396418532264106224e2, 0.0, e1))
+    return _sel(x != x, x, e)
 ''',
     "_vtanh": '''
 def _vtanh(x):
@@ -615,7 +615,7 @@ def _vtanh(x):
     denominator); NaN for NaN."""
     a = abs(x)
     z = x * x
-    aa = 2.0 * (40.0 if a > 40.0 else a)
+    aa = 2.0 * _sel(a > 40.0, 40.0, a)
     fl = np.floor(1.4426950408889634 * aa + 0.5)
     r = (aa - fl * 6.93145751953125e-1) - fl * 1.42860682030941723212e-6
     rr = r * r
@@ -625,15 +625,28 @@ def _vtanh(x):
           + 2.27265548208155028766e-1) * rr + 2.00000000000000000009e0)
     d = q - p
     small = a < 0.625
-    num = (x * z * ((-9.64399179425052238628e-1 * z - 9.92877231001918586564e1) * z
-                    - 1.61468768441708447952e3) if small else 2.0 * d)
-    den = (((z + 1.12811678491632931402e2) * z + 2.23548839060100448583e3) * z
-           + 4.84406305325125486048e3 if small else _pow2(np.int64(fl)) * (q + p) + d)
+    num = _sel(small, x * z * ((-9.64399179425052238628e-1 * z - 9.92877231001918586564e1) * z
+                               - 1.61468768441708447952e3), 2.0 * d)
+    den = _sel(small, ((z + 1.12811678491632931402e2) * z + 2.23548839060100448583e3) * z
+               + 4.84406305325125486048e3, _pow2(np.int64(fl)) * (q + p) + d)
     t = num / den
     big = 1.0 - t
-    return x + t if small else (-big if x < 0 else big)
+    return _sel(small, x + t, _sel(x < 0, -big, big))
 ''',
 }
+#: the select of the NUMBA_VMATH templates, emitted into each numba module
+#: that uses them: ``a if c else b`` as one LLVM select instruction (both a and
+#: b are computed; a Python conditional expression would be branches, whose
+#: blocks make numba's SSA and liveness passes slow on long kernels: the
+#: column kernels of vehicle_full compiled in 8.7 s with them)
+NUMBA_SELECT = '''
+@intrinsic
+def _sel(typingctx, c, a, b):
+    """``a if c else b`` as one LLVM select (no branch; a and b of one type)."""
+    def codegen(context, builder, sig, args):
+        return builder.select(args[0], args[1], args[2])
+    return a(types.boolean, a, b), codegen
+'''
 #: LLVM fast-math flags of the column kernels: a division by a value the
 #: loop does not change becomes a product with its reciprocal (arcp; the
 #: vector divider is the loop's bottleneck), multiply-adds fuse (contract);
@@ -710,10 +723,10 @@ def vmath_inline(name: str, args, counter) -> tuple[list[str], str, str]:
         stmt = _Rename(local, pre).visit(copy.deepcopy(stmt))
         stmt = _Expand(lines, counter).visit(stmt)
         if isinstance(stmt, ast.Return):
-            lines.append(f"{pre}r = {ast.unparse(stmt.value)}")
+            lines.append(f"{pre}ret = {ast.unparse(stmt.value)}")
         else:
             lines.append(ast.unparse(stmt))
-    return lines, f"{pre}r", pre
+    return lines, f"{pre}ret", pre
 
 
 def vmath_function(name: str) -> str:
@@ -779,27 +792,26 @@ class _NumbaGen(_Gen):
         head += [f"{s} = {self.pr(e)}" for s, e in repl if s not in varying]
         loads = [f"{self.namer.names[s]} = _X[{self.sym_index[s][1] * npt} + _j]"
                  for s in sorted(used & xs, key=lambda s: self.sym_index[s][1])]
-        counter, results, far = itertools.count(), set(), []
+        counter, far = itertools.count(), []
 
         def expanded(e, out: list):
-            """``e`` with its calls of :data:`VMATH_CALLS` on varying values
-            replaced by the result variables of their inline code (appended
-            to ``out``, innermost first)."""
+            """``e`` with its calls of :data:`VMATH_CALLS` replaced by the
+            result variables of their inline code (appended to ``out``,
+            innermost first; a libm call would keep the loop scalar)."""
             if e.is_Atom:
                 return e
             args = [expanded(a, out) for a in e.args]
             if any(a is not b for a, b in zip(args, e.args)):
                 e = e.func(*args)
             name = VMATH_CALLS.get(e.func)
-            if name is not None and e.args[0].free_symbols & (varying | results):
-                code, res, pre = vmath_inline(name, [self.pr(e.args[0])], counter)
-                out += code
-                if name in VMATH_LIMITED:
-                    out.append(f"_far += abs({pre}x) >= 1e8")
-                    far.append(name)
-                results.add(sp.Symbol(res))
-                return sp.Symbol(res)
-            return e
+            if name is None:
+                return e
+            code, res, pre = vmath_inline(name, [self.pr(e.args[0])], counter)
+            out += code
+            if name in VMATH_LIMITED:
+                out.append(f"_far += abs({pre}x) >= 1e8")
+                far.append(name)
+            return sp.Symbol(res)
 
         body = list(loads)
         for s, e in repl:
@@ -857,6 +869,8 @@ class _NumbaGen(_Gen):
                                     f"(({ny} * N_PTS,)).", h_entries)]
         if any("_tanh(" in p for p in parts[1:]):
             parts.insert(1, NUMBA_TANH.lstrip("\n"))
+        if any("_sel(" in p for p in parts[1:]):
+            parts.insert(1, NUMBA_SELECT.lstrip("\n"))
         return "\n\n".join(p.rstrip("\n") + "\n" for p in parts)
 
     def _numba_header(self) -> str:
@@ -884,6 +898,7 @@ kernel (bondgraph.inference.ukf_numba) calls them as first-class functions.
 
 import numpy as np
 from numba import njit, types
+from numba.extending import intrinsic
 
 NAME = {ss.name!r}
 N_X, N_U, N_THETA, N_Y = {nx}, {nu}, {npar}, {ny}

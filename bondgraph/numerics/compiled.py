@@ -62,9 +62,9 @@ CACHE_ENV = "BONDGRAPH_CACHE_DIR"
 #: machine: 0.6 s for a 2-state model, 3-4 s for the 7-state vehicle)
 COMPILE_S_BASE, COMPILE_S_PER_CHAR = 0.4, 3.5e-5
 #: and per call of sin, cos, atan, exp or tanh in that source (the column
-#: kernels expand each inline: vehicle_full, 117 calls, compiles in 8.7 s,
-#: vehicle_coastdown, 63, in 3.3 s, emps, 6, in 1.1 s)
-COMPILE_S_PER_CALL = 0.045
+#: kernels expand each inline: vehicle_full, 117 calls, compiles in 5.0 s,
+#: vehicle_coastdown, 63, in 2.5 s, emps, 6, in 1.1 s)
+COMPILE_S_PER_CALL = 0.016
 _EXPANDED_CALL = re.compile(r"np\.(?:sin|cos|arctan|exp|tanh)\(")
 
 _LOCK = threading.Lock()

@@ -20,6 +20,7 @@ kernel (bondgraph.inference.ukf_numba) calls them as first-class functions.
 
 import numpy as np
 from numba import njit, types
+from numba.extending import intrinsic
 
 NAME = 'emps'
 N_X, N_U, N_THETA, N_Y = 2, 1, 8, 1
@@ -32,6 +33,14 @@ _M = types.float64[:, ::1]
 SIG_POINT = types.void(_V, _V, _V, _V)
 SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_COLS = types.void(_V, _V, _V, _V)
+
+
+@intrinsic
+def _sel(typingctx, c, a, b):
+    """``a if c else b`` as one LLVM select (no branch; a and b of one type)."""
+    def codegen(context, builder, sig, args):
+        return builder.select(args[0], args[1], args[2])
+    return a(types.boolean, a, b), codegen
 
 
 @njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
@@ -105,7 +114,7 @@ def f_cols(_X, u, theta, _dxdt):
         _v0_x = _t0/v_eps
         _v0_a = abs(_v0_x)
         _v0_z = _v0_x * _v0_x
-        _v0_aa = 2.0 * (40.0 if _v0_a > 40.0 else _v0_a)
+        _v0_aa = 2.0 * _sel(_v0_a > 40.0, 40.0, _v0_a)
         _v0_fl = np.floor(1.4426950408889634 * _v0_aa + 0.5)
         _v0_r = _v0_aa - _v0_fl * 0.693145751953125 - _v0_fl * 1.4286068203094173e-06
         _v0_rr = _v0_r * _v0_r
@@ -113,26 +122,25 @@ def f_cols(_X, u, theta, _dxdt):
         _v0_q = ((3.0019850513866446e-06 * _v0_rr + 0.002524483403496841) * _v0_rr + 0.22726554820815503) * _v0_rr + 2.0
         _v0_d = _v0_q - _v0_p
         _v0_small = _v0_a < 0.625
-        _v0_num = _v0_x * _v0_z * ((-0.9643991794250523 * _v0_z - 99.28772310019185) * _v0_z - 1614.6876844170845) if _v0_small else 2.0 * _v0_d
+        _v0_num = _sel(_v0_small, _v0_x * _v0_z * ((-0.9643991794250523 * _v0_z - 99.28772310019185) * _v0_z - 1614.6876844170845), 2.0 * _v0_d)
         _v1_n = np.int64(_v0_fl)
-        _v1_a = -_v1_n if _v1_n < 0 else _v1_n
         _v1_neg = _v1_n < 0
-        _v1_p = (0.5 if _v1_neg else 2.0) if _v1_a & 1 else 1.0
-        _v1_p *= (0.25 if _v1_neg else 4.0) if _v1_a & 2 else 1.0
-        _v1_p *= (0.0625 if _v1_neg else 16.0) if _v1_a & 4 else 1.0
-        _v1_p *= (0.00390625 if _v1_neg else 256.0) if _v1_a & 8 else 1.0
-        _v1_p *= (1.52587890625e-05 if _v1_neg else 65536.0) if _v1_a & 16 else 1.0
-        _v1_p *= (2.3283064365386963e-10 if _v1_neg else 4294967296.0) if _v1_a & 32 else 1.0
-        _v1_p *= (5.421010862427522e-20 if _v1_neg else 1.8446744073709552e+19) if _v1_a & 64 else 1.0
-        _v1_p *= (2.938735877055719e-39 if _v1_neg else 3.402823669209385e+38) if _v1_a & 128 else 1.0
-        _v1_p *= (8.636168555094445e-78 if _v1_neg else 1.157920892373162e+77) if _v1_a & 256 else 1.0
-        _v1_p *= (7.458340731200207e-155 if _v1_neg else 1.3407807929942597e+154) if _v1_a & 512 else 1.0
-        _v1_r = _v1_p
-        _v0_den = ((_v0_z + 112.81167849163293) * _v0_z + 2235.4883906010045) * _v0_z + 4844.063053251255 if _v0_small else _v1_r * (_v0_q + _v0_p) + _v0_d
+        _v1_a = _sel(_v1_neg, -_v1_n, _v1_n)
+        _v1_p0 = _sel(_v1_a & 1 != 0, _sel(_v1_neg, 0.5, 2.0), 1.0)
+        _v1_p1 = _v1_p0 * _sel(_v1_a & 2 != 0, _sel(_v1_neg, 0.25, 4.0), 1.0)
+        _v1_p2 = _v1_p1 * _sel(_v1_a & 4 != 0, _sel(_v1_neg, 0.0625, 16.0), 1.0)
+        _v1_p3 = _v1_p2 * _sel(_v1_a & 8 != 0, _sel(_v1_neg, 0.00390625, 256.0), 1.0)
+        _v1_p4 = _v1_p3 * _sel(_v1_a & 16 != 0, _sel(_v1_neg, 1.52587890625e-05, 65536.0), 1.0)
+        _v1_p5 = _v1_p4 * _sel(_v1_a & 32 != 0, _sel(_v1_neg, 2.3283064365386963e-10, 4294967296.0), 1.0)
+        _v1_p6 = _v1_p5 * _sel(_v1_a & 64 != 0, _sel(_v1_neg, 5.421010862427522e-20, 1.8446744073709552e+19), 1.0)
+        _v1_p7 = _v1_p6 * _sel(_v1_a & 128 != 0, _sel(_v1_neg, 2.938735877055719e-39, 3.402823669209385e+38), 1.0)
+        _v1_p8 = _v1_p7 * _sel(_v1_a & 256 != 0, _sel(_v1_neg, 8.636168555094445e-78, 1.157920892373162e+77), 1.0)
+        _v1_ret = _v1_p8 * _sel(_v1_a & 512 != 0, _sel(_v1_neg, 7.458340731200207e-155, 1.3407807929942597e+154), 1.0)
+        _v0_den = _sel(_v0_small, ((_v0_z + 112.81167849163293) * _v0_z + 2235.4883906010045) * _v0_z + 4844.063053251255, _v1_ret * (_v0_q + _v0_p) + _v0_d)
         _v0_t = _v0_num / _v0_den
         _v0_big = 1.0 - _v0_t
-        _v0_r = _v0_x + _v0_t if _v0_small else -_v0_big if _v0_x < 0 else _v0_big
-        _dxdt[0 + _j] = vir*gtau - Fc*_v0_r - Fv*_t0 - offset
+        _v0_ret = _sel(_v0_small, _v0_x + _v0_t, _sel(_v0_x < 0, -_v0_big, _v0_big))
+        _dxdt[0 + _j] = vir*gtau - Fc*_v0_ret - Fv*_t0 - offset
         _dxdt[5 + _j] = _t0
 
 

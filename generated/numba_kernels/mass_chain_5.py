@@ -20,6 +20,7 @@ kernel (bondgraph.inference.ukf_numba) calls them as first-class functions.
 
 import numpy as np
 from numba import njit, types
+from numba.extending import intrinsic
 
 NAME = 'mass_chain_5'
 N_X, N_U, N_THETA, N_Y = 9, 1, 13, 1

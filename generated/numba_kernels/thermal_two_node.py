@@ -20,6 +20,7 @@ kernel (bondgraph.inference.ukf_numba) calls them as first-class functions.
 
 import numpy as np
 from numba import njit, types
+from numba.extending import intrinsic
 
 NAME = 'thermal_two_node'
 N_X, N_U, N_THETA, N_Y = 2, 2, 5, 2

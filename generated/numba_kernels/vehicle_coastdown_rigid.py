@@ -20,6 +20,7 @@ kernel (bondgraph.inference.ukf_numba) calls them as first-class functions.
 
 import numpy as np
 from numba import njit, types
+from numba.extending import intrinsic
 
 NAME = 'vehicle_coastdown_rigid'
 N_X, N_U, N_THETA, N_Y = 3, 1, 13, 5
@@ -32,6 +33,14 @@ _M = types.float64[:, ::1]
 SIG_POINT = types.void(_V, _V, _V, _V)
 SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_COLS = types.void(_V, _V, _V, _V)
+
+
+@intrinsic
+def _sel(typingctx, c, a, b):
+    """``a if c else b`` as one LLVM select (no branch; a and b of one type)."""
+    def codegen(context, builder, sig, args):
+        return builder.select(args[0], args[1], args[2])
+    return a(types.boolean, a, b), codegen
 
 
 @njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
@@ -210,72 +219,72 @@ def f_cols(_X, u, theta, _dxdt):
         _v0_a = abs(_v0_x)
         _v0_big = _v0_a > 2.414213562373095
         _v0_mid = _v0_a > 0.66
-        _v0_z0 = (-1.0 if _v0_big else _v0_a - 1.0 if _v0_mid else _v0_a) / (_v0_a if _v0_big else _v0_a + 1.0 if _v0_mid else 1.0)
-        _v0_y0 = 1.5707963267948966 if _v0_big else 0.7853981633974483 if _v0_mid else 0.0
-        _v0_mb = 6.123233995736766e-17 if _v0_big else 3.061616997868383e-17 if _v0_mid else 0.0
+        _v0_z0 = _sel(_v0_big, -1.0, _sel(_v0_mid, _v0_a - 1.0, _v0_a)) / _sel(_v0_big, _v0_a, _sel(_v0_mid, _v0_a + 1.0, 1.0))
+        _v0_y0 = _sel(_v0_big, 1.5707963267948966, _sel(_v0_mid, 0.7853981633974483, 0.0))
+        _v0_mb = _sel(_v0_big, 6.123233995736766e-17, _sel(_v0_mid, 3.061616997868383e-17, 0.0))
         _v0_z = _v0_z0 * _v0_z0
         _v0_p = (((-0.8750608600031904 * _v0_z - 16.157537187333652) * _v0_z - 75.00855792314705) * _v0_z - 122.88666844901361) * _v0_z - 64.85021904942025
         _v0_q = ((((_v0_z + 24.858464901423062) * _v0_z + 165.02700983169885) * _v0_z + 432.88106049129027) * _v0_z + 485.3903996359137) * _v0_z + 194.5506571482614
         _v0_r = _v0_y0 + (_v0_z0 * (_v0_z * _v0_p / _v0_q) + _v0_z0 + _v0_mb)
-        _v0_r = -_v0_r if _v0_x < 0 else _v0_r
-        _v1_x = E_mf*(-_t5 - _v0_r) + _t5
+        _v0_ret = _sel(_v0_x < 0, -_v0_r, _v0_r)
+        _v1_x = E_mf*(-_t5 - _v0_ret) + _t5
         _v1_a = abs(_v1_x)
         _v1_big = _v1_a > 2.414213562373095
         _v1_mid = _v1_a > 0.66
-        _v1_z0 = (-1.0 if _v1_big else _v1_a - 1.0 if _v1_mid else _v1_a) / (_v1_a if _v1_big else _v1_a + 1.0 if _v1_mid else 1.0)
-        _v1_y0 = 1.5707963267948966 if _v1_big else 0.7853981633974483 if _v1_mid else 0.0
-        _v1_mb = 6.123233995736766e-17 if _v1_big else 3.061616997868383e-17 if _v1_mid else 0.0
+        _v1_z0 = _sel(_v1_big, -1.0, _sel(_v1_mid, _v1_a - 1.0, _v1_a)) / _sel(_v1_big, _v1_a, _sel(_v1_mid, _v1_a + 1.0, 1.0))
+        _v1_y0 = _sel(_v1_big, 1.5707963267948966, _sel(_v1_mid, 0.7853981633974483, 0.0))
+        _v1_mb = _sel(_v1_big, 6.123233995736766e-17, _sel(_v1_mid, 3.061616997868383e-17, 0.0))
         _v1_z = _v1_z0 * _v1_z0
         _v1_p = (((-0.8750608600031904 * _v1_z - 16.157537187333652) * _v1_z - 75.00855792314705) * _v1_z - 122.88666844901361) * _v1_z - 64.85021904942025
         _v1_q = ((((_v1_z + 24.858464901423062) * _v1_z + 165.02700983169885) * _v1_z + 432.88106049129027) * _v1_z + 485.3903996359137) * _v1_z + 194.5506571482614
         _v1_r = _v1_y0 + (_v1_z0 * (_v1_z * _v1_p / _v1_q) + _v1_z0 + _v1_mb)
-        _v1_r = -_v1_r if _v1_x < 0 else _v1_r
-        _v2_x = C_mf*_v1_r
+        _v1_ret = _sel(_v1_x < 0, -_v1_r, _v1_r)
+        _v2_x = C_mf*_v1_ret
         _v3_a = abs(_v2_x)
         _v3_shift = 0
-        _v3_y = np.floor(_v3_a * 1.2732395447351628)
-        _v3_j = np.int64(_v3_y) if _v3_a < 1000000000000000.0 else np.int64(0)
-        _v3_odd = _v3_j & 1 == 1
-        _v3_j = _v3_j + 1 if _v3_odd else _v3_j
-        _v3_y = _v3_y + 1.0 if _v3_odd else _v3_y
-        _v3_j = _v3_j + _v3_shift & 7
-        _v3_neg = _v3_j > 3
-        _v3_j = _v3_j - 4 if _v3_neg else _v3_j
+        _v3_y0 = np.floor(_v3_a * 1.2732395447351628)
+        _v3_j0 = _sel(_v3_a < 1000000000000000.0, np.int64(_v3_y0), np.int64(0))
+        _v3_odd = _v3_j0 & 1 == 1
+        _v3_j1 = _sel(_v3_odd, _v3_j0 + 1, _v3_j0)
+        _v3_y = _sel(_v3_odd, _v3_y0 + 1.0, _v3_y0)
+        _v3_j2 = _v3_j1 + _v3_shift & 7
+        _v3_neg = _v3_j2 > 3
+        _v3_j = _sel(_v3_neg, _v3_j2 - 4, _v3_j2)
         _v3_z = _v3_a - _v3_y * 0.7853981256484985 - _v3_y * 3.774894707930798e-08 - _v3_y * 2.6951514290790595e-15
         _v3_zz = _v3_z * _v3_z
         _v3_c = 1.0 - 0.5 * _v3_zz + _v3_zz * _v3_zz * (((((-1.1358536521387682e-11 * _v3_zz + 2.087570084197473e-09) * _v3_zz - 2.755731417929674e-07) * _v3_zz + 2.4801587288851704e-05) * _v3_zz - 0.0013888888888873056) * _v3_zz + 0.041666666666666595)
         _v3_s = _v3_z + _v3_z * _v3_zz * (((((1.5896230157654656e-10 * _v3_zz - 2.5050747762857807e-08) * _v3_zz + 2.7557313621385722e-06) * _v3_zz - 0.0001984126982958954) * _v3_zz + 0.008333333333322118) * _v3_zz - 0.1666666666666663)
-        _v3_r = _v3_c if _v3_j == 1 or _v3_j == 2 else _v3_s
-        _v3_r = -_v3_r if _v3_neg else _v3_r
-        _v2_r = _v3_r
-        _v2_r = -_v2_r if _v2_x < 0 else _v2_r
+        _v3_r = _sel((_v3_j == 1) | (_v3_j == 2), _v3_c, _v3_s)
+        _v3_ret = _sel(_v3_neg, -_v3_r, _v3_r)
+        _v2_r = _v3_ret
+        _v2_ret = _sel(_v2_x < 0, -_v2_r, _v2_r)
         _far += abs(_v2_x) >= 1e8
-        _t6 = _v2_r
+        _t6 = _v2_ret
         _v4_x = theta_g
         _v5_a = abs(_v4_x)
         _v5_shift = 2
-        _v5_y = np.floor(_v5_a * 1.2732395447351628)
-        _v5_j = np.int64(_v5_y) if _v5_a < 1000000000000000.0 else np.int64(0)
-        _v5_odd = _v5_j & 1 == 1
-        _v5_j = _v5_j + 1 if _v5_odd else _v5_j
-        _v5_y = _v5_y + 1.0 if _v5_odd else _v5_y
-        _v5_j = _v5_j + _v5_shift & 7
-        _v5_neg = _v5_j > 3
-        _v5_j = _v5_j - 4 if _v5_neg else _v5_j
+        _v5_y0 = np.floor(_v5_a * 1.2732395447351628)
+        _v5_j0 = _sel(_v5_a < 1000000000000000.0, np.int64(_v5_y0), np.int64(0))
+        _v5_odd = _v5_j0 & 1 == 1
+        _v5_j1 = _sel(_v5_odd, _v5_j0 + 1, _v5_j0)
+        _v5_y = _sel(_v5_odd, _v5_y0 + 1.0, _v5_y0)
+        _v5_j2 = _v5_j1 + _v5_shift & 7
+        _v5_neg = _v5_j2 > 3
+        _v5_j = _sel(_v5_neg, _v5_j2 - 4, _v5_j2)
         _v5_z = _v5_a - _v5_y * 0.7853981256484985 - _v5_y * 3.774894707930798e-08 - _v5_y * 2.6951514290790595e-15
         _v5_zz = _v5_z * _v5_z
         _v5_c = 1.0 - 0.5 * _v5_zz + _v5_zz * _v5_zz * (((((-1.1358536521387682e-11 * _v5_zz + 2.087570084197473e-09) * _v5_zz - 2.755731417929674e-07) * _v5_zz + 2.4801587288851704e-05) * _v5_zz - 0.0013888888888873056) * _v5_zz + 0.041666666666666595)
         _v5_s = _v5_z + _v5_z * _v5_zz * (((((1.5896230157654656e-10 * _v5_zz - 2.5050747762857807e-08) * _v5_zz + 2.7557313621385722e-06) * _v5_zz - 0.0001984126982958954) * _v5_zz + 0.008333333333322118) * _v5_zz - 0.1666666666666663)
-        _v5_r = _v5_c if _v5_j == 1 or _v5_j == 2 else _v5_s
-        _v5_r = -_v5_r if _v5_neg else _v5_r
-        _v4_r = _v5_r
+        _v5_r = _sel((_v5_j == 1) | (_v5_j == 2), _v5_c, _v5_s)
+        _v5_ret = _sel(_v5_neg, -_v5_r, _v5_r)
+        _v4_ret = _v5_ret
         _far += abs(_v4_x) >= 1e8
-        _t7 = _v4_r
+        _t7 = _v4_ret
         _t8 = _t0*_t7
         _v6_x = (0.125)*wheels__p_J*_t3
         _v6_a = abs(_v6_x)
         _v6_z = _v6_x * _v6_x
-        _v6_aa = 2.0 * (40.0 if _v6_a > 40.0 else _v6_a)
+        _v6_aa = 2.0 * _sel(_v6_a > 40.0, 40.0, _v6_a)
         _v6_fl = np.floor(1.4426950408889634 * _v6_aa + 0.5)
         _v6_r = _v6_aa - _v6_fl * 0.693145751953125 - _v6_fl * 1.4286068203094173e-06
         _v6_rr = _v6_r * _v6_r
@@ -283,47 +292,46 @@ def f_cols(_X, u, theta, _dxdt):
         _v6_q = ((3.0019850513866446e-06 * _v6_rr + 0.002524483403496841) * _v6_rr + 0.22726554820815503) * _v6_rr + 2.0
         _v6_d = _v6_q - _v6_p
         _v6_small = _v6_a < 0.625
-        _v6_num = _v6_x * _v6_z * ((-0.9643991794250523 * _v6_z - 99.28772310019185) * _v6_z - 1614.6876844170845) if _v6_small else 2.0 * _v6_d
+        _v6_num = _sel(_v6_small, _v6_x * _v6_z * ((-0.9643991794250523 * _v6_z - 99.28772310019185) * _v6_z - 1614.6876844170845), 2.0 * _v6_d)
         _v7_n = np.int64(_v6_fl)
-        _v7_a = -_v7_n if _v7_n < 0 else _v7_n
         _v7_neg = _v7_n < 0
-        _v7_p = (0.5 if _v7_neg else 2.0) if _v7_a & 1 else 1.0
-        _v7_p *= (0.25 if _v7_neg else 4.0) if _v7_a & 2 else 1.0
-        _v7_p *= (0.0625 if _v7_neg else 16.0) if _v7_a & 4 else 1.0
-        _v7_p *= (0.00390625 if _v7_neg else 256.0) if _v7_a & 8 else 1.0
-        _v7_p *= (1.52587890625e-05 if _v7_neg else 65536.0) if _v7_a & 16 else 1.0
-        _v7_p *= (2.3283064365386963e-10 if _v7_neg else 4294967296.0) if _v7_a & 32 else 1.0
-        _v7_p *= (5.421010862427522e-20 if _v7_neg else 1.8446744073709552e+19) if _v7_a & 64 else 1.0
-        _v7_p *= (2.938735877055719e-39 if _v7_neg else 3.402823669209385e+38) if _v7_a & 128 else 1.0
-        _v7_p *= (8.636168555094445e-78 if _v7_neg else 1.157920892373162e+77) if _v7_a & 256 else 1.0
-        _v7_p *= (7.458340731200207e-155 if _v7_neg else 1.3407807929942597e+154) if _v7_a & 512 else 1.0
-        _v7_r = _v7_p
-        _v6_den = ((_v6_z + 112.81167849163293) * _v6_z + 2235.4883906010045) * _v6_z + 4844.063053251255 if _v6_small else _v7_r * (_v6_q + _v6_p) + _v6_d
+        _v7_a = _sel(_v7_neg, -_v7_n, _v7_n)
+        _v7_p0 = _sel(_v7_a & 1 != 0, _sel(_v7_neg, 0.5, 2.0), 1.0)
+        _v7_p1 = _v7_p0 * _sel(_v7_a & 2 != 0, _sel(_v7_neg, 0.25, 4.0), 1.0)
+        _v7_p2 = _v7_p1 * _sel(_v7_a & 4 != 0, _sel(_v7_neg, 0.0625, 16.0), 1.0)
+        _v7_p3 = _v7_p2 * _sel(_v7_a & 8 != 0, _sel(_v7_neg, 0.00390625, 256.0), 1.0)
+        _v7_p4 = _v7_p3 * _sel(_v7_a & 16 != 0, _sel(_v7_neg, 1.52587890625e-05, 65536.0), 1.0)
+        _v7_p5 = _v7_p4 * _sel(_v7_a & 32 != 0, _sel(_v7_neg, 2.3283064365386963e-10, 4294967296.0), 1.0)
+        _v7_p6 = _v7_p5 * _sel(_v7_a & 64 != 0, _sel(_v7_neg, 5.421010862427522e-20, 1.8446744073709552e+19), 1.0)
+        _v7_p7 = _v7_p6 * _sel(_v7_a & 128 != 0, _sel(_v7_neg, 2.938735877055719e-39, 3.402823669209385e+38), 1.0)
+        _v7_p8 = _v7_p7 * _sel(_v7_a & 256 != 0, _sel(_v7_neg, 8.636168555094445e-78, 1.157920892373162e+77), 1.0)
+        _v7_ret = _v7_p8 * _sel(_v7_a & 512 != 0, _sel(_v7_neg, 7.458340731200207e-155, 1.3407807929942597e+154), 1.0)
+        _v6_den = _sel(_v6_small, ((_v6_z + 112.81167849163293) * _v6_z + 2235.4883906010045) * _v6_z + 4844.063053251255, _v7_ret * (_v6_q + _v6_p) + _v6_d)
         _v6_t = _v6_num / _v6_den
         _v6_big = 1.0 - _v6_t
-        _v6_r = _v6_x + _v6_t if _v6_small else -_v6_big if _v6_x < 0 else _v6_big
-        _t9 = _v6_r
+        _v6_ret = _sel(_v6_small, _v6_x + _v6_t, _sel(_v6_x < 0, -_v6_big, _v6_big))
+        _t9 = _v6_ret
         _v8_x = theta_g
         _v9_a = abs(_v8_x)
         _v9_shift = 0
-        _v9_y = np.floor(_v9_a * 1.2732395447351628)
-        _v9_j = np.int64(_v9_y) if _v9_a < 1000000000000000.0 else np.int64(0)
-        _v9_odd = _v9_j & 1 == 1
-        _v9_j = _v9_j + 1 if _v9_odd else _v9_j
-        _v9_y = _v9_y + 1.0 if _v9_odd else _v9_y
-        _v9_j = _v9_j + _v9_shift & 7
-        _v9_neg = _v9_j > 3
-        _v9_j = _v9_j - 4 if _v9_neg else _v9_j
+        _v9_y0 = np.floor(_v9_a * 1.2732395447351628)
+        _v9_j0 = _sel(_v9_a < 1000000000000000.0, np.int64(_v9_y0), np.int64(0))
+        _v9_odd = _v9_j0 & 1 == 1
+        _v9_j1 = _sel(_v9_odd, _v9_j0 + 1, _v9_j0)
+        _v9_y = _sel(_v9_odd, _v9_y0 + 1.0, _v9_y0)
+        _v9_j2 = _v9_j1 + _v9_shift & 7
+        _v9_neg = _v9_j2 > 3
+        _v9_j = _sel(_v9_neg, _v9_j2 - 4, _v9_j2)
         _v9_z = _v9_a - _v9_y * 0.7853981256484985 - _v9_y * 3.774894707930798e-08 - _v9_y * 2.6951514290790595e-15
         _v9_zz = _v9_z * _v9_z
         _v9_c = 1.0 - 0.5 * _v9_zz + _v9_zz * _v9_zz * (((((-1.1358536521387682e-11 * _v9_zz + 2.087570084197473e-09) * _v9_zz - 2.755731417929674e-07) * _v9_zz + 2.4801587288851704e-05) * _v9_zz - 0.0013888888888873056) * _v9_zz + 0.041666666666666595)
         _v9_s = _v9_z + _v9_z * _v9_zz * (((((1.5896230157654656e-10 * _v9_zz - 2.5050747762857807e-08) * _v9_zz + 2.7557313621385722e-06) * _v9_zz - 0.0001984126982958954) * _v9_zz + 0.008333333333322118) * _v9_zz - 0.1666666666666663)
-        _v9_r = _v9_c if _v9_j == 1 or _v9_j == 2 else _v9_s
-        _v9_r = -_v9_r if _v9_neg else _v9_r
-        _v8_r = _v9_r
-        _v8_r = -_v8_r if _v8_x < 0 else _v8_r
+        _v9_r = _sel((_v9_j == 1) | (_v9_j == 2), _v9_c, _v9_s)
+        _v9_ret = _sel(_v9_neg, -_v9_r, _v9_r)
+        _v8_r = _v9_ret
+        _v8_ret = _sel(_v8_x < 0, -_v8_r, _v8_r)
         _far += abs(_v8_x) >= 1e8
-        _dxdt[0 + _j] = -0.6*C_dA*_t1*_t2 - mu*_t6*_t8 - _t0*_v8_r
+        _dxdt[0 + _j] = -0.6*C_dA*_t1*_t2 - mu*_t6*_t8 - _t0*_v8_ret
         _dxdt[7 + _j] = -4*brake*T_bmax*_t9 - f_r*r_dyn*_t8*_t9 + g*m*mu*r_dyn*_t6*_t7
         _dxdt[14 + _j] = 0
     if _far:
@@ -369,24 +377,24 @@ def h_cols(_X, u, theta, _y):
         _v0_x = theta_g
         _v1_a = abs(_v0_x)
         _v1_shift = 0
-        _v1_y = np.floor(_v1_a * 1.2732395447351628)
-        _v1_j = np.int64(_v1_y) if _v1_a < 1000000000000000.0 else np.int64(0)
-        _v1_odd = _v1_j & 1 == 1
-        _v1_j = _v1_j + 1 if _v1_odd else _v1_j
-        _v1_y = _v1_y + 1.0 if _v1_odd else _v1_y
-        _v1_j = _v1_j + _v1_shift & 7
-        _v1_neg = _v1_j > 3
-        _v1_j = _v1_j - 4 if _v1_neg else _v1_j
+        _v1_y0 = np.floor(_v1_a * 1.2732395447351628)
+        _v1_j0 = _sel(_v1_a < 1000000000000000.0, np.int64(_v1_y0), np.int64(0))
+        _v1_odd = _v1_j0 & 1 == 1
+        _v1_j1 = _sel(_v1_odd, _v1_j0 + 1, _v1_j0)
+        _v1_y = _sel(_v1_odd, _v1_y0 + 1.0, _v1_y0)
+        _v1_j2 = _v1_j1 + _v1_shift & 7
+        _v1_neg = _v1_j2 > 3
+        _v1_j = _sel(_v1_neg, _v1_j2 - 4, _v1_j2)
         _v1_z = _v1_a - _v1_y * 0.7853981256484985 - _v1_y * 3.774894707930798e-08 - _v1_y * 2.6951514290790595e-15
         _v1_zz = _v1_z * _v1_z
         _v1_c = 1.0 - 0.5 * _v1_zz + _v1_zz * _v1_zz * (((((-1.1358536521387682e-11 * _v1_zz + 2.087570084197473e-09) * _v1_zz - 2.755731417929674e-07) * _v1_zz + 2.4801587288851704e-05) * _v1_zz - 0.0013888888888873056) * _v1_zz + 0.041666666666666595)
         _v1_s = _v1_z + _v1_z * _v1_zz * (((((1.5896230157654656e-10 * _v1_zz - 2.5050747762857807e-08) * _v1_zz + 2.7557313621385722e-06) * _v1_zz - 0.0001984126982958954) * _v1_zz + 0.008333333333322118) * _v1_zz - 0.1666666666666663)
-        _v1_r = _v1_c if _v1_j == 1 or _v1_j == 2 else _v1_s
-        _v1_r = -_v1_r if _v1_neg else _v1_r
-        _v0_r = _v1_r
-        _v0_r = -_v0_r if _v0_x < 0 else _v0_r
+        _v1_r = _sel((_v1_j == 1) | (_v1_j == 2), _v1_c, _v1_s)
+        _v1_ret = _sel(_v1_neg, -_v1_r, _v1_r)
+        _v0_r = _v1_ret
+        _v0_ret = _sel(_v0_x < 0, -_v0_r, _v0_r)
         _far += abs(_v0_x) >= 1e8
-        _t4 = g*_v0_r
+        _t4 = g*_v0_ret
         _t5 = np.sqrt(0.25 + body__p_m**2/m**2)
         _t6 = k_slip*((0.25)*r_dyn*wheels__p_J*_t0 - _t3)/(C_mf*mu*((0.5)*_t5 + (0.5)*np.sqrt((_t5 - 2)**2 + 0.25) + 1))
         _t7 = -_t6
@@ -397,67 +405,67 @@ def h_cols(_X, u, theta, _y):
         _v2_x = theta_g
         _v3_a = abs(_v2_x)
         _v3_shift = 2
-        _v3_y = np.floor(_v3_a * 1.2732395447351628)
-        _v3_j = np.int64(_v3_y) if _v3_a < 1000000000000000.0 else np.int64(0)
-        _v3_odd = _v3_j & 1 == 1
-        _v3_j = _v3_j + 1 if _v3_odd else _v3_j
-        _v3_y = _v3_y + 1.0 if _v3_odd else _v3_y
-        _v3_j = _v3_j + _v3_shift & 7
-        _v3_neg = _v3_j > 3
-        _v3_j = _v3_j - 4 if _v3_neg else _v3_j
+        _v3_y0 = np.floor(_v3_a * 1.2732395447351628)
+        _v3_j0 = _sel(_v3_a < 1000000000000000.0, np.int64(_v3_y0), np.int64(0))
+        _v3_odd = _v3_j0 & 1 == 1
+        _v3_j1 = _sel(_v3_odd, _v3_j0 + 1, _v3_j0)
+        _v3_y = _sel(_v3_odd, _v3_y0 + 1.0, _v3_y0)
+        _v3_j2 = _v3_j1 + _v3_shift & 7
+        _v3_neg = _v3_j2 > 3
+        _v3_j = _sel(_v3_neg, _v3_j2 - 4, _v3_j2)
         _v3_z = _v3_a - _v3_y * 0.7853981256484985 - _v3_y * 3.774894707930798e-08 - _v3_y * 2.6951514290790595e-15
         _v3_zz = _v3_z * _v3_z
         _v3_c = 1.0 - 0.5 * _v3_zz + _v3_zz * _v3_zz * (((((-1.1358536521387682e-11 * _v3_zz + 2.087570084197473e-09) * _v3_zz - 2.755731417929674e-07) * _v3_zz + 2.4801587288851704e-05) * _v3_zz - 0.0013888888888873056) * _v3_zz + 0.041666666666666595)
         _v3_s = _v3_z + _v3_z * _v3_zz * (((((1.5896230157654656e-10 * _v3_zz - 2.5050747762857807e-08) * _v3_zz + 2.7557313621385722e-06) * _v3_zz - 0.0001984126982958954) * _v3_zz + 0.008333333333322118) * _v3_zz - 0.1666666666666663)
-        _v3_r = _v3_c if _v3_j == 1 or _v3_j == 2 else _v3_s
-        _v3_r = -_v3_r if _v3_neg else _v3_r
-        _v2_r = _v3_r
+        _v3_r = _sel((_v3_j == 1) | (_v3_j == 2), _v3_c, _v3_s)
+        _v3_ret = _sel(_v3_neg, -_v3_r, _v3_r)
+        _v2_ret = _v3_ret
         _far += abs(_v2_x) >= 1e8
         _v4_x = _t6
         _v4_a = abs(_v4_x)
         _v4_big = _v4_a > 2.414213562373095
         _v4_mid = _v4_a > 0.66
-        _v4_z0 = (-1.0 if _v4_big else _v4_a - 1.0 if _v4_mid else _v4_a) / (_v4_a if _v4_big else _v4_a + 1.0 if _v4_mid else 1.0)
-        _v4_y0 = 1.5707963267948966 if _v4_big else 0.7853981633974483 if _v4_mid else 0.0
-        _v4_mb = 6.123233995736766e-17 if _v4_big else 3.061616997868383e-17 if _v4_mid else 0.0
+        _v4_z0 = _sel(_v4_big, -1.0, _sel(_v4_mid, _v4_a - 1.0, _v4_a)) / _sel(_v4_big, _v4_a, _sel(_v4_mid, _v4_a + 1.0, 1.0))
+        _v4_y0 = _sel(_v4_big, 1.5707963267948966, _sel(_v4_mid, 0.7853981633974483, 0.0))
+        _v4_mb = _sel(_v4_big, 6.123233995736766e-17, _sel(_v4_mid, 3.061616997868383e-17, 0.0))
         _v4_z = _v4_z0 * _v4_z0
         _v4_p = (((-0.8750608600031904 * _v4_z - 16.157537187333652) * _v4_z - 75.00855792314705) * _v4_z - 122.88666844901361) * _v4_z - 64.85021904942025
         _v4_q = ((((_v4_z + 24.858464901423062) * _v4_z + 165.02700983169885) * _v4_z + 432.88106049129027) * _v4_z + 485.3903996359137) * _v4_z + 194.5506571482614
         _v4_r = _v4_y0 + (_v4_z0 * (_v4_z * _v4_p / _v4_q) + _v4_z0 + _v4_mb)
-        _v4_r = -_v4_r if _v4_x < 0 else _v4_r
-        _v5_x = E_mf*(-_t7 - _v4_r) + _t7
+        _v4_ret = _sel(_v4_x < 0, -_v4_r, _v4_r)
+        _v5_x = E_mf*(-_t7 - _v4_ret) + _t7
         _v5_a = abs(_v5_x)
         _v5_big = _v5_a > 2.414213562373095
         _v5_mid = _v5_a > 0.66
-        _v5_z0 = (-1.0 if _v5_big else _v5_a - 1.0 if _v5_mid else _v5_a) / (_v5_a if _v5_big else _v5_a + 1.0 if _v5_mid else 1.0)
-        _v5_y0 = 1.5707963267948966 if _v5_big else 0.7853981633974483 if _v5_mid else 0.0
-        _v5_mb = 6.123233995736766e-17 if _v5_big else 3.061616997868383e-17 if _v5_mid else 0.0
+        _v5_z0 = _sel(_v5_big, -1.0, _sel(_v5_mid, _v5_a - 1.0, _v5_a)) / _sel(_v5_big, _v5_a, _sel(_v5_mid, _v5_a + 1.0, 1.0))
+        _v5_y0 = _sel(_v5_big, 1.5707963267948966, _sel(_v5_mid, 0.7853981633974483, 0.0))
+        _v5_mb = _sel(_v5_big, 6.123233995736766e-17, _sel(_v5_mid, 3.061616997868383e-17, 0.0))
         _v5_z = _v5_z0 * _v5_z0
         _v5_p = (((-0.8750608600031904 * _v5_z - 16.157537187333652) * _v5_z - 75.00855792314705) * _v5_z - 122.88666844901361) * _v5_z - 64.85021904942025
         _v5_q = ((((_v5_z + 24.858464901423062) * _v5_z + 165.02700983169885) * _v5_z + 432.88106049129027) * _v5_z + 485.3903996359137) * _v5_z + 194.5506571482614
         _v5_r = _v5_y0 + (_v5_z0 * (_v5_z * _v5_p / _v5_q) + _v5_z0 + _v5_mb)
-        _v5_r = -_v5_r if _v5_x < 0 else _v5_r
-        _v6_x = C_mf*_v5_r
+        _v5_ret = _sel(_v5_x < 0, -_v5_r, _v5_r)
+        _v6_x = C_mf*_v5_ret
         _v7_a = abs(_v6_x)
         _v7_shift = 0
-        _v7_y = np.floor(_v7_a * 1.2732395447351628)
-        _v7_j = np.int64(_v7_y) if _v7_a < 1000000000000000.0 else np.int64(0)
-        _v7_odd = _v7_j & 1 == 1
-        _v7_j = _v7_j + 1 if _v7_odd else _v7_j
-        _v7_y = _v7_y + 1.0 if _v7_odd else _v7_y
-        _v7_j = _v7_j + _v7_shift & 7
-        _v7_neg = _v7_j > 3
-        _v7_j = _v7_j - 4 if _v7_neg else _v7_j
+        _v7_y0 = np.floor(_v7_a * 1.2732395447351628)
+        _v7_j0 = _sel(_v7_a < 1000000000000000.0, np.int64(_v7_y0), np.int64(0))
+        _v7_odd = _v7_j0 & 1 == 1
+        _v7_j1 = _sel(_v7_odd, _v7_j0 + 1, _v7_j0)
+        _v7_y = _sel(_v7_odd, _v7_y0 + 1.0, _v7_y0)
+        _v7_j2 = _v7_j1 + _v7_shift & 7
+        _v7_neg = _v7_j2 > 3
+        _v7_j = _sel(_v7_neg, _v7_j2 - 4, _v7_j2)
         _v7_z = _v7_a - _v7_y * 0.7853981256484985 - _v7_y * 3.774894707930798e-08 - _v7_y * 2.6951514290790595e-15
         _v7_zz = _v7_z * _v7_z
         _v7_c = 1.0 - 0.5 * _v7_zz + _v7_zz * _v7_zz * (((((-1.1358536521387682e-11 * _v7_zz + 2.087570084197473e-09) * _v7_zz - 2.755731417929674e-07) * _v7_zz + 2.4801587288851704e-05) * _v7_zz - 0.0013888888888873056) * _v7_zz + 0.041666666666666595)
         _v7_s = _v7_z + _v7_z * _v7_zz * (((((1.5896230157654656e-10 * _v7_zz - 2.5050747762857807e-08) * _v7_zz + 2.7557313621385722e-06) * _v7_zz - 0.0001984126982958954) * _v7_zz + 0.008333333333322118) * _v7_zz - 0.1666666666666663)
-        _v7_r = _v7_c if _v7_j == 1 or _v7_j == 2 else _v7_s
-        _v7_r = -_v7_r if _v7_neg else _v7_r
-        _v6_r = _v7_r
-        _v6_r = -_v6_r if _v6_x < 0 else _v6_r
+        _v7_r = _sel((_v7_j == 1) | (_v7_j == 2), _v7_c, _v7_s)
+        _v7_ret = _sel(_v7_neg, -_v7_r, _v7_r)
+        _v6_r = _v7_ret
+        _v6_ret = _sel(_v6_x < 0, -_v6_r, _v6_r)
         _far += abs(_v6_x) >= 1e8
-        _y[28 + _j] = _t2*(-0.6*C_dA*_t3*_t5 - g*m*mu*_v2_r*_v6_r - m*_t4) + _t4
+        _y[28 + _j] = _t2*(-0.6*C_dA*_t3*_t5 - g*m*mu*_v2_ret*_v6_ret - m*_t4) + _t4
     if _far:
         for _j in range(7):
             body__p_m = _X[0 + _j]
