@@ -21,6 +21,7 @@ import warnings
 import numpy as np
 import pytest
 
+from bondgraph.core.codegen import padded_points
 from bondgraph.errors import BackendWarning
 from bondgraph.inference import ukf as ukf_module
 from bondgraph.inference.options import UKFOptions
@@ -113,13 +114,14 @@ def test_point_kernels_equal_numpy_module(name):
 
 
 def _cols(pk, m, X, u, th):
-    """f_cols and h_cols at the rows of X (2 n_x + 1 points), as (points, n)."""
-    npt = X.shape[0]
-    F, Y = np.empty(m.n_x * npt), np.empty(m.n_y * npt)
-    XT = np.ascontiguousarray(X.T).ravel()
+    """f_cols and h_cols at the rows of X (2 n_x + 1 points, padded with
+    copies of point 0 as the filter does), as (points, n)."""
+    npt, pc = X.shape[0], padded_points(m.n_x)
+    F, Y = np.empty(m.n_x * pc), np.empty(m.n_y * pc)
+    XT = np.ascontiguousarray(np.vstack([X, np.tile(X[0], (pc - npt, 1))]).T).ravel()
     pk.f_cols(XT, u, th, F)
     pk.h_cols(XT, u, th, Y)
-    return F.reshape(m.n_x, npt).T, Y.reshape(m.n_y, npt).T
+    return F.reshape(m.n_x, pc).T[:npt], Y.reshape(m.n_y, pc).T[:npt]
 
 
 def _points_reference(pk, m, X, u, th):

@@ -66,6 +66,7 @@ from collections import namedtuple
 
 import numpy as np
 
+from bondgraph.core.codegen import POINTS_MIN, POINTS_VECTOR
 from bondgraph.numerics.integrators import GAMMA
 
 try:  # numba is a regular dependency; the numpy path is the fallback without it
@@ -143,9 +144,17 @@ def _carve(buf, o, r, c):
 def _work_size(n, ny, nu, nth):
     """Lengths of the float and integer work buffers of one parameter set
     (:func:`_work`)."""
-    npt, m = 2 * n + 1, max(n, ny)
-    return (6 * n * n + npt * m + m + m * m + 9 * n + 2 * nu + npt * ny + 2 * n * ny + ny * ny
-            + 5 * ny + nth + 5 * n * npt + ny * npt, ny + 1 + 2 * n + m)
+    npt, m, pc = 2 * n + 1, max(n, ny), _padded(n)
+    return (6 * n * n + npt * m + m + m * m + 9 * n + 2 * nu + 2 * pc * ny + 2 * n * ny
+            + ny * ny + 5 * ny + nth + 5 * n * pc, ny + 1 + 2 * n + m)
+
+
+@_jit_inline
+def _padded(n):
+    """Columns of the state-major point arrays: the 2n + 1 sigma points and
+    copies of point 0 (:func:`bondgraph.core.codegen.padded_points`: the
+    column kernels' loops run in whole vectors)."""
+    return max(POINTS_MIN, (2 * n + POINTS_VECTOR) // POINTS_VECTOR * POINTS_VECTOR)
 
 
 @_jit_inline
@@ -154,7 +163,7 @@ def _work(buf, ibuf, n, ny, nu, nth):
     the caller: the kernel allocates nothing and runs without numba's
     reference counting), with the set's state x, covariance P and
     parameters."""
-    npt, m = 2 * n + 1, max(n, ny)
+    npt, m, pc = 2 * n + 1, max(n, ny), _padded(n)
     L, o = _carve(buf, 0, n, n)
     D, o = _carve(buf, o, m, npt)
     cov, o = _carve(buf, o, m, m)
@@ -162,7 +171,7 @@ def _work(buf, ibuf, n, ny, nu, nth):
     J, o = _carve(buf, o, n, n)
     Winv, o = _carve(buf, o, n, n)
     A, o = _carve(buf, o, n, 2 * n)
-    Ym, o = _carve(buf, o, ny, npt)
+    Ym, o = _carve(buf, o, ny, pc)
     Pyx, o = _carve(buf, o, ny, n)
     Gt, o = _carve(buf, o, ny, n)
     Ls, o = _carve(buf, o, ny, ny)
@@ -171,12 +180,12 @@ def _work(buf, ibuf, n, ny, nu, nth):
     mean, o = _carve(buf, o, 1, m)
     P, o = _carve(buf, o, n, n)
     tha, o = _carve(buf, o, 1, nth)
-    FTf, FT = buf[o:o + n * npt], _carve(buf, o, n, npt)[0]
-    K1, o = _carve(buf, o + n * npt, n, npt)
-    K2, o = _carve(buf, o, n, npt)
-    XSf, XS = buf[o:o + n * npt], _carve(buf, o, n, npt)[0]
-    XTf, XT = buf[o + n * npt:o + 2 * n * npt], _carve(buf, o + n * npt, n, npt)[0]
-    YTf, YT = buf[o + 2 * n * npt:o + (2 * n + ny) * npt], _carve(buf, o + 2 * n * npt, ny, npt)[0]
+    FTf, FT = buf[o:o + n * pc], _carve(buf, o, n, pc)[0]
+    K1, o = _carve(buf, o + n * pc, n, pc)
+    K2, o = _carve(buf, o, n, pc)
+    XSf, XS = buf[o:o + n * pc], _carve(buf, o, n, pc)[0]
+    XTf, XT = buf[o + n * pc:o + 2 * n * pc], _carve(buf, o + n * pc, n, pc)[0]
+    YTf, YT = buf[o + 2 * n * pc:o + (2 * n + ny) * pc], _carve(buf, o + 2 * n * pc, ny, pc)[0]
     wk = Work(L, D, mean[0], cov, vn[0], vn[1], vn[2], vn[3], vn[4], vn[5], vn[6],
               vn[7], J, Winv, A, vu[0], Ym, ibuf[:ny], Pyx, Gt, vy[0], vy[1], Ls, vy[2],
               ibuf[ny:ny + 1], vy[3], vu[1], vy[4], ibuf[ny + 1:ny + 1 + 2 * n], FT, K1, K2, XS,
@@ -429,7 +438,8 @@ def _matvec(M, v, out):
 @_jit_inline
 def _sigma(x, L, c, XT):
     """Scaled sigma points χ_0 = x, χ_i = x + c L_i, χ_n+i = x − c L_i
-    state-major into XT (n, 2n + 1): XT[a, j] is state a of point j."""
+    state-major into XT (n, :func:`_padded`): XT[a, j] is state a of point
+    j; the columns after 2n are copies of point 0 (padding)."""
     n = x.shape[0]
     for a in range(n):
         xa = x[a]
@@ -438,6 +448,8 @@ def _sigma(x, L, c, XT):
             v = c * L[a, i]
             XT[a, 1 + i] = xa + v
             XT[a, 1 + n + i] = xa - v
+        for j in range(2 * n + 1, XT.shape[1]):
+            XT[a, j] = xa
 
 
 @_jit_inline
@@ -447,7 +459,7 @@ def _moments(Z, m, w, cc, mean, cov, D):
     (:func:`bondgraph.inference.sigma.unscented_moments`); D[a, i] =
     Z_a,i+1 − Z_a,0 (each sum is a contiguous dot product, vectorised with
     reassociation)."""
-    npt = Z.shape[1]
+    npt = D.shape[1]
     for a in range(m):
         z0 = Z[a, 0]
         for i in range(1, npt):
@@ -624,7 +636,8 @@ def _transition(f, fj, fcols, u, k, th, dt, ip, wk):
     interval k, in place (:func:`bondgraph.numerics.integrators.make_step`)."""
     method, nsub, jac, hold = ip[0], ip[1], ip[2], ip[3]
     h = dt / nsub
-    n, npt = wk.XT.shape
+    n = wk.XT.shape[0]
+    npt = 2 * n + 1
     _held_input(u, k, 0.0, hold, wk.ub)
     XT, xs = wk.XT, wk.xs
     if method == 1 and jac == 0:
@@ -664,7 +677,7 @@ def _predict(f, fj, fcols, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
     wk.nreg[0] += r == 2
     _sigma(x, wk.L, fp[0], wk.XT)
     _transition(f, fj, fcols, u, k, th, dt, ip, wk)
-    if not _all_finite(wk.XT, n, wk.XT.shape[1]):
+    if not _all_finite(wk.XT, n, 2 * n + 1):
         return 3
     _moments(wk.XT, n, fp[1], fp[2], x, P, wk.D)
     for a in range(n):
@@ -694,7 +707,7 @@ def _measured_outputs(hcols, x, P, th, uk, yk, fp, wk):
         if np.isfinite(yk[b]):
             wk.idx[m] = b
             m += 1
-    npt = wk.YT.shape[1]
+    npt = 2 * n + 1
     if m < yk.shape[0]:
         for b in range(m):
             for j in range(npt):

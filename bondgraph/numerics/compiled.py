@@ -81,10 +81,11 @@ class PointKernels:
         ``f(x, u, theta, out)``, ``h(x, u, theta, out)``,
         ``f_dfdx(x, u, theta, out, jac)`` on C-contiguous float64 vectors.
     f_cols, h_cols : numba dispatchers
-        ``f_cols(X, u, theta, F)``: f at the 2 n_x + 1 sigma points, X and F
-        flat (n_x * (2 n_x + 1),) state-major (state a of point j at
-        ``X[a * (2 n_x + 1) + j]``); ``h_cols(X, u, theta, Y)``: h into Y
-        (n_y * (2 n_x + 1),) output-major.
+        ``f_cols(X, u, theta, F)``: f at the 2 n_x + 1 sigma points and the
+        padding columns (P = ``codegen.padded_points(n_x)`` columns in all),
+        X and F flat (n_x * P,) state-major (state a of point j at
+        ``X[a * P + j]``); ``h_cols(X, u, theta, Y)``: h into Y (n_y * P,)
+        output-major.
     path : Path
         Source file of the kernels.
     compile_s : float

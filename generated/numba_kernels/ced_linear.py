@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (3,), u (1,), theta (8,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'ced_linear'
 N_X, N_U, N_THETA, N_Y = 3, 1, 8, 1
-N_PTS = 7
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -114,17 +115,17 @@ def f_cols(_X, u, theta, _dxdt):
     k_b = theta[4]
     J_p = theta[5]
     b_p = theta[6]
-    for _j in range(7):
+    for _j in range(16):
         p_L_a = _X[0 + _j]
-        q_spring = _X[7 + _j]
-        p_J_p = _X[14 + _j]
+        q_spring = _X[16 + _j]
+        p_J_p = _X[32 + _j]
         _t0 = k_b*q_spring
         _t1 = p_L_a/L_a
         _t2 = (-k_m*_t1 + _t0)/b_m
         _t3 = p_J_p/J_p
         _dxdt[0 + _j] = u_2 - R_a*_t1 + k_m*_t2
-        _dxdt[7 + _j] = -_t2 - _t3
-        _dxdt[14 + _j] = -b_p*_t3 + _t0
+        _dxdt[16 + _j] = -_t2 - _t3
+        _dxdt[32 + _j] = -b_p*_t3 + _t0
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -132,6 +133,6 @@ def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((1 * N_PTS,))."""
     J_p = theta[5]
     k_y = theta[7]
-    for _j in range(7):
-        p_J_p = _X[14 + _j]
+    for _j in range(16):
+        p_J_p = _X[32 + _j]
         _y[0 + _j] = k_y*p_J_p/J_p

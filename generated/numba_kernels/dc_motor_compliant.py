@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (4,), u (2,), theta (8,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'dc_motor_compliant'
 N_X, N_U, N_THETA, N_Y = 4, 2, 8, 2
-N_PTS = 9
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -127,18 +128,18 @@ def f_cols(_X, u, theta, _dxdt):
     J_L = theta[6]
     b_L = theta[7]
     _t1 = 1/L_a
-    for _j in range(9):
+    for _j in range(16):
         p_L_a = _X[0 + _j]
-        p_J_m = _X[9 + _j]
-        q_k_s = _X[18 + _j]
-        p_J_L = _X[27 + _j]
+        p_J_m = _X[16 + _j]
+        q_k_s = _X[32 + _j]
+        p_J_L = _X[48 + _j]
         _t0 = p_J_m/J_m
         _t2 = k_s*q_k_s
         _t3 = p_J_L/J_L
         _dxdt[0 + _j] = V - R_a*p_L_a*_t1 - k_m*_t0
-        _dxdt[9 + _j] = -b_m*_t0 + k_m*p_L_a*_t1 - _t2
-        _dxdt[18 + _j] = _t0 - _t3
-        _dxdt[27 + _j] = -T_L - b_L*_t3 + _t2
+        _dxdt[16 + _j] = -b_m*_t0 + k_m*p_L_a*_t1 - _t2
+        _dxdt[32 + _j] = _t0 - _t3
+        _dxdt[48 + _j] = -T_L - b_L*_t3 + _t2
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -146,8 +147,8 @@ def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((2 * N_PTS,))."""
     L_a = theta[1]
     J_L = theta[6]
-    for _j in range(9):
+    for _j in range(16):
         p_L_a = _X[0 + _j]
-        p_J_L = _X[27 + _j]
+        p_J_L = _X[48 + _j]
         _y[0 + _j] = p_J_L/J_L
-        _y[9 + _j] = p_L_a/L_a
+        _y[16 + _j] = p_L_a/L_a

@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (2,), u (1,), theta (4,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'hydraulic_tanks'
 N_X, N_U, N_THETA, N_Y = 2, 1, 4, 2
-N_PTS = 5
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -96,13 +97,13 @@ def f_cols(_X, u, theta, _dxdt):
     Ch2 = theta[1]
     Rh12 = theta[2]
     Rh2 = theta[3]
-    for _j in range(5):
+    for _j in range(16):
         q_tank1_C = _X[0 + _j]
-        q_tank2_C = _X[5 + _j]
+        q_tank2_C = _X[16 + _j]
         _t0 = q_tank2_C/Ch2
         _t1 = (_t0 - q_tank1_C/Ch1)/Rh12
         _dxdt[0 + _j] = Q + _t1
-        _dxdt[5 + _j] = -_t1 - _t0/Rh2
+        _dxdt[16 + _j] = -_t1 - _t0/Rh2
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -110,8 +111,8 @@ def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((2 * N_PTS,))."""
     Ch1 = theta[0]
     Ch2 = theta[1]
-    for _j in range(5):
+    for _j in range(16):
         q_tank1_C = _X[0 + _j]
-        q_tank2_C = _X[5 + _j]
+        q_tank2_C = _X[16 + _j]
         _y[0 + _j] = q_tank1_C/Ch1
-        _y[5 + _j] = q_tank2_C/Ch2
+        _y[16 + _j] = q_tank2_C/Ch2

@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (9,), u (1,), theta (13,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'mass_chain_5'
 N_X, N_U, N_THETA, N_Y = 9, 1, 13, 1
-N_PTS = 19
+N_PTS = 20
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -205,16 +206,16 @@ def f_cols(_X, u, theta, _dxdt):
     c3 = theta[10]
     k4 = theta[11]
     c4 = theta[12]
-    for _j in range(19):
+    for _j in range(20):
         p_M1 = _X[0 + _j]
-        p_M2 = _X[19 + _j]
-        p_M3 = _X[38 + _j]
-        p_M4 = _X[57 + _j]
-        p_M5 = _X[76 + _j]
-        q_K1 = _X[95 + _j]
-        q_K2 = _X[114 + _j]
-        q_K3 = _X[133 + _j]
-        q_K4 = _X[152 + _j]
+        p_M2 = _X[20 + _j]
+        p_M3 = _X[40 + _j]
+        p_M4 = _X[60 + _j]
+        p_M5 = _X[80 + _j]
+        q_K1 = _X[100 + _j]
+        q_K2 = _X[120 + _j]
+        q_K3 = _X[140 + _j]
+        q_K4 = _X[160 + _j]
         _t0 = p_M2/m2
         _t1 = -_t0 + p_M1/m1
         _t2 = c1*_t1 + k1*q_K1
@@ -230,20 +231,20 @@ def f_cols(_X, u, theta, _dxdt):
         _t12 = c4*_t11
         _t13 = k4*q_K4
         _dxdt[0 + _j] = F - _t2
-        _dxdt[19 + _j] = _t2 - _t5 - _t6
-        _dxdt[38 + _j] = -_t10 + _t5 + _t6 - _t9
-        _dxdt[57 + _j] = _t10 - _t12 - _t13 + _t9
-        _dxdt[76 + _j] = _t12 + _t13
-        _dxdt[95 + _j] = _t1
-        _dxdt[114 + _j] = _t4
-        _dxdt[133 + _j] = _t8
-        _dxdt[152 + _j] = _t11
+        _dxdt[20 + _j] = _t2 - _t5 - _t6
+        _dxdt[40 + _j] = -_t10 + _t5 + _t6 - _t9
+        _dxdt[60 + _j] = _t10 - _t12 - _t13 + _t9
+        _dxdt[80 + _j] = _t12 + _t13
+        _dxdt[100 + _j] = _t1
+        _dxdt[120 + _j] = _t4
+        _dxdt[140 + _j] = _t8
+        _dxdt[160 + _j] = _t11
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
 def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((1 * N_PTS,))."""
     m5 = theta[4]
-    for _j in range(19):
-        p_M5 = _X[76 + _j]
+    for _j in range(20):
+        p_M5 = _X[80 + _j]
         _y[0 + _j] = p_M5/m5

@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (1,), u (1,), theta (3,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'rr_loop'
 N_X, N_U, N_THETA, N_Y = 1, 1, 3, 2
-N_PTS = 3
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -83,7 +84,7 @@ def f_cols(_X, u, theta, _dxdt):
     R2 = theta[1]
     L = theta[2]
     _t0 = 1/L
-    for _j in range(3):
+    for _j in range(16):
         p_L = _X[0 + _j]
         _dxdt[0 + _j] = V - R1*(p_L*_t0 + (-V + R1*p_L*_t0)/(-R1 - R2))
 
@@ -96,8 +97,8 @@ def h_cols(_X, u, theta, _y):
     R2 = theta[1]
     L = theta[2]
     _t0 = 1/L
-    for _j in range(3):
+    for _j in range(16):
         p_L = _X[0 + _j]
         _t1 = p_L*_t0
         _y[0 + _j] = _t1
-        _y[3 + _j] = V - R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2))
+        _y[16 + _j] = V - R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2))

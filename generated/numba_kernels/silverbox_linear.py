@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (2,), u (1,), theta (5,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'silverbox_linear'
 N_X, N_U, N_THETA, N_Y = 2, 1, 5, 1
-N_PTS = 5
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -82,17 +83,17 @@ def f_cols(_X, u, theta, _dxdt):
     m = theta[0]
     d = theta[1]
     k = theta[2]
-    for _j in range(5):
+    for _j in range(16):
         p_mass = _X[0 + _j]
-        q_spring = _X[5 + _j]
+        q_spring = _X[16 + _j]
         _t0 = p_mass/m
         _dxdt[0 + _j] = V1 - d*_t0 - k*q_spring
-        _dxdt[5 + _j] = _t0
+        _dxdt[16 + _j] = _t0
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
 def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((1 * N_PTS,))."""
-    for _j in range(5):
-        q_spring = _X[5 + _j]
+    for _j in range(16):
+        q_spring = _X[16 + _j]
         _y[0 + _j] = q_spring

@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (2,), u (2,), theta (5,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'thermal_two_node'
 N_X, N_U, N_THETA, N_Y = 2, 2, 5, 2
-N_PTS = 5
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -106,13 +107,13 @@ def f_cols(_X, u, theta, _dxdt):
     Rth12 = theta[3]
     Rth2a = theta[4]
     _t0 = 1/T0
-    for _j in range(5):
+    for _j in range(16):
         q_mass1 = _X[0 + _j]
-        q_mass2 = _X[5 + _j]
+        q_mass2 = _X[16 + _j]
         _t1 = T0*q_mass2/Cth2
         _t2 = _t0*(_t1 - T0*q_mass1/Cth1)/Rth12
         _dxdt[0 + _j] = P*_t0 + _t2
-        _dxdt[5 + _j] = -_t2 + _t0*(T_a - _t1)/Rth2a
+        _dxdt[16 + _j] = -_t2 + _t0*(T_a - _t1)/Rth2a
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -121,8 +122,8 @@ def h_cols(_X, u, theta, _y):
     T0 = theta[0]
     Cth1 = theta[1]
     Cth2 = theta[2]
-    for _j in range(5):
+    for _j in range(16):
         q_mass1 = _X[0 + _j]
-        q_mass2 = _X[5 + _j]
+        q_mass2 = _X[16 + _j]
         _y[0 + _j] = T0*q_mass1/Cth1
-        _y[5 + _j] = T0*q_mass2/Cth2
+        _y[16 + _j] = T0*q_mass2/Cth2

@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (1,), u (3,), theta (3,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'toy_cvt'
 N_X, N_U, N_THETA, N_Y = 1, 3, 3, 2
-N_PTS = 3
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -91,7 +92,7 @@ def f_cols(_X, u, theta, _dxdt):
     c = theta[2]
     _t0 = 1/m
     _t1 = J_e*_t0/r**2
-    for _j in range(3):
+    for _j in range(16):
         p_m = _X[0 + _j]
         _dxdt[0 + _j] = (-c*p_m*_t0 + (T + der_r_*p_m*_t1)/r)/(_t1 + 1)
 
@@ -101,8 +102,8 @@ def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((2 * N_PTS,))."""
     r = u[1]
     m = theta[1]
-    for _j in range(3):
+    for _j in range(16):
         p_m = _X[0 + _j]
         _t0 = p_m/m
         _y[0 + _j] = _t0
-        _y[3 + _j] = _t0/r
+        _y[16 + _j] = _t0/r

@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (5,), u (1,), theta (18,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'vehicle_coastdown'
 N_X, N_U, N_THETA, N_Y = 5, 1, 18, 5
-N_PTS = 11
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -242,12 +243,12 @@ def f_cols(_X, u, theta, _dxdt):
     _t0 = g*m
     _t3 = 1/J_w
     _far = 0
-    for _j in range(11):
+    for _j in range(16):
         body__p_m = _X[0 + _j]
-        pitch__p_I = _X[11 + _j]
-        pitch__q_k = _X[22 + _j]
-        wheels__p_J = _X[33 + _j]
-        theta_g = _X[44 + _j]
+        pitch__p_I = _X[16 + _j]
+        pitch__q_k = _X[32 + _j]
+        wheels__p_J = _X[48 + _j]
+        theta_g = _X[64 + _j]
         _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
         _t2 = body__p_m/m
         _t4 = k_slip*((0.25)*r_dyn*wheels__p_J*_t3 - _t2)/(C_mf*mu*((0.5)*_t1 + (0.5)*np.sqrt((_t1 - 2)**2 + 0.25) + 1))
@@ -371,17 +372,17 @@ def f_cols(_X, u, theta, _dxdt):
         _v8_ret = _sel(_v8_x < 0, -_v8_r, _v8_r)
         _far += abs(_v8_x) >= 1e8
         _dxdt[0 + _j] = -_t0*_v8_ret - _t9
-        _dxdt[11 + _j] = -c_theta*_t10 - h_cg*_t9 - k_theta*pitch__q_k
-        _dxdt[22 + _j] = _t10
-        _dxdt[33 + _j] = -4*brake*T_bmax*_t11 - f_r*r_dyn*_t11*_t8 + g*m*mu*r_dyn*_t6*_t7
-        _dxdt[44 + _j] = 0
+        _dxdt[16 + _j] = -c_theta*_t10 - h_cg*_t9 - k_theta*pitch__q_k
+        _dxdt[32 + _j] = _t10
+        _dxdt[48 + _j] = -4*brake*T_bmax*_t11 - f_r*r_dyn*_t11*_t8 + g*m*mu*r_dyn*_t6*_t7
+        _dxdt[64 + _j] = 0
     if _far:
-        for _j in range(11):
+        for _j in range(16):
             body__p_m = _X[0 + _j]
-            pitch__p_I = _X[11 + _j]
-            pitch__q_k = _X[22 + _j]
-            wheels__p_J = _X[33 + _j]
-            theta_g = _X[44 + _j]
+            pitch__p_I = _X[16 + _j]
+            pitch__q_k = _X[32 + _j]
+            wheels__p_J = _X[48 + _j]
+            theta_g = _X[64 + _j]
             _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
             _t2 = body__p_m/m
             _t4 = k_slip*((0.25)*r_dyn*wheels__p_J*_t3 - _t2)/(C_mf*mu*((0.5)*_t1 + (0.5)*np.sqrt((_t1 - 2)**2 + 0.25) + 1))
@@ -393,10 +394,10 @@ def f_cols(_X, u, theta, _dxdt):
             _t10 = pitch__p_I/I_theta
             _t11 = _tanh((0.125)*wheels__p_J*_t3)
             _dxdt[0 + _j] = -_t0*np.sin(theta_g) - _t9
-            _dxdt[11 + _j] = -c_theta*_t10 - h_cg*_t9 - k_theta*pitch__q_k
-            _dxdt[22 + _j] = _t10
-            _dxdt[33 + _j] = -4*brake*T_bmax*_t11 - f_r*r_dyn*_t11*_t8 + g*m*mu*r_dyn*_t6*_t7
-            _dxdt[44 + _j] = 0
+            _dxdt[16 + _j] = -c_theta*_t10 - h_cg*_t9 - k_theta*pitch__q_k
+            _dxdt[32 + _j] = _t10
+            _dxdt[48 + _j] = -4*brake*T_bmax*_t11 - f_r*r_dyn*_t11*_t8 + g*m*mu*r_dyn*_t6*_t7
+            _dxdt[64 + _j] = 0
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -416,11 +417,11 @@ def h_cols(_X, u, theta, _y):
     _t2 = 1/m
     _t5 = g*m
     _far = 0
-    for _j in range(11):
+    for _j in range(16):
         body__p_m = _X[0 + _j]
-        pitch__q_k = _X[22 + _j]
-        wheels__p_J = _X[33 + _j]
-        theta_g = _X[44 + _j]
+        pitch__q_k = _X[32 + _j]
+        wheels__p_J = _X[48 + _j]
+        theta_g = _X[64 + _j]
         _t1 = (0.25)*wheels__p_J*_t0
         _t3 = body__p_m*_t2
         _t4 = pitch__q_k + theta_g
@@ -428,9 +429,9 @@ def h_cols(_X, u, theta, _y):
         _t7 = k_slip*((0.25)*r_dyn*wheels__p_J*_t0 - _t3)/(C_mf*mu*((0.5)*_t6 + (0.5)*np.sqrt((_t6 - 2)**2 + 0.25) + 1))
         _t8 = -_t7
         _y[0 + _j] = _t1
-        _y[11 + _j] = _t1
-        _y[22 + _j] = _t3
-        _y[33 + _j] = theta_off + _t4
+        _y[16 + _j] = _t1
+        _y[32 + _j] = _t3
+        _y[48 + _j] = theta_off + _t4
         _v0_x = theta_g
         _v1_a = abs(_v0_x)
         _v1_shift = 0
@@ -534,13 +535,13 @@ def h_cols(_X, u, theta, _y):
         _v8_r = _v9_ret
         _v8_ret = _sel(_v8_x < 0, -_v8_r, _v8_r)
         _far += abs(_v8_x) >= 1e8
-        _y[44 + _j] = g*_v8_ret + _t2*(-0.6*C_dA*_t3*_t6 - mu*_t5*_v2_ret*_v6_ret - _t5*_v0_ret)
+        _y[64 + _j] = g*_v8_ret + _t2*(-0.6*C_dA*_t3*_t6 - mu*_t5*_v2_ret*_v6_ret - _t5*_v0_ret)
     if _far:
-        for _j in range(11):
+        for _j in range(16):
             body__p_m = _X[0 + _j]
-            pitch__q_k = _X[22 + _j]
-            wheels__p_J = _X[33 + _j]
-            theta_g = _X[44 + _j]
+            pitch__q_k = _X[32 + _j]
+            wheels__p_J = _X[48 + _j]
+            theta_g = _X[64 + _j]
             _t1 = (0.25)*wheels__p_J*_t0
             _t3 = body__p_m*_t2
             _t4 = pitch__q_k + theta_g
@@ -548,7 +549,7 @@ def h_cols(_X, u, theta, _y):
             _t7 = k_slip*((0.25)*r_dyn*wheels__p_J*_t0 - _t3)/(C_mf*mu*((0.5)*_t6 + (0.5)*np.sqrt((_t6 - 2)**2 + 0.25) + 1))
             _t8 = -_t7
             _y[0 + _j] = _t1
-            _y[11 + _j] = _t1
-            _y[22 + _j] = _t3
-            _y[33 + _j] = theta_off + _t4
-            _y[44 + _j] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t6 - mu*_t5*np.sin(C_mf*np.arctan(E_mf*(-_t8 - np.arctan(_t7)) + _t8))*np.cos(theta_g) - _t5*np.sin(theta_g))
+            _y[16 + _j] = _t1
+            _y[32 + _j] = _t3
+            _y[48 + _j] = theta_off + _t4
+            _y[64 + _j] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t6 - mu*_t5*np.sin(C_mf*np.arctan(E_mf*(-_t8 - np.arctan(_t7)) + _t8))*np.cos(theta_g) - _t5*np.sin(theta_g))

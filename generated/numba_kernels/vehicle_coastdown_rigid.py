@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (3,), u (1,), theta (13,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'vehicle_coastdown_rigid'
 N_X, N_U, N_THETA, N_Y = 3, 1, 13, 5
-N_PTS = 7
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -207,10 +208,10 @@ def f_cols(_X, u, theta, _dxdt):
     _t0 = g*m
     _t3 = 1/J_w
     _far = 0
-    for _j in range(7):
+    for _j in range(16):
         body__p_m = _X[0 + _j]
-        wheels__p_J = _X[7 + _j]
-        theta_g = _X[14 + _j]
+        wheels__p_J = _X[16 + _j]
+        theta_g = _X[32 + _j]
         _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
         _t2 = body__p_m/m
         _t4 = k_slip*((0.25)*r_dyn*wheels__p_J*_t3 - _t2)/(C_mf*mu*((0.5)*_t1 + (0.5)*np.sqrt((_t1 - 2)**2 + 0.25) + 1))
@@ -332,13 +333,13 @@ def f_cols(_X, u, theta, _dxdt):
         _v8_ret = _sel(_v8_x < 0, -_v8_r, _v8_r)
         _far += abs(_v8_x) >= 1e8
         _dxdt[0 + _j] = -0.6*C_dA*_t1*_t2 - mu*_t6*_t8 - _t0*_v8_ret
-        _dxdt[7 + _j] = -4*brake*T_bmax*_t9 - f_r*r_dyn*_t8*_t9 + g*m*mu*r_dyn*_t6*_t7
-        _dxdt[14 + _j] = 0
+        _dxdt[16 + _j] = -4*brake*T_bmax*_t9 - f_r*r_dyn*_t8*_t9 + g*m*mu*r_dyn*_t6*_t7
+        _dxdt[32 + _j] = 0
     if _far:
-        for _j in range(7):
+        for _j in range(16):
             body__p_m = _X[0 + _j]
-            wheels__p_J = _X[7 + _j]
-            theta_g = _X[14 + _j]
+            wheels__p_J = _X[16 + _j]
+            theta_g = _X[32 + _j]
             _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
             _t2 = body__p_m/m
             _t4 = k_slip*((0.25)*r_dyn*wheels__p_J*_t3 - _t2)/(C_mf*mu*((0.5)*_t1 + (0.5)*np.sqrt((_t1 - 2)**2 + 0.25) + 1))
@@ -348,8 +349,8 @@ def f_cols(_X, u, theta, _dxdt):
             _t8 = _t0*_t7
             _t9 = _tanh((0.125)*wheels__p_J*_t3)
             _dxdt[0 + _j] = -0.6*C_dA*_t1*_t2 - mu*_t6*_t8 - _t0*np.sin(theta_g)
-            _dxdt[7 + _j] = -4*brake*T_bmax*_t9 - f_r*r_dyn*_t8*_t9 + g*m*mu*r_dyn*_t6*_t7
-            _dxdt[14 + _j] = 0
+            _dxdt[16 + _j] = -4*brake*T_bmax*_t9 - f_r*r_dyn*_t8*_t9 + g*m*mu*r_dyn*_t6*_t7
+            _dxdt[32 + _j] = 0
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -368,10 +369,10 @@ def h_cols(_X, u, theta, _y):
     _t0 = 1/J_w
     _t2 = 1/m
     _far = 0
-    for _j in range(7):
+    for _j in range(16):
         body__p_m = _X[0 + _j]
-        wheels__p_J = _X[7 + _j]
-        theta_g = _X[14 + _j]
+        wheels__p_J = _X[16 + _j]
+        theta_g = _X[32 + _j]
         _t1 = (0.25)*wheels__p_J*_t0
         _t3 = body__p_m*_t2
         _v0_x = theta_g
@@ -399,9 +400,9 @@ def h_cols(_X, u, theta, _y):
         _t6 = k_slip*((0.25)*r_dyn*wheels__p_J*_t0 - _t3)/(C_mf*mu*((0.5)*_t5 + (0.5)*np.sqrt((_t5 - 2)**2 + 0.25) + 1))
         _t7 = -_t6
         _y[0 + _j] = _t1
-        _y[7 + _j] = _t1
-        _y[14 + _j] = _t3
-        _y[21 + _j] = theta_off + theta_g
+        _y[16 + _j] = _t1
+        _y[32 + _j] = _t3
+        _y[48 + _j] = theta_off + theta_g
         _v2_x = theta_g
         _v3_a = abs(_v2_x)
         _v3_shift = 2
@@ -465,12 +466,12 @@ def h_cols(_X, u, theta, _y):
         _v6_r = _v7_ret
         _v6_ret = _sel(_v6_x < 0, -_v6_r, _v6_r)
         _far += abs(_v6_x) >= 1e8
-        _y[28 + _j] = _t2*(-0.6*C_dA*_t3*_t5 - g*m*mu*_v2_ret*_v6_ret - m*_t4) + _t4
+        _y[64 + _j] = _t2*(-0.6*C_dA*_t3*_t5 - g*m*mu*_v2_ret*_v6_ret - m*_t4) + _t4
     if _far:
-        for _j in range(7):
+        for _j in range(16):
             body__p_m = _X[0 + _j]
-            wheels__p_J = _X[7 + _j]
-            theta_g = _X[14 + _j]
+            wheels__p_J = _X[16 + _j]
+            theta_g = _X[32 + _j]
             _t1 = (0.25)*wheels__p_J*_t0
             _t3 = body__p_m*_t2
             _t4 = g*np.sin(theta_g)
@@ -478,7 +479,7 @@ def h_cols(_X, u, theta, _y):
             _t6 = k_slip*((0.25)*r_dyn*wheels__p_J*_t0 - _t3)/(C_mf*mu*((0.5)*_t5 + (0.5)*np.sqrt((_t5 - 2)**2 + 0.25) + 1))
             _t7 = -_t6
             _y[0 + _j] = _t1
-            _y[7 + _j] = _t1
-            _y[14 + _j] = _t3
-            _y[21 + _j] = theta_off + theta_g
-            _y[28 + _j] = _t2*(-0.6*C_dA*_t3*_t5 - g*m*mu*np.sin(C_mf*np.arctan(E_mf*(-_t7 - np.arctan(_t6)) + _t7))*np.cos(theta_g) - m*_t4) + _t4
+            _y[16 + _j] = _t1
+            _y[32 + _j] = _t3
+            _y[48 + _j] = theta_off + theta_g
+            _y[64 + _j] = _t2*(-0.6*C_dA*_t3*_t5 - g*m*mu*np.sin(C_mf*np.arctan(E_mf*(-_t7 - np.arctan(_t6)) + _t7))*np.cos(theta_g) - m*_t4) + _t4

@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (6,), u (1,), theta (19,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'vehicle_coastdown_truth'
 N_X, N_U, N_THETA, N_Y = 6, 1, 19, 5
-N_PTS = 13
+N_PTS = 16
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -336,13 +337,13 @@ def f_cols(_X, u, theta, _dxdt):
     _t21 = 2*brake*T_bmax
     _t22 = f_r*r_dyn
     _far = 0
-    for _j in range(13):
+    for _j in range(16):
         body__p_m = _X[0 + _j]
-        pitch__p_I = _X[13 + _j]
-        pitch__q_k = _X[26 + _j]
-        rear__p_J = _X[39 + _j]
-        front__p_J = _X[52 + _j]
-        theta_g = _X[65 + _j]
+        pitch__p_I = _X[16 + _j]
+        pitch__q_k = _X[32 + _j]
+        rear__p_J = _X[48 + _j]
+        front__p_J = _X[64 + _j]
+        theta_g = _X[80 + _j]
         _t2 = pitch__p_I/I_theta
         _t3 = c_theta*_t2 + k_theta*pitch__q_k
         _t4 = _t1*_t3
@@ -547,19 +548,19 @@ def f_cols(_X, u, theta, _dxdt):
         _v14_ret = _sel(_v14_x < 0, -_v14_r, _v14_r)
         _far += abs(_v14_x) >= 1e8
         _dxdt[0 + _j] = -_t0*_v14_ret - _t18
-        _dxdt[13 + _j] = -h_cg*_t18 - _t3
-        _dxdt[26 + _j] = _t2
-        _dxdt[39 + _j] = mu*r_dyn*_t13*_t6 - _t20*_t21 - _t20*_t22*_t6
-        _dxdt[52 + _j] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t23 - _t21*_t23
-        _dxdt[65 + _j] = 0
+        _dxdt[16 + _j] = -h_cg*_t18 - _t3
+        _dxdt[32 + _j] = _t2
+        _dxdt[48 + _j] = mu*r_dyn*_t13*_t6 - _t20*_t21 - _t20*_t22*_t6
+        _dxdt[64 + _j] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t23 - _t21*_t23
+        _dxdt[80 + _j] = 0
     if _far:
-        for _j in range(13):
+        for _j in range(16):
             body__p_m = _X[0 + _j]
-            pitch__p_I = _X[13 + _j]
-            pitch__q_k = _X[26 + _j]
-            rear__p_J = _X[39 + _j]
-            front__p_J = _X[52 + _j]
-            theta_g = _X[65 + _j]
+            pitch__p_I = _X[16 + _j]
+            pitch__q_k = _X[32 + _j]
+            rear__p_J = _X[48 + _j]
+            front__p_J = _X[64 + _j]
+            theta_g = _X[80 + _j]
             _t2 = pitch__p_I/I_theta
             _t3 = c_theta*_t2 + k_theta*pitch__q_k
             _t4 = _t1*_t3
@@ -579,11 +580,11 @@ def f_cols(_X, u, theta, _dxdt):
             _t20 = _tanh(rear__p_J*_t19)
             _t23 = _tanh(front__p_J*_t19)
             _dxdt[0 + _j] = -_t0*np.sin(theta_g) - _t18
-            _dxdt[13 + _j] = -h_cg*_t18 - _t3
-            _dxdt[26 + _j] = _t2
-            _dxdt[39 + _j] = mu*r_dyn*_t13*_t6 - _t20*_t21 - _t20*_t22*_t6
-            _dxdt[52 + _j] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t23 - _t21*_t23
-            _dxdt[65 + _j] = 0
+            _dxdt[16 + _j] = -h_cg*_t18 - _t3
+            _dxdt[32 + _j] = _t2
+            _dxdt[48 + _j] = mu*r_dyn*_t13*_t6 - _t20*_t21 - _t20*_t22*_t6
+            _dxdt[64 + _j] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t23 - _t21*_t23
+            _dxdt[80 + _j] = 0
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -610,13 +611,13 @@ def h_cols(_X, u, theta, _y):
     _t5 = 1/L_wb
     _t7 = g*m
     _far = 0
-    for _j in range(13):
+    for _j in range(16):
         body__p_m = _X[0 + _j]
-        pitch__p_I = _X[13 + _j]
-        pitch__q_k = _X[26 + _j]
-        rear__p_J = _X[39 + _j]
-        front__p_J = _X[52 + _j]
-        theta_g = _X[65 + _j]
+        pitch__p_I = _X[16 + _j]
+        pitch__q_k = _X[32 + _j]
+        rear__p_J = _X[48 + _j]
+        front__p_J = _X[64 + _j]
+        theta_g = _X[80 + _j]
         _t3 = body__p_m*_t2
         _t4 = pitch__q_k + theta_g
         _t6 = _t5*(k_theta*pitch__q_k + c_theta*pitch__p_I/I_theta)
@@ -647,9 +648,9 @@ def h_cols(_X, u, theta, _y):
         _t13 = _t10*((0.5)*r_dyn*front__p_J*_t0 - _t3)
         _t14 = -_t13
         _y[0 + _j] = front__p_J*_t1
-        _y[13 + _j] = rear__p_J*_t1
-        _y[26 + _j] = _t3
-        _y[39 + _j] = theta_off + _t4
+        _y[16 + _j] = rear__p_J*_t1
+        _y[32 + _j] = _t3
+        _y[48 + _j] = theta_off + _t4
         _v2_x = theta_g
         _v3_a = abs(_v2_x)
         _v3_shift = 0
@@ -778,15 +779,15 @@ def h_cols(_X, u, theta, _y):
         _v12_r = _v13_ret
         _v12_ret = _sel(_v12_x < 0, -_v12_r, _v12_r)
         _far += abs(_v12_x) >= 1e8
-        _y[52 + _j] = g*_v12_ret + _t2*(-0.6*C_dA*_t3*_t9 - mu*_v10_ret*(-_t6 + _t8*(L_wb - l_f)) - mu*_v6_ret*(l_f*_t8 + _t6) - _t7*_v2_ret)
+        _y[64 + _j] = g*_v12_ret + _t2*(-0.6*C_dA*_t3*_t9 - mu*_v10_ret*(-_t6 + _t8*(L_wb - l_f)) - mu*_v6_ret*(l_f*_t8 + _t6) - _t7*_v2_ret)
     if _far:
-        for _j in range(13):
+        for _j in range(16):
             body__p_m = _X[0 + _j]
-            pitch__p_I = _X[13 + _j]
-            pitch__q_k = _X[26 + _j]
-            rear__p_J = _X[39 + _j]
-            front__p_J = _X[52 + _j]
-            theta_g = _X[65 + _j]
+            pitch__p_I = _X[16 + _j]
+            pitch__q_k = _X[32 + _j]
+            rear__p_J = _X[48 + _j]
+            front__p_J = _X[64 + _j]
+            theta_g = _X[80 + _j]
             _t3 = body__p_m*_t2
             _t4 = pitch__q_k + theta_g
             _t6 = _t5*(k_theta*pitch__q_k + c_theta*pitch__p_I/I_theta)
@@ -798,7 +799,7 @@ def h_cols(_X, u, theta, _y):
             _t13 = _t10*((0.5)*r_dyn*front__p_J*_t0 - _t3)
             _t14 = -_t13
             _y[0 + _j] = front__p_J*_t1
-            _y[13 + _j] = rear__p_J*_t1
-            _y[26 + _j] = _t3
-            _y[39 + _j] = theta_off + _t4
-            _y[52 + _j] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t9 - mu*(-_t6 + _t8*(L_wb - l_f))*np.sin(C_mf*np.arctan(E_mf*(-_t14 - np.arctan(_t13)) + _t14)) - mu*(l_f*_t8 + _t6)*np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12)) - _t7*np.sin(theta_g))
+            _y[16 + _j] = rear__p_J*_t1
+            _y[32 + _j] = _t3
+            _y[48 + _j] = theta_off + _t4
+            _y[64 + _j] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t9 - mu*(-_t6 + _t8*(L_wb - l_f))*np.sin(C_mf*np.arctan(E_mf*(-_t14 - np.arctan(_t13)) + _t14)) - mu*(l_f*_t8 + _t6)*np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12)) - _t7*np.sin(theta_g))

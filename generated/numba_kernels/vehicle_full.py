@@ -10,8 +10,9 @@ fails when this file differs from what the graph produces.
 One point per call: x (10,), u (2,), theta (47,) are C-contiguous float64
 vectors (the order of the numpy module's STATES, INPUTS, PARAMS); each kernel
 writes its result into the arrays it is given. f_cols and h_cols take the
-N_PTS = 2 N_X + 1 sigma points of the unscented Kalman filter state-major
-(state a of point j at _X[a * N_PTS + j]), compute what depends on u and theta
+2 N_X + 1 sigma points of the unscented Kalman filter state-major (state a of
+point j at _X[a * N_PTS + j]; N_PTS rounds 2 N_X + 1 up to a multiple of 4,
+the filter pads with copies of point 0), compute what depends on u and theta
 alone once per call, and loop over the points with branch-free sin, cos, atan,
 exp and tanh (within 2 ulp of numpy's; the loop vectorises). Compiled on
 import with explicit signatures and cached on disk (cache=True); the fused UKF
@@ -24,7 +25,7 @@ from numba.extending import intrinsic
 
 NAME = 'vehicle_full'
 N_X, N_U, N_THETA, N_Y = 10, 2, 47, 7
-N_PTS = 21
+N_PTS = 24
 
 _V = types.float64[::1]
 _M = types.float64[:, ::1]
@@ -555,17 +556,17 @@ def f_cols(_X, u, theta, _dxdt):
     _t33 = w_eng**2
     _t34 = 1/J_e**2
     _far = 0
-    for _j in range(21):
+    for _j in range(24):
         body__p_m = _X[0 + _j]
-        pitch__p_I = _X[21 + _j]
-        pitch__q_k = _X[42 + _j]
-        rear__p_J = _X[63 + _j]
-        front__p_J = _X[84 + _j]
-        engine__p_J = _X[105 + _j]
-        cvt__q_springs = _X[126 + _j]
-        cvt__p_J_s = _X[147 + _j]
-        driveline__q_k_rear = _X[168 + _j]
-        theta_g = _X[189 + _j]
+        pitch__p_I = _X[24 + _j]
+        pitch__q_k = _X[48 + _j]
+        rear__p_J = _X[72 + _j]
+        front__p_J = _X[96 + _j]
+        engine__p_J = _X[120 + _j]
+        cvt__q_springs = _X[144 + _j]
+        cvt__p_J_s = _X[168 + _j]
+        driveline__q_k_rear = _X[192 + _j]
+        theta_g = _X[216 + _j]
         _t2 = pitch__p_I/I_theta
         _t3 = c_theta*_t2 + k_theta*pitch__q_k
         _t4 = _t1*_t3
@@ -816,10 +817,10 @@ def f_cols(_X, u, theta, _dxdt):
         _v16_ret = _sel(_v16_x < 0, -_v16_r, _v16_r)
         _far += abs(_v16_x) >= 1e8
         _dxdt[0 + _j] = -_t0*_v16_ret - _t18
-        _dxdt[21 + _j] = -h_cg*_t18 - _t3
-        _dxdt[42 + _j] = _t2
-        _dxdt[63 + _j] = r_dyn*_t13 - _t20*_t21 - _t20*_t22*_t6 + _t27
-        _dxdt[84 + _j] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t28 - _t21*_t28
+        _dxdt[24 + _j] = -h_cg*_t18 - _t3
+        _dxdt[48 + _j] = _t2
+        _dxdt[72 + _j] = r_dyn*_t13 - _t20*_t21 - _t20*_t22*_t6 + _t27
+        _dxdt[96 + _j] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t28 - _t21*_t28
         _v18_x = (0.1)*_t29
         _v18_a = abs(_v18_x)
         _v18_z = _v18_x * _v18_x
@@ -849,23 +850,23 @@ def f_cols(_X, u, theta, _dxdt):
         _v18_t = _v18_num / _v18_den
         _v18_big = 1.0 - _v18_t
         _v18_ret = _sel(_v18_small, _v18_x + _v18_t, _sel(_v18_x < 0, -_v18_big, _v18_big))
-        _dxdt[105 + _j] = throttle*(T_pk*(1 - (-w_pk - _t30)**2/dw_T**2) + _t31 - np.sqrt(_t31**2 + 100)) + K_idle*((0.5)*w_idle - 0.5*_t29 + (0.5)*np.sqrt((w_idle + _t30)**2 + 25)) - T_f0*_v18_ret - b_e*_t29 - _t44
-        _dxdt[126 + _j] = -(F_s0 + k_fw*_t33 - k_fw*_t34*_t35 + k_h*_t41*_t44 - 2500000*x_max + cvt__q_springs*(k_p + k_s) + 5000000*cvt__q_springs - 2500000*np.sqrt(_t40 + 4e-08) + 2500000*np.sqrt((-x_max + cvt__q_springs)**2 + 4e-08))/b_sh
-        _dxdt[147 + _j] = -b_s*_t42 + mu_cl*_t32*_t38*_t41*_t43 - _t24*_t25*_t27
-        _dxdt[168 + _j] = _t26
-        _dxdt[189 + _j] = 0
+        _dxdt[120 + _j] = throttle*(T_pk*(1 - (-w_pk - _t30)**2/dw_T**2) + _t31 - np.sqrt(_t31**2 + 100)) + K_idle*((0.5)*w_idle - 0.5*_t29 + (0.5)*np.sqrt((w_idle + _t30)**2 + 25)) - T_f0*_v18_ret - b_e*_t29 - _t44
+        _dxdt[144 + _j] = -(F_s0 + k_fw*_t33 - k_fw*_t34*_t35 + k_h*_t41*_t44 - 2500000*x_max + cvt__q_springs*(k_p + k_s) + 5000000*cvt__q_springs - 2500000*np.sqrt(_t40 + 4e-08) + 2500000*np.sqrt((-x_max + cvt__q_springs)**2 + 4e-08))/b_sh
+        _dxdt[168 + _j] = -b_s*_t42 + mu_cl*_t32*_t38*_t41*_t43 - _t24*_t25*_t27
+        _dxdt[192 + _j] = _t26
+        _dxdt[216 + _j] = 0
     if _far:
-        for _j in range(21):
+        for _j in range(24):
             body__p_m = _X[0 + _j]
-            pitch__p_I = _X[21 + _j]
-            pitch__q_k = _X[42 + _j]
-            rear__p_J = _X[63 + _j]
-            front__p_J = _X[84 + _j]
-            engine__p_J = _X[105 + _j]
-            cvt__q_springs = _X[126 + _j]
-            cvt__p_J_s = _X[147 + _j]
-            driveline__q_k_rear = _X[168 + _j]
-            theta_g = _X[189 + _j]
+            pitch__p_I = _X[24 + _j]
+            pitch__q_k = _X[48 + _j]
+            rear__p_J = _X[72 + _j]
+            front__p_J = _X[96 + _j]
+            engine__p_J = _X[120 + _j]
+            cvt__q_springs = _X[144 + _j]
+            cvt__p_J_s = _X[168 + _j]
+            driveline__q_k_rear = _X[192 + _j]
+            theta_g = _X[216 + _j]
             _t2 = pitch__p_I/I_theta
             _t3 = c_theta*_t2 + k_theta*pitch__q_k
             _t4 = _t1*_t3
@@ -902,15 +903,15 @@ def f_cols(_X, u, theta, _dxdt):
             _t43 = _tanh((-_t30 - _t41*_t42)/(2 + _t39/c_cl))
             _t44 = _t39*_t43
             _dxdt[0 + _j] = -_t0*np.sin(theta_g) - _t18
-            _dxdt[21 + _j] = -h_cg*_t18 - _t3
-            _dxdt[42 + _j] = _t2
-            _dxdt[63 + _j] = r_dyn*_t13 - _t20*_t21 - _t20*_t22*_t6 + _t27
-            _dxdt[84 + _j] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t28 - _t21*_t28
-            _dxdt[105 + _j] = throttle*(T_pk*(1 - (-w_pk - _t30)**2/dw_T**2) + _t31 - np.sqrt(_t31**2 + 100)) + K_idle*((0.5)*w_idle - 0.5*_t29 + (0.5)*np.sqrt((w_idle + _t30)**2 + 25)) - T_f0*_tanh((0.1)*_t29) - b_e*_t29 - _t44
-            _dxdt[126 + _j] = -(F_s0 + k_fw*_t33 - k_fw*_t34*_t35 + k_h*_t41*_t44 - 2500000*x_max + cvt__q_springs*(k_p + k_s) + 5000000*cvt__q_springs - 2500000*np.sqrt(_t40 + 4e-08) + 2500000*np.sqrt((-x_max + cvt__q_springs)**2 + 4e-08))/b_sh
-            _dxdt[147 + _j] = -b_s*_t42 + mu_cl*_t32*_t38*_t41*_t43 - _t24*_t25*_t27
-            _dxdt[168 + _j] = _t26
-            _dxdt[189 + _j] = 0
+            _dxdt[24 + _j] = -h_cg*_t18 - _t3
+            _dxdt[48 + _j] = _t2
+            _dxdt[72 + _j] = r_dyn*_t13 - _t20*_t21 - _t20*_t22*_t6 + _t27
+            _dxdt[96 + _j] = mu*r_dyn*_t14*_t17 - _t14*_t22*_t28 - _t21*_t28
+            _dxdt[120 + _j] = throttle*(T_pk*(1 - (-w_pk - _t30)**2/dw_T**2) + _t31 - np.sqrt(_t31**2 + 100)) + K_idle*((0.5)*w_idle - 0.5*_t29 + (0.5)*np.sqrt((w_idle + _t30)**2 + 25)) - T_f0*_tanh((0.1)*_t29) - b_e*_t29 - _t44
+            _dxdt[144 + _j] = -(F_s0 + k_fw*_t33 - k_fw*_t34*_t35 + k_h*_t41*_t44 - 2500000*x_max + cvt__q_springs*(k_p + k_s) + 5000000*cvt__q_springs - 2500000*np.sqrt(_t40 + 4e-08) + 2500000*np.sqrt((-x_max + cvt__q_springs)**2 + 4e-08))/b_sh
+            _dxdt[168 + _j] = -b_s*_t42 + mu_cl*_t32*_t38*_t41*_t43 - _t24*_t25*_t27
+            _dxdt[192 + _j] = _t26
+            _dxdt[216 + _j] = 0
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -939,15 +940,15 @@ def h_cols(_X, u, theta, _y):
     _t5 = 1/L_wb
     _t7 = g*m
     _far = 0
-    for _j in range(21):
+    for _j in range(24):
         body__p_m = _X[0 + _j]
-        pitch__p_I = _X[21 + _j]
-        pitch__q_k = _X[42 + _j]
-        rear__p_J = _X[63 + _j]
-        front__p_J = _X[84 + _j]
-        engine__p_J = _X[105 + _j]
-        cvt__p_J_s = _X[147 + _j]
-        theta_g = _X[189 + _j]
+        pitch__p_I = _X[24 + _j]
+        pitch__q_k = _X[48 + _j]
+        rear__p_J = _X[72 + _j]
+        front__p_J = _X[96 + _j]
+        engine__p_J = _X[120 + _j]
+        cvt__p_J_s = _X[168 + _j]
+        theta_g = _X[216 + _j]
         _t3 = body__p_m*_t2
         _t4 = pitch__q_k + theta_g
         _t6 = _t5*(k_theta*pitch__q_k + c_theta*pitch__p_I/I_theta)
@@ -978,11 +979,11 @@ def h_cols(_X, u, theta, _y):
         _t13 = _t10*((0.5)*r_dyn*front__p_J*_t0 - _t3)
         _t14 = -_t13
         _y[0 + _j] = engine__p_J/J_e
-        _y[21 + _j] = cvt__p_J_s/J_s
-        _y[42 + _j] = front__p_J*_t1
-        _y[63 + _j] = rear__p_J*_t1
-        _y[84 + _j] = _t3
-        _y[105 + _j] = theta_off + _t4
+        _y[24 + _j] = cvt__p_J_s/J_s
+        _y[48 + _j] = front__p_J*_t1
+        _y[72 + _j] = rear__p_J*_t1
+        _y[96 + _j] = _t3
+        _y[120 + _j] = theta_off + _t4
         _v2_x = theta_g
         _v3_a = abs(_v2_x)
         _v3_shift = 0
@@ -1111,17 +1112,17 @@ def h_cols(_X, u, theta, _y):
         _v12_r = _v13_ret
         _v12_ret = _sel(_v12_x < 0, -_v12_r, _v12_r)
         _far += abs(_v12_x) >= 1e8
-        _y[126 + _j] = g*_v12_ret + _t2*(-0.6*C_dA*_t3*_t9 - mu*_v10_ret*(-_t6 + _t8*(L_wb - l_f)) - mu*_v6_ret*(l_f*_t8 + _t6) - _t7*_v2_ret)
+        _y[144 + _j] = g*_v12_ret + _t2*(-0.6*C_dA*_t3*_t9 - mu*_v10_ret*(-_t6 + _t8*(L_wb - l_f)) - mu*_v6_ret*(l_f*_t8 + _t6) - _t7*_v2_ret)
     if _far:
-        for _j in range(21):
+        for _j in range(24):
             body__p_m = _X[0 + _j]
-            pitch__p_I = _X[21 + _j]
-            pitch__q_k = _X[42 + _j]
-            rear__p_J = _X[63 + _j]
-            front__p_J = _X[84 + _j]
-            engine__p_J = _X[105 + _j]
-            cvt__p_J_s = _X[147 + _j]
-            theta_g = _X[189 + _j]
+            pitch__p_I = _X[24 + _j]
+            pitch__q_k = _X[48 + _j]
+            rear__p_J = _X[72 + _j]
+            front__p_J = _X[96 + _j]
+            engine__p_J = _X[120 + _j]
+            cvt__p_J_s = _X[168 + _j]
+            theta_g = _X[216 + _j]
             _t3 = body__p_m*_t2
             _t4 = pitch__q_k + theta_g
             _t6 = _t5*(k_theta*pitch__q_k + c_theta*pitch__p_I/I_theta)
@@ -1133,9 +1134,9 @@ def h_cols(_X, u, theta, _y):
             _t13 = _t10*((0.5)*r_dyn*front__p_J*_t0 - _t3)
             _t14 = -_t13
             _y[0 + _j] = engine__p_J/J_e
-            _y[21 + _j] = cvt__p_J_s/J_s
-            _y[42 + _j] = front__p_J*_t1
-            _y[63 + _j] = rear__p_J*_t1
-            _y[84 + _j] = _t3
-            _y[105 + _j] = theta_off + _t4
-            _y[126 + _j] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t9 - mu*(-_t6 + _t8*(L_wb - l_f))*np.sin(C_mf*np.arctan(E_mf*(-_t14 - np.arctan(_t13)) + _t14)) - mu*(l_f*_t8 + _t6)*np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12)) - _t7*np.sin(theta_g))
+            _y[24 + _j] = cvt__p_J_s/J_s
+            _y[48 + _j] = front__p_J*_t1
+            _y[72 + _j] = rear__p_J*_t1
+            _y[96 + _j] = _t3
+            _y[120 + _j] = theta_off + _t4
+            _y[144 + _j] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t9 - mu*(-_t6 + _t8*(L_wb - l_f))*np.sin(C_mf*np.arctan(E_mf*(-_t14 - np.arctan(_t13)) + _t14)) - mu*(l_f*_t8 + _t6)*np.sin(C_mf*np.arctan(E_mf*(-_t12 - np.arctan(_t11)) + _t12)) - _t7*np.sin(theta_g))
