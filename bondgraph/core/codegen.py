@@ -658,7 +658,7 @@ VMATH_LIMITED = ("_vsin", "_vcos")
 NUMBA_FUNCTIONS = ("f", "h", "f_dfdx", "f_cols", "h_cols")
 #: version of the numba code generator: part of the key of compiled kernels
 #: built in memory (bump it when the generated numba text changes)
-NUMBA_CODEGEN_VERSION = 5
+NUMBA_CODEGEN_VERSION = 6
 
 
 #: the column kernels' loops run over a multiple of POINTS_VECTOR points, at
