@@ -132,3 +132,21 @@ def test_pso_resume_refuses_another_problem_and_continues_the_same(tmp_path):
                   fingerprint={"data": "A"})
     np.testing.assert_array_equal(resumed.x, full.x)
     assert resumed.fun == full.fun and resumed.resumed_from == 3
+
+
+def test_default_folder_is_numbered_past_earlier_results(tmp_path):
+    """Without --out a command takes its default folder when absent or empty,
+    else the first free ``-2``, ``-3``, ...; nothing earlier is touched."""
+    from bondgraph.cli.common import unused_folder
+
+    base = tmp_path / "bondgraph-report"
+    assert unused_folder(base) == base
+    base.mkdir()
+    assert unused_folder(base) == base                      # empty: used as is
+    (base / "report.md").write_text("1")
+    assert unused_folder(base) == tmp_path / "bondgraph-report-2"
+    (tmp_path / "bondgraph-report-2").mkdir()
+    (tmp_path / "bondgraph-report-2" / "report.md").write_text("2")
+    (tmp_path / "bondgraph-report-3").write_text("a file, not a folder")
+    assert unused_folder(base) == tmp_path / "bondgraph-report-4"
+    assert (base / "report.md").read_text() == "1"

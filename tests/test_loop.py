@@ -174,14 +174,20 @@ def test_residual_analysis_against_hand_computed_statistics():
 
 
 # ------------------------------------------------------------------ vehicle
-def test_bundled_default_via_cli_writes_the_report(tmp_path):
-    """`bondgraph loop` (the README's main job) on the bundled case: the
-    missing aerodynamic drag is ranked first and accepted, the error drops,
-    and report.json holds the documented fields."""
+def test_bundled_default_via_cli_writes_the_report(tmp_path, monkeypatch, capsys):
+    """`bondgraph loop` (the README's main job, no --out) on the bundled case:
+    the missing aerodynamic drag is ranked first and accepted, the error
+    drops, and report.json holds the documented fields. An earlier report in
+    ./bondgraph-report is kept and this one goes to ./bondgraph-report-2."""
     from bondgraph.cli.main import main
 
-    out = tmp_path / "report"
-    assert main(["loop", "--out", str(out), "--quiet"]) == 0
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bondgraph-report").mkdir()
+    (tmp_path / "bondgraph-report" / "report.md").write_text("earlier run")
+    assert main(["loop", "--quiet"]) == 0
+    assert (tmp_path / "bondgraph-report" / "report.md").read_text() == "earlier run"
+    out = tmp_path / "bondgraph-report-2"
+    assert "report: bondgraph-report-2/report.md" in capsys.readouterr().out
     rep = json.loads((out / "report.json").read_text())
     assert rep["steps"], "no effect accepted"
     s0 = rep["steps"][0]

@@ -17,7 +17,7 @@ from typing import Iterable
 
 import numpy as np
 
-from bondgraph.core.atomic import OutputFolder
+from bondgraph.core.atomic import OutputFolder, is_empty_dir
 from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
@@ -224,6 +224,31 @@ def add_overwrite(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace a non-empty output folder (as a whole; without it such a "
                         "folder is refused)")
+
+
+def unused_folder(base) -> Path:
+    """The default output folder of a command run without ``--out``: ``base``
+    when it is absent or empty, else the first of ``base-2``, ``base-3``, ...
+    that is (so running the main job again keeps the earlier report instead
+    of refusing; an explicit ``--out`` is still refused when not empty).
+
+    Parameters
+    ----------
+    base : path
+        The default folder, e.g. ``bondgraph-report``.
+
+    Returns
+    -------
+    Path
+        A folder that does not exist or is empty.
+    """
+    base = Path(base)
+    k = 1
+    path = base
+    while path.exists() and not is_empty_dir(path):
+        k += 1
+        path = base.with_name(f"{base.name}-{k}")
+    return path
 
 
 def output_folder(path, args, option: str = "--out", *,

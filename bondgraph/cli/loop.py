@@ -21,6 +21,7 @@ from bondgraph.cli.common import (
     parse_names,
     parse_pairs,
     parse_params,
+    unused_folder,
 )
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.cases import get_case, registered_cases
@@ -34,6 +35,8 @@ from bondgraph.report.loop_report import LoopReporter
 
 #: the case run by ``bondgraph loop`` without arguments
 DEFAULT_CASE = "vehicle_aero"
+#: the report folder without ``--out`` (numbered when it holds an earlier report)
+DEFAULT_OUT = "bondgraph-report"
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -45,10 +48,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", help="record (CSV in the experiment format, see docs/data_format.md)")
     p.add_argument("--params", help="comma-separated parameters to estimate (default: the "
                                     "case's, or all parameters of the model)")
-    p.add_argument("--out", default="bondgraph-report", help="report directory "
-                                                             "(default ./bondgraph-report); "
-                                                             "refused when not empty, unless "
-                                                             "--overwrite")
+    p.add_argument("--out", default=None,
+                   help=f"report directory (default ./{DEFAULT_OUT}, or ./{DEFAULT_OUT}-2, -3, "
+                        f"... when it holds an earlier report); refused when not empty, unless "
+                        f"--overwrite")
     add_overwrite(p)
     p.add_argument("--metric", default=None,
                    help="error measure: nrmse_sim (default), rmse_sim, rmse_pred")
@@ -135,7 +138,11 @@ def run(args) -> int:
         for key in ("metric", "criterion", "max_steps", "significance", "workers"):
             text = text.replace(f"LoopSettings.{key}", "--" + key.replace("_", "-"))
         raise OptionError(text) from exc
-    reporter = LoopReporter(args.out, echo=None if args.quiet else print,
+    out = Path(args.out) if args.out else unused_folder(DEFAULT_OUT)
+    if not args.out and out != Path(DEFAULT_OUT) and not args.quiet:
+        print(f"bondgraph loop: ./{DEFAULT_OUT} holds an earlier report (kept); this one goes "
+              f"to ./{out} (--out DIR to choose)")
+    reporter = LoopReporter(out, echo=None if args.quiet else print,
                             overwrite=args.overwrite)
     res = run_loop(graph, record, params, log=reporter.log, progress=not args.quiet,
                    on_update=reporter.update, **settings)
@@ -153,7 +160,7 @@ def run(args) -> int:
         print(res.table())
     else:
         print("  no effect accepted (nothing significant left)")
-    print(f"report: {Path(args.out) / 'report.md'} (and report.json, PNG plots, "
+    print(f"report: {out / 'report.md'} (and report.json, PNG plots, "
           f"augmented_model.py)")
     return 0
 

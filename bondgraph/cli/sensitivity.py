@@ -27,6 +27,7 @@ from bondgraph.cli.common import (
     parse_names,
     parse_pairs,
     published,
+    unused_folder,
 )
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.executor import Executor
@@ -57,8 +58,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nll-transform", choices=("log", "none"), default="log",
                    help="Sobol' indices of ln(1 + NLL - min NLL) (default) or of the NLL")
     p.add_argument("--out", default=None, help="output directory (default "
-                                               "sensitivity_<model>_<data>); refused when not "
-                                               "empty, unless --overwrite")
+                                               "sensitivity_<model>_<data>, numbered -2, -3, ... "
+                                               "when it holds an earlier result); refused when "
+                                               "not empty, unless --overwrite")
     add_overwrite(p)
     add_estimation_scope(p)
     p.add_argument("--at-truth", action="store_true",
@@ -99,7 +101,8 @@ def run(args) -> int:
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
     for o in outputs:
         model.output_index(o)
-    folder = output_folder(args.out or f"sensitivity_{model.name}_{Path(args.data).stem}", args)
+    folder = output_folder(args.out or unused_folder(
+        f"sensitivity_{model.name}_{Path(args.data).stem}"), args)
     log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     Executor(args.workers, args.scheduler)   # a bad --workers/--scheduler fails before any work
