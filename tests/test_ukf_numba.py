@@ -325,6 +325,46 @@ def test_in_memory_model_compiles_into_the_cache(tmp_path, monkeypatch):
     assert_same(a, b)
 
 
+def test_compiled_kernels_are_found_where_numba_caches_them(tmp_path):
+    """An in-memory model compiled in one process counts as compiled in the
+    next (no numpy free run before the break-even), wherever numba keeps its
+    cache: beside the kernel file, or under NUMBA_CACHE_DIR when set (the
+    check looked only beside the file, so with NUMBA_CACHE_DIR every run
+    simulated the candidates' priors with numpy again)."""
+    import os
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\n"
+        "from bondgraph.numerics import compiled\n"
+        "from bondgraph.numerics.model import Model\n"
+        "m = Model.from_spec('bondgraph.catalog.reference:mass_spring_damper')\n"
+        "before = compiled.is_compiled(m)\n"
+        "if sys.argv[1] == 'compile':\n"
+        "    compiled.point_kernels(m)\n"
+        "print(before, compiled.numba_cache_dir(compiled.kernel_source_path(m)))\n")
+    for numba_dir in (None, tmp_path / "numba"):
+        env = dict(os.environ, BONDGRAPH_CACHE_DIR=str(tmp_path / f"bc_{numba_dir is None}"))
+        env.pop("NUMBA_CACHE_DIR", None)
+        if numba_dir is not None:
+            env["NUMBA_CACHE_DIR"] = str(numba_dir)
+
+        def run(arg):
+            r = subprocess.run([sys.executable, "-c", script, arg], env=env, text=True,
+                               capture_output=True, check=True)
+            return r.stdout.split()
+
+        first, where = run("compile")
+        second, where2 = run("check")
+        assert (first, second) == ("False", "True"), (numba_dir, first, second)
+        assert where == where2
+        if numba_dir is None:
+            assert where == str(tmp_path / "bc_True" / "__pycache__")
+        else:
+            assert where.startswith(str(numba_dir))
+
+
 def test_generate_check_covers_the_numba_kernels(tmp_path):
     """`bondgraph generate --check` names a model whose numba file changed."""
     registry.generate(["mass_spring_damper"], directory=tmp_path, verbose=False)

@@ -167,8 +167,35 @@ def is_compiled(model) -> bool:
         return False
     if str(path) in _LOADED:
         return True
-    cache = path.parent / "__pycache__"
-    return cache.is_dir() and any(cache.glob(f"{path.stem}.*.nbi"))
+    cache = numba_cache_dir(path)
+    return cache is not None and cache.is_dir() and any(cache.glob(f"{path.stem}.*.nbi"))
+
+
+def numba_cache_dir(path: Path) -> Path | None:
+    """Where numba caches the functions of the source file ``path``: its
+    first cache locator that applies (``NUMBA_CACHE_DIR`` when set, else
+    ``__pycache__`` beside the file when writable, else the user-wide
+    cache), as numba itself chooses; None without numba or when no locator
+    applies (the file does not exist)."""
+    if numba is None:
+        return None
+    try:
+        from numba.core.caching import CacheImpl
+        locators = CacheImpl._locator_classes
+    except (ImportError, AttributeError):  # pragma: no cover - another numba layout
+        return path.parent / "__pycache__"
+
+    def probe():  # the locators read only the line number of a function
+        pass
+
+    for cls in locators:
+        try:
+            loc = cls.from_function(probe, str(path))
+        except Exception:  # pragma: no cover - a locator that cannot apply here
+            loc = None
+        if loc is not None:
+            return Path(loc.get_cache_path())
+    return None
 
 
 def compile_estimate(model) -> float:
