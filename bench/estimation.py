@@ -54,7 +54,7 @@ sys.path.insert(0, str(ROOT))
 
 from bondgraph.inference.estimate import Criterion  # noqa: E402
 from bondgraph.inference import ukf_numba  # noqa: E402
-from bondgraph.inference.options import DEFAULT_BACKEND, FitOptions, UKFOptions  # noqa: E402
+from bondgraph.inference.options import DEFAULT_BACKEND, FitOptions, Discretisation, UKFOptions  # noqa: E402
 from bondgraph.numerics.compiled import point_kernels  # noqa: E402
 from bondgraph.numerics.model import Model  # noqa: E402
 from bondgraph.inference.optimize import pso  # noqa: E402
@@ -260,7 +260,8 @@ def main(argv=None) -> int:
     print(f"model {model.name}: {model.n_x} states, {model.n_y} outputs; record "
           f"{args.experiment}: {t.size} samples, {record_s:.1f} s")
 
-    dc = discretisation_check(model, t, u, truth, x0, method=args.method, substeps=args.substeps)
+    dc = discretisation_check(model, t, u, truth, x0,
+                              Discretisation(args.method, args.substeps, backend="numpy"))
     print(f"discretisation {args.method}({args.substeps}) at the truth: one-step error "
           f"{np.max(dc['one_step']):.3g} noise std (worst output)")
 

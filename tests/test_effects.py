@@ -12,7 +12,7 @@ from bondgraph.core.equations import derive
 from bondgraph.diagnose.cases import synthesize
 from bondgraph.diagnose.effects import (DEFAULT_EFFECTS, Scales, Target, apply_effect, get_effect,
                                         probe_graph)
-from bondgraph.diagnose.fit import Context, Record, fit_model, prior
+from bondgraph.diagnose.fit import Context, fit_model, model_of, problem_for
 from bondgraph.diagnose.scoring import operating_scales, score_additive
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import GraphError
@@ -132,8 +132,8 @@ def test_score_test_equals_the_likelihood_ratio_of_a_sensor_offset():
     rec = synthesize(truth, declared, t,
                      {"F": lambda t: 5.0 * np.sin(1.3 * t) + 3.0 * np.sign(np.sin(0.4 * t))},
                      {}, {}, 3, "offset", "mass-spring-damper with a position sensor offset")
-    ctx = Context(Record(rec), LoopSettings(params=[], effects=[get_effect("sensor_offset")]),
-                  log=lambda m: None, progress=False)
+    ctx = Context.on(rec, LoopSettings(params=[], effects=[get_effect("sensor_offset")]),
+                     model_of(declared), log=lambda m: None, progress=False)
     fit = fit_model(ctx, declared, [], None, "declared")
     cands = score_additive(ctx, fit, operating_scales(ctx, fit), ctx.settings.effects)
     assert {c.target.name for c in cands} == {"x", "v"}
@@ -141,7 +141,8 @@ def test_score_test_equals_the_likelihood_ratio_of_a_sensor_offset():
     g = declared.copy("augmented")
     apply_effect(g, "sensor_offset", ("sensor", "x"), {"b": 0.0})
     m = Model.from_graph(g)
-    x0, P0 = prior(ctx, m)
+    pb = problem_for(ctx, m)
+    x0, P0 = pb.x0, pb.P0
     j = m.param_index("sensor_offset.x.b")
 
     def nll(b):

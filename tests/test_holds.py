@@ -8,7 +8,7 @@ import pytest
 from scipy.linalg import expm
 
 from bondgraph.errors import OptionError
-from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.options import Discretisation, UKFOptions
 from bondgraph.inference.ukf import discretisation_check, ukf_nll
 from bondgraph.numerics.integrators import hold_inputs, make_step
 from bondgraph.numerics.model import Model
@@ -109,5 +109,5 @@ def test_discretisation_check_sees_the_hold(msd):
     u = np.sin(4 * t)[:, None] * 20
     th = msd.theta0
     for hold in ("zoh", "mean", "linear"):
-        d = discretisation_check(msd, t, u, th, method="rk4", substeps=16, hold=hold)
+        d = discretisation_check(msd, t, u, th, disc=Discretisation("rk4", 16, hold))
         assert d["one_step"].max() < 1e-5

@@ -13,7 +13,7 @@ from bondgraph.data.records import Experiment
 from bondgraph.diagnose.accept import confirmed_record, decide
 from bondgraph.diagnose.confirm import start_values
 from bondgraph.diagnose.effects import Target, get_effect
-from bondgraph.diagnose.fit import Context, Fit, Record, bounds_around, clip_into_box, on_bound
+from bondgraph.diagnose.fit import Context, Fit, bounds_around, clip_into_box, on_bound
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.residuals import ResidualReport
 from bondgraph.diagnose.result import Candidate
@@ -21,7 +21,7 @@ from bondgraph.diagnose.runner import check_declared_fit
 from bondgraph.diagnose.scoring import failed_candidate
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import DeclaredFitError, OptionError
-from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.options import Discretisation, UKFOptions
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -98,7 +98,7 @@ def test_boxes_are_never_widened_and_bounds_flagged():
     lo2, hi2 = bounds_around(m, ["k"], th)
     assert (lo2[0], hi2[0]) == (lo[0], hi[0])
     logs = []
-    ctx = Context(Record(None), LoopSettings(params=["k"]), logs.append)
+    ctx = Context(None, LoopSettings(params=["k"]), logs.append)
     th2 = clip_into_box(ctx, m, ["k"], th, "test")
     assert th2[j] == hi[0] and "outside its box" in logs[0]
     assert on_bound(m, ["k", "m"], th2) == ["k"]
@@ -241,7 +241,7 @@ def test_structural_score_refits_the_declared_parameters():
 
     from bondgraph.diagnose.cases import synthesize
     from bondgraph.diagnose.effects import apply_effect
-    from bondgraph.diagnose.fit import fit_model, model_of, prior
+    from bondgraph.diagnose.fit import fit_model, model_of, problem_for
     from bondgraph.diagnose.scoring import operating_scales, structural_candidate
     from bondgraph.inference.ukf import ukf_nll
 
@@ -257,9 +257,9 @@ def test_structural_score_refits_the_declared_parameters():
     P = ["m", "k", "c", "q_F"]
     # p0_scale "magnitude": the statistic is recomputed below on a model built
     # anew, whose state-scaled prior would follow its own default level
-    ctx = Context(Record(exp), LoopSettings(params=P, structural_refit=0, structural_starts=0,
-                                            p0_scale="magnitude"),
-                  lambda s: None, False)
+    ctx = Context.on(exp, LoopSettings(params=P, structural_refit=0, structural_starts=0,
+                                       p0_scale="magnitude"),
+                     model_of(declared), lambda s: None, False)
     fit = fit_model(ctx, declared, P, None, "declared")
     assert fit.estimates()["m"] > 4.0                     # compensated
     sc = operating_scales(ctx, fit)
@@ -287,9 +287,9 @@ def test_structural_score_refits_the_declared_parameters():
     th[m.param_index(PP["L"].name)] = prof.values["L"]
     lo, hi = m.bounds([PP["L"].name])
     assert lo[0] <= prof.values["L"] <= hi[0]
-    x0, P0 = prior(ctx, m)
-    tt, u, y = ctx.record.arrays(m)
-    nll = ukf_nll(m, tt, u, y, th[None], x0, P0, options=ctx.settings.ukf).nll[0]
+    pb = problem_for(ctx, m)
+    tt, u, y = pb.arrays
+    nll = ukf_nll(m, tt, u, y, th[None], pb.x0, pb.P0, options=pb.ukf).nll[0]
     assert prof.statistic == pytest.approx(2 * (fit.nll - nll), rel=1e-9)
 
 
@@ -353,7 +353,7 @@ def test_score_groups_reports_failed_columns():
 
     cols = [ProbeColumn("p1", "coulomb", Target("junction", "v"), 0, None),
             ProbeColumn("p2", "sensor_offset", Target("sensor", "x"), 0, None)]
-    ctx = Context(Record(None), LoopSettings(params=[]), lambda s: None)
+    ctx = Context(None, LoopSettings(params=[]), lambda s: None)
     An = np.eye(3)                        # nuisance, coulomb, offset: orthonormal
     bn = np.array([1.0, 3.0, 0.0])
     out, col_of = score_groups(ctx, cols, 1, An, bn, np.ones(3), 20.0,
@@ -371,8 +371,10 @@ def test_fit_flags_an_estimate_on_its_bound():
     g = mass_spring_damper()
     g.params["c"].bounds = (0.1, 0.5)
     logs = []
-    ctx = Context(Record(_msd_record()), LoopSettings(params=["k", "c"]), logs.append, False)
-    from bondgraph.diagnose.fit import fit_model
+    from bondgraph.diagnose.fit import fit_model, model_of
+
+    ctx = Context.on(_msd_record(), LoopSettings(params=["k", "c"]), model_of(g), logs.append,
+                     False)
 
     f = fit_model(ctx, g, ["k", "c"], None, "bounded")
     assert f.at_bound == ["c"] and f.theta[f.model.param_index("c")] == pytest.approx(0.5)
@@ -385,28 +387,29 @@ def test_state_scaled_prior_in_the_loop():
     """p0_scale="state": the loop's prior is record_prior's (each state's
     free-run RMS times p0_rel), not 5 % of max(|x0|, 1); a sidecar's x0_std
     is imposed."""
-    from bondgraph.diagnose.fit import prior
+    from bondgraph.diagnose.fit import problem_for
     from bondgraph.errors import OptionError
     from bondgraph.inference.prior import UNKNOWN_REL, record_prior
 
     exp = _msd_record()
     exp.meta = {**(exp.meta or {}), "x0_std": {"q_spring": 0.004}}
     m = Model.load("mass_spring_damper")
-    ctx = Context(Record(exp), LoopSettings(params=["c"], p0_scale="state", p0_rel=0.1),
-                  lambda s: None, False)
-    x0, P0 = prior(ctx, m)
-    t, u, y = ctx.record.arrays(m)
+    ctx = Context.on(exp, LoopSettings(params=["c"], p0_scale="state", p0_rel=0.1), m,
+                     lambda s: None, False)
+    pb = problem_for(ctx, m)
+    x0, P0 = pb.x0, pb.P0
+    t, u, y = pb.arrays
     # the record gives q_spring's spread (x0_std) but nothing of p_mass: its
     # prior spans its whole scale (UNKNOWN_REL), not p0_rel of it
-    ref, info = record_prior(m, t, u, y, m.theta0, x0, rel=0.1, x0_std={"q_spring": 0.004},
-                             substeps=2, unknown=["p_mass"])
+    ref, info = record_prior(m, t, u, y, m.theta0, x0, Discretisation(substeps=2), rel=0.1,
+                             x0_std={"q_spring": 0.004}, unknown=["p_mass"])
     np.testing.assert_allclose(P0, ref)
     assert P0[1, 1] == pytest.approx(0.004 ** 2)
     assert P0[0, 0] == pytest.approx((UNKNOWN_REL * info["scales"]["p_mass"]) ** 2)
     exp.meta["x0"] = {"p_mass": 0.0}                  # now the record gives it
-    ctx = Context(Record(exp), LoopSettings(params=["c"], p0_scale="state", p0_rel=0.1),
-                  lambda s: None, False)
-    assert prior(ctx, m)[1][0, 0] == pytest.approx((0.1 * info["scales"]["p_mass"]) ** 2)
+    ctx = Context.on(exp, LoopSettings(params=["c"], p0_scale="state", p0_rel=0.1), m,
+                     lambda s: None, False)
+    assert problem_for(ctx, m).P0[0, 0] == pytest.approx((0.1 * info["scales"]["p_mass"]) ** 2)
     assert info["rules"]["p_mass"] == "simulation"
     # the free-run RMS of the momentum, from an independent BDF simulation
     xs = simulate(m, t, u, x0, m.theta0, hold="zoh", rtol=1e-9, atol=1e-12).x
@@ -460,10 +463,11 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
     assert res.settings["fit"] == "sim"
     assert res.warnings == []
     # one step per sample: 0.11 measurement-noise stds per sample, substeps 2 recommended
-    from bondgraph.diagnose.fit import fit_model
+    from bondgraph.diagnose.fit import fit_model, model_of
     from bondgraph.diagnose.runner import check_discretisation
 
-    ctx = Context(Record(exp), LoopSettings(params=["m", "k", "c"]), logs.append, False)
+    ctx = Context.on(exp, LoopSettings(params=["m", "k", "c"]),
+                     model_of(mass_spring_damper()), logs.append, False)
     f = fit_model(ctx, mass_spring_damper(), ["m", "k", "c"], est, "declared", iterations=0)
     (msg,) = check_discretisation(ctx, f)
     assert "ros2(1) is 0.11" in msg and msg.endswith("use --substeps 2")
@@ -474,7 +478,7 @@ def test_loop_estimates_an_unmeasured_initial_state():
     while the record says nothing (prior mean 0, std 0.05). With
     estimate_x0=["p_mass"] the fit recovers it within 3 Cramér-Rao std and
     its likelihood is far better; later filter runs condition on it."""
-    from bondgraph.diagnose.fit import fit_model, prior
+    from bondgraph.diagnose.fit import fit_model, model_of, problem_for
 
     m = Model.load("mass_spring_damper")
     t = np.arange(400) * 0.01
@@ -488,11 +492,12 @@ def test_loop_estimates_an_unmeasured_initial_state():
     opts = UKFOptions(method="rk4", substeps=2)
     # the old prior (5 % of max(|x0|, 1) around the guess 0) trusts the guess
     old = "magnitude"
-    plain = fit_model(Context(Record(exp), LoopSettings(params=["k", "c"], ukf=opts,
-                                                        p0_scale=old),
-                              lambda s: None, False), mass_spring_damper(), ["k", "c"], None, "p")
-    ctx = Context(Record(exp), LoopSettings(params=["k", "c"], ukf=opts, p0_scale=old,
-                                            estimate_x0=["p_mass"]), lambda s: None, False)
+    msd = model_of(mass_spring_damper())
+    plain = fit_model(Context.on(exp, LoopSettings(params=["k", "c"], ukf=opts, p0_scale=old),
+                                 msd, lambda s: None, False),
+                      mass_spring_damper(), ["k", "c"], None, "p")
+    ctx = Context.on(exp, LoopSettings(params=["k", "c"], ukf=opts, p0_scale=old,
+                                       estimate_x0=["p_mass"]), msd, lambda s: None, False)
     f = fit_model(ctx, mass_spring_damper(), ["k", "c"], None, "x0", iterations=20)
     p0, sd = f.x0_est["p_mass"], f.std["x0.p_mass"]
     assert abs(p0 - 0.6) < 3 * sd and sd < 0.05, (p0, sd)
@@ -500,12 +505,14 @@ def test_loop_estimates_an_unmeasured_initial_state():
     assert f.nll < plain.nll - 50
     # the default prior of a state the record does not give spans its scale:
     # without estimating x0 the filter learns it and loses little
-    wide = fit_model(Context(Record(exp), LoopSettings(params=["k", "c"], ukf=opts),
-                             lambda s: None, False), mass_spring_damper(), ["k", "c"], None, "w")
+    wide = fit_model(Context.on(exp, LoopSettings(params=["k", "c"], ukf=opts), msd,
+                                lambda s: None, False),
+                     mass_spring_damper(), ["k", "c"], None, "w")
     assert wide.nll < plain.nll - 40 and abs(wide.nll - f.nll) < 10
     assert f.summary().x0_estimates == {"p_mass": p0}
-    ctx.x0_estimates = dict(f.x0_est)
-    x0, P0 = prior(ctx, f.model)
+    ctx.problem = ctx.problem.conditioned_on(x0=dict(f.x0_est))
+    pb = problem_for(ctx, f.model)
+    x0, P0 = pb.x0, pb.P0
     assert x0[0] == p0 and P0[0, 0] == pytest.approx((1e-6 * 0.05) ** 2)
 
 

@@ -13,7 +13,7 @@ from bondgraph.catalog.cases import EmpsForceError
 from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose import runner
-from bondgraph.diagnose.fit import Context, Record, free_run, sim_inputs
+from bondgraph.diagnose.fit import Context, free_run, sim_inputs
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import OptionError
 from bondgraph.inference.options import UKFOptions
@@ -22,12 +22,12 @@ from bondgraph.numerics.model import Model
 
 def test_sim_inputs_follow_the_filter_hold():
     u = np.array([[0.0], [2.0], [4.0], [10.0]])
-    s = LoopSettings(params=[], sim_hold="filter", ukf=UKFOptions(hold="mean"))
-    hold, um = sim_inputs(s, u)
+    s = LoopSettings(params=[], sim_hold="filter")
+    hold, um = sim_inputs(s, "mean", u)
     assert hold == "zoh"
     np.testing.assert_allclose(um[:, 0], [1.0, 3.0, 7.0, 10.0])   # (u_k + u_k+1)/2, last held
-    assert sim_inputs(LoopSettings(params=[], sim_hold="filter"), u)[0] == "zoh"
-    assert sim_inputs(LoopSettings(params=[]), u)[0] == "linear"        # the default, unchanged
+    assert sim_inputs(s, "zoh", u)[0] == "zoh"
+    assert sim_inputs(LoopSettings(params=[]), "mean", u)[0] == "linear"   # the default
     with pytest.raises(OptionError, match="sim_hold"):
         LoopSettings(params=[], sim_hold="cubic")
 
@@ -54,8 +54,9 @@ def test_free_run_with_zero_order_hold_matches_the_exact_discretisation():
     ix = model.output_index("x")
     out = {}
     for hold in ("zoh", "linear"):
-        ctx = Context(Record(exp), LoopSettings(params=[], sim_hold=hold), lambda s: None, False)
-        y = free_run(ctx, model, model.theta0.copy(), ukf_run)
+        ctx = Context.on(exp, LoopSettings(params=[], sim_hold=hold), model, lambda s: None,
+                         False)
+        y = free_run(ctx, ctx.problem, model.theta0.copy())
         out[hold] = y[:, ix]
     np.testing.assert_allclose(out["zoh"], q_ref, atol=2e-6)
     assert np.max(np.abs(out["linear"] - q_ref)) > 1e-3
@@ -117,12 +118,16 @@ def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
     the loop carry them); without it the loop only warns."""
     calls = []
     monkeypatch.setattr(runner, "recommended_substeps", lambda ctx, fit, limit=0.1:
-                        (6.7, 16) if ctx.settings.ukf.substeps == 1 else (0.05, None))
+                        (6.7, 16) if ctx.problem.disc.substeps == 1 else (0.05, None))
     monkeypatch.setattr(runner, "initial_fit",
-                        lambda ctx, graph: calls.append(ctx.settings.ukf.substeps) or "refit")
+                        lambda ctx, graph: calls.append(ctx.problem.disc.substeps) or "refit")
+    model = Model.from_graph(mass_spring_damper())
+    exp = Experiment.from_arrays(np.arange(20) * 0.05, model=model, u=np.zeros((20, 1)),
+                                 y=np.zeros((20, 2)), name="rest")
     for auto, want in ((True, "refit"), (False, "declared")):
         calls.clear()
-        ctx = Context(None, LoopSettings(params=[], auto_substeps=auto), lambda s: None, False)
+        ctx = Context.on(exp, LoopSettings(params=[], auto_substeps=auto), model,
+                         lambda s: None, False)
         fit, warn = runner.resolved_fit(ctx, None, "declared")
         assert fit == want and "use --substeps 16" in warn[0]
-        assert (ctx.settings.ukf.substeps, calls) == ((16, [16]) if auto else (1, []))
+        assert (ctx.problem.disc.substeps, calls) == ((16, [16]) if auto else (1, []))

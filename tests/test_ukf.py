@@ -15,7 +15,7 @@ from bondgraph.numerics.model import Model
 from bondgraph.inference.sigma import merwe_weights
 from bondgraph.inference.ukf import discretisation_check, nll_from_innovations, ukf_nll
 from bondgraph.errors import OptionError
-from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.options import Discretisation, UKFOptions
 
 
 def _motor_record(N=150, dt=0.002, seed=1):
@@ -284,9 +284,9 @@ def test_discretisation_check_orders():
     t = np.arange(N) * dt
     u = np.repeat(np.random.default_rng(0).normal(0, 20, N // 25), 25)[:, None]
     th = m.theta(m=2.5, k=80.0, c=2.0)
-    a = discretisation_check(m, t, u, th, method="ros2", substeps=1)
-    b = discretisation_check(m, t, u, th, method="ros2", substeps=4)
-    c = discretisation_check(m, t, u, th, method="rk4", substeps=1)
+    a = discretisation_check(m, t, u, th, disc=Discretisation("ros2", 1))
+    b = discretisation_check(m, t, u, th, disc=Discretisation("ros2", 4))
+    c = discretisation_check(m, t, u, th, disc=Discretisation("rk4", 1))
     assert a["reference"] == "rk4"
     # ROS2 is second order: local error O(h³), so 4 sub-steps of h/4 give
     # 4 (1/4)³ = 1/16 of the one-step error

@@ -17,21 +17,22 @@ from types import SimpleNamespace
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-import sympy as sp
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
     NOISE_BOX,
-    X0_TOKEN,
+    NoiseSpec,
+    PriorSpec,
+    Problem,
     fisher_fit,
     hessian_cramer_rao,
     lbfgsb_polish,
     make_criterion,
+    make_problem,
+    noise_parameters,
     plan_noise,
-    prior_covariance,
     run_ukf,
     smoothed_initial_state,
-    state_prior,
 )
 from bondgraph.diagnose.metric import compute_metric, metric_errors
 from bondgraph.diagnose.residuals import analyze
@@ -77,21 +78,35 @@ class Record:
 
 @dataclass
 class Context:
-    """What every step of the loop reads: the record, the settings, the
-    (time-stamped) line logger, whether progress bars are shown, and a cache
-    (the state-scaled priors of the models seen), the initial states
-    estimated with the current fit (``settings.estimate_x0``; by name), which
-    every later filter run conditions on, and the executor the candidates'
+    """What every step of the loop reads: the problem (the declared model
+    bound to the estimation record, with the prior, the held noise levels
+    and the filter's options, conditioned on what the loop has learned: a
+    :class:`~bondgraph.inference.problem.Problem`, replaced, never changed),
+    the search options (never changed), the (time-stamped) line logger,
+    whether progress bars are shown, a cache of the problems of the other
+    models seen (their arrays and priors), and the executor the candidates'
     scoring and confirmations run on (None: in process;
     :mod:`bondgraph.diagnose.parallel`)."""
 
-    record: Record
+    problem: Problem | None
     settings: LoopSettings
     log: Callable[[str], None] = print
     progress: bool = True
     cache: dict = field(default_factory=dict)
-    x0_estimates: dict = field(default_factory=dict)
     executor: Any = None
+
+    @property
+    def record(self) -> Record:
+        """The estimation record as a user metric sees it (:class:`Record`)."""
+        return Record(self.problem.record)
+
+    @classmethod
+    def on(cls, experiment, settings: LoopSettings, model: Model,
+           log: Callable[[str], None] = print, progress: bool = True) -> "Context":
+        """A context for ``model`` on ``experiment`` with the loop's options
+        (:func:`loop_problem`; the noise policy not planned: no level held
+        beyond the model's own), for running the loop's steps one by one."""
+        return cls(loop_problem(model, experiment, settings), settings, log, progress)
 
 
 @dataclass
@@ -179,95 +194,55 @@ def model_of(graph: BondGraph) -> Model:
                             lazy=LAZY_FUNCTIONS)
 
 
-def prior_mean(ctx: Context, model: Model) -> np.ndarray:
-    """UKF prior mean x0 (n_x,): ``settings.x0`` if it fits the model, else
-    the record's initial state (:meth:`bondgraph.data.records.Experiment.initial_state`:
-    state columns, else the sidecar's x0, else the model's X0), with
-    ``settings.x0_overrides`` (by state name) imposed."""
-    x = None
-    if ctx.settings.x0 is not None:
-        x = np.asarray(ctx.settings.x0, dtype=float)
-        x = x.copy() if x.shape == (model.n_x,) else None
-    if x is None:
-        x = np.asarray(ctx.record.exp.initial_state(model), dtype=float).copy()
-    for name, v in {**(ctx.settings.x0_overrides or {}), **ctx.x0_estimates}.items():
-        if name in model.states:
-            x[model.state_index(name)] = float(v)
-    return x
+def loop_prior(settings: LoopSettings) -> PriorSpec:
+    """The prior's specification from the loop's options: ``x0`` (a whole
+    prior mean), ``x0_overrides`` (``--x0``), ``P0``, ``P0_std``, ``p0_rel``
+    (default :data:`~bondgraph.inference.options.P0_REL`) and ``p0_scale``."""
+    kw = {} if settings.p0_rel is None else {"rel": float(settings.p0_rel)}
+    return PriorSpec(scale=settings.p0_scale, x0=settings.x0, x0_set=settings.x0_overrides,
+                     P0=settings.P0, x0_std=settings.P0_std, **kw)
 
 
-def prior_cov(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
-    """UKF prior covariance (n_x, n_x): ``settings.P0`` if it fits the model
-    (a vector is a diagonal), else the default (``settings.p0_rel``, default
-    5 %, of max(|x0|, 1)), with the
-    standard deviations of ``settings.P0_std`` (by state name) imposed, e.g. a
-    level test track: {"theta_g": 0.002}."""
-    s = ctx.settings
-    if s.P0 is not None:
-        P = np.asarray(s.P0, dtype=float)
-        if P.shape in ((model.n_x,), (model.n_x, model.n_x)):
-            return np.diag(P) if P.ndim == 1 else P
-        # states added by effects: fall back to the default variance
-    if s.p0_scale == "state":
-        P = _state_prior(ctx, model, x0)
-    else:
-        P = prior_covariance(model, x0, s.p0_rel)
-    for name, sd in (s.P0_std or {}).items():
-        if name in model.states:
-            i = model.state_index(name)
-            P[i, :] = 0.0
-            P[:, i] = 0.0
-            P[i, i] = float(sd) ** 2
-    return P
+def loop_problem(model: Model, experiment, settings: LoopSettings,
+                 noise: NoiseSpec | None = None) -> Problem:
+    """The declared model bound to the estimation record with the loop's
+    prior, noise levels, fixed values and filter options
+    (:func:`bondgraph.inference.problem.make_problem`)."""
+    return make_problem(model, experiment, prior=loop_prior(settings),
+                        noise=NoiseSpec(settings.noise) if noise is None else noise,
+                        ukf=settings.ukf, fixed=settings.fixed)
 
 
-def _state_prior(ctx: Context, model: Model, x0: np.ndarray) -> np.ndarray:
-    """:func:`~bondgraph.diagnose.inference_calls.state_prior` at the model's
-    defaults with ``settings.fixed``, the states of :func:`unknown_states`
-    with the spread of their whole scale, cached per model and prior mean
-    (every candidate's model asks again)."""
-    key = (id(model), x0.tobytes())
-    if key not in ctx.cache:
-        theta = model.theta0.copy()
-        for k, v in ctx.settings.fixed.items():
-            if k in model.params:
-                theta[model.param_index(k)] = v
-        t, u, y = ctx.record.arrays(model)
-        ctx.cache[key] = (model, state_prior(model, t, u, y, theta, x0, ctx.settings,
-                                             ctx.record.exp.initial_state_std(model),
-                                             unknown_states(ctx, model)))
-    return ctx.cache[key][1].copy()
+def problem_for(ctx: Context, model: Model) -> Problem:
+    """The loop's problem (``ctx.problem``) for ``model``: the same record,
+    prior, noise levels, fixed values and options (cached per model while
+    the prior and the options stay; a change of the held noise levels only
+    is carried over without recomputing the prior)."""
+    base = ctx.problem
+    if model is base.model:
+        return base
+    hit = ctx.cache.get(("problem", id(model)))
+    if hit is not None and hit[0] is model and hit[1] is base.prior and hit[2] == base.ukf:
+        p = hit[3]
+        return p if p.noise == base.noise else replace(p, noise=base.noise)
+    p = base.with_model(model)
+    ctx.cache[("problem", id(model))] = (model, base.prior, base.ukf, p)
+    return p
 
 
-def unknown_states(ctx: Context, model: Model) -> list[str]:
-    """The states of ``model`` whose initial value on ``ctx.record`` nothing
-    gives: not in the record (state column, sidecar ``x0``/``x0_std``), not
-    set by the user (``settings.x0``, ``x0_overrides``) nor declared
-    (``settings.P0_std``). Their prior mean is the model's X0, a guess."""
-    s = ctx.settings
-    if s.x0 is not None:
-        return []
-    given = set(ctx.record.exp.given_initial_states(model)) | set(s.x0_overrides or {}) \
-        | set(s.P0_std or {})
-    return [n for n in model.states if n not in given]
-
-
-def prior(ctx: Context, model: Model, shrink: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """The UKF prior (x0, P0) of ``model``: :func:`prior_mean`, :func:`prior_cov`;
-    the initial states estimated with the current fit (``ctx.x0_estimates``)
-    at their estimates with a token spread (X0_TOKEN of their prior std:
-    the likelihood is conditional on them) unless ``shrink`` is False."""
-    x0 = prior_mean(ctx, model)
-    P = prior_cov(ctx, model, x0)
-    if shrink:
-        for name in ctx.x0_estimates:
-            if name in model.states:
-                i = model.state_index(name)
-                sd = X0_TOKEN * math.sqrt(max(P[i, i], 0.0))
-                P[i, :] = 0.0
-                P[:, i] = 0.0
-                P[i, i] = sd ** 2
-    return x0, P
+def validation_problem(ctx: Context, problem: Problem) -> Problem:
+    """``problem`` on the validation record (``settings.validation``): its own
+    initial state, the loop's covariance policy (:meth:`Problem.on_record`;
+    cached per model while the prior and the options stay)."""
+    key = ("validation", id(problem.model))
+    hit = ctx.cache.get(key)
+    if hit is not None and hit[0] is problem.model and hit[1] is problem.prior \
+            and hit[2] == problem.ukf:
+        p = hit[3]
+        return p if p.noise == problem.noise else replace(p, noise=problem.noise)
+    p = problem.on_record(ctx.settings.validation)
+    ctx.cache[key] = (problem.model, problem.prior, problem.ukf, p)
+    return p
 
 
 def x0_states(ctx: Context, model: Model) -> list[str]:
@@ -279,18 +254,13 @@ def x0_states(ctx: Context, model: Model) -> list[str]:
     return [s for s in want if s in model.states]
 
 
-def noise_outputs(ctx: Context, model: Model) -> list[str]:
-    """The outputs of ``model`` whose measurement-noise std every fit
-    estimates (``settings.noise_outputs``, resolved by :func:`resolve_noise`)."""
-    return [o for o in ctx.settings.noise_outputs if o in model.outputs]
-
-
-def noise_start(ctx: Context, model: Model, theta: np.ndarray) -> dict:
+def noise_start(problem: Problem, theta: np.ndarray) -> dict:
     """Output -> start of its estimated noise std in a fit (the held level,
     else ``meas_std(θ)``): the centre of its box (×/÷ NOISE_BOX)."""
+    model = problem.model
     meas = np.asarray(model.meas_std(theta[None, :]), float)[0]
-    return {o: float(ctx.settings.noise_levels.get(o, meas[model.output_index(o)]))
-            for o in noise_outputs(ctx, model)}
+    return {o: float(problem.noise.held.get(o, meas[model.output_index(o)]))
+            for o in problem.noise.outputs(model)}
 
 
 def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: dict) -> None:
@@ -307,48 +277,35 @@ def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: d
                 f"beside the process noise; declare it in the record or use noise='model')")
 
 
-def resolve_noise(ctx: Context, graph: BondGraph) -> LoopSettings:
-    """The settings with the noise policy resolved for the declared model
-    (``settings.noise``): under ``"auto"``, the record's declared levels held
-    (``noise_levels``), the undeclared fixed sensor noises estimated
-    (``noise_outputs``) and the undeclared noise-intensity parameters added
-    to ``params`` (:func:`bondgraph.inference.estimand.noise_plan`); the
-    plan's notes logged."""
-    s = ctx.settings
-    if s.noise == "model":
-        ctx.log("noise levels: the model's own (noise='model')")
-        return s
-    model = model_of(graph)
-    theta = model.theta0.copy()
-    for k, v in s.fixed.items():
-        if k in model.params:
-            theta[model.param_index(k)] = v
-    declared = ctx.record.exp.noise_std_for(model)
-    add, outs, sigma, notes = plan_noise(model, theta, s.params, list(s.fixed), declared)
+def planned_noise(problem: Problem, settings: LoopSettings,
+                  log: Callable[[str], None]) -> tuple[list[str], NoiseSpec]:
+    """The noise policy resolved for the declared model (``settings.noise``):
+    under ``"auto"``, the record's declared levels held, the undeclared
+    fixed sensor noises estimated and the undeclared noise-intensity
+    parameters to be added to ``params``
+    (:func:`bondgraph.inference.estimand.noise_plan`); the plan's notes
+    logged. Returns ``(parameters to add, NoiseSpec)``."""
+    if settings.noise == "model":
+        log("noise levels: the model's own (noise='model')")
+        return [], NoiseSpec("model")
+    model = problem.model
+    declared = problem.record.noise_std_for(model)
+    add, outs, sigma, notes = plan_noise(model, problem.theta, settings.params,
+                                         list(settings.fixed), declared)
     held = {o: float(sigma[j]) for j, o in enumerate(model.outputs) if np.isfinite(sigma[j])}
     if held:
         notes.append("measurement-noise std held at the record's declaration: " + ", ".join(
             f"{o} = {v:.4g}" for o, v in held.items()))
     for note in notes or ["noise levels: the model's own (nothing to estimate or hold)"]:
-        ctx.log(note)
-    return replace(s, params=list(s.params) + add, noise_levels=held, noise_outputs=outs)
-
-
-def prior_on(record: Record, settings: LoopSettings, model: Model):
-    """The UKF prior (x0, P0) of ``model`` on another record (the validation
-    record): its own initial state, the loop's covariance policy (a given
-    ``settings.x0`` belongs to the estimation record and is not used)."""
-    x0 = record.exp.initial_state(model)
-    view = Context(record, replace(settings, x0=None))
-    return x0, prior_cov(view, model, x0)
+        log(note)
+    return add, NoiseSpec("auto", held=held, estimated=outs)
 
 
 def criterion_for(ctx: Context, model: Model, names: Sequence[str], base: np.ndarray):
     """Batched NLL of ``names`` (others at ``base`` (n_theta,)) on the record,
-    with the loop's prior and UKF options."""
-    t, u, y = ctx.record.arrays(model)
-    x0, P0 = prior(ctx, model)
-    return make_criterion(model, t, u, y, names, base, x0, P0, ctx.settings)
+    with the loop's prior, held noise levels and UKF options
+    (:func:`problem_for`), ``settings.chunk`` sets per UKF run."""
+    return make_criterion(problem_for(ctx, model), names, base, ctx.settings.chunk)
 
 
 def bounds_around(model: Model, names: Sequence[str], theta: np.ndarray):
@@ -388,22 +345,13 @@ def on_bound(model: Model, names: Sequence[str], theta: np.ndarray,
     return out
 
 
-def noise_params(graph: BondGraph) -> set:
-    """Names of parameters that appear only in process- or measurement-noise
-    declarations (scale parameters of the filter: fitted in log scale,
-    profiled by decades when candidates are screened)."""
-    used_noise, used_model = set(), set()
-    for v in list(graph.process_noise.values()) + [s.noise_std for s in graph.sensors.values()]:
-        if isinstance(v, sp.Basic):
-            used_noise |= {x.name for x in v.free_symbols}
-    for el in graph.elements.values():
-        for ex in el.expressions():
-            used_model |= {x.name for x in ex.free_symbols}
-    for s_ in graph.sensors.values():
-        used_model |= {x.name for x in s_.expr.free_symbols}
-    for ss in graph.signal_states.values():
-        used_model |= {x.name for x in ss.rhs.free_symbols}
-    return (used_noise - used_model) & set(graph.params)
+def noise_params(model: Model) -> set:
+    """Names of the noise-intensity parameters of ``model`` (scale
+    parameters of the filter: fitted in log scale, profiled by decades when
+    candidates are screened): the toolkit's one detector,
+    :func:`bondgraph.inference.estimand.noise_parameters`, at the model's
+    defaults."""
+    return set(noise_parameters(model, model.theta0))
 
 
 def cr_std(F: np.ndarray, names: Sequence[str]) -> dict:
@@ -456,8 +404,9 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
         If the UKF fails at the fitted parameters.
     """
     model = model or model_of(graph)
-    theta = model.theta0.copy()
-    for k, v in {**ctx.settings.fixed, **(start or {})}.items():
+    pb = problem_for(ctx, model)
+    theta = pb.theta.copy()
+    for k, v in (start or {}).items():
         if k in model.params:
             theta[model.param_index(k)] = v
     params = [p for p in params if p in model.params]
@@ -465,24 +414,18 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     iters = ctx.settings.fit_iterations if iterations is None else int(iterations)
     std: dict = {}
     conv: tuple = (None, None)
-    x0_est = {s: ctx.x0_estimates[s] for s in x0_states(ctx, model) if s in ctx.x0_estimates}
-    noise_est = {o: ctx.settings.noise_levels[o] for o in noise_outputs(ctx, model)
-                 if o in ctx.settings.noise_levels}
+    x0_est = {s: pb.prior.estimated[s] for s in x0_states(ctx, model) if s in pb.prior.estimated}
+    noise_est = {o: pb.noise.held[o] for o in pb.noise.outputs(model) if o in pb.noise.held}
     if params and iters > 0:
-        start_sigma = noise_start(ctx, model, theta)
-        theta = _settle_theta(ctx, graph, model, params, theta, iters, what, start_sigma)
-        theta, std, conv, x0_new, noise_new = _maximize(ctx, graph, model, params, theta,
-                                                        iters, what, tolerance)
+        start_sigma = noise_start(pb, theta)
+        theta = _settle_theta(ctx, pb, params, theta, iters, what, start_sigma)
+        theta, std, conv, x0_new, noise_new = _maximize(ctx, pb, params, theta, iters, what,
+                                                        tolerance)
         x0_est.update(x0_new)
         noise_est.update(noise_new)
         _noise_bound_warning(ctx, what, noise_new, start_sigma, std)
-    kept, kept_s = ctx.x0_estimates, ctx.settings
-    ctx.x0_estimates = {**kept, **x0_est}
-    ctx.settings = replace(kept_s, noise_levels={**kept_s.noise_levels, **noise_est})
-    try:
-        fit = evaluate_fit(ctx, graph, model, params, theta, what, std)
-    finally:
-        ctx.x0_estimates, ctx.settings = kept, kept_s
+    fitted = pb.conditioned_on(x0={**pb.prior.estimated, **x0_est}, noise_levels=noise_est)
+    fit = evaluate_fit(ctx, fitted, graph, params, theta, what, std)
     fit.converged, fit.iterations = conv
     fit.x0_est, fit.noise_est = x0_est, noise_est
     fit.at_bound = on_bound(model, params, theta)
@@ -495,8 +438,8 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     return fit
 
 
-def _settle_theta(ctx: Context, graph: BondGraph, model: Model, params: list[str],
-                  theta: np.ndarray, iters: int, what: str, start_sigma: dict) -> np.ndarray:
+def _settle_theta(ctx: Context, problem: Problem, params: list[str], theta: np.ndarray,
+                  iters: int, what: str, start_sigma: dict) -> np.ndarray:
     """θ fitted with the measurement noise held at its start, before a fit
     that estimates noise stds no fit has set yet (the declared fit under
     ``noise="auto"``). From a start far from the optimum a joint fit lets the
@@ -504,111 +447,99 @@ def _settle_theta(ctx: Context, graph: BondGraph, model: Model, params: list[str
     stalls in a poor point (a user's two-tank graph: free-run NRMSE 0.063
     against 0.017 in two stages, and the loop then "found" a dead zone that
     only made up for it). ``theta`` unchanged when every level is set."""
-    fresh = [o for o in noise_outputs(ctx, model) if o not in ctx.settings.noise_levels]
+    fresh = [o for o in problem.noise.outputs(problem.model) if o not in problem.noise.held]
     if not fresh:
         return theta
-    kept = ctx.settings
-    ctx.settings = replace(kept, noise_outputs=[],
-                           noise_levels={**kept.noise_levels, **start_sigma})
-    try:
-        return _maximize(ctx, graph, model, params, theta, iters, f"{what} (noise held)")[0]
-    finally:
-        ctx.settings = kept
+    held = problem.conditioned_on(noise_levels=start_sigma, noise_outputs=[])
+    return _maximize(ctx, held, params, theta, iters, f"{what} (noise held)")[0]
 
 
-def _maximize(ctx: Context, graph: BondGraph, model: Model, params: list[str],
-              theta: np.ndarray, iters: int, what: str,
-              tolerance: float = 0.0) -> tuple[np.ndarray, dict, tuple, dict, dict]:
+def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarray, iters: int,
+              what: str, tolerance: float = 0.0) -> tuple[np.ndarray, dict, tuple, dict, dict]:
     """Fisher scoring of ``params`` from ``theta`` (noise intensities in log
     scale), the initial states of :func:`x0_states` and the noise stds of
-    :func:`noise_outputs` jointly, L-BFGS-B (θ only) if it fails
+    the problem's estimated outputs jointly, L-BFGS-B (θ only) if it fails
     numerically; returns θ, the Cramér-Rao std (empty after the fallback;
     ``x0.<state>``, ``noise.<output>`` for the others), (converged,
     iterations), the estimated initial states and noise stds by name."""
-    t, u, y = ctx.record.arrays(model)
+    model = problem.model
     states = x0_states(ctx, model)
-    noises = noise_outputs(ctx, model)
-    x0, P0 = prior(ctx, model, shrink=not states)
+    noises = problem.noise.outputs(model)
     idx = [model.param_index(n) for n in params]
     lo, hi = bounds_around(model, params, theta)
     # log scale and decade moves for the noise intensities only: a physical
     # parameter with a wide box (R_a in [0.05, 10]) is no scale parameter,
     # and decade jumps strand it on a bound
-    noise = noise_params(graph)
+    noise = noise_params(model)
     scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
     try:
         theta, F, conv, used, x0n, sig = fisher_fit(
-            model, t, u, y, theta, idx, lo, hi, x0, P0, ctx.settings, iters, scale, tolerance,
-            states, np.sqrt(np.maximum(np.diag(P0), 1e-300)), noises)
+            problem, theta, idx, (lo, hi), iters, log_scale=scale, tolerance=tolerance,
+            states=states, noises=noises)
         names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]
         return (theta, cr_std(F, names), (conv, used),
                 {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
         ctx.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
-        crit = criterion_for(ctx, model, params, theta)
+        crit = make_criterion(problem, params, theta, ctx.settings.chunk)
         xs = np.array([theta[model.param_index(n)] for n in params])
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
         return crit.theta(x[None, :])[0], {}, (None, None), {}, {}
 
 
-def evaluate_fit(ctx: Context, graph: BondGraph, model: Model, params: list[str],
+def evaluate_fit(ctx: Context, problem: Problem, graph: BondGraph, params: list[str],
                  theta: np.ndarray, what: str, std: dict) -> Fit:
-    """The :class:`Fit` at ``theta``: one stored UKF run, the free-run
-    simulation, the residual analysis and the metric.
+    """The :class:`Fit` of ``problem``'s model at ``theta``: one stored UKF
+    run, the free-run simulation, the residual analysis and the metric (on
+    the validation record too, if there is one).
 
     Raises
     ------
     NumericalError
         If the UKF fails at ``theta`` (the reason is named).
     """
-    t, u, y = ctx.record.arrays(model)
-    x0, P0 = prior(ctx, model)
-    res = run_ukf(model, t, u, y, theta[None, :], x0, P0, ctx.settings, store=True)
+    model = problem.model
+    res = run_ukf(problem, theta[None, :], store=True)
     nll = float(res.nll[0])
     if not np.isfinite(nll):
         raise NumericalError(f"{what}: the UKF failed at the fitted parameters "
                              f"({res.reasons[0]})")
-    sim_y = free_run(ctx, model, theta, res)
-    rep = analyze(res, model, t, u, y, sim_y=sim_y)
+    sim_y = free_run(ctx, problem, theta)
+    rep = analyze(res, model, *problem.arrays, sim_y=sim_y)
     fit = Fit(graph, model, list(params), theta, nll, res, rep, float("nan"), sim_y,
               std=std, n_obs=int(res.n_obs.sum()))
-    fit.metric = compute_metric(ctx.settings, fit, ctx.record)
-    fit.sim_errors = metric_errors(ctx.settings, fit, ctx.record)
+    record = Record(problem.record)
+    fit.metric = compute_metric(ctx.settings, fit, record)
+    fit.sim_errors = metric_errors(ctx.settings, fit, record)
     if ctx.settings.validation is not None:
-        fit.validation_metric, fit.validation_errors = validation_run(ctx, model, theta)
+        fit.validation_metric, fit.validation_errors = validation_run(ctx, problem, theta)
     return fit
 
 
-def validation_metric(ctx: Context, model: Model, theta: np.ndarray) -> float:
-    """The loop's metric on the validation record (``settings.validation``):
-    the model runs freely with the record's inputs from its initial state
-    (:func:`free_run`); inf if the filter or the free run fails there."""
-    return validation_run(ctx, model, theta)[0]
-
-
-def validation_run(ctx: Context, model: Model,
+def validation_run(ctx: Context, problem: Problem,
                    theta: np.ndarray) -> tuple[float, np.ndarray | None]:
-    """:func:`validation_metric` and the standardised free-run errors (N, n_y)
-    on the validation record (None if the filter or the free run fails)."""
-    rec = Record(ctx.settings.validation)
-    t, u, y = rec.arrays(model)
-    x0, P0 = prior_on(rec, ctx.settings, model)
-    res = run_ukf(model, t, u, y, theta[None, :], x0, P0, ctx.settings, store=True)
+    """The loop's metric on the validation record (``settings.validation``:
+    the model runs freely with the record's inputs from its initial state,
+    :func:`free_run`) and the standardised free-run errors (N, n_y); inf and
+    None if the filter or the free run fails there."""
+    vp = validation_problem(ctx, problem)
+    res = run_ukf(vp, theta[None, :], store=True)
     if not np.isfinite(res.nll[0]):
         return float("inf"), None
-    sim_y = free_run(ctx, model, theta, res, rec)
-    view = SimpleNamespace(model=model, theta=theta, ukf=res, sim_y=sim_y)
+    sim_y = free_run(ctx, vp, theta, own=False)
+    view = SimpleNamespace(model=vp.model, theta=theta, ukf=res, sim_y=sim_y)
+    rec = Record(vp.record)
     return compute_metric(ctx.settings, view, rec), metric_errors(ctx.settings, view, rec)
 
 
-def sim_inputs(settings: LoopSettings, u: np.ndarray) -> tuple[str, np.ndarray]:
+def sim_inputs(settings: LoopSettings, filter_hold: str, u: np.ndarray) -> tuple[str, np.ndarray]:
     """The input hold of the free-run simulations and the inputs (N, n_u) it
     holds: ``settings.sim_hold`` (``"linear"`` or ``"zoh"``), or with
-    ``"filter"`` the filter's own hold (``settings.ukf.hold``; its
-    ``"mean"`` hold, (u_k + u_k+1)/2 over each interval, is the zero-order
-    hold of the interval means, the last sample held), so that the free run
-    sees the inputs between samples as the likelihood fit did."""
-    hold = settings.sim_hold if settings.sim_hold != "filter" else settings.ukf.hold
+    ``"filter"`` the filter's own hold (``filter_hold``; its ``"mean"``
+    hold, (u_k + u_k+1)/2 over each interval, is the zero-order hold of the
+    interval means, the last sample held), so that the free run sees the
+    inputs between samples as the likelihood fit did."""
+    hold = settings.sim_hold if settings.sim_hold != "filter" else filter_hold
     if hold != "mean":
         return hold, u
     um = u.copy()
@@ -617,27 +548,26 @@ def sim_inputs(settings: LoopSettings, u: np.ndarray) -> tuple[str, np.ndarray]:
     return "zoh", um
 
 
-def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res,
-             record: Record | None = None) -> np.ndarray | None:
-    """Free-run simulation (N, n_y) of ``record`` (default the loop's) with
-    the measured inputs (``settings.sim_method``, rtol 1e-6, atol 1e-9, the
-    input hold of :func:`sim_inputs`) from the record's initial state (the
-    prior mean: state columns, sidecar ``x0``, ``--x0``, the jointly
-    estimated initial states), or, when the record does not give some initial
-    states (:func:`unknown_states`, not estimated with θ), from the
-    RTS-smoothed initial state x̂_0|N (Särkkä 2008): the best start the model
-    and the whole record give. The filter's prior spread does not enter
-    (the first filtered state did: one measurement update of it moved the
-    start by its own P0). None (logged) if the model cannot be simulated
-    freely. ``ukf_res`` is kept for the callers' signature."""
-    record = ctx.record if record is None else record
-    t, u, y = record.arrays(model)
-    hold, u_sim = sim_inputs(ctx.settings, u)
-    own = record is ctx.record
-    view = ctx if own else Context(record, replace(ctx.settings, x0=None))
-    x0 = (prior(ctx, model) if own else prior_on(record, ctx.settings, model))[0]
-    if [n for n in unknown_states(view, model) if not own or n not in ctx.x0_estimates]:
-        x0 = _smoothed_start(ctx, model, theta, record, x0)
+def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
+             own: bool = True) -> np.ndarray | None:
+    """Free-run simulation (N, n_y) of ``problem``'s record with the measured
+    inputs (``settings.sim_method``, rtol 1e-6, atol 1e-9, the input hold of
+    :func:`sim_inputs`) from its prior mean (state columns, sidecar ``x0``,
+    ``--x0``, the jointly estimated initial states), or, when the record
+    does not give some initial states (:meth:`PriorSpec.unknown`; on the
+    estimation record (``own``), those not estimated with θ), from the
+    RTS-smoothed initial state x̂_0|N (Särkkä 2008): the best start the
+    model and the whole record give. The filter's prior spread does not
+    enter (the first filtered state did: one measurement update of it moved
+    the start by its own P0). None (logged) if the model cannot be simulated
+    freely."""
+    model = problem.model
+    t, u, _ = problem.arrays
+    hold, u_sim = sim_inputs(ctx.settings, problem.disc.hold, u)
+    x0 = problem.x0
+    unknown = problem.prior.unknown(model, problem.record)
+    if [n for n in unknown if not own or n not in problem.prior.estimated]:
+        x0 = _smoothed_start(ctx, problem, theta, x0)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -649,15 +579,13 @@ def free_run(ctx: Context, model: Model, theta: np.ndarray, ukf_res,
         return None
 
 
-def _smoothed_start(ctx: Context, model: Model, theta: np.ndarray, record: Record,
+def _smoothed_start(ctx: Context, problem: Problem, theta: np.ndarray,
                     fallback: np.ndarray) -> np.ndarray:
-    """x̂_0|N of ``record`` at ``theta`` from the loop's prior on it
+    """x̂_0|N of ``problem``'s record at ``theta``
     (:func:`~bondgraph.diagnose.inference_calls.smoothed_initial_state`);
     ``fallback`` (logged) if the smoother fails."""
-    t, u, y = record.arrays(model)
-    x0, P0 = prior(ctx, model) if record is ctx.record else prior_on(record, ctx.settings, model)
     try:
-        xs = smoothed_initial_state(model, t, u, y, theta, x0, P0, ctx.settings)
+        xs = smoothed_initial_state(problem, theta)
     except BondGraphError as exc:
         ctx.log(f"  smoothed initial state unavailable ({str(exc).splitlines()[0]}): "
                 f"the free run starts from the prior mean")

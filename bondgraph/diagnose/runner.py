@@ -25,12 +25,13 @@ from bondgraph.diagnose.effects import Scales, get_effect
 from bondgraph.diagnose.fit import (
     Context,
     Fit,
-    Record,
     fit_model,
+    loop_problem,
+    model_of,
     noise_params,
     parameter_std,
-    prior_mean,
-    resolve_noise,
+    planned_noise,
+    problem_for,
 )
 from bondgraph.diagnose.inference_calls import discretisation, make_executor, output_error
 from bondgraph.diagnose.metric import metric_name
@@ -104,18 +105,20 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     s = LoopSettings.from_options(params, settings)
     experiment, s = held_out(experiment, s)
     t0 = time.perf_counter()
-    ctx = Context(Record(experiment), s, _stamped(log if log is not None else print, t0),
-                  progress, executor=make_executor(s.workers, s.scheduler))
+    stamped = _stamped(log if log is not None else print, t0)
+    problem = loop_problem(model_of(graph), experiment, s)
+    add, noise = planned_noise(problem, s, stamped)
+    ctx = Context(replace(problem, noise=noise), replace(s, params=list(s.params) + add),
+                  stamped, progress, executor=make_executor(s.workers, s.scheduler))
     try:
-        return _run(ctx, graph, s, t0, on_update)
+        return _run(ctx, graph, t0, on_update)
     finally:
         ctx.executor.close()
 
 
-def _run(ctx: Context, graph: BondGraph, s: LoopSettings, t0: float,
-         on_update: OnUpdate | None) -> LoopResult:
+def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) -> LoopResult:
     """The loop's steps (:func:`run_loop`)."""
-    ctx.settings = resolve_noise(ctx, graph)
+    s = ctx.settings
     initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
     result = new_result(ctx, graph, initial, warn)
     publish(ctx, result, initial, initial, on_update)
@@ -141,11 +144,10 @@ def _run(ctx: Context, graph: BondGraph, s: LoopSettings, t0: float,
 
 def condition_on(ctx: Context, fit: Fit) -> None:
     """Later filter runs condition on ``fit``: its estimated initial states
-    and measurement-noise stds (score tests use them; confirmations refit them)."""
-    ctx.x0_estimates = dict(fit.x0_est)
-    if fit.noise_est:
-        ctx.settings = replace(ctx.settings,
-                               noise_levels={**ctx.settings.noise_levels, **fit.noise_est})
+    and measurement-noise stds (score tests use them; confirmations refit
+    them): ``ctx.problem`` is replaced by the problem conditioned on them."""
+    ctx.problem = ctx.problem.conditioned_on(x0=dict(fit.x0_est),
+                                             noise_levels=dict(fit.noise_est))
 
 
 def held_out(experiment, s: LoopSettings):
@@ -164,8 +166,8 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit,
     of the declared graph, the true effect if known, and the warnings (the
     discretisation check's ``warn``, estimates on a bound)."""
     s = ctx.settings
-    result = LoopResult(graph.name, graph.source, ctx.record.name, metric_name(s), s.criterion,
-                        s.summary())
+    result = LoopResult(graph.name, graph.source, ctx.problem.name, metric_name(s), s.criterion,
+                        settings_summary(ctx))
     result.declared_graph = graph.copy(graph.name)
     te = s.true_effect
     if te is not None:
@@ -175,6 +177,16 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit,
     result.warnings.extend(f"initial fit: {n} on a bound of its box (no Cramér-Rao std)"
                            for n in initial.at_bound)
     return result
+
+
+def settings_summary(ctx: Context) -> dict:
+    """What a report records of the run's options: the search options
+    (:meth:`LoopSettings.summary`) with the problem's filter options and
+    noise levels as the loop resolved them."""
+    noise = ctx.problem.noise
+    return {**ctx.settings.summary(), "ukf": ctx.problem.ukf.to_dict(),
+            "noise": noise.mode, "noise_levels": dict(noise.held),
+            "noise_outputs": list(noise.estimated)}
 
 
 def _stamped(log: Callable[[str], None], t0: float) -> Callable[[str], None]:
@@ -192,7 +204,7 @@ def publish(ctx: Context, result: LoopResult, initial: Fit, current: Fit,
     result.initial = initial.summary()
     result.final = current.summary()
     result.final_graph = current.graph
-    t, _, y = ctx.record.arrays(current.model)
+    t, _, y = problem_for(ctx, current.model).arrays
     result.time, result.measured = t, y
     result.outputs = list(current.model.outputs)
     result.output_units = list(current.model.output_units)
@@ -206,8 +218,8 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
     estimated (later steps re-estimate them all). Logs the start, a warning
     when the filter model declares no process noise, and the fit."""
     s = ctx.settings
-    ctx.log(f"loop on model '{graph.name}', record "
-            f"'{getattr(ctx.record.exp, 'name', '?')}', estimating {', '.join(s.params)}")
+    ctx.log(f"loop on model '{graph.name}', record '{ctx.problem.name}', estimating "
+            f"{', '.join(s.params)}")
     if not graph.process_noise and not any(
             ss.process_noise is not None for ss in graph.signal_states.values()):
         ctx.log("warning: the filter model declares no process noise; model errors then "
@@ -217,7 +229,8 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
     first = list(s.params) if s.initial_params is None else list(s.initial_params)
     start = sim_start(ctx, graph, first) if s.fit == "sim" else None
     try:
-        fit = fit_model(ctx, graph.copy(graph.name), first, start, "initial fit")
+        fit = fit_model(ctx, graph.copy(graph.name), first, start, "initial fit",
+                        model=ctx.problem.model)
     except NumericalError as exc:
         raise DeclaredFitError(f"the declared model cannot be fitted: {exc}; no effect is "
                                f"scored") from exc
@@ -235,17 +248,13 @@ def sim_start(ctx: Context, graph: BondGraph, names: list[str]) -> dict | None:
     if that fit fails."""
     # all generated functions: the forward sensitivities need ∂f/∂θ and ∂h/∂θ
     model = Model.from_graph(graph, name=f"_loop_sim_{graph.name}")
-    noise = noise_params(graph)
+    noise = noise_params(model)
     phys = [n for n in names if n not in noise]
     if not phys:
         return None
-    theta = model.theta0.copy()
-    for k, v in ctx.settings.fixed.items():
-        if k in model.params:
-            theta[model.param_index(k)] = v
-    t, u, y = ctx.record.arrays(model)
+    pb = problem_for(ctx, model)
     try:
-        r = output_error(model, t, u, y, phys, theta, prior_mean(ctx, model), ctx.settings)
+        r = output_error(pb, phys, pb.theta)
     except (BondGraphError, ValueError) as exc:   # ValueError: least_squares at a bad start
         ctx.log(f"  output-error fit failed ({str(exc).splitlines()[0]}); the likelihood fit "
                 f"starts from the defaults")
@@ -284,7 +293,7 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
     worst, rec = recommended_substeps(ctx, fit, limit) if checked is None else checked
     if not worst > limit:
         return []
-    o = ctx.settings.ukf
+    o = ctx.problem.ukf
     msg = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} measurement-noise "
            f"stds per sample at {where} (a model error that biases the fit and the "
            f"scores); " + (f"use --substeps {rec}" if rec else "use --method rk4 and more "
@@ -298,17 +307,13 @@ def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[fl
     ``fit`` in measurement-noise stds per sample, and the fewest substeps
     among 2, 4, 8, 16, 32 (above the current ones) that bring it to ``limit``
     or below (None if the error is already below, or none does)."""
-    t, u, _ = ctx.record.arrays(fit.model)
-    x0 = prior_mean(ctx, fit.model)
-    o = ctx.settings.ukf
+    pb = problem_for(ctx, fit.model)
     # the one-step error only: the free run is not needed here
-    worst = float(np.max(discretisation(fit.model, t, u, fit.theta, x0, ctx.settings,
-                                        free_run=False)["one_step"]))
+    worst = float(np.max(discretisation(pb, fit.theta, free_run=False)["one_step"]))
     if not worst > limit:
         return worst, None
-    rec = next((n for n in (2, 4, 8, 16, 32) if n > o.substeps and float(np.max(
-        discretisation(fit.model, t, u, fit.theta, x0, ctx.settings, n, free_run=False)
-        ["one_step"])) <= limit), None)
+    rec = next((n for n in (2, 4, 8, 16, 32) if n > pb.disc.substeps and float(np.max(
+        discretisation(pb, fit.theta, n, free_run=False)["one_step"])) <= limit), None)
     return worst, rec
 
 
@@ -328,7 +333,7 @@ def checked_again(ctx: Context, result: LoopResult, fit: Fit, label: str) -> Fit
     n = checked[1]
     if not (warn and ctx.settings.auto_substeps) or n is None:
         return fit
-    ctx.settings = replace(ctx.settings, ukf=replace(ctx.settings.ukf, substeps=n))
+    ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
     ctx.cache.clear()
     ctx.log(f"auto_substeps: the filter now takes {n} substeps per sample; refitting the "
             f"model with {label}")
@@ -349,7 +354,7 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     n = checked[1]
     if not (warn and ctx.settings.auto_substeps) or n is None:
         return initial, warn
-    ctx.settings = replace(ctx.settings, ukf=replace(ctx.settings.ukf, substeps=n))
+    ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
     ctx.log(f"auto_substeps: the filter now takes {n} substeps per sample; refitting the "
             f"declared model")
     ctx.cache.clear()

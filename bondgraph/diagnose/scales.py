@@ -11,7 +11,7 @@ import sympy as sp
 from bondgraph.core.elements import C, I, One, R, Source
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.effects import Scales
-from bondgraph.diagnose.fit import Context, Fit
+from bondgraph.diagnose.fit import Context, Fit, problem_for
 
 
 def operating_scales(ctx: Context, fit: Fit) -> Scales:
@@ -29,7 +29,7 @@ def operating_scales(ctx: Context, fit: Fit) -> Scales:
     """
     ss = derive(fit.graph)
     model = fit.model
-    t, u, y = ctx.record.arrays(model)
+    t, u, y = problem_for(ctx, model).arrays
     X = fit.ukf.x_filt[:, 0, :]
     sc = Scales(duration=float(t[-1] - t[0]) or 1.0, dt=float(np.median(np.diff(t))))
     args = (list(ss.states), list(ss.inputs), list(ss.params))

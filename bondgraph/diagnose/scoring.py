@@ -42,8 +42,8 @@ from scipy.stats import chi2
 from tqdm.auto import tqdm
 
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
-from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, prior
-from bondgraph.diagnose.inference_calls import fisher_fit, run_ukf
+from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, problem_for
+from bondgraph.diagnose.inference_calls import Problem, fisher_fit, run_ukf
 from bondgraph.diagnose.parallel import distributed, run_tasks
 from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.scales import operating_scales  # noqa: F401 (public name)
@@ -65,7 +65,7 @@ def noise_variants(model: Model, fit: Fit, base: np.ndarray, factors) -> list:
     """Copies of ``base`` (n_theta,) with the estimated noise intensities of
     ``fit`` (:func:`bondgraph.diagnose.fit.noise_params`) scaled by each
     factor, clipped to their box; ``[base]`` if none is estimated."""
-    noise = noise_params(fit.graph)
+    noise = noise_params(fit.model)
     names = [n for n in fit.params if n in noise and n in model.params]
     if not names:
         return [base]
@@ -84,19 +84,31 @@ def noise_variants(model: Model, fit: Fit, base: np.ndarray, factors) -> list:
 class Probe:
     """The probe model of one step and what the score test needs of it:
     its columns (:class:`bondgraph.diagnose.effects.ProbeColumn`), θ with the
-    current estimates and every β = 0, the record arrays, the UKF prior, and
-    the θ indices of the probe parameters and of the estimated ones."""
+    current estimates and every β = 0, its problem (the record arrays, the
+    UKF prior, the held noise levels), and the θ indices of the probe
+    parameters and of the estimated ones."""
 
     model: Model
     cols: list
     base: np.ndarray
-    t: np.ndarray
-    u: np.ndarray
-    y: np.ndarray
-    x0: np.ndarray
-    P0: np.ndarray
+    problem: Problem
     idx: list
     nuis: list
+
+    @property
+    def t(self) -> np.ndarray:
+        """Sample times (N,) [s]."""
+        return self.problem.t
+
+    @property
+    def u(self) -> np.ndarray:
+        """Inputs (N, n_u) in the probe model's units."""
+        return self.problem.u
+
+    @property
+    def y(self) -> np.ndarray:
+        """Measured outputs (N, n_y), NaN where missing."""
+        return self.problem.y
 
 
 def build_probe(ctx: Context, fit: Fit, scales: Scales, effects) -> Probe | None:
@@ -129,9 +141,7 @@ def build_probe(ctx: Context, fit: Fit, scales: Scales, effects) -> Probe | None
     base = pm.theta0.copy()
     for n in fit.model.params:
         base[pm.param_index(n)] = fit.theta[fit.model.param_index(n)]
-    t, u, y = ctx.record.arrays(pm)
-    x0, P0 = prior(ctx, pm)
-    return Probe(pm, cols, base, t, u, y, x0, P0, [pm.param_index(c.param) for c in cols],
+    return Probe(pm, cols, base, problem_for(ctx, pm), [pm.param_index(c.param) for c in cols],
                  [pm.param_index(n) for n in fit.params])
 
 
@@ -272,8 +282,7 @@ def signature_runs(ctx: Context, probe: Probe, deltas: np.ndarray, nuis_delta: l
     chunk = ctx.settings.chunk
     reasons: dict = {}
     for a in range(0, len(sets), chunk):
-        r = run_ukf(pm, t, probe.u, probe.y, sets[a:a + chunk], probe.x0, probe.P0,
-                    ctx.settings, store=True)
+        r = run_ukf(probe.problem, sets[a:a + chunk], store=True)
         for q in range(r.nll.size):
             if 0 < a + q < n_lad and not np.isfinite(r.nll[q]):
                 reasons.setdefault((a + q - 1) // len(LADDER), []).append(str(r.reasons[q]))
@@ -439,8 +448,7 @@ def line_probe(ctx: Context, probe: Probe, fit: Fit, cands: list[Candidate]) -> 
     nll = np.empty(len(sets))
     chunk = ctx.settings.chunk
     for a in range(0, len(sets), chunk):
-        nll[a:a + chunk] = run_ukf(probe.model, probe.t, probe.u, probe.y, sets[a:a + chunk],
-                                   probe.x0, probe.P0, ctx.settings).nll
+        nll[a:a + chunk] = run_ukf(probe.problem, sets[a:a + chunk]).nll
     best: dict = {}
     for (cand, tr), v in zip(owner, nll):
         if np.isfinite(v) and (id(cand) not in best or v < best[id(cand)][0]):
@@ -539,7 +547,7 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
     i0 = int(np.argmin(net))
     best, th_best, i_best = float(net[i0]), np.array(sets[i0]), i0
     n = int(ctx.settings.structural_starts)
-    noise = noise_params(fit.graph)
+    noise = noise_params(fit.model)
     names = [p for p in fit.params if p in model.params and p not in noise]
     if n <= 0 or not names or not np.isfinite(best):
         return best, th_best, i_best
@@ -548,17 +556,16 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
         key = tuple(sorted(grid_of[j].items()))
         if np.isfinite(net[j]) and key not in first:
             first[key] = int(j)
-    t, u, y = ctx.record.arrays(model)
-    x0, P0 = prior(ctx, model)
+    pb = problem_for(ctx, model)
     idx = [model.param_index(p) for p in names]
     lo, hi = model.bounds(names)
     for j in list(first.values())[:n]:
         try:
-            th = fisher_fit(model, t, u, y, np.array(sets[j]), idx, lo, hi, x0, P0,
-                            ctx.settings, 1, np.zeros(len(idx), bool), information=False)[0]
+            th = fisher_fit(pb, np.array(sets[j]), idx, (lo, hi), 1,
+                            log_scale=np.zeros(len(idx), bool), information=False)[0]
         except (FloatingPointError, np.linalg.LinAlgError):
             continue
-        f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])
+        f = float(run_ukf(pb, th[None, :]).nll[0])
         if np.isfinite(f) and f < best:
             best, th_best, i_best = f, th, j
     return best, th_best, i_best
@@ -594,20 +601,18 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
     names = [n for n in fit.params if n in model.params] + list(new)
     if iters <= 0 or not names:
         return None
-    t, u, y = ctx.record.arrays(model)
-    x0, P0 = prior(ctx, model)
+    pb = problem_for(ctx, model)
     lo, hi = model.bounds(names)
     idx = [model.param_index(n) for n in names]
     th = theta.copy()
     th[idx] = np.clip(th[idx], lo, hi)
-    noise = noise_params(fit.graph)
+    noise = noise_params(fit.model)
     scale = np.array([n in noise and lo[j] > 0 for j, n in enumerate(names)])
     try:
-        th = fisher_fit(model, t, u, y, th, idx, lo, hi, x0, P0, ctx.settings, iters, scale,
-                        information=False)[0]
+        th = fisher_fit(pb, th, idx, (lo, hi), iters, log_scale=scale, information=False)[0]
     except (FloatingPointError, np.linalg.LinAlgError):
         return None
-    f = float(run_ukf(model, t, u, y, th[None, :], x0, P0, ctx.settings).nll[0])
+    f = float(run_ukf(pb, th[None, :]).nll[0])
     return (f, th) if np.isfinite(f) and f < nll else None
 
 
@@ -646,9 +651,7 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
         for thv in noise_variants(model, fit, th, NOISE_FACTORS):
             sets.append(thv)
             grid_of.append(vals)
-    t, u, y = ctx.record.arrays(model)
-    x0, P0 = prior(ctx, model)
-    r = run_ukf(model, t, u, y, np.array(sets), x0, P0, ctx.settings)
+    r = run_ukf(problem_for(ctx, model), np.array(sets))
     k = sum(1 for p in eff.params if p.estimated)
     if not np.any(np.isfinite(r.nll)):
         return failed_candidate(eff, tgt, "likelihood ratio", k, str(r.reasons[0]))

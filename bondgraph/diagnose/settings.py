@@ -204,12 +204,6 @@ class LoopSettings:
         noise-intensity parameters not in ``params`` or ``fixed`` join
         ``params``); the score tests condition on the current fit's levels.
         ``"model"``: the graph's own sensor noise and noise-intensity values.
-    noise_levels : dict
-        Output -> measurement-noise std (output units) held in every filter
-        run; resolved by the runner (the declared levels, then the current
-        fit's estimates).
-    noise_outputs : list of str
-        Outputs whose noise std every fit estimates; resolved by the runner.
     """
 
     params: list[str]
@@ -253,8 +247,6 @@ class LoopSettings:
     metric_name: str | None = None
     true_effect: Any = None
     noise: str = "auto"
-    noise_levels: dict = field(default_factory=dict)
-    noise_outputs: list = field(default_factory=list)
 
     def __post_init__(self):
         check_settings(self)
@@ -302,8 +294,7 @@ class LoopSettings:
                 "p0_scale": self.p0_scale,
                 "holdout": self.holdout,
                 "fit": self.fit, "sim_hold": self.sim_hold, "auto_substeps": self.auto_substeps,
-                "noise": self.noise, "noise_levels": dict(self.noise_levels),
-                "noise_outputs": list(self.noise_outputs),
+                "noise": self.noise,
                 "confirm_iterations": self.confirm_iterations,
                 "confirm_top": self.confirm_top, "confirm_rounds": self.confirm_rounds,
                 "tie_level": self.tie_level,

@@ -34,13 +34,12 @@ from typing import Sequence
 import numpy as np
 
 from bondgraph.errors import ModelError, OptionError
-from bondgraph.inference.ukf import default_P0
+# X0_TOKEN (the token spread of a jointly estimated initial state) is defined
+# in prior and used here
+from bondgraph.inference.prior import X0_TOKEN, default_P0
 
 X0_PREFIX = "x0."
 NOISE_PREFIX = "noise."
-#: a jointly estimated initial state keeps this fraction of its prior std in
-#: the filter (a token spread: the likelihood is conditional on x0)
-X0_TOKEN = 1e-6
 #: box of an estimated initial state: prior mean ± this many prior stds (or scales)
 X0_BOX = 100.0
 #: box of an estimated noise std: its start times / divided by this

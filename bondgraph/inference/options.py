@@ -23,7 +23,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import numbers
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from bondgraph.errors import OptionError
@@ -41,8 +41,18 @@ UKF_BACKENDS = ("numba", "numpy")
 DEFAULT_BACKEND = "numba" if importlib.util.find_spec("numba") is not None else "numpy"
 #: global optimizers of :func:`bondgraph.inference.estimate.estimate`
 OPTIMIZERS = ("pso", "de")
-#: measurement-noise policies (FitOptions.noise, LoopSettings.noise, ``--noise``)
+#: measurement-noise policies (FitOptions.noise, NoiseSpec.mode, ``--noise``)
 NOISE_MODES = ("auto", "model")
+#: the prior std of each initial state relative to its scale, when nothing
+#: else is said (``--p0-rel``; :class:`bondgraph.inference.prior.PriorSpec`):
+#: the toolkit's one definition of that default
+P0_REL = 0.05
+#: the scale a prior's relative spread refers to: each state's own scale
+#: along the record, or max(|x0|, 1) (:class:`bondgraph.inference.prior.PriorSpec`)
+P0_SCALES = ("state", "magnitude")
+#: fewest steps per sample of the free run that gives the prior's state
+#: scales (:meth:`Discretisation.for_free_run`)
+FREE_RUN_MIN_SUBSTEPS = 2
 
 
 def _set(obj, name: str, value) -> None:
@@ -81,6 +91,74 @@ def _flag(obj, name: str) -> None:
     v = getattr(obj, name)
     if not isinstance(v, bool):
         raise OptionError(f"{type(obj).__name__}.{name} must be True or False, got {v!r}")
+
+def _discretisation_fields(obj) -> None:
+    """Check method, substeps, hold and backend of ``obj`` (one rule for
+    :class:`Discretisation` and :class:`UKFOptions`)."""
+    _choice(obj, "method", UKF_METHODS)
+    _integer(obj, "substeps", 1)
+    _choice(obj, "hold", UKF_HOLDS)
+    _choice(obj, "backend", UKF_BACKENDS)
+    if obj.backend == "numba" and importlib.util.find_spec("numba") is None:
+        raise OptionError(f"{type(obj).__name__}.backend = 'numba' but numba is not installed "
+                          f"(pip install numba, or backend='numpy')")
+
+
+@dataclass(frozen=True)
+class Discretisation:
+    """How the state equations are stepped between two samples: the one
+    value that the UKF (:class:`UKFOptions`), the prior's free run
+    (:func:`bondgraph.inference.prior.simulated_rms`), the discretisation
+    check (:func:`bondgraph.inference.ukf.discretisation_check`) and the batch
+    simulations read.
+
+    Parameters
+    ----------
+    method : {"ros2", "rk4"}
+        The step (:func:`bondgraph.numerics.integrators.make_step`): the
+        L-stable linearly implicit Rosenbrock method or classical RK4.
+    substeps : int
+        Steps per sample interval (>= 1).
+    hold : {"zoh", "mean", "linear"}
+        The input over an interval (:func:`bondgraph.numerics.integrators.hold_inputs`).
+    backend : {"numba", "numpy"}
+        Compiled kernels or the numpy reference (equal to rounding).
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (named).
+
+    Examples
+    --------
+    >>> Discretisation(method="rk4", substeps=4).for_free_run().substeps
+    4
+    >>> Discretisation().for_free_run().substeps
+    2
+    """
+
+    method: str = "ros2"
+    substeps: int = 1
+    hold: str = "zoh"
+    backend: str = DEFAULT_BACKEND
+
+    def __post_init__(self):
+        _discretisation_fields(self)
+
+    def for_free_run(self) -> "Discretisation":
+        """The discretisation of the prior's free run: at least
+        :data:`FREE_RUN_MIN_SUBSTEPS` steps per sample (a free run has no
+        measurement update to pull a coarse step back; the toolkit's one
+        place for that rule)."""
+        return replace(self, substeps=max(self.substeps, FREE_RUN_MIN_SUBSTEPS))
+
+    def describe(self) -> str:
+        """``"ros2(2), zoh hold"``: for log lines."""
+        return f"{self.method}({self.substeps}), {self.hold} hold"
+
+    def to_dict(self) -> dict:
+        """The value as a plain dict (JSON-able)."""
+        return asdict(self)
 
 
 @dataclass(frozen=True)
@@ -144,14 +222,19 @@ class UKFOptions:
         _real(self, "alpha", positive=True)
         _real(self, "beta")
         _real(self, "kappa")
-        _choice(self, "method", UKF_METHODS)
-        _integer(self, "substeps", 1)
+        _discretisation_fields(self)
         _choice(self, "jacobian", UKF_JACOBIANS)
-        _choice(self, "hold", UKF_HOLDS)
-        _choice(self, "backend", UKF_BACKENDS)
-        if self.backend == "numba" and importlib.util.find_spec("numba") is None:
-            raise OptionError("UKFOptions.backend = 'numba' but numba is not installed "
-                              "(pip install numba, or backend='numpy')")
+
+    @property
+    def discretisation(self) -> Discretisation:
+        """The :class:`Discretisation` of these options (method, substeps,
+        hold, backend)."""
+        return Discretisation(self.method, self.substeps, self.hold, self.backend)
+
+    def with_discretisation(self, disc: Discretisation) -> "UKFOptions":
+        """These options with the discretisation ``disc``."""
+        return replace(self, method=disc.method, substeps=disc.substeps, hold=disc.hold,
+                       backend=disc.backend)
 
     def to_dict(self) -> dict:
         """The options as a plain dict (JSON-able)."""

@@ -29,15 +29,25 @@ initial state (:mod:`bondgraph.inference.smoother`) estimates it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from bondgraph.errors import ModelError, OptionError
 from bondgraph.inference import ukf_numba
-from bondgraph.inference.options import DEFAULT_BACKEND
+from bondgraph.inference.options import P0_REL, P0_SCALES, Discretisation
 from bondgraph.numerics import compiled
 from bondgraph.numerics.integrators import hold_inputs, make_step
+
+#: ``rule`` strings of :meth:`PriorSpec.mean`
+RULE_GIVEN = "given"
+RULE_MODEL = "model X0"
+RULE_RECORD = "record state columns / sidecar x0"
+#: the spread of an initial state estimated jointly with θ, relative to its
+#: prior std: the likelihood is conditional on it
+X0_TOKEN = 1e-6
 
 #: at most this many samples of the record are simulated for the scales
 SCALE_SAMPLES = 20000
@@ -51,9 +61,8 @@ UNKNOWN_REL = 1.0
 NUMPY_S_PER_STEP = 2e-4
 
 
-def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int = 2,
-                  hold: str = "zoh", samples: int = SCALE_SAMPLES,
-                  backend: str = DEFAULT_BACKEND) -> np.ndarray:
+def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
+                  samples: int = SCALE_SAMPLES) -> np.ndarray:
     """RMS of every state along a fixed-step free run from ``x0`` with the
     record's inputs (the first ``samples`` samples; up to the first
     non-finite state if the run diverges, or up to a singular ROS2 matrix
@@ -66,26 +75,30 @@ def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int
     u : array (N, n_u)
     theta : array (n_theta,)
     x0 : array (n_x,)
-    method, substeps, hold :
-        The discretisation (:func:`bondgraph.numerics.integrators.make_step`,
-        :func:`~bondgraph.numerics.integrators.hold_inputs`).
-    backend : {"numba", "numpy"}
+    disc : Discretisation, optional
+        The steps (:func:`bondgraph.numerics.integrators.make_step`,
+        :func:`~bondgraph.numerics.integrators.hold_inputs`; default
+        ``Discretisation().for_free_run()``), used as given. Its backend
         numba: the compiled free run (:func:`bondgraph.inference.ukf_numba.free_run_rms`,
         the same steps, values equal to rounding) where the model's kernels
         are compiled or compiling pays (:func:`bondgraph.numerics.compiled.compile_pays`);
         else the numpy steps, sample by sample.
+    samples : int
+        At most this many samples are simulated.
 
     Returns
     -------
     ndarray (n_x,)
         0 where nothing finite was simulated.
     """
+    disc = Discretisation().for_free_run() if disc is None else disc
+    method, substeps, hold = disc.method, disc.substeps, disc.hold
     n = min(int(np.size(t)), int(samples))
     t = np.asarray(t, float)[:n]
     u = np.asarray(u, float).reshape(np.size(t), -1) if model.n_u else np.zeros((n, 0))
     u = u[:n]
     numpy_s = n * substeps * NUMPY_S_PER_STEP
-    kernels = _free_run_kernels(model, backend, method, hold, numpy_s)
+    kernels = _free_run_kernels(model, disc.backend, method, hold, numpy_s)
     if kernels is not None:
         return ukf_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
     held = hold_inputs(u, hold)
@@ -152,8 +165,8 @@ def sensor_scales(model, u, y, theta, x0) -> np.ndarray:
     return out
 
 
-def state_scales(model, t, u, y, theta, x0, *, method: str = "ros2", substeps: int = 2,
-                 hold: str = "zoh", backend: str = DEFAULT_BACKEND) -> tuple[np.ndarray, list[str]]:
+def state_scales(model, t, u, y, theta, x0,
+                 disc: Discretisation | None = None) -> tuple[np.ndarray, list[str]]:
     """The scale of every state along the record (module docstring, rules 1-4).
 
     Parameters
@@ -164,10 +177,8 @@ def state_scales(model, t, u, y, theta, x0, *, method: str = "ros2", substeps: i
     theta : array (n_theta,)
     x0 : array (n_x,)
         Prior mean.
-    method, substeps, hold :
-        Discretisation of the free run.
-    backend : {"numba", "numpy"}
-        Of the free run (:func:`simulated_rms`).
+    disc : Discretisation, optional
+        Of the free run (:func:`simulated_rms`), used as given.
 
     Returns
     -------
@@ -177,8 +188,7 @@ def state_scales(model, t, u, y, theta, x0, *, method: str = "ros2", substeps: i
     """
     x0 = np.asarray(x0, float)
     theta = np.asarray(theta, float)
-    scale = np.maximum(simulated_rms(model, t, u, theta, x0, method=method, substeps=substeps,
-                                     hold=hold, backend=backend), np.abs(x0))
+    scale = np.maximum(simulated_rms(model, t, u, theta, x0, disc), np.abs(x0))
     rules = ["simulation" if s > 0 and np.isfinite(s) else "" for s in scale]
     scale = np.where(np.isfinite(scale), scale, 0.0)
     duration = float(np.asarray(t, float)[-1] - np.asarray(t, float)[0]) if np.size(t) > 1 else 1.0
@@ -221,7 +231,7 @@ def declared_std(model, x0_std: Mapping[str, float] | None) -> np.ndarray:
     return out
 
 
-def prior_covariance(model, scales: np.ndarray, *, rel: float = 0.05,
+def prior_covariance(model, scales: np.ndarray, *, rel: float = P0_REL,
                      x0_std: Mapping[str, float] | None = None,
                      unknown: Sequence[str] = ()) -> np.ndarray:
     """The prior covariance (n_x, n_x) of the initial state: diagonal,
@@ -262,14 +272,13 @@ def prior_covariance(model, scales: np.ndarray, *, rel: float = 0.05,
     return np.diag(sd ** 2)
 
 
-def record_prior(model, t, u, y, theta, x0, *, rel: float = 0.05,
-                 x0_std: Mapping[str, float] | None = None, method: str = "ros2",
-                 substeps: int = 2, hold: str = "zoh",
-                 unknown: Sequence[str] = (),
-                 backend: str = DEFAULT_BACKEND) -> tuple[np.ndarray, dict]:
+def record_prior(model, t, u, y, theta, x0, disc: Discretisation | None = None, *,
+                 rel: float = P0_REL, x0_std: Mapping[str, float] | None = None,
+                 unknown: Sequence[str] = ()) -> tuple[np.ndarray, dict]:
     """:func:`prior_covariance` with the scales of :func:`state_scales`
-    (``unknown``: the states whose initial value nothing gives; ``backend``:
-    of the free run, :func:`simulated_rms`).
+    (``disc``: the discretisation of the free run, used as given, default
+    ``Discretisation().for_free_run()``; ``unknown``: the states whose
+    initial value nothing gives).
 
     Returns
     -------
@@ -278,11 +287,219 @@ def record_prior(model, t, u, y, theta, x0, *, rel: float = 0.05,
     """
     if np.shape(x0) != (model.n_x,):
         raise ModelError(f"x0 has shape {np.shape(x0)}, expected ({model.n_x},)")
-    scales, rules = state_scales(model, t, u, y, theta, x0, method=method, substeps=substeps,
-                                 hold=hold, backend=backend)
+    scales, rules = state_scales(model, t, u, y, theta, x0, disc)
     P0 = prior_covariance(model, scales, rel=rel, x0_std=x0_std, unknown=unknown)
     info = {"rel": float(rel), "scales": dict(zip(model.states, scales.tolist())),
             "unknown": list(unknown),
             "rules": dict(zip(model.states, rules)),
             "declared_std": {k: float(v) for k, v in (x0_std or {}).items()}}
     return P0, info
+
+
+def default_P0(model, x0: np.ndarray | None = None, rel: float = P0_REL) -> np.ndarray:
+    """A diagonal initial covariance by magnitude: ``(rel·max(|x0_i|, 1))²``
+    on the diagonal (``PriorSpec(scale="magnitude")``).
+
+    Parameters
+    ----------
+    model : Model
+    x0 : array (n_x,), optional
+        Initial state (default ``model.x0``).
+    rel : float
+        Relative standard deviation (default :data:`~bondgraph.inference.options.P0_REL`).
+
+    Returns
+    -------
+    ndarray (n_x, n_x)
+    """
+    x0 = model.x0 if x0 is None else np.asarray(x0, dtype=float)
+    sd = rel * np.maximum(np.abs(x0), 1.0)
+    return np.diag(sd ** 2)
+
+
+def _frozen(mapping: Mapping[str, float] | None) -> Mapping[str, float]:
+    """A read-only copy of ``name -> float``."""
+    return MappingProxyType({str(k): float(v) for k, v in (mapping or {}).items()})
+
+
+@dataclass(frozen=True, eq=False)
+class PriorSpec:
+    """What the prior of the initial state is made of: the toolkit's one
+    initial-state rule (:meth:`mean`) and its one covariance policy
+    (:meth:`covariance`).
+
+    Parameters
+    ----------
+    rel : float
+        Prior std of each initial state the record gives, relative to its
+        scale (default :data:`~bondgraph.inference.options.P0_REL`, 5 %).
+    scale : {"state", "magnitude"}
+        The scale ``rel`` refers to: each state's own scale along the record
+        (:func:`record_prior`; a state nothing gives gets its whole scale) or
+        ``max(|x0|, 1)`` (:func:`default_P0`).
+    x0 : array (n_x,), optional
+        The whole prior mean, given (for the model of that size; a model
+        with other states falls back to the rule).
+    x0_set : dict, optional
+        Initial states by name (``--x0``), imposed over the rule.
+    P0 : array (n_x, n_x) or (n_x,), optional
+        The whole prior covariance, given (a vector is a diagonal; for the
+        model of that size).
+    x0_std : dict, optional
+        Prior standard deviations by state name declared by the user (e.g.
+        the road grade of a level track), imposed last.
+    estimated : dict, optional
+        Initial states estimated jointly with θ (by name, at their
+        estimates): the filter's prior holds them with a token spread,
+        :data:`X0_TOKEN` of their prior std (Kristensen, Madsen & Jørgensen
+        2004: the likelihood is conditional on them).
+
+    Raises
+    ------
+    OptionError
+        ``rel`` not a positive finite number, an unknown ``scale``.
+
+    Notes
+    -----
+    The rule (:meth:`mean`): ``x0`` if given, else the record's own rule
+    (:meth:`bondgraph.data.records.Experiment.initial_state`: state columns,
+    else the sidecar's ``x0``, else the model's X0; the model's X0 for bare
+    arrays), then ``x0_set`` and ``estimated`` imposed by name.
+    """
+
+    rel: float = P0_REL
+    scale: str = "state"
+    x0: tuple | None = None
+    x0_set: Mapping[str, float] = field(default_factory=dict)
+    P0: np.ndarray | None = None
+    x0_std: Mapping[str, float] = field(default_factory=dict)
+    estimated: Mapping[str, float] = field(default_factory=dict)
+
+    def __post_init__(self):
+        rel = self.rel
+        if isinstance(rel, bool) or not isinstance(rel, (int, float, np.floating)) \
+                or not np.isfinite(rel) or rel <= 0:
+            raise OptionError(f"PriorSpec.rel (--p0-rel) must be a number > 0, got {rel!r}")
+        object.__setattr__(self, "rel", float(rel))
+        if self.scale not in P0_SCALES:
+            raise OptionError(f"PriorSpec.scale (--p0) must be one of {', '.join(P0_SCALES)}, "
+                              f"got {self.scale!r}")
+        if self.x0 is not None:
+            object.__setattr__(self, "x0", tuple(np.asarray(self.x0, float).reshape(-1)))
+        if self.P0 is not None:
+            object.__setattr__(self, "P0", np.array(self.P0, dtype=float))
+        for name in ("x0_set", "x0_std", "estimated"):
+            object.__setattr__(self, name, _frozen(getattr(self, name)))
+
+    def check(self, model) -> None:
+        """Check the named states against ``model`` (the declared one).
+
+        Raises
+        ------
+        ModelError
+            A state of ``x0_set`` or ``x0_std`` the model does not have, or a
+            given ``x0`` of the wrong length.
+        """
+        for name in [*self.x0_set, *self.x0_std]:
+            model.state_index(name)
+        if self.x0 is not None and len(self.x0) != model.n_x:
+            raise ModelError(f"x0 has {len(self.x0)} values; model '{model.name}' expects "
+                             f"{model.n_x} ({', '.join(model.states)})")
+
+    def mean(self, model, record=None) -> tuple[np.ndarray, str]:
+        """The prior mean of ``model``'s initial state on ``record`` (an
+        :class:`~bondgraph.data.records.Experiment`, or None for bare arrays).
+
+        Returns
+        -------
+        (x0 (n_x,), rule)
+            ``rule`` is :data:`RULE_GIVEN`, :data:`RULE_RECORD` or
+            :data:`RULE_MODEL` (how the vector was made before the named
+            states were imposed).
+        """
+        if self.x0 is not None and len(self.x0) == model.n_x:
+            x, rule = np.array(self.x0, dtype=float), RULE_GIVEN
+        elif record is None:
+            x, rule = np.array(model.x0, dtype=float), RULE_MODEL
+        else:
+            x, rule = np.asarray(record.initial_state(model), dtype=float).copy(), RULE_RECORD
+        for name, v in {**self.x0_set, **self.estimated}.items():
+            if name in model.states:
+                x[model.state_index(name)] = float(v)
+        return x, rule
+
+    def unknown(self, model, record=None) -> list[str]:
+        """The states whose initial value nothing gives (their mean is the
+        model's X0, a guess): not in ``record`` (state column, sidecar
+        ``x0``/``x0_std``), not set here (``x0``, ``x0_set``, ``x0_std``).
+        Without a record, none (bare arrays: the caller's x0 is taken as known)."""
+        if self.x0 is not None or record is None:
+            return []
+        given = set(record.given_initial_states(model)) | set(self.x0_set) | set(self.x0_std)
+        return [n for n in model.states if n not in given]
+
+    def covariance(self, model, arrays, theta, x0, disc: Discretisation,
+                   record=None, *, token: bool = True) -> np.ndarray:
+        """The prior covariance (n_x, n_x) at the prior mean ``x0``.
+
+        Parameters
+        ----------
+        model : Model
+        arrays : tuple (t (N,), u (N, n_u), y (N, n_y))
+            The record in the model's units.
+        theta : array (n_theta,)
+            Parameters of the free run that gives the state scales.
+        x0 : array (n_x,)
+            The prior mean (:meth:`mean`).
+        disc : Discretisation
+            The filter's; the free run takes :meth:`Discretisation.for_free_run`.
+        record : Experiment, optional
+            Its declared spreads (sidecar ``x0_std``) and given states.
+        token : bool
+            Shrink the ``estimated`` states to their token spread (False:
+            a fit that estimates them again sees their whole spread).
+
+        Returns
+        -------
+        ndarray (n_x, n_x)
+            ``P0`` if given for this model; else by :attr:`scale`; then the
+            user's ``x0_std`` imposed, then the token spread of the
+            ``estimated`` states.
+        """
+        P = None
+        if self.P0 is not None and self.P0.shape in ((model.n_x,), (model.n_x, model.n_x)):
+            P = np.diag(self.P0) if self.P0.ndim == 1 else self.P0.copy()
+        elif self.scale == "magnitude":
+            P = default_P0(model, x0, self.rel)
+        else:
+            t, u, y = arrays
+            declared = record.initial_state_std(model) if record is not None else {}
+            P, _ = record_prior(model, t, u, y, theta, x0, disc.for_free_run(), rel=self.rel,
+                                x0_std=declared, unknown=self.unknown(model, record))
+        for name, sd in self.x0_std.items():
+            if name in model.states:
+                _set_std(P, model.state_index(name), sd)
+        for name in self.estimated if token else ():
+            if name in model.states:
+                i = model.state_index(name)
+                _set_std(P, i, X0_TOKEN * np.sqrt(max(P[i, i], 0.0)))
+        return P
+
+    def conditioned_on(self, estimated: Mapping[str, float]) -> "PriorSpec":
+        """This prior with the initial states ``estimated`` (by name; they
+        replace the earlier estimates) at their estimates and a token spread."""
+        return replace(self, estimated=estimated)
+
+    def on_other_record(self) -> "PriorSpec":
+        """This prior for another record (a validation record): its own
+        initial state (the given mean, the named states and the estimates
+        belong to the estimation record's first sample); the relative spread,
+        the scale, a given P0 and the declared spreads kept."""
+        return replace(self, x0=None, x0_set={}, estimated={})
+
+
+def _set_std(P: np.ndarray, i: int, sd: float) -> None:
+    """Row and column ``i`` of ``P`` zeroed, ``P[i, i] = sd²`` (in place)."""
+    P[i, :] = 0.0
+    P[:, i] = 0.0
+    P[i, i] = float(sd) ** 2

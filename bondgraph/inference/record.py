@@ -11,11 +11,11 @@ import numpy as np
 
 from bondgraph.data.records import Experiment
 from bondgraph.errors import ModelError
+from bondgraph.inference.prior import RULE_GIVEN, RULE_MODEL, RULE_RECORD, PriorSpec
 
-#: ``rule`` strings of :func:`initial_state`
-RULE_GIVEN = "given"
-RULE_MODEL = "model X0"
-RULE_RECORD = "record state columns / sidecar x0"
+__all__ = ["RULE_GIVEN", "RULE_MODEL", "RULE_RECORD", "as_record", "initial_state",
+           "record_arrays", "state_vector"]
+
 
 
 def as_record(experiment):
@@ -75,7 +75,8 @@ def state_vector(model, x0) -> np.ndarray:
 
 
 def initial_state(model, experiment, x0=None) -> tuple[np.ndarray, str]:
-    """The initial state of an estimation or analysis on a record.
+    """The initial state of an estimation or analysis on a record: the one
+    rule, :meth:`bondgraph.inference.prior.PriorSpec.mean`.
 
     ``x0`` if given (array or dict of named overrides of X0); else the
     record's rule, :meth:`bondgraph.data.records.Experiment.initial_state`
@@ -87,9 +88,6 @@ def initial_state(model, experiment, x0=None) -> tuple[np.ndarray, str]:
     (x0 (n_x,), rule)
         ``rule`` is :data:`RULE_GIVEN`, :data:`RULE_RECORD` or :data:`RULE_MODEL`.
     """
-    if x0 is not None:
-        return state_vector(model, x0), RULE_GIVEN
+    spec = PriorSpec(x0=None if x0 is None else state_vector(model, x0))
     rec = as_record(experiment)
-    if isinstance(rec, tuple):
-        return np.array(model.x0, dtype=float), RULE_MODEL
-    return rec.initial_state(model), RULE_RECORD
+    return spec.mean(model, None if isinstance(rec, tuple) else rec)

@@ -65,7 +65,8 @@ import numpy as np
 from bondgraph.core.progress import long_range
 from bondgraph.errors import BackendWarning, DataError, ModelError, OptionError
 from bondgraph.inference import ukf_numba
-from bondgraph.inference.options import UKFOptions, ukf_options
+from bondgraph.inference.options import Discretisation, UKFOptions, ukf_options
+from bondgraph.inference.prior import default_P0
 from bondgraph.inference.sigma import (
     SigmaWeights,
     cholesky_batch,
@@ -181,26 +182,6 @@ def _as_batch_matrix(M, P: int, n: int, what: str) -> np.ndarray | None:
         return M
     raise OptionError(f"{what} must have shape ({n}, {n}) or ({P}, {n}, {n}) (or ({n},) for a "
                       f"diagonal), got {M.shape}")
-
-
-def default_P0(model, x0: np.ndarray | None = None, rel: float = 0.05) -> np.ndarray:
-    """A diagonal initial covariance: (rel·max(|x0_i|, 1))² on the diagonal.
-
-    Parameters
-    ----------
-    model : Model
-    x0 : array (n_x,), optional
-        Initial state (default ``model.x0``).
-    rel : float
-        Relative standard deviation.
-
-    Returns
-    -------
-    ndarray (n_x, n_x)
-    """
-    x0 = model.x0 if x0 is None else np.asarray(x0, dtype=float)
-    sd = rel * np.maximum(np.abs(x0), 1.0)
-    return np.diag(sd ** 2)
 
 
 def _check_inputs(model, t, u, y):
@@ -755,18 +736,18 @@ def nll_from_innovations(innovations: np.ndarray, S: np.ndarray) -> np.ndarray:
     return out
 
 
-def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", substeps: int = 1,
+def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | None = None, *,
                          reference_substeps: int = 32, reference_method: str | None = None,
-                         hold: str = "zoh", sigma=None, free_run: bool = True) -> dict:
+                         sigma=None, free_run: bool = True) -> dict:
     """Error of the filter's discretisation along a noise-free trajectory, in
     units of the measurement-noise standard deviation.
 
     The trajectory from ``x0`` is propagated sample by sample with the
-    filter's step (``method``, ``substeps``) and with a fine reference
+    filter's step (``disc``: method and substeps) and with a fine reference
     (``reference_method`` with ``reference_substeps``, default: RK4 if it is
     stable there, i.e. finite, else ROS2), both restarted from the reference
     state at every sample, as inside the filter, and both with the input
-    hold ``hold`` (:func:`bondgraph.numerics.integrators.hold_inputs`). The
+    hold of ``disc`` (:func:`bondgraph.numerics.integrators.hold_inputs`). The
     one-step output error is compared with ``sigma`` (default
     ``meas_std(theta)``). The one-step transitions of all samples run as one
     batch (per distinct sample interval); the RK4 reference runs in the
@@ -780,10 +761,11 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
     u : array (N, n_u)
     theta : array (n_theta,)
     x0 : array (n_x,), optional
-    method, substeps : discretisation under test
+    disc : Discretisation, optional
+        The discretisation under test: method, substeps, input hold
+        (default ``Discretisation()``: ROS2, one step, zero-order hold).
     reference_substeps : int
     reference_method : {"rk4", "ros2"}, optional
-    hold : {"zoh", "mean", "linear"}
     sigma : array (n_y,), optional
         Output scale of the comparison (default the measurement-noise std).
     free_run : bool
@@ -801,7 +783,9 @@ def discretisation_check(model, t, u, theta, x0=None, *, method: str = "ros2", s
     u = np.asarray(u, float).reshape(t.size, -1)
     th = np.asarray(theta, float)[None, :]
     x = (model.x0 if x0 is None else np.asarray(x0, float))[None, :]
-    step = make_step(model, method, substeps)
+    disc = Discretisation() if disc is None else disc
+    hold = disc.hold
+    step = make_step(model, disc.method, disc.substeps)
     held = hold_inputs(u, hold)
     with np.errstate(all="ignore"):
         xr, ref = _reference_trajectory(model, t, u, hold, th, x, reference_method,

@@ -1,0 +1,423 @@
+"""The estimation problem as one immutable object.
+
+A :class:`Problem` is a model bound to a record: the record's arrays in the
+model's units, the prior of the initial state (:class:`~bondgraph.inference.prior.PriorSpec`:
+the toolkit's one initial-state rule and covariance policy), the
+measurement-noise levels (:class:`NoiseSpec`), the fixed parameter values
+and the filter's options (:class:`~bondgraph.inference.options.UKFOptions`,
+whose :class:`~bondgraph.inference.options.Discretisation` the UKF, the
+prior's free run and the discretisation check all read). It is built by
+exactly one function, :func:`make_problem`; what a fit learns (noise
+levels, initial states, more substeps) makes a new problem
+(:meth:`Problem.conditioned_on`), never a change of shared settings; the
+same problem for another model of the same record (a candidate of the
+loop) is :meth:`Problem.with_model`, for another record of the same model
+(a validation record) :meth:`Problem.on_record`.
+
+The filter, the likelihood and the smoother read it: :meth:`Problem.nll`
+(:func:`bondgraph.inference.ukf.ukf_nll`), :meth:`Problem.smoothed_initial_state`
+(:func:`bondgraph.inference.smoother.rts_smooth`) and
+:meth:`Problem.discretisation_check`.
+
+References
+----------
+Wan, E. A., van der Merwe, R. (2000). The unscented Kalman filter for
+nonlinear estimation. Proc. IEEE AS-SPCC, 153-158.
+Kristensen, N. R., Madsen, H., Jørgensen, S. B. (2004). Parameter estimation
+in stochastic grey-box models. Automatica 40(2), 225-237.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from bondgraph.errors import OptionError
+from bondgraph.inference.estimand import noise_parameters
+from bondgraph.inference.options import NOISE_MODES, Discretisation, UKFOptions, ukf_options
+from bondgraph.inference.prior import PriorSpec
+from bondgraph.inference.record import as_record
+from bondgraph.inference.smoother import rts_smooth
+from bondgraph.inference.ukf import UKFResult, discretisation_check, ukf_nll
+
+__all__ = ["NoiseSpec", "Problem", "make_problem", "noise_covariance", "noise_parameters"]
+
+
+def noise_covariance(model, thetas: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Measurement-noise covariances ``diag(σ²)`` (P, n_y, n_y): σ held
+    where ``sigma`` is finite, ``meas_std(θ)`` elsewhere.
+
+    Parameters
+    ----------
+    model : Model
+    thetas : array (P, n_theta)
+    sigma : array (n_y,) or (P, n_y)
+        Held measurement-noise stds in output units, NaN where the model's own.
+
+    Returns
+    -------
+    ndarray (P, n_y, n_y)
+    """
+    th = np.atleast_2d(np.asarray(thetas, float))
+    with np.errstate(all="ignore"):
+        meas = np.asarray(model.meas_std(th), float)
+    sig = np.broadcast_to(np.asarray(sigma, float), meas.shape)
+    s = np.where(np.isfinite(sig), sig, meas)
+    R = np.zeros(s.shape + (s.shape[1],))
+    idx = np.arange(s.shape[1])
+    R[:, idx, idx] = s ** 2
+    return R
+
+
+@dataclass(frozen=True)
+class NoiseSpec:
+    """The measurement-noise levels of a problem.
+
+    Parameters
+    ----------
+    mode : {"auto", "model"}
+        ``"auto"``: a level the record declares is held at it, the others
+        estimated with θ (:func:`bondgraph.inference.estimand.noise_plan`);
+        ``"model"``: the graph's own sensor noise and noise intensities.
+    held : dict
+        Output -> measurement-noise std held in every filter run (output
+        units); the others come from ``meas_std(θ)``.
+    estimated : sequence of str
+        Outputs whose noise std a fit estimates with θ (``noise.<output>``).
+
+    Raises
+    ------
+    OptionError
+        An unknown mode, or a held level that is not a finite number > 0.
+
+    Notes
+    -----
+    Which parameters are noise intensities (they change ``proc_std`` or
+    ``meas_std`` but neither f nor h) is decided by one detector,
+    :func:`bondgraph.inference.estimand.noise_parameters`.
+    """
+
+    mode: str = "auto"
+    held: Mapping[str, float] = field(default_factory=dict)
+    estimated: tuple = ()
+
+    def __post_init__(self):
+        if self.mode not in NOISE_MODES:
+            raise OptionError(f"NoiseSpec.mode (--noise) must be one of "
+                              f"{', '.join(NOISE_MODES)}, got {self.mode!r}")
+        held = {}
+        for o, v in dict(self.held or {}).items():
+            v = float(v)
+            if not np.isfinite(v) or v <= 0:
+                raise OptionError(f"held measurement-noise std of '{o}' must be a finite "
+                                  f"number > 0, got {v!r}")
+            held[str(o)] = v
+        object.__setattr__(self, "held", MappingProxyType(held))
+        object.__setattr__(self, "estimated", tuple(str(o) for o in self.estimated))
+
+    def sigma(self, model) -> np.ndarray:
+        """The held stds (n_y,) in ``model``'s output order, NaN where not held."""
+        return np.array([float(self.held.get(o, np.nan)) for o in model.outputs])
+
+    def covariance(self, model, thetas) -> np.ndarray | None:
+        """The filter's R (P, n_y, n_y) with the held levels
+        (:func:`noise_covariance`), or None when no level is held."""
+        sig = self.sigma(model)
+        if not np.isfinite(sig).any():
+            return None
+        return noise_covariance(model, thetas, sig)
+
+    def outputs(self, model) -> list[str]:
+        """The estimated outputs that ``model`` has."""
+        return [o for o in self.estimated if o in model.outputs]
+
+    def holding(self, levels: Mapping[str, float], estimated: Sequence[str] | None = None
+                ) -> "NoiseSpec":
+        """This spec with ``levels`` held too (over the earlier ones) and,
+        if given, ``estimated`` as the estimated outputs."""
+        return replace(self, held={**self.held, **levels},
+                       estimated=self.estimated if estimated is None else tuple(estimated))
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """A model bound to a record: what every likelihood, fit, smoother and
+    check of an estimation reads. Build it with :func:`make_problem`.
+
+    Attributes
+    ----------
+    model : Model
+        The generated model (:class:`bondgraph.numerics.model.Model`).
+    record : Experiment or None
+        The record (:class:`bondgraph.data.records.Experiment`); None for
+        bare arrays.
+    t : ndarray (N,)
+        Sample times [s].
+    u : ndarray (N, n_u)
+        Inputs in the model's units (inputs the record lacks at their
+        defaults when the builder was told so).
+    y : ndarray (N, n_y)
+        Measured outputs in the model's units, NaN where missing.
+    theta : ndarray (n_theta,)
+        The model's defaults with the fixed values; the start of fits and
+        the parameters of the prior's free run.
+    fixed : mapping
+        The fixed parameter values by name.
+    prior : PriorSpec
+        The prior's specification.
+    noise : NoiseSpec
+        The measurement-noise levels.
+    ukf : UKFOptions
+        The filter's options; ``ukf.discretisation`` is the problem's
+        :class:`~bondgraph.inference.options.Discretisation`.
+    x0 : ndarray (n_x,)
+        The prior mean (:meth:`PriorSpec.mean`).
+    x0_rule : str
+        How it was made (given, the record's rule, the model's X0).
+    P0 : ndarray (n_x, n_x)
+        The filter's prior covariance (:meth:`PriorSpec.covariance`, the
+        jointly estimated initial states at a token spread).
+
+    Notes
+    -----
+    Frozen: a problem never changes (its arrays are its own copies, shared
+    by the problems derived from it: never write into them). :meth:`conditioned_on`,
+    :meth:`with_model` and :meth:`on_record` return new problems, so a
+    result never depends on the calls made before it.
+
+    References
+    ----------
+    Wan & van der Merwe (2000) for the filter; Kristensen, Madsen &
+    Jørgensen (2004) for initial states and noise levels estimated with θ.
+    """
+
+    model: Any
+    record: Any
+    t: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    theta: np.ndarray
+    fixed: Mapping[str, float]
+    prior: PriorSpec
+    noise: NoiseSpec
+    ukf: UKFOptions
+    x0: np.ndarray
+    x0_rule: str
+    P0: np.ndarray
+
+    # ------------------------------------------------------------ views
+    @property
+    def disc(self) -> Discretisation:
+        """The problem's :class:`~bondgraph.inference.options.Discretisation`."""
+        return self.ukf.discretisation
+
+    @property
+    def name(self) -> str:
+        """The record's name ("arrays" for bare arrays)."""
+        return getattr(self.record, "name", None) or "arrays"
+
+    @property
+    def meta(self) -> dict:
+        """The record's metadata (empty for bare arrays)."""
+        return dict(getattr(self.record, "meta", None) or {})
+
+    @property
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(t, u, y)``."""
+        return self.t, self.u, self.y
+
+    def full_prior(self) -> np.ndarray:
+        """The prior covariance without the token spread of the jointly
+        estimated initial states (n_x, n_x): what a fit that estimates them
+        again starts from."""
+        if not any(n in self.model.states for n in self.prior.estimated):
+            return self.P0.copy()
+        return self.prior.covariance(self.model, self.arrays, self.theta, self.x0, self.disc,
+                                     self.record, token=False)
+
+    # ------------------------------------------------------------ derived problems
+    def conditioned_on(self, *, x0: Mapping[str, float] | None = None,
+                       noise_levels: Mapping[str, float] | None = None,
+                       noise_outputs: Sequence[str] | None = None,
+                       disc: Discretisation | None = None) -> "Problem":
+        """A new problem with what a fit learned.
+
+        Parameters
+        ----------
+        x0 : dict, optional
+            The initial states estimated with θ (by name; they replace the
+            earlier estimates): the prior mean takes them, the filter holds
+            them at a token spread. None: the earlier estimates stay.
+        noise_levels : dict, optional
+            Measurement-noise stds (output -> std) held from now on.
+        noise_outputs : sequence of str, optional
+            The outputs whose noise std later fits estimate.
+        disc : Discretisation, optional
+            Another discretisation (e.g. the substeps the check asked for).
+
+        Returns
+        -------
+        Problem
+        """
+        same = x0 is None or dict(self.prior.estimated) == {k: float(v) for k, v in x0.items()}
+        prior = self.prior if same else self.prior.conditioned_on(x0)
+        noise = self.noise
+        if noise_levels is not None or noise_outputs is not None:
+            noise = noise.holding(noise_levels or {}, noise_outputs)
+        ukf = self.ukf if disc is None else self.ukf.with_discretisation(disc)
+        if prior is self.prior and ukf == self.ukf:
+            return replace(self, noise=noise)       # the prior does not depend on the noise
+        return make_problem(self.model, self.record, prior=prior, noise=noise, ukf=ukf,
+                            fixed=self.fixed, arrays=self.arrays)
+
+    def with_model(self, model) -> "Problem":
+        """The same record, prior, noise, fixed values and options for
+        another model (a candidate of the loop)."""
+        return make_problem(model, self.record, prior=self.prior, noise=self.noise,
+                            ukf=self.ukf, fixed=self.fixed)
+
+    def on_record(self, record) -> "Problem":
+        """The same model and policies on another record (a validation
+        record): its own initial state (:meth:`PriorSpec.on_other_record`)."""
+        return make_problem(self.model, record, prior=self.prior.on_other_record(),
+                            noise=self.noise, ukf=self.ukf, fixed=self.fixed)
+
+    # ------------------------------------------------------------ evaluations
+    def nll(self, theta, *, x0=None, P0=None, store: bool | str = False,
+            ukf: UKFOptions | None = None) -> UKFResult:
+        """The batched UKF over the record (:func:`bondgraph.inference.ukf.ukf_nll`)
+        with the problem's prior and held noise levels.
+
+        Parameters
+        ----------
+        theta : array (P, n_theta) or (n_theta,)
+        x0 : array (n_x,) or (P, n_x), optional
+            Another prior mean (default :attr:`x0`).
+        P0 : array, optional
+            Another prior covariance (default :attr:`P0`).
+        store : bool or "full"
+            Keep innovations, covariances and filtered states.
+        ukf : UKFOptions, optional
+            Other filter options (default :attr:`ukf`; the discretisation
+            check's reference runs use it).
+
+        Returns
+        -------
+        UKFResult
+            ``nll`` (P,).
+        """
+        th = np.atleast_2d(np.asarray(theta, float))
+        return ukf_nll(self.model, self.t, self.u, self.y, th,
+                       self.x0 if x0 is None else x0, self.P0 if P0 is None else P0,
+                       options=self.ukf if ukf is None else ukf, store=store,
+                       R=self.noise.covariance(self.model, th))
+
+    def smoothed_initial_state(self, theta) -> np.ndarray:
+        """x̂_0|N (n_x,): the initial state given the whole record, from the
+        unscented RTS smoother at ``theta`` (n_theta,)
+        (:func:`bondgraph.inference.smoother.rts_smooth`; Särkkä 2008).
+
+        Raises
+        ------
+        NumericalError
+            If the filter or the backward pass fails.
+        """
+        th = np.asarray(theta, float)
+        R = self.noise.covariance(self.model, th[None, :])
+        return rts_smooth(self.model, self.t, self.u, self.y, th, self.x0, self.P0,
+                          options=self.ukf, R=None if R is None else R[0]).x[0]
+
+    def discretisation_check(self, theta, *, substeps: int | None = None,
+                             free_run: bool = True) -> dict:
+        """:func:`bondgraph.inference.ukf.discretisation_check` of the
+        problem's discretisation (``substeps`` overriding its own) at
+        ``theta`` from the prior mean: ``one_step`` and ``free_run`` (n_y,)
+        in measurement-noise standard deviations."""
+        d = self.disc if substeps is None else replace(self.disc, substeps=int(substeps))
+        return discretisation_check(self.model, self.t, self.u, theta, self.x0, disc=d,
+                                    free_run=free_run)
+
+    def noise_parameters(self) -> list[str]:
+        """The model's noise-intensity parameters (the one detector,
+        :func:`bondgraph.inference.estimand.noise_parameters`)."""
+        return noise_parameters(self.model, self.theta)
+
+
+def _record_arrays(model, record, defaults_ok: bool):
+    """``(t, u, y)`` of a record (Experiment or tuple of arrays) for ``model``."""
+    if isinstance(record, tuple):
+        t, u, y = record
+        return np.asarray(t, float), np.asarray(u, float), np.asarray(y, float)
+    t = np.asarray(record.t, dtype=float)
+    if model.n_u:
+        u = record.inputs_for(model, defaults_ok=True) if defaults_ok else record.inputs_for(model)
+    else:
+        u = np.zeros((t.size, 0))
+    return t, u, record.outputs_for(model)
+
+
+def make_problem(model, record, *, prior: PriorSpec | None = None,
+                 noise: NoiseSpec | None = None, ukf: UKFOptions | None = None,
+                 fixed: Mapping[str, float] | None = None, arrays=None,
+                 defaults_ok: bool = True) -> Problem:
+    """Bind a model to a record: the one builder of :class:`Problem`.
+
+    Parameters
+    ----------
+    model : Model
+    record : Experiment, path of a CSV record, or tuple ``(t, u, y)``
+        The record (a path is loaded; a tuple is taken as arrays in the
+        model's units, with the model's X0 as the prior mean unless the
+        prior gives one).
+    prior : PriorSpec, optional
+        Default ``PriorSpec()`` (5 % of each state's scale).
+    noise : NoiseSpec, optional
+        Default ``NoiseSpec("model")`` (the graph's own levels; the
+        commands plan ``"auto"`` with :func:`bondgraph.inference.estimand.noise_plan`).
+    ukf : UKFOptions, optional
+        Default ``UKFOptions()``.
+    fixed : dict, optional
+        Parameter values by name over the model's defaults.
+    arrays : tuple (t, u, y), optional
+        The record's arrays for this model, already resolved (a problem
+        conditioned on a fit reuses its own).
+    defaults_ok : bool
+        Inputs the record lacks take the model's defaults (else
+        :class:`~bondgraph.errors.DataError`).
+
+    Returns
+    -------
+    Problem
+
+    Raises
+    ------
+    DataError
+        A record that cannot be read or bound to the model (units, columns).
+    ModelError
+        A fixed parameter the model does not have.
+    OptionError
+        Options of the wrong type.
+    """
+    prior = PriorSpec() if prior is None else prior
+    noise = NoiseSpec("model") if noise is None else noise
+    if not isinstance(prior, PriorSpec) or not isinstance(noise, NoiseSpec):
+        raise OptionError(f"make_problem needs a PriorSpec and a NoiseSpec, got "
+                          f"{type(prior).__name__} and {type(noise).__name__}")
+    ukf = ukf_options(ukf)
+    rec = as_record(record)
+    t, u, y = _record_arrays(model, rec, defaults_ok) if arrays is None else arrays
+    if arrays is None:        # the problem's own copies, never the record's arrays
+        t, u, y = (np.array(a, dtype=float) for a in (t, u, y))
+    rec = None if isinstance(rec, tuple) else rec
+    fixed = {k: float(v) for k, v in (fixed or {}).items()}
+    theta = model.theta0.copy()
+    for k, v in fixed.items():
+        if k in model.params:
+            theta[model.param_index(k)] = v
+    x0, rule = prior.mean(model, rec)
+    P0 = prior.covariance(model, (t, u, y), theta, x0, ukf.discretisation, rec)
+    return Problem(model, rec, t, u, y, theta, MappingProxyType(fixed), prior, noise, ukf,
+                   x0, rule, P0)
