@@ -61,7 +61,7 @@ from bondgraph.catalog import reference as ref
 from bondgraph.diagnose.cases import synthesize
 from bondgraph.diagnose.confirm import Confirmation, confirm
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Scales, get_effect
-from bondgraph.diagnose.fit import Context, Record, fit_model, parameter_std
+from bondgraph.diagnose.fit import Context, Record, fit_model, model_of, parameter_std
 from bondgraph.diagnose.runner import confirm_best, gather_evidence, recommended_substeps
 from bondgraph.diagnose.scales import operating_scales
 from bondgraph.diagnose.settings import LoopSettings
@@ -166,7 +166,7 @@ def draw_truth(spec, eff, seed):
     t = np.arange(0.0, spec["T"], spec["dt"])
     rec = synthesize(g, spec["build"](), t, sampled(spec["inputs"](0.0), t), {}, {}, seed,
                      "scales", "", hold="zoh", method="rk4", substeps=10)
-    ctx = Context(Record(rec), settings_for(spec["params"]), log=quiet, progress=False)
+    ctx = Context.on(rec, settings_for(spec["params"]), model_of(g), log=quiet, progress=False)
     fit0 = fit_model(ctx, g, [], None, "declared at truth", iterations=0)
     sc = operating_scales(ctx, fit0)
     box = eff.box(g, tgt, sc)
@@ -199,7 +199,7 @@ def consistent_shapes(spec, eff, tgt, vals, seed) -> dict:
     t = np.arange(0.0, spec["T"], spec["dt"])
     rec = synthesize(truth, spec["build"](), t, sampled(spec["inputs"](0.0), t), {}, {}, seed,
                      "shapes", "", hold="zoh", method="rk4", substeps=10)
-    ctx = Context(Record(rec), settings_for(spec["params"]), log=quiet, progress=False)
+    ctx = Context.on(rec, settings_for(spec["params"]), model_of(g), log=quiet, progress=False)
     fit = fit_model(ctx, g, spec["params"], None, "declared")
     return eff.shape_values(g, tgt, operating_scales(ctx, fit))
 
@@ -241,7 +241,8 @@ def run_case(gname, ename, seed, choice=True):
         return {"graph": gname, "effect": ename, "target": tgt.name,
                 "skipped": f"the drawn truth has no record: {str(exc).splitlines()[0]}"}
     oracle = oracle_chi2(spec, declared, rec, t, seed)
-    ctx = Context(Record(rec), settings_for(spec["params"]), log=quiet, progress=False)
+    ctx = Context.on(rec, settings_for(spec["params"]), model_of(declared), log=quiet,
+                     progress=False)
     fit = fit_model(ctx, declared, spec["params"], None, "declared")
     sc = operating_scales(ctx, fit)
     ranking, signif = gather_evidence(ctx, fit, sc)
@@ -342,16 +343,11 @@ def finer_if_needed(ctx, r):
     is. Returns (confirmation, substeps used)."""
     n = recommended_substeps(ctx, r.fit)[1]
     if n is None:
-        return r, ctx.settings.ukf.substeps
-    kept = ctx.settings
-    ctx.settings = replace(kept, ukf=replace(kept.ukf, substeps=n))
-    ctx.cache.clear()
-    try:
-        f = fit_model(ctx, r.fit.graph, list(r.fit.params), r.fit.estimates(), "finer",
-                      model=r.fit.model)
-    finally:
-        ctx.settings = kept
-        ctx.cache.clear()
+        return r, ctx.problem.disc.substeps
+    finer = replace(ctx, problem=ctx.problem.conditioned_on(
+        disc=replace(ctx.problem.disc, substeps=n)), cache={})
+    f = fit_model(finer, r.fit.graph, list(r.fit.params), r.fit.estimates(), "finer",
+                  model=r.fit.model)
     values = dict(r.values)
     for k in r.values:
         full = [p for p in r.new_params if p.endswith("." + k)]

@@ -54,7 +54,15 @@ sys.path.insert(0, str(ROOT))
 
 from bondgraph.inference.estimate import Criterion  # noqa: E402
 from bondgraph.inference import ukf_numba  # noqa: E402
-from bondgraph.inference.options import DEFAULT_BACKEND, FitOptions, Discretisation, UKFOptions  # noqa: E402
+from bondgraph.inference.options import (  # noqa: E402
+    DEFAULT_BACKEND,
+    Discretisation,
+    Evaluation,
+    FitOptions,
+    UKFOptions,
+)
+from bondgraph.inference.prior import PriorSpec  # noqa: E402
+from bondgraph.inference.problem import NoiseSpec, make_problem  # noqa: E402
 from bondgraph.numerics.compiled import point_kernels  # noqa: E402
 from bondgraph.numerics.model import Model  # noqa: E402
 from bondgraph.inference.optimize import pso  # noqa: E402
@@ -144,8 +152,9 @@ def line_plot(model, t, u, y, base, x0, P0, path, method, substeps, npts=41):
     fig, ax = plt.subplots(figsize=(8, 4.5))
     out = {}
     for alpha in (1e-3, 1e-2, 0.1, 1.0):
-        crit = Criterion(model, t, u, y, PARAMS, base, x0, P0,
-                         options=UKFOptions(alpha=alpha, method=method, substeps=substeps))
+        crit = Criterion(make_problem(model, (t, u, y), prior=PriorSpec(x0=x0, P0=P0),
+                                      ukf=UKFOptions(alpha=alpha, method=method,
+                                                     substeps=substeps)), PARAMS, base)
         f = crit(lo + s[:, None] * (hi - lo))
         out[alpha] = f
         ax.plot(s, f, label=f"α = {alpha:g}" + ("" if np.isfinite(f).all() else
@@ -196,13 +205,15 @@ def protocol(args) -> dict:
         # the filter's own consistent initial state at the first measured
         # speed, from its default parameters (it does not know the truth)
         x0 = model.state(initial_state(model, None, v=float(exp["v_gnss"][0])))
-        stages.append(Stage(name, model, exp, params, x0=x0, P0=default_P0(model, x0, 0.01)))
+        ukf = UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold,
+                         backend=args.backend)
+        problem = make_problem(model, exp, prior=PriorSpec(x0=x0, P0=default_P0(model, x0, 0.01)),
+                               noise=NoiseSpec("model"), ukf=ukf)
+        stages.append(Stage(name, problem, params))
     t0 = time.perf_counter()
     res = two_stage(stages,
                     fit=FitOptions(iterations=args.iterations, seed=args.seed, progress=False,
-                                   workers=args.workers),
-                    ukf=UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold,
-                                   backend=args.backend))
+                                   workers=args.workers))
     out = dict(protocol_wall_s=time.perf_counter() - t0, stages=[])
     for st, r in zip(stages, res):
         print(f"\n== stage {st.name}: {r.model} on {r.experiment}")
@@ -261,15 +272,15 @@ def main(argv=None) -> int:
           f"{args.experiment}: {t.size} samples, {record_s:.1f} s")
 
     dc = discretisation_check(model, t, u, truth, x0,
-                              Discretisation(args.method, args.substeps, backend="numpy"))
+                              Discretisation(args.method, args.substeps))
     print(f"discretisation {args.method}({args.substeps}) at the truth: one-step error "
           f"{np.max(dc['one_step']):.3g} noise std (worst output)")
 
     compile_s, from_cache = compile_kernels(model, args.backend)
-    crit = Criterion(model, t, u, y, PARAMS, truth, x0, P0,
-                     options=UKFOptions(method=args.method, substeps=args.substeps,
-                                        backend=args.backend),
-                     workers=args.workers)
+    crit = Criterion(make_problem(model, (t, u, y), prior=PriorSpec(x0=x0, P0=P0),
+                                  ukf=UKFOptions(method=args.method, substeps=args.substeps,
+                                                 backend=args.backend)),
+                     PARAMS, truth, where=Evaluation(workers=args.workers))
     lo, hi = model.bounds(PARAMS)
     warm_s, load0 = 0.0, os.getloadavg()[0]
     if args.workers > 1:

@@ -48,12 +48,15 @@ _export("bondgraph.numerics.simulate", "SimResult", "simulate", "stiffness_repor
 _export("bondgraph.data.records", "Experiment")
 _export("bondgraph.data.experiments", "ExperimentSpec", "get_experiment", "run_experiment")
 # filter, estimation
-_export("bondgraph.inference.options", "FitOptions", "UKFOptions")
+_export("bondgraph.inference.options", "Discretisation", "Evaluation", "FitOptions", "UKFOptions")
+_export("bondgraph.inference.prior", "PriorSpec")
+_export("bondgraph.inference.problem", "NoiseSpec", "Problem", "make_problem")
 _export("bondgraph.inference.ukf", "UKFResult", "ukf_nll")
 _export("bondgraph.inference.optimize", "de", "pso")
 _export("bondgraph.inference.estimate", "EstimationResult", "Stage", "estimate", "two_stage")
 # sensitivity, diagnosis
-_export("bondgraph.sensitivity.analysis", "analyse")
+_export("bondgraph.sensitivity.analysis", "LocalOptions", "analyse")
+_export("bondgraph.sensitivity.sobol", "SobolOptions")
 _export("bondgraph.diagnose.effects", "Effect", "apply_effect")
 _export("bondgraph.diagnose.loop", "LoopResult", "LoopSettings", "run_loop")
 _export("bondgraph.diagnose.cases", "LoopCase", "TrueEffect", "synthesize")

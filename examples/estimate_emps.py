@@ -36,6 +36,8 @@ from bondgraph.catalog.benchmarks import (EMPS_IDIM_LS, EMPS_IDIM_RELERR, emps_a
                                         emps_filtered_signals, emps_force_relerr, emps_idim_ls)
 from bondgraph.inference.estimate import estimate  # noqa: E402
 from bondgraph.inference.options import FitOptions, UKFOptions  # noqa: E402
+from bondgraph.inference.prior import PriorSpec  # noqa: E402
+from bondgraph.inference.problem import make_problem  # noqa: E402
 from bondgraph.report.estimation import plot_fit  # noqa: E402
 from bondgraph.numerics.model import Model  # noqa: E402
 
@@ -63,9 +65,9 @@ def run(decimations, particles, iterations, out: Path, seed=0):
         t0 = time.perf_counter()
         fit = FitOptions(particles=particles, iterations=iterations if start is None else 0,
                          seed=seed, progress=False)
-        res = estimate(model, (t, u, y), PARAMS, fit=fit,
-                       ukf=UKFOptions(method="rk4", substeps=substeps), fixed=FIXED, x0=x0,
-                       P0=P0, bounds={"q_F": (0.01, 20.0)}, start=start)
+        problem = make_problem(model, (t, u, y), prior=PriorSpec(x0=x0, P0=P0),
+                               ukf=UKFOptions(method="rk4", substeps=substeps), fixed=FIXED)
+        res = estimate(problem, PARAMS, fit=fit, bounds={"q_F": (0.01, 20.0)}, start=start)
         res.settings["decimate"] = k
         res.settings["rate_hz"] = 1.0 / float(np.median(np.diff(t)))
         e = res.estimate_dict()

@@ -10,7 +10,7 @@ import numpy as np
 from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.diagnose.cases import synthesize
 from bondgraph.diagnose.effects import apply_effect, get_effect
-from bondgraph.diagnose.loop import run_loop
+from bondgraph.diagnose.loop import LoopSettings, run_loop
 from bondgraph.inference.options import UKFOptions
 
 QMAX = 0.17
@@ -28,10 +28,7 @@ def _record():
 
 
 def _loop(auto):
-    res = run_loop(mass_spring_damper(), _record(), ["k", "c"], log=lambda s: None,
-                   progress=False, max_steps=1, auto_substeps=auto,
-                   effects=[get_effect(e) for e in ("end_stop", "cubic_stiffness", "coulomb")],
-                   ukf=UKFOptions(method="ros2", substeps=4, alpha=1.0))
+    res = run_loop(mass_spring_damper(), _record(), LoopSettings(params=["k", "c"], max_steps=1, auto_substeps=auto, effects=[get_effect(e) for e in ("end_stop", "cubic_stiffness", "coulomb")], ukf=UKFOptions(method="ros2", substeps=4, alpha=1.0)), log=lambda s: None, progress=False)
     assert [(s.effect, s.attached_to) for s in res.steps] == [("end_stop", "spring")]
     p = res.steps[0].parameters["end_stop.spring.qmax"]
     return res, p["estimate"], p["std"]

@@ -83,6 +83,8 @@ def test_ukf_ml_estimate_against_published():
     its inverse-model force error is within 0.2 points of theirs."""
     from bondgraph.inference.estimate import estimate
     from bondgraph.inference.options import FitOptions, UKFOptions
+    from bondgraph.inference.prior import PriorSpec
+    from bondgraph.inference.problem import make_problem
 
     m = Model.load("emps")
     t, u, y = emps_arrays(decimate=5)
@@ -92,9 +94,9 @@ def test_ukf_ml_estimate_against_published():
     x0 = np.array([0.0, y[0, 0]])
     fit = FitOptions(particles=8, iterations=2, seed=0, progress=False, hessian=False,
                      check_discretisation=False, polish_maxiter=20)
-    r = estimate(m, (t, u, y), ["M", "Fv", "Fc", "offset", "q_F"], fit=fit,
-                 ukf=UKFOptions(method="rk4", substeps=2), fixed={"sigma_q": 1.5e-8},
-                 x0=x0, P0=np.diag([1.0, 1e-10]), bounds={"q_F": (0.01, 20.0)},
+    pb = make_problem(m, (t, u, y), prior=PriorSpec(x0=x0, P0=np.diag([1.0, 1e-10])),
+                      ukf=UKFOptions(method="rk4", substeps=2), fixed={"sigma_q": 1.5e-8})
+    r = estimate(pb, ["M", "Fv", "Fc", "offset", "q_F"], fit=fit, bounds={"q_F": (0.01, 20.0)},
                  start=[ls["M"], ls["Fv"], ls["Fc"], ls["offset"], 0.2])
     assert r.polish["nll_after"] < r.polish["nll_before"]
     e = r.estimate_dict()

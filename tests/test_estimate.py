@@ -13,6 +13,8 @@ from scipy.integrate import solve_ivp
 from bondgraph.inference.estimate import (EstimationResult, Stage, cramer_rao, estimate, hessian_batched, two_stage)
 from bondgraph.errors import IdentifiabilityWarning, OptionError
 from bondgraph.inference.options import DEFAULT_BACKEND, FitOptions, UKFOptions
+from bondgraph.inference.prior import PriorSpec
+from bondgraph.inference.problem import NoiseSpec, make_problem
 from bondgraph.core.graph import BondGraph
 from bondgraph.numerics.model import Model
 
@@ -48,9 +50,16 @@ UKF = UKFOptions(method="rk4", substeps=2)
 P0 = np.diag([1e-8, 1e-10])
 
 
+def problem(m, rec, *, P0=None, ukf=UKF, x0=None, fixed=None):
+    """The test's problem: the given prior covariance (else 5 % of max(|x0|, 1)),
+    the graph's own noise levels."""
+    prior = PriorSpec(x0=x0, P0=P0) if P0 is not None else PriorSpec(scale="magnitude", x0=x0)
+    return make_problem(m, rec, prior=prior, noise=NoiseSpec("model"), ukf=ukf, fixed=fixed)
+
+
 def test_pso_recovers_truth_within_3_cramer_rao(msd_record):
     m, t, u, y, _, truth = msd_record
-    r = estimate(m, (t, u, y), ["m", "k", "c"], ukf=UKF, P0=P0,
+    r = estimate(problem(m, (t, u, y), P0=P0), ["m", "k", "c"],
                  fit=FitOptions(particles=30, iterations=40, seed=2, progress=False))
     assert r.evaluations == 30 * 41
     assert r.evaluations_total > r.evaluations
@@ -87,14 +96,14 @@ def test_cramer_rao_matches_fisher_information(msd_record):
     Rinv = 1.0 / m.meas_std(th) ** 2
     fim = np.einsum("nyi,y,nyj->ij", J, Rinv, J)
     std_fim = np.sqrt(np.diag(np.linalg.inv(fim)))
-    r = estimate(m, (t, u, y), names, ukf=UKF, P0=P0, start=list(truth.values()),
+    r = estimate(problem(m, (t, u, y), P0=P0), names, start=list(truth.values()),
                  fit=FitOptions(particles=20, iterations=10, seed=1, progress=False))
     np.testing.assert_allclose(r.std, std_fim, rtol=0.1)
 
 
 def test_de_path(msd_record):
     m, t, u, y, _, truth = msd_record
-    r = estimate(m, (t, u, y), ["k", "c"], ukf=UKF, P0=P0, fixed={"m": truth["m"]},
+    r = estimate(problem(m, (t, u, y), P0=P0, fixed={"m": truth["m"]}), ["k", "c"],
                  fit=FitOptions(optimizer="de", particles=20, iterations=15, seed=3,
                                 progress=False))
     assert r.optimizer == "de" and r.evaluations == 20 * 16
@@ -133,8 +142,8 @@ def test_unidentifiable_pair_warns(msd_record):
     y = simulate_zoh(model, t, u, model.theta0, np.zeros(1))
     y = y + np.random.default_rng(0).normal(size=y.shape) * 0.01
     with pytest.warns(IdentifiabilityWarning, match="not identified"):
-        r = estimate(model, (t, u, y), ["c1", "c2"], ukf=UKFOptions(method="rk4"),
-                     P0=np.diag([1e-8]), fit=FitOptions(particles=10, iterations=5, progress=False))
+        r = estimate(problem(model, (t, u, y), P0=np.diag([1e-8]), ukf=UKFOptions(method="rk4")),
+                     ["c1", "c2"], fit=FitOptions(particles=10, iterations=5, progress=False))
     assert any("c1" in w and "c2" in w for w in r.warnings)
 
 
@@ -194,11 +203,12 @@ def test_two_stage_protocol_on_reduced_models():
     y2 = simulate_zoh(full, t2, u2, th2, x20)
     y2 = y2 + rng.normal(size=y2.shape) * full.meas_std(th2)
     res = two_stage([
-        Stage("coast-down", red, (t1, np.zeros((400, 0)), y1), ["c_d", "F_0"],
-              x0=[1200.0 * 20.0], P0=np.diag([100.0 ** 2])),
-        Stage("driving", full, (t2, u2, y2), ["J_e", "T_max"], x0=x20, P0=np.diag([100.0 ** 2])),
-    ], fit=FitOptions(particles=16, iterations=20, seed=0, progress=False),
-        ukf=UKFOptions(method="rk4"))
+        Stage("coast-down", problem(red, (t1, np.zeros((400, 0)), y1), x0=[1200.0 * 20.0],
+                                    P0=np.diag([100.0 ** 2]), ukf=UKFOptions(method="rk4")),
+              ["c_d", "F_0"]),
+        Stage("driving", problem(full, (t2, u2, y2), x0=x20, P0=np.diag([100.0 ** 2]),
+                                 ukf=UKFOptions(method="rk4")), ["J_e", "T_max"]),
+    ], fit=FitOptions(particles=16, iterations=20, seed=0, progress=False))
     s1, s2 = res
     assert s2.fixed == {"c_d": s1.estimates[0], "F_0": s1.estimates[1]}
     for i, p in enumerate(s1.params):
@@ -271,10 +281,11 @@ def test_workers_give_identical_results(msd_record):
     m, t, u, y, _, truth = msd_record
     X = np.array([[2.5, 80.0, 2.0], [2.0, 60.0, 1.0], [3.0, 90.0, 3.0], [2.2, 70.0, np.nan],
                   [2.6, 85.0, 2.5]])
-    kw = dict(options=UKFOptions(method="rk4", substeps=2))
-    a = Criterion(m, t, u, y, ["m", "k", "c"], m.theta0, np.zeros(2), np.diag([1e-8, 1e-10]), **kw)
-    b = Criterion(m, t, u, y, ["m", "k", "c"], m.theta0, np.zeros(2), np.diag([1e-8, 1e-10]),
-                  workers=2, **kw)
+    from bondgraph.inference.options import Evaluation
+
+    pb = problem(m, (t, u, y), P0=np.diag([1e-8, 1e-10]), x0=np.zeros(2))
+    a = Criterion(pb, ["m", "k", "c"], m.theta0)
+    b = Criterion(pb, ["m", "k", "c"], m.theta0, where=Evaluation(workers=2))
     fa, fb = a(X), b(X)
     b.close()
     assert np.array_equal(fa, fb) and np.isinf(fa[3])
@@ -293,9 +304,11 @@ def test_options_validated_on_construction(msd_record):
         FitOptions(workers=0)
     m, t, u, y, _, _ = msd_record
     with pytest.raises(OptionError, match="FitOptions"):
-        estimate(m, (t, u, y), ["m"], fit=dict(iterations=1))
+        estimate(problem(m, (t, u, y), P0=P0), ["m"], fit=dict(iterations=1))
+    with pytest.raises(OptionError, match="Problem"):
+        estimate(m, ["m"])
     # the options land in the result's settings as plain dicts
-    r = estimate(m, (t, u, y), ["k"], ukf=UKF, P0=P0,
+    r = estimate(problem(m, (t, u, y), P0=P0), ["k"],
                  fit=FitOptions(particles=4, iterations=1, progress=False, polish=False,
                                 hessian=False, check_discretisation=False))
     assert r.settings["ukf"] == dict(alpha=1.0, beta=2.0, kappa=0.0, method="rk4", substeps=2,
@@ -315,7 +328,7 @@ def test_initial_state_from_the_record(msd_record):
     exp = Experiment.from_arrays(t, model=m, u=u, y=y, meta={"name": "msd", "x0": {"p_mass": 0.3}})
     fit = FitOptions(particles=4, iterations=0, progress=False, polish=False, hessian=False,
                      check_discretisation=False)
-    r = estimate(m, exp, ["k"], ukf=UKF, P0=P0, fit=fit)
+    r = estimate(problem(m, exp, P0=P0), ["k"], fit=fit)
     x0 = m.state(p_mass=0.3)
     assert r.settings["x0"] == x0.tolist() and x0[0] != m.x0[0]
     want = ukf_nll(m, t, u, y, r.theta, x0, P0, options=UKF).nll[0]

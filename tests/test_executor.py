@@ -7,6 +7,7 @@ any chunking.
 """
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,9 @@ from dask.distributed import LocalCluster
 from bondgraph.errors import OptionError
 from bondgraph.inference.estimate import Criterion, _chunks
 from bondgraph.inference.executor import SCHEDULER_ENV, Executor
-from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.options import Evaluation, UKFOptions
+from bondgraph.inference.prior import PriorSpec
+from bondgraph.inference.problem import make_problem
 from bondgraph.numerics.model import Model
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -31,9 +34,13 @@ def cluster():
 
 
 def _criterion(m, backend, **kw):
+    """The criterion of 3 parameters on a short record; ``kw``: the
+    :class:`Evaluation` fields (chunk, workers, scheduler)."""
     t, u, y = _record(m, N=80)
     params = list(m.params[:3])
-    return Criterion(m, t, u, y, params, m.theta0, options=UKFOptions(backend=backend), **kw)
+    pb = make_problem(m, (t, u, y), prior=PriorSpec(scale="magnitude"),
+                      ukf=UKFOptions(backend=backend))
+    return Criterion(pb, params, m.theta0, where=Evaluation(**kw))
 
 
 def _X(m, n=21):
@@ -196,11 +203,13 @@ def test_sobol_sample_on_the_cluster_equals_serial(cluster):
 
     m = Model.load("mass_spring_damper")
     t, u, y = _record(m, N=60)
-    kw = dict(theta=m.theta0, x0=np.zeros(m.n_x), ukf=UKFOptions(backend="numba"), chunk=8,
-              box_rel=0.3, seed=3)
-    ref = global_sensitivity(m, t, u, y, ["m", "k", "c"], 8, **kw)
-    got = global_sensitivity(m, t, u, y, ["m", "k", "c"], 8,
-                             scheduler=cluster.scheduler_address, **kw)
+    from bondgraph.sensitivity.sobol import SobolOptions
+
+    pb = make_problem(m, (t, u, y), prior=PriorSpec(scale="magnitude", x0=np.zeros(m.n_x)),
+                      ukf=UKFOptions(backend="numba"))
+    o = SobolOptions(N=8, chunk=8, box_rel=0.3, seed=3)
+    ref = global_sensitivity(pb, ["m", "k", "c"], o)
+    got = global_sensitivity(pb, ["m", "k", "c"], replace(o, scheduler=cluster.scheduler_address))
     assert got["evaluations"] == ref["evaluations"] == 8 * (2 * 3 + 2)
     for key in ("S1", "ST", "S2"):
         np.testing.assert_array_equal(got["indices"]["NLL"][key], ref["indices"]["NLL"][key])

@@ -49,8 +49,7 @@ def _run(name, tmp_path, **over):
     case = get_case(name)
     settings = {**case.settings, **over}
     reporter = LoopReporter(tmp_path / name)
-    res = run_loop(case.declared(), case.record(), case.params, log=reporter.log,
-                   on_update=reporter.update, **settings)
+    res = run_loop(case.declared(), case.record(), LoopSettings(params=case.params, **settings), log=reporter.log, on_update=reporter.update)
     return case, res
 
 
@@ -264,10 +263,7 @@ def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
     truth = _vehicle("truth_aero", aero=True, **COAST)
     rec = coastdown_record(truth, _vehicle("truth_aero", aero=True, **COAST), "nothing", seed=105)
     updates = []
-    res = run_loop(_vehicle("declared_true", aero=True, **COAST), rec,
-                   ["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"], log=lambda m: None,
-                   on_update=lambda r: updates.append((r.finished, len(r.rankings), r.final.nll)),
-                   P0_std={"theta_g": LEVEL_TRACK})
+    res = run_loop(_vehicle("declared_true", aero=True, **COAST), rec, LoopSettings(params=["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"], P0_std={"theta_g": LEVEL_TRACK}), log=lambda m: None, on_update=lambda r: updates.append((r.finished, len(r.rankings), r.final.nll)))
     assert res.steps == []
     # the partial result after the initial fit, then the final one (a step
     # that finds nothing significant hands nothing over)

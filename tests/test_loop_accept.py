@@ -139,8 +139,7 @@ def test_negative_mass_stops_the_loop_with_a_typed_error():
     q'' = +25 q: over 100 s the free run overflows (e^500)."""
     g = mass_spring_damper()
     with pytest.raises(DeclaredFitError, match="free-run error = inf"):
-        run_loop(g, _msd_record(n=2000, dt=0.05), ["c"], log=lambda s: None, progress=False,
-                 fixed={"m": -2.0}, max_steps=1, structural=False)
+        run_loop(g, _msd_record(n=2000, dt=0.05), LoopSettings(params=["c"], fixed={"m": -2.0}, max_steps=1, structural=False), log=lambda s: None, progress=False)
     f = _fit(-1.0, 1, 1.0, math.inf)
     with pytest.raises(DeclaredFitError):
         check_declared_fit(f)
@@ -330,8 +329,7 @@ def test_augmented_model_rebuilds_in_memory_graph_with_user_effect(tmp_path, mon
                      {"F": lambda tt: levels[np.minimum((np.asarray(tt) / 0.2).astype(int), 19)]},
                      {}, {"m": 2.0, "k": 50.0, "c": 1.5}, 5, "offset", "")
     rep = LoopReporter(tmp_path / "r")
-    res = run_loop(declared, exp, ["m", "k", "c"], log=rep.log, on_update=rep.update,
-                   progress=False, effects=[MyOffset()], structural=False, max_steps=1)
+    res = run_loop(declared, exp, LoopSettings(params=["m", "k", "c"], effects=[MyOffset()], structural=False, max_steps=1), log=rep.log, on_update=rep.update, progress=False)
     assert [(a.effect, a.spec) for a in res.applied] == [("my_offset", "myfx:MyOffset")]
     assert res.applied[0].values["b"] == pytest.approx(0.05, abs=0.002)
     spec = importlib.util.spec_from_file_location("aug", tmp_path / "r" / "augmented_model.py")
@@ -436,9 +434,7 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
     logs = []
     # ROS2 with 2 steps per sample: the discretisation check's recommendation
     # below (with 1 step the filter's bias makes a 0.4 % sensor gain significant)
-    res = run_loop(mass_spring_damper(), exp, ["m", "k", "c"], log=logs.append, progress=False,
-                   fit="sim", structural=False, max_steps=1,
-                   ukf=UKFOptions(method="ros2", substeps=2))
+    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["m", "k", "c"], fit="sim", structural=False, max_steps=1, ukf=UKFOptions(method="ros2", substeps=2)), log=logs.append, progress=False)
     # nothing is missing, and nothing is accepted. The best candidate,
     # sensor_poly3 @ x, passes the likelihood-ratio test (LR 15.6, k 2,
     # p 4.2e-4 < 0.01/21: it absorbs what is left of ROS2 x 2's discretisation
@@ -518,8 +514,7 @@ def test_loop_estimates_an_unmeasured_initial_state():
 
 def test_holdout_splits_the_record():
     exp = _msd_record()
-    res = run_loop(mass_spring_damper(), exp, ["k", "c"], log=lambda s: None, progress=False,
-                   holdout=0.25, structural=False, max_steps=1)
+    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["k", "c"], holdout=0.25, structural=False, max_steps=1), log=lambda s: None, progress=False)
     assert res.time.size == 300 and res.settings["validation"] == "msd[300:]"
     assert res.initial.validation_metric is not None and res.initial.validation_metric < 0.2
     from bondgraph.errors import OptionError
@@ -625,9 +620,7 @@ def test_loop_accepts_a_real_sensor_offset():
     y = y + np.random.default_rng(1).normal(size=y.shape) * m.meas_std(truth)
     y[:, m.output_index("x")] += 0.02
     exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd_offset", meta=AT_REST)
-    res = run_loop(mass_spring_damper(), exp, ["m", "k", "c"], log=lambda s: None,
-                   progress=False, structural=False, max_steps=1, fit="sim",
-                   ukf=UKFOptions(method="ros2", substeps=2))
+    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["m", "k", "c"], structural=False, max_steps=1, fit="sim", ukf=UKFOptions(method="ros2", substeps=2)), log=lambda s: None, progress=False)
     (step,) = res.steps
     assert (step.effect, step.attached_to) == ("sensor_offset", "x")
     (name,) = step.effect_params

@@ -16,7 +16,7 @@ from dask.distributed import LocalCluster
 from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.diagnose.cases import synthesize
 from bondgraph.diagnose.effects import apply_effect, get_effect
-from bondgraph.diagnose.loop import run_loop
+from bondgraph.diagnose.loop import LoopSettings, run_loop
 from bondgraph.errors import OptionError
 from bondgraph.inference.options import UKFOptions
 
@@ -38,9 +38,7 @@ def _record():
 
 def _run(**kw):
     logs = []
-    res = run_loop(mass_spring_damper(), _record(), ["m", "k", "c"], log=logs.append,
-                   progress=False, max_steps=1, effects=[get_effect(e) for e in EFFECTS],
-                   ukf=UKFOptions(method="ros2", substeps=2, backend="numpy"), **kw)
+    res = run_loop(mass_spring_damper(), _record(), LoopSettings(params=["m", "k", "c"], max_steps=1, effects=[get_effect(e) for e in EFFECTS], ukf=UKFOptions(method="ros2", substeps=2, backend="numpy"), **kw), log=logs.append, progress=False)
     return res, logs
 
 
@@ -69,8 +67,6 @@ def test_loop_on_two_workers_equals_serial():
 
 def test_bad_scheduler_and_workers_fail_before_any_fit():
     with pytest.raises(OptionError, match="scheduler"):
-        run_loop(mass_spring_damper(), _record(), ["k"], log=lambda s: None, progress=False,
-                 scheduler="localhost:8786")
+        run_loop(mass_spring_damper(), _record(), LoopSettings(params=["k"], scheduler="localhost:8786"), log=lambda s: None, progress=False)
     with pytest.raises(OptionError, match="workers"):
-        run_loop(mass_spring_damper(), _record(), ["k"], log=lambda s: None, progress=False,
-                 workers=0)
+        run_loop(mass_spring_damper(), _record(), LoopSettings(params=["k"], workers=0), log=lambda s: None, progress=False)

@@ -61,12 +61,14 @@ def test_estimate_warns_with_the_substeps_needed():
     settings carry the guard and an IdentifiabilityWarning names the substeps."""
     from bondgraph.inference.estimate import estimate
     from bondgraph.inference.options import FitOptions
+    from bondgraph.inference.prior import PriorSpec
+    from bondgraph.inference.problem import make_problem
 
     m = Model.load("vehicle_full")
     t, u, y = _record(m, N=400, dt=0.025)
     params = [m.params[0]]
     with pytest.warns(IdentifiabilityWarning, match="substeps to agree"):
-        res = estimate(m, (t, u, y), params,
+        res = estimate(make_problem(m, (t, u, y), prior=PriorSpec(scale="magnitude")), params,
                        fit=FitOptions(particles=6, iterations=2, seed=1, polish=False,
                                       progress=False))
     g = res.settings["discretisation"]["nll_guard"]

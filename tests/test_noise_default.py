@@ -21,6 +21,8 @@ from bondgraph.cli.main import main
 from bondgraph.data.records import Experiment
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.options import FitOptions, UKFOptions
+from bondgraph.inference.prior import PriorSpec
+from bondgraph.inference.problem import NoiseSpec, make_problem
 from bondgraph.numerics.forward_sensitivity import output_sensitivities
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
@@ -49,8 +51,15 @@ def _record(model, *, x0=None, sd=TRUE_SD, declare=None, seed=1, T=6.0):
                                   meta={"name": "msd_noise", "true_parameters": TRUTH})
 
 
-def _fit(noise):
-    return FitOptions(particles=30, iterations=30, seed=0, progress=False, noise=noise)
+def _fit():
+    return FitOptions(particles=30, iterations=30, seed=0, progress=False)
+
+
+def _problem(model, exp, noise):
+    """``model`` on ``exp`` with the noise policy ``noise`` and the prior
+    5 % of max(|x0|, 1)."""
+    return make_problem(model, exp, prior=PriorSpec(scale="magnitude"), noise=NoiseSpec(noise),
+                        ukf=UKF)
 
 
 def test_declared_noise_is_held_at_the_declared_value(msd, monkeypatch):
@@ -63,9 +72,8 @@ def test_declared_noise_is_held_at_the_declared_value(msd, monkeypatch):
         seen.append(kw.get("R"))
         return real(*a, **kw)
     monkeypatch.setattr(est_mod, "ukf_nll", spy)
-    r = estimate(msd, exp, ["k"], fit=FitOptions(particles=4, iterations=1, seed=0,
-                                                  progress=False, polish=False, noise="auto"),
-                 ukf=UKF)
+    r = estimate(_problem(msd, exp, "auto"), ["k"],
+                 fit=FitOptions(particles=4, iterations=1, seed=0, progress=False, polish=False))
     assert r.params == ["k"]                        # nothing estimated besides k
     assert r.settings["noise_levels"]["x"] == {"std": 0.0065, "how": "declared", "crb": None}
     assert r.settings["noise_levels"]["v"]["std"] == 0.031
@@ -79,8 +87,8 @@ def test_declared_noise_is_held_at_the_declared_value(msd, monkeypatch):
 
 def test_undeclared_noise_is_estimated_and_improves_the_parameters(msd):
     exp = _record(msd)
-    auto = estimate(msd, exp, ["m", "k", "c"], fit=_fit("auto"), ukf=UKF)
-    model = estimate(msd, exp, ["m", "k", "c"], fit=_fit("model"), ukf=UKF)
+    auto = estimate(_problem(msd, exp, "auto"), ["m", "k", "c"], fit=_fit())
+    model = estimate(_problem(msd, exp, "model"), ["m", "k", "c"], fit=_fit())
     assert auto.params == ["m", "k", "c", "noise.x", "noise.v"]
     assert model.params == ["m", "k", "c"]
     for j, o in enumerate(("x", "v")):
@@ -164,12 +172,11 @@ def test_bad_state_or_noise_mode_is_a_clean_error(msd, tmp_path, capsys, cmd, ar
 
 def test_loop_estimates_undeclared_noise_in_the_declared_fit(msd):
     from bondgraph.catalog.reference import mass_spring_damper
-    from bondgraph.diagnose.loop import run_loop
+    from bondgraph.diagnose.loop import LoopSettings, run_loop
 
     exp = _record(msd)
     logs = []
-    res = run_loop(mass_spring_damper(), exp, ["m", "k", "c"], max_steps=1, structural=False,
-                   progress=False, log=logs.append, ukf=UKF)
+    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["m", "k", "c"], max_steps=1, structural=False, ukf=UKF), progress=False, log=logs.append)
     assert any("measurement-noise std estimated" in ln and "x, v" in ln for ln in logs)
     d = res.initial.to_dict()
     for j, o in enumerate(("x", "v")):

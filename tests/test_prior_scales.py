@@ -3,6 +3,7 @@
 import numpy as np
 
 from bondgraph.inference import prior
+from bondgraph.inference.options import Discretisation
 from bondgraph.numerics.model import Model
 
 
@@ -25,8 +26,7 @@ def test_singular_ros2_matrix_ends_the_run_not_the_loop(monkeypatch):
         return real(x, uk, th, dt, du)
 
     monkeypatch.setattr(prior, "make_step", lambda *a, **k: step)
-    got = prior.simulated_rms(m, t, u, m.theta0, x0, method="ros2", substeps=2,
-                               backend="numpy")
+    got = prior.simulated_rms(m, t, u, m.theta0, x0, Discretisation("ros2", 2, backend="numpy"))
     xs = [x0[None]]
     for k in range(9):
         xs.append(real(xs[-1], u[k][None], m.theta0[None], 0.01, None))

@@ -13,9 +13,11 @@ import numpy as np
 import pytest
 
 from bondgraph.data.experiments import run_experiment
-from bondgraph.diagnose.loop import run_loop
+from bondgraph.diagnose.loop import LoopSettings, run_loop
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.options import FitOptions, UKFOptions
+from bondgraph.inference.prior import PriorSpec
+from bondgraph.inference.problem import NoiseSpec, make_problem
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.registry import build
 from bondgraph.report import loop_report
@@ -43,8 +45,7 @@ def record():
 @pytest.fixture(scope="module")
 def loop_result(record):
     """The loop on a record the declared model explains (nothing accepted)."""
-    return run_loop(build("mass_spring_damper"), record, ["m", "k", "c"], max_steps=1,
-                    structural=False, progress=False)
+    return run_loop(build("mass_spring_damper"), record, LoopSettings(params=["m", "k", "c"], max_steps=1, structural=False), progress=False)
 
 
 def _texts(fig) -> list[str]:
@@ -104,7 +105,9 @@ def test_failed_augmented_simulation_is_stated_on_the_fit_plot(loop_result, tmp_
 
 def test_innovation_axes_carry_units(record, tmp_path, figures):
     model = Model.load("mass_spring_damper")
-    res = estimate(model, record, ["k"], ukf=UKFOptions(method="rk4"),
+    pb = make_problem(model, record, prior=PriorSpec(scale="magnitude"), noise=NoiseSpec("model"),
+                      ukf=UKFOptions(method="rk4"))
+    res = estimate(pb, ["k"],
                    fit=FitOptions(particles=4, iterations=1, polish=False, progress=False,
                                   hessian=False, check_discretisation=False))
     figures.clear()

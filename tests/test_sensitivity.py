@@ -17,12 +17,14 @@ from bondgraph.errors import ModelError
 from bondgraph.core.graph import BondGraph
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.forward_sensitivity import output_sensitivities
-from bondgraph.sensitivity.analysis import analyse, recommended_params
+from bondgraph.sensitivity.analysis import LocalOptions, analyse, recommended_params
 from bondgraph.sensitivity.identifiability import (identifiability, orthogonal_ranking, recommend,
                                                    ukf_fisher)
-from bondgraph.sensitivity.sobol import sobol_indices
+from bondgraph.sensitivity.sobol import SobolOptions, sobol_indices
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.prior import PriorSpec
+from bondgraph.inference.problem import NoiseSpec, make_problem
 from bondgraph.numerics.simulate import simulate
 
 
@@ -95,8 +97,9 @@ def test_product_parameters_flagged_and_one_kept():
     u = np.sign(np.sin(1.3 * t))[:, None]
     y = simulate(model, t, u, np.zeros(1), model.theta0, hold="zoh").y
     y = y + np.random.default_rng(0).normal(size=y.shape) * 0.01
-    rep = analyse(model, (t, u, y), ["a", "b", "c"], x0=np.zeros(1), P0=np.diag([1e-8]),
-                  ukf=UKFOptions(method="rk4"))
+    pb = make_problem(model, (t, u, y), prior=PriorSpec(x0=np.zeros(1), P0=np.diag([1e-8])),
+                      ukf=UKFOptions(method="rk4"))
+    rep = analyse(pb, ["a", "b", "c"])
     ident = rep.local["identifiability"]
     kinds = {(f["type"], tuple(sorted(f["params"]))) for f in ident["flags"]}
     assert ("product", ("a", "b")) in kinds
@@ -143,8 +146,8 @@ def test_sobol_ishigami_within_confidence():
     def ishigami(X, a=7.0, b=0.1):
         return np.sin(X[:, 0]) + a * np.sin(X[:, 1]) ** 2 + b * X[:, 2] ** 4 * np.sin(X[:, 0])
 
-    r = sobol_indices(ishigami, ["x1", "x2", "x3"], [-np.pi] * 3, [np.pi] * 3, 4096, seed=0,
-                      chunk=10000)
+    r = sobol_indices(ishigami, ["x1", "x2", "x3"], [-np.pi] * 3, [np.pi] * 3,
+                      SobolOptions(N=4096, seed=0, chunk=10000))
     assert r["evaluations"] == 4096 * 8
     d = r["indices"]["y"]
     S1 = np.array([0.3139, 0.4424, 0.0])
@@ -161,7 +164,7 @@ def test_sobol_linear_model_closed_form():
     var = a ** 2 * (hi - lo) ** 2 / 12.0
     exact = var / var.sum()
     r = sobol_indices(lambda X: np.column_stack([X @ a, 2 * X @ a + 1]), list("pqrs"), lo, hi,
-                      2048, seed=1, output_names=["y", "z"])
+                      SobolOptions(N=2048, seed=1), output_names=["y", "z"])
     for on in ("y", "z"):
         d = r["indices"][on]
         assert (np.abs(d["S1"] - exact) <= d["S1_conf"]).all(), (on, d["S1"], exact)
@@ -179,7 +182,9 @@ def test_errors(msd):
     with pytest.raises(SensitivityError, match="no sensitivity file"):
         recommended_params("/nonexistent/sensitivity.json")
     with pytest.raises(SensitivityError, match="lower < upper"):
-        sobol_indices(lambda X: X[:, 0], ["a", "b"], [0, 1], [1, 1], 8)
+        sobol_indices(lambda X: X[:, 0], ["a", "b"], [0, 1], [1, 1], SobolOptions(N=8))
+    with pytest.raises(SensitivityError, match="NLL transform"):
+        SobolOptions(nll_transform="sqrt")
 
 
 # ----------------------------------------------------------------------- CLI
@@ -268,7 +273,9 @@ def test_vehicle_acceleration_stage2_recommendation_identifiable():
     v = exp["v_gnss"]
     x0v = model.state(vehicle_initial_state(model, model.theta(truth),
                                             v=float(v[np.isfinite(v)][0])))
-    rep = analyse(model, exp, STAGE2, theta=truth, x0=x0v, p0_rel=0.01, sensitivities=False)
+    pb = make_problem(model, exp, prior=PriorSpec(rel=0.01, scale="magnitude", x0=x0v),
+                      noise=NoiseSpec("model"), fixed=truth)
+    rep = analyse(pb, STAGE2, local=LocalOptions(sensitivities=False))
     rec = rep.recommendation
     est = rec["estimate"]
     assert len(est) >= 5
@@ -280,8 +287,9 @@ def test_vehicle_acceleration_stage2_recommendation_identifiable():
     # independent: Hessian of the NLL over the recommended set
     th = model.theta(truth)
     x0 = np.asarray(rep.settings["x0"])
-    crit = Criterion(model, exp.t, exp.inputs_for(model), exp.outputs_for(model), est, th, x0,
-                     default_P0(model, x0, 0.01))
+    crit = Criterion(make_problem(model, exp, prior=PriorSpec(x0=x0, P0=default_P0(model, x0,
+                                                                                0.01))),
+                     est, th)
     xv = th[model.param_indices(est)]
     std = np.array([rec["check"]["rel_crb"][i] * abs(xv[i]) for i in range(len(est))])
     H, _, _ = hessian_batched(crit, xv, 0.2 * std)
@@ -297,7 +305,9 @@ def test_vehicle_coastdown_stage1():
 
     model = Model.load("vehicle_coastdown")
     exp = run_experiment("vehicle_coastdown")
-    rep = analyse(model, exp, ["f_r", "C_dA", "r_dyn", "theta_off"], p0_rel=0.01)
+    pb = make_problem(model, exp, prior=PriorSpec(rel=0.01, scale="magnitude"),
+                      noise=NoiseSpec("model"))
+    rep = analyse(pb, ["f_r", "C_dA", "r_dyn", "theta_off"])
     assert rep.settings["x0_rule"] == "record state columns / sidecar x0"
     assert set(rep.recommendation["estimate"]) == {"f_r", "C_dA", "r_dyn", "theta_off"}
     assert rep.recommendation["check"]["max_rel_crb"] < 0.10

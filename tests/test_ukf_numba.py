@@ -443,14 +443,14 @@ def test_compiled_free_run_of_the_prior_equals_numpy(name):
     """The prior's free-run scales (bondgraph.inference.prior.simulated_rms):
     the compiled run equals the numpy steps to rounding, for ROS2 and RK4
     and each hold."""
+    from bondgraph.inference.options import Discretisation
     from bondgraph.inference.prior import simulated_rms
 
     m = Model.load(name)
     t, u, _ = _record(m, N=200)
     for method, sub, hold in (("ros2", 2, "zoh"), ("rk4", 4, "mean"), ("ros2", 3, "linear")):
-        kw = dict(method=method, substeps=sub, hold=hold)
-        a = simulated_rms(m, t, u, m.theta0, m.x0, backend="numpy", **kw)
-        b = simulated_rms(m, t, u, m.theta0, m.x0, backend="numba", **kw)
+        a = simulated_rms(m, t, u, m.theta0, m.x0, Discretisation(method, sub, hold, "numpy"))
+        b = simulated_rms(m, t, u, m.theta0, m.x0, Discretisation(method, sub, hold, "numba"))
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=0)
 
 

@@ -15,16 +15,24 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterable
 
-import numpy as np
 
 from bondgraph.core.atomic import OutputFolder, is_empty_dir
 from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
 from bondgraph.errors import OptionError
-from bondgraph.inference.options import DEFAULT_BACKEND, NOISE_MODES, UKF_BACKENDS
-from bondgraph.inference.prior import record_prior
-from bondgraph.inference.ukf import default_P0
+from bondgraph.inference.options import (
+    DEFAULT_BACKEND,
+    NOISE_MODES,
+    P0_REL,
+    P0_SCALES,
+    UKF_BACKENDS,
+    UKF_HOLDS,
+    UKF_METHODS,
+    UKFOptions,
+)
+from bondgraph.inference.prior import PriorSpec
+from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
 
 MODEL_HELP = ("model: a registered name (`bondgraph models`), module:function or "
               "path/to/file.py:function returning a BondGraph (modules are imported from "
@@ -136,14 +144,14 @@ def add_fixed(p: argparse.ArgumentParser) -> None:
 
 def add_initial_state(p: argparse.ArgumentParser) -> None:
     """``--x0``, ``--p0-rel`` and ``--p0``: the UKF prior of the initial state
-    (:func:`initial_prior`)."""
+    (:func:`prior_spec`)."""
     p.add_argument("--x0", default=None,
                    help="name=value,... initial states (default: the record's state columns or "
                         "sidecar x0 for states the model has, else the model's X0)")
-    p.add_argument("--p0-rel", type=float, default=0.05,
+    p.add_argument("--p0-rel", type=float, default=P0_REL,
                    help="prior std of each initial state the record gives, relative to its "
-                        "scale (--p0; default 0.05)")
-    p.add_argument("--p0", choices=("state", "magnitude"), default="state",
+                        f"scale (--p0; default {P0_REL:g})")
+    p.add_argument("--p0", choices=P0_SCALES, default="state",
                    help="scale of each initial state's prior std: the state's own scale along "
                         "the record (state, default: free-run RMS, process-noise walk, sensors; "
                         "a sidecar's x0_std imposed; a state the record does not give gets its "
@@ -188,10 +196,10 @@ def estimated_states(model, args) -> list[str]:
 
 def add_discretisation(p: argparse.ArgumentParser, *, hold_default: str = "zoh") -> None:
     """``--method``, ``--substeps``, ``--hold``: the UKF's transition."""
-    p.add_argument("--method", choices=("ros2", "rk4"), default="ros2",
+    p.add_argument("--method", choices=UKF_METHODS, default="ros2",
                    help="UKF discretisation of the state equations")
     p.add_argument("--substeps", type=int, default=1, help="integrator steps per sample")
-    p.add_argument("--hold", choices=("zoh", "mean", "linear"), default=hold_default,
+    p.add_argument("--hold", choices=UKF_HOLDS, default=hold_default,
                    help="input over a sample interval: u_k (zoh), (u_k + u_k+1)/2 (mean), or "
                         "the first-order hold u_k + s (u_k+1 - u_k) (linear; for inputs sampled "
                         "from a continuous signal)")
@@ -304,53 +312,60 @@ def load_model(spec: str):
     return Model.from_spec(spec)
 
 
-def initial_prior(model, experiment, x0: np.ndarray, args, theta: np.ndarray,
-                  ukf) -> np.ndarray:
-    """The UKF prior covariance P0 (n_x, n_x) of ``--p0`` and ``--p0-rel``:
-    ``state`` (:func:`bondgraph.inference.prior.record_prior`: each state's
-    scale along the record at ``theta``, the record's ``x0_std`` imposed, the
-    states neither the record nor ``--x0`` gives with their whole scale) or
-    ``magnitude`` (:func:`bondgraph.inference.ukf.default_P0`).
-
-    Parameters
-    ----------
-    model : Model
-    experiment : Experiment
-    x0 : array (n_x,)
-        Prior mean (:func:`initial_state`).
-    args : argparse.Namespace
-        ``p0``, ``p0_rel``, ``x0``.
-    theta : array (n_theta,)
-        Parameters of the free run that gives the scales.
-    ukf : UKFOptions
-        Its discretisation and hold run the free run.
-    """
-    rel = 0.05 if args.p0_rel is None else float(args.p0_rel)
-    if getattr(args, "p0", "state") == "magnitude":
-        return default_P0(model, x0, rel)
-    given = set(experiment.given_initial_states(model)) | set(parse_pairs(args.x0, "--x0"))
-    t = np.asarray(experiment.t, float)
-    u = experiment.inputs_for(model, defaults_ok=True) if model.n_u else np.zeros((t.size, 0))
-    P0, _ = record_prior(model, t, u, experiment.outputs_for(model), theta, x0, rel=rel,
-                         x0_std=experiment.initial_state_std(model), method=ukf.method,
-                         substeps=max(ukf.substeps, 2), hold=ukf.hold,
-                         unknown=[n for n in model.states if n not in given],
-                         backend=ukf.backend)
-    return P0
-
-
-def initial_state(model, experiment, x0_text: str | None):
-    """The initial state of a record (:meth:`~bondgraph.data.records.Experiment.initial_state`)
-    with the ``--x0`` overrides applied.
+def prior_spec(args) -> PriorSpec:
+    """The prior's specification of ``--x0``, ``--p0-rel`` and ``--p0``
+    (:class:`bondgraph.inference.prior.PriorSpec`).
 
     Raises
     ------
     OptionError
-        Malformed ``--x0``.
-    ModelError
-        A state the model does not have.
+        Malformed ``--x0``, a relative spread that is not > 0 (named as the
+        options the user typed).
     """
-    x0 = experiment.initial_state(model)
-    for k, v in parse_pairs(x0_text, "--x0").items():
-        x0[model.state_index(k)] = v
-    return x0
+    try:
+        return PriorSpec(rel=args.p0_rel, scale=getattr(args, "p0", None) or "state",
+                         x0_set=parse_pairs(args.x0, "--x0"))
+    except OptionError as exc:
+        raise OptionError(str(exc).replace("PriorSpec.rel (--p0-rel)", "--p0-rel")
+                          .replace("PriorSpec.scale (--p0)", "--p0")) from exc
+
+
+def ukf_from_args(args) -> UKFOptions:
+    """The filter options of ``--method``, ``--substeps``, ``--hold``,
+    ``--backend`` (and ``--alpha``/``--beta``/``--kappa`` where the command
+    has them), validated once, named as typed.
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (``--substeps 0``).
+    """
+    kw = {k: getattr(args, k) for k in ("alpha", "beta", "kappa") if hasattr(args, k)}
+    try:
+        return UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold,
+                          backend=args.backend, **kw)
+    except OptionError as exc:
+        text = str(exc)
+        for key in ("method", "substeps", "hold", "backend", "alpha", "beta", "kappa"):
+            text = text.replace(f"UKFOptions.{key}", f"--{key}")
+        raise OptionError(text) from exc
+
+
+def problem_from_args(model, experiment, args, values=None) -> Problem:
+    """The model bound to the record with the shared options: ``--x0``,
+    ``--p0-rel``, ``--p0`` (:func:`prior_spec`), ``--noise``, ``--fixed``
+    (over ``values``, e.g. a record's true parameters) and the filter's
+    options (:func:`ukf_from_args`); :func:`bondgraph.inference.problem.make_problem`.
+
+    Raises
+    ------
+    OptionError, ModelError
+        Malformed options, states or parameters the model does not have.
+    DataError
+        A record that does not fit the model.
+    """
+    prior = prior_spec(args)
+    prior.check(model)
+    fixed = {**(values or {}), **parse_pairs(args.fixed, "--fixed")}
+    return make_problem(model, experiment, prior=prior, noise=NoiseSpec(args.noise),
+                        ukf=ukf_from_args(args), fixed=fixed)

@@ -21,21 +21,18 @@ from bondgraph.cli.common import (
     add_quiet,
     add_scheduler,
     estimated_states,
-    initial_prior,
-    initial_state,
     load_model,
     load_record,
     output_folder,
-    parse_pairs,
     parse_params,
+    problem_from_args,
     published,
 )
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import EstimationError, IdentifiabilityWarning
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.output_error import output_error_fit
-from bondgraph.inference.record import as_record, record_arrays
-from bondgraph.inference.options import FitOptions, UKFOptions
+from bondgraph.inference.options import FitOptions
 from bondgraph.report.estimation import plot_fit
 
 
@@ -101,27 +98,22 @@ def run(args) -> int:
                            overwrite=args.overwrite or args.resume)
     ck = (Path(args.checkpoint) if args.checkpoint
           else folder.work_dir(create=False) / "checkpoint.npz")
-    x0 = initial_state(model, exp, args.x0)
+    problem = problem_from_args(model, exp, args)
     states = estimated_states(model, args)
     if args.fit == "sim":
-        return run_output_error(args, model, exp, params, x0, folder, states)
-    ukf = UKFOptions(alpha=args.alpha, beta=args.beta, kappa=args.kappa, method=args.method,
-                     substeps=args.substeps, hold=args.hold, backend=args.backend)
-    P0 = initial_prior(model, exp, x0, args, model.theta(parse_pairs(args.fixed, "--fixed")),
-                       ukf)
+        return run_output_error(args, problem, params, folder, states)
     fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
                      iterations=args.iterations, seed=args.seed, checkpoint=ck,
                      resume=args.resume, polish=not args.no_polish, stall_iterations=args.stall,
                      progress=not args.quiet, workers=args.workers,
-                     scheduler=args.scheduler, noise=args.noise)
+                     scheduler=args.scheduler)
     if not args.checkpoint:
         _prepare_checkpoint(folder, args.resume)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
         try:
-            res = estimate(model, exp, params, fit=fit, ukf=ukf,
-                           fixed=parse_pairs(args.fixed, "--fixed"), x0=x0, P0=P0,
-                           x0_states=states, log=None if args.quiet else _say)
+            res = estimate(problem, params, fit=fit, x0_states=states,
+                           log=None if args.quiet else _say)
         except EstimationError:
             if not args.checkpoint:
                 folder.remove_work_dir()      # nothing worth resuming
@@ -129,7 +121,7 @@ def run(args) -> int:
     res.settings["data"] = str(args.data)
 
     def version(d: Path) -> list:
-        pngs = [] if args.no_plots else list(plot_fit(model, exp, res, d, P0=P0))
+        pngs = [] if args.no_plots else list(plot_fit(model, exp, res, d, P0=problem.P0))
         if ck.exists():
             shutil.copyfile(ck, d / "checkpoint.npz")
         res.to_json(d / "result.json")          # last: its presence means complete
@@ -158,7 +150,7 @@ def _prepare_checkpoint(folder, resume: bool) -> None:
         shutil.copyfile(done, ck)
 
 
-def run_output_error(args, model, exp, params, x0, folder, states) -> int:
+def run_output_error(args, problem, params, folder, states) -> int:
     """``--fit sim``: the output-error fit
     (:func:`bondgraph.inference.output_error.output_error_fit`) from the
     model's defaults with ``--fixed`` and ``--x0``, the initial states of
@@ -166,13 +158,11 @@ def run_output_error(args, model, exp, params, x0, folder, states) -> int:
     criterion needs no noise level: ``--noise`` only decides what is
     reported (the declared levels, or the RMS free-run error as the estimate
     of an undeclared one)."""
-    theta = model.theta0.copy()
-    for k, v in parse_pairs(args.fixed, "--fixed").items():
-        theta[model.param_index(k)] = v
-    t, u, y, _, _ = record_arrays(model, as_record(exp))
-    r = output_error_fit(model, t, u, y, params, theta=theta, x0=x0, x0_states=states,
-                         hold=args.hold)
-    noise = _sim_noise_levels(model, exp, r, theta, args.noise)
+    model, exp, theta = problem.model, problem.record, problem.theta
+    t, u, y = problem.arrays
+    r = output_error_fit(model, t, u, y, params, theta=theta, x0=problem.x0, x0_states=states,
+                         hold=problem.disc.hold)
+    noise = _sim_noise_levels(model, exp, r, theta, problem.noise.mode)
     doc = {"model": model.name, "data": str(args.data), "fit": "sim", "names": r.names,
            "estimates": r.estimates(), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,
            "rmse": dict(zip(model.outputs, r.rmse.tolist())), "nfev": r.nfev,

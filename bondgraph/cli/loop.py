@@ -88,7 +88,6 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     """Run the loop on ``--model``/``--data`` or a bundled case; write the report."""
-    settings: dict = {}
     if args.case == "list":
         for name, spec in sorted(registered_cases().items()):
             print(f"{name:24s} {spec}")
@@ -102,50 +101,28 @@ def run(args) -> int:
         graph = graph_builder(args.model)()
         record = load_record(args.data, graph)
         params = parse_params(args.params) if args.params else list(graph.params)
+        base = LoopSettings(params=params)
         name = graph.name
     else:
         case = get_case(args.case or DEFAULT_CASE)
         print(f"bondgraph loop: bundled case '{case.name}': {case.description}")
         graph = case.declared()
         record = case.record()
-        params = parse_params(args.params) if args.params else case.params
-        settings.update(case.settings)
-        if case.true_effect is not None:
-            settings["true_effect"] = case.true_effect
+        base = case.loop_settings(parse_params(args.params) if args.params else None)
         name = case.name
-    if args.metric:
-        settings["metric"] = args.metric
-    settings["criterion"] = args.criterion
-    if args.max_steps is not None:
-        settings["max_steps"] = args.max_steps
-    if args.significance is not None:
-        settings["significance"] = args.significance
-    if args.no_structural:
-        settings["structural"] = False
-    settings.update(numerics_settings(args, settings, graph))
+    settings = loop_settings(args, base, graph)
     if args.model and not args.validate and args.holdout is None:
-        settings["holdout"] = DEFAULT_HOLDOUT
         print(f"bondgraph loop: no --validate record: the last {DEFAULT_HOLDOUT:.0%} of "
               f"{args.data} is held out for the accept decision and the error before/after "
               f"(--holdout FRACTION to change, --holdout 0 to fit all of it)")
-    settings["ukf"] = dataclasses.replace(settings.get("ukf") or UKFOptions(),
-                                          backend=args.backend)
-    settings.update(workers=args.workers, scheduler=args.scheduler)
-    try:                                             # bad settings fail before any output
-        LoopSettings.from_options(params, settings)
-    except OptionError as exc:                       # named as the options the user typed
-        text = str(exc)
-        for key in ("metric", "criterion", "max_steps", "significance", "workers"):
-            text = text.replace(f"LoopSettings.{key}", "--" + key.replace("_", "-"))
-        raise OptionError(text) from exc
     out = Path(args.out) if args.out else unused_folder(DEFAULT_OUT)
     if not args.out and out != Path(DEFAULT_OUT) and not args.quiet:
         print(f"bondgraph loop: ./{DEFAULT_OUT} holds an earlier report (kept); this one goes "
               f"to ./{out} (--out DIR to choose)")
     reporter = LoopReporter(out, echo=None if args.quiet else print,
                             overwrite=args.overwrite)
-    res = run_loop(graph, record, params, log=reporter.log, progress=not args.quiet,
-                   on_update=reporter.update, **settings)
+    res = run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
+                   on_update=reporter.update)
     print()
     print(f"{name}: {res.metric}")
     if res.final.validation_metric is not None:
@@ -181,43 +158,85 @@ def loop_states(graph, text: str) -> list[str]:
     return x0_state_names(states, names)
 
 
-def numerics_settings(args, settings: dict, graph) -> dict:
-    """Loop settings from the shared options: ``--fixed`` (over the case's),
-    ``--x0`` (by state name, over the record's initial state), ``--p0-rel``,
-    ``--method``/``--substeps``/``--hold`` (the case's UKF options otherwise
-    kept), ``--validate`` and ``--metric-tolerance``.
+#: loop options whose names the command line spells differently
+_OPTION_NAMES = {"p0_rel": "--p0-rel", "p0_scale": "--p0", "x0_overrides": "--x0",
+                 "estimate_x0": "--estimate-x0", "validation": "--validate",
+                 "structural": "--no-structural"}
+
+
+def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
+    """The loop's options: ``base`` (the case's own, or the defaults for
+    ``--model``/``--data``) with what the command line gives, validated
+    once; an error names the option as typed (``--max-steps``, not
+    ``LoopSettings.max_steps``).
 
     Raises
     ------
     OptionError
-        Malformed pairs; ModelError: a state the graph lacks.
+        A bad value, named as the option the user typed.
+    ModelError
+        A state or parameter the graph does not have.
     """
-    out: dict = {}
+    given = dict(command_options(args, base, graph))
+    if args.model and not args.validate and args.holdout is None:
+        given["holdout"] = DEFAULT_HOLDOUT
+    try:
+        return dataclasses.replace(base, **given)
+    except OptionError as exc:
+        text = str(exc)
+        for key in sorted(given, key=len, reverse=True):
+            flag = _OPTION_NAMES.get(key, "--" + key.replace("_", "-"))
+            text = text.replace(f"LoopSettings.{key}", flag)
+        raise OptionError(text) from exc
+
+
+def command_options(args, base: LoopSettings, graph):
+    """``(field, value)`` of every loop option the command line gives
+    (typed values: numbers, names, a :class:`UKFOptions`, a record)."""
+    for key in ("metric", "max_steps", "significance", "fit", "noise"):
+        if getattr(args, key) is not None:
+            yield key, getattr(args, key)
+    yield "criterion", args.criterion
+    if args.no_structural:
+        yield "structural", False
     fixed = parse_pairs(args.fixed, "--fixed")
     if fixed:
-        out["fixed"] = {**settings.get("fixed", {}), **fixed}
+        yield "fixed", {**base.fixed, **fixed}
     x0 = parse_pairs(args.x0, "--x0")
     if x0:
-        out["x0_overrides"] = x0
+        yield "x0_overrides", x0
     if args.p0_rel is not None:
-        out["p0_rel"] = float(args.p0_rel)
+        yield "p0_rel", float(args.p0_rel)
     if args.p0 is not None:
-        out["p0_scale"] = args.p0
-    if args.fit is not None:
-        out["fit"] = args.fit
+        yield "p0_scale", args.p0
     if args.estimate_x0:
-        out["estimate_x0"] = loop_states(graph, args.estimate_x0)
-    if args.noise is not None:
-        out["noise"] = args.noise
-    base = settings.get("ukf") or UKFOptions()
+        yield "estimate_x0", loop_states(graph, args.estimate_x0)
     given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
              if getattr(args, k) is not None}
-    if given:
-        out["ukf"] = UKFOptions(**{**base.to_dict(), **given})
+    yield "ukf", ukf_replaced(base.ukf, given, args.backend)
     if args.validate:
-        out["validation"] = load_record(args.validate, graph)   # misspelt columns warned
+        yield "validation", load_record(args.validate, graph)   # misspelt columns warned
     if args.holdout is not None:
-        out["holdout"] = float(args.holdout)
+        yield "holdout", float(args.holdout)
     if args.metric_tolerance is not None:
-        out["metric_tolerance"] = float(args.metric_tolerance)
-    return out
+        yield "metric_tolerance", float(args.metric_tolerance)
+    yield "workers", args.workers
+    yield "scheduler", args.scheduler
+
+
+def ukf_replaced(base: UKFOptions, given: dict, backend: str) -> UKFOptions:
+    """``base`` (the case's filter options) with ``--method``, ``--substeps``,
+    ``--hold`` where given and ``--backend``; an error names the option.
+
+    Raises
+    ------
+    OptionError
+        ``--substeps 0`` and the like.
+    """
+    try:
+        return dataclasses.replace(base, backend=backend, **given)
+    except OptionError as exc:
+        text = str(exc)
+        for key in ("method", "substeps", "hold", "backend"):
+            text = text.replace(f"UKFOptions.{key}", f"--{key}")
+        raise OptionError(text) from exc

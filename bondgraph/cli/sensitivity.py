@@ -19,21 +19,20 @@ from bondgraph.cli.common import (
     add_quiet,
     add_scheduler,
     estimated_states,
-    initial_prior,
-    initial_state,
     load_model,
     load_record,
     output_folder,
     parse_names,
     parse_pairs,
+    problem_from_args,
     published,
     unused_folder,
 )
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.executor import Executor
-from bondgraph.inference.options import UKFOptions
 from bondgraph.report.sensitivity import plot_report
-from bondgraph.sensitivity.analysis import analyse
+from bondgraph.sensitivity.analysis import LocalOptions, analyse
+from bondgraph.sensitivity.sobol import SobolOptions
 from bondgraph.sensitivity.identifiability import CORR_MAX, REL_CRB_MAX
 
 
@@ -94,10 +93,7 @@ def run(args) -> int:
         if not tp:
             raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
         values.update({k: float(v) for k, v in tp.items() if k in model.params})
-    fixed = parse_pairs(args.fixed, "--fixed")
-    values.update(fixed)
-    th = model.theta(values)
-    x0 = initial_state(model, exp, args.x0)
+    problem = problem_from_args(model, exp, args, values)
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
     for o in outputs:
         model.output_index(o)
@@ -106,16 +102,15 @@ def run(args) -> int:
     log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     Executor(args.workers, args.scheduler)   # a bad --workers/--scheduler fails before any work
-    ukf = UKFOptions(method=args.method, substeps=args.substeps, hold=args.hold,
-                     backend=args.backend)
-    rep = analyse(model, exp, params, theta=th, x0=x0, p0_rel=args.p0_rel,
-                  P0=initial_prior(model, exp, x0, args, th, ukf), ukf=ukf,
-                  global_N=args.global_N, outputs=outputs, box_rel=args.box_rel,
-                  chunk=args.chunk, seed=args.seed, rel_crb_max=args.rel_crb,
-                  corr_max=args.corr_max, sensitivities=not args.no_sensitivities,
-                  progress=not args.quiet, log=log, nll_transform=args.nll_transform,
-                  x0_states=estimated_states(model, args), noise=args.noise, fixed=list(fixed),
-                  workers=args.workers, scheduler=args.scheduler)
+    local = LocalOptions(rel_crb_max=args.rel_crb, corr_max=args.corr_max,
+                         sensitivities=not args.no_sensitivities)
+    sobol = None if args.global_N is None else SobolOptions(
+        N=args.global_N, outputs=tuple(outputs), box_rel=args.box_rel, chunk=args.chunk,
+        seed=args.seed, progress=not args.quiet, nll_transform=args.nll_transform,
+        workers=args.workers, scheduler=args.scheduler)
+    rep = analyse(problem, params, local=local, sobol=sobol,
+                  x0_states=estimated_states(model, args),
+                  fixed=list(parse_pairs(args.fixed, "--fixed")), log=log)
     rep.settings["data"] = str(args.data)
     rep.settings["wall_s"] = time.perf_counter() - t0
 

@@ -15,7 +15,7 @@ vehicle's in ``vehicle_graphs.cases``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Callable
 
 import numpy as np
@@ -23,7 +23,8 @@ import numpy as np
 from bondgraph.core import plugins
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
-from bondgraph.errors import ModelError
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import ModelError, OptionError
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -81,6 +82,24 @@ class LoopCase:
     def __post_init__(self):
         if self.true_effect is not None and not isinstance(self.true_effect, TrueEffect):
             self.true_effect = TrueEffect(*self.true_effect)
+
+    def loop_settings(self, params: list[str] | None = None) -> LoopSettings:
+        """The case's loop options (:class:`~bondgraph.diagnose.settings.LoopSettings`):
+        its declared settings, its parameters (or ``params``) and its true
+        effect (synthetic cases: the result records its rank).
+
+        Raises
+        ------
+        OptionError
+            A setting the loop does not have, or a bad value.
+        """
+        extra = {} if self.true_effect is None else {"true_effect": self.true_effect}
+        unknown = sorted(set(self.settings) - {f.name for f in fields(LoopSettings)})
+        if unknown:
+            raise OptionError(f"case '{self.name}' declares unknown loop setting(s) "
+                              f"{', '.join(unknown)}")
+        return LoopSettings(params=list(self.params if params is None else params),
+                            **{**self.settings, **extra})
 
 
 def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,

@@ -207,10 +207,11 @@ def loop_problem(model: Model, experiment, settings: LoopSettings,
                  noise: NoiseSpec | None = None) -> Problem:
     """The declared model bound to the estimation record with the loop's
     prior, noise levels, fixed values and filter options
-    (:func:`bondgraph.inference.problem.make_problem`)."""
+    (:func:`bondgraph.inference.problem.make_problem`; inputs the record
+    lacks at the model's defaults)."""
     return make_problem(model, experiment, prior=loop_prior(settings),
                         noise=NoiseSpec(settings.noise) if noise is None else noise,
-                        ukf=settings.ukf, fixed=settings.fixed)
+                        ukf=settings.ukf, fixed=settings.fixed, defaults_ok=True)
 
 
 def problem_for(ctx: Context, model: Model) -> Problem:

@@ -14,16 +14,12 @@ from typing import Sequence
 
 import numpy as np
 
-from bondgraph.inference.estimate import (
-    Criterion,
-    EstimandCriterion,
-    cramer_rao,
-    hessian_batched,
-)
+from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, noise_plan
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
+from bondgraph.inference.options import Evaluation
 from bondgraph.inference.output_error import output_error_fit
 from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
 from bondgraph.inference.prior import PriorSpec
@@ -75,14 +71,7 @@ def make_criterion(problem: Problem, names: Sequence[str], base: np.ndarray,
     (n_theta,)), ``crit(X (S, k)) -> (S,)``, evaluated ``chunk`` sets per UKF
     run (:class:`bondgraph.inference.estimate.Criterion`), with the
     problem's prior and held noise levels."""
-    model = problem.model
-    t, u, y = problem.arrays
-    sig = problem.noise.sigma(model)
-    if not np.isfinite(sig).any():
-        return Criterion(model, t, u, y, names, base, problem.x0, problem.P0,
-                         options=problem.ukf, chunk=chunk)
-    est = Estimand(model, list(names), theta=base, x0=problem.x0, sigma=sig)
-    return EstimandCriterion(model, t, u, y, est, problem.P0, options=problem.ukf, chunk=chunk)
+    return Criterion(problem, names, base, where=Evaluation(chunk=chunk))
 
 
 def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, iterations: int,

@@ -8,7 +8,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from typing import Callable, Sequence
+from typing import Callable
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.accept import (
@@ -46,7 +46,13 @@ from bondgraph.diagnose.scoring import (
 )
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.numerics.model import Model
-from bondgraph.errors import BondGraphError, DeclaredFitError, ModelError, NumericalError
+from bondgraph.errors import (
+    BondGraphError,
+    DeclaredFitError,
+    ModelError,
+    NumericalError,
+    OptionError,
+)
 
 #: outcomes of one step
 ACCEPTED, NONE_ACCEPTED, NOTHING_SIGNIFICANT = "accepted", "none accepted", "nothing significant"
@@ -54,9 +60,9 @@ ACCEPTED, NONE_ACCEPTED, NOTHING_SIGNIFICANT = "accepted", "none accepted", "not
 OnUpdate = Callable[[LoopResult], None]
 
 
-def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
+def run_loop(graph: BondGraph, experiment, settings: LoopSettings, *,
              log: Callable[[str], None] | None = None, progress: bool = True,
-             on_update: OnUpdate | None = None, **settings) -> LoopResult:
+             on_update: OnUpdate | None = None) -> LoopResult:
     """Trace residuals to missing effects, add them, re-estimate.
 
     Parameters
@@ -65,8 +71,10 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
         The declared model (never modified).
     experiment : Experiment
         The measured record (:class:`bondgraph.data.records.Experiment`).
-    params : sequence of str
-        Parameters of the declared model to estimate.
+    settings : LoopSettings
+        The loop's options, ``settings.params`` the parameters of the
+        declared model to estimate (:class:`LoopSettings`: metric,
+        criterion, max_steps, significance, effects, prior, filter options ...).
     log : callable, optional
         Line logger (default ``print``); lines are stamped with the time since
         the start.
@@ -78,9 +86,6 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
         (``result.finished`` True); the report writer
         (:meth:`bondgraph.report.loop_report.LoopReporter.update`) uses it,
         so that an interrupted run keeps its report.
-    **settings
-        Fields of :class:`LoopSettings` (metric, criterion, max_steps,
-        significance, confirm_top, structural, effects, x0, P0, ukf, ...).
 
     Returns
     -------
@@ -92,18 +97,21 @@ def run_loop(graph: BondGraph, experiment, params: Sequence[str], *,
     ------
     ModelError
         Unknown parameter names.
+    OptionError
+        ``settings`` not a :class:`LoopSettings`.
     DeclaredFitError
         If the declared model's fit has a non-finite NLL or free-run error
         (on the record or the validation record): no effect is scored.
     BondGraphError
         If the declared model cannot be fitted at all (UKF failure).
     """
-    missing = [p for p in params if p not in set(graph.params)]
+    if not isinstance(settings, LoopSettings):
+        raise OptionError(f"run_loop needs a LoopSettings, got {type(settings).__name__}")
+    missing = [p for p in settings.params if p not in set(graph.params)]
     if missing:
         raise ModelError(f"graph '{graph.name}' has no parameter(s) {missing} "
                          f"(known: {', '.join(graph.params)})")
-    s = LoopSettings.from_options(params, settings)
-    experiment, s = held_out(experiment, s)
+    experiment, s = held_out(experiment, settings)
     t0 = time.perf_counter()
     stamped = _stamped(log if log is not None else print, t0)
     problem = loop_problem(model_of(graph), experiment, s)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Sequence
 
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Effect
@@ -269,39 +269,36 @@ class LoopSettings:
         if int(self.confirm_iterations) < 1:
             raise OptionError("LoopSettings.confirm_iterations must be >= 1")
 
-    @classmethod
-    def from_options(cls, params, options: dict) -> "LoopSettings":
-        """Settings from ``run_loop``'s keywords.
-
-        Raises
-        ------
-        OptionError
-            An unknown keyword (the known ones listed) or a bad value.
-        """
-        known = set(cls.__dataclass_fields__) - {"params"}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            raise OptionError(f"unknown loop setting(s) {', '.join(unknown)} (known: "
-                              f"{', '.join(sorted(known))})")
-        return cls(params=list(params), **options)
-
     def summary(self) -> dict:
-        """The settings a report records: estimated parameters, step limit,
-        significance level, UKF options, names of the effect library."""
-        return {"params": self.params, "max_steps": self.max_steps,
-                "significance": self.significance, "ukf": self.ukf.to_dict(),
-                "metric_tolerance": self.metric_tolerance, "error_level": self.error_level,
-                "p0_scale": self.p0_scale,
-                "holdout": self.holdout,
-                "fit": self.fit, "sim_hold": self.sim_hold, "auto_substeps": self.auto_substeps,
-                "noise": self.noise,
-                "confirm_iterations": self.confirm_iterations,
-                "confirm_top": self.confirm_top, "confirm_rounds": self.confirm_rounds,
-                "tie_level": self.tie_level,
-                "confirm_tolerance": self.confirm_tolerance,
-                "validation": getattr(self.validation, "name", None)
-                if self.validation is not None else None,
-                "effects": [e.name for e in self.effects]}
+        """Every option as a report records it (JSON-able): plain values as
+        they are; the UKF options as a dict; the metric, the effects and
+        the validation record by name; arrays as lists; the true effect as
+        ``(kind, target)``."""
+        out = {}
+        for f in fields(self):
+            out[f.name] = _summarised(f.name, getattr(self, f.name))
+        return out
+
+
+def _summarised(name: str, v):
+    """One option of :meth:`LoopSettings.summary` as JSON-able data."""
+    if name == "effects":
+        return [e.name for e in v]
+    if name == "validation":
+        return None if v is None else getattr(v, "name", None)
+    if name == "metric" and callable(v):
+        return getattr(v, "name", getattr(v, "__name__", "custom metric"))
+    if name == "true_effect" and v is not None:
+        return v.to_dict() if hasattr(v, "to_dict") else {"kind": v[0], "target": v[1]}
+    if hasattr(v, "to_dict"):
+        return v.to_dict()
+    if hasattr(v, "tolist"):
+        return v.tolist()
+    if isinstance(v, (list, tuple)):
+        return list(v)
+    if isinstance(v, dict):
+        return dict(v)
+    return v
 
 
 def _integer(name: str, v, minimum: int) -> None:

@@ -54,19 +54,22 @@ from bondgraph.inference.estimand import (
     x0_state_names,
 )
 from bondgraph.inference.optimize import de, minimize_batched, pso
-from bondgraph.inference.options import FitOptions, UKFOptions, fit_options, ukf_options
-from bondgraph.inference.record import as_record, initial_state, record_arrays
+from bondgraph.inference.options import (
+    Evaluation,
+    FitOptions,
+    UKFOptions,
+    fit_options,
+)
+from bondgraph.inference.problem import Problem
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.ukf import (
     GUARD_REL,
     GUARD_SUBSTEPS,
     UKFResult,
-    default_P0,
     discretisation_check,
     nll_guard,
     ukf_nll,
 )
-from bondgraph.numerics.model import Model
 
 
 # ----------------------------------------------------------------- criterion
@@ -75,30 +78,22 @@ class Criterion:
 
     Parameters
     ----------
-    model : Model
-    t : array (N,)
-    u : array (N, n_u)
-    y : array (N, n_y)
+    problem : Problem
+        The model on the record with its prior (x0, P0), held noise levels
+        and filter options (:func:`bondgraph.inference.problem.make_problem`).
     params : sequence of str
         Estimated parameters (k).
-    base : array (n_theta,)
-        Values of all parameters; the estimated ones are overwritten.
-    x0, P0 : arrays, optional
-        Prior state and covariance at ``t[0]`` (see :func:`bondgraph.inference.ukf.ukf_nll`).
-    options : UKFOptions, optional
-        Filter options (default ``UKFOptions()``).
+    base : array (n_theta,), optional
+        Values of all parameters; the estimated ones are overwritten
+        (default ``problem.theta``).
     Q, R : arrays, optional
-        Extra process-noise and measurement-noise covariances
+        Extra process-noise covariance, and a measurement-noise covariance
+        that replaces the problem's noise levels
         (:func:`bondgraph.inference.ukf.ukf_nll`).
-    chunk : int, optional
-        Evaluate at most this many parameter sets per UKF run.
-    workers : int
-        Worker processes of the embedded Dask cluster that share each batch
-        (:class:`bondgraph.inference.executor.Executor`). 1: in process.
-        Results do not depend on ``workers``.
-    scheduler : str, optional
-        Address of an existing Dask scheduler (``tcp://HOST:PORT``; default
-        ``$BONDGRAPH_SCHEDULER``): the batch's chunks run on its workers.
+    where : Evaluation, optional
+        Chunk size and the Dask workers or scheduler that share each batch
+        (:class:`bondgraph.inference.options.Evaluation`); results do not
+        depend on it.
 
     Attributes
     ----------
@@ -110,23 +105,30 @@ class Criterion:
         Failure cause -> count over all evaluations.
     """
 
-    def __init__(self, model, t, u, y, params: Sequence[str], base, x0=None, P0=None, *,
-                 options: UKFOptions | None = None, Q=None, R=None, chunk: int | None = None,
-                 workers: int = 1, scheduler: str | None = None):
-        self.model = model
-        self.t, self.u, self.y = t, u, y
+
+    def __init__(self, problem: Problem, params: Sequence[str], base=None, *, Q=None, R=None,
+                 where: Evaluation | None = None):
+        where = Evaluation() if where is None else where
+        self.problem = problem
+        self.model = problem.model
+        self.t, self.u, self.y = problem.t, problem.u, problem.y
         self.params = list(params)
-        self.idx = model.param_indices(self.params)
-        self.base = np.asarray(base, dtype=float)
-        self.x0, self.P0 = x0, P0
-        self.options = ukf_options(options)
+        self.idx = self.model.param_indices(self.params)
+        self.base = np.asarray(problem.theta if base is None else base, dtype=float)
+        self.x0, self.P0 = problem.x0, problem.P0
+        self.options = problem.ukf
         self.Q, self.R = Q, R
-        self.chunk = chunk
-        self.workers = max(1, int(workers))
-        self._executor = Executor(self.workers, scheduler)
+        self.chunk = where.chunk
+        self.workers = where.workers
+        self._executor = Executor(self.workers, where.scheduler)
         self.evaluations = 0
         self.calls = 0
         self.failures: Counter = Counter()
+
+    def _noise(self, th: np.ndarray):
+        """The measurement-noise covariance of the sets ``th``: the given R,
+        else the problem's held levels (None: ``meas_std(θ)``)."""
+        return self.R if self.R is not None else self.problem.noise.covariance(self.model, th)
 
     def theta(self, X) -> np.ndarray:
         """Full parameter arrays (S, n_theta) for values X (S, k)."""
@@ -134,12 +136,15 @@ class Criterion:
 
     def problem_at(self, x) -> tuple:
         """``(θ (n_theta,), x0 (n_x,), P0, R or None)`` of the filter at one point x (k,)."""
-        return self.theta(np.atleast_2d(x))[0], self.x0, self.P0, self.R
+        th = self.theta(np.atleast_2d(x))
+        R = self._noise(th)
+        return th[0], self.x0, self.P0, None if R is None or R is self.R else R[0]
 
     def run(self, X, store: bool | str = False) -> UKFResult:
         """The UKF result (all arrays) for parameter values X (S, k)."""
-        return ukf_nll(self.model, self.t, self.u, self.y, self.theta(X), self.x0, self.P0,
-                       options=self.options, Q=self.Q, R=self.R, store=store)
+        th = self.theta(X)
+        return ukf_nll(self.model, self.t, self.u, self.y, th, self.x0, self.P0,
+                       options=self.options, Q=self.Q, R=self._noise(th), store=store)
 
     def _evaluate(self, X):
         S = X.shape[0]
@@ -213,12 +218,11 @@ class EstimandCriterion(Criterion):
 
     Parameters
     ----------
-    model : Model
-    t, u, y : arrays (N,), (N, n_u), (N, n_y)
+    problem : Problem
+        Its prior covariance ``P0`` is the one before the estimated states
+        are shrunk.
     est : Estimand
-    P0 : array (n_x, n_x) or (n_x,), optional
-        Prior covariance before the estimated states are shrunk.
-    options, Q, chunk, workers, scheduler :
+    Q, where :
         As for :class:`Criterion`.
 
     Attributes
@@ -229,11 +233,10 @@ class EstimandCriterion(Criterion):
         Coordinates searched in log scale.
     """
 
-    def __init__(self, model, t, u, y, est: Estimand, P0=None, *,
-                 options: UKFOptions | None = None, Q=None, chunk: int | None = None,
-                 workers: int = 1, scheduler: str | None = None):
-        super().__init__(model, t, u, y, est.params, est.theta, est.x0, P0, options=options,
-                         Q=Q, R=None, chunk=chunk, workers=workers, scheduler=scheduler)
+    def __init__(self, problem: Problem, est: Estimand, *, Q=None,
+                 where: Evaluation | None = None):
+        super().__init__(problem, est.params, est.theta, Q=Q, R=None, where=where)
+        self.x0 = est.x0
         self.est = est
         self.params = est.names
         self.sigma = est.sigma
@@ -501,35 +504,27 @@ class EstimationResult:
 
 
 # ----------------------------------------------------------------- estimation
-def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None = None,
-             ukf: UKFOptions | None = None, fixed: Mapping[str, float] | None = None,
-             bounds: Mapping[str, tuple] | None = None, x0=None, P0=None, Q=None, R=None,
-             start=None, x0_states: Sequence[str] = (), log=None) -> EstimationResult:
+def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None = None,
+             bounds: Mapping[str, tuple] | None = None, Q=None, R=None, start=None,
+             x0_states: Sequence[str] = (), log=None) -> EstimationResult:
     """Maximum-likelihood estimate of ``params`` from one record, with the
-    initial states ``x0_states`` and the noise levels of ``fit.noise``.
+    initial states ``x0_states`` and the noise levels of the problem's
+    noise policy.
 
     Parameters
     ----------
-    model : Model or str
-        Filter model (:meth:`~bondgraph.numerics.model.Model.from_spec`).
-    experiment : Experiment, path of a CSV record, or tuple (t, u, y)
+    problem : Problem
+        The model bound to the record (:func:`bondgraph.inference.problem.make_problem`):
+        its prior (x0, P0), fixed values, noise policy (``problem.noise.mode``:
+        "auto" holds declared levels and estimates the undeclared ones with θ,
+        "model" keeps the graph's) and filter options (``problem.ukf``).
     params : sequence of str
         Parameters to estimate (k).
     fit : FitOptions, optional
         How to search (optimizer, swarm, iterations, seed, checkpoint,
-        polish, ``noise`` policy ...).
-    ukf : UKFOptions, optional
-        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
-    fixed : dict, optional
-        Values for parameters that are not estimated (default: model defaults).
+        polish ...).
     bounds : dict name -> (lower, upper), optional
         Search box (default: the model's bounds).
-    x0 : array (n_x,) or dict, optional
-        Prior state at the first sample (default: the record's initial
-        state, :func:`bondgraph.inference.record.initial_state`; the model's
-        X0 for bare arrays).
-    P0 : array (n_x, n_x) or (n_x,), optional
-        Prior covariance (default :func:`bondgraph.inference.ukf.default_P0`).
     Q, R : arrays, optional
         Extra process-noise / measurement-noise covariance (R: no noise policy).
     start : array (k,), optional
@@ -560,82 +555,111 @@ def estimate(model, experiment, params: Sequence[str], *, fit: FitOptions | None
     IdentifiabilityWarning
         Hessian not positive definite (direction named), an estimate on a bound, a
         discretisation error > 0.1 σ, or an NLL 1e-3 off RK4(40) (nll_guard).
+
+    References
+    ----------
+    Kennedy & Eberhart (1995) for the swarm; Wan & van der Merwe (2000) for
+    the UKF likelihood; Cramér (1946), Rao (1945) for the bound.
     """
     t_start = time.perf_counter()
-    fit, ukf = fit_options(fit), ukf_options(ukf)
-    pb = _problem(model, experiment, params, fit, fixed, bounds, x0, P0, R, x0_states)
-    for note in pb["notes"]:
+    fit = fit_options(fit)
+    if not isinstance(problem, Problem):
+        raise OptionError(f"estimate needs a Problem (bondgraph.inference.problem.make_problem), "
+                          f"got {type(problem).__name__}")
+    plan = _plan(problem, params, bounds, R, x0_states)
+    for note in plan.notes:
         (log or (lambda _m: None))(note)
-    crit = _criterion(pb, fit, ukf, Q, R)
-    lo, hi = pb["lo"], pb["hi"]
+    crit = _criterion(problem, plan, fit, Q, R)
+    lo, hi = plan.lo, plan.hi
     try:
-        opt = _global_search(crit, lo, hi, fit, _start(crit, pb, start))
+        opt = _global_search(crit, lo, hi, fit, _start(crit, plan, start))
         x_best, f_best, pol = _polish(crit, opt, lo, hi, fit)
         warn_list = _bound_warnings(crit.params, x_best, lo, hi)
         H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list)
-        disc = _discretisation_at(crit, x_best, f_best, fit, ukf, warn_list)
+        disc = _discretisation_at(crit, x_best, f_best, fit, problem.ukf, warn_list)
     finally:
         crit.close()
     for w in warn_list:
         warnings.warn(w, IdentifiabilityWarning, stacklevel=2)
     z_best, lo_v, hi_v, H, cr = _to_values(crit, x_best, lo, hi, H, cr)
-    return _result(pb, crit, fit, ukf, opt, z_best, f_best, pol, H, cr, lo_v, hi_v,
-                   warn_list, disc, Q, R, time.perf_counter() - t_start)
+    found = _Found(opt, z_best, f_best, pol, H, cr, lo_v, hi_v, warn_list, disc)
+    return _result(problem, plan, crit, fit, found, Q, R, time.perf_counter() - t_start)
 
 
-def _problem(model, experiment, params, fit: FitOptions, fixed, bounds, x0, P0, R,
-             x0_states) -> dict:
-    """The pieces of an estimation: the model, the record's arrays, the
-    prior, the user's parameters and the :class:`~bondgraph.inference.estimand.Estimand`
-    (None for parameters only under ``noise="model"`` without initial
-    states), with the search box in search coordinates and the noise notes."""
-    model = Model.from_spec(model)
-    params, fixed, base, lo, hi = _search_box(model, params, fixed, bounds)
-    rec = as_record(experiment)
-    t, u, y, ename, meta = record_arrays(model, rec)
-    x0a, _ = initial_state(model, rec, x0)
-    P0a = default_P0(model, x0a) if P0 is None else P0
+@dataclass(frozen=True)
+class _Plan:
+    """What an estimation moves: the user's parameters, the values of all
+    (base θ), the :class:`~bondgraph.inference.estimand.Estimand` (None for
+    parameters only under the "model" noise policy without initial states),
+    the noise notes and the search box in search coordinates."""
+
+    params: list
+    base: np.ndarray
+    est: Estimand | None
+    notes: list
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Found:
+    """What the search found: the optimizer's result, the estimate (values),
+    its NLL, the polish summary, the Hessian and Cramér-Rao bounds (values),
+    the box (values), the warnings and the discretisation check."""
+
+    opt: Any
+    z: np.ndarray
+    nll: float
+    polish: dict
+    H: np.ndarray
+    cr: dict
+    lo: np.ndarray
+    hi: np.ndarray
+    warnings: list
+    disc: dict | None
+
+
+def _plan(problem: Problem, params, bounds, R, x0_states) -> _Plan:
+    """The :class:`_Plan` of an estimation on ``problem``."""
+    model = problem.model
+    params, lo, hi = _search_box(model, params, problem.fixed, bounds)
+    base = problem.theta.copy()
     states = x0_state_names(model, x0_states)
-    declared = None if isinstance(rec, tuple) else rec.noise_std_for(model)
-    mode = "model" if R is not None else fit.noise
-    P0d = np.asarray(P0a, float)
-    scale = np.sqrt(np.diag(P0d) if P0d.ndim == 2 else P0d)
-    est, notes = plan_estimand(model, base, params, list(fixed), declared, noise=mode,
-                               states=states, x0=x0a, x0_scale=np.maximum(scale, 1e-12))
+    declared = None if problem.record is None else problem.record.noise_std_for(model)
+    mode = "model" if R is not None else problem.noise.mode
+    scale = np.sqrt(np.diag(problem.P0))
+    est, notes = plan_estimand(model, base, params, list(problem.fixed), declared, noise=mode,
+                               states=states, x0=problem.x0, x0_scale=np.maximum(scale, 1e-12))
     if R is not None:
         notes = ["noise levels: the given R"]
-    pb = dict(model=model, params=params, fixed=fixed, base=base, t=t, u=u, y=y, ename=ename,
-              meta=meta, x0=x0a, P0=P0a, est=None, notes=notes, lo=lo, hi=hi)
     if est.k == len(params) and not est.uses_R:
-        return pb
+        return _Plan(params, base, None, notes, lo, hi)
     extra = est.params[len(params):]
     lo_e, hi_e = model.bounds(extra) if extra else (np.zeros(0), np.zeros(0))
     lo_v, hi_v = est.bounds(np.concatenate([lo, lo_e]), np.concatenate([hi, hi_e]))
     log = np.array([n.startswith(NOISE_PREFIX) for n in est.names], dtype=bool)
     lo_v[log], hi_v[log] = np.log(lo_v[log]), np.log(hi_v[log])
-    pb.update(est=est, lo=lo_v, hi=hi_v)
-    return pb
+    return _Plan(params, base, est, notes, lo_v, hi_v)
 
 
-def _criterion(pb: dict, fit: FitOptions, ukf: UKFOptions, Q, R) -> Criterion:
+def _criterion(problem: Problem, plan: _Plan, fit: FitOptions, Q, R) -> Criterion:
     """The batched NLL of the problem: a :class:`Criterion` of the parameters,
     or an :class:`EstimandCriterion` when initial states or noise levels
     take part."""
-    kw = dict(options=ukf, Q=Q, chunk=fit.chunk, workers=fit.workers, scheduler=fit.scheduler)
-    if pb["est"] is None:
-        return Criterion(pb["model"], pb["t"], pb["u"], pb["y"], pb["params"], pb["base"],
-                         pb["x0"], pb["P0"], R=R, **kw)
-    return EstimandCriterion(pb["model"], pb["t"], pb["u"], pb["y"], pb["est"], pb["P0"], **kw)
+    where = Evaluation(chunk=fit.chunk, workers=fit.workers, scheduler=fit.scheduler)
+    if plan.est is None:
+        return Criterion(problem, plan.params, plan.base, Q=Q, R=R, where=where)
+    return EstimandCriterion(problem, plan.est, Q=Q, where=where)
 
 
-def _start(crit: Criterion, pb: dict, start):
+def _start(crit: Criterion, plan: _Plan, start):
     """The optimizer's start (search coordinates): ``start`` (k user
     parameters) completed with the current values of the other estimated
     quantities; None without ``start``."""
-    if start is None or pb["est"] is None:
+    if start is None or plan.est is None:
         return start
-    z = pb["est"].value()
-    z[:len(pb["params"])] = np.asarray(start, float)
+    z = plan.est.value()
+    z[:len(plan.params)] = np.asarray(start, float)
     return crit.to_search(z)[0]
 
 
@@ -655,26 +679,26 @@ def _to_values(crit: Criterion, x, lo, hi, H, cr):
     return z, lo_v, hi_v, np.asarray(H, float) / np.outer(J, J), cr
 
 
-def _result(pb: dict, crit, fit: FitOptions, ukf: UKFOptions, opt, z, f_best, pol, H, cr,
-            lo, hi, warn_list, disc, Q, R, wall: float) -> EstimationResult:
-    """The :class:`EstimationResult` of an estimation at the estimate ``z`` (k,)."""
-    model, names = pb["model"], list(crit.params)
-    est = pb["est"]
-    theta = (_full_theta(model, names, pb["base"], z) if est is None
+def _result(problem: Problem, plan: _Plan, crit, fit: FitOptions, found: _Found, Q, R,
+            wall: float) -> EstimationResult:
+    """The :class:`EstimationResult` of an estimation at the estimate ``found.z`` (k,)."""
+    model, names, est, z, cr = problem.model, list(crit.params), plan.est, found.z, found.cr
+    theta = (_full_theta(model, names, plan.base, z) if est is None
              else est.expand(z[None, :])[0][0])
-    truth, zs = _truth(pb["meta"], names, z, cr["std"])
-    settings = _settings(fit, ukf, Q, R, pb["t"], len(names), pb["x0"], pb["P0"], disc)
-    settings.update(noise=fit.noise if R is None else "R", noise_notes=list(pb["notes"]),
+    truth, zs = _truth(problem.meta, names, z, cr["std"])
+    settings = _settings(fit, problem, Q, R, len(names), found.disc)
+    settings.update(noise=problem.noise.mode if R is None else "R", noise_notes=list(plan.notes),
                     noise_levels=_noise_levels(model, est, z, cr["std"], theta),
                     x0_states=[] if est is None else list(est.states))
     return EstimationResult(
-        model=model.name, experiment=pb["ename"], params=names, estimates=z, std=cr["std"],
-        corr=cr["corr"], hessian=H, nll=float(f_best), nll_optimizer=float(opt.fun),
-        evaluations=int(opt.nfev), evaluations_total=int(crit.evaluations), wall_s=wall,
-        optimizer=fit.optimizer, theta=theta, fixed=pb["fixed"], lower=lo, upper=hi,
-        truth=truth, z=zs, at_bound=_at_bound(names, z, lo, hi), warnings=warn_list,
-        failures=dict(crit.failures), optimizer_result=opt.to_dict(), polish=pol,
-        settings=settings, units=_units(model, names))
+        model=model.name, experiment=problem.name, params=names, estimates=z, std=cr["std"],
+        corr=cr["corr"], hessian=found.H, nll=float(found.nll), nll_optimizer=float(found.opt.fun),
+        evaluations=int(found.opt.nfev), evaluations_total=int(crit.evaluations), wall_s=wall,
+        optimizer=fit.optimizer, theta=theta, fixed=dict(problem.fixed), lower=found.lo,
+        upper=found.hi, truth=truth, z=zs, at_bound=_at_bound(names, z, found.lo, found.hi),
+        warnings=found.warnings, failures=dict(crit.failures),
+        optimizer_result=found.opt.to_dict(), polish=found.polish, settings=settings,
+        units=_units(model, names))
 
 
 def _units(model, names: Sequence[str]) -> list[str]:
@@ -710,35 +734,36 @@ def _noise_levels(model, est: Estimand | None, z, std, theta) -> dict:
     return out
 
 
-def _settings(fit: FitOptions, ukf: UKFOptions, Q, R, t, k: int, x0, P0, disc) -> dict:
+def _settings(fit: FitOptions, problem: Problem, Q, R, k: int, disc) -> dict:
     """``EstimationResult.settings``: the UKF options as a dict, the search's
     size, the record's length, the prior and the discretisation check."""
-    return dict(ukf=ukf.to_dict(), Q_given=Q is not None, R_given=R is not None,
+    t = problem.t
+    return dict(ukf=problem.ukf.to_dict(), Q_given=Q is not None, R_given=R is not None,
                 samples=int(t.size), duration_s=float(t[-1] - t[0]),
                 particles=_swarm_size(fit, k), iterations=fit.iterations, seed=fit.seed,
-                x0=x0.tolist(), P0=np.asarray(P0, float).tolist(), discretisation=disc)
+                x0=problem.x0.tolist(), P0=np.asarray(problem.P0, float).tolist(),
+                x0_rule=problem.x0_rule, discretisation=disc)
 
 
 def _search_box(model, params, fixed, bounds):
-    """``(params, fixed, base θ, lower, upper)`` of an estimation, checked."""
+    """``(params, lower, upper)`` of an estimation, checked against the
+    problem's ``fixed`` values."""
     params = list(params)
     if not params:
         raise OptionError("no parameters to estimate")
     if len(set(params)) != len(params):
         raise OptionError(f"parameter listed twice in {params}")
     model.param_indices(params)                    # ModelError for unknown names
-    fixed = dict(fixed or {})
-    both = sorted(set(fixed) & set(params))
+    both = sorted(set(fixed or {}) & set(params))
     if both:
         raise ModelError(f"parameter(s) {', '.join(both)} both fixed and estimated")
-    base = model.theta(fixed)
     lo, hi = model.bounds(params)
     for name, (a, b) in (bounds or {}).items():
         if name not in params:
             raise ModelError(f"bounds given for '{name}', which is not estimated ({params})")
         i = params.index(name)
         lo[i], hi[i] = float(a), float(b)
-    return params, fixed, base, lo, hi
+    return params, lo, hi
 
 
 def _full_theta(model, params, base, x) -> np.ndarray:
@@ -850,8 +875,7 @@ def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
     if not (fit.check_discretisation and np.isfinite(f_best)):
         return None
     th_best, x0, P0, R = crit.problem_at(x_best)
-    dc = discretisation_check(crit.model, crit.t, crit.u, th_best, x0, method=ukf.method,
-                              substeps=ukf.substeps, hold=ukf.hold)
+    dc = discretisation_check(crit.model, crit.t, crit.u, th_best, x0, ukf.discretisation)
     worst = float(np.max(dc["one_step"]))
     if worst > 0.1:
         warn_list.append(f"discretisation error of {ukf.method}({ukf.substeps}) is {worst:.2g} "
@@ -903,23 +927,21 @@ class Stage:
     Parameters
     ----------
     name : str
-    model : Model or str
-    experiment : Experiment, path or (t, u, y)
+    problem : Problem
+        This stage's model on its record, with its prior and filter options
+        (:func:`bondgraph.inference.problem.make_problem`); the values the
+        earlier stages estimated are fixed on it by :func:`two_stage`.
     params : list of str
-    fit, ukf : FitOptions, UKFOptions, optional
-        This stage's options (default: those given to :func:`two_stage`).
-    x0, P0, Q, R, bounds, start : optional
-        As for :func:`estimate`, for this stage's model and record.
+    fit : FitOptions, optional
+        This stage's search options (default: those given to :func:`two_stage`).
+    Q, R, bounds, start : optional
+        As for :func:`estimate`.
     """
 
     name: str
-    model: Any
-    experiment: Any
+    problem: Problem
     params: list
     fit: FitOptions | None = None
-    ukf: UKFOptions | None = None
-    x0: Any = None
-    P0: Any = None
     Q: Any = None
     R: Any = None
     bounds: Mapping | None = None
@@ -927,8 +949,7 @@ class Stage:
 
 
 def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = None,
-              propagate: bool = True, fit: FitOptions | None = None,
-              ukf: UKFOptions | None = None) -> list[EstimationResult]:
+              propagate: bool = True, fit: FitOptions | None = None) -> list[EstimationResult]:
     """Run stages in order; each fixes what the earlier stages estimated.
 
     Parameters
@@ -942,8 +963,8 @@ def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = No
     propagate : bool
         Propagate the uncertainty of the carried estimates into each later
         stage (see Notes); sets ``result.std_total``, and ``result.z`` uses it.
-    fit, ukf : FitOptions, UKFOptions, optional
-        Options of every stage that does not set its own.
+    fit : FitOptions, optional
+        Search options of every stage that does not set its own.
 
     Returns
     -------
@@ -965,16 +986,15 @@ def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = No
     cov_all: dict[tuple[str, str], float] = {}
     out = []
     for st in stages:
-        model = Model.from_spec(st.model)
+        model = st.problem.model
         fx = {p: v for p, v in carried.items() if p in model.params and p not in st.params}
-        st_ukf = st.ukf if st.ukf is not None else ukf
-        res = estimate(model, st.experiment, st.params, fit=st.fit if st.fit is not None else fit,
-                       ukf=st_ukf, fixed=fx, bounds=st.bounds, x0=st.x0, P0=st.P0, Q=st.Q,
-                       R=st.R, start=st.start)
+        problem = st.problem.with_fixed(fx)
+        res = estimate(problem, st.params, fit=st.fit if st.fit is not None else fit,
+                       bounds=st.bounds, Q=st.Q, R=st.R, start=st.start)
         res.settings["stage"] = st.name
         prop = [p for p in fx if (p, p) in cov_all]
         if propagate and prop and np.isfinite(res.std).all():
-            _propagate(model, st, res, prop, cov_all, ukf_options(st_ukf))
+            _propagate(problem, st, res, prop, cov_all)
         # covariance of this stage's estimates (total if propagated)
         cov = res.propagated.get("cov_total") if res.propagated else None
         cov = np.asarray(cov) if cov is not None else (
@@ -988,14 +1008,11 @@ def two_stage(stages: Sequence[Stage], *, fixed: Mapping[str, float] | None = No
     return out
 
 
-def _propagate(model, st: Stage, res, prop, cov_all, ukf: UKFOptions):
+def _propagate(problem: Problem, st: Stage, res, prop, cov_all):
     """Add the carried parameters' covariance to a stage's Cramér-Rao bound."""
-    rec = as_record(st.experiment)
-    t, u, y, _, _ = record_arrays(model, rec)
-    x0a, _ = initial_state(model, rec, st.x0)
-    P0a = default_P0(model, x0a) if st.P0 is None else st.P0
+    model = problem.model
     names = list(res.params) + list(prop)
-    crit = Criterion(model, t, u, y, names, res.theta, x0a, P0a, options=ukf, Q=st.Q, R=st.R)
+    crit = Criterion(problem, names, res.theta, Q=st.Q, R=st.R)
     x = res.theta[model.param_indices(names)]
     S1 = np.array([[cov_all[(a, b)] for b in prop] for a in prop])
     h = np.concatenate([0.1 * res.std, 0.1 * np.sqrt(np.diag(S1))])

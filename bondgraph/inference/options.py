@@ -1,17 +1,21 @@
 """Typed options of the filter and of the estimation search.
 
-Two frozen dataclasses, validated when they are built, so that a bad value
+Frozen dataclasses, validated when they are built, so that a bad value
 fails where it is written (with an :class:`~bondgraph.errors.OptionError`
 naming the option and the value), not deep inside a filter run:
 
 * :class:`UKFOptions` — the knobs of the batched UKF
   (:func:`bondgraph.inference.ukf.ukf_nll`): sigma-point scaling, the
   discretisation of the state equations between samples and the input hold.
-  Everything that belongs to the *problem* (record, prior ``x0``/``P0``,
-  noise matrices ``Q``/``R``) stays an argument of the functions.
 * :class:`FitOptions` — how :func:`bondgraph.inference.estimate.estimate`
   searches (optimizer, swarm size, iterations, seed, checkpoint, polish,
   Hessian, evaluation chunks and worker processes), not what it estimates.
+* :class:`Discretisation` — method, substeps, input hold and backend: the
+  one value the UKF, the prior's free run and the discretisation check read.
+* :class:`Evaluation` — chunk size and where a criterion's batches run.
+
+What belongs to the *problem* (the record, the prior, the noise levels, the
+fixed values) is a :class:`bondgraph.inference.problem.Problem`.
 
 Results keep them as plain dicts (``dataclasses.asdict``, see
 :meth:`UKFOptions.to_dict`), so JSON result files stay readable; a dict read
@@ -284,14 +288,6 @@ class FitOptions:
     scheduler : str, optional
         Address of an existing Dask scheduler, ``tcp://HOST:PORT`` (default:
         ``$BONDGRAPH_SCHEDULER``, else none). Results do not depend on it.
-    noise : {"model", "auto"}
-        Measurement-noise levels (:func:`bondgraph.inference.estimand.noise_plan`):
-        ``"model"`` (this function's default, so that bare (t, u, y) arrays
-        keep the graph's noise), the graph's sensor noise and noise-intensity
-        values; ``"auto"`` (the default of ``bondgraph estimate``), a level the
-        record declares (``noise_std`` in its sidecar) held at it, every other
-        one estimated with θ (``noise.<output>``; Kristensen, Madsen &
-        Jørgensen 2004).
 
     Raises
     ------
@@ -314,11 +310,9 @@ class FitOptions:
     chunk: int | None = None
     workers: int = 1
     scheduler: str | None = None
-    noise: str = "model"
 
     def __post_init__(self):
         _choice(self, "optimizer", OPTIMIZERS)
-        _choice(self, "noise", NOISE_MODES)
         _integer(self, "particles", 2, optional=True)
         _integer(self, "iterations", 0)
         _integer(self, "seed", 0, optional=True)
@@ -340,6 +334,41 @@ class FitOptions:
         if d["checkpoint"] is not None:
             d["checkpoint"] = str(d["checkpoint"])
         return d
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Where and in what batches a criterion's parameter sets are evaluated
+    (:class:`bondgraph.inference.estimate.Criterion`). Results never depend
+    on it.
+
+    Parameters
+    ----------
+    chunk : int, optional
+        Largest number of parameter sets per UKF run (memory bound).
+    workers : int
+        Worker processes of the embedded Dask cluster sharing each batch
+        (:class:`bondgraph.inference.executor.Executor`); 1: in process.
+    scheduler : str, optional
+        Address of an existing Dask scheduler (``tcp://HOST:PORT``; default
+        ``$BONDGRAPH_SCHEDULER``).
+
+    Raises
+    ------
+    OptionError
+        A chunk or worker count below 1, a scheduler that is not a string.
+    """
+
+    chunk: int | None = None
+    workers: int = 1
+    scheduler: str | None = None
+
+    def __post_init__(self):
+        _integer(self, "chunk", 1, optional=True)
+        _integer(self, "workers", 1)
+        if self.scheduler is not None and not isinstance(self.scheduler, str):
+            raise OptionError(f"Evaluation.scheduler = {self.scheduler!r} must be an address "
+                              f"string (tcp://HOST:PORT) or None")
 
 
 def ukf_options(options) -> UKFOptions:

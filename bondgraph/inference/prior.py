@@ -30,7 +30,6 @@ initial state (:mod:`bondgraph.inference.smoother`) estimates it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from types import MappingProxyType
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -317,9 +316,10 @@ def default_P0(model, x0: np.ndarray | None = None, rel: float = P0_REL) -> np.n
     return np.diag(sd ** 2)
 
 
-def _frozen(mapping: Mapping[str, float] | None) -> Mapping[str, float]:
-    """A read-only copy of ``name -> float``."""
-    return MappingProxyType({str(k): float(v) for k, v in (mapping or {}).items()})
+def _frozen(mapping: Mapping[str, float] | None) -> dict[str, float]:
+    """A copy of ``name -> float`` (picklable: problems travel to Dask
+    workers; never written after the spec is made)."""
+    return {str(k): float(v) for k, v in (mapping or {}).items()}
 
 
 @dataclass(frozen=True, eq=False)

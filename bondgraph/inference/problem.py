@@ -30,7 +30,6 @@ in stochastic grey-box models. Automatica 40(2), 225-237.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from types import MappingProxyType
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -42,6 +41,7 @@ from bondgraph.inference.prior import PriorSpec
 from bondgraph.inference.record import as_record
 from bondgraph.inference.smoother import rts_smooth
 from bondgraph.inference.ukf import UKFResult, discretisation_check, ukf_nll
+from bondgraph.numerics.model import Model
 
 __all__ = ["NoiseSpec", "Problem", "make_problem", "noise_covariance", "noise_parameters"]
 
@@ -115,7 +115,7 @@ class NoiseSpec:
                 raise OptionError(f"held measurement-noise std of '{o}' must be a finite "
                                   f"number > 0, got {v!r}")
             held[str(o)] = v
-        object.__setattr__(self, "held", MappingProxyType(held))
+        object.__setattr__(self, "held", held)
         object.__setattr__(self, "estimated", tuple(str(o) for o in self.estimated))
 
     def sigma(self, model) -> np.ndarray:
@@ -180,6 +180,9 @@ class Problem:
     P0 : ndarray (n_x, n_x)
         The filter's prior covariance (:meth:`PriorSpec.covariance`, the
         jointly estimated initial states at a token spread).
+    defaults_ok : bool
+        Inputs the record lacks took the model's defaults (else they were
+        an error); the problems derived from this one do the same.
 
     Notes
     -----
@@ -207,6 +210,7 @@ class Problem:
     x0: np.ndarray
     x0_rule: str
     P0: np.ndarray
+    defaults_ok: bool = False
 
     # ------------------------------------------------------------ views
     @property
@@ -271,49 +275,51 @@ class Problem:
         if prior is self.prior and ukf == self.ukf:
             return replace(self, noise=noise)       # the prior does not depend on the noise
         return make_problem(self.model, self.record, prior=prior, noise=noise, ukf=ukf,
-                            fixed=self.fixed, arrays=self.arrays)
+                            fixed=self.fixed, arrays=self.arrays, defaults_ok=self.defaults_ok)
 
     def with_model(self, model) -> "Problem":
         """The same record, prior, noise, fixed values and options for
         another model (a candidate of the loop)."""
-        return make_problem(model, self.record, prior=self.prior, noise=self.noise,
-                            ukf=self.ukf, fixed=self.fixed)
+        rec = self.record if self.record is not None else self.arrays   # bare arrays: as they are
+        return make_problem(model, rec, prior=self.prior, noise=self.noise,
+                            ukf=self.ukf, fixed=self.fixed, defaults_ok=self.defaults_ok)
+
+    def with_fixed(self, fixed: Mapping[str, float]) -> "Problem":
+        """The same problem with more parameter values fixed (over the
+        earlier ones; a later stage of :func:`bondgraph.inference.estimate.two_stage`)."""
+        if not fixed:
+            return self
+        return make_problem(self.model, self.record if self.record is not None else self.arrays,
+                            prior=self.prior, noise=self.noise, ukf=self.ukf,
+                            fixed={**self.fixed, **fixed}, arrays=self.arrays,
+                            defaults_ok=self.defaults_ok)
 
     def on_record(self, record) -> "Problem":
         """The same model and policies on another record (a validation
         record): its own initial state (:meth:`PriorSpec.on_other_record`)."""
         return make_problem(self.model, record, prior=self.prior.on_other_record(),
-                            noise=self.noise, ukf=self.ukf, fixed=self.fixed)
+                            noise=self.noise, ukf=self.ukf, fixed=self.fixed,
+                            defaults_ok=self.defaults_ok)
 
     # ------------------------------------------------------------ evaluations
-    def nll(self, theta, *, x0=None, P0=None, store: bool | str = False,
-            ukf: UKFOptions | None = None) -> UKFResult:
+    def nll(self, theta, *, store: bool | str = False) -> UKFResult:
         """The batched UKF over the record (:func:`bondgraph.inference.ukf.ukf_nll`)
-        with the problem's prior and held noise levels.
+        with the problem's prior, held noise levels and filter options.
 
         Parameters
         ----------
         theta : array (P, n_theta) or (n_theta,)
-        x0 : array (n_x,) or (P, n_x), optional
-            Another prior mean (default :attr:`x0`).
-        P0 : array, optional
-            Another prior covariance (default :attr:`P0`).
         store : bool or "full"
             Keep innovations, covariances and filtered states.
-        ukf : UKFOptions, optional
-            Other filter options (default :attr:`ukf`; the discretisation
-            check's reference runs use it).
 
         Returns
         -------
         UKFResult
-            ``nll`` (P,).
+            ``nll`` (P,); a set that fails gets +inf and a reason.
         """
         th = np.atleast_2d(np.asarray(theta, float))
-        return ukf_nll(self.model, self.t, self.u, self.y, th,
-                       self.x0 if x0 is None else x0, self.P0 if P0 is None else P0,
-                       options=self.ukf if ukf is None else ukf, store=store,
-                       R=self.noise.covariance(self.model, th))
+        return ukf_nll(self.model, self.t, self.u, self.y, th, self.x0, self.P0,
+                       options=self.ukf, store=store, R=self.noise.covariance(self.model, th))
 
     def smoothed_initial_state(self, theta) -> np.ndarray:
         """x̂_0|N (n_x,): the initial state given the whole record, from the
@@ -362,12 +368,13 @@ def _record_arrays(model, record, defaults_ok: bool):
 def make_problem(model, record, *, prior: PriorSpec | None = None,
                  noise: NoiseSpec | None = None, ukf: UKFOptions | None = None,
                  fixed: Mapping[str, float] | None = None, arrays=None,
-                 defaults_ok: bool = True) -> Problem:
+                 defaults_ok: bool = False) -> Problem:
     """Bind a model to a record: the one builder of :class:`Problem`.
 
     Parameters
     ----------
-    model : Model
+    model : Model or str
+        A generated model or its reference (:meth:`~bondgraph.numerics.model.Model.from_spec`).
     record : Experiment, path of a CSV record, or tuple ``(t, u, y)``
         The record (a path is loaded; a tuple is taken as arrays in the
         model's units, with the model's X0 as the prior mean unless the
@@ -375,8 +382,10 @@ def make_problem(model, record, *, prior: PriorSpec | None = None,
     prior : PriorSpec, optional
         Default ``PriorSpec()`` (5 % of each state's scale).
     noise : NoiseSpec, optional
-        Default ``NoiseSpec("model")`` (the graph's own levels; the
-        commands plan ``"auto"`` with :func:`bondgraph.inference.estimand.noise_plan`).
+        Default ``NoiseSpec()`` (``"auto"``: the levels the record declares
+        held, the others estimated with θ,
+        :func:`bondgraph.inference.estimand.noise_plan`); for bare arrays,
+        which declare none, ``NoiseSpec("model")`` (the graph's own levels).
     ukf : UKFOptions, optional
         Default ``UKFOptions()``.
     fixed : dict, optional
@@ -385,8 +394,8 @@ def make_problem(model, record, *, prior: PriorSpec | None = None,
         The record's arrays for this model, already resolved (a problem
         conditioned on a fit reuses its own).
     defaults_ok : bool
-        Inputs the record lacks take the model's defaults (else
-        :class:`~bondgraph.errors.DataError`).
+        Inputs the record lacks take the model's defaults (default False:
+        :class:`~bondgraph.errors.DataError` naming them).
 
     Returns
     -------
@@ -397,27 +406,26 @@ def make_problem(model, record, *, prior: PriorSpec | None = None,
     DataError
         A record that cannot be read or bound to the model (units, columns).
     ModelError
-        A fixed parameter the model does not have.
+        A fixed parameter the model does not have (named).
     OptionError
         Options of the wrong type.
     """
+    model = Model.from_spec(model)
+    rec = as_record(record)
     prior = PriorSpec() if prior is None else prior
-    noise = NoiseSpec("model") if noise is None else noise
+    if noise is None:       # bare arrays declare no level: the graph's own
+        noise = NoiseSpec("model") if isinstance(rec, tuple) else NoiseSpec()
     if not isinstance(prior, PriorSpec) or not isinstance(noise, NoiseSpec):
         raise OptionError(f"make_problem needs a PriorSpec and a NoiseSpec, got "
                           f"{type(prior).__name__} and {type(noise).__name__}")
     ukf = ukf_options(ukf)
-    rec = as_record(record)
     t, u, y = _record_arrays(model, rec, defaults_ok) if arrays is None else arrays
     if arrays is None:        # the problem's own copies, never the record's arrays
         t, u, y = (np.array(a, dtype=float) for a in (t, u, y))
     rec = None if isinstance(rec, tuple) else rec
     fixed = {k: float(v) for k, v in (fixed or {}).items()}
-    theta = model.theta0.copy()
-    for k, v in fixed.items():
-        if k in model.params:
-            theta[model.param_index(k)] = v
+    theta = model.theta(fixed)                  # ModelError naming an unknown parameter
     x0, rule = prior.mean(model, rec)
     P0 = prior.covariance(model, (t, u, y), theta, x0, ukf.discretisation, rec)
-    return Problem(model, rec, t, u, y, theta, MappingProxyType(fixed), prior, noise, ukf,
-                   x0, rule, P0)
+    return Problem(model, rec, t, u, y, theta, fixed, prior, noise, ukf, x0, rule, P0,
+                   defaults_ok)

@@ -43,9 +43,7 @@ from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import NumericalError, SensitivityError
 from bondgraph.inference.estimand import plan_estimand, x0_state_names
 from bondgraph.inference.fisher import estimand_derivatives, jacobi_pinv
-from bondgraph.inference.options import UKFOptions, ukf_options
-from bondgraph.inference.record import as_record, initial_state, record_arrays
-from bondgraph.inference.ukf import default_P0
+from bondgraph.inference.problem import Problem
 from bondgraph.numerics.forward_sensitivity import (
     Sensitivities,
     check_params,
@@ -53,7 +51,6 @@ from bondgraph.numerics.forward_sensitivity import (
     parameter_scale,
 )
 from bondgraph.numerics.model import Model
-from bondgraph.numerics.simulate import _vector
 from bondgraph.sensitivity.identifiability import (
     CORR_MAX,
     REL_CRB_MAX,
@@ -62,7 +59,7 @@ from bondgraph.sensitivity.identifiability import (
     recommend,
     ukf_fisher,
 )
-from bondgraph.sensitivity.sobol import _pow2, global_sensitivity
+from bondgraph.sensitivity.sobol import SobolOptions, _pow2, global_sensitivity
 
 #: the identifiability entries kept in the report
 _IDENT_KEYS = ("std", "rel_std", "corr", "cosine", "eigenvalues", "condition",
@@ -150,74 +147,92 @@ def _sobol_lines(g: dict) -> list[str]:
     return lines
 
 
-@dataclass
-class _Problem:
-    """What every part of :func:`analyse` works on."""
+@dataclass(frozen=True)
+class LocalOptions:
+    """Options of the local analysis of :func:`analyse`.
 
-    model: Any
-    t: np.ndarray
-    u: np.ndarray
-    y: np.ndarray
-    theta: np.ndarray
+    Parameters
+    ----------
+    rel_crb_max, corr_max : float
+        Selection thresholds of the recommendation (:func:`recommend`): the
+        largest relative Cramér-Rao bound of a recommended parameter, the
+        largest |correlation| within the recommended set.
+    sensitivities : bool
+        Also integrate the forward sensitivity equations (output-error
+        information, sensitivity plots;
+        :func:`bondgraph.numerics.forward_sensitivity.output_sensitivities`).
+    sens_method : str
+        Their solver (scipy ``solve_ivp`` method).
+    sens_rtol, sens_atol : float
+        Their tolerances.
+
+    Raises
+    ------
+    SensitivityError
+        A threshold or tolerance that is not > 0.
+    """
+
+    rel_crb_max: float = REL_CRB_MAX
+    corr_max: float = CORR_MAX
+    sensitivities: bool = True
+    sens_method: str = "LSODA"
+    sens_rtol: float = 1e-6
+    sens_atol: float = 1e-8
+
+    def __post_init__(self):
+        for name in ("rel_crb_max", "corr_max", "sens_rtol", "sens_atol"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise SensitivityError(f"LocalOptions.{name} must be a number > 0, got {v!r}")
+
+
+@dataclass
+class _Analysis:
+    """What every part of :func:`analyse` works on: the problem, the
+    candidates, the thresholds, the logger, the timings and the estimand."""
+
+    problem: Problem
     params: list
-    x0: np.ndarray
-    P0: np.ndarray
-    ukf: UKFOptions
     limits: dict
     say: Callable
     timing: dict
     estimand: Any = None
 
+    @property
+    def model(self):
+        """The problem's model."""
+        return self.problem.model
 
-def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=None, x0=None,
-            P0=None, p0_rel: float = 0.05, ukf: UKFOptions | None = None,
-            global_N: int | None = None, outputs: Sequence[str] = (),
-            box_rel: float | None = None, chunk: int = 256, seed: int = 0,
-            rel_crb_max: float = REL_CRB_MAX, corr_max: float = CORR_MAX,
-            sensitivities: bool = True, sens_method: str = "LSODA", sens_rtol: float = 1e-6,
-            sens_atol: float = 1e-8, progress: bool = False, log=None,
-            nll_transform: str = "log", x0_states: Sequence[str] = (), noise: str = "model",
-            fixed: Sequence[str] = (), workers: int = 1, scheduler: str | None = None
-            ) -> SensitivityReport:
+
+def analyse(problem: Problem, params: Sequence[str] | None = None, *,
+            local: LocalOptions | None = None, sobol: SobolOptions | None = None,
+            x0_states: Sequence[str] = (), fixed: Sequence[str] = (),
+            log=None) -> SensitivityReport:
     """Local (and optionally global) sensitivity and identifiability analysis
     of one record, with a recommendation of the parameters to estimate.
 
     Parameters
     ----------
-    model : Model or str
-        Filter model (:meth:`~bondgraph.numerics.model.Model.from_spec`).
-    experiment : Experiment, path of a CSV record, or (t, u, y)
+    problem : Problem
+        The model on the record (:func:`bondgraph.inference.problem.make_problem`):
+        its θ is the point of the analysis, its prior (x0, P0), noise policy
+        ("auto": declared levels used, undeclared ones estimated; "model")
+        and filter options are the likelihood's.
     params : sequence of str, optional
         Candidates (default: every parameter with a proper box).
-    theta : array or dict, optional
-        Parameter values of the analysis (default: model defaults; a dict
-        overrides named ones).
-    x0 : array (n_x,) or dict, optional
-        Initial state (default: the record's rule,
-        :func:`bondgraph.inference.record.initial_state`).
-    P0 : array, optional
-        UKF prior covariance (default ``default_P0(model, x0, p0_rel)``).
-    ukf : UKFOptions, optional
-        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
-    global_N : int, optional
-        Base sample size of the Sobol' analysis (None: local only).
-    outputs, box_rel, chunk, seed, nll_transform, workers, scheduler :
-        Of the Sobol' analysis (:func:`bondgraph.sensitivity.sobol.global_sensitivity`):
-        outputs whose time-means also get indices, box θ (1 ± box_rel) instead of the
-        model's bounds, parameter sets per batched UKF run, seed, the transform of the NLL
-        ("log": ln(1 + NLL − min NLL)), where the chunks run (Dask processes or a scheduler's).
-    rel_crb_max, corr_max : float
-        Selection thresholds (:func:`recommend`).
-    sensitivities : bool
-        Also integrate the forward sensitivity equations (output-error
-        information, sensitivity plots) with ``sens_method``, ``sens_rtol``,
-        ``sens_atol`` (:func:`bondgraph.numerics.forward_sensitivity.output_sensitivities`).
-    progress, log :
-        Progress bar of the Sobol' sample; a callable for progress messages.
-    x0_states, noise, fixed :
-        Initial states estimated with θ (``["all"]``), the noise policy ("auto":
-        declared levels used, undeclared ones estimated; "model") and the fixed
-        parameters: nuisance columns of the Fisher information (:func:`_information`).
+    local : LocalOptions, optional
+        Thresholds of the recommendation and the forward sensitivities.
+    sobol : SobolOptions, optional
+        The Sobol' analysis of the NLL (:func:`bondgraph.sensitivity.sobol.global_sensitivity`;
+        None: local only).
+    x0_states : sequence of str
+        Initial states estimated with θ (``["all"]``): nuisance columns of
+        the Fisher information (:func:`_information`).
+    fixed : sequence of str
+        The parameters the user holds fixed (not noise intensities to
+        estimate under the "auto" noise policy).
+    log : callable, optional
+        Receives progress messages.
 
     Returns
     -------
@@ -227,66 +242,66 @@ def analyse(model, experiment, params: Sequence[str] | None = None, *, theta=Non
     ------
     ModelError, SensitivityError, DataError, NumericalError
         Unknown names, bad options, bad records; the UKF fails at θ.
+
+    References
+    ----------
+    Cramér (1946), Rao (1945) for the bound; Yao et al. (2003) for the
+    orthogonal ranking; Saltelli et al. (2010) for the Sobol' indices.
     """
-    model = Model.from_spec(model)
+    lo = LocalOptions() if local is None else local
+    model = problem.model
     params = check_params(model, params)
-    rec = as_record(experiment)
-    t, u, y, ename, _ = record_arrays(model, rec)
-    x0a, x0_how = initial_state(model, rec, x0)
-    P0a = default_P0(model, x0a, p0_rel) if P0 is None else np.asarray(P0, float)
-    pb = _Problem(model, t, u, y, _vector(model, theta, "theta"), params, x0a, P0a,
-                  ukf_options(ukf), dict(corr_max=corr_max, rel_crb_max=rel_crb_max),
-                  log or (lambda *_: None), {})
-    pb.estimand, notes = _estimand(pb, rec, x0_states, noise, fixed)
+    an = _Analysis(problem, params, dict(corr_max=lo.corr_max, rel_crb_max=lo.rel_crb_max),
+                   log or (lambda *_: None), {})
+    an.estimand, notes = _estimand(an, x0_states, fixed)
     for note in notes:
-        pb.say(note)
-    scale = parameter_scale(model, params, pb.theta)
-    local, recommendation = _local(pb, scale, ename)
-    sens = _output_error(pb, local, sens_method, sens_rtol, sens_atol) if sensitivities else None
-    sobol = dict(outputs=outputs, box_rel=box_rel, chunk=chunk, seed=seed, progress=progress,
-                 nll_transform=nll_transform, workers=workers, scheduler=scheduler)
-    glob = _global(pb, global_N, sobol) if global_N else None
-    return _report(pb, ename, scale, local, recommendation, glob, sens, dict(
-        x0_rule=x0_how, noise=noise, noise_notes=notes, x0_states=list(pb.estimand.states)))
+        an.say(note)
+    scale = parameter_scale(model, params, problem.theta)
+    loc, recommendation = _local(an, scale, problem.name)
+    sens = _output_error(an, loc, lo) if lo.sensitivities else None
+    glob = _global(an, sobol) if sobol is not None else None
+    return _report(an, scale, loc, recommendation, glob, sens, dict(
+        x0_rule=problem.x0_rule, noise=problem.noise.mode, noise_notes=notes,
+        x0_states=list(an.estimand.states)))
 
 
-def _report(pb: _Problem, ename: str, scale, local, recommendation, glob, sens,
+def _report(an: _Analysis, scale, local, recommendation, glob, sens,
             settings: dict) -> SensitivityReport:
     """The :class:`SensitivityReport` of :func:`analyse`."""
-    model, params, t = pb.model, pb.params, pb.t
+    pb, params = an.problem, an.params
+    model, t = pb.model, pb.t
     settings.update(samples=int(t.size), duration_s=float(t[-1] - t[0]), x0=pb.x0.tolist(),
                     P0_diag=np.diag(pb.P0).tolist(), ukf=pb.ukf.to_dict(),
-                    theta_full=pb.theta.tolist(), timing=pb.timing,
+                    theta_full=pb.theta.tolist(), timing=an.timing,
                     units=[model.param_units[i] for i in model.param_indices(params)])
     return SensitivityReport(
-        model=model.name, experiment=ename, params=list(params),
+        model=model.name, experiment=pb.name, params=list(params),
         theta={p: float(pb.theta[model.param_index(p)]) for p in params},
         scale=scale.tolist(), local=local, recommendation=recommendation, global_=glob,
         settings=settings, sensitivities=sens)
 
 
-def _global(pb: _Problem, N: int, options: dict) -> dict:
+def _global(an: _Analysis, options: SobolOptions) -> dict:
     """Sobol' indices of the NLL (:func:`bondgraph.sensitivity.sobol.global_sensitivity`)."""
     t0 = time.perf_counter()
-    pb.say(f"Sobol' indices: N = {_pow2(N)} ...")
-    glob = global_sensitivity(pb.model, pb.t, pb.u, pb.y, pb.params, N, theta=pb.theta,
-                              x0=pb.x0, P0=pb.P0, ukf=pb.ukf, **options)
-    pb.timing["global_s"] = time.perf_counter() - t0
+    an.say(f"Sobol' indices: N = {_pow2(options.N)} ...")
+    glob = global_sensitivity(an.problem, an.params, options)
+    an.timing["global_s"] = time.perf_counter() - t0
     return glob
 
 
-def _estimand(pb: _Problem, rec, x0_states, noise: str, fixed) -> tuple[Any, list[str]]:
+def _estimand(an: _Analysis, x0_states, fixed) -> tuple[Any, list[str]]:
     """The :class:`~bondgraph.inference.estimand.Estimand` of the analysis
     (the candidates, the initial states, the noise policy) and its notes."""
+    pb = an.problem
     states = x0_state_names(pb.model, x0_states)
-    declared = None if isinstance(rec, tuple) else rec.noise_std_for(pb.model)
-    scale = np.sqrt(np.maximum(np.diag(np.atleast_2d(pb.P0)) if np.ndim(pb.P0) == 2
-                               else np.asarray(pb.P0, float), 1e-24))
-    return plan_estimand(pb.model, pb.theta, pb.params, list(fixed), declared, noise=noise,
-                         states=states, x0=pb.x0, x0_scale=scale)
+    declared = None if pb.record is None else pb.record.noise_std_for(pb.model)
+    scale = np.sqrt(np.maximum(np.diag(pb.P0), 1e-24))
+    return plan_estimand(pb.model, pb.theta, an.params, list(fixed), declared,
+                         noise=pb.noise.mode, states=states, x0=pb.x0, x0_scale=scale)
 
 
-def _information(pb: _Problem):
+def _information(an: _Analysis):
     """The UKF Fisher information of the parameters (efficient: the nuisance
     columns profiled out, F_pp − F_pn F_nn⁻¹ F_np) and the report of the
     nuisance quantities (None without any).
@@ -296,10 +311,10 @@ def _information(pb: _Problem):
     FloatingPointError
         If the UKF fails at the analysis point.
     """
-    est = pb.estimand
-    k = len(pb.params)
+    est, pb = an.estimand, an.problem
+    k = len(an.params)
     if est is None or (est.k == k and not est.uses_R):
-        return ukf_fisher(pb.model, pb.t, pb.u, pb.y, pb.theta, pb.params, pb.x0, pb.P0,
+        return ukf_fisher(pb.model, pb.t, pb.u, pb.y, pb.theta, an.params, pb.x0, pb.P0,
                           pb.ukf), None
     lo, hi = est.bounds()
     z = est.value()
@@ -323,20 +338,20 @@ def _information(pb: _Problem):
     return D, nuis
 
 
-def _local(pb: _Problem, scale, experiment: str) -> tuple[dict, dict]:
+def _local(an: _Analysis, scale, experiment: str) -> tuple[dict, dict]:
     """The UKF Fisher information, the identifiability analysis and ranking
     built on it, and the recommendation: ``(local, recommendation)``."""
     t0 = time.perf_counter()
-    k = 0 if pb.estimand is None else pb.estimand.k
-    pb.say(f"UKF Fisher information: {max(k, len(pb.params)) + 1} sets in one batched run ...")
+    k = 0 if an.estimand is None else an.estimand.k
+    an.say(f"UKF Fisher information: {max(k, len(an.params)) + 1} sets in one batched run ...")
     try:
-        D, nuis = _information(pb)
+        D, nuis = _information(an)
     except FloatingPointError as exc:
         raise NumericalError(f"UKF fails at the analysis point: {exc}") from None
-    pb.timing["ukf_fisher_s"] = time.perf_counter() - t0
-    ident = identifiability(D.F, pb.params, scale, **pb.limits)
-    rec = recommend(D.F, pb.params, scale, experiment=experiment, **pb.limits)
-    ranking = orthogonal_ranking(ident["F_rel"], pb.params)
+    an.timing["ukf_fisher_s"] = time.perf_counter() - t0
+    ident = identifiability(D.F, an.params, scale, **an.limits)
+    rec = recommend(D.F, an.params, scale, experiment=experiment, **an.limits)
+    ranking = orthogonal_ranking(ident["F_rel"], an.params)
     local: dict[str, Any] = dict(
         nll=D.nll, grad=D.grad, fisher=D.F, fisher_rel=ident["F_rel"],
         identifiability={k_: ident[k_] for k_ in _IDENT_KEYS},
@@ -347,23 +362,23 @@ def _local(pb: _Problem, scale, experiment: str) -> tuple[dict, dict]:
     return local, rec
 
 
-def _output_error(pb: _Problem, local: dict, method: str, rtol: float,
-                  atol: float) -> Sensitivities:
+def _output_error(an: _Analysis, local: dict, lo: LocalOptions) -> Sensitivities:
     """Forward sensitivities and the output-error information (no process
     noise, known x0), stored in ``local["output_error"]``."""
-    model = pb.model
+    pb, model = an.problem, an.model
     t0 = time.perf_counter()
-    pb.say(f"forward sensitivities ({method}, {model.n_x} + {model.n_x}·{len(pb.params)} "
-           f"states) ...")
+    an.say(f"forward sensitivities ({lo.sens_method}, {model.n_x} + "
+           f"{model.n_x}·{len(an.params)} states) ...")
     hold = "zoh" if pb.ukf.hold == "zoh" else "linear"
-    sens = output_sensitivities(model, pb.t, pb.u, pb.theta, pb.x0, pb.params, method=method,
-                                rtol=rtol, atol=atol, hold=hold)
-    pb.timing["sensitivities_s"] = time.perf_counter() - t0
+    sens = output_sensitivities(model, pb.t, pb.u, pb.theta, pb.x0, an.params,
+                                method=lo.sens_method, rtol=lo.sens_rtol, atol=lo.sens_atol,
+                                hold=hold)
+    an.timing["sensitivities_s"] = time.perf_counter() - t0
     sigma = np.asarray(model.meas_std(pb.theta), float)
     mask = np.isfinite(pb.y)
     Zm = np.where(mask[:, :, None], sens.scaled(sigma), 0.0)
     F_oe = sens.information(sigma, mask)
-    ident_oe = identifiability(F_oe, pb.params, None, **pb.limits)
+    ident_oe = identifiability(F_oe, an.params, None, **an.limits)
     local["output_error"] = dict(
         description="no process noise, known x0: F = Σ_k (∂y_k/∂θ)ᵀ R⁻¹ ∂y_k/∂θ from the "
                     "forward sensitivity equations, relative coordinates",
@@ -375,17 +390,19 @@ def _output_error(pb: _Problem, local: dict, method: str, rtol: float,
     return sens
 
 
-def recommend_experiments(cases: Mapping[str, tuple], **options) -> dict[str, SensitivityReport]:
+def recommend_experiments(cases: Mapping[str, tuple],
+                          local: LocalOptions | None = None) -> dict[str, SensitivityReport]:
     """:func:`analyse` for several experiments, e.g. the vehicle's coast-down,
     acceleration and braking records: which parameters to estimate from
     each.
 
     Parameters
     ----------
-    cases : dict label -> (model, experiment, candidates)
+    cases : dict label -> (problem, candidates)
+        A :class:`~bondgraph.inference.problem.Problem` per record;
         ``candidates`` may be None (every free parameter).
-    **options
-        Keyword arguments of :func:`analyse` shared by all cases.
+    local : LocalOptions, optional
+        Shared by all cases.
 
     Returns
     -------
@@ -393,8 +410,8 @@ def recommend_experiments(cases: Mapping[str, tuple], **options) -> dict[str, Se
         ``report.recommendation["estimate"]`` is the list to pass to
         :func:`bondgraph.inference.estimate.estimate` (or :func:`recommended_params`).
     """
-    return {label: analyse(model, exp, params, **options)
-            for label, (model, exp, params) in cases.items()}
+    return {label: analyse(problem, params, local=local)
+            for label, (problem, params) in cases.items()}
 
 
 def recommended_params(source, model=None) -> list[str]:

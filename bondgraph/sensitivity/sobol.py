@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -33,14 +34,90 @@ from SALib.sample import sobol as sobol_sample
 
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.executor import Executor
-from bondgraph.inference.options import UKFOptions, ukf_options
-from bondgraph.inference.ukf import default_P0, ukf_nll
+from bondgraph.inference.problem import Problem
 from bondgraph.numerics.forward_sensitivity import check_params
 from bondgraph.numerics.integrators import hold_inputs, make_step
-from bondgraph.numerics.simulate import _vector
 
 #: transforms of the NLL before its Sobol' analysis (:func:`global_sensitivity`)
 NLL_TRANSFORMS = ("log", "none")
+
+
+@dataclass(frozen=True)
+class SobolOptions:
+    """Options of a Sobol' analysis (:func:`sobol_indices`,
+    :func:`global_sensitivity`; Saltelli et al. 2010).
+
+    Parameters
+    ----------
+    N : int
+        Base sample size, rounded up to a power of two (Sobol' sequence);
+        ``N (2k + 2)`` evaluations with second-order indices, ``N (k + 2)``
+        without.
+    second_order : bool
+        Also the second-order indices S2.
+    seed : int, optional
+        Scrambling of the sequence and bootstrap.
+    chunk : int, optional
+        Largest number of rows per call of the batched function (None: all
+        at once).
+    conf_level : float
+        Level of the bootstrap confidence intervals, in (0, 1).
+    num_resamples : int
+        Bootstrap resamples.
+    progress : bool
+        tqdm progress bar over the chunks.
+    outputs : tuple of str
+        :func:`global_sensitivity`: model outputs whose noise-free time-mean
+        over the record also gets indices.
+    box : (lower (k,), upper (k,)), optional
+        :func:`global_sensitivity`: the box (default the model's bounds, or
+        θ (1 ± box_rel) with ``box_rel``).
+    box_rel : float, optional
+        Relative half-width of the box around θ.
+    nll_transform : {"log", "none"}
+        Indices of ln(1 + NLL − min NLL) (:func:`log_excess`) or of the NLL.
+    workers : int
+        Local Dask worker processes evaluating the chunks (1: in process).
+    scheduler : str, optional
+        An existing Dask scheduler's address (``tcp://HOST:PORT``). Results
+        depend neither on it nor on ``workers``.
+
+    Raises
+    ------
+    SensitivityError
+        A value out of its domain (named).
+    """
+
+    N: int = 256
+    second_order: bool = True
+    seed: int | None = 0
+    chunk: int | None = 256
+    conf_level: float = 0.95
+    num_resamples: int = 100
+    progress: bool = False
+    outputs: tuple = ()
+    box: tuple | None = None
+    box_rel: float | None = None
+    nll_transform: str = "log"
+    workers: int = 1
+    scheduler: str | None = None
+
+    def __post_init__(self):
+        if isinstance(self.N, bool) or not isinstance(self.N, (int, np.integer)) or self.N < 2:
+            raise SensitivityError(f"SobolOptions.N (--global) must be an integer >= 2, got "
+                                   f"{self.N!r}")
+        if self.chunk is not None and (not isinstance(self.chunk, (int, np.integer))
+                                       or self.chunk < 1):
+            raise SensitivityError(f"SobolOptions.chunk must be an integer >= 1 or None, got "
+                                   f"{self.chunk!r}")
+        if not 0 < self.conf_level < 1:
+            raise SensitivityError(f"SobolOptions.conf_level must lie in (0, 1), got "
+                                   f"{self.conf_level!r}")
+        if self.nll_transform not in NLL_TRANSFORMS:
+            raise SensitivityError(f"unknown NLL transform '{self.nll_transform}' (log, none)")
+        if self.box_rel is not None and not self.box_rel > 0:
+            raise SensitivityError(f"SobolOptions.box_rel must be > 0, got {self.box_rel!r}")
+        object.__setattr__(self, "outputs", tuple(self.outputs))
 
 
 def _pow2(n: int) -> int:
@@ -49,10 +126,8 @@ def _pow2(n: int) -> int:
 
 
 def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str], lower, upper,
-                  N: int, *, second_order: bool = True, seed: int | None = 0,
-                  chunk: int | None = None, conf_level: float = 0.95, num_resamples: int = 100,
-                  output_names: Sequence[str] | None = None, progress: bool = False,
-                  desc: str = "sobol",
+                  options: SobolOptions | None = None, *,
+                  output_names: Sequence[str] | None = None, desc: str = "sobol",
                   transforms: Mapping[str, Callable[[np.ndarray], np.ndarray]] | None = None,
                   executor: Executor | None = None) -> dict:
     """Sobol' indices of a batched function over a box (SALib; Saltelli 2002).
@@ -65,20 +140,13 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
     names : sequence of str (k)
     lower, upper : arrays (k,)
         The box (uniform distributions).
-    N : int
-        Base sample size, rounded up to a power of two (Sobol' sequence);
-        ``N (2k + 2)`` evaluations with second-order indices, ``N (k + 2)``
-        without.
-    second_order : bool
-    seed : int, optional
-        Scrambling of the sequence and bootstrap.
-    chunk : int, optional
-        Largest number of rows per call of ``fun`` (default: all at once).
-    conf_level, num_resamples :
-        Level and resamples of the bootstrap confidence intervals.
+    options : SobolOptions, optional
+        Sample size ``N``, second order, seed, chunk, confidence level and
+        resamples, progress bar (the box and outputs fields are
+        :func:`global_sensitivity`'s).
     output_names : sequence of str (m), optional
-    progress, desc :
-        tqdm progress bar over the chunks, and its label.
+    desc : str
+        The progress bar's label.
     transforms : dict output name -> callable, optional
         Applied to an output's whole column (after non-finite values are
         replaced) before the analysis, e.g. :func:`log_excess`.
@@ -101,6 +169,7 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
     SensitivityError
         Bad box, fewer than two parameters, or all evaluations non-finite.
     """
+    o = SobolOptions() if options is None else options
     names = list(names)
     k = len(names)
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
@@ -108,23 +177,23 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
         raise SensitivityError(f"the box must have lower < upper for each of {names}")
     if k < 2:
         raise SensitivityError("Sobol' indices need at least two parameters")
-    Np = _pow2(N)
+    Np = _pow2(o.N)
     problem = dict(num_vars=k, names=names, bounds=[[float(a), float(b)] for a, b in zip(lo, hi)])
-    X = sobol_sample.sample(problem, Np, calc_second_order=second_order, seed=seed)
+    X = sobol_sample.sample(problem, Np, calc_second_order=o.second_order, seed=o.seed)
     t_wall = time.perf_counter()
-    Y = _evaluate_chunks(fun, X, chunk, progress, desc, executor)
+    Y = _evaluate_chunks(fun, X, o.chunk, o.progress, desc, executor)
     m = Y.shape[1]
     onames = list(output_names) if output_names is not None else (
         ["y"] if m == 1 else [f"y{i}" for i in range(m)])
     if len(onames) != m:
         raise SensitivityError(f"{len(onames)} output names for {m} outputs")
     out: dict[str, Any] = dict(N=Np, evaluations=int(X.shape[0]), names=names, lower=lo,
-                               upper=hi, conf_level=conf_level, second_order=second_order,
+                               upper=hi, conf_level=o.conf_level, second_order=o.second_order,
                                failed={}, wall_time_s=time.perf_counter() - t_wall, indices={})
     for c, on in enumerate(onames):
         yc, out["failed"][on] = _prepared_column(Y[:, c], on, (transforms or {}).get(on))
-        out["indices"][on] = _analyse_output(problem, yc, second_order, conf_level,
-                                             num_resamples, seed)
+        out["indices"][on] = _analyse_output(problem, yc, o.second_order, o.conf_level,
+                                             o.num_resamples, o.seed)
     return out
 
 
@@ -246,45 +315,23 @@ def simulate_batch(model, t, u, thetas, x0, *, method: str = "ros2", substeps: i
     return Y
 
 
-def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=None, x0=None,
-                       P0=None, ukf: UKFOptions | None = None,
-                       outputs: Sequence[str] = (), box: tuple | None = None,
-                       box_rel: float | None = None, chunk: int = 256, seed: int | None = 0,
-                       second_order: bool = True, progress: bool = False,
-                       conf_level: float = 0.95, nll_transform: str = "log",
-                       workers: int = 1, scheduler: str | None = None) -> dict:
+def global_sensitivity(problem: Problem, params: Sequence[str],
+                       options: SobolOptions | None = None) -> dict:
     """Sobol' indices of the UKF NLL (and of the time-means of chosen
     outputs) over a parameter box (Sobol' 2001; Saltelli et al. 2010).
 
     Parameters
     ----------
-    model : Model
-    t, u, y : arrays (N,), (N, n_u), (N, n_y)
-        Record (y is used by the NLL only).
+    problem : Problem
+        The model on the record (:func:`bondgraph.inference.problem.make_problem`):
+        its arrays (y is used by the NLL only), its θ (the values of the
+        parameters outside ``params``, the centre of a ``box_rel`` box), its
+        prior and filter options; the outputs' simulation uses its method,
+        substeps and hold too.
     params : sequence of str (k)
-    N : int
-        Base sample size (power of two; N (2k + 2) evaluations).
-    theta : array (n_theta,) or dict, optional
-        Values of the parameters outside ``params``.
-    x0, P0 : UKF prior / initial state
-    ukf : UKFOptions, optional
-        Filter options (:func:`bondgraph.inference.ukf.ukf_nll`); the
-        outputs' simulation uses its method, substeps and hold too.
-    outputs : sequence of str
-        Model outputs whose noise-free time-mean over the record also gets
-        indices (:func:`simulate_batch`).
-    box : (lower (k,), upper (k,)), optional
-        Default: the model's bounds, or θ (1 ± box_rel) if ``box_rel``.
-    chunk : int
-        Parameter sets per batched UKF run.
-    seed, second_order, progress, conf_level :
-        See :func:`sobol_indices`.
-    nll_transform : {"log", "none"}
-        Indices of ln(1 + NLL − min NLL) (:func:`log_excess`, default) or of
-        the NLL itself.
-    workers, scheduler : int, str
-        Where the sample's chunks run (:class:`bondgraph.inference.executor.Executor`:
-        local Dask processes, or an existing scheduler's workers); no effect on the result.
+    options : SobolOptions, optional
+        Sample size, seed, chunk, box, outputs, NLL transform, and where the
+        chunks run.
 
     Returns
     -------
@@ -295,35 +342,31 @@ def global_sensitivity(model, t, u, y, params: Sequence[str], N: int, *, theta=N
     Raises
     ------
     SensitivityError
-        Unknown NLL transform, bad parameters or box.
+        Bad parameters or box.
     """
-    if nll_transform not in NLL_TRANSFORMS:
-        raise SensitivityError(f"unknown NLL transform '{nll_transform}' (log, none)")
+    o = SobolOptions() if options is None else options
+    model = problem.model
     params = check_params(model, params)
-    th = _vector(model, theta, "theta")
-    x0a = _vector(model, x0, "x0")
-    P0a = default_P0(model, x0a) if P0 is None else P0
-    fun = _nll_and_means(model, t, u, y, params, th, x0a, P0a, ukf_options(ukf), outputs)
-    lo, hi = _sobol_box(model, params, th, box, box_rel)
+    th = problem.theta
+    fun = _nll_and_means(problem, params, o.outputs)
+    lo, hi = _sobol_box(model, params, th, o.box, o.box_rel)
     seen: dict[str, float] = {}
 
     def tr(yv):
         seen.update(nll_min=float(np.min(yv)), nll_max=float(np.max(yv)))
-        return log_excess(yv) if nll_transform == "log" else yv
+        return log_excess(yv) if o.nll_transform == "log" else yv
 
-    executor = Executor(workers, scheduler)
+    executor = Executor(o.workers, o.scheduler)
     try:
-        res = sobol_indices(fun, params, lo, hi, N, second_order=second_order, seed=seed,
-                            chunk=chunk, conf_level=conf_level,
-                            output_names=["NLL"] + [f"mean({o})" for o in outputs],
-                            progress=progress, desc="Sobol NLL", transforms={"NLL": tr},
-                            executor=executor)
+        res = sobol_indices(fun, params, lo, hi, o,
+                            output_names=["NLL"] + [f"mean({n})" for n in o.outputs],
+                            desc="Sobol NLL", transforms={"NLL": tr}, executor=executor)
     finally:
         executor.close()
-    res.update(nll_transform="ln(1 + NLL - min NLL)" if nll_transform == "log" else "none",
+    res.update(nll_transform="ln(1 + NLL - min NLL)" if o.nll_transform == "log" else "none",
                **seen)
-    res["box"] = "custom" if box is not None else (f"theta*(1±{box_rel:g})" if box_rel
-                                                   else "model bounds")
+    res["box"] = "custom" if o.box is not None else (f"theta*(1±{o.box_rel:g})" if o.box_rel
+                                                     else "model bounds")
     return res
 
 
@@ -342,16 +385,18 @@ def _sobol_box(model, params, th, box, box_rel) -> tuple[np.ndarray, np.ndarray]
     return model.lower[idx], model.upper[idx]
 
 
-def _nll_and_means(model, t, u, y, params, th, x0, P0, ukf: UKFOptions, outputs):
+def _nll_and_means(problem: Problem, params, outputs):
     """The batched function of the Sobol' sample: X (S, k) -> columns
     [NLL, mean(output) ...] (S, 1 + len(outputs))."""
+    model, th, ukf = problem.model, problem.theta, problem.ukf
+    t, u, _ = problem.arrays
     oidx = [model.output_index(o) for o in outputs]
 
     def fun(X):
         sets = model.expand_theta(params, X, th)
-        cols = [ukf_nll(model, t, u, y, sets, x0, P0, options=ukf).nll]
+        cols = [problem.nll(sets).nll]
         if oidx:
-            Ys = simulate_batch(model, t, u, sets, x0, method=ukf.method,
+            Ys = simulate_batch(model, t, u, sets, problem.x0, method=ukf.method,
                                 substeps=ukf.substeps, hold=ukf.hold)
             cols += [np.mean(Ys[:, :, j], axis=0) for j in oidx]
         return np.column_stack(cols)
