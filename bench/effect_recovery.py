@@ -337,7 +337,7 @@ def confirm_truth(ctx, fit, ranking, key, sc, eff, vals, val, confirmed=()):
 
 def finer_if_needed(ctx, r):
     """The confirmation refitted with the substeps the loop's discretisation
-    check recommends at it (:func:`bondgraph.diagnose.runner.checked_again`,
+    check recommends at it (:func:`bondgraph.diagnose.runner.fit_after_discretisation_check`,
     what ``auto_substeps`` does with an accepted effect), if the filter's
     one-step discretisation error there exceeds 0.1 noise std; else as it
     is. Returns (confirmation, substeps used)."""

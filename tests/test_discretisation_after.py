@@ -1,4 +1,5 @@
-"""The discretisation check at an accepted fit (runner.checked_again): an
+"""The discretisation check at an accepted fit
+(runner.fit_after_discretisation_check): an
 end stop makes a mass-spring-damper stiff at the contact; at ROS2 with 4
 substeps the filter's discretisation error biases the stop level by many
 Cramér-Rao std. The loop warns, and with ``auto_substeps`` refits with the

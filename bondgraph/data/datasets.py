@@ -584,9 +584,11 @@ def _ced_key(run: str) -> str:
     raise DataError(f"unknown CED run '{run}' (runs: {', '.join(CED_RUNS)})")
 
 
-def ced_runs(data_dir: str | Path | None = None, **kw) -> dict[str, Experiment]:
-    """All five CED runs by name (see :func:`ced`)."""
-    return {k: ced(k, data_dir, **kw) for k in CED_RUNS}
+def ced_runs(data_dir: str | Path | None = None, *, verify: bool = True,
+             download: bool | None = None, cache=None, downloader=None) -> dict[str, Experiment]:
+    """All five CED runs by name (see :func:`ced` for the options)."""
+    return {k: ced(k, data_dir, verify=verify, download=download, cache=cache,
+                   downloader=downloader) for k in CED_RUNS}
 
 
 # ------------------------------------------------------------------ Silverbox

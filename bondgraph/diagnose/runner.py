@@ -325,7 +325,8 @@ def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[fl
     return worst, rec
 
 
-def checked_again(ctx: Context, result: LoopResult, fit: Fit, label: str) -> Fit:
+def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit,
+                                   label: str) -> Fit:
     """The discretisation check at an accepted fit: an added effect can make
     the model stiff (an end stop's contact, a hysteresis state), and the
     filter's discretisation error then biases its estimates by more than
@@ -408,11 +409,11 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
         return current, NOTHING_SIGNIFICANT
     tag = f"{name}_step{len(result.steps) + 1}"
     if structural_skipped(ctx.settings, ranking):
-        signif = check_the_lead(ctx, result, current, signif, scales, tag)
+        signif = significant_after_lead_check(ctx, result, current, signif, scales, tag)
     after = confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
     if after is None and structural_skipped(ctx.settings, result.rankings[-1]) \
             and not any(c.kind != "score" for c in result.rankings[-1]):
-        after = second_chance(ctx, result, current, scales, tag, step)
+        after = accepted_among_skipped_structurals(ctx, result, current, scales, tag, step)
     return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
 
 
@@ -421,8 +422,9 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
 LEAD_SHORTFALL = 0.8
 
 
-def check_the_lead(ctx: Context, result: LoopResult, current: Fit, signif: list[Candidate],
-                   scales: Scales, tag: str) -> list[Candidate]:
+def significant_after_lead_check(ctx: Context, result: LoopResult, current: Fit,
+                                 signif: list[Candidate], scales: Scales,
+                                 tag: str) -> list[Candidate]:
     """The structural candidates were skipped because an additive lead explains
     most of the innovations: confirm the lead, and if its refit's likelihood
     ratio falls short of its score statistic (below ``LEAD_SHORTFALL`` of
@@ -473,8 +475,8 @@ def structural_skipped(s: LoopSettings, cands: list[Candidate]) -> bool:
             and s.structural_threshold is not None and best >= s.structural_threshold)
 
 
-def second_chance(ctx: Context, result: LoopResult, current: Fit, scales: Scales, tag: str,
-                  step: int) -> Fit | None:
+def accepted_among_skipped_structurals(ctx: Context, result: LoopResult, current: Fit,
+                                       scales: Scales, tag: str, step: int) -> Fit | None:
     """No confirmed additive candidate passed the accept rule although one
     explained most of the innovations: the structural candidates skipped
     before are scored now (every place), ranked with the others (the
@@ -563,7 +565,7 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
     (:func:`bondgraph.diagnose.confirm.confirm`, graphs named ``name``); set
     their likelihood-ratio statistic; return them by decreasing LR − 2k. A
     candidate already confirmed against the same current fit (the lead of
-    :func:`check_the_lead`) is not refitted again."""
+    :func:`significant_after_lead_check`) is not refitted again."""
     todo = sorted(signif, key=lambda c: c.rank_key)[: ctx.settings.confirm_top]
     confirmed = []
     keys = [("confirmation", id(current), current.nll, c.label) for c in todo]  # lead check's
@@ -615,7 +617,7 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
         c.confirmed = {**confirmed_record(current, after, len(conf.new_params), conf.values, s,
                                           d), **tie}
         if d.accepted:
-            after = checked_again(ctx, result, after, c.label)
+            after = fit_after_discretisation_check(ctx, result, after, c.label)
             new_std = parameter_std(ctx, after)
             result.steps.append(accepted_step(c, d, current, after, names, new_std,
                                               result.metric))

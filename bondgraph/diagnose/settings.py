@@ -164,8 +164,9 @@ class LoopSettings:
     structural_threshold : float or None
         Skip the (slower) structural candidates when an additive effect
         already explains more than this share of the innovation energy (then
-        :func:`bondgraph.diagnose.runner.check_the_lead` and
-        :func:`~bondgraph.diagnose.runner.second_chance` score them when the
+        :func:`bondgraph.diagnose.runner.significant_after_lead_check` and
+        :func:`~bondgraph.diagnose.runner.accepted_among_skipped_structurals` score
+        them when the
         additive lead falls short). None (default): never skipped. The share
         does not tell a right additive lead from a wrong one (a quadratic drag
         that is the truth explained 75 % of the vehicle's innovations; a

@@ -173,7 +173,7 @@ def identifiability(F, names: Sequence[str], scale=None, *, corr_max: float = CO
     if k and not dead.any():
         _all_sensitive(out, Fs, C, d, s, names, **limits)
     elif k and dead.any() and (~dead).any():
-        _some_insensitive(out, Fs, dead, s, names, parallel_tol=parallel_tol, **limits)
+        _some_insensitive(out, Fs, dead, s, names, (corr_max, rel_crb_max, rcond, parallel_tol))
     out["unidentifiable"] = sorted({p for f in flags for p in f["params"]})
     return out
 
@@ -246,11 +246,15 @@ def _all_sensitive(out, Fs, C, d, s, names, *, corr_max, rel_crb_max, rcond) -> 
                                f"(> {rel_crb_max:.0%})"))
 
 
-def _some_insensitive(out, Fs, dead, s, names, **limits) -> None:
+def _some_insensitive(out, Fs, dead, s, names, limits: tuple) -> None:
     """The analysis of the sensitive parameters alone (the insensitive ones
-    fixed; their bounds are infinite), merged into ``out``."""
+    fixed; their bounds are infinite), merged into ``out``; ``limits``:
+    ``(corr_max, rel_crb_max, rcond, parallel_tol)`` of :func:`identifiability`."""
     live = np.flatnonzero(~dead)
-    sub = identifiability(Fs[np.ix_(live, live)], [names[i] for i in live], None, **limits)
+    corr_max, rel_crb_max, rcond, parallel_tol = limits
+    sub = identifiability(Fs[np.ix_(live, live)], [names[i] for i in live], None,
+                          corr_max=corr_max, rel_crb_max=rel_crb_max, rcond=rcond,
+                          parallel_tol=parallel_tol)
     out["collinearity_index"] = sub["collinearity_index"]
     out["flags"].extend(f for f in sub["flags"] if f["type"] not in ("product", "ratio"))
     out["null_directions"] = [{names[i]: 1.0} for i in np.flatnonzero(dead)]
