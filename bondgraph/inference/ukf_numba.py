@@ -66,7 +66,7 @@ from collections import namedtuple
 
 import numpy as np
 
-from bondgraph.core.codegen import POINTS_MIN, POINTS_VECTOR
+from bondgraph.core.codegen_numba import POINTS_MIN, POINTS_VECTOR
 from bondgraph.numerics.integrators import GAMMA
 
 try:  # numba is a regular dependency; the numpy path is the fallback without it
@@ -157,7 +157,7 @@ def _work_size(n, ny, nu, nth):
 @_jit
 def _padded(n):
     """Columns of the state-major point arrays: the 2n + 1 sigma points and
-    copies of point 0 (:func:`bondgraph.core.codegen.padded_points`: the
+    copies of point 0 (:func:`bondgraph.core.codegen_numba.padded_points`: the
     column kernels' loops run in whole vectors)."""
     return max(POINTS_MIN, (2 * n + POINTS_VECTOR) // POINTS_VECTOR * POINTS_VECTOR)
 
