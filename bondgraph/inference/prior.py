@@ -34,7 +34,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bondgraph.errors import ModelError, OptionError
-from bondgraph.inference import ukf_numba
+from bondgraph.inference import sim_numba, ukf_numba
 from bondgraph.inference.options import DEFAULT_BACKEND
 from bondgraph.numerics import compiled
 from bondgraph.numerics.integrators import hold_inputs, make_step
@@ -70,7 +70,7 @@ def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int
         The discretisation (:func:`bondgraph.numerics.integrators.make_step`,
         :func:`~bondgraph.numerics.integrators.hold_inputs`).
     backend : {"numba", "numpy"}
-        numba: the compiled free run (:func:`bondgraph.inference.ukf_numba.free_run_rms`,
+        numba: the compiled free run (:func:`bondgraph.inference.sim_numba.free_run_rms`,
         the same steps, values equal to rounding) where the model's kernels
         are compiled or compiling pays (:func:`bondgraph.numerics.compiled.compile_pays`);
         else the numpy steps, sample by sample.
@@ -87,7 +87,7 @@ def simulated_rms(model, t, u, theta, x0, *, method: str = "ros2", substeps: int
     numpy_s = n * substeps * NUMPY_S_PER_STEP
     kernels = _free_run_kernels(model, backend, method, hold, numpy_s)
     if kernels is not None:
-        return ukf_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
+        return sim_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
     held = hold_inputs(u, hold)
     step = make_step(model, method, substeps)
     th = np.asarray(theta, float)[None, :]
