@@ -10,7 +10,7 @@ import re
 import numpy as np
 import pytest
 
-from bondgraph.core import codegen_numba as codegen
+from bondgraph.core import codegen_numba
 from bondgraph.core import vmath
 
 numba = pytest.importorskip("numba")
@@ -22,21 +22,21 @@ REFERENCE = {"_vsin": np.sin, "_vcos": np.cos, "_vatan": np.arctan, "_vexp": np.
 
 def _functions() -> dict:
     """Each function as the column kernels run it: the straight code that
-    :func:`codegen.vmath_inline` expands at a call site, compiled with the
+    :func:`codegen_numba.vmath_inline` expands at a call site, compiled with the
     column kernels' flags (inlined into the loops below)."""
     ns = {"np": np, "intrinsic": numba.extending.intrinsic, "types": numba.types}
-    exec(codegen.NUMBA_SELECT, ns)
+    exec(codegen_numba.NUMBA_SELECT, ns)
     for name in NAMES:
-        exec(codegen.vmath_function(name), ns)
+        exec(codegen_numba.vmath_function(name), ns)
         ns[name] = numba.njit(error_model="numpy", inline="always",
-                              fastmath=set(codegen.COLS_FASTMATH))(ns[name])
+                              fastmath=set(codegen_numba.COLS_FASTMATH))(ns[name])
     return ns
 
 
 @pytest.fixture(scope="module")
 def loops():
     """For each function a compiled loop ``out[j] = fn(x[j])`` with the
-    column kernels' flags (:data:`codegen.COLS_FASTMATH`)."""
+    column kernels' flags (:data:`codegen_numba.COLS_FASTMATH`)."""
     ns = _functions()
     out = {}
     for name in NAMES:
@@ -46,7 +46,8 @@ def loops():
             for j in range(x.shape[0]):
                 o[j] = fn(x[j])
 
-        out[name] = numba.njit(error_model="numpy", fastmath=set(codegen.COLS_FASTMATH))(loop)
+        out[name] = numba.njit(error_model="numpy",
+                               fastmath=set(codegen_numba.COLS_FASTMATH))(loop)
     return out
 
 
@@ -104,7 +105,7 @@ def test_loops_vectorise():
     ns = _functions()
     vsin, vatan, vtanh = ns["_vsin"], ns["_vatan"], ns["_vtanh"]
 
-    @numba.njit(error_model="numpy", fastmath=set(codegen.COLS_FASTMATH))
+    @numba.njit(error_model="numpy", fastmath=set(codegen_numba.COLS_FASTMATH))
     def body(x, o):
         for j in range(21):
             o[j] = vsin(1.3 * vatan(x[j] - vatan(x[j]))) + vtanh(0.25 * x[21 + j])
