@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bondgraph.data.records import FORMAT, Experiment, convert, parse_header, read_table
+from bondgraph.data.binding import convert
+from bondgraph.data.record_io import FORMAT, parse_header, read_table
+from bondgraph.data.records import Experiment
 from bondgraph.errors import DataError
 from bondgraph.numerics.model import Model
 

@@ -21,7 +21,7 @@ import warnings
 import numpy as np
 import pytest
 
-from bondgraph.core.codegen import padded_points
+from bondgraph.core.codegen_numba import padded_points
 from bondgraph.errors import BackendWarning
 from bondgraph.inference import ukf as ukf_module
 from bondgraph.inference.options import UKFOptions
@@ -455,7 +455,7 @@ def test_compiled_free_run_of_the_prior_equals_numpy(name):
 
 
 def test_generated_tanh_equals_numpy_to_rounding():
-    """The numba modules' tanh (bondgraph.core.codegen.NUMBA_TANH: exp for
+    """The numba modules' tanh (bondgraph.core.codegen_numba.NUMBA_TANH: exp for
     |x| >= 0.55) is np.tanh to a few 1e-16 relative, ±1 at ±inf, NaN at NaN."""
     pk = compiled.point_kernels(Model.load("emps"))
     tanh = pk.f.py_func.__globals__["_tanh"]

@@ -1,15 +1,17 @@
 """The branch-free sin, cos, atan, exp and tanh of the numba column kernels
-(bondgraph.core.codegen.NUMBA_VMATH, expanded inline by vmath_inline;
-Moshier 1989, the Cephes library), against numpy's (glibc's) functions:
-within 2 ulp on 1e6 points per range, the same non-finite values, and
-vectorised by LLVM in a loop."""
+(the functions of bondgraph.core.vmath, expanded inline by
+codegen_numba.vmath_inline; Moshier 1989, the Cephes library), against
+numpy's (glibc's) functions: within 2 ulp on 1e6 points per range, the same
+non-finite values, and vectorised by LLVM in a loop; and the same functions
+called as plain Python."""
 
 import re
 
 import numpy as np
 import pytest
 
-from bondgraph.core import codegen
+from bondgraph.core import codegen_numba
+from bondgraph.core import vmath
 
 numba = pytest.importorskip("numba")
 
@@ -20,21 +22,21 @@ REFERENCE = {"_vsin": np.sin, "_vcos": np.cos, "_vatan": np.arctan, "_vexp": np.
 
 def _functions() -> dict:
     """Each function as the column kernels run it: the straight code that
-    :func:`codegen.vmath_inline` expands at a call site, compiled with the
+    :func:`codegen_numba.vmath_inline` expands at a call site, compiled with the
     column kernels' flags (inlined into the loops below)."""
     ns = {"np": np, "intrinsic": numba.extending.intrinsic, "types": numba.types}
-    exec(codegen.NUMBA_SELECT, ns)
+    exec(codegen_numba.NUMBA_SELECT, ns)
     for name in NAMES:
-        exec(codegen.vmath_function(name), ns)
+        exec(codegen_numba.vmath_function(name), ns)
         ns[name] = numba.njit(error_model="numpy", inline="always",
-                              fastmath=set(codegen.COLS_FASTMATH))(ns[name])
+                              fastmath=set(codegen_numba.COLS_FASTMATH))(ns[name])
     return ns
 
 
 @pytest.fixture(scope="module")
 def loops():
     """For each function a compiled loop ``out[j] = fn(x[j])`` with the
-    column kernels' flags (:data:`codegen.COLS_FASTMATH`)."""
+    column kernels' flags (:data:`codegen_numba.COLS_FASTMATH`)."""
     ns = _functions()
     out = {}
     for name in NAMES:
@@ -44,7 +46,8 @@ def loops():
             for j in range(x.shape[0]):
                 o[j] = fn(x[j])
 
-        out[name] = numba.njit(error_model="numpy", fastmath=set(codegen.COLS_FASTMATH))(loop)
+        out[name] = numba.njit(error_model="numpy",
+                               fastmath=set(codegen_numba.COLS_FASTMATH))(loop)
     return out
 
 
@@ -102,7 +105,7 @@ def test_loops_vectorise():
     ns = _functions()
     vsin, vatan, vtanh = ns["_vsin"], ns["_vatan"], ns["_vtanh"]
 
-    @numba.njit(error_model="numpy", fastmath=set(codegen.COLS_FASTMATH))
+    @numba.njit(error_model="numpy", fastmath=set(codegen_numba.COLS_FASTMATH))
     def body(x, o):
         for j in range(21):
             o[j] = vsin(1.3 * vatan(x[j] - vatan(x[j]))) + vtanh(0.25 * x[21 + j])
@@ -111,3 +114,21 @@ def test_loops_vectorise():
     body(x, o)
     ir = "".join(body.inspect_llvm().values())
     assert re.search(r"<\d+ x double>", ir)
+
+
+@pytest.mark.parametrize("name", NAMES + ("_tanh",))
+def test_plain_python_equals_numpy(name):
+    """The functions of bondgraph.core.vmath are real Python functions:
+    called on floats and numpy scalars (``_sel`` is ``a if c else b`` there)
+    they agree with numpy's to a few ulp (finite arguments; sin and cos
+    below 1e8)."""
+    fn = getattr(vmath, name)
+    ref = {**REFERENCE, "_tanh": np.tanh}[name]
+    rng = np.random.default_rng(5)
+    x = np.concatenate([rng.normal(size=300) * 3, rng.uniform(-50.0, 50.0, 300),
+                        [0.0, 0.55, -0.55, 0.625, -0.625, 0.66, 2.414213562373095, 1e-300]])
+    if name == "_vexp":
+        x = np.concatenate([x, rng.uniform(-700.0, 700.0, 300)])
+    got = np.array([fn(v) for v in x.tolist()] + [fn(v) for v in x[:50]])
+    want = ref(np.concatenate([x, x[:50]]))
+    np.testing.assert_allclose(got, want, rtol=5e-16, atol=1e-300)

@@ -45,7 +45,8 @@ from typing import Callable
 import numpy as np
 from scipy.io import loadmat
 
-from bondgraph.data.records import Experiment, read_table
+from bondgraph.data.record_io import read_table
+from bondgraph.data.records import Experiment
 from bondgraph.errors import DataError
 
 #: project root (the folder holding ``bondgraph/``)

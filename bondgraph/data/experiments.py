@@ -17,7 +17,8 @@ from typing import Callable
 import numpy as np
 
 from bondgraph.core import plugins
-from bondgraph.data.records import STATE_PREFIX, Experiment
+from bondgraph.data.binding import STATE_PREFIX
+from bondgraph.data.records import Experiment
 from bondgraph.errors import ModelError
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import InputSignals, simulate

@@ -35,7 +35,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from bondgraph.errors import ModelError, OptionError
-from bondgraph.inference import ukf_numba
+from bondgraph.inference import sim_numba, ukf_numba
 from bondgraph.inference.options import P0_REL, P0_SCALES, Discretisation
 from bondgraph.numerics import compiled
 from bondgraph.numerics.integrators import hold_inputs, make_step
@@ -78,7 +78,7 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
         The steps (:func:`bondgraph.numerics.integrators.make_step`,
         :func:`~bondgraph.numerics.integrators.hold_inputs`; default
         ``Discretisation().for_free_run()``), used as given. Its backend
-        numba: the compiled free run (:func:`bondgraph.inference.ukf_numba.free_run_rms`,
+        numba: the compiled free run (:func:`bondgraph.inference.sim_numba.free_run_rms`,
         the same steps, values equal to rounding) where the model's kernels
         are compiled or compiling pays (:func:`bondgraph.numerics.compiled.compile_pays`);
         else the numpy steps, sample by sample.
@@ -99,7 +99,7 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
     numpy_s = n * substeps * NUMPY_S_PER_STEP
     kernels = _free_run_kernels(model, disc.backend, method, hold, numpy_s)
     if kernels is not None:
-        return ukf_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
+        return sim_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
     held = hold_inputs(u, hold)
     step = make_step(model, method, substeps)
     th = np.asarray(theta, float)[None, :]

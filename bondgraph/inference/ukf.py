@@ -64,7 +64,7 @@ import numpy as np
 
 from bondgraph.core.progress import long_range
 from bondgraph.errors import BackendWarning, DataError, ModelError, OptionError
-from bondgraph.inference import ukf_numba
+from bondgraph.inference import sim_numba, ukf_numba
 from bondgraph.inference.options import Discretisation, UKFOptions, ukf_options
 from bondgraph.inference.prior import default_P0
 from bondgraph.inference.sigma import (
@@ -751,7 +751,7 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
     one-step output error is compared with ``sigma`` (default
     ``meas_std(theta)``). The one-step transitions of all samples run as one
     batch (per distinct sample interval); the RK4 reference runs in the
-    compiled kernel (:func:`bondgraph.inference.ukf_numba.rk4_trajectory`)
+    compiled kernel (:func:`bondgraph.inference.sim_numba.rk4_trajectory`)
     when the model's point kernels are compiled already.
 
     Parameters
@@ -857,7 +857,7 @@ def _compiled_rk4(model, t, u, hold, th, x, substeps) -> np.ndarray | None:
         kernels = point_kernels(model)
     except Exception:  # kernels that cannot be loaded: numpy
         return None
-    return ukf_numba.rk4_trajectory(kernels, t, u, hold, th[0], x[0], substeps)
+    return sim_numba.rk4_trajectory(kernels, t, u, hold, th[0], x[0], substeps)
 
 
 #: the discretisation guard's reference: RK4 with this many sub-steps per sample

@@ -66,7 +66,7 @@ from collections import namedtuple
 
 import numpy as np
 
-from bondgraph.core.codegen import POINTS_MIN, POINTS_VECTOR
+from bondgraph.core.codegen_numba import padded_points
 from bondgraph.numerics.integrators import GAMMA
 
 try:  # numba is a regular dependency; the numpy path is the fallback without it
@@ -154,12 +154,11 @@ def _work_size(n, ny, nu, nth):
             + ny * ny + 5 * ny + nth + 5 * n * pc, ny + 1 + 2 * n + m)
 
 
-@_jit
-def _padded(n):
-    """Columns of the state-major point arrays: the 2n + 1 sigma points and
-    copies of point 0 (:func:`bondgraph.core.codegen.padded_points`: the
-    column kernels' loops run in whole vectors)."""
-    return max(POINTS_MIN, (2 * n + POINTS_VECTOR) // POINTS_VECTOR * POINTS_VECTOR)
+#: columns of the state-major point arrays: the 2n + 1 sigma points and
+#: copies of point 0; the generator's one padding rule, compiled
+#: (:func:`bondgraph.core.codegen_numba.padded_points`: the column kernels'
+#: loops run in whole vectors)
+_padded = _jit(padded_points)
 
 
 @_jit_inline
@@ -977,47 +976,11 @@ def kernel() -> tuple[object, float]:
         return k, time.perf_counter() - t0
 
 
-def _trajectory_py(f, t, u, hold, th, x0, nsub, xr, wk, ub):
-    """RK4 (``nsub`` steps per interval) from ``x0`` over the record into
-    ``xr`` (N, n_x), the inputs held as ``hold`` says (work rows ``wk``
-    (6, n_x), input buffer ``ub`` (n_u,))."""
-    n = x0.shape[0]
-    x, xt, k1, k2, k3, k4 = wk[0], wk[1], wk[2], wk[3], wk[4], wk[5]
-    for a in range(n):
-        x[a] = x0[a]
-        xr[0, a] = x0[a]
-    for k in range(t.shape[0] - 1):
-        _held_input(u, k, 0.0, hold, ub)
-        _rk4_point(f, x, u, k, hold, th, (t[k + 1] - t[k]) / nsub, nsub, ub, xt, k1, k2, k3,
-                   k4)
-        for a in range(n):
-            xr[k + 1, a] = x[a]
-
-
-_TRAJECTORY: list = []
-
-
-def trajectory_kernel():
-    """The compiled RK4 trajectory kernel (:func:`rk4_trajectory`; compiled
-    once per installation, cached on disk, model independent like the
-    filter kernel).
-
-    Raises
-    ------
-    ImportError
-        numba is not installed.
-    """
-    def sig():
-        V, M = types.float64[::1], types.float64[:, ::1]
-        point = types.FunctionType(types.void(V, V, V, V))
-        return types.void(point, V, M, types.int64, V, V, types.int64, M, M, V)
-    return _compiled_once(_TRAJECTORY, _trajectory_py, sig)
-
-
 def _compiled_once(store: list, py, signature, **options):
     """``py`` compiled (allocation-free, cached on disk, numba ``options``)
     with the signature ``signature()`` builds, once per process (kept in
-    ``store``).
+    ``store``; under the kernel's lock): the simulation kernels of
+    :mod:`bondgraph.inference.sim_numba`.
 
     Raises
     ------
@@ -1031,108 +994,6 @@ def _compiled_once(store: list, py, signature, **options):
             store.append(numba.njit(signature(), cache=True, nogil=True, error_model="numpy",
                                     _nrt=False, **options)(py))
         return store[0]
-
-
-def rk4_trajectory(kernels, t, u, hold: str, theta, x0, substeps: int) -> np.ndarray:
-    """States (N, n_x) of the noise-free trajectory from ``x0`` by classical
-    RK4 with ``substeps`` steps per sample interval, the inputs ``u`` (N, n_u)
-    held as ``hold`` says (:data:`HOLD_CODES`), with a model's compiled point
-    kernels (:class:`bondgraph.numerics.compiled.PointKernels`): the
-    arithmetic of :func:`bondgraph.numerics.integrators.rk4`, sample by
-    sample, without a Python call per stage."""
-    c = np.ascontiguousarray
-    x0 = c(x0, dtype=float)
-    n = x0.size
-    xr = np.empty((np.asarray(t).size, n))
-    trajectory_kernel()(kernels.f, c(t, dtype=float), c(u, dtype=float), HOLD_CODES[hold],
-                        c(theta, dtype=float), x0, int(substeps), xr, np.zeros((6, n)),
-                        np.zeros(max(np.asarray(u).shape[1], 1)))
-    return xr
-
-
-def _free_run_py(f, fj, t, u, hold, th, x0, method, nsub, acc, wk, J, Winv, A, cols, ub):
-    """Free run from ``x0`` over the record (``method`` 0: RK4, 1: ROS2 with
-    the Jacobian at the start of each interval, frozen over its ``nsub``
-    sub-steps, as :func:`bondgraph.numerics.integrators.make_step`), the
-    inputs held as ``hold`` says: the sum of x² over the samples into
-    ``acc`` (n_x,) up to the first non-finite state; returns the number of
-    samples summed (work rows ``wk`` (8, n_x), J, Winv (n_x, n_x), A
-    (n_x, 2 n_x), cols (2 n_x,), input buffer ``ub``)."""
-    n = x0.shape[0]
-    x, xt, k1, k2, k3, k4, F0, F1 = wk[0], wk[1], wk[2], wk[3], wk[4], wk[5], wk[6], wk[7]
-    for a in range(n):
-        x[a] = x0[a]
-    count = 0
-    for k in range(t.shape[0]):
-        if not _all_finite(wk, 1, n):
-            break
-        for a in range(n):
-            acc[a] += x[a] * x[a]
-        count += 1
-        if k < t.shape[0] - 1:
-            h = (t[k + 1] - t[k]) / nsub
-            _held_input(u, k, 0.0, hold, ub)
-            if method == 0:
-                _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4)
-            else:
-                _ros2_point(f, fj, x, u, k, hold, th, h, nsub, 1, ub, xt, F0, F1, k1, k2, J,
-                            Winv, A, cols)
-    return count
-
-
-_FREE_RUN: list = []
-
-
-def free_run_kernel():
-    """The compiled free-run kernel (:func:`free_run_rms`; compiled once per
-    installation, cached on disk, model independent).
-
-    Raises
-    ------
-    ImportError
-        numba is not installed.
-    """
-    def sig():
-        V, M = types.float64[::1], types.float64[:, ::1]
-        point = types.FunctionType(types.void(V, V, V, V))
-        jac = types.FunctionType(types.void(V, V, V, V, M))
-        return types.int64(point, jac, V, M, types.int64, V, V, types.int64, types.int64, V,
-                           M, M, M, M, types.int64[::1], V)
-    return _compiled_once(_FREE_RUN, _free_run_py, sig, fastmath=FASTMATH)
-
-
-def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str, substeps: int) -> np.ndarray:
-    """RMS of every state along the free run from ``x0`` (:func:`_free_run_py`)
-    with a model's compiled point kernels: the compiled counterpart of
-    :func:`bondgraph.inference.prior.simulated_rms` (the same steps; the
-    linear algebra of ROS2 is the kernel's, so values agree to rounding).
-
-    Parameters
-    ----------
-    kernels : bondgraph.numerics.compiled.PointKernels
-    t, u : arrays (N,), (N, n_u)
-    hold : str
-        A key of :data:`HOLD_CODES`.
-    theta, x0 : arrays (n_theta,), (n_x,)
-    method : {"rk4", "ros2"}
-    substeps : int
-
-    Returns
-    -------
-    ndarray (n_x,)
-        0 where nothing finite was simulated.
-    """
-    c = np.ascontiguousarray
-    x0 = c(x0, dtype=float)
-    n = x0.size
-    u = c(u, dtype=float).reshape(np.size(t), -1) if np.size(u) else np.zeros((np.size(t), 0))
-    acc = np.zeros(n)
-    count = free_run_kernel()(kernels.f, kernels.f_dfdx, c(t, dtype=float), u, HOLD_CODES[hold],
-                              c(theta, dtype=float), x0, METHOD_CODES[method], int(substeps),
-                              acc, np.zeros((8, n)), np.zeros((n, n)), np.zeros((n, n)),
-                              np.zeros((n, 2 * n)), np.zeros(2 * n, dtype=np.int64),
-                              np.zeros(max(u.shape[1], 1)))
-    return np.sqrt(acc / count) if count else np.zeros(n)
 
 
 def unsupported(opts) -> str | None:

@@ -2,7 +2,7 @@
 the on-disk cache, and when compiling pays.
 
 A model's numba kernels (``f``, ``h``, ``f_dfdx`` for one point,
-:func:`bondgraph.core.codegen.generate_numba_source`) are compiled when their
+:func:`bondgraph.core.codegen_numba.generate_numba_source`) are compiled when their
 module is imported and cached on disk by numba (``cache=True``), so a second
 run does not compile again:
 
@@ -14,7 +14,7 @@ run does not compile again:
   (:func:`cache_dir`), under a name keyed by the hash of its generated numpy
   source (its code, not its default values and boxes:
   :func:`kernel_key_text`) and
-  :data:`~bondgraph.core.codegen.NUMBA_CODEGEN_VERSION`: the same model in
+  :data:`~bondgraph.core.codegen_numba.NUMBA_CODEGEN_VERSION`: the same model in
   a later run finds its kernels, and their numba cache, without any sympy
   work.
 
@@ -46,7 +46,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bondgraph.core.codegen import NUMBA_CODEGEN_VERSION, generate_numba_source
+from bondgraph.core.codegen_numba import NUMBA_CODEGEN_VERSION, generate_numba_source
 
 try:  # numba is a regular dependency; the numpy path is the fallback without it
     import numba
@@ -82,7 +82,7 @@ class PointKernels:
         ``f_dfdx(x, u, theta, out, jac)`` on C-contiguous float64 vectors.
     f_cols, h_cols : numba dispatchers
         ``f_cols(X, u, theta, F)``: f at the 2 n_x + 1 sigma points and the
-        padding columns (P = ``codegen.padded_points(n_x)`` columns in all),
+        padding columns (P = ``codegen_numba.padded_points(n_x)`` columns in all),
         X and F flat (n_x * P,) state-major (state a of point j at
         ``X[a * P + j]``); ``h_cols(X, u, theta, Y)``: h into Y (n_y * P,)
         output-major.

@@ -21,7 +21,8 @@ import time
 from pathlib import Path
 
 from bondgraph.core import plugins
-from bondgraph.core.codegen import generate_numba_source, generate_source
+from bondgraph.core.codegen import generate_source
+from bondgraph.core.codegen_numba import generate_numba_source
 from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
 from bondgraph.errors import BondGraphError, ModelError, StaleGeneratedCodeError

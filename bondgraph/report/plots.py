@@ -18,7 +18,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from bondgraph.data.records import STATE_PREFIX, Experiment
+from bondgraph.data.binding import STATE_PREFIX
+from bondgraph.data.records import Experiment
 from bondgraph.errors import DataError
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import SimResult
