@@ -54,7 +54,8 @@ sys.path.insert(0, str(ROOT))
 
 from bondgraph.inference.estimate import Criterion  # noqa: E402
 from bondgraph.inference import ukf_numba  # noqa: E402
-from bondgraph.inference.options import DEFAULT_BACKEND, FitOptions, Discretisation, UKFOptions  # noqa: E402
+from bondgraph.inference.options import (  # noqa: E402
+    DEFAULT_BACKEND, Discretisation, FitOptions, SwarmOptions, UKFOptions)
 from bondgraph.numerics.compiled import point_kernels  # noqa: E402
 from bondgraph.numerics.model import Model  # noqa: E402
 from bondgraph.inference.optimize import pso  # noqa: E402
@@ -279,8 +280,8 @@ def main(argv=None) -> int:
         crit(np.tile(0.5 * (lo + hi), (args.particles, 1)))
         warm_s = time.perf_counter() - t0
     t0, c0 = time.perf_counter(), time.process_time()
-    res = pso(crit, lo, hi, particles=args.particles, iterations=iterations, seed=args.seed,
-              progress=False)
+    res = pso(crit, lo, hi, progress=False,
+              swarm=SwarmOptions(particles=args.particles, iterations=iterations, seed=args.seed))
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     crit.close()
     s_per_eval = wall / res.nfev

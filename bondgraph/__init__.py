@@ -48,7 +48,8 @@ _export("bondgraph.numerics.simulate", "SimResult", "simulate", "stiffness_repor
 _export("bondgraph.data.records", "Experiment")
 _export("bondgraph.data.experiments", "ExperimentSpec", "get_experiment", "run_experiment")
 # filter, estimation
-_export("bondgraph.inference.options", "FitOptions", "UKFOptions")
+_export("bondgraph.inference.options", "Checkpointing", "EvolutionOptions", "FitOptions",
+        "SwarmOptions", "UKFOptions")
 _export("bondgraph.inference.ukf", "UKFResult", "ukf_nll")
 _export("bondgraph.inference.optimize", "de", "pso")
 _export("bondgraph.inference.estimate", "EstimationResult", "Stage", "estimate", "two_stage")
