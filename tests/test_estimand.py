@@ -9,7 +9,7 @@ import pytest
 from bondgraph.errors import ModelError
 from bondgraph.inference.estimand import Estimand
 from bondgraph.inference.fisher import estimand_scoring
-from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.options import ScoringOptions, UKFOptions
 from bondgraph.numerics.forward_sensitivity import output_sensitivities
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
@@ -80,7 +80,8 @@ def test_unmeasured_initial_momentum_recovered_within_3_crb(msd):
                    x0_scale=np.array([1.0, 0.01]))
     lo, hi = est.bounds([10.0], [500.0])
     r = estimand_scoring(m, t, u, y, est, lo, hi, np.diag([1.0, 1e-16]),
-                         options=UKFOptions(method="rk4", substeps=4), max_iter=30)
+                         options=UKFOptions(method="rk4", substeps=4),
+                         scoring=ScoringOptions(max_iter=30))
     assert r.converged
     z = r.estimand.value()
     crb = np.sqrt(np.diag(np.linalg.inv(r.F)))
@@ -92,3 +93,22 @@ def test_unmeasured_initial_momentum_recovered_within_3_crb(msd):
     J = np.concatenate([s.dydtheta[:, 0, :], s.dydx0[:, 0, :]], axis=1)
     F_oe = J.T @ J / m.meas_std(th)[0] ** 2
     np.testing.assert_allclose(r.F, F_oe, rtol=5e-3)
+
+
+def test_scoring_options_validated_on_construction():
+    from bondgraph.errors import OptionError
+
+    with pytest.raises(OptionError, match=r"ScoringOptions\.max_iter .* got -1"):
+        ScoringOptions(max_iter=-1)
+    with pytest.raises(OptionError, match=r"ScoringOptions\.atol must be >= 0, got -1\.0"):
+        ScoringOptions(atol=-1.0)
+    with pytest.raises(OptionError, match=r"ScoringOptions\.information must be True or False"):
+        ScoringOptions(information=1)
+    with pytest.raises(OptionError, match=r"ScoringOptions\.log must be callable"):
+        ScoringOptions(log="print")
+    assert ScoringOptions(log_scale=np.array([1, 0], bool)).log_scale == (True, False)
+    m = Model.load("mass_spring_damper")
+    est = Estimand(m, ["k"], theta=m.theta0, x0=np.zeros(2))
+    with pytest.raises(OptionError, match="must be a ScoringOptions, got dict"):
+        estimand_scoring(m, np.arange(3.0), None, np.zeros((3, m.n_y)), est, [1.0], [2.0],
+                         np.eye(2), scoring={"max_iter": 3})

@@ -24,6 +24,7 @@ from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, noise_plan
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
+from bondgraph.inference.options import ScoringOptions
 from bondgraph.inference.output_error import output_error_fit
 from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
 from bondgraph.inference.prior import PriorSpec
@@ -148,8 +149,8 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
                             np.ones(len(noises), bool)])
     t, u, y = problem.arrays
     r = estimand_scoring(model, t, u, y, est, lo, hi, P0, options=problem.ukf,
-                         max_iter=iterations, atol=tolerance, log_scale=scale,
-                         information=information)
+                         scoring=ScoringOptions(max_iter=iterations, atol=tolerance,
+                                                log_scale=scale, information=information))
     sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
     return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig
 

@@ -15,6 +15,8 @@ naming the option and the value), not deep inside a filter run:
 * :class:`SwarmOptions`, :class:`EvolutionOptions` and :class:`Checkpointing`
   — the settings of the global optimizers :func:`bondgraph.inference.optimize.pso`
   and :func:`bondgraph.inference.optimize.de` and of their checkpoint.
+* :class:`ScoringOptions` — the iteration controls of Fisher scoring
+  (:func:`bondgraph.inference.fisher.estimand_scoring`).
 
 Results keep them as plain dicts (``dataclasses.asdict``, see
 :meth:`UKFOptions.to_dict`), so JSON result files stay readable; a dict read
@@ -29,7 +31,9 @@ import numbers
 import os
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Mapping
+from typing import Callable, Mapping
+
+import numpy as np
 
 from bondgraph.errors import OptionError
 
@@ -554,6 +558,64 @@ class Checkpointing:
             _set(self, "fingerprint", dict(self.fingerprint))
 
 
+@dataclass(frozen=True)
+class ScoringOptions:
+    """Iteration controls of Levenberg-damped Fisher scoring
+    (:func:`bondgraph.inference.fisher.estimand_scoring`,
+    :func:`bondgraph.inference.fisher.fisher_scoring`).
+
+    Parameters
+    ----------
+    max_iter : int
+        Most scoring iterations (>= 0).
+    rtol : float
+        Stop when a step improves the NLL by less than ``rtol * (1 + |NLL|)``.
+    atol : float
+        Stop (converged) when the predicted decrease of a full step,
+        ½ gᵀ F⁻¹ g, is below ``atol`` nats (0: only ``rtol`` stops).
+    log_scale : sequence of bool (k,), optional
+        Quantities moved in log θ (scale parameters such as noise
+        intensities, whose likelihood is far from quadratic in θ near zero);
+        kept a tuple. Default: positive boxes spanning more than two decades.
+    information : bool
+        Compute the Fisher information at a result the last iteration moved
+        to (False: one batched UKF run fewer; ``F`` is then None).
+    log : callable, optional
+        ``log(line)`` for progress lines.
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (the message names the option and value).
+
+    Examples
+    --------
+    >>> ScoringOptions(max_iter=30, log_scale=[True, False]).log_scale
+    (True, False)
+    """
+
+    max_iter: int = 12
+    rtol: float = 1e-6
+    atol: float = 1e-3
+    log_scale: tuple[bool, ...] | None = None
+    information: bool = True
+    log: Callable[[str], None] | None = None
+
+    def __post_init__(self):
+        _integer(self, "max_iter", 0)
+        _nonnegative(self, "rtol")
+        _nonnegative(self, "atol")
+        _flag(self, "information")
+        if self.log is not None and not callable(self.log):
+            raise OptionError(f"ScoringOptions.log must be callable or None, got {self.log!r}")
+        if self.log_scale is not None:
+            L = np.asarray(self.log_scale)
+            if L.ndim != 1:
+                raise OptionError(f"ScoringOptions.log_scale must be a sequence of flags, "
+                                  f"got {self.log_scale!r}")
+            _set(self, "log_scale", tuple(bool(v) for v in L))
+
+
 def ukf_options(options) -> UKFOptions:
     """``options`` checked to be :class:`UKFOptions` (None: the defaults).
 
@@ -583,4 +645,21 @@ def fit_options(options) -> FitOptions:
     if not isinstance(options, FitOptions):
         raise OptionError(f"fit options must be a FitOptions, got {type(options).__name__} "
                           f"{options!r} (use FitOptions(**d) for a dict)")
+    return options
+
+
+def scoring_options(options) -> ScoringOptions:
+    """``options`` checked to be :class:`ScoringOptions` (None: the defaults).
+
+    Raises
+    ------
+    OptionError
+        For anything else (e.g. a dict: use ``ScoringOptions(**d)``).
+    """
+    if options is None:
+        return ScoringOptions()
+    if not isinstance(options, ScoringOptions):
+        raise OptionError(f"scoring options must be a ScoringOptions, got "
+                          f"{type(options).__name__} {options!r} (use ScoringOptions(**d) "
+                          f"for a dict)")
     return options
