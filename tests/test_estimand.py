@@ -10,7 +10,7 @@ from bondgraph.errors import ModelError
 from bondgraph.inference.estimand import Estimand
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.options import ScoringOptions, UKFOptions
-from bondgraph.numerics.forward_sensitivity import output_sensitivities
+from bondgraph.numerics.forward_sensitivity import SolverOptions, output_sensitivities
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -29,8 +29,9 @@ def msd():
 
 def test_initial_state_sensitivities_match_finite_differences(msd):
     m, t, u, th, x0 = msd
-    s = output_sensitivities(m, t, u, th, x0, [], method="BDF", rtol=1e-11, atol=1e-13,
-                             hold="zoh", x0_states=["p_mass", "q_spring"])
+    s = output_sensitivities(m, t, u, th, x0, [], x0_states=["p_mass", "q_spring"],
+                             solver=SolverOptions(method="BDF", rtol=1e-11, atol=1e-13,
+                                                  hold="zoh"))
     assert s.dydx0.shape == (t.size, 2, 2) and s.dydtheta.shape == (t.size, 2, 0)
     for j in range(2):
         h = 1e-4
@@ -88,8 +89,8 @@ def test_unmeasured_initial_momentum_recovered_within_3_crb(msd):
     assert abs(z[0] - 80.0) < 3 * crb[0], (z, crb)
     assert abs(z[1] - 0.3) < 3 * crb[1], (z, crb)
     assert crb[1] < 0.05            # informative: the record pins the momentum
-    s = output_sensitivities(m, t, u, r.estimand.theta, r.estimand.x0, ["k"], hold="zoh",
-                             x0_states=["p_mass"])
+    s = output_sensitivities(m, t, u, r.estimand.theta, r.estimand.x0, ["k"],
+                             solver=SolverOptions(hold="zoh"), x0_states=["p_mass"])
     J = np.concatenate([s.dydtheta[:, 0, :], s.dydx0[:, 0, :]], axis=1)
     F_oe = J.T @ J / m.meas_std(th)[0] ** 2
     np.testing.assert_allclose(r.F, F_oe, rtol=5e-3)

@@ -33,7 +33,7 @@ from bondgraph.cli.common import (
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import EstimationError, IdentifiabilityWarning
 from bondgraph.inference.estimate import estimate
-from bondgraph.inference.output_error import output_error_fit
+from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.record import as_record, record_arrays
 from bondgraph.inference.options import FitOptions, UKFOptions
 from bondgraph.report.estimation import plot_fit
@@ -171,7 +171,7 @@ def run_output_error(args, model, exp, params, x0, folder, states) -> int:
         theta[model.param_index(k)] = v
     t, u, y, _, _ = record_arrays(model, as_record(exp))
     r = output_error_fit(model, t, u, y, params, theta=theta, x0=x0, x0_states=states,
-                         hold=args.hold)
+                         options=OutputErrorOptions(hold=args.hold))
     noise = _sim_noise_levels(model, exp, r, theta, args.noise)
     doc = {"model": model.name, "data": str(args.data), "fit": "sim", "names": r.names,
            "estimates": r.estimates(), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,

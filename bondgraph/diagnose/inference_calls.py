@@ -25,7 +25,7 @@ from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, 
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.options import ScoringOptions
-from bondgraph.inference.output_error import output_error_fit
+from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
 from bondgraph.inference.prior import PriorSpec
 from bondgraph.inference.ukf import UKFResult
@@ -194,7 +194,7 @@ def output_error(problem: Problem, names: Sequence[str], theta: np.ndarray):
     problem's input hold): an :class:`~bondgraph.inference.output_error.OutputErrorResult`."""
     t, u, y = problem.arrays
     return output_error_fit(problem.model, t, u, y, list(names), theta=theta, x0=problem.x0,
-                            hold=problem.disc.hold)
+                            options=OutputErrorOptions(hold=problem.disc.hold))
 
 
 def discretisation(problem: Problem, theta: np.ndarray, substeps: int | None = None,

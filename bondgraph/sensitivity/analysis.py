@@ -48,6 +48,7 @@ from bondgraph.inference.record import as_record, initial_state, record_arrays
 from bondgraph.inference.ukf import default_P0
 from bondgraph.numerics.forward_sensitivity import (
     Sensitivities,
+    SolverOptions,
     check_params,
     output_sensitivities,
     parameter_scale,
@@ -356,8 +357,9 @@ def _output_error(pb: _Problem, local: dict, method: str, rtol: float,
     pb.say(f"forward sensitivities ({method}, {model.n_x} + {model.n_x}·{len(pb.params)} "
            f"states) ...")
     hold = "zoh" if pb.ukf.hold == "zoh" else "linear"
-    sens = output_sensitivities(model, pb.t, pb.u, pb.theta, pb.x0, pb.params, method=method,
-                                rtol=rtol, atol=atol, hold=hold)
+    sens = output_sensitivities(model, pb.t, pb.u, pb.theta, pb.x0, pb.params,
+                                solver=SolverOptions(method=method, rtol=rtol, atol=atol,
+                                                     hold=hold))
     pb.timing["sensitivities_s"] = time.perf_counter() - t0
     sigma = np.asarray(model.meas_std(pb.theta), float)
     mask = np.isfinite(pb.y)
