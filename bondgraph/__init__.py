@@ -57,7 +57,8 @@ _export("bondgraph.inference.estimate", "EstimationResult", "Stage", "estimate",
 _export("bondgraph.sensitivity.analysis", "analyse")
 _export("bondgraph.diagnose.effects", "Effect", "apply_effect")
 _export("bondgraph.diagnose.loop", "LoopResult", "LoopSettings", "run_loop")
-_export("bondgraph.diagnose.cases", "LoopCase", "TrueEffect", "synthesize")
+_export("bondgraph.diagnose.cases", "LoopCase", "SimulationOptions", "TrueEffect",
+        "synthesize")
 
 #: sub-modules reachable as attributes (``bondgraph.smooth.smooth_sign``)
 _MODULES = {"smooth": "bondgraph.core.smooth", "errors": "bondgraph.errors"}
