@@ -58,7 +58,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from bondgraph.catalog import reference as ref
-from bondgraph.diagnose.cases import synthesize
+from bondgraph.diagnose.cases import SimulationOptions, synthesize
 from bondgraph.diagnose.confirm import Confirmation, confirm
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Scales, get_effect
 from bondgraph.diagnose.fit import Context, Record, fit_model, model_of, parameter_std
@@ -136,6 +136,9 @@ QUICK = [("mass_spring_damper", "cubic_stiffness"), ("rlc_circuit", "sensor_offs
 #: 1.617 ± 0.0026 for 1.605 at 2 substeps, 1.608 at 8)
 SUBSTEPS = {"full": 8, "quick": 2}
 _substeps = [SUBSTEPS["full"]]
+#: how the records are simulated from the truth: RK4 with 10 steps per
+#: sample, inputs held (:class:`bondgraph.diagnose.cases.SimulationOptions`)
+RK4_ZOH = SimulationOptions(method="rk4", substeps=10, hold="zoh")
 
 
 def settings_for(params):
@@ -165,7 +168,7 @@ def draw_truth(spec, eff, seed):
     tgt = targets[int(rng.integers(len(targets)))]
     t = np.arange(0.0, spec["T"], spec["dt"])
     rec = synthesize(g, spec["build"](), t, sampled(spec["inputs"](0.0), t), {}, {}, seed,
-                     "scales", "", hold="zoh", method="rk4", substeps=10)
+                     "scales", "", simulation=RK4_ZOH)
     ctx = Context.on(rec, settings_for(spec["params"]), model_of(g), log=quiet, progress=False)
     fit0 = fit_model(ctx, g, [], None, "declared at truth", iterations=0)
     sc = operating_scales(ctx, fit0)
@@ -198,7 +201,7 @@ def consistent_shapes(spec, eff, tgt, vals, seed) -> dict:
     g = spec["build"]()
     t = np.arange(0.0, spec["T"], spec["dt"])
     rec = synthesize(truth, spec["build"](), t, sampled(spec["inputs"](0.0), t), {}, {}, seed,
-                     "shapes", "", hold="zoh", method="rk4", substeps=10)
+                     "shapes", "", simulation=RK4_ZOH)
     ctx = Context.on(rec, settings_for(spec["params"]), model_of(g), log=quiet, progress=False)
     fit = fit_model(ctx, g, spec["params"], None, "declared")
     return eff.shape_values(g, tgt, operating_scales(ctx, fit))
@@ -234,9 +237,9 @@ def run_case(gname, ename, seed, choice=True):
     t = np.arange(0.0, spec["T"], spec["dt"])
     try:
         rec = synthesize(truth, declared, t, sampled(spec["inputs"](0.0), t), {}, {}, seed,
-                         "train", "", hold="zoh", method="rk4", substeps=10)
+                         "train", "", simulation=RK4_ZOH)
         val = synthesize(truth, declared, t, sampled(spec["inputs"](1.3), t), {}, {},
-                         seed + 7919, "val", "", hold="zoh", method="rk4", substeps=10)
+                         seed + 7919, "val", "", simulation=RK4_ZOH)
     except NumericalError as exc:      # a softening spring drawn strong enough to escape
         return {"graph": gname, "effect": ename, "target": tgt.name,
                 "skipped": f"the drawn truth has no record: {str(exc).splitlines()[0]}"}
@@ -302,7 +305,7 @@ def oracle_chi2(spec, declared, rec, t, seed) -> float:
     χ²(k) 1 % critical value the effect is not excited by this record
     (``not_excited``; a rectification of an output that never changes sign)."""
     same = synthesize(spec["build"](), declared, t, sampled(spec["inputs"](0.0), t), {}, {},
-                      seed, "declared", "", hold="zoh", method="rk4", substeps=10)
+                      seed, "declared", "", simulation=RK4_ZOH)
     model = Model.from_graph(declared)
     _, _, y1 = Record(rec).arrays(model)
     _, _, y0 = Record(same).arrays(model)

@@ -59,6 +59,7 @@ from bondgraph.inference.options import (  # noqa: E402
     Discretisation,
     Evaluation,
     FitOptions,
+    SwarmOptions,
     UKFOptions,
 )
 from bondgraph.inference.prior import PriorSpec  # noqa: E402
@@ -290,8 +291,8 @@ def main(argv=None) -> int:
         crit(np.tile(0.5 * (lo + hi), (args.particles, 1)))
         warm_s = time.perf_counter() - t0
     t0, c0 = time.perf_counter(), time.process_time()
-    res = pso(crit, lo, hi, particles=args.particles, iterations=iterations, seed=args.seed,
-              progress=False)
+    res = pso(crit, lo, hi, progress=False,
+              swarm=SwarmOptions(particles=args.particles, iterations=iterations, seed=args.seed))
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     crit.close()
     s_per_eval = wall / res.nfev

@@ -48,7 +48,8 @@ _export("bondgraph.numerics.simulate", "SimResult", "simulate", "stiffness_repor
 _export("bondgraph.data.records", "Experiment")
 _export("bondgraph.data.experiments", "ExperimentSpec", "get_experiment", "run_experiment")
 # filter, estimation
-_export("bondgraph.inference.options", "Discretisation", "Evaluation", "FitOptions", "UKFOptions")
+_export("bondgraph.inference.options", "Checkpointing", "Discretisation", "Evaluation",
+        "EvolutionOptions", "FitOptions", "SwarmOptions", "UKFOptions")
 _export("bondgraph.inference.prior", "PriorSpec")
 _export("bondgraph.inference.problem", "NoiseSpec", "Problem", "make_problem")
 _export("bondgraph.inference.ukf", "UKFResult", "ukf_nll")
@@ -59,7 +60,8 @@ _export("bondgraph.sensitivity.analysis", "LocalOptions", "analyse")
 _export("bondgraph.sensitivity.sobol", "SobolOptions")
 _export("bondgraph.diagnose.effects", "Effect", "apply_effect")
 _export("bondgraph.diagnose.loop", "LoopResult", "LoopSettings", "run_loop")
-_export("bondgraph.diagnose.cases", "LoopCase", "TrueEffect", "synthesize")
+_export("bondgraph.diagnose.cases", "LoopCase", "SimulationOptions", "TrueEffect",
+        "synthesize")
 
 #: sub-modules reachable as attributes (``bondgraph.smooth.smooth_sign``)
 _MODULES = {"smooth": "bondgraph.core.smooth", "errors": "bondgraph.errors"}

@@ -15,6 +15,7 @@ from bondgraph.core.atomic import OutputFolder
 from bondgraph.errors import CheckpointError, OutputError
 from bondgraph.inference import checkpoint
 from bondgraph.inference.optimize import pso
+from bondgraph.inference.options import Checkpointing, SwarmOptions
 
 
 def _files(folder):
@@ -121,15 +122,18 @@ def test_pso_resume_refuses_another_problem_and_continues_the_same(tmp_path):
 
     def f(X):
         return np.sum((X - 0.3) ** 2, axis=1)
-    kw = dict(particles=6, seed=2, checkpoint=ck, progress=False)
-    full = pso(f, [-1.0] * 2, [1.0] * 2, iterations=6, **kw, fingerprint={"data": "A"})
-    pso(f, [-1.0] * 2, [1.0] * 2, iterations=3, **kw, fingerprint={"data": "A"})
+    six = SwarmOptions(particles=6, seed=2, iterations=6)
+    three = SwarmOptions(particles=6, seed=2, iterations=3)
+    write = Checkpointing(ck, fingerprint={"data": "A"})
+    resume = Checkpointing(ck, resume=True, fingerprint={"data": "A"})
+    full = pso(f, [-1.0] * 2, [1.0] * 2, swarm=six, checkpointing=write, progress=False)
+    pso(f, [-1.0] * 2, [1.0] * 2, swarm=three, checkpointing=write, progress=False)
     with pytest.raises(CheckpointError, match="data"):
-        pso(f, [-1.0] * 2, [1.0] * 2, iterations=6, resume=True, **kw, fingerprint={"data": "B"})
+        pso(f, [-1.0] * 2, [1.0] * 2, swarm=six, progress=False,
+            checkpointing=Checkpointing(ck, resume=True, fingerprint={"data": "B"}))
     with pytest.raises(CheckpointError):
-        pso(f, [-1.0] * 2, [2.0] * 2, iterations=6, resume=True, **kw, fingerprint={"data": "A"})
-    resumed = pso(f, [-1.0] * 2, [1.0] * 2, iterations=6, resume=True, **kw,
-                  fingerprint={"data": "A"})
+        pso(f, [-1.0] * 2, [2.0] * 2, swarm=six, checkpointing=resume, progress=False)
+    resumed = pso(f, [-1.0] * 2, [1.0] * 2, swarm=six, checkpointing=resume, progress=False)
     np.testing.assert_array_equal(resumed.x, full.x)
     assert resumed.fun == full.fun and resumed.resumed_from == 3
 

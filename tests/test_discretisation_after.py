@@ -9,7 +9,7 @@ by BDF at rtol 1e-8, inputs held)."""
 import numpy as np
 
 from bondgraph.catalog.reference import mass_spring_damper
-from bondgraph.diagnose.cases import synthesize
+from bondgraph.diagnose.cases import SimulationOptions, synthesize
 from bondgraph.diagnose.effects import apply_effect, get_effect
 from bondgraph.diagnose.loop import LoopSettings, run_loop
 from bondgraph.inference.options import UKFOptions
@@ -25,7 +25,7 @@ def _record():
     F = sum(a * np.sin(2 * np.pi * f * t + k + 1) for k, (f, a) in
             enumerate(zip([0.4, 1.1, 1.9], [8.0, 5.0, 3.0])))
     return synthesize(truth, mass_spring_damper(), t, {"F": F}, {}, {}, 1016, "stop", "",
-                      hold="zoh")
+                      simulation=SimulationOptions(hold="zoh"))
 
 
 def _loop(auto):

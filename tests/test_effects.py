@@ -159,3 +159,18 @@ def test_score_test_equals_the_likelihood_ratio_of_a_sensor_offset():
     assert c.statistic == pytest.approx(lr, rel=1e-6)
     assert c.values["b"] == pytest.approx(best.x, rel=1e-5)
     assert best.x == pytest.approx(0.003, abs=5e-4)
+
+
+def test_simulation_options_validated_on_construction():
+    from bondgraph.diagnose.cases import SimulationOptions
+    from bondgraph.errors import OptionError
+
+    with pytest.raises(OptionError, match=r"SimulationOptions\.method = 'Euler' is not one of"):
+        SimulationOptions(method="Euler")
+    with pytest.raises(OptionError, match=r"SimulationOptions\.substeps must be an integer >= 1"):
+        SimulationOptions(substeps=0)
+    with pytest.raises(OptionError, match=r"SimulationOptions\.hold = 'mean' is not one of"):
+        SimulationOptions(hold="mean")
+    with pytest.raises(OptionError, match="simulation must be a SimulationOptions, got dict"):
+        synthesize(models.mass_spring_damper(), models.mass_spring_damper(), np.arange(3.0),
+                   {}, {}, {}, 0, "x", "", simulation={"hold": "zoh"})

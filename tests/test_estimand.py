@@ -9,8 +9,8 @@ import pytest
 from bondgraph.errors import ModelError
 from bondgraph.inference.estimand import Estimand
 from bondgraph.inference.fisher import estimand_scoring
-from bondgraph.inference.options import UKFOptions
-from bondgraph.numerics.forward_sensitivity import output_sensitivities
+from bondgraph.inference.options import ScoringOptions, UKFOptions
+from bondgraph.numerics.forward_sensitivity import SolverOptions, output_sensitivities
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -29,8 +29,9 @@ def msd():
 
 def test_initial_state_sensitivities_match_finite_differences(msd):
     m, t, u, th, x0 = msd
-    s = output_sensitivities(m, t, u, th, x0, [], method="BDF", rtol=1e-11, atol=1e-13,
-                             hold="zoh", x0_states=["p_mass", "q_spring"])
+    s = output_sensitivities(m, t, u, th, x0, [], x0_states=["p_mass", "q_spring"],
+                             solver=SolverOptions(method="BDF", rtol=1e-11, atol=1e-13,
+                                                  hold="zoh"))
     assert s.dydx0.shape == (t.size, 2, 2) and s.dydtheta.shape == (t.size, 2, 0)
     for j in range(2):
         h = 1e-4
@@ -80,15 +81,35 @@ def test_unmeasured_initial_momentum_recovered_within_3_crb(msd):
                    x0_scale=np.array([1.0, 0.01]))
     lo, hi = est.bounds([10.0], [500.0])
     r = estimand_scoring(m, t, u, y, est, lo, hi, np.diag([1.0, 1e-16]),
-                         options=UKFOptions(method="rk4", substeps=4), max_iter=30)
+                         options=UKFOptions(method="rk4", substeps=4),
+                         scoring=ScoringOptions(max_iter=30))
     assert r.converged
     z = r.estimand.value()
     crb = np.sqrt(np.diag(np.linalg.inv(r.F)))
     assert abs(z[0] - 80.0) < 3 * crb[0], (z, crb)
     assert abs(z[1] - 0.3) < 3 * crb[1], (z, crb)
     assert crb[1] < 0.05            # informative: the record pins the momentum
-    s = output_sensitivities(m, t, u, r.estimand.theta, r.estimand.x0, ["k"], hold="zoh",
-                             x0_states=["p_mass"])
+    s = output_sensitivities(m, t, u, r.estimand.theta, r.estimand.x0, ["k"],
+                             solver=SolverOptions(hold="zoh"), x0_states=["p_mass"])
     J = np.concatenate([s.dydtheta[:, 0, :], s.dydx0[:, 0, :]], axis=1)
     F_oe = J.T @ J / m.meas_std(th)[0] ** 2
     np.testing.assert_allclose(r.F, F_oe, rtol=5e-3)
+
+
+def test_scoring_options_validated_on_construction():
+    from bondgraph.errors import OptionError
+
+    with pytest.raises(OptionError, match=r"ScoringOptions\.max_iter .* got -1"):
+        ScoringOptions(max_iter=-1)
+    with pytest.raises(OptionError, match=r"ScoringOptions\.atol must be >= 0, got -1\.0"):
+        ScoringOptions(atol=-1.0)
+    with pytest.raises(OptionError, match=r"ScoringOptions\.information must be True or False"):
+        ScoringOptions(information=1)
+    with pytest.raises(OptionError, match=r"ScoringOptions\.log must be callable"):
+        ScoringOptions(log="print")
+    assert ScoringOptions(log_scale=np.array([1, 0], bool)).log_scale == (True, False)
+    m = Model.load("mass_spring_damper")
+    est = Estimand(m, ["k"], theta=m.theta0, x0=np.zeros(2))
+    with pytest.raises(OptionError, match="must be a ScoringOptions, got dict"):
+        estimand_scoring(m, np.arange(3.0), None, np.zeros((3, m.n_y)), est, [1.0], [2.0],
+                         np.eye(2), scoring={"max_iter": 3})

@@ -421,7 +421,7 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
     by free-run least squares; the loop's declared fit starts there and
     lands on the truth of a record simulated from the declared structure
     (m = 2.5, k = 80, c = 2 vs defaults 2, 50, 1.5)."""
-    from bondgraph.inference.output_error import output_error_fit
+    from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 
     m = Model.load("mass_spring_damper")
     t = np.arange(400) * 0.01
@@ -450,7 +450,8 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
     z = rej.candidate.confirmed["error_z"]
     assert 0.0 < z < 1.645
     assert any("output-error fit" in s for s in logs)
-    oe = output_error_fit(m, t, u, y, ["m", "k", "c"], x0=np.zeros(2), hold="zoh")
+    oe = output_error_fit(m, t, u, y, ["m", "k", "c"], x0=np.zeros(2),
+                          options=OutputErrorOptions(hold="zoh"))
     est = res.initial.estimates
     for n, v in zip(["m", "k", "c"], [2.5, 80.0, 2.0]):
         assert est[n] == pytest.approx(v, rel=0.02)

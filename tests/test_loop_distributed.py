@@ -14,7 +14,7 @@ import pytest
 from dask.distributed import LocalCluster
 
 from bondgraph.catalog.reference import mass_spring_damper
-from bondgraph.diagnose.cases import synthesize
+from bondgraph.diagnose.cases import SimulationOptions, synthesize
 from bondgraph.diagnose.effects import apply_effect, get_effect
 from bondgraph.diagnose.loop import LoopSettings, run_loop
 from bondgraph.errors import OptionError
@@ -33,7 +33,7 @@ def _record():
                       {"F": lambda tt: levels[np.minimum((np.asarray(tt) / 0.2).astype(int),
                                                          19)]},
                       {}, {"m": 2.0, "k": 50.0, "c": 1.5}, 11, "cubic", "",
-                      hold="zoh", method="rk4", substeps=10)
+                      simulation=SimulationOptions(hold="zoh", method="rk4", substeps=10))
 
 
 def _run(**kw):

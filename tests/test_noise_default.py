@@ -23,7 +23,7 @@ from bondgraph.inference.estimate import estimate
 from bondgraph.inference.options import FitOptions, UKFOptions
 from bondgraph.inference.prior import PriorSpec
 from bondgraph.inference.problem import NoiseSpec, make_problem
-from bondgraph.numerics.forward_sensitivity import output_sensitivities
+from bondgraph.numerics.forward_sensitivity import SolverOptions, output_sensitivities
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -143,8 +143,8 @@ def test_sensitivity_x0_crb_matches_forward_sensitivities(msd, tmp_path):
     # reference: F = Σ_k J_kᵀ R⁻¹ J_k, J = [∂y/∂θ, ∂y/∂x0] (forward sensitivity equations)
     th = msd.theta()
     s = output_sensitivities(msd, exp.t, exp.inputs_for(msd), th, np.array([0.6, 0.01]),
-                             ["m", "k", "c"], x0_states=["p_mass", "q_spring"], hold="zoh",
-                             rtol=1e-9, atol=1e-12)
+                             ["m", "k", "c"], x0_states=["p_mass", "q_spring"],
+                             solver=SolverOptions(hold="zoh", rtol=1e-9, atol=1e-12))
     J = np.concatenate([s.dydtheta, s.dydx0], axis=2)          # (N, n_y, 5)
     F = np.einsum("nik,i,nil->kl", J, 1.0 / MODEL_SD ** 2, J)
     crb = np.sqrt(np.diag(np.linalg.inv(F)))[3:]

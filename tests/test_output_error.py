@@ -6,7 +6,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from bondgraph.errors import DataError, ModelError
-from bondgraph.inference.output_error import output_error_fit
+from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -81,8 +81,23 @@ def test_estimate_cli_fit_sim(record, tmp_path):
     th = m.theta0.copy()
     th[m.param_index("m")] = 2.5
     r = output_error_fit(m, t, u, y, ["k", "c"], theta=th, x0=np.array([0.0, 0.01]),
-                         x0_states=["p_mass"], hold="zoh")
+                         x0_states=["p_mass"], options=OutputErrorOptions(hold="zoh"))
     for n, v in r.estimates().items():
         assert d["estimates"][n] == pytest.approx(v, rel=1e-9)
     assert d["estimates"]["k"] == pytest.approx(80.0, rel=0.01)
     assert d["estimates"]["x0.p_mass"] == pytest.approx(0.3, abs=0.03)
+
+
+def test_output_error_options_validated_on_construction(record):
+    from bondgraph.errors import OptionError
+
+    with pytest.raises(OptionError, match=r"OutputErrorOptions\.hold = 'mean' is not one of"):
+        OutputErrorOptions(hold="mean")
+    with pytest.raises(OptionError, match=r"OutputErrorOptions\.max_nfev must be an integer"):
+        OutputErrorOptions(max_nfev=0)
+    with pytest.raises(OptionError, match=r"OutputErrorOptions\.atol must be a finite number"):
+        OutputErrorOptions(atol=float("nan"))
+    assert OutputErrorOptions().solver.hold == "zoh"
+    m, t, u, y, truth, x0 = record
+    with pytest.raises(OptionError, match="options must be an OutputErrorOptions, got dict"):
+        output_error_fit(m, t, u, y, ["m"], options={"hold": "zoh"})

@@ -16,7 +16,7 @@ import pytest
 from bondgraph.errors import ModelError
 from bondgraph.core.graph import BondGraph
 from bondgraph.numerics.model import Model
-from bondgraph.numerics.forward_sensitivity import output_sensitivities
+from bondgraph.numerics.forward_sensitivity import SolverOptions, output_sensitivities
 from bondgraph.sensitivity.analysis import LocalOptions, analyse, recommended_params
 from bondgraph.sensitivity.identifiability import (identifiability, orthogonal_ranking, recommend,
                                                    ukf_fisher)
@@ -44,8 +44,9 @@ def msd():
 def test_forward_sensitivities_match_finite_differences(msd, hold):
     m, t, u, th, x0 = msd
     names = ["m", "k", "c"]
-    s = output_sensitivities(m, t, u, th, x0, names, method="BDF", rtol=1e-11, atol=1e-13,
-                             hold=hold)
+    s = output_sensitivities(m, t, u, th, x0, names,
+                             solver=SolverOptions(method="BDF", rtol=1e-11, atol=1e-13,
+                                                  hold=hold))
     assert s.dydtheta.shape == (t.size, 2, 3) and s.dxdtheta.shape == (t.size, 2, 3)
     ref = simulate(m, t, u, x0, th, rtol=1e-12, atol=1e-14, hold=hold).y
     np.testing.assert_allclose(s.y, ref, rtol=1e-7, atol=1e-9)
@@ -67,7 +68,7 @@ def test_output_error_information_matches_ukf_fisher(msd):
     Σ Jᵀ R⁻¹ J with J from the forward sensitivities."""
     m, t, u, th, x0 = msd
     names = ["m", "k", "c"]
-    s = output_sensitivities(m, t, u, th, x0, names, hold="zoh")
+    s = output_sensitivities(m, t, u, th, x0, names, solver=SolverOptions(hold="zoh"))
     y = s.y + np.random.default_rng(1).normal(size=s.y.shape) * m.meas_std(th)
     D = ukf_fisher(m, t, u, y, th, names, x0, np.diag([1e-12, 1e-14]),
                    UKFOptions(method="rk4", substeps=4))
@@ -193,7 +194,7 @@ def msd_csv(tmp_path, msd):
     from bondgraph.data.records import Experiment
 
     m, t, u, th, x0 = msd
-    s = output_sensitivities(m, t, u, th, x0, ["m"], hold="zoh")
+    s = output_sensitivities(m, t, u, th, x0, ["m"], solver=SolverOptions(hold="zoh"))
     y = s.y + np.random.default_rng(2).normal(size=s.y.shape) * m.meas_std(th)
     exp = Experiment.from_arrays(t, model=m, u=u, y=y,
                                  meta={"name": "msd_synth", "x0": {"p_mass": 0.3, "q_spring": 0.01},
@@ -313,3 +314,19 @@ def test_vehicle_coastdown_stage1():
     assert rep.recommendation["check"]["max_rel_crb"] < 0.10
     oe = rep.local["output_error"]
     assert oe["full_rank"] and np.asarray(oe["rms_scaled"]).shape == (4, model.n_y)
+
+
+def test_solver_options_validated_on_construction(msd):
+    from bondgraph.errors import OptionError
+
+    with pytest.raises(OptionError, match=r"SolverOptions\.method = 'Euler' is not one of"):
+        SolverOptions(method="Euler")
+    with pytest.raises(OptionError, match=r"SolverOptions\.rtol must be a finite number > 0"):
+        SolverOptions(rtol=0.0)
+    with pytest.raises(OptionError, match=r"SolverOptions\.hold = 'mean' is not one of"):
+        SolverOptions(hold="mean")
+    with pytest.raises(OptionError, match=r"SolverOptions\.max_step must be a number > 0"):
+        SolverOptions(max_step=-1.0)
+    m, t, u, th, x0 = msd
+    with pytest.raises(OptionError, match="solver must be a SolverOptions, got dict"):
+        output_sensitivities(m, t, u, th, x0, ["m"], solver={"hold": "zoh"})

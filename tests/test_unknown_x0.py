@@ -126,7 +126,7 @@ def test_pump_saturation_found_after_the_additive_candidates_fail():
     L 2.497e-4, held-out NRMSE 0.356 -> 0.046). By default (never skipped)
     the saturation ranks 7th behind six additive candidates that all raise
     the held-out error, and is accepted in the third round of confirmations."""
-    from bondgraph import apply_effect, synthesize
+    from bondgraph import SimulationOptions, apply_effect, synthesize
 
     recs = []
     for seed, q1 in ((11, 0.25), (12, 0.1)):
@@ -136,7 +136,7 @@ def test_pump_saturation_found_after_the_additive_candidates_fail():
         t = np.arange(5401) * 2.0          # 3 h: shorter, the structural ones are scored at once
         Q = rng.uniform(0, 4e-4, size=5401 // 300 + 1)[(t // 600).astype(int)]
         rec = synthesize(truth, tanks(), t, {"Q": Q}, {"q_tank1_C": q1}, TRUTH, seed, "sat", "",
-                         hold="zoh")
+                         simulation=SimulationOptions(hold="zoh"))
         y = rec.columns["p2"] + rng.standard_normal(t.size) * np.sqrt(NOISE**2 - 5.0**2)
         recs.append(Experiment.from_arrays(t, {"Q": Q, "p2": y}, units={"Q": "m^3/s", "p2": "Pa"},
                                            roles={"Q": "input", "p2": "output"},

@@ -31,7 +31,7 @@ from bondgraph.cli.common import (
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import EstimationError, IdentifiabilityWarning
 from bondgraph.inference.estimate import estimate
-from bondgraph.inference.output_error import output_error_fit
+from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.options import FitOptions
 from bondgraph.report.estimation import plot_fit
 
@@ -161,7 +161,7 @@ def run_output_error(args, problem, params, folder, states) -> int:
     model, exp, theta = problem.model, problem.record, problem.theta
     t, u, y = problem.arrays
     r = output_error_fit(model, t, u, y, params, theta=theta, x0=problem.x0, x0_states=states,
-                         hold=problem.disc.hold)
+                         options=OutputErrorOptions(hold=problem.disc.hold))
     noise = _sim_noise_levels(model, exp, r, theta, problem.noise.mode)
     doc = {"model": model.name, "data": str(args.data), "fit": "sim", "names": r.names,
            "estimates": r.estimates(), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,

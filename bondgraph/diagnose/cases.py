@@ -15,6 +15,7 @@ vehicle's in ``vehicle_graphs.cases``.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field, fields
 from typing import Any, Callable
 
@@ -26,7 +27,11 @@ from bondgraph.data.records import Experiment
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import ModelError, OptionError
 from bondgraph.numerics.model import Model
-from bondgraph.numerics.simulate import simulate
+from bondgraph.numerics.simulate import METHODS, simulate
+
+#: how :func:`bondgraph.numerics.simulate.simulate` reads sampled inputs
+#: between samples
+SIMULATION_HOLDS = ("linear", "zoh")
 
 
 def declared_builder(fn: Callable[[], BondGraph]) -> Callable[[], BondGraph]:
@@ -102,22 +107,65 @@ class LoopCase:
                             **{**self.settings, **extra})
 
 
+@dataclass(frozen=True)
+class SimulationOptions:
+    """How :func:`synthesize` simulates the truth
+    (:func:`bondgraph.numerics.simulate.simulate`, rtol 1e-8, atol 1e-10).
+
+    Parameters
+    ----------
+    method : str
+        One of :data:`bondgraph.numerics.simulate.METHODS`: an adaptive
+        solver (default BDF), or fixed-step ``"rk4"`` / ``"ros2"``, which
+        always hold the samples and are much faster on long records.
+    substeps : int
+        Fixed-step methods: steps per sample interval (>= 1).
+    hold : {"linear", "zoh"}
+        How adaptive solvers read sampled input arrays between samples
+        (``"zoh"``: held, exactly what the UKF's zero-order hold sees).
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (the message names the option and value).
+
+    Examples
+    --------
+    >>> SimulationOptions(method="rk4", substeps=10, hold="zoh").substeps
+    10
+    """
+
+    method: str = "BDF"
+    substeps: int = 1
+    hold: str = "linear"
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise OptionError(f"SimulationOptions.method = {self.method!r} is not one of "
+                              f"{', '.join(repr(m) for m in METHODS)}")
+        v = self.substeps
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+            raise OptionError(f"SimulationOptions.substeps must be an integer >= 1, got {v!r}")
+        object.__setattr__(self, "substeps", int(v))
+        if self.hold not in SIMULATION_HOLDS:
+            raise OptionError(f"SimulationOptions.hold = {self.hold!r} is not one of "
+                              f"{', '.join(repr(h) for h in SIMULATION_HOLDS)}")
+
+
 def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
                inputs: dict[str, Callable[[np.ndarray], np.ndarray]], x0: dict[str, float],
                params: dict[str, float], seed: int, name: str, description: str, *,
-               hold: str = "linear", method: str = "BDF", substeps: int = 1,
+               simulation: SimulationOptions | None = None,
                truth_model: Model | None = None):
     """Simulate ``truth`` and record the outputs of ``declared`` with the
     declared sensors' noise (``numpy.random.default_rng(seed)``).
 
     ``inputs`` maps input names to callables of t or to arrays (N,) sampled
-    at ``t``; ``hold`` is how :func:`bondgraph.numerics.simulate.simulate`
-    reads sampled arrays between samples (``"zoh"``: held, exactly what the
-    UKF's zero-order hold sees). ``method`` and ``substeps`` choose the
-    solver (default BDF, rtol 1e-8; ``"rk4"`` with ``substeps`` steps per
-    sample always holds the samples and is much faster on long records).
-    ``truth_model``: ``truth``'s model if the caller has built it already
-    (``Model.from_graph(truth)``; it is not derived again).
+    at ``t``; ``simulation`` (a :class:`SimulationOptions`, default BDF with
+    linearly interpolated samples) chooses the solver, its substeps and how
+    it reads sampled arrays between samples. ``truth_model``: ``truth``'s
+    model if the caller has built it already (``Model.from_graph(truth)``;
+    it is not derived again).
 
     Returns
     -------
@@ -126,14 +174,23 @@ def synthesize(truth: BondGraph, declared: BondGraph, t: np.ndarray,
         (true parameters, x0, seed, noise); every output declares the noise
         std it was drawn with (``noise_std``), so that ``noise="auto"`` holds
         the filter's noise at it.
+
+    Raises
+    ------
+    OptionError
+        ``simulation`` is not a :class:`SimulationOptions`.
     """
+    sim_opts = SimulationOptions() if simulation is None else simulation
+    if not isinstance(sim_opts, SimulationOptions):
+        raise OptionError(f"simulation must be a SimulationOptions, got "
+                          f"{type(sim_opts).__name__} {sim_opts!r}")
     tm = Model.from_graph(truth) if truth_model is None else truth_model
     dm = Model.from_graph(declared)
     th = tm.theta({k: v for k, v in params.items() if k in tm.params})
     u = {k: f for k, f in inputs.items() if k in tm.inputs}
     x = tm.state({k: v for k, v in x0.items() if k in tm.states})
-    sim = simulate(tm, t, u or None, x0=x, theta=th, method=method, rtol=1e-8, atol=1e-10,
-                   hold=hold, substeps=substeps)
+    sim = simulate(tm, t, u or None, x0=x, theta=th, method=sim_opts.method, rtol=1e-8,
+                   atol=1e-10, hold=sim_opts.hold, substeps=sim_opts.substeps)
     rng = np.random.default_rng(seed)
     thd = dm.theta({k: v for k, v in params.items() if k in dm.params})
     sd = dm.meas_std(thd)

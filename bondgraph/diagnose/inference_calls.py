@@ -19,8 +19,8 @@ from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, noise_plan
 from bondgraph.inference.fisher import estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
-from bondgraph.inference.options import Evaluation
-from bondgraph.inference.output_error import output_error_fit
+from bondgraph.inference.options import Evaluation, ScoringOptions
+from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
 from bondgraph.inference.prior import PriorSpec
 from bondgraph.inference.ukf import UKFResult
@@ -137,8 +137,8 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
                             np.ones(len(noises), bool)])
     t, u, y = problem.arrays
     r = estimand_scoring(model, t, u, y, est, lo, hi, P0, options=problem.ukf,
-                         max_iter=iterations, atol=tolerance, log_scale=scale,
-                         information=information)
+                         scoring=ScoringOptions(max_iter=iterations, atol=tolerance,
+                                                log_scale=scale, information=information))
     sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
     return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig
 
@@ -182,7 +182,7 @@ def output_error(problem: Problem, names: Sequence[str], theta: np.ndarray):
     problem's input hold): an :class:`~bondgraph.inference.output_error.OutputErrorResult`."""
     t, u, y = problem.arrays
     return output_error_fit(problem.model, t, u, y, list(names), theta=theta, x0=problem.x0,
-                            hold=problem.disc.hold)
+                            options=OutputErrorOptions(hold=problem.disc.hold))
 
 
 def discretisation(problem: Problem, theta: np.ndarray, substeps: int | None = None,

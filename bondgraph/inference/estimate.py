@@ -793,13 +793,11 @@ def _global_search(crit, lo, hi, fit: FitOptions, start):
     fp = problem_fingerprint(crit)
     with progress.enabled(fit.progress):
         if fit.optimizer == "pso":
-            opt = pso(crit, lo, hi, particles=S, iterations=fit.iterations, seed=fit.seed,
-                      checkpoint=fit.checkpoint, resume=fit.resume, progress=fit.progress,
-                      stall_iterations=fit.stall_iterations, x0=start, fingerprint=fp)
+            opt = pso(crit, lo, hi, swarm=fit.swarm(S), checkpointing=fit.checkpointing(fp),
+                      progress=fit.progress, x0=start)
         else:
-            opt = de(crit, lo, hi, popsize=max(1, S // lo.size), iterations=fit.iterations,
-                     seed=fit.seed, progress=fit.progress, x0=start, checkpoint=fit.checkpoint,
-                     resume=fit.resume, fingerprint=fp)
+            opt = de(crit, lo, hi, evolution=fit.evolution(max(1, S // lo.size)),
+                     checkpointing=fit.checkpointing(fp), progress=fit.progress, x0=start)
     if not np.isfinite(opt.fun):
         causes = ", ".join(f"{k}: {v}" for k, v in crit.failures.most_common()) or "none recorded"
         raise EstimationError(

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bondgraph.inference.estimand import Estimand
-from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.options import ScoringOptions, UKFOptions, scoring_options
 from bondgraph.inference.ukf import ukf_nll
 
 
@@ -166,7 +166,7 @@ class Scoring:
     nll : float
     F : ndarray (k, k) or None
         Fisher information at the result (Cramér-Rao: inv(F)); None when
-        not computed (``information=False``).
+        not computed (``ScoringOptions.information`` False).
     runs : int
         Batched UKF runs used.
     iterations : int
@@ -184,9 +184,13 @@ class Scoring:
     converged: bool
 
 
+#: the scoring of :func:`fisher_scoring` by default: only the relative NLL
+#: change stops (no test on the predicted decrease)
+FISHER_SCORING = ScoringOptions(atol=0.0)
+
+
 def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *,
-                   options: UKFOptions | None = None,
-                   max_iter: int = 12, rtol: float = 1e-6, log=None, log_scale=None):
+                   options: UKFOptions | None = None, scoring: ScoringOptions | None = None):
     """Maximise the UKF likelihood over the parameters ``index`` by
     Levenberg-damped Fisher scoring within the box [lower, upper]
     (:func:`estimand_scoring` for parameters only).
@@ -202,36 +206,33 @@ def fisher_scoring(model, t, u, y, theta, index, lower, upper, x0, P0, *,
     x0, P0 : UKF prior
     options : UKFOptions, optional
         Filter options (:func:`bondgraph.inference.ukf.ukf_nll`).
-    max_iter : int
-    rtol : float
-        Stop when the NLL improves by less than ``rtol * (1 + |NLL|)``.
-    log : callable, optional
-        Progress lines.
-    log_scale : array of bool (k,), optional
-        Parameters optimised in log θ (scale parameters such as noise
-        intensities, whose likelihood is far from quadratic in θ near zero).
-        Default: positive boxes spanning more than two decades.
+    scoring : ScoringOptions, optional
+        Iteration controls (:class:`~bondgraph.inference.options.ScoringOptions`:
+        ``max_iter``, ``rtol``, ``atol``, ``log_scale``, ``information``,
+        ``log``). Default :data:`FISHER_SCORING`: 12 iterations, stop when
+        the NLL improves by less than 1e-6 (1 + |NLL|) (``atol`` 0); the
+        log scale of positive boxes spanning more than two decades.
 
     Returns
     -------
     theta : array (n_theta,)
     nll : float
     F : array (k, k)
-        Fisher information at the result (Cramér-Rao: inv(F)).
+        Fisher information at the result (Cramér-Rao: inv(F); None only
+        with ``scoring.information`` False).
     runs : int
         Batched UKF runs used.
     """
     est = Estimand(model, [model.params[j] for j in index], theta=theta,
                    x0=model.x0 if x0 is None else x0)
     r = estimand_scoring(model, t, u, y, est, lower, upper, P0, options=options,
-                         max_iter=max_iter, rtol=rtol, atol=0.0, log=log, log_scale=log_scale)
+                         scoring=FISHER_SCORING if scoring is None else scoring)
     return r.estimand.theta, r.nll, r.F, r.runs
 
 
 def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
-                     options: UKFOptions | None = None, max_iter: int = 12,
-                     rtol: float = 1e-6, atol: float = 1e-3, log=None,
-                     log_scale=None, information: bool = True) -> Scoring:
+                     options: UKFOptions | None = None,
+                     scoring: ScoringOptions | None = None) -> Scoring:
     """Maximise the UKF likelihood over the quantities of ``est``
     (parameters, initial states, noise stds) by Levenberg-damped Fisher
     scoring within the box [lower, upper] (k,).
@@ -240,11 +241,12 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
     one for a line search over damped steps (6 sets, plus decade moves of
     the log-scale quantities). Stops when a step improves the NLL by less
     than ``rtol (1 + |NLL|)``, when the predicted decrease of a full step is
-    below ``atol`` nats (converged), or after ``max_iter`` iterations.
-    With ``information`` False the derivatives are not computed again at a
-    result the last iteration moved to (a caller that needs neither F nor
-    the NLL there saves that run): ``F`` is then None and ``nll`` the line
-    search's NLL at the result.
+    below ``atol`` nats (converged), or after ``max_iter`` iterations
+    (``scoring``: :class:`~bondgraph.inference.options.ScoringOptions`,
+    default its defaults). With ``scoring.information`` False the
+    derivatives are not computed again at a result the last iteration moved
+    to (a caller that needs neither F nor the NLL there saves that run):
+    ``F`` is then None and ``nll`` the line search's NLL at the result.
 
     Returns
     -------
@@ -254,9 +256,13 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
     ------
     FloatingPointError
         If the UKF fails at the start.
+    OptionError
+        ``scoring`` is not a :class:`~bondgraph.inference.options.ScoringOptions`.
     """
+    sc = scoring_options(scoring)
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
     z = np.clip(est.value(), lo, hi)
+    log_scale = sc.log_scale
     if log_scale is None:
         log_scale = (lo > 0) & (hi > 100 * lo)
     L = np.asarray(log_scale, dtype=bool)
@@ -265,13 +271,13 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
     # the derivatives at z are kept: after a refused step, and at the end
     # when z did not move, they are not computed again (the same UKF run)
     at, D = None, None
-    for it in range(1, max_iter + 1):
+    for it in range(1, sc.max_iter + 1):
         if at is None or not np.array_equal(at, z):
             D = estimand_derivatives(model, t, u, y, est.at(z), _steps(z, hi, width), P0,
                                      options)
             at, runs = z.copy(), runs + 1
         step = _scoring_step(D, z, L, lam)
-        if _predicted_decrease(D, z, L) < atol:
+        if _predicted_decrease(D, z, L) < sc.atol:
             converged = True
             break
         alphas, cand = _candidates(z, step, L, lo, hi)
@@ -280,9 +286,9 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
         runs += 1
         best = int(np.argmin(np.where(np.isfinite(r.nll), r.nll, np.inf)))
         f_new = float(r.nll[best])
-        if log:
+        if sc.log:
             how = f"step x{alphas[best]:g}" if np.isfinite(alphas[best]) else "scale move"
-            log(f"    scoring {it}: NLL {D.nll:.3f} -> {f_new:.3f} ({how})")
+            sc.log(f"    scoring {it}: NLL {D.nll:.3f} -> {f_new:.3f} ({how})")
         if not np.isfinite(f_new) or f_new >= D.nll:
             lam *= 10.0
             if lam > 1e6:
@@ -291,13 +297,13 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
             continue
         z, nll = cand[best], f_new
         lam = max(lam / 3.0, 1e-6)
-        if D.nll - f_new < rtol * (1.0 + abs(f_new)):
+        if D.nll - f_new < sc.rtol * (1.0 + abs(f_new)):
             converged = True
             break
     # information at the final point
     est = est.at(z)
     if at is None or not np.array_equal(at, z):
-        if not information and at is not None:
+        if not sc.information and at is not None:
             return Scoring(est, nll, None, runs, it, converged)
         D = estimand_derivatives(model, t, u, y, est, _steps(z, hi, width), P0, options)
         runs += 1

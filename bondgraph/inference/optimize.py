@@ -8,12 +8,14 @@ NaN) values mark failed evaluations; they never stop the search.
 * :func:`pso` — particle swarm optimisation (Kennedy & Eberhart 1995) with
   Clerc-Kennedy constriction (w = 0.7298, c1 = c2 = 1.49618; Clerc & Kennedy
   2002), global-best topology, uniform initialisation in the box, velocity
-  clamp, absorbing bounds, all in normalised [0, 1] coordinates. A checkpoint
+  clamp, absorbing bounds, all in normalised [0, 1] coordinates
+  (:class:`~bondgraph.inference.options.SwarmOptions`). A checkpoint
   (positions, velocities, bests, history and the RNG state) is written after
-  every iteration; ``resume=True`` continues from it and reproduces the
-  uninterrupted run bit for bit.
+  every iteration; resuming (:class:`~bondgraph.inference.options.Checkpointing`)
+  continues from it and reproduces the uninterrupted run bit for bit.
 * :func:`de` — :func:`scipy.optimize.differential_evolution` with
-  ``vectorized=True`` behind the same interface.
+  ``vectorized=True`` behind the same interface
+  (:class:`~bondgraph.inference.options.EvolutionOptions`).
 
 Evaluation counts are exact: ``nfev`` counts parameter sets (members)
 evaluated, ``ncalls`` batched calls of ``fun``. A PSO with 80 particles and
@@ -44,10 +46,7 @@ from scipy.optimize import differential_evolution, minimize
 from bondgraph.core import atomic
 from bondgraph.errors import CheckpointError, OptionError
 from bondgraph.inference import checkpoint as fingerprints
-
-#: Clerc-Kennedy constriction coefficients
-CONSTRICTION_W = 0.7298
-CONSTRICTION_C = 1.49618
+from bondgraph.inference.options import Checkpointing, EvolutionOptions, SwarmOptions
 
 
 @dataclass
@@ -213,9 +212,9 @@ class _Swarm:
                                     rng=np.array(json.dumps(self.rng.bit_generator.state)),
                                     **state))
 
-    def iterate(self, fun, lo, hi, w: float, c1: float, c2: float, vmax: float,
-                ftol: float) -> None:
+    def iterate(self, fun, lo, hi, opts: SwarmOptions) -> None:
         """One PSO iteration (velocity and position update, evaluation, bests)."""
+        w, c1, c2, vmax, ftol = opts.w, opts.c1, opts.c2, opts.vmax, opts.ftol
         S, k = self.Z.shape
         r1 = self.rng.random((S, k))
         r2 = self.rng.random((S, k))
@@ -246,13 +245,9 @@ class _Swarm:
             self.stall = 0
 
 
-def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int | None = None,
-        iterations: int = 100, seed: int | None = 0, w: float = CONSTRICTION_W,
-        c1: float = CONSTRICTION_C, c2: float = CONSTRICTION_C, vmax: float = 0.5,
-        stall_iterations: int | None = None, ftol: float = 1e-8,
-        checkpoint: str | Path | None = None, resume: bool = False, progress: bool = True,
-        x0=None, callback: Callable | None = None,
-        fingerprint: Mapping[str, str] | None = None) -> OptimizeResult:
+def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *,
+        swarm: SwarmOptions | None = None, checkpointing: Checkpointing | None = None,
+        progress: bool = True, x0=None, callback: Callable | None = None) -> OptimizeResult:
     """Minimise a batched criterion by particle swarm optimisation
     (Kennedy & Eberhart 1995; constriction of Clerc & Kennedy 2002).
 
@@ -263,32 +258,22 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
         failed evaluation.
     lower, upper : array (k,)
         Box bounds (finite, lower < upper).
-    particles : int, optional
-        Swarm size S (default 10 k).
-    iterations : int
-        Maximum iterations after the initial swarm.
-    seed : int or None
-        Seed of the ``numpy.random.Generator`` (PCG64).
-    w, c1, c2 : float
-        Inertia (constriction) and acceleration coefficients.
-    vmax : float
-        Velocity clamp as a fraction of the box width (normalised units).
-    stall_iterations, ftol :
-        Stop when the best value improved by less than
-        ``ftol * (1 + |best|)`` over ``stall_iterations`` iterations.
-    checkpoint : path, optional
-        ``.npz`` file written (atomically) after every iteration.
-    resume : bool
-        Continue from ``checkpoint`` (must exist and match the fingerprint).
+    swarm : SwarmOptions, optional
+        Swarm size (default 10 k), iterations, seed, coefficients w, c1,
+        c2, velocity clamp and the stall rule
+        (:class:`~bondgraph.inference.options.SwarmOptions`; default: its
+        defaults).
+    checkpointing : Checkpointing, optional
+        ``.npz`` checkpoint written (atomically) after every iteration, and
+        whether to resume from it (it must exist and match the fingerprint:
+        the problem's components and the swarm's settings)
+        (:class:`~bondgraph.inference.options.Checkpointing`; default: none).
     progress : bool
         Show a tqdm bar with the best criterion.
     x0 : array (k,), optional
         A point placed into the initial swarm (replaces particle 0).
     callback : callable, optional
         ``callback(it, best_x, best_f)`` after every iteration; True stops.
-    fingerprint : dict, optional
-        Problem components a resumed run must share, besides the swarm's
-        settings (:func:`bondgraph.inference.checkpoint.problem_fingerprint`).
 
     Returns
     -------
@@ -297,7 +282,7 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
     Raises
     ------
     OptionError
-        Bad bounds or sizes; a missing checkpoint or one of another problem
+        Bad bounds or options; a missing checkpoint or one of another problem
         (:class:`~bondgraph.errors.CheckpointError`, what differs named).
 
     Notes
@@ -310,47 +295,54 @@ def pso(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, particles: int
     The random numbers r1, r2 (uniform, per particle and coordinate) come
     from one generator whose state is checkpointed.
     """
+    opts = _given(swarm, SwarmOptions, "swarm")
+    ckp = _given(checkpointing, Checkpointing, "checkpointing")
     lo, hi = _check_box(lower, upper)
-    S = int(particles) if particles is not None else 10 * lo.size
-    settings, key = _pso_settings(lo, hi, S, iterations, seed, w, c1, c2, vmax, x0,
-                                  stall_iterations, fingerprint)
-    ck = Path(checkpoint) if checkpoint is not None else None
+    S = opts.size(lo.size)
+    settings, key = _pso_settings(lo, hi, S, opts, x0, ckp.fingerprint)
+    ck = ckp.path
     t0 = time.perf_counter()
-    sw = _Swarm.load(ck, key) if resume else _Swarm.start(fun, lo, hi, S, seed, vmax, x0)
-    if not resume:
+    sw = (_Swarm.load(ck, key) if ckp.resume
+          else _Swarm.start(fun, lo, hi, S, opts.seed, opts.vmax, x0))
+    if not ckp.resume:
         sw.save(ck, key)
     it0 = sw.it
-    stop_reason = _pso_iterations(sw, fun, lo, hi, (w, c1, c2, vmax, ftol), iterations,
-                                  stall_iterations, (ck, key), progress, callback)
+    stop_reason = _pso_iterations(sw, fun, lo, hi, opts, (ck, key), progress, callback)
     return OptimizeResult(x=lo + sw.g * (hi - lo), fun=sw.gf, nfev=sw.nfev, ncalls=sw.ncalls,
                           nit=sw.it, n_inf=sw.n_inf, stop_reason=stop_reason,
                           history=np.array(sw.history), method="pso",
                           wall_s=time.perf_counter() - t0, resumed_from=it0, settings=settings)
 
 
-def _pso_settings(lo, hi, S, iterations, seed, w, c1, c2, vmax, x0, stall_iterations,
-                  problem: Mapping[str, str] | None):
-    """``(settings, checkpoint fingerprint)``; the fingerprint covers what a
-    resumed run must share with the interrupted one: the ``problem``
-    components and the swarm's settings (not the iteration budget).
+def _given(value, cls, name: str):
+    """``value`` checked to be a ``cls`` (None: its defaults).
 
     Raises
     ------
     OptionError
-        Fewer than 2 particles or negative iterations.
+        For anything else (a dict: use ``cls(**d)``).
     """
-    if S < 2:
-        raise OptionError(f"PSO needs at least 2 particles, got {S}")
-    if iterations < 0:
-        raise OptionError(f"iterations must be >= 0, got {iterations}")
+    if value is None:
+        return cls()
+    if not isinstance(value, cls):
+        raise OptionError(f"{name} must be a {cls.__name__}, got {type(value).__name__} "
+                          f"{value!r} (use {cls.__name__}(**d) for a dict)")
+    return value
+
+
+def _pso_settings(lo, hi, S: int, opts: SwarmOptions, x0, problem: Mapping[str, str] | None):
+    """``(settings, checkpoint fingerprint)``; the fingerprint covers what a
+    resumed run must share with the interrupted one: the ``problem``
+    components and the swarm's settings (not the iteration budget)."""
+    seed, w, c1, c2, vmax = opts.seed, opts.w, opts.c1, opts.c2, opts.vmax
     settings = dict(method="pso", particles=S, seed=seed, w=w, c1=c1, c2=c2, vmax=vmax,
                     lower=lo.tolist(), upper=hi.tolist(),
                     x0=None if x0 is None else np.asarray(x0, float).tolist())
     key = _search_fingerprint(problem, "pso", particles=str(S), seed=str(seed),
                               coefficients=f"w={w!r} c1={c1!r} c2={c2!r} vmax={vmax!r}",
                               box=(lo, hi), start=x0)
-    settings["iterations"] = iterations
-    settings["stall_iterations"] = stall_iterations
+    settings["iterations"] = opts.iterations
+    settings["stall_iterations"] = opts.stall_iterations
     return settings, key
 
 
@@ -366,31 +358,30 @@ def _search_fingerprint(problem: Mapping[str, str] | None, method: str, *, box, 
     return fp
 
 
-def _pso_iterations(sw: _Swarm, fun, lo, hi, coeffs, iterations, stall_iterations, ck_key,
-                    progress: bool, callback) -> str:
-    """Iterate until ``iterations``, the stall rule or the callback; returns
-    the stop reason. Checkpoints after every iteration; a bar (iterations
-    done, time left, best criterion) with ``progress``."""
-    bar = _progress_bar(progress, iterations, min(sw.it, iterations),
+def _pso_iterations(sw: _Swarm, fun, lo, hi, opts: SwarmOptions, ck_key, progress: bool,
+                    callback) -> str:
+    """Iterate until ``opts.iterations``, the stall rule or the callback;
+    returns the stop reason. Checkpoints after every iteration; a bar
+    (iterations done, time left, best criterion) with ``progress``."""
+    bar = _progress_bar(progress, opts.iterations, min(sw.it, opts.iterations),
                         f"PSO: {sw.Z.shape[0]} particles x {lo.size} parameters", "it")
     try:
         if bar is not None:
             bar.set_postfix(best=f"{sw.gf:.6g}")
-        return _pso_loop(sw, fun, lo, hi, coeffs, iterations, stall_iterations, ck_key, bar,
-                         callback)
+        return _pso_loop(sw, fun, lo, hi, opts, ck_key, bar, callback)
     finally:
         if bar is not None:
             bar.close()
 
 
-def _pso_loop(sw: _Swarm, fun, lo, hi, coeffs, iterations, stall_iterations, ck_key,
-              bar, callback) -> str:
+def _pso_loop(sw: _Swarm, fun, lo, hi, opts: SwarmOptions, ck_key, bar, callback) -> str:
     """The iterations of :func:`_pso_iterations`."""
+    stall_iterations = opts.stall_iterations
     stalled = f"stalled {stall_iterations} iterations"
     if stall_iterations is not None and sw.stall >= stall_iterations:
         return stalled
-    while sw.it < iterations:
-        sw.iterate(fun, lo, hi, *coeffs)
+    while sw.it < opts.iterations:
+        sw.iterate(fun, lo, hi, opts)
         sw.save(*ck_key)
         if bar is not None:
             bar.update(1)
@@ -445,11 +436,9 @@ class _DEMonitor:
         return False
 
 
-def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 10,
-       iterations: int = 100, seed: int | None = 0, tol: float = 0.0, atol: float = 0.0,
-       mutation=(0.5, 1.0), recombination: float = 0.7, strategy: str = "best1bin",
-       progress: bool = True, x0=None, checkpoint: str | Path | None = None,
-       resume: bool = False, fingerprint: Mapping[str, str] | None = None) -> OptimizeResult:
+def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *,
+       evolution: EvolutionOptions | None = None, checkpointing: Checkpointing | None = None,
+       progress: bool = True, x0=None) -> OptimizeResult:
     """Minimise a batched criterion with scipy's differential evolution
     (Storn & Price 1997).
 
@@ -458,33 +447,34 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 
     fun : callable
         ``fun(X (S, k)) -> (S,)`` as for :func:`pso`.
     lower, upper : array (k,)
-    popsize : int
-        Population multiplier: the population has ``popsize * k`` members
-        (scipy's convention), so 10 x 8 parameters = 80 members.
-    iterations : int
-        ``maxiter`` (generations after the initial population).
-    seed : int or None
-    tol, atol : float
-        scipy's convergence tolerances (0: run all generations).
-    mutation, recombination, strategy :
-        Passed to scipy.
+    evolution : EvolutionOptions, optional
+        Population multiplier (``popsize * k`` members, scipy's convention),
+        generations, seed, tolerances, mutation, recombination and strategy
+        (:class:`~bondgraph.inference.options.EvolutionOptions`; default:
+        its defaults).
+    checkpointing : Checkpointing, optional
+        ``.npz`` with the population after every generation; resuming
+        restarts from the checkpointed population (``init=``) for the
+        remaining generations. Unlike :func:`pso`, this is not bit-for-bit
+        the uninterrupted run: scipy's generator state is not restored
+        (:class:`~bondgraph.inference.options.Checkpointing`; default: none).
     progress : bool
         tqdm bar with the best criterion.
     x0 : array (k,), optional
-    checkpoint : path, optional
-        ``.npz`` with the population after every generation.
-    resume : bool
-        Restart from the checkpointed population (``init=``) for the
-        remaining generations. Unlike :func:`pso`, this is not bit-for-bit
-        the uninterrupted run: scipy's generator state is not restored.
-    fingerprint : dict, optional
-        Components of the problem a resumed run must share (as for :func:`pso`).
 
     Returns
     -------
     OptimizeResult
         ``nfev`` counts members (counted in the wrapper), ``ncalls`` the
-        batched calls: 80 + 100 x 80 = 8080 for the settings above.
+        batched calls: 80 + 100 x 80 = 8080 for 10 x 8 parameters and 100
+        generations.
+
+    Raises
+    ------
+    OptionError
+        Bad bounds or options, a population of fewer than 5 members; a
+        missing checkpoint or one of another problem
+        (:class:`~bondgraph.errors.CheckpointError`).
 
     Notes
     -----
@@ -492,39 +482,46 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *, popsize: int = 
     ``updating='deferred'``; the wrapper transposes it. Infinite values
     are replaced by a finite penalty (1e100) and counted in ``n_inf``.
     """
+    opts = _given(evolution, EvolutionOptions, "evolution")
+    ckp = _given(checkpointing, Checkpointing, "checkpointing")
     lo, hi = _check_box(lower, upper)
-    k = lo.size
-    if popsize < 1 or popsize * k < 5:
+    k, popsize, iterations, resume = lo.size, opts.popsize, opts.iterations, ckp.resume
+    if popsize * k < 5:
         raise OptionError(f"DE needs a population of at least 5 members (popsize * k), "
                           f"got {popsize} x {k}")
-    ck = Path(checkpoint) if checkpoint is not None else None
-    fp = _search_fingerprint(fingerprint, "de", box=(lo, hi), start=x0, popsize=str(popsize),
-                             seed=str(seed), strategy=f"{strategy} mutation={mutation!r} "
-                                                      f"recombination={recombination!r}")
-    init, it0, history, best = (_de_start(ck, fp) if resume
+    fp = _search_fingerprint(ckp.fingerprint, "de", box=(lo, hi), start=x0,
+                             popsize=str(popsize), seed=str(opts.seed),
+                             strategy=f"{opts.strategy} mutation={opts.mutation!r} "
+                                      f"recombination={opts.recombination!r}")
+    init, it0, history, best = (_de_start(ckp.path, fp) if resume
                                 else ("latinhypercube", 0, [], np.inf))
-    mon = _DEMonitor(fun, ck, it0, history, best, resume,
+    mon = _DEMonitor(fun, ckp.path, it0, history, best, resume,
                      _progress_bar(progress, iterations, it0,
                                    f"DE: {popsize * k} members x {k} parameters", "gen"), fp)
     t0 = time.perf_counter()
-    kw = dict(strategy=strategy, maxiter=max(iterations - it0, 0), popsize=popsize, tol=tol,
-              atol=atol, mutation=mutation, recombination=recombination, polish=False,
-              init=init, vectorized=True, updating="deferred", callback=mon.callback)
+    kw = dict(strategy=opts.strategy, maxiter=max(iterations - it0, 0), popsize=popsize,
+              tol=opts.tol, atol=opts.atol, mutation=opts.mutation,
+              recombination=opts.recombination, polish=False, init=init, vectorized=True,
+              updating="deferred", callback=mon.callback)
     if x0 is not None and not resume:
         kw["x0"] = np.clip(np.asarray(x0, float), lo, hi)
-    res = differential_evolution(mon, list(zip(lo, hi)), rng=seed, **kw)
+    res = differential_evolution(mon, list(zip(lo, hi)), rng=opts.seed, **kw)
     if mon.bar is not None:
         mon.bar.close()
-    settings = dict(method="de", popsize=popsize, members=popsize * k, seed=seed,
-                    iterations=iterations, strategy=strategy,
-                    mutation=[float(v) for v in np.atleast_1d(mutation)],
-                    recombination=recombination, lower=lo.tolist(), upper=hi.tolist())
     return OptimizeResult(x=np.asarray(res.x, dtype=float),
                           fun=float(res.fun) if res.fun < mon.PENALTY else np.inf,
                           nfev=mon.nfev, ncalls=mon.ncalls, nit=mon.gen, n_inf=mon.n_inf,
                           stop_reason=str(res.message), history=np.array(mon.history),
                           method="de", wall_s=time.perf_counter() - t0, resumed_from=it0,
-                          settings=settings)
+                          settings=_de_settings(opts, lo, hi))
+
+
+def _de_settings(opts: EvolutionOptions, lo, hi) -> dict:
+    """The settings a DE result reports."""
+    return dict(method="de", popsize=opts.popsize, members=opts.popsize * lo.size,
+                seed=opts.seed, iterations=opts.iterations, strategy=opts.strategy,
+                mutation=[float(v) for v in np.atleast_1d(opts.mutation)],
+                recombination=opts.recombination, lower=lo.tolist(), upper=hi.tolist())
 
 
 def _de_start(ck: Path | None, fingerprint: Mapping[str, str]):

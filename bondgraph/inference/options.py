@@ -16,6 +16,11 @@ naming the option and the value), not deep inside a filter run:
 
 What belongs to the *problem* (the record, the prior, the noise levels, the
 fixed values) is a :class:`bondgraph.inference.problem.Problem`.
+* :class:`SwarmOptions`, :class:`EvolutionOptions` and :class:`Checkpointing`
+  — the settings of the global optimizers :func:`bondgraph.inference.optimize.pso`
+  and :func:`bondgraph.inference.optimize.de` and of their checkpoint.
+* :class:`ScoringOptions` — the iteration controls of Fisher scoring
+  (:func:`bondgraph.inference.fisher.estimand_scoring`).
 
 Results keep them as plain dicts (``dataclasses.asdict``, see
 :meth:`UKFOptions.to_dict`), so JSON result files stay readable; a dict read
@@ -27,8 +32,12 @@ from __future__ import annotations
 import importlib.util
 import math
 import numbers
+import os
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Callable, Mapping
+
+import numpy as np
 
 from bondgraph.errors import OptionError
 
@@ -57,6 +66,14 @@ P0_SCALES = ("state", "magnitude")
 #: fewest steps per sample of the free run that gives the prior's state
 #: scales (:meth:`Discretisation.for_free_run`)
 FREE_RUN_MIN_SUBSTEPS = 2
+#: Clerc-Kennedy constriction coefficients of the particle swarm (Clerc &
+#: Kennedy 2002): the inertia w and the accelerations c1 = c2
+CONSTRICTION_W = 0.7298
+CONSTRICTION_C = 1.49618
+#: mutation strategies of scipy's differential evolution
+DE_STRATEGIES = ("best1bin", "best1exp", "rand1bin", "rand1exp", "rand2bin", "rand2exp",
+                 "randtobest1bin", "randtobest1exp", "currenttobest1bin", "currenttobest1exp",
+                 "best2exp", "best2bin")
 
 
 def _set(obj, name: str, value) -> None:
@@ -335,6 +352,263 @@ class FitOptions:
             d["checkpoint"] = str(d["checkpoint"])
         return d
 
+    def swarm(self, particles: int) -> "SwarmOptions":
+        """The particle swarm of this search (``iterations``, ``seed``,
+        ``stall_iterations``) with ``particles`` particles."""
+        return SwarmOptions(particles=particles, iterations=self.iterations, seed=self.seed,
+                            stall_iterations=self.stall_iterations)
+
+    def evolution(self, popsize: int) -> "EvolutionOptions":
+        """The differential evolution of this search (``iterations``,
+        ``seed``) with the population multiplier ``popsize``."""
+        return EvolutionOptions(popsize=popsize, iterations=self.iterations, seed=self.seed)
+
+    def checkpointing(self, fingerprint: Mapping[str, str] | None = None) -> "Checkpointing":
+        """The optimizer's :class:`Checkpointing`: ``checkpoint``, ``resume``
+        and the problem's ``fingerprint``."""
+        return Checkpointing(path=self.checkpoint, resume=self.resume, fingerprint=fingerprint)
+
+
+@dataclass(frozen=True)
+class SwarmOptions:
+    """Settings of the particle swarm :func:`bondgraph.inference.optimize.pso`
+    (Kennedy & Eberhart 1995; constriction of Clerc & Kennedy 2002).
+
+    Parameters
+    ----------
+    particles : int, optional
+        Swarm size S (>= 2; default 10 k for k parameters).
+    iterations : int
+        Maximum iterations after the initial swarm (>= 0).
+    seed : int or None
+        Seed of the ``numpy.random.Generator`` (PCG64).
+    w, c1, c2 : float
+        Inertia (constriction) and acceleration coefficients (default
+        :data:`CONSTRICTION_W`, :data:`CONSTRICTION_C`).
+    vmax : float
+        Velocity clamp as a fraction of the box width (normalised units, > 0).
+    stall_iterations : int, optional
+        Stop when the best value improved by less than ``ftol * (1 + |best|)``
+        over this many iterations (>= 1; None: never).
+    ftol : float
+        Tolerance of that stall rule (>= 0).
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (the message names the option and value).
+
+    Examples
+    --------
+    >>> SwarmOptions(particles=20, iterations=50, seed=3).w
+    0.7298
+    """
+
+    particles: int | None = None
+    iterations: int = 100
+    seed: int | None = 0
+    w: float = CONSTRICTION_W
+    c1: float = CONSTRICTION_C
+    c2: float = CONSTRICTION_C
+    vmax: float = 0.5
+    stall_iterations: int | None = None
+    ftol: float = 1e-8
+
+    def __post_init__(self):
+        _integer(self, "particles", 2, optional=True)
+        _integer(self, "iterations", 0)
+        _integer(self, "seed", 0, optional=True)
+        for name in ("w", "c1", "c2"):
+            _real(self, name)
+        _real(self, "vmax", positive=True)
+        _integer(self, "stall_iterations", 1, optional=True)
+        _nonnegative(self, "ftol")
+
+    def size(self, k: int) -> int:
+        """The swarm size S for ``k`` parameters: ``particles``, default 10 k."""
+        return self.particles if self.particles is not None else 10 * k
+
+
+@dataclass(frozen=True)
+class EvolutionOptions:
+    """Settings of the differential evolution :func:`bondgraph.inference.optimize.de`
+    (Storn & Price 1997; :func:`scipy.optimize.differential_evolution`).
+
+    Parameters
+    ----------
+    popsize : int
+        Population multiplier (>= 1): the population has ``popsize * k``
+        members (scipy's convention), so 10 x 8 parameters = 80 members.
+    iterations : int
+        ``maxiter``: generations after the initial population (>= 0).
+    seed : int or None
+        Seed of scipy's random generator.
+    tol, atol : float
+        scipy's convergence tolerances (>= 0; 0: run all generations).
+    mutation : float or (float, float)
+        Differential weight F, or the range of its dithering (scipy).
+    recombination : float
+        Crossover probability in [0, 1].
+    strategy : str
+        One of :data:`DE_STRATEGIES`.
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (the message names the option and value).
+
+    Examples
+    --------
+    >>> EvolutionOptions(popsize=15).mutation
+    (0.5, 1.0)
+    """
+
+    popsize: int = 10
+    iterations: int = 100
+    seed: int | None = 0
+    tol: float = 0.0
+    atol: float = 0.0
+    mutation: float | tuple[float, float] = (0.5, 1.0)
+    recombination: float = 0.7
+    strategy: str = "best1bin"
+
+    def __post_init__(self):
+        _integer(self, "popsize", 1)
+        _integer(self, "iterations", 0)
+        _integer(self, "seed", 0, optional=True)
+        _nonnegative(self, "tol")
+        _nonnegative(self, "atol")
+        _mutation(self)
+        _real(self, "recombination")
+        if not 0.0 <= self.recombination <= 1.0:
+            raise OptionError(f"EvolutionOptions.recombination must be in [0, 1], "
+                              f"got {self.recombination!r}")
+        _choice(self, "strategy", DE_STRATEGIES)
+
+
+def _nonnegative(obj, name: str) -> None:
+    """A finite number >= 0 (converted to float)."""
+    _real(obj, name)
+    if getattr(obj, name) < 0:
+        raise OptionError(f"{type(obj).__name__}.{name} must be >= 0, got {getattr(obj, name)!r}")
+
+
+def _mutation(obj) -> None:
+    """A finite number, or a pair of them (kept a tuple of floats)."""
+    v = obj.mutation
+    if isinstance(v, (tuple, list)):
+        ok = len(v) == 2 and all(isinstance(x, numbers.Real) and not isinstance(x, bool)
+                                 and math.isfinite(x) for x in v)
+        if not ok:
+            raise OptionError(f"{type(obj).__name__}.mutation must be a number or a pair of "
+                              f"numbers, got {v!r}")
+        _set(obj, "mutation", tuple(float(x) for x in v))
+    else:
+        _real(obj, "mutation")
+
+
+@dataclass(frozen=True)
+class Checkpointing:
+    """Where an optimizer (:func:`bondgraph.inference.optimize.pso`,
+    :func:`bondgraph.inference.optimize.de`) keeps its checkpoint, whether it
+    resumes from it, and what the resumed run must share with the
+    interrupted one.
+
+    Parameters
+    ----------
+    path : path, optional
+        ``.npz`` file written (atomically) after every iteration; None: no
+        checkpoint (kept as a :class:`pathlib.Path`).
+    resume : bool
+        Continue from ``path`` (which must exist and match the fingerprint).
+    fingerprint : dict, optional
+        Components of the problem a resumed run must share, besides the
+        optimizer's settings
+        (:func:`bondgraph.inference.checkpoint.problem_fingerprint`).
+
+    Raises
+    ------
+    OptionError
+        ``resume`` without a ``path``, a path that is not one, or a
+        fingerprint that is not a mapping.
+    """
+
+    path: str | Path | None = None
+    resume: bool = False
+    fingerprint: Mapping[str, str] | None = None
+
+    def __post_init__(self):
+        if self.path is not None:
+            if not isinstance(self.path, (str, os.PathLike)):
+                raise OptionError(f"Checkpointing.path must be a path or None, got {self.path!r}")
+            _set(self, "path", Path(self.path))
+        _flag(self, "resume")
+        if self.resume and self.path is None:
+            raise OptionError("Checkpointing.resume = True needs a checkpoint (path = None)")
+        if self.fingerprint is not None:
+            if not isinstance(self.fingerprint, Mapping):
+                raise OptionError(f"Checkpointing.fingerprint must be a mapping or None, got "
+                                  f"{self.fingerprint!r}")
+            _set(self, "fingerprint", dict(self.fingerprint))
+
+
+@dataclass(frozen=True)
+class ScoringOptions:
+    """Iteration controls of Levenberg-damped Fisher scoring
+    (:func:`bondgraph.inference.fisher.estimand_scoring`,
+    :func:`bondgraph.inference.fisher.fisher_scoring`).
+
+    Parameters
+    ----------
+    max_iter : int
+        Most scoring iterations (>= 0).
+    rtol : float
+        Stop when a step improves the NLL by less than ``rtol * (1 + |NLL|)``.
+    atol : float
+        Stop (converged) when the predicted decrease of a full step,
+        ½ gᵀ F⁻¹ g, is below ``atol`` nats (0: only ``rtol`` stops).
+    log_scale : sequence of bool (k,), optional
+        Quantities moved in log θ (scale parameters such as noise
+        intensities, whose likelihood is far from quadratic in θ near zero);
+        kept a tuple. Default: positive boxes spanning more than two decades.
+    information : bool
+        Compute the Fisher information at a result the last iteration moved
+        to (False: one batched UKF run fewer; ``F`` is then None).
+    log : callable, optional
+        ``log(line)`` for progress lines.
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (the message names the option and value).
+
+    Examples
+    --------
+    >>> ScoringOptions(max_iter=30, log_scale=[True, False]).log_scale
+    (True, False)
+    """
+
+    max_iter: int = 12
+    rtol: float = 1e-6
+    atol: float = 1e-3
+    log_scale: tuple[bool, ...] | None = None
+    information: bool = True
+    log: Callable[[str], None] | None = None
+
+    def __post_init__(self):
+        _integer(self, "max_iter", 0)
+        _nonnegative(self, "rtol")
+        _nonnegative(self, "atol")
+        _flag(self, "information")
+        if self.log is not None and not callable(self.log):
+            raise OptionError(f"ScoringOptions.log must be callable or None, got {self.log!r}")
+        if self.log_scale is not None:
+            L = np.asarray(self.log_scale)
+            if L.ndim != 1:
+                raise OptionError(f"ScoringOptions.log_scale must be a sequence of flags, "
+                                  f"got {self.log_scale!r}")
+            _set(self, "log_scale", tuple(bool(v) for v in L))
+
 
 @dataclass(frozen=True)
 class Evaluation:
@@ -400,4 +674,21 @@ def fit_options(options) -> FitOptions:
     if not isinstance(options, FitOptions):
         raise OptionError(f"fit options must be a FitOptions, got {type(options).__name__} "
                           f"{options!r} (use FitOptions(**d) for a dict)")
+    return options
+
+
+def scoring_options(options) -> ScoringOptions:
+    """``options`` checked to be :class:`ScoringOptions` (None: the defaults).
+
+    Raises
+    ------
+    OptionError
+        For anything else (e.g. a dict: use ``ScoringOptions(**d)``).
+    """
+    if options is None:
+        return ScoringOptions()
+    if not isinstance(options, ScoringOptions):
+        raise OptionError(f"scoring options must be a ScoringOptions, got "
+                          f"{type(options).__name__} {options!r} (use ScoringOptions(**d) "
+                          f"for a dict)")
     return options

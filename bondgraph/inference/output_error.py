@@ -27,15 +27,67 @@ differential equation systems. J. Comput. Phys. 21, 123-143. Ljung, L.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from bondgraph.errors import DataError, ModelError
-from bondgraph.numerics.forward_sensitivity import output_sensitivities
+from bondgraph.errors import DataError, ModelError, OptionError
+from bondgraph.numerics.forward_sensitivity import (
+    SolverOptions,
+    check_solver_fields,
+    output_sensitivities,
+)
 from bondgraph.numerics.model import Model
+
+
+@dataclass(frozen=True)
+class OutputErrorOptions:
+    """How :func:`output_error_fit` simulates and how long it searches.
+
+    Parameters
+    ----------
+    hold : {"zoh", "linear"}
+        Sampled inputs between samples (``"zoh"``: held, as the UKF's
+        default sees them).
+    method : {"LSODA", "BDF", "Radau", "RK45", "RK23", "DOP853"}
+        solve_ivp method of the free run and its forward sensitivities.
+    rtol, atol : float
+        Their tolerances (> 0).
+    max_nfev : int
+        Most simulations of the least-squares search (>= 1).
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (the message names the option and value).
+
+    Examples
+    --------
+    >>> OutputErrorOptions(hold="linear").solver.hold
+    'linear'
+    """
+
+    hold: str = "zoh"
+    method: str = "LSODA"
+    rtol: float = 1e-8
+    atol: float = 1e-10
+    max_nfev: int = 100
+
+    def __post_init__(self):
+        check_solver_fields(self)
+        v = self.max_nfev
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+            raise OptionError(f"OutputErrorOptions.max_nfev must be an integer >= 1, got {v!r}")
+        object.__setattr__(self, "max_nfev", int(v))
+
+    @property
+    def solver(self) -> SolverOptions:
+        """The :class:`~bondgraph.numerics.forward_sensitivity.SolverOptions`
+        of the free runs (method, tolerances, hold)."""
+        return SolverOptions(method=self.method, rtol=self.rtol, atol=self.atol, hold=self.hold)
 
 
 @dataclass
@@ -95,8 +147,8 @@ class _Problem:
     the sensitivity run of the last z cached (least_squares calls fun then
     jac at the same point)."""
 
-    def __init__(self, model, t, u, y, params, states, theta, x0, sigma, kw):
-        self.model, self.t, self.u, self.kw = model, t, u, kw
+    def __init__(self, model, t, u, y, params, states, theta, x0, sigma, solver: SolverOptions):
+        self.model, self.t, self.u, self.solver = model, t, u, solver
         self.params, self.states = list(params), list(states)
         self.pidx = model.param_indices(self.params)
         self.sidx = [model.state_index(s) for s in self.states]
@@ -115,7 +167,7 @@ class _Problem:
         if self._z is None or not np.array_equal(z, self._z):
             th, x0 = self.point(z)
             self._s = output_sensitivities(self.model, self.t, self.u, th, x0, self.params,
-                                           x0_states=self.states, **self.kw)
+                                           x0_states=self.states, solver=self.solver)
             self._z = np.array(z, dtype=float)
         return self._s
 
@@ -132,8 +184,7 @@ class _Problem:
 
 def output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=None,
                      x0_states: Sequence[str] = (), bounds=None, sigma=None,
-                     hold: str = "zoh", method: str = "LSODA", rtol: float = 1e-8,
-                     atol: float = 1e-10, max_nfev: int = 100) -> OutputErrorResult:
+                     options: OutputErrorOptions | None = None) -> OutputErrorResult:
     """Least-squares fit of ``params`` (and the initial states ``x0_states``)
     to the free-run simulation error (module docstring).
 
@@ -158,9 +209,11 @@ def output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=No
         boxes, initial states unbounded).
     sigma : array (n_y,), optional
         Output weights σ_i (default: the std of each measured output).
-    hold, method, rtol, atol : see :func:`~bondgraph.numerics.forward_sensitivity.output_sensitivities`
-    max_nfev : int
-        Limit of simulations.
+    options : OutputErrorOptions, optional
+        Input hold, solve_ivp method and tolerances of the free runs
+        (:func:`~bondgraph.numerics.forward_sensitivity.output_sensitivities`)
+        and the limit of simulations (:class:`OutputErrorOptions`; default:
+        zero-order hold, LSODA, rtol 1e-8, atol 1e-10, 100 simulations).
 
     Returns
     -------
@@ -168,6 +221,8 @@ def output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=No
 
     Raises
     ------
+    OptionError
+        ``options`` is not an :class:`OutputErrorOptions`.
     ModelError
         Unknown names, nothing to estimate, a start outside its box.
     DataError
@@ -175,6 +230,10 @@ def output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=No
     NumericalError
         The simulation fails at the start.
     """
+    opts = OutputErrorOptions() if options is None else options
+    if not isinstance(opts, OutputErrorOptions):
+        raise OptionError(f"options must be an OutputErrorOptions, got {type(opts).__name__} "
+                          f"{opts!r} (use OutputErrorOptions(**d) for a dict)")
     model = Model.from_spec(model)
     t = np.asarray(t, float)
     y = np.asarray(y, float).reshape(t.size, -1)
@@ -190,15 +249,15 @@ def output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=No
     xi = np.array(model.x0 if x0 is None else x0, dtype=float)
     if sigma is None:
         sigma = np.array([np.nanstd(y[:, i]) or 1.0 for i in range(model.n_y)])
-    kw = dict(method=method, rtol=rtol, atol=atol, hold=hold)
-    prob = _Problem(model, t, u, y, params, states, th, xi, np.asarray(sigma, float), kw)
+    prob = _Problem(model, t, u, y, params, states, th, xi, np.asarray(sigma, float),
+                    opts.solver)
     lo, hi = _box(model, params, states, bounds)
     z0 = np.concatenate([th[prob.pidx], xi[prob.sidx]])
     bad = [n for n, v, a, b in zip(params + states, z0, lo, hi) if not a <= v <= b]
     if bad:
         raise ModelError(f"output_error_fit: start outside its box: {', '.join(bad)}")
     r = least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=(lo, hi), method="trf",
-                      x_scale="jac", max_nfev=max_nfev)
+                      x_scale="jac", max_nfev=opts.max_nfev)
     return _result(prob, r, lo, hi)
 
 

@@ -25,19 +25,102 @@ differential equation systems — a direct method. J. Comput. Phys. 21(2),
 
 from __future__ import annotations
 
+import math
+import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
-from scipy.integrate import solve_ivp
+from scipy.integrate import OdeSolver, solve_ivp
 
-from bondgraph.errors import DataError, NumericalError, SensitivityError
+from bondgraph.errors import DataError, NumericalError, OptionError, SensitivityError
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import InputSignals, _vector
 
 #: solve_ivp methods that get the Jacobian of the augmented system
 IMPLICIT_METHODS = ("BDF", "Radau", "LSODA")
+#: solve_ivp methods by name (a subclass of scipy's OdeSolver is taken too)
+SOLVER_METHODS = ("RK45", "RK23", "DOP853") + IMPLICIT_METHODS
+#: sampled inputs between samples: linearly interpolated, or held
+#: (:class:`bondgraph.numerics.simulate.InputSignals`)
+SOLVER_HOLDS = ("linear", "zoh")
+
+
+def check_solver_fields(obj) -> None:
+    """Check ``method``, ``rtol``, ``atol`` and ``hold`` of ``obj`` (one rule
+    for :class:`SolverOptions` and the options that carry its fields); the
+    tolerances become floats.
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain, named with ``obj``'s class.
+    """
+    cls = type(obj).__name__
+    m = obj.method
+    if not (m in SOLVER_METHODS or (isinstance(m, type) and issubclass(m, OdeSolver))):
+        raise OptionError(f"{cls}.method = {m!r} is not one of "
+                          f"{', '.join(repr(c) for c in SOLVER_METHODS)} (or an OdeSolver class)")
+    for name in ("rtol", "atol"):
+        v = getattr(obj, name)
+        if (isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v)
+                or v <= 0):
+            raise OptionError(f"{cls}.{name} must be a finite number > 0, got {v!r}")
+        object.__setattr__(obj, name, float(v))
+    if obj.hold not in SOLVER_HOLDS:
+        raise OptionError(f"{cls}.hold = {obj.hold!r} is not one of "
+                          f"{', '.join(repr(h) for h in SOLVER_HOLDS)}")
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """How :func:`output_sensitivities` integrates the state and sensitivity
+    equations (scipy's ``solve_ivp``).
+
+    Parameters
+    ----------
+    method : {"LSODA", "BDF", "Radau", "RK45", "RK23", "DOP853"}
+        Implicit methods get the Jacobian of the augmented system
+        (block-diagonal: ∂f/∂x on every block; the second-derivative
+        coupling of S to x is left out, which only slows Newton's
+        convergence, not the accuracy). A subclass of
+        :class:`scipy.integrate.OdeSolver` is passed on as it is.
+    rtol, atol : float
+        Tolerances (> 0) for x and for the scaled sensitivities
+        s_j ∂x/∂θ_j (same units as x).
+    hold : {"linear", "zoh"}
+        Sampled inputs between samples (``"zoh"``: integrated segment by
+        segment, as the UKF's default sees them).
+    max_step : float, optional
+        Largest solver step [s] (> 0; default: unlimited).
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (the message names the option and value).
+
+    Examples
+    --------
+    >>> SolverOptions(method="BDF", hold="zoh").rtol
+    1e-08
+    """
+
+    method: str = "LSODA"
+    rtol: float = 1e-8
+    atol: float = 1e-10
+    hold: str = "linear"
+    max_step: float | None = None
+
+    def __post_init__(self):
+        check_solver_fields(self)
+        v = self.max_step
+        if v is not None:
+            if (isinstance(v, bool) or not isinstance(v, numbers.Real) or not v > 0
+                    or math.isnan(v)):
+                raise OptionError(f"SolverOptions.max_step must be a number > 0 or None, "
+                                  f"got {v!r}")
+            object.__setattr__(self, "max_step", float(v))
 
 
 def free_parameters(model) -> list[str]:
@@ -172,9 +255,8 @@ class Sensitivities:
 
 
 def output_sensitivities(model, t, u=None, theta=None, x0=None,
-                         params: Sequence[str] | None = None, *, method: str = "LSODA",
-                         rtol: float = 1e-8, atol: float = 1e-10, hold: str = "linear",
-                         max_step: float | None = None, x0_states: Sequence[str] = (),
+                         params: Sequence[str] | None = None, *,
+                         solver: SolverOptions | None = None, x0_states: Sequence[str] = (),
                          x0_scale=None) -> Sensitivities:
     """Output sensitivities dy/dθ along a record by the forward sensitivity
     equations (not finite differences; Dickinson & Gelinas 1976).
@@ -194,18 +276,10 @@ def output_sensitivities(model, t, u=None, theta=None, x0=None,
     params : sequence of str, optional
         Parameters differentiated (default :func:`free_parameters`; an empty
         list with ``x0_states`` differentiates the initial states only).
-    method : {"BDF", "Radau", "LSODA"} or an explicit solve_ivp method
-        Implicit methods get the Jacobian of the augmented system
-        (block-diagonal: ∂f/∂x on every block; the second-derivative
-        coupling of S to x is left out, which only slows Newton's
-        convergence, not the accuracy).
-    rtol, atol : float
-        Tolerances for x and for the scaled sensitivities s_j ∂x/∂θ_j
-        (same units as x).
-    hold : {"linear", "zoh"}
-        Sampled inputs between samples (``"zoh"``: integrated segment by
-        segment, as the UKF's default sees them).
-    max_step : float, optional
+    solver : SolverOptions, optional
+        Method, tolerances, input hold and largest step of the integration
+        (:class:`SolverOptions`; default: LSODA, rtol 1e-8, atol 1e-10,
+        linear hold).
     x0_states : sequence of str
         Initial states also differentiated: columns ∂x/∂x0_i with
         ∂x/∂x0_i (t0) = e_i and d/dt ∂x/∂x0_i = ∂f/∂x · ∂x/∂x0_i (the
@@ -220,6 +294,8 @@ def output_sensitivities(model, t, u=None, theta=None, x0=None,
 
     Raises
     ------
+    OptionError
+        ``solver`` is not a :class:`SolverOptions`.
     ModelError
         Unknown parameter names, wrong shapes.
     SensitivityError
@@ -229,14 +305,16 @@ def output_sensitivities(model, t, u=None, theta=None, x0=None,
     NumericalError
         If the solver fails (time and message given).
     """
+    opts = _solver_options(solver)
     model = Model.from_spec(model)
     x0_states = list(x0_states)
     params, t, th, x_init, cols = _prepare(model, t, theta, x0, params, x0_states, x0_scale)
     idx, sidx, sc = cols.idx, cols.sidx, cols.sc
+    method, rtol, atol, hold = opts.method, opts.rtol, opts.atol, opts.hold
     sig = InputSignals(model, t, u, hold=hold)
     kw: dict[str, Any] = dict(method=method, rtol=rtol, atol=atol)
-    if max_step is not None:
-        kw["max_step"] = float(max_step)
+    if opts.max_step is not None:
+        kw["max_step"] = opts.max_step
     t_wall = time.perf_counter()
     Z, segments, totals = _integrate(model, t, sig, th, cols, x_init, hold, kw)
     X, dx, dy = _outputs(model, Z, sig.samples, th, cols)
@@ -250,6 +328,22 @@ def output_sensitivities(model, t, u=None, theta=None, x0=None,
                          params=list(params), theta=th, scale=sc, outputs=list(model.outputs),
                          stats=stats, x0_states=x0_states,
                          dxdx0=dx[:, :, k:] if m else None, dydx0=dy[:, :, k:] if m else None)
+
+
+def _solver_options(solver) -> SolverOptions:
+    """``solver`` checked to be :class:`SolverOptions` (None: the defaults).
+
+    Raises
+    ------
+    OptionError
+        For anything else (a dict: use ``SolverOptions(**d)``).
+    """
+    if solver is None:
+        return SolverOptions()
+    if not isinstance(solver, SolverOptions):
+        raise OptionError(f"solver must be a SolverOptions, got {type(solver).__name__} "
+                          f"{solver!r} (use SolverOptions(**d) for a dict)")
+    return solver
 
 
 def _outputs(model, Z, U, th, cols: "_Columns"):

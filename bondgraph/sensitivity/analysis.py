@@ -46,6 +46,7 @@ from bondgraph.inference.fisher import estimand_derivatives, jacobi_pinv
 from bondgraph.inference.problem import Problem
 from bondgraph.numerics.forward_sensitivity import (
     Sensitivities,
+    SolverOptions,
     check_params,
     output_sensitivities,
     parameter_scale,
@@ -371,8 +372,8 @@ def _output_error(an: _Analysis, local: dict, lo: LocalOptions) -> Sensitivities
            f"{model.n_x}·{len(an.params)} states) ...")
     hold = "zoh" if pb.ukf.hold == "zoh" else "linear"
     sens = output_sensitivities(model, pb.t, pb.u, pb.theta, pb.x0, an.params,
-                                method=lo.sens_method, rtol=lo.sens_rtol, atol=lo.sens_atol,
-                                hold=hold)
+                                solver=SolverOptions(method=lo.sens_method, rtol=lo.sens_rtol,
+                                                     atol=lo.sens_atol, hold=hold))
     an.timing["sensitivities_s"] = time.perf_counter() - t0
     sigma = np.asarray(model.meas_std(pb.theta), float)
     mask = np.isfinite(pb.y)
