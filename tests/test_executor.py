@@ -156,19 +156,20 @@ def _msd_csv(tmp_path):
 
 
 def test_cli_sensitivity_passes_and_checks_the_executor_options(tmp_path, monkeypatch):
-    """sensitivity hands --workers/--scheduler to the analysis, and a bad
-    value stops it before any work."""
+    """sensitivity hands --workers/--scheduler to the analysis's Sobol'
+    options, and a bad value stops it before any work."""
     from bondgraph.cli import sensitivity as cli_sens
     from bondgraph.cli.main import main
 
     seen = {}
 
-    def fake(model, exp, params, **kw):
-        seen.update(workers=kw["workers"], scheduler=kw["scheduler"])
+    def fake(problem, params, *, sobol, **kw):
+        seen.update(workers=sobol.workers, scheduler=sobol.scheduler)
         raise OptionError("stop here")
     monkeypatch.setattr(cli_sens, "analyse", fake)
     csv = _msd_csv(tmp_path)
-    base = ["sensitivity", "--model", "mass_spring_damper", "--data", str(csv), "--quiet"]
+    base = ["sensitivity", "--model", "mass_spring_damper", "--data", str(csv), "--quiet",
+            "--global", "8"]
     assert main(base + ["--workers", "2", "--scheduler", "tcp://127.0.0.1:9",
                         "--out", str(tmp_path / "a")]) != 0
     assert seen == dict(workers=2, scheduler="tcp://127.0.0.1:9")
@@ -184,8 +185,8 @@ def test_cli_estimate_runs_on_the_numpy_backend(tmp_path, monkeypatch):
 
     seen = {}
 
-    def fake(model, exp, params, *, fit, ukf, **kw):
-        seen.update(backend=ukf.backend, scheduler=fit.scheduler, workers=fit.workers)
+    def fake(problem, params, *, fit, **kw):
+        seen.update(backend=problem.ukf.backend, scheduler=fit.scheduler, workers=fit.workers)
         raise OptionError("stop here")
     monkeypatch.setattr(cli_estimate, "estimate", fake)
     from bondgraph.cli.main import main
