@@ -216,33 +216,34 @@ def loop_problem(model: Model, experiment, settings: LoopSettings,
 
 def problem_for(ctx: Context, model: Model) -> Problem:
     """The loop's problem (``ctx.problem``) for ``model``: the same record,
-    prior, noise levels, fixed values and options (cached per model while
-    the prior and the options stay; a change of the held noise levels only
-    is carried over without recomputing the prior)."""
+    prior, noise levels, fixed values and options (:meth:`Problem.with_model`,
+    cached per model, :func:`_cached`)."""
     base = ctx.problem
     if model is base.model:
         return base
-    hit = ctx.cache.get(("problem", id(model)))
-    if hit is not None and hit[0] is model and hit[1] is base.prior and hit[2] == base.ukf:
-        p = hit[3]
-        return p if p.noise == base.noise else replace(p, noise=base.noise)
-    p = base.with_model(model)
-    ctx.cache[("problem", id(model))] = (model, base.prior, base.ukf, p)
-    return p
+    return _cached(ctx, ("problem", model), base, lambda: base.with_model(model))
 
 
 def validation_problem(ctx: Context, problem: Problem) -> Problem:
     """``problem`` on the validation record (``settings.validation``): its own
     initial state, the loop's covariance policy (:meth:`Problem.on_record`;
-    cached per model while the prior and the options stay)."""
-    key = ("validation", id(problem.model))
-    hit = ctx.cache.get(key)
-    if hit is not None and hit[0] is problem.model and hit[1] is problem.prior \
-            and hit[2] == problem.ukf:
+    cached per model, :func:`_cached`)."""
+    return _cached(ctx, ("validation", problem.model), problem,
+                   lambda: problem.on_record(ctx.settings.validation))
+
+
+def _cached(ctx: Context, key: tuple, base: Problem, build) -> Problem:
+    """The problem ``build()`` derived from ``base``, cached in ``ctx.cache``
+    under ``key`` (a kind and a model) while ``base``'s prior and options stay
+    (a change of the held noise levels only is carried over without
+    recomputing the prior's free run)."""
+    kind, model = key
+    hit = ctx.cache.get((kind, id(model)))
+    if hit is not None and hit[0] is model and hit[1] is base.prior and hit[2] == base.ukf:
         p = hit[3]
-        return p if p.noise == problem.noise else replace(p, noise=problem.noise)
-    p = problem.on_record(ctx.settings.validation)
-    ctx.cache[key] = (problem.model, problem.prior, problem.ukf, p)
+        return p if p.noise == base.noise else replace(p, noise=base.noise)
+    p = build()
+    ctx.cache[(kind, id(model))] = (model, base.prior, base.ukf, p)
     return p
 
 

@@ -645,6 +645,23 @@ class Evaluation:
                               f"string (tcp://HOST:PORT) or None")
 
 
+def _checked(options, cls, what: str):
+    """``options`` checked to be a ``cls`` (None: its defaults); the one
+    check behind :func:`ukf_options`, :func:`fit_options`, :func:`scoring_options`.
+
+    Raises
+    ------
+    OptionError
+        For anything else (e.g. a dict: use ``cls(**d)``).
+    """
+    if options is None:
+        return cls()
+    if not isinstance(options, cls):
+        raise OptionError(f"{what} must be a {cls.__name__}, got {type(options).__name__} "
+                          f"{options!r} (use {cls.__name__}(**d) for a dict)")
+    return options
+
+
 def ukf_options(options) -> UKFOptions:
     """``options`` checked to be :class:`UKFOptions` (None: the defaults).
 
@@ -653,12 +670,7 @@ def ukf_options(options) -> UKFOptions:
     OptionError
         For anything else (e.g. a dict of options: use ``UKFOptions(**d)``).
     """
-    if options is None:
-        return UKFOptions()
-    if not isinstance(options, UKFOptions):
-        raise OptionError(f"UKF options must be a UKFOptions, got {type(options).__name__} "
-                          f"{options!r} (use UKFOptions(**d) for a dict)")
-    return options
+    return _checked(options, UKFOptions, "UKF options")
 
 
 def fit_options(options) -> FitOptions:
@@ -669,12 +681,7 @@ def fit_options(options) -> FitOptions:
     OptionError
         For anything else (e.g. a dict: use ``FitOptions(**d)``).
     """
-    if options is None:
-        return FitOptions()
-    if not isinstance(options, FitOptions):
-        raise OptionError(f"fit options must be a FitOptions, got {type(options).__name__} "
-                          f"{options!r} (use FitOptions(**d) for a dict)")
-    return options
+    return _checked(options, FitOptions, "fit options")
 
 
 def scoring_options(options) -> ScoringOptions:
@@ -685,10 +692,4 @@ def scoring_options(options) -> ScoringOptions:
     OptionError
         For anything else (e.g. a dict: use ``ScoringOptions(**d)``).
     """
-    if options is None:
-        return ScoringOptions()
-    if not isinstance(options, ScoringOptions):
-        raise OptionError(f"scoring options must be a ScoringOptions, got "
-                          f"{type(options).__name__} {options!r} (use ScoringOptions(**d) "
-                          f"for a dict)")
-    return options
+    return _checked(options, ScoringOptions, "scoring options")
