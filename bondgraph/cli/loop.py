@@ -78,6 +78,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "whose estimates start the likelihood fit (sim)")
     add_discretisation(p)          # with --backend
     p.set_defaults(method=None, substeps=None, hold=None)   # a case's own options unless given
+    p.add_argument("--keep-going", action="store_true",
+                   help="score effects even when the declared fit failed (physical parameters "
+                        "that never left their start values or sit on their boxes); by default "
+                        "the loop stops there with exit code 2 and names them")
     p.add_argument("--workers", type=int, default=1,
                    help="local Dask worker processes that score the structural candidates and "
                         "run the confirmation refits, one candidate each (1: in process; the "
@@ -199,6 +203,8 @@ def command_options(args, base: LoopSettings, graph):
     yield "criterion", args.criterion
     if args.no_structural:
         yield "structural", False
+    if args.keep_going:
+        yield "on_failed_fit", "continue"
     fixed = parse_pairs(args.fixed, "--fixed")
     if fixed:
         yield "fixed", {**base.fixed, **fixed}

@@ -4,6 +4,17 @@ not, and the records of an accepted or rejected candidate.
 
 A candidate is accepted when, after re-estimating all parameters,
 
+0. the refit converged (a confirmation that has not is continued first,
+   :func:`bondgraph.diagnose.confirm.confirm`; one that still has not is
+   reported as not comparable: its likelihood ratio is one it has not
+   reached), the refitted model is physically admissible (every R law
+   dissipates and every C and I stores non-negative energy over the range
+   the record visits plus a margin,
+   :func:`bondgraph.numerics.admissible.check_admissible`), and it simulates:
+   its free run is finite and stays in the plausible range on the record
+   *and* on the validation record (:func:`bondgraph.diagnose.fit.free_run_trouble`;
+   a model whose free run diverges on the record it was fitted on is refused
+   even when its error on the held-out part falls);
 1. the refit is finite (NLL and error);
 2. the information criterion (AIC, Akaike 1974, or BIC, Schwarz 1978)
    decreases;
@@ -55,6 +66,7 @@ from bondgraph.diagnose.effects import BY_NAME, Effect
 from bondgraph.diagnose.fit import Fit
 from bondgraph.diagnose.result import AppliedEffect, Candidate, Rejection, Step
 from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.numerics.admissible import Admissibility
 
 
 def significant(cands: list[Candidate], level: float) -> list[Candidate]:
@@ -209,6 +221,27 @@ def mark_ties(confirmed: list, level: float) -> list[str]:
     return out
 
 
+def rank_confirmed(confirmed: list) -> list:
+    """The confirmed candidates best first: those whose refit converged
+    (``comparable``) before those whose refit did not, each group by
+    decreasing score (LR − 2k).
+
+    Parameters
+    ----------
+    confirmed : list of (float, Candidate, Confirmation)
+        The score, the candidate and its confirmation (with ``comparable``).
+
+    Returns
+    -------
+    list
+        The same tuples, reordered. A refit that stopped at its iteration
+        limit has a likelihood ratio the model does not reach; ranking it by
+        that number would let it win over a converged refit (issue: a
+        non-converged 178 s sensor low-pass over a converged saturation).
+    """
+    return sorted(confirmed, key=lambda z: (not getattr(z[2], "comparable", True), -z[0]))
+
+
 def _terms(fit: Fit) -> np.ndarray | None:
     """Per-sample NLL terms (N,) of a fit's stored UKF run, or None."""
     t = getattr(fit.ukf, "nll_terms", None)
@@ -235,14 +268,30 @@ class Decision:
     error_p_value: float = float("nan")
 
 
-def decide(current: Fit, after: Fit, settings: LoopSettings, dof: int = 1) -> Decision:
+def decide(current: Fit, after: Fit, settings: LoopSettings, dof: int = 1,
+           admissible: Admissibility | None = None, comparable: bool = True) -> Decision:
     """Compare the candidate's refit ``after`` (``dof`` new parameters) with
     the ``current`` fit (module docstring for the rule).
+
+    Parameters
+    ----------
+    current, after : Fit
+    settings : LoopSettings
+    dof : int
+        The candidate's new parameters.
+    admissible : Admissibility, optional
+        The refit's admissibility (:func:`bondgraph.diagnose.fit.admissibility`);
+        None: not checked.
+    comparable : bool
+        False when the refit did not converge (its likelihood ratio is not
+        one it reached).
 
     Returns
     -------
     Decision
-        ``reason`` (first failed test): "the refit is not finite",
+        ``reason`` (first failed test): "the refit did not converge ...",
+        "the refit is not physically admissible: ...", "the refitted model
+        does not simulate: ...", "the refit is not finite",
         "information criterion did not improve", "likelihood-ratio test not
         passed (LR l, p p)", "the error grew (a -> b)" (with "on the
         validation record" when it is that error), or "the error decrease is
@@ -263,8 +312,20 @@ def decide(current: Fit, after: Fit, settings: LoopSettings, dof: int = 1) -> De
         dz, dp = error_decrease_test(a0, a1)
     level = getattr(settings, "error_level", None)
     reason = None
-    if not (np.isfinite(after.nll) and np.isfinite(e1)):
-        reason = f"the refit is not finite (NLL {after.nll:.4g}, error {e1:.4g})"
+    unstable = getattr(after, "unstable", None)
+    finite = [v for v in (after.nll, e1, after.metric, after.validation_metric) if v is not None]
+    if not comparable:
+        reason = (f"the refit did not converge ({after.iterations} iterations): its likelihood "
+                  f"ratio {lr:.3g} is not comparable")
+    elif admissible is not None and not admissible.ok:
+        reason = f"the refit is not physically admissible: {admissible.reason()}"
+    elif unstable:
+        reason = f"the refitted model does not simulate: {unstable}"
+    elif not all(np.isfinite(v) for v in finite):
+        val = "" if after.validation_metric is None else \
+            f", on the validation record {after.validation_metric:.4g}"
+        reason = (f"the refit is not finite (NLL {after.nll:.4g}, error on the record "
+                  f"{after.metric:.4g}{val})")
     elif not ic1 < ic0:
         reason = "information criterion did not improve"
     elif not p < settings.significance:

@@ -39,6 +39,8 @@ from bondgraph.diagnose.residuals import analyze
 from bondgraph.diagnose.result import FitSummary
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import BondGraphError, NumericalError
+from bondgraph.core.equations import derive
+from bondgraph.numerics.admissible import Admissibility, check_admissible
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -122,7 +124,10 @@ class Fit:
     (:func:`~bondgraph.diagnose.metric.metric_errors`; None if the free
     run failed or there is no validation record), and the measurement-noise
     stds estimated with θ by output (``noise_est``; their Cramér-Rao std in
-    ``std`` as ``noise.<output>``)."""
+    ``std`` as ``noise.<output>``), and why the model does not simulate
+    (``unstable``: its free run fails or leaves the plausible range on the
+    record or on the validation record, :func:`free_run_trouble`; None when
+    it simulates on both)."""
 
     graph: BondGraph
     model: Model
@@ -143,6 +148,7 @@ class Fit:
     sim_errors: np.ndarray | None = None
     validation_errors: np.ndarray | None = None
     noise_est: dict = field(default_factory=dict)
+    unstable: str | None = None
 
     @property
     def k(self) -> int:
@@ -513,25 +519,80 @@ def evaluate_fit(ctx: Context, problem: Problem, graph: BondGraph, params: list[
     record = Record(problem.record)
     fit.metric = compute_metric(ctx.settings, fit, record)
     fit.sim_errors = metric_errors(ctx.settings, fit, record)
+    trouble = free_run_trouble(sim_y, problem.arrays[2], model.outputs)
     if ctx.settings.validation is not None:
-        fit.validation_metric, fit.validation_errors = validation_run(ctx, problem, theta)
+        fit.validation_metric, fit.validation_errors, v_trouble = validation_run(ctx, problem,
+                                                                                 theta)
+        trouble = trouble or (v_trouble and f"{v_trouble} on the validation record")
+    fit.unstable = trouble
     return fit
 
 
 def validation_run(ctx: Context, problem: Problem,
-                   theta: np.ndarray) -> tuple[float, np.ndarray | None]:
+                   theta: np.ndarray) -> tuple[float, np.ndarray | None, str | None]:
     """The loop's metric on the validation record (``settings.validation``:
     the model runs freely with the record's inputs from its initial state,
-    :func:`free_run`) and the standardised free-run errors (N, n_y); inf and
-    None if the filter or the free run fails there."""
+    :func:`free_run`), the standardised free-run errors (N, n_y) and why the
+    free run is not plausible there (:func:`free_run_trouble`); inf, None and
+    the reason if the filter or the free run fails there."""
     vp = validation_problem(ctx, problem)
     res = run_ukf(vp, theta[None, :], store=True)
     if not np.isfinite(res.nll[0]):
-        return float("inf"), None
+        return float("inf"), None, f"the filter fails ({res.reasons[0]})"
     sim_y = free_run(ctx, vp, theta, own=False)
     view = SimpleNamespace(model=vp.model, theta=theta, ukf=res, sim_y=sim_y)
     rec = Record(vp.record)
-    return compute_metric(ctx.settings, view, rec), metric_errors(ctx.settings, view, rec)
+    return (compute_metric(ctx.settings, view, rec), metric_errors(ctx.settings, view, rec),
+            free_run_trouble(sim_y, vp.arrays[2], vp.model.outputs))
+
+
+#: a free run whose output leaves the measured range by more than this many
+#: times the range's width is taken for a diverging model
+PLAUSIBLE_SPANS = 3.0
+
+
+def free_run_trouble(sim_y: np.ndarray | None, y: np.ndarray,
+                     outputs: Sequence[str]) -> str | None:
+    """Why a free run (N, n_y) does not show a model that simulates, or None.
+
+    A free run that failed (``sim_y`` None: the solver stopped), that is not
+    finite, or whose output leaves the measured range [min, max] of ``y``
+    (N, n_y) by more than :data:`PLAUSIBLE_SPANS` times its width (an
+    orifice law turned active whose level grows without bound; a softening
+    spring past its turning point) is not a model the loop may accept, even
+    where its error on another record falls."""
+    if sim_y is None:
+        return "the free run fails (the solver stops)"
+    sim_y, y = np.asarray(sim_y, float), np.asarray(y, float)
+    for i, o in enumerate(outputs):
+        s = sim_y[:, i]
+        if not np.all(np.isfinite(s)):
+            return f"the free run of {o} is not finite"
+        m = y[np.isfinite(y[:, i]), i]
+        if m.size < 2:
+            continue
+        lo, hi = float(m.min()), float(m.max())
+        w = (hi - lo) or max(abs(hi), 1e-300)
+        worst = float(s[np.argmax(np.abs(s - 0.5 * (lo + hi)))])
+        if worst < lo - PLAUSIBLE_SPANS * w or worst > hi + PLAUSIBLE_SPANS * w:
+            return (f"the free run of {o} reaches {worst:.4g}, beyond {PLAUSIBLE_SPANS:g} "
+                    f"times the measured range [{lo:.4g}, {hi:.4g}]")
+    return None
+
+
+def admissibility(ctx: Context, fit: Fit) -> Admissibility:
+    """Whether ``fit``'s graph keeps what a bond graph promises at its
+    estimates (every R dissipates, every C and I stores non-negative
+    energy) over the range its filtered states visit on the record plus a
+    margin (:func:`bondgraph.numerics.admissible.check_admissible`)."""
+    model = fit.model
+    ss = getattr(model.module, "__state_space__", None) or derive(fit.graph)
+    x = getattr(fit.ukf, "x_filt", None)
+    if x is None:
+        return Admissibility(unchecked=["(no filtered states stored)"])
+    _, u, _ = problem_for(ctx, model).arrays
+    theta = {n: float(fit.theta[model.param_index(n)]) for n in model.params}
+    return check_admissible(fit.graph, ss, theta, np.asarray(x)[:, 0, :], u)
 
 
 def sim_inputs(settings: LoopSettings, filter_hold: str, u: np.ndarray) -> tuple[str, np.ndarray]:

@@ -4,6 +4,7 @@ lines and the ``on_update`` hand-over of the partial :class:`LoopResult`."""
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import replace
 
@@ -17,6 +18,7 @@ from bondgraph.diagnose.accept import (
     confirmed_record,
     decide,
     mark_ties,
+    rank_confirmed,
     rejection,
     significant,
 )
@@ -25,6 +27,7 @@ from bondgraph.diagnose.effects import Scales, get_effect
 from bondgraph.diagnose.fit import (
     Context,
     Fit,
+    admissibility,
     fit_model,
     loop_problem,
     model_of,
@@ -236,18 +239,112 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
                 "where forces are unmodelled, ideally as an estimated parameter.")
     first = list(s.params) if s.initial_params is None else list(s.initial_params)
     start = sim_start(ctx, graph, first) if s.fit == "sim" else None
-    try:
-        fit = fit_model(ctx, graph.copy(graph.name), first, start, "initial fit",
-                        model=ctx.problem.model)
-    except NumericalError as exc:
-        raise DeclaredFitError(f"the declared model cannot be fitted: {exc}; no effect is "
-                               f"scored") from exc
-    fit.params = list(s.params)
+    fit = _declared(ctx, graph, first, start)
     check_declared_fit(fit)
+    stuck = failed_fit(ctx, fit, first, start, boxes_only=s.fit == "sim")
+    if stuck and s.fit == "nll":
+        ctx.log(f"  the declared fit did not happen: {stuck}; fitting the physical parameters "
+                f"first by output error (the noise held), then the likelihood from there")
+        start = sim_start(ctx, graph, first)
+        if start is not None:
+            fit = _declared(ctx, graph, first, start)
+            check_declared_fit(fit)
+            stuck = failed_fit(ctx, fit, first, start, boxes_only=True)
+    if stuck:
+        msg = (f"the declared fit failed: {stuck}{gain_beyond_box(ctx, graph, fit, first)}. "
+               f"Check these parameters' units, start values and boxes (a box is your "
+               f"physical knowledge: widen it only if it is wrong), fix the ones the record "
+               f"cannot tell (--fixed), or declare the missing process noise")
+        if s.on_failed_fit == "stop":
+            raise DeclaredFitError(msg + "; no effect is scored",
+                                   hint="bondgraph loop ... --keep-going scores effects anyway")
+        ctx.log(f"  warning: {msg}; going on (--keep-going)")
+    fit.params = list(s.params)
     ctx.log(f"initial fit: NLL {fit.nll:.2f}, {s.criterion.upper()} "
             f"{fit.information(s.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
             f"{metric_name(s)} = {fit.metric:.4g}")
     return fit
+
+
+def _declared(ctx: Context, graph: BondGraph, names: list[str], start: dict | None) -> Fit:
+    """The likelihood fit of the declared model's ``names`` from ``start``
+    (:class:`DeclaredFitError` if the filter fails)."""
+    try:
+        return fit_model(ctx, graph.copy(graph.name), names, start, "initial fit",
+                         model=ctx.problem.model)
+    except NumericalError as exc:
+        raise DeclaredFitError(f"the declared model cannot be fitted: {exc}; no effect is "
+                               f"scored") from exc
+
+
+def failed_fit(ctx: Context, fit: Fit, names: list[str], start: dict | None,
+               boxes_only: bool = False) -> str:
+    """Why the declared fit did not happen, or "": physical (non-noise)
+    parameters of ``names`` that never left their start values (the
+    likelihood was flat in them: the noise intensities explained the record
+    instead) or that sit on a bound of their declared box (the record asks
+    for a value the box forbids). ``boxes_only``: only the latter. The
+    start is ``start`` over the problem's θ (the defaults and fixed values),
+    clipped into the boxes as :func:`~bondgraph.diagnose.fit.fit_model` does."""
+    model = fit.model
+    noise = noise_params(model)
+    phys = [n for n in names if n in model.params and n not in noise]
+    theta0 = ctx.problem.theta.copy()
+    for k, v in (start or {}).items():
+        if k in model.params:
+            theta0[model.param_index(k)] = v
+    lo, hi = model.bounds(phys) if phys else ([], [])
+    unmoved = [] if boxes_only else [
+        n for n, a, b in zip(phys, lo, hi)
+        if abs(fit.theta[model.param_index(n)] - np.clip(theta0[model.param_index(n)], a, b))
+        <= 1e-9 * max(abs(theta0[model.param_index(n)]), 1e-300)]
+    boxed = [n for n in phys if n in fit.at_bound]
+    parts = []
+    if unmoved:
+        parts.append(f"{', '.join(unmoved)} never left {'its' if len(unmoved) == 1 else 'their'} "
+                     f"start value{'' if len(unmoved) == 1 else 's'}")
+    if boxed:
+        parts.append(", ".join(f"{n} = {fit.theta[model.param_index(n)]:.4g} sits on a bound of "
+                               f"[{a:.4g}, {b:.4g}]"
+                               for n, a, b in zip(boxed, *model.bounds(boxed))))
+    return "; ".join(parts)
+
+
+#: how far :func:`gain_beyond_box` opens a box on the side the fit sits on
+#: (a factor for a positive bound, else widths)
+BOX_OPENING = 10.0
+
+
+def gain_beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str]) -> str:
+    """What the likelihood would gain beyond the declared boxes, or "": the
+    parameters of ``fit.at_bound`` refitted with their box opened
+    :data:`BOX_OPENING`-fold on the side they sit on (the others' boxes
+    kept), as a clause naming the gain [nats] and the values reached. The
+    box stays the user's: this only reports what it costs."""
+    model = fit.model
+    boxed = [n for n in fit.at_bound if n in names]
+    if not boxed:
+        return ""
+    wide = copy.copy(model)
+    wide.lower, wide.upper = model.lower.copy(), model.upper.copy()
+    for n in boxed:
+        j = model.param_index(n)
+        lo, hi, v = model.lower[j], model.upper[j], fit.theta[j]
+        w = hi - lo
+        if hi - v <= v - lo:
+            wide.upper[j] = hi * BOX_OPENING if hi > 0 else hi + BOX_OPENING * w
+        else:
+            wide.lower[j] = lo / BOX_OPENING if lo > 0 else lo - BOX_OPENING * w
+    try:
+        beyond = fit_model(ctx, graph.copy(graph.name), names, fit.estimates(),
+                           "beyond the declared boxes", model=wide)
+    except BondGraphError:
+        return ""
+    gain = fit.nll - beyond.nll
+    if not np.isfinite(gain):
+        return ""
+    values = ", ".join(f"{n} = {beyond.theta[model.param_index(n)]:.4g}" for n in boxed)
+    return f" (beyond the box the likelihood gains {gain:.1f} nats, at {values})"
 
 
 def sim_start(ctx: Context, graph: BondGraph, names: list[str]) -> dict | None:
@@ -579,13 +676,14 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
             continue
         c.confirmed_statistic = max(0.0, 2 * (current.nll - r.fit.nll))
         c.confirmed = confirmed_record(current, r.fit, len(r.new_params), r.values, ctx.settings)
+        c.confirmed["comparable"] = r.comparable
         confirmed.append((c.confirmed_statistic - 2 * c.dof, c, r))
         how = ("converged" if r.fit.converged else
-               "NOT converged" if r.fit.converged is False else "L-BFGS-B")
+               "NOT converged: not comparable" if r.fit.converged is False else "L-BFGS-B")
         ctx.log(f"  confirmed {c.label}: LR {c.confirmed_statistic:.1f} "
                 f"(score test {c.statistic:.1f}), values {r.values} ({how}, "
                 f"{r.fit.iterations} iterations)")
-    confirmed.sort(key=lambda z: -z[0])
+    confirmed = rank_confirmed(confirmed)
     tied = mark_ties([(c, r.fit, len(r.new_params)) for _, c, r in confirmed],
                      ctx.settings.tie_level)
     if tied:
@@ -612,8 +710,11 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
     for c, conf in confirmed:
         names = list(current.params) + conf.new_params
         after = conf.fit
-        d = decide(current, after, s, dof=len(conf.new_params))
-        tie = {k: v for k, v in (c.confirmed or {}).items() if k in ("tie_z", "tie_p")}
+        d = decide(current, after, s, dof=len(conf.new_params),
+                   admissible=admissibility(ctx, after) if conf.comparable else None,
+                   comparable=conf.comparable)
+        tie = {k: v for k, v in (c.confirmed or {}).items()
+               if k in ("tie_z", "tie_p", "comparable")}
         c.confirmed = {**confirmed_record(current, after, len(conf.new_params), conf.values, s,
                                           d), **tie}
         if d.accepted:

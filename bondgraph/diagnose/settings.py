@@ -205,6 +205,14 @@ class LoopSettings:
         noise-intensity parameters not in ``params`` or ``fixed`` join
         ``params``); the score tests condition on the current fit's levels.
         ``"model"``: the graph's own sensor noise and noise-intensity values.
+    on_failed_fit : {"stop", "continue"}
+        What the loop does when the declared fit did not happen (physical
+        parameters that never left their start values, or that sit on a
+        bound of their box, after a second attempt from the output-error
+        fit, :func:`bondgraph.diagnose.runner.failed_fit`): ``"stop"``
+        (default) raises :class:`~bondgraph.errors.DeclaredFitError` (the
+        command line exits with code 2 naming them), ``"continue"``
+        (``--keep-going``) warns and scores effects against it anyway.
     """
 
     params: list[str]
@@ -248,6 +256,7 @@ class LoopSettings:
     metric_name: str | None = None
     true_effect: Any = None
     noise: str = "auto"
+    on_failed_fit: str = "stop"
 
     def __post_init__(self):
         check_settings(self)
@@ -260,6 +269,9 @@ class LoopSettings:
         if self.sim_hold not in ("linear", "zoh", "filter"):
             raise OptionError(f"LoopSettings.sim_hold must be 'linear', 'zoh' or 'filter', got "
                               f"{self.sim_hold!r}")
+        if self.on_failed_fit not in ("stop", "continue"):
+            raise OptionError(f"LoopSettings.on_failed_fit must be 'stop' or 'continue', got "
+                              f"{self.on_failed_fit!r}")
         if self.fit not in ("nll", "sim"):
             raise OptionError(f"LoopSettings.fit must be 'nll' or 'sim', got {self.fit!r}")
         if not 0.0 <= float(self.holdout) < 0.9:

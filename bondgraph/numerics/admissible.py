@@ -1,0 +1,280 @@
+"""Physical admissibility of a fitted bond graph: what a bond graph promises
+of its elements, checked numerically over the operating range a record
+visits.
+
+- Every R element dissipates: the power into it, P = e·f, is >= 0 wherever
+  its causal input x (its flow when the graph imposes the flow, its effort
+  otherwise) goes, i.e. x·φ(x) >= 0 for its law y = φ(x) (Karnopp, Margolis
+  & Rosenberg, *System Dynamics*, 5th ed., §4.1: a resistor's constitutive
+  law lies in the first and third quadrants).
+- Every C and I element in integral causality stores non-negative energy:
+  H(q) = ∫₀^q Ψ(s) ds >= 0 for a capacitance e = Ψ(q) (and the co-energy
+  ∫₀^p Φ(s) ds >= 0 for an inertia f = Φ(p)), over the range of its state
+  (KMR §4.2-4.3; the passivity of the storage, Willems 1972).
+
+"The range a record visits" is the interval of the element's variable along
+a state trajectory (the filtered states of a fit) widened by ``margin`` of
+its span on each side and made to contain zero: a law that turns active just
+beyond what the record reached (an orifice whose outflow falls as its level
+rises: x·φ(x) < 0 past a level the model will reach on the next record) is
+refused before it diverges. Laws that read other variables (a modulated R,
+a friction scaled by a normal force) are checked at the trajectory's own
+samples, their input scaled by 1 + ``margin``. Multiport fields (RField,
+CField, IField) and storages in derivative causality are not checked (listed
+in :attr:`Admissibility.unchecked`).
+
+The parameter signs of the effect library (``EffectParam.nonnegative``,
+declared boxes) make most refits admissible by construction; this check is
+what holds for any law, the user's own and the loop's, at the fitted
+values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import sympy as sp
+
+from bondgraph.core.causality import assign_causality
+from bondgraph.core.elements import C, I, R
+from bondgraph.core.graph import BondGraph
+from bondgraph.errors import ModelError
+
+#: widening of the visited range on each side, as a fraction of its span
+MARGIN = 0.25
+#: points of the grid over the widened range
+GRID_POINTS = 401
+#: a power or energy below −TOLERANCE × (its largest magnitude on the range)
+#: is a violation (above it: rounding)
+TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class Violation:
+    """One element's law that breaks what a bond graph promises.
+
+    Attributes
+    ----------
+    element : str
+        The element's name.
+    kind : {"R", "C", "I"}
+    what : str
+        ``"produces power"`` (R) or ``"stores negative energy"`` (C, I).
+    variable : str
+        The law's input: ``"flow"``/``"effort"`` (R) or the state's name.
+    at : float
+        The value of that variable where the violation is worst [its unit].
+    value : float
+        The power [W] (e·f, in the graph's units) or energy there (< 0).
+    visited : (float, float)
+        The range of the variable along the trajectory.
+    """
+
+    element: str
+    kind: str
+    what: str
+    variable: str
+    at: float
+    value: float
+    visited: tuple
+
+    def __str__(self) -> str:
+        lo, hi = self.visited
+        return (f"{self.kind} '{self.element}' {self.what}: {self.value:.3g} at "
+                f"{self.variable} = {self.at:.4g} (the record visits [{lo:.4g}, {hi:.4g}])")
+
+
+@dataclass
+class Admissibility:
+    """The result of :func:`check_admissible`.
+
+    Attributes
+    ----------
+    violations : list of Violation
+    checked : list of str
+        Elements whose law was checked.
+    unchecked : list of str
+        Elements not checked, with the reason (``"name: reason"``).
+    """
+
+    violations: list = field(default_factory=list)
+    checked: list = field(default_factory=list)
+    unchecked: list = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when no checked law breaks passivity."""
+        return not self.violations
+
+    def reason(self) -> str:
+        """One line naming every violation (empty when admissible)."""
+        return "; ".join(str(v) for v in self.violations)
+
+
+def check_admissible(graph: BondGraph, ss, theta: Mapping[str, float], x: np.ndarray,
+                     u: np.ndarray, *, margin: float = MARGIN) -> Admissibility:
+    """Check every R, C and I law of ``graph`` at the parameter values
+    ``theta`` over the range a trajectory visits (module docstring).
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The graph (its elements' laws).
+    ss : StateSpace
+        Its derived equations (:func:`bondgraph.core.equations.derive`), for
+        the port variables as functions of the states and inputs.
+    theta : mapping str -> float
+        Every parameter of the graph by name (in its declared unit).
+    x : ndarray (N, n_x)
+        A state trajectory, columns in the order of ``ss.states`` (the
+        filtered states of a fit); rows with a non-finite value are ignored.
+    u : ndarray (N, n_u)
+        The inputs at those samples, columns in the order of ``ss.inputs``.
+    margin : float
+        Widening of the visited range on each side, as a fraction of its span.
+
+    Returns
+    -------
+    Admissibility
+
+    Raises
+    ------
+    ModelError
+        If ``theta`` lacks a parameter of the graph, or the shapes of ``x``
+        and ``u`` do not match the model.
+
+    References
+    ----------
+    Karnopp, Margolis & Rosenberg, *System Dynamics: Modeling, Simulation,
+    and Control of Mechatronic Systems*, 5th ed., Wiley 2012, §4.1-4.3.
+    Willems, "Dissipative dynamical systems", Arch. Rational Mech. Anal. 45
+    (1972) 321-351.
+    """
+    x, u = np.atleast_2d(np.asarray(x, float)), np.asarray(u, float).reshape(len(x), -1)
+    if x.shape[1] != len(ss.states) or u.shape[1] != len(ss.inputs):
+        raise ModelError(f"check_admissible: states {x.shape} / inputs {u.shape} do not match "
+                         f"the model's {len(ss.states)} states and {len(ss.inputs)} inputs")
+    missing = [p.name for p in ss.params if p.name not in theta]
+    if missing:
+        raise ModelError(f"check_admissible: no value for parameter(s) {missing}")
+    keep = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(u), axis=1)
+    env = _Env(ss, {p: float(theta[p.name]) for p in ss.params}, x[keep], u[keep])
+    out = Admissibility()
+    cz = ss.causality if getattr(ss, "causality", None) is not None else \
+        assign_causality(graph, validate=False)
+    for name in sorted(graph.elements):
+        el = graph.elements[name]
+        if isinstance(el, R):
+            _check_r(env, cz, el, margin, out)
+        elif isinstance(el, (C, I)):
+            _check_storage(env, el, margin, out)
+        elif getattr(el, "kind", None) in ("R", "C", "I"):
+            out.unchecked.append(f"{name}: multiport field")
+    return out
+
+
+class _Env:
+    """Numeric values of the trajectory's states, inputs and the parameters
+    by sympy symbol, and the evaluation of expressions over them."""
+
+    def __init__(self, ss, params: dict, x: np.ndarray, u: np.ndarray):
+        self.ss, self.n = ss, len(x)
+        self.params = set(params)
+        self.values = dict(params)
+        self.values.update({s: x[:, i] for i, s in enumerate(ss.states)})
+        self.values.update({s: u[:, j] for j, s in enumerate(ss.inputs)})
+
+    def known(self, expr: sp.Expr, extra: Sequence = ()) -> bool:
+        """True when every free symbol of ``expr`` has a value (or is in ``extra``)."""
+        return all(s in self.values or s in extra for s in expr.free_symbols)
+
+    def evaluate(self, expr: sp.Expr, at: Mapping | None = None) -> np.ndarray:
+        """``expr`` at the trajectory's values, the symbols of ``at``
+        (symbol -> array) at those instead; broadcast to one array."""
+        at = at or {}
+        syms = sorted(expr.free_symbols, key=lambda s: s.name)
+        fn = sp.lambdify(syms, expr, "numpy")
+        args = [at[s] if s in at else self.values[s] for s in syms]
+        with np.errstate(all="ignore"):
+            val = np.asarray(fn(*args), dtype=float)
+        shapes = [np.shape(a) for a in args] + [val.shape]
+        return np.broadcast_to(val, np.broadcast_shapes(*shapes)).astype(float)
+
+
+def _widened(v: np.ndarray, margin: float) -> np.ndarray:
+    """A grid (GRID_POINTS,) over [min(v, 0), max(v, 0)] widened by ``margin``
+    of its span on each side, with 0 and the extremes of ``v`` on it."""
+    lo, hi = min(float(np.min(v)), 0.0), max(float(np.max(v)), 0.0)
+    span = hi - lo if hi > lo else max(abs(hi), abs(lo), 1.0)
+    g = np.linspace(lo - margin * span, hi + margin * span, GRID_POINTS)
+    return np.unique(np.concatenate([g, [0.0, float(np.min(v)), float(np.max(v))]]))
+
+
+def _worst(values: np.ndarray, where: np.ndarray) -> tuple[int, bool]:
+    """Index of the most negative of ``values`` and whether it is a
+    violation (below −TOLERANCE × the largest magnitude)."""
+    ok = np.isfinite(values)
+    if not np.any(ok):
+        return 0, False
+    vals = np.where(ok, values, np.inf)
+    i = int(np.argmin(vals))
+    scale = float(np.max(np.abs(values[ok])))
+    return i, bool(vals[i] < -TOLERANCE * scale)
+
+
+def _check_r(env: _Env, cz, el: R, margin: float, out: Admissibility) -> None:
+    """x·φ(x) >= 0 for the R's law in its declared form (x its flow for an
+    effort law, its effort for a flow law)."""
+    b = el.port.bond
+    port_var, variable = (el.f, "flow") if el.form == "effort" else (el.e, "effort")
+    bond_var = b.f if el.form == "effort" else b.e
+    law = el.law
+    others = [s for s in law.free_symbols if s != port_var and s not in env.params]
+    X = sp.Dummy("x")
+    power = sp.sympify(X * law.xreplace({port_var: X}))
+    solved = env.ss.variable(bond_var)
+    if not env.known(solved) or not env.known(power, [X]) or env.n == 0:
+        out.unchecked.append(f"{el.name}: its {variable} is not a function of the states and "
+                             f"inputs alone")
+        return
+    xs = np.broadcast_to(env.evaluate(solved), (env.n,))
+    if others:
+        grid = np.concatenate([xs, xs * (1.0 + margin)])
+        p = np.concatenate([env.evaluate(power, at={X: xs}),
+                            env.evaluate(power, at={X: xs * (1.0 + margin)})])
+    else:
+        grid = _widened(xs, margin)
+        p = np.broadcast_to(env.evaluate(power, at={X: grid}), grid.shape)
+    out.checked.append(el.name)
+    i, bad = _worst(p, grid)
+    if bad:
+        out.violations.append(Violation(el.name, "R", "produces power", variable,
+                                        float(grid[i]), float(p[i]),
+                                        (float(np.min(xs)), float(np.max(xs)))))
+
+
+def _check_storage(env: _Env, el, margin: float, out: Admissibility) -> None:
+    """H(q) = ∫₀^q Ψ >= 0 over the widened range of the element's state (by
+    the trapezoidal rule on the grid, from its zero)."""
+    state = el.state
+    if state not in env.values or env.n == 0:
+        out.unchecked.append(f"{el.name}: no state of its own (derivative causality)")
+        return
+    law = el.law
+    if any(s != state and s not in env.params for s in law.free_symbols):
+        out.unchecked.append(f"{el.name}: its law reads variables other than its state")
+        return
+    qs = env.values[state]
+    grid = _widened(qs, margin)
+    law_g = np.broadcast_to(env.evaluate(law, at={state: grid}), grid.shape)
+    z = int(np.argmin(np.abs(grid)))
+    seg = np.concatenate([[0.0], np.cumsum(0.5 * (law_g[1:] + law_g[:-1]) * np.diff(grid))])
+    H = seg - seg[z]
+    out.checked.append(el.name)
+    i, bad = _worst(H, grid)
+    if bad:
+        out.violations.append(Violation(el.name, el.kind, "stores negative energy", state.name,
+                                        float(grid[i]), float(H[i]),
+                                        (float(np.min(qs)), float(np.max(qs)))))

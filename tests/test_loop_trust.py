@@ -1,0 +1,259 @@
+"""A loop you can trust (issue 26): admissible (passive) models only, models
+that simulate on both records, converged comparisons, and a declared fit
+that failed stops the loop. Numbers against hand-derived laws."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from bondgraph import BondGraph
+from bondgraph.core.equations import derive
+from bondgraph.diagnose.accept import decide, rank_confirmed
+from bondgraph.diagnose.effects.laws import add_to_r_law
+from bondgraph.diagnose.fit import Fit, free_run_trouble
+from bondgraph.diagnose.residuals import ResidualReport
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import ModelError, OptionError
+from bondgraph.numerics.admissible import MARGIN, check_admissible
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_unknown_x0 import TRUTH, record, tanks  # noqa: E402
+
+
+def _fit(nll, k, metric, validation=None, unstable=None, iterations=10):
+    rep = ResidualReport([], [], 1.0, 1.0, (0.9, 1.1), 10.0, {"whiteness_dof": 20.0})
+    f = Fit(None, None, [f"p{i}" for i in range(k)], np.zeros(k), nll, None, rep, metric,
+            None, n_obs=1000)
+    f.validation_metric, f.unstable, f.iterations = validation, unstable, iterations
+    return f
+
+
+@pytest.fixture(scope="module")
+def tank_run():
+    """The user's two tanks simulated by BDF at the truth: states (N, 2)
+    and the pump flow (N, 1)."""
+    from bondgraph.numerics.model import Model
+
+    g = tanks()
+    m = Model.from_graph(g)
+    exp, sim = record(m, 1, 0.25)
+    return sim.x, exp.inputs_for(m)
+
+
+def _with_cubic(beta: float) -> tuple[BondGraph, dict]:
+    """The tanks with β·Δp³ added to the lower orifice's flow law (the
+    loop's ``r_cubic`` effect in conductance form)."""
+    g = tanks()
+    b = g.param("beta", beta, "m^3/s/Pa^3", (-1.0, 1.0))
+    add_to_r_law(g, g.elements["orifice2"], lambda x: b * x**3)
+    return g, {**TRUTH, "beta": beta}
+
+
+def test_the_declared_tanks_are_admissible(tank_run):
+    x, u = tank_run
+    g = tanks()
+    r = check_admissible(g, derive(g), TRUTH, x, u)
+    assert r.ok and r.reason() == ""
+    assert sorted(r.checked) == ["orifice1", "orifice2", "tank1_C", "tank2_C"]
+    assert r.unchecked == []
+
+
+def test_a_negative_cubic_orifice_term_produces_power_and_is_named(tank_run):
+    """f = K2 p/(p² + 100)^¼ + β p³ with β < 0: the power into the orifice
+    p·f turns negative where |β| p³ exceeds K2 √p. The worst point of the
+    widened range is its top, p_max (1 + MARGIN): the check reports the
+    power there, computed here by hand."""
+    x, u = tank_run
+    beta = -1e-13
+    g, theta = _with_cubic(beta)
+    r = check_admissible(g, derive(g), theta, x, u)
+    assert not r.ok
+    (v,) = r.violations
+    assert (v.element, v.kind, v.what, v.variable) == ("orifice2", "R", "produces power", "effort")
+    p_max = float(np.max(x[:, 1])) / TRUTH["C2"]          # e = q/C of tank 2
+    top = p_max * (1 + MARGIN)
+    assert v.visited[1] == pytest.approx(p_max, rel=1e-9)
+    assert v.at == pytest.approx(top, rel=1e-9)
+    power = top * (TRUTH["K2"] * top / (top**2 + 100.0) ** 0.25 + beta * top**3)
+    assert v.value == pytest.approx(power, rel=1e-9)
+    assert "orifice2" in r.reason() and "produces power" in r.reason()
+    # a positive β dissipates more: admissible
+    g, theta = _with_cubic(1e-13)
+    assert check_admissible(g, derive(g), theta, x, u).ok
+    # so does a negative β too small to turn the law over the visited range
+    # plus the margin: |β| top³ < K2 √top at β = −1e-20
+    g, theta = _with_cubic(-1e-20)
+    assert check_admissible(g, derive(g), theta, x, u).ok
+
+
+def test_a_softening_spring_past_its_turning_point_stores_negative_energy():
+    """A mass on a spring e = k q − β q³: H(q) = k q²/2 − β q⁴/4 < 0 for
+    q > √(2k/β). Visited q in [−0.5, 1]: with k = 1, β = 4 the energy turns
+    negative at q = 0.707 inside the range; with β = 1 (zero at 1.414) not
+    even at the widened top 1.375."""
+    def graph(beta):
+        g = BondGraph("soft", "mass on a softening spring")
+        k = g.param("k", 1.0, "N/m", (0.1, 10.0))
+        bb = g.param("b", beta, "N/m^3", (0.0, 10.0))
+        m = g.param("m", 1.0, "kg", (0.1, 10.0))
+        j = g.one("v", domain="translation")
+        g.connect(j, g.I("mass", m))
+        g.connect(j, g.C("spring", effort=lambda q: k * q - bb * q**3))
+        g.sensor("pos_v", j.f, unit="m/s", noise_std=0.01)
+        return g, {"k": 1.0, "b": beta, "m": 1.0}
+
+    q = np.linspace(-0.5, 1.0, 50)
+    g, th = graph(4.0)
+    ss = derive(g)
+    order = [s.name for s in ss.states]
+    x = np.zeros((q.size, 2))
+    x[:, order.index("q_spring")] = q
+    r = check_admissible(g, ss, th, x, np.zeros((q.size, 0)))
+    (v,) = r.violations
+    assert (v.element, v.kind, v.what, v.variable) == ("spring", "C", "stores negative energy",
+                                                       "q_spring")
+    top = 1.0 + MARGIN * 1.5                      # span 1.5, widened by MARGIN
+    assert v.at == pytest.approx(top, rel=1e-12)
+    assert v.value == pytest.approx(top**2 / 2 - 4.0 * top**4 / 4, rel=1e-4)  # trapezoid rule
+    g, th = graph(1.0)
+    assert check_admissible(g, derive(g), th, x, np.zeros((q.size, 0))).ok
+
+
+def test_admissibility_input_errors(tank_run):
+    x, u = tank_run
+    g = tanks()
+    with pytest.raises(ModelError, match="no value for parameter"):
+        check_admissible(g, derive(g), {"C1": 1.0}, x, u)
+    with pytest.raises(ModelError, match="do not match"):
+        check_admissible(g, derive(g), TRUTH, x[:, :1], u)
+
+
+def test_a_non_admissible_refit_is_refused_whatever_its_evidence(tank_run):
+    x, u = tank_run
+    g, theta = _with_cubic(-1e-13)
+    adm = check_admissible(g, derive(g), theta, x, u)
+    s = LoopSettings(params=[])
+    cur, aft = _fit(-1000.0, 2, 1.0), _fit(-1500.0, 3, 0.5)
+    assert decide(cur, aft, s).accepted              # the same evidence, unchecked
+    d = decide(cur, aft, s, admissible=adm)
+    assert not d.accepted
+    assert d.reason.startswith("the refit is not physically admissible: R 'orifice2' produces "
+                               "power")
+
+
+def test_a_free_run_that_diverges_on_the_record_is_refused_even_when_held_out_error_falls():
+    """Issue 26: `r_cubic @ orifice2` diverged on the estimation record
+    (error inf) and was accepted because its held-out error fell
+    (0.4663 -> 0.4159)."""
+    s = LoopSettings(params=[])
+    cur = _fit(-1000.0, 2, 0.30, validation=0.4663)
+    d = decide(cur, _fit(-1100.0, 3, math.inf, validation=0.4159), s)
+    assert not d.accepted
+    assert d.reason == ("the refit is not finite (NLL -1100, error on the record inf, on the "
+                        "validation record 0.4159)")
+    d = decide(cur, _fit(-1100.0, 3, 0.25, validation=0.4159,
+                         unstable="the free run fails (the solver stops) on the validation "
+                                  "record"), s)
+    assert not d.accepted and d.reason.startswith("the refitted model does not simulate: the "
+                                                  "free run fails")
+    assert decide(cur, _fit(-1100.0, 3, 0.25, validation=0.4159), s).accepted
+
+
+def test_free_run_trouble_names_failure_divergence_and_passes_a_good_run():
+    y = np.column_stack([np.sin(np.linspace(0, 6, 100)), np.full(100, np.nan)])
+    assert free_run_trouble(None, y, ["a", "b"]) == "the free run fails (the solver stops)"
+    ok = y.copy()
+    ok[:, 1] = 5.0
+    assert free_run_trouble(ok + 0.5, y, ["a", "b"]) is None      # offset, in range
+    bad = ok.copy()
+    bad[-1, 0] = 1.0 + 3.0 * 2.0 + 0.1          # max + 3 widths (width ≈ 2) + a bit
+    msg = free_run_trouble(bad, y, ["a", "b"])
+    assert msg.startswith("the free run of a reaches 7.1, beyond 3 times the measured range")
+    bad[-1, 0] = np.inf
+    assert free_run_trouble(bad, y, ["a", "b"]) == "the free run of a is not finite"
+
+
+def test_a_non_converged_refit_never_beats_a_converged_one():
+    conv = SimpleNamespace(comparable=True)
+    stuck = SimpleNamespace(comparable=False)
+    ranked = rank_confirmed([(700.0, "lowpass", stuck), (450.0, "capacity", conv),
+                             (20.0, "offset", conv)])
+    assert [c for _, c, _ in ranked] == ["capacity", "offset", "lowpass"]
+    s = LoopSettings(params=[])
+    d = decide(_fit(-1000.0, 2, 1.0), _fit(-1356.0, 3, 0.5, iterations=120), s,
+               comparable=False)
+    assert not d.accepted
+    assert d.reason == ("the refit did not converge (120 iterations): its likelihood ratio "
+                        "712 is not comparable")
+
+
+def test_on_failed_fit_option_is_checked():
+    assert LoopSettings(params=[]).on_failed_fit == "stop"
+    with pytest.raises(OptionError, match="on_failed_fit must be 'stop' or 'continue'"):
+        LoopSettings(params=[], on_failed_fit="maybe")
+
+
+TANKS_BOXED = '''
+import sympy as sp
+from bondgraph import BondGraph
+
+
+def tanks():
+    """The user's two tanks, the lower orifice's box excluding the truth
+    (2.5e-6): the record pushes K2 onto the box's top."""
+    g = BondGraph("tanks_boxed", "Two tanks in cascade with orifice outlets.")
+    Q = g.input("Q", "m^3/s", 0.0, "pump flow")
+    C1 = g.param("C1", 6e-5, "m^3/Pa", (5e-6, 5e-4))
+    C2 = g.param("C2", 4e-5, "m^3/Pa", (5e-6, 5e-4))
+    K1 = g.param("K1", 3.5e-6, "m^3/s/Pa^0.5", (3e-7, 3e-5))
+    K2 = g.param("K2", 5e-7, "m^3/s/Pa^0.5", (3e-7, 1e-6))
+    t1 = g.zero("tank1", domain="hydraulic")
+    g.connect(g.Sf("pump", Q), t1)
+    g.connect(t1, g.C("tank1_C", C1))
+    o1 = g.one("o1", domain="hydraulic")
+    g.connect(t1, o1)
+    g.connect(o1, g.R("orifice1", flow=lambda dp: K1 * dp / (dp**2 + 100.0) ** sp.Rational(1, 4)))
+    t2 = g.zero("tank2", domain="hydraulic")
+    g.connect(o1, t2)
+    g.connect(t2, g.C("tank2_C", C2))
+    g.connect(t2, g.R("orifice2", flow=lambda p: K2 * p / (p**2 + 100.0) ** sp.Rational(1, 4)))
+    g.set_process_noise("q_tank2_C", 1e-5)
+    g.sensor("p2", t2.e, unit="Pa", noise_std=20.0, description="lower tank pressure")
+    return g
+'''
+
+
+def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypatch, capsys):
+    """The record's truth K2 = 2.5e-6 lies outside the declared box
+    [3e-7, 1e-6]: the likelihood fit puts K2 on the box's top, the second
+    attempt from the output-error fit too; the loop stops with exit code 2
+    and names K2 and its box (no effect is scored)."""
+    from bondgraph.cli.main import main
+    from bondgraph.numerics.model import Model
+
+    m = Model.from_graph(tanks())
+    exp, _ = record(m, 1, 0.25, n=1201)
+    exp.save(tmp_path / "est.csv")
+    (tmp_path / "tanks_boxed.py").write_text(TANKS_BOXED)
+    monkeypatch.chdir(tmp_path)
+    rc = main(["loop", "--model", "tanks_boxed.py:tanks", "--data", "est.csv",
+               "--params", "K1,K2", "--max-steps", "1", "--no-structural", "--out", "rep",
+               "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "the declared fit failed: K2 = 1e-06 sits on a bound of [3e-07, 1e-06]" in err
+    assert "--keep-going" in err
+    # the report of what the box costs: the refit with the box opened finds
+    # the truth K2 = 2.5e-6 and a large likelihood gain
+    import re
+    gain, k2 = re.search(r"beyond the box the likelihood gains ([0-9.]+) nats, at K2 = "
+                         r"([0-9.e+-]+)\)", err).groups()
+    assert float(gain) > 100.0
+    assert float(k2) == pytest.approx(TRUTH["K2"], rel=0.03)
