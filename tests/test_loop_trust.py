@@ -257,3 +257,35 @@ def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypa
                          r"([0-9.e+-]+)\)", err).groups()
     assert float(gain) > 100.0
     assert float(k2) == pytest.approx(TRUTH["K2"], rel=0.03)
+
+
+def test_a_pair_is_needed_only_when_it_beats_each_member_alone():
+    """pair_needed: LR of the pair over each member's own refit, χ² with the
+    other member's dof. NLLs: current 0, singles −10 and −12, pair −30:
+    LR 40 (k 2) and 36 (k 1) both significant; with the pair at −13 the
+    first member's LR 6 (k 2) has p = e^{-3} = 0.0498 > 0.01."""
+    from bondgraph.diagnose.accept import pair_needed
+
+    a, b = _fit(-10.0, 3, 1.0), _fit(-12.0, 4, 1.0)
+    assert pair_needed(_fit(-30.0, 5, 1.0), [a, b], [1, 2], 0.01) is None
+    why = pair_needed(_fit(-13.0, 5, 1.0), [a, b], [1, 2], 0.01)
+    assert why == "member 1 alone does as well (LR of the pair over it 6, p 0.05)"
+    assert pair_needed(_fit(-30.0, 5, 1.0), [a, None], [1, 2], 0.01) == \
+        "member 2's own refit is not available"
+
+
+def test_pair_pool_keeps_usable_refits_rejected_on_evidence():
+    from bondgraph.diagnose.runner import pair_pool
+
+    def cand(label, lr, reason, comparable=True):
+        return SimpleNamespace(label=label, confirmed_statistic=lr,
+                               confirmed={"reason": reason, "comparable": comparable})
+
+    ranking = [cand("a", 50.0, "the error grew (1 -> 1.1)"),
+               cand("b", 900.0, "the refit is not physically admissible: R 'o' produces power"),
+               cand("c", 80.0, "the error decrease is within its uncertainty"),
+               cand("d", 700.0, "the refit did not converge (120 iterations)", False),
+               cand("e", 0.0, "likelihood-ratio test not passed"),
+               cand("f", 10.0, "information criterion did not improve"),
+               cand("g", 5.0, "the refitted model does not simulate: ...")]
+    assert [c.label for c in pair_pool(ranking)] == ["c", "a", "f"]

@@ -338,6 +338,40 @@ def decide(current: Fit, after: Fit, settings: LoopSettings, dof: int = 1,
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
 
 
+def pair_needed(pair: Fit, singles: list, dofs: list[int], level: float) -> str | None:
+    """Why a pair of effects is not needed as a pair, or None: the pair's
+    refit must beat each member's own refit by a likelihood ratio
+    2 (NLL_single − NLL_pair) significant at ``level`` under χ²(k_other),
+    k_other the other member's new parameters (Wilks 1938); otherwise the
+    pair's gain is the better member's alone.
+
+    Parameters
+    ----------
+    pair : Fit
+    singles : list of (Fit or None)
+        Each member's own confirmation refit (None: unknown).
+    dofs : list of int
+        Each member's new parameters (in the order of ``singles``).
+    level : float
+
+    Returns
+    -------
+    str or None
+        The reason (which member does as well alone, with the likelihood
+        ratio and p-value), or None when both are needed.
+    """
+    for i, single in enumerate(singles):
+        if single is None:
+            return f"member {i + 1}'s own refit is not available"
+        k_other = max(int(dofs[1 - i]), 1)
+        lr = 2.0 * (single.nll - pair.nll)
+        p = float(chi2.sf(lr, k_other)) if np.isfinite(lr) else float("nan")
+        if not p < level:
+            return (f"member {i + 1} alone does as well (LR of the pair over it {lr:.3g}, "
+                    f"p {p:.2g})")
+    return None
+
+
 def accepted_step(cand: Candidate, d: Decision, current: Fit, after: Fit, names: list[str],
                   std: dict, metric: str) -> Step:
     """The :class:`Step` of an accepted candidate: ``names`` with their

@@ -128,6 +128,51 @@ def continued(ctx: Context, graph, fit: Fit, label: str) -> Fit:
     return fit
 
 
+def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
+                 name: str) -> Confirmation | None:
+    """Refit ``fit``'s graph with both candidates of ``pair`` (two confirmed
+    :class:`Candidate`, at different places) applied, every parameter
+    re-estimated from the current estimates and each effect's confirmed
+    values (continued until converged, :func:`continued`).
+
+    Returns
+    -------
+    Confirmation or None
+        ``values`` keyed ``"<label>.<local name>"``; None (logged) when an
+        effect cannot be applied or the refit fails.
+    """
+    g = fit.graph.copy(name)
+    new, values_of, start = [], {}, dict(fit.estimates())
+    for cand in pair:
+        eff = get_effect(cand.effect, ctx.settings.effects)
+        vals = {**start_values(eff, cand), **(cand.confirmed or {}).get("values", {})}
+        try:
+            P = eff.apply(g, cand.target, vals, scales)
+        except BondGraphError as exc:
+            ctx.log(f"  cannot apply {cand.label} beside the other: {str(exc).splitlines()[0]}")
+            return None
+        widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
+                    if not eff.additive else {})
+        mine = [P[p.name].name for p in eff.params if p.estimated and p.name in P]
+        new += mine
+        values_of[cand.label] = {p.name: P[p.name].name for p in eff.params if p.name in P}
+        start.update({P[k].name: float(v) for k, v in vals.items() if k in P})
+        start.update(cand.profile)
+    label = " + ".join(c.label for c in pair)
+    try:
+        model = model_of(g)
+        f1 = fit_model(ctx, g, list(fit.params) + new, start, f"confirming {label}",
+                       model=model, iterations=ctx.settings.confirm_iterations,
+                       tolerance=ctx.settings.confirm_tolerance)
+        f1 = continued(ctx, g, f1, label)
+    except BondGraphError as exc:
+        ctx.log(f"  confirmation of {label} failed: {str(exc).splitlines()[0]}")
+        return None
+    values = {f"{lab}.{k}": float(f1.theta[f1.model.param_index(n)])
+              for lab, names in values_of.items() for k, n in names.items()}
+    return Confirmation(f1, values, new, comparable=f1.converged is not False)
+
+
 def start_values(eff: Effect, cand: Candidate) -> dict:
     """The candidate's values, with the physical sign imposed on an additive
     effect's nonnegative parameters (friction coefficients of R laws; 1e-9

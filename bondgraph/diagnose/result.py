@@ -121,7 +121,9 @@ class Step:
     free-run error before and after, whether the error is the validation
     record's, the confirmed likelihood ratio and its p-value, the target's
     kind and the effect's parameter names, and the confirmed candidates the
-    record could not tell from it (``tied``, Vuong's test)."""
+    record could not tell from it (``tied``, Vuong's test), and the effects
+    accepted with it as a pair (``together_with``: the step's numbers are
+    the pair's, :func:`bondgraph.diagnose.runner.accepted_pair`)."""
 
     effect: str
     attached_to: str
@@ -145,6 +147,7 @@ class Step:
     target_kind: str | None = None
     effect_params: list = field(default_factory=list)
     tied: list = field(default_factory=list)
+    together_with: list = field(default_factory=list)
 
 
 @dataclass
@@ -315,7 +318,8 @@ class LoopResult:
         for i, s in enumerate(self.steps, 1):
             est = (f" {_num(s.estimation_error_before)} | {_num(s.estimation_error_after)} |"
                    if val else "")
-            rows.append(f"| {i} | {s.effect} | {s.attached_to} | {s.error_before:.4g} | "
+            pair = "".join(f" + {w}" for w in s.together_with)
+            rows.append(f"| {i} | {s.effect}{pair} | {s.attached_to} | {s.error_before:.4g} | "
                         f"{s.error_after:.4g} |{est} {s.nll_before:.1f} | {s.nll_after:.1f} |")
         return "\n".join(rows)
 

@@ -18,11 +18,12 @@ from bondgraph.diagnose.accept import (
     confirmed_record,
     decide,
     mark_ties,
+    pair_needed,
     rank_confirmed,
     rejection,
     significant,
 )
-from bondgraph.diagnose.confirm import Confirmation, confirm
+from bondgraph.diagnose.confirm import Confirmation, confirm, confirm_pair
 from bondgraph.diagnose.effects import Scales, get_effect
 from bondgraph.diagnose.fit import (
     Context,
@@ -39,7 +40,7 @@ from bondgraph.diagnose.fit import (
 from bondgraph.diagnose.inference_calls import discretisation, make_executor, output_error
 from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.parallel import run_tasks
-from bondgraph.diagnose.result import Candidate, LoopResult, rank_of
+from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, rank_of
 from bondgraph.diagnose.scoring import (
     mark_limits,
     operating_scales,
@@ -511,7 +512,97 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     if after is None and structural_skipped(ctx.settings, result.rankings[-1]) \
             and not any(c.kind != "score" for c in result.rankings[-1]):
         after = accepted_among_skipped_structurals(ctx, result, current, scales, tag, step)
+    if after is None and ctx.settings.pairs:
+        after = accepted_pair(ctx, result, current, scales, tag, step)
     return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
+
+
+#: the best confirmed candidates whose pairs are refitted when no single one
+#: passes the accept rule (at most PAIR_TOP·(PAIR_TOP − 1)/2 refits)
+PAIR_TOP = 3
+#: rejections that no partner can mend: the refit itself is unusable
+_UNUSABLE = ("the refit did not converge", "the refit is not physically admissible",
+             "the refitted model does not simulate", "the refit is not finite")
+
+
+def pair_pool(ranking: list[Candidate]) -> list[Candidate]:
+    """The confirmed candidates of a step that a partner could complete: a
+    usable refit (converged, admissible, simulating, finite) with a positive
+    likelihood ratio, rejected on the evidence (criterion, likelihood ratio
+    or error); at most :data:`PAIR_TOP`, by decreasing likelihood ratio."""
+    pool = [c for c in ranking if c.confirmed and c.confirmed.get("comparable", True)
+            and (c.confirmed_statistic or 0.0) > 0
+            and not str(c.confirmed.get("reason") or "").startswith(_UNUSABLE)]
+    return sorted(pool, key=lambda c: -c.confirmed_statistic)[:PAIR_TOP]
+
+
+def accepted_pair(ctx: Context, result: LoopResult, current: Fit, scales: Scales, tag: str,
+                  step: int) -> Fit | None:
+    """No confirmed candidate passed the accept rule alone: refit pairs of
+    the best ones (:func:`pair_pool`, at different places) together and
+    accept the first pair that passes the accept rule against the current
+    fit (its dof the two effects' new parameters) *and* needs both members
+    (:func:`bondgraph.diagnose.accept.pair_needed`: the pair beats each
+    member's own refit by a significant likelihood ratio). Two effects that
+    act together (the overflows of two cascaded tanks: the lower tank's
+    level is capped by both) can each fail alone, the other one's misfit
+    raising the held-out error. The pair is one step (the first member's,
+    the second in its ``together_with``; both effects applied). Returns the
+    accepted fit, or None."""
+    s = ctx.settings
+    pool = pair_pool(result.rankings[-1])
+    pairs = [(a, b) for i, a in enumerate(pool) for b in pool[i + 1:]
+             if a.target.name != b.target.name]
+    if not pairs:
+        return None
+    ctx.log(f"  no single candidate passed: refitting {len(pairs)} pair(s) of "
+            f"{', '.join(c.label for c in pool)}")
+    for a, b in pairs:
+        conf = confirm_pair(ctx, current, (a, b), scales, f"{tag}_pair")
+        if conf is None:
+            continue
+        after = accepted_pair_fit(ctx, result, current, (a, b), conf, step)
+        if after is not None:
+            return after
+    return None
+
+
+def accepted_pair_fit(ctx: Context, result: LoopResult, current: Fit, pair: tuple,
+                      conf: Confirmation, step: int) -> Fit | None:
+    """Decide on the refit ``conf`` of ``pair`` (:func:`accepted_pair`):
+    record both members as steps and return the fit if accepted, else
+    record the rejection and return None."""
+    s = ctx.settings
+    a, b = pair
+    label = f"{a.label} + {b.label}"
+    after = conf.fit
+    d = decide(current, after, s, dof=len(conf.new_params),
+               admissible=admissibility(ctx, after) if conf.comparable else None,
+               comparable=conf.comparable)
+    singles = [ctx.cache.get(("confirmation", id(current), current.nll, c.label)) for c in pair]
+    reason = d.reason or pair_needed(after, [None if r is None else r.fit for r in singles],
+                                     [0 if r is None else len(r.new_params) for r in singles],
+                                     s.significance)
+    if reason:
+        result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: {reason}",
+                                         d.criterion_after, d.whiteness_after))
+        ctx.log(f"reject pair {label} ({reason}): error {d.error_before:.4g} -> "
+                f"{d.error_after:.4g}, LR {d.lr:.1f} (p {d.lr_p_value:.2g})")
+        return None
+    after = fit_after_discretisation_check(ctx, result, after, label)
+    std = parameter_std(ctx, after)
+    after.std = std
+    names = list(current.params) + conf.new_params
+    st = accepted_step(a, d, current, after, names, std, result.metric)
+    st.together_with = [b.label]
+    result.steps.append(st)
+    for c in pair:
+        result.applied.append(applied_effect(get_effect(c.effect, s.effects), c, after))
+    ctx.log(f"ACCEPT pair {label}: {result.metric} {d.error_before:.4g} -> "
+            f"{d.error_after:.4g}, NLL {current.nll:.2f} -> {after.nll:.2f}, LR {d.lr:.1f} "
+            f"(p {d.lr_p_value:.2g}), error decrease z {d.error_z:.2f} (p {d.error_p_value:.2g}); "
+            f"each member needed")
+    return after
 
 
 #: the structural candidates skipped for an additive lead are scored when the

@@ -213,6 +213,11 @@ class LoopSettings:
         (default) raises :class:`~bondgraph.errors.DeclaredFitError` (the
         command line exits with code 2 naming them), ``"continue"``
         (``--keep-going``) warns and scores effects against it anyway.
+    pairs : bool
+        When no confirmed candidate passes the accept rule alone, refit
+        pairs of the best confirmed ones together and accept a pair that
+        passes it and needs both members
+        (:func:`bondgraph.diagnose.runner.accepted_pair`; default True).
     """
 
     params: list[str]
@@ -257,6 +262,7 @@ class LoopSettings:
     true_effect: Any = None
     noise: str = "auto"
     on_failed_fit: str = "stop"
+    pairs: bool = True
 
     def __post_init__(self):
         check_settings(self)
