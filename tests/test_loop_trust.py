@@ -289,3 +289,34 @@ def test_pair_pool_keeps_usable_refits_rejected_on_evidence():
                cand("f", 10.0, "information criterion did not improve"),
                cand("g", 5.0, "the refitted model does not simulate: ...")]
     assert [c.label for c in pair_pool(ranking)] == ["c", "a", "f"]
+
+
+def test_noise_that_absorbs_the_model_error_is_named():
+    """The issue's two tanks: the sensor noise at 0.001 V against the
+    record's 0.02 V, the process noise 30-fold up (0.01 -> 0.30 per √s)
+    with a random walk over 4092 s of 0.30·√4092 = 19.2 V against the
+    level's spread of 2 V."""
+    from bondgraph.diagnose.fit import noise_absorbing
+
+    t = np.arange(1024) * 4.0
+    level = 5.0 + 2.0 * np.sqrt(2) * np.sin(2 * np.pi * t / 400.0)     # std 2
+    model = SimpleNamespace(
+        outputs=["y"], states=["lower", "upper"],
+        meas_std=lambda th: th[..., 2:3],
+        proc_std=lambda th: np.stack([th[..., 0], th[..., 1]], axis=-1))
+    x = np.zeros((t.size, 1, 2))
+    x[:, 0, 0], x[:, 0, 1] = level, 3.0 + 0.0 * t
+    record = SimpleNamespace(noise_std_for=lambda m: np.array([0.02]))
+    ctx = SimpleNamespace(problem=SimpleNamespace(record=record, arrays=(t, None, None),
+                                                  theta=np.array([0.01, 0.01, 0.02])))
+    fit = SimpleNamespace(model=model, theta=np.array([0.30, 0.011, 0.001]), noise_est={},
+                          ukf=SimpleNamespace(x_filt=x))
+    w = noise_absorbing(ctx, fit)
+    assert w == ["the measurement noise of y is estimated at 0.001, below a third of the "
+                 "record's declaration 0.02: the model's errors are passed to the process noise",
+                 "the process noise of lower grew from 0.01 to 0.3 per √s: its random walk over "
+                 "the record (19.2) exceeds the state's own spread (2); the noise absorbs the "
+                 "model's error"]
+    # noise at its start and the declared level: nothing to name
+    fit.theta = np.array([0.01, 0.01, 0.02])
+    assert noise_absorbing(ctx, fit) == []

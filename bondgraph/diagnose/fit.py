@@ -580,6 +580,50 @@ def free_run_trouble(sim_y: np.ndarray | None, y: np.ndarray,
     return None
 
 
+#: a sensor noise estimated below this fraction of the record's declaration,
+#: or a process noise grown by more than its inverse, is named (:func:`noise_absorbing`)
+NOISE_FACTOR = 3.0
+
+
+def noise_absorbing(ctx: Context, fit: Fit) -> list[str]:
+    """Noise levels of ``fit`` that absorb the model's error rather than
+    describe the noise, as warnings: a measurement-noise std estimated
+    below 1/:data:`NOISE_FACTOR` of the record's declaration, and a
+    process-noise intensity q (state unit/√s) that grew more than
+    :data:`NOISE_FACTOR`-fold from its start and whose random walk over the
+    record, q·√T, exceeds the state's own spread along it (the std of its
+    filtered trajectory): the likelihood then explains the record by noise,
+    and the physical parameters need not move (a user's two tanks: the
+    process noise 30-fold up, the sensor noise at the bottom of its box,
+    the orifice coefficients at their start values)."""
+    model, th = fit.model, fit.theta
+    out = []
+    declared = np.asarray(ctx.problem.record.noise_std_for(model), float)
+    meas = np.asarray(model.meas_std(th[None, :]), float).reshape(-1)
+    for j, o in enumerate(model.outputs):
+        v, d = float(fit.noise_est.get(o, meas[j])), declared[j]
+        if np.isfinite(d) and d > 0 and v < d / NOISE_FACTOR:
+            out.append(f"the measurement noise of {o} is estimated at {v:.3g}, below a third of "
+                       f"the record's declaration {d:.3g}: the model's errors are passed to "
+                       f"the process noise")
+    proc = getattr(model, "proc_std", None)
+    x = getattr(fit.ukf, "x_filt", None)
+    t = ctx.problem.arrays[0]
+    if proc is None or x is None or len(t) < 2:
+        return out
+    q1 = np.asarray(proc(th[None, :]), float).reshape(-1)
+    q0 = np.asarray(proc(ctx.problem.theta[None, :]), float).reshape(-1)
+    span = float(t[-1] - t[0])
+    for i, st in enumerate(model.states):
+        spread = float(np.nanstd(np.asarray(x)[:, 0, i]))
+        walk = q1[i] * np.sqrt(span)
+        if q1[i] > NOISE_FACTOR * q0[i] and walk > spread > 0:
+            out.append(f"the process noise of {st} grew from {q0[i]:.3g} to {q1[i]:.3g} per √s: "
+                       f"its random walk over the record ({walk:.3g}) exceeds the state's own "
+                       f"spread ({spread:.3g}); the noise absorbs the model's error")
+    return out
+
+
 def admissibility(ctx: Context, fit: Fit) -> Admissibility:
     """Whether ``fit``'s graph keeps what a bond graph promises at its
     estimates (every R dissipates, every C and I stores non-negative

@@ -29,6 +29,7 @@ from bondgraph.diagnose.fit import (
     Context,
     Fit,
     admissibility,
+    noise_absorbing,
     fit_model,
     loop_problem,
     model_of,
@@ -188,6 +189,14 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit,
     result.warnings.extend(check_discretisation(ctx, initial) if warn is None else warn)
     result.warnings.extend(f"initial fit: {n} on a bound of its box (no Cramér-Rao std)"
                            for n in initial.at_bound)
+    for w in noise_absorbing(ctx, initial):
+        ctx.log(f"warning: initial fit: {w}")
+        result.warnings.append(f"initial fit: {w}")
+    adm = admissibility(ctx, initial)
+    if not adm.ok:
+        ctx.log(f"warning: the declared model is not physically admissible at its fit: "
+                f"{adm.reason()}")
+        result.warnings.append(f"initial fit: not physically admissible: {adm.reason()}")
     return result
 
 
