@@ -332,7 +332,8 @@ def gain_beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str]) 
     kept), as a clause naming the gain [nats] and the values reached. The
     box stays the user's: this only reports what it costs."""
     model = fit.model
-    boxed = [n for n in fit.at_bound if n in names]
+    noise = noise_params(model)
+    boxed = [n for n in fit.at_bound if n in names and n not in noise]
     if not boxed:
         return ""
     wide = copy.copy(model)
