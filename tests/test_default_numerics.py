@@ -283,3 +283,26 @@ def test_a_record_declares_each_inputs_hold(tmp_path):
 def test_candidates_are_in_order_of_cost():
     cost = [4 * s if m == "rk4" else 2 * s + 2 for m, s in CANDIDATES]
     assert cost == sorted(cost)
+
+
+def test_shared_reference_errors_equal_the_discretisation_check(record):
+    """discretisation_errors (one reference per hold for all candidates)
+    gives discretisation_check's one-step numbers, and a free-run root sum
+    of squares at least the free run's worst error that the check reports."""
+    from bondgraph.inference.ukf import discretisation_check, discretisation_errors
+
+    _, exp = record
+    m = Model.from_graph(msd_graph())
+    p = make_problem(m, exp.segment(0, 1500))
+    th = m.theta(TRUTH)
+    sig = np.array([NOISE["x"], NOISE["v"]])
+    discs = [Discretisation(meth, s, h) for h in ("zoh", "linear") for meth, s in
+             (("ros2", 1), ("rk4", 2))]
+    got = discretisation_errors(m, p.t, p.u, th, p.x0, discs, sigma=sig, free_run=True)
+    for d, r in zip(discs, got):
+        ref = discretisation_check(m, p.t, p.u, th, p.x0, d, sigma=sig, free_run=True)
+        np.testing.assert_allclose(r["one_step"], ref["one_step"], rtol=1e-12)
+        assert r["reference"] == ref["reference"]
+        # the free run's worst error is within its root sum of squares
+        assert np.max(ref["free_run"]) <= r["free_run_rss"] + 1e-12
+    assert got[0]["free_run_rss"] > 1.0 > got[1]["free_run_rss"]     # ROS2(1) vs RK4(2)
