@@ -37,7 +37,7 @@ Hairer, E., Wanner, G. (1996). Solving Ordinary Differential Equations II,
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -101,7 +101,9 @@ class InputHold:
     erratic: float = float("nan")
 
     def describe(self) -> str:
-        """``"F: linear (continuous: 100 % of its change continues a similar step)"``."""
+        """One clause: ``"F: linear (a sampled continuous signal: 99% of its
+        change continues a similar step)"``, ``"u: zoh (a staircase: 100% of
+        its change in isolated steps)"``, ``"F: zoh (declared by the record)"``."""
         if self.source == "declared":
             return f"{self.name}: {self.hold} (declared by the record)"
         if self.source == "constant":
