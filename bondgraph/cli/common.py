@@ -196,27 +196,32 @@ def estimated_states(model, args) -> list[str]:
     return x0_state_names(model, parse_names(text, "--estimate-x0"))
 
 
-def add_discretisation(p: argparse.ArgumentParser) -> None:
+def add_discretisation(p: argparse.ArgumentParser, *, chosen: bool = True) -> None:
     """``--method``, ``--substeps``, ``--hold``: the UKF's transition. Their
     defaults are None ("not given"): a command that chooses its numerics
-    (:func:`chosen_problem`) fills in what the user left out; others take
+    (``chosen``, :func:`chosen_problem`) fills in what the user left out;
+    the loop takes its case's own options, else
     :class:`~bondgraph.inference.options.UKFOptions`' defaults."""
+    dflt = "chosen, see --hold" if chosen else "the case's own, else ros2, 1, zoh"
     p.add_argument("--method", choices=UKF_METHODS, default=None,
-                   help="UKF discretisation of the state equations (default: chosen, see "
-                        "--hold)")
+                   help=f"UKF discretisation of the state equations (default: {dflt})")
     p.add_argument("--substeps", type=int, default=None,
-                   help="integrator steps per sample (default: chosen, see --hold)")
+                   help=f"integrator steps per sample (default: {dflt})")
     p.add_argument("--hold", choices=UKF_HOLDS, default=None,
                    help="input over a sample interval: u_k (zoh), (u_k + u_k+1)/2 (mean), or "
                         "the first-order hold u_k + s (u_k+1 - u_k) (linear; for inputs sampled "
-                        "from a continuous signal). Default: what is not given is chosen: the "
-                        "hold the record declares (sidecar columns.<input>.hold) or its inputs' "
-                        "shape supports, and the cheapest of ros2/rk4 with 1, 2, 4, 8, 16 "
-                        "substeps whose one-step error is within 0.1 measurement-noise std "
-                        "per sample (without process noise also: whose free run bounds every "
-                        "estimate's bias by 0.5 Cramér-Rao std); one line on stderr says what "
-                        "was chosen")
+                        "from a continuous signal). Default: "
+                        + (_CHOSEN_HELP if chosen else dflt))
     add_backend(p)
+
+
+#: how a command that chooses its numerics fills in --method/--substeps/--hold
+_CHOSEN_HELP = ("what is not given is chosen: the hold the record declares (sidecar "
+                "columns.<input>.hold) or its inputs' shape supports, and the cheapest of "
+                "ros2/rk4 with 1, 2, 4, 8, 16 substeps whose one-step error is within 0.1 "
+                "measurement-noise std per sample (without process noise also: whose free run "
+                "bounds every estimate's bias by 0.5 Cramér-Rao std); one line on stderr says "
+                "what was chosen")
 
 
 def add_backend(p: argparse.ArgumentParser) -> None:
