@@ -48,7 +48,8 @@ def _record(model, *, x0=None, sd=TRUE_SD, declare=None, seed=1, T=6.0):
     sim = simulate(model, t, u, x0=x0, theta=model.theta(TRUTH), hold="zoh")
     y = sim.y + sd * np.random.default_rng(seed).standard_normal(sim.y.shape)
     return Experiment.from_arrays(t, model=model, u=u, y=y, noise_std=declare,
-                                  meta={"name": "msd_noise", "true_parameters": TRUTH})
+                                  meta={"name": "msd_noise", "true_parameters": TRUTH,
+                                        "columns": {"F": {"hold": "zoh"}}})   # as simulated
 
 
 def _fit():

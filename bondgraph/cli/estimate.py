@@ -8,6 +8,7 @@ import json
 import shutil
 import sys
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,8 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
+    chosen_problem,
+    discretisation_given,
     estimated_states,
     load_model,
     load_record,
@@ -30,6 +33,7 @@ from bondgraph.cli.common import (
 )
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import EstimationError, IdentifiabilityWarning
+from bondgraph.inference.discretise import check_discretisation, choose_discretisation
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.options import FitOptions
@@ -98,7 +102,7 @@ def run(args) -> int:
                            overwrite=args.overwrite or args.resume)
     ck = (Path(args.checkpoint) if args.checkpoint
           else folder.work_dir(create=False) / "checkpoint.npz")
-    problem = problem_from_args(model, exp, args)
+    problem, choice = chosen_problem(problem_from_args(model, exp, args), args)
     states = estimated_states(model, args)
     if args.fit == "sim":
         return run_output_error(args, problem, params, folder, states)
@@ -109,15 +113,12 @@ def run(args) -> int:
                      scheduler=args.scheduler)
     if not args.checkpoint:
         _prepare_checkpoint(folder, args.resume)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", IdentifiabilityWarning)
-        try:
-            res = estimate(problem, params, fit=fit, x0_states=states,
-                           log=None if args.quiet else _say)
-        except EstimationError:
-            if not args.checkpoint:
-                folder.remove_work_dir()      # nothing worth resuming
-            raise
+    try:
+        res, problem = _fit(args, problem, params, fit, states, choice)
+    except EstimationError:
+        if not args.checkpoint:
+            folder.remove_work_dir()      # nothing worth resuming
+        raise
     res.settings["data"] = str(args.data)
 
     def version(d: Path) -> list:
@@ -133,6 +134,48 @@ def run(args) -> int:
     for pth in [folder.path / "result.json", *published(folder, pngs)]:
         print(f"wrote {pth}")
     return 0
+
+
+def _fit(args, problem, params, fit, states, choice):
+    """``(result, problem)``: the estimation; when the discretisation was
+    chosen (``choice``), checked again at the estimate
+    (:func:`~bondgraph.cli.common.chosen_problem` with the fit's noise
+    levels) and, if the chosen one fails there, refitted once from the
+    estimate with the one chosen at the estimate (the result, and its
+    warnings, are then the refit's)."""
+    log = None if args.quiet else _say
+    res = _estimate_quiet(problem, params, fit, states, log)
+    again = None
+    if choice is not None and np.isfinite(res.nll):
+        levels = res.settings.get("noise_levels") or {}
+        sigma = [float((levels.get(o) or {}).get("std", np.nan)) for o in problem.model.outputs]
+        again = choose_discretisation(problem, res.theta, given=discretisation_given(args),
+                                      sigma=sigma)
+        ok, now, bound = check_discretisation(problem, res.theta, sigma=again.sigma)
+        if not ok and again.disc != problem.disc:
+            _say(again.line(f"at the estimate (the start's {problem.disc.describe()} fails "
+                            f"there: {now:.2g} σ per sample, bias bound {bound:.2g} std; "
+                            f"refitting once from the estimate)"))
+            problem = problem.conditioned_on(disc=again.disc)
+            res = _estimate_quiet(problem, params, replace(fit, resume=False), states, log,
+                                  start=res.estimates[:len(params)])
+        else:
+            _say(f"discretisation at the estimate: {problem.disc.describe()} still within "
+                 f"({now:.2g} σ per sample" + (f", free-run bias bound {bound:.2g} std)"
+                                               if np.isfinite(bound) else ")")
+                 if ok else again.line("at the estimate (no better candidate)"))
+    res.settings["discretisation_choice"] = dict(
+        given=discretisation_given(args), start=None if choice is None else choice.to_dict(),
+        estimate=None if again is None else again.to_dict())
+    return res, problem
+
+
+def _estimate_quiet(problem, params, fit, states, log, start=None):
+    """:func:`estimate` without its :class:`IdentifiabilityWarning` s (the
+    table prints the result's warnings)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        return estimate(problem, params, fit=fit, x0_states=states, log=log, start=start)
 
 
 def _say(msg: str) -> None:

@@ -76,7 +76,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="declared fit: UKF likelihood (nll, default) or an output-error "
                         "(free-run least-squares) fit of the non-noise parameters first, "
                         "whose estimates start the likelihood fit (sim)")
-    add_discretisation(p)          # with --backend
+    add_discretisation(p, chosen=False)          # with --backend
     p.set_defaults(method=None, substeps=None, hold=None)   # a case's own options unless given
     p.add_argument("--keep-going", action="store_true",
                    help="score effects even when the declared fit failed (physical parameters "

@@ -18,6 +18,7 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
+    chosen_problem,
     estimated_states,
     load_model,
     load_record,
@@ -78,7 +79,11 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    """Analyse, write ``sensitivity.json`` and the PNGs; print the table."""
+    """Analyse, write ``sensitivity.json`` and the PNGs; print the table.
+
+    What of ``--method``, ``--substeps``, ``--hold`` is not given is chosen
+    at the analysed θ (:func:`bondgraph.cli.common.chosen_problem`), one
+    line on stderr saying what and why."""
     model = load_model(args.model)
     exp = load_record(args.data, model)
     if args.seconds is not None:
@@ -93,7 +98,8 @@ def run(args) -> int:
         if not tp:
             raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
         values.update({k: float(v) for k, v in tp.items() if k in model.params})
-    problem = problem_from_args(model, exp, args, values)
+    problem, choice = chosen_problem(problem_from_args(model, exp, args, values), args,
+                                     where="at the analysed θ")
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
     for o in outputs:
         model.output_index(o)
@@ -112,6 +118,7 @@ def run(args) -> int:
                   x0_states=estimated_states(model, args),
                   fixed=list(parse_pairs(args.fixed, "--fixed")), log=log)
     rep.settings["data"] = str(args.data)
+    rep.settings["discretisation_choice"] = None if choice is None else choice.to_dict()
     rep.settings["wall_s"] = time.perf_counter() - t0
 
     def version(d: Path) -> list:

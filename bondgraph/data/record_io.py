@@ -12,7 +12,7 @@ specified in ``docs/data_format.md``. In short:
   CED benchmark files have one).
 * **JSON sidecar** (same stem, ``.json``; optional): ``format:
   "bondgraph-experiment/1"``, ``name, model, truth_model, description, dt,
-  columns: {col: {unit, role, noise_std}}, true_parameters, x0, noise,
+  columns: {col: {unit, role, noise_std, hold}}, true_parameters, x0, noise,
   seed``. Unknown keys are kept in the record's ``meta``.
 
 Every defect of a file raises :class:`~bondgraph.errors.DataError` naming the
@@ -51,6 +51,10 @@ from bondgraph.errors import DataError, UnitMismatchError
 FORMAT = "bondgraph-experiment/1"
 #: column roles
 ROLES = ("time", "input", "output", "state", "other")
+#: how an input column may declare it was held between samples (sidecar
+#: ``columns.<name>.hold``): a digital command held constant (zero-order), or a
+#: sampled continuous signal, interpolated linearly (first-order)
+INPUT_HOLDS = ("zoh", "linear")
 #: default gap criterion: a time step above this multiple of the median step
 GAP_FACTOR = 1.5
 
@@ -154,7 +158,8 @@ def check_unit(unit: str, path: str | None, column: str) -> None:
 def check_meta(meta: Mapping, path: str | None = None) -> None:
     """Check a record's metadata: the sidecar types
     (:func:`check_sidecar_types`), every column's role (one of
-    :data:`ROLES`) and ``noise_std`` (a finite number >= 0).
+    :data:`ROLES`), ``noise_std`` (a finite number >= 0) and ``hold`` (one
+    of :data:`INPUT_HOLDS`, on a column whose role, if given, is ``input``).
 
     Parameters
     ----------
@@ -179,6 +184,14 @@ def check_meta(meta: Mapping, path: str | None = None) -> None:
                                     and math.isfinite(std)):
             raise DataError(f"noise_std must be a finite number >= 0, got {std!r}",
                             path=path, column=cname)
+        hold = (entry or {}).get("hold")
+        if hold is not None and hold not in INPUT_HOLDS:
+            raise DataError(f"hold must be one of {', '.join(repr(h) for h in INPUT_HOLDS)} "
+                            f"(a digital command held, or a sampled continuous signal), got "
+                            f"{hold!r}", path=path, column=cname)
+        if hold is not None and role not in (None, "input"):
+            raise DataError(f"hold is declared for inputs only; this column's role is "
+                            f"'{role}'", path=path, column=cname)
 
 
 # --------------------------------------------------------------- reading

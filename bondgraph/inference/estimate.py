@@ -53,6 +53,16 @@ from bondgraph.inference.estimand import (
     plan_estimand,
     x0_state_names,
 )
+from bondgraph.inference.discretise import (
+    BIAS_TOLERANCE,
+    TOLERANCE,
+    check_discretisation,
+    choose_discretisation,
+    declared_holds,
+    input_holds,
+    no_process_noise,
+    supported_hold,
+)
 from bondgraph.inference.optimize import de, minimize_batched, pso
 from bondgraph.inference.options import (
     Evaluation,
@@ -869,17 +879,28 @@ def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list):
 def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
                        warn_list: list) -> dict | None:
     """:func:`discretisation_check` at the estimate (summary dict, or None);
-    a warning above 0.1 measurement-noise standard deviations per sample."""
+    a warning above 0.1 measurement-noise standard deviations per sample
+    naming the step as the cause and the cheapest discretisation within
+    (:func:`bondgraph.inference.discretise.choose_discretisation` with the
+    filter's hold and noise levels); a warning when the filter's hold
+    contradicts what the record supports (:func:`hold_warning`); the NLL
+    guard's (:func:`nll_guard`)."""
     if not (fit.check_discretisation and np.isfinite(f_best)):
         return None
     th_best, x0, P0, R = crit.problem_at(x_best)
     dc = discretisation_check(crit.model, crit.t, crit.u, th_best, x0, ukf.discretisation)
     worst = float(np.max(dc["one_step"]))
+    sigma = None if R is None else np.sqrt(np.diagonal(np.asarray(R, float)))
+    hold = hold_warning(crit.problem, ukf.hold)
+    if hold:
+        warn_list.append(hold)
     if worst > 0.1:
-        warn_list.append(f"discretisation error of {ukf.method}({ukf.substeps}) is {worst:.2g} "
-                         f"measurement-noise standard deviations per sample at the "
-                         f"estimate: a model error that biases the estimate; use more "
-                         f"substeps or method='rk4'")
+        warn_list.append(_step_message(crit.problem, th_best, ukf, worst, sigma))
+    elif no_process_noise(crit.model, th_best):
+        _, _, bound = check_discretisation(crit.problem, th_best, ukf.discretisation,
+                                           sigma=sigma, free_run=True)
+        if bound > BIAS_TOLERANCE:
+            warn_list.append(_step_message(crit.problem, th_best, ukf, worst, sigma, bound))
     guard = nll_guard(crit.model, crit.t, crit.u, crit.y, th_best, x0, P0,
                       options=ukf, Q=crit.Q, R=R, nll=f_best)
     if not guard["ok"]:
@@ -888,19 +909,89 @@ def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
                 reference=dc["reference"], nll_guard=guard)
 
 
+def _step_message(problem: Problem, theta, ukf: UKFOptions, worst: float, sigma,
+                  bound: float | None = None) -> str:
+    """The warning of a discretisation error above 0.1 σ per sample (or, with
+    ``bound``, of a free run whose error may bias an estimate by more than
+    :data:`BIAS_TOLERANCE` std): the step is the cause (the check's
+    reference holds the input alike); the fix is the cheapest method and
+    substeps within, with the filter's hold."""
+    what = (f"{worst:.2g} measurement-noise standard deviations per sample" if bound is None
+            else f"{worst:.2g} measurement-noise standard deviations per sample, but without "
+                 f"process noise the filter predicts by the free run, whose error may bias an "
+                 f"estimate by up to {bound:.2g} Cramér-Rao standard deviations")
+    text = (f"discretisation error of {ukf.method}({ukf.substeps}) with the {ukf.hold} hold is "
+            f"{what} at the estimate: the step is too coarse, a model error that biases the "
+            f"estimate; ")
+    try:
+        adv = choose_discretisation(problem, theta, given={"hold": ukf.hold}, sigma=sigma)
+    except OptionError:
+        adv = None
+    if adv is None or not adv.ok:
+        return text + (f"no method within {TOLERANCE:g} σ up to 16 substeps: use method='rk4' "
+                       f"with more substeps (--method rk4 --substeps N)")
+    d = adv.disc
+    return text + (f"{d.method}({d.substeps}) is within ({adv.error:.2g} σ): use "
+                   f"method='{d.method}', substeps={d.substeps} (--method {d.method} "
+                   f"--substeps {d.substeps}, or leave --method/--substeps/--hold out to have "
+                   f"them chosen)")
+
+
+def hold_warning(problem: Problem, hold: str) -> str | None:
+    """A warning when the filter's input ``hold`` contradicts the hold the
+    record supports (its declarations, else its inputs' shape:
+    :func:`bondgraph.inference.discretise.input_holds`), naming the cause and
+    the option that fixes it; None when they agree or no input changes.
+
+    The discretisation check and the NLL guard cannot see a wrong hold (their
+    references hold the inputs alike), so this is the only warning of it.
+
+    Parameters
+    ----------
+    problem : Problem
+    hold : {"zoh", "mean", "linear"}
+        The filter's hold (``"mean"`` counts as an interpolating hold).
+
+    Returns
+    -------
+    str or None
+    """
+    names = problem.model.inputs
+    inputs = input_holds(problem.u, names, declared_holds(problem.record, names))
+    if not any(h.hold is not None for h in inputs):
+        return None
+    support, reason = supported_hold(inputs)
+    family = "zoh" if hold == "zoh" else "linear"
+    if family == support:
+        return None
+    if support == "linear":
+        return (f"the filter holds the inputs zoh, but {reason}: the zero-order hold lags such "
+                f"an input by half a sample, a model error that biases the estimate and that "
+                f"neither the discretisation check nor the NLL guard can see (their references "
+                f"hold the input alike); use hold='linear' (--hold linear, or leave --hold out "
+                f"to have it chosen)")
+    return (f"the filter holds the inputs {hold}, but {reason}: that hold spreads each step "
+            f"of a held input over the sample before it, a model error that biases the "
+            f"estimate and that neither the discretisation check nor the NLL guard can see; "
+            f"use hold='zoh' (--hold zoh, or leave --hold out to have it chosen)")
+
+
 def _guard_message(guard: dict, ukf: UKFOptions) -> str:
-    """The warning of the NLL discretisation guard (:func:`nll_guard`)."""
+    """The warning of the NLL discretisation guard (:func:`nll_guard`): the
+    step is the cause (the reference holds the inputs as the filter does)."""
     if not np.isfinite(guard["nll_reference"]):
         return (f"the {guard['reference']} reference of the NLL failed at the estimate (NLL "
                 f"{guard['nll']:.10g} with {ukf.method}({ukf.substeps})): the discretisation "
                 f"could not be checked")
-    need = (f"{ukf.method} needs {guard['substeps_needed']} substeps to agree"
+    need = (f"{ukf.method} needs {guard['substeps_needed']} substeps to agree (--substeps "
+            f"{guard['substeps_needed']})"
             if guard["substeps_needed"] else
             f"{ukf.method} does not agree even with {GUARD_SUBSTEPS} substeps (use method='rk4' "
-            f"with {GUARD_SUBSTEPS})")
-    return (f"NLL at the estimate with {ukf.method}({ukf.substeps}) is {guard['nll']:.10g}, "
-            f"{guard['rel_diff']:.2g} relative from the {guard['reference']} reference "
-            f"{guard['nll_reference']:.10g} (> {GUARD_REL:g}): {need}")
+            f"with {GUARD_SUBSTEPS}: --method rk4 --substeps {GUARD_SUBSTEPS})")
+    return (f"NLL at the estimate with {ukf.method}({ukf.substeps}) and the {ukf.hold} hold is "
+            f"{guard['nll']:.10g}, {guard['rel_diff']:.2g} relative from the "
+            f"{guard['reference']} reference {guard['nll_reference']:.10g} with the same hold "
+            f"(> {GUARD_REL:g}): the step; {need}")
 
 
 def _truth(meta, params, x, std):

@@ -1,0 +1,562 @@
+"""Choose the filter's discretisation from evidence: the input hold from the
+record, the method and substeps from the discretisation check.
+
+Two questions, answered from two kinds of evidence:
+
+* **The input hold** (how the input moved between two samples). The
+  discretisation check cannot answer it: its fine reference holds the inputs
+  as the candidate does, so a wrong hold is invisible to it. It comes from
+  the record: a declaration (the sidecar's per-column ``"hold"``,
+  ``docs/data_format.md``), else the shape of each input
+  (:func:`input_holds`): a staircase (a change flanked by unchanged samples)
+  is a digital command, held (``"zoh"``); a change that continues the
+  previous or the next one with a similar step is a sampled continuous
+  signal, interpolated (``"linear"``); changes that are neither (a sequence
+  that jumps at every sample) give no evidence for interpolation, so they are
+  held.
+* **The step** (method and substeps). The candidates
+  (:data:`CANDIDATES`, cheapest first) are compared with a fine RK4 reference
+  of the same hold, one step from the reference state at every sample
+  (:func:`bondgraph.inference.ukf.discretisation_errors`); the cheapest whose
+  error is at most :data:`TOLERANCE` measurement-noise standard deviations
+  per sample is chosen (:func:`choose_discretisation`). A filter without
+  process noise predicts by the free run once its covariance has collapsed,
+  and small one-step errors add up along it (ROS2(1) at 0.05 σ per sample
+  moved a damper 60 standard deviations): then the free run's error must
+  also bound the bias of every estimate by :data:`BIAS_TOLERANCE` Cramér-Rao
+  standard deviations.
+
+References
+----------
+Franklin, G. F., Powell, J. D., Workman, M. L. (1998). Digital Control of
+Dynamic Systems, 3rd ed., ch. 4 (zero- and first-order holds; the
+zero-order hold's half-sample delay).
+Hairer, E., Wanner, G. (1996). Solving Ordinary Differential Equations II,
+§IV.7 (Rosenbrock and W-methods).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from bondgraph.data.record_io import INPUT_HOLDS
+from bondgraph.errors import OptionError
+from bondgraph.inference.options import UKF_HOLDS, UKF_METHODS, Discretisation
+from bondgraph.inference.ukf import discretisation_errors
+
+__all__ = ["BIAS_TOLERANCE", "CANDIDATES", "DECLARED_HOLDS", "TOLERANCE", "DiscretisationChoice",
+           "InputHold", "check_discretisation", "choose_discretisation", "declared_holds",
+           "input_holds", "no_process_noise", "supported_hold"]
+
+#: the largest accepted one-step discretisation error, in measurement-noise
+#: standard deviations per sample
+TOLERANCE = 0.1
+#: the largest accepted free-run bias bound, in Cramér-Rao standard deviations
+#: (the criterion of a filter without process noise, :func:`choose_discretisation`)
+BIAS_TOLERANCE = 0.5
+#: the holds a record may declare for an input, and that the evidence chooses
+#: between (:data:`bondgraph.data.record_io.INPUT_HOLDS`)
+DECLARED_HOLDS = INPUT_HOLDS
+#: (method, substeps) candidates in order of cost per sample, counted in f
+#: evaluations: RK4 4 per substep, ROS2 2 per substep and one Jacobian (with
+#: its factorisation, about 2 more) per sample; on the tie of ROS2(1) and RK4(1)
+#: ROS2 first (L-stable: a stiff model's step that RK4 cannot take is not
+#: finite and fails the check, so the list serves stiff models too)
+CANDIDATES = (("ros2", 1), ("rk4", 1), ("ros2", 2), ("rk4", 2), ("ros2", 4), ("rk4", 4),
+              ("ros2", 8), ("rk4", 8), ("ros2", 16), ("rk4", 16))
+#: two successive steps of the same sign whose sizes differ by at most this
+#: fraction of the larger are one continuing variation (a sampled continuous signal)
+SIMILAR_STEP = 0.5
+
+
+@dataclass(frozen=True)
+class InputHold:
+    """How one input was held between samples, and why that is believed.
+
+    Attributes
+    ----------
+    name : str
+        The model's input.
+    hold : {"zoh", "linear"} or None
+        The supported hold; None for an input that never changes (any hold
+        is exact).
+    source : {"declared", "shape", "constant"}
+        The record's declaration, the input's shape, or no change at all.
+    continuing, isolated, erratic : float
+        Shares (summing to 1 over the changes, weighted by |Δu|) of changes
+        that continue a neighbouring change with a similar step (a sampled
+        continuous signal), of changes flanked by unchanged samples (the
+        steps of a staircase), and of the others (NaN when declared or
+        constant).
+    """
+
+    name: str
+    hold: str | None
+    source: str
+    continuing: float = float("nan")
+    isolated: float = float("nan")
+    erratic: float = float("nan")
+
+    def describe(self) -> str:
+        """One clause: ``"F: linear (a sampled continuous signal: 99% of its
+        change continues a similar step)"``, ``"u: zoh (a staircase: 100% of
+        its change in isolated steps)"``, ``"F: zoh (declared by the record)"``."""
+        if self.source == "declared":
+            return f"{self.name}: {self.hold} (declared by the record)"
+        if self.source == "constant":
+            return f"{self.name}: constant (any hold)"
+        if self.hold == "linear":
+            return (f"{self.name}: linear (a sampled continuous signal: {self.continuing:.0%} of "
+                    f"its change continues a similar step)")
+        what = ("a staircase: " + f"{self.isolated:.0%} of its change in isolated steps"
+                if self.isolated >= self.erratic else
+                f"{self.erratic:.0%} of its change jumps from sample to sample")
+        return f"{self.name}: zoh ({what})"
+
+
+def declared_holds(record, names: Sequence[str]) -> dict[str, str]:
+    """The holds the record declares for the inputs ``names``: the sidecar's
+    ``columns.<name>.hold`` (``"zoh"`` or ``"linear"``); an input ``der(r)``
+    takes the declaration of ``r``.
+
+    Parameters
+    ----------
+    record : Experiment or None
+        None (bare arrays) declares nothing.
+    names : sequence of str
+        The model's inputs.
+
+    Returns
+    -------
+    dict
+        Input -> declared hold.
+
+    Raises
+    ------
+    OptionError
+        A declaration that is not one of :data:`DECLARED_HOLDS` (named).
+    """
+    cols = ((getattr(record, "meta", None) or {}).get("columns") or {}) if record is not None \
+        else {}
+    out = {}
+    for n in names:
+        base = n[4:-1] if n.startswith("der(") and n.endswith(")") else n
+        hold = (cols.get(n) or cols.get(base) or {}).get("hold")
+        if hold is None:
+            continue
+        if hold not in DECLARED_HOLDS:
+            raise OptionError(f"the record declares hold {hold!r} for input '{n}'; use one of "
+                              f"{', '.join(repr(h) for h in DECLARED_HOLDS)}")
+        out[n] = hold
+    return out
+
+
+def input_holds(u, names: Sequence[str], declared: Mapping[str, str] | None = None,
+                ) -> list[InputHold]:
+    """The hold each input's samples support.
+
+    A change Δu_k = u_k+1 − u_k ≠ 0 is *isolated* when both neighbouring
+    changes are zero (a step of a staircase: the signal was held before and
+    after), *continuing* when a neighbouring change has the same sign and a
+    size within :data:`SIMILAR_STEP` of it (a sampled continuous signal
+    moves by similar steps), and *erratic* otherwise. Weighted by |Δu| (the
+    size of the error a wrong hold makes), an input whose continuing share
+    is at least one half supports the linear hold; otherwise the zero-order
+    hold. A declaration wins over the shape.
+
+    Parameters
+    ----------
+    u : array (N, n_u)
+        The sampled inputs (any units: only each input's own steps are
+        compared).
+    names : sequence of str
+        The n_u input names.
+    declared : mapping, optional
+        Input -> declared hold (:func:`declared_holds`).
+
+    Returns
+    -------
+    list of InputHold
+        One per input, in order.
+
+    Raises
+    ------
+    OptionError
+        ``names`` not matching the columns of ``u``, or a declared hold
+        not in :data:`DECLARED_HOLDS`.
+
+    Notes
+    -----
+    A digital command updated at every sample along a smooth path looks
+    like a sampled continuous signal; a smooth signal quantised so coarsely
+    that it rests for several samples between changes looks like a
+    staircase. The shape cannot tell these apart: the record's declaration
+    can (``docs/data_format.md``).
+    """
+    u = np.asarray(u, float)
+    u = u.reshape(u.shape[0], -1)
+    names = list(names)
+    if len(names) != u.shape[1]:
+        raise OptionError(f"input_holds: {len(names)} names for {u.shape[1]} input columns")
+    declared = dict(declared or {})
+    out = []
+    for j, n in enumerate(names):
+        if n in declared:
+            if declared[n] not in DECLARED_HOLDS:
+                raise OptionError(f"declared hold {declared[n]!r} of input '{n}' is not one of "
+                                  f"{', '.join(repr(h) for h in DECLARED_HOLDS)}")
+            out.append(InputHold(n, declared[n], "declared"))
+            continue
+        out.append(_shape_hold(n, u[:, j]))
+    return out
+
+
+def _shape_hold(name: str, col: np.ndarray) -> InputHold:
+    """:class:`InputHold` of one input from its successive changes."""
+    d = np.diff(col)
+    scale = max(float(np.max(np.abs(col), initial=0.0)), np.finfo(float).tiny)
+    d = np.where(np.abs(d) <= 1e-12 * scale, 0.0, d)
+    moving = np.flatnonzero(d)
+    if moving.size == 0:
+        return InputHold(name, None, "constant")
+    prev = np.concatenate([[0.0], d[:-1]])[moving]
+    nxt = np.concatenate([d[1:], [0.0]])[moving]
+    dk = d[moving]
+
+    def similar(a):
+        return (np.sign(a) == np.sign(dk)) & (np.abs(a - dk) <= SIMILAR_STEP
+                                              * np.maximum(np.abs(a), np.abs(dk)))
+
+    cont = similar(prev) | similar(nxt)
+    iso = ~cont & (prev == 0.0) & (nxt == 0.0)
+    w = np.abs(dk) / np.sum(np.abs(dk))
+    c, i = float(np.sum(w[cont])), float(np.sum(w[iso]))
+    e = max(0.0, 1.0 - c - i)
+    return InputHold(name, "linear" if c >= 0.5 else "zoh", "shape", c, i, e)
+
+
+def supported_hold(inputs: Sequence[InputHold]) -> tuple[str, str]:
+    """The one hold of the filter (all inputs alike) that the evidence
+    supports, and why.
+
+    Inputs that never change have no say. When the others agree, their
+    hold; when they disagree, the hold of the larger number of inputs, a
+    declared input counting as one and an input judged by its shape by its
+    share for that hold (a tie: ``"zoh"``, the sampled-data convention);
+    the reason then names the inputs held against their evidence.
+
+    Parameters
+    ----------
+    inputs : sequence of InputHold
+
+    Returns
+    -------
+    hold : {"zoh", "linear"}
+    reason : str
+        One clause for a log line.
+    """
+    said = [h for h in inputs if h.hold is not None]
+    if not said:
+        return "zoh", "no input changes (any hold is exact)"
+    holds = {h.hold for h in said}
+    if len(holds) == 1:
+        hold = holds.pop()
+        return hold, "; ".join(h.describe() for h in said)
+    votes = {"zoh": 0.0, "linear": 0.0}
+    for h in said:
+        if h.source == "declared":
+            votes[h.hold] += 1.0
+        else:
+            votes["linear"] += h.continuing
+            votes["zoh"] += 1.0 - h.continuing
+    hold = "linear" if votes["linear"] > votes["zoh"] else "zoh"
+    against = [h.name for h in said if h.hold != hold]
+    return hold, ("; ".join(h.describe() for h in said)
+                  + f" — the filter holds every input alike, so {', '.join(against)} "
+                    f"{'is' if len(against) == 1 else 'are'} held {hold} against "
+                    f"{'its' if len(against) == 1 else 'their'} evidence")
+
+
+@dataclass(frozen=True)
+class DiscretisationChoice:
+    """The discretisation chosen for a problem at one θ, and the evidence.
+
+    Attributes
+    ----------
+    disc : Discretisation
+        The chosen method, substeps and hold (the problem's backend).
+    ok : bool
+        The chosen candidate meets the criteria; False when no candidate
+        does (then the most accurate one tried is chosen).
+    hold_reason : str
+        Why this hold (declared, the inputs' shape, or given).
+    inputs : list of InputHold
+        Each input's evidence.
+    tried : list of (Discretisation, ndarray (n_y,), float)
+        Every candidate checked, in order: its one-step error per output
+        and its free-run bias bound (NaN when not computed), both in
+        measurement-noise standard deviations.
+    sigma : ndarray (n_y,)
+        The measurement-noise standard deviations of the comparison.
+    free_run : bool
+        The free-run bound was a criterion (the filter has no process noise).
+    given : dict
+        The fields the caller fixed (``method``, ``substeps``, ``hold``).
+    tolerance, bias_tolerance : float
+    """
+
+    disc: Discretisation
+    ok: bool
+    hold_reason: str
+    inputs: list
+    tried: list
+    sigma: np.ndarray
+    free_run: bool = False
+    given: dict = field(default_factory=dict)
+    tolerance: float = TOLERANCE
+    bias_tolerance: float = BIAS_TOLERANCE
+
+    def _entry(self, disc: Discretisation):
+        for d, e, r in self.tried:
+            if (d.method, d.substeps, d.hold) == (disc.method, disc.substeps, disc.hold):
+                return e, r
+        return None, None
+
+    def error_of(self, disc: Discretisation) -> float | None:
+        """The worst one-step error of ``disc`` if it was tried, else None."""
+        e, _ = self._entry(disc)
+        return None if e is None else float(np.max(e, initial=0.0))
+
+    @property
+    def error(self) -> float:
+        """The chosen candidate's worst one-step error [σ per sample]."""
+        return self.error_of(self.disc)
+
+    @property
+    def bias_bound(self) -> float:
+        """The chosen candidate's free-run bias bound [Cramér-Rao std] (NaN if not computed)."""
+        return float(self._entry(self.disc)[1])
+
+    def line(self, where: str = "") -> str:
+        """One line: what was chosen, at which error, and why.
+
+        ``"discretisation at the start θ: rk4(1), linear hold — one-step error
+        1.2e-05 σ <= 0.1 σ per sample, free-run bias bound 0.0033 <= 0.5 std
+        (ros2(1): 0.061 σ, bound 2.4e+02); hold: F: linear (...)"``.
+        """
+        others = [f"{d.method}({d.substeps}): {np.max(e, initial=0):.2g} σ"
+                  + (f", bound {r:.2g}" if np.isfinite(r) or r == np.inf else "")
+                  for d, e, r in self.tried if d != self.disc][:3]
+        verdict = "within" if self.ok else "the best tried, NOT within"
+        fixed = (" [given: " + ", ".join(f"--{k} {v}" for k, v in self.given.items()) + "]"
+                 if self.given else "")
+        bound = (f", free-run bias bound {self.bias_bound:.2g} std (<= {self.bias_tolerance:g}; "
+                 f"no process noise)" if self.free_run else "")
+        return (f"discretisation{' ' + where if where else ''}: {self.disc.method}"
+                f"({self.disc.substeps}), {self.disc.hold} hold{fixed} — {verdict}: one-step "
+                f"error {self.error:.2g} σ per sample (<= {self.tolerance:g}){bound}"
+                + (f"; tried {'; '.join(others)}" if others else "")
+                + f"; hold: {self.hold_reason}")
+
+    def to_dict(self) -> dict:
+        """JSON-able summary."""
+        return dict(chosen=self.disc.to_dict(), ok=self.ok, error=self.error,
+                    bias_bound=self.bias_bound, tolerance=self.tolerance,
+                    bias_tolerance=self.bias_tolerance, free_run=self.free_run,
+                    hold_reason=self.hold_reason, given=dict(self.given),
+                    sigma=np.asarray(self.sigma, float).tolist(),
+                    tried=[dict(method=d.method, substeps=d.substeps, hold=d.hold,
+                                one_step=np.asarray(e, float).tolist(), bias_bound=float(r))
+                           for d, e, r in self.tried])
+
+
+def choose_discretisation(problem, theta, *, given: Mapping | None = None, sigma=None,
+                          tolerance: float = TOLERANCE, bias_tolerance: float = BIAS_TOLERANCE,
+                          free_run: bool | None = None) -> DiscretisationChoice:
+    """The cheapest discretisation that meets its check at ``theta``, with the
+    hold the record supports.
+
+    The hold: ``given["hold"]`` if given, else the record's declarations and
+    the inputs' shape (:func:`declared_holds`, :func:`input_holds`,
+    :func:`supported_hold`; ``"mean"`` is never chosen, only kept when
+    given). The step: :data:`CANDIDATES` (restricted to ``given["method"]``
+    and ``given["substeps"]`` when given) in order of cost, each compared with
+    a fine reference of the same hold from the problem's prior mean
+    (:func:`bondgraph.inference.ukf.discretisation_errors`): the first whose
+    one-step error is at most ``tolerance`` measurement-noise standard
+    deviations per sample and, when the filter has no process noise (its
+    prediction is then the free run), whose free-run bias bound (the root sum
+    of squares of the free run's output error in σ, an upper bound of the
+    bias it causes in any estimate, in Cramér-Rao standard deviations) is at
+    most ``bias_tolerance``; else the most accurate one tried.
+
+    Parameters
+    ----------
+    problem : Problem
+        The model bound to the record (:func:`bondgraph.inference.problem.make_problem`);
+        its backend is kept.
+    theta : array (n_theta,)
+        Where to check (the start of a fit, or its estimate).
+    given : mapping, optional
+        Fields the user fixed: ``method``, ``substeps``, ``hold``.
+    sigma : array (n_y,), optional
+        Measurement-noise standard deviations (output units). Default: the
+        levels the problem holds (a record's declarations), else
+        ``meas_std(theta)``. Outputs without a positive finite level are
+        left out of the comparison.
+    tolerance : float
+        Largest one-step error [σ per sample] (> 0).
+    bias_tolerance : float
+        Largest free-run bias bound [Cramér-Rao std] (> 0).
+    free_run : bool, optional
+        Apply the free-run criterion (default: when ``proc_std(theta)`` is
+        zero for every state).
+
+    Returns
+    -------
+    DiscretisationChoice
+
+    Raises
+    ------
+    OptionError
+        An unknown field or value in ``given``, a tolerance that is not > 0,
+        a bad declared hold, or no output with a noise level to compare with.
+
+    References
+    ----------
+    Ljung, L. (1999). System Identification, 2nd ed., §8.3 (the limit of a
+    prediction-error estimate under a model error) for the bias bound.
+    """
+    given = dict(given or {})
+    _check_given(given, tolerance)
+    if not (np.isfinite(bias_tolerance) and bias_tolerance > 0):
+        raise OptionError(f"choose_discretisation: bias_tolerance must be > 0, got "
+                          f"{bias_tolerance!r}")
+    model = problem.model
+    th = np.asarray(theta, float).reshape(-1)
+    sig = _sigma(problem, th, sigma)
+    if free_run is None:
+        free_run = no_process_noise(model, th)
+    inputs = input_holds(problem.u, model.inputs, declared_holds(problem.record, model.inputs))
+    hold, reason = _hold_for(inputs, given)
+    cands = [Discretisation(m, s, hold, problem.disc.backend) for m, s in _candidates(given)]
+    disc, ok, tried = _first_within(problem, th, cands, sig, free_run, tolerance, bias_tolerance)
+    return DiscretisationChoice(disc, ok, reason, inputs, tried, sig, free_run, given, tolerance,
+                                bias_tolerance)
+
+
+def _first_within(problem, th, cands, sig, free_run: bool, tolerance: float,
+                  bias_tolerance: float) -> tuple[Discretisation, bool, list]:
+    """``(disc, ok, tried)``: the first candidate within both criteria (the
+    free run computed only for a candidate within the one-step one), else
+    the most accurate tried."""
+    model = problem.model
+    cache: dict = {}
+    tried = []
+    for chunk in (cands[:2], cands[2:6], cands[6:]):     # stop early on the cheap ones
+        if not chunk:
+            continue
+        errs = discretisation_errors(model, problem.t, problem.u, th, problem.x0, chunk,
+                                     sigma=sig, cache=cache)
+        for d, r in zip(chunk, errs):
+            one, rss = r["one_step"], float("nan")
+            step_ok = np.max(one, initial=0.0) <= tolerance
+            if step_ok and free_run:
+                rss = discretisation_errors(model, problem.t, problem.u, th, problem.x0, [d],
+                                            sigma=sig, free_run=True,
+                                            cache=cache)[0]["free_run_rss"]
+            tried.append((d, one, rss))
+            if step_ok and (not free_run or rss <= bias_tolerance):
+                return d, True, tried
+    best = min(tried, key=lambda e: (np.nan_to_num(e[2], nan=np.inf) if free_run else 0.0,
+                                     float(np.max(e[1], initial=0.0))))[0]
+    return best, False, tried
+
+
+def check_discretisation(problem, theta, disc: Discretisation | None = None, *, sigma=None,
+                         tolerance: float = TOLERANCE, bias_tolerance: float = BIAS_TOLERANCE,
+                         free_run: bool | None = None) -> tuple[bool, float, float]:
+    """Does ``disc`` (default the problem's) meet the criteria of
+    :func:`choose_discretisation` at ``theta``?
+
+    Returns
+    -------
+    (ok, one-step error [σ per sample], free-run bias bound [std], NaN when
+    the free run is not a criterion)
+    """
+    disc = problem.disc if disc is None else disc
+    th = np.asarray(theta, float).reshape(-1)
+    sig = _sigma(problem, th, sigma)
+    if free_run is None:
+        free_run = no_process_noise(problem.model, th)
+    r = discretisation_errors(problem.model, problem.t, problem.u, th, problem.x0, [disc],
+                              sigma=sig, free_run=free_run)[0]
+    one = float(np.max(r["one_step"], initial=0.0))
+    rss = float(r["free_run_rss"])
+    return bool(one <= tolerance and (not free_run or rss <= bias_tolerance)), one, rss
+
+
+def no_process_noise(model, theta) -> bool:
+    """True when ``proc_std(theta)`` is zero for every state (the filter's
+    prediction becomes the free run)."""
+    with np.errstate(all="ignore"):
+        q = np.asarray(model.proc_std(np.asarray(theta, float).reshape(1, -1)), float)
+    return bool(np.all(q == 0.0))
+
+
+def _hold_for(inputs, given: dict) -> tuple[str, str]:
+    """The hold and its reason: given (noting a record that supports
+    another), else :func:`supported_hold`."""
+    if "hold" not in given:
+        return supported_hold(inputs)
+    hold, reason = given["hold"], f"given (--hold {given['hold']})"
+    support, _ = supported_hold(inputs)
+    if hold in DECLARED_HOLDS and support != hold and any(h.hold is not None for h in inputs):
+        reason += f"; the record supports {support}"
+    return hold, reason
+
+
+def _check_given(given: dict, tolerance: float) -> None:
+    """Check the caller's fixed fields and the tolerance."""
+    unknown = sorted(set(given) - {"method", "substeps", "hold"})
+    if unknown:
+        raise OptionError(f"choose_discretisation: unknown given field(s) {unknown} "
+                          f"(method, substeps, hold)")
+    if "method" in given and given["method"] not in UKF_METHODS:
+        raise OptionError(f"--method {given['method']!r} is not one of {', '.join(UKF_METHODS)}")
+    if "hold" in given and given["hold"] not in UKF_HOLDS:
+        raise OptionError(f"--hold {given['hold']!r} is not one of {', '.join(UKF_HOLDS)}")
+    s = given.get("substeps", 1)
+    if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 1:
+        raise OptionError(f"--substeps must be an integer >= 1, got {s!r}")
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise OptionError(f"choose_discretisation: tolerance must be > 0, got {tolerance!r}")
+
+
+def _candidates(given: dict) -> list[tuple[str, int]]:
+    """:data:`CANDIDATES` restricted to the given method and substeps."""
+    if "substeps" in given:
+        methods = [given["method"]] if "method" in given else ["ros2", "rk4"]
+        return [(m, int(given["substeps"])) for m in methods]
+    return [(m, s) for m, s in CANDIDATES if given.get("method", m) == m]
+
+
+def _sigma(problem, th: np.ndarray, sigma) -> np.ndarray:
+    """The comparison's σ (n_y,): given, else the problem's held levels, else
+    ``meas_std(θ)``; inf (left out) where not positive and finite."""
+    model = problem.model
+    if sigma is None:
+        with np.errstate(all="ignore"):
+            meas = np.asarray(model.meas_std(th[None, :]), float)[0]
+        held = problem.noise.sigma(model)
+        sigma = np.where(np.isfinite(held), held, meas)
+    sig = np.broadcast_to(np.asarray(sigma, float), (model.n_y,)).copy()
+    good = np.isfinite(sig) & (sig > 0)
+    if not good.any():
+        raise OptionError(f"choose_discretisation: no output of '{model.name}' has a positive "
+                          f"measurement-noise level to compare the discretisation error with "
+                          f"(got {sig.tolist()})")
+    return np.where(good, sig, np.inf)
