@@ -202,7 +202,8 @@ def add_discretisation(p: argparse.ArgumentParser, *, chosen: bool = True) -> No
     (``chosen``, :func:`chosen_problem`) fills in what the user left out;
     the loop takes its case's own options, else
     :class:`~bondgraph.inference.options.UKFOptions`' defaults."""
-    dflt = "chosen, see --hold" if chosen else "the case's own, else ros2, 1, zoh"
+    dflt = "chosen, see --hold" if chosen else \
+        "a bundled case's own; with --model/--data chosen as by estimate"
     p.add_argument("--method", choices=UKF_METHODS, default=None,
                    help=f"UKF discretisation of the state equations (default: {dflt})")
     p.add_argument("--substeps", type=int, default=None,

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+
+import numpy as np
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -17,6 +19,7 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
+    discretisation_given,
     load_record,
     parse_names,
     parse_pairs,
@@ -25,9 +28,12 @@ from bondgraph.cli.common import (
 )
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.cases import get_case, registered_cases
+from bondgraph.diagnose.fit import loop_problem, model_of
 from bondgraph.diagnose.loop import run_loop
+from bondgraph.diagnose.runner import held_out
 from bondgraph.diagnose.settings import DEFAULT_HOLDOUT, LoopSettings
 from bondgraph.errors import ModelError, OptionError, UsageError
+from bondgraph.inference.discretise import choose_discretisation
 from bondgraph.inference.estimand import x0_state_names
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.registry import graph_builder
@@ -115,6 +121,8 @@ def run(args) -> int:
         base = case.loop_settings(parse_params(args.params) if args.params else None)
         name = case.name
     settings = loop_settings(args, base, graph)
+    if args.model:
+        settings = chosen_numerics(args, graph, record, settings)
     if args.model and not args.validate and args.holdout is None:
         print(f"bondgraph loop: no --validate record: the last {DEFAULT_HOLDOUT:.0%} of "
               f"{args.data} is held out for the accept decision and the error before/after "
@@ -228,6 +236,32 @@ def command_options(args, base: LoopSettings, graph):
         yield "metric_tolerance", float(args.metric_tolerance)
     yield "workers", args.workers
     yield "scheduler", args.scheduler
+
+
+def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings:
+    """A user's graph and record (``--model``/``--data``): the filter's
+    method, substeps and input hold that the discretisation check accepts at
+    the declared defaults on the estimation part of the record
+    (:func:`bondgraph.inference.discretise.choose_discretisation`; what of
+    ``--method``, ``--substeps``, ``--hold`` the user gave is kept), the free
+    runs holding the inputs the same way, and the check repeated at the
+    declared fit and at every accepted one (``auto_substeps``). One line
+    says what was chosen and why. A bundled case keeps its own options."""
+    given = discretisation_given(args)
+    if len(given) == 3:
+        return settings
+    est, s = held_out(record, settings)
+    problem = loop_problem(model_of(graph), est, s)
+    model = problem.model
+    declared = np.asarray(est.noise_std_for(model), float)
+    sigma = np.where(np.isfinite(declared) & (declared > 0), declared,
+                     np.asarray(model.meas_std(problem.theta[None, :]), float)[0])
+    choice = choose_discretisation(problem, problem.theta, given=given, sigma=sigma)
+    print("bondgraph loop: " + choice.line("at the declared start θ"), flush=True)
+    d = choice.disc
+    ukf = dataclasses.replace(settings.ukf, method=d.method, substeps=d.substeps, hold=d.hold)
+    hold = d.hold if d.hold in ("zoh", "linear") else settings.sim_hold
+    return dataclasses.replace(settings, ukf=ukf, auto_substeps=True, sim_hold=hold)
 
 
 def ukf_replaced(base: UKFOptions, given: dict, backend: str) -> UKFOptions:
