@@ -306,3 +306,26 @@ def test_shared_reference_errors_equal_the_discretisation_check(record):
         # the free run's worst error is within its root sum of squares
         assert np.max(ref["free_run"]) <= r["free_run_rss"] + 1e-12
     assert got[0]["free_run_rss"] > 1.0 > got[1]["free_run_rss"]     # ROS2(1) vs RK4(2)
+
+
+def test_a_simulated_record_declares_how_its_inputs_were_held(tmp_path):
+    """Experiment.from_simulation writes the simulation's hold into the
+    sidecar (columns.<input>.hold), so the default hold of a later fit is the
+    one the record was made with, not the one its shape suggests (a smooth
+    input simulated with the zero-order hold looks linear)."""
+    from bondgraph.catalog.reference import mass_spring_damper
+    from bondgraph.data.records import Experiment
+    from bondgraph.inference.discretise import declared_holds, input_holds
+    from bondgraph.numerics.model import Model
+    from bondgraph.numerics.simulate import simulate
+
+    m = Model.from_graph(mass_spring_damper())
+    t = np.arange(400) * 0.05
+    F = np.sin(0.7 * t)
+    for hold in ("zoh", "linear"):
+        rec = Experiment.from_simulation(simulate(m, t, u={"F": F}, hold=hold))
+        rec.save(tmp_path / f"{hold}.csv")
+        back = Experiment.load(tmp_path / f"{hold}.csv")
+        assert declared_holds(back, m.inputs) == {"F": hold}
+    # the shape alone would say linear for this smooth input
+    assert input_holds(F[:, None], ["F"])[0].hold == "linear"

@@ -224,9 +224,15 @@ class Experiment:
         -------
         Experiment
             Save it with :meth:`save` (CSV + JSON sidecar); its sidecar holds
-            the parameters, x0, method and solver statistics.
+            the parameters, x0, method and solver statistics, and how the
+            simulation held each input between samples (``columns.<input>.hold``,
+            ``"zoh"`` or ``"linear"``, from the solver statistics; the
+            filter's default hold reads it, :mod:`bondgraph.inference.discretise`).
         """
         m = sim.model
+        hold = sim.stats.get("hold")
+        held = {"columns": {n: {"hold": hold} for n in m.inputs
+                            if not n.startswith("der(")}} if hold in ("zoh", "linear") else {}
         info = {
             "name": name or f"{m.name}_sim",
             "description": f"noise-free simulation of {m.name} ({sim.method})",
@@ -236,6 +242,7 @@ class Experiment:
             "method": sim.method,
             "solver_stats": {k: v for k, v in sim.stats.items()
                              if isinstance(v, (int, float, str, bool)) or v is None},
+            **held,
             **(meta or {}),
         }
         return cls.from_arrays(sim.t, model=m, u=sim.u, y=sim.y, x=sim.x, meta=info)
