@@ -393,7 +393,9 @@ def case_silverbox() -> LoopCase:
 
 
 # ------------------------------------------------------- real data: Camry
-#: the cold-start bag of test 61811011: the cold UDDS, 0-1366 s (data README)
+#: the cold-start bag of test 61811011: the cold UDDS, 0-1366 s (data
+#: README). On its first 700 s alone the loop ranks the cold start first too
+#: (LR 133.4; error 0.3847 -> 0.3493 cm³/s, Diebold-Mariano z 1.28: rejected)
 CAMRY_COLD_BAG = 1367
 #: the hot-cycle tests the declared parameters are fitted on
 #: (:data:`bondgraph.catalog.benchmarks.CAMRY_HOT_FIT`) and the hot UDDS held out
@@ -532,15 +534,17 @@ def case_camry_cold() -> LoopCase:
         declared_builder(camry_warm),
         camry_record,
         # powertrain efficiency and idle fuel re-estimated on the cold bag
-        # (the hot-cycle fit starts them), the fuel-state noise too; the
-        # sensor noise is estimated (noise "auto", the record declares none).
-        # The road load and test weight are the EPA proxies, fixed; τ_f stays
-        # at the lower end of its box, where the hot fit put it. The fuel
-        # sensor's noise is held at 0.05 cm³/s, the sample-to-sample scatter
-        # of the hot idle (median |Δ| 0.052 cm³/s in 61811012): estimated, it
-        # runs to the bottom of its box (all variance in q_Q).
-        ["eta", "Q_idle", "q_Q"],
+        # (the hot-cycle fit starts them) and the fuel sensor's noise std
+        # (noise "auto": the record declares none). The road load and test
+        # weight are the EPA proxies, fixed; τ_f stays at the lower end of its
+        # box, where the hot fit put it. The fuel state's process noise is
+        # held small (0.02 cm³/s^1.5), so that the likelihood judges the
+        # model's own fuel prediction: estimated, q_Q runs to 0.30, a random
+        # walk that follows the measurement (the Willans line's own errors:
+        # fuel cut-off on braking, efficiency varying with load), and then
+        # absorbs any slow effect (the cold start scored LR 0).
+        ["eta", "Q_idle"],
         {"metric": "rmse_sim", "effects": DEFAULT_EFFECTS + OPTIONAL_EFFECTS,
-         "fixed": {"sigma_Q": 0.05}, "ukf": UKFOptions(method="rk4", substeps=4, hold="linear"),
+         "fixed": {"q_Q": 0.02}, "ukf": UKFOptions(method="rk4", substeps=4, hold="linear"),
          "sim_hold": "filter", "auto_substeps": True},
         ("cold_start", "injector"))

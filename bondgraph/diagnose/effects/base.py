@@ -539,13 +539,18 @@ def power_sources(graph: BondGraph) -> list[Target]:
     """Every source (Se, Sf, MSe, MSf) bonded to a junction, whatever its
     value reads (an input, a state, a constant), except the loop's own
     sources (offsets, probes, and any source whose value reads a parameter
-    an effect added)."""
+    an effect added) and the flow sources that impose the flow of an inertia
+    (which then takes derivative causality: a change of their value would
+    need its own time derivative)."""
     out = []
     for name in sorted(graph.elements):
         el = graph.elements[name]
         if not isinstance(el, Source) or name.startswith(("offset.", "probe.")):
             continue
-        if _added_by_loop(el) or source_junction(graph, el) is None:
+        j = source_junction(graph, el)
+        if _added_by_loop(el) or j is None:
+            continue
+        if el.variable == "flow" and isinstance(j, One) and _has_inertia(j):
             continue
         out.append(Target("source", name))
     return out

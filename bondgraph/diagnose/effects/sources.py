@@ -310,7 +310,8 @@ class ColdStart(_Structural):
     over the share of the source's power that heats it. The excess at the
     start of a record, x(0), is the state's initial value, learned by the
     filter like any unknown initial state (0 on a warm start: the effect is
-    then absent). On an engine the excess is the cold-start enrichment and
+    then absent); its guess, 20 % of the source's largest value in the
+    record, sets the scale of its prior. On an engine the excess is the cold-start enrichment and
     the cold friction's fuel, both about linear in the deficit over the
     warm-up (Heywood 1988, §13.6; Guzzella & Sciarretta 2013, §3.2 and
     appendix on thermal engine models).
@@ -370,9 +371,12 @@ class ColdStart(_Structural):
                         f"smoothing width of |P| of {target.name}")
         v = src.value
         power = src.e * src.f
+        # the guess of the initial excess (the filter learns it: nothing
+        # gives it, so its prior spans the state's scale, which this guess sets)
+        x0 = 0.2 * scales.get("source_max", target.name) if scales is not None else 0.0
         x = graph.state(f"{self.name}.{target.tag}.x",
                         rhs=lambda s: -s * smooth_abs(power, pe) / ew,
-                        unit=source_unit(graph, src) or None, initial=0.0,
+                        unit=source_unit(graph, src) or None, initial=float(x0),
                         description=f"cold-start excess of {target.name}")
         _rewrite_value(src, v + x)
         return {"E_w": ew, "P_eps": pe}
