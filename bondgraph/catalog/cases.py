@@ -7,8 +7,10 @@
 * ``silverbox``: the Silverbox electronic Duffing oscillator (Wigren &
   Schoukens 2013) declared as a linear mass-spring-damper; the cubic
   stiffness is missing.
+* ``camry_cold``: the 2018 Camry's fuel flow on the cold-start UDDS bag
+  (ANL D3), declared warm; the engine's warm-up is missing.
 
-Both read the local data folder (:mod:`bondgraph.data.datasets`).
+All read the local data folder (:mod:`bondgraph.data.datasets`).
 """
 
 from __future__ import annotations
@@ -20,6 +22,9 @@ from scipy.optimize import least_squares
 from scipy.signal import resample
 
 from bondgraph.catalog.benchmarks import (
+    CAMRY_HOT_FIT,
+    camry_fuel,
+    camry_warm,
     ced_linear,
     emps_arrays,
     emps_decimate,
@@ -29,9 +34,10 @@ from bondgraph.catalog.benchmarks import (
 )
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.smooth import smooth_clip
-from bondgraph.data.datasets import ced, emps, silverbox
+from bondgraph.data.datasets import camry_dyno, ced, emps, silverbox
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.cases import LoopCase, declared_builder
+from bondgraph.diagnose.effects import DEFAULT_EFFECTS, OPTIONAL_EFFECTS
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
@@ -42,6 +48,7 @@ CASES: dict[str, str] = {
     "emps": "bondgraph.catalog.cases:case_emps",
     "ced": "bondgraph.catalog.cases:case_ced",
     "silverbox": "bondgraph.catalog.cases:case_silverbox",
+    "camry_cold": "bondgraph.catalog.cases:case_camry_cold",
 }
 
 
@@ -386,3 +393,169 @@ def case_silverbox() -> LoopCase:
          "ukf": UKFOptions(method="rk4", substeps=SILVERBOX_SUBSTEPS, hold=SILVERBOX_HOLD, alpha=1.0),
          "structural": False},
         ("cubic_stiffness", "spring"))
+
+
+# ------------------------------------------------------- real data: Camry
+#: the cold-start bag of test 61811011: the cold UDDS, 0-1366 s (data
+#: README). On its first 700 s alone the loop ranks the cold start first too
+#: (LR 133.4; error 0.3847 -> 0.3493 cm³/s, Diebold-Mariano z 1.28: rejected)
+CAMRY_COLD_BAG = 1367
+#: the hot-cycle tests the declared parameters are fitted on
+#: (:data:`bondgraph.catalog.benchmarks.CAMRY_HOT_FIT`) and the hot UDDS held out
+CAMRY_HOT_TESTS = ("61811013", "61811014")
+CAMRY_HELD_OUT = "61811012"
+
+
+def camry_arrays(test, samples: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A Camry dyno test as arrays of :func:`~bondgraph.catalog.benchmarks.camry_fuel`.
+
+    Parameters
+    ----------
+    test : str or int
+        ``"61811011"`` .. ``"61811014"`` (or 11 .. 14).
+    samples : int, optional
+        Keep the first ``samples`` (1 Hz) samples.
+
+    Returns
+    -------
+    t (N,) [s], u (N, 2) [v in m/s, der(v) in m/s²], y (N,) [cm³/s]
+        dv/dt by second-order central differences (:func:`numpy.gradient`).
+
+    Raises
+    ------
+    DataError
+        The data folder lacks the test (no download is attempted).
+    """
+    d = camry_dyno(test, download=False)
+    n = len(d) if samples is None else int(samples)
+    t = d["Time[s]"].to_numpy(float)[:n]
+    t = t - t[0]
+    v = d["v [m/s]"].to_numpy(float)[:n]
+    return t, np.column_stack([v, np.gradient(v, t)]), d["Eng_FuelFlow_Direct_DI[ccps]"] \
+        .to_numpy(float)[:n]
+
+
+def camry_record(test="61811011", samples: int | None = CAMRY_COLD_BAG) -> Experiment:
+    """A Camry test as a record of :func:`~bondgraph.catalog.benchmarks.camry_fuel`
+    (default: the cold-start bag of test 61811011), the measured first fuel
+    flow as the initial state of ``Q``."""
+    t, u, y = camry_arrays(test, samples)
+    dm = Model.from_graph(camry_fuel())
+    tid = camry_dyno(test, download=False).attrs["test"]
+    return Experiment.from_arrays(
+        t, model=dm, u=u, y=y[:, None], name=f"camry_{tid}_{t.size}s",
+        meta={"description": f"ANL D3 2018 Camry, test {tid}, first {t.size} s (1 Hz): dyno "
+                             f"speed and fuel flow", "x0": {"Q": float(y[0])}})
+
+
+def camry_free_run(model, theta, test, samples: int | None = None,
+                   x0: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Free run of a fitted Camry model on a test (fixed-step RK4, 4 steps per
+    second, speed held linearly between samples).
+
+    Parameters
+    ----------
+    model : Model
+        With the inputs ``v``, ``der(v)``, output ``fuel`` and the state ``Q``.
+    theta : array (n_theta,)
+    test : str or int
+    samples : int, optional
+        First samples only.
+    x0 : dict, optional
+        Initial states by name; ``Q`` defaults to the measured first fuel
+        flow, every other state to 0 (a cold-start excess is absent on a hot
+        start).
+
+    Returns
+    -------
+    (y (N,), y_sim (N,)) in cm³/s
+    """
+    t, u, y = camry_arrays(test, samples)
+    x = np.zeros(model.n_x)
+    for k, val in {"Q": float(y[0]), **(x0 or {})}.items():
+        x[model.state_index(k)] = val
+    Y = simulate_batch(model, t, u, np.asarray(theta, float)[None], x, method="rk4",
+                       substeps=4, hold="linear")
+    return y, Y[:, 0, model.output_index("fuel")]
+
+
+def camry_fuel_error(model, theta, test=CAMRY_HELD_OUT, samples: int | None = None,
+                     x0: dict | None = None) -> float:
+    """Free-run fuel RMS error [cm³/s] of a fitted Camry model on a test
+    (:func:`camry_free_run`; default the held-out hot UDDS 61811012)."""
+    y, ys = camry_free_run(model, theta, test, samples, x0)
+    return float(np.sqrt(np.mean((ys - y) ** 2)))
+
+
+def camry_hot_fit(tests=CAMRY_HOT_TESTS, params=("eta", "Q_idle")) -> dict[str, float]:
+    """Output-error fit of the warm graph's powertrain parameters on hot
+    cycles (the values of :data:`~bondgraph.catalog.benchmarks.CAMRY_HOT_FIT`).
+
+    Least squares (:func:`scipy.optimize.least_squares`, inside the
+    parameters' boxes) of the free-run fuel errors of every test together
+    (:func:`camry_free_run`, from the measured first fuel flow); the other
+    parameters at the graph's defaults (EPA road load, τ_f 0.5 s).
+
+    Returns
+    -------
+    dict
+        The estimates by name and ``rms`` [cm³/s], the RMS error over all
+        samples of the tests.
+    """
+    m = Model.from_graph(camry_fuel())
+    lo, hi = m.bounds(list(params))
+    base = m.theta({"tau_f": CAMRY_HOT_FIT["tau_f"]})
+
+    def resid(z):
+        th = m.expand_theta(list(params), z, base)
+        return np.concatenate([np.subtract(*camry_free_run(m, th, k)[::-1]) for k in tests])
+
+    z0 = np.array([CAMRY_HOT_FIT[p] for p in params])
+    r = least_squares(resid, np.clip(z0, lo, hi), bounds=(lo, hi), x_scale=0.1)
+    return {**{p: float(v) for p, v in zip(params, r.x)},
+            "rms": float(np.sqrt(np.mean(r.fun ** 2)))}
+
+
+class CamryHeldOutError:
+    """Free-run fuel RMS error [cm³/s] of a fit on the held-out hot UDDS
+    (:func:`camry_fuel_error`, hot start: the cold-start excess 0)."""
+
+    name = "Camry fuel RMS error on the held-out hot UDDS 61811012 [cm^3/s]"
+
+    def __call__(self, fit, data=None) -> float:
+        return camry_fuel_error(fit.model, fit.theta)
+
+
+def case_camry_cold() -> LoopCase:
+    return LoopCase(
+        "camry_cold",
+        "2018 Camry on a chassis dyno (real data, ANL D3, 1 Hz): the warm powertrain fuel-flow "
+        "model, started from its fit on the hot cycles 61811013-14, on the cold-start UDDS bag "
+        "of 61811011 (0-1366 s; the data README: +16.8 % fuel in the first 505 s against the hot "
+        "test 61811012); the loop must find the engine's warm-up. Held out: the hot UDDS "
+        "61811012 (catalog.cases.camry_fuel_error).",
+        declared_builder(camry_warm),
+        camry_record,
+        # powertrain efficiency and idle fuel re-estimated on the cold bag
+        # (the hot-cycle fit starts them) and the fuel sensor's noise std
+        # (noise "auto": the record declares none). The road load and test
+        # weight are the EPA proxies, fixed; τ_f stays at the lower end of its
+        # box, where the hot fit put it. The fuel state's process noise is
+        # held small (0.02 cm³/s^1.5), so that the likelihood judges the
+        # model's own fuel prediction: estimated, q_Q runs to 0.30, a random
+        # walk that follows the measurement (the Willans line's own errors:
+        # fuel cut-off on braking, efficiency varying with load), and then
+        # absorbs any slow effect (the cold start scored LR 0).
+        # Tried and left: (1) η and Q_idle held at a hot fit on 61811012 and
+        # 61811014 (61811013 held out): the cold start ranks first (LR 239.5,
+        # error 0.3213 -> 0.312, z 0.36: rejected) and a sensor offset of
+        # +0.062 cm³/s is accepted, the slow part of the warm-up read as a
+        # constant; (2) CED's pattern, only the noise in the initial fit and
+        # η, Q_idle refitted with every candidate: an actuator saturation of
+        # the speed at 54 m/s (never reached on the UDDS) is accepted, its
+        # error decrease (0.3213 -> 0.3136) being the declared refit's.
+        ["eta", "Q_idle"],
+        {"metric": "rmse_sim", "effects": DEFAULT_EFFECTS + OPTIONAL_EFFECTS,
+         "fixed": {"q_Q": 0.02}, "ukf": UKFOptions(method="rk4", substeps=4, hold="linear"),
+         "sim_hold": "filter", "auto_substeps": True},
+        ("cold_start", "injector"))

@@ -1,6 +1,6 @@
 """Data-driven scales of the effects (smoothing widths, grids, boxes),
 measured along the filtered states of a fit: flows of the 1-junctions, net
-efforts on the inertias, source values and rates, stored quantities, the
+efforts on the inertias, source values, rates and powers, stored quantities, the
 efforts and flows of the R elements, inputs and outputs."""
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ def operating_scales(ctx: Context, fit: Fit) -> Scales:
     -------
     Scales
         RMS and maximum of every 1-junction's flow, RMS of the net effort on
-        its inertia, maximum and largest rate of every source, maximum, RMS
+        its inertia, maximum, largest rate and mean power of every source, maximum, RMS
         and peak of every stored quantity, RMS of every R's effort and flow,
         maximum of every input, RMS of every measured output, the record
         duration and median sample interval. A quantity that cannot be
@@ -83,6 +83,7 @@ def _element_scales(sc: Scales, name: str, el, ss, evaluate, X, t, rates) -> Non
         sc.source_max[name] = float(np.nanmax(np.abs(v)))
         if t.size > 1:
             sc.source_rate[name] = float(np.nanmax(np.abs(np.diff(v) / np.diff(t))))
+        sc.source_power[name] = float(np.nanmean(np.abs(evaluate(ss.variable(el.e * el.f)))))
     elif isinstance(el, C) and el.q in ss.states:
         q = X[:, ss.states.index(el.q)]
         sc.storage_max[name] = float(np.nanmax(np.abs(q)))

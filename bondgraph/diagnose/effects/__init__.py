@@ -23,10 +23,11 @@ Each :class:`Effect` knows
 
 The families live in submodules: :mod:`~.friction` (friction laws, offset,
 disturbance, Dahl hysteresis), :mod:`~.sources` (gain, offset, saturation,
-dead zone, rate limit, lag, input delay), :mod:`~.sensors`, :mod:`~.storage`
+dead zone, rate limit, lag, input delay, cold start), :mod:`~.sensors`, :mod:`~.storage`
 (end stops, capacity limit, backlash, cubic stiffness), :mod:`~.laws`
 (R-law alternatives), :mod:`~.coupling` (slip, compliance), :mod:`~.probe`
-and :mod:`~.library` (the default list).
+and :mod:`~.library` (the default list, and the optional effects scored only
+when asked: the cold start).
 
 Users add effects the same way: subclass :class:`Effect`, implement
 ``targets``, ``apply`` and ``box`` (and ``basis``/``probe_site`` if additive,
@@ -47,6 +48,7 @@ from bondgraph.diagnose.effects.base import (
     input_targets,
     junction_units,
     mechanical,
+    power_sources,
     resistor_targets,
     source_junction,
     split_bond,
@@ -64,7 +66,13 @@ from bondgraph.diagnose.effects.friction import (
     Viscous,
 )
 from bondgraph.diagnose.effects.laws import RCubic, RQuadratic, RSquareRoot, add_to_r_law
-from bondgraph.diagnose.effects.library import BY_NAME, DEFAULT_EFFECTS, apply_effect, get_effect
+from bondgraph.diagnose.effects.library import (
+    BY_NAME,
+    DEFAULT_EFFECTS,
+    OPTIONAL_EFFECTS,
+    apply_effect,
+    get_effect,
+)
 from bondgraph.diagnose.effects.probe import ProbeColumn, probe_graph
 from bondgraph.diagnose.effects.sensors import (
     SensorGain,
@@ -79,6 +87,7 @@ from bondgraph.diagnose.effects.sources import (
     ActuatorDeadZone,
     ActuatorGain,
     ActuatorSaturation,
+    ColdStart,
     InputDelay,
     SourceLag,
     SourceOffset,
@@ -95,14 +104,14 @@ from bondgraph.diagnose.effects.storage import (
 
 __all__ = [
     "ADDED_BY", "ActuatorDeadZone", "ActuatorGain", "ActuatorSaturation", "AsymmetricFriction",
-    "BY_NAME", "Backlash", "CapacityLimit", "Compliance", "ConstantEffort", "Coulomb",
+    "BY_NAME", "Backlash", "CapacityLimit", "ColdStart", "Compliance", "ConstantEffort", "Coulomb",
     "CubicStiffness", "DEFAULT_EFFECTS", "DahlFriction", "Disturbance", "Effect", "EffectParam",
-    "EndStop", "InputDelay", "ProbeColumn", "QuadraticDrag", "RCubic", "RQuadratic",
+    "EndStop", "InputDelay", "OPTIONAL_EFFECTS", "ProbeColumn", "QuadraticDrag", "RCubic", "RQuadratic",
     "RSquareRoot", "Scales", "SensorGain", "SensorLowPass", "SensorOffset", "SensorPolynomial2",
     "SensorPolynomial3", "SensorQuantisation", "SensorRectification", "Slip", "SourceLag",
     "SourceOffset", "SourceRateLimit", "Stribeck", "Target", "Viscous", "add_to_r_law",
     "add_to_storage_law", "apply_effect", "element_units", "fill_unit", "flow_junctions",
     "get_effect", "input_sources", "input_targets", "junction_units", "mechanical",
-    "pade_realisation", "probe_graph", "resistor_targets", "source_junction", "split_bond",
+    "pade_realisation", "power_sources", "probe_graph", "resistor_targets", "source_junction", "split_bond",
     "storage_targets",
 ]

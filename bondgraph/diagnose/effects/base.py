@@ -70,6 +70,9 @@ class Scales:
         C element name -> max q (signed) along the filtered states.
     source_rate : dict
         Source name -> max |d value/dt| over the record (finite differences).
+    source_power : dict
+        Source name -> mean |e·f| of its bond over the record (the power it
+        delivers, in W when the graph has units).
     duration, dt : float
         Record length and median sample interval [s].
     """
@@ -86,6 +89,7 @@ class Scales:
     force_rms: dict = field(default_factory=dict)
     storage_peak: dict = field(default_factory=dict)
     source_rate: dict = field(default_factory=dict)
+    source_power: dict = field(default_factory=dict)
     duration: float = 1.0
     dt: float = 0.01
 
@@ -529,6 +533,27 @@ def _added_by_loop(el) -> bool:
     """True if an element's laws read a parameter an effect added."""
     return any(getattr(s, "source", "") == ADDED_BY or s.name.startswith("probe.")
                for ex in el.expressions() for s in ex.free_symbols)
+
+
+def power_sources(graph: BondGraph) -> list[Target]:
+    """Every source (Se, Sf, MSe, MSf) bonded to a junction, whatever its
+    value reads (an input, a state, a constant), except the loop's own
+    sources (offsets, probes, and any source whose value reads a parameter
+    an effect added) and the flow sources that impose the flow of an inertia
+    (which then takes derivative causality: a change of their value would
+    need its own time derivative)."""
+    out = []
+    for name in sorted(graph.elements):
+        el = graph.elements[name]
+        if not isinstance(el, Source) or name.startswith(("offset.", "probe.")):
+            continue
+        j = source_junction(graph, el)
+        if _added_by_loop(el) or j is None:
+            continue
+        if el.variable == "flow" and isinstance(j, One) and _has_inertia(j):
+            continue
+        out.append(Target("source", name))
+    return out
 
 
 def input_targets(graph: BondGraph) -> list[Target]:

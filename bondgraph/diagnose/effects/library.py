@@ -32,6 +32,7 @@ from bondgraph.diagnose.effects.sources import (
     ActuatorDeadZone,
     ActuatorGain,
     ActuatorSaturation,
+    ColdStart,
     InputDelay,
     SourceLag,
     SourceOffset,
@@ -52,18 +53,25 @@ DEFAULT_EFFECTS: tuple[Effect, ...] = (
     CapacityLimit(), DahlFriction(),
 )
 
-BY_NAME: dict[str, Effect] = {e.name: e for e in DEFAULT_EFFECTS}
+#: effects of the library that the loop scores only when asked
+#: (``LoopSettings(effects=DEFAULT_EFFECTS + OPTIONAL_EFFECTS)``): a cold
+#: start (issue 26) attaches to every source of every graph, and a record
+#: that starts warm has nothing for it to find
+OPTIONAL_EFFECTS: tuple[Effect, ...] = (ColdStart(),)
+
+BY_NAME: dict[str, Effect] = {e.name: e for e in DEFAULT_EFFECTS + OPTIONAL_EFFECTS}
 
 
 def get_effect(name: str, library=None) -> Effect:
-    """The effect called ``name`` in ``library`` (default :data:`DEFAULT_EFFECTS`).
+    """The effect called ``name`` in ``library`` (default :data:`DEFAULT_EFFECTS`
+    and :data:`OPTIONAL_EFFECTS`).
 
     Raises
     ------
     GraphError
         Unknown name (the library's names are listed).
     """
-    lib = {e.name: e for e in (library or DEFAULT_EFFECTS)}
+    lib = {e.name: e for e in (library or DEFAULT_EFFECTS + OPTIONAL_EFFECTS)}
     try:
         return lib[name]
     except KeyError:

@@ -4,7 +4,9 @@ the effort or flow a source (Se, MSe, Sf, MSf) delivers.
 * gain error, offset (additive: probe-able at β = 0);
 * saturation, dead zone, rate limit, first-order lag (structural);
 * transport delay of an input, fractional-sample delays included, as a
-  Padé approximant realised by graph states (:class:`InputDelay`).
+  Padé approximant realised by graph states (:class:`InputDelay`);
+* a cold-start excess that a thermal capacitance, warmed by the source's own
+  power, takes away (:class:`ColdStart`).
 
 A source that drives a 1-junction with an effort gets the static shaping as
 an extra modulated effort source on that junction (``shaped − value``);
@@ -29,6 +31,7 @@ import sympy as sp
 
 from bondgraph.core.elements import One, Source
 from bondgraph.core.graph import BondGraph
+from bondgraph.core.smooth import smooth_abs
 from bondgraph.diagnose.effects.base import (
     Effect,
     EffectParam,
@@ -38,6 +41,7 @@ from bondgraph.diagnose.effects.base import (
     element_units,
     input_sources,
     input_targets,
+    power_sources,
     time_constant_box,
     time_constant_grid,
     source_junction,
@@ -289,6 +293,93 @@ class SourceRateLimit(_Structural):
                         description=f"rate-limited value of {target.name}")
         _rewrite_value(src, z)
         return {"r": r, "tau_f": tf}
+
+
+class ColdStart(_Structural):
+    """A cold-start excess of a source that the source's own power warms
+    away: the source delivers value + x, where the excess x is proportional
+    to the temperature deficit T_w − T of a lumped thermal capacitance
+    (an engine block and its coolant, a cold gearbox's oil, a pump's
+    fluid) heated by the power the source delivers::
+
+        value -> value + x,      dx/dt = −x·|P|/E_w,      P = e·f of the source's bond
+
+    (|P| smoothed over P_ε: sqrt(P² + P_ε²)). The excess decays by e per
+    energy E_w delivered, so a loaded source warms faster than an idling
+    one; E_w is the capacitance's heat capacity times its temperature rise
+    over the share of the source's power that heats it. The excess at the
+    start of a record, x(0), is the state's initial value, learned by the
+    filter like any unknown initial state (0 on a warm start: the effect is
+    then absent); its guess, 20 % of the source's largest value in the
+    record, sets the scale of its prior. On an engine the excess is the cold-start enrichment and
+    the cold friction's fuel, both about linear in the deficit over the
+    warm-up (Heywood 1988, §13.6; Guzzella & Sciarretta 2013, §3.2 and
+    appendix on thermal engine models).
+
+    Passive: the excess is delivered by the source itself (no element
+    produces power), and x keeps its initial sign and decays monotonically
+    to 0, so the free run stays bounded.
+
+    References
+    ----------
+    Heywood, J. B. (1988). *Internal Combustion Engine Fundamentals*,
+    McGraw-Hill, ch. 13 (friction and its dependence on oil temperature).
+    Guzzella, L., Sciarretta, A. (2013). *Vehicle Propulsion Systems*, 3rd
+    ed., Springer.
+    """
+
+    name = "cold_start"
+    title = "cold-start excess warmed away by the source's power"
+    target_kind = "source"
+    params = (EffectParam("E_w", "{effort}*{flow}*s", "warm-up energy: the excess falls by e "
+                          "per E_w delivered", nonnegative=True),
+              EffectParam("P_eps", "{effort}*{flow}", "smoothing width of |P|", estimated=False))
+
+    def targets(self, graph):
+        return power_sources(graph)
+
+    def _energy(self, target, scales) -> float:
+        """The energy the source delivers over the record (mean |P| × duration)."""
+        return scales.get("source_power", target.name) * scales.duration
+
+    def shape_values(self, graph, target, scales):
+        return {"P_eps": 1e-3 * scales.get("source_power", target.name)}
+
+    def grid(self, graph, target, scales):
+        e = self._energy(target, scales)
+        pe = self.shape_values(graph, target, scales)["P_eps"]
+        return [{"E_w": e * f, "P_eps": pe} for f in (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)]
+
+    def box(self, graph, target, scales):
+        """From 2 % to 50 % of the energy the source delivers over the record:
+        the warm-up is then seen within the record (a smaller E_w is a
+        transient of the first samples, a larger one a constant offset)."""
+        e = self._energy(target, scales)
+        return {"E_w": (0.02 * e, 0.5 * e)}
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        src = graph.element(target.name)
+        eu, fu = element_units(graph, src)
+        pu = f"({eu})*({fu})" if eu and fu else ""
+        shapes = self.shape_values(graph, target, scales) if scales is not None else {}
+        ew = _new_param(graph, self.pname(target, "E_w"), values.get("E_w", 1.0),
+                        f"{pu}*s" if pu else "", (1e-12, 1e18),
+                        f"warm-up energy of the cold-start excess of {target.name}")
+        pe = _new_param(graph, self.pname(target, "P_eps"),
+                        values.get("P_eps", shapes.get("P_eps", 1.0)), pu, (1e-15, 1e15),
+                        f"smoothing width of |P| of {target.name}")
+        v = src.value
+        power = src.e * src.f
+        # the guess of the initial excess (the filter learns it: nothing
+        # gives it, so its prior spans the state's scale, which this guess sets)
+        x0 = 0.2 * scales.get("source_max", target.name) if scales is not None else 0.0
+        x = graph.state(f"{self.name}.{target.tag}.x",
+                        rhs=lambda s: -s * smooth_abs(power, pe) / ew,
+                        unit=source_unit(graph, src) or None, initial=float(x0),
+                        description=f"cold-start excess of {target.name}")
+        _rewrite_value(src, v + x)
+        return {"E_w": ew, "P_eps": pe}
 
 
 # ------------------------------------------------------------- input delay
