@@ -320,3 +320,31 @@ def test_noise_that_absorbs_the_model_error_is_named():
     # noise at its start and the declared level: nothing to name
     fit.theta = np.array([0.01, 0.01, 0.02])
     assert noise_absorbing(ctx, fit) == []
+
+
+def test_a_correction_beside_a_declared_resistor_is_judged_with_it():
+    """EMPS's asymmetric friction adds dv·v (dv = −36.9 N s/m) beside the
+    viscous friction Fv·v (Fv ≈ 200) on the same 1-junction: alone it would
+    produce power, together they absorb (Fv + dv) v² >= 0. With dv = −300
+    the pair produces (200 − 300) v² < 0 at the widened top v = 1.5."""
+    def graph(dv):
+        g = BondGraph("visc", "mass with viscous friction and a correction")
+        Fv = g.param("Fv", 200.0, "N*s/m", (50.0, 400.0))
+        d = g.param("dv", dv, "N*s/m", (-1000.0, 1000.0))
+        m = g.param("m", 1.0, "kg", (0.1, 10.0))
+        v = g.one("v", domain="translation")
+        g.connect(v, g.I("mass", m))
+        g.connect(v, g.R("visc", Fv))
+        g.connect(v, g.R("corr", effort=lambda f: d * f))
+        g.sensor("vel", v.f, unit="m/s", noise_std=0.01)
+        return g, {"Fv": 200.0, "dv": dv, "m": 1.0}
+
+    p = np.linspace(-1.0, 1.0, 41)[:, None]          # momentum = velocity (m = 1)
+    g, th = graph(-36.9)
+    r = check_admissible(g, derive(g), th, p, np.zeros((41, 0)))
+    assert r.ok and sorted(r.checked) == ["corr", "mass", "visc"]
+    g, th = graph(-300.0)
+    (v,) = check_admissible(g, derive(g), th, p, np.zeros((41, 0))).violations
+    assert v.element == "corr + visc (in parallel on junction 'v')"
+    assert abs(v.at) == pytest.approx(1.0 + MARGIN * 2.0, rel=1e-12)   # span 2
+    assert v.value == pytest.approx((200.0 - 300.0) * v.at**2, rel=1e-12)

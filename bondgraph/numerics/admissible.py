@@ -3,10 +3,13 @@ of its elements, checked numerically over the operating range a record
 visits.
 
 - Every R element dissipates: the power into it, P = e·f, is >= 0 wherever
-  its causal input x (its flow when the graph imposes the flow, its effort
-  otherwise) goes, i.e. x·φ(x) >= 0 for its law y = φ(x) (Karnopp, Margolis
+  the input x of its law goes (its flow for an effort law e = φ(f), its
+  effort for a flow law f = φ(e)), i.e. x·φ(x) >= 0 (Karnopp, Margolis
   & Rosenberg, *System Dynamics*, 5th ed., §4.1: a resistor's constitutive
-  law lies in the first and third quadrants).
+  law lies in the first and third quadrants). R elements in parallel on one
+  junction that share x (effort laws on a 1-junction, flow laws on a
+  0-junction) are checked as one R-field: x·Σφᵢ(x) >= 0, so that a
+  correction term beside a declared law is judged with it.
 - Every C and I element in integral causality stores non-negative energy:
   H(q) = ∫₀^q Ψ(s) ds >= 0 for a capacitance e = Ψ(q) (and the co-energy
   ∫₀^p Φ(s) ds >= 0 for an inertia f = Φ(p)), over the range of its state
@@ -37,7 +40,6 @@ from typing import Mapping, Sequence
 import numpy as np
 import sympy as sp
 
-from bondgraph.core.causality import assign_causality
 from bondgraph.core.elements import C, I, R
 from bondgraph.core.graph import BondGraph
 from bondgraph.errors import ModelError
@@ -162,12 +164,14 @@ def check_admissible(graph: BondGraph, ss, theta: Mapping[str, float], x: np.nda
     keep = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(u), axis=1)
     env = _Env(ss, {p: float(theta[p.name]) for p in ss.params}, x[keep], u[keep])
     out = Admissibility()
-    cz = ss.causality if getattr(ss, "causality", None) is not None else \
-        assign_causality(graph, validate=False)
+    resistors = [graph.elements[n] for n in sorted(graph.elements)
+                 if isinstance(graph.elements[n], R)]
+    for junction, els in _parallel_groups(graph, resistors):
+        _check_r(env, junction, els, margin, out)
     for name in sorted(graph.elements):
         el = graph.elements[name]
         if isinstance(el, R):
-            _check_r(env, cz, el, margin, out)
+            continue
         elif isinstance(el, (C, I)):
             _check_storage(env, el, margin, out)
         elif getattr(el, "kind", None) in ("R", "C", "I"):
@@ -224,19 +228,45 @@ def _worst(values: np.ndarray, where: np.ndarray) -> tuple[int, bool]:
     return i, bool(vals[i] < -TOLERANCE * scale)
 
 
-def _check_r(env: _Env, cz, el: R, margin: float, out: Admissibility) -> None:
-    """x·φ(x) >= 0 for the R's law in its declared form (x its flow for an
-    effort law, its effort for a flow law)."""
-    b = el.port.bond
-    port_var, variable = (el.f, "flow") if el.form == "effort" else (el.e, "effort")
-    bond_var = b.f if el.form == "effort" else b.e
-    law = el.law
-    others = [s for s in law.free_symbols if s != port_var and s not in env.params]
+def _parallel_groups(graph: BondGraph, resistors: list) -> list[tuple[str, list]]:
+    """The R elements whose laws are checked together: those on one
+    1-junction written as effort laws (they share its flow: their efforts
+    add) and those on one 0-junction written as flow laws (they share its
+    effort: their flows add), named by the junction; every other R alone.
+    A correction the loop adds beside a declared law (an asymmetric
+    friction term whose slope offsets part of the viscous friction's) need
+    not dissipate alone: their sum at the common variable must."""
+    groups: dict = {}
+    for el in resistors:
+        other = el.port.bond.other(el.port).element
+        kind = type(other).__name__
+        if (kind == "One" and el.form == "effort") or (kind == "Zero" and el.form == "flow"):
+            key = (kind, other.name)
+        else:
+            key = ("R", el.name)
+        groups.setdefault(key, []).append(el)
+    return [(key[1] if key[0] != "R" else "", els) for key, els in groups.items()]
+
+
+def _check_r(env: _Env, junction: str, els: list, margin: float, out: Admissibility) -> None:
+    """x·Σ sᵢ φᵢ(x) >= 0 for the R laws ``els`` sharing the variable x (the
+    flow for effort laws, the effort for flow laws; sᵢ = +1 when the bond's
+    half-arrow points into the R, −1 otherwise): the power they absorb
+    together."""
+    el0 = els[0]
+    variable = "flow" if el0.form == "effort" else "effort"
+    names = " + ".join(e.name for e in els)
     X = sp.Dummy("x")
-    power = sp.sympify(X * law.xreplace({port_var: X}))
-    solved = env.ss.variable(bond_var)
+    total = sp.Integer(0)
+    for el in els:
+        port_var = el.f if el.form == "effort" else el.e
+        total += el.port.bond.sign_at(el) * el.law.xreplace({port_var: X})
+    power = sp.sympify(X * total)
+    others = [s for s in power.free_symbols if s != X and s not in env.params]
+    b = el0.port.bond
+    solved = env.ss.variable(b.f if el0.form == "effort" else b.e)
     if not env.known(solved) or not env.known(power, [X]) or env.n == 0:
-        out.unchecked.append(f"{el.name}: its {variable} is not a function of the states and "
+        out.unchecked.append(f"{names}: its {variable} is not a function of the states and "
                              f"inputs alone")
         return
     xs = np.broadcast_to(env.evaluate(solved), (env.n,))
@@ -247,10 +277,11 @@ def _check_r(env: _Env, cz, el: R, margin: float, out: Admissibility) -> None:
     else:
         grid = _widened(xs, margin)
         p = np.broadcast_to(env.evaluate(power, at={X: grid}), grid.shape)
-    out.checked.append(el.name)
+    out.checked.extend(e.name for e in els)
     i, bad = _worst(p, grid)
     if bad:
-        out.violations.append(Violation(el.name, "R", "produces power", variable,
+        where = f" (in parallel on junction '{junction}')" if len(els) > 1 else ""
+        out.violations.append(Violation(names + where, "R", "produces power", variable,
                                         float(grid[i]), float(p[i]),
                                         (float(np.min(xs)), float(np.max(xs)))))
 
