@@ -257,8 +257,10 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
                 f"first by output error (the noise held), then the likelihood from there")
         start = sim_start(ctx, graph, first)
         if start is not None:
-            fit = _declared(ctx, graph, first, start)
-            check_declared_fit(fit)
+            again = _declared(ctx, graph, first, start)
+            check_declared_fit(again)
+            if again.nll <= fit.nll:        # the better of the two attempts is kept
+                fit = again
             stuck = failed_fit(ctx, fit, first, start, boxes_only=True)
     if stuck:
         msg = (f"the declared fit failed: {stuck}{gain_beyond_box(ctx, graph, fit, first)}. "
