@@ -233,8 +233,16 @@ def tanks():
 def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypatch, capsys):
     """The record's truth K2 = 2.5e-6 lies outside the declared box
     [3e-7, 1e-6]: the likelihood fit puts K2 on the box's top, the second
-    attempt from the output-error fit too; the loop stops with exit code 2
-    and names K2 and its box (no effect is scored)."""
+    attempt from the output-error fit too. Estimating K2 alone, no physical
+    parameter found an interior optimum: the fit did not happen, the loop
+    stops with exit code 2 and names K2, its box and what the likelihood
+    would gain beyond it (no effect is scored). Estimating K1 too (which
+    finds its optimum inside its box), K2 on its box may be the symptom of a
+    missing effect: the loop goes on, and its report names the box and its
+    cost."""
+    import json
+    import re
+
     from bondgraph.cli.main import main
     from bondgraph.numerics.model import Model
 
@@ -243,20 +251,26 @@ def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypa
     exp.save(tmp_path / "est.csv")
     (tmp_path / "tanks_boxed.py").write_text(TANKS_BOXED)
     monkeypatch.chdir(tmp_path)
-    rc = main(["loop", "--model", "tanks_boxed.py:tanks", "--data", "est.csv",
-               "--params", "K1,K2", "--max-steps", "1", "--no-structural", "--out", "rep",
-               "--quiet"])
+    argv = ["loop", "--model", "tanks_boxed.py:tanks", "--data", "est.csv", "--max-steps", "1",
+            "--no-structural", "--quiet"]
+    rc = main(argv + ["--params", "K2", "--out", "rep"])
     err = capsys.readouterr().err
     assert rc == 2
     assert "the declared fit failed: K2 = 1e-06 sits on a bound of [3e-07, 1e-06]" in err
     assert "--keep-going" in err
     # the report of what the box costs: the refit with the box opened finds
     # the truth K2 = 2.5e-6 and a large likelihood gain
-    import re
     gain, k2 = re.search(r"beyond the box the likelihood gains ([0-9.]+) nats, at K2 = "
                          r"([0-9.e+-]+)\)", err).groups()
     assert float(gain) > 100.0
     assert float(k2) == pytest.approx(TRUTH["K2"], rel=0.03)
+    assert main(argv + ["--params", "K2", "--out", "rep2", "--keep-going"]) == 0
+    assert main(argv + ["--params", "K1,K2", "--out", "rep3"]) == 0
+    rep = json.loads((tmp_path / "rep3" / "report.json").read_text())
+    (w,) = [w for w in rep["warnings"] if w.startswith("declared fit: K2 = 1e-06 sits on a "
+                                                       "bound of [3e-07, 1e-06] (beyond the box")]
+    assert "the loop goes on" in w
+
 
 
 def test_a_pair_is_needed_only_when_it_beats_each_member_alone():

@@ -188,10 +188,7 @@ def case_emps() -> LoopCase:
         _emps_record,
         ["M", "Fv", "q_F"],
         # validation: the benchmark's force-pulse run (its own held-out record)
-        # the declared fit (no Coulomb friction) pushes Fv onto the top of its
-        # box [50, 400] (+30 nats beyond it, at 412): the symptom of the friction
-        # the loop is to find, so the case goes on (as `--keep-going` would)
-        {"metric": EmpsForceError(), "fixed": {"sigma_q": 1.5e-8}, "on_failed_fit": "continue",
+        {"metric": EmpsForceError(), "fixed": {"sigma_q": 1.5e-8},
          "validation": _emps_record(part="validation"),
          "P0_std": {"p_M": 1.0, "q": 1e-5},
          "ukf": UKFOptions(method="rk4", substeps=2, alpha=1.0), "structural": False},

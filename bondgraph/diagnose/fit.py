@@ -127,7 +127,9 @@ class Fit:
     ``std`` as ``noise.<output>``), and why the model does not simulate
     (``unstable``: its free run fails or leaves the plausible range on the
     record or on the validation record, :func:`free_run_trouble`; None when
-    it simulates on both)."""
+    it simulates on both), and warnings about the fit that the report
+    carries (``warnings``: a declared parameter on its box and what the box
+    costs)."""
 
     graph: BondGraph
     model: Model
@@ -149,6 +151,7 @@ class Fit:
     validation_errors: np.ndarray | None = None
     noise_est: dict = field(default_factory=dict)
     unstable: str | None = None
+    warnings: list = field(default_factory=list)
 
     @property
     def k(self) -> int:

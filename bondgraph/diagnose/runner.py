@@ -189,6 +189,7 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit,
     result.warnings.extend(check_discretisation(ctx, initial) if warn is None else warn)
     result.warnings.extend(f"initial fit: {n} on a bound of its box (no Cramér-Rao std)"
                            for n in initial.at_bound)
+    result.warnings.extend(initial.warnings)
     for w in noise_absorbing(ctx, initial):
         ctx.log(f"warning: initial fit: {w}")
         result.warnings.append(f"initial fit: {w}")
@@ -251,26 +252,20 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
     start = sim_start(ctx, graph, first) if s.fit == "sim" else None
     fit = _declared(ctx, graph, first, start)
     check_declared_fit(fit)
-    stuck = failed_fit(ctx, fit, first, start, boxes_only=s.fit == "sim")
-    if stuck and s.fit == "nll":
-        ctx.log(f"  the declared fit did not happen: {stuck}; fitting the physical parameters "
-                f"first by output error (the noise held), then the likelihood from there")
+    unmoved, boxed = stuck_parameters(ctx, fit, first, start, boxes_only=s.fit == "sim")
+    if (unmoved or boxed) and s.fit == "nll":
+        ctx.log(f"  the declared fit may not have happened: {stuck_text(fit, unmoved, boxed)}; "
+                f"fitting the physical parameters first by output error (the noise held), "
+                f"then the likelihood from there")
         start = sim_start(ctx, graph, first)
         if start is not None:
             again = _declared(ctx, graph, first, start)
             check_declared_fit(again)
             if again.nll <= fit.nll:        # the better of the two attempts is kept
                 fit = again
-            stuck = failed_fit(ctx, fit, first, start, boxes_only=True)
-    if stuck:
-        msg = (f"the declared fit failed: {stuck}{gain_beyond_box(ctx, graph, fit, first)}. "
-               f"Check these parameters' units, start values and boxes (a box is your "
-               f"physical knowledge: widen it only if it is wrong), fix the ones the record "
-               f"cannot tell (--fixed), or declare the missing process noise")
-        if s.on_failed_fit == "stop":
-            raise DeclaredFitError(msg + "; no effect is scored",
-                                   hint="bondgraph loop ... --keep-going scores effects anyway")
-        ctx.log(f"  warning: {msg}; going on (--keep-going)")
+            unmoved, boxed = stuck_parameters(ctx, fit, first, start, boxes_only=True)
+    if unmoved or boxed:
+        _declared_fit_verdict(ctx, graph, fit, first, unmoved, boxed)
     fit.params = list(s.params)
     ctx.log(f"initial fit: NLL {fit.nll:.2f}, {s.criterion.upper()} "
             f"{fit.information(s.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
@@ -289,18 +284,18 @@ def _declared(ctx: Context, graph: BondGraph, names: list[str], start: dict | No
                                f"scored") from exc
 
 
-def failed_fit(ctx: Context, fit: Fit, names: list[str], start: dict | None,
-               boxes_only: bool = False) -> str:
-    """Why the declared fit did not happen, or "": physical (non-noise)
-    parameters of ``names`` that never left their start values (the
-    likelihood was flat in them: the noise intensities explained the record
-    instead) or that sit on a bound of their declared box (the record asks
-    for a value the box forbids). ``boxes_only``: only the latter. The
-    start is ``start`` over the problem's θ (the defaults and fixed values),
-    clipped into the boxes as :func:`~bondgraph.diagnose.fit.fit_model` does."""
+def stuck_parameters(ctx: Context, fit: Fit, names: list[str], start: dict | None,
+                     boxes_only: bool = False) -> tuple[list[str], list[str]]:
+    """``(unmoved, boxed)``: the physical (non-noise) parameters of ``names``
+    that never left their start values (the likelihood was flat in them: the
+    noise intensities explained the record instead; not with
+    ``boxes_only``), and those on a bound of their declared box (the record
+    asks for a value the box forbids, or a missing effect pushes them
+    there). The start is ``start`` over the problem's θ (the defaults and
+    fixed values), clipped into the boxes as
+    :func:`~bondgraph.diagnose.fit.fit_model` does."""
     model = fit.model
-    noise = noise_params(model)
-    phys = [n for n in names if n in model.params and n not in noise]
+    phys = physical_parameters(fit, names)
     theta0 = ctx.problem.theta.copy()
     for k, v in (start or {}).items():
         if k in model.params:
@@ -310,7 +305,19 @@ def failed_fit(ctx: Context, fit: Fit, names: list[str], start: dict | None,
         n for n, a, b in zip(phys, lo, hi)
         if abs(fit.theta[model.param_index(n)] - np.clip(theta0[model.param_index(n)], a, b))
         <= 1e-9 * max(abs(theta0[model.param_index(n)]), 1e-300)]
-    boxed = [n for n in phys if n in fit.at_bound]
+    return unmoved, [n for n in phys if n in fit.at_bound]
+
+
+def physical_parameters(fit: Fit, names: list[str]) -> list[str]:
+    """The parameters of ``names`` in ``fit``'s model that are not noise
+    intensities (:func:`~bondgraph.diagnose.fit.noise_params`)."""
+    noise = noise_params(fit.model)
+    return [n for n in names if n in fit.model.params and n not in noise]
+
+
+def stuck_text(fit: Fit, unmoved: list[str], boxed: list[str]) -> str:
+    """The parameters of :func:`stuck_parameters` in words."""
+    model = fit.model
     parts = []
     if unmoved:
         parts.append(f"{', '.join(unmoved)} never left {'its' if len(unmoved) == 1 else 'their'} "
@@ -320,6 +327,36 @@ def failed_fit(ctx: Context, fit: Fit, names: list[str], start: dict | None,
                                f"[{a:.4g}, {b:.4g}]"
                                for n, a, b in zip(boxed, *model.bounds(boxed))))
     return "; ".join(parts)
+
+
+def _declared_fit_verdict(ctx: Context, graph: BondGraph, fit: Fit, names: list[str],
+                          unmoved: list[str], boxed: list[str]) -> None:
+    """After the second attempt: when no physical parameter of the declared
+    fit found an interior optimum (each never moved or sits on its box), the
+    fit did not happen: :class:`DeclaredFitError` naming them, what the
+    likelihood would gain beyond the boxes and what to do (unless
+    ``on_failed_fit="continue"``, ``--keep-going``). When some did, a
+    parameter on its box is a symptom the loop may explain (a missing
+    friction drives a viscous coefficient to its top, a missing pump
+    saturation a tank's capacitance to its bottom): a warning (logged, and
+    in the report through ``fit.warnings``) names the box and its cost."""
+    s = ctx.settings
+    text = stuck_text(fit, unmoved, boxed) + gain_beyond_box(ctx, graph, fit, names)
+    failed = set(unmoved) | set(boxed) == set(physical_parameters(fit, names))
+    if not failed:
+        msg = (f"declared fit: {text}; a missing effect may push a declared parameter onto its "
+               f"box: the loop goes on")
+        ctx.log(f"  warning: {msg}")
+        fit.warnings.append(msg)
+        return
+    msg = (f"the declared fit failed: {text}. Check these parameters' units, start values and "
+           f"boxes (a box is your physical knowledge: widen it only if it is wrong), fix the "
+           f"ones the record cannot tell (--fixed), or declare the missing process noise")
+    if s.on_failed_fit == "stop":
+        raise DeclaredFitError(msg + "; no effect is scored",
+                               hint="bondgraph loop ... --keep-going scores effects anyway")
+    ctx.log(f"  warning: {msg}; going on (--keep-going)")
+    fit.warnings.append(msg + "; going on (--keep-going)")
 
 
 #: how far :func:`gain_beyond_box` opens a box on the side the fit sits on

@@ -206,10 +206,10 @@ class LoopSettings:
         ``params``); the score tests condition on the current fit's levels.
         ``"model"``: the graph's own sensor noise and noise-intensity values.
     on_failed_fit : {"stop", "continue"}
-        What the loop does when the declared fit did not happen (physical
-        parameters that never left their start values, or that sit on a
-        bound of their box, after a second attempt from the output-error
-        fit, :func:`bondgraph.diagnose.runner.failed_fit`): ``"stop"``
+        What the loop does when the declared fit did not happen (no physical
+        parameter found an interior optimum: each never left its start value
+        or sits on a bound of its box, after a second attempt from the
+        output-error fit, :func:`bondgraph.diagnose.runner.stuck_parameters`): ``"stop"``
         (default) raises :class:`~bondgraph.errors.DeclaredFitError` (the
         command line exits with code 2 naming them), ``"continue"``
         (``--keep-going``) warns and scores effects against it anyway.
