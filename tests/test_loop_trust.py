@@ -93,37 +93,42 @@ def test_a_negative_cubic_orifice_term_produces_power_and_is_named(tank_run):
     assert check_admissible(g, derive(g), theta, x, u).ok
 
 
-def test_a_softening_spring_past_its_turning_point_stores_negative_energy():
-    """A mass on a spring e = k q − β q³: H(q) = k q²/2 − β q⁴/4 < 0 for
-    q > √(2k/β). Visited q in [−0.5, 1]: with k = 1, β = 4 the energy turns
-    negative at q = 0.707 inside the range; with β = 1 (zero at 1.414) not
-    even at the widened top 1.375."""
-    def graph(beta):
+def test_a_softening_spring_past_its_turning_point_has_negative_stiffness():
+    """A mass on a spring e = k q − β q³: dΨ/dq = k − 3β q² < 0 for
+    q² > k/(3β). Visited q in [−0.5, 1], widened to [−0.875, 1.375]: with
+    k = 1, β = 0.3 the stiffness turns negative at q = 1.054, worst at the
+    top (1 − 0.9·1.375² = −0.70); with β = 0.1 (turning point 1.83) it does
+    not. A preloaded spring F₀ + k q (less energy than at 0 just below 0)
+    is admissible."""
+    def graph(beta, preload=0.0):
         g = BondGraph("soft", "mass on a softening spring")
         k = g.param("k", 1.0, "N/m", (0.1, 10.0))
         bb = g.param("b", beta, "N/m^3", (0.0, 10.0))
         m = g.param("m", 1.0, "kg", (0.1, 10.0))
         j = g.one("v", domain="translation")
         g.connect(j, g.I("mass", m))
-        g.connect(j, g.C("spring", effort=lambda q: k * q - bb * q**3))
+        g.connect(j, g.C("spring", effort=lambda q: preload + k * q - bb * q**3))
         g.sensor("pos_v", j.f, unit="m/s", noise_std=0.01)
         return g, {"k": 1.0, "b": beta, "m": 1.0}
 
     q = np.linspace(-0.5, 1.0, 50)
-    g, th = graph(4.0)
+    g, th = graph(0.3)
     ss = derive(g)
     order = [s.name for s in ss.states]
     x = np.zeros((q.size, 2))
     x[:, order.index("q_spring")] = q
-    r = check_admissible(g, ss, th, x, np.zeros((q.size, 0)))
+    no_u = np.zeros((q.size, 0))
+    r = check_admissible(g, ss, th, x, no_u)
     (v,) = r.violations
-    assert (v.element, v.kind, v.what, v.variable) == ("spring", "C", "stores negative energy",
-                                                       "q_spring")
+    assert (v.element, v.kind, v.variable) == ("spring", "C", "q_spring")
+    assert v.what == "has a negative stiffness (its stored energy is not convex)"
     top = 1.0 + MARGIN * 1.5                      # span 1.5, widened by MARGIN
-    assert v.at == pytest.approx(top, rel=1e-12)
-    assert v.value == pytest.approx(top**2 / 2 - 4.0 * top**4 / 4, rel=1e-4)  # trapezoid rule
-    g, th = graph(1.0)
-    assert check_admissible(g, derive(g), th, x, np.zeros((q.size, 0))).ok
+    assert v.at == pytest.approx(top, abs=0.01)   # the last interval's midpoint
+    assert v.value == pytest.approx(1.0 - 0.9 * v.at**2, rel=1e-4)   # the secant slope
+    g, th = graph(0.1)
+    assert check_admissible(g, derive(g), th, x, no_u).ok
+    g, th = graph(0.0, preload=5.0)
+    assert check_admissible(g, derive(g), th, x, no_u).ok
 
 
 def test_admissibility_input_errors(tank_run):
