@@ -258,11 +258,9 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
                 f"fitting the physical parameters first by output error (the noise held), "
                 f"then the likelihood from there")
         start = sim_start(ctx, graph, first)
-        if start is not None:
-            again = _declared(ctx, graph, first, start)
-            check_declared_fit(again)
-            if again.nll <= fit.nll:        # the better of the two attempts is kept
-                fit = again
+        again = _second_attempt(ctx, graph, first, start) if start is not None else None
+        if again is not None and again.nll <= fit.nll:   # the better attempt is kept
+            fit = again
             unmoved, boxed = stuck_parameters(ctx, fit, first, start, boxes_only=True)
     if unmoved or boxed:
         _declared_fit_verdict(ctx, graph, fit, first, unmoved, boxed)
@@ -271,6 +269,19 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
             f"{fit.information(s.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
             f"{metric_name(s)} = {fit.metric:.4g}")
     return fit
+
+
+def _second_attempt(ctx: Context, graph: BondGraph, names: list[str], start: dict) -> Fit | None:
+    """The declared fit from the output-error estimates ``start``, or None
+    (logged) when it is not usable (the first attempt then stands)."""
+    try:
+        again = _declared(ctx, graph, names, start)
+        check_declared_fit(again)
+        return again
+    except DeclaredFitError as exc:
+        ctx.log(f"  the second attempt is not usable ({str(exc).splitlines()[0]}); the first "
+                f"stands")
+        return None
 
 
 def _declared(ctx: Context, graph: BondGraph, names: list[str], start: dict | None) -> Fit:
