@@ -29,8 +29,10 @@
   this graph.
 * ``camry_fuel`` — the 2018 Toyota Camry on a chassis dyno (ANL D3, 1 Hz):
   imposed speed, road load, Willans-line engine with idle fuel and a
-  lagged fuel flow, declared warm (no thermal state); ``camry_warm`` — the
-  same with the hot-cycle fit's powertrain parameters (:data:`CAMRY_HOT_FIT`).
+  lagged fuel flow, declared warm (no thermal state). :func:`camry_warm`
+  (the same graph with the hot-cycle fit's powertrain parameters,
+  :data:`CAMRY_HOT_FIT`; the ``camry_cold`` case's declared graph) is built
+  in memory, not registered: its generated code would repeat camry_fuel's.
 
 References
 ----------
@@ -55,7 +57,6 @@ MODELS: dict[str, str] = {
     "ced_linear": "bondgraph.catalog.benchmarks:ced_linear",
     "silverbox_linear": "bondgraph.catalog.benchmarks:silverbox_linear",
     "camry_fuel": "bondgraph.catalog.benchmarks:camry_fuel",
-    "camry_warm": "bondgraph.catalog.benchmarks:camry_warm",
 }
 
 #: force constant of the EMPS drive [N/V] (stored in DATA_EMPS.mat)
