@@ -275,6 +275,11 @@ def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypa
     (w,) = [w for w in rep["warnings"] if w.startswith("declared fit: K2 = 1e-06 sits on a "
                                                        "bound of [3e-07, 1e-06] (beyond the box")]
     assert "the loop goes on" in w
+    # no --method/--substeps/--hold: the loop chose them (the pump flow is a
+    # staircase: zero-order hold, for the filter and the free runs alike) and
+    # repeats the check at the fits
+    cfg = rep["settings"]
+    assert cfg["ukf"]["hold"] == "zoh" and cfg["sim_hold"] == "zoh" and cfg["auto_substeps"]
 
 
 

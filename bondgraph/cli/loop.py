@@ -19,6 +19,7 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
+    chosen_problem,
     discretisation_given,
     load_record,
     parse_names,
@@ -33,7 +34,6 @@ from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.runner import held_out
 from bondgraph.diagnose.settings import DEFAULT_HOLDOUT, LoopSettings
 from bondgraph.errors import ModelError, OptionError, UsageError
-from bondgraph.inference.discretise import choose_discretisation
 from bondgraph.inference.estimand import x0_state_names
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.registry import graph_builder
@@ -242,13 +242,12 @@ def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings
     """A user's graph and record (``--model``/``--data``): the filter's
     method, substeps and input hold that the discretisation check accepts at
     the declared defaults on the estimation part of the record
-    (:func:`bondgraph.inference.discretise.choose_discretisation`; what of
+    (:func:`bondgraph.cli.common.chosen_problem`; what of
     ``--method``, ``--substeps``, ``--hold`` the user gave is kept), the free
     runs holding the inputs the same way, and the check repeated at the
     declared fit and at every accepted one (``auto_substeps``). One line
     says what was chosen and why. A bundled case keeps its own options."""
-    given = discretisation_given(args)
-    if len(given) == 3:
+    if len(discretisation_given(args)) == 3:
         return settings
     est, s = held_out(record, settings)
     problem = loop_problem(model_of(graph), est, s)
@@ -256,9 +255,9 @@ def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings
     declared = np.asarray(est.noise_std_for(model), float)
     sigma = np.where(np.isfinite(declared) & (declared > 0), declared,
                      np.asarray(model.meas_std(problem.theta[None, :]), float)[0])
-    choice = choose_discretisation(problem, problem.theta, given=given, sigma=sigma)
-    print("bondgraph loop: " + choice.line("at the declared start θ"), flush=True)
-    d = choice.disc
+    problem, _ = chosen_problem(problem, args, where="at the declared start θ", sigma=sigma,
+                                say=lambda line: print("bondgraph loop: " + line, flush=True))
+    d = problem.disc
     ukf = dataclasses.replace(settings.ukf, method=d.method, substeps=d.substeps, hold=d.hold)
     hold = d.hold if d.hold in ("zoh", "linear") else settings.sim_hold
     return dataclasses.replace(settings, ukf=ukf, auto_substeps=True, sim_hold=hold)
