@@ -505,8 +505,17 @@ def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit,
     ctx.log(f"auto_substeps: the filter now takes {n} substeps per sample; refitting the "
             f"model with {label}")
     result.warnings.append(f"auto_substeps: {n} substeps per sample from the fit with {label} on")
-    return fit_model(ctx, fit.graph, list(fit.params), fit.estimates(),
-                     f"{label} at {n} substeps", model=fit.model)
+    refit = fit_model(ctx, fit.graph, list(fit.params), fit.estimates(),
+                      f"{label} at {n} substeps", model=fit.model)
+    adm = admissibility(ctx, refit)
+    trouble = refit.unstable or (None if adm.ok else f"not physically admissible: "
+                                                     f"{adm.reason()}")
+    if trouble:     # accepted at the coarser step; the finer one disagrees
+        msg = (f"the fit with {label} refitted at {n} substeps {trouble}: its acceptance "
+               f"rested on the coarser discretisation")
+        ctx.log("warning: " + msg)
+        result.warnings.append(msg)
+    return refit
 
 
 def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, list[str]]:
