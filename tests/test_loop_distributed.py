@@ -4,10 +4,9 @@ candidate on a 2-worker LocalCluster, and the loop's ranking, confirmations,
 decision and final fit are identical to the serial run's, bit for bit
 (every task depends only on the current fit, the record and its candidate;
 results come back in the order of the tasks). The runs use the numpy
-backend: with numba, an in-memory candidate model runs numpy until compiling
-it pays and numba once its kernels are in the cache (numerics.compiled.
-compile_pays), so the last digits of a statistic (~1e-9) depend on which
-kernels earlier runs left in the cache, in process as on the workers."""
+backend to spare the workers the candidates' compilation; the numba backend
+is as deterministic (taken literally, whatever the kernel cache holds:
+tests/test_ukf_numba.py::test_backend_is_taken_literally_whatever_the_history_or_the_cache).
 
 import numpy as np
 import pytest

@@ -79,7 +79,7 @@ def test_every_command_takes_module_function_and_file_function(user_dir, capsys)
     assert (user_dir / "sens" / "sensitivity.json").exists()
 
     assert sorted(p.name for p in GENERATED.rglob("*")) == before
-    # its compiled kernels (written once the break-even rule compiles them) go
+    # its compiled kernels (written at its first numba run) go
     # to the cache folder, keyed by the graph's code
     from bondgraph.numerics.compiled import kernel_source_path
     from bondgraph.numerics.model import Model

@@ -219,9 +219,14 @@ class UKFOptions:
         The fused, compiled UKF kernel (:mod:`bondgraph.inference.ukf_numba`,
         parallel over parameter sets) or the batched numpy filter, the
         reference (equal NLL within 1e-9 relative). Default: numba when it
-        is installed. A model the numba backend cannot serve (or a
-        one-shot in-memory model for which compiling does not pay,
-        :func:`bondgraph.numerics.compiled.compile_pays`) runs on numpy; the
+        is installed. Taken literally: with numba, a model's kernels are
+        compiled the first time they are needed (once per installation, or
+        per code key for a model built in memory), whatever the run's size,
+        so a result never depends on the calls before it or on what is in
+        the kernel cache; choose ``"numpy"`` for a one-shot run of a new
+        model on a short record. Only a model or an option the kernel
+        cannot serve runs on numpy instead (with a
+        :class:`~bondgraph.errors.BackendWarning` for the model); the
         result's settings say which backend ran.
 
     Raises

@@ -54,10 +54,6 @@ SCALE_SAMPLES = 20000
 SCALE_FLOOR = 1e-9
 #: prior std of an initial state nothing gives, relative to its scale
 UNKNOWN_REL = 1.0
-#: estimated seconds of one numpy step (one sub-step of one sample) of the
-#: free run (batch of one point: Python overhead; for the break-even rule
-#: of :func:`bondgraph.numerics.compiled.compile_pays`)
-NUMPY_S_PER_STEP = 2e-4
 
 
 def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
@@ -79,9 +75,9 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
         :func:`~bondgraph.numerics.integrators.hold_inputs`; default
         ``Discretisation().for_free_run()``), used as given. Its backend
         numba: the compiled free run (:func:`bondgraph.inference.sim_numba.free_run_rms`,
-        the same steps, values equal to rounding) where the model's kernels
-        are compiled or compiling pays (:func:`bondgraph.numerics.compiled.compile_pays`);
-        else the numpy steps, sample by sample.
+        the same steps, values equal to rounding; the model's kernels
+        compiled if they are not in the cache); numpy: the numpy steps,
+        sample by sample.
     samples : int
         At most this many samples are simulated.
 
@@ -96,8 +92,7 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
     t = np.asarray(t, float)[:n]
     u = np.asarray(u, float).reshape(np.size(t), -1) if model.n_u else np.zeros((n, 0))
     u = u[:n]
-    numpy_s = n * substeps * NUMPY_S_PER_STEP
-    kernels = _free_run_kernels(model, disc.backend, method, hold, numpy_s)
+    kernels = _free_run_kernels(model, disc.backend, method, hold)
     if kernels is not None:
         return sim_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
     held = hold_inputs(u, hold)
@@ -117,19 +112,17 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
                     x = step(x, uk, th, t[k + 1] - t[k], duk)
                 except np.linalg.LinAlgError:    # a singular ROS2 matrix: the run ends here
                     break
-    if hasattr(model, "numpy_seconds"):      # the estimate, not the clock (numpy_estimate)
-        model.numpy_seconds += numpy_s
     return np.sqrt(acc / count) if count else np.zeros(model.n_x)
 
 
-def _free_run_kernels(model, backend: str, method: str, hold: str, numpy_s: float):
+def _free_run_kernels(model, backend: str, method: str, hold: str):
     """The model's compiled point kernels for the free run, or None (numpy):
-    backend numpy, numba missing, a method or hold the kernel lacks, an
-    in-memory model whose compilation does not pay yet (``numpy_s``: the
-    estimated numpy time of this run), or kernels that do not load."""
+    backend numpy, numba missing, a method or hold the kernel lacks, or
+    kernels that do not load (the backend is the caller's choice, taken
+    literally: never the state of the kernel cache)."""
     if (backend != "numba" or not compiled.NUMBA_AVAILABLE
             or method not in ukf_numba.METHOD_CODES or hold not in ukf_numba.HOLD_CODES
-            or not hasattr(model, "module") or not compiled.compile_pays(model, numpy_s)):
+            or not hasattr(model, "module")):
         return None
     try:
         return compiled.point_kernels(model)

@@ -74,12 +74,7 @@ from bondgraph.inference.sigma import (
     sigma_points,
     unscented_moments,
 )
-from bondgraph.numerics.compiled import (
-    compile_estimate,
-    compile_pays,
-    is_compiled,
-    point_kernels,
-)
+from bondgraph.numerics.compiled import point_kernels
 from bondgraph.numerics.integrators import hold_inputs, make_step
 
 LOG_2PI = float(np.log(2.0 * np.pi))
@@ -618,14 +613,12 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | No
     u_held = hold_inputs(u, opts.hold)
     batch = FilterBatch(model, t, th, *_priors(model, th.shape[0], x0, P0, Q, R))
     kept = FilterStorage(t.size, th.shape[0], model, full=store == "full") if store else None
-    kernels, note, compile_s = _backend_for(model, opts, t.size, th.shape[0])
+    kernels, note, compile_s = _backend_for(model, opts)
     t0 = time.perf_counter()
     if kernels is not None:
         compile_s += ukf_numba.run(kernels, t, u, y, batch, opts, wts, kept)
     else:
         _filter_numpy(model, batch, step, t, u, u_held, y, wts, kept)
-        model.numpy_seconds = getattr(model, "numpy_seconds", 0.0) + \
-            numpy_estimate(model, opts, t.size, th.shape[0])
     settings = dict(opts.to_dict(), n_regularised=batch.n_reg,
                     backend_used="numba" if kernels is not None else "numpy",
                     compile_s=compile_s, run_s=time.perf_counter() - t0 - compile_s)
@@ -658,40 +651,24 @@ def _filter_numpy(model, batch: FilterBatch, step: Callable, t, u, u_held, y,
             kept.filtered(k, batch, model, u[k])
 
 
-#: numpy UKF cost model for the compile decision: seconds per sample, and
-#: per sample, sigma point and f-evaluation pair (measured, 2-core machine)
-_NUMPY_S_PER_SAMPLE, _NUMPY_S_PER_POINT = 4e-4, 1.5e-6
 #: models already warned about (BackendWarning once per model and cause)
 _WARNED: set = set()
 
 
-def numpy_estimate(model, opts: UKFOptions, N: int, P: int) -> float:
-    """Estimated seconds of a numpy UKF run over N samples and P parameter
-    sets (:data:`_NUMPY_S_PER_SAMPLE`, :data:`_NUMPY_S_PER_POINT`): what the
-    break-even rule of :func:`bondgraph.numerics.compiled.compile_pays` adds up for an
-    in-memory model. An estimate, not a measured time, so that the choice of
-    backend, and with it the last digits of a result, depends on the calls
-    made and the kernels already in the cache, not on the machine's load."""
-    per_eval = 2.0 * opts.substeps if opts.method == "rk4" else 1.0 * opts.substeps
-    return N * (_NUMPY_S_PER_SAMPLE + _NUMPY_S_PER_POINT * P * (2 * model.n_x + 1) * per_eval)
-
-
-def _backend_for(model, opts: UKFOptions, N: int, P: int):
+def _backend_for(model, opts: UKFOptions):
     """``(point kernels or None, note, compile seconds)``: the numba kernels
-    of ``model`` when ``opts.backend`` is numba, the kernel supports the
-    options and compiling pays (:func:`bondgraph.numerics.compiled.compile_pays`);
-    None (numpy) otherwise, with the reason. A model numba cannot serve
-    warns (:class:`~bondgraph.errors.BackendWarning`) once."""
+    of ``model`` when ``opts.backend`` is numba (compiled now if they are not
+    in the cache: the backend is the caller's choice, taken literally, so
+    that a result never depends on the calls before it or on the cache);
+    None (numpy) for backend numpy, or with the reason when the kernel lacks
+    an option or the model's kernels cannot be had (numba missing, a
+    function numba cannot compile). A model numba cannot serve warns
+    (:class:`~bondgraph.errors.BackendWarning`) once."""
     if opts.backend != "numba":
         return None, None, 0.0
     unsupported = ukf_numba.unsupported(opts)
     if unsupported:
         return None, unsupported, 0.0
-    est = numpy_estimate(model, opts, N, P)
-    if not compile_pays(model, est):
-        return None, (f"in-memory model not compiled: its numpy time so far and this run's "
-                      f"(~{est:.2g} s) stay below the estimated compile time "
-                      f"({compile_estimate(model):.2g} s)"), 0.0
     try:
         pk = point_kernels(model)
     except Exception as exc:  # numba missing or unable to compile a function
@@ -752,7 +729,7 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
     ``meas_std(theta)``). The one-step transitions of all samples run as one
     batch (per distinct sample interval); the RK4 reference runs in the
     compiled kernel (:func:`bondgraph.inference.sim_numba.rk4_trajectory`)
-    when the model's point kernels are compiled already.
+    when ``disc.backend`` is numba.
 
     Parameters
     ----------
@@ -789,7 +766,7 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
     held = hold_inputs(u, hold)
     with np.errstate(all="ignore"):
         xr, ref = _reference_trajectory(model, t, u, hold, th, x, reference_method,
-                                        reference_substeps)
+                                        reference_substeps, disc.backend)
         if ref is None:
             return dict(one_step=np.full(model.n_y, np.inf), free_run=np.full(model.n_y, np.inf),
                         reference=None)
@@ -872,7 +849,7 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
         for disc in discs:
             if disc.hold not in refs:
                 refs[disc.hold] = _reference_trajectory(model, t, u, disc.hold, th, x, None,
-                                                        reference_substeps)
+                                                        reference_substeps, disc.backend)
             xr, ref = refs[disc.hold]
             if ref is None:
                 out.append(dict(one_step=np.full(model.n_y, np.inf), free_run_rss=np.inf,
@@ -912,16 +889,16 @@ def _one_steps(step: Callable, xr: np.ndarray, held, th: np.ndarray, t: np.ndarr
     return out
 
 
-def _reference_trajectory(model, t, u, hold, th, x, method, substeps):
+def _reference_trajectory(model, t, u, hold, th, x, method, substeps, backend):
     """``(states (N, n_x), method)`` of the fine reference of
     :func:`discretisation_check`: ``method`` (default RK4 if its trajectory
     is finite, else ROS2) with ``substeps`` and the inputs ``u`` held as
-    ``hold`` says; RK4 in the compiled kernel when the model's point kernels
-    are compiled (:func:`bondgraph.numerics.compiled.is_compiled`);
-    ``(None, None)`` if none is finite."""
+    ``hold`` says; RK4 in the compiled kernel when ``backend`` is numba
+    (:func:`_compiled_rk4`); ``(None, None)`` if none is finite."""
     held = hold_inputs(u, hold)
     for cand in ([method] if method else ["rk4", "ros2"]):
-        xr = _compiled_rk4(model, t, u, hold, th, x, substeps) if cand == "rk4" else None
+        xr = (_compiled_rk4(model, t, u, hold, th, x, substeps)
+              if cand == "rk4" and backend == "numba" else None)
         if xr is None:
             rstep = make_step(model, cand, substeps)
             xr = [x]
@@ -936,10 +913,10 @@ def _reference_trajectory(model, t, u, hold, th, x, method, substeps):
 
 def _compiled_rk4(model, t, u, hold, th, x, substeps) -> np.ndarray | None:
     """The RK4 reference (N, n_x) by the compiled trajectory kernel, or None
-    (numpy then) when numba, the model's compiled kernels or the hold are
+    (numpy then) when numba, the model's kernels or the hold are
     unavailable."""
     if not (ukf_numba.numba is not None and hold in ukf_numba.HOLD_CODES
-            and is_compiled(model)):
+            and hasattr(model, "module")):
         return None
     try:
         kernels = point_kernels(model)

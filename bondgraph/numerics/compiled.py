@@ -1,5 +1,5 @@
 """Compiled (numba) point kernels of a model: where their source comes from,
-the on-disk cache, and when compiling pays.
+and the on-disk cache.
 
 A model's numba kernels (``f``, ``h``, ``f_dfdx`` for one point,
 :func:`bondgraph.core.codegen_numba.generate_numba_source`) are compiled when their
@@ -18,20 +18,18 @@ run does not compile again:
   a later run finds its kernels, and their numba cache, without any sympy
   work.
 
-When compiling pays (:func:`compile_pays`): a registered model's kernels
-are compiled once per installation, always. An in-memory model not yet in
-the cache is compiled only once the numpy time it has cost (estimated
-from the runs' sizes, not measured: the choice must not depend on the
-machine's load), plus the
-estimated numpy time of the evaluation at hand, reaches the estimated
-compile time (the break-even rule of ski rental: never more than twice the
-better of the two choices made in hindsight; Karlin et al. 1988). A
-one-shot model on a short record stays on numpy.
-
-References
-----------
-Karlin, A. R., Manasse, M. S., McGeoch, L. A., Owicki, S. (1988).
-Competitive randomized algorithms for non-uniform problems. Proc. SODA, 301-309.
+Which backend runs is the caller's choice, taken literally
+(:attr:`bondgraph.inference.options.Discretisation.backend`): ``"numba"``
+compiles a model's kernels the first time they are needed (a registered
+model's once per installation, an in-memory model's once per code key),
+``"numpy"`` never does. Nothing here decides a result: whether a kernel is
+in the cache (:func:`is_compiled`) changes how long a run takes, never which
+backend runs, so a result does not depend on the calls made before it or
+on what earlier runs left in the cache. (Before, an in-memory model ran
+numpy until its estimated numpy time reached its estimated compile time, a
+ski-rental rule; in the loop every scored candidate reached that point by
+its second filter run, and the last digits of a result depended on the
+cache.)
 """
 
 from __future__ import annotations
@@ -39,7 +37,6 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import os
-import re
 import sys
 import threading
 import time
@@ -57,16 +54,6 @@ except ImportError:  # pragma: no cover - exercised only without numba
 NUMBA_AVAILABLE = numba is not None
 #: environment variable naming the kernel cache directory
 CACHE_ENV = "BONDGRAPH_CACHE_DIR"
-#: estimated compile time of a model's point kernels: seconds + seconds per
-#: character of its generated numpy source (measured on the project's 2-core
-#: machine: 0.6 s for a 2-state model, 3-4 s for the 7-state vehicle)
-COMPILE_S_BASE, COMPILE_S_PER_CHAR = 0.4, 3.5e-5
-#: and per call of sin, cos, atan, exp or tanh in that source (the column
-#: kernels expand each inline: vehicle_full, 117 calls, compiles in 5.0 s,
-#: vehicle_coastdown, 63, in 2.5 s, emps, 6, in 1.1 s)
-COMPILE_S_PER_CALL = 0.016
-_EXPANDED_CALL = re.compile(r"np\.(?:sin|cos|arctan|exp|tanh)\(")
-
 _LOCK = threading.Lock()
 _LOADED: dict[str, "PointKernels"] = {}
 
@@ -161,7 +148,9 @@ def _safe(name: str) -> str:
 
 def is_compiled(model) -> bool:
     """Whether ``model``'s kernels are loaded in this process or have a numba
-    cache on disk (so that using them costs no compilation)."""
+    cache on disk (so that using them costs no compilation). Information
+    only (what a run will cost, what to announce): it never decides which
+    backend runs."""
     path = kernel_source_path(model)
     if path is None:
         return False
@@ -196,35 +185,6 @@ def numba_cache_dir(path: Path) -> Path | None:
         if loc is not None:
             return Path(loc.get_cache_path())
     return None
-
-
-def compile_estimate(model) -> float:
-    """Estimated seconds to compile ``model``'s point kernels (from the size
-    of its generated numpy source, :data:`COMPILE_S_PER_CHAR`, and its calls
-    of the functions the column kernels expand inline,
-    :data:`COMPILE_S_PER_CALL`)."""
-    text = getattr(model.module, "__source_text__", None)
-    if text is None:
-        file = getattr(model.module, "__file__", None)
-        text = Path(file).read_text() if file and Path(file).exists() else ""
-    calls = len(_EXPANDED_CALL.findall(text))
-    return COMPILE_S_BASE + COMPILE_S_PER_CHAR * len(text) + COMPILE_S_PER_CALL * calls
-
-
-def compile_pays(model, expected_numpy_s: float) -> bool:
-    """Whether to compile ``model`` now (module docstring: registered models
-    always; in-memory models by the break-even rule).
-
-    Parameters
-    ----------
-    model : Model
-    expected_numpy_s : float
-        Estimated numpy time of the evaluation at hand [s].
-    """
-    if getattr(model.module, "__source_text__", None) is None or is_compiled(model):
-        return True
-    spent = getattr(model, "numpy_seconds", 0.0)
-    return spent + expected_numpy_s >= compile_estimate(model)
 
 
 def point_kernels(model) -> PointKernels:

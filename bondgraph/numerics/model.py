@@ -43,10 +43,6 @@ class Model:
         Parameter defaults.
     lower, upper : ndarray (n_theta,)
         Parameter bounds.
-    numpy_seconds : float
-        Estimated numpy time spent on this model so far (the estimates of
-        its numpy runs, not the clock: deterministic; decides when compiling
-        its numba kernels pays, :func:`bondgraph.numerics.compiled.compile_pays`).
     """
 
     def __init__(self, module: types.ModuleType):
@@ -72,7 +68,6 @@ class Model:
         self.lower = np.array(m.PARAM_LOWER, dtype=float)
         self.upper = np.array(m.PARAM_UPPER, dtype=float)
         #: seconds of numpy UKF time spent on this model (bondgraph.numerics.compiled)
-        self.numpy_seconds = 0.0
         for fn in ("f", "h", "dfdx", "dfdtheta", "dhdx", "dhdtheta", "f_dfdx", "energy",
                    "power_sources", "power_dissipated", "energy_rate", "meas_std", "proc_std",
                    "fx", "hx"):
