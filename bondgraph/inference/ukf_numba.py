@@ -23,6 +23,25 @@ fixed signature, so it is compiled once per installation and cached on disk
 (``cache=True``), and a new model costs only the compilation of its own
 small point kernels.
 
+Arguments are packed (no function takes more than 12): the kernel
+:func:`_kernel_py` takes ``(fns, rec, sets, opts, out, st, bufs)``: the
+point kernels as one plain tuple (f, h, f_dfdx, f_cols, h_cols)
+(:func:`point_fns`; a heterogeneous ``types.Tuple`` of first-class function
+types: numba converts a tuple of dispatchers to it, not a namedtuple), the
+record :data:`Record` (t, u, y), the parameter sets :data:`Sets` (th, x0,
+P0, q2, Rd, R, Q, act), the options (ip, fp), the outputs :data:`Outputs`
+(nll, info), the storage arrays ``st`` and the work buffers (buf, ibuf).
+``st`` is an argument of its own, not a field of the outputs: the function
+numba makes of the parallel loop takes tuples of arrays, not tuples nested
+in them. :func:`_filter_one` takes the same packs for one set; the inlined
+steps unpack what they use (``_predict(fns, ..., opts, wk)``), and the
+per-point integrators take their few work vectors as small tuples
+(:func:`_rk4_point` ``vw`` = (ub, xt, k1..k4); :func:`_ros2_point` ``vw`` =
+(ub, xt, F0, F1, k1, k2), ``lw`` = (J, Winv, A, cols)). numba passes a
+tuple as its flattened members, so the packing costs nothing at run time
+(A/B in the commit that introduced it: same ms per evaluation within noise,
+bit-identical NLL).
+
 Performance layout (measured with bench/kernel_profile.py and
 bench/kernel_phases.py): the kernel allocates nothing and runs without
 numba's reference counting (``_nrt=False``): each set's work arrays are
