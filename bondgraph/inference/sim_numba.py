@@ -50,8 +50,7 @@ def _trajectory_py(f, t, u, hold, th, x0, nsub, xr, wk, ub):
         xr[0, a] = x0[a]
     for k in range(t.shape[0] - 1):
         _held_input(u, k, 0.0, hold, ub)
-        _rk4_point(f, x, u, k, hold, th, (t[k + 1] - t[k]) / nsub, nsub, ub, xt, k1, k2, k3,
-                   k4)
+        _rk4_point(f, x, u, k, hold, th, (t[k + 1] - t[k]) / nsub, nsub, (ub, xt, k1, k2, k3, k4))
         for a in range(n):
             xr[k + 1, a] = x[a]
 
@@ -93,14 +92,16 @@ def rk4_trajectory(kernels, t, u, hold: str, theta, x0, substeps: int) -> np.nda
     return xr
 
 
-def _free_run_py(f, fj, t, u, hold, th, x0, method, nsub, acc, wk, J, Winv, A, cols, ub):
+def _free_run_py(f, fj, t, u, hold, th, x0, method, nsub, acc, work):
     """Free run from ``x0`` over the record (``method`` 0: RK4, 1: ROS2 with
     the Jacobian at the start of each interval, frozen over its ``nsub``
     sub-steps, as :func:`bondgraph.numerics.integrators.make_step`), the
     inputs held as ``hold`` says: the sum of x² over the samples into
     ``acc`` (n_x,) up to the first non-finite state; returns the number of
-    samples summed (work rows ``wk`` (8, n_x), J, Winv (n_x, n_x), A
-    (n_x, 2 n_x), cols (2 n_x,), input buffer ``ub``)."""
+    samples summed. ``work``: the tuple (wk, ub, J, Winv, A, cols) of work
+    rows ``wk`` (8, n_x), input buffer ``ub``, J, Winv (n_x, n_x), A
+    (n_x, 2 n_x), cols (2 n_x,))."""
+    wk, ub, J, Winv, A, cols = work
     n = x0.shape[0]
     x, xt, k1, k2, k3, k4, F0, F1 = wk[0], wk[1], wk[2], wk[3], wk[4], wk[5], wk[6], wk[7]
     for a in range(n):
@@ -116,10 +117,10 @@ def _free_run_py(f, fj, t, u, hold, th, x0, method, nsub, acc, wk, J, Winv, A, c
             h = (t[k + 1] - t[k]) / nsub
             _held_input(u, k, 0.0, hold, ub)
             if method == 0:
-                _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4)
+                _rk4_point(f, x, u, k, hold, th, h, nsub, (ub, xt, k1, k2, k3, k4))
             else:
-                _ros2_point(f, fj, x, u, k, hold, th, h, nsub, 1, ub, xt, F0, F1, k1, k2, J,
-                            Winv, A, cols)
+                _ros2_point(f, fj, x, u, k, hold, th, h, nsub, 1, (ub, xt, F0, F1, k1, k2),
+                            (J, Winv, A, cols))
     return count
 
 
@@ -139,8 +140,9 @@ def free_run_kernel():
         V, M = types.float64[::1], types.float64[:, ::1]
         point = types.FunctionType(types.void(V, V, V, V))
         jac = types.FunctionType(types.void(V, V, V, V, M))
+        work = types.Tuple((M, V, M, M, M, types.int64[::1]))
         return types.int64(point, jac, V, M, types.int64, V, V, types.int64, types.int64, V,
-                           M, M, M, M, types.int64[::1], V)
+                           work)
     return _compiled_once(_FREE_RUN, _free_run_py, sig, fastmath=FASTMATH)
 
 
@@ -172,7 +174,7 @@ def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str, substeps: int
     acc = np.zeros(n)
     count = free_run_kernel()(kernels.f, kernels.f_dfdx, c(t, dtype=float), u, HOLD_CODES[hold],
                               c(theta, dtype=float), x0, METHOD_CODES[method], int(substeps),
-                              acc, np.zeros((8, n)), np.zeros((n, n)), np.zeros((n, n)),
-                              np.zeros((n, 2 * n)), np.zeros(2 * n, dtype=np.int64),
-                              np.zeros(max(u.shape[1], 1)))
+                              acc, (np.zeros((8, n)), np.zeros(max(u.shape[1], 1)),
+                                    np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, 2 * n)),
+                                    np.zeros(2 * n, dtype=np.int64)))
     return np.sqrt(acc / count) if count else np.zeros(n)

@@ -23,6 +23,25 @@ fixed signature, so it is compiled once per installation and cached on disk
 (``cache=True``), and a new model costs only the compilation of its own
 small point kernels.
 
+Arguments are packed (no function takes more than 12): the kernel
+:func:`_kernel_py` takes ``(fns, rec, sets, opts, out, st, bufs)``: the
+point kernels as one plain tuple (f, h, f_dfdx, f_cols, h_cols)
+(:func:`point_fns`; a heterogeneous ``types.Tuple`` of first-class function
+types: numba converts a tuple of dispatchers to it, not a namedtuple), the
+record :data:`Record` (t, u, y), the parameter sets :data:`Sets` (th, x0,
+P0, q2, Rd, R, Q, act), the options (ip, fp), the outputs :data:`Outputs`
+(nll, info), the storage arrays ``st`` and the work buffers (buf, ibuf).
+``st`` is an argument of its own, not a field of the outputs: the function
+numba makes of the parallel loop takes tuples of arrays, not tuples nested
+in them. :func:`_filter_one` takes the same packs for one set; the inlined
+steps unpack what they use (``_predict(fns, ..., opts, wk)``), and the
+per-point integrators take their few work vectors as small tuples
+(:func:`_rk4_point` ``vw`` = (ub, xt, k1..k4); :func:`_ros2_point` ``vw`` =
+(ub, xt, F0, F1, k1, k2), ``lw`` = (J, Winv, A, cols)). numba passes a
+tuple as its flattened members, so the packing costs nothing at run time
+(A/B in the commit that introduced it: same ms per evaluation within noise,
+bit-identical NLL).
+
 Performance layout (measured with bench/kernel_profile.py and
 bench/kernel_phases.py): the kernel allocates nothing and runs without
 numba's reference counting (``_nrt=False``): each set's work arrays are
@@ -137,6 +156,25 @@ Work = namedtuple("Work", ["L", "D", "mean", "cov", "xs", "xt", "k1", "k2",
                            "Pyx", "Gt", "z", "eps", "Ls", "yf", "nreg", "yv", "uk", "yk", "cols",
                            "FT", "K1", "K2", "XS", "skip", "XT", "XTf", "XSf", "FTf", "YT",
                            "YTf"])
+
+
+#: the record as the kernel takes it: t (N,), u (N, n_u), y (N, n_y)
+Record = namedtuple("Record", ["t", "u", "y"])
+#: the parameter sets of one kernel call, one row each (A sets): th
+#: (A, n_theta), x0 (A, n_x), P0 (A, n_x, n_x), q2 (A, n_x); Rd (A, n_y) or
+#: one shared row, R and Q (A, ., .) or one shared matrix (codes use_R,
+#: use_Q of :data:`IOPT` say which); act (A,): the sets' rows of the storage
+Sets = namedtuple("Sets", ["th", "x0", "P0", "q2", "Rd", "R", "Q", "act"])
+#: what the kernel writes besides the storage: nll (A,); info (A, 3):
+#: failing sample (-1: none), failure code, loaded factorisations
+Outputs = namedtuple("Outputs", ["nll", "info"])
+
+
+def point_fns(kernels) -> tuple:
+    """The model's point kernels as the kernel takes them: the plain tuple
+    (f, h, f_dfdx, f_cols, h_cols) (numba converts a tuple of dispatchers
+    to first-class function types, not a namedtuple of them)."""
+    return (kernels.f, kernels.h, kernels.f_dfdx, kernels.f_cols, kernels.h_cols)
 
 
 @_jit_inline
@@ -512,11 +550,13 @@ def _stage_input(u, k, s, cst, nsub, hold, out):
 
 
 @_jit
-def _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4):
+def _rk4_point(f, x, u, k, hold, th, h, nsub, vw):
     """``nsub`` classical RK4 steps of one point x (in place)
-    (:func:`bondgraph.numerics.integrators.rk4`); the work vectors are
-    passed one by one (passing the whole work tuple per point costs the
-    reference counting of all its arrays)."""
+    (:func:`bondgraph.numerics.integrators.rk4`); ``vw``: the work vectors
+    (ub, xt, k1, k2, k3, k4), a tuple of the few this step uses (not the
+    whole work tuple, whose ~40 arrays would be passed by value per
+    point)."""
+    ub, xt, k1, k2, k3, k4 = vw
     n = x.shape[0]
     for s in range(nsub):
         _stage_input(u, k, s, 0.0, nsub, hold, ub)
@@ -537,11 +577,14 @@ def _rk4_point(f, x, u, k, hold, th, h, nsub, ub, xt, k1, k2, k3, k4):
 
 
 @_jit
-def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, ub, xt, F0, F1, k1, k2, J, Winv, A,
-                cols):
+def _ros2_point(f, fj, x, u, k, hold, th, h, nsub, jac, vw, lw):
     """``nsub`` ROS2 steps of one point x (in place)
     (:func:`bondgraph.numerics.integrators.ros2`); jac 0: Winv is given
-    (shared), 1: df/dx at x at the start, frozen, 2: at every sub-step."""
+    (shared), 1: df/dx at x at the start, frozen, 2: at every sub-step.
+    ``vw``: the work vectors (ub, xt, F0, F1, k1, k2); ``lw``: the linear
+    algebra's work (J, Winv, A (n, 2n), cols (2n,) int)."""
+    ub, xt, F0, F1, k1, k2 = vw
+    J, Winv, A, cols = lw
     n = x.shape[0]
     for s in range(nsub):
         _stage_input(u, k, s, 0.0, nsub, hold, ub)
@@ -635,9 +678,11 @@ def _ros2_shared(fcols, u, k, hold, th, h, nsub, wk, lu):
 
 
 @_jit_inline
-def _transition(f, fj, fcols, u, k, th, dt, ip, wk):
+def _transition(fns, u, k, th, dt, ip, wk):
     """Every sigma point (the columns of wk.XT) through the transition over
-    interval k, in place (:func:`bondgraph.numerics.integrators.make_step`)."""
+    interval k, in place (:func:`bondgraph.numerics.integrators.make_step`);
+    ``fns``: the model's point kernels (:func:`point_fns`)."""
+    f, _, fj, fcols, _ = fns
     method, nsub, jac, hold = ip[0], ip[1], ip[2], ip[3]
     h = dt / nsub
     n = wk.XT.shape[0]
@@ -662,25 +707,27 @@ def _transition(f, fj, fcols, u, k, th, dt, ip, wk):
         if j > 0:
             _held_input(u, k, 0.0, hold, ub)
         if method == 0:
-            _rk4_point(f, xs, u, k, hold, th, h, nsub, ub, xt, wk.k1, wk.k2, wk.k3, wk.k4)
+            _rk4_point(f, xs, u, k, hold, th, h, nsub, (ub, xt, wk.k1, wk.k2, wk.k3, wk.k4))
         else:
-            _ros2_point(f, fj, xs, u, k, hold, th, h, nsub, jac, ub, xt, wk.F0, wk.F1,
-                        wk.k1, wk.k2, wk.J, wk.Winv, wk.A, wk.cols)
+            _ros2_point(f, fj, xs, u, k, hold, th, h, nsub, jac,
+                        (ub, xt, wk.F0, wk.F1, wk.k1, wk.k2), (wk.J, wk.Winv, wk.A, wk.cols))
         for a in range(n):
             XT[a, j] = xs[a]
 
 
 # ------------------------------------------------------------ predict / update
 @_jit_inline
-def _predict(f, fj, fcols, x, P, u, k, th, dt, q2, Q, ip, fp, wk):
-    """Prediction over interval k (to sample k + 1) in place; 0 or a failure code."""
+def _predict(fns, x, P, u, k, th, dt, q2, Q, opts, wk):
+    """Prediction over interval k (to sample k + 1) in place; 0 or a failure
+    code (``fns``: :func:`point_fns`; ``opts``: (ip, fp) of :func:`_kernel_py`)."""
+    ip, fp = opts
     n = x.shape[0]
     r = _chol(P, n, wk.L, True, wk.skip)
     if r == 0:
         return 1
     wk.nreg[0] += r == 2
     _sigma(x, wk.L, fp[0], wk.XT)
-    _transition(f, fj, fcols, u, k, th, dt, ip, wk)
+    _transition(fns, u, k, th, dt, ip, wk)
     if not _all_finite(wk.XT, n, 2 * n + 1):
         return 3
     _moments(wk.XT, n, fp[1], fp[2], x, P, wk.D)
@@ -722,8 +769,10 @@ def _measured_outputs(hcols, x, P, th, uk, yk, fp, wk):
 
 
 @_jit_inline
-def _update(hcols, x, P, th, uk, yk, Rd, R, ip, fp, wk):
-    """Measurement update at one sample in place: (NLL term, maha, m, failure code)."""
+def _update(hcols, x, P, th, uk, yk, Rd, R, opts, wk):
+    """Measurement update at one sample in place: (NLL term, maha, m, failure
+    code) (``opts``: (ip, fp) of :func:`_kernel_py`)."""
+    ip, fp = opts
     n = x.shape[0]
     m, code = _measured_outputs(hcols, x, P, th, uk, yk, fp, wk)
     if code:
@@ -875,11 +924,18 @@ def _store_filtered(h, st, k, p, x, P, uk, th, full, wk):
 
 # ------------------------------------------------------------ one set, all sets
 @_jit
-def _filter_one(a, f, h, fj, fcols, hcols, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
-                out_i,
-                st, buf, ibuf):
-    """The whole record for parameter set ``a``: NLL into out_f[a]; failing
-    sample (-1: none), failure code and loaded factorisations into out_i[a]."""
+def _filter_one(a, fns, rec, sets, opts, out, st, buf, ibuf):
+    """The whole record (:data:`Record`) for parameter set ``a`` of ``sets``
+    (:data:`Sets`): NLL into out.nll[a]; failing sample (-1: none), failure
+    code and loaded factorisations into out.info[a] (:data:`Outputs`), the
+    storage into ``st`` (:func:`_store_arrays`). ``fns``: :func:`point_fns`;
+    ``opts``: (ip, fp) (:func:`_kernel_py`); ``buf``, ``ibuf``: the set's
+    rows of the work buffers."""
+    t, u, y = rec
+    th, x0, P0, q2, Rd, R, Q, act = sets
+    ip = opts[0]
+    out_f, out_i = out
+    _, h, _, _, hcols = fns
     n, ny, nu = x0.shape[1], y.shape[1], u.shape[1]
     wk, x, P, tha = _work(buf, ibuf, n, ny, nu, th.shape[1])
     for i in range(n):
@@ -902,10 +958,9 @@ def _filter_one(a, f, h, fj, fcols, hcols, t, u, y, th, x0, P0, q2, Rd, R, Q, ac
             yk[j] = y[k, j]
         code = 0
         if k > 0:
-            code = _predict(f, fj, fcols, x, P, u, k - 1, tha, t[k] - t[k - 1], q2a, Qa, ip, fp,
-                            wk)
+            code = _predict(fns, x, P, u, k - 1, tha, t[k] - t[k - 1], q2a, Qa, opts, wk)
         if code == 0 and _any_finite(yk):
-            term, maha, m, code = _update(hcols, x, P, tha, uk, yk, Rda, Ra, ip, fp, wk)
+            term, maha, m, code = _update(hcols, x, P, tha, uk, yk, Rda, Ra, opts, wk)
             if code == 0:
                 nll += term
                 if ip[6]:
@@ -928,27 +983,34 @@ def _any_finite(v):
     return False
 
 
-def _kernel_py(f, h, fj, fcols, hcols, t, u, y, th, x0, P0, q2, Rd, R, Q, act, ip, fp, out_f,
-               out_i, st, buf, ibuf):
-    """Every parameter set in parallel (``prange``): :func:`_filter_one`
-    with its own rows of the work buffers ``buf``, ``ibuf``."""
-    for a in numba.prange(th.shape[0]):
-        _filter_one(np.int64(a), f, h, fj, fcols, hcols, t, u, y, th, x0, P0, q2, Rd, R, Q, act,
-                    ip, fp, out_f, out_i, st, buf[a], ibuf[a])
+def _kernel_py(fns, rec, sets, opts, out, st, bufs):
+    """Every parameter set of ``sets`` in parallel (``prange``):
+    :func:`_filter_one` with its own rows of the work buffers ``bufs`` =
+    (buf, ibuf). ``fns``: :func:`point_fns`; ``rec``: :data:`Record`;
+    ``opts``: (ip, fp), the integer options (:data:`IOPT`) and the sigma
+    weights (c, w, centre covariance weight); ``out``: :data:`Outputs`;
+    ``st``: the storage arrays (:func:`_store_arrays`; a tuple of its own:
+    the parallel loop's function takes tuples of arrays, not tuples
+    nested in them)."""
+    buf, ibuf = bufs
+    for a in numba.prange(sets.th.shape[0]):
+        _filter_one(np.int64(a), fns, rec, sets, opts, out, st, buf[a], ibuf[a])
 
 
 def _signature():
     """The kernel's explicit signature (first-class function types for the
     model's point kernels: compiled once for every model)."""
-    V, M = types.float64[::1], types.float64[:, ::1]
+    V, M, I = types.float64[::1], types.float64[:, ::1], types.int64[::1]
     A3, A4 = types.float64[:, :, ::1], types.float64[:, :, :, ::1]
+    IM = types.int64[:, ::1]
     point = types.FunctionType(types.void(V, V, V, V))
     jac = types.FunctionType(types.void(V, V, V, V, M))
-    store = types.Tuple((A3, A4, A3, A3, A3, A4, M, M))
     # f_cols and h_cols take flat vectors, like the point kernels
-    return types.void(point, point, jac, point, point, V, M, M, M, M, A3, M, M, A3, A3,
-                      types.int64[::1], types.int64[::1], V, V, types.int64[:, ::1], store, M,
-                      types.int64[:, ::1])
+    fns = types.Tuple((point, point, jac, point, point))
+    store = types.Tuple((A3, A4, A3, A3, A3, A4, M, M))
+    return types.void(fns, types.NamedTuple((V, M, M), Record),
+                      types.NamedTuple((M, M, A3, M, M, A3, A3, I), Sets), types.Tuple((I, V)),
+                      types.NamedTuple((V, IM), Outputs), store, types.Tuple((M, IM)))
 
 
 _LOCK = threading.Lock()
@@ -976,8 +1038,9 @@ def kernel() -> tuple[object, float]:
         return k, time.perf_counter() - t0
 
 
-def _compiled_once(store: list, py, signature, **options):
-    """``py`` compiled (allocation-free, cached on disk, numba ``options``)
+def _compiled_once(store: list, py, signature, fastmath=False):
+    """``py`` compiled (allocation-free, cached on disk, with numba's
+    ``fastmath``: False or a set of LLVM flags such as :data:`FASTMATH`)
     with the signature ``signature()`` builds, once per process (kept in
     ``store``; under the kernel's lock): the simulation kernels of
     :mod:`bondgraph.inference.sim_numba`.
@@ -992,7 +1055,7 @@ def _compiled_once(store: list, py, signature, **options):
     with _LOCK:
         if not store:
             store.append(numba.njit(signature(), cache=True, nogil=True, error_model="numpy",
-                                    _nrt=False, **options)(py))
+                                    _nrt=False, fastmath=fastmath)(py))
         return store[0]
 
 
@@ -1053,6 +1116,7 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
     out_f, out_i = np.empty(A), np.empty((A, 3), dtype=np.int64)
     per_set = [c(batch.th, dtype=float), c(batch.x, dtype=float), c(batch.P, dtype=float),
                c(batch.q2, dtype=float)]
+    fns, rec = point_fns(kernels), Record(c(t, dtype=float), c(u, dtype=float), c(y, dtype=float))
     nf, ni = _work_size(n, ny, u.shape[1], batch.th.shape[1])
     step = max(1, min(A, WORK_FLOATS // nf))
     buf, ibuf = np.zeros((step, nf)), np.zeros((step, ni), dtype=np.int64)
@@ -1067,11 +1131,10 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
             s = slice(a0, min(A, a0 + step))
             if a0:
                 buf[:], ibuf[:] = 0.0, 0
-            kern(kernels.f, kernels.h, kernels.f_dfdx, kernels.f_cols, kernels.h_cols,
-                 c(t, dtype=float), c(u, dtype=float),
-                 c(y, dtype=float), *[v[s] for v in per_set], Rd if ip[4] else Rd[s],
-                 R[s] if ip[4] else R, Q[s] if ip[5] else Q, act[s], ip, fp, out_f[s],
-                 out_i[s], st, buf[:s.stop - a0], ibuf[:s.stop - a0])
+            sets = Sets(*[v[s] for v in per_set], Rd if ip[4] else Rd[s], R[s] if ip[4] else R,
+                        Q[s] if ip[5] else Q, act[s])
+            kern(fns, rec, sets, (ip, fp), Outputs(out_f[s], out_i[s]), st,
+                 (buf[:s.stop - a0], ibuf[:s.stop - a0]))
     finally:
         numba.set_parallel_chunksize(chunk)
     for a, p in enumerate(batch.act):
