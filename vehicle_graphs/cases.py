@@ -15,6 +15,8 @@ import numpy as np
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.cases import LoopCase, TrueEffect, declared_builder, synthesize
 from bondgraph.diagnose.effects import apply_effect
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.inference.prior import PriorSpec
 from bondgraph.numerics.model import Model
 
 from .analysis import initial_state
@@ -94,8 +96,7 @@ def case_aero() -> LoopCase:
         declared_builder(vehicle_aero_declared),
         lambda: coastdown_record(_vehicle("truth_aero", aero=True, **COAST),
                                   vehicle_aero_declared(), "coastdown_aero", seed=101),
-        ["f_r", "r_dyn", "theta_off", "q_grade"],
-        {"metric": "nrmse_sim"},
+        LoopSettings(["f_r", "r_dyn", "theta_off", "q_grade"], metric="nrmse_sim"),
         ("quadratic_drag", "body.v"))
 
 
@@ -108,8 +109,8 @@ def case_brake() -> LoopCase:
         declared_builder(vehicle_brake_declared),
         lambda: coastdown_record(_vehicle("truth_brake", brake_drag=True, **COAST),
                                   vehicle_brake_declared(), "coastdown_brake_drag", seed=102),
-        ["C_dA", "r_dyn", "theta_off", "q_grade"],
-        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
+        LoopSettings(["C_dA", "r_dyn", "theta_off", "q_grade"], metric="nrmse_sim",
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         ("coulomb", "wheels.w"))
 
 
@@ -121,8 +122,8 @@ def case_pitch() -> LoopCase:
         declared_builder(vehicle_pitch_declared),
         lambda: coastdown_record(_vehicle("truth_pitch", **COAST), vehicle_pitch_declared(),
                                   "coastdown_pitch_offset", seed=103),
-        ["f_r", "C_dA", "r_dyn", "q_grade"],
-        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
+        LoopSettings(["f_r", "C_dA", "r_dyn", "q_grade"], metric="nrmse_sim",
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         ("sensor_offset", "pitch"))
 
 
@@ -180,8 +181,8 @@ def case_slip() -> LoopCase:
         lambda: driving_record(_vehicle("truth_belt_slip", gear="H", drive="2WD",
                                          belt_slip=True), vehicle_slip_declared(),
                                 "throttle_steps_belt_slip", seed=104, c_bs=BELT_CREEP),
-        params,
-        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
+        LoopSettings(params, metric="nrmse_sim", fixed=fixed,
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         ("slip", "cvt.belt.p2 -> cvt.w_s"))
 
 
@@ -219,6 +220,6 @@ def case_engine_saturation() -> LoopCase:
         declared_builder(vehicle_slip_declared),
         lambda: driving_record(engine_saturation_truth(), vehicle_slip_declared(),
                                 "throttle_steps_engine_saturation", seed=105),
-        params,
-        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
+        LoopSettings(params, metric="nrmse_sim", fixed=fixed,
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         TrueEffect("actuator_saturation", ENGINE_TORQUE[1], {"L": level}))
