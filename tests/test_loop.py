@@ -263,11 +263,12 @@ def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
     structure leaves nothing significant."""
     from bondgraph.data.records import Experiment  # noqa: F401 (record type)
     from vehicle_graphs.cases import COAST, LEVEL_TRACK, coastdown_record, _vehicle
+    from vehicle_graphs.vehicle import VehicleEffects
 
-    truth = _vehicle("truth_aero", aero=True, **COAST)
-    rec = coastdown_record(truth, _vehicle("truth_aero", aero=True, **COAST), "nothing", seed=105)
+    truth = _vehicle("truth_aero", effects=VehicleEffects(aero=True), **COAST)
+    rec = coastdown_record(truth, _vehicle("truth_aero", effects=VehicleEffects(aero=True), **COAST), "nothing", seed=105)
     updates = []
-    res = run_loop(_vehicle("declared_true", aero=True, **COAST), rec, LoopSettings(params=["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"], prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})), log=lambda m: None, on_update=lambda r: updates.append((r.finished, len(r.rankings), r.final.nll)))
+    res = run_loop(_vehicle("declared_true", effects=VehicleEffects(aero=True), **COAST), rec, LoopSettings(params=["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"], prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})), log=lambda m: None, on_update=lambda r: updates.append((r.finished, len(r.rankings), r.final.nll)))
     assert res.steps == []
     # the partial result after the initial fit, then the final one (a step
     # that finds nothing significant hands nothing over)
