@@ -16,7 +16,7 @@ vehicle's in ``vehicle_graphs.cases``.
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -24,7 +24,7 @@ import numpy as np
 from bondgraph.core import plugins
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
-from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import LoopSettings, TrueEffect
 from bondgraph.errors import ModelError, OptionError
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import METHODS, simulate
@@ -44,30 +44,6 @@ def declared_builder(fn: Callable[[], BondGraph]) -> Callable[[], BondGraph]:
         return g
     make.__name__ = fn.__name__
     return make
-
-
-@dataclass(frozen=True)
-class TrueEffect:
-    """The effect a synthetic case's truth has: the declared graph plus
-    effect ``kind`` (a name of :mod:`bondgraph.diagnose.effects`) at
-    ``target`` (a target name) with parameter ``values`` (by the effect's
-    local parameter names). Unpacks as ``(kind, target)``."""
-
-    kind: str
-    target: str
-    values: dict = field(default_factory=dict)
-
-    def __iter__(self):
-        return iter((self.kind, self.target))
-
-    @property
-    def label(self) -> str:
-        """``"kind @ target"``, as a candidate's label."""
-        return f"{self.kind} @ {self.target}"
-
-    def to_dict(self) -> dict:
-        """JSON-ready: kind, target, values."""
-        return {"kind": self.kind, "target": self.target, "values": dict(self.values)}
 
 
 @dataclass

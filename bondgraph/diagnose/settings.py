@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numbers
 from dataclasses import asdict, dataclass, field, fields, replace
-from typing import TYPE_CHECKING, Callable, Sequence, Union
+from typing import Callable, Sequence, Union
 
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Effect
@@ -28,9 +28,6 @@ from bondgraph.inference.executor import scheduler_address
 from bondgraph.inference.options import NOISE_MODES, Evaluation, UKFOptions
 from bondgraph.inference.prior import PriorSpec
 from bondgraph.numerics.simulate import METHODS
-
-if TYPE_CHECKING:
-    from bondgraph.diagnose.cases import TrueEffect
 
 #: the built-in error measures (``LoopSettings.metric``; bondgraph.diagnose.metric)
 METRICS = ("nrmse_sim", "rmse_sim", "rmse_pred")
@@ -49,6 +46,30 @@ LOOP_CHUNK = 48
 
 #: a user's error measure: ``metric(fit, data) -> float`` with attribute ``name``
 Metric = Union[str, Callable]
+
+
+@dataclass(frozen=True)
+class TrueEffect:
+    """The effect a synthetic case's truth has (``LoopSettings.true_effect``): the declared graph plus
+    effect ``kind`` (a name of :mod:`bondgraph.diagnose.effects`) at
+    ``target`` (a target name) with parameter ``values`` (by the effect's
+    local parameter names). Unpacks as ``(kind, target)``."""
+
+    kind: str
+    target: str
+    values: dict = field(default_factory=dict)
+
+    def __iter__(self):
+        return iter((self.kind, self.target))
+
+    @property
+    def label(self) -> str:
+        """``"kind @ target"``, as a candidate's label."""
+        return f"{self.kind} @ {self.target}"
+
+    def to_dict(self) -> dict:
+        """JSON-ready: kind, target, values."""
+        return {"kind": self.kind, "target": self.target, "values": dict(self.values)}
 
 
 def _integer(obj, name: str, minimum: int) -> None:
