@@ -61,10 +61,11 @@ from bondgraph.catalog import reference as ref
 from bondgraph.diagnose.cases import SimulationOptions, synthesize
 from bondgraph.diagnose.confirm import Confirmation, confirm
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, Scales, get_effect
-from bondgraph.diagnose.fit import Context, Record, fit_model, model_of, parameter_std
+from bondgraph.diagnose.fit import Context, MetricRecord, fit_model, model_of, parameter_std
 from bondgraph.diagnose.runner import confirm_best, gather_evidence, recommended_substeps
 from bondgraph.diagnose.scales import operating_scales
 from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import SearchOptions
 from bondgraph.errors import NumericalError
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.model import Model
@@ -148,7 +149,7 @@ def settings_for(params):
     ``structural_threshold`` is set)."""
     return LoopSettings(params=list(params), effects=DEFAULT_EFFECTS, metric="nrmse_sim",
                         ukf=UKFOptions(method="ros2", substeps=_substeps[0], alpha=1.0),
-                        structural_near_best=True)
+                        search=SearchOptions(structural_near_best=True))
 
 
 def quiet(_msg):
@@ -209,7 +210,7 @@ def consistent_shapes(spec, eff, tgt, vals, seed) -> dict:
 
 def validation_error(model, theta, exp):
     """Mean over outputs of RMS(free-run error)/std(output) on ``exp``."""
-    t, u, y = Record(exp).arrays(model)
+    t, u, y = MetricRecord(exp).arrays(model)
     x0 = model.x0
     try:
         sim = simulate(model, t, u if model.n_u else None, x0=x0, theta=theta, method="rk4",
@@ -307,8 +308,8 @@ def oracle_chi2(spec, declared, rec, t, seed) -> float:
     same = synthesize(spec["build"](), declared, t, sampled(spec["inputs"](0.0), t), {}, {},
                       seed, "declared", "", simulation=RK4_ZOH)
     model = Model.from_graph(declared)
-    _, _, y1 = Record(rec).arrays(model)
-    _, _, y0 = Record(same).arrays(model)
+    _, _, y1 = MetricRecord(rec).arrays(model)
+    _, _, y0 = MetricRecord(same).arrays(model)
     sd = model.meas_std(model.theta0)
     return float(np.nansum(((y1 - y0) / sd) ** 2))
 

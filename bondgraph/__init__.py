@@ -59,7 +59,8 @@ _export("bondgraph.inference.estimate", "EstimationResult", "Stage", "estimate",
 _export("bondgraph.sensitivity.analysis", "LocalOptions", "analyse")
 _export("bondgraph.sensitivity.sobol", "SobolOptions")
 _export("bondgraph.diagnose.effects", "Effect", "apply_effect")
-_export("bondgraph.diagnose.loop", "LoopResult", "LoopSettings", "run_loop")
+_export("bondgraph.diagnose.loop", "AcceptRule", "FreeRunOptions", "LoopResult", "LoopSettings",
+        "SearchOptions", "run_loop")
 _export("bondgraph.diagnose.cases", "LoopCase", "SimulationOptions", "TrueEffect",
         "synthesize")
 

@@ -12,6 +12,7 @@ from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.diagnose.cases import SimulationOptions, synthesize
 from bondgraph.diagnose.effects import apply_effect, get_effect
 from bondgraph.diagnose.loop import LoopSettings, run_loop
+from bondgraph.diagnose.settings import SearchOptions
 from bondgraph.inference.options import UKFOptions
 
 QMAX = 0.17
@@ -29,7 +30,7 @@ def _record():
 
 
 def _loop(auto):
-    res = run_loop(mass_spring_damper(), _record(), LoopSettings(params=["k", "c"], max_steps=1, auto_substeps=auto, effects=[get_effect(e) for e in ("end_stop", "cubic_stiffness", "coulomb")], ukf=UKFOptions(method="ros2", substeps=4, alpha=1.0)), log=lambda s: None, progress=False)
+    res = run_loop(mass_spring_damper(), _record(), LoopSettings(params=["k", "c"], effects=[get_effect(e) for e in ("end_stop", "cubic_stiffness", "coulomb")], ukf=UKFOptions(method="ros2", substeps=4, alpha=1.0), search=SearchOptions(max_steps=1, auto_substeps=auto)), log=lambda s: None, progress=False)
     assert [(s.effect, s.attached_to) for s in res.steps] == [("end_stop", "spring")]
     p = res.steps[0].parameters["end_stop.spring.qmax"]
     return res, p["estimate"], p["std"]

@@ -20,6 +20,7 @@ Tests that need ../shared/data skip with a clear reason when it is absent.
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -36,7 +37,8 @@ from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.residuals import ResidualReport, analyze
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.result import Candidate
-from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import AcceptRule, LoopSettings
+from bondgraph.inference.prior import PriorSpec
 from bondgraph.report.loop_report import LoopReporter
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -45,11 +47,13 @@ needs_data = pytest.mark.skipif(not (DATA / "emps").exists() or not (DATA / "ced
                                        f"benchmarks are not shipped with the project)")
 
 
-def _run(name, tmp_path, **over):
+def _run(name, tmp_path, max_steps=None, confirm_top=None):
     case = get_case(name)
-    settings = {**case.settings, **over}
+    search = case.settings.search
+    search = replace(search, max_steps=search.max_steps if max_steps is None else max_steps,
+                     confirm_top=search.confirm_top if confirm_top is None else confirm_top)
     reporter = LoopReporter(tmp_path / name)
-    res = run_loop(case.declared(), case.record(), LoopSettings(params=case.params, **settings), log=reporter.log, on_update=reporter.update)
+    res = run_loop(case.declared(), case.record(), replace(case.settings, search=search), log=reporter.log, on_update=reporter.update)
     return case, res
 
 
@@ -79,7 +83,7 @@ def _fit(nll, k, whiteness, metric, n_obs=100, whiteness_dof=20.0):
 
 
 def test_accept_decision_follows_the_criterion_lr_test_and_error_guard():
-    s = LoopSettings(params=[], metric_tolerance=1.5)
+    s = AcceptRule(metric_tolerance=1.5)
     cur = _fit(-100.0, 2, 50.0, 1.0)                        # AIC -196
     # one more parameter for one nat: AIC -196 -> -196, not better
     d = decide(cur, _fit(-101.0, 3, 40.0, 0.5), s)
@@ -99,7 +103,7 @@ def test_accept_decision_follows_the_criterion_lr_test_and_error_guard():
     assert (d.error_before, d.error_after, d.whiteness_after) == (1.0, 1.6, 40.0)
     # BIC with n = 100: k log n costs log(100) = 4.61 per parameter, so two
     # nats (2 NLL = 4) do not pay for it, five (10) do
-    sb = LoopSettings(params=[], criterion="bic")
+    sb = AcceptRule(criterion="bic")
     assert not decide(cur, _fit(-102.0, 3, 40.0, 0.5), sb).accepted
     d = decide(cur, _fit(-105.0, 3, 40.0, 0.5), sb)
     assert d.accepted
@@ -259,11 +263,12 @@ def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
     structure leaves nothing significant."""
     from bondgraph.data.records import Experiment  # noqa: F401 (record type)
     from vehicle_graphs.cases import COAST, LEVEL_TRACK, coastdown_record, _vehicle
+    from vehicle_graphs.vehicle import VehicleEffects
 
-    truth = _vehicle("truth_aero", aero=True, **COAST)
-    rec = coastdown_record(truth, _vehicle("truth_aero", aero=True, **COAST), "nothing", seed=105)
+    truth = _vehicle("truth_aero", effects=VehicleEffects(aero=True), **COAST)
+    rec = coastdown_record(truth, _vehicle("truth_aero", effects=VehicleEffects(aero=True), **COAST), "nothing", seed=105)
     updates = []
-    res = run_loop(_vehicle("declared_true", aero=True, **COAST), rec, LoopSettings(params=["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"], P0_std={"theta_g": LEVEL_TRACK}), log=lambda m: None, on_update=lambda r: updates.append((r.finished, len(r.rankings), r.final.nll)))
+    res = run_loop(_vehicle("declared_true", effects=VehicleEffects(aero=True), **COAST), rec, LoopSettings(params=["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"], prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})), log=lambda m: None, on_update=lambda r: updates.append((r.finished, len(r.rankings), r.final.nll)))
     assert res.steps == []
     # the partial result after the initial fit, then the final one (a step
     # that finds nothing significant hands nothing over)

@@ -19,7 +19,8 @@ from bondgraph.diagnose.residuals import ResidualReport
 from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.runner import check_declared_fit
 from bondgraph.diagnose.scoring import failed_candidate
-from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import AcceptRule, LoopSettings, SearchOptions
+from bondgraph.inference.prior import PriorSpec
 from bondgraph.errors import DeclaredFitError, OptionError
 from bondgraph.inference.options import Discretisation, UKFOptions
 from bondgraph.numerics.model import Model
@@ -37,7 +38,7 @@ def _fit(nll, k, whiteness, metric, n_obs=100, validation=None):
 def test_whiteness_never_vetoes_an_effect_whose_aic_and_error_fall():
     """Issue 11: sensor_gain with AIC −1550 and the error 15× lower was
     rejected because whiteness rose. Now it is accepted."""
-    s = LoopSettings(params=[])
+    s = AcceptRule()
     cur = _fit(-1000.0, 2, 100.0, 1.5)
     d = decide(cur, _fit(-1775.0, 3, 900.0, 0.1), s)
     assert d.accepted and d.reason is None
@@ -48,7 +49,7 @@ def test_whiteness_never_vetoes_an_effect_whose_aic_and_error_fall():
 def test_the_error_may_not_rise_by_default_and_validation_decides():
     """Issue 11: sensor_offset then sensor_rectification accepted while the
     error went 1.41 -> 1.55 -> 2.82. Default tolerance 1.0."""
-    s = LoopSettings(params=[])
+    s = AcceptRule()
     assert s.metric_tolerance == 1.0
     cur = _fit(-1000.0, 2, 100.0, 1.41)
     d = decide(cur, _fit(-1100.0, 3, 50.0, 1.55), s)
@@ -66,7 +67,7 @@ def test_the_error_may_not_rise_by_default_and_validation_decides():
 
 
 def test_confirmed_record_keeps_the_refit_numbers():
-    s = LoopSettings(params=[])
+    s = AcceptRule()
     cur, aft = _fit(-100.0, 2, 50.0, 1.0), _fit(-110.0, 3, 70.0, 0.5)
     aft.converged, aft.iterations = True, 7
     d = decide(cur, aft, s)
@@ -139,7 +140,7 @@ def test_negative_mass_stops_the_loop_with_a_typed_error():
     q'' = +25 q: over 100 s the free run overflows (e^500)."""
     g = mass_spring_damper()
     with pytest.raises(DeclaredFitError, match="free-run error = inf"):
-        run_loop(g, _msd_record(n=2000, dt=0.05), LoopSettings(params=["c"], fixed={"m": -2.0}, max_steps=1, structural=False), log=lambda s: None, progress=False)
+        run_loop(g, _msd_record(n=2000, dt=0.05), LoopSettings(params=["c"], fixed={"m": -2.0}, search=SearchOptions(max_steps=1, structural=False)), log=lambda s: None, progress=False)
     f = _fit(-1.0, 1, 1.0, math.inf)
     with pytest.raises(DeclaredFitError):
         check_declared_fit(f)
@@ -197,7 +198,7 @@ def test_true_effect_and_rank_of_truth():
     from bondgraph.diagnose.cases import LoopCase, TrueEffect
     from bondgraph.diagnose.result import rank_of
 
-    case = LoopCase("c", "", lambda: None, lambda: None, [], {}, ("coulomb", "v"))
+    case = LoopCase("c", "", lambda: None, lambda: None, LoopSettings(params=[]), ("coulomb", "v"))
     assert isinstance(case.true_effect, TrueEffect)
     kind, target = case.true_effect
     assert (kind, target, case.true_effect.values) == ("coulomb", "v", {})
@@ -256,20 +257,19 @@ def test_structural_score_refits_the_declared_parameters():
     P = ["m", "k", "c", "q_F"]
     # p0_scale "magnitude": the statistic is recomputed below on a model built
     # anew, whose state-scaled prior would follow its own default level
-    ctx = Context.on(exp, LoopSettings(params=P, structural_refit=0, structural_starts=0,
-                                       p0_scale="magnitude"),
+    ctx = Context.on(exp, LoopSettings(params=P, search=SearchOptions(structural_refit=0, structural_starts=0), prior=PriorSpec(scale="magnitude")),
                      model_of(declared), lambda s: None, False)
     fit = fit_model(ctx, declared, P, None, "declared")
     assert fit.estimates()["m"] > 4.0                     # compensated
     sc = operating_scales(ctx, fit)
     frozen = structural_candidate(ctx, fit, sc, eff, tgt)
     assert frozen.profile == {}
-    ctx.settings = replace(ctx.settings, structural_refit=4)
+    ctx.settings = replace(ctx.settings, search=replace(ctx.settings.search, structural_refit=4))
     prof = structural_candidate(ctx, fit, sc, eff, tgt)
     assert set(prof.profile) == set(P)
     assert prof.statistic > frozen.statistic + 5.0, (frozen.statistic, prof.statistic)
     # the default: the 3 best grid levels each get one declared-only step first
-    ctx.settings = replace(ctx.settings, structural_starts=3)
+    ctx.settings = replace(ctx.settings, search=replace(ctx.settings.search, structural_starts=3))
     multi = structural_candidate(ctx, fit, sc, eff, tgt)
     # measured: frozen 95.0; before the refits were kept inside the effect's
     # grid span (Effect.grid_span) the joint profile reached 108.6 and the 3
@@ -329,7 +329,7 @@ def test_augmented_model_rebuilds_in_memory_graph_with_user_effect(tmp_path, mon
                      {"F": lambda tt: levels[np.minimum((np.asarray(tt) / 0.2).astype(int), 19)]},
                      {}, {"m": 2.0, "k": 50.0, "c": 1.5}, 5, "offset", "")
     rep = LoopReporter(tmp_path / "r")
-    res = run_loop(declared, exp, LoopSettings(params=["m", "k", "c"], effects=[MyOffset()], structural=False, max_steps=1), log=rep.log, on_update=rep.update, progress=False)
+    res = run_loop(declared, exp, LoopSettings(params=["m", "k", "c"], effects=[MyOffset()], search=SearchOptions(structural=False, max_steps=1)), log=rep.log, on_update=rep.update, progress=False)
     assert [(a.effect, a.spec) for a in res.applied] == [("my_offset", "myfx:MyOffset")]
     assert res.applied[0].values["b"] == pytest.approx(0.05, abs=0.002)
     spec = importlib.util.spec_from_file_location("aug", tmp_path / "r" / "augmented_model.py")
@@ -392,7 +392,7 @@ def test_state_scaled_prior_in_the_loop():
     exp = _msd_record()
     exp.meta = {**(exp.meta or {}), "x0_std": {"q_spring": 0.004}}
     m = Model.load("mass_spring_damper")
-    ctx = Context.on(exp, LoopSettings(params=["c"], p0_scale="state", p0_rel=0.1), m,
+    ctx = Context.on(exp, LoopSettings(params=["c"], prior=PriorSpec(scale="state", rel=0.1)), m,
                      lambda s: None, False)
     pb = problem_for(ctx, m)
     x0, P0 = pb.x0, pb.P0
@@ -405,15 +405,15 @@ def test_state_scaled_prior_in_the_loop():
     assert P0[1, 1] == pytest.approx(0.004 ** 2)
     assert P0[0, 0] == pytest.approx((UNKNOWN_REL * info["scales"]["p_mass"]) ** 2)
     exp.meta["x0"] = {"p_mass": 0.0}                  # now the record gives it
-    ctx = Context.on(exp, LoopSettings(params=["c"], p0_scale="state", p0_rel=0.1), m,
+    ctx = Context.on(exp, LoopSettings(params=["c"], prior=PriorSpec(scale="state", rel=0.1)), m,
                      lambda s: None, False)
     assert problem_for(ctx, m).P0[0, 0] == pytest.approx((0.1 * info["scales"]["p_mass"]) ** 2)
     assert info["rules"]["p_mass"] == "simulation"
     # the free-run RMS of the momentum, from an independent BDF simulation
     xs = simulate(m, t, u, x0, m.theta0, hold="zoh", rtol=1e-9, atol=1e-12).x
     assert info["scales"]["p_mass"] == pytest.approx(np.sqrt(np.mean(xs[:, 0] ** 2)), rel=0.01)
-    with pytest.raises(OptionError, match="p0_scale"):
-        LoopSettings(params=[], p0_scale="big")
+    with pytest.raises(OptionError, match="PriorSpec.scale"):
+        LoopSettings(params=[], prior=PriorSpec(scale="big"))
 
 
 def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
@@ -434,7 +434,7 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
     logs = []
     # ROS2 with 2 steps per sample: the discretisation check's recommendation
     # below (with 1 step the filter's bias makes a 0.4 % sensor gain significant)
-    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["m", "k", "c"], fit="sim", structural=False, max_steps=1, ukf=UKFOptions(method="ros2", substeps=2)), log=logs.append, progress=False)
+    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["m", "k", "c"], ukf=UKFOptions(method="ros2", substeps=2), search=SearchOptions(fit="sim", structural=False, max_steps=1)), log=logs.append, progress=False)
     # nothing is missing, and nothing is accepted. The best candidate,
     # sensor_poly3 @ x, passes the likelihood-ratio test (LR 15.6, k 2,
     # p 4.2e-4 < 0.01/21: it absorbs what is left of ROS2 x 2's discretisation
@@ -457,7 +457,7 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
         assert est[n] == pytest.approx(v, rel=0.02)
         # the likelihood refit (ROS2, one step per sample) moves it by < 2.5 %
         assert est[n] == pytest.approx(oe.estimates()[n], rel=0.025)
-    assert res.settings["fit"] == "sim"
+    assert res.settings["search"]["fit"] == "sim"
     assert res.warnings == []
     # one step per sample: 0.11 measurement-noise stds per sample, substeps 2 recommended
     from bondgraph.diagnose.fit import fit_model, model_of
@@ -490,11 +490,10 @@ def test_loop_estimates_an_unmeasured_initial_state():
     # the old prior (5 % of max(|x0|, 1) around the guess 0) trusts the guess
     old = "magnitude"
     msd = model_of(mass_spring_damper())
-    plain = fit_model(Context.on(exp, LoopSettings(params=["k", "c"], ukf=opts, p0_scale=old),
+    plain = fit_model(Context.on(exp, LoopSettings(params=["k", "c"], ukf=opts, prior=PriorSpec(scale=old)),
                                  msd, lambda s: None, False),
                       mass_spring_damper(), ["k", "c"], None, "p")
-    ctx = Context.on(exp, LoopSettings(params=["k", "c"], ukf=opts, p0_scale=old,
-                                       estimate_x0=["p_mass"]), msd, lambda s: None, False)
+    ctx = Context.on(exp, LoopSettings(params=["k", "c"], ukf=opts, estimate_x0=["p_mass"], prior=PriorSpec(scale=old)), msd, lambda s: None, False)
     f = fit_model(ctx, mass_spring_damper(), ["k", "c"], None, "x0", iterations=20)
     p0, sd = f.x0_est["p_mass"], f.std["x0.p_mass"]
     assert abs(p0 - 0.6) < 3 * sd and sd < 0.05, (p0, sd)
@@ -515,7 +514,7 @@ def test_loop_estimates_an_unmeasured_initial_state():
 
 def test_holdout_splits_the_record():
     exp = _msd_record()
-    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["k", "c"], holdout=0.25, structural=False, max_steps=1), log=lambda s: None, progress=False)
+    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["k", "c"], holdout=0.25, search=SearchOptions(structural=False, max_steps=1)), log=lambda s: None, progress=False)
     assert res.time.size == 300 and res.settings["validation"] == "msd[300:]"
     assert res.initial.validation_metric is not None and res.initial.validation_metric < 0.2
     from bondgraph.errors import OptionError
@@ -585,18 +584,18 @@ def test_decide_rejects_an_error_decrease_within_its_uncertainty():
     assert r1 < r0                                  # the error falls (1.0084 -> 1.0044)
     cur, aft = _fit(-1000.0, 2, 40.0, r0), _fit(-1010.0, 3, 40.0, r1)
     cur.sim_errors, aft.sim_errors = e0, e1
-    d = decide(cur, aft, LoopSettings(params=[]))
+    d = decide(cur, aft, AcceptRule())
     assert not d.accepted and "within its uncertainty" in d.reason
     z_ref = (e0**2 - e1**2).mean() / np.sqrt(long_run_var_ref(
         (e0**2 - e1**2)[:, 0]) / 400)
     assert d.error_z == pytest.approx(z_ref, rel=1e-9)
     assert 0 < d.error_z < 1.645
-    assert decide(cur, aft, LoopSettings(params=[], error_level=None)).accepted
+    assert decide(cur, aft, AcceptRule(error_level=None)).accepted
     # a consistent 0.1 % decrease is significant (every sample's error falls)
     aft.sim_errors = 0.999 * e0
-    assert decide(cur, aft, LoopSettings(params=[])).accepted
+    assert decide(cur, aft, AcceptRule()).accepted
     with pytest.raises(OptionError, match="error_level"):
-        LoopSettings(params=[], error_level=1.5)
+        AcceptRule(error_level=1.5)
 
 
 def long_run_var_ref(d):
@@ -621,7 +620,7 @@ def test_loop_accepts_a_real_sensor_offset():
     y = y + np.random.default_rng(1).normal(size=y.shape) * m.meas_std(truth)
     y[:, m.output_index("x")] += 0.02
     exp = Experiment.from_arrays(t, model=m, u=u, y=y, name="msd_offset", meta=AT_REST)
-    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["m", "k", "c"], structural=False, max_steps=1, fit="sim", ukf=UKFOptions(method="ros2", substeps=2)), log=lambda s: None, progress=False)
+    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["m", "k", "c"], ukf=UKFOptions(method="ros2", substeps=2), search=SearchOptions(structural=False, max_steps=1, fit="sim")), log=lambda s: None, progress=False)
     (step,) = res.steps
     assert (step.effect, step.attached_to) == ("sensor_offset", "x")
     (name,) = step.effect_params

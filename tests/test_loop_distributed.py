@@ -16,6 +16,8 @@ from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.diagnose.cases import SimulationOptions, synthesize
 from bondgraph.diagnose.effects import apply_effect, get_effect
 from bondgraph.diagnose.loop import LoopSettings, run_loop
+from bondgraph.inference.options import Evaluation
+from bondgraph.diagnose.settings import SearchOptions
 from bondgraph.errors import OptionError
 from bondgraph.inference.options import UKFOptions
 
@@ -35,9 +37,9 @@ def _record():
                       simulation=SimulationOptions(hold="zoh", method="rk4", substeps=10))
 
 
-def _run(**kw):
+def _run(scheduler=None):
     logs = []
-    res = run_loop(mass_spring_damper(), _record(), LoopSettings(params=["m", "k", "c"], max_steps=1, effects=[get_effect(e) for e in EFFECTS], ukf=UKFOptions(method="ros2", substeps=2, backend="numpy"), **kw), log=logs.append, progress=False)
+    res = run_loop(mass_spring_damper(), _record(), LoopSettings(params=["m", "k", "c"], effects=[get_effect(e) for e in EFFECTS], ukf=UKFOptions(method="ros2", substeps=2, backend="numpy"), search=SearchOptions(max_steps=1), evaluation=Evaluation(scheduler=scheduler)), log=logs.append, progress=False)
     return res, logs
 
 
@@ -66,6 +68,6 @@ def test_loop_on_two_workers_equals_serial():
 
 def test_bad_scheduler_and_workers_fail_before_any_fit():
     with pytest.raises(OptionError, match="scheduler"):
-        run_loop(mass_spring_damper(), _record(), LoopSettings(params=["k"], scheduler="localhost:8786"), log=lambda s: None, progress=False)
+        run_loop(mass_spring_damper(), _record(), LoopSettings(params=["k"], evaluation=Evaluation(scheduler="localhost:8786")), log=lambda s: None, progress=False)
     with pytest.raises(OptionError, match="workers"):
-        run_loop(mass_spring_damper(), _record(), LoopSettings(params=["k"], workers=0), log=lambda s: None, progress=False)
+        run_loop(mass_spring_damper(), _record(), LoopSettings(params=["k"], evaluation=Evaluation(workers=0)), log=lambda s: None, progress=False)

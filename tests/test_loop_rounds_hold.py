@@ -1,5 +1,5 @@
-"""The free run's input hold (``LoopSettings.sim_hold``) and confirmation in
-rounds (``LoopSettings.confirm_rounds``), against hand-derived references."""
+"""The free run's input hold (``LoopSettings.free_run.hold``) and confirmation in
+rounds (``LoopSettings.search.confirm_rounds``), against hand-derived references."""
 
 from pathlib import Path
 from types import SimpleNamespace
@@ -14,7 +14,7 @@ from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose import runner
 from bondgraph.diagnose.fit import Context, free_run, sim_inputs
-from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import FreeRunOptions, LoopSettings, SearchOptions
 from bondgraph.errors import OptionError
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.model import Model
@@ -22,14 +22,14 @@ from bondgraph.numerics.model import Model
 
 def test_sim_inputs_follow_the_filter_hold():
     u = np.array([[0.0], [2.0], [4.0], [10.0]])
-    s = LoopSettings(params=[], sim_hold="filter")
+    s = LoopSettings(params=[], free_run=FreeRunOptions(hold="filter"))
     hold, um = sim_inputs(s, "mean", u)
     assert hold == "zoh"
     np.testing.assert_allclose(um[:, 0], [1.0, 3.0, 7.0, 10.0])   # (u_k + u_k+1)/2, last held
     assert sim_inputs(s, "zoh", u)[0] == "zoh"
     assert sim_inputs(LoopSettings(params=[]), "mean", u)[0] == "linear"   # the default
-    with pytest.raises(OptionError, match="sim_hold"):
-        LoopSettings(params=[], sim_hold="cubic")
+    with pytest.raises(OptionError, match="FreeRunOptions.hold"):
+        LoopSettings(params=[], free_run=FreeRunOptions(hold="cubic"))
 
 
 def test_free_run_with_zero_order_hold_matches_the_exact_discretisation():
@@ -54,7 +54,7 @@ def test_free_run_with_zero_order_hold_matches_the_exact_discretisation():
     ix = model.output_index("x")
     out = {}
     for hold in ("zoh", "linear"):
-        ctx = Context.on(exp, LoopSettings(params=[], sim_hold=hold), model, lambda s: None,
+        ctx = Context.on(exp, LoopSettings(params=[], free_run=FreeRunOptions(hold=hold)), model, lambda s: None,
                          False)
         y = free_run(ctx, ctx.problem, model.theta0.copy())
         out[hold] = y[:, ix]
@@ -78,16 +78,16 @@ def test_confirmation_goes_on_in_rounds_until_one_is_accepted(monkeypatch):
 
     monkeypatch.setattr(runner, "confirm_best", fake_confirm)
     monkeypatch.setattr(runner, "accept_best", fake_accept)
-    ctx = SimpleNamespace(settings=LoopSettings(params=[], confirm_top=2, confirm_rounds=3),
+    ctx = SimpleNamespace(settings=LoopSettings(params=[], search=SearchOptions(confirm_top=2, confirm_rounds=3)),
                           log=lambda s: None)
     got = runner.confirm_in_rounds(ctx, None, None, cands[::-1], None, "g", 1)
     assert got == "fit-e" and seen == [["a", "b"], ["c", "d"], ["e", "f"]]
     seen.clear()
-    ctx.settings = LoopSettings(params=[], confirm_top=2, confirm_rounds=1)
+    ctx.settings = LoopSettings(params=[], search=SearchOptions(confirm_top=2, confirm_rounds=1))
     assert runner.confirm_in_rounds(ctx, None, None, cands, None, "g", 1) is None
     assert seen == [["a", "b"]]
     with pytest.raises(OptionError, match="confirm_rounds"):
-        LoopSettings(params=[], confirm_rounds=0)
+        LoopSettings(params=[], search=SearchOptions(confirm_rounds=0))
 
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -126,7 +126,7 @@ def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
                                  y=np.zeros((20, 2)), name="rest")
     for auto, want in ((True, "refit"), (False, "declared")):
         calls.clear()
-        ctx = Context.on(exp, LoopSettings(params=[], auto_substeps=auto), model,
+        ctx = Context.on(exp, LoopSettings(params=[], search=SearchOptions(auto_substeps=auto)), model,
                          lambda s: None, False)
         fit, warn = runner.resolved_fit(ctx, None, "declared")
         assert fit == want and "use --substeps 16" in warn[0]

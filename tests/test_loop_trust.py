@@ -19,7 +19,7 @@ from bondgraph.diagnose.accept import decide, rank_confirmed
 from bondgraph.diagnose.effects.laws import add_to_r_law
 from bondgraph.diagnose.fit import Fit, free_run_trouble
 from bondgraph.diagnose.residuals import ResidualReport
-from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import AcceptRule, LoopSettings, SearchOptions
 from bondgraph.errors import ModelError, OptionError
 from bondgraph.numerics.admissible import MARGIN, check_admissible
 
@@ -144,7 +144,7 @@ def test_a_non_admissible_refit_is_refused_whatever_its_evidence(tank_run):
     x, u = tank_run
     g, theta = _with_cubic(-1e-13)
     adm = check_admissible(g, derive(g), theta, x, u)
-    s = LoopSettings(params=[])
+    s = AcceptRule()
     cur, aft = _fit(-1000.0, 2, 1.0), _fit(-1500.0, 3, 0.5)
     assert decide(cur, aft, s).accepted              # the same evidence, unchecked
     d = decide(cur, aft, s, admissible=adm)
@@ -157,7 +157,7 @@ def test_a_free_run_that_diverges_on_the_record_is_refused_even_when_held_out_er
     """Issue 26: `r_cubic @ orifice2` diverged on the estimation record
     (error inf) and was accepted because its held-out error fell
     (0.4663 -> 0.4159)."""
-    s = LoopSettings(params=[])
+    s = AcceptRule()
     cur = _fit(-1000.0, 2, 0.30, validation=0.4663)
     d = decide(cur, _fit(-1100.0, 3, math.inf, validation=0.4159), s)
     assert not d.accepted
@@ -191,7 +191,7 @@ def test_a_non_converged_refit_never_beats_a_converged_one():
     ranked = rank_confirmed([(700.0, "lowpass", stuck), (450.0, "capacity", conv),
                              (20.0, "offset", conv)])
     assert [c for _, c, _ in ranked] == ["capacity", "offset", "lowpass"]
-    s = LoopSettings(params=[])
+    s = AcceptRule()
     d = decide(_fit(-1000.0, 2, 1.0), _fit(-1356.0, 3, 0.5, iterations=120), s,
                comparable=False)
     assert not d.accepted
@@ -200,9 +200,9 @@ def test_a_non_converged_refit_never_beats_a_converged_one():
 
 
 def test_on_failed_fit_option_is_checked():
-    assert LoopSettings(params=[]).on_failed_fit == "stop"
-    with pytest.raises(OptionError, match="on_failed_fit must be 'stop' or 'continue'"):
-        LoopSettings(params=[], on_failed_fit="maybe")
+    assert LoopSettings(params=[]).search.on_failed_fit == "stop"
+    with pytest.raises(OptionError, match="SearchOptions.on_failed_fit must be one of 'stop', 'continue'"):
+        SearchOptions(on_failed_fit="maybe")
 
 
 TANKS_BOXED = '''
@@ -279,7 +279,8 @@ def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypa
     # staircase: zero-order hold, for the filter and the free runs alike) and
     # repeats the check at the fits
     cfg = rep["settings"]
-    assert cfg["ukf"]["hold"] == "zoh" and cfg["sim_hold"] == "zoh" and cfg["auto_substeps"]
+    assert cfg["ukf"]["hold"] == "zoh" and cfg["free_run"]["hold"] == "zoh" \
+        and cfg["search"]["auto_substeps"]
 
 
 

@@ -26,6 +26,7 @@ from bondgraph.inference.problem import NoiseSpec, make_problem
 from bondgraph.numerics.forward_sensitivity import SolverOptions, output_sensitivities
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
+from bondgraph.diagnose.settings import SearchOptions
 
 TRUTH = {"m": 2.0, "k": 50.0, "c": 1.5}
 #: the graph's sensor noise (x, v) and the record's true noise: 4 times it
@@ -177,7 +178,7 @@ def test_loop_estimates_undeclared_noise_in_the_declared_fit(msd):
 
     exp = _record(msd)
     logs = []
-    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["m", "k", "c"], max_steps=1, structural=False, ukf=UKF), progress=False, log=logs.append)
+    res = run_loop(mass_spring_damper(), exp, LoopSettings(params=["m", "k", "c"], ukf=UKF, search=SearchOptions(max_steps=1, structural=False)), progress=False, log=logs.append)
     assert any("measurement-noise std estimated" in ln and "x, v" in ln for ln in logs)
     d = res.initial.to_dict()
     for j, o in enumerate(("x", "v")):

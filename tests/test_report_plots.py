@@ -14,6 +14,7 @@ import pytest
 
 from bondgraph.data.experiments import run_experiment
 from bondgraph.diagnose.loop import LoopSettings, run_loop
+from bondgraph.diagnose.settings import SearchOptions
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.options import FitOptions, UKFOptions
 from bondgraph.inference.prior import PriorSpec
@@ -45,7 +46,7 @@ def record():
 @pytest.fixture(scope="module")
 def loop_result(record):
     """The loop on a record the declared model explains (nothing accepted)."""
-    return run_loop(build("mass_spring_damper"), record, LoopSettings(params=["m", "k", "c"], max_steps=1, structural=False), progress=False)
+    return run_loop(build("mass_spring_damper"), record, LoopSettings(params=["m", "k", "c"], search=SearchOptions(max_steps=1, structural=False)), progress=False)
 
 
 def _texts(fig) -> list[str]:

@@ -36,7 +36,7 @@ def test_case_is_registered_and_its_record_is_the_training_block():
     assert (kind, target) == ("cubic_stiffness", "spring")
     # the noise intensities are estimated with the physical parameters
     assert case.params == ["m", "d", "k", "q_F", "sigma_y"]
-    opts = case.settings["ukf"]
+    opts = case.settings.ukf
     assert (opts.method, opts.substeps, opts.hold) == ("rk4", 1, "linear")
     rec = case.record()
     raw = loadmat(str(DATA / "silverbox" / "SNLS80mV.mat"))

@@ -14,6 +14,7 @@ import sympy as sp
 from bondgraph import BondGraph
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.loop import LoopSettings, run_loop
+from bondgraph.diagnose.settings import SearchOptions
 from bondgraph.inference.prior import UNKNOWN_REL, prior_covariance
 from bondgraph.inference.smoother import rts_smooth
 from bondgraph.inference.ukf import ukf_nll
@@ -102,7 +103,7 @@ def test_loop_free_run_error_is_the_models_not_the_guessed_initial_level(case):
     (held out) against 0.0174 and 0.0184 now."""
     g, m, est, val, sim_val = case
     floor = NOISE / np.std(val.outputs_for(m)[:, 0])
-    res = run_loop(g, est, LoopSettings(params=["C1", "C2", "K1", "K2"], max_steps=0, validation=val))
+    res = run_loop(g, est, LoopSettings(params=["C1", "C2", "K1", "K2"], validation=val, search=SearchOptions(max_steps=0)))
     assert res.initial.metric < 1.5 * NOISE / np.std(est.outputs_for(m)[:, 0])
     assert res.initial.validation_metric < 1.5 * floor
     for k, v in TRUTH.items():
@@ -143,7 +144,7 @@ def test_pump_saturation_found_after_the_additive_candidates_fail():
                                            name=f"sat_{seed}"))
     for threshold in (0.5, None):
         logs = []
-        res = run_loop(tanks(), recs[0], LoopSettings(params=["C1", "C2", "K1", "K2"], validation=recs[1], max_steps=1, structural_threshold=threshold), log=logs.append, progress=False)
+        res = run_loop(tanks(), recs[0], LoopSettings(params=["C1", "C2", "K1", "K2"], validation=recs[1], search=SearchOptions(max_steps=1, structural_threshold=threshold)), log=logs.append, progress=False)
         skipped = any("scoring the structural candidates skipped above" in s for s in logs)
         assert skipped == (threshold is not None)
         (step,) = res.steps

@@ -11,7 +11,7 @@ from bondgraph.numerics.simulate import simulate
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf import ukf_nll
 from vehicle_graphs import build_vehicle
-from vehicle_graphs.analysis import coastdown_road_load, initial_state
+from vehicle_graphs.analysis import PitchModel, coastdown_road_load, initial_state
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +83,8 @@ def test_least_squares_suspension_bias(coast_record, suspension, biased):
     c = coast_record.columns
     est = coastdown_road_load(coast_record.t, c["v_gnss"], c["pitch"], m=P["m"], J_w=P["J_w"],
                               r_dyn=P["r_dyn"], theta_off=P["theta_off"], g=P["g"],
-                              suspension=suspension, h_cg=P["h_cg"], k_theta=P["k_theta"])
+                              pitch_model=PitchModel(suspension, h_cg=P["h_cg"],
+                                                     k_theta=P["k_theta"]))
     e_fr = est["f_r"] / P["f_r"] - 1
     e_cd = est["C_dA"] / P["C_dA"] - 1
     if biased:

@@ -10,7 +10,7 @@ import pytest
 
 from bondgraph.errors import DerivativeCausalityError  # noqa: F401  (hierarchy import check)
 from bondgraph.numerics.model import Model
-from vehicle_graphs import MODELS, build_vehicle
+from vehicle_graphs import MODELS, VehicleEffects, build_vehicle
 from vehicle_graphs.params import DR_DX, PARAMS, RHO
 from vehicle_graphs.subsystems import Numerics
 from bondgraph.core.equations import derive
@@ -214,8 +214,8 @@ POWER_CASES = {
     "vehicle_coastdown": None,
     "vehicle_coastdown_rigid": None,
     "vehicle_coastdown_truth": None,
-    "awd_beltslip_lag_drag": dict(drive="AWD", belt_slip=True, manifold_lag=True,
-                                  brake_drag=True),
+    "awd_beltslip_lag_drag": dict(drive="AWD", effects=VehicleEffects(
+        belt_slip=True, manifold_lag=True, brake_drag=True)),
 }
 
 
@@ -290,10 +290,12 @@ def test_structural_configuration():
     def states(**kw):
         return [s.name for s in derive(build_vehicle("v", **kw)).states]
 
+    fx = VehicleEffects
+
     base = set(states())
     assert set(states(drive="AWD")) - base == {"driveline.q_k_front"}
-    assert set(states(belt_slip=True)) - base == {"cvt.p_J_b"}
-    assert set(states(manifold_lag=True)) - base == {"engine.T_m"}
+    assert set(states(effects=fx(belt_slip=True))) - base == {"cvt.p_J_b"}
+    assert set(states(effects=fx(manifold_lag=True))) - base == {"engine.T_m"}
     neutral = set(states(gear="N"))
     assert base - neutral == {"driveline.q_k_rear"}
     # without shaft compliance the driven wheels and the secondary are lumped
@@ -301,9 +303,9 @@ def test_structural_configuration():
     assert ss.derivative_elements == ["cvt.J_s"]
     assert "driveline.q_k_rear" not in [s.name for s in ss.states]
     # optional effects appear as parameters only when declared
-    g = build_vehicle("v", aero=False, pitch_offset=False)
+    g = build_vehicle("v", effects=fx(aero=False, pitch_offset=False))
     assert "C_dA" not in g.params and "theta_off" not in g.params
-    assert "T_bd" in build_vehicle("v", brake_drag=True).params
+    assert "T_bd" in build_vehicle("v", effects=fx(brake_drag=True)).params
     assert "q_grade" not in build_vehicle("v", grade="input").params
     assert "grade" in build_vehicle("v", grade="input").inputs
 
@@ -312,7 +314,7 @@ def test_structural_configuration():
     (dict(gear="R"), "gear"), (dict(drive="4WD"), "drive"), (dict(wheels="one"), "wheels"),
     (dict(suspension="soft"), "suspension"), (dict(grade="table"), "grade"),
     (dict(wheels="lumped"), "wheels='lumped'"), (dict(powertrain=False), "powertrain=False"),
-    (dict(gear="N", powertrain=False, belt_slip=True), "belt_slip"),
+    (dict(gear="N", powertrain=False, effects=VehicleEffects(belt_slip=True)), "belt_slip"),
 ])
 def test_bad_configuration_is_named(kw, culprit):
     with pytest.raises(ValueError, match=culprit):

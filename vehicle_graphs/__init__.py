@@ -17,7 +17,7 @@ See ``docs/vehicle.md``.
 """
 
 from .subsystems import Numerics  # noqa: F401
-from .vehicle import build_vehicle  # noqa: F401
+from .vehicle import VehicleEffects, build_vehicle  # noqa: F401
 
 #: registered models (``bondgraph generate`` writes ``generated/<name>.py``)
 MODELS: dict[str, str] = {

@@ -8,6 +8,7 @@ vehicle graphs (state names follow :func:`vehicle_graphs.build_vehicle`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -116,10 +117,38 @@ def initial_state(model, theta=None, *, v: float = 0.0, grade: float = 0.0,
 
 
 # --------------------------------------------------------------- coast-down
+@dataclass(frozen=True)
+class PitchModel:
+    """How :func:`coastdown_road_load` reads the grade from the pitch sensor.
+
+    Attributes
+    ----------
+    suspension : {"quasi_static", "rigid"}
+        The suspension approximation (see :func:`coastdown_road_load`).
+    h_cg : float
+        Height of the centre of mass [m].
+    k_theta : float
+        Pitch stiffness of the suspension [N m/rad].
+
+    Raises
+    ------
+    ValueError
+        An unknown ``suspension``.
+    """
+
+    suspension: str = "quasi_static"
+    h_cg: float = 0.6
+    k_theta: float = 1.0e5
+
+    def __post_init__(self):
+        if self.suspension not in ("quasi_static", "rigid"):
+            raise ValueError(f"suspension must be 'quasi_static' or 'rigid', not "
+                             f"{self.suspension!r}")
+
+
 def coastdown_road_load(t: np.ndarray, v: np.ndarray, pitch: np.ndarray, *, m: float,
                         J_w: float, r_dyn: float, theta_off: float = 0.0, g: float = 9.81,
-                        suspension: str = "quasi_static", h_cg: float = 0.6,
-                        k_theta: float = 1.0e5, window: float = 2.0,
+                        pitch_model: PitchModel = PitchModel(), window: float = 2.0,
                         v_min: float = 3.0) -> dict[str, float]:
     """Rolling resistance and drag area from a coast-down record, by linear
     least squares on the road-load equation (SAE J2263 form).
@@ -148,9 +177,11 @@ def coastdown_road_load(t: np.ndarray, v: np.ndarray, pitch: np.ndarray, *, m: f
     ----------
     t, v, pitch : arrays (N,)
         Time [s], GNSS speed [m/s], reported pitch [rad] at a uniform rate.
-    m, J_w, r_dyn, theta_off, g, h_cg, k_theta : float
+    m, J_w, r_dyn, theta_off, g : float
         Known parameters (SI units).
-    suspension : {"quasi_static", "rigid"}
+    pitch_model : PitchModel
+        The suspension approximation, ``h_cg`` and ``k_theta`` (default
+        ``"quasi_static"``, 0.6 m, 1e5 N m/rad).
     window : float
         Smoothing window [s].
     v_min : float
@@ -165,15 +196,14 @@ def coastdown_road_load(t: np.ndarray, v: np.ndarray, pitch: np.ndarray, *, m: f
     Raises
     ------
     ValueError
-        Unknown ``suspension``, arrays of different lengths, or too few
+        Arrays of different lengths, or too few
         samples above ``v_min``.
 
     References
     ----------
     SAE J2263 (coast-down road load); vehicle_physics.md §3.9-3.10.
     """
-    if suspension not in ("quasi_static", "rigid"):
-        raise ValueError(f"suspension must be 'quasi_static' or 'rigid', not {suspension!r}")
+    suspension, h_cg, k_theta = pitch_model.suspension, pitch_model.h_cg, pitch_model.k_theta
     t, v, pitch = (np.asarray(a, dtype=float) for a in (t, v, pitch))
     if not (t.shape == v.shape == pitch.shape):
         raise ValueError(f"t, v and pitch must have one shape (got {t.shape}, {v.shape}, "

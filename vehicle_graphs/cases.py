@@ -15,11 +15,13 @@ import numpy as np
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.cases import LoopCase, TrueEffect, declared_builder, synthesize
 from bondgraph.diagnose.effects import apply_effect
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.inference.prior import PriorSpec
 from bondgraph.numerics.model import Model
 
 from .analysis import initial_state
 from .experiments import TRUE_COASTDOWN, TRUE_DRIVING, steps
-from .vehicle import build_vehicle
+from .vehicle import VehicleEffects, build_vehicle
 
 #: registered cases (``bondgraph.cases`` entry point)
 CASES: dict[str, str] = {
@@ -72,7 +74,7 @@ def coastdown_record(truth: BondGraph, declared: BondGraph, name: str, seed: int
 
 def vehicle_aero_declared() -> BondGraph:
     """Coast-down filter model without aerodynamic drag."""
-    return _vehicle("vehicle_coastdown_noaero", aero=False, **COAST)
+    return _vehicle("vehicle_coastdown_noaero", effects=VehicleEffects(aero=False), **COAST)
 
 
 def vehicle_brake_declared() -> BondGraph:
@@ -82,7 +84,8 @@ def vehicle_brake_declared() -> BondGraph:
 
 def vehicle_pitch_declared() -> BondGraph:
     """Coast-down filter model without the pitch-sensor offset."""
-    return _vehicle("vehicle_coastdown_nooffset", pitch_offset=False, **COAST)
+    return _vehicle("vehicle_coastdown_nooffset", effects=VehicleEffects(pitch_offset=False),
+                    **COAST)
 
 
 def case_aero() -> LoopCase:
@@ -92,10 +95,9 @@ def case_aero() -> LoopCase:
         "filter model has none (the suspect list of the original work: drag leaking into "
         "rolling resistance).",
         declared_builder(vehicle_aero_declared),
-        lambda: coastdown_record(_vehicle("truth_aero", aero=True, **COAST),
+        lambda: coastdown_record(_vehicle("truth_aero", effects=VehicleEffects(aero=True), **COAST),
                                   vehicle_aero_declared(), "coastdown_aero", seed=101),
-        ["f_r", "r_dyn", "theta_off", "q_grade"],
-        {"metric": "nrmse_sim"},
+        LoopSettings(["f_r", "r_dyn", "theta_off", "q_grade"], metric="nrmse_sim"),
         ("quadratic_drag", "body.v"))
 
 
@@ -106,10 +108,11 @@ def case_brake() -> LoopCase:
         "Coast-down record of a vehicle with a residual brake drag torque at the wheels; "
         "rolling resistance known from tire data, drag and dynamic radius estimated.",
         declared_builder(vehicle_brake_declared),
-        lambda: coastdown_record(_vehicle("truth_brake", brake_drag=True, **COAST),
+        lambda: coastdown_record(_vehicle("truth_brake", effects=VehicleEffects(brake_drag=True),
+                                           **COAST),
                                   vehicle_brake_declared(), "coastdown_brake_drag", seed=102),
-        ["C_dA", "r_dyn", "theta_off", "q_grade"],
-        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
+        LoopSettings(["C_dA", "r_dyn", "theta_off", "q_grade"], metric="nrmse_sim",
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         ("coulomb", "wheels.w"))
 
 
@@ -121,8 +124,8 @@ def case_pitch() -> LoopCase:
         declared_builder(vehicle_pitch_declared),
         lambda: coastdown_record(_vehicle("truth_pitch", **COAST), vehicle_pitch_declared(),
                                   "coastdown_pitch_offset", seed=103),
-        ["f_r", "C_dA", "r_dyn", "q_grade"],
-        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}},
+        LoopSettings(["f_r", "C_dA", "r_dyn", "q_grade"], metric="nrmse_sim",
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         ("sensor_offset", "pitch"))
 
 
@@ -178,10 +181,10 @@ def case_slip() -> LoopCase:
         "the secondary sheave; the declared full filter model has a rigid belt.",
         declared_builder(vehicle_slip_declared),
         lambda: driving_record(_vehicle("truth_belt_slip", gear="H", drive="2WD",
-                                         belt_slip=True), vehicle_slip_declared(),
+                                         effects=VehicleEffects(belt_slip=True)), vehicle_slip_declared(),
                                 "throttle_steps_belt_slip", seed=104, c_bs=BELT_CREEP),
-        params,
-        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
+        LoopSettings(params, metric="nrmse_sim", fixed=fixed,
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         ("slip", "cvt.belt.p2 -> cvt.w_s"))
 
 
@@ -219,6 +222,6 @@ def case_engine_saturation() -> LoopCase:
         declared_builder(vehicle_slip_declared),
         lambda: driving_record(engine_saturation_truth(), vehicle_slip_declared(),
                                 "throttle_steps_engine_saturation", seed=105),
-        params,
-        {"metric": "nrmse_sim", "P0_std": {"theta_g": LEVEL_TRACK}, "fixed": fixed},
+        LoopSettings(params, metric="nrmse_sim", fixed=fixed,
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         TrueEffect("actuator_saturation", ENGINE_TORQUE[1], {"L": level}))

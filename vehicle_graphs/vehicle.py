@@ -24,6 +24,8 @@ Registered models (see ``MODELS`` in :mod:`vehicle_graphs`):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import sympy as sp
 
 from bondgraph import BondGraph
@@ -95,11 +97,36 @@ class _LazyParams(dict):
 GEARS = ("L", "H", "N")
 
 
+@dataclass(frozen=True)
+class VehicleEffects:
+    """The physical effects a vehicle graph has or lacks (truth models of
+    synthetic tests have some that the filter models lack).
+
+    Attributes
+    ----------
+    aero : bool
+        Aerodynamic drag R on the body.
+    brake_drag : bool
+        Residual brake drag torque T_bd per wheel (truth effect).
+    pitch_offset : bool
+        The pitch sensor has a fixed mounting offset theta_off.
+    belt_slip : bool
+        Creep law between belt and secondary sheave (truth effect).
+    manifold_lag : bool
+        First-order manifold torque lag state.
+    """
+
+    aero: bool = True
+    brake_drag: bool = False
+    pitch_offset: bool = True
+    belt_slip: bool = False
+    manifold_lag: bool = False
+
+
 def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
                   powertrain: bool = True, wheels: str = "axles",
                   suspension: str = "dynamic", shaft_compliance: bool = True,
-                  aero: bool = True, brake_drag: bool = False, pitch_offset: bool = True,
-                  belt_slip: bool = False, manifold_lag: bool = False, grade: str = "state",
+                  effects: VehicleEffects = VehicleEffects(), grade: str = "state",
                   numerics: Numerics = Numerics(), description: str | None = None,
                   process_noise: dict[str, float] | None = None) -> BondGraph:
     """Build the vehicle's bond graph.
@@ -131,16 +158,9 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
     shaft_compliance : bool
         Half-shaft compliance (C with R) per driven axle; without it SCAP
         lumps secondary, gearbox and driven wheels into one inertia.
-    aero : bool
-        Aerodynamic drag R on the body.
-    brake_drag : bool
-        Residual brake drag torque T_bd per wheel (truth effect).
-    pitch_offset : bool
-        The pitch sensor has a fixed mounting offset theta_off.
-    belt_slip : bool
-        Creep law between belt and secondary sheave (truth effect).
-    manifold_lag : bool
-        First-order manifold torque lag state.
+    effects : VehicleEffects
+        Aerodynamic drag, brake drag, pitch-sensor offset, belt slip,
+        manifold lag (default: drag and the offset).
     grade : {"state", "input"}
         Road grade as a random-walk state theta_g (filter models; intensity
         q_grade) or as an input ``grade`` [rad] (truth models with a grade
@@ -165,9 +185,10 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
         argument).
     """
     config = dict(gear=gear, drive=drive, powertrain=powertrain, wheels=wheels,
-                  suspension=suspension, shaft_compliance=shaft_compliance, aero=aero,
-                  brake_drag=brake_drag, pitch_offset=pitch_offset, belt_slip=belt_slip,
-                  manifold_lag=manifold_lag, grade=grade)
+                  suspension=suspension, shaft_compliance=shaft_compliance,
+                  aero=effects.aero, brake_drag=effects.brake_drag,
+                  pitch_offset=effects.pitch_offset, belt_slip=effects.belt_slip,
+                  manifold_lag=effects.manifold_lag, grade=grade)
     _check_config(config)
     g = _new_graph(name, description, config, numerics)
     _assemble(g, config, numerics, process_noise)

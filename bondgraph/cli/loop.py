@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 
 import numpy as np
 from pathlib import Path
@@ -32,7 +33,12 @@ from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.fit import loop_problem, model_of
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.runner import held_out
-from bondgraph.diagnose.settings import DEFAULT_HOLDOUT, LoopSettings
+from bondgraph.diagnose.settings import (
+    DEFAULT_HOLDOUT,
+    AcceptRule,
+    LoopSettings,
+    SearchOptions,
+)
 from bondgraph.errors import ModelError, OptionError, UsageError
 from bondgraph.inference.estimand import x0_state_names
 from bondgraph.inference.options import UKFOptions
@@ -170,17 +176,30 @@ def loop_states(graph, text: str) -> list[str]:
     return x0_state_names(states, names)
 
 
-#: loop options whose names the command line spells differently
-_OPTION_NAMES = {"p0_rel": "--p0-rel", "p0_scale": "--p0", "x0_overrides": "--x0",
-                 "estimate_x0": "--estimate-x0", "validation": "--validate",
-                 "structural": "--no-structural"}
+#: the loop's options as the command line spells them (an error of a group's
+#: validation names the option the user typed)
+_OPTION_NAMES = {"LoopSettings.metric": "--metric", "LoopSettings.noise": "--noise",
+                 "LoopSettings.holdout": "--holdout", "LoopSettings.validation": "--validate",
+                 "AcceptRule.criterion": "--criterion",
+                 "AcceptRule.significance": "--significance",
+                 "AcceptRule.metric_tolerance": "--metric-tolerance",
+                 "SearchOptions.max_steps": "--max-steps", "SearchOptions.fit": "--fit",
+                 "SearchOptions.structural": "--no-structural",
+                 "SearchOptions.on_failed_fit": "--keep-going",
+                 "PriorSpec.rel (--p0-rel)": "--p0-rel", "PriorSpec.scale (--p0)": "--p0",
+                 "Evaluation.workers": "--workers", "Evaluation.scheduler": "--scheduler"}
+
+
+def _given(value, default):
+    """``value`` when the command line gives it (not None), else ``default``."""
+    return default if value is None else value
 
 
 def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     """The loop's options: ``base`` (the case's own, or the defaults for
-    ``--model``/``--data``) with what the command line gives, validated
-    once; an error names the option as typed (``--max-steps``, not
-    ``LoopSettings.max_steps``).
+    ``--model``/``--data``) with what the command line gives, each group
+    built once from the options and validated there; an error names the
+    option as typed (``--max-steps``, not ``SearchOptions.max_steps``).
 
     Raises
     ------
@@ -189,53 +208,52 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     ModelError
         A state or parameter the graph does not have.
     """
-    given = dict(command_options(args, base, graph))
-    if args.model and not args.validate and args.holdout is None:
-        given["holdout"] = DEFAULT_HOLDOUT
+    fixed = parse_pairs(args.fixed, "--fixed")
+    x0 = parse_pairs(args.x0, "--x0")
+    states = loop_states(graph, args.estimate_x0) if args.estimate_x0 else base.estimate_x0
+    validation = load_record(args.validate, graph) if args.validate else base.validation
+    holdout = args.holdout
+    if args.model and not args.validate and holdout is None:
+        holdout = DEFAULT_HOLDOUT
+    given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
+             if getattr(args, k) is not None}
+    ukf = ukf_replaced(base.ukf, given, args.backend)
     try:
-        return dataclasses.replace(base, **given)
+        return dataclasses.replace(
+            base, fixed={**base.fixed, **fixed} if fixed else base.fixed,
+            estimate_x0=states, metric=_given(args.metric, base.metric),
+            noise=_given(args.noise, base.noise), validation=validation,
+            holdout=_given(None if holdout is None else float(holdout), base.holdout),
+            accept=accept_rule(args, base.accept), search=search_options(args, base.search),
+            prior=dataclasses.replace(
+                base.prior, x0_set=x0 or base.prior.x0_set,
+                rel=_given(None if args.p0_rel is None else float(args.p0_rel), base.prior.rel),
+                scale=_given(args.p0, base.prior.scale)),
+            ukf=ukf, evaluation=dataclasses.replace(base.evaluation, workers=args.workers,
+                                                    scheduler=args.scheduler))
     except OptionError as exc:
         text = str(exc)
-        for key in sorted(given, key=len, reverse=True):
-            flag = _OPTION_NAMES.get(key, "--" + key.replace("_", "-"))
-            text = text.replace(f"LoopSettings.{key}", flag)
+        for key in sorted(_OPTION_NAMES, key=len, reverse=True):
+            text = re.sub(re.escape(key) + r"(?!\w)", _OPTION_NAMES[key], text)
         raise OptionError(text) from exc
 
 
-def command_options(args, base: LoopSettings, graph):
-    """``(field, value)`` of every loop option the command line gives
-    (typed values: numbers, names, a :class:`UKFOptions`, a record)."""
-    for key in ("metric", "max_steps", "significance", "fit", "noise"):
-        if getattr(args, key) is not None:
-            yield key, getattr(args, key)
-    yield "criterion", args.criterion
-    if args.no_structural:
-        yield "structural", False
-    if args.keep_going:
-        yield "on_failed_fit", "continue"
-    fixed = parse_pairs(args.fixed, "--fixed")
-    if fixed:
-        yield "fixed", {**base.fixed, **fixed}
-    x0 = parse_pairs(args.x0, "--x0")
-    if x0:
-        yield "x0_overrides", x0
-    if args.p0_rel is not None:
-        yield "p0_rel", float(args.p0_rel)
-    if args.p0 is not None:
-        yield "p0_scale", args.p0
-    if args.estimate_x0:
-        yield "estimate_x0", loop_states(graph, args.estimate_x0)
-    given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
-             if getattr(args, k) is not None}
-    yield "ukf", ukf_replaced(base.ukf, given, args.backend)
-    if args.validate:
-        yield "validation", load_record(args.validate, graph)   # misspelt columns warned
-    if args.holdout is not None:
-        yield "holdout", float(args.holdout)
-    if args.metric_tolerance is not None:
-        yield "metric_tolerance", float(args.metric_tolerance)
-    yield "workers", args.workers
-    yield "scheduler", args.scheduler
+def accept_rule(args, base: AcceptRule) -> AcceptRule:
+    """``base`` with ``--criterion``, ``--significance``, ``--metric-tolerance``
+    where given (validated by :class:`AcceptRule`)."""
+    tolerance = None if args.metric_tolerance is None else float(args.metric_tolerance)
+    return dataclasses.replace(base, criterion=args.criterion,
+                               significance=_given(args.significance, base.significance),
+                               metric_tolerance=_given(tolerance, base.metric_tolerance))
+
+
+def search_options(args, base: SearchOptions) -> SearchOptions:
+    """``base`` with ``--max-steps``, ``--fit``, ``--no-structural`` and
+    ``--keep-going`` where given (validated by :class:`SearchOptions`)."""
+    return dataclasses.replace(
+        base, max_steps=_given(args.max_steps, base.max_steps), fit=_given(args.fit, base.fit),
+        structural=False if args.no_structural else base.structural,
+        on_failed_fit="continue" if args.keep_going else base.on_failed_fit)
 
 
 def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings:
@@ -259,8 +277,10 @@ def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings
                                 say=lambda line: print("bondgraph loop: " + line, flush=True))
     d = problem.disc
     ukf = dataclasses.replace(settings.ukf, method=d.method, substeps=d.substeps, hold=d.hold)
-    hold = d.hold if d.hold in ("zoh", "linear") else settings.sim_hold
-    return dataclasses.replace(settings, ukf=ukf, auto_substeps=True, sim_hold=hold)
+    hold = d.hold if d.hold in ("zoh", "linear") else settings.free_run.hold
+    return dataclasses.replace(settings, ukf=ukf,
+                               search=dataclasses.replace(settings.search, auto_substeps=True),
+                               free_run=dataclasses.replace(settings.free_run, hold=hold))
 
 
 def ukf_replaced(base: UKFOptions, given: dict, backend: str) -> UKFOptions:

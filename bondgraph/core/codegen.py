@@ -486,11 +486,13 @@ def generate_source(ss: StateSpace, *, source: str | None = None,
     return _Gen(ss, source=source, command=command).module(functions)
 
 
-def write_module(ss: StateSpace, path: str | Path, **kw) -> Path:
-    """Generate and write ``path``; returns the path."""
+def write_module(ss: StateSpace, path: str | Path, *, source: str | None = None,
+                 command: str = "bondgraph generate", functions=ALL_FUNCTIONS) -> Path:
+    """Generate (:func:`generate_source`, the same options) and write
+    ``path``; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(generate_source(ss, **kw))
+    path.write_text(generate_source(ss, source=source, command=command, functions=functions))
     return path
 
 

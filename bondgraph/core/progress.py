@@ -41,10 +41,11 @@ def is_enabled() -> bool:
     return _ENABLED.get()
 
 
-def long_range(total: int, desc: str, unit: str = "sample", **kw):
-    """``range(total)`` with a :class:`LongPass` bar; the bar is removed when
-    the loop ends or is left (``break``)."""
-    bar = LongPass(total, desc, unit, **kw)
+def long_range(total: int, desc: str, unit: str = "sample", *, delay: float = 2.0,
+               every: int = 64):
+    """``range(total)`` with a :class:`LongPass` bar (``delay``, ``every``:
+    its options); the bar is removed when the loop ends or is left (``break``)."""
+    bar = LongPass(total, desc, unit, delay=delay, every=every)
     try:
         for k in range(int(total)):
             bar.step(k)

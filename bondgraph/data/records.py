@@ -498,9 +498,10 @@ class _Columns:
         info["t"] = {"unit": "s", "role": "time"}
 
 
-def load(path: str | Path, **kw) -> Experiment:
-    """Shortcut for :meth:`Experiment.load`."""
-    return Experiment.load(path, **kw)
+def load(path: str | Path, *, allow_missing: bool = True,
+         gap_factor: float | None = GAP_FACTOR) -> Experiment:
+    """Shortcut for :meth:`Experiment.load` (the same options)."""
+    return Experiment.load(path, allow_missing=allow_missing, gap_factor=gap_factor)
 
 
 __all__ = ["Experiment", "load"]

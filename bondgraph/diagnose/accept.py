@@ -19,13 +19,13 @@ A candidate is accepted when, after re-estimating all parameters,
 2. the information criterion (AIC, Akaike 1974, or BIC, Schwarz 1978)
    decreases;
 3. the likelihood-ratio test passes: LR = 2 (NLL₀ − NLL₁) has p < the
-   loop's ``significance`` under χ²(k), k the effect's new parameters
+   loop's ``accept.significance`` under χ²(k), k the effect's new parameters
    (Wilks 1938);
 4. the free-run error (on the validation record if there is one, else on
-   the record) does not grow by more than the factor ``metric_tolerance``
+   the record) does not grow by more than the factor ``accept.metric_tolerance``
    (1.0: it may not rise);
 5. the decrease of that free-run error exceeds its own sampling
-   uncertainty (``error_level``, default 0.05; None: no such test): a
+   uncertainty (``accept.error_level``, default 0.05; None: no such test): a
    one-sided Diebold-Mariano test (Diebold & Mariano 1995) on the paired
    per-sample differences of the squared standardised free-run errors,
    d_t = Σ_i (e0_ti² − e1_ti²), with the long-run variance of d̄ by
@@ -40,7 +40,7 @@ polynomial, a gain) the rest, with an LR that is significant although
 nothing is missing (a record simulated from the declared graph: ROS2 x 2
 puts the best of 21 candidates near or past the Bonferroni threshold on 3 of
 4 noise seeds, RK4 x 10 on none). The free-run error is simulated by an
-accurate solver (``sim_method``), so an effect that only fits the filter's
+accurate solver (``free_run.method``), so an effect that only fits the filter's
 discretisation error, or the noise, leaves it unchanged within its
 uncertainty (0.02513 -> 0.02506 in that case: z 1.26, p 0.10), whereas a missing
 effect lowers it by many standard errors (the saturating engine torque of
@@ -65,7 +65,7 @@ from scipy.stats import chi2, norm
 from bondgraph.diagnose.effects import BY_NAME, Effect
 from bondgraph.diagnose.fit import Fit
 from bondgraph.diagnose.result import AppliedEffect, Candidate, Rejection, Step
-from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import AcceptRule
 from bondgraph.numerics.admissible import Admissibility
 
 
@@ -268,7 +268,7 @@ class Decision:
     error_p_value: float = float("nan")
 
 
-def decide(current: Fit, after: Fit, settings: LoopSettings, dof: int = 1,
+def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
            admissible: Admissibility | None = None, comparable: bool = True) -> Decision:
     """Compare the candidate's refit ``after`` (``dof`` new parameters) with
     the ``current`` fit (module docstring for the rule).
@@ -276,7 +276,8 @@ def decide(current: Fit, after: Fit, settings: LoopSettings, dof: int = 1,
     Parameters
     ----------
     current, after : Fit
-    settings : LoopSettings
+    rule : AcceptRule
+        The loop's accept rule (``LoopSettings.accept``).
     dof : int
         The candidate's new parameters.
     admissible : Admissibility, optional
@@ -300,7 +301,7 @@ def decide(current: Fit, after: Fit, settings: LoopSettings, dof: int = 1,
         (:func:`error_decrease_test`; NaN when either fit lacks per-sample
         errors).
     """
-    ic0, ic1 = current.information(settings.criterion), after.information(settings.criterion)
+    ic0, ic1 = current.information(rule.criterion), after.information(rule.criterion)
     w0, w1 = current.residuals.whiteness, after.residuals.whiteness
     e0, e1 = current.accept_metric, after.accept_metric
     lr = 2.0 * (current.nll - after.nll)
@@ -310,7 +311,7 @@ def decide(current: Fit, after: Fit, settings: LoopSettings, dof: int = 1,
     a0, a1 = getattr(current, "accept_errors", None), getattr(after, "accept_errors", None)
     if a0 is not None and a1 is not None and a0.shape == a1.shape:
         dz, dp = error_decrease_test(a0, a1)
-    level = getattr(settings, "error_level", None)
+    level = rule.error_level
     reason = None
     unstable = getattr(after, "unstable", None)
     finite = [v for v in (after.nll, e1, after.metric, after.validation_metric) if v is not None]
@@ -328,9 +329,9 @@ def decide(current: Fit, after: Fit, settings: LoopSettings, dof: int = 1,
                   f"{after.metric:.4g}{val})")
     elif not ic1 < ic0:
         reason = "information criterion did not improve"
-    elif not p < settings.significance:
+    elif not p < rule.significance:
         reason = f"likelihood-ratio test not passed (LR {lr:.3g}, p {p:.2g})"
-    elif np.isfinite(e0) and not e1 <= settings.metric_tolerance * e0:
+    elif np.isfinite(e0) and not e1 <= rule.metric_tolerance * e0:
         reason = f"the error grew{where} ({e0:.4g} -> {e1:.4g})"
     elif level is not None and np.isfinite(dp) and not dp < level:
         reason = (f"the error decrease{where} is within its uncertainty ({e0:.4g} -> "
@@ -406,13 +407,13 @@ def rejection(step: int, cand: Candidate, d: Decision) -> Rejection:
     return Rejection(step, cand, d.reason, d.criterion_after, d.whiteness_after)
 
 
-def confirmed_record(current: Fit, after: Fit, dof: int, values: dict, settings: LoopSettings,
+def confirmed_record(current: Fit, after: Fit, dof: int, values: dict, rule: AcceptRule,
                      d: Decision | None = None) -> dict:
     """What report.json keeps of a candidate's confirmation refit
     (:attr:`bondgraph.diagnose.result.Candidate.confirmed`)."""
     lr = 2.0 * (current.nll - after.nll)
     rec = {"lr": lr, "dof": dof, "p_value": float(chi2.sf(lr, max(dof, 1))),
-           "nll": after.nll, "criterion": after.information(settings.criterion),
+           "nll": after.nll, "criterion": after.information(rule.criterion),
            "error": after.metric, "validation_error": after.validation_metric,
            "whiteness": after.residuals.whiteness, "values": dict(values),
            "converged": after.converged, "iterations": after.iterations,

@@ -16,7 +16,7 @@ vehicle's in ``vehicle_graphs.cases``.
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -24,7 +24,7 @@ import numpy as np
 from bondgraph.core import plugins
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
-from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import LoopSettings, TrueEffect
 from bondgraph.errors import ModelError, OptionError
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import METHODS, simulate
@@ -46,65 +46,46 @@ def declared_builder(fn: Callable[[], BondGraph]) -> Callable[[], BondGraph]:
     return make
 
 
-@dataclass(frozen=True)
-class TrueEffect:
-    """The effect a synthetic case's truth has: the declared graph plus
-    effect ``kind`` (a name of :mod:`bondgraph.diagnose.effects`) at
-    ``target`` (a target name) with parameter ``values`` (by the effect's
-    local parameter names). Unpacks as ``(kind, target)``."""
-
-    kind: str
-    target: str
-    values: dict = field(default_factory=dict)
-
-    def __iter__(self):
-        return iter((self.kind, self.target))
-
-    @property
-    def label(self) -> str:
-        """``"kind @ target"``, as a candidate's label."""
-        return f"{self.kind} @ {self.target}"
-
-    def to_dict(self) -> dict:
-        """JSON-ready: kind, target, values."""
-        return {"kind": self.kind, "target": self.target, "values": dict(self.values)}
-
-
 @dataclass
 class LoopCase:
-    """A declared model, a record, the parameters to estimate, loop settings,
-    and (for synthetic cases) the effect the truth has (a :class:`TrueEffect`;
-    a ``(kind, target)`` tuple is converted)."""
+    """A declared model, a record, the loop's options (a
+    :class:`~bondgraph.diagnose.settings.LoopSettings`, its ``params`` the
+    parameters to estimate), and (for synthetic cases) the effect the truth
+    has (a :class:`TrueEffect`; a ``(kind, target)`` tuple is converted).
+
+    Raises
+    ------
+    OptionError
+        ``settings`` is not a :class:`LoopSettings`.
+    """
 
     name: str
     description: str
     declared: Callable[[], BondGraph]
     record: Callable[[], Any]
-    params: list[str]
-    settings: dict = field(default_factory=dict)
+    settings: LoopSettings
     true_effect: TrueEffect | None = None
 
     def __post_init__(self):
+        if not isinstance(self.settings, LoopSettings):
+            raise OptionError(f"case '{self.name}': settings must be a LoopSettings, got "
+                              f"{type(self.settings).__name__}")
         if self.true_effect is not None and not isinstance(self.true_effect, TrueEffect):
             self.true_effect = TrueEffect(*self.true_effect)
+
+    @property
+    def params(self) -> list[str]:
+        """The parameters the case estimates (``settings.params``)."""
+        return list(self.settings.params)
 
     def loop_settings(self, params: list[str] | None = None) -> LoopSettings:
         """The case's loop options (:class:`~bondgraph.diagnose.settings.LoopSettings`):
         its declared settings, its parameters (or ``params``) and its true
-        effect (synthetic cases: the result records its rank).
-
-        Raises
-        ------
-        OptionError
-            A setting the loop does not have, or a bad value.
-        """
-        extra = {} if self.true_effect is None else {"true_effect": self.true_effect}
-        unknown = sorted(set(self.settings) - {f.name for f in fields(LoopSettings)})
-        if unknown:
-            raise OptionError(f"case '{self.name}' declares unknown loop setting(s) "
-                              f"{', '.join(unknown)}")
-        return LoopSettings(params=list(self.params if params is None else params),
-                            **{**self.settings, **extra})
+        effect (synthetic cases: the result records its rank)."""
+        return replace(self.settings,
+                       params=list(self.settings.params if params is None else params),
+                       true_effect=(self.settings.true_effect if self.true_effect is None
+                                    else self.true_effect))
 
 
 @dataclass(frozen=True)

@@ -80,8 +80,8 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
         # all parameters re-adjust (the nuisance ones absorbed part of the
         # missing effect): the confirmed fit is the candidate's final fit
         fits = [fit_model(ctx, g, list(fit.params) + new, s0, f"confirming {cand.label}",
-                          model=model, iterations=ctx.settings.confirm_iterations,
-                          tolerance=ctx.settings.confirm_tolerance)
+                          model=model, iterations=ctx.settings.search.confirm_iterations,
+                          tolerance=ctx.settings.search.confirm_tolerance)
                 for s0 in starts]
         f1 = min(fits, key=lambda f: f.nll if np.isfinite(f.nll) else np.inf)
         f1 = continued(ctx, g, f1, cand.label)
@@ -115,8 +115,8 @@ def continued(ctx: Context, graph, fit: Fit, label: str) -> Fit:
         try:
             nxt = fit_model(ctx, graph, list(fit.params), fit.estimates(),
                             f"continuing {label}", model=fit.model,
-                            iterations=ctx.settings.confirm_iterations,
-                            tolerance=ctx.settings.confirm_tolerance)
+                            iterations=ctx.settings.search.confirm_iterations,
+                            tolerance=ctx.settings.search.confirm_tolerance)
         except BondGraphError as exc:
             ctx.log(f"  continuing {label} failed: {str(exc).splitlines()[0]}")
             break
@@ -162,8 +162,8 @@ def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
     try:
         model = model_of(g)
         f1 = fit_model(ctx, g, list(fit.params) + new, start, f"confirming {label}",
-                       model=model, iterations=ctx.settings.confirm_iterations,
-                       tolerance=ctx.settings.confirm_tolerance)
+                       model=model, iterations=ctx.settings.search.confirm_iterations,
+                       tolerance=ctx.settings.search.confirm_tolerance)
         f1 = continued(ctx, g, f1, label)
     except BondGraphError as exc:
         ctx.log(f"  confirmation of {label} failed: {str(exc).splitlines()[0]}")

@@ -22,7 +22,6 @@ from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
     NOISE_BOX,
     NoiseSpec,
-    PriorSpec,
     Problem,
     fisher_fit,
     hessian_cramer_rao,
@@ -51,8 +50,9 @@ CANDIDATE_FUNCTIONS = ("f", "h", "dfdx", "f_dfdx")
 LAZY_FUNCTIONS = ("dfdx", "f_dfdx")
 
 
-class Record:
-    """The measured record, resolved for one model at a time.
+class MetricRecord:
+    """The measured record as a user metric sees it (``metric(fit, data)``,
+    ``data`` this view), resolved for one model at a time.
 
     Attributes
     ----------
@@ -98,9 +98,9 @@ class Context:
     executor: Any = None
 
     @property
-    def record(self) -> Record:
-        """The estimation record as a user metric sees it (:class:`Record`)."""
-        return Record(self.problem.record)
+    def record(self) -> MetricRecord:
+        """The estimation record as a user metric sees it (:class:`MetricRecord`)."""
+        return MetricRecord(self.problem.record)
 
     @classmethod
     def on(cls, experiment, settings: LoopSettings, model: Model,
@@ -203,22 +203,13 @@ def model_of(graph: BondGraph) -> Model:
                             lazy=LAZY_FUNCTIONS)
 
 
-def loop_prior(settings: LoopSettings) -> PriorSpec:
-    """The prior's specification from the loop's options: ``x0`` (a whole
-    prior mean), ``x0_overrides`` (``--x0``), ``P0``, ``P0_std``, ``p0_rel``
-    (default :data:`~bondgraph.inference.options.P0_REL`) and ``p0_scale``."""
-    kw = {} if settings.p0_rel is None else {"rel": float(settings.p0_rel)}
-    return PriorSpec(scale=settings.p0_scale, x0=settings.x0, x0_set=settings.x0_overrides,
-                     P0=settings.P0, x0_std=settings.P0_std, **kw)
-
-
 def loop_problem(model: Model, experiment, settings: LoopSettings,
                  noise: NoiseSpec | None = None) -> Problem:
     """The declared model bound to the estimation record with the loop's
     prior, noise levels, fixed values and filter options
     (:func:`bondgraph.inference.problem.make_problem`; inputs the record
     lacks at the model's defaults)."""
-    return make_problem(model, experiment, prior=loop_prior(settings),
+    return make_problem(model, experiment, prior=settings.prior,
                         noise=NoiseSpec(settings.noise) if noise is None else noise,
                         ukf=settings.ukf, fixed=settings.fixed, defaults_ok=True)
 
@@ -315,8 +306,8 @@ def planned_noise(problem: Problem, settings: LoopSettings,
 def criterion_for(ctx: Context, model: Model, names: Sequence[str], base: np.ndarray):
     """Batched NLL of ``names`` (others at ``base`` (n_theta,)) on the record,
     with the loop's prior, held noise levels and UKF options
-    (:func:`problem_for`), ``settings.chunk`` sets per UKF run."""
-    return make_criterion(problem_for(ctx, model), names, base, ctx.settings.chunk)
+    (:func:`problem_for`), ``settings.evaluation.chunk`` sets per UKF run."""
+    return make_criterion(problem_for(ctx, model), names, base, ctx.settings.evaluation.chunk)
 
 
 def bounds_around(model: Model, names: Sequence[str], theta: np.ndarray):
@@ -397,7 +388,7 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     model : Model, optional
         ``graph``'s generated model, if already built.
     iterations : int, optional
-        Maximum Fisher-scoring iterations (default ``settings.fit_iterations``;
+        Maximum Fisher-scoring iterations (default ``settings.search.fit_iterations``;
         0: evaluate at the start).
     tolerance : float
         Convergence of the scoring [nats] (:func:`~bondgraph.diagnose.inference_calls.fisher_fit`).
@@ -422,7 +413,7 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
             theta[model.param_index(k)] = v
     params = [p for p in params if p in model.params]
     theta = clip_into_box(ctx, model, params, theta, what)
-    iters = ctx.settings.fit_iterations if iterations is None else int(iterations)
+    iters = ctx.settings.search.fit_iterations if iterations is None else int(iterations)
     std: dict = {}
     conv: tuple = (None, None)
     x0_est = {s: pb.prior.estimated[s] for s in x0_states(ctx, model) if s in pb.prior.estimated}
@@ -492,7 +483,7 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
                 {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
         ctx.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
-        crit = make_criterion(problem, params, theta, ctx.settings.chunk)
+        crit = make_criterion(problem, params, theta, ctx.settings.evaluation.chunk)
         xs = np.array([theta[model.param_index(n)] for n in params])
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
         return crit.theta(x[None, :])[0], {}, (None, None), {}, {}
@@ -519,7 +510,7 @@ def evaluate_fit(ctx: Context, problem: Problem, graph: BondGraph, params: list[
     rep = analyze(res, model, *problem.arrays, sim_y=sim_y)
     fit = Fit(graph, model, list(params), theta, nll, res, rep, float("nan"), sim_y,
               std=std, n_obs=int(res.n_obs.sum()))
-    record = Record(problem.record)
+    record = MetricRecord(problem.record)
     fit.metric = compute_metric(ctx.settings, fit, record)
     fit.sim_errors = metric_errors(ctx.settings, fit, record)
     trouble = free_run_trouble(sim_y, problem.arrays[2], model.outputs)
@@ -544,7 +535,7 @@ def validation_run(ctx: Context, problem: Problem,
         return float("inf"), None, f"the filter fails ({res.reasons[0]})"
     sim_y = free_run(ctx, vp, theta, own=False)
     view = SimpleNamespace(model=vp.model, theta=theta, ukf=res, sim_y=sim_y)
-    rec = Record(vp.record)
+    rec = MetricRecord(vp.record)
     return (compute_metric(ctx.settings, view, rec), metric_errors(ctx.settings, view, rec),
             free_run_trouble(sim_y, vp.arrays[2], vp.model.outputs))
 
@@ -644,12 +635,12 @@ def admissibility(ctx: Context, fit: Fit) -> Admissibility:
 
 def sim_inputs(settings: LoopSettings, filter_hold: str, u: np.ndarray) -> tuple[str, np.ndarray]:
     """The input hold of the free-run simulations and the inputs (N, n_u) it
-    holds: ``settings.sim_hold`` (``"linear"`` or ``"zoh"``), or with
+    holds: ``settings.free_run.hold`` (``"linear"`` or ``"zoh"``), or with
     ``"filter"`` the filter's own hold (``filter_hold``; its ``"mean"``
     hold, (u_k + u_k+1)/2 over each interval, is the zero-order hold of the
     interval means, the last sample held), so that the free run sees the
     inputs between samples as the likelihood fit did."""
-    hold = settings.sim_hold if settings.sim_hold != "filter" else filter_hold
+    hold = settings.free_run.hold if settings.free_run.hold != "filter" else filter_hold
     if hold != "mean":
         return hold, u
     um = u.copy()
@@ -661,7 +652,7 @@ def sim_inputs(settings: LoopSettings, filter_hold: str, u: np.ndarray) -> tuple
 def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
              own: bool = True) -> np.ndarray | None:
     """Free-run simulation (N, n_y) of ``problem``'s record with the measured
-    inputs (``settings.sim_method``, rtol 1e-6, atol 1e-9, the input hold of
+    inputs (``settings.free_run.method``, rtol 1e-6, atol 1e-9, the input hold of
     :func:`sim_inputs`) from its prior mean (state columns, sidecar ``x0``,
     ``--x0``, the jointly estimated initial states), or, when the record
     does not give some initial states (:meth:`PriorSpec.unknown`; on the
@@ -681,7 +672,8 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sim = simulate(model, t, u_sim, x0=x0, theta=theta, method=ctx.settings.sim_method,
+            sim = simulate(model, t, u_sim, x0=x0, theta=theta,
+                           method=ctx.settings.free_run.method,
                            rtol=1e-6, atol=1e-9, hold=hold)
         return sim.y
     except Exception as exc:  # a model that cannot be simulated freely

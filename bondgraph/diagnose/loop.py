@@ -46,7 +46,8 @@ the initial fit and after every step; the report writer
 
 Where each part lives
 ---------------------
-* :mod:`~bondgraph.diagnose.settings` -- :class:`LoopSettings`.
+* :mod:`~bondgraph.diagnose.settings` -- :class:`LoopSettings` and its groups
+  (:class:`AcceptRule`, :class:`SearchOptions`, :class:`FreeRunOptions`).
 * :mod:`~bondgraph.diagnose.runner` -- :func:`run_loop`, the orchestration and its log.
 * :mod:`~bondgraph.diagnose.fit` -- the fit of one model (step 1), the UKF prior.
 * :mod:`~bondgraph.diagnose.metric` -- the error reported before and after.
@@ -70,6 +71,7 @@ statistical model identification. IEEE TAC 19(6), 716-723. Ljung & Box
 
 from bondgraph.diagnose.result import Candidate, LoopResult, Step
 from bondgraph.diagnose.runner import run_loop
-from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.diagnose.settings import AcceptRule, FreeRunOptions, LoopSettings, SearchOptions
 
-__all__ = ["Candidate", "LoopResult", "LoopSettings", "Step", "run_loop"]
+__all__ = ["AcceptRule", "Candidate", "FreeRunOptions", "LoopResult", "LoopSettings",
+           "SearchOptions", "Step", "run_loop"]

@@ -36,8 +36,8 @@ def compute_metric(settings: LoopSettings, fit, record) -> float:
         (RMS of the one-step innovations), or ``metric(fit, record)``.
     fit : Fit
         Needs ``model``, ``ukf`` (stored run) and ``sim_y`` (N, n_y) or None.
-    record : Record
-        The measured record (:class:`bondgraph.diagnose.fit.Record`).
+    record : MetricRecord
+        The measured record (:class:`bondgraph.diagnose.fit.MetricRecord`).
 
     Returns
     -------

@@ -64,7 +64,7 @@ class Candidate:
         (``Effect.limits``); marked equivalent to them once all are scored.
     tied : list of str
         Confirmed candidates whose refits the record cannot tell from this
-        one's, the confirmed lead's (Vuong's test at ``settings.tie_level``,
+        one's, the confirmed lead's (Vuong's test at ``settings.accept.tie_level``,
         :func:`bondgraph.diagnose.accept.vuong_test`; each one's ``confirmed``
         holds ``tie_z`` and ``tie_p``).
     confirmed : dict or None

@@ -122,7 +122,8 @@ def run_loop(graph: BondGraph, experiment, settings: LoopSettings, *,
     problem = loop_problem(model_of(graph), experiment, s)
     add, noise = planned_noise(problem, s, stamped)
     ctx = Context(replace(problem, noise=noise), replace(s, params=list(s.params) + add),
-                  stamped, progress, executor=make_executor(s.workers, s.scheduler))
+                  stamped, progress, executor=make_executor(s.evaluation.workers,
+                                                           s.evaluation.scheduler))
     try:
         return _run(ctx, graph, t0, on_update)
     finally:
@@ -137,7 +138,7 @@ def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) 
     publish(ctx, result, initial, initial, on_update)
     current = initial
     condition_on(ctx, initial)
-    for step in range(1, s.max_steps + 1):
+    for step in range(1, s.search.max_steps + 1):
         current, outcome = run_step(ctx, result, current, step, graph.name)
         condition_on(ctx, current)
         if outcome == NOTHING_SIGNIFICANT:
@@ -179,7 +180,8 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit,
     of the declared graph, the true effect if known, and the warnings (the
     discretisation check's ``warn``, estimates on a bound)."""
     s = ctx.settings
-    result = LoopResult(graph.name, graph.source, ctx.problem.name, metric_name(s), s.criterion,
+    result = LoopResult(graph.name, graph.source, ctx.problem.name, metric_name(s),
+                        s.accept.criterion,
                         settings_summary(ctx))
     result.declared_graph = graph.copy(graph.name)
     te = s.true_effect
@@ -249,11 +251,11 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
                 "conditioned. Declare process noise (g.set_process_noise) on the states "
                 "where forces are unmodelled, ideally as an estimated parameter.")
     first = list(s.params) if s.initial_params is None else list(s.initial_params)
-    start = sim_start(ctx, graph, first) if s.fit == "sim" else None
+    start = sim_start(ctx, graph, first) if s.search.fit == "sim" else None
     fit = _declared(ctx, graph, first, start)
     check_declared_fit(fit)
-    unmoved, boxed = stuck_parameters(ctx, fit, first, start, boxes_only=s.fit == "sim")
-    if (unmoved or boxed) and s.fit == "nll":
+    unmoved, boxed = stuck_parameters(ctx, fit, first, start, boxes_only=s.search.fit == "sim")
+    if (unmoved or boxed) and s.search.fit == "nll":
         ctx.log(f"  the declared fit may not have happened: {stuck_text(fit, unmoved, boxed)}; "
                 f"fitting the physical parameters first by output error (the noise held), "
                 f"then the likelihood from there")
@@ -265,8 +267,8 @@ def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
     if unmoved or boxed:
         _declared_fit_verdict(ctx, graph, fit, first, unmoved, boxed)
     fit.params = list(s.params)
-    ctx.log(f"initial fit: NLL {fit.nll:.2f}, {s.criterion.upper()} "
-            f"{fit.information(s.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
+    ctx.log(f"initial fit: NLL {fit.nll:.2f}, {s.accept.criterion.upper()} "
+            f"{fit.information(s.accept.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
             f"{metric_name(s)} = {fit.metric:.4g}")
     return fit
 
@@ -363,7 +365,7 @@ def _declared_fit_verdict(ctx: Context, graph: BondGraph, fit: Fit, names: list[
     msg = (f"the declared fit failed: {text}. Check these parameters' units, start values and "
            f"boxes (a box is your physical knowledge: widen it only if it is wrong), fix the "
            f"ones the record cannot tell (--fixed), or declare the missing process noise")
-    if s.on_failed_fit == "stop":
+    if s.search.on_failed_fit == "stop":
         raise DeclaredFitError(msg + "; no effect is scored",
                                hint="bondgraph loop ... --keep-going scores effects anyway")
     ctx.log(f"  warning: {msg}; going on (--keep-going)")
@@ -410,7 +412,7 @@ def gain_beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str]) 
 
 def sim_start(ctx: Context, graph: BondGraph, names: list[str]) -> dict | None:
     """Start values of the declared fit from the output-error fit of its
-    non-noise parameters ``names`` (``settings.fit == "sim"``); None (logged)
+    non-noise parameters ``names`` (``settings.search.fit == "sim"``); None (logged)
     if that fit fails."""
     # all generated functions: the forward sensitivities need ∂f/∂θ and ∂h/∂θ
     model = Model.from_graph(graph, name=f"_loop_sim_{graph.name}")
@@ -491,14 +493,14 @@ def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit,
     their Cramér-Rao std (an end stop of a mass-spring-damper: 0.09 %, 6.6
     std at ROS2(8); 0.4 std at 32 substeps). Above 0.1 measurement-noise std
     per sample a warning (logged, in ``result.warnings``); with
-    ``settings.auto_substeps`` the recommended substeps for the rest of the
+    ``settings.search.auto_substeps`` the recommended substeps for the rest of the
     loop and ``fit`` refitted with them (warm start). Returns the fit to
     continue from."""
     checked = recommended_substeps(ctx, fit)
     warn = check_discretisation(ctx, fit, checked=checked, where=f"the fit with {label}")
     result.warnings.extend(warn)
     n = checked[1]
-    if not (warn and ctx.settings.auto_substeps) or n is None:
+    if not (warn and ctx.settings.search.auto_substeps) or n is None:
         return fit
     ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
     ctx.cache.clear()
@@ -520,7 +522,7 @@ def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit,
 
 def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, list[str]]:
     """The declared fit and the discretisation warnings: with
-    ``settings.auto_substeps``, a filter whose discretisation error at the
+    ``settings.search.auto_substeps``, a filter whose discretisation error at the
     declared fit exceeds 0.1 measurement-noise std per sample takes the
     recommended substeps (for the rest of the loop: the likelihood then
     judges the model, not its discretisation) and the declared model is
@@ -528,7 +530,7 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     checked = recommended_substeps(ctx, initial)
     warn = check_discretisation(ctx, initial, checked=checked)
     n = checked[1]
-    if not (warn and ctx.settings.auto_substeps) or n is None:
+    if not (warn and ctx.settings.search.auto_substeps) or n is None:
         return initial, warn
     ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
     ctx.log(f"auto_substeps: the filter now takes {n} substeps per sample; refitting the "
@@ -581,7 +583,7 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     if after is None and structural_skipped(ctx.settings, result.rankings[-1]) \
             and not any(c.kind != "score" for c in result.rankings[-1]):
         after = accepted_among_skipped_structurals(ctx, result, current, scales, tag, step)
-    if after is None and ctx.settings.pairs:
+    if after is None and ctx.settings.accept.pairs:
         after = accepted_pair(ctx, result, current, scales, tag, step)
     return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
 
@@ -645,13 +647,13 @@ def accepted_pair_fit(ctx: Context, result: LoopResult, current: Fit, pair: tupl
     a, b = pair
     label = f"{a.label} + {b.label}"
     after = conf.fit
-    d = decide(current, after, s, dof=len(conf.new_params),
+    d = decide(current, after, s.accept, dof=len(conf.new_params),
                admissible=admissibility(ctx, after) if conf.comparable else None,
                comparable=conf.comparable)
     singles = [ctx.cache.get(("confirmation", id(current), current.nll, c.label)) for c in pair]
     reason = d.reason or pair_needed(after, [None if r is None else r.fit for r in singles],
                                      [0 if r is None else len(r.new_params) for r in singles],
-                                     s.significance)
+                                     s.accept.significance)
     if reason:
         result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: {reason}",
                                          d.criterion_after, d.whiteness_after))
@@ -701,7 +703,7 @@ def significant_after_lead_check(ctx: Context, result: LoopResult, current: Fit,
             f"{100 * ratio:.0f} % of its score test: scoring the structural candidates "
             f"skipped above")
     ranking = _score_skipped(ctx, result, current, scales)
-    return significant(ranking, ctx.settings.significance)
+    return significant(ranking, ctx.settings.accept.significance)
 
 
 def _score_skipped(ctx: Context, result: LoopResult, current: Fit,
@@ -728,8 +730,9 @@ def structural_skipped(s: LoopSettings, cands: list[Candidate]) -> bool:
     because an additive one explains more than ``structural_threshold`` of
     the innovation energy."""
     best = max([c.explained or 0.0 for c in cands] + [0.0])
-    return (bool(s.structural) and s.structural != "always"
-            and s.structural_threshold is not None and best >= s.structural_threshold)
+    search = s.search
+    return (bool(search.structural) and search.structural != "always"
+            and search.structural_threshold is not None and best >= search.structural_threshold)
 
 
 def accepted_among_skipped_structurals(ctx: Context, result: LoopResult, current: Fit,
@@ -746,7 +749,8 @@ def accepted_among_skipped_structurals(ctx: Context, result: LoopResult, current
             "candidates skipped above")
     before = {id(c) for c in result.rankings[-1]}
     ranking = _score_skipped(ctx, result, current, scales)
-    signif = [c for c in significant(ranking, ctx.settings.significance) if id(c) not in before]
+    signif = [c for c in significant(ranking, ctx.settings.accept.significance)
+              if id(c) not in before]
     if not signif:
         return None
     return confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
@@ -764,14 +768,14 @@ def confirm_in_rounds(ctx: Context, result: LoopResult, current: Fit, signif: li
     accepted fit, or None."""
     s = ctx.settings
     todo = sorted(signif, key=lambda c: c.rank_key)
-    per = s.confirm_top
-    for r in range(s.confirm_rounds):
+    per = s.search.confirm_top
+    for r in range(s.search.confirm_rounds):
         batch = todo[r * per:(r + 1) * per]
         if not batch:
             break
         if r:
             ctx.log(f"  none of the confirmed candidates passed the accept rule: confirming the "
-                    f"next {len(batch)} (round {r + 1} of at most {s.confirm_rounds})")
+                    f"next {len(batch)} (round {r + 1} of at most {s.search.confirm_rounds})")
         after = accept_best(ctx, result, current, confirm_best(ctx, current, batch, scales, name),
                             step)
         if after is not None:
@@ -796,22 +800,22 @@ def gather_evidence(ctx: Context, current: Fit,
     best_expl = max([c.explained or 0.0 for c in cands] + [0.0])
     physical_fx = [e for e in s.effects if not getattr(e, "last_resort", False)]
     resort_fx = [e for e in s.effects if getattr(e, "last_resort", False)]
-    if s.structural and not structural_skipped(s, cands):
+    if s.search.structural and not structural_skipped(s, cands):
         cands += score_structural(ctx, current, scales, physical_fx)
-    elif s.structural:
+    elif s.search.structural:
         ctx.log(f"  structural candidates not scored: an additive effect explains "
                 f"{100 * best_expl:.0f} % of the innovation energy")
         best = sorted(cands, key=lambda c: c.rank_key)[:3]
-        if s.structural_near_best and best:
+        if s.search.structural_near_best and best:
             places = set().union(*(places_of(current.graph, c) for c in best))
             ctx.log(f"  ... except at the places of {', '.join(c.label for c in best)}")
             cands += score_structural(ctx, current, scales, physical_fx, places)
-    signif = significant(cands, s.significance)
-    if not signif and s.structural and resort_fx:
+    signif = significant(cands, s.accept.significance)
+    if not signif and s.search.structural and resort_fx:
         ctx.log("  no physical effect is significant: scoring the last-resort "
                 "effects (unmeasured disturbances)")
         cands += score_structural(ctx, current, scales, resort_fx)
-        signif = significant(cands, s.significance)
+        signif = significant(cands, s.accept.significance)
     mark_limits(cands)
     return sorted(cands, key=lambda c: c.rank_key), signif
 
@@ -823,7 +827,7 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
     their likelihood-ratio statistic; return them by decreasing LR − 2k. A
     candidate already confirmed against the same current fit (the lead of
     :func:`significant_after_lead_check`) is not refitted again."""
-    todo = sorted(signif, key=lambda c: c.rank_key)[: ctx.settings.confirm_top]
+    todo = sorted(signif, key=lambda c: c.rank_key)[: ctx.settings.search.confirm_top]
     confirmed = []
     keys = [("confirmation", id(current), current.nll, c.label) for c in todo]  # lead check's
     fresh = [(k, c) for k, c in zip(keys, todo) if k not in ctx.cache]
@@ -835,7 +839,8 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
         if r is None:
             continue
         c.confirmed_statistic = max(0.0, 2 * (current.nll - r.fit.nll))
-        c.confirmed = confirmed_record(current, r.fit, len(r.new_params), r.values, ctx.settings)
+        c.confirmed = confirmed_record(current, r.fit, len(r.new_params), r.values,
+                                         ctx.settings.accept)
         c.confirmed["comparable"] = r.comparable
         confirmed.append((c.confirmed_statistic - 2 * c.dof, c, r))
         how = ("converged" if r.fit.converged else
@@ -845,10 +850,10 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
                 f"{r.fit.iterations} iterations)")
     confirmed = rank_confirmed(confirmed)
     tied = mark_ties([(c, r.fit, len(r.new_params)) for _, c, r in confirmed],
-                     ctx.settings.tie_level)
+                     ctx.settings.accept.tie_level)
     if tied:
         ctx.log(f"  the record cannot tell {confirmed[0][1].label} from {', '.join(tied)} "
-                f"(Vuong's test, p >= {ctx.settings.tie_level:g}): reported as tied")
+                f"(Vuong's test, p >= {ctx.settings.accept.tie_level:g}): reported as tied")
     return [(c, r) for _, c, r in confirmed]
 
 
@@ -866,17 +871,17 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
     Cramér-Rao std recorded); record and log the rejected ones before it.
     Returns the accepted fit, or None."""
     s = ctx.settings
-    crit = s.criterion.upper()
+    crit = s.accept.criterion.upper()
     for c, conf in confirmed:
         names = list(current.params) + conf.new_params
         after = conf.fit
-        d = decide(current, after, s, dof=len(conf.new_params),
+        d = decide(current, after, s.accept, dof=len(conf.new_params),
                    admissible=admissibility(ctx, after) if conf.comparable else None,
                    comparable=conf.comparable)
         tie = {k: v for k, v in (c.confirmed or {}).items()
                if k in ("tie_z", "tie_p", "comparable")}
-        c.confirmed = {**confirmed_record(current, after, len(conf.new_params), conf.values, s,
-                                          d), **tie}
+        c.confirmed = {**confirmed_record(current, after, len(conf.new_params), conf.values,
+                                          s.accept, d), **tie}
         if d.accepted:
             after = fit_after_discretisation_check(ctx, result, after, c.label)
             new_std = parameter_std(ctx, after)

@@ -183,7 +183,7 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total, fails)
     mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
     line_probe(ctx, probe, fit, out)
-    rank_nested(out, col_of, An, ctx.settings.significance)
+    rank_nested(out, col_of, An, ctx.settings.accept.significance)
     return out
 
 
@@ -279,7 +279,7 @@ def signature_runs(ctx: Context, probe: Probe, deltas: np.ndarray, nuis_delta: l
     Dn = np.empty((len(probe.nuis), t.size, pm.n_y))
     eps0 = S0 = None
     D = np.empty((len(LADDER), len(probe.cols)) + (t.size, pm.n_y))
-    chunk = ctx.settings.chunk
+    chunk = ctx.settings.evaluation.chunk
     reasons: dict = {}
     for a in range(0, len(sets), chunk):
         r = run_ukf(probe.problem, sets[a:a + chunk], store=True)
@@ -446,7 +446,7 @@ def line_probe(ctx: Context, probe: Probe, fit: Fit, cands: list[Candidate]) -> 
         return
     sets = np.array(sets)
     nll = np.empty(len(sets))
-    chunk = ctx.settings.chunk
+    chunk = ctx.settings.evaluation.chunk
     for a in range(0, len(sets), chunk):
         nll[a:a + chunk] = run_ukf(probe.problem, sets[a:a + chunk]).nll
     best: dict = {}
@@ -524,7 +524,7 @@ def _structural_task(ctx: Context, shared, item) -> Candidate | None:
 def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
                 net: np.ndarray) -> tuple[float, np.ndarray, int]:
     """The best start of a structural candidate's profile: the
-    ``settings.structural_starts`` best grid values (each at its best noise
+    ``settings.search.structural_starts`` best grid values (each at its best noise
     variant; NLLs ``net`` (n_sets,) of ``sets``) get one Fisher-scoring step
     over the declared estimated parameters alone, the effect's held at the
     grid value (a profile likelihood over the grid, Cox & Hinkley 1974,
@@ -546,7 +546,7 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
     """
     i0 = int(np.argmin(net))
     best, th_best, i_best = float(net[i0]), np.array(sets[i0]), i0
-    n = int(ctx.settings.structural_starts)
+    n = int(ctx.settings.search.structural_starts)
     noise = noise_params(fit.model)
     names = [p for p in fit.params if p in model.params and p not in noise]
     if n <= 0 or not names or not np.isfinite(best):
@@ -584,7 +584,7 @@ def places_of(graph, cand: Candidate) -> set:
 
 def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta: np.ndarray,
                      nll: float) -> tuple[float, np.ndarray] | None:
-    """A few Fisher-scoring steps (``settings.structural_refit``) over the
+    """A few Fisher-scoring steps (``settings.search.structural_refit``) over the
     declared estimated parameters together with the effect's ``new`` ones,
     from the best grid point ``theta`` (n_theta,), all inside their declared
     boxes: the declared fit may have moved a parameter to compensate for the
@@ -597,7 +597,7 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
         The profiled point when it improves on ``nll``; None when it does not,
         when ``structural_refit`` is 0, or when the scoring fails.
     """
-    iters = int(ctx.settings.structural_refit)
+    iters = int(ctx.settings.search.structural_refit)
     names = [n for n in fit.params if n in model.params] + list(new)
     if iters <= 0 or not names:
         return None

@@ -38,7 +38,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import Callable, ClassVar, Mapping
 
 import numpy as np
 from scipy.optimize import differential_evolution, minimize
@@ -155,6 +155,7 @@ def _progress_bar(progress: bool, total: int, initial: int, desc: str, unit: str
     return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True)
 
 
+@dataclass(eq=False)
 class _Swarm:
     """State of a PSO run in normalised coordinates z ∈ [0, 1]^k: positions
     ``Z`` and velocities ``V`` (S, k), personal bests, the global best ``g``,
@@ -162,12 +163,22 @@ class _Swarm:
     it, so a resumed run continues bit for bit."""
 
     #: arrays of the checkpoint besides the settings key and the RNG state
-    FIELDS = ("Z", "V", "pbest", "pbest_f", "g", "gf", "it", "nfev", "ncalls", "n_inf",
-              "history", "stall")
+    FIELDS: ClassVar[tuple[str, ...]] = ("Z", "V", "pbest", "pbest_f", "g", "gf", "it",
+                                         "nfev", "ncalls", "n_inf", "history", "stall")
 
-    def __init__(self, rng, **state):
-        self.rng = rng
-        self.__dict__.update(state)
+    rng: np.random.Generator
+    Z: np.ndarray
+    V: np.ndarray
+    pbest: np.ndarray
+    pbest_f: np.ndarray
+    g: np.ndarray
+    gf: float
+    it: int
+    nfev: int
+    ncalls: int
+    n_inf: int
+    history: list
+    stall: int
 
     @classmethod
     def start(cls, fun, lo, hi, S: int, seed, vmax: float, x0) -> "_Swarm":
@@ -338,18 +349,20 @@ def _pso_settings(lo, hi, S: int, opts: SwarmOptions, x0, problem: Mapping[str, 
     settings = dict(method="pso", particles=S, seed=seed, w=w, c1=c1, c2=c2, vmax=vmax,
                     lower=lo.tolist(), upper=hi.tolist(),
                     x0=None if x0 is None else np.asarray(x0, float).tolist())
-    key = _search_fingerprint(problem, "pso", particles=str(S), seed=str(seed),
-                              coefficients=f"w={w!r} c1={c1!r} c2={c2!r} vmax={vmax!r}",
+    key = _search_fingerprint(problem, "pso",
+                              {"particles": str(S), "seed": str(seed),
+                               "coefficients": f"w={w!r} c1={c1!r} c2={c2!r} vmax={vmax!r}"},
                               box=(lo, hi), start=x0)
     settings["iterations"] = opts.iterations
     settings["stall_iterations"] = opts.stall_iterations
     return settings, key
 
 
-def _search_fingerprint(problem: Mapping[str, str] | None, method: str, *, box, start,
-                        **settings: str) -> dict[str, str]:
+def _search_fingerprint(problem: Mapping[str, str] | None, method: str,
+                        settings: Mapping[str, str], *, box, start) -> dict[str, str]:
     """The checkpoint fingerprint: the problem's components, the optimizer,
-    its settings, the search box and the start point (hashed)."""
+    its ``settings`` (name -> text, in order), the search box and the start
+    point (hashed)."""
     fp = dict(problem or {})
     fp["optimizer"] = method
     fp.update(settings)
@@ -489,10 +502,11 @@ def de(fun: Callable[[np.ndarray], np.ndarray], lower, upper, *,
     if popsize * k < 5:
         raise OptionError(f"DE needs a population of at least 5 members (popsize * k), "
                           f"got {popsize} x {k}")
-    fp = _search_fingerprint(ckp.fingerprint, "de", box=(lo, hi), start=x0,
-                             popsize=str(popsize), seed=str(opts.seed),
-                             strategy=f"{opts.strategy} mutation={opts.mutation!r} "
-                                      f"recombination={opts.recombination!r}")
+    fp = _search_fingerprint(ckp.fingerprint, "de",
+                             {"popsize": str(popsize), "seed": str(opts.seed),
+                              "strategy": f"{opts.strategy} mutation={opts.mutation!r} "
+                                          f"recombination={opts.recombination!r}"},
+                             box=(lo, hi), start=x0)
     init, it0, history, best = (_de_start(ckp.path, fp) if resume
                                 else ("latinhypercube", 0, [], np.inf))
     mon = _DEMonitor(fun, ckp.path, it0, history, best, resume,
