@@ -6,7 +6,7 @@ decision and final fit are identical to the serial run's, bit for bit
 results come back in the order of the tasks). The runs use the numpy
 backend to spare the workers the candidates' compilation; the numba backend
 is as deterministic (taken literally, whatever the kernel cache holds:
-tests/test_ukf_numba.py::test_backend_is_taken_literally_whatever_the_history_or_the_cache).
+tests/test_ukf_numba.py::test_backend_is_taken_literally_whatever_the_history_or_the_cache)."""
 
 import numpy as np
 import pytest
