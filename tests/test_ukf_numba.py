@@ -507,3 +507,25 @@ def test_generated_tanh_equals_numpy_to_rounding():
     np.testing.assert_allclose(got, np.tanh(x), rtol=5e-16, atol=0)
     assert tanh(np.inf) == 1.0 and tanh(-np.inf) == -1.0 and tanh(1e308) == 1.0
     assert np.isnan(tanh(np.nan))
+
+
+def test_no_experimental_feature_warning_reaches_the_user():
+    """The kernel's tuple of first-class point functions makes numba warn
+    "First-class function type feature is experimental" when it types it;
+    a user saw that warning five times in the output of `bondgraph loop`.
+    A run with every such warning turned into an error succeeds."""
+    import subprocess
+    import sys
+
+    script = (
+        "import warnings, numba, numpy as np\n"
+        "warnings.simplefilter('error', numba.NumbaExperimentalFeatureWarning)\n"
+        "from bondgraph.inference.ukf import ukf_nll\n"
+        "from bondgraph.numerics.model import Model\n"
+        "m = Model.load('mass_spring_damper')\n"
+        "t = np.arange(50) * 0.01\n"
+        "r = ukf_nll(m, t, np.ones((50, m.n_u)), np.zeros((50, m.n_y)), m.theta0)\n"
+        "print(r.settings['backend_used'])\n")
+    r = subprocess.run([sys.executable, "-c", script], text=True, capture_output=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == ["numba"]

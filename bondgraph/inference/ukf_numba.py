@@ -81,6 +81,7 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 from collections import namedtuple
 
 import numpy as np
@@ -1032,8 +1033,10 @@ def kernel() -> tuple[object, float]:
         if _KERNEL:
             return _KERNEL[0], 0.0
         t0 = time.perf_counter()
-        k = numba.njit(_signature(), cache=True, parallel=True, nogil=True,
-                       error_model="numpy", _nrt=False, fastmath=FASTMATH)(_kernel_py)
+        with warnings.catch_warnings():     # first-class functions: "experimental"
+            warnings.simplefilter("ignore", numba.NumbaExperimentalFeatureWarning)
+            k = numba.njit(_signature(), cache=True, parallel=True, nogil=True,
+                           error_model="numpy", _nrt=False, fastmath=FASTMATH)(_kernel_py)
         _KERNEL.append(k)
         return k, time.perf_counter() - t0
 
@@ -1126,17 +1129,21 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
     # static split left a thread idle (full bench: 1.82 of 2 cores busy)
     chunk = numba.get_parallel_chunksize()
     numba.set_parallel_chunksize(1)
-    try:
-        for a0 in range(0, A, step):  # chunks of sets: the work buffers stay bounded
-            s = slice(a0, min(A, a0 + step))
-            if a0:
-                buf[:], ibuf[:] = 0.0, 0
-            sets = Sets(*[v[s] for v in per_set], Rd if ip[4] else Rd[s], R[s] if ip[4] else R,
-                        Q[s] if ip[5] else Q, act[s])
-            kern(fns, rec, sets, (ip, fp), Outputs(out_f[s], out_i[s]), st,
-                 (buf[:s.stop - a0], ibuf[:s.stop - a0]))
-    finally:
-        numba.set_parallel_chunksize(chunk)
+    # numba warns that first-class function types are experimental when it
+    # types the tuple of point kernels (typed and tested here)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", numba.NumbaExperimentalFeatureWarning)
+        try:
+            for a0 in range(0, A, step):  # chunks of sets: the work buffers stay bounded
+                s = slice(a0, min(A, a0 + step))
+                if a0:
+                    buf[:], ibuf[:] = 0.0, 0
+                sets = Sets(*[v[s] for v in per_set], Rd if ip[4] else Rd[s],
+                            R[s] if ip[4] else R, Q[s] if ip[5] else Q, act[s])
+                kern(fns, rec, sets, (ip, fp), Outputs(out_f[s], out_i[s]), st,
+                     (buf[:s.stop - a0], ibuf[:s.stop - a0]))
+        finally:
+            numba.set_parallel_chunksize(chunk)
     for a, p in enumerate(batch.act):
         k, code = int(out_i[a, 0]), int(out_i[a, 1])
         if k >= 0:
