@@ -33,10 +33,11 @@ CASES: dict[str, str] = {
 }
 
 
-def _coast(name: str, effects: VehicleEffects = VehicleEffects()) -> BondGraph:
-    """The coast-down graph (gear N, no powertrain, one lumped wheel) with ``effects``."""
-    return build_vehicle(name, gear="N", powertrain=False, wheels="lumped", suspension="dynamic",
-                         effects=effects)
+def _vehicle(name: str, **kw) -> BondGraph:
+    return build_vehicle(name, **kw)
+
+
+COAST = dict(gear="N", powertrain=False, wheels="lumped", suspension="dynamic")
 
 #: prior standard deviation of the initial grade on a level test track [rad]
 #: (0.1 deg). Without it a constant grade explains a constant force (brake
@@ -73,17 +74,18 @@ def coastdown_record(truth: BondGraph, declared: BondGraph, name: str, seed: int
 
 def vehicle_aero_declared() -> BondGraph:
     """Coast-down filter model without aerodynamic drag."""
-    return _coast("vehicle_coastdown_noaero", VehicleEffects(aero=False))
+    return _vehicle("vehicle_coastdown_noaero", effects=VehicleEffects(aero=False), **COAST)
 
 
 def vehicle_brake_declared() -> BondGraph:
     """Coast-down filter model (with aero) that lacks residual brake drag."""
-    return _coast("vehicle_coastdown")
+    return _vehicle("vehicle_coastdown", **COAST)
 
 
 def vehicle_pitch_declared() -> BondGraph:
     """Coast-down filter model without the pitch-sensor offset."""
-    return _coast("vehicle_coastdown_nooffset", VehicleEffects(pitch_offset=False))
+    return _vehicle("vehicle_coastdown_nooffset", effects=VehicleEffects(pitch_offset=False),
+                    **COAST)
 
 
 def case_aero() -> LoopCase:
@@ -93,7 +95,7 @@ def case_aero() -> LoopCase:
         "filter model has none (the suspect list of the original work: drag leaking into "
         "rolling resistance).",
         declared_builder(vehicle_aero_declared),
-        lambda: coastdown_record(_coast("truth_aero", VehicleEffects(aero=True)),
+        lambda: coastdown_record(_vehicle("truth_aero", effects=VehicleEffects(aero=True), **COAST),
                                   vehicle_aero_declared(), "coastdown_aero", seed=101),
         LoopSettings(["f_r", "r_dyn", "theta_off", "q_grade"], metric="nrmse_sim"),
         ("quadratic_drag", "body.v"))
@@ -106,7 +108,8 @@ def case_brake() -> LoopCase:
         "Coast-down record of a vehicle with a residual brake drag torque at the wheels; "
         "rolling resistance known from tire data, drag and dynamic radius estimated.",
         declared_builder(vehicle_brake_declared),
-        lambda: coastdown_record(_coast("truth_brake", VehicleEffects(brake_drag=True)),
+        lambda: coastdown_record(_vehicle("truth_brake", effects=VehicleEffects(brake_drag=True),
+                                           **COAST),
                                   vehicle_brake_declared(), "coastdown_brake_drag", seed=102),
         LoopSettings(["C_dA", "r_dyn", "theta_off", "q_grade"], metric="nrmse_sim",
                      prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
@@ -119,7 +122,7 @@ def case_pitch() -> LoopCase:
         "Coast-down record with a 0.5 deg pitch-sensor mounting offset; the declared model "
         "reads the pitch sensor as grade + suspension pitch.",
         declared_builder(vehicle_pitch_declared),
-        lambda: coastdown_record(_coast("truth_pitch"), vehicle_pitch_declared(),
+        lambda: coastdown_record(_vehicle("truth_pitch", **COAST), vehicle_pitch_declared(),
                                   "coastdown_pitch_offset", seed=103),
         LoopSettings(["f_r", "C_dA", "r_dyn", "q_grade"], metric="nrmse_sim",
                      prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
@@ -128,7 +131,7 @@ def case_pitch() -> LoopCase:
 
 def vehicle_slip_declared() -> BondGraph:
     """Full filter model (High range, 2WD) with a rigid belt."""
-    return build_vehicle("vehicle_full", gear="H", drive="2WD")
+    return _vehicle("vehicle_full", gear="H", drive="2WD")
 
 
 def driving_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
@@ -177,7 +180,7 @@ def case_slip() -> LoopCase:
         "Driving record (throttle steps, High range) of a vehicle whose CVT belt creeps on "
         "the secondary sheave; the declared full filter model has a rigid belt.",
         declared_builder(vehicle_slip_declared),
-        lambda: driving_record(build_vehicle("truth_belt_slip", gear="H", drive="2WD",
+        lambda: driving_record(_vehicle("truth_belt_slip", gear="H", drive="2WD",
                                          effects=VehicleEffects(belt_slip=True)), vehicle_slip_declared(),
                                 "throttle_steps_belt_slip", seed=104, c_bs=BELT_CREEP),
         LoopSettings(params, metric="nrmse_sim", fixed=fixed,
@@ -198,7 +201,7 @@ ENGINE_TORQUE = ("source", "engine.torque")
 def engine_saturation_truth() -> BondGraph:
     """The declared full filter model plus ``actuator_saturation`` at the
     engine torque, level ``ENGINE_SATURATION`` x T_pk (public effect API)."""
-    g = build_vehicle("truth_engine_saturation", gear="H", drive="2WD")
+    g = _vehicle("truth_engine_saturation", gear="H", drive="2WD")
     apply_effect(g, "actuator_saturation", ENGINE_TORQUE,
                  {"L": ENGINE_SATURATION * TRUE_DRIVING["T_pk"]})
     return g

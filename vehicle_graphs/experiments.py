@@ -90,14 +90,14 @@ def steps(levels: Sequence[tuple[float, float]], ramp: float = 0.2
     return profile(pts)
 
 
-def _x0(model_name: str, params: dict, v: float = 0.0) -> dict[str, float]:
+def _x0(model_name: str, params: dict, **kw) -> dict[str, float]:
     from bondgraph.numerics.model import Model
 
     from .analysis import initial_state
 
     m = Model.load(model_name)
     th = m.theta({k: v for k, v in params.items() if k in m.params})
-    return initial_state(m, th, v=v)
+    return initial_state(m, th, **kw)
 
 
 # ------------------------------------------------------------- experiments
