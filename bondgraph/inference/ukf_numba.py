@@ -79,6 +79,7 @@ SIAM J. Sci. Comput. 20(4), 1456-1480.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 import warnings
@@ -1018,6 +1019,17 @@ _LOCK = threading.Lock()
 _KERNEL: list = []
 
 
+@contextlib.contextmanager
+def _first_class_quiet():
+    """Keep numba's "first-class function type feature is experimental"
+    warning from the user: numba raises it whenever it types the kernel's
+    tuple of point kernels (at compile, cache load and call); the feature
+    is typed and tested here."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", numba.NumbaExperimentalFeatureWarning)
+        yield
+
+
 def kernel() -> tuple[object, float]:
     """The compiled kernel and the seconds this call spent compiling it (or
     loading it from numba's cache; 0 once loaded in this process).
@@ -1033,8 +1045,7 @@ def kernel() -> tuple[object, float]:
         if _KERNEL:
             return _KERNEL[0], 0.0
         t0 = time.perf_counter()
-        with warnings.catch_warnings():     # first-class functions: "experimental"
-            warnings.simplefilter("ignore", numba.NumbaExperimentalFeatureWarning)
+        with _first_class_quiet():
             k = numba.njit(_signature(), cache=True, parallel=True, nogil=True,
                            error_model="numpy", _nrt=False, fastmath=FASTMATH)(_kernel_py)
         _KERNEL.append(k)
@@ -1129,10 +1140,7 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
     # static split left a thread idle (full bench: 1.82 of 2 cores busy)
     chunk = numba.get_parallel_chunksize()
     numba.set_parallel_chunksize(1)
-    # numba warns that first-class function types are experimental when it
-    # types the tuple of point kernels (typed and tested here)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", numba.NumbaExperimentalFeatureWarning)
+    with _first_class_quiet():
         try:
             for a0 in range(0, A, step):  # chunks of sets: the work buffers stay bounded
                 s = slice(a0, min(A, a0 + step))
