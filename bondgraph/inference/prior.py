@@ -89,9 +89,8 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
     disc = Discretisation().for_free_run() if disc is None else disc
     method, substeps, hold = disc.method, disc.substeps, disc.hold
     n = min(int(np.size(t)), int(samples))
+    u = np.asarray(u, float).reshape(np.size(t), -1)[:n] if model.n_u else np.zeros((n, 0))
     t = np.asarray(t, float)[:n]
-    u = np.asarray(u, float).reshape(np.size(t), -1) if model.n_u else np.zeros((n, 0))
-    u = u[:n]
     kernels = _free_run_kernels(model, disc.backend, method, hold)
     if kernels is not None:
         return sim_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
