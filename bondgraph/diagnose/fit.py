@@ -293,11 +293,13 @@ def planned_noise(problem: Problem, settings: LoopSettings,
     model = problem.model
     declared = problem.record.noise_std_for(model)
     add, outs, sigma, notes = plan_noise(model, problem.theta, settings.params,
-                                         list(settings.fixed), declared)
+                                         list(settings.fixed), declared, problem.y)
+    # an estimated output's entry is the start of its estimate (a level no
+    # sensor declares, seen in the record): held until a fit estimates it
     held = {o: float(sigma[j]) for j, o in enumerate(model.outputs) if np.isfinite(sigma[j])}
-    if held:
+    if any(o not in outs for o in held):
         notes.append("measurement-noise std held at the record's declaration: " + ", ".join(
-            f"{o} = {v:.4g}" for o, v in held.items()))
+            f"{o} = {v:.4g}" for o, v in held.items() if o not in outs))
     for note in notes or ["noise levels: the model's own (nothing to estimate or hold)"]:
         log(note)
     return add, NoiseSpec("auto", held=held, estimated=outs)

@@ -58,11 +58,12 @@ def run_ukf(problem: Problem, thetas: np.ndarray, *, store: bool = False) -> UKF
     return problem.nll(thetas, store=store)
 
 
-def plan_noise(model, theta, params: Sequence[str], fixed: Sequence[str], declared):
+def plan_noise(model, theta, params: Sequence[str], fixed: Sequence[str], declared, y=None):
     """The loop's noise policy under ``noise="auto"``
     (:func:`bondgraph.inference.estimand.noise_plan`): ``(noise-intensity
-    parameters to add, outputs whose std is estimated, held σ (n_y,), notes)``."""
-    return noise_plan(model, theta, params, fixed, declared)
+    parameters to add, outputs whose std is estimated, held σ (n_y,), notes)``;
+    ``y`` (N, n_y) the record's outputs (the start of a level no sensor declares)."""
+    return noise_plan(model, theta, params, fixed, declared, y)
 
 
 def make_criterion(problem: Problem, names: Sequence[str], base: np.ndarray,

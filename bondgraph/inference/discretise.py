@@ -44,6 +44,7 @@ import numpy as np
 
 from bondgraph.data.record_io import INPUT_HOLDS
 from bondgraph.errors import OptionError
+from bondgraph.inference.estimand import record_noise_level
 from bondgraph.inference.options import UKF_HOLDS, UKF_METHODS, Discretisation
 from bondgraph.inference.ukf import discretisation_errors
 
@@ -405,8 +406,9 @@ def choose_discretisation(problem, theta, *, given: Mapping | None = None, sigma
     sigma : array (n_y,), optional
         Measurement-noise standard deviations (output units). Default: the
         levels the problem holds (a record's declarations), else
-        ``meas_std(theta)``. Outputs without a positive finite level are
-        left out of the comparison.
+        ``meas_std(theta)``. An output without a positive finite level takes
+        the level seen in the record (:func:`~bondgraph.inference.estimand.record_noise_level`),
+        else is left out of the comparison.
     tolerance : float
         Largest one-step error [σ per sample] (> 0).
     bias_tolerance : float
@@ -437,7 +439,7 @@ def choose_discretisation(problem, theta, *, given: Mapping | None = None, sigma
                           f"{bias_tolerance!r}")
     model = problem.model
     th = np.asarray(theta, float).reshape(-1)
-    sig = _sigma(problem, th, sigma)
+    sig = comparison_sigma(problem, th, sigma)
     if free_run is None:
         free_run = no_process_noise(model, th)
     inputs = input_holds(problem.u, model.inputs, declared_holds(problem.record, model.inputs))
@@ -489,7 +491,7 @@ def check_discretisation(problem, theta, disc: Discretisation | None = None, *, 
     """
     disc = problem.disc if disc is None else disc
     th = np.asarray(theta, float).reshape(-1)
-    sig = _sigma(problem, th, sigma)
+    sig = comparison_sigma(problem, th, sigma)
     if free_run is None:
         free_run = no_process_noise(problem.model, th)
     r = discretisation_errors(problem.model, problem.t, problem.u, th, problem.x0, [disc],
@@ -544,9 +546,11 @@ def _candidates(given: dict) -> list[tuple[str, int]]:
     return [(m, s) for m, s in CANDIDATES if given.get("method", m) == m]
 
 
-def _sigma(problem, th: np.ndarray, sigma) -> np.ndarray:
+def comparison_sigma(problem, th: np.ndarray, sigma=None) -> np.ndarray:
     """The comparison's σ (n_y,): given, else the problem's held levels, else
-    ``meas_std(θ)``; inf (left out) where not positive and finite."""
+    ``meas_std(θ)``, else the level seen in the record
+    (:func:`~bondgraph.inference.estimand.record_noise_level`); inf (left
+    out) where not positive and finite."""
     model = problem.model
     if sigma is None:
         with np.errstate(all="ignore"):
@@ -555,6 +559,9 @@ def _sigma(problem, th: np.ndarray, sigma) -> np.ndarray:
         sigma = np.where(np.isfinite(held), held, meas)
     sig = np.broadcast_to(np.asarray(sigma, float), (model.n_y,)).copy()
     good = np.isfinite(sig) & (sig > 0)
+    if not good.all():      # no level declared: the one seen in the record
+        sig = np.where(good, sig, record_noise_level(problem.y))
+        good = np.isfinite(sig) & (sig > 0)
     if not good.any():
         raise OptionError(f"choose_discretisation: no output of '{model.name}' has a positive "
                           f"measurement-noise level to compare the discretisation error with "

@@ -245,8 +245,51 @@ def noise_parameters(model, theta, x=None, u=None, *, rel: float = 0.1) -> list[
     return out
 
 
+def record_noise_level(y) -> np.ndarray:
+    """Measurement-noise std of each output seen in a record: the robust
+    scale of its second-difference pseudo-residuals.
+
+    ``e_i = (y_{i-1} − 2 y_i + y_{i+1}) / √6`` has the noise's variance when
+    the signal is locally linear over three samples; its scale is taken as
+    1.4826 × the median absolute deviation (robust to steps and outliers;
+    the plain std where that is zero). A signal that is not oversampled
+    leaks into it, so the value is an upper estimate: a start for a fit that
+    estimates the level, never a level to hold.
+
+    Parameters
+    ----------
+    y : array (N, n_y)
+        Measured outputs, NaN where missing (the finite samples of each
+        output are taken in order).
+
+    Returns
+    -------
+    ndarray (n_y,)
+        Output units; NaN where an output has fewer than 3 finite samples or
+        no variation at all.
+
+    References
+    ----------
+    Gasser, T., Sroka, L., Jennen-Steinmetz, C. (1986). Residual variance and
+    residual pattern in nonlinear regression. Biometrika 73(3), 625-633.
+    """
+    y = np.asarray(y, float)
+    y = y.reshape(y.shape[0], -1)
+    out = np.full(y.shape[1], np.nan)
+    for j in range(y.shape[1]):
+        v = y[np.isfinite(y[:, j]), j]
+        if v.size < 3:
+            continue
+        e = (v[:-2] - 2.0 * v[1:-1] + v[2:]) / np.sqrt(6.0)
+        s = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+        s = s if s > 0 else float(np.std(e))
+        if np.isfinite(s) and s > 0:
+            out[j] = s
+    return out
+
+
 def noise_plan(model, theta, params: Sequence[str], fixed: Sequence[str],
-               declared: np.ndarray) -> tuple[list[str], list[str], np.ndarray, list[str]]:
+               declared: np.ndarray, y=None) -> tuple[list[str], list[str], np.ndarray, list[str]]:
     """Which noise levels an estimation moves by default.
 
     Parameters
@@ -259,6 +302,10 @@ def noise_plan(model, theta, params: Sequence[str], fixed: Sequence[str],
         Parameters the user holds fixed.
     declared : array (n_y,)
         Noise stds the record declares (NaN where it declares none), model units.
+    y : array (N, n_y), optional
+        The record's outputs: an estimated output whose sensor declares no
+        positive level (``meas_std(θ)`` zero) starts from the level seen in
+        them (:func:`record_noise_level`).
 
     Returns
     -------
@@ -266,7 +313,14 @@ def noise_plan(model, theta, params: Sequence[str], fixed: Sequence[str],
         Noise-intensity parameters added to the estimated ones (those not
         listed or fixed); outputs whose noise std is estimated (a fixed number
         in the model, undeclared by the record); the override vector σ (n_y,)
-        (declared values, NaN elsewhere); notes for the log.
+        (declared values, the record-based start of an estimated output
+        whose sensor gives no level, NaN elsewhere); notes for the log.
+
+    Raises
+    ------
+    OptionError
+        An estimated output whose sensor gives no positive level and whose
+        record (``y``) shows none either.
     """
     th = np.asarray(theta, float)
     declared = np.asarray(declared, float)
@@ -292,6 +346,24 @@ def noise_plan(model, theta, params: Sequence[str], fixed: Sequence[str],
     if outs:
         notes.append(f"measurement-noise std estimated (the record does not declare it): "
                      f"{', '.join(outs)}")
+    with np.errstate(all="ignore"):
+        meas = np.asarray(model.meas_std(th[None, :]), float).reshape(-1)
+    bare = [model.output_index(o) for o in outs
+            if not (np.isfinite(meas[model.output_index(o)]) and meas[model.output_index(o)] > 0)]
+    if bare:
+        seen = record_noise_level(y) if y is not None else np.full(model.n_y, np.nan)
+        missing = [model.outputs[j] for j in bare if not np.isfinite(seen[j])]
+        if missing:
+            raise OptionError(
+                f"no measurement-noise level for output(s) {', '.join(map(repr, missing))} of "
+                f"'{model.name}': the sensor declares none (noise_std), the record declares none "
+                f"(columns.<output>.noise_std in its sidecar) and none can be seen in the record; "
+                f"declare one of them")
+        sigma[bare] = seen[bare]
+        notes.append("no noise level declared by the sensor or the record: the estimate starts "
+                     "from the level seen in the record's second differences (an upper "
+                     "estimate): " + ", ".join(f"{model.outputs[j]} = {seen[j]:.4g}"
+                                               for j in bare))
     return add, outs, sigma, notes
 
 
@@ -358,7 +430,7 @@ def check_noise_mode(mode: str, option: str = "--noise") -> str:
 
 def plan_estimand(model, theta, params: Sequence[str], fixed: Sequence[str],
                   declared, *, noise: str = "auto", states: Sequence[str] = (),
-                  x0=None, x0_scale=None) -> tuple[Estimand, list[str]]:
+                  x0=None, x0_scale=None, y=None) -> tuple[Estimand, list[str]]:
     """The :class:`Estimand` of an estimation and the log notes saying which
     noise levels it estimates and why.
 
@@ -383,6 +455,9 @@ def plan_estimand(model, theta, params: Sequence[str], fixed: Sequence[str],
         Jørgensen 2004).
     x0, x0_scale : arrays (n_x,), optional
         Prior mean and spread of the initial state (:class:`Estimand`).
+    y : array (N, n_y), optional
+        The record's outputs (:func:`noise_plan`: the start of a level no
+        sensor declares).
 
     Returns
     -------
@@ -399,8 +474,8 @@ def plan_estimand(model, theta, params: Sequence[str], fixed: Sequence[str],
         return Estimand(model, params, states=list(states), theta=theta, x0=x0,
                         x0_scale=x0_scale), ["noise levels: the model's own (--noise model)"]
     dec = np.full(model.n_y, np.nan) if declared is None else np.asarray(declared, float)
-    add, outs, sigma, notes = noise_plan(model, theta, params, fixed, dec)
-    held = [o for j, o in enumerate(model.outputs) if np.isfinite(sigma[j])]
+    add, outs, sigma, notes = noise_plan(model, theta, params, fixed, dec, y)
+    held = [o for j, o in enumerate(model.outputs) if np.isfinite(sigma[j]) and o not in outs]
     if held:
         notes.append("measurement-noise std held at the record's declaration: " + ", ".join(
             f"{o} = {sigma[model.output_index(o)]:.4g}" for o in held))

@@ -58,6 +58,7 @@ from bondgraph.inference.discretise import (
     TOLERANCE,
     check_discretisation,
     choose_discretisation,
+    comparison_sigma,
     declared_holds,
     input_holds,
     no_process_noise,
@@ -639,7 +640,8 @@ def _plan(problem: Problem, params, bounds, R, x0_states) -> _Plan:
     mode = "model" if R is not None else problem.noise.mode
     scale = np.sqrt(np.diag(problem.P0))
     est, notes = plan_estimand(model, base, params, list(problem.fixed), declared, noise=mode,
-                               states=states, x0=problem.x0, x0_scale=np.maximum(scale, 1e-12))
+                               states=states, x0=problem.x0, x0_scale=np.maximum(scale, 1e-12),
+                               y=problem.y)
     if R is not None:
         notes = ["noise levels: the given R"]
     if est.k == len(params) and not est.uses_R:
@@ -888,9 +890,16 @@ def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
     if not (fit.check_discretisation and np.isfinite(f_best)):
         return None
     th_best, x0, P0, R = crit.problem_at(x_best)
-    dc = discretisation_check(crit.model, crit.t, crit.u, th_best, x0, ukf.discretisation)
+    # the filter's levels at the estimate (estimated or declared), else
+    # meas_std(θ), else the level seen in the record
+    sigma = None if R is None else np.sqrt(np.diagonal(np.asarray(R, float)).reshape(-1))
+    try:
+        sigma = comparison_sigma(crit.problem, th_best, sigma)
+    except OptionError:
+        pass
+    dc = discretisation_check(crit.model, crit.t, crit.u, th_best, x0, ukf.discretisation,
+                              sigma=sigma)
     worst = float(np.max(dc["one_step"]))
-    sigma = None if R is None else np.sqrt(np.diagonal(np.asarray(R, float)))
     hold = hold_warning(crit.problem, ukf.hold)
     if hold:
         warn_list.append(hold)

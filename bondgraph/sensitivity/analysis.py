@@ -299,7 +299,7 @@ def _estimand(an: _Analysis, x0_states, fixed) -> tuple[Any, list[str]]:
     declared = None if pb.record is None else pb.record.noise_std_for(pb.model)
     scale = np.sqrt(np.maximum(np.diag(pb.P0), 1e-24))
     return plan_estimand(pb.model, pb.theta, an.params, list(fixed), declared,
-                         noise=pb.noise.mode, states=states, x0=pb.x0, x0_scale=scale)
+                         noise=pb.noise.mode, states=states, x0=pb.x0, x0_scale=scale, y=pb.y)
 
 
 def _information(an: _Analysis):
