@@ -44,7 +44,6 @@ import numpy as np
 
 from bondgraph.data.record_io import INPUT_HOLDS
 from bondgraph.errors import OptionError
-from bondgraph.inference.estimand import record_noise_level
 from bondgraph.inference.options import UKF_HOLDS, UKF_METHODS, Discretisation
 from bondgraph.inference.ukf import discretisation_errors
 
@@ -547,21 +546,24 @@ def _candidates(given: dict) -> list[tuple[str, int]]:
 
 
 def comparison_sigma(problem, th: np.ndarray, sigma=None) -> np.ndarray:
-    """The comparison's σ (n_y,): given, else the problem's held levels, else
-    ``meas_std(θ)``, else the level seen in the record
-    (:func:`~bondgraph.inference.estimand.record_noise_level`); inf (left
-    out) where not positive and finite."""
+    """The comparison's σ (n_y,): given, else :meth:`Problem.noise_scale`
+    (the held level, ``meas_std(θ)``, the level seen in the record); a given
+    entry that is not positive and finite takes the latter too; inf (left
+    out) where none is.
+
+    Raises
+    ------
+    OptionError
+        No output has a level to compare with.
+    """
     model = problem.model
+    scale = problem.noise_scale(th)
     if sigma is None:
-        with np.errstate(all="ignore"):
-            meas = np.asarray(model.meas_std(th[None, :]), float)[0]
-        held = problem.noise.sigma(model)
-        sigma = np.where(np.isfinite(held), held, meas)
-    sig = np.broadcast_to(np.asarray(sigma, float), (model.n_y,)).copy()
+        sig = scale
+    else:
+        sig = np.broadcast_to(np.asarray(sigma, float), (model.n_y,)).copy()
+        sig = np.where(np.isfinite(sig) & (sig > 0), sig, scale)
     good = np.isfinite(sig) & (sig > 0)
-    if not good.all():      # no level declared: the one seen in the record
-        sig = np.where(good, sig, record_noise_level(problem.y))
-        good = np.isfinite(sig) & (sig > 0)
     if not good.any():
         raise OptionError(f"choose_discretisation: no output of '{model.name}' has a positive "
                           f"measurement-noise level to compare the discretisation error with "

@@ -35,7 +35,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from bondgraph.errors import OptionError
-from bondgraph.inference.estimand import noise_parameters
+from bondgraph.inference.estimand import noise_parameters, record_noise_level
 from bondgraph.inference.options import NOISE_MODES, Discretisation, UKFOptions, ukf_options
 from bondgraph.inference.prior import PriorSpec
 from bondgraph.inference.record import as_record
@@ -344,7 +344,23 @@ class Problem:
         in measurement-noise standard deviations."""
         d = self.disc if substeps is None else replace(self.disc, substeps=int(substeps))
         return discretisation_check(self.model, self.t, self.u, theta, self.x0, disc=d,
-                                    free_run=free_run)
+                                    sigma=self.noise_scale(theta), free_run=free_run)
+
+    def noise_scale(self, theta) -> np.ndarray:
+        """The measurement-noise std of each output (n_y,) that errors are
+        measured in: the held level (a record's declaration, a fit's
+        estimate), else ``meas_std(theta)``, else the level seen in the
+        record (:func:`~bondgraph.inference.estimand.record_noise_level`);
+        inf (left out of a comparison) where none is positive and finite."""
+        th = np.asarray(theta, float).reshape(1, -1)
+        with np.errstate(all="ignore"):
+            meas = np.asarray(self.model.meas_std(th), float).reshape(-1)
+        held = self.noise.sigma(self.model)
+        sig = np.where(np.isfinite(held), held, meas)
+        bad = ~(np.isfinite(sig) & (sig > 0))
+        if bad.any():
+            sig = np.where(bad, record_noise_level(self.y), sig)
+        return np.where(np.isfinite(sig) & (sig > 0), sig, np.inf)
 
     def noise_parameters(self) -> list[str]:
         """The model's noise-intensity parameters (the one detector,
