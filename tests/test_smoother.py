@@ -88,3 +88,49 @@ def test_smoothed_initial_state_finds_an_unmeasured_state():
     z = (sm.x0 - x_true) / np.sqrt(np.diag(sm.P0))
     assert abs(z[0]) < 3.0
     assert abs(sm.x_filt[0, 0] - x_true[0]) > 0.5
+
+
+def test_long_record_without_process_noise_smooths_to_the_batch_least_squares_x0():
+    """No process noise, a lightly damped resonance and states of very
+    different scales (the Silverbox's: m 5.8e-6 s², k 1.11, c 2.45e-4 s, Ts
+    1.6384 ms): the filtered covariance collapses to round-off and came out
+    indefinite ("filtered covariance at sample 1009 is not positive
+    definite"; the loop on a user's Silverbox graph stopped smoothing). The
+    smoothed initial state must be the batch generalised least-squares
+    estimate of x0 (with Q = 0 every x_k is Φᵏ x0 + the forced response:
+    information Σ (HΦᵏ)ᵀR⁻¹HΦᵏ + P0⁻¹), computed here without any filter,
+    on a record that starts at rest (whether the round-off breaks the old
+    Cholesky depends on the values; this one did at sample 1009)."""
+    m = Model.load("mass_spring_damper")
+    th = m.theta(m=5.8e-6, k=1.11, c=2.45e-4)
+    dt, N = 2**14 / 1e7, 5000
+    t = np.arange(N) * dt
+    rng = np.random.default_rng(7)
+    u = 0.02 * rng.normal(0, 1, (N, 1))
+    R = np.diag([0.003, 1.0]) ** 2
+    opts = UKFOptions(method="rk4", substeps=2, backend="numpy")
+    step = make_step(m, "rk4", 2)
+    Z = np.zeros((1, m.n_x))
+    Phi = np.column_stack([step(np.eye(m.n_x)[i][None], np.zeros((1, 1)), th[None], dt)[0]
+                           for i in range(m.n_x)])
+    Gam = step(Z, np.ones((1, 1)), th[None], dt)[0][:, None]
+    H = m.dhdx(Z, np.zeros((1, 1)), th[None])[0]
+    Rinv = np.linalg.inv(R)
+    x_true = np.zeros(2)
+    x0, P0 = np.zeros(2), np.diag([1e-6, 0.05]) ** 2
+    forced, A = np.zeros(m.n_x), np.eye(m.n_x)
+    ys, info, rhs = [], np.zeros((2, 2)), np.zeros(2)
+    for k in range(N):
+        HA = H @ A
+        yk = H @ (A @ x_true + forced) + rng.normal(0, 1, 2) * np.sqrt(np.diag(R))
+        info += HA.T @ Rinv @ HA
+        rhs += HA.T @ Rinv @ (yk - H @ forced)
+        ys.append(yk)
+        forced = Phi @ forced + Gam @ u[k]
+        A = Phi @ A
+    P0i = np.linalg.inv(P0)
+    x0_ref = np.linalg.solve(info + P0i, rhs + P0i @ x0)
+    sd = np.sqrt(np.diag(np.linalg.inv(info + P0i)))
+    sm = rts_smooth(m, t, u, np.array(ys), th, x0, P0, options=opts, R=R)
+    assert np.all(np.abs(sm.x0 - x0_ref) < 0.01 * sd)
+    assert np.all(np.abs(x0_ref - x_true) < 4 * sd)

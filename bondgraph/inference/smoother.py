@@ -19,7 +19,9 @@ References
 ----------
 Särkkä, S. (2008). Unscented Rauch-Tung-Striebel smoother. IEEE TAC 53(3),
 845-849. Rauch, H. E., Tung, F., Striebel, C. T. (1965). Maximum likelihood
-estimates of linear dynamic systems. AIAA J. 3(8), 1445-1450.
+estimates of linear dynamic systems. AIAA J. 3(8), 1445-1450. Higham, N. J.
+(1988). Computing a nearest symmetric positive semidefinite matrix. Linear
+Algebra Appl. 103, 103-118.
 """
 
 from __future__ import annotations
@@ -132,6 +134,40 @@ def _gain(Pm: np.ndarray, C: np.ndarray, k: int) -> np.ndarray:
         return np.linalg.lstsq(Pm.T, C.T, rcond=None)[0].T
 
 
+#: relative floor of the eigenvalues of a filtered covariance that round-off
+#: has made indefinite (:func:`_factor`)
+EIG_FLOOR = 1e-12
+
+
+def _factor(P: np.ndarray, k: int) -> np.ndarray:
+    """A lower Cholesky factor (1, n, n) of the filtered covariance ``P``.
+
+    Without process noise a direction the measurements pin down collapses to
+    round-off over a long record, and ``P`` may come out slightly indefinite
+    (a negative eigenvalue of order 1e-16 of its largest); it is then
+    replaced by the nearest positive definite matrix (symmetric part,
+    eigenvalues floored at :data:`EIG_FLOOR` times the largest; Higham
+    1988), which changes the sigma points by round-off only.
+
+    Raises
+    ------
+    NumericalError
+        A covariance that is not finite or has no positive eigenvalue.
+    """
+    L, ok, _ = cholesky_batch(P[None])
+    if ok[0]:
+        return L
+    S = 0.5 * (P + P.T)
+    if np.all(np.isfinite(S)):
+        w, V = np.linalg.eigh(S)
+        if w[-1] > 0:
+            L, ok, _ = cholesky_batch(((V * np.maximum(w, EIG_FLOOR * w[-1])) @ V.T)[None])
+            if ok[0]:
+                return L
+    raise NumericalError(f"smoother: filtered covariance at sample {k} is not positive "
+                         f"definite")
+
+
 def _backward(model, t, u, th, xf, Pf, opts: UKFOptions):
     """The RTS backward recursion (module docstring) over the filtered
     means ``xf`` (N, n) and covariances ``Pf`` (N, n, n)."""
@@ -143,11 +179,7 @@ def _backward(model, t, u, th, xf, Pf, opts: UKFOptions):
         q2 = np.asarray(model.proc_std(th[None, :]), float)[0] ** 2
     xs, Ps = xf.copy(), Pf.copy()
     for k in range(N - 2, -1, -1):
-        L, ok, _ = cholesky_batch(Pf[k][None])
-        if not ok[0]:
-            raise NumericalError(f"smoother: filtered covariance at sample {k} is not positive "
-                                 f"definite")
-        chi, cL = sigma_points(xf[k][None], L, wts.c)
+        chi, cL = sigma_points(xf[k][None], _factor(Pf[k], k), wts.c)
         uk, duk = held.interval(k)
         dt = t[k + 1] - t[k]
         with np.errstate(all="ignore"):
