@@ -410,6 +410,32 @@ def gain_beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str]) 
     return f" (beyond the box the likelihood gains {gain:.1f} nats, at {values})"
 
 
+def boxed_after_accept(ctx: Context, result: LoopResult, fit: Fit, names: list[str],
+                       label: str) -> list[str]:
+    """An accepted fit whose declared physical parameters sit on the boxes
+    the user declared: a warning (logged, in ``result.warnings``) per
+    parameter naming the box and what the likelihood would gain beyond it
+    (:func:`gain_beyond_box`, one refit). The box stays the user's; an
+    effect's own parameters are left out (their boxes are the library's).
+    Returns the warnings."""
+    noise = noise_params(fit.model)
+    declared = result.declared_graph.params if result.declared_graph is not None else {}
+    boxed = [n for n in fit.at_bound if n in names and n not in noise and n in declared]
+    if not boxed:
+        return []
+    # the effects' parameters held at their accepted values: the gain is
+    # what the declared boxes cost
+    gain = gain_beyond_box(ctx, fit.graph, fit, [n for n in names if n in declared or n in noise])
+    lo, hi = fit.model.bounds(boxed)
+    msgs = [f"the fit with {label}: {n} = {fit.theta[fit.model.param_index(n)]:.4g} on a bound "
+            f"of its box [{a:.4g}, {b:.4g}]" for n, a, b in zip(boxed, lo, hi)]
+    msgs[-1] += gain
+    for m in msgs:
+        ctx.log("warning: " + m)
+    result.warnings.extend(msgs)
+    return msgs
+
+
 def sim_start(ctx: Context, graph: BondGraph, names: list[str]) -> dict | None:
     """Start values of the declared fit from the output-error fit of its
     non-noise parameters ``names`` (``settings.search.fit == "sim"``); None (logged)
@@ -669,6 +695,7 @@ def accepted_pair_fit(ctx: Context, result: LoopResult, current: Fit, pair: tupl
     result.steps.append(st)
     for c in pair:
         result.applied.append(applied_effect(get_effect(c.effect, s.effects), c, after))
+    boxed_after_accept(ctx, result, after, names, label)
     ctx.log(f"ACCEPT pair {label}: {result.metric} {d.error_before:.4g} -> "
             f"{d.error_after:.4g}, NLL {current.nll:.2f} -> {after.nll:.2f}, LR {d.lr:.1f} "
             f"(p {d.lr_p_value:.2g}), error decrease z {d.error_z:.2f} (p {d.error_p_value:.2g}); "
@@ -889,6 +916,7 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
                                               result.metric))
             result.applied.append(applied_effect(get_effect(c.effect, s.effects), c, after))
             after.std = new_std
+            boxed_after_accept(ctx, result, after, names, c.label)
             ctx.log(f"ACCEPT {c.label}: {result.metric} {d.error_before:.4g} -> "
                     f"{d.error_after:.4g}, NLL {current.nll:.2f} -> {after.nll:.2f}, {crit} "
                     f"{d.criterion_before:.2f} -> {d.criterion_after:.2f}, whiteness "
