@@ -275,6 +275,14 @@ def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypa
     (w,) = [w for w in rep["warnings"] if w.startswith("declared fit: K2 = 1e-06 sits on a "
                                                        "bound of [3e-07, 1e-06] (beyond the box")]
     assert "the loop goes on" in w
+    # the accepted fit still has K2 on its box: the report says so, with the
+    # box and the gain beyond it (the effect's parameter held at its value)
+    (step,) = rep["steps"]
+    label = f"{step['effect']} @ {step['attached_to']}"
+    (w,) = [w for w in rep["warnings"] if w.startswith(f"the fit with {label}: K2 = 1e-06 on a "
+                                                       f"bound of its box [3e-07, 1e-06]")]
+    gain = float(re.search(r"beyond the box the likelihood gains ([0-9.]+) nats", w).group(1))
+    assert gain > 1.0
     # no --method/--substeps/--hold: the loop chose them (the pump flow is a
     # staircase: zero-order hold, for the filter and the free runs alike) and
     # repeats the check at the fits
