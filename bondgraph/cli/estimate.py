@@ -141,8 +141,9 @@ def _fit(args, problem, params, fit, states, choice):
     chosen (``choice``), checked again at the estimate
     (:func:`~bondgraph.cli.common.chosen_problem` with the fit's noise
     levels) and, if the chosen one fails there, refitted once from the
-    estimate with the one chosen at the estimate (the result, and its
-    warnings, are then the refit's)."""
+    estimate with the one chosen at the estimate (a local refit: the
+    swarm's first population with the estimate in it, then the polish; the
+    result, and its warnings, are then the refit's)."""
     log = None if args.quiet else _say
     res = _estimate_quiet(problem, params, fit, states, log)
     again = None
@@ -157,7 +158,12 @@ def _fit(args, problem, params, fit, states, choice):
                             f"there: {now:.2g} σ per sample, bias bound {bound:.2g} std; "
                             f"refitting once from the estimate)"))
             problem = problem.conditioned_on(disc=again.disc)
-            res = _estimate_quiet(problem, params, replace(fit, resume=False), states, log,
+            # a local refit: the estimate moves by the discretisation's bias
+            # only (the swarm's first population, the estimate in it, then
+            # the polish; a second full search cost as much as the first)
+            local = replace(fit, resume=False, iterations=0) if fit.polish else \
+                replace(fit, resume=False)
+            res = _estimate_quiet(problem, params, local, states, log,
                                   start=res.estimates[:len(params)])
         else:
             _say(f"discretisation at the estimate: {problem.disc.describe()} still within "
