@@ -36,6 +36,17 @@ def _kf_rts(Phi, Gam, H, Qd, R, x0, P0, u, y):
     return xs, Ps
 
 
+def _linear_maps(m, th, dt):
+    """(Φ, Γ, H): the discrete linear map of the filter's own RK4(2) step of
+    a linear model (exactly linear in x and u) and its output matrix."""
+    step = make_step(m, "rk4", 2)
+    Z = np.zeros((1, m.n_x))
+    Phi = np.column_stack([step(np.eye(m.n_x)[i][None], np.zeros((1, 1)), th[None], dt)[0]
+                           for i in range(m.n_x)])
+    Gam = step(Z, np.ones((1, 1)), th[None], dt)[0][:, None]
+    return Phi, Gam, m.dhdx(Z, np.zeros((1, 1)), th[None])[0]
+
+
 def test_unscented_rts_equals_the_linear_rts_smoother():
     m = Model.load("mass_spring_damper")
     th = m.theta(m=2.0, k=60.0, c=1.5)
@@ -45,13 +56,7 @@ def test_unscented_rts_equals_the_linear_rts_smoother():
     u = rng.normal(0, 5, (N, 1))
     y = rng.normal(0, 0.01, (N, 2)) + np.column_stack([np.sin(t), np.cos(t)]) * 0.1
     opts = UKFOptions(method="rk4", substeps=2)
-    step = make_step(m, "rk4", 2)
-    # the discrete linear map of the filter's own step (exactly linear in x and u)
-    Z = np.zeros((1, m.n_x))
-    Phi = np.column_stack([step(np.eye(m.n_x)[i][None], np.zeros((1, 1)), th[None], dt)[0]
-                           for i in range(m.n_x)])
-    Gam = step(Z, np.ones((1, 1)), th[None], dt)[0][:, None]
-    H = m.dhdx(Z, np.zeros((1, 1)), th[None])[0]
+    Phi, Gam, H = _linear_maps(m, th, dt)
     R = np.diag(m.meas_std(th[None])[0] ** 2)
     x0 = np.array([0.05, -0.02])
     P0 = np.diag([0.1, 0.01]) ** 2
@@ -109,12 +114,7 @@ def test_long_record_without_process_noise_smooths_to_the_batch_least_squares_x0
     u = 0.02 * rng.normal(0, 1, (N, 1))
     R = np.diag([0.003, 1.0]) ** 2
     opts = UKFOptions(method="rk4", substeps=2, backend="numpy")
-    step = make_step(m, "rk4", 2)
-    Z = np.zeros((1, m.n_x))
-    Phi = np.column_stack([step(np.eye(m.n_x)[i][None], np.zeros((1, 1)), th[None], dt)[0]
-                           for i in range(m.n_x)])
-    Gam = step(Z, np.ones((1, 1)), th[None], dt)[0][:, None]
-    H = m.dhdx(Z, np.zeros((1, 1)), th[None])[0]
+    Phi, Gam, H = _linear_maps(m, th, dt)
     Rinv = np.linalg.inv(R)
     x_true = np.zeros(2)
     x0, P0 = np.zeros(2), np.diag([1e-6, 0.05]) ** 2
