@@ -4,7 +4,9 @@ unscented transform is exact for linear maps, so both must agree to
 rounding), and the smoothed initial state of an unmeasured state."""
 
 import numpy as np
+import pytest
 
+from bondgraph.inference import smoother
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.smoother import rts_smooth
 from bondgraph.numerics.integrators import make_step
@@ -47,7 +49,11 @@ def _linear_maps(m, th, dt):
     return Phi, Gam, m.dhdx(Z, np.zeros((1, 1)), th[None])[0]
 
 
-def test_unscented_rts_equals_the_linear_rts_smoother():
+@pytest.mark.parametrize("chunk", [4096, 7])
+def test_unscented_rts_equals_the_linear_rts_smoother(chunk, monkeypatch):
+    """Also with the batched predictions split into chunks of 7 intervals
+    (their boundaries inside the record)."""
+    monkeypatch.setattr(smoother, "CHUNK", chunk)
     m = Model.load("mass_spring_damper")
     th = m.theta(m=2.0, k=60.0, c=1.5)
     dt, N = 0.02, 150

@@ -168,27 +168,79 @@ def _factor(P: np.ndarray, k: int) -> np.ndarray:
                          f"definite")
 
 
+#: intervals whose one-step predictions are propagated in one batch
+CHUNK = 4096
+
+
 def _backward(model, t, u, th, xf, Pf, opts: UKFOptions):
     """The RTS backward recursion (module docstring) over the filtered
-    means ``xf`` (N, n) and covariances ``Pf`` (N, n, n)."""
+    means ``xf`` (N, n) and covariances ``Pf`` (N, n, n).
+
+    The one-step predictions of the filtered posteriors (m⁻, P⁻ and the
+    gain G of every interval) do not depend on the recursion: they are
+    propagated in batches (:func:`_predictions`); only the recursion itself
+    runs sample by sample."""
+    N = t.size
+    xs, Ps = xf.copy(), Pf.copy()
+    if N < 2:
+        return xs, Ps
+    m, Pm, G = _predictions(model, t, u, th, xf, Pf, opts)
+    for k in range(N - 2, -1, -1):
+        xs[k] = xf[k] + G[k] @ (xs[k + 1] - m[k])
+        Pk = Pf[k] + G[k] @ (Ps[k + 1] - Pm[k]) @ G[k].T
+        Ps[k] = 0.5 * (Pk + Pk.T)
+    return xs, Ps
+
+
+def _predictions(model, t, u, th, xf, Pf, opts: UKFOptions):
+    """``(m⁻ (N-1, n), P⁻ (N-1, n, n), G (N-1, n, n))``: for every interval
+    k the sigma points of (x̂_k|k, P_k|k) through the filter's own step and
+    input hold, their mean and covariance (+ the process noise) and the
+    smoother gain (:func:`_gain`), in batches of :data:`CHUNK` intervals of
+    equal length.
+
+    Raises
+    ------
+    NumericalError
+        A filtered covariance that cannot be factored (:func:`_factor`) or
+        a non-finite prediction (the latest sample named, as the recursion
+        meets it first).
+    """
     n, N = model.n_x, t.size
     wts = merwe_weights(n, opts.alpha, opts.beta, opts.kappa)
     step = make_step(model, opts.method, opts.substeps, jacobian=ROS2_JACOBIAN[opts.jacobian])
     held = hold_inputs(u, opts.hold)
     with np.errstate(all="ignore"):
         q2 = np.asarray(model.proc_std(th[None, :]), float)[0] ** 2
-    xs, Ps = xf.copy(), Pf.copy()
-    for k in range(N - 2, -1, -1):
-        chi, cL = sigma_points(xf[k][None], _factor(Pf[k], k), wts.c)
-        uk, duk = held.interval(k)
-        dt = t[k + 1] - t[k]
-        with np.errstate(all="ignore"):
-            X = step(chi, uk, th[None, None, :], dt, duk)
-        m, Pm, D = unscented_moments(X, wts)
-        Pm = Pm[0] + np.diag(q2 * dt)
-        C = wts.w * (cL[0].T @ (D[0, :n] - D[0, n:]))
-        G = _gain(Pm, C, k)
-        xs[k] = xf[k] + G @ (xs[k + 1] - m[0])
-        Pk = Pf[k] + G @ (Ps[k + 1] - Pm) @ G.T
-        Ps[k] = 0.5 * (Pk + Pk.T)
-    return xs, Ps
+    m, Pm, G = np.empty((N - 1, n)), np.empty((N - 1, n, n)), np.empty((N - 1, n, n))
+    dts = np.diff(t)
+    for a in range(0, N - 1, CHUNK):
+        ks = np.arange(a, min(a + CHUNK, N - 1))
+        L, ok, _ = cholesky_batch(Pf[ks])
+        for j in np.flatnonzero(~ok)[::-1]:
+            L[j] = _factor(Pf[ks[j]], int(ks[j]))[0]
+        chi, cL = sigma_points(xf[ks], L, wts.c)
+        for dt in np.unique(dts[ks]):
+            sel = np.flatnonzero(dts[ks] == dt)
+            k_sel = ks[sel]
+            du = None if held.change is None else held.change[k_sel][:, None, :]
+            with np.errstate(all="ignore"):
+                X = step(chi[sel], held.start[k_sel][:, None, :], th[None, None, :], dt, du)
+            mm, P, D = unscented_moments(X, wts)
+            m[k_sel] = mm
+            Pm[k_sel] = P + np.diag(q2 * dt)
+            C = wts.w * (np.swapaxes(cL[sel], -1, -2) @ (D[:, :n] - D[:, n:]))
+            G[k_sel] = _gains(Pm[k_sel], C, k_sel)
+    return m, Pm, G
+
+
+def _gains(Pm: np.ndarray, C: np.ndarray, ks: np.ndarray) -> np.ndarray:
+    """:func:`_gain` of a batch (B, n, n) of intervals ``ks``."""
+    bad = ~(np.isfinite(Pm).all(axis=(1, 2)) & np.isfinite(C).all(axis=(1, 2)))
+    if bad.any():
+        k = int(ks[np.flatnonzero(bad)[-1]])
+        raise NumericalError(f"smoother: predicted covariance at sample {k + 1} is not finite")
+    try:
+        return np.swapaxes(np.linalg.solve(np.swapaxes(Pm, 1, 2), np.swapaxes(C, 1, 2)), 1, 2)
+    except np.linalg.LinAlgError:
+        return np.stack([_gain(Pm[j], C[j], int(k)) for j, k in enumerate(ks)])
