@@ -262,9 +262,11 @@ def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings
     the declared defaults on the estimation part of the record
     (:func:`bondgraph.cli.common.chosen_problem`; what of
     ``--method``, ``--substeps``, ``--hold`` the user gave is kept), the free
-    runs holding the inputs the same way, and the check repeated at the
-    declared fit and at every accepted one (``auto_substeps``). One line
-    says what was chosen and why. A bundled case keeps its own options."""
+    runs holding the inputs the same way with the same method 4 times finer
+    (``FreeRunOptions(method="fine")``: fixed-step, where an adaptive solver
+    restarts at every sample of a held input), and the check repeated at
+    the declared fit and at every accepted one (``auto_substeps``). One
+    line says what was chosen and why. A bundled case keeps its own options."""
     if len(discretisation_given(args)) == 3:
         return settings
     est, s = held_out(record, settings)
@@ -280,7 +282,8 @@ def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings
     hold = d.hold if d.hold in ("zoh", "linear") else settings.free_run.hold
     return dataclasses.replace(settings, ukf=ukf,
                                search=dataclasses.replace(settings.search, auto_substeps=True),
-                               free_run=dataclasses.replace(settings.free_run, hold=hold))
+                               free_run=dataclasses.replace(settings.free_run, hold=hold,
+                                                            method="fine"))
 
 
 def ukf_replaced(base: UKFOptions, given: dict, backend: str) -> UKFOptions:

@@ -20,6 +20,7 @@ import numpy as np
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
+    fine_free_run,
     NOISE_BOX,
     NoiseSpec,
     Problem,
@@ -654,7 +655,8 @@ def sim_inputs(settings: LoopSettings, filter_hold: str, u: np.ndarray) -> tuple
 def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
              own: bool = True) -> np.ndarray | None:
     """Free-run simulation (N, n_y) of ``problem``'s record with the measured
-    inputs (``settings.free_run.method``, rtol 1e-6, atol 1e-9, the input hold of
+    inputs (``settings.free_run.method``, rtol 1e-6, atol 1e-9, or ``"fine"``:
+    :func:`~bondgraph.diagnose.inference_calls.fine_free_run`; the input hold of
     :func:`sim_inputs`) from its prior mean (state columns, sidecar ``x0``,
     ``--x0``, the jointly estimated initial states), or, when the record
     does not give some initial states (:meth:`PriorSpec.unknown`; on the
@@ -672,6 +674,8 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
     if [n for n in unknown if not own or n not in problem.prior.estimated]:
         x0 = _smoothed_start(ctx, problem, theta, x0)
     try:
+        if ctx.settings.free_run.method == "fine":
+            return fine_free_run(problem, u_sim, hold, theta, x0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             sim = simulate(model, t, u_sim, x0=x0, theta=theta,

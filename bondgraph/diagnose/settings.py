@@ -35,6 +35,11 @@ METRICS = ("nrmse_sim", "rmse_sim", "rmse_pred")
 CRITERIA = ("aic", "bic")
 #: how the free runs read the sampled inputs between samples (``FreeRunOptions.hold``)
 FREE_RUN_HOLDS = ("linear", "zoh", "filter")
+#: the free runs' solvers: scipy's and the fixed-step ones
+#: (:data:`bondgraph.numerics.simulate.METHODS`), or ``"fine"``, the
+#: filter's own method at 4 times its substeps
+#: (:func:`bondgraph.diagnose.inference_calls.fine_free_run`)
+FREE_RUN_METHODS = METHODS + ("fine",)
 
 #: the fraction of a user's record (``bondgraph loop --model M --data D``,
 #: no ``--validate``) held out at its end for the accept decision and the
@@ -278,7 +283,10 @@ class FreeRunOptions:
     ----------
     method : str
         Solver (:func:`bondgraph.numerics.simulate.simulate`; one of
-        :data:`bondgraph.numerics.simulate.METHODS`).
+        :data:`bondgraph.numerics.simulate.METHODS`), or ``"fine"``: the
+        filter's own method at 4 times its substeps, fixed-step
+        (:func:`bondgraph.diagnose.inference_calls.fine_free_run`; a user's
+        graph and record get it with the chosen discretisation).
     hold : {"linear", "zoh", "filter"}
         How the free runs read the sampled inputs between samples: linear
         interpolation (default), zero-order hold (inputs that are held by a
@@ -291,7 +299,7 @@ class FreeRunOptions:
     hold: str = "linear"
 
     def __post_init__(self):
-        _choice(self, "method", METHODS)
+        _choice(self, "method", FREE_RUN_METHODS)
         _choice(self, "hold", FREE_RUN_HOLDS)
 
 
