@@ -140,3 +140,18 @@ def test_long_record_without_process_noise_smooths_to_the_batch_least_squares_x0
     sm = rts_smooth(m, t, u, np.array(ys), th, x0, P0, options=opts, R=R)
     assert np.all(np.abs(sm.x0 - x0_ref) < 0.01 * sd)
     assert np.all(np.abs(x0_ref - x_true) < 4 * sd)
+
+
+def test_factor_of_collapsed_and_indefinite_covariances():
+    """A filtered covariance that underflowed to zero (the state known
+    exactly) factors to zero; one that round-off made indefinite (an
+    eigenvalue of −1e-20 beside 1) to a factor whose product is within
+    1e-12 of it; a non-finite one is an error naming the sample."""
+    from bondgraph.errors import NumericalError
+    np.testing.assert_array_equal(smoother._factor(np.zeros((2, 2)), 3), np.zeros((1, 2, 2)))
+    V = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    P = V @ np.diag([1.0, -1e-20]) @ V.T
+    L = smoother._factor(P, 4)[0]
+    np.testing.assert_allclose(L @ L.T, P, atol=1e-12)
+    with pytest.raises(NumericalError, match="sample 7"):
+        smoother._factor(np.full((2, 2), np.nan), 7)

@@ -149,10 +149,13 @@ def _factor(P: np.ndarray, k: int) -> np.ndarray:
     eigenvalues floored at :data:`EIG_FLOOR` times the largest; Higham
     1988), which changes the sigma points by round-off only.
 
+    A covariance without a positive eigenvalue (it underflowed to zero: the
+    state is known exactly) gives the zero factor.
+
     Raises
     ------
     NumericalError
-        A covariance that is not finite or has no positive eigenvalue.
+        A covariance that is not finite.
     """
     L, ok, _ = cholesky_batch(P[None])
     if ok[0]:
@@ -160,10 +163,14 @@ def _factor(P: np.ndarray, k: int) -> np.ndarray:
     S = 0.5 * (P + P.T)
     if np.all(np.isfinite(S)):
         w, V = np.linalg.eigh(S)
-        if w[-1] > 0:
-            L, ok, _ = cholesky_batch(((V * np.maximum(w, EIG_FLOOR * w[-1])) @ V.T)[None])
-            if ok[0]:
-                return L
+        if not w[-1] > np.finfo(float).tiny:
+            # the state is known exactly (without process noise a damped
+            # model forgets its initial state: P_k = Φᵏ P0 Φᵏᵀ underflows):
+            # the sigma points collapse onto the mean, the gain is 0
+            return np.zeros_like(P)[None]
+        L, ok, _ = cholesky_batch(((V * np.maximum(w, EIG_FLOOR * w[-1])) @ V.T)[None])
+        if ok[0]:
+            return L
     raise NumericalError(f"smoother: filtered covariance at sample {k} is not positive "
                          f"definite")
 
