@@ -529,3 +529,26 @@ def test_no_experimental_feature_warning_reaches_the_user():
     r = subprocess.run([sys.executable, "-c", script], text=True, capture_output=True)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.split() == ["numba"]
+
+
+def test_the_same_graph_from_another_source_shares_its_kernels():
+    """The kernel cache is keyed on the code, not on where the graph came
+    from (a user's file named relatively or absolutely: the candidates of a
+    user's Silverbox graph were compiled again when the command named its
+    file another way): one graph built in memory with two ``source``
+    strings has one kernel source path; a changed law has another."""
+    from bondgraph.catalog.reference import mass_spring_damper
+    from bondgraph.diagnose.effects.laws import add_to_r_law
+    paths = []
+    for src in ("msd.py:msd", "/home/user/models/msd.py:msd"):
+        g = mass_spring_damper()
+        g.source = src
+        m = Model.from_graph(g)
+        assert m.module.SOURCE == src
+        paths.append(compiled.kernel_source_path(m))
+    assert paths[0] is not None and paths[0] == paths[1]
+    g = mass_spring_damper()
+    g.source = "msd.py:msd"
+    d = g.param("d3", 0.1, "N*s^3/m^3", (0.0, 1.0), "cubic damping")
+    add_to_r_law(g, g.elements["damper"], lambda v: d * v**3)
+    assert compiled.kernel_source_path(Model.from_graph(g)) != paths[0]

@@ -119,10 +119,13 @@ def kernel_source_path(model) -> Path | None:
     return path if path.exists() else None
 
 
-#: lines of a generated numpy module that carry values, not code: the
-#: numba kernels do not depend on them
+#: lines of a generated numpy module that carry values or provenance, not
+#: code: the numba kernels do not depend on them (``SOURCE``: where the graph
+#: came from, e.g. ``sbuser.py:fn`` or ``/abs/path/sbuser.py:fn`` for the
+#: same graph; keyed on it, a user's candidates were compiled again whenever
+#: the command named the file another way)
 VALUE_LINES = ("X0 = ", "INPUT_DEFAULTS = ", "PARAM_DEFAULTS = ", "PARAM_LOWER = ",
-               "PARAM_UPPER = ")
+               "PARAM_UPPER = ", "SOURCE = ")
 
 
 def kernel_key_text(text: str) -> str:
