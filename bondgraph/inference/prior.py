@@ -91,7 +91,7 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
     n = min(int(np.size(t)), int(samples))
     u = np.asarray(u, float).reshape(np.size(t), -1)[:n] if model.n_u else np.zeros((n, 0))
     t = np.asarray(t, float)[:n]
-    kernels = _free_run_kernels(model, disc.backend, method, hold)
+    kernels = free_run_kernels(model, disc.backend, method, hold)
     if kernels is not None:
         return sim_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
     held = hold_inputs(u, hold)
@@ -114,8 +114,8 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
     return np.sqrt(acc / count) if count else np.zeros(model.n_x)
 
 
-def _free_run_kernels(model, backend: str, method: str, hold: str):
-    """The model's compiled point kernels for the free run, or None (numpy):
+def free_run_kernels(model, backend: str, method: str, hold: str):
+    """The model's compiled point kernels for a free run, or None (numpy):
     backend numpy, numba missing, a method or hold the kernel lacks, or
     kernels that do not load (the backend is the caller's choice, taken
     literally: never the state of the kernel cache)."""
