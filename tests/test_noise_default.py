@@ -249,6 +249,16 @@ def test_a_sensor_without_a_noise_level_gets_one_estimated_from_the_record():
     k = r.params.index("k")
     assert abs(r.theta[model.param_index("k")] - TRUTH["k"]) < 3 * r.std[k]
     assert not any("discretisation error" in w for w in r.warnings)
+    # a start with every estimated quantity (the local refit of `estimate`
+    # after a new discretisation) places the whole estimate, the noise level
+    # included, in the population: no search step, no polish, and the best
+    # is the estimate itself (the noise level restarting from the record's
+    # 0.004-ish second-difference level would score worse)
+    again = estimate(pb, ["k"], start=r.estimates,
+                     fit=FitOptions(particles=8, iterations=0, seed=1, progress=False,
+                                    polish=False, hessian=False))
+    assert again.nll == pytest.approx(r.nll, abs=1e-6)
+    np.testing.assert_allclose(again.estimates, r.estimates, rtol=1e-12)
 
 
 def test_no_level_anywhere_is_a_clean_error():

@@ -159,12 +159,12 @@ def _fit(args, problem, params, fit, states, choice):
                             f"refitting once from the estimate)"))
             problem = problem.conditioned_on(disc=again.disc)
             # a local refit: the estimate moves by the discretisation's bias
-            # only (the swarm's first population, the estimate in it, then
-            # the polish; a second full search cost as much as the first)
+            # only (the swarm's first population, the whole estimate (noise
+            # levels, initial states too) in it, then the polish; a second
+            # full search cost as much as the first)
             local = replace(fit, resume=False, iterations=0) if fit.polish else \
                 replace(fit, resume=False)
-            res = _estimate_quiet(problem, params, local, states, log,
-                                  start=res.estimates[:len(params)])
+            res = _estimate_quiet(problem, params, local, states, log, start=res.estimates)
         else:
             _say(f"discretisation at the estimate: {problem.disc.describe()} still within "
                  f"({now:.2g} σ per sample" + (f", free-run bias bound {bound:.2g} std)"

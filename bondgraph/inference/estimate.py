@@ -538,8 +538,10 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
         Search box (default: the model's bounds).
     Q, R : arrays, optional
         Extra process-noise / measurement-noise covariance (R: no noise policy).
-    start : array (k,), optional
-        A starting point placed in the initial population.
+    start : array (k,) or (k + m + r,), optional
+        A starting point placed in the initial population: the parameters
+        ``params``, or every estimated quantity in the order of a result's
+        ``params`` (the parameters, ``x0.<state>``, ``noise.<output>``).
     x0_states : sequence of str
         Initial states estimated with θ (``x0.<state>``; ``["all"]``): their
         prior shrinks to a token spread (Kristensen, Madsen & Jørgensen 2004).
@@ -667,11 +669,16 @@ def _criterion(problem: Problem, plan: _Plan, fit: FitOptions, Q, R) -> Criterio
 def _start(crit: Criterion, plan: _Plan, start):
     """The optimizer's start (search coordinates): ``start`` (k user
     parameters) completed with the current values of the other estimated
-    quantities; None without ``start``."""
+    quantities, or every estimated quantity when ``start`` has them all (a
+    result's ``estimates``); None without ``start``."""
     if start is None or plan.est is None:
         return start
     z = plan.est.value()
-    z[:len(plan.params)] = np.asarray(start, float)
+    s = np.asarray(start, float).reshape(-1)
+    if s.size == z.size:
+        z = s.copy()
+    else:
+        z[:len(plan.params)] = s
     return crit.to_search(z)[0]
 
 
