@@ -576,14 +576,10 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     """
     t_start = time.perf_counter()
     fit = fit_options(fit)
-    if not isinstance(problem, Problem):
-        raise OptionError(f"estimate needs a Problem (bondgraph.inference.problem.make_problem), "
-                          f"got {type(problem).__name__}")
     plan = _plan(problem, params, bounds, R, x0_states)
     for note in plan.notes:
         (log or (lambda _m: None))(note)
-    crit = _criterion(problem, plan, fit, Q, R)
-    lo, hi = plan.lo, plan.hi
+    crit, lo, hi = _criterion(problem, plan, fit, Q, R), plan.lo, plan.hi
     try:
         opt = _global_search(crit, lo, hi, fit, _start(crit, plan, start))
         x_best, f_best, pol = _polish(crit, opt, lo, hi, fit)
@@ -634,6 +630,9 @@ class _Found:
 
 def _plan(problem: Problem, params, bounds, R, x0_states) -> _Plan:
     """The :class:`_Plan` of an estimation on ``problem``."""
+    if not isinstance(problem, Problem):
+        raise OptionError(f"estimate needs a Problem (bondgraph.inference.problem.make_problem), "
+                          f"got {type(problem).__name__}")
     model = problem.model
     params, lo, hi = _search_box(model, params, problem.fixed, bounds)
     base = problem.theta.copy()
