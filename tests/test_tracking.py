@@ -167,3 +167,56 @@ def test_no_false_alarm_and_white_increments_without_change(tracking_model):
     assert abs(s.mean()) < 4 / np.sqrt(s.size)            # N(0, 1) before a change
     assert abs(s.var() - 1.0) < 0.1
     assert abs(res.estimate[-1, 0] - 1.5) <= 3 * res.std[-1, 0]
+
+
+@pytest.mark.parametrize("backend,tol", [("numpy", 1e-11), ("numba", 1e-8)])
+def test_streaming_tracker_equals_batch_tracker(tracking_model, backend, tol):
+    from bondgraph.inference.track import Tracker
+
+    base, t, F, y = msd_record(seed=4, c_after=2.5)
+    t, F, y = t[:1500], F[:1500], y[:1500].copy()
+    y[100:110, 1] = np.nan                                  # missing samples
+    pr = make_problem(base, (t, F, y), ukf=UKFOptions(method="ros2", substeps=2,
+                                                       backend=backend))
+    opts = TrackOptions(false_alarm_hours=None, smooth=False)
+    batch = track(pr, tracking_model, drift={"c": 0.05}, options=opts)
+    tm = tracking_model
+    trk = Tracker.from_problem(pr, tm, drift={"c": 0.05}, options=opts)
+    for k in range(t.size):
+        est, sd = trk.update(t[k], F[k], y[k])
+        assert est[0] == pytest.approx(batch.estimate[k, 0], rel=tol)
+        assert sd[0] == pytest.approx(batch.std[k, 0], rel=max(tol, 1e-9))
+
+
+def test_drift_intensity_estimated_by_maximum_likelihood():
+    from bondgraph.inference.options import FitOptions
+    from bondgraph.inference.track import estimate_drift
+
+    # a random walk of constant intensity in c's unit: the model of transform "none"
+    # (the logit's walk is in z: its intensity in c's unit follows the slope)
+    q_true, seg = 0.08, 0.5                 # N s/m per sqrt(s); c held over 0.5 s pieces
+    g = mass_spring_damper()
+    base = Model.from_graph(g)
+    rng = np.random.default_rng(5)
+    dt, T = 0.02, 120.0
+    t = np.arange(0.0, T + dt / 2, dt)
+    F = np.repeat(rng.normal(0.0, 5.0, int(T / seg) + 1), int(seg / dt))[:t.size, None]
+    c = 1.5 + np.cumsum(rng.normal(0.0, q_true * np.sqrt(seg), int(T / seg) + 1))
+    assert c.min() > 0.5 and c.max() < 5.0
+    y, x = [], base.x0
+    n = int(round(seg / dt))
+    for i in range(0, t.size - 1, n):
+        j = min(i + n, t.size - 1)
+        s = simulate(base, t[i:j + 1], F[i:j + 1], x0=x, theta={"c": c[i // n]}, hold="zoh")
+        y.append(s.y[:-1])
+        x = s.x[-1]
+    y.append(s.y[-1:])
+    y = np.vstack(y) + rng.normal(0.0, 1.0, (t.size, 2)) * np.array([0.002, 0.01])
+    pr = make_problem(base, (t, F, y), ukf=UKFOptions(method="rk4", substeps=2))
+    tm = TrackingModel.from_graph(g, ["c"], {"c": 0.2}, transform="none")
+    res = estimate_drift(pr, tm, fit=FitOptions(particles=8, iterations=8, seed=0, progress=False,
+                                                check_discretisation=False))
+    q, sd = res.estimates[0], res.std[0]
+    print("drift MLE", q, sd)
+    assert np.isfinite(sd) and sd > 0
+    assert abs(q - q_true) <= 3 * sd

@@ -486,3 +486,155 @@ def check_tracked(names: Sequence[str], model) -> None:
         if n not in model.params:
             raise OptionError(f"cannot track '{n}': model '{model.name}' has no such parameter "
                               f"(parameters: {', '.join(model.params)})")
+
+
+# ------------------------------------------------------------------ drift intensities
+def estimate_drift(problem, tm: TrackingModel, names: Sequence[str] | None = None, *,
+                   start: Mapping[str, float] | None = None,
+                   std: Mapping[str, float] | None = None, fit=None,
+                   options: TrackOptions | None = None):
+    """Maximum-likelihood drift intensities, with their Cramér-Rao std.
+
+    The likelihood is the tracking filter's (the augmented-state UKF with
+    the prior of :func:`tracking_prior`, no change detection), maximised by
+    :func:`bondgraph.inference.estimate.estimate` over the parameters
+    ``drift.<p>`` of the augmented model.
+
+    Parameters
+    ----------
+    problem : Problem
+        The original model on the record.
+    tm : TrackingModel
+    names : sequence of str, optional
+        Tracked parameters whose drift is estimated (default all).
+    start, std : dict, optional
+        As for :func:`track`.
+    fit : FitOptions, optional
+    options : TrackOptions, optional
+        ``prior_rel`` and ``match_spread`` are read.
+
+    Returns
+    -------
+    EstimationResult
+        ``params`` are ``drift.<p>`` [unit/sqrt(s)], with ``std`` from the
+        Hessian of the NLL (Cramér-Rao).
+
+    Raises
+    ------
+    ModelError
+        A name that is not tracked.
+    EstimationError
+        No finite likelihood in the search.
+    """
+    from bondgraph.inference.estimate import estimate
+    from bondgraph.inference.prior import PriorSpec
+    from bondgraph.inference.problem import make_problem
+
+    opts = _checked(options, TrackOptions, "track options")
+    x0, P0, th = tracking_prior(problem, tm, start, std, opts.prior_rel)
+    drift = [tm._spec(n).drift_param for n in (names or tm.names)]
+    fixed = {p: v for p, v in zip(tm.model.params, th) if p not in drift}
+    aug = make_problem(tm.model, problem.arrays, prior=PriorSpec(x0=x0, P0=P0),
+                       noise=problem.noise, ukf=filter_options(problem.ukf, tm, opts),
+                       fixed=fixed)
+    return estimate(aug, drift, fit=fit)
+
+
+# ------------------------------------------------------------------ streaming
+class Tracker:
+    """Streaming tracker: one sample per :meth:`update`, the same predict
+    and update steps as the batch filter (:func:`bondgraph.inference.ukf.predict`,
+    :func:`~bondgraph.inference.ukf.update`; numpy), so that it equals
+    :func:`track` without change detection sample for sample.
+
+    Parameters
+    ----------
+    tm : TrackingModel
+    theta : array (n_theta,)
+        The augmented model's parameters (:meth:`TrackingModel.theta`).
+    x0 : array (n_x,)
+    P0 : array (n_x, n_x)
+        Prior at the first sample (:func:`tracking_prior`).
+    ukf : UKFOptions, optional
+        The filter's options (as given: :func:`filter_options` is the
+        caller's; :meth:`from_problem` applies it).
+    R : array (n_y, n_y), optional
+        Measurement-noise covariance (default ``meas_std(θ)²``).
+
+    Examples
+    --------
+    >>> trk = Tracker.from_problem(problem, tm)            # doctest: +SKIP
+    >>> for k in range(N):                                  # doctest: +SKIP
+    ...     est, sd = trk.update(t[k], u[k], y[k])
+    """
+
+    def __init__(self, tm: TrackingModel, theta, x0, P0, *, ukf: UKFOptions | None = None,
+                 R=None):
+        from bondgraph.inference.options import ukf_options
+        from bondgraph.inference.sigma import merwe_weights
+        from bondgraph.inference.ukf import FilterBatch, ROS2_JACOBIAN
+        from bondgraph.numerics.integrators import make_step
+
+        self.tm, self.opts = tm, ukf_options(ukf)
+        m = tm.model
+        self.wts = merwe_weights(m.n_x, self.opts.alpha, self.opts.beta, self.opts.kappa)
+        self.step = make_step(m, self.opts.method, self.opts.substeps,
+                              jacobian=ROS2_JACOBIAN[self.opts.jacobian])
+        R = None if R is None else np.asarray(R, float).reshape(1, m.n_y, m.n_y)
+        self.batch = FilterBatch(m, [np.nan], np.asarray(theta, float)[None, :],
+                                 np.asarray(x0, float)[None, :],
+                                 np.asarray(P0, float)[None, :, :], None, R)
+        self.batch.t = []
+        self.k, self._u = 0, None
+
+    @classmethod
+    def from_problem(cls, problem, tm: TrackingModel, *, start=None, std=None, drift=None,
+                     options: TrackOptions | None = None) -> "Tracker":
+        """A tracker with the prior, parameters, noise and options that
+        :func:`track` uses for ``problem`` (same arguments)."""
+        opts = _checked(options, TrackOptions, "track options")
+        x0, P0, th = tracking_prior(problem, tm, start, std, opts.prior_rel)
+        th = th if not drift else tm.theta(dict(zip(problem.model.params, problem.theta)), drift)
+        R = problem.noise.covariance(tm.model, th[None, :])
+        return cls(tm, th, x0, P0, ukf=filter_options(problem.ukf, tm, opts),
+                   R=None if R is None else R[0])
+
+    def update(self, t: float, u, y) -> tuple[np.ndarray, np.ndarray]:
+        """Filter one sample.
+
+        Parameters
+        ----------
+        t : float
+            Its time [s] (after the previous one).
+        u : array (n_u,)
+            Inputs (model units).
+        y : array (n_y,)
+            Outputs, NaN where not measured.
+
+        Returns
+        -------
+        (estimate (k,), std (k,))
+            The tracked parameters after the update (parameter units).
+
+        Raises
+        ------
+        NumericalError
+            The filter fails (the reason named), or time does not increase.
+        """
+        from bondgraph.inference.ukf import predict, update
+        from bondgraph.numerics.integrators import hold_inputs
+
+        b, u, y = self.batch, np.asarray(u, float).reshape(-1), np.asarray(y, float).reshape(-1)
+        if b.t and not t > b.t[-1]:
+            raise NumericalError(f"Tracker.update: time {t!r} does not follow {b.t[-1]!r}")
+        b.t.append(float(t))
+        if self.k > 0:
+            uk, duk = hold_inputs(np.stack([self._u, u]), self.opts.hold).interval(0)
+            predict(b, self.step, uk, b.t[-1] - b.t[-2], self.wts, self.k, duk)
+        if b.size and np.isfinite(y).any():
+            update(b, self.tm.model, u, y, self.wts, self.k)
+        if not b.size:
+            raise NumericalError(f"the tracker fails: {b.reasons[0]}")
+        self.k, self._u = self.k + 1, u
+        est, sd = self.tm.values(b.x[0], b.P[0])
+        return est, sd
