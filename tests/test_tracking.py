@@ -220,3 +220,36 @@ def test_drift_intensity_estimated_by_maximum_likelihood():
     print("drift MLE", q, sd)
     assert np.isfinite(sd) and sd > 0
     assert abs(q - q_true) <= 3 * sd
+
+
+def test_track_command_writes_table_changes_and_plots(tmp_path, capsys):
+    import json
+
+    from bondgraph.cli.main import main
+    from bondgraph.data.records import Experiment
+
+    base, t, F, y = msd_record(seed=1, c_after=3.0)
+    rec = Experiment.from_arrays(t, model=base, u=F, y=y,
+                                 noise_std={"x": 0.002, "v": 0.01},
+                                 meta={"true_parameters": {"c": 1.5}})
+    path = tmp_path / "msd_step.csv"
+    rec.save(path)
+    out = tmp_path / "out"
+    code = main(["track", "--model", "mass_spring_damper", "--data", str(path), "--track", "c",
+                 "--out", str(out), "--method", "rk4", "--substeps", "2", "--hold", "zoh",
+                 "--backend", "numpy"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "1 change(s)" in text
+    changes = json.loads((out / "changes.json").read_text())["changes"]
+    assert len(changes) == 1 and changes[0]["parameter"] == "c"
+    assert abs(changes[0]["time"] - T_CHANGE) <= 0.2
+    assert abs(changes[0]["after"] - 3.0) <= 3 * changes[0]["after_std"]
+    table = np.genfromtxt(out / "track.csv", delimiter=",", names=True)
+    assert table.size == t.size
+    assert abs(table["c"][-1] - 3.0) <= 3 * table["cstd"][-1]
+    assert (out / "track_c.png").stat().st_size > 1000
+    code = main(["track", "--model", "mass_spring_damper", "--data", str(path), "--track",
+                 "cc", "--out", str(tmp_path / "o2")])
+    assert code == 2
+    assert "cannot track 'cc'" in capsys.readouterr().err
