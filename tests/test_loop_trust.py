@@ -381,3 +381,36 @@ def test_a_correction_beside_a_declared_resistor_is_judged_with_it():
     assert v.element == "corr + visc (in parallel on junction 'v')"
     assert abs(v.at) == pytest.approx(1.0 + MARGIN * 2.0, rel=1e-12)   # span 2
     assert v.value == pytest.approx((200.0 - 300.0) * v.at**2, rel=1e-12)
+
+
+def test_a_refit_that_pins_a_declared_parameter_on_its_box_is_refused():
+    """A candidate's refit that moves a declared physical parameter from
+    inside its box onto a bound is compensating (the box decides it, and
+    its likelihood ratio at a boundary is not χ²): refused with the
+    parameter and its box named, though every evidence test passes. A
+    parameter already on its box before the step is not a reason (the
+    declared fit's verdict reports it)."""
+    from bondgraph.diagnose.accept import newly_boxed
+    from bondgraph.numerics.model import Model
+
+    m = Model.from_graph(tanks())
+    lo, hi = m.bounds(["K2"])
+
+    def fit(nll, metric, at_bound, k2):
+        f = _fit(nll, 2, metric)
+        f.model, f.params, f.at_bound = m, ["K1", "K2"], list(at_bound)
+        f.theta = m.theta({**TRUTH, "K2": k2})
+        return f
+
+    current = fit(100.0, 1.0, [], TRUTH["K2"])
+    after = fit(50.0, 0.5, ["K2"], float(hi[0]))
+    rule = AcceptRule()
+    d = decide(current, after, rule, dof=1)
+    assert not d.accepted
+    assert d.reason == (f"the refit moves K2 = {hi[0]:.4g} (box [{lo[0]:.4g}, {hi[0]:.4g}]) onto "
+                        f"its box: the box, not the record, decides it")
+    # the same evidence with K2 inside its box: accepted
+    inside = fit(50.0, 0.5, [], TRUTH["K2"])
+    assert decide(current, inside, rule, dof=1).accepted
+    # already on its box before the step: the declared fit's verdict reports it
+    assert newly_boxed(fit(100.0, 1.0, ["K2"], float(hi[0])), after) == ""

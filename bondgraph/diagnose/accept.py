@@ -63,7 +63,7 @@ import numpy as np
 from scipy.stats import chi2, norm
 
 from bondgraph.diagnose.effects import BY_NAME, Effect
-from bondgraph.diagnose.fit import Fit
+from bondgraph.diagnose.fit import Fit, noise_params
 from bondgraph.diagnose.result import AppliedEffect, Candidate, Rejection, Step
 from bondgraph.diagnose.settings import AcceptRule
 from bondgraph.numerics.admissible import Admissibility
@@ -292,7 +292,8 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     Decision
         ``reason`` (first failed test): "the refit did not converge ...",
         "the refit is not physically admissible: ...", "the refitted model
-        does not simulate: ...", "the refit is not finite",
+        does not simulate: ...", "the refit is not finite", "the refit moves
+        ... onto its box" (:func:`newly_boxed`),
         "information criterion did not improve", "likelihood-ratio test not
         passed (LR l, p p)", "the error grew (a -> b)" (with "on the
         validation record" when it is that error), or "the error decrease is
@@ -327,6 +328,8 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
             f", on the validation record {after.validation_metric:.4g}"
         reason = (f"the refit is not finite (NLL {after.nll:.4g}, error on the record "
                   f"{after.metric:.4g}{val})")
+    elif pinned := newly_boxed(current, after):
+        reason = f"the refit moves {pinned} onto its box: the box, not the record, decides it"
     elif not ic1 < ic0:
         reason = "information criterion did not improve"
     elif not p < rule.significance:
@@ -337,6 +340,32 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
         reason = (f"the error decrease{where} is within its uncertainty ({e0:.4g} -> "
                   f"{e1:.4g}, z {dz:.2f}, p {dp:.2g})")
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
+
+
+def newly_boxed(current: Fit, after: Fit) -> str:
+    """The declared physical parameters (estimated in ``current``, not noise
+    intensities) that ``current`` had inside their boxes and the refit
+    ``after`` puts on a bound, with their boxes ("" when none).
+
+    A candidate whose gain needs a declared parameter pushed onto the limit
+    of what the user declared physical is compensating, not explaining (a
+    sensor offset that pays for an idle fuel flow pinned on its box), and
+    its likelihood ratio at a boundary is not χ²-distributed (Self & Liang
+    1987): such a refit is not comparable. Parameters already on their box
+    in ``current`` are reported by the declared fit's verdict instead, and
+    noise intensities on a bound (a process noise driven to zero by an
+    effect that explains the model error) are not a compensation.
+    """
+    names = [n for n in after.at_bound if n in current.params and n not in current.at_bound]
+    if not names:
+        return ""
+    model, noise = after.model, noise_params(current.model)
+    names = [n for n in names if n in model.params and n not in noise]
+    if not names:
+        return ""
+    lo, hi = model.bounds(names)
+    return ", ".join(f"{n} = {after.theta[model.param_index(n)]:.4g} (box [{a:.4g}, {b:.4g}])"
+                     for n, a, b in zip(names, lo, hi))
 
 
 def pair_needed(pair: Fit, singles: list, dofs: list[int], level: float) -> str | None:
