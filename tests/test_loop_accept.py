@@ -663,3 +663,19 @@ def test_vehicle_engine_saturation_case_construction():
         got = float(total.subs(vals))
         assert got == pytest.approx(vv / np.sqrt(1 + (vv / L) ** 2), rel=1e-12)
     assert case.params == ["T_pk", "q_grade"]
+
+
+def test_error_decrease_test_is_scale_free_and_survives_a_diverging_free_run():
+    """z depends on the errors only up to a common scale, so errors of 1e200
+    (a free run far off, finite) give the z of the same errors at unit
+    scale instead of overflowing to NaN (CED with its process noise held at
+    zero raised "cannot convert float NaN to integer")."""
+    from bondgraph.diagnose.accept import error_decrease_test
+
+    rng = np.random.default_rng(3)
+    e1 = rng.normal(size=(400, 1))
+    e0 = e1 + np.where(np.arange(400) < 40, 2.0, 0.0)[:, None]
+    z, p = error_decrease_test(e0, e1)
+    zb, pb = error_decrease_test(e0 * 1e200, e1 * 1e200)
+    assert np.isfinite(z) and zb == pytest.approx(z, rel=1e-12)
+    assert pb == pytest.approx(p, rel=1e-9)

@@ -131,6 +131,13 @@ def error_decrease_test(e0: np.ndarray, e1: np.ndarray) -> tuple[float, float]:
     e0, e1 = np.asarray(e0, dtype=float), np.asarray(e1, dtype=float)
     if e0.shape != e1.shape:
         raise ValueError(f"error_decrease_test: shapes {e0.shape} and {e1.shape} differ")
+    # z is invariant to a common scale of the errors: divided by the largest
+    # finite one, so that a diverging free run cannot overflow the sums
+    big = np.abs(np.concatenate([e0.ravel(), e1.ravel()]))
+    big = big[np.isfinite(big)]
+    scale = float(big.max()) if big.size else 0.0
+    if scale > 0:
+        e0, e1 = e0 / scale, e1 / scale
     d2 = e0**2 - e1**2
     d2 = d2.reshape(d2.shape[0], -1)
     rows = np.any(np.isfinite(d2), axis=1)
