@@ -80,10 +80,14 @@ def main() -> None:
             row = {"case": name, "criterion": criterion, "declared_fit_failed": stopped,
                    "metric": res.metric,
                    "declared": res.initial.metric, "final": res.final.metric,
+                   "declared_held_out": res.initial.validation_metric,
+                   "final_held_out": res.final.validation_metric,
                    "steps": [f"{s.effect} @ {s.attached_to}" for s in res.steps],
                    "seconds": round(time.perf_counter() - t0, 1)}
             rows.append(row)
-            print(f"{name:10s} {criterion:13s} {row['declared']:.4g} -> {row['final']:.4g} "
+            held = ("" if row["final_held_out"] is None else
+                    f"; held out {row['declared_held_out']:.4g} -> {row['final_held_out']:.4g}")
+            print(f"{name:10s} {criterion:13s} {row['declared']:.4g} -> {row['final']:.4g}{held} "
                   f"({len(row['steps'])} steps: {', '.join(row['steps']) or '-'}; "
                   f"{row['seconds']} s)", flush=True)
     print(json.dumps({"criterion_study": rows}))
