@@ -253,3 +253,45 @@ def test_track_command_writes_table_changes_and_plots(tmp_path, capsys):
                  "cc", "--out", str(tmp_path / "o2")])
     assert code == 2
     assert "cannot track 'cc'" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- observability
+def test_information_gain_and_observable_mask_against_closed_forms():
+    from bondgraph.inference.changes import first_alarm, information_gain, observable_mask
+
+    # a scalar Kalman filter on y = H z + e, z a random walk: 1/P+ - 1/P- = H²/R exactly
+    H, R, q2dt, P = np.array([2.0, 0.0, 0.5, 3.0]), 0.04, 0.01, 0.3
+    Pp, prior = [], P
+    for h in H:
+        Pm = P + q2dt if Pp else P
+        P = 1.0 / (1.0 / Pm + h * h / R)
+        Pp.append(P)
+    dts = np.array([0.0, q2dt, q2dt, q2dt])
+    info = information_gain(np.array(Pp), prior, dts, np.ones(4))
+    assert info == pytest.approx(H ** 2 / R, rel=1e-9, abs=1e-9)
+    # with the logit's slope g' = 0.5: information in p's unit is that in z's over g'²
+    assert information_gain(np.array(Pp), prior, dts, 0.5 * np.ones(4)) == pytest.approx(
+        4 * H ** 2 / R, rel=1e-9, abs=1e-9)
+    # the mask: sigma0² · (sum over the trailing window) >= 1/ratio - 1
+    i = np.zeros((10, 1))
+    i[4:] = 1.0                           # 1 per sample from sample 4
+    obs = observable_mask(i, [0.5], window=3, ratio=0.5)    # needs 0.25 · I_w >= 1: I_w >= 4
+    assert not obs.any()
+    obs = observable_mask(i, [0.5], window=4, ratio=0.5)
+    assert np.flatnonzero(obs[:, 0]).tolist() == [7, 8, 9]
+    # sigma0 = 1, ratio 0.5: I_w >= 1, reached at the first informative sample
+    assert observable_mask(i, [1.0], window=2, ratio=0.5)[:, 0].tolist() == \
+        [False] * 4 + [True] * 6
+    # ratio 0.2: I_w >= 4, more than a window of 2 can hold
+    assert not observable_mask(i, [1.0], window=2, ratio=0.2).any()
+    # the detector raises no alarm where the parameter is not observable
+    rng = np.random.default_rng(3)
+    s = rng.normal(0.0, 1.0, (600, 1))
+    s[200:400] += 3.0                     # a mean shift over samples 200..399
+    h = glr_threshold(1e6, 1.0, 50)
+    alarm, _ = first_alarm(s, h, 50)
+    assert alarm is not None and 200 <= alarm[0] < 230
+    allowed = np.ones((600, 1), bool)
+    allowed[150:450] = False
+    alarm, G = first_alarm(np.where(allowed, s, np.nan), h, 50, allowed=allowed)
+    assert alarm is None and not G[150:450].any()

@@ -113,6 +113,20 @@ def _write_csv(path: Path, cols: dict) -> None:
             w.writerow([repr(float(v)) for v in row])
 
 
+def _observability_line(res, name: str, i: int, most: int = 4) -> str:
+    """``observable 93 % of the record; not observable 20.1-50.3 s, ...``
+    (the ``most`` longest stretches, in time order)."""
+    frac = float(np.mean(res.observable[:, i]))
+    st = res.unobservable(name)
+    if not st:
+        return f"  {'':>16s}  observable over the whole record"
+    shown = sorted(sorted(st, key=lambda ab: ab[0] - ab[1])[:most])
+    more = f" and {len(st) - most} shorter" if len(st) > most else ""
+    return (f"  {'':>16s}  observable {100 * frac:.3g} % of the record; not observable "
+            + ", ".join(f"{a:.6g}-{b:.6g} s" for a, b in shown) + more
+            + " (no change detected there)")
+
+
 def summary(res) -> str:
     """The one-screen summary: final estimates and the detected changes."""
     lines = [f"tracked {', '.join(res.names)} over {res.t[-1] - res.t[0]:.6g} s "
@@ -122,6 +136,8 @@ def summary(res) -> str:
     for i, n in enumerate(res.names):
         lines.append(f"  {n:>16s}: start {res.estimate[0, i]:.6g} ± {res.std[0, i]:.3g}, "
                      f"end {res.estimate[-1, i]:.6g} ± {res.std[-1, i]:.3g} {res.units[i]}")
+        if res.observable is not None:
+            lines.append(_observability_line(res, n, i))
     lines.append(f"{len(res.changes)} change(s)")
     for c in res.changes:
         lines.append(f"  t = {c.time:.6g} s (alarm {c.alarm_time:.6g} s): {c.parameter} "
