@@ -248,6 +248,11 @@ def test_track_command_writes_table_changes_and_plots(tmp_path, capsys):
     table = np.genfromtxt(out / "track.csv", delimiter=",", names=True)
     assert table.size == t.size
     assert abs(table["c"][-1] - 3.0) <= 3 * table["cstd"][-1]
+    # observability: forced throughout, so all but the record's first window (2 s at most)
+    obs = table["observable_c"]
+    assert set(np.unique(obs)) <= {0.0, 1.0} and obs[t >= 2.0].all() and obs[0] == 0.0
+    frac = 100 * obs.mean()
+    assert f"observable {frac:.3g} % of the record; not observable 0-" in text
     assert (out / "track_c.png").stat().st_size > 1000
     code = main(["track", "--model", "mass_spring_damper", "--data", str(path), "--track",
                  "cc", "--out", str(tmp_path / "o2")])
@@ -295,3 +300,45 @@ def test_information_gain_and_observable_mask_against_closed_forms():
     allowed[150:450] = False
     alarm, G = first_alarm(np.where(allowed, s, np.nan), h, 50, allowed=allowed)
     assert alarm is None and not G[150:450].any()
+
+
+def test_damping_not_observable_at_rest_and_no_alarm_there(tracking_model):
+    # random force steps, but none over [T0, T1): the mass rings down and rests
+    T0, T1, T, seed = 20.0, 50.0, 70.0, 1
+    base = Model.from_graph(mass_spring_damper())
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, T + DT / 2, DT)
+    F = np.repeat(rng.normal(0.0, 5.0, int(T / 0.5) + 1), 50)[:t.size, None]
+    F[(t >= T0) & (t < T1)] = 0.0
+    sim = simulate(base, t, F, theta={"c": 1.5}, hold="zoh")
+    sv = 0.01
+    y = sim.y + rng.normal(0.0, 1.0, sim.y.shape) * np.array([0.002, sv])
+    opts = TrackOptions(false_alarm_hours=10.0)
+    res = track(make_problem(base, (t, F, y), ukf=UKF), tracking_model, drift={"c": 0.5},
+                options=opts)
+    obs = res.observable[:, 0]
+    # hand bound: the free response's velocity envelope decays as exp(-c t / 2m); after
+    # T_ring = (2m/c) ln(A sqrt(W) / sv) it is below what a window of W samples can resolve
+    # (the sensor noise sv averaged over W), so no window ending after T_ring + W·dt
+    # holds information about c
+    m, c, W = 2.0, 1.5, int(round(opts.observable_s / DT))
+    A = np.abs(sim.y[(t >= T0) & (t < T0 + 1.0), 1]).max()
+    t_ring = 2 * m / c * np.log(A * np.sqrt(W) / sv)
+    assert 10.0 < t_ring < 25.0
+    core = (t >= T0 + t_ring + opts.observable_s) & (t < T1)
+    assert core.sum() > 500 and not obs[core].any()
+    # forced: observable, but for the first window of the record and up to two force
+    # pieces (1 s) after the force resumes
+    forced = ((t >= opts.observable_s) & (t < T0)) | (t >= T1 + 1.0)
+    assert obs[forced].all()
+    (a, b), = [s for s in res.unobservable("c") if s[1] > T0]
+    print("unobservable stretch", a, b, "hand bound", T0 + t_ring, "observable fraction",
+          obs.mean())
+    assert T0 < a <= T0 + t_ring and T1 <= b < T1 + 1.0
+    # the drift lets the estimate wander at rest (several prior std), yet no alarm
+    rest = (t >= a) & (t <= b)
+    assert np.ptp(res.estimate[rest, 0]) > 3 * 0.15
+    assert res.changes == []
+    assert not (res.statistic[~obs] > 0).any()
+    # the table
+    assert res.columns()["observable_c"].tolist() == obs.astype(float).tolist()
