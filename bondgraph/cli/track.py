@@ -49,6 +49,12 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="mean time between false alarms of the change detector [h] "
                         "(default 10; 0: no detection)")
     p.add_argument("--window", type=float, default=10.0, help="GLR window [s] (default 10)")
+    p.add_argument("--observable-s", type=float, default=2.0,
+                   help="window over which the record's information about a parameter is "
+                        "summed to call it observable [s] (default 2)")
+    p.add_argument("--observable-ratio", type=float, default=0.5,
+                   help="observable where the window's data alone would leave at most this "
+                        "fraction of the prior variance (default 0.5)")
     p.add_argument("--prior-rel", type=float, default=0.1,
                    help="prior std of a tracked parameter relative to its start (default 0.1)")
     p.add_argument("--out", required=True, help="output directory")
@@ -85,7 +91,8 @@ def run(args) -> int:
     exp = load_record(args.data, model)
     problem = problem_from_args(model, exp, args, values=values)
     opts = TrackOptions(prior_rel=args.prior_rel, window_s=args.window,
-                        false_alarm_hours=args.false_alarm_hours or None)
+                        false_alarm_hours=args.false_alarm_hours or None,
+                        observable_s=args.observable_s, observable_ratio=args.observable_ratio)
     start = {n: float(problem.theta[model.param_index(n)]) for n in names}
     tm = TrackingModel.from_graph(graph, names, drift, start=start)
     res = track(problem, tm, std={n: std[n] for n in names if n in std}, options=opts)
