@@ -182,10 +182,17 @@ def test_streaming_tracker_equals_batch_tracker(tracking_model, backend, tol):
     batch = track(pr, tracking_model, drift={"c": 0.05}, options=opts)
     tm = tracking_model
     trk = Tracker.from_problem(pr, tm, drift={"c": 0.05}, options=opts)
+    info, obs = np.zeros(t.size), np.zeros(t.size, bool)
     for k in range(t.size):
         est, sd = trk.update(t[k], F[k], y[k])
         assert est[0] == pytest.approx(batch.estimate[k, 0], rel=tol)
         assert sd[0] == pytest.approx(batch.std[k, 0], rel=max(tol, 1e-9))
+        info[k], obs[k] = trk.information[0], trk.observable[0]
+    # the observability test, sample by sample (measured: 0 and 2.6e-11 relative, no
+    # sample of the mask different)
+    assert info == pytest.approx(batch.information[:, 0], rel=1e-8, abs=1e-9 * info.max())
+    assert (obs == batch.observable[:, 0]).all()
+    assert 0.9 < obs.mean() < 1.0
 
 
 def test_drift_intensity_estimated_by_maximum_likelihood():

@@ -627,6 +627,13 @@ class Tracker:
         caller's; :meth:`from_problem` applies it).
     R : array (n_y, n_y), optional
         Measurement-noise covariance (default ``meas_std(θ)²``).
+    observe : tuple (sigma0 (k,), window, ratio), optional
+        The observability test of :func:`track`
+        (:func:`~bondgraph.inference.changes.observable_mask`: reference std
+        [unit], trailing window [samples], ρ_max); after each update the
+        attributes ``information`` (k,) [1/unit²] and ``observable`` (k,)
+        hold the sample's values (:meth:`from_problem` sets it as
+        :func:`track` does). Default: not tested.
 
     Examples
     --------
@@ -636,7 +643,7 @@ class Tracker:
     """
 
     def __init__(self, tm: TrackingModel, theta, x0, P0, *, ukf: UKFOptions | None = None,
-                 R=None):
+                 R=None, observe: tuple | None = None):
         from bondgraph.inference.options import ukf_options
         from bondgraph.inference.sigma import merwe_weights
         from bondgraph.inference.ukf import FilterBatch, ROS2_JACOBIAN
@@ -653,6 +660,16 @@ class Tracker:
                                  np.asarray(P0, float)[None, :, :], None, R)
         self.batch.t = []
         self.k, self._u = 0, None
+        idx = tm.state_indices
+        self._idx, self._Pz = idx, np.asarray(P0, float)[idx, idx]
+        self._q2 = np.asarray(m.proc_std(np.asarray(theta, float)[None, :]), float)[0][idx] ** 2
+        self.information = np.zeros(len(idx))
+        self.observable = None
+        if observe is not None:
+            sigma0, window, ratio = observe
+            self._need = np.asarray(sigma0, float) ** 2, 1.0 / float(ratio) - 1.0
+            self._ring, self._sum = np.zeros((max(1, int(window)), len(idx))), np.zeros(len(idx))
+            self.observable = np.zeros(len(idx), bool)
 
     @classmethod
     def from_problem(cls, problem, tm: TrackingModel, *, start=None, std=None, drift=None,
@@ -663,8 +680,12 @@ class Tracker:
         x0, P0, th = tracking_prior(problem, tm, start, std, opts.prior_rel)
         th = th if not drift else tm.theta(dict(zip(problem.model.params, problem.theta)), drift)
         R = problem.noise.covariance(tm.model, th[None, :])
+        t = problem.t
+        dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+        observe = (reference_std(tm, x0, opts), max(1, int(round(opts.observable_s / dt))),
+                   opts.observable_ratio)
         return cls(tm, th, x0, P0, ukf=filter_options(problem.ukf, tm, opts),
-                   R=None if R is None else R[0])
+                   R=None if R is None else R[0], observe=observe)
 
     def update(self, t: float, u, y) -> tuple[np.ndarray, np.ndarray]:
         """Filter one sample.
@@ -702,6 +723,23 @@ class Tracker:
             update(b, self.tm.model, u, y, self.wts, self.k)
         if not b.size:
             raise NumericalError(f"the tracker fails: {b.reasons[0]}")
+        self._observe(b.t[-1] - b.t[-2] if self.k > 0 else 0.0)
         self.k, self._u = self.k + 1, u
         est, sd = self.tm.values(b.x[0], b.P[0])
         return est, sd
+
+    def _observe(self, dt: float) -> None:
+        """The sample's information about each parameter and, with ``observe``,
+        whether it is observable (:func:`track`'s test, sample by sample)."""
+        b, idx = self.batch, self._idx
+        Pz = b.P[0][idx, idx]
+        slope = [tp.slope(b.x[0][i]) for tp, i in zip(self.tm.tracked, idx)]
+        self.information = np.array([
+            information_gain(Pz[c:c + 1], self._Pz[c], [self._q2[c] * dt], [slope[c]])[0]
+            for c in range(len(idx))])
+        self._Pz = Pz
+        if self.observable is not None:
+            r = self.k % len(self._ring)
+            self._sum += self.information - self._ring[r]
+            self._ring[r] = self.information
+            self.observable = self._need[0] * self._sum >= self._need[1]
