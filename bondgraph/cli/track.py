@@ -49,6 +49,12 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="mean time between false alarms of the change detector [h] "
                         "(default 10; 0: no detection)")
     p.add_argument("--window", type=float, default=10.0, help="GLR window [s] (default 10)")
+    p.add_argument("--observable-s", type=float, default=2.0,
+                   help="window over which the record's information about a parameter is "
+                        "summed to call it observable [s] (default 2)")
+    p.add_argument("--observable-ratio", type=float, default=0.5,
+                   help="observable where the window's data alone would leave at most this "
+                        "fraction of the prior variance (default 0.5)")
     p.add_argument("--prior-rel", type=float, default=0.1,
                    help="prior std of a tracked parameter relative to its start (default 0.1)")
     p.add_argument("--out", required=True, help="output directory")
@@ -85,7 +91,8 @@ def run(args) -> int:
     exp = load_record(args.data, model)
     problem = problem_from_args(model, exp, args, values=values)
     opts = TrackOptions(prior_rel=args.prior_rel, window_s=args.window,
-                        false_alarm_hours=args.false_alarm_hours or None)
+                        false_alarm_hours=args.false_alarm_hours or None,
+                        observable_s=args.observable_s, observable_ratio=args.observable_ratio)
     start = {n: float(problem.theta[model.param_index(n)]) for n in names}
     tm = TrackingModel.from_graph(graph, names, drift, start=start)
     res = track(problem, tm, std={n: std[n] for n in names if n in std}, options=opts)
@@ -113,6 +120,20 @@ def _write_csv(path: Path, cols: dict) -> None:
             w.writerow([repr(float(v)) for v in row])
 
 
+def _observability_line(res, name: str, i: int, most: int = 4) -> str:
+    """``observable 93 % of the record; not observable 20.1-50.3 s, ...``
+    (the ``most`` longest stretches, in time order)."""
+    frac = float(np.mean(res.observable[:, i]))
+    st = res.unobservable(name)
+    if not st:
+        return f"  {'':>16s}  observable over the whole record"
+    shown = sorted(sorted(st, key=lambda ab: ab[0] - ab[1])[:most])
+    more = f" and {len(st) - most} shorter" if len(st) > most else ""
+    return (f"  {'':>16s}  observable {100 * frac:.3g} % of the record; not observable "
+            + ", ".join(f"{a:.6g}-{b:.6g} s" for a, b in shown) + more
+            + " (no change detected there)")
+
+
 def summary(res) -> str:
     """The one-screen summary: final estimates and the detected changes."""
     lines = [f"tracked {', '.join(res.names)} over {res.t[-1] - res.t[0]:.6g} s "
@@ -122,6 +143,8 @@ def summary(res) -> str:
     for i, n in enumerate(res.names):
         lines.append(f"  {n:>16s}: start {res.estimate[0, i]:.6g} ± {res.std[0, i]:.3g}, "
                      f"end {res.estimate[-1, i]:.6g} ± {res.std[-1, i]:.3g} {res.units[i]}")
+        if res.observable is not None:
+            lines.append(_observability_line(res, n, i))
     lines.append(f"{len(res.changes)} change(s)")
     for c in res.changes:
         lines.append(f"  t = {c.time:.6g} s (alarm {c.alarm_time:.6g} s): {c.parameter} "

@@ -34,8 +34,27 @@ innovations, which are white: Kailath 1968). So s_k = δ_k/√v_k is a
 standardised white sequence before a change; after a jump of the parameter
 the filter keeps pulling it the same way, and s_k has a mean.
 
+Observability (:func:`information_gain`, :func:`observable_mask`): the
+information sample k's update carries about the parameter is the rise of
+its inverse variance, i_k = 1/P⁺_k − 1/P⁻_k (exact for a scalar linear
+Gaussian update, where it is H²/R: the sample's Fisher information; for the
+augmented filter the marginal of the parameter's state, so it is net of
+what the other states' uncertainty takes; Jazwinski 1970, §7.3), converted
+to the parameter's unit by the transform's slope. Summed over a trailing
+window, I_w is the information of the window's data alone: from a prior of
+variance σ₀² they would leave the posterior variance σ₀²/(1 + σ₀² I_w),
+a ratio to the prior of ρ = 1/(1 + σ₀² I_w). The parameter is observable there when that ratio is at most ρ_max
+(``TrackOptions.observable_ratio``; ½ by default: the data weigh at least as
+much as the prior; the normalised covariance as the degree of
+observability, Ham & Brown 1983). Where a parameter is not observable (a
+system at rest says nothing about its damping), its updates are noise,
+so the detector skips them and raises no alarm there.
+
 References
 ----------
+Jazwinski, A. H. (1970). Stochastic Processes and Filtering Theory, §7.3.
+Ham, F. M., Brown, R. G. (1983). Observability, eigenvalues, and Kalman
+filtering. IEEE TAES 19(2), 269-273.
 Basseville, M., Nikiforov, I. V. (1993). Detection of Abrupt Changes:
 Theory and Application. Prentice Hall, §2.4 (GLR), §5.2 (false alarms).
 Lorden, G. (1971). Procedures for reacting to a change in distribution.
@@ -176,7 +195,73 @@ def standardised_increments(z, Pzz, z_prior, P_prior, q2dt) -> np.ndarray:
     return np.where(v > INFO_FLOOR * np.maximum(Pm, np.finfo(float).tiny), s, np.nan)
 
 
-def first_alarm(S: np.ndarray, h: float, window: int):
+def information_gain(Pzz, P_prior, q2dt, slope) -> np.ndarray:
+    """Information each update carries about a tracked parameter (module
+    docstring): i_k = (1/P⁺_k − 1/P⁻_k) / g'(ẑ_k)², at least 0.
+
+    Parameters
+    ----------
+    Pzz : array (N,)
+        Filtered variances P⁺_k of the parameter's state z.
+    P_prior : float
+        Prior variance at sample 0.
+    q2dt : array (N,)
+        Process-noise variance added over the interval ending at k (0 at
+        k = 0), so that P⁻_k = P⁺_{k−1} + q2dt_k.
+    slope : array (N,)
+        dp/dz of the transform at the filtered mean (1 for ``"none"``).
+
+    Returns
+    -------
+    ndarray (N,)
+        i_k [1/unit²] (unit: the parameter's); 0 where nothing was learnt.
+    """
+    Pzz = np.asarray(Pzz, float)
+    Pm = np.concatenate([[P_prior], Pzz[:-1]]) + np.asarray(q2dt, float)
+    tiny = np.finfo(float).tiny
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain = 1.0 / np.maximum(Pzz, tiny) - 1.0 / np.maximum(Pm, tiny)
+        info = gain / np.asarray(slope, float) ** 2
+    return np.where(np.isfinite(info) & (info > 0), info, 0.0)
+
+
+def observable_mask(info, sigma0, window: int, ratio: float = 0.5) -> np.ndarray:
+    """Where each parameter is observable (module docstring).
+
+    Parameters
+    ----------
+    info : array (N, m)
+        Per-sample information about each parameter (:func:`information_gain`)
+        [1/unit²].
+    sigma0 : array (m,)
+        Reference prior std of each parameter [unit] (the tracker's prior).
+    window : int
+        Trailing window W (samples, >= 1): I_w at k sums samples k−W+1..k.
+    ratio : float
+        ρ_max in (0, 1).
+
+    Returns
+    -------
+    ndarray of bool (N, m)
+        True where 1/(1 + σ₀² I_w) <= ρ_max, i.e. σ₀² I_w >= 1/ρ_max − 1.
+
+    Raises
+    ------
+    OptionError
+        ``window`` < 1 or ``ratio`` outside (0, 1).
+    """
+    if int(window) < 1:
+        raise OptionError(f"observable_mask: window must be >= 1, got {window}")
+    if not 0.0 < ratio < 1.0:
+        raise OptionError(f"observable_mask: ratio must be in (0, 1), got {ratio}")
+    info = np.asarray(info, float).reshape(len(info), -1)
+    C = np.concatenate([np.zeros((1, info.shape[1])), np.cumsum(info, 0)])
+    k = np.arange(info.shape[0])
+    Iw = C[k + 1] - C[np.maximum(k + 1 - int(window), 0)]
+    return np.asarray(sigma0, float) ** 2 * Iw >= 1.0 / ratio - 1.0
+
+
+def first_alarm(S: np.ndarray, h: float, window: int, allowed: np.ndarray | None = None):
     """The first alarm over several standardised sequences.
 
     Parameters
@@ -186,6 +271,9 @@ def first_alarm(S: np.ndarray, h: float, window: int):
     h : float
         Threshold.
     window : int
+    allowed : array of bool (N, m), optional
+        Where an alarm may be raised (the parameter observable there); the
+        statistic is kept at 0 elsewhere. Default: everywhere.
 
     Returns
     -------
@@ -199,6 +287,8 @@ def first_alarm(S: np.ndarray, h: float, window: int):
     best = None
     for c in range(S.shape[1]):
         g, start = glr_mean_jump(S[:, c], window)
+        if allowed is not None:
+            g = np.where(np.asarray(allowed, bool).reshape(S.shape)[:, c], g, 0.0)
         G[:, c] = g
         hit = np.flatnonzero(g > h)
         if hit.size:

@@ -685,11 +685,28 @@ class TrackOptions:
         After a change, how long the detector ignores the re-estimation's
         transient [s] (>= 0; None: ``window_s``): a second change within it
         is not detected.
+    observable_s : float
+        Window [s] (> 0) over which the information the record carries about
+        a tracked parameter is summed to decide whether it is observable
+        there (:func:`bondgraph.inference.changes.observable_mask`; trailing
+        window, ending at the sample).
+    observable_ratio : float
+        A parameter is observable at a sample when the window's data alone
+        would bring its prior variance down to at most this fraction of it
+        (0 < ratio < 1; default ½: the window carries at least as much
+        information as the prior, Ham & Brown 1983's normalised covariance
+        as the degree of observability). Where it is not observable, the
+        change detector raises no alarm for it.
 
     Raises
     ------
     OptionError
         A value out of its domain (named).
+
+    References
+    ----------
+    Ham, F. M., Brown, R. G. (1983). Observability, eigenvalues, and Kalman
+    filtering. IEEE TAES 19(2), 269-273.
     """
 
     prior_rel: float = 0.1
@@ -700,6 +717,8 @@ class TrackOptions:
     max_changes: int = 20
     reset_rel: float = 1.0
     holdoff_s: float | None = None
+    observable_s: float = 2.0
+    observable_ratio: float = 0.5
 
     def __post_init__(self):
         _real(self, "prior_rel", positive=True)
@@ -714,6 +733,11 @@ class TrackOptions:
             _real(self, "holdoff_s")
             if self.holdoff_s < 0:
                 raise OptionError(f"TrackOptions.holdoff_s must be >= 0, got {self.holdoff_s}")
+        _real(self, "observable_s", positive=True)
+        _real(self, "observable_ratio", positive=True)
+        if not self.observable_ratio < 1.0:
+            raise OptionError("TrackOptions.observable_ratio must be < 1 (a posterior to prior "
+                              f"variance ratio), got {self.observable_ratio}")
 
     def to_dict(self) -> dict:
         """The options as a plain dict (JSON-able)."""

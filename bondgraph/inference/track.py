@@ -24,6 +24,16 @@ same wide spread (the augmented filter's transient from a far start biases
 a multiplicative parameter; Ljung 1979). The detector ignores the first
 ``holdoff_s`` of a restarted segment.
 
+Observability: per sample, the information the update carries about each
+tracked parameter, summed over a trailing window of
+``TrackOptions.observable_s``, against the reference prior std σ₀ (the
+``prior_rel`` rule at the start value): where the window's data alone
+would leave more than ``observable_ratio`` of σ₀² the parameter is not
+observable there (:func:`bondgraph.inference.changes.observable_mask`);
+its updates there are skipped by the detector and no alarm is raised for
+it (a record at rest says nothing about a damping: what the filter does
+there is noise, not a change).
+
 Estimates and std in the parameter's unit: p̂ = g(ẑ) and σ_p = |g'(ẑ)| σ_z
 (first order) for the transform g of
 :class:`~bondgraph.core.augment.TrackedParameter`.
@@ -50,7 +60,13 @@ import numpy as np
 
 from bondgraph.core.augment import augment, tracked_parameters
 from bondgraph.errors import ModelError, NumericalError, OptionError
-from bondgraph.inference.changes import first_alarm, glr_threshold, standardised_increments
+from bondgraph.inference.changes import (
+    first_alarm,
+    glr_threshold,
+    information_gain,
+    observable_mask,
+    standardised_increments,
+)
 from bondgraph.inference.options import TrackOptions, UKFOptions, _checked
 from bondgraph.inference.smoother import rts_backward
 from bondgraph.inference.ukf import ukf_nll
@@ -256,6 +272,12 @@ class TrackResult:
         segments) [nats].
     increments, statistic : ndarray (N, k)
         Standardised parameter updates and the GLR statistic.
+    information : ndarray (N, k)
+        Information of each sample's update about each parameter
+        [1/unit²] (:func:`bondgraph.inference.changes.information_gain`).
+    observable : ndarray of bool (N, k)
+        Whether each parameter is observable from the record at each sample
+        (``TrackOptions.observable_s``, ``observable_ratio``).
     threshold : float or None
     changes : list of Change
     settings : dict
@@ -273,20 +295,43 @@ class TrackResult:
     statistic: np.ndarray
     threshold: float | None
     changes: list = field(default_factory=list)
+    information: np.ndarray | None = None
+    observable: np.ndarray | None = None
     smoothed: np.ndarray | None = None
     smoothed_std: np.ndarray | None = None
     settings: dict = field(default_factory=dict)
 
     def columns(self) -> dict[str, np.ndarray]:
         """The per-sample table (``track.csv``): ``t``, then per parameter
-        ``<p>``, ``<p>.std`` and, when smoothed, ``<p>.smoothed``, ``<p>.smoothed_std``."""
+        ``<p>``, ``<p>.std``, when smoothed ``<p>.smoothed``, ``<p>.smoothed_std``,
+        and ``observable_<p>`` (1 or 0)."""
         out = {"t": self.t}
         for i, n in enumerate(self.names):
             out[n], out[f"{n}.std"] = self.estimate[:, i], self.std[:, i]
             if self.smoothed is not None:
                 out[f"{n}.smoothed"] = self.smoothed[:, i]
                 out[f"{n}.smoothed_std"] = self.smoothed_std[:, i]
+            if self.observable is not None:
+                out[f"observable_{n}"] = self.observable[:, i].astype(float)
         return out
+
+    def unobservable(self, name: str) -> list[tuple[float, float]]:
+        """The stretches ``(t_start, t_end)`` [s] where ``name`` is not
+        observable (first and last sample of each run), in time order.
+
+        Raises
+        ------
+        ModelError
+            ``name`` is not tracked.
+        """
+        if name not in self.names:
+            raise ModelError(f"'{name}' is not tracked (tracked: {', '.join(self.names)})")
+        if self.observable is None:
+            return []
+        bad = ~self.observable[:, self.names.index(name)]
+        edges = np.diff(np.concatenate([[0], bad.astype(int), [0]]))
+        return [(float(self.t[a]), float(self.t[b - 1]))
+                for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))]
 
 
 # ------------------------------------------------------------------ batch tracker
@@ -299,6 +344,7 @@ class _Segment:
     nll: float
     S: np.ndarray
     G: np.ndarray
+    info: np.ndarray
     end: int = -1
 
 
@@ -352,6 +398,9 @@ def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = Non
          glr_threshold(opts.false_alarm_hours * 3600.0, dt, window, len(tm.tracked)))
     segs, changes = _segments(tm, (t, u, y), th, (x0, P0), ukf, R, h, window, opts, std)
     res = _stitch(tm, t, segs, changes, h)
+    res.observable = observable_mask(res.information, reference_std(tm, x0, opts),
+                                     max(1, int(round(opts.observable_s / dt))),
+                                     opts.observable_ratio)
     if opts.smooth:
         res.smoothed, res.smoothed_std = _smoothed(tm, t, u, th, segs, ukf)
     res.settings = dict(ukf=ukf.to_dict(), track=opts.to_dict(), window=window, dt=dt,
@@ -373,7 +422,20 @@ def _filter_segment(tm, rec, th, prior, ukf, R, s0: int) -> _Segment:
     dts = np.concatenate([[0.0], np.diff(t[s0:])])
     S = np.stack([standardised_increments(xf[:, i], Pf[:, i, i], x[i], P[i, i], q2[c] * dts)
                   for c, i in enumerate(idx)], -1)
-    return _Segment(s0, xf, Pf, (x, P), float(res.nll[0]), S, np.zeros_like(S))
+    info = np.stack([information_gain(Pf[:, i, i], P[i, i], q2[c] * dts,
+                                      tm.tracked[c].slope(xf[:, i]))
+                     for c, i in enumerate(idx)], -1)
+    return _Segment(s0, xf, Pf, (x, P), float(res.nll[0]), S, np.zeros_like(S), info)
+
+
+def reference_std(tm: TrackingModel, x0, options: TrackOptions) -> np.ndarray:
+    """σ₀ of the observability test (k,) [unit]: ``prior_rel`` × |start|
+    (× the box width at a start of 0), whatever prior std was given."""
+    out = []
+    for tp, i in zip(tm.tracked, tm.state_indices):
+        p0 = float(tp.value(x0[i]))
+        out.append(options.prior_rel * (abs(p0) if p0 != 0 else tp.upper - tp.lower))
+    return np.array(out)
 
 
 def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
@@ -381,6 +443,8 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
     t, u, y = rec
     holdoff = window if opts.holdoff_s is None else int(round(opts.holdoff_s / (
         np.median(np.diff(t)) if t.size > 1 else 1.0)))
+    dt = np.median(np.diff(t)) if t.size > 1 else 1.0
+    ow, sigma0 = max(1, int(round(opts.observable_s / dt))), reference_std(tm, prior[0], opts)
     s0, segs, changes = 0, [], []
     changed, P_start = None, _states_prior(tm, prior[1])
     while True:
@@ -396,7 +460,9 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
             watched = seg.S.copy()
             if segs:                     # a restart: skip the re-estimation's transient
                 watched[:holdoff] = np.nan
-            alarm, seg.G = first_alarm(watched, h, window)
+            obs = observable_mask(seg.info, sigma0, ow, opts.observable_ratio)
+            watched[~obs] = np.nan       # not observable there: its updates are noise
+            alarm, seg.G = first_alarm(watched, h, window, allowed=obs)
         segs.append(seg)
         if alarm is None or len(changes) >= opts.max_changes:
             seg.end = t.size
@@ -448,11 +514,12 @@ def _stitch(tm, t, segs, changes, h) -> TrackResult:
     """One result from the segments' kept ranges, the changes completed."""
     N, k, n = t.size, len(tm.tracked), tm.model.n_x
     xs, Ps = np.full((N, n), np.nan), np.full((N, n, n), np.nan)
-    S, G = np.full((N, k), np.nan), np.zeros((N, k))
+    S, G, info = np.full((N, k), np.nan), np.zeros((N, k)), np.zeros((N, k))
     for i, seg in enumerate(segs):
         a, e = _kept(seg, i == 0)
-        xs[a:e], Ps[a:e] = seg.x[a - seg.start:e - seg.start], seg.P[a - seg.start:e - seg.start]
-        S[a:e], G[a:e] = seg.S[a - seg.start:e - seg.start], seg.G[a - seg.start:e - seg.start]
+        r = slice(a - seg.start, e - seg.start)
+        xs[a:e], Ps[a:e], S[a:e], G[a:e] = seg.x[r], seg.P[r], seg.S[r], seg.G[r]
+        info[a:e] = seg.info[r]
     est, sd = tm.values(xs, Ps)
     for ch, seg in zip(changes, segs[1:]):
         c = tm.names.index(ch.parameter)
@@ -461,7 +528,7 @@ def _stitch(tm, t, segs, changes, h) -> TrackResult:
     return TrackResult(t=t, names=tm.names, units=[tp.unit for tp in tm.tracked], estimate=est,
                        std=sd, x_filt=xs, states=list(tm.model.states),
                        nll=float(sum(s.nll for s in segs)), increments=S, statistic=G,
-                       threshold=h, changes=changes)
+                       threshold=h, changes=changes, information=info)
 
 
 def _smoothed(tm, t, u, th, segs, ukf):
@@ -560,6 +627,13 @@ class Tracker:
         caller's; :meth:`from_problem` applies it).
     R : array (n_y, n_y), optional
         Measurement-noise covariance (default ``meas_std(θ)²``).
+    observe : tuple (sigma0 (k,), window, ratio), optional
+        The observability test of :func:`track`
+        (:func:`~bondgraph.inference.changes.observable_mask`: reference std
+        [unit], trailing window [samples], ρ_max); after each update the
+        attributes ``information`` (k,) [1/unit²] and ``observable`` (k,)
+        hold the sample's values (:meth:`from_problem` sets it as
+        :func:`track` does). Default: not tested.
 
     Examples
     --------
@@ -569,7 +643,7 @@ class Tracker:
     """
 
     def __init__(self, tm: TrackingModel, theta, x0, P0, *, ukf: UKFOptions | None = None,
-                 R=None):
+                 R=None, observe: tuple | None = None):
         from bondgraph.inference.options import ukf_options
         from bondgraph.inference.sigma import merwe_weights
         from bondgraph.inference.ukf import FilterBatch, ROS2_JACOBIAN
@@ -586,6 +660,16 @@ class Tracker:
                                  np.asarray(P0, float)[None, :, :], None, R)
         self.batch.t = []
         self.k, self._u = 0, None
+        idx = tm.state_indices
+        self._idx, self._Pz = idx, np.asarray(P0, float)[idx, idx]
+        self._q2 = np.asarray(m.proc_std(np.asarray(theta, float)[None, :]), float)[0][idx] ** 2
+        self.information = np.zeros(len(idx))
+        self.observable = None
+        if observe is not None:
+            sigma0, window, ratio = observe
+            self._need = np.asarray(sigma0, float) ** 2, 1.0 / float(ratio) - 1.0
+            self._ring, self._sum = np.zeros((max(1, int(window)), len(idx))), np.zeros(len(idx))
+            self.observable = np.zeros(len(idx), bool)
 
     @classmethod
     def from_problem(cls, problem, tm: TrackingModel, *, start=None, std=None, drift=None,
@@ -596,8 +680,12 @@ class Tracker:
         x0, P0, th = tracking_prior(problem, tm, start, std, opts.prior_rel)
         th = th if not drift else tm.theta(dict(zip(problem.model.params, problem.theta)), drift)
         R = problem.noise.covariance(tm.model, th[None, :])
+        t = problem.t
+        dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+        observe = (reference_std(tm, x0, opts), max(1, int(round(opts.observable_s / dt))),
+                   opts.observable_ratio)
         return cls(tm, th, x0, P0, ukf=filter_options(problem.ukf, tm, opts),
-                   R=None if R is None else R[0])
+                   R=None if R is None else R[0], observe=observe)
 
     def update(self, t: float, u, y) -> tuple[np.ndarray, np.ndarray]:
         """Filter one sample.
@@ -635,6 +723,23 @@ class Tracker:
             update(b, self.tm.model, u, y, self.wts, self.k)
         if not b.size:
             raise NumericalError(f"the tracker fails: {b.reasons[0]}")
+        self._observe(b.t[-1] - b.t[-2] if self.k > 0 else 0.0)
         self.k, self._u = self.k + 1, u
         est, sd = self.tm.values(b.x[0], b.P[0])
         return est, sd
+
+    def _observe(self, dt: float) -> None:
+        """The sample's information about each parameter and, with ``observe``,
+        whether it is observable (:func:`track`'s test, sample by sample)."""
+        b, idx = self.batch, self._idx
+        Pz = b.P[0][idx, idx]
+        slope = [tp.slope(b.x[0][i]) for tp, i in zip(self.tm.tracked, idx)]
+        self.information = np.array([
+            information_gain(Pz[c:c + 1], self._Pz[c], [self._q2[c] * dt], [slope[c]])[0]
+            for c in range(len(idx))])
+        self._Pz = Pz
+        if self.observable is not None:
+            r = self.k % len(self._ring)
+            self._sum += self.information - self._ring[r]
+            self._ring[r] = self.information
+            self.observable = self._need[0] * self._sum >= self._need[1]

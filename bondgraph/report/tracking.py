@@ -17,7 +17,8 @@ def plot_track(result, out_dir, *, truth: Mapping[str, float] | None = None) -> 
     Parameters
     ----------
     result : TrackResult
-        ``t (N,)``, ``estimate``/``std`` (N, k), optional ``smoothed``, ``changes``.
+        ``t (N,)``, ``estimate``/``std`` (N, k), optional ``smoothed``,
+        ``changes`` and ``observable`` (N, k) (its stretches of False shaded grey).
     out_dir : path
         Existing folder.
     truth : dict, optional
@@ -40,6 +41,11 @@ def plot_track(result, out_dir, *, truth: Mapping[str, float] | None = None) -> 
         if truth and name in truth:
             tv = np.broadcast_to(np.asarray(truth[name], float), result.t.shape)
             ax.plot(result.t, tv, color="k", lw=1.0, label="truth")
+        obs = getattr(result, "observable", None)
+        if obs is not None:
+            for j, (a, b) in enumerate(result.unobservable(name)):
+                ax.axvspan(a, b, color="0.6", alpha=0.3, lw=0,
+                           label="not observable" if j == 0 else None)
         for ch in result.changes:
             if ch.parameter == name:
                 ax.axvline(ch.time, color="r", lw=1.0)
@@ -47,7 +53,7 @@ def plot_track(result, out_dir, *, truth: Mapping[str, float] | None = None) -> 
         ax.set_xlabel("t [s]")
         unit = result.units[i]
         ax.set_ylabel(f"{name} [{unit}]" if unit else name)
-        ax.set_title(f"{name}: tracked (red: change, dotted: alarm)")
+        ax.set_title(f"{name}: tracked (red: change, dotted: alarm, grey: not observable)")
         ax.legend(loc="best", fontsize=8)
         path = Path(out_dir) / f"track_{name}.png"
         fig.tight_layout()
