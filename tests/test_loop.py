@@ -262,13 +262,18 @@ def test_declared_model_equal_to_truth_gets_nothing(tmp_path):
     """No false positives: the coast-down record fitted with the true
     structure leaves nothing significant."""
     from bondgraph.data.records import Experiment  # noqa: F401 (record type)
-    from vehicle_graphs.cases import COAST, LEVEL_TRACK, coastdown_record, _vehicle
+    from vehicle_graphs.cases import LEVEL_TRACK, coastdown_record, coastdown_vehicle
     from vehicle_graphs.vehicle import VehicleEffects
 
-    truth = _vehicle("truth_aero", effects=VehicleEffects(aero=True), **COAST)
-    rec = coastdown_record(truth, _vehicle("truth_aero", effects=VehicleEffects(aero=True), **COAST), "nothing", seed=105)
+    aero = VehicleEffects(aero=True)
+    truth = coastdown_vehicle("truth_aero", aero)
+    rec = coastdown_record(truth, coastdown_vehicle("truth_aero", aero), "nothing", seed=105)
     updates = []
-    res = run_loop(_vehicle("declared_true", effects=VehicleEffects(aero=True), **COAST), rec, LoopSettings(params=["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"], prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})), log=lambda m: None, on_update=lambda r: updates.append((r.finished, len(r.rankings), r.final.nll)))
+    settings = LoopSettings(params=["f_r", "C_dA", "r_dyn", "theta_off", "q_grade"],
+                            prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK}))
+    res = run_loop(coastdown_vehicle("declared_true", aero), rec, settings, log=lambda m: None,
+                   on_update=lambda r: updates.append((r.finished, len(r.rankings),
+                                                       r.final.nll)))
     assert res.steps == []
     # the partial result after the initial fit, then the final one (a step
     # that finds nothing significant hands nothing over)

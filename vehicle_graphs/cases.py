@@ -33,11 +33,18 @@ CASES: dict[str, str] = {
 }
 
 
-def _vehicle(name: str, **kw) -> BondGraph:
-    return build_vehicle(name, **kw)
+def coastdown_vehicle(name: str, effects: VehicleEffects = VehicleEffects()) -> BondGraph:
+    """The coast-down filter model of the vehicle (neutral, no powertrain,
+    lumped wheels, dynamic pitch) named ``name``, with ``effects``
+    (:func:`vehicle_graphs.vehicle.build_vehicle`)."""
+    return build_vehicle(name, gear="N", powertrain=False, wheels="lumped",
+                         suspension="dynamic", effects=effects)
 
 
-COAST = dict(gear="N", powertrain=False, wheels="lumped", suspension="dynamic")
+def full_vehicle(name: str, effects: VehicleEffects = VehicleEffects()) -> BondGraph:
+    """The full filter model of the vehicle in High range, 2WD, named
+    ``name``, with ``effects``."""
+    return build_vehicle(name, gear="H", drive="2WD", effects=effects)
 
 #: prior standard deviation of the initial grade on a level test track [rad]
 #: (0.1 deg). Without it a constant grade explains a constant force (brake
@@ -74,18 +81,17 @@ def coastdown_record(truth: BondGraph, declared: BondGraph, name: str, seed: int
 
 def vehicle_aero_declared() -> BondGraph:
     """Coast-down filter model without aerodynamic drag."""
-    return _vehicle("vehicle_coastdown_noaero", effects=VehicleEffects(aero=False), **COAST)
+    return coastdown_vehicle("vehicle_coastdown_noaero", VehicleEffects(aero=False))
 
 
 def vehicle_brake_declared() -> BondGraph:
     """Coast-down filter model (with aero) that lacks residual brake drag."""
-    return _vehicle("vehicle_coastdown", **COAST)
+    return coastdown_vehicle("vehicle_coastdown")
 
 
 def vehicle_pitch_declared() -> BondGraph:
     """Coast-down filter model without the pitch-sensor offset."""
-    return _vehicle("vehicle_coastdown_nooffset", effects=VehicleEffects(pitch_offset=False),
-                    **COAST)
+    return coastdown_vehicle("vehicle_coastdown_nooffset", VehicleEffects(pitch_offset=False))
 
 
 def case_aero() -> LoopCase:
@@ -95,8 +101,8 @@ def case_aero() -> LoopCase:
         "filter model has none (the suspect list of the original work: drag leaking into "
         "rolling resistance).",
         declared_builder(vehicle_aero_declared),
-        lambda: coastdown_record(_vehicle("truth_aero", effects=VehicleEffects(aero=True), **COAST),
-                                  vehicle_aero_declared(), "coastdown_aero", seed=101),
+        lambda: coastdown_record(coastdown_vehicle("truth_aero", VehicleEffects(aero=True)),
+                                 vehicle_aero_declared(), "coastdown_aero", seed=101),
         LoopSettings(["f_r", "r_dyn", "theta_off", "q_grade"], metric="nrmse_sim"),
         ("quadratic_drag", "body.v"))
 
@@ -108,9 +114,8 @@ def case_brake() -> LoopCase:
         "Coast-down record of a vehicle with a residual brake drag torque at the wheels; "
         "rolling resistance known from tire data, drag and dynamic radius estimated.",
         declared_builder(vehicle_brake_declared),
-        lambda: coastdown_record(_vehicle("truth_brake", effects=VehicleEffects(brake_drag=True),
-                                           **COAST),
-                                  vehicle_brake_declared(), "coastdown_brake_drag", seed=102),
+        lambda: coastdown_record(coastdown_vehicle("truth_brake", VehicleEffects(brake_drag=True)),
+                                 vehicle_brake_declared(), "coastdown_brake_drag", seed=102),
         LoopSettings(["C_dA", "r_dyn", "theta_off", "q_grade"], metric="nrmse_sim",
                      prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         ("coulomb", "wheels.w"))
@@ -122,8 +127,8 @@ def case_pitch() -> LoopCase:
         "Coast-down record with a 0.5 deg pitch-sensor mounting offset; the declared model "
         "reads the pitch sensor as grade + suspension pitch.",
         declared_builder(vehicle_pitch_declared),
-        lambda: coastdown_record(_vehicle("truth_pitch", **COAST), vehicle_pitch_declared(),
-                                  "coastdown_pitch_offset", seed=103),
+        lambda: coastdown_record(coastdown_vehicle("truth_pitch"), vehicle_pitch_declared(),
+                                 "coastdown_pitch_offset", seed=103),
         LoopSettings(["f_r", "C_dA", "r_dyn", "q_grade"], metric="nrmse_sim",
                      prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         ("sensor_offset", "pitch"))
@@ -131,7 +136,7 @@ def case_pitch() -> LoopCase:
 
 def vehicle_slip_declared() -> BondGraph:
     """Full filter model (High range, 2WD) with a rigid belt."""
-    return _vehicle("vehicle_full", gear="H", drive="2WD")
+    return full_vehicle("vehicle_full")
 
 
 def driving_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
@@ -180,9 +185,9 @@ def case_slip() -> LoopCase:
         "Driving record (throttle steps, High range) of a vehicle whose CVT belt creeps on "
         "the secondary sheave; the declared full filter model has a rigid belt.",
         declared_builder(vehicle_slip_declared),
-        lambda: driving_record(_vehicle("truth_belt_slip", gear="H", drive="2WD",
-                                         effects=VehicleEffects(belt_slip=True)), vehicle_slip_declared(),
-                                "throttle_steps_belt_slip", seed=104, c_bs=BELT_CREEP),
+        lambda: driving_record(full_vehicle("truth_belt_slip", VehicleEffects(belt_slip=True)),
+                               vehicle_slip_declared(), "throttle_steps_belt_slip", seed=104,
+                               c_bs=BELT_CREEP),
         LoopSettings(params, metric="nrmse_sim", fixed=fixed,
                      prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
         ("slip", "cvt.belt.p2 -> cvt.w_s"))
@@ -201,7 +206,7 @@ ENGINE_TORQUE = ("source", "engine.torque")
 def engine_saturation_truth() -> BondGraph:
     """The declared full filter model plus ``actuator_saturation`` at the
     engine torque, level ``ENGINE_SATURATION`` x T_pk (public effect API)."""
-    g = _vehicle("truth_engine_saturation", gear="H", drive="2WD")
+    g = full_vehicle("truth_engine_saturation")
     apply_effect(g, "actuator_saturation", ENGINE_TORQUE,
                  {"L": ENGINE_SATURATION * TRUE_DRIVING["T_pk"]})
     return g

@@ -90,14 +90,17 @@ def steps(levels: Sequence[tuple[float, float]], ramp: float = 0.2
     return profile(pts)
 
 
-def _x0(model_name: str, params: dict, **kw) -> dict[str, float]:
+def _x0(model_name: str, params: dict, *, v: float = 0.0, grade: float = 0.0,
+        u: dict | None = None, settle=None) -> dict[str, float]:
+    """The consistent initial state of the registered ``model_name`` at the
+    parameters ``params`` (:func:`vehicle_graphs.analysis.initial_state`)."""
     from bondgraph.numerics.model import Model
 
     from .analysis import initial_state
 
     m = Model.load(model_name)
-    th = m.theta({k: v for k, v in params.items() if k in m.params})
-    return initial_state(m, th, **kw)
+    th = m.theta({k: val for k, val in params.items() if k in m.params})
+    return initial_state(m, th, v=v, grade=grade, u=u, settle=settle)
 
 
 # ------------------------------------------------------------- experiments

@@ -30,6 +30,7 @@ COMMANDS: dict[str, str] = {
     "plot": "plot a simulation or experiment CSV to PNGs",
     "estimate": "maximum-likelihood estimation (UKF + PSO/DE)",
     "sensitivity": "local and global sensitivity, identifiability",
+    "track": "track parameters over a record (augmented-state UKF) and detect their changes",
 }
 
 

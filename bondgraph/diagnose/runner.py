@@ -407,7 +407,7 @@ def gain_beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str]) 
     if not np.isfinite(gain):
         return ""
     values = ", ".join(f"{n} = {beyond.theta[model.param_index(n)]:.4g}" for n in boxed)
-    return f" (beyond the box the likelihood gains {gain:.1f} nats, at {values})"
+    return f" (beyond the box the likelihood gains {gain:.6g} nats, at {values})"
 
 
 def boxed_after_accept(ctx: Context, result: LoopResult, fit: Fit, names: list[str],

@@ -650,6 +650,76 @@ class Evaluation:
                               f"string (tcp://HOST:PORT) or None")
 
 
+@dataclass(frozen=True)
+class TrackOptions:
+    """How :func:`bondgraph.inference.track.track` and
+    :class:`bondgraph.inference.track.Tracker` follow parameters and detect
+    their changes.
+
+    Parameters
+    ----------
+    prior_rel : float
+        Prior std of a tracked parameter, relative to its start value, when
+        no std is given (> 0; at a start of 0: relative to its box width).
+    false_alarm_hours : float or None
+        Mean time between false alarms of the change detector [h]
+        (:func:`bondgraph.inference.changes.glr_threshold`); None: no
+        detection.
+    window_s : float
+        The GLR window [s]: how far back a change may start (> 0).
+    smooth : bool
+        Also the RTS-smoothed estimates (batch tracker).
+    match_spread : bool
+        Keep the sigma-point spread of the filter without the tracked
+        states (κ' = κ − k for k tracked parameters): a tracked parameter
+        with zero variance and zero drift then gives exactly the
+        constant-parameter UKF (the difference form of the unscented
+        moments keeps the covariance positive for any κ).
+    max_changes : int
+        Most changes reported (and re-estimated) in one record (>= 0).
+    reset_rel : float
+        Prior std of a parameter after a detected change, relative to its
+        value before it (> 0; never below the ``prior_rel`` rule): the filter
+        restarts at the change time with this spread.
+    holdoff_s : float or None
+        After a change, how long the detector ignores the re-estimation's
+        transient [s] (>= 0; None: ``window_s``): a second change within it
+        is not detected.
+
+    Raises
+    ------
+    OptionError
+        A value out of its domain (named).
+    """
+
+    prior_rel: float = 0.1
+    false_alarm_hours: float | None = 10.0
+    window_s: float = 10.0
+    smooth: bool = True
+    match_spread: bool = True
+    max_changes: int = 20
+    reset_rel: float = 1.0
+    holdoff_s: float | None = None
+
+    def __post_init__(self):
+        _real(self, "prior_rel", positive=True)
+        if self.false_alarm_hours is not None:
+            _real(self, "false_alarm_hours", positive=True)
+        _real(self, "window_s", positive=True)
+        _flag(self, "smooth")
+        _flag(self, "match_spread")
+        _integer(self, "max_changes", 0)
+        _real(self, "reset_rel", positive=True)
+        if self.holdoff_s is not None:
+            _real(self, "holdoff_s")
+            if self.holdoff_s < 0:
+                raise OptionError(f"TrackOptions.holdoff_s must be >= 0, got {self.holdoff_s}")
+
+    def to_dict(self) -> dict:
+        """The options as a plain dict (JSON-able)."""
+        return asdict(self)
+
+
 def _checked(options, cls, what: str):
     """``options`` checked to be a ``cls`` (None: its defaults); the one
     check behind :func:`ukf_options`, :func:`fit_options`, :func:`scoring_options`.

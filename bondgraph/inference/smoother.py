@@ -116,6 +116,41 @@ def rts_smooth(model, t, u, y, theta, x0, P0, *, options: UKFOptions | None = No
     return Smoothed(xs, Ps, xf.copy(), float(res.nll[0]))
 
 
+def rts_backward(model, t, u, theta, x_filt, P_filt, *,
+                 options: UKFOptions | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The unscented RTS backward pass alone, over a forward pass already run
+    (e.g. one segment of a tracking filter, :mod:`bondgraph.inference.track`).
+
+    Parameters
+    ----------
+    model : Model
+    t : array (N,)
+    u : array (N, n_u)
+    theta : array (n_theta,)
+    x_filt : array (N, n_x)
+        Filtered means x̂_k|k.
+    P_filt : array (N, n_x, n_x)
+        Filtered covariances.
+    options : UKFOptions, optional
+        The forward pass's options (same sigma points, step and hold).
+
+    Returns
+    -------
+    (x (N, n_x), P (N, n_x, n_x))
+        Smoothed means and covariances (Särkkä 2008, Algorithm 3.2).
+
+    Raises
+    ------
+    NumericalError
+        A covariance that cannot be factored or inverted.
+    """
+    opts = ukf_options(options)
+    t = np.asarray(t, float)
+    u = np.asarray(u, float).reshape(t.size, -1) if model.n_u else np.zeros((t.size, 0))
+    return _backward(model, t, u, np.asarray(theta, float), np.asarray(x_filt, float),
+                     np.asarray(P_filt, float), opts)
+
+
 def _gain(Pm: np.ndarray, C: np.ndarray, k: int) -> np.ndarray:
     """The smoother gain G = C (P⁻)⁻¹ (n, n); where P⁻ is singular (a
     direction no process noise reaches has collapsed to round-off) the

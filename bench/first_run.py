@@ -1,0 +1,85 @@
+"""The first `bondgraph loop` after install, and the next one (issue 27).
+
+Runs the README's main job (``bondgraph loop``, the bundled default case, no
+arguments) in a child process twice: first with fresh, empty numba and
+bondgraph kernel caches (``NUMBA_CACHE_DIR``, ``BONDGRAPH_CACHE_DIR`` in a
+temporary folder: what a user waits for after ``pip install``), then again
+with the caches the first run filled (warm). For each run it reports the
+wall time, the time at which each of the loop's stages was printed, and the
+longest silence (no line on stdout or stderr). Targets: first run <= 60 s,
+warm <= 10 s, nothing silent for more than 2 s. Last line JSON.
+
+Usage: python bench/first_run.py [--keep DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+STAGES = {"initial fit": r"initial fit:", "step 1 scored": r"step 1: .* candidates scored",
+          "step 1 decided": r"ACCEPT|nothing significant|no candidate", "done": r"done in"}
+
+
+def _pump(stream, lines: list, t0: float) -> None:
+    for raw in iter(stream.readline, ""):
+        lines.append((time.perf_counter() - t0, raw.rstrip("\n")))
+
+
+def run_once(env: dict, out: Path) -> dict:
+    """One `bondgraph loop --out out` in a child; its timings."""
+    cmd = [sys.executable, "-m", "bondgraph.cli.main", "loop", "--out", str(out), "--overwrite"]
+    t0 = time.perf_counter()
+    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         bufsize=1)
+    lines: list = []
+    threads = [threading.Thread(target=_pump, args=(s, lines, t0)) for s in (p.stdout, p.stderr)]
+    for th in threads:
+        th.start()
+    code = p.wait()
+    for th in threads:
+        th.join()
+    wall = time.perf_counter() - t0
+    if code != 0:
+        tail = "\n".join(text for _, text in lines[-20:])
+        raise SystemExit(f"bondgraph loop exited with {code}:\n{tail}")
+    lines.sort(key=lambda x: x[0])
+    times = [0.0] + [t for t, _ in lines] + [wall]
+    gaps = [(b - a, i) for i, (a, b) in enumerate(zip(times[:-1], times[1:]))]
+    silence, at = max(gaps)
+    stages = {}
+    for name, pat in STAGES.items():
+        hit = next((t for t, text in lines if re.search(pat, text)), None)
+        stages[name] = None if hit is None else round(hit, 1)
+    before = lines[at - 1][1][:100] if at > 0 else "(start)"
+    return {"wall_s": round(wall, 1), "stages_s": stages, "longest_silence_s": round(silence, 1),
+            "silent_after": before}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--keep", default=None, help="folder for the caches and reports (kept)")
+    args = ap.parse_args()
+    base = Path(args.keep or tempfile.mkdtemp(prefix="bondgraph-first-run-"))
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(base / "numba"),
+               BONDGRAPH_CACHE_DIR=str(base / "kernels"), PYTHONUNBUFFERED="1")
+    first = run_once(env, base / "report1")
+    print(f"first run: {first['wall_s']} s; stages {first['stages_s']}; longest silence "
+          f"{first['longest_silence_s']} s after: {first['silent_after']}", flush=True)
+    warm = run_once(env, base / "report2")
+    print(f"warm run:  {warm['wall_s']} s; stages {warm['stages_s']}; longest silence "
+          f"{warm['longest_silence_s']} s after: {warm['silent_after']}", flush=True)
+    print(json.dumps({"first_run_s": first["wall_s"], "warm_s": warm["wall_s"],
+                      "first": first, "warm": warm, "load": os.getloadavg()[0]}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,130 @@
+"""``bondgraph track``: online parameter tracking and change detection over a
+record (:mod:`bondgraph.inference.track`), writing ``track.csv``,
+``changes.json`` and a plot per tracked parameter."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from bondgraph.cli.common import (
+    add_data,
+    add_discretisation,
+    add_fixed,
+    add_initial_state,
+    add_model,
+    add_overwrite,
+    load_record,
+    output_folder,
+    parse_names,
+    parse_pairs,
+    problem_from_args,
+    published,
+)
+from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
+from bondgraph.errors import DataError
+from bondgraph.inference.options import NOISE_MODES, TrackOptions
+from bondgraph.inference.track import TrackingModel, check_tracked, track
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.registry import graph_builder
+from bondgraph.report.tracking import plot_track
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    """Options of ``bondgraph track``."""
+    add_model(p)
+    add_data(p)
+    p.add_argument("--track", required=True, help="comma-separated parameters to track")
+    p.add_argument("--drift", action="append", default=None,
+                   help="name=value,... drift intensity of a tracked parameter, in its unit "
+                        "per sqrt(s) (default 0: a constant, re-estimated at changes)")
+    p.add_argument("--from", dest="from_result", default=None,
+                   help="result.json of `bondgraph estimate`: its estimates are the start "
+                        "values (tracked) and fixed values (others), its std the prior std")
+    p.add_argument("--false-alarm-hours", type=float, default=10.0,
+                   help="mean time between false alarms of the change detector [h] "
+                        "(default 10; 0: no detection)")
+    p.add_argument("--window", type=float, default=10.0, help="GLR window [s] (default 10)")
+    p.add_argument("--prior-rel", type=float, default=0.1,
+                   help="prior std of a tracked parameter relative to its start (default 0.1)")
+    p.add_argument("--out", required=True, help="output directory")
+    add_overwrite(p)
+    add_fixed(p)
+    add_initial_state(p)
+    p.add_argument("--noise", choices=NOISE_MODES, default="auto",
+                   help="measurement-noise levels (as for estimate; auto: the record's)")
+    add_discretisation(p, chosen=False)
+    p.add_argument("--no-plots", action="store_true")
+
+
+def _from_result(path) -> tuple[dict, dict]:
+    """``(values, std)`` by parameter name of an estimate's result.json."""
+    try:
+        d = from_jsonable(json.loads(Path(path).read_text()))
+        names = list(d["params"])
+        return (dict(zip(names, map(float, d["estimates"]))),
+                {n: float(s) for n, s in zip(names, d.get("std") or []) if np.isfinite(s)})
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DataError(f"--from {path}: not a readable estimate result ({exc})") from None
+
+
+def run(args) -> int:
+    """Track, detect, write the folder, print the summary."""
+    graph = graph_builder(args.model)()
+    model = Model.from_spec(args.model)
+    names = parse_names(args.track, "--track")
+    check_tracked(names, model)
+    drift = parse_pairs(args.drift, "--drift")
+    values, std = _from_result(args.from_result) if args.from_result else ({}, {})
+    values = {k: v for k, v in values.items() if k in model.params}
+    folder = output_folder(args.out, args)
+    exp = load_record(args.data, model)
+    problem = problem_from_args(model, exp, args, values=values)
+    opts = TrackOptions(prior_rel=args.prior_rel, window_s=args.window,
+                        false_alarm_hours=args.false_alarm_hours or None)
+    start = {n: float(problem.theta[model.param_index(n)]) for n in names}
+    tm = TrackingModel.from_graph(graph, names, drift, start=start)
+    res = track(problem, tm, std={n: std[n] for n in names if n in std}, options=opts)
+    truth = (exp.meta or {}).get("true_parameters") or {}
+
+    def version(d: Path) -> list:
+        _write_csv(d / "track.csv", res.columns())
+        (d / "changes.json").write_text(json.dumps(to_jsonable(
+            {"threshold": res.threshold, "settings": res.settings,
+             "changes": [c.to_dict() for c in res.changes]}), indent=2, allow_nan=False) + "\n")
+        pngs = [] if args.no_plots else plot_track(res, d, truth=truth)
+        return [d / "track.csv", d / "changes.json", *pngs]
+    written = folder.publish(version)
+    print(summary(res))
+    for pth in published(folder, written):
+        print(f"wrote {pth}")
+    return 0
+
+
+def _write_csv(path: Path, cols: dict) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(list(cols))
+        for row in zip(*cols.values()):
+            w.writerow([repr(float(v)) for v in row])
+
+
+def summary(res) -> str:
+    """The one-screen summary: final estimates and the detected changes."""
+    lines = [f"tracked {', '.join(res.names)} over {res.t[-1] - res.t[0]:.6g} s "
+             f"({res.t.size} samples), NLL {res.nll:.6g}",
+             "threshold: " + ("none (no detection)" if res.threshold is None
+                              else f"{res.threshold:.4g}")]
+    for i, n in enumerate(res.names):
+        lines.append(f"  {n:>16s}: start {res.estimate[0, i]:.6g} ± {res.std[0, i]:.3g}, "
+                     f"end {res.estimate[-1, i]:.6g} ± {res.std[-1, i]:.3g} {res.units[i]}")
+    lines.append(f"{len(res.changes)} change(s)")
+    for c in res.changes:
+        lines.append(f"  t = {c.time:.6g} s (alarm {c.alarm_time:.6g} s): {c.parameter} "
+                     f"{c.before:.6g} ± {c.before_std:.3g} -> {c.after:.6g} ± {c.after_std:.3g}"
+                     f" (GLR {c.statistic:.4g})")
+    return "\n".join(lines)

@@ -1,0 +1,640 @@
+"""Online parameter tracking and change detection with the augmented-state UKF.
+
+A :class:`TrackingModel` is the model of an augmented graph
+(:func:`bondgraph.core.augment.augment`: each tracked parameter a random-walk
+state, its box kept by a logit transform). The batch tracker :func:`track`
+runs the toolkit's batched UKF (:func:`bondgraph.inference.ukf.ukf_nll`, the
+compiled kernel with the numba backend) over a record, stores the filtered
+means and covariances, and gives per sample the estimate and std of each
+tracked parameter, filtered and RTS-smoothed
+(:func:`bondgraph.inference.smoother.rts_backward`).
+
+Change detection (:mod:`bondgraph.inference.changes`): the standardised
+updates of each tracked parameter's state are watched by a windowed GLR
+test whose threshold gives one false alarm per ``false_alarm_hours`` at
+most. At an alarm the change time ĵ is the GLR's estimate; the filter is
+restarted at ĵ from its posterior at ĵ − 1 with the changed parameter's
+variance reset (``TrackOptions.reset_rel`` of its value, cross covariances
+zero) and the original states' prior covariance added (they went through
+the samples between the change and the alarm with the old value), so that
+the new value is re-estimated from the change time on (Willsky & Jones
+1976), not reached by the random walk. The restarted segment is filtered
+twice: the second pass starts from the first pass's final value with the
+same wide spread (the augmented filter's transient from a far start biases
+a multiplicative parameter; Ljung 1979). The detector ignores the first
+``holdoff_s`` of a restarted segment.
+
+Estimates and std in the parameter's unit: p̂ = g(ẑ) and σ_p = |g'(ẑ)| σ_z
+(first order) for the transform g of
+:class:`~bondgraph.core.augment.TrackedParameter`.
+
+The streaming :class:`Tracker` runs the same predict/update steps
+(:func:`bondgraph.inference.ukf.predict`, :func:`~bondgraph.inference.ukf.update`)
+one sample at a time.
+
+References
+----------
+Jazwinski, A. H. (1970). Stochastic Processes and Filtering Theory, ch. 8.
+Willsky, A. S., Jones, H. L. (1976). A generalized likelihood ratio approach
+to the detection and estimation of jumps in linear systems. IEEE TAC 21(1).
+Basseville, M., Nikiforov, I. V. (1993). Detection of Abrupt Changes.
+Särkkä, S. (2008). Unscented Rauch-Tung-Striebel smoother. IEEE TAC 53(3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from bondgraph.core.augment import augment, tracked_parameters
+from bondgraph.errors import ModelError, NumericalError, OptionError
+from bondgraph.inference.changes import first_alarm, glr_threshold, standardised_increments
+from bondgraph.inference.options import TrackOptions, UKFOptions, _checked
+from bondgraph.inference.smoother import rts_backward
+from bondgraph.inference.ukf import ukf_nll
+from bondgraph.numerics.model import Model
+
+
+# ------------------------------------------------------------------ the model
+@dataclass(frozen=True)
+class TrackingModel:
+    """The generated model of an augmented graph and what it tracks.
+
+    Attributes
+    ----------
+    model : Model
+        The augmented model (states: the original ones and ``tracked.<p>``).
+    tracked : tuple of TrackedParameter
+    base_params : tuple of str
+        The parameters of the original graph.
+    """
+
+    model: Model
+    tracked: tuple
+    base_params: tuple
+
+    @classmethod
+    def from_graph(cls, graph, track: Sequence[str], drift: Mapping[str, float] | None = None,
+                   *, transform: str = "logit", start: Mapping[str, float] | None = None
+                   ) -> "TrackingModel":
+        """Augment ``graph`` (:func:`bondgraph.core.augment.augment`, same
+        arguments), derive and generate it in memory."""
+        aug = augment(graph, track, drift, transform=transform, start=start)
+        return cls(Model.from_graph(aug), tracked_parameters(aug), tuple(graph.params))
+
+    @property
+    def names(self) -> list[str]:
+        """The tracked parameters."""
+        return [tp.name for tp in self.tracked]
+
+    @property
+    def state_indices(self) -> np.ndarray:
+        """Indices of their states in the augmented model (k,)."""
+        return np.array([self.model.state_index(tp.state) for tp in self.tracked], int)
+
+    def theta(self, values: Mapping[str, float], drift: Mapping[str, float] | None = None
+              ) -> np.ndarray:
+        """The augmented model's parameter vector (n_theta,).
+
+        Parameters
+        ----------
+        values : dict
+            Values of the original parameters by name (the tracked ones
+            are ignored: they are states); the others keep their defaults.
+        drift : dict, optional
+            Drift intensities by tracked parameter (over the defaults).
+
+        Raises
+        ------
+        ModelError
+            A drift for a parameter that is not tracked.
+        """
+        th = self.model.theta0.copy()
+        for name, v in values.items():
+            if name in self.model.params:
+                th[self.model.param_index(name)] = float(v)
+        for name, q in (drift or {}).items():
+            tp = self._spec(name)
+            th[self.model.param_index(tp.drift_param)] = float(q)
+        return th
+
+    def _spec(self, name: str):
+        for tp in self.tracked:
+            if tp.name == name:
+                return tp
+        raise ModelError(f"'{name}' is not tracked (tracked: {', '.join(self.names)})")
+
+    def values(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Parameter estimates and std (..., k) from state means (..., n_x)
+        and covariances (..., n_x, n_x): p = g(z), σ_p = |g'(z)| σ_z."""
+        idx = self.state_indices
+        z = x[..., idx]
+        var = np.maximum(np.diagonal(P, axis1=-2, axis2=-1)[..., idx], 0.0)
+        est = np.stack([tp.value(z[..., i]) for i, tp in enumerate(self.tracked)], -1)
+        sl = np.stack([np.abs(tp.slope(z[..., i])) for i, tp in enumerate(self.tracked)], -1)
+        return est, sl * np.sqrt(var)
+
+
+def tracking_prior(problem, tm: TrackingModel, start: Mapping[str, float] | None = None,
+                   std: Mapping[str, float] | None = None, rel: float = 0.1):
+    """Prior mean, covariance and parameter vector of the tracking filter.
+
+    Parameters
+    ----------
+    problem : Problem
+        The original model on the record (its prior of the original states,
+        its fixed values).
+    tm : TrackingModel
+    start : dict, optional
+        Start value of each tracked parameter (default: ``problem.theta``'s).
+    std : dict, optional
+        Prior std of each tracked parameter in its unit (default ``rel`` ×
+        |start|, or ``rel`` × its box width at a start of 0).
+    rel : float
+
+    Returns
+    -------
+    x0 : ndarray (n_x,)
+    P0 : ndarray (n_x, n_x)
+        The problem's prior of the original states, block-diagonal with the
+        tracked states' variances (in the transformed coordinate).
+    theta : ndarray (n_theta,)
+
+    Raises
+    ------
+    ModelError
+        A start or std for a parameter not tracked, or a problem whose model
+        lacks a state of the augmented model.
+    """
+    base = dict(zip(problem.model.params, problem.theta))
+    start, std = dict(start or {}), dict(std or {})
+    for name in [*start, *std]:
+        tm._spec(name)
+    m = tm.model
+    x0, P0 = np.zeros(m.n_x), np.zeros((m.n_x, m.n_x))
+    bi = [problem.model.state_index(s) for s in m.states if s in problem.model.states]
+    ai = [m.state_index(s) for s in m.states if s in problem.model.states]
+    if len(ai) + len(tm.tracked) != m.n_x:
+        raise ModelError(f"the tracking model's states {m.states} are not those of "
+                         f"'{problem.model.name}' plus the tracked ones")
+    x0[ai] = problem.x0[bi]
+    P0[np.ix_(ai, ai)] = problem.P0[np.ix_(bi, bi)]
+    for i, tp in zip(tm.state_indices, tm.tracked):
+        p0 = float(start.get(tp.name, base[tp.name]))
+        sd = float(std.get(tp.name, rel * (abs(p0) if p0 != 0 else tp.upper - tp.lower)))
+        x0[i] = float(tp.state_of(p0))
+        P0[i, i] = float(tp.std_of(p0, sd)) ** 2
+    return x0, P0, tm.theta(base)
+
+
+def filter_options(ukf: UKFOptions, tm: TrackingModel, options: TrackOptions) -> UKFOptions:
+    """The UKF options of the tracking filter: the problem's, with κ' = κ − k
+    when ``options.match_spread`` (:class:`~bondgraph.inference.options.TrackOptions`)."""
+    if not options.match_spread:
+        return ukf
+    return replace(ukf, kappa=ukf.kappa - len(tm.tracked))
+
+
+# ------------------------------------------------------------------ results
+@dataclass
+class Change:
+    """A detected change of a tracked parameter.
+
+    Attributes
+    ----------
+    parameter : str
+    index, alarm_index : int
+        Sample of the estimated change (ĵ) and of the alarm.
+    time, alarm_time : float
+        Their times [s]; ``alarm_time − time`` is the detection delay.
+    before, before_std : float
+        Filtered estimate and std just before the change (sample ĵ − 1).
+    after, after_std : float
+        The re-estimate from the change on: the filtered value at the end
+        of the segment that starts at ĵ (the next change or the record's end).
+    statistic, threshold : float
+        The GLR statistic at the alarm and the threshold [nats].
+    """
+
+    parameter: str
+    index: int
+    alarm_index: int
+    time: float
+    alarm_time: float
+    statistic: float
+    threshold: float
+    before: float = np.nan
+    before_std: float = np.nan
+    after: float = np.nan
+    after_std: float = np.nan
+
+    def to_dict(self) -> dict:
+        """Plain dict (JSON-able through :mod:`bondgraph.core.jsonsafe`)."""
+        return asdict(self)
+
+
+@dataclass
+class TrackResult:
+    """What :func:`track` returns. Arrays are indexed by sample (N) and
+    tracked parameter (k).
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+    names, units : list of str
+    estimate, std : ndarray (N, k)
+        Filtered estimates and std (parameter units).
+    smoothed, smoothed_std : ndarray (N, k) or None
+        RTS-smoothed, within each segment between detected changes.
+    x_filt : ndarray (N, n_x)
+        Filtered states of the augmented model (``states``).
+    states : list of str
+    nll : float
+        Negative log-likelihood of the filter over the record (the sum over
+        segments) [nats].
+    increments, statistic : ndarray (N, k)
+        Standardised parameter updates and the GLR statistic.
+    threshold : float or None
+    changes : list of Change
+    settings : dict
+    """
+
+    t: np.ndarray
+    names: list
+    units: list
+    estimate: np.ndarray
+    std: np.ndarray
+    x_filt: np.ndarray
+    states: list
+    nll: float
+    increments: np.ndarray
+    statistic: np.ndarray
+    threshold: float | None
+    changes: list = field(default_factory=list)
+    smoothed: np.ndarray | None = None
+    smoothed_std: np.ndarray | None = None
+    settings: dict = field(default_factory=dict)
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The per-sample table (``track.csv``): ``t``, then per parameter
+        ``<p>``, ``<p>.std`` and, when smoothed, ``<p>.smoothed``, ``<p>.smoothed_std``."""
+        out = {"t": self.t}
+        for i, n in enumerate(self.names):
+            out[n], out[f"{n}.std"] = self.estimate[:, i], self.std[:, i]
+            if self.smoothed is not None:
+                out[f"{n}.smoothed"] = self.smoothed[:, i]
+                out[f"{n}.smoothed_std"] = self.smoothed_std[:, i]
+        return out
+
+
+# ------------------------------------------------------------------ batch tracker
+@dataclass
+class _Segment:
+    start: int
+    x: np.ndarray
+    P: np.ndarray
+    prior: tuple
+    nll: float
+    S: np.ndarray
+    G: np.ndarray
+    end: int = -1
+
+
+def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = None,
+          std: Mapping[str, float] | None = None, drift: Mapping[str, float] | None = None,
+          options: TrackOptions | None = None) -> TrackResult:
+    """Track parameters over a whole record, with change detection.
+
+    Parameters
+    ----------
+    problem : Problem
+        The original model bound to the record
+        (:func:`bondgraph.inference.problem.make_problem`): record arrays,
+        prior of the states, fixed values, noise levels, UKF options.
+    tm : TrackingModel
+        The augmented model (its original graph is ``problem.model``'s).
+    start, std : dict, optional
+        Start values and prior std of the tracked parameters
+        (:func:`tracking_prior`).
+    drift : dict, optional
+        Drift intensities [unit/sqrt(s)] over those of ``tm``.
+    options : TrackOptions, optional
+
+    Returns
+    -------
+    TrackResult
+
+    Raises
+    ------
+    NumericalError
+        The filter fails (the reason named).
+    ModelError, OptionError
+        A parameter not tracked; options of the wrong type.
+
+    Notes
+    -----
+    The method: the augmented-state UKF (Jazwinski 1970), the windowed GLR
+    test of :mod:`bondgraph.inference.changes` (Basseville & Nikiforov
+    1993), restart at the estimated change time (Willsky & Jones 1976) and
+    the unscented RTS smoother per segment (Särkkä 2008).
+    """
+    opts = _checked(options, TrackOptions, "track options")
+    x0, P0, th = tracking_prior(problem, tm, start, std, opts.prior_rel)
+    th = th if not drift else tm.theta(dict(zip(problem.model.params, problem.theta)), drift)
+    ukf = filter_options(problem.ukf, tm, opts)
+    R = problem.noise.covariance(tm.model, th[None, :])
+    t, u, y = problem.t, problem.u, problem.y
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    window = max(1, int(round(opts.window_s / dt)))
+    h = (None if opts.false_alarm_hours is None else
+         glr_threshold(opts.false_alarm_hours * 3600.0, dt, window, len(tm.tracked)))
+    segs, changes = _segments(tm, (t, u, y), th, (x0, P0), ukf, R, h, window, opts, std)
+    res = _stitch(tm, t, segs, changes, h)
+    if opts.smooth:
+        res.smoothed, res.smoothed_std = _smoothed(tm, t, u, th, segs, ukf)
+    res.settings = dict(ukf=ukf.to_dict(), track=opts.to_dict(), window=window, dt=dt,
+                        theta=dict(zip(tm.model.params, th.tolist())))
+    return res
+
+
+def _filter_segment(tm, rec, th, prior, ukf, R, s0: int) -> _Segment:
+    """The UKF from sample ``s0`` (prior ``(x, P)`` there) to the end."""
+    t, u, y = rec
+    x, P = prior
+    res = ukf_nll(tm.model, t[s0:], u[s0:], y[s0:], th[None, :], x, P, options=ukf, R=R,
+                  store="full")
+    if not np.isfinite(res.nll[0]):
+        raise NumericalError(f"the tracking filter fails: {res.reasons[0]}")
+    xf, Pf = res.x_filt[:, 0], res.P_filt[:, 0]
+    idx = tm.state_indices
+    q2 = np.asarray(tm.model.proc_std(th[None, :]), float)[0][idx] ** 2
+    dts = np.concatenate([[0.0], np.diff(t[s0:])])
+    S = np.stack([standardised_increments(xf[:, i], Pf[:, i, i], x[i], P[i, i], q2[c] * dts)
+                  for c, i in enumerate(idx)], -1)
+    return _Segment(s0, xf, Pf, (x, P), float(res.nll[0]), S, np.zeros_like(S))
+
+
+def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
+    """The filter over the record, restarted at each detected change."""
+    t, u, y = rec
+    holdoff = window if opts.holdoff_s is None else int(round(opts.holdoff_s / (
+        np.median(np.diff(t)) if t.size > 1 else 1.0)))
+    s0, segs, changes = 0, [], []
+    changed, P_start = None, _states_prior(tm, prior[1])
+    while True:
+        seg = _filter_segment(tm, (t, u, y), th, prior, ukf, R, s0)
+        if changed is not None:         # once more, from the change time, centred on
+            i = int(tm.state_indices[changed])      # what the first pass found
+            x = prior[0].copy()
+            x[i] = seg.x[-1, i]
+            prior = (x, _reset(tm, changed, x, prior[1], std, opts, None))
+            seg = _filter_segment(tm, (t, u, y), th, prior, ukf, R, s0)
+        alarm = None
+        if h is not None:
+            watched = seg.S.copy()
+            if segs:                     # a restart: skip the re-estimation's transient
+                watched[:holdoff] = np.nan
+            alarm, seg.G = first_alarm(watched, h, window)
+        segs.append(seg)
+        if alarm is None or len(changes) >= opts.max_changes:
+            seg.end = t.size
+            return segs, changes
+        ka, j, c, g = alarm
+        cidx = max(s0 + j, s0 + 2)
+        seg.end = cidx
+        changes.append(Change(tm.names[c], cidx, s0 + ka, float(t[cidx]), float(t[s0 + ka]),
+                              g, h))
+        x, P = seg.x[cidx - 1 - s0].copy(), seg.P[cidx - 1 - s0].copy()
+        prior = (x, _reset(tm, c, x, P, std, opts, P_start))
+        y = y.copy()
+        y[cidx - 1] = np.nan            # its update is already in the prior
+        s0, changed = cidx - 1, c
+
+
+def _states_prior(tm, P0) -> np.ndarray:
+    """The prior covariance of the original states (tracked rows and columns zero)."""
+    P = np.array(P0, float)
+    idx = tm.state_indices
+    P[idx, :] = 0.0
+    P[:, idx] = 0.0
+    return P
+
+
+def _reset(tm, c: int, x, P, std, opts: TrackOptions, P_start) -> np.ndarray:
+    """P at a restart: the tracked parameter ``c``'s variance reset
+    (``opts.reset_rel`` of its value, at least its prior rule) and its cross
+    covariances zero; with ``P_start``, the original states' prior
+    covariance added (their estimates went through the samples between
+    the change and its detection with the old value)."""
+    tp, i = tm.tracked[c], int(tm.state_indices[c])
+    p = float(tp.value(x[i]))
+    scale = abs(p) if p != 0 else tp.upper - tp.lower
+    sd = max(float((std or {}).get(tp.name, opts.prior_rel * scale)), opts.reset_rel * scale)
+    P = P.copy()
+    P[i, :] = 0.0
+    P[:, i] = 0.0
+    P[i, i] = (sd / abs(float(tp.slope(x[i])))) ** 2
+    return P if P_start is None else P + P_start
+
+
+def _kept(seg: _Segment, first: bool) -> tuple[int, int]:
+    """Absolute range [a, e) of the samples a segment reports."""
+    return (seg.start if first else seg.start + 1), seg.end
+
+
+def _stitch(tm, t, segs, changes, h) -> TrackResult:
+    """One result from the segments' kept ranges, the changes completed."""
+    N, k, n = t.size, len(tm.tracked), tm.model.n_x
+    xs, Ps = np.full((N, n), np.nan), np.full((N, n, n), np.nan)
+    S, G = np.full((N, k), np.nan), np.zeros((N, k))
+    for i, seg in enumerate(segs):
+        a, e = _kept(seg, i == 0)
+        xs[a:e], Ps[a:e] = seg.x[a - seg.start:e - seg.start], seg.P[a - seg.start:e - seg.start]
+        S[a:e], G[a:e] = seg.S[a - seg.start:e - seg.start], seg.G[a - seg.start:e - seg.start]
+    est, sd = tm.values(xs, Ps)
+    for ch, seg in zip(changes, segs[1:]):
+        c = tm.names.index(ch.parameter)
+        ch.before, ch.before_std = float(est[ch.index - 1, c]), float(sd[ch.index - 1, c])
+        ch.after, ch.after_std = float(est[seg.end - 1, c]), float(sd[seg.end - 1, c])
+    return TrackResult(t=t, names=tm.names, units=[tp.unit for tp in tm.tracked], estimate=est,
+                       std=sd, x_filt=xs, states=list(tm.model.states),
+                       nll=float(sum(s.nll for s in segs)), increments=S, statistic=G,
+                       threshold=h, changes=changes)
+
+
+def _smoothed(tm, t, u, th, segs, ukf):
+    """RTS-smoothed estimates and std (N, k), segment by segment."""
+    N, k = t.size, len(tm.tracked)
+    est, sd = np.full((N, k), np.nan), np.full((N, k), np.nan)
+    for i, seg in enumerate(segs):
+        e = seg.end - seg.start
+        xs, Ps = rts_backward(tm.model, t[seg.start:seg.end], u[seg.start:seg.end], th,
+                              seg.x[:e], seg.P[:e], options=ukf)
+        a, b = _kept(seg, i == 0)
+        est[a:b], sd[a:b] = tm.values(xs[a - seg.start:], Ps[a - seg.start:])
+    return est, sd
+
+
+def check_tracked(names: Sequence[str], model) -> None:
+    """Raise :class:`~bondgraph.errors.OptionError` for an empty list of
+    tracked parameters or one the model lacks (named)."""
+    if not names:
+        raise OptionError("no parameter to track: give at least one (--track p1,p2)")
+    for n in names:
+        if n not in model.params:
+            raise OptionError(f"cannot track '{n}': model '{model.name}' has no such parameter "
+                              f"(parameters: {', '.join(model.params)})")
+
+
+# ------------------------------------------------------------------ drift intensities
+def estimate_drift(problem, tm: TrackingModel, names: Sequence[str] | None = None, *,
+                   start: Mapping[str, float] | None = None,
+                   std: Mapping[str, float] | None = None, fit=None,
+                   options: TrackOptions | None = None):
+    """Maximum-likelihood drift intensities, with their Cramér-Rao std.
+
+    The likelihood is the tracking filter's (the augmented-state UKF with
+    the prior of :func:`tracking_prior`, no change detection), maximised by
+    :func:`bondgraph.inference.estimate.estimate` over the parameters
+    ``drift.<p>`` of the augmented model.
+
+    Parameters
+    ----------
+    problem : Problem
+        The original model on the record.
+    tm : TrackingModel
+    names : sequence of str, optional
+        Tracked parameters whose drift is estimated (default all).
+    start, std : dict, optional
+        As for :func:`track`.
+    fit : FitOptions, optional
+    options : TrackOptions, optional
+        ``prior_rel`` and ``match_spread`` are read.
+
+    Returns
+    -------
+    EstimationResult
+        ``params`` are ``drift.<p>`` [unit/sqrt(s)], with ``std`` from the
+        Hessian of the NLL (Cramér-Rao).
+
+    Raises
+    ------
+    ModelError
+        A name that is not tracked.
+    EstimationError
+        No finite likelihood in the search.
+    """
+    from bondgraph.inference.estimate import estimate
+    from bondgraph.inference.prior import PriorSpec
+    from bondgraph.inference.problem import make_problem
+
+    opts = _checked(options, TrackOptions, "track options")
+    x0, P0, th = tracking_prior(problem, tm, start, std, opts.prior_rel)
+    drift = [tm._spec(n).drift_param for n in (names or tm.names)]
+    fixed = {p: v for p, v in zip(tm.model.params, th) if p not in drift}
+    aug = make_problem(tm.model, problem.arrays, prior=PriorSpec(x0=x0, P0=P0),
+                       noise=problem.noise, ukf=filter_options(problem.ukf, tm, opts),
+                       fixed=fixed)
+    return estimate(aug, drift, fit=fit)
+
+
+# ------------------------------------------------------------------ streaming
+class Tracker:
+    """Streaming tracker: one sample per :meth:`update`, the same predict
+    and update steps as the batch filter (:func:`bondgraph.inference.ukf.predict`,
+    :func:`~bondgraph.inference.ukf.update`; numpy), so that it equals
+    :func:`track` without change detection sample for sample.
+
+    Parameters
+    ----------
+    tm : TrackingModel
+    theta : array (n_theta,)
+        The augmented model's parameters (:meth:`TrackingModel.theta`).
+    x0 : array (n_x,)
+    P0 : array (n_x, n_x)
+        Prior at the first sample (:func:`tracking_prior`).
+    ukf : UKFOptions, optional
+        The filter's options (as given: :func:`filter_options` is the
+        caller's; :meth:`from_problem` applies it).
+    R : array (n_y, n_y), optional
+        Measurement-noise covariance (default ``meas_std(θ)²``).
+
+    Examples
+    --------
+    >>> trk = Tracker.from_problem(problem, tm)            # doctest: +SKIP
+    >>> for k in range(N):                                  # doctest: +SKIP
+    ...     est, sd = trk.update(t[k], u[k], y[k])
+    """
+
+    def __init__(self, tm: TrackingModel, theta, x0, P0, *, ukf: UKFOptions | None = None,
+                 R=None):
+        from bondgraph.inference.options import ukf_options
+        from bondgraph.inference.sigma import merwe_weights
+        from bondgraph.inference.ukf import FilterBatch, ROS2_JACOBIAN
+        from bondgraph.numerics.integrators import make_step
+
+        self.tm, self.opts = tm, ukf_options(ukf)
+        m = tm.model
+        self.wts = merwe_weights(m.n_x, self.opts.alpha, self.opts.beta, self.opts.kappa)
+        self.step = make_step(m, self.opts.method, self.opts.substeps,
+                              jacobian=ROS2_JACOBIAN[self.opts.jacobian])
+        R = None if R is None else np.asarray(R, float).reshape(1, m.n_y, m.n_y)
+        self.batch = FilterBatch(m, [np.nan], np.asarray(theta, float)[None, :],
+                                 np.asarray(x0, float)[None, :],
+                                 np.asarray(P0, float)[None, :, :], None, R)
+        self.batch.t = []
+        self.k, self._u = 0, None
+
+    @classmethod
+    def from_problem(cls, problem, tm: TrackingModel, *, start=None, std=None, drift=None,
+                     options: TrackOptions | None = None) -> "Tracker":
+        """A tracker with the prior, parameters, noise and options that
+        :func:`track` uses for ``problem`` (same arguments)."""
+        opts = _checked(options, TrackOptions, "track options")
+        x0, P0, th = tracking_prior(problem, tm, start, std, opts.prior_rel)
+        th = th if not drift else tm.theta(dict(zip(problem.model.params, problem.theta)), drift)
+        R = problem.noise.covariance(tm.model, th[None, :])
+        return cls(tm, th, x0, P0, ukf=filter_options(problem.ukf, tm, opts),
+                   R=None if R is None else R[0])
+
+    def update(self, t: float, u, y) -> tuple[np.ndarray, np.ndarray]:
+        """Filter one sample.
+
+        Parameters
+        ----------
+        t : float
+            Its time [s] (after the previous one).
+        u : array (n_u,)
+            Inputs (model units).
+        y : array (n_y,)
+            Outputs, NaN where not measured.
+
+        Returns
+        -------
+        (estimate (k,), std (k,))
+            The tracked parameters after the update (parameter units).
+
+        Raises
+        ------
+        NumericalError
+            The filter fails (the reason named), or time does not increase.
+        """
+        from bondgraph.inference.ukf import predict, update
+        from bondgraph.numerics.integrators import hold_inputs
+
+        b, u, y = self.batch, np.asarray(u, float).reshape(-1), np.asarray(y, float).reshape(-1)
+        if b.t and not t > b.t[-1]:
+            raise NumericalError(f"Tracker.update: time {t!r} does not follow {b.t[-1]!r}")
+        b.t.append(float(t))
+        if self.k > 0:
+            uk, duk = hold_inputs(np.stack([self._u, u]), self.opts.hold).interval(0)
+            predict(b, self.step, uk, b.t[-1] - b.t[-2], self.wts, self.k, duk)
+        if b.size and np.isfinite(y).any():
+            update(b, self.tm.model, u, y, self.wts, self.k)
+        if not b.size:
+            raise NumericalError(f"the tracker fails: {b.reasons[0]}")
+        self.k, self._u = self.k + 1, u
+        est, sd = self.tm.values(b.x[0], b.P[0])
+        return est, sd

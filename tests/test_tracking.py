@@ -1,0 +1,255 @@
+"""Parameter tracking and change detection (issue 28): augmented graphs,
+the batch tracker, the GLR test; numbers against hand-derived equations,
+the constant-parameter UKF, scipy and the simulated truth."""
+
+import numpy as np
+import pytest
+import sympy as sp
+from scipy import stats
+
+from bondgraph.catalog.reference import hydraulic_tanks, mass_spring_damper
+from bondgraph.core.augment import augment, tracked_parameters
+from bondgraph.core.equations import derive
+from bondgraph.errors import ModelError, OptionError, ParameterError
+from bondgraph.inference.changes import glr_mean_jump, glr_threshold
+from bondgraph.inference.options import TrackOptions, UKFOptions
+from bondgraph.inference.problem import make_problem
+from bondgraph.inference.track import TrackingModel, track
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
+
+DT, T_END, T_CHANGE = 0.01, 60.0, 30.0
+UKF = UKFOptions(method="rk4", substeps=2, backend="numpy")
+
+
+def msd_record(seed, c_after=None):
+    """The mass-spring-damper driven by random force steps (0.5 s), damping
+    1.5 N s/m switched to ``c_after`` at T_CHANGE; noisy x and v."""
+    base = Model.from_graph(mass_spring_damper())
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, T_END + DT / 2, DT)
+    F = np.repeat(rng.normal(0.0, 5.0, int(T_END / 0.5) + 1), 50)[:t.size, None]
+    if c_after is None:
+        y = simulate(base, t, F, theta={"c": 1.5}, hold="zoh").y
+    else:
+        i = int(np.searchsorted(t, T_CHANGE))
+        s1 = simulate(base, t[:i + 1], F[:i + 1], theta={"c": 1.5}, hold="zoh")
+        s2 = simulate(base, t[i:], F[i:], x0=s1.x[-1], theta={"c": c_after}, hold="zoh")
+        y = np.vstack([s1.y[:-1], s2.y])
+    y = y + rng.normal(0.0, 1.0, y.shape) * np.array([0.002, 0.01])
+    return base, t, F, y
+
+
+# ---------------------------------------------------------------- augment
+def test_augmented_equations_equal_hand_substituted():
+    g = mass_spring_damper()
+    ss = derive(augment(g, ["c"], {"c": 0.2}))
+    sym = {s.name: s for s in [*ss.states, *ss.inputs, *ss.params]}
+    p, q, z = sym["p_mass"], sym["q_spring"], sym["tracked.c"]
+    m, k, F = sym["m"], sym["k"], sym["F"]
+    lo, hi = sym["tracked.c.lower"], sym["tracked.c.upper"]
+    c = lo + (hi - lo) / (1 + sp.exp(-z))            # the logit transform, by hand
+    hand = {p: F - k * q - c * p / m, q: p / m, z: sp.Integer(0)}
+    for s, f in zip(ss.states, ss.f):
+        assert sp.simplify(f - hand[s]) == 0, s
+    # process noise of z: q / (dc/dz at c0) = 0.2 (hi - lo) / ((c0 - lo)(hi - c0))
+    c0, (l0, h0) = 1.5, (0.1, 20.0)
+    noise = dict(zip([s.name for s in ss.states], ss.process_noise))["tracked.c"]
+    val = float(noise.subs(sym["drift.c"], 0.2))
+    assert val == pytest.approx(0.2 * (h0 - l0) / ((c0 - l0) * (h0 - c0)), rel=1e-12)
+    tp, = tracked_parameters(augment(g, ["c"]))
+    assert tp.value(tp.state_of(2.7)) == pytest.approx(2.7, rel=1e-14)
+
+
+def test_augment_rejects_bad_requests():
+    g = mass_spring_damper()
+    with pytest.raises(ModelError, match="no parameter 'cc'"):
+        augment(g, ["cc"])
+    with pytest.raises(ModelError, match="not tracked"):
+        augment(g, ["c"], {"k": 1.0})
+    with pytest.raises(ModelError, match=">= 0"):
+        augment(g, ["c"], {"c": -1.0})
+    with pytest.raises(OptionError, match="transform"):
+        augment(g, ["c"], transform="log10")
+    with pytest.raises(ParameterError, match="box"):
+        augment(g, ["c"], start={"c": 20.0})
+    with pytest.raises(OptionError, match="prior_rel"):
+        TrackOptions(prior_rel=0)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+@pytest.mark.parametrize("graph,param", [(mass_spring_damper, "m"), (hydraulic_tanks, "Rh12")])
+def test_zero_drift_equals_constant_parameter_ukf(graph, param, backend):
+    g = graph()
+    base = Model.from_graph(g)
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 20.0, 0.05)
+    u = np.repeat(rng.normal(0.0, 1.0, t.size // 20 + 1), 20)[:t.size, None]
+    u = u * (5.0 if graph is mass_spring_damper else 1e-4)
+    sim = simulate(base, t, u, hold="zoh")
+    y = sim.y + rng.normal(0.0, 1.0, sim.y.shape) * base.meas_std(base.theta0[None])[0]
+    pr = make_problem(base, (t, u, y), ukf=UKFOptions(method="ros2", substeps=2,
+                                                       backend=backend))
+    tm = TrackingModel.from_graph(g, [param])
+    res = track(pr, tm, std={param: 0.0}, options=TrackOptions(false_alarm_hours=None,
+                                                               smooth=False))
+    ref = pr.nll(pr.theta).nll[0]
+    assert np.isfinite(ref)
+    assert res.nll == pytest.approx(ref, rel=1e-9, abs=1e-9)
+    assert np.all(res.estimate == pytest.approx(base.theta0[base.param_index(param)], rel=1e-12))
+
+
+# ---------------------------------------------------------------- the GLR test
+def test_glr_statistic_equals_closed_form_likelihood_ratio():
+    rng = np.random.default_rng(7)
+    s = rng.normal(0.0, 1.0, 120)
+    s[70:] += 0.8                         # a mean jump
+    s[[5, 90]] = np.nan                   # samples without information
+    M = 40
+    g, start = glr_mean_jump(s, M)
+    for k in range(s.size):
+        best, arg = 0.0, k
+        for j in range(max(0, k - M + 1), k + 1):
+            w = s[j:k + 1][np.isfinite(s[j:k + 1])]
+            if w.size == 0:
+                continue
+            nu = w.mean()                 # the MLE of the jump
+            llr = stats.norm.logpdf(w, nu).sum() - stats.norm.logpdf(w, 0.0).sum()
+            if llr > best:
+                best, arg = llr, j
+        assert g[k] == pytest.approx(best, rel=1e-9, abs=1e-12)
+        if best > 0:
+            assert start[k] == arg
+    assert glr_threshold(3600.0, 1.0, 1) == pytest.approx(0.5 * stats.chi2.isf(1 / 3600, 1))
+
+
+def test_glr_threshold_false_alarm_rate_bound_on_white_noise():
+    rng = np.random.default_rng(11)
+    N, M, T = 400_000, 50, 20_000.0      # one false alarm per 20 000 samples at most
+    g, _ = glr_mean_jump(rng.normal(0.0, 1.0, N), M)
+    h = glr_threshold(T, 1.0, M)
+    onsets = np.count_nonzero((g[1:] > h) & (g[:-1] <= h))
+    assert onsets <= N / T               # the union bound: at most 20 expected
+
+
+# ---------------------------------------------------------------- the tracker
+@pytest.fixture(scope="module")
+def tracking_model():
+    return TrackingModel.from_graph(mass_spring_damper(), ["c"])
+
+
+def test_step_in_damping_detected_and_reestimated(tracking_model):
+    base, t, F, y = msd_record(seed=1, c_after=3.0)
+    pr = make_problem(base, (t, F, y), ukf=UKF)
+    res = track(pr, tracking_model, options=TrackOptions(false_alarm_hours=10.0))
+    assert len(res.changes) == 1
+    ch = res.changes[0]
+    assert ch.parameter == "c"
+    assert 0.0 <= ch.alarm_time - T_CHANGE <= 1.0          # detected within 1 s
+    assert abs(ch.time - T_CHANGE) <= 0.2                  # change time within 0.2 s
+    assert abs(ch.before - 1.5) <= 3 * ch.before_std
+    assert abs(ch.after - 3.0) <= 3 * ch.after_std
+    k = int(np.searchsorted(t, 45.0))                       # 15 s after: filtered and smoothed
+    assert abs(res.estimate[k, 0] - 3.0) <= 3 * res.std[k, 0]
+    assert abs(res.smoothed[k, 0] - 3.0) <= 3 * res.smoothed_std[k, 0]
+    k = int(np.searchsorted(t, 15.0))
+    assert abs(res.smoothed[k, 0] - 1.5) <= 3 * res.smoothed_std[k, 0]
+
+
+def test_no_false_alarm_and_white_increments_without_change(tracking_model):
+    base, t, F, y = msd_record(seed=2)
+    pr = make_problem(base, (t, F, y), ukf=UKF)
+    res = track(pr, tracking_model, options=TrackOptions(false_alarm_hours=10.0))
+    assert res.changes == []
+    s = res.increments[:, 0]
+    s = s[np.isfinite(s)]
+    assert s.size > 5000
+    assert abs(s.mean()) < 4 / np.sqrt(s.size)            # N(0, 1) before a change
+    assert abs(s.var() - 1.0) < 0.1
+    assert abs(res.estimate[-1, 0] - 1.5) <= 3 * res.std[-1, 0]
+
+
+@pytest.mark.parametrize("backend,tol", [("numpy", 1e-11), ("numba", 1e-8)])
+def test_streaming_tracker_equals_batch_tracker(tracking_model, backend, tol):
+    from bondgraph.inference.track import Tracker
+
+    base, t, F, y = msd_record(seed=4, c_after=2.5)
+    t, F, y = t[:1500], F[:1500], y[:1500].copy()
+    y[100:110, 1] = np.nan                                  # missing samples
+    pr = make_problem(base, (t, F, y), ukf=UKFOptions(method="ros2", substeps=2,
+                                                       backend=backend))
+    opts = TrackOptions(false_alarm_hours=None, smooth=False)
+    batch = track(pr, tracking_model, drift={"c": 0.05}, options=opts)
+    tm = tracking_model
+    trk = Tracker.from_problem(pr, tm, drift={"c": 0.05}, options=opts)
+    for k in range(t.size):
+        est, sd = trk.update(t[k], F[k], y[k])
+        assert est[0] == pytest.approx(batch.estimate[k, 0], rel=tol)
+        assert sd[0] == pytest.approx(batch.std[k, 0], rel=max(tol, 1e-9))
+
+
+def test_drift_intensity_estimated_by_maximum_likelihood():
+    from bondgraph.inference.options import FitOptions
+    from bondgraph.inference.track import estimate_drift
+
+    # a random walk of constant intensity in c's unit: the model of transform "none"
+    # (the logit's walk is in z: its intensity in c's unit follows the slope)
+    q_true, seg = 0.08, 0.5                 # N s/m per sqrt(s); c held over 0.5 s pieces
+    g = mass_spring_damper()
+    base = Model.from_graph(g)
+    rng = np.random.default_rng(5)
+    dt, T = 0.02, 120.0
+    t = np.arange(0.0, T + dt / 2, dt)
+    F = np.repeat(rng.normal(0.0, 5.0, int(T / seg) + 1), int(seg / dt))[:t.size, None]
+    c = 1.5 + np.cumsum(rng.normal(0.0, q_true * np.sqrt(seg), int(T / seg) + 1))
+    assert c.min() > 0.5 and c.max() < 5.0
+    y, x = [], base.x0
+    n = int(round(seg / dt))
+    for i in range(0, t.size - 1, n):
+        j = min(i + n, t.size - 1)
+        s = simulate(base, t[i:j + 1], F[i:j + 1], x0=x, theta={"c": c[i // n]}, hold="zoh")
+        y.append(s.y[:-1])
+        x = s.x[-1]
+    y.append(s.y[-1:])
+    y = np.vstack(y) + rng.normal(0.0, 1.0, (t.size, 2)) * np.array([0.002, 0.01])
+    pr = make_problem(base, (t, F, y), ukf=UKFOptions(method="rk4", substeps=2))
+    tm = TrackingModel.from_graph(g, ["c"], {"c": 0.2}, transform="none")
+    res = estimate_drift(pr, tm, fit=FitOptions(particles=8, iterations=8, seed=0, progress=False,
+                                                check_discretisation=False))
+    q, sd = res.estimates[0], res.std[0]
+    print("drift MLE", q, sd)
+    assert np.isfinite(sd) and sd > 0
+    assert abs(q - q_true) <= 3 * sd
+
+
+def test_track_command_writes_table_changes_and_plots(tmp_path, capsys):
+    import json
+
+    from bondgraph.cli.main import main
+    from bondgraph.data.records import Experiment
+
+    base, t, F, y = msd_record(seed=1, c_after=3.0)
+    rec = Experiment.from_arrays(t, model=base, u=F, y=y,
+                                 noise_std={"x": 0.002, "v": 0.01},
+                                 meta={"true_parameters": {"c": 1.5}})
+    path = tmp_path / "msd_step.csv"
+    rec.save(path)
+    out = tmp_path / "out"
+    code = main(["track", "--model", "mass_spring_damper", "--data", str(path), "--track", "c",
+                 "--out", str(out), "--method", "rk4", "--substeps", "2", "--hold", "zoh",
+                 "--backend", "numpy"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "1 change(s)" in text
+    changes = json.loads((out / "changes.json").read_text())["changes"]
+    assert len(changes) == 1 and changes[0]["parameter"] == "c"
+    assert abs(changes[0]["time"] - T_CHANGE) <= 0.2
+    assert abs(changes[0]["after"] - 3.0) <= 3 * changes[0]["after_std"]
+    table = np.genfromtxt(out / "track.csv", delimiter=",", names=True)
+    assert table.size == t.size
+    assert abs(table["c"][-1] - 3.0) <= 3 * table["cstd"][-1]
+    assert (out / "track_c.png").stat().st_size > 1000
+    code = main(["track", "--model", "mass_spring_damper", "--data", str(path), "--track",
+                 "cc", "--out", str(tmp_path / "o2")])
+    assert code == 2
+    assert "cannot track 'cc'" in capsys.readouterr().err
