@@ -66,6 +66,13 @@ def test_loop_accepts_the_cold_start(tmp_path):
     ew = s1.parameters["cold_start.injector.E_w"]
     assert ew["estimate"] == pytest.approx(6.37e5, rel=0.05)
     assert 3 * ew["std"] < ew["estimate"]
+    # step 2: a sensor offset would pay for an idle fuel flow pushed onto its
+    # box (Q_idle 0.166 -> 1 cm³/s): refused as compensation, and nothing
+    # else passes
+    assert len(res.steps) == 1
+    rej = {r.candidate.label: r.reason for r in res.rejected
+           if r.step == 2 and not r.reason.startswith("as a pair")}
+    assert rej["sensor_offset @ fuel"].startswith("the refit moves Q_idle = 1 (box [0.02, 1])")
     assert np.isfinite(res.final.metric)
     # held out, the hot UDDS 61811012 from a hot start (no excess): the
     # declared parameters of the initial fit and of the accepted step

@@ -398,7 +398,7 @@ def case_silverbox() -> LoopCase:
 # ------------------------------------------------------- real data: Camry
 #: the cold-start bag of test 61811011: the cold UDDS, 0-1366 s (data
 #: README). On its first 700 s alone the loop ranks the cold start first too
-#: (LR 133.4; error 0.3847 -> 0.3493 cm³/s, Diebold-Mariano z 1.28: rejected)
+#: (LR 133.4; error 0.3847 -> 0.3493 cm³/s)
 CAMRY_COLD_BAG = 1367
 #: the hot-cycle tests the declared parameters are fitted on
 #: (:data:`bondgraph.catalog.benchmarks.CAMRY_HOT_FIT`) and the hot UDDS held out

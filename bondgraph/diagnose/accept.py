@@ -28,10 +28,12 @@ A candidate is accepted when, after re-estimating all parameters,
    uncertainty (``accept.error_level``, default 0.05; None: no such test): a
    one-sided Diebold-Mariano test (Diebold & Mariano 1995) on the paired
    per-sample differences of the squared standardised free-run errors,
-   d_t = Σ_i (e0_ti² − e1_ti²), with the long-run variance of d̄ by
-   Newey & West (1987) (Bartlett weights, bandwidth by Andrews' 1991 AR(1)
-   plug-in rule), so that the autocorrelation of free-run errors does not
-   overstate its precision.
+   d_t = Σ_i (e0_ti² − e1_ti²), with the Newey & West (1987) long-run
+   variance (Bartlett weights, bandwidth by Andrews' 1991 AR(1) plug-in
+   rule) of its random part 2 Σ_i Δ_ti e1_ti given the change of the output
+   Δ = ŷ0 − ŷ1 (:func:`error_decrease_test`), so that the autocorrelation of
+   free-run errors does not overstate its precision and a decrease confined
+   to one episode is not counted as its own noise.
 
 Why test 5: the likelihood-ratio test is computed by the discretised UKF.
 Where its integrator (ROS2 with few substeps) has a systematic error, the

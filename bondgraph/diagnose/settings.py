@@ -129,7 +129,8 @@ class AcceptRule:
     error_level : float or None
         The decrease of that free-run error must be significant at this
         one-sided level (a Diebold-Mariano test on the paired per-sample
-        squared errors with a Newey-West variance,
+        squared errors with a Newey-West variance conditional on the change
+        of the output,
         :func:`bondgraph.diagnose.accept.error_decrease_test`); default
         0.05; None: no such test (only ``metric_tolerance``). It keeps an
         effect that fits only the filter's discretisation error or the noise
