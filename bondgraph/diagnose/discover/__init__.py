@@ -1,0 +1,22 @@
+"""Effects beyond the library: reconstruct what is missing at a port and
+discover its law (issue 29).
+
+* :mod:`.reconstruct`: the missing effort (flow) at a 1-junction (0-junction)
+  as an integrated random walk, UKF + unscented RTS smoother
+  (:func:`reconstruct`, :class:`ReconstructOptions`, :class:`Reconstruction`).
+* :mod:`.law`: a sparse regression of the reconstructed signal on a
+  dictionary of the port's variables (:func:`discover_law`,
+  :class:`DiscoverOptions`, :class:`DiscoveredLaw`).
+"""
+
+from bondgraph.diagnose.discover.law import DiscoveredLaw, DiscoverOptions, Term, discover_law
+from bondgraph.diagnose.discover.reconstruct import (
+    PortAugmentation,
+    Reconstruction,
+    ReconstructOptions,
+    augment_port,
+    reconstruct,
+)
+
+__all__ = ["DiscoverOptions", "DiscoveredLaw", "PortAugmentation", "ReconstructOptions",
+           "Reconstruction", "Term", "augment_port", "discover_law", "reconstruct"]
