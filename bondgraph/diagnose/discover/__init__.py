@@ -7,9 +7,13 @@ discover its law (issue 29).
 * :mod:`.law`: a sparse regression of the reconstructed signal on a
   dictionary of the port's variables (:func:`discover_law`,
   :class:`DiscoverOptions`, :class:`DiscoveredLaw`).
+* :mod:`.passivity`: a discovered law's R part dissipates, its storage part
+  keeps the stored energy >= 0; offending terms dropped and named
+  (:func:`make_passive`, :class:`PassivityReport`).
 """
 
 from bondgraph.diagnose.discover.law import DiscoveredLaw, DiscoverOptions, Term, discover_law
+from bondgraph.diagnose.discover.passivity import PassivityReport, make_passive
 from bondgraph.diagnose.discover.reconstruct import (
     PortAugmentation,
     Reconstruction,
@@ -18,5 +22,5 @@ from bondgraph.diagnose.discover.reconstruct import (
     reconstruct,
 )
 
-__all__ = ["DiscoverOptions", "DiscoveredLaw", "PortAugmentation", "ReconstructOptions",
-           "Reconstruction", "Term", "augment_port", "discover_law", "reconstruct"]
+__all__ = ["DiscoverOptions", "DiscoveredLaw", "PassivityReport", "PortAugmentation", "ReconstructOptions",
+           "Reconstruction", "Term", "augment_port", "discover_law", "make_passive", "reconstruct"]

@@ -145,6 +145,8 @@ class DiscoveredLaw:
         The range of each variable the record visits.
     dropped : list of str
         Terms removed since (:func:`bondgraph.diagnose.discover.passivity.make_passive`).
+    inputs : list of str
+        The inputs among :attr:`symbols` (their terms are source-like).
     """
 
     port: str
@@ -160,6 +162,7 @@ class DiscoveredLaw:
     rms_residual: float
     ranges: dict
     dropped: list = field(default_factory=list)
+    inputs: list = field(default_factory=list)
 
     @property
     def expr(self) -> sp.Expr:
@@ -308,7 +311,7 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
                          [c[0] for c in cands],
                          [tuple(cands[i][0] for i in np.flatnonzero(ok)[list(sp_)]) for sp_ in supports],
                          err, se, float(np.sqrt(np.mean(d ** 2))),
-                         float(np.sqrt(np.mean((d - fit) ** 2))), ranges)
+                         float(np.sqrt(np.mean((d - fit) ** 2))), ranges, [], list(inputs))
 
 
 def candidate_supports(A: np.ndarray, b: np.ndarray, kmax: int) -> list:
