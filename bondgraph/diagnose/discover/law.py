@@ -8,7 +8,7 @@ with its RMS s along the record:
 
 * powers z, z², z³, z⁵ and the signed square |z|·z;
 * a smooth sign tanh(z/ε) at ε = 0.02 s and ε = 0.1 s (Coulomb-like laws);
-* a saturation z/(1 + |z|/s);
+* a saturation z/(1 + |z/s|);
 * the products z_i·z_j of two primary variables;
 * each input, linearly, and a constant.
 
@@ -111,12 +111,15 @@ class Term:
         Its coefficient (the port's unit over the basis' unit).
     rms : float
         RMS of ``coef · basis`` along the record (the port's unit).
+    unit : str
+        The basis' unit (the coefficient's is the port's unit over it).
     """
 
     name: str
     basis: sp.Expr
     coef: float
     rms: float
+    unit: str = "1"
 
 
 @dataclass
@@ -212,7 +215,8 @@ def _fmt(x: float) -> str:
     return f"{x:.3g}"
 
 
-def dictionary(primary, inputs, scales: dict, *, products: bool = True) -> list:
+def dictionary(primary, inputs, scales: dict, *, products: bool = True,
+               units: dict | None = None) -> list:
     """The candidate terms (module docstring).
 
     Parameters
@@ -225,24 +229,32 @@ def dictionary(primary, inputs, scales: dict, *, products: bool = True) -> list:
         RMS of each primary variable (> 0; the widths of the sign and
         saturation terms).
     products : bool
+    units : dict str -> str, optional
+        Each variable's unit (default dimensionless).
 
     Returns
     -------
-    list of (str, sympy.Expr)
-        Name and basis of each candidate (symbols named as the variables).
+    list of (str, sympy.Expr, str)
+        Name, basis (symbols named as the variables) and the basis' unit of
+        each candidate.
     """
-    out = [("1", sp.Integer(1))]
+    un = {k: (units or {}).get(k, "") or "1" for k in list(primary) + list(inputs)}
+
+    def pw(u, n):
+        return f"({u})**{n}"
+
+    out = [("1", sp.Integer(1), "1")]
     for name in primary:
-        z, s = sp.Symbol(name), float(scales[name])
-        out += [(name, z), (f"{name}^2", z ** 2), (f"{name}^3", z ** 3), (f"{name}^5", z ** 5),
-                (f"|{name}|·{name}", sp.Abs(z) * z)]
+        z, s, u = sp.Symbol(name), float(scales[name]), un[name]
+        out += [(name, z, u), (f"{name}^2", z ** 2, pw(u, 2)), (f"{name}^3", z ** 3, pw(u, 3)),
+                (f"{name}^5", z ** 5, pw(u, 5)), (f"|{name}|·{name}", sp.Abs(z) * z, pw(u, 2))]
         for w in SIGN_WIDTHS:
-            out.append((f"tanh({name}/{_fmt(w * s)})", sp.tanh(z / sp.Float(w * s))))
-        out.append((f"{name}/(1+|{name}|/{_fmt(s)})", z / (1 + sp.Abs(z) / sp.Float(s))))
+            out.append((f"tanh({name}/{_fmt(w * s)})", sp.tanh(z / sp.Float(w * s)), "1"))
+        out.append((f"{name}/(1+|{name}/{_fmt(s)}|)", z / (1 + sp.Abs(z / sp.Float(s))), u))
     if products:
         for a, b in combinations(primary, 2):
-            out.append((f"{a}·{b}", sp.Symbol(a) * sp.Symbol(b)))
-    out += [(name, sp.Symbol(name)) for name in inputs]
+            out.append((f"{a}·{b}", sp.Symbol(a) * sp.Symbol(b), f"({un[a]})*({un[b]})"))
+    out += [(name, sp.Symbol(name), un[name]) for name in inputs]
     return out
 
 
@@ -283,9 +295,9 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
     values = {k: np.asarray(v, float)[keep] for k, v in rec.variables.items()}
     scales = {k: float(np.sqrt(np.mean(values[k] ** 2))) or 1.0 for k in rec.primary}
     inputs = [k for k in rec.variables if k in rec.model.inputs] if opts.inputs else []
-    cands = dictionary(rec.primary, inputs, scales, products=opts.products)
+    cands = dictionary(rec.primary, inputs, scales, products=opts.products, units=rec.units)
     symbols = {k: sp.Symbol(k) for k in list(rec.primary) + inputs}
-    Phi = _columns([b for _, b in cands], symbols, values, n - 2 * cut)
+    Phi = _columns([c[1] for c in cands], symbols, values, n - 2 * cut)
     d = np.asarray(rec.d, float)[keep]
     w = 1.0 / np.maximum(np.asarray(rec.d_std, float)[keep], 1e-12 * (np.abs(d).max() or 1.0))
     A, b = Phi * w[:, None], d * w
@@ -303,7 +315,7 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
         coef[cols] = c / norms[ok][sup]
     fit = Phi @ coef
     terms = [Term(cands[i][0], cands[i][1], float(coef[i]),
-                  float(np.sqrt(np.mean((coef[i] * Phi[:, i]) ** 2))))
+                  float(np.sqrt(np.mean((coef[i] * Phi[:, i]) ** 2))), cands[i][2])
              for i in np.flatnonzero(coef)]
     terms.sort(key=lambda tm: -tm.rms)
     ranges = {k: (float(values[k].min()), float(values[k].max())) for k in symbols}
