@@ -10,8 +10,18 @@ discover its law (issue 29).
 * :mod:`.passivity`: a discovered law's R part dissipates, its storage part
   keeps the stored energy >= 0; offending terms dropped and named
   (:func:`make_passive`, :class:`PassivityReport`).
+* :mod:`.effect`: the discovered law as a loop effect at its 1-junction
+  (:class:`DiscoveredEffect`), :func:`discover_effect` (the three above at
+  one port), :func:`loop_with_discovery` (the loop, then discovery where no
+  physical effect was accepted, then the loop again with it).
 """
 
+from bondgraph.diagnose.discover.effect import (
+    DiscoveredEffect,
+    Discovery,
+    discover_effect,
+    loop_with_discovery,
+)
 from bondgraph.diagnose.discover.law import DiscoveredLaw, DiscoverOptions, Term, discover_law
 from bondgraph.diagnose.discover.passivity import PassivityReport, make_passive
 from bondgraph.diagnose.discover.reconstruct import (
@@ -22,5 +32,6 @@ from bondgraph.diagnose.discover.reconstruct import (
     reconstruct,
 )
 
-__all__ = ["DiscoverOptions", "DiscoveredLaw", "PassivityReport", "PortAugmentation", "ReconstructOptions",
+__all__ = ["DiscoveredEffect", "Discovery", "discover_effect", "loop_with_discovery",
+           "DiscoverOptions", "DiscoveredLaw", "PassivityReport", "PortAugmentation", "ReconstructOptions",
            "Reconstruction", "Term", "augment_port", "discover_law", "make_passive", "reconstruct"]

@@ -49,6 +49,7 @@ from sklearn.linear_model import orthogonal_mp
 from pysindy.optimizers import STLSQ
 from sklearn.model_selection import GroupKFold
 
+from bondgraph.core import units as units_
 from bondgraph.errors import OptionError
 
 #: thresholds of STLSQ as fractions of the target's norm (:func:`candidate_supports`)
@@ -241,7 +242,7 @@ def dictionary(primary, inputs, scales: dict, *, products: bool = True,
     un = {k: (units or {}).get(k, "") or "1" for k in list(primary) + list(inputs)}
 
     def pw(u, n):
-        return f"({u})**{n}"
+        return "1" if u == "1" else f"({u})^{n}"
 
     out = [("1", sp.Integer(1), "1")]
     for name in primary:
@@ -253,7 +254,7 @@ def dictionary(primary, inputs, scales: dict, *, products: bool = True,
         out.append((f"{name}/(1+|{name}/{_fmt(s)}|)", z / (1 + sp.Abs(z / sp.Float(s))), u))
     if products:
         for a, b in combinations(primary, 2):
-            out.append((f"{a}·{b}", sp.Symbol(a) * sp.Symbol(b), f"({un[a]})*({un[b]})"))
+            out.append((f"{a}·{b}", sp.Symbol(a) * sp.Symbol(b), units_.product(un[a], un[b])))
     out += [(name, sp.Symbol(name), un[name]) for name in inputs]
     return out
 
@@ -328,7 +329,8 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
 
 def candidate_supports(A: np.ndarray, b: np.ndarray, kmax: int) -> list:
     """Candidate sets of terms (column indices of ``A``, its columns of unit
-    norm): the empty set, the orthogonal-matching-pursuit path (1..kmax
+    norm): the empty set, every set of one or two terms, the
+    orthogonal-matching-pursuit path (1..kmax
     terms; scikit-learn's ``orthogonal_mp``) and the sets of the sequentially
     thresholded least squares (PySINDy's ``STLSQ``; Brunton et al. 2016) at
     thresholds of 30 % down to 0.3 % of the target's norm, those of at most
@@ -336,9 +338,13 @@ def candidate_supports(A: np.ndarray, b: np.ndarray, kmax: int) -> list:
 
     OMP is greedy and can start from a look-alike of a sum of two terms;
     STLSQ starts from the full least squares and can keep cancelling
-    look-alikes: the cross-validation chooses among both.
+    look-alikes; the sets of one or two terms (all of them: a few hundred
+    least-squares fits of two columns) hold the simple laws neither may
+    reach: the cross-validation chooses among all.
     """
-    out = [()]
+    out = [()] + [(i,) for i in range(A.shape[1])]
+    if kmax >= 2:
+        out += list(combinations(range(A.shape[1]), 2))
     path = np.asarray(orthogonal_mp(A, b, n_nonzero_coefs=kmax, return_path=True))
     path = path.reshape(A.shape[1], -1)
     for j in range(path.shape[1]):
