@@ -12,6 +12,7 @@ from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.discover.effect import (
     DiscoveredEffect,
+    coefficient_std,
     coefficient_unit,
     loop_with_discovery,
 )
@@ -50,7 +51,8 @@ def test_loop_accepts_the_discovered_quintic_spring_and_the_held_out_error_falls
                             effects=(CubicStiffness(), Coulomb(), Viscous(), QuadraticDrag()),
                             search=SearchOptions(max_steps=1))
     logs = []
-    res, disc = loop_with_discovery(mass_spring_damper(), quintic_record(), settings,
+    record = quintic_record()
+    res, disc = loop_with_discovery(mass_spring_damper(), record, settings,
                                     log=logs.append)
     assert disc is not None, "\n".join(logs)
     # the regression's main term is the quintic, within 20 % of the truth
@@ -65,8 +67,15 @@ def test_loop_accepts_the_discovered_quintic_spring_and_the_held_out_error_falls
     assert step.parameters["k"]["estimate"] == pytest.approx(K, rel=0.10)
     # ... and the held-out free-run error falls at least fourfold
     assert step.validated and step.error_after < 0.25 * step.error_before
-    text = disc.effect.readable({n: v["estimate"] for n, v in step.parameters.items()})
-    assert text.startswith("v effort [N] = -") and "q_spring^5" in text
+    est = {n: v["estimate"] for n, v in step.parameters.items()}
+    std = coefficient_std(mass_spring_damper(), record.segment(0, int(0.75 * T.size)),
+                          disc.effect, est, ukf=settings.ukf)
+    # the truth within 4 Cramér-Rao stds of the refitted quintic coefficient
+    s0 = std["discovered.v.c0"]
+    assert 0 < s0 < 0.05 * K5 and abs(est["discovered.v.c0"] + K5) < 4 * s0 + 0.05 * K5
+    text = disc.effect.readable(est, std)
+    assert text.startswith("v effort [N] = -") and "(±" in text and "q_spring^5" in text
+    print(text)
 
 
 def test_discovered_effect_builds_a_graph_with_checked_units():
@@ -82,7 +91,7 @@ def test_discovered_effect_builds_a_graph_with_checked_units():
     P = eff.apply(g, tgt, {"c0": -2000.0})
     assert P["c0"].unit == "N/m**5" and P["c1"].unit == "N*s**2/m**2"
     assert P["c0"].default == -2000.0 and P["c1"].default == -0.5
-    assert P["c0"].bounds == (-30000.0, -300.0)            # around the law's -3000: its sign kept
+    assert P["c0"].bounds == (-30000.0, 0.0)               # from the law's -3000: its sign kept
     # the generated model's force balance, against the hand-written one
     m = Model.from_graph(g)
     i_p, i_q = m.states.index("p_mass"), m.states.index("q_spring")

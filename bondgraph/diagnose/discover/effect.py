@@ -10,7 +10,7 @@ holds). It is a structural effect of the loop
 discovered coefficients (× 0.7, 1, 1.4), refitted with every declared
 parameter by maximum likelihood, confirmed and accepted like any library
 effect (likelihood-ratio test, held-out error). Each coefficient keeps the
-sign the passivity check accepted (its box is [c/10, 10 c]).
+sign the passivity check accepted or vanishes (its box is [0, 10 c]).
 
 :func:`discover_effect` runs reconstruction, discovery and the passivity
 check at one port; :func:`loop_with_discovery` runs the loop, and when it
@@ -37,6 +37,9 @@ from bondgraph.diagnose.discover.reconstruct import (
 )
 from bondgraph.diagnose.effects.base import EffectParam, Target, _new_param, _Structural
 from bondgraph.errors import GraphError
+from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
+from bondgraph.inference.problem import make_problem
+from bondgraph.numerics.model import Model
 
 #: how far a refitted coefficient may move from the discovered one (factor)
 COEF_REACH = 10.0
@@ -45,9 +48,9 @@ GRID_FACTORS = (0.7, 1.0, 1.4)
 
 
 def _sign_box(c: float) -> tuple[float, float]:
-    """[c/COEF_REACH, c·COEF_REACH], ordered: the coefficient keeps its sign."""
-    a, b = c / COEF_REACH, c * COEF_REACH
-    return (min(a, b), max(a, b))
+    """[0, c·COEF_REACH], ordered: the coefficient keeps its sign or
+    vanishes (a spurious term the refit removes)."""
+    return (min(0.0, c * COEF_REACH), max(0.0, c * COEF_REACH))
 
 
 class DiscoveredEffect(_Structural):
@@ -236,6 +239,58 @@ def discover_effect(graph, record, port: str, *, params=None,
     eff = DiscoveredEffect(kept, name) if kept.terms and kept.kind == "effort" else None
     gain = float(rec.nll_grid[-1] - np.min(rec.nll_grid)) if rec.nll_grid.size else 0.0
     return Discovery(rec, law, rep, eff, gain)
+
+
+def coefficient_std(graph, record, effect: DiscoveredEffect, estimates: dict, *,
+                    ukf=None, step: float = 1e-4) -> dict:
+    """Cramér-Rao standard deviations of the estimated parameters of
+    ``graph`` with ``effect`` attached, from the UKF likelihood's difference
+    Hessian (:func:`bondgraph.inference.estimate.hessian_batched`,
+    :func:`~bondgraph.inference.estimate.cramer_rao`) at ``estimates``.
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared graph.
+    record : Experiment
+        The record the estimates were fitted on.
+    effect : DiscoveredEffect
+    estimates : dict str -> float
+        Every estimated parameter by full name (a loop step's
+        ``{name: parameters[name]["estimate"]}``): the declared ones and the
+        effect's ``<effect>.<port>.c<k>``.
+    ukf : UKFOptions, optional
+        The filter options of the fit.
+    step : float
+        Relative difference step.
+
+    Returns
+    -------
+    dict str -> float
+        Std by name (NaN where the Hessian is not positive definite). A
+        parameter on a bound of its box gets the std of the interior
+        Hessian: a local measure, not a confidence interval.
+
+    Raises
+    ------
+    GraphError
+        The effect cannot be attached.
+    """
+    g = graph.copy(f"{graph.name}__{effect.name}")
+    (tgt,) = effect.targets(g) or [None]
+    if tgt is None:
+        raise GraphError(f"graph '{graph.name}' has no 1-junction '{effect.law.port}'")
+    local = {n.rsplit(".", 1)[-1]: v for n, v in estimates.items()
+             if n.startswith(f"{effect.name}.")}
+    effect.apply(g, tgt, local)
+    model = Model.from_graph(g, lazy=("dfdtheta", "dhdtheta"))
+    names = [n for n in estimates if n in model.params]
+    fixed = {n: float(v) for n, v in estimates.items() if n in model.params}
+    problem = make_problem(model, record, ukf=ukf, fixed=fixed)
+    x = np.array([fixed[n] for n in names])
+    H, _, _ = hessian_batched(Criterion(problem, names), x, step * np.maximum(np.abs(x), 1e-6))
+    cr = cramer_rao(H, names, scale=np.maximum(np.abs(x), 1e-12))   # relative coordinates
+    return {n: float(v) for n, v in zip(names, cr["std"])}
 
 
 def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
