@@ -161,6 +161,8 @@ class Reconstruction:
         The augmented model.
     theta : ndarray (n_theta,)
         Its parameter vector (the intensity included).
+    x0, P0 : ndarray (n_x,), (n_x, n_x)
+        The prior of the augmented state at ``t[0]``.
     """
 
     t: np.ndarray
@@ -177,6 +179,8 @@ class Reconstruction:
     P: np.ndarray = field(repr=False)
     model: object = field(repr=False)
     theta: np.ndarray = field(repr=False)
+    x0: np.ndarray = field(repr=False, default=None)
+    P0: np.ndarray = field(repr=False, default=None)
 
 
 def augment_port(graph, port: str):
@@ -370,4 +374,4 @@ def _assemble(g, model, aug, problem, sm, theta, qinfo) -> Reconstruction:
     q, q_grid, nll_grid = qinfo
     return Reconstruction(problem.t.copy(), sm.x[:, i].copy(), np.sqrt(np.maximum(sm.P[:, i, i], 0)),
                           values, primary, units, aug, q, q_grid, nll_grid, sm.x, sm.P, model,
-                          theta)
+                          theta, problem.x0.copy(), problem.P0.copy())
