@@ -289,7 +289,12 @@ def coefficient_std(graph, record, effect: DiscoveredEffect, estimates: dict, *,
     problem = make_problem(model, record, ukf=ukf, fixed=fixed)
     x = np.array([fixed[n] for n in names])
     H, _, _ = hessian_batched(Criterion(problem, names), x, step * np.maximum(np.abs(x), 1e-6))
-    cr = cramer_rao(H, names, scale=np.maximum(np.abs(x), 1e-12))   # relative coordinates
+    # the positive-definiteness test in coordinates of unit curvature (the
+    # Hessian as a correlation matrix): a small coefficient is not taken
+    # for an unidentified one
+    diag = np.diag(H) if H is not None else np.ones(len(names))
+    scale = np.where(np.isfinite(diag) & (diag > 0), 1.0 / np.sqrt(np.abs(diag)), 1.0)
+    cr = cramer_rao(H, names, scale=scale)
     return {n: float(v) for n, v in zip(names, cr["std"])}
 
 
