@@ -113,3 +113,33 @@ def test_discovered_effect_builds_a_graph_with_checked_units():
     with pytest.raises(GraphError):
         DiscoveredEffect(DiscoveredLaw("v", "effort", "N", {}, [], [], [], np.zeros(0),
                                        np.zeros(0), 1.0, 0.0, {}))
+
+
+def test_discovered_flow_law_at_a_zero_junction():
+    """A law of the shaft's torque entering the 0-junction of the compliant
+    shaft as a flow: dφ/dt = p_m/J_m − p_L/J_L + c·(k_s φ)³ (hand-derived)."""
+    from bondgraph.catalog.reference import dc_motor_compliant
+    from bondgraph.core import units
+
+    E = sp.Symbol("shaft.e")
+    law = DiscoveredLaw("shaft", "flow", "rad/s", {"shaft.e": E},
+                        [Term("shaft.e^3", E ** 3, 2e-3, 1.0, "(N*m)^3")],
+                        [], [], np.zeros(0), np.zeros(0), 1.0, 0.0, {})
+    eff = DiscoveredEffect(law)
+    g = dc_motor_compliant()
+    assert eff.targets(mass_spring_damper()) == []           # no 0-junction 'shaft' there
+    (tgt,) = eff.targets(g)
+    P = eff.apply(g, tgt)
+    assert units.factor(P["c0"].unit, "rad/s/N^3/m^3") == pytest.approx(1.0)
+    m = Model.from_graph(g)
+    th = m.theta0
+    val = {n: th[m.param_index(n)] for n in ("J_m", "J_L", "k_s")}
+    xs = np.zeros((1, len(m.states)))
+    phi_name = next(s for s in m.states if "k_s" in s)
+    pm, pl = next(s for s in m.states if s.endswith("J_m")), next(s for s in m.states
+                                                                    if s.endswith("J_L"))
+    xs[0, m.states.index(phi_name)], xs[0, m.states.index(pm)] = 0.01, 3e-3
+    xs[0, m.states.index(pl)] = 1e-2
+    dphi = float(m.f(xs, np.zeros((1, len(m.inputs))), th[None, :])[0, m.states.index(phi_name)])
+    want = 3e-3 / val["J_m"] - 1e-2 / val["J_L"] + 2e-3 * (val["k_s"] * 0.01) ** 3
+    assert dphi == pytest.approx(want, rel=1e-12)

@@ -1,9 +1,9 @@
 """A discovered law as a loop effect, and the loop with discovery.
 
 :class:`DiscoveredEffect` attaches a :class:`~bondgraph.diagnose.discover.law.DiscoveredLaw`
-at its 1-junction as a modulated effort source whose value is the law
-``Σ c_k b_k`` of the junction's flow, the bonded storage states and the
-inputs; each coefficient ``c_k`` is a parameter (``discovered.<port>.c<k>``,
+at its 1-junction as a modulated effort source (at its 0-junction as a
+modulated flow source) whose value is the law ``Σ c_k b_k`` of the
+junction's flow (effort), the bonded storage states and the inputs; each coefficient ``c_k`` is a parameter (``discovered.<port>.c<k>``,
 unit: the port's effort over the basis' unit, so the graph's unit check
 holds). It is a structural effect of the loop
 (:mod:`bondgraph.diagnose.scoring`): scored by the likelihood ratio at the
@@ -27,7 +27,7 @@ import numpy as np
 import sympy as sp
 
 from bondgraph.core import units
-from bondgraph.core.elements import One
+from bondgraph.core.elements import One, Zero
 from bondgraph.diagnose.discover.law import DiscoveredLaw, DiscoverOptions, discover_law
 from bondgraph.diagnose.discover.passivity import PassivityReport, make_passive
 from bondgraph.diagnose.discover.reconstruct import (
@@ -54,7 +54,8 @@ def _sign_box(c: float) -> tuple[float, float]:
 
 
 class DiscoveredEffect(_Structural):
-    """A discovered law at a 1-junction (module docstring).
+    """A discovered law at its junction (module docstring): an effort
+    source at a 1-junction, a flow source at a 0-junction.
 
     Parameters
     ----------
@@ -70,9 +71,9 @@ class DiscoveredEffect(_Structural):
     def __init__(self, law: DiscoveredLaw, name: str = "discovered"):
         if not law.terms:
             raise GraphError(f"discovered law at '{law.port}' has no term")
-        if law.kind != "effort":
-            raise GraphError(f"discovered law at '{law.port}': only an effort at a 1-junction "
-                             f"becomes a loop effect (got a {law.kind})")
+        if law.kind not in ("effort", "flow"):
+            raise GraphError(f"discovered law at '{law.port}': kind '{law.kind}' is neither "
+                             f"an effort (1-junction) nor a flow (0-junction)")
         self.law = law
         self.name = name
         self.title = f"discovered law {law.readable(3)}"
@@ -108,7 +109,8 @@ class DiscoveredEffect(_Structural):
 
     def targets(self, graph):
         el = graph.elements.get(self.law.port)
-        return [Target("junction", self.law.port)] if isinstance(el, One) else []
+        kind = One if self.law.kind == "effort" else Zero
+        return [Target("junction", self.law.port)] if isinstance(el, kind) else []
 
     def grid(self, graph, target, scales):
         return [{f"c{k}": f * tm.coef for k, tm in enumerate(self.law.terms)}
@@ -134,6 +136,8 @@ class DiscoveredEffect(_Structural):
         for name, sym in self.law.symbols.items():
             if name == f"{self.law.port}.f":
                 subs[sym] = j.f
+            elif name == f"{self.law.port}.e":
+                subs[sym] = j.e
             elif name in states:
                 subs[sym] = states[name]
             elif name in graph.inputs:
@@ -153,7 +157,8 @@ class DiscoveredEffect(_Structural):
                                      float(values.get(spc.name, tm.coef)), spc.unit,
                                      boxes[spc.name], f"{spc.description} at {target.name}")
         value = sp.Add(*(P[f"c{k}"] * b for k, b in enumerate(self.bases(graph))))
-        graph.connect(graph.MSe(f"{self.name}.{target.tag}", value), j)
+        src = graph.MSe if self.law.kind == "effort" else graph.MSf
+        graph.connect(src(f"{self.name}.{target.tag}", value), j)
         return P
 
 
@@ -213,7 +218,8 @@ def discover_effect(graph, record, port: str, *, params=None,
         The declared graph.
     record : Experiment
     port : str
-        A 1-junction of ``graph``.
+        A junction of ``graph`` (1-junction: a missing effort; 0-junction:
+        a missing flow).
     params : dict, optional
         Parameter values of ``graph`` by name (default its defaults).
     reconstruction : ReconstructOptions, optional
@@ -236,7 +242,7 @@ def discover_effect(graph, record, port: str, *, params=None,
     law = discover_law(rec, options=discovery)
     rep = make_passive(law, graph, rec.variables, params=params)
     kept = rep.law
-    eff = DiscoveredEffect(kept, name) if kept.terms and kept.kind == "effort" else None
+    eff = DiscoveredEffect(kept, name) if kept.terms else None
     gain = float(rec.nll_grid[-1] - np.min(rec.nll_grid)) if rec.nll_grid.size else 0.0
     return Discovery(rec, law, rep, eff, gain)
 
@@ -279,7 +285,8 @@ def coefficient_std(graph, record, effect: DiscoveredEffect, estimates: dict, *,
     g = graph.copy(f"{graph.name}__{effect.name}")
     (tgt,) = effect.targets(g) or [None]
     if tgt is None:
-        raise GraphError(f"graph '{graph.name}' has no 1-junction '{effect.law.port}'")
+        raise GraphError(f"graph '{graph.name}' has no junction '{effect.law.port}' of the "
+                         f"law's kind")
     local = {n.rsplit(".", 1)[-1]: v for n, v in estimates.items()
              if n.startswith(f"{effect.name}.")}
     effect.apply(g, tgt, local)
@@ -311,7 +318,7 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
     record : Experiment
     settings : LoopSettings
     ports : sequence of str, optional
-        The 1-junctions to try (default every 1-junction of ``graph``).
+        The junctions to try (default every 1- and 0-junction of ``graph``).
     log : callable, optional
         Line logger (default ``print``).
     reconstruction, discovery : options, optional
@@ -335,7 +342,7 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
     if any(not _last_resort(settings, s.effect) for s in first.steps):
         return first, None
     names = list(ports) if ports else [n for n, el in graph.elements.items()
-                                       if isinstance(el, One)]
+                                       if isinstance(el, (One, Zero))]
     found = []
     for port in names:
         try:
