@@ -36,7 +36,7 @@ from bondgraph.diagnose.discover.reconstruct import (
     reconstruct,
 )
 from bondgraph.diagnose.effects.base import EffectParam, Target, _new_param, _Structural
-from bondgraph.errors import GraphError
+from bondgraph.errors import BondGraphError, GraphError
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.problem import make_problem
 from bondgraph.numerics.model import Model
@@ -348,7 +348,7 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
         try:
             found.append(discover_effect(graph, record, port, params=dict(settings.fixed),
                                          reconstruction=reconstruction, discovery=discovery))
-        except Exception as exc:           # a port the filter cannot serve: skip it
+        except BondGraphError as exc:      # a port the filter cannot serve: skip it
             say(f"discovery at '{port}' skipped: {str(exc).splitlines()[0]}")
     found = [d for d in found if d.effect is not None]
     if not found:
