@@ -226,6 +226,21 @@ def _widened(v: np.ndarray, margin: float) -> np.ndarray:
     return np.unique(np.concatenate([g, [0.0, float(np.min(v)), float(np.max(v))]]))
 
 
+def visited_grid(v: np.ndarray, margin: float = MARGIN) -> np.ndarray:
+    """The grid (about GRID_POINTS,) over the range ``v`` visits, made to
+    contain 0 and widened by ``margin`` of its span on each side: where a
+    law is checked (a discovered law's passivity,
+    :mod:`bondgraph.diagnose.discover.passivity`, as the R, C and I laws here)."""
+    return _widened(np.asarray(v, float), margin)
+
+
+def violation(values: np.ndarray) -> tuple[int, bool]:
+    """Index of the most negative of ``values`` (a power or a stored energy
+    that must be >= 0) and whether it is a violation (below −TOLERANCE × the
+    largest magnitude)."""
+    return _worst(np.asarray(values, float), np.asarray(values, float))
+
+
 def _worst(values: np.ndarray, where: np.ndarray) -> tuple[int, bool]:
     """Index of the most negative of ``values`` and whether it is a
     violation (below −TOLERANCE × the largest magnitude)."""

@@ -1,0 +1,368 @@
+"""A discovered law as a loop effect, and the loop with discovery.
+
+:class:`DiscoveredEffect` attaches a :class:`~bondgraph.diagnose.discover.law.DiscoveredLaw`
+at its 1-junction as a modulated effort source (at its 0-junction as a
+modulated flow source) whose value is the law ``Σ c_k b_k`` of the
+junction's flow (effort), the bonded storage states and the inputs; each coefficient ``c_k`` is a parameter (``discovered.<port>.c<k>``,
+unit: the port's effort over the basis' unit, so the graph's unit check
+holds). It is a structural effect of the loop
+(:mod:`bondgraph.diagnose.scoring`): scored by the likelihood ratio at the
+discovered coefficients (× 0.7, 1, 1.4), refitted with every declared
+parameter by maximum likelihood, confirmed and accepted like any library
+effect (likelihood-ratio test, held-out error). Each coefficient keeps the
+sign the passivity check accepted or vanishes (its box is [0, 10 c]).
+
+:func:`discover_effect` runs reconstruction, discovery and the passivity
+check at one port; :func:`loop_with_discovery` runs the loop, and when it
+accepts no physical effect (none, or only a last-resort disturbance), the
+port where the reconstruction gains most likelihood is given a discovered
+effect and the loop runs again with it beside the library.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import sympy as sp
+
+from bondgraph.core import units
+from bondgraph.core.elements import One, Zero
+from bondgraph.diagnose.discover.law import DiscoveredLaw, DiscoverOptions, discover_law
+from bondgraph.diagnose.discover.passivity import PassivityReport, make_passive
+from bondgraph.diagnose.discover.reconstruct import (
+    Reconstruction,
+    ReconstructOptions,
+    reconstruct,
+)
+from bondgraph.diagnose.effects.base import EffectParam, Target, _new_param, _Structural
+from bondgraph.errors import BondGraphError, GraphError
+from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
+from bondgraph.inference.problem import make_problem
+from bondgraph.numerics.model import Model
+
+#: how far a refitted coefficient may move from the discovered one (factor)
+COEF_REACH = 10.0
+#: the grid of the structural score, as multiples of the discovered coefficients
+GRID_FACTORS = (0.7, 1.0, 1.4)
+
+
+def _sign_box(c: float) -> tuple[float, float]:
+    """[0, c·COEF_REACH], ordered: the coefficient keeps its sign or
+    vanishes (a spurious term the refit removes)."""
+    return (min(0.0, c * COEF_REACH), max(0.0, c * COEF_REACH))
+
+
+class DiscoveredEffect(_Structural):
+    """A discovered law at its junction (module docstring): an effort
+    source at a 1-junction, a flow source at a 0-junction.
+
+    Parameters
+    ----------
+    law : DiscoveredLaw
+        At least one term; its symbols named as the port's variables
+        (``"<port>.f"``, storage state names, input names).
+    name : str
+        The effect's name (default ``"discovered"``; unique in a library).
+    """
+
+    target_kind = "junction"
+
+    def __init__(self, law: DiscoveredLaw, name: str = "discovered"):
+        if not law.terms:
+            raise GraphError(f"discovered law at '{law.port}' has no term")
+        if law.kind not in ("effort", "flow"):
+            raise GraphError(f"discovered law at '{law.port}': kind '{law.kind}' is neither "
+                             f"an effort (1-junction) nor a flow (0-junction)")
+        self.law = law
+        self.name = name
+        self.title = f"discovered law {law.readable(3)}"
+        self.params = tuple(EffectParam(f"c{k}", coefficient_unit(law.unit, tm.unit),
+                                        f"coefficient of {tm.name}",
+                                        bounds=_sign_box(tm.coef))
+                            for k, tm in enumerate(law.terms))
+
+    def readable(self, values: dict | None = None, std: dict | None = None,
+                 target: Target | None = None, digits: int = 4) -> str:
+        """The law with refitted coefficients, each with its Cramér-Rao std
+        where known: ``"v effort [N] = -2854(±12)·q_spring^5 - ..."``.
+
+        Parameters
+        ----------
+        values, std : dict, optional
+            By full parameter name (``discovered.<port>.c<k>``, a loop
+            step's ``parameters``) or local name (``c<k>``); missing: the
+            discovered coefficient, no std.
+        """
+        tgt = target or Target("junction", self.law.port)
+        values, std = dict(values or {}), dict(std or {})
+        parts = []
+        for k, tm in enumerate(self.law.terms):
+            full, loc = self.pname(tgt, f"c{k}"), f"c{k}"
+            c = float(values.get(full, values.get(loc, tm.coef)))
+            s = std.get(full, std.get(loc))
+            err = f"(±{s:.2g})" if s is not None and np.isfinite(s) else ""
+            parts.append(("- " if c < 0 else "+ ") + f"{abs(c):.{digits}g}{err}·{tm.name}")
+        text = " ".join(parts)
+        text = text[2:] if text.startswith("+ ") else "-" + text[2:]
+        return f"{self.law.port} {self.law.kind} [{self.law.unit}] = {text}"
+
+    def targets(self, graph):
+        el = graph.elements.get(self.law.port)
+        kind = One if self.law.kind == "effort" else Zero
+        return [Target("junction", self.law.port)] if isinstance(el, kind) else []
+
+    def grid(self, graph, target, scales):
+        return [{f"c{k}": f * tm.coef for k, tm in enumerate(self.law.terms)}
+                for f in GRID_FACTORS]
+
+    def grid_span(self, graph, target, scales):
+        return self.box(graph, target, scales)
+
+    def box(self, graph, target, scales):
+        return {f"c{k}": _sign_box(tm.coef) for k, tm in enumerate(self.law.terms)}
+
+    def bases(self, graph) -> list:
+        """The terms' bases in ``graph``'s symbols.
+
+        Raises
+        ------
+        GraphError
+            A variable of the law that ``graph`` does not have.
+        """
+        j = graph.element(self.law.port)
+        states = {s.name: s for s in graph.all_states()}
+        subs = {}
+        for name, sym in self.law.symbols.items():
+            if name == f"{self.law.port}.f":
+                subs[sym] = j.f
+            elif name == f"{self.law.port}.e":
+                subs[sym] = j.e
+            elif name in states:
+                subs[sym] = states[name]
+            elif name in graph.inputs:
+                subs[sym] = graph.inputs[name]
+            else:
+                raise GraphError(f"discovered law at '{self.law.port}': graph '{graph.name}' "
+                                 f"has no variable '{name}'")
+        return [tm.basis.xreplace(subs) for tm in self.law.terms]
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        j = graph.element(target.name)
+        boxes = self.box(graph, target, scales)
+        P = {}
+        for k, (spc, tm) in enumerate(zip(self.params, self.law.terms)):
+            P[spc.name] = _new_param(graph, self.pname(target, spc.name),
+                                     float(values.get(spc.name, tm.coef)), spc.unit,
+                                     boxes[spc.name], f"{spc.description} at {target.name}")
+        value = sp.Add(*(P[f"c{k}"] * b for k, b in enumerate(self.bases(graph))))
+        src = graph.MSe if self.law.kind == "effort" else graph.MSf
+        graph.connect(src(f"{self.name}.{target.tag}", value), j)
+        return P
+
+
+def coefficient_unit(port_unit: str, basis_unit: str) -> str:
+    """The unit of a coefficient, ``port_unit / basis_unit``, in pint's
+    compact form (``"N*s**3/m**3"``; :func:`bondgraph.core.units.parse`
+    refuses an exponent followed by a parenthesis, ``"(N)/((m)^3)"``)."""
+    q = units.parse(port_unit or "1") / units.parse(basis_unit or "1")
+    text = format(q.units, "~C")
+    return text if text and text != "dimensionless" else "1"
+
+
+@dataclass
+class Discovery:
+    """What :func:`discover_effect` found at one port.
+
+    Attributes
+    ----------
+    reconstruction : Reconstruction
+    law : DiscoveredLaw
+        As regressed (before the passivity check).
+    passivity : PassivityReport
+        ``passivity.law`` is the law kept.
+    effect : DiscoveredEffect or None
+        None when no term is left.
+    gain : float
+        Likelihood gain of the reconstruction: the UKF's NLL at the grid's
+        smallest intensity minus the NLL at the chosen one (nats; 0 when the
+        intensity was given).
+    """
+
+    reconstruction: Reconstruction
+    law: DiscoveredLaw
+    passivity: PassivityReport
+    effect: DiscoveredEffect | None
+    gain: float
+
+    def summary(self) -> str:
+        """Readable lines: the law, the passivity verdict, the gain."""
+        return "\n".join([f"reconstruction at '{self.law.port}': likelihood gain "
+                          f"{self.gain:.4g} nats, q = {self.reconstruction.q:.4g}",
+                          f"regressed: {self.law.readable()}",
+                          self.passivity.summary(),
+                          f"kept: {self.passivity.law.readable()}"])
+
+
+def discover_effect(graph, record, port: str, *, params=None,
+                    reconstruction: ReconstructOptions | None = None,
+                    discovery: DiscoverOptions | None = None,
+                    name: str = "discovered") -> Discovery:
+    """Reconstruct the effort missing at ``port``, discover its law, keep its
+    passive terms and make it a loop effect.
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared graph.
+    record : Experiment
+    port : str
+        A junction of ``graph`` (1-junction: a missing effort; 0-junction:
+        a missing flow).
+    params : dict, optional
+        Parameter values of ``graph`` by name (default its defaults).
+    reconstruction : ReconstructOptions, optional
+    discovery : DiscoverOptions, optional
+    name : str
+        The effect's name.
+
+    Returns
+    -------
+    Discovery
+
+    Raises
+    ------
+    GraphError
+        ``port`` is not a junction.
+    NumericalError
+        The filter or smoother fails.
+    """
+    rec = reconstruct(graph, record, port, params=params, options=reconstruction)
+    law = discover_law(rec, options=discovery)
+    rep = make_passive(law, graph, rec.variables, params=params)
+    kept = rep.law
+    eff = DiscoveredEffect(kept, name) if kept.terms else None
+    gain = float(rec.nll_grid[-1] - np.min(rec.nll_grid)) if rec.nll_grid.size else 0.0
+    return Discovery(rec, law, rep, eff, gain)
+
+
+def coefficient_std(graph, record, effect: DiscoveredEffect, estimates: dict, *,
+                    ukf=None, step: float = 1e-4) -> dict:
+    """Cramér-Rao standard deviations of the estimated parameters of
+    ``graph`` with ``effect`` attached, from the UKF likelihood's difference
+    Hessian (:func:`bondgraph.inference.estimate.hessian_batched`,
+    :func:`~bondgraph.inference.estimate.cramer_rao`) at ``estimates``.
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared graph.
+    record : Experiment
+        The record the estimates were fitted on.
+    effect : DiscoveredEffect
+    estimates : dict str -> float
+        Every estimated parameter by full name (a loop step's
+        ``{name: parameters[name]["estimate"]}``): the declared ones and the
+        effect's ``<effect>.<port>.c<k>``.
+    ukf : UKFOptions, optional
+        The filter options of the fit.
+    step : float
+        Relative difference step.
+
+    Returns
+    -------
+    dict str -> float
+        Std by name (NaN where the Hessian is not positive definite). A
+        parameter on a bound of its box gets the std of the interior
+        Hessian: a local measure, not a confidence interval.
+
+    Raises
+    ------
+    GraphError
+        The effect cannot be attached.
+    """
+    g = graph.copy(f"{graph.name}__{effect.name}")
+    (tgt,) = effect.targets(g) or [None]
+    if tgt is None:
+        raise GraphError(f"graph '{graph.name}' has no junction '{effect.law.port}' of the "
+                         f"law's kind")
+    local = {n.rsplit(".", 1)[-1]: v for n, v in estimates.items()
+             if n.startswith(f"{effect.name}.")}
+    effect.apply(g, tgt, local)
+    model = Model.from_graph(g, lazy=("dfdtheta", "dhdtheta"))
+    names = [n for n in estimates if n in model.params]
+    fixed = {n: float(v) for n, v in estimates.items() if n in model.params}
+    problem = make_problem(model, record, ukf=ukf, fixed=fixed)
+    x = np.array([fixed[n] for n in names])
+    H, _, _ = hessian_batched(Criterion(problem, names), x, step * np.maximum(np.abs(x), 1e-6))
+    # the positive-definiteness test in coordinates of unit curvature (the
+    # Hessian as a correlation matrix): a small coefficient is not taken
+    # for an unidentified one
+    diag = np.diag(H) if H is not None else np.ones(len(names))
+    scale = np.where(np.isfinite(diag) & (diag > 0), 1.0 / np.sqrt(np.abs(diag)), 1.0)
+    cr = cramer_rao(H, names, scale=scale)
+    return {n: float(v) for n, v in zip(names, cr["std"])}
+
+
+def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
+                        reconstruction: ReconstructOptions | None = None,
+                        discovery: DiscoverOptions | None = None):
+    """The loop, then, when it accepts no physical effect, discovery at the
+    port where the reconstruction gains most likelihood and the loop again
+    with the discovered effect beside the library.
+
+    Parameters
+    ----------
+    graph : BondGraph
+    record : Experiment
+    settings : LoopSettings
+    ports : sequence of str, optional
+        The junctions to try (default every 1- and 0-junction of ``graph``).
+    log : callable, optional
+        Line logger (default ``print``).
+    reconstruction, discovery : options, optional
+
+    Returns
+    -------
+    (LoopResult, Discovery or None)
+        The second loop's result and the discovery when discovery ran (else
+        the first loop's result and None).
+
+    Notes
+    -----
+    The reconstruction uses the declared parameter values (``settings.fixed``
+    over the graph's defaults): the port is localised and the law found with
+    the declared model as it stands; the loop then refits everything.
+    """
+    from bondgraph.diagnose.runner import run_loop
+
+    say = log if log is not None else print
+    first = run_loop(graph, record, settings, log=log, progress=False)
+    if any(not _last_resort(settings, s.effect) for s in first.steps):
+        return first, None
+    names = list(ports) if ports else [n for n, el in graph.elements.items()
+                                       if isinstance(el, (One, Zero))]
+    found = []
+    for port in names:
+        try:
+            found.append(discover_effect(graph, record, port, params=dict(settings.fixed),
+                                         reconstruction=reconstruction, discovery=discovery))
+        except BondGraphError as exc:      # a port the filter cannot serve: skip it
+            say(f"discovery at '{port}' skipped: {str(exc).splitlines()[0]}")
+    found = [d for d in found if d.effect is not None]
+    if not found:
+        say("discovery: no port gave a law")
+        return first, None
+    best = max(found, key=lambda d: d.gain)
+    say(best.summary())
+    effects = tuple(settings.effects) + (best.effect,)
+    return run_loop(graph, record, replace(settings, effects=effects), log=log,
+                    progress=False), best
+
+
+def _last_resort(settings, effect_name: str) -> bool:
+    for e in settings.effects:
+        if e.name == effect_name:
+            return bool(getattr(e, "last_resort", False))
+    return False

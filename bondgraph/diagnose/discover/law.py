@@ -1,0 +1,387 @@
+"""Discovery of the law of a reconstructed effort or flow: a sparse
+regression of d̂(t) on a dictionary of candidate terms in the port's own
+variables.
+
+Dictionary (:func:`dictionary`), for each primary variable z of the port
+(:attr:`~bondgraph.diagnose.discover.reconstruct.Reconstruction.primary`)
+with its RMS s along the record:
+
+* powers z, z², z³, z⁵ and the signed square |z|·z;
+* a smooth sign tanh(z/ε) at ε = 0.02 s and ε = 0.1 s (Coulomb-like laws);
+* a saturation z/(1 + |z/s|);
+* the products z_i·z_j of two primary variables;
+* each input, linearly, and a constant.
+
+Regression (:func:`discover_law`): the rows are weighted by 1/std² of the
+smoother (weighted least squares as ordinary least squares on rows scaled by
+1/std), the columns scaled to unit norm. Candidate sets of terms come
+from orthogonal matching pursuit (scikit-learn's ``orthogonal_mp``; Pati,
+Rezaiifar & Krishnaprasad 1993) and from sequentially thresholded least
+squares (PySINDy's ``STLSQ``; Brunton et al. 2016); the set is chosen by
+cross-validation on contiguous time blocks (scikit-learn's ``GroupKFold``,
+so that a held-out block is not predicted from its autocorrelated
+neighbours) with the one-standard-error rule (the fewest terms whose
+held-out error is within one standard error of the best; Hastie,
+Tibshirani & Friedman 2009, §7.10). The chosen terms are refitted by least
+squares, so the coefficients are not shrunk.
+
+References
+----------
+Pati, Y. C., Rezaiifar, R., Krishnaprasad, P. S. (1993). Orthogonal
+matching pursuit. Proc. 27th Asilomar Conf. Signals, Systems and Computers.
+Brunton, S. L., Proctor, J. L., Kutz, J. N. (2016). Discovering governing
+equations from data by sparse identification of nonlinear dynamical
+systems. PNAS 113(15), 3932-3937 (the dictionary idea).
+Hastie, T., Tibshirani, R., Friedman, J. (2009). The Elements of
+Statistical Learning, 2nd ed., Springer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import warnings
+
+import numpy as np
+import sympy as sp
+from sklearn.linear_model import orthogonal_mp
+from pysindy.optimizers import STLSQ
+from sklearn.model_selection import GroupKFold
+
+from bondgraph.core import units as units_
+from bondgraph.errors import OptionError
+
+#: thresholds of STLSQ as fractions of the target's norm (:func:`candidate_supports`)
+STLSQ_THRESHOLDS = (0.3, 0.1, 0.03, 0.01, 0.003)
+#: smooth-sign widths as fractions of the variable's RMS
+SIGN_WIDTHS = (0.02, 0.1)
+
+
+@dataclass(frozen=True)
+class DiscoverOptions:
+    """How the law is discovered.
+
+    Parameters
+    ----------
+    max_terms : int
+        Most terms of the law (default 6).
+    folds : int
+        Contiguous time blocks of the cross-validation (default 10).
+    trim : float
+        Fraction of the record left out at each end, where the smoother
+        sees one side only (default 0.02).
+    products : bool
+        Products of two primary variables in the dictionary (default True).
+    inputs : bool
+        The inputs, linearly, in the dictionary (default True).
+
+    Raises
+    ------
+    OptionError
+        ``max_terms < 1``, ``folds < 2``, ``trim`` outside [0, 0.4).
+    """
+
+    max_terms: int = 6
+    folds: int = 10
+    trim: float = 0.02
+    products: bool = True
+    inputs: bool = True
+
+    def __post_init__(self):
+        if int(self.max_terms) != self.max_terms or self.max_terms < 1:
+            raise OptionError(f"DiscoverOptions.max_terms must be an integer >= 1, "
+                              f"got {self.max_terms}")
+        if int(self.folds) != self.folds or self.folds < 2:
+            raise OptionError(f"DiscoverOptions.folds must be an integer >= 2, got {self.folds}")
+        if not 0 <= self.trim < 0.4:
+            raise OptionError(f"DiscoverOptions.trim must be in [0, 0.4), got {self.trim}")
+
+
+@dataclass
+class Term:
+    """One term of a discovered law: ``coef · basis``.
+
+    Attributes
+    ----------
+    name : str
+        Readable name of the basis (e.g. ``"tanh(v.f/0.0212)"``).
+    basis : sympy.Expr
+        The basis function of the port's variables (symbols named as them).
+    coef : float
+        Its coefficient (the port's unit over the basis' unit).
+    rms : float
+        RMS of ``coef · basis`` along the record (the port's unit).
+    unit : str
+        The basis' unit (the coefficient's is the port's unit over it).
+    """
+
+    name: str
+    basis: sp.Expr
+    coef: float
+    rms: float
+    unit: str = "1"
+
+
+@dataclass
+class DiscoveredLaw:
+    """A law ``d = Σ coef_k · basis_k`` of the port's variables.
+
+    Attributes
+    ----------
+    port, kind, unit : str
+        The junction, ``"effort"`` or ``"flow"``, the law's unit.
+    symbols : dict str -> sympy.Symbol
+        The variables the law reads, by name.
+    terms : list of Term
+        The chosen terms, largest contribution first.
+    dictionary : list of str
+        Every candidate's name.
+    candidates : list of tuple of str
+        The candidate sets of terms the cross-validation compared.
+    cv_error : ndarray (n_candidates,)
+        Their held-out weighted mean squared errors.
+    cv_se : ndarray (n_candidates,)
+        Its standard error over the folds.
+    rms_d, rms_residual : float
+        RMS of d̂ and of d̂ minus the law over the fitted samples.
+    ranges : dict str -> (float, float)
+        The range of each variable the record visits.
+    dropped : list of str
+        Terms removed since (:func:`bondgraph.diagnose.discover.passivity.make_passive`).
+    inputs : list of str
+        The inputs among :attr:`symbols` (their terms are source-like).
+    """
+
+    port: str
+    kind: str
+    unit: str
+    symbols: dict
+    terms: list
+    dictionary: list
+    candidates: list
+    cv_error: np.ndarray
+    cv_se: np.ndarray
+    rms_d: float
+    rms_residual: float
+    ranges: dict
+    dropped: list = field(default_factory=list)
+    inputs: list = field(default_factory=list)
+
+    @property
+    def expr(self) -> sp.Expr:
+        """The law as one sympy expression of :attr:`symbols`."""
+        return sp.Add(*(sp.Float(tm.coef) * tm.basis for tm in self.terms))
+
+    def evaluate(self, values: dict) -> np.ndarray:
+        """The law (N,) at the variables' values (dict name -> (N,))."""
+        if not self.terms:
+            return 0.0 * _first(values)
+        cols = _columns([tm.basis for tm in self.terms], self.symbols, values, _length(values))
+        return cols @ np.array([tm.coef for tm in self.terms])
+
+    def readable(self, digits: int = 4) -> str:
+        """``"<port> <effort|flow> = c1·b1 + c2·b2 ..."`` with ``digits``
+        significant digits."""
+        if not self.terms:
+            return f"{self.port} {self.kind} = 0"
+        parts = []
+        for tm in self.terms:
+            c = f"{abs(tm.coef):.{digits}g}"
+            parts.append(("- " if tm.coef < 0 else "+ ") + f"{c}·{tm.name}")
+        text = " ".join(parts)
+        text = text[2:] if text.startswith("+ ") else "-" + text[2:]
+        return f"{self.port} {self.kind} [{self.unit}] = {text}"
+
+    def __str__(self) -> str:
+        return self.readable()
+
+
+def _length(values: dict) -> int:
+    return int(np.asarray(next(iter(values.values()))).size)
+
+
+def _first(values: dict) -> np.ndarray:
+    return np.asarray(next(iter(values.values())), float)
+
+
+def _columns(bases, symbols: dict, values: dict, n: int) -> np.ndarray:
+    names = list(symbols)
+    fn = sp.lambdify([symbols[k] for k in names], bases, "numpy")
+    cols = fn(*[np.asarray(values[k], float) for k in names])
+    return np.column_stack([np.broadcast_to(np.asarray(c, float), (n,)) for c in cols])
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def dictionary(primary, inputs, scales: dict, *, products: bool = True,
+               units: dict | None = None) -> list:
+    """The candidate terms (module docstring).
+
+    Parameters
+    ----------
+    primary : sequence of str
+        The port's primary variables.
+    inputs : sequence of str
+        The inputs (linear terms).
+    scales : dict str -> float
+        RMS of each primary variable (> 0; the widths of the sign and
+        saturation terms).
+    products : bool
+    units : dict str -> str, optional
+        Each variable's unit (default dimensionless).
+
+    Returns
+    -------
+    list of (str, sympy.Expr, str)
+        Name, basis (symbols named as the variables) and the basis' unit of
+        each candidate.
+    """
+    un = {k: (units or {}).get(k, "") or "1" for k in list(primary) + list(inputs)}
+
+    def pw(u, n):
+        return "1" if u == "1" else f"({u})^{n}"
+
+    out = [("1", sp.Integer(1), "1")]
+    for name in primary:
+        z, s, u = sp.Symbol(name), float(scales[name]), un[name]
+        out += [(name, z, u), (f"{name}^2", z ** 2, pw(u, 2)), (f"{name}^3", z ** 3, pw(u, 3)),
+                (f"{name}^5", z ** 5, pw(u, 5)), (f"|{name}|·{name}", sp.Abs(z) * z, pw(u, 2))]
+        for w in SIGN_WIDTHS:
+            out.append((f"tanh({name}/{_fmt(w * s)})", sp.tanh(z / sp.Float(w * s)), "1"))
+        out.append((f"{name}/(1+|{name}/{_fmt(s)}|)", z / (1 + sp.Abs(z / sp.Float(s))), u))
+    if products:
+        for a, b in combinations(primary, 2):
+            out.append((f"{a}·{b}", sp.Symbol(a) * sp.Symbol(b), units_.product(un[a], un[b])))
+    out += [(name, sp.Symbol(name), un[name]) for name in inputs]
+    return out
+
+
+def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLaw:
+    """Discover the law of a reconstructed effort or flow.
+
+    Parameters
+    ----------
+    rec : Reconstruction
+        From :func:`bondgraph.diagnose.discover.reconstruct.reconstruct`:
+        d̂ (N,), its std (N,) and the port's variables (N,).
+    options : DiscoverOptions, optional
+
+    Returns
+    -------
+    DiscoveredLaw
+        The chosen terms with their coefficients (port unit over the basis
+        unit), the cross-validation path.
+
+    Raises
+    ------
+    OptionError
+        Fewer samples than ``folds × (max_terms + 1)`` after trimming.
+
+    Notes
+    -----
+    Method: weighted orthogonal matching pursuit, its number of terms by
+    block cross-validation with the one-standard-error rule (module
+    docstring).
+    """
+    opts = options or DiscoverOptions()
+    n = rec.t.size
+    cut = int(round(opts.trim * n))
+    keep = slice(cut, n - cut)
+    if (n - 2 * cut) < opts.folds * (opts.max_terms + 1):
+        raise OptionError(f"discover_law: {n - 2 * cut} samples are too few for "
+                          f"{opts.folds} folds of {opts.max_terms} terms")
+    values = {k: np.asarray(v, float)[keep] for k, v in rec.variables.items()}
+    scales = {k: float(np.sqrt(np.mean(values[k] ** 2))) or 1.0 for k in rec.primary}
+    inputs = [k for k in rec.variables if k in rec.model.inputs] if opts.inputs else []
+    cands = dictionary(rec.primary, inputs, scales, products=opts.products, units=rec.units)
+    symbols = {k: sp.Symbol(k) for k in list(rec.primary) + inputs}
+    Phi = _columns([c[1] for c in cands], symbols, values, n - 2 * cut)
+    d = np.asarray(rec.d, float)[keep]
+    w = 1.0 / np.maximum(np.asarray(rec.d_std, float)[keep], 1e-12 * (np.abs(d).max() or 1.0))
+    A, b = Phi * w[:, None], d * w
+    norms = np.linalg.norm(A, axis=0)
+    ok = norms > 0
+    A = A[:, ok] / norms[ok]
+    supports = candidate_supports(A, b, int(min(opts.max_terms, A.shape[1])))
+    err, se = _cv_errors(A, b, supports, opts.folds)
+    best = _one_se(err, se, [len(sp_) for sp_ in supports])
+    coef = np.zeros(Phi.shape[1])
+    sup = list(supports[best])
+    if sup:
+        c = np.linalg.lstsq(A[:, sup], b, rcond=None)[0]
+        cols = np.flatnonzero(ok)[sup]
+        coef[cols] = c / norms[ok][sup]
+    fit = Phi @ coef
+    terms = [Term(cands[i][0], cands[i][1], float(coef[i]),
+                  float(np.sqrt(np.mean((coef[i] * Phi[:, i]) ** 2))), cands[i][2])
+             for i in np.flatnonzero(coef)]
+    terms.sort(key=lambda tm: -tm.rms)
+    ranges = {k: (float(values[k].min()), float(values[k].max())) for k in symbols}
+    return DiscoveredLaw(rec.port.port, rec.port.kind, rec.port.unit, symbols, terms,
+                         [c[0] for c in cands],
+                         [tuple(cands[i][0] for i in np.flatnonzero(ok)[list(sp_)]) for sp_ in supports],
+                         err, se, float(np.sqrt(np.mean(d ** 2))),
+                         float(np.sqrt(np.mean((d - fit) ** 2))), ranges, [], list(inputs))
+
+
+def candidate_supports(A: np.ndarray, b: np.ndarray, kmax: int) -> list:
+    """Candidate sets of terms (column indices of ``A``, its columns of unit
+    norm): the empty set, every set of one or two terms, the
+    orthogonal-matching-pursuit path (1..kmax
+    terms; scikit-learn's ``orthogonal_mp``) and the sets of the sequentially
+    thresholded least squares (PySINDy's ``STLSQ``; Brunton et al. 2016) at
+    thresholds of 30 % down to 0.3 % of the target's norm, those of at most
+    ``kmax`` terms.
+
+    OMP is greedy and can start from a look-alike of a sum of two terms;
+    STLSQ starts from the full least squares and can keep cancelling
+    look-alikes; the sets of one or two terms (all of them: a few hundred
+    least-squares fits of two columns) hold the simple laws neither may
+    reach: the cross-validation chooses among all.
+    """
+    out = [()] + [(i,) for i in range(A.shape[1])]
+    if kmax >= 2:
+        out += list(combinations(range(A.shape[1]), 2))
+    path = np.asarray(orthogonal_mp(A, b, n_nonzero_coefs=kmax, return_path=True))
+    path = path.reshape(A.shape[1], -1)
+    for j in range(path.shape[1]):
+        out.append(tuple(np.flatnonzero(path[:, j])))
+    bn = float(np.linalg.norm(b)) or 1.0
+    for tau in STLSQ_THRESHOLDS:
+        opt = STLSQ(threshold=tau * bn, alpha=0.0, max_iter=50)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            opt.fit(A, b)
+        sup = tuple(np.flatnonzero(np.asarray(opt.coef_).ravel()))
+        if 0 < len(sup) <= kmax:
+            out.append(sup)
+    return list(dict.fromkeys(out))
+
+
+def _cv_errors(A: np.ndarray, b: np.ndarray, supports: list, folds: int):
+    """Held-out mean squared error of each support's least-squares fit and
+    its standard error over contiguous time blocks (``GroupKFold``)."""
+    n = b.size
+    groups = np.minimum((np.arange(n) * folds) // n, folds - 1)
+    errs = np.zeros((folds, len(supports)))
+    for f, (tr, te) in enumerate(GroupKFold(n_splits=folds).split(A, b, groups)):
+        for j, sup in enumerate(supports):
+            pred = 0.0
+            if sup:
+                cols = list(sup)
+                c = np.linalg.lstsq(A[np.ix_(tr, cols)], b[tr], rcond=None)[0]
+                pred = A[np.ix_(te, cols)] @ c
+            errs[f, j] = np.mean((b[te] - pred) ** 2)
+    return errs.mean(axis=0), errs.std(axis=0, ddof=1) / np.sqrt(folds)
+
+
+def _one_se(err: np.ndarray, se: np.ndarray, sizes) -> int:
+    """The candidate with the fewest terms whose held-out error is within one
+    standard error of the smallest (Hastie et al. 2009, §7.10); among equal
+    sizes the smaller error."""
+    best = int(np.argmin(err))
+    ok = np.flatnonzero(err <= err[best] + se[best])
+    return int(min(ok, key=lambda j: (sizes[j], err[j])))

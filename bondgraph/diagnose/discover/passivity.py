@@ -1,0 +1,273 @@
+"""Passivity of a discovered law: what a bond graph promises of the element
+the law will become, checked over the range the record visits.
+
+The law ``d = Σ c_k b_k`` of a port (a missing effort entering a 1-junction,
+or a missing flow entering a 0-junction) is split by the variables its terms
+read:
+
+* **R part**: terms of the junction's own variable z only (its flow at a
+  1-junction, its effort at a 0-junction). They must dissipate: the power
+  the law draws from the junction, P(z) = −d_R(z)·z, is >= 0 over the
+  visited range of z widened by ``margin`` (Karnopp, Margolis & Rosenberg,
+  *System Dynamics*, §4.1: a resistor's law lies in the first and third
+  quadrants).
+* **storage part**: terms of one bonded storage state s only (a capacitance's
+  displacement at a 1-junction, an inertia's momentum at a 0-junction). They
+  change that storage's law Ψ(s) (its effort, resp. flow) into Ψ(s) − d_S(s);
+  its stored energy H(s) = ∫₀ˢ (Ψ − d_S) ds' must stay >= 0 over the
+  widened range of s (a storage function bounded below with its minimum
+  at rest; Willems 1972).
+* **coupled part**: products of z and another variable: with the R part, the
+  power −(d_R + d_M)·z must be >= 0 at the record's own samples.
+* **sources**: a constant or input terms are not passive by nature (a bias,
+  an actuator's gain): they are kept and listed as unchecked.
+
+A part that violates its condition loses the terms that violate it alone;
+if what remains still violates it, the part is dropped whole. The result
+names every dropped term and why (:class:`PassivityReport`).
+
+The ranges and tolerance are those of
+:mod:`bondgraph.numerics.admissible` (``visited_grid``, ``violation``).
+The storage check assumes the graph's storage elements take power from the
+junction (the bond points from the junction to them, the usual drawing).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import sympy as sp
+
+from bondgraph.numerics.admissible import MARGIN, visited_grid, violation
+
+
+@dataclass
+class PartCheck:
+    """One check of a part of a law.
+
+    Attributes
+    ----------
+    part : {"R", "storage", "coupled"}
+    variable : str
+        The variable the part reads (the storage state for ``"storage"``).
+    ok : bool
+        Passive over the range (after the drops, when any).
+    worst : float
+        The most negative power (W, the port's effort × flow unit) or stored
+        energy found before any drop.
+    at : float
+        Where (the variable's value).
+    """
+
+    part: str
+    variable: str
+    ok: bool
+    worst: float
+    at: float
+
+
+@dataclass
+class PassivityReport:
+    """What :func:`make_passive` found.
+
+    Attributes
+    ----------
+    law : DiscoveredLaw
+        The law with the offending terms dropped (``law.dropped`` names them).
+    checks : list of PartCheck
+    dropped : dict str -> str
+        Each dropped term and the reason.
+    unchecked : list of str
+        Source-like terms (a constant, inputs) kept without a check.
+    """
+
+    law: object
+    checks: list = field(default_factory=list)
+    dropped: dict = field(default_factory=dict)
+    unchecked: list = field(default_factory=list)
+
+    @property
+    def refused(self) -> bool:
+        """True when a term was dropped."""
+        return bool(self.dropped)
+
+    def summary(self) -> str:
+        """One line per check and per dropped term."""
+        lines = [f"{c.part} part in {c.variable}: {'passive' if c.ok else 'NOT passive'} "
+                 f"(worst {c.worst:.4g} at {c.variable} = {c.at:.4g})" for c in self.checks]
+        lines += [f"dropped {k}: {v}" for k, v in self.dropped.items()]
+        lines += [f"unchecked (source-like): {k}" for k in self.unchecked]
+        return "\n".join(lines) or "no term to check"
+
+
+def _fn(expr, sym):
+    f = sp.lambdify([sym], expr, "numpy")
+    return lambda z: np.broadcast_to(np.asarray(f(z), float), np.shape(z))
+
+
+def _energy(psi: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """∫₀ˢ ψ ds' at every grid point (trapezoid; ``grid`` sorted, contains 0)."""
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (psi[1:] + psi[:-1]) * np.diff(grid))])
+    return cum - cum[int(np.argmin(np.abs(grid)))]
+
+
+def _split(law, own: str):
+    """Terms by part: {"R": [...], "coupled": [...], "source": [...],
+    ("storage", s): [...]}."""
+    parts: dict = {}
+    for tm in law.terms:
+        names = {str(s) for s in tm.basis.free_symbols}
+        if not names or names - set(law.symbols) or names & set(law.inputs):
+            key = "source"
+        elif names == {own}:
+            key = "R"
+        elif own in names:
+            key = "coupled"
+        elif len(names) == 1:
+            key = ("storage", names.pop())
+        else:
+            key = "source"
+        parts.setdefault(key, []).append(tm)
+    return parts
+
+
+def make_passive(law, graph, values: dict, *, params=None, margin: float = MARGIN):
+    """Check a discovered law's passivity and drop the terms that break it.
+
+    Parameters
+    ----------
+    law : DiscoveredLaw
+    graph : BondGraph
+        The declared graph (the storage laws of the port's neighbours).
+    values : dict str -> ndarray (N,)
+        The port's variables along the record (``Reconstruction.variables``).
+    params : dict, optional
+        Parameter values of ``graph`` by name (default its defaults).
+    margin : float
+        Widening of each visited range, fraction of its span (default
+        :data:`bondgraph.numerics.admissible.MARGIN`).
+
+    Returns
+    -------
+    PassivityReport
+
+    Notes
+    -----
+    Method: module docstring (KMR §4.1-4.3; Willems 1972).
+    """
+    own = next(k for k in law.symbols if k == f"{law.port}.f" or k == f"{law.port}.e")
+    theta = {n: p.default for n, p in graph.params.items()}
+    theta.update(params or {})
+    parts = _split(law, own)
+    rep = PassivityReport(law)
+    rep.unchecked = [tm.name for tm in parts.get("source", [])]
+    keep = list(parts.get("source", []))
+    z = law.symbols[own]
+    grid = visited_grid(values[own], margin)
+    kept_r = _check_r(parts.get("R", []), z, grid, own, rep)
+    keep += kept_r
+    keep += _check_coupled(parts.get("coupled", []), kept_r, law, values, own, rep)
+    for key, terms in parts.items():
+        if isinstance(key, tuple):
+            keep += _check_storage(terms, key[1], graph, theta, law, values, margin, rep)
+    order = {tm.name: i for i, tm in enumerate(law.terms)}
+    kept = sorted(keep, key=lambda tm: order[tm.name])
+    rep.law = replace(law, terms=kept, dropped=list(law.dropped) + list(rep.dropped))
+    return rep
+
+
+def _power(terms, z, grid):
+    """−Σ terms(z)·z on ``grid``."""
+    if not terms:
+        return np.zeros_like(grid)
+    return -_fn(sp.Add(*(sp.Float(tm.coef) * tm.basis for tm in terms)), z)(grid) * grid
+
+
+def _check_r(terms, z, grid, own, rep) -> list:
+    if not terms:
+        return []
+    P = _power(terms, z, grid)
+    i, bad = violation(P)
+    kept = list(terms)
+    if bad:
+        kept = [tm for tm in terms if not violation(_power([tm], z, grid))[1]]
+        for tm in terms:
+            if tm not in kept:
+                rep.dropped[tm.name] = f"generates power at {own} (−d·{own} < 0)"
+        if kept and violation(_power(kept, z, grid))[1]:
+            for tm in kept:
+                rep.dropped[tm.name] = f"the R part at {own} generates power with it"
+            kept = []
+    rep.checks.append(PartCheck("R", own, not violation(_power(kept, z, grid))[1],
+                                float(P[i]), float(grid[i])))
+    return kept
+
+
+def _coupled_power(terms, law, values, own):
+    if not terms:
+        return np.zeros_like(values[own])
+    expr = sp.Add(*(sp.Float(tm.coef) * tm.basis for tm in terms))
+    names = list(law.symbols)
+    f = sp.lambdify([law.symbols[k] for k in names], expr, "numpy")
+    d = np.broadcast_to(np.asarray(f(*[np.asarray(values[k], float) for k in names]), float),
+                        np.shape(values[own]))
+    return -d * np.asarray(values[own], float)
+
+
+def _check_coupled(terms, r_terms, law, values, own, rep) -> list:
+    """The coupled terms with the kept R part, at the record's samples."""
+    if not terms:
+        return []
+    P = _coupled_power(list(r_terms) + list(terms), law, values, own)
+    i, bad = violation(P)
+    kept = list(terms)
+    if bad:
+        kept = [tm for tm in terms if not violation(_coupled_power([tm], law, values, own))[1]]
+        if violation(_coupled_power(list(r_terms) + kept, law, values, own))[1]:
+            kept = []
+        for tm in terms:
+            if tm not in kept:
+                rep.dropped[tm.name] = f"generates power at {own} at the record's samples"
+    ok = not violation(_coupled_power(list(r_terms) + kept, law, values, own))[1]
+    rep.checks.append(PartCheck("coupled", own, ok, float(P[i]), float(values[own][i])))
+    return kept
+
+
+def _storage_law(graph, state: str, theta: dict):
+    """The declared law Ψ(s) of the storage element whose state is ``state``
+    (its effort for a C, its flow for an I), parameters substituted."""
+    for el in graph.storage_elements():
+        if getattr(el, "state", None) is not None and el.state.name == state:
+            law = sp.sympify(el.law)
+            return law.subs({graph.params[n]: v for n, v in theta.items()
+                             if n in graph.params}), el.state
+    return None, None
+
+
+def _check_storage(terms, state, graph, theta, law, values, margin, rep) -> list:
+    psi, sym = _storage_law(graph, state, theta)
+    s = law.symbols[state]
+    if psi is None:
+        psi, sym = sp.Integer(0), s
+    grid = visited_grid(values[state], margin)
+    decl = _fn(psi, sym)(grid)
+
+    def energy(ts):
+        added = _fn(sp.Add(*(sp.Float(tm.coef) * tm.basis for tm in ts)), s)(grid) if ts else 0.0
+        return _energy(decl - added, grid)
+
+    H = energy(terms)
+    i, bad = violation(H)
+    kept = list(terms)
+    if bad:
+        kept = [tm for tm in terms if not violation(_energy(
+            -_fn(sp.Float(tm.coef) * tm.basis, s)(grid), grid))[1]]
+        if violation(energy(kept))[1]:
+            kept = []
+        for tm in terms:
+            if tm not in kept:
+                rep.dropped[tm.name] = f"makes the energy stored in {state} negative"
+    rep.checks.append(PartCheck("storage", state, not violation(energy(kept))[1],
+                                float(H[i]), float(grid[i])))
+    return kept

@@ -1,0 +1,377 @@
+"""Reconstruction of what is missing at a port: an unknown effort (at a
+1-junction) or flow (at a 0-junction) as an integrated random walk,
+estimated by the UKF and the unscented RTS smoother over the whole record.
+
+The declared graph is augmented at the port with a modulated source whose
+value is a new state ``d`` and with its rate ``r``::
+
+    dd/dt = r,   dr/dt = w(t),   E[w(t) w(s)] = q² δ(t − s)
+
+(an integrated random walk, the smoothing prior of a cubic smoothing spline;
+Wahba 1978; Särkkä 2013, §10). At a 1-junction ``d`` is an effort (a
+force, a torque, a voltage) entering the junction's effort balance; at a
+0-junction a flow entering its flow balance. The intensity ``q`` (effort
+per s^1.5) sets how fast ``d`` may change: it is given, or chosen by maximum
+likelihood (the UKF's negative log-likelihood, one batched pass) over a grid
+``q_i = S / τ_i^1.5`` of time scales ``τ_i`` from a few samples to a
+fraction of the record, ``S`` the port's effort (flow) scale along the
+declared model's filtered states.
+
+The smoothed ``d̂(t) = E[d(t) | whole record]`` with its std is returned
+beside the port's own variables along the smoothed states: the junction's
+common flow (1-junction) or effort (0-junction), the states of the storage
+elements bonded to it, and the inputs.
+
+References
+----------
+Wahba, G. (1978). Improper priors, spline smoothing and the problem of
+guarding against model errors in regression. JRSS B 40(3), 364-372.
+Särkkä, S. (2008). Unscented Rauch-Tung-Striebel smoother. IEEE TAC 53(3).
+Särkkä, S. (2013). Bayesian Filtering and Smoothing. Cambridge UP.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import sympy as sp
+
+from bondgraph.core.elements import C, I, One, Zero
+from bondgraph.core.equations import derive
+from bondgraph.diagnose.effects.base import junction_units
+from bondgraph.errors import GraphError, NumericalError, OptionError
+from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.prior import PriorSpec
+from bondgraph.inference.problem import make_problem
+from bondgraph.inference.smoother import rts_smooth
+from bondgraph.numerics.model import Model
+
+#: prefix of the states and parameter the augmentation adds
+PREFIX = "missing"
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    """How the missing effort or flow is reconstructed.
+
+    Parameters
+    ----------
+    q : float, optional
+        The random walk's intensity (port effort or flow unit per s^1.5),
+        given; None (default): chosen by maximum likelihood over the grid.
+    grid : int
+        Number of time scales τ of the grid (default 9).
+    tau_min : float
+        Shortest time scale, in sample intervals (default 2).
+    tau_max : float
+        Longest time scale, as a fraction of the record's duration
+        (default 0.1).
+    scale : float, optional
+        The port's effort (flow) scale ``S`` (its unit); None: the RMS of
+        the net effort on the inertias bonded to a 1-junction (the net flow
+        into the capacitances of a 0-junction) along the declared model's
+        filtered states.
+    ukf : UKFOptions, optional
+        The filter's options (default ``UKFOptions()``).
+
+    Raises
+    ------
+    OptionError
+        A non-positive ``q`` or ``scale``, fewer than 2 grid points,
+        ``tau_min <= 0`` or ``tau_max`` outside (0, 1].
+    """
+
+    q: float | None = None
+    grid: int = 9
+    tau_min: float = 2.0
+    tau_max: float = 0.1
+    scale: float | None = None
+    ukf: UKFOptions | None = None
+
+    def __post_init__(self):
+        if self.q is not None and not (np.isfinite(self.q) and self.q > 0):
+            raise OptionError(f"ReconstructOptions.q must be positive, got {self.q}")
+        if self.scale is not None and not (np.isfinite(self.scale) and self.scale > 0):
+            raise OptionError(f"ReconstructOptions.scale must be positive, got {self.scale}")
+        if int(self.grid) != self.grid or self.grid < 2:
+            raise OptionError(f"ReconstructOptions.grid must be an integer >= 2, got {self.grid}")
+        if not self.tau_min > 0:
+            raise OptionError(f"ReconstructOptions.tau_min must be positive, got {self.tau_min}")
+        if not 0 < self.tau_max <= 1:
+            raise OptionError(f"ReconstructOptions.tau_max must be in (0, 1], got {self.tau_max}")
+
+
+@dataclass
+class PortAugmentation:
+    """Where and how a graph was augmented (:func:`augment_port`).
+
+    Attributes
+    ----------
+    port : str
+        The junction's name.
+    kind : {"effort", "flow"}
+        What is missing (an effort at a 1-junction, a flow at a 0-junction).
+    unit, rate_unit : str
+        Units of ``d`` and of its rate ``r``.
+    d, r, q : str
+        Names of the two new states and of the intensity parameter.
+    source : str
+        Name of the modulated source.
+    """
+
+    port: str
+    kind: str
+    unit: str
+    rate_unit: str
+    d: str
+    r: str
+    q: str
+    source: str
+
+
+@dataclass
+class Reconstruction:
+    """What :func:`reconstruct` returns.
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+        Sample times (s).
+    d, d_std : ndarray (N,)
+        The smoothed missing effort (flow) at the port and its std, in
+        ``port.unit``.
+    variables : dict str -> ndarray (N,)
+        The port's own variables along the smoothed states: the junction's
+        flow (``"<port>.f"``) or effort (``"<port>.e"``), the states of the
+        bonded storage elements (by state name) and the inputs (by name).
+    primary : list of str
+        The variables a law at the port is a function of (the junction's
+        flow or effort and the storage states that are not a multiple of it:
+        the capacitances' at a 1-junction, the inertias' at a 0-junction).
+    units : dict str -> str
+    port : PortAugmentation
+    q : float
+        The intensity used.
+    q_grid, nll_grid : ndarray (G,)
+        The grid and its negative log-likelihoods (empty when ``q`` was given).
+    x, P : ndarray (N, n_x), (N, n_x, n_x)
+        Smoothed states and covariances of the augmented model.
+    model : Model
+        The augmented model.
+    theta : ndarray (n_theta,)
+        Its parameter vector (the intensity included).
+    x0, P0 : ndarray (n_x,), (n_x, n_x)
+        The prior of the augmented state at ``t[0]``.
+    """
+
+    t: np.ndarray
+    d: np.ndarray
+    d_std: np.ndarray
+    variables: dict
+    primary: list
+    units: dict
+    port: PortAugmentation
+    q: float
+    q_grid: np.ndarray
+    nll_grid: np.ndarray
+    x: np.ndarray = field(repr=False)
+    P: np.ndarray = field(repr=False)
+    model: object = field(repr=False)
+    theta: np.ndarray = field(repr=False)
+    x0: np.ndarray = field(repr=False, default=None)
+    P0: np.ndarray = field(repr=False, default=None)
+
+
+def augment_port(graph, port: str):
+    """A copy of ``graph`` with an integrated random walk entering ``port``.
+
+    Parameters
+    ----------
+    graph : BondGraph
+    port : str
+        A 1-junction (a missing effort) or a 0-junction (a missing flow).
+
+    Returns
+    -------
+    (BondGraph, PortAugmentation)
+
+    Raises
+    ------
+    GraphError
+        ``port`` is not a junction of ``graph``.
+    """
+    if port not in graph.elements or not isinstance(graph.elements[port], (One, Zero)):
+        raise GraphError(f"graph '{graph.name}': '{port}' is not a junction")
+    g = graph.copy(f"{graph.name}__missing")
+    j = g.element(port)
+    eu, fu = junction_units(g, j)
+    kind = "effort" if isinstance(j, One) else "flow"
+    unit = eu if kind == "effort" else fu
+    rate_unit = f"({unit})/s"
+    tag = port.replace(".", "_")
+    names = PortAugmentation(port, kind, unit, rate_unit, f"{PREFIX}.{tag}.d",
+                             f"{PREFIX}.{tag}.r", f"{PREFIX}.{tag}.q", f"{PREFIX}.{tag}")
+    q = g.param(names.q, 1.0, f"({unit})/s^1.5", (1e-12, 1e12),
+                f"intensity of the missing {kind}'s rate at {port}")
+    r = g.state(names.r, 0, unit=rate_unit, process_noise=q,
+                description=f"rate of the missing {kind} at {port}")
+    d = g.state(names.d, r, unit=unit, description=f"missing {kind} at {port}")
+    src = g.MSe(names.source, d) if kind == "effort" else g.MSf(names.source, d)
+    g.connect(src, j)
+    return g, names
+
+
+def port_expressions(graph, port: str) -> tuple[dict, list]:
+    """The port's own variables as symbols of ``graph`` (before derivation).
+
+    Returns
+    -------
+    (dict name -> sympy expression, list of primary names)
+        The junction's flow (1-junction) or effort (0-junction), the states
+        of the storage elements bonded to it, the inputs; the primary names
+        are the junction's variable and the storage states that are not a
+        multiple of it (:attr:`Reconstruction.primary`).
+    """
+    j = graph.element(port)
+    own = (f"{port}.f", j.f) if isinstance(j, One) else (f"{port}.e", j.e)
+    out = {own[0]: own[1]}
+    primary = [own[0]]
+    independent = C if isinstance(j, One) else I
+    for p in j.ports:
+        if p.bond is None:
+            continue
+        el = p.bond.other(p).element
+        if isinstance(el, (C, I)) and getattr(el, "state", None) is not None:
+            out[el.state.name] = el.state
+            if isinstance(el, independent):
+                primary.append(el.state.name)
+    for name, inp in graph.inputs.items():
+        out[name] = inp
+    return out, primary
+
+
+def _lambdified(ss, exprs: dict):
+    args = (list(ss.states), list(ss.inputs), list(ss.params))
+    return {k: sp.lambdify(args, ss.variable(e), "numpy") for k, e in exprs.items()}
+
+
+def _evaluate(fns: dict, X, u, theta, n: int) -> dict:
+    uT = u.T if u.size else np.zeros((0, n))
+    return {k: np.broadcast_to(np.asarray(fn(X.T, uT, theta), float), (n,)).copy()
+            for k, fn in fns.items()}
+
+
+def port_scale(graph, model, problem, theta, port: str) -> float:
+    """The port's effort (flow) scale ``S``: the RMS of the net effort on the
+    inertias bonded to a 1-junction (the net flow into the capacitances of a
+    0-junction) along the declared model's filtered states (1 if none).
+
+    Raises
+    ------
+    NumericalError
+        The declared model's filter fails on the record.
+    """
+    res = problem.nll(theta, store="full")
+    if not np.isfinite(res.nll[0]):
+        raise NumericalError(f"the declared model's filter fails: {res.reasons[0]}")
+    X = res.x_filt[:, 0, :]
+    j = graph.element(port)
+    store = I if isinstance(j, One) else C
+    idx = [model.states.index(p.bond.other(p).element.state.name) for p in j.ports
+           if p.bond is not None and isinstance(p.bond.other(p).element, store)]
+    if not idx:
+        return 1.0
+    rates = np.asarray(model.f(X, problem.u, theta[None, :]), float)[:, idx]
+    s = float(np.sqrt(np.mean(rates ** 2)))
+    return s if np.isfinite(s) and s > 0 else 1.0
+
+
+def reconstruct(graph, record, port: str, *, params=None,
+                options: ReconstructOptions | None = None) -> Reconstruction:
+    """Reconstruct the effort (flow) missing at ``port`` over ``record``.
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared graph.
+    record : Experiment
+        The record (its declared noise levels are held).
+    port : str
+        A 1-junction (a missing effort) or 0-junction (a missing flow).
+    params : dict, optional
+        Parameter values of ``graph`` by name (default: its defaults).
+    options : ReconstructOptions, optional
+
+    Returns
+    -------
+    Reconstruction
+        ``d`` (N,) and ``d_std`` (N,) in the port's effort (flow) unit, the
+        port's variables (N,) by name.
+
+    Raises
+    ------
+    GraphError
+        ``port`` is not a junction.
+    NumericalError
+        The filter fails at every intensity, or the smoother fails.
+
+    Notes
+    -----
+    Method: state augmentation by an integrated random walk (module
+    docstring), maximum-likelihood intensity over a grid, unscented RTS
+    smoother (Särkkä 2008).
+    """
+    opts = options or ReconstructOptions()
+    ukf = opts.ukf or UKFOptions()
+    fixed = dict(params or {})
+    g, aug = augment_port(graph, port)
+    model = Model.from_graph(g, lazy=("dfdtheta", "dhdtheta"))
+    base = Model.from_graph(graph, lazy=("dfdtheta", "dhdtheta"))
+    pb = make_problem(base, record, ukf=ukf, fixed=fixed)
+    S = opts.scale or port_scale(graph, base, pb, pb.theta, port)
+    t = pb.t
+    dt = float(np.median(np.diff(t)))
+    taus = np.geomspace(opts.tau_min * dt, opts.tau_max * (t[-1] - t[0]), int(opts.grid))
+    prior = PriorSpec(x0_std={aug.d: 3.0 * S, aug.r: 3.0 * S / taus[0]})
+    problem = make_problem(model, record, ukf=ukf, fixed=fixed, prior=prior)
+    iq = model.params.index(aug.q)
+    if opts.q is not None:
+        q_grid, nll_grid, q = np.zeros(0), np.zeros(0), float(opts.q)
+    else:
+        q_grid = S / taus ** 1.5
+        th = np.repeat(problem.theta[None, :], q_grid.size, axis=0)
+        th[:, iq] = q_grid
+        nll_grid = np.asarray(problem.nll(th).nll, float)
+        if not np.isfinite(nll_grid).any():
+            raise NumericalError(f"reconstruction at '{port}': the filter fails at every intensity")
+        q = float(q_grid[int(np.nanargmin(np.where(np.isfinite(nll_grid), nll_grid, np.inf)))])
+    theta = problem.theta.copy()
+    theta[iq] = q
+    R = problem.noise.covariance(model, theta[None, :])
+    sm = rts_smooth(model, t, problem.u, problem.y, theta, problem.x0, problem.P0,
+                    options=ukf, R=None if R is None else R[0])
+    return _assemble(g, model, aug, problem, sm, theta, (q, q_grid, nll_grid))
+
+
+def _assemble(g, model, aug, problem, sm, theta, qinfo) -> Reconstruction:
+    """The :class:`Reconstruction` of a smoothed augmented model."""
+    ss = derive(g)
+    exprs, primary = port_expressions(g, aug.port)
+    n = problem.t.size
+    values = _evaluate(_lambdified(ss, exprs), sm.x, problem.u, theta, n)
+    units = {aug.d: aug.unit}
+    j = g.element(aug.port)
+    eu, fu = junction_units(g, j)
+    for k in values:
+        if k in model.states:
+            units[k] = next((s.unit for s in g.all_states() if s.name == k), "") or ""
+        elif k in g.inputs:
+            units[k] = g.inputs[k].unit or ""
+        else:
+            units[k] = fu if k.endswith(".f") else eu
+    i = model.states.index(aug.d)
+    q, q_grid, nll_grid = qinfo
+    return Reconstruction(problem.t.copy(), sm.x[:, i].copy(), np.sqrt(np.maximum(sm.P[:, i, i], 0)),
+                          values, primary, units, aug, q, q_grid, nll_grid, sm.x, sm.P, model,
+                          theta, problem.x0.copy(), problem.P0.copy())
