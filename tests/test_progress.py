@@ -49,3 +49,24 @@ def test_a_long_ukf_pass_shows_a_bar_naming_the_pass(monkeypatch, capsys):
     assert "UKF pass: 1 parameter sets x 400 samples" in err
     assert np.isfinite(quiet.nll).all()
     np.testing.assert_array_equal(quiet.nll, loud.nll)
+
+
+def test_a_long_compile_is_announced_and_a_short_one_is_silent(capsys):
+    """`announced` prints what runs once it has run ``delay`` s, and how long
+    it took; nothing for a short block or with bars switched off."""
+    import time
+
+    from bondgraph.core import progress
+
+    with progress.enabled():
+        with progress.announced("compiling X", delay=0.1, note="once"):
+            time.sleep(0.4)
+        err = capsys.readouterr().err.splitlines()
+        assert err[0] == "  ... compiling X (once)"
+        assert err[1].startswith("  ... compiling X: done in ")
+        with progress.announced("compiling Y", delay=0.5):
+            time.sleep(0.05)
+        assert capsys.readouterr().err == ""
+    with progress.announced("compiling Z", delay=0.05):
+        time.sleep(0.2)
+    assert capsys.readouterr().err == ""

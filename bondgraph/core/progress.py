@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import threading
 import time
 from contextvars import ContextVar
 
@@ -104,3 +105,37 @@ class LongPass:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def announced(what: str, *, delay: float = 2.0, note: str = ""):
+    """Say on stderr what is being done when a block runs longer than
+    ``delay`` seconds (a compile the user waits for: ``"compiling the fused
+    UKF kernel"``), and how long it took when it ends; nothing for a short
+    block (a cache load) or when bars are switched off (:func:`enabled`).
+
+    Parameters
+    ----------
+    what : str
+        What the block does.
+    delay : float
+        Seconds of silence before the line is printed [s].
+    note : str
+        Appended to the first line (e.g. "once: numba caches it on disk").
+    """
+    if not is_enabled():
+        yield
+        return
+    t0 = time.perf_counter()
+    extra = f" ({note})" if note else ""
+    timer = threading.Timer(delay, lambda: print(f"  ... {what}{extra}", file=sys.stderr,
+                                                 flush=True))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+        took = time.perf_counter() - t0
+        if took >= delay:
+            print(f"  ... {what}: done in {took:.0f} s", file=sys.stderr, flush=True)

@@ -88,6 +88,7 @@ from collections import namedtuple
 import numpy as np
 
 from bondgraph.core.codegen_numba import padded_points
+from bondgraph.core.progress import announced
 from bondgraph.numerics.integrators import GAMMA
 
 try:  # numba is a regular dependency; the numpy path is the fallback without it
@@ -1045,7 +1046,8 @@ def kernel() -> tuple[object, float]:
         if _KERNEL:
             return _KERNEL[0], 0.0
         t0 = time.perf_counter()
-        with _first_class_quiet():
+        with _first_class_quiet(), announced("compiling the fused UKF kernel",
+                                             note="once per installation: numba caches it"):
             k = numba.njit(_signature(), cache=True, parallel=True, nogil=True,
                            error_model="numpy", _nrt=False, fastmath=FASTMATH)(_kernel_py)
         _KERNEL.append(k)
@@ -1068,8 +1070,10 @@ def _compiled_once(store: list, py, signature, fastmath=False):
         raise ImportError("numba is not installed (pip install numba)")
     with _LOCK:
         if not store:
-            store.append(numba.njit(signature(), cache=True, nogil=True, error_model="numpy",
-                                    _nrt=False, fastmath=fastmath)(py))
+            with announced(f"compiling the simulation kernel {py.__name__}",
+                           note="once per installation: numba caches it"):
+                store.append(numba.njit(signature(), cache=True, nogil=True,
+                                        error_model="numpy", _nrt=False, fastmath=fastmath)(py))
         return store[0]
 
 

@@ -44,6 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bondgraph.core.codegen_numba import NUMBA_CODEGEN_VERSION, generate_numba_source
+from bondgraph.core.progress import announced
 
 try:  # numba is a regular dependency; the numpy path is the fallback without it
     import numba
@@ -215,7 +216,9 @@ def point_kernels(model) -> PointKernels:
         if got is None:
             if not path.exists():
                 _write_source(model, path)
-            got = _LOADED[str(path)] = _import(path)
+            with announced(f"compiling the numba kernels of model '{model.name}'",
+                           note="once: numba caches them on disk"):
+                got = _LOADED[str(path)] = _import(path)
     return got
 
 
