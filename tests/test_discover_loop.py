@@ -143,3 +143,28 @@ def test_discovered_flow_law_at_a_zero_junction():
     dphi = float(m.f(xs, np.zeros((1, len(m.inputs))), th[None, :])[0, m.states.index(phi_name)])
     want = 3e-3 / val["J_m"] - 1e-2 / val["J_L"] + 2e-3 * (val["k_s"] * 0.01) ** 3
     assert dphi == pytest.approx(want, rel=1e-12)
+
+
+def test_the_command_lines_discover_option_runs_the_loop_again_with_the_law(tmp_path):
+    """`bondgraph loop --discover` (cli/loop._with_discovery): after a loop
+    that accepted nothing, the law found at the spring's 1-junction joins
+    the effects and the second loop accepts it; its report replaces the
+    first."""
+    from types import SimpleNamespace
+
+    from bondgraph.cli.loop import _with_discovery
+    from bondgraph.diagnose.runner import run_loop
+
+    settings = LoopSettings(params=["k", "c"], holdout=0.25,
+                            ukf=UKFOptions(substeps=4, hold="linear"),
+                            effects=(CubicStiffness(), Coulomb()),
+                            search=SearchOptions(max_steps=1))
+    record = quintic_record()
+    first = run_loop(mass_spring_damper(), record, settings, log=lambda m: None,
+                     progress=False)
+    assert first.steps == []
+    res = _with_discovery(SimpleNamespace(quiet=True), mass_spring_damper(), record, settings,
+                          first, tmp_path / "report")
+    assert [(s.effect, s.attached_to) for s in res.steps] == [("discovered", "v")]
+    assert res.final.validation_metric < 0.1 * first.final.validation_metric
+    assert (tmp_path / "report" / "report.md").exists()

@@ -94,6 +94,11 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="score effects even when the declared fit failed (physical parameters "
                         "that never left their start values or sit on their boxes); by default "
                         "the loop stops there with exit code 2 and names them")
+    p.add_argument("--discover", action="store_true",
+                   help="when no physical effect is accepted: reconstruct the effort (flow) "
+                        "missing at each 1- (0-) junction, discover its law from the port's "
+                        "variables (sparse regression, passive terms only) and run the loop "
+                        "again with it beside the library")
     p.add_argument("--workers", type=int, default=1,
                    help="local Dask worker processes that score the structural candidates and "
                         "run the confirmation refits, one candidate each (1: in process; the "
@@ -141,6 +146,8 @@ def run(args) -> int:
                             overwrite=args.overwrite)
     res = run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
                    on_update=reporter.update)
+    if args.discover:
+        res = _with_discovery(args, graph, record, settings, res, out)
     print()
     print(f"{name}: {res.metric}")
     if res.final.validation_metric is not None:
@@ -158,6 +165,25 @@ def run(args) -> int:
     print(f"report: {out / 'report.md'} (and report.json, PNG plots, "
           f"augmented_model.py)")
     return 0
+
+
+def _with_discovery(args, graph, record, settings, res, out: Path):
+    """``--discover``: the loop's result ``res``, or, when it accepted no
+    physical effect and a port gave a passive law
+    (:func:`bondgraph.diagnose.discover.effect.discovered_effect`), the
+    loop run again with that law as an effect (its report replaces the
+    first one in ``out``)."""
+    from bondgraph.diagnose.discover.effect import discovered_effect
+
+    echo = (lambda _m: None) if args.quiet else print
+    best = discovered_effect(graph, record, settings, res, log=echo)
+    if best is None:
+        return res
+    echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'")
+    settings = dataclasses.replace(settings, effects=tuple(settings.effects) + (best.effect,))
+    reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True)
+    return run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
+                    on_update=reporter.update)
 
 
 def loop_states(graph, text: str) -> list[str]:
