@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 STAGES = {"initial fit": r"initial fit:", "step 1 scored": r"step 1: .* candidates scored",
-          "step 1 decided": r"ACCEPT|nothing significant|no candidate", "done": r"done in"}
+          "step 1 decided": r"ACCEPT|nothing significant|no candidate", "done": r"\] done in"}
 
 
 def _pump(stream, lines: list, t0: float) -> None:
