@@ -439,7 +439,8 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
     # sensor_poly3 @ x, passes the likelihood-ratio test (LR 15.6, k 2,
     # p 4.2e-4 < 0.01/21: it absorbs what is left of ROS2 x 2's discretisation
     # error) but its free-run error decrease (0.02513 -> 0.02506) is within
-    # its uncertainty (Diebold-Mariano z 1.26 < 1.645): rejected
+    # its uncertainty (Diebold-Mariano z 1.20 < 1.645; 1.26 before its
+    # variance was conditional on the change of the output): rejected
     assert res.steps == []
     (rej,) = res.rejected
     assert rej.candidate.label == "sensor_poly3 @ x"
