@@ -232,6 +232,15 @@ class Change:
         of the segment that starts at ĵ (the next change or the record's end).
     statistic, threshold : float
         The GLR statistic at the alarm and the threshold [nats].
+    detected : str
+        The parameter whose standardised updates raised the alarm; the
+        change is attributed (``parameter``) to the one whose restart
+        explains the samples from ĵ to the alarm plus one window best
+        (``isolation``).
+    isolation : dict
+        Parameter -> negative log-likelihood of those samples [nats] with
+        that parameter restarted at ĵ, minus the smallest (0 for
+        ``parameter``); parameters not observable at ĵ are left out.
     """
 
     parameter: str
@@ -241,6 +250,8 @@ class Change:
     alarm_time: float
     statistic: float
     threshold: float
+    detected: str = ""
+    isolation: dict = field(default_factory=dict)
     before: float = np.nan
     before_std: float = np.nan
     after: float = np.nan
@@ -467,16 +478,45 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
         if alarm is None or len(changes) >= opts.max_changes:
             seg.end = t.size
             return segs, changes
-        ka, j, c, g = alarm
+        ka, j, c0, g = alarm
         cidx = max(s0 + j, s0 + 2)
         seg.end = cidx
-        changes.append(Change(tm.names[c], cidx, s0 + ka, float(t[cidx]), float(t[s0 + ka]),
-                              g, h))
         x, P = seg.x[cidx - 1 - s0].copy(), seg.P[cidx - 1 - s0].copy()
-        prior = (x, _reset(tm, c, x, P, std, opts, P_start))
+        ok = [k for k in range(len(tm.tracked)) if obs[cidx - 1 - s0, k]] or [c0]
         y = y.copy()
         y[cidx - 1] = np.nan            # its update is already in the prior
+        c, iso = _isolate(tm, (t, u, y), th, (x, P), ukf, R,
+                          (cidx - 1, min(t.size, s0 + ka + window + 1)),
+                          lambda k: _reset(tm, k, x, P, std, opts, P_start), ok)
+        changes.append(Change(tm.names[c], cidx, s0 + ka, float(t[cidx]), float(t[s0 + ka]),
+                              g, h, tm.names[c0], iso))
+        prior = (x, _reset(tm, c, x, P, std, opts, P_start))
         s0, changed = cidx - 1, c
+
+
+def _isolate(tm, rec, th, prior, ukf, R, span, reset, candidates) -> tuple[int, dict]:
+    """Which tracked parameter changed: the filter from ``span[0]`` to
+    ``span[1]`` restarted with each candidate's variance reset
+    (``reset(k)``), the one of smallest negative log-likelihood wins (the
+    GLR over a set of change signatures; Willsky & Jones 1976). Returns its
+    column and the NLL differences by name."""
+    t, u, y = rec
+    a, e = span
+    x = prior[0]
+    if len(candidates) == 1:
+        return candidates[0], {tm.names[candidates[0]]: 0.0}
+    nll = {}
+    for k in candidates:
+        res = ukf_nll(tm.model, t[a:e], u[a:e], y[a:e], th[None, :], x, reset(k), options=ukf,
+                      R=R)
+        nll[k] = float(res.nll[0]) if np.isfinite(res.nll[0]) else np.inf
+    best = min(nll, key=nll.get)
+    return best, {tm.names[k]: v - nll[best] for k, v in nll.items()}
+
+
+#: |z| of a logit-tracked parameter at a restart: p within 4.5e-5 of the box's
+#: width from a bound, where the transform's slope is still 4.5e-5 x the width
+LOGIT_LIMIT = 10.0
 
 
 def _states_prior(tm, P0) -> np.ndarray:
@@ -493,8 +533,11 @@ def _reset(tm, c: int, x, P, std, opts: TrackOptions, P_start) -> np.ndarray:
     (``opts.reset_rel`` of its value, at least its prior rule) and its cross
     covariances zero; with ``P_start``, the original states' prior
     covariance added (their estimates went through the samples between
-    the change and its detection with the old value)."""
+    the change and its detection with the old value). A logit state is
+    first brought within ±:data:`LOGIT_LIMIT` (in place in ``x``)."""
     tp, i = tm.tracked[c], int(tm.state_indices[c])
+    if tp.transform == "logit":     # restart inside the box: the slope of a state
+        x[i] = np.clip(x[i], -LOGIT_LIMIT, LOGIT_LIMIT)     # run onto a bound is 0
     p = float(tp.value(x[i]))
     scale = abs(p) if p != 0 else tp.upper - tp.lower
     sd = max(float((std or {}).get(tp.name, opts.prior_rel * scale)), opts.reset_rel * scale)
@@ -610,9 +653,13 @@ def estimate_drift(problem, tm: TrackingModel, names: Sequence[str] | None = Non
 # ------------------------------------------------------------------ streaming
 class Tracker:
     """Streaming tracker: one sample per :meth:`update`, the same predict
-    and update steps as the batch filter (:func:`bondgraph.inference.ukf.predict`,
-    :func:`~bondgraph.inference.ukf.update`; numpy), so that it equals
-    :func:`track` without change detection sample for sample.
+    and update steps as the batch filter, so that it equals :func:`track`
+    without change detection sample for sample. With the numba backend
+    (the default of :class:`UKFOptions`) each sample is one call of the
+    compiled kernel on arrays allocated once
+    (:class:`~bondgraph.inference.ukf_numba.StepKernel`); with numpy, or
+    options the kernel lacks, :func:`bondgraph.inference.ukf.predict` and
+    :func:`~bondgraph.inference.ukf.update`.
 
     Parameters
     ----------
@@ -659,17 +706,34 @@ class Tracker:
                                  np.asarray(x0, float)[None, :],
                                  np.asarray(P0, float)[None, :, :], None, R)
         self.batch.t = []
-        self.k, self._u = 0, None
+        self.k, self._u, self._t = 0, None, None
+        self._stepper = self._compiled_step(m)
         idx = tm.state_indices
         self._idx, self._Pz = idx, np.asarray(P0, float)[idx, idx]
         self._q2 = np.asarray(m.proc_std(np.asarray(theta, float)[None, :]), float)[0][idx] ** 2
         self.information = np.zeros(len(idx))
+        self._box = (np.array([tp.lower for tp in tm.tracked]),
+                     np.array([tp.upper - tp.lower for tp in tm.tracked]),
+                     np.array([tp.transform == "logit" for tp in tm.tracked]))
         self.observable = None
         if observe is not None:
             sigma0, window, ratio = observe
             self._need = np.asarray(sigma0, float) ** 2, 1.0 / float(ratio) - 1.0
             self._ring, self._sum = np.zeros((max(1, int(window)), len(idx))), np.zeros(len(idx))
             self.observable = np.zeros(len(idx), bool)
+
+    def _compiled_step(self, m):
+        """The compiled one-sample step (:class:`~bondgraph.inference.ukf_numba.StepKernel`)
+        when the options' backend is numba and the kernel serves them; else
+        None (numpy's predict and update)."""
+        from bondgraph.inference.ukf import _backend_for
+        from bondgraph.inference.ukf_numba import StepKernel
+
+        if not self.batch.size:
+            raise NumericalError(f"the tracker cannot start: {self.batch.reasons[0]}")
+        kernels, _, _ = _backend_for(m, self.opts)
+        return None if kernels is None else StepKernel(kernels, self.batch, m.n_u, self.opts,
+                                                       self.wts)
 
     @classmethod
     def from_problem(cls, problem, tm: TrackingModel, *, start=None, std=None, drift=None,
@@ -713,30 +777,45 @@ class Tracker:
         from bondgraph.numerics.integrators import hold_inputs
 
         b, u, y = self.batch, np.asarray(u, float).reshape(-1), np.asarray(y, float).reshape(-1)
-        if b.t and not t > b.t[-1]:
-            raise NumericalError(f"Tracker.update: time {t!r} does not follow {b.t[-1]!r}")
-        b.t.append(float(t))
-        if self.k > 0:
-            uk, duk = hold_inputs(np.stack([self._u, u]), self.opts.hold).interval(0)
-            predict(b, self.step, uk, b.t[-1] - b.t[-2], self.wts, self.k, duk)
-        if b.size and np.isfinite(y).any():
-            update(b, self.tm.model, u, y, self.wts, self.k)
-        if not b.size:
-            raise NumericalError(f"the tracker fails: {b.reasons[0]}")
-        self._observe(b.t[-1] - b.t[-2] if self.k > 0 else 0.0)
-        self.k, self._u = self.k + 1, u
-        est, sd = self.tm.values(b.x[0], b.P[0])
-        return est, sd
+        if self._t is not None and not t > self._t:
+            raise NumericalError(f"Tracker.update: time {t!r} does not follow {self._t!r}")
+        if self._stepper is not None:
+            _, reason = self._stepper.step(b.x[0], b.P[0], self._t, t, self._u, u, y)
+            if reason is not None:
+                raise NumericalError(f"the tracker fails at t = {t:.6g} s: {reason}")
+        else:
+            b.t.append(float(t))
+            if self.k > 0:
+                uk, duk = hold_inputs(np.stack([self._u, u]), self.opts.hold).interval(0)
+                predict(b, self.step, uk, b.t[-1] - b.t[-2], self.wts, self.k, duk)
+            if b.size and np.isfinite(y).any():
+                update(b, self.tm.model, u, y, self.wts, self.k)
+            if not b.size:
+                raise NumericalError(f"the tracker fails: {b.reasons[0]}")
+        z, Pz = b.x[0][self._idx], b.P[0][self._idx, self._idx]
+        est, slope = self._transform(z)
+        self._observe(t - self._t if self.k > 0 else 0.0, Pz, slope)
+        self.k, self._u, self._t = self.k + 1, u, float(t)
+        return est, np.abs(slope) * np.sqrt(np.maximum(Pz, 0.0))
 
-    def _observe(self, dt: float) -> None:
-        """The sample's information about each parameter and, with ``observe``,
-        whether it is observable (:func:`track`'s test, sample by sample)."""
-        b, idx = self.batch, self._idx
-        Pz = b.P[0][idx, idx]
-        slope = [tp.slope(b.x[0][i]) for tp, i in zip(self.tm.tracked, idx)]
-        self.information = np.array([
-            information_gain(Pz[c:c + 1], self._Pz[c], [self._q2[c] * dt], [slope[c]])[0]
-            for c in range(len(idx))])
+    def _transform(self, z):
+        """p(z) and dp/dz of every tracked parameter at once (k,)
+        (:meth:`TrackedParameter.value`, :meth:`~TrackedParameter.slope`)."""
+        lo, width, logit = self._box
+        s = 1.0 / (1.0 + np.exp(-z))
+        return (np.where(logit, lo + width * s, z),
+                np.where(logit, width * s * (1.0 - s), 1.0))
+
+    def _observe(self, dt: float, Pz, slope) -> None:
+        """The sample's information about each parameter (k,)
+        (:func:`~bondgraph.inference.changes.information_gain`, for all
+        parameters at once) and, with ``observe``, whether each is observable
+        (:func:`track`'s test, sample by sample)."""
+        tiny = np.finfo(float).tiny
+        Pm = self._Pz + self._q2 * dt
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            info = (1.0 / np.maximum(Pz, tiny) - 1.0 / np.maximum(Pm, tiny)) / slope ** 2
+        self.information = np.where(np.isfinite(info) & (info > 0), info, 0.0)
         self._Pz = Pz
         if self.observable is not None:
             r = self.k % len(self._ring)
