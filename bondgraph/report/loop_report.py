@@ -18,12 +18,12 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-from matplotlib.ticker import FuncFormatter
 
 from bondgraph.core.atomic import OutputFolder
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.result import LoopResult
+from bondgraph.report.evidence import SHOWN, plot_evidence
 from bondgraph.report.plots import pyplot
 
 
@@ -240,7 +240,8 @@ def _plots(result: LoopResult, out: Path, cache: dict | None = None) -> list[str
     for k, ranking in enumerate(result.rankings, 1):
         if ranking:
             acc = result.steps[k - 1] if k <= len(result.steps) else None
-            key = _digest("evidence", k, [(c.label, c.score, c.failed) for c in ranking[:15]],
+            key = _digest("evidence", k, [(c.label, c.score, c.failed, c.equivalent, c.tied,
+                                           c.confirmed) for c in ranking[:SHOWN]],
                           None if acc is None else (acc.effect, acc.attached_to))
             pngs.append(_cached_png(cache, key, out / f"evidence_step{k}.png",
                                     lambda k=k, r=ranking: _plot_evidence(result, k, r, out)))
@@ -316,25 +317,8 @@ def _plot_innovations(result: LoopResult, out: Path) -> str:
 
 
 def _plot_evidence(result: LoopResult, k: int, ranking, out: Path) -> str:
-    """The 15 best candidates of step ``k`` by evidence; the one accepted at
-    this step in green (the title says when none was)."""
-    plt = pyplot()
-    top = ranking[:15][::-1]
-    fig, ax = plt.subplots(figsize=(9, 0.32 * len(top) + 1.2))
-    vals = [max(c.score, -5) if not c.failed else 0.0 for c in top]
-    acc = result.steps[k - 1] if k <= len(result.steps) else None   # steps stop at a refusal
-    green = [acc is not None and (acc.effect, acc.attached_to) == (c.effect, c.target.name)
-             for c in top]
-    ax.barh([c.label for c in top], vals, color=["tab:green" if g else "tab:gray" for g in green])
-    ax.set_xlabel("evidence: χ² statistic − 2k (predicted AIC decrease)")
-    ax.set_xscale("symlog", linthresh=10)
-    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-    ax.tick_params(axis="y", labelsize=7)
-    note = (f"green: accepted ({acc.effect} @ {acc.attached_to})" if any(green) else
-            f"accepted: {acc.effect} @ {acc.attached_to}, not among these" if acc is not None
-            else "none accepted")
-    ax.set_title(f"Step {k}: candidate effects ({note})", fontsize=10)
-    return _save(fig, out / f"evidence_step{k}.png")
+    """The evidence plot of step ``k`` (:func:`bondgraph.report.evidence.plot_evidence`)."""
+    return plot_evidence(result, k, ranking, out / f"evidence_step{k}.png")
 
 
 def markdown(result: LoopResult, pngs: list[str]) -> str:
