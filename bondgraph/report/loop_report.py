@@ -23,7 +23,9 @@ from bondgraph.core.atomic import OutputFolder
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.result import LoopResult
+from bondgraph.report.drawing import draw, layout
 from bondgraph.report.evidence import SHOWN, plot_evidence
+from bondgraph.report.html import graph_changes, page
 from bondgraph.report.plots import pyplot
 
 
@@ -108,6 +110,7 @@ def write(result: LoopResult, out, *, final=None, cache: dict | None = None) -> 
         _write_generated(result, out, Path(final) if final is not None else out, cache)
     pngs = _plots(result, out, cache)
     (out / "report.md").write_text(markdown(result, pngs))
+    (out / "report.html").write_text(page(result, out, pngs + _graph_plots(result, out, cache)))
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
 
 
@@ -246,6 +249,35 @@ def _plots(result: LoopResult, out: Path, cache: dict | None = None) -> list[str
             pngs.append(_cached_png(cache, key, out / f"evidence_step{k}.png",
                                     lambda k=k, r=ranking: _plot_evidence(result, k, r, out)))
     return pngs
+
+
+def _graph_plots(result: LoopResult, out: Path, cache: dict) -> list[str]:
+    """``graph_before.png`` (the declared graph) and, once an effect is
+    accepted, ``graph_after.png`` (the augmented graph, what the effects
+    added in green), both in the augmented graph's layout; their names."""
+    before = result.declared_graph
+    after = result.final_graph if _augmented(result) else None
+    if before is None:
+        return []
+    key = _digest("graphs", pickle.dumps(before), None if after is None else pickle.dumps(after))
+    cached = cache.get(key)
+    if cached is None:
+        plt = pyplot()
+        pos = layout(after if after is not None else before)
+        drawn = [(before, "graph_before.png", (), "declared")]
+        if after is not None:
+            drawn.append((after, "graph_after.png", graph_changes(before, after),
+                          "augmented (added in green)"))
+        cached = {}
+        for graph, name, marked, what in drawn:
+            fig = draw(graph, out / name, highlight=marked, positions=pos,
+                       title=f"{graph.name}: {what}; red bar = causal stroke")
+            plt.close(fig)
+            cached[name] = (out / name).read_bytes()
+        cache[key] = cached
+    for name, data in cached.items():
+        (out / name).write_bytes(data)
+    return list(cached)
 
 
 def _augmented(result: LoopResult) -> bool:
