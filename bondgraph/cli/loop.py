@@ -162,7 +162,7 @@ def run(args) -> int:
         print(res.table())
     else:
         print("  no effect accepted (nothing significant left)")
-    print(f"report: {out / 'report.md'} (and report.json, PNG plots, "
+    print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots, "
           f"augmented_model.py)")
     return 0
 
