@@ -29,6 +29,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")      # one core
 
 import numpy as np  # noqa: E402
 
+from bondgraph.core.jsonsafe import to_jsonable  # noqa: E402
 from bondgraph.data.experiments import run_experiment  # noqa: E402
 from bondgraph.inference.options import TrackOptions, UKFOptions  # noqa: E402
 from bondgraph.inference.problem import make_problem  # noqa: E402
@@ -128,7 +129,7 @@ def main():
     print("friction:", {k: v for k, v in out["friction"].items() if k != "changes"}, flush=True)
     out["no_change"] = false_alarms(a.hours)
     print("no change:", {k: v for k, v in out["no_change"].items() if k != "alarms"})
-    text = json.dumps(out)
+    text = json.dumps(to_jsonable(out), allow_nan=False)
     Path(__file__).with_name("results").joinpath("tracking.json").write_text(text + "\n")
     print(text)
 
