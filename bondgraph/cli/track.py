@@ -96,7 +96,9 @@ def run(args) -> int:
     start = {n: float(problem.theta[model.param_index(n)]) for n in names}
     tm = TrackingModel.from_graph(graph, names, drift, start=start)
     res = track(problem, tm, std={n: std[n] for n in names if n in std}, options=opts)
-    truth = (exp.meta or {}).get("true_parameters") or {}
+    truth = dict((exp.meta or {}).get("true_parameters") or {})
+    for name, column in ((exp.meta or {}).get("schedules") or {}).items():
+        truth[name] = exp[column]        # a parameter that changes: its time series
 
     def version(d: Path) -> list:
         _write_csv(d / "track.csv", res.columns())
