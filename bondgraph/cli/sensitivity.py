@@ -37,6 +37,10 @@ from bondgraph.sensitivity.sobol import SobolOptions
 from bondgraph.sensitivity.identifiability import CORR_MAX, REL_CRB_MAX
 
 
+#: the example line of ``bondgraph sensitivity --help``
+EXAMPLE = "bondgraph sensitivity --model mass_spring_damper --data msd_force_step.csv --params m,k,c"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph sensitivity``."""
     add_model(p)
