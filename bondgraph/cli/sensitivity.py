@@ -74,7 +74,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rel-crb", type=float, default=REL_CRB_MAX,
                    help="largest relative Cramér-Rao bound of a recommended parameter")
     p.add_argument("--corr-max", type=float, default=CORR_MAX,
-                   help="largest |correlation| within the recommended set")
+                   help="largest abs(correlation) within the recommended set")
     p.add_argument("--no-sensitivities", action="store_true",
                    help="skip the forward sensitivity equations")
     p.add_argument("--seed", type=int, default=0)
