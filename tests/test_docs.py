@@ -6,7 +6,8 @@ a ``bash`` block in the shell (``bondgraph`` of this interpreter's
 environment first on PATH); a ```` {code-block} python```` directive with a
 ``:caption: NAME.py`` is a file the page asks you to write, and is written
 into the page's working directory; other blocks (``text``, captionless
-``{code-block}``) are shown, not run. Each page runs in a fresh directory,
+``{code-block}``) are shown, not run. The blocks of the walk-through pages
+(``RUN_UNDER``) run; each page runs in a fresh directory,
 its blocks in page order; consecutive Python blocks run as one script.
 """
 
@@ -40,8 +41,14 @@ def code_blocks(page: Path) -> list[tuple[str, str]]:
     return out
 
 
+#: the pages whose blocks run: the walk-throughs (reference pages such as
+#: data_format.md show fragments that name the reader's own files)
+RUN_UNDER = ("getting_started.md", "tutorials/", "howto/")
+
+
 def runnable_pages() -> list[Path]:
-    return sorted(p for p in DOCS.rglob("*.md") if "_build" not in p.parts and code_blocks(p))
+    return sorted(p for p in DOCS.rglob("*.md")
+                  if p.relative_to(DOCS).as_posix().startswith(RUN_UNDER) and code_blocks(p))
 
 
 def _run(args, cwd, env, what):
