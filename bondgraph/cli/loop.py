@@ -51,6 +51,10 @@ DEFAULT_CASE = "vehicle_aero"
 DEFAULT_OUT = "bondgraph-report"
 
 
+#: the example line of ``bondgraph loop --help``
+EXAMPLE = "bondgraph loop --model door.py:door --data door_push.csv --params J,k,c --out door-report"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph loop``."""
     p.add_argument("--case", default=None,

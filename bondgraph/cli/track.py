@@ -34,6 +34,10 @@ from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.tracking import plot_track
 
 
+#: the example line of ``bondgraph track --help``
+EXAMPLE = "bondgraph track --model mass_spring_damper --data msd_force_step.csv --track c --out track_out"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph track``."""
     add_model(p)
