@@ -138,7 +138,7 @@ def test_frequency_response_matches_small_signal_simulation(w):
                                                     lin.D[[i]][:, [0]]), w=[w])[1][0]
                   for i in range(len(lin.outputs))])
     print(w, np.abs(measured / G - 1))
-    np.testing.assert_allclose(measured, G, rtol=2e-3)
+    np.testing.assert_allclose(measured, G, rtol=5e-5)
     np.testing.assert_allclose(lin.freqresp([w])[0, :, 0], G, rtol=1e-12)
 
 
