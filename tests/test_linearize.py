@@ -137,7 +137,6 @@ def test_frequency_response_matches_small_signal_simulation(w):
     G = np.array([signal.freqresp(signal.StateSpace(lin.A, lin.B[:, [0]], lin.C[[i]],
                                                     lin.D[[i]][:, [0]]), w=[w])[1][0]
                   for i in range(len(lin.outputs))])
-    print(w, np.abs(measured / G - 1))
     np.testing.assert_allclose(measured, G, rtol=5e-5)
     np.testing.assert_allclose(lin.freqresp([w])[0, :, 0], G, rtol=1e-12)
 
