@@ -31,6 +31,8 @@ COMMANDS: dict[str, str] = {
     "estimate": "maximum-likelihood estimation (UKF + PSO/DE)",
     "sensitivity": "local and global sensitivity, identifiability",
     "track": "track parameters over a record (augmented-state UKF) and detect their changes",
+    "export": "a standalone FMI 2.0 FMU (Model Exchange and Co-Simulation) of a model",
+    "linearize": "A, B, C, D at an operating point or equilibrium: .npz, poles, Bode plot",
 }
 
 

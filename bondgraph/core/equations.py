@@ -217,6 +217,14 @@ class StateSpace:
         """∂h/∂θ, shape (n_y, n_θ)."""
         return self._jac(self.h, self.params)
 
+    def dfdu(self) -> sp.Matrix:
+        """∂f/∂u, shape (n_x, n_u) (the B of a linearisation)."""
+        return self._jac(self.f, self.inputs)
+
+    def dhdu(self) -> sp.Matrix:
+        """∂h/∂u, shape (n_y, n_u) (the D of a linearisation)."""
+        return self._jac(self.h, self.inputs)
+
     def describe(self) -> str:
         """Readable listing of the equations."""
         lines = [f"model {self.name}: {len(self.states)} states, {len(self.inputs)} inputs, "
