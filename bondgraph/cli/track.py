@@ -151,6 +151,22 @@ def summary(res) -> str:
                      f"end {res.estimate[-1, i]:.6g} ± {res.std[-1, i]:.3g} {res.units[i]}")
         if res.observable is not None:
             lines.append(_observability_line(res, n, i))
+    bad = res.inconsistent()
+    n_win = max(1, int(np.ceil((res.t[-1] - res.t[0] + 1e-9) / 10.0)))
+    if len(bad) > max(1, 0.05 * n_win):
+        lines.append(f"warning: the innovations are larger than the model allows in {len(bad)} "
+                     f"of {n_win} windows of 10 s (first at {bad[0][0]:.6g} s): the model lacks "
+                     f"an effect there, and the tracker may read it as parameter changes; "
+                     f"find it with `bondgraph loop` before trusting the changes")
+    for i, n in enumerate(res.names):
+        lo, hi = res.settings.get("boxes", {}).get(n, (None, None))
+        if lo is None:
+            continue
+        on = np.mean((res.estimate[:, i] - lo < 1e-3 * (hi - lo))
+                     | (hi - res.estimate[:, i] < 1e-3 * (hi - lo)))
+        if on > 0.05:
+            lines.append(f"warning: {n} sits on its box [{lo:g}, {hi:g}] for {100 * on:.0f} % "
+                         f"of the record: the box, or the model, is wrong there")
     lines.append(f"{len(res.changes)} change(s)")
     for c in res.changes:
         lines.append(f"  t = {c.time:.6g} s (alarm {c.alarm_time:.6g} s): {c.parameter} "

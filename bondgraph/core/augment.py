@@ -104,14 +104,16 @@ class TrackedParameter:
         z = np.asarray(z, float)
         if self.transform == "none":
             return z.copy()
-        return self.lower + (self.upper - self.lower) / (1.0 + np.exp(-z))
+        with np.errstate(over="ignore"):        # exp(-z) = inf: p = lower, as it should
+            return self.lower + (self.upper - self.lower) / (1.0 + np.exp(-z))
 
     def slope(self, z):
         """dp/dz at z (numpy, any shape)."""
         z = np.asarray(z, float)
         if self.transform == "none":
             return np.ones_like(z)
-        s = 1.0 / (1.0 + np.exp(-z))
+        with np.errstate(over="ignore"):
+            s = 1.0 / (1.0 + np.exp(-z))
         return (self.upper - self.lower) * s * (1.0 - s)
 
     def state_of(self, p):

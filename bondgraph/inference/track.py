@@ -57,6 +57,7 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
+from scipy import stats
 
 from bondgraph.core.augment import augment, tracked_parameters
 from bondgraph.errors import ModelError, NumericalError, OptionError
@@ -144,13 +145,18 @@ class TrackingModel:
 
     def values(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Parameter estimates and std (..., k) from state means (..., n_x)
-        and covariances (..., n_x, n_x): p = g(z), σ_p = |g'(z)| σ_z."""
+        and covariances (..., n_x, n_x): p = g(z), σ_p = |g(z + σ_z) − g(z − σ_z)| / 2
+        (|g'(z)| σ_z to first order; near a bound of the box, where the
+        logit's slope vanishes, the secant keeps the spread the state still
+        has instead of reporting a parameter known exactly)."""
         idx = self.state_indices
         z = x[..., idx]
         var = np.maximum(np.diagonal(P, axis1=-2, axis2=-1)[..., idx], 0.0)
+        sz = np.sqrt(var)
         est = np.stack([tp.value(z[..., i]) for i, tp in enumerate(self.tracked)], -1)
-        sl = np.stack([np.abs(tp.slope(z[..., i])) for i, tp in enumerate(self.tracked)], -1)
-        return est, sl * np.sqrt(var)
+        hi = np.stack([tp.value(z[..., i] + sz[..., i]) for i, tp in enumerate(self.tracked)], -1)
+        lo = np.stack([tp.value(z[..., i] - sz[..., i]) for i, tp in enumerate(self.tracked)], -1)
+        return est, 0.5 * np.abs(hi - lo)
 
 
 def tracking_prior(problem, tm: TrackingModel, start: Mapping[str, float] | None = None,
@@ -286,6 +292,10 @@ class TrackResult:
     information : ndarray (N, k)
         Information of each sample's update about each parameter
         [1/unit²] (:func:`bondgraph.inference.changes.information_gain`).
+    nis, nis_dof : ndarray (N,)
+        The tracking filter's normalised innovation squared per sample (NaN
+        without an update) and the number of outputs measured there (its χ²
+        degrees of freedom when the model is right; :meth:`inconsistent`).
     observable : ndarray of bool (N, k)
         Whether each parameter is observable from the record at each sample
         (``TrackOptions.observable_s``, ``observable_ratio``).
@@ -307,6 +317,8 @@ class TrackResult:
     threshold: float | None
     changes: list = field(default_factory=list)
     information: np.ndarray | None = None
+    nis: np.ndarray | None = None
+    nis_dof: np.ndarray | None = None
     observable: np.ndarray | None = None
     smoothed: np.ndarray | None = None
     smoothed_std: np.ndarray | None = None
@@ -324,6 +336,34 @@ class TrackResult:
                 out[f"{n}.smoothed_std"] = self.smoothed_std[:, i]
             if self.observable is not None:
                 out[f"observable_{n}"] = self.observable[:, i].astype(float)
+        return out
+
+    def inconsistent(self, window_s: float = 10.0, level: float = 1e-3) -> list[tuple[float, float]]:
+        """Windows where the innovations are larger than the model allows.
+
+        The record is cut into windows of ``window_s`` seconds; in each, the
+        sum of the NIS is χ² with the summed degrees of freedom when the
+        model (with the tracked parameters) is right and its innovations
+        white (Bar-Shalom, Li & Kirubarajan 2001, §5.4). A window whose sum
+        exceeds the ``1 − level`` quantile is listed. Many such windows mean
+        model error the tracker may read as parameter changes: a missing
+        effect, not a changed parameter (``bondgraph loop`` finds it).
+
+        Returns
+        -------
+        list of (t_start, t_end) [s]
+        """
+        if self.nis is None or self.t.size < 2:
+            return []
+        dt = float(np.median(np.diff(self.t)))
+        w = max(1, int(round(window_s / dt)))
+        out = []
+        for a in range(0, self.t.size, w):
+            nis, dof = self.nis[a:a + w], self.nis_dof[a:a + w]
+            ok = np.isfinite(nis)
+            m = int(dof[ok].sum())
+            if m and float(nis[ok].sum()) > stats.chi2.isf(level, m):
+                out.append((float(self.t[a]), float(self.t[min(a + w, self.t.size) - 1])))
         return out
 
     def unobservable(self, name: str) -> list[tuple[float, float]]:
@@ -357,6 +397,8 @@ class _Segment:
     G: np.ndarray
     info: np.ndarray
     end: int = -1
+    nis: np.ndarray | None = None       # (n,) normalised innovation squared, NaN: no update
+    dof: np.ndarray | None = None       # (n,) outputs measured at each sample
 
 
 def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = None,
@@ -415,7 +457,9 @@ def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = Non
     if opts.smooth:
         res.smoothed, res.smoothed_std = _smoothed(tm, t, u, th, segs, ukf)
     res.settings = dict(ukf=ukf.to_dict(), track=opts.to_dict(), window=window, dt=dt,
-                        theta=dict(zip(tm.model.params, th.tolist())))
+                        theta=dict(zip(tm.model.params, th.tolist())),
+                        boxes={tp.name: (tp.lower, tp.upper) for tp in tm.tracked
+                               if tp.transform == "logit"})
     return res
 
 
@@ -436,7 +480,8 @@ def _filter_segment(tm, rec, th, prior, ukf, R, s0: int) -> _Segment:
     info = np.stack([information_gain(Pf[:, i, i], P[i, i], q2[c] * dts,
                                       tm.tracked[c].slope(xf[:, i]))
                      for c, i in enumerate(idx)], -1)
-    return _Segment(s0, xf, Pf, (x, P), float(res.nll[0]), S, np.zeros_like(S), info)
+    return _Segment(s0, xf, Pf, (x, P), float(res.nll[0]), S, np.zeros_like(S), info,
+                    nis=res.nis[:, 0], dof=np.isfinite(y[s0:]).sum(axis=1))
 
 
 def reference_std(tm: TrackingModel, x0, options: TrackOptions) -> np.ndarray:
@@ -558,11 +603,12 @@ def _stitch(tm, t, segs, changes, h) -> TrackResult:
     N, k, n = t.size, len(tm.tracked), tm.model.n_x
     xs, Ps = np.full((N, n), np.nan), np.full((N, n, n), np.nan)
     S, G, info = np.full((N, k), np.nan), np.zeros((N, k)), np.zeros((N, k))
+    nis, dof = np.full(N, np.nan), np.zeros(N, dtype=int)
     for i, seg in enumerate(segs):
         a, e = _kept(seg, i == 0)
         r = slice(a - seg.start, e - seg.start)
         xs[a:e], Ps[a:e], S[a:e], G[a:e] = seg.x[r], seg.P[r], seg.S[r], seg.G[r]
-        info[a:e] = seg.info[r]
+        info[a:e], nis[a:e], dof[a:e] = seg.info[r], seg.nis[r], seg.dof[r]
     est, sd = tm.values(xs, Ps)
     for ch, seg in zip(changes, segs[1:]):
         c = tm.names.index(ch.parameter)
@@ -571,7 +617,8 @@ def _stitch(tm, t, segs, changes, h) -> TrackResult:
     return TrackResult(t=t, names=tm.names, units=[tp.unit for tp in tm.tracked], estimate=est,
                        std=sd, x_filt=xs, states=list(tm.model.states),
                        nll=float(sum(s.nll for s in segs)), increments=S, statistic=G,
-                       threshold=h, changes=changes, information=info)
+                       threshold=h, changes=changes, information=info, nis=nis,
+                       nis_dof=dof)
 
 
 def _smoothed(tm, t, u, th, segs, ukf):
@@ -796,13 +843,15 @@ class Tracker:
         est, slope = self._transform(z)
         self._observe(t - self._t if self.k > 0 else 0.0, Pz, slope)
         self.k, self._u, self._t = self.k + 1, u, float(t)
-        return est, np.abs(slope) * np.sqrt(np.maximum(Pz, 0.0))
+        sz = np.sqrt(np.maximum(Pz, 0.0))
+        return est, 0.5 * np.abs(self._transform(z + sz)[0] - self._transform(z - sz)[0])
 
     def _transform(self, z):
         """p(z) and dp/dz of every tracked parameter at once (k,)
         (:meth:`TrackedParameter.value`, :meth:`~TrackedParameter.slope`)."""
         lo, width, logit = self._box
-        s = 1.0 / (1.0 + np.exp(-z))
+        with np.errstate(over="ignore"):
+            s = 1.0 / (1.0 + np.exp(-z))
         return (np.where(logit, lo + width * s, z),
                 np.where(logit, width * s * (1.0 - s), 1.0))
 
