@@ -412,3 +412,26 @@ def test_inconsistent_innovations_flag_model_error_not_a_clean_record():
     n_win = int(np.ceil(t.size / round(10.0 / DT)))
     assert len(bad.inconsistent()) >= n_win - 1            # measured: all 7; clean: 1
     assert np.nanmean(bad.nis) > 100.0                     # measured: 7282
+
+
+def test_track_from_an_estimate_result_or_a_loop_report(tmp_path):
+    """``bondgraph track --from``: the start values and prior std from
+    ``bondgraph estimate``'s result.json or ``bondgraph loop``'s report.json
+    (its final fit; a parameter on its box has std null)."""
+    import json
+
+    from bondgraph.cli.track import _from_result
+    from bondgraph.errors import DataError
+
+    est = tmp_path / "result.json"
+    est.write_text(json.dumps({"params": ["c", "k"], "estimates": [1.6, 49.0],
+                               "std": [0.01, "inf"]}))
+    assert _from_result(est) == ({"c": 1.6, "k": 49.0}, {"c": 0.01})
+    rep = tmp_path / "report.json"
+    rep.write_text(json.dumps({"final_fit": {"estimates": {"c": 1.7, "k": 51.0},
+                                             "std": {"c": 0.02, "k": None}}}))
+    assert _from_result(rep) == ({"c": 1.7, "k": 51.0}, {"c": 0.02})
+    bad = tmp_path / "other.json"
+    bad.write_text(json.dumps({"something": 1}))
+    with pytest.raises(DataError, match="neither a `bondgraph estimate` result.json nor"):
+        _from_result(bad)

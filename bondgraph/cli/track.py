@@ -47,8 +47,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="name=value,... drift intensity of a tracked parameter, in its unit "
                         "per sqrt(s) (default 0: a constant, re-estimated at changes)")
     p.add_argument("--from", dest="from_result", default=None,
-                   help="result.json of `bondgraph estimate`: its estimates are the start "
-                        "values (tracked) and fixed values (others), its std the prior std")
+                   help="result.json of `bondgraph estimate` or report.json of `bondgraph "
+                        "loop` (its final fit): its estimates are the start values (tracked) "
+                        "and fixed values (others), its std the prior std")
     p.add_argument("--false-alarm-hours", type=float, default=10.0,
                    help="mean time between false alarms of the change detector [h] "
                         "(default 10; 0: no detection)")
@@ -72,14 +73,21 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def _from_result(path) -> tuple[dict, dict]:
-    """``(values, std)`` by parameter name of an estimate's result.json."""
+    """``(values, std)`` by parameter name of an estimate's result.json or a
+    loop's report.json (its final fit: estimates and Cramér-Rao std)."""
     try:
         d = from_jsonable(json.loads(Path(path).read_text()))
+        if isinstance(d, dict) and isinstance(d.get("final_fit"), dict):
+            fit = d["final_fit"]
+            return ({n: float(v) for n, v in fit["estimates"].items()},
+                    {n: float(s) for n, s in (fit.get("std") or {}).items()
+                     if s is not None and np.isfinite(float(s))})
         names = list(d["params"])
         return (dict(zip(names, map(float, d["estimates"]))),
                 {n: float(s) for n, s in zip(names, d.get("std") or []) if np.isfinite(s)})
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise DataError(f"--from {path}: not a readable estimate result ({exc})") from None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise DataError(f"--from {path}: neither a `bondgraph estimate` result.json nor a "
+                        f"`bondgraph loop` report.json ({type(exc).__name__}: {exc})") from None
 
 
 def run(args) -> int:
