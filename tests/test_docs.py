@@ -103,7 +103,7 @@ def test_sphinx_build_without_warnings(tmp_path):
     cli = (html / "reference" / "cli.html").read_text()
     assert "--max-steps" in cli and "example: bondgraph loop" in cli
     assert (html / "reference" / "generated" / "api" / "bondgraph.core.graph.BondGraph.html").exists()
-    assert "effect_recovery_full.json" in (html / "background" / "generated" / "bench_tables.html").read_text()
+    assert "effect_recovery.json" in (html / "background" / "generated" / "bench_tables.html").read_text()
 
 
 def test_readme_is_short_and_says_what_ci_runs():
