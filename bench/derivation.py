@@ -18,6 +18,7 @@ import json
 import statistics
 import subprocess
 import sys
+from pathlib import Path
 
 CHILD = r"""
 import json, sys, time
@@ -36,6 +37,7 @@ print(json.dumps({"states": len(ss.states), "derive_s": t1 - t0, "codegen_s": t2
                   "total_s": t2 - t0, "lines": src.count("\n")}))
 """
 
+RESULT = Path(__file__).with_name("results") / "derivation.json"   # the current result
 PEERS = {39: ("BondGraphTools", 12.0), 79: ("bondgraph 0.2.0 (PyPI)", 23.8)}
 TARGETS = {39: 0.5, 79: 2.0}
 
@@ -43,6 +45,8 @@ TARGETS = {39: 0.5, 79: 2.0}
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--result", default=str(RESULT),
+                    help="where the result goes ('' for nowhere)")
     args = ap.parse_args()
     out = {}
     for masses in (20, 40):
@@ -66,7 +70,10 @@ def main() -> None:
         }
         print(f"{n} states: {total:.3f} s (target <= {TARGETS[n]} s; {peer}: {peer_s} s, "
               f"{peer_s / total:.0f}x)")
-    print(json.dumps(out))
+    text = json.dumps(out)
+    if args.result:
+        Path(args.result).write_text(text + "\n")
+    print(text)
 
 
 if __name__ == "__main__":

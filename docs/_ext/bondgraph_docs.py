@@ -192,11 +192,6 @@ def _fmt(v) -> str:
     return str(v).replace("|", "\\|").replace("\n", " ")
 
 
-def _bench_of(stem: str) -> str:
-    scripts = sorted((p.stem for p in (ROOT / "bench").glob("*.py")), key=len, reverse=True)
-    return next((s for s in scripts if stem.startswith(s)), "?")
-
-
 def recovery_table(results: list) -> list[str]:
     """The effect-recovery matrix of ``bench/effect_recovery.py`` results."""
     per, total = _bench_module("effect_recovery").summarise(results)
@@ -215,32 +210,55 @@ def recovery_table(results: list) -> list[str]:
     return lines
 
 
-def bench_tables() -> str:
-    """Markdown: one section per ``bench/results/*.json``."""
-    lines = ["# Benchmark results (generated)", "",
-             "One section per file of `bench/results/`, read at every documentation build; "
-             "what the benches measure and how to read the numbers: {doc}`../benchmarks`.", ""]
-    for path in sorted((ROOT / "bench" / "results").glob("*.json")):
-        data = json.loads(path.read_text())
-        lines += [f"## `{path.name}`", "",
-                  f"Written by `python bench/{_bench_of(path.stem)}.py`.", ""]
-        if path.stem.startswith("effect_recovery"):
-            lines += recovery_table(data)
-            continue
-        tables = data if isinstance(data, list) else []
-        if isinstance(data, dict):
-            rows = _scalar_rows(data)
-            if rows:
-                lines += ["| quantity | value |", "|---|---|"]
-                lines += [f"| {k} | {_fmt(v)} |" for k, v in rows]
-                lines.append("")
-            tables = next((v for v in data.values() if isinstance(v, list)
-                           and v and isinstance(v[0], dict)), [])
-        if tables:
-            keys = [k for k in tables[0] if not isinstance(tables[0][k], (dict, list))]
-            lines += ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-            lines += ["| " + " | ".join(_fmt(r.get(k)) for k in keys) + " |" for r in tables]
+def _json_tables(data) -> list[str]:
+    """Markdown tables of one result: its scalars, then its first list of rows."""
+    lines = []
+    tables = data if isinstance(data, list) else []
+    if isinstance(data, dict):
+        rows = _scalar_rows(data)
+        if rows:
+            lines += ["| quantity | value |", "|---|---|"]
+            lines += [f"| {k} | {_fmt(v)} |" for k, v in rows]
             lines.append("")
+        tables = next((v for v in data.values() if isinstance(v, list)
+                       and v and isinstance(v[0], dict)), [])
+    if tables:
+        keys = [k for k in tables[0] if not isinstance(tables[0][k], (dict, list))]
+        lines += ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+        lines += ["| " + " | ".join(_fmt(r.get(k)) for k in keys) + " |" for r in tables]
+        lines.append("")
+    return lines
+
+
+def bench_tables() -> str:
+    """Markdown: one section per bench script ``bench/<name>.py``, its current
+    result ``bench/results/<name>.json`` (and ``<name>.png``) as tables; a bench
+    without a result, and a result file without a bench, are named as such."""
+    results = ROOT / "bench" / "results"
+    benches = sorted(p.stem for p in (ROOT / "bench").glob("*.py") if not p.stem.startswith("_"))
+    lines = ["# Benchmark results (generated)", "",
+             "One section per bench script `bench/<name>.py`, with its current result "
+             "`bench/results/<name>.json` read at every documentation build (the history of "
+             "each result is in git: `git log -p bench/results/<name>.json`); what the benches "
+             "measure and how to read the numbers: {doc}`../benchmarks`.", ""]
+    missing = [b for b in benches if not (results / f"{b}.json").exists()]
+    orphans = sorted(p.name for p in results.iterdir()
+                     if p.stem not in benches or p.suffix not in (".json", ".png"))
+    if missing:
+        lines += ["Benches without a stored result (run them to write one): "
+                  + ", ".join(f"`bench/{b}.py`" for b in missing) + ".", ""]
+    if orphans:
+        lines += ["Files of `bench/results/` that no bench writes: "
+                  + ", ".join(f"`{o}`" for o in orphans) + ".", ""]
+    for name in benches:
+        path = results / f"{name}.json"
+        if not path.exists():
+            continue
+        lines += [f"## `{path.name}`", "", f"Written by `python bench/{name}.py`.", ""]
+        if (results / f"{name}.png").exists():
+            lines += [f"(and `bench/results/{name}.png`)", ""]
+        data = json.loads(path.read_text())
+        lines += recovery_table(data) if name == "effect_recovery" else _json_tables(data)
     return "\n".join(lines)
 
 
