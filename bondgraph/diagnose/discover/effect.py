@@ -44,7 +44,7 @@ effect and the loop runs again with it beside the library.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import sympy as sp
@@ -335,6 +335,8 @@ class Discovery:
         Likelihood gain of the reconstruction: the UKF's NLL at the grid's
         smallest intensity minus the NLL at the chosen one (nats; 0 when the
         intensity was given).
+    placement : list of Placement
+        Where the effect's parts go in the declared graph.
     """
 
     reconstruction: Reconstruction
@@ -342,6 +344,7 @@ class Discovery:
     passivity: PassivityReport
     effect: DiscoveredEffect | None
     gain: float
+    placement: list = field(default_factory=list)
 
     def summary(self) -> str:
         """Readable lines: the law, the passivity verdict, the gain."""
@@ -391,7 +394,8 @@ def discover_effect(graph, record, port: str, *, params=None,
     kept = rep.law
     eff = DiscoveredEffect(kept, name) if kept.terms else None
     gain = float(rec.nll_grid[-1] - np.min(rec.nll_grid)) if rec.nll_grid.size else 0.0
-    return Discovery(rec, law, rep, eff, gain)
+    placed = eff.placement(graph) if eff is not None else []
+    return Discovery(rec, law, rep, eff, gain, placed)
 
 
 def coefficient_std(graph, record, effect: DiscoveredEffect, estimates: dict, *,
@@ -485,8 +489,9 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
     if best is None:
         return first, None
     effects = tuple(settings.effects) + (best.effect,)
-    return run_loop(graph, record, replace(settings, effects=effects), log=log,
-                    progress=False), best
+    res = run_loop(graph, record, replace(settings, effects=effects), log=log, progress=False)
+    res.discovery = discovery_plot(best, res)
+    return res, best
 
 
 def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
@@ -538,6 +543,42 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
     best = max(found, key=lambda d: d.gain)
     say(best.summary())
     return best
+
+
+def discovery_plot(disc: Discovery, result=None):
+    """What the report shows of ``disc`` (:class:`~bondgraph.diagnose.result.DiscoveryPlot`):
+    d̂(t) with its std and the kept law on the port's variables, at the
+    coefficients the loop's ``result`` refitted when it accepted the law
+    (with their Cramér-Rao std), else as discovered.
+
+    Parameters
+    ----------
+    disc : Discovery
+    result : LoopResult, optional
+        The loop run with the discovered effect.
+
+    Returns
+    -------
+    DiscoveryPlot
+    """
+    from bondgraph.diagnose.result import DiscoveryPlot
+
+    eff, rec, law = disc.effect, disc.reconstruction, disc.passivity.law
+    step = next((s for s in (result.steps if result is not None else [])
+                 if eff is not None and s.effect == eff.name), None)
+    values = {n: p["estimate"] for n, p in step.parameters.items()} if step else {}
+    std = {n: p.get("std") for n, p in step.parameters.items()} if step else {}
+    std = {n: v for n, v in std.items() if v is not None}
+    tgt = Target("junction", law.port)
+    terms = [replace(tm, coef=float(values.get(eff.pname(tgt, f"c{k}"), tm.coef)))
+             for k, tm in enumerate(law.terms)] if eff is not None else []
+    refit = replace(law, terms=terms)
+    text = eff.readable(values, std) if eff is not None else law.readable()
+    placed = [f"{pl.part}: {pl.element} ({pl.why})" for pl in disc.placement]
+    return DiscoveryPlot(law.port, law.kind, law.unit, np.asarray(rec.t, float),
+                         np.asarray(rec.d, float), np.asarray(rec.d_std, float),
+                         np.asarray(refit.evaluate(rec.variables), float), text,
+                         "\n".join([disc.passivity.summary()] + placed), step is not None)
 
 
 def _last_resort(settings, effect_name: str) -> bool:
