@@ -177,7 +177,7 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     (:func:`bondgraph.diagnose.discover.effect.discovered_effect`), the
     loop run again with that law as an effect (its report replaces the
     first one in ``out``)."""
-    from bondgraph.diagnose.discover.effect import discovered_effect
+    from bondgraph.diagnose.discover.effect import discovered_effect, discovery_plot
 
     echo = (lambda _m: None) if args.quiet else print
     best = discovered_effect(graph, record, settings, res, log=echo)
@@ -186,8 +186,13 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'")
     settings = dataclasses.replace(settings, effects=tuple(settings.effects) + (best.effect,))
     reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True)
+
+    def update(result):
+        result.discovery = discovery_plot(best, result)
+        reporter.update(result)
+
     return run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
-                    on_update=reporter.update)
+                    on_update=update)
 
 
 def loop_states(graph, text: str) -> list[str]:

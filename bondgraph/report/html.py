@@ -97,6 +97,14 @@ def page(result: LoopResult, out, pngs: list[str]) -> str:
     body += _section("Fit before and after", [images.get("fit_before_after.png", ""),
                                                images.get("residuals_before_after.png", "")])
     body += _evidence(result, images)
+    if result.discovery is not None:
+        dp = result.discovery
+        body += _section("Discovery (an effect beyond the library)",
+                         [f"<p>The {escape(dp.kind)} missing at <code>{escape(dp.port)}</code>, "
+                          f"reconstructed (±2σ), against the discovered law "
+                          f"({'accepted' if dp.accepted else 'not accepted'} by the loop):</p>",
+                          f"<pre>{escape(dp.text)}\n{escape(dp.passivity)}</pre>",
+                          images.get("discovery.png", "")], anchor="discovery")
     body += _rejected(result)
     body += _residuals(result)
     body.append('<p class="muted">Also in this folder: <a href="report.md">report.md</a>, '

@@ -248,7 +248,52 @@ def _plots(result: LoopResult, out: Path, cache: dict | None = None) -> list[str
                           None if acc is None else (acc.effect, acc.attached_to))
             pngs.append(_cached_png(cache, key, out / f"evidence_step{k}.png",
                                     lambda k=k, r=ranking: _plot_evidence(result, k, r, out)))
+    if result.discovery is not None:
+        dp = result.discovery
+        pngs.append(_cached_png(cache, _digest("discovery", dp.t, dp.d, dp.d_std, dp.law, dp.text),
+                                out / DISCOVERY_PNG, lambda: plot_discovery(dp, out / DISCOVERY_PNG)))
     return pngs
+
+
+#: the plot of the reconstruction against the discovered law
+DISCOVERY_PNG = "discovery.png"
+
+
+def plot_discovery(dp, path: Path) -> str:
+    """The reconstructed d̂(t) with its ±2σ band against the discovered law
+    on the port's variables (a :class:`~bondgraph.diagnose.result.DiscoveryPlot`),
+    over time and as d̂ versus the law; saved at ``path``, returns its name."""
+    plt = pyplot()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.8), gridspec_kw={"width_ratios": [2.2, 1]})
+    a1.fill_between(dp.t, dp.d - 2 * dp.d_std, dp.d + 2 * dp.d_std, color="C0", alpha=0.25,
+                    label="±2σ")
+    a1.plot(dp.t, dp.d, "C0", lw=1.0, label="reconstructed d̂")
+    a1.plot(dp.t, dp.law, "C3", lw=1.0, ls="--", label="discovered law")
+    a1.set_xlabel("time [s]")
+    a1.set_ylabel(f"{dp.port} {dp.kind} [{dp.unit}]")
+    a1.legend(loc="upper right", fontsize=8)
+    a2.plot(dp.law, dp.d, ".", ms=2, color="C0")
+    lo, hi = float(np.nanmin(dp.law)), float(np.nanmax(dp.law))
+    a2.plot([lo, hi], [lo, hi], "k-", lw=0.8)
+    a2.set_xlabel("law [%s]" % dp.unit)
+    a2.set_ylabel("d̂ [%s]" % dp.unit)
+    fig.suptitle(dp.text, fontsize=9)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _md_discovery(result: LoopResult) -> list[str]:
+    """The discovery section of ``report.md`` (empty when none ran)."""
+    dp = result.discovery
+    if dp is None:
+        return []
+    verdict = "accepted by the loop" if dp.accepted else "not accepted by the loop"
+    return ["## Discovery (an effect beyond the library)", "",
+            f"No library effect was accepted; the effort missing at `{dp.port}` was "
+            f"reconstructed ({dp.kind}, ±2σ band) and its law discovered ({verdict}):", "",
+            f"    {dp.text}", "", "Passivity and placement:", "",
+            *[f"- {line}" for line in dp.passivity.splitlines()], "",
+            f"![{DISCOVERY_PNG}]({DISCOVERY_PNG})", ""]
 
 
 def _graph_plots(result: LoopResult, out: Path, cache: dict) -> list[str]:
@@ -364,6 +409,7 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
     L += _md_errors(result)
     L += _md_accepted(result)
     L.append("")
+    L += _md_discovery(result)
     L.append("## Evidence (ranking of every step)")
     L.append("")
     for k, ranking in enumerate(result.rankings, 1):
@@ -372,7 +418,8 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
     L += _md_residuals(result)
     L.append("")
     for p in pngs:
-        L.append(f"![{p}]({p})")
+        if p != DISCOVERY_PNG:
+            L.append(f"![{p}]({p})")
     L.append("")
     if result.rejected:
         L.append("## Rejected candidates")
