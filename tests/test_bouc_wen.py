@@ -64,11 +64,29 @@ def test_derived_equations_equal_the_hand_written_ones():
         -0.5 - 20 * 0.5 * 0.1 * 0.1 + 6 * 0.5 * 0.01)
 
 
-def test_it_is_in_the_default_library():
-    from bondgraph.diagnose.effects import DEFAULT_EFFECTS, get_effect
+def test_it_is_in_the_optional_library_and_the_command_adds_it():
+    """Scored when asked (a structural candidate at every mechanical and
+    electrical junction, each compiled on its grid): ``--add-effects``."""
+    import argparse
+
+    from bondgraph.cli import loop as cli_loop
+    from bondgraph.diagnose.effects import DEFAULT_EFFECTS, OPTIONAL_EFFECTS, get_effect
+    from bondgraph.diagnose.settings import LoopSettings
+    from bondgraph.errors import GraphError
 
     assert isinstance(get_effect("bouc_wen"), BoucWen)
-    assert any(isinstance(e, BoucWen) for e in DEFAULT_EFFECTS)
+    assert not any(isinstance(e, BoucWen) for e in DEFAULT_EFFECTS)
+    assert any(isinstance(e, BoucWen) for e in OPTIONAL_EFFECTS)
+    p = argparse.ArgumentParser()
+    cli_loop.configure(p)
+    g = dc_motor_compliant()
+    args = p.parse_args(["--add-effects", "bouc_wen,cold_start"])
+    s = cli_loop.loop_settings(args, LoopSettings(params=["J_m"]), g)
+    assert [e.name for e in s.effects[-2:]] == ["bouc_wen", "cold_start"]
+    assert len(s.effects) == len(DEFAULT_EFFECTS) + 2
+    with pytest.raises(GraphError, match="unknown effect 'nope'"):
+        cli_loop.loop_settings(p.parse_args(["--add-effects", "nope"]),
+                               LoopSettings(params=["J_m"]), g)
 
 
 def test_targets_are_mechanical_and_electrical_junctions():

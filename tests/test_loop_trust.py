@@ -414,3 +414,27 @@ def test_a_refit_that_pins_a_declared_parameter_on_its_box_is_refused():
     assert decide(current, inside, rule, dof=1).accepted
     # already on its box before the step: the declared fit's verdict reports it
     assert newly_boxed(fit(100.0, 1.0, ["K2"], float(hi[0])), after) == ""
+
+
+def test_a_pair_whose_member_ends_on_its_box_is_not_a_pair():
+    """The quintic-spring record (tests/test_discover_loop.py) once accepted
+    quadratic drag + cubic stiffness 'as a pair' with the drag coefficient at
+    0, its lower bound: the pair's gain was the cubic term's alone, which was
+    refused alone (a negative stiffness). A member on its box is switched off
+    or pinned: the pair is refused, naming it."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.accept import pair_member_boxed
+
+    model = SimpleNamespace(params=["k", "drag.c", "cubic.k3"],
+                            param_index=lambda n: ["k", "drag.c", "cubic.k3"].index(n),
+                            bounds=lambda names: ([{"drag.c": 0.0, "cubic.k3": -1e4}[n]
+                                                   for n in names],
+                                                  [{"drag.c": 20.0, "cubic.k3": 1e4}[n]
+                                                   for n in names]))
+    fit = SimpleNamespace(model=model, theta=np.array([50.0, 0.0, -7545.0]),
+                          at_bound=["drag.c"])
+    why = pair_member_boxed(fit, ["drag.c", "cubic.k3"])
+    assert why.startswith("a member's parameter ends on its box (drag.c = 0, box [0, 20])")
+    fit.at_bound = []
+    assert pair_member_boxed(fit, ["drag.c", "cubic.k3"]) is None

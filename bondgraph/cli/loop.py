@@ -30,6 +30,7 @@ from bondgraph.cli.common import (
 )
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.cases import get_case, registered_cases
+from bondgraph.diagnose.effects import get_effect
 from bondgraph.diagnose.fit import loop_problem, model_of
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.runner import held_out
@@ -98,6 +99,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="score effects even when the declared fit failed (physical parameters "
                         "that never left their start values or sit on their boxes); by default "
                         "the loop stops there with exit code 2 and names them")
+    p.add_argument("--add-effects", default=None, metavar="NAME,...",
+                   help="effects of the library's optional part to score besides the default "
+                        "library (cold_start, bouc_wen)")
     p.add_argument("--discover", action="store_true",
                    help="when no physical effect is accepted: reconstruct the effort (flow) "
                         "missing at each 1- (0-) junction, discover its law from the port's "
@@ -253,10 +257,15 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     given = {k: getattr(args, k) for k in ("method", "substeps", "hold")
              if getattr(args, k) is not None}
     ukf = ukf_replaced(base.ukf, given, args.backend)
+    effects = base.effects
+    if args.add_effects:
+        have = {e.name for e in effects}
+        effects = tuple(effects) + tuple(get_effect(n) for n in parse_names(
+            args.add_effects, "--add-effects") if n not in have)
     try:
         return dataclasses.replace(
             base, fixed={**base.fixed, **fixed} if fixed else base.fixed,
-            estimate_x0=states, metric=_given(args.metric, base.metric),
+            estimate_x0=states, metric=_given(args.metric, base.metric), effects=effects,
             noise=_given(args.noise, base.noise), validation=validation,
             holdout=_given(None if holdout is None else float(holdout), base.holdout),
             accept=accept_rule(args, base.accept), search=search_options(args, base.search),

@@ -392,6 +392,30 @@ def newly_boxed(current: Fit, after: Fit) -> str:
                      for n, a, b in zip(names, lo, hi))
 
 
+def pair_member_boxed(pair: Fit, new_params) -> str | None:
+    """Why a pair is not a pair when a member's own parameters end on a bound
+    of their boxes (None otherwise): such a member is switched off (a drag
+    coefficient at 0) or pinned by its box, so the pair's gain is its
+    partner's, which must then pass alone; the likelihood ratio at a
+    boundary is not χ²-distributed either (Self & Liang 1987).
+
+    Parameters
+    ----------
+    pair : Fit
+        The pair's refit (``at_bound``: its estimates on a bound).
+    new_params : sequence of str
+        The members' new parameters.
+    """
+    boxed = [n for n in new_params if n in pair.at_bound]
+    if not boxed:
+        return None
+    lo, hi = pair.model.bounds(boxed)
+    return ("a member's parameter ends on its box (" + ", ".join(
+        f"{n} = {pair.theta[pair.model.param_index(n)]:.4g}, box [{a:.4g}, {b:.4g}]"
+        for n, a, b in zip(boxed, lo, hi)) + "): that member is switched off or pinned, "
+        "the gain is its partner's alone")
+
+
 def pair_needed(pair: Fit, singles: list, dofs: list[int], level: float) -> str | None:
     """Why a pair of effects is not needed as a pair, or None: the pair's
     refit must beat each member's own refit by a likelihood ratio

@@ -18,6 +18,7 @@ from bondgraph.diagnose.accept import (
     confirmed_record,
     decide,
     mark_ties,
+    pair_member_boxed,
     pair_needed,
     rank_confirmed,
     rejection,
@@ -748,9 +749,9 @@ def accepted_pair_fit(ctx: Context, result: LoopResult, current: Fit, pair: tupl
                admissible=admissibility(ctx, after) if conf.comparable else None,
                comparable=conf.comparable)
     singles = [ctx.cache.get(("confirmation", id(current), current.nll, c.label)) for c in pair]
-    reason = d.reason or pair_needed(after, [None if r is None else r.fit for r in singles],
-                                     [0 if r is None else len(r.new_params) for r in singles],
-                                     s.accept.significance)
+    reason = d.reason or pair_member_boxed(after, conf.new_params) or pair_needed(
+        after, [None if r is None else r.fit for r in singles],
+        [0 if r is None else len(r.new_params) for r in singles], s.accept.significance)
     if reason:
         result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: {reason}",
                                          d.criterion_after, d.whiteness_after))

@@ -108,9 +108,9 @@ def write(result: LoopResult, out, *, final=None, cache: dict | None = None) -> 
         if not (result.source and ":" in result.source) and result.declared_graph is not None:
             (out / DECLARED_PICKLE).write_bytes(pickle.dumps(result.declared_graph))
         _write_generated(result, out, Path(final) if final is not None else out, cache)
-    pngs = _plots(result, out, cache)
+    pngs = _plots(result, out, cache) + _graph_plots(result, out, cache)
     (out / "report.md").write_text(markdown(result, pngs))
-    (out / "report.html").write_text(page(result, out, pngs + _graph_plots(result, out, cache)))
+    (out / "report.html").write_text(page(result, out, pngs))
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
 
 

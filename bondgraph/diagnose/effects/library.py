@@ -52,15 +52,17 @@ DEFAULT_EFFECTS: tuple[Effect, ...] = (
     SourceOffset(), SensorPolynomial2(), SensorPolynomial3(), CubicStiffness(), RSquareRoot(),
     RQuadratic(), RCubic(), SourceLag(), SourceRateLimit(), InputDelay(), SensorQuantisation(),
     CapacityLimit(), DahlFriction(),
-    # issue 29: hysteresis with memory (~4-5 % more candidates on the bundled cases)
-    BoucWen(),
 )
 
 #: effects of the library that the loop scores only when asked
-#: (``LoopSettings(effects=DEFAULT_EFFECTS + OPTIONAL_EFFECTS)``): a cold
-#: start (issue 26) attaches to every source of every graph, and a record
-#: that starts warm has nothing for it to find
-OPTIONAL_EFFECTS: tuple[Effect, ...] = (ColdStart(),)
+#: (``LoopSettings(effects=DEFAULT_EFFECTS + OPTIONAL_EFFECTS)``, or
+#: ``bondgraph loop --add-effects cold_start,bouc_wen``): a cold start
+#: (issue 26) attaches to every source of every graph, and a record that
+#: starts warm has nothing for it to find; Bouc-Wen hysteresis (issue 29) is
+#: a structural candidate (its own state) at every mechanical and electrical
+#: 1-junction, each compiled on its grid (~4-5 % more candidates on the
+#: bundled cases, but among the costliest to score)
+OPTIONAL_EFFECTS: tuple[Effect, ...] = (ColdStart(), BoucWen())
 
 BY_NAME: dict[str, Effect] = {e.name: e for e in DEFAULT_EFFECTS + OPTIONAL_EFFECTS}
 
