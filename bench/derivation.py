@@ -12,10 +12,11 @@ for 79 states; BondGraphTools took 12 s for 39 states.
 
 Each size is built in a fresh subprocess (cold sympy caches, after imports and
 a warm-up on the mass-spring-damper), repeated ``--repeat`` times; the median
-is reported. The last line printed is one JSON object, also written to
-bench/results/derivation.json.
+is reported, with the process's CPU time of the whole (the machine is shared:
+wall time includes waiting for a core). The last line printed is one JSON
+object, also written to bench/results/derivation.json (``--out`` elsewhere).
 
-Usage: python bench/derivation.py [--repeat 3] [--masses 20 40 100 250]
+Usage: python bench/derivation.py [--repeat 3] [--masses 20 40 100 250] [--out FILE]
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from bondgraph.core.equations import derive
 _ss = derive(mass_spring_damper())     # warm-up: imports, unit registry
 generate_source(_ss); generate_numba_source(_ss)
 n = int(sys.argv[1])
+c0 = time.process_time()
 t0 = time.perf_counter()
 g = mass_chain(n)
 ss = derive(g)
@@ -44,7 +46,8 @@ src = generate_source(ss)
 t2 = time.perf_counter()
 nsrc = generate_numba_source(ss)
 t3 = time.perf_counter()
-print(json.dumps({"states": len(ss.states), "derive_s": t1 - t0, "numpy_s": t2 - t1,
+c3 = time.process_time()
+print(json.dumps({"states": len(ss.states), "cpu_s": c3 - c0, "derive_s": t1 - t0, "numpy_s": t2 - t1,
                   "numba_s": t3 - t2, "total_s": t3 - t0, "lines": src.count("\n"),
                   "numba_lines": nsrc.count("\n")}))
 """
@@ -64,7 +67,7 @@ def measure(masses: int, repeat: int) -> dict:
         runs.append(json.loads(r.stdout.strip().splitlines()[-1]))
     n = runs[0]["states"]
     med = {k: statistics.median(r[k] for r in runs)
-           for k in ("derive_s", "numpy_s", "numba_s", "total_s")}
+           for k in ("derive_s", "numpy_s", "numba_s", "total_s", "cpu_s")}
     out = {k: round(v, 4) for k, v in med.items()}
     out.update(states=n, masses=masses, generated_lines=runs[0]["lines"],
                numba_lines=runs[0]["numba_lines"],
@@ -85,18 +88,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--masses", type=int, nargs="+", default=[20, 40, 100, 250])
+    ap.add_argument("--out", type=Path, default=RESULT)
     args = ap.parse_args()
     out = {}
     for masses in args.masses:
         r = measure(masses, args.repeat)
         out[f"states_{r['states']}"] = r
         print(f"{r['states']:4d} states: derive {r['derive_s']:.3f} s, numpy {r['numpy_s']:.3f} s, "
-              f"numba {r['numba_s']:.3f} s, total {r['total_s']:.3f} s "
+              f"numba {r['numba_s']:.3f} s, total {r['total_s']:.3f} s (CPU {r['cpu_s']:.3f} s) "
               f"({r['ms_per_state']:.2f} ms/state)", flush=True)
     per = [r["ms_per_state"] for r in out.values()]
     out["per_state_max_over_min"] = round(max(per) / min(per), 2)
-    RESULT.parent.mkdir(parents=True, exist_ok=True)
-    RESULT.write_text(json.dumps(out, indent=1) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1) + "\n")
     print(json.dumps(out))
 
 
