@@ -174,7 +174,7 @@ def f(x, u, theta):
     _t0 = 1/tau_f
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.multiply(_t0, -Q + P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*np.tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) + Q_idle, out=_dxdt[0, ...])
+    np.multiply(_t0, P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*np.tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -253,9 +253,9 @@ def dfdtheta(x, u, theta):
     np.multiply(-1, _t10*(1 - _t1**2)*A/v_eps**2, out=_J[0, 4, ...])
     np.multiply(-1, _t12*_t4/eta**2, out=_J[0, 5, ...])
     _J[0, 6, ...] = _t0
-    np.multiply(-1, (-Q + _t11*_t6*P_eps + Q_idle)/tau_f**2, out=_J[0, 7, ...])
+    np.multiply(-1, (_t11*_t6*P_eps - Q + Q_idle)/tau_f**2, out=_J[0, 7, ...])
     np.multiply(-1, _t12*_t5/H**2, out=_J[0, 8, ...])
-    np.multiply(_t0, -_t3*_t7 + _t11*_t4*_t5, out=_J[0, 9, ...])
+    np.multiply(_t0, _t11*_t4*_t5 - _t3*_t7, out=_J[0, 9, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -311,7 +311,7 @@ def f_dfdx(x, u, theta):
     _t0 = 1/tau_f
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.multiply(_t0, -Q + P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*np.tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) + Q_idle, out=_dxdt[0, ...])
+    np.multiply(_t0, P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*np.tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((1, 1) + _shape)
     np.multiply(-1, _t0, out=_J[0, 0, ...])

@@ -161,7 +161,7 @@ def f(x, u, theta):
     _t7 = _t6*p_J_p
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((3,) + _shape)
-    np.add(-_t5*p_L_a + u_2, _t4*k_m, out=_dxdt[0, ...])
+    np.add(u_2 - _t5*p_L_a, _t4*k_m, out=_dxdt[0, ...])
     np.add(-_t7, -_t4, out=_dxdt[1, ...])
     np.add(-_t7*b_p, _t1, out=_dxdt[2, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
@@ -242,7 +242,7 @@ def dfdtheta(x, u, theta):
     _t2 = 1/b_m
     _t3 = _t1*_t2
     _t4 = _t0*k_m
-    _t5 = -_t4 + k_b*q_spring
+    _t5 = k_b*q_spring - _t4
     _t6 = _t5/b_m**2
     _t7 = _t2*q_spring
     _t8 = p_J_p/J_p**2
@@ -330,7 +330,7 @@ def f_dfdx(x, u, theta):
     _t8 = _t0*k_b
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((3,) + _shape)
-    np.add(-_t5*p_L_a + u_2, _t4*k_m, out=_dxdt[0, ...])
+    np.add(u_2 - _t5*p_L_a, _t4*k_m, out=_dxdt[0, ...])
     np.add(-_t7, -_t4, out=_dxdt[1, ...])
     np.add(-_t7*b_p, _t1, out=_dxdt[2, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
@@ -397,7 +397,7 @@ def power_dissipated(x, u, theta):
     b_p = theta[..., 6]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((R_a*p_L_a/L_a)*(p_L_a/L_a) + (-k_b*q_spring + k_m*p_L_a/L_a)*(-(k_b*q_spring - k_m*p_L_a/L_a)/b_m), (b_p*p_J_p/J_p)*(p_J_p/J_p), out=_out[...])
+    np.add((R_a*p_L_a/L_a)*(p_L_a/L_a) + (k_m*p_L_a/L_a - k_b*q_spring)*(-(k_b*q_spring - k_m*p_L_a/L_a)/b_m), (b_p*p_J_p/J_p)*(p_J_p/J_p), out=_out[...])
     return _out
 
 

@@ -177,8 +177,8 @@ def f(x, u, theta):
     _t6 = _t5*p_J_L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((4,) + _shape)
-    np.add(-_t3*p_L_a + V, -_t1*k_m, out=_dxdt[0, ...])
-    np.add(-_t1*b_m + _t2*k_m*p_L_a, -_t4, out=_dxdt[1, ...])
+    np.add(V - _t3*p_L_a, -_t1*k_m, out=_dxdt[0, ...])
+    np.add(_t2*k_m*p_L_a - _t1*b_m, -_t4, out=_dxdt[1, ...])
     np.add(-_t6, _t1, out=_dxdt[2, ...])
     np.add(-T_L - _t6*b_L, _t4, out=_dxdt[3, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
@@ -353,8 +353,8 @@ def f_dfdx(x, u, theta):
     _t6 = _t5*p_J_L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((4,) + _shape)
-    np.add(-_t3*p_L_a + V, -_t1*k_m, out=_dxdt[0, ...])
-    np.add(-_t1*b_m + _t2*k_m*p_L_a, -_t4, out=_dxdt[1, ...])
+    np.add(V - _t3*p_L_a, -_t1*k_m, out=_dxdt[0, ...])
+    np.add(_t2*k_m*p_L_a - _t1*b_m, -_t4, out=_dxdt[1, ...])
     np.add(-_t6, _t1, out=_dxdt[2, ...])
     np.add(-T_L - _t6*b_L, _t4, out=_dxdt[3, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
@@ -453,7 +453,7 @@ def energy_rate(x, u, theta):
     b_L = theta[..., 7]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((-k_s*q_k_s + k_m*p_L_a/L_a - b_m*p_J_m/J_m)*p_J_m/J_m + (-k_m*p_J_m/J_m - R_a*p_L_a/L_a + V)*p_L_a/L_a + (p_J_m/J_m - p_J_L/J_L)*k_s*q_k_s, (-T_L + k_s*q_k_s - b_L*p_J_L/J_L)*p_J_L/J_L, out=_out[...])
+    np.add((k_m*p_L_a/L_a - k_s*q_k_s - b_m*p_J_m/J_m)*p_J_m/J_m + (V - k_m*p_J_m/J_m - R_a*p_L_a/L_a)*p_L_a/L_a + (p_J_m/J_m - p_J_L/J_L)*k_s*q_k_s, (k_s*q_k_s - T_L - b_L*p_J_L/J_L)*p_J_L/J_L, out=_out[...])
     return _out
 
 

@@ -150,7 +150,7 @@ def f(x, u, theta):
     _t7 = _t0*_t3
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-_t4*p_J_L + V, -_t1*p_L_a, out=_dxdt[0, ...])
+    np.add(V - _t4*p_J_L, -_t1*p_L_a, out=_dxdt[0, ...])
     np.multiply(_t5, _t7*p_L_a - _t6*p_J_L, out=_dxdt[1, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
@@ -313,7 +313,7 @@ def f_dfdx(x, u, theta):
     _t7 = _t0*_t3
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-_t4*p_J_L + V, -_t1*p_L_a, out=_dxdt[0, ...])
+    np.add(V - _t4*p_J_L, -_t1*p_L_a, out=_dxdt[0, ...])
     np.multiply(_t5, _t7*p_L_a - _t6*p_J_L, out=_dxdt[1, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((2, 2) + _shape)
@@ -394,10 +394,10 @@ def energy_rate(x, u, theta):
     J_L = theta[..., 5]
     b_L = theta[..., 6]
     _t2 = n**2
-    _t4 = -b_L*p_J_L/J_L + k_m*n*p_L_a/L_a
+    _t4 = k_m*n*p_L_a/L_a - b_L*p_J_L/J_L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t4*p_J_L/((1 + _t2*J_m/J_L)*J_L) + _t2*_t4*J_m*p_J_L/((1 + _t2*J_m/J_L)*J_L**2), (-R_a*p_L_a/L_a - k_m*n*p_J_L/J_L + V)*p_L_a/L_a, out=_out[...])
+    np.add(_t4*p_J_L/((1 + _t2*J_m/J_L)*J_L) + _t2*_t4*J_m*p_J_L/((1 + _t2*J_m/J_L)*J_L**2), (V - R_a*p_L_a/L_a - k_m*n*p_J_L/J_L)*p_L_a/L_a, out=_out[...])
     return _out
 
 

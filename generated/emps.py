@@ -351,7 +351,7 @@ def energy_rate(x, u, theta):
     _t0 = 1/M
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(_t0, (-offset + vir*gtau - Fc*np.tanh(p_M/(M*v_eps)) - Fv*p_M/M)*p_M, out=_out[...])
+    np.multiply(_t0, (vir*gtau - offset - Fc*np.tanh(p_M/(M*v_eps)) - Fv*p_M/M)*p_M, out=_out[...])
     return _out
 
 

@@ -227,7 +227,7 @@ def f(x, u, theta):
     _t0 = 1/m2
     _t1 = _t0*p_M2
     _t2 = 1/m1
-    _t3 = -_t1 + _t2*p_M1
+    _t3 = _t2*p_M1 - _t1
     _t4 = _t3*c1 + k1*q_K1
     _t5 = 1/m3
     _t6 = _t5*p_M3
@@ -388,7 +388,7 @@ def dfdtheta(x, u, theta):
     _t16 = _t12*c4
     _t17 = p_M5/m5**2
     _t18 = _t17*c4
-    _t19 = -_t14 + p_M5/m5
+    _t19 = p_M5/m5 - _t14
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((9, 13) + _shape)
     _J[0, 0, ...] = _t1
@@ -498,7 +498,7 @@ def f_dfdx(x, u, theta):
     _t0 = 1/m2
     _t1 = _t0*p_M2
     _t2 = 1/m1
-    _t3 = -_t1 + _t2*p_M1
+    _t3 = _t2*p_M1 - _t1
     _t4 = _t3*c1 + k1*q_K1
     _t5 = 1/m3
     _t6 = _t5*p_M3
@@ -678,7 +678,7 @@ def energy_rate(x, u, theta):
     _t8 = p_M4/m4 - p_M5/m5
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((_t2*c1 + k1*q_K1 - _t4*c2 - k2*q_K2)*p_M2/m2 + (_t4*c2 + k2*q_K2 - _t6*c3 - k3*q_K3)*p_M3/m3 + (_t6*c3 + k3*q_K3 - _t8*c4 - k4*q_K4)*p_M4/m4 + (_t8*c4 + k4*q_K4)*p_M5/m5 + _t2*k1*q_K1 + _t4*k2*q_K2 + _t6*k3*q_K3 + _t8*k4*q_K4, (-_t2*c1 - k1*q_K1 + F)*p_M1/m1, out=_out[...])
+    np.add((_t2*c1 + k1*q_K1 - _t4*c2 - k2*q_K2)*p_M2/m2 + (_t4*c2 + k2*q_K2 - _t6*c3 - k3*q_K3)*p_M3/m3 + (_t6*c3 + k3*q_K3 - _t8*c4 - k4*q_K4)*p_M4/m4 + (_t8*c4 + k4*q_K4)*p_M5/m5 + _t2*k1*q_K1 + _t4*k2*q_K2 + _t6*k3*q_K3 + _t8*k4*q_K4, (F - _t2*c1 - k1*q_K1)*p_M1/m1, out=_out[...])
     return _out
 
 

@@ -123,7 +123,7 @@ def f(x, u, theta):
     _t1 = _t0*p_mass
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-k*q_spring + F, -_t1*c, out=_dxdt[0, ...])
+    np.add(F - k*q_spring, -_t1*c, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
@@ -242,7 +242,7 @@ def f_dfdx(x, u, theta):
     _t1 = _t0*p_mass
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-k*q_spring + F, -_t1*c, out=_dxdt[0, ...])
+    np.add(F - k*q_spring, -_t1*c, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((2, 2) + _shape)
@@ -313,7 +313,7 @@ def energy_rate(x, u, theta):
     c = theta[..., 2]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(k*p_mass*q_spring/m, (-k*q_spring - c*p_mass/m + F)*p_mass/m, out=_out[...])
+    np.add(k*p_mass*q_spring/m, (F - k*q_spring - c*p_mass/m)*p_mass/m, out=_out[...])
     return _out
 
 

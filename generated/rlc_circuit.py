@@ -124,7 +124,7 @@ def f(x, u, theta):
     _t2 = _t1*p_inductor
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-_t2*R + V, -_t0*q_capacitor, out=_dxdt[0, ...])
+    np.add(V - _t2*R, -_t0*q_capacitor, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t2
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
@@ -253,7 +253,7 @@ def f_dfdx(x, u, theta):
     _t2 = _t1*p_inductor
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-_t2*R + V, -_t0*q_capacitor, out=_dxdt[0, ...])
+    np.add(V - _t2*R, -_t0*q_capacitor, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t2
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((2, 2) + _shape)
@@ -324,7 +324,7 @@ def energy_rate(x, u, theta):
     C = theta[..., 2]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(p_inductor*q_capacitor/(C*L), (-q_capacitor/C - R*p_inductor/L + V)*p_inductor/L, out=_out[...])
+    np.add(p_inductor*q_capacitor/(C*L), (V - q_capacitor/C - R*p_inductor/L)*p_inductor/L, out=_out[...])
     return _out
 
 

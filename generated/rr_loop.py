@@ -117,7 +117,7 @@ def f(x, u, theta):
     _t1 = 1/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.add(V, -(_t0*(-V + _t1*R1*p_L) + _t1*p_L)*R1, out=_dxdt[0, ...])
+    np.add(V, -(_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -143,7 +143,7 @@ def h(x, u, theta):
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((2,) + _shape)
     _y[0, ...] = _t1
-    np.add(V, -(_t1 + _t2*(-V + _t0*R1*p_L))*R1, out=_y[1, ...])
+    np.add(V, -(_t1 + _t2*(_t0*R1*p_L - V))*R1, out=_y[1, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -180,7 +180,7 @@ def dfdtheta(x, u, theta):
     _t0 = -R1 - R2
     _t1 = 1/_t0
     _t2 = 1/L
-    _t3 = -V + _t2*R1*p_L
+    _t3 = _t2*R1*p_L - V
     _t4 = _t2*p_L
     _t5 = _t3/_t0**2
     _t6 = p_L/L**2
@@ -227,7 +227,7 @@ def dhdtheta(x, u, theta):
     _t1 = -R1 - R2
     _t2 = 1/_t1
     _t3 = 1/L
-    _t4 = -V + _t3*R1*p_L
+    _t4 = _t3*R1*p_L - V
     _t5 = _t3*p_L
     _t6 = _t4/_t1**2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
@@ -259,7 +259,7 @@ def f_dfdx(x, u, theta):
     _t1 = 1/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.add(V, -(_t0*(-V + _t1*R1*p_L) + _t1*p_L)*R1, out=_dxdt[0, ...])
+    np.add(V, -(_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((1, 1) + _shape)
     np.multiply(-1, (_t1 + _t0*_t1*R1)*R1, out=_J[0, 0, ...])
@@ -294,7 +294,7 @@ def power_sources(x, u, theta):
     L = theta[..., 2]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(V, (-V + R1*p_L/L)/(-R1 - R2) + p_L/L, out=_out[...])
+    np.multiply(V, (R1*p_L/L - V)/(-R1 - R2) + p_L/L, out=_out[...])
     return _out
 
 
@@ -309,11 +309,11 @@ def power_dissipated(x, u, theta):
     R1 = theta[..., 0]
     R2 = theta[..., 1]
     L = theta[..., 2]
-    _t1 = (-V + R1*p_L/L)/(-R1 - R2)
+    _t1 = (R1*p_L/L - V)/(-R1 - R2)
     _t2 = _t1 + p_L/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((-_t2*R1 + V)*_t1, (_t2*R1)*_t2, out=_out[...])
+    np.add((V - _t2*R1)*_t1, (_t2*R1)*_t2, out=_out[...])
     return _out
 
 
@@ -331,7 +331,7 @@ def energy_rate(x, u, theta):
     _t0 = 1/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(_t0, (-((-V + R1*p_L/L)/(-R1 - R2) + p_L/L)*R1 + V)*p_L, out=_out[...])
+    np.multiply(_t0, (V - ((R1*p_L/L - V)/(-R1 - R2) + p_L/L)*R1)*p_L, out=_out[...])
     return _out
 
 

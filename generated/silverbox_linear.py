@@ -129,7 +129,7 @@ def f(x, u, theta):
     _t1 = _t0*p_mass
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-k*q_spring + V1, -_t1*d, out=_dxdt[0, ...])
+    np.add(V1 - k*q_spring, -_t1*d, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
@@ -238,7 +238,7 @@ def f_dfdx(x, u, theta):
     _t1 = _t0*p_mass
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-k*q_spring + V1, -_t1*d, out=_dxdt[0, ...])
+    np.add(V1 - k*q_spring, -_t1*d, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((2, 2) + _shape)
@@ -309,7 +309,7 @@ def energy_rate(x, u, theta):
     k = theta[..., 2]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(k*p_mass*q_spring/m, (-k*q_spring - d*p_mass/m + V1)*p_mass/m, out=_out[...])
+    np.add(k*p_mass*q_spring/m, (V1 - k*q_spring - d*p_mass/m)*p_mass/m, out=_out[...])
     return _out
 
 

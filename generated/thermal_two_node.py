@@ -146,7 +146,7 @@ def f(x, u, theta):
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
     np.add(_t0*P, _t5, out=_dxdt[0, ...])
-    np.add(_t0*_t6*(-_t3 + T_a), -_t5, out=_dxdt[1, ...])
+    np.add(_t0*_t6*(T_a - _t3), -_t5, out=_dxdt[1, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -231,7 +231,7 @@ def dfdtheta(x, u, theta):
     _t11 = _t1*_t10
     _t12 = _t5*_t7/Rth12**2
     _t13 = 1/Rth2a
-    _t14 = -_t3 + T_a
+    _t14 = T_a - _t3
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 5) + _shape)
     np.add(-_t6 - _t0*P, _t8, out=_J[0, 0, ...])
@@ -318,7 +318,7 @@ def f_dfdx(x, u, theta):
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
     np.add(_t0*P, _t5, out=_dxdt[0, ...])
-    np.add(_t0*_t6*(-_t3 + T_a), -_t5, out=_dxdt[1, ...])
+    np.add(_t0*_t6*(T_a - _t3), -_t5, out=_dxdt[1, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((2, 2) + _shape)
     np.multiply(-1, _t7, out=_J[0, 0, ...])
@@ -362,7 +362,7 @@ def power_sources(x, u, theta):
     Rth2a = theta[..., 4]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((-T0*q_mass2/Cth2 + T_a)*T_a/(Rth2a*T0), (T0*q_mass1/Cth1)*(P/T0), out=_out[...])
+    np.add((T_a - T0*q_mass2/Cth2)*T_a/(Rth2a*T0), (T0*q_mass1/Cth1)*(P/T0), out=_out[...])
     return _out
 
 
@@ -384,7 +384,7 @@ def power_dissipated(x, u, theta):
     _t3 = -T0*q_mass2/Cth2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((T0*q_mass1/Cth1 + _t3)*(-(_t1 - T0*q_mass1/Cth1)/(Rth12*T0)), (-T_a + _t1)*(-(_t3 + T_a)/(Rth2a*T0)), out=_out[...])
+    np.add((T0*q_mass1/Cth1 + _t3)*(-(_t1 - T0*q_mass1/Cth1)/(Rth12*T0)), (_t1 - T_a)*(-(T_a + _t3)/(Rth2a*T0)), out=_out[...])
     return _out
 
 
@@ -406,7 +406,7 @@ def energy_rate(x, u, theta):
     _t4 = T0*q_mass2/Cth2 - T0*q_mass1/Cth1
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(((-T0*q_mass2/Cth2 + T_a)/(Rth2a*T0) - _t4/(Rth12*T0))*T0*q_mass2/Cth2, (P/T0 + _t4/(Rth12*T0))*T0*q_mass1/Cth1, out=_out[...])
+    np.add(((T_a - T0*q_mass2/Cth2)/(Rth2a*T0) - _t4/(Rth12*T0))*T0*q_mass2/Cth2, (P/T0 + _t4/(Rth12*T0))*T0*q_mass1/Cth1, out=_out[...])
     return _out
 
 

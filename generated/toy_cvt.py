@@ -177,7 +177,7 @@ def dfdx(x, u, theta):
     _t4 = _t0*c
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((1, 1) + _shape)
-    np.multiply(_t3, -_t4 + _t1*der_r_/r**3, out=_J[0, 0, ...])
+    np.multiply(_t3, _t1*der_r_/r**3 - _t4, out=_J[0, 0, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -279,7 +279,7 @@ def f_dfdx(x, u, theta):
     np.multiply(_t3, (_t2*der_r_*p_m + T)/r - _t4*p_m, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((1, 1) + _shape)
-    np.multiply(_t3, -_t4 + _t1*der_r_/r**3, out=_J[0, 0, ...])
+    np.multiply(_t3, _t1*der_r_/r**3 - _t4, out=_J[0, 0, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
@@ -348,7 +348,7 @@ def energy_rate(x, u, theta):
     _t3 = (der_r_*J_e*p_m/(r**2*m) + T)/r - c*p_m/m
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(-p_m**2*der_r_*J_e/(r**3*m**2) + _t3*J_e*p_m/((1 + J_e/(r**2*m))*r**2*m**2), _t3*p_m/((1 + J_e/(r**2*m))*m), out=_out[...])
+    np.add(_t3*J_e*p_m/((1 + J_e/(r**2*m))*r**2*m**2) - p_m**2*der_r_*J_e/(r**3*m**2), _t3*p_m/((1 + J_e/(r**2*m))*m), out=_out[...])
     return _out
 
 

@@ -251,8 +251,8 @@ def f(x, u, theta):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -275,7 +275,7 @@ def f(x, u, theta):
     np.add(-_t24, -_t1, out=_dxdt[0, ...])
     np.add(-_t26*c_theta - k_theta*pitch__q_k, -_t24*h_cg, out=_dxdt[1, ...])
     _dxdt[2, ...] = _t26
-    np.add(-4*_t27*_t28 + _t22*_t9*g*m*mu*r_dyn, -_t29*_t30, out=_dxdt[3, ...])
+    np.add(_t22*_t9*g*m*mu*r_dyn - 4*_t27*_t28, -_t29*_t30, out=_dxdt[3, ...])
     _dxdt[4, ...] = 0
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
@@ -320,8 +320,8 @@ def h(x, u, theta):
     _t12 = _t10*_t11
     _t13 = np.cos(theta_g)
     _t14 = _t13*_t6
-    _t15 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-    _t16 = np.sqrt(0.25 + (-2 + _t10)**2)
+    _t15 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+    _t16 = np.sqrt(0.25 + (_t10 - 2)**2)
     _t17 = 1 + (0.5)*_t10 + (0.5)*_t16
     _t18 = 1/C_mf
     _t19 = 1/mu
@@ -379,8 +379,8 @@ def dfdx(x, u, theta):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -400,15 +400,15 @@ def dfdx(x, u, theta):
     _t32 = 1/_t14**2
     _t33 = 1/(1 + _t32*_t12**2*k_slip**2/(C_mf**2*mu**2))
     _t34 = _t31*_t4*body__p_m
-    _t35 = _t17*_t2 + _t12*_t15*_t16*_t32*((0.5)*_t34 + (0.25)*_t34*(-4 + 2*_t6)/_t13)*k_slip
-    _t36 = _t35 + (-_t35 + _t33*_t35)*E_mf
+    _t35 = _t17*_t2 + _t12*_t15*_t16*_t32*((0.5)*_t34 + (0.25)*_t34*(2*_t6 - 4)/_t13)*k_slip
+    _t36 = _t35 + (_t33*_t35 - _t35)*E_mf
     _t37 = 1/(1 + _t20**2)
     _t38 = np.cos(_t21)
     _t39 = _t37*_t38*C_mf*mu
     _t40 = _t10*_t39
     _t41 = -_t2*_t8 - _t36*_t40 - _t31*_t5*_t7/m**3
     _t42 = (0.25)*_t11*_t17*r_dyn
-    _t43 = -_t42 + (_t42 - _t33*_t42)*E_mf
+    _t43 = (_t42 - _t33*_t42)*E_mf - _t42
     _t44 = _t40*_t43
     _t45 = _t1*_t23
     _t46 = _t11*(1 - _t27**2)
@@ -424,7 +424,7 @@ def dfdx(x, u, theta):
     np.multiply(_t45, h_cg, out=_J[1, 4, ...])
     _J[2, 1, ...] = _t25
     np.multiply(_t29, _t36*_t39, out=_J[3, 0, ...])
-    np.add(-0.125*_t29*_t46*f_r + _t37*_t38*_t43*_t9*C_mf*g*m*mu*r_dyn, -0.5*_t28*_t46, out=_J[3, 3, ...])
+    np.add(_t37*_t38*_t43*_t9*C_mf*g*m*mu*r_dyn - 0.125*_t29*_t46*f_r, -0.5*_t28*_t46, out=_J[3, 3, ...])
     np.add(_t1*_t30*r_dyn, -_t45*r_dyn, out=_J[3, 4, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
@@ -462,7 +462,7 @@ def dfdtheta(x, u, theta):
     _t3 = 1/m**2
     _t4 = body__p_m**2
     _t5 = np.sqrt(0.25 + _t3*_t4)
-    _t6 = np.sqrt(0.25 + (-2 + _t5)**2)
+    _t6 = np.sqrt(0.25 + (_t5 - 2)**2)
     _t7 = 1 + (0.5)*_t5 + (0.5)*_t6
     _t8 = 1/_t7
     _t9 = 1/mu
@@ -470,12 +470,12 @@ def dfdtheta(x, u, theta):
     _t11 = _t10*_t2
     _t12 = (0.25)*_t1*_t11
     _t13 = body__p_m/m
-    _t14 = -_t13 + (0.25)*_t0*r_dyn*wheels__p_J
+    _t14 = (0.25)*_t0*r_dyn*wheels__p_J - _t13
     _t15 = 1/_t7**2
     _t16 = 1/C_mf**2
     _t17 = 1/mu**2
     _t18 = 1/(1 + _t15*_t16*_t17*_t14**2*k_slip**2)
-    _t19 = -_t12 + (_t12 - _t12*_t18)*E_mf
+    _t19 = (_t12 - _t12*_t18)*E_mf - _t12
     _t20 = np.cos(theta_g)
     _t21 = _t20*g
     _t22 = _t21*m
@@ -495,18 +495,18 @@ def dfdtheta(x, u, theta):
     _t36 = 1/J_w**2
     _t37 = _t36*wheels__p_J
     _t38 = (0.25)*_t11*_t37*r_dyn
-    _t39 = _t38 + (-_t38 + (0.25)*_t18*_t2*_t36*_t8*_t9*k_slip*r_dyn*wheels__p_J)*E_mf
+    _t39 = _t38 + ((0.25)*_t18*_t2*_t36*_t8*_t9*k_slip*r_dyn*wheels__p_J - _t38)*E_mf
     _t40 = _t34*_t39
     _t41 = np.sin(_t31)
     _t42 = _t21*_t41
     _t43 = _t42*m
     _t44 = _t17*_t23*k_slip
-    _t45 = _t44 + (-_t44 + _t14*_t17*_t18*_t2*_t8*k_slip)*E_mf
+    _t45 = _t44 + (_t14*_t17*_t18*_t2*_t8*k_slip - _t44)*E_mf
     _t46 = -_t43 - _t34*_t45
-    _t47 = -_t24 + (_t24 - _t18*_t24)*E_mf
+    _t47 = (_t24 - _t18*_t24)*E_mf - _t24
     _t48 = _t34*_t47
     _t49 = _t10*_t14*_t16
-    _t50 = _t32*(_t30 + _t29*(_t49 + (-_t49 + _t14*_t16*_t18*_t8*_t9*k_slip)*E_mf))
+    _t50 = _t32*(_t30 + _t29*(_t49 + (_t14*_t16*_t18*_t8*_t9*k_slip - _t49)*E_mf))
     _t51 = _t22*_t50
     _t52 = _t27*_t34
     _t53 = np.sin(theta_g)
@@ -516,8 +516,8 @@ def dfdtheta(x, u, theta):
     _t57 = body__p_m**3
     _t58 = _t4*_t55/m**3
     _t59 = _t3*body__p_m
-    _t60 = -_t11*_t59 + _t14*_t15*_t2*_t9*(-0.5*_t58 - 0.25*_t58*(-4 + 2*_t5)/_t6)*k_slip
-    _t61 = _t60 + (-_t60 + _t18*_t60)*E_mf
+    _t60 = _t14*_t15*_t2*_t9*(-0.5*_t58 - 0.25*_t58*(2*_t5 - 4)/_t6)*k_slip - _t11*_t59
+    _t61 = _t60 + (_t18*_t60 - _t60)*E_mf
     _t62 = _t34*_t61
     _t63 = _t20*m
     _t64 = _t41*_t63*mu
@@ -539,7 +539,7 @@ def dfdtheta(x, u, theta):
     np.multiply(-1, _t48, out=_J[0, 4, ...])
     np.multiply(-1, _t51, out=_J[0, 5, ...])
     np.multiply(-1, _t52, out=_J[0, 6, ...])
-    np.add(-_t62 - _t53*g + (0.6)*_t3*_t5*C_dA*body__p_m + (0.6)*_t55*_t56*_t57*C_dA, -_t54, out=_J[0, 8, ...])
+    np.add((0.6)*_t3*_t5*C_dA*body__p_m - _t62 - _t53*g + (0.6)*_t55*_t56*_t57*C_dA, -_t54, out=_J[0, 8, ...])
     np.add(-_t53*m, -_t64, out=_J[0, 9, ...])
     np.multiply(-1, _t66, out=_J[0, 10, ...])
     np.multiply(-1, _t35*h_cg, out=_J[1, 0, ...])
@@ -548,7 +548,7 @@ def dfdtheta(x, u, theta):
     np.multiply(-1, _t48*h_cg, out=_J[1, 4, ...])
     np.multiply(-1, _t51*h_cg, out=_J[1, 5, ...])
     np.multiply(-1, _t52*h_cg, out=_J[1, 6, ...])
-    np.multiply(-_t54 - _t62 + _t59*_t65*C_dA + (0.6)*_t55*_t56*_t57*C_dA, h_cg, out=_J[1, 8, ...])
+    np.multiply(_t59*_t65*C_dA - _t54 - _t62 + (0.6)*_t55*_t56*_t57*C_dA, h_cg, out=_J[1, 8, ...])
     np.multiply(-1, _t64*h_cg, out=_J[1, 9, ...])
     np.multiply(-1, _t66*h_cg, out=_J[1, 10, ...])
     np.add(-_t66*C_dA, -_t67, out=_J[1, 12, ...])
@@ -603,8 +603,8 @@ def dhdx(x, u, theta):
     _t12 = _t10*_t11
     _t13 = np.cos(theta_g)
     _t14 = _t13*_t6
-    _t15 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-    _t16 = np.sqrt(0.25 + (-2 + _t10)**2)
+    _t15 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+    _t16 = np.sqrt(0.25 + (_t10 - 2)**2)
     _t17 = 1 + (0.5)*_t10 + (0.5)*_t16
     _t18 = 1/C_mf
     _t19 = 1/mu
@@ -618,7 +618,7 @@ def dhdx(x, u, theta):
     _t27 = 1/_t17**2
     _t28 = 1/(1 + _t27*_t15**2*k_slip**2/(C_mf**2*mu**2))
     _t29 = _t26*_t8*body__p_m
-    _t30 = _t20*_t3 + _t15*_t18*_t19*_t27*((0.5)*_t29 + (0.25)*_t29*(-4 + 2*_t10)/_t16)*k_slip
+    _t30 = _t20*_t3 + _t15*_t18*_t19*_t27*((0.5)*_t29 + (0.25)*_t29*(2*_t10 - 4)/_t16)*k_slip
     _t31 = C_mf*mu*np.cos(_t24)/(1 + _t23**2)
     _t32 = g*np.cos(_t5)
     _t33 = _t1*_t20*r_dyn
@@ -629,10 +629,10 @@ def dhdx(x, u, theta):
     _J[2, 0, ...] = _t3
     _J[3, 2, ...] = 1
     _J[3, 4, ...] = 1
-    np.multiply(_t3, -_t12*_t3 - _t14*_t31*(_t30 + (-_t30 + _t28*_t30)*E_mf) - _t11*_t26*_t9/m**3, out=_J[4, 0, ...])
+    np.multiply(_t3, -_t12*_t3 - _t14*_t31*(_t30 + (_t28*_t30 - _t30)*E_mf) - _t11*_t26*_t9/m**3, out=_J[4, 0, ...])
     _J[4, 2, ...] = _t32
-    np.multiply(-1, _t13*_t31*(-_t33 + (_t33 - _t28*_t33)*E_mf)*g, out=_J[4, 3, ...])
-    np.add(_t3*(-_t14 + _t25*_t7), _t32, out=_J[4, 4, ...])
+    np.multiply(-1, _t13*_t31*((_t33 - _t28*_t33)*E_mf - _t33)*g, out=_J[4, 3, ...])
+    np.add(_t3*(_t25*_t7 - _t14), _t32, out=_J[4, 4, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -666,7 +666,7 @@ def dhdtheta(x, u, theta):
     _t7 = 1/C_mf
     _t8 = body__p_m**2
     _t9 = np.sqrt(0.25 + _t4*_t8)
-    _t10 = np.sqrt(0.25 + (-2 + _t9)**2)
+    _t10 = np.sqrt(0.25 + (_t9 - 2)**2)
     _t11 = 1 + (0.5)*_t10 + (0.5)*_t9
     _t12 = 1/_t11
     _t13 = 1/mu
@@ -675,7 +675,7 @@ def dhdtheta(x, u, theta):
     _t16 = _t1*_t15*_t6
     _t17 = 1/m
     _t18 = _t17*body__p_m
-    _t19 = -_t18 + (0.25)*_t6*r_dyn*wheels__p_J
+    _t19 = (0.25)*_t6*r_dyn*wheels__p_J - _t18
     _t20 = 1/_t11**2
     _t21 = 1/C_mf**2
     _t22 = 1/mu**2
@@ -706,7 +706,7 @@ def dhdtheta(x, u, theta):
     _t47 = _t46*g
     _t48 = 1/_t9
     _t49 = _t48*_t8/m**3
-    _t50 = -_t15*_t5 + _t13*_t19*_t20*_t7*(-0.5*_t49 - 0.25*_t49*(-4 + 2*_t9)/_t10)*k_slip
+    _t50 = _t13*_t19*_t20*_t7*(-0.5*_t49 - 0.25*_t49*(2*_t9 - 4)/_t10)*k_slip - _t15*_t5
     _t51 = (0.6)*_t9
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((5, 18) + _shape)
@@ -714,13 +714,13 @@ def dhdtheta(x, u, theta):
     _J[1, 1, ...] = _t3
     np.multiply(-1, _t5, out=_J[2, 8, ...])
     _J[3, 17, ...] = 1
-    np.multiply(-1, _t37*(-_t16 + (_t16 - _t16*_t23)*E_mf), out=_J[4, 0, ...])
-    np.multiply(-1, _t37*(_t38 + (-_t38 + (0.25)*_t0*_t12*_t13*_t23*_t7*k_slip*r_dyn*wheels__p_J)*E_mf), out=_J[4, 1, ...])
-    np.multiply(_t17, -_t41 - _t44*(_t42 + (-_t42 + _t12*_t19*_t22*_t23*_t7*k_slip)*E_mf), out=_J[4, 3, ...])
-    np.multiply(-1, _t37*(-_t25 + (_t25 - _t23*_t25)*E_mf), out=_J[4, 4, ...])
-    np.multiply(-1, _t36*(_t31 + _t30*(_t45 + (-_t45 + _t12*_t13*_t19*_t21*_t23*k_slip)*E_mf)), out=_J[4, 5, ...])
+    np.multiply(-1, _t37*((_t16 - _t16*_t23)*E_mf - _t16), out=_J[4, 0, ...])
+    np.multiply(-1, _t37*(_t38 + ((0.25)*_t0*_t12*_t13*_t23*_t7*k_slip*r_dyn*wheels__p_J - _t38)*E_mf), out=_J[4, 1, ...])
+    np.multiply(_t17, -_t41 - _t44*(_t42 + (_t12*_t19*_t22*_t23*_t7*k_slip - _t42)*E_mf), out=_J[4, 3, ...])
+    np.multiply(-1, _t37*((_t25 - _t23*_t25)*E_mf - _t25), out=_J[4, 4, ...])
+    np.multiply(-1, _t36*(_t31 + _t30*(_t45 + (_t12*_t13*_t19*_t21*_t23*k_slip - _t45)*E_mf)), out=_J[4, 5, ...])
     np.multiply(-1, _t28*_t37, out=_J[4, 6, ...])
-    np.add(-_t4*(-_t41*mu - _t47*m - _t18*_t51*C_dA), _t17*(-_t47 - _t40*mu - _t44*(_t50 + (-_t50 + _t23*_t50)*E_mf) + (0.6)*_t4*_t9*C_dA*body__p_m + (0.6)*_t48*body__p_m**3*C_dA/m**4), out=_J[4, 8, ...])
+    np.add(-_t4*(-_t41*mu - _t47*m - _t18*_t51*C_dA), _t17*((0.6)*_t4*_t9*C_dA*body__p_m - _t47 - _t40*mu - _t44*(_t50 + (_t23*_t50 - _t50)*E_mf) + (0.6)*_t48*body__p_m**3*C_dA/m**4), out=_J[4, 8, ...])
     np.add(np.sin(pitch__q_k + theta_g), _t17*(-_t46*m - _t33*_t39*_t43), out=_J[4, 9, ...])
     np.multiply(-1, _t5*_t51, out=_J[4, 10, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
@@ -770,8 +770,8 @@ def f_dfdx(x, u, theta):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -793,15 +793,15 @@ def f_dfdx(x, u, theta):
     _t32 = 1/_t14**2
     _t33 = 1/(1 + _t32*_t12**2*k_slip**2/(C_mf**2*mu**2))
     _t34 = _t31*_t4*body__p_m
-    _t35 = _t17*_t2 + _t12*_t15*_t16*_t32*((0.5)*_t34 + (0.25)*_t34*(-4 + 2*_t6)/_t13)*k_slip
-    _t36 = _t35 + (-_t35 + _t33*_t35)*E_mf
+    _t35 = _t17*_t2 + _t12*_t15*_t16*_t32*((0.5)*_t34 + (0.25)*_t34*(2*_t6 - 4)/_t13)*k_slip
+    _t36 = _t35 + (_t33*_t35 - _t35)*E_mf
     _t37 = 1/(1 + _t20**2)
     _t38 = np.cos(_t21)
     _t39 = _t37*_t38*C_mf*mu
     _t40 = _t10*_t39
     _t41 = -_t2*_t8 - _t36*_t40 - _t31*_t5*_t7/m**3
     _t42 = (0.25)*_t11*_t17*r_dyn
-    _t43 = -_t42 + (_t42 - _t33*_t42)*E_mf
+    _t43 = (_t42 - _t33*_t42)*E_mf - _t42
     _t44 = _t40*_t43
     _t45 = _t1*_t23
     _t46 = _t11*(1 - _t27**2)
@@ -810,7 +810,7 @@ def f_dfdx(x, u, theta):
     np.add(-_t24, -_t1, out=_dxdt[0, ...])
     np.add(-_t26*c_theta - k_theta*pitch__q_k, -_t24*h_cg, out=_dxdt[1, ...])
     _dxdt[2, ...] = _t26
-    np.add(-4*_t27*_t28 + _t22*_t9*g*m*mu*r_dyn, -_t29*_t30, out=_dxdt[3, ...])
+    np.add(_t22*_t9*g*m*mu*r_dyn - 4*_t27*_t28, -_t29*_t30, out=_dxdt[3, ...])
     _dxdt[4, ...] = 0
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((5, 5) + _shape)
@@ -824,7 +824,7 @@ def f_dfdx(x, u, theta):
     np.multiply(_t45, h_cg, out=_J[1, 4, ...])
     _J[2, 1, ...] = _t25
     np.multiply(_t29, _t36*_t39, out=_J[3, 0, ...])
-    np.add(-0.125*_t29*_t46*f_r + _t37*_t38*_t43*_t9*C_mf*g*m*mu*r_dyn, -0.5*_t28*_t46, out=_J[3, 3, ...])
+    np.add(_t37*_t38*_t43*_t9*C_mf*g*m*mu*r_dyn - 0.125*_t29*_t46*f_r, -0.5*_t28*_t46, out=_J[3, 3, ...])
     np.add(_t1*_t30*r_dyn, -_t45*r_dyn, out=_J[3, 4, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
@@ -872,11 +872,11 @@ def power_sources(x, u, theta):
     h_cg = theta[..., 12]
     I_theta = theta[..., 14]
     _t0 = np.sqrt(0.25 + body__p_m**2/m**2)
-    _t5 = -body__p_m/m + (0.25)*r_dyn*wheels__p_J/J_w
-    _t6 = _t5*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t0)**2) + (0.5)*_t0)*C_mf*mu)
+    _t5 = (0.25)*r_dyn*wheels__p_J/J_w - body__p_m/m
+    _t6 = _t5*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t0 - 2)**2) + (0.5)*_t0)*C_mf*mu)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((-g*m*np.sin(theta_g))*(body__p_m/m), ((-0.6*_t0*C_dA*body__p_m/m - g*m*mu*np.cos(theta_g)*np.sin(C_mf*np.arctan((-np.arctan(_t6) + _t6)*E_mf - _t5*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t0)**2) + (0.5)*_t0)*C_mf*mu))))*h_cg)*(pitch__p_I/I_theta), out=_out[...])
+    np.add((-g*m*np.sin(theta_g))*(body__p_m/m), ((-0.6*_t0*C_dA*body__p_m/m - g*m*mu*np.cos(theta_g)*np.sin(C_mf*np.arctan((_t6 - np.arctan(_t6))*E_mf - _t5*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t0 - 2)**2) + (0.5)*_t0)*C_mf*mu))))*h_cg)*(pitch__p_I/I_theta), out=_out[...])
     return _out
 
 
@@ -908,11 +908,11 @@ def power_dissipated(x, u, theta):
     _t3 = (0.25)*wheels__p_J/J_w
     _t4 = np.sqrt(0.25 + body__p_m**2/m**2)
     _t6 = np.cos(theta_g)
-    _t10 = -body__p_m/m + (0.25)*r_dyn*wheels__p_J/J_w
-    _t11 = _t10*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t4)**2) + (0.5)*_t4)*C_mf*mu)
+    _t10 = (0.25)*r_dyn*wheels__p_J/J_w - body__p_m/m
+    _t11 = _t10*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t4 - 2)**2) + (0.5)*_t4)*C_mf*mu)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((4*brake*T_bmax*_t2)*_t3 + ((0.6)*_t4*C_dA*body__p_m/m)*(body__p_m/m) + (-g*m*mu*_t6*np.sin(C_mf*np.arctan((-np.arctan(_t11) + _t11)*E_mf - _t10*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t4)**2) + (0.5)*_t4)*C_mf*mu))))*_t10 + (f_r*g*m*r_dyn*_t6*_t2)*_t3, (c_theta*pitch__p_I/I_theta)*(pitch__p_I/I_theta), out=_out[...])
+    np.add((4*brake*T_bmax*_t2)*_t3 + ((0.6)*_t4*C_dA*body__p_m/m)*(body__p_m/m) + (-g*m*mu*_t6*np.sin(C_mf*np.arctan((_t11 - np.arctan(_t11))*E_mf - _t10*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t4 - 2)**2) + (0.5)*_t4)*C_mf*mu))))*_t10 + (f_r*g*m*r_dyn*_t6*_t2)*_t3, (c_theta*pitch__p_I/I_theta)*(pitch__p_I/I_theta), out=_out[...])
     return _out
 
 
@@ -946,14 +946,14 @@ def energy_rate(x, u, theta):
     _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
     _t3 = -0.6*_t1*C_dA*body__p_m/m
     _t4 = np.cos(theta_g)
-    _t9 = -body__p_m/m + (0.25)*r_dyn*wheels__p_J/J_w
-    _t10 = _t9*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t1)**2) + (0.5)*_t1)*C_mf*mu)
-    _t11 = np.sin(C_mf*np.arctan((-np.arctan(_t10) + _t10)*E_mf - _t9*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t1)**2) + (0.5)*_t1)*C_mf*mu)))
+    _t9 = (0.25)*r_dyn*wheels__p_J/J_w - body__p_m/m
+    _t10 = _t9*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t1 - 2)**2) + (0.5)*_t1)*C_mf*mu)
+    _t11 = np.sin(C_mf*np.arctan((_t10 - np.arctan(_t10))*E_mf - _t9*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t1 - 2)**2) + (0.5)*_t1)*C_mf*mu)))
     _t12 = -g*m*mu*_t4*_t11
     _t13 = np.tanh((0.125)*wheels__p_J/J_w)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((-g*m*np.sin(theta_g) + _t3 + _t12)*body__p_m/m + (0.25)*(-4*brake*T_bmax*_t13 + g*m*mu*r_dyn*_t4*_t11 - f_r*g*m*r_dyn*_t4*_t13)*wheels__p_J/J_w + k_theta*pitch__p_I*pitch__q_k/I_theta, ((_t3 + _t12)*h_cg - k_theta*pitch__q_k - c_theta*pitch__p_I/I_theta)*pitch__p_I/I_theta, out=_out[...])
+    np.add((-g*m*np.sin(theta_g) + _t3 + _t12)*body__p_m/m + (0.25)*(g*m*mu*r_dyn*_t4*_t11 - 4*brake*T_bmax*_t13 - f_r*g*m*r_dyn*_t4*_t13)*wheels__p_J/J_w + k_theta*pitch__p_I*pitch__q_k/I_theta, ((_t3 + _t12)*h_cg - k_theta*pitch__q_k - c_theta*pitch__p_I/I_theta)*pitch__p_I/I_theta, out=_out[...])
     return _out
 
 

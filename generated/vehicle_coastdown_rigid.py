@@ -208,8 +208,8 @@ def f(x, u, theta):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -227,7 +227,7 @@ def f(x, u, theta):
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((3,) + _shape)
     np.add(-_t10*_t23 - _t3*_t8, -_t1, out=_dxdt[0, ...])
-    np.add(-4*_t24*_t25 + _t22*_t9*g*m*mu*r_dyn, -_t26*_t27, out=_dxdt[1, ...])
+    np.add(_t22*_t9*g*m*mu*r_dyn - 4*_t24*_t25, -_t26*_t27, out=_dxdt[1, ...])
     _dxdt[2, ...] = 0
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
@@ -270,8 +270,8 @@ def h(x, u, theta):
     _t11 = _t10*_t9
     _t12 = g*np.cos(theta_g)
     _t13 = _t12*m
-    _t14 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-    _t15 = np.sqrt(0.25 + (-2 + _t9)**2)
+    _t14 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+    _t15 = np.sqrt(0.25 + (_t9 - 2)**2)
     _t16 = 1 + (0.5)*_t15 + (0.5)*_t9
     _t17 = 1/C_mf
     _t18 = 1/mu
@@ -325,8 +325,8 @@ def dfdx(x, u, theta):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -345,14 +345,14 @@ def dfdx(x, u, theta):
     _t29 = 1/_t14**2
     _t30 = 1/(1 + _t29*_t12**2*k_slip**2/(C_mf**2*mu**2))
     _t31 = _t28*_t4*body__p_m
-    _t32 = _t17*_t2 + _t12*_t15*_t16*_t29*((0.5)*_t31 + (0.25)*_t31*(-4 + 2*_t6)/_t13)*k_slip
-    _t33 = _t32 + (-_t32 + _t30*_t32)*E_mf
+    _t32 = _t17*_t2 + _t12*_t15*_t16*_t29*((0.5)*_t31 + (0.25)*_t31*(2*_t6 - 4)/_t13)*k_slip
+    _t33 = _t32 + (_t30*_t32 - _t32)*E_mf
     _t34 = 1/(1 + _t20**2)
     _t35 = np.cos(_t21)
     _t36 = _t34*_t35*C_mf*mu
     _t37 = _t10*_t36
     _t38 = (0.25)*_t11*_t17*r_dyn
-    _t39 = -_t38 + (_t38 - _t30*_t38)*E_mf
+    _t39 = (_t38 - _t30*_t38)*E_mf - _t38
     _t40 = _t1*_t23
     _t41 = _t11*(1 - _t24**2)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
@@ -361,7 +361,7 @@ def dfdx(x, u, theta):
     np.multiply(-1, _t37*_t39, out=_J[0, 1, ...])
     np.add(-_t10, _t40, out=_J[0, 2, ...])
     np.multiply(_t26, _t33*_t36, out=_J[1, 0, ...])
-    np.add(-0.125*_t26*_t41*f_r + _t34*_t35*_t39*_t9*C_mf*g*m*mu*r_dyn, -0.5*_t25*_t41, out=_J[1, 1, ...])
+    np.add(_t34*_t35*_t39*_t9*C_mf*g*m*mu*r_dyn - 0.125*_t26*_t41*f_r, -0.5*_t25*_t41, out=_J[1, 1, ...])
     np.add(_t1*_t27*r_dyn, -_t40*r_dyn, out=_J[1, 2, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
@@ -394,7 +394,7 @@ def dfdtheta(x, u, theta):
     _t3 = 1/m**2
     _t4 = body__p_m**2
     _t5 = np.sqrt(0.25 + _t3*_t4)
-    _t6 = np.sqrt(0.25 + (-2 + _t5)**2)
+    _t6 = np.sqrt(0.25 + (_t5 - 2)**2)
     _t7 = 1 + (0.5)*_t5 + (0.5)*_t6
     _t8 = 1/_t7
     _t9 = 1/mu
@@ -402,12 +402,12 @@ def dfdtheta(x, u, theta):
     _t11 = _t10*_t2
     _t12 = (0.25)*_t1*_t11
     _t13 = body__p_m/m
-    _t14 = -_t13 + (0.25)*_t0*r_dyn*wheels__p_J
+    _t14 = (0.25)*_t0*r_dyn*wheels__p_J - _t13
     _t15 = 1/_t7**2
     _t16 = 1/C_mf**2
     _t17 = 1/mu**2
     _t18 = 1/(1 + _t15*_t16*_t17*_t14**2*k_slip**2)
-    _t19 = -_t12 + (_t12 - _t12*_t18)*E_mf
+    _t19 = (_t12 - _t12*_t18)*E_mf - _t12
     _t20 = np.cos(theta_g)
     _t21 = _t20*g
     _t22 = _t21*m
@@ -426,21 +426,21 @@ def dfdtheta(x, u, theta):
     _t35 = 1/J_w**2
     _t36 = _t35*wheels__p_J
     _t37 = (0.25)*_t11*_t36*r_dyn
-    _t38 = _t37 + (-_t37 + (0.25)*_t18*_t2*_t35*_t8*_t9*k_slip*r_dyn*wheels__p_J)*E_mf
+    _t38 = _t37 + ((0.25)*_t18*_t2*_t35*_t8*_t9*k_slip*r_dyn*wheels__p_J - _t37)*E_mf
     _t39 = np.sin(_t31)
     _t40 = _t21*_t39
     _t41 = _t40*m
     _t42 = _t17*_t23*k_slip
-    _t43 = _t42 + (-_t42 + _t14*_t17*_t18*_t2*_t8*k_slip)*E_mf
-    _t44 = -_t24 + (_t24 - _t18*_t24)*E_mf
+    _t43 = _t42 + (_t14*_t17*_t18*_t2*_t8*k_slip - _t42)*E_mf
+    _t44 = (_t24 - _t18*_t24)*E_mf - _t24
     _t45 = _t10*_t14*_t16
-    _t46 = _t32*(_t30 + _t29*(_t45 + (-_t45 + _t14*_t16*_t18*_t8*_t9*k_slip)*E_mf))
+    _t46 = _t32*(_t30 + _t29*(_t45 + (_t14*_t16*_t18*_t8*_t9*k_slip - _t45)*E_mf))
     _t47 = np.sin(theta_g)
     _t48 = _t40*mu
     _t49 = 1/_t5
     _t50 = _t4*_t49/m**3
-    _t51 = -_t11*_t3*body__p_m + _t14*_t15*_t2*_t9*(-0.5*_t50 - 0.25*_t50*(-4 + 2*_t5)/_t6)*k_slip
-    _t52 = _t51 + (-_t51 + _t18*_t51)*E_mf
+    _t51 = _t14*_t15*_t2*_t9*(-0.5*_t50 - 0.25*_t50*(2*_t5 - 4)/_t6)*k_slip - _t11*_t3*body__p_m
+    _t52 = _t51 + (_t18*_t51 - _t51)*E_mf
     _t53 = _t20*m
     _t54 = np.tanh((0.125)*_t1)
     _t55 = _t54*f_r
@@ -456,7 +456,7 @@ def dfdtheta(x, u, theta):
     np.multiply(-1, _t34*_t44, out=_J[0, 4, ...])
     np.multiply(-1, _t22*_t46, out=_J[0, 5, ...])
     np.multiply(-1, _t27*_t34, out=_J[0, 6, ...])
-    np.add(-_t34*_t52 - _t47*g + (0.6)*_t3*_t5*C_dA*body__p_m + (0.6)*_t49*body__p_m**3*C_dA/m**4, -_t48, out=_J[0, 8, ...])
+    np.add((0.6)*_t3*_t5*C_dA*body__p_m - _t34*_t52 - _t47*g + (0.6)*_t49*body__p_m**3*C_dA/m**4, -_t48, out=_J[0, 8, ...])
     np.add(-_t39*_t53*mu, -_t47*m, out=_J[0, 9, ...])
     np.multiply(-0.6, _t13*_t5, out=_J[0, 10, ...])
     np.add(_t41*mu - _t22*_t55, _t19*_t57, out=_J[1, 0, ...])
@@ -504,8 +504,8 @@ def dhdx(x, u, theta):
     _t11 = _t10*_t9
     _t12 = g*np.cos(theta_g)
     _t13 = _t12*m
-    _t14 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-    _t15 = np.sqrt(0.25 + (-2 + _t9)**2)
+    _t14 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+    _t15 = np.sqrt(0.25 + (_t9 - 2)**2)
     _t16 = 1 + (0.5)*_t15 + (0.5)*_t9
     _t17 = 1/C_mf
     _t18 = 1/mu
@@ -519,7 +519,7 @@ def dhdx(x, u, theta):
     _t26 = 1/_t16**2
     _t27 = 1/(1 + _t26*_t14**2*k_slip**2/(C_mf**2*mu**2))
     _t28 = _t25*_t7*body__p_m
-    _t29 = _t19*_t3 + _t14*_t17*_t18*_t26*((0.5)*_t28 + (0.25)*_t28*(-4 + 2*_t9)/_t15)*k_slip
+    _t29 = _t19*_t3 + _t14*_t17*_t18*_t26*((0.5)*_t28 + (0.25)*_t28*(2*_t9 - 4)/_t15)*k_slip
     _t30 = C_mf*mu*np.cos(_t23)/(1 + _t22**2)
     _t31 = _t1*_t19*r_dyn
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
@@ -528,9 +528,9 @@ def dhdx(x, u, theta):
     _J[1, 1, ...] = _t1
     _J[2, 0, ...] = _t3
     _J[3, 2, ...] = 1
-    np.multiply(_t3, -_t11*_t3 - _t13*_t30*(_t29 + (-_t29 + _t27*_t29)*E_mf) - _t10*_t25*_t8/m**3, out=_J[4, 0, ...])
-    np.multiply(-1, _t12*_t30*(-_t31 + (_t31 - _t27*_t31)*E_mf), out=_J[4, 1, ...])
-    np.add(_t3*(-_t13 + _t24*_t6), _t12, out=_J[4, 2, ...])
+    np.multiply(_t3, -_t11*_t3 - _t13*_t30*(_t29 + (_t27*_t29 - _t29)*E_mf) - _t10*_t25*_t8/m**3, out=_J[4, 0, ...])
+    np.multiply(-1, _t12*_t30*((_t31 - _t27*_t31)*E_mf - _t31), out=_J[4, 1, ...])
+    np.add(_t3*(_t24*_t6 - _t13), _t12, out=_J[4, 2, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -563,7 +563,7 @@ def dhdtheta(x, u, theta):
     _t7 = 1/C_mf
     _t8 = body__p_m**2
     _t9 = np.sqrt(0.25 + _t4*_t8)
-    _t10 = np.sqrt(0.25 + (-2 + _t9)**2)
+    _t10 = np.sqrt(0.25 + (_t9 - 2)**2)
     _t11 = 1 + (0.5)*_t10 + (0.5)*_t9
     _t12 = 1/_t11
     _t13 = 1/mu
@@ -572,7 +572,7 @@ def dhdtheta(x, u, theta):
     _t16 = _t1*_t15*_t6
     _t17 = 1/m
     _t18 = _t17*body__p_m
-    _t19 = -_t18 + (0.25)*_t6*r_dyn*wheels__p_J
+    _t19 = (0.25)*_t6*r_dyn*wheels__p_J - _t18
     _t20 = 1/_t11**2
     _t21 = 1/C_mf**2
     _t22 = 1/mu**2
@@ -603,7 +603,7 @@ def dhdtheta(x, u, theta):
     _t47 = _t46*g
     _t48 = 1/_t9
     _t49 = _t48*_t8/m**3
-    _t50 = -_t15*_t5 + _t13*_t19*_t20*_t7*(-0.5*_t49 - 0.25*_t49*(-4 + 2*_t9)/_t10)*k_slip
+    _t50 = _t13*_t19*_t20*_t7*(-0.5*_t49 - 0.25*_t49*(2*_t9 - 4)/_t10)*k_slip - _t15*_t5
     _t51 = (0.6)*_t9
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((5, 13) + _shape)
@@ -611,13 +611,13 @@ def dhdtheta(x, u, theta):
     _J[1, 1, ...] = _t3
     np.multiply(-1, _t5, out=_J[2, 8, ...])
     _J[3, 12, ...] = 1
-    np.multiply(-1, _t37*(-_t16 + (_t16 - _t16*_t23)*E_mf), out=_J[4, 0, ...])
-    np.multiply(-1, _t37*(_t38 + (-_t38 + (0.25)*_t0*_t12*_t13*_t23*_t7*k_slip*r_dyn*wheels__p_J)*E_mf), out=_J[4, 1, ...])
-    np.multiply(_t17, -_t41 - _t44*(_t42 + (-_t42 + _t12*_t19*_t22*_t23*_t7*k_slip)*E_mf), out=_J[4, 3, ...])
-    np.multiply(-1, _t37*(-_t25 + (_t25 - _t23*_t25)*E_mf), out=_J[4, 4, ...])
-    np.multiply(-1, _t36*(_t31 + _t30*(_t45 + (-_t45 + _t12*_t13*_t19*_t21*_t23*k_slip)*E_mf)), out=_J[4, 5, ...])
+    np.multiply(-1, _t37*((_t16 - _t16*_t23)*E_mf - _t16), out=_J[4, 0, ...])
+    np.multiply(-1, _t37*(_t38 + ((0.25)*_t0*_t12*_t13*_t23*_t7*k_slip*r_dyn*wheels__p_J - _t38)*E_mf), out=_J[4, 1, ...])
+    np.multiply(_t17, -_t41 - _t44*(_t42 + (_t12*_t19*_t22*_t23*_t7*k_slip - _t42)*E_mf), out=_J[4, 3, ...])
+    np.multiply(-1, _t37*((_t25 - _t23*_t25)*E_mf - _t25), out=_J[4, 4, ...])
+    np.multiply(-1, _t36*(_t31 + _t30*(_t45 + (_t12*_t13*_t19*_t21*_t23*k_slip - _t45)*E_mf)), out=_J[4, 5, ...])
     np.multiply(-1, _t28*_t37, out=_J[4, 6, ...])
-    np.add(-_t4*(-_t41*mu - _t47*m - _t18*_t51*C_dA), _t17*(-_t47 - _t40*mu - _t44*(_t50 + (-_t50 + _t23*_t50)*E_mf) + (0.6)*_t4*_t9*C_dA*body__p_m + (0.6)*_t48*body__p_m**3*C_dA/m**4), out=_J[4, 8, ...])
+    np.add(-_t4*(-_t41*mu - _t47*m - _t18*_t51*C_dA), _t17*((0.6)*_t4*_t9*C_dA*body__p_m - _t47 - _t40*mu - _t44*(_t50 + (_t23*_t50 - _t50)*E_mf) + (0.6)*_t48*body__p_m**3*C_dA/m**4), out=_J[4, 8, ...])
     np.add(_t17*(-_t46*m - _t33*_t39*_t43), _t46, out=_J[4, 9, ...])
     np.multiply(-1, _t5*_t51, out=_J[4, 10, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
@@ -661,8 +661,8 @@ def f_dfdx(x, u, theta):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -681,20 +681,20 @@ def f_dfdx(x, u, theta):
     _t29 = 1/_t14**2
     _t30 = 1/(1 + _t29*_t12**2*k_slip**2/(C_mf**2*mu**2))
     _t31 = _t28*_t4*body__p_m
-    _t32 = _t17*_t2 + _t12*_t15*_t16*_t29*((0.5)*_t31 + (0.25)*_t31*(-4 + 2*_t6)/_t13)*k_slip
-    _t33 = _t32 + (-_t32 + _t30*_t32)*E_mf
+    _t32 = _t17*_t2 + _t12*_t15*_t16*_t29*((0.5)*_t31 + (0.25)*_t31*(2*_t6 - 4)/_t13)*k_slip
+    _t33 = _t32 + (_t30*_t32 - _t32)*E_mf
     _t34 = 1/(1 + _t20**2)
     _t35 = np.cos(_t21)
     _t36 = _t34*_t35*C_mf*mu
     _t37 = _t10*_t36
     _t38 = (0.25)*_t11*_t17*r_dyn
-    _t39 = -_t38 + (_t38 - _t30*_t38)*E_mf
+    _t39 = (_t38 - _t30*_t38)*E_mf - _t38
     _t40 = _t1*_t23
     _t41 = _t11*(1 - _t24**2)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((3,) + _shape)
     np.add(-_t10*_t23 - _t3*_t8, -_t1, out=_dxdt[0, ...])
-    np.add(-4*_t24*_t25 + _t22*_t9*g*m*mu*r_dyn, -_t26*_t27, out=_dxdt[1, ...])
+    np.add(_t22*_t9*g*m*mu*r_dyn - 4*_t24*_t25, -_t26*_t27, out=_dxdt[1, ...])
     _dxdt[2, ...] = 0
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((3, 3) + _shape)
@@ -702,7 +702,7 @@ def f_dfdx(x, u, theta):
     np.multiply(-1, _t37*_t39, out=_J[0, 1, ...])
     np.add(-_t10, _t40, out=_J[0, 2, ...])
     np.multiply(_t26, _t33*_t36, out=_J[1, 0, ...])
-    np.add(-0.125*_t26*_t41*f_r + _t34*_t35*_t39*_t9*C_mf*g*m*mu*r_dyn, -0.5*_t25*_t41, out=_J[1, 1, ...])
+    np.add(_t34*_t35*_t39*_t9*C_mf*g*m*mu*r_dyn - 0.125*_t26*_t41*f_r, -0.5*_t25*_t41, out=_J[1, 1, ...])
     np.add(_t1*_t27*r_dyn, -_t40*r_dyn, out=_J[1, 2, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
@@ -765,11 +765,11 @@ def power_dissipated(x, u, theta):
     _t2 = (0.25)*wheels__p_J/J_w
     _t3 = np.sqrt(0.25 + body__p_m**2/m**2)
     _t5 = np.cos(theta_g)
-    _t9 = -body__p_m/m + (0.25)*r_dyn*wheels__p_J/J_w
-    _t10 = _t9*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t3)**2) + (0.5)*_t3)*C_mf*mu)
+    _t9 = (0.25)*r_dyn*wheels__p_J/J_w - body__p_m/m
+    _t10 = _t9*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t3 - 2)**2) + (0.5)*_t3)*C_mf*mu)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(((0.6)*_t3*C_dA*body__p_m/m)*(body__p_m/m) + (-g*m*mu*_t5*np.sin(C_mf*np.arctan((-np.arctan(_t10) + _t10)*E_mf - _t9*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t3)**2) + (0.5)*_t3)*C_mf*mu))))*_t9 + (f_r*g*m*r_dyn*_t5*_t1)*_t2, (4*brake*T_bmax*_t1)*_t2, out=_out[...])
+    np.add(((0.6)*_t3*C_dA*body__p_m/m)*(body__p_m/m) + (-g*m*mu*_t5*np.sin(C_mf*np.arctan((_t10 - np.arctan(_t10))*E_mf - _t9*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t3 - 2)**2) + (0.5)*_t3)*C_mf*mu))))*_t9 + (f_r*g*m*r_dyn*_t5*_t1)*_t2, (4*brake*T_bmax*_t1)*_t2, out=_out[...])
     return _out
 
 
@@ -796,13 +796,13 @@ def energy_rate(x, u, theta):
     C_dA = theta[..., 10]
     _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
     _t2 = np.cos(theta_g)
-    _t7 = -body__p_m/m + (0.25)*r_dyn*wheels__p_J/J_w
-    _t8 = _t7*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t1)**2) + (0.5)*_t1)*C_mf*mu)
-    _t9 = np.sin(C_mf*np.arctan((-np.arctan(_t8) + _t8)*E_mf - _t7*k_slip/((1 + (0.5)*np.sqrt(0.25 + (-2 + _t1)**2) + (0.5)*_t1)*C_mf*mu)))
+    _t7 = (0.25)*r_dyn*wheels__p_J/J_w - body__p_m/m
+    _t8 = _t7*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t1 - 2)**2) + (0.5)*_t1)*C_mf*mu)
+    _t9 = np.sin(C_mf*np.arctan((_t8 - np.arctan(_t8))*E_mf - _t7*k_slip/((1 + (0.5)*np.sqrt(0.25 + (_t1 - 2)**2) + (0.5)*_t1)*C_mf*mu)))
     _t10 = np.tanh((0.125)*wheels__p_J/J_w)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((0.25)*(-4*brake*T_bmax*_t10 + g*m*mu*r_dyn*_t2*_t9 - f_r*g*m*r_dyn*_t2*_t10)*wheels__p_J/J_w, (-g*m*np.sin(theta_g) - 0.6*_t1*C_dA*body__p_m/m - g*m*mu*_t2*_t9)*body__p_m/m, out=_out[...])
+    np.add((0.25)*(g*m*mu*r_dyn*_t2*_t9 - 4*brake*T_bmax*_t10 - f_r*g*m*r_dyn*_t2*_t10)*wheels__p_J/J_w, (-g*m*np.sin(theta_g) - 0.6*_t1*C_dA*body__p_m/m - g*m*mu*_t2*_t9)*body__p_m/m, out=_out[...])
     return _out
 
 

@@ -30,7 +30,7 @@ import sympy as sp
 
 from bondgraph.core import vmath
 from bondgraph.core.codegen import Shared, _free, _Gen, _Printer, live_definitions
-from bondgraph.core.equations import StateSpace
+from bondgraph.core.equations import StateSpace, paused_gc
 
 
 class _ScalarPrinter(_Printer):
@@ -93,7 +93,7 @@ NUMBA_FUNCTIONS = ("f", "h", "f_dfdx", "f_cols", "h_cols")
 #: version of the numba code generator: part of the key of compiled kernels
 #: built in memory (bump it when the generated numba text changes, also by
 #: an edit of bondgraph/core/vmath.py)
-NUMBA_CODEGEN_VERSION = 6
+NUMBA_CODEGEN_VERSION = 7
 
 
 #: the column kernels' loops run over a multiple of POINTS_VECTOR points, at
@@ -430,5 +430,6 @@ def generate_numba_source(ss: StateSpace, *, source: str | None = None,
         A module that imports numpy and numba only; importing it compiles
         the kernels (or loads them from numba's on-disk cache).
     """
-    return _NumbaGen(ss, source=source, command=command).numba_module()
+    with paused_gc():
+        return _NumbaGen(ss, source=source, command=command).numba_module()
 

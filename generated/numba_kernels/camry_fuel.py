@@ -71,7 +71,7 @@ def f(x, u, theta, _dxdt):
     H = theta[8]
     P_eps = theta[9]
     _t0 = 1/tau_f
-    _dxdt[0] = _t0*(-Q + P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*_tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) + Q_idle)
+    _dxdt[0] = _t0*(P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*_tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle)
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -98,7 +98,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     H = theta[8]
     P_eps = theta[9]
     _t0 = 1/tau_f
-    _dxdt[0] = _t0*(-Q + P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*_tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) + Q_idle)
+    _dxdt[0] = _t0*(P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*_tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle)
     _J[0, 0] = -_t0
 
 
@@ -149,7 +149,7 @@ def f_cols(_X, u, theta, _dxdt):
         _v0_t = _v0_num / _v0_den
         _v0_big = 1.0 - _v0_t
         _v0_ret = _sel(_v0_small, _v0_x + _v0_t, _sel(_v0_x < 0, -_v0_big, _v0_big))
-        _dxdt[0 + _j] = _t0*(-Q + P_eps*np.logaddexp(0.0, (_v0_ret*A + der_v_*m + v*B + np.abs(v)*v*C)*v/P_eps)/(H*eta) + Q_idle)
+        _dxdt[0 + _j] = _t0*(P_eps*np.logaddexp(0.0, (_v0_ret*A + der_v_*m + v*B + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle)
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})

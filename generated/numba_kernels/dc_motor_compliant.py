@@ -60,8 +60,8 @@ def f(x, u, theta, _dxdt):
     _t4 = k_s*q_k_s
     _t5 = 1/J_L
     _t6 = _t5*p_J_L
-    _dxdt[0] = -_t1*k_m - _t3*p_L_a + V
-    _dxdt[1] = -_t4 - _t1*b_m + _t2*k_m*p_L_a
+    _dxdt[0] = V - _t1*k_m - _t3*p_L_a
+    _dxdt[1] = _t2*k_m*p_L_a - _t4 - _t1*b_m
     _dxdt[2] = _t1 - _t6
     _dxdt[3] = _t4 - T_L - _t6*b_L
 
@@ -103,8 +103,8 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t4 = k_s*q_k_s
     _t5 = 1/J_L
     _t6 = _t5*p_J_L
-    _dxdt[0] = -_t1*k_m - _t3*p_L_a + V
-    _dxdt[1] = -_t4 - _t1*b_m + _t2*k_m*p_L_a
+    _dxdt[0] = V - _t1*k_m - _t3*p_L_a
+    _dxdt[1] = _t2*k_m*p_L_a - _t4 - _t1*b_m
     _dxdt[2] = _t1 - _t6
     _dxdt[3] = _t4 - T_L - _t6*b_L
     _J[:, :] = 0.0
@@ -144,8 +144,8 @@ def f_cols(_X, u, theta, _dxdt):
         _t1 = _t0*p_J_m
         _t4 = k_s*q_k_s
         _t6 = _t5*p_J_L
-        _dxdt[0 + _j] = -_t1*k_m - _t3*p_L_a + V
-        _dxdt[16 + _j] = -_t4 - _t1*b_m + _t2*k_m*p_L_a
+        _dxdt[0 + _j] = V - _t1*k_m - _t3*p_L_a
+        _dxdt[16 + _j] = _t2*k_m*p_L_a - _t4 - _t1*b_m
         _dxdt[32 + _j] = _t1 - _t6
         _dxdt[48 + _j] = _t4 - T_L - _t6*b_L
 

@@ -57,7 +57,7 @@ def f(x, u, theta, _dxdt):
     _t5 = 1/(1 + _t2*n**2*J_m)
     _t6 = _t2*b_L
     _t7 = _t0*_t3
-    _dxdt[0] = -_t1*p_L_a - _t4*p_J_L + V
+    _dxdt[0] = V - _t1*p_L_a - _t4*p_J_L
     _dxdt[1] = _t5*(_t7*p_L_a - _t6*p_J_L)
 
 
@@ -91,7 +91,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t5 = 1/(1 + _t2*n**2*J_m)
     _t6 = _t2*b_L
     _t7 = _t0*_t3
-    _dxdt[0] = -_t1*p_L_a - _t4*p_J_L + V
+    _dxdt[0] = V - _t1*p_L_a - _t4*p_J_L
     _dxdt[1] = _t5*(_t7*p_L_a - _t6*p_J_L)
     _J[0, 0] = -_t1
     _J[0, 1] = -_t4
@@ -121,7 +121,7 @@ def f_cols(_X, u, theta, _dxdt):
     for _j in range(16):
         p_L_a = _X[0 + _j]
         p_J_L = _X[16 + _j]
-        _dxdt[0 + _j] = -_t1*p_L_a - _t4*p_J_L + V
+        _dxdt[0 + _j] = V - _t1*p_L_a - _t4*p_J_L
         _dxdt[16 + _j] = _t5*(_t7*p_L_a - _t6*p_J_L)
 
 

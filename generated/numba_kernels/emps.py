@@ -69,7 +69,7 @@ def f(x, u, theta, _dxdt):
     _t1 = 1/M
     _t2 = _t1*p_M
     _t3 = _tanh(_t0*_t2)
-    _dxdt[0] = -offset + vir*gtau - _t2*Fv - _t3*Fc
+    _dxdt[0] = vir*gtau - offset - _t2*Fv - _t3*Fc
     _dxdt[1] = _t2
 
 
@@ -95,7 +95,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t1 = 1/M
     _t2 = _t1*p_M
     _t3 = _tanh(_t0*_t2)
-    _dxdt[0] = -offset + vir*gtau - _t2*Fv - _t3*Fc
+    _dxdt[0] = vir*gtau - offset - _t2*Fv - _t3*Fc
     _dxdt[1] = _t2
     _J[:, :] = 0.0
     _J[0, 0] = -_t1*Fv - _t0*_t1*(1 - _t3**2)*Fc
@@ -147,7 +147,7 @@ def f_cols(_X, u, theta, _dxdt):
         _v0_big = 1.0 - _v0_t
         _v0_ret = _sel(_v0_small, _v0_x + _v0_t, _sel(_v0_x < 0, -_v0_big, _v0_big))
         _t3 = _v0_ret
-        _dxdt[0 + _j] = -offset + vir*gtau - _t2*Fv - _t3*Fc
+        _dxdt[0 + _j] = vir*gtau - offset - _t2*Fv - _t3*Fc
         _dxdt[16 + _j] = _t2
 
 

@@ -65,7 +65,7 @@ def f(x, u, theta, _dxdt):
     _t0 = 1/m2
     _t1 = _t0*p_M2
     _t2 = 1/m1
-    _t3 = -_t1 + _t2*p_M1
+    _t3 = _t2*p_M1 - _t1
     _t4 = _t3*c1 + k1*q_K1
     _t5 = 1/m3
     _t6 = _t5*p_M3
@@ -81,7 +81,7 @@ def f(x, u, theta, _dxdt):
     _t16 = _t11 - _t15*p_M5
     _t17 = _t16*c4
     _t18 = k4*q_K4
-    _dxdt[0] = -_t4 + F
+    _dxdt[0] = F - _t4
     _dxdt[1] = _t4 - _t8 - _t9
     _dxdt[2] = _t8 + _t9 - _t13 - _t14
     _dxdt[3] = _t13 + _t14 - _t17 - _t18
@@ -130,7 +130,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t0 = 1/m2
     _t1 = _t0*p_M2
     _t2 = 1/m1
-    _t3 = -_t1 + _t2*p_M1
+    _t3 = _t2*p_M1 - _t1
     _t4 = _t3*c1 + k1*q_K1
     _t5 = 1/m3
     _t6 = _t5*p_M3
@@ -154,7 +154,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t24 = _t10*c3
     _t25 = _t10*c4
     _t26 = _t15*c4
-    _dxdt[0] = -_t4 + F
+    _dxdt[0] = F - _t4
     _dxdt[1] = _t4 - _t8 - _t9
     _dxdt[2] = _t8 + _t9 - _t13 - _t14
     _dxdt[3] = _t13 + _t14 - _t17 - _t18
@@ -228,7 +228,7 @@ def f_cols(_X, u, theta, _dxdt):
         q_K3 = _X[140 + _j]
         q_K4 = _X[160 + _j]
         _t1 = _t0*p_M2
-        _t3 = -_t1 + _t2*p_M1
+        _t3 = _t2*p_M1 - _t1
         _t4 = _t3*c1 + k1*q_K1
         _t6 = _t5*p_M3
         _t7 = _t1 - _t6
@@ -241,7 +241,7 @@ def f_cols(_X, u, theta, _dxdt):
         _t16 = _t11 - _t15*p_M5
         _t17 = _t16*c4
         _t18 = k4*q_K4
-        _dxdt[0 + _j] = -_t4 + F
+        _dxdt[0 + _j] = F - _t4
         _dxdt[20 + _j] = _t4 - _t8 - _t9
         _dxdt[40 + _j] = _t8 + _t9 - _t13 - _t14
         _dxdt[60 + _j] = _t13 + _t14 - _t17 - _t18

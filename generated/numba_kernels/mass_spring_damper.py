@@ -47,7 +47,7 @@ def f(x, u, theta, _dxdt):
     c = theta[2]
     _t0 = 1/m
     _t1 = _t0*p_mass
-    _dxdt[0] = -_t1*c - k*q_spring + F
+    _dxdt[0] = F - _t1*c - k*q_spring
     _dxdt[1] = _t1
 
 
@@ -73,7 +73,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     c = theta[2]
     _t0 = 1/m
     _t1 = _t0*p_mass
-    _dxdt[0] = -_t1*c - k*q_spring + F
+    _dxdt[0] = F - _t1*c - k*q_spring
     _dxdt[1] = _t1
     _J[:, :] = 0.0
     _J[0, 0] = -_t0*c
@@ -93,7 +93,7 @@ def f_cols(_X, u, theta, _dxdt):
         p_mass = _X[0 + _j]
         q_spring = _X[16 + _j]
         _t1 = _t0*p_mass
-        _dxdt[0 + _j] = -_t1*c - k*q_spring + F
+        _dxdt[0 + _j] = F - _t1*c - k*q_spring
         _dxdt[16 + _j] = _t1
 
 

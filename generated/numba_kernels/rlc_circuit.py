@@ -48,7 +48,7 @@ def f(x, u, theta, _dxdt):
     _t0 = 1/C
     _t1 = 1/L
     _t2 = _t1*p_inductor
-    _dxdt[0] = -_t0*q_capacitor - _t2*R + V
+    _dxdt[0] = V - _t0*q_capacitor - _t2*R
     _dxdt[1] = _t2
 
 
@@ -77,7 +77,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t0 = 1/C
     _t1 = 1/L
     _t2 = _t1*p_inductor
-    _dxdt[0] = -_t0*q_capacitor - _t2*R + V
+    _dxdt[0] = V - _t0*q_capacitor - _t2*R
     _dxdt[1] = _t2
     _J[:, :] = 0.0
     _J[0, 0] = -_t1*R
@@ -98,7 +98,7 @@ def f_cols(_X, u, theta, _dxdt):
         p_inductor = _X[0 + _j]
         q_capacitor = _X[16 + _j]
         _t2 = _t1*p_inductor
-        _dxdt[0 + _j] = -_t0*q_capacitor - _t2*R + V
+        _dxdt[0 + _j] = V - _t0*q_capacitor - _t2*R
         _dxdt[16 + _j] = _t2
 
 

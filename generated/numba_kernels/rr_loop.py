@@ -46,7 +46,7 @@ def f(x, u, theta, _dxdt):
     L = theta[2]
     _t0 = 1/(-R1 - R2)
     _t1 = 1/L
-    _dxdt[0] = -(_t0*(-V + _t1*R1*p_L) + _t1*p_L)*R1 + V
+    _dxdt[0] = V - (_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -61,7 +61,7 @@ def h(x, u, theta, _y):
     _t1 = _t0*p_L
     _t2 = 1/(-R1 - R2)
     _y[0] = _t1
-    _y[1] = -(_t1 + _t2*(-V + _t0*R1*p_L))*R1 + V
+    _y[1] = V - (_t1 + _t2*(_t0*R1*p_L - V))*R1
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -74,7 +74,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     L = theta[2]
     _t0 = 1/(-R1 - R2)
     _t1 = 1/L
-    _dxdt[0] = -(_t0*(-V + _t1*R1*p_L) + _t1*p_L)*R1 + V
+    _dxdt[0] = V - (_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1
     _J[0, 0] = -(_t1 + _t0*_t1*R1)*R1
 
 
@@ -89,7 +89,7 @@ def f_cols(_X, u, theta, _dxdt):
     _t1 = 1/L
     for _j in range(16):
         p_L = _X[0 + _j]
-        _dxdt[0 + _j] = -(_t0*(-V + _t1*R1*p_L) + _t1*p_L)*R1 + V
+        _dxdt[0 + _j] = V - (_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -105,4 +105,4 @@ def h_cols(_X, u, theta, _y):
         p_L = _X[0 + _j]
         _t1 = _t0*p_L
         _y[0 + _j] = _t1
-        _y[16 + _j] = -(_t1 + _t2*(-V + _t0*R1*p_L))*R1 + V
+        _y[16 + _j] = V - (_t1 + _t2*(_t0*R1*p_L - V))*R1

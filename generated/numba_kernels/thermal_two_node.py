@@ -56,7 +56,7 @@ def f(x, u, theta, _dxdt):
     _t5 = _t0*_t1*(_t3 - _t4*T0*q_mass1)
     _t6 = 1/Rth2a
     _dxdt[0] = _t5 + _t0*P
-    _dxdt[1] = -_t5 + _t0*_t6*(-_t3 + T_a)
+    _dxdt[1] = _t0*_t6*(T_a - _t3) - _t5
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -95,7 +95,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t7 = _t1*_t4
     _t8 = _t1*_t2
     _dxdt[0] = _t5 + _t0*P
-    _dxdt[1] = -_t5 + _t0*_t6*(-_t3 + T_a)
+    _dxdt[1] = _t0*_t6*(T_a - _t3) - _t5
     _J[0, 0] = -_t7
     _J[0, 1] = _t8
     _J[1, 0] = _t7
@@ -123,7 +123,7 @@ def f_cols(_X, u, theta, _dxdt):
         _t3 = _t2*T0*q_mass2
         _t5 = _t0*_t1*(_t3 - _t4*T0*q_mass1)
         _dxdt[0 + _j] = _t5 + _t0*P
-        _dxdt[16 + _j] = -_t5 + _t0*_t6*(-_t3 + T_a)
+        _dxdt[16 + _j] = _t0*_t6*(T_a - _t3) - _t5
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})

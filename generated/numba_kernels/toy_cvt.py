@@ -83,7 +83,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t3 = 1/(1 + _t2)
     _t4 = _t0*c
     _dxdt[0] = _t3*((_t2*der_r_*p_m + T)/r - _t4*p_m)
-    _J[0, 0] = _t3*(-_t4 + _t1*der_r_/r**3)
+    _J[0, 0] = _t3*(_t1*der_r_/r**3 - _t4)
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})

@@ -90,8 +90,8 @@ def f(x, u, theta, _dxdt):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -112,7 +112,7 @@ def f(x, u, theta, _dxdt):
     _dxdt[0] = -_t1 - _t24
     _dxdt[1] = -_t24*h_cg - _t26*c_theta - k_theta*pitch__q_k
     _dxdt[2] = _t26
-    _dxdt[3] = -_t29*_t30 - 4*_t27*_t28 + _t22*_t9*g*m*mu*r_dyn
+    _dxdt[3] = _t22*_t9*g*m*mu*r_dyn - _t29*_t30 - 4*_t27*_t28
     _dxdt[4] = 0
 
 
@@ -148,8 +148,8 @@ def h(x, u, theta, _y):
     _t12 = _t10*_t11
     _t13 = np.cos(theta_g)
     _t14 = _t13*_t6
-    _t15 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-    _t16 = np.sqrt(0.25 + (-2 + _t10)**2)
+    _t15 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+    _t16 = np.sqrt(0.25 + (_t10 - 2)**2)
     _t17 = 1 + (0.5)*_t10 + (0.5)*_t16
     _t18 = 1/C_mf
     _t19 = 1/mu
@@ -202,8 +202,8 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -225,22 +225,22 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t32 = 1/_t14**2
     _t33 = 1/(1 + _t32*_t12**2*k_slip**2/(C_mf**2*mu**2))
     _t34 = _t31*_t4*body__p_m
-    _t35 = _t17*_t2 + _t12*_t15*_t16*_t32*((0.5)*_t34 + (0.25)*_t34*(-4 + 2*_t6)/_t13)*k_slip
-    _t36 = _t35 + (-_t35 + _t33*_t35)*E_mf
+    _t35 = _t17*_t2 + _t12*_t15*_t16*_t32*((0.5)*_t34 + (0.25)*_t34*(2*_t6 - 4)/_t13)*k_slip
+    _t36 = _t35 + (_t33*_t35 - _t35)*E_mf
     _t37 = 1/(1 + _t20**2)
     _t38 = np.cos(_t21)
     _t39 = _t37*_t38*C_mf*mu
     _t40 = _t10*_t39
     _t41 = -_t2*_t8 - _t36*_t40 - _t31*_t5*_t7/m**3
     _t42 = (0.25)*_t11*_t17*r_dyn
-    _t43 = -_t42 + (_t42 - _t33*_t42)*E_mf
+    _t43 = (_t42 - _t33*_t42)*E_mf - _t42
     _t44 = _t40*_t43
     _t45 = _t1*_t23
     _t46 = _t11*(1 - _t27**2)
     _dxdt[0] = -_t1 - _t24
     _dxdt[1] = -_t24*h_cg - _t26*c_theta - k_theta*pitch__q_k
     _dxdt[2] = _t26
-    _dxdt[3] = -_t29*_t30 - 4*_t27*_t28 + _t22*_t9*g*m*mu*r_dyn
+    _dxdt[3] = _t22*_t9*g*m*mu*r_dyn - _t29*_t30 - 4*_t27*_t28
     _dxdt[4] = 0
     _J[:, :] = 0.0
     _J[0, 0] = _t41
@@ -253,8 +253,8 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _J[1, 4] = _t45*h_cg
     _J[2, 1] = _t25
     _J[3, 0] = _t29*_t36*_t39
-    _J[3, 3] = -0.5*_t28*_t46 - 0.125*_t29*_t46*f_r + _t37*_t38*_t43*_t9*C_mf*g*m*mu*r_dyn
-    _J[3, 4] = -_t45*r_dyn + _t1*_t30*r_dyn
+    _J[3, 3] = _t37*_t38*_t43*_t9*C_mf*g*m*mu*r_dyn - 0.5*_t28*_t46 - 0.125*_t29*_t46*f_r
+    _J[3, 4] = _t1*_t30*r_dyn - _t45*r_dyn
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -338,8 +338,8 @@ def f_cols(_X, u, theta, _dxdt):
         _far += abs(_v2_x) >= 1e8
         _t9 = _v2_ret
         _t10 = _t0*_t9
-        _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-        _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+        _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+        _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
         _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
         _t17 = _t15*_t16*k_slip/_t14
         _t18 = _t12*_t17
@@ -429,7 +429,7 @@ def f_cols(_X, u, theta, _dxdt):
         _dxdt[0 + _j] = -_t1 - _t24
         _dxdt[16 + _j] = -_t24*h_cg - _t26*c_theta - k_theta*pitch__q_k
         _dxdt[32 + _j] = _t26
-        _dxdt[48 + _j] = -_t29*_t30 - 4*_t27*_t28 + _t22*_t9*g*m*mu*r_dyn
+        _dxdt[48 + _j] = _t22*_t9*g*m*mu*r_dyn - _t29*_t30 - 4*_t27*_t28
         _dxdt[64 + _j] = 0
     if _far:
         for _j in range(16):
@@ -445,8 +445,8 @@ def f_cols(_X, u, theta, _dxdt):
             _t8 = _t6*_t7
             _t9 = np.cos(theta_g)
             _t10 = _t0*_t9
-            _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-            _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+            _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+            _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
             _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
             _t17 = _t15*_t16*k_slip/_t14
             _t18 = _t12*_t17
@@ -463,7 +463,7 @@ def f_cols(_X, u, theta, _dxdt):
             _dxdt[0 + _j] = -_t1 - _t24
             _dxdt[16 + _j] = -_t24*h_cg - _t26*c_theta - k_theta*pitch__q_k
             _dxdt[32 + _j] = _t26
-            _dxdt[48 + _j] = -_t29*_t30 - 4*_t27*_t28 + _t22*_t9*g*m*mu*r_dyn
+            _dxdt[48 + _j] = _t22*_t9*g*m*mu*r_dyn - _t29*_t30 - 4*_t27*_t28
             _dxdt[64 + _j] = 0
 
 
@@ -542,8 +542,8 @@ def h_cols(_X, u, theta, _y):
         _far += abs(_v2_x) >= 1e8
         _t13 = _v2_ret
         _t14 = _t13*_t6
-        _t15 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-        _t16 = np.sqrt(0.25 + (-2 + _t10)**2)
+        _t15 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+        _t16 = np.sqrt(0.25 + (_t10 - 2)**2)
         _t17 = 1 + (0.5)*_t10 + (0.5)*_t16
         _t20 = _t18*_t19*k_slip/_t17
         _t21 = _t15*_t20
@@ -635,8 +635,8 @@ def h_cols(_X, u, theta, _y):
             _t12 = _t10*_t11
             _t13 = np.cos(theta_g)
             _t14 = _t13*_t6
-            _t15 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-            _t16 = np.sqrt(0.25 + (-2 + _t10)**2)
+            _t15 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+            _t16 = np.sqrt(0.25 + (_t10 - 2)**2)
             _t17 = 1 + (0.5)*_t10 + (0.5)*_t16
             _t20 = _t18*_t19*k_slip/_t17
             _t21 = _t15*_t20

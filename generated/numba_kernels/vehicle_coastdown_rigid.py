@@ -84,8 +84,8 @@ def f(x, u, theta, _dxdt):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -101,7 +101,7 @@ def f(x, u, theta, _dxdt):
     _t26 = _t10*r_dyn
     _t27 = _t24*f_r
     _dxdt[0] = -_t1 - _t10*_t23 - _t3*_t8
-    _dxdt[1] = -_t26*_t27 - 4*_t24*_t25 + _t22*_t9*g*m*mu*r_dyn
+    _dxdt[1] = _t22*_t9*g*m*mu*r_dyn - _t26*_t27 - 4*_t24*_t25
     _dxdt[2] = 0
 
 
@@ -135,8 +135,8 @@ def h(x, u, theta, _y):
     _t11 = _t10*_t9
     _t12 = g*np.cos(theta_g)
     _t13 = _t12*m
-    _t14 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-    _t15 = np.sqrt(0.25 + (-2 + _t9)**2)
+    _t14 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+    _t15 = np.sqrt(0.25 + (_t9 - 2)**2)
     _t16 = 1 + (0.5)*_t15 + (0.5)*_t9
     _t17 = 1/C_mf
     _t18 = 1/mu
@@ -183,8 +183,8 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-    _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
     _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
@@ -203,26 +203,26 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t29 = 1/_t14**2
     _t30 = 1/(1 + _t29*_t12**2*k_slip**2/(C_mf**2*mu**2))
     _t31 = _t28*_t4*body__p_m
-    _t32 = _t17*_t2 + _t12*_t15*_t16*_t29*((0.5)*_t31 + (0.25)*_t31*(-4 + 2*_t6)/_t13)*k_slip
-    _t33 = _t32 + (-_t32 + _t30*_t32)*E_mf
+    _t32 = _t17*_t2 + _t12*_t15*_t16*_t29*((0.5)*_t31 + (0.25)*_t31*(2*_t6 - 4)/_t13)*k_slip
+    _t33 = _t32 + (_t30*_t32 - _t32)*E_mf
     _t34 = 1/(1 + _t20**2)
     _t35 = np.cos(_t21)
     _t36 = _t34*_t35*C_mf*mu
     _t37 = _t10*_t36
     _t38 = (0.25)*_t11*_t17*r_dyn
-    _t39 = -_t38 + (_t38 - _t30*_t38)*E_mf
+    _t39 = (_t38 - _t30*_t38)*E_mf - _t38
     _t40 = _t1*_t23
     _t41 = _t11*(1 - _t24**2)
     _dxdt[0] = -_t1 - _t10*_t23 - _t3*_t8
-    _dxdt[1] = -_t26*_t27 - 4*_t24*_t25 + _t22*_t9*g*m*mu*r_dyn
+    _dxdt[1] = _t22*_t9*g*m*mu*r_dyn - _t26*_t27 - 4*_t24*_t25
     _dxdt[2] = 0
     _J[:, :] = 0.0
     _J[0, 0] = -_t2*_t8 - _t33*_t37 - _t28*_t5*_t7/m**3
     _J[0, 1] = -_t37*_t39
     _J[0, 2] = _t40 - _t10
     _J[1, 0] = _t26*_t33*_t36
-    _J[1, 1] = -0.5*_t25*_t41 - 0.125*_t26*_t41*f_r + _t34*_t35*_t39*_t9*C_mf*g*m*mu*r_dyn
-    _J[1, 2] = -_t40*r_dyn + _t1*_t27*r_dyn
+    _J[1, 1] = _t34*_t35*_t39*_t9*C_mf*g*m*mu*r_dyn - 0.5*_t25*_t41 - 0.125*_t26*_t41*f_r
+    _J[1, 2] = _t1*_t27*r_dyn - _t40*r_dyn
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -299,8 +299,8 @@ def f_cols(_X, u, theta, _dxdt):
         _far += abs(_v2_x) >= 1e8
         _t9 = _v2_ret
         _t10 = _t0*_t9
-        _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-        _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+        _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+        _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
         _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
         _t17 = _t15*_t16*k_slip/_t14
         _t18 = _t12*_t17
@@ -386,7 +386,7 @@ def f_cols(_X, u, theta, _dxdt):
         _t26 = _t10*r_dyn
         _t27 = _t24*f_r
         _dxdt[0 + _j] = -_t1 - _t10*_t23 - _t3*_t8
-        _dxdt[16 + _j] = -_t26*_t27 - 4*_t24*_t25 + _t22*_t9*g*m*mu*r_dyn
+        _dxdt[16 + _j] = _t22*_t9*g*m*mu*r_dyn - _t26*_t27 - 4*_t24*_t25
         _dxdt[32 + _j] = 0
     if _far:
         for _j in range(16):
@@ -400,8 +400,8 @@ def f_cols(_X, u, theta, _dxdt):
             _t8 = _t6*_t7
             _t9 = np.cos(theta_g)
             _t10 = _t0*_t9
-            _t12 = -_t3 + (0.25)*_t11*r_dyn*wheels__p_J
-            _t13 = np.sqrt(0.25 + (-2 + _t6)**2)
+            _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+            _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
             _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
             _t17 = _t15*_t16*k_slip/_t14
             _t18 = _t12*_t17
@@ -414,7 +414,7 @@ def f_cols(_X, u, theta, _dxdt):
             _t26 = _t10*r_dyn
             _t27 = _t24*f_r
             _dxdt[0 + _j] = -_t1 - _t10*_t23 - _t3*_t8
-            _dxdt[16 + _j] = -_t26*_t27 - 4*_t24*_t25 + _t22*_t9*g*m*mu*r_dyn
+            _dxdt[16 + _j] = _t22*_t9*g*m*mu*r_dyn - _t26*_t27 - 4*_t24*_t25
             _dxdt[32 + _j] = 0
 
 
@@ -491,8 +491,8 @@ def h_cols(_X, u, theta, _y):
         _far += abs(_v2_x) >= 1e8
         _t12 = _v2_ret*g
         _t13 = _t12*m
-        _t14 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-        _t15 = np.sqrt(0.25 + (-2 + _t9)**2)
+        _t14 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+        _t15 = np.sqrt(0.25 + (_t9 - 2)**2)
         _t16 = 1 + (0.5)*_t15 + (0.5)*_t9
         _t19 = _t17*_t18*k_slip/_t16
         _t20 = _t14*_t19
@@ -563,8 +563,8 @@ def h_cols(_X, u, theta, _y):
             _t11 = _t10*_t9
             _t12 = g*np.cos(theta_g)
             _t13 = _t12*m
-            _t14 = -_t4 + (0.25)*_t0*r_dyn*wheels__p_J
-            _t15 = np.sqrt(0.25 + (-2 + _t9)**2)
+            _t14 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+            _t15 = np.sqrt(0.25 + (_t9 - 2)**2)
             _t16 = 1 + (0.5)*_t15 + (0.5)*_t9
             _t19 = _t17*_t18*k_slip/_t16
             _t20 = _t14*_t19

@@ -94,11 +94,11 @@ def f(x, u, theta, _dxdt):
     _t10 = 1/m
     _t11 = _t10*body__p_m
     _t12 = 1/J_w
-    _t13 = -_t11 + (0.5)*_t12*r_dyn*rear__p_J
+    _t13 = (0.5)*_t12*r_dyn*rear__p_J - _t11
     _t14 = 1/m**2
     _t15 = body__p_m**2
     _t16 = np.sqrt(0.25 + _t14*_t15)
-    _t17 = np.sqrt(0.25 + (-2 + _t16)**2)
+    _t17 = np.sqrt(0.25 + (_t16 - 2)**2)
     _t18 = 1 + (0.5)*_t16 + (0.5)*_t17
     _t19 = k_slip/(C_mf*mu)
     _t20 = _t19/_t18
@@ -108,9 +108,9 @@ def f(x, u, theta, _dxdt):
     _t24 = C_mf*np.arctan(_t23)
     _t25 = np.sin(_t24)
     _t26 = _t25*mu
-    _t27 = -l_f + L_wb
-    _t28 = -_t6 + _t27*_t8
-    _t29 = -_t11 + (0.5)*_t12*r_dyn*front__p_J
+    _t27 = L_wb - l_f
+    _t28 = _t27*_t8 - _t6
+    _t29 = (0.5)*_t12*r_dyn*front__p_J - _t11
     _t30 = _t20*_t29
     _t31 = -_t30
     _t32 = _t31 + (-_t31 - np.arctan(_t30))*E_mf
@@ -131,8 +131,8 @@ def f(x, u, theta, _dxdt):
     _dxdt[0] = -_t1 - _t38
     _dxdt[1] = -_t5 - _t38*h_cg
     _dxdt[2] = _t4
-    _dxdt[3] = -_t40*_t42 - _t44*_t9 + _t25*_t9*mu*r_dyn
-    _dxdt[4] = -_t28*_t46 - _t42*_t45 + _t28*_t34*mu*r_dyn
+    _dxdt[3] = _t25*_t9*mu*r_dyn - _t40*_t42 - _t44*_t9
+    _dxdt[4] = _t28*_t34*mu*r_dyn - _t28*_t46 - _t42*_t45
     _dxdt[5] = 0
 
 
@@ -172,11 +172,11 @@ def h(x, u, theta, _y):
     _t9 = _t8*np.cos(theta_g)
     _t10 = _t5*_t9
     _t11 = _t7 + _t10*l_f
-    _t12 = -_t3 + (0.5)*_t0*r_dyn*rear__p_J
+    _t12 = (0.5)*_t0*r_dyn*rear__p_J - _t3
     _t13 = 1/m**2
     _t14 = body__p_m**2
     _t15 = np.sqrt(0.25 + _t13*_t14)
-    _t16 = np.sqrt(0.25 + (-2 + _t15)**2)
+    _t16 = np.sqrt(0.25 + (_t15 - 2)**2)
     _t17 = 1 + (0.5)*_t15 + (0.5)*_t16
     _t18 = k_slip/(C_mf*mu)
     _t19 = _t18/_t17
@@ -185,9 +185,9 @@ def h(x, u, theta, _y):
     _t22 = _t21 + (-_t21 - np.arctan(_t20))*E_mf
     _t23 = C_mf*np.arctan(_t22)
     _t24 = mu*np.sin(_t23)
-    _t25 = -l_f + L_wb
-    _t26 = -_t7 + _t10*_t25
-    _t27 = -_t3 + (0.5)*_t0*r_dyn*front__p_J
+    _t25 = L_wb - l_f
+    _t26 = _t10*_t25 - _t7
+    _t27 = (0.5)*_t0*r_dyn*front__p_J - _t3
     _t28 = _t19*_t27
     _t29 = -_t28
     _t30 = _t29 + (-_t29 - np.arctan(_t28))*E_mf
@@ -243,11 +243,11 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t10 = 1/m
     _t11 = _t10*body__p_m
     _t12 = 1/J_w
-    _t13 = -_t11 + (0.5)*_t12*r_dyn*rear__p_J
+    _t13 = (0.5)*_t12*r_dyn*rear__p_J - _t11
     _t14 = 1/m**2
     _t15 = body__p_m**2
     _t16 = np.sqrt(0.25 + _t14*_t15)
-    _t17 = np.sqrt(0.25 + (-2 + _t16)**2)
+    _t17 = np.sqrt(0.25 + (_t16 - 2)**2)
     _t18 = 1 + (0.5)*_t16 + (0.5)*_t17
     _t19 = k_slip/(C_mf*mu)
     _t20 = _t19/_t18
@@ -257,9 +257,9 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t24 = C_mf*np.arctan(_t23)
     _t25 = np.sin(_t24)
     _t26 = _t25*mu
-    _t27 = -l_f + L_wb
-    _t28 = -_t6 + _t27*_t8
-    _t29 = -_t11 + (0.5)*_t12*r_dyn*front__p_J
+    _t27 = L_wb - l_f
+    _t28 = _t27*_t8 - _t6
+    _t29 = (0.5)*_t12*r_dyn*front__p_J - _t11
     _t30 = _t20*_t29
     _t31 = -_t30
     _t32 = _t31 + (-_t31 - np.arctan(_t30))*E_mf
@@ -283,19 +283,19 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t50 = 1/(1 + _t49*_t29**2)
     _t51 = _t10*_t20
     _t52 = _t14*_t47*body__p_m
-    _t53 = _t19*_t48*((0.5)*_t52 + (0.25)*_t52*(-4 + 2*_t16)/_t17)
+    _t53 = _t19*_t48*((0.5)*_t52 + (0.25)*_t52*(2*_t16 - 4)/_t17)
     _t54 = _t51 + _t29*_t53
     _t55 = 1/(1 + _t32**2)
     _t56 = np.cos(_t33)
     _t57 = C_mf*mu
     _t58 = _t28*_t55*_t56*_t57
-    _t59 = _t58*(_t54 + (-_t54 + _t50*_t54)*E_mf)
+    _t59 = _t58*(_t54 + (_t50*_t54 - _t54)*E_mf)
     _t60 = 1/(1 + _t49*_t13**2)
     _t61 = _t51 + _t13*_t53
     _t62 = 1/(1 + _t23**2)
     _t63 = np.cos(_t24)
     _t64 = _t57*_t62*_t63*_t9
-    _t65 = _t64*(_t61 + (-_t61 + _t60*_t61)*E_mf)
+    _t65 = _t64*(_t61 + (_t60*_t61 - _t61)*E_mf)
     _t66 = -_t59 - _t65 - _t10*_t37 - _t15*_t36*_t47/m**3
     _t67 = _t3*c_theta
     _t68 = _t2*_t67
@@ -324,8 +324,8 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _dxdt[0] = -_t1 - _t38
     _dxdt[1] = -_t5 - _t38*h_cg
     _dxdt[2] = _t4
-    _dxdt[3] = -_t40*_t42 - _t44*_t9 + _t25*_t9*mu*r_dyn
-    _dxdt[4] = -_t28*_t46 - _t42*_t45 + _t28*_t34*mu*r_dyn
+    _dxdt[3] = _t25*_t9*mu*r_dyn - _t40*_t42 - _t44*_t9
+    _dxdt[4] = _t28*_t34*mu*r_dyn - _t28*_t46 - _t42*_t45
     _dxdt[5] = 0
     _J[:, :] = 0.0
     _J[0, 0] = _t66
@@ -335,21 +335,21 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _J[0, 4] = -_t80
     _J[0, 5] = _t86 - _t7
     _J[1, 0] = _t66*h_cg
-    _J[1, 1] = -_t67 + _t70*h_cg
-    _J[1, 2] = -k_theta + _t73*h_cg
+    _J[1, 1] = _t70*h_cg - _t67
+    _J[1, 2] = _t73*h_cg - k_theta
     _J[1, 3] = -_t78*h_cg
     _J[1, 4] = -_t80*h_cg
     _J[1, 5] = _t86*h_cg
     _J[2, 1] = _t3
     _J[3, 0] = _t65*r_dyn
-    _J[3, 1] = -_t44*_t68 + _t2*_t25*_t3*c_theta*mu*r_dyn
-    _J[3, 2] = -_t44*_t71 + _t2*_t25*k_theta*mu*r_dyn
-    _J[3, 3] = -_t87*_t88 - _t87*_t89*_t9 + _t62*_t63*_t77*_t9*C_mf*mu*r_dyn
+    _J[3, 1] = _t2*_t25*_t3*c_theta*mu*r_dyn - _t44*_t68
+    _J[3, 2] = _t2*_t25*k_theta*mu*r_dyn - _t44*_t71
+    _J[3, 3] = _t62*_t63*_t77*_t9*C_mf*mu*r_dyn - _t87*_t88 - _t87*_t89*_t9
     _J[3, 5] = _t44*_t84 - _t85*r_dyn
     _J[4, 0] = _t59*r_dyn
     _J[4, 1] = _t46*_t68 - _t69*r_dyn
     _J[4, 2] = _t46*_t71 - _t72*r_dyn
-    _J[4, 4] = -_t88*_t90 - _t28*_t89*_t90 + _t28*_t55*_t56*_t79*C_mf*mu*r_dyn
+    _J[4, 4] = _t28*_t55*_t56*_t79*C_mf*mu*r_dyn - _t88*_t90 - _t28*_t89*_t90
     _J[4, 5] = _t46*_t82 - _t83*r_dyn
 
 
@@ -381,7 +381,7 @@ def f_cols(_X, u, theta, _dxdt):
     _t12 = 1/J_w
     _t14 = 1/m**2
     _t19 = k_slip/(C_mf*mu)
-    _t27 = -l_f + L_wb
+    _t27 = L_wb - l_f
     _t36 = (0.6)*C_dA
     _t39 = (0.25)*_t12
     _t41 = brake*T_bmax
@@ -442,10 +442,10 @@ def f_cols(_X, u, theta, _dxdt):
         _t8 = _t2*_t7
         _t9 = _t6 + _t8*l_f
         _t11 = _t10*body__p_m
-        _t13 = -_t11 + (0.5)*_t12*r_dyn*rear__p_J
+        _t13 = (0.5)*_t12*r_dyn*rear__p_J - _t11
         _t15 = body__p_m**2
         _t16 = np.sqrt(0.25 + _t14*_t15)
-        _t17 = np.sqrt(0.25 + (-2 + _t16)**2)
+        _t17 = np.sqrt(0.25 + (_t16 - 2)**2)
         _t18 = 1 + (0.5)*_t16 + (0.5)*_t17
         _t20 = _t19/_t18
         _t21 = _t13*_t20
@@ -498,8 +498,8 @@ def f_cols(_X, u, theta, _dxdt):
         _far += abs(_v6_x) >= 1e8
         _t25 = _v6_ret
         _t26 = _t25*mu
-        _t28 = -_t6 + _t27*_t8
-        _t29 = -_t11 + (0.5)*_t12*r_dyn*front__p_J
+        _t28 = _t27*_t8 - _t6
+        _t29 = (0.5)*_t12*r_dyn*front__p_J - _t11
         _t30 = _t20*_t29
         _t31 = -_t30
         _v8_x = _t30
@@ -617,8 +617,8 @@ def f_cols(_X, u, theta, _dxdt):
         _dxdt[0 + _j] = -_t1 - _t38
         _dxdt[16 + _j] = -_t5 - _t38*h_cg
         _dxdt[32 + _j] = _t4
-        _dxdt[48 + _j] = -_t40*_t42 - _t44*_t9 + _t25*_t9*mu*r_dyn
-        _dxdt[64 + _j] = -_t28*_t46 - _t42*_t45 + _t28*_t34*mu*r_dyn
+        _dxdt[48 + _j] = _t25*_t9*mu*r_dyn - _t40*_t42 - _t44*_t9
+        _dxdt[64 + _j] = _t28*_t34*mu*r_dyn - _t28*_t46 - _t42*_t45
         _dxdt[80 + _j] = 0
     if _far:
         for _j in range(16):
@@ -636,10 +636,10 @@ def f_cols(_X, u, theta, _dxdt):
             _t8 = _t2*_t7
             _t9 = _t6 + _t8*l_f
             _t11 = _t10*body__p_m
-            _t13 = -_t11 + (0.5)*_t12*r_dyn*rear__p_J
+            _t13 = (0.5)*_t12*r_dyn*rear__p_J - _t11
             _t15 = body__p_m**2
             _t16 = np.sqrt(0.25 + _t14*_t15)
-            _t17 = np.sqrt(0.25 + (-2 + _t16)**2)
+            _t17 = np.sqrt(0.25 + (_t16 - 2)**2)
             _t18 = 1 + (0.5)*_t16 + (0.5)*_t17
             _t20 = _t19/_t18
             _t21 = _t13*_t20
@@ -648,8 +648,8 @@ def f_cols(_X, u, theta, _dxdt):
             _t24 = C_mf*np.arctan(_t23)
             _t25 = np.sin(_t24)
             _t26 = _t25*mu
-            _t28 = -_t6 + _t27*_t8
-            _t29 = -_t11 + (0.5)*_t12*r_dyn*front__p_J
+            _t28 = _t27*_t8 - _t6
+            _t29 = (0.5)*_t12*r_dyn*front__p_J - _t11
             _t30 = _t20*_t29
             _t31 = -_t30
             _t32 = _t31 + (-_t31 - np.arctan(_t30))*E_mf
@@ -665,8 +665,8 @@ def f_cols(_X, u, theta, _dxdt):
             _dxdt[0 + _j] = -_t1 - _t38
             _dxdt[16 + _j] = -_t5 - _t38*h_cg
             _dxdt[32 + _j] = _t4
-            _dxdt[48 + _j] = -_t40*_t42 - _t44*_t9 + _t25*_t9*mu*r_dyn
-            _dxdt[64 + _j] = -_t28*_t46 - _t42*_t45 + _t28*_t34*mu*r_dyn
+            _dxdt[48 + _j] = _t25*_t9*mu*r_dyn - _t40*_t42 - _t44*_t9
+            _dxdt[64 + _j] = _t28*_t34*mu*r_dyn - _t28*_t46 - _t42*_t45
             _dxdt[80 + _j] = 0
 
 
@@ -696,7 +696,7 @@ def h_cols(_X, u, theta, _y):
     _t8 = g*m
     _t13 = 1/m**2
     _t18 = k_slip/(C_mf*mu)
-    _t25 = -l_f + L_wb
+    _t25 = L_wb - l_f
     _t34 = (0.6)*C_dA
     _far = 0
     for _j in range(16):
@@ -731,10 +731,10 @@ def h_cols(_X, u, theta, _y):
         _t9 = _t8*_v0_ret
         _t10 = _t5*_t9
         _t11 = _t7 + _t10*l_f
-        _t12 = -_t3 + (0.5)*_t0*r_dyn*rear__p_J
+        _t12 = (0.5)*_t0*r_dyn*rear__p_J - _t3
         _t14 = body__p_m**2
         _t15 = np.sqrt(0.25 + _t13*_t14)
-        _t16 = np.sqrt(0.25 + (-2 + _t15)**2)
+        _t16 = np.sqrt(0.25 + (_t15 - 2)**2)
         _t17 = 1 + (0.5)*_t15 + (0.5)*_t16
         _t19 = _t18/_t17
         _t20 = _t12*_t19
@@ -786,8 +786,8 @@ def h_cols(_X, u, theta, _y):
         _v4_ret = _sel(_v4_x < 0, -_v4_r, _v4_r)
         _far += abs(_v4_x) >= 1e8
         _t24 = _v4_ret*mu
-        _t26 = -_t7 + _t10*_t25
-        _t27 = -_t3 + (0.5)*_t0*r_dyn*front__p_J
+        _t26 = _t10*_t25 - _t7
+        _t27 = (0.5)*_t0*r_dyn*front__p_J - _t3
         _t28 = _t19*_t27
         _t29 = -_t28
         _v6_x = _t28
@@ -898,10 +898,10 @@ def h_cols(_X, u, theta, _y):
             _t9 = _t8*np.cos(theta_g)
             _t10 = _t5*_t9
             _t11 = _t7 + _t10*l_f
-            _t12 = -_t3 + (0.5)*_t0*r_dyn*rear__p_J
+            _t12 = (0.5)*_t0*r_dyn*rear__p_J - _t3
             _t14 = body__p_m**2
             _t15 = np.sqrt(0.25 + _t13*_t14)
-            _t16 = np.sqrt(0.25 + (-2 + _t15)**2)
+            _t16 = np.sqrt(0.25 + (_t15 - 2)**2)
             _t17 = 1 + (0.5)*_t15 + (0.5)*_t16
             _t19 = _t18/_t17
             _t20 = _t12*_t19
@@ -909,8 +909,8 @@ def h_cols(_X, u, theta, _y):
             _t22 = _t21 + (-_t21 - np.arctan(_t20))*E_mf
             _t23 = C_mf*np.arctan(_t22)
             _t24 = mu*np.sin(_t23)
-            _t26 = -_t7 + _t10*_t25
-            _t27 = -_t3 + (0.5)*_t0*r_dyn*front__p_J
+            _t26 = _t10*_t25 - _t7
+            _t27 = (0.5)*_t0*r_dyn*front__p_J - _t3
             _t28 = _t19*_t27
             _t29 = -_t28
             _t30 = _t29 + (-_t29 - np.arctan(_t28))*E_mf
