@@ -116,6 +116,7 @@ class Shared:
             self._define(e, repeated, done)
         self.reduced = [sp.Symbol(self.index[e][1]) if e in self.index else e for e in exprs]
         self.position = {name: k for k, (name, _) in enumerate(self.repl)}
+        self._refs = None
 
     @classmethod
     def by_sympy(cls, exprs) -> "Shared":
@@ -131,7 +132,40 @@ class Shared:
         for e in self.reduced + [e for _, e in repl]:
             free |= e.free_symbols
         self.free = {s for s in free if s.name not in self.position}
+        self._refs = None
         return self
+
+    def needed(self, exprs) -> list[int]:
+        """Positions in :attr:`repl` of the variables that ``exprs`` (some
+        of :attr:`reduced`) use, directly or through other variables, in
+        order (each expression walked down to the variables only)."""
+        if self._refs is None:
+            self._refs = [self._uses(e) for _, e in self.repl]
+        need: set = set()
+        stack = [k for e in exprs for k in self._uses(e)]
+        while stack:
+            k = stack.pop()
+            if k not in need:
+                need.add(k)
+                stack.extend(self._refs[k])
+        return sorted(need)
+
+    def _uses(self, root) -> set:
+        """Positions of the variables ``root``'s own nodes use."""
+        out, stack = set(), [root]
+        while stack:
+            e = stack.pop()
+            if e.is_Atom:
+                k = self.position.get(e.name) if e.is_Symbol else None
+                if k is not None:
+                    out.add(k)
+                continue
+            hit = self.index.get(e) if e is not root else None
+            if hit is not None:
+                out.add(hit[0])
+            else:
+                stack.extend(e.args)
+        return out
 
     def depends(self, symbols: set) -> list[bool]:
         """For each variable of :attr:`repl`, whether its expression contains
@@ -337,6 +371,7 @@ class _Gen:
         self.printer = _Printer(nm.names)
         self.current: Shared | None = None
         self._groups: list | None = None
+        self._texts: dict = {}
         self.sym_index = {}
         for i, s in enumerate(ss.states):
             self.sym_index[s] = ("x", i)
@@ -385,10 +420,23 @@ class _Gen:
         of = dict(zip(group, sh.reduced))
         return [of[e] for e in exprs]
 
-    def definitions(self, sh: Shared, used: str) -> list[str]:
+    def def_texts(self, sh: Shared, reduced) -> list[tuple[int, str, str]]:
+        """``(position, name, text)`` of the variables of ``sh`` (the
+        :attr:`current`) that the expressions ``reduced`` use, directly or
+        through others, in order; each printed once per generator (the
+        functions of one group share them)."""
+        texts = self._texts.setdefault(sh, {})
+        out = []
+        for k in sh.needed(reduced):
+            if k not in texts:
+                texts[k] = self.pr(sh.repl[k][1], k)
+            out.append((k, sh.repl[k][0], texts[k]))
+        return out
+
+    def definitions(self, sh: Shared, used: str, reduced) -> list[str]:
         """``name = expression`` lines of the variables of ``sh`` that the
-        text ``used`` needs."""
-        defs = [(name, self.pr(e, k)) for k, (name, e) in enumerate(sh.repl)]
+        expressions ``reduced``, printed as the text ``used``, need."""
+        defs = [(name, text) for _, name, text in self.def_texts(sh, reduced)]
         return [f"{name} = {text}" for name, text in live_definitions(defs, used)]
 
     def assign(self, target: str, e: sp.Expr) -> str:
@@ -437,7 +485,7 @@ class _Gen:
         out_lines = self._output_lines(outputs, self.reduced(sh, grp, exprs))
         lines = self._unpack(_free(self.reduced(sh, grp, exprs), sh) if grp is not exprs
                              else sh.free, allowed)
-        lines += self.definitions(sh, "\n".join(out_lines))
+        lines += self.definitions(sh, "\n".join(out_lines), self.reduced(sh, grp, exprs))
         sizes = {"x": len(self.ss.states), "u": len(self.ss.inputs), "theta": len(self.ss.params)}
         if all(sizes[a] > 0 for a in shape_of):
             # np.broadcast(...).shape is ~2 us cheaper per call than broadcast_shapes

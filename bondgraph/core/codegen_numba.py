@@ -279,7 +279,7 @@ class _NumbaGen(_Gen):
             for idx, _ in entries:
                 out.append(f"{name}[{', '.join(str(i) for i in idx)}] = {self.pr(reduced[k])}")
                 k += 1
-        lines += self.definitions(sh, "\n".join(out)) + out
+        lines += self.definitions(sh, "\n".join(out), reduced) + out
         return lines or ["return"]
 
     def cols_function(self, name: str, out: str, doc: str, entries) -> str:
@@ -301,26 +301,27 @@ class _NumbaGen(_Gen):
         reduced = self.reduced(sh, grp, exprs)
         xs = {s for s in self.sym_index if self.sym_index[s][0] == "x"}
         varying = sh.depends(xs)
-        defs = [(n, self.pr(e, k)) for k, (n, e) in enumerate(sh.repl)]
+        texts = self.def_texts(sh, reduced)
         outs = [f"{out}[{i * npt} + _j] = {self.pr(e)}" for ((i,), _), e in zip(entries, reduced)]
-        live = {n for n, _ in live_definitions(defs, "\n".join(outs))}
+        live = {n for n, _ in live_definitions([(n, t) for _, n, t in texts], "\n".join(outs))}
+        defs = {k: (n, t) for k, n, t in texts}
         free = _free(reduced, sh)
         head = self._unpack(free - xs, point=True)
-        head += [f"{n} = {t}" for k, (n, t) in enumerate(defs) if n in live and not varying[k]]
+        head += [f"{n} = {t}" for k, (n, t) in defs.items() if n in live and not varying[k]]
         loads = [f"{self.namer.names[s]} = _X[{self.sym_index[s][1] * npt} + _j]"
                  for s in sorted(free & xs, key=lambda s: self.sym_index[s][1])]
         inline = _Inline(self, sh)
         body = list(loads)
-        for k, (n, e) in enumerate(sh.repl):
+        for k, (n, t) in defs.items():
             if n in live and varying[k]:
-                body.append(f"{n} = {inline.text(e, k, defs[k][1], body)}")
+                body.append(f"{n} = {inline.text(sh.repl[k][1], k, t, body)}")
         for ((i,), _), e, plain in zip(entries, reduced, outs):
             body.append(plain if e.is_Atom else
                         f"{out}[{i * npt} + _j] = {inline.text(e, len(sh.repl), None, body)}")
         lines = head + ["_far = 0"] * bool(inline.far) + [f"for _j in range({npt}):"]
         lines += ["    " + ln for ln in body]
         if inline.far:
-            plain = list(loads) + [f"{n} = {t}" for k, (n, t) in enumerate(defs)
+            plain = list(loads) + [f"{n} = {t}" for k, (n, t) in defs.items()
                                    if n in live and varying[k]] + outs
             lines += ["if _far:", f"    for _j in range({npt}):"]
             lines += ["        " + ln for ln in plain]
