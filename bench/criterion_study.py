@@ -25,10 +25,13 @@ import argparse
 import dataclasses
 import json
 import time
+from pathlib import Path
 
 from bondgraph.diagnose.cases import get_case
 from bondgraph.diagnose.runner import run_loop
 from bondgraph.errors import DeclaredFitError
+
+RESULT = Path(__file__).with_name("results") / "criterion_study.json"   # the current result
 
 
 def process_noise_params(graph) -> list[str]:
@@ -57,6 +60,8 @@ def main() -> None:
     ap.add_argument("--cases", default="emps,ced,silverbox")
     ap.add_argument("--max-steps", type=int, default=None)
     ap.add_argument("--criteria", default="likelihood,output_error")
+    ap.add_argument("--result", default=str(RESULT),
+                    help="where the result goes ('' for nowhere)")
     args = ap.parse_args()
     rows = []
     for name in args.cases.split(","):
@@ -90,7 +95,10 @@ def main() -> None:
             print(f"{name:10s} {criterion:13s} {row['declared']:.4g} -> {row['final']:.4g}{held} "
                   f"({len(row['steps'])} steps: {', '.join(row['steps']) or '-'}; "
                   f"{row['seconds']} s)", flush=True)
-    print(json.dumps({"criterion_study": rows}))
+    text = json.dumps({"criterion_study": rows})
+    if args.result:
+        Path(args.result).write_text(text + "\n")
+    print(text)
 
 
 if __name__ == "__main__":

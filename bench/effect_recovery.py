@@ -52,6 +52,7 @@ import json
 import sys
 import time
 import warnings
+from pathlib import Path
 from dataclasses import replace
 
 import numpy as np
@@ -70,6 +71,8 @@ from bondgraph.errors import NumericalError
 from bondgraph.inference.options import UKFOptions
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
+
+RESULT = Path(__file__).with_name("results") / "effect_recovery.json"   # the current result
 
 
 def _chain2():
@@ -446,7 +449,9 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true",
                     help="the fixed subset (< 3 min; without the loop-choice confirmations)")
     ap.add_argument("--graphs", default=None, help="comma-separated graph names (full run)")
-    ap.add_argument("--json-out", default=None, help="also write the per-case results here")
+    ap.add_argument("--json-out", default=None,
+                    help="also write the per-case results here (default: bench/results/"
+                         "effect_recovery.json for the full matrix, none for a subset)")
     ap.add_argument("--substeps", type=int, default=None,
                     help="ROS2 substeps of the UKF (default 8; 2 with --quick)")
     ap.add_argument("--cases", default=None,
@@ -483,8 +488,10 @@ def main(argv=None):
               f"{r.get('error', '')}", file=sys.stderr, flush=True)
     per, total = summarise(results)
     print_table(results, per, total)
-    if a.json_out:
-        with open(a.json_out, "w") as fh:
+    full = not (a.quick or a.graphs or a.cases or a.merge)
+    json_out = a.json_out or (str(RESULT) if full else None)
+    if json_out:
+        with open(json_out, "w") as fh:
             json.dump(results, fh, indent=1, default=str)
     print(json.dumps({"quick": a.quick, "substeps": _substeps[0], "total": total,
                       "per_graph": per}, default=str))

@@ -69,6 +69,8 @@ from bondgraph.numerics.model import Model  # noqa: E402
 from bondgraph.inference.optimize import pso  # noqa: E402
 from bondgraph.inference.ukf import default_P0, discretisation_check  # noqa: E402
 
+RESULT = Path(__file__).with_name("results") / "estimation.json"   # the current result
+
 #: stage-2 candidates of the vehicle (engine map, clutch, CVT shift, tire)
 PARAMS = ["T_pk", "k_fw", "k_h", "w_eng", "mu_cl", "c_cl", "k_slip", "J_e"]
 
@@ -256,6 +258,9 @@ def main(argv=None) -> int:
     p.add_argument("--protocol", action="store_true",
                    help="run the two-stage protocol on the synthetic vehicle records instead")
     p.add_argument("--out", default=None, help="directory for the protocol's JSON results")
+    p.add_argument("--result", default=None,
+                   help="the result file (default bench/results/estimation.json for a full run; "
+                        "none for --quick)")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore")
     if args.protocol:
@@ -327,7 +332,11 @@ def main(argv=None) -> int:
         line_plot(model, t[:tl], u[:tl], y[:tl], truth, x0, P0, args.line_plot, args.method,
                   args.substeps, npts=21 if args.quick else 41)
         out["line_plot"] = args.line_plot
-    print(json.dumps(out))
+    text = json.dumps(out)
+    result = args.result if args.result is not None else ("" if args.quick else str(RESULT))
+    if result:
+        Path(result).write_text(text + "\n")
+    print(text)
     return 0
 
 

@@ -25,6 +25,8 @@ import threading
 import time
 from pathlib import Path
 
+RESULT = Path(__file__).with_name("results") / "first_run.json"   # the current result
+
 STAGES = {"initial fit": r"initial fit:", "step 1 scored": r"step 1: .* candidates scored",
           "step 1 decided": r"ACCEPT|nothing significant|no candidate", "done": r"\] done in"}
 
@@ -67,6 +69,8 @@ def run_once(env: dict, out: Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keep", default=None, help="folder for the caches and reports (kept)")
+    ap.add_argument("--result", default=str(RESULT),
+                    help="where the result goes ('' for nowhere)")
     args = ap.parse_args()
     base = Path(args.keep or tempfile.mkdtemp(prefix="bondgraph-first-run-"))
     env = dict(os.environ, NUMBA_CACHE_DIR=str(base / "numba"),
@@ -77,8 +81,11 @@ def main() -> None:
     warm = run_once(env, base / "report2")
     print(f"warm run:  {warm['wall_s']} s; stages {warm['stages_s']}; longest silence "
           f"{warm['longest_silence_s']} s after: {warm['silent_after']}", flush=True)
-    print(json.dumps({"first_run_s": first["wall_s"], "warm_s": warm["wall_s"],
-                      "first": first, "warm": warm, "load": os.getloadavg()[0]}))
+    text = json.dumps({"first_run_s": first["wall_s"], "warm_s": warm["wall_s"],
+                       "first": first, "warm": warm, "load": os.getloadavg()[0]})
+    if args.result:
+        Path(args.result).write_text(text + "\n")
+    print(text)
 
 
 if __name__ == "__main__":

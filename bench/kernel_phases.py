@@ -42,6 +42,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 from estimation import load_record  # noqa: E402
 from kernel_profile import _Trivial  # noqa: E402
 
+RESULT = Path(__file__).with_name("results") / "kernel_phases.json"   # the current result
+
 #: cumulative levels: level i runs phases 1..i
 PHASES = ("reset x, P", "chol P + sigma (predict)", "f_dfdx at the centre",
           "W: LU factors", "ROS2 2 stages x 21 points", "finite check + moments(X) + q",
@@ -113,6 +115,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--record", default=None, help="npz cache of the record")
     ap.add_argument("--labels", default="model,trivial", help="point kernels: model, trivial")
+    ap.add_argument("--result", default=str(RESULT),
+                    help="where the result goes ('' for nowhere)")
     args = ap.parse_args(argv)
     model = Model.load("vehicle_full")
     if args.record and Path(args.record).exists():
@@ -159,7 +163,10 @@ def main(argv=None) -> int:
     print(f"{'total (without reset)':34s}" + "".join(f" {lb} {out[lb + '_total_us']:7.3f} us"
                                                   for lb in args.labels.split(","))
           + f"   load {out['load']:.1f}")
-    print(json.dumps(out))
+    text = json.dumps(out)
+    if args.result:
+        Path(args.result).write_text(text + "\n")
+    print(text)
     return 0
 
 

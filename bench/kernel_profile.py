@@ -48,6 +48,8 @@ from bondgraph.numerics.model import Model  # noqa: E402
 sys.path.insert(0, str(ROOT / "bench"))
 from estimation import PARAMS, load_record  # noqa: E402
 
+RESULT = Path(__file__).with_name("results") / "kernel_profile.json"   # the current result
+
 
 class _Trivial:
     """Point kernels of the same signatures as the generated ones."""
@@ -137,6 +139,8 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="ros2")
     ap.add_argument("--substeps", type=int, default=1)
     ap.add_argument("--jacobian", default="mean")
+    ap.add_argument("--result", default=str(RESULT),
+                    help="where the result goes ('' for nowhere)")
     args = ap.parse_args(argv)
     model = Model.load("vehicle_full")
     t, u, y, truth, x0 = load_record("vehicle_throttle_steps_high", model, 10.0)
@@ -166,7 +170,10 @@ def main(argv=None) -> int:
     out["point_us"] = time_points(pk, model, x0, th)
     for k, v in out.items():
         print(f"{k}: {v}")
-    print(json.dumps(out))
+    text = json.dumps(out)
+    if args.result:
+        Path(args.result).write_text(text + "\n")
+    print(text)
     return 0
 
 

@@ -39,6 +39,8 @@ from bondgraph.inference.ukf import ukf_nll  # noqa: E402
 from bondgraph.numerics import registry  # noqa: E402
 from bondgraph.numerics.model import Model  # noqa: E402
 
+RESULT = Path(__file__).with_name("results") / "numba_equality.json"   # the current result
+
 
 def record(m: Model, N=120, dt=0.01, seed=0):
     """The test record of ``m`` (tests/test_ukf_numba.py::_record)."""
@@ -123,6 +125,8 @@ def main(argv=None) -> int:
     p.add_argument("--method", default="ros2")
     p.add_argument("--substeps", type=int, default=1)
     p.add_argument("--models", default=None, help="comma-separated (default: all registered)")
+    p.add_argument("--result", default=str(RESULT),
+                   help="where the result goes ('' for nowhere)")
     args = p.parse_args(argv)
     names = args.models.split(",") if args.models else sorted(registry.registered())
     rows = []
@@ -137,9 +141,12 @@ def main(argv=None) -> int:
               f"(+{r['compile_s']:.1f} s compile)", flush=True)
     passed = all(not r["unexplained"] and r["same_failures"] for r in rows)
     strict = all(r["max_rel"] <= TOL and r["same_failures"] for r in rows)
-    print(json.dumps(dict(passed=passed, strict=strict, sets=args.sets, method=args.method,
-                          substeps=args.substeps, worst=max(r["max_rel"] for r in rows),
-                          models=rows)))
+    text = json.dumps(dict(passed=passed, strict=strict, sets=args.sets, method=args.method,
+                           substeps=args.substeps, worst=max(r["max_rel"] for r in rows),
+                           models=rows))
+    if args.result:
+        Path(args.result).write_text(text + "\n")
+    print(text)
     return 0 if passed else 1
 
 

@@ -18,9 +18,14 @@ first use, so ``import bondgraph`` stays cheap.
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 from typing import Any
 
-__version__ = "0.1.0"
+try:
+    #: the installed distribution's version (pyproject.toml ``version``)
+    __version__ = importlib.metadata.version("bondgraph-toolkit")
+except importlib.metadata.PackageNotFoundError:  # a source tree on sys.path, not installed
+    __version__ = "0+unknown"
 
 #: public name -> module that defines it
 _API: dict[str, str] = {}

@@ -34,6 +34,8 @@ their message names them too.
     │   ├── UsageError             a command line argparse rejects
     │   └── CheckpointError        a missing checkpoint, or one of another problem
     ├── SensitivityError           invalid sensitivity options (also a ValueError)
+    ├── ExportError                FMU export or linearisation (no C compiler, a failed
+    │                              compile, unknown parameters, no equilibrium)
     └── OutputError                an output folder that is not empty or not writable
 
     BondGraphWarning (UserWarning)
@@ -231,6 +233,13 @@ class CheckpointError(OptionError):
     def __init__(self, message: str, *, differs: Iterable[str] = (), hint: str | None = None):
         self.differs: tuple[str, ...] = tuple(differs)
         super().__init__(message, hint=hint)
+
+
+class ExportError(BondGraphError):
+    """An FMU export or a linearisation that cannot be done: no C compiler
+    found, a compile that failed (its messages quoted), parameters the model
+    does not have, an operating point naming unknown variables, or no
+    equilibrium found for the given inputs."""
 
 
 class OutputError(BondGraphError):

@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 #: bondgraph's layers, lowest first (pyproject.toml, [tool.importlinter]);
 #: the last entry holds two independent siblings
-LAYERS = ["errors", "core", "numerics", "data", "inference", "sensitivity", "diagnose",
+LAYERS = ["errors", "core", "numerics", "export", "data", "inference", "sensitivity", "diagnose",
           "report", "cli", "catalog"]
 #: packages the library must never load
 APPLICATION = ("vehicle_graphs", "generated")

@@ -168,3 +168,9 @@ def test_the_command_lines_discover_option_runs_the_loop_again_with_the_law(tmp_
     assert [(s.effect, s.attached_to) for s in res.steps] == [("discovered", "v")]
     assert res.final.validation_metric < 0.1 * first.final.validation_metric
     assert (tmp_path / "report" / "report.md").exists()
+    # the report shows the reconstruction against the accepted law
+    assert res.discovery is not None and res.discovery.accepted
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert "![discovery.png](discovery.png)" in md and res.discovery.text in md
+    assert (tmp_path / "report" / "discovery.png").exists()
+    assert "discovery" in (tmp_path / "report" / "report.html").read_text()

@@ -12,6 +12,8 @@ fragment, the change of stored energy, source power or dissipation against
 the declared model equals what the fragment's ports carry by hand.
 """
 
+import math
+
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -271,9 +273,9 @@ def test_cubic_stiffness_of_a_capacitor():
 
 @pytest.mark.parametrize("routed", [False, True])
 def test_capacity_limit_with_overflow(routed):
-    """Above V1max the overflow Q_o = (w/τ)·softplus((V1 − V1max)/w) leaves
-    tank 1: lost (dissipated at p1), or routed into tank 2 (dissipated
-    across p1 − p2)."""
+    """Above V1max the overflow Q_o = (w/τ)·[softplus((V1 − V1max)/w) −
+    softplus(−V1max/w)] leaves tank 1: lost (dissipated at p1), or routed
+    into tank 2 (dissipated across p1 − p2); zero at an empty tank."""
     qmax, w, tau = 0.02, 5e-4, 0.5
     vals = {"qmax": qmax, "w": w, "tau": tau}
     g = models.hydraulic_tanks()
@@ -288,7 +290,7 @@ def test_capacity_limit_with_overflow(routed):
     u = rand_u(m, rng, {"Q": 1e-3})
     V1, V2, Q = x[:, 0], x[:, 1], u[:, 0]
     p1, p2 = V1 / 1e-4, V2 / 2e-4
-    Qo = w / tau * softplus((V1 - qmax) / w)
+    Qo = w / tau * (softplus((V1 - qmax) / w) - softplus(-qmax / w))
     dx = m.f(x, u, th)
     np.testing.assert_allclose(dx[:, 0], Q - (p1 - p2) / 1e5 - Qo, rtol=1e-10)
     np.testing.assert_allclose(dx[:, 1], (p1 - p2) / 1e5 - p2 / 1e5 + (Qo if routed else 0.0),
@@ -298,6 +300,31 @@ def test_capacity_limit_with_overflow(routed):
     np.testing.assert_allclose(dP, Qo * ((p1 - p2) if routed else p1), rtol=1e-9)
     # 8 widths below the limit the overflow is < 0.1 % of its value at the limit
     assert softplus((0.8 * qmax - qmax) / w) < 1e-3 * softplus(0.0)
+
+
+def test_capacity_limit_overflow_is_zero_at_an_empty_tank_and_dissipates_below():
+    """A wide onset (w = 15 % of V1max, as a refit from a poor start may
+    leave it): the softplus tail alone, (w/τ)·e^(−V1max/w) = 7.6e-6 m³/s
+    at V1 = 0, would keep draining an empty tank and produce power p1·Q < 0
+    below it. The law minus its value at V1 = 0 is zero there and of V1's
+    sign below, so the lost overflow dissipates p1·Q_o > 0."""
+    qmax, w, tau = 0.02, 0.003, 0.5
+    g = models.hydraulic_tanks()
+    base = Model.from_graph(models.hydraulic_tanks())
+    get_effect("capacity_limit").apply(g, Target("storage", "tank1_C"),
+                                       {"qmax": qmax, "w": w, "tau": tau})
+    m = Model.from_graph(g)
+    x = np.array([[0.0, 0.0], [-0.01, 0.0], [-0.02, 0.0], [0.02, 0.0]])
+    u = np.zeros((4, 1))
+    q_out = base.f(x, u, base.theta0)[:, 0] - m.f(x, u, m.theta0)[:, 0]
+    tail = w / tau * softplus(-qmax / w)
+    assert tail == pytest.approx(6e-3 * math.exp(-20 / 3), rel=1e-3)
+    np.testing.assert_allclose(q_out, w / tau * softplus((x[:, 0] - qmax) / w) - tail,
+                               rtol=1e-9, atol=1e-15)
+    assert abs(q_out[0]) < 1e-15 and np.all(q_out[1:3] < 0) and q_out[3] > 0
+    dP = m.power_dissipated(x, u, m.theta0) - base.power_dissipated(x, u, base.theta0)
+    np.testing.assert_allclose(dP, q_out * x[:, 0] / 1e-4, rtol=1e-9, atol=1e-15)
+    assert np.all(dP[1:] > 0)
 
 
 # --------------------------------------------------------------- R laws

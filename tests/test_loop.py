@@ -190,7 +190,8 @@ def test_bundled_default_via_cli_writes_the_report(tmp_path, monkeypatch, capsys
     assert main(["loop", "--quiet"]) == 0
     assert (tmp_path / "bondgraph-report" / "report.md").read_text() == "earlier run"
     out = tmp_path / "bondgraph-report-2"
-    assert "report: bondgraph-report-2/report.md" in capsys.readouterr().out
+    assert "report: bondgraph-report-2/report.html" in capsys.readouterr().out
+    assert (out / "report.html").read_text().startswith("<!DOCTYPE html>")
     rep = json.loads((out / "report.json").read_text())
     assert rep["steps"], "no effect accepted"
     s0 = rep["steps"][0]

@@ -70,3 +70,71 @@ def test_a_long_compile_is_announced_and_a_short_one_is_silent(capsys):
     with progress.announced("compiling Z", delay=0.05):
         time.sleep(0.2)
     assert capsys.readouterr().err == ""
+
+
+class _Terminal:
+    """A stream that says it is a terminal and keeps what is written."""
+
+    def __init__(self):
+        import threading
+        self.text, self.lock = "", threading.Lock()
+
+    def isatty(self):
+        return True
+
+    def write(self, s):
+        with self.lock:
+            self.text += s
+
+    def flush(self):
+        pass
+
+
+def test_a_slow_compile_shows_a_live_elapsed_bar_on_a_terminal(capsys):
+    """Issue 30: on a terminal the announcement of a compile is a bar whose
+    elapsed time is refreshed while the compile blocks (the fake compile
+    waits until the bar has been redrawn several times), then removed, and
+    the duration printed; the line names what is compiled."""
+    import threading
+
+    from bondgraph.core import progress
+
+    term, released = _Terminal(), threading.Event()
+
+    def slow_compile():
+        guard = 600                                   # a hung thread, not a timing test
+        while term.text.count("\r") < 4 and guard:
+            guard -= 1
+            released.wait(0.05)
+        return term.text.count("\r")
+
+    with progress.enabled():
+        with progress.announced("compiling the fused UKF kernel", delay=0.0, note="once",
+                                stream=term, tick=0.01):
+            redraws = slow_compile()
+    assert redraws >= 4, term.text
+    lines = [ln for ln in term.text.replace("\r", "\n").splitlines() if ln.strip()]
+    live = [ln for ln in lines if "elapsed" in ln]
+    assert live and all(ln.startswith("  ... compiling the fused UKF kernel (once): ")
+                        for ln in live)
+    assert {ln.rsplit(": ", 1)[1] for ln in live} <= {f"00:{s:02d} elapsed" for s in range(60)}
+    assert lines[-1].startswith("  ... compiling the fused UKF kernel: done in ")
+    assert capsys.readouterr().err == ""              # all of it on the given stream
+
+
+def test_a_compile_announced_to_a_file_is_one_line_without_redraws(tmp_path):
+    import time
+
+    from bondgraph.core import progress
+
+    log = tmp_path / "log.txt"
+    with open(log, "w") as fh, progress.enabled():
+        with progress.announced("compiling K", delay=0.0, stream=fh, tick=0.01):
+            guard = 600                               # until announced (no timing test)
+            while not log.read_text() and guard:
+                guard -= 1
+                time.sleep(0.05)
+    text = log.read_text()
+    assert "\r" not in text
+    assert text.splitlines() == ["  ... compiling K", text.splitlines()[1]]
+    assert text.splitlines()[1].startswith("  ... compiling K: done in ")

@@ -69,7 +69,7 @@ def test_evidence_ticks_are_plain_numbers_and_nothing_accepted_is_said(loop_resu
     for lab in labels:
         assert "×" not in lab and "$" not in lab and "10^" not in lab, lab
         float(lab.replace("−", "-"))                  # a plain number
-    title = ax.get_title()
+    title = fig._suptitle.get_text()
     assert "none accepted" in title and "green" not in title
     colours = {tuple(np.round(p.get_facecolor()[:3], 3)) for p in ax.patches}
     green = tuple(np.round(matplotlib.colors.to_rgb("tab:green"), 3))
@@ -81,9 +81,55 @@ def test_evidence_title_names_the_accepted_effect(loop_result, tmp_path, figures
     top = res.rankings[0][0]
     res.steps = [SimpleNamespace(effect=top.effect, attached_to=top.target.name)]
     fig, ax = _evidence(res, tmp_path, figures)
-    assert ax.get_title().endswith(f"(green: accepted ({top.effect} @ {top.target.name}))")
+    assert fig._suptitle.get_text().endswith(
+        f"(green: accepted ({top.effect} @ {top.target.name}))")
     green = matplotlib.colors.to_rgba("tab:green")
     assert sum(np.allclose(p.get_facecolor(), green) for p in ax.patches) == 1
+
+
+def test_evidence_draws_each_candidate_s_gap_to_the_best(loop_result, tmp_path, figures):
+    """Issue 30: bars of χ² values nearly equal on a log axis told nothing;
+    each bar is now the candidate's χ² − 2k behind the best's, written
+    beside it (the best: a bar of length 0 named 'best')."""
+    ranking = [c for c in loop_result.rankings[0][:15] if not c.failed]
+    fig, ax = _evidence(loop_result, tmp_path, figures)
+    widths = sorted(p.get_width() for p in ax.patches)
+    best = ranking[0].score
+    assert widths == pytest.approx(sorted(best - c.score for c in ranking))
+    assert widths[0] == 0.0
+    texts = [t.get_text() for t in ax.texts]
+    assert texts[0].startswith("best (χ² − 2k = ")
+    gap = best - ranking[1].score
+    assert texts[1] == "−" + (f"{gap:,.0f}".replace(",", "\u2009") if gap >= 100
+                               else f"{gap:.3g}")
+
+
+def test_evidence_marks_the_tied_and_rejected_refits(loop_result, tmp_path, figures):
+    """The confirmation panel: the lead's refit at 0, a tied refit hatched
+    with Vuong's p-value, a rejected one red with its reason."""
+    res = copy.copy(loop_result)
+    ranking = [copy.copy(c) for c in loop_result.rankings[0][:3]]
+    lead, tied, other = ranking
+    lead.confirmed = {"lr": 500.0, "dof": lead.dof, "accepted": False,
+                      "reason": "the refitted model does not simulate"}
+    lead.tied = [tied.label]
+    tied.confirmed = {"lr": 480.0, "dof": tied.dof, "accepted": True, "tie_z": 0.5,
+                      "tie_p": 0.62}
+    res.steps = [SimpleNamespace(effect=tied.effect, attached_to=tied.target.name)]
+    figures.clear()
+    loop_report._plot_evidence(res, 1, ranking, tmp_path)
+    (fig,) = figures
+    right = fig.axes[1]
+    bars = right.patches
+    assert [b.get_width() for b in bars] == pytest.approx(
+        [0.0, 20.0 + 2 * (tied.dof - lead.dof)])
+    assert matplotlib.colors.same_color(bars[0].get_facecolor(), "tab:red")
+    assert matplotlib.colors.same_color(bars[1].get_facecolor(), "tab:green")
+    assert bars[1].get_hatch() == "///"
+    texts = [t.get_text() for t in right.texts]
+    assert "tied with the lead (Vuong p 0.62)" in texts[1]
+    assert f"lead, tied with {tied.label}; rejected: the refitted model does not sim" in texts[0]
+    assert texts[2] == "not refitted"
 
 
 def test_failed_augmented_simulation_is_stated_on_the_fit_plot(loop_result, tmp_path, figures):

@@ -40,7 +40,8 @@ def initial_state(model, theta=None, *, v: float = 0.0, grade: float = 0.0,
                   settle: Sequence[str] | None = None) -> dict[str, float]:
     """A consistent initial state of a vehicle model.
 
-    Body speed ``v`` and wheel speeds ``v / r_dyn`` (zero slip), the grade
+    Body speed ``v`` and wheel speeds ``v / r_dyn`` (zero slip; per axle
+    ``v / r_dyn_r``, ``v / r_dyn_f`` in a model with per-axle radii), the grade
     state (if any), shaft twists and secondary at rest or rolling with the
     wheels; then the fast states in ``settle`` are put in equilibrium
     (``f_i(x) = 0`` solved for them with the others fixed, by Newton on the
@@ -84,14 +85,14 @@ def initial_state(model, theta=None, *, v: float = 0.0, grade: float = 0.0,
     idx = {n: i for i, n in enumerate(names)}
     if "body.p_m" in idx:
         x[idx["body.p_m"]] = P["m"] * v
-    w_wheel = v / P["r_dyn"]
+    radius = {n: P.get(f"r_dyn_{n[0]}", P.get("r_dyn")) for n in _WHEEL_STATES}
     for n, k in _WHEEL_STATES.items():
         if n in idx:
-            x[idx[n]] = k * P["J_w"] * w_wheel
+            x[idx[n]] = k * P["J_w"] * v / radius[n]
     if "theta_g" in idx:
         x[idx["theta_g"]] = grade
     if "cvt.p_J_s" in idx and "driveline.q_k_rear" in idx:
-        x[idx["cvt.p_J_s"]] = P["J_s"] * w_wheel * P["i_g"] * P["i_fd"]
+        x[idx["cvt.p_J_s"]] = P["J_s"] * v / radius["rear.p_J"] * P["i_g"] * P["i_fd"]
     if "engine.p_J" in idx:
         x[idx["engine.p_J"]] = P["J_e"] * P["w_idle"]
     uu = model.input(dict(u or {}))

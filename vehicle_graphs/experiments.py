@@ -39,7 +39,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from bondgraph.data.experiments import ExperimentSpec
+from bondgraph.data.experiments import ExperimentSpec, ramp
 
 #: true parameters of the coast-down records (others: table defaults)
 TRUE_COASTDOWN: dict[str, float] = {
@@ -98,7 +98,7 @@ def _x0(model_name: str, params: dict, *, v: float = 0.0, grade: float = 0.0,
 
     from .analysis import initial_state
 
-    m = Model.load(model_name)
+    m = Model.from_spec(model_name)
     th = m.theta({k: val for k, val in params.items() if k in m.params})
     return initial_state(m, th, v=v, grade=grade, u=u, settle=settle)
 
@@ -246,3 +246,89 @@ if __name__ == "__main__":  # pragma: no cover
         sys.exit(2)
     for p in write_records(args[0], args[1:] or None):
         print(f"wrote {p}")
+
+
+# ------------------------------------------- tracking: parameters that change
+#: the filter model of the tracking records (per-axle dynamic radii)
+TRACK_MODEL = "vehicle_graphs.vehicle:vehicle_track"
+
+#: true parameters of the tracking drives (per-axle radii; others as TRUE_DRIVING)
+TRUE_TRACK: dict[str, float] = {
+    **{k: v for k, v in TRUE_DRIVING.items() if k != "r_dyn"}, "r_dyn_f": 0.305, "r_dyn_r": 0.305,
+}
+
+
+def _drive_throttle(t_end: float, seed: int) -> Callable[[np.ndarray], np.ndarray]:
+    """A driver's throttle in High range: from rest to 0.5, then a level
+    between 0.25 and 0.7 every 6-12 s (0.3 s ramps), drawn from ``seed``."""
+    rng = np.random.default_rng(seed)
+    levels, t = [(1.0, 0.5)], 8.0
+    while t < t_end:
+        levels.append((t, float(rng.uniform(0.25, 0.7))))
+        t += float(rng.uniform(6.0, 12.0))
+    return steps(levels, ramp=0.3)
+
+
+def puncture(seed: int = 31, duration: float = 90.0, t_change: float = 30.0) -> ExperimentSpec:
+    """A 90 s drive in High range at 40 Hz in which the rear tires lose
+    pressure at ``t_change``: the rear dynamic radius drops 1 %
+    (0.305 -> 0.302 m over 0.1 s); the front radius stays 0.305 m.
+    Filter model :func:`vehicle_graphs.vehicle.vehicle_track`; the record's
+    column ``true.r_dyn_r`` is the truth."""
+    params = {k: v for k, v in TRUE_TRACK.items() if k != "r_dyn_r"}
+    return ExperimentSpec(
+        name="vehicle_puncture", model=TRACK_MODEL, duration=duration,
+        inputs={"throttle": _drive_throttle(duration, seed), "brake": profile([(0.0, 0.0)])},
+        x0=_x0(TRACK_MODEL, TRUE_TRACK), params=params, seed=seed,
+        schedules={"r_dyn_r": ramp(t_change, t_change + 0.1, 0.305, 0.302)},
+        description=f"Drive in High range; the rear dynamic radius drops 1 % (0.305 -> "
+                    f"0.302 m) at {t_change:g} s (a puncture).")
+
+
+def steady_drive(seed: int, duration: float = 600.0) -> ExperimentSpec:
+    """A drive with nothing changing (false-alarm records): the same kind of
+    throttle as :func:`puncture`, at the true parameters, ``duration`` s."""
+    return ExperimentSpec(
+        name=f"vehicle_steady_{seed}", model=TRACK_MODEL, duration=duration,
+        inputs={"throttle": _drive_throttle(duration, seed), "brake": profile([(0.0, 0.0)])},
+        x0=_x0(TRACK_MODEL, TRUE_TRACK), params=dict(TRUE_TRACK), seed=seed,
+        description="Drive in High range, no parameter changes.")
+
+
+def gravel_coastdown(seed: int = 33, t_change: float = 20.0) -> ExperimentSpec:
+    """The coast-down of :func:`coastdown` (60 s from 22 m/s) onto gravel at
+    ``t_change``: the rolling-resistance coefficient rises 50 %
+    (0.022 -> 0.033 over 0.5 s)."""
+    params = {k: v for k, v in TRUE_COASTDOWN.items() if k != "f_r"}
+    return ExperimentSpec(
+        name="vehicle_gravel_coastdown", model="vehicle_coastdown",
+        truth_model="vehicle_coastdown_truth", duration=60.0,
+        inputs={"brake": profile([(0.0, 0.0)])},
+        x0=_x0("vehicle_coastdown_truth", TRUE_COASTDOWN, v=22.0), params=params, seed=seed,
+        schedules={"f_r": ramp(t_change, t_change + 0.5, 0.022, 0.033)},
+        description=f"Coast-down from 22 m/s; rolling resistance +50 % (gravel) at "
+                    f"{t_change:g} s.")
+
+
+#: the friction record's grade: 35 % (rise over run), steep enough that the
+#: driven rear tires of a Low-range launch work near their friction limit
+STEEP_GRADE = math.atan(0.35)
+
+
+def friction_drop(seed: int = 34, t_change: float = 7.0) -> ExperimentSpec:
+    """A full-throttle launch in Low range on a 35 % grade (brake held to
+    2 s; the driven rear tires near their friction limit) onto a slippery
+    surface at ``t_change``: peak friction 0.9 -> 0.5 over 0.2 s, 14 s. On
+    the slippery surface the rear wheels spin up and the vehicle slides
+    back down.
+    Filter model :func:`vehicle_graphs.vehicle.vehicle_track_low`."""
+    model = "vehicle_graphs.vehicle:vehicle_track_low"
+    return ExperimentSpec(
+        name="vehicle_friction_drop", model=model, duration=14.0,
+        inputs={"throttle": profile([(2.0, 0.0), (2.3, 1.0)]),
+                "brake": profile([(1.9, 1.0), (2.2, 0.0)])},
+        x0=_x0(model, TRUE_TRACK, grade=STEEP_GRADE, u={"brake": 1.0}, settle="all"),
+        params=dict(TRUE_TRACK), seed=seed,
+        schedules={"mu": ramp(t_change, t_change + 0.2, 0.9, 0.5)},
+        description=f"Full-throttle launch in Low range on a 35 % grade; peak friction "
+                    f"0.9 -> 0.5 at {t_change:g} s.")

@@ -158,6 +158,12 @@ PARAMS: tuple[ParamSpec, ...] = (
     # -------------------------------------------------------------- wheel/tire
     _p("wheel", "r_dyn", 0.31, "m", (0.28, 0.35),
        "dynamic tire radius", "[L] §2.2 0.30-0.34 (25-27 in tires)"),
+    _p("wheel", "r_dyn_f", 0.31, "m", (0.28, 0.35),
+       "dynamic tire radius of the front axle (models with per-axle radii)",
+       "[L] §2.2 0.30-0.34; a puncture lowers one axle's radius"),
+    _p("wheel", "r_dyn_r", 0.31, "m", (0.28, 0.35),
+       "dynamic tire radius of the rear axle (models with per-axle radii)",
+       "[L] §2.2 0.30-0.34; a puncture lowers one axle's radius"),
     _p("wheel", "J_w", 1.5, "kg*m^2", (1.0, 2.0),
        "inertia of one wheel + tire + hub + disc (+ its share of drive-line parts)",
        "[L] §2.2 1-2"),

@@ -128,7 +128,8 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
                   suspension: str = "dynamic", shaft_compliance: bool = True,
                   effects: VehicleEffects = VehicleEffects(), grade: str = "state",
                   numerics: Numerics = Numerics(), description: str | None = None,
-                  process_noise: dict[str, float] | None = None) -> BondGraph:
+                  process_noise: dict[str, float] | None = None,
+                  radius: str = "shared") -> BondGraph:
     """Build the vehicle's bond graph.
 
     Parameters
@@ -173,6 +174,11 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
         "w_s"}`` in flow units per sqrt(s) (default :data:`PROCESS_NOISE`;
         a missing key or 0 declares none). The grade's intensity is the
         parameter ``q_grade``.
+    radius : {"shared", "per_axle"}
+        One dynamic tire radius ``r_dyn`` for every wheel, or one per axle
+        (``r_dyn_f``, ``r_dyn_r``; needs wheels "axles"): what a puncture
+        changes, so that front and rear wheel speeds may disagree at the
+        same body speed.
 
     Returns
     -------
@@ -188,7 +194,7 @@ def build_vehicle(name: str = "vehicle", *, gear: str = "H", drive: str = "2WD",
                   suspension=suspension, shaft_compliance=shaft_compliance,
                   aero=effects.aero, brake_drag=effects.brake_drag,
                   pitch_offset=effects.pitch_offset, belt_slip=effects.belt_slip,
-                  manifold_lag=effects.manifold_lag, grade=grade)
+                  manifold_lag=effects.manifold_lag, grade=grade, radius=radius)
     _check_config(config)
     g = _new_graph(name, description, config, numerics)
     _assemble(g, config, numerics, process_noise)
@@ -228,7 +234,7 @@ def _assemble(g: BondGraph, c: dict, numerics: Numerics,
     v = hb.port("v").f
     hp, theta_s, dF = _pitch(g, P, c["suspension"])
     axles = _axles(g, P, hb, v, theta_g, dF, brake, wheels=c["wheels"], numerics=numerics,
-                   brake_drag=c["brake_drag"])
+                   brake_drag=c["brake_drag"], radius=c["radius"])
     if hp is not None:
         _pitch_drive(g, P, hb, hp)
     he = hc = None
@@ -267,6 +273,10 @@ def _check_config(c: dict) -> None:
         raise ValueError("belt_slip=True needs powertrain=True")
     if c["manifold_lag"] and not c["powertrain"]:
         raise ValueError("manifold_lag=True needs powertrain=True")
+    if c["radius"] not in ("shared", "per_axle"):
+        raise ValueError(f"radius must be 'shared' or 'per_axle', not {c['radius']!r}")
+    if c["radius"] == "per_axle" and c["wheels"] != "axles":
+        raise ValueError("radius='per_axle' needs wheels='axles' (one wheel per axle)")
 
 
 def _pitch(g: BondGraph, P, suspension: str):
@@ -281,12 +291,25 @@ def _pitch(g: BondGraph, P, suspension: str):
     return hp, theta_s, dF
 
 
+class _Renamed(dict):
+    """A view of the parameter mapping ``P`` in which some names stand for
+    others (``r_dyn`` -> ``r_dyn_r`` for the rear axle of a per-axle model)."""
+
+    def __init__(self, P, names: dict[str, str]):
+        super().__init__()
+        self.P, self.names = P, names
+
+    def __missing__(self, name):
+        return self.P[self.names.get(name, name)]
+
+
 def _axles(g: BondGraph, P, hb, v, theta_g, dF, brake, *, wheels: str, numerics: Numerics,
-           brake_drag: bool) -> dict:
+           brake_drag: bool, radius: str = "shared") -> dict:
     """Wheels and tires connected to the body (speed ``v``): one lumped wheel
     (all four), or rear and front axles with their static loads plus/minus
-    the load transfer ``dF``. Returns the handles by name (``wheels`` or
-    ``rear``, ``front``)."""
+    the load transfer ``dF`` (with ``radius="per_axle"`` each with its own
+    dynamic radius ``r_dyn_r``, ``r_dyn_f``). Returns the handles by name
+    (``wheels`` or ``rear``, ``front``)."""
     mg_cos = P["m"] * P["g"] * sp.cos(theta_g)
     axles = {}
     if wheels == "lumped":
@@ -295,9 +318,11 @@ def _axles(g: BondGraph, P, hb, v, theta_g, dF, brake, *, wheels: str, numerics:
     else:
         Fz_r = mg_cos * P["l_f"] / P["L_wb"] + dF
         Fz_f = mg_cos * (P["L_wb"] - P["l_f"]) / P["L_wb"] - dF
-        axles["rear"] = g.include(sub.axle(P, n_wheels=2, F_z=Fz_r, v=v, brake=brake,
+        Pr, Pf = (P, P) if radius == "shared" else \
+            (_Renamed(P, {"r_dyn": "r_dyn_r"}), _Renamed(P, {"r_dyn": "r_dyn_f"}))
+        axles["rear"] = g.include(sub.axle(Pr, n_wheels=2, F_z=Fz_r, v=v, brake=brake,
                                            num=numerics, brake_drag=brake_drag), "rear")
-        axles["front"] = g.include(sub.axle(P, n_wheels=2, F_z=Fz_f, v=v, brake=brake,
+        axles["front"] = g.include(sub.axle(Pf, n_wheels=2, F_z=Fz_f, v=v, brake=brake,
                                             num=numerics, brake_drag=brake_drag), "front")
     for h in axles.values():
         g.connect(h.port("ground"), hb.port("v"))
@@ -391,6 +416,26 @@ def vehicle_full() -> BondGraph:
                                      "2WD: engine, centrifugal clutch, CVT shift state, "
                                      "secondary, half-shaft, front and rear wheels, body, "
                                      "pitch, grade random walk.")
+
+
+def vehicle_track() -> BondGraph:
+    """The full filter model with one dynamic tire radius per axle
+    (``r_dyn_f``, ``r_dyn_r``): the model for tracking what changes while
+    driving (a punctured tire's radius, rolling resistance, peak friction),
+    where front and rear wheel speeds may disagree. High range, 2WD.
+    10 states. Not registered (``vehicle_graphs.vehicle:vehicle_track``)."""
+    return build_vehicle("vehicle_track", gear="H", drive="2WD", radius="per_axle",
+                         description="Full filter model with per-axle dynamic tire radii "
+                                     "(tracking a puncture), High range, 2WD.")
+
+
+def vehicle_track_low() -> BondGraph:
+    """:func:`vehicle_track` in Low range (i_g = 2.25 x High): hard launches
+    that reach the tires' friction limit. Not registered
+    (``vehicle_graphs.vehicle:vehicle_track_low``)."""
+    return build_vehicle("vehicle_track_low", gear="L", drive="2WD", radius="per_axle",
+                         description="Full filter model with per-axle dynamic tire radii, "
+                                     "Low range, 2WD.")
 
 
 def vehicle_full_low() -> BondGraph:

@@ -157,7 +157,7 @@ def add_initial_state(p: argparse.ArgumentParser) -> None:
                    help="scale of each initial state's prior std: the state's own scale along "
                         "the record (state, default: free-run RMS, process-noise walk, sensors; "
                         "a sidecar's x0_std imposed; a state the record does not give gets its "
-                        "whole scale) or max(|x0|, 1) (magnitude, the old rule)")
+                        "whole scale) or max(abs(x0), 1) (magnitude, the old rule)")
 
 
 def add_estimation_scope(p: argparse.ArgumentParser) -> None:

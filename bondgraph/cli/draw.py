@@ -9,6 +9,10 @@ from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.drawing import draw
 
 
+#: the example line of ``bondgraph draw --help``
+EXAMPLE = "bondgraph draw toy_cvt -o toy_cvt.png"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph draw``."""
     add_model(p, positional=True)

@@ -9,6 +9,10 @@ from bondgraph.core.equations import derive
 from bondgraph.numerics.registry import graph_builder
 
 
+#: the example line of ``bondgraph equations --help``
+EXAMPLE = "bondgraph equations vehicle_coastdown --causality"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph equations``."""
     add_model(p, positional=True)

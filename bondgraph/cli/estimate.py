@@ -40,6 +40,10 @@ from bondgraph.inference.options import FitOptions
 from bondgraph.report.estimation import plot_fit
 
 
+#: the example line of ``bondgraph estimate --help``
+EXAMPLE = "bondgraph estimate --model mass_spring_damper --data msd_force_step.csv --params m,k,c --out msd_est"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph estimate``."""
     add_model(p)

@@ -9,6 +9,10 @@ import sys
 from bondgraph.numerics.registry import COMMAND, generate
 
 
+#: the example line of ``bondgraph generate --help``
+EXAMPLE = "bondgraph generate --check"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph generate``."""
     p.add_argument("models", nargs="*", help="models to generate (default: all registered)")

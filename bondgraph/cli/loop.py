@@ -51,6 +51,10 @@ DEFAULT_CASE = "vehicle_aero"
 DEFAULT_OUT = "bondgraph-report"
 
 
+#: the example line of ``bondgraph loop --help``
+EXAMPLE = "bondgraph loop --model door.py:door --data door_push.csv --params J,k,c --out door-report"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph loop``."""
     p.add_argument("--case", default=None,
@@ -162,7 +166,7 @@ def run(args) -> int:
         print(res.table())
     else:
         print("  no effect accepted (nothing significant left)")
-    print(f"report: {out / 'report.md'} (and report.json, PNG plots, "
+    print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots, "
           f"augmented_model.py)")
     return 0
 
@@ -173,7 +177,7 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     (:func:`bondgraph.diagnose.discover.effect.discovered_effect`), the
     loop run again with that law as an effect (its report replaces the
     first one in ``out``)."""
-    from bondgraph.diagnose.discover.effect import discovered_effect
+    from bondgraph.diagnose.discover.effect import discovered_effect, discovery_plot
 
     echo = (lambda _m: None) if args.quiet else print
     best = discovered_effect(graph, record, settings, res, log=echo)
@@ -182,8 +186,13 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'")
     settings = dataclasses.replace(settings, effects=tuple(settings.effects) + (best.effect,))
     reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True)
+
+    def update(result):
+        result.discovery = discovery_plot(best, result)
+        reporter.update(result)
+
     return run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
-                    on_update=reporter.update)
+                    on_update=update)
 
 
 def loop_states(graph, text: str) -> list[str]:

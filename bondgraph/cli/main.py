@@ -31,6 +31,8 @@ COMMANDS: dict[str, str] = {
     "estimate": "maximum-likelihood estimation (UKF + PSO/DE)",
     "sensitivity": "local and global sensitivity, identifiability",
     "track": "track parameters over a record (augmented-state UKF) and detect their changes",
+    "export": "a standalone FMI 2.0 FMU (Model Exchange and Co-Simulation) of a model",
+    "linearize": "A, B, C, D at an operating point or equilibrium: .npz, poles, Bode plot",
 }
 
 
@@ -47,10 +49,50 @@ def _parser() -> argparse.ArgumentParser:
         prog="bondgraph",
         description="Bond-graph modeling with code generation, UKF maximum-likelihood "
                     "estimation and residual tracing.",
-        epilog="Run `bondgraph COMMAND --help` for a command's options.")
+        epilog="Run `bondgraph COMMAND --help` for a command's options.\n"
+               "example: bondgraph loop    (the main job on the bundled vehicle case)",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=f"bondgraph {__version__}",
+                   help="print the installed version and exit")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, helptext in COMMANDS.items():
         sub.add_parser(name, help=helptext, add_help=False)
+    return p
+
+
+def command_parser(cmd: str) -> argparse.ArgumentParser:
+    """The parser of ``bondgraph CMD``: the command module's options, its
+    one-line help as description and its ``EXAMPLE`` as the last line of
+    ``--help``.
+
+    Raises
+    ------
+    KeyError
+        ``cmd`` is not one of :data:`COMMANDS`.
+    """
+    parser = _Parser(prog=f"bondgraph {cmd}", **_command_texts(cmd))
+    importlib.import_module(f"bondgraph.cli.{cmd}").configure(parser)
+    return parser
+
+
+def _command_texts(cmd: str) -> dict:
+    """Description, epilog (the module's ``EXAMPLE``) and formatter of a
+    command's parser."""
+    example = getattr(importlib.import_module(f"bondgraph.cli.{cmd}"), "EXAMPLE", None)
+    return {"description": COMMANDS[cmd],
+            "epilog": f"example: {example}" if example else None,
+            "formatter_class": argparse.RawDescriptionHelpFormatter}
+
+
+def full_parser() -> argparse.ArgumentParser:
+    """Every command's parser under one ``bondgraph`` parser (the command
+    reference of the documentation is generated from it by sphinx-argparse;
+    :func:`main` builds only the parser of the command it runs)."""
+    p = _Parser(prog="bondgraph", description=_parser().description)
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for name, helptext in COMMANDS.items():
+        importlib.import_module(f"bondgraph.cli.{name}").configure(
+            sub.add_parser(name, help=helptext, **_command_texts(name)))
     return p
 
 
@@ -82,8 +124,8 @@ def main(argv: list[str] | None = None) -> int:
         _parser().print_help()
         return 0
     cmd = argv[0]
-    if cmd == "--version":
-        print(__version__)
+    if cmd in ("--version", "-V"):
+        print(f"bondgraph {__version__}")
         return 0
     if cmd not in COMMANDS:
         _parser().print_usage(sys.stderr)
@@ -92,8 +134,7 @@ def main(argv: list[str] | None = None) -> int:
               + (f"; did you mean '{close[0]}'?" if close else ""), file=sys.stderr)
         return 2
     mod = importlib.import_module(f"bondgraph.cli.{cmd}")
-    parser = _Parser(prog=f"bondgraph {cmd}", description=COMMANDS[cmd])
-    mod.configure(parser)
+    parser = command_parser(cmd)
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning(cmd)

@@ -8,6 +8,10 @@ from bondgraph.cli.common import load_model
 from bondgraph.numerics.registry import registered
 
 
+#: the example line of ``bondgraph models --help``
+EXAMPLE = "bondgraph models --params mass_spring_damper"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph models``."""
     p.add_argument("--params", metavar="MODEL",

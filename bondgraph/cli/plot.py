@@ -8,6 +8,10 @@ from pathlib import Path
 from bondgraph.report.plots import plot_record
 
 
+#: the example line of ``bondgraph plot --help``
+EXAMPLE = "bondgraph plot msd_force_step.csv -o msd_plots"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph plot``."""
     p.add_argument("record", help="record CSV (experiment or simulation)")

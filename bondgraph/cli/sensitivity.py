@@ -37,6 +37,10 @@ from bondgraph.sensitivity.sobol import SobolOptions
 from bondgraph.sensitivity.identifiability import CORR_MAX, REL_CRB_MAX
 
 
+#: the example line of ``bondgraph sensitivity --help``
+EXAMPLE = "bondgraph sensitivity --model mass_spring_damper --data msd_force_step.csv --params m,k,c"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph sensitivity``."""
     add_model(p)
@@ -70,7 +74,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rel-crb", type=float, default=REL_CRB_MAX,
                    help="largest relative Cramér-Rao bound of a recommended parameter")
     p.add_argument("--corr-max", type=float, default=CORR_MAX,
-                   help="largest |correlation| within the recommended set")
+                   help="largest abs(correlation) within the recommended set")
     p.add_argument("--no-sensitivities", action="store_true",
                    help="skip the forward sensitivity equations")
     p.add_argument("--seed", type=int, default=0)

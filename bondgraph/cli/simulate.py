@@ -19,6 +19,10 @@ from bondgraph.numerics.simulate import METHODS, simulate, stiffness_report
 from bondgraph.report.plots import plot_record
 
 
+#: the example line of ``bondgraph simulate --help``
+EXAMPLE = "bondgraph simulate mass_spring_damper --experiment msd_force_step --noise -o msd_force_step.csv"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph simulate``."""
     add_model(p, positional=True)

@@ -34,6 +34,10 @@ from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.tracking import plot_track
 
 
+#: the example line of ``bondgraph track --help``
+EXAMPLE = "bondgraph track --model mass_spring_damper --data msd_force_step.csv --track c --out track_out"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph track``."""
     add_model(p)
@@ -43,8 +47,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="name=value,... drift intensity of a tracked parameter, in its unit "
                         "per sqrt(s) (default 0: a constant, re-estimated at changes)")
     p.add_argument("--from", dest="from_result", default=None,
-                   help="result.json of `bondgraph estimate`: its estimates are the start "
-                        "values (tracked) and fixed values (others), its std the prior std")
+                   help="result.json of `bondgraph estimate` or report.json of `bondgraph "
+                        "loop` (its final fit): its estimates are the start values (tracked) "
+                        "and fixed values (others), its std the prior std")
     p.add_argument("--false-alarm-hours", type=float, default=10.0,
                    help="mean time between false alarms of the change detector [h] "
                         "(default 10; 0: no detection)")
@@ -68,14 +73,21 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def _from_result(path) -> tuple[dict, dict]:
-    """``(values, std)`` by parameter name of an estimate's result.json."""
+    """``(values, std)`` by parameter name of an estimate's result.json or a
+    loop's report.json (its final fit: estimates and Cramér-Rao std)."""
     try:
         d = from_jsonable(json.loads(Path(path).read_text()))
+        if isinstance(d, dict) and isinstance(d.get("final_fit"), dict):
+            fit = d["final_fit"]
+            return ({n: float(v) for n, v in fit["estimates"].items()},
+                    {n: float(s) for n, s in (fit.get("std") or {}).items()
+                     if s is not None and np.isfinite(float(s))})
         names = list(d["params"])
         return (dict(zip(names, map(float, d["estimates"]))),
                 {n: float(s) for n, s in zip(names, d.get("std") or []) if np.isfinite(s)})
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise DataError(f"--from {path}: not a readable estimate result ({exc})") from None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise DataError(f"--from {path}: neither a `bondgraph estimate` result.json nor a "
+                        f"`bondgraph loop` report.json ({type(exc).__name__}: {exc})") from None
 
 
 def run(args) -> int:
@@ -96,7 +108,9 @@ def run(args) -> int:
     start = {n: float(problem.theta[model.param_index(n)]) for n in names}
     tm = TrackingModel.from_graph(graph, names, drift, start=start)
     res = track(problem, tm, std={n: std[n] for n in names if n in std}, options=opts)
-    truth = (exp.meta or {}).get("true_parameters") or {}
+    truth = dict((exp.meta or {}).get("true_parameters") or {})
+    for name, column in ((exp.meta or {}).get("schedules") or {}).items():
+        truth[name] = exp[column]        # a parameter that changes: its time series
 
     def version(d: Path) -> list:
         _write_csv(d / "track.csv", res.columns())
@@ -145,6 +159,22 @@ def summary(res) -> str:
                      f"end {res.estimate[-1, i]:.6g} ± {res.std[-1, i]:.3g} {res.units[i]}")
         if res.observable is not None:
             lines.append(_observability_line(res, n, i))
+    bad = res.inconsistent()
+    n_win = max(1, int(np.ceil((res.t[-1] - res.t[0] + 1e-9) / 10.0)))
+    if len(bad) > max(1, 0.05 * n_win):
+        lines.append(f"warning: the innovations are larger than the model allows in {len(bad)} "
+                     f"of {n_win} windows of 10 s (first at {bad[0][0]:.6g} s): the model lacks "
+                     f"an effect there, and the tracker may read it as parameter changes; "
+                     f"find it with `bondgraph loop` before trusting the changes")
+    for i, n in enumerate(res.names):
+        lo, hi = res.settings.get("boxes", {}).get(n, (None, None))
+        if lo is None:
+            continue
+        on = np.mean((res.estimate[:, i] - lo < 1e-3 * (hi - lo))
+                     | (hi - res.estimate[:, i] < 1e-3 * (hi - lo)))
+        if on > 0.05:
+            lines.append(f"warning: {n} sits on its box [{lo:g}, {hi:g}] for {100 * on:.0f} % "
+                         f"of the record: the box, or the model, is wrong there")
     lines.append(f"{len(res.changes)} change(s)")
     for c in res.changes:
         lines.append(f"  t = {c.time:.6g} s (alarm {c.alarm_time:.6g} s): {c.parameter} "

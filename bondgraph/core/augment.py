@@ -104,14 +104,16 @@ class TrackedParameter:
         z = np.asarray(z, float)
         if self.transform == "none":
             return z.copy()
-        return self.lower + (self.upper - self.lower) / (1.0 + np.exp(-z))
+        with np.errstate(over="ignore"):        # exp(-z) = inf: p = lower, as it should
+            return self.lower + (self.upper - self.lower) / (1.0 + np.exp(-z))
 
     def slope(self, z):
         """dp/dz at z (numpy, any shape)."""
         z = np.asarray(z, float)
         if self.transform == "none":
             return np.ones_like(z)
-        s = 1.0 / (1.0 + np.exp(-z))
+        with np.errstate(over="ignore"):
+            s = 1.0 / (1.0 + np.exp(-z))
         return (self.upper - self.lower) * s * (1.0 - s)
 
     def state_of(self, p):
@@ -269,3 +271,56 @@ def _substitute(g, subs: dict) -> None:
 def tracked_parameters(graph) -> tuple[TrackedParameter, ...]:
     """The :class:`TrackedParameter` of an augmented graph (empty for another)."""
     return tuple(graph.metadata.get("tracked", ()))
+
+
+#: prefix of the inputs that replace scheduled parameters (``true.<p>``)
+SCHEDULE_PREFIX = "true."
+
+
+def scheduled(graph, names: Sequence[str]):
+    """A copy of ``graph`` in which the parameters ``names`` are input signals.
+
+    Each parameter ``p`` is replaced, in every law, modulus, source, sensor
+    and noise expression, by the input ``true.<p>`` (same unit, its default
+    the parameter's): a truth model in which a parameter changes during a
+    record (a puncture at t = 30 s, a slow ramp of rolling resistance) is
+    simulated by giving that input as a function of time. The elements that
+    use it become modulated (MTF, MGY, modulated R/C/I laws; Karnopp,
+    Margolis & Rosenberg 2012, ch. 4).
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The original graph (not changed).
+    names : sequence of str
+        Parameters of ``graph`` (at least one, no repeats).
+
+    Returns
+    -------
+    BondGraph
+        Named ``<name>_scheduled``; ``metadata["scheduled"]`` is the tuple
+        of the parameter names, in order.
+
+    Raises
+    ------
+    ModelError
+        No parameter, an unknown parameter (the known ones listed), a repeat.
+    """
+    names = list(names)
+    if not names:
+        raise ModelError("scheduled: no parameter to schedule (give at least one)")
+    unknown = [n for n in names if n not in graph.params]
+    if unknown:
+        raise ModelError(f"scheduled: graph '{graph.name}' has no parameter "
+                         f"{', '.join(map(repr, unknown))} (parameters: {', '.join(graph.params)})")
+    if len(set(names)) != len(names):
+        raise ModelError(f"scheduled: a parameter is named twice in {names}")
+    g = graph.copy(f"{graph.name}_scheduled")
+    subs = {}
+    for name in names:
+        p = g.params.pop(name)
+        subs[p] = g.input(SCHEDULE_PREFIX + name, p.unit, p.default,
+                          f"{p.name} as a function of time (scheduled truth)")
+    _substitute(g, subs)
+    g.metadata["scheduled"] = tuple(names)
+    return g

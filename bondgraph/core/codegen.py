@@ -44,6 +44,10 @@ RESERVED = {"x", "u", "theta", "np"}
 
 ALL_FUNCTIONS = ("f", "h", "dfdx", "dfdtheta", "dhdx", "dhdtheta", "f_dfdx", "energy",
                  "power_sources", "power_dissipated", "energy_rate")
+#: functions generated only on request (not part of the committed numpy
+#: modules): df/du and dh/du, the B and D of a linearisation
+#: (:mod:`bondgraph.export.linearize`)
+OPTIONAL_FUNCTIONS = ("dfdu", "dhdu")
 
 
 class Shared:
@@ -656,13 +660,14 @@ OUTPUT_UNITS = {_fmt_list(o.unit for o in ss.outputs)}
         return [((i,), e) for i, e in enumerate(self.ss.f)]
 
     def _jacobian_functions(self, functions) -> list[str]:
-        """``dfdx``, ``dfdtheta``, ``dhdx``, ``dhdtheta`` (non-zero entries
-        only) and ``f_dfdx``."""
+        """``dfdx``, ``dfdtheta``, ``dhdx``, ``dhdtheta``, on request
+        ``dfdu`` and ``dhdu`` (non-zero entries only) and ``f_dfdx``."""
         ss = self.ss
-        nx, npar, ny = len(ss.states), len(ss.params), len(ss.outputs)
+        nx, npar, ny, nu = len(ss.states), len(ss.params), len(ss.outputs), len(ss.inputs)
         parts = []
         jac_specs = [("dfdx", (nx, nx), "df/dx"), ("dfdtheta", (nx, npar), "df/dtheta"),
-                     ("dhdx", (ny, nx), "dh/dx"), ("dhdtheta", (ny, npar), "dh/dtheta")]
+                     ("dhdx", (ny, nx), "dh/dx"), ("dhdtheta", (ny, npar), "dh/dtheta"),
+                     ("dfdu", (nx, nu), "df/du"), ("dhdu", (ny, nu), "dh/du")]
         for name, shape, label in jac_specs:
             if name in functions:
                 parts.append(self.function(

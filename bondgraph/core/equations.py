@@ -218,7 +218,8 @@ class StateSpace:
     # --------------------------------------------------------- jacobians
     #: the Jacobians :meth:`jacobian` knows: (function, variables)
     JACOBIANS = {"dfdx": ("f", "states"), "dfdtheta": ("f", "params"),
-                 "dhdx": ("h", "states"), "dhdtheta": ("h", "params")}
+                 "dhdx": ("h", "states"), "dhdtheta": ("h", "params"),
+                 "dfdu": ("f", "inputs"), "dhdu": ("h", "inputs")}
 
     def jacobian(self, name: str) -> dict[tuple[int, int], sp.Expr]:
         """The non-zero entries of a Jacobian, row by row: a sparse Jacobian
@@ -231,7 +232,8 @@ class StateSpace:
         ----------
         name : str
             One of ``"dfdx"`` (n_x, n_x), ``"dfdtheta"`` (n_x, n_θ),
-            ``"dhdx"`` (n_y, n_x), ``"dhdtheta"`` (n_y, n_θ).
+            ``"dhdx"`` (n_y, n_x), ``"dhdtheta"`` (n_y, n_θ), ``"dfdu"``
+            (n_x, n_u), ``"dhdu"`` (n_y, n_u).
 
         Returns
         -------
@@ -296,6 +298,14 @@ class StateSpace:
     def dhdtheta(self) -> sp.Matrix:
         """∂h/∂θ, shape (n_y, n_θ)."""
         return self._matrix("dhdtheta", len(self.outputs), len(self.params))
+
+    def dfdu(self) -> sp.Matrix:
+        """∂f/∂u, shape (n_x, n_u) (the B of a linearisation)."""
+        return self._matrix("dfdu", len(self.f), len(self.inputs))
+
+    def dhdu(self) -> sp.Matrix:
+        """∂h/∂u, shape (n_y, n_u) (the D of a linearisation)."""
+        return self._matrix("dhdu", len(self.outputs), len(self.inputs))
 
     def describe(self) -> str:
         """Readable listing of the equations."""

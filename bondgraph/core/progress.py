@@ -108,34 +108,75 @@ class LongPass:
 
 
 @contextlib.contextmanager
-def announced(what: str, *, delay: float = 2.0, note: str = ""):
-    """Say on stderr what is being done when a block runs longer than
-    ``delay`` seconds (a compile the user waits for: ``"compiling the fused
-    UKF kernel"``), and how long it took when it ends; nothing for a short
-    block (a cache load) or when bars are switched off (:func:`enabled`).
+def announced(what: str, *, delay: float = 2.0, note: str = "", stream=None,
+              tick: float = 0.5):
+    """Say what is being done when a block runs longer than ``delay``
+    seconds (a compile the user waits for: ``"compiling the fused UKF
+    kernel"``), keep a live elapsed-time bar on a terminal while it runs, and
+    say how long it took when it ends; nothing for a short block (a cache
+    load) or when bars are switched off (:func:`enabled`).
+
+    On a terminal (``stream.isatty()``) the announcement is a tqdm line whose
+    elapsed time a background thread refreshes every ``tick`` seconds, so
+    nothing is silent for longer than ``delay``; elsewhere (a log file, a
+    pipe) one line is printed, without the refreshes.
 
     Parameters
     ----------
     what : str
         What the block does.
     delay : float
-        Seconds of silence before the line is printed [s].
+        Seconds of silence before the announcement [s].
     note : str
-        Appended to the first line (e.g. "once: numba caches it on disk").
+        Appended to the announcement (e.g. "once: numba caches it on disk").
+    stream : file-like, optional
+        Where to write (default: ``sys.stderr`` at the call).
+    tick : float
+        Seconds between two refreshes of the live bar [s].
     """
     if not is_enabled():
         yield
         return
+    out = sys.stderr if stream is None else stream
     t0 = time.perf_counter()
-    extra = f" ({note})" if note else ""
-    timer = threading.Timer(delay, lambda: print(f"  ... {what}{extra}", file=sys.stderr,
-                                                 flush=True))
-    timer.daemon = True
-    timer.start()
+    label = f"{what} ({note})" if note else what
+    done = threading.Event()
+    ticker = threading.Thread(target=_announce, args=(label, out, delay, tick, done),
+                              daemon=True)
+    ticker.start()
     try:
         yield
     finally:
-        timer.cancel()
+        done.set()
+        ticker.join()
         took = time.perf_counter() - t0
         if took >= delay:
-            print(f"  ... {what}: done in {took:.0f} s", file=sys.stderr, flush=True)
+            print(f"  ... {what}: done in {took:.0f} s", file=out, flush=True)
+
+
+def _is_terminal(stream) -> bool:
+    """Whether ``stream`` is a terminal (a live bar would be overwritten in place)."""
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
+def _announce(label: str, out, delay: float, tick: float, done: threading.Event) -> None:
+    """The announcing thread of :func:`announced`: after ``delay`` s (unless
+    ``done``), the line, then on a terminal a tqdm bar of the elapsed
+    seconds refreshed every ``tick`` s until ``done``."""
+    if done.wait(delay):
+        return
+    if not _is_terminal(out):
+        print(f"  ... {label}", file=out, flush=True)
+        return
+    bar = tqdm(total=None, desc=f"  ... {label}", file=out, leave=False, dynamic_ncols=True,
+               bar_format="{desc}: {elapsed} elapsed", mininterval=0, miniters=1,
+               initial=0)
+    bar.start_t = bar.last_print_t = time.time() - delay   # count from the block's start
+    try:
+        while not done.wait(tick):
+            bar.update(1)
+    finally:
+        bar.close()

@@ -91,7 +91,7 @@ def smooth_sign(x, eps):
 
 
 def smooth_abs(x, eps):
-    """sqrt(x^2 + eps^2): |x| smoothed, >= eps."""
+    """sqrt(x^2 + eps^2): abs(x) smoothed, >= eps."""
     return sp.sqrt(x**2 + eps**2)
 
 

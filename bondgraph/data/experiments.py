@@ -17,9 +17,11 @@ from typing import Callable
 import numpy as np
 
 from bondgraph.core import plugins
+from bondgraph.core.augment import SCHEDULE_PREFIX, scheduled
 from bondgraph.data.binding import STATE_PREFIX
 from bondgraph.data.records import Experiment
 from bondgraph.errors import ModelError
+from bondgraph.numerics import registry
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import InputSignals, simulate
 
@@ -51,8 +53,21 @@ class ExperimentSpec:
         Seed of the noise generator.
     description : str
     truth_model : str, optional
-        Registered model to simulate instead of ``model`` (it must have the
-        same output names).
+        Model to simulate instead of ``model`` (it must have the same
+        output names).
+    schedules : dict of str -> callable, optional
+        Parameters of the truth model that change during the record:
+        parameter name -> vectorised function of time ``t (N,) -> (N,)`` in
+        the parameter's unit (e.g. :func:`step`, :func:`ramp`). The truth
+        model is simulated with each such parameter as the input
+        ``true.<p>`` (:func:`bondgraph.core.augment.scheduled`), and the
+        record keeps it as the column ``true.<p>`` (role ``other``): the
+        truth as a time series. A scheduled parameter may not also be given
+        in ``params``.
+
+    ``model`` and ``truth_model`` are registered model names, or graph
+    builders ``module:function`` / ``path/to/file.py:function`` (derived
+    and generated in memory).
     """
 
     name: str
@@ -66,6 +81,7 @@ class ExperimentSpec:
     seed: int = 0
     description: str = ""
     truth_model: str | None = None
+    schedules: dict[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------- registry
@@ -167,6 +183,7 @@ def run_experiment(spec: ExperimentSpec | str, *, method: str = "BDF", rtol: flo
         raise ModelError(f"{ctx}: {exc}") from None
     t = sample_times(spec)
     u_truth = {k: fn for k, fn in spec.inputs.items() if k in truth.inputs}
+    u_truth.update({SCHEDULE_PREFIX + k: fn for k, fn in spec.schedules.items()})
     sim = simulate(truth, t, u=u_truth, x0=x0, theta=theta, method=method, rtol=rtol,
                    atol=atol, max_step=max_step)
     std = _noise_std(spec, filt)
@@ -181,6 +198,7 @@ def run_experiment(spec: ExperimentSpec | str, *, method: str = "BDF", rtol: flo
         "dt": float(spec.dt),
         "duration": float(t[-1]),
         "true_parameters": {p: float(v) for p, v in zip(truth.params, theta)},
+        "schedules": {p: SCHEDULE_PREFIX + p for p in spec.schedules},
         "x0": {s: float(v) for s, v in zip(truth.states, x0)},
         "noise": {"distribution": "gaussian", "independent": True, "mean": 0.0, "std": noise},
         "seed": int(spec.seed),
@@ -195,9 +213,19 @@ def _spec_models(spec: ExperimentSpec) -> tuple[Model, Model]:
     """The filter model and the truth model of a spec, checked against each
     other: every given input belongs to one of them, the truth model has every
     output of the filter model."""
-    filt = Model.load(spec.model)
-    truth = Model.load(spec.truth_model) if spec.truth_model else filt
     ctx = f"experiment '{spec.name}'"
+    filt = Model.from_spec(spec.model)
+    truth = Model.from_spec(spec.truth_model) if spec.truth_model else filt
+    if spec.schedules:
+        both = sorted(set(spec.schedules) & set(spec.params))
+        if both:
+            raise ModelError(f"{ctx}: {', '.join(both)} given both in params and in "
+                             f"schedules (a scheduled parameter's values are its schedule)")
+        graph = registry.graph_builder(spec.truth_model or spec.model)()
+        try:
+            truth = Model.from_graph(scheduled(graph, list(spec.schedules)))
+        except ModelError as exc:
+            raise ModelError(f"{ctx}: {exc}") from None
     unknown = [k for k in spec.inputs if k not in truth.inputs and k not in filt.inputs]
     if unknown:
         raise ModelError(f"{ctx}: inputs {', '.join(unknown)} are not inputs of "
@@ -256,7 +284,8 @@ def _record_columns(spec: ExperimentSpec, filt: Model, truth: Model, sim,
                 vals = fsig.samples[:, j]
             columns[name] = vals
             units[name] = mdl.input_units[j] or None
-            roles[name] = "input"
+            roles[name] = "other" if name[len(SCHEDULE_PREFIX):] in spec.schedules \
+                and name.startswith(SCHEDULE_PREFIX) else "input"
     for j, name in enumerate(filt.outputs):
         columns[name] = y[:, j]
         units[name] = filt.output_units[j] or None

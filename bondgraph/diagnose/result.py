@@ -239,6 +239,50 @@ class FitSummary:
 
 
 @dataclass
+class DiscoveryPlot:
+    """What the report shows of a discovery (issue 29): the reconstructed
+    missing effort (flow) at a port against the discovered law.
+
+    Attributes
+    ----------
+    port, kind, unit : str
+        The junction, ``"effort"`` or ``"flow"``, the law's unit.
+    t : ndarray (N,)
+        Sample times [s].
+    d, d_std : ndarray (N,)
+        The reconstructed signal d̂(t) and its smoother std [unit].
+    law : ndarray (N,)
+        The law evaluated on the port's variables along the record (its
+        coefficients refitted by the loop when it accepted the law, else
+        as discovered) [unit].
+    text : str
+        The law, readable, each coefficient with its Cramér-Rao std where
+        known.
+    passivity : str
+        The passivity check's summary and the law's placement (R element,
+        storage law, source).
+    accepted : bool
+        The loop accepted the law.
+    """
+
+    port: str
+    kind: str
+    unit: str
+    t: np.ndarray
+    d: np.ndarray
+    d_std: np.ndarray
+    law: np.ndarray
+    text: str
+    passivity: str
+    accepted: bool = False
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the text fields (no arrays)."""
+        return {"port": self.port, "kind": self.kind, "unit": self.unit, "law": self.text,
+                "passivity": self.passivity, "accepted": self.accepted}
+
+
+@dataclass
 class LoopResult:
     """What :func:`bondgraph.diagnose.runner.run_loop` returns (and hands to
     ``on_update`` while it runs, with ``finished`` False).
@@ -281,6 +325,9 @@ class LoopResult:
     declared_graph : BondGraph or None
         A copy of the declared graph (the augmented model file rebuilds it
         from a pickle when the graph has no ``module:function`` source).
+    discovery : DiscoveryPlot or None
+        When discovery ran (:func:`bondgraph.diagnose.discover.effect.loop_with_discovery`,
+        ``bondgraph loop --discover``): the reconstruction against the law.
     """
 
     model: str
@@ -305,6 +352,7 @@ class LoopResult:
     true_effect: dict | None = None
     truth_ranks: list = field(default_factory=list)
     declared_graph: BondGraph | None = None
+    discovery: DiscoveryPlot | None = None
 
     def table(self) -> str:
         """Markdown table of the accepted steps (error = :attr:`metric`; with
@@ -341,6 +389,7 @@ class LoopResult:
             "initial_fit": self.initial.to_dict(), "final_fit": self.final.to_dict(),
             "settings": self.settings, "warnings": list(self.warnings),
             "true_effect": self.true_effect, "truth_ranks": list(self.truth_ranks),
+            "discovery": None if self.discovery is None else self.discovery.to_dict(),
         })
 
 

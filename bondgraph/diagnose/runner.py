@@ -635,33 +635,104 @@ def pair_pool(ranking: list[Candidate]) -> list[Candidate]:
 
 def accepted_pair(ctx: Context, result: LoopResult, current: Fit, scales: Scales, tag: str,
                   step: int) -> Fit | None:
-    """No confirmed candidate passed the accept rule alone: refit pairs of
-    the best ones (:func:`pair_pool`, at different places) together and
-    accept the first pair that passes the accept rule against the current
-    fit (its dof the two effects' new parameters) *and* needs both members
+    """No confirmed candidate passed the accept rule alone: refit every pair
+    of the best ones (:func:`pair_pool`, at different places) together and
+    accept, best joint refit first (:func:`rank_pairs`), the first pair that
+    passes the accept rule against the current fit (its dof the two
+    effects' new parameters) *and* needs both members
     (:func:`bondgraph.diagnose.accept.pair_needed`: the pair beats each
     member's own refit by a significant likelihood ratio). Two effects that
-    act together (the overflows of two cascaded tanks: the lower tank's
-    level is capped by both) can each fail alone, the other one's misfit
-    raising the held-out error. The pair is one step (the first member's,
-    the second in its ``together_with``; both effects applied). Returns the
-    accepted fit, or None."""
-    s = ctx.settings
+    act together (the overflows of two tanks into one measured collector)
+    can each fail alone, the other one's misfit raising the held-out error.
+    The pairs are all refitted before any is judged: a pair of look-alikes
+    met first in the pool's order (a collector overflow beside one tank's)
+    is not preferred to a pair whose joint refit is better. The pair is one
+    step (the first member's, the second in its ``together_with``; both
+    effects applied). Returns the accepted fit, or None."""
     pool = pair_pool(result.rankings[-1])
     pairs = [(a, b) for i, a in enumerate(pool) for b in pool[i + 1:]
              if a.target.name != b.target.name]
+    if pool:
+        pairs += [(pool[0], c) for c in partners_of(ctx, current, pool[0], pool, scales, tag)]
     if not pairs:
         return None
-    ctx.log(f"  no single candidate passed: refitting {len(pairs)} pair(s) of "
-            f"{', '.join(c.label for c in pool)}")
-    for a, b in pairs:
-        conf = confirm_pair(ctx, current, (a, b), scales, f"{tag}_pair")
-        if conf is None:
-            continue
-        after = accepted_pair_fit(ctx, result, current, (a, b), conf, step)
+    ctx.log(f"  no single candidate passed: refitting {len(pairs)} pair(s): "
+            f"{'; '.join(f'{a.label} + {b.label}' for a, b in pairs)}")
+    refits = run_tasks(ctx, _confirm_pair_task, (current, scales, f"{tag}_pair"), pairs)
+    done = [(pair, conf) for pair, conf in zip(pairs, refits) if conf is not None]
+    for (a, b), conf in done:
+        ctx.log(f"  confirmed pair {a.label} + {b.label}: LR "
+                f"{2 * (current.nll - conf.fit.nll):.1f} (k {len(conf.new_params)}, "
+                f"{'converged' if conf.comparable else 'NOT converged'})")
+    for pair, conf in rank_pairs(done):
+        after = accepted_pair_fit(ctx, result, current, pair, conf, step)
         if after is not None:
             return after
     return None
+
+
+def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidate],
+                scales: Scales, tag: str) -> list[Candidate]:
+    """The candidates significant *given* the lead's refit: every effect
+    scored against the fit with ``lead`` (the best usable single refit of
+    :func:`pair_pool`; the filter conditioned on its initial states and
+    noise levels) at the other places, Bonferroni over them; at most
+    :data:`PAIR_TOP`, those already in ``pool`` left out. Each is confirmed
+    alone against ``current`` (its own refit, which
+    :func:`~bondgraph.diagnose.accept.pair_needed` compares the pair with).
+
+    A partner of an interacting pair can be invisible against the declared
+    fit: two overflows into one measured collector, the declared orifices
+    compensate both, and one tank's overflow alone scores χ² = 0 (capping
+    it only removes flow the compensated model needs); once the other
+    tank's overflow is in, its own shows. Returns the partners."""
+    s = ctx.settings
+    conf = ctx.cache.get(("confirmation", id(current), current.nll, lead.label))
+    if conf is None:
+        return []
+    base = ctx.problem
+    ctx.problem = base.conditioned_on(x0=dict(conf.fit.x0_est),
+                                      noise_levels=dict(conf.fit.noise_est))
+    try:
+        cands = score_additive(ctx, conf.fit, scales, s.effects)
+        if s.search.structural:
+            cands += score_structural(ctx, conf.fit, scales,
+                                      [e for e in s.effects if not getattr(e, "last_resort", False)])
+    finally:
+        ctx.problem = base
+    cands = [c for c in cands if c.target.name != lead.target.name]
+    taken = {c.label for c in pool}
+    found = sorted([c for c in significant(cands, s.accept.significance) if c.label not in taken],
+                   key=lambda c: c.rank_key)[:PAIR_TOP]
+    ctx.log(f"  given {lead.label}: " + ("; ".join(
+        f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})" for c in found) or "nothing significant "
+        "at the other places"))
+    out = []
+    for c in found:
+        key = ("confirmation", id(current), current.nll, c.label)
+        if key not in ctx.cache:
+            ctx.cache[key] = confirm(ctx, current, c, scales, f"{tag}_alone")
+        if ctx.cache[key] is not None:
+            c.confirmed = {"values": dict(c.values)}
+            out.append(c)
+    return out
+
+
+def rank_pairs(refits: list[tuple[tuple, Confirmation]]) -> list[tuple[tuple, Confirmation]]:
+    """The refitted pairs ``(pair, confirmation)`` best first: converged
+    (``comparable``) before not converged, each group by increasing
+    NLL + k (k the pair's new parameters: by decreasing LR − 2k over the
+    current fit, Akaike's penalty, as :func:`rank_confirmed` orders
+    singles)."""
+    return sorted(refits, key=lambda z: (not z[1].comparable,
+                                         z[1].fit.nll + len(z[1].new_params)))
+
+
+def _confirm_pair_task(ctx: Context, shared, pair: tuple) -> Confirmation | None:
+    """:func:`bondgraph.diagnose.confirm.confirm_pair` as a task of
+    :func:`bondgraph.diagnose.parallel.run_tasks`."""
+    current, scales, name = shared
+    return confirm_pair(ctx, current, pair, scales, name)
 
 
 def accepted_pair_fit(ctx: Context, result: LoopResult, current: Fit, pair: tuple,

@@ -209,7 +209,7 @@ class SearchOptions:
     confirm_tolerance : float
         Convergence of a confirmation fit [nats]: the predicted NLL decrease
         of a full scoring step, or the last step's decrease relative to
-        1 + |NLL| times 1e-3 of it, below this.
+        1 + abs(NLL) times 1e-3 of it, below this.
     structural : bool or "always"
         Evaluate structural effects (slower: one model each); ``"always"``
         scores them even when an additive effect explains most of the
@@ -367,7 +367,7 @@ class LoopSettings:
         ``P0`` a whole covariance, ``x0_std`` declared stds by name (e.g. the
         grade on a level track), ``rel`` (``--p0-rel``) and ``scale``
         (``--p0``: ``"state"``, each state's own scale along the record, or
-        ``"magnitude"``, max(|x0|, 1))); every problem of the loop is built
+        ``"magnitude"``, max(abs(x0), 1))); every problem of the loop is built
         with it (:func:`bondgraph.diagnose.fit.loop_problem`).
     ukf : UKFOptions
         Options of :func:`bondgraph.inference.ukf.ukf_nll` (alpha, method, substeps ...),

@@ -69,6 +69,7 @@ part I. IEEE TAC 13(6), 646-655.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy import stats
 
 from bondgraph.errors import OptionError
@@ -104,7 +105,7 @@ def glr_mean_jump(s, window: int) -> tuple[np.ndarray, np.ndarray]:
     Notes
     -----
     Basseville & Nikiforov (1993), eq. (2.4.40) with unit variance; cost
-    O(N M) in vectorised passes over the lags.
+    O(N M), compiled (numba).
     """
     s = np.asarray(s, float)
     if s.ndim != 1:
@@ -113,21 +114,27 @@ def glr_mean_jump(s, window: int) -> tuple[np.ndarray, np.ndarray]:
         raise OptionError(f"glr_mean_jump: window must be >= 1, got {window}")
     ok = np.isfinite(s)
     C = np.concatenate([[0.0], np.cumsum(np.where(ok, s, 0.0))])
-    n = np.concatenate([[0], np.cumsum(ok)])
-    N = s.size
-    g = np.zeros(N)
-    start = np.arange(N)
-    k = np.arange(N)
-    for L in range(1, min(int(window), N) + 1):
-        kk = k[L - 1:]
-        tot = C[kk + 1] - C[kk + 1 - L]
-        cnt = n[kk + 1] - n[kk + 1 - L]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            val = np.where(cnt > 0, tot * tot / (2.0 * np.maximum(cnt, 1)), 0.0)
-        better = val > g[L - 1:]
-        g[L - 1:] = np.where(better, val, g[L - 1:])
-        start[L - 1:] = np.where(better, kk - L + 1, start[L - 1:])
+    n = np.concatenate([[0], np.cumsum(ok)]).astype(np.int64)
+    g, start = np.zeros(s.size), np.arange(s.size, dtype=np.int64)
+    _glr_lags(C, n, int(window), g, start)
     return g, start
+
+
+@njit(cache=True, nogil=True)
+def _glr_lags(C, n, window, g, start):  # pragma: no cover - compiled
+    """The maximum over the lags L = 1..M of (Σ of the last L samples)² / 2·count,
+    in place into ``g`` and ``start`` (the first sample of the best window;
+    ties keep the shorter window)."""
+    N = g.size
+    for k in range(N):
+        for L in range(1, min(window, k + 1) + 1):
+            cnt = n[k + 1] - n[k + 1 - L]
+            if cnt > 0:
+                tot = C[k + 1] - C[k + 1 - L]
+                val = tot * tot / (2.0 * cnt)
+                if val > g[k]:
+                    g[k] = val
+                    start[k] = k - L + 1
 
 
 def glr_threshold(mean_time_s: float, dt: float, window: int, tests: int = 1) -> float:

@@ -61,7 +61,7 @@ NOISE_MODES = ("auto", "model")
 #: the toolkit's one definition of that default
 P0_REL = 0.05
 #: the scale a prior's relative spread refers to: each state's own scale
-#: along the record, or max(|x0|, 1) (:class:`bondgraph.inference.prior.PriorSpec`)
+#: along the record, or max(abs(x0), 1) (:class:`bondgraph.inference.prior.PriorSpec`)
 P0_SCALES = ("state", "magnitude")
 #: fewest steps per sample of the free run that gives the prior's state
 #: scales (:meth:`Discretisation.for_free_run`)

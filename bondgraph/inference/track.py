@@ -57,6 +57,7 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
+from scipy import stats
 
 from bondgraph.core.augment import augment, tracked_parameters
 from bondgraph.errors import ModelError, NumericalError, OptionError
@@ -144,13 +145,18 @@ class TrackingModel:
 
     def values(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Parameter estimates and std (..., k) from state means (..., n_x)
-        and covariances (..., n_x, n_x): p = g(z), σ_p = |g'(z)| σ_z."""
+        and covariances (..., n_x, n_x): p = g(z), σ_p = |g(z + σ_z) − g(z − σ_z)| / 2
+        (|g'(z)| σ_z to first order; near a bound of the box, where the
+        logit's slope vanishes, the secant keeps the spread the state still
+        has instead of reporting a parameter known exactly)."""
         idx = self.state_indices
         z = x[..., idx]
         var = np.maximum(np.diagonal(P, axis1=-2, axis2=-1)[..., idx], 0.0)
+        sz = np.sqrt(var)
         est = np.stack([tp.value(z[..., i]) for i, tp in enumerate(self.tracked)], -1)
-        sl = np.stack([np.abs(tp.slope(z[..., i])) for i, tp in enumerate(self.tracked)], -1)
-        return est, sl * np.sqrt(var)
+        hi = np.stack([tp.value(z[..., i] + sz[..., i]) for i, tp in enumerate(self.tracked)], -1)
+        lo = np.stack([tp.value(z[..., i] - sz[..., i]) for i, tp in enumerate(self.tracked)], -1)
+        return est, 0.5 * np.abs(hi - lo)
 
 
 def tracking_prior(problem, tm: TrackingModel, start: Mapping[str, float] | None = None,
@@ -232,6 +238,15 @@ class Change:
         of the segment that starts at ĵ (the next change or the record's end).
     statistic, threshold : float
         The GLR statistic at the alarm and the threshold [nats].
+    detected : str
+        The parameter whose standardised updates raised the alarm; the
+        change is attributed (``parameter``) to the one whose restart
+        explains the samples from ĵ to the alarm plus one window best
+        (``isolation``).
+    isolation : dict
+        Parameter -> negative log-likelihood of those samples [nats] with
+        that parameter restarted at ĵ, minus the smallest (0 for
+        ``parameter``); parameters not observable at ĵ are left out.
     """
 
     parameter: str
@@ -241,6 +256,8 @@ class Change:
     alarm_time: float
     statistic: float
     threshold: float
+    detected: str = ""
+    isolation: dict = field(default_factory=dict)
     before: float = np.nan
     before_std: float = np.nan
     after: float = np.nan
@@ -275,6 +292,10 @@ class TrackResult:
     information : ndarray (N, k)
         Information of each sample's update about each parameter
         [1/unit²] (:func:`bondgraph.inference.changes.information_gain`).
+    nis, nis_dof : ndarray (N,)
+        The tracking filter's normalised innovation squared per sample (NaN
+        without an update) and the number of outputs measured there (its χ²
+        degrees of freedom when the model is right; :meth:`inconsistent`).
     observable : ndarray of bool (N, k)
         Whether each parameter is observable from the record at each sample
         (``TrackOptions.observable_s``, ``observable_ratio``).
@@ -296,6 +317,8 @@ class TrackResult:
     threshold: float | None
     changes: list = field(default_factory=list)
     information: np.ndarray | None = None
+    nis: np.ndarray | None = None
+    nis_dof: np.ndarray | None = None
     observable: np.ndarray | None = None
     smoothed: np.ndarray | None = None
     smoothed_std: np.ndarray | None = None
@@ -313,6 +336,34 @@ class TrackResult:
                 out[f"{n}.smoothed_std"] = self.smoothed_std[:, i]
             if self.observable is not None:
                 out[f"observable_{n}"] = self.observable[:, i].astype(float)
+        return out
+
+    def inconsistent(self, window_s: float = 10.0, level: float = 1e-3) -> list[tuple[float, float]]:
+        """Windows where the innovations are larger than the model allows.
+
+        The record is cut into windows of ``window_s`` seconds; in each, the
+        sum of the NIS is χ² with the summed degrees of freedom when the
+        model (with the tracked parameters) is right and its innovations
+        white (Bar-Shalom, Li & Kirubarajan 2001, §5.4). A window whose sum
+        exceeds the ``1 − level`` quantile is listed. Many such windows mean
+        model error the tracker may read as parameter changes: a missing
+        effect, not a changed parameter (``bondgraph loop`` finds it).
+
+        Returns
+        -------
+        list of (t_start, t_end) [s]
+        """
+        if self.nis is None or self.t.size < 2:
+            return []
+        dt = float(np.median(np.diff(self.t)))
+        w = max(1, int(round(window_s / dt)))
+        out = []
+        for a in range(0, self.t.size, w):
+            nis, dof = self.nis[a:a + w], self.nis_dof[a:a + w]
+            ok = np.isfinite(nis)
+            m = int(dof[ok].sum())
+            if m and float(nis[ok].sum()) > stats.chi2.isf(level, m):
+                out.append((float(self.t[a]), float(self.t[min(a + w, self.t.size) - 1])))
         return out
 
     def unobservable(self, name: str) -> list[tuple[float, float]]:
@@ -346,6 +397,8 @@ class _Segment:
     G: np.ndarray
     info: np.ndarray
     end: int = -1
+    nis: np.ndarray | None = None       # (n,) normalised innovation squared, NaN: no update
+    dof: np.ndarray | None = None       # (n,) outputs measured at each sample
 
 
 def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = None,
@@ -404,7 +457,9 @@ def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = Non
     if opts.smooth:
         res.smoothed, res.smoothed_std = _smoothed(tm, t, u, th, segs, ukf)
     res.settings = dict(ukf=ukf.to_dict(), track=opts.to_dict(), window=window, dt=dt,
-                        theta=dict(zip(tm.model.params, th.tolist())))
+                        theta=dict(zip(tm.model.params, th.tolist())),
+                        boxes={tp.name: (tp.lower, tp.upper) for tp in tm.tracked
+                               if tp.transform == "logit"})
     return res
 
 
@@ -425,7 +480,8 @@ def _filter_segment(tm, rec, th, prior, ukf, R, s0: int) -> _Segment:
     info = np.stack([information_gain(Pf[:, i, i], P[i, i], q2[c] * dts,
                                       tm.tracked[c].slope(xf[:, i]))
                      for c, i in enumerate(idx)], -1)
-    return _Segment(s0, xf, Pf, (x, P), float(res.nll[0]), S, np.zeros_like(S), info)
+    return _Segment(s0, xf, Pf, (x, P), float(res.nll[0]), S, np.zeros_like(S), info,
+                    nis=res.nis[:, 0], dof=np.isfinite(y[s0:]).sum(axis=1))
 
 
 def reference_std(tm: TrackingModel, x0, options: TrackOptions) -> np.ndarray:
@@ -467,16 +523,45 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
         if alarm is None or len(changes) >= opts.max_changes:
             seg.end = t.size
             return segs, changes
-        ka, j, c, g = alarm
+        ka, j, c0, g = alarm
         cidx = max(s0 + j, s0 + 2)
         seg.end = cidx
-        changes.append(Change(tm.names[c], cidx, s0 + ka, float(t[cidx]), float(t[s0 + ka]),
-                              g, h))
         x, P = seg.x[cidx - 1 - s0].copy(), seg.P[cidx - 1 - s0].copy()
-        prior = (x, _reset(tm, c, x, P, std, opts, P_start))
+        ok = [k for k in range(len(tm.tracked)) if obs[cidx - 1 - s0, k]] or [c0]
         y = y.copy()
         y[cidx - 1] = np.nan            # its update is already in the prior
+        c, iso = _isolate(tm, (t, u, y), th, (x, P), ukf, R,
+                          (cidx - 1, min(t.size, s0 + ka + window + 1)),
+                          lambda k: _reset(tm, k, x, P, std, opts, P_start), ok)
+        changes.append(Change(tm.names[c], cidx, s0 + ka, float(t[cidx]), float(t[s0 + ka]),
+                              g, h, tm.names[c0], iso))
+        prior = (x, _reset(tm, c, x, P, std, opts, P_start))
         s0, changed = cidx - 1, c
+
+
+def _isolate(tm, rec, th, prior, ukf, R, span, reset, candidates) -> tuple[int, dict]:
+    """Which tracked parameter changed: the filter from ``span[0]`` to
+    ``span[1]`` restarted with each candidate's variance reset
+    (``reset(k)``), the one of smallest negative log-likelihood wins (the
+    GLR over a set of change signatures; Willsky & Jones 1976). Returns its
+    column and the NLL differences by name."""
+    t, u, y = rec
+    a, e = span
+    x = prior[0]
+    if len(candidates) == 1:
+        return candidates[0], {tm.names[candidates[0]]: 0.0}
+    nll = {}
+    for k in candidates:
+        res = ukf_nll(tm.model, t[a:e], u[a:e], y[a:e], th[None, :], x, reset(k), options=ukf,
+                      R=R)
+        nll[k] = float(res.nll[0]) if np.isfinite(res.nll[0]) else np.inf
+    best = min(nll, key=nll.get)
+    return best, {tm.names[k]: v - nll[best] for k, v in nll.items()}
+
+
+#: |z| of a logit-tracked parameter at a restart: p within 4.5e-5 of the box's
+#: width from a bound, where the transform's slope is still 4.5e-5 x the width
+LOGIT_LIMIT = 10.0
 
 
 def _states_prior(tm, P0) -> np.ndarray:
@@ -493,8 +578,11 @@ def _reset(tm, c: int, x, P, std, opts: TrackOptions, P_start) -> np.ndarray:
     (``opts.reset_rel`` of its value, at least its prior rule) and its cross
     covariances zero; with ``P_start``, the original states' prior
     covariance added (their estimates went through the samples between
-    the change and its detection with the old value)."""
+    the change and its detection with the old value). A logit state is
+    first brought within ±:data:`LOGIT_LIMIT` (in place in ``x``)."""
     tp, i = tm.tracked[c], int(tm.state_indices[c])
+    if tp.transform == "logit":     # restart inside the box: the slope of a state
+        x[i] = np.clip(x[i], -LOGIT_LIMIT, LOGIT_LIMIT)     # run onto a bound is 0
     p = float(tp.value(x[i]))
     scale = abs(p) if p != 0 else tp.upper - tp.lower
     sd = max(float((std or {}).get(tp.name, opts.prior_rel * scale)), opts.reset_rel * scale)
@@ -515,11 +603,12 @@ def _stitch(tm, t, segs, changes, h) -> TrackResult:
     N, k, n = t.size, len(tm.tracked), tm.model.n_x
     xs, Ps = np.full((N, n), np.nan), np.full((N, n, n), np.nan)
     S, G, info = np.full((N, k), np.nan), np.zeros((N, k)), np.zeros((N, k))
+    nis, dof = np.full(N, np.nan), np.zeros(N, dtype=int)
     for i, seg in enumerate(segs):
         a, e = _kept(seg, i == 0)
         r = slice(a - seg.start, e - seg.start)
         xs[a:e], Ps[a:e], S[a:e], G[a:e] = seg.x[r], seg.P[r], seg.S[r], seg.G[r]
-        info[a:e] = seg.info[r]
+        info[a:e], nis[a:e], dof[a:e] = seg.info[r], seg.nis[r], seg.dof[r]
     est, sd = tm.values(xs, Ps)
     for ch, seg in zip(changes, segs[1:]):
         c = tm.names.index(ch.parameter)
@@ -528,7 +617,8 @@ def _stitch(tm, t, segs, changes, h) -> TrackResult:
     return TrackResult(t=t, names=tm.names, units=[tp.unit for tp in tm.tracked], estimate=est,
                        std=sd, x_filt=xs, states=list(tm.model.states),
                        nll=float(sum(s.nll for s in segs)), increments=S, statistic=G,
-                       threshold=h, changes=changes, information=info)
+                       threshold=h, changes=changes, information=info, nis=nis,
+                       nis_dof=dof)
 
 
 def _smoothed(tm, t, u, th, segs, ukf):
@@ -610,9 +700,13 @@ def estimate_drift(problem, tm: TrackingModel, names: Sequence[str] | None = Non
 # ------------------------------------------------------------------ streaming
 class Tracker:
     """Streaming tracker: one sample per :meth:`update`, the same predict
-    and update steps as the batch filter (:func:`bondgraph.inference.ukf.predict`,
-    :func:`~bondgraph.inference.ukf.update`; numpy), so that it equals
-    :func:`track` without change detection sample for sample.
+    and update steps as the batch filter, so that it equals :func:`track`
+    without change detection sample for sample. With the numba backend
+    (the default of :class:`UKFOptions`) each sample is one call of the
+    compiled kernel on arrays allocated once
+    (:class:`~bondgraph.inference.ukf_numba.StepKernel`); with numpy, or
+    options the kernel lacks, :func:`bondgraph.inference.ukf.predict` and
+    :func:`~bondgraph.inference.ukf.update`.
 
     Parameters
     ----------
@@ -659,17 +753,34 @@ class Tracker:
                                  np.asarray(x0, float)[None, :],
                                  np.asarray(P0, float)[None, :, :], None, R)
         self.batch.t = []
-        self.k, self._u = 0, None
+        self.k, self._u, self._t = 0, None, None
+        self._stepper = self._compiled_step(m)
         idx = tm.state_indices
         self._idx, self._Pz = idx, np.asarray(P0, float)[idx, idx]
         self._q2 = np.asarray(m.proc_std(np.asarray(theta, float)[None, :]), float)[0][idx] ** 2
         self.information = np.zeros(len(idx))
+        self._box = (np.array([tp.lower for tp in tm.tracked]),
+                     np.array([tp.upper - tp.lower for tp in tm.tracked]),
+                     np.array([tp.transform == "logit" for tp in tm.tracked]))
         self.observable = None
         if observe is not None:
             sigma0, window, ratio = observe
             self._need = np.asarray(sigma0, float) ** 2, 1.0 / float(ratio) - 1.0
             self._ring, self._sum = np.zeros((max(1, int(window)), len(idx))), np.zeros(len(idx))
             self.observable = np.zeros(len(idx), bool)
+
+    def _compiled_step(self, m):
+        """The compiled one-sample step (:class:`~bondgraph.inference.ukf_numba.StepKernel`)
+        when the options' backend is numba and the kernel serves them; else
+        None (numpy's predict and update)."""
+        from bondgraph.inference.ukf import _backend_for
+        from bondgraph.inference.ukf_numba import StepKernel
+
+        if not self.batch.size:
+            raise NumericalError(f"the tracker cannot start: {self.batch.reasons[0]}")
+        kernels, _, _ = _backend_for(m, self.opts)
+        return None if kernels is None else StepKernel(kernels, self.batch, m.n_u, self.opts,
+                                                       self.wts)
 
     @classmethod
     def from_problem(cls, problem, tm: TrackingModel, *, start=None, std=None, drift=None,
@@ -713,30 +824,47 @@ class Tracker:
         from bondgraph.numerics.integrators import hold_inputs
 
         b, u, y = self.batch, np.asarray(u, float).reshape(-1), np.asarray(y, float).reshape(-1)
-        if b.t and not t > b.t[-1]:
-            raise NumericalError(f"Tracker.update: time {t!r} does not follow {b.t[-1]!r}")
-        b.t.append(float(t))
-        if self.k > 0:
-            uk, duk = hold_inputs(np.stack([self._u, u]), self.opts.hold).interval(0)
-            predict(b, self.step, uk, b.t[-1] - b.t[-2], self.wts, self.k, duk)
-        if b.size and np.isfinite(y).any():
-            update(b, self.tm.model, u, y, self.wts, self.k)
-        if not b.size:
-            raise NumericalError(f"the tracker fails: {b.reasons[0]}")
-        self._observe(b.t[-1] - b.t[-2] if self.k > 0 else 0.0)
-        self.k, self._u = self.k + 1, u
-        est, sd = self.tm.values(b.x[0], b.P[0])
-        return est, sd
+        if self._t is not None and not t > self._t:
+            raise NumericalError(f"Tracker.update: time {t!r} does not follow {self._t!r}")
+        if self._stepper is not None:
+            _, reason = self._stepper.step(b.x[0], b.P[0], self._t, t, self._u, u, y)
+            if reason is not None:
+                raise NumericalError(f"the tracker fails at t = {t:.6g} s: {reason}")
+        else:
+            b.t.append(float(t))
+            if self.k > 0:
+                uk, duk = hold_inputs(np.stack([self._u, u]), self.opts.hold).interval(0)
+                predict(b, self.step, uk, b.t[-1] - b.t[-2], self.wts, self.k, duk)
+            if b.size and np.isfinite(y).any():
+                update(b, self.tm.model, u, y, self.wts, self.k)
+            if not b.size:
+                raise NumericalError(f"the tracker fails: {b.reasons[0]}")
+        z, Pz = b.x[0][self._idx], b.P[0][self._idx, self._idx]
+        est, slope = self._transform(z)
+        self._observe(t - self._t if self.k > 0 else 0.0, Pz, slope)
+        self.k, self._u, self._t = self.k + 1, u, float(t)
+        sz = np.sqrt(np.maximum(Pz, 0.0))
+        return est, 0.5 * np.abs(self._transform(z + sz)[0] - self._transform(z - sz)[0])
 
-    def _observe(self, dt: float) -> None:
-        """The sample's information about each parameter and, with ``observe``,
-        whether it is observable (:func:`track`'s test, sample by sample)."""
-        b, idx = self.batch, self._idx
-        Pz = b.P[0][idx, idx]
-        slope = [tp.slope(b.x[0][i]) for tp, i in zip(self.tm.tracked, idx)]
-        self.information = np.array([
-            information_gain(Pz[c:c + 1], self._Pz[c], [self._q2[c] * dt], [slope[c]])[0]
-            for c in range(len(idx))])
+    def _transform(self, z):
+        """p(z) and dp/dz of every tracked parameter at once (k,)
+        (:meth:`TrackedParameter.value`, :meth:`~TrackedParameter.slope`)."""
+        lo, width, logit = self._box
+        with np.errstate(over="ignore"):
+            s = 1.0 / (1.0 + np.exp(-z))
+        return (np.where(logit, lo + width * s, z),
+                np.where(logit, width * s * (1.0 - s), 1.0))
+
+    def _observe(self, dt: float, Pz, slope) -> None:
+        """The sample's information about each parameter (k,)
+        (:func:`~bondgraph.inference.changes.information_gain`, for all
+        parameters at once) and, with ``observe``, whether each is observable
+        (:func:`track`'s test, sample by sample)."""
+        tiny = np.finfo(float).tiny
+        Pm = self._Pz + self._q2 * dt
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            info = (1.0 / np.maximum(Pz, tiny) - 1.0 / np.maximum(Pm, tiny)) / slope ** 2
+        self.information = np.where(np.isfinite(info) & (info > 0), info, 0.0)
         self._Pz = Pz
         if self.observable is not None:
             r = self.k % len(self._ring)

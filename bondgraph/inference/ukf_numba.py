@@ -1166,3 +1166,87 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
             batch.nll[p] = out_f[a]
     batch.n_reg += int(out_i[:, 2].sum())
     return compile_s
+
+
+class StepKernel:
+    """One sample of the fused kernel for one parameter set: predict from
+    the previous sample and update with the new one, every array allocated
+    once (a streaming filter's per-sample step, no per-sample allocation).
+
+    The record handed to the kernel is two samples long, the first without
+    measurements, so :func:`_filter_one` runs exactly one predict (over the
+    interval, with the kernel's input hold) and one update; the first
+    sample of a stream is a one-sample record (update only).
+
+    Parameters
+    ----------
+    kernels : bondgraph.numerics.compiled.PointKernels
+    batch : bondgraph.inference.ukf.FilterBatch
+        One active set after its start checks: its θ, process-noise
+        intensities and measurement noise are used.
+    n_u : int
+    opts : UKFOptions
+        Supported by the kernel (:func:`unsupported` is None).
+    wts : SigmaWeights
+
+    Notes
+    -----
+    The filter is that of :func:`bondgraph.inference.ukf.ukf_nll` (Wan &
+    van der Merwe 2000); this class only moves its state between calls.
+    """
+
+    def __init__(self, kernels, batch, n_u: int, opts, wts):
+        self.kern, self.compile_s = kernel()
+        n, ny = batch.x.shape[1], (batch.Rd.shape[1] if batch.Rd is not None
+                                    else batch.R.shape[1])
+        c = np.ascontiguousarray
+        self.t, self.u, self.y = np.zeros(2), np.zeros((2, n_u)), np.full((2, ny), np.nan)
+        self.recs = (Record(self.t[1:], self.u[1:], self.y[1:]), Record(self.t, self.u, self.y))
+        R = c(batch.R, dtype=float) if batch.R is not None else np.zeros((1, ny, ny))
+        Rd = c(batch.Rd, dtype=float) if batch.Rd is not None else np.zeros((1, ny))
+        Q = c(batch.Q, dtype=float) if batch.Q is not None else np.zeros((1, n, n))
+        self.sets = Sets(c(batch.th, dtype=float), np.zeros((1, n)), np.zeros((1, n, n)),
+                         c(batch.q2, dtype=float), Rd, R, Q, np.zeros(1, dtype=np.int64))
+        self.opts = (np.array([METHOD_CODES[opts.method], opts.substeps,
+                               JACOBIAN_CODES[opts.jacobian], HOLD_CODES[opts.hold],
+                               batch.R is not None, batch.Q is not None, 2], dtype=np.int64),
+                     np.array([wts.c, wts.w, wts.center_cov]))
+        self.out = Outputs(np.zeros(1), np.zeros((1, 3), dtype=np.int64))
+        self.st = (np.full((2, 1, ny), np.nan), np.full((2, 1, ny, ny), np.nan),
+                   np.full((2, 1, ny), np.nan), np.full((2, 1, ny), np.nan),
+                   np.full((2, 1, n), np.nan), np.full((2, 1, n, n), np.nan),
+                   np.zeros((2, 1)), np.full((2, 1), np.nan))
+        nf, ni = _work_size(n, ny, n_u, batch.th.shape[1])
+        self.bufs = (np.zeros((1, nf)), np.zeros((1, ni), dtype=np.int64))
+        self.fns = point_fns(kernels)
+        # the compiled entry point of the kernel's one signature: calling it
+        # skips the dispatcher's typing of the arguments (the tuple of
+        # first-class functions costs ~1 ms to type on every call)
+        self.call = next(iter(self.kern.overloads.values())).entry_point
+
+    def step(self, x, P, t_prev, t_now, u_prev, u_now, y) -> tuple[float, str | None]:
+        """Advance ``x (n,)``, ``P (n, n)`` in place to the sample
+        ``(t_now, u_now, y (n_y,))``, predicting from ``t_prev`` with the
+        inputs ``u_prev``, ``u_now`` held as the options say; ``t_prev``
+        None: the first sample (update only).
+
+        Returns
+        -------
+        (nll term [nats], failure reason or None)
+        """
+        first = t_prev is None
+        if not first:
+            self.t[0], self.u[0] = t_prev, u_prev
+        self.t[1], self.u[1], self.y[1] = t_now, u_now, y
+        self.sets.x0[0] = x
+        self.sets.P0[0] = P
+        with _first_class_quiet():
+            self.call(self.fns, self.recs[0 if first else 1], self.sets, self.opts, self.out,
+                      self.st, self.bufs)
+        k, code = int(self.out.info[0, 0]), int(self.out.info[0, 1])
+        if k >= 0:
+            return np.inf, FAIL_REASONS[code]
+        i = 0 if first else 1
+        x[:] = self.st[4][i, 0]
+        P[:] = self.st[5][i, 0]
+        return float(self.out.nll[0]), None

@@ -68,7 +68,7 @@ class Model:
         self.lower = np.array(m.PARAM_LOWER, dtype=float)
         self.upper = np.array(m.PARAM_UPPER, dtype=float)
         #: seconds of numpy UKF time spent on this model (bondgraph.numerics.compiled)
-        for fn in ("f", "h", "dfdx", "dfdtheta", "dhdx", "dhdtheta", "f_dfdx", "energy",
+        for fn in ("f", "h", "dfdx", "dfdtheta", "dhdx", "dhdtheta", "dfdu", "dhdu", "f_dfdx", "energy",
                    "power_sources", "power_dissipated", "energy_rate", "meas_std", "proc_std",
                    "fx", "hx"):
             if hasattr(m, fn):

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from bondgraph.core import plugins
 from bondgraph.core.codegen import generate_source
+from bondgraph.core.codegen_c import generate_c_source
 from bondgraph.core.codegen_numba import generate_numba_source
 from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
@@ -162,23 +163,32 @@ def render(name: str) -> str:
 
 #: sub-package of the generated package holding the numba point kernels
 NUMBA_DIR = "numba_kernels"
+#: folder of the generated package holding the C99 functions (FMU export)
+C_DIR = "c"
 
 
 def render_files(name: str) -> dict[str, str]:
     """Every file ``bondgraph generate`` writes for model ``name``, by path
-    relative to the generated package: the numpy module ``<name>.py`` and
-    its numba point kernels ``numba_kernels/<name>.py``, both from one
+    relative to the generated package: the numpy module ``<name>.py``, its
+    numba point kernels ``numba_kernels/<name>.py`` and its C99 functions
+    ``c/<name>.c`` (:mod:`bondgraph.core.codegen_c`), all from one
     derivation."""
     g = build(name)
     ss = derive(g)
     return {f"{name}.py": generate_source(ss, source=g.source, command=COMMAND),
             f"{NUMBA_DIR}/{name}.py": generate_numba_source(ss, source=g.source,
-                                                           command=COMMAND)}
+                                                           command=COMMAND),
+            f"{C_DIR}/{name}.c": generate_c_source(ss, source=g.source, command=COMMAND)}
 
 
 def numba_path(name: str, directory: Path | None = None) -> Path:
     """Path of the numba point kernels of a registered model."""
     return Path(directory or generated_dir()) / NUMBA_DIR / f"{name}.py"
+
+
+def c_path(name: str, directory: Path | None = None) -> Path:
+    """Path of the C99 functions of a registered model (``c/<name>.c``)."""
+    return Path(directory or generated_dir()) / C_DIR / f"{name}.c"
 
 
 def generate(names=None, *, check: bool = False, directory: Path | None = None,

@@ -534,8 +534,8 @@ def stiffness_report(model, result: SimResult, theta=None, *, every: int | None 
 
     At every ``every``-th sample of ``result`` the generated Jacobian is
     evaluated and its eigenvalues λ computed. Reported per sample and
-    overall: max |Re λ| (the fastest mode), the stiffness ratio
-    max |Re λ| / min |Re λ| over the decaying modes (Re λ < 0), the largest
+    overall: max abs(Re λ) (the fastest mode), the stiffness ratio
+    max abs(Re λ) / min abs(Re λ) over the decaying modes (Re λ < 0), the largest
     step for which RK4 is stable on every mode (h·λ inside RK4's stability
     region, :func:`bondgraph.numerics.integrators.rk4_stable_step`) and the RK4
     sub-steps per sample interval that stability needs,

@@ -18,12 +18,14 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-from matplotlib.ticker import FuncFormatter
 
 from bondgraph.core.atomic import OutputFolder
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.result import LoopResult
+from bondgraph.report.drawing import draw, layout
+from bondgraph.report.evidence import SHOWN, plot_evidence
+from bondgraph.report.html import graph_changes, page
 from bondgraph.report.plots import pyplot
 
 
@@ -108,6 +110,7 @@ def write(result: LoopResult, out, *, final=None, cache: dict | None = None) -> 
         _write_generated(result, out, Path(final) if final is not None else out, cache)
     pngs = _plots(result, out, cache)
     (out / "report.md").write_text(markdown(result, pngs))
+    (out / "report.html").write_text(page(result, out, pngs + _graph_plots(result, out, cache)))
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
 
 
@@ -240,11 +243,86 @@ def _plots(result: LoopResult, out: Path, cache: dict | None = None) -> list[str
     for k, ranking in enumerate(result.rankings, 1):
         if ranking:
             acc = result.steps[k - 1] if k <= len(result.steps) else None
-            key = _digest("evidence", k, [(c.label, c.score, c.failed) for c in ranking[:15]],
+            key = _digest("evidence", k, [(c.label, c.score, c.failed, c.equivalent, c.tied,
+                                           c.confirmed) for c in ranking[:SHOWN]],
                           None if acc is None else (acc.effect, acc.attached_to))
             pngs.append(_cached_png(cache, key, out / f"evidence_step{k}.png",
                                     lambda k=k, r=ranking: _plot_evidence(result, k, r, out)))
+    if result.discovery is not None:
+        dp = result.discovery
+        pngs.append(_cached_png(cache, _digest("discovery", dp.t, dp.d, dp.d_std, dp.law, dp.text),
+                                out / DISCOVERY_PNG, lambda: plot_discovery(dp, out / DISCOVERY_PNG)))
     return pngs
+
+
+#: the plot of the reconstruction against the discovered law
+DISCOVERY_PNG = "discovery.png"
+
+
+def plot_discovery(dp, path: Path) -> str:
+    """The reconstructed d̂(t) with its ±2σ band against the discovered law
+    on the port's variables (a :class:`~bondgraph.diagnose.result.DiscoveryPlot`),
+    over time and as d̂ versus the law; saved at ``path``, returns its name."""
+    plt = pyplot()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.8), gridspec_kw={"width_ratios": [2.2, 1]})
+    a1.fill_between(dp.t, dp.d - 2 * dp.d_std, dp.d + 2 * dp.d_std, color="C0", alpha=0.25,
+                    label="±2σ")
+    a1.plot(dp.t, dp.d, "C0", lw=1.0, label="reconstructed d̂")
+    a1.plot(dp.t, dp.law, "C3", lw=1.0, ls="--", label="discovered law")
+    a1.set_xlabel("time [s]")
+    a1.set_ylabel(f"{dp.port} {dp.kind} [{dp.unit}]")
+    a1.legend(loc="upper right", fontsize=8)
+    a2.plot(dp.law, dp.d, ".", ms=2, color="C0")
+    lo, hi = float(np.nanmin(dp.law)), float(np.nanmax(dp.law))
+    a2.plot([lo, hi], [lo, hi], "k-", lw=0.8)
+    a2.set_xlabel("law [%s]" % dp.unit)
+    a2.set_ylabel("d̂ [%s]" % dp.unit)
+    fig.suptitle(dp.text, fontsize=9)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _md_discovery(result: LoopResult) -> list[str]:
+    """The discovery section of ``report.md`` (empty when none ran)."""
+    dp = result.discovery
+    if dp is None:
+        return []
+    verdict = "accepted by the loop" if dp.accepted else "not accepted by the loop"
+    return ["## Discovery (an effect beyond the library)", "",
+            f"No library effect was accepted; the effort missing at `{dp.port}` was "
+            f"reconstructed ({dp.kind}, ±2σ band) and its law discovered ({verdict}):", "",
+            f"    {dp.text}", "", "Passivity and placement:", "",
+            *[f"- {line}" for line in dp.passivity.splitlines()], "",
+            f"![{DISCOVERY_PNG}]({DISCOVERY_PNG})", ""]
+
+
+def _graph_plots(result: LoopResult, out: Path, cache: dict) -> list[str]:
+    """``graph_before.png`` (the declared graph) and, once an effect is
+    accepted, ``graph_after.png`` (the augmented graph, what the effects
+    added in green), both in the augmented graph's layout; their names."""
+    before = result.declared_graph
+    after = result.final_graph if _augmented(result) else None
+    if before is None:
+        return []
+    key = _digest("graphs", pickle.dumps(before), None if after is None else pickle.dumps(after))
+    cached = cache.get(key)
+    if cached is None:
+        plt = pyplot()
+        pos = layout(after if after is not None else before)
+        drawn = [(before, "graph_before.png", (), "declared")]
+        if after is not None:
+            drawn.append((after, "graph_after.png", graph_changes(before, after),
+                          "augmented (added in green)"))
+        cached = {}
+        for graph, name, marked, what in drawn:
+            fig = draw(graph, out / name, highlight=marked, positions=pos,
+                       title=f"{graph.name}: {what}; red bar = causal stroke")
+            plt.close(fig)
+            cached[name] = (out / name).read_bytes()
+        cache[key] = cached
+    for name, data in cached.items():
+        (out / name).write_bytes(data)
+    return list(cached)
 
 
 def _augmented(result: LoopResult) -> bool:
@@ -316,25 +394,8 @@ def _plot_innovations(result: LoopResult, out: Path) -> str:
 
 
 def _plot_evidence(result: LoopResult, k: int, ranking, out: Path) -> str:
-    """The 15 best candidates of step ``k`` by evidence; the one accepted at
-    this step in green (the title says when none was)."""
-    plt = pyplot()
-    top = ranking[:15][::-1]
-    fig, ax = plt.subplots(figsize=(9, 0.32 * len(top) + 1.2))
-    vals = [max(c.score, -5) if not c.failed else 0.0 for c in top]
-    acc = result.steps[k - 1] if k <= len(result.steps) else None   # steps stop at a refusal
-    green = [acc is not None and (acc.effect, acc.attached_to) == (c.effect, c.target.name)
-             for c in top]
-    ax.barh([c.label for c in top], vals, color=["tab:green" if g else "tab:gray" for g in green])
-    ax.set_xlabel("evidence: χ² statistic − 2k (predicted AIC decrease)")
-    ax.set_xscale("symlog", linthresh=10)
-    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-    ax.tick_params(axis="y", labelsize=7)
-    note = (f"green: accepted ({acc.effect} @ {acc.attached_to})" if any(green) else
-            f"accepted: {acc.effect} @ {acc.attached_to}, not among these" if acc is not None
-            else "none accepted")
-    ax.set_title(f"Step {k}: candidate effects ({note})", fontsize=10)
-    return _save(fig, out / f"evidence_step{k}.png")
+    """The evidence plot of step ``k`` (:func:`bondgraph.report.evidence.plot_evidence`)."""
+    return plot_evidence(result, k, ranking, out / f"evidence_step{k}.png")
 
 
 def markdown(result: LoopResult, pngs: list[str]) -> str:
@@ -348,6 +409,7 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
     L += _md_errors(result)
     L += _md_accepted(result)
     L.append("")
+    L += _md_discovery(result)
     L.append("## Evidence (ranking of every step)")
     L.append("")
     for k, ranking in enumerate(result.rankings, 1):
@@ -356,7 +418,8 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
     L += _md_residuals(result)
     L.append("")
     for p in pngs:
-        L.append(f"![{p}]({p})")
+        if p != DISCOVERY_PNG:
+            L.append(f"![{p}]({p})")
     L.append("")
     if result.rejected:
         L.append("## Rejected candidates")

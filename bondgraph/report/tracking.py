@@ -50,6 +50,7 @@ def plot_track(result, out_dir, *, truth: Mapping[str, float] | None = None) -> 
             if ch.parameter == name:
                 ax.axvline(ch.time, color="r", lw=1.0)
                 ax.axvline(ch.alarm_time, color="r", lw=0.8, ls=":")
+        ax.set_ylim(*_limits(result, i, truth.get(name) if truth else None))
         ax.set_xlabel("t [s]")
         unit = result.units[i]
         ax.set_ylabel(f"{name} [{unit}]" if unit else name)
@@ -61,3 +62,26 @@ def plot_track(result, out_dir, *, truth: Mapping[str, float] | None = None) -> 
         plt.close(fig)
         out.append(path)
     return out
+
+
+def _limits(result, i: int, truth) -> tuple[float, float]:
+    """The y range of parameter ``i``: its ±2σ band where it is observable
+    (the whole record if it never is; 2nd to 98th percentile) and the
+    truth, padded by 10 %; so that the start's and a restart's wide prior
+    do not flatten a 1 % change."""
+    est, sd = result.estimate[:, i], result.std[:, i]
+    obs = getattr(result, "observable", None)
+    keep = obs[:, i] if obs is not None and obs[:, i].any() else np.ones(est.size, bool)
+    low, high = est[keep] - 2 * sd[keep], est[keep] + 2 * sd[keep]
+    low, high = low[np.isfinite(low)], high[np.isfinite(high)]
+    if low.size == 0 or high.size == 0:
+        return -1.0, 1.0
+    # the 2nd and 98th percentiles: a restart's wide prior lasts a few samples
+    lo, hi = float(np.percentile(low, 2)), float(np.percentile(high, 98))
+    if truth is not None:
+        tv = np.broadcast_to(np.asarray(truth, float), est.shape)[keep]
+        tv = tv[np.isfinite(tv)]
+        if tv.size:
+            lo, hi = min(lo, float(tv.min())), max(hi, float(tv.max()))
+    pad = 0.1 * (hi - lo) if hi > lo else 0.05 * max(abs(hi), 1e-12)
+    return lo - pad, hi + pad

@@ -157,7 +157,7 @@ class LocalOptions:
     rel_crb_max, corr_max : float
         Selection thresholds of the recommendation (:func:`recommend`): the
         largest relative Cramér-Rao bound of a recommended parameter, the
-        largest |correlation| within the recommended set.
+        largest abs(correlation) within the recommended set.
     sensitivities : bool
         Also integrate the forward sensitivity equations (output-error
         information, sensitivity plots;

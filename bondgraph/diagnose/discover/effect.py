@@ -1,16 +1,39 @@
 """A discovered law as a loop effect, and the loop with discovery.
 
 :class:`DiscoveredEffect` attaches a :class:`~bondgraph.diagnose.discover.law.DiscoveredLaw`
-at its 1-junction as a modulated effort source (at its 0-junction as a
-modulated flow source) whose value is the law ``Σ c_k b_k`` of the
-junction's flow (effort), the bonded storage states and the inputs; each coefficient ``c_k`` is a parameter (``discovered.<port>.c<k>``,
-unit: the port's effort over the basis' unit, so the graph's unit check
-holds). It is a structural effect of the loop
-(:mod:`bondgraph.diagnose.scoring`): scored by the likelihood ratio at the
-discovered coefficients (× 0.7, 1, 1.4), refitted with every declared
-parameter by maximum likelihood, confirmed and accepted like any library
-effect (likelihood-ratio test, held-out error). Each coefficient keeps the
-sign the passivity check accepted or vanishes (its box is [0, 10 c]).
+``d = Σ c_k b_k`` (an effort entering its 1-junction, a flow entering its
+0-junction) as bond-graph elements, part by part
+(:meth:`DiscoveredEffect.placement`, the parts of
+:mod:`bondgraph.diagnose.discover.passivity`):
+
+* the **R part** (terms of the junction's own variable z, alone or times a
+  bonded storage state) becomes one R element ``<effect>.<port>.R`` on the
+  junction with the law e_R = −d_R(f_R) (1-junction) or f_R = −d_R(e_R)
+  (0-junction): its power e_R·f_R = −d_R·z is what a resistor must keep
+  >= 0;
+* each **storage part** (terms of one bonded storage state s: a C's
+  displacement at a 1-junction, an I's momentum at a 0-junction) changes
+  that element's law into Ψ(s) − d_S(s) (its energy by
+  :func:`antiderivative`);
+* the rest (a constant, inputs) stays a modulated effort (flow) source
+  ``<effect>.<port>``, named source-like in the placement.
+
+So the loop's own admissibility check
+(:func:`bondgraph.numerics.admissible.check_admissible`: R laws dissipate,
+alone or in parallel with the declared ones on the junction; C and I laws
+keep a non-negative stiffness) judges the law at every refitted value: a
+refit that makes the R part produce power or the storage non-convex is
+refused with the element named (the equations are those of a single
+modulated source, the attachment of issue 29's first version).
+
+Each coefficient ``c_k`` is a parameter (``discovered.<port>.c<k>``, unit:
+the port's effort over the basis' unit, so the graph's unit check holds).
+It is a structural effect of the loop (:mod:`bondgraph.diagnose.scoring`):
+scored by the likelihood ratio at the discovered coefficients (× 0.7, 1,
+1.4), refitted with every declared parameter by maximum likelihood,
+confirmed and accepted like any library effect (likelihood-ratio test,
+held-out error, admissibility). Each coefficient keeps the sign the
+passivity check accepted or vanishes (its box is [0, 10 c]).
 
 :func:`discover_effect` runs reconstruction, discovery and the passivity
 check at one port; :func:`loop_with_discovery` runs the loop, and when it
@@ -21,13 +44,13 @@ effect and the loop runs again with it beside the library.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import sympy as sp
 
 from bondgraph.core import units
-from bondgraph.core.elements import One, Zero
+from bondgraph.core.elements import C, I, One, Zero
 from bondgraph.diagnose.discover.law import DiscoveredLaw, DiscoverOptions, discover_law
 from bondgraph.diagnose.discover.passivity import PassivityReport, make_passive
 from bondgraph.diagnose.discover.reconstruct import (
@@ -54,8 +77,9 @@ def _sign_box(c: float) -> tuple[float, float]:
 
 
 class DiscoveredEffect(_Structural):
-    """A discovered law at its junction (module docstring): an effort
-    source at a 1-junction, a flow source at a 0-junction.
+    """A discovered law at its junction (module docstring): its R part an R
+    element on the junction, its storage part in the bonded C (I) law, the
+    rest a modulated effort (flow) source.
 
     Parameters
     ----------
@@ -147,6 +171,46 @@ class DiscoveredEffect(_Structural):
                                  f"has no variable '{name}'")
         return [tm.basis.xreplace(subs) for tm in self.law.terms]
 
+    def placement(self, graph, target: Target | None = None) -> list:
+        """Where each term goes in ``graph`` (module docstring): the R part
+        (the junction's own variable, alone or times a bonded storage state)
+        as one R element, each storage part into the law of its C (at a
+        1-junction) or I (at a 0-junction), the rest as a modulated source.
+
+        Returns
+        -------
+        list of Placement
+            One per part that has terms, in the order R, storage, source.
+        """
+        tgt = target or Target("junction", self.law.port)
+        j = graph.element(self.law.port)
+        own = f"{self.law.port}.f" if self.law.kind == "effort" else f"{self.law.port}.e"
+        store = C if self.law.kind == "effort" else I
+        bonded = {}
+        for p in j.ports:
+            el = p.bond.other(p).element if p.bond is not None else None
+            if isinstance(el, store) and getattr(el, "state", None) is not None:
+                bonded[el.state.name] = el.name
+        parts: dict = {}
+        for k, tm in enumerate(self.law.terms):
+            names = {str(s) for s in tm.basis.free_symbols}
+            if names and own in names and not names - {own} - set(bonded):
+                key = ("R", f"{self.name}.{tgt.tag}.R",
+                       "dissipative part: an R law of the junction's "
+                       + ("flow" if self.law.kind == "effort" else "effort"))
+            elif len(names) == 1 and next(iter(names)) in bonded:
+                el = bonded[next(iter(names))]
+                key = ("storage", el, f"storage part: added to the law of {el}")
+            else:
+                why = ("a constant or an input" if not names - set(bonded) - {own}
+                       or names & set(self.law.inputs) else f"reads {sorted(names)}")
+                key = ("source", f"{self.name}.{tgt.tag}",
+                       f"source-like ({why}): a modulated source, not checked")
+            parts.setdefault(key, []).append(k)
+        order = {"R": 0, "storage": 1, "source": 2}
+        return [Placement(part, el, tuple(ks), why)
+                for (part, el, why), ks in sorted(parts.items(), key=lambda kv: order[kv[0][0]])]
+
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
         j = graph.element(target.name)
@@ -156,10 +220,93 @@ class DiscoveredEffect(_Structural):
             P[spc.name] = _new_param(graph, self.pname(target, spc.name),
                                      float(values.get(spc.name, tm.coef)), spc.unit,
                                      boxes[spc.name], f"{spc.description} at {target.name}")
-        value = sp.Add(*(P[f"c{k}"] * b for k, b in enumerate(self.bases(graph))))
-        src = graph.MSe if self.law.kind == "effort" else graph.MSf
-        graph.connect(src(f"{self.name}.{target.tag}", value), j)
+        bases = self.bases(graph)
+
+        def part(ks):
+            return sp.Add(*(P[f"c{k}"] * bases[k] for k in ks))
+
+        for pl in self.placement(graph, target):
+            if pl.part == "R":
+                _attach_r(graph, j, pl.element, part(pl.terms), self.law.kind)
+            elif pl.part == "storage":
+                el = graph.element(pl.element)
+                d = part(pl.terms)
+                sign = el.port.bond.sign_at(el)
+                el.law = el.law - sign * d
+                if el.energy is not None:
+                    el.energy = el.energy - sign * sp.Add(*(
+                        P[f"c{k}"] * antiderivative(bases[k], el.state) for k in pl.terms))
+            else:
+                src = graph.MSe if self.law.kind == "effort" else graph.MSf
+                graph.connect(src(pl.element, part(pl.terms)), j)
         return P
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where a part of a discovered law is attached
+    (:meth:`DiscoveredEffect.placement`).
+
+    Attributes
+    ----------
+    part : {"R", "storage", "source"}
+    element : str
+        The element that carries it: the new R element, the bonded C or I
+        whose law it changes, or the new modulated source.
+    terms : tuple of int
+        Indices of the law's terms.
+    why : str
+        Readable reason of the placement.
+    """
+
+    part: str
+    element: str
+    terms: tuple
+    why: str
+
+
+def _attach_r(graph, j, name: str, d, kind: str) -> None:
+    """An R element ``name`` on junction ``j`` (bond from the junction to
+    it) whose law takes ``d`` (the effort, resp. flow, the law adds to the
+    junction) out of it: e_R = −d(f_R) at a 1-junction, f_R = −d(e_R) at a
+    0-junction, so that its power e_R·f_R = −d·z is what the passivity
+    check requires to be >= 0."""
+    if kind == "effort":
+        r = graph.R(name, effort=lambda f: -d.xreplace({j.f: f}))
+    else:
+        r = graph.R(name, flow=lambda e: -d.xreplace({j.e: e}))
+    graph.connect(j, r)
+
+
+def antiderivative(basis, s):
+    """∫₀ˢ basis ds' of a term of one storage state ``s`` (its energy), in
+    closed form for the dictionary's shapes
+    (:func:`bondgraph.diagnose.discover.law.dictionary`): polynomials,
+    |s|·s -> |s|·s²/3, tanh(a·s) -> log(cosh(a·s))/a,
+    s/(1 + a·|s|) -> |s|/a − log(1 + a·|s|)/a² (a > 0); otherwise sympy's
+    ``integrate``.
+
+    Raises
+    ------
+    GraphError
+        No closed form (sympy returns an unevaluated integral).
+    """
+    a = sp.Wild("a", exclude=[s])
+    if basis.is_polynomial(s):
+        return sp.integrate(basis, (s, 0, s))
+    if sp.simplify(basis - sp.Abs(s) * s) == 0:
+        return sp.Abs(s) * s ** 2 / 3
+    m = basis.match(sp.tanh(a * s))
+    if m and m[a] != 0:
+        return sp.log(sp.cosh(m[a] * s)) / m[a]
+    m = basis.match(s / (1 + a * sp.Abs(s)))
+    if m and m[a].is_positive:
+        return sp.Abs(s) / m[a] - sp.log(1 + m[a] * sp.Abs(s)) / m[a] ** 2
+    x = sp.Dummy("x", real=True)
+    out = sp.integrate(basis.xreplace({s: x}), (x, 0, s))
+    if out.has(sp.Integral):
+        raise GraphError(f"discovered law: no closed-form energy of the term {basis} in {s}")
+    return out
 
 
 def coefficient_unit(port_unit: str, basis_unit: str) -> str:
@@ -188,6 +335,8 @@ class Discovery:
         Likelihood gain of the reconstruction: the UKF's NLL at the grid's
         smallest intensity minus the NLL at the chosen one (nats; 0 when the
         intensity was given).
+    placement : list of Placement
+        Where the effect's parts go in the declared graph.
     """
 
     reconstruction: Reconstruction
@@ -195,6 +344,7 @@ class Discovery:
     passivity: PassivityReport
     effect: DiscoveredEffect | None
     gain: float
+    placement: list = field(default_factory=list)
 
     def summary(self) -> str:
         """Readable lines: the law, the passivity verdict, the gain."""
@@ -244,7 +394,8 @@ def discover_effect(graph, record, port: str, *, params=None,
     kept = rep.law
     eff = DiscoveredEffect(kept, name) if kept.terms else None
     gain = float(rec.nll_grid[-1] - np.min(rec.nll_grid)) if rec.nll_grid.size else 0.0
-    return Discovery(rec, law, rep, eff, gain)
+    placed = eff.placement(graph) if eff is not None else []
+    return Discovery(rec, law, rep, eff, gain, placed)
 
 
 def coefficient_std(graph, record, effect: DiscoveredEffect, estimates: dict, *,
@@ -338,8 +489,9 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
     if best is None:
         return first, None
     effects = tuple(settings.effects) + (best.effect,)
-    return run_loop(graph, record, replace(settings, effects=effects), log=log,
-                    progress=False), best
+    res = run_loop(graph, record, replace(settings, effects=effects), log=log, progress=False)
+    res.discovery = discovery_plot(best, res)
+    return res, best
 
 
 def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
@@ -391,6 +543,42 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
     best = max(found, key=lambda d: d.gain)
     say(best.summary())
     return best
+
+
+def discovery_plot(disc: Discovery, result=None):
+    """What the report shows of ``disc`` (:class:`~bondgraph.diagnose.result.DiscoveryPlot`):
+    d̂(t) with its std and the kept law on the port's variables, at the
+    coefficients the loop's ``result`` refitted when it accepted the law
+    (with their Cramér-Rao std), else as discovered.
+
+    Parameters
+    ----------
+    disc : Discovery
+    result : LoopResult, optional
+        The loop run with the discovered effect.
+
+    Returns
+    -------
+    DiscoveryPlot
+    """
+    from bondgraph.diagnose.result import DiscoveryPlot
+
+    eff, rec, law = disc.effect, disc.reconstruction, disc.passivity.law
+    step = next((s for s in (result.steps if result is not None else [])
+                 if eff is not None and s.effect == eff.name), None)
+    values = {n: p["estimate"] for n, p in step.parameters.items()} if step else {}
+    std = {n: p.get("std") for n, p in step.parameters.items()} if step else {}
+    std = {n: v for n, v in std.items() if v is not None}
+    tgt = Target("junction", law.port)
+    terms = [replace(tm, coef=float(values.get(eff.pname(tgt, f"c{k}"), tm.coef)))
+             for k, tm in enumerate(law.terms)] if eff is not None else []
+    refit = replace(law, terms=terms)
+    text = eff.readable(values, std) if eff is not None else law.readable()
+    placed = [f"{pl.part}: {pl.element} ({pl.why})" for pl in disc.placement]
+    return DiscoveryPlot(law.port, law.kind, law.unit, np.asarray(rec.t, float),
+                         np.asarray(rec.d, float), np.asarray(rec.d_std, float),
+                         np.asarray(refit.evaluate(rec.variables), float), text,
+                         "\n".join([disc.passivity.summary()] + placed), step is not None)
 
 
 def _last_resort(settings, effect_name: str) -> bool:

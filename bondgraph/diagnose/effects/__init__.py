@@ -22,7 +22,8 @@ Each :class:`Effect` knows
   are scored by a likelihood-ratio fit over a grid.
 
 The families live in submodules: :mod:`~.friction` (friction laws, offset,
-disturbance, Dahl hysteresis), :mod:`~.sources` (gain, offset, saturation,
+disturbance, Dahl hysteresis), :mod:`~.hysteresis` (the Bouc-Wen element),
+:mod:`~.sources` (gain, offset, saturation,
 dead zone, rate limit, lag, input delay, cold start), :mod:`~.sensors`, :mod:`~.storage`
 (end stops, capacity limit, backlash, cubic stiffness), :mod:`~.laws`
 (R-law alternatives), :mod:`~.coupling` (slip, compliance), :mod:`~.probe`
@@ -65,6 +66,7 @@ from bondgraph.diagnose.effects.friction import (
     Stribeck,
     Viscous,
 )
+from bondgraph.diagnose.effects.hysteresis import BoucWen, bouc_wen_rate
 from bondgraph.diagnose.effects.laws import RCubic, RQuadratic, RSquareRoot, add_to_r_law
 from bondgraph.diagnose.effects.library import (
     BY_NAME,
@@ -104,7 +106,7 @@ from bondgraph.diagnose.effects.storage import (
 
 __all__ = [
     "ADDED_BY", "ActuatorDeadZone", "ActuatorGain", "ActuatorSaturation", "AsymmetricFriction",
-    "BY_NAME", "Backlash", "CapacityLimit", "ColdStart", "Compliance", "ConstantEffort", "Coulomb",
+    "BY_NAME", "Backlash", "BoucWen", "CapacityLimit", "ColdStart", "Compliance", "ConstantEffort", "Coulomb",
     "CubicStiffness", "DEFAULT_EFFECTS", "DahlFriction", "Disturbance", "Effect", "EffectParam",
     "EndStop", "InputDelay", "OPTIONAL_EFFECTS", "ProbeColumn", "QuadraticDrag", "RCubic", "RQuadratic",
     "RSquareRoot", "Scales", "SensorGain", "SensorLowPass", "SensorOffset", "SensorPolynomial2",

@@ -132,10 +132,17 @@ class Backlash(_Structural):
 
 class CapacityLimit(_Structural):
     """A storage that cannot hold more than q_max: above it the excess
-    leaves through an overflow law Q = (w/τ)·softplus((q − q_max)/w), which
-    drains the excess within the time constant τ (one sample, fixed) and is
+    leaves through an overflow law
+    Q = (w/τ)·[softplus((q − q_max)/w) − softplus(−q_max/w)], which drains
+    the excess within the time constant τ (one sample, fixed) and is
     negligible a few widths w (2 % of the largest stored quantity) below the
-    limit: a tank's overflow weir, a clamp diode across a capacitor.
+    limit: a tank's overflow weir, a clamp diode across a capacitor. The
+    second term makes the flow zero at an empty storage (q = 0) and of q's
+    sign below it, so that the lost overflow dissipates (e·Q ≥ 0 for a
+    storage whose effort has q's sign) wherever the fit takes the state:
+    without it the softplus tail (w/τ)·e^(−q_max/w) keeps draining an empty
+    tank below zero, a source of power the admissibility check refuses
+    (a refit whose w was 15 % of q_max: 2e-6 m³/s out of a tank at −339 Pa).
 
     The overflow is an R element with that flow law on a 0-junction spliced
     into the C's bond (so it sees the C's effort): its power e·Q is lost.
@@ -193,7 +200,7 @@ class CapacityLimit(_Structural):
                                      (-1e15, 1e15) if spc.name == "qmax" else (1e-15, 1e15),
                                      f"{spc.description} of {target.name}")
         w, tau = P["w"], P["tau"]
-        overflow = w / tau * softplus((el.q - P["qmax"]) / w)
+        overflow = w / tau * (softplus((el.q - P["qmax"]) / w) - softplus(-P["qmax"] / w))
         z = split_bond(graph, el.port.bond, "0", f"{self.name}.{target.tag}.j")
         r = graph.R(f"{self.name}.{target.tag}", flow=lambda e: overflow)
         dest = self.routes.get(target.name)

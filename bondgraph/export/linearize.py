@@ -1,0 +1,267 @@
+"""The linearisation of a model at an operating point: A, B, C, D.
+
+A = ∂f/∂x, B = ∂f/∂u, C = ∂h/∂x, D = ∂h/∂u at (x, u, θ), evaluated by
+generated code: the model is derived once and its numpy module generated
+in memory with ``dfdx``, ``dhdx`` (the committed generated modules'
+functions) and ``dfdu``, ``dhdu`` (:data:`bondgraph.core.codegen.
+OPTIONAL_FUNCTIONS`, generated on request only, so that the committed
+modules stay as they are), all from the same sympy expressions. States not
+given are found as an equilibrium f(x, u, θ) = 0 for the given inputs
+(``scipy.optimize.root`` with the generated Jacobian).
+
+The small-signal model about an equilibrium (x*, u*) is
+dδx/dt = A δx + B δu, δy = C δx + D δu (Khalil, *Nonlinear Systems*, 3rd
+ed., 2002, section 2.3; Franklin, Powell and Emami-Naeini, *Feedback
+Control of Dynamic Systems*, section 9.2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+from scipy.optimize import root
+
+from bondgraph.core.graph import BondGraph
+from bondgraph.errors import ExportError
+from bondgraph.export.params import model_graph
+from bondgraph.numerics.model import Model
+
+#: the generated functions a linearisation evaluates
+LINEAR_FUNCTIONS = ("f", "h", "dfdx", "dhdx", "dfdu", "dhdu")
+
+
+@dataclass(frozen=True)
+class Linearization:
+    """A, B, C, D of a model at an operating point.
+
+    Attributes
+    ----------
+    model : str
+    A : ndarray (n_x, n_x)
+        ∂f/∂x [state units / s per state unit].
+    B : ndarray (n_x, n_u)
+        ∂f/∂u.
+    C : ndarray (n_y, n_x)
+        ∂h/∂x.
+    D : ndarray (n_y, n_u)
+        ∂h/∂u.
+    states, inputs, outputs : tuple of str
+    x, u, theta : ndarray
+        The operating point (model units) and the parameters.
+    y : ndarray (n_y,)
+        The outputs there.
+    equilibrium : bool
+        Whether the states were solved from f(x, u, θ) = 0.
+    residual : float
+        max |f(x, u, θ)| at the point (0 up to round-off at an equilibrium).
+    """
+
+    model: str
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    states: tuple
+    inputs: tuple
+    outputs: tuple
+    x: np.ndarray
+    u: np.ndarray
+    theta: np.ndarray
+    y: np.ndarray
+    equilibrium: bool
+    residual: float
+
+    def poles(self) -> np.ndarray:
+        """Eigenvalues of A [1/s], shape (n_x,), sorted by real part."""
+        ev = np.linalg.eigvals(self.A) if self.A.size else np.zeros(0, complex)
+        return ev[np.lexsort((ev.imag, ev.real))]
+
+    def freqresp(self, w) -> np.ndarray:
+        """Frequency response G(jω) = C (jω I - A)⁻¹ B + D.
+
+        Parameters
+        ----------
+        w : array (n_w,)
+            Angular frequencies [rad/s].
+
+        Returns
+        -------
+        ndarray (n_w, n_y, n_u), complex
+        """
+        w = np.atleast_1d(np.asarray(w, dtype=float))
+        eye = np.eye(self.A.shape[0])
+        out = np.empty((w.size, self.C.shape[0], self.B.shape[1]), complex)
+        for k, wk in enumerate(w):
+            out[k] = self.C @ np.linalg.solve(1j * wk * eye - self.A, self.B) + self.D
+        return out
+
+    def to_control(self):
+        """The linearisation as a ``control.StateSpace`` (python-control),
+        with the state, input and output names.
+
+        Raises
+        ------
+        ExportError
+            python-control is not installed (``pip install 'bondgraph-toolkit[control]'``).
+        """
+        try:
+            import control
+        except ImportError:
+            raise ExportError("python-control is not installed",
+                              hint="pip install 'bondgraph-toolkit[control]' (or control)") from None
+        return control.ss(self.A, self.B, self.C, self.D, states=list(self.states),
+                          inputs=list(self.inputs), outputs=list(self.outputs),
+                          name=self.model)
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``.npz``: A, B, C, D, states, inputs, outputs, x, u, theta,
+        y, equilibrium, residual, model. Returns the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "wb") as fh:
+            np.savez(fh, A=self.A, B=self.B, C=self.C, D=self.D,
+                     states=np.array(self.states, dtype=str),
+                     inputs=np.array(self.inputs, dtype=str),
+                     outputs=np.array(self.outputs, dtype=str), x=self.x, u=self.u,
+                     theta=self.theta, y=self.y, equilibrium=self.equilibrium,
+                     residual=self.residual, model=self.model)
+        return path
+
+
+def linear_model(model: str | BondGraph, params: Mapping[str, float] | None = None) -> Model:
+    """The model with :data:`LINEAR_FUNCTIONS` generated in memory from its graph
+    (``params`` as defaults; see :func:`bondgraph.export.params.model_graph`)."""
+    return Model.from_graph(model_graph(model, params), functions=LINEAR_FUNCTIONS)
+
+
+def _split_point(m: Model, at: Mapping[str, float]) -> tuple[dict, dict]:
+    """``at`` as (states, inputs) by name.
+
+    Raises
+    ------
+    ExportError
+        A name that is neither a state nor an input, or a non-finite value.
+    """
+    xs, us = {}, {}
+    for name, value in at.items():
+        v = float(value)
+        if not np.isfinite(v):
+            raise ExportError(f"operating point: {name} = {value!r} is not finite")
+        if name in m.states:
+            xs[name] = v
+        elif name in m.inputs:
+            us[name] = v
+        else:
+            raise ExportError(f"operating point: '{name}' is neither a state nor an input of "
+                              f"model '{m.name}' (states: {', '.join(m.states)}; inputs: "
+                              f"{', '.join(m.inputs) or 'none'})")
+    return xs, us
+
+
+def equilibrium(m: Model, u: np.ndarray, theta: np.ndarray, guess: np.ndarray,
+                tol: float = 1e-10) -> np.ndarray:
+    """States x with f(x, u, θ) = 0 (``scipy.optimize.root``, Powell's hybrid
+    method with the generated Jacobian, then Levenberg-Marquardt).
+
+    Parameters
+    ----------
+    m : Model
+    u : ndarray (n_u,)
+    theta : ndarray (n_theta,)
+    guess : ndarray (n_x,)
+        Start of the search.
+    tol : float
+        Accepted max |f| relative to the scale of the derivatives at the
+        guess (and 1).
+
+    Returns
+    -------
+    ndarray (n_x,)
+
+    Raises
+    ------
+    ExportError
+        No root found (the largest remaining derivative is named).
+    """
+    def fun(x):
+        return m.f(x[None, :], u[None, :], theta[None, :])[0]
+
+    def jac(x):
+        return m.dfdx(x[None, :], u[None, :], theta[None, :])[0]
+
+    scale = 1.0 + float(np.max(np.abs(fun(guess)))) if guess.size else 1.0
+    best = guess
+    for method in ("hybr", "lm"):
+        with np.errstate(all="ignore"):
+            sol = root(fun, guess, jac=jac, method=method, tol=1e-14)
+        r = fun(sol.x)
+        if np.all(np.isfinite(r)) and np.max(np.abs(r), initial=0.0) <= tol * scale:
+            return sol.x
+        best = sol.x if np.all(np.isfinite(r)) else best
+    r = fun(best)
+    j = int(np.nanargmax(np.abs(r))) if r.size else 0
+    raise ExportError(f"no equilibrium of model '{m.name}' found for the given inputs: "
+                      f"d{m.states[j]}/dt stays {r[j]:.3g} (scipy.optimize.root)",
+                      hint="give every state in --at (an operating point need not be an "
+                           "equilibrium), or inputs that admit an equilibrium")
+
+
+def linearize(model: str | BondGraph | Model, at: Mapping[str, float] | None = None, *,
+              params: Mapping[str, float] | None = None) -> Linearization:
+    """A, B, C, D of a model at an operating point, from its generated
+    Jacobians.
+
+    Parameters
+    ----------
+    model : str, BondGraph or Model
+        Registered name, ``module:function``, ``path/to/file.py:function``,
+        a graph, or a Model made by :func:`linear_model`.
+    at : mapping, optional
+        ``name -> value`` of states and inputs (model units). Inputs not
+        given take their defaults. When every state is given, that is the
+        point; otherwise the states are an equilibrium f(x, u, θ) = 0 for
+        the inputs (given states start the search, the others X0).
+    params : mapping, optional
+        Parameter values (e.g. :func:`bondgraph.export.params.read_params`);
+        default the model's defaults.
+
+    Returns
+    -------
+    Linearization
+
+    Raises
+    ------
+    ExportError
+        Unknown names in ``at`` or ``params``, no equilibrium found, or
+        non-finite Jacobians at the point.
+    ModelError
+        Unknown model reference.
+    """
+    m = model if isinstance(model, Model) and hasattr(model, "dfdu") else \
+        linear_model(model, params)
+    xs, us = _split_point(m, dict(at or {}))
+    theta = m.theta(params) if isinstance(model, Model) and params else m.theta0.copy()
+    u = m.input(us)
+    x = m.state(xs)
+    solved = len(xs) < m.n_x
+    if solved:
+        x = equilibrium(m, u, theta, x)
+    args = (x[None, :], u[None, :], theta[None, :])
+    with np.errstate(all="ignore"):
+        mats = {name: np.asarray(getattr(m, name)(*args)[0], dtype=float).reshape(shape)
+                for name, shape in (("dfdx", (m.n_x, m.n_x)), ("dfdu", (m.n_x, m.n_u)),
+                                    ("dhdx", (m.n_y, m.n_x)), ("dhdu", (m.n_y, m.n_u)))}
+        f0 = np.asarray(m.f(*args)[0], dtype=float)
+        y0 = np.asarray(m.h(*args)[0], dtype=float)
+    for name, M in mats.items():
+        if not np.all(np.isfinite(M)):
+            raise ExportError(f"the Jacobian {name} of model '{m.name}' is not finite at the "
+                              f"operating point (x = {x.tolist()}, u = {u.tolist()})")
+    return Linearization(model=m.name, A=mats["dfdx"], B=mats["dfdu"], C=mats["dhdx"],
+                         D=mats["dhdu"], states=tuple(m.states), inputs=tuple(m.inputs),
+                         outputs=tuple(m.outputs), x=x, u=u, theta=theta, y=y0,
+                         equilibrium=solved,
+                         residual=float(np.max(np.abs(f0), initial=0.0)))

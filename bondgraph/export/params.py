@@ -1,0 +1,107 @@
+"""The graph to export or linearise, with estimated parameters as defaults.
+
+A model reference resolves as in every command (a registered name,
+``module:function`` or ``path/to/file.py:function``, e.g. the loop's
+``augmented_model.py:build``); estimated values come from the JSON that
+``bondgraph estimate`` writes (``result.json``: ``params``, ``estimates``,
+``fixed``) or from the loop's ``report.json`` (``final_fit.estimates``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Mapping
+
+from bondgraph.core.graph import BondGraph
+from bondgraph.core.jsonsafe import from_jsonable
+from bondgraph.errors import ExportError
+from bondgraph.numerics import registry
+
+
+def read_params(path: str | Path) -> dict[str, float]:
+    """Parameter values from an estimation result or a loop report.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``result.json`` of ``bondgraph estimate`` (the estimates by name and
+        the fixed values) or ``report.json`` of ``bondgraph loop`` (the final
+        fit's estimates).
+
+    Returns
+    -------
+    dict
+        ``name -> value`` in model units.
+
+    Raises
+    ------
+    ExportError
+        The file is missing, not JSON, of neither format, or holds a value
+        that is not a finite number (the parameter is named).
+    """
+    path = Path(path)
+    try:
+        doc = from_jsonable(json.loads(path.read_text()))
+    except FileNotFoundError:
+        raise ExportError(f"parameter file {path} does not exist") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ExportError(f"parameter file {path} is not JSON: {exc}") from None
+    if isinstance(doc, dict) and isinstance(doc.get("final_fit"), dict) \
+            and isinstance(doc["final_fit"].get("estimates"), dict):
+        values = dict(doc["final_fit"]["estimates"])
+    elif isinstance(doc, dict) and isinstance(doc.get("params"), list) \
+            and isinstance(doc.get("estimates"), list):
+        if len(doc["params"]) != len(doc["estimates"]):
+            raise ExportError(f"{path}: {len(doc['params'])} params but "
+                              f"{len(doc['estimates'])} estimates")
+        values = {**dict(doc.get("fixed") or {}), **dict(zip(doc["params"], doc["estimates"]))}
+    else:
+        raise ExportError(f"{path} is neither a `bondgraph estimate` result.json (params, "
+                          f"estimates) nor a `bondgraph loop` report.json (final_fit.estimates)")
+    out = {}
+    for name, value in values.items():
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            v = math.nan
+        if not math.isfinite(v):
+            raise ExportError(f"{path}: parameter '{name}' is {value!r}, not a finite number")
+        out[str(name)] = v
+    return out
+
+
+def model_graph(spec: str | BondGraph, params: Mapping[str, float] | None = None) -> BondGraph:
+    """The graph named by ``spec`` with ``params`` as its parameter defaults.
+
+    Parameters
+    ----------
+    spec : str or BondGraph
+        Registered name, ``module:function`` or ``path/to/file.py:function``
+        (:func:`bondgraph.numerics.registry.graph_builder`), or a graph (copied).
+    params : mapping, optional
+        ``name -> value`` (model units), e.g. from :func:`read_params`.
+
+    Returns
+    -------
+    BondGraph
+
+    Raises
+    ------
+    ModelError
+        Unknown model reference.
+    ExportError
+        A parameter the model does not have (the unknown and the known names).
+    """
+    g = spec.copy(spec.name) if isinstance(spec, BondGraph) else registry.graph_builder(spec)()
+    params = dict(params or {})
+    unknown = sorted(set(params) - set(g.params))
+    if unknown:
+        raise ExportError(f"model '{g.name}' has no parameter(s) {', '.join(unknown)} "
+                          f"(its parameters: {', '.join(g.params)})",
+                          hint="give the parameters of this model; a loop's report.json "
+                               "goes with its augmented_model.py:build")
+    for name, value in params.items():
+        g.params[name].default = float(value)
+    return g

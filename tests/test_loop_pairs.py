@@ -1,0 +1,146 @@
+"""Interacting effects accepted as a pair (issue 26): two tanks in parallel
+overflow into a measured collector. The estimation record runs the two
+pumps in lockstep (Q2 = 0.9 Q1: both overflow together), the held-out record
+runs them apart (one high, the other low, in turn), so that a single
+overflow fitted on the first absorbs both and misfits the second.
+
+Truth: overflow of tank 1 at 0.6 and of tank 2 at 0.6 of their peak volume
+in the declared model's simulation of the estimation record; records by
+BDF (rtol 1e-9) of the truth graph plus N(0, 10 Pa) noise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from bondgraph import BondGraph
+from bondgraph.data.records import Experiment
+from bondgraph.diagnose.effects import Target, apply_effect
+from bondgraph.diagnose.effects.storage import CapacityLimit
+from bondgraph.diagnose.loop import LoopSettings, run_loop
+from bondgraph.diagnose.settings import SearchOptions
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
+
+TRUTH = {"K1": 3e-6, "K2": 2.5e-6, "K3": 4e-6}
+NOISE = 10.0          # Pa
+LEVEL = 0.6           # each overflow at this fraction of its tank's peak volume
+N, DT, SEG = 1501, 2.0, 500.0
+
+
+def parallel_tanks() -> BondGraph:
+    """Two pumped tanks draining through orifices into a collector tank
+    (the collector's pressure measured); orifice law K·Δp/(Δp² + 100)^¼."""
+    g = BondGraph("parallel_tanks", "Two tanks in parallel into a collector.")
+    Qs = [g.input(f"Q{i}", "m^3/s", 0.0, f"pump {i} flow") for i in (1, 2)]
+    Cs = [g.param(f"C{i}", v, "m^3/Pa", (5e-6, 5e-4), f"tank {i}")
+          for i, v in ((1, 1.2e-5), (2, 1e-5), (3, 1.5e-5))]
+    Ks = [g.param(f"K{i}", 3e-6, "m^3/s/Pa^0.5", (3e-7, 3e-5), f"orifice {i}") for i in (1, 2, 3)]
+    t3 = g.zero("tank3", domain="hydraulic")
+    g.connect(t3, g.C("tank3_C", Cs[2]))
+    g.connect(t3, g.R("orifice3", flow=lambda p: Ks[2] * p / (p**2 + 100.0) ** sp.Rational(1, 4)))
+    for i in (1, 2):
+        t = g.zero(f"tank{i}", domain="hydraulic")
+        g.connect(g.Sf(f"pump{i}", Qs[i - 1]), t)
+        g.connect(t, g.C(f"tank{i}_C", Cs[i - 1]))
+        o = g.one(f"o{i}", domain="hydraulic")
+        g.connect(t, o)
+        g.connect(o, g.R(f"orifice{i}", flow=lambda dp, K=Ks[i - 1]:
+                         K * dp / (dp**2 + 100.0) ** sp.Rational(1, 4)))
+        g.connect(o, t3)
+    g.sensor("p3", t3.e, unit="Pa", noise_std=NOISE, description="collector pressure")
+    return g
+
+
+def pumps(seed: int, together: bool):
+    """Staircase pump flows (N,) [m³/s], a level per SEG s: in lockstep
+    (Q2 = 0.9 Q1, Q1 ~ U(0, 3e-4)), or apart (in turn one pump at
+    U(1.8e-4, 3e-4), the other at U(0, 6e-5))."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(N) * DT
+    k = (t // SEG).astype(int)
+    m = k.max() + 1
+    a = rng.uniform(0, 3e-4, size=m)
+    rng.uniform(0, 3e-4, size=m)
+    if together:
+        return t, a[k], 0.9 * a[k]
+    hi, lo = rng.uniform(1.8e-4, 3e-4, size=m), rng.uniform(0, 0.6e-4, size=m)
+    odd = np.arange(m) % 2 == 1
+    return t, np.where(odd, lo, hi)[k], 0.9 * np.where(odd, hi, lo)[k]
+
+
+def _run(model, theta, t, q1, q2):
+    return simulate(model, t, u={"Q1": q1, "Q2": q2}, x0=np.zeros(model.n_x), theta=theta,
+                    method="BDF", hold="zoh", rtol=1e-9, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def case():
+    declared = Model.from_graph(parallel_tanks())
+    peak = _run(declared, declared.theta(TRUTH), *pumps(1, True)).x.max(axis=0)
+    g = parallel_tanks()
+    qmax = {}
+    for el in ("tank1_C", "tank2_C"):
+        top = peak[declared.states.index(f"q_{el}")]
+        qmax[el] = LEVEL * top
+        apply_effect(g, "capacity_limit", Target("storage", el),
+                     {"qmax": qmax[el], "w": 0.02 * top, "tau": DT})
+    truth = Model.from_graph(g)
+
+    def record(seed, together, name):
+        t, q1, q2 = pumps(seed, together)
+        y = _run(truth, truth.theta(TRUTH), t, q1, q2).y[:, 0]
+        y = y + np.random.default_rng(seed + 50).standard_normal(N) * NOISE
+        return Experiment.from_arrays(t, {"Q1": q1, "Q2": q2, "p3": y},
+                                      units={"Q1": "m^3/s", "Q2": "m^3/s", "p3": "Pa"},
+                                      roles={"Q1": "input", "Q2": "input", "p3": "output"},
+                                      name=name)
+
+    est, val = record(1, True, "lockstep"), record(2, False, "apart")
+    lines = []
+    res = run_loop(parallel_tanks(), est, LoopSettings(
+        ["K1", "K2", "K3"], validation=val, effects=(CapacityLimit(),),
+        search=SearchOptions(max_steps=1, structural="always")), log=lines.append,
+        progress=False)
+    return res, qmax, lines
+
+
+def test_each_single_overflow_is_refused_and_the_partner_shows_given_the_lead(case):
+    """Against the declared fit only tank 2's overflow and the collector's
+    (a look-alike) are significant; tank 1's scores χ² = 0 (the declared
+    orifices compensate both overflows; capping one tank only removes flow
+    the compensated model needs). Each single is refused on the held-out
+    error; given tank 2's refit, tank 1's overflow is significant and the
+    true pair's joint refit ranks first of the pairs."""
+    res, _, lines = case
+    first = {c.label: c for c in res.rankings[0]}
+    assert first["capacity_limit @ tank1_C"].statistic < 1.0
+    singles = {r.candidate.label: r.reason for r in res.rejected if not
+               r.reason.startswith("as a pair")}
+    assert set(singles) == {"capacity_limit @ tank2_C", "capacity_limit @ tank3_C"}
+    for why in singles.values():
+        assert why.startswith(("the error grew on the validation record",
+                               "the error decrease on the validation record is within"))
+    assert any(ln.split("] ", 1)[1].startswith("  given capacity_limit @ tank2_C: "
+                                                "capacity_limit @ tank1_C") for ln in lines)
+    pair_lr = {ln.split("confirmed pair ")[1].split(":")[0]:
+               float(ln.split(": LR ")[1].split(" ")[0]) for ln in lines if "confirmed pair" in ln}
+    true_pair = "capacity_limit @ tank2_C + capacity_limit @ tank1_C"
+    assert max(pair_lr, key=pair_lr.get) == true_pair
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "the true pair (joint LR 5708 over the declared fit, the best pair) raises the held-out "
+    "error 0.523 -> 2.22: with the pumps in lockstep the estimation record cannot split the "
+    "overflow between the tanks and the orifices; the collector look-alike pair is refused "
+    "(error decrease z 0.46)"))
+def test_the_two_overflows_are_accepted_as_one_step(case):
+    res, qmax, _ = case
+    (step,) = res.steps
+    assert {step.attached_to, *[lab.split(" @ ")[1] for lab in step.together_with]} == \
+        {"tank1_C", "tank2_C"}
+    for el in ("tank1_C", "tank2_C"):
+        p = step.parameters[f"capacity_limit.{el}.qmax"]
+        assert abs(p["estimate"] - qmax[el]) < 3 * p["std"]
+    assert step.error_after < step.error_before
