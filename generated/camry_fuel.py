@@ -171,9 +171,10 @@ def f(x, u, theta):
     tau_f = theta[..., 7]
     H = theta[..., 8]
     P_eps = theta[..., 9]
+    _t0 = 1/tau_f
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.multiply(1/tau_f, Q_idle - Q + P_eps*np.logaddexp(0.0, v*(der_v_*m + v*B + v*C*np.abs(v) + A*np.tanh(v/v_eps))/P_eps)/(H*eta), out=_dxdt[0, ...])
+    np.multiply(_t0, P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*np.tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -203,9 +204,10 @@ def dfdx(x, u, theta):
     u = np.asarray(u, dtype=float)
     theta = np.asarray(theta, dtype=float)
     tau_f = theta[..., 7]
+    _t0 = 1/tau_f
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((1, 1) + _shape)
-    np.multiply(-1, 1/tau_f, out=_J[0, 0, ...])
+    np.multiply(-1, _t0, out=_J[0, 0, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -232,26 +234,26 @@ def dfdtheta(x, u, theta):
     _t0 = 1/tau_f
     _t1 = np.tanh(v/v_eps)
     _t2 = np.abs(v)
-    _t3 = v*(der_v_*m + v*B + v*C*_t2 + A*_t1)/P_eps
+    _t3 = (_t1*A + der_v_*m + v*B + _t2*v*C)*v/P_eps
     _t4 = 1/H
     _t5 = 1/eta
     _t6 = _t4*_t5
     _t7 = _t6*(0.5 + 0.5*np.tanh(0.5*(_t3)))
     _t8 = _t0*_t7
-    _t9 = v*_t8
-    _t10 = v**2*_t8
+    _t9 = _t8*v
+    _t10 = _t8*v**2
     _t11 = np.logaddexp(0.0, _t3)
-    _t12 = P_eps*_t0*_t11
+    _t12 = _t0*_t11*P_eps
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((1, 13) + _shape)
     np.multiply(_t9, der_v_, out=_J[0, 0, ...])
     np.multiply(_t1, _t9, out=_J[0, 1, ...])
     _J[0, 2, ...] = _t10
     np.multiply(_t10, _t2, out=_J[0, 3, ...])
-    np.multiply(-1, A*_t10*(1 - _t1**2)/v_eps**2, out=_J[0, 4, ...])
+    np.multiply(-1, _t10*(1 - _t1**2)*A/v_eps**2, out=_J[0, 4, ...])
     np.multiply(-1, _t12*_t4/eta**2, out=_J[0, 5, ...])
     _J[0, 6, ...] = _t0
-    np.multiply(-1, (P_eps*_t11*_t6 + Q_idle - Q)/tau_f**2, out=_J[0, 7, ...])
+    np.multiply(-1, (_t11*_t6*P_eps - Q + Q_idle)/tau_f**2, out=_J[0, 7, ...])
     np.multiply(-1, _t12*_t5/H**2, out=_J[0, 8, ...])
     np.multiply(_t0, _t11*_t4*_t5 - _t3*_t7, out=_J[0, 9, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
@@ -309,7 +311,7 @@ def f_dfdx(x, u, theta):
     _t0 = 1/tau_f
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.multiply(_t0, Q_idle - Q + P_eps*np.logaddexp(0.0, v*(der_v_*m + v*B + v*C*np.abs(v) + A*np.tanh(v/v_eps))/P_eps)/(H*eta), out=_dxdt[0, ...])
+    np.multiply(_t0, P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*np.tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((1, 1) + _shape)
     np.multiply(-1, _t0, out=_J[0, 0, ...])
@@ -349,7 +351,7 @@ def power_sources(x, u, theta):
     Q_eps = theta[..., 10]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(H*Q*np.tanh(Q/Q_eps), v*(der_v_*m + v*B + v*C*np.abs(v) + A*np.tanh(v/v_eps)), out=_out[...])
+    np.add(H*Q*np.tanh(Q/Q_eps), (der_v_*m + v*B + A*np.tanh(v/v_eps) + np.abs(v)*v*C)*v, out=_out[...])
     return _out
 
 
@@ -369,7 +371,7 @@ def power_dissipated(x, u, theta):
     Q_eps = theta[..., 10]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(H*Q*np.tanh(Q/Q_eps), v*(v*B + v*C*np.abs(v) + A*np.tanh(v/v_eps)), out=_out[...])
+    np.add(H*Q*np.tanh(Q/Q_eps), (v*B + A*np.tanh(v/v_eps) + np.abs(v)*v*C)*v, out=_out[...])
     return _out
 
 

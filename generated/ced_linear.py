@@ -151,15 +151,19 @@ def f(x, u, theta):
     k_b = theta[..., 4]
     J_p = theta[..., 5]
     b_p = theta[..., 6]
-    _t0 = k_b*q_spring
-    _t1 = p_L_a/L_a
-    _t2 = (-k_m*_t1 + _t0)/b_m
-    _t3 = p_J_p/J_p
+    _t0 = 1/b_m
+    _t1 = k_b*q_spring
+    _t2 = 1/L_a
+    _t3 = _t2*k_m
+    _t4 = _t0*(_t1 - _t3*p_L_a)
+    _t5 = _t2*R_a
+    _t6 = 1/J_p
+    _t7 = _t6*p_J_p
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((3,) + _shape)
-    np.add(u_2 - R_a*_t1, k_m*_t2, out=_dxdt[0, ...])
-    np.add(-_t3, -_t2, out=_dxdt[1, ...])
-    np.add(-b_p*_t3, _t0, out=_dxdt[2, ...])
+    np.add(u_2 - _t5*p_L_a, _t4*k_m, out=_dxdt[0, ...])
+    np.add(-_t7, -_t4, out=_dxdt[1, ...])
+    np.add(-_t7*b_p, _t1, out=_dxdt[2, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -177,9 +181,10 @@ def h(x, u, theta):
     p_J_p = x[..., 2]
     J_p = theta[..., 5]
     k_y = theta[..., 7]
+    _t0 = k_y/J_p
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((1,) + _shape)
-    np.multiply(1/J_p, k_y*p_J_p, out=_y[0, ...])
+    np.multiply(_t0, p_J_p, out=_y[0, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -197,20 +202,21 @@ def dfdx(x, u, theta):
     k_b = theta[..., 4]
     J_p = theta[..., 5]
     b_p = theta[..., 6]
-    _t0 = 1/L_a
-    _t1 = 1/b_m
-    _t2 = _t0*_t1
-    _t3 = k_b*_t1
-    _t4 = 1/J_p
+    _t0 = 1/b_m
+    _t2 = 1/L_a
+    _t3 = _t2*k_m
+    _t5 = _t2*R_a
+    _t6 = 1/J_p
+    _t8 = _t0*k_b
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((3, 3) + _shape)
-    np.add(-k_m**2*_t2, -R_a*_t0, out=_J[0, 0, ...])
-    np.multiply(_t3, k_m, out=_J[0, 1, ...])
-    np.multiply(_t2, k_m, out=_J[1, 0, ...])
-    np.multiply(-1, _t3, out=_J[1, 1, ...])
-    np.multiply(-1, _t4, out=_J[1, 2, ...])
+    np.add(-_t0*_t2*k_m**2, -_t5, out=_J[0, 0, ...])
+    np.multiply(_t8, k_m, out=_J[0, 1, ...])
+    np.multiply(_t0, _t3, out=_J[1, 0, ...])
+    np.multiply(-1, _t8, out=_J[1, 1, ...])
+    np.multiply(-1, _t6, out=_J[1, 2, ...])
     _J[2, 1, ...] = k_b
-    np.multiply(-1, b_p*_t4, out=_J[2, 2, ...])
+    np.multiply(-1, _t6*b_p, out=_J[2, 2, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -235,19 +241,19 @@ def dfdtheta(x, u, theta):
     _t1 = p_L_a/L_a**2
     _t2 = 1/b_m
     _t3 = _t1*_t2
-    _t4 = k_m*_t0
+    _t4 = _t0*k_m
     _t5 = k_b*q_spring - _t4
     _t6 = _t5/b_m**2
-    _t7 = q_spring*_t2
+    _t7 = _t2*q_spring
     _t8 = p_J_p/J_p**2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((3, 8) + _shape)
     np.multiply(-1, _t0, out=_J[0, 0, ...])
-    np.add(k_m**2*_t3, R_a*_t1, out=_J[0, 1, ...])
+    np.add(_t3*k_m**2, _t1*R_a, out=_J[0, 1, ...])
     np.add(-_t2*_t4, _t2*_t5, out=_J[0, 2, ...])
-    np.multiply(-1, k_m*_t6, out=_J[0, 3, ...])
+    np.multiply(-1, _t6*k_m, out=_J[0, 3, ...])
     np.multiply(_t7, k_m, out=_J[0, 4, ...])
-    np.multiply(-1, k_m*_t3, out=_J[1, 1, ...])
+    np.multiply(-1, _t3*k_m, out=_J[1, 1, ...])
     np.multiply(_t0, _t2, out=_J[1, 2, ...])
     _J[1, 3, ...] = _t6
     np.multiply(-1, _t7, out=_J[1, 4, ...])
@@ -267,9 +273,10 @@ def dhdx(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     J_p = theta[..., 5]
     k_y = theta[..., 7]
+    _t0 = k_y/J_p
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((1, 3) + _shape)
-    np.multiply(1/J_p, k_y, out=_J[0, 2, ...])
+    _J[0, 2, ...] = _t0
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -315,26 +322,26 @@ def f_dfdx(x, u, theta):
     _t0 = 1/b_m
     _t1 = k_b*q_spring
     _t2 = 1/L_a
-    _t3 = k_m*_t2
-    _t4 = _t0*(-p_L_a*_t3 + _t1)
-    _t5 = R_a*_t2
+    _t3 = _t2*k_m
+    _t4 = _t0*(_t1 - _t3*p_L_a)
+    _t5 = _t2*R_a
     _t6 = 1/J_p
-    _t7 = p_J_p*_t6
-    _t8 = k_b*_t0
+    _t7 = _t6*p_J_p
+    _t8 = _t0*k_b
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((3,) + _shape)
-    np.add(u_2 - p_L_a*_t5, k_m*_t4, out=_dxdt[0, ...])
+    np.add(u_2 - _t5*p_L_a, _t4*k_m, out=_dxdt[0, ...])
     np.add(-_t7, -_t4, out=_dxdt[1, ...])
-    np.add(-b_p*_t7, _t1, out=_dxdt[2, ...])
+    np.add(-_t7*b_p, _t1, out=_dxdt[2, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((3, 3) + _shape)
-    np.add(-k_m**2*_t0*_t2, -_t5, out=_J[0, 0, ...])
+    np.add(-_t0*_t2*k_m**2, -_t5, out=_J[0, 0, ...])
     np.multiply(_t8, k_m, out=_J[0, 1, ...])
     np.multiply(_t0, _t3, out=_J[1, 0, ...])
     np.multiply(-1, _t8, out=_J[1, 1, ...])
     np.multiply(-1, _t6, out=_J[1, 2, ...])
     _J[2, 1, ...] = k_b
-    np.multiply(-1, b_p*_t6, out=_J[2, 2, ...])
+    np.multiply(-1, _t6*b_p, out=_J[2, 2, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
@@ -353,7 +360,7 @@ def energy(x, u, theta):
     J_p = theta[..., 5]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((0.5)*k_b*q_spring**2 + (0.5)*p_L_a**2/L_a, (0.5)*p_J_p**2/J_p, out=_out[...])
+    np.add((0.5)*p_L_a**2/L_a + (0.5)*q_spring**2*k_b, (0.5)*p_J_p**2/J_p, out=_out[...])
     return _out
 
 
@@ -388,10 +395,9 @@ def power_dissipated(x, u, theta):
     k_b = theta[..., 4]
     J_p = theta[..., 5]
     b_p = theta[..., 6]
-    _t0 = k_b*q_spring - k_m*p_L_a/L_a
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(R_a*p_L_a**2/L_a**2 + b_p*p_J_p**2/J_p**2, _t0**2/b_m, out=_out[...])
+    np.add((R_a*p_L_a/L_a)*(p_L_a/L_a) + (k_m*p_L_a/L_a - k_b*q_spring)*(-(k_b*q_spring - k_m*p_L_a/L_a)/b_m), (b_p*p_J_p/J_p)*(p_J_p/J_p), out=_out[...])
     return _out
 
 
@@ -412,13 +418,11 @@ def energy_rate(x, u, theta):
     k_b = theta[..., 4]
     J_p = theta[..., 5]
     b_p = theta[..., 6]
-    _t0 = k_b*q_spring
-    _t1 = p_J_p/J_p
-    _t2 = p_L_a/L_a
-    _t3 = (-k_m*_t2 + _t0)/b_m
+    _t1 = k_b*q_spring
+    _t4 = _t1 - k_m*p_L_a/L_a
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t1*(-b_p*_t1 + _t0) + _t2*(u_2 - R_a*_t2 + k_m*_t3), _t0*(-_t1 - _t3), out=_out[...])
+    np.add((_t4*k_m/b_m - R_a*p_L_a/L_a + u_2)*p_L_a/L_a + (-p_J_p/J_p - _t4/b_m)*k_b*q_spring, (_t1 - b_p*p_J_p/J_p)*p_J_p/J_p, out=_out[...])
     return _out
 
 

@@ -168,16 +168,19 @@ def f(x, u, theta):
     k_s = theta[..., 5]
     J_L = theta[..., 6]
     b_L = theta[..., 7]
-    _t0 = p_J_m/J_m
-    _t1 = 1/L_a
-    _t2 = k_s*q_k_s
-    _t3 = p_J_L/J_L
+    _t0 = 1/J_m
+    _t1 = _t0*p_J_m
+    _t2 = 1/L_a
+    _t3 = _t2*R_a
+    _t4 = k_s*q_k_s
+    _t5 = 1/J_L
+    _t6 = _t5*p_J_L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((4,) + _shape)
-    np.add(V - R_a*p_L_a*_t1, -k_m*_t0, out=_dxdt[0, ...])
-    np.add(-b_m*_t0 + k_m*p_L_a*_t1, -_t2, out=_dxdt[1, ...])
-    np.add(-_t3, _t0, out=_dxdt[2, ...])
-    np.add(-T_L - b_L*_t3, _t2, out=_dxdt[3, ...])
+    np.add(V - _t3*p_L_a, -_t1*k_m, out=_dxdt[0, ...])
+    np.add(_t2*k_m*p_L_a - _t1*b_m, -_t4, out=_dxdt[1, ...])
+    np.add(-_t6, _t1, out=_dxdt[2, ...])
+    np.add(-T_L - _t6*b_L, _t4, out=_dxdt[3, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -196,10 +199,12 @@ def h(x, u, theta):
     p_J_L = x[..., 3]
     L_a = theta[..., 1]
     J_L = theta[..., 6]
+    _t0 = 1/J_L
+    _t1 = 1/L_a
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((2,) + _shape)
-    np.multiply(1/J_L, p_J_L, out=_y[0, ...])
-    np.multiply(1/L_a, p_L_a, out=_y[1, ...])
+    np.multiply(_t0, p_J_L, out=_y[0, ...])
+    np.multiply(_t1, p_L_a, out=_y[1, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -218,20 +223,21 @@ def dfdx(x, u, theta):
     k_s = theta[..., 5]
     J_L = theta[..., 6]
     b_L = theta[..., 7]
-    _t0 = 1/L_a
-    _t1 = 1/J_m
-    _t2 = 1/J_L
+    _t0 = 1/J_m
+    _t2 = 1/L_a
+    _t3 = _t2*R_a
+    _t5 = 1/J_L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((4, 4) + _shape)
-    np.multiply(-1, R_a*_t0, out=_J[0, 0, ...])
-    np.multiply(-1, k_m*_t1, out=_J[0, 1, ...])
-    np.multiply(_t0, k_m, out=_J[1, 0, ...])
-    np.multiply(-1, b_m*_t1, out=_J[1, 1, ...])
+    np.multiply(-1, _t3, out=_J[0, 0, ...])
+    np.multiply(-1, _t0*k_m, out=_J[0, 1, ...])
+    np.multiply(_t2, k_m, out=_J[1, 0, ...])
+    np.multiply(-1, _t0*b_m, out=_J[1, 1, ...])
     np.multiply(-1, k_s, out=_J[1, 2, ...])
-    _J[2, 1, ...] = _t1
-    np.multiply(-1, _t2, out=_J[2, 3, ...])
+    _J[2, 1, ...] = _t0
+    np.multiply(-1, _t5, out=_J[2, 3, ...])
     _J[3, 2, ...] = k_s
-    np.multiply(-1, b_L*_t2, out=_J[3, 3, ...])
+    np.multiply(-1, _t5*b_L, out=_J[3, 3, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -264,7 +270,7 @@ def dfdtheta(x, u, theta):
     np.multiply(_t1, R_a, out=_J[0, 1, ...])
     _J[0, 2, ...] = _t2
     np.multiply(_t3, k_m, out=_J[0, 3, ...])
-    np.multiply(-1, k_m*_t1, out=_J[1, 1, ...])
+    np.multiply(-1, _t1*k_m, out=_J[1, 1, ...])
     _J[1, 2, ...] = _t0
     np.multiply(_t3, b_m, out=_J[1, 3, ...])
     _J[1, 4, ...] = _t2
@@ -286,10 +292,12 @@ def dhdx(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     L_a = theta[..., 1]
     J_L = theta[..., 6]
+    _t0 = 1/J_L
+    _t1 = 1/L_a
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 4) + _shape)
-    _J[0, 3, ...] = 1/J_L
-    _J[1, 0, ...] = 1/L_a
+    _J[0, 3, ...] = _t0
+    _J[1, 0, ...] = _t1
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -337,29 +345,29 @@ def f_dfdx(x, u, theta):
     J_L = theta[..., 6]
     b_L = theta[..., 7]
     _t0 = 1/J_m
-    _t1 = p_J_m*_t0
+    _t1 = _t0*p_J_m
     _t2 = 1/L_a
-    _t3 = R_a*_t2
+    _t3 = _t2*R_a
     _t4 = k_s*q_k_s
     _t5 = 1/J_L
-    _t6 = p_J_L*_t5
+    _t6 = _t5*p_J_L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((4,) + _shape)
-    np.add(V - p_L_a*_t3, -k_m*_t1, out=_dxdt[0, ...])
-    np.add(-b_m*_t1 + k_m*p_L_a*_t2, -_t4, out=_dxdt[1, ...])
+    np.add(V - _t3*p_L_a, -_t1*k_m, out=_dxdt[0, ...])
+    np.add(_t2*k_m*p_L_a - _t1*b_m, -_t4, out=_dxdt[1, ...])
     np.add(-_t6, _t1, out=_dxdt[2, ...])
-    np.add(-T_L - b_L*_t6, _t4, out=_dxdt[3, ...])
+    np.add(-T_L - _t6*b_L, _t4, out=_dxdt[3, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((4, 4) + _shape)
     np.multiply(-1, _t3, out=_J[0, 0, ...])
-    np.multiply(-1, k_m*_t0, out=_J[0, 1, ...])
+    np.multiply(-1, _t0*k_m, out=_J[0, 1, ...])
     np.multiply(_t2, k_m, out=_J[1, 0, ...])
-    np.multiply(-1, b_m*_t0, out=_J[1, 1, ...])
+    np.multiply(-1, _t0*b_m, out=_J[1, 1, ...])
     np.multiply(-1, k_s, out=_J[1, 2, ...])
     _J[2, 1, ...] = _t0
     np.multiply(-1, _t5, out=_J[2, 3, ...])
     _J[3, 2, ...] = k_s
-    np.multiply(-1, b_L*_t5, out=_J[3, 3, ...])
+    np.multiply(-1, _t5*b_L, out=_J[3, 3, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
@@ -380,7 +388,7 @@ def energy(x, u, theta):
     J_L = theta[..., 6]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((0.5)*k_s*q_k_s**2 + (0.5)*p_L_a**2/L_a + (0.5)*p_J_m**2/J_m, (0.5)*p_J_L**2/J_L, out=_out[...])
+    np.add((0.5)*p_J_m**2/J_m + (0.5)*p_L_a**2/L_a + (0.5)*q_k_s**2*k_s, (0.5)*p_J_L**2/J_L, out=_out[...])
     return _out
 
 
@@ -398,7 +406,7 @@ def power_sources(x, u, theta):
     J_L = theta[..., 6]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(-T_L*p_J_L/J_L, V*p_L_a/L_a, out=_out[...])
+    np.add(V*p_L_a/L_a, (-T_L)*(p_J_L/J_L), out=_out[...])
     return _out
 
 
@@ -419,7 +427,7 @@ def power_dissipated(x, u, theta):
     b_L = theta[..., 7]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(R_a*p_L_a**2/L_a**2 + b_m*p_J_m**2/J_m**2, b_L*p_J_L**2/J_L**2, out=_out[...])
+    np.add((b_m*p_J_m/J_m)*(p_J_m/J_m) + (R_a*p_L_a/L_a)*(p_L_a/L_a), (b_L*p_J_L/J_L)*(p_J_L/J_L), out=_out[...])
     return _out
 
 
@@ -443,14 +451,9 @@ def energy_rate(x, u, theta):
     k_s = theta[..., 5]
     J_L = theta[..., 6]
     b_L = theta[..., 7]
-    _t0 = k_s*q_k_s
-    _t1 = p_J_L/J_L
-    _t2 = p_J_m/J_m
-    _t3 = 1/L_a
-    _t4 = p_L_a*_t3
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t1*(-T_L - b_L*_t1 + _t0) + _t2*(-b_m*_t2 + k_m*p_L_a*_t3 - _t0) + _t4*(V - R_a*_t4 - k_m*_t2), _t0*(-_t1 + _t2), out=_out[...])
+    np.add((k_m*p_L_a/L_a - k_s*q_k_s - b_m*p_J_m/J_m)*p_J_m/J_m + (V - k_m*p_J_m/J_m - R_a*p_L_a/L_a)*p_L_a/L_a + (p_J_m/J_m - p_J_L/J_L)*k_s*q_k_s, (k_s*q_k_s - T_L - b_L*p_J_L/J_L)*p_J_L/J_L, out=_out[...])
     return _out
 
 

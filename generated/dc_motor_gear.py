@@ -140,14 +140,18 @@ def f(x, u, theta):
     n = theta[..., 4]
     J_L = theta[..., 5]
     b_L = theta[..., 6]
-    _t0 = p_L_a/L_a
-    _t1 = 1/J_L
-    _t2 = p_J_L*_t1
+    _t0 = 1/L_a
+    _t1 = _t0*R_a
+    _t2 = 1/J_L
     _t3 = k_m*n
+    _t4 = _t2*_t3
+    _t5 = 1/(1 + _t2*n**2*J_m)
+    _t6 = _t2*b_L
+    _t7 = _t0*_t3
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(V - _t2*_t3, -R_a*_t0, out=_dxdt[0, ...])
-    np.multiply(1/(J_m*n**2*_t1 + 1), -b_L*_t2 + _t0*_t3, out=_dxdt[1, ...])
+    np.add(V - _t4*p_J_L, -_t1*p_L_a, out=_dxdt[0, ...])
+    np.multiply(_t5, _t7*p_L_a - _t6*p_J_L, out=_dxdt[1, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -164,9 +168,10 @@ def h(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     p_J_L = x[..., 1]
     J_L = theta[..., 5]
+    _t0 = 1/J_L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((1,) + _shape)
-    np.multiply(1/J_L, p_J_L, out=_y[0, ...])
+    np.multiply(_t0, p_J_L, out=_y[0, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -185,15 +190,19 @@ def dfdx(x, u, theta):
     J_L = theta[..., 5]
     b_L = theta[..., 6]
     _t0 = 1/L_a
-    _t1 = 1/J_L
-    _t2 = k_m*n
-    _t3 = 1/(J_m*n**2*_t1 + 1)
+    _t1 = _t0*R_a
+    _t2 = 1/J_L
+    _t3 = k_m*n
+    _t4 = _t2*_t3
+    _t5 = 1/(1 + _t2*n**2*J_m)
+    _t6 = _t2*b_L
+    _t7 = _t0*_t3
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((2, 2) + _shape)
-    np.multiply(-1, R_a*_t0, out=_J[0, 0, ...])
-    np.multiply(-1, _t1*_t2, out=_J[0, 1, ...])
-    np.multiply(_t0, _t2*_t3, out=_J[1, 0, ...])
-    np.multiply(-1, b_L*_t1*_t3, out=_J[1, 1, ...])
+    np.multiply(-1, _t1, out=_J[0, 0, ...])
+    np.multiply(-1, _t4, out=_J[0, 1, ...])
+    np.multiply(_t5, _t7, out=_J[1, 0, ...])
+    np.multiply(-1, _t5*_t6, out=_J[1, 1, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -216,29 +225,29 @@ def dfdtheta(x, u, theta):
     _t0 = p_L_a/L_a
     _t1 = p_L_a/L_a**2
     _t2 = 1/J_L
-    _t3 = p_J_L*_t2
+    _t3 = _t2*p_J_L
     _t4 = k_m*n
     _t5 = 1/J_L**2
-    _t6 = p_J_L*_t5
+    _t6 = _t5*p_J_L
     _t7 = n**2
     _t8 = _t2*_t7
-    _t9 = J_m*_t8 + 1
+    _t9 = 1 + _t8*J_m
     _t10 = 1/_t9
     _t11 = _t0*_t10
-    _t12 = (-b_L*_t3 + _t0*_t4)/_t9**2
-    _t13 = J_m*_t12
+    _t12 = (_t0*_t4 - _t3*b_L)/_t9**2
+    _t13 = _t12*J_m
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 7) + _shape)
     np.multiply(-1, _t0, out=_J[0, 0, ...])
     np.multiply(_t1, R_a, out=_J[0, 1, ...])
-    np.multiply(-1, n*_t3, out=_J[0, 2, ...])
-    np.multiply(-1, k_m*_t3, out=_J[0, 4, ...])
+    np.multiply(-1, _t3*n, out=_J[0, 2, ...])
+    np.multiply(-1, _t3*k_m, out=_J[0, 4, ...])
     np.multiply(_t4, _t6, out=_J[0, 5, ...])
     np.multiply(-1, _t1*_t10*_t4, out=_J[1, 1, ...])
     np.multiply(_t11, n, out=_J[1, 2, ...])
     np.multiply(-1, _t12*_t8, out=_J[1, 3, ...])
-    np.add(-2*n*_t13*_t2, k_m*_t11, out=_J[1, 4, ...])
-    np.add(_t13*_t5*_t7, b_L*_t10*_t6, out=_J[1, 5, ...])
+    np.add(-2*_t13*_t2*n, _t11*k_m, out=_J[1, 4, ...])
+    np.add(_t13*_t5*_t7, _t10*_t6*b_L, out=_J[1, 5, ...])
     np.multiply(-1, _t10*_t3, out=_J[1, 6, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
@@ -251,9 +260,10 @@ def dhdx(x, u, theta):
     u = np.asarray(u, dtype=float)
     theta = np.asarray(theta, dtype=float)
     J_L = theta[..., 5]
+    _t0 = 1/J_L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((1, 2) + _shape)
-    _J[0, 1, ...] = 1/J_L
+    _J[0, 1, ...] = _t0
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -294,17 +304,17 @@ def f_dfdx(x, u, theta):
     J_L = theta[..., 5]
     b_L = theta[..., 6]
     _t0 = 1/L_a
-    _t1 = R_a*_t0
+    _t1 = _t0*R_a
     _t2 = 1/J_L
     _t3 = k_m*n
     _t4 = _t2*_t3
-    _t5 = 1/(J_m*n**2*_t2 + 1)
-    _t6 = b_L*_t2
+    _t5 = 1/(1 + _t2*n**2*J_m)
+    _t6 = _t2*b_L
     _t7 = _t0*_t3
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(V - p_J_L*_t4, -p_L_a*_t1, out=_dxdt[0, ...])
-    np.multiply(_t5, -p_J_L*_t6 + p_L_a*_t7, out=_dxdt[1, ...])
+    np.add(V - _t4*p_J_L, -_t1*p_L_a, out=_dxdt[0, ...])
+    np.multiply(_t5, _t7*p_L_a - _t6*p_J_L, out=_dxdt[1, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((2, 2) + _shape)
     np.multiply(-1, _t1, out=_J[0, 0, ...])
@@ -327,10 +337,10 @@ def energy(x, u, theta):
     J_m = theta[..., 3]
     n = theta[..., 4]
     J_L = theta[..., 5]
-    _t0 = (0.5)*p_J_L**2
+    _t0 = p_J_L**2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((0.5)*p_L_a**2/L_a + J_m*n**2*_t0/J_L**2, _t0/J_L, out=_out[...])
+    np.add((0.5)*p_L_a**2/L_a + (0.5)*n**2*_t0*J_m/J_L**2, (0.5)*_t0/J_L, out=_out[...])
     return _out
 
 
@@ -363,7 +373,7 @@ def power_dissipated(x, u, theta):
     b_L = theta[..., 6]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(R_a*p_L_a**2/L_a**2, b_L*p_J_L**2/J_L**2, out=_out[...])
+    np.add((R_a*p_L_a/L_a)*(p_L_a/L_a), (b_L*p_J_L/J_L)*(p_J_L/J_L), out=_out[...])
     return _out
 
 
@@ -383,15 +393,11 @@ def energy_rate(x, u, theta):
     n = theta[..., 4]
     J_L = theta[..., 5]
     b_L = theta[..., 6]
-    _t0 = p_L_a/L_a
-    _t1 = 1/J_L
-    _t2 = p_J_L*_t1
-    _t3 = k_m*n
-    _t4 = J_m*n**2
-    _t5 = (-b_L*_t2 + _t0*_t3)/(_t1*_t4 + 1)
+    _t2 = n**2
+    _t4 = k_m*n*p_L_a/L_a - b_L*p_J_L/J_L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t2*_t5 + p_J_L*_t4*_t5/J_L**2, _t0*(V - R_a*_t0 - _t2*_t3), out=_out[...])
+    np.add(_t4*p_J_L/((1 + _t2*J_m/J_L)*J_L) + _t2*_t4*J_m*p_J_L/((1 + _t2*J_m/J_L)*J_L**2), (V - R_a*p_L_a/L_a - k_m*n*p_J_L/J_L)*p_L_a/L_a, out=_out[...])
     return _out
 
 

@@ -142,11 +142,14 @@ def f(x, u, theta):
     Fc = theta[..., 5]
     offset = theta[..., 6]
     v_eps = theta[..., 7]
-    _t0 = p_M/M
+    _t0 = 1/v_eps
+    _t1 = 1/M
+    _t2 = _t1*p_M
+    _t3 = np.tanh(_t0*_t2)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(vir*gtau - Fc*np.tanh(_t0/v_eps) - Fv*_t0, -offset, out=_dxdt[0, ...])
-    _dxdt[1, ...] = _t0
+    np.add(vir*gtau - _t2*Fv - _t3*Fc, -offset, out=_dxdt[0, ...])
+    _dxdt[1, ...] = _t2
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -180,12 +183,14 @@ def dfdx(x, u, theta):
     Fv = theta[..., 2]
     Fc = theta[..., 5]
     v_eps = theta[..., 7]
-    _t0 = 1/M
-    _t1 = _t0/v_eps
+    _t0 = 1/v_eps
+    _t1 = 1/M
+    _t2 = _t1*p_M
+    _t3 = np.tanh(_t0*_t2)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 2) + _shape)
-    np.add(-Fc*_t1*(1 - np.tanh(p_M*_t1)**2), -Fv*_t0, out=_J[0, 0, ...])
-    _J[1, 0, ...] = _t0
+    np.add(-_t0*_t1*(1 - _t3**2)*Fc, -_t1*Fv, out=_J[0, 0, ...])
+    _J[1, 0, ...] = _t1
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -206,11 +211,11 @@ def dfdtheta(x, u, theta):
     _t1 = 1/v_eps
     _t2 = p_M/M
     _t3 = np.tanh(_t1*_t2)
-    _t4 = Fc*(1 - _t3**2)
+    _t4 = (1 - _t3**2)*Fc
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 8) + _shape)
     _J[0, 0, ...] = vir
-    np.add(_t0*_t1*_t4, Fv*_t0, out=_J[0, 1, ...])
+    np.add(_t0*_t1*_t4, _t0*Fv, out=_J[0, 1, ...])
     np.multiply(-1, _t2, out=_J[0, 2, ...])
     np.multiply(-1, _t3, out=_J[0, 5, ...])
     _J[0, 6, ...] = -1
@@ -265,15 +270,15 @@ def f_dfdx(x, u, theta):
     v_eps = theta[..., 7]
     _t0 = 1/v_eps
     _t1 = 1/M
-    _t2 = p_M*_t1
+    _t2 = _t1*p_M
     _t3 = np.tanh(_t0*_t2)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(vir*gtau - Fc*_t3 - Fv*_t2, -offset, out=_dxdt[0, ...])
+    np.add(vir*gtau - _t2*Fv - _t3*Fc, -offset, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t2
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((2, 2) + _shape)
-    np.add(-Fc*_t0*_t1*(1 - _t3**2), -Fv*_t1, out=_J[0, 0, ...])
+    np.add(-_t0*_t1*(1 - _t3**2)*Fc, -_t1*Fv, out=_J[0, 0, ...])
     _J[1, 0, ...] = _t1
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
@@ -307,7 +312,7 @@ def power_sources(x, u, theta):
     _t0 = p_M/M
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(vir*gtau*_t0, -offset*_t0, out=_out[...])
+    np.add((vir*gtau)*_t0, (-offset)*_t0, out=_out[...])
     return _out
 
 
@@ -322,10 +327,10 @@ def power_dissipated(x, u, theta):
     Fv = theta[..., 2]
     Fc = theta[..., 5]
     v_eps = theta[..., 7]
-    _t0 = p_M/M
+    _t1 = p_M/M
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(Fv*p_M**2/M**2, Fc*_t0*np.tanh(_t0/v_eps), out=_out[...])
+    np.add((Fv*p_M/M)*_t1, (Fc*np.tanh(p_M/(M*v_eps)))*_t1, out=_out[...])
     return _out
 
 
@@ -343,10 +348,10 @@ def energy_rate(x, u, theta):
     Fc = theta[..., 5]
     offset = theta[..., 6]
     v_eps = theta[..., 7]
-    _t0 = p_M/M
+    _t0 = 1/M
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(_t0, vir*gtau - Fc*np.tanh(_t0/v_eps) - Fv*_t0 - offset, out=_out[...])
+    np.multiply(_t0, (vir*gtau - offset - Fc*np.tanh(p_M/(M*v_eps)) - Fv*p_M/M)*p_M, out=_out[...])
     return _out
 
 

@@ -124,11 +124,12 @@ def f(x, u, theta):
     gtau = theta[..., 0]
     M = theta[..., 1]
     Fv = theta[..., 2]
-    _t0 = p_M/M
+    _t0 = 1/M
+    _t1 = _t0*p_M
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-Fv*_t0, vir*gtau, out=_dxdt[0, ...])
-    _dxdt[1, ...] = _t0
+    np.add(-_t1*Fv, vir*gtau, out=_dxdt[0, ...])
+    _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -162,7 +163,7 @@ def dfdx(x, u, theta):
     _t0 = 1/M
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 2) + _shape)
-    np.multiply(-1, Fv*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, _t0*Fv, out=_J[0, 0, ...])
     _J[1, 0, ...] = _t0
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
@@ -230,14 +231,14 @@ def f_dfdx(x, u, theta):
     M = theta[..., 1]
     Fv = theta[..., 2]
     _t0 = 1/M
-    _t1 = p_M*_t0
+    _t1 = _t0*p_M
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(-Fv*_t1, vir*gtau, out=_dxdt[0, ...])
+    np.add(-_t1*Fv, vir*gtau, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((2, 2) + _shape)
-    np.multiply(-1, Fv*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, _t0*Fv, out=_J[0, 0, ...])
     _J[1, 0, ...] = _t0
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
@@ -269,7 +270,7 @@ def power_sources(x, u, theta):
     M = theta[..., 1]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(1/M, vir*gtau*p_M, out=_out[...])
+    np.multiply(vir*gtau, p_M/M, out=_out[...])
     return _out
 
 
@@ -284,7 +285,7 @@ def power_dissipated(x, u, theta):
     Fv = theta[..., 2]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(1/M**2, Fv*p_M**2, out=_out[...])
+    np.multiply(Fv*p_M/M, p_M/M, out=_out[...])
     return _out
 
 
@@ -299,10 +300,10 @@ def energy_rate(x, u, theta):
     gtau = theta[..., 0]
     M = theta[..., 1]
     Fv = theta[..., 2]
-    _t0 = p_M/M
+    _t0 = 1/M
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(_t0, vir*gtau - Fv*_t0, out=_out[...])
+    np.multiply(_t0, (vir*gtau - Fv*p_M/M)*p_M, out=_out[...])
     return _out
 
 

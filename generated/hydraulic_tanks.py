@@ -125,12 +125,16 @@ def f(x, u, theta):
     Ch2 = theta[..., 1]
     Rh12 = theta[..., 2]
     Rh2 = theta[..., 3]
-    _t0 = q_tank2_C/Ch2
-    _t1 = (_t0 - q_tank1_C/Ch1)/Rh12
+    _t0 = 1/Rh12
+    _t1 = 1/Ch2
+    _t2 = _t1*q_tank2_C
+    _t3 = 1/Ch1
+    _t4 = _t0*(_t2 - _t3*q_tank1_C)
+    _t5 = 1/Rh2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(Q, _t1, out=_dxdt[0, ...])
-    np.add(-_t0/Rh2, -_t1, out=_dxdt[1, ...])
+    np.add(Q, _t4, out=_dxdt[0, ...])
+    np.add(-_t2*_t5, -_t4, out=_dxdt[1, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -149,10 +153,12 @@ def h(x, u, theta):
     q_tank2_C = x[..., 1]
     Ch1 = theta[..., 0]
     Ch2 = theta[..., 1]
+    _t0 = 1/Ch1
+    _t1 = 1/Ch2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((2,) + _shape)
-    np.multiply(1/Ch1, q_tank1_C, out=_y[0, ...])
-    np.multiply(1/Ch2, q_tank2_C, out=_y[1, ...])
+    np.multiply(_t0, q_tank1_C, out=_y[0, ...])
+    np.multiply(_t1, q_tank2_C, out=_y[1, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -168,15 +174,17 @@ def dfdx(x, u, theta):
     Rh12 = theta[..., 2]
     Rh2 = theta[..., 3]
     _t0 = 1/Rh12
-    _t1 = _t0/Ch1
-    _t2 = 1/Ch2
-    _t3 = _t0*_t2
+    _t1 = 1/Ch2
+    _t3 = 1/Ch1
+    _t5 = 1/Rh2
+    _t6 = _t0*_t3
+    _t7 = _t0*_t1
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((2, 2) + _shape)
-    np.multiply(-1, _t1, out=_J[0, 0, ...])
-    _J[0, 1, ...] = _t3
-    _J[1, 0, ...] = _t1
-    np.add(-_t2/Rh2, -_t3, out=_J[1, 1, ...])
+    np.multiply(-1, _t6, out=_J[0, 0, ...])
+    _J[0, 1, ...] = _t7
+    _J[1, 0, ...] = _t6
+    np.add(-_t1*_t5, -_t7, out=_J[1, 1, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -194,7 +202,7 @@ def dfdtheta(x, u, theta):
     Rh12 = theta[..., 2]
     Rh2 = theta[..., 3]
     _t0 = 1/Rh12
-    _t1 = q_tank1_C*_t0/Ch1**2
+    _t1 = _t0*q_tank1_C/Ch1**2
     _t2 = q_tank2_C/Ch2**2
     _t3 = _t0*_t2
     _t4 = q_tank2_C/Ch2
@@ -220,10 +228,12 @@ def dhdx(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     Ch1 = theta[..., 0]
     Ch2 = theta[..., 1]
+    _t0 = 1/Ch1
+    _t1 = 1/Ch2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 2) + _shape)
-    _J[0, 0, ...] = 1/Ch1
-    _J[1, 1, ...] = 1/Ch2
+    _J[0, 0, ...] = _t0
+    _J[1, 1, ...] = _t1
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -265,9 +275,9 @@ def f_dfdx(x, u, theta):
     Rh2 = theta[..., 3]
     _t0 = 1/Rh12
     _t1 = 1/Ch2
-    _t2 = q_tank2_C*_t1
+    _t2 = _t1*q_tank2_C
     _t3 = 1/Ch1
-    _t4 = _t0*(-q_tank1_C*_t3 + _t2)
+    _t4 = _t0*(_t2 - _t3*q_tank1_C)
     _t5 = 1/Rh2
     _t6 = _t0*_t3
     _t7 = _t0*_t1
@@ -328,10 +338,10 @@ def power_dissipated(x, u, theta):
     Ch2 = theta[..., 1]
     Rh12 = theta[..., 2]
     Rh2 = theta[..., 3]
-    _t0 = q_tank2_C/Ch2 - q_tank1_C/Ch1
+    _t1 = q_tank2_C/Ch2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(q_tank2_C**2/(Ch2**2*Rh2), _t0**2/Rh12, out=_out[...])
+    np.add((q_tank1_C/Ch1 - q_tank2_C/Ch2)*(-(_t1 - q_tank1_C/Ch1)/Rh12), _t1*(q_tank2_C/(Ch2*Rh2)), out=_out[...])
     return _out
 
 
@@ -348,12 +358,10 @@ def energy_rate(x, u, theta):
     Ch2 = theta[..., 1]
     Rh12 = theta[..., 2]
     Rh2 = theta[..., 3]
-    _t0 = q_tank2_C/Ch2
-    _t1 = q_tank1_C/Ch1
-    _t2 = (_t0 - _t1)/Rh12
+    _t3 = q_tank2_C/Ch2 - q_tank1_C/Ch1
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t1*(Q + _t2), _t0*(-_t2 - _t0/Rh2), out=_out[...])
+    np.add((-_t3/Rh12 - q_tank2_C/(Ch2*Rh2))*q_tank2_C/Ch2, (_t3/Rh12 + Q)*q_tank1_C/Ch1, out=_out[...])
     return _out
 
 

@@ -119,11 +119,12 @@ def f(x, u, theta):
     m = theta[..., 0]
     k = theta[..., 1]
     c = theta[..., 2]
-    _t0 = p_mass/m
+    _t0 = 1/m
+    _t1 = _t0*p_mass
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(F - k*q_spring, -c*_t0, out=_dxdt[0, ...])
-    _dxdt[1, ...] = _t0
+    np.add(F - k*q_spring, -_t1*c, out=_dxdt[0, ...])
+    _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -141,10 +142,11 @@ def h(x, u, theta):
     p_mass = x[..., 0]
     q_spring = x[..., 1]
     m = theta[..., 0]
+    _t0 = 1/m
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((2,) + _shape)
     _y[0, ...] = q_spring
-    np.multiply(1/m, p_mass, out=_y[1, ...])
+    np.multiply(_t0, p_mass, out=_y[1, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -161,7 +163,7 @@ def dfdx(x, u, theta):
     _t0 = 1/m
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 2) + _shape)
-    np.multiply(-1, c*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, _t0*c, out=_J[0, 0, ...])
     np.multiply(-1, k, out=_J[0, 1, ...])
     _J[1, 0, ...] = _t0
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
@@ -196,10 +198,11 @@ def dhdx(x, u, theta):
     u = np.asarray(u, dtype=float)
     theta = np.asarray(theta, dtype=float)
     m = theta[..., 0]
+    _t0 = 1/m
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 2) + _shape)
     _J[0, 1, ...] = 1
-    _J[1, 0, ...] = 1/m
+    _J[1, 0, ...] = _t0
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -236,14 +239,14 @@ def f_dfdx(x, u, theta):
     k = theta[..., 1]
     c = theta[..., 2]
     _t0 = 1/m
-    _t1 = p_mass*_t0
+    _t1 = _t0*p_mass
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(F - k*q_spring, -c*_t1, out=_dxdt[0, ...])
+    np.add(F - k*q_spring, -_t1*c, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((2, 2) + _shape)
-    np.multiply(-1, c*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, _t0*c, out=_J[0, 0, ...])
     np.multiply(-1, k, out=_J[0, 1, ...])
     _J[1, 0, ...] = _t0
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
@@ -262,7 +265,7 @@ def energy(x, u, theta):
     k = theta[..., 1]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((0.5)*k*q_spring**2, (0.5)*p_mass**2/m, out=_out[...])
+    np.add((0.5)*q_spring**2*k, (0.5)*p_mass**2/m, out=_out[...])
     return _out
 
 
@@ -292,7 +295,7 @@ def power_dissipated(x, u, theta):
     c = theta[..., 2]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(1/m**2, c*p_mass**2, out=_out[...])
+    np.multiply(c*p_mass/m, p_mass/m, out=_out[...])
     return _out
 
 
@@ -308,11 +311,9 @@ def energy_rate(x, u, theta):
     m = theta[..., 0]
     k = theta[..., 1]
     c = theta[..., 2]
-    _t0 = k*q_spring
-    _t1 = p_mass/m
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t1*(F - c*_t1 - _t0), _t0*_t1, out=_out[...])
+    np.add(k*p_mass*q_spring/m, (F - k*q_spring - c*p_mass/m)*p_mass/m, out=_out[...])
     return _out
 
 

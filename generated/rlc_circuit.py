@@ -119,11 +119,13 @@ def f(x, u, theta):
     R = theta[..., 0]
     L = theta[..., 1]
     C = theta[..., 2]
-    _t0 = p_inductor/L
+    _t0 = 1/C
+    _t1 = 1/L
+    _t2 = _t1*p_inductor
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(V - q_capacitor/C, -R*_t0, out=_dxdt[0, ...])
-    _dxdt[1, ...] = _t0
+    np.add(V - _t2*R, -_t0*q_capacitor, out=_dxdt[0, ...])
+    _dxdt[1, ...] = _t2
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -142,10 +144,12 @@ def h(x, u, theta):
     q_capacitor = x[..., 1]
     L = theta[..., 1]
     C = theta[..., 2]
+    _t0 = 1/L
+    _t1 = 1/C
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((2,) + _shape)
-    np.multiply(1/L, p_inductor, out=_y[0, ...])
-    np.multiply(1/C, q_capacitor, out=_y[1, ...])
+    np.multiply(_t0, p_inductor, out=_y[0, ...])
+    np.multiply(_t1, q_capacitor, out=_y[1, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -159,12 +163,13 @@ def dfdx(x, u, theta):
     R = theta[..., 0]
     L = theta[..., 1]
     C = theta[..., 2]
-    _t0 = 1/L
+    _t0 = 1/C
+    _t1 = 1/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 2) + _shape)
-    np.multiply(-1, R*_t0, out=_J[0, 0, ...])
-    np.multiply(-1, 1/C, out=_J[0, 1, ...])
-    _J[1, 0, ...] = _t0
+    np.multiply(-1, _t1*R, out=_J[0, 0, ...])
+    np.multiply(-1, _t0, out=_J[0, 1, ...])
+    _J[1, 0, ...] = _t1
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -199,10 +204,12 @@ def dhdx(x, u, theta):
     theta = np.asarray(theta, dtype=float)
     L = theta[..., 1]
     C = theta[..., 2]
+    _t0 = 1/L
+    _t1 = 1/C
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 2) + _shape)
-    _J[0, 0, ...] = 1/L
-    _J[1, 1, ...] = 1/C
+    _J[0, 0, ...] = _t0
+    _J[1, 1, ...] = _t1
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -243,14 +250,14 @@ def f_dfdx(x, u, theta):
     C = theta[..., 2]
     _t0 = 1/C
     _t1 = 1/L
-    _t2 = p_inductor*_t1
+    _t2 = _t1*p_inductor
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(V - R*_t2, -q_capacitor*_t0, out=_dxdt[0, ...])
+    np.add(V - _t2*R, -_t0*q_capacitor, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t2
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((2, 2) + _shape)
-    np.multiply(-1, R*_t1, out=_J[0, 0, ...])
+    np.multiply(-1, _t1*R, out=_J[0, 0, ...])
     np.multiply(-1, _t0, out=_J[0, 1, ...])
     _J[1, 0, ...] = _t1
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
@@ -299,7 +306,7 @@ def power_dissipated(x, u, theta):
     L = theta[..., 1]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(1/L**2, R*p_inductor**2, out=_out[...])
+    np.multiply(R*p_inductor/L, p_inductor/L, out=_out[...])
     return _out
 
 
@@ -315,11 +322,9 @@ def energy_rate(x, u, theta):
     R = theta[..., 0]
     L = theta[..., 1]
     C = theta[..., 2]
-    _t0 = q_capacitor/C
-    _t1 = p_inductor/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t1*(V - R*_t1 - _t0), _t0*_t1, out=_out[...])
+    np.add(p_inductor*q_capacitor/(C*L), (V - q_capacitor/C - R*p_inductor/L)*p_inductor/L, out=_out[...])
     return _out
 
 

@@ -113,10 +113,11 @@ def f(x, u, theta):
     R1 = theta[..., 0]
     R2 = theta[..., 1]
     L = theta[..., 2]
-    _t0 = 1/L
+    _t0 = 1/(-R1 - R2)
+    _t1 = 1/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.add(V, -R1*(p_L*_t0 + (-V + R1*p_L*_t0)/(-R1 - R2)), out=_dxdt[0, ...])
+    np.add(V, -(_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -137,11 +138,12 @@ def h(x, u, theta):
     R2 = theta[..., 1]
     L = theta[..., 2]
     _t0 = 1/L
-    _t1 = p_L*_t0
+    _t1 = _t0*p_L
+    _t2 = 1/(-R1 - R2)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((2,) + _shape)
     _y[0, ...] = _t1
-    np.add(V, -R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2)), out=_y[1, ...])
+    np.add(V, -(_t1 + _t2*(_t0*R1*p_L - V))*R1, out=_y[1, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -155,10 +157,11 @@ def dfdx(x, u, theta):
     R1 = theta[..., 0]
     R2 = theta[..., 1]
     L = theta[..., 2]
-    _t0 = 1/L
+    _t0 = 1/(-R1 - R2)
+    _t1 = 1/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((1, 1) + _shape)
-    np.multiply(-1, R1*(R1*_t0/(-R1 - R2) + _t0), out=_J[0, 0, ...])
+    np.multiply(-1, (_t1 + _t0*_t1*R1)*R1, out=_J[0, 0, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -177,15 +180,15 @@ def dfdtheta(x, u, theta):
     _t0 = -R1 - R2
     _t1 = 1/_t0
     _t2 = 1/L
-    _t3 = -V + R1*p_L*_t2
-    _t4 = p_L*_t2
+    _t3 = _t2*R1*p_L - V
+    _t4 = _t2*p_L
     _t5 = _t3/_t0**2
     _t6 = p_L/L**2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((1, 3) + _shape)
-    np.add(-R1*(_t1*_t4 + _t5) - _t1*_t3, -_t4, out=_J[0, 0, ...])
-    np.multiply(-1, R1*_t5, out=_J[0, 1, ...])
-    np.multiply(-1, R1*(-R1*_t1*_t6 - _t6), out=_J[0, 2, ...])
+    np.add(-_t1*_t3 - (_t5 + _t1*_t4)*R1, -_t4, out=_J[0, 0, ...])
+    np.multiply(-1, _t5*R1, out=_J[0, 1, ...])
+    np.multiply(-1, (-_t6 - _t1*_t6*R1)*R1, out=_J[0, 2, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -200,10 +203,11 @@ def dhdx(x, u, theta):
     R2 = theta[..., 1]
     L = theta[..., 2]
     _t0 = 1/L
+    _t2 = 1/(-R1 - R2)
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((2, 1) + _shape)
     _J[0, 0, ...] = _t0
-    np.multiply(-1, R1*(R1*_t0/(-R1 - R2) + _t0), out=_J[1, 0, ...])
+    np.multiply(-1, (_t0 + _t0*_t2*R1)*R1, out=_J[1, 0, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -223,15 +227,15 @@ def dhdtheta(x, u, theta):
     _t1 = -R1 - R2
     _t2 = 1/_t1
     _t3 = 1/L
-    _t4 = -V + R1*p_L*_t3
-    _t5 = p_L*_t3
+    _t4 = _t3*R1*p_L - V
+    _t5 = _t3*p_L
     _t6 = _t4/_t1**2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 3) + _shape)
     np.multiply(-1, _t0, out=_J[0, 2, ...])
-    np.add(-R1*(_t2*_t5 + _t6) - _t2*_t4, -_t5, out=_J[1, 0, ...])
-    np.multiply(-1, R1*_t6, out=_J[1, 1, ...])
-    np.multiply(-1, R1*(-R1*_t0*_t2 - _t0), out=_J[1, 2, ...])
+    np.add(-_t2*_t4 - (_t6 + _t2*_t5)*R1, -_t5, out=_J[1, 0, ...])
+    np.multiply(-1, _t6*R1, out=_J[1, 1, ...])
+    np.multiply(-1, (-_t0 - _t0*_t2*R1)*R1, out=_J[1, 2, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -255,10 +259,10 @@ def f_dfdx(x, u, theta):
     _t1 = 1/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.add(V, -R1*(p_L*_t1 + _t0*(-V + R1*p_L*_t1)), out=_dxdt[0, ...])
+    np.add(V, -(_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((1, 1) + _shape)
-    np.multiply(-1, R1*(R1*_t0*_t1 + _t1), out=_J[0, 0, ...])
+    np.multiply(-1, (_t1 + _t0*_t1*R1)*R1, out=_J[0, 0, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
@@ -288,10 +292,9 @@ def power_sources(x, u, theta):
     R1 = theta[..., 0]
     R2 = theta[..., 1]
     L = theta[..., 2]
-    _t0 = 1/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(p_L*_t0 + (-V + R1*p_L*_t0)/(-R1 - R2), V, out=_out[...])
+    np.multiply(V, (R1*p_L/L - V)/(-R1 - R2) + p_L/L, out=_out[...])
     return _out
 
 
@@ -306,12 +309,11 @@ def power_dissipated(x, u, theta):
     R1 = theta[..., 0]
     R2 = theta[..., 1]
     L = theta[..., 2]
-    _t0 = 1/L
-    _t1 = (-V + R1*p_L*_t0)/(-R1 - R2)
-    _t2 = p_L*_t0 + _t1
+    _t1 = (R1*p_L/L - V)/(-R1 - R2)
+    _t2 = _t1 + p_L/L
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(R1*_t2**2, _t1*(V - R1*_t2), out=_out[...])
+    np.add((V - _t2*R1)*_t1, (_t2*R1)*_t2, out=_out[...])
     return _out
 
 
@@ -327,10 +329,9 @@ def energy_rate(x, u, theta):
     R2 = theta[..., 1]
     L = theta[..., 2]
     _t0 = 1/L
-    _t1 = p_L*_t0
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(_t1, V - R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2)), out=_out[...])
+    np.multiply(_t0, (V - ((R1*p_L/L - V)/(-R1 - R2) + p_L/L)*R1)*p_L, out=_out[...])
     return _out
 
 

@@ -125,11 +125,12 @@ def f(x, u, theta):
     m = theta[..., 0]
     d = theta[..., 1]
     k = theta[..., 2]
-    _t0 = p_mass/m
+    _t0 = 1/m
+    _t1 = _t0*p_mass
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(V1 - k*q_spring, -d*_t0, out=_dxdt[0, ...])
-    _dxdt[1, ...] = _t0
+    np.add(V1 - k*q_spring, -_t1*d, out=_dxdt[0, ...])
+    _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -164,7 +165,7 @@ def dfdx(x, u, theta):
     _t0 = 1/m
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 2) + _shape)
-    np.multiply(-1, d*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, _t0*d, out=_J[0, 0, ...])
     np.multiply(-1, k, out=_J[0, 1, ...])
     _J[1, 0, ...] = _t0
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
@@ -234,14 +235,14 @@ def f_dfdx(x, u, theta):
     d = theta[..., 1]
     k = theta[..., 2]
     _t0 = 1/m
-    _t1 = p_mass*_t0
+    _t1 = _t0*p_mass
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(V1 - k*q_spring, -d*_t1, out=_dxdt[0, ...])
+    np.add(V1 - k*q_spring, -_t1*d, out=_dxdt[0, ...])
     _dxdt[1, ...] = _t1
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.zeros((2, 2) + _shape)
-    np.multiply(-1, d*_t0, out=_J[0, 0, ...])
+    np.multiply(-1, _t0*d, out=_J[0, 0, ...])
     np.multiply(-1, k, out=_J[0, 1, ...])
     _J[1, 0, ...] = _t0
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
@@ -260,7 +261,7 @@ def energy(x, u, theta):
     k = theta[..., 2]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add((0.5)*k*q_spring**2, (0.5)*p_mass**2/m, out=_out[...])
+    np.add((0.5)*q_spring**2*k, (0.5)*p_mass**2/m, out=_out[...])
     return _out
 
 
@@ -290,7 +291,7 @@ def power_dissipated(x, u, theta):
     d = theta[..., 1]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(1/m**2, d*p_mass**2, out=_out[...])
+    np.multiply(d*p_mass/m, p_mass/m, out=_out[...])
     return _out
 
 
@@ -306,11 +307,9 @@ def energy_rate(x, u, theta):
     m = theta[..., 0]
     d = theta[..., 1]
     k = theta[..., 2]
-    _t0 = k*q_spring
-    _t1 = p_mass/m
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t1*(V1 - d*_t1 - _t0), _t0*_t1, out=_out[...])
+    np.add(k*p_mass*q_spring/m, (V1 - k*q_spring - d*p_mass/m)*p_mass/m, out=_out[...])
     return _out
 
 

@@ -137,12 +137,16 @@ def f(x, u, theta):
     Rth12 = theta[..., 3]
     Rth2a = theta[..., 4]
     _t0 = 1/T0
-    _t1 = T0*q_mass2/Cth2
-    _t2 = _t0*(_t1 - T0*q_mass1/Cth1)/Rth12
+    _t1 = 1/Rth12
+    _t2 = 1/Cth2
+    _t3 = _t2*T0*q_mass2
+    _t4 = 1/Cth1
+    _t5 = _t0*_t1*(_t3 - _t4*T0*q_mass1)
+    _t6 = 1/Rth2a
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(P*_t0, _t2, out=_dxdt[0, ...])
-    np.add(_t0*(T_a - _t1)/Rth2a, -_t2, out=_dxdt[1, ...])
+    np.add(_t0*P, _t5, out=_dxdt[0, ...])
+    np.add(_t0*_t6*(T_a - _t3), -_t5, out=_dxdt[1, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -162,10 +166,12 @@ def h(x, u, theta):
     T0 = theta[..., 0]
     Cth1 = theta[..., 1]
     Cth2 = theta[..., 2]
+    _t0 = T0/Cth1
+    _t1 = T0/Cth2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((2,) + _shape)
-    np.multiply(1/Cth1, T0*q_mass1, out=_y[0, ...])
-    np.multiply(1/Cth2, T0*q_mass2, out=_y[1, ...])
+    np.multiply(_t0, q_mass1, out=_y[0, ...])
+    np.multiply(_t1, q_mass2, out=_y[1, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -180,16 +186,18 @@ def dfdx(x, u, theta):
     Cth2 = theta[..., 2]
     Rth12 = theta[..., 3]
     Rth2a = theta[..., 4]
-    _t0 = 1/Rth12
-    _t1 = _t0/Cth1
+    _t1 = 1/Rth12
     _t2 = 1/Cth2
-    _t3 = _t0*_t2
+    _t4 = 1/Cth1
+    _t6 = 1/Rth2a
+    _t7 = _t1*_t4
+    _t8 = _t1*_t2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((2, 2) + _shape)
-    np.multiply(-1, _t1, out=_J[0, 0, ...])
-    _J[0, 1, ...] = _t3
-    _J[1, 0, ...] = _t1
-    np.add(-_t2/Rth2a, -_t3, out=_J[1, 1, ...])
+    np.multiply(-1, _t7, out=_J[0, 0, ...])
+    _J[0, 1, ...] = _t8
+    _J[1, 0, ...] = _t7
+    np.add(-_t2*_t6, -_t8, out=_J[1, 1, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -212,13 +220,13 @@ def dfdtheta(x, u, theta):
     _t0 = 1/T0**2
     _t1 = 1/Rth12
     _t2 = q_mass2/Cth2
-    _t3 = T0*_t2
+    _t3 = _t2*T0
     _t4 = q_mass1/Cth1
-    _t5 = -T0*_t4 + _t3
+    _t5 = _t3 - _t4*T0
     _t6 = _t0*_t1*_t5
     _t7 = 1/T0
     _t8 = _t1*_t7*(_t2 - _t4)
-    _t9 = q_mass1*_t1/Cth1**2
+    _t9 = _t1*q_mass1/Cth1**2
     _t10 = q_mass2/Cth2**2
     _t11 = _t1*_t10
     _t12 = _t5*_t7/Rth12**2
@@ -226,11 +234,11 @@ def dfdtheta(x, u, theta):
     _t14 = T_a - _t3
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 5) + _shape)
-    np.add(-P*_t0 - _t6, _t8, out=_J[0, 0, ...])
+    np.add(-_t6 - _t0*P, _t8, out=_J[0, 0, ...])
     _J[0, 1, ...] = _t9
     np.multiply(-1, _t11, out=_J[0, 2, ...])
     np.multiply(-1, _t12, out=_J[0, 3, ...])
-    np.add(-_t0*_t13*_t14 - _t13*_t2*_t7 - _t8, _t6, out=_J[1, 0, ...])
+    np.add(-_t8 - _t0*_t13*_t14 - _t13*_t2*_t7, _t6, out=_J[1, 0, ...])
     np.multiply(-1, _t9, out=_J[1, 1, ...])
     np.add(_t10*_t13, _t11, out=_J[1, 2, ...])
     _J[1, 3, ...] = _t12
@@ -248,10 +256,12 @@ def dhdx(x, u, theta):
     T0 = theta[..., 0]
     Cth1 = theta[..., 1]
     Cth2 = theta[..., 2]
+    _t0 = T0/Cth1
+    _t1 = T0/Cth2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.zeros((2, 2) + _shape)
-    np.multiply(1/Cth1, T0, out=_J[0, 0, ...])
-    np.multiply(1/Cth2, T0, out=_J[1, 1, ...])
+    _J[0, 0, ...] = _t0
+    _J[1, 1, ...] = _t1
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -299,15 +309,15 @@ def f_dfdx(x, u, theta):
     _t0 = 1/T0
     _t1 = 1/Rth12
     _t2 = 1/Cth2
-    _t3 = T0*q_mass2*_t2
+    _t3 = _t2*T0*q_mass2
     _t4 = 1/Cth1
-    _t5 = _t0*_t1*(-T0*q_mass1*_t4 + _t3)
+    _t5 = _t0*_t1*(_t3 - _t4*T0*q_mass1)
     _t6 = 1/Rth2a
     _t7 = _t1*_t4
     _t8 = _t1*_t2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((2,) + _shape)
-    np.add(P*_t0, _t5, out=_dxdt[0, ...])
+    np.add(_t0*P, _t5, out=_dxdt[0, ...])
     np.add(_t0*_t6*(T_a - _t3), -_t5, out=_dxdt[1, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((2, 2) + _shape)
@@ -330,10 +340,9 @@ def energy(x, u, theta):
     T0 = theta[..., 0]
     Cth1 = theta[..., 1]
     Cth2 = theta[..., 2]
-    _t0 = (0.5)*T0
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(q_mass2**2*_t0/Cth2, q_mass1**2*_t0/Cth1, out=_out[...])
+    np.add((0.5)*q_mass2**2*T0/Cth2, (0.5)*q_mass1**2*T0/Cth1, out=_out[...])
     return _out
 
 
@@ -353,7 +362,7 @@ def power_sources(x, u, theta):
     Rth2a = theta[..., 4]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(T_a*(T_a - T0*q_mass2/Cth2)/(Rth2a*T0), P*q_mass1/Cth1, out=_out[...])
+    np.add((T_a - T0*q_mass2/Cth2)*T_a/(Rth2a*T0), (T0*q_mass1/Cth1)*(P/T0), out=_out[...])
     return _out
 
 
@@ -371,13 +380,11 @@ def power_dissipated(x, u, theta):
     Cth2 = theta[..., 2]
     Rth12 = theta[..., 3]
     Rth2a = theta[..., 4]
-    _t0 = 1/T0
     _t1 = T0*q_mass2/Cth2
-    _t2 = _t1 - T0*q_mass1/Cth1
-    _t3 = T_a - _t1
+    _t3 = -T0*q_mass2/Cth2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t0*_t3**2/Rth2a, _t0*_t2**2/Rth12, out=_out[...])
+    np.add((T0*q_mass1/Cth1 + _t3)*(-(_t1 - T0*q_mass1/Cth1)/(Rth12*T0)), (_t1 - T_a)*(-(T_a + _t3)/(Rth2a*T0)), out=_out[...])
     return _out
 
 
@@ -396,13 +403,10 @@ def energy_rate(x, u, theta):
     Cth2 = theta[..., 2]
     Rth12 = theta[..., 3]
     Rth2a = theta[..., 4]
-    _t0 = 1/T0
-    _t1 = T0*q_mass2/Cth2
-    _t2 = T0*q_mass1/Cth1
-    _t3 = _t0*(_t1 - _t2)/Rth12
+    _t4 = T0*q_mass2/Cth2 - T0*q_mass1/Cth1
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(_t2*(P*_t0 + _t3), _t1*(-_t3 + _t0*(T_a - _t1)/Rth2a), out=_out[...])
+    np.add(((T_a - T0*q_mass2/Cth2)/(Rth2a*T0) - _t4/(Rth12*T0))*T0*q_mass2/Cth2, (P/T0 + _t4/(Rth12*T0))*T0*q_mass1/Cth1, out=_out[...])
     return _out
 
 

@@ -124,10 +124,13 @@ def f(x, u, theta):
     m = theta[..., 1]
     c = theta[..., 2]
     _t0 = 1/m
-    _t1 = J_e*_t0/r**2
+    _t1 = _t0*J_e
+    _t2 = _t1/r**2
+    _t3 = 1/(1 + _t2)
+    _t4 = _t0*c
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.multiply(1/(_t1 + 1), -c*p_m*_t0 + (T + der_r_*p_m*_t1)/r, out=_dxdt[0, ...])
+    np.multiply(_t3, (_t2*der_r_*p_m + T)/r - _t4*p_m, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     return _dxdt
 
@@ -145,11 +148,13 @@ def h(x, u, theta):
     p_m = x[..., 0]
     r = u[..., 1]
     m = theta[..., 1]
-    _t0 = p_m/m
+    _t0 = 1/m
+    _t1 = _t0*p_m
+    _t2 = 1/r
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _y = np.empty((2,) + _shape)
-    _y[0, ...] = _t0
-    np.multiply(_t0, 1/r, out=_y[1, ...])
+    _y[0, ...] = _t1
+    np.multiply(_t1, _t2, out=_y[1, ...])
     _y = _y.transpose((*range(1, len(_shape) + 1), 0))
     return _y
 
@@ -166,10 +171,13 @@ def dfdx(x, u, theta):
     m = theta[..., 1]
     c = theta[..., 2]
     _t0 = 1/m
-    _t1 = J_e*_t0
+    _t1 = _t0*J_e
+    _t2 = _t1/r**2
+    _t3 = 1/(1 + _t2)
+    _t4 = _t0*c
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((1, 1) + _shape)
-    np.multiply(1/(1 + _t1/r**2), der_r_*_t1/r**3 - c*_t0, out=_J[0, 0, ...])
+    np.multiply(_t3, _t1*der_r_/r**3 - _t4, out=_J[0, 0, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -190,19 +198,19 @@ def dfdtheta(x, u, theta):
     _t0 = 1/r**2
     _t1 = 1/m
     _t2 = _t0*_t1
-    _t3 = J_e*_t2
-    _t4 = _t3 + 1
+    _t3 = _t2*J_e
+    _t4 = 1 + _t3
     _t5 = der_r_*p_m
-    _t6 = (-c*p_m*_t1 + (T + _t3*_t5)/r)/_t4**2
+    _t6 = ((_t3*_t5 + T)/r - _t1*c*p_m)/_t4**2
     _t7 = 1/r**3
     _t8 = 1/_t4
-    _t9 = p_m*_t1*_t8
+    _t9 = _t1*_t8*p_m
     _t10 = 1/m**2
-    _t11 = J_e*_t10
+    _t11 = _t10*J_e
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((1, 3) + _shape)
-    np.add(der_r_*_t7*_t9, -_t2*_t6, out=_J[0, 0, ...])
-    np.add(_t0*_t11*_t6, _t8*(c*p_m*_t10 - _t11*_t5*_t7), out=_J[0, 1, ...])
+    np.add(_t7*_t9*der_r_, -_t2*_t6, out=_J[0, 0, ...])
+    np.add(_t0*_t11*_t6, _t8*(_t10*c*p_m - _t11*_t5*_t7), out=_J[0, 1, ...])
     np.multiply(-1, _t9, out=_J[0, 2, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
@@ -217,10 +225,11 @@ def dhdx(x, u, theta):
     r = u[..., 1]
     m = theta[..., 1]
     _t0 = 1/m
+    _t2 = 1/r
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _J = np.empty((2, 1) + _shape)
     _J[0, 0, ...] = _t0
-    np.multiply(_t0, 1/r, out=_J[1, 0, ...])
+    np.multiply(_t0, _t2, out=_J[1, 0, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _J
 
@@ -261,16 +270,16 @@ def f_dfdx(x, u, theta):
     m = theta[..., 1]
     c = theta[..., 2]
     _t0 = 1/m
-    _t1 = J_e*_t0
+    _t1 = _t0*J_e
     _t2 = _t1/r**2
-    _t3 = 1/(_t2 + 1)
-    _t4 = c*_t0
+    _t3 = 1/(1 + _t2)
+    _t4 = _t0*c
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _dxdt = np.empty((1,) + _shape)
-    np.multiply(_t3, -p_m*_t4 + (T + der_r_*p_m*_t2)/r, out=_dxdt[0, ...])
+    np.multiply(_t3, (_t2*der_r_*p_m + T)/r - _t4*p_m, out=_dxdt[0, ...])
     _dxdt = _dxdt.transpose((*range(1, len(_shape) + 1), 0))
     _J = np.empty((1, 1) + _shape)
-    np.multiply(_t3, der_r_*_t1/r**3 - _t4, out=_J[0, 0, ...])
+    np.multiply(_t3, _t1*der_r_/r**3 - _t4, out=_J[0, 0, ...])
     _J = _J.transpose((*range(2, len(_shape) + 2), 0, 1))
     return _dxdt, _J
 
@@ -285,10 +294,10 @@ def energy(x, u, theta):
     r = u[..., 1]
     J_e = theta[..., 0]
     m = theta[..., 1]
-    _t0 = (0.5)*p_m**2
+    _t0 = p_m**2
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(J_e*_t0/(r**2*m**2), _t0/m, out=_out[...])
+    np.add((0.5)*_t0*J_e/(r**2*m**2), (0.5)*_t0/m, out=_out[...])
     return _out
 
 
@@ -319,7 +328,7 @@ def power_dissipated(x, u, theta):
     c = theta[..., 2]
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.multiply(1/m**2, c*p_m**2, out=_out[...])
+    np.multiply(c*p_m/m, p_m/m, out=_out[...])
     return _out
 
 
@@ -336,15 +345,10 @@ def energy_rate(x, u, theta):
     J_e = theta[..., 0]
     m = theta[..., 1]
     c = theta[..., 2]
-    _t0 = 1/m
-    _t1 = p_m*_t0
-    _t2 = J_e/r**2
-    _t3 = _t0*_t2
-    _t4 = (-c*_t1 + (T + der_r_*p_m*_t3)/r)/(_t3 + 1)
-    _t5 = 1/m**2
+    _t3 = (der_r_*J_e*p_m/(r**2*m) + T)/r - c*p_m/m
     _shape = np.broadcast(x[..., 0], u[..., 0], theta[..., 0]).shape
     _out = np.empty(_shape)
-    np.add(-der_r_*J_e*p_m**2*_t5/r**3 + p_m*_t2*_t4*_t5, _t1*_t4, out=_out[...])
+    np.add(_t3*J_e*p_m/((1 + J_e/(r**2*m))*r**2*m**2) - p_m**2*der_r_*J_e/(r**3*m**2), _t3*p_m/((1 + J_e/(r**2*m))*m), out=_out[...])
     return _out
 
 

@@ -264,6 +264,8 @@ class _Scap:
         names = sorted(g.elements)
         derivative: list[str] = []
         arbitrary: list[str] = []
+        derivative_set: set[str] = set()   # membership tests in constant time
+        arbitrary_set: set[str] = set()
         # 1. sources
         for n in names:
             el = g.elements[n]
@@ -293,8 +295,9 @@ class _Scap:
                     self.propagate()
                     self.order.append((el.name, "storage"))
                 elif self.recv[b.name] != integral_recv.name:
-                    if el.name not in derivative:
+                    if el.name not in derivative_set:
                         derivative.append(el.name)
+                        derivative_set.add(el.name)
                         self.order.append((el.name, "derivative"))
         # 3. resistors: the causality of their law
         for n in names:
@@ -310,8 +313,9 @@ class _Scap:
                         recv = self._other(b, el)  # resistance form: flow in, effort out
                     self._set(b, recv, el, [])
                     self.propagate()
-                    if el.name not in arbitrary:
+                    if el.name not in arbitrary_set:
                         arbitrary.append(el.name)
+                        arbitrary_set.add(el.name)
                     self.order.append((el.name, "resistor"))
         # 4. bonds still open (loops of junctions / two-ports only)
         for b in sorted(g.bonds, key=lambda b: b.name):
@@ -325,8 +329,9 @@ class _Scap:
             for p in el.ports:
                 b = p.bond
                 integral_recv = el if isinstance(el, (I, IField)) else self._other(b, el)
-                if self.recv[b.name] != integral_recv.name and el.name not in derivative:
+                if self.recv[b.name] != integral_recv.name and el.name not in derivative_set:
                     derivative.append(el.name)
+                    derivative_set.add(el.name)
         return Causality(g, dict(self.recv), derivative, arbitrary, self.order)
 
 

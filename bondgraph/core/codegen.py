@@ -25,6 +25,7 @@ fallback.
 from __future__ import annotations
 
 import importlib.util
+import re
 import sys
 import textwrap
 import types
@@ -33,7 +34,7 @@ from pathlib import Path
 import sympy as sp
 from sympy.printing.numpy import NumPyPrinter
 
-from bondgraph.core.equations import StateSpace
+from bondgraph.core.equations import StateSpace, paused_gc
 from bondgraph.core.symbols import identifier
 from bondgraph.errors import CodegenError
 
@@ -49,13 +50,238 @@ ALL_FUNCTIONS = ("f", "h", "dfdx", "dfdtheta", "dhdx", "dhdtheta", "f_dfdx", "en
 OPTIONAL_FUNCTIONS = ("dfdu", "dhdu")
 
 
+class Shared:
+    """Common subexpressions of a list of expressions, by one of two methods.
+
+    ``Shared(exprs)`` (the tree method) finds them in one pass, linear in the
+    size of the expression trees: every distinct node is visited once, by
+    hash; a node that is not an atom and occurs at two places or more (a
+    node met again is not walked again, as in :func:`sympy.cse`'s tree pass)
+    gets a variable ``_t<k>``, numbered children first. Nothing is rebuilt:
+    the printer (:meth:`_Printer.code`) prints a shared node as its
+    variable's name where it meets it, so the expressions keep their form.
+    It does not look for common sub-sums or sub-products, nor extract
+    minus signs (which sorts a sum's terms, quadratic in a long sum).
+
+    :meth:`by_sympy` runs :func:`sympy.cse` (``optimizations=None``,
+    ``order="none"``), which also shares common sub-products and sub-sums
+    and extracts minus signs: fewer operations in the kernels of the
+    filter, at a cost per expression that is linear for the state
+    equations and their Jacobians but quadratic in the length of one sum.
+
+    Parameters
+    ----------
+    exprs : sequence of sympy.Basic
+        The expressions computed together (one function's outputs).
+
+    Attributes
+    ----------
+    repl : list of (str, sympy.Basic)
+        ``(name, expression)`` of every shared subexpression, children
+        first (the tree method: the original node; sympy: the rebuilt
+        expression in the variables before it).
+    reduced : list of sympy.Basic
+        ``exprs``, an expression that is itself shared replaced by the
+        symbol of its variable (sympy: rebuilt in the variables).
+    index : dict
+        The tree method: shared node -> (position in ``repl``, name);
+        empty for sympy.
+    free : set of sympy.Symbol
+        Free symbols of ``exprs``.
+
+    References
+    ----------
+    Aho, Sethi & Ullman, *Compilers: Principles, Techniques, and Tools*
+    (1986), sec. 5.2 (the DAG of an expression: one node per distinct
+    subexpression, found by hashing).
+    """
+
+    def __init__(self, exprs):
+        exprs = [sp.sympify(e) for e in exprs]
+        seen, repeated, free = set(), set(), set()
+        stack = list(reversed(exprs))
+        while stack:  # count: an extractable node met twice is repeated
+            e = stack.pop()
+            if e.is_Atom:
+                if e.is_Symbol:
+                    free.add(e)
+                continue
+            if isinstance(e, _EXTRACTABLE):
+                if e in seen:
+                    repeated.add(e)
+                    continue
+                seen.add(e)
+            stack.extend(reversed(e.args))
+        self.free = free
+        self.repl: list = []
+        self.index: dict = {}
+        done: set = set()
+        for e in exprs:
+            self._define(e, repeated, done)
+        self.reduced = [sp.Symbol(self.index[e][1]) if e in self.index else e for e in exprs]
+        self.position = {name: k for k, (name, _) in enumerate(self.repl)}
+        self._refs = None
+
+    @classmethod
+    def by_sympy(cls, exprs) -> "Shared":
+        """The subexpressions :func:`sympy.cse` finds, in the same form."""
+        repl, reduced = sp.cse(list(exprs), symbols=sp.numbered_symbols("_t"),
+                               optimizations=None, order="none")
+        self = cls.__new__(cls)
+        self.repl = [(s.name, e) for s, e in repl]
+        self.reduced = list(reduced)
+        self.index = {}
+        self.position = {name: k for k, (name, _) in enumerate(self.repl)}
+        free = set()
+        for e in self.reduced + [e for _, e in repl]:
+            free |= e.free_symbols
+        self.free = {s for s in free if s.name not in self.position}
+        self._refs = None
+        return self
+
+    def needed(self, exprs) -> list[int]:
+        """Positions in :attr:`repl` of the variables that ``exprs`` (some
+        of :attr:`reduced`) use, directly or through other variables, in
+        order (each expression walked down to the variables only)."""
+        if self._refs is None:
+            self._refs = [self._uses(e) for _, e in self.repl]
+        need: set = set()
+        stack = [k for e in exprs for k in self._uses(e)]
+        while stack:
+            k = stack.pop()
+            if k not in need:
+                need.add(k)
+                stack.extend(self._refs[k])
+        return sorted(need)
+
+    def _uses(self, root) -> set:
+        """Positions of the variables ``root``'s own nodes use."""
+        out, stack = set(), [root]
+        while stack:
+            e = stack.pop()
+            if e.is_Atom:
+                k = self.position.get(e.name) if e.is_Symbol else None
+                if k is not None:
+                    out.add(k)
+                continue
+            hit = self.index.get(e) if e is not root else None
+            if hit is not None:
+                out.add(hit[0])
+            else:
+                stack.extend(e.args)
+        return out
+
+    def depends(self, symbols: set) -> list[bool]:
+        """For each variable of :attr:`repl`, whether its expression contains
+        one of ``symbols`` (directly or through the variables it uses; each
+        expression walked down to the variables only)."""
+        flags: list[bool] = []
+        for _, root in self.repl:
+            dep, stack = False, list(root.args)
+            while stack and not dep:
+                e = stack.pop()
+                hit = self.index.get(e)
+                if hit is not None:
+                    dep = flags[hit[0]]
+                elif e.is_Atom:
+                    k = self.position.get(e.name) if e.is_Symbol else None
+                    dep = flags[k] if k is not None else e in symbols
+                else:
+                    stack.extend(e.args)
+            flags.append(dep)
+        return flags
+
+    def _define(self, root, repeated: set, done: set) -> None:
+        """Number the shared nodes under ``root`` in post-order (iterative:
+        expression trees may be deeper than Python's recursion limit)."""
+        stack = [(root, False)]
+        while stack:
+            e, children_done = stack.pop()
+            if children_done:
+                if e in repeated:
+                    name = f"_t{len(self.repl)}"
+                    self.index[e] = (len(self.repl), name)
+                    self.repl.append((name, e))
+                continue
+            if e.is_Atom or e in done:
+                continue
+            done.add(e)
+            stack.append((e, True))
+            stack.extend((a, False) for a in reversed(e.args))
+
+
+#: nodes :class:`Shared` may give a variable (not, e.g., the (expr, cond)
+#: pairs of a Piecewise, which no printer prints alone)
+_EXTRACTABLE = (sp.Expr, sp.logic.boolalg.Boolean)
+#: a variable of :class:`Shared` in generated text
+_SHARED_NAME = re.compile(r"\b_t\d+\b")
+
+
+def live_definitions(defs: list, used: str) -> list:
+    """The definitions ``[(name, text)]`` (in order) that the text ``used``
+    needs, directly or through other definitions (one backward pass)."""
+    need = set(_SHARED_NAME.findall(used))
+    keep = []
+    for name, text in reversed(defs):
+        if name in need:
+            keep.append((name, text))
+            need.update(_SHARED_NAME.findall(text))
+    return keep[::-1]
+
+
 class _Printer(NumPyPrinter):
-    """NumPy printer with symbol renaming, broadcasting-safe max/min and
-    cheap powers."""
+    """NumPy printer with symbol renaming, broadcasting-safe max/min,
+    cheap powers and shared subexpressions (:class:`Shared`) printed as
+    their variables. Sums and products print in sympy's argument order
+    (``order="none"``: sorting the terms of a sum for printing grows faster
+    than linearly with its size)."""
 
     def __init__(self, names: dict):
-        super().__init__({"fully_qualified_modules": True, "allow_unknown_functions": False})
+        super().__init__({"fully_qualified_modules": True, "allow_unknown_functions": False,
+                          "order": "none"})
         self._names = names
+        self.shared: dict = {}
+        self._limit = 0
+
+    def code(self, expr, shared: Shared | None = None, limit: int | None = None) -> str:
+        """Text of ``expr``; a node of ``shared`` among the first ``limit``
+        of ``shared.repl`` (all when None) prints as its variable."""
+        self.shared = shared.index if shared is not None else {}
+        self._limit = len(self.shared) if limit is None else limit
+        self._not_supported = set()
+        self._number_symbols = set()
+        text = self._print(sp.sympify(expr))
+        if self._not_supported:
+            raise CodegenError("cannot print " + ", ".join(sorted(
+                type(e).__name__ for e in self._not_supported)) + " as numpy code")
+        return text.replace("numpy.", "np.")
+
+    def _shared_name(self, expr):
+        if self.shared and isinstance(expr, sp.Basic):
+            hit = self.shared.get(expr)
+            if hit is not None and hit[0] < self._limit:
+                return hit[1]
+        return None
+
+    def _print(self, expr, **kwargs):
+        name = self._shared_name(expr)
+        return name if name is not None else super()._print(expr, **kwargs)
+
+    def parenthesize(self, item, level, strict=False):
+        name = self._shared_name(item)
+        return name if name is not None else super().parenthesize(item, level, strict)
+
+    def _as_ordered_terms(self, expr, order=None):
+        """A sum's terms in sympy's order, the first one without a negative
+        coefficient moved to the front (``x - y``, not ``-y + x``)."""
+        terms = list(expr.args)
+        for k, t in enumerate(terms):
+            c = t.args[0] if t.is_Mul else t
+            if not (c.is_Number and c.is_negative):
+                if k:
+                    terms.insert(0, terms.pop(k))
+                break
+        return terms
 
     def _print_Symbol(self, expr):
         return self._names.get(expr, expr.name)
@@ -147,6 +373,9 @@ class _Gen:
         self.p_names = [nm.add(s) for s in ss.params]
         self.namer = nm
         self.printer = _Printer(nm.names)
+        self.current: Shared | None = None
+        self._groups: list | None = None
+        self._texts: dict = {}
         self.sym_index = {}
         for i, s in enumerate(ss.states):
             self.sym_index[s] = ("x", i)
@@ -156,19 +385,75 @@ class _Gen:
             self.sym_index[s] = ("theta", i)
 
     # ------------------------------------------------------------------
-    def pr(self, expr) -> str:
-        text = self.printer.doprint(expr)
-        return text.replace("numpy.", "np.")
+    def pr(self, expr, limit: int | None = None) -> str:
+        """Text of ``expr``, the nodes of :attr:`current` (the function's
+        :class:`Shared`; the first ``limit`` of them) as their variables."""
+        return self.printer.code(expr, self.current, limit)
+
+    def shared(self, exprs, tree: bool = False) -> Shared:
+        """:class:`Shared` of ``exprs`` (by :meth:`Shared.by_sympy`, or the
+        tree method), made :attr:`current`; kept for the other functions
+        of the same expressions."""
+        key = ("shared", tuple(exprs), tree)
+        self.current = self.ss.derived(key, lambda: Shared(key[1]) if tree else
+                                       Shared.by_sympy(key[1]))
+        return self.current
+
+    def group(self, exprs) -> tuple:
+        """The expressions whose common subexpressions are found together
+        with ``exprs``: f and df/dx (f, dfdx, f_dfdx and the numba f, f_dfdx,
+        f_cols share one :func:`sympy.cse`), h and dh/dx, else ``exprs``
+        (df/dθ joined to f and df/dx would save a tenth of the time of a
+        long chain but splits f's products for the Jacobian's sake: more
+        operations in the filter's kernels)."""
+        if self._groups is None:
+            fj = tuple(self.ss.f) + tuple(self.ss.jacobian("dfdx").values())
+            hj = tuple(self.ss.h) + tuple(self.ss.jacobian("dhdx").values())
+            self._groups = [(set(fj), fj), (set(hj), hj)]
+        exprs = tuple(exprs)
+        for members, grp in self._groups:
+            if all(e in members for e in exprs):
+                return grp
+        return exprs
+
+    def reduced(self, sh: Shared, group, exprs) -> list:
+        """The reduced forms (:attr:`Shared.reduced`) of ``exprs``, members
+        of ``group``, the expressions of ``sh``."""
+        if len(exprs) == len(group) and all(a is b for a, b in zip(exprs, group)):
+            return sh.reduced
+        of = dict(zip(group, sh.reduced))
+        return [of[e] for e in exprs]
+
+    def def_texts(self, sh: Shared, reduced) -> list[tuple[int, str, str]]:
+        """``(position, name, text)`` of the variables of ``sh`` (the
+        :attr:`current`) that the expressions ``reduced`` use, directly or
+        through others, in order; each printed once per generator (the
+        functions of one group share them)."""
+        texts = self._texts.setdefault(sh, {})
+        out = []
+        for k in sh.needed(reduced):
+            if k not in texts:
+                texts[k] = self.pr(sh.repl[k][1], k)
+            out.append((k, sh.repl[k][0], texts[k]))
+        return out
+
+    def definitions(self, sh: Shared, used: str, reduced) -> list[str]:
+        """``name = expression`` lines of the variables of ``sh`` that the
+        expressions ``reduced``, printed as the text ``used``, need."""
+        defs = [(name, text) for _, name, text in self.def_texts(sh, reduced)]
+        return [f"{name} = {text}" for name, text in live_definitions(defs, used)]
 
     def assign(self, target: str, e: sp.Expr) -> str:
         """``target = e``; a top-level sum or product writes straight into the
         output row through the ufunc's ``out=`` (one memory pass less than a
         temporary followed by a copy)."""
+        # the rest of the terms (factors) as they are, not a new sum (product)
+        # evaluated and sorted by sympy
         if e.is_Add and len(e.args) >= 2:
-            first, rest = e.args[0], sp.Add(*e.args[1:])
+            first, rest = e.args[0], _unevaluated(sp.Add, e.args[1:])
             return f"np.add({self.pr(rest)}, {self.pr(first)}, out={target})"
         if e.is_Mul and len(e.args) >= 2 and not any(a.is_Number for a in e.args[1:]):
-            first, rest = e.args[0], sp.Mul(*e.args[1:])
+            first, rest = e.args[0], _unevaluated(sp.Mul, e.args[1:])
             return f"np.multiply({self.pr(first)}, {self.pr(rest)}, out={target})"
         return f"{target} = {self.pr(e)}"
 
@@ -190,25 +475,21 @@ class _Gen:
         return lines
 
     def body(self, outputs: list[tuple[str, list[tuple[tuple, sp.Expr]]]],
-             allowed=("x", "u", "theta"), shape_of=("x", "u", "theta")) -> list[str]:
-        """Lines computing several output arrays with one shared CSE.
+             allowed=("x", "u", "theta"), shape_of=("x", "u", "theta"),
+             tree: bool = False) -> list[str]:
+        """Lines computing several output arrays with one shared CSE (of
+        their :meth:`group`; the tree method when ``tree``), the
+        subexpressions they do not need left out.
 
         outputs: list of (array_name, [(index_tuple, expr)], full_shape_suffix)
         """
-        flat = []
-        for _, entries, _suffix in outputs:
-            flat += [e for _, e in entries]
-        repl, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_t"), optimizations=None,
-                               order="none")
-        syms = set()
-        for e in reduced:
-            syms |= e.free_symbols
-        for _, e in repl:
-            syms |= e.free_symbols
-        syms = {s for s in syms if not str(s).startswith("_t")}
-        lines = self._unpack(syms, allowed)
-        for s, e in repl:
-            lines.append(f"{s} = {self.pr(e)}")
+        exprs = [e for _, entries, _suffix in outputs for _, e in entries]
+        grp = exprs if tree else self.group(exprs)
+        sh = self.shared(grp, tree)
+        out_lines = self._output_lines(outputs, self.reduced(sh, grp, exprs))
+        lines = self._unpack(_free(self.reduced(sh, grp, exprs), sh) if grp is not exprs
+                             else sh.free, allowed)
+        lines += self.definitions(sh, "\n".join(out_lines), self.reduced(sh, grp, exprs))
         sizes = {"x": len(self.ss.states), "u": len(self.ss.inputs), "theta": len(self.ss.params)}
         if all(sizes[a] > 0 for a in shape_of):
             # np.broadcast(...).shape is ~2 us cheaper per call than broadcast_shapes
@@ -217,10 +498,15 @@ class _Gen:
         else:
             shape_args = ", ".join(f"{a}.shape[:-1]" for a in shape_of)
             lines.append(f"_shape = np.broadcast_shapes({shape_args})")
+        return lines + out_lines
+
+    def _output_lines(self, outputs, reduced) -> list[str]:
+        """Allocation and assignment lines of the output arrays."""
         # Outputs are filled "state-major" (component axes first, so each
         # assignment writes one contiguous row) and returned as a view with the
         # component axes last: shape (..., n) as documented, memory laid out so
         # that a caller feeding the result back reads contiguous columns.
+        lines = []
         k = 0
         for name, entries, suffix in outputs:
             dense = len(entries) == _prod(suffix)
@@ -244,9 +530,10 @@ class _Gen:
         return lines
 
     def function(self, name: str, args: str, doc: str, outputs, returns: str,
-                 allowed=("x", "u", "theta"), shape_of=("x", "u", "theta")) -> str:
+                 allowed=("x", "u", "theta"), shape_of=("x", "u", "theta"),
+                 tree: bool = False) -> str:
         conv = [f"{a} = np.asarray({a}, dtype=float)" for a in shape_of]
-        lines = conv + self.body(outputs, allowed, shape_of) + [f"return {returns}"]
+        lines = conv + self.body(outputs, allowed, shape_of, tree) + [f"return {returns}"]
         doc = textwrap.indent(doc.strip("\n"), "    ")
         return (f"def {name}({args}):\n    \"\"\"{doc.strip()}\n    \"\"\"\n" +
                 "\n".join("    " + ln for ln in lines) + "\n")
@@ -378,29 +665,22 @@ OUTPUT_UNITS = {_fmt_list(o.unit for o in ss.outputs)}
         ss = self.ss
         nx, npar, ny, nu = len(ss.states), len(ss.params), len(ss.outputs), len(ss.inputs)
         parts = []
-        jac_specs = [("dfdx", ss.dfdx, (nx, nx), "df/dx"), ("dfdtheta", ss.dfdtheta, (nx, npar), "df/dtheta"),
-                     ("dhdx", ss.dhdx, (ny, nx), "dh/dx"), ("dhdtheta", ss.dhdtheta, (ny, npar), "dh/dtheta"),
-                     ("dfdu", ss.dfdu, (nx, nu), "df/du"), ("dhdu", ss.dhdu, (ny, nu), "dh/du")]
-        cache = {}
-        for name, fn, shape, label in jac_specs:
-            if name not in functions and not (name == "dfdx" and "f_dfdx" in functions):
-                continue
-            M = fn()
-            cache[name] = M
-            entries = [((i, j), M[i, j]) for i in range(M.rows) for j in range(M.cols) if M[i, j] != 0]
+        jac_specs = [("dfdx", (nx, nx), "df/dx"), ("dfdtheta", (nx, npar), "df/dtheta"),
+                     ("dhdx", (ny, nx), "dh/dx"), ("dhdtheta", (ny, npar), "dh/dtheta"),
+                     ("dfdu", (nx, nu), "df/du"), ("dhdu", (ny, nu), "dh/du")]
+        for name, shape, label in jac_specs:
             if name in functions:
                 parts.append(self.function(
                     name, "x, u, theta",
                     f"Jacobian {label}, shape (..., {shape[0]}, {shape[1]}).",
-                    [("_J", entries, shape)], "_J"))
+                    [("_J", list(ss.jacobian(name).items()), shape)], "_J"))
         if "f_dfdx" in functions:
-            M = cache["dfdx"]
-            entries = [((i, j), M[i, j]) for i in range(M.rows) for j in range(M.cols) if M[i, j] != 0]
             parts.append(self.function(
                 "f_dfdx", "x, u, theta",
                 f"f and df/dx together (shared subexpressions), for Rosenbrock steps.\n\n"
                 f"Returns\n-------\n(array (..., {nx}), array (..., {nx}, {nx}))",
-                [("_dxdt", self._f_entries(), (nx,)), ("_J", entries, (nx, nx))], "_dxdt, _J"))
+                [("_dxdt", self._f_entries(), (nx,)),
+                 ("_J", list(ss.jacobian("dfdx").items()), (nx, nx))], "_dxdt, _J"))
         return parts
 
     def _energy_functions(self, functions) -> list[str]:
@@ -412,7 +692,10 @@ OUTPUT_UNITS = {_fmt_list(o.unit for o in ss.outputs)}
                         ("energy_rate", ss.energy_rate,
                          "dH/dt by the chain rule [W], shape (...); equals power_sources - "
                          "power_dissipated.")]
-        return [self.function(name, "x, u, theta", doc, [("_out", [((), ex)], ())], "_out")
+        # the tree method: these sums grow with the graph (one term per
+        # storage or resistor), and sympy's minus-sign test sorts them
+        return [self.function(name, "x, u, theta", doc, [("_out", [((), ex)], ())], "_out",
+                              tree=True)
                 for name, ex, doc in energy_specs if name in functions]
 
     def _noise_functions(self) -> list[str]:
@@ -462,6 +745,34 @@ _FILTERPY_ADAPTER = textwrap.dedent('''
     ''')
 
 
+def _unevaluated(op, args):
+    """``op(*args)`` as given (one argument: itself)."""
+    return args[0] if len(args) == 1 else op(*args, evaluate=False)
+
+
+def _free(reduced, sh: Shared) -> set:
+    """Free symbols of the model that ``reduced`` needs, through the
+    definitions of ``sh`` too (each definition walked once)."""
+    need, out, seen = list(reduced), set(), set()
+    while need:
+        e = need.pop()
+        if e.is_Atom:
+            k = sh.position.get(e.name) if e.is_Symbol else None
+            if k is not None and k not in seen:
+                seen.add(k)
+                need.append(sh.repl[k][1])
+            elif k is None and e.is_Symbol:
+                out.add(e)
+            continue
+        hit = sh.index.get(e)
+        if hit is not None:
+            if hit[0] in seen:
+                continue
+            seen.add(hit[0])
+        need.extend(e.args)
+    return out
+
+
 def _prod(t) -> int:
     out = 1
     for v in t:
@@ -488,7 +799,8 @@ def generate_source(ss: StateSpace, *, source: str | None = None,
     -------
     str
     """
-    return _Gen(ss, source=source, command=command).module(functions)
+    with paused_gc():
+        return _Gen(ss, source=source, command=command).module(functions)
 
 
 def write_module(ss: StateSpace, path: str | Path, *, source: str | None = None,

@@ -29,8 +29,8 @@ import textwrap
 import sympy as sp
 
 from bondgraph.core import vmath
-from bondgraph.core.codegen import _Gen, _Printer
-from bondgraph.core.equations import StateSpace
+from bondgraph.core.codegen import Shared, _free, _Gen, _Printer, live_definitions
+from bondgraph.core.equations import StateSpace, paused_gc
 
 
 class _ScalarPrinter(_Printer):
@@ -93,7 +93,7 @@ NUMBA_FUNCTIONS = ("f", "h", "f_dfdx", "f_cols", "h_cols")
 #: version of the numba code generator: part of the key of compiled kernels
 #: built in memory (bump it when the generated numba text changes, also by
 #: an edit of bondgraph/core/vmath.py)
-NUMBA_CODEGEN_VERSION = 6
+NUMBA_CODEGEN_VERSION = 7
 
 
 #: the column kernels' loops run over a multiple of POINTS_VECTOR points, at
@@ -215,6 +215,46 @@ def vmath_function(name: str) -> str:
     return "\n".join([f"def {name}(x):"] + ["    " + ln for ln in lines + [f"return {res}"]])
 
 
+class _Inline:
+    """Calls of :data:`VMATH_CALLS` in a column kernel's expressions
+    replaced by the inline code of the :mod:`bondgraph.core.vmath` functions
+    (a libm call would keep the loop scalar)."""
+
+    def __init__(self, gen: "_NumbaGen", sh: Shared):
+        self.gen, self.sh = gen, sh
+        self.counter = itertools.count()
+        self.far: list[str] = []
+
+    def text(self, e, limit: int, plain: str | None, out: list) -> str:
+        """Text of ``e`` (``repl[limit]`` of the kernel's :class:`Shared`,
+        or an output when ``limit`` is its length), its calls computed by
+        statements appended to ``out``; ``plain`` (its text without inline
+        code, if known) when it makes no call."""
+        ex = self.expanded(e, out, limit, top=True)
+        if ex is e and plain is not None:
+            return plain
+        return self.gen.pr(ex, limit)
+
+    def expanded(self, e, out: list, limit: int, top: bool = False):
+        """``e`` with its calls replaced by the result variables of their
+        inline code (appended to ``out``, innermost first); a shared node
+        before ``limit`` is a variable already computed."""
+        if e.is_Atom or (not top and self.sh.index.get(e, (limit,))[0] < limit):
+            return e
+        args = [self.expanded(a, out, limit) for a in e.args]
+        if any(a is not b for a, b in zip(args, e.args)):
+            e = e.func(*args)
+        name = VMATH_CALLS.get(e.func)
+        if name is None:
+            return e
+        code, res, pre = vmath_inline(name, [self.gen.pr(e.args[0], limit)], self.counter)
+        out += code
+        if name in VMATH_LIMITED:
+            out.append(f"_far += abs({pre}x) >= 1e8")
+            self.far.append(name)
+        return sp.Symbol(res)
+
+
 class _NumbaGen(_Gen):
     """Scalar per-point kernels for numba from the same expressions and names
     as the numpy module (:func:`generate_numba_source`)."""
@@ -226,21 +266,20 @@ class _NumbaGen(_Gen):
     def point_body(self, outputs) -> list[str]:
         """Lines computing ``outputs`` ([(array name, [(index, expr)], dense)])
         for one point, with one shared CSE, written into the given arrays."""
-        flat = [e for _, entries, _ in outputs for _, e in entries]
-        repl, reduced = sp.cse(flat, symbols=sp.numbered_symbols("_t"), optimizations=None,
-                               order="none")
-        syms = set()
-        for e in list(reduced) + [e for _, e in repl]:
-            syms |= e.free_symbols
-        lines = self._unpack({s for s in syms if not str(s).startswith("_t")}, point=True)
-        lines += [f"{s} = {self.pr(e)}" for s, e in repl]
+        exprs = [e for _, entries, _ in outputs for _, e in entries]
+        grp = self.group(exprs)
+        sh = self.shared(grp)
+        reduced = self.reduced(sh, grp, exprs)
+        lines = self._unpack(_free(reduced, sh), point=True)
+        out = []
         k = 0
         for name, entries, dense in outputs:
             if not dense:
-                lines.append(f"{name}[:, :] = 0.0")
+                out.append(f"{name}[:, :] = 0.0")
             for idx, _ in entries:
-                lines.append(f"{name}[{', '.join(str(i) for i in idx)}] = {self.pr(reduced[k])}")
+                out.append(f"{name}[{', '.join(str(i) for i in idx)}] = {self.pr(reduced[k])}")
                 k += 1
+        lines += self.definitions(sh, "\n".join(out), reduced) + out
         return lines or ["return"]
 
     def cols_function(self, name: str, out: str, doc: str, entries) -> str:
@@ -256,54 +295,34 @@ class _NumbaGen(_Gen):
         magnitude 1e8 or more (or inf) is counted and the loop is run again
         with numpy's functions."""
         npt = padded_points(len(self.ss.states))
-        repl, reduced = sp.cse([e for _, e in entries], symbols=sp.numbered_symbols("_t"),
-                               optimizations=None, order="none")
+        exprs = [e for _, e in entries]
+        grp = self.group(exprs)
+        sh = self.shared(grp)
+        reduced = self.reduced(sh, grp, exprs)
         xs = {s for s in self.sym_index if self.sym_index[s][0] == "x"}
-        varying = set(xs)
-        for sym, e in repl:
-            if e.free_symbols & varying:
-                varying.add(sym)
-        syms = set()
-        for e in list(reduced) + [e for _, e in repl]:
-            syms |= e.free_symbols
-        used = {s for s in syms if not str(s).startswith("_t")}
-        head = self._unpack(used - xs, point=True)
-        head += [f"{s} = {self.pr(e)}" for s, e in repl if s not in varying]
+        varying = sh.depends(xs)
+        texts = self.def_texts(sh, reduced)
+        outs = [f"{out}[{i * npt} + _j] = {self.pr(e)}" for ((i,), _), e in zip(entries, reduced)]
+        live = {n for n, _ in live_definitions([(n, t) for _, n, t in texts], "\n".join(outs))}
+        defs = {k: (n, t) for k, n, t in texts}
+        free = _free(reduced, sh)
+        head = self._unpack(free - xs, point=True)
+        head += [f"{n} = {t}" for k, (n, t) in defs.items() if n in live and not varying[k]]
         loads = [f"{self.namer.names[s]} = _X[{self.sym_index[s][1] * npt} + _j]"
-                 for s in sorted(used & xs, key=lambda s: self.sym_index[s][1])]
-        counter, far = itertools.count(), []
-
-        def expanded(e, out: list):
-            """``e`` with its calls of :data:`VMATH_CALLS` replaced by the
-            result variables of their inline code (appended to ``out``,
-            innermost first; a libm call would keep the loop scalar)."""
-            if e.is_Atom:
-                return e
-            args = [expanded(a, out) for a in e.args]
-            if any(a is not b for a, b in zip(args, e.args)):
-                e = e.func(*args)
-            name = VMATH_CALLS.get(e.func)
-            if name is None:
-                return e
-            code, res, pre = vmath_inline(name, [self.pr(e.args[0])], counter)
-            out += code
-            if name in VMATH_LIMITED:
-                out.append(f"_far += abs({pre}x) >= 1e8")
-                far.append(name)
-            return sp.Symbol(res)
-
+                 for s in sorted(free & xs, key=lambda s: self.sym_index[s][1])]
+        inline = _Inline(self, sh)
         body = list(loads)
-        for s, e in repl:
-            if s in varying:
-                body.append(f"{s} = {self.pr(expanded(e, body))}")
-        for ((i,), _), e in zip(entries, reduced):
-            body.append(f"{out}[{i * npt} + _j] = {self.pr(expanded(e, body))}")
-        lines = head + ["_far = 0"] * bool(far) + [f"for _j in range({npt}):"]
+        for k, (n, t) in defs.items():
+            if n in live and varying[k]:
+                body.append(f"{n} = {inline.text(sh.repl[k][1], k, t, body)}")
+        for ((i,), _), e, plain in zip(entries, reduced, outs):
+            body.append(plain if e.is_Atom else
+                        f"{out}[{i * npt} + _j] = {inline.text(e, len(sh.repl), None, body)}")
+        lines = head + ["_far = 0"] * bool(inline.far) + [f"for _j in range({npt}):"]
         lines += ["    " + ln for ln in body]
-        if far:
-            plain = list(loads) + [f"{s} = {self.pr(e)}" for s, e in repl if s in varying]
-            plain += [f"{out}[{i * npt} + _j] = {self.pr(e)}"
-                      for ((i,), _), e in zip(entries, reduced)]
+        if inline.far:
+            plain = list(loads) + [f"{n} = {t}" for k, (n, t) in defs.items()
+                                   if n in live and varying[k]] + outs
             lines += ["if _far:", f"    for _j in range({npt}):"]
             lines += ["        " + ln for ln in plain]
         text = "\n".join("    " + ln for ln in lines)
@@ -322,8 +341,7 @@ class _NumbaGen(_Gen):
         """Source text of the numba module: header, sizes, signatures, kernels."""
         ss = self.ss
         nx, ny = len(ss.states), len(ss.outputs)
-        J = self.ss.dfdx()
-        jac = [((i, j), J[i, j]) for i in range(nx) for j in range(nx) if J[i, j] != 0]
+        jac = list(self.ss.jacobian("dfdx").items())
         f_entries = self._f_entries()
         h_entries = [((i,), e) for i, e in enumerate(ss.h)]
         parts = [self._numba_header(),
@@ -413,5 +431,6 @@ def generate_numba_source(ss: StateSpace, *, source: str | None = None,
         A module that imports numpy and numba only; importing it compiles
         the kernels (or loads them from numba's on-disk cache).
     """
-    return _NumbaGen(ss, source=source, command=command).numba_module()
+    with paused_gc():
+        return _NumbaGen(ss, source=source, command=command).numba_module()
 

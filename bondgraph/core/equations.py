@@ -28,6 +28,8 @@ Simulation* (2006), ch. 7 (BLT sorting and tearing).
 
 from __future__ import annotations
 
+import contextlib
+import gc
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -69,27 +71,51 @@ def diff(expr: sp.Expr, sym: sp.Symbol) -> sp.Expr:
     products that bond graphs produce, because it skips the generic
     ``Derivative`` machinery; anything unusual falls back to ``sympy.diff``.
     """
-    if sym not in expr.free_symbols:
+    return _diff(expr, sym, {})
+
+
+def _free(e, memo: dict):
+    """Free symbols of ``e``, each node's set computed once (``memo``) from
+    its children's: ``free_symbols`` walks the whole subtree at every call,
+    which a derivative asks at every level."""
+    out = memo.get(e)
+    if out is None:
+        if e.is_Symbol:
+            out = frozenset((e,))
+        elif e.is_Atom:
+            out = frozenset()
+        elif e.is_Add or e.is_Mul or e.is_Pow or isinstance(e, sp.Function):
+            out = frozenset().union(*[_free(a, memo) for a in e.args])
+        else:  # bound variables (Derivative, Integral, ...): sympy's rule
+            out = frozenset(e.free_symbols)
+        memo[e] = out
+    return out
+
+
+def _diff(expr: sp.Expr, sym: sp.Symbol, memo: dict) -> sp.Expr:
+    """:func:`diff` with the free symbols kept in ``memo`` (shared by the
+    derivatives of one expression)."""
+    if sym not in _free(expr, memo):
         return sp.S.Zero
     if expr == sym:
         return sp.S.One
     if expr.is_Add:
-        return sp.Add(*[diff(a, sym) for a in expr.args])
+        return sp.Add(*[_diff(a, sym, memo) for a in expr.args])
     if expr.is_Mul:
         args = expr.args
         terms = []
         for i, a in enumerate(args):
-            if sym in a.free_symbols:
-                d = diff(a, sym)
+            if sym in _free(a, memo):
+                d = _diff(a, sym, memo)
                 if d != 0:
                     terms.append(sp.Mul(*(args[:i] + (d,) + args[i + 1:])))
         return sp.Add(*terms)
     if expr.is_Pow:
         b, e = expr.args
-        if sym not in e.free_symbols:
-            return e * b ** (e - 1) * diff(b, sym)
+        if sym not in _free(e, memo):
+            return e * b ** (e - 1) * _diff(b, sym, memo)
     elif isinstance(expr, sp.Function) and len(expr.args) == 1 and hasattr(expr, "fdiff"):
-        inner = diff(expr.args[0], sym)
+        inner = _diff(expr.args[0], sym, memo)
         try:
             outer = expr.fdiff(1)
         except Exception:  # pragma: no cover - unusual function
@@ -190,40 +216,96 @@ class StateSpace:
             var.xreplace(self.solved)
 
     # --------------------------------------------------------- jacobians
+    #: the Jacobians :meth:`jacobian` knows: (function, variables)
+    JACOBIANS = {"dfdx": ("f", "states"), "dfdtheta": ("f", "params"),
+                 "dhdx": ("h", "states"), "dhdtheta": ("h", "params"),
+                 "dfdu": ("f", "inputs"), "dhdu": ("h", "inputs")}
+
+    def jacobian(self, name: str) -> dict[tuple[int, int], sp.Expr]:
+        """The non-zero entries of a Jacobian, row by row: a sparse Jacobian
+        (a chain's ∂f/∂x is banded: its entries grow linearly with the
+        states, its dense matrix quadratically). Computed once per state
+        space (by :func:`diff`, only with respect to the symbols each
+        expression contains) and kept; the caller gets a copy.
+
+        Parameters
+        ----------
+        name : str
+            One of ``"dfdx"`` (n_x, n_x), ``"dfdtheta"`` (n_x, n_θ),
+            ``"dhdx"`` (n_y, n_x), ``"dhdtheta"`` (n_y, n_θ), ``"dfdu"``
+            (n_x, n_u), ``"dhdu"`` (n_y, n_u).
+
+        Returns
+        -------
+        dict
+            ``{(i, j): ∂g_i/∂v_j}``, non-zero entries only, in row-major order.
+
+        Raises
+        ------
+        KeyError
+            An unknown name.
+        """
+        of, wrt = self.JACOBIANS[name]
+        return dict(self.derived(("jacobian", name), lambda: self._jac_entries(
+            self.f if of == "f" else self.h, getattr(self, wrt))))
+
+    def derived(self, key, build):
+        """A value derived from this state space (a Jacobian, the common
+        subexpressions of code generation), computed once by ``build()``
+        and kept under the hashable ``key`` (not pickled). The caller must
+        not change it."""
+        cache = self.__dict__.setdefault("_derived", {})
+        if key not in cache:
+            cache[key] = build()
+        return cache[key]
+
+    def __getstate__(self):
+        """Pickled without the values kept by :meth:`derived`."""
+        state = dict(self.__dict__)
+        state.pop("_derived", None)
+        return state
+
     @staticmethod
-    def _jac(exprs, wrt) -> sp.Matrix:
+    def _jac_entries(exprs, wrt) -> dict:
         index = {s: j for j, s in enumerate(wrt)}
-        M = sp.zeros(len(exprs), len(wrt))
+        out = {}
         for i, e in enumerate(exprs):
-            for s in e.free_symbols:
-                j = index.get(s)
-                if j is not None:
-                    M[i, j] = diff(e, s)
+            memo: dict = {}
+            for j in sorted(index[s] for s in _free(e, memo) if s in index):
+                d = _diff(e, wrt[j], memo)
+                if d != 0:
+                    out[(i, j)] = d
+        return out
+
+    def _matrix(self, name: str, rows: int, cols: int) -> sp.Matrix:
+        M = sp.zeros(rows, cols)
+        for (i, j), d in self.jacobian(name).items():
+            M[i, j] = d
         return M
 
     def dfdx(self) -> sp.Matrix:
-        """∂f/∂x, shape (n_x, n_x)."""
-        return self._jac(self.f, self.states)
+        """∂f/∂x, shape (n_x, n_x) (dense; :meth:`jacobian` gives the non-zero entries)."""
+        return self._matrix("dfdx", len(self.f), len(self.states))
 
     def dfdtheta(self) -> sp.Matrix:
         """∂f/∂θ, shape (n_x, n_θ)."""
-        return self._jac(self.f, self.params)
+        return self._matrix("dfdtheta", len(self.f), len(self.params))
 
     def dhdx(self) -> sp.Matrix:
         """∂h/∂x, shape (n_y, n_x)."""
-        return self._jac(self.h, self.states)
+        return self._matrix("dhdx", len(self.outputs), len(self.states))
 
     def dhdtheta(self) -> sp.Matrix:
         """∂h/∂θ, shape (n_y, n_θ)."""
-        return self._jac(self.h, self.params)
+        return self._matrix("dhdtheta", len(self.outputs), len(self.params))
 
     def dfdu(self) -> sp.Matrix:
         """∂f/∂u, shape (n_x, n_u) (the B of a linearisation)."""
-        return self._jac(self.f, self.inputs)
+        return self._matrix("dfdu", len(self.f), len(self.inputs))
 
     def dhdu(self) -> sp.Matrix:
         """∂h/∂u, shape (n_y, n_u) (the D of a linearisation)."""
-        return self._jac(self.h, self.inputs)
+        return self._matrix("dhdu", len(self.outputs), len(self.inputs))
 
     def describe(self) -> str:
         """Readable listing of the equations."""
@@ -246,6 +328,12 @@ class _Eq:
 
     def expr(self) -> sp.Expr:
         return self.rhs if self.rhs is not None else self.residual
+
+
+def _name(v) -> str:
+    """``str(v)`` of an unknown of the dependency graph: a symbol's name
+    without the printer (the sort keys of :meth:`_Deriver.solve`)."""
+    return v.name if isinstance(v, sp.Symbol) else str(v)
 
 
 def _xdot(state: StateVar) -> sp.Symbol:
@@ -421,14 +509,15 @@ class _Deriver:
             for b in bonds:
                 if b is not s:
                     self._add(_Eq(b.e, rhs=s.e, origin=j.name, bond=b.name))
-            total = sp.Add(*[sign[b.name] * b.f for b in bonds if b is not s])
-            self._add(_Eq(s.f, rhs=-total / sign[s.name], origin=j.name, bond=s.name))
+            # -Σ sign_b f_b / sign_s as one sum (signs are ±1)
+            total = sp.Add(*[-sign[b.name] * sign[s.name] * b.f for b in bonds if b is not s])
+            self._add(_Eq(s.f, rhs=total, origin=j.name, bond=s.name))
         else:
             for b in bonds:
                 if b is not s:
                     self._add(_Eq(b.f, rhs=s.f, origin=j.name, bond=b.name))
-            total = sp.Add(*[sign[b.name] * b.e for b in bonds if b is not s])
-            self._add(_Eq(s.e, rhs=-total / sign[s.name], origin=j.name, bond=s.name))
+            total = sp.Add(*[-sign[b.name] * sign[s.name] * b.e for b in bonds if b is not s])
+            self._add(_Eq(s.e, rhs=total, origin=j.name, bond=s.name))
 
     def _twoport(self, tp: TwoPort, m) -> None:
         b1, b2 = tp.p1.bond, tp.p2.bond
@@ -513,10 +602,10 @@ class _Deriver:
             comps.setdefault(c, []).append(v)
         # deterministic topological order
         order = list(nx.lexicographical_topological_sort(
-            C, key=lambda c: min(str(v) for v in comps[c])))
+            C, key=lambda c: min(_name(v) for v in comps[c])))
         solved: dict = {}
         for c in order:
-            vs = sorted(comps[c], key=str)
+            vs = sorted(comps[c], key=_name)
             if len(vs) == 1 and not G.has_edge(vs[0], vs[0]):
                 v = vs[0]
                 if v in self.dt_targets:
@@ -562,15 +651,16 @@ class _Deriver:
         implicit = [v for v in vs if v in self.eqs and self.eqs[v].rhs is None]
         tears: list = list(implicit)
         H.remove_nodes_from(tears)
+        xdot_names = {_name(v) for v in self.xdot.values()}
         while not nx.is_directed_acyclic_graph(H):
             # tear the node on most cycles (approx.: largest in*out degree)
             cyc_nodes = set().union(*[c for c in nx.strongly_connected_components(H) if len(c) > 1])
-            best = max(sorted(cyc_nodes, key=str),
-                       key=lambda n: (H.in_degree(n) * H.out_degree(n), str(n) in map(str, self.xdot.values())))
+            best = max(sorted(cyc_nodes, key=_name),
+                       key=lambda n: (H.in_degree(n) * H.out_degree(n), _name(n) in xdot_names))
             tears.append(best)
             H.remove_node(best)
         partial = dict(solved)
-        for v in nx.lexicographical_topological_sort(H, key=str):
+        for v in nx.lexicographical_topological_sort(H, key=_name):
             if v in self.dt_targets:
                 partial[v] = self._dt_expr(v, partial)
             else:
@@ -673,6 +763,7 @@ def _assign_state_units(graph: BondGraph, states) -> None:
         bu = graph.bond_units()
     except Exception:  # unit problems are reported by validate()
         return
+    states = set(states)
     for el in graph.elements.values():
         if isinstance(el, (I, C)) and el.state in states and not el.state.unit:
             e, f = bu.get(el.port.bond.name, (None, None))
@@ -722,6 +813,32 @@ def derive(graph: BondGraph, *, causality: Causality | None = None,
     ----------
     Karnopp, Margolis & Rosenberg, *System Dynamics*, 5th ed., ch. 5 and 7.
     """
+    with paused_gc():
+        return _derive(graph, causality, validate)
+
+
+@contextlib.contextmanager
+def paused_gc():
+    """Python's cyclic garbage collector paused inside the block (if it ran
+    before; nested blocks and threads only keep it paused longer).
+
+    Derivation and code generation allocate millions of small sympy objects
+    and free them by reference counting; every full collection meanwhile
+    walks all live objects, a cost that grows with the graph at each
+    collection (0.2-0.6 s of 2 s for a 499-state chain, none at 79 states).
+    The objects left are collected after the block as usual.
+    """
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
+def _derive(graph: BondGraph, causality: Causality | None, validate: bool) -> StateSpace:
+    """:func:`derive`."""
     if causality is None:
         causality = assign_causality(graph, validate=validate)
     d = _Deriver(graph, causality)
@@ -787,17 +904,28 @@ def _energy_terms(graph: BondGraph, causality: Causality, d: _Deriver,
 
 
 def _powers(graph: BondGraph, solved: dict) -> tuple[sp.Expr, sp.Expr]:
-    """Power delivered by the sources and absorbed by the R elements (e·f)."""
+    """Power delivered by the sources and absorbed by the R elements (e·f),
+    each product left unevaluated (:func:`_product`)."""
     src_terms, diss_terms = [], []
     for name in sorted(graph.elements):
         el = graph.elements[name]
         if isinstance(el, Source):
             b = el.port.bond
-            src_terms.append(solved[b.e] * solved[b.f])
+            src_terms.append(_product(solved[b.e], solved[b.f]))
         elif isinstance(el, (R, RField)):
             for p in el.ports:
-                diss_terms.append(solved[p.bond.e] * solved[p.bond.f])
+                diss_terms.append(_product(solved[p.bond.e], solved[p.bond.f]))
     return sp.Add(*src_terms), sp.Add(*diss_terms)
+
+
+def _product(e: sp.Expr, f: sp.Expr) -> sp.Expr:
+    """e·f as an unevaluated product when both are sums: sympy's product of
+    a sum with itself (a damper's e = c·Δv times f = Δv) makes a power of a
+    sum, whose creation asks the assumptions of every term (the slowest
+    step of the derivation of a long chain); the value is the same."""
+    if e.is_Add or f.is_Add or (e.is_Mul and f.is_Mul):
+        return sp.Mul(e, f, evaluate=False)
+    return e * f
 
 
 def _energy_rate(H_terms: list[sp.Expr], d: _Deriver, f: list[sp.Expr]) -> sp.Expr:
@@ -806,7 +934,8 @@ def _energy_rate(H_terms: list[sp.Expr], d: _Deriver, f: list[sp.Expr]) -> sp.Ex
     for u, du in d.der_inputs.items():
         f_of[u] = du
     rate_terms = []
+    known = set(f_of)
     for term in H_terms:
-        for s in sorted(term.free_symbols & set(f_of), key=lambda s: s.name):
+        for s in sorted(term.free_symbols & known, key=lambda s: s.name):
             rate_terms.append(diff(term, s) * f_of[s])
     return sp.Add(*rate_terms)

@@ -733,8 +733,9 @@ class BondGraph:
                         f"declare", elements=[owner],
                         hint="declare it with g.param()/g.input(), or pass the parent graph's "
                              "symbol into the fragment (h.param(...))")
+        state_names = {s.name for s in self.all_states()}
         for nm in self.process_noise:
-            if nm not in {s.name for s in self.all_states()}:
+            if nm not in state_names:
                 raise UndeclaredSymbolError(f"process noise given for unknown state '{nm}'",
                                             elements=[nm])
 

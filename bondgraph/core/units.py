@@ -117,6 +117,7 @@ def same_dimension(a: str, b: str) -> bool:
     return dimensionality(a) == dimensionality(b)
 
 
+@functools.lru_cache(maxsize=4096)
 def is_power(effort_unit: str, flow_unit: str) -> bool:
     """True if ``effort_unit * flow_unit`` has the dimension of watts."""
     q = parse(effort_unit) * parse(flow_unit)

@@ -70,7 +70,8 @@ def f(x, u, theta, _dxdt):
     tau_f = theta[7]
     H = theta[8]
     P_eps = theta[9]
-    _dxdt[0] = (Q_idle - Q + P_eps*np.logaddexp(0.0, v*(der_v_*m + v*B + v*C*np.abs(v) + A*_tanh(v/v_eps))/P_eps)/(H*eta))/tau_f
+    _t0 = 1/tau_f
+    _dxdt[0] = _t0*(P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*_tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle)
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -97,7 +98,7 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     H = theta[8]
     P_eps = theta[9]
     _t0 = 1/tau_f
-    _dxdt[0] = _t0*(Q_idle - Q + P_eps*np.logaddexp(0.0, v*(der_v_*m + v*B + v*C*np.abs(v) + A*_tanh(v/v_eps))/P_eps)/(H*eta))
+    _dxdt[0] = _t0*(P_eps*np.logaddexp(0.0, (der_v_*m + v*B + A*_tanh(v/v_eps) + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle)
     _J[0, 0] = -_t0
 
 
@@ -116,6 +117,7 @@ def f_cols(_X, u, theta, _dxdt):
     tau_f = theta[7]
     H = theta[8]
     P_eps = theta[9]
+    _t0 = 1/tau_f
     for _j in range(16):
         Q = _X[0 + _j]
         _v0_x = v/v_eps
@@ -147,7 +149,7 @@ def f_cols(_X, u, theta, _dxdt):
         _v0_t = _v0_num / _v0_den
         _v0_big = 1.0 - _v0_t
         _v0_ret = _sel(_v0_small, _v0_x + _v0_t, _sel(_v0_x < 0, -_v0_big, _v0_big))
-        _dxdt[0 + _j] = (Q_idle - Q + P_eps*np.logaddexp(0.0, v*(der_v_*m + v*B + v*C*np.abs(v) + A*_v0_ret)/P_eps)/(H*eta))/tau_f
+        _dxdt[0 + _j] = _t0*(P_eps*np.logaddexp(0.0, (_v0_ret*A + der_v_*m + v*B + np.abs(v)*v*C)*v/P_eps)/(H*eta) - Q + Q_idle)
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})

@@ -50,13 +50,17 @@ def f(x, u, theta, _dxdt):
     k_b = theta[4]
     J_p = theta[5]
     b_p = theta[6]
-    _t0 = k_b*q_spring
-    _t1 = p_L_a/L_a
-    _t2 = (-k_m*_t1 + _t0)/b_m
-    _t3 = p_J_p/J_p
-    _dxdt[0] = u_2 - R_a*_t1 + k_m*_t2
-    _dxdt[1] = -_t2 - _t3
-    _dxdt[2] = -b_p*_t3 + _t0
+    _t0 = 1/b_m
+    _t1 = k_b*q_spring
+    _t2 = 1/L_a
+    _t3 = _t2*k_m
+    _t4 = _t0*(_t1 - _t3*p_L_a)
+    _t5 = _t2*R_a
+    _t6 = 1/J_p
+    _t7 = _t6*p_J_p
+    _dxdt[0] = _t4*k_m - _t5*p_L_a + u_2
+    _dxdt[1] = -_t4 - _t7
+    _dxdt[2] = _t1 - _t7*b_p
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -65,7 +69,8 @@ def h(x, u, theta, _y):
     p_J_p = x[2]
     J_p = theta[5]
     k_y = theta[7]
-    _y[0] = k_y*p_J_p/J_p
+    _t0 = k_y/J_p
+    _y[0] = _t0*p_J_p
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -85,23 +90,23 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t0 = 1/b_m
     _t1 = k_b*q_spring
     _t2 = 1/L_a
-    _t3 = k_m*_t2
-    _t4 = _t0*(-p_L_a*_t3 + _t1)
-    _t5 = R_a*_t2
+    _t3 = _t2*k_m
+    _t4 = _t0*(_t1 - _t3*p_L_a)
+    _t5 = _t2*R_a
     _t6 = 1/J_p
-    _t7 = p_J_p*_t6
-    _t8 = k_b*_t0
-    _dxdt[0] = u_2 + k_m*_t4 - p_L_a*_t5
+    _t7 = _t6*p_J_p
+    _t8 = _t0*k_b
+    _dxdt[0] = _t4*k_m - _t5*p_L_a + u_2
     _dxdt[1] = -_t4 - _t7
-    _dxdt[2] = -b_p*_t7 + _t1
+    _dxdt[2] = _t1 - _t7*b_p
     _J[:, :] = 0.0
-    _J[0, 0] = -k_m**2*_t0*_t2 - _t5
-    _J[0, 1] = k_m*_t8
+    _J[0, 0] = -_t5 - _t0*_t2*k_m**2
+    _J[0, 1] = _t8*k_m
     _J[1, 0] = _t0*_t3
     _J[1, 1] = -_t8
     _J[1, 2] = -_t6
     _J[2, 1] = k_b
-    _J[2, 2] = -b_p*_t6
+    _J[2, 2] = -_t6*b_p
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -115,17 +120,21 @@ def f_cols(_X, u, theta, _dxdt):
     k_b = theta[4]
     J_p = theta[5]
     b_p = theta[6]
+    _t0 = 1/b_m
+    _t2 = 1/L_a
+    _t3 = _t2*k_m
+    _t5 = _t2*R_a
+    _t6 = 1/J_p
     for _j in range(16):
         p_L_a = _X[0 + _j]
         q_spring = _X[16 + _j]
         p_J_p = _X[32 + _j]
-        _t0 = k_b*q_spring
-        _t1 = p_L_a/L_a
-        _t2 = (-k_m*_t1 + _t0)/b_m
-        _t3 = p_J_p/J_p
-        _dxdt[0 + _j] = u_2 - R_a*_t1 + k_m*_t2
-        _dxdt[16 + _j] = -_t2 - _t3
-        _dxdt[32 + _j] = -b_p*_t3 + _t0
+        _t1 = k_b*q_spring
+        _t4 = _t0*(_t1 - _t3*p_L_a)
+        _t7 = _t6*p_J_p
+        _dxdt[0 + _j] = _t4*k_m - _t5*p_L_a + u_2
+        _dxdt[16 + _j] = -_t4 - _t7
+        _dxdt[32 + _j] = _t1 - _t7*b_p
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -133,6 +142,7 @@ def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((1 * N_PTS,))."""
     J_p = theta[5]
     k_y = theta[7]
+    _t0 = k_y/J_p
     for _j in range(16):
         p_J_p = _X[32 + _j]
-        _y[0 + _j] = k_y*p_J_p/J_p
+        _y[0 + _j] = _t0*p_J_p

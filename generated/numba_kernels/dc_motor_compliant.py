@@ -53,14 +53,17 @@ def f(x, u, theta, _dxdt):
     k_s = theta[5]
     J_L = theta[6]
     b_L = theta[7]
-    _t0 = p_J_m/J_m
-    _t1 = 1/L_a
-    _t2 = k_s*q_k_s
-    _t3 = p_J_L/J_L
-    _dxdt[0] = V - R_a*p_L_a*_t1 - k_m*_t0
-    _dxdt[1] = -b_m*_t0 + k_m*p_L_a*_t1 - _t2
-    _dxdt[2] = _t0 - _t3
-    _dxdt[3] = -T_L - b_L*_t3 + _t2
+    _t0 = 1/J_m
+    _t1 = _t0*p_J_m
+    _t2 = 1/L_a
+    _t3 = _t2*R_a
+    _t4 = k_s*q_k_s
+    _t5 = 1/J_L
+    _t6 = _t5*p_J_L
+    _dxdt[0] = V - _t1*k_m - _t3*p_L_a
+    _dxdt[1] = _t2*k_m*p_L_a - _t4 - _t1*b_m
+    _dxdt[2] = _t1 - _t6
+    _dxdt[3] = _t4 - T_L - _t6*b_L
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -70,8 +73,10 @@ def h(x, u, theta, _y):
     p_J_L = x[3]
     L_a = theta[1]
     J_L = theta[6]
-    _y[0] = p_J_L/J_L
-    _y[1] = p_L_a/L_a
+    _t0 = 1/J_L
+    _t1 = 1/L_a
+    _y[0] = _t0*p_J_L
+    _y[1] = _t1*p_L_a
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -92,26 +97,26 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     J_L = theta[6]
     b_L = theta[7]
     _t0 = 1/J_m
-    _t1 = p_J_m*_t0
+    _t1 = _t0*p_J_m
     _t2 = 1/L_a
-    _t3 = R_a*_t2
+    _t3 = _t2*R_a
     _t4 = k_s*q_k_s
     _t5 = 1/J_L
-    _t6 = p_J_L*_t5
-    _dxdt[0] = V - k_m*_t1 - p_L_a*_t3
-    _dxdt[1] = -b_m*_t1 + k_m*p_L_a*_t2 - _t4
+    _t6 = _t5*p_J_L
+    _dxdt[0] = V - _t1*k_m - _t3*p_L_a
+    _dxdt[1] = _t2*k_m*p_L_a - _t4 - _t1*b_m
     _dxdt[2] = _t1 - _t6
-    _dxdt[3] = -T_L - b_L*_t6 + _t4
+    _dxdt[3] = _t4 - T_L - _t6*b_L
     _J[:, :] = 0.0
     _J[0, 0] = -_t3
-    _J[0, 1] = -k_m*_t0
-    _J[1, 0] = k_m*_t2
-    _J[1, 1] = -b_m*_t0
+    _J[0, 1] = -_t0*k_m
+    _J[1, 0] = _t2*k_m
+    _J[1, 1] = -_t0*b_m
     _J[1, 2] = -k_s
     _J[2, 1] = _t0
     _J[2, 3] = -_t5
     _J[3, 2] = k_s
-    _J[3, 3] = -b_L*_t5
+    _J[3, 3] = -_t5*b_L
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -127,19 +132,22 @@ def f_cols(_X, u, theta, _dxdt):
     k_s = theta[5]
     J_L = theta[6]
     b_L = theta[7]
-    _t1 = 1/L_a
+    _t0 = 1/J_m
+    _t2 = 1/L_a
+    _t3 = _t2*R_a
+    _t5 = 1/J_L
     for _j in range(16):
         p_L_a = _X[0 + _j]
         p_J_m = _X[16 + _j]
         q_k_s = _X[32 + _j]
         p_J_L = _X[48 + _j]
-        _t0 = p_J_m/J_m
-        _t2 = k_s*q_k_s
-        _t3 = p_J_L/J_L
-        _dxdt[0 + _j] = V - R_a*p_L_a*_t1 - k_m*_t0
-        _dxdt[16 + _j] = -b_m*_t0 + k_m*p_L_a*_t1 - _t2
-        _dxdt[32 + _j] = _t0 - _t3
-        _dxdt[48 + _j] = -T_L - b_L*_t3 + _t2
+        _t1 = _t0*p_J_m
+        _t4 = k_s*q_k_s
+        _t6 = _t5*p_J_L
+        _dxdt[0 + _j] = V - _t1*k_m - _t3*p_L_a
+        _dxdt[16 + _j] = _t2*k_m*p_L_a - _t4 - _t1*b_m
+        _dxdt[32 + _j] = _t1 - _t6
+        _dxdt[48 + _j] = _t4 - T_L - _t6*b_L
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -147,8 +155,10 @@ def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((2 * N_PTS,))."""
     L_a = theta[1]
     J_L = theta[6]
+    _t0 = 1/J_L
+    _t1 = 1/L_a
     for _j in range(16):
         p_L_a = _X[0 + _j]
         p_J_L = _X[48 + _j]
-        _y[0 + _j] = p_J_L/J_L
-        _y[16 + _j] = p_L_a/L_a
+        _y[0 + _j] = _t0*p_J_L
+        _y[16 + _j] = _t1*p_L_a

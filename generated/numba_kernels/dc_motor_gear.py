@@ -49,12 +49,16 @@ def f(x, u, theta, _dxdt):
     n = theta[4]
     J_L = theta[5]
     b_L = theta[6]
-    _t0 = p_L_a/L_a
-    _t1 = 1/J_L
-    _t2 = p_J_L*_t1
+    _t0 = 1/L_a
+    _t1 = _t0*R_a
+    _t2 = 1/J_L
     _t3 = k_m*n
-    _dxdt[0] = V - R_a*_t0 - _t2*_t3
-    _dxdt[1] = (-b_L*_t2 + _t0*_t3)/(J_m*n**2*_t1 + 1)
+    _t4 = _t2*_t3
+    _t5 = 1/(1 + _t2*n**2*J_m)
+    _t6 = _t2*b_L
+    _t7 = _t0*_t3
+    _dxdt[0] = V - _t1*p_L_a - _t4*p_J_L
+    _dxdt[1] = _t5*(_t7*p_L_a - _t6*p_J_L)
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -62,7 +66,8 @@ def h(x, u, theta, _y):
     """Outputs y = h(x, u, theta) at one point into _y (1,)."""
     p_J_L = x[1]
     J_L = theta[5]
-    _y[0] = p_J_L/J_L
+    _t0 = 1/J_L
+    _y[0] = _t0*p_J_L
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -79,15 +84,15 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     J_L = theta[5]
     b_L = theta[6]
     _t0 = 1/L_a
-    _t1 = R_a*_t0
+    _t1 = _t0*R_a
     _t2 = 1/J_L
     _t3 = k_m*n
     _t4 = _t2*_t3
-    _t5 = 1/(J_m*n**2*_t2 + 1)
-    _t6 = b_L*_t2
+    _t5 = 1/(1 + _t2*n**2*J_m)
+    _t6 = _t2*b_L
     _t7 = _t0*_t3
-    _dxdt[0] = V - p_J_L*_t4 - p_L_a*_t1
-    _dxdt[1] = _t5*(-p_J_L*_t6 + p_L_a*_t7)
+    _dxdt[0] = V - _t1*p_L_a - _t4*p_J_L
+    _dxdt[1] = _t5*(_t7*p_L_a - _t6*p_J_L)
     _J[0, 0] = -_t1
     _J[0, 1] = -_t4
     _J[1, 0] = _t5*_t7
@@ -105,21 +110,26 @@ def f_cols(_X, u, theta, _dxdt):
     n = theta[4]
     J_L = theta[5]
     b_L = theta[6]
-    _t1 = 1/J_L
+    _t0 = 1/L_a
+    _t1 = _t0*R_a
+    _t2 = 1/J_L
     _t3 = k_m*n
+    _t4 = _t2*_t3
+    _t5 = 1/(1 + _t2*n**2*J_m)
+    _t6 = _t2*b_L
+    _t7 = _t0*_t3
     for _j in range(16):
         p_L_a = _X[0 + _j]
         p_J_L = _X[16 + _j]
-        _t0 = p_L_a/L_a
-        _t2 = p_J_L*_t1
-        _dxdt[0 + _j] = V - R_a*_t0 - _t2*_t3
-        _dxdt[16 + _j] = (-b_L*_t2 + _t0*_t3)/(J_m*n**2*_t1 + 1)
+        _dxdt[0 + _j] = V - _t1*p_L_a - _t4*p_J_L
+        _dxdt[16 + _j] = _t5*(_t7*p_L_a - _t6*p_J_L)
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
 def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((1 * N_PTS,))."""
     J_L = theta[5]
+    _t0 = 1/J_L
     for _j in range(16):
         p_J_L = _X[16 + _j]
-        _y[0 + _j] = p_J_L/J_L
+        _y[0 + _j] = _t0*p_J_L

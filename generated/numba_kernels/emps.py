@@ -65,9 +65,12 @@ def f(x, u, theta, _dxdt):
     Fc = theta[5]
     offset = theta[6]
     v_eps = theta[7]
-    _t0 = p_M/M
-    _dxdt[0] = vir*gtau - Fc*_tanh(_t0/v_eps) - Fv*_t0 - offset
-    _dxdt[1] = _t0
+    _t0 = 1/v_eps
+    _t1 = 1/M
+    _t2 = _t1*p_M
+    _t3 = _tanh(_t0*_t2)
+    _dxdt[0] = vir*gtau - offset - _t2*Fv - _t3*Fc
+    _dxdt[1] = _t2
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -90,12 +93,12 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     v_eps = theta[7]
     _t0 = 1/v_eps
     _t1 = 1/M
-    _t2 = p_M*_t1
+    _t2 = _t1*p_M
     _t3 = _tanh(_t0*_t2)
-    _dxdt[0] = vir*gtau - Fc*_t3 - Fv*_t2 - offset
+    _dxdt[0] = vir*gtau - offset - _t2*Fv - _t3*Fc
     _dxdt[1] = _t2
     _J[:, :] = 0.0
-    _J[0, 0] = -Fc*_t0*_t1*(1 - _t3**2) - Fv*_t1
+    _J[0, 0] = -_t1*Fv - _t0*_t1*(1 - _t3**2)*Fc
     _J[1, 0] = _t1
 
 
@@ -109,10 +112,12 @@ def f_cols(_X, u, theta, _dxdt):
     Fc = theta[5]
     offset = theta[6]
     v_eps = theta[7]
+    _t0 = 1/v_eps
+    _t1 = 1/M
     for _j in range(16):
         p_M = _X[0 + _j]
-        _t0 = p_M/M
-        _v0_x = _t0/v_eps
+        _t2 = _t1*p_M
+        _v0_x = _t0*_t2
         _v0_a = abs(_v0_x)
         _v0_z = _v0_x * _v0_x
         _v0_aa = 2.0 * _sel(_v0_a > 40.0, 40.0, _v0_a)
@@ -141,8 +146,9 @@ def f_cols(_X, u, theta, _dxdt):
         _v0_t = _v0_num / _v0_den
         _v0_big = 1.0 - _v0_t
         _v0_ret = _sel(_v0_small, _v0_x + _v0_t, _sel(_v0_x < 0, -_v0_big, _v0_big))
-        _dxdt[0 + _j] = vir*gtau - Fc*_v0_ret - Fv*_t0 - offset
-        _dxdt[16 + _j] = _t0
+        _t3 = _v0_ret
+        _dxdt[0 + _j] = vir*gtau - offset - _t2*Fv - _t3*Fc
+        _dxdt[16 + _j] = _t2
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})

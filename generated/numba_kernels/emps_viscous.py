@@ -44,9 +44,10 @@ def f(x, u, theta, _dxdt):
     gtau = theta[0]
     M = theta[1]
     Fv = theta[2]
-    _t0 = p_M/M
-    _dxdt[0] = vir*gtau - Fv*_t0
-    _dxdt[1] = _t0
+    _t0 = 1/M
+    _t1 = _t0*p_M
+    _dxdt[0] = vir*gtau - _t1*Fv
+    _dxdt[1] = _t1
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -65,11 +66,11 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     M = theta[1]
     Fv = theta[2]
     _t0 = 1/M
-    _t1 = p_M*_t0
-    _dxdt[0] = vir*gtau - Fv*_t1
+    _t1 = _t0*p_M
+    _dxdt[0] = vir*gtau - _t1*Fv
     _dxdt[1] = _t1
     _J[:, :] = 0.0
-    _J[0, 0] = -Fv*_t0
+    _J[0, 0] = -_t0*Fv
     _J[1, 0] = _t0
 
 
@@ -80,11 +81,12 @@ def f_cols(_X, u, theta, _dxdt):
     gtau = theta[0]
     M = theta[1]
     Fv = theta[2]
+    _t0 = 1/M
     for _j in range(16):
         p_M = _X[0 + _j]
-        _t0 = p_M/M
-        _dxdt[0 + _j] = vir*gtau - Fv*_t0
-        _dxdt[16 + _j] = _t0
+        _t1 = _t0*p_M
+        _dxdt[0 + _j] = vir*gtau - _t1*Fv
+        _dxdt[16 + _j] = _t1
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})

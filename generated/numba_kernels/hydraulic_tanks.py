@@ -46,10 +46,14 @@ def f(x, u, theta, _dxdt):
     Ch2 = theta[1]
     Rh12 = theta[2]
     Rh2 = theta[3]
-    _t0 = q_tank2_C/Ch2
-    _t1 = (_t0 - q_tank1_C/Ch1)/Rh12
-    _dxdt[0] = Q + _t1
-    _dxdt[1] = -_t1 - _t0/Rh2
+    _t0 = 1/Rh12
+    _t1 = 1/Ch2
+    _t2 = _t1*q_tank2_C
+    _t3 = 1/Ch1
+    _t4 = _t0*(_t2 - _t3*q_tank1_C)
+    _t5 = 1/Rh2
+    _dxdt[0] = _t4 + Q
+    _dxdt[1] = -_t4 - _t2*_t5
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -59,8 +63,10 @@ def h(x, u, theta, _y):
     q_tank2_C = x[1]
     Ch1 = theta[0]
     Ch2 = theta[1]
-    _y[0] = q_tank1_C/Ch1
-    _y[1] = q_tank2_C/Ch2
+    _t0 = 1/Ch1
+    _t1 = 1/Ch2
+    _y[0] = _t0*q_tank1_C
+    _y[1] = _t1*q_tank2_C
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -75,18 +81,18 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     Rh2 = theta[3]
     _t0 = 1/Rh12
     _t1 = 1/Ch2
-    _t2 = q_tank2_C*_t1
+    _t2 = _t1*q_tank2_C
     _t3 = 1/Ch1
-    _t4 = _t0*(-q_tank1_C*_t3 + _t2)
+    _t4 = _t0*(_t2 - _t3*q_tank1_C)
     _t5 = 1/Rh2
     _t6 = _t0*_t3
     _t7 = _t0*_t1
-    _dxdt[0] = Q + _t4
-    _dxdt[1] = -_t2*_t5 - _t4
+    _dxdt[0] = _t4 + Q
+    _dxdt[1] = -_t4 - _t2*_t5
     _J[0, 0] = -_t6
     _J[0, 1] = _t7
     _J[1, 0] = _t6
-    _J[1, 1] = -_t1*_t5 - _t7
+    _J[1, 1] = -_t7 - _t1*_t5
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -97,13 +103,17 @@ def f_cols(_X, u, theta, _dxdt):
     Ch2 = theta[1]
     Rh12 = theta[2]
     Rh2 = theta[3]
+    _t0 = 1/Rh12
+    _t1 = 1/Ch2
+    _t3 = 1/Ch1
+    _t5 = 1/Rh2
     for _j in range(16):
         q_tank1_C = _X[0 + _j]
         q_tank2_C = _X[16 + _j]
-        _t0 = q_tank2_C/Ch2
-        _t1 = (_t0 - q_tank1_C/Ch1)/Rh12
-        _dxdt[0 + _j] = Q + _t1
-        _dxdt[16 + _j] = -_t1 - _t0/Rh2
+        _t2 = _t1*q_tank2_C
+        _t4 = _t0*(_t2 - _t3*q_tank1_C)
+        _dxdt[0 + _j] = _t4 + Q
+        _dxdt[16 + _j] = -_t4 - _t2*_t5
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -111,8 +121,10 @@ def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((2 * N_PTS,))."""
     Ch1 = theta[0]
     Ch2 = theta[1]
+    _t0 = 1/Ch1
+    _t1 = 1/Ch2
     for _j in range(16):
         q_tank1_C = _X[0 + _j]
         q_tank2_C = _X[16 + _j]
-        _y[0 + _j] = q_tank1_C/Ch1
-        _y[16 + _j] = q_tank2_C/Ch2
+        _y[0 + _j] = _t0*q_tank1_C
+        _y[16 + _j] = _t1*q_tank2_C

@@ -45,9 +45,10 @@ def f(x, u, theta, _dxdt):
     m = theta[0]
     k = theta[1]
     c = theta[2]
-    _t0 = p_mass/m
-    _dxdt[0] = F - c*_t0 - k*q_spring
-    _dxdt[1] = _t0
+    _t0 = 1/m
+    _t1 = _t0*p_mass
+    _dxdt[0] = F - _t1*c - k*q_spring
+    _dxdt[1] = _t1
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -56,8 +57,9 @@ def h(x, u, theta, _y):
     p_mass = x[0]
     q_spring = x[1]
     m = theta[0]
+    _t0 = 1/m
     _y[0] = q_spring
-    _y[1] = p_mass/m
+    _y[1] = _t0*p_mass
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -70,11 +72,11 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     k = theta[1]
     c = theta[2]
     _t0 = 1/m
-    _t1 = p_mass*_t0
-    _dxdt[0] = F - c*_t1 - k*q_spring
+    _t1 = _t0*p_mass
+    _dxdt[0] = F - _t1*c - k*q_spring
     _dxdt[1] = _t1
     _J[:, :] = 0.0
-    _J[0, 0] = -c*_t0
+    _J[0, 0] = -_t0*c
     _J[0, 1] = -k
     _J[1, 0] = _t0
 
@@ -86,20 +88,22 @@ def f_cols(_X, u, theta, _dxdt):
     m = theta[0]
     k = theta[1]
     c = theta[2]
+    _t0 = 1/m
     for _j in range(16):
         p_mass = _X[0 + _j]
         q_spring = _X[16 + _j]
-        _t0 = p_mass/m
-        _dxdt[0 + _j] = F - c*_t0 - k*q_spring
-        _dxdt[16 + _j] = _t0
+        _t1 = _t0*p_mass
+        _dxdt[0 + _j] = F - _t1*c - k*q_spring
+        _dxdt[16 + _j] = _t1
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
 def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((2 * N_PTS,))."""
     m = theta[0]
+    _t0 = 1/m
     for _j in range(16):
         p_mass = _X[0 + _j]
         q_spring = _X[16 + _j]
         _y[0 + _j] = q_spring
-        _y[16 + _j] = p_mass/m
+        _y[16 + _j] = _t0*p_mass

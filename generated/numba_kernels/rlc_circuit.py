@@ -45,9 +45,11 @@ def f(x, u, theta, _dxdt):
     R = theta[0]
     L = theta[1]
     C = theta[2]
-    _t0 = p_inductor/L
-    _dxdt[0] = V - R*_t0 - q_capacitor/C
-    _dxdt[1] = _t0
+    _t0 = 1/C
+    _t1 = 1/L
+    _t2 = _t1*p_inductor
+    _dxdt[0] = V - _t0*q_capacitor - _t2*R
+    _dxdt[1] = _t2
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -57,8 +59,10 @@ def h(x, u, theta, _y):
     q_capacitor = x[1]
     L = theta[1]
     C = theta[2]
-    _y[0] = p_inductor/L
-    _y[1] = q_capacitor/C
+    _t0 = 1/L
+    _t1 = 1/C
+    _y[0] = _t0*p_inductor
+    _y[1] = _t1*q_capacitor
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -72,11 +76,11 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     C = theta[2]
     _t0 = 1/C
     _t1 = 1/L
-    _t2 = p_inductor*_t1
-    _dxdt[0] = V - R*_t2 - q_capacitor*_t0
+    _t2 = _t1*p_inductor
+    _dxdt[0] = V - _t0*q_capacitor - _t2*R
     _dxdt[1] = _t2
     _J[:, :] = 0.0
-    _J[0, 0] = -R*_t1
+    _J[0, 0] = -_t1*R
     _J[0, 1] = -_t0
     _J[1, 0] = _t1
 
@@ -88,12 +92,14 @@ def f_cols(_X, u, theta, _dxdt):
     R = theta[0]
     L = theta[1]
     C = theta[2]
+    _t0 = 1/C
+    _t1 = 1/L
     for _j in range(16):
         p_inductor = _X[0 + _j]
         q_capacitor = _X[16 + _j]
-        _t0 = p_inductor/L
-        _dxdt[0 + _j] = V - R*_t0 - q_capacitor/C
-        _dxdt[16 + _j] = _t0
+        _t2 = _t1*p_inductor
+        _dxdt[0 + _j] = V - _t0*q_capacitor - _t2*R
+        _dxdt[16 + _j] = _t2
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -101,8 +107,10 @@ def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((2 * N_PTS,))."""
     L = theta[1]
     C = theta[2]
+    _t0 = 1/L
+    _t1 = 1/C
     for _j in range(16):
         p_inductor = _X[0 + _j]
         q_capacitor = _X[16 + _j]
-        _y[0 + _j] = p_inductor/L
-        _y[16 + _j] = q_capacitor/C
+        _y[0 + _j] = _t0*p_inductor
+        _y[16 + _j] = _t1*q_capacitor

@@ -44,8 +44,9 @@ def f(x, u, theta, _dxdt):
     R1 = theta[0]
     R2 = theta[1]
     L = theta[2]
-    _t0 = 1/L
-    _dxdt[0] = V - R1*(p_L*_t0 + (-V + R1*p_L*_t0)/(-R1 - R2))
+    _t0 = 1/(-R1 - R2)
+    _t1 = 1/L
+    _dxdt[0] = V - (_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -57,9 +58,10 @@ def h(x, u, theta, _y):
     R2 = theta[1]
     L = theta[2]
     _t0 = 1/L
-    _t1 = p_L*_t0
+    _t1 = _t0*p_L
+    _t2 = 1/(-R1 - R2)
     _y[0] = _t1
-    _y[1] = V - R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2))
+    _y[1] = V - (_t1 + _t2*(_t0*R1*p_L - V))*R1
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -72,8 +74,8 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     L = theta[2]
     _t0 = 1/(-R1 - R2)
     _t1 = 1/L
-    _dxdt[0] = V - R1*(p_L*_t1 + _t0*(-V + R1*p_L*_t1))
-    _J[0, 0] = -R1*(R1*_t0*_t1 + _t1)
+    _dxdt[0] = V - (_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1
+    _J[0, 0] = -(_t1 + _t0*_t1*R1)*R1
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -83,10 +85,11 @@ def f_cols(_X, u, theta, _dxdt):
     R1 = theta[0]
     R2 = theta[1]
     L = theta[2]
-    _t0 = 1/L
+    _t0 = 1/(-R1 - R2)
+    _t1 = 1/L
     for _j in range(16):
         p_L = _X[0 + _j]
-        _dxdt[0 + _j] = V - R1*(p_L*_t0 + (-V + R1*p_L*_t0)/(-R1 - R2))
+        _dxdt[0 + _j] = V - (_t0*(_t1*R1*p_L - V) + _t1*p_L)*R1
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -97,8 +100,9 @@ def h_cols(_X, u, theta, _y):
     R2 = theta[1]
     L = theta[2]
     _t0 = 1/L
+    _t2 = 1/(-R1 - R2)
     for _j in range(16):
         p_L = _X[0 + _j]
-        _t1 = p_L*_t0
+        _t1 = _t0*p_L
         _y[0 + _j] = _t1
-        _y[16 + _j] = V - R1*(_t1 + (-V + R1*p_L*_t0)/(-R1 - R2))
+        _y[16 + _j] = V - (_t1 + _t2*(_t0*R1*p_L - V))*R1

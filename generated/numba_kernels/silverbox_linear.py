@@ -45,9 +45,10 @@ def f(x, u, theta, _dxdt):
     m = theta[0]
     d = theta[1]
     k = theta[2]
-    _t0 = p_mass/m
-    _dxdt[0] = V1 - d*_t0 - k*q_spring
-    _dxdt[1] = _t0
+    _t0 = 1/m
+    _t1 = _t0*p_mass
+    _dxdt[0] = V1 - _t1*d - k*q_spring
+    _dxdt[1] = _t1
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -67,11 +68,11 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     d = theta[1]
     k = theta[2]
     _t0 = 1/m
-    _t1 = p_mass*_t0
-    _dxdt[0] = V1 - d*_t1 - k*q_spring
+    _t1 = _t0*p_mass
+    _dxdt[0] = V1 - _t1*d - k*q_spring
     _dxdt[1] = _t1
     _J[:, :] = 0.0
-    _J[0, 0] = -d*_t0
+    _J[0, 0] = -_t0*d
     _J[0, 1] = -k
     _J[1, 0] = _t0
 
@@ -83,12 +84,13 @@ def f_cols(_X, u, theta, _dxdt):
     m = theta[0]
     d = theta[1]
     k = theta[2]
+    _t0 = 1/m
     for _j in range(16):
         p_mass = _X[0 + _j]
         q_spring = _X[16 + _j]
-        _t0 = p_mass/m
-        _dxdt[0 + _j] = V1 - d*_t0 - k*q_spring
-        _dxdt[16 + _j] = _t0
+        _t1 = _t0*p_mass
+        _dxdt[0 + _j] = V1 - _t1*d - k*q_spring
+        _dxdt[16 + _j] = _t1
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})

@@ -49,10 +49,14 @@ def f(x, u, theta, _dxdt):
     Rth12 = theta[3]
     Rth2a = theta[4]
     _t0 = 1/T0
-    _t1 = T0*q_mass2/Cth2
-    _t2 = _t0*(_t1 - T0*q_mass1/Cth1)/Rth12
-    _dxdt[0] = P*_t0 + _t2
-    _dxdt[1] = -_t2 + _t0*(T_a - _t1)/Rth2a
+    _t1 = 1/Rth12
+    _t2 = 1/Cth2
+    _t3 = _t2*T0*q_mass2
+    _t4 = 1/Cth1
+    _t5 = _t0*_t1*(_t3 - _t4*T0*q_mass1)
+    _t6 = 1/Rth2a
+    _dxdt[0] = _t5 + _t0*P
+    _dxdt[1] = _t0*_t6*(T_a - _t3) - _t5
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -63,8 +67,10 @@ def h(x, u, theta, _y):
     T0 = theta[0]
     Cth1 = theta[1]
     Cth2 = theta[2]
-    _y[0] = T0*q_mass1/Cth1
-    _y[1] = T0*q_mass2/Cth2
+    _t0 = T0/Cth1
+    _t1 = T0/Cth2
+    _y[0] = _t0*q_mass1
+    _y[1] = _t1*q_mass2
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -82,18 +88,18 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t0 = 1/T0
     _t1 = 1/Rth12
     _t2 = 1/Cth2
-    _t3 = T0*q_mass2*_t2
+    _t3 = _t2*T0*q_mass2
     _t4 = 1/Cth1
-    _t5 = _t0*_t1*(-T0*q_mass1*_t4 + _t3)
+    _t5 = _t0*_t1*(_t3 - _t4*T0*q_mass1)
     _t6 = 1/Rth2a
     _t7 = _t1*_t4
     _t8 = _t1*_t2
-    _dxdt[0] = P*_t0 + _t5
+    _dxdt[0] = _t5 + _t0*P
     _dxdt[1] = _t0*_t6*(T_a - _t3) - _t5
     _J[0, 0] = -_t7
     _J[0, 1] = _t8
     _J[1, 0] = _t7
-    _J[1, 1] = -_t2*_t6 - _t8
+    _J[1, 1] = -_t8 - _t2*_t6
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -107,13 +113,17 @@ def f_cols(_X, u, theta, _dxdt):
     Rth12 = theta[3]
     Rth2a = theta[4]
     _t0 = 1/T0
+    _t1 = 1/Rth12
+    _t2 = 1/Cth2
+    _t4 = 1/Cth1
+    _t6 = 1/Rth2a
     for _j in range(16):
         q_mass1 = _X[0 + _j]
         q_mass2 = _X[16 + _j]
-        _t1 = T0*q_mass2/Cth2
-        _t2 = _t0*(_t1 - T0*q_mass1/Cth1)/Rth12
-        _dxdt[0 + _j] = P*_t0 + _t2
-        _dxdt[16 + _j] = -_t2 + _t0*(T_a - _t1)/Rth2a
+        _t3 = _t2*T0*q_mass2
+        _t5 = _t0*_t1*(_t3 - _t4*T0*q_mass1)
+        _dxdt[0 + _j] = _t5 + _t0*P
+        _dxdt[16 + _j] = _t0*_t6*(T_a - _t3) - _t5
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -122,8 +132,10 @@ def h_cols(_X, u, theta, _y):
     T0 = theta[0]
     Cth1 = theta[1]
     Cth2 = theta[2]
+    _t0 = T0/Cth1
+    _t1 = T0/Cth2
     for _j in range(16):
         q_mass1 = _X[0 + _j]
         q_mass2 = _X[16 + _j]
-        _y[0 + _j] = T0*q_mass1/Cth1
-        _y[16 + _j] = T0*q_mass2/Cth2
+        _y[0 + _j] = _t0*q_mass1
+        _y[16 + _j] = _t1*q_mass2

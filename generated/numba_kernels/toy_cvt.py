@@ -47,8 +47,11 @@ def f(x, u, theta, _dxdt):
     m = theta[1]
     c = theta[2]
     _t0 = 1/m
-    _t1 = J_e*_t0/r**2
-    _dxdt[0] = (-c*p_m*_t0 + (T + der_r_*p_m*_t1)/r)/(_t1 + 1)
+    _t1 = _t0*J_e
+    _t2 = _t1/r**2
+    _t3 = 1/(1 + _t2)
+    _t4 = _t0*c
+    _dxdt[0] = _t3*((_t2*der_r_*p_m + T)/r - _t4*p_m)
 
 
 @njit(SIG_POINT, cache=True, nogil=True, error_model="numpy")
@@ -57,9 +60,11 @@ def h(x, u, theta, _y):
     p_m = x[0]
     r = u[1]
     m = theta[1]
-    _t0 = p_m/m
-    _y[0] = _t0
-    _y[1] = _t0/r
+    _t0 = 1/m
+    _t1 = _t0*p_m
+    _t2 = 1/r
+    _y[0] = _t1
+    _y[1] = _t1*_t2
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -73,12 +78,12 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     m = theta[1]
     c = theta[2]
     _t0 = 1/m
-    _t1 = J_e*_t0
+    _t1 = _t0*J_e
     _t2 = _t1/r**2
-    _t3 = 1/(_t2 + 1)
-    _t4 = c*_t0
-    _dxdt[0] = _t3*(-p_m*_t4 + (T + der_r_*p_m*_t2)/r)
-    _J[0, 0] = _t3*(der_r_*_t1/r**3 - _t4)
+    _t3 = 1/(1 + _t2)
+    _t4 = _t0*c
+    _dxdt[0] = _t3*((_t2*der_r_*p_m + T)/r - _t4*p_m)
+    _J[0, 0] = _t3*(_t1*der_r_/r**3 - _t4)
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -91,10 +96,13 @@ def f_cols(_X, u, theta, _dxdt):
     m = theta[1]
     c = theta[2]
     _t0 = 1/m
-    _t1 = J_e*_t0/r**2
+    _t1 = _t0*J_e
+    _t2 = _t1/r**2
+    _t3 = 1/(1 + _t2)
+    _t4 = _t0*c
     for _j in range(16):
         p_m = _X[0 + _j]
-        _dxdt[0 + _j] = (-c*p_m*_t0 + (T + der_r_*p_m*_t1)/r)/(_t1 + 1)
+        _dxdt[0 + _j] = _t3*((_t2*der_r_*p_m + T)/r - _t4*p_m)
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -102,8 +110,10 @@ def h_cols(_X, u, theta, _y):
     """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((2 * N_PTS,))."""
     r = u[1]
     m = theta[1]
+    _t0 = 1/m
+    _t2 = 1/r
     for _j in range(16):
         p_m = _X[0 + _j]
-        _t0 = p_m/m
-        _y[0 + _j] = _t0
-        _y[16 + _j] = _t0/r
+        _t1 = _t0*p_m
+        _y[0 + _j] = _t1
+        _y[16 + _j] = _t1*_t2

@@ -79,21 +79,40 @@ def f(x, u, theta, _dxdt):
     k_theta = theta[15]
     c_theta = theta[16]
     _t0 = g*m
-    _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
-    _t2 = body__p_m/m
-    _t3 = 1/J_w
-    _t4 = k_slip*((0.25)*r_dyn*wheels__p_J*_t3 - _t2)/(C_mf*mu*((0.5)*_t1 + (0.5)*np.sqrt((_t1 - 2)**2 + 0.25) + 1))
-    _t5 = -_t4
-    _t6 = np.sin(C_mf*np.arctan(E_mf*(-_t5 - np.arctan(_t4)) + _t5))
-    _t7 = np.cos(theta_g)
-    _t8 = _t0*_t7
-    _t9 = (0.6)*C_dA*_t1*_t2 + mu*_t6*_t8
-    _t10 = pitch__p_I/I_theta
-    _t11 = _tanh((0.125)*wheels__p_J*_t3)
-    _dxdt[0] = -_t0*np.sin(theta_g) - _t9
-    _dxdt[1] = -c_theta*_t10 - h_cg*_t9 - k_theta*pitch__q_k
-    _dxdt[2] = _t10
-    _dxdt[3] = -4*brake*T_bmax*_t11 - f_r*r_dyn*_t11*_t8 + g*m*mu*r_dyn*_t6*_t7
+    _t1 = _t0*np.sin(theta_g)
+    _t2 = 1/m
+    _t3 = _t2*body__p_m
+    _t4 = 1/m**2
+    _t5 = body__p_m**2
+    _t6 = np.sqrt(0.25 + _t4*_t5)
+    _t7 = (0.6)*C_dA
+    _t8 = _t6*_t7
+    _t9 = np.cos(theta_g)
+    _t10 = _t0*_t9
+    _t11 = 1/J_w
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
+    _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
+    _t15 = 1/C_mf
+    _t16 = 1/mu
+    _t17 = _t15*_t16*k_slip/_t14
+    _t18 = _t12*_t17
+    _t19 = -_t18
+    _t20 = _t19 + (-_t19 - np.arctan(_t18))*E_mf
+    _t21 = C_mf*np.arctan(_t20)
+    _t22 = np.sin(_t21)
+    _t23 = _t22*mu
+    _t24 = _t10*_t23 + _t3*_t8
+    _t25 = 1/I_theta
+    _t26 = _t25*pitch__p_I
+    _t27 = _tanh((0.125)*_t11*wheels__p_J)
+    _t28 = brake*T_bmax
+    _t29 = _t10*r_dyn
+    _t30 = _t27*f_r
+    _dxdt[0] = -_t1 - _t24
+    _dxdt[1] = -_t24*h_cg - _t26*c_theta - k_theta*pitch__q_k
+    _dxdt[2] = _t26
+    _dxdt[3] = _t22*_t9*g*m*mu*r_dyn - _t29*_t30 - 4*_t27*_t28
     _dxdt[4] = 0
 
 
@@ -115,19 +134,36 @@ def h(x, u, theta, _y):
     C_dA = theta[10]
     theta_off = theta[17]
     _t0 = 1/J_w
-    _t1 = (0.25)*wheels__p_J*_t0
-    _t2 = 1/m
-    _t3 = body__p_m*_t2
-    _t4 = pitch__q_k + theta_g
-    _t5 = g*m
-    _t6 = np.sqrt(0.25 + body__p_m**2/m**2)
-    _t7 = k_slip*((0.25)*r_dyn*wheels__p_J*_t0 - _t3)/(C_mf*mu*((0.5)*_t6 + (0.5)*np.sqrt((_t6 - 2)**2 + 0.25) + 1))
-    _t8 = -_t7
-    _y[0] = _t1
-    _y[1] = _t1
-    _y[2] = _t3
-    _y[3] = theta_off + _t4
-    _y[4] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t6 - mu*_t5*np.sin(C_mf*np.arctan(E_mf*(-_t8 - np.arctan(_t7)) + _t8))*np.cos(theta_g) - _t5*np.sin(theta_g))
+    _t1 = (0.25)*_t0
+    _t2 = _t1*wheels__p_J
+    _t3 = 1/m
+    _t4 = _t3*body__p_m
+    _t5 = pitch__q_k + theta_g
+    _t6 = g*m
+    _t7 = _t6*np.sin(theta_g)
+    _t8 = 1/m**2
+    _t9 = body__p_m**2
+    _t10 = np.sqrt(0.25 + _t8*_t9)
+    _t11 = (0.6)*C_dA
+    _t12 = _t10*_t11
+    _t13 = np.cos(theta_g)
+    _t14 = _t13*_t6
+    _t15 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+    _t16 = np.sqrt(0.25 + (_t10 - 2)**2)
+    _t17 = 1 + (0.5)*_t10 + (0.5)*_t16
+    _t18 = 1/C_mf
+    _t19 = 1/mu
+    _t20 = _t18*_t19*k_slip/_t17
+    _t21 = _t15*_t20
+    _t22 = -_t21
+    _t23 = _t22 + (-_t22 - np.arctan(_t21))*E_mf
+    _t24 = C_mf*np.arctan(_t23)
+    _t25 = mu*np.sin(_t24)
+    _y[0] = _t2
+    _y[1] = _t2
+    _y[2] = _t4
+    _y[3] = _t5 + theta_off
+    _y[4] = _t3*(-_t7 - _t12*_t4 - _t14*_t25) + g*np.sin(_t5)
 
 
 @njit(SIG_F_DFDX, cache=True, nogil=True, error_model="numpy")
@@ -157,68 +193,68 @@ def f_dfdx(x, u, theta, _dxdt, _J):
     _t0 = g*m
     _t1 = _t0*np.sin(theta_g)
     _t2 = 1/m
-    _t3 = body__p_m*_t2
+    _t3 = _t2*body__p_m
     _t4 = 1/m**2
     _t5 = body__p_m**2
-    _t6 = np.sqrt(_t4*_t5 + 0.25)
+    _t6 = np.sqrt(0.25 + _t4*_t5)
     _t7 = (0.6)*C_dA
     _t8 = _t6*_t7
     _t9 = np.cos(theta_g)
     _t10 = _t0*_t9
     _t11 = 1/J_w
-    _t12 = (0.25)*r_dyn*wheels__p_J*_t11 - _t3
-    _t13 = np.sqrt((_t6 - 2)**2 + 0.25)
-    _t14 = (0.5)*_t13 + (0.5)*_t6 + 1
+    _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+    _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
+    _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
     _t15 = 1/C_mf
     _t16 = 1/mu
-    _t17 = k_slip*_t15*_t16/_t14
+    _t17 = _t15*_t16*k_slip/_t14
     _t18 = _t12*_t17
     _t19 = -_t18
-    _t20 = E_mf*(-_t19 - np.arctan(_t18)) + _t19
+    _t20 = _t19 + (-_t19 - np.arctan(_t18))*E_mf
     _t21 = C_mf*np.arctan(_t20)
     _t22 = np.sin(_t21)
-    _t23 = mu*_t22
+    _t23 = _t22*mu
     _t24 = _t10*_t23 + _t3*_t8
     _t25 = 1/I_theta
-    _t26 = pitch__p_I*_t25
-    _t27 = _tanh((0.125)*wheels__p_J*_t11)
+    _t26 = _t25*pitch__p_I
+    _t27 = _tanh((0.125)*_t11*wheels__p_J)
     _t28 = brake*T_bmax
-    _t29 = r_dyn*_t10
-    _t30 = f_r*_t27
+    _t29 = _t10*r_dyn
+    _t30 = _t27*f_r
     _t31 = 1/_t6
     _t32 = 1/_t14**2
-    _t33 = 1/(1 + k_slip**2*_t12**2*_t32/(C_mf**2*mu**2))
-    _t34 = body__p_m*_t31*_t4
-    _t35 = k_slip*_t12*_t15*_t16*_t32*((0.5)*_t34 + (0.25)*_t34*(2*_t6 - 4)/_t13) + _t17*_t2
-    _t36 = E_mf*(_t33*_t35 - _t35) + _t35
-    _t37 = 1/(_t20**2 + 1)
+    _t33 = 1/(1 + _t32*_t12**2*k_slip**2/(C_mf**2*mu**2))
+    _t34 = _t31*_t4*body__p_m
+    _t35 = _t17*_t2 + _t12*_t15*_t16*_t32*((0.5)*_t34 + (0.25)*_t34*(2*_t6 - 4)/_t13)*k_slip
+    _t36 = _t35 + (_t33*_t35 - _t35)*E_mf
+    _t37 = 1/(1 + _t20**2)
     _t38 = np.cos(_t21)
-    _t39 = C_mf*mu*_t37*_t38
+    _t39 = _t37*_t38*C_mf*mu
     _t40 = _t10*_t39
     _t41 = -_t2*_t8 - _t36*_t40 - _t31*_t5*_t7/m**3
-    _t42 = (0.25)*r_dyn*_t11*_t17
-    _t43 = E_mf*(-_t33*_t42 + _t42) - _t42
+    _t42 = (0.25)*_t11*_t17*r_dyn
+    _t43 = (_t42 - _t33*_t42)*E_mf - _t42
     _t44 = _t40*_t43
     _t45 = _t1*_t23
     _t46 = _t11*(1 - _t27**2)
     _dxdt[0] = -_t1 - _t24
-    _dxdt[1] = -c_theta*_t26 - h_cg*_t24 - k_theta*pitch__q_k
+    _dxdt[1] = -_t24*h_cg - _t26*c_theta - k_theta*pitch__q_k
     _dxdt[2] = _t26
-    _dxdt[3] = g*m*mu*r_dyn*_t22*_t9 - 4*_t27*_t28 - _t29*_t30
+    _dxdt[3] = _t22*_t9*g*m*mu*r_dyn - _t29*_t30 - 4*_t27*_t28
     _dxdt[4] = 0
     _J[:, :] = 0.0
     _J[0, 0] = _t41
     _J[0, 3] = -_t44
-    _J[0, 4] = -_t10 + _t45
-    _J[1, 0] = h_cg*_t41
-    _J[1, 1] = -c_theta*_t25
+    _J[0, 4] = _t45 - _t10
+    _J[1, 0] = _t41*h_cg
+    _J[1, 1] = -_t25*c_theta
     _J[1, 2] = -k_theta
-    _J[1, 3] = -h_cg*_t44
-    _J[1, 4] = h_cg*_t45
+    _J[1, 3] = -_t44*h_cg
+    _J[1, 4] = _t45*h_cg
     _J[2, 1] = _t25
     _J[3, 0] = _t29*_t36*_t39
-    _J[3, 3] = C_mf*g*m*mu*r_dyn*_t37*_t38*_t43*_t9 - 0.125*f_r*_t29*_t46 - 0.5*_t28*_t46
-    _J[3, 4] = r_dyn*_t1*_t30 - r_dyn*_t45
+    _J[3, 3] = _t37*_t38*_t43*_t9*C_mf*g*m*mu*r_dyn - 0.5*_t28*_t46 - 0.125*_t29*_t46*f_r
+    _J[3, 4] = _t1*_t30*r_dyn - _t45*r_dyn
 
 
 @njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
@@ -241,7 +277,14 @@ def f_cols(_X, u, theta, _dxdt):
     k_theta = theta[15]
     c_theta = theta[16]
     _t0 = g*m
-    _t3 = 1/J_w
+    _t2 = 1/m
+    _t4 = 1/m**2
+    _t7 = (0.6)*C_dA
+    _t11 = 1/J_w
+    _t15 = 1/C_mf
+    _t16 = 1/mu
+    _t25 = 1/I_theta
+    _t28 = brake*T_bmax
     _far = 0
     for _j in range(16):
         body__p_m = _X[0 + _j]
@@ -249,189 +292,6 @@ def f_cols(_X, u, theta, _dxdt):
         pitch__q_k = _X[32 + _j]
         wheels__p_J = _X[48 + _j]
         theta_g = _X[64 + _j]
-        _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
-        _t2 = body__p_m/m
-        _t4 = k_slip*((0.25)*r_dyn*wheels__p_J*_t3 - _t2)/(C_mf*mu*((0.5)*_t1 + (0.5)*np.sqrt((_t1 - 2)**2 + 0.25) + 1))
-        _t5 = -_t4
-        _v0_x = _t4
-        _v0_a = abs(_v0_x)
-        _v0_big = _v0_a > 2.414213562373095
-        _v0_mid = _v0_a > 0.66
-        _v0_z0 = _sel(_v0_big, -1.0, _sel(_v0_mid, _v0_a - 1.0, _v0_a)) / _sel(_v0_big, _v0_a, _sel(_v0_mid, _v0_a + 1.0, 1.0))
-        _v0_y0 = _sel(_v0_big, 1.5707963267948966, _sel(_v0_mid, 0.7853981633974483, 0.0))
-        _v0_mb = _sel(_v0_big, 6.123233995736766e-17, _sel(_v0_mid, 3.061616997868383e-17, 0.0))
-        _v0_z = _v0_z0 * _v0_z0
-        _v0_p = (((-0.8750608600031904 * _v0_z - 16.157537187333652) * _v0_z - 75.00855792314705) * _v0_z - 122.88666844901361) * _v0_z - 64.85021904942025
-        _v0_q = ((((_v0_z + 24.858464901423062) * _v0_z + 165.02700983169885) * _v0_z + 432.88106049129027) * _v0_z + 485.3903996359137) * _v0_z + 194.5506571482614
-        _v0_r = _v0_y0 + (_v0_z0 * (_v0_z * _v0_p / _v0_q) + _v0_z0 + _v0_mb)
-        _v0_ret = _sel(_v0_x < 0, -_v0_r, _v0_r)
-        _v1_x = E_mf*(-_t5 - _v0_ret) + _t5
-        _v1_a = abs(_v1_x)
-        _v1_big = _v1_a > 2.414213562373095
-        _v1_mid = _v1_a > 0.66
-        _v1_z0 = _sel(_v1_big, -1.0, _sel(_v1_mid, _v1_a - 1.0, _v1_a)) / _sel(_v1_big, _v1_a, _sel(_v1_mid, _v1_a + 1.0, 1.0))
-        _v1_y0 = _sel(_v1_big, 1.5707963267948966, _sel(_v1_mid, 0.7853981633974483, 0.0))
-        _v1_mb = _sel(_v1_big, 6.123233995736766e-17, _sel(_v1_mid, 3.061616997868383e-17, 0.0))
-        _v1_z = _v1_z0 * _v1_z0
-        _v1_p = (((-0.8750608600031904 * _v1_z - 16.157537187333652) * _v1_z - 75.00855792314705) * _v1_z - 122.88666844901361) * _v1_z - 64.85021904942025
-        _v1_q = ((((_v1_z + 24.858464901423062) * _v1_z + 165.02700983169885) * _v1_z + 432.88106049129027) * _v1_z + 485.3903996359137) * _v1_z + 194.5506571482614
-        _v1_r = _v1_y0 + (_v1_z0 * (_v1_z * _v1_p / _v1_q) + _v1_z0 + _v1_mb)
-        _v1_ret = _sel(_v1_x < 0, -_v1_r, _v1_r)
-        _v2_x = C_mf*_v1_ret
-        _v3_a = abs(_v2_x)
-        _v3_shift = 0
-        _v3_y0 = np.floor(_v3_a * 1.2732395447351628)
-        _v3_j0 = _sel(_v3_a < 1000000000000000.0, np.int64(_v3_y0), np.int64(0))
-        _v3_odd = _v3_j0 & 1 == 1
-        _v3_j1 = _sel(_v3_odd, _v3_j0 + 1, _v3_j0)
-        _v3_y = _sel(_v3_odd, _v3_y0 + 1.0, _v3_y0)
-        _v3_j2 = _v3_j1 + _v3_shift & 7
-        _v3_neg = _v3_j2 > 3
-        _v3_j = _sel(_v3_neg, _v3_j2 - 4, _v3_j2)
-        _v3_z = _v3_a - _v3_y * 0.7853981256484985 - _v3_y * 3.774894707930798e-08 - _v3_y * 2.6951514290790595e-15
-        _v3_zz = _v3_z * _v3_z
-        _v3_c = 1.0 - 0.5 * _v3_zz + _v3_zz * _v3_zz * (((((-1.1358536521387682e-11 * _v3_zz + 2.087570084197473e-09) * _v3_zz - 2.755731417929674e-07) * _v3_zz + 2.4801587288851704e-05) * _v3_zz - 0.0013888888888873056) * _v3_zz + 0.041666666666666595)
-        _v3_s = _v3_z + _v3_z * _v3_zz * (((((1.5896230157654656e-10 * _v3_zz - 2.5050747762857807e-08) * _v3_zz + 2.7557313621385722e-06) * _v3_zz - 0.0001984126982958954) * _v3_zz + 0.008333333333322118) * _v3_zz - 0.1666666666666663)
-        _v3_r = _sel((_v3_j == 1) | (_v3_j == 2), _v3_c, _v3_s)
-        _v3_ret = _sel(_v3_neg, -_v3_r, _v3_r)
-        _v2_r = _v3_ret
-        _v2_ret = _sel(_v2_x < 0, -_v2_r, _v2_r)
-        _far += abs(_v2_x) >= 1e8
-        _t6 = _v2_ret
-        _v4_x = theta_g
-        _v5_a = abs(_v4_x)
-        _v5_shift = 2
-        _v5_y0 = np.floor(_v5_a * 1.2732395447351628)
-        _v5_j0 = _sel(_v5_a < 1000000000000000.0, np.int64(_v5_y0), np.int64(0))
-        _v5_odd = _v5_j0 & 1 == 1
-        _v5_j1 = _sel(_v5_odd, _v5_j0 + 1, _v5_j0)
-        _v5_y = _sel(_v5_odd, _v5_y0 + 1.0, _v5_y0)
-        _v5_j2 = _v5_j1 + _v5_shift & 7
-        _v5_neg = _v5_j2 > 3
-        _v5_j = _sel(_v5_neg, _v5_j2 - 4, _v5_j2)
-        _v5_z = _v5_a - _v5_y * 0.7853981256484985 - _v5_y * 3.774894707930798e-08 - _v5_y * 2.6951514290790595e-15
-        _v5_zz = _v5_z * _v5_z
-        _v5_c = 1.0 - 0.5 * _v5_zz + _v5_zz * _v5_zz * (((((-1.1358536521387682e-11 * _v5_zz + 2.087570084197473e-09) * _v5_zz - 2.755731417929674e-07) * _v5_zz + 2.4801587288851704e-05) * _v5_zz - 0.0013888888888873056) * _v5_zz + 0.041666666666666595)
-        _v5_s = _v5_z + _v5_z * _v5_zz * (((((1.5896230157654656e-10 * _v5_zz - 2.5050747762857807e-08) * _v5_zz + 2.7557313621385722e-06) * _v5_zz - 0.0001984126982958954) * _v5_zz + 0.008333333333322118) * _v5_zz - 0.1666666666666663)
-        _v5_r = _sel((_v5_j == 1) | (_v5_j == 2), _v5_c, _v5_s)
-        _v5_ret = _sel(_v5_neg, -_v5_r, _v5_r)
-        _v4_ret = _v5_ret
-        _far += abs(_v4_x) >= 1e8
-        _t7 = _v4_ret
-        _t8 = _t0*_t7
-        _t9 = (0.6)*C_dA*_t1*_t2 + mu*_t6*_t8
-        _t10 = pitch__p_I/I_theta
-        _v6_x = (0.125)*wheels__p_J*_t3
-        _v6_a = abs(_v6_x)
-        _v6_z = _v6_x * _v6_x
-        _v6_aa = 2.0 * _sel(_v6_a > 40.0, 40.0, _v6_a)
-        _v6_fl = np.floor(1.4426950408889634 * _v6_aa + 0.5)
-        _v6_r = _v6_aa - _v6_fl * 0.693145751953125 - _v6_fl * 1.4286068203094173e-06
-        _v6_rr = _v6_r * _v6_r
-        _v6_p = _v6_r * ((0.00012617719307481058 * _v6_rr + 0.030299440770744195) * _v6_rr + 1.0)
-        _v6_q = ((3.0019850513866446e-06 * _v6_rr + 0.002524483403496841) * _v6_rr + 0.22726554820815503) * _v6_rr + 2.0
-        _v6_d = _v6_q - _v6_p
-        _v6_small = _v6_a < 0.625
-        _v6_num = _sel(_v6_small, _v6_x * _v6_z * ((-0.9643991794250523 * _v6_z - 99.28772310019185) * _v6_z - 1614.6876844170845), 2.0 * _v6_d)
-        _v7_n = np.int64(_v6_fl)
-        _v7_neg = _v7_n < 0
-        _v7_a = _sel(_v7_neg, -_v7_n, _v7_n)
-        _v7_p0 = _sel(_v7_a & 1 != 0, _sel(_v7_neg, 0.5, 2.0), 1.0)
-        _v7_p1 = _v7_p0 * _sel(_v7_a & 2 != 0, _sel(_v7_neg, 0.25, 4.0), 1.0)
-        _v7_p2 = _v7_p1 * _sel(_v7_a & 4 != 0, _sel(_v7_neg, 0.0625, 16.0), 1.0)
-        _v7_p3 = _v7_p2 * _sel(_v7_a & 8 != 0, _sel(_v7_neg, 0.00390625, 256.0), 1.0)
-        _v7_p4 = _v7_p3 * _sel(_v7_a & 16 != 0, _sel(_v7_neg, 1.52587890625e-05, 65536.0), 1.0)
-        _v7_p5 = _v7_p4 * _sel(_v7_a & 32 != 0, _sel(_v7_neg, 2.3283064365386963e-10, 4294967296.0), 1.0)
-        _v7_p6 = _v7_p5 * _sel(_v7_a & 64 != 0, _sel(_v7_neg, 5.421010862427522e-20, 1.8446744073709552e+19), 1.0)
-        _v7_p7 = _v7_p6 * _sel(_v7_a & 128 != 0, _sel(_v7_neg, 2.938735877055719e-39, 3.402823669209385e+38), 1.0)
-        _v7_p8 = _v7_p7 * _sel(_v7_a & 256 != 0, _sel(_v7_neg, 8.636168555094445e-78, 1.157920892373162e+77), 1.0)
-        _v7_ret = _v7_p8 * _sel(_v7_a & 512 != 0, _sel(_v7_neg, 7.458340731200207e-155, 1.3407807929942597e+154), 1.0)
-        _v6_den = _sel(_v6_small, ((_v6_z + 112.81167849163293) * _v6_z + 2235.4883906010045) * _v6_z + 4844.063053251255, _v7_ret * (_v6_q + _v6_p) + _v6_d)
-        _v6_t = _v6_num / _v6_den
-        _v6_big = 1.0 - _v6_t
-        _v6_ret = _sel(_v6_small, _v6_x + _v6_t, _sel(_v6_x < 0, -_v6_big, _v6_big))
-        _t11 = _v6_ret
-        _v8_x = theta_g
-        _v9_a = abs(_v8_x)
-        _v9_shift = 0
-        _v9_y0 = np.floor(_v9_a * 1.2732395447351628)
-        _v9_j0 = _sel(_v9_a < 1000000000000000.0, np.int64(_v9_y0), np.int64(0))
-        _v9_odd = _v9_j0 & 1 == 1
-        _v9_j1 = _sel(_v9_odd, _v9_j0 + 1, _v9_j0)
-        _v9_y = _sel(_v9_odd, _v9_y0 + 1.0, _v9_y0)
-        _v9_j2 = _v9_j1 + _v9_shift & 7
-        _v9_neg = _v9_j2 > 3
-        _v9_j = _sel(_v9_neg, _v9_j2 - 4, _v9_j2)
-        _v9_z = _v9_a - _v9_y * 0.7853981256484985 - _v9_y * 3.774894707930798e-08 - _v9_y * 2.6951514290790595e-15
-        _v9_zz = _v9_z * _v9_z
-        _v9_c = 1.0 - 0.5 * _v9_zz + _v9_zz * _v9_zz * (((((-1.1358536521387682e-11 * _v9_zz + 2.087570084197473e-09) * _v9_zz - 2.755731417929674e-07) * _v9_zz + 2.4801587288851704e-05) * _v9_zz - 0.0013888888888873056) * _v9_zz + 0.041666666666666595)
-        _v9_s = _v9_z + _v9_z * _v9_zz * (((((1.5896230157654656e-10 * _v9_zz - 2.5050747762857807e-08) * _v9_zz + 2.7557313621385722e-06) * _v9_zz - 0.0001984126982958954) * _v9_zz + 0.008333333333322118) * _v9_zz - 0.1666666666666663)
-        _v9_r = _sel((_v9_j == 1) | (_v9_j == 2), _v9_c, _v9_s)
-        _v9_ret = _sel(_v9_neg, -_v9_r, _v9_r)
-        _v8_r = _v9_ret
-        _v8_ret = _sel(_v8_x < 0, -_v8_r, _v8_r)
-        _far += abs(_v8_x) >= 1e8
-        _dxdt[0 + _j] = -_t0*_v8_ret - _t9
-        _dxdt[16 + _j] = -c_theta*_t10 - h_cg*_t9 - k_theta*pitch__q_k
-        _dxdt[32 + _j] = _t10
-        _dxdt[48 + _j] = -4*brake*T_bmax*_t11 - f_r*r_dyn*_t11*_t8 + g*m*mu*r_dyn*_t6*_t7
-        _dxdt[64 + _j] = 0
-    if _far:
-        for _j in range(16):
-            body__p_m = _X[0 + _j]
-            pitch__p_I = _X[16 + _j]
-            pitch__q_k = _X[32 + _j]
-            wheels__p_J = _X[48 + _j]
-            theta_g = _X[64 + _j]
-            _t1 = np.sqrt(0.25 + body__p_m**2/m**2)
-            _t2 = body__p_m/m
-            _t4 = k_slip*((0.25)*r_dyn*wheels__p_J*_t3 - _t2)/(C_mf*mu*((0.5)*_t1 + (0.5)*np.sqrt((_t1 - 2)**2 + 0.25) + 1))
-            _t5 = -_t4
-            _t6 = np.sin(C_mf*np.arctan(E_mf*(-_t5 - np.arctan(_t4)) + _t5))
-            _t7 = np.cos(theta_g)
-            _t8 = _t0*_t7
-            _t9 = (0.6)*C_dA*_t1*_t2 + mu*_t6*_t8
-            _t10 = pitch__p_I/I_theta
-            _t11 = _tanh((0.125)*wheels__p_J*_t3)
-            _dxdt[0 + _j] = -_t0*np.sin(theta_g) - _t9
-            _dxdt[16 + _j] = -c_theta*_t10 - h_cg*_t9 - k_theta*pitch__q_k
-            _dxdt[32 + _j] = _t10
-            _dxdt[48 + _j] = -4*brake*T_bmax*_t11 - f_r*r_dyn*_t11*_t8 + g*m*mu*r_dyn*_t6*_t7
-            _dxdt[64 + _j] = 0
-
-
-@njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
-def h_cols(_X, u, theta, _y):
-    """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((5 * N_PTS,))."""
-    r_dyn = theta[0]
-    J_w = theta[1]
-    mu = theta[3]
-    k_slip = theta[4]
-    C_mf = theta[5]
-    E_mf = theta[6]
-    m = theta[8]
-    g = theta[9]
-    C_dA = theta[10]
-    theta_off = theta[17]
-    _t0 = 1/J_w
-    _t2 = 1/m
-    _t5 = g*m
-    _far = 0
-    for _j in range(16):
-        body__p_m = _X[0 + _j]
-        pitch__q_k = _X[32 + _j]
-        wheels__p_J = _X[48 + _j]
-        theta_g = _X[64 + _j]
-        _t1 = (0.25)*wheels__p_J*_t0
-        _t3 = body__p_m*_t2
-        _t4 = pitch__q_k + theta_g
-        _t6 = np.sqrt(0.25 + body__p_m**2/m**2)
-        _t7 = k_slip*((0.25)*r_dyn*wheels__p_J*_t0 - _t3)/(C_mf*mu*((0.5)*_t6 + (0.5)*np.sqrt((_t6 - 2)**2 + 0.25) + 1))
-        _t8 = -_t7
-        _y[0 + _j] = _t1
-        _y[16 + _j] = _t1
-        _y[32 + _j] = _t3
-        _y[48 + _j] = theta_off + _t4
         _v0_x = theta_g
         _v1_a = abs(_v0_x)
         _v1_shift = 0
@@ -452,6 +312,11 @@ def h_cols(_X, u, theta, _y):
         _v0_r = _v1_ret
         _v0_ret = _sel(_v0_x < 0, -_v0_r, _v0_r)
         _far += abs(_v0_x) >= 1e8
+        _t1 = _t0*_v0_ret
+        _t3 = _t2*body__p_m
+        _t5 = body__p_m**2
+        _t6 = np.sqrt(0.25 + _t4*_t5)
+        _t8 = _t6*_t7
         _v2_x = theta_g
         _v3_a = abs(_v2_x)
         _v3_shift = 2
@@ -471,7 +336,15 @@ def h_cols(_X, u, theta, _y):
         _v3_ret = _sel(_v3_neg, -_v3_r, _v3_r)
         _v2_ret = _v3_ret
         _far += abs(_v2_x) >= 1e8
-        _v4_x = _t7
+        _t9 = _v2_ret
+        _t10 = _t0*_t9
+        _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+        _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
+        _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
+        _t17 = _t15*_t16*k_slip/_t14
+        _t18 = _t12*_t17
+        _t19 = -_t18
+        _v4_x = _t18
         _v4_a = abs(_v4_x)
         _v4_big = _v4_a > 2.414213562373095
         _v4_mid = _v4_a > 0.66
@@ -483,7 +356,8 @@ def h_cols(_X, u, theta, _y):
         _v4_q = ((((_v4_z + 24.858464901423062) * _v4_z + 165.02700983169885) * _v4_z + 432.88106049129027) * _v4_z + 485.3903996359137) * _v4_z + 194.5506571482614
         _v4_r = _v4_y0 + (_v4_z0 * (_v4_z * _v4_p / _v4_q) + _v4_z0 + _v4_mb)
         _v4_ret = _sel(_v4_x < 0, -_v4_r, _v4_r)
-        _v5_x = E_mf*(-_t8 - _v4_ret) + _t8
+        _t20 = _t19 + (-_t19 - _v4_ret)*E_mf
+        _v5_x = _t20
         _v5_a = abs(_v5_x)
         _v5_big = _v5_a > 2.414213562373095
         _v5_mid = _v5_a > 0.66
@@ -495,7 +369,8 @@ def h_cols(_X, u, theta, _y):
         _v5_q = ((((_v5_z + 24.858464901423062) * _v5_z + 165.02700983169885) * _v5_z + 432.88106049129027) * _v5_z + 485.3903996359137) * _v5_z + 194.5506571482614
         _v5_r = _v5_y0 + (_v5_z0 * (_v5_z * _v5_p / _v5_q) + _v5_z0 + _v5_mb)
         _v5_ret = _sel(_v5_x < 0, -_v5_r, _v5_r)
-        _v6_x = C_mf*_v5_ret
+        _t21 = _v5_ret*C_mf
+        _v6_x = _t21
         _v7_a = abs(_v6_x)
         _v7_shift = 0
         _v7_y0 = np.floor(_v7_a * 1.2732395447351628)
@@ -515,7 +390,216 @@ def h_cols(_X, u, theta, _y):
         _v6_r = _v7_ret
         _v6_ret = _sel(_v6_x < 0, -_v6_r, _v6_r)
         _far += abs(_v6_x) >= 1e8
-        _v8_x = _t4
+        _t22 = _v6_ret
+        _t23 = _t22*mu
+        _t24 = _t10*_t23 + _t3*_t8
+        _t26 = _t25*pitch__p_I
+        _v8_x = (0.125)*_t11*wheels__p_J
+        _v8_a = abs(_v8_x)
+        _v8_z = _v8_x * _v8_x
+        _v8_aa = 2.0 * _sel(_v8_a > 40.0, 40.0, _v8_a)
+        _v8_fl = np.floor(1.4426950408889634 * _v8_aa + 0.5)
+        _v8_r = _v8_aa - _v8_fl * 0.693145751953125 - _v8_fl * 1.4286068203094173e-06
+        _v8_rr = _v8_r * _v8_r
+        _v8_p = _v8_r * ((0.00012617719307481058 * _v8_rr + 0.030299440770744195) * _v8_rr + 1.0)
+        _v8_q = ((3.0019850513866446e-06 * _v8_rr + 0.002524483403496841) * _v8_rr + 0.22726554820815503) * _v8_rr + 2.0
+        _v8_d = _v8_q - _v8_p
+        _v8_small = _v8_a < 0.625
+        _v8_num = _sel(_v8_small, _v8_x * _v8_z * ((-0.9643991794250523 * _v8_z - 99.28772310019185) * _v8_z - 1614.6876844170845), 2.0 * _v8_d)
+        _v9_n = np.int64(_v8_fl)
+        _v9_neg = _v9_n < 0
+        _v9_a = _sel(_v9_neg, -_v9_n, _v9_n)
+        _v9_p0 = _sel(_v9_a & 1 != 0, _sel(_v9_neg, 0.5, 2.0), 1.0)
+        _v9_p1 = _v9_p0 * _sel(_v9_a & 2 != 0, _sel(_v9_neg, 0.25, 4.0), 1.0)
+        _v9_p2 = _v9_p1 * _sel(_v9_a & 4 != 0, _sel(_v9_neg, 0.0625, 16.0), 1.0)
+        _v9_p3 = _v9_p2 * _sel(_v9_a & 8 != 0, _sel(_v9_neg, 0.00390625, 256.0), 1.0)
+        _v9_p4 = _v9_p3 * _sel(_v9_a & 16 != 0, _sel(_v9_neg, 1.52587890625e-05, 65536.0), 1.0)
+        _v9_p5 = _v9_p4 * _sel(_v9_a & 32 != 0, _sel(_v9_neg, 2.3283064365386963e-10, 4294967296.0), 1.0)
+        _v9_p6 = _v9_p5 * _sel(_v9_a & 64 != 0, _sel(_v9_neg, 5.421010862427522e-20, 1.8446744073709552e+19), 1.0)
+        _v9_p7 = _v9_p6 * _sel(_v9_a & 128 != 0, _sel(_v9_neg, 2.938735877055719e-39, 3.402823669209385e+38), 1.0)
+        _v9_p8 = _v9_p7 * _sel(_v9_a & 256 != 0, _sel(_v9_neg, 8.636168555094445e-78, 1.157920892373162e+77), 1.0)
+        _v9_ret = _v9_p8 * _sel(_v9_a & 512 != 0, _sel(_v9_neg, 7.458340731200207e-155, 1.3407807929942597e+154), 1.0)
+        _v8_den = _sel(_v8_small, ((_v8_z + 112.81167849163293) * _v8_z + 2235.4883906010045) * _v8_z + 4844.063053251255, _v9_ret * (_v8_q + _v8_p) + _v8_d)
+        _v8_t = _v8_num / _v8_den
+        _v8_big = 1.0 - _v8_t
+        _v8_ret = _sel(_v8_small, _v8_x + _v8_t, _sel(_v8_x < 0, -_v8_big, _v8_big))
+        _t27 = _v8_ret
+        _t29 = _t10*r_dyn
+        _t30 = _t27*f_r
+        _dxdt[0 + _j] = -_t1 - _t24
+        _dxdt[16 + _j] = -_t24*h_cg - _t26*c_theta - k_theta*pitch__q_k
+        _dxdt[32 + _j] = _t26
+        _dxdt[48 + _j] = _t22*_t9*g*m*mu*r_dyn - _t29*_t30 - 4*_t27*_t28
+        _dxdt[64 + _j] = 0
+    if _far:
+        for _j in range(16):
+            body__p_m = _X[0 + _j]
+            pitch__p_I = _X[16 + _j]
+            pitch__q_k = _X[32 + _j]
+            wheels__p_J = _X[48 + _j]
+            theta_g = _X[64 + _j]
+            _t1 = _t0*np.sin(theta_g)
+            _t3 = _t2*body__p_m
+            _t5 = body__p_m**2
+            _t6 = np.sqrt(0.25 + _t4*_t5)
+            _t8 = _t6*_t7
+            _t9 = np.cos(theta_g)
+            _t10 = _t0*_t9
+            _t12 = (0.25)*_t11*r_dyn*wheels__p_J - _t3
+            _t13 = np.sqrt(0.25 + (_t6 - 2)**2)
+            _t14 = 1 + (0.5)*_t13 + (0.5)*_t6
+            _t17 = _t15*_t16*k_slip/_t14
+            _t18 = _t12*_t17
+            _t19 = -_t18
+            _t20 = _t19 + (-_t19 - np.arctan(_t18))*E_mf
+            _t21 = C_mf*np.arctan(_t20)
+            _t22 = np.sin(_t21)
+            _t23 = _t22*mu
+            _t24 = _t10*_t23 + _t3*_t8
+            _t26 = _t25*pitch__p_I
+            _t27 = _tanh((0.125)*_t11*wheels__p_J)
+            _t29 = _t10*r_dyn
+            _t30 = _t27*f_r
+            _dxdt[0 + _j] = -_t1 - _t24
+            _dxdt[16 + _j] = -_t24*h_cg - _t26*c_theta - k_theta*pitch__q_k
+            _dxdt[32 + _j] = _t26
+            _dxdt[48 + _j] = _t22*_t9*g*m*mu*r_dyn - _t29*_t30 - 4*_t27*_t28
+            _dxdt[64 + _j] = 0
+
+
+@njit(SIG_COLS, cache=True, nogil=True, error_model="numpy", fastmath={'arcp', 'contract'})
+def h_cols(_X, u, theta, _y):
+    """h at every sigma point: state a of point j at _X[a * N_PTS + j], output b into _y[b * N_PTS + j] ((5 * N_PTS,))."""
+    r_dyn = theta[0]
+    J_w = theta[1]
+    mu = theta[3]
+    k_slip = theta[4]
+    C_mf = theta[5]
+    E_mf = theta[6]
+    m = theta[8]
+    g = theta[9]
+    C_dA = theta[10]
+    theta_off = theta[17]
+    _t0 = 1/J_w
+    _t1 = (0.25)*_t0
+    _t3 = 1/m
+    _t6 = g*m
+    _t8 = 1/m**2
+    _t11 = (0.6)*C_dA
+    _t18 = 1/C_mf
+    _t19 = 1/mu
+    _far = 0
+    for _j in range(16):
+        body__p_m = _X[0 + _j]
+        pitch__q_k = _X[32 + _j]
+        wheels__p_J = _X[48 + _j]
+        theta_g = _X[64 + _j]
+        _t2 = _t1*wheels__p_J
+        _t4 = _t3*body__p_m
+        _t5 = pitch__q_k + theta_g
+        _v0_x = theta_g
+        _v1_a = abs(_v0_x)
+        _v1_shift = 0
+        _v1_y0 = np.floor(_v1_a * 1.2732395447351628)
+        _v1_j0 = _sel(_v1_a < 1000000000000000.0, np.int64(_v1_y0), np.int64(0))
+        _v1_odd = _v1_j0 & 1 == 1
+        _v1_j1 = _sel(_v1_odd, _v1_j0 + 1, _v1_j0)
+        _v1_y = _sel(_v1_odd, _v1_y0 + 1.0, _v1_y0)
+        _v1_j2 = _v1_j1 + _v1_shift & 7
+        _v1_neg = _v1_j2 > 3
+        _v1_j = _sel(_v1_neg, _v1_j2 - 4, _v1_j2)
+        _v1_z = _v1_a - _v1_y * 0.7853981256484985 - _v1_y * 3.774894707930798e-08 - _v1_y * 2.6951514290790595e-15
+        _v1_zz = _v1_z * _v1_z
+        _v1_c = 1.0 - 0.5 * _v1_zz + _v1_zz * _v1_zz * (((((-1.1358536521387682e-11 * _v1_zz + 2.087570084197473e-09) * _v1_zz - 2.755731417929674e-07) * _v1_zz + 2.4801587288851704e-05) * _v1_zz - 0.0013888888888873056) * _v1_zz + 0.041666666666666595)
+        _v1_s = _v1_z + _v1_z * _v1_zz * (((((1.5896230157654656e-10 * _v1_zz - 2.5050747762857807e-08) * _v1_zz + 2.7557313621385722e-06) * _v1_zz - 0.0001984126982958954) * _v1_zz + 0.008333333333322118) * _v1_zz - 0.1666666666666663)
+        _v1_r = _sel((_v1_j == 1) | (_v1_j == 2), _v1_c, _v1_s)
+        _v1_ret = _sel(_v1_neg, -_v1_r, _v1_r)
+        _v0_r = _v1_ret
+        _v0_ret = _sel(_v0_x < 0, -_v0_r, _v0_r)
+        _far += abs(_v0_x) >= 1e8
+        _t7 = _t6*_v0_ret
+        _t9 = body__p_m**2
+        _t10 = np.sqrt(0.25 + _t8*_t9)
+        _t12 = _t10*_t11
+        _v2_x = theta_g
+        _v3_a = abs(_v2_x)
+        _v3_shift = 2
+        _v3_y0 = np.floor(_v3_a * 1.2732395447351628)
+        _v3_j0 = _sel(_v3_a < 1000000000000000.0, np.int64(_v3_y0), np.int64(0))
+        _v3_odd = _v3_j0 & 1 == 1
+        _v3_j1 = _sel(_v3_odd, _v3_j0 + 1, _v3_j0)
+        _v3_y = _sel(_v3_odd, _v3_y0 + 1.0, _v3_y0)
+        _v3_j2 = _v3_j1 + _v3_shift & 7
+        _v3_neg = _v3_j2 > 3
+        _v3_j = _sel(_v3_neg, _v3_j2 - 4, _v3_j2)
+        _v3_z = _v3_a - _v3_y * 0.7853981256484985 - _v3_y * 3.774894707930798e-08 - _v3_y * 2.6951514290790595e-15
+        _v3_zz = _v3_z * _v3_z
+        _v3_c = 1.0 - 0.5 * _v3_zz + _v3_zz * _v3_zz * (((((-1.1358536521387682e-11 * _v3_zz + 2.087570084197473e-09) * _v3_zz - 2.755731417929674e-07) * _v3_zz + 2.4801587288851704e-05) * _v3_zz - 0.0013888888888873056) * _v3_zz + 0.041666666666666595)
+        _v3_s = _v3_z + _v3_z * _v3_zz * (((((1.5896230157654656e-10 * _v3_zz - 2.5050747762857807e-08) * _v3_zz + 2.7557313621385722e-06) * _v3_zz - 0.0001984126982958954) * _v3_zz + 0.008333333333322118) * _v3_zz - 0.1666666666666663)
+        _v3_r = _sel((_v3_j == 1) | (_v3_j == 2), _v3_c, _v3_s)
+        _v3_ret = _sel(_v3_neg, -_v3_r, _v3_r)
+        _v2_ret = _v3_ret
+        _far += abs(_v2_x) >= 1e8
+        _t13 = _v2_ret
+        _t14 = _t13*_t6
+        _t15 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+        _t16 = np.sqrt(0.25 + (_t10 - 2)**2)
+        _t17 = 1 + (0.5)*_t10 + (0.5)*_t16
+        _t20 = _t18*_t19*k_slip/_t17
+        _t21 = _t15*_t20
+        _t22 = -_t21
+        _v4_x = _t21
+        _v4_a = abs(_v4_x)
+        _v4_big = _v4_a > 2.414213562373095
+        _v4_mid = _v4_a > 0.66
+        _v4_z0 = _sel(_v4_big, -1.0, _sel(_v4_mid, _v4_a - 1.0, _v4_a)) / _sel(_v4_big, _v4_a, _sel(_v4_mid, _v4_a + 1.0, 1.0))
+        _v4_y0 = _sel(_v4_big, 1.5707963267948966, _sel(_v4_mid, 0.7853981633974483, 0.0))
+        _v4_mb = _sel(_v4_big, 6.123233995736766e-17, _sel(_v4_mid, 3.061616997868383e-17, 0.0))
+        _v4_z = _v4_z0 * _v4_z0
+        _v4_p = (((-0.8750608600031904 * _v4_z - 16.157537187333652) * _v4_z - 75.00855792314705) * _v4_z - 122.88666844901361) * _v4_z - 64.85021904942025
+        _v4_q = ((((_v4_z + 24.858464901423062) * _v4_z + 165.02700983169885) * _v4_z + 432.88106049129027) * _v4_z + 485.3903996359137) * _v4_z + 194.5506571482614
+        _v4_r = _v4_y0 + (_v4_z0 * (_v4_z * _v4_p / _v4_q) + _v4_z0 + _v4_mb)
+        _v4_ret = _sel(_v4_x < 0, -_v4_r, _v4_r)
+        _t23 = _t22 + (-_t22 - _v4_ret)*E_mf
+        _v5_x = _t23
+        _v5_a = abs(_v5_x)
+        _v5_big = _v5_a > 2.414213562373095
+        _v5_mid = _v5_a > 0.66
+        _v5_z0 = _sel(_v5_big, -1.0, _sel(_v5_mid, _v5_a - 1.0, _v5_a)) / _sel(_v5_big, _v5_a, _sel(_v5_mid, _v5_a + 1.0, 1.0))
+        _v5_y0 = _sel(_v5_big, 1.5707963267948966, _sel(_v5_mid, 0.7853981633974483, 0.0))
+        _v5_mb = _sel(_v5_big, 6.123233995736766e-17, _sel(_v5_mid, 3.061616997868383e-17, 0.0))
+        _v5_z = _v5_z0 * _v5_z0
+        _v5_p = (((-0.8750608600031904 * _v5_z - 16.157537187333652) * _v5_z - 75.00855792314705) * _v5_z - 122.88666844901361) * _v5_z - 64.85021904942025
+        _v5_q = ((((_v5_z + 24.858464901423062) * _v5_z + 165.02700983169885) * _v5_z + 432.88106049129027) * _v5_z + 485.3903996359137) * _v5_z + 194.5506571482614
+        _v5_r = _v5_y0 + (_v5_z0 * (_v5_z * _v5_p / _v5_q) + _v5_z0 + _v5_mb)
+        _v5_ret = _sel(_v5_x < 0, -_v5_r, _v5_r)
+        _t24 = _v5_ret*C_mf
+        _v6_x = _t24
+        _v7_a = abs(_v6_x)
+        _v7_shift = 0
+        _v7_y0 = np.floor(_v7_a * 1.2732395447351628)
+        _v7_j0 = _sel(_v7_a < 1000000000000000.0, np.int64(_v7_y0), np.int64(0))
+        _v7_odd = _v7_j0 & 1 == 1
+        _v7_j1 = _sel(_v7_odd, _v7_j0 + 1, _v7_j0)
+        _v7_y = _sel(_v7_odd, _v7_y0 + 1.0, _v7_y0)
+        _v7_j2 = _v7_j1 + _v7_shift & 7
+        _v7_neg = _v7_j2 > 3
+        _v7_j = _sel(_v7_neg, _v7_j2 - 4, _v7_j2)
+        _v7_z = _v7_a - _v7_y * 0.7853981256484985 - _v7_y * 3.774894707930798e-08 - _v7_y * 2.6951514290790595e-15
+        _v7_zz = _v7_z * _v7_z
+        _v7_c = 1.0 - 0.5 * _v7_zz + _v7_zz * _v7_zz * (((((-1.1358536521387682e-11 * _v7_zz + 2.087570084197473e-09) * _v7_zz - 2.755731417929674e-07) * _v7_zz + 2.4801587288851704e-05) * _v7_zz - 0.0013888888888873056) * _v7_zz + 0.041666666666666595)
+        _v7_s = _v7_z + _v7_z * _v7_zz * (((((1.5896230157654656e-10 * _v7_zz - 2.5050747762857807e-08) * _v7_zz + 2.7557313621385722e-06) * _v7_zz - 0.0001984126982958954) * _v7_zz + 0.008333333333322118) * _v7_zz - 0.1666666666666663)
+        _v7_r = _sel((_v7_j == 1) | (_v7_j == 2), _v7_c, _v7_s)
+        _v7_ret = _sel(_v7_neg, -_v7_r, _v7_r)
+        _v6_r = _v7_ret
+        _v6_ret = _sel(_v6_x < 0, -_v6_r, _v6_r)
+        _far += abs(_v6_x) >= 1e8
+        _t25 = _v6_ret*mu
+        _y[0 + _j] = _t2
+        _y[16 + _j] = _t2
+        _y[32 + _j] = _t4
+        _y[48 + _j] = _t5 + theta_off
+        _v8_x = _t5
         _v9_a = abs(_v8_x)
         _v9_shift = 0
         _v9_y0 = np.floor(_v9_a * 1.2732395447351628)
@@ -535,21 +619,33 @@ def h_cols(_X, u, theta, _y):
         _v8_r = _v9_ret
         _v8_ret = _sel(_v8_x < 0, -_v8_r, _v8_r)
         _far += abs(_v8_x) >= 1e8
-        _y[64 + _j] = g*_v8_ret + _t2*(-0.6*C_dA*_t3*_t6 - mu*_t5*_v2_ret*_v6_ret - _t5*_v0_ret)
+        _y[64 + _j] = _t3*(-_t7 - _t12*_t4 - _t14*_t25) + _v8_ret*g
     if _far:
         for _j in range(16):
             body__p_m = _X[0 + _j]
             pitch__q_k = _X[32 + _j]
             wheels__p_J = _X[48 + _j]
             theta_g = _X[64 + _j]
-            _t1 = (0.25)*wheels__p_J*_t0
-            _t3 = body__p_m*_t2
-            _t4 = pitch__q_k + theta_g
-            _t6 = np.sqrt(0.25 + body__p_m**2/m**2)
-            _t7 = k_slip*((0.25)*r_dyn*wheels__p_J*_t0 - _t3)/(C_mf*mu*((0.5)*_t6 + (0.5)*np.sqrt((_t6 - 2)**2 + 0.25) + 1))
-            _t8 = -_t7
-            _y[0 + _j] = _t1
-            _y[16 + _j] = _t1
-            _y[32 + _j] = _t3
-            _y[48 + _j] = theta_off + _t4
-            _y[64 + _j] = g*np.sin(_t4) + _t2*(-0.6*C_dA*_t3*_t6 - mu*_t5*np.sin(C_mf*np.arctan(E_mf*(-_t8 - np.arctan(_t7)) + _t8))*np.cos(theta_g) - _t5*np.sin(theta_g))
+            _t2 = _t1*wheels__p_J
+            _t4 = _t3*body__p_m
+            _t5 = pitch__q_k + theta_g
+            _t7 = _t6*np.sin(theta_g)
+            _t9 = body__p_m**2
+            _t10 = np.sqrt(0.25 + _t8*_t9)
+            _t12 = _t10*_t11
+            _t13 = np.cos(theta_g)
+            _t14 = _t13*_t6
+            _t15 = (0.25)*_t0*r_dyn*wheels__p_J - _t4
+            _t16 = np.sqrt(0.25 + (_t10 - 2)**2)
+            _t17 = 1 + (0.5)*_t10 + (0.5)*_t16
+            _t20 = _t18*_t19*k_slip/_t17
+            _t21 = _t15*_t20
+            _t22 = -_t21
+            _t23 = _t22 + (-_t22 - np.arctan(_t21))*E_mf
+            _t24 = C_mf*np.arctan(_t23)
+            _t25 = mu*np.sin(_t24)
+            _y[0 + _j] = _t2
+            _y[16 + _j] = _t2
+            _y[32 + _j] = _t4
+            _y[48 + _j] = _t5 + theta_off
+            _y[64 + _j] = _t3*(-_t7 - _t12*_t4 - _t14*_t25) + g*np.sin(_t5)
