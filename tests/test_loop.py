@@ -187,7 +187,9 @@ def test_bundled_default_via_cli_writes_the_report(tmp_path, monkeypatch, capsys
     monkeypatch.chdir(tmp_path)
     (tmp_path / "bondgraph-report").mkdir()
     (tmp_path / "bondgraph-report" / "report.md").write_text("earlier run")
-    assert main(["loop", "--quiet"]) == 0
+    # step 1 is what is asserted; the default's second step (nothing significant
+    # left) is the longest part of the run and is left out here
+    assert main(["loop", "--quiet", "--max-steps", "1"]) == 0
     assert (tmp_path / "bondgraph-report" / "report.md").read_text() == "earlier run"
     out = tmp_path / "bondgraph-report-2"
     assert "report: bondgraph-report-2/report.html" in capsys.readouterr().out
@@ -238,7 +240,8 @@ def test_augmented_model_file_rebuilds_the_graph(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["vehicle_brake_drag", "vehicle_pitch_offset"])
 def test_vehicle_case_finds_the_true_effect(name, tmp_path):
-    case, res = _run(name, tmp_path)
+    # one step: everything asserted is step 1's (a second step only looks for more)
+    case, res = _run(name, tmp_path, max_steps=1)
     effect, target = case.true_effect
     assert _rank_of(res.rankings[0], effect, target) == 1
     assert res.steps, "nothing accepted"
@@ -250,7 +253,12 @@ def test_vehicle_case_finds_the_true_effect(name, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_vehicle_belt_slip_found_on_the_full_model(tmp_path):
+    """Left out of the default run (``-m "not long"`` in pyproject.toml):
+    with cold kernel caches it compiled every structural candidate of the
+    ten-state vehicle, 11 min of the suite's CI budget. Run it with
+    ``pytest -m long``."""
     case, res = _run("vehicle_belt_slip", tmp_path, max_steps=1)
     effect, target = case.true_effect
     assert _rank_of(res.rankings[0], effect, target) == 1

@@ -29,7 +29,7 @@ def test_guard_flags_a_coarse_step_and_finds_the_substeps():
     """vehicle_full at 40 Hz with ROS2(1): far from RK4(40); the reported
     sub-steps agree within 1e-3 and half of them do not."""
     m = Model.load("vehicle_full")
-    t, u, y = _record(m, N=400, dt=0.025)
+    t, u, y = _record(m, N=400, dt=0.025, substeps=40)
     g = nll_guard(m, t, u, y, m.theta0, options=UKFOptions())
     ref = _nll(m, t, u, y, m.theta0, method="rk4", substeps=40)
     coarse = _nll(m, t, u, y, m.theta0)
@@ -65,7 +65,7 @@ def test_estimate_warns_with_the_substeps_needed():
     from bondgraph.inference.problem import make_problem
 
     m = Model.load("vehicle_full")
-    t, u, y = _record(m, N=400, dt=0.025)
+    t, u, y = _record(m, N=400, dt=0.025, substeps=40)
     params = [m.params[0]]
     with pytest.warns(IdentifiabilityWarning, match="substeps to agree"):
         res = estimate(make_problem(m, (t, u, y), prior=PriorSpec(scale="magnitude")), params,

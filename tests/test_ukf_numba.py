@@ -35,10 +35,12 @@ NSETS = 12
 MODELS = sorted(registry.registered())
 
 
-def _record(m: Model, N=120, dt=0.01, seed=0):
+def _record(m: Model, N=120, dt=0.01, seed=0, substeps=8):
     """A record of ``m`` at its defaults: inputs around INPUT_DEFAULTS (a
-    slow sine modulation), RK4(8) truth, measurement noise, one missing
-    sample and one partially missing sample."""
+    slow sine modulation), RK4(``substeps``) truth, measurement noise, one
+    missing sample and one partially missing sample. (For vehicle_full at
+    25 ms, RK4(8) is outside its stability region: that record depends on
+    rounding; tests that need its figures use 40.)"""
     t = np.arange(N) * dt
     mod = 1.0 + 0.3 * np.sin(np.arange(N) / 7.0)
     u = m.u0[None, :] * mod[:, None] + 0.1 * np.sin(np.arange(N) / 5.0)[:, None]
@@ -46,7 +48,7 @@ def _record(m: Model, N=120, dt=0.01, seed=0):
     ys = []
     for k in range(N):
         ys.append(m.h(x, u[k], m.theta0)[0])
-        x = m.module.fx(x, dt, u[k], m.theta0, 8)
+        x = m.module.fx(x, dt, u[k], m.theta0, substeps)
     rng = np.random.default_rng(seed)
     y = np.array(ys) + rng.normal(size=(N, m.n_y)) * m.meas_std(m.theta0[None])[0]
     y[3] = np.nan
@@ -442,7 +444,7 @@ def test_collapsed_state_variance_is_known_not_a_failure(tmp_path, monkeypatch):
     ys = []
     for k in range(N):
         ys.append(m.h(x, u[k], m.theta0)[0])
-        x = m.module.fx(x, dt, u[k], m.theta0, 8)
+        x = m.module.fx(x, dt, u[k], m.theta0, substeps)
     y = np.array(ys) + np.random.default_rng(3).normal(size=(N, m.n_y)) \
         * m.meas_std(m.theta0[None])[0]
     P0 = np.diag([20.0 if s.startswith("source_lag") else 1e-7 for s in m.states])
