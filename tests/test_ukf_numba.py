@@ -444,7 +444,7 @@ def test_collapsed_state_variance_is_known_not_a_failure(tmp_path, monkeypatch):
     ys = []
     for k in range(N):
         ys.append(m.h(x, u[k], m.theta0)[0])
-        x = m.module.fx(x, dt, u[k], m.theta0, substeps)
+        x = m.module.fx(x, dt, u[k], m.theta0, 8)
     y = np.array(ys) + np.random.default_rng(3).normal(size=(N, m.n_y)) \
         * m.meas_std(m.theta0[None])[0]
     P0 = np.diag([20.0 if s.startswith("source_lag") else 1e-7 for s in m.states])
