@@ -115,12 +115,12 @@ def test_emps_force_error_at_the_sign_limit_is_the_published_protocol():
 def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
     """With ``auto_substeps`` a declared fit whose discretisation check
     recommends 16 substeps is refitted with them (the settings of the rest of
-    the loop carry them); without it the loop only warns."""
+    the loop carry them), said in one line; without it the loop only warns."""
     calls = []
     monkeypatch.setattr(runner, "recommended_substeps", lambda ctx, fit, limit=0.1:
                         (6.7, 16) if ctx.problem.disc.substeps == 1 else (0.05, None))
     monkeypatch.setattr(runner, "initial_fit",
-                        lambda ctx, graph: calls.append(ctx.problem.disc.substeps) or "refit")
+                        lambda ctx, graph, again=False: calls.append(ctx.problem.disc.substeps) or "refit")
     model = Model.from_graph(mass_spring_damper())
     exp = Experiment.from_arrays(np.arange(20) * 0.05, model=model, u=np.zeros((20, 1)),
                                  y=np.zeros((20, 2)), name="rest")
@@ -129,5 +129,7 @@ def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
         ctx = Context.on(exp, LoopSettings(params=[], search=SearchOptions(auto_substeps=auto)), model,
                          lambda s: None, False)
         fit, warn = runner.resolved_fit(ctx, None, "declared")
-        assert fit == want and "use --substeps 16" in warn[0]
+        assert fit == want and "6.7 measurement-noise stds" in warn[0] and len(warn) == 1
+        assert (warn[0].startswith("auto_substeps: ") and "takes 16 substeps" in warn[0]
+                if auto else "use --substeps 16" in warn[0])
         assert (ctx.problem.disc.substeps, calls) == ((16, [16]) if auto else (1, []))

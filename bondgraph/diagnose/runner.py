@@ -237,15 +237,17 @@ def publish(ctx: Context, result: LoopResult, initial: Fit, current: Fit,
         on_update(result)
 
 
-def initial_fit(ctx: Context, graph: BondGraph) -> Fit:
+def initial_fit(ctx: Context, graph: BondGraph, again: bool = False) -> Fit:
     """Fit the declared model (``initial_params``, default ``params``) on a
     copy of ``graph``; the returned fit counts all of ``params`` as
     estimated (later steps re-estimate them all). Logs the start, a warning
-    when the filter model declares no process noise, and the fit."""
+    when the filter model declares no process noise (not ``again``: a refit
+    with other substeps), and the fit."""
     s = ctx.settings
-    ctx.log(f"loop on model '{graph.name}', record '{ctx.problem.name}', estimating "
-            f"{', '.join(s.params)}")
-    if not graph.process_noise and not any(
+    if not again:
+        ctx.log(f"loop on model '{graph.name}', record '{ctx.problem.name}', estimating "
+                f"{', '.join(s.params)}")
+    if not again and not graph.process_noise and not any(
             ss.process_noise is not None for ss in graph.signal_states.values()):
         ctx.log("warning: the filter model declares no process noise; model errors then "
                 "do not show as local innovations and the likelihood is poorly "
@@ -477,20 +479,28 @@ def check_declared_fit(fit: Fit) -> None:
 
 def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
                          checked: tuple[float, int | None] | None = None,
-                         where: str = "the declared fit") -> list[str]:
+                         where: str = "the declared fit", adopt: bool = False) -> list[str]:
     """The filter's discretisation error at ``fit`` (``where``: the declared
     fit, or an accepted one)
     (:func:`bondgraph.inference.ukf.discretisation_check` with the loop's
     method, substeps and hold) in measurement-noise stds per sample; above
-    ``limit`` a warning (logged and returned) recommending the fewest substeps
-    among 2, 4, 8, 16, 32 that bring it below (``checked``: the result of
-    :func:`recommended_substeps` if already known)."""
+    ``limit`` one line (logged and returned) with the fewest substeps among
+    2, 4, 8, 16, 32 that bring it below (``checked``: the result of
+    :func:`recommended_substeps` if already known): a warning recommending
+    them, or with ``adopt`` (``auto_substeps``, a recommendation found) the
+    note that the loop takes them from here on."""
     worst, rec = recommended_substeps(ctx, fit, limit) if checked is None else checked
     if not worst > limit:
         return []
     o = ctx.problem.ukf
-    msg = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} measurement-noise "
-           f"stds per sample at {where} (a model error that biases the fit and the "
+    error = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} "
+             f"measurement-noise stds per sample at {where}")
+    if adopt and rec:
+        msg = (f"auto_substeps: {error}; the filter takes {rec} substeps per sample from "
+               f"{where} on")
+        ctx.log(msg)
+        return [msg]
+    msg = (f"{error} (a model error that biases the fit and the "
            f"scores); " + (f"use --substeps {rec}" if rec else "use --method rk4 and more "
                            "substeps, or a shorter sample interval"))
     ctx.log("warning: " + msg)
@@ -524,16 +534,15 @@ def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit,
     loop and ``fit`` refitted with them (warm start). Returns the fit to
     continue from."""
     checked = recommended_substeps(ctx, fit)
-    warn = check_discretisation(ctx, fit, checked=checked, where=f"the fit with {label}")
+    auto = ctx.settings.search.auto_substeps
+    warn = check_discretisation(ctx, fit, checked=checked, where=f"the fit with {label}",
+                                adopt=auto)
     result.warnings.extend(warn)
     n = checked[1]
-    if not (warn and ctx.settings.search.auto_substeps) or n is None:
+    if not (warn and auto) or n is None:
         return fit
     ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
     ctx.cache.clear()
-    ctx.log(f"auto_substeps: the filter now takes {n} substeps per sample; refitting the "
-            f"model with {label}")
-    result.warnings.append(f"auto_substeps: {n} substeps per sample from the fit with {label} on")
     refit = fit_model(ctx, fit.graph, list(fit.params), fit.estimates(),
                       f"{label} at {n} substeps", model=fit.model)
     adm = admissibility(ctx, refit)
@@ -555,16 +564,14 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     judges the model, not its discretisation) and the declared model is
     refitted (logged)."""
     checked = recommended_substeps(ctx, initial)
-    warn = check_discretisation(ctx, initial, checked=checked)
+    auto = ctx.settings.search.auto_substeps
+    warn = check_discretisation(ctx, initial, checked=checked, adopt=auto)
     n = checked[1]
-    if not (warn and ctx.settings.search.auto_substeps) or n is None:
+    if not (warn and auto) or n is None:
         return initial, warn
     ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
-    ctx.log(f"auto_substeps: the filter now takes {n} substeps per sample; refitting the "
-            f"declared model")
     ctx.cache.clear()
-    fit = initial_fit(ctx, graph)
-    return fit, warn + [f"auto_substeps: {n} substeps per sample from the declared fit on"]
+    return initial_fit(ctx, graph, again=True), warn
 
 
 def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
