@@ -152,6 +152,7 @@ class InputSignals:
         self.samples = np.empty((t.size, model.n_u))
         self.source: dict[str, str] = {}
         self._array_cols: list[int] = []
+        self._const_cols: list[int] = []
         spec = self._parse(u)
         for j, nm in enumerate(model.inputs):
             kind, val = self._resolve(j, nm, spec)
@@ -272,6 +273,7 @@ class InputSignals:
         """Fill column ``j`` of :attr:`samples` and its function of time."""
         if kind == "const":
             self.samples[:, j] = val
+            self._const_cols.append(j)
             self._fns.append(lambda tq, v=val: np.full(np.shape(tq), v))
         elif kind == "array":
             self.samples[:, j] = val
@@ -308,6 +310,12 @@ class InputSignals:
         if hold != "zoh":
             return self.at
         ua, cols = self.samples[a], self._array_cols
+        if len(cols) + len(self._const_cols) == self.samples.shape[1]:
+            held = ua.copy()            # no callable: the same vector all segment long
+
+            def u_held(tq: float) -> np.ndarray:
+                return held
+            return u_held
 
         def u_at(tq: float) -> np.ndarray:
             v = self.at(tq)
