@@ -315,3 +315,25 @@ def test_cli_simulate_noise_writes_the_experiments_record(tmp_path, capsys):
     rec = Experiment.load(mine)
     assert rec.noise_std == {"x": 0.002, "v": 0.01} and rec.meta["seed"] == 0
     assert np.std(rec["x"] - rec["state.q_spring"]) == pytest.approx(0.002, rel=0.1)
+
+
+@pytest.mark.parametrize("hold", ["linear", "zoh"])
+def test_inputs_at_one_time_equal_the_array_evaluation(hold):
+    """``InputSignals.at`` (one float per input, what an adaptive solver's
+    right-hand side calls) gives bit for bit what the inputs' functions give
+    on an array: a sampled array (interpolated or held), a constant and a
+    callable; inside a zero-order-hold segment without callables, the held
+    sample."""
+    model = Model.load("toy_cvt")
+    t = np.linspace(0.0, 2.0, 41)
+    rng = np.random.default_rng(3)
+    samples = rng.normal(size=t.size)
+    sig = InputSignals(model, t, {"T": samples, "r": 0.7, "der(r)": lambda tq: np.sin(3 * tq)},
+                       hold=hold)
+    for tq in np.concatenate([rng.uniform(-0.1, 2.1, 200), t]):
+        ref = np.array([float(np.asarray(fn(np.array([tq]))).reshape(-1)[0])
+                        for fn in sig._fns])
+        assert np.array_equal(sig.at(float(tq)), ref)
+    held = InputSignals(model, t, {"T": samples, "r": 0.7, "der(r)": 0.0}, hold="zoh")
+    seg = held.segment_input(7, "zoh")
+    assert np.array_equal(seg(t[7] + 0.02), [samples[7], 0.7, 0.0])

@@ -149,6 +149,8 @@ class InputSignals:
         self.hold = hold
         self._scale = float(np.median(np.diff(t)))
         self._fns: list[Callable[[np.ndarray], np.ndarray]] = []
+        #: each input at one time, a float (:meth:`at`: the values of _fns)
+        self._scalar: list[Callable[[float], float]] = []
         self.samples = np.empty((t.size, model.n_u))
         self.source: dict[str, str] = {}
         self._array_cols: list[int] = []
@@ -275,11 +277,15 @@ class InputSignals:
             self.samples[:, j] = val
             self._const_cols.append(j)
             self._fns.append(lambda tq, v=val: np.full(np.shape(tq), v))
-        elif kind == "array":
+            self._scalar.append(lambda tq, v=float(val): v)
+            return
+        if kind == "array":
             self.samples[:, j] = val
             self._array_cols.append(j)
             self._fns.append(self._array_fn(val))
-        elif kind == "fn":
+            self._scalar.append(self._array_scalar(val))
+            return
+        if kind == "fn":
             self.samples[:, j] = np.broadcast_to(np.asarray(val(self.t), dtype=float),
                                                  (self.t.size,))
             self._fns.append(lambda tq, f=val: np.asarray(f(tq), dtype=float))
@@ -287,6 +293,8 @@ class InputSignals:
             f, vals = val
             self.samples[:, j] = vals
             self._fns.append(f)
+        fn = self._fns[-1]
+        self._scalar.append(lambda tq: float(np.asarray(fn(np.array([tq]))).reshape(-1)[0]))
 
     def _array_fn(self, vals: np.ndarray) -> Callable:
         t = self.t
@@ -298,10 +306,20 @@ class InputSignals:
             return vals[k]
         return zoh
 
+    def _array_scalar(self, vals: np.ndarray) -> Callable[[float], float]:
+        """:meth:`_array_fn` at one time, as a float (the same numpy
+        routines on a scalar: the same values, without the array round
+        trip that an adaptive solver paid at every right-hand side call)."""
+        t = self.t
+        if self.hold == "linear":
+            return lambda tq: float(np.interp(tq, t, vals))
+        last = t.size - 1
+        return lambda tq: float(vals[min(max(int(np.searchsorted(t, tq, side="right")) - 1, 0),
+                                         last)])
+
     def at(self, tq: float) -> np.ndarray:
         """Input vector (n_u,) at time ``tq``."""
-        return np.array([float(np.asarray(fn(np.array([tq]))).reshape(-1)[0])
-                         for fn in self._fns])
+        return np.array([fn(tq) for fn in self._scalar])
 
     def segment_input(self, a: int, hold: str) -> Callable[[float], np.ndarray]:
         """Input function of the segment starting at sample ``a``: with
