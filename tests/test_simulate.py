@@ -337,3 +337,29 @@ def test_inputs_at_one_time_equal_the_array_evaluation(hold):
     held = InputSignals(model, t, {"T": samples, "r": 0.7, "der(r)": 0.0}, hold="zoh")
     seg = held.segment_input(7, "zoh")
     assert np.array_equal(seg(t[7] + 0.02), [samples[7], 0.7, 0.0])
+
+
+@pytest.mark.parametrize("method", ["BDF", "RK45"])
+def test_adaptive_solvers_on_the_compiled_point_kernels_equal_numpy(method):
+    """``simulate(..., backend="numba")``: the adaptive solvers call the
+    compiled f (and f_dfdx as Jacobian) instead of the generated numpy
+    functions; the same expressions, so the trajectory agrees to the
+    solver's tolerance (reference: the numpy right-hand side; nonlinear
+    model: the vehicle coast-down with its tanh, atan and sin)."""
+    pytest.importorskip("numba")
+    model = Model.load("vehicle_coastdown")
+    t = np.linspace(0.0, 20.0, 201)
+    brake = np.where((t > 5) & (t < 8), 0.6, 0.0)
+    th = dict(zip(model.params, model.theta0))
+    x0 = np.zeros(model.n_x)      # rolling at 12 m/s
+    x0[model.states.index("body.p_m")] = th["m"] * 12.0
+    x0[model.states.index("wheels.p_J")] = th["J_w"] * 12.0 / th["r_dyn"]
+    a = simulate(model, t, {"brake": brake}, x0=x0, method=method, rtol=1e-9, atol=1e-12,
+                 hold="zoh")
+    b = simulate(model, t, {"brake": brake}, x0=x0, method=method, rtol=1e-9, atol=1e-12,
+                 hold="zoh", backend="numba")
+    assert a.stats["backend"] == "numpy" and b.stats["backend"] == "numba"
+    assert np.ptp(a.x[:, 0]) > 0
+    np.testing.assert_allclose(b.x, a.x, rtol=1e-6, atol=1e-9 * np.abs(a.x).max())
+    with pytest.raises(ModelError, match="backend"):
+        simulate(model, t, {"brake": brake}, backend="cuda")

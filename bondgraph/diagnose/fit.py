@@ -680,7 +680,7 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
             warnings.simplefilter("ignore")
             sim = simulate(model, t, u_sim, x0=x0, theta=theta,
                            method=ctx.settings.free_run.method,
-                           rtol=1e-6, atol=1e-9, hold=hold)
+                           rtol=1e-6, atol=1e-9, hold=hold, backend=problem.disc.backend)
         return sim.y
     except Exception as exc:  # a model that cannot be simulated freely
         ctx.log(f"  free-run simulation failed ({str(exc).splitlines()[0]})")

@@ -402,7 +402,8 @@ def _nonfinite_error(model, t, X, method, extra="") -> NumericalError:
 
 def simulate(model, t, u=None, x0=None, theta=None, method: str = "BDF", rtol: float = 1e-8,
              atol: float = 1e-10, substeps: int = 1, max_step: float | None = None, *,
-             hold: str = "linear", progress: bool | None = None) -> SimResult:
+             hold: str = "linear", progress: bool | None = None,
+             backend: str = "numpy") -> SimResult:
     """Simulate a model on the sample grid ``t``.
 
     Parameters
@@ -434,6 +435,14 @@ def simulate(model, t, u=None, x0=None, theta=None, method: str = "BDF", rtol: f
     progress : bool, optional
         tqdm progress bar for fixed-step loops (default: only for long runs,
         more than 2e5 sub-steps, and only on a terminal).
+    backend : {"numpy", "numba"}
+        What the adaptive solvers' right-hand side and Jacobian call: the
+        generated numpy functions (default) or the model's compiled point
+        kernels ``f`` and ``f_dfdx`` (:func:`bondgraph.numerics.compiled.point_kernels`;
+        compiled at the first use of an in-memory model; the same
+        expressions, equal to rounding; 5-10x less time per call of the
+        right-hand side). numpy runs when the kernels cannot be had;
+        ``stats["backend"]`` says which ran.
 
     Returns
     -------
@@ -451,6 +460,8 @@ def simulate(model, t, u=None, x0=None, theta=None, method: str = "BDF", rtol: f
         state) or the adaptive solver failed.
     """
     model = _as_model(model)
+    if backend not in ("numpy", "numba"):
+        raise ModelError(f"unknown backend '{backend}' (use 'numpy' or 'numba')")
     if method not in METHODS:
         raise ModelError(f"unknown simulation method '{method}' (use one of {', '.join(METHODS)})")
     t = _check_t(t)
@@ -462,17 +473,8 @@ def simulate(model, t, u=None, x0=None, theta=None, method: str = "BDF", rtol: f
     U = sig.samples
     stats: dict[str, Any] = {"method": method}
     t_wall = time.perf_counter()
-    if method in FIXED_METHODS:
-        substeps = int(substeps)
-        if substeps < 1:
-            raise ModelError(f"substeps must be >= 1, got {substeps}")
-        X = _fixed_step(model, t, U, th, x_init, method, substeps, progress)
-        stats.update(substeps=substeps, hold="zoh",
-                     nfev=(4 if method == "rk4" else 2) * substeps * (t.size - 1),
-                     njev=(t.size - 1) if method == "ros2" else 0)
-    else:
-        X = _solve_ivp(model, t, sig, th, x_init, method, rtol, atol, max_step, stats)
-        stats.update(rtol=rtol, atol=atol, hold=hold)
+    X = _states(model, sig, th, x_init, method, substeps, progress, (rtol, atol, max_step),
+                backend, stats)
     stats["wall_time_s"] = time.perf_counter() - t_wall
     with np.errstate(all="ignore"):
         Y = np.asarray(model.h(X, U, th), dtype=float)
@@ -503,9 +505,69 @@ def _fixed_step(model, t, U, th, x, method, substeps, progress):
     return X
 
 
-def _solve_ivp(model, t, sig: InputSignals, th, x0, method, rtol, atol, max_step, stats):
+def _states(model, sig: InputSignals, th, x_init, method, substeps, progress, tols, backend,
+            stats) -> np.ndarray:
+    """The states (N, n_x) of :func:`simulate` by its fixed-step or adaptive
+    method (``tols`` = (rtol, atol, max_step)); ``stats`` filled."""
+    t, U = sig.t, sig.samples
+    if method in FIXED_METHODS:
+        substeps = int(substeps)
+        if substeps < 1:
+            raise ModelError(f"substeps must be >= 1, got {substeps}")
+        X = _fixed_step(model, t, U, th, x_init, method, substeps, progress)
+        stats.update(substeps=substeps, hold="zoh",
+                     nfev=(4 if method == "rk4" else 2) * substeps * (t.size - 1),
+                     njev=(t.size - 1) if method == "ros2" else 0)
+        return X
+    kernels = _rhs_kernels(model) if backend == "numba" else None
+    X = _solve_ivp(model, t, sig, th, x_init, method, tols, stats, kernels)
+    stats.update(rtol=tols[0], atol=tols[1], hold=sig.hold,
+                 backend="numpy" if kernels is None else "numba")
+    return X
+
+
+def _rhs_kernels(model):
+    """The compiled point kernels of ``model`` for an adaptive solver, or
+    None (numpy) when they cannot be had (numba missing, no kernels)."""
+    try:
+        from bondgraph.numerics.compiled import point_kernels
+        return point_kernels(model)
+    except Exception:  # numba missing or unable to compile: the numpy functions run
+        return None
+
+
+def _point_rhs(model, kernels, th, u_at):
+    """``(rhs, jac)`` of one segment: the generated numpy functions on a
+    batch of one, or the compiled point kernels (``kernels``)."""
+    th1 = th[None, :]
+    if kernels is None:
+        def rhs(tq, xq):
+            return model.f(xq[None, :], u_at(tq)[None, :], th1)[0]
+
+        def jac(tq, xq):
+            return model.dfdx(xq[None, :], u_at(tq)[None, :], th1)[0]
+        return rhs, jac
+    thc, n = np.ascontiguousarray(th, dtype=float), model.n_x
+    f, f_dfdx = kernels.f, kernels.f_dfdx
+
+    def rhs_c(tq, xq):
+        out = np.empty(n)
+        f(np.ascontiguousarray(xq, dtype=float), np.ascontiguousarray(u_at(tq), dtype=float),
+          thc, out)
+        return out
+
+    def jac_c(tq, xq):
+        out, J = np.empty(n), np.empty((n, n))
+        f_dfdx(np.ascontiguousarray(xq, dtype=float),
+               np.ascontiguousarray(u_at(tq), dtype=float), thc, out, J)
+        return J
+    return rhs_c, jac_c
+
+
+def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels=None):
     n = t.size
     X = np.empty((n, model.n_x))
+    rtol, atol, max_step = tols
     kw = dict(method=method, rtol=rtol, atol=atol)
     if max_step is not None:
         kw["max_step"] = float(max_step)
@@ -518,15 +580,9 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, rtol, atol, max_step
     x = np.array(x0, dtype=float)
     X[0] = x
     for a, b in segments:
-        u_at = sig.segment_input(a, sig.hold)
-
-        th1 = th[None, :]
-
-        def rhs(tq, xq, _u=u_at):
-            return model.f(xq[None, :], _u(tq)[None, :], th1)[0]
-
+        rhs, jac = _point_rhs(model, kernels, th, sig.segment_input(a, sig.hold))
         if method in IMPLICIT_METHODS:
-            kw["jac"] = lambda tq, xq, _u=u_at: model.dfdx(xq[None, :], _u(tq)[None, :], th1)[0]
+            kw["jac"] = jac
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             sol = solve_ivp(rhs, (t[a], t[b]), x, t_eval=t[a:b + 1], **kw)
         for k in totals:
