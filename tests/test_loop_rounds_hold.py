@@ -133,19 +133,3 @@ def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
         assert (warn[0].startswith("auto_substeps: ") and "takes 16 substeps" in warn[0]
                 if auto else "use --substeps 16" in warn[0])
         assert (ctx.problem.disc.substeps, calls) == ((16, [16]) if auto else (1, []))
-
-
-def test_typed_substeps_are_kept_on_a_bundled_case():
-    """`bondgraph loop --substeps N` on a case whose settings adopt the
-    recommended substeps (the coast-down cases) keeps N: auto_substeps is
-    off, the check then warns instead of moving the user's choice."""
-    from types import SimpleNamespace
-
-    from bondgraph.cli.loop import search_options
-    base = SearchOptions(auto_substeps=True)
-    args = SimpleNamespace(max_steps=None, fit=None, no_structural=False, keep_going=False,
-                           substeps=None)
-    assert search_options(args, base).auto_substeps is True
-    args.substeps = 1
-    assert search_options(args, base).auto_substeps is False
-    assert search_options(args, SearchOptions()).auto_substeps is False

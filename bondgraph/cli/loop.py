@@ -293,13 +293,10 @@ def accept_rule(args, base: AcceptRule) -> AcceptRule:
 
 def search_options(args, base: SearchOptions) -> SearchOptions:
     """``base`` with ``--max-steps``, ``--fit``, ``--no-structural`` and
-    ``--keep-going`` where given (validated by :class:`SearchOptions`); a
-    ``--substeps`` the user typed is kept (no ``auto_substeps``: the
-    discretisation check then warns instead)."""
+    ``--keep-going`` where given (validated by :class:`SearchOptions`)."""
     return dataclasses.replace(
         base, max_steps=_given(args.max_steps, base.max_steps), fit=_given(args.fit, base.fit),
         structural=False if args.no_structural else base.structural,
-        auto_substeps=base.auto_substeps and getattr(args, "substeps", None) is None,
         on_failed_fit="continue" if args.keep_going else base.on_failed_fit)
 
 
@@ -312,9 +309,8 @@ def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings
     runs holding the inputs the same way with the same method 4 times finer
     (``FreeRunOptions(method="fine")``: fixed-step, where an adaptive solver
     restarts at every sample of a held input), and the check repeated at
-    the declared fit and at every accepted one (``auto_substeps``, unless the
-    user typed ``--substeps``). One line says what was chosen and why. A
-    bundled case keeps its own options."""
+    the declared fit and at every accepted one (``auto_substeps``). One
+    line says what was chosen and why. A bundled case keeps its own options."""
     if len(discretisation_given(args)) == 3:
         return settings
     est, s = held_out(record, settings)
@@ -329,8 +325,7 @@ def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings
     ukf = dataclasses.replace(settings.ukf, method=d.method, substeps=d.substeps, hold=d.hold)
     hold = d.hold if d.hold in ("zoh", "linear") else settings.free_run.hold
     return dataclasses.replace(settings, ukf=ukf,
-                               search=dataclasses.replace(settings.search,
-                                                          auto_substeps=args.substeps is None),
+                               search=dataclasses.replace(settings.search, auto_substeps=True),
                                free_run=dataclasses.replace(settings.free_run, hold=hold,
                                                             method="fine"))
 
