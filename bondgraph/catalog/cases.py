@@ -193,11 +193,7 @@ def case_emps() -> LoopCase:
                      validation=_emps_record(part="validation"),
                      prior=PriorSpec(x0_std={"p_M": 1.0, "q": 1e-5}),
                      ukf=UKFOptions(method="rk4", substeps=2, alpha=1.0),
-                     search=SearchOptions(structural=False),
-                     # the free runs (accept rules, validation) by LSODA: scipy's BDF
-                     # took 63 % of the loop in Python step control; same steps and
-                     # figures (the metric is the inverse model's), 140 -> 61 s
-                     free_run=FreeRunOptions(method="LSODA")),
+                     search=SearchOptions(structural=False)),
         ("coulomb", "v"))
 
 
