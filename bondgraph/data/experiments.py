@@ -215,9 +215,7 @@ def _spec_models(spec: ExperimentSpec) -> tuple[Model, Model]:
     output of the filter model."""
     ctx = f"experiment '{spec.name}'"
     filt = Model.from_spec(spec.model)
-    truth = filt
-    if spec.truth_model and not spec.schedules:
-        truth = Model.from_spec(spec.truth_model)
+    truth = Model.from_spec(spec.truth_model) if spec.truth_model and not spec.schedules else filt
     if spec.schedules:       # the truth is derived once, with its parameters as inputs
         both = sorted(set(spec.schedules) & set(spec.params))
         if both:
