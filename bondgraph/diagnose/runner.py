@@ -9,6 +9,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
+from scipy.stats import chi2
 from typing import Callable
 
 from bondgraph.core.graph import BondGraph
@@ -44,6 +45,7 @@ from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.parallel import run_tasks
 from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, rank_of
 from bondgraph.diagnose.scoring import (
+    conditional_score,
     mark_limits,
     operating_scales,
     places_of,
@@ -679,6 +681,105 @@ def accepted_pair(ctx: Context, result: LoopResult, current: Fit, scales: Scales
     return None
 
 
+def pair_before_single(ctx: Context, result: LoopResult, current: Fit, single: tuple,
+                       confirmed: list[tuple[Candidate, Confirmation]], pairing: tuple,
+                       step: int) -> Fit | None:
+    """Before the confirmed candidate ``single`` ``(candidate, confirmation)``,
+    which passes the accept rule, is accepted: when two or more confirmed
+    candidates at different places are each significant (their own refit's
+    likelihood ratio over ``current`` at ``settings.accept.significance``;
+    at most :data:`PAIR_TOP`, by likelihood ratio), refit their pairs
+    together and accept the best one (:func:`rank_pairs`) that beats the
+    single (:func:`pair_against_single`: the pair's own tests, then the
+    accept rule for the partner added to the single, or, for a pair without
+    the single, a lower free-run error and a better Akaike-penalised
+    likelihood). Pairs whose conditional score test says a member adds
+    nothing given the other are not refitted (:func:`pair_screened_out`).
+    Two effects that act together can each be significant while the best
+    one alone, a look-alike of both, absorbs their misfit; one step then
+    adds both.
+
+    ``pairing`` is ``(scales, tag)``: the operating scales and the refits'
+    graph-name tag. Returns the pair's fit, or None (the single stands).
+    """
+    scales, tag = pairing
+    lead, lead_conf = single
+    pool = [(c, r) for c, r in confirmed if r.comparable and np.isfinite(r.fit.nll)
+            and chi2.sf(2.0 * (current.nll - r.fit.nll), max(len(r.new_params), 1))
+            < ctx.settings.accept.significance
+            and not str((c.confirmed or {}).get("reason") or "").startswith(_UNUSABLE)]
+    pool = sorted(pool, key=lambda z: z[1].fit.nll)[:PAIR_TOP]
+    pairs = [(a, b) for i, (a, _) in enumerate(pool) for b, _ in pool[i + 1:]
+             if a.target.name != b.target.name]
+    screened = [p for p in pairs if not pair_screened_out(ctx, current, p)]
+    if len(screened) < len(pairs):
+        ctx.log(f"  {len(pairs) - len(screened)} pair(s) of significant candidates not refitted: "
+                f"a member adds nothing given the other (conditional score test)")
+    pairs = screened
+    if not pairs:
+        return None
+    ctx.log(f"  {len(pool)} candidates significant: refitting {len(pairs)} pair(s) before "
+            f"accepting {lead.label}: {'; '.join(f'{a.label} + {b.label}' for a, b in pairs)}")
+    refits = run_tasks(ctx, _confirm_pair_task, (current, scales, f"{tag}_pair"), pairs)
+    for pair, conf in rank_pairs([(p, r) for p, r in zip(pairs, refits) if r is not None]):
+        d, reason = pair_against_single(ctx, current, single, pair, conf)
+        ctx.log(f"  pair {pair[0].label} + {pair[1].label}: LR "
+                f"{2 * (current.nll - conf.fit.nll):.1f} (k {len(conf.new_params)}), "
+                + (f"not preferred: {reason}" if reason else "beats the single"))
+        if not reason:
+            return committed_pair(ctx, result, current, pair, conf, d, step)
+    return None
+
+
+def pair_against_single(ctx: Context, current: Fit, single: tuple, pair: tuple,
+                        conf: Confirmation):
+    """Judge the refit ``conf`` of ``pair`` against the single
+    ``(candidate, confirmation)`` that passed alone (:func:`pair_before_single`):
+    the pair's own tests against ``current`` (:func:`judged_pair`), then,
+    when the single is a member, the accept rule for adding the partner to
+    the single's refit (:func:`~bondgraph.diagnose.accept.decide` with the
+    single's fit as the current one: the rule the next step would apply),
+    else (another pair, the single a look-alike of both) a free-run error
+    not above the single's and a better Akaike-penalised likelihood.
+
+    Returns
+    -------
+    (Decision, str or None)
+        The decision against ``current`` and the reason the pair is not
+        preferred (None: it beats the single).
+    """
+    lead, lead_conf = single
+    d, reason = judged_pair(ctx, current, pair, conf)
+    if reason:
+        return d, reason
+    if lead in pair:
+        d2 = decide(lead_conf.fit, conf.fit, ctx.settings.accept,
+                    dof=len(conf.new_params) - len(lead_conf.new_params),
+                    comparable=conf.comparable)
+        return d, (None if d2.accepted else f"added to {lead.label} alone: {d2.reason}")
+    if not conf.fit.accept_metric <= lead_conf.fit.accept_metric:
+        return d, (f"its error {conf.fit.accept_metric:.4g} is above {lead.label}'s alone "
+                   f"({lead_conf.fit.accept_metric:.4g})")
+    if not conf.fit.nll + len(conf.new_params) < lead_conf.fit.nll + len(lead_conf.new_params):
+        return d, f"its penalised likelihood is not better than {lead.label}'s alone"
+    return d, None
+
+
+def pair_screened_out(ctx: Context, current: Fit, pair: tuple) -> bool:
+    """True when the score tests at ``current`` say the pair cannot be
+    needed: for two additive candidates, one of them adds no significant
+    score given the other (:func:`~bondgraph.diagnose.scoring.conditional_score`
+    at ``settings.accept.significance``); look-alikes (a drag on the body
+    or on the wheels) are then not refitted together. A structural member
+    is never screened out (no score to condition on)."""
+    a, b = pair
+    for given, other in ((a, b), (b, a)):
+        z = conditional_score(ctx, current, given, other)
+        if z is not None and not chi2.sf(z[0], max(z[1], 1)) < ctx.settings.accept.significance:
+            return True
+    return False
+
+
 def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidate],
                 scales: Scales, tag: str) -> list[Candidate]:
     """The candidates significant *given* the lead's refit: every effect
@@ -748,9 +849,31 @@ def accepted_pair_fit(ctx: Context, result: LoopResult, current: Fit, pair: tupl
     """Decide on the refit ``conf`` of ``pair`` (:func:`accepted_pair`):
     record both members as steps and return the fit if accepted, else
     record the rejection and return None."""
-    s = ctx.settings
     a, b = pair
-    label = f"{a.label} + {b.label}"
+    d, reason = judged_pair(ctx, current, pair, conf)
+    if reason:
+        result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: {reason}",
+                                         d.criterion_after, d.whiteness_after))
+        ctx.log(f"reject pair {a.label} + {b.label} ({reason}): error {d.error_before:.4g} -> "
+                f"{d.error_after:.4g}, LR {d.lr:.1f} (p {d.lr_p_value:.2g})")
+        return None
+    return committed_pair(ctx, result, current, pair, conf, d, step)
+
+
+def judged_pair(ctx: Context, current: Fit, pair: tuple, conf: Confirmation):
+    """The accept rule on the pair's refit ``conf`` against ``current``
+    (:func:`~bondgraph.diagnose.accept.decide`, dof the two members' new
+    parameters), then the pair's own tests: no member switched off by its
+    box (:func:`~bondgraph.diagnose.accept.pair_member_boxed`) and each
+    member needed (:func:`~bondgraph.diagnose.accept.pair_needed`, against
+    the members' own confirmation refits in ``ctx.cache``).
+
+    Returns
+    -------
+    (Decision, str or None)
+        The decision and the first failed test's reason (None: passed).
+    """
+    s = ctx.settings
     after = conf.fit
     d = decide(current, after, s.accept, dof=len(conf.new_params),
                admissible=admissibility(ctx, after) if conf.comparable else None,
@@ -759,13 +882,18 @@ def accepted_pair_fit(ctx: Context, result: LoopResult, current: Fit, pair: tupl
     reason = d.reason or pair_member_boxed(after, conf.new_params) or pair_needed(
         after, [None if r is None else r.fit for r in singles],
         [0 if r is None else len(r.new_params) for r in singles], s.accept.significance)
-    if reason:
-        result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: {reason}",
-                                         d.criterion_after, d.whiteness_after))
-        ctx.log(f"reject pair {label} ({reason}): error {d.error_before:.4g} -> "
-                f"{d.error_after:.4g}, LR {d.lr:.1f} (p {d.lr_p_value:.2g})")
-        return None
-    after = fit_after_discretisation_check(ctx, result, after, label)
+    return d, reason
+
+
+def committed_pair(ctx: Context, result: LoopResult, current: Fit, pair: tuple,
+                   conf: Confirmation, d, step: int) -> Fit:
+    """Record the accepted ``pair`` (refit ``conf``, decision ``d``) as one
+    step (the first member's, the second in ``together_with``), both
+    effects applied, with the Cramér-Rao std; return the fit."""
+    s = ctx.settings
+    a, b = pair
+    label = f"{a.label} + {b.label}"
+    after = fit_after_discretisation_check(ctx, result, conf.fit, label)
     std = parameter_std(ctx, after)
     after.std = std
     names = list(current.params) + conf.new_params
@@ -883,7 +1011,7 @@ def confirm_in_rounds(ctx: Context, result: LoopResult, current: Fit, signif: li
             ctx.log(f"  none of the confirmed candidates passed the accept rule: confirming the "
                     f"next {len(batch)} (round {r + 1} of at most {s.search.confirm_rounds})")
         after = accept_best(ctx, result, current, confirm_best(ctx, current, batch, scales, name),
-                            step)
+                            step, pairing=(scales, name) if s.accept.pairs else None)
         if after is not None:
             return after
     return None
@@ -971,11 +1099,14 @@ def _confirm_task(ctx: Context, shared, cand: Candidate) -> Confirmation | None:
 
 
 def accept_best(ctx: Context, result: LoopResult, current: Fit,
-                confirmed: list[tuple[Candidate, Confirmation]], step: int) -> Fit | None:
+                confirmed: list[tuple[Candidate, Confirmation]], step: int,
+                pairing: tuple | None = None) -> Fit | None:
     """Accept the first confirmed candidate that passes
     :func:`bondgraph.diagnose.accept.decide` (its step, applied effect and
     Cramér-Rao std recorded); record and log the rejected ones before it.
-    Returns the accepted fit, or None."""
+    With ``pairing`` ``(scales, tag)`` and ``settings.accept.pairs``, a pair
+    of significant confirmed candidates that beats it is accepted instead
+    (:func:`pair_before_single`). Returns the accepted fit, or None."""
     s = ctx.settings
     crit = s.accept.criterion.upper()
     for c, conf in confirmed:
@@ -988,6 +1119,11 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
                if k in ("tie_z", "tie_p", "comparable")}
         c.confirmed = {**confirmed_record(current, after, len(conf.new_params), conf.values,
                                           s.accept, d), **tie}
+        if d.accepted and pairing is not None:
+            better = pair_before_single(ctx, result, current, (c, conf), confirmed, pairing,
+                                        step)
+            if better is not None:
+                return better
         if d.accepted:
             after = fit_after_discretisation_check(ctx, result, after, c.label)
             new_std = parameter_std(ctx, after)

@@ -181,6 +181,7 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     An = A / np.outer(norm, norm)
     bn = b / norm
     out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total, fails)
+    ctx.cache[("score_gram", id(fit), fit.nll)] = (An, bn, norm, col_of, len(probe.nuis))
     mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
     line_probe(ctx, probe, fit, out)
     rank_nested(out, col_of, An, ctx.settings.accept.significance)
@@ -346,6 +347,47 @@ def _explained(An: np.ndarray, bn: np.ndarray, norm: np.ndarray, cs: list):
         return 0.0, np.zeros(0)
     sol = np.linalg.lstsq(An[np.ix_(cs, cs)], bn[cs], rcond=1e-9)[0]
     return float(bn[cs] @ sol), sol / norm[cs]
+
+
+def conditional_score(ctx: Context, fit: Fit, given: Candidate,
+                      other: Candidate) -> tuple[float, int] | None:
+    """The efficient score statistic of ``other`` with ``given``'s columns
+    partialled out beside the estimated parameters (Rao 1948): the
+    innovation energy the two explain together minus what ``given``
+    explains alone, from the normal equations of :func:`score_additive`'s
+    probe run at ``fit`` (no filter run). Under the hypothesis that
+    ``other`` adds nothing to ``given`` it is χ²(k), k its columns.
+
+    Parameters
+    ----------
+    ctx : Context
+    fit : Fit
+        The fit :func:`score_additive` scored (its normal equations cached
+        in ``ctx.cache``).
+    given, other : Candidate
+        Additive candidates of that scoring.
+
+    Returns
+    -------
+    (float, int) or None
+        The statistic and k; None when either is not an additive candidate
+        of that run (a structural one) or the equations are singular.
+    """
+    hit = ctx.cache.get(("score_gram", id(fit), fit.nll))
+    if hit is None:
+        return None
+    An, bn, norm, col_of, nn = hit
+    ca, cb = col_of.get((given.effect, given.target)), col_of.get((other.effect, other.target))
+    if ca is None or cb is None:
+        return None
+    base = list(range(nn)) + list(ca)
+    try:
+        e_a, _ = _explained(An, bn, norm, base)
+        e_ab, _ = _explained(An, bn, norm, base + [c for c in cb if c not in ca])
+    except np.linalg.LinAlgError:
+        return None
+    stat = max(0.0, e_ab - e_a)
+    return (stat, len(cb)) if np.isfinite(stat) else None
 
 
 def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float,

@@ -139,7 +139,10 @@ class AcceptRule:
         When no confirmed candidate passes the accept rule alone, refit
         pairs of the best confirmed ones together and accept a pair that
         passes it and needs both members
-        (:func:`bondgraph.diagnose.runner.accepted_pair`; default True).
+        (:func:`bondgraph.diagnose.runner.accepted_pair`); and when one
+        passes but two or more are each significant, accept instead a pair
+        that beats it (:func:`bondgraph.diagnose.runner.pair_before_single`).
+        Default True.
     """
 
     criterion: str = "aic"
