@@ -73,7 +73,7 @@ def test_confirmation_goes_on_in_rounds_until_one_is_accepted(monkeypatch):
         seen.append([c.label for c in batch])
         return batch
 
-    def fake_accept(ctx, result, current, confirmed, step):
+    def fake_accept(ctx, result, current, confirmed, step, pairing=None):
         return "fit-e" if any(c.label == "e" for c in confirmed) else None
 
     monkeypatch.setattr(runner, "confirm_best", fake_confirm)
