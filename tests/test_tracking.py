@@ -156,6 +156,33 @@ def test_step_in_damping_detected_and_reestimated(tracking_model):
     assert abs(res.smoothed[k, 0] - 1.5) <= 3 * res.smoothed_std[k, 0]
 
 
+@pytest.mark.parametrize("seed, c_after", [(1, 3.0), (2, None)])
+def test_first_pass_in_chunks_equals_one_pass_to_the_end(tracking_model, monkeypatch, seed,
+                                                         c_after):
+    """The first pass stops after the chunk of the first alarm
+    (``track.CHUNK_S``); with a chunk longer than the record it is one pass
+    to the end (as before chunks). Both give the same changes, estimates,
+    statistics and NLL: the chunks restart the same recursion and the
+    detector's windows are trailing."""
+    from bondgraph.inference import track as T
+
+    base, t, F, y = msd_record(seed=seed, c_after=c_after)
+    pr = make_problem(base, (t, F, y), ukf=UKF)
+    opts = TrackOptions(false_alarm_hours=10.0, smooth=False)
+    chunked = track(pr, tracking_model, options=opts)
+    monkeypatch.setattr(T, "CHUNK_S", 10 * T_END)
+    whole = track(pr, tracking_model, options=opts)
+    assert len(chunked.changes) == len(whole.changes) == (0 if c_after is None else 1)
+    for a, b in zip(chunked.changes, whole.changes):
+        assert (a.parameter, a.index, a.alarm_index) == (b.parameter, b.index, b.alarm_index)
+        assert a.statistic == pytest.approx(b.statistic, rel=1e-9)
+        assert a.after == pytest.approx(b.after, rel=1e-9)
+    np.testing.assert_allclose(chunked.estimate, whole.estimate, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(chunked.std, whole.std, rtol=1e-7, atol=0)
+    np.testing.assert_allclose(chunked.statistic, whole.statistic, rtol=1e-7, atol=1e-9)
+    assert chunked.nll == pytest.approx(whole.nll, rel=1e-10)
+
+
 def test_no_false_alarm_and_white_increments_without_change(tracking_model):
     base, t, F, y = msd_record(seed=2)
     pr = make_problem(base, (t, F, y), ukf=UKF)

@@ -285,8 +285,9 @@ class TrackResult:
         Filtered states of the augmented model (``states``).
     states : list of str
     nll : float
-        Negative log-likelihood of the filter over the record (the sum over
-        segments) [nats].
+        Negative log-likelihood of the reported filter over the record [nats]:
+        each sample's term from the segment that reports it (the filter
+        restarted at each change; one pass when nothing changed).
     increments, statistic : ndarray (N, k)
         Standardised parameter updates and the GLR statistic.
     information : ndarray (N, k)
@@ -399,6 +400,7 @@ class _Segment:
     end: int = -1
     nis: np.ndarray | None = None       # (n,) normalised innovation squared, NaN: no update
     dof: np.ndarray | None = None       # (n,) outputs measured at each sample
+    terms: np.ndarray | None = None     # (n,) per-sample NLL terms [nats]
 
 
 def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = None,
@@ -463,10 +465,12 @@ def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = Non
     return res
 
 
-def _filter_segment(tm, rec, th, prior, ukf, R, s0: int) -> _Segment:
-    """The UKF from sample ``s0`` (prior ``(x, P)`` there) to the end."""
+def _filter_segment(tm, rec, th, prior, ukf, R, s0: int, s1: int | None = None) -> _Segment:
+    """The UKF from sample ``s0`` (prior ``(x, P)`` there) to the end (to
+    ``s1``, exclusive, when given)."""
     t, u, y = rec
     x, P = prior
+    t, u, y = t[:s1], u[:s1], y[:s1]
     res = ukf_nll(tm.model, t[s0:], u[s0:], y[s0:], th[None, :], x, P, options=ukf, R=R,
                   store="full")
     if not np.isfinite(res.nll[0]):
@@ -481,7 +485,8 @@ def _filter_segment(tm, rec, th, prior, ukf, R, s0: int) -> _Segment:
                                       tm.tracked[c].slope(xf[:, i]))
                      for c, i in enumerate(idx)], -1)
     return _Segment(s0, xf, Pf, (x, P), float(res.nll[0]), S, np.zeros_like(S), info,
-                    nis=res.nis[:, 0], dof=np.isfinite(y[s0:]).sum(axis=1))
+                    nis=res.nis[:, 0], dof=np.isfinite(y[s0:]).sum(axis=1),
+                    terms=res.nll_terms[:, 0])
 
 
 def reference_std(tm: TrackingModel, x0, options: TrackOptions) -> np.ndarray:
@@ -504,21 +509,26 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
     s0, segs, changes = 0, [], []
     changed, P_start = None, _states_prior(tm, prior[1])
     while True:
-        seg = _filter_segment(tm, (t, u, y), th, prior, ukf, R, s0)
+        if not segs and h is not None:  # to the first alarm only: filtered again from there
+            seg, alarm, obs = _first_pass(tm, (t, u, y), th, prior, ukf, R,
+                                          (h, window, ow, sigma0), opts)
+        else:
+            seg = _filter_segment(tm, (t, u, y), th, prior, ukf, R, s0)
         if changed is not None:         # once more, from the change time, centred on
             i = int(tm.state_indices[changed])      # what the first pass found
             x = prior[0].copy()
             x[i] = seg.x[-1, i]
             prior = (x, _reset(tm, changed, x, prior[1], std, opts, None))
             seg = _filter_segment(tm, (t, u, y), th, prior, ukf, R, s0)
-        alarm = None
-        if h is not None:
+        if segs and h is not None:
             watched = seg.S.copy()
             if segs:                     # a restart: skip the re-estimation's transient
                 watched[:holdoff] = np.nan
             obs = observable_mask(seg.info, sigma0, ow, opts.observable_ratio)
             watched[~obs] = np.nan       # not observable there: its updates are noise
             alarm, seg.G = first_alarm(watched, h, window, allowed=obs)
+        elif h is None:
+            alarm = None
         segs.append(seg)
         if alarm is None or len(changes) >= opts.max_changes:
             seg.end = t.size
@@ -537,6 +547,70 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
                               g, h, tm.names[c0], iso))
         prior = (x, _reset(tm, c, x, P, std, opts, P_start))
         s0, changed = cidx - 1, c
+
+
+#: the first pass of :func:`track` filters chunks of this length [s] (at least
+#: four detector windows) and stops after the chunk of the first alarm
+CHUNK_S = 10.0
+
+
+def _first_pass(tm, rec, th, prior, ukf, R, detector, opts):
+    """The first pass over the record, stopped at the first alarm: the
+    filter in chunks of :data:`CHUNK_S` s, each restarted from the previous
+    one's filtered mean and covariance at its last sample (that sample's
+    update not repeated), the detector run on each new chunk with the
+    trailing history its windows need (the previous chunk). The same
+    numbers as one pass to the end, up to the end of the alarm's chunk:
+    the filter is the same recursion and the GLR and observability windows
+    are trailing; the samples after the alarm are filtered again from the
+    change anyway.
+
+    ``detector`` is ``(h, window, ow, sigma0)`` (threshold, GLR window,
+    observability window, reference std). Returns the segment (``G``
+    filled, ``end`` unset), the first alarm (:func:`first_alarm`'s, sample
+    indices from 0) or None, and the observability mask (N_seg, k).
+    """
+    t, u, y = rec
+    h, window, ow, sigma0 = detector
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    step = max(int(round(CHUNK_S / dt)), 4 * max(window, ow), 2)
+    parts, a, alarm = [], 0, None
+    while a < t.size and alarm is None:
+        b = min(t.size, a + step)
+        if not parts:
+            part = _filter_segment(tm, rec, th, prior, ukf, R, 0, b)
+        else:
+            yy = y[a - 1:b].copy()
+            yy[0] = np.nan                  # its update is in the prior already
+            part = _filter_segment(tm, (t[a - 1:b], u[a - 1:b], yy), th,
+                                   (parts[-1].x[-1], parts[-1].P[-1]), ukf, R, 0)
+            part = _dropped_first(part, a)
+        lo = parts[-1].start if parts else 0
+        info = np.concatenate([p.info for p in parts[-1:]] + [part.info])
+        obs = observable_mask(info, sigma0, ow, opts.observable_ratio)
+        watched = np.concatenate([p.S for p in parts[-1:]] + [part.S])
+        watched[~obs] = np.nan
+        allowed = obs.copy()
+        allowed[:a - lo] = False            # judged with the previous chunk already
+        alarm, G = first_alarm(watched, h, window, allowed=allowed)
+        part.G = G[a - lo:]
+        alarm = None if alarm is None else (alarm[0] + lo, alarm[1] + lo, *alarm[2:])
+        parts.append(part)
+        a = b
+    seg = _Segment(0, *(np.concatenate([getattr(p, f) for p in parts]) for f in ("x", "P")),
+                   prior, float(sum(p.nll for p in parts)),
+                   *(np.concatenate([getattr(p, f) for p in parts]) for f in ("S", "G", "info")),
+                   nis=np.concatenate([p.nis for p in parts]),
+                   dof=np.concatenate([p.dof for p in parts]),
+                   terms=np.concatenate([p.terms for p in parts]))
+    return seg, alarm, observable_mask(seg.info, sigma0, ow, opts.observable_ratio)
+
+
+def _dropped_first(seg: _Segment, start: int) -> _Segment:
+    """A chunk's segment without its first sample (the previous chunk's
+    last, repeated as the restart's prior), starting at ``start``."""
+    return _Segment(start, seg.x[1:], seg.P[1:], seg.prior, seg.nll, seg.S[1:], seg.G[1:],
+                    seg.info[1:], nis=seg.nis[1:], dof=seg.dof[1:], terms=seg.terms[1:])
 
 
 def _isolate(tm, rec, th, prior, ukf, R, span, reset, candidates) -> tuple[int, dict]:
@@ -603,12 +677,13 @@ def _stitch(tm, t, segs, changes, h) -> TrackResult:
     N, k, n = t.size, len(tm.tracked), tm.model.n_x
     xs, Ps = np.full((N, n), np.nan), np.full((N, n, n), np.nan)
     S, G, info = np.full((N, k), np.nan), np.zeros((N, k)), np.zeros((N, k))
-    nis, dof = np.full(N, np.nan), np.zeros(N, dtype=int)
+    nis, dof, terms = np.full(N, np.nan), np.zeros(N, dtype=int), np.zeros(N)
     for i, seg in enumerate(segs):
         a, e = _kept(seg, i == 0)
         r = slice(a - seg.start, e - seg.start)
         xs[a:e], Ps[a:e], S[a:e], G[a:e] = seg.x[r], seg.P[r], seg.S[r], seg.G[r]
         info[a:e], nis[a:e], dof[a:e] = seg.info[r], seg.nis[r], seg.dof[r]
+        terms[a:e] = seg.terms[r]
     est, sd = tm.values(xs, Ps)
     for ch, seg in zip(changes, segs[1:]):
         c = tm.names.index(ch.parameter)
@@ -616,7 +691,7 @@ def _stitch(tm, t, segs, changes, h) -> TrackResult:
         ch.after, ch.after_std = float(est[seg.end - 1, c]), float(sd[seg.end - 1, c])
     return TrackResult(t=t, names=tm.names, units=[tp.unit for tp in tm.tracked], estimate=est,
                        std=sd, x_filt=xs, states=list(tm.model.states),
-                       nll=float(sum(s.nll for s in segs)), increments=S, statistic=G,
+                       nll=float(np.sum(terms)), increments=S, statistic=G,
                        threshold=h, changes=changes, information=info, nis=nis,
                        nis_dof=dof)
 
