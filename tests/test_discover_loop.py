@@ -174,3 +174,21 @@ def test_the_command_lines_discover_option_runs_the_loop_again_with_the_law(tmp_
     assert "![discovery.png](discovery.png)" in md and res.discovery.text in md
     assert (tmp_path / "report" / "discovery.png").exists()
     assert "discovery" in (tmp_path / "report" / "report.html").read_text()
+    # augmented_model.py rebuilds the augmented graph (the discovered law is
+    # data: from its pickle); its model equals the loop's final one
+    from bondgraph.core.plugins import resolve
+
+    g = resolve(f"{tmp_path / 'report' / 'augmented_model.py'}:build")()
+    m, ref = Model.from_graph(g), Model.from_graph(res.final_graph)
+    assert m.states == ref.states and set(m.params) == set(ref.params)
+    rng = np.random.default_rng(3)
+    x = rng.normal(0.0, 0.2, (4, len(m.states)))
+    u = rng.normal(0.0, 5.0, (4, 1))
+    th = np.array([[res.final.estimates.get(n, ref.theta0[ref.param_index(n)])
+                    for n in ref.params]])
+    th_m = np.array([[th[0, ref.param_index(n)] for n in m.params]])
+    np.testing.assert_allclose(m.f(x, u, np.repeat(th_m, 4, 0)),
+                               ref.f(x, u, np.repeat(th, 4, 0)), rtol=1e-12)
+    # its defaults are the final estimates
+    for n, v in res.final.estimates.items():
+        assert g.params[n].default == pytest.approx(v, rel=1e-12)

@@ -12,6 +12,7 @@ initial and final fits, and the residual analyses.
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import pickle
 import shutil
@@ -21,6 +22,7 @@ import numpy as np
 
 from bondgraph.core.atomic import OutputFolder
 from bondgraph.core.codegen import generate_source
+from bondgraph.core.plugins import resolve
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.result import LoopResult
 from bondgraph.report.drawing import draw, layout
@@ -107,6 +109,8 @@ def write(result: LoopResult, out, *, final=None, cache: dict | None = None) -> 
         (out / "augmented_model.py").write_text(augmented_source(result))
         if not (result.source and ":" in result.source) and result.declared_graph is not None:
             (out / DECLARED_PICKLE).write_bytes(pickle.dumps(result.declared_graph))
+        if not_reapplied(result) and result.final_graph is not None:
+            (out / AUGMENTED_PICKLE).write_bytes(pickle.dumps(result.final_graph))
         _write_generated(result, out, Path(final) if final is not None else out, cache)
     pngs = _plots(result, out, cache) + _graph_plots(result, out, cache)
     (out / "report.md").write_text(markdown(result, pngs))
@@ -135,12 +139,49 @@ def declared_import(source: str | None) -> list[str]:
             "        return pickle.load(fh)"]
 
 
+#: pickle of the final augmented graph beside augmented_model.py, when an
+#: accepted effect cannot be re-applied from its class alone
+AUGMENTED_PICKLE = "augmented_graph.pkl"
+
+
+def not_reapplied(result: LoopResult) -> list[str]:
+    """The accepted effects ``augmented_model.py`` cannot re-apply by name
+    or by a class constructed without arguments (a law the loop discovered,
+    :class:`bondgraph.diagnose.discover.effect.DiscoveredEffect`, is data,
+    not a class): their labels. The file then rebuilds the augmented graph
+    from its pickle (:data:`AUGMENTED_PICKLE`)."""
+    out = []
+    for a in result.applied:
+        if a.spec is None:
+            continue
+        try:
+            inspect.signature(resolve(a.spec)).bind()
+        except Exception:           # not importable, or it needs arguments
+            out.append(f"{a.effect} @ {a.target.name}")
+    return out
+
+
+def _pickled_build(result: LoopResult, which: list[str]) -> list[str]:
+    """``build()`` of ``augmented_model.py`` from the pickled final graph."""
+    return ["", "", "def build():",
+            f'    """{result.model} + ' + " + ".join(
+                f"{a.effect} @ {a.target.name}" for a in result.applied) + ".",
+            "",
+            f"    Rebuilt from its pickle ({AUGMENTED_PICKLE}): {', '.join(which)} cannot be",
+            '    re-applied from a class alone (a discovered law is data)."""',
+            f"    with open(Path(__file__).with_name({AUGMENTED_PICKLE!r}), 'rb') as fh:",
+            "        g = pickle.load(fh)",
+            f"    g.name = {_augmented_name(result)!r}"]
+
+
 def augmented_source(result: LoopResult) -> str:
     """Source of ``augmented_model.py``: a declared model whose ``build()``
     rebuilds the user's graph (:func:`declared_import`) and applies the
     accepted effects in order with their values (a user-supplied effect by
     its recorded ``module:Class``), then the final estimates
-    (``ESTIMATES``) as defaults."""
+    (``ESTIMATES``) as defaults; when an effect cannot be re-applied from
+    its class (:func:`not_reapplied`), ``build()`` loads the final graph
+    from its pickle instead."""
     lines = [f'"""Augmented declared model written by `bondgraph loop`.',
              "",
              f"It rebuilds the declared model '{result.model}' unchanged and adds the",
@@ -153,13 +194,17 @@ def augmented_source(result: LoopResult) -> str:
              "from bondgraph.core.plugins import resolve",
              "from bondgraph.diagnose.effects import Target, apply_effect",
              "", ""]
-    lines += declared_import(result.source)
-    lines += ["", "", "def build():",
-              f'    """{result.model} + ' +
-              " + ".join(f"{a.effect} @ {a.target.name}" for a in result.applied) + '."""',
-              "    g = _declared()",
-              f"    g.name = {_augmented_name(result)!r}"]
-    for a in result.applied:
+    which = not_reapplied(result)
+    if which:
+        lines += _pickled_build(result, which)
+    else:
+        lines += declared_import(result.source)
+        lines += ["", "", "def build():",
+                  f'    """{result.model} + ' +
+                  " + ".join(f"{a.effect} @ {a.target.name}" for a in result.applied) + '."""',
+                  "    g = _declared()",
+                  f"    g.name = {_augmented_name(result)!r}"]
+    for a in result.applied if not which else []:
         vals = {k: float(v) for k, v in a.values.items()}
         eff = repr(a.effect) if a.spec is None else f"resolve({a.spec!r})()"
         lines.append(f"    apply_effect(g, {eff}, Target({a.target.kind!r}, "
