@@ -137,7 +137,8 @@ def main(argv=None) -> int:
         return rc
     res = {"loop_s": round(wall, 1), **test_errors(out / "loop")}
     report = json.loads((out / "loop" / "report.json").read_text())
-    res["accepted"] = [s.get("label") or s.get("effect") for s in report["steps"]]
+    res["accepted"] = [" + ".join([f"{s['effect']} @ {s['attached_to']}",
+                                   *s.get("together_with", [])]) for s in report["steps"]]
     print(json.dumps(res))
     return 0
 
