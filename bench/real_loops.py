@@ -48,7 +48,8 @@ def run_case(name: str, extra: list[str], out: Path, env: dict) -> dict:
                 "skipped": "\n".join(tail)}
     rep = json.loads((out / "report.json").read_text())
     return {"case": name, "args": extra, "wall_s": round(wall, 1), "metric": rep["metric"],
-            "accepted": [f"{s['effect']} @ {s['attached_to']}" for s in rep["steps"]],
+            "accepted": [" + ".join([f"{s['effect']} @ {s['attached_to']}",
+                                     *s.get("together_with", [])]) for s in rep["steps"]],
             "error_before": rep["error_before"], "error_after": rep["error_after"],
             "validation_before": rep["validation_error_before"],
             "validation_after": rep["validation_error_after"]}
