@@ -52,6 +52,14 @@ Usage::
     python bench/discovery.py              # every case (~30-40 min on 1 core)
     python bench/discovery.py --quick      # 3 cases (~3 min)
     python bench/discovery.py --case rlc_varactor
+    python bench/discovery.py --compete    # the law beside the library from the start
+
+``--compete`` is not what ``loop_with_discovery`` does: it discovers on
+the declared graph whatever the loop alone would accept and runs the loop
+once with the law among the library's effects (:func:`loop_competing`),
+to see what discovery would change where the library's look-alikes are
+accepted first (the product only discovers when no physical effect is
+accepted). Its results are not saved unless ``--json-out`` is given.
 
 The per-case table is printed, then one JSON line (the last line); the
 full run saves the per-case results to ``bench/results/discovery.json``.
@@ -501,6 +509,20 @@ def forced_discovery(graph, train, settings, log=quiet):
     return discovered_effect(graph, train, settings, SimpleNamespace(steps=[]), log=log)
 
 
+def loop_competing(graph, train, settings, log=quiet):
+    """``--compete``: the loop once, with the discovered law
+    (:func:`forced_discovery`, found whatever a first loop would accept)
+    beside the library from the first step: the likelihood-ratio
+    comparison, not the order, decides between them. Returns (LoopResult,
+    Discovery or None)."""
+    best = forced_discovery(graph, train, settings, log)
+    if best is None:
+        return run_loop(graph, train, settings, log=log, progress=False), None
+    effects = tuple(settings.effects) + (best.effect,)
+    return run_loop(graph, train, replace(settings, effects=effects), log=log,
+                    progress=False), best
+
+
 def head_to_head(case: Case, graph, train, settings, log) -> dict:
     """For a library case: the law discovery finds on the declared graph
     (whatever the first loop accepted) beside the library, in one loop run;
@@ -519,9 +541,10 @@ def head_to_head(case: Case, graph, train, settings, log) -> dict:
             "tied": tied}
 
 
-def run_case(case: Case, seed: int = 0, log=quiet) -> dict:
+def run_case(case: Case, seed: int = 0, log=quiet, compete: bool = False) -> dict:
     """One case (module docstring): the three records, the loop with
-    discovery, the test-record figures."""
+    discovery (``compete``: :func:`loop_competing` instead), the test-record
+    figures."""
     t0 = time.perf_counter()
     train, _ = record(case, "train", seed)
     val, _ = record(case, "val", seed)
@@ -533,7 +556,8 @@ def run_case(case: Case, seed: int = 0, log=quiet) -> dict:
     y = {k: np.asarray(test[k], float) for k in outputs}
     out["floor"] = nrmse(y, test_true)
     try:
-        res, disc = loop_with_discovery(case.build(), train, settings, log=log)
+        run = loop_competing if compete else loop_with_discovery
+        res, disc = run(case.build(), train, settings, log=log)
     except Exception as exc:            # a loop that raises counts as diverged
         out.update({"diverged": f"{type(exc).__name__}: {str(exc).splitlines()[0]}",
                     "passivity_violated": False, "gap_closed": float("nan"), "added": 0,
@@ -557,7 +581,7 @@ def run_case(case: Case, seed: int = 0, log=quiet) -> dict:
     out["main_term"] = main_term(case, res, disc)
     out["pass"] = bool(out["gap_closed"] >= PASS_GAP and out["added"] <= MAX_ADDED
                        and not out["diverged"] and not out["passivity_violated"])
-    if case.library:
+    if case.library and not compete:
         out["library_kept"] = head_to_head(case, case.build(), train, settings, log)
     out["seconds"] = time.perf_counter() - t0
     return out
@@ -636,6 +660,9 @@ def main(argv=None):
     ap.add_argument("--case", default=None, help="comma-separated case names")
     ap.add_argument("--seed", type=int, default=0, help="noise seed offset (default 0)")
     ap.add_argument("--verbose", action="store_true", help="print the loop's log lines")
+    ap.add_argument("--compete", action="store_true",
+                    help="the discovered law beside the library from the first step, whatever "
+                         "the loop alone would accept (not what loop_with_discovery does)")
     ap.add_argument("--json-out", default=None,
                     help="write the per-case results here (default: bench/results/"
                          "discovery.json for the full run, none for a subset)")
@@ -645,18 +672,19 @@ def main(argv=None):
     names = (a.case.split(",") if a.case else list(QUICK) if a.quick else list(cases))
     results = []
     for k, name in enumerate(names):
-        r = run_case(cases[name], a.seed, log=print if a.verbose else quiet)
+        r = run_case(cases[name], a.seed, log=print if a.verbose else quiet, compete=a.compete)
         results.append(r)
         print(f"[{k + 1}/{len(names)}] {name}: gap closed {r['gap_closed']:.3f}, "
               f"{r.get('added')} added {r.get('accepted')}, pass {r['pass']}, "
               f"{r['seconds']:.0f} s", file=sys.stderr, flush=True)
     total = summarise(results)
     print_table(results, total)
-    json_out = a.json_out or (str(RESULT) if not (a.quick or a.case) else None)
+    json_out = a.json_out or (str(RESULT) if not (a.quick or a.case or a.compete) else None)
     if json_out:
         with open(json_out, "w") as fh:
             json.dump(results, fh, indent=1, default=str)
-    print(json.dumps({"quick": a.quick, "cases": names if a.case else None, "seed": a.seed,
+    print(json.dumps({"quick": a.quick, "compete": a.compete,
+                      "cases": names if a.case else None, "seed": a.seed,
                       "total": total}, default=str))
     return results, total
 
