@@ -49,8 +49,8 @@ accept the library effect first (or report the two tied).
 
 Usage::
 
-    python bench/discovery.py              # every case (~30-40 min on 1 core)
-    python bench/discovery.py --quick      # 3 cases (~3 min)
+    python bench/discovery.py              # every case (~20 min on 1 core)
+    python bench/discovery.py --quick      # 3 cases (~1.5 min)
     python bench/discovery.py --case rlc_varactor
     python bench/discovery.py --compete    # the law beside the library from the start
 
