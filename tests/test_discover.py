@@ -207,3 +207,57 @@ def test_reconstruction_on_a_linear_case_equals_the_closed_form_rts_smoother():
     assert np.max(np.abs(r.d - xs[:, i_d])) < 1e-6 * scale
     assert np.allclose(r.d_std, np.sqrt(Ps[:, i_d, i_d]), rtol=1e-5)
     assert np.allclose(r.variables["v.f"], xs[:, ip] / M, rtol=1e-6, atol=1e-9)
+
+
+def _thermal_record():
+    """thermal_two_node's own equations (hand-written, temperatures), heater
+    power and ambient as multisines, by solve_ivp; both temperatures
+    measured (noise 0.05 K declared)."""
+    c1, c2, r12, r2a = 500.0, 2000.0, 0.05, 0.1
+    t = np.arange(0.0, 6000.0, 2.0)
+
+    def P(t):
+        return 200.0 + 100.0 * np.sin(2 * np.pi * t / 600) + 60.0 * np.sin(2 * np.pi * t / 211)
+
+    def Ta(t):
+        return np.sin(2 * np.pi * t / 900)
+
+    def rhs(t, s):
+        q12 = (s[0] - s[1]) / r12
+        return [(P(t) - q12) / c1, (q12 - (s[1] - Ta(t)) / r2a) / c2]
+
+    sol = solve_ivp(rhs, (t[0], t[-1]), [0.0, 0.0], t_eval=t, method="LSODA", rtol=1e-9,
+                    atol=1e-12, max_step=1.0)
+    rng = np.random.default_rng(3)
+    cols = {"P": P(t), "T_a": Ta(t), "T1": sol.y[0] + 0.05 * rng.standard_normal(t.size),
+            "T2": sol.y[1] + 0.05 * rng.standard_normal(t.size)}
+    return Experiment.from_arrays(t, cols, units={"P": "W", "T_a": "K", "T1": "K", "T2": "K"},
+                                  roles={"P": "input", "T_a": "input", "T1": "output",
+                                         "T2": "output"},
+                                  noise_std={"T1": 0.05, "T2": 0.05})
+
+
+def test_a_port_the_record_does_not_observe_is_refused_and_skipped():
+    """The flow missing at the ambient's 0-junction (its effort imposed by
+    the ambient source) is not observed: the smoother's std is not finite
+    there. discover_law refuses it with a NumericalError naming the port
+    (before: scikit-learn's InvalidParameterError from orthogonal_mp with
+    no usable column, which stopped loop_with_discovery), and the loop's
+    discovery skips that port and goes on with the others."""
+    from types import SimpleNamespace
+
+    from bondgraph.catalog.reference import thermal_two_node
+    from bondgraph.diagnose.discover.effect import discovered_effect
+    from bondgraph.diagnose.settings import LoopSettings
+    from bondgraph.errors import NumericalError
+
+    rec = _thermal_record()
+    r = reconstruct(thermal_two_node(), rec, "ambient_node")
+    assert not np.all(np.isfinite(r.d_std))
+    with pytest.raises(NumericalError, match="ambient_node"):
+        discover_law(r)
+    logs = []
+    discovered_effect(thermal_two_node(), rec, LoopSettings(params=["Rth12", "Rth2a"]),
+                      SimpleNamespace(steps=[]), ports=["ambient_node", "node1"],
+                      log=logs.append)
+    assert any(line.startswith("discovery at 'ambient_node' skipped") for line in logs), logs

@@ -50,7 +50,7 @@ from pysindy.optimizers import STLSQ
 from sklearn.model_selection import GroupKFold
 
 from bondgraph.core import units as units_
-from bondgraph.errors import OptionError
+from bondgraph.errors import NumericalError, OptionError
 
 #: thresholds of STLSQ as fractions of the target's norm (:func:`candidate_supports`)
 STLSQ_THRESHOLDS = (0.3, 0.1, 0.03, 0.01, 0.003)
@@ -279,6 +279,11 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
     ------
     OptionError
         Fewer samples than ``folds × (max_terms + 1)`` after trimming.
+    NumericalError
+        d̂ or its std is not finite on the fitted samples (a port whose
+        missing effort or flow the record does not observe: the flow
+        entering a 0-junction whose effort a source imposes), or no
+        candidate term is finite and non-zero there: no law to regress.
 
     Notes
     -----
@@ -300,10 +305,19 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
     symbols = {k: sp.Symbol(k) for k in list(rec.primary) + inputs}
     Phi = _columns([c[1] for c in cands], symbols, values, n - 2 * cut)
     d = np.asarray(rec.d, float)[keep]
-    w = 1.0 / np.maximum(np.asarray(rec.d_std, float)[keep], 1e-12 * (np.abs(d).max() or 1.0))
+    d_std = np.asarray(rec.d_std, float)[keep]
+    bad = int(np.sum(~(np.isfinite(d) & np.isfinite(d_std))))
+    if bad:
+        raise NumericalError(f"discover_law at '{rec.port.port}': the reconstructed "
+                             f"{rec.port.kind} or its std is not finite at {bad} of {d.size} "
+                             f"samples (the record does not observe it there)")
+    w = 1.0 / np.maximum(d_std, 1e-12 * (np.abs(d).max() or 1.0))
     A, b = Phi * w[:, None], d * w
     norms = np.linalg.norm(A, axis=0)
-    ok = norms > 0
+    ok = np.isfinite(norms) & (norms > 0)
+    if not ok.any():
+        raise NumericalError(f"discover_law at '{rec.port.port}': no candidate term is finite "
+                             f"and non-zero along the record")
     A = A[:, ok] / norms[ok]
     supports = candidate_supports(A, b, int(min(opts.max_terms, A.shape[1])))
     err, se = _cv_errors(A, b, supports, opts.folds)
