@@ -711,10 +711,10 @@ def pair_before_single(ctx: Context, result: LoopResult, current: Fit, single: t
     pool = sorted(pool, key=lambda z: z[1].fit.nll)[:PAIR_TOP]
     pairs = [(a, b) for i, (a, _) in enumerate(pool) for b, _ in pool[i + 1:]
              if a.target.name != b.target.name]
-    screened = [p for p in pairs if not pair_screened_out(ctx, current, p)]
+    screened = [p for p in pairs if not pair_screened_out(ctx, current, p, single, scales)]
     if len(screened) < len(pairs):
-        ctx.log(f"  {len(pairs) - len(screened)} pair(s) of significant candidates not refitted: "
-                f"a member adds nothing given the other (conditional score test)")
+        ctx.log("  pair(s) not refitted, a member adds nothing given the other (score test): "
+                + "; ".join(f"{a.label} + {b.label}" for a, b in pairs if (a, b) not in screened))
     pairs = screened
     if not pairs:
         return None
@@ -765,19 +765,50 @@ def pair_against_single(ctx: Context, current: Fit, single: tuple, pair: tuple,
     return d, None
 
 
-def pair_screened_out(ctx: Context, current: Fit, pair: tuple) -> bool:
-    """True when the score tests at ``current`` say the pair cannot be
-    needed: for two additive candidates, one of them adds no significant
-    score given the other (:func:`~bondgraph.diagnose.scoring.conditional_score`
-    at ``settings.accept.significance``); look-alikes (a drag on the body
-    or on the wheels) are then not refitted together. A structural member
-    is never screened out (no score to condition on)."""
+def pair_screened_out(ctx: Context, current: Fit, pair: tuple, single: tuple,
+                      scales: Scales) -> bool:
+    """True when a score test says the pair cannot be needed, so it is not
+    refitted. A pair with the ``single`` ``(candidate, confirmation)`` and
+    an additive partner: the partner's score test at the single's refit
+    (the test the next step would make first, :func:`score_given`) is not
+    significant at ``settings.accept.significance``. Any other pair of two
+    additive candidates: one adds no significant score given the other at
+    ``current`` (:func:`~bondgraph.diagnose.scoring.conditional_score`;
+    look-alikes such as a drag on the body or on the wheels). A structural
+    partner is never screened out (its score needs its grid)."""
     a, b = pair
+    level = ctx.settings.accept.significance
+    lead, conf = single
+    if lead in pair:
+        other = b if a is lead else a
+        scored = score_given(ctx, conf.fit, other, scales)
+        return scored is not None and not scored.p_value < level
     for given, other in ((a, b), (b, a)):
         z = conditional_score(ctx, current, given, other)
-        if z is not None and not chi2.sf(z[0], max(z[1], 1)) < ctx.settings.accept.significance:
+        if z is not None and not chi2.sf(z[0], max(z[1], 1)) < level:
             return True
     return False
+
+
+def score_given(ctx: Context, fit: Fit, cand: Candidate, scales: Scales) -> Candidate | None:
+    """The additive candidate ``cand`` scored at ``fit`` (another
+    candidate's refit; the filter conditioned on its initial states and
+    noise levels, as :func:`partners_of` scores): one probe run of
+    :func:`~bondgraph.diagnose.scoring.score_additive` for ``cand``'s
+    effect. None for a structural effect, or when its target is not among
+    those scored."""
+    eff = get_effect(cand.effect, ctx.settings.effects)
+    if not eff.additive:
+        return None
+    base = ctx.problem
+    ctx.problem = base.conditioned_on(x0=dict(fit.x0_est), noise_levels=dict(fit.noise_est))
+    try:
+        found = [c for c in score_additive(ctx, fit, scales, [eff]) if c.target == cand.target]
+    except BondGraphError:
+        return None
+    finally:
+        ctx.problem = base
+    return found[0] if found and np.isfinite(found[0].p_value) else None
 
 
 def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidate],
