@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
@@ -165,6 +166,19 @@ def condition_on(ctx: Context, fit: Fit) -> None:
     them): ``ctx.problem`` is replaced by the problem conditioned on them."""
     ctx.problem = ctx.problem.conditioned_on(x0=dict(fit.x0_est),
                                              noise_levels=dict(fit.noise_est))
+
+
+@contextmanager
+def conditioned(ctx: Context, fit: Fit):
+    """Within the block, filter runs condition on ``fit`` (another
+    candidate's refit: its estimated initial states and measurement-noise
+    stds, as :func:`condition_on`); ``ctx.problem`` is restored after."""
+    base = ctx.problem
+    ctx.problem = base.conditioned_on(x0=dict(fit.x0_est), noise_levels=dict(fit.noise_est))
+    try:
+        yield
+    finally:
+        ctx.problem = base
 
 
 def held_out(experiment, s: LoopSettings):
@@ -800,14 +814,11 @@ def score_given(ctx: Context, fit: Fit, cand: Candidate, scales: Scales) -> Cand
     eff = get_effect(cand.effect, ctx.settings.effects)
     if not eff.additive:
         return None
-    base = ctx.problem
-    ctx.problem = base.conditioned_on(x0=dict(fit.x0_est), noise_levels=dict(fit.noise_est))
     try:
-        found = [c for c in score_additive(ctx, fit, scales, [eff]) if c.target == cand.target]
-    except BondGraphError:
+        with conditioned(ctx, fit):
+            found = [c for c in score_additive(ctx, fit, scales, [eff]) if c.target == cand.target]
+    except BondGraphError:      # not scored: the pair is refitted
         return None
-    finally:
-        ctx.problem = base
     return found[0] if found and np.isfinite(found[0].p_value) else None
 
 
@@ -830,16 +841,11 @@ def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidat
     conf = ctx.cache.get(("confirmation", id(current), current.nll, lead.label))
     if conf is None:
         return []
-    base = ctx.problem
-    ctx.problem = base.conditioned_on(x0=dict(conf.fit.x0_est),
-                                      noise_levels=dict(conf.fit.noise_est))
-    try:
+    with conditioned(ctx, conf.fit):
         cands = score_additive(ctx, conf.fit, scales, s.effects)
         if s.search.structural:
             cands += score_structural(ctx, conf.fit, scales,
                                       [e for e in s.effects if not getattr(e, "last_resort", False)])
-    finally:
-        ctx.problem = base
     cands = [c for c in cands if c.target.name != lead.target.name]
     taken = {c.label for c in pool}
     found = sorted([c for c in significant(cands, s.accept.significance) if c.label not in taken],
