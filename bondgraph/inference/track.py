@@ -297,6 +297,9 @@ class TrackResult:
         The tracking filter's normalised innovation squared per sample (NaN
         without an update) and the number of outputs measured there (its χ²
         degrees of freedom when the model is right; :meth:`inconsistent`).
+    nll_terms : ndarray (N,)
+        Each sample's term of ``nll`` [nats] (:func:`choose_substeps`
+        compares them window by window).
     observable : ndarray of bool (N, k)
         Whether each parameter is observable from the record at each sample
         (``TrackOptions.observable_s``, ``observable_ratio``).
@@ -320,6 +323,7 @@ class TrackResult:
     information: np.ndarray | None = None
     nis: np.ndarray | None = None
     nis_dof: np.ndarray | None = None
+    nll_terms: np.ndarray | None = None
     observable: np.ndarray | None = None
     smoothed: np.ndarray | None = None
     smoothed_std: np.ndarray | None = None
@@ -693,7 +697,7 @@ def _stitch(tm, t, segs, changes, h) -> TrackResult:
                        std=sd, x_filt=xs, states=list(tm.model.states),
                        nll=float(np.sum(terms)), increments=S, statistic=G,
                        threshold=h, changes=changes, information=info, nis=nis,
-                       nis_dof=dof)
+                       nis_dof=dof, nll_terms=terms)
 
 
 def _smoothed(tm, t, u, th, segs, ukf):
@@ -718,6 +722,228 @@ def check_tracked(names: Sequence[str], model) -> None:
         if n not in model.params:
             raise OptionError(f"cannot track '{n}': model '{model.name}' has no such parameter "
                               f"(parameters: {', '.join(model.params)})")
+
+
+# ------------------------------------------------------------------ discretisation
+#: the most substeps :func:`choose_substeps` tries
+MAX_SUBSTEPS = 128
+#: the largest accepted discretisation error of a window's log-likelihood, in
+#: units of that log-likelihood's own sampling std √(m/2)
+SUBSTEP_TOLERANCE = 1.0
+
+
+@dataclass(frozen=True)
+class SubstepChoice:
+    """What :func:`choose_substeps` found.
+
+    Attributes
+    ----------
+    substeps : int
+        The substeps chosen: the first that passed, else the largest tried.
+    ok : bool
+        Whether it passed (False: :data:`MAX_SUBSTEPS` reached first).
+    difference : dict
+        s -> D(s, 2s): the largest |ΔNLL_w| / √(m_w/2) over the windows
+        between the filters with s and 2s substeps.
+    error : dict
+        s -> the estimated error of s in the same unit (inf outside the
+        asymptotic range).
+    worst : dict
+        s -> ``(t_start, t_end)`` [s] of the window of D(s, 2s).
+    method : str
+    window_s : float
+    """
+
+    substeps: int
+    ok: bool
+    difference: dict
+    error: dict
+    worst: dict
+    method: str
+    window_s: float
+
+    def line(self) -> str:
+        """One line: what was chosen and the evidence."""
+        tried = "; ".join(f"{s}: {self.error[s]:.3g} (D {self.difference[s]:.3g} at "
+                          f"{self.worst[s][0]:.4g}-{self.worst[s][1]:.4g} s)"
+                          for s in self.error)
+        verdict = "chosen" if self.ok else f"NOT converged within {MAX_SUBSTEPS} substeps"
+        return (f"tracking filter {self.method}({self.substeps}) {verdict}: estimated error of "
+                f"a {self.window_s:g} s window's log-likelihood in its sampling std "
+                f"(tolerance {SUBSTEP_TOLERANCE:g}) by substeps: {tried}")
+
+
+def choose_substeps(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = None,
+                    std: Mapping[str, float] | None = None,
+                    drift: Mapping[str, float] | None = None,
+                    options: TrackOptions | None = None, window_s: float | None = None,
+                    max_substeps: int = MAX_SUBSTEPS) -> SubstepChoice:
+    """The tracking filter's substeps, from the record it tracks.
+
+    :func:`track` is run with s, 2s, 4s substeps (the problem's method,
+    hold, prior; the same detector; no smoothing) and the record cut into
+    windows of ``window_s``. D(s, 2s) is the largest difference of two
+    filters' negative log-likelihoods in a window, in units of that
+    log-likelihood's sampling std under the model, √(m_w/2) (half a χ² with
+    m_w degrees of freedom, m_w the values measured in w). With the observed
+    contraction r = D(s, 2s)/D(2s, 4s), the error of s is estimated as
+    D(s, 2s)·r/(r − 1) (Richardson; r ≈ 2^p for a method of order p), and as
+    infinite when r <= 1: the steps are outside their asymptotic range
+    (Roache 1998), e.g. all so long against a stiff mode that they damp it
+    alike. The first s whose error is at most :data:`SUBSTEP_TOLERANCE` is
+    chosen, so that no stretch of the record tells the filter from a finer
+    one; else s doubles.
+
+    Why the tracked record and not :func:`bondgraph.inference.discretise.choose_discretisation`:
+    that check runs from the prior mean with the parameters constant, so it
+    never sees the stretches a changed parameter brings about (a tire
+    slipping past its friction peak after the friction dropped), where a
+    coarse step mispredicts by many noise std and the filter explains its
+    own discretisation error by moving the tracked parameters, with a std
+    that does not know it. The window is local (the observability window)
+    because such a stretch lasts a second or two: summed over the record it
+    would be lost in the total.
+
+    Parameters
+    ----------
+    problem : Problem
+        The original model on the record (its ``ukf`` gives the method and
+        the first substeps tried).
+    tm : TrackingModel
+    start, std, drift, options
+        As for :func:`track`.
+    window_s : float, optional
+        The windows [s] (default ``options.observable_s``).
+    max_substeps : int
+        The most substeps run (>= 4 x the problem's).
+
+    Returns
+    -------
+    SubstepChoice
+        ``problem.conditioned_on(disc=replace(problem.disc, substeps=c.substeps))``
+        is the problem to track with.
+
+    Raises
+    ------
+    OptionError
+        ``window_s`` not > 0 or ``max_substeps`` below 4 x the problem's.
+
+    References
+    ----------
+    Roache, P. J. (1998). Verification and Validation in Computational
+    Science and Engineering, ch. 5 (observed order, asymptotic range).
+    """
+    opts = replace(_checked(options, TrackOptions, "track options"), smooth=False)
+    w_s = float(opts.observable_s if window_s is None else window_s)
+    s = int(problem.ukf.substeps)
+    if not (np.isfinite(w_s) and w_s > 0) or int(max_substeps) < 4 * s:
+        raise OptionError(f"choose_substeps: window_s must be > 0 and max_substeps >= {4 * s}, "
+                          f"got {window_s!r}, {max_substeps!r}")
+    runs = _SubstepRuns(problem, tm, dict(start=start, std=std, drift=drift, options=opts), w_s)
+    err = {}
+    while 4 * s <= int(max_substeps):
+        err[s] = richardson_error(runs.difference(s), runs.difference(2 * s))
+        if err[s] <= SUBSTEP_TOLERANCE:
+            return runs.choice(s, True, err)
+        s *= 2
+    done = [n for n, v in runs.runs.items() if v is not None]      # the finest that ran
+    return runs.choice(max(done, default=s), False, err)
+
+
+def richardson_error(d1: float, d2: float) -> float:
+    """The error of the coarsest of three discretisations s, 2s, 4s.
+
+    Parameters
+    ----------
+    d1, d2 : float
+        D(s, 2s) and D(2s, 4s), differences of a quantity between
+        successive discretisations (>= 0, any unit).
+
+    Returns
+    -------
+    float
+        d1·r/(r − 1) with the observed contraction r = d1/d2 (Richardson
+        extrapolation; r ≈ 2^p for a method of order p), in d1's unit; inf
+        when r <= 1 (outside the asymptotic range: the differences do not
+        shrink) or d1 is not finite; 0 when both are 0.
+
+    References
+    ----------
+    Roache, P. J. (1998). Verification and Validation in Computational
+    Science and Engineering, ch. 5.
+    """
+    if not np.isfinite(d1):
+        return float("inf")
+    if d1 == 0.0 and d2 == 0.0:
+        return 0.0
+    r = np.inf if d2 == 0.0 else d1 / d2
+    return float(d1) if r == np.inf else (float(d1 * r / (r - 1.0)) if r > 1.0 else float("inf"))
+
+
+class _SubstepRuns:
+    """The tracker's runs by substeps (None where the filter failed) and the
+    window differences between s and 2s, each computed once."""
+
+    def __init__(self, problem, tm, kwargs, window_s):
+        self.problem, self.tm, self.kwargs, self.window_s = problem, tm, kwargs, window_s
+        self.runs, self.diff, self.worst = {}, {}, {}
+
+    def run(self, n: int):
+        if n not in self.runs:
+            pr = self.problem.conditioned_on(disc=replace(self.problem.disc, substeps=n))
+            try:
+                self.runs[n] = track(pr, self.tm, **self.kwargs)
+            except NumericalError:
+                self.runs[n] = None
+        return self.runs[n]
+
+    def difference(self, n: int) -> float:
+        if n not in self.diff:
+            a, b = self.run(n), self.run(2 * n)
+            t = self.problem.t
+            self.diff[n], self.worst[n] = ((np.inf, (float(t[0]), float(t[-1])))
+                                           if a is None or b is None
+                                           else window_excess(a, b, self.window_s))
+        return self.diff[n]
+
+    def choice(self, n: int, ok: bool, err: dict) -> SubstepChoice:
+        return SubstepChoice(n, ok, dict(self.diff), dict(err), dict(self.worst),
+                             self.problem.ukf.method, self.window_s)
+
+
+def window_excess(a: TrackResult, b: TrackResult, window_s: float) -> tuple[float, tuple]:
+    """How far two tracking results on one record differ, window by window.
+
+    Parameters
+    ----------
+    a, b : TrackResult
+        Two runs over the same samples (``nll_terms`` and ``nis_dof`` set).
+    window_s : float
+        Window length [s] (> 0); the record is cut into consecutive windows.
+
+    Returns
+    -------
+    excess : float
+        The largest |Σ_w (ℓ_a − ℓ_b)| / √(m_w/2) over the windows w, ℓ the
+        per-sample NLL terms [nats] and m_w the values measured in w: the
+        difference in units of the window log-likelihood's sampling std
+        under the model (half a χ² with m_w degrees of freedom); inf where a
+        term is not finite. 0 when nothing is measured.
+    window : tuple of float
+        ``(t_start, t_end)`` [s] of that window (the whole record for 0).
+    """
+    t = a.t
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    n = max(1, int(round(window_s / dt)))
+    d = np.nan_to_num(a.nll_terms - b.nll_terms, nan=np.inf, posinf=np.inf, neginf=np.inf)
+    best, where = 0.0, (float(t[0]), float(t[-1]))
+    for i in range(0, t.size, n):
+        m = float(np.sum(a.nis_dof[i:i + n]))
+        if m > 0:
+            e = abs(float(np.sum(d[i:i + n]))) / np.sqrt(0.5 * m)
+            if e > best:
+                best, where = e, (float(t[i]), float(t[min(i + n, t.size) - 1]))
+    return best, where
 
 
 # ------------------------------------------------------------------ drift intensities
