@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +30,7 @@ from bondgraph.cli.common import (
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import DataError
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
-from bondgraph.inference.track import TrackingModel, check_tracked, track
+from bondgraph.inference.track import TrackingModel, check_tracked, choose_substeps, track
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.tracking import plot_track
@@ -69,6 +71,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--noise", choices=NOISE_MODES, default="auto",
                    help="measurement-noise levels (as for estimate; auto: the record's)")
     add_discretisation(p, chosen=False)
+    for a in p._actions:
+        if a.dest == "substeps":
+            a.help = ("integrator steps per sample (default: chosen from the record by tracking "
+                      "it with 1, 2, 4, ... substeps: the first whose 2 s windows' "
+                      "log-likelihood is within one sampling std of a finer one's, "
+                      "choose_substeps; one line on stderr)")
     p.add_argument("--no-plots", action="store_true")
 
 
@@ -107,7 +115,12 @@ def run(args) -> int:
                         observable_s=args.observable_s, observable_ratio=args.observable_ratio)
     start = {n: float(problem.theta[model.param_index(n)]) for n in names}
     tm = TrackingModel.from_graph(graph, names, drift, start=start)
-    res = track(problem, tm, std={n: std[n] for n in names if n in std}, options=opts)
+    std = {n: std[n] for n in names if n in std}
+    if args.substeps is None:           # the substeps the tracked record needs
+        choice = choose_substeps(problem, tm, std=std, options=opts)
+        print(choice.line(), file=sys.stderr)
+        problem = problem.conditioned_on(disc=replace(problem.disc, substeps=choice.substeps))
+    res = track(problem, tm, std=std, options=opts)
     truth = dict((exp.meta or {}).get("true_parameters") or {})
     for name, column in ((exp.meta or {}).get("schedules") or {}).items():
         truth[name] = exp[column]        # a parameter that changes: its time series
@@ -164,8 +177,9 @@ def summary(res) -> str:
     if len(bad) > max(1, 0.05 * n_win):
         lines.append(f"warning: the innovations are larger than the model allows in {len(bad)} "
                      f"of {n_win} windows of 10 s (first at {bad[0][0]:.6g} s): the model lacks "
-                     f"an effect there, and the tracker may read it as parameter changes; "
-                     f"find it with `bondgraph loop` before trusting the changes")
+                     f"an effect there (or the filter's step is too coarse: --substeps), and "
+                     f"the tracker may read it as parameter changes; find it with `bondgraph "
+                     f"loop` before trusting the changes")
     for i, n in enumerate(res.names):
         lo, hi = res.settings.get("boxes", {}).get(n, (None, None))
         if lo is None:
