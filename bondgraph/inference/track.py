@@ -34,6 +34,15 @@ its updates there are skipped by the detector and no alarm is raised for
 it (a record at rest says nothing about a damping: what the filter does
 there is noise, not a change).
 
+The filter's step (:func:`choose_substeps`): a changed parameter can bring
+about stretches the constant-parameter check never sees (a tire slipping
+past its friction peak after the friction dropped), where a coarse step
+mispredicts and the filter explains its own step error by moving the
+tracked parameters, with a std that does not know it. The substeps are
+chosen from the tracked record: the runs with s, 2s, 4s substeps compared
+window by window in their log-likelihood's sampling std (Richardson, with
+the observed contraction).
+
 Estimates and std in the parameter's unit: p̂ = g(ẑ) and σ_p = |g'(ẑ)| σ_z
 (first order) for the transform g of
 :class:`~bondgraph.core.augment.TrackedParameter`.
