@@ -1,8 +1,16 @@
 """Interacting effects accepted as a pair (issue 26): two tanks in parallel
-overflow into a measured collector. The estimation record runs the two
-pumps in lockstep (Q2 = 0.9 Q1: both overflow together), the held-out record
-runs them apart (one high, the other low, in turn), so that a single
-overflow fitted on the first absorbs both and misfits the second.
+overflow into a measured collector. The held-out record runs the two pumps
+apart (one high, the other low, in turn). Two estimation records:
+
+- lockstep (Q2 = 0.9 Q1: both overflow together): a single overflow fitted
+  on it absorbs both and misfits the held-out record, each single is
+  refused; the record cannot split the overflow between the tanks and the
+  orifices either, so the true pair is refused too (its held-out error
+  0.523 -> 0.407, z 1.54);
+- independent levels (each pump its own staircase, switching together):
+  the collector's overflow, a look-alike of both, passes alone, and the
+  true pair beats it (refitted in two steps: its joint refit from the
+  declared fit's scales pins tank 1's level on its box).
 
 Truth: overflow of tank 1 at 0.6 and of tank 2 at 0.6 of their peak volume
 in the declared model's simulation of the estimation record; records by
@@ -54,18 +62,21 @@ def parallel_tanks() -> BondGraph:
     return g
 
 
-def pumps(seed: int, together: bool):
+def pumps(seed: int, together: bool | None):
     """Staircase pump flows (N,) [m³/s], a level per SEG s: in lockstep
-    (Q2 = 0.9 Q1, Q1 ~ U(0, 3e-4)), or apart (in turn one pump at
-    U(1.8e-4, 3e-4), the other at U(0, 6e-5))."""
+    (``together`` True: Q2 = 0.9 Q1, Q1 ~ U(0, 3e-4)), at independent levels
+    (None: Q1 ~ U(0, 3e-4), Q2 ~ 0.9 U(0, 3e-4)), or apart (False: in turn
+    one pump at U(1.8e-4, 3e-4), the other at U(0, 6e-5))."""
     rng = np.random.default_rng(seed)
     t = np.arange(N) * DT
     k = (t // SEG).astype(int)
     m = k.max() + 1
     a = rng.uniform(0, 3e-4, size=m)
-    rng.uniform(0, 3e-4, size=m)
+    b = rng.uniform(0, 3e-4, size=m)
     if together:
         return t, a[k], 0.9 * a[k]
+    if together is None:
+        return t, a[k], 0.9 * b[k]
     hi, lo = rng.uniform(1.8e-4, 3e-4, size=m), rng.uniform(0, 0.6e-4, size=m)
     odd = np.arange(m) % 2 == 1
     return t, np.where(odd, lo, hi)[k], 0.9 * np.where(odd, hi, lo)[k]
@@ -76,10 +87,13 @@ def _run(model, theta, t, q1, q2):
                     method="BDF", hold="zoh", rtol=1e-9, atol=1e-12)
 
 
-@pytest.fixture(scope="module")
-def case():
+def pair_case(together: bool | None):
+    """The loop (one step, only the capacity limit) on an estimation record
+    of the design ``together`` (:func:`pumps`), judged on the record of the
+    pumps apart. Returns (result, true levels, log lines, the truth's own
+    free-run NRMSE on the held-out record: the noise floor)."""
     declared = Model.from_graph(parallel_tanks())
-    peak = _run(declared, declared.theta(TRUTH), *pumps(1, True)).x.max(axis=0)
+    peak = _run(declared, declared.theta(TRUTH), *pumps(1, together)).x.max(axis=0)
     g = parallel_tanks()
     qmax = {}
     for el in ("tank1_C", "tank2_C"):
@@ -88,23 +102,35 @@ def case():
         apply_effect(g, "capacity_limit", Target("storage", el),
                      {"qmax": qmax[el], "w": 0.02 * top, "tau": DT})
     truth = Model.from_graph(g)
+    floor = []
 
     def record(seed, together, name):
         t, q1, q2 = pumps(seed, together)
-        y = _run(truth, truth.theta(TRUTH), t, q1, q2).y[:, 0]
-        y = y + np.random.default_rng(seed + 50).standard_normal(N) * NOISE
+        clean = _run(truth, truth.theta(TRUTH), t, q1, q2).y[:, 0]
+        y = clean + np.random.default_rng(seed + 50).standard_normal(N) * NOISE
+        floor.append(float(np.sqrt(np.mean((y - clean) ** 2)) / np.std(y)))
         return Experiment.from_arrays(t, {"Q1": q1, "Q2": q2, "p3": y},
                                       units={"Q1": "m^3/s", "Q2": "m^3/s", "p3": "Pa"},
                                       roles={"Q1": "input", "Q2": "input", "p3": "output"},
                                       name=name)
 
-    est, val = record(1, True, "lockstep"), record(2, False, "apart")
+    est, val = record(1, together, "estimation"), record(2, False, "apart")
     lines = []
     res = run_loop(parallel_tanks(), est, LoopSettings(
         ["K1", "K2", "K3"], validation=val, effects=(CapacityLimit(),),
         search=SearchOptions(max_steps=1, structural="always")), log=lines.append,
         progress=False)
-    return res, qmax, lines
+    return res, qmax, lines, floor[1]
+
+
+@pytest.fixture(scope="module")
+def case():
+    return pair_case(True)
+
+
+@pytest.fixture(scope="module")
+def independent():
+    return pair_case(None)
 
 
 def test_each_single_overflow_is_refused_and_the_partner_shows_given_the_lead(case):
@@ -114,7 +140,7 @@ def test_each_single_overflow_is_refused_and_the_partner_shows_given_the_lead(ca
     the compensated model needs). Each single is refused on the held-out
     error; given tank 2's refit, tank 1's overflow is significant and the
     true pair's joint refit ranks first of the pairs."""
-    res, _, lines = case
+    res, _, lines, _ = case
     first = {c.label: c for c in res.rankings[0]}
     # not significant alone (measured 0.0 and, after the codegen's reordering, 2.28)
     assert first["capacity_limit @ tank1_C"].statistic < chi2.isf(0.05, 1)
@@ -132,17 +158,40 @@ def test_each_single_overflow_is_refused_and_the_partner_shows_given_the_lead(ca
     assert max(pair_lr, key=pair_lr.get) == true_pair
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "the true pair (joint LR 5708 over the declared fit, the best pair) raises the held-out "
-    "error 0.523 -> 2.22: with the pumps in lockstep the estimation record cannot split the "
-    "overflow between the tanks and the orifices; the collector look-alike pair is refused "
-    "(error decrease z 0.46)"))
-def test_the_two_overflows_are_accepted_as_one_step(case):
-    res, qmax, _ = case
+def test_the_lockstep_record_cannot_split_the_overflows(case):
+    """On the lockstep record the true pair is refitted (the best pair) and
+    refused on the held-out error: the record cannot split the overflow
+    between the two tanks and their orifices (measured 0.523 -> 0.407,
+    z 1.54, p 0.062); nothing is accepted."""
+    res, _, lines, _ = case
+    assert not res.steps
+    true_pair = "capacity_limit @ tank2_C + capacity_limit @ tank1_C"
+    refused = [ln for ln in lines if f"reject pair {true_pair}" in ln]
+    assert refused and "the error decrease on the validation record is within" in refused[0]
+
+
+def test_the_two_overflows_are_accepted_as_one_step(independent):
+    """Pumps at independent levels: the collector's overflow passes alone
+    (a look-alike of both tanks'), the true pair beats it in the same step.
+
+    Reference: the truth's levels, and its own free-run error on the
+    held-out record (the noise floor, 0.0146). The levels are compared at
+    6 %, not at 3 Cramér-Rao std: the effect's onset width w is not
+    estimated (2 % of the fitted storage's largest value: 0.0025 and
+    0.0011 m³ against the truth's 0.0021 and 0.0016), and the overflow
+    starts about 2 w below q_max at these flows, so the fitted levels
+    absorb the width's difference (measured: 0.0646 against 0.0618, 0.0447
+    against 0.0469, each ± 0.0002)."""
+    res, qmax, lines, floor = independent
     (step,) = res.steps
     assert {step.attached_to, *[lab.split(" @ ")[1] for lab in step.together_with]} == \
         {"tank1_C", "tank2_C"}
+    assert any("beats the single" in ln for ln in lines)
+    assert any("refitted in two steps" in ln for ln in lines)
     for el in ("tank1_C", "tank2_C"):
         p = step.parameters[f"capacity_limit.{el}.qmax"]
-        assert abs(p["estimate"] - qmax[el]) < 3 * p["std"]
-    assert step.error_after < step.error_before
+        assert abs(p["estimate"] - qmax[el]) < 0.06 * qmax[el]
+    for k, v in TRUTH.items():
+        assert abs(step.parameters[k]["estimate"] - v) < 0.05 * v
+    assert step.error_before > 0.5
+    assert step.error_after < 5 * floor
