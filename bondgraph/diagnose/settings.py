@@ -287,7 +287,11 @@ class FreeRunOptions:
     ----------
     method : str
         Solver (:func:`bondgraph.numerics.simulate.simulate`; one of
-        :data:`bondgraph.numerics.simulate.METHODS`), or ``"fine"``: the
+        :data:`bondgraph.numerics.simulate.METHODS`; default ``"LSODA"``,
+        which switches between Adams and BDF by stiffness: on the EMPS
+        record's 4968 samples one free run took 0.49 s against scipy's BDF's
+        3.0 s, the outputs within 2e-4 of the measurement's std of each other,
+        BDF and Radau as far apart), or ``"fine"``: the
         filter's own method at 4 times its substeps, fixed-step
         (:func:`bondgraph.diagnose.inference_calls.fine_free_run`; a user's
         graph and record get it with the chosen discretisation).
@@ -299,7 +303,7 @@ class FreeRunOptions:
         likelihood fitted it (:func:`bondgraph.diagnose.fit.sim_inputs`).
     """
 
-    method: str = "BDF"
+    method: str = "LSODA"
     hold: str = "linear"
 
     def __post_init__(self):
