@@ -152,3 +152,33 @@ def test_pump_saturation_found_after_the_additive_candidates_fail():
         assert step.parameters["actuator_saturation.pump.L"]["estimate"] == pytest.approx(
             2.5e-4, rel=0.03)
         assert step.validated and step.error_after < 0.3 * step.error_before
+
+
+def test_a_smoothed_start_the_prior_excludes_is_not_used(monkeypatch):
+    """The free run's start x̂_0|N is used unless its squared Mahalanobis
+    distance from the prior mean (over the states not estimated with θ)
+    exceeds χ²(n) at 1e-20 (about 9.8 prior std for 3 states, computed by
+    hand below); then the prior mean is used and the loop says why. The
+    prior: std 0.06, 0.03, 0.05 about (0, 0, 0.1); the third state is
+    estimated with θ and does not count."""
+    import bondgraph.diagnose.fit as fitmod
+    from scipy.stats import chi2
+    from types import SimpleNamespace
+
+    sd = np.array([0.06, 0.03, 0.05])
+    x0 = np.array([0.0, 0.0, 0.1])
+    problem = SimpleNamespace(model=SimpleNamespace(states=["a", "b", "c"]), x0=x0,
+                              P0=np.diag(sd**2), prior=SimpleNamespace(estimated={"c": 0.1}))
+    lines = []
+    ctx = SimpleNamespace(log=lines.append)
+    bound = np.sqrt(chi2.isf(1e-20, 2))           # two states count
+    assert bound == pytest.approx(9.6, abs=0.05)
+    for xs, used in ((np.array([0.5, 0.1, 3.0]), True),       # (8.33, 3.33) std: 8.85
+                     (np.array([0.5, 0.2, 0.1]), False)):     # (8.33, 6.67) std: 10.7
+        monkeypatch.setattr(fitmod, "smoothed_initial_state", lambda pb, th, xs=xs: xs)
+        got = fitmod._smoothed_start(ctx, problem, np.zeros(1), x0)
+        d = np.hypot(xs[0] / sd[0], xs[1] / sd[1])
+        assert (d <= bound) == used
+        np.testing.assert_array_equal(got, xs if used else x0)
+    assert len(lines) == 1 and "10.7 prior std from the prior mean" in lines[0]
+    assert lines[0].startswith("  smoothed initial state (a = 0.5, b = 0.2, c = 0.1)")
