@@ -276,8 +276,9 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
             D = estimand_derivatives(model, t, u, y, est.at(z), _steps(z, hi, width), P0,
                                      options)
             at, runs = z.copy(), runs + 1
-        step = _scoring_step(D, z, L, lam)
-        if _predicted_decrease(D, z, L) < sc.atol:
+        free = ~pinned(D.grad, z, lo, hi)
+        step = _scoring_step(D, z, L, lam, free)
+        if _predicted_decrease(D, z, L, free) < sc.atol:
             converged = True
             break
         alphas, cand = _candidates(z, step, L, lo, hi)
@@ -310,13 +311,38 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
     return Scoring(est, D.nll, D.F, runs, it, converged)
 
 
-def _predicted_decrease(D: Derivatives, x, L) -> float:
-    """½ gᵀ F⁻¹ g in the scoring coordinates (log θ for ``L``): the NLL
-    decrease a full, undamped scoring step predicts (solved in the
+def pinned(grad: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The parameters (k,) held on a bound of their box: at the lower bound
+    with the NLL's gradient ``grad`` (k,) pointing inward-up (the NLL falls
+    outwards, ∂NLL/∂θ > 0), or at the upper bound with ∂NLL/∂θ < 0 (the
+    active set of a projected Newton method; Bertsekas 1982). A scoring
+    step moves the other parameters alone: with them in it, the clipped
+    step of the pinned one bends every other step through F⁻¹, and its
+    gradient never vanishes, so the predicted decrease never falls below
+    the tolerance (a sensor noise level on the bottom of its box kept a
+    Silverbox refit going for 80 iterations).
+
+    References
+    ----------
+    Bertsekas, D. P. (1982). Projected Newton methods for optimization
+    problems with simple constraints. SIAM J. Control Optim. 20(2), 221-246.
+    """
+    x, lo, hi = (np.asarray(a, float) for a in (x, lo, hi))
+    tol = 1e-12 * np.maximum(np.abs(hi - lo), 1e-300)
+    return ((x <= lo + tol) & (grad > 0)) | ((x >= hi - tol) & (grad < 0))
+
+
+def _predicted_decrease(D: Derivatives, x, L, free=None) -> float:
+    """½ gᵀ F⁻¹ g in the scoring coordinates (log θ for ``L``) over the
+    ``free`` parameters (default all; the others held, :func:`pinned`):
+    the NLL decrease a full, undamped scoring step predicts (solved in the
     coordinates that give F a unit diagonal, :func:`jacobi_solve`)."""
-    jac = np.where(L, x, 1.0)
-    g = D.grad * jac
-    F = D.F * np.outer(jac, jac)
+    free = np.ones(np.shape(x), bool) if free is None else np.asarray(free, bool)
+    if not free.any():
+        return 0.0
+    jac = np.where(L, x, 1.0)[free]
+    g = D.grad[free] * jac
+    F = D.F[np.ix_(free, free)] * np.outer(jac, jac)
     try:
         sol = jacobi_solve(F, g, lstsq=True)
     except np.linalg.LinAlgError:
@@ -370,17 +396,24 @@ def _steps(x, hi, width) -> np.ndarray:
     return np.where(x + steps > hi, -steps, steps)
 
 
-def _scoring_step(D: Derivatives, x, L, lam: float) -> np.ndarray:
+def _scoring_step(D: Derivatives, x, L, lam: float, free=None) -> np.ndarray:
     """Levenberg-damped scoring step −(F + λ diag F)⁻¹ g, in z = log θ for
-    the scale parameters ``L`` (chain rule ∂/∂z = θ ∂/∂θ)."""
-    jac = np.where(L, x, 1.0)
-    grad = D.grad * jac
-    Fz = D.F * np.outer(jac, jac)
+    the scale parameters ``L`` (chain rule ∂/∂z = θ ∂/∂θ), over the
+    ``free`` parameters (default all); the others (:func:`pinned`) do not
+    move."""
+    free = np.ones(np.shape(x), bool) if free is None else np.asarray(free, bool)
+    step = np.zeros(np.shape(x))
+    if not free.any():
+        return step
+    jac = np.where(L, x, 1.0)[free]
+    grad = D.grad[free] * jac
+    Fz = D.F[np.ix_(free, free)] * np.outer(jac, jac)
     F = Fz + lam * np.diag(np.diag(Fz) + 1e-300)
     try:
-        return -jacobi_solve(F, grad)
+        step[free] = -jacobi_solve(F, grad)
     except np.linalg.LinAlgError:
-        return -jacobi_solve(F, grad, lstsq=True)
+        step[free] = -jacobi_solve(F, grad, lstsq=True)
+    return step
 
 
 def _candidates(x, step, L, lo, hi) -> tuple[np.ndarray, np.ndarray]:
