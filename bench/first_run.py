@@ -5,8 +5,11 @@ arguments) in a child process twice: first with fresh, empty numba and
 bondgraph kernel caches (``NUMBA_CACHE_DIR``, ``BONDGRAPH_CACHE_DIR`` in a
 temporary folder: what a user waits for after ``pip install``), then again
 with the caches the first run filled (warm). For each run it reports the
-wall time, the time at which each of the loop's stages was printed, and the
-longest silence (no line on stdout or stderr). Targets: first run <= 60 s,
+wall time, the CPU time of the child (user + system, its own children
+included: ``cpu_s``, the steadier figure on a shared machine), the time at
+which each of the loop's stages was printed, and the longest silence (no
+line on stdout or stderr), and the loop's figures (free-run NRMSE before and
+after: a speed-up must not change them). Targets: first run <= 60 s,
 warm <= 10 s, nothing silent for more than 2 s. Last line JSON.
 
 Usage: python bench/first_run.py [--keep DIR]
@@ -18,6 +21,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -40,6 +44,7 @@ def run_once(env: dict, out: Path) -> dict:
     """One `bondgraph loop --out out` in a child; its timings."""
     cmd = [sys.executable, "-m", "bondgraph.cli.main", "loop", "--out", str(out), "--overwrite"]
     t0 = time.perf_counter()
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          bufsize=1)
     lines: list = []
@@ -50,6 +55,8 @@ def run_once(env: dict, out: Path) -> dict:
     for th in threads:
         th.join()
     wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     if code != 0:
         tail = "\n".join(text for _, text in lines[-20:])
         raise SystemExit(f"bondgraph loop exited with {code}:\n{tail}")
@@ -62,8 +69,11 @@ def run_once(env: dict, out: Path) -> dict:
         hit = next((t for t, text in lines if re.search(pat, text)), None)
         stages[name] = None if hit is None else round(hit, 1)
     before = lines[at - 1][1][:100] if at > 0 else "(start)"
-    return {"wall_s": round(wall, 1), "stages_s": stages, "longest_silence_s": round(silence, 1),
-            "silent_after": before}
+    fig = next((m.groups() for _, text in lines
+                if (m := re.search(r"before: ([0-9.]+)\s+after: ([0-9.]+)", text))), None)
+    return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "stages_s": stages,
+            "longest_silence_s": round(silence, 1), "silent_after": before,
+            "nrmse_before_after": None if fig is None else [float(v) for v in fig]}
 
 
 def main() -> None:
@@ -75,14 +85,19 @@ def main() -> None:
     base = Path(args.keep or tempfile.mkdtemp(prefix="bondgraph-first-run-"))
     env = dict(os.environ, NUMBA_CACHE_DIR=str(base / "numba"),
                BONDGRAPH_CACHE_DIR=str(base / "kernels"), PYTHONUNBUFFERED="1")
+    load0 = os.getloadavg()[0]
     first = run_once(env, base / "report1")
-    print(f"first run: {first['wall_s']} s; stages {first['stages_s']}; longest silence "
+    print(f"first run: {first['wall_s']} s (CPU {first['cpu_s']} s), NRMSE "
+          f"{first['nrmse_before_after']}; stages {first['stages_s']}; longest silence "
           f"{first['longest_silence_s']} s after: {first['silent_after']}", flush=True)
     warm = run_once(env, base / "report2")
-    print(f"warm run:  {warm['wall_s']} s; stages {warm['stages_s']}; longest silence "
+    print(f"warm run:  {warm['wall_s']} s (CPU {warm['cpu_s']} s), NRMSE "
+          f"{warm['nrmse_before_after']}; stages {warm['stages_s']}; longest silence "
           f"{warm['longest_silence_s']} s after: {warm['silent_after']}", flush=True)
     text = json.dumps({"first_run_s": first["wall_s"], "warm_s": warm["wall_s"],
-                       "first": first, "warm": warm, "load": os.getloadavg()[0]})
+                       "first_cpu_s": first["cpu_s"], "warm_cpu_s": warm["cpu_s"],
+                       "first": first, "warm": warm, "load_start": load0,
+                       "load": os.getloadavg()[0]})
     if args.result:
         Path(args.result).write_text(text + "\n")
     print(text)

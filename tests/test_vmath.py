@@ -1,6 +1,7 @@
 """The branch-free sin, cos, atan, exp and tanh of the numba column kernels
-(the functions of bondgraph.core.vmath, expanded inline by
-codegen_numba.vmath_inline; Moshier 1989, the Cephes library), against
+(the functions of bondgraph.core.vmath, compiled once by
+bondgraph.numerics.vmath_jit; Moshier 1989, the Cephes library), equal to
+the bit to their statements written out (codegen_numba.vmath_inline), against
 numpy's (glibc's) functions: within 2 ulp on 1e6 points per range, the same
 non-finite values, and vectorised by LLVM in a loop; and the same functions
 called as plain Python."""
@@ -20,10 +21,11 @@ REFERENCE = {"_vsin": np.sin, "_vcos": np.cos, "_vatan": np.arctan, "_vexp": np.
              "_vtanh": np.tanh}
 
 
-def _functions() -> dict:
-    """Each function as the column kernels run it: the straight code that
-    :func:`codegen_numba.vmath_inline` expands at a call site, compiled with the
-    column kernels' flags (inlined into the loops below)."""
+def _expanded() -> dict:
+    """Each function as straight code: what :func:`codegen_numba.vmath_inline`
+    writes out at a call site (the column kernels up to
+    ``NUMBA_CODEGEN_VERSION`` 7), compiled with the column kernels' flags
+    (inlined into the loops below)."""
     ns = {"np": np, "intrinsic": numba.extending.intrinsic, "types": numba.types}
     exec(codegen_numba.NUMBA_SELECT, ns)
     for name in NAMES:
@@ -33,11 +35,17 @@ def _functions() -> dict:
     return ns
 
 
-@pytest.fixture(scope="module")
-def loops():
-    """For each function a compiled loop ``out[j] = fn(x[j])`` with the
-    column kernels' flags (:data:`codegen_numba.COLS_FASTMATH`)."""
-    ns = _functions()
+def _functions() -> dict:
+    """Each function as the column kernels run it: compiled once by
+    :mod:`bondgraph.numerics.vmath_jit` and called (LLVM inlines it)."""
+    from bondgraph.numerics import vmath_jit
+    return {name: getattr(vmath_jit, name) for name in NAMES}
+
+
+def _loops(ns) -> dict:
+    """For each function of ``ns`` a compiled loop ``out[j] = fn(x[j])``
+    with the column kernels' flags (:data:`codegen_numba.COLS_FASTMATH`),
+    over a trip count known at run time only, as in the column kernels."""
     out = {}
     for name in NAMES:
         fn = ns[name]
@@ -49,6 +57,25 @@ def loops():
         out[name] = numba.njit(error_model="numpy",
                                fastmath=set(codegen_numba.COLS_FASTMATH))(loop)
     return out
+
+
+@pytest.fixture(scope="module")
+def loops():
+    """The loops of the functions the column kernels call."""
+    return _loops(_functions())
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_compiled_equals_expanded(loops, name):
+    """The compiled functions the column kernels call give, to the bit, what
+    the statements written out at a call site gave (the same code, the same
+    flags), NaN and inf included."""
+    x = np.concatenate([_points(name)[::7],
+                        [0.0, -0.0, np.inf, -np.inf, np.nan, 709.79, -745.0, 1e-300]])
+    got, want = np.empty_like(x), np.empty_like(x)
+    loops[name](x, got)
+    _loops(_expanded())[name](x, want)
+    np.testing.assert_array_equal(got, want)
 
 
 def _points(name):
@@ -100,14 +127,16 @@ def test_non_finite_and_edges(loops, name):
 
 
 def test_loops_vectorise():
-    """A loop over a column kernel's points with these functions compiles to
-    vector instructions (a libm call would keep it scalar)."""
+    """A loop over a column kernel's points that calls these functions
+    compiles to vector instructions: LLVM inlines them (a libm call would
+    keep it scalar), also in a loop as short as that of a one-state model
+    (its trip count, as in the column kernels, known at run time only)."""
     ns = _functions()
     vsin, vatan, vtanh = ns["_vsin"], ns["_vatan"], ns["_vtanh"]
 
     @numba.njit(error_model="numpy", fastmath=set(codegen_numba.COLS_FASTMATH))
     def body(x, o):
-        for j in range(21):
+        for j in range(min(21, o.shape[0])):
             o[j] = vsin(1.3 * vatan(x[j] - vatan(x[j]))) + vtanh(0.25 * x[21 + j])
 
     x, o = np.linspace(-3.0, 3.0, 42), np.empty(21)

@@ -11,10 +11,14 @@ explicit signatures and ``cache=True``, which the fused UKF kernel
 numpy module stays the reference and the fallback.
 
 The column kernels compute sin, cos, atan, exp and tanh by the branch-free
-functions of :mod:`bondgraph.core.vmath`, expanded inline from their syntax
-tree by :func:`vmath_inline`; the point kernels' tanh is ``vmath._tanh``,
-emitted verbatim (:data:`NUMBA_TANH`). This module only writes text: it
-imports neither numba nor the generated code.
+functions of :mod:`bondgraph.core.vmath`, which they call as compiled once
+per installation by :mod:`bondgraph.numerics.vmath_jit` (:data:`VMATH_MODULE`;
+LLVM inlines the calls, so the loop over the points still vectorises);
+:func:`vmath_inline` writes the same functions out as straight code (what
+the kernels ran up to ``NUMBA_CODEGEN_VERSION`` 7; the tests compare the
+two). The point kernels' tanh is ``vmath._tanh``, emitted verbatim
+(:data:`NUMBA_TANH`). This module only writes text: it imports neither
+numba nor the generated code.
 """
 
 from __future__ import annotations
@@ -86,6 +90,9 @@ def _sel(typingctx, c, a, b):
 #: vector divider is the loop's bottleneck), multiply-adds fuse (contract);
 #: never nnan/ninf (the filter's failure checks rely on NaN and inf)
 COLS_FASTMATH = ("arcp", "contract")
+#: the module of the compiled vector functions the column kernels call
+#: (compiled once per installation, not in every model's kernels)
+VMATH_MODULE = "bondgraph.numerics.vmath_jit"
 #: vector functions whose argument must be below 1e8 in magnitude
 VMATH_LIMITED = ("_vsin", "_vcos")
 #: sigma point kernels of the numba module (called by bondgraph.inference.ukf_numba)
@@ -93,7 +100,7 @@ NUMBA_FUNCTIONS = ("f", "h", "f_dfdx", "f_cols", "h_cols")
 #: version of the numba code generator: part of the key of compiled kernels
 #: built in memory (bump it when the generated numba text changes, also by
 #: an edit of bondgraph/core/vmath.py)
-NUMBA_CODEGEN_VERSION = 7
+NUMBA_CODEGEN_VERSION = 8
 
 
 #: the column kernels' loops run over a multiple of POINTS_VECTOR points, at
@@ -217,13 +224,15 @@ def vmath_function(name: str) -> str:
 
 class _Inline:
     """Calls of :data:`VMATH_CALLS` in a column kernel's expressions
-    replaced by the inline code of the :mod:`bondgraph.core.vmath` functions
-    (a libm call would keep the loop scalar)."""
+    replaced by calls of the compiled :mod:`bondgraph.core.vmath` functions
+    (:data:`VMATH_MODULE`; a libm call would keep the loop scalar), each
+    argument in a variable ``_v<k>_x`` and each result in ``_v<k>_ret``."""
 
     def __init__(self, gen: "_NumbaGen", sh: Shared):
         self.gen, self.sh = gen, sh
         self.counter = itertools.count()
         self.far: list[str] = []
+        self.used: set[str] = set()
 
     def text(self, e, limit: int, plain: str | None, out: list) -> str:
         """Text of ``e`` (``repl[limit]`` of the kernel's :class:`Shared`,
@@ -247,8 +256,10 @@ class _Inline:
         name = VMATH_CALLS.get(e.func)
         if name is None:
             return e
-        code, res, pre = vmath_inline(name, [self.gen.pr(e.args[0], limit)], self.counter)
-        out += code
+        pre = f"_v{next(self.counter)}_"
+        res = f"{pre}ret"
+        out += [f"{pre}x = {self.gen.pr(e.args[0], limit)}", f"{res} = {name}({pre}x)"]
+        self.used.add(name)
         if name in VMATH_LIMITED:
             out.append(f"_far += abs({pre}x) >= 1e8")
             self.far.append(name)
@@ -262,6 +273,7 @@ class _NumbaGen(_Gen):
     def __init__(self, ss: StateSpace, *, source: str | None, command: str):
         super().__init__(ss, source=source, command=command)
         self.printer = _ScalarPrinter(self.namer.names)
+        self.vmath_used: set[str] = set()
 
     def point_body(self, outputs) -> list[str]:
         """Lines computing ``outputs`` ([(array name, [(index, expr)], dense)])
@@ -291,7 +303,9 @@ class _NumbaGen(_Gen):
         one alias check per array pair). The inputs, parameters and the
         subexpressions of them alone are computed once, before the loop;
         sin, cos, atan, exp and tanh are the branch-free functions of
-        :mod:`bondgraph.core.vmath` (the loop over points vectorises). An argument of sin or cos of
+        :mod:`bondgraph.core.vmath`, called compiled (:data:`VMATH_MODULE`)
+        in a loop whose trip count LLVM does not know (it vectorises the
+        loop after inlining them). An argument of sin or cos of
         magnitude 1e8 or more (or inf) is counted and the loop is run again
         with numpy's functions."""
         npt = padded_points(len(self.ss.states))
@@ -318,7 +332,12 @@ class _NumbaGen(_Gen):
         for ((i,), _), e, plain in zip(entries, reduced, outs):
             body.append(plain if e.is_Atom else
                         f"{out}[{i * npt} + _j] = {inline.text(e, len(sh.repl), None, body)}")
-        lines = head + ["_far = 0"] * bool(inline.far) + [f"for _j in range({npt}):"]
+        self.vmath_used |= inline.used
+        # with calls in it, a loop of constant trip count that looks short
+        # before LLVM inlines them is unrolled, not vectorised (emps: 7x the
+        # time); a trip count known only at run time is vectorised
+        count = "min(N_PTS, _X.shape[0] // N_X)" if inline.used else str(npt)
+        lines = head + ["_far = 0"] * bool(inline.far) + [f"for _j in range({count}):"]
         lines += ["    " + ln for ln in body]
         if inline.far:
             plain = list(loads) + [f"{n} = {t}" for k, (n, t) in defs.items()
@@ -364,6 +383,10 @@ class _NumbaGen(_Gen):
                                     f"h at every sigma point: state a of point j at "
                                     f"_X[a * N_PTS + j], output b into _y[b * N_PTS + j] "
                                     f"(({ny} * N_PTS,)).", h_entries)]
+        if self.vmath_used:   # the compiled vector functions the column kernels call
+            imports = "from numba.extending import intrinsic\n"
+            parts[0] = parts[0].replace(imports, imports + f"\nfrom {VMATH_MODULE} import "
+                                        f"{', '.join(sorted(self.vmath_used))}\n", 1)
         if any("_tanh(" in p for p in parts[1:]):
             parts.insert(1, NUMBA_TANH.lstrip("\n"))
         if any("_sel(" in p for p in parts[1:]):

@@ -15,12 +15,15 @@ NaN or an infinite argument can fail there in ``np.int64``, where the
 compiled select has computed both branches). They are also the source of
 generated code (:mod:`bondgraph.core.codegen_numba`):
 
-* the functions of :data:`INLINE` are templates: ``vmath_inline`` reads
+* the functions of :data:`INLINE` are compiled once per installation by
+  :mod:`bondgraph.numerics.vmath_jit` (their code objects, with ``_sel``
+  numba's ``@intrinsic`` select: one LLVM select instruction) and called by
+  the column kernels, which LLVM inlines them into; ``vmath_inline`` reads
   their syntax tree (``inspect.getsource``, ``ast``) and expands them, and
-  the calls between them, into straight code at each call site of a column
-  kernel, where ``_sel`` is numba's ``@intrinsic`` select (one LLVM select
-  instruction, ``NUMBA_SELECT``). Only the tree counts: comments, layout
-  and docstrings do not reach the generated text; a change of the code does.
+  the calls between them, into straight code (what the column kernels ran
+  up to ``NUMBA_CODEGEN_VERSION`` 7; the tests compare the two). A change of
+  their code changes every compiled column kernel (numba's cache of a kernel
+  does not see it): ``NUMBA_CODEGEN_VERSION`` + 1.
 * :func:`_tanh` (the scalar tanh of the point kernels) is emitted verbatim,
   source text and docstring included, under an ``@njit`` decorator
   (``NUMBA_TANH``): any edit of its text, a comment too, changes the

@@ -23,6 +23,8 @@ import numpy as np
 from numba import njit, types
 from numba.extending import intrinsic
 
+from bondgraph.numerics.vmath_jit import _vtanh
+
 NAME = 'emps'
 N_X, N_U, N_THETA, N_Y = 2, 1, 8, 1
 N_PTS = 16
@@ -34,14 +36,6 @@ _M = types.float64[:, ::1]
 SIG_POINT = types.void(_V, _V, _V, _V)
 SIG_F_DFDX = types.void(_V, _V, _V, _V, _M)
 SIG_COLS = types.void(_V, _V, _V, _V)
-
-
-@intrinsic
-def _sel(typingctx, c, a, b):
-    """``a if c else b`` as one LLVM select (no branch; a and b of one type)."""
-    def codegen(context, builder, sig, args):
-        return builder.select(args[0], args[1], args[2])
-    return a(types.boolean, a, b), codegen
 
 
 @njit(types.float64(types.float64), cache=True, nogil=True, error_model="numpy", inline="always")
@@ -114,38 +108,11 @@ def f_cols(_X, u, theta, _dxdt):
     v_eps = theta[7]
     _t0 = 1/v_eps
     _t1 = 1/M
-    for _j in range(16):
+    for _j in range(min(N_PTS, _X.shape[0] // N_X)):
         p_M = _X[0 + _j]
         _t2 = _t1*p_M
         _v0_x = _t0*_t2
-        _v0_a = abs(_v0_x)
-        _v0_z = _v0_x * _v0_x
-        _v0_aa = 2.0 * _sel(_v0_a > 40.0, 40.0, _v0_a)
-        _v0_fl = np.floor(1.4426950408889634 * _v0_aa + 0.5)
-        _v0_r = _v0_aa - _v0_fl * 0.693145751953125 - _v0_fl * 1.4286068203094173e-06
-        _v0_rr = _v0_r * _v0_r
-        _v0_p = _v0_r * ((0.00012617719307481058 * _v0_rr + 0.030299440770744195) * _v0_rr + 1.0)
-        _v0_q = ((3.0019850513866446e-06 * _v0_rr + 0.002524483403496841) * _v0_rr + 0.22726554820815503) * _v0_rr + 2.0
-        _v0_d = _v0_q - _v0_p
-        _v0_small = _v0_a < 0.625
-        _v0_num = _sel(_v0_small, _v0_x * _v0_z * ((-0.9643991794250523 * _v0_z - 99.28772310019185) * _v0_z - 1614.6876844170845), 2.0 * _v0_d)
-        _v1_n = np.int64(_v0_fl)
-        _v1_neg = _v1_n < 0
-        _v1_a = _sel(_v1_neg, -_v1_n, _v1_n)
-        _v1_p0 = _sel(_v1_a & 1 != 0, _sel(_v1_neg, 0.5, 2.0), 1.0)
-        _v1_p1 = _v1_p0 * _sel(_v1_a & 2 != 0, _sel(_v1_neg, 0.25, 4.0), 1.0)
-        _v1_p2 = _v1_p1 * _sel(_v1_a & 4 != 0, _sel(_v1_neg, 0.0625, 16.0), 1.0)
-        _v1_p3 = _v1_p2 * _sel(_v1_a & 8 != 0, _sel(_v1_neg, 0.00390625, 256.0), 1.0)
-        _v1_p4 = _v1_p3 * _sel(_v1_a & 16 != 0, _sel(_v1_neg, 1.52587890625e-05, 65536.0), 1.0)
-        _v1_p5 = _v1_p4 * _sel(_v1_a & 32 != 0, _sel(_v1_neg, 2.3283064365386963e-10, 4294967296.0), 1.0)
-        _v1_p6 = _v1_p5 * _sel(_v1_a & 64 != 0, _sel(_v1_neg, 5.421010862427522e-20, 1.8446744073709552e+19), 1.0)
-        _v1_p7 = _v1_p6 * _sel(_v1_a & 128 != 0, _sel(_v1_neg, 2.938735877055719e-39, 3.402823669209385e+38), 1.0)
-        _v1_p8 = _v1_p7 * _sel(_v1_a & 256 != 0, _sel(_v1_neg, 8.636168555094445e-78, 1.157920892373162e+77), 1.0)
-        _v1_ret = _v1_p8 * _sel(_v1_a & 512 != 0, _sel(_v1_neg, 7.458340731200207e-155, 1.3407807929942597e+154), 1.0)
-        _v0_den = _sel(_v0_small, ((_v0_z + 112.81167849163293) * _v0_z + 2235.4883906010045) * _v0_z + 4844.063053251255, _v1_ret * (_v0_q + _v0_p) + _v0_d)
-        _v0_t = _v0_num / _v0_den
-        _v0_big = 1.0 - _v0_t
-        _v0_ret = _sel(_v0_small, _v0_x + _v0_t, _sel(_v0_x < 0, -_v0_big, _v0_big))
+        _v0_ret = _vtanh(_v0_x)
         _t3 = _v0_ret
         _dxdt[0 + _j] = vir*gtau - offset - _t2*Fv - _t3*Fc
         _dxdt[16 + _j] = _t2
