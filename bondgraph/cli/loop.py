@@ -181,14 +181,18 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     (:func:`bondgraph.diagnose.discover.effect.discovered_effect`), the
     loop run again with that law as an effect (its report replaces the
     first one in ``out``)."""
-    from bondgraph.diagnose.discover.effect import discovered_effect, discovery_plot
+    from bondgraph.diagnose.discover.effect import (
+        discovered_effect,
+        discovery_plot,
+        with_discovered,
+    )
 
     echo = (lambda _m: None) if args.quiet else print
     best = discovered_effect(graph, record, settings, res, log=echo)
     if best is None:
         return res
     echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'")
-    settings = dataclasses.replace(settings, effects=tuple(settings.effects) + (best.effect,))
+    settings = with_discovered(settings, best.effect)
     reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True)
 
     def update(result):
