@@ -103,7 +103,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="effects of the library's optional part to score besides the default "
                         "library (cold_start, bouc_wen)")
     p.add_argument("--discover", action="store_true",
-                   help="when no physical effect is accepted: reconstruct the effort (flow) "
+                   help="when no physical effect is accepted, or the accepted ones leave "
+                        "innovations that are not white: reconstruct the effort (flow) "
                         "missing at each 1- (0-) junction, discover its law from the port's "
                         "variables (sparse regression, passive terms only) and run the loop "
                         "again with it beside the library")
