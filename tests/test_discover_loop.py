@@ -147,9 +147,9 @@ def test_discovered_flow_law_at_a_zero_junction():
 
 def test_the_command_lines_discover_option_runs_the_loop_again_with_the_law(tmp_path):
     """`bondgraph loop --discover` (cli/loop._with_discovery): after a loop
-    that accepted nothing, the law found at the spring's 1-junction joins
-    the effects and the second loop accepts it; its report replaces the
-    first."""
+    that accepted the library's cubic look-alike and left coloured
+    innovations, the law found at the spring's 1-junction joins the effects
+    and the second loop accepts it; its report replaces the first."""
     from types import SimpleNamespace
 
     from bondgraph.cli.loop import _with_discovery
@@ -162,7 +162,8 @@ def test_the_command_lines_discover_option_runs_the_loop_again_with_the_law(tmp_
     record = quintic_record()
     first = run_loop(mass_spring_damper(), record, settings, log=lambda m: None,
                      progress=False)
-    assert first.steps == []
+    assert [s.effect for s in first.steps] == ["cubic_stiffness"]
+    assert not first.final.residuals.is_white()
     res = _with_discovery(SimpleNamespace(quiet=True), mass_spring_damper(), record, settings,
                           first, tmp_path / "report")
     assert [(s.effect, s.attached_to) for s in res.steps] == [("discovered", "v")]

@@ -103,7 +103,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="effects of the library's optional part to score besides the default "
                         "library (cold_start, bouc_wen)")
     p.add_argument("--discover", action="store_true",
-                   help="when no physical effect is accepted: reconstruct the effort (flow) "
+                   help="when no physical effect is accepted, or the accepted ones leave "
+                        "innovations that are not white: reconstruct the effort (flow) "
                         "missing at each 1- (0-) junction, discover its law from the port's "
                         "variables (sparse regression, passive terms only) and run the loop "
                         "again with it beside the library")
@@ -181,14 +182,18 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     (:func:`bondgraph.diagnose.discover.effect.discovered_effect`), the
     loop run again with that law as an effect (its report replaces the
     first one in ``out``)."""
-    from bondgraph.diagnose.discover.effect import discovered_effect, discovery_plot
+    from bondgraph.diagnose.discover.effect import (
+        discovered_effect,
+        discovery_plot,
+        with_discovered,
+    )
 
     echo = (lambda _m: None) if args.quiet else print
     best = discovered_effect(graph, record, settings, res, log=echo)
     if best is None:
         return res
     echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'")
-    settings = dataclasses.replace(settings, effects=tuple(settings.effects) + (best.effect,))
+    settings = with_discovered(settings, best.effect)
     reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True)
 
     def update(result):

@@ -62,6 +62,14 @@ class Candidate:
         Candidates this structural one became when scored: a parameter ended
         on the end of its span where the effect is another one
         (``Effect.limits``); marked equivalent to them once all are scored.
+    joint_step : dict
+        Score test only: the one-step (Gauss-Newton) estimates of the
+        candidate *with* the estimated parameters moving, from the same
+        normal equations as the statistic: ``"effect"`` (local name -> β,
+        the one-step ``values`` before the line probe) and ``"estimated"``
+        (full name -> the accompanying change of each estimated parameter);
+        empty for other candidates. Its confirmation searches along this
+        line (:func:`bondgraph.diagnose.confirm.score_line_starts`).
     tied : list of str
         Confirmed candidates whose refits the record cannot tell from this
         one's, the confirmed lead's (Vuong's test at ``settings.accept.tie_level``,
@@ -93,6 +101,7 @@ class Candidate:
     profile: dict = field(default_factory=dict)
     limit_of: list = field(default_factory=list)
     tied: list = field(default_factory=list)
+    joint_step: dict = field(default_factory=dict)
 
     @property
     def rank_key(self) -> float:

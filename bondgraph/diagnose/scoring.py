@@ -180,7 +180,8 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     norm = np.sqrt(np.maximum(np.diag(A), 1e-300))
     An = A / np.outer(norm, norm)
     bn = b / norm
-    out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total, fails)
+    out, col_of = score_groups(ctx, probe.cols, len(probe.nuis), An, bn, norm, total, fails,
+                               nuisance=list(fit.params))
     ctx.cache[("score_gram", id(fit), fit.nll)] = (An, bn, norm, col_of, len(probe.nuis))
     mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
     line_probe(ctx, probe, fit, out)
@@ -391,12 +392,15 @@ def conditional_score(ctx: Context, fit: Fit, given: Candidate,
 
 
 def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float,
-                 fails: dict | None = None):
+                 fails: dict | None = None, nuisance: list | None = None):
     """One :class:`Candidate` per (effect, target) of the probe columns: LM =
     energy explained with its columns minus that of the ``nn`` estimated
     parameters alone, χ²(k) p-value, one-step estimates β = −coefficients.
     A candidate with a column in ``fails`` (column -> reason: its filter
     runs failed) is reported as failed: NaN statistic, the reason named.
+    With ``nuisance`` (the ``nn`` estimated parameters' names) each
+    candidate's ``joint_step`` holds β and the change of the estimated
+    parameters in the same least-squares step (−their coefficients).
 
     Returns
     -------
@@ -430,6 +434,9 @@ def score_groups(ctx: Context, cols: list, nn: int, An, bn, norm, total: float,
         values = {est[i]: float(beta[i]) for i in range(min(k, len(est)))}
         out.append(Candidate(ename, eff.title, tgt, "score", lm, k, float(chi2.sf(lm, k)),
                              lm - 2 * k, lm / total if total > 0 else None, values))
+        if nuisance is not None and np.all(np.isfinite(sol)):
+            out[-1].joint_step = {"effect": dict(values), "estimated": {
+                n: float(-sol[a]) for a, n in enumerate(nuisance[:nn])}}
     return out, col_of
 
 
