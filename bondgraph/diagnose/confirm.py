@@ -231,6 +231,11 @@ def natural_starts(eff: Effect, cand: Candidate, P: dict, new: list[str],
     return starts
 
 
+#: the factors of :func:`grid_refine`'s two passes (coarse, then fine around
+#: the best value)
+GRID_FACTORS = (np.geomspace(0.05, 20.0, 13), np.geomspace(0.6, 1.66, 9))
+
+
 def grid_refine(ctx: Context, model: Model, names: list[str], start: dict) -> dict:
     """Improve the start values of ``names`` (the new parameters) by two
     batched coordinate grid searches (13 factors in [0.05, 20], then 9 in
@@ -257,7 +262,7 @@ def grid_refine(ctx: Context, model: Model, names: list[str], start: dict) -> di
     crit = criterion_for(ctx, model, names, theta)
     lo, hi = bounds_around(model, names, theta)
     x = np.clip(np.array([start[n] for n in names], dtype=float), lo, hi)
-    for factors in (np.geomspace(0.05, 20.0, 13), np.geomspace(0.6, 1.66, 9)):
+    for factors in GRID_FACTORS:
         for i in range(len(names)):
             xs = np.repeat(x[None, :], factors.size + 1, axis=0)
             base = x[i] if x[i] != 0 else (hi[i] - lo[i]) * 1e-3
@@ -276,8 +281,8 @@ def grid_refine(ctx: Context, model: Model, names: list[str], start: dict) -> di
 
 #: multiples of the score test's joint step searched by
 #: :func:`score_line_starts`: a coarse pass over both signs, then a fine one
-#: around the best multiple
-LINE_FACTORS = (np.geomspace(0.05, 20.0, 13), np.geomspace(0.6, 1.66, 9))
+#: around the best multiple (the factors of :func:`grid_refine`)
+LINE_FACTORS = GRID_FACTORS
 
 
 def score_line_starts(ctx: Context, model: Model, fit: Fit, cand: Candidate, eff: Effect,
