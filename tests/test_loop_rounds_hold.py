@@ -129,7 +129,26 @@ def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
         ctx = Context.on(exp, LoopSettings(params=[], search=SearchOptions(auto_substeps=auto)), model,
                          lambda s: None, False)
         fit, warn = runner.resolved_fit(ctx, None, "declared")
-        assert fit == want and "6.7 measurement-noise stds" in warn[0] and len(warn) == 1
+        assert fit == want and "6.7 noise stds" in warn[0] and len(warn) == 1
         assert (warn[0].startswith("auto_substeps: ") and "takes 16 substeps" in warn[0]
                 if auto else "use --substeps 16" in warn[0])
         assert (ctx.problem.disc.substeps, calls) == ((16, [16]) if auto else (1, []))
+
+
+def test_discretisation_error_is_measured_in_the_innovation_std_when_it_is_larger():
+    """:func:`error_scale`: per output the larger of the measurement-noise std
+    and the median one-step innovation std √S_jj of the fit's stored filter
+    run. Hand-made S: output x has innovation variances 4e-6, 9e-6, 1e-4 (+
+    one NaN sample) → median std 3e-3 > its noise 1e-3; output v's innovation
+    std 1e-4 is below its noise 2e-3, which stays."""
+    from bondgraph.diagnose.fit import error_scale
+
+    S = np.full((4, 1, 2, 2), 0.0)
+    S[:, 0, 0, 0] = [4e-6, 9e-6, 1e-4, np.nan]
+    S[:, 0, 1, 1] = 1e-8
+    problem = SimpleNamespace(noise_scale=lambda theta: np.array([1e-3, 2e-3]))
+    fit = SimpleNamespace(theta=np.zeros(3), ukf=SimpleNamespace(S=S))
+    np.testing.assert_allclose(error_scale(problem, fit), [3e-3, 2e-3], rtol=1e-12)
+    # no stored run: the measurement-noise std
+    no_run = SimpleNamespace(theta=np.zeros(3), ukf=SimpleNamespace())
+    np.testing.assert_allclose(error_scale(problem, no_run), [1e-3, 2e-3])

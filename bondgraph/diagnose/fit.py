@@ -622,6 +622,32 @@ def noise_absorbing(ctx: Context, fit: Fit) -> list[str]:
     return out
 
 
+def error_scale(problem: Problem, fit: Fit) -> np.ndarray:
+    """The std (n_y,, output units) that a model error per sample is
+    measured against at ``fit``: the larger of the measurement-noise std
+    (:meth:`Problem.noise_scale`) and the median over the record of the
+    filter's one-step innovation std √S_jj (``fit.ukf``, when stored).
+
+    The likelihood weighs a prediction error by S⁻¹, and the Cramér-Rao
+    std scales with √S: an error of one innovation std per sample moves the
+    estimates by about their std whatever part of S the sensor and the
+    process noise make. With a sensor noise estimated on the floor of its
+    box and the record explained by process noise (Silverbox: 1e-6 V against
+    innovations of tenths of a millivolt), the measurement-noise std alone
+    would call an error of microvolts "13 noise stds". A model error that
+    the process noise absorbs still shows: it is then a large part of √S.
+    """
+    sig = np.asarray(problem.noise_scale(fit.theta), float).reshape(-1)
+    S = getattr(fit.ukf, "S", None)
+    if S is None:
+        return sig
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        d = np.sqrt(np.diagonal(np.asarray(S)[:, 0], axis1=-2, axis2=-1))
+        innov = np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=0)
+    return np.where(np.isfinite(innov) & (innov > sig), innov, sig)
+
+
 def admissibility(ctx: Context, fit: Fit) -> Admissibility:
     """Whether ``fit``'s graph keeps what a bond graph promises at its
     estimates (every R dissipates, every C and I stores non-negative

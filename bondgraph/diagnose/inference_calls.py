@@ -232,8 +232,10 @@ def output_error(problem: Problem, names: Sequence[str], theta: np.ndarray):
 
 
 def discretisation(problem: Problem, theta: np.ndarray, substeps: int | None = None,
-                   free_run: bool = True) -> dict:
+                   free_run: bool = True, sigma=None) -> dict:
     """:meth:`Problem.discretisation_check` (``substeps`` overriding the
     problem's): ``one_step`` and ``free_run`` (n_y,, NaN unless
-    ``free_run``) in measurement-noise standard deviations."""
-    return problem.discretisation_check(theta, substeps=substeps, free_run=free_run)
+    ``free_run``) in units of ``sigma`` (n_y,; default the
+    measurement-noise standard deviations)."""
+    return problem.discretisation_check(theta, substeps=substeps, free_run=free_run,
+                                        sigma=sigma)

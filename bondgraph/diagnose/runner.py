@@ -32,6 +32,7 @@ from bondgraph.diagnose.fit import (
     Context,
     Fit,
     admissibility,
+    error_scale,
     noise_absorbing,
     fit_model,
     loop_problem,
@@ -500,7 +501,9 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
     """The filter's discretisation error at ``fit`` (``where``: the declared
     fit, or an accepted one)
     (:func:`bondgraph.inference.ukf.discretisation_check` with the loop's
-    method, substeps and hold) in measurement-noise stds per sample; above
+    method, substeps and hold) in noise stds per sample (the larger of the
+    measurement noise and the filter's innovation std,
+    :func:`~bondgraph.diagnose.fit.error_scale`); above
     ``limit`` one line (logged and returned) with the fewest substeps among
     2, 4, 8, 16, 32 that bring it below (``checked``: the result of
     :func:`recommended_substeps` if already known): a warning recommending
@@ -511,7 +514,7 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
         return []
     o = ctx.problem.ukf
     error = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} "
-             f"measurement-noise stds per sample at {where}")
+             f"noise stds per sample at {where}")
     if adopt and rec:
         msg = (f"auto_substeps: {error}; the filter takes {rec} substeps per sample from "
                f"{where} on")
@@ -526,16 +529,18 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
 
 def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[float, int | None]:
     """``(worst, n)``: the filter's largest one-step discretisation error at
-    ``fit`` in measurement-noise stds per sample, and the fewest substeps
-    among 2, 4, 8, 16, 32 (above the current ones) that bring it to ``limit``
+    ``fit`` in noise stds per sample (:func:`~bondgraph.diagnose.fit.error_scale`),
+    and the fewest substeps among 2, 4, 8, 16, 32 (above the current ones) that bring it to ``limit``
     or below (None if the error is already below, or none does)."""
     pb = problem_for(ctx, fit.model)
+    sig = error_scale(pb, fit)
     # the one-step error only: the free run is not needed here
-    worst = float(np.max(discretisation(pb, fit.theta, free_run=False)["one_step"]))
+    worst = float(np.max(discretisation(pb, fit.theta, free_run=False, sigma=sig)["one_step"]))
     if not worst > limit:
         return worst, None
     rec = next((n for n in (2, 4, 8, 16, 32) if n > pb.disc.substeps and float(np.max(
-        discretisation(pb, fit.theta, n, free_run=False)["one_step"])) <= limit), None)
+        discretisation(pb, fit.theta, n, free_run=False, sigma=sig)["one_step"])) <= limit),
+        None)
     return worst, rec
 
 

@@ -337,14 +337,16 @@ class Problem:
                           options=self.ukf, R=None if R is None else R[0]).x[0]
 
     def discretisation_check(self, theta, *, substeps: int | None = None,
-                             free_run: bool = True) -> dict:
+                             free_run: bool = True, sigma=None) -> dict:
         """:func:`bondgraph.inference.ukf.discretisation_check` of the
         problem's discretisation (``substeps`` overriding its own) at
         ``theta`` from the prior mean: ``one_step`` and ``free_run`` (n_y,)
-        in measurement-noise standard deviations."""
+        in units of ``sigma`` (n_y,; default :meth:`noise_scale`, the
+        measurement-noise standard deviations)."""
         d = self.disc if substeps is None else replace(self.disc, substeps=int(substeps))
+        sig = self.noise_scale(theta) if sigma is None else sigma
         return discretisation_check(self.model, self.t, self.u, theta, self.x0, disc=d,
-                                    sigma=self.noise_scale(theta), free_run=free_run)
+                                    sigma=sig, free_run=free_run)
 
     def noise_scale(self, theta) -> np.ndarray:
         """The measurement-noise std of each output (n_y,) that errors are
