@@ -479,7 +479,7 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
     noise = noise_params(model)
     scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
     try:
-        theta, F, conv, used, x0n, sig = fisher_fit(
+        theta, F, conv, used, x0n, sig, _ = fisher_fit(
             problem, theta, idx, (lo, hi), iters, log_scale=scale, tolerance=tolerance,
             states=states, noises=noises)
         names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]

@@ -167,6 +167,10 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
         The initial state (the estimated entries moved).
     sigma : dict
         The estimated noise stds by output.
+    nll : float
+        The NLL at the result [nats] (from the scoring's own last run there:
+        the same number as a UKF run of ``problem`` at ``theta`` when no
+        state or noise std is estimated).
 
     Raises
     ------
@@ -186,7 +190,7 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
                          scoring=ScoringOptions(max_iter=iterations, atol=tolerance,
                                                 log_scale=scale, information=information))
     sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
-    return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig
+    return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig, float(r.nll)
 
 
 def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:

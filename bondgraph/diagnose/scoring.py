@@ -610,11 +610,11 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
     lo, hi = model.bounds(names)
     for j in list(first.values())[:n]:
         try:
-            th = fisher_fit(pb, np.array(sets[j]), idx, (lo, hi), 1,
-                            log_scale=np.zeros(len(idx), bool), information=False)[0]
+            fitted = fisher_fit(pb, np.array(sets[j]), idx, (lo, hi), 1,
+                                log_scale=np.zeros(len(idx), bool), information=False)
         except (FloatingPointError, np.linalg.LinAlgError):
             continue
-        f = float(run_ukf(pb, th[None, :]).nll[0])
+        th, f = fitted[0], fitted[-1]      # the NLL at th: no run of its own
         if np.isfinite(f) and f < best:
             best, th_best, i_best = f, th, j
     return best, th_best, i_best
@@ -658,10 +658,10 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
     noise = noise_params(fit.model)
     scale = np.array([n in noise and lo[j] > 0 for j, n in enumerate(names)])
     try:
-        th = fisher_fit(pb, th, idx, (lo, hi), iters, log_scale=scale, information=False)[0]
+        fitted = fisher_fit(pb, th, idx, (lo, hi), iters, log_scale=scale, information=False)
     except (FloatingPointError, np.linalg.LinAlgError):
         return None
-    f = float(run_ukf(pb, th[None, :]).nll[0])
+    th, f = fitted[0], fitted[-1]          # the NLL at th: no run of its own
     return (f, th) if np.isfinite(f) and f < nll else None
 
 
