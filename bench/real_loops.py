@@ -7,7 +7,9 @@ suite, to leave compilation out; ``--cold DIR`` runs with empty caches in DIR
 instead). For each case it reports the wall time, the accepted effects, the
 error before and after on the estimation record and on the held-out one
 (from the case's ``report.json``), so that a speed-up that changes a result
-shows. Target (issue 27): <= 30 s per case, the same figures.
+shows, and the discretisation warnings the loop left in its report (a
+bundled case should have none) and the substeps it adopted
+(``auto_substeps``). Target (issue 27): <= 30 s per case, the same figures.
 
 Cases: ``silverbox --max-steps 1`` (arrow region, mV), ``ced`` (held-out u3
 free-run RMS), ``emps`` (force error in %, held-out pulse run). They read
@@ -52,7 +54,12 @@ def run_case(name: str, extra: list[str], out: Path, env: dict) -> dict:
                                      *s.get("together_with", [])]) for s in rep["steps"]],
             "error_before": rep["error_before"], "error_after": rep["error_after"],
             "validation_before": rep["validation_error_before"],
-            "validation_after": rep["validation_error_after"]}
+            "validation_after": rep["validation_error_after"],
+            "discretisation_warnings": [w for w in rep.get("warnings", [])
+                                        if w.startswith("discretisation error")],
+            "substeps_adopted": [w.split(" substeps per sample")[0].rsplit(" ", 1)[-1]
+                                 for w in rep.get("warnings", [])
+                                 if w.startswith("auto_substeps:")]}
 
 
 def main() -> None:
