@@ -97,7 +97,41 @@ def test_output_error_options_validated_on_construction(record):
         OutputErrorOptions(max_nfev=0)
     with pytest.raises(OptionError, match=r"OutputErrorOptions\.atol must be a finite number"):
         OutputErrorOptions(atol=float("nan"))
+    with pytest.raises(OptionError, match=r"OutputErrorOptions\.substeps must be an integer >= 1 "
+                                          r"or None, got 0"):
+        OutputErrorOptions(substeps=0)
     assert OutputErrorOptions().solver.hold == "zoh"
     m, t, u, y, truth, x0 = record
     with pytest.raises(OptionError, match="options must be an OutputErrorOptions, got dict"):
         output_error_fit(m, t, u, y, ["m"], options={"hold": "zoh"})
+
+
+def test_fixed_step_fit_equals_the_sensitivity_fit(record, monkeypatch):
+    """``OutputErrorOptions(substeps=8)``: compiled RK4 free runs (8 steps per
+    sample, ω·dt/8 = 0.014) and a forward-difference Jacobian reach the
+    optimum of the forward-sensitivity fit (LSODA, rtol 1e-8) to 1e-6, with
+    the same standard deviations to 1e-3, without one sensitivity run; a
+    model whose RK4 run is not finite at the start (the spring 1e5 times
+    stiffer: ω·dt = 11 per sample with one step, beyond RK4's stability limit
+    2.8) takes the sensitivity path."""
+    from bondgraph.inference import output_error as oe
+
+    m, t, u, y, truth, x0 = record
+    start = m.theta(m=2.0, k=60.0, c=1.0)
+    sig = np.array([0.002, 0.01])
+    kw = dict(theta=start, x0=np.array([0.0, 0.01]), x0_states=["p_mass"], sigma=sig)
+    ref = output_error_fit(m, t, u, y, ["m", "k", "c"], **kw)
+    calls = []
+    real = oe.output_sensitivities
+    monkeypatch.setattr(oe, "output_sensitivities", lambda *a, **k: calls.append(1) or real(*a, **k))
+    fast = output_error_fit(m, t, u, y, ["m", "k", "c"], options=OutputErrorOptions(substeps=8),
+                            **kw)
+    assert calls == [] and fast.status > 0
+    np.testing.assert_allclose(fast.x, ref.x, rtol=1e-6, atol=1e-9)
+    assert fast.cost == pytest.approx(ref.cost, rel=1e-6)
+    for n in ref.names:
+        assert fast.std[n] == pytest.approx(ref.std[n], rel=1e-3)
+    stiff = m.theta(m=2.5, k=8e6, c=2.0)
+    prob = oe._problem_for(m, t, u, y, ["c"], [], stiff, x0, sig, OutputErrorOptions(substeps=1),
+                           ([0.0], [100.0]))
+    assert type(prob) is oe._Problem
