@@ -138,3 +138,26 @@ def test_a_compile_announced_to_a_file_is_one_line_without_redraws(tmp_path):
     assert "\r" not in text
     assert text.splitlines() == ["  ... compiling K", text.splitlines()[1]]
     assert text.splitlines()[1].startswith("  ... compiling K: done in ")
+
+
+def test_a_long_compile_off_a_terminal_shows_a_dot_per_heartbeat(tmp_path):
+    """Off a terminal the announcement stays one line (no carriage
+    returns), and a dot is appended every ``heartbeat`` seconds while the
+    block runs, so a pipe is never silent for longer; the line ends when the
+    block does, then the "done" line follows."""
+    import re
+    import time
+
+    from bondgraph.core import progress
+
+    log = tmp_path / "log.txt"
+    with open(log, "w") as fh, progress.enabled():
+        with progress.announced("compiling H", delay=0.0, stream=fh, heartbeat=0.01):
+            guard = 600                               # until three dots (no timing test)
+            while log.read_text().count(".") < 3 + 3 and guard:
+                guard -= 1
+                time.sleep(0.05)
+    lines = log.read_text().splitlines()
+    assert "\r" not in log.read_text() and len(lines) == 2
+    assert re.fullmatch(r"  \.\.\. compiling H( \.){3,}", lines[0]), lines[0]
+    assert lines[1].startswith("  ... compiling H: done in ")

@@ -109,7 +109,7 @@ class LongPass:
 
 @contextlib.contextmanager
 def announced(what: str, *, delay: float = 2.0, note: str = "", stream=None,
-              tick: float = 0.5):
+              tick: float = 0.5, heartbeat: float = 2.0):
     """Say what is being done when a block runs longer than ``delay``
     seconds (a compile the user waits for: ``"compiling the fused UKF
     kernel"``), keep a live elapsed-time bar on a terminal while it runs, and
@@ -119,7 +119,9 @@ def announced(what: str, *, delay: float = 2.0, note: str = "", stream=None,
     On a terminal (``stream.isatty()``) the announcement is a tqdm line whose
     elapsed time a background thread refreshes every ``tick`` seconds, so
     nothing is silent for longer than ``delay``; elsewhere (a log file, a
-    pipe) one line is printed, without the refreshes.
+    pipe) the announcement is one line without redraws, to which a dot is
+    appended every ``heartbeat`` seconds while the block runs (a reader of
+    the pipe sees it is alive; the log keeps one line).
 
     Parameters
     ----------
@@ -133,6 +135,8 @@ def announced(what: str, *, delay: float = 2.0, note: str = "", stream=None,
         Where to write (default: ``sys.stderr`` at the call).
     tick : float
         Seconds between two refreshes of the live bar [s].
+    heartbeat : float
+        Seconds between two dots off a terminal [s].
     """
     if not is_enabled():
         yield
@@ -141,8 +145,8 @@ def announced(what: str, *, delay: float = 2.0, note: str = "", stream=None,
     t0 = time.perf_counter()
     label = f"{what} ({note})" if note else what
     done = threading.Event()
-    ticker = threading.Thread(target=_announce, args=(label, out, delay, tick, done),
-                              daemon=True)
+    ticker = threading.Thread(target=_announce,
+                              args=(label, out, delay, (tick, heartbeat), done), daemon=True)
     ticker.start()
     try:
         yield
@@ -162,14 +166,20 @@ def _is_terminal(stream) -> bool:
         return False
 
 
-def _announce(label: str, out, delay: float, tick: float, done: threading.Event) -> None:
+def _announce(label: str, out, delay: float, ticks: tuple[float, float],
+              done: threading.Event) -> None:
     """The announcing thread of :func:`announced`: after ``delay`` s (unless
     ``done``), the line, then on a terminal a tqdm bar of the elapsed
-    seconds refreshed every ``tick`` s until ``done``."""
+    seconds refreshed every ``ticks[0]`` s until ``done``, elsewhere a dot
+    appended every ``ticks[1]`` s and the line ended at ``done``."""
+    tick, heartbeat = ticks
     if done.wait(delay):
         return
     if not _is_terminal(out):
-        print(f"  ... {label}", file=out, flush=True)
+        print(f"  ... {label}", file=out, end="", flush=True)
+        while not done.wait(heartbeat):
+            print(" .", file=out, end="", flush=True)
+        print(file=out, flush=True)
         return
     bar = tqdm(total=None, desc=f"  ... {label}", file=out, leave=False, dynamic_ncols=True,
                bar_format="{desc}: {elapsed} elapsed", mininterval=0, miniters=1,
