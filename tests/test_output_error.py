@@ -123,7 +123,8 @@ def test_fixed_step_fit_equals_the_sensitivity_fit(record, monkeypatch):
     ref = output_error_fit(m, t, u, y, ["m", "k", "c"], **kw)
     calls = []
     real = oe.output_sensitivities
-    monkeypatch.setattr(oe, "output_sensitivities", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(oe, "output_sensitivities",
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
     fast = output_error_fit(m, t, u, y, ["m", "k", "c"], options=OutputErrorOptions(substeps=8),
                             **kw)
     assert calls == [] and fast.status > 0

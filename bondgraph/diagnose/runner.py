@@ -530,8 +530,9 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
 def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[float, int | None]:
     """``(worst, n)``: the filter's largest one-step discretisation error at
     ``fit`` in noise stds per sample (:func:`~bondgraph.diagnose.fit.error_scale`),
-    and the fewest substeps among 2, 4, 8, 16, 32 (above the current ones) that bring it to ``limit``
-    or below (None if the error is already below, or none does)."""
+    and the fewest substeps among 2, 4, 8, 16, 32 (above the current ones)
+    that bring it to ``limit`` or below (None if the error is already below,
+    or none does)."""
     pb = problem_for(ctx, fit.model)
     sig = error_scale(pb, fit)
     # the one-step error only: the free run is not needed here
