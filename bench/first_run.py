@@ -8,7 +8,8 @@ with the caches the first run filled (warm). For each run it reports the
 wall time, the CPU time of the child (user + system, its own children
 included: ``cpu_s``, the steadier figure on a shared machine), the time at
 which each of the loop's stages was printed, and the longest silence (no
-line on stdout or stderr), and the loop's figures (free-run NRMSE before and
+byte on stdout or stderr: the pipes are read as the bytes arrive, so the dot
+an announced compile appends counts), and the loop's figures (free-run NRMSE before and
 after: a speed-up must not change them). Targets: first run <= 60 s,
 warm <= 10 s, nothing silent for more than 2 s. Last line JSON.
 
@@ -35,9 +36,24 @@ STAGES = {"initial fit": r"initial fit:", "step 1 scored": r"step 1: .* candidat
           "step 1 decided": r"ACCEPT|nothing significant|no candidate", "done": r"\] done in"}
 
 
-def _pump(stream, lines: list, t0: float) -> None:
-    for raw in iter(stream.readline, ""):
-        lines.append((time.perf_counter() - t0, raw.rstrip("\n")))
+def _pump(stream, chunks: list, lines: list, t0: float) -> None:
+    """Read ``stream`` (binary) as its bytes arrive: each chunk's arrival
+    time into ``chunks`` (the silences are measured between any output, a
+    dot appended to an announced line too), each completed line with the
+    time of the chunk that ended it into ``lines``."""
+    buf = b""
+    fd = stream.fileno()
+    while True:
+        data = os.read(fd, 65536)
+        now = time.perf_counter() - t0
+        if not data:
+            break
+        chunks.append(now)
+        buf += data
+        *done, buf = buf.split(b"\n")
+        lines.extend((now, raw.decode("utf-8", "replace")) for raw in done)
+    if buf:
+        lines.append((time.perf_counter() - t0, buf.decode("utf-8", "replace")))
 
 
 def run_once(env: dict, out: Path) -> dict:
@@ -45,10 +61,11 @@ def run_once(env: dict, out: Path) -> dict:
     cmd = [sys.executable, "-m", "bondgraph.cli.main", "loop", "--out", str(out), "--overwrite"]
     t0 = time.perf_counter()
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         bufsize=1)
+    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
     lines: list = []
-    threads = [threading.Thread(target=_pump, args=(s, lines, t0)) for s in (p.stdout, p.stderr)]
+    chunks: list = []
+    threads = [threading.Thread(target=_pump, args=(s, chunks, lines, t0))
+               for s in (p.stdout, p.stderr)]
     for th in threads:
         th.start()
     code = p.wait()
@@ -61,14 +78,14 @@ def run_once(env: dict, out: Path) -> dict:
         tail = "\n".join(text for _, text in lines[-20:])
         raise SystemExit(f"bondgraph loop exited with {code}:\n{tail}")
     lines.sort(key=lambda x: x[0])
-    times = [0.0] + [t for t, _ in lines] + [wall]
-    gaps = [(b - a, i) for i, (a, b) in enumerate(zip(times[:-1], times[1:]))]
+    times = [0.0] + sorted(chunks) + [wall]
+    gaps = [(b - a, a) for a, b in zip(times[:-1], times[1:])]
     silence, at = max(gaps)
     stages = {}
     for name, pat in STAGES.items():
         hit = next((t for t, text in lines if re.search(pat, text)), None)
         stages[name] = None if hit is None else round(hit, 1)
-    before = lines[at - 1][1][:100] if at > 0 else "(start)"
+    before = next((text[-100:] for t, text in reversed(lines) if t <= at), "(start)")
     fig = next((m.groups() for _, text in lines
                 if (m := re.search(r"before: ([0-9.]+)\s+after: ([0-9.]+)", text))), None)
     return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "stages_s": stages,
