@@ -294,6 +294,39 @@ def test_discretisation_check_orders():
     assert c["one_step"].max() < 1e-2 * a["one_step"].max()
 
 
+def test_discretisation_reference_is_ros2_where_rk4_is_at_its_stability_edge():
+    """The check's default reference is RK4 only when RK4 at half its
+    substeps agrees: a damper so stiff that the fast mode's λ·h = −2.7 per
+    RK4 substep at the reference's substeps (inside RK4's stability
+    interval [−2.785, 0]: R(−2.7) = 0.88 per substep against e^−2.7 = 0.067,
+    finite but wrong) and −5.4 at half of them (R = 19.4: overflow) takes
+    ROS2 (L-stable), whose runs at 16 and 32 substeps agree; a soft model
+    keeps RK4."""
+    m = Model.load("mass_spring_damper")
+    dt, N, sub = 0.01, 400, 32
+    t = np.arange(N) * dt
+    u = np.zeros((N, 1))
+    c = 2.7 / (dt / sub)                 # m = 1: the fast mode λ ≈ −c, the slow one −k/c
+    stiff = m.theta(m=1.0, k=50.0, c=c)
+    x0 = np.array([0.1, 1e-3])
+    from bondgraph.inference.ukf import _agree, _trajectory
+    from bondgraph.numerics.integrators import hold_inputs
+
+    held = hold_inputs(u, "zoh")
+    half = _trajectory(m, t, u, "zoh", held, stiff[None], x0[None], "rk4", sub // 2, "numpy")
+    assert not np.isfinite(half).all()                # RK4 at λ·h = −5.4 overflows
+    a = discretisation_check(m, t, u, stiff, x0, disc=Discretisation("ros2", 64, hold="zoh"),
+                             reference_substeps=sub, sigma=np.array([1e-6, 1e-6]),
+                             free_run=False)
+    assert a["reference"] == "ros2"
+    ros2 = [_trajectory(m, t, u, "zoh", held, stiff[None], x0[None], "ros2", n, "numpy")
+            for n in (sub // 2, sub)]
+    assert _agree(ros2[1], ros2[0])
+    soft = discretisation_check(m, t, u, m.theta(m=1.0, k=50.0, c=1.0), x0,
+                                disc=Discretisation("ros2", 1, hold="zoh"), free_run=False)
+    assert soft["reference"] == "rk4"
+
+
 def test_input_hold_mean():
     """hold="mean" predicts with (u_k + u_k+1)/2 over [t_k, t_k+1] (h of this
     model does not read u, so it equals ZOH on the averaged input)."""
