@@ -518,21 +518,22 @@ def loop_competing(graph, train, settings, log=quiet):
     best = forced_discovery(graph, train, settings, log)
     if best is None:
         return run_loop(graph, train, settings, log=log, progress=False), None
-    effects = tuple(settings.effects) + (best.effect,)
-    return run_loop(graph, train, replace(settings, effects=effects), log=log,
-                    progress=False), best
+    effects = tuple(settings.effects) + tuple(best.effects())
+    res = run_loop(graph, train, replace(settings, effects=effects), log=log, progress=False)
+    return res, best.accepted_in(res)
 
 
 def head_to_head(case: Case, graph, train, settings, log) -> dict:
-    """For a library case: the law discovery finds on the declared graph
-    (whatever the first loop accepted) beside the library, in one loop run;
+    """For a library case: the laws discovery finds on the declared graph
+    (whatever the first loop accepted; the best port's and its
+    alternatives) beside the library, in one loop run;
     ``kept`` when that run accepts the library effect first or reports the
     discovered law tied with it."""
     best = forced_discovery(graph, train, settings, log)
     if best is None:
         return {"kept": True, "discovered": None, "first": None}
     res = run_loop(graph, train, replace(settings, effects=tuple(settings.effects)
-                                         + (best.effect,)), log=log, progress=False)
+                                         + tuple(best.effects())), log=log, progress=False)
     first = res.steps[0] if res.steps else None
     lead = f"{first.effect} @ {first.attached_to}" if first else None
     tied = list(first.tied) if first else []
