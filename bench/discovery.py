@@ -19,7 +19,10 @@ noise declared on the record (``Experiment.from_arrays(noise_std=...)``):
 
 The loop is :func:`bondgraph.diagnose.discover.effect.loop_with_discovery`
 with a library of the default library's physical look-alikes
-(:data:`LIBRARY`) and at most two steps per loop run.
+(:data:`LIBRARY`) and at most two steps per loop run; the second run has
+every junction's discovered law beside the library (the best port's
+``discovered``, then ``discovered_2``, ...: each port's sparse alternative
+and the other ports' laws).
 
 Reported per case, on the test record, with the loop's metric
 (``nrmse_sim``: mean over the outputs of RMS(free-run error)/std(measured
@@ -56,10 +59,12 @@ Usage::
 
 ``--compete`` is not what ``loop_with_discovery`` does: it discovers on
 the declared graph whatever the loop alone would accept and runs the loop
-once with the law among the library's effects (:func:`loop_competing`),
-to see what discovery would change where the library's look-alikes are
-accepted first (the product only discovers when no physical effect is
-accepted). Its results are not saved unless ``--json-out`` is given.
+once with the laws (the best port's and its alternatives) among the
+library's effects (:func:`loop_competing`), to see what discovery would
+change where the library's look-alikes are accepted first (the product
+discovers when no physical effect is accepted or the accepted ones leave
+innovations that are not white, and then runs the loop again). Its
+results are not saved unless ``--json-out`` is given.
 
 The per-case table is printed, then one JSON line (the last line); the
 full run saves the per-case results to ``bench/results/discovery.json``.
