@@ -361,12 +361,29 @@ class Discovery:
     alternatives: list = field(default_factory=list)
 
     def effects(self) -> list:
-        """This discovery's effect, then its alternatives' (those with one)."""
+        """This discovery's effect, then its alternatives' (those with one).
+
+        Returns
+        -------
+        list of DiscoveredEffect
+            Each under its own name (``discovered``, ``discovered_2``, ...).
+        """
         return [d.effect for d in [self] + list(self.alternatives) if d.effect is not None]
 
     def accepted_in(self, result) -> "Discovery":
         """The discovery (this one or an alternative) whose effect the loop
-        result ``result`` accepted; this one when none was."""
+        result ``result`` accepted, alone or in a pair; this one when none
+        was.
+
+        Parameters
+        ----------
+        result : LoopResult
+            A loop run with :meth:`effects` beside the library.
+
+        Returns
+        -------
+        Discovery
+        """
         names = {s.effect for s in getattr(result, "steps", [])}
         names |= {w.split(" @ ")[0] for s in getattr(result, "steps", [])
                   for w in getattr(s, "together_with", [])}
