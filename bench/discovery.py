@@ -19,7 +19,10 @@ noise declared on the record (``Experiment.from_arrays(noise_std=...)``):
 
 The loop is :func:`bondgraph.diagnose.discover.effect.loop_with_discovery`
 with a library of the default library's physical look-alikes
-(:data:`LIBRARY`) and at most two steps per loop run.
+(:data:`LIBRARY`) and at most two steps per loop run; the second run has
+every junction's discovered law beside the library (the best port's
+``discovered``, then ``discovered_2``, ...: each port's sparse alternative
+and the other ports' laws).
 
 Reported per case, on the test record, with the loop's metric
 (``nrmse_sim``: mean over the outputs of RMS(free-run error)/std(measured
@@ -56,10 +59,12 @@ Usage::
 
 ``--compete`` is not what ``loop_with_discovery`` does: it discovers on
 the declared graph whatever the loop alone would accept and runs the loop
-once with the law among the library's effects (:func:`loop_competing`),
-to see what discovery would change where the library's look-alikes are
-accepted first (the product only discovers when no physical effect is
-accepted). Its results are not saved unless ``--json-out`` is given.
+once with the laws (the best port's and its alternatives) among the
+library's effects (:func:`loop_competing`), to see what discovery would
+change where the library's look-alikes are accepted first (the product
+discovers when no physical effect is accepted or the accepted ones leave
+innovations that are not white, and then runs the loop again). Its
+results are not saved unless ``--json-out`` is given.
 
 The per-case table is printed, then one JSON line (the last line); the
 full run saves the per-case results to ``bench/results/discovery.json``.
@@ -518,21 +523,22 @@ def loop_competing(graph, train, settings, log=quiet):
     best = forced_discovery(graph, train, settings, log)
     if best is None:
         return run_loop(graph, train, settings, log=log, progress=False), None
-    effects = tuple(settings.effects) + (best.effect,)
-    return run_loop(graph, train, replace(settings, effects=effects), log=log,
-                    progress=False), best
+    effects = tuple(settings.effects) + tuple(best.effects())
+    res = run_loop(graph, train, replace(settings, effects=effects), log=log, progress=False)
+    return res, best.accepted_in(res)
 
 
 def head_to_head(case: Case, graph, train, settings, log) -> dict:
-    """For a library case: the law discovery finds on the declared graph
-    (whatever the first loop accepted) beside the library, in one loop run;
+    """For a library case: the laws discovery finds on the declared graph
+    (whatever the first loop accepted; the best port's and its
+    alternatives) beside the library, in one loop run;
     ``kept`` when that run accepts the library effect first or reports the
     discovered law tied with it."""
     best = forced_discovery(graph, train, settings, log)
     if best is None:
         return {"kept": True, "discovered": None, "first": None}
     res = run_loop(graph, train, replace(settings, effects=tuple(settings.effects)
-                                         + (best.effect,)), log=log, progress=False)
+                                         + tuple(best.effects())), log=log, progress=False)
     first = res.steps[0] if res.steps else None
     lead = f"{first.effect} @ {first.attached_to}" if first else None
     tied = list(first.tied) if first else []

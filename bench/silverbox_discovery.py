@@ -36,14 +36,16 @@ from bondgraph.diagnose.runner import run_loop
 
 
 def competing(graph, record, settings):
-    """``--compete``: the law discovered on the declared graph (whatever the
-    loop alone would accept) beside the library from the first step, one
-    loop run. Returns (LoopResult, Discovery or None)."""
+    """``--compete``: the laws discovered on the declared graph (whatever the
+    loop alone would accept; the best port's and its alternatives) beside
+    the library from the first step, one loop run. Returns (LoopResult,
+    the Discovery accepted, else the best port's, or None)."""
     best = discovered_effect(graph, record, settings, SimpleNamespace(steps=[]), log=print)
     if best is None:
         return run_loop(graph, record, settings, log=print, progress=False), None
-    return (run_loop(graph, record, with_discovered(settings, best.effect), log=print,
-                     progress=False), best)
+    res = run_loop(graph, record, with_discovered(settings, *best.effects()), log=print,
+                   progress=False)
+    return res, best.accepted_in(res)
 
 
 def main(argv=None):
@@ -52,9 +54,9 @@ def main(argv=None):
     ap.add_argument("--drop", default="cubic_stiffness",
                     help="comma-separated effects removed from the case's library")
     ap.add_argument("--compete", action="store_true",
-                    help="the law discovered on the declared graph beside the library from the "
+                    help="the laws discovered on the declared graph beside the library from the "
                          "first step (loop_with_discovery discovers only when the loop accepts "
-                         "no physical effect)")
+                         "no physical effect or leaves coloured innovations)")
     a = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     t0 = time.perf_counter()

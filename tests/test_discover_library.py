@@ -121,3 +121,80 @@ def test_settings_with_a_discovered_law():
     # the reconstruction uses the loop's filter at one step per sample
     o = reconstruction_options(s).ukf
     assert (o.hold, o.substeps, o.method) == ("linear", 1, s.ukf.method)
+
+
+def _fake_reconstruction(d, variables, noise=1e-3):
+    """A reconstruction-like object at the msd's junction ``v`` (what
+    discover_law and make_passive read): d̂ = ``d`` with a constant std."""
+    from types import SimpleNamespace
+    return SimpleNamespace(t=np.arange(d.size) * 0.01, d=d, d_std=np.full(d.size, noise),
+                           variables=variables, primary=["v.f", "q_spring"],
+                           units={"v.f": "m/s", "q_spring": "m", "F": "N"},
+                           model=SimpleNamespace(inputs=["F"]),
+                           port=SimpleNamespace(port="v", kind="effort", unit="N"))
+
+
+def test_the_laws_beside_the_best_one_are_its_sparse_alternative_and_the_other_ports():
+    """``law_alternatives``: a noise-free d̂ = −50·x³ − 10·v − 1·F gives the
+    three terms exactly (to 1e-6); its sparse alternative (``sparse_alternative``, at
+    most two terms) is the pair whose weighted least squares leaves the
+    smallest residual, with those least-squares coefficients (numpy's lstsq
+    by hand, to 1e-6); a second discovery's law follows; each effect is
+    renamed ``discovered_<k>``, and ``accepted_in`` finds the discovery whose
+    effect a loop result accepted."""
+    from itertools import combinations
+    from types import SimpleNamespace
+
+    from bondgraph.catalog.reference import mass_spring_damper
+    from bondgraph.diagnose.discover.effect import (
+        Discovery,
+        law_alternatives,
+        sparse_alternative,
+    )
+    from bondgraph.diagnose.discover.law import discover_law
+    from bondgraph.diagnose.discover.passivity import make_passive
+
+    t = np.arange(0.0, 20.0, 0.01)
+    var = {"v.f": np.cos(1.7 * t), "q_spring": np.sin(t), "F": np.sin(3.1 * t + 0.5)}
+    cols = {"q_spring^3": var["q_spring"] ** 3, "v.f": var["v.f"], "F": var["F"]}
+    d = -50.0 * cols["q_spring^3"] - 10.0 * cols["v.f"] - 1.0 * cols["F"]
+    g = mass_spring_damper()
+
+    def discovery(rec):
+        law = discover_law(rec)
+        rep = make_passive(law, g, rec.variables)
+        eff = DiscoveredEffect(rep.law)
+        return Discovery(rec, law, rep, eff, 1.0, eff.placement(g))
+
+    first = discovery(_fake_reconstruction(d, var))
+    assert {tm.name: round(tm.coef, 6) for tm in first.passivity.law.terms} == {
+        "q_spring^3": -50.0, "v.f": -10.0, "F": -1.0}
+    sparse = sparse_alternative(g, first, {})
+    # by hand: the pair of the three true columns with the smallest residual
+    # (the trimmed samples the regression fits: 2 % at each end)
+    cut = int(round(0.02 * t.size))
+    keep = slice(cut, t.size - cut)
+    best = min(combinations(cols, 2), key=lambda p: np.linalg.lstsq(
+        np.column_stack([cols[k][keep] for k in p]), d[keep], rcond=None)[1][0])
+    coef = np.linalg.lstsq(np.column_stack([cols[k][keep] for k in best]), d[keep],
+                           rcond=None)[0]
+    got = {tm.name: tm.coef for tm in sparse.passivity.law.terms}
+    assert sorted(got) == sorted(best)
+    for k, c in zip(best, coef):
+        assert got[k] == pytest.approx(c, rel=1e-6)
+    # the second port's d̂: −50·x³ with noise of its std (noise-free, the
+    # cross-validation's ties at zero error keep a 1e-15 spurious term)
+    noisy = -50.0 * cols["q_spring^3"] + 1e-3 * np.random.default_rng(0).standard_normal(t.size)
+    second = discovery(_fake_reconstruction(noisy, var))
+    alts = law_alternatives(g, [first, second], {})
+    assert [a.effect.name for a in alts] == ["discovered_2", "discovered_3"]
+    assert [tm.name for tm in alts[1].passivity.law.terms] == ["q_spring^3"]
+    assert alts[0].passivity.law.terms[0].name in best
+    first.alternatives = alts
+    assert [e.name for e in first.effects()] == ["discovered", "discovered_2", "discovered_3"]
+    result = SimpleNamespace(steps=[SimpleNamespace(effect="discovered_3", together_with=[])])
+    assert first.accepted_in(result) is alts[1]
+    assert first.accepted_in(SimpleNamespace(steps=[])) is first
+    lib = (CubicStiffness(),)
+    s = LoopSettings(params=["k"], effects=lib)
+    assert with_discovered(s, *first.effects()).effects == lib + tuple(first.effects())

@@ -297,3 +297,36 @@ def test_the_fine_free_run_agrees_with_scipy(method, backend):
     q = ref.y[1]
     assert y.shape == (t.size, 1)
     assert np.max(np.abs(y[:, 0] - q)) < {"rk4": 1e-5, "ros2": 1e-3}[method] * np.ptp(q)
+
+
+def test_an_output_the_record_lacks_gets_no_noise_level(msd):
+    """The record holds no sample of ``v`` (its column all NaN), declares no
+    noise: only ``noise.x`` is estimated (``v``'s level has zero Fisher
+    information; estimated, it made the Fisher matrix singular and no
+    Cramér-Rao std was reported), and the stds of k and c equal the
+    Cramér-Rao bound of the forward sensitivity equations on x alone, with
+    the initial state as a nuisance under the filter's prior (std 0.05),
+    at the estimated noise level: within 3 % (measured 0.5 % and 1.7 %)."""
+    from bondgraph.inference.estimand import noise_plan
+    full = _record(msd)
+    y = full.outputs_for(msd).copy()
+    y[:, 1] = np.nan
+    exp = Experiment.from_arrays(full.t, model=msd, u=full.inputs_for(msd), y=y,
+                                 meta={"name": "x_only", "columns": {"F": {"hold": "zoh"}}})
+    add, outs, sigma, notes = noise_plan(msd, msd.theta0, ["k", "c"], [], np.full(2, np.nan), y)
+    assert add == [] and outs == ["x"] and np.isnan(sigma).all()
+    assert any("no finite sample of output(s) v" in n for n in notes)
+    r = estimate(_problem(msd, exp, "auto"), ["k", "c"],
+                 fit=FitOptions(particles=10, iterations=10, seed=0, progress=False))
+    assert r.params == ["k", "c", "noise.x"]
+    assert r.settings["noise_levels"]["x"]["how"] == "estimated"
+    assert abs(r.estimates[2] - TRUE_SD[0]) < 3 * r.std[2]
+    th = msd.theta(dict(zip(["k", "c"], r.estimates[:2])))
+    s = output_sensitivities(msd, exp.t, exp.inputs_for(msd), th, msd.x0, ["k", "c"],
+                             x0_states=list(msd.states),
+                             solver=SolverOptions(hold="zoh", rtol=1e-9, atol=1e-12))
+    J = np.concatenate([s.dydtheta, s.dydx0], axis=2)[:, 0, :]        # output x only
+    F = J.T @ J / r.estimates[2] ** 2
+    F[2:, 2:] += np.eye(2) / 0.05 ** 2                                 # the prior on x0
+    crb = np.sqrt(np.diag(np.linalg.inv(F)))[:2]
+    np.testing.assert_allclose(r.std[:2], crb, rtol=0.03)

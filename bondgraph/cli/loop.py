@@ -178,10 +178,11 @@ def run(args) -> int:
 
 def _with_discovery(args, graph, record, settings, res, out: Path):
     """``--discover``: the loop's result ``res``, or, when it accepted no
-    physical effect and a port gave a passive law
+    physical effect (or the accepted ones leave coloured innovations) and a
+    port gave a passive law
     (:func:`bondgraph.diagnose.discover.effect.discovered_effect`), the
-    loop run again with that law as an effect (its report replaces the
-    first one in ``out``)."""
+    loop run again with that law and its alternatives as effects (its
+    report replaces the first one in ``out``)."""
     from bondgraph.diagnose.discover.effect import (
         discovered_effect,
         discovery_plot,
@@ -192,12 +193,13 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     best = discovered_effect(graph, record, settings, res, log=echo)
     if best is None:
         return res
-    echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'")
-    settings = with_discovered(settings, best.effect)
+    echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'"
+         + (f" and {len(best.alternatives)} alternative(s)" if best.alternatives else ""))
+    settings = with_discovered(settings, *best.effects())
     reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True)
 
     def update(result):
-        result.discovery = discovery_plot(best, result)
+        result.discovery = discovery_plot(best.accepted_in(result), result)
         reporter.update(result)
 
     return run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,

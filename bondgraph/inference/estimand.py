@@ -292,6 +292,13 @@ def noise_plan(model, theta, params: Sequence[str], fixed: Sequence[str],
                declared: np.ndarray, y=None) -> tuple[list[str], list[str], np.ndarray, list[str]]:
     """Which noise levels an estimation moves by default.
 
+    An output of which the record holds no finite sample (``y``'s column all
+    NaN: a sensor of the graph the record lacks) gets no estimated level,
+    and a noise-intensity parameter that changes only such outputs' noise is
+    not added: the likelihood does not depend on them (zero Fisher
+    information), so estimating them would make the Fisher matrix singular
+    and leave every Cramér-Rao std unreported.
+
     Parameters
     ----------
     model : Model
@@ -305,16 +312,18 @@ def noise_plan(model, theta, params: Sequence[str], fixed: Sequence[str],
     y : array (N, n_y), optional
         The record's outputs: an estimated output whose sensor declares no
         positive level (``meas_std(θ)`` zero) starts from the level seen in
-        them (:func:`record_noise_level`).
+        them (:func:`record_noise_level`); outputs without a finite sample
+        are left out (above). None: every output counts as measured.
 
     Returns
     -------
     (noise_params, noise_outputs, sigma, notes)
         Noise-intensity parameters added to the estimated ones (those not
         listed or fixed); outputs whose noise std is estimated (a fixed number
-        in the model, undeclared by the record); the override vector σ (n_y,)
-        (declared values, the record-based start of an estimated output
-        whose sensor gives no level, NaN elsewhere); notes for the log.
+        in the model, undeclared by the record, measured at least once); the
+        override vector σ (n_y,) (declared values, the record-based start of
+        an estimated output whose sensor gives no level, NaN elsewhere);
+        notes for the log.
 
     Raises
     ------
@@ -324,10 +333,12 @@ def noise_plan(model, theta, params: Sequence[str], fixed: Sequence[str],
     """
     th = np.asarray(theta, float)
     declared = np.asarray(declared, float)
-    noise_p = noise_parameters(model, th)
+    unseen = _unseen_outputs(model, y)
     meas_dep = _meas_dependent(model, th)
-    add = [p for p in noise_p if p not in params and p not in fixed
-           and not (p in meas_dep and np.isfinite(declared[meas_dep[p]]).all())]
+    add = [p for p in noise_parameters(model, th) if p not in params and p not in fixed
+           and not (p in meas_dep and np.isfinite(declared[meas_dep[p]]).all())
+           and not (p in meas_dep and set(meas_dep[p]) <= unseen
+                    and not _changes_proc_std(model, th, p))]
     sigma = np.full(model.n_y, np.nan)
     outs, notes = [], []
     param_driven = {j for js in meas_dep.values() for j in js}
@@ -338,33 +349,69 @@ def noise_plan(model, theta, params: Sequence[str], fixed: Sequence[str],
                              f"is estimated: the declaration is not used")
                 continue
             sigma[j] = declared[j]
-        elif j not in param_driven:
+        elif j not in param_driven and j not in unseen:
             outs.append(o)
+    if unseen:
+        notes.append("no finite sample of output(s) " + ", ".join(
+            model.outputs[j] for j in sorted(unseen)) + " in the record: no noise level "
+            "estimated for them (the likelihood does not depend on it)")
     if add:
         notes.append(f"noise intensities estimated (the record does not declare them): "
                      f"{', '.join(add)}")
     if outs:
         notes.append(f"measurement-noise std estimated (the record does not declare it): "
                      f"{', '.join(outs)}")
+    _start_bare_levels(model, th, outs, y, sigma, notes)
+    return add, outs, sigma, notes
+
+
+def _unseen_outputs(model, y) -> set[int]:
+    """Indices of the outputs without a finite sample in ``y`` (N, n_y)
+    (empty when ``y`` is None)."""
+    if y is None:
+        return set()
+    y = np.asarray(y, float).reshape(np.shape(y)[0], -1)
+    return {j for j in range(min(y.shape[1], model.n_y)) if not np.isfinite(y[:, j]).any()}
+
+
+def _changes_proc_std(model, th, name: str) -> bool:
+    """Whether moving parameter ``name`` by 10 % changes ``proc_std``."""
+    t1 = th.copy()
+    j = model.param_index(name)
+    t1[j] = th[j] * 1.1 if th[j] != 0 else 0.1
+    with np.errstate(all="ignore"):
+        return not np.allclose(np.asarray(model.proc_std(t1), float),
+                               np.asarray(model.proc_std(th), float), atol=0.0)
+
+
+def _start_bare_levels(model, th, outs, y, sigma, notes) -> None:
+    """Into ``sigma`` (n_y,), in place: the start of each estimated output's
+    level that its sensor does not give (``meas_std`` not positive), the
+    level seen in ``y`` (:func:`record_noise_level`), with a note.
+
+    Raises
+    ------
+    OptionError
+        Such an output whose record shows no level either.
+    """
     with np.errstate(all="ignore"):
         meas = np.asarray(model.meas_std(th[None, :]), float).reshape(-1)
     bare = [model.output_index(o) for o in outs
             if not (np.isfinite(meas[model.output_index(o)]) and meas[model.output_index(o)] > 0)]
-    if bare:
-        seen = record_noise_level(y) if y is not None else np.full(model.n_y, np.nan)
-        missing = [model.outputs[j] for j in bare if not np.isfinite(seen[j])]
-        if missing:
-            raise OptionError(
-                f"no measurement-noise level for output(s) {', '.join(map(repr, missing))} of "
-                f"'{model.name}': the sensor declares none (noise_std), the record declares none "
-                f"(columns.<output>.noise_std in its sidecar) and none can be seen in the record; "
-                f"declare one of them")
-        sigma[bare] = seen[bare]
-        notes.append("no noise level declared by the sensor or the record: the estimate starts "
-                     "from the level seen in the record's second differences (an upper "
-                     "estimate): " + ", ".join(f"{model.outputs[j]} = {seen[j]:.4g}"
-                                               for j in bare))
-    return add, outs, sigma, notes
+    if not bare:
+        return
+    seen = record_noise_level(y) if y is not None else np.full(model.n_y, np.nan)
+    missing = [model.outputs[j] for j in bare if not np.isfinite(seen[j])]
+    if missing:
+        raise OptionError(
+            f"no measurement-noise level for output(s) {', '.join(map(repr, missing))} of "
+            f"'{model.name}': the sensor declares none (noise_std), the record declares none "
+            f"(columns.<output>.noise_std in its sidecar) and none can be seen in the record; "
+            f"declare one of them")
+    sigma[bare] = seen[bare]
+    notes.append("no noise level declared by the sensor or the record: the estimate starts "
+                 "from the level seen in the record's second differences (an upper "
+                 "estimate): " + ", ".join(f"{model.outputs[j]} = {seen[j]:.4g}" for j in bare))
 
 
 def _meas_dependent(model, th) -> dict[str, list[int]]:

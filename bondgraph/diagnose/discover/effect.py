@@ -38,9 +38,12 @@ passivity check accepted or vanishes (its box is [0, 10 c]).
 :func:`discover_effect` runs reconstruction, discovery and the passivity
 check at one port; :func:`loop_with_discovery` runs the loop, and when it
 accepts no physical effect (none, or only a last-resort disturbance) or the
-accepted ones leave innovations that are not white, the port where the
-reconstruction gains most likelihood is given a discovered effect and the
-loop runs again with it beside the library.
+accepted ones leave innovations that are not white, every junction's law is
+discovered and the loop runs again with them beside the library: the law of
+the port where the reconstruction gains most likelihood, each port's sparse
+alternative (at most two terms) and the other ports' laws
+(:func:`law_alternatives`), each effect under its own name; the loop's
+likelihood ratio and accept rule choose.
 """
 
 from __future__ import annotations
@@ -69,6 +72,11 @@ from bondgraph.numerics.model import Model
 COEF_REACH = 10.0
 #: the grid of the structural score, as multiples of the discovered coefficients
 GRID_FACTORS = (0.7, 1.0, 1.4)
+#: most terms of a port's sparse alternative law (:func:`sparse_alternative`)
+SPARSE_TERMS = 2
+#: most discovered laws put beside the library in one loop run
+#: (:func:`discovered_effect`: the best port's, then the alternatives)
+MAX_LAWS = 6
 
 
 def _sign_box(c: float) -> tuple[float, float]:
@@ -338,6 +346,10 @@ class Discovery:
         intensity was given).
     placement : list of Placement
         Where the effect's parts go in the declared graph.
+    alternatives : list of Discovery
+        Further laws the loop compares with this one
+        (:func:`discovered_effect`): the sparse alternative at this port
+        and the laws of the other ports, each effect under its own name.
     """
 
     reconstruction: Reconstruction
@@ -346,6 +358,37 @@ class Discovery:
     effect: DiscoveredEffect | None
     gain: float
     placement: list = field(default_factory=list)
+    alternatives: list = field(default_factory=list)
+
+    def effects(self) -> list:
+        """This discovery's effect, then its alternatives' (those with one).
+
+        Returns
+        -------
+        list of DiscoveredEffect
+            Each under its own name (``discovered``, ``discovered_2``, ...).
+        """
+        return [d.effect for d in [self] + list(self.alternatives) if d.effect is not None]
+
+    def accepted_in(self, result) -> "Discovery":
+        """The discovery (this one or an alternative) whose effect the loop
+        result ``result`` accepted, alone or in a pair; this one when none
+        was.
+
+        Parameters
+        ----------
+        result : LoopResult
+            A loop run with :meth:`effects` beside the library.
+
+        Returns
+        -------
+        Discovery
+        """
+        names = {s.effect for s in getattr(result, "steps", [])}
+        names |= {w.split(" @ ")[0] for s in getattr(result, "steps", [])
+                  for w in getattr(s, "together_with", [])}
+        return next((d for d in [self] + list(self.alternatives)
+                     if d.effect is not None and d.effect.name in names), self)
 
     def summary(self) -> str:
         """Readable lines: the law, the passivity verdict, the gain."""
@@ -461,10 +504,11 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
                         reconstruction: ReconstructOptions | None = None,
                         discovery: DiscoverOptions | None = None):
     """The loop, then, when it accepts no physical effect or the accepted
-    ones leave coloured innovations, discovery at the port where the
-    reconstruction gains most likelihood (:func:`discovered_effect`) and the
-    loop again, from the declared graph, with the discovered effect beside
-    the library (:func:`with_discovered`).
+    ones leave coloured innovations, discovery at every port
+    (:func:`discovered_effect`) and the loop again, from the declared graph,
+    with the discovered laws beside the library (:func:`with_discovered`):
+    the loop's likelihood-ratio test and accept rule choose among the laws
+    and the library's effects.
 
     Parameters
     ----------
@@ -482,8 +526,9 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
     Returns
     -------
     (LoopResult, Discovery or None)
-        The second loop's result and the discovery when discovery ran (else
-        the first loop's result and None).
+        The second loop's result and the discovery whose law it accepted
+        (the best port's when it accepted none) when discovery ran, else
+        the first loop's result and None.
     """
     from bondgraph.diagnose.runner import run_loop
 
@@ -492,33 +537,36 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
                              reconstruction=reconstruction, discovery=discovery)
     if best is None:
         return first, None
-    res = run_loop(graph, record, with_discovered(settings, best.effect), log=log,
+    res = run_loop(graph, record, with_discovered(settings, *best.effects()), log=log,
                    progress=False)
-    res.discovery = discovery_plot(best, res)
-    return res, best
+    shown = best.accepted_in(res)
+    res.discovery = discovery_plot(shown, res)
+    return res, shown
 
 
-def with_discovered(settings, effect: DiscoveredEffect):
-    """The loop's settings with ``effect`` beside the library. A discovered
-    law is a structural effect: where ``settings`` skip the structural
-    effects (``search.structural`` False: the Silverbox case), they are
-    switched on and the library keeps only its additive effects, so that the
-    law is scored and the library's structural effects stay out as the
-    settings asked.
+def with_discovered(settings, effect: DiscoveredEffect, *more: DiscoveredEffect):
+    """The loop's settings with ``effect`` (and ``more``) beside the library.
+    A discovered law is a structural effect: where ``settings`` skip the
+    structural effects (``search.structural`` False: the Silverbox case),
+    they are switched on and the library keeps only its additive effects,
+    so that the laws are scored and the library's structural effects stay
+    out as the settings asked.
 
     Parameters
     ----------
     settings : LoopSettings
-    effect : DiscoveredEffect
+    effect, *more : DiscoveredEffect
+        Each under its own name.
 
     Returns
     -------
     LoopSettings
     """
+    laws = (effect,) + tuple(more)
     if settings.search.structural:
-        return replace(settings, effects=tuple(settings.effects) + (effect,))
+        return replace(settings, effects=tuple(settings.effects) + laws)
     kept = tuple(e for e in settings.effects if getattr(e, "additive", False))
-    return replace(settings, effects=kept + (effect,),
+    return replace(settings, effects=kept + laws,
                    search=replace(settings.search, structural=True))
 
 
@@ -542,11 +590,12 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
     innovations are white (:meth:`~bondgraph.diagnose.residuals.ResidualReport.is_white`),
     or when no port gave a passive law; else the port whose reconstruction
     gains most likelihood, with its law as a loop effect
-    (``Discovery.effect``). Accepted effects that leave the innovations
-    coloured are look-alikes or incomplete (a cubic stiffness for a quintic
-    spring: whiteness 23 347 -> 23 214; the true cubic: 30 223 -> 19.3),
-    so the law is then sought too and the second loop compares it with
-    the library.
+    (``Discovery.effect``) and, as ``Discovery.alternatives``, the laws the
+    loop compares it with (:func:`law_alternatives`). Accepted effects that
+    leave the innovations coloured are look-alikes or incomplete (a cubic
+    stiffness for a quintic spring: whiteness 23 347 -> 23 214; the true
+    cubic: 30 223 -> 19.3), so the law is then sought too and the second
+    loop compares it with the library.
 
     The reconstruction runs the declared graph at its declared values
     (``settings.fixed`` over the graph's defaults), not at the initial fit,
@@ -588,13 +637,97 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
                                          reconstruction=opts, discovery=discovery))
         except BondGraphError as exc:      # a port the filter cannot serve: skip it
             say(f"discovery at '{port}' skipped: {str(exc).splitlines()[0]}")
-    found = [d for d in found if d.effect is not None]
+    found = sorted((d for d in found if d.effect is not None), key=lambda d: -d.gain)
     if not found:
         say("discovery: no port gave a law")
         return None
-    best = max(found, key=lambda d: d.gain)
+    best = found[0]
+    best.alternatives = law_alternatives(graph, found, values, discovery)
     say(best.summary())
+    for alt in best.alternatives:
+        say(f"beside it, {alt.effect.name}: {alt.passivity.law.readable()}")
     return best
+
+
+def law_alternatives(graph, found: list, params: dict,
+                     discovery: DiscoverOptions | None = None) -> list:
+    """The laws put beside the best port's (``found[0]``) in the loop: each
+    port's sparse alternative (:func:`sparse_alternative`) and the other
+    ports' laws, by decreasing reconstruction gain, each effect renamed
+    ``discovered_<k>`` (k = 2, 3, ...), at most :data:`MAX_LAWS` laws in all.
+
+    Why: the port of largest reconstruction gain need not be the port of the
+    missing law (a random walk at a two-tank orifice's effort moves both
+    tanks and gains more than the true outflow's at one tank), and the
+    cross-validation on the smoothed d̂ may keep look-alike terms whose
+    refit the loop refuses (four odd terms whose sum leaves the spring
+    non-convex near rest, where −k5·x⁵ − k3·x³ was within two standard
+    errors): the loop's likelihood ratio on the record, with every
+    parameter refitted, is the better judge, and its accept rule is
+    unchanged.
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared graph.
+    found : list of Discovery
+        One per port with a passive law, by decreasing gain.
+    params : dict
+        The declared values of the reconstruction.
+    discovery : DiscoverOptions, optional
+
+    Returns
+    -------
+    list of Discovery
+        Each with its own effect name.
+    """
+    out, seen = [], set()
+    for k, d in enumerate(found):
+        sparse = sparse_alternative(graph, d, params, discovery)
+        for cand in ([d] if k else []) + ([sparse] if sparse is not None else []):
+            key = (cand.law.port, tuple(tm.name for tm in cand.passivity.law.terms))
+            if key in seen or cand.effect is None:
+                continue
+            seen.add(key)
+            out.append(cand)
+        seen.add((d.law.port, tuple(tm.name for tm in d.passivity.law.terms)))
+    out = out[:MAX_LAWS - 1]
+    name = found[0].effect.name
+    return [replace(d, effect=DiscoveredEffect(d.passivity.law, f"{name}_{i + 2}"))
+            for i, d in enumerate(out)]
+
+
+def sparse_alternative(graph, disc: Discovery, params: dict,
+                       discovery: DiscoverOptions | None = None) -> Discovery | None:
+    """The law of at most :data:`SPARSE_TERMS` terms discovered on the same
+    reconstruction as ``disc`` (:func:`~bondgraph.diagnose.discover.law.discover_law`
+    with ``max_terms`` = 2, its passive terms kept), or None when it keeps
+    no term or equals ``disc``'s law.
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared graph.
+    disc : Discovery
+    params : dict
+        The declared values of the reconstruction.
+    discovery : DiscoverOptions, optional
+
+    Returns
+    -------
+    Discovery or None
+    """
+    opts = discovery or DiscoverOptions()
+    if opts.max_terms <= SPARSE_TERMS or len(disc.law.terms) <= SPARSE_TERMS:
+        return None
+    rec = disc.reconstruction
+    law = discover_law(rec, options=replace(opts, max_terms=SPARSE_TERMS))
+    rep = make_passive(law, graph, rec.variables, params=params)
+    if not rep.law.terms or ([tm.name for tm in rep.law.terms]
+                             == [tm.name for tm in disc.passivity.law.terms]):
+        return None
+    eff = DiscoveredEffect(rep.law, disc.effect.name if disc.effect else "discovered")
+    return Discovery(rec, law, rep, eff, disc.gain, eff.placement(graph))
 
 
 def discovery_plot(disc: Discovery, result=None):

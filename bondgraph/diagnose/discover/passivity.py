@@ -6,11 +6,16 @@ or a missing flow entering a 0-junction) is split by the variables its terms
 read:
 
 * **R part**: terms of the junction's own variable z only (its flow at a
-  1-junction, its effort at a 0-junction). They must dissipate: the power
-  the law draws from the junction, P(z) = −d_R(z)·z, is >= 0 over the
-  visited range of z widened by ``margin`` (Karnopp, Margolis & Rosenberg,
-  *System Dynamics*, §4.1: a resistor's law lies in the first and third
-  quadrants).
+  1-junction, its effort at a 0-junction). Together with the declared R
+  laws that share z on the junction (effort laws on a 1-junction, flow laws
+  on a 0-junction, at the declared values) they must dissipate: the power
+  P(z) = (Σ φ_R(z) − d_R(z))·z is >= 0 over the visited range of z widened
+  by ``margin`` (Karnopp, Margolis & Rosenberg, *System Dynamics*, §4.1: a
+  resistor's law lies in the first and third quadrants). The law becomes an
+  R element in parallel with them, judged with them by the loop's
+  admissibility check (:func:`bondgraph.numerics.admissible.check_admissible`),
+  so a term that lowers a declared resistance is kept as long as the sum
+  dissipates.
 * **storage part**: terms of one bonded storage state s only (a capacitance's
   displacement at a 1-junction, an inertia's momentum at a 0-junction). They
   change that storage's law Ψ(s) (its effort, resp. flow) into Ψ(s) − d_S(s);
@@ -165,7 +170,8 @@ def make_passive(law, graph, values: dict, *, params=None, margin: float = MARGI
     keep = list(parts.get("source", []))
     z = law.symbols[own]
     grid = visited_grid(values[own], margin)
-    kept_r = _check_r(parts.get("R", []), z, grid, own, rep)
+    decl = _declared_r(graph, law.port, theta, z)
+    kept_r = _check_r(parts.get("R", []), z, grid, own, rep, decl)
     keep += kept_r
     keep += _check_coupled(parts.get("coupled", []), kept_r, law, values, own, rep)
     for key, terms in parts.items():
@@ -177,29 +183,58 @@ def make_passive(law, graph, values: dict, *, params=None, margin: float = MARGI
     return rep
 
 
-def _power(terms, z, grid):
-    """−Σ terms(z)·z on ``grid``."""
-    if not terms:
+def _power(terms, z, grid, decl=None):
+    """(decl(z) − Σ terms(z))·z on ``grid``: the power the declared R laws
+    ``decl`` (a sympy expression of z, or None) and the terms draw."""
+    expr = sp.Add(*(-sp.Float(tm.coef) * tm.basis for tm in terms))
+    if decl is not None:
+        expr = expr + decl
+    if expr == 0:
         return np.zeros_like(grid)
-    return -_fn(sp.Add(*(sp.Float(tm.coef) * tm.basis for tm in terms)), z)(grid) * grid
+    return _fn(expr, z)(grid) * grid
 
 
-def _check_r(terms, z, grid, own, rep) -> list:
+def _declared_r(graph, port: str, theta: dict, z):
+    """Σ sᵢ φᵢ(z) of the R elements bonded to junction ``port`` that share
+    its variable z (effort laws on a 1-junction, flow laws on a
+    0-junction; sᵢ = +1 when the half-arrow points into the R), at the
+    parameter values ``theta``; laws that read anything else (a modulated
+    R) are left out. None when there is none: the grouping of
+    :func:`bondgraph.numerics.admissible.check_admissible`."""
+    j = graph.element(port)
+    form = "effort" if type(j).__name__ == "One" else "flow"
+    subs = {graph.params[n]: v for n, v in theta.items() if n in graph.params}
+    total = sp.Integer(0)
+    for p in j.ports:
+        el = p.bond.other(p).element if p.bond is not None else None
+        if type(el).__name__ != "R" or getattr(el, "form", None) != form:
+            continue
+        var = el.f if form == "effort" else el.e
+        phi = sp.sympify(el.law).xreplace(subs).xreplace({var: z})
+        if phi.free_symbols <= {z}:
+            total += el.port.bond.sign_at(el) * phi
+    return None if total == 0 else total
+
+
+def _check_r(terms, z, grid, own, rep, decl=None) -> list:
+    """The R terms kept: those that dissipate with the declared R laws
+    ``decl`` (module docstring); the part dropped whole when what remains
+    does not."""
     if not terms:
         return []
-    P = _power(terms, z, grid)
+    P = _power(terms, z, grid, decl)
     i, bad = violation(P)
     kept = list(terms)
     if bad:
-        kept = [tm for tm in terms if not violation(_power([tm], z, grid))[1]]
+        kept = [tm for tm in terms if not violation(_power([tm], z, grid, decl))[1]]
         for tm in terms:
             if tm not in kept:
                 rep.dropped[tm.name] = f"generates power at {own} (−d·{own} < 0)"
-        if kept and violation(_power(kept, z, grid))[1]:
+        if kept and violation(_power(kept, z, grid, decl))[1]:
             for tm in kept:
                 rep.dropped[tm.name] = f"the R part at {own} generates power with it"
             kept = []
-    rep.checks.append(PartCheck("R", own, not violation(_power(kept, z, grid))[1],
+    rep.checks.append(PartCheck("R", own, not violation(_power(kept, z, grid, decl))[1],
                                 float(P[i]), float(grid[i])))
     return kept
 

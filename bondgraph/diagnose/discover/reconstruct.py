@@ -239,8 +239,19 @@ def augment_port(graph, port: str):
     return g, names
 
 
-def port_expressions(graph, port: str) -> tuple[dict, list]:
+def port_expressions(graph, port: str, dependent=()) -> tuple[dict, list]:
     """The port's own variables as symbols of ``graph`` (before derivation).
+
+    Parameters
+    ----------
+    graph : BondGraph
+    port : str
+        A junction of ``graph``.
+    dependent : collection of str
+        Storage elements in derivative causality
+        (``StateSpace.derivative_elements``): their states are not states
+        of the model (a rigidly geared inertia's momentum follows the
+        other's) and are left out.
 
     Returns
     -------
@@ -259,7 +270,8 @@ def port_expressions(graph, port: str) -> tuple[dict, list]:
         if p.bond is None:
             continue
         el = p.bond.other(p).element
-        if isinstance(el, (C, I)) and getattr(el, "state", None) is not None:
+        if (isinstance(el, (C, I)) and getattr(el, "state", None) is not None
+                and el.name not in dependent):
             out[el.state.name] = el.state
             if isinstance(el, independent):
                 primary.append(el.state.name)
@@ -283,6 +295,8 @@ def port_scale(graph, model, problem, theta, port: str) -> float:
     """The port's effort (flow) scale ``S``: the RMS of the net effort on the
     inertias bonded to a 1-junction (the net flow into the capacitances of a
     0-junction) along the declared model's filtered states (1 if none).
+    Storage elements in derivative causality (no state of the model) are
+    left out.
 
     Raises
     ------
@@ -295,8 +309,9 @@ def port_scale(graph, model, problem, theta, port: str) -> float:
     X = res.x_filt[:, 0, :]
     j = graph.element(port)
     store = I if isinstance(j, One) else C
-    idx = [model.states.index(p.bond.other(p).element.state.name) for p in j.ports
-           if p.bond is not None and isinstance(p.bond.other(p).element, store)]
+    names = [p.bond.other(p).element.state.name for p in j.ports
+             if p.bond is not None and isinstance(p.bond.other(p).element, store)]
+    idx = [model.states.index(n) for n in names if n in model.states]
     if not idx:
         return 1.0
     rates = np.asarray(model.f(X, problem.u, theta[None, :]), float)[:, idx]
@@ -430,7 +445,7 @@ def intensity_grid(problem, iq: int, q_grid: np.ndarray, proc: list[int],
 def _assemble(g, model, aug, problem, sm, theta, qinfo) -> Reconstruction:
     """The :class:`Reconstruction` of a smoothed augmented model."""
     ss = derive(g)
-    exprs, primary = port_expressions(g, aug.port)
+    exprs, primary = port_expressions(g, aug.port, set(ss.derivative_elements))
     n = problem.t.size
     values = _evaluate(_lambdified(ss, exprs), sm.x, problem.u, theta, n)
     units = {aug.d: aug.unit}
