@@ -196,8 +196,10 @@ def case_slip() -> LoopCase:
         lambda: driving_record(full_vehicle("truth_belt_slip", VehicleEffects(belt_slip=True)),
                                vehicle_slip_declared(), "throttle_steps_belt_slip", seed=104,
                                c_bs=BELT_CREEP),
+        # the driving record too: ros2(1) is 0.21 noise std per sample at the
+        # declared fit and at the fit with the slip, ros2(4) 0.06
         LoopSettings(params, metric="nrmse_sim", fixed=fixed,
-                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK}), search=COASTDOWN_SEARCH),
         ("slip", "cvt.belt.p2 -> cvt.w_s"))
 
 
