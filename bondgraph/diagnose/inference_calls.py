@@ -250,11 +250,10 @@ def output_error(problem: Problem, names: Sequence[str], theta: np.ndarray):
                                 x0=problem.x0, options=OutputErrorOptions(hold=hold))
 
 
-def discretisation(problem: Problem, theta: np.ndarray, substeps: int | None = None,
-                   free_run: bool = True, sigma=None) -> dict:
-    """:meth:`Problem.discretisation_check` (``substeps`` overriding the
-    problem's): ``one_step`` and ``free_run`` (n_y,, NaN unless
-    ``free_run``) in units of ``sigma`` (n_y,; default the
-    measurement-noise standard deviations)."""
-    return problem.discretisation_check(theta, substeps=substeps, free_run=free_run,
-                                        sigma=sigma)
+def one_step_errors(problem: Problem, theta: np.ndarray, substeps, sigma=None,
+                    cache: dict | None = None) -> np.ndarray:
+    """:meth:`Problem.one_step_errors`: the largest one-step discretisation
+    error (k,) of the problem's method with each of ``substeps`` (k,), in
+    units of ``sigma`` (n_y,; default the measurement-noise stds), against
+    one fine reference (kept in ``cache``)."""
+    return problem.one_step_errors(theta, substeps, sigma=sigma, cache=cache)

@@ -42,7 +42,7 @@ from bondgraph.diagnose.fit import (
     planned_noise,
     problem_for,
 )
-from bondgraph.diagnose.inference_calls import discretisation, make_executor, output_error
+from bondgraph.diagnose.inference_calls import make_executor, one_step_errors, output_error
 from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.parallel import run_tasks
 from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, rank_of
@@ -534,15 +534,13 @@ def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[fl
     that bring it to ``limit`` or below (None if the error is already below,
     or none does)."""
     pb = problem_for(ctx, fit.model)
-    sig = error_scale(pb, fit)
-    # the one-step error only: the free run is not needed here
-    worst = float(np.max(discretisation(pb, fit.theta, free_run=False, sigma=sig)["one_step"]))
+    sig, ref = error_scale(pb, fit), {}      # one fine reference for every substeps tried
+    worst = float(one_step_errors(pb, fit.theta, [pb.disc.substeps], sig, ref)[0])
     if not worst > limit:
         return worst, None
-    rec = next((n for n in (2, 4, 8, 16, 32) if n > pb.disc.substeps and float(np.max(
-        discretisation(pb, fit.theta, n, free_run=False, sigma=sig)["one_step"])) <= limit),
-        None)
-    return worst, rec
+    more = [n for n in (2, 4, 8, 16, 32) if n > pb.disc.substeps]
+    errs = one_step_errors(pb, fit.theta, more, sig, ref) if more else []
+    return worst, next((n for n, e in zip(more, errs) if e <= limit), None)
 
 
 def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit,

@@ -40,7 +40,12 @@ from bondgraph.inference.options import NOISE_MODES, Discretisation, UKFOptions,
 from bondgraph.inference.prior import PriorSpec
 from bondgraph.inference.record import as_record
 from bondgraph.inference.smoother import rts_smooth
-from bondgraph.inference.ukf import UKFResult, discretisation_check, ukf_nll
+from bondgraph.inference.ukf import (
+    UKFResult,
+    discretisation_check,
+    discretisation_errors,
+    ukf_nll,
+)
 from bondgraph.numerics.model import Model
 
 __all__ = ["NoiseSpec", "Problem", "make_problem", "noise_covariance", "noise_parameters"]
@@ -337,16 +342,29 @@ class Problem:
                           options=self.ukf, R=None if R is None else R[0]).x[0]
 
     def discretisation_check(self, theta, *, substeps: int | None = None,
-                             free_run: bool = True, sigma=None) -> dict:
+                             free_run: bool = True) -> dict:
         """:func:`bondgraph.inference.ukf.discretisation_check` of the
         problem's discretisation (``substeps`` overriding its own) at
         ``theta`` from the prior mean: ``one_step`` and ``free_run`` (n_y,)
-        in units of ``sigma`` (n_y,; default :meth:`noise_scale`, the
-        measurement-noise standard deviations)."""
+        in measurement-noise standard deviations."""
         d = self.disc if substeps is None else replace(self.disc, substeps=int(substeps))
-        sig = self.noise_scale(theta) if sigma is None else sigma
         return discretisation_check(self.model, self.t, self.u, theta, self.x0, disc=d,
-                                    sigma=sig, free_run=free_run)
+                                    sigma=self.noise_scale(theta), free_run=free_run)
+
+    def one_step_errors(self, theta, substeps: Sequence[int], *, sigma=None,
+                        cache: dict | None = None) -> np.ndarray:
+        """The largest one-step output error over outputs and samples of the
+        problem's method with each of ``substeps`` (k,) at ``theta`` from the
+        prior mean, in units of ``sigma`` (n_y,; default :meth:`noise_scale`),
+        against one fine reference shared by all of them
+        (:func:`bondgraph.inference.ukf.discretisation_errors`; ``cache``
+        keeps it for later calls at the same θ). Returns (k,); inf where no
+        reference is finite."""
+        discs = [replace(self.disc, substeps=int(n)) for n in substeps]
+        sig = self.noise_scale(theta) if sigma is None else sigma
+        errs = discretisation_errors(self.model, self.t, self.u, theta, self.x0, discs,
+                                     sigma=sig, cache=cache)
+        return np.array([float(np.max(e["one_step"], initial=0.0)) for e in errs])
 
     def noise_scale(self, theta) -> np.ndarray:
         """The measurement-noise std of each output (n_y,) that errors are

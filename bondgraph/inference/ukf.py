@@ -722,7 +722,8 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
     The trajectory from ``x0`` is propagated sample by sample with the
     filter's step (``disc``: method and substeps) and with a fine reference
     (``reference_method`` with ``reference_substeps``, default: RK4 if it is
-    stable there, i.e. finite, else ROS2), both restarted from the reference
+    finite there and agrees with RK4 at half the substeps, else ROS2:
+    :func:`_reference_trajectory`), both restarted from the reference
     state at every sample, as inside the filter, and both with the input
     hold of ``disc`` (:func:`bondgraph.numerics.integrators.hold_inputs`). The
     one-step output error is compared with ``sigma`` (default
