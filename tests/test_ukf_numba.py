@@ -326,6 +326,35 @@ def test_in_memory_model_compiles_into_the_cache(tmp_path, monkeypatch):
     assert_same(a, b)
 
 
+def test_kernels_compiled_ahead_are_loaded_from_the_disk_cache(tmp_path, monkeypatch):
+    """compile_ahead compiles in a background process, the last model first;
+    point_kernels then loads the kernels from numba's disk cache (no compile
+    here) and the NLLs equal numpy's. A model already compiled is not queued
+    again; 0 processes switch it off; a bad setting is named."""
+    monkeypatch.setenv(compiled.CACHE_ENV, str(tmp_path))
+    monkeypatch.setenv(compiled.AHEAD_ENV, "1")
+    models = [Model.from_spec(f"bondgraph.catalog.reference:{n}")
+              for n in ("mass_spring_damper", "rlc_circuit")]
+    assert compiled.compile_ahead(models) == 2
+    paths = [str(compiled.kernel_source_path(m)) for m in models]
+    for p in paths:
+        assert compiled._AHEAD[p].result(timeout=300) is True
+    for m in models:
+        pk = compiled.point_kernels(m)
+        assert pk.from_cache, m.name              # compiled by the background process
+        t, u, y = _record(m, N=40)
+        th = box_sets(m, 3, seed=2)
+        assert_same(ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numpy")),
+                    ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numba")))
+    assert not compiled._AHEAD
+    assert compiled.compile_ahead(models) == 0    # loaded: nothing to do
+    monkeypatch.setenv(compiled.AHEAD_ENV, "0")
+    assert compiled.ahead_workers() == 0
+    monkeypatch.setenv(compiled.AHEAD_ENV, "two")
+    with pytest.raises(ValueError, match="BONDGRAPH_COMPILE_AHEAD='two'"):
+        compiled.ahead_workers()
+
+
 def test_backend_is_taken_literally_whatever_the_history_or_the_cache(tmp_path):
     """The same call gives the same bits whatever ran before it in the
     process and whatever earlier runs left in the kernel cache: a one-sample

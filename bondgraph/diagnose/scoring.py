@@ -48,6 +48,7 @@ from bondgraph.diagnose.parallel import distributed, run_tasks
 from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.scales import operating_scales  # noqa: F401 (public name)
 from bondgraph.errors import BondGraphError
+from bondgraph.numerics.compiled import cancel_ahead, compile_ahead
 from bondgraph.numerics.model import Model
 
 #: factors applied to the estimated noise intensities when a structural
@@ -549,17 +550,27 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
     at every place it can attach (and is not yet present; only the targets
     in ``places``, a set of (kind, name), if given), each from one batched
     UKF run over its grid (:func:`structural_candidate`); a progress bar
-    when ``ctx.progress``."""
+    when ``ctx.progress``. On one machine every candidate's model is built
+    first and their numba kernels are compiled ahead in a background
+    process (:func:`bondgraph.numerics.compiled.compile_ahead`) while this
+    one scores them in order."""
     todo = [(eff, tgt) for eff in effects if not eff.additive
             for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)
             and (places is None or (tgt.kind, tgt.name) in places)]
     if distributed(ctx):
         ctx.log(f"  scoring {len(todo)} structural candidates on the Dask workers")
         found = run_tasks(ctx, _structural_task, (fit, scales), todo)
-    else:
-        found = [structural_candidate(ctx, fit, scales, eff, tgt)
-                 for eff, tgt in tqdm(todo, desc="structural candidates", unit="cand",
-                                      leave=False, disable=not ctx.progress)]
+        return [c for c in found if c is not None]
+    built = [build_candidate(ctx, fit, scales, eff, tgt) for eff, tgt in todo]
+    todo = [(eff, tgt, b) for (eff, tgt), b in zip(todo, built) if b is not None]
+    if ctx.problem.disc.backend == "numba":
+        compile_ahead([b[-1] for _, _, b in todo])
+    try:
+        found = [structural_candidate(ctx, fit, scales, eff, tgt, b)
+                 for eff, tgt, b in tqdm(todo, desc="structural candidates", unit="cand",
+                                         leave=False, disable=not ctx.progress)]
+    finally:
+        cancel_ahead()
     return [c for c in found if c is not None]
 
 
@@ -665,15 +676,10 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
     return (f, th) if np.isfinite(f) and f < nll else None
 
 
-def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Candidate | None:
-    """Build ``fit``'s graph plus ``eff`` at ``tgt`` and evaluate the NLL over
-    the effect's grid × :data:`NOISE_FACTORS` (current estimates held) in one
-    batched UKF run; from the best point a few scoring steps over the
-    declared and the effect's parameters (:func:`profile_declared`); the
-    result gives LR = 2 (NLL₀ − NLL₁), χ²(k) with k the effect's estimated
-    parameters. None (logged) if the effect cannot be
-    built there; a failed candidate (:func:`failed_candidate`) if the UKF
-    fails at every grid point."""
+def build_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> tuple | None:
+    """``fit``'s graph plus ``eff`` at ``tgt`` (its first grid value, the
+    grid's span as box): ``(grid, spans, P, model)``, or None (logged) if the
+    effect cannot be built there."""
     try:
         g = fit.graph.copy(f"{fit.graph.name}__{eff.name}")
         grid = eff.grid(g, tgt, scales)
@@ -683,10 +689,27 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> Ca
         P = eff.apply(g, tgt, grid[0], scales)
         for k, span in spans.items():
             P[k].bounds = span
-        model = model_of(g)
+        return grid, spans, P, model_of(g)
     except BondGraphError as exc:
         ctx.log(f"  skip {eff.name} @ {tgt.name}: {str(exc).splitlines()[0]}")
         return None
+
+
+def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt,
+                         built: tuple | None = None) -> Candidate | None:
+    """Build ``fit``'s graph plus ``eff`` at ``tgt`` (or take ``built``, what
+    :func:`build_candidate` returned) and evaluate the NLL over
+    the effect's grid × :data:`NOISE_FACTORS` (current estimates held) in one
+    batched UKF run; from the best point a few scoring steps over the
+    declared and the effect's parameters (:func:`profile_declared`); the
+    result gives LR = 2 (NLL₀ − NLL₁), χ²(k) with k the effect's estimated
+    parameters. None (logged) if the effect cannot be
+    built there; a failed candidate (:func:`failed_candidate`) if the UKF
+    fails at every grid point."""
+    built = built or build_candidate(ctx, fit, scales, eff, tgt)
+    if built is None:
+        return None
+    grid, spans, P, model = built
     base = model.theta0.copy()
     for n in fit.model.params:
         if n in model.params:

@@ -30,12 +30,25 @@ numpy until its estimated numpy time reached its estimated compile time, a
 ski-rental rule; in the loop every scored candidate reached that point by
 its second filter run, and the last digits of a result depended on the
 cache.)
+
+Compiling ahead (:func:`compile_ahead`): the loop scores a few dozen
+candidate models in a row, each compiled on first use (about 1.5 s each,
+single-threaded) while the machine's other cores wait. Given the list, one
+background process (:data:`AHEAD_ENV`) compiles their kernels into numba's
+disk cache from the last backwards while this process works through them
+from the first; a model the background has started is waited for, one it
+has not reached is compiled here. The kernels are the same either way (the
+same source file; numba's cache holds the machine code it compiled), only
+who compiled them differs.
 """
 
 from __future__ import annotations
 
+import atexit
+import concurrent.futures
 import hashlib
 import importlib.util
+import multiprocessing
 import os
 import sys
 import threading
@@ -55,8 +68,14 @@ except ImportError:  # pragma: no cover - exercised only without numba
 NUMBA_AVAILABLE = numba is not None
 #: environment variable naming the kernel cache directory
 CACHE_ENV = "BONDGRAPH_CACHE_DIR"
+#: environment variable: background processes compiling ahead (default 1 on
+#: a machine with two or more cores, else 0; 0 switches it off)
+AHEAD_ENV = "BONDGRAPH_COMPILE_AHEAD"
 _LOCK = threading.Lock()
 _LOADED: dict[str, "PointKernels"] = {}
+#: kernel source path -> its background compilation (:func:`compile_ahead`)
+_AHEAD: dict[str, concurrent.futures.Future] = {}
+_POOL: list = []
 
 
 @dataclass
@@ -218,8 +237,112 @@ def point_kernels(model) -> PointKernels:
                 _write_source(model, path)
             with announced(f"compiling the numba kernels of model '{model.name}'",
                            note="once: numba caches them on disk"):
+                _await_ahead(path)
                 got = _LOADED[str(path)] = _import(path)
     return got
+
+
+def ahead_workers() -> int:
+    """Background compile processes (:data:`AHEAD_ENV`; default 1 with two
+    or more cores, else 0).
+
+    Raises
+    ------
+    ValueError
+        The environment variable is not a whole number >= 0.
+    """
+    env = os.environ.get(AHEAD_ENV)
+    if env is None or not env.strip():
+        return 1 if (os.cpu_count() or 1) >= 2 else 0
+    try:
+        n = int(env)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise ValueError(f"{AHEAD_ENV}={env!r}: give a whole number of processes >= 0 "
+                         f"(0 switches compiling ahead off)")
+    return n
+
+
+def compile_ahead(models) -> int:
+    """Compile the numba kernels of ``models`` (to be used in this order) in
+    background processes, the last first, into numba's disk cache;
+    :func:`point_kernels` then waits for a model the background has started
+    and compiles one it has not reached itself. Models already loaded or
+    cached, or without a state space to generate kernels from, are left
+    out. Call :func:`cancel_ahead` when done with the list.
+
+    Parameters
+    ----------
+    models : sequence of Model
+
+    Returns
+    -------
+    int
+        How many models were queued (0 without numba or with
+        :data:`AHEAD_ENV` = 0).
+    """
+    if numba is None or not ahead_workers():
+        return 0
+    todo = []
+    with _LOCK:
+        for model in models:
+            path = kernel_source_path(model)
+            if path is None or str(path) in _LOADED or str(path) in _AHEAD or is_compiled(model):
+                continue
+            try:
+                if not path.exists():
+                    _write_source(model, path)
+            except FileNotFoundError:           # no state space: point_kernels says so
+                continue
+            todo.append(path)
+        if todo and not _POOL:
+            _POOL.append(concurrent.futures.ProcessPoolExecutor(
+                ahead_workers(), mp_context=multiprocessing.get_context("spawn")))
+            atexit.register(_shutdown_pool)
+        for path in reversed(todo):
+            try:
+                _AHEAD[str(path)] = _POOL[0].submit(_compile_file, str(path))
+            except (RuntimeError, concurrent.futures.BrokenExecutor):   # shut down or broken
+                break
+    return len(todo)
+
+
+def cancel_ahead() -> None:
+    """Drop the background compilations not started yet (those running
+    finish into the disk cache)."""
+    with _LOCK:
+        for fut in _AHEAD.values():
+            fut.cancel()
+        _AHEAD.clear()
+
+
+def _shutdown_pool() -> None:
+    """At exit: stop the background processes (before the interpreter tears
+    down the modules their executor still uses)."""
+    cancel_ahead()
+    while _POOL:
+        _POOL.pop().shutdown(wait=True, cancel_futures=True)
+
+
+def _await_ahead(path: Path) -> None:
+    """Wait for the background compilation of ``path`` if it has started;
+    cancel it if not (this process compiles it). A failed one is ignored:
+    the import here compiles, and raises what numba raises."""
+    fut = _AHEAD.pop(str(path), None)
+    if fut is None or fut.cancel():
+        return
+    try:
+        fut.result()
+    except Exception:  # noqa: BLE001 - the caller's own compile reports the error
+        pass
+
+
+def _compile_file(path: str) -> bool:
+    """Background task of :func:`compile_ahead`: import (compile) the kernel
+    module ``path`` so that numba writes its disk cache."""
+    _import(Path(path))
+    return True
 
 
 def _write_source(model, path: Path) -> None:
