@@ -182,3 +182,28 @@ def test_a_smoothed_start_the_prior_excludes_is_not_used(monkeypatch):
         np.testing.assert_array_equal(got, xs if used else x0)
     assert len(lines) == 1 and "10.7 prior std from the prior mean" in lines[0]
     assert lines[0].startswith("  smoothed initial state (a = 0.5, b = 0.2, c = 0.1)")
+
+
+def test_a_smoothed_start_whose_distance_overflows_is_not_used(monkeypatch):
+    """A smoother whose backward recursion blew up returns finite but huge
+    states; with correlated prior states the squared distance is then
+    inf − inf = NaN (checked below), which compared as "not beyond the
+    bound" and let the start through. It is refused like any far start."""
+    import bondgraph.diagnose.fit as fitmod
+    from types import SimpleNamespace
+
+    P0 = np.array([[1.0, 0.9], [0.9, 1.0]]) * 0.01
+    x0 = np.zeros(2)
+    problem = SimpleNamespace(model=SimpleNamespace(states=["a", "b"]), x0=x0, P0=P0,
+                              prior=SimpleNamespace(estimated={}))
+    xs = np.array([1e155, 2e155])
+    with np.errstate(all="ignore"):
+        assert np.isnan(xs @ np.linalg.pinv(P0) @ xs)       # the case the test is about
+    lines = []
+    monkeypatch.setattr(fitmod, "smoothed_initial_state", lambda pb, th: xs)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                      # no numpy overflow warning
+        got = fitmod._smoothed_start(SimpleNamespace(log=lines.append), problem, np.zeros(1), x0)
+    np.testing.assert_array_equal(got, x0)
+    assert len(lines) == 1 and "inf prior std from the prior mean" in lines[0]

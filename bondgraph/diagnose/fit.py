@@ -745,7 +745,9 @@ def _smoothed_start(ctx: Context, problem: Problem, theta: np.ndarray,
         return fallback
     free = [i for i, n in enumerate(problem.model.states) if n not in problem.prior.estimated]
     d = (xs - problem.x0)[free]
-    d2 = float(d @ np.linalg.pinv(problem.P0[np.ix_(free, free)]) @ d)
+    with np.errstate(over="ignore", invalid="ignore"):   # a far start: inf, refused below
+        d2 = float(d @ np.linalg.pinv(problem.P0[np.ix_(free, free)]) @ d)
+    d2 = d2 if np.isfinite(d2) else np.inf
     if d2 > chi2.isf(SMOOTHED_START_LEVEL, max(len(free), 1)):
         ctx.log(f"  smoothed initial state {prior_distance_text(problem, xs)} is "
                 f"{np.sqrt(d2):.3g} prior std from the prior mean (beyond χ²({len(free)}) at "

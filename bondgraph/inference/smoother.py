@@ -221,16 +221,20 @@ def _backward(model, t, u, th, xf, Pf, opts: UKFOptions):
     The one-step predictions of the filtered posteriors (m⁻, P⁻ and the
     gain G of every interval) do not depend on the recursion: they are
     propagated in batches (:func:`_predictions`); only the recursion itself
-    runs sample by sample."""
+    runs sample by sample. A recursion that overflows (gains above one
+    through strongly contracting dynamics without process noise) leaves
+    non-finite means and covariances from there back to the start, without
+    numpy's overflow warnings: the callers check what they use."""
     N = t.size
     xs, Ps = xf.copy(), Pf.copy()
     if N < 2:
         return xs, Ps
     m, Pm, G = _predictions(model, t, u, th, xf, Pf, opts)
-    for k in range(N - 2, -1, -1):
-        xs[k] = xf[k] + G[k] @ (xs[k + 1] - m[k])
-        Pk = Pf[k] + G[k] @ (Ps[k + 1] - Pm[k]) @ G[k].T
-        Ps[k] = 0.5 * (Pk + Pk.T)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for k in range(N - 2, -1, -1):
+            xs[k] = xf[k] + G[k] @ (xs[k + 1] - m[k])
+            Pk = Pf[k] + G[k] @ (Ps[k + 1] - Pm[k]) @ G[k].T
+            Ps[k] = 0.5 * (Pk + Pk.T)
     return xs, Ps
 
 
