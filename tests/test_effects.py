@@ -48,6 +48,37 @@ def test_attachment_points_are_found_from_the_graph():
         "gear.p2 -> w_L", "w_m -> gear.p1"]
 
 
+def test_capacity_limit_skips_a_compliance_in_derivative_causality():
+    """A belt compliance between a massless motor (a gyrator fed by an
+    inductor: a flow source for the belt) and a pulley inertia is left in
+    derivative causality by SCAP: its q is no state, the capacity limit
+    (written in q) is not offered there (it failed to build, "symbols
+    ['q_belt'] are not states"), but it is at the pulley's spring; the
+    backlash, which splits the bond, is offered at both."""
+    from bondgraph import BondGraph
+    from bondgraph.core.causality import assign_causality
+
+    g = BondGraph("belt", "motor, belt, pulley")
+    ia = g.one("i_a", domain="electrical")
+    g.connect(g.Se("supply", g.input("u", "V", 0.0)), ia)
+    g.connect(ia, g.I("La", g.param("La", 0.05, "H", (1e-4, 1.0))))
+    g.connect(ia, g.R("Ra", g.param("Ra", 1.0, "ohm", (0.1, 10.0))))
+    motor = g.GY("motor", g.param("km", 1.0, "N*m/A", (0.1, 10.0)))
+    g.connect(ia, motor.p1)
+    wm = g.one("w_m", domain="rotation")
+    g.connect(motor.p2, wm)
+    belt = g.zero("belt_j")
+    g.connect(wm, belt)
+    g.connect(belt, g.C("belt", stiffness=g.param("kb", 10.0, "N*m/rad", (1.0, 100.0))))
+    wp = g.one("w_p", domain="rotation")
+    g.connect(belt, wp)
+    g.connect(wp, g.I("pulley", g.param("J", 0.05, "kg*m^2", (1e-3, 1.0))))
+    g.connect(wp, g.C("spring", stiffness=g.param("ks", 10.0, "N*m/rad", (1.0, 100.0))))
+    assert assign_causality(g).derivative == ["belt"]
+    assert [t.name for t in get_effect("capacity_limit").targets(g)] == ["spring"]
+    assert [t.name for t in get_effect("backlash").targets(g)] == ["belt", "spring"]
+
+
 @pytest.mark.parametrize("effect,target", [
     ("coulomb", ("junction", "w_L")), ("asymmetric_friction", ("junction", "w_m")),
     ("stribeck", ("junction", "w_L")), ("quadratic_drag", ("junction", "w_L")),

@@ -510,6 +510,19 @@ def storage_targets(graph: BondGraph) -> list[Target]:
             if isinstance(graph.elements[n], C)]
 
 
+def state_storage_targets(graph: BondGraph) -> list[Target]:
+    """The C elements in integral causality (SCAP, Karnopp, Margolis &
+    Rosenberg): those whose displacement q is a state. A C that SCAP leaves
+    in derivative causality (a compliance between two flow sources, e.g. a
+    belt between a massless motor and a pulley) has no state of its own, so
+    an effect written in its q (a capacity limit) cannot attach there."""
+    try:
+        cz = assign_causality(graph, validate=False)
+    except BondGraphError:
+        return []
+    return [t for t in storage_targets(graph) if t.name not in cz.derivative]
+
+
 def resistor_targets(graph: BondGraph) -> list[Target]:
     """R elements (not the loop's own) whose law is linear (a resistance)
     or already written in the causality SCAP gives them, so that a term in

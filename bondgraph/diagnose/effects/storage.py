@@ -37,6 +37,7 @@ from bondgraph.diagnose.effects.base import (
     mechanical,
     split_bond,
     storage_stiffness,
+    state_storage_targets,
     storage_targets,
 )
 
@@ -171,7 +172,7 @@ class CapacityLimit(_Structural):
         self.name = name or ("capacity_overflow" if self.routes else "capacity_limit")
 
     def targets(self, graph):
-        out = storage_targets(graph)
+        out = state_storage_targets(graph)       # the overflow is written in the state q
         if self.routes:
             out = [t for t in out if t.name in self.routes]
         return out
