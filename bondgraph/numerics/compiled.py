@@ -45,11 +45,10 @@ who compiled them differs.
 from __future__ import annotations
 
 import atexit
-import concurrent.futures
 import hashlib
 import importlib.util
-import multiprocessing
 import os
+import subprocess
 import sys
 import threading
 import time
@@ -73,9 +72,8 @@ CACHE_ENV = "BONDGRAPH_CACHE_DIR"
 AHEAD_ENV = "BONDGRAPH_COMPILE_AHEAD"
 _LOCK = threading.Lock()
 _LOADED: dict[str, "PointKernels"] = {}
-#: kernel source path -> its background compilation (:func:`compile_ahead`)
-_AHEAD: dict[str, concurrent.futures.Future] = {}
-_POOL: list = []
+#: the background compilers (:class:`_Ahead`, one per process, at first use)
+_AHEAD: list = []
 
 
 @dataclass
@@ -266,11 +264,17 @@ def ahead_workers() -> int:
 
 def compile_ahead(models) -> int:
     """Compile the numba kernels of ``models`` (to be used in this order) in
-    background processes, the last first, into numba's disk cache;
-    :func:`point_kernels` then waits for a model the background has started
-    and compiles one it has not reached itself. Models already loaded or
-    cached, or without a state space to generate kernels from, are left
-    out. Call :func:`cancel_ahead` when done with the list.
+    background processes (:data:`AHEAD_ENV`), the last first, into numba's
+    disk cache; :func:`point_kernels` waits for a model a background process
+    has started and compiles one none has reached itself (no model is
+    compiled twice). Models already loaded or cached, or without a state
+    space to generate kernels from, are left out. Call :func:`cancel_ahead`
+    when done with the list.
+
+    The background processes are plain ``python -m
+    bondgraph.numerics.compiled`` children fed kernel paths one at a time
+    (not ``multiprocessing``, which re-imports the caller's main script:
+    a user's script without a ``__main__`` guard would run twice).
 
     Parameters
     ----------
@@ -288,61 +292,156 @@ def compile_ahead(models) -> int:
     with _LOCK:
         for model in models:
             path = kernel_source_path(model)
-            if path is None or str(path) in _LOADED or str(path) in _AHEAD or is_compiled(model):
+            if path is None or str(path) in _LOADED or is_compiled(model):
                 continue
             try:
                 if not path.exists():
                     _write_source(model, path)
             except FileNotFoundError:           # no state space: point_kernels says so
                 continue
-            todo.append(path)
-        if todo and not _POOL:
-            _POOL.append(concurrent.futures.ProcessPoolExecutor(
-                ahead_workers(), mp_context=multiprocessing.get_context("spawn")))
-            atexit.register(_shutdown_pool)
-        for path in reversed(todo):
-            try:
-                _AHEAD[str(path)] = _POOL[0].submit(_compile_file, str(path))
-            except (RuntimeError, concurrent.futures.BrokenExecutor):   # shut down or broken
-                break
+            todo.append(str(path))
+    if todo:
+        _ahead().add(todo)
     return len(todo)
 
 
 def cancel_ahead() -> None:
     """Drop the background compilations not started yet (those running
     finish into the disk cache)."""
+    if _AHEAD:
+        _AHEAD[0].clear()
+
+
+def _ahead() -> "_Ahead":
+    """The process's background compilers (started at the first use)."""
     with _LOCK:
-        for fut in _AHEAD.values():
-            fut.cancel()
-        _AHEAD.clear()
-
-
-def _shutdown_pool() -> None:
-    """At exit: stop the background processes (before the interpreter tears
-    down the modules their executor still uses)."""
-    cancel_ahead()
-    while _POOL:
-        _POOL.pop().shutdown(wait=True, cancel_futures=True)
+        if not _AHEAD:
+            _AHEAD.append(_Ahead(ahead_workers()))
+            atexit.register(_AHEAD[0].close)
+        return _AHEAD[0]
 
 
 def _await_ahead(path: Path) -> None:
-    """Wait for the background compilation of ``path`` if it has started;
-    cancel it if not (this process compiles it). A failed one is ignored:
-    the import here compiles, and raises what numba raises."""
-    fut = _AHEAD.pop(str(path), None)
-    if fut is None or fut.cancel():
-        return
-    try:
-        fut.result()
-    except Exception:  # noqa: BLE001 - the caller's own compile reports the error
-        pass
+    """Wait for the background compilation of ``path`` if one has started;
+    take it off the queue if not (this process compiles it)."""
+    if _AHEAD:
+        _AHEAD[0].claim(str(path))
 
 
-def _compile_file(path: str) -> bool:
-    """Background task of :func:`compile_ahead`: import (compile) the kernel
-    module ``path`` so that numba writes its disk cache."""
-    _import(Path(path))
-    return True
+class _Ahead:
+    """Background compile processes fed from one queue of kernel paths in
+    use order: each worker, when ready, gets the last path nobody has taken
+    (:meth:`_next`); this process takes its paths from the front
+    (:meth:`claim`). A worker that dies is dropped (its path counts as not
+    compiled: the caller compiles it)."""
+
+    def __init__(self, n: int):
+        self.cond = threading.Condition()
+        self.queue: list[str] = []          # not started, in use order
+        self.running: dict[int, str] = {}   # worker index -> path it compiles
+        self.idle: list[int] = []           # workers waiting for a path
+        self.procs = []
+        env = dict(os.environ, NUMBA_NUM_THREADS="1")
+        for i in range(n):
+            try:
+                proc = subprocess.Popen([sys.executable, "-m", "bondgraph.numerics.compiled"],
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                        stderr=subprocess.DEVNULL, text=True, bufsize=1,
+                                        env=env)
+            except OSError:                 # no process to start: compile here
+                continue
+            self.procs.append(proc)
+            threading.Thread(target=self._serve, args=(len(self.procs) - 1,),
+                             daemon=True).start()
+
+    def add(self, paths: list[str]) -> None:
+        with self.cond:
+            self.queue.extend(p for p in paths
+                              if p not in self.queue and p not in self.running.values())
+            while self.idle and self.queue:
+                self._next(self.idle.pop())
+
+    def clear(self) -> None:
+        with self.cond:
+            self.queue.clear()
+
+    def claim(self, path: str) -> None:
+        """This process compiles ``path`` unless a worker already is: then
+        wait for it."""
+        with self.cond:
+            if path in self.queue:
+                self.queue.remove(path)
+                return
+            while path in self.running.values():
+                self.cond.wait()
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until no path is queued or compiling (or ``timeout`` [s]);
+        whether that happened."""
+        with self.cond:
+            return self.cond.wait_for(lambda: not self.queue and not self.running, timeout)
+
+    def _next(self, i: int) -> None:
+        """Give worker ``i`` the last queued path (under the condition's lock)."""
+        if not self.queue:
+            self.idle.append(i)
+            return
+        path = self.queue.pop()
+        self.running[i] = path
+        try:
+            self.procs[i].stdin.write(path + "\n")
+            self.procs[i].stdin.flush()
+        except (OSError, ValueError):        # the worker is gone
+            self.running.pop(i, None)
+            self.cond.notify_all()
+
+    def _serve(self, i: int) -> None:
+        """Read worker ``i``'s "ready" lines (one at the start, one after
+        each path) and hand it the next path."""
+        for line in self.procs[i].stdout:
+            if line.strip() != "ready":
+                continue
+            with self.cond:
+                self.running.pop(i, None)
+                self.cond.notify_all()
+                self._next(i)
+        with self.cond:                     # EOF: the worker exited
+            self.running.pop(i, None)
+            if i in self.idle:
+                self.idle.remove(i)
+            self.cond.notify_all()
+
+    def close(self) -> None:
+        """Stop the workers (at exit): a compile under way is abandoned."""
+        self.clear()
+        for proc in self.procs:
+            try:
+                proc.stdin.close()
+            except OSError:
+                pass
+            if proc.poll() is None:
+                proc.terminate()
+
+
+def _worker_main() -> int:
+    """A background compiler (``python -m bondgraph.numerics.compiled``):
+    says "ready", then for each kernel path read from stdin imports
+    (compiles) it into numba's disk cache and says "ready" again."""
+    print("ready", flush=True)
+    for line in sys.stdin:
+        path = line.strip()
+        if path:
+            try:
+                _import(Path(path))
+            except Exception as exc:  # noqa: BLE001 - the caller's own compile reports it
+                print(f"{path}: {exc!r}", file=sys.stderr, flush=True)
+        print("ready", flush=True)
+    return 0
+
+
+if __name__ == "__main__":      # the canonical module's function, not this __main__ copy's
+    from bondgraph.numerics.compiled import _worker_main as _main
+    raise SystemExit(_main())
 
 
 def _write_source(model, path: Path) -> None:
