@@ -438,3 +438,23 @@ def test_a_pair_whose_member_ends_on_its_box_is_not_a_pair():
     assert why.startswith("a member's parameter ends on its box (drag.c = 0, box [0, 20])")
     fit.at_bound = []
     assert pair_member_boxed(fit, ["drag.c", "cubic.k3"]) is None
+
+
+def test_a_declared_free_run_worse_than_the_mean_is_named():
+    """A declared fit whose free-run NRMSE exceeds 1 (worse than predicting
+    the record's mean; a user's linear CED graph fitted to the rectified
+    counter reads 2.14) gets a warning in the log and in the fit's warnings;
+    0.59 (the default case) or another metric does not."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.runner import _worse_than_mean
+
+    for metric, value, warned in (("nrmse_sim", 2.139, True), ("nrmse_sim", 0.5927, False),
+                                  ("rmse_sim", 2.139, False), ("nrmse_sim", float("nan"), False)):
+        lines = []
+        ctx = SimpleNamespace(settings=SimpleNamespace(metric=metric), log=lines.append)
+        fit = SimpleNamespace(metric=value, warnings=[])
+        _worse_than_mean(ctx, fit)
+        assert bool(lines) == warned and len(fit.warnings) == int(warned)
+        if warned:
+            assert "worse than the record's mean (NRMSE 2.14 > 1)" in lines[0]

@@ -291,7 +291,23 @@ def initial_fit(ctx: Context, graph: BondGraph, again: bool = False) -> Fit:
     ctx.log(f"initial fit: NLL {fit.nll:.2f}, {s.accept.criterion.upper()} "
             f"{fit.information(s.accept.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
             f"{metric_name(s)} = {fit.metric:.4g}")
+    _worse_than_mean(ctx, fit)
     return fit
+
+
+def _worse_than_mean(ctx: Context, fit: Fit) -> None:
+    """Say so (log and ``fit.warnings``) when the declared model's free run
+    is worse than the record's mean (free-run NRMSE above 1): the effects
+    are then scored against a model that does not describe the record, and
+    an effect the record shows plainly (a rectifying sensor on a linear
+    drive whose output the fit flattened) can score nothing."""
+    if ctx.settings.metric != "nrmse_sim" or not fit.metric > 1.0:
+        return
+    msg = (f"the declared model's free run is worse than the record's mean (NRMSE "
+           f"{fit.metric:.3g} > 1): the effects are scored against a model that does not "
+           f"describe the record; check the graph's structure, start values and boxes first")
+    ctx.log(f"  warning: {msg}")
+    fit.warnings.append(msg)
 
 
 def _second_attempt(ctx: Context, graph: BondGraph, names: list[str], start: dict) -> Fit | None:
