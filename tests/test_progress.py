@@ -161,3 +161,29 @@ def test_a_long_compile_off_a_terminal_shows_a_dot_per_heartbeat(tmp_path):
     assert "\r" not in log.read_text() and len(lines) == 2
     assert re.fullmatch(r"  \.\.\. compiling H( \.){3,}", lines[0]), lines[0]
     assert lines[1].startswith("  ... compiling H: done in ")
+
+
+def test_the_watchdog_names_the_phase_of_a_silent_stretch_and_stays_quiet_otherwise(capsys):
+    """Bars on: after quiet_after seconds without output, one stderr line
+    names the innermost phase and its age; output in between (a log line)
+    resets the clock; an announced compile (its own dots) keeps it quiet;
+    bars off, nothing; stdout and stderr are the originals afterwards."""
+    import re
+    import sys
+    import time
+
+    out0, err0 = sys.stdout, sys.stderr
+    with progress.enabled(), progress.watchdog(quiet_after=0.5, poll=0.02):
+        with progress.phase("step 1: scoring the candidates"):
+            time.sleep(0.75)                        # one line at 0.5 s
+            print("a log line")
+            time.sleep(0.3)                         # < 0.5 s since the log line: none
+        with progress.announced("compiling X", delay=5.0):
+            time.sleep(0.75)                        # announced: none
+    assert (sys.stdout, sys.stderr) == (out0, err0)
+    got = capsys.readouterr()
+    assert got.out == "a log line\n"
+    assert re.fullmatch(r"  \.\.\. step 1: scoring the candidates \([01] s\)\n", got.err), got.err
+    with progress.enabled(False), progress.watchdog(quiet_after=0.1, poll=0.02):
+        time.sleep(0.3)
+    assert capsys.readouterr().err == ""

@@ -139,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning(cmd)
             args = parser.parse_args(argv[1:])
-            with progress.enabled(not getattr(args, "quiet", False)):
+            _line_buffered()
+            with progress.enabled(not getattr(args, "quiet", False)), progress.watchdog():
                 return int(mod.run(args) or 0)
     except BondGraphError as exc:
         print(f"bondgraph {cmd}: error: {exc}", file=sys.stderr)
@@ -147,6 +148,17 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"bondgraph {cmd}: interrupted", file=sys.stderr)
         return 130
+
+
+def _line_buffered() -> None:
+    """stdout and stderr flushed at every line, also into a pipe or a log
+    file (``bondgraph loop | tee log``), where Python would hold the
+    progress lines in 8 kB blocks."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.reconfigure(line_buffering=True)
+        except (AttributeError, ValueError, OSError):   # not a text file (a test's capture)
+            pass
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -148,9 +148,11 @@ def announced(what: str, *, delay: float = 2.0, note: str = "", stream=None,
     ticker = threading.Thread(target=_announce,
                               args=(label, out, delay, (tick, heartbeat), done), daemon=True)
     ticker.start()
+    _ANNOUNCING[0] += 1
     try:
         yield
     finally:
+        _ANNOUNCING[0] -= 1
         done.set()
         ticker.join()
         took = time.perf_counter() - t0
@@ -190,3 +192,82 @@ def _announce(label: str, out, delay: float, ticks: tuple[float, float],
             bar.update(1)
     finally:
         bar.close()
+
+
+#: what the program is doing, innermost last: (text, start time) pairs
+#: (:func:`phase`), named by :func:`watchdog`'s lines
+_PHASES: list[tuple[str, float]] = []
+#: announced blocks running (:func:`announced`): their own dots keep the
+#: output alive, so :func:`watchdog` stays quiet meanwhile
+_ANNOUNCING = [0]
+
+
+@contextlib.contextmanager
+def phase(what: str):
+    """Name what a stretch of work does (``"step 2: scoring the
+    candidates"``) for the lines of :func:`watchdog`; phases nest."""
+    _PHASES.append((what, time.monotonic()))
+    try:
+        yield
+    finally:
+        _PHASES.pop()
+
+
+class _Stamped:
+    """A text stream that records when it was last written (``clock[0]``,
+    monotonic seconds); everything else is the stream's."""
+
+    def __init__(self, stream, clock: list):
+        self._stream, self._clock = stream, clock
+
+    def write(self, text):
+        self._clock[0] = time.monotonic()
+        return self._stream.write(text)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def watchdog(quiet_after: float = 2.0, poll: float = 0.25):
+    """Nothing silent for long (a command's whole run): while the block
+    runs with bars switched on (:func:`enabled`), whenever neither stdout
+    nor stderr has been written for ``quiet_after`` seconds and no
+    :func:`announced` block is adding its dots, one line on stderr says
+    what is being done and for how long: ``"  ... step 2: scoring the
+    candidates (6 s)"`` (the innermost :func:`phase`). A long phase without
+    other output thus shows a line every ``quiet_after`` seconds.
+
+    Parameters
+    ----------
+    quiet_after : float
+        Seconds of silence before a line [s].
+    poll : float
+        Seconds between two looks at the clock [s].
+    """
+    if not is_enabled():
+        yield
+        return
+    clock = [time.monotonic()]
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _Stamped(out, clock), _Stamped(err, clock)
+    stop = threading.Event()
+    t0 = time.monotonic()
+
+    def watch():
+        while not stop.wait(poll):
+            now = time.monotonic()
+            if _ANNOUNCING[0] or now - clock[0] < quiet_after:
+                continue
+            what, since = _PHASES[-1] if _PHASES else ("working", t0)
+            sys.stderr.write(f"  ... {what} ({now - since:.0f} s)\n")
+            sys.stderr.flush()
+
+    th = threading.Thread(target=watch, daemon=True)
+    th.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        th.join()
+        sys.stdout, sys.stderr = out, err

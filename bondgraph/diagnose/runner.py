@@ -14,6 +14,7 @@ from scipy.stats import chi2
 from typing import Callable
 
 from bondgraph.core.graph import BondGraph
+from bondgraph.core.progress import phase
 from bondgraph.diagnose.accept import (
     accepted_step,
     applied_effect,
@@ -139,7 +140,8 @@ def run_loop(graph: BondGraph, experiment, settings: LoopSettings, *,
 def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) -> LoopResult:
     """The loop's steps (:func:`run_loop`)."""
     s = ctx.settings
-    initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
+    with phase("fitting the declared model"):
+        initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
     result = new_result(ctx, graph, initial, warn)
     publish(ctx, result, initial, initial, on_update)
     current = initial
@@ -252,7 +254,8 @@ def publish(ctx: Context, result: LoopResult, initial: Fit, current: Fit,
     result.outputs = list(current.model.outputs)
     result.output_units = list(current.model.output_units)
     if on_update is not None:
-        on_update(result)
+        with phase("writing the report"):
+            on_update(result)
 
 
 def initial_fit(ctx: Context, graph: BondGraph, again: bool = False) -> Fit:
@@ -625,7 +628,8 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     """
     scales = operating_scales(ctx, current)
     t_ev = time.perf_counter()
-    ranking, signif = gather_evidence(ctx, current, scales)
+    with phase(f"step {step}: scoring the candidates"):
+        ranking, signif = gather_evidence(ctx, current, scales)
     result.rankings.append(ranking)
     if ctx.settings.true_effect is not None:
         kind, target = ctx.settings.true_effect
@@ -650,12 +654,13 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     tag = f"{name}_step{len(result.steps) + 1}"
     if structural_skipped(ctx.settings, ranking):
         signif = significant_after_lead_check(ctx, result, current, signif, scales, tag)
-    after = confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
-    if after is None and structural_skipped(ctx.settings, result.rankings[-1]) \
-            and not any(c.kind != "score" for c in result.rankings[-1]):
-        after = accepted_among_skipped_structurals(ctx, result, current, scales, tag, step)
-    if after is None and ctx.settings.accept.pairs:
-        after = accepted_pair(ctx, result, current, scales, tag, step)
+    with phase(f"step {step}: confirming the best candidates by refits"):
+        after = confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
+        if after is None and structural_skipped(ctx.settings, result.rankings[-1]) \
+                and not any(c.kind != "score" for c in result.rankings[-1]):
+            after = accepted_among_skipped_structurals(ctx, result, current, scales, tag, step)
+        if after is None and ctx.settings.accept.pairs:
+            after = accepted_pair(ctx, result, current, scales, tag, step)
     return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
 
 
