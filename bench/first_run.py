@@ -100,8 +100,10 @@ def main() -> None:
                     help="where the result goes ('' for nowhere)")
     args = ap.parse_args()
     base = Path(args.keep or tempfile.mkdtemp(prefix="bondgraph-first-run-"))
+    # no PYTHONUNBUFFERED: the pipes get what a user's pipe or log file gets
     env = dict(os.environ, NUMBA_CACHE_DIR=str(base / "numba"),
-               BONDGRAPH_CACHE_DIR=str(base / "kernels"), PYTHONUNBUFFERED="1")
+               BONDGRAPH_CACHE_DIR=str(base / "kernels"))
+    env.pop("PYTHONUNBUFFERED", None)
     load0 = os.getloadavg()[0]
     first = run_once(env, base / "report1")
     print(f"first run: {first['wall_s']} s (CPU {first['cpu_s']} s), NRMSE "
