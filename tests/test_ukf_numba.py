@@ -336,6 +336,7 @@ def test_kernels_compiled_ahead_meet_in_the_middle(tmp_path, monkeypatch):
     processes switch it off; a bad setting is named."""
     monkeypatch.setenv(compiled.CACHE_ENV, str(tmp_path))
     monkeypatch.setenv(compiled.AHEAD_ENV, "1")
+    monkeypatch.setattr(compiled, "_AHEAD", [])   # a worker of its own (not one still busy)
     models = [Model.from_spec(f"bondgraph.catalog.reference:{n}")
               for n in ("mass_spring_damper", "rlc_circuit")]
     assert compiled.compile_ahead(models) == 2
@@ -343,6 +344,7 @@ def test_kernels_compiled_ahead_meet_in_the_middle(tmp_path, monkeypatch):
     assert not first.from_cache                   # compiled here
     assert last.from_cache                        # by the background process
     assert compiled._AHEAD[0].wait_idle(timeout=60)
+    compiled._AHEAD[0].close()
     for m in models:
         t, u, y = _record(m, N=40)
         th = box_sets(m, 3, seed=2)

@@ -341,7 +341,13 @@ class _Ahead:
         self.running: dict[int, str] = {}   # worker index -> path it compiles
         self.idle: list[int] = []           # workers waiting for a path
         self.procs = []
+        # numba read its cache folder when this process imported it: the
+        # workers must write where this process will look, whatever the
+        # environment says now
         env = dict(os.environ, NUMBA_NUM_THREADS="1")
+        env.pop("NUMBA_CACHE_DIR", None)
+        if numba.config.CACHE_DIR:
+            env["NUMBA_CACHE_DIR"] = str(numba.config.CACHE_DIR)
         for i in range(n):
             try:
                 proc = subprocess.Popen([sys.executable, "-m", "bondgraph.numerics.compiled"],
