@@ -74,6 +74,8 @@ _LOCK = threading.Lock()
 _LOADED: dict[str, "PointKernels"] = {}
 #: the background compilers (:class:`_Ahead`, one per process, at first use)
 _AHEAD: list = []
+#: seconds :func:`point_kernels` waits at most for a background compile
+AHEAD_WAIT = 600.0
 
 
 @dataclass
@@ -378,8 +380,9 @@ class _Ahead:
             if path in self.queue:
                 self.queue.remove(path)
                 return
-            while path in self.running.values():
-                self.cond.wait()
+            # a worker that hangs is not waited for forever: then this
+            # process compiles it too
+            self.cond.wait_for(lambda: path not in self.running.values(), AHEAD_WAIT)
 
     def wait_idle(self, timeout: float) -> bool:
         """Wait until no path is queued or compiling (or ``timeout`` [s]);
@@ -445,11 +448,6 @@ def _worker_main() -> int:
     return 0
 
 
-if __name__ == "__main__":      # the canonical module's function, not this __main__ copy's
-    from bondgraph.numerics.compiled import _worker_main as _main
-    raise SystemExit(_main())
-
-
 def _write_source(model, path: Path) -> None:
     """Generate an in-memory model's numba source and write it atomically."""
     ss = getattr(model.module, "__state_space__", None)
@@ -480,3 +478,8 @@ def _import(path: Path) -> PointKernels:
     fns = (mod.f, mod.h, mod.f_dfdx, mod.f_cols, mod.h_cols)
     hits = all(sum(fn.stats.cache_hits.values()) > 0 for fn in fns)
     return PointKernels(*fns, path, dt, hits)
+
+
+if __name__ == "__main__":      # the canonical module's function, not this __main__ copy's
+    from bondgraph.numerics.compiled import _worker_main as _main
+    raise SystemExit(_main())
