@@ -142,6 +142,7 @@ def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) 
     s = ctx.settings
     with phase("fitting the declared model"):
         initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
+    _worse_than_mean(ctx, initial)
     result = new_result(ctx, graph, initial, warn)
     publish(ctx, result, initial, initial, on_update)
     current = initial
@@ -294,7 +295,6 @@ def initial_fit(ctx: Context, graph: BondGraph, again: bool = False) -> Fit:
     ctx.log(f"initial fit: NLL {fit.nll:.2f}, {s.accept.criterion.upper()} "
             f"{fit.information(s.accept.criterion):.2f}, whiteness {fit.residuals.whiteness:.1f}, "
             f"{metric_name(s)} = {fit.metric:.4g}")
-    _worse_than_mean(ctx, fit)
     return fit
 
 
