@@ -45,7 +45,7 @@ from bondgraph.diagnose.fit import (
 )
 from bondgraph.diagnose.inference_calls import make_executor, one_step_errors, output_error
 from bondgraph.diagnose.metric import metric_name
-from bondgraph.diagnose.parallel import run_tasks
+from bondgraph.diagnose.parallel import distributed, run_tasks
 from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, rank_of
 from bondgraph.diagnose.scoring import (
     conditional_score,
@@ -55,6 +55,7 @@ from bondgraph.diagnose.scoring import (
     score_additive,
     score_structural,
     structural_candidate,
+    structural_todo,
 )
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.numerics.model import Model
@@ -1165,12 +1166,15 @@ def gather_evidence(ctx: Context, current: Fit,
         All candidates by decreasing score, and the significant ones.
     """
     s = ctx.settings
-    cands = score_additive(ctx, current, scales, s.effects)
-    best_expl = max([c.explained or 0.0 for c in cands] + [0.0])
     physical_fx = [e for e in s.effects if not getattr(e, "last_resort", False)]
     resort_fx = [e for e in s.effects if getattr(e, "last_resort", False)]
+    early = None            # never skipped: built now, compiled in the background meanwhile
+    if s.search.structural and s.search.structural_threshold is None and not distributed(ctx):
+        early = structural_todo(ctx, current, scales, physical_fx)
+    cands = score_additive(ctx, current, scales, s.effects)
+    best_expl = max([c.explained or 0.0 for c in cands] + [0.0])
     if s.search.structural and not structural_skipped(s, cands):
-        cands += score_structural(ctx, current, scales, physical_fx)
+        cands += score_structural(ctx, current, scales, physical_fx, todo=early)
     elif s.search.structural:
         ctx.log(f"  structural candidates not scored: an additive effect explains "
                 f"{100 * best_expl:.0f} % of the innovation energy")

@@ -545,26 +545,22 @@ def _line_sets(ctx: Context, probe: Probe, fit: Fit, cands: list[Candidate]):
 
 # ------------------------------------------------------------- structural
 def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
-                     places: set | None = None) -> list[Candidate]:
+                     places: set | None = None, todo: list | None = None) -> list[Candidate]:
     """Likelihood-ratio statistic of every structural effect of ``effects``
     at every place it can attach (and is not yet present; only the targets
     in ``places``, a set of (kind, name), if given), each from one batched
     UKF run over its grid (:func:`structural_candidate`); a progress bar
     when ``ctx.progress``. On one machine every candidate's model is built
     first and their numba kernels are compiled ahead in a background
-    process (:func:`bondgraph.numerics.compiled.compile_ahead`) while this
-    one scores them in order."""
-    todo = [(eff, tgt) for eff in effects if not eff.additive
-            for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)
-            and (places is None or (tgt.kind, tgt.name) in places)]
+    process while this one scores them in order (:func:`structural_todo`;
+    ``todo``: its result, when the caller started it earlier)."""
     if distributed(ctx):
+        todo = structural_targets(fit, effects, places)
         ctx.log(f"  scoring {len(todo)} structural candidates on the Dask workers")
         found = run_tasks(ctx, _structural_task, (fit, scales), todo)
         return [c for c in found if c is not None]
-    built = [build_candidate(ctx, fit, scales, eff, tgt) for eff, tgt in todo]
-    todo = [(eff, tgt, b) for (eff, tgt), b in zip(todo, built) if b is not None]
-    if ctx.problem.disc.backend == "numba":
-        compile_ahead([b[-1] for _, _, b in todo])
+    if todo is None:
+        todo = structural_todo(ctx, fit, scales, effects, places)
     try:
         found = [structural_candidate(ctx, fit, scales, eff, tgt, b)
                  for eff, tgt, b in tqdm(todo, desc="structural candidates", unit="cand",
@@ -572,6 +568,31 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
     finally:
         cancel_ahead()
     return [c for c in found if c is not None]
+
+
+def structural_targets(fit: Fit, effects, places: set | None = None) -> list[tuple]:
+    """(effect, target) of every structural effect of ``effects`` at every
+    place of ``fit``'s graph it can attach to and is not yet present (only
+    the targets in ``places``, a set of (kind, name), if given)."""
+    return [(eff, tgt) for eff in effects if not eff.additive
+            for tgt in eff.targets(fit.graph) if not eff.present(fit.graph, tgt)
+            and (places is None or (tgt.kind, tgt.name) in places)]
+
+
+def structural_todo(ctx: Context, fit: Fit, scales: Scales, effects,
+                    places: set | None = None) -> list[tuple]:
+    """``(effect, target, built)`` of :func:`structural_targets` with each
+    candidate built (:func:`build_candidate`; those that cannot be built are
+    logged and left out), and their numba kernels queued for the background
+    compiler (:func:`bondgraph.numerics.compiled.compile_ahead`, numba
+    backend only): the loop builds them before it scores the additive
+    candidates, so that the background compiles while this process works."""
+    todo = structural_targets(fit, effects, places)
+    built = [build_candidate(ctx, fit, scales, eff, tgt) for eff, tgt in todo]
+    todo = [(eff, tgt, b) for (eff, tgt), b in zip(todo, built) if b is not None]
+    if ctx.problem.disc.backend == "numba":
+        compile_ahead([b[-1] for _, _, b in todo])
+    return todo
 
 
 def _structural_task(ctx: Context, shared, item) -> Candidate | None:
