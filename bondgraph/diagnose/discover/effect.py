@@ -78,6 +78,8 @@ SPARSE_TERMS = 2
 #: most discovered laws put beside the library in one loop run
 #: (:func:`discovered_effect`: the best port's, then the alternatives)
 MAX_LAWS = 6
+#: most laws at sensors' outputs put beside them (:func:`law_alternatives`)
+MAX_OUTPUT_LAWS = 4
 
 
 def _sign_box(c: float) -> tuple[float, float]:
@@ -697,8 +699,9 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
     """The discovery to add after the loop's result ``first``: None when
     ``first`` accepted a physical effect (not a last resort) and its final
     innovations are white (:meth:`~bondgraph.diagnose.residuals.ResidualReport.is_white`),
-    or when no port gave a passive law; else the port whose reconstruction
-    gains most likelihood, with its law as a loop effect
+    or when no port gave a passive law; else the junction whose
+    reconstruction gains most likelihood (a sensor's output only when no
+    junction gave a law; every measured sensor is tried too), with its law as a loop effect
     (``Discovery.effect``) and, as ``Discovery.alternatives``, the laws the
     loop compares it with (:func:`law_alternatives`). Accepted effects that
     leave the innovations coloured are look-alikes or incomplete (a cubic
@@ -748,7 +751,8 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
         except BondGraphError as exc:      # a port the filter cannot serve: skip it
             where = f"the output '{port}'" if at_sensor else f"'{port}'"
             say(f"discovery at {where} skipped: {str(exc).splitlines()[0]}")
-    found = sorted((d for d in found if d.effect is not None), key=lambda d: -d.gain)
+    found = sorted((d for d in found if d.effect is not None),
+                   key=lambda d: (d.law.kind == "output", -d.gain))
     if not found:
         say("discovery: no port gave a law")
         return None
@@ -765,7 +769,15 @@ def law_alternatives(graph, found: list, params: dict,
     """The laws put beside the best port's (``found[0]``) in the loop: each
     port's sparse alternative (:func:`sparse_alternative`) and the other
     ports' laws, by decreasing reconstruction gain, each effect renamed
-    ``discovered_<k>`` (k = 2, 3, ...), at most :data:`MAX_LAWS` laws in all.
+    ``discovered_<k>`` (k = 2, 3, ...), at most :data:`MAX_LAWS` junction
+    laws, then at most :data:`MAX_OUTPUT_LAWS` laws at sensors' outputs.
+
+    The sensors' laws come after the junctions' whatever their gain: an
+    offset random walk at an output can follow any missing dynamics seen
+    there (on the saturating damper of ``bench/discovery.py`` the position
+    sensor's walk gains 1.0e4 nats with a linear gain-and-input law, a
+    look-alike), so its gain does not rank it against a junction's; the
+    loop's likelihood ratio decides among all.
 
     Why: the port of largest reconstruction gain need not be the port of the
     missing law (a random walk at a two-tank orifice's effort moves both
@@ -782,7 +794,8 @@ def law_alternatives(graph, found: list, params: dict,
     graph : BondGraph
         The declared graph.
     found : list of Discovery
-        One per port with a passive law, by decreasing gain.
+        One per port with a passive law: the junctions' by decreasing gain,
+        then the sensors' (:func:`discovered_effect`).
     params : dict
         The declared values of the reconstruction.
     discovery : DiscoverOptions, optional
@@ -792,17 +805,19 @@ def law_alternatives(graph, found: list, params: dict,
     list of Discovery
         Each with its own effect name.
     """
-    out, seen = [], set()
+    out, seen = {False: [], True: []}, set()
     for k, d in enumerate(found):
         sparse = sparse_alternative(graph, d, params, discovery)
         for cand in ([d] if k else []) + ([sparse] if sparse is not None else []):
-            key = (cand.law.port, tuple(tm.name for tm in cand.passivity.law.terms))
+            key = (cand.law.port, cand.law.kind,
+                   tuple(tm.name for tm in cand.passivity.law.terms))
             if key in seen or cand.effect is None:
                 continue
             seen.add(key)
-            out.append(cand)
-        seen.add((d.law.port, tuple(tm.name for tm in d.passivity.law.terms)))
-    out = out[:MAX_LAWS - 1]
+            out[cand.law.kind == "output"].append(cand)
+        seen.add((d.law.port, d.law.kind, tuple(tm.name for tm in d.passivity.law.terms)))
+    first = int(found[0].law.kind == "output")
+    out = out[False][:MAX_LAWS - 1 + first] + out[True][:MAX_OUTPUT_LAWS - first]
     name = found[0].effect.name
     return [replace(d, effect=effect_for(d.passivity.law, f"{name}_{i + 2}"))
             for i, d in enumerate(out)]
