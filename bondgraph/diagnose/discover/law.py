@@ -280,8 +280,8 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
     Parameters
     ----------
     rec : Reconstruction
-        From :func:`bondgraph.diagnose.discover.reconstruct.reconstruct`:
-        d̂ (N,), its std (N,) and the port's variables (N,).
+        From :func:`~bondgraph.diagnose.discover.reconstruct.reconstruct`
+        (or ``reconstruct_sensor``): d̂ (N,), its std (N,), the variables.
     options : DiscoverOptions, optional
 
     Returns
@@ -302,9 +302,8 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
 
     Notes
     -----
-    Method: weighted orthogonal matching pursuit, its number of terms by
-    block cross-validation with the one-standard-error rule (module
-    docstring).
+    Method: weighted orthogonal matching pursuit, its number of terms by block
+    cross-validation with the one-standard-error rule (module docstring).
     """
     opts = options or DiscoverOptions()
     n = rec.t.size
