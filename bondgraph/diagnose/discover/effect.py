@@ -55,7 +55,12 @@ import sympy as sp
 
 from bondgraph.core import units
 from bondgraph.core.elements import C, I, One, Zero
-from bondgraph.diagnose.discover.law import DiscoveredLaw, DiscoverOptions, discover_law
+from bondgraph.diagnose.discover.law import (
+    DiscoveredLaw,
+    DiscoverOptions,
+    discover_law,
+    threshold_law,
+)
 from bondgraph.diagnose.discover.passivity import PassivityReport, make_passive
 from bondgraph.diagnose.discover.reconstruct import (
     Reconstruction,
@@ -80,6 +85,8 @@ SPARSE_TERMS = 2
 MAX_LAWS = 6
 #: most laws at sensors' outputs put beside them (:func:`law_alternatives`)
 MAX_OUTPUT_LAWS = 4
+#: most threshold laws put beside them (:func:`threshold_alternative`)
+MAX_THRESHOLD_LAWS = 3
 
 
 def _sign_box(c: float) -> tuple[float, float]:
@@ -770,7 +777,9 @@ def law_alternatives(graph, found: list, params: dict,
     port's sparse alternative (:func:`sparse_alternative`) and the other
     ports' laws, by decreasing reconstruction gain, each effect renamed
     ``discovered_<k>`` (k = 2, 3, ...), at most :data:`MAX_LAWS` junction
-    laws, then at most :data:`MAX_OUTPUT_LAWS` laws at sensors' outputs.
+    laws, then the threshold laws of the first :data:`MAX_THRESHOLD_LAWS`
+    junctions (:func:`threshold_alternative`), then at most
+    :data:`MAX_OUTPUT_LAWS` laws at sensors' outputs.
 
     The sensors' laws come after the junctions' whatever their gain: an
     offset random walk at an output can follow any missing dynamics seen
@@ -805,7 +814,7 @@ def law_alternatives(graph, found: list, params: dict,
     list of Discovery
         Each with its own effect name.
     """
-    out, seen = {False: [], True: []}, set()
+    out, seen = {False: [], True: [], "threshold": []}, set()
     for k, d in enumerate(found):
         sparse = sparse_alternative(graph, d, params, discovery)
         for cand in ([d] if k else []) + ([sparse] if sparse is not None else []):
@@ -816,11 +825,49 @@ def law_alternatives(graph, found: list, params: dict,
             seen.add(key)
             out[cand.law.kind == "output"].append(cand)
         seen.add((d.law.port, d.law.kind, tuple(tm.name for tm in d.passivity.law.terms)))
+        dz = threshold_alternative(graph, d, params, discovery)
+        if dz is not None:
+            out["threshold"].append(dz)
     first = int(found[0].law.kind == "output")
-    out = out[False][:MAX_LAWS - 1 + first] + out[True][:MAX_OUTPUT_LAWS - first]
+    out = (out[False][:MAX_LAWS - 1 + first] + out["threshold"][:MAX_THRESHOLD_LAWS]
+           + out[True][:MAX_OUTPUT_LAWS - first])
     name = found[0].effect.name
     return [replace(d, effect=effect_for(d.passivity.law, f"{name}_{i + 2}"))
             for i, d in enumerate(out)]
+
+
+def threshold_alternative(graph, disc: Discovery, params: dict,
+                          discovery: DiscoverOptions | None = None) -> Discovery | None:
+    """The law of one dead-zone term of the port's own variable
+    (:func:`~bondgraph.diagnose.discover.law.threshold_law`) on the same
+    reconstruction as ``disc``, if the passivity check keeps it (a
+    junction's law only; None at a sensor's output, or when no term is
+    left).
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared graph.
+    disc : Discovery
+    params : dict
+        The declared values of the reconstruction.
+    discovery : DiscoverOptions, optional
+
+    Returns
+    -------
+    Discovery or None
+    """
+    rec = disc.reconstruction
+    if disc.law.kind == "output":
+        return None
+    law = threshold_law(rec, options=discovery)
+    if law is None:
+        return None
+    rep = make_passive(law, graph, rec.variables, params=params)
+    if not rep.law.terms:
+        return None
+    eff = effect_for(rep.law, disc.effect.name if disc.effect else "discovered")
+    return Discovery(rec, law, rep, eff, disc.gain, eff.placement(graph))
 
 
 def sparse_alternative(graph, disc: Discovery, params: dict,

@@ -414,3 +414,100 @@ def _one_se(err: np.ndarray, se: np.ndarray, sizes) -> int:
     best = int(np.argmin(err))
     ok = np.flatnonzero(err <= err[best] + se[best])
     return int(min(ok, key=lambda j: (sizes[j], err[j])))
+
+
+# ------------------------------------------------------------ a threshold law
+#: thresholds of a dead-zone term, as quantiles of the variable's visited values
+#: (upper quantiles for a term above the threshold, lower for one below)
+THRESHOLD_QUANTILES = (0.5, 0.7, 0.85)
+#: exponents p of a dead-zone term max(±(z − a), 0)^p
+THRESHOLD_POWERS = (1.0, 1.5, 2.0)
+
+
+def dead_zone(z: sp.Symbol, a: float, side: int, p: float) -> sp.Expr:
+    """max(side·(z − a), 0)^p written with |·| (the generated code's
+    functions): (w + |w|)/2 · |w|^(p − 1), w = side·(z − a). Not
+    ((w + |w|)/2)^p: sympy rewrites w + |w| and its rounding leaves
+    −1e-17 below the threshold, whose power 1.5 is NaN.
+
+    Parameters
+    ----------
+    z : sympy.Symbol
+    a : float
+        The threshold (z's unit).
+    side : {1, -1}
+        Above (1) or below (−1) the threshold.
+    p : float
+        Exponent (>= 1).
+    """
+    w = side * (z - sp.Float(a))
+    base = (w + sp.Abs(w)) / 2
+    return base if p == 1 else base * sp.Abs(w) ** (sp.Integer(1) if p == 2 else sp.Float(p - 1))
+
+
+def threshold_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLaw | None:
+    """The law of one dead-zone term of the port's own variable z (its first
+    primary variable): d = c·max(±(z − a), 0)^p, the threshold a at a
+    quantile of the visited z (:data:`THRESHOLD_QUANTILES`), p in
+    :data:`THRESHOLD_POWERS`, the one of least weighted squared residual
+    (each a one-coefficient weighted least squares, rows weighted by the
+    smoother's 1/std as in :func:`discover_law`).
+
+    A weir or an overflow that starts above a level, a contact or a stop:
+    a shape the smooth dictionary of :func:`discover_law` does not hold
+    (a tank's overflow c·max(p − 220 Pa, 0)^1.5 came out as −4.8e-16·p⁵).
+    It is not in that dictionary: there its columns lowered the
+    cross-validation's minimum and the one-standard-error rule then kept
+    look-alike terms beside a Coulomb friction (benchmarks.md); as a law of
+    its own the loop's likelihood ratio judges it.
+
+    Parameters
+    ----------
+    rec : Reconstruction
+    options : DiscoverOptions, optional
+        Only ``trim`` is used.
+
+    Returns
+    -------
+    DiscoveredLaw or None
+        One term; None when d̂ or its std is not finite or no term is
+        non-zero on the fitted samples.
+    """
+    opts = options or DiscoverOptions()
+    n = rec.t.size
+    cut = int(round(opts.trim * n))
+    keep = slice(cut, n - cut)
+    own = rec.primary[0]
+    z = np.asarray(rec.variables[own], float)[keep]
+    d, d_std = np.asarray(rec.d, float)[keep], np.asarray(rec.d_std, float)[keep]
+    if not (np.all(np.isfinite(d)) and np.all(np.isfinite(d_std))):
+        return None
+    w = 1.0 / np.maximum(d_std, 1e-12 * (np.abs(d).max() or 1.0))
+    sym = sp.Symbol(own)
+    unit = (rec.units or {}).get(own, "") or "1"
+    best = None
+    for side, qs in ((1, THRESHOLD_QUANTILES), (-1, tuple(1 - q for q in THRESHOLD_QUANTILES))):
+        for q in qs:
+            a = float(np.quantile(z, q))
+            col = np.maximum(side * (z - a), 0.0)
+            for p in THRESHOLD_POWERS:
+                phi = col ** p
+                den = float(np.sum((w * phi) ** 2))
+                if not den > 0:
+                    continue
+                c = float(np.sum(w * phi * w * d)) / den
+                sse = float(np.sum((w * (d - c * phi)) ** 2))
+                if best is None or sse < best[0]:
+                    best = (sse, side, a, p, c, phi)
+    if best is None:
+        return None
+    _, side, a, p, c, phi = best
+    name = (f"max({own}-{_fmt(a)},0)" if side > 0 else f"max({_fmt(a)}-{own},0)") + (
+        f"^{p:g}" if p != 1 else "")
+    term = Term(name, dead_zone(sym, a, side, p), c, float(np.sqrt(np.mean((c * phi) ** 2))),
+                unit if p == 1 or unit == "1" else f"({unit})^{p:g}")
+    return DiscoveredLaw(rec.port.port, rec.port.kind, rec.port.unit, {own: sym}, [term], [name],
+                         [(name,)], np.array([best[0] / d.size]), np.zeros(1),
+                         float(np.sqrt(np.mean(d ** 2))),
+                         float(np.sqrt(np.mean((d - c * phi) ** 2))),
+                         {own: (float(z.min()), float(z.max()))}, [], [])
