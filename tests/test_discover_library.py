@@ -187,11 +187,17 @@ def test_the_laws_beside_the_best_one_are_its_sparse_alternative_and_the_other_p
     noisy = -50.0 * cols["q_spring^3"] + 1e-3 * np.random.default_rng(0).standard_normal(t.size)
     second = discovery(_fake_reconstruction(noisy, var))
     alts = law_alternatives(g, [first, second], {})
-    assert [a.effect.name for a in alts] == ["discovered_2", "discovered_3"]
+    assert [a.effect.name for a in alts[:2]] == ["discovered_2", "discovered_3"]
     assert [tm.name for tm in alts[1].passivity.law.terms] == ["q_spring^3"]
     assert alts[0].passivity.law.terms[0].name in best
+    # then the ports' threshold laws (threshold_alternative), one dead-zone term each
+    assert all(len(a.passivity.law.terms) == 1 and a.passivity.law.terms[0].name.startswith(
+        "max(") for a in alts[2:])
+    assert [a.effect.name for a in alts[2:]] == [f"discovered_{k + 4}"
+                                                 for k in range(len(alts) - 2)]
     first.alternatives = alts
-    assert [e.name for e in first.effects()] == ["discovered", "discovered_2", "discovered_3"]
+    assert [e.name for e in first.effects()][:3] == ["discovered", "discovered_2",
+                                                     "discovered_3"]
     result = SimpleNamespace(steps=[SimpleNamespace(effect="discovered_3", together_with=[])])
     assert first.accepted_in(result) is alts[1]
     assert first.accepted_in(SimpleNamespace(steps=[])) is first

@@ -3,7 +3,9 @@ discover its law (issue 29).
 
 * :mod:`.reconstruct`: the missing effort (flow) at a 1-junction (0-junction)
   as an integrated random walk, UKF + unscented RTS smoother
-  (:func:`reconstruct`, :class:`ReconstructOptions`, :class:`Reconstruction`).
+  (:func:`reconstruct`, :class:`ReconstructOptions`, :class:`Reconstruction`);
+  the offset missing at a sensor's output the same way
+  (:func:`reconstruct_sensor`, :func:`augment_sensor`).
 * :mod:`.law`: a sparse regression of the reconstructed signal on a
   dictionary of the port's variables (:func:`discover_law`,
   :class:`DiscoverOptions`, :class:`DiscoveredLaw`).
@@ -11,13 +13,14 @@ discover its law (issue 29).
   keeps the stored energy >= 0; offending terms dropped and named
   (:func:`make_passive`, :class:`PassivityReport`).
 * :mod:`.effect`: the discovered law as a loop effect at its 1-junction
-  (:class:`DiscoveredEffect`), :func:`discover_effect` (the three above at
+  (:class:`DiscoveredEffect`) or at its sensor (:class:`DiscoveredSensorEffect`), :func:`discover_effect` (the three above at
   one port), :func:`loop_with_discovery` (the loop, then discovery where no
   physical effect was accepted, then the loop again with it).
 """
 
 from bondgraph.diagnose.discover.effect import (
     DiscoveredEffect,
+    DiscoveredSensorEffect,
     Discovery,
     discover_effect,
     loop_with_discovery,
@@ -29,9 +32,12 @@ from bondgraph.diagnose.discover.reconstruct import (
     Reconstruction,
     ReconstructOptions,
     augment_port,
+    augment_sensor,
     reconstruct,
+    reconstruct_sensor,
 )
 
-__all__ = ["DiscoveredEffect", "Discovery", "discover_effect", "loop_with_discovery",
-           "DiscoverOptions", "DiscoveredLaw", "PassivityReport", "PortAugmentation", "ReconstructOptions",
-           "Reconstruction", "Term", "augment_port", "discover_law", "make_passive", "reconstruct"]
+__all__ = ["DiscoveredEffect", "DiscoveredSensorEffect", "Discovery", "discover_effect",
+           "loop_with_discovery", "DiscoverOptions", "DiscoveredLaw", "PassivityReport",
+           "PortAugmentation", "ReconstructOptions", "Reconstruction", "Term", "augment_port",
+           "augment_sensor", "discover_law", "make_passive", "reconstruct", "reconstruct_sensor"]

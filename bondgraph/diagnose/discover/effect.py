@@ -55,12 +55,18 @@ import sympy as sp
 
 from bondgraph.core import units
 from bondgraph.core.elements import C, I, One, Zero
-from bondgraph.diagnose.discover.law import DiscoveredLaw, DiscoverOptions, discover_law
+from bondgraph.diagnose.discover.law import (
+    DiscoveredLaw,
+    DiscoverOptions,
+    discover_law,
+    threshold_law,
+)
 from bondgraph.diagnose.discover.passivity import PassivityReport, make_passive
 from bondgraph.diagnose.discover.reconstruct import (
     Reconstruction,
     ReconstructOptions,
     reconstruct,
+    reconstruct_sensor,
 )
 from bondgraph.diagnose.effects.base import EffectParam, Target, _new_param, _Structural
 from bondgraph.errors import BondGraphError, GraphError
@@ -77,6 +83,10 @@ SPARSE_TERMS = 2
 #: most discovered laws put beside the library in one loop run
 #: (:func:`discovered_effect`: the best port's, then the alternatives)
 MAX_LAWS = 6
+#: most laws at sensors' outputs put beside them (:func:`law_alternatives`)
+MAX_OUTPUT_LAWS = 4
+#: most threshold laws put beside them (:func:`threshold_alternative`)
+MAX_THRESHOLD_LAWS = 3
 
 
 def _sign_box(c: float) -> tuple[float, float]:
@@ -100,11 +110,13 @@ class DiscoveredEffect(_Structural):
     """
 
     target_kind = "junction"
+    #: the law kinds this class attaches
+    kinds = ("effort", "flow")
 
     def __init__(self, law: DiscoveredLaw, name: str = "discovered"):
         if not law.terms:
             raise GraphError(f"discovered law at '{law.port}' has no term")
-        if law.kind not in ("effort", "flow"):
+        if law.kind not in self.kinds:
             raise GraphError(f"discovered law at '{law.port}': kind '{law.kind}' is neither "
                              f"an effort (1-junction) nor a flow (0-junction)")
         self.law = law
@@ -127,7 +139,7 @@ class DiscoveredEffect(_Structural):
             step's ``parameters``) or local name (``c<k>``); missing: the
             discovered coefficient, no std.
         """
-        tgt = target or Target("junction", self.law.port)
+        tgt = target or self.target()
         values, std = dict(values or {}), dict(std or {})
         parts = []
         for k, tm in enumerate(self.law.terms):
@@ -139,6 +151,11 @@ class DiscoveredEffect(_Structural):
         text = " ".join(parts)
         text = text[2:] if text.startswith("+ ") else "-" + text[2:]
         return f"{self.law.port} {self.law.kind} [{self.law.unit}] = {text}"
+
+    def target(self) -> Target:
+        """The law's one target (its junction; a sensor for
+        :class:`DiscoveredSensorEffect`)."""
+        return Target(self.target_kind, self.law.port)
 
     def targets(self, graph):
         el = graph.elements.get(self.law.port)
@@ -191,7 +208,7 @@ class DiscoveredEffect(_Structural):
         list of Placement
             One per part that has terms, in the order R, storage, source.
         """
-        tgt = target or Target("junction", self.law.port)
+        tgt = target or self.target()
         j = graph.element(self.law.port)
         own = f"{self.law.port}.f" if self.law.kind == "effort" else f"{self.law.port}.e"
         store = C if self.law.kind == "effort" else I
@@ -258,10 +275,11 @@ class Placement:
 
     Attributes
     ----------
-    part : {"R", "storage", "source"}
+    part : {"R", "storage", "source", "sensor"}
     element : str
         The element that carries it: the new R element, the bonded C or I
-        whose law it changes, or the new modulated source.
+        whose law it changes, the new modulated source, or the sensor whose
+        measurement it changes.
     terms : tuple of int
         Indices of the law's terms.
     why : str
@@ -285,6 +303,97 @@ def _attach_r(graph, j, name: str, d, kind: str) -> None:
     else:
         r = graph.R(name, flow=lambda e: -d.xreplace({j.e: e}))
     graph.connect(j, r)
+
+
+class DiscoveredSensorEffect(DiscoveredEffect):
+    """A discovered law at a sensor's output: y = h(x, u, θ) + Σ c_k b_k,
+    the bases b_k functions of the sensed quantity h (``"<sensor>.y"``)
+    and of the inputs (:func:`~bondgraph.diagnose.discover.reconstruct.reconstruct_sensor`).
+    A sensor takes no power from the graph: no passivity condition applies
+    (:func:`~bondgraph.diagnose.discover.passivity.make_passive` keeps every
+    term and says so). A structural effect like :class:`DiscoveredEffect`:
+    scored at its discovered coefficients, each coefficient's box
+    [0, 10 c].
+
+    Parameters
+    ----------
+    law : DiscoveredLaw
+        ``kind`` ``"output"``, ``port`` the sensor's name.
+    name : str
+        The effect's name.
+
+    Raises
+    ------
+    GraphError
+        A law without terms or of another kind.
+    """
+
+    target_kind = "sensor"
+    kinds = ("output",)
+
+    def targets(self, graph):
+        return [self.target()] if self.law.port in graph.sensors else []
+
+    def bases(self, graph) -> list:
+        """The terms' bases in ``graph``'s symbols: ``"<sensor>.y"`` is the
+        sensor's expression in ``graph`` (before this law is added).
+
+        Raises
+        ------
+        GraphError
+            ``graph`` has no such sensor, or the law reads a variable
+            ``graph`` does not have.
+        """
+        if self.law.port not in graph.sensors:
+            raise GraphError(f"graph '{graph.name}' has no sensor '{self.law.port}'")
+        subs = {}
+        for name, sym in self.law.symbols.items():
+            if name == f"{self.law.port}.y":
+                subs[sym] = graph.sensors[self.law.port].expr
+            elif name in graph.inputs:
+                subs[sym] = graph.inputs[name]
+            else:
+                raise GraphError(f"discovered law at the output '{self.law.port}': graph "
+                                 f"'{graph.name}' has no variable '{name}'")
+        return [tm.basis.xreplace(subs) for tm in self.law.terms]
+
+    def placement(self, graph, target: Target | None = None) -> list:
+        """One part: every term added to the sensor's measurement.
+
+        Returns
+        -------
+        list of Placement
+        """
+        return [Placement("sensor", self.law.port, tuple(range(len(self.law.terms))),
+                          "output law: added to the measurement (a sensor takes no power)")]
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        boxes = self.box(graph, target, scales)
+        bases = self.bases(graph)
+        P = {}
+        for k, (spc, tm) in enumerate(zip(self.params, self.law.terms)):
+            P[spc.name] = _new_param(graph, self.pname(target, spc.name),
+                                     float(values.get(spc.name, tm.coef)), spc.unit,
+                                     boxes[spc.name], f"{spc.description} at the output "
+                                     f"{target.name}")
+        sen = graph.sensors[target.name]
+        sen.expr = sen.expr + sp.Add(*(P[f"c{k}"] * b for k, b in enumerate(bases)))
+        return P
+
+
+def effect_for(law: DiscoveredLaw, name: str = "discovered") -> DiscoveredEffect:
+    """The loop effect of a discovered law: :class:`DiscoveredSensorEffect`
+    for a law at a sensor's output (``kind`` ``"output"``), else
+    :class:`DiscoveredEffect`.
+
+    Raises
+    ------
+    GraphError
+        A law without terms.
+    """
+    cls = DiscoveredSensorEffect if law.kind == "output" else DiscoveredEffect
+    return cls(law, name)
 
 
 def antiderivative(basis, s):
@@ -402,7 +511,7 @@ class Discovery:
 def discover_effect(graph, record, port: str, *, params=None,
                     reconstruction: ReconstructOptions | None = None,
                     discovery: DiscoverOptions | None = None,
-                    name: str = "discovered") -> Discovery:
+                    name: str = "discovered", sensor: bool = False) -> Discovery:
     """Reconstruct the effort missing at ``port``, discover its law, keep its
     passive terms and make it a loop effect.
 
@@ -420,6 +529,10 @@ def discover_effect(graph, record, port: str, *, params=None,
     discovery : DiscoverOptions, optional
     name : str
         The effect's name.
+    sensor : bool
+        ``port`` names a sensor: the offset missing at its output is
+        reconstructed (:func:`~bondgraph.diagnose.discover.reconstruct.reconstruct_sensor`)
+        and its law becomes a :class:`DiscoveredSensorEffect`.
 
     Returns
     -------
@@ -428,15 +541,16 @@ def discover_effect(graph, record, port: str, *, params=None,
     Raises
     ------
     GraphError
-        ``port`` is not a junction.
+        ``port`` is not a junction (not a sensor, with ``sensor``).
     NumericalError
         The filter or smoother fails.
     """
-    rec = reconstruct(graph, record, port, params=params, options=reconstruction)
+    how = reconstruct_sensor if sensor else reconstruct
+    rec = how(graph, record, port, params=params, options=reconstruction)
     law = discover_law(rec, options=discovery)
     rep = make_passive(law, graph, rec.variables, params=params)
     kept = rep.law
-    eff = DiscoveredEffect(kept, name) if kept.terms else None
+    eff = effect_for(kept, name) if kept.terms else None
     gain = float(rec.nll_grid[-1] - np.min(rec.nll_grid)) if rec.nll_grid.size else 0.0
     placed = eff.placement(graph) if eff is not None else []
     return Discovery(rec, law, rep, eff, gain, placed)
@@ -502,7 +616,7 @@ def coefficient_std(graph, record, effect: DiscoveredEffect, estimates: dict, *,
 
 def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
                         reconstruction: ReconstructOptions | None = None,
-                        discovery: DiscoverOptions | None = None):
+                        discovery: DiscoverOptions | None = None, sensors=None):
     """The loop, then, when it accepts no physical effect or the accepted
     ones leave coloured innovations, discovery at every port
     (:func:`discovered_effect`) and the loop again, from the declared graph,
@@ -522,6 +636,9 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
     reconstruction, discovery : options, optional
         Default: :func:`reconstruction_options` of ``settings``, and
         ``DiscoverOptions()``.
+    sensors : sequence of str, optional
+        The sensors whose output offset is reconstructed too (default every
+        sensor ``record`` measures; ``()``: none).
 
     Returns
     -------
@@ -534,7 +651,8 @@ def loop_with_discovery(graph, record, settings, *, ports=None, log=None,
 
     first = run_loop(graph, record, settings, log=log, progress=False)
     best = discovered_effect(graph, record, settings, first, ports=ports, log=log,
-                             reconstruction=reconstruction, discovery=discovery)
+                             reconstruction=reconstruction, discovery=discovery,
+                             sensors=sensors)
     if best is None:
         return first, None
     res = run_loop(graph, record, with_discovered(settings, *best.effects()), log=log,
@@ -584,12 +702,13 @@ def reconstruction_options(settings) -> ReconstructOptions:
 
 def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
                       reconstruction: ReconstructOptions | None = None,
-                      discovery: DiscoverOptions | None = None):
+                      discovery: DiscoverOptions | None = None, sensors=None):
     """The discovery to add after the loop's result ``first``: None when
     ``first`` accepted a physical effect (not a last resort) and its final
     innovations are white (:meth:`~bondgraph.diagnose.residuals.ResidualReport.is_white`),
-    or when no port gave a passive law; else the port whose reconstruction
-    gains most likelihood, with its law as a loop effect
+    or when no port gave a passive law; else the junction whose
+    reconstruction gains most likelihood (a sensor's output only when no
+    junction gave a law; every measured sensor is tried too), with its law as a loop effect
     (``Discovery.effect``) and, as ``Discovery.alternatives``, the laws the
     loop compares it with (:func:`law_alternatives`). Accepted effects that
     leave the innovations coloured are look-alikes or incomplete (a cubic
@@ -611,7 +730,7 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
         As for the loop.
     first : LoopResult
         The loop's result without discovery.
-    ports, log, reconstruction, discovery
+    ports, log, reconstruction, discovery, sensors
         As for :func:`loop_with_discovery`.
 
     Returns
@@ -629,15 +748,18 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
     values = dict(settings.fixed)
     names = list(ports) if ports else [n for n, el in graph.elements.items()
                                        if isinstance(el, (One, Zero))]
+    outs = [n for n in graph.sensors if n in record] if sensors is None else list(sensors)
     found = []
     opts = reconstruction or reconstruction_options(settings)
-    for port in names:
+    for port, at_sensor in [(n, False) for n in names] + [(n, True) for n in outs]:
         try:
-            found.append(discover_effect(graph, record, port, params=values,
+            found.append(discover_effect(graph, record, port, params=values, sensor=at_sensor,
                                          reconstruction=opts, discovery=discovery))
         except BondGraphError as exc:      # a port the filter cannot serve: skip it
-            say(f"discovery at '{port}' skipped: {str(exc).splitlines()[0]}")
-    found = sorted((d for d in found if d.effect is not None), key=lambda d: -d.gain)
+            where = f"the output '{port}'" if at_sensor else f"'{port}'"
+            say(f"discovery at {where} skipped: {str(exc).splitlines()[0]}")
+    found = sorted((d for d in found if d.effect is not None),
+                   key=lambda d: (d.law.kind == "output", -d.gain))
     if not found:
         say("discovery: no port gave a law")
         return None
@@ -654,7 +776,17 @@ def law_alternatives(graph, found: list, params: dict,
     """The laws put beside the best port's (``found[0]``) in the loop: each
     port's sparse alternative (:func:`sparse_alternative`) and the other
     ports' laws, by decreasing reconstruction gain, each effect renamed
-    ``discovered_<k>`` (k = 2, 3, ...), at most :data:`MAX_LAWS` laws in all.
+    ``discovered_<k>`` (k = 2, 3, ...), at most :data:`MAX_LAWS` junction
+    laws, then the threshold laws of the first :data:`MAX_THRESHOLD_LAWS`
+    junctions (:func:`threshold_alternative`), then at most
+    :data:`MAX_OUTPUT_LAWS` laws at sensors' outputs.
+
+    The sensors' laws come after the junctions' whatever their gain: an
+    offset random walk at an output can follow any missing dynamics seen
+    there (on the saturating damper of ``bench/discovery.py`` the position
+    sensor's walk gains 1.0e4 nats with a linear gain-and-input law, a
+    look-alike), so its gain does not rank it against a junction's; the
+    loop's likelihood ratio decides among all.
 
     Why: the port of largest reconstruction gain need not be the port of the
     missing law (a random walk at a two-tank orifice's effort moves both
@@ -671,7 +803,8 @@ def law_alternatives(graph, found: list, params: dict,
     graph : BondGraph
         The declared graph.
     found : list of Discovery
-        One per port with a passive law, by decreasing gain.
+        One per port with a passive law: the junctions' by decreasing gain,
+        then the sensors' (:func:`discovered_effect`).
     params : dict
         The declared values of the reconstruction.
     discovery : DiscoverOptions, optional
@@ -681,20 +814,60 @@ def law_alternatives(graph, found: list, params: dict,
     list of Discovery
         Each with its own effect name.
     """
-    out, seen = [], set()
+    out, seen = {False: [], True: [], "threshold": []}, set()
     for k, d in enumerate(found):
         sparse = sparse_alternative(graph, d, params, discovery)
         for cand in ([d] if k else []) + ([sparse] if sparse is not None else []):
-            key = (cand.law.port, tuple(tm.name for tm in cand.passivity.law.terms))
+            key = (cand.law.port, cand.law.kind,
+                   tuple(tm.name for tm in cand.passivity.law.terms))
             if key in seen or cand.effect is None:
                 continue
             seen.add(key)
-            out.append(cand)
-        seen.add((d.law.port, tuple(tm.name for tm in d.passivity.law.terms)))
-    out = out[:MAX_LAWS - 1]
+            out[cand.law.kind == "output"].append(cand)
+        seen.add((d.law.port, d.law.kind, tuple(tm.name for tm in d.passivity.law.terms)))
+        dz = threshold_alternative(graph, d, params, discovery)
+        if dz is not None:
+            out["threshold"].append(dz)
+    first = int(found[0].law.kind == "output")
+    out = (out[False][:MAX_LAWS - 1 + first] + out["threshold"][:MAX_THRESHOLD_LAWS]
+           + out[True][:MAX_OUTPUT_LAWS - first])
     name = found[0].effect.name
-    return [replace(d, effect=DiscoveredEffect(d.passivity.law, f"{name}_{i + 2}"))
+    return [replace(d, effect=effect_for(d.passivity.law, f"{name}_{i + 2}"))
             for i, d in enumerate(out)]
+
+
+def threshold_alternative(graph, disc: Discovery, params: dict,
+                          discovery: DiscoverOptions | None = None) -> Discovery | None:
+    """The law of one dead-zone term of the port's own variable
+    (:func:`~bondgraph.diagnose.discover.law.threshold_law`) on the same
+    reconstruction as ``disc``, if the passivity check keeps it (a
+    junction's law only; None at a sensor's output, or when no term is
+    left).
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared graph.
+    disc : Discovery
+    params : dict
+        The declared values of the reconstruction.
+    discovery : DiscoverOptions, optional
+
+    Returns
+    -------
+    Discovery or None
+    """
+    rec = disc.reconstruction
+    if disc.law.kind == "output":
+        return None
+    law = threshold_law(rec, options=discovery)
+    if law is None:
+        return None
+    rep = make_passive(law, graph, rec.variables, params=params)
+    if not rep.law.terms:
+        return None
+    eff = effect_for(rep.law, disc.effect.name if disc.effect else "discovered")
+    return Discovery(rec, law, rep, eff, disc.gain, eff.placement(graph))
 
 
 def sparse_alternative(graph, disc: Discovery, params: dict,
@@ -726,7 +899,7 @@ def sparse_alternative(graph, disc: Discovery, params: dict,
     if not rep.law.terms or ([tm.name for tm in rep.law.terms]
                              == [tm.name for tm in disc.passivity.law.terms]):
         return None
-    eff = DiscoveredEffect(rep.law, disc.effect.name if disc.effect else "discovered")
+    eff = effect_for(rep.law, disc.effect.name if disc.effect else "discovered")
     return Discovery(rec, law, rep, eff, disc.gain, eff.placement(graph))
 
 
@@ -754,7 +927,7 @@ def discovery_plot(disc: Discovery, result=None):
     values = {n: p["estimate"] for n, p in step.parameters.items()} if step else {}
     std = {n: p.get("std") for n, p in step.parameters.items()} if step else {}
     std = {n: v for n, v in std.items() if v is not None}
-    tgt = Target("junction", law.port)
+    tgt = eff.target() if eff is not None else Target("junction", law.port)
     terms = [replace(tm, coef=float(values.get(eff.pname(tgt, f"c{k}"), tm.coef)))
              for k, tm in enumerate(law.terms)] if eff is not None else []
     refit = replace(law, terms=terms)

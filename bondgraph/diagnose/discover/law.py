@@ -9,6 +9,13 @@ with its RMS s along the record:
 * powers z, z², z³, z⁵ and the signed square |z|·z;
 * a smooth sign tanh(z/ε) at ε = 0.02 s and ε = 0.1 s (Coulomb-like laws);
 * a saturation z/(1 + |z/s|);
+* at a sensor's output only, a smooth saturation tanh(z/s) (a sensor's
+  curve: on the tanh sensor of ``bench/discovery.py``, d̂ = 5·tanh(y/5) −
+  y, the two terms z and tanh(z/s) leave 0.066 V RMS, the reconstruction's
+  own error against the truth, where the dictionary without it left
+  0.127 V). Not at junctions: there it displaced the saturation in the
+  Bouc-Wen case's law (gap closed 0.753 -> 0.415) and changed the cubic
+  spring's law of ``tests/test_discover_report.py``;
 * the products z_i·z_j of two primary variables;
 * each input, linearly, and a constant.
 
@@ -56,6 +63,9 @@ from bondgraph.errors import NumericalError, OptionError
 STLSQ_THRESHOLDS = (0.3, 0.1, 0.03, 0.01, 0.003)
 #: smooth-sign widths as fractions of the variable's RMS
 SIGN_WIDTHS = (0.02, 0.1)
+#: smooth-saturation widths tanh(z/w) of an output law, fractions of the
+#: variable's RMS
+SATURATION_WIDTHS = (1.0,)
 
 
 @dataclass(frozen=True)
@@ -217,7 +227,7 @@ def _fmt(x: float) -> str:
 
 
 def dictionary(primary, inputs, scales: dict, *, products: bool = True,
-               units: dict | None = None) -> list:
+               units: dict | None = None, smooth_saturation: bool = False) -> list:
     """The candidate terms (module docstring).
 
     Parameters
@@ -232,6 +242,9 @@ def dictionary(primary, inputs, scales: dict, *, products: bool = True,
     products : bool
     units : dict str -> str, optional
         Each variable's unit (default dimensionless).
+    smooth_saturation : bool
+        Add tanh(z/(w·s)) for w in :data:`SATURATION_WIDTHS` (a law at a
+        sensor's output; default False).
 
     Returns
     -------
@@ -252,6 +265,8 @@ def dictionary(primary, inputs, scales: dict, *, products: bool = True,
         for w in SIGN_WIDTHS:
             out.append((f"tanh({name}/{_fmt(w * s)})", sp.tanh(z / sp.Float(w * s)), "1"))
         out.append((f"{name}/(1+|{name}/{_fmt(s)}|)", z / (1 + sp.Abs(z / sp.Float(s))), u))
+        for w in SATURATION_WIDTHS if smooth_saturation else ():
+            out.append((f"tanh({name}/{_fmt(w * s)})", sp.tanh(z / sp.Float(w * s)), "1"))
     if products:
         for a, b in combinations(primary, 2):
             out.append((f"{a}·{b}", sp.Symbol(a) * sp.Symbol(b), units_.product(un[a], un[b])))
@@ -265,8 +280,8 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
     Parameters
     ----------
     rec : Reconstruction
-        From :func:`bondgraph.diagnose.discover.reconstruct.reconstruct`:
-        d̂ (N,), its std (N,) and the port's variables (N,).
+        From :func:`~bondgraph.diagnose.discover.reconstruct.reconstruct`
+        (or ``reconstruct_sensor``): d̂ (N,), its std (N,), the variables.
     options : DiscoverOptions, optional
 
     Returns
@@ -287,9 +302,8 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
 
     Notes
     -----
-    Method: weighted orthogonal matching pursuit, its number of terms by
-    block cross-validation with the one-standard-error rule (module
-    docstring).
+    Method: weighted orthogonal matching pursuit, its number of terms by block
+    cross-validation with the one-standard-error rule (module docstring).
     """
     opts = options or DiscoverOptions()
     n = rec.t.size
@@ -301,7 +315,8 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
     values = {k: np.asarray(v, float)[keep] for k, v in rec.variables.items()}
     scales = {k: float(np.sqrt(np.mean(values[k] ** 2))) or 1.0 for k in rec.primary}
     inputs = [k for k in rec.variables if k in rec.model.inputs] if opts.inputs else []
-    cands = dictionary(rec.primary, inputs, scales, products=opts.products, units=rec.units)
+    cands = dictionary(rec.primary, inputs, scales, products=opts.products, units=rec.units,
+                       smooth_saturation=rec.port.kind == "output")
     symbols = {k: sp.Symbol(k) for k in list(rec.primary) + inputs}
     Phi = _columns([c[1] for c in cands], symbols, values, n - 2 * cut)
     d = np.asarray(rec.d, float)[keep]
@@ -399,3 +414,100 @@ def _one_se(err: np.ndarray, se: np.ndarray, sizes) -> int:
     best = int(np.argmin(err))
     ok = np.flatnonzero(err <= err[best] + se[best])
     return int(min(ok, key=lambda j: (sizes[j], err[j])))
+
+
+# ------------------------------------------------------------ a threshold law
+#: thresholds of a dead-zone term, as quantiles of the variable's visited values
+#: (upper quantiles for a term above the threshold, lower for one below)
+THRESHOLD_QUANTILES = (0.5, 0.7, 0.85)
+#: exponents p of a dead-zone term max(±(z − a), 0)^p
+THRESHOLD_POWERS = (1.0, 1.5, 2.0)
+
+
+def dead_zone(z: sp.Symbol, a: float, side: int, p: float) -> sp.Expr:
+    """max(side·(z − a), 0)^p written with |·| (the generated code's
+    functions): (w + |w|)/2 · |w|^(p − 1), w = side·(z − a). Not
+    ((w + |w|)/2)^p: sympy rewrites w + |w| and its rounding leaves
+    −1e-17 below the threshold, whose power 1.5 is NaN.
+
+    Parameters
+    ----------
+    z : sympy.Symbol
+    a : float
+        The threshold (z's unit).
+    side : {1, -1}
+        Above (1) or below (−1) the threshold.
+    p : float
+        Exponent (>= 1).
+    """
+    w = side * (z - sp.Float(a))
+    base = (w + sp.Abs(w)) / 2
+    return base if p == 1 else base * sp.Abs(w) ** (sp.Integer(1) if p == 2 else sp.Float(p - 1))
+
+
+def threshold_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLaw | None:
+    """The law of one dead-zone term of the port's own variable z (its first
+    primary variable): d = c·max(±(z − a), 0)^p, the threshold a at a
+    quantile of the visited z (:data:`THRESHOLD_QUANTILES`), p in
+    :data:`THRESHOLD_POWERS`, the one of least weighted squared residual
+    (each a one-coefficient weighted least squares, rows weighted by the
+    smoother's 1/std as in :func:`discover_law`).
+
+    A weir or an overflow that starts above a level, a contact or a stop:
+    a shape the smooth dictionary of :func:`discover_law` does not hold
+    (a tank's overflow c·max(p − 220 Pa, 0)^1.5 came out as −4.8e-16·p⁵).
+    It is not in that dictionary: there its columns lowered the
+    cross-validation's minimum and the one-standard-error rule then kept
+    look-alike terms beside a Coulomb friction (benchmarks.md); as a law of
+    its own the loop's likelihood ratio judges it.
+
+    Parameters
+    ----------
+    rec : Reconstruction
+    options : DiscoverOptions, optional
+        Only ``trim`` is used.
+
+    Returns
+    -------
+    DiscoveredLaw or None
+        One term; None when d̂ or its std is not finite or no term is
+        non-zero on the fitted samples.
+    """
+    opts = options or DiscoverOptions()
+    n = rec.t.size
+    cut = int(round(opts.trim * n))
+    keep = slice(cut, n - cut)
+    own = rec.primary[0]
+    z = np.asarray(rec.variables[own], float)[keep]
+    d, d_std = np.asarray(rec.d, float)[keep], np.asarray(rec.d_std, float)[keep]
+    if not (np.all(np.isfinite(d)) and np.all(np.isfinite(d_std))):
+        return None
+    w = 1.0 / np.maximum(d_std, 1e-12 * (np.abs(d).max() or 1.0))
+    sym = sp.Symbol(own)
+    unit = (rec.units or {}).get(own, "") or "1"
+    best = None
+    for side, qs in ((1, THRESHOLD_QUANTILES), (-1, tuple(1 - q for q in THRESHOLD_QUANTILES))):
+        for q in qs:
+            a = float(np.quantile(z, q))
+            col = np.maximum(side * (z - a), 0.0)
+            for p in THRESHOLD_POWERS:
+                phi = col ** p
+                den = float(np.sum((w * phi) ** 2))
+                if not den > 0:
+                    continue
+                c = float(np.sum(w * phi * w * d)) / den
+                sse = float(np.sum((w * (d - c * phi)) ** 2))
+                if best is None or sse < best[0]:
+                    best = (sse, side, a, p, c, phi)
+    if best is None:
+        return None
+    _, side, a, p, c, phi = best
+    name = (f"max({own}-{_fmt(a)},0)" if side > 0 else f"max({_fmt(a)}-{own},0)") + (
+        f"^{p:g}" if p != 1 else "")
+    term = Term(name, dead_zone(sym, a, side, p), c, float(np.sqrt(np.mean((c * phi) ** 2))),
+                unit if p == 1 or unit == "1" else f"({unit})^{p:g}")
+    return DiscoveredLaw(rec.port.port, rec.port.kind, rec.port.unit, {own: sym}, [term], [name],
+                         [(name,)], np.array([best[0] / d.size]), np.zeros(1),
+                         float(np.sqrt(np.mean(d ** 2))),
+                         float(np.sqrt(np.mean((d - c * phi) ** 2))),
+                         {own: (float(z.min()), float(z.max()))}, [], [])

@@ -102,7 +102,9 @@ class PassivityReport:
         lines = [f"{c.part} part in {c.variable}: {'passive' if c.ok else 'NOT passive'} "
                  f"(worst {c.worst:.4g} at {c.variable} = {c.at:.4g})" for c in self.checks]
         lines += [f"dropped {k}: {v}" for k, v in self.dropped.items()]
-        lines += [f"unchecked (source-like): {k}" for k in self.unchecked]
+        why = ("a sensor's output, no power" if getattr(self.law, "kind", None) == "output"
+               else "source-like")
+        lines += [f"unchecked ({why}): {k}" for k in self.unchecked]
         return "\n".join(lines) or "no term to check"
 
 
@@ -159,8 +161,12 @@ def make_passive(law, graph, values: dict, *, params=None, margin: float = MARGI
 
     Notes
     -----
-    Method: module docstring (KMR §4.1-4.3; Willems 1972).
+    Method: module docstring (KMR §4.1-4.3; Willems 1972). A law at a
+    sensor's output (``law.kind`` ``"output"``) changes no power: every
+    term is kept and listed as unchecked.
     """
+    if law.kind == "output":
+        return PassivityReport(law, unchecked=[tm.name for tm in law.terms])
     own = next(k for k in law.symbols if k == f"{law.port}.f" or k == f"{law.port}.e")
     theta = {n: p.default for n, p in graph.params.items()}
     theta.update(params or {})

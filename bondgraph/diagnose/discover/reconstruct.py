@@ -463,3 +463,126 @@ def _assemble(g, model, aug, problem, sm, theta, qinfo) -> Reconstruction:
     return Reconstruction(problem.t.copy(), sm.x[:, i].copy(), np.sqrt(np.maximum(sm.P[:, i, i], 0)),
                           values, primary, units, aug, q, q_grid, nll_grid, sm.x, sm.P, model,
                           theta, problem.x0.copy(), problem.P0.copy())
+
+
+# ------------------------------------------------------------ a sensor's output
+def augment_sensor(graph, sensor: str):
+    """A copy of ``graph`` with an integrated random walk ``d`` added to the
+    output of ``sensor``: y = h(x, u, θ) + d (an additive output offset,
+    the same prior as at a junction, :func:`augment_port`).
+
+    Parameters
+    ----------
+    graph : BondGraph
+    sensor : str
+        A sensor of ``graph``.
+
+    Returns
+    -------
+    (BondGraph, PortAugmentation)
+        ``kind`` is ``"output"``, ``unit`` the sensor's unit (``"1"`` when
+        it declares none), ``source`` the sensor's name.
+
+    Raises
+    ------
+    GraphError
+        ``sensor`` is not a sensor of ``graph``.
+    """
+    if sensor not in graph.sensors:
+        raise GraphError(f"graph '{graph.name}' has no sensor '{sensor}'")
+    g = graph.copy(f"{graph.name}__missing_output")
+    sen = g.sensors[sensor]
+    unit = sen.unit or "1"
+    rate_unit = f"({unit})/s"
+    tag = "out_" + sensor.replace(".", "_")
+    names = PortAugmentation(sensor, "output", unit, rate_unit, f"{PREFIX}.{tag}.d",
+                             f"{PREFIX}.{tag}.r", f"{PREFIX}.{tag}.q", sensor)
+    q = g.param(names.q, 1.0, f"({unit})/s^1.5", (1e-12, 1e12),
+                f"intensity of the rate of the offset missing at the output {sensor}")
+    r = g.state(names.r, 0, unit=rate_unit, process_noise=q,
+                description=f"rate of the offset missing at the output {sensor}")
+    d = g.state(names.d, r, unit=unit, description=f"offset missing at the output {sensor}")
+    sen.expr = sen.expr + d
+    return g, names
+
+
+def reconstruct_sensor(graph, record, sensor: str, *, params=None,
+                       options: ReconstructOptions | None = None) -> Reconstruction:
+    """Reconstruct the additive offset d(t) missing at the output of
+    ``sensor`` over ``record``: y = h(x) + d, d an integrated random walk
+    (:func:`augment_sensor`), its intensity by maximum likelihood over the
+    grid of :func:`reconstruct`, the unscented RTS smoother.
+
+    Parameters
+    ----------
+    graph : BondGraph
+        The declared graph.
+    record : Experiment
+        The record; it must hold the sensor's output.
+    sensor : str
+        A sensor of ``graph``.
+    params : dict, optional
+        Parameter values of ``graph`` by name (default: its defaults).
+    options : ReconstructOptions, optional
+        ``scale`` None: the std of the measured output.
+
+    Returns
+    -------
+    Reconstruction
+        ``d`` (N,) and ``d_std`` (N,) in the sensor's unit; ``variables``:
+        the sensed quantity h(x, u, θ) along the smoothed states
+        (``"<sensor>.y"``, the one primary variable: a law y = h + g(h)) and
+        the inputs.
+
+    Raises
+    ------
+    GraphError
+        ``sensor`` is not a sensor of ``graph``.
+    DataError
+        The record lacks the sensor's output.
+    NumericalError
+        The filter fails at every intensity, or the smoother fails.
+    """
+    opts = options or ReconstructOptions()
+    ukf = opts.ukf or UKFOptions()
+    fixed = dict(params or {})
+    g, aug = augment_sensor(graph, sensor)
+    model = Model.from_graph(g, lazy=("dfdtheta", "dhdtheta"))
+    base = Model.from_graph(graph, lazy=("dfdtheta", "dhdtheta"))
+    pb = make_problem(base, record, ukf=ukf, fixed=fixed)
+    y = np.asarray(pb.y[:, base.outputs.index(sensor)], float)
+    S = opts.scale or float(np.nanstd(y)) or 1.0
+    t = pb.t
+    dt = float(np.median(np.diff(t)))
+    taus = np.geomspace(opts.tau_min * dt, opts.tau_max * (t[-1] - t[0]), int(opts.grid))
+    prior = PriorSpec(x0_std={aug.d: 3.0 * S, aug.r: 3.0 * S / taus[0]})
+    problem = make_problem(model, record, ukf=ukf, fixed=fixed, prior=prior)
+    iq = model.params.index(aug.q)
+    q_grid = np.array([float(opts.q)]) if opts.q is not None else S / taus ** 1.5
+    proc = [model.param_index(n) for n in process_noise(base, pb.theta, opts)]
+    theta, nll_grid = intensity_grid(problem, iq, q_grid, proc, opts.noise_factors)
+    if opts.q is not None:
+        q_grid, nll_grid = np.zeros(0), np.zeros(0)
+    R = problem.noise.covariance(model, theta[None, :])
+    sm = rts_smooth(model, t, problem.u, problem.y, theta, problem.x0, problem.P0,
+                    options=ukf, R=None if R is None else R[0])
+    return _assemble_sensor(g, graph.sensors[sensor].expr, model, aug, problem, sm, theta,
+                            (float(theta[iq]), q_grid, nll_grid))
+
+
+def _assemble_sensor(g, sensed, model, aug, problem, sm, theta, qinfo) -> Reconstruction:
+    """The :class:`Reconstruction` of a smoothed model augmented at a sensor;
+    ``sensed`` is the declared sensor's expression h."""
+    ss = derive(g)
+    own = f"{aug.port}.y"
+    exprs = {own: sensed, **{name: inp for name, inp in g.inputs.items()}}
+    n = problem.t.size
+    values = _evaluate(_lambdified(ss, exprs), sm.x, problem.u, theta, n)
+    units = {aug.d: aug.unit, own: aug.unit}
+    units.update({k: g.inputs[k].unit or "" for k in g.inputs})
+    i = model.states.index(aug.d)
+    q, q_grid, nll_grid = qinfo
+    return Reconstruction(problem.t.copy(), sm.x[:, i].copy(),
+                          np.sqrt(np.maximum(sm.P[:, i, i], 0)), values, [own], units, aug, q,
+                          q_grid, nll_grid, sm.x, sm.P, model, theta, problem.x0.copy(),
+                          problem.P0.copy())
