@@ -166,8 +166,9 @@ def test_a_long_compile_off_a_terminal_shows_a_dot_per_heartbeat(tmp_path):
 def test_the_watchdog_names_the_phase_of_a_silent_stretch_and_stays_quiet_otherwise(capsys):
     """Bars on: after quiet_after seconds without output, one stderr line
     names the innermost phase and its age; output in between (a log line)
-    resets the clock; an announced compile (its own dots) keeps it quiet;
-    bars off, nothing; stdout and stderr are the originals afterwards."""
+    resets the clock; an announced compile, once its line shows, keeps it
+    quiet (its own dots); bars off, nothing; stdout and stderr are the
+    originals afterwards."""
     import re
     import sys
     import time
@@ -178,12 +179,15 @@ def test_the_watchdog_names_the_phase_of_a_silent_stretch_and_stays_quiet_otherw
             time.sleep(0.75)                        # one line at 0.5 s
             print("a log line")
             time.sleep(0.3)                         # < 0.5 s since the log line: none
-        with progress.announced("compiling X", delay=5.0):
-            time.sleep(0.75)                        # announced: none
+        with progress.announced("compiling X", delay=0.05, heartbeat=0.2):
+            time.sleep(1.2)                         # announced, its dots: none
     assert (sys.stdout, sys.stderr) == (out0, err0)
     got = capsys.readouterr()
     assert got.out == "a log line\n"
-    assert re.fullmatch(r"  \.\.\. step 1: scoring the candidates \([01] s\)\n", got.err), got.err
+    lines = got.err.splitlines()
+    assert re.fullmatch(r"  \.\.\. step 1: scoring the candidates \([01] s\)", lines[0]), got.err
+    assert lines[1].startswith("  ... compiling X . .")           # its dots, no watchdog line
+    assert lines[2] == "  ... compiling X: done in 1 s" and len(lines) == 3, got.err
     with progress.enabled(False), progress.watchdog(quiet_after=0.1, poll=0.02):
         time.sleep(0.3)
     assert capsys.readouterr().err == ""

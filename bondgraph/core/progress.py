@@ -148,11 +148,9 @@ def announced(what: str, *, delay: float = 2.0, note: str = "", stream=None,
     ticker = threading.Thread(target=_announce,
                               args=(label, out, delay, (tick, heartbeat), done), daemon=True)
     ticker.start()
-    _ANNOUNCING[0] += 1
     try:
         yield
     finally:
-        _ANNOUNCING[0] -= 1
         done.set()
         ticker.join()
         took = time.perf_counter() - t0
@@ -177,6 +175,20 @@ def _announce(label: str, out, delay: float, ticks: tuple[float, float],
     tick, heartbeat = ticks
     if done.wait(delay):
         return
+    with _ANNOUNCING_LOCK:         # from its line on, its own dots or bar keep the output alive
+        _ANNOUNCING[0] += 1
+    try:
+        _announce_shown(label, out, delay, ticks, done)
+    finally:
+        with _ANNOUNCING_LOCK:
+            _ANNOUNCING[0] -= 1
+
+
+def _announce_shown(label: str, out, delay: float, ticks: tuple[float, float],
+                    done: threading.Event) -> None:
+    """:func:`_announce` once its line is due: the line with its dots, or
+    the live bar on a terminal, until ``done``."""
+    tick, heartbeat = ticks
     if not _is_terminal(out):
         print(f"  ... {label}", file=out, end="", flush=True)
         while not done.wait(heartbeat):
@@ -197,9 +209,11 @@ def _announce(label: str, out, delay: float, ticks: tuple[float, float],
 #: what the program is doing, innermost last: (text, start time) pairs
 #: (:func:`phase`), named by :func:`watchdog`'s lines
 _PHASES: list[tuple[str, float]] = []
-#: announced blocks running (:func:`announced`): their own dots keep the
-#: output alive, so :func:`watchdog` stays quiet meanwhile
+#: announced blocks whose line is shown (:func:`announced`): their own dots
+#: keep the output alive, so :func:`watchdog` stays quiet meanwhile (not
+#: during an announcement's first ``delay`` seconds, which print nothing)
 _ANNOUNCING = [0]
+_ANNOUNCING_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
