@@ -290,11 +290,11 @@ def compile_ahead(models) -> int:
     """
     if numba is None or not ahead_workers():
         return 0
-    todo = []
+    todo, listed = [], {}
     with _LOCK:
         for model in models:
             path = kernel_source_path(model)
-            if path is None or str(path) in _LOADED or is_compiled(model):
+            if path is None or str(path) in _LOADED or _in_cache(path, listed):
                 continue
             try:
                 if not path.exists():
@@ -305,6 +305,22 @@ def compile_ahead(models) -> int:
     if todo:
         _ahead().add(todo)
     return len(todo)
+
+
+def _in_cache(path: Path, listed: dict) -> bool:
+    """:func:`is_compiled` for the kernel source ``path`` from one listing
+    of its numba cache folder per call of :func:`compile_ahead` (``listed``:
+    source folder -> the stems with an index in its cache). A glob per model read the
+    whole folder each time: 37 ms per model with 49 000 cached files, about
+    a second per loop step of a warm run."""
+    if path.parent not in listed:      # one locator probe and one listing per folder
+        cache = numba_cache_dir(path)
+        try:
+            names = os.listdir(cache) if cache is not None else []
+        except OSError:
+            names = []
+        listed[path.parent] = {n.split(".", 1)[0] for n in names if n.endswith(".nbi")}
+    return path.stem in listed[path.parent]
 
 
 def cancel_ahead() -> None:
