@@ -340,6 +340,9 @@ def test_kernels_compiled_ahead_meet_in_the_middle(tmp_path, monkeypatch):
     models = [Model.from_spec(f"bondgraph.catalog.reference:{n}")
               for n in ("mass_spring_damper", "rlc_circuit")]
     assert compiled.compile_ahead(models) == 2
+    ahead, last_path = compiled._AHEAD[0], str(compiled.kernel_source_path(models[1]))
+    with ahead.cond:                              # the worker has started (a cold venv: seconds)
+        assert ahead.cond.wait_for(lambda: last_path not in ahead.queue, 300)
     first, last = (compiled.point_kernels(m) for m in models)
     assert not first.from_cache                   # compiled here
     assert last.from_cache                        # by the background process

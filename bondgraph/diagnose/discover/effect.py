@@ -861,13 +861,7 @@ def threshold_alternative(graph, disc: Discovery, params: dict,
     if disc.law.kind == "output":
         return None
     law = threshold_law(rec, options=discovery)
-    if law is None:
-        return None
-    rep = make_passive(law, graph, rec.variables, params=params)
-    if not rep.law.terms:
-        return None
-    eff = effect_for(rep.law, disc.effect.name if disc.effect else "discovered")
-    return Discovery(rec, law, rep, eff, disc.gain, eff.placement(graph))
+    return None if law is None else _alternative(graph, disc, law, params, same_ok=True)
 
 
 def sparse_alternative(graph, disc: Discovery, params: dict,
@@ -895,8 +889,16 @@ def sparse_alternative(graph, disc: Discovery, params: dict,
         return None
     rec = disc.reconstruction
     law = discover_law(rec, options=replace(opts, max_terms=SPARSE_TERMS))
+    return _alternative(graph, disc, law, params, same_ok=False)
+
+
+def _alternative(graph, disc: Discovery, law, params: dict, same_ok: bool) -> Discovery | None:
+    """``law`` (found on ``disc``'s reconstruction) as a Discovery of its
+    own, its passive terms kept (:func:`make_passive`); None when no term
+    is left, or (``same_ok`` False) when its terms are ``disc``'s."""
+    rec = disc.reconstruction
     rep = make_passive(law, graph, rec.variables, params=params)
-    if not rep.law.terms or ([tm.name for tm in rep.law.terms]
+    if not rep.law.terms or (not same_ok and [tm.name for tm in rep.law.terms]
                              == [tm.name for tm in disc.passivity.law.terms]):
         return None
     eff = effect_for(rep.law, disc.effect.name if disc.effect else "discovered")

@@ -355,13 +355,32 @@ def reconstruct(graph, record, port: str, *, params=None,
     smoother (Särkkä 2008).
     """
     opts = options or ReconstructOptions()
+    g, aug = augment_port(graph, port)
+    model, problem, sm, theta, qinfo = _smoothed(
+        graph, record, g, aug, opts, params,
+        lambda base, pb: port_scale(graph, base, pb, pb.theta, port))
+    return _assemble(g, model, aug, problem, sm, theta, qinfo)
+
+
+def _smoothed(graph, record, g, aug, opts: ReconstructOptions, params, scale) -> tuple:
+    """The augmented graph ``g`` (walk ``aug``) on ``record``: the intensity
+    by maximum likelihood over its grid (:func:`intensity_grid`), then the
+    RTS smoother there. ``scale(base, problem)`` gives the walk's scale S
+    unless ``opts.scale`` does (the declared model ``base`` of ``graph``
+    and its problem on the record).
+
+    Returns
+    -------
+    (model, problem, sm, theta, (q, q_grid, nll_grid))
+        The augmented model and its problem, the smoothed run, the
+        parameters (n_theta,) and the intensity with its grid.
+    """
     ukf = opts.ukf or UKFOptions()
     fixed = dict(params or {})
-    g, aug = augment_port(graph, port)
     model = Model.from_graph(g, lazy=("dfdtheta", "dhdtheta"))
     base = Model.from_graph(graph, lazy=("dfdtheta", "dhdtheta"))
     pb = make_problem(base, record, ukf=ukf, fixed=fixed)
-    S = opts.scale or port_scale(graph, base, pb, pb.theta, port)
+    S = opts.scale or scale(base, pb)
     t = pb.t
     dt = float(np.median(np.diff(t)))
     taus = np.geomspace(opts.tau_min * dt, opts.tau_max * (t[-1] - t[0]), int(opts.grid))
@@ -373,11 +392,10 @@ def reconstruct(graph, record, port: str, *, params=None,
     theta, nll_grid = intensity_grid(problem, iq, q_grid, proc, opts.noise_factors)
     if opts.q is not None:
         q_grid, nll_grid = np.zeros(0), np.zeros(0)
-    q = float(theta[iq])
     R = problem.noise.covariance(model, theta[None, :])
     sm = rts_smooth(model, t, problem.u, problem.y, theta, problem.x0, problem.P0,
                     options=ukf, R=None if R is None else R[0])
-    return _assemble(g, model, aug, problem, sm, theta, (q, q_grid, nll_grid))
+    return model, problem, sm, theta, (float(theta[iq]), q_grid, nll_grid)
 
 
 def process_noise(base: Model, theta: np.ndarray, opts: ReconstructOptions) -> list[str]:
@@ -544,30 +562,11 @@ def reconstruct_sensor(graph, record, sensor: str, *, params=None,
         The filter fails at every intensity, or the smoother fails.
     """
     opts = options or ReconstructOptions()
-    ukf = opts.ukf or UKFOptions()
-    fixed = dict(params or {})
     g, aug = augment_sensor(graph, sensor)
-    model = Model.from_graph(g, lazy=("dfdtheta", "dhdtheta"))
-    base = Model.from_graph(graph, lazy=("dfdtheta", "dhdtheta"))
-    pb = make_problem(base, record, ukf=ukf, fixed=fixed)
-    y = np.asarray(pb.y[:, base.outputs.index(sensor)], float)
-    S = opts.scale or float(np.nanstd(y)) or 1.0
-    t = pb.t
-    dt = float(np.median(np.diff(t)))
-    taus = np.geomspace(opts.tau_min * dt, opts.tau_max * (t[-1] - t[0]), int(opts.grid))
-    prior = PriorSpec(x0_std={aug.d: 3.0 * S, aug.r: 3.0 * S / taus[0]})
-    problem = make_problem(model, record, ukf=ukf, fixed=fixed, prior=prior)
-    iq = model.params.index(aug.q)
-    q_grid = np.array([float(opts.q)]) if opts.q is not None else S / taus ** 1.5
-    proc = [model.param_index(n) for n in process_noise(base, pb.theta, opts)]
-    theta, nll_grid = intensity_grid(problem, iq, q_grid, proc, opts.noise_factors)
-    if opts.q is not None:
-        q_grid, nll_grid = np.zeros(0), np.zeros(0)
-    R = problem.noise.covariance(model, theta[None, :])
-    sm = rts_smooth(model, t, problem.u, problem.y, theta, problem.x0, problem.P0,
-                    options=ukf, R=None if R is None else R[0])
-    return _assemble_sensor(g, graph.sensors[sensor].expr, model, aug, problem, sm, theta,
-                            (float(theta[iq]), q_grid, nll_grid))
+    model, problem, sm, theta, qinfo = _smoothed(
+        graph, record, g, aug, opts, params,
+        lambda base, pb: float(np.nanstd(pb.y[:, base.outputs.index(sensor)])) or 1.0)
+    return _assemble_sensor(g, graph.sensors[sensor].expr, model, aug, problem, sm, theta, qinfo)
 
 
 def _assemble_sensor(g, sensed, model, aug, problem, sm, theta, qinfo) -> Reconstruction:
