@@ -175,12 +175,7 @@ def is_compiled(model) -> bool:
     only (what a run will cost, what to announce): it never decides which
     backend runs."""
     path = kernel_source_path(model)
-    if path is None:
-        return False
-    if str(path) in _LOADED:
-        return True
-    cache = numba_cache_dir(path)
-    return cache is not None and cache.is_dir() and any(cache.glob(f"{path.stem}.*.nbi"))
+    return path is not None and (str(path) in _LOADED or _in_cache(path, {}))
 
 
 def numba_cache_dir(path: Path) -> Path | None:
@@ -308,11 +303,12 @@ def compile_ahead(models) -> int:
 
 
 def _in_cache(path: Path, listed: dict) -> bool:
-    """:func:`is_compiled` for the kernel source ``path`` from one listing
-    of its numba cache folder per call of :func:`compile_ahead` (``listed``:
-    source folder -> the stems with an index in its cache). A glob per model read the
-    whole folder each time: 37 ms per model with 49 000 cached files, about
-    a second per loop step of a warm run."""
+    """Whether the kernel source ``path`` has a numba index in its cache
+    folder, from one listing of that folder per ``listed`` (source folder ->
+    the stems with an index in its cache; :func:`compile_ahead` shares one
+    over its models: a listing per model read the whole folder each time,
+    37 ms per model with 49 000 cached files, about a second per loop step
+    of a warm run)."""
     if path.parent not in listed:      # one locator probe and one listing per folder
         cache = numba_cache_dir(path)
         try:
