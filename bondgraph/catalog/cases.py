@@ -43,7 +43,7 @@ from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.prior import PriorSpec
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
-from bondgraph.sensitivity.sobol import simulate_batch
+from bondgraph.numerics.integrators import simulate_batch
 
 #: registered cases (``bondgraph.cases`` entry point)
 CASES: dict[str, str] = {

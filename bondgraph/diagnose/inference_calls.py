@@ -27,7 +27,7 @@ from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
 from bondgraph.inference import sim_numba
 from bondgraph.inference.prior import PriorSpec, free_run_kernels
 from bondgraph.inference.ukf import UKFResult
-from bondgraph.sensitivity.sobol import simulate_batch
+from bondgraph.numerics.integrators import simulate_batch
 
 # re-exported for the loop: the box of an estimated noise std (its start
 # times / divided by NOISE_BOX), the problem's parts, the noise detector
