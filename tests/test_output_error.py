@@ -6,7 +6,11 @@ import pytest
 from scipy.optimize import least_squares
 
 from bondgraph.errors import DataError, ModelError
-from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
+from bondgraph.inference.output_error import (
+    OutputErrorOptions,
+    output_error_fit,
+    swarm_output_error_fit,
+)
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 
@@ -136,3 +140,41 @@ def test_fixed_step_fit_equals_the_sensitivity_fit(record, monkeypatch):
     prob = oe._problem_for(m, t, u, y, ["c"], [], stiff, x0, sig, OutputErrorOptions(substeps=1),
                            ([0.0], [100.0]))
     assert type(prob) is oe._Problem
+
+
+def test_swarm_fit_finds_the_global_basin_the_local_fit_misses(record, monkeypatch):
+    """A stiffness started 25x too high: least squares from there stops in
+    a local minimum of the free-run error (a resonance far above the
+    record's); the swarm over the box [1, 1e4] reaches the optimum that
+    least squares started at the truth reaches (the independent reference:
+    scipy's least_squares with its own finite differences on `simulate`),
+    with the compiled RK4 runs and with the numpy ones alike."""
+    import bondgraph.inference.output_error as oe
+
+    m, t, u, y, truth, _ = record
+    x0 = np.array([0.3, 0.01])
+    sig = np.array([0.002, 0.01])
+    opts = OutputErrorOptions(substeps=8)
+    start = m.theta(m=2.5, k=2000.0, c=2.0)
+    box = ([1.0], [1e4])
+    local = output_error_fit(m, t, u, y, ["k"], theta=start, x0=x0, options=opts, bounds=box,
+                             sigma=sig)
+    assert local.x[0] > 1000.0 and 2 * local.cost > 100 * y.size    # stuck far away
+
+    def res(z):
+        th = m.theta(m=2.5, k=z[0], c=2.0)
+        return ((simulate(m, t, u, x0, th, rtol=1e-10, atol=1e-12, hold="zoh").y - y)
+                / sig).ravel()
+    ref = least_squares(res, [80.0], x_scale="jac", method="trf", bounds=box)
+    g = swarm_output_error_fit(m, t, u, y, ["k"], theta=start, x0=x0, options=opts,
+                               bounds=box, sigma=sig)
+    assert g.x[0] == pytest.approx(ref.x[0], rel=1e-4)
+    assert abs(g.x[0] - 80.0) < 3 * g.std["k"]
+    assert 2 * g.cost == pytest.approx(y.size - 1, rel=0.15)       # χ² at the noise level
+    monkeypatch.setattr(oe, "free_run_kernels", lambda *a, **k: None)
+    g2 = swarm_output_error_fit(m, t, u, y, ["k"], theta=start, x0=x0, options=opts,
+                                bounds=box, sigma=sig)
+    assert g2.x[0] == pytest.approx(g.x[0], rel=1e-6)
+    with pytest.raises(ModelError, match="not finite"):
+        swarm_output_error_fit(m, t, u, y, ["k"], theta=start, x0=x0, options=opts,
+                               bounds=([1.0], [np.inf]))

@@ -45,12 +45,15 @@ from scipy.optimize import least_squares
 
 from bondgraph.errors import DataError, ModelError, NumericalError, OptionError
 from bondgraph.inference import sim_numba
+from bondgraph.inference.optimize import pso
+from bondgraph.inference.options import SwarmOptions
 from bondgraph.inference.prior import free_run_kernels
 from bondgraph.numerics.forward_sensitivity import (
     SolverOptions,
     check_solver_fields,
     output_sensitivities,
 )
+from bondgraph.numerics.integrators import simulate_batch
 from bondgraph.numerics.model import Model
 
 
@@ -202,11 +205,20 @@ class _Problem:
         return J[self.mask]
 
 
+#: weighted residual of every sample at a trial point whose fixed-step free
+#: run is not finite (after a finite start): the trust region rejects the
+#: step and shrinks, as at any point of higher cost
+UNSTABLE_RESIDUAL = 1e3
+
+
 class _FixedStepProblem(_Problem):
     """:class:`_Problem` with compiled fixed-step RK4 free runs
     (``substeps`` per sample interval) and a forward-difference Jacobian:
     column j from one more run with z_j moved by √ε · max(|z_j|, 1e-3 ·
-    its box width, or 1e-3 without a box), inwards at an upper bound."""
+    its box width, or 1e-3 without a box), inwards at an upper bound. A
+    trial point whose run is not finite gets residuals
+    :data:`UNSTABLE_RESIDUAL` (the search steps back); at the start it
+    raises."""
 
     def __init__(self, model, t, u, y, params, states, theta, x0, sigma, solver: SolverOptions,
                  *, kernels, substeps: int, box):
@@ -237,7 +249,13 @@ class _FixedStepProblem(_Problem):
         return Y
 
     def residuals(self, z):
-        return ((self.outputs(z) - self.y) * self.w)[self.mask]
+        try:
+            return ((self.outputs(z) - self.y) * self.w)[self.mask]
+        except NumericalError:
+            if self._zy is None:        # the start itself: the caller's problem
+                raise
+            # a trial point whose run blows up: a rejected step, not the end
+            return np.full(int(self.mask.sum()), UNSTABLE_RESIDUAL)
 
     def sens(self, z):
         if self._z is not None and np.array_equal(z, self._z):
@@ -384,3 +402,143 @@ def _result(prob: _Problem, r, lo, hi) -> OutputErrorResult:
         std = {n: None for n in names}
     return OutputErrorResult(names, r.x.copy(), th, x0, float(r.cost), rmse, std, at, s.y,
                              int(r.nfev), int(r.njev or 0), int(r.status), str(r.message))
+
+
+#: a parameter whose box is positive and spans at least this ratio is
+#: searched by the swarm in log θ (a stiffness in [0.01, 100])
+LOG_SPAN = 10.0
+
+
+def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=None,
+                           bounds=None, sigma=None, options: OutputErrorOptions | None = None,
+                           swarm=None) -> OutputErrorResult:
+    """Global output-error fit: a particle swarm over the parameters' box,
+    then the local least-squares fit (:func:`output_error_fit`) from the best
+    particle.
+
+    The local fit alone finds the basin of its start; a model whose start
+    (or whose likelihood fit) sits in another basin, for example a linear
+    drive fitted to a sign-blind sensor's |ω| and then given the rectifying
+    sensor, needs the global search. The swarm (:func:`bondgraph.inference.optimize.pso`;
+    Kennedy & Eberhart 1995) minimises the same criterion, the mean of the
+    squared weighted free-run errors, over the box, in log θ where the box
+    is positive and spans a factor :data:`LOG_SPAN` or more; ``theta`` is
+    one of its particles, so the result is never worse than the start.
+    Each particle's free run is the model's compiled fixed-step RK4
+    (:func:`bondgraph.inference.sim_numba.rk4_trajectory`) or, without
+    kernels, the batched numpy RK4
+    (:func:`bondgraph.numerics.integrators.simulate_batch`); +inf if not finite.
+
+    Parameters
+    ----------
+    model : Model
+    t : array (N,)
+        Sample times [s].
+    u : array (N, n_u) or None
+    y : array (N, n_y)
+        Measured outputs (NaN: missing).
+    params : sequence of str
+        Estimated parameters (k >= 1); their boxes must be finite.
+    theta : array (n_theta,), optional
+        A start (one particle) and the values of the others (default the
+        model's).
+    x0 : array (n_x,), optional
+        Initial state (default the model's).
+    bounds : (lower, upper) of arrays (k,), optional
+        Box (default the parameters' declared boxes).
+    sigma : array (n_y,), optional
+        Output weights (default the std of each measured output).
+    options : OutputErrorOptions, optional
+        Hold and fixed-step ``substeps`` of the free runs (default 4) and
+        the local fit's settings.
+    swarm : SwarmOptions, optional
+        Default: min(10 k, 60) particles, 100 iterations, stop after 20
+        iterations without a relative gain of 1e-6, seed 0.
+
+    Returns
+    -------
+    OutputErrorResult
+        The local fit's result from the swarm's best point.
+
+    Raises
+    ------
+    ModelError
+        Nothing to estimate, unknown names, a box that is not finite.
+    NumericalError
+        No particle's free run is finite, or the local fit fails.
+    """
+    model = Model.from_spec(model)
+    opts = options if options is not None else OutputErrorOptions(substeps=4)
+    if opts.substeps is None:
+        opts = OutputErrorOptions(hold=opts.hold, method=opts.method, rtol=opts.rtol,
+                                  atol=opts.atol, max_nfev=opts.max_nfev, substeps=4)
+    params = list(params)
+    if not params:
+        raise ModelError("swarm_output_error_fit: nothing to estimate (no params)")
+    th = np.array(model.theta0 if theta is None else theta, dtype=float)
+    xi = np.array(model.x0 if x0 is None else x0, dtype=float)
+    lo, hi = _box(model, params, [], bounds)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise ModelError("swarm_output_error_fit: the box of "
+                         + ", ".join(n for n, a, b in zip(params, lo, hi)
+                                     if not np.isfinite(a - b)) + " is not finite")
+    crit = _SwarmCriterion(model, t, u, y, params, th, xi, sigma, opts)
+    sw = swarm if swarm is not None else SwarmOptions(
+        particles=min(10 * len(params), 60), stall_iterations=20, ftol=1e-6)
+    best = th.copy()
+    best[crit.pidx] = _swarm_best(crit, lo, hi, np.clip(th[crit.pidx], lo, hi), sw)
+    return output_error_fit(model, t, u, y, params, theta=best, x0=xi, bounds=(lo, hi),
+                            sigma=crit.sigma, options=opts)
+
+
+def _swarm_best(crit, lo: np.ndarray, hi: np.ndarray, start: np.ndarray, sw) -> np.ndarray:
+    """The swarm's best point (k,) of ``crit`` in the box, searched in log θ
+    where the box is positive and spans :data:`LOG_SPAN` or more, ``start``
+    one particle; NumericalError when no particle's run is finite."""
+    logs = (lo > 0) & (hi >= LOG_SPAN * np.maximum(lo, 1e-300))
+    zlo, zhi = np.where(logs, np.log(np.maximum(lo, 1e-300)), lo), np.where(logs, np.log(hi), hi)
+    res = pso(lambda Z: crit(np.where(logs, np.exp(Z), Z)), zlo, zhi, swarm=sw,
+              progress=False, x0=np.where(logs, np.log(np.maximum(start, 1e-300)), start))
+    if not np.isfinite(res.fun):
+        raise NumericalError(f"swarm_output_error_fit: no free run of model "
+                             f"'{crit.model.name}' in the box is finite")
+    return np.clip(np.where(logs, np.exp(res.x), res.x), lo, hi)
+
+
+class _SwarmCriterion:
+    """Mean squared weighted free-run error of parameter sets X (S, k):
+    compiled RK4 per set, or batched numpy RK4; +inf where not finite."""
+
+    def __init__(self, model, t, u, y, params, theta, x0, sigma, opts: OutputErrorOptions):
+        self.model, self.theta, self.x0, self.opts = model, theta, x0, opts
+        self.t = np.asarray(t, float)
+        self.y = np.asarray(y, float).reshape(self.t.size, -1)
+        if self.y.shape[1] != model.n_y:
+            raise DataError(f"y has {self.y.shape[1]} columns, model '{model.name}' has "
+                            f"{model.n_y} outputs")
+        self.u = (np.asarray(u, float).reshape(self.t.size, -1) if model.n_u
+                  else np.zeros((self.t.size, 1)))
+        self.pidx = model.param_indices(params)
+        self.sigma = (np.array([np.nanstd(self.y[:, i]) or 1.0 for i in range(model.n_y)])
+                      if sigma is None else np.asarray(sigma, float))
+        self.mask = np.isfinite(self.y)
+        self.kernels = free_run_kernels(model, "numba", "rk4", opts.hold)
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        thetas = np.repeat(self.theta[None, :], len(X), axis=0)
+        thetas[:, self.pidx] = X
+        if self.kernels is None:
+            Y = simulate_batch(self.model, self.t, self.u[:, :self.model.n_u], thetas, self.x0,
+                               method="rk4", substeps=self.opts.substeps, hold=self.opts.hold)
+        else:
+            Y = np.stack([self._run(th) for th in thetas], axis=1)
+        with np.errstate(all="ignore"):
+            E = np.where(self.mask[:, None, :], (Y - self.y[:, None, :]) / self.sigma, 0.0)
+            f = np.sum(E ** 2, axis=(0, 2)) / max(int(self.mask.sum()), 1)
+        return np.where(np.isfinite(f), f, np.inf)
+
+    def _run(self, th: np.ndarray) -> np.ndarray:
+        X = sim_numba.rk4_trajectory(self.kernels, self.t, self.u, self.opts.hold, th, self.x0,
+                                     self.opts.substeps)
+        with np.errstate(all="ignore"):
+            return np.asarray(self.model.h(X, self.u[:, :self.model.n_u], th[None, :]), float)
