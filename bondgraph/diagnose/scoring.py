@@ -47,6 +47,7 @@ from bondgraph.diagnose.inference_calls import Problem, fisher_fit, run_ukf
 from bondgraph.diagnose.parallel import distributed, run_tasks
 from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.scales import operating_scales  # noqa: F401 (public name)
+from bondgraph.diagnose.screen import output_error_screen
 from bondgraph.errors import BondGraphError
 from bondgraph.numerics.compiled import cancel_ahead, compile_ahead
 from bondgraph.numerics.model import Model
@@ -186,6 +187,7 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     ctx.cache[("score_gram", id(fit), fit.nll)] = (An, bn, norm, col_of, len(probe.nuis))
     mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
     line_probe(ctx, probe, fit, out)
+    output_error_screen(ctx, probe, fit, out)
     rank_nested(out, col_of, An, ctx.settings.accept.significance)
     return out
 

@@ -1,0 +1,120 @@
+"""The output-error screen (bondgraph/diagnose/screen.py) and boxes that do
+not decide a fit (runner.box_not_deciding): a user's speed graph on a
+sign-blind counter's record, simulated by scipy from hand-written
+equations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from bondgraph import BondGraph
+from bondgraph.data.records import Experiment
+from bondgraph.diagnose.accept import decide, newly_boxed
+from bondgraph.diagnose.effects.library import BY_NAME
+from bondgraph.diagnose.fit import Fit
+from bondgraph.diagnose.residuals import ResidualReport
+from bondgraph.diagnose.settings import AcceptRule, LoopSettings, SearchOptions
+from bondgraph.numerics.model import Model
+
+#: the truth: m ẍ = F − c ẋ − k x, the counter reads |ẋ| (+ noise 0.01 m/s)
+M, C, K, DT, N, NOISE = 1.0, 0.8, 40.0, 0.02, 600, 0.01
+
+
+def speed_graph() -> BondGraph:
+    """The user's graph: Se(F) → 1 {I m, R c, C k}, a signed speed sensor
+    with a declared gain; start values off by 2x to 4x."""
+    g = BondGraph("rect_user", "mass-spring-damper with a speed sensor")
+    F = g.input("F", "N", 0.0, "force")
+    m = g.param("m", 2.0, "kg", (0.1, 10.0), "mass")
+    c = g.param("c", 0.3, "N*s/m", (0.01, 10.0), "damping")
+    k = g.param("k", 10.0, "N/m", (1.0, 1000.0), "stiffness")
+    j = g.one("v")
+    g.connect(g.Se("drive", F), j)
+    g.connect(j, g.I("mass", m))
+    g.connect(j, g.R("damper", c))
+    g.connect(j, g.C("spring", stiffness=k))
+    g.sensor("y", j.f, unit="m/s", noise_std=NOISE, description="speed (pulse counter)")
+    return g
+
+
+def counter_record(seed: int) -> Experiment:
+    """A PRBS force (±1 N, clock 15 samples) held between samples; the
+    truth integrated by solve_ivp (rtol 1e-10) interval by interval."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(N) * DT
+    F = np.repeat(rng.choice([-1.0, 1.0], N // 15 + 1), 15)[:N]
+    x, y = np.zeros(2), [0.0]
+    for k in range(N - 1):
+        s = solve_ivp(lambda _, z, f=F[k]: [z[1], (f - C * z[1] - K * z[0]) / M], (0.0, DT), x,
+                      rtol=1e-10, atol=1e-12)
+        x = s.y[:, -1]
+        y.append(abs(x[1]))
+    y = np.array(y) + rng.normal(0.0, NOISE, N)
+    return Experiment.from_arrays(t, model=Model.from_graph(speed_graph()), u=F[:, None],
+                                  y=y[:, None], name=f"counter{seed}")
+
+
+def _loop(logs):
+    from bondgraph.diagnose.runner import run_loop
+
+    fx = [BY_NAME[n] for n in ("sensor_rectification", "sensor_gain", "sensor_offset",
+                               "coulomb", "viscous")]
+    return run_loop(speed_graph(), counter_record(0),
+                    LoopSettings(params=["m", "c", "k"], effects=fx,
+                                 validation=counter_record(1),
+                                 search=SearchOptions(max_steps=1, structural=False)),
+                    log=logs.append, progress=False)
+
+
+def test_the_screen_finds_the_rectifying_sensor_behind_a_failed_declared_fit():
+    """The declared linear fit cannot follow |ẋ| (free-run NRMSE about 1.5:
+    worse than the mean); there the rectification changes nothing at the
+    current estimates (score test and line probe rank it below an offset
+    and a viscous term). The screen refits m, c, k by a global output-error
+    search with the sensor rectified, reaches the noise level (RMS 0.0101
+    for σ 0.01) and the confirmation starting there is accepted: the
+    held-out error falls more than 4-fold, m and k within 5 % of the truth."""
+    logs: list[str] = []
+    res = _loop(logs)
+    line = next(s for s in logs if "sensor_rectification @ y at {'lam': 1.0}" in s)
+    rms = float(line.split("->")[1].split()[0])
+    assert rms == pytest.approx(NOISE, rel=0.1)
+    assert [s.effect for s in res.steps] == ["sensor_rectification"]
+    assert res.final.validation_metric < 0.25 * res.initial.validation_metric
+    est = res.final.estimates
+    assert est["m"] == pytest.approx(M, rel=0.05) and est["k"] == pytest.approx(K, rel=0.05)
+
+
+@pytest.mark.long
+def test_without_the_screen_the_loop_takes_a_look_alike(monkeypatch):
+    """The same loop with the screen off accepts the sensor offset (the
+    look-alike that scores best at the failed fit): what the screen fixes."""
+    import bondgraph.diagnose.screen as screen
+
+    monkeypatch.setattr(screen, "SCREEN_LEVEL", float("inf"))
+    res = _loop([])
+    assert "sensor_rectification" not in [s.effect for s in res.steps]
+
+
+def _fit(model, theta, at_bound, nll):
+    rep = ResidualReport([], [], 1.0, 1.0, (0.9, 1.1), 10.0, {"whiteness_dof": 20.0})
+    return Fit(None, model, ["m", "k", "c"], np.asarray(theta, float), nll, None, rep, 1.0, None,
+               n_obs=1000, at_bound=list(at_bound))
+
+
+def test_a_parameter_newly_on_its_box_rejects_unless_the_box_is_exempt():
+    """decide: a refit that puts c on the lower end of its declared box is
+    rejected naming c and its box; exempt (the box shown not to decide the
+    fit), the same refit is accepted on its likelihood ratio."""
+    m = Model.load("mass_spring_damper")
+    lo = float(m.bounds(["c"])[0][0])
+    cur = _fit(m, m.theta(m=2.0, k=50.0, c=1.0), [], 100.0)
+    after = _fit(m, m.theta(m=2.0, k=50.0, c=lo), ["c"], 80.0)
+    rule = AcceptRule(error_level=None)
+    d = decide(cur, after, rule, dof=1)
+    assert not d.accepted and f"c = {lo:.4g}" in d.reason and "box" in d.reason
+    assert newly_boxed(cur, after, exempt=["c"]) == ""
+    d2 = decide(cur, after, rule, dof=1, box_free=["c"])
+    assert d2.accepted and d2.lr == pytest.approx(40.0)
