@@ -60,6 +60,7 @@ is reported before and after but never vetoes.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 from scipy.stats import chi2, norm
@@ -293,7 +294,8 @@ class Decision:
 
 
 def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
-           admissible: Admissibility | None = None, comparable: bool = True) -> Decision:
+           admissible: Admissibility | None = None, comparable: bool = True,
+           box_free: Sequence[str] = ()) -> Decision:
     """Compare the candidate's refit ``after`` (``dof`` new parameters) with
     the ``current`` fit (module docstring for the rule).
 
@@ -310,6 +312,11 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     comparable : bool
         False when the refit did not converge (its likelihood ratio is not
         one it reached).
+    box_free : sequence of str
+        Parameters on a bound of their box that the box is known not to
+        decide (the likelihood gains next to nothing beyond it,
+        :func:`bondgraph.diagnose.runner.box_not_deciding`): not a reason
+        to reject.
 
     Returns
     -------
@@ -352,7 +359,7 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
             f", on the validation record {after.validation_metric:.4g}"
         reason = (f"the refit is not finite (NLL {after.nll:.4g}, error on the record "
                   f"{after.metric:.4g}{val})")
-    elif pinned := newly_boxed(current, after):
+    elif pinned := newly_boxed(current, after, exempt=box_free):
         reason = f"the refit moves {pinned} onto its box: the box, not the record, decides it"
     elif not ic1 < ic0:
         reason = "information criterion did not improve"
@@ -366,10 +373,10 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
 
 
-def newly_boxed(current: Fit, after: Fit) -> str:
+def newly_boxed(current: Fit, after: Fit, exempt: Sequence[str] = ()) -> str:
     """The declared physical parameters (estimated in ``current``, not noise
-    intensities) that ``current`` had inside their boxes and the refit
-    ``after`` puts on a bound, with their boxes ("" when none).
+    intensities, not in ``exempt``) that ``current`` had inside their boxes
+    and the refit ``after`` puts on a bound, with their boxes ("" when none).
 
     A candidate whose gain needs a declared parameter pushed onto the limit
     of what the user declared physical is compensating, not explaining (a
@@ -380,16 +387,22 @@ def newly_boxed(current: Fit, after: Fit) -> str:
     noise intensities on a bound (a process noise driven to zero by an
     effect that explains the model error) are not a compensation.
     """
-    names = [n for n in after.at_bound if n in current.params and n not in current.at_bound]
+    names = [n for n in newly_boxed_names(current, after) if n not in exempt]
     if not names:
         return ""
-    model, noise = after.model, noise_params(current.model)
-    names = [n for n in names if n in model.params and n not in noise]
-    if not names:
-        return ""
+    model = after.model
     lo, hi = model.bounds(names)
     return ", ".join(f"{n} = {after.theta[model.param_index(n)]:.4g} (box [{a:.4g}, {b:.4g}])"
                      for n, a, b in zip(names, lo, hi))
+
+
+def newly_boxed_names(current: Fit, after: Fit) -> list[str]:
+    """The names behind :func:`newly_boxed` (no exemption)."""
+    names = [n for n in after.at_bound if n in current.params and n not in current.at_bound]
+    if not names:
+        return []
+    noise = noise_params(current.model)
+    return [n for n in names if n in after.model.params and n not in noise]
 
 
 def pair_member_boxed(pair: Fit, new_params) -> str | None:

@@ -11,7 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 from scipy.stats import chi2
-from typing import Callable
+from typing import Callable, Sequence
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.progress import phase
@@ -21,6 +21,8 @@ from bondgraph.diagnose.accept import (
     confirmed_record,
     decide,
     mark_ties,
+    newly_boxed,
+    newly_boxed_names,
     pair_member_boxed,
     pair_needed,
     rank_confirmed,
@@ -424,11 +426,26 @@ def gain_beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str]) 
     :data:`BOX_OPENING`-fold on the side they sit on (the others' boxes
     kept), as a clause naming the gain [nats] and the values reached. The
     box stays the user's: this only reports what it costs."""
+    r = beyond_box(ctx, graph, fit, names)
+    if r is None:
+        return ""
+    gain, values = r
+    text = ", ".join(f"{n} = {v:.4g}" for n, v in values.items())
+    return f" (beyond the box the likelihood gains {gain:.6g} nats, at {text})"
+
+
+def beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str],
+               only: Sequence[str] | None = None) -> tuple[float, dict] | None:
+    """The refit of :func:`gain_beyond_box` with the boxes of ``fit.at_bound``
+    (those in ``only`` when given; never noise intensities) opened:
+    (NLL gain [nats], the opened parameters' values), or None when none is
+    boxed or the refit fails."""
     model = fit.model
     noise = noise_params(model)
-    boxed = [n for n in fit.at_bound if n in names and n not in noise]
+    boxed = [n for n in fit.at_bound if n in names and n not in noise
+             and (only is None or n in only)]
     if not boxed:
-        return ""
+        return None
     wide = copy.copy(model)
     wide.lower, wide.upper = model.lower.copy(), model.upper.copy()
     for n in boxed:
@@ -443,12 +460,38 @@ def gain_beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str]) 
         beyond = fit_model(ctx, graph.copy(graph.name), names, fit.estimates(),
                            "beyond the declared boxes", model=wide)
     except BondGraphError:
-        return ""
+        return None
     gain = fit.nll - beyond.nll
     if not np.isfinite(gain):
-        return ""
-    values = ", ".join(f"{n} = {beyond.theta[model.param_index(n)]:.4g}" for n in boxed)
-    return f" (beyond the box the likelihood gains {gain:.6g} nats, at {values})"
+        return None
+    return float(gain), {n: float(beyond.theta[model.param_index(n)]) for n in boxed}
+
+
+#: the likelihood gain beyond a box [nats] under which the box does not
+#: decide a fit: half the 95 % point of χ²(1) (a likelihood-ratio test of
+#: the opened box would not reject it)
+BOX_DECIDES = 0.5 * 3.841
+
+
+def box_not_deciding(ctx: Context, current: Fit, after: Fit, label: str) -> list[str]:
+    """The parameters a candidate's refit ``after`` newly puts on their
+    declared box (:func:`bondgraph.diagnose.accept.newly_boxed_names`) when
+    opening those boxes :data:`BOX_OPENING`-fold gains the likelihood less
+    than :data:`BOX_DECIDES`: the box then does not decide the fit (a pulley
+    spring that the fit drives to the small end of [0.001, 100] N m/rad
+    because the record shows none), so they are no reason to reject
+    (:func:`bondgraph.diagnose.accept.decide`'s ``box_free``). Logged; []
+    when the gain is larger, the refit fails or none is newly boxed."""
+    names = newly_boxed_names(current, after)
+    if not names:
+        return []
+    r = beyond_box(ctx, after.graph, after, list(after.params), only=names)
+    if r is None or not r[0] < BOX_DECIDES:
+        return []
+    ctx.log(f"  {label}: {', '.join(names)} on the box it declared, but beyond it the "
+            f"likelihood gains only {r[0]:.3g} nats (< {BOX_DECIDES:.3g}): the box does not "
+            f"decide the fit")
+    return names
 
 
 def boxed_after_accept(ctx: Context, result: LoopResult, fit: Fit, names: list[str],
@@ -563,8 +606,8 @@ def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[fl
     return worst, next((n for n, e in zip(more, errs) if e <= limit), None)
 
 
-def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit,
-                                   label: str) -> Fit:
+def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit, label: str,
+                                   judged: tuple | None = None) -> Fit | None:
     """The discretisation check at an accepted fit: an added effect can make
     the model stiff (an end stop's contact, a hysteresis state), and the
     filter's discretisation error then biases its estimates by more than
@@ -572,8 +615,17 @@ def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit,
     std at ROS2(8); 0.4 std at 32 substeps). Above 0.1 measurement-noise std
     per sample a warning (logged, in ``result.warnings``); with
     ``settings.search.auto_substeps`` the recommended substeps for the rest of the
-    loop and ``fit`` refitted with them (warm start). Returns the fit to
-    continue from."""
+    loop and ``fit`` refitted with them (warm start).
+
+    With ``judged`` = (current fit, new parameters' count, comparable) the
+    refit must pass the accept rule against the fit it replaces
+    (:func:`decided`), as the coarser fit did: a refit that does not (on the
+    user CED graph a pair's held-out error 0.2667 at 2 RK4 substeps became
+    0.4975 at 4, above the 0.4706 it replaced) is rejected (logged, in
+    ``result.warnings``), the filter's substeps restored, and None returned:
+    the acceptance rested on the coarser discretisation.
+
+    Returns the fit to continue from, or None (rejected)."""
     checked = recommended_substeps(ctx, fit)
     auto = ctx.settings.search.auto_substeps
     warn = check_discretisation(ctx, fit, checked=checked, where=f"the fit with {label}",
@@ -582,10 +634,25 @@ def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit,
     n = checked[1]
     if not (warn and auto) or n is None:
         return fit
+    before = ctx.problem
     ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
     ctx.cache.clear()
     refit = fit_model(ctx, fit.graph, list(fit.params), fit.estimates(),
                       f"{label} at {n} substeps", model=fit.model)
+    if judged is not None:
+        current, dof, comparable = judged
+        d = decided(ctx, current, refit, dof, comparable, f"{label} at {n} substeps")
+        if not d.accepted:
+            msg = (f"{label} refitted at {n} substeps no longer passes the accept rule "
+                   f"({d.reason}; error {d.error_before:.4g} -> {d.error_after:.4g}): its "
+                   f"acceptance rested on the coarser discretisation; not accepted, the "
+                   f"filter keeps {before.disc.substeps} substeps")
+            ctx.log("reject " + msg)
+            result.warnings.append(msg)
+            ctx.problem = before
+            ctx.cache.clear()
+            return None
+        return refit
     adm = admissibility(ctx, refit)
     trouble = refit.unstable or (None if adm.ok else f"not physically admissible: "
                                                      f"{adm.reason()}")
@@ -1011,9 +1078,8 @@ def judged_pair(ctx: Context, current: Fit, pair: tuple, conf: Confirmation):
     """
     s = ctx.settings
     after = conf.fit
-    d = decide(current, after, s.accept, dof=len(conf.new_params),
-               admissible=admissibility(ctx, after) if conf.comparable else None,
-               comparable=conf.comparable)
+    d = decided(ctx, current, after, len(conf.new_params), conf.comparable,
+                " + ".join(c.label for c in pair))
     singles = [ctx.cache.get(("confirmation", id(current), current.nll, c.label)) for c in pair]
     reason = d.reason or pair_member_boxed(after, conf.new_params) or pair_needed(
         after, [None if r is None else r.fit for r in singles],
@@ -1022,14 +1088,22 @@ def judged_pair(ctx: Context, current: Fit, pair: tuple, conf: Confirmation):
 
 
 def committed_pair(ctx: Context, result: LoopResult, current: Fit, pair: tuple,
-                   conf: Confirmation, d, step: int) -> Fit:
+                   conf: Confirmation, d, step: int) -> Fit | None:
     """Record the accepted ``pair`` (refit ``conf``, decision ``d``) as one
     step (the first member's, the second in ``together_with``), both
-    effects applied, with the Cramér-Rao std; return the fit."""
+    effects applied, with the Cramér-Rao std; return the fit (None, a
+    rejection recorded, when its refit at the substeps the discretisation
+    check asks for no longer passes, :func:`fit_after_discretisation_check`)."""
     s = ctx.settings
     a, b = pair
     label = f"{a.label} + {b.label}"
-    after = fit_after_discretisation_check(ctx, result, conf.fit, label)
+    after = fit_after_discretisation_check(ctx, result, conf.fit, label,
+                                           (current, len(conf.new_params), conf.comparable))
+    if after is None:
+        result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: refitted at "
+                                         f"the finer step it no longer passes",
+                                         d.criterion_after, d.whiteness_after))
+        return None
     std = parameter_std(ctx, after)
     after.std = std
     names = list(current.params) + conf.new_params
@@ -1237,6 +1311,24 @@ def _confirm_task(ctx: Context, shared, cand: Candidate) -> Confirmation | None:
     return confirm(ctx, current, cand, scales, name)
 
 
+def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
+            label: str):
+    """:func:`bondgraph.diagnose.accept.decide` on a candidate's refit; when
+    its only objection is a parameter newly on its box, decided again with
+    the parameters whose box does not decide the fit exempt
+    (:func:`box_not_deciding`)."""
+    s = ctx.settings
+    adm = admissibility(ctx, after) if comparable else None
+    d = decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable)
+    if d.accepted or not newly_boxed(current, after):
+        return d
+    free = box_not_deciding(ctx, current, after, label)
+    if not free:
+        return d
+    return decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
+                  box_free=free)
+
+
 def accept_best(ctx: Context, result: LoopResult, current: Fit,
                 confirmed: list[tuple[Candidate, Confirmation]], step: int,
                 pairing: tuple | None = None) -> Fit | None:
@@ -1251,9 +1343,7 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
     for c, conf in confirmed:
         names = list(current.params) + conf.new_params
         after = conf.fit
-        d = decide(current, after, s.accept, dof=len(conf.new_params),
-                   admissible=admissibility(ctx, after) if conf.comparable else None,
-                   comparable=conf.comparable)
+        d = decided(ctx, current, after, len(conf.new_params), conf.comparable, c.label)
         tie = {k: v for k, v in (c.confirmed or {}).items()
                if k in ("tie_z", "tie_p", "comparable")}
         c.confirmed = {**confirmed_record(current, after, len(conf.new_params), conf.values,
@@ -1264,7 +1354,14 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
             if better is not None:
                 return better
         if d.accepted:
-            after = fit_after_discretisation_check(ctx, result, after, c.label)
+            after = fit_after_discretisation_check(ctx, result, after, c.label,
+                                                   (current, len(conf.new_params),
+                                                    conf.comparable))
+            if after is None:
+                result.rejected.append(Rejection(step, c, "refitted at the finer step it no "
+                                                 "longer passes the accept rule",
+                                                 d.criterion_after, d.whiteness_after))
+                continue
             new_std = parameter_std(ctx, after)
             result.steps.append(accepted_step(c, d, current, after, names, new_std,
                                               result.metric))
