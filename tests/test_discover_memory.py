@@ -285,3 +285,16 @@ def test_a_law_with_two_memory_terms_is_refused():
                         np.zeros(0), 1.0, 0.0, {})
     with pytest.raises(GraphError, match="more than one memory"):
         DiscoveredEffect(law)
+
+
+def test_a_memoryless_law_is_chosen_as_without_memory_terms():
+    """d̂ = −50·q³ − 10·v + noise of its std: the memory sets do not win by
+    more than their standard error, so the law is the one the dictionary
+    without memory terms gives (its terms and coefficients)."""
+    rng = np.random.default_rng(2)
+    d = -50 * VARS["q_spring"] ** 3 - 10 * VARS["v.f"] + 1e-3 * rng.standard_normal(T.size)
+    on = discover_law(fake_reconstruction(d, VARS))
+    off = discover_law(fake_reconstruction(d, VARS), options=DiscoverOptions(memory=False))
+    assert on.memory_term is None
+    assert [(tm.name, tm.coef) for tm in on.terms] == [(tm.name, tm.coef) for tm in off.terms]
+    assert {tm.name for tm in on.terms} == {"q_spring^3", "v.f"}

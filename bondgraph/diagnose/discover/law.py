@@ -39,7 +39,9 @@ neighbours) with the one-standard-error rule (the fewest terms whose
 held-out error is within one standard error of the best; Hastie,
 Tibshirani & Friedman 2009, §7.10). The chosen terms are refitted by least
 squares, so the coefficients are not shrunk. Every candidate set holds at
-most one memory term (:func:`candidate_supports`).
+most one memory term (:func:`candidate_supports`); the memoryless sets are
+chosen among themselves as above, and a memory set replaces their choice
+only when it is better by more than its own standard error (:func:`_choose`).
 
 References
 ----------
@@ -477,9 +479,8 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
 
     Notes
     -----
-    Method: weighted orthogonal matching pursuit and sequentially
-    thresholded least squares, the number of terms by block
-    cross-validation with the one-standard-error rule (module docstring).
+    Method: weighted OMP and STLSQ, the terms by block cross-validation
+    with the one-standard-error rule (module docstring).
     """
     opts = options or DiscoverOptions()
     n = rec.t.size
@@ -512,7 +513,7 @@ def discover_law(rec, *, options: DiscoverOptions | None = None) -> DiscoveredLa
     supports = candidate_supports(A, b, int(min(opts.max_terms, A.shape[1])), memory=mem,
                                   inputs=inp)
     err, se = _cv_errors(A, b, supports, opts.folds)
-    best = _one_se(err, se, [len(sp_) for sp_ in supports])
+    best = _choose(err, se, supports, mem)
     coef = np.zeros(Phi.shape[1])
     sup = list(supports[best])
     if sup:
@@ -629,6 +630,26 @@ def _cv_errors(A: np.ndarray, b: np.ndarray, supports: list, folds: int):
                 pred = A[np.ix_(te, cols)] @ c
             errs[f, j] = np.mean((b[te] - pred) ** 2)
     return errs.mean(axis=0), errs.std(axis=0, ddof=1) / np.sqrt(folds)
+
+
+def _choose(err: np.ndarray, se: np.ndarray, supports: list, memory: np.ndarray) -> int:
+    """The chosen candidate set: the memoryless sets' by the
+    one-standard-error rule (:func:`_one_se`), unless the memory sets' own
+    choice is better by more than its standard error (its error plus its
+    standard error below the memoryless one's error): a state of its own
+    counts as more complex than any number of memoryless terms. Chosen
+    together, a memory set's low error narrows the one-standard-error band
+    and the rule then keeps more memoryless look-alikes (the diode-like
+    resistor of ``bench/discovery.py``: six terms for two)."""
+    has = np.array([bool(memory[list(s)].any()) for s in supports])
+    sizes = np.array([len(s) for s in supports])
+    plain, mem = np.flatnonzero(~has), np.flatnonzero(has)
+    best = int(plain[_one_se(err[plain], se[plain], sizes[plain])])
+    if mem.size:
+        other = int(mem[_one_se(err[mem], se[mem], sizes[mem])])
+        if err[other] + se[other] < err[best]:
+            return other
+    return best
 
 
 def _one_se(err: np.ndarray, se: np.ndarray, sizes) -> int:
