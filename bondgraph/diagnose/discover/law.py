@@ -586,9 +586,13 @@ def candidate_supports(A: np.ndarray, b: np.ndarray, kmax: int, memory=None,
         out += [p for p in combinations(range(m), 2)
                 if not (mem[list(p)].any() and (mem[list(p)].all() or inp[list(p)].any()))]
     plain, other = np.flatnonzero(~mem), np.flatnonzero(~mem & ~inp)
-    for cols in [plain] + [np.append(other, k) for k in np.flatnonzero(mem)]:
+    out += [tuple(int(plain[i]) for i in sup) for sup in _greedy_supports(A[:, plain], b, kmax)]
+    for k in np.flatnonzero(mem):
+        # only the sets that hold k: the memoryless sets stay those of the
+        # memoryless columns alone (their choice is unchanged, _choose)
+        cols = np.append(other, k)
         out += [tuple(sorted(int(cols[i]) for i in sup))
-                for sup in _greedy_supports(A[:, cols], b, kmax)]
+                for sup in _greedy_supports(A[:, cols], b, kmax) if len(cols) - 1 in sup]
     return list(dict.fromkeys(out))
 
 
