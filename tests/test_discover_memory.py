@@ -138,6 +138,11 @@ def test_candidate_supports_hold_at_most_one_memory_column():
     sups = candidate_supports(A, b + A[:, 6], 4, memory=mem, inputs=inp)
     assert all(not (mem[list(s)].any() and inp[list(s)].any()) for s in sups)
     assert (0, 6) in sups and (3, 6) not in sups and (0, 3) in sups
+    # the memoryless sets are those of the memoryless columns alone
+    plain = np.flatnonzero(~mem)
+    alone = {tuple(int(plain[i]) for i in s)
+             for s in candidate_supports(A[:, plain], b + A[:, 6], 4)}
+    assert {s for s in sups if not mem[list(s)].any()} == alone
 
 
 def passivity_law(coef, var, tau):
