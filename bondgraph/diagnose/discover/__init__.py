@@ -7,7 +7,8 @@ discover its law (issue 29).
   the offset missing at a sensor's output the same way
   (:func:`reconstruct_sensor`, :func:`augment_sensor`).
 * :mod:`.law`: a sparse regression of the reconstructed signal on a
-  dictionary of the port's variables (:func:`discover_law`,
+  dictionary of the port's variables, with at most one memory term, a
+  first-order low-pass of one of them (:func:`discover_law`,
   :class:`DiscoverOptions`, :class:`DiscoveredLaw`).
 * :mod:`.passivity`: a discovered law's R part dissipates, its storage part
   keeps the stored energy >= 0; offending terms dropped and named

@@ -16,7 +16,17 @@
   that element's law into Ψ(s) − d_S(s) (its energy by
   :func:`antiderivative`);
 * the rest (a constant, inputs) stays a modulated effort (flow) source
-  ``<effect>.<port>``, named source-like in the placement.
+  ``<effect>.<port>``, named source-like in the placement;
+* a **memory term** c·lp(x, τ) (the law's one low-pass of a variable x,
+  :func:`~bondgraph.diagnose.discover.law.memory_candidates`) gives the
+  model a state of its own, as the Bouc-Wen element does
+  (:mod:`bondgraph.diagnose.effects.hysteresis`): a signal state
+  ``<effect>.<port>.w`` with dw/dt = (x − w)/τ, acting through a modulated
+  effort (flow) source ``<effect>.<port>.lp`` of value c·w; τ is a
+  parameter ``<effect>.<port>.tau`` (s) refitted with the coefficients in
+  the box [τ/10, 10·τ] around the discovered one. Its passivity is checked
+  at discovery along the record
+  (:mod:`bondgraph.diagnose.discover.passivity`, memory part).
 
 So the loop's own admissibility check
 (:func:`bondgraph.numerics.admissible.check_admissible`: R laws dissipate,
@@ -59,6 +69,7 @@ from bondgraph.diagnose.discover.law import (
     DiscoveredLaw,
     DiscoverOptions,
     discover_law,
+    memory_name,
     threshold_law,
 )
 from bondgraph.diagnose.discover.passivity import PassivityReport, make_passive
@@ -89,6 +100,12 @@ MAX_OUTPUT_LAWS = 4
 MAX_THRESHOLD_LAWS = 3
 
 
+def _tau_box(tau: float) -> tuple[float, float]:
+    """[τ/COEF_REACH, τ·COEF_REACH]: a memory's time constant stays
+    positive."""
+    return (tau / COEF_REACH, tau * COEF_REACH)
+
+
 def _sign_box(c: float) -> tuple[float, float]:
     """[0, c·COEF_REACH], ordered: the coefficient keeps its sign or
     vanishes (a spurious term the refit removes)."""
@@ -104,9 +121,15 @@ class DiscoveredEffect(_Structural):
     ----------
     law : DiscoveredLaw
         At least one term; its symbols named as the port's variables
-        (``"<port>.f"``, storage state names, input names).
+        (``"<port>.f"``, storage state names, input names); at most one
+        memory term.
     name : str
         The effect's name (default ``"discovered"``; unique in a library).
+
+    Raises
+    ------
+    GraphError
+        A law without terms, of another kind, or with two memory terms.
     """
 
     target_kind = "junction"
@@ -119,6 +142,8 @@ class DiscoveredEffect(_Structural):
         if law.kind not in self.kinds:
             raise GraphError(f"discovered law at '{law.port}': kind '{law.kind}' is neither "
                              f"an effort (1-junction) nor a flow (0-junction)")
+        if sum(tm.memory is not None for tm in law.terms) > 1:
+            raise GraphError(f"discovered law at '{law.port}' has more than one memory term")
         self.law = law
         self.name = name
         self.title = f"discovered law {law.readable(3)}"
@@ -126,6 +151,10 @@ class DiscoveredEffect(_Structural):
                                         f"coefficient of {tm.name}",
                                         bounds=_sign_box(tm.coef))
                             for k, tm in enumerate(law.terms))
+        mem = law.memory_term
+        if mem is not None:
+            self.params += (EffectParam("tau", "s", f"time constant of {mem.name}",
+                                        bounds=_tau_box(mem.memory.tau)),)
 
     def readable(self, values: dict | None = None, std: dict | None = None,
                  target: Target | None = None, digits: int = 4) -> str:
@@ -141,13 +170,21 @@ class DiscoveredEffect(_Structural):
         """
         tgt = target or self.target()
         values, std = dict(values or {}), dict(std or {})
+
+        def get(dct, loc, default=None):
+            return dct.get(self.pname(tgt, loc), dct.get(loc, default))
+
         parts = []
         for k, tm in enumerate(self.law.terms):
-            full, loc = self.pname(tgt, f"c{k}"), f"c{k}"
-            c = float(values.get(full, values.get(loc, tm.coef)))
-            s = std.get(full, std.get(loc))
+            c, s = float(get(values, f"c{k}", tm.coef)), get(std, f"c{k}")
             err = f"(±{s:.2g})" if s is not None and np.isfinite(s) else ""
-            parts.append(("- " if c < 0 else "+ ") + f"{abs(c):.{digits}g}{err}·{tm.name}")
+            name = tm.name
+            if tm.memory is not None:
+                tau, ts = float(get(values, "tau", tm.memory.tau)), get(std, "tau")
+                name = memory_name(tm.memory.variable, tau)
+                if ts is not None and np.isfinite(ts):
+                    name = name.replace(" s)", f"(±{ts:.2g}) s)")
+            parts.append(("- " if c < 0 else "+ ") + f"{abs(c):.{digits}g}{err}·{name}")
         text = " ".join(parts)
         text = text[2:] if text.startswith("+ ") else "-" + text[2:]
         return f"{self.law.port} {self.law.kind} [{self.law.unit}] = {text}"
@@ -163,17 +200,22 @@ class DiscoveredEffect(_Structural):
         return [Target("junction", self.law.port)] if isinstance(el, kind) else []
 
     def grid(self, graph, target, scales):
-        return [{f"c{k}": f * tm.coef for k, tm in enumerate(self.law.terms)}
+        mem = self.law.memory_term
+        tau = {"tau": mem.memory.tau} if mem is not None else {}
+        return [{**{f"c{k}": f * tm.coef for k, tm in enumerate(self.law.terms)}, **tau}
                 for f in GRID_FACTORS]
 
     def grid_span(self, graph, target, scales):
         return self.box(graph, target, scales)
 
     def box(self, graph, target, scales):
-        return {f"c{k}": _sign_box(tm.coef) for k, tm in enumerate(self.law.terms)}
+        out = {f"c{k}": _sign_box(tm.coef) for k, tm in enumerate(self.law.terms)}
+        if self.law.memory_term is not None:
+            out["tau"] = _tau_box(self.law.memory_term.memory.tau)
+        return out
 
-    def bases(self, graph) -> list:
-        """The terms' bases in ``graph``'s symbols.
+    def variables(self, graph) -> dict:
+        """The law's variables as ``graph``'s expressions, by symbol.
 
         Raises
         ------
@@ -195,7 +237,53 @@ class DiscoveredEffect(_Structural):
             else:
                 raise GraphError(f"discovered law at '{self.law.port}': graph '{graph.name}' "
                                  f"has no variable '{name}'")
+        return subs
+
+    def bases(self, graph, w=None) -> list:
+        """The terms' bases in ``graph``'s symbols; a memory term's is its
+        state ``w`` (made by :meth:`memory_state`).
+
+        Raises
+        ------
+        GraphError
+            A variable of the law that ``graph`` does not have, or a memory
+            term and no ``w``.
+        """
+        subs = self.variables(graph)
+        mem = self.law.memory_term
+        if mem is not None:
+            if w is None:
+                raise GraphError(f"discovered law at '{self.law.port}': the memory term "
+                                 f"{mem.name} needs its state w")
+            subs[mem.basis] = w
         return [tm.basis.xreplace(subs) for tm in self.law.terms]
+
+    def memory_state(self, graph, target, tau):
+        """The memory term's signal state w (``<effect>.<port>.w``) with
+        dw/dt = (x − w)/τ, x its filtered variable in ``graph``, from the
+        value the record started with (None when the law has no memory).
+
+        Parameters
+        ----------
+        graph : BondGraph
+        target : Target
+        tau : Parameter
+            The time constant (s).
+
+        Returns
+        -------
+        StateVar or None
+        """
+        mem = self.law.memory_term
+        if mem is None:
+            return None
+        subs = self.variables(graph)
+        x = next(e for sym, e in subs.items() if str(sym) == mem.memory.variable)
+        return graph.state(f"{self.name}.{target.tag}.w", rhs=lambda w: (x - w) / tau,
+                           unit=None if mem.unit in ("", "1") else mem.unit,
+                           initial=mem.memory.initial,
+                           description=f"memory {mem.name} of the discovered law at "
+                                       f"{target.name}")
 
     def placement(self, graph, target: Target | None = None) -> list:
         """Where each term goes in ``graph`` (module docstring): the R part
@@ -220,7 +308,12 @@ class DiscoveredEffect(_Structural):
         parts: dict = {}
         for k, tm in enumerate(self.law.terms):
             names = {str(s) for s in tm.basis.free_symbols}
-            if names and own in names and not names - {own} - set(bonded):
+            if tm.memory is not None:
+                key = ("memory", f"{self.name}.{tgt.tag}.lp",
+                       f"memory term: a modulated source of the signal state "
+                       f"{self.name}.{tgt.tag}.w, dw/dt = ({tm.memory.variable} − w)/τ "
+                       f"(dissipation checked along the record)")
+            elif names and own in names and not names - {own} - set(bonded):
                 key = ("R", f"{self.name}.{tgt.tag}.R",
                        "dissipative part: an R law of the junction's "
                        + ("flow" if self.law.kind == "effort" else "effort"))
@@ -233,20 +326,14 @@ class DiscoveredEffect(_Structural):
                 key = ("source", f"{self.name}.{tgt.tag}",
                        f"source-like ({why}): a modulated source, not checked")
             parts.setdefault(key, []).append(k)
-        order = {"R": 0, "storage": 1, "source": 2}
+        order = {"R": 0, "storage": 1, "memory": 2, "source": 3}
         return [Placement(part, el, tuple(ks), why)
                 for (part, el, why), ks in sorted(parts.items(), key=lambda kv: order[kv[0][0]])]
 
     def apply(self, graph, target, values=None, scales=None):
-        values = dict(values or {})
         j = graph.element(target.name)
-        boxes = self.box(graph, target, scales)
-        P = {}
-        for k, (spc, tm) in enumerate(zip(self.params, self.law.terms)):
-            P[spc.name] = _new_param(graph, self.pname(target, spc.name),
-                                     float(values.get(spc.name, tm.coef)), spc.unit,
-                                     boxes[spc.name], f"{spc.description} at {target.name}")
-        bases = self.bases(graph)
+        P = self._declare(graph, target, values, scales, f"at {target.name}")
+        bases = self.bases(graph, self.memory_state(graph, target, P.get("tau")))
 
         def part(ks):
             return sp.Add(*(P[f"c{k}"] * bases[k] for k in ks))
@@ -266,6 +353,20 @@ class DiscoveredEffect(_Structural):
                 src = graph.MSe if self.law.kind == "effort" else graph.MSf
                 graph.connect(src(pl.element, part(pl.terms)), j)
         return P
+
+    def _declare(self, graph, target, values, scales, where: str) -> dict:
+        """The effect's parameters declared in ``graph`` (the coefficients
+        ``c<k>``, and ``tau`` for a memory term), at ``values`` (local
+        names) or the discovered ones."""
+        values = dict(values or {})
+        boxes = self.box(graph, target, scales)
+        start = {f"c{k}": tm.coef for k, tm in enumerate(self.law.terms)}
+        if self.law.memory_term is not None:
+            start["tau"] = self.law.memory_term.memory.tau
+        return {spc.name: _new_param(graph, self.pname(target, spc.name),
+                                     float(values.get(spc.name, start[spc.name])), spc.unit,
+                                     boxes[spc.name], f"{spc.description} {where}")
+                for spc in self.params}
 
 
 @dataclass(frozen=True)
@@ -334,9 +435,10 @@ class DiscoveredSensorEffect(DiscoveredEffect):
     def targets(self, graph):
         return [self.target()] if self.law.port in graph.sensors else []
 
-    def bases(self, graph) -> list:
-        """The terms' bases in ``graph``'s symbols: ``"<sensor>.y"`` is the
-        sensor's expression in ``graph`` (before this law is added).
+    def variables(self, graph) -> dict:
+        """The law's variables as ``graph``'s expressions, by symbol:
+        ``"<sensor>.y"`` is the sensor's expression in ``graph`` (before
+        this law is added).
 
         Raises
         ------
@@ -355,7 +457,7 @@ class DiscoveredSensorEffect(DiscoveredEffect):
             else:
                 raise GraphError(f"discovered law at the output '{self.law.port}': graph "
                                  f"'{graph.name}' has no variable '{name}'")
-        return [tm.basis.xreplace(subs) for tm in self.law.terms]
+        return subs
 
     def placement(self, graph, target: Target | None = None) -> list:
         """One part: every term added to the sensor's measurement.
@@ -364,19 +466,15 @@ class DiscoveredSensorEffect(DiscoveredEffect):
         -------
         list of Placement
         """
+        mem = "" if self.law.memory_term is None else (
+            f"; its memory term through the signal state {self.name}.{self.target().tag}.w")
         return [Placement("sensor", self.law.port, tuple(range(len(self.law.terms))),
-                          "output law: added to the measurement (a sensor takes no power)")]
+                          "output law: added to the measurement (a sensor takes no power)"
+                          + mem)]
 
     def apply(self, graph, target, values=None, scales=None):
-        values = dict(values or {})
-        boxes = self.box(graph, target, scales)
-        bases = self.bases(graph)
-        P = {}
-        for k, (spc, tm) in enumerate(zip(self.params, self.law.terms)):
-            P[spc.name] = _new_param(graph, self.pname(target, spc.name),
-                                     float(values.get(spc.name, tm.coef)), spc.unit,
-                                     boxes[spc.name], f"{spc.description} at the output "
-                                     f"{target.name}")
+        P = self._declare(graph, target, values, scales, f"at the output {target.name}")
+        bases = self.bases(graph, self.memory_state(graph, target, P.get("tau")))
         sen = graph.sensors[target.name]
         sen.expr = sen.expr + sp.Add(*(P[f"c{k}"] * b for k, b in enumerate(bases)))
         return P
@@ -548,7 +646,7 @@ def discover_effect(graph, record, port: str, *, params=None,
     how = reconstruct_sensor if sensor else reconstruct
     rec = how(graph, record, port, params=params, options=reconstruction)
     law = discover_law(rec, options=discovery)
-    rep = make_passive(law, graph, rec.variables, params=params)
+    rep = make_passive(law, graph, rec.variables, params=params, t=rec.t)
     kept = rep.law
     eff = effect_for(kept, name) if kept.terms else None
     gain = float(rec.nll_grid[-1] - np.min(rec.nll_grid)) if rec.nll_grid.size else 0.0
@@ -897,7 +995,7 @@ def _alternative(graph, disc: Discovery, law, params: dict, same_ok: bool) -> Di
     own, its passive terms kept (:func:`make_passive`); None when no term
     is left, or (``same_ok`` False) when its terms are ``disc``'s."""
     rec = disc.reconstruction
-    rep = make_passive(law, graph, rec.variables, params=params)
+    rep = make_passive(law, graph, rec.variables, params=params, t=rec.t)
     if not rep.law.terms or (not same_ok and [tm.name for tm in rep.law.terms]
                              == [tm.name for tm in disc.passivity.law.terms]):
         return None
@@ -930,14 +1028,17 @@ def discovery_plot(disc: Discovery, result=None):
     std = {n: p.get("std") for n, p in step.parameters.items()} if step else {}
     std = {n: v for n, v in std.items() if v is not None}
     tgt = eff.target() if eff is not None else Target("junction", law.port)
-    terms = [replace(tm, coef=float(values.get(eff.pname(tgt, f"c{k}"), tm.coef)))
+    tau = values.get(eff.pname(tgt, "tau")) if eff is not None else None
+    terms = [replace(tm, coef=float(values.get(eff.pname(tgt, f"c{k}"), tm.coef)),
+                     memory=tm.memory if tm.memory is None or tau is None
+                     else replace(tm.memory, tau=float(tau)))
              for k, tm in enumerate(law.terms)] if eff is not None else []
     refit = replace(law, terms=terms)
     text = eff.readable(values, std) if eff is not None else law.readable()
     placed = [f"{pl.part}: {pl.element} ({pl.why})" for pl in disc.placement]
     return DiscoveryPlot(law.port, law.kind, law.unit, np.asarray(rec.t, float),
                          np.asarray(rec.d, float), np.asarray(rec.d_std, float),
-                         np.asarray(refit.evaluate(rec.variables), float), text,
+                         np.asarray(refit.evaluate(rec.variables, rec.t), float), text,
                          "\n".join([disc.passivity.summary()] + placed), step is not None)
 
 

@@ -24,6 +24,19 @@ read:
   at rest; Willems 1972).
 * **coupled part**: products of z and another variable: with the R part, the
   power −(d_R + d_M)·z must be >= 0 at the record's own samples.
+* **memory part**: a term lp(x, τ) of a filtered variable (the law's one
+  memory term) has a state of its own, so its power −d·z may change sign
+  along a cycle while the element stays passive (a Maxwell element's lag).
+  It is checked by the dissipation inequality along the record's
+  trajectory, the memory state w = lp(x, τ) computed on it
+  (:func:`~bondgraph.diagnose.discover.law.lowpass`): the energy the
+  junction's dissipative laws absorb, W(t) = ∫₀ᵗ (φ_R(z) − d_R − d_M − d_M')·z dt'
+  (declared R laws φ_R, the kept R and coupled terms d_R, d_M', the memory
+  term d_M), plus, when x is a bonded storage state s, the energy H(s(t))
+  that storage holds with its kept terms, must stay >= 0 (Willems 1972:
+  a passive element never returns more energy than it took and held; the
+  memory's own initial energy is taken as 0, which is conservative). Without
+  the record's times it is refused, with that reason.
 * **sources**: a constant or input terms are not passive by nature (a bias,
   an actuator's gain): they are kept and listed as unchecked.
 
@@ -44,6 +57,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import sympy as sp
 
+from bondgraph.diagnose.discover.law import lowpass
 from bondgraph.numerics.admissible import MARGIN, visited_grid, violation
 
 
@@ -53,16 +67,17 @@ class PartCheck:
 
     Attributes
     ----------
-    part : {"R", "storage", "coupled"}
+    part : {"R", "storage", "coupled", "memory"}
     variable : str
-        The variable the part reads (the storage state for ``"storage"``).
+        The variable the part reads (the storage state for ``"storage"``,
+        the memory term's name for ``"memory"``).
     ok : bool
         Passive over the range (after the drops, when any).
     worst : float
-        The most negative power (W, the port's effort × flow unit) or stored
-        energy found before any drop.
+        The most negative power (W, the port's effort × flow unit), stored
+        energy or (``"memory"``) absorbed energy found before any drop.
     at : float
-        Where (the variable's value).
+        Where (the variable's value; for ``"memory"`` the time, s).
     """
 
     part: str
@@ -100,7 +115,9 @@ class PassivityReport:
     def summary(self) -> str:
         """One line per check and per dropped term."""
         lines = [f"{c.part} part in {c.variable}: {'passive' if c.ok else 'NOT passive'} "
-                 f"(worst {c.worst:.4g} at {c.variable} = {c.at:.4g})" for c in self.checks]
+                 + (f"(least absorbed energy {c.worst:.4g} at t = {c.at:.4g} s)"
+                    if c.part == "memory" else f"(worst {c.worst:.4g} at {c.variable} = {c.at:.4g})")
+                 for c in self.checks]
         lines += [f"dropped {k}: {v}" for k, v in self.dropped.items()]
         why = ("a sensor's output, no power" if getattr(self.law, "kind", None) == "output"
                else "source-like")
@@ -125,7 +142,9 @@ def _split(law, own: str):
     parts: dict = {}
     for tm in law.terms:
         names = {str(s) for s in tm.basis.free_symbols}
-        if not names or names - set(law.symbols) or names & set(law.inputs):
+        if getattr(tm, "memory", None) is not None:
+            key = "memory"
+        elif not names or names - set(law.symbols) or names & set(law.inputs):
             key = "source"
         elif names == {own}:
             key = "R"
@@ -139,7 +158,7 @@ def _split(law, own: str):
     return parts
 
 
-def make_passive(law, graph, values: dict, *, params=None, margin: float = MARGIN):
+def make_passive(law, graph, values: dict, *, params=None, margin: float = MARGIN, t=None):
     """Check a discovered law's passivity and drop the terms that break it.
 
     Parameters
@@ -154,6 +173,9 @@ def make_passive(law, graph, values: dict, *, params=None, margin: float = MARGI
     margin : float
         Widening of each visited range, fraction of its span (default
         :data:`bondgraph.numerics.admissible.MARGIN`).
+    t : ndarray (N,), optional
+        The record's sample times (s), along which a memory term's
+        dissipation is checked; without them a memory term is dropped.
 
     Returns
     -------
@@ -179,10 +201,17 @@ def make_passive(law, graph, values: dict, *, params=None, margin: float = MARGI
     decl = _declared_r(graph, law.port, theta, z)
     kept_r = _check_r(parts.get("R", []), z, grid, own, rep, decl)
     keep += kept_r
-    keep += _check_coupled(parts.get("coupled", []), kept_r, law, values, own, rep)
+    kept_c = _check_coupled(parts.get("coupled", []), kept_r, law, values, own, rep)
+    keep += kept_c
+    stored = {}
     for key, terms in parts.items():
         if isinstance(key, tuple):
-            keep += _check_storage(terms, key[1], graph, theta, law, values, margin, rep)
+            kept_s = _check_storage(terms, key[1], graph, theta, law, values, margin, rep)
+            keep += kept_s
+            stored[key[1]] = kept_s
+    if parts.get("memory"):
+        keep += _check_memory(parts["memory"], kept_r + kept_c, law, values, t, rep,
+                              (graph, theta, decl, stored))
     order = {tm.name: i for i, tm in enumerate(law.terms)}
     kept = sorted(keep, key=lambda tm: order[tm.name])
     rep.law = replace(law, terms=kept, dropped=list(law.dropped) + list(rep.dropped))
@@ -245,15 +274,19 @@ def _check_r(terms, z, grid, own, rep, decl=None) -> list:
     return kept
 
 
-def _coupled_power(terms, law, values, own):
+def _law_values(terms, law, values, own) -> np.ndarray:
+    """Σ c_k b_k of memoryless ``terms`` at the record's samples (N,)."""
     if not terms:
-        return np.zeros_like(values[own])
+        return np.zeros(np.shape(values[own]))
     expr = sp.Add(*(sp.Float(tm.coef) * tm.basis for tm in terms))
     names = list(law.symbols)
     f = sp.lambdify([law.symbols[k] for k in names], expr, "numpy")
-    d = np.broadcast_to(np.asarray(f(*[np.asarray(values[k], float) for k in names]), float),
-                        np.shape(values[own]))
-    return -d * np.asarray(values[own], float)
+    return np.broadcast_to(np.asarray(f(*[np.asarray(values[k], float) for k in names]), float),
+                           np.shape(values[own]))
+
+
+def _coupled_power(terms, law, values, own):
+    return -_law_values(terms, law, values, own) * np.asarray(values[own], float)
 
 
 def _check_coupled(terms, r_terms, law, values, own, rep) -> list:
@@ -312,3 +345,53 @@ def _check_storage(terms, state, graph, theta, law, values, margin, rep) -> list
     rep.checks.append(PartCheck("storage", state, not violation(energy(kept))[1],
                                 float(H[i]), float(grid[i])))
     return kept
+
+
+def _check_memory(terms, dissipative, law, values, t, rep, context) -> list:
+    """The memory term kept if the dissipation inequality holds along the
+    record (module docstring); ``context`` = (graph, theta, the declared R
+    laws' expression in z or None, the kept storage terms by state)."""
+    graph, theta, decl, stored = context
+    own = next(k for k in law.symbols if k == f"{law.port}.f" or k == f"{law.port}.e")
+    names = ", ".join(tm.name for tm in terms)
+    if t is None:
+        for tm in terms:
+            rep.dropped[tm.name] = ("has memory: its dissipation is checked along the record, "
+                                    "whose times were not given")
+        rep.checks.append(PartCheck("memory", names, False, float("nan"), float("nan")))
+        return []
+    t = np.asarray(t, float)
+    z = np.asarray(values[own], float)
+    d = _law_values(list(dissipative), law, values, own)
+    for tm in terms:
+        d = d + tm.coef * lowpass(values[tm.memory.variable], t, tm.memory.tau)
+    phi = _fn(decl, law.symbols[own])(z) if decl is not None else 0.0
+    P = (phi - d) * z
+    W = np.concatenate([[0.0], np.cumsum(0.5 * (P[1:] + P[:-1]) * np.diff(t))])
+    for tm in terms:
+        state = tm.memory.variable
+        if state != own and state in law.symbols and state not in law.inputs:
+            W = W + _held_energy(graph, theta, law, state, stored.get(state, []),
+                                 np.asarray(values[state], float))
+    i, bad = violation(W)
+    if bad:
+        for tm in terms:
+            rep.dropped[tm.name] = (f"with memory, the port's laws return more energy than "
+                                    f"they took: the absorbed energy falls to {W[i]:.4g} "
+                                    f"(effort × flow × s) at t = {t[i]:.4g} s")
+    rep.checks.append(PartCheck("memory", names, not bad, float(W[i]), float(t[i])))
+    return [] if bad else list(terms)
+
+
+def _held_energy(graph, theta, law, state, terms, s) -> np.ndarray:
+    """H(s) at the samples ``s``: the energy the storage of ``state`` holds
+    with its kept added terms, ∫₀ˢ (Ψ − d_S) ds' (0 where the graph has no
+    such storage)."""
+    psi, sym = _storage_law(graph, state, theta)
+    sy = law.symbols[state]
+    if psi is None:
+        psi, sym = sp.Integer(0), sy
+    grid = np.union1d(visited_grid(s, 0.0), [0.0])
+    added = _fn(sp.Add(*(sp.Float(tm.coef) * tm.basis for tm in terms)), sy)(grid) if terms \
+        else 0.0
+    return np.interp(s, grid, _energy(_fn(psi, sym)(grid) - added, grid))
