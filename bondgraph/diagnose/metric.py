@@ -57,6 +57,19 @@ def compute_metric(settings: LoopSettings, fit, record) -> float:
     err = y - fit.sim_y
     if m == "rmse_sim":
         return float(np.sqrt(np.nanmean(err**2)))
+    return nrmse(y, fit.sim_y)
+
+
+def nrmse(y: np.ndarray, sim_y: np.ndarray) -> float:
+    """``nrmse_sim``: mean over the outputs with two or more finite errors of
+    RMS(y − sim_y)/std(y) over those samples; inf when there is none.
+
+    Parameters
+    ----------
+    y, sim_y : array (N, n_y)
+        Measured and simulated outputs (NaN where missing).
+    """
+    err = y - sim_y
     vals = []
     for i in range(y.shape[1]):
         ok = np.isfinite(err[:, i])

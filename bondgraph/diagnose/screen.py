@@ -43,6 +43,7 @@ from scipy.stats import chi2
 
 from bondgraph.diagnose.effects import get_effect
 from bondgraph.diagnose.fit import Context, Fit, noise_params
+from bondgraph.diagnose.metric import nrmse
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError
 from bondgraph.inference.output_error import OutputErrorOptions, swarm_output_error_fit
@@ -54,20 +55,15 @@ SCREEN_LEVEL = 0.8
 
 def free_run_nrmse(fit: Fit, y: np.ndarray) -> float:
     """Mean over the outputs of RMS(free-run error)/std(measured) of ``fit``
-    on its record's outputs ``y`` (N, n_y); inf when the free run failed."""
+    on its record's outputs ``y`` (N, n_y) (:func:`bondgraph.diagnose.metric.nrmse`);
+    inf when the free run failed or is not finite where ``y`` is measured."""
     if fit.sim_y is None:
         return np.inf
-    seen = np.isfinite(y).sum(axis=0) > 1          # outputs the record measures
-    if not seen.any():
+    sim = np.asarray(fit.sim_y, float)
+    if (np.isfinite(y) & ~np.isfinite(sim)).any():     # the free run failed on the way
         return np.inf
     with np.errstate(all="ignore"):
-        e = (np.asarray(fit.sim_y, float) - y)[:, seen]
-        ok = np.isfinite(e)
-        rms = np.sqrt(np.sum(np.where(ok, e, 0.0) ** 2, axis=0) / np.maximum(ok.sum(axis=0), 1))
-        sd = np.array([np.std(c[np.isfinite(c)]) for c in y[:, seen].T])
-        rms = rms / np.maximum(sd, 1e-300)
-    v = float(np.mean(rms))
-    return v if np.isfinite(v) else np.inf
+        return nrmse(y, sim)
 
 
 def output_error_screen(ctx: Context, probe, fit: Fit, cands: list[Candidate]) -> None:
