@@ -15,13 +15,24 @@ from bondgraph.inference.ukf import default_P0, ukf_nll
 from bondgraph.numerics.model import Model
 
 
-def test_bar_appears_only_when_enabled_and_says_what_and_how_far(capsys):
+def test_bar_appears_only_when_enabled_and_says_what_and_how_far(monkeypatch, capsys):
+    monkeypatch.setattr(progress, "_is_terminal", lambda stream: True)   # as on a terminal
     assert list(progress.long_range(500, "work: 500 items", delay=0.0, every=1)) == list(range(500))
     assert capsys.readouterr().err == ""                     # off by default in the library
     with progress.enabled():
         assert sum(progress.long_range(500, "work: 500 items", delay=0.0, every=1)) == 124750
     err = capsys.readouterr().err
     assert "work: 500 items" in err and "/500" in err
+
+
+def test_off_a_terminal_a_bar_leaves_no_text(capsys):
+    """In a pipe or log file (pytest's capture is neither a terminal) a bar
+    would leave each redraw behind as text; it is not drawn there, the
+    iteration is unchanged, and the watchdog speaks for a silent phase."""
+    with progress.enabled():
+        assert sum(progress.long_range(500, "work: 500 items", delay=0.0, every=1)) == 124750
+    assert list(progress.bar(range(3), desc="structural candidates")) == [0, 1, 2]
+    assert capsys.readouterr().err == ""
 
 
 def test_short_passes_print_nothing(capsys):
@@ -41,6 +52,7 @@ def test_a_long_ukf_pass_shows_a_bar_naming_the_pass(monkeypatch, capsys):
     args = (model, t, u, y, model.theta0[None, :], x0, default_P0(model, x0))
     quiet = ukf_nll(*args, options=UKFOptions(method="rk4", backend="numpy"))
     capsys.readouterr()
+    monkeypatch.setattr(progress, "_is_terminal", lambda stream: True)   # as on a terminal
     clock = itertools.count(0.0, 10.0)                       # 10 s per look at the clock
     monkeypatch.setattr(progress, "time", SimpleNamespace(monotonic=lambda: next(clock)))
     with progress.enabled():

@@ -89,8 +89,8 @@ class LongPass:
         if self.bar is None:
             if time.monotonic() - self.t0 < self.delay:
                 return
-            self.bar = tqdm(total=self.total, initial=k, desc=self.desc, unit=self.unit,
-                            leave=False, dynamic_ncols=True, file=sys.stderr, mininterval=0.5)
+            self.bar = bar(total=self.total, initial=k, desc=self.desc, unit=self.unit,
+                           leave=False, dynamic_ncols=True, mininterval=0.5)
             return
         self.bar.update(k - self.bar.n)
 
@@ -156,6 +156,16 @@ def announced(what: str, *, delay: float = 2.0, note: str = "", stream=None,
         took = time.perf_counter() - t0
         if took >= delay:
             print(f"  ... {what}: done in {took:.0f} s", file=out, flush=True)
+
+
+def bar(iterable=None, **kwargs):
+    """A tqdm bar on stderr (``kwargs``: tqdm's) that is drawn only on a
+    terminal: in a pipe or a log file each redraw would stay behind as text
+    (``\\r``-separated copies of the bar); there :func:`watchdog` names a
+    long silent phase instead. ``disable=True`` still switches it off."""
+    kwargs.setdefault("file", sys.stderr)
+    kwargs["disable"] = bool(kwargs.get("disable")) or not _is_terminal(kwargs["file"])
+    return tqdm(iterable, **kwargs)
 
 
 def _is_terminal(stream) -> bool:

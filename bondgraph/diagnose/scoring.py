@@ -39,8 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import chi2
-from tqdm.auto import tqdm
 
+from bondgraph.core import progress
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
 from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, problem_for
 from bondgraph.diagnose.inference_calls import Problem, fisher_fit, run_ukf
@@ -565,8 +565,8 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
         todo = structural_todo(ctx, fit, scales, effects, places)
     try:
         found = [structural_candidate(ctx, fit, scales, eff, tgt, b)
-                 for eff, tgt, b in tqdm(todo, desc="structural candidates", unit="cand",
-                                         leave=False, disable=not ctx.progress)]
+                 for eff, tgt, b in progress.bar(todo, desc="structural candidates", unit="cand",
+                                                 leave=False, disable=not ctx.progress)]
     finally:
         cancel_ahead()
     return [c for c in found if c is not None]

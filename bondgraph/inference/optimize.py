@@ -44,6 +44,7 @@ import numpy as np
 from scipy.optimize import differential_evolution, minimize
 
 from bondgraph.core import atomic
+from bondgraph.core import progress as _progress
 from bondgraph.errors import CheckpointError, OptionError
 from bondgraph.inference import checkpoint as fingerprints
 from bondgraph.inference.options import Checkpointing, EvolutionOptions, SwarmOptions
@@ -150,9 +151,7 @@ def _progress_bar(progress: bool, total: int, initial: int, desc: str, unit: str
     """A tqdm bar, or None without ``progress``."""
     if not progress:
         return None
-    from tqdm.auto import tqdm  # 0.2 s to import: only when a bar is shown
-
-    return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True)
+    return _progress.bar(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True)
 
 
 @dataclass(eq=False)

@@ -48,8 +48,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 from scipy.integrate import solve_ivp
-from tqdm.auto import tqdm
 
+from bondgraph.core import progress as _progress
 from bondgraph.errors import DataError, ModelError, NumericalError
 from bondgraph.numerics import integrators
 from bondgraph.numerics.model import Model
@@ -490,8 +490,8 @@ def _fixed_step(model, t, U, th, x, method, substeps, progress):
     if progress is None:
         progress = (n - 1) * substeps > 200_000
     if progress:
-        steps = tqdm(steps, desc=f"simulate {model.name} ({method})", unit="sample",
-                     disable=None, leave=False)
+        steps = _progress.bar(steps, desc=f"simulate {model.name} ({method})", unit="sample",
+                              leave=False)
     # a batch axis of 1: the generated functions are used in their batched form
     x = np.asarray(x, dtype=float)[None, :]
     th1 = th[None, :]

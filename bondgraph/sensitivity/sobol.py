@@ -32,6 +32,7 @@ import numpy as np
 from SALib.analyze import sobol as sobol_analyze
 from SALib.sample import sobol as sobol_sample
 
+from bondgraph.core.progress import bar as progress_bar
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.problem import Problem
@@ -229,9 +230,8 @@ def _evaluate_chunks(fun, X, chunk, progress: bool, desc: str,
     parts = []
     it = range(0, S, step)
     if progress:
-        from tqdm.auto import tqdm  # 0.2 s to import: only when a bar is shown
-
-        it = tqdm(it, desc=desc, unit="chunk", total=(S + step - 1) // step, leave=False)
+        it = progress_bar(it, desc=desc, unit="chunk", total=(S + step - 1) // step,
+                          leave=False)
     for a in it:
         parts.append(np.asarray(fun(X[a:a + step]), dtype=float).reshape(min(step, S - a), -1))
     return np.concatenate(parts, axis=0)
