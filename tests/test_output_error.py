@@ -171,6 +171,13 @@ def test_swarm_fit_finds_the_global_basin_the_local_fit_misses(record, monkeypat
     assert g.x[0] == pytest.approx(ref.x[0], rel=1e-4)
     assert abs(g.x[0] - 80.0) < 3 * g.std["k"]
     assert 2 * g.cost == pytest.approx(y.size - 1, rel=0.15)       # χ² at the noise level
+    # started from the local fit's optimum (the start is not a particle: the
+    # swarm is not drawn into its basin) and from the optimum itself (the
+    # least squares starts from the better of the swarm's best and the start)
+    for k0 in (local.x[0], ref.x[0]):
+        again = swarm_output_error_fit(m, t, u, y, ["k"], theta=m.theta(m=2.5, k=k0, c=2.0),
+                                       x0=x0, options=opts, bounds=box, sigma=sig)
+        assert again.x[0] == pytest.approx(ref.x[0], rel=1e-4)
     monkeypatch.setattr(oe, "free_run_kernels", lambda *a, **k: None)
     g2 = swarm_output_error_fit(m, t, u, y, ["k"], theta=start, x0=x0, options=opts,
                                 bounds=box, sigma=sig)

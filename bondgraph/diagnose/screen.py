@@ -130,16 +130,24 @@ def _natural_sets(ctx: Context, probe, cand: Candidate) -> list[tuple[dict, np.n
 
 
 def _global_fit(ctx: Context, probe, phys: list[str], theta: np.ndarray):
-    """:func:`swarm_output_error_fit` of ``phys`` on the probe's record from
-    ``theta`` (the filter's hold; RK4 with the filter's substeps, twice
-    those for a ROS2 filter); None (logged) when it fails."""
-    d = probe.problem.disc
+    """:func:`global_output_error` on the probe's model and problem."""
+    return global_output_error(ctx, probe.model, probe.problem, phys, theta)
+
+
+def global_output_error(ctx: Context, model, problem, phys: list[str], theta: np.ndarray):
+    """:func:`swarm_output_error_fit` of ``phys`` of ``model`` on
+    ``problem``'s record (its prior mean as the initial state) from
+    ``theta`` (n_theta,): the filter's hold, RK4 with the filter's substeps
+    (twice those for a ROS2 filter), the boxes of :func:`search_box`. An
+    :class:`~bondgraph.inference.output_error.OutputErrorResult`, or None
+    (logged) when the fit fails."""
+    d = problem.disc
     sub = int(d.substeps) * (1 if d.method == "rk4" else 2)
     opts = OutputErrorOptions(hold=d.hold, substeps=max(sub, 1))
+    t, u, y = problem.t, problem.u, problem.y
     try:
-        return swarm_output_error_fit(probe.model, probe.t, probe.u, probe.y, phys, theta=theta,
-                                      x0=probe.problem.x0, options=opts,
-                                      bounds=search_box(probe.model, phys, theta))
+        return swarm_output_error_fit(model, t, u, y, phys, theta=theta, x0=problem.x0,
+                                      options=opts, bounds=search_box(model, phys, theta))
     except (BondGraphError, ValueError) as exc:   # ValueError: least_squares at a bad start
         ctx.log(f"  global output-error fit failed: {str(exc).splitlines()[0]}")
         return None
