@@ -199,6 +199,28 @@ def test_a_non_converged_refit_never_beats_a_converged_one():
                         "712 is not comparable")
 
 
+def test_a_crawling_refit_gives_way_to_another_starts_converged_one(monkeypatch):
+    """The confirmation keeps the lowest-NLL start and continues it; when it
+    still has not converged, the converged refit of another start is judged
+    instead (logged), and with none the crawling one stays (not comparable)."""
+    import bondgraph.diagnose.confirm as confirm
+
+    monkeypatch.setattr(confirm, "continued", lambda ctx, g, f, label: f)   # no progress
+    logs: list[str] = []
+    ctx = SimpleNamespace(log=logs.append)
+    crawl = SimpleNamespace(nll=-90.0, converged=False)
+    other = SimpleNamespace(nll=-85.0, converged=True)
+    worse = SimpleNamespace(nll=-60.0, converged=True)
+    failed = SimpleNamespace(nll=float("nan"), converged=True)
+    assert confirm.chosen_refit(ctx, None, [worse, crawl, failed, other], "x @ y") is other
+    assert logs == ["  x @ y: the refit from the best start did not converge (NLL -90.00); the "
+                    "converged refit from another start (NLL -85.00) is judged instead"]
+    assert confirm.chosen_refit(ctx, None, [crawl, failed], "x @ y") is crawl
+    done = SimpleNamespace(nll=-95.0, converged=True)
+    assert confirm.chosen_refit(ctx, None, [crawl, done], "x @ y") is done
+    assert len(logs) == 1
+
+
 def test_on_failed_fit_option_is_checked():
     assert LoopSettings(params=[]).search.on_failed_fit == "stop"
     with pytest.raises(OptionError, match="SearchOptions.on_failed_fit must be one of 'stop', 'continue'"):

@@ -414,24 +414,18 @@ def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None,
                            swarm=None) -> OutputErrorResult:
     """Global output-error fit: a particle swarm over the parameters' box,
     then the local least-squares fit (:func:`output_error_fit`) from the best
-    particle.
+    particle or the start ``theta``, whichever is better.
 
-    The local fit alone finds the basin of its start; a model whose start
-    (or whose likelihood fit) sits in another basin, for example a linear
-    drive fitted to a sign-blind sensor's |ω| and then given the rectifying
-    sensor, needs the global search. The swarm (:func:`bondgraph.inference.optimize.pso`;
-    Kennedy & Eberhart 1995) minimises the same criterion, the mean of the
-    squared weighted free-run errors, over the box, in log θ where the box
-    is positive and spans a factor :data:`LOG_SPAN` or more. The start
-    ``theta`` is not one of its particles: seeded with a good local fit, the
-    swarm gathers in that fit's basin and its stall rule stops it there
-    (a user's CED graph with its rectifying sensor: 1.05 from the likelihood
-    fit's basin, 0.29 unseeded); the least-squares fit starts from the better
-    of the swarm's best and ``theta``, so the result is never worse than the
-    start.
-    Each particle's free run is the model's compiled fixed-step RK4
-    (:func:`bondgraph.inference.sim_numba.rk4_trajectory`) or, without
-    kernels, the batched numpy RK4
+    The local fit alone finds the basin of its start (a linear drive fitted
+    to a sign-blind sensor's |ω|, then given the rectifying sensor). The
+    swarm (:func:`bondgraph.inference.optimize.pso`; Kennedy & Eberhart 1995)
+    minimises the mean squared weighted free-run error over the box, in log
+    θ where the box is positive and spans :data:`LOG_SPAN` or more. The start
+    is not one of its particles: seeded with a good local fit, the swarm
+    gathered in that basin and stalled (a user's CED graph with |ω|: NRMSE
+    1.05 seeded, 0.29 not). Each particle's free run is the model's compiled
+    fixed-step RK4 (:func:`bondgraph.inference.sim_numba.rk4_trajectory`) or,
+    without kernels, the batched numpy RK4
     (:func:`bondgraph.numerics.integrators.simulate_batch`); +inf if not finite.
 
     Parameters
@@ -492,31 +486,28 @@ def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None,
     sw = swarm if swarm is not None else SwarmOptions(
         particles=min(10 * len(params), 60), stall_iterations=20, ftol=1e-6)
     best = th.copy()
-    z0 = np.clip(th[crit.pidx], lo, hi)
-    try:
-        zb = _swarm_best(crit, lo, hi, sw)
-    except NumericalError:
-        if not np.isfinite(crit(z0[None, :])[0]):
-            raise
-        zb = z0
-    f = crit(np.array([zb, z0]))
-    best[crit.pidx] = zb if f[0] <= f[1] else z0
+    best[crit.pidx] = _swarm_best(crit, lo, hi, np.clip(th[crit.pidx], lo, hi), sw)
     return output_error_fit(model, t, u, y, params, theta=best, x0=xi, bounds=(lo, hi),
                             sigma=crit.sigma, options=opts)
 
 
-def _swarm_best(crit, lo: np.ndarray, hi: np.ndarray, sw) -> np.ndarray:
-    """The swarm's best point (k,) of ``crit`` in the box, searched in log θ
-    where the box is positive and spans :data:`LOG_SPAN` or more;
-    NumericalError when no particle's run is finite."""
+def _swarm_best(crit, lo: np.ndarray, hi: np.ndarray, z0: np.ndarray, sw) -> np.ndarray:
+    """The better (k,) of the start ``z0`` and the swarm's best point of
+    ``crit`` in the box, searched in log θ where the box is positive and
+    spans :data:`LOG_SPAN` or more; NumericalError when neither a
+    particle's nor the start's run is finite."""
     logs = (lo > 0) & (hi >= LOG_SPAN * np.maximum(lo, 1e-300))
     zlo, zhi = np.where(logs, np.log(np.maximum(lo, 1e-300)), lo), np.where(logs, np.log(hi), hi)
     res = pso(lambda Z: crit(np.where(logs, np.exp(Z), Z)), zlo, zhi, swarm=sw,
               progress=False)
+    f0 = float(crit(z0[None, :])[0])
     if not np.isfinite(res.fun):
+        if np.isfinite(f0):
+            return z0
         raise NumericalError(f"swarm_output_error_fit: no free run of model "
                              f"'{crit.model.name}' in the box is finite")
-    return np.clip(np.where(logs, np.exp(res.x), res.x), lo, hi)
+    zb = np.clip(np.where(logs, np.exp(res.x), res.x), lo, hi)
+    return zb if float(crit(zb[None, :])[0]) <= f0 else z0
 
 
 class _SwarmCriterion:
