@@ -557,7 +557,8 @@ def global_start(ctx: Context, fit: Fit, names: list[str]) -> dict | None:
     """Start values for the declared fit again from a global output-error
     search (:func:`bondgraph.diagnose.screen.global_output_error`: a particle
     swarm over the declared boxes of the physical parameters of ``names``,
-    ``fit``'s estimates one particle, then least squares) when the model has
+    then least squares from the better of its best and ``fit``'s estimates)
+    when the model has
     no process noise (its likelihood is then the output-error one, up to the
     filter's initial-state correction) and ``fit``'s free run is poor (NRMSE
     at least :data:`~bondgraph.diagnose.screen.SCREEN_LEVEL`): a local fit

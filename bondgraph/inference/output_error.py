@@ -439,8 +439,8 @@ def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None,
     params : sequence of str
         Estimated parameters (k >= 1); their boxes must be finite.
     theta : array (n_theta,), optional
-        A start (one particle) and the values of the others (default the
-        model's).
+        A start (compared with the swarm's best) and the other parameters'
+        values (default the model's).
     x0 : array (n_x,), optional
         Initial state (default the model's).
     bounds : (lower, upper) of arrays (k,), optional
