@@ -4,14 +4,10 @@ not, and the records of an accepted or rejected candidate.
 
 A candidate is accepted when, after re-estimating all parameters,
 
-0. the refit converged, or (a confirmation that has not is continued
-   first, then another start's converged refit is taken,
-   :func:`bondgraph.diagnose.confirm.chosen_refit`) it is judged on the
-   likelihood ratio it reached, a lower bound of its optimum's (every
-   evaluated NLL is one the model reaches; scoring only takes steps that
-   lower it), after every converged candidate (:func:`rank_confirmed`), so
-   it never wins over a converged refit; the refitted model is physically
-   admissible (every R law
+0. the refit converged (a confirmation that has not is continued first,
+   :func:`bondgraph.diagnose.confirm.confirm`; one that still has not is
+   reported as not comparable: its likelihood ratio is one it has not
+   reached), the refitted model is physically admissible (every R law
    dissipates and every C and I stores non-negative energy over the range
    the record visits plus a margin,
    :func:`bondgraph.numerics.admissible.check_admissible`), and it simulates:
@@ -264,11 +260,9 @@ def rank_confirmed(confirmed: list) -> list:
     -------
     list
         The same tuples, reordered. A refit that stopped at its iteration
-        limit has a likelihood ratio that is only a lower bound of its
-        optimum's, reached on the way to parameters it may never settle at;
-        ranking it by that number beside converged ones let it win over a
-        converged refit (issue: a non-converged 178 s sensor low-pass over a
-        converged saturation).
+        limit has a likelihood ratio the model does not reach; ranking it by
+        that number would let it win over a converged refit (issue: a
+        non-converged 178 s sensor low-pass over a converged saturation).
     """
     return sorted(confirmed, key=lambda z: (not getattr(z[2], "comparable", True), -z[0]))
 
@@ -316,9 +310,8 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
         The refit's admissibility (:func:`bondgraph.diagnose.fit.admissibility`);
         None: not checked.
     comparable : bool
-        False when the refit did not converge: its likelihood ratio is a
-        lower bound of its optimum's, judged like any (the caller ranks
-        such refits after the converged ones).
+        False when the refit did not converge (its likelihood ratio is not
+        one it reached).
     box_free : sequence of str
         Parameters on a bound of their box that the box is known not to
         decide (the likelihood gains next to nothing beyond it,
@@ -328,8 +321,8 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     Returns
     -------
     Decision
-        ``reason`` (first failed test): "the refit is not physically
-        admissible: ...", "the refitted model
+        ``reason`` (first failed test): "the refit did not converge ...",
+        "the refit is not physically admissible: ...", "the refitted model
         does not simulate: ...", "the refit is not finite", "the refit moves
         ... onto its box" (:func:`newly_boxed`),
         "information criterion did not improve", "likelihood-ratio test not
@@ -354,7 +347,10 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     reason = None
     unstable = getattr(after, "unstable", None)
     finite = [v for v in (after.nll, e1, after.metric, after.validation_metric) if v is not None]
-    if admissible is not None and not admissible.ok:
+    if not comparable:
+        reason = (f"the refit did not converge ({after.iterations} iterations): its likelihood "
+                  f"ratio {lr:.3g} is not comparable")
+    elif admissible is not None and not admissible.ok:
         reason = f"the refit is not physically admissible: {admissible.reason()}"
     elif unstable:
         reason = f"the refitted model does not simulate: {unstable}"

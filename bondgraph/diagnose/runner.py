@@ -1337,8 +1337,7 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
         c.confirmed["comparable"] = r.comparable
         confirmed.append((c.confirmed_statistic - 2 * c.dof, c, r))
         how = ("converged" if r.fit.converged else
-               "NOT converged: its LR a lower bound, ranked after the converged ones"
-               if r.fit.converged is False else "L-BFGS-B")
+               "NOT converged: not comparable" if r.fit.converged is False else "L-BFGS-B")
         ctx.log(f"  confirmed {c.label}: LR {c.confirmed_statistic:.1f} "
                 f"(score test {c.statistic:.1f}), values {r.values} ({how}, "
                 f"{r.fit.iterations} iterations)")
@@ -1365,18 +1364,15 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     the parameters whose box does not decide the fit exempt
     (:func:`box_not_deciding`)."""
     s = ctx.settings
-    adm = admissibility(ctx, after)
+    adm = admissibility(ctx, after) if comparable else None
     d = decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable)
-    if not d.accepted and newly_boxed(current, after):
-        free = box_not_deciding(ctx, current, after, label)
-        if free:
-            d = decide(current, after, s.accept, dof=dof, admissible=adm,
-                       comparable=comparable, box_free=free)
-    if d.accepted and not comparable:
-        ctx.log(f"  {label}: its refit had not converged ({after.iterations} iterations); "
-                f"judged on the likelihood ratio it reached, LR {d.lr:.4g}, a lower bound of "
-                f"its optimum's, after every converged candidate")
-    return d
+    if d.accepted or not newly_boxed(current, after):
+        return d
+    free = box_not_deciding(ctx, current, after, label)
+    if not free:
+        return d
+    return decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
+                  box_free=free)
 
 
 def accept_best(ctx: Context, result: LoopResult, current: Fit,
