@@ -548,9 +548,14 @@ def sim_start(ctx: Context, graph: BondGraph, names: list[str]) -> dict | None:
         ctx.log(f"  output-error fit failed ({str(exc).splitlines()[0]}); the likelihood fit "
                 f"starts from the defaults")
         return None
-    ctx.log(f"output-error fit: RMS free-run error {', '.join(f'{v:.4g}' for v in r.rmse)}; "
-            f"estimates {', '.join(f'{k} = {v:.4g}' for k, v in r.estimates().items())}")
+    ctx.log(f"output-error fit: {_oe_summary(r)}")
     return r.estimates()
+
+
+def _oe_summary(r) -> str:
+    """An output-error result's RMS free-run error and estimates, one line."""
+    return (f"RMS free-run error {', '.join(f'{v:.4g}' for v in r.rmse)}; estimates "
+            f"{', '.join(f'{k} = {v:.4g}' for k, v in r.estimates().items())}")
 
 
 def global_start(ctx: Context, fit: Fit, names: list[str]) -> dict | None:
@@ -582,9 +587,7 @@ def global_start(ctx: Context, fit: Fit, names: list[str]) -> dict | None:
     r = global_output_error(ctx, fit.model, pb, phys, fit.theta)
     if r is None:
         return None
-    ctx.log(f"  global output-error fit: RMS free-run error "
-            f"{', '.join(f'{v:.4g}' for v in r.rmse)}; estimates "
-            f"{', '.join(f'{k} = {v:.4g}' for k, v in r.estimates().items())}")
+    ctx.log(f"  global output-error fit: {_oe_summary(r)}")
     return r.estimates()
 
 
