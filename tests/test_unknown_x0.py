@@ -115,7 +115,8 @@ def test_loop_free_run_error_is_the_models_not_the_guessed_initial_level(case):
     assert abs(res.initial.noise_estimates["p2"] - NOISE) < 3 * sd and sd < 1.0
 
 
-def test_pump_saturation_found_after_the_additive_candidates_fail():
+@pytest.mark.parametrize("threshold", [0.5, None], ids=["skip_rule", "default"])
+def test_pump_saturation_found_after_the_additive_candidates_fail(threshold):
     """The user's tanks, whose pump saturates (truth: the graph plus
     actuator_saturation at the pump, L = 2.5e-4 m^3/s, commands up to 4e-4);
     noise and initial levels undeclared, a held-out record. A pump-flow
@@ -142,16 +143,15 @@ def test_pump_saturation_found_after_the_additive_candidates_fail():
         recs.append(Experiment.from_arrays(t, {"Q": Q, "p2": y}, units={"Q": "m^3/s", "p2": "Pa"},
                                            roles={"Q": "input", "p2": "output"},
                                            name=f"sat_{seed}"))
-    for threshold in (0.5, None):
-        logs = []
-        res = run_loop(tanks(), recs[0], LoopSettings(params=["C1", "C2", "K1", "K2"], validation=recs[1], search=SearchOptions(max_steps=1, structural_threshold=threshold)), log=logs.append, progress=False)
-        skipped = any("scoring the structural candidates skipped above" in s for s in logs)
-        assert skipped == (threshold is not None)
-        (step,) = res.steps
-        assert (step.effect, step.attached_to) == ("actuator_saturation", "pump")
-        assert step.parameters["actuator_saturation.pump.L"]["estimate"] == pytest.approx(
-            2.5e-4, rel=0.03)
-        assert step.validated and step.error_after < 0.3 * step.error_before
+    logs = []
+    res = run_loop(tanks(), recs[0], LoopSettings(params=["C1", "C2", "K1", "K2"], validation=recs[1], search=SearchOptions(max_steps=1, structural_threshold=threshold)), log=logs.append, progress=False)
+    skipped = any("scoring the structural candidates skipped above" in s for s in logs)
+    assert skipped == (threshold is not None)
+    (step,) = res.steps
+    assert (step.effect, step.attached_to) == ("actuator_saturation", "pump")
+    assert step.parameters["actuator_saturation.pump.L"]["estimate"] == pytest.approx(
+        2.5e-4, rel=0.03)
+    assert step.validated and step.error_after < 0.3 * step.error_before
 
 
 def test_a_smoothed_start_the_prior_excludes_is_not_used(monkeypatch):
