@@ -480,3 +480,25 @@ def test_a_declared_free_run_worse_than_the_mean_is_named():
         assert bool(lines) == warned and len(fit.warnings) == int(warned)
         if warned:
             assert "worse than the record's mean (NRMSE 2.14 > 1)" in lines[0]
+
+
+def test_nothing_accepted_is_told_apart_from_candidates_the_accept_rule_refused():
+    """The command's summary line: 'nothing significant left' only when no
+    confirmed candidate was refused; refused ones are counted and named
+    (each once, at most three), and a run without a step says so."""
+    from types import SimpleNamespace as NS
+
+    from bondgraph.cli.loop import none_accepted
+
+    def rej(label):
+        return NS(candidate=NS(label=label))
+
+    assert none_accepted(NS(rankings=[], rejected=[])) == "no effect accepted (no step ran)"
+    assert none_accepted(NS(rankings=[["c"]], rejected=[])) == (
+        "no effect accepted (nothing significant left)")
+    one = none_accepted(NS(rankings=[["c"]], rejected=[rej("coulomb @ v"), rej("coulomb @ v")]))
+    assert one == ("no effect accepted: 1 confirmed candidate(s) refused by the accept rule "
+                   "(coulomb @ v; the reasons are in report.md)")
+    four = none_accepted(NS(rankings=[["c"]], rejected=[rej(x) for x in "abcda"]))
+    assert four.startswith("no effect accepted: 4 confirmed candidate(s) refused")
+    assert "(a, b, c, ...;" in four
