@@ -238,8 +238,14 @@ def test_augmented_model_file_rebuilds_the_graph(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.parametrize("name", ["vehicle_brake_drag", "vehicle_pitch_offset"])
 def test_vehicle_case_finds_the_true_effect(name, tmp_path):
+    """Left out of the default run (``pytest -m long``): each compiles and
+    scores the coast-down's 75 candidates, 3 min apiece in CI's cold suite.
+    The default run keeps the bundled case through the command line
+    (:func:`test_bundled_default_via_cli_writes_the_report`) and the ranking
+    matrix of ``bench/effect_recovery.py --quick``."""
     # one step: everything asserted is step 1's (a second step only looks for more)
     case, res = _run(name, tmp_path, max_steps=1)
     effect, target = case.true_effect
