@@ -483,22 +483,21 @@ def test_a_declared_free_run_worse_than_the_mean_is_named():
 
 
 def test_nothing_accepted_is_told_apart_from_candidates_the_accept_rule_refused():
-    """The command's summary line: 'nothing significant left' only when no
-    confirmed candidate was refused; refused ones are counted and named
-    (each once, at most three), and a run without a step says so."""
+    """Why nothing was accepted (the command's summary, report.md and
+    report.html): 'nothing significant left' only when no confirmed
+    candidate was refused; refused ones are counted and named (each once,
+    at most three), and a run without a step says so."""
     from types import SimpleNamespace as NS
 
-    from bondgraph.cli.loop import none_accepted
+    from bondgraph.diagnose.result import LoopResult
 
-    def rej(label):
-        return NS(candidate=NS(label=label))
+    def why(rankings, labels):
+        rejected = [NS(candidate=NS(label=x)) for x in labels]
+        return LoopResult.none_accepted(NS(rankings=rankings, rejected=rejected))
 
-    assert none_accepted(NS(rankings=[], rejected=[])) == "no effect accepted (no step ran)"
-    assert none_accepted(NS(rankings=[["c"]], rejected=[])) == (
-        "no effect accepted (nothing significant left)")
-    one = none_accepted(NS(rankings=[["c"]], rejected=[rej("coulomb @ v"), rej("coulomb @ v")]))
-    assert one == ("no effect accepted: 1 confirmed candidate(s) refused by the accept rule "
-                   "(coulomb @ v; the reasons are in report.md)")
-    four = none_accepted(NS(rankings=[["c"]], rejected=[rej(x) for x in "abcda"]))
-    assert four.startswith("no effect accepted: 4 confirmed candidate(s) refused")
-    assert "(a, b, c, ...;" in four
+    assert why([], []) == "no step ran"
+    assert why([["c"]], []) == "nothing significant left"
+    assert why([["c"]], ["coulomb @ v", "coulomb @ v"]) == (
+        "1 confirmed candidate(s) refused by the accept rule (coulomb @ v)")
+    assert why([["c"]], list("abcda")) == (
+        "4 confirmed candidate(s) refused by the accept rule (a, b, c, ...)")

@@ -64,6 +64,12 @@ def test_evidence_ticks_are_plain_numbers_and_nothing_accepted_is_said(loop_resu
                                                                        figures):
     assert not loop_result.steps and loop_result.rankings[0]
     fig, ax = _evidence(loop_result, tmp_path, figures)
+    # report.md and report.html say why, in the loop result's words
+    why = loop_result.none_accepted()
+    assert why == "nothing significant left"          # nothing refused here either
+    assert f"None: {why}" in "\n".join(loop_report._md_accepted(loop_result))
+    from bondgraph.report.html import _summary
+    assert f"No effect accepted: {why}." in "".join(_summary(loop_result))
     labels = [t.get_text() for t in ax.get_xticklabels() if t.get_text()]
     assert labels
     for lab in labels:

@@ -167,25 +167,11 @@ def run(args) -> int:
               f"after {res.final.metric:.4g}")
     else:
         print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
-    print(res.table() if res.steps else "  " + none_accepted(res))
+    print(res.table() if res.steps else f"  no effect accepted: {res.none_accepted()}"
+          + ("; the reasons are in report.md" if res.rejected else ""))
     print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots, "
           f"augmented_model.py)")
     return 0
-
-
-def none_accepted(res) -> str:
-    """Why a loop result ``res`` (a LoopResult without accepted steps)
-    accepted nothing: no step ran, confirmed candidates were refused by the
-    accept rule (named, with the count; the reasons are in report.md), or
-    no candidate was significant."""
-    if not res.rankings:
-        return "no effect accepted (no step ran)"
-    refused = list(dict.fromkeys(r.candidate.label for r in res.rejected))
-    if refused:
-        named = ", ".join(refused[:3]) + (", ..." if len(refused) > 3 else "")
-        return (f"no effect accepted: {len(refused)} confirmed candidate(s) refused by the "
-                f"accept rule ({named}; the reasons are in report.md)")
-    return "no effect accepted (nothing significant left)"
 
 
 def _with_discovery(args, graph, record, settings, res, out: Path):

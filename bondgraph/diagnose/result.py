@@ -363,6 +363,20 @@ class LoopResult:
     declared_graph: BondGraph | None = None
     discovery: DiscoveryPlot | None = None
 
+    def none_accepted(self) -> str:
+        """Why no effect was accepted (for a result without steps), one
+        phrase: "no step ran"; "N confirmed candidate(s) refused by the
+        accept rule (the first three named)", their reasons in
+        :attr:`rejected`; or "nothing significant left". The command's
+        summary, report.md and report.html say it alike."""
+        if not self.rankings:
+            return "no step ran"
+        refused = list(dict.fromkeys(r.candidate.label for r in self.rejected))
+        if refused:
+            named = ", ".join(refused[:3]) + (", ..." if len(refused) > 3 else "")
+            return f"{len(refused)} confirmed candidate(s) refused by the accept rule ({named})"
+        return "nothing significant left"
+
     def table(self) -> str:
         """Markdown table of the accepted steps (error = :attr:`metric`; with
         a validation record, the validation error and the estimation

@@ -175,8 +175,7 @@ def _summary(result: LoopResult) -> list[str]:
         line = f"Error before: <b>{i.metric:.4g}</b>, after: <b>{f.metric:.4g}</b>."
     parts = [f'<p class="big">{line}</p>']
     if not result.steps:
-        parts.append("<p>No effect accepted: no candidate was significant and improved the "
-                     "criterion with a usable refit.</p>")
+        parts.append(f"<p>No effect accepted: {escape(result.none_accepted())}.</p>")
     else:
         rows = [[str(k), s.effect + "".join(f" + {w}" for w in s.together_with),
                  s.attached_to, _num(s.error_before), _num(s.error_after),

@@ -504,8 +504,8 @@ def _md_refit(c) -> str:
 def _md_accepted(result: LoopResult) -> list[str]:
     L = ["## Accepted effects", ""]
     if not result.steps:
-        L.append("None: no candidate was significant and improved both the criterion and the "
-                 "whiteness.")
+        L.append(f"None: {result.none_accepted()}"
+                 + (" (their reasons under Rejected candidates)." if result.rejected else "."))
         return L
     L.append("| step | effect | attached to | error before | error after | NLL before | "
              "NLL after | whiteness before | after |")
