@@ -60,3 +60,52 @@ def test_jacobi_pinv_is_the_inverse_across_36_decades():
     got = jacobi_pinv(S @ A @ S)
     assert np.allclose(got, ref, rtol=1e-9, atol=0)
     assert not np.allclose(np.linalg.pinv(S @ A @ S), ref, rtol=1e-3, atol=0)
+
+
+# a near-singular information: the first two quantities enter nearly only
+# as their sum (their scaled sensitivities differ by 1e-9), the third alone
+A_RIDGE = np.array([[1.0, 1.0 - 1e-9, 0.0], [1.0 - 1e-9, 1.0, 0.0], [0.0, 0.0, 2.0]])
+
+
+def test_flat_directions_name_the_ridge_and_the_decrease_beside_it():
+    """By hand, in the unit-diagonal coordinates (A_RIDGE with its third row
+    and column divided by √2): eigenvectors (1, 1, 0)/√2 (λ = 2 - 1e-9),
+    (0, 0, 1) (λ = 1) and (1, -1, 0)/√2 (λ = 1e-9). With the scaled gradient
+    (1, 1.01, 4/√2) the decrease outside the ridge is
+    ½ [(2.01/√2)² / 2 + (4/√2)²] = ½ (1.010025 + 8); along the ridge it is
+    ½ (0.01/√2)² / 1e-9 = 2.5e4 nats, which the full prediction carries."""
+    from bondgraph.inference.fisher import flat_directions
+
+    g = S @ np.array([1.0, 1.01, 4.0])
+    flat, identified = flat_directions(S @ A_RIDGE @ S, g)
+    assert flat[:2] in ((0, 1), (1, 0)) and len(flat) == 2
+    # the eigenvalue 2 - 1e-9 enters the first term: relative 5e-10
+    assert abs(identified - 0.5 * (2.01 ** 2 / 4 + 8.0)) < 1e-8
+    full = _predicted_decrease(SimpleNamespace(F=S @ A_RIDGE @ S, grad=g), np.ones(3),
+                               np.zeros(3, bool))
+    assert 2.0e4 < full < 3.0e4
+    # a well-conditioned information has no flat direction
+    assert flat_directions(S @ A @ S, S @ b)[0] == ()
+    # the third quantity held: the ridge is still named, the rest is empty
+    flat2, ident2 = flat_directions(S @ A_RIDGE @ S, g, free=np.array([True, True, False]))
+    assert sorted(flat2) == [0, 1] and abs(ident2 - 0.5 * 2.01 ** 2 / 4) < 1e-8
+
+
+def test_scoring_stops_on_a_flat_ridge_only_when_it_gains_little():
+    """The convergence test of Fisher scoring: converged in the identified
+    directions (decrease 1.25e-7 nats there) while the full prediction along a
+    ridge is 2.5e2 nats: stopped, the ridge named, only when the last
+    accepted step gained less than FLAT_GAIN and a tolerance is set."""
+    from bondgraph.inference.fisher import FLAT_GAIN, _converged
+
+    d = SimpleNamespace(F=S @ A_RIDGE @ S, grad=S @ np.array([1e-3, 0.0, 0.0]))
+    x, L = np.ones(3), np.zeros(3, bool)
+    free = np.ones(3, bool)
+    assert _predicted_decrease(d, x, L) > 1e2
+    done, flat = _converged(d, x, L, free, 1e-2, 0.5 * FLAT_GAIN)
+    assert done and sorted(flat) == [0, 1]
+    assert _converged(d, x, L, free, 1e-2, 2.0 * FLAT_GAIN) == (False, ())
+    assert _converged(d, x, L, free, 0.0, 0.0) == (False, ())      # atol 0: rtol alone stops
+    # the identified part itself not converged: no stop
+    d2 = SimpleNamespace(F=d.F, grad=S @ np.array([1.0, 1.0, 1.0]))
+    assert _converged(d2, x, L, free, 1e-2, 0.0) == (False, ())

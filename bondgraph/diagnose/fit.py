@@ -22,6 +22,7 @@ from scipy.stats import chi2
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
     fine_free_run,
+    FLAT_GAIN,
     NOISE_BOX,
     NoiseSpec,
     Problem,
@@ -131,7 +132,9 @@ class Fit:
     record or on the validation record, :func:`free_run_trouble`; None when
     it simulates on both), and warnings about the fit that the report
     carries (``warnings``: a declared parameter on its box and what the box
-    costs)."""
+    costs), and the quantities along which the likelihood is flat where
+    the scoring stopped, converged in every other direction (``flat``,
+    :attr:`bondgraph.inference.fisher.Scoring.flat`)."""
 
     graph: BondGraph
     model: Model
@@ -154,6 +157,7 @@ class Fit:
     noise_est: dict = field(default_factory=dict)
     unstable: str | None = None
     warnings: list = field(default_factory=list)
+    flat: tuple = ()
 
     @property
     def k(self) -> int:
@@ -183,7 +187,8 @@ class Fit:
                           self.residuals.whiteness, self.estimates(), dict(self.std),
                           self.residuals, self.sim_y, self.ukf.innovations[:, 0, :],
                           np.diagonal(S, axis1=1, axis2=2).copy(), list(self.at_bound),
-                          self.validation_metric, dict(self.x0_est), dict(self.noise_est))
+                          self.validation_metric, dict(self.x0_est), dict(self.noise_est),
+                          list(self.flat))
 
     @property
     def accept_metric(self) -> float:
@@ -419,7 +424,7 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     theta = clip_into_box(ctx, model, params, theta, what)
     iters = ctx.settings.search.fit_iterations if iterations is None else int(iterations)
     std: dict = {}
-    conv: tuple = (None, None)
+    conv: tuple = (None, None, ())
     x0_est = {s: pb.prior.estimated[s] for s in x0_states(ctx, model) if s in pb.prior.estimated}
     noise_est = {o: pb.noise.held[o] for o in pb.noise.outputs(model) if o in pb.noise.held}
     if params and iters > 0:
@@ -432,7 +437,7 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
         _noise_bound_warning(ctx, what, noise_new, start_sigma, std)
     fitted = pb.conditioned_on(x0={**pb.prior.estimated, **x0_est}, noise_levels=noise_est)
     fit = evaluate_fit(ctx, fitted, graph, params, theta, what, std)
-    fit.converged, fit.iterations = conv
+    fit.converged, fit.iterations, fit.flat = conv
     fit.x0_est, fit.noise_est = x0_est, noise_est
     fit.at_bound = on_bound(model, params, theta)
     if fit.at_bound:
@@ -467,7 +472,8 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
     the problem's estimated outputs jointly, L-BFGS-B (θ only) if it fails
     numerically; returns θ, the Cramér-Rao std (empty after the fallback;
     ``x0.<state>``, ``noise.<output>`` for the others), (converged,
-    iterations), the estimated initial states and noise stds by name."""
+    iterations, the quantities along which the likelihood is flat where it
+    stopped), the estimated initial states and noise stds by name."""
     model = problem.model
     states = x0_states(ctx, model)
     noises = problem.noise.outputs(model)
@@ -479,18 +485,22 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
     noise = noise_params(model)
     scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
     try:
-        theta, F, conv, used, x0n, sig, _ = fisher_fit(
+        theta, F, conv, used, x0n, sig, flat, _ = fisher_fit(
             problem, theta, idx, (lo, hi), iters, log_scale=scale, tolerance=tolerance,
             states=states, noises=noises)
+        if flat:
+            ctx.log(f"  {what}: converged in the directions the record identifies; the "
+                    f"likelihood is flat along {', '.join(flat)} together (gaining < "
+                    f"{FLAT_GAIN:g} nats per iteration): not identified by this record")
         names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]
-        return (theta, cr_std(F, names), (conv, used),
+        return (theta, cr_std(F, names), (conv, used, flat),
                 {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
         ctx.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
         crit = make_criterion(problem, params, theta, ctx.settings.evaluation.chunk)
         xs = np.array([theta[model.param_index(n)] for n in params])
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
-        return crit.theta(x[None, :])[0], {}, (None, None), {}, {}
+        return crit.theta(x[None, :])[0], {}, (None, None, ()), {}, {}
 
 
 def evaluate_fit(ctx: Context, problem: Problem, graph: BondGraph, params: list[str],

@@ -19,7 +19,7 @@ from bondgraph.errors import NumericalError
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, noise_plan
-from bondgraph.inference.fisher import estimand_scoring
+from bondgraph.inference.fisher import FLAT_GAIN, estimand_scoring
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.options import Evaluation, ScoringOptions
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
@@ -31,7 +31,8 @@ from bondgraph.numerics.integrators import simulate_batch
 
 # re-exported for the loop: the box of an estimated noise std (its start
 # times / divided by NOISE_BOX), the problem's parts, the noise detector
-__all__ = ["NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem", "make_problem", "noise_parameters"]
+__all__ = ["FLAT_GAIN", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem", "make_problem",
+           "noise_parameters"]
 
 
 
@@ -169,6 +170,10 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
         The initial state (the estimated entries moved).
     sigma : dict
         The estimated noise stds by output.
+    flat : tuple of str
+        The quantities along which the likelihood is flat where the scoring
+        stopped, converged in every other direction
+        (:attr:`bondgraph.inference.fisher.Scoring.flat`; empty otherwise).
     nll : float
         The NLL at the result [nats] (from the scoring's own last run there:
         the same number as a UKF run of ``problem`` at ``theta`` when no
@@ -192,7 +197,8 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
                          scoring=ScoringOptions(max_iter=iterations, atol=tolerance,
                                                 log_scale=scale, information=information))
     sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
-    return r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig, float(r.nll)
+    return (r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig, r.flat,
+            float(r.nll))
 
 
 def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:

@@ -217,6 +217,10 @@ class FitSummary:
     noise_estimates : dict
         Measurement-noise stds estimated with θ (output -> std, output
         units); their Cramér-Rao std in ``std`` as ``noise.<output>``.
+    flat : list of str
+        Quantities the record does not identify separately: the likelihood
+        is flat along a combination of them where the fit stopped
+        (:attr:`bondgraph.inference.fisher.Scoring.flat`).
     """
 
     model: str
@@ -235,6 +239,7 @@ class FitSummary:
     validation_metric: float | None = None
     x0_estimates: dict = field(default_factory=dict)
     noise_estimates: dict = field(default_factory=dict)
+    flat: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
@@ -242,7 +247,7 @@ class FitSummary:
                             "bic": self.bic, "metric": self.metric, "whiteness": self.whiteness,
                             "validation_metric": self.validation_metric,
                             "at_bound": self.at_bound, "x0_estimates": self.x0_estimates,
-                            "noise_estimates": self.noise_estimates,
+                            "noise_estimates": self.noise_estimates, "flat": self.flat,
                             "estimates": self.estimates, "std": self.std,
                             "residuals": self.residuals.to_dict()})
 

@@ -153,11 +153,15 @@ def _table(heads: list[str], rows: list, classes: list[str] | None = None) -> st
 
 
 def _warnings(result: LoopResult) -> list[str]:
-    """The warnings first: the result's and the final estimates on a bound."""
+    """The warnings first: the result's, the final estimates on a bound and
+    those the record does not identify separately."""
     items = list(result.warnings)
     if result.final is not None and result.final.at_bound:
         items.append("estimates on a bound of their box (no Cramér-Rao std): "
                      + ", ".join(result.final.at_bound))
+    if result.final is not None and getattr(result.final, "flat", None):
+        items.append("not identified separately by the record (the likelihood is flat along "
+                     "a combination of them): " + ", ".join(result.final.flat))
     if not items:
         return []
     li = "".join(f"<li>{escape(w)}</li>" for w in items)

@@ -525,6 +525,12 @@ def _md_accepted(result: LoopResult) -> list[str]:
     for n, v in result.final.estimates.items():
         sd = result.final.std.get(n)
         L.append(f"| {n} | {v:.6g} | {sd:.3g} |" if sd is not None else f"| {n} | {v:.6g} | - |")
+    flat = getattr(result.final, "flat", None)
+    if flat:
+        L += ["", f"The record does not identify {', '.join(flat)} separately: the likelihood "
+              "is flat along a combination of them where the fit stopped (relative eigenvalue "
+              "of the Fisher information below 1e-4), so their values above are one point of "
+              "a ridge; fix one of them, or add a record that excites them apart."]
     return L
 
 
