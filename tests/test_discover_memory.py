@@ -303,3 +303,39 @@ def test_a_memoryless_law_is_chosen_as_without_memory_terms():
     assert on.memory_term is None
     assert [(tm.name, tm.coef) for tm in on.terms] == [(tm.name, tm.coef) for tm in off.terms]
     assert {tm.name for tm in on.terms} == {"q_spring^3", "v.f"}
+
+
+def test_a_refit_that_makes_the_memory_term_return_energy_is_a_violation():
+    """The loop's admissibility of a refit includes the discovered law's
+    memory term (issue 29: passivity after the refit, not only at
+    discovery): d = +0.5·lp(v, 0.05 s) beside the declared damper 1.5·v
+    is passive; refitted to +3 (inside its box [0, 5]) the port returns
+    energy, and the violation's least absorbed energy is the quadrature's
+    along the same trajectory (v = 0.8 sin ωt, given as the refit's
+    filtered states)."""
+    from types import SimpleNamespace
+
+    name = memory_name("v.f", 0.05)
+    tm = Term(name, sp.Symbol(name), 0.5, 1.0, "m/s", Memory("v.f", 0.05, 0.0))
+    law = DiscoveredLaw("v", "effort", "N", {"v.f": V, "q_spring": Q, "F": F}, [tm], [], [],
+                        np.zeros(0), np.zeros(0), 1.0, 0.0, {}, [], ["F"])
+    eff = DiscoveredEffect(law)
+    before = mass_spring_damper()
+    target = eff.targets(before)[0]
+    assert eff.box(before, target, None)["c0"] == (0.0, 5.0)
+    for coef, bad in ((0.5, False), (3.0, True)):
+        g = mass_spring_damper()
+        eff.apply(g, target, {"c0": coef})
+        m = Model.from_graph(g)
+        x = np.zeros((TP.size, 1, m.n_x))
+        x[:, 0, m.states.index("p_mass")] = M * SINE["v.f"]
+        x[:, 0, m.states.index("q_spring")] = SINE["q_spring"]
+        fit = SimpleNamespace(model=m, graph=g, theta=m.theta0,
+                              ukf=SimpleNamespace(x_filt=x))
+        got = eff.refit_violations(before, target, fit, SINE["F"][:, None], TP)
+        assert bool(got) is bad
+        if bad:
+            (v,) = got
+            assert v.kind == "memory" and v.element == "discovered.v.lp"
+            assert v.value == pytest.approx(absorbed(3.0, 0.05, v.at), rel=1e-4)
+            assert "returns more energy" in str(v)

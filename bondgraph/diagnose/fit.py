@@ -658,19 +658,26 @@ def error_scale(problem: Problem, fit: Fit) -> np.ndarray:
     return np.where(np.isfinite(innov) & (innov > sig), innov, sig)
 
 
-def admissibility(ctx: Context, fit: Fit) -> Admissibility:
+def admissibility(ctx: Context, fit: Fit, before=None, placed=()) -> Admissibility:
     """Whether ``fit``'s graph keeps what a bond graph promises at its
     estimates (every R dissipates, every C and I stores non-negative
     energy) over the range its filtered states visit on the record plus a
-    margin (:func:`bondgraph.numerics.admissible.check_admissible`)."""
+    margin (:func:`bondgraph.numerics.admissible.check_admissible`), and
+    what the effects ``placed`` ((Effect, Target) pairs added to the graph
+    ``before``) find at the refit beyond that
+    (:meth:`~bondgraph.diagnose.effects.base.Effect.refit_violations`: a
+    discovered law's memory term by the dissipation inequality)."""
     model = fit.model
     ss = getattr(model.module, "__state_space__", None) or derive(fit.graph)
     x = getattr(fit.ukf, "x_filt", None)
     if x is None:
         return Admissibility(unchecked=["(no filtered states stored)"])
-    _, u, _ = problem_for(ctx, model).arrays
+    t, u, _ = problem_for(ctx, model).arrays
     theta = {n: float(fit.theta[model.param_index(n)]) for n in model.params}
-    return check_admissible(fit.graph, ss, theta, np.asarray(x)[:, 0, :], u)
+    adm = check_admissible(fit.graph, ss, theta, np.asarray(x)[:, 0, :], u)
+    for eff, target in placed:
+        adm.violations.extend(eff.refit_violations(before, target, fit, u, t))
+    return adm
 
 
 def sim_inputs(settings: LoopSettings, filter_hold: str, u: np.ndarray) -> tuple[str, np.ndarray]:

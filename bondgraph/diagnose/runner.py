@@ -1128,7 +1128,7 @@ def judged_pair(ctx: Context, current: Fit, pair: tuple, conf: Confirmation):
     s = ctx.settings
     after = conf.fit
     d = decided(ctx, current, after, len(conf.new_params), conf.comparable,
-                " + ".join(c.label for c in pair))
+                " + ".join(c.label for c in pair), pair)
     singles = [ctx.cache.get(("confirmation", id(current), current.nll, c.label)) for c in pair]
     reason = d.reason or pair_member_boxed(after, conf.new_params) or pair_needed(
         after, [None if r is None else r.fit for r in singles],
@@ -1361,13 +1361,16 @@ def _confirm_task(ctx: Context, shared, cand: Candidate) -> Confirmation | None:
 
 
 def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
-            label: str):
+            label: str, added: Sequence[Candidate] = ()):
     """:func:`bondgraph.diagnose.accept.decide` on a candidate's refit; when
     its only objection is a parameter newly on its box, decided again with
     the parameters whose box does not decide the fit exempt
-    (:func:`box_not_deciding`)."""
+    (:func:`box_not_deciding`). The admissibility of the refit includes
+    what the ``added`` candidates' own effects find at it
+    (:func:`bondgraph.diagnose.fit.admissibility`)."""
     s = ctx.settings
-    adm = admissibility(ctx, after) if comparable else None
+    placed = [(get_effect(c.effect, s.effects), c.target) for c in added]
+    adm = admissibility(ctx, after, current.graph, placed) if comparable else None
     d = decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable)
     if d.accepted or not newly_boxed(current, after):
         return d
@@ -1392,7 +1395,7 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
     for c, conf in confirmed:
         names = list(current.params) + conf.new_params
         after = conf.fit
-        d = decided(ctx, current, after, len(conf.new_params), conf.comparable, c.label)
+        d = decided(ctx, current, after, len(conf.new_params), conf.comparable, c.label, [c])
         tie = {k: v for k, v in (c.confirmed or {}).items()
                if k in ("tie_z", "tie_p", "comparable")}
         c.confirmed = {**confirmed_record(current, after, len(conf.new_params), conf.values,

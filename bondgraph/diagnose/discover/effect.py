@@ -76,6 +76,7 @@ from bondgraph.diagnose.discover.passivity import PassivityReport, make_passive
 from bondgraph.diagnose.discover.reconstruct import (
     Reconstruction,
     ReconstructOptions,
+    port_values,
     reconstruct,
     reconstruct_sensor,
 )
@@ -83,6 +84,7 @@ from bondgraph.diagnose.effects.base import EffectParam, Target, _new_param, _St
 from bondgraph.errors import BondGraphError, GraphError
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.problem import make_problem
+from bondgraph.numerics.admissible import Violation
 from bondgraph.numerics.model import Model
 
 #: how far a refitted coefficient may move from the discovered one (factor)
@@ -353,6 +355,56 @@ class DiscoveredEffect(_Structural):
                 src = graph.MSe if self.law.kind == "effort" else graph.MSf
                 graph.connect(src(pl.element, part(pl.terms)), j)
         return P
+
+    def refitted_law(self, target, values: dict) -> DiscoveredLaw:
+        """The law with its coefficients and τ at ``values`` (local names
+        ``c<k>``, ``tau``; a name missing keeps the discovered value)."""
+        tau = values.get("tau")
+        terms = [replace(tm, coef=float(values.get(f"c{k}", tm.coef)),
+                         memory=None if tm.memory is None or tau is None
+                         else replace(tm.memory, tau=float(tau)))
+                 for k, tm in enumerate(self.law.terms)]
+        return replace(self.law, terms=terms)
+
+    def refit_violations(self, graph, target, fit, inputs, t) -> list:
+        """The law's memory and coupled parts checked again at a refit, as at
+        discovery (:func:`~bondgraph.diagnose.discover.passivity.make_passive`:
+        the dissipation inequality along the record, the coupled power at
+        its samples), with the refitted coefficients and τ along the refit's
+        filtered states: these parts are modulated sources or laws of two
+        variables, which the loop's admissibility check of R, C and I laws
+        does not judge (a refit may move a memory term's coefficient past
+        what the port's dissipation absorbs). Returns the
+        :class:`~bondgraph.numerics.admissible.Violation` of each part that
+        fails (empty when none does)."""
+        model = fit.model
+        x = getattr(fit.ukf, "x_filt", None)
+        ss = getattr(model.module, "__state_space__", None)
+        if x is None or ss is None or self.law.kind not in self.kinds:
+            return []
+        theta = np.asarray(fit.theta, float)
+        local = {p.name: float(theta[model.param_index(self.pname(target, p.name))])
+                 for p in self.params if self.pname(target, p.name) in model.params}
+        law = self.refitted_law(target, local)
+        values = port_values(fit.graph, ss, self.law.port, np.asarray(x)[:, 0, :], inputs, theta)
+        declared = {n: float(theta[model.param_index(n)]) for n in graph.params
+                    if n in model.params}
+        rep = make_passive(law, graph, values, params=declared, t=t)
+        own = values[next(k for k in law.symbols if k in (f"{law.port}.f", f"{law.port}.e"))]
+        out = []
+        for c in rep.checks:
+            if c.ok or c.part not in ("memory", "coupled"):
+                continue
+            if c.part == "memory":
+                out.append(Violation(f"{self.name}.{target.tag}.lp", "memory",
+                                     "returns more energy than the port's laws absorbed "
+                                     "(absorbed energy)", "t", c.at, c.worst,
+                                     (float(t[0]), float(t[-1]))))
+            else:
+                out.append(Violation(f"{self.name}.{target.tag}", "coupled",
+                                     "produces power with the law's R part", c.variable,
+                                     c.at, c.worst, (float(np.min(own)), float(np.max(own)))))
+        return out
 
     def _declare(self, graph, target, values, scales, where: str) -> dict:
         """The effect's parameters declared in ``graph`` (the coefficients

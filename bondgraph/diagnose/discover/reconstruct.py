@@ -280,6 +280,17 @@ def port_expressions(graph, port: str, dependent=()) -> tuple[dict, list]:
     return out, primary
 
 
+def port_values(graph, ss, port: str, X, u, theta) -> dict:
+    """The port's variables (:func:`port_expressions`) of ``graph``, whose
+    derived state space is ``ss``, along the states ``X`` (N, n_x) with the
+    inputs ``u`` (N, n_u) and parameters ``theta`` (n_theta,): name ->
+    array (N,)."""
+    exprs, _ = port_expressions(graph, port, set(ss.derivative_elements))
+    X = np.asarray(X, float)
+    return _evaluate(_lambdified(ss, exprs), X, np.asarray(u, float), np.asarray(theta, float),
+                     X.shape[0])
+
+
 def _lambdified(ss, exprs: dict):
     args = (list(ss.states), list(ss.inputs), list(ss.params))
     return {k: sp.lambdify(args, ss.variable(e), "numpy") for k, e in exprs.items()}

@@ -370,6 +370,17 @@ class Effect:
         """``"<title> at <target>"``."""
         return f"{self.title} at {target}"
 
+    def refit_violations(self, graph: BondGraph, target: Target, fit, inputs, t) -> list:
+        """What this effect's laws break at a refit beyond what the loop's
+        admissibility check of its R, C and I laws sees
+        (:func:`bondgraph.numerics.admissible.check_admissible`): a list of
+        :class:`~bondgraph.numerics.admissible.Violation` (empty: nothing).
+        ``graph`` is the graph the effect was added to, ``fit`` the refit
+        (its graph, model, θ and filtered states), ``inputs`` (N, n_u) and
+        ``t`` (N,) [s] the record's. The library's effects are R, C, I laws
+        or sources with boxes that keep them passive: nothing to add."""
+        return []
+
 
 class _Structural(Effect):
     """Effects without a neutral value of their parameters; scored by a
