@@ -666,8 +666,8 @@ def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit, l
     ``settings.search.auto_substeps`` the recommended substeps for the rest of the
     loop and ``fit`` refitted with them (warm start).
 
-    With ``judged`` = (current fit, new parameters' count, comparable) the
-    refit must pass the accept rule against the fit it replaces
+    With ``judged`` = (current fit, new parameters' count, comparable, the
+    added candidates) the refit must pass the accept rule against the fit it replaces
     (:func:`decided`), as the coarser fit did: a refit that does not (on the
     user CED graph a pair's held-out error 0.2667 at 2 RK4 substeps became
     0.4975 at 4, above the 0.4706 it replaced) is rejected (logged, in
@@ -689,8 +689,8 @@ def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit, l
     refit = fit_model(ctx, fit.graph, list(fit.params), fit.estimates(),
                       f"{label} at {n} substeps", model=fit.model)
     if judged is not None:
-        current, dof, comparable = judged
-        d = decided(ctx, current, refit, dof, comparable, f"{label} at {n} substeps")
+        current, dof, comparable, added = judged
+        d = decided(ctx, current, refit, dof, comparable, f"{label} at {n} substeps", added)
         if not d.accepted:
             msg = (f"{label} refitted at {n} substeps no longer passes the accept rule "
                    f"({d.reason}; error {d.error_before:.4g} -> {d.error_after:.4g}): its "
@@ -1147,7 +1147,8 @@ def committed_pair(ctx: Context, result: LoopResult, current: Fit, pair: tuple,
     a, b = pair
     label = f"{a.label} + {b.label}"
     after = fit_after_discretisation_check(ctx, result, conf.fit, label,
-                                           (current, len(conf.new_params), conf.comparable))
+                                           (current, len(conf.new_params), conf.comparable,
+                                            pair))
     if after is None:
         result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: refitted at "
                                          f"the finer step it no longer passes",
@@ -1408,7 +1409,7 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
         if d.accepted:
             after = fit_after_discretisation_check(ctx, result, after, c.label,
                                                    (current, len(conf.new_params),
-                                                    conf.comparable))
+                                                    conf.comparable, [c]))
             if after is None:
                 result.rejected.append(Rejection(step, c, "refitted at the finer step it no "
                                                  "longer passes the accept rule",
