@@ -442,6 +442,8 @@ def gain_beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str]) 
         return ""
     gain, values = r
     text = ", ".join(f"{n} = {v:.4g}" for n, v in values.items())
+    if not gain > 0:    # the refit beyond the box ended no better than the fit on it
+        return f" (beyond the box the likelihood gains nothing: {gain:.3g} nats at {text})"
     return f" (beyond the box the likelihood gains {gain:.6g} nats, at {text})"
 
 
