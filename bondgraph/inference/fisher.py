@@ -384,9 +384,10 @@ def flat_directions(F: np.ndarray, grad: np.ndarray, free=None) -> tuple[tuple, 
     its loading on them (the norm of its row of those eigenvectors) is at
     least :data:`FLAT_LOADING`, the largest first. On a user's graph of a
     belt drive, with one speed sensor whose gain is estimated and the
-    pulley's spring on the bottom of its box, the mechanical impedances
-    (damping, belt stiffness, inertia) and the sensor's gain scale
-    together: eigenvalues 5e-7 and 4e-6 beside 0.1 and more, and a
+    pulley's spring on the bottom of its box, the motor damping, belt
+    stiffness and pulley inertia move together with the armature
+    inductance and torque constant: eigenvalues 5e-7 and 4e-6 beside 0.1
+    and more, and a
     scoring that gained 0.01-0.05 nats per iteration along them for 120
     iterations, converged in every other direction after 20.
 
