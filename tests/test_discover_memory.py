@@ -339,3 +339,20 @@ def test_a_refit_that_makes_the_memory_term_return_energy_is_a_violation():
             assert v.kind == "memory" and v.element == "discovered.v.lp"
             assert v.value == pytest.approx(absorbed(3.0, 0.05, v.at), rel=1e-4)
             assert "returns more energy" in str(v)
+
+
+def test_a_law_at_a_sensor_output_has_no_refit_violation():
+    """A law at a sensor's output changes no power: nothing to check at its
+    refit (its port is a sensor, not a junction of the graph)."""
+    from types import SimpleNamespace
+
+    name = memory_name("x", 0.3)
+    tm = Term(name, sp.Symbol(name), 0.2, 1.0, "m", Memory("x", 0.3, 0.0))
+    law = DiscoveredLaw("x", "output", "m", {"x": sp.Symbol("x")}, [tm], [], [], np.zeros(0),
+                        np.zeros(0), 1.0, 0.0, {})
+    eff = DiscoveredSensorEffect(law)
+    g = mass_spring_damper()
+    m = Model.from_graph(g)
+    fit = SimpleNamespace(model=m, graph=g, theta=m.theta0,
+                          ukf=SimpleNamespace(x_filt=np.zeros((TP.size, 1, m.n_x))))
+    assert eff.refit_violations(g, eff.targets(g)[0], fit, SINE["F"][:, None], TP) == []

@@ -380,8 +380,8 @@ class DiscoveredEffect(_Structural):
         model = fit.model
         x = getattr(fit.ukf, "x_filt", None)
         ss = getattr(model.module, "__state_space__", None)
-        if x is None or ss is None or self.law.kind not in self.kinds:
-            return []
+        if x is None or ss is None or self.law.kind not in ("effort", "flow"):
+            return []           # a law at a sensor's output carries no power
         theta = np.asarray(fit.theta, float)
         local = {p.name: float(theta[model.param_index(self.pname(target, p.name))])
                  for p in self.params if self.pname(target, p.name) in model.params}
