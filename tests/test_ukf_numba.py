@@ -271,10 +271,10 @@ def test_w_inverse_skips_only_unchanged_columns():
                                        atol=1e-12 * np.abs(np.linalg.inv(W)).max())
 
 
-def test_chunks_of_sets_give_the_same_numbers(monkeypatch):
-    """A batch split into chunks (bounded work buffers) gives the NLLs,
-    reasons and stored arrays of one call, bit for bit, with R and Q given
-    per set."""
+def test_one_thread_and_two_give_the_same_numbers(monkeypatch):
+    """The sets spread over one thread or over two (each set one call of the
+    kernel, taken in turn by the pool's threads) give the NLLs, reasons and
+    stored arrays of each other, bit for bit, with R and Q given per set."""
     from bondgraph.inference import ukf_numba
 
     m = Model.load("rr_loop")
@@ -283,14 +283,15 @@ def test_chunks_of_sets_give_the_same_numbers(monkeypatch):
     R = np.tile(np.diag(m.meas_std(m.theta0[None])[0] ** 2), (7, 1, 1))
     Q = np.tile(np.eye(m.n_x) * 1e-6, (7, 1, 1))
     opts = UKFOptions(backend="numba")
+    monkeypatch.setattr(ukf_numba, "threads", lambda: 1)
     a = ukf_nll(m, t, u, y, th, options=opts, R=R, Q=Q, store="full")
-    nf, _ = ukf_numba._work_size(m.n_x, m.n_y, m.n_u, m.theta0.size)
-    monkeypatch.setattr(ukf_numba, "WORK_FLOATS", 3 * nf)
+    monkeypatch.setattr(ukf_numba, "threads", lambda: 2)
     b = ukf_nll(m, t, u, y, th, options=opts, R=R, Q=Q, store="full")
     assert np.isfinite(a.nll).sum() >= 5
     np.testing.assert_array_equal(b.nll, a.nll)
     assert b.reasons == a.reasons
     np.testing.assert_array_equal(b.P_filt, a.P_filt)
+    np.testing.assert_array_equal(b.innovations, a.innovations)
 
 
 def test_fallback_to_numpy_when_kernels_do_not_load(monkeypatch):

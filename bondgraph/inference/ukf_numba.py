@@ -2,7 +2,8 @@
 
 The same filter as :mod:`bondgraph.inference.ukf` (Wan & van der Merwe 2000;
 the difference form of :mod:`bondgraph.inference.sigma`), written for one
-parameter set at a time and run over the sets with ``numba.prange``:
+parameter set at a time and run over the sets by a pool of threads, one set
+per call of the compiled kernel, which releases the GIL (:func:`run`):
 sigma points, the transition (RK4 or ROS2 with the Jacobian at the central
 sigma point or at every point, :mod:`bondgraph.numerics.integrators`), the
 measurement update over the measured outputs, and the NLL accumulation.
@@ -81,6 +82,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+from concurrent.futures import ThreadPoolExecutor
 import time
 import warnings
 from collections import namedtuple
@@ -118,9 +120,6 @@ JACOBIAN_CODES = {"mean": 0, "sigma": 1, "each": 2}
 HOLD_CODES = {"zoh": 0, "mean": 1, "linear": 2}
 #: holds with codes from here on vary within the interval (evaluated per stage)
 FIRST_VARYING_HOLD = 2
-#: float64 entries of work buffer per kernel call (32 MiB): larger batches
-#: run in chunks of sets (each set's arithmetic is independent of the chunk)
-WORK_FLOATS = 1 << 22
 #: layout of the integer options array of the kernel
 IOPT = ("method", "substeps", "jacobian", "hold", "use_R", "use_Q", "store")
 #: LLVM fast-math flags of the kernel: reassociation (vectorised sums),
@@ -987,16 +986,18 @@ def _any_finite(v):
 
 
 def _kernel_py(fns, rec, sets, opts, out, st, bufs):
-    """Every parameter set of ``sets`` in parallel (``prange``):
-    :func:`_filter_one` with its own rows of the work buffers ``bufs`` =
-    (buf, ibuf). ``fns``: :func:`point_fns`; ``rec``: :data:`Record`;
-    ``opts``: (ip, fp), the integer options (:data:`IOPT`) and the sigma
-    weights (c, w, centre covariance weight); ``out``: :data:`Outputs`;
-    ``st``: the storage arrays (:func:`_store_arrays`; a tuple of its own:
-    the parallel loop's function takes tuples of arrays, not tuples
-    nested in them)."""
+    """Every parameter set of ``sets`` in turn: :func:`_filter_one` with its
+    own rows of the work buffers ``bufs`` = (buf, ibuf). ``fns``:
+    :func:`point_fns`; ``rec``: :data:`Record`; ``opts``: (ip, fp), the
+    integer options (:data:`IOPT`) and the sigma weights (c, w, centre
+    covariance weight); ``out``: :data:`Outputs`; ``st``: the storage
+    arrays (:func:`_store_arrays`). :func:`run` calls it for one set at a
+    time from a pool of threads (the kernel holds no GIL): compiled with
+    ``parallel=True`` and ``prange`` over the sets, the kernel took 58 s to
+    compile against 36 s without (numba's parfor passes), the largest part
+    of a first run after install."""
     buf, ibuf = bufs
-    for a in numba.prange(sets.th.shape[0]):
+    for a in range(sets.th.shape[0]):
         _filter_one(np.int64(a), fns, rec, sets, opts, out, st, buf[a], ibuf[a])
 
 
@@ -1048,10 +1049,35 @@ def kernel() -> tuple[object, float]:
         t0 = time.perf_counter()
         with _first_class_quiet(), announced("compiling the fused UKF kernel",
                                              note="once per installation: numba caches it"):
-            k = numba.njit(_signature(), cache=True, parallel=True, nogil=True,
+            k = numba.njit(_signature(), cache=True, nogil=True,
                            error_model="numpy", _nrt=False, fastmath=FASTMATH)(_kernel_py)
         _KERNEL.append(k)
         return k, time.perf_counter() - t0
+
+
+def threads() -> int:
+    """Threads :func:`run` spreads the parameter sets over: numba's thread
+    count (``NUMBA_NUM_THREADS``, default the machine's cores;
+    ``numba.set_num_threads`` lowers it)."""
+    return max(1, int(numba.get_num_threads())) if numba is not None else 1
+
+
+_POOLS: dict = {}
+
+
+def _pool(n: int):
+    """A pool of ``n`` threads, made once per size and kept."""
+    with _LOCK:
+        if n not in _POOLS:
+            _POOLS[n] = ThreadPoolExecutor(max_workers=n, thread_name_prefix="bondgraph-ukf")
+        return _POOLS[n]
+
+
+def _entry(kern):
+    """The compiled entry point of the kernel's one signature: calling it
+    skips the dispatcher's typing of the arguments (the tuple of
+    first-class functions costs about 1 ms to type on every call)."""
+    return next(iter(kern.overloads.values())).entry_point
 
 
 def _compiled_once(store: list, py, signature, fastmath=False):
@@ -1136,26 +1162,35 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
                c(batch.q2, dtype=float)]
     fns, rec = point_fns(kernels), Record(c(t, dtype=float), c(u, dtype=float), c(y, dtype=float))
     nf, ni = _work_size(n, ny, u.shape[1], batch.th.shape[1])
-    step = max(1, min(A, WORK_FLOATS // nf))
-    buf, ibuf = np.zeros((step, nf)), np.zeros((step, ni), dtype=np.int64)
     act, st = c(batch.act, dtype=np.int64), _store_arrays(kept)
-    # sets are handed to the threads one at a time (dynamic schedule): their
-    # costs differ (failures stop early, loaded factorisations retry), and a
-    # static split left a thread idle (full bench: 1.82 of 2 cores busy)
-    chunk = numba.get_parallel_chunksize()
-    numba.set_parallel_chunksize(1)
+    T = min(threads(), A)
+    buf, ibuf = np.zeros((T, nf)), np.zeros((T, ni), dtype=np.int64)
+    call, todo = _entry(kern), iter(range(A))
+    lock = threading.Lock()
+
+    def worker(j: int) -> None:
+        # sets are taken one at a time (a dynamic schedule): their costs
+        # differ (failures stop early, loaded factorisations retry), and a
+        # static split left a thread idle (full bench: 1.82 of 2 cores busy)
+        b, ib = buf[j:j + 1], ibuf[j:j + 1]
+        first = True
+        while True:
+            with lock:
+                a = next(todo, None)
+            if a is None:
+                return
+            if not first:           # each set starts from zeroed work rows
+                b[:], ib[:] = 0.0, 0
+            first, s = False, slice(a, a + 1)
+            sets = Sets(*[v[s] for v in per_set], Rd if ip[4] else Rd[s],
+                        R[s] if ip[4] else R, Q[s] if ip[5] else Q, act[s])
+            call(fns, rec, sets, (ip, fp), Outputs(out_f[s], out_i[s]), st, (b, ib))
+
     with _first_class_quiet():
-        try:
-            for a0 in range(0, A, step):  # chunks of sets: the work buffers stay bounded
-                s = slice(a0, min(A, a0 + step))
-                if a0:
-                    buf[:], ibuf[:] = 0.0, 0
-                sets = Sets(*[v[s] for v in per_set], Rd if ip[4] else Rd[s],
-                            R[s] if ip[4] else R, Q[s] if ip[5] else Q, act[s])
-                kern(fns, rec, sets, (ip, fp), Outputs(out_f[s], out_i[s]), st,
-                     (buf[:s.stop - a0], ibuf[:s.stop - a0]))
-        finally:
-            numba.set_parallel_chunksize(chunk)
+        if T == 1:
+            worker(0)
+        else:
+            list(_pool(T).map(worker, range(T)))
     for a, p in enumerate(batch.act):
         k, code = int(out_i[a, 0]), int(out_i[a, 1])
         if k >= 0:
@@ -1219,10 +1254,7 @@ class StepKernel:
         nf, ni = _work_size(n, ny, n_u, batch.th.shape[1])
         self.bufs = (np.zeros((1, nf)), np.zeros((1, ni), dtype=np.int64))
         self.fns = point_fns(kernels)
-        # the compiled entry point of the kernel's one signature: calling it
-        # skips the dispatcher's typing of the arguments (the tuple of
-        # first-class functions costs ~1 ms to type on every call)
-        self.call = next(iter(self.kern.overloads.values())).entry_point
+        self.call = _entry(self.kern)
 
     def step(self, x, P, t_prev, t_now, u_prev, u_now, y) -> tuple[float, str | None]:
         """Advance ``x (n,)``, ``P (n, n)`` in place to the sample
