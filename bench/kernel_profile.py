@@ -9,7 +9,7 @@ sets from the box, ROS2 x 1 (the bench's setting), and splits the time:
 * ``trivial``: the same filter with trivial point kernels of the same
   signature and sizes (f = -x, h = x[:n_y], J = -I): the filter's own
   arithmetic and call overhead;
-* each with 1 thread and with all numba threads (does prange use both?);
+* each with 1 thread and with all numba threads (does the kernel's thread pool use both?);
 * the point kernels alone, called in a loop (cost per call).
 
 Reports µs per particle-step (one predict + update of one set), wall and
