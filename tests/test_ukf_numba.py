@@ -16,6 +16,7 @@ amplified: a few sets then fail at other samples or differ by more than
 1e-9 (the NLL guard of the estimate flags the second case).
 """
 
+import os
 import warnings
 
 import numpy as np
@@ -590,3 +591,33 @@ def test_the_same_graph_from_another_source_shares_its_kernels():
     d = g.param("d3", 0.1, "N*s^3/m^3", (0.0, 1.0), "cubic damping")
     add_to_r_law(g, g.elements["damper"], lambda v: d * v**3)
     assert compiled.kernel_source_path(Model.from_graph(g)) != paths[0]
+
+
+_FORKED: list = []
+
+
+def _forked_nll(_):
+    m, t, u, y, th = _FORKED[0]
+    return ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numba")).nll
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_forked_child_runs_the_kernel_after_its_parent_did(monkeypatch):
+    """The kernel's thread pool does not cross a fork: a child forked after
+    the parent ran the kernel on two threads gets the parent's NLLs (with
+    the parent's pool copied, the sets were queued to threads that do not
+    run in the child, and it waited for ever)."""
+    import multiprocessing
+
+    from bondgraph.inference import ukf_numba
+
+    monkeypatch.setattr(ukf_numba, "threads", lambda: 2)
+    m = Model.load("mass_spring_damper")
+    t, u, y = _record(m, N=60)
+    th = np.repeat(m.theta0[None], 4, axis=0)
+    ref = ukf_nll(m, t, u, y, th, options=UKFOptions(backend="numba")).nll
+    assert 2 in ukf_numba._POOLS and np.isfinite(ref).all()
+    _FORKED[:] = [(m, t, u, y, th)]
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        got = pool.map_async(_forked_nll, [0]).get(timeout=120)[0]
+    np.testing.assert_array_equal(got, ref)

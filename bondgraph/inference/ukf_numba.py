@@ -81,6 +81,7 @@ SIAM J. Sci. Comput. 20(4), 1456-1480.
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 import time
@@ -1063,6 +1064,11 @@ def threads() -> int:
 
 
 _POOLS: dict = {}
+# a forked child has none of its parent's threads: it makes pools of its own
+# (a pool copied from the parent would queue the sets to threads that do not
+# run there, and wait for ever)
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_POOLS.clear)
 
 
 def _pool(n: int):
