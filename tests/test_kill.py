@@ -27,7 +27,7 @@ import pytest
 
 from bondgraph.data.experiments import run_experiment
 
-KILLS = 5
+KILLS = 3
 EST = ["estimate", "--model", "mass_spring_damper", "--params", "m,k,c", "--quiet",
        "--method", "rk4", "--particles", "6", "--iterations", "8", "--seed", "3"]
 LOOP = ["loop", "--model", "mass_spring_damper", "--params", "m,k,c", "--quiet",
