@@ -50,6 +50,9 @@ def _summary(res):
         res.final.nll, res.final.estimates
 
 
+# 70 s cold: in pytest -m long; the executor's own two-worker equality
+# (tests/test_executor.py) stays in the default run
+@pytest.mark.long
 def test_loop_on_two_workers_equals_serial():
     serial, logs = _run()
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
