@@ -39,9 +39,8 @@ from bondgraph.data.records import Experiment
 from bondgraph.diagnose.cases import LoopCase, declared_builder
 from bondgraph.diagnose.effects import DEFAULT_EFFECTS, OPTIONAL_EFFECTS
 from bondgraph.diagnose.settings import FreeRunOptions, LoopSettings, SearchOptions
-from bondgraph.inference import sim_numba
 from bondgraph.inference.options import UKFOptions
-from bondgraph.inference.prior import PriorSpec, free_run_kernels
+from bondgraph.inference.prior import PriorSpec, rk4_outputs
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import simulate
 from bondgraph.numerics.integrators import simulate_batch
@@ -320,28 +319,6 @@ def _silverbox_record(window: int = SILVERBOX_WINDOW, upsample: int = SILVERBOX_
                              f"interpolation, V2 missing between samples)"})
 
 
-def rk4_outputs(model, t, u, theta, x0, substeps: int, hold: str,
-                backend: str = "numba") -> np.ndarray:
-    """Outputs (N, n_y) of a noise-free fixed-step RK4 run of ``model`` from
-    ``x0`` (n_x,), the inputs ``u`` (N, n_u) held as ``hold`` says: compiled
-    (:func:`bondgraph.inference.sim_numba.rk4_trajectory`) with ``backend``
-    ``"numba"`` where the model's kernels load, else the numpy steps of
-    :func:`bondgraph.numerics.integrators.simulate_batch` (the same
-    arithmetic: the Silverbox arrow error agrees to 1e-14 mV, 0.02 s
-    against 6.9 s)."""
-    th = np.asarray(theta, float)
-    kernels = free_run_kernels(model, backend, "rk4", hold)
-    if kernels is None:
-        return simulate_batch(model, t, u, th[None], x0, method="rk4", substeps=substeps,
-                              hold=hold)[:, 0, :]
-    X = sim_numba.rk4_trajectory(kernels, t, u, hold, th, np.asarray(x0, float), substeps)
-    bad = ~np.isfinite(X).all(axis=1)
-    if bad.any():       # as the numpy steps: NaN from the first non-finite state on
-        X[int(np.argmax(bad)):] = np.nan
-    with np.errstate(all="ignore"):
-        return np.asarray(model.h(X, u, th[None, :]), float)
-
-
 def silverbox_sim_error(model, theta, part: str, substeps: int = SILVERBOX_SUBSTEPS,
                         hold: str = SILVERBOX_HOLD, upsample: int = SILVERBOX_UPSAMPLE,
                         backend: str = "numba") -> float:
@@ -363,9 +340,8 @@ def silverbox_sim_error(model, theta, part: str, substeps: int = SILVERBOX_SUBST
     upsample : int
         Grid points per sample interval (:func:`_silverbox_arrays`).
     backend : {"numba", "numpy"}
-        ``"numba"``: the model's compiled RK4 trajectory
-        (:func:`bondgraph.inference.sim_numba.rk4_trajectory`, the same
-        arithmetic) where its kernels load; else the numpy steps.
+        ``"numba"``: the model's compiled RK4 trajectory where its kernels
+        load, else the numpy steps (:func:`bondgraph.inference.prior.rk4_outputs`).
 
     Returns
     -------
@@ -380,6 +356,7 @@ def silverbox_sim_error(model, theta, part: str, substeps: int = SILVERBOX_SUBST
     n0 = 50 * upsample
     th = np.asarray(theta, float)
     seen = np.isfinite(y)
+
     def run(x0, n):
         return rk4_outputs(model, t[:n], u[:n, None], th, x0, substeps, hold, backend)[:, iy]
 

@@ -24,8 +24,7 @@ from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.options import Evaluation, ScoringOptions
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
-from bondgraph.inference import sim_numba
-from bondgraph.inference.prior import PriorSpec, free_run_kernels
+from bondgraph.inference.prior import PriorSpec, rk4_outputs
 from bondgraph.inference.ukf import UKFResult
 from bondgraph.numerics.integrators import simulate_batch
 
@@ -57,26 +56,18 @@ def fine_free_run(problem: Problem, u: np.ndarray, hold: str, theta: np.ndarray,
     error (0.1 σ per sample); four times finer divides it by 4⁴ = 256 (RK4)
     or 4² = 16 (ROS2), with the stability of the filter's method (ROS2 stays
     L-stable on a stiff model). RK4 runs compiled where the prior's free run
-    would (:func:`bondgraph.inference.prior.free_run_kernels`:
-    :func:`bondgraph.inference.sim_numba.rk4_trajectory`), else the numpy
-    steps (:func:`bondgraph.sensitivity.sobol.simulate_batch`).
+    would (:func:`bondgraph.inference.prior.rk4_outputs`, also the catalog
+    metrics' free run), else, and for ROS2, the numpy steps
+    (:func:`bondgraph.numerics.integrators.simulate_batch`).
     """
     model, d = problem.model, problem.disc
     t = problem.t
-    th = np.asarray(theta, float)
     sub = FINE_SUBSTEPS * int(d.substeps)
+    if d.method == "rk4":
+        return rk4_outputs(model, t, u, theta, x0, sub, hold, d.backend)
     u = np.asarray(u, float).reshape(t.size, -1)
-    kernels = free_run_kernels(model, d.backend, "rk4", hold) if d.method == "rk4" else None
-    if kernels is not None:
-        X = sim_numba.rk4_trajectory(kernels, t, u if model.n_u else np.zeros((t.size, 1)),
-                                     hold, th, np.asarray(x0, float), sub)
-        bad = ~np.isfinite(X).all(axis=1)
-        if bad.any():
-            X[int(np.argmax(bad)):] = np.nan
-        with np.errstate(all="ignore"):
-            return np.asarray(model.h(X, u, th[None, :]), float)
-    return simulate_batch(model, t, u, th[None, :], x0, method=d.method, substeps=sub,
-                          hold=hold)[:, 0, :]
+    return simulate_batch(model, t, u, np.asarray(theta, float)[None, :], x0, method=d.method,
+                          substeps=sub, hold=hold)[:, 0, :]
 
 
 def make_executor(workers: int, scheduler: str | None):
