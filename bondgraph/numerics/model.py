@@ -23,6 +23,7 @@ from bondgraph.core.codegen import (
 )
 from bondgraph.core.equations import derive
 from bondgraph.errors import ModelError
+from bondgraph.numerics import derivation_cache
 
 
 class Model:
@@ -140,15 +141,23 @@ class Model:
             Jacobians of a model that may never need them: their symbolic
             differentiation and code are most of the generation time).
         """
-        ss = derive(graph)
-        source = graph.source or f"<graph {graph.name}>"
         lazy = tuple(fn for fn in lazy if fn in (functions or ALL_FUNCTIONS))
-        text = generate_source(ss, source=source, functions=tuple(
-            fn for fn in (functions or ALL_FUNCTIONS) if fn not in lazy))
+        eager = tuple(fn for fn in (functions or ALL_FUNCTIONS) if fn not in lazy)
+        key = derivation_cache.graph_key(graph, ",".join(eager))
+        cached = derivation_cache.load(key)
+        if cached is None:
+            ss = derive(graph)
+            text = generate_source(ss, source=graph.source or f"<graph {graph.name}>",
+                                   functions=eager)
+            derivation_cache.store(key, (ss, text))
+        else:
+            ss, text = cached
+            _restore_state_units(graph, ss)
         mod = module_from_source(text, name or f"_bondgraph_mem_{graph.name}")
         mod.__source_text__ = text
         mod.__state_space__ = ss       # for the numba kernels (bondgraph.numerics.compiled)
         mod.__lazy_functions__ = lazy
+        mod.__derivation_key__ = key
         return cls(mod)
 
     def __getattr__(self, name: str):
@@ -157,8 +166,13 @@ class Model:
         mod = self.__dict__.get("module")
         if name.startswith("__") or name not in getattr(mod, "__lazy_functions__", ()):
             raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
-        ss = mod.__state_space__
-        text = generate_source(ss, source=getattr(mod, "SOURCE", None), functions=(name,))
+        key = getattr(mod, "__derivation_key__", None)
+        key = None if key is None else f"{key}-{name}"
+        text = derivation_cache.load(key)
+        if text is None:
+            text = generate_source(mod.__state_space__, source=getattr(mod, "SOURCE", None),
+                                   functions=(name,))
+            derivation_cache.store(key, text)
         fn = getattr(module_from_source(text, f"{mod.__name__}__{name}"), name)
         setattr(self, name, fn)
         return fn
@@ -288,6 +302,18 @@ class Model:
 def load(name: str, directory: str | Path | None = None) -> Model:
     """Shortcut for :meth:`Model.load`."""
     return Model.load(name, directory)
+
+
+def _restore_state_units(graph, ss) -> None:
+    """What a derivation does to its graph, for one read from the cache: the
+    storage states without a unit get the unit derived for them
+    (:func:`bondgraph.core.equations.derive` gives them effort x s or
+    flow x s)."""
+    units = {s.name: s.unit for s in ss.states if getattr(s, "unit", "")}
+    for el in graph.elements.values():
+        st = getattr(el, "state", None)
+        if st is not None and not getattr(st, "unit", "x") and st.name in units:
+            st.unit = units[st.name]
 
 
 def _model_from_text(text: str, name: str, ss=None, lazy=()) -> Model:
