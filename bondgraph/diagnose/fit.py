@@ -23,6 +23,7 @@ from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
     fine_free_run,
     FLAT_GAIN,
+    flat_directions,
     NOISE_BOX,
     NoiseSpec,
     Problem,
@@ -488,11 +489,18 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
         theta, F, conv, used, x0n, sig, flat, _ = fisher_fit(
             problem, theta, idx, (lo, hi), iters, log_scale=scale, tolerance=tolerance,
             states=states, noises=noises)
+        names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]
         if flat:
             ctx.log(f"  {what}: converged in the directions the record identifies; the "
                     f"likelihood is flat along {', '.join(flat)} together (gaining < "
                     f"{FLAT_GAIN:g} nats per iteration): not identified by this record")
-        names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]
+        else:
+            flat = unidentified(F, names)
+            if flat:
+                ctx.log(f"  {what}: the record does not identify {', '.join(flat)} "
+                        f"separately (the Fisher information is flat along a combination "
+                        f"of them: collinearity index > 100); fix one, or use a record "
+                        f"that excites them apart")
         return (theta, cr_std(F, names), (conv, used, flat),
                 {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
@@ -501,6 +509,22 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
         xs = np.array([theta[model.param_index(n)] for n in params])
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
         return crit.theta(x[None, :])[0], {}, (None, None, ()), {}, {}
+
+
+def unidentified(F: np.ndarray | None, names: list[str]) -> tuple:
+    """The quantities ``names`` (k) that a fit's Fisher information F (k, k)
+    does not identify separately: those loading on its flat directions
+    (:func:`bondgraph.inference.fisher.flat_directions`, unit-diagonal
+    scaling, eigenvalues below 1e-4 of the largest; Brun, Reichert & Künsch
+    2001), the quantities with no information at all left out (a parameter
+    held on its bound). Empty when F is None."""
+    if F is None or len(names) != len(F):
+        return ()
+    free = np.isfinite(np.diag(F)) & (np.diag(F) > 0)
+    if not np.all(np.isfinite(F[np.ix_(free, free)])):
+        return ()
+    found, _ = flat_directions(F, np.zeros(len(names)), free)
+    return tuple(names[i] for i in found)
 
 
 def evaluate_fit(ctx: Context, problem: Problem, graph: BondGraph, params: list[str],

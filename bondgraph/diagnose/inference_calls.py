@@ -19,7 +19,7 @@ from bondgraph.errors import NumericalError
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, noise_plan
-from bondgraph.inference.fisher import FLAT_GAIN, estimand_scoring
+from bondgraph.inference.fisher import FLAT_GAIN, estimand_scoring, flat_directions
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.options import Evaluation, ScoringOptions
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
@@ -30,8 +30,8 @@ from bondgraph.numerics.integrators import simulate_batch
 
 # re-exported for the loop: the box of an estimated noise std (its start
 # times / divided by NOISE_BOX), the problem's parts, the noise detector
-__all__ = ["FLAT_GAIN", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem", "make_problem",
-           "noise_parameters"]
+__all__ = ["FLAT_GAIN", "flat_directions", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem",
+           "make_problem", "noise_parameters"]
 
 
 
