@@ -203,3 +203,31 @@ def test_the_watchdog_names_the_phase_of_a_silent_stretch_and_stays_quiet_otherw
     with progress.enabled(False), progress.watchdog(quiet_after=0.1, poll=0.02):
         time.sleep(0.3)
     assert capsys.readouterr().err == ""
+
+
+def test_loading_a_slow_command_module_is_not_silent(monkeypatch, capsys):
+    """The command's module loads numpy, scipy, sympy and numba before any
+    line of its own (2.6 s on the bundled loop of a slow day): the watchdog
+    covers that stretch and names it; ``--quiet`` keeps it silent."""
+    import importlib
+    import time
+
+    from bondgraph.cli import main as cli
+
+    real = importlib.import_module
+
+    def slow(name, *a):
+        if name == "bondgraph.cli.models":
+            time.sleep(2.6)
+        return real(name, *a)
+
+    monkeypatch.setattr(cli.importlib, "import_module", slow)
+    assert cli.main(["models"]) == 0
+    err = capsys.readouterr().err
+    assert "... loading the models command (numpy, scipy, sympy, numba) (2 s)" in err
+    monkeypatch.setattr(cli, "command_parser", lambda cmd: (_ for _ in ()).throw(SystemExit(0)))
+    try:
+        cli.main(["models", "--quiet"])
+    except SystemExit:
+        pass
+    assert "loading" not in capsys.readouterr().err

@@ -133,8 +133,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bondgraph: error: unknown command '{cmd}' (commands: {', '.join(COMMANDS)})"
               + (f"; did you mean '{close[0]}'?" if close else ""), file=sys.stderr)
         return 2
-    mod = importlib.import_module(f"bondgraph.cli.{cmd}")
-    parser = command_parser(cmd)
+    # the command's module loads numpy, scipy, sympy and numba: 1-3 s, in
+    # which the watchdog already says what is happening
+    with progress.enabled("--quiet" not in argv), progress.watchdog(), \
+            progress.phase(f"loading the {cmd} command (numpy, scipy, sympy, numba)"):
+        mod = importlib.import_module(f"bondgraph.cli.{cmd}")
+        parser = command_parser(cmd)
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning(cmd)
