@@ -516,8 +516,9 @@ def unidentified(F: np.ndarray | None, names: list[str]) -> tuple:
     does not identify separately: those loading on its flat directions
     (:func:`bondgraph.inference.fisher.flat_directions`, unit-diagonal
     scaling, eigenvalues below 1e-4 of the largest; Brun, Reichert & Künsch
-    2001), the quantities with no information at all left out (a parameter
-    held on its bound). Empty when F is None."""
+    2001); a quantity with no information at all (a zero or non-finite
+    diagonal) is left out of the analysis. Empty when F is None or not
+    finite."""
     if F is None or len(names) != len(F):
         return ()
     free = np.isfinite(np.diag(F)) & (np.diag(F) > 0)
