@@ -1,10 +1,25 @@
-"""Compiled (numba) point kernels of a model: where their source comes from,
-and the on-disk cache.
+"""Compiled point kernels of a model: who compiles them, where their source
+comes from, and the on-disk caches.
 
-A model's numba kernels (``f``, ``h``, ``f_dfdx`` for one point,
-:func:`bondgraph.core.codegen_numba.generate_numba_source`) are compiled when their
-module is imported and cached on disk by numba (``cache=True``), so a second
-run does not compile again:
+A model's point kernels (``f``, ``h``, ``f_dfdx`` for one point, the column
+kernels ``f_cols``, ``h_cols`` for every sigma point,
+:func:`bondgraph.core.codegen_numba.generate_numba_source`) are written as
+a numba module; the fused UKF kernel and the simulation kernels call them
+as first-class functions. Who compiles them (:func:`kernel_kind`,
+:data:`KERNELS_ENV`):
+
+* the system C compiler (the default when there is one): the numba module's
+  statements translated to C (:mod:`bondgraph.core.codegen_ckernel`) and
+  built into a shared library in ``<cache>/c/``
+  (:mod:`bondgraph.numerics.compiled_c`): 0.1-0.6 s a model against numba's
+  1-3 s, the same speed at run time;
+* numba (no C compiler, ``BONDGRAPH_KERNELS=numba``, or a model the
+  translator or the compiler refuses, with a :class:`BackendWarning`): the
+  module is imported, which compiles it, and numba caches the machine code
+  on disk (``cache=True``).
+
+Either way a second run does not compile again. The numba source is found or
+written once:
 
 * a registered model's kernels are ``numba_kernels/<name>.py`` next to its
   numpy module in the generated package (written and checked by
@@ -15,7 +30,7 @@ run does not compile again:
   source (its code, not its default values and boxes:
   :func:`kernel_key_text`) and
   :data:`~bondgraph.core.codegen_numba.NUMBA_CODEGEN_VERSION`: the same model in
-  a later run finds its kernels, and their numba cache, without any sympy
+  a later run finds its kernels, and their compiled code, without any sympy
   work.
 
 Which backend runs is the caller's choice, taken literally
@@ -24,22 +39,23 @@ compiles a model's kernels the first time they are needed (a registered
 model's once per installation, an in-memory model's once per code key),
 ``"numpy"`` never does. Nothing here decides a result: whether a kernel is
 in the cache (:func:`is_compiled`) changes how long a run takes, never which
-backend runs, so a result does not depend on the calls made before it or
-on what earlier runs left in the cache. (Before, an in-memory model ran
-numpy until its estimated numpy time reached its estimated compile time, a
-ski-rental rule; in the loop every scored candidate reached that point by
-its second filter run, and the last digits of a result depended on the
-cache.)
+backend or compiler runs, so a result does not depend on the calls made
+before it or on what earlier runs left in the cache. (Before, an in-memory
+model ran numpy until its estimated numpy time reached its estimated compile
+time, a ski-rental rule; in the loop every scored candidate reached that
+point by its second filter run, and the last digits of a result depended on
+the cache.) The C compiler and numba give the same kernels to rounding (the
+last bits differ where one contracts a multiply-add the other does not).
 
 Compiling ahead (:func:`compile_ahead`): the loop scores a few dozen
-candidate models in a row, each compiled on first use (about 1.5 s each,
-single-threaded) while the machine's other cores wait. Given the list, one
-background process (:data:`AHEAD_ENV`) compiles their kernels into numba's
-disk cache from the last backwards while this process works through them
-from the first; a model the background has started is waited for, one it
-has not reached is compiled here. The kernels are the same either way (the
-same source file; numba's cache holds the machine code it compiled), only
-who compiled them differs.
+candidate models in a row, each compiled on first use while the machine's
+other cores wait. Given the list, a background worker (a thread running the
+C compiler, or with numba one ``python -m bondgraph.numerics.compiled``
+process, :data:`AHEAD_ENV`) compiles their kernels into the disk cache from
+the last backwards while this process works through them from the first; a
+model the background has started is waited for, one it has not reached is
+compiled here. The kernels are the same either way (the same source; the
+cache holds the machine code compiled), only who compiled them differs.
 """
 
 from __future__ import annotations
@@ -52,11 +68,15 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+from bondgraph.core.codegen_ckernel import translate
 from bondgraph.core.codegen_numba import NUMBA_CODEGEN_VERSION, generate_numba_source
 from bondgraph.core.progress import announced
+from bondgraph.errors import BackendWarning, CodegenError
+from bondgraph.numerics import compiled_c
 
 try:  # numba is a regular dependency; the numpy path is the fallback without it
     import numba
@@ -70,6 +90,12 @@ CACHE_ENV = "BONDGRAPH_CACHE_DIR"
 #: environment variable: background processes compiling ahead (default 1 on
 #: a machine with two or more cores, else 0; 0 switches it off)
 AHEAD_ENV = "BONDGRAPH_COMPILE_AHEAD"
+#: environment variable: who compiles a model's point kernels: ``auto`` (the
+#: default: the C compiler when there is one, else numba), ``c`` (the C
+#: compiler or an error), ``numba``
+KERNELS_ENV = "BONDGRAPH_KERNELS"
+#: the values of :data:`KERNELS_ENV`
+KERNEL_KINDS = ("auto", "c", "numba")
 _LOCK = threading.Lock()
 _LOADED: dict[str, "PointKernels"] = {}
 #: the background compilers (:class:`_Ahead`, one per process, at first use)
@@ -84,22 +110,24 @@ class PointKernels:
 
     Attributes
     ----------
-    f, h, f_dfdx : numba dispatchers
+    f, h, f_dfdx : numba dispatchers or :class:`~bondgraph.numerics.compiled_c.CKernel`
         ``f(x, u, theta, out)``, ``h(x, u, theta, out)``,
         ``f_dfdx(x, u, theta, out, jac)`` on C-contiguous float64 vectors.
-    f_cols, h_cols : numba dispatchers
+    f_cols, h_cols : numba dispatchers or CKernel
         ``f_cols(X, u, theta, F)``: f at the 2 n_x + 1 sigma points and the
         padding columns (P = ``codegen_numba.padded_points(n_x)`` columns in all),
         X and F flat (n_x * P,) state-major (state a of point j at
         ``X[a * P + j]``); ``h_cols(X, u, theta, Y)``: h into Y (n_y * P,)
         output-major.
     path : Path
-        Source file of the kernels.
+        The numba source file of the kernels.
     compile_s : float
-        Seconds spent importing them in this process (compiling, or loading
-        numba's cache).
+        Seconds spent getting them in this process (compiling, or loading
+        the cache).
     from_cache : bool
-        Whether numba loaded every kernel from its on-disk cache.
+        Whether every kernel came from the on-disk cache.
+    kind : str
+        Who compiled them: ``"c"`` (the C compiler) or ``"numba"``.
     """
 
     f: object
@@ -110,6 +138,7 @@ class PointKernels:
     path: Path
     compile_s: float
     from_cache: bool
+    kind: str = "numba"
 
 
 def cache_dir() -> Path:
@@ -170,12 +199,21 @@ def _safe(name: str) -> str:
 
 
 def is_compiled(model) -> bool:
-    """Whether ``model``'s kernels are loaded in this process or have a numba
-    cache on disk (so that using them costs no compilation). Information
-    only (what a run will cost, what to announce): it never decides which
-    backend runs."""
+    """Whether ``model``'s kernels are loaded in this process or compiled on
+    disk (so that using them costs no compilation). Information only (what a
+    run will cost, what to announce): it never decides which backend runs."""
     path = kernel_source_path(model)
-    return path is not None and (str(path) in _LOADED or _in_cache(path, {}))
+    if path is None:
+        return False
+    kind = kernel_kind()
+    if f"{kind}:{path}" in _LOADED:
+        return True
+    if kind == "c":
+        try:
+            return path.exists() and _c_library(path).exists()
+        except (CodegenError, OSError):
+            return False
+    return _in_cache(path, {})
 
 
 def numba_cache_dir(path: Path) -> Path | None:
@@ -205,8 +243,37 @@ def numba_cache_dir(path: Path) -> Path | None:
     return None
 
 
-def point_kernels(model) -> PointKernels:
-    """The compiled point kernels of ``model`` (imported once per process).
+def kernel_kind() -> str:
+    """Who compiles point kernels here (:data:`KERNELS_ENV`): ``"c"`` when
+    it says ``c``, or ``auto`` (the default) and a C compiler answers
+    (:func:`bondgraph.numerics.compiled_c.compiler`); else ``"numba"``.
+
+    Raises
+    ------
+    ValueError
+        The environment variable is not one of :data:`KERNEL_KINDS`.
+    """
+    env = (os.environ.get(KERNELS_ENV) or "auto").strip().lower()
+    if env not in KERNEL_KINDS:
+        raise ValueError(f"{KERNELS_ENV}={os.environ.get(KERNELS_ENV)!r}: give one of "
+                         f"{', '.join(KERNEL_KINDS)}")
+    if env == "numba":
+        return "numba"
+    return "c" if env == "c" or compiled_c.compiler() is not None else "numba"
+
+
+def point_kernels(model, kind: str | None = None) -> PointKernels:
+    """The compiled point kernels of ``model`` (compiled or loaded once per
+    process).
+
+    Parameters
+    ----------
+    model : Model
+    kind : {"c", "numba"}, optional
+        Who compiles them (default :func:`kernel_kind`). With the default a
+        model the C translator or compiler refuses is compiled by numba
+        (a :class:`~bondgraph.errors.BackendWarning` says why); ``"c"``
+        given, or ``BONDGRAPH_KERNELS=c``, raises instead.
 
     Raises
     ------
@@ -215,26 +282,74 @@ def point_kernels(model) -> PointKernels:
     FileNotFoundError
         A model loaded from a file whose numba kernels were not generated
         (run ``bondgraph generate``).
+    bondgraph.numerics.compiled_c.CCompileError, CodegenError
+        ``kind="c"`` and the kernels cannot be translated or compiled.
     Exception
         Whatever numba raises for code it cannot compile (the caller falls
         back to numpy).
     """
     if numba is None:
         raise ImportError("numba is not installed (pip install numba)")
+    strict = kind == "c" or (kind is None and
+                             (os.environ.get(KERNELS_ENV) or "").strip().lower() == "c")
+    kind = kind or kernel_kind()
     path = kernel_source_path(model)
     if path is None:
         raise FileNotFoundError(f"model '{model.name}' has no numba kernels (run "
                                 f"`bondgraph generate`)")
+    key = f"{kind}:{path}"
     with _LOCK:
-        got = _LOADED.get(str(path))
+        got = _LOADED.get(key)
+        if got is not None:
+            return got
+        if not path.exists():
+            _write_source(model, path)
+        if kind == "c":
+            try:
+                got = _LOADED[key] = _c_kernels(model, path)
+                return got
+            except (CodegenError, compiled_c.CCompileError, OSError) as exc:
+                if strict:
+                    raise
+                warnings.warn(f"model '{model.name}': the C kernels could not be built "
+                              f"({str(exc).splitlines()[0][:300]}); numba compiles them",
+                              BackendWarning, stacklevel=2)
+        nkey = f"numba:{path}"
+        got = _LOADED.get(nkey)
         if got is None:
-            if not path.exists():
-                _write_source(model, path)
             with announced(f"compiling the numba kernels of model '{model.name}'",
                            note="once: numba caches them on disk"):
                 _await_ahead(path)
-                got = _LOADED[str(path)] = _import(path)
+                got = _LOADED[nkey] = _import(path)
+        _LOADED[key] = got
     return got
+
+
+def _c_kernels(model, path: Path) -> PointKernels:
+    """The C kernels of the numba source ``path``: its translation's shared
+    library from the cache, built when missing (waiting for the background
+    compiler when it has started it)."""
+    t0 = time.perf_counter()
+    lib = _c_library(path)
+    cached = lib.exists()
+    if not cached:
+        _await_ahead(path)
+        if not lib.exists():
+            with announced(f"compiling the C kernels of model '{model.name}'",
+                           note="once: kept on disk"):
+                compiled_c.build(_c_text(path), lib)
+    fns = compiled_c.load(lib)
+    return PointKernels(*fns, path, time.perf_counter() - t0, cached, "c")
+
+
+def _c_text(path: Path) -> str:
+    """The C translation of the numba source ``path``."""
+    return translate(path.read_text())
+
+
+def _c_library(path: Path) -> Path:
+    """Where the shared library of the numba source ``path`` is kept."""
+    return compiled_c.library_path(_c_text(path), cache_dir(), path.stem)
 
 
 def ahead_workers() -> int:
@@ -260,15 +375,16 @@ def ahead_workers() -> int:
 
 
 def compile_ahead(models) -> int:
-    """Compile the numba kernels of ``models`` (to be used in this order) in
-    background processes (:data:`AHEAD_ENV`), the last first, into numba's
-    disk cache; :func:`point_kernels` waits for a model a background process
+    """Compile the point kernels of ``models`` (to be used in this order) in
+    the background (:data:`AHEAD_ENV` workers), the last first, into the
+    disk cache; :func:`point_kernels` waits for a model a background worker
     has started and compiles one none has reached itself (no model is
-    compiled twice). Models already loaded or cached, or without a state
+    compiled twice). Models already loaded or compiled, or without a state
     space to generate kernels from, are left out. Call :func:`cancel_ahead`
     when done with the list.
 
-    The background processes are plain ``python -m
+    With the C compiler (:func:`kernel_kind`) the workers are threads that
+    run it; with numba they are plain ``python -m
     bondgraph.numerics.compiled`` children fed kernel paths one at a time
     (not ``multiprocessing``, which re-imports the caller's main script:
     a user's script without a ``__main__`` guard would run twice).
@@ -285,20 +401,23 @@ def compile_ahead(models) -> int:
     """
     if numba is None or not ahead_workers():
         return 0
+    kind = kernel_kind()
     todo, listed = [], {}
     with _LOCK:
         for model in models:
             path = kernel_source_path(model)
-            if path is None or str(path) in _LOADED or _in_cache(path, listed):
+            if path is None or f"{kind}:{path}" in _LOADED:
                 continue
             try:
                 if not path.exists():
                     _write_source(model, path)
-            except FileNotFoundError:           # no state space: point_kernels says so
+                done = (_c_library(path).exists() if kind == "c" else _in_cache(path, listed))
+            except (FileNotFoundError, CodegenError):   # point_kernels says so
                 continue
-            todo.append(str(path))
+            if not done:
+                todo.append(str(path))
     if todo:
-        _ahead().add(todo)
+        _ahead(kind).add(todo)
     return len(todo)
 
 
@@ -326,11 +445,14 @@ def cancel_ahead() -> None:
         _AHEAD[0].clear()
 
 
-def _ahead() -> "_Ahead":
-    """The process's background compilers (started at the first use)."""
+def _ahead(kind: str = "numba") -> "_Ahead":
+    """The process's background compilers (started at the first use; new
+    ones when the compiler changed)."""
     with _LOCK:
+        if _AHEAD and _AHEAD[0].kind != kind:
+            _AHEAD.pop().close()
         if not _AHEAD:
-            _AHEAD.append(_Ahead(ahead_workers()))
+            _AHEAD.append(_Ahead(ahead_workers(), kind))
             atexit.register(_AHEAD[0].close)
         return _AHEAD[0]
 
@@ -343,18 +465,27 @@ def _await_ahead(path: Path) -> None:
 
 
 class _Ahead:
-    """Background compile processes fed from one queue of kernel paths in
-    use order: each worker, when ready, gets the last path nobody has taken
+    """Background compilers fed from one queue of kernel paths in use
+    order: each worker, when ready, gets the last path nobody has taken
     (:meth:`_next`); this process takes its paths from the front
-    (:meth:`claim`). A worker that dies is dropped (its path counts as not
-    compiled: the caller compiles it)."""
+    (:meth:`claim`). With ``kind`` "c" a worker is a thread that runs the C
+    compiler; with "numba" a child process that imports the kernels. A
+    worker that dies is dropped (its path counts as not compiled: the caller
+    compiles it)."""
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, kind: str = "numba"):
         self.cond = threading.Condition()
+        self.kind = kind
         self.queue: list[str] = []          # not started, in use order
         self.running: dict[int, str] = {}   # worker index -> path it compiles
         self.idle: list[int] = []           # workers waiting for a path
         self.procs = []
+        self.closed = False
+        if kind == "c":
+            for i in range(n):
+                threading.Thread(target=self._serve_c, args=(i,), daemon=True,
+                                 name=f"bondgraph-cc_{i}").start()
+            return
         # numba read its cache folder when this process imported it: the
         # workers must write where this process will look, whatever the
         # environment says now
@@ -380,6 +511,7 @@ class _Ahead:
                               if p not in self.queue and p not in self.running.values())
             while self.idle and self.queue:
                 self._next(self.idle.pop())
+            self.cond.notify_all()          # threads of the C compiler take their own
 
     def clear(self) -> None:
         with self.cond:
@@ -404,6 +536,9 @@ class _Ahead:
 
     def _next(self, i: int) -> None:
         """Give worker ``i`` the last queued path (under the condition's lock)."""
+        if self.kind == "c":                # the threads take their paths
+            self.cond.notify_all()
+            return
         if not self.queue:
             self.idle.append(i)
             return
@@ -432,9 +567,33 @@ class _Ahead:
                 self.idle.remove(i)
             self.cond.notify_all()
 
+    def _serve_c(self, i: int) -> None:
+        """Thread ``i``: build the C library of the last queued path, until
+        closed (a failure is left to the caller, which builds it again and
+        reports it)."""
+        while True:
+            with self.cond:
+                self.cond.wait_for(lambda: self.queue or self.closed)
+                if self.closed:
+                    return
+                path = self.queue.pop()
+                self.running[i] = path
+            try:
+                lib = _c_library(Path(path))
+                if not lib.exists():
+                    compiled_c.build(_c_text(Path(path)), lib)
+            except Exception:  # noqa: BLE001 - the caller's own compile reports it
+                pass
+            with self.cond:
+                self.running.pop(i, None)
+                self.cond.notify_all()
+
     def close(self) -> None:
         """Stop the workers (at exit): a compile under way is abandoned."""
         self.clear()
+        with self.cond:
+            self.closed = True
+            self.cond.notify_all()
         for proc in self.procs:
             try:
                 proc.stdin.close()
