@@ -363,3 +363,22 @@ def test_adaptive_solvers_on_the_compiled_point_kernels_equal_numpy(method):
     np.testing.assert_allclose(b.x, a.x, rtol=1e-6, atol=1e-9 * np.abs(a.x).max())
     with pytest.raises(ModelError, match="backend"):
         simulate(model, t, {"brake": brake}, backend="cuda")
+
+
+@pytest.mark.parametrize("method", ["LSODA", "BDF", "RK45"])
+def test_an_adaptive_run_that_runs_away_stops_with_its_time(msd, method):
+    """An unstable model (negative spring, no damping) grows as
+    cosh/sinh(λt), λ = sqrt(-k/m) = 5 1/s: p(t) = p0 cosh(5t) passes 1e100
+    at t = ln(2e100/p0)/5 = 47.572 s for p0 = 1e-3. The adaptive solvers
+    stop there with an error naming the state, instead of returning 1e130
+    or cycling (LSODA once made 8 million calls at one t on a cubic spring
+    of negative coefficient)."""
+    th = dict(zip(msd.params, msd.theta0), k=-50.0, c=0.0)
+    assert np.sqrt(50.0 / th["m"]) == pytest.approx(5.0)
+    t = np.linspace(0.0, 100.0, 101)
+    t_exact = np.log(2e100 / 1e-3) / 5.0
+    with pytest.raises(NumericalError, match=rf"{method} ran away .* 'p_mass' = 1\.\d+e\+100") as ei:
+        simulate(msd, t, np.zeros((t.size, 1)), x0=[1e-3, 0.0], theta=th, method=method)
+    t_stop = float(str(ei.value).split("near t = ")[1].split(" s")[0])
+    assert t_stop == pytest.approx(t_exact, abs=0.1)
+    assert "unstable" in str(ei.value)

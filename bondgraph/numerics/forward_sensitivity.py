@@ -36,7 +36,7 @@ from scipy.integrate import OdeSolver, solve_ivp
 
 from bondgraph.errors import DataError, NumericalError, OptionError, SensitivityError
 from bondgraph.numerics.model import Model
-from bondgraph.numerics.simulate import InputSignals, _vector
+from bondgraph.numerics.simulate import InputSignals, Runaway, _vector, guard_rhs
 
 #: solve_ivp methods that get the Jacobian of the augmented system
 IMPLICIT_METHODS = ("BDF", "Radau", "LSODA")
@@ -460,8 +460,15 @@ def _integrate(model, t, sig, th, cols: _Columns, x_init, hold, kw):
         rhs, jac = _augmented_system(model, th, cols, sig.segment_input(a, hold))
         if kw["method"] in IMPLICIT_METHODS:
             kw["jac"] = jac
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            sol = solve_ivp(rhs, (t[a], t[b]), z, t_eval=t[a:b + 1], **kw)
+        try:
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                sol = solve_ivp(guard_rhs(rhs), (t[a], t[b]), z, t_eval=t[a:b + 1], **kw)
+        except Runaway as r:
+            raise NumericalError(
+                f"forward sensitivity integration ({kw['method']}) of model '{model.name}' "
+                f"{r.why} near t = {r.t:.6g} s",
+                hint="the parameters make the model unstable on this input, or the solver "
+                     "cannot follow it: check them; try method='LSODA' or 'Radau'") from None
         for key in totals:
             totals[key] += int(getattr(sol, key, 0) or 0)
         if sol.status != 0 or sol.y.shape[1] != b - a + 1 or not np.isfinite(sol.y).all():

@@ -564,6 +564,45 @@ def _point_rhs(model, kernels, th, u_at):
     return rhs_c, jac_c
 
 
+#: A state whose squared norm passes this has run away (|x| > 1e100): no
+#: physical state does, and an adaptive solver can cycle on it for hours
+#: (LSODA was seen at 8 million calls at one t) instead of failing.
+RUNAWAY_NORM2 = 1e200
+#: Right-hand-side calls without the solver reaching a later time than
+#: before; a step that needs this many has stalled.
+STALL_CALLS = 50_000
+
+
+class Runaway(Exception):
+    """Raised inside the right-hand side to stop an adaptive solver."""
+
+    def __init__(self, tq: float, xq: np.ndarray, why: str):
+        super().__init__(why)
+        self.t, self.x, self.why = float(tq), np.array(xq, dtype=float), why
+
+
+def guard_rhs(rhs):
+    """``rhs(t, x)`` for ``scipy.integrate.solve_ivp`` that stops the
+    solver by raising ``Runaway`` (its ``t``, ``x`` and ``why``) when the
+    state is non-finite or its squared norm passes ``RUNAWAY_NORM2``, or
+    when the solver has made ``STALL_CALLS`` calls without reaching a later
+    time than before."""
+    seen = [-np.inf, 0]
+
+    def g(tq, xq):
+        s = float(np.dot(xq, xq))
+        if not s < RUNAWAY_NORM2:
+            raise Runaway(tq, xq, "ran away" if np.all(np.isfinite(xq)) else "became non-finite")
+        if tq > seen[0]:
+            seen[0], seen[1] = tq, 0
+        else:
+            seen[1] += 1
+            if seen[1] > STALL_CALLS:
+                raise Runaway(tq, xq, f"stalled ({STALL_CALLS} calls without advancing)")
+        return rhs(tq, xq)
+    return g
+
+
 def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels=None):
     n = t.size
     X = np.empty((n, model.n_x))
@@ -583,8 +622,18 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
         rhs, jac = _point_rhs(model, kernels, th, sig.segment_input(a, sig.hold))
         if method in IMPLICIT_METHODS:
             kw["jac"] = jac
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            sol = solve_ivp(rhs, (t[a], t[b]), x, t_eval=t[a:b + 1], **kw)
+        try:
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                sol = solve_ivp(guard_rhs(rhs), (t[a], t[b]), x, t_eval=t[a:b + 1], **kw)
+        except Runaway as r:
+            j = int(np.nanargmax(np.where(np.isfinite(r.x), np.abs(r.x), np.inf)))
+            raise NumericalError(
+                f"{method} {r.why} for model '{model.name}' near t = {r.t:.6g} s "
+                f"(largest state there: '{model.states[j]}' = {r.x[j]:.6g})",
+                hint=("the solver cannot follow the model here: try another method "
+                      "(BDF, Radau, LSODA) or a max_step" if r.why.startswith("stalled") else
+                      "the parameters make the model unstable on this input (a state passed "
+                      "1e100): check their values and signs")) from None
         for k in totals:
             totals[k] += int(getattr(sol, k, 0) or 0)
         if sol.status != 0 or sol.y.shape[1] != b - a + 1:
