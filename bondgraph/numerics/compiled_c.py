@@ -54,8 +54,13 @@ CC_ENV = "CC"
 #: (-O3 vectorises the loops over the sigma points, -O2 of gcc 12 does not:
 #: 4x the time of the column kernels), no errno from libm and no trapping
 #: floating point (both let the compiler vectorise sqrt and selects; the
-#: kernels read NaN and inf, never the flags)
-FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fPIC", "-shared")
+#: kernels read NaN and inf, never the flags), and no contraction of a
+#: multiply and an add into one FMA: numba's point kernels contract none,
+#: and with gcc's default (-ffp-contract=fast) f, h and df/dx differed from
+#: them in the last bit, enough to move three of the suite's loops to
+#: another optimum (a CED declared fit 1.182 -> 1.370); without it they are
+#: numba's to the bit (tests/test_ckernels.py)
+FLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-fPIC", "-shared")
 #: the kernels of a module, in the order of ``PointKernels``, and their
 #: arrays' ranks (``f_dfdx`` writes a matrix)
 KERNELS = ("f", "h", "f_dfdx", "f_cols", "h_cols")
