@@ -471,6 +471,32 @@ def intensity_grid(problem, iq: int, q_grid: np.ndarray, proc: list[int],
     return th[int(np.argmin(nll))].copy(), nll.reshape(q_grid.size, factors.size).min(axis=1)
 
 
+#: a smoothed std of the walk above this many times the most its prior and
+#: intensity allow is no information but the rounding of a direction the
+#: record does not observe (seen: 5.8e79 or inf at the same port, by the
+#: last bit of the kernels' arithmetic)
+UNOBSERVED_FACTOR = 100.0
+
+
+def _walk_std(sm, problem, aug, q: float) -> np.ndarray:
+    """The smoothed std (N,) of the walk ``aug.d``, inf where it exceeds
+    :data:`UNOBSERVED_FACTOR` times its prior bound: the std an integrated
+    random walk reaches with no measurement, sqrt((σ_d0 + σ_r0 T)² + q² T³/3)
+    at T = t - t0 (plus q² T, a plain walk's), σ_d0 and σ_r0 the prior's
+    stds of the walk and its rate. A smoother cannot be less certain than
+    its prior; beyond it the number is an unobserved direction's rounding
+    (finite on one build, inf on another), and ``discover_law`` refuses the
+    port either way."""
+    i, ir = problem.model.states.index(aug.d), problem.model.states.index(aug.r)
+    std = np.sqrt(np.maximum(sm.P[:, i, i], 0))
+    T = problem.t - problem.t[0]
+    P0 = np.asarray(problem.P0, float)
+    bound = np.sqrt((np.sqrt(max(P0[i, i], 0.0)) + np.sqrt(max(P0[ir, ir], 0.0)) * T) ** 2
+                    + q * q * (T + T ** 3 / 3.0))
+    with np.errstate(invalid="ignore"):
+        return np.where(std <= UNOBSERVED_FACTOR * bound, std, np.inf)
+
+
 def _assemble(g, model, aug, problem, sm, theta, qinfo) -> Reconstruction:
     """The :class:`Reconstruction` of a smoothed augmented model."""
     ss = derive(g)
@@ -489,7 +515,7 @@ def _assemble(g, model, aug, problem, sm, theta, qinfo) -> Reconstruction:
             units[k] = fu if k.endswith(".f") else eu
     i = model.states.index(aug.d)
     q, q_grid, nll_grid = qinfo
-    return Reconstruction(problem.t.copy(), sm.x[:, i].copy(), np.sqrt(np.maximum(sm.P[:, i, i], 0)),
+    return Reconstruction(problem.t.copy(), sm.x[:, i].copy(), _walk_std(sm, problem, aug, q),
                           values, primary, units, aug, q, q_grid, nll_grid, sm.x, sm.P, model,
                           theta, problem.x0.copy(), problem.P0.copy())
 
@@ -593,6 +619,6 @@ def _assemble_sensor(g, sensed, model, aug, problem, sm, theta, qinfo) -> Recons
     i = model.states.index(aug.d)
     q, q_grid, nll_grid = qinfo
     return Reconstruction(problem.t.copy(), sm.x[:, i].copy(),
-                          np.sqrt(np.maximum(sm.P[:, i, i], 0)), values, [own], units, aug, q,
+                          _walk_std(sm, problem, aug, q), values, [own], units, aug, q,
                           q_grid, nll_grid, sm.x, sm.P, model, theta, problem.x0.copy(),
                           problem.P0.copy())
