@@ -22,6 +22,7 @@ from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf import ukf_nll
 from bondgraph.numerics import compiled, compiled_c, registry
 from bondgraph.numerics.model import Model
+from test_vmath import _points
 
 pytest.importorskip("numba")
 if compiled_c.compiler() is None:
@@ -59,26 +60,12 @@ def _run(vlib, name, x):
     return o
 
 
-def _points(name):
-    rng = np.random.default_rng(3)
-    n = 2 * 10**5
-    sets = [rng.normal(size=n) * 3, rng.uniform(-50.0, 50.0, n),
-            np.exp(rng.uniform(-40.0, 18.0, n)) * rng.choice([-1.0, 1.0], n)]
-    if name in ("_vsin", "_vcos"):
-        sets.append(rng.uniform(-1e8, 1e8, 10**5))
-    if name == "_vexp":
-        sets.append(rng.uniform(-708.39, 709.78, n))
-    if name == "_vatan":
-        sets.append(np.exp(rng.uniform(-300.0, 300.0, n)) * rng.choice([-1.0, 1.0], n))
-    return np.concatenate(sets)
-
-
 @pytest.mark.parametrize("name", NAMES + ("bg_tanh",))
 def test_translated_functions_within_two_ulp_of_numpy(vlib, name):
     """The vmath functions translated to C (and the point kernels' tanh) are
     within 2 ulp of numpy's, as the numba-compiled ones are
     (tests/test_vmath.py), with the same non-finite values."""
-    x = _points(name if name != "bg_tanh" else "_vtanh")
+    x = _points(name if name != "bg_tanh" else "_vtanh", 2 * 10**5)
     if name in ("_vsin", "_vcos"):
         x = x[np.abs(x) < 1e8]
     edges = np.array([0.0, -0.0, np.nan, 0.55, -0.55, 0.625, -0.625, 0.66, 2.414213562373095,

@@ -78,9 +78,10 @@ def test_compiled_equals_expanded(loops, name):
     np.testing.assert_array_equal(got, want)
 
 
-def _points(name):
+def _points(name, n=10**6):
+    """Arguments of vmath function ``name``: ``n`` normal, uniform and
+    log-uniform of both signs, and the function's own hard ranges."""
     rng = np.random.default_rng(3)
-    n = 10**6
     sets = [rng.normal(size=n) * 3, rng.uniform(-50.0, 50.0, n),
             np.exp(rng.uniform(-40.0, 18.0, n)) * rng.choice([-1.0, 1.0], n)]
     if name in ("_vsin", "_vcos"):
