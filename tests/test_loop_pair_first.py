@@ -92,12 +92,19 @@ def test_look_alikes_are_not_added_as_a_pair():
     res, lines, floor = loop(0.0)
     (step,) = res.steps
     assert (step.effect, step.attached_to, step.together_with) == ("cubic_stiffness", "spring", [])
-    # the look-alikes' pairs with the cubic spring are not refitted: scored at
-    # the cubic spring's refit, neither partner is significant (the next
-    # step's own test); their refits gave LR 4.0 and 1.3 over the single
+    # the viscous damper duplicates the declared c: against the declared fit
+    # run to convergence its refit gains nothing (measured LR 1.0; LR 29.5
+    # when the declared fit stopped after 10 iterations 14.3 nats short of
+    # its optimum and the refit's extra iterations counted as the
+    # effect's), so it makes no pair; the
+    # Coulomb look-alike's pair with the cubic spring is not refitted:
+    # scored at the cubic spring's refit, it is not significant (the next
+    # step's own test)
+    (conf,) = [ln for ln in lines if "confirmed viscous @ v: LR " in ln]
+    assert float(conf.split(": LR ")[1].split(" ")[0]) < 3.84
     (line,) = [ln for ln in lines if "pair(s) not refitted" in ln]
     assert set(line.split("(score test): ")[1].split("; ")) == {
-        "cubic_stiffness @ spring + coulomb @ v", "cubic_stiffness @ spring + viscous @ v"}
+        "cubic_stiffness @ spring + coulomb @ v"}
     assert not any("beats the single" in ln for ln in lines)
     # measured 797.67 ± 0.45: 5 std off, the loop's own discretisation check
     # warns (ros2(4) 0.11 measurement-noise std per sample); within 0.5 %

@@ -456,10 +456,9 @@ def simulate(model, t, u=None, x0=None, theta=None, method: str = "BDF", rtol: f
     DataError
         Non-finite or non-increasing times, non-finite inputs.
     NumericalError
-        A state became non-finite (the message names the time and the
-        state) or the adaptive solver failed; with an adaptive method also a
-        state beyond 1e100 (the model runs away) or a solver that made
-        50 000 calls without advancing (:func:`guard_rhs`).
+        A state became non-finite or (adaptive methods) passed 1e100 (the
+        message names the time and the state), or the adaptive solver failed
+        or stalled (:func:`guard_rhs`).
     """
     model = _as_model(model)
     if backend not in ("numpy", "numba"):
