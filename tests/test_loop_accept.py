@@ -736,12 +736,13 @@ def test_error_decrease_test_is_scale_free_and_survives_a_diverging_free_run():
 
 def test_the_free_run_starts_where_it_fits_the_record_better(monkeypatch):
     """A free run from the smoothed initial state is kept unless the run
-    from the prior mean fits the record better (mean squared error over the
-    measurement's variance, summed over outputs; a NaN sample left out):
-    by hand, record y = [0, 1, NaN, 3] (variance 14/9 over the finite
-    samples), the smoothed start's run off by 1 everywhere (score 9/14),
-    the prior mean's off by 0.5 at one sample (score 0.25/3 · 9/14): the
-    prior mean wins and says so; swapped, the smoothed start stays."""
+    from the prior mean has the lower free-run NRMSE (a NaN sample left
+    out): by hand, record y = [0, 1, NaN, 3] (std sqrt(14)/3 over the finite
+    samples), the smoothed start's run off by 1 everywhere (NRMSE
+    3/sqrt(14) = 0.802), the prior mean's off by 0.5 at one sample
+    (sqrt(0.25/3)·3/sqrt(14) = 0.231): the prior mean wins and says so;
+    swapped, the smoothed start stays; a run from the smoothed start that
+    is not finite stays too (the stability checks must see it)."""
     from types import SimpleNamespace
 
     from bondgraph.diagnose import fit as F
@@ -759,4 +760,7 @@ def test_the_free_run_starts_where_it_fits_the_record_better(monkeypatch):
     runs["xs"], runs["x0"] = runs["x0"], runs["xs"]
     logs.clear()
     np.testing.assert_array_equal(F._better_start(ctx, pb, None, None, "xs", "x0"), runs["xs"])
+    assert not logs
+    runs["xs"] = np.full_like(y, np.inf)
+    assert F._better_start(ctx, pb, None, None, "xs", "x0") is runs["xs"]
     assert not logs

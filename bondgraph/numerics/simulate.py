@@ -627,7 +627,7 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                 sol = solve_ivp(guard_rhs(rhs), (t[a], t[b]), x, t_eval=t[a:b + 1], **kw)
         except Runaway as r:
-            j = int(np.nanargmax(np.where(np.isfinite(r.x), np.abs(r.x), np.inf)))
+            j = int(np.argmax(np.where(np.isfinite(r.x), np.abs(r.x), np.inf)))
             raise NumericalError(
                 f"{method} {r.why} for model '{model.name}' near t = {r.t:.6g} s "
                 f"(largest state there: '{model.states[j]}' = {r.x[j]:.6g})",
