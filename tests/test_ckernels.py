@@ -95,6 +95,52 @@ def test_pow2_is_vmaths_to_the_bit(vlib):
     np.testing.assert_array_equal(o, np.ldexp(1.0, n))
 
 
+#: exponents ±m/4 the column kernels take by square roots (bg_powq)
+QUARTERS = (0.25, 0.5, 0.75, 1.25, 1.5, 2.25, 7.75, -0.25, -0.5, -0.75, -1.25, -1.5, -7.75)
+
+
+def test_quarter_powers_of_the_column_kernels_within_ulps_of_pow(tmp_path):
+    """A column kernel's x**(±m/4) (bg_powq: square roots, which gcc
+    vectorises, where pow is a library call that keeps the loop over the
+    sigma points scalar) is within 4 + |e| ulp of libm's pow (numba's), with its
+    values at ±0, ±inf, NaN and x < 0; point kernels keep pow (numba's, to the
+    bit), and an exponent that is not a quarter stays pow."""
+    body = "".join(f"    _y[{i}] = np.power(_X[0], {e})\n" for i, e in enumerate(QUARTERS))
+    src = ("N_X = 1\n"
+           "def f(x, u, theta, _dxdt):\n    _dxdt[0] = np.power(x[0], 0.25)\n"
+           "def h(x, u, theta, _y):\n    _y[0] = x[0]**0.3\n"
+           "def f_dfdx(x, u, theta, _dxdt, _J):\n    return\n"
+           "def f_cols(_X, u, theta, _dxdt):\n    _dxdt[0] = _X[0]**-1.25\n"
+           f"def h_cols(_X, u, theta, _y):\n{body}")
+    text = codegen_ckernel.translate(src)
+    assert "pow(x[0], 0.25)" in text and "pow(x[0], 0.3)" in text
+    assert "bg_powq(_X[0], 5, 1)" in text and text.count("bg_powq(_X[0], ") == 1 + len(QUARTERS)
+    text += ("\nvoid powq_all(const double *x, double *o, double *r, int64_t n)\n{\n"
+             "    for (int64_t j = 0; j < n; ++j) {\n"
+             + "".join(f"        o[{i} * n + j] = bg_powq(x[j], {int(abs(e) * 4)}, {int(e < 0)});\n"
+                       f"        r[{i} * n + j] = pow(x[j], {e});\n"
+                       for i, e in enumerate(QUARTERS)) + "    }\n}\n")
+    lib = tmp_path / "powq.so"
+    compiled_c.build(text, lib)
+    fn = ctypes.CDLL(str(lib)).powq_all
+    fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64]
+    rng = np.random.default_rng(3)
+    x = np.concatenate([np.exp(rng.uniform(-700, 700, 50_000)), rng.uniform(0, 10, 50_000),
+                        [0.0, -0.0, np.inf, -np.inf, np.nan, -1.0, -1e-300, 5e-324, 1e300]])
+    o, pw = np.empty((len(QUARTERS), x.size)), np.empty((len(QUARTERS), x.size))
+    fn(x.ctypes.data, o.ctypes.data, pw.ctypes.data, x.size)
+    for i, e in enumerate(QUARTERS):
+        ref = pw[i]         # libm's pow, which numba's kernels call
+        np.testing.assert_array_equal(np.isnan(o[i]), np.isnan(ref), err_msg=f"x**{e}")
+        fin = np.isfinite(ref) & (ref > 1e-300)
+        ulp = np.abs(o[i][fin] - ref[fin]) / np.spacing(ref[fin])
+        assert ulp.max() <= 4 + abs(e), (e, ulp.max())     # a rounding per product
+        tiny = (ref > 0) & (ref <= 1e-300)     # near and below the subnormals: relative error
+        assert np.all(np.abs(o[i][tiny] - ref[tiny]) <= 1e-12 * ref[tiny] + 1e-320), e
+        other = ~fin & ~tiny & ~np.isnan(ref)       # 0, inf
+        np.testing.assert_array_equal(o[i][other], ref[other], err_msg=f"x**{e}")
+
+
 def _close(got, ref, tol=1e-12):
     """Within ``tol`` of each entry's magnitude plus the largest magnitude
     (an entry that cancels keeps a rounding of the terms it sums)."""

@@ -47,6 +47,10 @@ from bondgraph.errors import CodegenError
 #: the kernels of a numba module, with the array arguments' ranks
 KERNELS = {"f": (1, 1, 1, 1), "h": (1, 1, 1, 1), "f_dfdx": (1, 1, 1, 1, 2),
            "f_cols": (1, 1, 1, 1), "h_cols": (1, 1, 1, 1)}
+#: the kernels that loop over the sigma points (vectorised by gcc)
+COLUMN_KERNELS = ("f_cols", "h_cols")
+#: the largest numerator m of an exponent ±m/4 taken by square roots
+MAX_QUARTERS = 32
 #: argument types of the vmath functions (as compiled by numba in
 #: :mod:`bondgraph.numerics.vmath_jit`)
 VMATH_ARGS = {"_pow2": ("int64_t",), "_vsincos": ("double", "int64_t"), "_vatan": ("double",),
@@ -100,6 +104,25 @@ BG_INLINE double bg_logaddexp(double a, double b)
     if (d <= 0.0) return b + log1p(exp(d));
     return d;
 }
+/* x ** (m / 4), or 1 / that with neg (m > 0 not a multiple of 4), by square
+   roots for the column kernels: pow is a library call, which keeps gcc
+   from vectorising the loop over the sigma points; sqrt is an instruction.
+   Within 4 + m/4 ulp of pow (the point kernels keep pow, equal to numba's to
+   the bit); pow's values at -0 (+0, or +inf with neg), -inf (+inf, or +0
+   with neg), +inf, NaN and x < 0 (NaN) kept. */
+BG_INLINE double bg_powq(double x, int64_t m, int64_t neg)
+{
+    double xp = x + 0.0, s = sqrt(xp), q = sqrt(s), r;
+    int64_t b = m % 4, i;
+    r = b == 1 ? q : (b == 2 ? s : s * q);
+    if (neg) {              /* reciprocals first: x**-1.25 of 1e250 is 1e-312, x**1.25 inf */
+        r = 1.0 / r;
+        xp = 1.0 / xp;
+    }
+    for (i = 0; i < m / 4; ++i)
+        r *= xp;
+    return x == -INFINITY ? (neg ? 0.0 : INFINITY) : r;
+}
 /* 2**n for -1022 <= n <= 1023 from the exponent bits: the value of
    bondgraph.core.vmath._pow2 (exact there; selects over the bits of n keep
    gcc from vectorising the loop around it, a bit cast does not) */
@@ -116,13 +139,32 @@ BG_INLINE int64_t bg_imax(int64_t a, int64_t b) { return a > b ? a : b; }
 
 
 class _Func:
-    """What the translator knows of one function: its arrays (name -> rank)
-    and the C types of its locals."""
+    """What the translator knows of one function: its arrays (name -> rank),
+    the C types of its locals, and whether it is a column kernel (a loop
+    over the sigma points that gcc should vectorise: :func:`_quarter`)."""
 
-    def __init__(self, arrays: dict, scalars: dict, consts: dict):
+    def __init__(self, arrays: dict, scalars: dict, consts: dict, columns: bool = False):
         self.arrays = arrays
         self.types = dict(scalars)
         self.consts = consts
+        self.columns = columns
+
+
+def _quarter(exp) -> tuple[int, bool] | None:
+    """``(m, negative)`` when the exponent ``exp`` (an AST node) is the
+    constant ±m/4 with m not a multiple of 4 and m <= :data:`MAX_QUARTERS`
+    (the exponents of the loop's smooth laws: |v|^(1/2) regularised gives
+    (v² + ε²)^(±1/4), (…)^(5/4)), else None."""
+    neg = False
+    if isinstance(exp, ast.UnaryOp) and isinstance(exp.op, ast.USub):
+        exp, neg = exp.operand, True
+    if not (isinstance(exp, ast.Constant) and isinstance(exp.value, (int, float))
+            and not isinstance(exp.value, bool)):
+        return None
+    m = 4.0 * float(exp.value)
+    if not (m.is_integer() and 0 < m <= MAX_QUARTERS and int(m) % 4):
+        return None
+    return int(m), neg
 
 
 def _promote(a: str, b: str) -> str:
@@ -241,7 +283,12 @@ class _Expr:
 
     def power(self, base, exp, a: str, ta: str) -> tuple[str, str]:
         """``base ** exp``: a constant integer exponent by products (numba
-        multiplies too), anything else by ``pow``."""
+        multiplies too), in a column kernel a constant exponent of quarters
+        by square roots (``bg_powq``, :func:`_quarter`), anything else by
+        ``pow``."""
+        q = _quarter(exp) if self.fn.columns else None
+        if q is not None:
+            return f"bg_powq({a}, {q[0]}, {int(q[1])})", "double"
         e = exp
         neg = False
         if isinstance(e, ast.UnaryOp) and isinstance(e.op, ast.USub):
@@ -265,6 +312,8 @@ class _Expr:
         if name == "_sel" and len(args) == 3:
             return f"({args[0][0]} ? {args[1][0]} : {args[2][0]})", _promote(args[1][1],
                                                                              args[2][1])
+        if name == "np.power" and len(node.args) == 2:
+            return self.power(node.args[0], node.args[1], args[0][0], args[0][1])
         if name == "np.int64":
             return f"((int64_t)({texts}))", "int64_t"
         if name in ("np.float64", "float"):
@@ -394,7 +443,7 @@ class _Body:
 def _function(fdef: ast.FunctionDef, arrays: dict, scalars: dict, consts: dict,
               ret: str, name: str, storage: str) -> str:
     """C text of one function."""
-    fn = _Func(arrays, scalars, consts)
+    fn = _Func(arrays, scalars, consts, columns=name in COLUMN_KERNELS)
     body = _Body(fn)
     stmts = fdef.body
     body.infer(stmts)
