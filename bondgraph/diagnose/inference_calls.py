@@ -26,12 +26,13 @@ from bondgraph.inference.output_error import OutputErrorOptions, output_error_fi
 from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
 from bondgraph.inference.prior import PriorSpec, rk4_outputs
 from bondgraph.inference.ukf import UKFResult
+from bondgraph.inference.ukf_numba import threads as kernel_threads
 from bondgraph.numerics.integrators import simulate_batch
 
 # re-exported for the loop: the box of an estimated noise std (its start
 # times / divided by NOISE_BOX), the problem's parts, the noise detector
 __all__ = ["FLAT_GAIN", "flat_directions", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem",
-           "make_problem", "noise_parameters"]
+           "kernel_threads", "make_problem", "noise_parameters"]
 
 
 

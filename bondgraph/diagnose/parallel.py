@@ -4,19 +4,33 @@ confirmation refits, each one task, in process or on Dask workers
 ``LocalCluster`` with ``workers > 1``, or an existing cluster given by
 ``scheduler`` / ``$BONDGRAPH_SCHEDULER``).
 
+In process the tasks run on threads (:func:`local_map`, as many as the
+filter kernel's threads): the compiled kernels release the GIL, so one
+task's Python (Fisher-scoring bookkeeping, free runs, model building) runs
+while another's filter runs.
+
 Every task depends only on the current fit, the record and its own
 candidate, and the results come back in the order of the tasks, so the
 loop's ranking, confirmations and decisions do not depend on the number of
-workers or on where they ran. The workers' log lines are replayed in the
-task order.
+workers or threads or on where they ran. The tasks' log lines are replayed
+in the task order.
 """
 
 from __future__ import annotations
 
+import threading
+import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 from bondgraph.diagnose.fit import Context
+from bondgraph.diagnose.inference_calls import kernel_threads
+
+#: threads of :func:`local_map` (None: the filter kernel's,
+#: :func:`bondgraph.inference.ukf_numba.threads`); 1 runs the tasks one
+#: after the other in the caller's thread
+LOCAL_THREADS: int | None = None
 
 
 def _discard(_msg: str) -> None:
@@ -51,7 +65,7 @@ def run_tasks(ctx: Context, fn: Callable[[Context, Any, Any], Any], shared: Any,
         The results, in the order of ``items``.
     """
     if not distributed(ctx) or len(items) < 2:
-        return [fn(ctx, shared, it) for it in items]
+        return list(local_map(ctx, lambda c, it: fn(c, shared, it), items))
     portable = replace(ctx, log=_discard, progress=False, cache={}, executor=None)
     results = ctx.executor.map(_task, (fn, portable, shared), list(items))
     out = []
@@ -68,3 +82,45 @@ def _task(packed, item):
     fn, ctx, shared = packed
     lines: list[str] = []
     return fn(replace(ctx, log=lines.append), shared, item), lines
+
+
+def local_threads() -> int:
+    """Threads of :func:`local_map`: :data:`LOCAL_THREADS`, else the filter
+    kernel's (numba's thread count: the machine's cores by default)."""
+    return max(1, int(LOCAL_THREADS if LOCAL_THREADS is not None else kernel_threads()))
+
+
+def local_map(ctx: Context, fn: Callable[[Context, Any], Any], items: Sequence) -> Iterable:
+    """``fn(ctx, item)`` for every item on :func:`local_threads` threads of
+    this process, the results yielded in the order of ``items`` as they are
+    ready, each task's log lines (``ctx.log``) replayed before its result
+    is yielded. One item, or one thread: in the caller's thread, logging
+    directly.
+
+    The warning filters are restored when the map ends (tasks that silence
+    warnings with ``warnings.catch_warnings`` save and restore the
+    process-wide filters; from several threads a restore may undo another
+    thread's, never beyond the map's end). An exception of a task is raised
+    when its result is reached (the later tasks are cancelled)."""
+    n = min(local_threads(), len(items))
+    if n <= 1:
+        for it in items:
+            yield fn(ctx, it)
+        return
+
+    def task(it):
+        lines: list[str] = []
+        return fn(replace(ctx, log=lines.append), it), lines
+
+    with warnings.catch_warnings(), ThreadPoolExecutor(
+            n, thread_name_prefix=f"bondgraph-task-{threading.get_ident()}") as ex:
+        futures = [ex.submit(task, it) for it in items]
+        try:
+            for fut in futures:
+                value, lines = fut.result()
+                for line in lines:
+                    ctx.log(line)
+                yield value
+        finally:
+            for fut in futures:
+                fut.cancel()

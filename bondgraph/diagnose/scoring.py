@@ -44,7 +44,7 @@ from bondgraph.core import progress
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
 from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, problem_for
 from bondgraph.diagnose.inference_calls import Problem, fisher_fit, run_ukf
-from bondgraph.diagnose.parallel import distributed, run_tasks
+from bondgraph.diagnose.parallel import distributed, local_map, run_tasks
 from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.scales import operating_scales  # noqa: F401 (public name)
 from bondgraph.diagnose.screen import output_error_screen
@@ -553,8 +553,9 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
     in ``places``, a set of (kind, name), if given), each from one batched
     UKF run over its grid (:func:`structural_candidate`); a progress bar
     when ``ctx.progress``. On one machine every candidate's model is built
-    first and their numba kernels are compiled ahead in a background
-    process while this one scores them in order (:func:`structural_todo`;
+    first and their kernels are compiled ahead in the background while
+    this process scores them in order, on threads
+    (:func:`~bondgraph.diagnose.parallel.local_map`; :func:`structural_todo`;
     ``todo``: its result, when the caller started it earlier)."""
     if distributed(ctx):
         todo = structural_targets(fit, effects, places)
@@ -564,9 +565,10 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
     if todo is None:
         todo = structural_todo(ctx, fit, scales, effects, places)
     try:
-        found = [structural_candidate(ctx, fit, scales, eff, tgt, b)
-                 for eff, tgt, b in progress.bar(todo, desc="structural candidates", unit="cand",
-                                                 leave=False, disable=not ctx.progress)]
+        found = list(progress.bar(
+            local_map(ctx, lambda c, item: structural_candidate(c, fit, scales, *item), todo),
+            total=len(todo), desc="structural candidates", unit="cand", leave=False,
+            disable=not ctx.progress))
     finally:
         cancel_ahead()
     return [c for c in found if c is not None]
