@@ -43,6 +43,7 @@ from bondgraph.diagnose.settings import (
 from bondgraph.errors import ModelError, OptionError, UsageError
 from bondgraph.inference.estimand import x0_state_names
 from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.ukf_numba import compile_in_background
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.loop_report import LoopReporter
 
@@ -122,6 +123,7 @@ def run(args) -> int:
         for name, spec in sorted(registered_cases().items()):
             print(f"{name:24s} {spec}")
         return 0
+    compile_in_background()     # the filter kernel, once per installation, beside the set-up
     if args.data and not args.model:
         raise UsageError(f"--data {args.data} needs --model (the model to fit to it); without "
                          f"both, a bundled case runs")

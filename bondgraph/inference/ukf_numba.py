@@ -80,18 +80,24 @@ SIAM J. Sci. Comput. 20(4), 1456-1480.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import hashlib
 import os
+import subprocess
+import sys
 import threading
 import time
 import warnings
 from collections import namedtuple
+from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from bondgraph.core.codegen_numba import padded_points
 from bondgraph.core.progress import announced
+from bondgraph.numerics.compiled import ahead_workers, cache_dir
 from bondgraph.numerics.integrators import GAMMA
 
 try:  # numba is a regular dependency; the numpy path is the fallback without it
@@ -1060,6 +1066,9 @@ def _signature():
 
 _LOCK = threading.Lock()
 _KERNEL: list = []
+#: the child process compiling the kernel into numba's cache
+#: (:func:`compile_in_background`), while it runs
+_BACKGROUND: list = []
 
 
 @contextlib.contextmanager
@@ -1073,9 +1082,53 @@ def _first_class_quiet():
         yield
 
 
+def _cached_marker() -> Path:
+    """The file that says numba's cache holds this kernel: named by numba's
+    and Python's versions, this module's text and numba's cache folder, in
+    the kernel cache folder (:func:`bondgraph.numerics.compiled.cache_dir`)."""
+    key = hashlib.sha256("\n".join([
+        numba.__version__, sys.version, os.environ.get("NUMBA_CACHE_DIR", ""),
+        hashlib.sha256(Path(__file__).read_bytes()).hexdigest()]).encode()).hexdigest()[:20]
+    return cache_dir() / f"fused_ukf_kernel_{key}.cached"
+
+
+def compile_in_background() -> bool:
+    """Start compiling the kernel into numba's on-disk cache in a child
+    process, unless it is there (:func:`_cached_marker`), loaded, or
+    background compiles are off (``BONDGRAPH_COMPILE_AHEAD=0``,
+    :func:`bondgraph.numerics.compiled.ahead_workers`). A command calls it
+    first thing: the kernel takes about 15 s to compile once per
+    installation, and meanwhile this process imports, builds the problem
+    and compiles the other kernels; :func:`kernel` waits for the child and
+    loads its result (or compiles itself if the child failed). numba
+    compiles one function at a time per process (its compiler lock), so a
+    thread would not overlap. Returns whether a child was started."""
+    if numba is None or _KERNEL or _BACKGROUND or not ahead_workers():
+        return False
+    try:
+        if _cached_marker().exists():
+            return False
+        child = subprocess.Popen(
+            [sys.executable, "-c", "from bondgraph.inference.ukf_numba import kernel; kernel()"],
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    except OSError:
+        return False
+    _BACKGROUND.append(child)
+    atexit.register(_stop_background, child)
+    return True
+
+
+def _stop_background(child) -> None:
+    """At exit: a background compile this process no longer waits for stops
+    (numba writes its cache files whole, by rename)."""
+    if child.poll() is None:
+        child.terminate()
+
+
 def kernel() -> tuple[object, float]:
     """The compiled kernel and the seconds this call spent compiling it (or
-    loading it from numba's cache; 0 once loaded in this process).
+    loading it from numba's cache, or waiting for :func:`compile_in_background`;
+    0 once loaded in this process).
 
     Raises
     ------
@@ -1088,11 +1141,21 @@ def kernel() -> tuple[object, float]:
         if _KERNEL:
             return _KERNEL[0], 0.0
         t0 = time.perf_counter()
+        if _BACKGROUND:
+            child = _BACKGROUND.pop()
+            if child.poll() is None:
+                with announced("compiling the fused UKF kernel (in the background since the "
+                               "command started)", note="once per installation: numba caches it"):
+                    child.wait()
         with _first_class_quiet(), announced("compiling the fused UKF kernel",
                                              note="once per installation: numba caches it"):
             k = numba.njit(_signature(), cache=True, nogil=True,
                            error_model="numpy", _nrt=False, fastmath=FASTMATH)(_kernel_py)
         _KERNEL.append(k)
+        with contextlib.suppress(OSError):
+            marker = _cached_marker()
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.touch()
         return k, time.perf_counter() - t0
 
 
