@@ -90,8 +90,8 @@ import threading
 import time
 import warnings
 from collections import namedtuple
-from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
@@ -1172,6 +1172,8 @@ _POOLS: dict = {}
 # run there, and wait for ever)
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_POOLS.clear)
+    # nor its parent's background compile, which it cannot wait for
+    os.register_at_fork(after_in_child=_BACKGROUND.clear)
 
 
 def _pool(n: int):
