@@ -253,7 +253,7 @@ class _Stamped:
 
 
 @contextlib.contextmanager
-def watchdog(quiet_after: float = 2.0, poll: float = 0.25):
+def watchdog(quiet_after: float = 1.5, poll: float = 0.25):
     """Nothing silent for long (a command's whole run): while the block
     runs with bars switched on (:func:`enabled`), whenever neither stdout
     nor stderr has been written for ``quiet_after`` seconds and no
@@ -265,7 +265,9 @@ def watchdog(quiet_after: float = 2.0, poll: float = 0.25):
     Parameters
     ----------
     quiet_after : float
-        Seconds of silence before a line [s].
+        Seconds of silence before a line [s] (1.5: with ``poll`` and a busy
+        interpreter's thread switches a line still came 2.4 s after the
+        last one at 2.0; nothing is to be silent for more than 2 s).
     poll : float
         Seconds between two looks at the clock [s].
     """
