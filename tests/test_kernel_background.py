@@ -1,7 +1,7 @@
 """The fused UKF kernel compiled in a child process while a command sets up
 (bondgraph.inference.ukf_numba.compile_in_background): started only when
-numba's cache does not hold the kernel yet (the marker file) and background
-compiles are on; kernel() waits for the child, then loads the kernel and
+numba's cache does not hold the kernel yet (the marker file), the cache
+folder can be made and background compiles are on; kernel() waits for the child, then loads the kernel and
 marks it cached."""
 
 import sys
@@ -67,3 +67,11 @@ def test_the_marker_names_this_module_and_numbas_cache(fresh, monkeypatch):
     a = ukf_numba._cached_marker()
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(fresh / "elsewhere"))
     assert ukf_numba._cached_marker() != a and a.parent == fresh
+
+
+def test_no_child_when_the_cache_folder_cannot_be_made(fresh, monkeypatch):
+    blocker = fresh / "a_file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("BONDGRAPH_CACHE_DIR", str(blocker / "cache"))
+    assert not ukf_numba.compile_in_background()
+    assert FakeChild.made == []

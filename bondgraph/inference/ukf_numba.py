@@ -1094,8 +1094,10 @@ def _cached_marker() -> Path:
 
 def compile_in_background() -> bool:
     """Start compiling the kernel into numba's on-disk cache in a child
-    process, unless it is there (:func:`_cached_marker`), loaded, or
-    background compiles are off (``BONDGRAPH_COMPILE_AHEAD=0``,
+    process, unless it is there (:func:`_cached_marker`), loaded, the
+    kernel cache folder cannot be written (the marker could not say it is
+    there, and every run would compile twice), or background compiles are
+    off (``BONDGRAPH_COMPILE_AHEAD=0``,
     :func:`bondgraph.numerics.compiled.ahead_workers`). A command calls it
     first thing: the kernel takes about 15 s to compile once per
     installation, and meanwhile this process imports, builds the problem
@@ -1106,7 +1108,13 @@ def compile_in_background() -> bool:
     if numba is None or _KERNEL or _BACKGROUND or not ahead_workers():
         return False
     try:
-        if _cached_marker().exists():
+        marker = _cached_marker()
+        if marker.exists():
+            return False
+        # a cache folder this process cannot write: each run would spawn a
+        # child and then compile again itself (numba's cache likely fails too)
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        if not os.access(marker.parent, os.W_OK):
             return False
         child = subprocess.Popen(
             [sys.executable, "-c", "from bondgraph.inference.ukf_numba import kernel; kernel()"],
