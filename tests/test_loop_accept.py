@@ -716,6 +716,10 @@ def test_vehicle_engine_saturation_case_construction():
         got = float(total.subs(vals))
         assert got == pytest.approx(vv / np.sqrt(1 + (vv / L) ** 2), rel=1e-12)
     assert case.params == ["T_pk", "q_grade"]
+    # the declared fit puts T_pk, its one physical parameter, on its box (the
+    # saturation missing): the case goes on (`bondgraph loop --case
+    # vehicle_engine_saturation` stopped with exit 2 before)
+    assert case.loop_settings().search.on_failed_fit == "continue"
 
 
 def test_error_decrease_test_is_scale_free_and_survives_a_diverging_free_run():

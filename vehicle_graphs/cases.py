@@ -225,7 +225,12 @@ def engine_saturation_truth() -> BondGraph:
 def case_engine_saturation() -> LoopCase:
     # as in the belt-slip case the parameters of stage 1 and the drive line
     # are known; the declared fit can only lower the peak torque T_pk to
-    # compensate the saturation (issue 11: the effect must still rank first)
+    # compensate the saturation (issue 11: the effect must still rank first).
+    # It lowers it onto its box (45 N m, the likelihood gaining 516 nats
+    # beyond): with T_pk the only physical parameter the loop would call the
+    # declared fit failed and stop (runner._declared_fit_verdict); here the
+    # box is right and the missing saturation is what pushes T_pk onto it,
+    # which is what the case shows, so it goes on as --keep-going does
     params = ["T_pk", "q_grade"]
     fixed = {k: v for k, v in TRUE_DRIVING.items() if k not in params}
     level = ENGINE_SATURATION * TRUE_DRIVING["T_pk"]
@@ -238,5 +243,6 @@ def case_engine_saturation() -> LoopCase:
         lambda: driving_record(engine_saturation_truth(), vehicle_slip_declared(),
                                 "throttle_steps_engine_saturation", seed=105),
         LoopSettings(params, metric="nrmse_sim", fixed=fixed,
-                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK})),
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK}),
+                     search=SearchOptions(on_failed_fit="continue", auto_substeps=True)),
         TrueEffect("actuator_saturation", ENGINE_TORQUE[1], {"L": level}))
