@@ -37,6 +37,7 @@ from bondgraph.inference.discretise import check_discretisation, choose_discreti
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.options import FitOptions
+from bondgraph.inference.ukf_numba import compile_in_background
 from bondgraph.report.estimation import plot_fit
 
 
@@ -99,6 +100,8 @@ def run(args) -> int:
     EstimationError
         No parameter set had a finite NLL.
     """
+    if args.fit != "sim" and args.backend == "numba":
+        compile_in_background()     # the filter kernel, once per installation, beside the set-up
     model = load_model(args.model)
     exp = load_record(args.data, model)
     params = parse_params(args.params, model)

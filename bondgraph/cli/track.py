@@ -31,6 +31,7 @@ from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import DataError
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
 from bondgraph.inference.track import TrackingModel, check_tracked, choose_substeps, track
+from bondgraph.inference.ukf_numba import compile_in_background
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.tracking import plot_track
@@ -100,6 +101,8 @@ def _from_result(path) -> tuple[dict, dict]:
 
 def run(args) -> int:
     """Track, detect, write the folder, print the summary."""
+    if getattr(args, "backend", "numba") == "numba":
+        compile_in_background()     # the filter kernel, once per installation, beside the set-up
     graph = graph_builder(args.model)()
     model = Model.from_spec(args.model)
     names = parse_names(args.track, "--track")

@@ -18,7 +18,6 @@ in the task order.
 
 from __future__ import annotations
 
-import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -112,8 +111,7 @@ def local_map(ctx: Context, fn: Callable[[Context, Any], Any], items: Sequence) 
         lines: list[str] = []
         return fn(replace(ctx, log=lines.append), it), lines
 
-    with warnings.catch_warnings(), ThreadPoolExecutor(
-            n, thread_name_prefix=f"bondgraph-task-{threading.get_ident()}") as ex:
+    with warnings.catch_warnings(), ThreadPoolExecutor(n, thread_name_prefix="bondgraph-task") as ex:
         futures = [ex.submit(task, it) for it in items]
         try:
             for fut in futures:
