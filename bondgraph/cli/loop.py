@@ -65,7 +65,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--data", help="record (CSV in the experiment format, see docs/data_format.md)")
     p.add_argument("--params", help="comma-separated parameters to estimate (default: the "
-                                    "case's, or all parameters of the model)")
+                                    "case's, or all parameters of the model; one declared "
+                                    "without a box is then held at its value where the "
+                                    "record cannot tell it from the others)")
     p.add_argument("--out", default=None,
                    help=f"report directory (default ./{DEFAULT_OUT}, or ./{DEFAULT_OUT}-2, -3, "
                         f"... when it holds an earlier report); refused when not empty, unless "
@@ -133,7 +135,11 @@ def run(args) -> int:
         graph = graph_builder(args.model)()
         record = load_record(args.data, graph)
         params = parse_params(args.params) if args.params else list(graph.params)
-        base = LoopSettings(params=params)
+        # without --params, a parameter declared without a box is a known
+        # value: held where the record cannot tell it from others
+        hold = () if args.params else tuple(
+            n for n, p in graph.params.items() if not getattr(p, "box_declared", True))
+        base = LoopSettings(params=params, hold_unidentified=hold)
         name = graph.name
     else:
         case = get_case(args.case or DEFAULT_CASE)

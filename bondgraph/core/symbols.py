@@ -83,9 +83,17 @@ class Parameter(_MetaSymbol):
         Meaning, shown in parameter tables.
     source : str, optional
         Where the value comes from (measurement, literature, guess).
+
+    Attributes
+    ----------
+    box_declared : bool
+        Whether ``bounds`` was given. A parameter declared without a box is
+        read as a known value: ``bondgraph loop`` without ``--params``
+        holds it at its declared value when the record does not identify
+        it apart from others (LoopSettings.hold_unidentified).
     """
 
-    _meta_fields = ("default", "unit", "bounds", "description", "source")
+    _meta_fields = ("default", "unit", "bounds", "description", "source", "box_declared")
 
     def __new__(cls, name: str, default: float = 1.0, unit: str | None = None,
                 bounds: tuple[float, float] | None = None, description: str = "",
@@ -97,11 +105,14 @@ class Parameter(_MetaSymbol):
         obj.bounds = _bounds(name, d, bounds)
         obj.description = description
         obj.source = source
+        obj.box_declared = bounds is not None
         return obj
 
     def with_name(self, name: str) -> "Parameter":
         """Copy with another name (used when fragments are namespaced)."""
-        return Parameter(name, self.default, self.unit, self.bounds, self.description, self.source)
+        p = Parameter(name, self.default, self.unit, self.bounds, self.description, self.source)
+        p.box_declared = getattr(self, "box_declared", True)
+        return p
 
 
 def _bounds(name: str, default: float, bounds) -> tuple[float, float]:

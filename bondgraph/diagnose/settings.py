@@ -326,6 +326,16 @@ class LoopSettings:
         first, so that "before" is the published linear model.
     fixed : dict
         Known parameter values (name -> value) set before every fit.
+    hold_unidentified : sequence of str
+        Parameters of ``params`` the loop holds at their current (declared
+        or fixed) value when the declared fit does not identify them apart
+        from others (they load on a flat direction of its Fisher
+        information, :func:`bondgraph.diagnose.fit.unidentified`): one at a
+        time, the largest loading first, the declared model refitted after
+        each, until none of them is flat; the log and the report say which.
+        ``bondgraph loop --model`` without ``--params`` passes the
+        parameters declared without a box (known values: a motor constant
+        beside the mass and friction it scales). Default: none.
     estimate_x0 : list of str
         Initial states estimated jointly with θ at every fit (``["all"]``:
         every state); later filter runs condition on the current fit's
@@ -394,6 +404,7 @@ class LoopSettings:
     params: list[str]
     initial_params: list[str] | None = None
     fixed: dict[str, float] = field(default_factory=dict)
+    hold_unidentified: Sequence[str] = ()
     estimate_x0: list[str] = field(default_factory=list)
     effects: Sequence[Effect] = DEFAULT_EFFECTS
     metric: Metric = "nrmse_sim"
@@ -414,6 +425,10 @@ class LoopSettings:
             raise OptionError(f"LoopSettings.metric = {self.metric!r} is not one of "
                               f"{', '.join(METRICS)} (or a callable metric(fit, record))")
         _choice(self, "noise", NOISE_MODES)
+        stray = [n for n in self.hold_unidentified if n not in self.params]
+        if isinstance(self.hold_unidentified, str) or stray:
+            raise OptionError(f"LoopSettings.hold_unidentified must name parameters of params, "
+                              f"got {self.hold_unidentified!r}")
         holdout = self.holdout
         if isinstance(holdout, bool) or not isinstance(holdout, numbers.Real) \
                 or not 0.0 <= holdout < 0.9:

@@ -1,0 +1,106 @@
+"""A parameter declared without a box is a known value: where the record
+cannot tell it from the parameters it scales, `bondgraph loop` without
+--params holds it at its declared value (LoopSettings.hold_unidentified).
+
+The graph: a force source F = k_u·u (an actuator constant k_u, declared
+without a box) on a mass m and a viscous damper c (declared with boxes),
+the velocity measured. m v̇ = k_u u − c v is invariant under
+(k_u, m, c) -> s·(k_u, m, c): the record identifies m/k_u and c/k_u only.
+The reference is the truth the record was simulated from (scipy's
+solve_ivp, a continuous multisine force).
+"""
+
+import json
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from bondgraph import BondGraph
+from bondgraph.cli.main import main
+from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import OptionError
+
+TRUTH = {"k_u": 2.0, "m": 3.0, "c": 1.5}
+
+GRAPH = '''
+from bondgraph import BondGraph
+
+
+def drive():
+    g = BondGraph("drive", "mass and damper behind an actuator constant")
+    u = g.input("u", "V", 0.0, "command")
+    k_u = g.param("k_u", 2.0, "N/V", None, "actuator constant (datasheet)")
+    m = g.param("m", 2.0, "kg", (0.1, 100.0), "mass")
+    c = g.param("c", 1.0, "N*s/m", (0.01, 100.0), "damping")
+    v = g.one("v")
+    g.connect(g.Se("act", k_u * u), v)
+    g.connect(v, g.I("mass", m))
+    g.connect(v, g.R("damper", c))
+    g.sensor("vel", v.f, unit="m/s")
+    return g
+'''
+
+
+def _record(path, n=1500, dt=0.02, seed=0):
+    t = np.arange(n) * dt
+    freqs = np.array([0.05, 0.13, 0.31, 0.7, 1.3])
+
+    def u(tt):
+        return np.sum(np.sin(2 * np.pi * freqs * tt + np.arange(5)), axis=-1)
+
+    def f(tt, x):
+        return [(TRUTH["k_u"] * u(tt) - TRUTH["c"] * x[0]) / TRUTH["m"]]
+
+    sol = solve_ivp(f, (0.0, t[-1]), [0.0], t_eval=t, rtol=1e-10, atol=1e-12, max_step=dt)
+    y = sol.y[0] + 0.01 * np.random.default_rng(seed).standard_normal(n)
+    uu = u(t[:, None])
+    with open(path, "w") as fh:
+        fh.write("t [s],u [V],vel [m/s]\n")
+        for row in zip(t.tolist(), uu.tolist(), y.tolist()):
+            fh.write("%r,%r,%r\n" % row)
+
+
+def test_a_parameter_without_a_box_is_held_where_the_record_cannot_tell_it(tmp_path,
+                                                                             monkeypatch):
+    _record(tmp_path / "rec.csv")
+    (tmp_path / "drive_user.py").write_text(GRAPH)
+    monkeypatch.chdir(tmp_path)
+    argv = ["loop", "--model", "drive_user.py:drive", "--data", "rec.csv", "--max-steps", "0",
+            "--quiet", "--hold", "linear"]
+    assert main(argv + ["--out", "held"]) == 0
+    log = (tmp_path / "held" / "loop.log").read_text()
+    assert "k_u was declared without a box (a known value): held at 2" in log
+    rep = json.loads((tmp_path / "held" / "report.json").read_text())
+    est, std = rep["initial_fit"]["estimates"], rep["initial_fit"]["std"]
+    assert "k_u" not in est and rep["settings"]["fixed"] == {"k_u": 2.0}
+    assert rep["settings"]["params"][:2] == ["m", "c"]
+    # with k_u held at its true value, m and c are the truth within 3
+    # Cramér-Rao std (and the ridge is gone)
+    for p in ("m", "c"):
+        assert abs(est[p] - TRUTH[p]) < 3 * std[p], (p, est[p], std[p])
+    assert not {"m", "c"} & set(rep["initial_fit"]["flat"])
+    assert any("held at 2" in w for w in rep["warnings"])
+    # named in --params, k_u is estimated: the fit stops somewhere on the
+    # ridge and says the record does not identify the three apart
+    assert main(argv + ["--out", "all", "--params", "k_u,m,c"]) == 0
+    rep = json.loads((tmp_path / "all" / "report.json").read_text())
+    assert {"k_u", "m", "c"} <= set(rep["initial_fit"]["flat"])
+    assert "k_u" in rep["initial_fit"]["estimates"]
+    # the identified ratios agree with the held fit's
+    e = rep["initial_fit"]["estimates"]
+    assert e["m"] / e["k_u"] == pytest.approx(TRUTH["m"] / TRUTH["k_u"], rel=0.01)
+    assert e["c"] / e["k_u"] == pytest.approx(TRUTH["c"] / TRUTH["k_u"], rel=0.01)
+
+
+def test_box_declared_and_the_option_is_checked():
+    g = BondGraph("g")
+    assert g.param("a", 1.0).box_declared is False
+    assert g.param("b", 1.0, bounds=(0.5, 2.0)).box_declared is True
+    h = g.copy("h")
+    assert h.params["a"].box_declared is False and h.params["b"].box_declared is True
+    assert g.params["a"].with_name("x.a").box_declared is False
+    with pytest.raises(OptionError, match="hold_unidentified"):
+        LoopSettings(params=["a"], hold_unidentified=("b",))
+    with pytest.raises(OptionError, match="hold_unidentified"):
+        LoopSettings(params=["a"], hold_unidentified="a")
