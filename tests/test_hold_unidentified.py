@@ -104,3 +104,16 @@ def test_box_declared_and_the_option_is_checked():
         LoopSettings(params=["a"], hold_unidentified=("b",))
     with pytest.raises(OptionError, match="hold_unidentified"):
         LoopSettings(params=["a"], hold_unidentified="a")
+
+
+def test_the_loop_log_does_not_repeat_a_detail_line_within_a_step():
+    from bondgraph.diagnose.runner import _stamped
+
+    out = []
+    emit = _stamped(out.append, 0.0)
+    for m in ("step 1: scored", "  the record does not identify a, b", "  smoothed x0",
+              "  the record does not identify a, b", "ACCEPT e", "  the record does not identify a, b"):
+        emit(m)
+    assert [o.split("] ", 1)[1] for o in out] == [
+        "step 1: scored", "  the record does not identify a, b", "  smoothed x0", "ACCEPT e",
+        "  the record does not identify a, b"]

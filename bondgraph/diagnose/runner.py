@@ -240,8 +240,22 @@ def settings_summary(ctx: Context) -> dict:
 
 
 def _stamped(log: Callable[[str], None], t0: float) -> Callable[[str], None]:
-    """``log`` with each line prefixed by the seconds since ``t0``."""
+    """``log`` with each line prefixed by the seconds since ``t0``. An
+    indented detail line whose text was already logged since the last
+    top-level line (a step, a decision) is not repeated: a confirmation's
+    second refit (from the score test's joint step) and the free runs of
+    the record and of its held-out part say the same things again (the
+    EMPS drive on a user's graph: 55 lines "the record does not identify
+    ...", a third of them repeats)."""
+    seen: set[str] = set()
+
     def emit(msg: str) -> None:
+        if msg.startswith("  "):
+            if msg in seen:
+                return
+            seen.add(msg)
+        else:
+            seen.clear()
         log(f"[{time.perf_counter() - t0:7.1f} s] {msg}")
     return emit
 
