@@ -61,6 +61,7 @@ from bondgraph.diagnose.scoring import (
 )
 from bondgraph.diagnose.screen import SCREEN_LEVEL, free_run_nrmse, global_output_error
 from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.inference.discretise import SUBSTEPS
 from bondgraph.numerics.model import Model
 from bondgraph.errors import (
     BondGraphError,
@@ -719,11 +720,12 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
     return [msg]
 
 
-#: the substeps :func:`recommended_substeps` tries: steps of 1.5 and 2 (one
-#: step per sample of ROS2 at 0.3 noise stds on the coast-down record needs
-#: 3 substeps, 0.088 σ, where the powers of two took 4: a quarter of every
-#: later filter run saved)
-SUBSTEP_LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32)
+#: the substeps :func:`recommended_substeps` tries: those of the first
+#: choice (:data:`bondgraph.inference.discretise.SUBSTEPS`, steps of 1.5 and
+#: 2), then 24 and 32 (one step per sample of ROS2 at 0.3 noise stds on the
+#: coast-down record needs 3 substeps, 0.088 σ, where the powers of two took
+#: 4: a quarter of every later filter run saved)
+SUBSTEP_LADDER = tuple(n for n in SUBSTEPS if n > 1) + (24, 32)
 
 
 def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[float, int | None]:

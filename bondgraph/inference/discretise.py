@@ -60,13 +60,20 @@ BIAS_TOLERANCE = 0.5
 #: the holds a record may declare for an input, and that the evidence chooses
 #: between (:data:`bondgraph.data.record_io.INPUT_HOLDS`)
 DECLARED_HOLDS = INPUT_HOLDS
+#: the substeps per sample tried, fewest first: the loop's ladder too
+#: (:data:`bondgraph.diagnose.runner.SUBSTEP_LADDER`); between the powers of
+#: two, 3, 6 and 12 (the error of an order-p method falls as the substeps to
+#: the p-th power: where 4 is the first power of two within, 3 often is, at
+#: three quarters of the cost)
+SUBSTEPS = (1, 2, 3, 4, 6, 8, 12, 16)
 #: (method, substeps) candidates in order of cost per sample, counted in f
 #: evaluations: RK4 4 per substep, ROS2 2 per substep and one Jacobian (with
 #: its factorisation, about 2 more) per sample; on the tie of ROS2(1) and RK4(1)
 #: ROS2 first (L-stable: a stiff model's step that RK4 cannot take is not
 #: finite and fails the check, so the list serves stiff models too)
-CANDIDATES = (("ros2", 1), ("rk4", 1), ("ros2", 2), ("rk4", 2), ("ros2", 4), ("rk4", 4),
-              ("ros2", 8), ("rk4", 8), ("ros2", 16), ("rk4", 16))
+CANDIDATES = tuple(sorted(((m, s) for s in SUBSTEPS for m in ("ros2", "rk4")),
+                          key=lambda c: (4 * c[1] if c[0] == "rk4" else 2 * c[1] + 2,
+                                         c[0] != "ros2")))
 #: two successive steps of the same sign whose sizes differ by at most this
 #: fraction of the larger are one continuing variation (a sampled continuous signal)
 SIMILAR_STEP = 0.5
