@@ -285,6 +285,13 @@ def test_a_record_declares_each_inputs_hold(tmp_path):
 def test_candidates_are_in_order_of_cost():
     cost = [4 * s if m == "rk4" else 2 * s + 2 for m, s in CANDIDATES]
     assert cost == sorted(cost)
+    # the powers of two keep their order among the others: a step they chose
+    # is chosen again unless a cheaper one (3, 6, 12 substeps) passes
+    powers = [(m, s) for s in (1, 2, 4, 8, 16) for m in ("ros2", "rk4")]
+    powers.sort(key=lambda c: (4 * c[1] if c[0] == "rk4" else 2 * c[1] + 2, c[0] != "ros2"))
+    rest = iter(CANDIDATES)
+    assert all(c in rest for c in powers)
+    assert CANDIDATES.index(("rk4", 2)) < CANDIDATES.index(("ros2", 3))
 
 
 def test_shared_reference_errors_equal_the_discretisation_check(record):

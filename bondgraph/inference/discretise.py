@@ -68,12 +68,14 @@ DECLARED_HOLDS = INPUT_HOLDS
 SUBSTEPS = (1, 2, 3, 4, 6, 8, 12, 16)
 #: (method, substeps) candidates in order of cost per sample, counted in f
 #: evaluations: RK4 4 per substep, ROS2 2 per substep and one Jacobian (with
-#: its factorisation, about 2 more) per sample; on the tie of ROS2(1) and RK4(1)
-#: ROS2 first (L-stable: a stiff model's step that RK4 cannot take is not
-#: finite and fails the check, so the list serves stiff models too)
+#: its factorisation, about 2 more) per sample; on a tie the fewer substeps
+#: first (RK4(2) before ROS2(3): the order of the powers of two is kept, so a
+#: step they chose is still chosen unless a cheaper one passes), and of ROS2(1)
+#: and RK4(1) ROS2 first (L-stable: a stiff model's step that RK4 cannot take
+#: is not finite and fails the check, so the list serves stiff models too)
 CANDIDATES = tuple(sorted(((m, s) for s in SUBSTEPS for m in ("ros2", "rk4")),
                           key=lambda c: (4 * c[1] if c[0] == "rk4" else 2 * c[1] + 2,
-                                         c[0] != "ros2")))
+                                         c[1], c[0] != "ros2")))
 #: two successive steps of the same sign whose sizes differ by at most this
 #: fraction of the larger are one continuing variation (a sampled continuous signal)
 SIMILAR_STEP = 0.5
