@@ -111,8 +111,8 @@ def test_the_loop_log_does_not_repeat_a_detail_line_within_a_step():
 
     out = []
     emit = _stamped(out.append, 0.0)
-    for m in ("step 1: scored", "  the record does not identify a, b", "  smoothed x0",
-              "  the record does not identify a, b", "ACCEPT e", "  the record does not identify a, b"):
+    flat = "  the record does not identify a, b"
+    for m in ("step 1: scored", flat, "  smoothed x0", flat, "ACCEPT e", flat):
         emit(m)
     assert [o.split("] ", 1)[1] for o in out] == [
         "step 1: scored", "  the record does not identify a, b", "  smoothed x0", "ACCEPT e",

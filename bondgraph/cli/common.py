@@ -219,10 +219,10 @@ def add_discretisation(p: argparse.ArgumentParser, *, chosen: bool = True) -> No
 #: how a command that chooses its numerics fills in --method/--substeps/--hold
 _CHOSEN_HELP = ("what is not given is chosen: the hold the record declares (sidecar "
                 "columns.<input>.hold) or its inputs' shape supports, and the cheapest of "
-                "ros2/rk4 with 1, 2, 3, 4, 6, 8, 12, 16 substeps whose one-step error is within 0.1 "
-                "measurement-noise std per sample (without process noise also: whose free run "
-                "bounds every estimate's bias by 0.5 Cramér-Rao std); one line on stderr says "
-                "what was chosen")
+                "ros2/rk4 with 1, 2, 3, 4, 6, 8, 12, 16 substeps whose one-step error is "
+                "within 0.1 measurement-noise std per sample (without process noise also: "
+                "whose free run bounds every estimate's bias by 0.5 Cramér-Rao std); one line "
+                "on stderr says what was chosen")
 
 
 def add_backend(p: argparse.ArgumentParser) -> None:

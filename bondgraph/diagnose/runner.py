@@ -336,12 +336,13 @@ def initial_fit(ctx: Context, graph: BondGraph, again: bool = False) -> Fit:
 
 def held_unidentified(ctx: Context, graph: BondGraph, fit: Fit,
                       start: dict | None) -> tuple[Fit, list[str]]:
-    """``(fit, messages)``: the declared fit with the parameters of ``hold_unidentified`` that it
-    does not identify (``fit.flat``) held at their values in the problem
-    (the declared or fixed ones), one at a time, the largest loading on the
-    flat directions first, the declared model refitted after each; each
-    held parameter leaves ``ctx.settings.params`` for ``fixed`` and is
-    named in the log and in the messages (for the report). A scale symmetry (a motor
+    """``(fit, messages)``: the declared fit with the parameters of
+    ``hold_unidentified`` that it does not identify (``fit.flat``) held at
+    their values in the problem (the declared or fixed ones), one at a
+    time, the largest loading on the flat directions first, the declared
+    model refitted after each; each held parameter leaves
+    ``ctx.settings.params`` for ``fixed`` and is named in the log and in the
+    messages (for the report). A scale symmetry (a motor
     constant times the mass and friction it drives) leaves the likelihood
     flat along a ridge: a fit then stops anywhere on it, the parameters'
     values mean nothing apart (the EMPS drive declared with its known
@@ -356,8 +357,8 @@ def held_unidentified(ctx: Context, graph: BondGraph, fit: Fit,
         name = flat[0]
         value = float(ctx.problem.theta[fit.model.param_index(name)])
         msg = (f"the record does not identify {', '.join(fit.flat)} separately; {name} was "
-               f"declared without a box (a known value): held at {value:.6g} (name the "
-               f"parameters to estimate with --params to estimate it anyway)")
+               f"declared without a box (a known value): held at {value:.6g} (to estimate it, "
+               f"list it in --params with the others)")
         ctx.log(f"  {msg}")
         s = replace(s, params=[n for n in s.params if n != name],
                     fixed={**s.fixed, name: value},
