@@ -357,8 +357,9 @@ def held_unidentified(ctx: Context, graph: BondGraph, fit: Fit,
         name = flat[0]
         value = float(ctx.problem.theta[fit.model.param_index(name)])
         msg = (f"the record does not identify {', '.join(fit.flat)} separately; {name} was "
-               f"declared without a box (a known value): held at {value:.6g} (to estimate it, "
-               f"list it in --params with the others)")
+               f"declared without a box (a known value): held at {value:.6g}; the other "
+               f"estimates and their std assume that value (to estimate it, list it in "
+               f"--params with the others)")
         ctx.log(f"  {msg}")
         s = replace(s, params=[n for n in s.params if n != name],
                     fixed={**s.fixed, name: value},
