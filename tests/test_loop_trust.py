@@ -363,7 +363,8 @@ def test_noise_that_absorbs_the_model_error_is_named():
     x[:, 0, 0], x[:, 0, 1] = level, 3.0 + 0.0 * t
     record = SimpleNamespace(noise_std_for=lambda m: np.array([0.02]))
     ctx = SimpleNamespace(problem=SimpleNamespace(record=record, arrays=(t, None, None),
-                                                  theta=np.array([0.01, 0.01, 0.02])))
+                                                  theta=np.array([0.01, 0.01, 0.02]),
+                                                  noise=SimpleNamespace(held={})))
     fit = SimpleNamespace(model=model, theta=np.array([0.30, 0.011, 0.001]), noise_est={},
                           ukf=SimpleNamespace(x_filt=x))
     w = noise_absorbing(ctx, fit)
@@ -375,6 +376,15 @@ def test_noise_that_absorbs_the_model_error_is_named():
     # noise at its start and the declared level: nothing to name
     fit.theta = np.array([0.01, 0.01, 0.02])
     assert noise_absorbing(ctx, fit) == []
+    # a level held at the record's declaration is not estimated: the graph's
+    # own sensor level (here 0.001, a graph that declares none reads 0) is
+    # not what the filter used, and nothing is named (a user's DC motor
+    # record declaring 0.05 A was told its noise was "estimated at 0")
+    fit.theta = np.array([0.01, 0.01, 0.001])
+    ctx.problem.noise.held = {"y": 0.02}
+    assert noise_absorbing(ctx, fit) == []
+    fit.noise_est = {"y": 0.001}        # estimated after all: named again
+    assert noise_absorbing(ctx, fit)[0].startswith("the measurement noise of y is estimated at")
 
 
 def test_a_correction_beside_a_declared_resistor_is_judged_with_it():

@@ -621,7 +621,8 @@ NOISE_FACTOR = 3.0
 def noise_absorbing(ctx: Context, fit: Fit) -> list[str]:
     """Noise levels of ``fit`` that absorb the model's error rather than
     describe the noise, as warnings: a measurement-noise std estimated
-    below 1/:data:`NOISE_FACTOR` of the record's declaration, and a
+    below 1/:data:`NOISE_FACTOR` of the record's declaration (a level the
+    problem holds is not estimated and is never named), and a
     process-noise intensity q (state unit/√s) that grew more than
     :data:`NOISE_FACTOR`-fold from its start and whose random walk over the
     record, q·√T, exceeds the state's own spread along it (the std of its
@@ -633,7 +634,10 @@ def noise_absorbing(ctx: Context, fit: Fit) -> list[str]:
     out = []
     declared = np.asarray(ctx.problem.record.noise_std_for(model), float)
     meas = np.asarray(model.meas_std(th[None, :]), float).reshape(-1)
+    held = ctx.problem.noise.held
     for j, o in enumerate(model.outputs):
+        if o not in fit.noise_est and o in held:
+            continue        # held at a level, not estimated: it absorbs nothing
         v, d = float(fit.noise_est.get(o, meas[j])), declared[j]
         if np.isfinite(d) and d > 0 and v < d / NOISE_FACTOR:
             out.append(f"the measurement noise of {o} is estimated at {v:.3g}, below a third of "
