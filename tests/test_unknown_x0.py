@@ -161,7 +161,7 @@ def test_a_smoothed_start_the_prior_excludes_is_not_used(monkeypatch):
     """The free run's start x̂_0|N is used unless its squared Mahalanobis
     distance from the prior mean (over the states not estimated with θ)
     exceeds χ²(n) at 1e-20 (about 9.8 prior std for 3 states, computed by
-    hand below); then the prior mean is used and the loop says why. The
+    hand below); then the prior mean is returned with the reason. The
     prior: std 0.06, 0.03, 0.05 about (0, 0, 0.1); the third state is
     estimated with θ and does not count."""
     import bondgraph.diagnose.fit as fitmod
@@ -172,19 +172,18 @@ def test_a_smoothed_start_the_prior_excludes_is_not_used(monkeypatch):
     x0 = np.array([0.0, 0.0, 0.1])
     problem = SimpleNamespace(model=SimpleNamespace(states=["a", "b", "c"]), x0=x0,
                               P0=np.diag(sd**2), prior=SimpleNamespace(estimated={"c": 0.1}))
-    lines = []
-    ctx = SimpleNamespace(log=lines.append)
     bound = np.sqrt(chi2.isf(1e-20, 2))           # two states count
     assert bound == pytest.approx(9.6, abs=0.05)
     for xs, used in ((np.array([0.5, 0.1, 3.0]), True),       # (8.33, 3.33) std: 8.85
                      (np.array([0.5, 0.2, 0.1]), False)):     # (8.33, 6.67) std: 10.7
         monkeypatch.setattr(fitmod, "smoothed_initial_state", lambda pb, th, xs=xs: xs)
-        got = fitmod._smoothed_start(ctx, problem, np.zeros(1), x0)
+        got, why = fitmod._smoothed_start(problem, np.zeros(1), x0)
         d = np.hypot(xs[0] / sd[0], xs[1] / sd[1])
         assert (d <= bound) == used
         np.testing.assert_array_equal(got, xs if used else x0)
-    assert len(lines) == 1 and "10.7 prior std from the prior mean" in lines[0]
-    assert lines[0].startswith("  smoothed initial state (a = 0.5, b = 0.2, c = 0.1)")
+        assert (why is None) == used
+    assert "10.7 prior std from the prior mean" in why
+    assert why.startswith("smoothed initial state (a = 0.5, b = 0.2, c = 0.1)")
 
 
 def test_a_smoothed_start_whose_distance_overflows_is_not_used(monkeypatch):
@@ -202,11 +201,50 @@ def test_a_smoothed_start_whose_distance_overflows_is_not_used(monkeypatch):
     xs = np.array([1e155, 2e155])
     with np.errstate(all="ignore"):
         assert np.isnan(xs @ np.linalg.pinv(P0) @ xs)       # the case the test is about
-    lines = []
     monkeypatch.setattr(fitmod, "smoothed_initial_state", lambda pb, th: xs)
     import warnings
     with warnings.catch_warnings():
         warnings.simplefilter("error")                      # no numpy overflow warning
-        got = fitmod._smoothed_start(SimpleNamespace(log=lines.append), problem, np.zeros(1), x0)
+        got, why = fitmod._smoothed_start(problem, np.zeros(1), x0)
     np.testing.assert_array_equal(got, x0)
-    assert len(lines) == 1 and "inf prior std from the prior mean" in lines[0]
+    assert "inf prior std from the prior mean" in why
+
+
+def test_a_start_the_smoother_cannot_give_is_fitted_to_the_outputs(monkeypatch):
+    """Where the smoothed start is refused, the free run starts from the
+    initial state whose run fits the outputs best (least squares on the
+    free-run error). By hand: y1 = a0·e^(−t), y2 = b0·e^(−2t) + 1 over
+    t in [0, 3] s, truth a0 = 2, b0 = −1, the prior mean (0, 0) with std
+    (0.01, 0.05): the fit recovers the truth to 1e-6 (the outputs are
+    linear in the start), one line says why and where. A free run that
+    always fails gives nothing better: the prior mean is kept and said."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import fit as F
+
+    t = np.linspace(0.0, 3.0, 61)
+
+    def run(ctx, pb, th, held, x0, quiet=False):
+        return np.stack([x0[0] * np.exp(-t), x0[1] * np.exp(-2 * t) + 1.0], axis=1)
+
+    y = run(None, None, None, None, np.array([2.0, -1.0]))
+    y[5, 0] = np.nan                                     # a missing sample is left out
+    monkeypatch.setattr(F, "_free_run_from", run)
+    logs = []
+    ctx = SimpleNamespace(log=logs.append)
+    x0 = np.zeros(2)
+    pb = SimpleNamespace(arrays=(t, None, y), x0=x0, P0=np.diag([0.01, 0.05]) ** 2,
+                         model=SimpleNamespace(states=["a", "b"]))
+    got = F._fitted_start(ctx, pb, None, None, x0, ["a", "b"], "smoothed initial state far")
+    np.testing.assert_allclose(got, [2.0, -1.0], atol=1e-6)
+    assert len(logs) == 1 and logs[0].startswith(
+        "  smoothed initial state far; the free run starts from the one fitted to the outputs "
+        "(a = 2, b = -1)")
+    # only b unknown: a stays at the prior mean
+    got = F._fitted_start(ctx, pb, None, None, x0, ["b"], None)
+    assert got[0] == 0.0 and got[1] == pytest.approx(-1.0, abs=1e-6)
+    logs.clear()
+    monkeypatch.setattr(F, "_free_run_from", lambda *a, **k: None)
+    assert F._fitted_start(ctx, pb, None, None, x0, ["a", "b"], None) is x0
+    assert logs == ["  no smoothed initial state; the one fitted to the outputs does not "
+                    "improve on the prior mean: the free run starts there"]
