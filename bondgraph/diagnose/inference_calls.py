@@ -19,7 +19,12 @@ from bondgraph.errors import NumericalError
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, noise_plan
-from bondgraph.inference.fisher import FLAT_GAIN, estimand_scoring, flat_directions
+from bondgraph.inference.fisher import (
+    FLAT_GAIN,
+    estimand_scoring,
+    flat_directions,
+    scoring_step_gain,
+)
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.options import Evaluation, ScoringOptions
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
@@ -191,6 +196,26 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
     sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
     return (r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig, r.flat,
             float(r.nll))
+
+
+def predicted_step_gain(problem: Problem, theta: np.ndarray, index: Sequence[int], box) -> float:
+    """The NLL decrease [nats] one full Fisher-scoring step over the
+    parameters ``index`` (k) from ``theta`` (n_theta,) predicts, inside
+    ``box`` (lower (k,), upper (k,)), with ``problem``'s prior, held noise
+    levels and filter (:func:`bondgraph.inference.fisher.scoring_step_gain`;
+    one batched UKF run of k + 1 sets).
+
+    Raises
+    ------
+    FloatingPointError
+        If the UKF fails at ``theta``.
+    """
+    model = problem.model
+    est = Estimand(model, [model.params[j] for j in index], theta=theta, x0=problem.x0,
+                   x0_scale=np.sqrt(np.maximum(np.diag(problem.P0), 1e-300)),
+                   sigma=problem.noise.sigma(model))
+    t, u, y = problem.arrays
+    return scoring_step_gain(model, t, u, y, est, box[0], box[1], problem.P0, problem.ukf)
 
 
 def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:

@@ -55,6 +55,11 @@ class Candidate:
         Declared parameters re-fitted together with a structural candidate
         when it was scored (name -> value; empty if they stayed frozen); its
         confirmation starts from them.
+    profiled : bool
+        Structural candidates: False when the grid's best was not profiled
+        (:func:`bondgraph.diagnose.scoring.worth_profiling`: the grid and
+        the predicted gain of a scoring step stay below the critical value);
+        its statistic is then the grid's, a lower bound.
     failed : str or None
         Why the candidate could not be scored (the filter failed: its reason);
         its statistic, p-value and score are then NaN, never a χ² of 0.
@@ -102,6 +107,7 @@ class Candidate:
     limit_of: list = field(default_factory=list)
     tied: list = field(default_factory=list)
     joint_step: dict = field(default_factory=dict)
+    profiled: bool = True
 
     @property
     def rank_key(self) -> float:

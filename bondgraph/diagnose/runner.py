@@ -1078,8 +1078,8 @@ def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidat
     with conditioned(ctx, conf.fit):
         cands = score_additive(ctx, conf.fit, scales, s.effects)
         if s.search.structural:
-            cands += score_structural(ctx, conf.fit, scales,
-                                      [e for e in s.effects if not getattr(e, "last_resort", False)])
+            physical = [e for e in s.effects if not getattr(e, "last_resort", False)]
+            cands += score_structural(ctx, conf.fit, scales, physical, others=len(cands))
     cands = [c for c in cands if c.target.name != lead.target.name]
     taken = {c.label for c in pool}
     found = sorted([c for c in significant(cands, s.accept.significance) if c.label not in taken],
@@ -1297,7 +1297,9 @@ def _score_skipped(ctx: Context, result: LoopResult, current: Fit,
     them with the others in ``result.rankings[-1]`` and return that ranking."""
     physical = [e for e in ctx.settings.effects if not getattr(e, "last_resort", False)]
     seen = {c.label for c in result.rankings[-1]}
-    extra = [c for c in score_structural(ctx, current, scales, physical) if c.label not in seen]
+    additive = sum(1 for c in result.rankings[-1] if c.kind == "score")
+    extra = [c for c in score_structural(ctx, current, scales, physical, others=additive)
+             if c.label not in seen]
     ranking = sorted(result.rankings[-1] + extra, key=lambda c: c.rank_key)
     mark_limits(ranking)
     result.rankings[-1] = ranking
@@ -1389,7 +1391,8 @@ def gather_evidence(ctx: Context, current: Fit,
     cands = score_additive(ctx, current, scales, s.effects)
     best_expl = max([c.explained or 0.0 for c in cands] + [0.0])
     if s.search.structural and not structural_skipped(s, cands):
-        cands += score_structural(ctx, current, scales, physical_fx, todo=early)
+        cands += score_structural(ctx, current, scales, physical_fx, todo=early,
+                                  others=len(cands))
     elif s.search.structural:
         ctx.log(f"  structural candidates not scored: an additive effect explains "
                 f"{100 * best_expl:.0f} % of the innovation energy")
@@ -1397,12 +1400,13 @@ def gather_evidence(ctx: Context, current: Fit,
         if s.search.structural_near_best and best:
             places = set().union(*(places_of(current.graph, c) for c in best))
             ctx.log(f"  ... except at the places of {', '.join(c.label for c in best)}")
-            cands += score_structural(ctx, current, scales, physical_fx, places)
+            cands += score_structural(ctx, current, scales, physical_fx, places,
+                                      others=len(cands))
     signif = significant(cands, s.accept.significance)
     if not signif and s.search.structural and resort_fx:
         ctx.log("  no physical effect is significant: scoring the last-resort "
                 "effects (unmeasured disturbances)")
-        cands += score_structural(ctx, current, scales, resort_fx)
+        cands += score_structural(ctx, current, scales, resort_fx, others=len(cands))
         signif = significant(cands, s.accept.significance)
     mark_limits(cands)
     return sorted(cands, key=lambda c: c.rank_key), signif

@@ -1,0 +1,101 @@
+"""Which structural candidates the loop profiles (issue 27): the gain a
+Fisher-scoring step predicts, checked against the exact likelihood where
+the likelihood is quadratic, and the rule built on it
+(:func:`bondgraph.diagnose.scoring.worth_profiling`)."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from bondgraph import BondGraph
+from bondgraph.diagnose import scoring
+from bondgraph.diagnose.inference_calls import predicted_step_gain
+from bondgraph.inference.problem import PriorSpec, make_problem
+from bondgraph.numerics.model import Model
+
+
+def _offset_problem():
+    """A mass and damper driven by a multisine force, its velocity measured
+    with an offset b (noise 0.01 m/s). The Kalman filter's innovations are
+    linear in b and their covariance does not depend on it, so the NLL is
+    exactly quadratic in b."""
+    g = BondGraph("offset", "damped mass, velocity sensor with an offset")
+    F = g.input("F", "N", 0.0, "force")
+    m = g.param("m", 2.0, "kg", (0.1, 10.0), "mass")
+    c = g.param("c", 1.5, "N*s/m", (0.1, 10.0), "damping")
+    b = g.param("b", 0.0, "m/s", (-1.0, 1.0), "sensor offset")
+    v = g.one("v")
+    g.connect(g.Se("force", F), v)
+    g.connect(v, g.I("mass", m))
+    g.connect(v, g.R("damper", c))
+    g.sensor("vel", v.f + b, unit="m/s", noise_std=0.01)
+    model = Model.from_graph(g)
+    t = np.arange(800) * 0.02
+    u = (np.sin(0.7 * t) + 0.5 * np.sin(2.3 * t + 1.0))[:, None]
+    vel, y = 0.0, np.empty((t.size, 1))
+    rng = np.random.default_rng(3)
+    for i in range(t.size):                 # exact zero-order-hold solution
+        y[i, 0] = vel + 0.3 + 0.01 * rng.standard_normal()
+        a = np.exp(-1.5 / 2.0 * 0.02)
+        vel = a * vel + (1 - a) * u[i, 0] / 1.5
+    pb = make_problem(model, (t, u, y), prior=PriorSpec(x0=np.zeros(1), P0=np.eye(1) * 1e-4))
+    return model, pb
+
+
+def test_the_predicted_gain_of_a_scoring_step_is_exact_where_the_nll_is_quadratic():
+    """½gᵀF⁻¹g at b = 0 against the decrease to the minimum of the exact
+    quadratic through three filter runs at b = 0, ±0.05: g²/(2a) with
+    g = (f₊ − f₋)/(2δ), a = (f₊ − 2f₀ + f₋)/δ²."""
+    model, pb = _offset_problem()
+    th = model.theta0.copy()
+    j = model.param_index("b")
+    gain = predicted_step_gain(pb, th, [j], (np.array([-1.0]), np.array([1.0])))
+    d = 0.05
+    sets = np.repeat(th[None, :], 3, axis=0)
+    sets[1, j], sets[2, j] = d, -d
+    f0, fp, fm = pb.nll(sets).nll
+    g, a = (fp - fm) / (2 * d), (fp - 2 * f0 + fm) / d**2
+    exact = g**2 / (2 * a)
+    assert exact > 100.0                      # an offset of 0.3 against noise 0.01
+    assert gain == pytest.approx(exact, rel=1e-3)
+    # at the minimum nothing is left to gain
+    sets[0, j] = -g / a
+    assert predicted_step_gain(pb, sets[0], [j], (np.array([-1.0]), np.array([1.0]))) \
+        == pytest.approx(0.0, abs=1e-3 * exact)
+
+
+def test_worth_profiling_compares_grid_plus_reach_times_the_predicted_gain_with_the_critical_value(
+        monkeypatch):
+    """Family 10 at significance 0.01: χ²(1) critical 10.83. A grid LR of
+    2 (NLL 1 below the fit's) with a predicted NLL gain of 1 reaches
+    2 + 4·2 = 10 < 10.83: not profiled; with 1.2, 2 + 9.6 = 11.6: profiled.
+    A grid LR at or above the critical value needs no prediction; a
+    prediction that fails profiles."""
+    crit = chi2.isf(0.01 / 10, 1)
+    assert crit == pytest.approx(10.83, abs=0.01)
+    calls = []
+
+    def gain_of(value):
+        def f(pb, th, idx, box):
+            calls.append(idx)
+            if value is None:
+                raise FloatingPointError("the UKF failed")
+            return value
+        return f
+
+    ctx = SimpleNamespace(settings=SimpleNamespace(accept=SimpleNamespace(significance=0.01)))
+    model = SimpleNamespace(params=["m", "c", "q", "L"], param_index=["m", "c", "q", "L"].index,
+                            bounds=lambda names: (np.zeros(len(names)), np.ones(len(names))))
+    fit = SimpleNamespace(nll=100.0, params=["m", "c", "q"], model=None)
+    monkeypatch.setattr(scoring, "noise_params", lambda m: {"q"})
+    monkeypatch.setattr(scoring, "problem_for", lambda ctx, m: None)
+    th = np.zeros(4)
+    for value, want in ((1.0, False), (1.2, True), (None, True)):
+        monkeypatch.setattr(scoring, "predicted_step_gain", gain_of(value))
+        assert scoring.worth_profiling(ctx, fit, model, th, ["L"], 99.0, 1, 10) is want
+    assert calls == [[0, 1, 3]] * 3            # m, c and the effect's L; not the noise q
+    calls.clear()
+    assert scoring.worth_profiling(ctx, fit, model, th, ["L"], 100.0 - crit / 2 - 1e-6, 1, 10)
+    assert calls == []
