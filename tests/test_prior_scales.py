@@ -1,6 +1,7 @@
 """The free run behind the state scales of the prior
 (:func:`bondgraph.inference.prior.simulated_rms`)."""
 import numpy as np
+import pytest
 
 from bondgraph.inference import prior
 from bondgraph.inference.options import Discretisation
@@ -9,9 +10,11 @@ from bondgraph.numerics.model import Model
 
 def test_singular_ros2_matrix_ends_the_run_not_the_loop(monkeypatch):
     """A ROS2 step whose matrix I − γhJ is singular (numpy's inv raises) ends
-    the free run there, like a diverging state, and the RMS is that of the
-    samples before it (it stopped a loop's confirmation on a two-mass chain
-    with an end stop, LinAlgError "Singular matrix")."""
+    the free run there, like a diverging state (it stopped a loop's
+    confirmation on a two-mass chain with an end stop, LinAlgError "Singular
+    matrix"). A run that stops before its end gives no scale (zeros: the
+    other rules of :func:`state_scales` take over); cut to the samples it
+    reached, the same steps give the RMS of a hand-written run."""
     m = Model.load("mass_spring_damper")
     t = np.arange(50) * 0.01
     u = np.ones((50, m.n_u))
@@ -27,11 +30,58 @@ def test_singular_ros2_matrix_ends_the_run_not_the_loop(monkeypatch):
 
     monkeypatch.setattr(prior, "make_step", lambda *a, **k: step)
     got = prior.simulated_rms(m, t, u, m.theta0, x0, Discretisation("ros2", 2, backend="numpy"))
+    np.testing.assert_array_equal(got, np.zeros(m.n_x))
+    calls.clear()
+    got = prior.simulated_rms(m, t[:10], u[:10], m.theta0, x0,
+                              Discretisation("ros2", 2, backend="numpy"))
     xs = [x0[None]]
     for k in range(9):
         xs.append(real(xs[-1], u[k][None], m.theta0[None], 0.01, None))
     ref = np.sqrt(np.mean(np.concatenate(xs) ** 2, axis=0))
     np.testing.assert_allclose(got, ref, rtol=1e-12)
+
+
+def _damper(c: float):
+    """A mass on a damper of coefficient ``c`` (negative: it feeds the motion,
+    v grows as e^(−c t / m)), its velocity measured as 3·v."""
+    from bondgraph import BondGraph
+
+    g = BondGraph(f"damper_{'neg' if c < 0 else 'pos'}", "mass on a damper")
+    F = g.input("F", "N", 0.0, "force")
+    m = g.param("m", 1.0, "kg", (0.1, 10.0), "mass")
+    cc = g.param("c", c, "N*s/m", (-10.0, 10.0), "damping")
+    v = g.one("v")
+    g.connect(g.Se("force", F), v)
+    g.connect(v, g.I("mass", m))
+    g.connect(v, g.R("damper", cc))
+    g.sensor("y", 3 * v.f, unit="m/s")
+    return Model.from_graph(g, functions=("f", "h", "dfdx", "f_dfdx"))
+
+
+def test_a_diverging_free_run_gives_no_scale_and_the_sensors_give_one():
+    """A free run that grows without bound (v ∝ e^(5t), non-finite after
+    about 142 s) measured the blow-up, not the state: a user's DC motor with
+    a Dahl friction candidate got a prior spread of 8e76 and every sigma
+    point diverged at the first sample. It gives zeros, with numpy's steps
+    and the compiled ones; the state's scale then comes from its sensor,
+    std(y)/|∂h/∂x| = std(y)/3, with ∂h/∂x by central differences for a
+    model generated without dhdx (the loop's candidates)."""
+    t = np.arange(2000) * 0.1
+    u = np.zeros((t.size, 1))
+    neg, pos = _damper(-5.0), _damper(5.0)
+    assert not hasattr(neg, "dhdx")
+    for backend in ("numpy", "numba"):
+        disc = Discretisation("rk4", 2, "zoh", backend=backend)
+        np.testing.assert_array_equal(
+            prior.simulated_rms(neg, t, u, neg.theta0, np.ones(1), disc), np.zeros(1))
+        # the stable one decays from 1 at e^(−5t): RMS over 2000 samples ≈ sqrt(1/(2·5·0.1)/2000)
+        got = prior.simulated_rms(pos, t, u, pos.theta0, np.ones(1), disc)
+        assert got[0] == pytest.approx(np.sqrt(1 / (1 - np.exp(-1.0)) / 2000), rel=0.01)
+    y = 3 * np.sin(t)[:, None]          # driven from rest by a constant force: diverges too
+    scale, rules = prior.state_scales(neg, t, np.ones((t.size, 1)), y, neg.theta0, np.zeros(1),
+                                      Discretisation("rk4", 2, "zoh", backend="numpy"))
+    assert rules == ["sensors"]
+    assert scale[0] == pytest.approx(np.std(y) / 3, rel=1e-6)
 
 
 def test_a_record_longer_than_the_scale_window_uses_its_first_samples():

@@ -59,9 +59,14 @@ UNKNOWN_REL = 1.0
 def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
                   samples: int = SCALE_SAMPLES) -> np.ndarray:
     """RMS of every state along a fixed-step free run from ``x0`` with the
-    record's inputs (the first ``samples`` samples; up to the first
-    non-finite state if the run diverges, or up to a singular ROS2 matrix
-    I − γhJ).
+    record's inputs (the first ``samples`` samples). A run that does not
+    reach its last sample (a non-finite state, or a singular ROS2 matrix
+    I − γhJ) diverged and gives no scale: zeros, so that
+    :func:`state_scales` takes its other rules. Its RMS up to the overflow
+    would measure the blow-up, not the state: a user's DC motor with a Dahl
+    friction candidate, whose free run at RK4(2) is unstable at one grid
+    point, got a prior spread of 8e76 on the inductor's momentum, and every
+    sigma point of every grid point diverged at the first sample.
 
     Parameters
     ----------
@@ -84,7 +89,8 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
     Returns
     -------
     ndarray (n_x,)
-        0 where nothing finite was simulated.
+        0 where nothing finite was simulated, and everywhere when the run
+        diverged.
     """
     disc = Discretisation().for_free_run() if disc is None else disc
     method, substeps, hold = disc.method, disc.substeps, disc.hold
@@ -111,7 +117,7 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
                     x = step(x, uk, th, t[k + 1] - t[k], duk)
                 except np.linalg.LinAlgError:    # a singular ROS2 matrix: the run ends here
                     break
-    return np.sqrt(acc / count) if count else np.zeros(model.n_x)
+    return np.sqrt(acc / count) if count == n else np.zeros(model.n_x)
 
 
 def free_run_kernels(model, backend: str, method: str, hold: str):
@@ -140,12 +146,10 @@ def sensor_scales(model, u, y, theta, x0) -> np.ndarray:
     y : array (N, n_y)
         Measured outputs (NaN where missing).
     """
-    if not hasattr(model, "dhdx"):
-        return np.zeros(model.n_x)
     th = np.asarray(theta, float)[None, :]
     u0 = np.asarray(u, float)[:1] if model.n_u else np.zeros((1, 0))
     with np.errstate(all="ignore"):
-        H = np.asarray(model.dhdx(np.asarray(x0, float)[None, :], u0, th))[0]   # (n_y, n_x)
+        H = _output_jacobian(model, np.asarray(x0, float), u0, th)      # (n_y, n_x)
         sd = np.nanstd(np.asarray(y, float), axis=0)
     out = np.zeros(model.n_x)
     for i in range(model.n_x):
@@ -154,6 +158,23 @@ def sensor_scales(model, u, y, theta, x0) -> np.ndarray:
         if ok.any():
             out[i] = float(np.min(sd[ok] / g[ok]))
     return out
+
+
+def _output_jacobian(model, x0: np.ndarray, u0: np.ndarray, th: np.ndarray) -> np.ndarray:
+    """∂h/∂x (n_y, n_x) at ``x0`` (n_x,): the generated ``dhdx``, or, for a
+    model generated without it (the loop's candidates carry f, h and the
+    state Jacobian only), central differences of ``h`` with steps
+    1e-4·max(|x0_i|, 1) (exact for an output linear in the states, which
+    the sensors of a bond graph mostly are)."""
+    if hasattr(model, "dhdx"):
+        return np.asarray(model.dhdx(x0[None, :], u0, th))[0]
+    n = x0.size
+    step = 1e-4 * np.maximum(np.abs(x0), 1.0)
+    X = np.repeat(x0[None, :], 2 * n, axis=0)
+    X[np.arange(n), np.arange(n)] += step
+    X[n + np.arange(n), np.arange(n)] -= step
+    Y = np.asarray(model.h(X, np.repeat(u0, 2 * n, axis=0), np.repeat(th, 2 * n, axis=0)))
+    return ((Y[:n] - Y[n:]) / (2 * step)[:, None]).T
 
 
 def state_scales(model, t, u, y, theta, x0,

@@ -165,7 +165,9 @@ def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str, substeps: int
     Returns
     -------
     ndarray (n_x,)
-        0 where nothing finite was simulated.
+        0 where nothing finite was simulated, and everywhere when the run
+        stops before its last sample (it diverged; see
+        :func:`bondgraph.inference.prior.simulated_rms`).
     """
     c = np.ascontiguousarray
     x0 = c(x0, dtype=float)
@@ -177,4 +179,4 @@ def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str, substeps: int
                               acc, (np.zeros((8, n)), np.zeros(max(u.shape[1], 1)),
                                     np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, 2 * n)),
                                     np.zeros(2 * n, dtype=np.int64)))
-    return np.sqrt(acc / count) if count else np.zeros(n)
+    return np.sqrt(acc / count) if count == np.size(t) else np.zeros(n)
