@@ -241,10 +241,13 @@ def test_a_start_the_smoother_cannot_give_is_fitted_to_the_outputs(monkeypatch):
         "  smoothed initial state far; the free run starts from the one fitted to the outputs "
         "(a = 2, b = -1)")
     # only b unknown: a stays at the prior mean
-    got = F._fitted_start(ctx, pb, None, None, x0, ["b"], None)
+    got = F._fitted_start(ctx, pb, None, None, x0, ["b"], "")
     assert got[0] == 0.0 and got[1] == pytest.approx(-1.0, abs=1e-6)
     logs.clear()
     monkeypatch.setattr(F, "_free_run_from", lambda *a, **k: None)
-    assert F._fitted_start(ctx, pb, None, None, x0, ["a", "b"], None) is x0
-    assert logs == ["  no smoothed initial state; the one fitted to the outputs does not "
-                    "improve on the prior mean: the free run starts there"]
+    assert F._fitted_start(ctx, pb, None, None, x0, ["a", "b"], "far") is x0
+    assert logs == ["  far; the one fitted to the outputs does not improve on the prior mean: "
+                    "the free run starts there"]
+    logs.clear()            # no reason given (a smoother that blew up): nothing said
+    assert F._fitted_start(ctx, pb, None, None, x0, ["a", "b"], "") is x0
+    assert logs == []

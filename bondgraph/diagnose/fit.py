@@ -780,8 +780,8 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
     was not its own: a Stribeck refit's held-out error read 0.064 where
     the Coulomb model it was judged against read 0.0097 from a smoothed
     start. Returns ``x0`` itself when the fit fails or does not improve on
-    it. One line logged: ``why`` (the smoothed start's fault), and the start
-    taken."""
+    it. One line logged when ``why`` (the smoothed start's fault) is
+    given: why, and the start taken."""
     from scipy.optimize import least_squares
 
     y = problem.arrays[2]
@@ -809,17 +809,20 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
         fit = least_squares(residuals, np.zeros(len(idx)), method="trf", x_scale="jac",
                             max_nfev=START_FIT_NFEV)
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
-        ctx.log(f"  {why or 'no smoothed initial state'}; fitting one to the outputs failed "
-                f"({str(exc).splitlines()[0]}): the free run starts from the prior mean")
+        if why:
+            ctx.log(f"  {why}; fitting one to the outputs failed ({str(exc).splitlines()[0]}): "
+                    f"the free run starts from the prior mean")
         return x0
     if not (np.all(np.isfinite(fit.x)) and fit.cost < 0.5 * float(r0 @ r0)):
-        ctx.log(f"  {why or 'no smoothed initial state'}; the one fitted to the outputs does "
-                f"not improve on the prior mean: the free run starts there")
+        if why:
+            ctx.log(f"  {why}; the one fitted to the outputs does not improve on the prior "
+                    f"mean: the free run starts there")
         return x0
     xi = x0.copy()
     xi[idx] = x0[idx] + fit.x * sd
-    ctx.log(f"  {why or 'no smoothed initial state'}; the free run starts from the one fitted "
-            f"to the outputs {prior_distance_text(problem, xi)} (output error, {fit.nfev} runs)")
+    if why:
+        ctx.log(f"  {why}; the free run starts from the one fitted to the outputs "
+                f"{prior_distance_text(problem, xi)} (output error, {fit.nfev} runs)")
     return xi
 
 
@@ -886,7 +889,8 @@ def _smoothed_start(problem: Problem, theta: np.ndarray,
                     fallback: np.ndarray) -> tuple[np.ndarray, str | None]:
     """``(x̂_0|N, None)`` of ``problem``'s record at ``theta``
     (:func:`~bondgraph.diagnose.inference_calls.smoothed_initial_state`);
-    ``(fallback, why)`` if the smoother fails, is not finite, or lies
+    ``(fallback, why)`` if the smoother fails, is not finite (``why`` empty:
+    a backward pass that blew up, said nowhere), or lies
     where the prior N(``problem.x0``, ``problem.P0``) puts no weight: its
     squared Mahalanobis distance over the states not estimated with θ
     beyond χ²(their number) at
@@ -902,7 +906,7 @@ def _smoothed_start(problem: Problem, theta: np.ndarray,
     except BondGraphError as exc:
         return fallback, f"smoothed initial state unavailable ({str(exc).splitlines()[0]})"
     if not np.all(np.isfinite(xs)):
-        return fallback, "smoothed initial state not finite"
+        return fallback, ""         # a blown-up backward pass: nothing to say (as before)
     free = [i for i, n in enumerate(problem.model.states) if n not in problem.prior.estimated]
     d = (xs - problem.x0)[free]
     with np.errstate(over="ignore", invalid="ignore"):   # a far start: inf, refused below
