@@ -107,3 +107,23 @@ def test_a_record_longer_than_the_scale_window_uses_its_first_samples():
         k4 = f(x + 0.01 * k3, u[k])
         x = x + 0.01 / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     np.testing.assert_allclose(got, np.sqrt(np.mean(np.array(xs) ** 2, axis=0)), rtol=1e-12)
+
+
+def test_a_stiff_model_rk4_cannot_run_takes_the_scale_of_its_ros2_run():
+    """A mass of 1 kg on a damper of 5000 N s/m (rate 5000 /s), pushed by
+    1 N from rest, at 0.05 s per RK4 step: |λh| = 250, far outside RK4's
+    stability region, the run diverges. The scale is that of the L-stable
+    ROS2 run with the same steps: the velocity sits at F/c = 2e-4 m/s
+    after the first step, its RMS over 2000 samples within 1 % of it."""
+    t = np.arange(2000) * 0.1
+    u = np.ones((t.size, 1))
+    stiff = _damper(5.0)
+    th = stiff.theta0.copy()
+    th[stiff.param_index("c")] = 5000.0
+    for backend in ("numpy", "numba"):
+        got = prior.simulated_rms(stiff, t, u, th, np.zeros(1),
+                                  Discretisation("rk4", 2, "zoh", backend=backend))
+        assert got[0] == pytest.approx(2e-4, rel=0.01)
+        bare = prior._free_run_rms(stiff, t, u, th, np.zeros(1),
+                                   Discretisation("rk4", 2, "zoh", backend=backend))
+        np.testing.assert_array_equal(bare, np.zeros(1))       # RK4 alone diverged

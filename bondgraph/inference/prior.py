@@ -61,7 +61,8 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
     """RMS of every state along a fixed-step free run from ``x0`` with the
     record's inputs (the first ``samples`` samples). A run that does not
     reach its last sample (a non-finite state, or a singular ROS2 matrix
-    I − γhJ) diverged and gives no scale: zeros, so that
+    I − γhJ) diverged; an RK4 run is then repeated with ROS2 (L-stable, the
+    same substeps), and one that still diverges gives no scale: zeros, so that
     :func:`state_scales` takes its other rules. Its RMS up to the overflow
     would measure the blow-up, not the state: a user's DC motor with a Dahl
     friction candidate, whose free run at RK4(2) is unstable at one grid
@@ -93,10 +94,22 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
         diverged.
     """
     disc = Discretisation().for_free_run() if disc is None else disc
-    method, substeps, hold = disc.method, disc.substeps, disc.hold
     n = min(int(np.size(t)), int(samples))
     u = np.asarray(u, float).reshape(np.size(t), -1)[:n] if model.n_u else np.zeros((n, 0))
     t = np.asarray(t, float)[:n]
+    rms = _free_run_rms(model, t, u, theta, x0, disc)
+    if not rms.any() and disc.method == "rk4":
+        # RK4 outside its stability region (a stiff candidate: a Dahl friction's
+        # presliding stiffness) diverges where the L-stable ROS2 does not
+        rms = _free_run_rms(model, t, u, theta, x0, replace(disc, method="ros2"))
+    return rms
+
+
+def _free_run_rms(model, t, u, theta, x0, disc: Discretisation) -> np.ndarray:
+    """:func:`simulated_rms` of the samples ``t`` (N,), inputs ``u`` (N, n_u)
+    with ``disc`` alone: zeros (n_x,) unless the run reaches its end."""
+    method, substeps, hold = disc.method, disc.substeps, disc.hold
+    n = t.size
     kernels = free_run_kernels(model, disc.backend, method, hold)
     if kernels is not None:
         return sim_numba.free_run_rms(kernels, t, u, hold, theta, x0, method, substeps)
