@@ -147,3 +147,38 @@ def test_a_declared_fit_whose_free_run_is_poor_is_searched_globally():
     est = res.initial.estimates
     assert est["m"] == pytest.approx(M, rel=0.05) and est["k"] == pytest.approx(K, rel=0.05)
     assert res.initial.metric < 0.3 and res.initial.validation_metric < 0.4
+
+
+def test_an_earlier_effects_parameter_on_its_box_switches_it_off_and_does_not_reject(
+        monkeypatch):
+    """runner.decided: a refit that puts a parameter of an effect the loop
+    accepted earlier (here c, not in the declared model) on its box is not
+    rejected for it: the box is the library's, and the refit switches that
+    effect off (said in the log); accepted on its likelihood ratio (40),
+    without the refit beyond the box. The same parameter declared by the
+    user is still refused when the box decides it."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import runner
+
+    m = Model.load("mass_spring_damper")
+    lo = float(m.bounds(["c"])[0][0])
+    cur = _fit(m, m.theta(m=2.0, k=50.0, c=1.0), [], 100.0)
+    after = _fit(m, m.theta(m=2.0, k=50.0, c=lo), ["c"], 80.0)
+    beyond = []
+    monkeypatch.setattr(runner, "admissibility", lambda *a, **k: SimpleNamespace(ok=True))
+    monkeypatch.setattr(runner, "box_not_deciding", lambda *a, **k: beyond.append(1) or [])
+    logs = []
+    ctx = SimpleNamespace(settings=SimpleNamespace(accept=AcceptRule(error_level=None),
+                                                   effects=[]),
+                          problem=SimpleNamespace(model=SimpleNamespace(params=["m", "k"])),
+                          log=logs.append)
+    d = runner.decided(ctx, cur, after, 1, True, "cand")
+    assert d.accepted and d.lr == pytest.approx(40.0) and beyond == []
+    assert logs == ["  cand: the refit moves c (of an effect accepted earlier) onto the box the "
+                    "effect library gave it: it switches that effect off, which is no reason to "
+                    "reject"]
+    ctx.problem.model.params = ["m", "k", "c"]          # declared by the user
+    d = runner.decided(ctx, cur, after, 1, True, "cand")
+    assert not d.accepted and "the box, not the record, decides it" in d.reason
+    assert beyond == [1]
