@@ -90,6 +90,20 @@ def test_score_test_start_is_clipped_into_the_declared_box():
     assert start_values(eff, cand)["lam"] == 0.0
 
 
+def test_a_pairs_start_from_a_confirmed_value_takes_the_physical_sign():
+    """A pair's start merges the member's confirmed values over its score
+    values; the merged values get the same sign and box rules: a viscous
+    friction confirmed at b = −0.0207 starts at +0.0207 (it could not be
+    applied beside the other member, its box being [0, ...])."""
+    eff = get_effect("viscous")
+    cand = Candidate("viscous", "", Target("junction", "w_m"), "score", 50.0, 1, 1e-12, 48.0,
+                     None, {"b": 0.01})
+    cand.confirmed = {"values": {"b": -0.0207}}
+    merged = {**cand.values, **cand.confirmed["values"]}
+    assert start_values(eff, cand, merged) == {"b": 0.0207}
+    assert start_values(eff, cand) == {"b": 0.01}            # its own values by default
+
+
 def test_boxes_are_never_widened_and_bounds_flagged():
     m = Model.load("mass_spring_damper")
     th = m.theta0.copy()

@@ -167,7 +167,8 @@ def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
     new, values_of, start = [], {}, dict(fit.estimates())
     for cand in pair:
         eff = get_effect(cand.effect, ctx.settings.effects)
-        vals = {**start_values(eff, cand), **(cand.confirmed or {}).get("values", {})}
+        vals = start_values(eff, cand, {**cand.values,
+                                        **(cand.confirmed or {}).get("values", {})})
         try:
             P = eff.apply(g, cand.target, vals, scales)
         except BondGraphError as exc:
@@ -195,12 +196,17 @@ def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
     return Confirmation(f1, values, new, comparable=f1.converged is not False)
 
 
-def start_values(eff: Effect, cand: Candidate) -> dict:
-    """The candidate's values, with the physical sign imposed on an additive
-    effect's nonnegative parameters (friction coefficients of R laws; 1e-9
-    instead of 0), clipped into the effect's declared boxes (a score-test
-    value of λ = 1159 for λ ∈ [0, 1] starts at 1: boxes are never widened)."""
-    values = {k: v for k, v in cand.values.items()}
+def start_values(eff: Effect, cand: Candidate, values: dict | None = None) -> dict:
+    """The candidate's values (or ``values``, local name -> value: a pair's
+    start from the member's confirmation), with the physical sign imposed on
+    an additive effect's nonnegative parameters (friction coefficients of R
+    laws; 1e-9 instead of 0), clipped into the effect's declared boxes (a
+    score-test value of λ = 1159 for λ ∈ [0, 1] starts at 1: boxes are never
+    widened). A pair's start took a member's confirmed values unchecked: on a
+    user's two-mass drive a viscous friction confirmed at b = −0.0207 could
+    not be applied beside the load's Coulomb friction ("default lies outside
+    its bounds (0, 0.207)") and the pair was never refitted."""
+    values = dict(cand.values if values is None else values)
     for p in eff.params:
         if p.name not in values:
             continue
