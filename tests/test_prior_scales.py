@@ -126,4 +126,4 @@ def test_a_stiff_model_rk4_cannot_run_takes_the_scale_of_its_ros2_run():
         assert got[0] == pytest.approx(2e-4, rel=0.01)
         bare = prior._free_run_rms(stiff, t, u, th, np.zeros(1),
                                    Discretisation("rk4", 2, "zoh", backend=backend))
-        np.testing.assert_array_equal(bare, np.zeros(1))       # RK4 alone diverged
+        assert bare is None                                     # RK4 alone diverged

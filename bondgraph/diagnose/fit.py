@@ -779,7 +779,11 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
     prior mean (at rest) then charged the model a start-up transient that
     was not its own: a Stribeck refit's held-out error read 0.064 where
     the Coulomb model it was judged against read 0.0097 from a smoothed
-    start. Returns ``x0`` itself when the fit fails or does not improve on
+    start. The runs are the loop's own free run (:func:`_free_run_from`,
+    the same method and hold as the error it starts), not
+    :func:`~bondgraph.inference.output_error.output_error_fit`'s, whose
+    simulation differs: the start must be the best for the error reported.
+    Returns ``x0`` itself when the fit fails or does not improve on
     it. One line logged when ``why`` (the smoothed start's fault) is
     given: why, and the start taken."""
     from scipy.optimize import least_squares

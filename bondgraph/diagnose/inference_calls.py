@@ -183,9 +183,7 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
     """
     model = problem.model
     P0 = problem.full_prior() if states else problem.P0
-    est = Estimand(model, [model.params[j] for j in index], states=list(states), theta=theta,
-                   x0=problem.x0, x0_scale=np.sqrt(np.maximum(np.diag(P0), 1e-300)),
-                   noises=list(noises), sigma=problem.noise.sigma(model))
+    est = _estimand(problem, theta, index, P0, states, noises)
     lo, hi = est.bounds(*box)
     scale = np.concatenate([np.asarray(log_scale, bool), np.zeros(len(states), bool),
                             np.ones(len(noises), bool)])
@@ -210,12 +208,22 @@ def predicted_step_gain(problem: Problem, theta: np.ndarray, index: Sequence[int
     FloatingPointError
         If the UKF fails at ``theta``.
     """
-    model = problem.model
-    est = Estimand(model, [model.params[j] for j in index], theta=theta, x0=problem.x0,
-                   x0_scale=np.sqrt(np.maximum(np.diag(problem.P0), 1e-300)),
-                   sigma=problem.noise.sigma(model))
+    est = _estimand(problem, theta, index, problem.P0)
     t, u, y = problem.arrays
-    return scoring_step_gain(model, t, u, y, est, box[0], box[1], problem.P0, problem.ukf)
+    return scoring_step_gain(problem.model, t, u, y, est, box[0], box[1], problem.P0,
+                             problem.ukf)
+
+
+def _estimand(problem: Problem, theta: np.ndarray, index: Sequence[int], P0: np.ndarray,
+              states: Sequence[str] = (), noises: Sequence[str] = ()) -> Estimand:
+    """The :class:`~bondgraph.inference.estimand.Estimand` of the parameters
+    ``index`` at ``theta`` (and the initial states ``states``, the noise stds
+    of ``noises``) on ``problem``: its prior mean, the initial states scaled
+    by the prior ``P0`` (n_x, n_x), its held noise levels."""
+    model = problem.model
+    return Estimand(model, [model.params[j] for j in index], states=list(states), theta=theta,
+                    x0=problem.x0, x0_scale=np.sqrt(np.maximum(np.diag(P0), 1e-300)),
+                    noises=list(noises), sigma=problem.noise.sigma(model))
 
 
 def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:

@@ -98,16 +98,17 @@ def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
     u = np.asarray(u, float).reshape(np.size(t), -1)[:n] if model.n_u else np.zeros((n, 0))
     t = np.asarray(t, float)[:n]
     rms = _free_run_rms(model, t, u, theta, x0, disc)
-    if not rms.any() and disc.method == "rk4":
+    if rms is None and disc.method == "rk4":
         # RK4 outside its stability region (a stiff candidate: a Dahl friction's
         # presliding stiffness) diverges where the L-stable ROS2 does not
         rms = _free_run_rms(model, t, u, theta, x0, replace(disc, method="ros2"))
-    return rms
+    return np.zeros(model.n_x) if rms is None else rms
 
 
-def _free_run_rms(model, t, u, theta, x0, disc: Discretisation) -> np.ndarray:
+def _free_run_rms(model, t, u, theta, x0, disc: Discretisation) -> np.ndarray | None:
     """:func:`simulated_rms` of the samples ``t`` (N,), inputs ``u`` (N, n_u)
-    with ``disc`` alone: zeros (n_x,) unless the run reaches its end."""
+    with ``disc`` alone: the RMS (n_x,), or None when the run stops before
+    its end (a state at rest throughout is 0, not a divergence)."""
     method, substeps, hold = disc.method, disc.substeps, disc.hold
     n = t.size
     kernels = free_run_kernels(model, disc.backend, method, hold)
@@ -130,7 +131,9 @@ def _free_run_rms(model, t, u, theta, x0, disc: Discretisation) -> np.ndarray:
                     x = step(x, uk, th, t[k + 1] - t[k], duk)
                 except np.linalg.LinAlgError:    # a singular ROS2 matrix: the run ends here
                     break
-    return np.sqrt(acc / count) if count == n else np.zeros(model.n_x)
+    if count < n:
+        return None
+    return np.sqrt(acc / count) if count else np.zeros(model.n_x)
 
 
 def free_run_kernels(model, backend: str, method: str, hold: str):

@@ -146,7 +146,8 @@ def free_run_kernel():
     return _compiled_once(_FREE_RUN, _free_run_py, sig, fastmath=FASTMATH)
 
 
-def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str, substeps: int) -> np.ndarray:
+def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str,
+                 substeps: int) -> np.ndarray | None:
     """RMS of every state along the free run from ``x0`` (:func:`_free_run_py`)
     with a model's compiled point kernels: the compiled counterpart of
     :func:`bondgraph.inference.prior.simulated_rms` (the same steps; the
@@ -164,9 +165,8 @@ def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str, substeps: int
 
     Returns
     -------
-    ndarray (n_x,)
-        0 where nothing finite was simulated, and everywhere when the run
-        stops before its last sample (it diverged; see
+    ndarray (n_x,) or None
+        None when the run stops before its last sample (it diverged; see
         :func:`bondgraph.inference.prior.simulated_rms`).
     """
     c = np.ascontiguousarray
@@ -179,4 +179,6 @@ def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str, substeps: int
                               acc, (np.zeros((8, n)), np.zeros(max(u.shape[1], 1)),
                                     np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, 2 * n)),
                                     np.zeros(2 * n, dtype=np.int64)))
-    return np.sqrt(acc / count) if count == np.size(t) else np.zeros(n)
+    if count < np.size(t):
+        return None
+    return np.sqrt(acc / count) if count else np.zeros(n)
