@@ -127,3 +127,57 @@ def test_a_stiff_model_rk4_cannot_run_takes_the_scale_of_its_ros2_run():
         bare = prior._free_run_rms(stiff, t, u, th, np.zeros(1),
                                    Discretisation("rk4", 2, "zoh", backend=backend))
         assert bare is None                                     # RK4 alone diverged
+
+
+def test_a_candidate_inherits_the_scales_of_the_states_it_shares():
+    """A loop candidate's problem (:meth:`Problem.with_model`) takes the
+    scales of the states it shares with the loop's model, not those of its
+    own free run: the default loop's Dahl friction at the body's pitch had
+    a finite but wild free run at its first grid value (RMS 3.6e16 of the
+    pitch momentum, declared scale 0.06) and every grid point failed at the
+    first sample. Here the loop's model is a mass on a damper of +5 N s/m
+    and the candidate the same mass with the damper at −5 (v ∝ e^(5t), a
+    free run that reaches 1e86 within the record but stays finite): the
+    candidate's prior is the loop model's, to the bit, and the candidate's
+    own run would have given a scale beyond 1e80. A new state whose run
+    leaves an inherited scale by more than WILD_RUN takes the other rules
+    (here the sensor's scale)."""
+    from bondgraph.inference.options import UKFOptions
+    from bondgraph.inference.problem import make_problem
+
+    t = np.arange(400) * 0.1              # e^(5·40) = 7e86: finite, wild
+    u = np.ones((t.size, 1))
+    y = 3 * np.sin(t)[:, None]
+    pos, neg = _damper(5.0), _damper(-5.0)
+    base = make_problem(pos, (t, u, y), ukf=UKFOptions(method="rk4", substeps=2))
+    cand = base.with_model(neg)
+    assert base.scales["p_mass"] > 0
+    np.testing.assert_array_equal(cand.P0, base.P0)
+    assert cand.scales == base.scales
+    own = prior.simulated_rms(neg, t, u, neg.theta0, base.x0, Discretisation("rk4", 2))
+    assert np.isfinite(own[0]) and own[0] > 1e80
+    # a new state beside the wild one (a second mass on a +5 damper, its
+    # velocity measured as 3·v): its own run is tame, but the run is judged
+    # as a whole, so it takes its sensor's scale, std(y2)/3
+    from bondgraph import BondGraph
+
+    g = BondGraph("two", "a wild mass and a new one")
+    F = g.input("F", "N", 0.0, "force")
+    for name, c in (("a", -5.0), ("b", 5.0)):
+        v = g.one(f"v_{name}")
+        g.connect(g.Se(f"force_{name}", F), v)
+        g.connect(v, g.I(f"mass_{name}", g.param(f"m_{name}", 1.0, "kg", (0.1, 10), "mass")))
+        g.connect(v, g.R(f"damper_{name}", g.param(f"c_{name}", c, "N*s/m", (-10, 10), "d")))
+        g.sensor(f"y_{name}", 3 * v.f, unit="m/s")
+    two = Model.from_graph(g, functions=("f", "h", "dfdx", "f_dfdx"))
+    y2 = np.column_stack([y[:, 0], 2 * np.cos(t)])
+    wild = two.states[0]
+    scale, rules = prior.state_scales(two, t, u, y2, two.theta0, np.zeros(2),
+                                      Discretisation("rk4", 2), {wild: 0.2})
+    assert rules == ["inherited", "sensors"] and scale[0] == 0.2
+    assert scale[1] == pytest.approx(np.std(y2[:, 1]) / 3, rel=1e-6)
+    tame = prior.simulated_rms(two, t, u, two.theta0, np.zeros(2), Discretisation("rk4", 2))
+    assert tame[1] == pytest.approx(0.2, rel=0.05)     # F/c = 0.2 m/s: its own run's scale
+    scale, rules = prior.state_scales(two, t, u, y2, two.theta0, np.zeros(2),
+                                      Discretisation("rk4", 2), {wild: 1e90})
+    assert rules == ["inherited", "simulation"] and scale[1] == tame[1]

@@ -128,7 +128,9 @@ def test_other_records_models_and_stages(msd):
     assert val.prior.unknown(m, later) == ["p_mass", "q_spring"]
     other = pb.with_model(Model.load("mass_spring_damper"))
     np.testing.assert_array_equal(other.x0, pb.x0)
-    assert other.prior is pb.prior and other.ukf == pb.ukf
+    assert other.prior.scales == pb.scales and other.prior.x0_set == pb.prior.x0_set
+    assert other.ukf == pb.ukf
+    np.testing.assert_array_equal(other.P0, pb.P0)
     fx = pb.with_fixed({"k": 60.0})
     assert fx.theta[m.param_index("k")] == 60.0 and fx.fixed == {"k": 60.0}
 

@@ -235,9 +235,18 @@ def problem_for(ctx: Context, model: Model) -> Problem:
 def validation_problem(ctx: Context, problem: Problem) -> Problem:
     """``problem`` on the validation record (``settings.validation``): its own
     initial state, the loop's covariance policy (:meth:`Problem.on_record`;
-    cached per model, :func:`_cached`)."""
-    return _cached(ctx, ("validation", problem.model), problem,
-                   lambda: problem.on_record(ctx.settings.validation))
+    cached per model, :func:`_cached`). A candidate's problem inherits the
+    state scales of the loop's problem on that record, as it does on the
+    estimation record (:meth:`Problem.with_model`)."""
+    base = ctx.problem
+
+    def build() -> Problem:
+        if problem.model is base.model:
+            return problem.on_record(ctx.settings.validation)
+        return problem.on_record(ctx.settings.validation,
+                                 validation_problem(ctx, base).scales)
+
+    return _cached(ctx, ("validation", problem.model), problem, build)
 
 
 def _cached(ctx: Context, key: tuple, base: Problem, build) -> Problem:

@@ -54,6 +54,9 @@ SCALE_SAMPLES = 20000
 SCALE_FLOOR = 1e-9
 #: prior std of an initial state nothing gives, relative to its scale
 UNKNOWN_REL = 1.0
+#: a candidate's free run whose RMS of a state exceeds this many times the
+#: scale it inherits diverged in all but name (:func:`state_scales`)
+WILD_RUN = 1e3
 
 
 def simulated_rms(model, t, u, theta, x0, disc: Discretisation | None = None, *,
@@ -193,9 +196,11 @@ def _output_jacobian(model, x0: np.ndarray, u0: np.ndarray, th: np.ndarray) -> n
     return ((Y[:n] - Y[n:]) / (2 * step)[:, None]).T
 
 
-def state_scales(model, t, u, y, theta, x0,
-                 disc: Discretisation | None = None) -> tuple[np.ndarray, list[str]]:
-    """The scale of every state along the record (module docstring, rules 1-4).
+def state_scales(model, t, u, y, theta, x0, disc: Discretisation | None = None,
+                 inherited: Mapping[str, float] | None = None
+                 ) -> tuple[np.ndarray, list[str]]:
+    """The scale of every state along the record (module docstring, rules 1-4;
+    the states named in ``inherited`` take the scale given there).
 
     Parameters
     ----------
@@ -207,17 +212,39 @@ def state_scales(model, t, u, y, theta, x0,
         Prior mean.
     disc : Discretisation, optional
         Of the free run (:func:`simulated_rms`), used as given.
+    inherited : dict, optional
+        State name -> scale of the model this one modifies (a candidate of
+        the loop: :meth:`bondgraph.inference.problem.Problem.with_model`), on
+        the same record. Those states keep it (rule "inherited"), so that the
+        models a likelihood ratio compares share the prior of their common
+        states, and a candidate's free run at a poor grid value (a Dahl
+        friction's stiffness at a body's pitch) does not set their spread.
+        A free run that leaves an inherited scale by more than
+        :data:`WILD_RUN` sets no other state's scale either (it measures the
+        blow-up, not the state). Only the other states are simulated.
 
     Returns
     -------
     (scales (n_x,), rules)
-        ``rules[i]`` names the rule that set state i: "simulation",
-        "process noise", "sensors" or "floor".
+        ``rules[i]`` names the rule that set state i: "inherited",
+        "simulation", "process noise", "sensors" or "floor".
     """
     x0 = np.asarray(x0, float)
     theta = np.asarray(theta, float)
-    scale = np.maximum(simulated_rms(model, t, u, theta, x0, disc), np.abs(x0))
-    rules = ["simulation" if s > 0 and np.isfinite(s) else "" for s in scale]
+    inherited = {k: float(v) for k, v in (inherited or {}).items()
+                 if k in model.states and np.isfinite(v) and v > 0}
+    own = [i for i, n in enumerate(model.states) if n not in inherited]
+    rms = simulated_rms(model, t, u, theta, x0, disc) if own else np.zeros(model.n_x)
+    for name, sc in inherited.items():
+        i = model.state_index(name)
+        if not rms[i] <= WILD_RUN * max(sc, abs(x0[i])):      # NaN too
+            rms = np.zeros(model.n_x)
+            break
+    for name, sc in inherited.items():
+        rms[model.state_index(name)] = sc
+    scale = np.maximum(rms, np.abs(x0))
+    rules = ["inherited" if n in inherited else "simulation" if s > 0 and np.isfinite(s) else ""
+             for n, s in zip(model.states, scale)]
     scale = np.where(np.isfinite(scale), scale, 0.0)
     duration = float(np.asarray(t, float)[-1] - np.asarray(t, float)[0]) if np.size(t) > 1 else 1.0
     with np.errstate(all="ignore"):
@@ -302,11 +329,13 @@ def prior_covariance(model, scales: np.ndarray, *, rel: float = P0_REL,
 
 def record_prior(model, t, u, y, theta, x0, disc: Discretisation | None = None, *,
                  rel: float = P0_REL, x0_std: Mapping[str, float] | None = None,
-                 unknown: Sequence[str] = ()) -> tuple[np.ndarray, dict]:
+                 unknown: Sequence[str] = (),
+                 inherited: Mapping[str, float] | None = None) -> tuple[np.ndarray, dict]:
     """:func:`prior_covariance` with the scales of :func:`state_scales`
     (``disc``: the discretisation of the free run, used as given, default
     ``Discretisation().for_free_run()``; ``unknown``: the states whose
-    initial value nothing gives).
+    initial value nothing gives; ``inherited``: state scales of the model
+    this one modifies).
 
     Returns
     -------
@@ -315,7 +344,7 @@ def record_prior(model, t, u, y, theta, x0, disc: Discretisation | None = None, 
     """
     if np.shape(x0) != (model.n_x,):
         raise ModelError(f"x0 has shape {np.shape(x0)}, expected ({model.n_x},)")
-    scales, rules = state_scales(model, t, u, y, theta, x0, disc)
+    scales, rules = state_scales(model, t, u, y, theta, x0, disc, inherited)
     P0 = prior_covariance(model, scales, rel=rel, x0_std=x0_std, unknown=unknown)
     info = {"rel": float(rel), "scales": dict(zip(model.states, scales.tolist())),
             "unknown": list(unknown),
@@ -382,6 +411,10 @@ class PriorSpec:
         estimates): the filter's prior holds them with a token spread,
         :data:`X0_TOKEN` of their prior std (Kristensen, Madsen & Jørgensen
         2004: the likelihood is conditional on them).
+    scales : dict, optional
+        State scales by name inherited from the model a candidate modifies,
+        on the same record (:func:`state_scales`; set by
+        :meth:`bondgraph.inference.problem.Problem.with_model`).
 
     Raises
     ------
@@ -403,6 +436,7 @@ class PriorSpec:
     P0: np.ndarray | None = None
     x0_std: Mapping[str, float] = field(default_factory=dict)
     estimated: Mapping[str, float] = field(default_factory=dict)
+    scales: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         rel = self.rel
@@ -417,7 +451,7 @@ class PriorSpec:
             object.__setattr__(self, "x0", tuple(np.asarray(self.x0, float).reshape(-1)))
         if self.P0 is not None:
             object.__setattr__(self, "P0", np.array(self.P0, dtype=float))
-        for name in ("x0_set", "x0_std", "estimated"):
+        for name in ("x0_set", "x0_std", "estimated", "scales"):
             object.__setattr__(self, name, _frozen(getattr(self, name)))
 
     def check(self, model) -> None:
@@ -469,7 +503,14 @@ class PriorSpec:
 
     def covariance(self, model, arrays, theta, x0, disc: Discretisation,
                    record=None, *, token: bool = True) -> np.ndarray:
-        """The prior covariance (n_x, n_x) at the prior mean ``x0``.
+        """The prior covariance (n_x, n_x) at the prior mean ``x0``
+        (:meth:`covariance_and_scales` without the scales)."""
+        return self.covariance_and_scales(model, arrays, theta, x0, disc, record, token=token)[0]
+
+    def covariance_and_scales(self, model, arrays, theta, x0, disc: Discretisation,
+                              record=None, *, token: bool = True) -> tuple[np.ndarray, dict]:
+        """The prior covariance (n_x, n_x) at the prior mean ``x0``, and the
+        state scales it was made of.
 
         Parameters
         ----------
@@ -490,12 +531,14 @@ class PriorSpec:
 
         Returns
         -------
-        ndarray (n_x, n_x)
+        (P (n_x, n_x), scales)
             ``P0`` if given for this model; else by :attr:`scale`; then the
             user's ``x0_std`` imposed, then the token spread of the
-            ``estimated`` states.
+            ``estimated`` states. ``scales``: state name -> the scale of
+            :func:`state_scales` (empty unless :attr:`scale` is "state" and
+            no ``P0`` is given).
         """
-        P = None
+        P, scales = None, {}
         if self.P0 is not None and self.P0.shape in ((model.n_x,), (model.n_x, model.n_x)):
             P = np.diag(self.P0) if self.P0.ndim == 1 else self.P0.copy()
         elif self.scale == "magnitude":
@@ -503,8 +546,10 @@ class PriorSpec:
         else:
             t, u, y = arrays
             declared = record.initial_state_std(model) if record is not None else {}
-            P, _ = record_prior(model, t, u, y, theta, x0, disc.for_free_run(), rel=self.rel,
-                                x0_std=declared, unknown=self.unknown(model, record))
+            P, info = record_prior(model, t, u, y, theta, x0, disc.for_free_run(), rel=self.rel,
+                                   x0_std=declared, unknown=self.unknown(model, record),
+                                   inherited=self.scales)
+            scales = info["scales"]
         for name, sd in self.x0_std.items():
             if name in model.states:
                 _set_std(P, model.state_index(name), sd)
@@ -512,7 +557,7 @@ class PriorSpec:
             if name in model.states:
                 i = model.state_index(name)
                 _set_std(P, i, X0_TOKEN * np.sqrt(max(P[i, i], 0.0)))
-        return P
+        return P, scales
 
     def conditioned_on(self, estimated: Mapping[str, float]) -> "PriorSpec":
         """This prior with the initial states ``estimated`` (by name; they
@@ -523,8 +568,14 @@ class PriorSpec:
         """This prior for another record (a validation record): its own
         initial state (the given mean, the named states and the estimates
         belong to the estimation record's first sample); the relative spread,
-        the scale, a given P0 and the declared spreads kept."""
-        return replace(self, x0=None, x0_set={}, estimated={})
+        the scale, a given P0 and the declared spreads kept; inherited
+        scales dropped: they are of the estimation record)."""
+        return replace(self, x0=None, x0_set={}, estimated={}, scales={})
+
+    def inheriting(self, scales: Mapping[str, float]) -> "PriorSpec":
+        """This prior with the state scales ``scales`` (name -> scale, of the
+        model a candidate modifies on the same record) inherited."""
+        return replace(self, scales=scales) if scales else self
 
 
 def _set_std(P: np.ndarray, i: int, sd: float) -> None:

@@ -188,6 +188,11 @@ class Problem:
     defaults_ok : bool
         Inputs the record lacks took the model's defaults (else they were
         an error); the problems derived from this one do the same.
+    scales : mapping
+        The state scales the prior was made of, by state name
+        (:func:`bondgraph.inference.prior.state_scales`; empty for a prior
+        by magnitude or a given P0): a candidate model's problem
+        (:meth:`with_model`) inherits them.
 
     Notes
     -----
@@ -216,6 +221,7 @@ class Problem:
     x0_rule: str
     P0: np.ndarray
     defaults_ok: bool = False
+    scales: Mapping[str, float] = field(default_factory=dict)
 
     # ------------------------------------------------------------ views
     @property
@@ -284,10 +290,15 @@ class Problem:
 
     def with_model(self, model) -> "Problem":
         """The same record, prior, noise, fixed values and options for
-        another model (a candidate of the loop)."""
+        another model (a candidate of the loop). The states it shares with
+        this problem's model (by name) inherit their scales
+        (:meth:`PriorSpec.inheriting`): the models a likelihood ratio
+        compares share the prior of their common states, and only the new
+        states are scaled by the candidate's own free run."""
         rec = self.record if self.record is not None else self.arrays   # bare arrays: as they are
-        return make_problem(model, rec, prior=self.prior, noise=self.noise,
-                            ukf=self.ukf, fixed=self.fixed, defaults_ok=self.defaults_ok)
+        return make_problem(model, rec, prior=self.prior.inheriting(self.scales),
+                            noise=self.noise, ukf=self.ukf, fixed=self.fixed,
+                            defaults_ok=self.defaults_ok)
 
     def with_fixed(self, fixed: Mapping[str, float]) -> "Problem":
         """The same problem with more parameter values fixed (over the
@@ -299,10 +310,13 @@ class Problem:
                             fixed={**self.fixed, **fixed}, arrays=self.arrays,
                             defaults_ok=self.defaults_ok)
 
-    def on_record(self, record) -> "Problem":
+    def on_record(self, record, scales: Mapping[str, float] | None = None) -> "Problem":
         """The same model and policies on another record (a validation
-        record): its own initial state (:meth:`PriorSpec.on_other_record`)."""
-        return make_problem(self.model, record, prior=self.prior.on_other_record(),
+        record): its own initial state and state scales
+        (:meth:`PriorSpec.on_other_record`), those of ``scales`` (name ->
+        scale on ``record``, of the model this one modifies) inherited."""
+        return make_problem(self.model, record,
+                            prior=self.prior.on_other_record().inheriting(scales or {}),
                             noise=self.noise, ukf=self.ukf, fixed=self.fixed,
                             defaults_ok=self.defaults_ok)
 
@@ -462,6 +476,7 @@ def make_problem(model, record, *, prior: PriorSpec | None = None,
     fixed = {k: float(v) for k, v in (fixed or {}).items()}
     theta = model.theta(fixed)                  # ModelError naming an unknown parameter
     x0, rule = prior.mean(model, rec)
-    P0 = prior.covariance(model, (t, u, y), theta, x0, ukf.discretisation, rec)
+    P0, scales = prior.covariance_and_scales(model, (t, u, y), theta, x0, ukf.discretisation,
+                                             rec)
     return Problem(model, rec, t, u, y, theta, fixed, prior, noise, ukf, x0, rule, P0,
-                   defaults_ok)
+                   defaults_ok, scales)
