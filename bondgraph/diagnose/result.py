@@ -138,7 +138,11 @@ class Step:
     kind and the effect's parameter names, and the confirmed candidates the
     record could not tell from it (``tied``, Vuong's test), and the effects
     accepted with it as a pair (``together_with``: the step's numbers are
-    the pair's, :func:`bondgraph.diagnose.runner.accepted_pair`)."""
+    the pair's, :func:`bondgraph.diagnose.runner.accepted_pair`), and the
+    effects accepted earlier that this step removed (``removed``: switched
+    off by it and no longer wanted by the accept rule,
+    :func:`bondgraph.diagnose.runner.pruned`; the step's numbers are those
+    of the model without them)."""
 
     effect: str
     attached_to: str
@@ -163,6 +167,13 @@ class Step:
     effect_params: list = field(default_factory=list)
     tied: list = field(default_factory=list)
     together_with: list = field(default_factory=list)
+    removed: list = field(default_factory=list)
+
+    def shown(self) -> str:
+        """The effect as the step tables show it: with its pair partners and
+        the effects it removed."""
+        return (self.effect + "".join(f" + {w}" for w in self.together_with)
+                + "".join(f" (removing {r})" for r in self.removed))
 
 
 @dataclass
@@ -400,8 +411,7 @@ class LoopResult:
         for i, s in enumerate(self.steps, 1):
             est = (f" {_num(s.estimation_error_before)} | {_num(s.estimation_error_after)} |"
                    if val else "")
-            pair = "".join(f" + {w}" for w in s.together_with)
-            rows.append(f"| {i} | {s.effect}{pair} | {s.attached_to} | {s.error_before:.4g} | "
+            rows.append(f"| {i} | {s.shown()} | {s.attached_to} | {s.error_before:.4g} | "
                         f"{s.error_after:.4g} |{est} {s.nll_before:.1f} | {s.nll_after:.1f} |")
         return "\n".join(rows)
 

@@ -181,7 +181,7 @@ def _summary(result: LoopResult) -> list[str]:
     if not result.steps:
         parts.append(f"<p>No effect accepted: {escape(result.none_accepted())}.</p>")
     else:
-        rows = [[str(k), s.effect + "".join(f" + {w}" for w in s.together_with),
+        rows = [[str(k), s.shown(),
                  s.attached_to, _num(s.error_before), _num(s.error_after),
                  _num(s.nll_before, ".1f"), _num(s.nll_after, ".1f"),
                  _num(s.lr, ".1f"), ", ".join(s.tied)]

@@ -511,8 +511,7 @@ def _md_accepted(result: LoopResult) -> list[str]:
              "NLL after | whiteness before | after |")
     L.append("|---|---|---|---|---|---|---|---|---|")
     for i, s in enumerate(result.steps, 1):
-        pair = "".join(f" + {w}" for w in getattr(s, "together_with", None) or [])
-        L.append(f"| {i} | {s.effect}{pair} | {s.attached_to} | {s.error_before:.4g} | "
+        L.append(f"| {i} | {s.shown()} | {s.attached_to} | {s.error_before:.4g} | "
                  f"{s.error_after:.4g} | {s.nll_before:.1f} | {s.nll_after:.1f} | "
                  f"{s.whiteness_before:.1f} | {s.whiteness_after:.1f} |")
     for i, s in enumerate(result.steps, 1):
