@@ -772,13 +772,16 @@ def test_the_free_run_starts_where_it_fits_the_record_better(monkeypatch):
     logs = []
     ctx = SimpleNamespace(log=logs.append)
     pb = SimpleNamespace(arrays=(None, None, y))
-    got = F._better_start(ctx, pb, None, None, "xs", "x0")
+    got, taken = F._better_start(ctx, pb, None, None, "xs", "x0")
     np.testing.assert_array_equal(got, runs["x0"])
-    assert logs and "from the prior mean fits the record better" in logs[0]
-    runs["xs"], runs["x0"] = runs["x0"], runs["xs"]
+    assert not taken and logs and "from the prior mean fits the record better" in logs[0]
     logs.clear()
-    np.testing.assert_array_equal(F._better_start(ctx, pb, None, None, "xs", "x0"), runs["xs"])
+    assert F._better_start(ctx, pb, None, None, "xs", "x0", quiet=True)[1] is False
     assert not logs
+    runs["xs"], runs["x0"] = runs["x0"], runs["xs"]
+    got, taken = F._better_start(ctx, pb, None, None, "xs", "x0")
+    np.testing.assert_array_equal(got, runs["xs"])
+    assert taken and not logs
     runs["xs"] = np.full_like(y, np.inf)
-    assert F._better_start(ctx, pb, None, None, "xs", "x0") is runs["xs"]
+    assert F._better_start(ctx, pb, None, None, "xs", "x0") == (runs["xs"], True)
     assert not logs
