@@ -304,3 +304,51 @@ def test_a_smoothed_start_that_fits_worse_than_the_prior_mean_gives_way_to_a_fit
     np.testing.assert_array_equal(F.free_run(ctx, pb, None),
                                   run(None, None, None, None, x0))
     assert logs == []
+
+
+def test_a_filter_that_fails_on_the_validation_record_runs_at_finer_steps(monkeypatch):
+    """validation_run: where the filter fails at the problem's own step on
+    the validation record (a user's drive with a stiff Dahl friction at
+    RK4(2)), it runs again at 4x, then 16x the substeps; the first that runs
+    is taken (logged) and the free run and the error follow from it; where
+    none runs, the error is inf with the first failure's reason."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import fit as F
+
+    class Pb:
+        record, model, arrays = None, SimpleNamespace(outputs=["y"]), (None, None, None)
+
+        def __init__(self, n):
+            self.disc = SimpleNamespace(method="rk4", substeps=n)
+
+        def conditioned_on(self, disc):
+            return Pb(disc.substeps)
+
+    tried, ok = [], {8}
+    monkeypatch.setattr(F, "replace", lambda d, substeps: SimpleNamespace(substeps=substeps))
+
+    def run(pb, th, store=False):
+        tried.append(pb.disc.substeps)
+        good = pb.disc.substeps in ok
+        return SimpleNamespace(nll=np.array([1.0 if good else np.inf]),
+                               reasons=[None if good else f"P not PD at {pb.disc.substeps}"])
+
+    monkeypatch.setattr(F, "run_ukf", run)
+    monkeypatch.setattr(F, "validation_problem", lambda ctx, pb: Pb(2))
+    monkeypatch.setattr(F, "free_run", lambda ctx, vp, th, own: ("run at", vp.disc.substeps))
+    monkeypatch.setattr(F, "compute_metric", lambda s, view, rec: view.sim_y)
+    monkeypatch.setattr(F, "metric_errors", lambda s, view, rec: None)
+    monkeypatch.setattr(F, "free_run_trouble", lambda *a: None)
+    monkeypatch.setattr(F, "MetricRecord", lambda r: None)
+    logs = []
+    ctx = SimpleNamespace(log=logs.append, settings=None)
+    vp = Pb(2)
+    got = F.validation_run(ctx, vp, np.zeros(1))
+    assert tried == [2, 8] and got[0] == ("run at", 8)
+    assert logs == ["  the filter fails on the validation record at rk4(2) (P not PD at 2); "
+                    "it runs at 8 substeps"]
+    tried.clear(), logs.clear(), ok.clear()
+    got = F.validation_run(ctx, vp, np.zeros(1))
+    assert tried == [2, 8, 32] and got == (float("inf"), None, "the filter fails (P not PD at 2)")
+    assert logs == []
