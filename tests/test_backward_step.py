@@ -159,3 +159,26 @@ def test_nothing_is_refitted_when_no_earlier_effect_is_switched_off(monkeypatch)
     result = SimpleNamespace(declared_graph=declared,
                              applied=[AppliedEffect("coulomb", V, {"Fc": 0.2})], metric="e")
     assert runner.pruned(ctx, result, current, after, [], "x") == (after, [], None)
+
+
+@pytest.mark.parametrize("nll, taken", [(-99.99996, True), (-100.5, True), (-99.5, False)])
+def test_a_continuation_that_converges_where_it_started_is_taken(monkeypatch, nll, taken):
+    """confirm.continued: a refit stopped at its iteration limit (NLL −100)
+    is continued; a continuation that converges is taken when its NLL is
+    below the start's or above it by at most CONTINUE_SLACK (0.01 nats:
+    the fit had converged there; a user's oven graph's declared fit
+    converged 4.6e-5 nats above its start and was dropped, with a warning
+    that every likelihood ratio was an upper bound); 0.5 nats above, the
+    earlier fit stands and is still not converged."""
+    from bondgraph.diagnose import confirm
+
+    first = SimpleNamespace(converged=False, iterations=10, nll=-100.0, params=["a"],
+                            estimates=lambda: {"a": 1.0}, model=None)
+    nxt = SimpleNamespace(converged=True, iterations=3, nll=nll)
+    monkeypatch.setattr(confirm, "fit_model", lambda *a, **k: nxt)
+    ctx = SimpleNamespace(log=lambda s: None,
+                          settings=SimpleNamespace(search=SimpleNamespace(confirm_iterations=40,
+                                                                          confirm_tolerance=0.01)))
+    got = confirm.continued(ctx, None, first, "x")
+    assert (got is nxt) == taken and got.iterations == 13
+    assert got.converged is (True if taken else False)

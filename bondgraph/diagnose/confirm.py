@@ -117,6 +117,9 @@ def chosen_refit(ctx: Context, graph, fits: list[Fit], label: str) -> Fit:
 
 #: continuations of a confirmation refit that stopped at its iteration limit
 CONTINUATIONS = 2
+#: a continuation that converges within this many nats above the NLL it
+#: started from has converged there (:func:`continued`)
+CONTINUE_SLACK = 0.01
 
 
 def continued(ctx: Context, graph, fit: Fit, label: str) -> Fit:
@@ -124,7 +127,12 @@ def continued(ctx: Context, graph, fit: Fit, label: str) -> Fit:
     else the scoring continued from where it stopped, up to
     :data:`CONTINUATIONS` more times ``confirm_iterations`` iterations, until
     it converges; the better of the two fits is kept (a continuation never
-    raises the NLL it started from). A refit still not converged is
+    raises the NLL it started from), except that a continuation that
+    converges within :data:`CONTINUE_SLACK` nats above it is taken: the fit
+    had converged there, up to the scoring's rounding (a user's oven graph:
+    the declared fit's continuation converged 4.6e-5 nats above its start,
+    was dropped, and the loop warned that every likelihood ratio was an
+    upper bound). A refit still not converged is
     returned with ``converged`` False: the caller reports it as not
     comparable (a 178 s sensor low-pass on a 4 s record reached LR 713
     "NOT converged" on a user's two-tank record and was accepted over a
@@ -143,7 +151,7 @@ def continued(ctx: Context, graph, fit: Fit, label: str) -> Fit:
             ctx.log(f"  continuing {label} failed: {str(exc).splitlines()[0]}")
             break
         total += nxt.iterations or 0
-        if not nxt.nll <= fit.nll:
+        if not nxt.nll <= fit.nll + (CONTINUE_SLACK if nxt.converged else 0.0):
             break
         fit = nxt
     fit.iterations = total if fit.iterations is not None else fit.iterations
