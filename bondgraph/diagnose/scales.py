@@ -89,6 +89,11 @@ def _element_scales(sc: Scales, name: str, el, ss, evaluate, X, t, rates) -> Non
         sc.storage_max[name] = float(np.nanmax(np.abs(q)))
         sc.storage_rms[name] = rms(q)
         sc.storage_peak[name] = float(np.nanmax(q))
+    elif isinstance(el, I) and el.p in ss.states:       # an inductor's flux linkage
+        p = X[:, ss.states.index(el.p)]
+        sc.storage_max[name] = float(np.nanmax(np.abs(p)))
+        sc.storage_rms[name] = rms(p)
+        sc.storage_peak[name] = float(np.nanmax(p))
     elif isinstance(el, R):
         sc.r_effort_rms[name] = rms(evaluate(ss.variable(el.e)))
         sc.r_flow_rms[name] = rms(evaluate(ss.variable(el.f)))

@@ -101,6 +101,7 @@ from bondgraph.diagnose.effects.storage import (
     CapacityLimit,
     CubicStiffness,
     EndStop,
+    InductorSaturation,
     add_to_storage_law,
 )
 
@@ -108,6 +109,7 @@ __all__ = [
     "ADDED_BY", "ActuatorDeadZone", "ActuatorGain", "ActuatorSaturation", "AsymmetricFriction",
     "BY_NAME", "Backlash", "BoucWen", "CapacityLimit", "ColdStart", "Compliance", "ConstantEffort", "Coulomb",
     "CubicStiffness", "DEFAULT_EFFECTS", "DahlFriction", "Disturbance", "Effect", "EffectParam",
+    "InductorSaturation",
     "EndStop", "InputDelay", "OPTIONAL_EFFECTS", "ProbeColumn", "QuadraticDrag", "RCubic", "RQuadratic",
     "RSquareRoot", "Scales", "SensorGain", "SensorLowPass", "SensorOffset", "SensorPolynomial2",
     "SensorPolynomial3", "SensorQuantisation", "SensorRectification", "Slip", "SourceLag",

@@ -521,6 +521,27 @@ def storage_targets(graph: BondGraph) -> list[Target]:
             if isinstance(graph.elements[n], C)]
 
 
+def inductor_targets(graph: BondGraph) -> list[Target]:
+    """The I elements of the electrical domain (flow unit a current) in
+    integral causality (their momentum, the flux linkage, a state)."""
+    try:
+        cz = assign_causality(graph, validate=False)
+    except BondGraphError:
+        return []
+    out = []
+    for n in sorted(graph.elements):
+        el = graph.elements[n]
+        if not isinstance(el, I) or n in cz.derivative:
+            continue
+        fu = element_units(graph, el)[1]
+        try:
+            if fu and _units.same_dimension(fu, "A"):
+                out.append(Target("storage", n))
+        except Exception:
+            continue
+    return out
+
+
 def state_storage_targets(graph: BondGraph) -> list[Target]:
     """The C elements in integral causality (SCAP, Karnopp, Margolis &
     Rosenberg): those whose displacement q is a state. A C that SCAP leaves

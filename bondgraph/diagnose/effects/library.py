@@ -39,7 +39,13 @@ from bondgraph.diagnose.effects.sources import (
     SourceOffset,
     SourceRateLimit,
 )
-from bondgraph.diagnose.effects.storage import Backlash, CapacityLimit, CubicStiffness, EndStop
+from bondgraph.diagnose.effects.storage import (
+    Backlash,
+    CapacityLimit,
+    CubicStiffness,
+    EndStop,
+    InductorSaturation,
+)
 from bondgraph.errors import GraphError
 
 #: the library used by :func:`bondgraph.diagnose.loop.run_loop` unless told otherwise
@@ -52,6 +58,7 @@ DEFAULT_EFFECTS: tuple[Effect, ...] = (
     SourceOffset(), SensorPolynomial2(), SensorPolynomial3(), CubicStiffness(), RSquareRoot(),
     RQuadratic(), RCubic(), SourceLag(), SourceRateLimit(), InputDelay(), SensorQuantisation(),
     CapacityLimit(), DahlFriction(),
+    InductorSaturation(),
 )
 
 #: effects of the library that the loop scores only when asked

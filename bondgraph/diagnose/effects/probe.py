@@ -9,7 +9,8 @@ terms Σ β_k b_k of all effects at one site are installed together:
 * ``source``: added to the source's value;
 * ``resistor``: added to the R's law in its causal form
   (:func:`bondgraph.diagnose.effects.laws.add_to_r_law`);
-* ``storage``: added to the C's effort law, its integral to the energy.
+* ``storage``: added to the C's effort law (an I's flow law), its integral
+  to the energy.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from dataclasses import dataclass
 
 import sympy as sp
 
+from bondgraph.core.elements import I
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.effects.base import Scales, Target
 from bondgraph.diagnose.effects.laws import add_to_r_law
@@ -98,6 +100,7 @@ def install_probe(g: BondGraph, kind: str, name: str, term: sp.Expr) -> None:
         add_to_r_law(g, g.element(name), term)
     elif kind == "storage":
         el = g.element(name)
-        add_to_storage_law(el, term, sp.integrate(term, el.q))
+        x = el.p if isinstance(el, I) else el.q
+        add_to_storage_law(el, term, sp.integrate(term, x))
     else:
         raise GraphError(f"unknown probe site kind '{kind}' (of '{name}')")

@@ -11,10 +11,19 @@ storage limits and alternatives of its constitutive law.
   (k3 < 0) term of the law, e = k q + k3 q³, with its energy k3 q⁴/4
   (additive: probe-able at k3 = 0).
 
+And of an I element of the electrical domain (an inductor):
+
+* :class:`InductorSaturation` — the iron core's saturation, the cubic term
+  of the flux-current law, i = λ/L + k3 λ³ (k3 > 0: the current rises
+  faster than the flux once the core saturates), its co-energy k3 λ⁴/4
+  (additive).
+
 References
 ----------
 Duffing, G. (1918), Erzwungene Schwingungen bei veränderlicher
-Eigenfrequenz, Vieweg. Karnopp, Margolis & Rosenberg, *System Dynamics*,
+Eigenfrequenz, Vieweg. Chua, L. O. & Stromsmoe, K. A. (1970), Lumped-circuit
+models for nonlinear inductors exhibiting hysteresis loops, IEEE Trans.
+Circuit Theory 17(4) (the polynomial flux-current law). Karnopp, Margolis & Rosenberg, *System Dynamics*,
 5th ed., §4.2 (nonlinear C elements) and §8 (hydraulic tanks and orifices).
 """
 
@@ -22,7 +31,7 @@ from __future__ import annotations
 
 import sympy as sp
 
-from bondgraph.core.elements import C, Zero
+from bondgraph.core.elements import C, I, Zero
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.smooth import softplus
 from bondgraph.diagnose.effects.base import (
@@ -35,6 +44,7 @@ from bondgraph.diagnose.effects.base import (
     element_units,
     fill_unit,
     mechanical,
+    inductor_targets,
     split_bond,
     storage_stiffness,
     state_storage_targets,
@@ -253,9 +263,49 @@ class CubicStiffness(Effect):
         return {"k3": (0.05 * k / m**2, 0.3 * k / m**2)}
 
 
-def add_to_storage_law(el: C, effort: sp.Expr, energy: sp.Expr) -> None:
-    """Add ``effort`` (a function of the displacement) to a C element's law
-    and ``energy`` (its integral) to its stored energy."""
-    el.law = el.law + effort
+def add_to_storage_law(el: C | I, term: sp.Expr, energy: sp.Expr) -> None:
+    """Add ``term`` to a storage element's law (a C's effort, a function of
+    its displacement; an I's flow, of its momentum) and ``energy`` (its
+    integral) to its stored energy (co-energy)."""
+    el.law = el.law + term
     if el.energy is not None:
         el.energy = el.energy + energy
+
+
+class InductorSaturation(Effect):
+    """Saturation of an inductor's iron core: its flux-current law gains
+    the cubic term k3·λ³, i = λ/L + k3·λ³ (λ: the I element's momentum, the
+    flux linkage; co-energy k3·λ⁴/4), so that the current rises faster than
+    the flux once the core saturates (k3 > 0): the dual of a hardening
+    spring on an I element. Only at I elements of the electrical domain (a
+    mass or a fluid inertance does not saturate). Additive: probe-able at
+    k3 = 0 (Chua & Stromsmoe 1970, the polynomial law)."""
+
+    name = "inductor_saturation"
+    title = "saturating inductor (cubic flux-current law)"
+    target_kind = "storage"
+    additive = True
+    params = (EffectParam("k3", "{flow}/({effort}*s)^3", "cubic flux-current coefficient"),)
+
+    def targets(self, graph):
+        return inductor_targets(graph)
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        el = graph.element(target.name)
+        eu, fu = element_units(graph, el)
+        k3 = _new_param(graph, self.pname(target, "k3"), values.get("k3", 0.0),
+                        fill_unit("{flow}/({effort}*s)^3", flow=fu, effort=eu),
+                        (-1e15, 1e15), f"cubic flux-current coefficient of {target.name}")
+        add_to_storage_law(el, k3 * el.p**3, k3 * el.p**4 / 4)
+        return {"k3": k3}
+
+    def basis(self, graph, target, scales):
+        return [graph.element(target.name).p ** 3]
+
+    def box(self, graph, target, scales):
+        m = scales.get("storage_max", target.name)
+        el = graph.element(target.name)
+        a = abs(default_value(el.inertance)) if el.inertance is not None else 0.0
+        g = 1.0 / a if a else 1.0
+        return {"k3": (0.05 * g / m**2, 1.0 * g / m**2)}
