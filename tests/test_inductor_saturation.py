@@ -131,3 +131,30 @@ def test_the_loop_finds_the_saturating_inductor_on_a_user_rlc_record():
     st = res.steps[0]
     assert st.validated and st.error_after < st.error_before / 5
     assert st.error_after < 1.3 * FLOOR[2]          # within 30 % of the noise's own NRMSE
+    # it stopped at its one step with the step accepted: said so
+    assert any("stopped at its step limit (1 accepted steps" in w for w in res.warnings)
+    # the innovations are white now: no hint towards --discover
+    from bondgraph.cli.loop import unexplained_hint
+    assert res.final.residuals.is_white() and unexplained_hint(res, False) is None
+
+
+def test_innovations_that_stay_coloured_point_to_discovery():
+    """cli.loop.unexplained_hint: a final model whose Ljung-Box sum is beyond
+    χ²(dof) + 3 std (the user's RLC graph before the library knew a
+    saturating inductor: 37 855 where white innovations give about 40)
+    gets one line naming --discover; with --discover run, the line says
+    what is left without the advice; white innovations, nothing."""
+    from types import SimpleNamespace
+
+    from bondgraph.cli.loop import unexplained_hint
+    from bondgraph.diagnose.residuals import ResidualReport
+
+    def res(w):
+        rep = ResidualReport([], [], 1.0, 1.0, (0.9, 1.1), w, {"whiteness_dof": 40.0})
+        return SimpleNamespace(final=SimpleNamespace(residuals=rep))
+
+    line = unexplained_hint(res(37855.0), False)
+    assert line.startswith("note: the final model's innovations are not white (whiteness "
+                           "3.786e+04; white: about 40 ± 27)") and "--discover" in line
+    assert "--discover" not in unexplained_hint(res(37855.0), True)
+    assert unexplained_hint(res(60.0), False) is None        # 60 <= 40 + 3·sqrt(80)

@@ -177,9 +177,29 @@ def run(args) -> int:
         print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
     print(res.table() if res.steps else f"  no effect accepted: {res.none_accepted()}"
           + ("; the reasons are in report.md" if res.rejected else ""))
+    hint = unexplained_hint(res, args.discover)
+    if hint:
+        print(hint)
     print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots, "
           f"augmented_model.py)")
     return 0
+
+
+def unexplained_hint(res, discovered: bool) -> str | None:
+    """One line when the final model's innovations are not white (the
+    Ljung-Box sum beyond χ²(dof) + 3 std): the record shows more than the
+    accepted effects explain; without ``--discover``, say what it does."""
+    r = getattr(res.final, "residuals", None)
+    if r is None or r.whiteness_dof <= 0 or r.is_white():
+        return None
+    d = r.whiteness_dof
+    msg = (f"note: the final model's innovations are not white (whiteness {r.whiteness:.4g}; "
+           f"white: about {d:g} ± {3 * (2 * d) ** 0.5:.0f}): the record shows more than the "
+           f"accepted effects explain")
+    if not discovered:
+        msg += ("; --discover reconstructs the effort (flow) missing at each junction and "
+                "seeks its law beyond the effect library")
+    return msg
 
 
 def _with_discovery(args, graph, record, settings, res, out: Path):

@@ -162,6 +162,11 @@ def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) 
             ctx.log("no confirmed candidate passed the accept rule (criterion, likelihood "
                     "ratio, error): stop")
             break
+        if step == s.search.max_steps:
+            msg = (f"the loop stopped at its step limit ({step} accepted steps, --max-steps): "
+                   f"the record may show more; run it again with a larger limit")
+            ctx.log(msg)
+            result.warnings.append(msg)
     if not current.std:
         current.std = parameter_std(ctx, current)
     result.finished = True
