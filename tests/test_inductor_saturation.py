@@ -1,6 +1,7 @@
 """A saturating inductor (effects.storage.InductorSaturation) on a user's
 RLC filter graph: the record simulated by scipy from the hand-written
-equations of an iron-core inductor, i = λ/L0·(1 + (λ/λs)²)."""
+equations of an iron-core inductor, i = λ/L0·(1 + (λ/λs)²); and the noise
+levels a ``--discover`` reconstruction holds on that graph."""
 
 from __future__ import annotations
 
@@ -158,3 +159,34 @@ def test_innovations_that_stay_coloured_point_to_discovery():
                            "3.786e+04; white: about 40 ± 27)") and "--discover" in line
     assert "--discover" not in unexplained_hint(res(37855.0), True)
     assert unexplained_hint(res(60.0), False) is None        # 60 <= 40 + 3·sqrt(80)
+
+
+def test_a_reconstruction_holds_the_records_noise_and_then_the_loops_estimates():
+    """discover.reconstruct.held_noise: the user's RLC graph declares no
+    sensor noise (its own level is 0: every reconstruction of ``--discover``
+    failed at sample 0 with "measurement-noise variance not positive").
+    The record's declared level is held where it declares one, the loop's
+    estimate where it does not; nothing declared or given: None; a graph
+    that gives its own levels keeps them (None)."""
+    from bondgraph.diagnose.discover.reconstruct import held_noise
+
+    m = model_of(rlc())
+    rec = record(3)                 # declares 0.01 A and 0.05 V
+    spec = held_noise(m, rec, {"current": 0.5, "voltage": 0.7, "other": 1.0})
+    assert spec.held == {"current": 0.01, "voltage": 0.05}
+    t = np.arange(10) * DT
+    bare = Experiment.from_arrays(t, model=m, u=np.zeros((10, 1)), y=np.zeros((10, 2)),
+                                  name="bare", noise_std={"voltage": 0.05})
+    assert held_noise(m, bare, {"current": 0.02}).held == {"voltage": 0.05, "current": 0.02}
+    assert held_noise(m, bare, None).held == {"voltage": 0.05}
+    plain = Experiment.from_arrays(t, model=m, u=np.zeros((10, 1)), y=np.zeros((10, 2)),
+                                   name="plain")
+    assert held_noise(m, plain, None) is None
+    th = m.theta0[None, :]
+    R = held_noise(m, plain, {"current": 0.02, "voltage": 0.3}).covariance(m, th)[0]
+    np.testing.assert_allclose(np.diag(R), [0.02**2, 0.3**2])
+    g = rlc()
+    g.sensors["current"].noise_std = 0.04
+    assert held_noise(model_of(g), rec, {"voltage": 0.7}).held == {"voltage": 0.05}
+    g.sensors["voltage"].noise_std = 0.06
+    assert held_noise(model_of(g), rec, None) is None

@@ -901,6 +901,10 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
     outs = [n for n in graph.sensors if n in record] if sensors is None else list(sensors)
     found = []
     opts = reconstruction or reconstruction_options(settings)
+    initial = getattr(first, "initial", None)
+    if opts.noise is None and initial is not None and initial.noise_estimates:
+        # the loop's estimated noise levels, where the record declares none
+        opts = replace(opts, noise=dict(initial.noise_estimates))
     for port, at_sensor in [(n, False) for n in names] + [(n, True) for n in outs]:
         try:
             found.append(discover_effect(graph, record, port, params=values, sensor=at_sensor,

@@ -46,7 +46,7 @@ from bondgraph.errors import GraphError, NumericalError, OptionError
 from bondgraph.inference.estimand import noise_parameters
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.prior import PriorSpec
-from bondgraph.inference.problem import make_problem
+from bondgraph.inference.problem import NoiseSpec, make_problem
 from bondgraph.inference.smoother import rts_smooth
 from bondgraph.numerics.model import Model
 
@@ -90,6 +90,10 @@ class ReconstructOptions:
         Factors of the declared process-noise intensities; with several,
         each intensity's likelihood is profiled over them (default
         :data:`NOISE_FACTORS`; ``(1.0,)``: held at their declared values).
+    noise : dict, optional
+        Measurement-noise stds (output -> std, output units; the loop's
+        estimates) held for the outputs whose level neither the graph nor
+        the record gives (:func:`held_noise`).
 
     Raises
     ------
@@ -105,6 +109,7 @@ class ReconstructOptions:
     scale: float | None = None
     ukf: UKFOptions | None = None
     noise_factors: tuple = NOISE_FACTORS
+    noise: dict | None = None
 
     def __post_init__(self):
         if self.q is not None and not (np.isfinite(self.q) and self.q > 0):
@@ -390,13 +395,14 @@ def _smoothed(graph, record, g, aug, opts: ReconstructOptions, params, scale) ->
     fixed = dict(params or {})
     model = Model.from_graph(g, lazy=("dfdtheta", "dhdtheta"))
     base = Model.from_graph(graph, lazy=("dfdtheta", "dhdtheta"))
-    pb = make_problem(base, record, ukf=ukf, fixed=fixed)
+    noise = held_noise(base, record, opts.noise)
+    pb = make_problem(base, record, ukf=ukf, fixed=fixed, noise=noise)
     S = opts.scale or scale(base, pb)
     t = pb.t
     dt = float(np.median(np.diff(t)))
     taus = np.geomspace(opts.tau_min * dt, opts.tau_max * (t[-1] - t[0]), int(opts.grid))
     prior = PriorSpec(x0_std={aug.d: 3.0 * S, aug.r: 3.0 * S / taus[0]})
-    problem = make_problem(model, record, ukf=ukf, fixed=fixed, prior=prior)
+    problem = make_problem(model, record, ukf=ukf, fixed=fixed, prior=prior, noise=noise)
     iq = model.params.index(aug.q)
     q_grid = np.array([float(opts.q)]) if opts.q is not None else S / taus ** 1.5
     proc = [model.param_index(n) for n in process_noise(base, pb.theta, opts)]
@@ -407,6 +413,35 @@ def _smoothed(graph, record, g, aug, opts: ReconstructOptions, params, scale) ->
     sm = rts_smooth(model, t, problem.u, problem.y, theta, problem.x0, problem.P0,
                     options=ukf, R=None if R is None else R[0])
     return model, problem, sm, theta, (float(theta[iq]), q_grid, nll_grid)
+
+
+def held_noise(model: Model, record, levels: dict | None) -> NoiseSpec | None:
+    """The measurement-noise levels a reconstruction holds for the outputs
+    whose level the graph does not give (its sensor's noise std 0 at the
+    model's defaults): the record's declared level (model units), else
+    ``levels`` (output -> std, the loop's estimates); None when there are
+    none. The graph's own levels stay where it gives them. Without this a
+    graph whose sensors declare no noise had a zero measurement variance
+    and every reconstruction of ``--discover`` failed at sample 0 (a
+    user's RLC filter)."""
+    with np.errstate(all="ignore"):
+        own = np.asarray(model.meas_std(model.theta0[None, :]), float)[0]
+    missing = [o for o, v in zip(model.outputs, own) if not (np.isfinite(v) and v > 0)]
+    if not missing:
+        return None
+    dec = np.full(len(model.outputs), np.nan)
+    if record is not None and not isinstance(record, tuple):
+        try:
+            dec = np.asarray(record.noise_std_for(model), float)
+        except Exception:      # a record that cannot say: the levels given
+            pass
+    held = {}
+    for o in missing:
+        v = dec[model.outputs.index(o)]
+        v = v if np.isfinite(v) and v > 0 else float((levels or {}).get(o, np.nan))
+        if np.isfinite(v) and v > 0:
+            held[o] = float(v)
+    return NoiseSpec(held=held) if held else None
 
 
 def process_noise(base: Model, theta: np.ndarray, opts: ReconstructOptions) -> list[str]:
