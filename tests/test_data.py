@@ -206,6 +206,13 @@ def test_bad_sidecars(tmp_path):
     write(tmp_path, GOOD, sidecar={"dt": 0.5})
     with pytest.raises(DataError, match="median time step"):
         Experiment.load(p)
+    # a column key at the top level would be kept and never read (a user's
+    # noise levels left estimated): an error naming where it belongs
+    write(tmp_path, GOOD, sidecar={"noise_std": {"x": 0.01}})
+    with pytest.raises(DataError, match="'noise_std' at the top level is not read: it belongs "
+                                        "to a column") as ei:
+        Experiment.load(p)
+    assert ei.value.path.endswith("rec.json")
 
 
 # ------------------------------------------------------- unit conversion

@@ -575,7 +575,11 @@ def check_sidecar_types(meta: Mapping, path: str | None = None) -> None:
     them): text for ``name, model, truth_model, description``; a positive
     number for ``dt``; ``{name: finite number}`` for ``true_parameters``,
     ``parameters`` and ``x0``; an integer ``seed``; objects for ``columns``
-    (one object per column, a text ``unit``) and ``noise``. Other keys are free.
+    (one object per column, a text ``unit``) and ``noise``. Other keys are
+    free, except the column keys ``noise_std``, ``hold``, ``unit`` and
+    ``role`` at the top level: there they would be kept and never read (a
+    user's top-level ``"noise_std": {"current": 0.01}`` left the noise
+    estimated), so they are an error naming where they belong.
 
     Raises
     ------
@@ -588,6 +592,11 @@ def check_sidecar_types(meta: Mapping, path: str | None = None) -> None:
     for key in _TEXT_KEYS:
         if meta.get(key) is not None and not isinstance(meta[key], str):
             raise bad(f"'{key}' must be text, got {meta[key]!r}")
+    for key in ("noise_std", "hold", "unit", "role"):
+        if key in meta:
+            raise bad(f"'{key}' at the top level is not read: it belongs to a column, e.g. "
+                      f"\"columns\": {{\"<column>\": {{\"{key}\": ...}}}} (see the record "
+                      f"format: docs/data_format.md)")
     dt = meta.get("dt")
     if dt is not None and not (_is_number(dt) and dt > 0):
         raise bad(f"'dt' must be a positive number of seconds, got {dt!r}")
