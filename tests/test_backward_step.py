@@ -6,21 +6,23 @@ wants it, and the model without it is rebuilt from the declared graph
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from bondgraph.catalog.reference import mass_spring_damper
-from bondgraph.data.records import Experiment
 from bondgraph.diagnose import runner
 from bondgraph.diagnose.effects import Target, get_effect
 from bondgraph.diagnose.fit import Context, Fit, model_of, problem_for
 from bondgraph.diagnose.residuals import ResidualReport
 from bondgraph.diagnose.result import AppliedEffect
 from bondgraph.diagnose.settings import AcceptRule, LoopSettings, SearchOptions
-from bondgraph.numerics.model import Model
-from bondgraph.numerics.simulate import simulate
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_loop_accept import _msd_record  # noqa: E402
 
 V = Target("junction", "v")
 DAMPER = Target("resistor", "damper")
@@ -38,17 +40,6 @@ def _graphs():
     return declared, g1, g2
 
 
-def _record(seed=0, n=300, dt=0.01):
-    m = Model.load("mass_spring_damper")
-    t = np.arange(n) * dt
-    u = np.repeat(np.random.default_rng(seed).normal(0.0, 20.0, n // 20), 20)[:, None]
-    th = m.theta(m=2.0, k=50.0, c=1.5)
-    y = simulate(m, t, u, np.zeros(2), th, rtol=1e-9, atol=1e-12).y
-    y = y + np.random.default_rng(seed + 1).normal(size=y.shape) * m.meas_std(th)
-    return Experiment.from_arrays(t, model=m, u=u, y=y, name="msd",
-                                  noise_std=dict(zip(m.outputs, m.meas_std(th))))
-
-
 def test_the_model_without_an_effect_is_the_declared_graph_with_the_others():
     """_without: the declared graph with the kept applied effects and the
     added candidate, each at its value in the fit, every box as in the fit,
@@ -64,7 +55,7 @@ def test_the_model_without_an_effect_is_the_declared_graph_with_the_others():
                                                      "r_sqrt.damper.beta": 0.4})
     fit = SimpleNamespace(graph=g2, model=fit_model, theta=theta,
                           params=["m", "k", "c", "coulomb.v.Fc", "r_sqrt.damper.beta"])
-    ctx = Context.on(_record(), LoopSettings(params=["m", "k", "c"],
+    ctx = Context.on(_msd_record(n=300), LoopSettings(params=["m", "k", "c"],
                                              search=SearchOptions(confirm_iterations=2)),
                      model_of(declared), lambda s: None, False)
     result = SimpleNamespace(declared_graph=declared)

@@ -521,25 +521,31 @@ def storage_targets(graph: BondGraph) -> list[Target]:
             if isinstance(graph.elements[n], C)]
 
 
-def inductor_targets(graph: BondGraph) -> list[Target]:
-    """The I elements of the electrical domain (flow unit a current) in
-    integral causality (their momentum, the flux linkage, a state)."""
+def _electrical(graph: BondGraph, el: OnePort) -> bool:
+    """True when ``el``'s flow unit is a current."""
+    fu = element_units(graph, el)[1]
+    try:
+        return bool(fu) and _units.same_dimension(fu, "A")
+    except Exception:
+        return False
+
+
+def _in_integral_causality(graph: BondGraph, targets: list[Target]) -> list[Target]:
+    """``targets`` whose element SCAP leaves in integral causality (its
+    energy variable a state); none when the causality cannot be assigned."""
     try:
         cz = assign_causality(graph, validate=False)
     except BondGraphError:
         return []
-    out = []
-    for n in sorted(graph.elements):
-        el = graph.elements[n]
-        if not isinstance(el, I) or n in cz.derivative:
-            continue
-        fu = element_units(graph, el)[1]
-        try:
-            if fu and _units.same_dimension(fu, "A"):
-                out.append(Target("storage", n))
-        except Exception:
-            continue
-    return out
+    return [t for t in targets if t.name not in cz.derivative]
+
+
+def inductor_targets(graph: BondGraph) -> list[Target]:
+    """The I elements of the electrical domain (flow unit a current) in
+    integral causality (their momentum, the flux linkage, a state)."""
+    return _in_integral_causality(graph, [
+        Target("storage", n) for n in sorted(graph.elements)
+        if isinstance(graph.elements[n], I) and _electrical(graph, graph.elements[n])])
 
 
 def state_storage_targets(graph: BondGraph) -> list[Target]:
@@ -548,11 +554,7 @@ def state_storage_targets(graph: BondGraph) -> list[Target]:
     in derivative causality (a compliance between two flow sources, e.g. a
     belt between a massless motor and a pulley) has no state of its own, so
     an effect written in its q (a capacity limit) cannot attach there."""
-    try:
-        cz = assign_causality(graph, validate=False)
-    except BondGraphError:
-        return []
-    return [t for t in storage_targets(graph) if t.name not in cz.derivative]
+    return _in_integral_causality(graph, storage_targets(graph))
 
 
 def resistor_targets(graph: BondGraph) -> list[Target]:
