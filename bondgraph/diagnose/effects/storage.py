@@ -23,8 +23,9 @@ References
 Duffing, G. (1918), Erzwungene Schwingungen bei veränderlicher
 Eigenfrequenz, Vieweg. Chua, L. O. & Stromsmoe, K. A. (1970), Lumped-circuit
 models for nonlinear inductors exhibiting hysteresis loops, IEEE Trans.
-Circuit Theory 17(4) (the polynomial flux-current law). Karnopp, Margolis & Rosenberg, *System Dynamics*,
-5th ed., §4.2 (nonlinear C elements) and §8 (hydraulic tanks and orifices).
+Circuit Theory 17(4) (the polynomial flux-current law). Karnopp, Margolis &
+Rosenberg, *System Dynamics*, 5th ed., §4.2 (nonlinear C elements) and §8
+(hydraulic tanks and orifices).
 """
 
 from __future__ import annotations
