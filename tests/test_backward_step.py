@@ -173,3 +173,26 @@ def test_a_continuation_that_converges_where_it_started_is_taken(monkeypatch, nl
     got = confirm.continued(ctx, None, first, "x")
     assert (got is nxt) == taken and got.iterations == 13
     assert got.converged is (True if taken else False)
+
+
+def test_candidates_scored_within_reach_of_the_best_refit_are_confirmed_too():
+    """runner.within_reach: on a user's drive the load's true Coulomb
+    friction scored 1.851e6, fourth behind three Dahl frictions whose best
+    refit reached 1.936e6 (LR less 2k); its own refit reaches 1.958e6. A
+    candidate whose statistic less 2k is at least 0.9 of the best confirmed
+    LR less 2k is confirmed in the same round (here it and r_sqrt at
+    1.832e6, not 1.60e6), at most as many as were confirmed; none when no
+    refit is confirmed or the best gains nothing."""
+    def cand(label, stat, k, conf=None):
+        return SimpleNamespace(label=label, statistic=stat, dof=k, confirmed_statistic=conf)
+
+    confirmed = [(cand("dahl @ w_g", 1.913e6, 2, 1.9356e6), None),
+                 (cand("dahl @ w_m", 1.934e6, 2, 1.9356e6), None),
+                 (cand("dahl @ w_L", 1.882e6, 2, 1.8957e6), None)]
+    rest = [cand("coulomb @ w_L", 1.851e6, 1), cand("r_sqrt @ b_L", 1.832e6, 1),
+            cand("r_cubic @ b_L", 1.60e6, 1)]
+    got = runner.within_reach(confirmed, rest)
+    assert [c.label for c in got] == ["coulomb @ w_L", "r_sqrt @ b_L"]
+    assert runner.within_reach(confirmed[:1], rest) == rest[:1]
+    assert runner.within_reach([], rest) == []
+    assert runner.within_reach([(cand("a", 1.0, 1, 1.5), None)], rest) == []   # 1.5 - 2 <= 0
