@@ -66,15 +66,16 @@ def test_confirmation_goes_on_in_rounds_until_one_is_accepted(monkeypatch):
     """With confirm_top 2 and confirm_rounds 3, seven significant candidates:
     rounds {a, b}, {c, d} are refused, {e, f} has the accepted one; g is
     never confirmed. With one round nothing is accepted."""
-    cands = [SimpleNamespace(label=n, rank_key=i) for i, n in enumerate("abcdefg")]
+    cands = [SimpleNamespace(label=n, rank_key=i, statistic=10.0, dof=1,
+                             confirmed_statistic=None) for i, n in enumerate("abcdefg")]
     seen = []
 
     def fake_confirm(ctx, current, batch, scales, name):
         seen.append([c.label for c in batch])
-        return batch
+        return [(c, None) for c in batch]
 
     def fake_accept(ctx, result, current, confirmed, step, pairing=None):
-        return "fit-e" if any(c.label == "e" for c in confirmed) else None
+        return "fit-e" if any(c.label == "e" for c, _ in confirmed) else None
 
     monkeypatch.setattr(runner, "confirm_best", fake_confirm)
     monkeypatch.setattr(runner, "accept_best", fake_accept)
@@ -88,6 +89,31 @@ def test_confirmation_goes_on_in_rounds_until_one_is_accepted(monkeypatch):
     assert seen == [["a", "b"]]
     with pytest.raises(OptionError, match="confirm_rounds"):
         LoopSettings(params=[], search=SearchOptions(confirm_rounds=0))
+
+
+def test_a_candidate_within_reach_is_confirmed_in_the_round_within_the_budget(monkeypatch):
+    """confirm_top 2, confirm_rounds 3 (six refits): a and b refit to LR 100
+    (less 2k: 98); c scored 95 (93 >= 0.9·98) is confirmed with them in
+    round 1, d (50) is not. Nothing passes, so round 2 takes d and e and
+    round 3 only f: six refits in all, as without c's early turn; g never."""
+    stats = dict(zip("abcdefg", [99.0, 97.0, 95.0, 50.0, 40.0, 30.0, 20.0]))
+    cands = [SimpleNamespace(label=n, rank_key=i, statistic=stats[n], dof=1,
+                             confirmed_statistic=None) for i, n in enumerate("abcdefg")]
+    seen, logs = [], []
+
+    def fake_confirm(ctx, current, batch, scales, name, top=None, quiet=None):
+        seen.append([c.label for c in batch])
+        for c in batch:
+            c.confirmed_statistic = 100.0
+        return [(c, None) for c in batch]
+
+    monkeypatch.setattr(runner, "confirm_best", fake_confirm)
+    monkeypatch.setattr(runner, "accept_best", lambda *a, **k: None)
+    ctx = SimpleNamespace(settings=LoopSettings(params=[], search=SearchOptions(
+        confirm_top=2, confirm_rounds=3)), log=logs.append)
+    assert runner.confirm_in_rounds(ctx, None, None, cands, None, "g", 1) is None
+    assert seen == [["a", "b"], ["a", "b", "c"], ["d", "e"], ["f"]]
+    assert any(s.startswith("  c: scored within 10 % of the best confirmed") for s in logs)
 
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
