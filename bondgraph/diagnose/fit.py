@@ -800,9 +800,12 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
             why = "the free run from the smoothed initial state fits the record worse than " \
                   "from the prior mean, which starts with a transient"
         # no smoothed start the prior allows, or a poor one: fit one to the outputs
+        y0 = None if xs is x0 else sim          # the prior mean's run, when made above
         xs = _fitted_start(ctx, problem, theta, (hold, u_sim), x0, free, why)
         if xs is not x0:
-            return _better_start(ctx, problem, theta, (hold, u_sim), xs, x0)[0]
+            return _better_start(ctx, problem, theta, (hold, u_sim), xs, x0, y0=y0)[0]
+        if y0 is not None:
+            return y0
     return _free_run_from(ctx, problem, theta, (hold, u_sim), x0)
 
 
@@ -929,12 +932,13 @@ def _free_run_from(ctx: Context, problem: Problem, theta: np.ndarray, held: tupl
 
 
 def _better_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple,
-                  xs: np.ndarray, x0: np.ndarray, quiet: bool = False
-                  ) -> tuple[np.ndarray | None, bool]:
+                  xs: np.ndarray, x0: np.ndarray, quiet: bool = False,
+                  y0: np.ndarray | None = None) -> tuple[np.ndarray | None, bool]:
     """``(sim, True)``: the free run from the start ``xs``, unless the one
-    from the prior mean ``x0`` has the lower free-run NRMSE on the record's
-    outputs (:func:`~bondgraph.diagnose.metric.nrmse`): then ``(its run,
-    False)``, logged unless ``quiet``. A run from ``xs``
+    from the prior mean ``x0`` (``y0`` when already made) has the lower
+    free-run NRMSE on the record's outputs
+    (:func:`~bondgraph.diagnose.metric.nrmse`): then ``(its run, False)``,
+    logged unless ``quiet``. A run from ``xs``
     that fails or is not finite where the record is measured is returned as
     it is: the stability checks see it, a finite run from elsewhere does not
     hide it. The smoother's start is the best in the filter's sense, but
@@ -951,7 +955,8 @@ def _better_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
     ys = _free_run_from(ctx, problem, theta, held, xs)
     if failed(ys):
         return ys, True
-    y0 = _free_run_from(ctx, problem, theta, held, x0, quiet=True)
+    if y0 is None:
+        y0 = _free_run_from(ctx, problem, theta, held, x0, quiet=True)
     if failed(y0):
         return ys, True
     with np.errstate(all="ignore"):

@@ -19,11 +19,10 @@ from dataclasses import dataclass
 
 import sympy as sp
 
-from bondgraph.core.elements import I
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.effects.base import Scales, Target
 from bondgraph.diagnose.effects.laws import add_to_r_law
-from bondgraph.diagnose.effects.storage import add_to_storage_law
+from bondgraph.diagnose.effects.storage import add_to_storage_law, storage_variable
 from bondgraph.errors import GraphError
 
 
@@ -100,7 +99,6 @@ def install_probe(g: BondGraph, kind: str, name: str, term: sp.Expr) -> None:
         add_to_r_law(g, g.element(name), term)
     elif kind == "storage":
         el = g.element(name)
-        x = el.p if isinstance(el, I) else el.q
-        add_to_storage_law(el, term, sp.integrate(term, x))
+        add_to_storage_law(el, term, sp.integrate(term, storage_variable(el)))
     else:
         raise GraphError(f"unknown probe site kind '{kind}' (of '{name}')")

@@ -246,17 +246,14 @@ class CubicStiffness(Effect):
         return storage_targets(graph)
 
     def apply(self, graph, target, values=None, scales=None):
-        values = dict(values or {})
         el = graph.element(target.name)
         eu, _ = element_units(graph, el)
-        k3 = _new_param(graph, self.pname(target, "k3"), values.get("k3", 0.0),
-                        fill_unit("{effort}/{q}^3", effort=eu, q=storage_unit(graph, el)),
-                        (-1e15, 1e15), f"cubic stiffness of {target.name}")
-        add_to_storage_law(el, k3 * el.q**3, k3 * el.q**4 / 4)
-        return {"k3": k3}
+        return _add_cubic_term(graph, self, target, values,
+                               fill_unit("{effort}/{q}^3", effort=eu, q=storage_unit(graph, el)),
+                               "cubic stiffness")
 
     def basis(self, graph, target, scales):
-        return [graph.element(target.name).q ** 3]
+        return [storage_variable(graph.element(target.name)) ** 3]
 
     def box(self, graph, target, scales):
         m = scales.get("storage_max", target.name)
@@ -271,6 +268,25 @@ def add_to_storage_law(el: C | I, term: sp.Expr, energy: sp.Expr) -> None:
     el.law = el.law + term
     if el.energy is not None:
         el.energy = el.energy + energy
+
+
+def storage_variable(el: C | I) -> sp.Symbol:
+    """The energy variable of a storage element: an I's momentum, a C's
+    displacement."""
+    return el.p if isinstance(el, I) else el.q
+
+
+def _add_cubic_term(graph: BondGraph, eff: Effect, target, values, unit: str,
+                    what: str) -> dict:
+    """``eff``'s cubic term k3·x³ (energy k3·x⁴/4) in the law of the storage
+    element at ``target`` (x: :func:`storage_variable`), k3 a new parameter
+    in ``unit`` (start ``values["k3"]``, default 0)."""
+    el = graph.element(target.name)
+    x = storage_variable(el)
+    k3 = _new_param(graph, eff.pname(target, "k3"), dict(values or {}).get("k3", 0.0), unit,
+                    (-1e15, 1e15), f"{what} of {target.name}")
+    add_to_storage_law(el, k3 * x**3, k3 * x**4 / 4)
+    return {"k3": k3}
 
 
 class InductorSaturation(Effect):
@@ -292,17 +308,13 @@ class InductorSaturation(Effect):
         return inductor_targets(graph)
 
     def apply(self, graph, target, values=None, scales=None):
-        values = dict(values or {})
-        el = graph.element(target.name)
-        eu, fu = element_units(graph, el)
-        k3 = _new_param(graph, self.pname(target, "k3"), values.get("k3", 0.0),
-                        fill_unit("{flow}/({effort}*s)^3", flow=fu, effort=eu),
-                        (-1e15, 1e15), f"cubic flux-current coefficient of {target.name}")
-        add_to_storage_law(el, k3 * el.p**3, k3 * el.p**4 / 4)
-        return {"k3": k3}
+        eu, fu = element_units(graph, graph.element(target.name))
+        return _add_cubic_term(graph, self, target, values,
+                               fill_unit("{flow}/({effort}*s)^3", flow=fu, effort=eu),
+                               "cubic flux-current coefficient")
 
     def basis(self, graph, target, scales):
-        return [graph.element(target.name).p ** 3]
+        return [storage_variable(graph.element(target.name)) ** 3]
 
     def box(self, graph, target, scales):
         m = scales.get("storage_max", target.name)
