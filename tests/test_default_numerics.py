@@ -28,6 +28,7 @@ from bondgraph.inference.discretise import (
     CANDIDATES,
     choose_discretisation,
     declared_holds,
+    holds_against,
     input_holds,
     supported_hold,
 )
@@ -149,7 +150,7 @@ def test_explicit_options_win_and_the_warning_names_the_hold(record, capsys):
     ukf = res["settings"]["ukf"]
     assert (ukf["method"], ukf["substeps"], ukf["hold"]) == ("ros2", 2, "zoh")
     assert res["settings"]["discretisation_choice"]["start"] is None
-    hold = [w for w in res["warnings"] if "holds the inputs zoh" in w]
+    hold = [w for w in res["warnings"] if "the filter holds F zoh" in w]
     assert hold and "--hold linear" in hold[0] and "F: linear" in hold[0]
     # the zero-order hold's model error: c far off (the failure of issue 26)
     est = dict(zip(res["params"], res["estimates"]))
@@ -247,8 +248,14 @@ def test_hold_evidence_staircase_against_smooth_input():
     assert ev["const"].hold is None and ev["const"].source == "constant"
     assert supported_hold([ev["stair"], ev["const"]])[0] == "zoh"
     assert supported_hold([ev["smooth"], ev["ramps"], ev["const"]])[0] == "linear"
-    hold, why = supported_hold([ev["smooth"], ev["stair"], ev["prbs"]])
-    assert hold == "zoh" and "smooth is held zoh against its evidence" in why
+    # inputs that disagree are each held as their evidence says; a constant
+    # input takes the hold of the most of the others
+    hold, why = supported_hold([ev["smooth"], ev["stair"], ev["prbs"], ev["const"]])
+    assert hold == "linear,zoh,zoh,zoh" and "each input held as its evidence says" in why
+    assert holds_against([ev["smooth"], ev["stair"]], "zoh") == [ev["smooth"]]
+    assert holds_against([ev["smooth"], ev["stair"]], "mean,zoh") == []
+    assert holds_against([ev["smooth"], ev["stair"]], "zoh,linear") == [ev["smooth"],
+                                                                        ev["stair"]]
     assert supported_hold([ev["const"]]) == ("zoh", "no input changes (any hold is exact)")
     # a declaration wins over the shape
     dec = {h.name: h for h in input_holds(u, names, {"smooth": "zoh"})}

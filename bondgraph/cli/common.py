@@ -29,12 +29,12 @@ from bondgraph.inference.options import (
     P0_REL,
     P0_SCALES,
     UKF_BACKENDS,
-    UKF_HOLDS,
     UKF_METHODS,
     UKFOptions,
 )
 from bondgraph.inference.prior import PriorSpec
 from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
+from bondgraph.numerics.integrators import split_hold
 
 MODEL_HELP = ("model: a registered name (`bondgraph models`), module:function or "
               "path/to/file.py:function returning a BondGraph (modules are imported from "
@@ -208,12 +208,33 @@ def add_discretisation(p: argparse.ArgumentParser, *, chosen: bool = True) -> No
                    help=f"UKF discretisation of the state equations (default: {dflt})")
     p.add_argument("--substeps", type=int, default=None,
                    help=f"integrator steps per sample (default: {dflt})")
-    p.add_argument("--hold", choices=UKF_HOLDS, default=None,
+    p.add_argument("--hold", type=hold_argument, default=None, metavar="HOLD",
                    help="input over a sample interval: u_k (zoh), (u_k + u_k+1)/2 (mean), or "
                         "the first-order hold u_k + s (u_k+1 - u_k) (linear; for inputs sampled "
-                        "from a continuous signal). Default: "
+                        "from a continuous signal); one per input, comma-joined in the "
+                        "model's input order, holds each its own way (zoh,linear). Default: "
                         + (_CHOSEN_HELP if chosen else dflt))
     add_backend(p)
+
+
+def hold_argument(text: str) -> str:
+    """``--hold``: one of :data:`~bondgraph.inference.options.UKF_HOLDS`, or
+    one per input comma-joined (argparse's error names the option)."""
+    try:
+        split_hold(text)
+    except OptionError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text.replace(" ", "")
+
+
+def solver_hold_argument(text: str) -> str:
+    """``simulate --hold``: ``linear`` or ``zoh``, or one of them per input
+    comma-joined (the adaptive solvers have no ``mean`` hold)."""
+    text = hold_argument(text)
+    if "mean" in split_hold(text):
+        raise argparse.ArgumentTypeError(f"{text!r}: the adaptive solvers hold an input "
+                                         f"linear or zoh")
+    return text
 
 
 #: how a command that chooses its numerics fills in --method/--substeps/--hold
@@ -429,6 +450,12 @@ def chosen_problem(problem: Problem, args, theta=None, *, where: str = "at the s
         A bad value of a given option, named as typed.
     """
     given = discretisation_given(args)
+    if "hold" in given:
+        model = problem.model
+        try:
+            split_hold(given["hold"], model.n_u)
+        except OptionError as e:
+            raise OptionError(f"--hold: {e} ({', '.join(model.inputs) or 'none'})") from None
     if len(given) == 3:
         return problem, None
     choice = choose_discretisation(problem, problem.theta if theta is None else theta,

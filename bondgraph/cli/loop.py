@@ -45,6 +45,7 @@ from bondgraph.inference.estimand import x0_state_names
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf_numba import compile_in_background
 from bondgraph.numerics.registry import graph_builder
+from bondgraph.numerics.integrators import split_hold
 from bondgraph.report.loop_report import LoopReporter
 
 #: the case run by ``bondgraph loop`` without arguments
@@ -356,7 +357,8 @@ def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings
                                 say=lambda line: print("bondgraph loop: " + line, flush=True))
     d = problem.disc
     ukf = dataclasses.replace(settings.ukf, method=d.method, substeps=d.substeps, hold=d.hold)
-    hold = d.hold if d.hold in ("zoh", "linear") else settings.free_run.hold
+    hold = (d.hold if set(split_hold(d.hold)) <= {"zoh", "linear"}
+            else settings.free_run.hold)
     return dataclasses.replace(settings, ukf=ukf,
                                search=dataclasses.replace(settings.search, auto_substeps=True),
                                free_run=dataclasses.replace(settings.free_run, hold=hold,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bondgraph.cli.common import add_model, load_model, parse_pairs
+from bondgraph.cli.common import add_model, load_model, parse_pairs, solver_hold_argument
 from bondgraph.core import atomic
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.data.experiments import get_experiment, run_experiment
@@ -45,8 +45,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rtol", type=float, default=1e-8)
     p.add_argument("--atol", type=float, default=1e-10)
     p.add_argument("--max-step", type=float, default=None, help="adaptive solvers' largest step")
-    p.add_argument("--hold", choices=("linear", "zoh"), default="linear",
-                   help="sampled inputs between samples for adaptive solvers")
+    p.add_argument("--hold", type=solver_hold_argument, default="linear", metavar="HOLD",
+                   help="sampled inputs between samples for adaptive solvers: linear or zoh, "
+                        "or one of them per input comma-joined in the model's input order "
+                        "(zoh,linear); the record written declares it per input")
     p.add_argument("--noise", action="store_true",
                    help="write a noisy synthetic record: with a registered experiment its own "
                         "noise and seed (e.g. `bondgraph simulate mass_spring_damper -e "

@@ -26,6 +26,7 @@ from bondgraph.data.binding import STATE_PREFIX
 from bondgraph.data.record_io import GAP_FACTOR, check_time, format_header
 from bondgraph.errors import DataError
 from bondgraph.numerics.model import Model
+from bondgraph.numerics.integrators import split_hold
 
 
 # --------------------------------------------------------------- the class
@@ -231,8 +232,10 @@ class Experiment:
         """
         m = sim.model
         hold = sim.stats.get("hold")
-        held = {"columns": {n: {"hold": hold} for n in m.inputs
-                            if not n.startswith("der(")}} if hold in ("zoh", "linear") else {}
+        holds = split_hold(hold, m.n_u) if isinstance(hold, str) else ()
+        held = ({"columns": {n: {"hold": h} for n, h in zip(m.inputs, holds)
+                             if not n.startswith("der(")}}
+                if holds and set(holds) <= {"zoh", "linear"} else {})
         info = {
             "name": name or f"{m.name}_sim",
             "description": f"noise-free simulation of {m.name} ({sim.method})",

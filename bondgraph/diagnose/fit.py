@@ -45,6 +45,7 @@ from bondgraph.errors import BondGraphError, NumericalError
 from bondgraph.core.equations import derive
 from bondgraph.numerics.admissible import Admissibility, check_admissible
 from bondgraph.numerics.model import Model
+from bondgraph.numerics.integrators import join_hold, split_hold
 from bondgraph.numerics.simulate import simulate
 
 #: generated functions of every model the loop builds
@@ -756,12 +757,15 @@ def sim_inputs(settings: LoopSettings, filter_hold: str, u: np.ndarray) -> tuple
     interval means, the last sample held), so that the free run sees the
     inputs between samples as the likelihood fit did."""
     hold = settings.free_run.hold if settings.free_run.hold != "filter" else filter_hold
-    if hold != "mean":
+    u = np.asarray(u, dtype=float)
+    holds = split_hold(hold, u.shape[1])
+    if "mean" not in holds:
         return hold, u
     um = u.copy()
-    if len(um) > 1:
-        um[:-1] = 0.5 * (u[:-1] + u[1:])
-    return "zoh", um
+    for j, h in enumerate(holds):
+        if h == "mean" and len(um) > 1:
+            um[:-1, j] = 0.5 * (u[:-1, j] + u[1:, j])
+    return join_hold("zoh" if h == "mean" else h for h in holds), um
 
 
 def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,

@@ -27,6 +27,7 @@ from bondgraph.errors import OptionError
 from bondgraph.inference.executor import scheduler_address
 from bondgraph.inference.options import NOISE_MODES, Evaluation, UKFOptions
 from bondgraph.inference.prior import PriorSpec
+from bondgraph.numerics.integrators import HOLD_SEPARATOR
 from bondgraph.numerics.simulate import METHODS
 
 #: the built-in error measures (``LoopSettings.metric``; bondgraph.diagnose.metric)
@@ -95,6 +96,13 @@ def _level(obj, name: str, *, optional: bool = False, closed: bool = False) -> N
         span = "(0, 1]" if closed else "(0, 1)"
         raise OptionError(f"{type(obj).__name__}.{name} must lie in {span}"
                           f"{' or be None' if optional else ''}, got {v!r}")
+
+
+def per_input_of(hold, allowed: tuple) -> bool:
+    """Whether ``hold`` is one of ``allowed`` per input, comma-joined
+    (:func:`bondgraph.numerics.integrators.split_hold`)."""
+    return (isinstance(hold, str) and HOLD_SEPARATOR in hold
+            and all(h.strip() in allowed for h in hold.split(HOLD_SEPARATOR)))
 
 
 def _choice(obj, name: str, choices: tuple) -> None:
@@ -295,10 +303,11 @@ class FreeRunOptions:
         filter's own method at 4 times its substeps, fixed-step
         (:func:`bondgraph.diagnose.inference_calls.fine_free_run`; a user's
         graph and record get it with the chosen discretisation).
-    hold : {"linear", "zoh", "filter"}
+    hold : {"linear", "zoh", "filter"} or str
         How the free runs read the sampled inputs between samples: linear
         interpolation (default), zero-order hold (inputs that are held by a
-        DAC: steps, PRBS), or ``"filter"``, the filter's own hold
+        DAC: steps, PRBS), one of these per input comma-joined in the
+        model's input order (``"zoh,linear"``), or ``"filter"``, the filter's own hold
         (``ukf.hold``), so that the free-run error judges the model as the
         likelihood fitted it (:func:`bondgraph.diagnose.fit.sim_inputs`).
     """
@@ -308,7 +317,8 @@ class FreeRunOptions:
 
     def __post_init__(self):
         _choice(self, "method", FREE_RUN_METHODS)
-        _choice(self, "hold", FREE_RUN_HOLDS)
+        if not (self.hold == "filter" or per_input_of(self.hold, ("linear", "zoh"))):
+            _choice(self, "hold", FREE_RUN_HOLDS)
 
 
 @dataclass(frozen=True)

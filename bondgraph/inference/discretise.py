@@ -13,7 +13,9 @@ Two questions, answered from two kinds of evidence:
   previous or the next one with a similar step is a sampled continuous
   signal, interpolated (``"linear"``); changes that are neither (a sequence
   that jumps at every sample) give no evidence for interpolation, so they are
-  held.
+  held. Each input is held as its own evidence says: a record with a
+  digital command beside a sampled continuous signal gets a per-input hold
+  (``"zoh,linear"``, :func:`supported_hold`).
 * **The step** (method and substeps). The candidates
   (:data:`CANDIDATES`, cheapest first) are compared with a fine RK4 reference
   of the same hold, one step from the reference state at every sample
@@ -44,12 +46,13 @@ import numpy as np
 
 from bondgraph.data.record_io import INPUT_HOLDS
 from bondgraph.errors import OptionError
-from bondgraph.inference.options import UKF_HOLDS, UKF_METHODS, Discretisation
+from bondgraph.inference.options import UKF_METHODS, Discretisation
 from bondgraph.inference.ukf import discretisation_errors
+from bondgraph.numerics.integrators import is_per_input, join_hold, split_hold
 
 __all__ = ["BIAS_TOLERANCE", "CANDIDATES", "DECLARED_HOLDS", "TOLERANCE", "DiscretisationChoice",
            "InputHold", "check_discretisation", "choose_discretisation", "declared_holds",
-           "input_holds", "no_process_noise", "supported_hold"]
+           "holds_against", "input_holds", "no_process_noise", "supported_hold"]
 
 #: the largest accepted one-step discretisation error, in measurement-noise
 #: standard deviations per sample
@@ -248,45 +251,62 @@ def _shape_hold(name: str, col: np.ndarray) -> InputHold:
 
 
 def supported_hold(inputs: Sequence[InputHold]) -> tuple[str, str]:
-    """The one hold of the filter (all inputs alike) that the evidence
-    supports, and why.
+    """The filter's hold that the evidence supports, and why: each input held
+    as its own evidence says.
 
-    Inputs that never change have no say. When the others agree, their
-    hold; when they disagree, the hold of the larger number of inputs, a
-    declared input counting as one and an input judged by its shape by its
-    share for that hold (a tie: ``"zoh"``, the sampled-data convention);
-    the reason then names the inputs held against their evidence.
+    Inputs that never change have no say: any hold is exact for them, and
+    they take the hold of the inputs that do change (of the most of them; a
+    tie: ``"zoh"``, the sampled-data convention). When the changing inputs
+    agree, the hold is that one name; when they disagree, one per input
+    (``"zoh,linear"``, :func:`bondgraph.numerics.integrators.split_hold`),
+    which every filter, free run and check holds column by column.
 
     Parameters
     ----------
     inputs : sequence of InputHold
+        One per model input, in the model's input order.
 
     Returns
     -------
-    hold : {"zoh", "linear"}
+    hold : str
+        ``"zoh"``, ``"linear"``, or one of them per input comma-joined.
     reason : str
         One clause for a log line.
     """
     said = [h for h in inputs if h.hold is not None]
     if not said:
         return "zoh", "no input changes (any hold is exact)"
-    holds = {h.hold for h in said}
-    if len(holds) == 1:
-        hold = holds.pop()
-        return hold, "; ".join(h.describe() for h in said)
-    votes = {"zoh": 0.0, "linear": 0.0}
+    count = {"zoh": 0, "linear": 0}
     for h in said:
-        if h.source == "declared":
-            votes[h.hold] += 1.0
-        else:
-            votes["linear"] += h.continuing
-            votes["zoh"] += 1.0 - h.continuing
-    hold = "linear" if votes["linear"] > votes["zoh"] else "zoh"
-    against = [h.name for h in said if h.hold != hold]
-    return hold, ("; ".join(h.describe() for h in said)
-                  + f" — the filter holds every input alike, so {', '.join(against)} "
-                    f"{'is' if len(against) == 1 else 'are'} held {hold} against "
-                    f"{'its' if len(against) == 1 else 'their'} evidence")
+        count[h.hold] += 1
+    rest = "linear" if count["linear"] > count["zoh"] else "zoh"
+    hold = join_hold([h.hold if h.hold is not None else rest for h in inputs])
+    reason = "; ".join(h.describe() for h in said)
+    if is_per_input(hold):
+        reason += " — each input held as its evidence says"
+    return hold, reason
+
+
+def holds_against(inputs: Sequence[InputHold], hold: str) -> list[InputHold]:
+    """The inputs with evidence that ``hold`` holds against it: zero-order
+    where the evidence says linear, or interpolated (``"mean"`` or
+    ``"linear"``) where it says zoh.
+
+    Parameters
+    ----------
+    inputs : sequence of InputHold
+        One per model input, in order.
+    hold : str
+        A filter hold, one name or one per input.
+
+    Raises
+    ------
+    OptionError
+        An unknown hold, or a per-input hold of another length.
+    """
+    holds = split_hold(hold, len(inputs))
+    return [h for h, fh in zip(inputs, holds)
+            if h.hold is not None and ("zoh" if fh == "zoh" else "linear") != h.hold]
 
 
 @dataclass(frozen=True)
@@ -524,7 +544,7 @@ def _hold_for(inputs, given: dict) -> tuple[str, str]:
         return supported_hold(inputs)
     hold, reason = given["hold"], f"given (--hold {given['hold']})"
     support, _ = supported_hold(inputs)
-    if hold in DECLARED_HOLDS and support != hold and any(h.hold is not None for h in inputs):
+    if "mean" not in split_hold(hold) and holds_against(inputs, hold):
         reason += f"; the record supports {support}"
     return hold, reason
 
@@ -537,8 +557,11 @@ def _check_given(given: dict, tolerance: float) -> None:
                           f"(method, substeps, hold)")
     if "method" in given and given["method"] not in UKF_METHODS:
         raise OptionError(f"--method {given['method']!r} is not one of {', '.join(UKF_METHODS)}")
-    if "hold" in given and given["hold"] not in UKF_HOLDS:
-        raise OptionError(f"--hold {given['hold']!r} is not one of {', '.join(UKF_HOLDS)}")
+    if "hold" in given:
+        try:
+            split_hold(given["hold"])
+        except OptionError as e:
+            raise OptionError(f"--hold: {e}") from None
     s = given.get("substeps", 1)
     if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 1:
         raise OptionError(f"--substeps must be an integer >= 1, got {s!r}")

@@ -60,6 +60,7 @@ from bondgraph.inference.discretise import (
     choose_discretisation,
     comparison_sigma,
     declared_holds,
+    holds_against,
     input_holds,
     no_process_noise,
     supported_hold,
@@ -964,8 +965,9 @@ def hold_warning(problem: Problem, hold: str) -> str | None:
     Parameters
     ----------
     problem : Problem
-    hold : {"zoh", "mean", "linear"}
-        The filter's hold (``"mean"`` counts as an interpolating hold).
+    hold : str
+        The filter's hold, one name or one per input (``"mean"`` counts as
+        an interpolating hold).
 
     Returns
     -------
@@ -973,22 +975,22 @@ def hold_warning(problem: Problem, hold: str) -> str | None:
     """
     names = problem.model.inputs
     inputs = input_holds(problem.u, names, declared_holds(problem.record, names))
-    if not any(h.hold is not None for h in inputs):
+    against = holds_against(inputs, hold)
+    if not against:
         return None
-    support, reason = supported_hold(inputs)
-    family = "zoh" if hold == "zoh" else "linear"
-    if family == support:
-        return None
-    if support == "linear":
-        return (f"the filter holds the inputs zoh, but {reason}: the zero-order hold lags such "
-                f"an input by half a sample, a model error that biases the estimate and that "
+    support, _ = supported_hold(inputs)
+    fix = f"use hold='{support}' (--hold {support}, or leave --hold out to have it chosen)"
+    lagged = [h for h in against if h.hold == "linear"]
+    if lagged:
+        return (f"the filter holds {', '.join(h.name for h in lagged)} zoh, but "
+                f"{'; '.join(h.describe() for h in against)}: the zero-order hold lags such an "
+                f"input by half a sample, a model error that biases the estimate and that "
                 f"neither the discretisation check nor the NLL guard can see (their references "
-                f"hold the input alike); use hold='linear' (--hold linear, or leave --hold out "
-                f"to have it chosen)")
-    return (f"the filter holds the inputs {hold}, but {reason}: that hold spreads each step "
-            f"of a held input over the sample before it, a model error that biases the "
-            f"estimate and that neither the discretisation check nor the NLL guard can see; "
-            f"use hold='zoh' (--hold zoh, or leave --hold out to have it chosen)")
+                f"hold the input alike); {fix}")
+    return (f"the filter interpolates {', '.join(h.name for h in against)} ({hold}), but "
+            f"{'; '.join(h.describe() for h in against)}: that hold spreads each step of a "
+            f"held input over the sample before it, a model error that biases the estimate "
+            f"and that neither the discretisation check nor the NLL guard can see; {fix}")
 
 
 def _guard_message(guard: dict, ukf: UKFOptions) -> str:

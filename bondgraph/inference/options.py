@@ -40,6 +40,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from bondgraph.errors import OptionError
+from bondgraph.numerics.integrators import split_hold
 
 #: discretisations of the UKF's prediction (bondgraph.numerics.integrators)
 UKF_METHODS = ("ros2", "rk4")
@@ -118,7 +119,10 @@ def _discretisation_fields(obj) -> None:
     :class:`Discretisation` and :class:`UKFOptions`)."""
     _choice(obj, "method", UKF_METHODS)
     _integer(obj, "substeps", 1)
-    _choice(obj, "hold", UKF_HOLDS)
+    try:
+        split_hold(obj.hold)
+    except OptionError as e:
+        raise OptionError(f"{type(obj).__name__}.hold: {e}") from None
     _choice(obj, "backend", UKF_BACKENDS)
     if obj.backend == "numba" and importlib.util.find_spec("numba") is None:
         raise OptionError(f"{type(obj).__name__}.backend = 'numba' but numba is not installed "
@@ -140,8 +144,9 @@ class Discretisation:
         L-stable linearly implicit Rosenbrock method or classical RK4.
     substeps : int
         Steps per sample interval (>= 1).
-    hold : {"zoh", "mean", "linear"}
-        The input over an interval (:func:`bondgraph.numerics.integrators.hold_inputs`).
+    hold : {"zoh", "mean", "linear"} or str
+        The input over an interval (:func:`bondgraph.numerics.integrators.hold_inputs`); one
+        per input joined by commas (``"zoh,linear"``) holds each input its own way.
     backend : {"numba", "numpy"}
         Compiled kernels or the numpy reference (equal to rounding).
 
@@ -205,7 +210,7 @@ class UKFOptions:
         ROS2 only: df/dx once per parameter set at the central sigma point,
         shared by its sigma points (a W-method, second order for any J), or
         at every sigma point.
-    hold : {"zoh", "mean", "linear"}
+    hold : {"zoh", "mean", "linear"} or str
         Input over a prediction interval [t_k, t_k+1]: ``u_k`` (zero-order
         hold, the sampled-data convention), ``(u_k + u_k+1)/2`` (the
         interval mean of a linearly interpolated input) or the first-order
@@ -215,6 +220,8 @@ class UKFOptions:
         sample on average: a model error that biases inertias (the vehicle's
         engine inertia came out 3 % = 4 standard deviations low on the
         synthetic throttle-steps record with "zoh", within 1 with "mean").
+        One hold per input, comma-joined in the model's input order
+        (``"zoh,linear"``), holds each input its own way.
     backend : {"numba", "numpy"}
         The fused, compiled UKF kernel (:mod:`bondgraph.inference.ukf_numba`,
         parallel over parameter sets) or the batched numpy filter, the

@@ -38,7 +38,7 @@ from bondgraph.errors import ModelError, OptionError
 from bondgraph.inference import sim_numba, ukf_numba
 from bondgraph.inference.options import P0_REL, P0_SCALES, Discretisation
 from bondgraph.numerics import compiled
-from bondgraph.numerics.integrators import hold_inputs, make_step, simulate_batch
+from bondgraph.numerics.integrators import hold_inputs, is_per_input, make_step, simulate_batch
 
 #: ``rule`` strings of :meth:`PriorSpec.mean`
 RULE_GIVEN = "given"
@@ -145,7 +145,8 @@ def free_run_kernels(model, backend: str, method: str, hold: str):
     kernels that do not load (the backend is the caller's choice, taken
     literally: never the state of the kernel cache)."""
     if (backend != "numba" or not compiled.NUMBA_AVAILABLE
-            or method not in ukf_numba.METHOD_CODES or hold not in ukf_numba.HOLD_CODES
+            or method not in ukf_numba.METHOD_CODES
+            or not (hold in ukf_numba.HOLD_CODES or is_per_input(hold))
             or not hasattr(model, "module")):
         return None
     try:

@@ -24,8 +24,8 @@ import numpy as np
 
 from bondgraph.inference.ukf_numba import (
     FASTMATH,
-    HOLD_CODES,
     METHOD_CODES,
+    kernel_inputs,
     _all_finite,
     _compiled_once,
     _held_input,
@@ -78,17 +78,18 @@ def trajectory_kernel():
 def rk4_trajectory(kernels, t, u, hold: str, theta, x0, substeps: int) -> np.ndarray:
     """States (N, n_x) of the noise-free trajectory from ``x0`` by classical
     RK4 with ``substeps`` steps per sample interval, the inputs ``u`` (N, n_u)
-    held as ``hold`` says (:data:`HOLD_CODES`), with a model's compiled point
-    kernels (:class:`bondgraph.numerics.compiled.PointKernels`): the
+    held as ``hold`` says (:func:`~bondgraph.inference.ukf_numba.kernel_inputs`), with a
+    model's compiled point kernels (:class:`bondgraph.numerics.compiled.PointKernels`): the
     arithmetic of :func:`bondgraph.numerics.integrators.rk4`, sample by
     sample, without a Python call per stage."""
     c = np.ascontiguousarray
     x0 = c(x0, dtype=float)
     n = x0.size
     xr = np.empty((np.asarray(t).size, n))
-    trajectory_kernel()(kernels.f, c(t, dtype=float), c(u, dtype=float), HOLD_CODES[hold],
+    uk, code = kernel_inputs(u, hold)
+    trajectory_kernel()(kernels.f, c(t, dtype=float), uk, code,
                         c(theta, dtype=float), x0, int(substeps), xr, np.zeros((6, n)),
-                        np.zeros(max(np.asarray(u).shape[1], 1)))
+                        np.zeros(max(uk.shape[1], 1)))
     return xr
 
 
@@ -158,7 +159,8 @@ def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str,
     kernels : bondgraph.numerics.compiled.PointKernels
     t, u : arrays (N,), (N, n_u)
     hold : str
-        A key of :data:`HOLD_CODES`.
+        A key of :data:`~bondgraph.inference.ukf_numba.HOLD_CODES`, or a per-input hold
+        (:func:`~bondgraph.inference.ukf_numba.kernel_inputs`).
     theta, x0 : arrays (n_theta,), (n_x,)
     method : {"rk4", "ros2"}
     substeps : int
@@ -174,7 +176,8 @@ def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str,
     n = x0.size
     u = c(u, dtype=float).reshape(np.size(t), -1) if np.size(u) else np.zeros((np.size(t), 0))
     acc = np.zeros(n)
-    count = free_run_kernel()(kernels.f, kernels.f_dfdx, c(t, dtype=float), u, HOLD_CODES[hold],
+    u, code = kernel_inputs(u, hold)
+    count = free_run_kernel()(kernels.f, kernels.f_dfdx, c(t, dtype=float), u, code,
                               c(theta, dtype=float), x0, METHOD_CODES[method], int(substeps),
                               acc, (np.zeros((8, n)), np.zeros(max(u.shape[1], 1)),
                                     np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, 2 * n)),

@@ -75,7 +75,7 @@ from bondgraph.inference.sigma import (
     unscented_moments,
 )
 from bondgraph.numerics.compiled import point_kernels
-from bondgraph.numerics.integrators import hold_inputs, make_step
+from bondgraph.numerics.integrators import hold_inputs, is_per_input, make_step
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -951,7 +951,8 @@ def _compiled_rk4(model, t, u, hold, th, x, substeps) -> np.ndarray | None:
     """The RK4 reference (N, n_x) by the compiled trajectory kernel, or None
     (numpy then) when numba, the model's kernels or the hold are
     unavailable."""
-    if not (ukf_numba.numba is not None and hold in ukf_numba.HOLD_CODES
+    if not (ukf_numba.numba is not None
+            and (hold in ukf_numba.HOLD_CODES or is_per_input(hold))
             and hasattr(model, "module")):
         return None
     try:

@@ -67,7 +67,11 @@ bit (the equality tests allow 1e-9 relative).
 The input hold over a sample interval is one small function,
 :func:`_held_input` (codes :data:`HOLD_CODES`); a hold that varies within
 the interval gets a code from :data:`FIRST_VARYING_HOLD` on and is then
-evaluated at every stage time of the integrators.
+evaluated at every stage time of the integrators. A hold that differs
+between inputs (``"zoh,linear"``) is code :data:`PER_INPUT_HOLD`: the record
+then carries three blocks of columns (:func:`kernel_inputs`), the samples
+(what the measurement function reads), each interval's start and its change
+(:func:`bondgraph.numerics.integrators.hold_inputs`).
 
 References
 ----------
@@ -98,7 +102,7 @@ import numpy as np
 from bondgraph.core.codegen_numba import padded_points
 from bondgraph.core.progress import announced
 from bondgraph.numerics.compiled import ahead_workers, cache_dir
-from bondgraph.numerics.integrators import GAMMA
+from bondgraph.numerics.integrators import GAMMA, hold_inputs, is_per_input, split_hold
 
 try:  # numba is a regular dependency; the numpy path is the fallback without it
     import numba
@@ -127,6 +131,9 @@ JACOBIAN_CODES = {"mean": 0, "sigma": 1, "each": 2}
 HOLD_CODES = {"zoh": 0, "mean": 1, "linear": 2}
 #: holds with codes from here on vary within the interval (evaluated per stage)
 FIRST_VARYING_HOLD = 2
+#: code of a hold that differs between inputs: the record's u is
+#: (N, 3 n_u), [samples, interval start, interval change] (:func:`kernel_inputs`)
+PER_INPUT_HOLD = 3
 #: layout of the integer options array of the kernel
 IOPT = ("method", "substeps", "jacobian", "hold", "use_R", "use_Q", "store")
 #: LLVM fast-math flags of the kernel: reassociation (vectorised sums),
@@ -539,7 +546,13 @@ def _held_input(u, k, frac, hold, out):
     it (numpy: :func:`bondgraph.numerics.integrators.hold_inputs`): hold 0
     (zoh) u_k; 1 (mean) (u_k + u_k+1)/2; 2 (linear, first-order hold)
     u_k + frac·(u_k+1 − u_k); u_k on the last row. A new hold is one more
-    branch here (and a code in HOLD_CODES)."""
+    branch here (and a code in HOLD_CODES). Hold 3 (:data:`PER_INPUT_HOLD`,
+    u of three blocks, :func:`kernel_inputs`): start + frac·change."""
+    if hold == 3:
+        m = u.shape[1] // 3
+        for j in range(m):
+            out[j] = u[k, m + j] + frac * u[k, 2 * m + j]
+        return
     last = k + 1 >= u.shape[0]
     for j in range(u.shape[1]):
         if hold == 1 and not last:
@@ -1226,9 +1239,43 @@ def unsupported(opts) -> str | None:
     """Why the kernel cannot run with UKFOptions ``opts`` (None if it can)."""
     for name, codes in (("method", METHOD_CODES), ("jacobian", JACOBIAN_CODES),
                         ("hold", HOLD_CODES)):
+        if name == "hold" and is_per_input(opts.hold):
+            continue
         if getattr(opts, name) not in codes:
             return f"the numba kernel has no {name} {getattr(opts, name)!r}; numpy ran instead"
     return None
+
+
+def kernel_inputs(u, hold: str) -> tuple[np.ndarray, int]:
+    """The inputs as the kernels take them, and the hold's code.
+
+    Parameters
+    ----------
+    u : array (N, n_u)
+    hold : str
+        One of :data:`HOLD_CODES`, or a per-input hold (``"zoh,linear"``,
+        :func:`bondgraph.numerics.integrators.split_hold`).
+
+    Returns
+    -------
+    u_kernel : ndarray (N, n_u), or (N, 3 n_u) for a per-input hold
+        C-contiguous floats; a per-input hold's three blocks are the
+        samples, each interval's start and its change
+        (:func:`bondgraph.numerics.integrators.hold_inputs`).
+    code : int
+
+    Raises
+    ------
+    OptionError
+        An unknown hold, or a per-input hold of the wrong length.
+    """
+    u = np.asarray(u, dtype=float)
+    if not is_per_input(hold):
+        split_hold(hold)
+        return np.ascontiguousarray(u), HOLD_CODES[hold]
+    held = hold_inputs(u, hold)
+    change = held.change if held.change is not None else np.zeros_like(u)
+    return np.ascontiguousarray(np.hstack([u, held.start, change])), PER_INPUT_HOLD
 
 
 def _empty_store() -> tuple:
@@ -1269,8 +1316,9 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
         return compile_s
     c = np.ascontiguousarray
     n, ny = batch.x.shape[1], y.shape[1]
+    u, hold_code = kernel_inputs(u, opts.hold)
     ip = np.array([METHOD_CODES[opts.method], opts.substeps, JACOBIAN_CODES[opts.jacobian],
-                   HOLD_CODES[opts.hold], batch.R is not None, batch.Q is not None,
+                   hold_code, batch.R is not None, batch.Q is not None,
                    0 if kept is None else (2 if kept.P_filt is not None else 1)], dtype=np.int64)
     fp = np.array([wts.c, wts.w, wts.center_cov])
     R = c(batch.R, dtype=float) if batch.R is not None else np.zeros((1, ny, ny))
@@ -1354,7 +1402,9 @@ class StepKernel:
         n, ny = batch.x.shape[1], (batch.Rd.shape[1] if batch.Rd is not None
                                     else batch.R.shape[1])
         c = np.ascontiguousarray
-        self.t, self.u, self.y = np.zeros(2), np.zeros((2, n_u)), np.full((2, ny), np.nan)
+        self.hold = opts.hold
+        u0, hold_code = kernel_inputs(np.zeros((2, n_u)), opts.hold)
+        self.t, self.u, self.y = np.zeros(2), u0, np.full((2, ny), np.nan)
         self.recs = (Record(self.t[1:], self.u[1:], self.y[1:]), Record(self.t, self.u, self.y))
         R = c(batch.R, dtype=float) if batch.R is not None else np.zeros((1, ny, ny))
         Rd = c(batch.Rd, dtype=float) if batch.Rd is not None else np.zeros((1, ny))
@@ -1362,7 +1412,7 @@ class StepKernel:
         self.sets = Sets(c(batch.th, dtype=float), np.zeros((1, n)), np.zeros((1, n, n)),
                          c(batch.q2, dtype=float), Rd, R, Q, np.zeros(1, dtype=np.int64))
         self.opts = (np.array([METHOD_CODES[opts.method], opts.substeps,
-                               JACOBIAN_CODES[opts.jacobian], HOLD_CODES[opts.hold],
+                               JACOBIAN_CODES[opts.jacobian], hold_code,
                                batch.R is not None, batch.Q is not None, 2], dtype=np.int64),
                      np.array([wts.c, wts.w, wts.center_cov]))
         self.out = Outputs(np.zeros(1), np.zeros((1, 3), dtype=np.int64))
@@ -1370,7 +1420,7 @@ class StepKernel:
                    np.full((2, 1, ny), np.nan), np.full((2, 1, ny), np.nan),
                    np.full((2, 1, n), np.nan), np.full((2, 1, n, n), np.nan),
                    np.zeros((2, 1)), np.full((2, 1), np.nan))
-        nf, ni = _work_size(n, ny, n_u, batch.th.shape[1])
+        nf, ni = _work_size(n, ny, u0.shape[1], batch.th.shape[1])
         self.bufs = (np.zeros((1, nf)), np.zeros((1, ni), dtype=np.int64))
         self.fns = point_fns(kernels)
         self.call = _entry(self.kern)
@@ -1386,9 +1436,14 @@ class StepKernel:
         (nll term [nats], failure reason or None)
         """
         first = t_prev is None
+        if self.u.shape[1] != np.size(u_now):        # a per-input hold's three blocks
+            pair = np.stack([u_now if first else u_prev, u_now]).astype(float)
+            self.u[:] = kernel_inputs(pair, self.hold)[0]
+        elif not first:
+            self.u[0] = u_prev
         if not first:
-            self.t[0], self.u[0] = t_prev, u_prev
-        self.t[1], self.u[1], self.y[1] = t_now, u_now, y
+            self.t[0] = t_prev
+        self.t[1], self.u[1, :np.size(u_now)], self.y[1] = t_now, u_now, y
         self.sets.x0[0] = x
         self.sets.P0[0] = P
         with _first_class_quiet():

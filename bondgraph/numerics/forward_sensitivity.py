@@ -35,6 +35,7 @@ import numpy as np
 from scipy.integrate import OdeSolver, solve_ivp
 
 from bondgraph.errors import DataError, NumericalError, OptionError, SensitivityError
+from bondgraph.numerics.integrators import HOLD_SEPARATOR
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import InputSignals, Runaway, _vector, guard_rhs
 
@@ -68,9 +69,11 @@ def check_solver_fields(obj) -> None:
                 or v <= 0):
             raise OptionError(f"{cls}.{name} must be a finite number > 0, got {v!r}")
         object.__setattr__(obj, name, float(v))
-    if obj.hold not in SOLVER_HOLDS:
+    holds = obj.hold.split(HOLD_SEPARATOR) if isinstance(obj.hold, str) else [obj.hold]
+    if any(h.strip() not in SOLVER_HOLDS for h in holds):
         raise OptionError(f"{cls}.hold = {obj.hold!r} is not one of "
-                          f"{', '.join(repr(h) for h in SOLVER_HOLDS)}")
+                          f"{', '.join(repr(h) for h in SOLVER_HOLDS)} (or one of them per "
+                          f"input, joined by commas)")
 
 
 @dataclass(frozen=True)
@@ -444,7 +447,7 @@ def _integrate(model, t, sig, th, cols: _Columns, x_init, hold, kw):
         A segment that fails or turns non-finite.
     """
     N, n, c = t.size, model.n_x, cols.count
-    if hold == "zoh":
+    if sig.zoh_columns():
         bounds = list(sig.change_points()) + [N - 1]
         segments = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
     else:

@@ -215,6 +215,65 @@ def make_step(model, method: str = "ros2", substeps: int = 1, *,
 
 #: input holds over a sample interval (see :func:`hold_inputs`)
 HOLDS = ("zoh", "mean", "linear")
+#: separator of a per-input hold: ``"zoh,linear"`` holds the first input
+#: zero-order and the second linearly (:func:`split_hold`)
+HOLD_SEPARATOR = ","
+
+
+def split_hold(hold: str, n_u: int | None = None) -> tuple[str, ...]:
+    """The hold of each input that ``hold`` names.
+
+    A hold is one of :data:`HOLDS` for every input alike, or one of them per
+    input, in the model's input order, joined by commas (``"zoh,linear"``:
+    a digital command held between samples beside a sampled continuous
+    signal).
+
+    Parameters
+    ----------
+    hold : str
+    n_u : int, optional
+        The number of inputs; a per-input hold must name exactly that many.
+
+    Returns
+    -------
+    tuple of str
+        ``n_u`` holds (one entry for a uniform hold when ``n_u`` is None).
+
+    Raises
+    ------
+    OptionError
+        Not a string, an unknown hold (named), or a per-input hold of the
+        wrong length.
+    """
+    if not isinstance(hold, str):
+        raise OptionError(f"an input hold is a string, got {hold!r}")
+    parts = tuple(h.strip() for h in hold.split(HOLD_SEPARATOR))
+    bad = [h for h in parts if h not in HOLDS]
+    if bad:
+        raise OptionError(f"unknown input hold {bad[0]!r} in {hold!r} (use "
+                          f"{', '.join(repr(h) for h in HOLDS)}, or one per input joined by "
+                          f"commas, e.g. 'zoh,linear')")
+    if len(parts) == 1:
+        return parts if n_u is None else parts * int(n_u)
+    if n_u is not None and len(parts) != n_u:
+        raise OptionError(f"the per-input hold {hold!r} names {len(parts)} holds for {n_u} "
+                          f"input(s); give one per input, in the model's input order")
+    return parts
+
+
+def join_hold(holds) -> str:
+    """The hold string of per-input ``holds``: the one name when they agree
+    (or there is no input), else :data:`HOLD_SEPARATOR`-joined
+    (:func:`split_hold` inverts it)."""
+    holds = tuple(holds)
+    if len(set(holds)) <= 1:
+        return holds[0] if holds else "zoh"
+    return HOLD_SEPARATOR.join(holds)
+
+
+def is_per_input(hold: str) -> bool:
+    """Whether ``hold`` differs between inputs (:func:`split_hold`)."""
+    return isinstance(hold, str) and HOLD_SEPARATOR in hold
 
 
 @dataclass(frozen=True)
@@ -254,7 +313,7 @@ def hold_inputs(u: np.ndarray, hold: str = "zoh") -> HeldInputs:
     ----------
     u : array (N, n_u)
         Sampled inputs.
-    hold : {"zoh", "mean", "linear"}
+    hold : {"zoh", "mean", "linear"} or str
         ``"zoh"``: u_k (zero-order hold, the sampled-data convention);
         ``"mean"``: (u_k + u_k+1)/2 held constant, the interval mean of a
         linearly interpolated input; ``"linear"``: the first-order hold
@@ -262,7 +321,9 @@ def hold_inputs(u: np.ndarray, hold: str = "zoh") -> HeldInputs:
         its own time (for inputs sampled from a continuous signal, e.g. an
         anti-alias-filtered voltage: the zero-order hold lags such an input
         by half a sample, the mean hold removes the lag but flattens its
-        slope within the interval). The last row is held at u_N-1.
+        slope within the interval). The last row is held at u_N-1. One hold
+        per input, comma-joined in input order (``"zoh,linear"``,
+        :func:`split_hold`), holds each column its own way.
 
     Returns
     -------
@@ -271,11 +332,24 @@ def hold_inputs(u: np.ndarray, hold: str = "zoh") -> HeldInputs:
     Raises
     ------
     OptionError
-        For an unknown hold.
+        For an unknown hold, or a per-input hold whose length is not n_u.
     """
-    if hold not in HOLDS:
-        raise OptionError(f"unknown input hold '{hold}' (use {', '.join(repr(h) for h in HOLDS)})")
     u = np.asarray(u, dtype=float)
+    if is_per_input(hold):
+        if u.ndim != 2:
+            raise OptionError(f"a per-input hold {hold!r} needs inputs of shape (N, n_u), got "
+                              f"{u.shape}")
+        holds = split_hold(hold, u.shape[1])
+        start = np.array(u, dtype=float)
+        change = np.zeros_like(start)
+        for j, h in enumerate(holds):
+            if h == "mean":
+                start[:-1, j] = 0.5 * (u[:-1, j] + u[1:, j])
+            elif h == "linear":
+                change[:-1, j] = u[1:, j] - u[:-1, j]
+        varying = "linear" in holds
+        return HeldInputs(start, change if varying else None, hold)
+    split_hold(hold)
     if hold == "zoh":
         return HeldInputs(u, None, hold)
     if hold == "mean":

@@ -29,7 +29,9 @@ Between samples the adaptive solvers see callables evaluated exactly at any
 time, and sampled arrays interpolated linearly (``hold="linear"``, the
 default) or held (``hold="zoh"``; the record is then integrated piecewise
 between the samples where an input changes, so the solver never steps over a
-discontinuity). The fixed-step methods always hold the sample value.
+discontinuity). One hold per input, comma-joined in the model's input order
+(``hold="zoh,linear"``), holds each sampled-array input its own way. The
+fixed-step methods always hold the sample value.
 
 References
 ----------
@@ -50,8 +52,9 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from bondgraph.core import progress as _progress
-from bondgraph.errors import DataError, ModelError, NumericalError
+from bondgraph.errors import DataError, ModelError, NumericalError, OptionError
 from bondgraph.numerics import integrators
+from bondgraph.numerics.integrators import split_hold
 from bondgraph.numerics.model import Model
 
 #: solve_ivp methods that receive the generated Jacobian
@@ -131,22 +134,31 @@ class InputSignals:
     model : Model
     t : array (N,)
     u : None, array, dict or callable
-    hold : {"linear", "zoh"}
+    hold : {"linear", "zoh"} or str
+        One for every input, or one per input comma-joined in input order
+        (:func:`bondgraph.numerics.integrators.split_hold`).
 
     Raises
     ------
     ModelError
-        Unknown input names, arrays of the wrong shape.
+        Unknown input names, arrays of the wrong shape, an unknown hold.
     DataError
         Non-finite input values (the input and sample are named).
     """
 
     def __init__(self, model, t: np.ndarray, u=None, hold: str = "linear"):
-        if hold not in ("linear", "zoh"):
-            raise ModelError(f"unknown hold '{hold}' (use 'linear' or 'zoh')")
+        try:
+            holds = split_hold(hold, model.n_u)
+        except OptionError as e:
+            raise ModelError(str(e)) from None
+        if any(h not in ("linear", "zoh") for h in holds):
+            raise ModelError(f"unknown hold '{hold}' (use 'linear' or 'zoh', or one of them per "
+                             f"input joined by commas)")
         self.model = model
         self.t = t
         self.hold = hold
+        #: each input's hold ("linear" or "zoh")
+        self.holds = holds
         self._scale = float(np.median(np.diff(t)))
         self._fns: list[Callable[[np.ndarray], np.ndarray]] = []
         #: each input at one time, a float (:meth:`at`: the values of _fns)
@@ -282,8 +294,8 @@ class InputSignals:
         if kind == "array":
             self.samples[:, j] = val
             self._array_cols.append(j)
-            self._fns.append(self._array_fn(val))
-            self._scalar.append(self._array_scalar(val))
+            self._fns.append(self._array_fn(val, self.holds[j]))
+            self._scalar.append(self._array_scalar(val, self.holds[j]))
             return
         if kind == "fn":
             self.samples[:, j] = np.broadcast_to(np.asarray(val(self.t), dtype=float),
@@ -296,9 +308,9 @@ class InputSignals:
         fn = self._fns[-1]
         self._scalar.append(lambda tq: float(np.asarray(fn(np.array([tq]))).reshape(-1)[0]))
 
-    def _array_fn(self, vals: np.ndarray) -> Callable:
+    def _array_fn(self, vals: np.ndarray, hold: str) -> Callable:
         t = self.t
-        if self.hold == "linear":
+        if hold == "linear":
             return lambda tq: np.interp(tq, t, vals)
 
         def zoh(tq):
@@ -306,12 +318,12 @@ class InputSignals:
             return vals[k]
         return zoh
 
-    def _array_scalar(self, vals: np.ndarray) -> Callable[[float], float]:
+    def _array_scalar(self, vals: np.ndarray, hold: str) -> Callable[[float], float]:
         """:meth:`_array_fn` at one time, as a float (the same numpy
         routines on a scalar: the same values, without the array round
         trip that an adaptive solver paid at every right-hand side call)."""
         t = self.t
-        if self.hold == "linear":
+        if hold == "linear":
             return lambda tq: float(np.interp(tq, t, vals))
         last = t.size - 1
         return lambda tq: float(vals[min(max(int(np.searchsorted(t, tq, side="right")) - 1, 0),
@@ -322,12 +334,16 @@ class InputSignals:
         return np.array([fn(tq) for fn in self._scalar])
 
     def segment_input(self, a: int, hold: str) -> Callable[[float], np.ndarray]:
-        """Input function of the segment starting at sample ``a``: with
-        ``hold="zoh"`` the sampled-array inputs are held at sample ``a``
-        (callables still vary inside the segment), else :meth:`at`."""
-        if hold != "zoh":
+        """Input function of the segment starting at sample ``a``: the
+        sampled-array inputs that ``hold`` holds zero-order (all with
+        ``"zoh"``, some with a per-input hold) are held at sample ``a``
+        (callables and linearly held arrays still vary inside the segment);
+        none: :meth:`at`."""
+        holds = split_hold(hold, self.model.n_u)
+        cols = [j for j in self._array_cols if holds[j] == "zoh"]
+        if not cols:
             return self.at
-        ua, cols = self.samples[a], self._array_cols
+        ua = self.samples[a]
         if len(cols) + len(self._const_cols) == self.samples.shape[1]:
             held = ua.copy()            # no callable: the same vector all segment long
 
@@ -341,12 +357,18 @@ class InputSignals:
             return v
         return u_at
 
+    def zoh_columns(self) -> list[int]:
+        """The sampled-array inputs held zero-order (:attr:`holds`)."""
+        return [j for j in self._array_cols if self.holds[j] == "zoh"]
+
     def change_points(self) -> np.ndarray:
-        """Sample indices k where a sampled-array input differs from sample k-1
-        (plus 0): the segments integrated separately with ``hold="zoh"``."""
-        if not self._array_cols:
+        """Sample indices k where a sampled-array input held zero-order
+        differs from sample k-1 (plus 0): the segments integrated
+        separately."""
+        cols = self.zoh_columns()
+        if not cols:
             return np.array([0])
-        s = self.samples[:, self._array_cols]
+        s = self.samples[:, cols]
         ch = np.flatnonzero(np.any(s[1:] != s[:-1], axis=1)) + 1
         return np.concatenate([[0], ch])
 
@@ -430,8 +452,10 @@ def simulate(model, t, u=None, x0=None, theta=None, method: str = "BDF", rtol: f
     max_step : float, optional
         Largest step of the adaptive solvers [s] (default: unlimited; set it
         below the shortest input pulse that a callable input contains).
-    hold : {"linear", "zoh"}
-        How adaptive solvers see sampled-array inputs between samples.
+    hold : {"linear", "zoh"} or str
+        How adaptive solvers see sampled-array inputs between samples; one
+        per input comma-joined in input order (``"zoh,linear"``) holds each
+        its own way.
     progress : bool, optional
         tqdm progress bar for fixed-step loops (default: only for long runs,
         more than 2e5 sub-steps, and only on a terminal).
@@ -611,7 +635,7 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
     kw = dict(method=method, rtol=rtol, atol=atol)
     if max_step is not None:
         kw["max_step"] = float(max_step)
-    if sig.hold == "zoh":
+    if sig.zoh_columns():
         bounds = list(sig.change_points()) + [n - 1]
         segments = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
     else:

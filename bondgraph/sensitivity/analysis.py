@@ -52,6 +52,7 @@ from bondgraph.numerics.forward_sensitivity import (
     parameter_scale,
 )
 from bondgraph.numerics.model import Model
+from bondgraph.numerics.integrators import join_hold, split_hold
 from bondgraph.sensitivity.identifiability import (
     CORR_MAX,
     REL_CRB_MAX,
@@ -370,7 +371,7 @@ def _output_error(an: _Analysis, local: dict, lo: LocalOptions) -> Sensitivities
     t0 = time.perf_counter()
     an.say(f"forward sensitivities ({lo.sens_method}, {model.n_x} + "
            f"{model.n_x}·{len(an.params)} states) ...")
-    hold = "zoh" if pb.ukf.hold == "zoh" else "linear"
+    hold = join_hold("zoh" if h == "zoh" else "linear" for h in split_hold(pb.ukf.hold))
     sens = output_sensitivities(model, pb.t, pb.u, pb.theta, pb.x0, an.params,
                                 solver=SolverOptions(method=lo.sens_method, rtol=lo.sens_rtol,
                                                      atol=lo.sens_atol, hold=hold))
