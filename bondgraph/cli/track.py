@@ -29,6 +29,7 @@ from bondgraph.cli.common import (
 )
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import DataError
+from bondgraph.inference.discretise import record_hold
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
 from bondgraph.inference.track import TrackingModel, check_tracked, choose_substeps, track
 from bondgraph.inference.ukf_numba import compile_in_background
@@ -78,6 +79,12 @@ def configure(p: argparse.ArgumentParser) -> None:
                       "it with 1, 2, 4, ... substeps: the first whose 2 s windows' "
                       "log-likelihood is within one sampling std of a finer one's, "
                       "choose_substeps; one line on stderr)")
+        if a.dest == "hold":
+            a.help = ("input over a sample interval: zoh, mean, linear, or one per input "
+                      "comma-joined (zoh,linear). Default: the hold the record declares for "
+                      "each input (sidecar columns.<input>.hold), else the one its samples "
+                      "support (a staircase zoh, a sampled continuous signal linear); one "
+                      "line on stderr")
     p.add_argument("--no-plots", action="store_true")
 
 
@@ -119,6 +126,10 @@ def run(args) -> int:
     start = {n: float(problem.theta[model.param_index(n)]) for n in names}
     tm = TrackingModel.from_graph(graph, names, drift, start=start)
     std = {n: std[n] for n in names if n in std}
+    if args.hold is None:               # the hold the record declares or supports
+        hold, why = record_hold(problem)
+        print(f"input hold {hold} (chosen; --hold to give it): {why}", file=sys.stderr)
+        problem = problem.conditioned_on(disc=replace(problem.disc, hold=hold))
     if args.substeps is None:           # the substeps the tracked record needs
         choice = choose_substeps(problem, tm, std=std, options=opts)
         print(choice.line(), file=sys.stderr)

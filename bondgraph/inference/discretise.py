@@ -52,7 +52,7 @@ from bondgraph.numerics.integrators import is_per_input, join_hold, split_hold
 
 __all__ = ["BIAS_TOLERANCE", "CANDIDATES", "DECLARED_HOLDS", "TOLERANCE", "DiscretisationChoice",
            "InputHold", "check_discretisation", "choose_discretisation", "declared_holds",
-           "holds_against", "input_holds", "no_process_noise", "supported_hold"]
+           "holds_against", "input_holds", "no_process_noise", "record_hold", "supported_hold"]
 
 #: the largest accepted one-step discretisation error, in measurement-noise
 #: standard deviations per sample
@@ -535,6 +535,22 @@ def no_process_noise(model, theta) -> bool:
     with np.errstate(all="ignore"):
         q = np.asarray(model.proc_std(np.asarray(theta, float).reshape(1, -1)), float)
     return bool(np.all(q == 0.0))
+
+
+def record_hold(problem) -> tuple[str, str]:
+    """The hold that ``problem``'s record supports for its model's inputs
+    (declared, else each input's shape: :func:`supported_hold`), and why.
+
+    Parameters
+    ----------
+    problem : Problem
+
+    Returns
+    -------
+    (hold, reason) : (str, str)
+    """
+    names = problem.model.inputs
+    return supported_hold(input_holds(problem.u, names, declared_holds(problem.record, names)))
 
 
 def _hold_for(inputs, given: dict) -> tuple[str, str]:

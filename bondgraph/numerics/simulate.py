@@ -453,9 +453,7 @@ def simulate(model, t, u=None, x0=None, theta=None, method: str = "BDF", rtol: f
         Largest step of the adaptive solvers [s] (default: unlimited; set it
         below the shortest input pulse that a callable input contains).
     hold : {"linear", "zoh"} or str
-        How adaptive solvers see sampled-array inputs between samples; one
-        per input comma-joined in input order (``"zoh,linear"``) holds each
-        its own way.
+        Sampled-array inputs between samples (adaptive solvers), or one per input ("zoh,linear").
     progress : bool, optional
         tqdm progress bar for fixed-step loops (default: only for long runs,
         more than 2e5 sub-steps, and only on a terminal).
