@@ -40,7 +40,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from bondgraph.errors import OptionError
-from bondgraph.numerics.integrators import split_hold
+from bondgraph.numerics.integrators import join_hold, split_hold
 
 #: discretisations of the UKF's prediction (bondgraph.numerics.integrators)
 UKF_METHODS = ("ros2", "rk4")
@@ -120,7 +120,7 @@ def _discretisation_fields(obj) -> None:
     _choice(obj, "method", UKF_METHODS)
     _integer(obj, "substeps", 1)
     try:
-        split_hold(obj.hold)
+        _set(obj, "hold", join_hold(split_hold(obj.hold)))      # canonical: "zoh, zoh" -> "zoh"
     except OptionError as e:
         raise OptionError(f"{type(obj).__name__}.hold: {e}") from None
     _choice(obj, "backend", UKF_BACKENDS)

@@ -1271,8 +1271,7 @@ def kernel_inputs(u, hold: str) -> tuple[np.ndarray, int]:
     """
     u = np.asarray(u, dtype=float)
     if not is_per_input(hold):
-        split_hold(hold)
-        return np.ascontiguousarray(u), HOLD_CODES[hold]
+        return np.ascontiguousarray(u), HOLD_CODES[split_hold(hold)[0]]
     held = hold_inputs(u, hold)
     change = held.change if held.change is not None else np.zeros_like(u)
     return np.ascontiguousarray(np.hstack([u, held.start, change])), PER_INPUT_HOLD

@@ -349,7 +349,7 @@ def hold_inputs(u: np.ndarray, hold: str = "zoh") -> HeldInputs:
                 change[:-1, j] = u[1:, j] - u[:-1, j]
         varying = "linear" in holds
         return HeldInputs(start, change if varying else None, hold)
-    split_hold(hold)
+    hold = split_hold(hold)[0]
     if hold == "zoh":
         return HeldInputs(u, None, hold)
     if hold == "mean":
