@@ -26,13 +26,18 @@ _EXPONENT = re.compile(r"\s*(\()?\s*([-+]?\s*(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)
                        r"(?:\s*/\s*(\d+\.?\d*|\.\d+))?\s*(\))?")
 
 #: Effort and flow units of the usual energy domains (Karnopp, Margolis &
-#: Rosenberg, *System Dynamics*, Table 1.1 / ch. 2).
+#: Rosenberg, *System Dynamics*, Table 1.1 / ch. 2); magnetic: magnetomotive
+#: force and flux rate (a reluctance is a C on the flux, the coil a GY of its
+#: turns); chemical: chemical potential and molar flow (Borutzky 2010,
+#: *Bond Graph Methodology*, §2.6). Effort x flow is a power in each.
 DOMAINS: dict[str, tuple[str, str]] = {
     "translation": ("N", "m/s"),
     "rotation": ("N*m", "rad/s"),
     "electrical": ("V", "A"),
     "hydraulic": ("Pa", "m^3/s"),
     "thermal": ("K", "W/K"),
+    "magnetic": ("A", "Wb/s"),
+    "chemical": ("J/mol", "mol/s"),
 }
 
 
