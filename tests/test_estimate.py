@@ -121,6 +121,19 @@ def test_hessian_and_unidentified_direction():
     np.testing.assert_allclose(cr["cov"], np.linalg.inv(H), rtol=1e-10)
     bad = cramer_rao(np.array([[1.0, 1.0], [1.0, 1.0]]), ["a", "b"])
     assert not bad["positive_definite"] and "0.71·a" in bad["warning"] and "0.71·b" in bad["warning"]
+    # conditional bounds: c is not identified (no curvature); the bounds of a
+    # and b with c held are the inverse of their 2x2 block, 1/7 [[2, -1], [-1, 4]]
+    H3 = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 0.0]])
+    plain = cramer_rao(H3, ["a", "b", "c"])
+    assert np.isnan(plain["std"]).all() and plain["conditional_on"] == []
+    cond = cramer_rao(H3, ["a", "b", "c"], scale=np.array([2.0, 0.5, 3.0]), conditional=True)
+    assert not cond["positive_definite"] and cond["conditional_on"] == ["c"]
+    np.testing.assert_allclose(cond["std"][:2], np.sqrt([2 / 7, 4 / 7]), rtol=1e-12)
+    np.testing.assert_allclose(cond["cov"][:2, :2], np.array([[2, -1], [-1, 4]]) / 7, rtol=1e-12)
+    assert np.isnan(cond["std"][2]) and "conditional on c held at the estimate" in cond["warning"]
+    # a direction through every parameter leaves none to bound
+    both = cramer_rao(np.array([[1.0, 1.0], [1.0, 1.0]]), ["a", "b"], conditional=True)
+    assert np.isnan(both["std"]).all() and both["conditional_on"] == []
 
 
 def test_unidentifiable_pair_warns(msd_record):

@@ -329,7 +329,8 @@ def hessian_batched(fun: Callable[[np.ndarray], np.ndarray], x, h) -> tuple[np.n
     return H, float(f0), len(pts)
 
 
-def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1e-6) -> dict:
+def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1e-6,
+               conditional: bool = False) -> dict:
     """Cramér-Rao standard deviations and correlations from the NLL Hessian.
 
     Parameters
@@ -346,17 +347,25 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
         relative coordinates is below ``rcond`` times the largest (the
         difference Hessian of an exactly singular problem has a relative
         eigenvalue of ~1e-8, not 0).
+    conditional : bool
+        When H is not positive definite: the bounds of the parameters
+        outside the unidentified direction (its components above 0.1),
+        conditional on those in it held at the estimate (the inverse of
+        H's block of the others, when that block is positive definite);
+        ``conditional_on`` names the held ones, their entries stay NaN.
 
     Returns
     -------
     dict
         ``std (k,)``, ``corr (k, k)``, ``cov (k, k)``, ``eigenvalues``,
         ``positive_definite``, ``warning`` (str or None naming the weakest
-        direction). Entries are NaN when H is not positive definite.
+        direction), ``conditional_on`` (list of str). Entries are NaN when
+        H is not positive definite (but for the conditional bounds).
     """
     k = len(names)
     out = dict(std=np.full(k, np.nan), corr=np.full((k, k), np.nan), cov=np.full((k, k), np.nan),
-               eigenvalues=np.full(k, np.nan), positive_definite=False, warning=None)
+               eigenvalues=np.full(k, np.nan), positive_definite=False, warning=None,
+               conditional_on=[])
     if H is None or not np.isfinite(H).all():
         bad = [names[i] for i in range(k) if not np.isfinite(H[i]).all()] if H is not None else names
         out["warning"] = (f"Hessian of the NLL is not finite for {', '.join(bad)} (a difference "
@@ -375,6 +384,8 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
                           f"{lam[0]:.3g}, largest {lam[-1]:.3g}, in scaled coordinates): the "
                           f"direction {' '.join(terms)} (scaled coordinates) is not identified "
                           f"by this record")
+        if conditional:
+            _conditional_bounds(out, Hs, s, names, np.abs(v) > 0.1, rcond)
         return out
     cov_s = (V / lam) @ V.T
     cov = cov_s * np.outer(s, s)
@@ -387,6 +398,32 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
         out["warning"] = "nearly unidentified: " + ", ".join(
             f"corr({a}, {b}) = {c:+.4f}" for a, b, c in strong)
     return out
+
+
+def _conditional_bounds(out: dict, Hs: np.ndarray, s: np.ndarray, names, flat: np.ndarray,
+                        rcond: float) -> None:
+    """Fill ``out`` (of :func:`cramer_rao`) for the parameters outside the
+    unidentified direction (``flat`` (k,) marks those in it), conditional on
+    those held: the inverse of the others' block of the scaled Hessian
+    ``Hs``, when it is positive definite."""
+    keep = np.flatnonzero(~flat)
+    if keep.size == 0:
+        return
+    sub = Hs[np.ix_(keep, keep)]
+    lam, V = np.linalg.eigh(0.5 * (sub + sub.T))
+    if lam[0] <= rcond * max(abs(lam[-1]), 1e-300):
+        return
+    cov = ((V / lam) @ V.T) * np.outer(s[keep], s[keep])
+    std = np.sqrt(np.diag(cov))
+    out["std"][keep] = std
+    out["cov"][np.ix_(keep, keep)] = cov
+    out["corr"][np.ix_(keep, keep)] = cov / np.outer(std, std)
+    held = [names[i] for i in np.flatnonzero(flat)]
+    out["conditional_on"] = held
+    out["warning"] += (f"; the Cramér-Rao std of the others are conditional on "
+                       f"{', '.join(held)} held at the estimate (hold "
+                       f"{'it' if len(held) == 1 else 'them'} with --fixed, or add a record "
+                       f"that tells {'it' if len(held) == 1 else 'them'} apart)")
 
 
 # -------------------------------------------------------------------- result
@@ -873,7 +910,7 @@ def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list):
     width = hi - lo
     mag = np.where(np.abs(x_best) > 0, np.abs(x_best), width)
     H, _, _ = hessian_batched(crit, x_best, 1e-4 * np.minimum(mag, width))
-    cr = cramer_rao(H, crit.params, width)
+    cr = cramer_rao(H, crit.params, width, conditional=True)
     if cr["positive_definite"]:
         h2 = np.clip(0.1 * cr["std"], 1e-8 * mag, 0.05 * width)
         H2, _, _ = hessian_batched(crit, x_best, h2)
