@@ -15,7 +15,8 @@ from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.effects import CubicStiffness, EndStop, InductorSaturation, Target
 from bondgraph.diagnose.fit import model_of
-from bondgraph.diagnose.runner import run_loop
+from bondgraph.diagnose.runner import chosen_numerics, run_loop
+from bondgraph.errors import OptionError
 from bondgraph.diagnose.settings import FreeRunOptions, LoopSettings, SearchOptions
 from bondgraph.inference.options import UKFOptions
 
@@ -103,6 +104,27 @@ def test_it_attaches_to_electrical_inertances_only_and_adds_the_cubic_law():
     np.testing.assert_allclose(m.h(x, np.zeros((1, 1)), th[None])[0], [i, 3.0], rtol=1e-12)
     dx = m.f(x, np.array([[5.0]]), th[None])[0]
     np.testing.assert_allclose(dx, [5.0 - 1.0 * i - 3.0, i - 3.0 / 20.0], rtol=1e-12)
+
+
+def test_chosen_numerics_gives_a_python_user_the_command_lines_choice():
+    """run_loop takes its settings literally; chosen_numerics chooses them
+    as ``bondgraph loop --model --data`` does for this record: RK4 (ROS2(1)
+    is 0.83 noise std per sample here), the record's zero-order hold (V is
+    a staircase), the free runs fine and held alike, the check repeated;
+    a given field is kept."""
+    lines = []
+    base = LoopSettings(params=["L", "R", "C", "R_load"], validation=record(2))
+    s = chosen_numerics(rlc(), record(1), base, log=lines.append)
+    assert (s.ukf.method, s.ukf.hold) == ("rk4", "zoh") and s.ukf.substeps >= 1
+    assert s.free_run == FreeRunOptions(method="fine", hold="zoh") and s.search.auto_substeps
+    assert len(lines) == 1 and "rk4" in lines[0] and "V: zoh" in lines[0]
+    kept = chosen_numerics(rlc(), record(1), base, given={"method": "ros2"}, log=lines.append)
+    assert kept.ukf.method == "ros2" and kept.ukf.substeps > 1   # more steps where ROS2 needs
+    same = chosen_numerics(rlc(), record(1), base, log=lines.append,
+                           given={"method": "rk4", "substeps": 2, "hold": "zoh"})
+    assert same is base
+    with pytest.raises(OptionError, match="names 2 holds for 1 input"):
+        chosen_numerics(rlc(), record(1), base, given={"hold": "zoh,linear"})
 
 
 def test_the_loop_finds_the_saturating_inductor_on_a_user_rlc_record():

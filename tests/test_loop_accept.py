@@ -518,7 +518,7 @@ def test_loop_fit_sim_starts_the_declared_fit_from_output_error():
                      model_of(mass_spring_damper()), logs.append, False)
     f = fit_model(ctx, mass_spring_damper(), ["m", "k", "c"], est, "declared", iterations=0)
     (msg,) = check_discretisation(ctx, f)
-    assert "ros2(1) is 0.11" in msg and msg.endswith("use --substeps 2")
+    assert "ros2(1) is 0.11" in msg and "use --substeps 2 (from Python: chosen_numerics" in msg
 
 
 def test_loop_estimates_an_unmeasured_initial_state():

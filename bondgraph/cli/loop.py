@@ -8,8 +8,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import re
-
-import numpy as np
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -20,7 +18,6 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
-    chosen_problem,
     discretisation_given,
     load_record,
     parse_names,
@@ -31,9 +28,8 @@ from bondgraph.cli.common import (
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.effects import get_effect
-from bondgraph.diagnose.fit import loop_problem, model_of
 from bondgraph.diagnose.loop import run_loop
-from bondgraph.diagnose.runner import held_out
+from bondgraph.diagnose.runner import chosen_numerics as loop_chosen_numerics
 from bondgraph.diagnose.settings import (
     DEFAULT_HOLDOUT,
     AcceptRule,
@@ -45,7 +41,6 @@ from bondgraph.inference.estimand import x0_state_names
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf_numba import compile_in_background
 from bondgraph.numerics.registry import graph_builder
-from bondgraph.numerics.integrators import split_hold
 from bondgraph.report.loop_report import LoopReporter
 
 #: the case run by ``bondgraph loop`` without arguments
@@ -335,34 +330,12 @@ def search_options(args, base: SearchOptions) -> SearchOptions:
 
 
 def chosen_numerics(args, graph, record, settings: LoopSettings) -> LoopSettings:
-    """A user's graph and record (``--model``/``--data``): the filter's
-    method, substeps and input hold that the discretisation check accepts at
-    the declared defaults on the estimation part of the record
-    (:func:`bondgraph.cli.common.chosen_problem`; what of
-    ``--method``, ``--substeps``, ``--hold`` the user gave is kept), the free
-    runs holding the inputs the same way with the same method 4 times finer
-    (``FreeRunOptions(method="fine")``: fixed-step, where an adaptive solver
-    restarts at every sample of a held input), and the check repeated at
-    the declared fit and at every accepted one (``auto_substeps``). One
-    line says what was chosen and why. A bundled case keeps its own options."""
-    if len(discretisation_given(args)) == 3:
-        return settings
-    est, s = held_out(record, settings)
-    problem = loop_problem(model_of(graph), est, s)
-    model = problem.model
-    declared = np.asarray(est.noise_std_for(model), float)
-    sigma = np.where(np.isfinite(declared) & (declared > 0), declared,
-                     np.asarray(model.meas_std(problem.theta[None, :]), float)[0])
-    problem, _ = chosen_problem(problem, args, where="at the declared start θ", sigma=sigma,
-                                say=lambda line: print("bondgraph loop: " + line, flush=True))
-    d = problem.disc
-    ukf = dataclasses.replace(settings.ukf, method=d.method, substeps=d.substeps, hold=d.hold)
-    hold = (d.hold if set(split_hold(d.hold)) <= {"zoh", "linear"}
-            else settings.free_run.hold)
-    return dataclasses.replace(settings, ukf=ukf,
-                               search=dataclasses.replace(settings.search, auto_substeps=True),
-                               free_run=dataclasses.replace(settings.free_run, hold=hold,
-                                                            method="fine"))
+    """A user's graph and record (``--model``/``--data``): the numerics
+    :func:`bondgraph.diagnose.runner.chosen_numerics` chooses, what of
+    ``--method``, ``--substeps``, ``--hold`` the user gave kept; one line
+    says what was chosen and why. A bundled case keeps its own options."""
+    return loop_chosen_numerics(graph, record, settings, given=discretisation_given(args),
+                                log=lambda line: print("bondgraph loop: " + line, flush=True))
 
 
 def ukf_replaced(base: UKFOptions, given: dict, backend: str) -> UKFOptions:

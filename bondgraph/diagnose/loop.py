@@ -48,7 +48,9 @@ Where each part lives
 ---------------------
 * :mod:`~bondgraph.diagnose.settings` -- :class:`LoopSettings` and its groups
   (:class:`AcceptRule`, :class:`SearchOptions`, :class:`FreeRunOptions`).
-* :mod:`~bondgraph.diagnose.runner` -- :func:`run_loop`, the orchestration and its log.
+* :mod:`~bondgraph.diagnose.runner` -- :func:`run_loop`, the orchestration and its log;
+  :func:`chosen_numerics`, the filter's numerics chosen for a user's record
+  as the command line chooses them.
 * :mod:`~bondgraph.diagnose.fit` -- the fit of one model (step 1), the UKF prior.
 * :mod:`~bondgraph.diagnose.metric` -- the error reported before and after.
 * :mod:`~bondgraph.diagnose.residuals` -- step 2.
@@ -70,8 +72,8 @@ statistical model identification. IEEE TAC 19(6), 716-723. Ljung & Box
 """
 
 from bondgraph.diagnose.result import Candidate, LoopResult, Step
-from bondgraph.diagnose.runner import run_loop
+from bondgraph.diagnose.runner import chosen_numerics, run_loop
 from bondgraph.diagnose.settings import AcceptRule, FreeRunOptions, LoopSettings, SearchOptions
 
 __all__ = ["AcceptRule", "Candidate", "FreeRunOptions", "LoopResult", "LoopSettings",
-           "SearchOptions", "Step", "run_loop"]
+           "SearchOptions", "Step", "chosen_numerics", "run_loop"]

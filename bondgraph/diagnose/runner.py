@@ -61,7 +61,8 @@ from bondgraph.diagnose.scoring import (
 )
 from bondgraph.diagnose.screen import SCREEN_LEVEL, free_run_nrmse, global_output_error
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.inference.discretise import SUBSTEPS
+from bondgraph.inference.discretise import SUBSTEPS, choose_discretisation
+from bondgraph.numerics.integrators import split_hold
 from bondgraph.numerics.model import Model
 from bondgraph.errors import (
     BondGraphError,
@@ -109,6 +110,13 @@ def run_loop(graph: BondGraph, experiment, settings: LoopSettings, *,
     LoopResult
         Accepted steps (error before/after, NLL, parameters), rejected
         candidates, the evidence ranking of every step, initial and final fits.
+
+    Notes
+    -----
+    ``settings``' filter options are taken literally. On your own record,
+    :func:`chosen_numerics` first chooses them as ``bondgraph loop --model
+    --data`` does (method, substeps and input hold from the discretisation
+    check and the record, the free runs held the same way).
 
     Raises
     ------
@@ -204,6 +212,67 @@ def held_out(experiment, s: LoopSettings):
     n = len(experiment.t)
     cut = int(round(n * (1.0 - s.holdout)))
     return experiment.segment(0, cut), replace(s, validation=experiment.segment(cut))
+
+
+def chosen_numerics(graph: BondGraph, record, settings: LoopSettings, *,
+                    given: dict | None = None,
+                    log: Callable[[str], None] | None = None) -> LoopSettings:
+    """``settings`` with the numerics chosen for a user's graph and record,
+    as ``bondgraph loop --model F --data R`` chooses them: the filter's
+    method, substeps and input hold that the discretisation check accepts
+    at the declared defaults on the estimation part of the record
+    (:func:`bondgraph.inference.discretise.choose_discretisation`: the hold
+    each input's declaration or shape supports, the cheapest step within 0.1
+    noise std per sample), the free runs holding the inputs the same way
+    with the same method 4 times finer (``FreeRunOptions(method="fine")``),
+    and the check repeated at the declared fit and at every accepted one
+    (``SearchOptions(auto_substeps=True)``). Call it before :func:`run_loop`
+    on your own record: ``settings``' own filter options are otherwise taken
+    literally (``UKFOptions()``: ROS2 with one step per sample, zero-order
+    hold).
+
+    Parameters
+    ----------
+    graph : BondGraph
+    record : Experiment
+    settings : LoopSettings
+    given : dict, optional
+        Fields the caller fixes: ``method``, ``substeps``, ``hold`` (all
+        three: ``settings`` is returned unchanged).
+    log : callable, optional
+        Gets the one line that says what was chosen and why (default ``print``).
+
+    Returns
+    -------
+    LoopSettings
+
+    Raises
+    ------
+    OptionError
+        A bad given value, or a per-input hold of the wrong length.
+    """
+    given = dict(given or {})
+    if len(given) == 3:
+        return settings
+    est, s = held_out(record, settings)
+    problem = loop_problem(model_of(graph), est, s)
+    model = problem.model
+    if "hold" in given:
+        try:
+            split_hold(given["hold"], model.n_u)
+        except OptionError as e:
+            raise OptionError(f"--hold: {e} ({', '.join(model.inputs) or 'none'})") from None
+    declared = np.asarray(est.noise_std_for(model), float)
+    sigma = np.where(np.isfinite(declared) & (declared > 0), declared,
+                     np.asarray(model.meas_std(problem.theta[None, :]), float)[0])
+    choice = choose_discretisation(problem, problem.theta, given=given, sigma=sigma)
+    (log or print)(choice.line("at the declared start θ"))
+    d = choice.disc
+    hold = d.hold if set(split_hold(d.hold)) <= {"zoh", "linear"} else settings.free_run.hold
+    return replace(settings, ukf=replace(settings.ukf, method=d.method, substeps=d.substeps,
+                                         hold=d.hold),
+                   search=replace(settings.search, auto_substeps=True),
+                   free_run=replace(settings.free_run, hold=hold, method="fine"))
 
 
 def new_result(ctx: Context, graph: BondGraph, initial: Fit,
@@ -722,7 +791,9 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
         return [msg]
     msg = (f"{error} (a model error that biases the fit and the "
            f"scores); " + (f"use --substeps {rec}" if rec else "use --method rk4 and more "
-                           "substeps, or a shorter sample interval"))
+                           "substeps, or a shorter sample interval")
+           + " (from Python: chosen_numerics(graph, record, settings) before run_loop, or "
+             "SearchOptions(auto_substeps=True))")
     ctx.log("warning: " + msg)
     return [msg]
 
