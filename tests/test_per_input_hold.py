@@ -257,3 +257,16 @@ def test_track_chooses_the_hold_per_input_and_raises_no_false_change(tmp_path, c
     assert "input hold zoh,linear (chosen" in err and found == []
     found, err = changes("--hold", "zoh")
     assert "input hold" not in err and len(found) >= 5
+
+
+def test_the_report_says_how_each_input_was_held():
+    from bondgraph.diagnose.result import LoopResult
+
+    res = LoopResult("oven", None, "rec", "NRMSE", "aic",
+                     {"ukf": {"method": "rk4", "substeps": 2, "hold": "zoh,linear"},
+                      "free_run": {"method": "fine", "hold": "zoh,linear"}},
+                     declared_graph=thermal_two_node())
+    assert res.numerics() == ("Numerics: UKF with rk4(2) per sample at the start, input hold "
+                              "zoh,linear (P zoh, T_a linear); free runs the filter's method at "
+                              "4x its substeps, input hold zoh,linear.")
+    assert LoopResult("m", None, None, "e", "aic", {}).numerics() is None

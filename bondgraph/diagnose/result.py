@@ -385,6 +385,27 @@ class LoopResult:
     declared_graph: BondGraph | None = None
     discovery: DiscoveryPlot | None = None
 
+    def numerics(self) -> str | None:
+        """How the models were stepped, one sentence: the filter's method,
+        substeps and input hold at the start (each input's by name for a
+        per-input hold) and the free runs' solver and hold; None without
+        them. report.md and report.html say it alike."""
+        u, fr = (self.settings or {}).get("ukf"), (self.settings or {}).get("free_run")
+        if not u:
+            return None
+        hold = str(u.get("hold", "zoh"))
+        names = list(getattr(self.declared_graph, "inputs", None) or [])
+        parts = hold.split(",")
+        each = (" (" + ", ".join(f"{n} {h}" for n, h in zip(names, parts)) + ")"
+                if len(parts) > 1 and len(parts) == len(names) else "")
+        line = (f"Numerics: UKF with {u.get('method')}({u.get('substeps')}) per sample at the "
+                f"start, input hold {hold}{each}")
+        if fr:
+            how = ("the filter's method at 4x its substeps" if fr.get("method") == "fine"
+                   else f"solve_ivp {fr.get('method')}")
+            line += f"; free runs {how}, input hold {fr.get('hold')}"
+        return line + "."
+
     def none_accepted(self) -> str:
         """Why no effect was accepted (for a result without steps), one
         phrase: "no step ran"; "N confirmed candidate(s) refused by the

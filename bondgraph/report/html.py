@@ -87,6 +87,8 @@ def page(result: LoopResult, out, pngs: list[str]) -> str:
     body = [f"<h1>Residual-tracing report: {escape(result.model)}</h1>",
             f"<p>Record: <code>{escape(str(result.record))}</code>. Metric: "
             f"{escape(result.metric)}. Criterion: {escape(result.criterion.upper())}.</p>"]
+    if result.numerics():
+        body.append(f"<p>{escape(result.numerics())}</p>")
     if not result.finished:
         body.append('<p class="running">Intermediate version: the loop is still running (or '
                     'was interrupted); this page is rewritten after every step.</p>')

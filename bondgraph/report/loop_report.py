@@ -451,6 +451,8 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
     L.append(f"Record: `{result.record}`. Metric: {result.metric}. "
              f"Criterion: {result.criterion.upper()}.")
     L.append("")
+    if result.numerics():
+        L += [result.numerics(), ""]
     L += _md_errors(result)
     L += _md_accepted(result)
     L.append("")
