@@ -199,6 +199,8 @@ def test_the_record_supports_a_hold_per_input(model, record):
     assert hold == "zoh,linear" and "each input held as its evidence says" in why
     choice = choose_discretisation(pr, pr.theta)
     assert choice.ok and choice.disc.hold == "zoh,linear"
+    with pytest.raises(OptionError, match=r"3 holds for 2 input\(s\).*'thermal_two_node': P, T_a"):
+        make_problem(model, exp, ukf=UKFOptions(hold="zoh,linear,zoh"))
 
 
 def _estimate(record, capsys, *extra):

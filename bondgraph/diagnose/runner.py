@@ -257,11 +257,6 @@ def chosen_numerics(graph: BondGraph, record, settings: LoopSettings, *,
     est, s = held_out(record, settings)
     problem = loop_problem(model_of(graph), est, s)
     model = problem.model
-    if "hold" in given:
-        try:
-            split_hold(given["hold"], model.n_u)
-        except OptionError as e:
-            raise OptionError(f"--hold: {e} ({', '.join(model.inputs) or 'none'})") from None
     declared = np.asarray(est.noise_std_for(model), float)
     sigma = np.where(np.isfinite(declared) & (declared > 0), declared,
                      np.asarray(model.meas_std(problem.theta[None, :]), float)[0])

@@ -47,6 +47,7 @@ from bondgraph.inference.ukf import (
     ukf_nll,
 )
 from bondgraph.numerics.model import Model
+from bondgraph.numerics.integrators import split_hold
 
 __all__ = ["NoiseSpec", "Problem", "make_problem", "noise_covariance", "noise_parameters"]
 
@@ -458,7 +459,8 @@ def make_problem(model, record, *, prior: PriorSpec | None = None,
     ModelError
         A fixed parameter the model does not have (named).
     OptionError
-        Options of the wrong type.
+        Options of the wrong type, or a per-input hold whose length is not
+        the model's number of inputs (the inputs named).
     """
     model = Model.from_spec(model)
     rec = as_record(record)
@@ -469,6 +471,11 @@ def make_problem(model, record, *, prior: PriorSpec | None = None,
         raise OptionError(f"make_problem needs a PriorSpec and a NoiseSpec, got "
                           f"{type(prior).__name__} and {type(noise).__name__}")
     ukf = ukf_options(ukf)
+    try:
+        split_hold(ukf.hold, model.n_u)
+    except OptionError as e:
+        raise OptionError(f"hold: {e} (inputs of '{model.name}': "
+                          f"{', '.join(model.inputs) or 'none'})") from None
     t, u, y = _record_arrays(model, rec, defaults_ok) if arrays is None else arrays
     if arrays is None:        # the problem's own copies, never the record's arrays
         t, u, y = (np.array(a, dtype=float) for a in (t, u, y))
