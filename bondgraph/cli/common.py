@@ -450,12 +450,6 @@ def chosen_problem(problem: Problem, args, theta=None, *, where: str = "at the s
         A bad value of a given option, named as typed.
     """
     given = discretisation_given(args)
-    if "hold" in given:
-        model = problem.model
-        try:
-            split_hold(given["hold"], model.n_u)
-        except OptionError as e:
-            raise OptionError(f"--hold: {e} ({', '.join(model.inputs) or 'none'})") from None
     if len(given) == 3:
         return problem, None
     choice = choose_discretisation(problem, problem.theta if theta is None else theta,

@@ -24,8 +24,9 @@ import numpy as np
 from bondgraph.core import plugins
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
-from bondgraph.diagnose.settings import LoopSettings, TrueEffect, per_input_of
+from bondgraph.diagnose.settings import LoopSettings, TrueEffect
 from bondgraph.errors import ModelError, OptionError
+from bondgraph.numerics.integrators import hold_within
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import METHODS, simulate
 
@@ -128,7 +129,7 @@ class SimulationOptions:
         if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
             raise OptionError(f"SimulationOptions.substeps must be an integer >= 1, got {v!r}")
         object.__setattr__(self, "substeps", int(v))
-        if self.hold not in SIMULATION_HOLDS and not per_input_of(self.hold, SIMULATION_HOLDS):
+        if not hold_within(self.hold, SIMULATION_HOLDS):
             raise OptionError(f"SimulationOptions.hold = {self.hold!r} is not one of "
                               f"{', '.join(repr(h) for h in SIMULATION_HOLDS)}")
 

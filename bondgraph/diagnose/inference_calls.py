@@ -16,6 +16,7 @@ import numpy as np
 
 from bondgraph.errors import NumericalError
 
+from bondgraph.inference.discretise import choose_discretisation
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, noise_plan
@@ -37,7 +38,7 @@ from bondgraph.numerics.integrators import simulate_batch
 # re-exported for the loop: the box of an estimated noise std (its start
 # times / divided by NOISE_BOX), the problem's parts, the noise detector
 __all__ = ["FLAT_GAIN", "flat_directions", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem",
-           "kernel_threads", "make_problem", "noise_parameters"]
+           "choose_discretisation", "kernel_threads", "make_problem", "noise_parameters"]
 
 
 

@@ -45,7 +45,12 @@ from bondgraph.diagnose.fit import (
     planned_noise,
     problem_for,
 )
-from bondgraph.diagnose.inference_calls import make_executor, one_step_errors, output_error
+from bondgraph.diagnose.inference_calls import (
+    choose_discretisation,
+    make_executor,
+    one_step_errors,
+    output_error,
+)
 from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.parallel import distributed, run_tasks
 from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, rank_of
@@ -61,7 +66,7 @@ from bondgraph.diagnose.scoring import (
 )
 from bondgraph.diagnose.screen import SCREEN_LEVEL, free_run_nrmse, global_output_error
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.inference.discretise import SUBSTEPS, choose_discretisation
+from bondgraph.inference.discretise import SUBSTEPS
 from bondgraph.numerics.integrators import split_hold
 from bondgraph.numerics.model import Model
 from bondgraph.errors import (

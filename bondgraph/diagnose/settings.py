@@ -27,7 +27,7 @@ from bondgraph.errors import OptionError
 from bondgraph.inference.executor import scheduler_address
 from bondgraph.inference.options import NOISE_MODES, Evaluation, UKFOptions
 from bondgraph.inference.prior import PriorSpec
-from bondgraph.numerics.integrators import HOLD_SEPARATOR
+from bondgraph.numerics.integrators import hold_within
 from bondgraph.numerics.simulate import METHODS
 
 #: the built-in error measures (``LoopSettings.metric``; bondgraph.diagnose.metric)
@@ -96,13 +96,6 @@ def _level(obj, name: str, *, optional: bool = False, closed: bool = False) -> N
         span = "(0, 1]" if closed else "(0, 1)"
         raise OptionError(f"{type(obj).__name__}.{name} must lie in {span}"
                           f"{' or be None' if optional else ''}, got {v!r}")
-
-
-def per_input_of(hold, allowed: tuple) -> bool:
-    """Whether ``hold`` is one of ``allowed`` per input, comma-joined
-    (:func:`bondgraph.numerics.integrators.split_hold`)."""
-    return (isinstance(hold, str) and HOLD_SEPARATOR in hold
-            and all(h.strip() in allowed for h in hold.split(HOLD_SEPARATOR)))
 
 
 def _choice(obj, name: str, choices: tuple) -> None:
@@ -317,7 +310,7 @@ class FreeRunOptions:
 
     def __post_init__(self):
         _choice(self, "method", FREE_RUN_METHODS)
-        if not (self.hold == "filter" or per_input_of(self.hold, ("linear", "zoh"))):
+        if not (self.hold == "filter" or hold_within(self.hold, ("linear", "zoh"))):
             _choice(self, "hold", FREE_RUN_HOLDS)
 
 

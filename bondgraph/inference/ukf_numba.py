@@ -1401,8 +1401,11 @@ class StepKernel:
         n, ny = batch.x.shape[1], (batch.Rd.shape[1] if batch.Rd is not None
                                     else batch.R.shape[1])
         c = np.ascontiguousarray
-        self.hold = opts.hold
         u0, hold_code = kernel_inputs(np.zeros((2, n_u)), opts.hold)
+        holds = split_hold(opts.hold, n_u)
+        #: a per-input hold's mean and linear columns (:meth:`step` fills the blocks)
+        self._mean = np.array([h == "mean" for h in holds], dtype=bool)
+        self._lin = np.array([h == "linear" for h in holds], dtype=bool)
         self.t, self.u, self.y = np.zeros(2), u0, np.full((2, ny), np.nan)
         self.recs = (Record(self.t[1:], self.u[1:], self.y[1:]), Record(self.t, self.u, self.y))
         R = c(batch.R, dtype=float) if batch.R is not None else np.zeros((1, ny, ny))
@@ -1435,9 +1438,15 @@ class StepKernel:
         (nll term [nats], failure reason or None)
         """
         first = t_prev is None
-        if self.u.shape[1] != np.size(u_now):        # a per-input hold's three blocks
-            pair = np.stack([u_now if first else u_prev, u_now]).astype(float)
-            self.u[:] = kernel_inputs(pair, self.hold)[0]
+        m = np.size(u_now)
+        if self.u.shape[1] != m:        # a per-input hold's blocks, as hold_inputs makes them
+            up = np.asarray(u_now if first else u_prev, dtype=float)
+            un = np.asarray(u_now, dtype=float)
+            self.u[0, :m] = up
+            self.u[0, m:2 * m] = np.where(self._mean, 0.5 * (up + un), up)
+            self.u[0, 2 * m:] = np.where(self._lin, un - up, 0.0)
+            self.u[1, m:2 * m] = un         # the last row: held, no change
+            self.u[1, 2 * m:] = 0.0
         elif not first:
             self.u[0] = u_prev
         if not first:

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.integrate import OdeSolver, solve_ivp
 
 from bondgraph.errors import DataError, NumericalError, OptionError, SensitivityError
-from bondgraph.numerics.integrators import HOLD_SEPARATOR
+from bondgraph.numerics.integrators import hold_within
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import InputSignals, Runaway, _vector, guard_rhs
 
@@ -69,8 +69,7 @@ def check_solver_fields(obj) -> None:
                 or v <= 0):
             raise OptionError(f"{cls}.{name} must be a finite number > 0, got {v!r}")
         object.__setattr__(obj, name, float(v))
-    holds = obj.hold.split(HOLD_SEPARATOR) if isinstance(obj.hold, str) else [obj.hold]
-    if any(h.strip() not in SOLVER_HOLDS for h in holds):
+    if not hold_within(obj.hold, SOLVER_HOLDS):
         raise OptionError(f"{cls}.hold = {obj.hold!r} is not one of "
                           f"{', '.join(repr(h) for h in SOLVER_HOLDS)} (or one of them per "
                           f"input, joined by commas)")

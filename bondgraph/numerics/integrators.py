@@ -271,6 +271,15 @@ def join_hold(holds) -> str:
     return HOLD_SEPARATOR.join(holds)
 
 
+def hold_within(hold, allowed) -> bool:
+    """Whether ``hold`` is one of ``allowed``, or one of them per input
+    (:func:`split_hold`; False for anything else, never an error)."""
+    try:
+        return set(split_hold(hold)) <= set(allowed)
+    except OptionError:
+        return False
+
+
 def is_per_input(hold: str) -> bool:
     """Whether ``hold`` differs between inputs (:func:`split_hold`)."""
     return isinstance(hold, str) and HOLD_SEPARATOR in hold

@@ -339,7 +339,7 @@ class InputSignals:
         ``"zoh"``, some with a per-input hold) are held at sample ``a``
         (callables and linearly held arrays still vary inside the segment);
         none: :meth:`at`."""
-        holds = split_hold(hold, self.model.n_u)
+        holds = self.holds if hold == self.hold else split_hold(hold, self.model.n_u)
         cols = [j for j in self._array_cols if holds[j] == "zoh"]
         if not cols:
             return self.at
