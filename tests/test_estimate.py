@@ -134,6 +134,13 @@ def test_hessian_and_unidentified_direction():
     # a direction through every parameter leaves none to bound
     both = cramer_rao(np.array([[1.0, 1.0], [1.0, 1.0]]), ["a", "b"], conditional=True)
     assert np.isnan(both["std"]).all() and both["conditional_on"] == []
+    # a parameter with a small share of the flat direction moves along it: no bound
+    c, sn = np.cos(0.05), np.sin(0.05)              # flat direction 0.9988·c + 0.05·b
+    R = np.array([[1, 0, 0], [0, c, -sn], [0, sn, c]])
+    tilt = R.T @ np.diag([4.0, 2.0, 0.0]) @ R
+    part = cramer_rao(tilt, ["a", "b", "c"], conditional=True)
+    assert part["conditional_on"] == ["b", "c"] and np.isnan(part["std"][1:]).all()
+    np.testing.assert_allclose(part["std"][0], 0.5, rtol=1e-12)
 
 
 def test_unidentifiable_pair_warns(msd_record):

@@ -329,6 +329,13 @@ def hessian_batched(fun: Callable[[np.ndarray], np.ndarray], x, h) -> tuple[np.n
     return H, float(f0), len(pts)
 
 
+#: a parameter whose component in an unidentified direction (a unit vector in
+#: scaled coordinates) exceeds this moves along it: :func:`cramer_rao` gives it
+#: no conditional bound (on the thermal record with T0 estimated the other
+#: components were 1e-11)
+FLAT_COMPONENT = 1e-3
+
+
 def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1e-6,
                conditional: bool = False) -> dict:
     """Cramér-Rao standard deviations and correlations from the NLL Hessian.
@@ -349,7 +356,9 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
         eigenvalue of ~1e-8, not 0).
     conditional : bool
         When H is not positive definite: the bounds of the parameters
-        outside the unidentified direction (its components above 0.1),
+        outside the unidentified direction (its components above
+        :data:`FLAT_COMPONENT`: a parameter that moves at all along it has
+        no bound),
         conditional on those in it held at the estimate (the inverse of
         H's block of the others, when that block is positive definite);
         ``conditional_on`` names the held ones, their entries stay NaN.
@@ -385,7 +394,7 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
                           f"direction {' '.join(terms)} (scaled coordinates) is not identified "
                           f"by this record")
         if conditional:
-            _conditional_bounds(out, Hs, s, names, np.abs(v) > 0.1, rcond)
+            _conditional_bounds(out, Hs, s, names, np.abs(v) > FLAT_COMPONENT, rcond)
         return out
     cov_s = (V / lam) @ V.T
     cov = cov_s * np.outer(s, s)
