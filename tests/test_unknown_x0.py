@@ -231,7 +231,7 @@ def test_a_start_the_smoother_cannot_give_is_fitted_to_the_outputs(monkeypatch):
     y[5, 0] = np.nan                                     # a missing sample is left out
     monkeypatch.setattr(F, "_free_run_from", run)
     logs = []
-    ctx = SimpleNamespace(log=logs.append)
+    ctx = SimpleNamespace(log=logs.append, log_once=lambda kind, msg: logs.append(msg))
     x0 = np.zeros(2)
     pb = SimpleNamespace(arrays=(t, None, y), x0=x0, P0=np.diag([0.01, 0.05]) ** 2,
                          model=SimpleNamespace(states=["a", "b"]))
@@ -282,7 +282,8 @@ def test_a_smoothed_start_that_fits_worse_than_the_prior_mean_gives_way_to_a_fit
     monkeypatch.setattr(F, "_smoothed_start", lambda pb, th, x0: (np.array([0.5, 3.0]), None))
     monkeypatch.setattr(F, "sim_inputs", lambda s, hold, u: ("zoh", u))
     logs = []
-    ctx = SimpleNamespace(log=logs.append, settings=None)
+    ctx = SimpleNamespace(log=logs.append, settings=None,
+                          log_once=lambda kind, msg: logs.append(msg))
     x0 = np.zeros(2)
     prior = SimpleNamespace(unknown=lambda m, r: ["a", "b"], estimated={})
     pb = SimpleNamespace(arrays=(t, None, y), x0=x0, P0=np.diag([0.01, 0.05]) ** 2,
@@ -342,7 +343,8 @@ def test_a_filter_that_fails_on_the_validation_record_runs_at_finer_steps(monkey
     monkeypatch.setattr(F, "free_run_trouble", lambda *a: None)
     monkeypatch.setattr(F, "MetricRecord", lambda r: None)
     logs = []
-    ctx = SimpleNamespace(log=logs.append, settings=None)
+    ctx = SimpleNamespace(log=logs.append, settings=None,
+                          log_once=lambda kind, msg: logs.append(msg))
     vp = Pb(2)
     got = F.validation_run(ctx, vp, np.zeros(1))
     assert tried == [2, 8] and got[0] == ("run at", 8)
@@ -352,3 +354,20 @@ def test_a_filter_that_fails_on_the_validation_record_runs_at_finer_steps(monkey
     got = F.validation_run(ctx, vp, np.zeros(1))
     assert tried == [2, 8, 32] and got == (float("inf"), None, "the filter fails (P not PD at 2)")
     assert logs == []
+
+
+def test_a_message_every_refit_repeats_is_logged_once():
+    """Context.log_once: the first message of a kind is logged with a note
+    that the like is not logged again; later ones of that kind are not, one
+    of another kind is (a user's CED graph without process noise repeated
+    the smoothed-start fallback in 40 refits of one loop)."""
+    from bondgraph.diagnose.fit import Context
+    from bondgraph.diagnose.settings import LoopSettings
+
+    logs = []
+    ctx = Context(None, LoopSettings(["a"]), log=logs.append)
+    ctx.log_once("far", "start 1 far")
+    ctx.log_once("far", "start 2 far")
+    ctx.log_once("worse", "start 3 worse")
+    assert logs == ["start 1 far (said once: the like is not logged again)",
+                    "start 3 worse (said once: the like is not logged again)"]

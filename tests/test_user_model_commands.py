@@ -43,6 +43,14 @@ def test_every_command_takes_module_function_and_file_function(user_dir, capsys)
     assert main(["equations", "usermod:build"]) == 0
     out = capsys.readouterr().out
     assert "dq_spring/dt = p_mass/m" in out and "v = p_mass/m" in out
+    # --model, as loop and estimate take it, names the same model; two differing
+    # models, or none, are refused naming them (exit 2)
+    assert main(["equations", "--model", "usermod:build"]) == 0
+    assert capsys.readouterr().out == out
+    assert main(["equations", "usermod:build", "--model", "x:y"]) == 2
+    assert "two models given: 'usermod:build' and --model 'x:y'" in capsys.readouterr().err
+    assert main(["equations"]) == 2
+    assert "the model is required: bondgraph equations MODEL" in capsys.readouterr().err
     assert main(["draw", "models/other.py:build", "-o", "g.png"]) == 0
     assert (user_dir / "g.png").stat().st_size > 1000
 

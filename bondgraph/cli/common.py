@@ -125,11 +125,31 @@ def parse_params(text: str, model=None) -> list[str]:
 # ------------------------------------------------------------ declarations
 def add_model(p: argparse.ArgumentParser, *, positional: bool = False,
               required: bool = True) -> None:
-    """``--model`` (or a positional ``model``)."""
+    """``--model`` (or a positional ``model``, which also takes ``--model``
+    as the commands that filter do; :func:`merged_model` joins the two)."""
     if positional:
-        p.add_argument("model", help=MODEL_HELP)
+        p.add_argument("model", nargs="?", default=None, help=MODEL_HELP)
+        p.add_argument("--model", dest="model_option", default=None, metavar="MODEL",
+                       help="the same as the positional model")
     else:
         p.add_argument("--model", required=required, help=MODEL_HELP)
+
+
+def merged_model(args: argparse.Namespace) -> str | None:
+    """The model of a command whose model is positional (``add_model(p,
+    positional=True)``), given either way; an error (text) when both are
+    given and differ, or neither is. None when the command has no such
+    model."""
+    if not hasattr(args, "model_option"):
+        return None
+    given = {m for m in (args.model, args.model_option) if m is not None}
+    if len(given) > 1:
+        return f"two models given: {args.model!r} and --model {args.model_option!r}"
+    if not given:
+        return "the model is required: bondgraph COMMAND MODEL (or --model MODEL)"
+    args.model = given.pop()
+    del args.model_option
+    return None
 
 
 def add_data(p: argparse.ArgumentParser, *, required: bool = True) -> None:

@@ -43,6 +43,15 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         raise UsageError(f"{message} (see `{self.prog} --help`)")
 
+    def parse_args(self, args=None, namespace=None):
+        from bondgraph.cli.common import merged_model
+
+        ns = super().parse_args(args, namespace)
+        problem = merged_model(ns)
+        if problem:
+            self.error(problem.replace("COMMAND", self.prog.split()[-1]))
+        return ns
+
 
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(

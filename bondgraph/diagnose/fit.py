@@ -101,6 +101,16 @@ class Context:
     progress: bool = True
     cache: dict = field(default_factory=dict)
     executor: Any = None
+    said: set = field(default_factory=set)
+
+    def log_once(self, kind: str, msg: str) -> None:
+        """Log ``msg`` the first time a message of ``kind`` comes, saying
+        that later ones are not logged; nothing after that (a message that
+        every refit repeats, whose first instance says what the user needs)."""
+        if kind in self.said:
+            return
+        self.said.add(kind)
+        self.log(f"{msg} (said once: the like is not logged again)")
 
     @property
     def record(self) -> MetricRecord:
@@ -909,8 +919,9 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
     xi = x0.copy()
     xi[idx] = x0[idx] + fit.x * sd
     if why:
-        ctx.log(f"  {why}; the free run starts from the one fitted to the outputs "
-                f"{prior_distance_text(problem, xi)} (output error, {fit.nfev} runs)")
+        ctx.log_once(f"fitted start: {why.split(' (')[0]}",
+                     f"  {why}; the free run starts from the one fitted to the outputs "
+                     f"{prior_distance_text(problem, xi)} (output error, {fit.nfev} runs)")
     return xi
 
 
