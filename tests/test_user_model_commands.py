@@ -80,6 +80,21 @@ def test_every_command_takes_module_function_and_file_function(user_dir, capsys)
         value, std = res["estimates"][name], res["std"][name]
         assert abs(value - truth) < 3 * std, (name, value, std)
 
+    # without --params: the parameters declared with a box; m, declared here
+    # without one (a known value), is held at it; one line on stderr says so
+    (user_dir / "known.py").write_text(MYMOD.replace(
+        "    return g", "    g.params['m'].box_declared = False\n    return g"))
+    capsys.readouterr()
+    assert main(["estimate", "--model", "known:build", "--data", "rec.csv", "--fit", "sim",
+                 "--out", "est_default", "--quiet"]) == 0
+    assert ("no --params: estimating the 2 parameters declared with a box (k, c); held at their "
+            "declared values (declared without a box: known): m") in capsys.readouterr().err
+    res = json.loads((user_dir / "est_default" / "result.json").read_text())
+    assert sorted(res["std"]) == ["c", "k"]
+    for name, truth in (("k", 40.0), ("c", 1.5)):
+        value, std = res["estimates"][name], res["std"][name]
+        assert abs(value - truth) < 3 * std, (name, value, std)
+
     assert main(["sensitivity", "--model", "usermod:build", "--data", "rec.csv",
                  "--params", "k,c,m", "--out", "sens", "--no-plots"]) == 0
     out = capsys.readouterr().out

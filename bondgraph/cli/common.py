@@ -122,6 +122,37 @@ def parse_params(text: str, model=None) -> list[str]:
     return parse_names(text, "--params")
 
 
+def default_params(spec: str, model, command: str) -> list[str]:
+    """The parameters a command estimates without ``--params``: those the
+    graph declares with a box (``Parameter.box_declared``; a parameter
+    declared without one is a known value, held at it, as ``bondgraph loop``
+    holds it where the record cannot tell it apart), or all of the model's
+    when none has a box. One line on stderr says which, and which are held.
+
+    Parameters
+    ----------
+    spec : str
+        ``--model`` (a registered name or a graph builder).
+    model : Model
+        The model built from it (its parameters, in order).
+    command : str
+        The command's name, for the line.
+    """
+    from bondgraph.numerics.registry import graph_builder
+
+    declared = graph_builder(spec)().params
+    boxed = [n for n in model.params
+             if n in declared and getattr(declared[n], "box_declared", True)]
+    names = boxed or list(model.params)
+    held = [n for n in model.params if n not in names]
+    print(f"bondgraph {command}: no --params: estimating "
+          + (f"the {len(names)} parameters declared with a box ({', '.join(names)}); held at "
+             f"their declared values (declared without a box: known): {', '.join(held)}"
+             if held else f"all {len(names)} parameters ({', '.join(names)})")
+          + "; --params to choose", file=sys.stderr)
+    return names
+
+
 # ------------------------------------------------------------ declarations
 def add_model(p: argparse.ArgumentParser, *, positional: bool = False,
               required: bool = True) -> None:

@@ -22,6 +22,7 @@ from bondgraph.cli.common import (
     add_quiet,
     add_scheduler,
     chosen_problem,
+    default_params,
     discretisation_given,
     estimated_states,
     load_model,
@@ -49,10 +50,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph estimate``."""
     add_model(p)
     add_data(p)
-    p.add_argument("--params", required=True,
+    p.add_argument("--params", default=None,
                    help="comma-separated parameters to estimate, or recommended:FILE for the "
                         "set recommended in a `bondgraph sensitivity` result (sensitivity.json "
-                        "or its directory)")
+                        "or its directory). Default: those the graph declares with a box (one "
+                        "declared without a box is a known value, held), or all when none has "
+                        "one; one line on stderr")
     p.add_argument("--optimizer", choices=("pso", "de"), default="pso")
     p.add_argument("--particles", type=int, default=None, help="swarm / population size (10 k)")
     p.add_argument("--iterations", type=int, default=100)
@@ -104,7 +107,8 @@ def run(args) -> int:
         compile_in_background()     # the filter kernel, once per installation, beside the set-up
     model = load_model(args.model)
     exp = load_record(args.data, model)
-    params = parse_params(args.params, model)
+    params = (parse_params(args.params, model) if args.params
+              else default_params(args.model, model, "estimate"))
     folder = output_folder(args.out or f"estimate_{model.name}_{Path(args.data).stem}", args,
                            overwrite=args.overwrite or args.resume)
     ck = (Path(args.checkpoint) if args.checkpoint

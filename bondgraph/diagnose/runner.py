@@ -1146,13 +1146,21 @@ def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidat
     fit: two overflows into one measured collector, the declared orifices
     compensate both, and one tank's overflow alone scores χ² = 0 (capping
     it only removes flow the compensated model needs); once the other
-    tank's overflow is in, its own shows. Returns the partners."""
+    tank's overflow is in, its own shows.
+
+    The output-error screen (:mod:`bondgraph.diagnose.screen`) runs only
+    where the current fit's own free run is poor: a lead whose refit broke
+    the free run of a model that simulated is not rescued by a global
+    search around it (a user's EMPS graph: a Stribeck refit with the
+    validation error 0.044 -> 1.8, whose screen took 100 of the step's 290 s
+    and found nothing accepted). Returns the partners."""
     s = ctx.settings
     conf = ctx.cache.get(("confirmation", id(current), current.nll, lead.label))
     if conf is None:
         return []
+    screen = free_run_nrmse(current, ctx.problem.arrays[2]) >= SCREEN_LEVEL
     with conditioned(ctx, conf.fit):
-        cands = score_additive(ctx, conf.fit, scales, s.effects)
+        cands = score_additive(ctx, conf.fit, scales, s.effects, screen=screen)
         if s.search.structural:
             physical = [e for e in s.effects if not getattr(e, "last_resort", False)]
             cands += score_structural(ctx, conf.fit, scales, physical, others=len(cands))

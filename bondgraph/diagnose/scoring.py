@@ -160,10 +160,12 @@ def build_probe(ctx: Context, fit: Fit, scales: Scales, effects) -> Probe | None
                  [pm.param_index(n) for n in fit.params])
 
 
-def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Candidate]:
+def score_additive(ctx: Context, fit: Fit, scales: Scales, effects,
+                   screen: bool = True) -> list[Candidate]:
     """Efficient score test (Rao 1948) of every additive candidate with one
-    probe model, then the line probe (:func:`line_probe`) and the
-    equivalence groups (:func:`mark_equivalent`).
+    probe model, then the line probe (:func:`line_probe`), the output-error
+    screen (:func:`~bondgraph.diagnose.screen.output_error_screen`, unless
+    ``screen`` is False) and the equivalence groups (:func:`mark_equivalent`).
 
     Parameters
     ----------
@@ -200,7 +202,8 @@ def score_additive(ctx: Context, fit: Fit, scales: Scales, effects) -> list[Cand
     ctx.cache[("score_gram", id(fit), fit.nll)] = (An, bn, norm, col_of, len(probe.nuis))
     mark_equivalent(out, col_of, An, list(range(len(probe.nuis))))
     line_probe(ctx, probe, fit, out)
-    output_error_screen(ctx, probe, fit, out)
+    if screen:
+        output_error_screen(ctx, probe, fit, out)
     rank_nested(out, col_of, An, ctx.settings.accept.significance)
     return out
 
