@@ -356,17 +356,19 @@ def test_damping_not_observable_at_rest_and_no_alarm_there(tracking_model, seed)
     # T_ring = (2m/c) ln(A sqrt(W) / sv) it is below what a window of W samples can resolve
     # (the sensor noise sv averaged over W), so no window ending after T_ring + W·dt
     # holds information about c
-    m, c, W = 2.0, 1.5, int(round(opts.observable_s / DT))
+    w_obs = opts.seconds(DT)[1]                       # the default: 2 s (200 samples)
+    assert w_obs == 2.0
+    m, c, W = 2.0, 1.5, int(round(w_obs / DT))
     A = np.abs(sim.y[(t >= T0) & (t < T0 + 1.0), 1]).max()
     t_ring = 2 * m / c * np.log(A * np.sqrt(W) / sv)
     assert 10.0 < t_ring < 25.0
-    core = (t >= T0 + t_ring + opts.observable_s) & (t < T1)
+    core = (t >= T0 + t_ring + w_obs) & (t < T1)
     assert core.sum() > 500 and not obs[core].any()
     # forced: observable, but for the record's first window and, after T1, until the
     # first force piece of at least half the force's std (5 N) has acted for its 0.5 s
     # (a near-zero piece leaves the mass near rest: seed 4's first two are 0.45, 0.6 N)
     t_back = t[(t >= T1) & (np.abs(F[:, 0]) >= 2.5)][0] + 0.5
-    forced = ((t >= opts.observable_s) & (t < T0)) | (t >= t_back)
+    forced = ((t >= w_obs) & (t < T0)) | (t >= t_back)
     assert obs[forced].all()
     (a, b), = [s for s in res.unobservable("c") if s[1] > T0]
     print("unobservable stretch", a, b, "hand bound", T0 + t_ring, "back by", t_back,

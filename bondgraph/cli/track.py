@@ -57,10 +57,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--false-alarm-hours", type=float, default=10.0,
                    help="mean time between false alarms of the change detector [h] "
                         "(default 10; 0: no detection)")
-    p.add_argument("--window", type=float, default=10.0, help="GLR window [s] (default 10)")
-    p.add_argument("--observable-s", type=float, default=2.0,
+    p.add_argument("--window", type=float, default=None,
+                   help="GLR window [s] (default 10 s, but at least 20 samples)")
+    p.add_argument("--observable-s", type=float, default=None,
                    help="window over which the record's information about a parameter is "
-                        "summed to call it observable [s] (default 2)")
+                        "summed to call it observable [s] (default 2 s, but at least 10 "
+                        "samples)")
     p.add_argument("--observable-ratio", type=float, default=0.5,
                    help="observable where the window's data alone would leave at most this "
                         "fraction of the prior variance (default 0.5)")
@@ -76,7 +78,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     for a in p._actions:
         if a.dest == "substeps":
             a.help = ("integrator steps per sample (default: chosen from the record by tracking "
-                      "it with 1, 2, 4, ... substeps: the first whose 2 s windows' "
+                      "it with 1, 2, 4, ... substeps: the first whose observability windows' "
                       "log-likelihood is within one sampling std of a finer one's, "
                       "choose_substeps; one line on stderr)")
         if a.dest == "hold":
@@ -186,11 +188,13 @@ def summary(res) -> str:
                      f"end {res.estimate[-1, i]:.6g} ± {res.std[-1, i]:.3g} {res.units[i]}")
         if res.observable is not None:
             lines.append(_observability_line(res, n, i))
-    bad = res.inconsistent()
-    n_win = max(1, int(np.ceil((res.t[-1] - res.t[0] + 1e-9) / 10.0)))
+    w_s = res.settings["window"] * res.settings["dt"]      # the GLR window [s]
+    bad = res.inconsistent(window_s=w_s)
+    n_win = max(1, int(np.ceil((res.t[-1] - res.t[0] + 1e-9) / w_s)))
     if len(bad) > max(1, 0.05 * n_win):
         lines.append(f"warning: the innovations are larger than the model allows in {len(bad)} "
-                     f"of {n_win} windows of 10 s (first at {bad[0][0]:.6g} s): the model lacks "
+                     f"of {n_win} windows of {w_s:.4g} s (first at {bad[0][0]:.6g} s): the "
+                     f"model lacks "
                      f"an effect there (or the filter's step is too coarse: --substeps), and "
                      f"the tracker may read it as parameter changes; find it with `bondgraph "
                      f"loop` before trusting the changes")

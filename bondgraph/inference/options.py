@@ -657,6 +657,12 @@ class Evaluation:
                               f"string (tcp://HOST:PORT) or None")
 
 
+#: the default GLR and observability windows of :class:`TrackOptions` [s] and
+#: the fewest samples each spans (:meth:`TrackOptions.seconds`)
+DEFAULT_WINDOW_S, DEFAULT_OBSERVABLE_S = 10.0, 2.0
+GLR_LEAST_SAMPLES, OBSERVABLE_LEAST_SAMPLES = 20, 10
+
+
 @dataclass(frozen=True)
 class TrackOptions:
     """How :func:`bondgraph.inference.track.track` and
@@ -672,8 +678,10 @@ class TrackOptions:
         Mean time between false alarms of the change detector [h]
         (:func:`bondgraph.inference.changes.glr_threshold`); None: no
         detection.
-    window_s : float
-        The GLR window [s]: how far back a change may start (> 0).
+    window_s : float or None
+        The GLR window [s]: how far back a change may start (> 0). None
+        (default): 10 s, but at least :data:`GLR_LEAST_SAMPLES` samples
+        (:meth:`seconds`).
     smooth : bool
         Also the RTS-smoothed estimates (batch tracker).
     match_spread : bool
@@ -692,11 +700,12 @@ class TrackOptions:
         After a change, how long the detector ignores the re-estimation's
         transient [s] (>= 0; None: ``window_s``): a second change within it
         is not detected.
-    observable_s : float
+    observable_s : float or None
         Window [s] (> 0) over which the information the record carries about
         a tracked parameter is summed to decide whether it is observable
         there (:func:`bondgraph.inference.changes.observable_mask`; trailing
-        window, ending at the sample).
+        window, ending at the sample). None (default): 2 s, but at least
+        :data:`OBSERVABLE_LEAST_SAMPLES` samples.
     observable_ratio : float
         A parameter is observable at a sample when the window's data alone
         would bring its prior variance down to at most this fraction of it
@@ -718,20 +727,21 @@ class TrackOptions:
 
     prior_rel: float = 0.1
     false_alarm_hours: float | None = 10.0
-    window_s: float = 10.0
+    window_s: float | None = None
     smooth: bool = True
     match_spread: bool = True
     max_changes: int = 20
     reset_rel: float = 1.0
     holdoff_s: float | None = None
-    observable_s: float = 2.0
+    observable_s: float | None = None
     observable_ratio: float = 0.5
 
     def __post_init__(self):
         _real(self, "prior_rel", positive=True)
         if self.false_alarm_hours is not None:
             _real(self, "false_alarm_hours", positive=True)
-        _real(self, "window_s", positive=True)
+        if self.window_s is not None:
+            _real(self, "window_s", positive=True)
         _flag(self, "smooth")
         _flag(self, "match_spread")
         _integer(self, "max_changes", 0)
@@ -740,11 +750,31 @@ class TrackOptions:
             _real(self, "holdoff_s")
             if self.holdoff_s < 0:
                 raise OptionError(f"TrackOptions.holdoff_s must be >= 0, got {self.holdoff_s}")
-        _real(self, "observable_s", positive=True)
+        if self.observable_s is not None:
+            _real(self, "observable_s", positive=True)
         _real(self, "observable_ratio", positive=True)
         if not self.observable_ratio < 1.0:
             raise OptionError("TrackOptions.observable_ratio must be < 1 (a posterior to prior "
                               f"variance ratio), got {self.observable_ratio}")
+
+    def seconds(self, dt: float) -> tuple[float, float]:
+        """The GLR and observability windows [s] on a record sampled every
+        ``dt`` seconds: the ones given, or the defaults (10 s and 2 s, at
+        a vehicle's 40 Hz 400 and 80 samples) stretched to at least
+        :data:`GLR_LEAST_SAMPLES` and :data:`OBSERVABLE_LEAST_SAMPLES`
+        samples: on a thermal record sampled every 10 s, 10 s is one sample,
+        a "window" that judges a change, or the information about a
+        parameter, by a single innovation (a constant-parameter record then
+        raised changes; 200 s and 100 s there)."""
+        glr = (self.window_s if self.window_s is not None
+               else max(DEFAULT_WINDOW_S, GLR_LEAST_SAMPLES * dt))
+        obs = (self.observable_s if self.observable_s is not None
+               else max(DEFAULT_OBSERVABLE_S, OBSERVABLE_LEAST_SAMPLES * dt))
+        return float(glr), float(obs)
+
+    def samples(self, dt: float) -> tuple[int, int]:
+        """:meth:`seconds` in samples of ``dt`` (each at least 1)."""
+        return tuple(max(1, int(round(w / dt))) for w in self.seconds(dt))
 
     def to_dict(self) -> dict:
         """The options as a plain dict (JSON-able)."""

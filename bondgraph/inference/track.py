@@ -461,14 +461,13 @@ def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = Non
     R = problem.noise.covariance(tm.model, th[None, :])
     t, u, y = problem.t, problem.u, problem.y
     dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-    window = max(1, int(round(opts.window_s / dt)))
+    window, obs_window = opts.samples(dt)
     h = (None if opts.false_alarm_hours is None else
          glr_threshold(opts.false_alarm_hours * 3600.0, dt, window, len(tm.tracked)))
     segs, changes = _segments(tm, (t, u, y), th, (x0, P0), ukf, R, h, window, opts, std)
     res = _stitch(tm, t, segs, changes, h)
     res.observable = observable_mask(res.information, reference_std(tm, x0, opts),
-                                     max(1, int(round(opts.observable_s / dt))),
-                                     opts.observable_ratio)
+                                     obs_window, opts.observable_ratio)
     if opts.smooth:
         res.smoothed, res.smoothed_std = _smoothed(tm, t, u, th, segs, ukf)
     res.settings = dict(ukf=ukf.to_dict(), track=opts.to_dict(), window=window, dt=dt,
@@ -518,7 +517,7 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
     holdoff = window if opts.holdoff_s is None else int(round(opts.holdoff_s / (
         np.median(np.diff(t)) if t.size > 1 else 1.0)))
     dt = np.median(np.diff(t)) if t.size > 1 else 1.0
-    ow, sigma0 = max(1, int(round(opts.observable_s / dt))), reference_std(tm, prior[0], opts)
+    ow, sigma0 = opts.samples(dt)[1], reference_std(tm, prior[0], opts)
     s0, segs, changes = 0, [], []
     changed, P_start = None, _states_prior(tm, prior[1])
     while True:
@@ -822,7 +821,8 @@ def choose_substeps(problem, tm: TrackingModel, *, start: Mapping[str, float] | 
     start, std, drift, options
         As for :func:`track`.
     window_s : float, optional
-        The windows [s] (default ``options.observable_s``).
+        The windows [s] (default the observability window,
+        ``options.seconds(dt)[1]``).
     max_substeps : int
         The most substeps run (>= 4 x the problem's).
 
@@ -843,7 +843,9 @@ def choose_substeps(problem, tm: TrackingModel, *, start: Mapping[str, float] | 
     Science and Engineering, ch. 5 (observed order, asymptotic range).
     """
     opts = replace(_checked(options, TrackOptions, "track options"), smooth=False)
-    w_s = float(opts.observable_s if window_s is None else window_s)
+    t = problem.t
+    w_s = float(opts.seconds(float(np.median(np.diff(t))) if t.size > 1 else 1.0)[1]
+                if window_s is None else window_s)
     s = int(problem.ukf.substeps)
     if not (np.isfinite(w_s) and w_s > 0) or int(max_substeps) < 4 * s:
         raise OptionError(f"choose_substeps: window_s must be > 0 and max_substeps >= {4 * s}, "
@@ -1103,8 +1105,7 @@ class Tracker:
         R = problem.noise.covariance(tm.model, th[None, :])
         t = problem.t
         dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-        observe = (reference_std(tm, x0, opts), max(1, int(round(opts.observable_s / dt))),
-                   opts.observable_ratio)
+        observe = (reference_std(tm, x0, opts), opts.samples(dt)[1], opts.observable_ratio)
         return cls(tm, th, x0, P0, ukf=filter_options(problem.ukf, tm, opts),
                    R=None if R is None else R[0], observe=observe)
 
