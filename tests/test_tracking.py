@@ -501,3 +501,17 @@ def test_substeps_chosen_from_the_tracked_record_remove_false_changes_and_bias()
     assert fine.changes == []
     z = (fine.estimate[:, 0] - 1.5) / fine.std[:, 0]
     assert np.abs(z[t >= 10.0]).max() <= 3.0
+
+
+def test_default_windows_span_enough_samples_on_a_slowly_sampled_record():
+    """TrackOptions.seconds: the default GLR and observability windows are
+    10 s and 2 s (at 40 Hz 400 and 80 samples), stretched to 20 and 10
+    samples where that is longer (10 s sampling: 200 s and 100 s, where 10 s
+    would be one sample); windows given are kept as given."""
+    opts = TrackOptions()
+    assert opts.seconds(0.025) == (10.0, 2.0) and opts.samples(0.025) == (400, 80)
+    assert opts.seconds(10.0) == (200.0, 100.0) and opts.samples(10.0) == (20, 10)
+    given = TrackOptions(window_s=10.0, observable_s=2.0)
+    assert given.seconds(10.0) == (10.0, 2.0) and given.samples(10.0) == (1, 1)
+    with pytest.raises(OptionError):
+        TrackOptions(window_s=0.0)
