@@ -408,10 +408,23 @@ def _start_bare_levels(model, th, outs, y, sigma, notes) -> None:
             f"'{model.name}': the sensor declares none (noise_std), the record declares none "
             f"(columns.<output>.noise_std in its sidecar) and none can be seen in the record; "
             f"declare one of them")
+    # the box of an estimated level is its start ×/÷ NOISE_BOX: a start far
+    # below the output's spread (a quantised encoder whose second differences
+    # are mostly 0) would cap the level below the declared model's misfit
+    yv = np.asarray(y, float).reshape(np.shape(y)[0], -1)
+    spread = np.array([np.nanstd(yv[:, j]) if np.isfinite(yv[:, j]).sum() > 1 else 0.0
+                       for j in range(yv.shape[1])])
+    low = [j for j in bare if seen[j] < spread[j] / NOISE_BOX]
     sigma[bare] = seen[bare]
+    sigma[low] = spread[low] / NOISE_BOX
     notes.append("no noise level declared by the sensor or the record: the estimate starts "
                  "from the level seen in the record's second differences (an upper "
-                 "estimate): " + ", ".join(f"{model.outputs[j]} = {seen[j]:.4g}" for j in bare))
+                 "estimate): " + ", ".join(f"{model.outputs[j]} = {sigma[j]:.4g}" for j in bare)
+                 + ("" if not low else
+                    f" ({', '.join(model.outputs[j] for j in low)}: raised to the output's "
+                    f"std / {NOISE_BOX:g}, so that the level's box reaches the output's own "
+                    f"spread; the second differences show "
+                    + ", ".join(f"{seen[j]:.3g}" for j in low) + ")"))
 
 
 def _meas_dependent(model, th) -> dict[str, list[int]]:
