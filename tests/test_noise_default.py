@@ -330,3 +330,29 @@ def test_an_output_the_record_lacks_gets_no_noise_level(msd):
     F[2:, 2:] += np.eye(2) / 0.05 ** 2                                 # the prior on x0
     crb = np.sqrt(np.diag(np.linalg.inv(F)))[:2]
     np.testing.assert_allclose(r.std[:2], crb, rtol=0.03)
+
+
+def test_a_quantised_record_starts_its_noise_level_where_its_box_reaches_the_spread():
+    """A quantised encoder oversampled (most second differences exactly 0):
+    the robust second-difference level is far below the signal (by hand:
+    a slow sine of amplitude 0.1 m quantised at 1 µm and sampled at 1 kHz,
+    1.4826 x MAD of the second differences, is 0). The estimated level then
+    starts at the output's std / NOISE_BOX, so that its box (start x/÷
+    NOISE_BOX) reaches the output's own spread: on a user's EMPS graph the
+    old start (3.0e-8 m) capped the level at 3e-4 m against a 0.026 m
+    misfit of the declared model, and every likelihood ratio read 5e8."""
+    from bondgraph.inference.estimand import NOISE_BOX, noise_plan, record_noise_level
+    model = _bare_msd()
+    t = np.arange(0.0, 20.0, 0.001)
+    y = (np.round(0.1 * np.sin(0.5 * t) / 1e-6) * 1e-6).reshape(-1, 1)
+    seen = record_noise_level(y)[0]
+    spread = float(np.std(y))
+    assert seen < spread / NOISE_BOX               # the case: the box would end below
+    add, outs, sigma, notes = noise_plan(model, model.theta0, ["k"], [], np.full(1, np.nan), y)
+    assert outs == ["x"] and sigma[0] == pytest.approx(spread / NOISE_BOX, rel=1e-12)
+    assert "raised to the output's std / 10000" in notes[-1]
+    # an ordinary record keeps its second-difference start
+    noisy = y + 0.004 * np.random.default_rng(1).standard_normal(y.shape)
+    _, _, sigma, notes = noise_plan(model, model.theta0, ["k"], [], np.full(1, np.nan), noisy)
+    assert sigma[0] == pytest.approx(record_noise_level(noisy)[0]) and "raised" not in notes[-1]
+    assert sigma[0] == pytest.approx(0.004, rel=0.05)
