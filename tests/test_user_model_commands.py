@@ -113,3 +113,32 @@ def test_every_command_takes_module_function_and_file_function(user_dir, capsys)
     g.name = "user_msd"                          # the graph of usermod.build
     path = kernel_source_path(Model.from_graph(g))
     assert path.parent == user_dir / "cache" and path.name.startswith("user_msd_")
+
+
+def test_loop_takes_its_start_values_from_a_fit_on_another_record(user_dir, capsys):
+    """``loop --from``: the values of an estimate's result.json (fitted on
+    another record) become the graph's defaults, the loop's start values;
+    with ``--params`` the others are held at them (one line says so); noise
+    levels of the file are left out; a value outside the graph's box is
+    refused naming the box (exit 2, before any fit)."""
+    from bondgraph.cli.loop import from_result
+    from bondgraph.numerics.registry import graph_builder
+
+    (user_dir / "est").mkdir()
+    res = {"params": ["k", "c", "noise.x"], "estimates": [41.5, 1.7, 0.003], "fixed": {"m": 2.2}}
+    (user_dir / "est" / "result.json").write_text(json.dumps(res))
+    g = from_result(graph_builder("usermod:build")(), "est/result.json", "c")
+    assert {n: g.params[n].default for n in ("m", "k", "c")} == {"m": 2.2, "k": 41.5, "c": 1.7}
+    assert g.name == "user_msd" and "noise.x" not in g.params
+    out = capsys.readouterr().out
+    assert "start values from est/result.json: m = 2.2, k = 41.5, c = 1.7; held at them: m, k" in out
+
+    res["estimates"][0] = 900.0                       # k's box is [5, 500]
+    (user_dir / "est" / "result.json").write_text(json.dumps(res))
+    rec = Experiment.from_arrays(np.arange(0.0, 1.0, 0.01), {"F": np.ones(100), "x": np.zeros(100),
+                                 "v": np.zeros(100)}, units={"F": "N", "x": "m", "v": "m/s"},
+                                 roles={"F": "input", "x": "output", "v": "output"}, name="r")
+    rec.save(user_dir / "r.csv")
+    assert main(["loop", "--model", "usermod:build", "--data", "r.csv", "--from",
+                 "est/result.json", "--quiet"]) == 2
+    assert "outside the graph's boxes: k = 900 (box [5, 500])" in capsys.readouterr().err

@@ -37,6 +37,7 @@ from bondgraph.diagnose.settings import (
     SearchOptions,
 )
 from bondgraph.errors import ModelError, OptionError, UsageError
+from bondgraph.export.params import model_graph, read_params
 from bondgraph.inference.estimand import x0_state_names
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf_numba import compile_in_background
@@ -64,6 +65,11 @@ def configure(p: argparse.ArgumentParser) -> None:
                                     "case's, or all parameters of the model; one declared "
                                     "without a box is then held at its value where the "
                                     "record cannot tell it from the others)")
+    p.add_argument("--from", dest="from_result", default=None, metavar="JSON",
+                   help="start values from a fit on another record: `bondgraph estimate`'s "
+                        "result.json or a loop's report.json (its final fit); the parameters "
+                        "not in --params are held at them (e.g. fitted on warm records, the "
+                        "loop run on a cold start)")
     p.add_argument("--out", default=None,
                    help=f"report directory (default ./{DEFAULT_OUT}, or ./{DEFAULT_OUT}-2, -3, "
                         f"... when it holds an earlier report); refused when not empty, unless "
@@ -115,6 +121,37 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_quiet(p)
 
 
+def from_result(graph, path: str, params: str | None):
+    """``graph`` with the parameter values of ``--from`` (an estimate's
+    result.json or a loop's report.json, :func:`~bondgraph.export.params.read_params`)
+    as its defaults, which are the loop's start values and, for the
+    parameters not estimated, their held values; noise levels and initial
+    states of the file are left out. One line says what was taken.
+
+    Raises
+    ------
+    ExportError
+        An unreadable file, or a parameter the graph does not have.
+    OptionError
+        A value outside the parameter's box (named with the box).
+    """
+    values = {n: v for n, v in read_params(path).items()
+              if not n.startswith(("noise.", "x0."))}
+    out = model_graph(graph, values)
+    out.name = graph.name
+    outside = [f"{n} = {v:.6g} (box [{graph.params[n].bounds[0]:.6g}, "
+               f"{graph.params[n].bounds[1]:.6g}])" for n, v in values.items()
+               if not graph.params[n].bounds[0] <= v <= graph.params[n].bounds[1]]
+    if outside:
+        raise OptionError(f"--from {path}: outside the graph's boxes: {'; '.join(outside)}; "
+                          f"widen the box in the graph or leave the value out")
+    held = [n for n in values if params and n not in parse_params(params)]
+    print(f"bondgraph loop: start values from {path}: "
+          + ", ".join(f"{n} = {v:.6g}" for n, v in values.items())
+          + (f"; held at them: {', '.join(held)}" if held else ""))
+    return out
+
+
 def run(args) -> int:
     """Run the loop on ``--model``/``--data`` or a bundled case; write the report."""
     if args.case == "list":
@@ -144,6 +181,8 @@ def run(args) -> int:
         record = case.record()
         base = case.loop_settings(parse_params(args.params) if args.params else None)
         name = case.name
+    if args.from_result:
+        graph = from_result(graph, args.from_result, args.params)
     settings = loop_settings(args, base, graph)
     if args.model:
         settings = chosen_numerics(args, graph, record, settings)
