@@ -231,3 +231,28 @@ def test_loading_a_slow_command_module_is_not_silent(monkeypatch, capsys):
     except SystemExit:
         pass
     assert "loading" not in capsys.readouterr().err
+
+
+def test_a_long_silent_phase_keeps_one_line_and_adds_dots(capsys):
+    """Off a terminal the watchdog's line for one long phase grows by a dot
+    per silent stretch instead of a new line per stretch (a user's EMPS loop
+    wrote 400 such lines); another phase starts a new line, other output
+    ends the open line first, and the block's end ends it too."""
+    import re
+    import time
+
+    with progress.enabled(), progress.watchdog(quiet_after=0.2, poll=0.02):
+        with progress.phase("step 2: confirming"):
+            time.sleep(1.0)                         # a line, then about 3 dots
+            with progress.phase("a refit"):
+                time.sleep(0.5)                     # a new line
+            print("a log line")                     # ends it
+            time.sleep(0.5)                         # the outer phase again: a new line
+    got = capsys.readouterr()
+    assert got.out == "a log line\n"
+    lines = got.err.splitlines()
+    assert len(lines) == 3, got.err
+    assert re.fullmatch(r"  \.\.\. step 2: confirming \([01] s\)( \.){1,6}", lines[0]), lines[0]
+    assert re.fullmatch(r"  \.\.\. a refit \([01] s\)( \.){0,3}", lines[1]), lines[1]
+    assert re.fullmatch(r"  \.\.\. step 2: confirming \([12] s\)( \.)*", lines[2]), lines[2]
+    assert got.err.endswith("\n")

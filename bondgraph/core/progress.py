@@ -239,12 +239,19 @@ def phase(what: str):
 
 class _Stamped:
     """A text stream that records when it was last written (``clock[0]``,
-    monotonic seconds); everything else is the stream's."""
+    monotonic seconds) and first ends the :func:`watchdog`'s open line
+    (``opened[0]``: the stream it is open on, or None); everything else is
+    the stream's."""
 
-    def __init__(self, stream, clock: list):
-        self._stream, self._clock = stream, clock
+    def __init__(self, stream, clock: list, opened: list):
+        self._stream, self._clock, self._opened = stream, clock, opened
 
     def write(self, text):
+        line = self._opened[0]
+        if line is not None:
+            self._opened[0] = None
+            line.write("\n")
+            line.flush()
         self._clock[0] = time.monotonic()
         return self._stream.write(text)
 
@@ -260,7 +267,9 @@ def watchdog(quiet_after: float = 1.5, poll: float = 0.25):
     :func:`announced` block is adding its dots, one line on stderr says
     what is being done and for how long: ``"  ... step 2: scoring the
     candidates (6 s)"`` (the innermost :func:`phase`). A long phase without
-    other output thus shows a line every ``quiet_after`` seconds.
+    other output keeps that line and adds a dot every ``quiet_after``
+    seconds (``"... (6 s) . . ."``; a line per tick filled a user's log
+    with 400 lines in one loop); other output, or another phase, ends it.
 
     Parameters
     ----------
@@ -274,9 +283,9 @@ def watchdog(quiet_after: float = 1.5, poll: float = 0.25):
     if not is_enabled():
         yield
         return
-    clock = [time.monotonic()]
+    clock, opened, shown = [time.monotonic()], [None], [None]
     out, err = sys.stdout, sys.stderr
-    sys.stdout, sys.stderr = _Stamped(out, clock), _Stamped(err, clock)
+    sys.stdout, sys.stderr = _Stamped(out, clock, opened), _Stamped(err, clock, opened)
     stop = threading.Event()
     t0 = time.monotonic()
 
@@ -286,8 +295,15 @@ def watchdog(quiet_after: float = 1.5, poll: float = 0.25):
             if _ANNOUNCING[0] or now - clock[0] < quiet_after:
                 continue
             what, since = _PHASES[-1] if _PHASES else ("working", t0)
-            sys.stderr.write(f"  ... {what} ({now - since:.0f} s)\n")
-            sys.stderr.flush()
+            if opened[0] is not None and shown[0] == (what, since):
+                err.write(" .")
+            else:
+                if opened[0] is not None:
+                    err.write("\n")
+                err.write(f"  ... {what} ({now - since:.0f} s)")
+                opened[0], shown[0] = err, (what, since)
+            err.flush()
+            clock[0] = time.monotonic()
 
     th = threading.Thread(target=watch, daemon=True)
     th.start()
@@ -296,4 +312,7 @@ def watchdog(quiet_after: float = 1.5, poll: float = 0.25):
     finally:
         stop.set()
         th.join()
+        if opened[0] is not None:
+            err.write("\n")
+            err.flush()
         sys.stdout, sys.stderr = out, err
