@@ -254,8 +254,9 @@ def inputs_for(exp, model, defaults_ok: bool = False) -> np.ndarray:
             f"(its inputs: {', '.join(mdl.inputs)}; the record has: "
             f"{', '.join(exp.columns) or 'no columns'})",
             path=where, line=1, column=missing[0],
-            hint="add the column(s), or call inputs_for(model, defaults_ok=True) to hold "
-                 "them at the model defaults")
+            hint="add the column(s) to the record (a constant input: a column of its value); "
+                 "from Python, inputs_for(model, defaults_ok=True) holds them at the model's "
+                 "defaults")
     n = len(exp)
     U = np.empty((n, mdl.n_u))
     base: dict[str, np.ndarray] = {}
