@@ -237,6 +237,10 @@ def phase(what: str):
         _PHASES.pop()
 
 
+#: held while the watchdog's line is written and while other output ends it
+_LINE_LOCK = threading.RLock()
+
+
 class _Stamped:
     """A text stream that records when it was last written (``clock[0]``,
     monotonic seconds) and first ends the :func:`watchdog`'s open line
@@ -247,13 +251,14 @@ class _Stamped:
         self._stream, self._clock, self._opened = stream, clock, opened
 
     def write(self, text):
-        line = self._opened[0]
-        if line is not None:
-            self._opened[0] = None
-            line.write("\n")
-            line.flush()
-        self._clock[0] = time.monotonic()
-        return self._stream.write(text)
+        with _LINE_LOCK:            # the watchdog's dots never land inside this text
+            line = self._opened[0]
+            if line is not None:
+                self._opened[0] = None
+                line.write("\n")
+                line.flush()
+            self._clock[0] = time.monotonic()
+            return self._stream.write(text)
 
     def __getattr__(self, name):
         return getattr(self._stream, name)
@@ -295,15 +300,16 @@ def watchdog(quiet_after: float = 1.5, poll: float = 0.25):
             if _ANNOUNCING[0] or now - clock[0] < quiet_after:
                 continue
             what, since = _PHASES[-1] if _PHASES else ("working", t0)
-            if opened[0] is not None and shown[0] == (what, since):
-                err.write(" .")
-            else:
-                if opened[0] is not None:
-                    err.write("\n")
-                err.write(f"  ... {what} ({now - since:.0f} s)")
-                opened[0], shown[0] = err, (what, since)
-            err.flush()
-            clock[0] = time.monotonic()
+            with _LINE_LOCK:
+                if opened[0] is not None and shown[0] == (what, since):
+                    err.write(" .")
+                else:
+                    if opened[0] is not None:
+                        err.write("\n")
+                    err.write(f"  ... {what} ({now - since:.0f} s)")
+                    opened[0], shown[0] = err, (what, since)
+                err.flush()
+                clock[0] = time.monotonic()
 
     th = threading.Thread(target=watch, daemon=True)
     th.start()
@@ -312,7 +318,8 @@ def watchdog(quiet_after: float = 1.5, poll: float = 0.25):
     finally:
         stop.set()
         th.join()
-        if opened[0] is not None:
-            err.write("\n")
-            err.flush()
+        with _LINE_LOCK:
+            if opened[0] is not None:
+                err.write("\n")
+                err.flush()
         sys.stdout, sys.stderr = out, err
