@@ -207,3 +207,33 @@ def test_the_two_overflows_are_accepted_as_one_step(independent):
         assert abs(step.parameters[k]["estimate"] - v) < 0.05 * v
     assert step.error_before > 0.5
     assert step.error_after < 5 * floor
+
+
+@pytest.mark.parametrize("current_sim,screen", [("good", False), ("poor", True)])
+def test_partners_are_screened_only_where_the_current_fit_cannot_simulate(monkeypatch,
+                                                                          current_sim, screen):
+    """partners_of: the output-error screen (a global search, 100 s of a
+    user's EMPS step) runs in partner scoring only where the current fit's
+    own free run is poor (NRMSE >= SCREEN_LEVEL, computed here from a run
+    equal to the record: 0, or a run at rest: 1), not because the lead's
+    refit broke it."""
+    from contextlib import nullcontext
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import runner
+
+    seen = []
+    monkeypatch.setattr(runner, "conditioned", lambda ctx, fit: nullcontext())
+    monkeypatch.setattr(runner, "score_additive",
+                        lambda ctx, fit, scales, effects, screen=True: seen.append(screen) or [])
+    y = np.sin(np.linspace(0.0, 20.0, 400))[:, None]
+    current = SimpleNamespace(nll=1.0, sim_y=y.copy() if current_sim == "good" else 0 * y)
+    lead = SimpleNamespace(label="lead @ x", target=SimpleNamespace(name="x"))
+    conf = SimpleNamespace(fit=SimpleNamespace(sim_y=100 * y))      # the lead's broken run
+    settings = SimpleNamespace(effects=[], search=SimpleNamespace(structural=False),
+                               accept=SimpleNamespace(significance=0.01))
+    ctx = SimpleNamespace(settings=settings, problem=SimpleNamespace(arrays=(None, None, y)),
+                          cache={("confirmation", id(current), 1.0, "lead @ x"): conf},
+                          log=lambda msg: None)
+    assert runner.partners_of(ctx, current, lead, [], None, "t") == []
+    assert seen == [screen]
