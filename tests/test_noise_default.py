@@ -356,3 +356,46 @@ def test_a_quantised_record_starts_its_noise_level_where_its_box_reaches_the_spr
     _, _, sigma, notes = noise_plan(model, model.theta0, ["k"], [], np.full(1, np.nan), noisy)
     assert sigma[0] == pytest.approx(record_noise_level(noisy)[0]) and "raised" not in notes[-1]
     assert sigma[0] == pytest.approx(0.004, rel=0.05)
+
+
+def test_sensitivity_of_a_sensor_without_a_noise_level_weighs_by_the_record_level(tmp_path):
+    """A user's sensor declared without a noise level (meas_std 0) on a record
+    that declares none: the output-error information weighs the output by
+    the level the analysis estimates (the record's second-difference level),
+    not by 0 (a user's CED graph crashed: "Eigenvalues did not converge").
+    Reference: F = Σ_k (∂y_k/∂θ)² / σ² from scipy's solve_ivp of the hand
+    equations (the input linear between samples, as held), ∂y/∂θ by central
+    differences, in the analysis' relative coordinates (∂θ = θ)."""
+    from scipy.integrate import solve_ivp
+
+    from bondgraph.inference.estimand import record_noise_level
+
+    model = _bare_msd()
+    t = np.arange(0.0, 8.0, 0.01)
+    force = lambda s: 5.0 * (np.sin(2 * s) + (s > 1))
+
+    fs = force(t)
+
+    def run(p):             # the input as the filter holds it: linear between samples
+        rhs = lambda s, x: [x[1] / p["m"], np.interp(s, t, fs) - p["k"] * x[0]
+                            - p["c"] * x[1] / p["m"]]
+        return solve_ivp(rhs, (0.0, t[-1]), x0, t_eval=t, rtol=1e-11, atol=1e-13,
+                         max_step=0.005).y[0]
+
+    x0 = [0.0, 0.0]
+    y = run(TRUTH) + 0.004 * np.random.default_rng(5).standard_normal(t.size)
+    exp = Experiment.from_arrays(t, model=model, u=force(t).reshape(-1, 1), y=y.reshape(-1, 1),
+                                 meta={"name": "bare", "columns": {"F": {"hold": "linear"}}})
+    from bondgraph.sensitivity.analysis import LocalOptions, analyse
+    pb = make_problem(model, exp, ukf=UKFOptions(method="rk4", substeps=4, hold="linear"))
+    rep = analyse(pb, ["k", "c"], local=LocalOptions(sens_rtol=1e-10, sens_atol=1e-13))
+    x0 = [pb.x0[model.state_index("q_spring")], pb.x0[model.state_index("p_mass")]]
+    F = np.asarray(rep.local["output_error"]["fisher_rel"], float)
+    sigma = record_noise_level(y.reshape(-1, 1))[0]
+    J = []
+    for n in ("k", "c"):
+        up, dn = dict(TRUTH), dict(TRUTH)
+        up[n], dn[n] = TRUTH[n] * (1 + 1e-5), TRUTH[n] * (1 - 1e-5)
+        J.append((run(up) - run(dn)) / 2e-5)                    # ∂y/∂ln θ
+    J = np.array(J).T
+    np.testing.assert_allclose(F, J.T @ J / sigma ** 2, rtol=1e-2)    # measured: 0.6 %

@@ -364,6 +364,35 @@ def _local(an: _Analysis, scale, experiment: str) -> tuple[dict, dict]:
     return local, rec
 
 
+def output_noise_levels(an: _Analysis) -> np.ndarray:
+    """The measurement-noise std (n_y,) [output units] that weighs each
+    output in the output-error information: the level the analysis holds or
+    estimates (the record's declaration, or the start of an estimated one,
+    :attr:`Estimand.sigma <bondgraph.inference.estimand.Estimand>`), else
+    the sensor's own (``meas_std``). A user's sensor declared without a
+    noise level has ``meas_std`` 0: weighing by it divided by zero (a user's
+    CED graph: "Eigenvalues did not converge").
+
+    Raises
+    ------
+    SensitivityError
+        An output measured in the record with no positive level anywhere
+        (named).
+    """
+    pb, model = an.problem, an.model
+    sigma = np.asarray(model.meas_std(pb.theta), float).reshape(-1)
+    levels = [] if an.estimand is None else [np.asarray(an.estimand.sigma, float)]
+    for lev in levels + [pb.noise.sigma(model)]:
+        sigma = np.where(np.isfinite(lev) & (lev > 0), lev, sigma)
+    seen = np.isfinite(np.asarray(pb.y, float)).any(axis=0)
+    bad = [o for o, s_, m in zip(model.outputs, sigma, seen) if m and not (s_ > 0)]
+    if bad:
+        raise SensitivityError(f"no measurement-noise level for output(s) {', '.join(bad)}: "
+                               f"the sensor declares none and the record neither declares nor "
+                               f"shows one (columns.<output>.noise_std in its sidecar)")
+    return sigma
+
+
 def _output_error(an: _Analysis, local: dict, lo: LocalOptions) -> Sensitivities:
     """Forward sensitivities and the output-error information (no process
     noise, known x0), stored in ``local["output_error"]``."""
@@ -376,7 +405,7 @@ def _output_error(an: _Analysis, local: dict, lo: LocalOptions) -> Sensitivities
                                 solver=SolverOptions(method=lo.sens_method, rtol=lo.sens_rtol,
                                                      atol=lo.sens_atol, hold=hold))
     an.timing["sensitivities_s"] = time.perf_counter() - t0
-    sigma = np.asarray(model.meas_std(pb.theta), float)
+    sigma = output_noise_levels(an)
     mask = np.isfinite(pb.y)
     Zm = np.where(mask[:, :, None], sens.scaled(sigma), 0.0)
     F_oe = sens.information(sigma, mask)
