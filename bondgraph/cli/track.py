@@ -30,6 +30,7 @@ from bondgraph.cli.common import (
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import DataError
 from bondgraph.inference.discretise import record_hold
+from bondgraph.inference.estimand import record_noise_level
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
 from bondgraph.inference.track import TrackingModel, check_tracked, choose_substeps, track
 from bondgraph.inference.ukf_numba import compile_in_background
@@ -108,6 +109,36 @@ def _from_result(path) -> tuple[dict, dict]:
                         f"`bondgraph loop` report.json ({type(exc).__name__}: {exc})") from None
 
 
+def bare_levels(problem, levels: dict) -> tuple[dict, str]:
+    """Measurement-noise stds to hold for the outputs that nothing gives
+    one (the sensor declares none, ``meas_std`` 0, and the record declares
+    none; the tracker estimates no level, so the filter would weigh them by
+    0 and fail at sample 0): the level of ``--from``'s fit
+    (``noise.<output>``) when it has one, else the level the record's
+    second differences show (:func:`~bondgraph.inference.estimand.record_noise_level`).
+    Returns ``(output -> std, one line saying which)``; ``({}, "")`` when
+    every measured output has a level."""
+    model = problem.model
+    held = problem.noise.sigma(model)
+    with np.errstate(all="ignore"):
+        meas = np.asarray(model.meas_std(problem.theta[None, :]), float).reshape(-1)
+    seen = record_noise_level(problem.y)
+    out, how = {}, []
+    for j, o in enumerate(model.outputs):
+        if np.isfinite(held[j]) or meas[j] > 0 or not np.isfinite(problem.y[:, j]).any():
+            continue
+        v = levels.get(o)
+        if v is not None and np.isfinite(v) and v > 0:
+            out[o] = float(v)
+            how.append(f"{o} = {v:.4g} (the --from fit's)")
+        elif np.isfinite(seen[j]):
+            out[o] = float(seen[j])
+            how.append(f"{o} = {seen[j]:.4g} (the record's second differences, an upper "
+                       f"estimate)")
+    return out, ("measurement-noise std held (neither the sensor nor the record declares one; "
+                 "the tracker estimates none): " + ", ".join(how)) if how else ""
+
+
 def run(args) -> int:
     """Track, detect, write the folder, print the summary."""
     if getattr(args, "backend", "numba") == "numba":
@@ -118,10 +149,15 @@ def run(args) -> int:
     check_tracked(names, model)
     drift = parse_pairs(args.drift, "--drift")
     values, std = _from_result(args.from_result) if args.from_result else ({}, {})
+    levels = {k[len("noise."):]: v for k, v in values.items() if k.startswith("noise.")}
     values = {k: v for k, v in values.items() if k in model.params}
     folder = output_folder(args.out, args)
     exp = load_record(args.data, model)
     problem = problem_from_args(model, exp, args, values=values)
+    held, line = bare_levels(problem, levels)
+    if held:
+        print(line, file=sys.stderr)
+        problem = problem.conditioned_on(noise_levels=held)
     opts = TrackOptions(prior_rel=args.prior_rel, window_s=args.window,
                         false_alarm_hours=args.false_alarm_hours or None,
                         observable_s=args.observable_s, observable_ratio=args.observable_ratio)
