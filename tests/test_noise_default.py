@@ -188,6 +188,11 @@ def test_loop_estimates_undeclared_noise_in_the_declared_fit(msd):
 
 
 def _bare_msd():
+    """The model of :func:`bare_msd_graph`."""
+    return Model.from_graph(bare_msd_graph())
+
+
+def bare_msd_graph():
     """The mass-spring-damper with a position sensor that declares no noise
     level (``noise_std`` not given: meas_std is 0), as a user may write it."""
     from bondgraph import BondGraph
@@ -203,7 +208,7 @@ def _bare_msd():
     g.connect(v, spring)
     g.connect(v, g.R("damper", c))
     g.sensor("x", spring.q, unit="m")
-    return Model.from_graph(g)
+    return g
 
 
 def test_record_noise_level_is_the_noise_of_an_oversampled_signal():

@@ -146,23 +146,11 @@ def test_loop_takes_its_start_values_from_a_fit_on_another_record(user_dir, caps
 
 
 BARE = '''
-from bondgraph import BondGraph
+from test_noise_default import bare_msd_graph   # the user's sensor without a noise level
 
 
 def build():
-    g = BondGraph("bare_msd", "mass-spring-damper, a position sensor without a noise level")
-    F = g.input("F", "N", 0.0, "force")
-    m, k, c = (g.param(n, v, u, b, n) for n, v, u, b in
-               (("m", 2.0, "kg", (0.1, 10.0)), ("k", 50.0, "N/m", (1.0, 500.0)),
-                ("c", 1.5, "N*s/m", (0.01, 20.0))))
-    v = g.one("v")
-    g.connect(g.Se("force", F), v)
-    g.connect(v, g.I("mass", m))
-    spring = g.C("spring", stiffness=k)
-    g.connect(v, spring)
-    g.connect(v, g.R("damper", c))
-    g.sensor("x", spring.q, unit="m")
-    return g
+    return bare_msd_graph()
 '''
 
 
