@@ -515,3 +515,27 @@ def test_default_windows_span_enough_samples_on_a_slowly_sampled_record():
     assert given.seconds(10.0) == (10.0, 2.0) and given.samples(10.0) == (1, 1)
     with pytest.raises(OptionError):
         TrackOptions(window_s=0.0)
+
+
+@pytest.mark.parametrize("method_free", [True, False])
+def test_track_takes_rk4_where_ros2_does_not_converge(monkeypatch, method_free):
+    """cli.track.tracking_discretisation: when the model's method (ROS2)
+    does not converge within MAX_SUBSTEPS on the tracked record and no
+    --method was given, RK4 is chosen the same way and taken when it
+    converges (a user's drive: ROS2 over 128 substeps, RK4 4); a --method
+    given is kept whatever its verdict."""
+    from bondgraph.cli import track as cli_track
+    from bondgraph.inference.track import SubstepChoice
+
+    def fake(problem, tm, **kw):
+        m = problem.ukf.method
+        return SubstepChoice(128 if m == "ros2" else 4, m == "rk4", {}, {}, {}, m, 2.0)
+
+    monkeypatch.setattr(cli_track, "choose_substeps", fake)
+    t = np.arange(0.0, 1.0, 0.01)
+    pr = make_problem(Model.from_spec("mass_spring_damper"),
+                      (t, np.ones((t.size, 1)), np.zeros((t.size, 2))),
+                      ukf=UKFOptions(method="ros2", substeps=1))
+    got = cli_track.tracking_discretisation(pr, None, {}, TrackOptions(), method_free)
+    want = ("rk4", 4) if method_free else ("ros2", 128)
+    assert (got.ukf.method, got.ukf.substeps) == want

@@ -77,6 +77,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="measurement-noise levels (as for estimate; auto: the record's)")
     add_discretisation(p, chosen=False)
     for a in p._actions:
+        if a.dest == "method":
+            a.help = ("UKF discretisation of the state equations (default: the model's filter "
+                      "method; when its substeps do not converge on the tracked record, rk4 "
+                      "if its do; one line on stderr)")
         if a.dest == "substeps":
             a.help = ("integrator steps per sample (default: chosen from the record by tracking "
                       "it with 1, 2, 4, ... substeps: the first whose observability windows' "
@@ -139,6 +143,25 @@ def bare_levels(problem, levels: dict) -> tuple[dict, str]:
                  "the tracker estimates none): " + ", ".join(how)) if how else ""
 
 
+def tracking_discretisation(problem, tm, std: dict, opts, method_free: bool):
+    """``problem`` with the tracking filter's substeps chosen from the
+    tracked record (:func:`~bondgraph.inference.track.choose_substeps`, one
+    line on stderr each). When its method does not converge within
+    :data:`~bondgraph.inference.track.MAX_SUBSTEPS` and the user gave no
+    ``--method``, RK4 is tried the same way and taken if it converges: a
+    user's two-mass drive needed more than 128 ROS2 substeps (error 27
+    window std at 32) where its estimate's check passed RK4 with 2."""
+    choice = choose_substeps(problem, tm, std=std, options=opts)
+    print(choice.line(), file=sys.stderr)
+    if not choice.ok and method_free and problem.ukf.method != "rk4":
+        alt = problem.conditioned_on(disc=replace(problem.disc, method="rk4", substeps=1))
+        other = choose_substeps(alt, tm, std=std, options=opts)
+        print(other.line() + ("; taken" if other.ok else ""), file=sys.stderr)
+        if other.ok:
+            return alt.conditioned_on(disc=replace(alt.disc, substeps=other.substeps))
+    return problem.conditioned_on(disc=replace(problem.disc, substeps=choice.substeps))
+
+
 def run(args) -> int:
     """Track, detect, write the folder, print the summary."""
     if getattr(args, "backend", "numba") == "numba":
@@ -169,9 +192,7 @@ def run(args) -> int:
         print(f"input hold {hold} (chosen; --hold to give it): {why}", file=sys.stderr)
         problem = problem.conditioned_on(disc=replace(problem.disc, hold=hold))
     if args.substeps is None:           # the substeps the tracked record needs
-        choice = choose_substeps(problem, tm, std=std, options=opts)
-        print(choice.line(), file=sys.stderr)
-        problem = problem.conditioned_on(disc=replace(problem.disc, substeps=choice.substeps))
+        problem = tracking_discretisation(problem, tm, std, opts, args.method is None)
     res = track(problem, tm, std=std, options=opts)
     truth = dict((exp.meta or {}).get("true_parameters") or {})
     for name, column in ((exp.meta or {}).get("schedules") or {}).items():
