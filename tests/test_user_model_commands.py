@@ -161,7 +161,9 @@ def test_track_holds_a_level_for_a_sensor_that_declares_none(user_dir, capsys):
     to 128 substeps. It now holds the level the record's second
     differences show (one line says so), and the tracked damping ends
     within 3 std of the truth the record was simulated with (scipy,
-    c = 1.5, noise 0.004 m)."""
+    c = 1.5, noise 0.004 m). The inconsistency warning: none for that
+    truth; for a truth the graph lacks, on a record shorter than the GLR
+    window (where it could never fire), raised."""
     from scipy.integrate import solve_ivp
 
     (user_dir / "bare.py").write_text(BARE)
@@ -176,10 +178,28 @@ def test_track_holds_a_level_for_a_sensor_that_declares_none(user_dir, capsys):
                            meta={"columns": {"F": {"hold": "linear"}}}).save(user_dir / "r.csv")
     assert main(["track", "--model", "bare:build", "--data", "r.csv", "--track", "c",
                  "--out", "trk", "--no-plots", "--method", "rk4", "--substeps", "2"]) == 0
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
     level = float(err.split("measurement-noise std held")[1].split("x = ")[1].split(" ")[0])
+    # the record (20 s, two GLR windows less a sample) is cut into 20 windows for the
+    # inconsistency warning, which the model the record was simulated with does not raise
+    assert "the innovations are larger than the model allows" not in captured.out
     assert level == pytest.approx(0.004, rel=0.1)
     rows = np.genfromtxt(user_dir / "trk" / "track.csv", delimiter=",", skip_header=1)
     head = (user_dir / "trk" / "track.csv").read_text().splitlines()[0].split(",")
     est, sd = rows[-1, head.index("c")], rows[-1, head.index("c.std")]
     assert abs(est - 1.5) < 3 * sd, (est, sd)
+    # a truth the graph lacks (a cubic spring, 20 % of the linear force at 0.1 m), its
+    # first 9 s: within one GLR window (10 s) the warning could never fire; in 20 it does
+    rhs3 = lambda s, x: [x[1] / 2.0, np.interp(s, t, f) - 50.0 * x[0] - 1000.0 * x[0] ** 3
+                         - 1.5 * x[1] / 2.0]
+    q3 = solve_ivp(rhs3, (0.0, t[-1]), [0.0, 0.0], t_eval=t, rtol=1e-10, atol=1e-12,
+                   max_step=0.005).y[0]
+    n9 = 900
+    Experiment.from_arrays(t[:n9], {"F": f[:n9], "x": (q3 + y - q)[:n9]},
+                           units={"F": "N", "x": "m"},
+                           roles={"F": "input", "x": "output"}, name="bare3",
+                           meta={"columns": {"F": {"hold": "linear"}}}).save(user_dir / "r3.csv")
+    assert main(["track", "--model", "bare:build", "--data", "r3.csv", "--track", "c",
+                 "--out", "trk3", "--no-plots", "--method", "rk4", "--substeps", "2"]) == 0
+    assert "the innovations are larger than the model allows" in capsys.readouterr().out

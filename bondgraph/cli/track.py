@@ -234,6 +234,12 @@ def _observability_line(res, name: str, i: int, most: int = 4) -> str:
             + " (no change detected there)")
 
 
+#: a record shorter than two GLR windows is cut into this many windows for
+#: the inconsistency warning (more than 5 % of them, and more than one, must
+#: be inconsistent: with one window it could never fire)
+SHORT_RECORD_WINDOWS = 20
+
+
 def summary(res) -> str:
     """The one-screen summary: final estimates and the detected changes."""
     lines = [f"tracked {', '.join(res.names)} over {res.t[-1] - res.t[0]:.6g} s "
@@ -245,9 +251,11 @@ def summary(res) -> str:
                      f"end {res.estimate[-1, i]:.6g} ± {res.std[-1, i]:.3g} {res.units[i]}")
         if res.observable is not None:
             lines.append(_observability_line(res, n, i))
-    w_s = res.settings["window"] * res.settings["dt"]      # the GLR window [s]
+    w_s, span = res.settings["window"] * res.settings["dt"], res.t[-1] - res.t[0]
+    if span < 2 * w_s:          # one GLR window: the test below could never fire
+        w_s = max(span / SHORT_RECORD_WINDOWS, res.settings["dt"])
     bad = res.inconsistent(window_s=w_s)
-    n_win = max(1, int(np.ceil((res.t[-1] - res.t[0] + 1e-9) / w_s)))
+    n_win = max(1, int(np.ceil((span + 1e-9) / w_s)))
     if len(bad) > max(1, 0.05 * n_win):
         lines.append(f"warning: the innovations are larger than the model allows in {len(bad)} "
                      f"of {n_win} windows of {w_s:.4g} s (first at {bad[0][0]:.6g} s): the "
