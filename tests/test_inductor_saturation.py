@@ -50,17 +50,25 @@ def rlc() -> BondGraph:
     return g
 
 
+def voltage_steps(rng, n: int) -> np.ndarray:
+    """A supply voltage (n,) of steps among ±12, ±6 and 0 V, each held 40-199
+    samples (drawn from ``rng``); also the choke record of
+    ``test_magnetic_domain``."""
+    V = np.zeros(n)
+    k = 0
+    while k < n:
+        m = int(rng.integers(40, 200))
+        V[k:k + m] = rng.choice([-12.0, -6.0, 0.0, 6.0, 12.0])
+        k += m
+    return V
+
+
 def record(seed: int) -> Experiment:
     """Voltage steps of ±12, ±6, 0 V held 4-20 ms; the truth integrated by
     LSODA (rtol 1e-10) interval by interval; noise 0.01 A and 0.05 V
     (its own free-run NRMSE kept in FLOOR)."""
     rng = np.random.default_rng(seed)
-    V = np.zeros(N)
-    k = 0
-    while k < N:
-        m = int(rng.integers(40, 200))
-        V[k:k + m] = rng.choice([-12.0, -6.0, 0.0, 6.0, 12.0])
-        k += m
+    V = voltage_steps(rng, N)
 
     def f(_, x, v):
         lam, q = x

@@ -68,13 +68,10 @@ def record(tmp_path_factory):
     """Voltage steps of ±12, ±6, 0 V held 8-40 ms, integrated interval by
     interval by LSODA (rtol 1e-10); noise 0.02 A; and the free-run NRMSE
     the noise alone gives on the held-out quarter."""
+    from test_inductor_saturation import voltage_steps
+
     rng = np.random.default_rng(11)
-    V = np.zeros(N)
-    k = 0
-    while k < N:
-        n = int(rng.integers(40, 200))
-        V[k:k + n] = rng.choice([-12.0, -6.0, 0.0, 6.0, 12.0])
-        k += n
+    V = voltage_steps(rng, N)
 
     def mmf(phi):
         return R0 * phi * (1 + (phi / PHI_S) ** 2)
