@@ -138,14 +138,14 @@ def from_result(graph, path: str, params: str | None):
     values = {n: v for n, v in read_params(path).items()
               if not n.startswith(("noise.", "x0."))}
     out = model_graph(graph, values)
-    out.name = graph.name
     outside = [f"{n} = {v:.6g} (box [{graph.params[n].bounds[0]:.6g}, "
                f"{graph.params[n].bounds[1]:.6g}])" for n, v in values.items()
                if not graph.params[n].bounds[0] <= v <= graph.params[n].bounds[1]]
     if outside:
         raise OptionError(f"--from {path}: outside the graph's boxes: {'; '.join(outside)}; "
                           f"widen the box in the graph or leave the value out")
-    held = [n for n in values if params and n not in parse_params(params)]
+    fitted = set(parse_params(params)) if params else None
+    held = [n for n in values if fitted is not None and n not in fitted]
     print(f"bondgraph loop: start values from {path}: "
           + ", ".join(f"{n} = {v:.6g}" for n, v in values.items())
           + (f"; held at them: {', '.join(held)}" if held else ""))
