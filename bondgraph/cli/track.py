@@ -30,7 +30,7 @@ from bondgraph.cli.common import (
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import DataError
 from bondgraph.inference.discretise import record_hold
-from bondgraph.inference.estimand import record_noise_level
+from bondgraph.inference.estimand import start_levels
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
 from bondgraph.inference.track import TrackingModel, check_tracked, choose_substeps, track
 from bondgraph.inference.ukf_numba import compile_in_background
@@ -118,15 +118,16 @@ def bare_levels(problem, levels: dict) -> tuple[dict, str]:
     one (the sensor declares none, ``meas_std`` 0, and the record declares
     none; the tracker estimates no level, so the filter would weigh them by
     0 and fail at sample 0): the level of ``--from``'s fit
-    (``noise.<output>``) when it has one, else the level the record's
-    second differences show (:func:`~bondgraph.inference.estimand.record_noise_level`).
+    (``noise.<output>``) when it has one, else the start an estimate would
+    take (:func:`~bondgraph.inference.estimand.start_levels`: the record's
+    second-difference level, at least the output's std / 1e4).
     Returns ``(output -> std, one line saying which)``; ``({}, "")`` when
     every measured output has a level."""
     model = problem.model
     held = problem.noise.sigma(model)
     with np.errstate(all="ignore"):
         meas = np.asarray(model.meas_std(problem.theta[None, :]), float).reshape(-1)
-    seen = record_noise_level(problem.y)
+    seen = start_levels(problem.y)
     out, how = {}, []
     for j, o in enumerate(model.outputs):
         if np.isfinite(held[j]) or meas[j] > 0 or not np.isfinite(problem.y[:, j]).any():

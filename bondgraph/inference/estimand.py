@@ -401,6 +401,7 @@ def _start_bare_levels(model, th, outs, y, sigma, notes) -> None:
     if not bare:
         return
     seen = record_noise_level(y) if y is not None else np.full(model.n_y, np.nan)
+    start = start_levels(y) if y is not None else seen
     missing = [model.outputs[j] for j in bare if not np.isfinite(seen[j])]
     if missing:
         raise OptionError(
@@ -408,15 +409,8 @@ def _start_bare_levels(model, th, outs, y, sigma, notes) -> None:
             f"'{model.name}': the sensor declares none (noise_std), the record declares none "
             f"(columns.<output>.noise_std in its sidecar) and none can be seen in the record; "
             f"declare one of them")
-    # the box of an estimated level is its start ×/÷ NOISE_BOX: a start far
-    # below the output's spread (a quantised encoder whose second differences
-    # are mostly 0) would cap the level below the declared model's misfit
-    yv = np.asarray(y, float).reshape(np.shape(y)[0], -1)
-    spread = np.array([np.nanstd(yv[:, j]) if np.isfinite(yv[:, j]).sum() > 1 else 0.0
-                       for j in range(yv.shape[1])])
-    low = [j for j in bare if seen[j] < spread[j] / NOISE_BOX]
-    sigma[bare] = seen[bare]
-    sigma[low] = spread[low] / NOISE_BOX
+    low = [j for j in bare if start[j] > seen[j]]
+    sigma[bare] = start[bare]
     notes.append("no noise level declared by the sensor or the record: the estimate starts "
                  "from the level seen in the record's second differences (an upper "
                  "estimate): " + ", ".join(f"{model.outputs[j]} = {sigma[j]:.4g}" for j in bare)
@@ -425,6 +419,22 @@ def _start_bare_levels(model, th, outs, y, sigma, notes) -> None:
                     f"std / {NOISE_BOX:g}, so that the level's box reaches the output's own "
                     f"spread; the second differences show "
                     + ", ".join(f"{seen[j]:.3g}" for j in low) + ")"))
+
+
+def start_levels(y) -> np.ndarray:
+    """The start (n_y,) of each output's noise level that nothing declares:
+    the level the record's second differences show
+    (:func:`record_noise_level`), but at least the output's std /
+    :data:`NOISE_BOX`. An estimated level's box is its start ×/÷ NOISE_BOX,
+    and a start far below the output's spread (a quantised encoder whose
+    second differences are mostly 0) would cap the level below the declared
+    model's misfit. NaN where the record shows no level."""
+    y = np.asarray(y, float)
+    y = y.reshape(y.shape[0], -1)
+    seen = record_noise_level(y)
+    spread = np.array([np.nanstd(y[:, j]) if np.isfinite(y[:, j]).sum() > 1 else 0.0
+                       for j in range(y.shape[1])])
+    return np.where(np.isfinite(seen), np.maximum(seen, spread / NOISE_BOX), seen)
 
 
 def _meas_dependent(model, th) -> dict[str, list[int]]:
