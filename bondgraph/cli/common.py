@@ -183,8 +183,15 @@ def merged_model(args: argparse.Namespace) -> str | None:
     return None
 
 
-def add_data(p: argparse.ArgumentParser, *, required: bool = True) -> None:
-    """``--data``: the record."""
+def add_data(p: argparse.ArgumentParser, *, required: bool = True,
+             several: bool = False) -> None:
+    """``--data``: the record (``several``: repeatable, a list of records)."""
+    if several:
+        p.add_argument("--data", required=required, action="append", metavar="DATA",
+                       help="record CSV with optional JSON sidecar (docs/data_format.md); "
+                            "repeat for several records of the same system: one parameter "
+                            "set fitted to all, each record its own initial state")
+        return
     p.add_argument("--data", required=required,
                    help="record CSV with optional JSON sidecar (docs/data_format.md)")
 

@@ -33,7 +33,7 @@ from bondgraph.cli.common import (
     published,
 )
 from bondgraph.core.jsonsafe import to_jsonable
-from bondgraph.errors import EstimationError, IdentifiabilityWarning
+from bondgraph.errors import EstimationError, IdentifiabilityWarning, UsageError
 from bondgraph.inference.discretise import check_discretisation, choose_discretisation
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
@@ -49,7 +49,7 @@ EXAMPLE = "bondgraph estimate --model mass_spring_damper --data msd_force_step.c
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph estimate``."""
     add_model(p)
-    add_data(p)
+    add_data(p, several=True)
     p.add_argument("--params", default=None,
                    help="comma-separated parameters to estimate, or recommended:FILE for the "
                         "set recommended in a `bondgraph sensitivity` result (sensitivity.json "
@@ -106,17 +106,23 @@ def run(args) -> int:
     if args.fit != "sim" and args.backend == "numba":
         compile_in_background()     # the filter kernel, once per installation, beside the set-up
     model = load_model(args.model)
-    exp = load_record(args.data, model)
+    paths = list(args.data)
+    exps = [load_record(pth, model) for pth in paths]
     params = (parse_params(args.params, model) if args.params
               else default_params(args.model, model, "estimate"))
-    folder = output_folder(args.out or f"estimate_{model.name}_{Path(args.data).stem}", args,
+    stems = "_".join(Path(pth).stem for pth in paths)
+    folder = output_folder(args.out or f"estimate_{model.name}_{stems}", args,
                            overwrite=args.overwrite or args.resume)
     ck = (Path(args.checkpoint) if args.checkpoint
           else folder.work_dir(create=False) / "checkpoint.npz")
-    problem, choice = chosen_problem(problem_from_args(model, exp, args), args)
+    chosen = [chosen_problem(problem_from_args(model, exp, args), args, say=_say_for(pth, paths))
+              for pth, exp in zip(paths, exps)]
     states = estimated_states(model, args)
     if args.fit == "sim":
-        return run_output_error(args, problem, params, folder, states)
+        if len(paths) > 1:
+            raise UsageError("--fit sim fits one record: give one --data, or leave --fit out "
+                             "(the likelihood fits several records together)")
+        return run_output_error(args, chosen[0][0], params, folder, states)
     fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
                      iterations=args.iterations, seed=args.seed, checkpoint=ck,
                      resume=args.resume, polish=not args.no_polish, stall_iterations=args.stall,
@@ -125,15 +131,15 @@ def run(args) -> int:
     if not args.checkpoint:
         _prepare_checkpoint(folder, args.resume)
     try:
-        res, problem = _fit(args, problem, params, fit, states, choice)
+        res, problems = _fit(args, chosen, params, fit, states, paths)
     except EstimationError:
         if not args.checkpoint:
             folder.remove_work_dir()      # nothing worth resuming
         raise
-    res.settings["data"] = str(args.data)
+    res.settings["data"] = str(paths[0]) if len(paths) == 1 else [str(p) for p in paths]
 
     def version(d: Path) -> list:
-        pngs = [] if args.no_plots else list(plot_fit(model, exp, res, d, P0=problem.P0))
+        pngs = [] if args.no_plots else _plots(model, exps, res, problems, paths, d)
         if ck.exists():
             shutil.copyfile(ck, d / "checkpoint.npz")
         res.to_json(d / "result.json")          # last: its presence means complete
@@ -147,44 +153,80 @@ def run(args) -> int:
     return 0
 
 
-def _fit(args, problem, params, fit, states, choice):
-    """``(result, problem)``: the estimation; when the discretisation was
+def _say_for(path, paths):
+    """The log of one record's lines: prefixed with its file's name when
+    there are several records."""
+    if len(paths) == 1:
+        return _say
+    return lambda msg: _say(f"{Path(path).name}: {msg}")
+
+
+def _plots(model, exps, res, problems, paths, d: Path) -> list:
+    """The fit plots (:func:`plot_fit`): one pair per record, prefixed with
+    the record's file name when there are several."""
+    if len(exps) == 1:
+        return list(plot_fit(model, exps[0], res, d, P0=problems[0].P0))
+    out = []
+    for pth, exp, pb in zip(paths, exps, problems):
+        out += plot_fit(model, exp, res, d, x0=pb.x0, P0=pb.P0, options=pb.ukf,
+                        prefix=f"{Path(pth).stem}_")
+    return out
+
+
+def _fit(args, chosen, params, fit, states, paths):
+    """``(result, problems)``: the estimation on the records' problems
+    ``chosen`` (``(problem, choice)`` each); where the discretisation was
     chosen (``choice``), checked again at the estimate
     (:func:`~bondgraph.cli.common.chosen_problem` with the fit's noise
-    levels) and, if the chosen one fails there, refitted once from the
-    estimate with the one chosen at the estimate (a local refit: the
-    swarm's first population with the estimate in it, then the polish; the
-    result, and its warnings, are then the refit's)."""
+    levels) and, if the chosen one fails there on a record, refitted once
+    from the estimate with the one chosen at the estimate (a local refit:
+    the swarm's first population with the estimate in it, then the polish;
+    the result, and its warnings, are then the refit's)."""
     log = None if args.quiet else _say
-    res = _estimate_quiet(problem, params, fit, states, log)
-    again = None
-    if choice is not None and np.isfinite(res.nll):
-        levels = res.settings.get("noise_levels") or {}
-        sigma = [float((levels.get(o) or {}).get("std", np.nan)) for o in problem.model.outputs]
-        again = choose_discretisation(problem, res.theta, given=discretisation_given(args),
-                                      sigma=sigma)
-        ok, now, bound = check_discretisation(problem, res.theta, sigma=again.sigma)
-        if not ok and again.disc != problem.disc:
-            _say(again.line(f"at the estimate (the start's {problem.disc.describe()} fails "
-                            f"there: {now:.2g} σ per sample, bias bound {bound:.2g} std; "
-                            f"refitting once from the estimate)"))
-            problem = problem.conditioned_on(disc=again.disc)
-            # a local refit: the estimate moves by the discretisation's bias
-            # only (the swarm's first population, the whole estimate (noise
-            # levels, initial states too) in it, then the polish; a second
-            # full search cost as much as the first)
-            local = replace(fit, resume=False, iterations=0) if fit.polish else \
-                replace(fit, resume=False)
-            res = _estimate_quiet(problem, params, local, states, log, start=res.estimates)
-        else:
-            _say(f"discretisation at the estimate: {problem.disc.describe()} still within "
-                 f"({now:.2g} σ per sample" + (f", free-run bias bound {bound:.2g} std)"
-                                               if np.isfinite(bound) else ")")
-                 if ok else again.line("at the estimate (no better candidate)"))
-    res.settings["discretisation_choice"] = dict(
-        given=discretisation_given(args), start=None if choice is None else choice.to_dict(),
-        estimate=None if again is None else again.to_dict())
-    return res, problem
+    problems = [pb for pb, _ in chosen]
+    res = _estimate_quiet(problems, params, fit, states, log)
+    agains, refit = [], False
+    for i, (pb, choice) in enumerate(chosen):
+        again = None
+        if choice is not None and np.isfinite(res.nll):
+            again, redo = _recheck(args, pb, res, _say_for(paths[i], paths))
+            if redo:
+                problems[i], refit = pb.conditioned_on(disc=again.disc), True
+        agains.append((choice, again))
+    if refit:
+        # a local refit: the estimate moves by the discretisation's bias
+        # only (the swarm's first population, the whole estimate (noise
+        # levels, initial states too) in it, then the polish; a second
+        # full search cost as much as the first)
+        local = replace(fit, resume=False, iterations=0) if fit.polish else \
+            replace(fit, resume=False)
+        res = _estimate_quiet(problems, params, local, states, log, start=res.estimates)
+    given = discretisation_given(args)
+    choices = [dict(given=given, start=None if c is None else c.to_dict(),
+                    estimate=None if a is None else a.to_dict()) for c, a in agains]
+    res.settings["discretisation_choice"] = choices[0] if len(choices) == 1 else choices
+    return res, problems
+
+
+def _recheck(args, problem, res, say):
+    """``(choice at the estimate, refit?)``: the discretisation chosen at
+    the estimate with its noise levels; a refit when the start's fails
+    there and another was chosen (one line on ``say`` either way)."""
+    levels = res.settings.get("noise_levels") or {}
+    sigma = [float((levels.get(o) or {}).get("std", np.nan)) for o in problem.model.outputs]
+    again = choose_discretisation(problem, res.theta, given=discretisation_given(args),
+                                  sigma=sigma)
+    ok, now, bound = check_discretisation(problem, res.theta, sigma=again.sigma)
+    if not ok and again.disc != problem.disc:
+        say(again.line(f"at the estimate (the start's {problem.disc.describe()} fails "
+                       f"there: {now:.2g} σ per sample, bias bound {bound:.2g} std; "
+                       f"refitting once from the estimate)"))
+        return again, True
+    say(f"discretisation at the estimate: {problem.disc.describe()} still within "
+        f"({now:.2g} σ per sample" + (f", free-run bias bound {bound:.2g} std)"
+                                     if np.isfinite(bound) else ")")
+        if ok else again.line("at the estimate (no better candidate)"))
+    return again, False
 
 
 def _estimate_quiet(problem, params, fit, states, log, start=None):

@@ -62,7 +62,12 @@ def model_digest(model) -> str:
 
 def problem_fingerprint(crit) -> dict[str, str]:
     """The problem components of an estimation criterion
-    (:class:`bondgraph.inference.estimate.Criterion`)."""
+    (:class:`bondgraph.inference.estimate.Criterion`; a ``JointCriterion``'s
+    are its records', each key prefixed with the record's position)."""
+    members = getattr(crit, "members", None)
+    if members is not None:
+        return {f"record {i + 1}: {k}": v for i, m in enumerate(members)
+                for k, v in problem_fingerprint(m).items()}
     fp = {
         "data (t, u, y arrays)": digest(crit.t, crit.u, crit.y),
         "model": model_digest(crit.model),

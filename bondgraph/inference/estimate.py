@@ -36,7 +36,7 @@ import json
 import time
 import warnings
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -281,6 +281,93 @@ class EstimandCriterion(Criterion):
         th, x0s, R = self.est.expand(self.to_value(X))
         return ukf_nll(self.model, self.t, self.u, self.y, th, x0s, self.est.prior_cov(self.P0),
                        options=self.options, Q=self.Q, R=R, store=store)
+
+
+class JointCriterion:
+    """The NLL of one parameter vector on several records: the sum of each
+    record's batched NLL, ``crit(X (S, k)) -> (S,)``.
+
+    The records are independent experiments on the same model: each keeps
+    its own initial state, prior, held noise levels and filter options; the
+    parameters and the estimated noise levels are shared, so the members
+    must search the same quantities in the same coordinates.
+
+    Parameters
+    ----------
+    members : sequence of Criterion
+        One criterion per record (all :class:`Criterion` or
+        :class:`EstimandCriterion` of the same names).
+
+    Attributes
+    ----------
+    members : list of Criterion
+    params : list of str
+        The shared names (k).
+    problem : Problem
+        The first record's problem (the model, fixed values, noise policy).
+
+    Raises
+    ------
+    OptionError
+        Fewer than two members, or members that search different quantities.
+    """
+
+    def __init__(self, members: Sequence[Criterion]):
+        self.members = list(members)
+        if len(self.members) < 2:
+            raise OptionError("a joint criterion needs at least two records")
+        first = self.members[0]
+        for m in self.members[1:]:
+            if list(m.params) != list(first.params):
+                raise OptionError(
+                    f"the records estimate different quantities: {m.problem.name} "
+                    f"{list(m.params)}, {first.problem.name} {list(first.params)}")
+        self.params = list(first.params)
+        self.problem, self.model, self.base = first.problem, first.model, first.base
+        self.options, self.Q, self.R = first.options, first.Q, first.R
+        self.estimand = isinstance(first, EstimandCriterion)
+        if self.estimand:
+            self.log = first.log
+
+    @property
+    def evaluations(self) -> int:
+        """Parameter sets evaluated so far (each on every record)."""
+        return self.members[0].evaluations
+
+    @property
+    def failures(self) -> Counter:
+        """Failure cause -> count, over every record."""
+        return sum((m.failures for m in self.members), Counter())
+
+    def to_value(self, S) -> np.ndarray:
+        """Values of search coordinates S (P, k) (:meth:`EstimandCriterion.to_value`)."""
+        return self.members[0].to_value(S)
+
+    def to_search(self, Z) -> np.ndarray:
+        """Search coordinates of values Z (P, k)."""
+        return self.members[0].to_search(Z)
+
+    def theta(self, X) -> np.ndarray:
+        """Full parameter arrays (S, n_theta) of X (S, k)."""
+        return self.members[0].theta(X)
+
+    def __call__(self, X) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        out = np.zeros(X.shape[0])
+        for m in self.members:
+            out += m(X)
+        return out
+
+    def close(self) -> None:
+        """Stop every member's executor."""
+        for m in self.members:
+            m.close()
+
+
+def record_names(problems: Sequence[Problem]) -> list[str]:
+    """Each record's name, made unique by its position when two are alike."""
+    names = [p.name for p in problems]
+    return [f"{n} #{i + 1}" if names.count(n) > 1 else n for i, n in enumerate(names)]
 
 
 # ------------------------------------------------------------------- Hessian
@@ -565,17 +652,23 @@ class EstimationResult:
 def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None = None,
              bounds: Mapping[str, tuple] | None = None, Q=None, R=None, start=None,
              x0_states: Sequence[str] = (), log=None) -> EstimationResult:
-    """Maximum-likelihood estimate of ``params`` from one record, with the
-    initial states ``x0_states`` and the noise levels of the problem's
-    noise policy.
+    """Maximum-likelihood estimate of ``params`` from one record or several,
+    with the initial states ``x0_states`` and the noise levels of the
+    problem's noise policy.
 
     Parameters
     ----------
-    problem : Problem
+    problem : Problem or list of Problem
         The model bound to the record (:func:`bondgraph.inference.problem.make_problem`):
         its prior (x0, P0), fixed values, noise policy (``problem.noise.mode``:
         "auto" holds declared levels and estimates the undeclared ones with θ,
         "model" keeps the graph's) and filter options (``problem.ukf``).
+        Several problems (the same model and fixed values on independent
+        records): one parameter vector and one set of estimated noise levels
+        for all, the NLL the sum of the records' (:class:`JointCriterion`),
+        each record its own initial state, prior, held levels and filter
+        options; the warnings of the discretisation check name their record
+        and ``settings["records"]`` describes each.
     params : sequence of str
         Parameters to estimate (k).
     fit : FitOptions, optional
@@ -609,6 +702,8 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
         Unknown parameter names, or a fixed parameter that is also estimated.
     OptionError, DataError, EstimationError
         Bad options or state names, a checkpoint of another problem; a bad record; no finite NLL.
+        Several records of different models or fixed values, with ``x0_states``, or whose
+        noise policies estimate different levels (OptionError).
 
     Warns
     -----
@@ -623,10 +718,10 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     """
     t_start = time.perf_counter()
     fit = fit_options(fit)
-    plan = _plan(problem, params, bounds, R, x0_states)
-    for note in plan.notes:
-        (log or (lambda _m: None))(note)
-    crit, lo, hi = _criterion(problem, plan, fit, Q, R), plan.lo, plan.hi
+    problems = _problems(problem, x0_states)
+    problem = problems[0]
+    plan, crit = _joint(problems, params, bounds, R, x0_states, fit, Q, log)
+    lo, hi = plan.lo, plan.hi
     try:
         opt = _global_search(crit, lo, hi, fit, _start(crit, plan, start))
         x_best, f_best, pol = _polish(crit, opt, lo, hi, fit)
@@ -639,7 +734,96 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
         warnings.warn(w, IdentifiabilityWarning, stacklevel=2)
     z_best, lo_v, hi_v, H, cr = _to_values(crit, x_best, lo, hi, H, cr)
     found = _Found(opt, z_best, f_best, pol, H, cr, lo_v, hi_v, warn_list, disc)
-    return _result(problem, plan, crit, fit, found, Q, R, time.perf_counter() - t_start)
+    res = _result(problem, plan, crit, fit, found, Q, R, time.perf_counter() - t_start)
+    if len(problems) > 1:
+        _joint_settings(res, problems)
+    return res
+
+
+def _problems(problem, x0_states) -> list[Problem]:
+    """The records of an estimation: one problem, or several of one model
+    with the same fixed values and no estimated initial states.
+
+    Raises
+    ------
+    OptionError
+        No problem, problems of different models or fixed values, or
+        initial states estimated on several records.
+    """
+    problems = list(problem) if isinstance(problem, (list, tuple)) else [problem]
+    for p in problems:
+        if not isinstance(p, Problem):
+            raise OptionError(f"estimate needs a Problem (bondgraph.inference.problem."
+                              f"make_problem) or a list of them, got {type(p).__name__}")
+    if len(problems) <= 1:
+        if not problems:
+            raise OptionError("estimate needs a Problem, got an empty list")
+        return problems
+    first = problems[0]
+    for p in problems:
+        if p.model.name != first.model.name or p.model.params != first.model.params:
+            raise OptionError(f"the records are bound to different models: "
+                              f"{first.model.name!r} and {p.model.name!r}")
+        if dict(p.fixed) != dict(first.fixed):
+            raise OptionError(f"the records hold different fixed values: {first.name} "
+                              f"{dict(first.fixed)}, {p.name} {dict(p.fixed)}")
+    if list(x0_states):
+        raise OptionError(
+            "initial states are estimated on one record only: with several records each keeps "
+            "its own initial state (its state columns or sidecar x0, else the model's), "
+            "leave --estimate-x0 out or fit the records one by one")
+    return problems
+
+
+def _joint(problems, params, bounds, R, x0_states, fit, Q, log):
+    """``(plan, criterion)`` of an estimation on one or several records: one
+    record's :class:`_Plan` and criterion; several records' shared plan (the
+    first record's, its search box the union of the records' boxes: a noise
+    level's box is centred on each record's own start) and their
+    :class:`JointCriterion`. The noise policy's notes go to ``log``, a
+    record's own prefixed with its name when they differ from the first's.
+
+    Raises
+    ------
+    OptionError
+        The records' noise policies estimate different quantities (a level
+        one record declares and another does not).
+    """
+    say = log or (lambda _m: None)
+    plans = [_plan(p, params, bounds, R, x0_states) for p in problems]
+    names = record_names(problems)
+    for note in plans[0].notes:
+        say(note if len(plans) == 1 else f"{names[0]}: {note}")
+    for nm, pl in zip(names[1:], plans[1:]):
+        for note in pl.notes:
+            say(f"{nm}: {note}")
+    crits = [_criterion(p, pl, fit, Q, R) for p, pl in zip(problems, plans)]
+    if len(crits) == 1:
+        return plans[0], crits[0]
+    try:
+        crit = JointCriterion(crits)
+    except OptionError as e:
+        for c in crits:
+            c.close()
+        raise OptionError(f"{e}; declare the same noise levels in every record "
+                          f"(sidecar noise_std) or none") from None
+    lo = np.min([pl.lo for pl in plans], axis=0)
+    hi = np.max([pl.hi for pl in plans], axis=0)
+    return replace(plans[0], lo=lo, hi=hi), crit
+
+
+def _joint_settings(res: EstimationResult, problems: Sequence[Problem]) -> None:
+    """A joint estimate's settings: ``records``, each record's name, length,
+    initial state, its rule and filter options; ``samples`` and
+    ``duration_s`` summed; the experiment named by the records."""
+    names = record_names(problems)
+    res.experiment = " + ".join(names)
+    res.settings["records"] = [
+        dict(name=n, samples=int(p.t.size), duration_s=float(p.t[-1] - p.t[0]),
+             x0=p.x0.tolist(), P0=np.asarray(p.P0, float).tolist(), x0_rule=p.x0_rule,
+             ukf=p.ukf.to_dict()) for n, p in zip(names, problems)]
+    res.settings["samples"] = int(sum(p.t.size for p in problems))
+    res.settings["duration_s"] = float(sum(p.t[-1] - p.t[0] for p in problems))
 
 
 @dataclass(frozen=True)
@@ -732,7 +916,7 @@ def _to_values(crit: Criterion, x, lo, hi, H, cr):
     """Search coordinates back to estimand values: the estimate (k,), the
     box (k,), and the Hessian and Cramér-Rao bounds by the delta method
     (a log-scale coordinate s = ln z: ∂z/∂s = z)."""
-    if not isinstance(crit, EstimandCriterion):
+    if not (isinstance(crit, EstimandCriterion) or getattr(crit, "estimand", False)):
         return x, lo, hi, H, cr
     z = crit.to_value(x)[0]
     lo_v, hi_v = crit.to_value(lo)[0], crit.to_value(hi)[0]
@@ -942,6 +1126,8 @@ def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
     guard's (:func:`nll_guard`)."""
     if not (fit.check_discretisation and np.isfinite(f_best)):
         return None
+    if isinstance(crit, JointCriterion):
+        return _joint_discretisation_at(crit, x_best, fit, warn_list)
     th_best, x0, P0, R = crit.problem_at(x_best)
     # the filter's levels at the estimate (estimated or declared), else
     # meas_std(θ), else the level seen in the record
@@ -969,6 +1155,21 @@ def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
         warn_list.append(_guard_message(guard, ukf))
     return dict(one_step=dc["one_step"].tolist(), free_run=dc["free_run"].tolist(),
                 reference=dc["reference"], nll_guard=guard)
+
+
+def _joint_discretisation_at(crit: JointCriterion, x_best, fit: FitOptions,
+                             warn_list: list) -> dict:
+    """:func:`_discretisation_at` on each record of a joint estimate, at its
+    own NLL there: ``{"records": {name: summary}}``; each warning prefixed
+    with its record's name."""
+    names = record_names([m.problem for m in crit.members])
+    out = {}
+    for name, m in zip(names, crit.members):
+        own: list = []
+        f = float(m(np.atleast_2d(x_best))[0])
+        out[name] = _discretisation_at(m, x_best, f, fit, m.options, own)
+        warn_list.extend(f"{name}: {w}" for w in own)
+    return dict(records=out)
 
 
 def _step_message(problem: Problem, theta, ukf: UKFOptions, worst: float, sigma,

@@ -36,7 +36,7 @@ def filter_of(model, result: EstimationResult, x0: np.ndarray, P0: np.ndarray):
 
 
 def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
-             x0=None, P0=None, prefix: str = "") -> list[Path]:
+             x0=None, P0=None, options=None, prefix: str = "") -> list[Path]:
     """PNG plots of the fit at the estimate: measured vs predicted and
     filtered outputs, and innovations with ±2 sqrt(S) bands.
 
@@ -48,6 +48,9 @@ def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
     outdir : path
     x0, P0 : optional
         As given to :func:`estimate` (default: from ``result.settings``).
+    options : UKFOptions, optional
+        The filter's options (default: from ``result.settings``; a joint
+        estimate's record may have its own).
 
     Returns
     -------
@@ -57,7 +60,7 @@ def plot_fit(model, experiment, result: EstimationResult, outdir: str | Path, *,
     plt = pyplot()
     model = Model.from_spec(model)
     t, u, y, name, _ = record_arrays(model, experiment)
-    opts = UKFOptions(**result.settings.get("ukf", {}))
+    opts = UKFOptions(**result.settings.get("ukf", {})) if options is None else options
     x0a = np.asarray(result.settings.get("x0"), float) if x0 is None else state_vector(model, x0)
     if P0 is None:
         P0 = result.settings.get("P0")
