@@ -172,7 +172,7 @@ def test_a_discretisation_that_fails_at_the_estimate_is_chosen_again_and_refitte
                                "[given: --method ros2] — within"), lines[0]
     assert lines[1].startswith("discretisation at the estimate (the start's ros2(3), linear "
                                "hold fails there"), lines[1]
-    assert "refitting once" in lines[1] and "ros2(16)" in lines[1]
+    assert "refitting from the estimate" in lines[1] and "ros2(16)" in lines[1]
     ukf = res["settings"]["ukf"]
     assert (ukf["method"], ukf["substeps"], ukf["hold"]) == ("ros2", 16, "linear")
     step = [w for w in res["warnings"] if "the step is too coarse" in w]

@@ -189,6 +189,16 @@ def test_innovations_that_stay_coloured_point_to_discovery():
                            "3.786e+04; white: about 40 ± 27)") and "--discover" in line
     assert "--discover" not in unexplained_hint(res(37855.0), True)
     assert unexplained_hint(res(60.0), False) is None        # 60 <= 40 + 3·sqrt(80)
+    # the optional effects that attach to the graph and were not scored are
+    # named (the Camry graph's injector, a power source; its dyno imposes the
+    # vehicle's inertia flow: no cold start there), not when they were scored
+    from bondgraph.catalog.benchmarks import camry_fuel
+    from bondgraph.diagnose.effects.library import DEFAULT_EFFECTS, OPTIONAL_EFFECTS
+
+    line = unexplained_hint(res(37855.0), False, camry_fuel(), DEFAULT_EFFECTS)
+    assert "not scored: the optional cold_start (at injector) (--add-effects cold_start)" in line
+    line = unexplained_hint(res(37855.0), False, camry_fuel(), DEFAULT_EFFECTS + OPTIONAL_EFFECTS)
+    assert "not scored" not in line
 
 
 def test_a_reconstruction_holds_the_records_noise_and_then_the_loops_estimates():

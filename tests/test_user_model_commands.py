@@ -133,6 +133,17 @@ def test_loop_takes_its_start_values_from_a_fit_on_another_record(user_dir, caps
     out = capsys.readouterr().out
     assert ("start values from est/result.json: m = 2.2, k = 41.5, c = 1.7; held at them: "
             "m, k") in out
+    # without --params: what the fit estimated is re-estimated (not its fixed
+    # m, nor its noise level), the rest held
+    from bondgraph.cli.loop import refitted
+    from bondgraph.errors import OptionError
+
+    assert refitted(g, "est/result.json") == ["k", "c"]
+    assert "re-estimating k, c (what est/result.json estimated" in capsys.readouterr().out
+    (user_dir / "est" / "noise.json").write_text(json.dumps(
+        {"params": ["noise.x"], "estimates": [0.003], "fixed": {"m": 2.2}}))
+    with pytest.raises(OptionError, match="estimated none of the graph's parameters"):
+        refitted(g, "est/noise.json")
 
     res["estimates"][0] = 900.0                       # k's box is [5, 500]
     (user_dir / "est" / "result.json").write_text(json.dumps(res))

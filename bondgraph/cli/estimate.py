@@ -173,37 +173,45 @@ def _plots(model, exps, res, problems, paths, d: Path) -> list:
     return out
 
 
+#: refits of an estimate after its discretisation failed at the estimate
+MAX_REFITS = 3
+
+
 def _fit(args, chosen, params, fit, states, paths):
     """``(result, problems)``: the estimation on the records' problems
     ``chosen`` (``(problem, choice)`` each); where the discretisation was
     chosen (``choice``), checked again at the estimate
     (:func:`~bondgraph.cli.common.chosen_problem` with the fit's noise
-    levels) and, if the chosen one fails there on a record, refitted once
-    from the estimate with the one chosen at the estimate (a local refit:
-    the swarm's first population with the estimate in it, then the polish;
-    the result, and its warnings, are then the refit's)."""
+    levels) and, if the chosen one fails there on a record, refitted from
+    the estimate with the one chosen at the estimate (a local refit: the
+    swarm's first population with the estimate in it, then the polish; the
+    result, and its warnings, are then the refit's), checked again, at most
+    :data:`MAX_REFITS` times (the estimate may move to where the new one
+    fails too: a fast lag's time constant on its box)."""
     log = None if args.quiet else _say
     problems = [pb for pb, _ in chosen]
     res = _estimate_quiet(problems, params, fit, states, log)
-    agains, refit = [], False
-    for i, (pb, choice) in enumerate(chosen):
-        again = None
-        if choice is not None and np.isfinite(res.nll):
-            again, redo = _recheck(args, pb, res, _say_for(paths[i], paths))
+    agains: list = [None] * len(chosen)
+    # a local refit: the estimate moves by the discretisation's bias only
+    # (the swarm's first population, the whole estimate (noise levels,
+    # initial states too) in it, then the polish; a second full search cost
+    # as much as the first)
+    local = replace(fit, resume=False, iterations=0) if fit.polish else replace(fit, resume=False)
+    for _ in range(MAX_REFITS):
+        refit = False
+        for i, (_pb, choice) in enumerate(chosen):
+            if choice is None or not np.isfinite(res.nll):
+                continue
+            agains[i], redo = _recheck(args, problems[i], res, _say_for(paths[i], paths))
             if redo:
-                problems[i], refit = pb.conditioned_on(disc=again.disc), True
-        agains.append((choice, again))
-    if refit:
-        # a local refit: the estimate moves by the discretisation's bias
-        # only (the swarm's first population, the whole estimate (noise
-        # levels, initial states too) in it, then the polish; a second
-        # full search cost as much as the first)
-        local = replace(fit, resume=False, iterations=0) if fit.polish else \
-            replace(fit, resume=False)
-        res = _estimate_quiet(problems, params, local, states, log, start=res.estimates)
+                problems[i], refit = problems[i].conditioned_on(disc=agains[i].disc), True
+        if not refit:
+            break
+        res = _estimate_quiet(problems, params, local, states, None, start=res.estimates)
     given = discretisation_given(args)
     choices = [dict(given=given, start=None if c is None else c.to_dict(),
-                    estimate=None if a is None else a.to_dict()) for c, a in agains]
+                    estimate=None if a is None else a.to_dict())
+               for (_pb, c), a in zip(chosen, agains)]
     res.settings["discretisation_choice"] = choices[0] if len(choices) == 1 else choices
     return res, problems
 
@@ -220,7 +228,7 @@ def _recheck(args, problem, res, say):
     if not ok and again.disc != problem.disc:
         say(again.line(f"at the estimate (the start's {problem.disc.describe()} fails "
                        f"there: {now:.2g} σ per sample, bias bound {bound:.2g} std; "
-                       f"refitting once from the estimate)"))
+                       f"refitting from the estimate)"))
         return again, True
     say(f"discretisation at the estimate: {problem.disc.describe()} still within "
         f"({now:.2g} σ per sample" + (f", free-run bias bound {bound:.2g} std)"

@@ -28,6 +28,7 @@ from bondgraph.cli.common import (
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.effects import get_effect
+from bondgraph.diagnose.effects.library import OPTIONAL_EFFECTS
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.runner import chosen_numerics as loop_chosen_numerics
 from bondgraph.diagnose.settings import (
@@ -68,8 +69,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--from", dest="from_result", default=None, metavar="JSON",
                    help="start values from a fit on another record: `bondgraph estimate`'s "
                         "result.json or a loop's report.json (its final fit); the parameters "
-                        "not in --params are held at them (e.g. fitted on warm records, the "
-                        "loop run on a cold start)")
+                        "not in --params are held at them; without --params, what the fit "
+                        "estimated is re-estimated and the rest held (e.g. fitted on warm "
+                        "records, the loop run on a cold start)")
     p.add_argument("--out", default=None,
                    help=f"report directory (default ./{DEFAULT_OUT}, or ./{DEFAULT_OUT}-2, -3, "
                         f"... when it holds an earlier report); refused when not empty, unless "
@@ -152,6 +154,26 @@ def from_result(graph, path: str, params: str | None):
     return out
 
 
+def refitted(graph, path: str) -> list[str]:
+    """The parameters a loop started ``--from`` a fit re-estimates when no
+    ``--params`` is given: those the fit estimated (not its fixed values,
+    noise levels or initial states), in the graph's order; the others are
+    held at their values. One line says so.
+
+    Raises
+    ------
+    OptionError
+        The file estimated none of the graph's parameters.
+    """
+    names = [n for n in graph.params if n in read_params(path, estimated=True)]
+    if not names:
+        raise OptionError(f"--from {path} estimated none of the graph's parameters: name them "
+                          f"with --params")
+    print(f"bondgraph loop: re-estimating {', '.join(names)} (what {path} estimated; the "
+          f"others held at their values; --params to choose)")
+    return names
+
+
 def run(args) -> int:
     """Run the loop on ``--model``/``--data`` or a bundled case; write the report."""
     if args.case == "list":
@@ -183,6 +205,9 @@ def run(args) -> int:
         name = case.name
     if args.from_result:
         graph = from_result(graph, args.from_result, args.params)
+        if args.model and not args.params:
+            base = dataclasses.replace(base, params=refitted(graph, args.from_result),
+                                       hold_unidentified=())
     settings = loop_settings(args, base, graph)
     if args.model:
         settings = chosen_numerics(args, graph, record, settings)
@@ -212,7 +237,7 @@ def run(args) -> int:
         print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
     print(res.table() if res.steps else f"  no effect accepted: {res.none_accepted()}"
           + ("; the reasons are in report.md" if res.rejected else ""))
-    hint = unexplained_hint(res, args.discover)
+    hint = unexplained_hint(res, args.discover, graph, settings.effects)
     if hint:
         print(hint)
     print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots, "
@@ -220,10 +245,12 @@ def run(args) -> int:
     return 0
 
 
-def unexplained_hint(res, discovered: bool) -> str | None:
+def unexplained_hint(res, discovered: bool, graph=None, effects=()) -> str | None:
     """One line when the final model's innovations are not white (the
     Ljung-Box sum beyond χ²(dof) + 3 std): the record shows more than the
-    accepted effects explain; without ``--discover``, say what it does."""
+    accepted effects explain; the optional effects of the library that
+    attach to ``graph`` and are not among ``effects`` (:func:`optional_left`);
+    without ``--discover``, say what it does."""
     r = getattr(res.final, "residuals", None)
     if r is None or r.whiteness_dof <= 0 or r.is_white():
         return None
@@ -231,10 +258,31 @@ def unexplained_hint(res, discovered: bool) -> str | None:
     msg = (f"note: the final model's innovations are not white (whiteness {r.whiteness:.4g}; "
            f"white: about {d:g} ± {3 * (2 * d) ** 0.5:.0f}): the record shows more than the "
            f"accepted effects explain")
+    left = optional_left(graph, effects) if graph is not None else {}
+    if left:
+        msg += ("; not scored: the optional " + "; ".join(
+            f"{n} (at {', '.join(t)})" for n, t in left.items())
+            + f" (--add-effects {','.join(left)})")
     if not discovered:
         msg += ("; --discover reconstructs the effort (flow) missing at each junction and "
                 "seeks its law beyond the effect library")
     return msg
+
+
+def optional_left(graph, effects) -> dict[str, list[str]]:
+    """The optional effects of the library
+    (:data:`~bondgraph.diagnose.effects.library.OPTIONAL_EFFECTS`: scored
+    only when asked) that are not in ``effects`` and attach to ``graph``:
+    name -> the places they attach to."""
+    have = {e.name for e in effects}
+    out = {}
+    for eff in OPTIONAL_EFFECTS:
+        if eff.name in have:
+            continue
+        places = [t.name for t in eff.targets(graph)]
+        if places:
+            out[eff.name] = places
+    return out
 
 
 def _with_discovery(args, graph, record, settings, res, out: Path):

@@ -20,7 +20,7 @@ from bondgraph.errors import ExportError
 from bondgraph.numerics import registry
 
 
-def read_params(path: str | Path) -> dict[str, float]:
+def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float]:
     """Parameter values from an estimation result or a loop report.
 
     Parameters
@@ -29,6 +29,9 @@ def read_params(path: str | Path) -> dict[str, float]:
         ``result.json`` of ``bondgraph estimate`` (the estimates by name and
         the fixed values) or ``report.json`` of ``bondgraph loop`` (the final
         fit's estimates).
+    estimated : bool
+        Only the quantities the fit estimated (a result's fixed values left
+        out).
 
     Returns
     -------
@@ -56,7 +59,8 @@ def read_params(path: str | Path) -> dict[str, float]:
         if len(doc["params"]) != len(doc["estimates"]):
             raise ExportError(f"{path}: {len(doc['params'])} params but "
                               f"{len(doc['estimates'])} estimates")
-        values = {**dict(doc.get("fixed") or {}), **dict(zip(doc["params"], doc["estimates"]))}
+        values = {**({} if estimated else dict(doc.get("fixed") or {})),
+                  **dict(zip(doc["params"], doc["estimates"]))}
     else:
         raise ExportError(f"{path} is neither a `bondgraph estimate` result.json (params, "
                           f"estimates) nor a `bondgraph loop` report.json (final_fit.estimates)")

@@ -479,7 +479,7 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
         out["warning"] = (f"Hessian of the NLL is not positive definite (smallest eigenvalue "
                           f"{lam[0]:.3g}, largest {lam[-1]:.3g}, in scaled coordinates): the "
                           f"direction {' '.join(terms)} (scaled coordinates) is not identified "
-                          f"by this record")
+                          f"by the data")
         if conditional:
             _conditional_bounds(out, Hs, s, names, np.abs(v) > FLAT_COMPONENT, rcond)
         return out
