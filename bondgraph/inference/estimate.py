@@ -663,12 +663,8 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
         its prior (x0, P0), fixed values, noise policy (``problem.noise.mode``:
         "auto" holds declared levels and estimates the undeclared ones with θ,
         "model" keeps the graph's) and filter options (``problem.ukf``).
-        Several problems (the same model and fixed values on independent
-        records): one parameter vector and one set of estimated noise levels
-        for all, the NLL the sum of the records' (:class:`JointCriterion`),
-        each record its own initial state, prior, held levels and filter
-        options; the warnings of the discretisation check name their record
-        and ``settings["records"]`` describes each.
+        Several (one model, independent records): fitted together
+        (:class:`JointCriterion`; ``settings["records"]`` describes each).
     params : sequence of str
         Parameters to estimate (k).
     fit : FitOptions, optional
@@ -701,9 +697,8 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     ModelError
         Unknown parameter names, or a fixed parameter that is also estimated.
     OptionError, DataError, EstimationError
-        Bad options or state names, a checkpoint of another problem; a bad record; no finite NLL.
-        Several records of different models or fixed values, with ``x0_states``, or whose
-        noise policies estimate different levels (OptionError).
+        Bad options or state names, a checkpoint of another problem; a bad record; no finite NLL;
+        records that cannot share the fit (:func:`_problems`, :func:`_joint`).
 
     Warns
     -----
@@ -719,7 +714,6 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     t_start = time.perf_counter()
     fit = fit_options(fit)
     problems = _problems(problem, x0_states)
-    problem = problems[0]
     plan, crit = _joint(problems, params, bounds, R, x0_states, fit, Q, log)
     lo, hi = plan.lo, plan.hi
     try:
@@ -727,17 +721,14 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
         x_best, f_best, pol = _polish(crit, opt, lo, hi, fit)
         warn_list = _bound_warnings(crit.params, x_best, lo, hi)
         H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list)
-        disc = _discretisation_at(crit, x_best, f_best, fit, problem.ukf, warn_list)
+        disc = _discretisation_at(crit, x_best, f_best, fit, problems[0].ukf, warn_list)
     finally:
         crit.close()
     for w in warn_list:
         warnings.warn(w, IdentifiabilityWarning, stacklevel=2)
     z_best, lo_v, hi_v, H, cr = _to_values(crit, x_best, lo, hi, H, cr)
     found = _Found(opt, z_best, f_best, pol, H, cr, lo_v, hi_v, warn_list, disc)
-    res = _result(problem, plan, crit, fit, found, Q, R, time.perf_counter() - t_start)
-    if len(problems) > 1:
-        _joint_settings(res, problems)
-    return res
+    return _result(problems, plan, crit, fit, found, Q, R, time.perf_counter() - t_start)
 
 
 def _problems(problem, x0_states) -> list[Problem]:
@@ -928,9 +919,11 @@ def _to_values(crit: Criterion, x, lo, hi, H, cr):
     return z, lo_v, hi_v, np.asarray(H, float) / np.outer(J, J), cr
 
 
-def _result(problem: Problem, plan: _Plan, crit, fit: FitOptions, found: _Found, Q, R,
+def _result(problems: list[Problem], plan: _Plan, crit, fit: FitOptions, found: _Found, Q, R,
             wall: float) -> EstimationResult:
-    """The :class:`EstimationResult` of an estimation at the estimate ``found.z`` (k,)."""
+    """The :class:`EstimationResult` of an estimation on ``problems`` at the
+    estimate ``found.z`` (k,)."""
+    problem = problems[0]
     model, names, est, z, cr = problem.model, list(crit.params), plan.est, found.z, found.cr
     theta = (_full_theta(model, names, plan.base, z) if est is None
              else est.expand(z[None, :])[0][0])
@@ -939,7 +932,7 @@ def _result(problem: Problem, plan: _Plan, crit, fit: FitOptions, found: _Found,
     settings.update(noise=problem.noise.mode if R is None else "R", noise_notes=list(plan.notes),
                     noise_levels=_noise_levels(model, est, z, cr["std"], theta),
                     x0_states=[] if est is None else list(est.states))
-    return EstimationResult(
+    res = EstimationResult(
         model=model.name, experiment=problem.name, params=names, estimates=z, std=cr["std"],
         corr=cr["corr"], hessian=found.H, nll=float(found.nll), nll_optimizer=float(found.opt.fun),
         evaluations=int(found.opt.nfev), evaluations_total=int(crit.evaluations), wall_s=wall,
@@ -948,6 +941,9 @@ def _result(problem: Problem, plan: _Plan, crit, fit: FitOptions, found: _Found,
         warnings=found.warnings, failures=dict(crit.failures),
         optimizer_result=found.opt.to_dict(), polish=found.polish, settings=settings,
         units=_units(model, names))
+    if len(problems) > 1:
+        _joint_settings(res, problems)
+    return res
 
 
 def _units(model, names: Sequence[str]) -> list[str]:
