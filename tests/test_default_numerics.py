@@ -163,11 +163,13 @@ def test_a_discretisation_that_fails_at_the_estimate_is_chosen_again_and_refitte
     """Only --method ros2 given; at the slow start ROS2(3) passes (bias
     bound 0.36 std; ROS2(2) 0.81), at the estimate its free run fails:
     chosen again (ROS2(16), the most accurate ROS2 tried, still not within)
-    and refitted once; the result's warning names the step and the option
-    that fixes it."""
+    and refitted; checked again at the refit's estimate, where nothing
+    better is left (no further refit); the result's warning names the step
+    and the option that fixes it."""
     res, err = _estimate(record, capsys, "--method", "ros2", graph="slow_msd_graph")
     lines = [ln for ln in err.splitlines() if ln.startswith("discretisation")]
-    assert len(lines) == 2, err
+    assert len(lines) == 3, err
+    assert lines[2].startswith("discretisation at the estimate (no better candidate): ros2(16)")
     assert lines[0].startswith("discretisation at the start θ: ros2(3), linear hold "
                                "[given: --method ros2] — within"), lines[0]
     assert lines[1].startswith("discretisation at the estimate (the start's ros2(3), linear "

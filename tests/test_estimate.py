@@ -354,3 +354,26 @@ def test_initial_state_from_the_record(msd_record):
     want = ukf_nll(m, t, u, y, r.theta, x0, P0, options=UKF).nll[0]
     assert r.nll == pytest.approx(want, rel=1e-12)
     assert r.nll != pytest.approx(ukf_nll(m, t, u, y, r.theta, m.x0, P0, options=UKF).nll[0])
+
+
+def test_bounds_of_the_others_when_a_parameter_sits_on_its_box():
+    """estimate._on_box: a Hessian that is not positive definite because the
+    NLL still falls beyond the box of the parameter on it (negative
+    curvature read across the bound): the others' Cramér-Rao std are the
+    inverse of their own block (hand computed: [[4, 1], [1, 2]]⁻¹ =
+    [[2, -1], [-1, 4]] / 7), conditional on it held; the warning says so."""
+    from bondgraph.inference.estimate import _on_box
+
+    H = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 3.0], [0.0, 3.0, -1.0]])
+    names = ["a", "b", "tau"]
+    cr = cramer_rao(H, names, np.ones(3), conditional=True)
+    assert not cr["positive_definite"] and np.isnan(cr["std"]).all()
+    _on_box(cr, H, np.ones(3), names, ["tau"])
+    np.testing.assert_allclose(cr["std"][:2], np.sqrt([2 / 7, 4 / 7]), rtol=1e-12)
+    assert np.isnan(cr["std"][2]) and cr["conditional_on"] == ["tau"]
+    assert cr["corr"][0, 1] == pytest.approx(-1 / np.sqrt(8), rel=1e-12)
+    assert cr["warning"].endswith("conditional on tau held on its bound")
+    # nobody on a box: nothing filled
+    cr = cramer_rao(H, names, np.ones(3), conditional=True)
+    _on_box(cr, H, np.ones(3), names, [])
+    assert np.isnan(cr["std"]).all()

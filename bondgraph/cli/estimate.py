@@ -242,7 +242,8 @@ def _estimate_quiet(problem, params, fit, states, log, start=None):
     table prints the result's warnings)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
-        return estimate(problem, params, fit=fit, x0_states=states, log=log, start=start)
+        one = problem[0] if isinstance(problem, list) and len(problem) == 1 else problem
+        return estimate(one, params, fit=fit, x0_states=states, log=log, start=start)
 
 
 def _say(msg: str) -> None:

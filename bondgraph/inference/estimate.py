@@ -1106,9 +1106,36 @@ def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list):
         cr2 = cramer_rao(H2, crit.params, width)
         if cr2["positive_definite"]:
             H, cr = H2, cr2
+    else:
+        _on_box(cr, H, width, crit.params, _at_bound(crit.params, x_best, lo, hi))
     if cr["warning"]:
         warn_list.append(cr["warning"])
     return H, cr
+
+
+def _on_box(cr: dict, H: np.ndarray, width: np.ndarray, names, held: list[str]) -> None:
+    """When the Hessian ``H`` (k, k) is not positive definite and the
+    parameters ``held`` sit on their box: the others' Cramér-Rao bounds
+    conditional on those held there, from the others' block of ``H`` when
+    it is positive definite (an active bound: the estimate does not move
+    along it, and the difference Hessian there reads the NLL beyond the box,
+    where its slope is not zero). Unless :func:`cramer_rao` found
+    conditional bounds already; fills ``cr`` in place and says so in its
+    warning."""
+    if not held or cr.get("conditional_on") or cr["warning"] is None:
+        return
+    free = np.array([i for i, n in enumerate(names) if n not in held], dtype=int)
+    if free.size == 0:
+        return
+    sub = cramer_rao(H[np.ix_(free, free)], [names[i] for i in free], width[free])
+    if not sub["positive_definite"]:
+        return
+    cr["std"][free] = sub["std"]
+    cr["cov"][np.ix_(free, free)] = sub["cov"]
+    cr["corr"][np.ix_(free, free)] = sub["corr"]
+    cr["conditional_on"] = list(held)
+    cr["warning"] += (f"; the Cramér-Rao std of the others are conditional on {', '.join(held)} "
+                      f"held on {'its' if len(held) == 1 else 'their'} bound")
 
 
 def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
