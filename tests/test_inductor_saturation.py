@@ -190,15 +190,16 @@ def test_innovations_that_stay_coloured_point_to_discovery():
     assert "--discover" not in unexplained_hint(res(37855.0), True)
     assert unexplained_hint(res(60.0), False) is None        # 60 <= 40 + 3·sqrt(80)
     # the optional effects that attach to the graph and were not scored are
-    # named (the Camry graph's injector, a power source; its dyno imposes the
-    # vehicle's inertia flow: no cold start there), not when they were scored
-    from bondgraph.catalog.benchmarks import camry_fuel
+    # named (Bouc-Wen at CED's electrical and pulley 1-junctions; none on the
+    # Camry graph, which has no such junction), not when they were scored
+    from bondgraph.catalog.benchmarks import camry_fuel, ced_linear
     from bondgraph.diagnose.effects.library import DEFAULT_EFFECTS, OPTIONAL_EFFECTS
 
-    line = unexplained_hint(res(37855.0), False, camry_fuel(), DEFAULT_EFFECTS)
-    assert "not scored: the optional cold_start (at injector) (--add-effects cold_start)" in line
-    line = unexplained_hint(res(37855.0), False, camry_fuel(), DEFAULT_EFFECTS + OPTIONAL_EFFECTS)
+    line = unexplained_hint(res(37855.0), False, ced_linear(), DEFAULT_EFFECTS)
+    assert "not scored: the optional bouc_wen (at i, w_p) (--add-effects bouc_wen)" in line
+    line = unexplained_hint(res(37855.0), False, ced_linear(), DEFAULT_EFFECTS + OPTIONAL_EFFECTS)
     assert "not scored" not in line
+    assert "not scored" not in unexplained_hint(res(37855.0), False, camry_fuel(), DEFAULT_EFFECTS)
 
 
 def test_a_reconstruction_holds_the_records_noise_and_then_the_loops_estimates():

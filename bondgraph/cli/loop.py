@@ -108,7 +108,7 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "the loop stops there with exit code 2 and names them")
     p.add_argument("--add-effects", default=None, metavar="NAME,...",
                    help="effects of the library's optional part to score besides the default "
-                        "library (cold_start, bouc_wen)")
+                        "library (bouc_wen)")
     p.add_argument("--discover", action="store_true",
                    help="when no physical effect is accepted, or the accepted ones leave "
                         "innovations that are not white: reconstruct the effort (flow) "
