@@ -94,6 +94,14 @@ def test_every_command_takes_module_function_and_file_function(user_dir, capsys)
     for name, truth in (("k", 40.0), ("c", 1.5)):
         value, std = res["estimates"][name], res["std"][name]
         assert abs(value - truth) < 3 * std, (name, value, std)
+    # sensitivity without --params analyses the same: m held (it was the
+    # first candidate of the user's Camry graph's known heating value)
+    assert main(["sensitivity", "--model", "known:build", "--data", "rec.csv", "--out",
+                 "sens_default", "--no-plots", "--quiet"]) == 0
+    assert ("no --params: analysing the 2 parameters declared with a box (k, c)"
+            in capsys.readouterr().err)
+    doc = json.loads((user_dir / "sens_default" / "sensitivity.json").read_text())
+    assert doc["params"] == ["k", "c"]
 
     assert main(["sensitivity", "--model", "usermod:build", "--data", "rec.csv",
                  "--params", "k,c,m", "--out", "sens", "--no-plots"]) == 0

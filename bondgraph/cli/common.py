@@ -145,7 +145,8 @@ def default_params(spec: str, model, command: str) -> list[str]:
              if n in declared and getattr(declared[n], "box_declared", True)]
     names = boxed or list(model.params)
     held = [n for n in model.params if n not in names]
-    print(f"bondgraph {command}: no --params: estimating "
+    verb = "analysing" if command == "sensitivity" else "estimating"
+    print(f"bondgraph {command}: no --params: {verb} "
           + (f"the {len(names)} parameters declared with a box ({', '.join(names)}); held at "
              f"their declared values (declared without a box: known): {', '.join(held)}"
              if held else f"all {len(names)} parameters ({', '.join(names)})")

@@ -19,6 +19,7 @@ from bondgraph.cli.common import (
     add_quiet,
     add_scheduler,
     chosen_problem,
+    default_params,
     estimated_states,
     load_model,
     load_record,
@@ -31,6 +32,7 @@ from bondgraph.cli.common import (
 )
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.executor import Executor
+from bondgraph.numerics.forward_sensitivity import free_parameters
 from bondgraph.report.sensitivity import plot_report
 from bondgraph.sensitivity.analysis import LocalOptions, analyse
 from bondgraph.sensitivity.sobol import SobolOptions
@@ -46,8 +48,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_model(p)
     add_data(p)
     p.add_argument("--params", default=None,
-                   help="comma-separated candidate parameters (default: every parameter with "
-                        "a proper box)")
+                   help="comma-separated candidate parameters (default: those estimate fits "
+                        "without --params, the parameters declared with a box, or every "
+                        "parameter with a proper box when none is; one line on stderr)")
     p.add_argument("--global", dest="global_N", type=int, default=None, metavar="N",
                    help="also Sobol' indices with base sample N (N (2k+2) UKF evaluations)")
     p.add_argument("--outputs", default="",
@@ -82,6 +85,17 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_quiet(p)
 
 
+def _default_params(spec: str, model) -> list[str] | None:
+    """The candidates without ``--params``: what ``bondgraph estimate`` fits
+    without it (:func:`~bondgraph.cli.common.default_params`: the
+    parameters declared with a box; one declared without one is a known
+    value), those with a proper box; None (every parameter with a proper
+    box) when that leaves none."""
+    free = set(free_parameters(model))
+    names = [n for n in default_params(spec, model, "sensitivity") if n in free]
+    return names or None
+
+
 def run(args) -> int:
     """Analyse, write ``sensitivity.json`` and the PNGs; print the table.
 
@@ -95,7 +109,7 @@ def run(args) -> int:
         if n < 2:
             raise SensitivityError(f"--seconds {args.seconds} leaves fewer than 2 samples")
         exp = exp.segment(0, n, name=exp.name)
-    params = parse_names(args.params, "--params") or None
+    params = parse_names(args.params, "--params") or _default_params(args.model, model)
     values = {}
     if args.at_truth:
         tp = (exp.meta or {}).get("true_parameters") or {}
