@@ -456,6 +456,11 @@ def test_track_from_an_estimate_result_or_a_loop_report(tmp_path):
     est.write_text(json.dumps({"params": ["c", "k"], "estimates": [1.6, 49.0],
                                "std": [0.01, "inf"]}))
     assert _from_result(est) == ({"c": 1.6, "k": 49.0}, {"c": 0.01})
+    # an estimate on its box has std null in result.json (was a TypeError,
+    # reported as "neither ... nor")
+    est.write_text(json.dumps({"params": ["c", "k", "tau"], "estimates": [1.6, 49.0, 0.2],
+                               "std": [0.01, 0.5, None]}))
+    assert _from_result(est) == ({"c": 1.6, "k": 49.0, "tau": 0.2}, {"c": 0.01, "k": 0.5})
     rep = tmp_path / "report.json"
     rep.write_text(json.dumps({"final_fit": {"estimates": {"c": 1.7, "k": 51.0},
                                              "std": {"c": 0.02, "k": None}}}))

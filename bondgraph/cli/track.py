@@ -97,7 +97,8 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def _from_result(path) -> tuple[dict, dict]:
     """``(values, std)`` by parameter name of an estimate's result.json or a
-    loop's report.json (its final fit: estimates and Cramér-Rao std)."""
+    loop's report.json (its final fit: estimates and Cramér-Rao std); a
+    quantity without a std (on its box: null in the file) has none."""
     try:
         d = from_jsonable(json.loads(Path(path).read_text()))
         if isinstance(d, dict) and isinstance(d.get("final_fit"), dict):
@@ -107,7 +108,8 @@ def _from_result(path) -> tuple[dict, dict]:
                      if s is not None and np.isfinite(float(s))})
         names = list(d["params"])
         return (dict(zip(names, map(float, d["estimates"]))),
-                {n: float(s) for n, s in zip(names, d.get("std") or []) if np.isfinite(s)})
+                {n: float(s) for n, s in zip(names, d.get("std") or [])
+                 if s is not None and np.isfinite(float(s))})
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise DataError(f"--from {path}: neither a `bondgraph estimate` result.json nor a "
                         f"`bondgraph loop` report.json ({type(exc).__name__}: {exc})") from None
