@@ -180,3 +180,23 @@ def test_cli_linearize_writes_npz_poles_and_bode(tmp_path, capsys):
     assert (tmp_path / "ht.png").stat().st_size > 5000
     for p in np.linalg.eigvals(A):
         assert f"{p.real:.6g}" in text
+
+
+def test_cli_linearize_at_an_estimates_values(tmp_path, capsys):
+    """``--params result.json`` of ``bondgraph estimate``: its estimated noise
+    levels and initial states (noise.<output>, x0.<state>) are not the
+    graph's parameters and are left out (they were refused: "no
+    parameter(s) noise.p1"); A is the hand-derived one at the estimate."""
+    import json
+
+    from bondgraph.cli.main import main
+
+    res = tmp_path / "result.json"
+    res.write_text(json.dumps({"params": ["Rh12", "noise.p1", "x0.q_tank1_C"],
+                               "estimates": [2e5, 0.01, 1e-3], "fixed": {"Rh2": 1e5}}))
+    out = tmp_path / "ht.npz"
+    assert main(["linearize", "hydraulic_tanks", "--at", "Q=1e-4", "--params", str(res),
+                 "-o", str(out), "--no-plot"]) == 0
+    C1, C2, R12, R2 = 1e-4, 2e-4, 2e5, 1e5
+    A = [[-1 / (R12 * C1), 1 / (R12 * C2)], [1 / (R12 * C1), -(1 / R12 + 1 / R2) / C2]]
+    np.testing.assert_allclose(np.load(out)["A"], A, rtol=1e-12)

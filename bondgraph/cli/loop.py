@@ -137,8 +137,7 @@ def from_result(graph, path: str, params: str | None):
     OptionError
         A value outside the parameter's box (named with the box).
     """
-    values = {n: v for n, v in read_params(path).items()
-              if not n.startswith(("noise.", "x0."))}
+    values = read_params(path)
     out = model_graph(graph, values)
     outside = [f"{n} = {v:.6g} (box [{graph.params[n].bounds[0]:.6g}, "
                f"{graph.params[n].bounds[1]:.6g}])" for n, v in values.items()

@@ -36,7 +36,9 @@ def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float
     Returns
     -------
     dict
-        ``name -> value`` in model units.
+        ``name -> value`` in model units; the estimated noise levels
+        (``noise.<output>``) and initial states (``x0.<state>``) are not
+        parameters of the graph and are left out.
 
     Raises
     ------
@@ -66,6 +68,8 @@ def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float
                           f"estimates) nor a `bondgraph loop` report.json (final_fit.estimates)")
     out = {}
     for name, value in values.items():
+        if str(name).startswith(("noise.", "x0.")):
+            continue
         try:
             v = float(value)
         except (TypeError, ValueError):
