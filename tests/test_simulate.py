@@ -289,6 +289,21 @@ def test_cli_simulate(tmp_path, capsys):
     assert len(e3) == 11 and np.all(e3["F"] == 2.0)
     assert main(["simulate", "mass_spring_damper", "-e", "no_such_experiment"]) == 2
     assert "unknown experiment 'no_such_experiment'" in capsys.readouterr().err
+    # --params: a fit's values (its noise level left out), the same run as --param
+    fit = tmp_path / "result.json"
+    fit.write_text(json.dumps({"params": ["k", "noise.x"], "estimates": [40.0, 0.01],
+                               "fixed": {"c": 2.0}}))
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    assert main(["simulate", "mass_spring_damper", "-e", str(out), "--params", str(fit),
+                 "-o", str(a)]) == 0
+    assert main(["simulate", "mass_spring_damper", "-e", str(out), "--param", "k=40",
+                 "--param", "c=2", "-o", str(b)]) == 0
+    assert Experiment.load(a).meta["parameters"]["k"] == 40.0
+    np.testing.assert_array_equal(Experiment.load(a)["x"], Experiment.load(b)["x"])
+    fit.write_text(json.dumps({"params": ["k2"], "estimates": [1.0]}))
+    assert main(["simulate", "mass_spring_damper", "-e", str(out), "--params", str(fit),
+                 "-o", str(a)]) == 2
+    assert "has no parameter(s) k2" in capsys.readouterr().err
 
 
 def test_cli_simulate_noise_writes_the_experiments_record(tmp_path, capsys):

@@ -15,6 +15,7 @@ from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.data.experiments import get_experiment, run_experiment
 from bondgraph.data.records import Experiment
 from bondgraph.errors import ModelError, UsageError
+from bondgraph.export.params import read_params
 from bondgraph.numerics.simulate import METHODS, simulate, stiffness_report
 from bondgraph.report.plots import plot_record
 
@@ -37,6 +38,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dt", type=float, default=0.025,
                    help="sample interval [s] without --experiment")
     p.add_argument("--param", action="append", metavar="NAME=VALUE", help="parameter override")
+    p.add_argument("--params", default=None, metavar="JSON",
+                   help="parameter values of a fit: `bondgraph estimate`'s result.json or a "
+                        "loop's report.json (its final fit; noise levels and initial states "
+                        "left out); --param overrides them")
     p.add_argument("--record-params", action="store_true",
                    help="with a record CSV: use the parameters stored in its sidecar "
                         "(true_parameters or parameters) that the model has")
@@ -73,7 +78,7 @@ def run(args) -> int:
     if args.noise_std and not args.noise:
         raise UsageError("--noise-std needs --noise")
     model = load_model(args.model)
-    overrides = parse_pairs(args.param, "--param")
+    overrides = {**fitted_values(args.params, model), **parse_pairs(args.param, "--param")}
     measured = None
     notes = []
     if args.experiment:
@@ -140,6 +145,28 @@ def run(args) -> int:
     return 0
 
 
+def fitted_values(path: str | None, model) -> dict[str, float]:
+    """``--params``: the parameter values of a fit
+    (:func:`~bondgraph.export.params.read_params`); {} without it.
+
+    Raises
+    ------
+    ExportError
+        An unreadable file.
+    ModelError
+        A parameter the model does not have (named, with the model's).
+    """
+    if not path:
+        return {}
+    values = read_params(path)
+    unknown = [n for n in values if n not in model.params]
+    if unknown:
+        raise ModelError(f"--params {path}: model '{model.name}' has no parameter(s) "
+                         f"{', '.join(unknown)} (its parameters: {', '.join(model.params)})",
+                         hint="a loop's report.json goes with its augmented_model.py:build")
+    return values
+
+
 def _registered_experiment(name: str | None) -> bool:
     """True if ``name`` is a registered experiment (not a record file)."""
     if not name or Path(name).suffix.lower() in (".csv", ".json") or Path(name).exists():
@@ -195,10 +222,10 @@ def _noisy_record(args) -> int:
     ModelError
         An unknown experiment, or a model other than the experiment's.
     """
-    if args.param or args.input or args.record_params or args.noise_std:
+    if args.param or args.params or args.input or args.record_params or args.noise_std:
         raise UsageError("--noise writes the experiment's record at its true parameters, "
-                         "inputs and noise: --param, --input, --record-params and --noise-std "
-                         "do not apply")
+                         "inputs and noise: --param, --params, --input, --record-params and "
+                         "--noise-std do not apply")
     spec = get_experiment(args.experiment)
     if args.model != spec.model:
         raise ModelError(f"experiment '{spec.name}' is a record of model '{spec.model}', "
