@@ -16,13 +16,21 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterable
 
+import numpy as np
 
 from bondgraph.core.atomic import OutputFolder, is_empty_dir
 from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.records import Experiment
 from bondgraph.errors import OptionError
-from bondgraph.inference.discretise import DiscretisationChoice, choose_discretisation
+from bondgraph.inference.discretise import (
+    DiscretisationChoice,
+    band_limited_midpoints,
+    band_limits,
+    choose_discretisation,
+    declared_holds,
+    input_holds,
+)
 from bondgraph.inference.options import (
     DEFAULT_BACKEND,
     NOISE_MODES,
@@ -395,6 +403,50 @@ def load_record(path, model) -> Experiment:
                                 states=[str(x) for x in derive(model).states])
     exp.check_columns(model)
     return exp
+
+
+def band_limited_record(exp: Experiment, model, args, say=None) -> Experiment:
+    """The record a command filters: ``exp``, or, when ``--hold`` is not
+    given and an input is band-limited with content where the linear hold
+    misses its values between samples
+    (:func:`~bondgraph.inference.discretise.band_limits`), the record on a
+    grid twice as fine (:meth:`Experiment.on_finer_grid`): those inputs
+    interpolated band-limited between the samples and held linearly over
+    the finer intervals, the other inputs as their own hold has them there
+    (zero-order: the sample before; else the mean of the two), the outputs
+    missing there. One line on ``say`` (default stderr) says so.
+
+    Parameters
+    ----------
+    exp : Experiment
+    model : Model or BondGraph
+        Its inputs name the record's input columns.
+    args : argparse.Namespace
+        ``hold``: a given hold keeps the sampled grid.
+    """
+    if getattr(args, "hold", None) is not None:
+        return exp
+    names = [n for n in model.inputs if n in exp.columns]
+    if not names:
+        return exp
+    u = np.column_stack([np.asarray(exp.columns[n], float) for n in names])
+    if not np.isfinite(u).all():
+        return exp
+    holds = input_holds(u, names, declared_holds(exp, names))
+    chosen = [b for b in band_limits(exp.t, u, names, holds) if b.band_limited]
+    if not chosen:
+        return exp
+    fine = {b.name for b in chosen}
+    mids = {}
+    for j, (n, h) in enumerate(zip(names, holds)):
+        col = u[:, j]
+        mids[n] = (band_limited_midpoints(col) if n in fine else col[:-1] if h.hold == "zoh"
+                   else 0.5 * (col[:-1] + col[1:]))
+    why = "; ".join(b.describe() for b in chosen)
+    (say or _stderr)(f"{exp.name}: filtered on a grid twice as fine ({why}): "
+                     f"{', '.join(sorted(fine))} interpolated band-limited between the samples, "
+                     f"the outputs missing there (--hold to keep the sampled grid)")
+    return exp.on_finer_grid(mids, linear=sorted(fine), note=why)
 
 
 def published(folder: OutputFolder, staged: Iterable) -> list[Path]:

@@ -21,6 +21,7 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
+    band_limited_record,
     chosen_problem,
     default_params,
     discretisation_given,
@@ -107,7 +108,7 @@ def run(args) -> int:
         compile_in_background()     # the filter kernel, once per installation, beside the set-up
     model = load_model(args.model)
     paths = list(args.data)
-    exps = [load_record(pth, model) for pth in paths]
+    exps = [band_limited_record(load_record(pth, model), model, args) for pth in paths]
     params = (parse_params(args.params, model) if args.params
               else default_params(args.model, model, "estimate"))
     stems = "_".join(Path(pth).stem for pth in paths)

@@ -18,6 +18,7 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
+    band_limited_record,
     discretisation_given,
     load_record,
     parse_names,
@@ -153,6 +154,11 @@ def from_result(graph, path: str, params: str | None):
     return out
 
 
+def _said(msg: str) -> None:
+    """A line of the command's set-up on stdout."""
+    print(f"bondgraph loop: {msg}")
+
+
 def refitted(graph, path: str) -> list[str]:
     """The parameters a loop started ``--from`` a fit re-estimates when no
     ``--params`` is given: those the fit estimated (not its fixed values,
@@ -187,7 +193,7 @@ def run(args) -> int:
         if not args.data:
             raise ModelError("--model needs --data FILE.csv (the measured record)")
         graph = graph_builder(args.model)()
-        record = load_record(args.data, graph)
+        record = band_limited_record(load_record(args.data, graph), graph, args, say=_said)
         params = parse_params(args.params) if args.params else list(graph.params)
         # without --params, a parameter declared without a box is a known
         # value: held where the record cannot tell it from others
@@ -365,7 +371,8 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     fixed = parse_pairs(args.fixed, "--fixed")
     x0 = parse_pairs(args.x0, "--x0")
     states = loop_states(graph, args.estimate_x0) if args.estimate_x0 else base.estimate_x0
-    validation = load_record(args.validate, graph) if args.validate else base.validation
+    validation = (band_limited_record(load_record(args.validate, graph), graph, args, say=_said)
+                  if args.validate else base.validation)
     holdout = args.holdout
     if args.model and not args.validate and holdout is None:
         holdout = DEFAULT_HOLDOUT

@@ -18,6 +18,7 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
+    band_limited_record,
     chosen_problem,
     default_params,
     estimated_states,
@@ -103,7 +104,7 @@ def run(args) -> int:
     at the analysed θ (:func:`bondgraph.cli.common.chosen_problem`), one
     line on stderr saying what and why."""
     model = load_model(args.model)
-    exp = load_record(args.data, model)
+    exp = band_limited_record(load_record(args.data, model), model, args)
     if args.seconds is not None:
         n = int(np.searchsorted(exp.t, exp.t[0] + args.seconds, side="right"))
         if n < 2:

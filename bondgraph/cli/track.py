@@ -20,6 +20,7 @@ from bondgraph.cli.common import (
     add_initial_state,
     add_model,
     add_overwrite,
+    band_limited_record,
     load_record,
     output_folder,
     parse_names,
@@ -178,7 +179,7 @@ def run(args) -> int:
     levels = {k[len("noise."):]: v for k, v in values.items() if k.startswith("noise.")}
     values = {k: v for k, v in values.items() if k in model.params}
     folder = output_folder(args.out, args)
-    exp = load_record(args.data, model)
+    exp = band_limited_record(load_record(args.data, model), model, args)
     problem = problem_from_args(model, exp, args, values=values)
     held, line = bare_levels(problem, levels)
     if held:

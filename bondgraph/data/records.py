@@ -17,7 +17,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -379,6 +379,50 @@ class Experiment:
         meta["segment"] = [int(start), None if stop is None else int(stop)]
         return Experiment(t=t.copy(), columns={k: v[sl].copy() for k, v in self.columns.items()},
                           units=dict(self.units), meta=meta, path=None)
+
+    def on_finer_grid(self, midpoints: Mapping[str, Any], *, linear: Sequence[str] = (),
+                      note: str = "") -> "Experiment":
+        """The record on a grid twice as fine: a point midway between each
+        pair of samples (2N − 1 points). The columns of ``midpoints`` (input
+        values between samples, N − 1 each, file units) take them there;
+        every other column is NaN there (an output, a state or a truth is
+        not known between samples). The inputs in ``linear`` are declared
+        held linearly over the finer intervals (sidecar ``columns.<name>.hold``);
+        ``meta["finer_grid"]`` says why (``note``).
+
+        Raises
+        ------
+        DataError
+            A midpoint column of the wrong length, not finite, or not a
+            column of the record.
+        """
+        n = self.t.size
+        t = np.empty(2 * n - 1)
+        t[::2], t[1::2] = self.t, 0.5 * (self.t[:-1] + self.t[1:])
+        cols = {}
+        for c, v in self.columns.items():
+            out = np.full(2 * n - 1, np.nan)
+            out[::2] = v
+            if c in midpoints:
+                m = np.asarray(midpoints[c], float).reshape(-1)
+                if m.size != n - 1 or not np.isfinite(m).all():
+                    raise DataError(f"on_finer_grid: column '{c}' needs {n - 1} finite "
+                                    f"midpoints, got {m.size}", path=self._where())
+                out[1::2] = m
+            cols[c] = out
+        unknown = sorted(set(midpoints) - set(self.columns))
+        if unknown:
+            raise DataError(f"on_finer_grid: no column(s) {', '.join(unknown)}",
+                            path=self._where())
+        meta = copy.deepcopy(self.meta)
+        if meta.get("dt"):
+            meta["dt"] = float(meta["dt"]) / 2
+        info = meta.setdefault("columns", {})
+        for c in linear:
+            info.setdefault(c, {})["hold"] = "linear"
+        meta["finer_grid"] = {"factor": 2, "interpolated": list(linear), "note": note}
+        meta["name"] = self.name
+        return Experiment(t=t, columns=cols, units=dict(self.units), meta=meta, path=None)
 
     def to_dataframe(self):
         """A pandas DataFrame with ``t`` and every column (headers with units)."""
