@@ -95,12 +95,23 @@ def write_training_csv(path: Path, data_dir: Path | None = None) -> Path:
     return path
 
 
-def test_errors(out: Path) -> dict:
+def test_errors(out: Path, csv: Path) -> dict:
     """Simulation RMS [mV] of the declared and the final fit of a loop run
     (``out``: its report folder) on the arrow and the test multisine (the
-    published protocol; RK4 with 4 steps per sample, V1 held linearly)."""
+    published protocol), V1 between samples as the loop had it on the
+    record ``csv``: interpolated band-limited on a grid twice as fine (RK4,
+    one step per half sample) when the command found it band-limited
+    (:func:`bondgraph.cli.common.band_limited_record`), else held linearly
+    (RK4 with 4 steps per sample)."""
+    from types import SimpleNamespace
+
     from bondgraph.catalog.cases import silverbox_sim_error
+    from bondgraph.cli.common import band_limited_record
+    from bondgraph.data.records import Experiment
     from bondgraph.numerics.model import Model
+    rec = band_limited_record(Experiment.load(csv), silverbox_user(),
+                              SimpleNamespace(hold=None), say=lambda _m: None)
+    upsample, substeps = (2, 1) if rec.meta.get("finer_grid") else (1, 4)
     report = json.loads((out / "report.json").read_text())
     dm = Model.from_graph(silverbox_user())
     fits = [("declared", dm, dm.theta(report["initial_fit"]["estimates"]))]
@@ -110,8 +121,8 @@ def test_errors(out: Path) -> dict:
         spec.loader.exec_module(aug)
         fm = Model.from_graph(aug.build())
         fits.append(("final", fm, fm.theta(aug.ESTIMATES)))
-    return {f"{name} {part} [mV]": silverbox_sim_error(m, th, part, substeps=4, hold="linear",
-                                                        upsample=1)
+    return {f"{name} {part} [mV]": silverbox_sim_error(m, th, part, substeps=substeps,
+                                                        hold="linear", upsample=upsample)
             for name, m, th in fits for part in ("test_arrow", "test_multisine")}
 
 
@@ -135,7 +146,7 @@ def main(argv=None) -> int:
     if rc != 0:
         print(f"bondgraph loop exited with {rc}", file=sys.stderr)
         return rc
-    res = {"loop_s": round(wall, 1), **test_errors(out / "loop")}
+    res = {"loop_s": round(wall, 1), **test_errors(out / "loop", csv)}
     report = json.loads((out / "loop" / "report.json").read_text())
     res["accepted"] = [" + ".join([f"{s['effect']} @ {s['attached_to']}",
                                    *s.get("together_with", [])]) for s in report["steps"]]
