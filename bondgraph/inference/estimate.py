@@ -1120,8 +1120,8 @@ def _on_box(cr: dict, H: np.ndarray, width: np.ndarray, names, held: list[str]) 
     it is positive definite (an active bound: the estimate does not move
     along it, and the difference Hessian there reads the NLL beyond the box,
     where its slope is not zero). Unless :func:`cramer_rao` found
-    conditional bounds already; fills ``cr`` in place and says so in its
-    warning."""
+    conditional bounds already; fills ``cr`` in place, its warning then
+    naming the bound as the cause."""
     if not held or cr.get("conditional_on") or cr["warning"] is None:
         return
     free = np.array([i for i, n in enumerate(names) if n not in held], dtype=int)
@@ -1134,8 +1134,12 @@ def _on_box(cr: dict, H: np.ndarray, width: np.ndarray, names, held: list[str]) 
     cr["cov"][np.ix_(free, free)] = sub["cov"]
     cr["corr"][np.ix_(free, free)] = sub["corr"]
     cr["conditional_on"] = list(held)
-    cr["warning"] += (f"; the Cramér-Rao std of the others are conditional on {', '.join(held)} "
-                      f"held on {'its' if len(held) == 1 else 'their'} bound")
+    names_ = ", ".join(held)
+    its = "its" if len(held) == 1 else "their"
+    cr["warning"] = (f"Hessian of the NLL is not positive definite, and positive definite without "
+                     f"{names_} on {its} bound (the NLL still falls beyond the box there, so its "
+                     f"curvature says nothing of {names_}): the Cramér-Rao std of the others are "
+                     f"conditional on {names_} held on {its} bound")
 
 
 def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
