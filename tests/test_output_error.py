@@ -65,8 +65,10 @@ def test_output_error_fit_errors(record):
 
 
 def test_estimate_cli_fit_sim(record, tmp_path):
-    """`bondgraph estimate --fit sim --estimate-x0 p_mass` writes the same
-    numbers as output_error_fit called directly."""
+    """`bondgraph estimate --fit sim --estimate-x0 p_mass` writes the numbers
+    of output_error_fit called directly with the forward sensitivities
+    (LSODA), to 1e-6: the command runs compiled fixed-step RK4 at 4 times
+    the chosen substeps (cli.estimate.sim_options; 7.5e-9 apart here)."""
     import json
 
     from bondgraph.cli.main import main
@@ -87,7 +89,7 @@ def test_estimate_cli_fit_sim(record, tmp_path):
     r = output_error_fit(m, t, u, y, ["k", "c"], theta=th, x0=np.array([0.0, 0.01]),
                          x0_states=["p_mass"], options=OutputErrorOptions(hold="zoh"))
     for n, v in r.estimates().items():
-        assert d["estimates"][n] == pytest.approx(v, rel=1e-9)
+        assert d["estimates"][n] == pytest.approx(v, rel=1e-6)
     assert d["estimates"]["k"] == pytest.approx(80.0, rel=0.01)
     assert d["estimates"]["x0.p_mass"] == pytest.approx(0.3, abs=0.03)
 
