@@ -144,3 +144,26 @@ def test_estimate_interpolates_a_band_limited_input_by_default(msd_multisine, mo
     lin, err = _fit(d, monkeypatch, capsys, "--hold", "linear")
     assert "twice as fine" not in err
     assert abs(lin["estimates"]["c"] - truth["c"]) > 8 * lin["std"]["c"]
+
+
+def test_the_loop_report_says_the_record_was_filtered_on_a_finer_grid():
+    """diagnose.runner.settings_summary (report.json's settings): the finer
+    grid's note, when the record has one."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.runner import settings_summary
+    from bondgraph.diagnose.settings import LoopSettings
+    from bondgraph.inference.options import UKFOptions
+    from bondgraph.inference.problem import NoiseSpec
+
+    t = np.arange(5) * 0.5
+    rec = Experiment.from_arrays(t, {"F": np.arange(5.0), "x": np.ones(5)},
+                                 roles={"F": "input", "x": "output"}, name="r")
+    fine = rec.on_finer_grid({"F": np.arange(4) + 0.5}, linear=["F"], note="F: band-limited")
+
+    def ctx(record):
+        return SimpleNamespace(settings=LoopSettings(params=["k"]), problem=SimpleNamespace(
+            noise=NoiseSpec("auto"), ukf=UKFOptions(), record=record))
+    assert settings_summary(ctx(fine))["finer_grid"] == {"factor": 2, "interpolated": ["F"],
+                                                         "note": "F: band-limited"}
+    assert "finer_grid" not in settings_summary(ctx(rec))

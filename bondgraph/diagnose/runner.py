@@ -307,11 +307,17 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit,
 def settings_summary(ctx: Context) -> dict:
     """What a report records of the run's options: the search options
     (:meth:`LoopSettings.summary`) with the problem's filter options and
-    noise levels as the loop resolved them."""
+    noise levels as the loop resolved them, and ``finer_grid`` when the
+    record was filtered on a grid twice as fine (a band-limited input,
+    :meth:`~bondgraph.data.records.Experiment.on_finer_grid`)."""
     noise = ctx.problem.noise
-    return {**ctx.settings.summary(), "ukf": ctx.problem.ukf.to_dict(),
-            "noise": noise.mode, "noise_levels": dict(noise.held),
-            "noise_outputs": list(noise.estimated)}
+    out = {**ctx.settings.summary(), "ukf": ctx.problem.ukf.to_dict(),
+           "noise": noise.mode, "noise_levels": dict(noise.held),
+           "noise_outputs": list(noise.estimated)}
+    grid = (getattr(getattr(ctx.problem, "record", None), "meta", None) or {}).get("finer_grid")
+    if grid:
+        out["finer_grid"] = grid
+    return out
 
 
 def _stamped(log: Callable[[str], None], t0: float) -> Callable[[str], None]:
