@@ -544,3 +544,22 @@ def test_track_takes_rk4_where_ros2_does_not_converge(monkeypatch, method_free):
     got = cli_track.tracking_discretisation(pr, None, {}, TrackOptions(), method_free)
     want = ("rk4", 4) if method_free else ("ros2", 128)
     assert (got.ukf.method, got.ukf.substeps) == want
+
+
+def test_the_window_a_parameter_needs_to_be_observable():
+    """cli.track.needed_window: σ₀² Ī W >= 1/ρ − 1 solved for W (hand
+    computed: σ₀ 0.1, Ī 2 per sample, ρ 0.5: W = 1 / (0.01 · 2) = 50
+    samples, 5 s at dt 0.1 s); a record that holds less than that in all
+    says it cannot be tracked from it."""
+    from types import SimpleNamespace
+
+    from bondgraph.cli.track import needed_window
+
+    def res(n):
+        return SimpleNamespace(t=np.arange(n) * 0.1, information=np.full((n, 1), 2.0),
+                               units=["kg"], settings={"sigma0": {"m": 0.1}, "dt": 0.1,
+                                                       "track": {"observable_ratio": 0.5}})
+    assert "observable over windows of about 5 s (--observable-s 5;" in needed_window(
+        res(400), "m", 0)
+    assert "not trackable from this record" in needed_window(res(30), "m", 0)
+    assert needed_window(SimpleNamespace(settings={}, information=None), "m", 0) == ""

@@ -235,7 +235,30 @@ def _observability_line(res, name: str, i: int, most: int = 4) -> str:
     more = f" and {len(st) - most} shorter" if len(st) > most else ""
     return (f"  {'':>16s}  observable {100 * frac:.3g} % of the record; not observable "
             + ", ".join(f"{a:.6g}-{b:.6g} s" for a, b in shown) + more
-            + " (no change detected there)")
+            + " (no change detected there)" + (needed_window(res, name, i) if frac < 0.5 else ""))
+
+
+def needed_window(res, name: str, i: int) -> str:
+    """For a parameter observable in less than half the record: the window
+    over which the record's mean information per sample Ī would make it
+    observable, σ₀² Ī W >= 1/ρ − 1 (:func:`~bondgraph.inference.changes.observable_mask`),
+    W in seconds, with the options that set it; or that the whole record
+    holds less than that. "" when the result does not say σ₀."""
+    s0 = (res.settings.get("sigma0") or {}).get(name)
+    rho = (res.settings.get("track") or {}).get("observable_ratio")
+    dt = res.settings.get("dt")
+    if not s0 or not rho or not dt or res.information is None:
+        return ""
+    mean = float(np.mean(res.information[:, i]))
+    need = 1.0 / rho - 1.0
+    if mean <= 0 or s0 ** 2 * mean * res.t.size < need:
+        return (f"; the whole record holds too little information on it to see a change of "
+                f"{s0:.3g} {res.units[i]} (--prior-rel of its start): not trackable from this "
+                f"record")
+    w = need / (s0 ** 2 * mean) * dt
+    return (f"; at this record's mean information it would be observable over windows of "
+            f"about {w:.2g} s (--observable-s {w:.2g}; changes then need --window of at least "
+            f"that)")
 
 
 #: a record shorter than two GLR windows is cut into this many windows for

@@ -466,12 +466,13 @@ def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = Non
          glr_threshold(opts.false_alarm_hours * 3600.0, dt, window, len(tm.tracked)))
     segs, changes = _segments(tm, (t, u, y), th, (x0, P0), ukf, R, h, window, opts, std)
     res = _stitch(tm, t, segs, changes, h)
-    res.observable = observable_mask(res.information, reference_std(tm, x0, opts),
-                                     obs_window, opts.observable_ratio)
+    sigma0 = reference_std(tm, x0, opts)
+    res.observable = observable_mask(res.information, sigma0, obs_window, opts.observable_ratio)
     if opts.smooth:
         res.smoothed, res.smoothed_std = _smoothed(tm, t, u, th, segs, ukf)
     res.settings = dict(ukf=ukf.to_dict(), track=opts.to_dict(), window=window, dt=dt,
                         theta=dict(zip(tm.model.params, th.tolist())),
+                        sigma0=dict(zip(tm.names, sigma0.tolist())),
                         boxes={tp.name: (tp.lower, tp.upper) for tp in tm.tracked
                                if tp.transform == "logit"})
     return res
