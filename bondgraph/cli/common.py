@@ -16,7 +16,6 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterable
 
-import numpy as np
 
 from bondgraph.core.atomic import OutputFolder, is_empty_dir
 from bondgraph.core.equations import derive
@@ -25,11 +24,8 @@ from bondgraph.data.records import Experiment
 from bondgraph.errors import OptionError
 from bondgraph.inference.discretise import (
     DiscretisationChoice,
-    band_limited_midpoints,
-    band_limits,
     choose_discretisation,
-    declared_holds,
-    input_holds,
+    finer_grid_record,
 )
 from bondgraph.inference.options import (
     DEFAULT_BACKEND,
@@ -408,13 +404,9 @@ def load_record(path, model) -> Experiment:
 def band_limited_record(exp: Experiment, model, args, say=None) -> Experiment:
     """The record a command filters: ``exp``, or, when ``--hold`` is not
     given and an input is band-limited with content where the linear hold
-    misses its values between samples
-    (:func:`~bondgraph.inference.discretise.band_limits`), the record on a
-    grid twice as fine (:meth:`Experiment.on_finer_grid`): those inputs
-    interpolated band-limited between the samples and held linearly over
-    the finer intervals, the other inputs as their own hold has them there
-    (zero-order: the sample before; else the mean of the two), the outputs
-    missing there. One line on ``say`` (default stderr) says so.
+    misses its values between samples, the record on a grid twice as fine
+    (:func:`~bondgraph.inference.discretise.finer_grid_record`). One line
+    on ``say`` (default stderr) says so.
 
     Parameters
     ----------
@@ -426,27 +418,13 @@ def band_limited_record(exp: Experiment, model, args, say=None) -> Experiment:
     """
     if getattr(args, "hold", None) is not None:
         return exp
-    names = [n for n in model.inputs if n in exp.columns]
-    if not names:
-        return exp
-    u = np.column_stack([np.asarray(exp.columns[n], float) for n in names])
-    if not np.isfinite(u).all():
-        return exp
-    holds = input_holds(u, names, declared_holds(exp, names))
-    chosen = [b for b in band_limits(exp.t, u, names, holds) if b.band_limited]
-    if not chosen:
-        return exp
-    fine = {b.name for b in chosen}
-    mids = {}
-    for j, (n, h) in enumerate(zip(names, holds)):
-        col = u[:, j]
-        mids[n] = (band_limited_midpoints(col) if n in fine else col[:-1] if h.hold == "zoh"
-                   else 0.5 * (col[:-1] + col[1:]))
-    why = "; ".join(b.describe() for b in chosen)
-    (say or _stderr)(f"{exp.name}: filtered on a grid twice as fine ({why}): "
-                     f"{', '.join(sorted(fine))} interpolated band-limited between the samples, "
-                     f"the outputs missing there (--hold to keep the sampled grid)")
-    return exp.on_finer_grid(mids, linear=sorted(fine), note=why)
+    fine, why = finer_grid_record(exp, list(model.inputs))
+    if why:
+        (say or _stderr)(f"{exp.name}: filtered on a grid twice as fine ({why}): "
+                         f"{', '.join(fine.meta['finer_grid']['interpolated'])} interpolated "
+                         f"band-limited between the samples, the outputs missing there (--hold "
+                         f"to keep the sampled grid)")
+    return fine
 
 
 def published(folder: OutputFolder, staged: Iterable) -> list[Path]:

@@ -353,6 +353,42 @@ def band_limits(t, u, names: Sequence[str], holds: Sequence[InputHold]) -> list[
     return out
 
 
+def finer_grid_record(exp, inputs: Sequence[str]):
+    """``(record, why)``: ``exp`` and None, or, when an input is band-limited
+    with content where the linear hold misses its values between samples
+    (:func:`band_limits`), the record on a grid twice as fine
+    (:meth:`~bondgraph.data.records.Experiment.on_finer_grid`) and the
+    reason: those inputs interpolated band-limited between the samples
+    (:func:`band_limited_midpoints`) and held linearly over the finer
+    intervals, the other inputs as their own hold has them there
+    (zero-order: the sample before; linear: the mean of the two), the
+    outputs missing there.
+
+    Parameters
+    ----------
+    exp : Experiment
+    inputs : sequence of str
+        The model's inputs (the record's columns of those names are its
+        inputs; the others it lacks or computes, as ``der(r)``).
+    """
+    names = [n for n in inputs if n in exp.columns]
+    if not names:
+        return exp, None
+    u = np.column_stack([np.asarray(exp.columns[n], float) for n in names])
+    if not np.isfinite(u).all():
+        return exp, None
+    holds = input_holds(u, names, declared_holds(exp, names))
+    chosen = [b for b in band_limits(exp.t, u, names, holds) if b.band_limited]
+    if not chosen:
+        return exp, None
+    fine = {b.name for b in chosen}
+    mids = {n: (band_limited_midpoints(u[:, j]) if n in fine else
+                u[:-1, j] if h.hold == "zoh" else 0.5 * (u[:-1, j] + u[1:, j]))
+            for j, (n, h) in enumerate(zip(names, holds))}
+    why = "; ".join(b.describe() for b in chosen)
+    return exp.on_finer_grid(mids, linear=sorted(fine), note=why), why
+
+
 def supported_hold(inputs: Sequence[InputHold]) -> tuple[str, str]:
     """The filter's hold that the evidence supports, and why: each input held
     as its own evidence says.
