@@ -347,3 +347,32 @@ def test_a_simulated_record_declares_how_its_inputs_were_held(tmp_path):
         assert declared_holds(back, m.inputs) == {"F": hold}
     # the shape alone would say linear for this smooth input
     assert input_holds(F[:, None], ["F"])[0].hold == "linear"
+
+
+def test_fit_sim_redoes_a_fit_whose_rk4_step_fails_at_the_estimate(record, capsys,
+                                                                   monkeypatch):
+    """``--fit sim`` runs compiled RK4 at 4 times the chosen substeps and
+    checks the chosen step at the estimate; where it fails there (here made
+    to fail: on this record RK4(1) passes everywhere) the fit is redone with
+    LSODA and the forward sensitivities, one line says so, and the result
+    is that fit's (the truth within 3 std). Where it passes, no line."""
+    from bondgraph.cli import estimate as cli_estimate
+
+    d, _ = record
+    Experiment.load(d / "rec.csv").segment(0, 1000, name="short").save(d / "short.csv")
+
+    def fit(out):
+        assert main(["estimate", "--model", f"{Path(__file__)}:msd_graph", "--data",
+                     str(d / "short.csv"), "--params", "m,k,c", "--fit", "sim", "--out",
+                     str(d / out), "--overwrite", "--quiet"]) == 0
+        return json.loads((d / out / "result.json").read_text()), capsys.readouterr().err
+
+    res, err = fit("sim_rk4")
+    assert "--fit sim:" not in err
+    monkeypatch.setattr(cli_estimate, "check_discretisation", lambda *a, **k: (False, 0.3, 2.0))
+    redone, err = fit("sim_lsoda")
+    assert ("--fit sim: rk4(1), linear hold fails its check at the estimate (0.3 σ per sample, "
+            "free-run bias bound 2 std): refitting with LSODA") in err, err
+    for p in ("m", "k", "c"):
+        assert abs(redone["estimates"][p] - TRUTH[p]) < 3 * redone["std"][p]
+        assert redone["estimates"][p] == pytest.approx(res["estimates"][p], rel=1e-5)

@@ -273,8 +273,12 @@ def run_output_error(args, problem, params, folder, states) -> int:
     of an undeclared one)."""
     model, exp, theta = problem.model, problem.record, problem.theta
     t, u, y = problem.arrays
+    opts = sim_options(problem.disc)
     r = output_error_fit(model, t, u, y, params, theta=theta, x0=problem.x0, x0_states=states,
-                         options=sim_options(problem.disc))
+                         options=opts)
+    if opts.substeps is not None and not _sim_step_holds(problem, params, r):
+        r = output_error_fit(model, t, u, y, params, theta=theta, x0=problem.x0,
+                             x0_states=states, options=OutputErrorOptions(hold=opts.hold))
     noise = _sim_noise_levels(model, exp, r, theta, problem.noise.mode)
     doc = {"model": model.name, "data": str(args.data), "fit": "sim", "names": r.names,
            "estimates": r.estimates(), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,
@@ -301,11 +305,29 @@ def sim_options(disc) -> OutputErrorOptions:
     discretisation is RK4, compiled fixed-step RK4 runs at 4 times its
     substeps with forward-difference Jacobians, as the loop's free runs
     (the forward sensitivities by LSODA took over 15 min on the 65 062
-    Silverbox samples, the compiled runs 1.2 s); else (ROS2: a stiff model)
-    LSODA with the forward sensitivities. The input hold is the filter's."""
+    Silverbox samples, the compiled runs 1.2 s), checked at the estimate
+    (:func:`_sim_step_holds`); else (ROS2: a stiff model) LSODA with the
+    forward sensitivities. The input hold is the filter's."""
     if disc.method == "rk4":
         return OutputErrorOptions(hold=disc.hold, substeps=4 * int(disc.substeps))
     return OutputErrorOptions(hold=disc.hold)
+
+
+def _sim_step_holds(problem, params, r) -> bool:
+    """Does the chosen RK4 step still meet its check (one-step error and
+    free-run bias bound, :func:`check_discretisation`) at the output-error
+    estimate ``r``? The fit's runs took 4 times its substeps, within
+    whenever it is; if not (the estimate moved where the model is faster),
+    one line says that the fit is redone with LSODA."""
+    est = r.estimates()
+    th = problem.model.expand_theta(list(params), np.array([[est[p] for p in params]]),
+                                    problem.theta)[0]
+    ok, now, bound = check_discretisation(problem, th, free_run=True)
+    if not ok:
+        _say(f"--fit sim: {problem.disc.describe()} fails its check at the estimate ({now:.2g} "
+             f"σ per sample, free-run bias bound {bound:.2g} std): refitting with LSODA and "
+             f"the forward sensitivities")
+    return ok
 
 
 def _sim_noise_levels(model, exp, r, theta, mode: str) -> dict:
