@@ -237,3 +237,18 @@ def test_partners_are_screened_only_where_the_current_fit_cannot_simulate(monkey
                           log=lambda msg: None)
     assert runner.partners_of(ctx, current, lead, [], None, "t") == []
     assert seen == [screen]
+
+
+def test_pair_step_shown_with_each_member_at_its_place():
+    """A pair's step row names both effects in the effect column and both
+    places in the attached-to column, in the same order (it read
+    'inductor_saturation + cubic_stiffness @ cap | coil')."""
+    from bondgraph.diagnose.result import Step
+    s = Step("inductor_saturation", "coil", "nrmse", 1.0, 0.5, 0.0, -1.0, 0.0, -2.0, 9.0, 3.0,
+             {}, 10.0, 0.01, together_with=["cubic_stiffness @ cap"],
+             removed=["sensor_gain @ V2"])
+    assert s.shown() == "inductor_saturation + cubic_stiffness (removing sensor_gain @ V2)"
+    assert s.shown_target() == "coil + cap"
+    single = Step("cubic_stiffness", "spring", "nrmse", 1.0, 0.5, 0.0, -1.0, 0.0, -2.0, 9.0,
+                  3.0, {}, 10.0, 0.01)
+    assert (single.shown(), single.shown_target()) == ("cubic_stiffness", "spring")

@@ -170,10 +170,17 @@ class Step:
     removed: list = field(default_factory=list)
 
     def shown(self) -> str:
-        """The effect as the step tables show it: with its pair partners and
-        the effects it removed."""
-        return (self.effect + "".join(f" + {w}" for w in self.together_with)
+        """The effect as the step tables show it: with its pair partners'
+        effects (their places in :meth:`shown_target`) and the effects it
+        removed."""
+        return (self.effect + "".join(f" + {w.split(' @ ')[0]}" for w in self.together_with)
                 + "".join(f" (removing {r})" for r in self.removed))
+
+    def shown_target(self) -> str:
+        """Where the step tables say the effect attached: with its pair
+        partners' places, in the order of :meth:`shown`."""
+        return self.attached_to + "".join(
+            f" + {w.split(' @ ', 1)[1]}" if " @ " in w else "" for w in self.together_with)
 
 
 @dataclass
@@ -432,7 +439,7 @@ class LoopResult:
         for i, s in enumerate(self.steps, 1):
             est = (f" {_num(s.estimation_error_before)} | {_num(s.estimation_error_after)} |"
                    if val else "")
-            rows.append(f"| {i} | {s.shown()} | {s.attached_to} | {s.error_before:.4g} | "
+            rows.append(f"| {i} | {s.shown()} | {s.shown_target()} | {s.error_before:.4g} | "
                         f"{s.error_after:.4g} |{est} {s.nll_before:.1f} | {s.nll_after:.1f} |")
         return "\n".join(rows)
 

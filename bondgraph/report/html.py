@@ -184,7 +184,7 @@ def _summary(result: LoopResult) -> list[str]:
         parts.append(f"<p>No effect accepted: {escape(result.none_accepted())}.</p>")
     else:
         rows = [[str(k), s.shown(),
-                 s.attached_to, _num(s.error_before), _num(s.error_after),
+                 s.shown_target(), _num(s.error_before), _num(s.error_after),
                  _num(s.nll_before, ".1f"), _num(s.nll_after, ".1f"),
                  _num(s.lr, ".1f"), ", ".join(s.tied)]
                 for k, s in enumerate(result.steps, 1)]

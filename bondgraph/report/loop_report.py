@@ -513,7 +513,7 @@ def _md_accepted(result: LoopResult) -> list[str]:
              "NLL after | whiteness before | after |")
     L.append("|---|---|---|---|---|---|---|---|---|")
     for i, s in enumerate(result.steps, 1):
-        L.append(f"| {i} | {s.shown()} | {s.attached_to} | {s.error_before:.4g} | "
+        L.append(f"| {i} | {s.shown()} | {s.shown_target()} | {s.error_before:.4g} | "
                  f"{s.error_after:.4g} | {s.nll_before:.1f} | {s.nll_after:.1f} | "
                  f"{s.whiteness_before:.1f} | {s.whiteness_after:.1f} |")
     for i, s in enumerate(result.steps, 1):
