@@ -329,7 +329,10 @@ def silverbox_sim_error(model, theta, part: str, substeps: int = SILVERBOX_SUBST
     Parameters
     ----------
     model : Model
-        With an output ``V2`` and a parameter ``m``.
+        With an output ``V2`` whose first two states (momentum and
+        displacement, or flux and charge) the initial-state fit sets; the
+        others start at the model's X0. With a parameter ``m`` (a mass), the
+        fit's scales are m·30 and 0.1, else its Jacobian's.
     theta : array (n_theta,)
     part : str
         ``"test_arrow"``, ``"test_multisine"``, ... (:func:`bondgraph.data.datasets.silverbox`).
@@ -357,16 +360,21 @@ def silverbox_sim_error(model, theta, part: str, substeps: int = SILVERBOX_SUBST
     th = np.asarray(theta, float)
     seen = np.isfinite(y)
 
-    def run(x0, n):
+    def run(z, n):
+        x0 = np.array(model.x0, float)
+        x0[:2] = z * scale
         return rk4_outputs(model, t[:n], u[:n, None], th, x0, substeps, hold, backend)[:, iy]
 
-    scale = np.array([th[model.param_index("m")] * 30.0, 0.1])
+    if "m" in model.params:
+        scale = np.array([th[model.param_index("m")] * 30.0, 0.1])
+    else:           # another user's graph (a series RLC): its own scales
+        scale = np.ones(2)
 
     def resid(z):
-        return (run(z * scale, n0) - y[:n0])[seen[:n0]]
+        return (run(z, n0) - y[:n0])[seen[:n0]]
 
-    z = least_squares(resid, np.zeros(2), x_scale=1.0).x
-    e = (run(z * scale, t.size) - y)[n0:][seen[n0:]]
+    z = least_squares(resid, np.zeros(2), x_scale=1.0 if "m" in model.params else "jac").x
+    e = (run(z, t.size) - y)[n0:][seen[n0:]]
     return float(1e3 * np.sqrt(np.mean(e**2)))
 
 

@@ -25,7 +25,8 @@ The families live in submodules: :mod:`~.friction` (friction laws, offset,
 disturbance, Dahl hysteresis), :mod:`~.hysteresis` (the Bouc-Wen element),
 :mod:`~.sources` (gain, offset, saturation,
 dead zone, rate limit, lag, input delay, cold start), :mod:`~.sensors`, :mod:`~.storage`
-(end stops, capacity limit, backlash, cubic stiffness), :mod:`~.laws`
+(end stops, capacity limit, backlash, cubic stiffness in the law or beside it),
+:mod:`~.laws`
 (R-law alternatives), :mod:`~.coupling` (slip, compliance), :mod:`~.probe`
 and :mod:`~.library` (the default list, and the optional effects scored only
 when asked: the cold start).
@@ -99,6 +100,7 @@ from bondgraph.diagnose.effects.sources import (
 from bondgraph.diagnose.effects.storage import (
     Backlash,
     CapacityLimit,
+    CubicRestoring,
     CubicStiffness,
     EndStop,
     InductorSaturation,
@@ -108,7 +110,7 @@ from bondgraph.diagnose.effects.storage import (
 __all__ = [
     "ADDED_BY", "ActuatorDeadZone", "ActuatorGain", "ActuatorSaturation", "AsymmetricFriction",
     "BY_NAME", "Backlash", "BoucWen", "CapacityLimit", "ColdStart", "Compliance", "ConstantEffort", "Coulomb",
-    "CubicStiffness", "DEFAULT_EFFECTS", "DahlFriction", "Disturbance", "Effect", "EffectParam",
+    "CubicRestoring", "CubicStiffness", "DEFAULT_EFFECTS", "DahlFriction", "Disturbance", "Effect", "EffectParam",
     "InductorSaturation",
     "EndStop", "InputDelay", "OPTIONAL_EFFECTS", "ProbeColumn", "QuadraticDrag", "RCubic", "RQuadratic",
     "RSquareRoot", "Scales", "SensorGain", "SensorLowPass", "SensorOffset", "SensorPolynomial2",

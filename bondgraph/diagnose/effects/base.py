@@ -345,8 +345,9 @@ class Effect:
         """Where the probe adds Σ β_k b_k: ``("junction", name)`` (an effort
         on a 1-junction), ``("sensor", name)`` (added to the measurement),
         ``("source", name)`` (added to a source's value), ``("resistor",
-        name)`` (added to an R's law in its causal form) or ``("storage",
-        name)`` (added to a C's effort law)."""
+        name)`` (added to an R's law in its causal form), ``("storage",
+        name)`` (added to a C's effort law) or ``("beside", name)`` (an
+        effort on a 1-junction spliced into the C's bond)."""
         if self.target_kind in ("junction", "sensor", "resistor", "storage"):
             return (self.target_kind, target.name)
         if hasattr(self, "probe_junction"):  # effects written before probe sites

@@ -42,6 +42,7 @@ from bondgraph.diagnose.effects.sources import (
 from bondgraph.diagnose.effects.storage import (
     Backlash,
     CapacityLimit,
+    CubicRestoring,
     CubicStiffness,
     EndStop,
     InductorSaturation,
@@ -63,6 +64,9 @@ DEFAULT_EFFECTS: tuple[Effect, ...] = (
     # warm-up only when asked; a record that starts warm gives it LR ~0, and
     # where it fits only a start transient the held-out error refuses it
     ColdStart(),
+    # a user's Silverbox declared as a series RLC circuit reads the output
+    # as the capacitor's voltage: the cubic beside the C, not in its law
+    CubicRestoring(),
 )
 
 #: effects of the library that the loop scores only when asked

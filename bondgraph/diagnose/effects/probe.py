@@ -10,7 +10,9 @@ terms Σ β_k b_k of all effects at one site are installed together:
 * ``resistor``: added to the R's law in its causal form
   (:func:`bondgraph.diagnose.effects.laws.add_to_r_law`);
 * ``storage``: added to the C's effort law (an I's flow law), its integral
-  to the energy.
+  to the energy;
+* ``beside``: a modulated effort source on a 1-junction spliced into a C's
+  bond (:func:`bondgraph.diagnose.effects.storage.install_beside`).
 """
 
 from __future__ import annotations
@@ -22,7 +24,11 @@ import sympy as sp
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.effects.base import Scales, Target
 from bondgraph.diagnose.effects.laws import add_to_r_law
-from bondgraph.diagnose.effects.storage import add_to_storage_law, storage_variable
+from bondgraph.diagnose.effects.storage import (
+    add_to_storage_law,
+    install_beside,
+    storage_variable,
+)
 from bondgraph.errors import GraphError
 
 
@@ -100,5 +106,7 @@ def install_probe(g: BondGraph, kind: str, name: str, term: sp.Expr) -> None:
     elif kind == "storage":
         el = g.element(name)
         add_to_storage_law(el, term, sp.integrate(term, storage_variable(el)))
+    elif kind == "beside":
+        install_beside(g, g.element(name), f"probe.{name}.beside", term)
     else:
         raise GraphError(f"unknown probe site kind '{kind}' (of '{name}')")

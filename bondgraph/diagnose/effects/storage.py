@@ -11,6 +11,11 @@ storage limits and alternatives of its constitutive law.
   (k3 < 0) term of the law, e = k q + k3 q³, with its energy k3 q⁴/4
   (additive: probe-able at k3 = 0).
 
+* :class:`CubicRestoring` — the same cubic effort k3·q³ on a C's
+  displacement, acting beside the element (a nonlinear spring in parallel, a
+  cubic feedback of an analogue circuit) where a sensor reads the C's
+  effort: the sensor keeps reading the declared law (additive).
+
 And of an I element of the electrical domain (an inductor):
 
 * :class:`InductorSaturation` — the iron core's saturation, the cubic term
@@ -259,6 +264,84 @@ class CubicStiffness(Effect):
         m = scales.get("storage_max", target.name)
         k = _k_default(graph.element(target.name))
         return {"k3": (0.05 * k / m**2, 0.3 * k / m**2)}
+
+
+class CubicRestoring(Effect):
+    """A cubic restoring effort k3·q³ on the displacement q of a C element
+    whose effort a sensor reads, acting *beside* the element: on a
+    1-junction spliced into the C's bond (the C's flow, so the same
+    displacement), as a modulated effort source −k3·q³, so the effort
+    balance sees k q + k3 q³ while the sensor still reads the C's own law.
+
+    Why beside: :class:`CubicStiffness` writes the term into the C's law,
+    and a sensor that reads the C's effort (a capacitor's voltage, a tank's
+    pressure, a load cell on the spring) then reads it too. Which is right
+    is physics the record has to decide: a nonlinear capacitor or a tank
+    whose cross-section changes with the level changes the reading; a
+    nonlinear spring in parallel with a measured one, or the cubic feedback
+    of an electronic Duffing oscillator whose output voltage is the
+    capacitor's (the Silverbox declared as a series RLC circuit), does not.
+    Where no sensor reads the C's effort the two are the same model, so this
+    effect attaches only where one does (:func:`measured_storage_targets`).
+
+    Hardening only (k3 >= 0): the term's energy k3 q⁴/4 is then convex and
+    the model passive whatever the C's law; the loop's admissibility check
+    does not see a modulated source. Additive: probe-able at k3 = 0 on the
+    spliced junction (probe site ``beside``).
+
+    References
+    ----------
+    Duffing (1918); Karnopp, Margolis & Rosenberg, *System Dynamics*, 5th ed.,
+    §4.2 (C elements in parallel on a 1-junction share the displacement).
+    """
+
+    name = "cubic_restoring"
+    title = "cubic restoring effort beside a measured C"
+    target_kind = "storage"
+    additive = True
+    params = (EffectParam("k3", "{effort}/{q}^3", "cubic restoring coefficient",
+                          nonnegative=True),)
+
+    def targets(self, graph):
+        return measured_storage_targets(graph)
+
+    def probe_site(self, graph, target):
+        return ("beside", target.name)
+
+    def apply(self, graph, target, values=None, scales=None):
+        el = graph.element(target.name)
+        eu, _ = element_units(graph, el)
+        k3 = _new_param(graph, self.pname(target, "k3"), dict(values or {}).get("k3", 0.0),
+                        fill_unit("{effort}/{q}^3", effort=eu, q=storage_unit(graph, el)),
+                        (0.0, 1e15), f"cubic restoring effort beside {target.name}")
+        install_beside(graph, el, f"{self.name}.{target.tag}", -k3 * el.q**3)
+        return {"k3": k3}
+
+    def basis(self, graph, target, scales):
+        return [-graph.element(target.name).q ** 3]
+
+    def box(self, graph, target, scales):
+        return CubicStiffness().box(graph, target, scales)
+
+
+def measured_storage_targets(graph: BondGraph) -> list:
+    """The C elements (:func:`storage_targets`) whose own effort ``.e`` a
+    sensor expression holds. A sensor on the common effort of a 0-junction
+    the C sits on is not one: the effort beside the C is in series with it,
+    so that sensor reads the sum, as it reads :class:`CubicStiffness`."""
+    read = set()
+    for s in graph.sensors.values():
+        read |= set(getattr(s.expr, "free_symbols", ()))
+    return [t for t in storage_targets(graph) if graph.element(t.name).e in read]
+
+
+def install_beside(graph: BondGraph, el: C, name: str, effort: sp.Expr) -> None:
+    """A modulated effort source of value ``effort`` on a 1-junction
+    spliced into C element ``el``'s bond (``name``.j; the MSe ``name``),
+    its sign taken with the bond's power direction so that ``-effort``
+    adds to the effort the C's side of the junction presents."""
+    j = split_bond(graph, el.port.bond, "1", f"{name}.j")
+    graph.connect(graph.MSe(name, el.port.bond.sign_at(el) * effort), j)
 
 
 def add_to_storage_law(el: C | I, term: sp.Expr, energy: sp.Expr) -> None:
