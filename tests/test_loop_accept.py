@@ -418,6 +418,11 @@ def test_a_fit_names_the_parameters_the_record_does_not_identify_apart():
     f = fit_model(ctx, g, ["m", "k", "c", "c2"], None, "declared")
     assert sorted(f.flat) == ["c", "c2"] and sorted(f.summary().flat) == ["c", "c2"]
     assert any("does not identify c" in s and "separately" in s for s in logs)
+    # a refit in the same loop (a candidate's confirmation) does not say it again
+    n = len([s for s in logs if "does not identify" in s])
+    again = fit_model(ctx, g, ["m", "k", "c", "c2"], None, "confirming x")
+    assert sorted(again.flat) == ["c", "c2"]
+    assert n == 1 and len([s for s in logs if "does not identify" in s]) == 1
     one = fit_model(Context.on(exp, LoopSettings(params=["m", "k", "c"]),
                                model_of(mass_spring_damper()), lambda s: None, False),
                     mass_spring_damper(), ["m", "k", "c"], None, "one damper")

@@ -510,17 +510,22 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
             problem, theta, idx, (lo, hi), iters, log_scale=scale, tolerance=tolerance,
             states=states, noises=noises)
         names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]
+        # each set of parameters said once per loop: every refit of a
+        # candidate repeats the declared fit's (a user's series RLC whose
+        # record tells only L·C: 12 lines "does not identify L, Cc")
         if flat:
-            ctx.log(f"  {what}: converged in the directions the record identifies; the "
-                    f"likelihood is flat along {', '.join(flat)} together (gaining < "
-                    f"{FLAT_GAIN:g} nats per iteration): not identified by this record")
+            ctx.log_once(f"flat:{sorted(flat)}",
+                         f"  {what}: converged in the directions the record identifies; the "
+                         f"likelihood is flat along {', '.join(flat)} together (gaining < "
+                         f"{FLAT_GAIN:g} nats per iteration): not identified by this record")
         else:
             flat = unidentified(F, names)
             if flat:
-                ctx.log(f"  {what}: the record does not identify {', '.join(flat)} "
-                        f"separately (the Fisher information is flat along a combination "
-                        f"of them: collinearity index > 100); fix one, or use a record "
-                        f"that excites them apart")
+                ctx.log_once(f"unidentified:{sorted(flat)}",
+                             f"  {what}: the record does not identify {', '.join(flat)} "
+                             f"separately (the Fisher information is flat along a "
+                             f"combination of them: collinearity index > 100); fix one, or "
+                             f"use a record that excites them apart")
         return (theta, cr_std(F, names), (conv, used, flat),
                 {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
