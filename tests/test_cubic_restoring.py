@@ -10,6 +10,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from bondgraph import BondGraph
+from bondgraph.catalog.reference import hydraulic_tanks, mass_spring_damper, thermal_two_node
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.effects import (
     CubicRestoring,
@@ -77,11 +78,21 @@ def record(seed: int) -> Experiment:
 def test_it_attaches_where_a_sensor_reads_the_c_effort_and_leaves_the_reading():
     """Targets: the capacitor when V2 reads its effort, none when V2 is
     written from its charge (the law's cubic then leaves V2 alone: the same
-    model as cubic_stiffness). Applied with k3: dλ/dt = V − R λ/L − q/C −
+    model as cubic_stiffness); on a spring a load cell reads, not on a
+    thermal or hydraulic C whose effort is measured. Applied with k3: dλ/dt = V − R λ/L − q/C −
     k3 q³ and V2 = q/C, by hand; the probe at β = k3 gives the same f and h."""
     eff = CubicRestoring()
     assert eff.targets(series_rlc("e")) == [Target("storage", "cap")]
     assert eff.targets(series_rlc("q")) == []
+    # a load cell on a spring: yes; a measured temperature or tank pressure:
+    # no (no such series element in those domains: their law's cubic)
+    msd = mass_spring_damper()
+    msd.sensor("force", msd.element("spring").e, unit="N")
+    assert eff.targets(msd) == [Target("storage", "spring")]
+    for g in (thermal_two_node(), hydraulic_tanks()):
+        c = CubicStiffness().targets(g)[0].name
+        g.sensor("its_effort", g.element(c).e)
+        assert eff.targets(g) == []
     g = series_rlc()
     eff.apply(g, Target("storage", "cap"), {"k3": K3})
     m = model_of(g)

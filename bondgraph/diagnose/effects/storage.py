@@ -44,6 +44,7 @@ from bondgraph.diagnose.effects.base import (
     Effect,
     EffectParam,
     Scales,
+    _electrical,
     _new_param,
     _Structural,
     default_value,
@@ -326,13 +327,25 @@ class CubicRestoring(Effect):
 
 def measured_storage_targets(graph: BondGraph) -> list:
     """The C elements (:func:`storage_targets`) whose own effort ``.e`` a
-    sensor expression holds. A sensor on the common effort of a 0-junction
-    the C sits on is not one: the effort beside the C is in series with it,
-    so that sensor reads the sum, as it reads :class:`CubicStiffness`."""
+    sensor expression holds, in a mechanical or electrical domain or one
+    whose units the graph does not say. A sensor on the common effort of a
+    0-junction the C sits on is not one: the effort beside the C is in
+    series with it, so that sensor reads the sum, as it reads
+    :class:`CubicStiffness`. Not in a thermal or hydraulic graph: a
+    temperature or pressure in series with a heat capacity or a tank that
+    depends on its stored heat or volume is no element of those domains (a
+    heat capacity that changes with temperature, a tank whose section
+    changes with the level, is the law's cubic, which the sensor reads)."""
     read = set()
     for s in graph.sensors.values():
         read |= set(getattr(s.expr, "free_symbols", ()))
-    return [t for t in storage_targets(graph) if graph.element(t.name).e in read]
+    out = []
+    for t in storage_targets(graph):
+        el = graph.element(t.name)
+        fu = element_units(graph, el)[1]
+        if el.e in read and (not fu or mechanical(fu) or _electrical(graph, el)):
+            out.append(t)
+    return out
 
 
 def install_beside(graph: BondGraph, el: C, name: str, effort: sp.Expr) -> None:
