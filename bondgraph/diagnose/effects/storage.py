@@ -326,8 +326,8 @@ class CubicRestoring(Effect):
 
 
 def measured_storage_targets(graph: BondGraph) -> list:
-    """The C elements (:func:`storage_targets`) whose own effort ``.e`` a
-    sensor expression holds, in a mechanical or electrical domain or one
+    """The C elements in integral causality (:func:`state_storage_targets`)
+    whose own effort ``.e`` a sensor expression holds, in a mechanical or electrical domain or one
     whose units the graph does not say. A sensor on the common effort of a
     0-junction the C sits on is not one: the effort beside the C is in
     series with it, so that sensor reads the sum, as it reads
@@ -340,7 +340,7 @@ def measured_storage_targets(graph: BondGraph) -> list:
     for s in graph.sensors.values():
         read |= set(getattr(s.expr, "free_symbols", ()))
     out = []
-    for t in storage_targets(graph):
+    for t in state_storage_targets(graph):      # the term is written in the state q
         el = graph.element(t.name)
         fu = element_units(graph, el)[1]
         if el.e in read and (not fu or mechanical(fu) or _electrical(graph, el)):
