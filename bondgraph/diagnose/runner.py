@@ -1452,18 +1452,22 @@ def confirm_in_rounds(ctx: Context, result: LoopResult, current: Fit, signif: li
     (:func:`within_reach`) are confirmed in that round; they count against
     the step's ``confirm_top`` x ``confirm_rounds`` refits, so a step
     confirms no more candidates than before (each confirmation is one more
-    chance of a look-alike passing). Returns the accepted fit, or None."""
+    chance of a look-alike passing). When a round's refits reorder its
+    scores (:func:`reordered`), the next round is confirmed before any
+    decision and the decision takes the best refit of both
+    (:func:`merged_confirmations`). Returns the accepted fit, or None."""
     s = ctx.settings
     todo = sorted(signif, key=lambda c: c.rank_key)
     per = s.search.confirm_top
     budget = per * s.search.confirm_rounds      # refits of the step, reach included
+    held: list = []         # confirmed in earlier rounds whose refits reordered the scores
     for r in range(s.search.confirm_rounds):
         n = min(per, budget)
         batch, todo = todo[:n], todo[n:]
         if not batch:
             break
         budget -= len(batch)
-        if r:
+        if r and not held:
             ctx.log(f"  none of the confirmed candidates passed the accept rule: confirming the "
                     f"next {len(batch)} (round {r + 1} of at most {s.search.confirm_rounds})")
         confirmed = confirm_best(ctx, current, batch, scales, name)
@@ -1478,11 +1482,67 @@ def confirm_in_rounds(ctx: Context, result: LoopResult, current: Fit, signif: li
             confirmed = confirm_best(ctx, current, batch + near, scales, name,
                                      top=len(batch) + len(near),
                                      quiet={c.label for c in batch})
+        lead = reordered(confirmed, batch + near)
+        if lead is not None and todo and budget > 0 and r + 1 < s.search.confirm_rounds:
+            ctx.log(f"  the refits reorder the scores ({lead}): on this record a score is a "
+                    f"loose guide to its refit; confirming the next {min(per, budget)} before "
+                    f"deciding")
+            held += confirmed
+            continue
+        if held:
+            confirmed = merged_confirmations(ctx, held + confirmed)
+            held = []
         after = accept_best(ctx, result, current, confirmed,
                             step, pairing=(scales, name) if s.accept.pairs else None)
         if after is not None:
             return after
     return None
+
+
+#: the refits reorder the scores when the best refit's likelihood ratio (less
+#: 2k) exceeds that of the best-scored candidate's refit by more than this
+#: fraction of the latter
+REORDER = 0.1
+
+
+def reordered(confirmed: list, batch: list[Candidate]) -> str | None:
+    """What says that the refits of a round (``confirmed``, (candidate,
+    refit) pairs best first, :func:`confirm_best`) reorder the scores of the
+    round's candidates ``batch``: the best refit is not the best-scored
+    candidate's and its likelihood ratio less 2k exceeds that one's by more
+    than :data:`REORDER` (a label line), else None. Scores are local: where
+    the declared fit leaves a large model error and no process noise, a
+    candidate's refit can move the declared parameters far (a damping that
+    made up for a missing friction returns), and the score ranks it low (a
+    user's four-mass chain: the true Coulomb friction scored sixth, 0.94e6,
+    its refit reached 5.38e6 while the round's best refit, a Stribeck term
+    scored third, reached 2.80e6 and a sensor gain scored first 2.46e6)."""
+    done = [(c, c.confirmed_statistic - 2 * c.dof) for c, _ in confirmed
+            if c.confirmed_statistic is not None]
+    if len(done) < 2:
+        return None
+    top = min((c for c, _ in done), key=lambda c: c.rank_key)
+    best, lr_best = done[0]
+    lr_top = dict((id(c), v) for c, v in done)[id(top)]
+    if best is top or lr_best <= (1 + REORDER) * max(lr_top, 0.0):
+        return None
+    order = sorted(batch, key=lambda c: c.rank_key)
+    return (f"{best.label}, scored {1 + order.index(best)}, refits best: LR "
+            f"{best.confirmed_statistic:.4g} against {top.confirmed_statistic:.4g} for "
+            f"{top.label}, scored {1 + order.index(top)}")
+
+
+def merged_confirmations(ctx: Context, confirmed: list) -> list:
+    """(candidate, refit) pairs of several rounds best first
+    (:func:`~bondgraph.diagnose.accept.rank_confirmed`), ties with the new
+    lead marked (:func:`~bondgraph.diagnose.accept.mark_ties`)."""
+    ranked = rank_confirmed([(c.confirmed_statistic - 2 * c.dof, c, r) for c, r in confirmed])
+    tied = mark_ties([(c, r.fit, len(r.new_params)) for _, c, r in ranked],
+                     ctx.settings.accept.tie_level)
+    if tied:
+        ctx.log(f"  the record cannot tell {ranked[0][1].label} from {', '.join(tied)} "
+                f"(Vuong's test, p >= {ctx.settings.accept.tie_level:g}): reported as tied")
+    return [(c, r) for _, c, r in ranked]
 
 
 #: an unconfirmed candidate whose statistic (less 2k) reaches this fraction of
