@@ -191,6 +191,12 @@ def test_bad_sidecars(tmp_path):
     with pytest.raises(DataError, match="sidecar format is 'other/2'") as ei:
         Experiment.load(p)
     assert ei.value.path.endswith("rec.json")
+    # no format at all (a user's {"noise_std": {...}}): how a sidecar begins,
+    # and where the misplaced key goes
+    p.with_suffix(".json").write_text('{"noise_std": {"x1": 0.0002}}')
+    with pytest.raises(DataError, match='no "format": "bondgraph-experiment/1" entry') as ei:
+        Experiment.load(p)
+    assert "top-level 'noise_std' belong(s) to a column" in str(ei.value)
     p.with_suffix(".json").write_text('{"format": ')
     with pytest.raises(DataError, match="invalid JSON"):
         Experiment.load(p)

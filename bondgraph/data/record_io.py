@@ -554,6 +554,14 @@ def _read_sidecar(csv_path: Path) -> dict[str, Any]:
     if not isinstance(meta, dict):
         raise DataError("the sidecar must hold a JSON object", path=str(side))
     fmt = meta.get("format")
+    if fmt is None:
+        misplaced = [k for k in ("noise_std", "hold", "unit", "role") if k in meta]
+        raise DataError(
+            f"the sidecar has no \"format\": \"{FORMAT}\" entry; a record's sidecar begins "
+            f"{{\"format\": \"{FORMAT}\", \"columns\": {{\"<column>\": {{\"unit\": ..., "
+            f"\"role\": ..., \"noise_std\": ...}}}}}} (docs/data_format.md)"
+            + (f"; its top-level {', '.join(repr(k) for k in misplaced)} belong(s) to a column"
+               if misplaced else ""), path=str(side))
     if fmt != FORMAT:
         raise DataError(f"sidecar format is {fmt!r}, expected '{FORMAT}'", path=str(side))
     check_sidecar_types(meta, str(side))
