@@ -24,6 +24,7 @@ from bondgraph.diagnose.fit import model_of
 from bondgraph.diagnose.runner import run_loop
 from bondgraph.diagnose.settings import FreeRunOptions, LoopSettings, SearchOptions
 from bondgraph.inference.options import UKFOptions
+from test_inductor_saturation import voltage_steps
 
 #: the truth: 10 mH, 2 Ω, 100 µF (159 Hz, damping ratio 0.1), the cubic
 #: 2e9 V/C³ (a fifth of q/C at 1 mC)
@@ -53,12 +54,7 @@ def record(seed: int) -> Experiment:
     """Voltage steps of ±12, ±6, 0 V held 4-20 ms; LSODA (rtol 1e-10) from
     the hand-written equations, interval by interval; N(0, 0.05 V) noise."""
     rng = np.random.default_rng(seed)
-    V = np.zeros(N)
-    k = 0
-    while k < N:
-        m = int(rng.integers(40, 200))
-        V[k:k + m] = rng.choice([-12.0, -6.0, 0.0, 6.0, 12.0])
-        k += m
+    V = voltage_steps(rng, N)
 
     def f(_, x, v):
         lam, q = x

@@ -1533,9 +1533,10 @@ def reordered(confirmed: list, batch: list[Candidate]) -> str | None:
 
 
 def merged_confirmations(ctx: Context, confirmed: list) -> list:
-    """(candidate, refit) pairs of several rounds best first
-    (:func:`~bondgraph.diagnose.accept.rank_confirmed`), ties with the new
-    lead marked (:func:`~bondgraph.diagnose.accept.mark_ties`)."""
+    """(candidate, refit) pairs (of one round, or of several) best first
+    (:func:`~bondgraph.diagnose.accept.rank_confirmed`), the candidates the
+    record cannot tell from the lead marked and logged
+    (:func:`~bondgraph.diagnose.accept.mark_ties`)."""
     ranked = rank_confirmed([(c.confirmed_statistic - 2 * c.dof, c, r) for c, r in confirmed])
     tied = mark_ties([(c, r.fit, len(r.new_params)) for _, c, r in ranked],
                      ctx.settings.accept.tie_level)
@@ -1637,7 +1638,7 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
         c.confirmed = confirmed_record(current, r.fit, len(r.new_params), r.values,
                                          ctx.settings.accept)
         c.confirmed["comparable"] = r.comparable
-        confirmed.append((c.confirmed_statistic - 2 * c.dof, c, r))
+        confirmed.append((c, r))
         if c.label in (quiet or ()):
             continue
         how = ("converged" if r.fit.converged else
@@ -1645,13 +1646,7 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
         ctx.log(f"  confirmed {c.label}: LR {c.confirmed_statistic:.1f} "
                 f"(score test {c.statistic:.1f}), values {r.values} ({how}, "
                 f"{r.fit.iterations} iterations)")
-    confirmed = rank_confirmed(confirmed)
-    tied = mark_ties([(c, r.fit, len(r.new_params)) for _, c, r in confirmed],
-                     ctx.settings.accept.tie_level)
-    if tied:
-        ctx.log(f"  the record cannot tell {confirmed[0][1].label} from {', '.join(tied)} "
-                f"(Vuong's test, p >= {ctx.settings.accept.tie_level:g}): reported as tied")
-    return [(c, r) for _, c, r in confirmed]
+    return merged_confirmations(ctx, confirmed)
 
 
 def _confirm_task(ctx: Context, shared, cand: Candidate) -> Confirmation | None:
