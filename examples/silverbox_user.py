@@ -18,8 +18,10 @@ published protocol (:func:`bondgraph.catalog.cases.silverbox_sim_error`).
 
 Usage::
 
-    .venv/bin/python examples/silverbox_user.py --out sb_user   # writes sb_user/train.csv, runs the loop
-    .venv/bin/python examples/silverbox_user.py --out sb_rlc --graph rlc   # the series-RLC graph
+    # writes sb_user/train.csv, runs the loop
+    .venv/bin/python examples/silverbox_user.py --out sb_user
+    # the same with the series-RLC graph
+    .venv/bin/python examples/silverbox_user.py --out sb_rlc --graph rlc
 """
 
 from __future__ import annotations

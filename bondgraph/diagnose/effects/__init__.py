@@ -110,7 +110,8 @@ from bondgraph.diagnose.effects.storage import (
 __all__ = [
     "ADDED_BY", "ActuatorDeadZone", "ActuatorGain", "ActuatorSaturation", "AsymmetricFriction",
     "BY_NAME", "Backlash", "BoucWen", "CapacityLimit", "ColdStart", "Compliance", "ConstantEffort", "Coulomb",
-    "CubicRestoring", "CubicStiffness", "DEFAULT_EFFECTS", "DahlFriction", "Disturbance", "Effect", "EffectParam",
+    "CubicRestoring", "CubicStiffness", "DEFAULT_EFFECTS", "DahlFriction", "Disturbance", "Effect",
+    "EffectParam",
     "InductorSaturation",
     "EndStop", "InputDelay", "OPTIONAL_EFFECTS", "ProbeColumn", "QuadraticDrag", "RCubic", "RQuadratic",
     "RSquareRoot", "Scales", "SensorGain", "SensorLowPass", "SensorOffset", "SensorPolynomial2",
