@@ -45,6 +45,7 @@ from bondgraph.diagnose.effects.base import (
     EffectParam,
     Scales,
     _electrical,
+    _in_integral_causality,
     _new_param,
     _Structural,
     default_value,
@@ -340,12 +341,14 @@ def measured_storage_targets(graph: BondGraph) -> list:
     for s in graph.sensors.values():
         read |= set(getattr(s.expr, "free_symbols", ()))
     out = []
-    for t in state_storage_targets(graph):      # the term is written in the state q
+    for t in storage_targets(graph):
         el = graph.element(t.name)
         fu = element_units(graph, el)[1]
         if el.e in read and (not fu or mechanical(fu) or _electrical(graph, el)):
             out.append(t)
-    return out
+    # the term is written in the state q: integral causality only (SCAP is
+    # run only for a graph that has such a C)
+    return _in_integral_causality(graph, out) if out else []
 
 
 def install_beside(graph: BondGraph, el: C, name: str, effort: sp.Expr) -> None:
