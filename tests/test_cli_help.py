@@ -32,3 +32,25 @@ def test_full_parser_holds_every_command():
     sub = full_parser()._subparsers._group_actions[0]
     assert list(sub.choices) == list(COMMANDS)
     assert sub.choices["loop"].epilog.startswith("example: bondgraph loop")
+
+
+@pytest.mark.parametrize("cmd, option, fix", [
+    ("loop", "--data", "--validate FILE"), ("loop", "--validate", "one held-out record"),
+    ("sensitivity", "--data", "bondgraph estimate --data A --data B"),
+    ("track", "--data", "--from")])
+def test_a_one_record_option_given_twice_is_refused_not_dropped(cmd, option, fix, capsys):
+    # argparse keeps the last of a repeated option: a record would be dropped silently
+    base = ["--model", "m"] + (["--track", "c", "--out", "o"] if cmd == "track" else [])
+    if option == "--validate":
+        base += ["--data", "r.csv"]
+    args = command_parser(cmd).parse_args(base + [option, "a.csv"])   # once is fine
+    assert getattr(args, option[2:]) == "a.csv"
+    assert main([cmd, *base, option, "a.csv", option, "b.csv"]) == 2
+    err = capsys.readouterr().err
+    assert f"argument {option}: given twice ('a.csv' and 'b.csv')" in err and fix in err
+
+
+def test_estimate_takes_several_records():
+    args = command_parser("estimate").parse_args(
+        ["--model", "m", "--data", "a.csv", "--data", "b.csv"])
+    assert args.data == ["a.csv", "b.csv"]

@@ -188,16 +188,41 @@ def merged_model(args: argparse.Namespace) -> str | None:
     return None
 
 
+class Once(argparse.Action):
+    """An option given at most once: a second occurrence is refused with
+    ``remedy`` (argparse's default keeps the last one silently, so
+    ``--data a.csv --data b.csv`` would drop a record without a word)."""
+
+    def __init__(self, option_strings, dest, remedy: str = "", **kwargs):
+        self.remedy = remedy
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        seen = getattr(namespace, "_once_seen", set())
+        if self.dest in seen:
+            raise argparse.ArgumentError(
+                self, f"given twice ({getattr(namespace, self.dest)!r} and {values!r}); this "
+                      f"command takes one" + (f": {self.remedy}" if self.remedy else ""))
+        namespace._once_seen = seen | {self.dest}
+        setattr(namespace, self.dest, values)
+
+
+#: what a command that takes one record says to a second ``--data``
+ONE_RECORD = ("run it once per record (`bondgraph estimate --data A --data B` fits one "
+              "parameter set to several records)")
+
+
 def add_data(p: argparse.ArgumentParser, *, required: bool = True,
-             several: bool = False) -> None:
-    """``--data``: the record (``several``: repeatable, a list of records)."""
+             several: bool = False, remedy: str = ONE_RECORD) -> None:
+    """``--data``: the record (``several``: repeatable, a list of records;
+    else a second ``--data`` is refused with ``remedy``, :class:`Once`)."""
     if several:
         p.add_argument("--data", required=required, action="append", metavar="DATA",
                        help="record CSV with optional JSON sidecar (docs/data_format.md); "
                             "repeat for several records of the same system: one parameter "
                             "set fitted to all, each record its own initial state")
         return
-    p.add_argument("--data", required=required,
+    p.add_argument("--data", required=required, action=Once, remedy=remedy,
                    help="record CSV with optional JSON sidecar (docs/data_format.md)")
 
 

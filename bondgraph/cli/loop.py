@@ -13,6 +13,7 @@ from types import SimpleNamespace
 
 from bondgraph.cli.common import (
     MODEL_HELP,
+    Once,
     add_discretisation,
     add_estimation_scope,
     add_overwrite,
@@ -52,6 +53,11 @@ DEFAULT_CASE = "vehicle_aero"
 DEFAULT_OUT = "bondgraph-report"
 
 
+#: what ``bondgraph loop`` says to a second ``--data``
+ONE_RECORD = ("the loop fits one record; give another as the held-out --validate FILE, or fit "
+              "several with `bondgraph estimate --data A --data B` and start the loop from its "
+              "result with --from result.json")
+
 #: the example line of ``bondgraph loop --help``
 EXAMPLE = "bondgraph loop --model door.py:door --data door_push.csv --params J,k,c --out door-report"
 
@@ -62,7 +68,8 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help=f"bundled case (`--case list` lists them; default {DEFAULT_CASE} when "
                         f"no --model is given)")
     p.add_argument("--model", help=MODEL_HELP)
-    p.add_argument("--data", help="record (CSV in the experiment format, see docs/data_format.md)")
+    p.add_argument("--data", action=Once, remedy=ONE_RECORD,
+                   help="record (CSV in the experiment format, see docs/data_format.md)")
     p.add_argument("--params", help="comma-separated parameters to estimate (default: the "
                                     "case's, or all parameters of the model; one declared "
                                     "without a box is then held at its value where the "
@@ -85,7 +92,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--significance", type=float, default=None)
     p.add_argument("--no-structural", action="store_true",
                    help="score only additive effects (faster)")
-    p.add_argument("--validate", default=None, metavar="FILE",
+    p.add_argument("--validate", default=None, metavar="FILE", action=Once,
+                   remedy="the loop judges on one held-out record",
                    help="held-out record (CSV): the accept decision and the report's error "
                         "before/after use the free-run error on it")
     p.add_argument("--holdout", type=float, default=None, metavar="FRACTION",

@@ -47,7 +47,9 @@ EXAMPLE = "bondgraph track --model mass_spring_damper --data msd_force_step.csv 
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph track``."""
     add_model(p)
-    add_data(p)
+    add_data(p, remedy="it tracks along one record; fit the constant parameters on several "
+                       "with `bondgraph estimate --data A --data B` and pass its result.json "
+                       "as --from")
     p.add_argument("--track", required=True, help="comma-separated parameters to track")
     p.add_argument("--drift", action="append", default=None,
                    help="name=value,... drift intensity of a tracked parameter, in its unit "
