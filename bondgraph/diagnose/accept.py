@@ -14,7 +14,11 @@ A candidate is accepted when, after re-estimating all parameters,
    its free run is finite and stays in the plausible range on the record
    *and* on the validation record (:func:`bondgraph.diagnose.fit.free_run_trouble`;
    a model whose free run diverges on the record it was fitted on is refused
-   even when its error on the held-out part falls);
+   even when its error on the held-out part falls); the record identifies
+   the effect's own parameters apart from the parameters the current fit
+   identified (:func:`unidentified_effect`: a candidate that only moves
+   along a ridge with them, a sensor gain beside a motor constant and the
+   inertias it scales, is a reparametrisation);
 1. the refit is finite (NLL and error);
 2. the information criterion (AIC, Akaike 1974, or BIC, Schwarz 1978)
    decreases;
@@ -361,6 +365,8 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
                   f"{after.metric:.4g}{val})")
     elif pinned := newly_boxed(current, after, exempt=box_free):
         reason = f"the refit moves {pinned} onto its box: the box, not the record, decides it"
+    elif ridge := unidentified_effect(current, after):
+        reason = ridge
     elif not ic1 < ic0:
         reason = "information criterion did not improve"
     elif not p < rule.significance:
@@ -371,6 +377,37 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
         reason = (f"the error decrease{where} is within its uncertainty ({e0:.4g} -> "
                   f"{e1:.4g}, z {dz:.2f}, p {dp:.2g})")
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
+
+
+def unidentified_effect(current: Fit, after: Fit) -> str:
+    """Why a candidate's refit ``after`` is not a model the record
+    determines ("" when it is): the record does not identify one of the
+    candidate's own new parameters apart from parameters that ``current``
+    identified (both among the quantities along whose combination the
+    refit's Fisher information is flat, ``after.flat``: collinearity index
+    above 100, Brun, Reichert & Künsch 2001, or a likelihood that stops
+    gaining along them, :func:`bondgraph.diagnose.fit.unidentified`).
+
+    Such an effect is a reparametrisation, not a finding: its gain is what
+    the declared parameters lose when they move along the ridge with it,
+    and accepting it leaves them undetermined. A user's DC motor (current
+    and rotor speed measured, voltage the input) took a speed-sensor gain
+    g = −0.29 that the record cannot tell apart from the torque constant and
+    the inertias (held-out NRMSE 0.03296 -> 0.0329): k_t went from 0.060 to
+    0.042 and both inertias halved, each Cramér-Rao std now 15-30 %.
+    Parameters ``current`` already did not identify (``current.flat``) are
+    the declared fit's affair (its warning), not the candidate's."""
+    flat = set(after.flat or ())
+    if not flat:
+        return ""
+    new = [n for n in after.params if n not in current.params and n in flat]
+    had = set(current.flat or ())
+    partners = [n for n in after.params if n in current.params and n in flat and n not in had]
+    if not new or not partners:
+        return ""
+    return (f"the record does not identify {', '.join(new)} apart from {', '.join(partners)} "
+            f"(the likelihood is flat along a combination of them): the effect would leave "
+            f"them undetermined")
 
 
 def newly_boxed(current: Fit, after: Fit, exempt: Sequence[str] = ()) -> str:
