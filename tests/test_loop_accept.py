@@ -10,7 +10,7 @@ from scipy.stats import chi2
 
 from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.data.records import Experiment
-from bondgraph.diagnose.accept import confirmed_record, decide
+from bondgraph.diagnose.accept import confirmed_record, decide, unidentified_effect
 from bondgraph.diagnose.confirm import start_values
 from bondgraph.diagnose.effects import Target, get_effect
 from bondgraph.diagnose.fit import Context, Fit, bounds_around, clip_into_box, on_bound
@@ -395,6 +395,14 @@ def test_fit_flags_an_estimate_on_its_bound():
     assert f.summary().at_bound == ["c"]
 
 
+def _relabel(fit, params, flat):
+    """A copy of ``fit`` that says it estimated ``params`` and left ``flat``
+    unidentified (for the accept rule's bookkeeping alone)."""
+    from dataclasses import replace
+
+    return replace(fit, params=list(params), flat=tuple(flat))
+
+
 def _two_dampers():
     """The mass-spring-damper with a second damper c2 beside its damper c:
     the record identifies c + c2, not c and c2."""
@@ -429,6 +437,16 @@ def test_a_fit_names_the_parameters_the_record_does_not_identify_apart():
     assert one.flat == ()
     c = f.theta[f.model.param_index("c")] + f.theta[f.model.param_index("c2")]
     assert abs(c - one.theta[one.model.param_index("c")]) < 3 * one.std["c"]
+    # a damper beside the damper, as a candidate on the one-damper fit: the
+    # record does not identify the new c2 apart from the declared c, and the
+    # accept rule refuses it for that (whatever its likelihood ratio)
+    assert unidentified_effect(one, f) == (
+        "the record does not identify c2 apart from c (the likelihood is flat along a "
+        "combination of them): the effect would leave them undetermined")
+    d = decide(one, f, AcceptRule(criterion="aic", significance=0.05))
+    assert not d.accepted and d.reason.startswith("the record does not identify c2 apart")
+    # a partner the current fit already did not identify is its own affair
+    assert unidentified_effect(f, _relabel(f, ["m", "k", "c", "c2", "c3"], ("c", "c3"))) == ""
     # by hand: a rank-deficient information names the pair, a regular one nothing
     F = np.array([[4.0, 0.0, 0.0], [0.0, 1.0, 1.0], [0.0, 1.0, 1.0]])
     assert sorted(unidentified(F, ["a", "b", "c"])) == ["b", "c"]
@@ -790,3 +808,21 @@ def test_the_free_run_starts_where_it_fits_the_record_better(monkeypatch):
     runs["xs"] = np.full_like(y, np.inf)
     assert F._better_start(ctx, pb, None, None, "xs", "x0") == (runs["xs"], True)
     assert not logs
+
+
+def test_a_partner_on_what_the_lead_added_is_not_confirmed_alone():
+    """Scored given a lead (a Dahl friction at the mass), the cold start may sit
+    on the Dahl's own source ``dahl.v``, which the graph without the lead does
+    not have: it cannot be confirmed alone and is left out (a user's DC motor
+    logged "cannot apply cold_start @ dahl.rotor"); the same effect at the
+    declared force source stays."""
+    from bondgraph import apply_effect
+    from bondgraph.diagnose.runner import attachable
+
+    g = mass_spring_damper()
+    with_lead = g.copy("with_dahl")
+    apply_effect(with_lead, "dahl", Target("junction", "v"), {})
+    cands = [Candidate("cold_start", "", Target("source", name), "score", 40.0, 1, 1e-9, 38.0)
+             for name in ("dahl.v", "force")]
+    assert [c.target.name for c in attachable(with_lead, cands, None)] == ["dahl.v", "force"]
+    assert [c.target.name for c in attachable(g, cands, None)] == ["force"]

@@ -1171,6 +1171,7 @@ def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidat
             physical = [e for e in s.effects if not getattr(e, "last_resort", False)]
             cands += score_structural(ctx, conf.fit, scales, physical, others=len(cands))
     cands = [c for c in cands if c.target.name != lead.target.name]
+    cands = attachable(current.graph, cands, s.effects)
     taken = {c.label for c in pool}
     found = sorted([c for c in significant(cands, s.accept.significance) if c.label not in taken],
                    key=lambda c: c.rank_key)[:PAIR_TOP]
@@ -1184,6 +1185,23 @@ def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidat
             ctx.cache[key] = confirm(ctx, current, c, scales, f"{tag}_alone")
         if ctx.cache[key] is not None:
             c.confirmed = {"values": dict(c.values)}
+            out.append(c)
+    return out
+
+
+def attachable(graph, cands: list[Candidate], effects) -> list[Candidate]:
+    """The candidates of ``cands`` whose effect can attach at their target in
+    ``graph``: scored given a lead, a candidate may sit on what the lead's
+    effect added (``cold_start @ dahl.rotor``, the source of a Dahl
+    friction), which the graph without the lead does not have, so it cannot
+    be confirmed alone."""
+    places: dict = {}
+    out = []
+    for c in cands:
+        if c.effect not in places:
+            places[c.effect] = {(t.kind, t.name)
+                                for t in get_effect(c.effect, effects).targets(graph)}
+        if (c.target.kind, c.target.name) in places[c.effect]:
             out.append(c)
     return out
 
