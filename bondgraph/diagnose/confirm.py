@@ -159,11 +159,16 @@ def continued(ctx: Context, graph, fit: Fit, label: str) -> Fit:
 
 
 def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
-                 name: str) -> Confirmation | None:
+                 name: str, base: Fit | None = None,
+                 off: Candidate | None = None) -> Confirmation | None:
     """Refit ``fit``'s graph with both candidates of ``pair`` (two confirmed
     :class:`Candidate`, at different places) applied, every parameter
     re-estimated from the current estimates and each effect's confirmed
-    values (continued until converged, :func:`continued`).
+    values (continued until converged, :func:`continued`); with ``base``
+    (a member's own refit) and ``off`` (the other member, an additive
+    effect), from ``base``'s estimates with ``off``'s coefficients at 0
+    (clipped into their boxes), the pair's point that is the member's refit:
+    the pair nests it, so this refit ends no worse than the member alone.
 
     Returns
     -------
@@ -172,7 +177,7 @@ def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
         effect cannot be applied or the refit fails.
     """
     g = fit.graph.copy(name)
-    new, values_of, start = [], {}, dict(fit.estimates())
+    new, values_of, start, mine_of = [], {}, dict(fit.estimates()), {}
     for cand in pair:
         eff = get_effect(cand.effect, ctx.settings.effects)
         vals = start_values(eff, cand, {**cand.values,
@@ -186,9 +191,15 @@ def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
                     if not eff.additive else {})
         mine = [P[p.name].name for p in eff.params if p.estimated and p.name in P]
         new += mine
+        mine_of[cand.label] = [P[p.name] for p in eff.params if p.estimated and p.name in P]
         values_of[cand.label] = {p.name: P[p.name].name for p in eff.params if p.name in P}
         start.update({P[k].name: float(v) for k, v in vals.items() if k in P})
         start.update(cand.profile)
+    if base is not None and off is not None:
+        start.update(base.estimates())
+        for par in mine_of[off.label]:
+            lo, hi = par.bounds if par.bounds is not None else (-np.inf, np.inf)
+            start[par.name] = float(np.clip(0.0, lo, hi))
     label = " + ".join(c.label for c in pair)
     try:
         model = model_of(g)

@@ -1222,11 +1222,29 @@ def pair_refits(ctx: Context, current: Fit, pairs: list[tuple], scales: Scales,
     on the executor), each one that ended with a member on its box or not
     converged tried again in two steps (:func:`sequential_pair`)."""
     refits = run_tasks(ctx, _confirm_pair_task, (current, scales, f"{tag}_pair"), pairs)
-    return [sequential_pair(ctx, current, p, r, tag) for p, r in zip(pairs, refits)]
+    return [sequential_pair(ctx, current, p, r, tag, scales) for p, r in zip(pairs, refits)]
+
+
+#: a pair's joint refit that ends more than this many nats above a member's
+#: own refit (which it nests) stopped in a poorer basin (:func:`sequential_pair`)
+NESTED_SLACK = 0.5
+
+
+def member_refits(ctx: Context, current: Fit, pair: tuple) -> list:
+    """The members' own confirmations of ``pair`` (None where there is none)."""
+    return [ctx.cache.get(("confirmation", id(current), current.nll, c.label)) for c in pair]
+
+
+def below_member(conf: Confirmation, members: list) -> bool:
+    """Whether the pair's refit ``conf`` ends more than :data:`NESTED_SLACK`
+    nats above the NLL of a member's own refit (of ``members``), a point
+    the pair contains."""
+    own = [m.fit.nll for m in members if m is not None and np.isfinite(m.fit.nll)]
+    return bool(own) and conf.fit.nll > min(own) + NESTED_SLACK
 
 
 def sequential_pair(ctx: Context, current: Fit, pair: tuple, conf: Confirmation | None,
-                    tag: str) -> Confirmation | None:
+                    tag: str, scales: Scales | None = None) -> Confirmation | None:
     """``conf``, the joint refit of ``pair`` from the current estimates and
     each member's own confirmed values, or a better refit of the same pair
     reached in two steps: from one member's own refit, the other
@@ -1242,21 +1260,40 @@ def sequential_pair(ctx: Context, current: Fit, pair: tuple, conf: Confirmation 
     narrowed, the tanks' simulated peaks five times the true overflow
     level, so that level lies below the member's box); at the other
     member's refit the scales are the ones the sequential loop would use
-    next. The better refit (converged first, then by NLL) is returned."""
-    if conf is not None and conf.comparable and not pair_member_boxed(conf.fit, conf.new_params):
+    next. The better refit (converged first, then by NLL) is returned.
+
+    Also tried when the joint refit ends above a member's own refit
+    (:func:`below_member`), which the pair nests: then, for an additive
+    other member, from that member's refit with the other's coefficients at
+    0 (:func:`~bondgraph.diagnose.confirm.confirm_pair` with ``base``). The
+    joint start mixes the current fit's estimates with both members'
+    values, which the members' own refits found at different declared
+    parameters: on a user's four-mass chain (noise levels estimated) a
+    sensor gain refitted to LR 3383 alone, and with a Stribeck term beside
+    it to LR −4101."""
+    members = member_refits(ctx, current, pair)
+    if conf is not None and conf.comparable and not pair_member_boxed(conf.fit, conf.new_params) \
+            and not below_member(conf, members):
         return conf
-    best = conf
-    for first, second in (pair, pair[::-1]):
-        one = ctx.cache.get(("confirmation", id(current), current.nll, first.label))
+    best, how = conf, ""
+    for (first, second), one in zip((pair, pair[::-1]), members):
         eff = get_effect(second.effect, ctx.settings.effects)
-        if eff.additive or one is None or not np.isfinite(one.fit.nll):
+        if one is None or not np.isfinite(one.fit.nll):
             continue
-        alt = _two_steps(ctx, (first, one), second, eff, tag)
+        if eff.additive:
+            if scales is None or conf is None or not below_member(conf, [one]):
+                continue
+            alt = confirm_pair(ctx, current, pair, scales, f"{tag}_pair_nested", base=one.fit,
+                               off=second)
+            way = f"from {first.label}'s own refit (NLL {one.fit.nll:.2f})"
+        else:
+            alt = _two_steps(ctx, (first, one), second, eff, tag)
+            way = "in two steps"
         if alt is not None and (best is None or (not alt.comparable, alt.fit.nll)
                                 < (not best.comparable, best.fit.nll)):
-            best = alt
+            best, how = alt, way
     if best is not conf and best is not None:
-        ctx.log(f"  pair {pair[0].label} + {pair[1].label} refitted in two steps: NLL "
+        ctx.log(f"  pair {pair[0].label} + {pair[1].label} refitted {how}: NLL "
                 f"{best.fit.nll:.2f} (joint refit: "
                 f"{'failed' if conf is None else f'{conf.fit.nll:.2f}'})")
     return best
