@@ -379,6 +379,11 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
 
 
+#: a parameter whose Cramér-Rao std grows by more than this factor in a
+#: candidate's refit is left undetermined by it (:func:`unidentified_effect`)
+STD_INFLATION = 10.0
+
+
 def unidentified_effect(current: Fit, after: Fit) -> str:
     """Why a candidate's refit ``after`` is not a model the record
     determines ("" when it is): the record does not identify one of the
@@ -386,28 +391,67 @@ def unidentified_effect(current: Fit, after: Fit) -> str:
     identified (both among the quantities along whose combination the
     refit's Fisher information is flat, ``after.flat``: collinearity index
     above 100, Brun, Reichert & Künsch 2001, or a likelihood that stops
-    gaining along them, :func:`bondgraph.diagnose.fit.unidentified`).
+    gaining along them, :func:`bondgraph.diagnose.fit.unidentified`), and
+    the refit leaves those parameters undetermined: their Cramér-Rao std
+    grows more than :data:`STD_INFLATION`-fold (or has none).
 
     Such an effect is a reparametrisation, not a finding: its gain is what
-    the declared parameters lose when they move along the ridge with it,
-    and accepting it leaves them undetermined. A user's DC motor (current
-    and rotor speed measured, voltage the input) took a speed-sensor gain
-    g = −0.29 that the record cannot tell apart from the torque constant and
-    the inertias (held-out NRMSE 0.03296 -> 0.0329): k_t went from 0.060 to
-    0.042 and both inertias halved, each Cramér-Rao std now 15-30 %.
-    Parameters ``current`` already did not identify (``current.flat``) are
-    the declared fit's affair (its warning), not the candidate's."""
+    the declared parameters lose when they move along the ridge with it.
+    A user's DC motor (current and rotor speed measured, voltage the input)
+    took a speed-sensor gain g = −0.29 that the record cannot tell apart
+    from the torque constant and the inertias (held-out NRMSE 0.03296 ->
+    0.0329): k_t went from 0.060 to 0.042 and both inertias halved, the
+    std of k_t 400 times its earlier value. A strong but not exact
+    correlation is no such case: two tank overflows whose levels correlate
+    with an orifice (collinearity index above 100) are each determined to
+    0.3 %. Parameters ``current`` already did not identify
+    (``current.flat``) are the declared fit's affair (its warning), not the
+    candidate's."""
+    if lost := undetermined(current, after):
+        return lost
     flat = set(after.flat or ())
     if not flat:
         return ""
     new = [n for n in after.params if n not in current.params and n in flat]
     had = set(current.flat or ())
-    partners = [n for n in after.params if n in current.params and n in flat and n not in had]
+    partners = [n for n in after.params if n in current.params and n in flat and n not in had
+                and _inflated(current, after, n)]
     if not new or not partners:
         return ""
     return (f"the record does not identify {', '.join(new)} apart from {', '.join(partners)} "
             f"(the likelihood is flat along a combination of them): the effect would leave "
             f"them undetermined")
+
+
+def undetermined(current: Fit, after: Fit) -> str:
+    """Why the refit ``after`` determines neither its own new parameters nor
+    declared ones ("" otherwise): its Fisher information gives none of the
+    new parameters a Cramér-Rao std, nor a parameter that ``current``
+    determined (those on a bound of their box aside: they have none by
+    design). The information was not finite there (the filter fails near
+    the refit along the ridge it followed), so no flat direction could be
+    named either: a user's DC motor took a speed-sensor gain with a
+    Stribeck term, k_t at half its value, every std missing."""
+    std0, std1 = current.std or {}, after.std or {}
+    bound = set(after.at_bound or ())
+    new = [n for n in after.params if n not in current.params and n not in bound]
+    lost = [n for n in after.params if n in current.params and n not in bound
+            and std0.get(n) is not None and np.isfinite(std0[n]) and std1.get(n) is None]
+    if not new or not lost or any(std1.get(n) is not None for n in new):
+        return ""
+    return (f"the refit's Fisher information gives no Cramér-Rao std for {', '.join(new)}, "
+            f"nor for {', '.join(lost)} (the record determined them before): the effect "
+            f"would leave them undetermined")
+
+
+def _inflated(current: Fit, after: Fit, name: str) -> bool:
+    """Whether ``name``'s Cramér-Rao std in ``after`` is missing or more than
+    :data:`STD_INFLATION` times its std in ``current`` (False when
+    ``current`` has none to compare with)."""
+    s0, s1 = (current.std or {}).get(name), (after.std or {}).get(name)
+    if s0 is None or not np.isfinite(s0) or s0 <= 0:
+        return False
+    return s1 is None or not np.isfinite(s1) or s1 > STD_INFLATION * s0
 
 
 def newly_boxed(current: Fit, after: Fit, exempt: Sequence[str] = ()) -> str:

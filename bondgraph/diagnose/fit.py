@@ -533,7 +533,28 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
         crit = make_criterion(problem, params, theta, ctx.settings.evaluation.chunk)
         xs = np.array([theta[model.param_index(n)] for n in params])
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
-        return crit.theta(x[None, :])[0], {}, (None, None, ()), {}, {}
+        theta = crit.theta(x[None, :])[0]
+        std, flat = _information_at(problem, params, theta, idx, (lo, hi), scale)
+        return theta, std, (None, None, flat), {}, {}
+
+
+def _information_at(problem: Problem, params: list[str], theta: np.ndarray, idx, box,
+                    scale) -> tuple[dict, tuple]:
+    """The Cramér-Rao std of ``params`` and the ones the Fisher information
+    does not identify apart (:func:`unidentified`) at ``theta``, after an
+    L-BFGS-B fallback (no scoring, so no information of its own; ``({}, ())``
+    when it cannot be computed there either). Without it a refit whose
+    scoring failed on a ridge reported no std and no flat direction, and
+    the accept rule could not see what it left undetermined (a user's DC
+    motor: a speed-sensor gain with a Stribeck term, k_t at half its value,
+    accepted)."""
+    try:
+        F = fisher_fit(problem, theta, idx, box, 0, log_scale=scale, information=True)[1]
+    except (FloatingPointError, np.linalg.LinAlgError):
+        return {}, ()
+    if F is None or not np.all(np.isfinite(F)):
+        return {}, ()
+    return cr_std(F, list(params)), unidentified(F, list(params))
 
 
 def unidentified(F: np.ndarray | None, names: list[str]) -> tuple:
