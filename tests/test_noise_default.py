@@ -403,4 +403,10 @@ def test_sensitivity_of_a_sensor_without_a_noise_level_weighs_by_the_record_leve
         up[n], dn[n] = TRUTH[n] * (1 + 1e-5), TRUTH[n] * (1 - 1e-5)
         J.append((run(up) - run(dn)) / 2e-5)                    # ∂y/∂ln θ
     J = np.array(J).T
-    np.testing.assert_allclose(F, J.T @ J / sigma ** 2, rtol=1e-2)    # measured: 0.6 %
+    ref = J.T @ J / sigma ** 2
+    np.testing.assert_allclose(np.diag(F), np.diag(ref), rtol=1e-2)    # measured: 0.02 %
+    # the cross term is a cancellation (the correlation of k and c is 0.008):
+    # judged on the scale that matters, the correlation √(F_kk F_cc); measured
+    # 4.7e-4 of it on one machine, 3e-5 on another
+    scale = np.sqrt(np.outer(np.diag(ref), np.diag(ref)))
+    assert np.all(np.abs(F - ref) <= 1e-2 * scale)
