@@ -189,9 +189,8 @@ def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
             return None
         widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
                     if not eff.additive else {})
-        mine = [P[p.name].name for p in eff.params if p.estimated and p.name in P]
-        new += mine
         mine_of[cand.label] = [P[p.name] for p in eff.params if p.estimated and p.name in P]
+        new += [par.name for par in mine_of[cand.label]]
         values_of[cand.label] = {p.name: P[p.name].name for p in eff.params if p.name in P}
         start.update({P[k].name: float(v) for k, v in vals.items() if k in P})
         start.update(cand.profile)
