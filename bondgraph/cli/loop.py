@@ -253,6 +253,11 @@ def run(args) -> int:
     hint = unexplained_hint(res, args.discover, graph, settings.effects)
     if hint:
         print(hint)
+    loose = res.final.understated()
+    if loose:
+        print(f"note: the Cramér-Rao std understates the uncertainty of {', '.join(loose)} "
+              f"(robust std that many times larger: the innovations are serially correlated); "
+              f"the report's parameter table gives the robust std")
     print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots, "
           f"augmented_model.py)")
     return 0

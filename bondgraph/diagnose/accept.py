@@ -71,6 +71,7 @@ from scipy.stats import chi2, norm
 
 from bondgraph.diagnose.effects import BY_NAME, Effect
 from bondgraph.diagnose.fit import Fit, noise_params
+from bondgraph.diagnose.inference_calls import andrews_bandwidth, long_run_variance  # noqa: F401
 from bondgraph.diagnose.result import AppliedEffect, Candidate, Rejection, Step
 from bondgraph.diagnose.settings import AcceptRule
 from bondgraph.numerics.admissible import Admissibility
@@ -81,37 +82,6 @@ def significant(cands: list[Candidate], level: float) -> list[Candidate]:
     of ``cands``: p · n < level)."""
     n_c = max(len(cands), 1)
     return [c for c in cands if c.p_value * n_c < level]
-
-
-def andrews_bandwidth(d: np.ndarray) -> int:
-    """Bandwidth of the Bartlett kernel by Andrews' (1991) AR(1) plug-in rule,
-    L = ⌊1.1447 (α n)^(1/3)⌋, α = 4ρ²/(1 − ρ²)², ρ the lag-1
-    autocorrelation of ``d`` (n,) (clipped to ±0.97); 0 ≤ L < n/2."""
-    n = d.size
-    x = d - d.mean()
-    g0 = float(x @ x) / n
-    if n < 4 or g0 <= 0:
-        return 0
-    rho = float(np.clip((x[1:] @ x[:-1]) / n / g0, -0.97, 0.97))
-    alpha = 4 * rho**2 / (1 - rho**2) ** 2
-    return int(max(min(np.floor(1.1447 * (alpha * n) ** (1 / 3)), n // 2 - 1), 0))
-
-
-def long_run_variance(d: np.ndarray, bandwidth: int | None = None) -> float:
-    """Newey-West (1987) long-run variance of the series ``d`` (n,):
-    γ₀ + 2 Σ_{l≤L} (1 − l/(L+1)) γ_l (autocovariances with divisor n),
-    L = ``bandwidth`` or :func:`andrews_bandwidth`. n·Var(d̄) for a
-    stationary series."""
-    n = d.size
-    x = d - d.mean()
-    g0 = float(x @ x) / n
-    if n < 3 or g0 <= 0:
-        return g0
-    L = andrews_bandwidth(d) if bandwidth is None else int(bandwidth)
-    lrv = g0
-    for lag in range(1, max(L, 0) + 1):
-        lrv += 2 * (1 - lag / (L + 1)) * float(x[lag:] @ x[:-lag]) / n
-    return max(lrv, 0.0)
 
 
 def error_decrease_test(e0: np.ndarray, e1: np.ndarray) -> tuple[float, float]:

@@ -30,15 +30,23 @@ from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.options import Evaluation, ScoringOptions
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
+from bondgraph.inference.robust import (
+    ROBUST_RATIO,
+    andrews_bandwidth,
+    long_run_variance,
+    robust_std,
+)
 from bondgraph.inference.prior import PriorSpec, rk4_outputs
 from bondgraph.inference.ukf import UKFResult
 from bondgraph.inference.ukf_numba import threads as kernel_threads
 from bondgraph.numerics.integrators import simulate_batch
 
 # re-exported for the loop: the box of an estimated noise std (its start
-# times / divided by NOISE_BOX), the problem's parts, the noise detector
+# times / divided by NOISE_BOX), the problem's parts, the noise detector,
+# the robust std and the long-run variance (bondgraph.inference.robust)
 __all__ = ["FLAT_GAIN", "flat_directions", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem",
-           "choose_discretisation", "kernel_threads", "make_problem", "noise_parameters"]
+           "choose_discretisation", "kernel_threads", "make_problem", "noise_parameters",
+           "ROBUST_RATIO", "andrews_bandwidth", "long_run_variance", "robust_std"]
 
 
 
@@ -176,6 +184,8 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
         The NLL at the result [nats] (from the scoring's own last run there:
         the same number as a UKF run of ``problem`` at ``theta`` when no
         state or noise std is estimated).
+    scores : array (N, k + m + r) or None
+        Per-sample scores at the result (None with ``F``).
 
     Raises
     ------
@@ -194,7 +204,7 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
                                                 log_scale=scale, information=information))
     sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
     return (r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig, r.flat,
-            float(r.nll))
+            float(r.nll), r.scores)
 
 
 def predicted_step_gain(problem: Problem, theta: np.ndarray, index: Sequence[int], box) -> float:

@@ -12,6 +12,7 @@ import numpy as np
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.effects import Target
+from bondgraph.diagnose.inference_calls import ROBUST_RATIO
 from bondgraph.diagnose.residuals import ResidualReport
 
 
@@ -245,6 +246,10 @@ class FitSummary:
         Quantities the record does not identify separately: the likelihood
         is flat along a combination of them where the fit stopped
         (:attr:`bondgraph.inference.fisher.Scoring.flat`).
+    std_robust : dict
+        Robust (sandwich) standard deviations by name, where the fit gave
+        them (:func:`bondgraph.inference.robust.robust_std`): larger than
+        ``std`` when the model's misfit is serially correlated.
     """
 
     model: str
@@ -264,6 +269,21 @@ class FitSummary:
     x0_estimates: dict = field(default_factory=dict)
     noise_estimates: dict = field(default_factory=dict)
     flat: list = field(default_factory=list)
+    std_robust: dict = field(default_factory=dict)
+
+    def robust(self) -> dict:
+        """``std_robust`` ({} for a summary pickled before it existed)."""
+        return getattr(self, "std_robust", None) or {}
+
+    def understated(self) -> list[str]:
+        """The estimated parameters whose robust std exceeds their
+        Cramér-Rao std by more than :data:`~bondgraph.inference.robust.ROBUST_RATIO`,
+        each with the ratio ("c (24x)"), largest first."""
+        rob = self.robust()
+        ratio = {n: rob[n] / self.std[n] for n in self.estimates
+                 if self.std.get(n) and rob.get(n) is not None}
+        return [f"{n} ({r:.3g}x)" for n, r in sorted(ratio.items(), key=lambda kv: -kv[1])
+                if r > ROBUST_RATIO]
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
@@ -273,7 +293,7 @@ class FitSummary:
                             "at_bound": self.at_bound, "x0_estimates": self.x0_estimates,
                             "noise_estimates": self.noise_estimates, "flat": self.flat,
                             "estimates": self.estimates, "std": self.std,
-                            "residuals": self.residuals.to_dict()})
+                            "std_robust": self.robust(), "residuals": self.residuals.to_dict()})
 
 
 @dataclass

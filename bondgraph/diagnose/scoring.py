@@ -682,7 +682,7 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
                                 log_scale=np.zeros(len(idx), bool), information=False)
         except (FloatingPointError, np.linalg.LinAlgError):
             continue
-        th, f = fitted[0], fitted[-1]      # the NLL at th: no run of its own
+        th, f = fitted[0], fitted[7]      # the NLL at th: no run of its own
         if np.isfinite(f) and f < best:
             best, th_best, i_best = f, th, j
     return best, th_best, i_best
@@ -729,7 +729,7 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
         fitted = fisher_fit(pb, th, idx, (lo, hi), iters, log_scale=scale, information=False)
     except (FloatingPointError, np.linalg.LinAlgError):
         return None
-    th, f = fitted[0], fitted[-1]          # the NLL at th: no run of its own
+    th, f = fitted[0], fitted[7]          # the NLL at th: no run of its own
     return (f, th) if np.isfinite(f) and f < nll else None
 
 

@@ -73,6 +73,8 @@ from bondgraph.inference.options import (
     fit_options,
 )
 from bondgraph.inference.problem import Problem
+from bondgraph.inference.fisher import innovation_differences
+from bondgraph.inference.robust import ROBUST_RATIO, sandwich, score_covariance, step_scores
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.ukf import (
     GUARD_REL,
@@ -562,6 +564,12 @@ class EstimationResult:
         True values of the estimated parameters (synthetic records).
     z : ndarray (k,) or None
         (estimate − truth) / std.
+    std_robust : ndarray (k,) or None
+        Robust (sandwich) standard deviations sqrt(diag(H⁻¹ J H⁻¹)), J the
+        Newey-West covariance of the per-sample scores
+        (:mod:`bondgraph.inference.robust`; White 1982): equal to ``std``
+        within sampling error when the model is right, larger when its
+        misfit is serially correlated; None when H is not positive definite.
     """
 
     model: str
@@ -592,6 +600,7 @@ class EstimationResult:
     units: list = field(default_factory=list)
     std_total: np.ndarray | None = None
     propagated: dict = field(default_factory=dict)
+    std_robust: np.ndarray | None = None
 
     def estimate_dict(self) -> dict[str, float]:
         """Parameter name -> estimate."""
@@ -614,7 +623,7 @@ class EstimationResult:
         p = Path(text_or_path) if not str(text_or_path).lstrip().startswith("{") else None
         d = from_jsonable(json.loads(p.read_text() if p is not None else text_or_path))
         for key in ("estimates", "std", "corr", "hessian", "theta", "lower", "upper", "z",
-                    "std_total"):
+                    "std_total", "std_robust"):
             if d.get(key) is not None:
                 d[key] = np.array(d[key], dtype=float)
         return cls(**d)
@@ -624,6 +633,9 @@ class EstimationResult:
         has_truth = self.truth is not None
         head = f"{'parameter':<22}{'estimate':>14}{'CR std':>12}{'rel std':>9}"
         tot = self.std_total is not None
+        rob = self.std_robust is not None
+        if rob:
+            head += f"{'robust std':>12}"
         if tot:
             head += f"{'total std':>12}"
         if has_truth:
@@ -633,6 +645,8 @@ class EstimationResult:
             e, s = self.estimates[i], self.std[i]
             rel = abs(s / e) if e != 0 and np.isfinite(s) else np.nan
             row = f"{p:<22}{e:>14.6g}{s:>12.3g}{rel:>9.2%}"
+            if rob:
+                row += f"{self.std_robust[i]:>12.3g}"
             if tot:
                 row += f"{self.std_total[i]:>12.3g}"
             if has_truth:
@@ -914,6 +928,8 @@ def _to_values(crit: Criterion, x, lo, hi, H, cr):
     J = np.where(crit.log, z, 1.0)
     cr = dict(cr)
     cr["std"] = np.asarray(cr["std"], float) * J
+    if cr.get("std_robust") is not None:
+        cr["std_robust"] = np.asarray(cr["std_robust"], float) * J
     if cr.get("cov") is not None:
         cr["cov"] = np.asarray(cr["cov"], float) * np.outer(J, J)
     return z, lo_v, hi_v, np.asarray(H, float) / np.outer(J, J), cr
@@ -934,6 +950,7 @@ def _result(problems: list[Problem], plan: _Plan, crit, fit: FitOptions, found: 
                     x0_states=[] if est is None else list(est.states))
     res = EstimationResult(
         model=model.name, experiment=problem.name, params=names, estimates=z, std=cr["std"],
+        std_robust=cr.get("std_robust"),
         corr=cr["corr"], hessian=found.H, nll=float(found.nll), nll_optimizer=float(found.opt.fun),
         evaluations=int(found.opt.nfev), evaluations_total=int(crit.evaluations), wall_s=wall,
         optimizer=fit.optimizer, theta=theta, fixed=dict(problem.fixed), lower=found.lo,
@@ -1080,7 +1097,8 @@ def _bound_warnings(params, x, lo, hi) -> list[str]:
 
 
 def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list):
-    """Hessian of the NLL and Cramér-Rao bounds at the estimate.
+    """Hessian of the NLL and Cramér-Rao bounds at the estimate, and the
+    robust std (:func:`_robust_at`).
 
     A first pass with steps of 1e-4 of the parameter (or box) scale; when it
     is positive definite, a second pass with steps of 0.1 standard deviation,
@@ -1110,7 +1128,46 @@ def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list):
         _on_box(cr, H, width, crit.params, _at_bound(crit.params, x_best, lo, hi))
     if cr["warning"]:
         warn_list.append(cr["warning"])
+    _robust_at(crit, x_best, H, cr, warn_list)
     return H, cr
+
+
+def _robust_at(crit, x_best: np.ndarray, H: np.ndarray, cr: dict, warn_list: list) -> None:
+    """The robust (sandwich) std of the estimate, ``cr["std_robust"]`` (k,),
+    search coordinates (:mod:`bondgraph.inference.robust`: H⁻¹ J H⁻¹, J the
+    Newey-West covariance of the per-sample scores, summed over the
+    records), from one stored batched run per record of the estimate and
+    its k nudges of 0.1 Cramér-Rao std. Not computed (None) when the
+    Hessian is not positive definite or a run fails. Appends a warning when
+    it exceeds the Cramér-Rao std by more than :data:`ROBUST_RATIO`."""
+    cr["std_robust"] = None
+    if not cr.get("positive_definite"):
+        return
+    std = np.asarray(cr["std"], float)
+    h = np.where(std > 0, 0.1 * std, 1e-8)
+    X = np.repeat(x_best[None, :], x_best.size + 1, axis=0)
+    X[1:] += np.diag(h)
+    J = np.zeros((x_best.size, x_best.size))
+    for member in getattr(crit, "members", [crit]):
+        r = member.run(X, store=True)
+        if not np.isfinite(r.nll).all():
+            return
+        J += score_covariance(step_scores(*innovation_differences(r, h)))
+    C = sandwich(H, J)
+    if C is None:
+        return
+    robust = np.sqrt(np.maximum(np.diag(C), 0.0))
+    cr["std_robust"] = robust
+    ratio = robust / np.where(std > 0, std, np.inf)
+    loose = [f"{crit.params[i]} ({ratio[i]:.3g}x)" for i in np.argsort(-ratio)
+             if ratio[i] > ROBUST_RATIO]
+    if loose:
+        warn_list.append(
+            f"the Cramér-Rao std understates the uncertainty of {', '.join(loose)}: the robust "
+            f"(sandwich) std is that many times larger. The innovations are serially "
+            f"correlated: the model lacks an effect, or its noise levels do not describe the "
+            f"misfit (White 1982). Quote the robust std (column 'robust std'); "
+            f"`bondgraph loop` looks for the missing effect")
 
 
 def _on_box(cr: dict, H: np.ndarray, width: np.ndarray, names, held: list[str]) -> None:

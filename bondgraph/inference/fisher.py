@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bondgraph.inference.estimand import Estimand
+from bondgraph.inference.robust import step_scores
 from bondgraph.inference.options import ScoringOptions, UKFOptions, scoring_options
 from bondgraph.inference.ukf import ukf_nll
 
@@ -59,6 +60,11 @@ class Derivatives:
     dS: np.ndarray
     grad: np.ndarray
     F: np.ndarray
+
+    def scores(self) -> np.ndarray:
+        """Per-sample scores (N, k), whose sum is ``grad``
+        (:func:`bondgraph.inference.robust.step_scores`)."""
+        return step_scores(self.eps, self.S, self.dE, self.dS)
 
 
 def _clean(eps, S):
@@ -124,10 +130,31 @@ def estimand_derivatives(model, t, u, y, est: Estimand, steps, P0,
     Z[1:] += np.diag(np.asarray(steps, float))
     th, x0s, R = est.expand(Z)
     r = ukf_nll(model, t, u, y, th, x0s, est.prior_cov(P0), options=options, R=R, store=True)
+    e0, S0, dE, dS = innovation_differences(r, steps)
+    return _information(float(r.nll[0]), e0, S0, dE, dS)
+
+
+def innovation_differences(r, steps) -> tuple:
+    """Innovations, their covariances and their forward differences from one
+    stored batched UKF run (``store=True``) of a point and its k nudged
+    copies (set 0 the point, set i + 1 nudged by ``steps[i]`` along i).
+
+    Returns
+    -------
+    (eps (N, m), S (N, m, m), dE (k, N, m), dS (k, N, m, m))
+        Unmeasured entries zeroed (:func:`_clean`); a nudge whose run failed
+        gives zero differences (no information along it).
+
+    Raises
+    ------
+    FloatingPointError
+        If the UKF failed at the point itself (its reason named).
+    """
     if not np.isfinite(r.nll[0]):
         raise FloatingPointError(f"UKF failed at the expansion point: {r.reasons[0]}")
     e0, S0, miss = _clean(r.innovations[:, 0, :], r.S[:, 0])
     N, m = e0.shape
+    k = len(steps)
     dE = np.zeros((k, N, m))
     dS = np.zeros((k, N, m, m))
     for i, h in enumerate(steps):
@@ -137,7 +164,7 @@ def estimand_derivatives(model, t, u, y, est: Estimand, steps, P0,
         dE[i] = (ei - e0) / h
         dS[i] = (Si - S0) / h
     dE[:, miss] = 0.0
-    return _information(float(r.nll[0]), e0, S0, dE, dS)
+    return e0, S0, dE, dS
 
 
 def _information(nll, e0, S0, dE, dS) -> Derivatives:
@@ -182,6 +209,10 @@ class Scoring:
         scoring converged in every other direction and still gained less
         than :data:`FLAT_GAIN` nats per iteration along these, which the
         record does not identify; empty when it converged in all of them.
+    scores : ndarray (N, k) or None
+        Per-sample scores at the result (:meth:`Derivatives.scores`; the
+        robust std, :func:`bondgraph.inference.robust.robust_std`); None
+        with ``F``.
     """
 
     estimand: Estimand
@@ -191,6 +222,7 @@ class Scoring:
     iterations: int
     converged: bool
     flat: tuple = ()
+    scores: np.ndarray | None = None
 
 
 #: the scoring of :func:`fisher_scoring` by default: only the relative NLL
@@ -329,7 +361,7 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
             return Scoring(est, nll, None, runs, it, converged, flat)
         D = estimand_derivatives(model, t, u, y, est, _steps(z, hi, width), P0, options)
         runs += 1
-    return Scoring(est, D.nll, D.F, runs, it, converged, flat)
+    return Scoring(est, D.nll, D.F, runs, it, converged, flat, D.scores())
 
 
 def scoring_step_gain(model, t, u, y, est: Estimand, lower, upper, P0,

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from bondgraph.diagnose.result import LoopResult
 from bondgraph.report.evidence import confirmed_value
+from bondgraph.inference.robust import ROBUST_RATIO
 
 #: candidates listed per step in the ranking tables
 RANKED = 60
@@ -242,14 +243,21 @@ def _parameters(result: LoopResult) -> list[str]:
     for kind, values, prefix in groups:
         for name, v in values.items():
             sd = f.std.get(prefix + name)
+            rb = f.robust().get(prefix + name)
             rel = abs(sd / v) * 100 if sd is not None and v else None
             note = "on a bound" if name in f.at_bound else ""
-            rows.append([name, kind, _num(v, ".6g"), _num(sd, ".3g"), _num(rel, ".3g"), note])
+            rows.append([name, kind, _num(v, ".6g"), _num(sd, ".3g"), _num(rb, ".3g"),
+                         _num(rel, ".3g"), note])
             classes.append("accepted" if name in added else "")
-    table = _table(["name", "kind", "estimate", "Cramér-Rao std", "std / |estimate| [%]",
-                    "note"], rows, classes)
+    table = _table(["name", "kind", "estimate", "Cramér-Rao std", "robust std",
+                    "std / |estimate| [%]", "note"], rows, classes)
+    loose = f.understated()
+    warn = (f'<p class="warnings">The robust (sandwich) std exceeds the Cramér-Rao std by more '
+            f'than {ROBUST_RATIO:g} times for {escape(", ".join(loose))}: the innovations are still '
+            f'serially correlated, so the Cramér-Rao std understates their uncertainty; quote '
+            f'the robust std.</p>' if loose else "")
     return _section("Parameters of the final model",
-                    [table, '<p class="muted">Rows in green: parameters of the accepted '
+                    [table, warn, '<p class="muted">Rows in green: parameters of the accepted '
                      'effects.</p>' if added else ""], "parameters")
 
 

@@ -25,6 +25,7 @@ from bondgraph.core.codegen import generate_source
 from bondgraph.core.plugins import resolve
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.result import LoopResult
+from bondgraph.inference.robust import ROBUST_RATIO
 from bondgraph.report.drawing import draw, layout
 from bondgraph.report.evidence import SHOWN, plot_evidence
 from bondgraph.report.html import graph_changes, page
@@ -522,10 +523,18 @@ def _md_accepted(result: LoopResult) -> list[str]:
                   f"{', '.join(s.tied)} (Vuong's test on the confirmed refits); the choice "
                   f"among them is not the data's — another record may decide."]
     L += ["", "Parameters of the final model:", "",
-          "| parameter | estimate | Cramér-Rao std |", "|---|---|---|"]
+          "| parameter | estimate | Cramér-Rao std | robust std |", "|---|---|---|---|"]
+    robust = result.final.robust()
     for n, v in result.final.estimates.items():
-        sd = result.final.std.get(n)
-        L.append(f"| {n} | {v:.6g} | {sd:.3g} |" if sd is not None else f"| {n} | {v:.6g} | - |")
+        sd, rb = result.final.std.get(n), robust.get(n)
+        L.append(f"| {n} | {v:.6g} | {_g3(sd)} | {_g3(rb)} |")
+    loose = result.final.understated()
+    if loose:
+        L += ["", f"The robust (sandwich) std exceeds the Cramér-Rao std by more than "
+              f"{ROBUST_RATIO:g} times for {', '.join(loose)}: the final model's innovations are "
+              "still serially correlated (an effect it lacks, or noise levels that do not "
+              "describe the misfit), so the Cramér-Rao std understates their uncertainty; quote "
+              "the robust std (White 1982; Newey & West 1987)."]
     flat = getattr(result.final, "flat", None)
     if flat:
         L += ["", f"The record does not identify {', '.join(flat)} separately: the likelihood "
@@ -533,6 +542,11 @@ def _md_accepted(result: LoopResult) -> list[str]:
               "of the Fisher information below 1e-4), so their values above are one point of "
               "a ridge; fix one of them, or add a record that excites them apart."]
     return L
+
+
+def _g3(v) -> str:
+    """``v`` to 3 significant digits, "-" for None."""
+    return "-" if v is None else f"{v:.3g}"
 
 
 def _md_ranking(k: int, ranking) -> list[str]:
