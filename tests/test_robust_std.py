@@ -144,3 +144,27 @@ def test_step_scores_sum_to_the_gradient_of_a_gaussian_nll():
         d[i] = h
         np.testing.assert_allclose(G[:, i], (terms(d) - terms(-d)) / (2 * h), rtol=1e-6,
                                    atol=1e-8)
+
+
+def test_the_loop_report_gives_the_robust_std_and_says_when_it_is_larger():
+    """report.md's parameter table has a robust column; a ratio above 3
+    is named with its size, largest first."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.result import Step, understated
+    from bondgraph.report.loop_report import _md_accepted
+
+    step = Step("coulomb", "v", "nrmse", 0.3, 0.1, 10.0, 5.0, 22.0, 14.0, 3.0, 1.0,
+                {"coulomb.v.Fc": {"estimate": 3.0, "std": 0.01}}, 12.0, 1e-4)
+    std = {"m": 0.001, "coulomb.v.Fc": 0.01}
+    final = SimpleNamespace(estimates={"m": 2.0, "coulomb.v.Fc": 3.0}, std=std,
+                            std_robust={"m": 0.0012, "coulomb.v.Fc": 0.05})
+    text = "\n".join(_md_accepted(SimpleNamespace(steps=[step], final=final)))
+    assert "| parameter | estimate | Cramér-Rao std | robust std |" in text
+    assert "| coulomb.v.Fc | 3 | 0.01 | 0.05 |" in text
+    assert "more than 3 times for coulomb.v.Fc (5x):" in text
+    assert understated(std, {"m": 0.0031, "coulomb.v.Fc": 0.05}, ["m", "coulomb.v.Fc"]) == [
+        "coulomb.v.Fc (5x)", "m (3.1x)"]
+    final.std_robust = {"m": 0.0012}
+    text = "\n".join(_md_accepted(SimpleNamespace(steps=[step], final=final)))
+    assert "| coulomb.v.Fc | 3 | 0.01 | - |" in text and "more than 3 times" not in text

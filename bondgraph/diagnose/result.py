@@ -214,6 +214,17 @@ class AppliedEffect:
     spec: str | None = None
 
 
+def understated(std: dict, robust: dict, names) -> list[str]:
+    """The ``names`` whose robust std (``robust``, by name) exceeds their
+    Cramér-Rao std (``std``) by more than
+    :data:`~bondgraph.inference.robust.ROBUST_RATIO`, each with the ratio
+    ("c (24x)"), largest first."""
+    ratio = {n: robust[n] / std[n] for n in names
+             if std.get(n) and robust.get(n) is not None}
+    return [f"{n} ({r:.3g}x)" for n, r in sorted(ratio.items(), key=lambda kv: -kv[1])
+            if r > ROBUST_RATIO]
+
+
 @dataclass
 class FitSummary:
     """One fitted model as the report sees it.
@@ -276,14 +287,8 @@ class FitSummary:
         return getattr(self, "std_robust", None) or {}
 
     def understated(self) -> list[str]:
-        """The estimated parameters whose robust std exceeds their
-        Cramér-Rao std by more than :data:`~bondgraph.inference.robust.ROBUST_RATIO`,
-        each with the ratio ("c (24x)"), largest first."""
-        rob = self.robust()
-        ratio = {n: rob[n] / self.std[n] for n in self.estimates
-                 if self.std.get(n) and rob.get(n) is not None}
-        return [f"{n} ({r:.3g}x)" for n, r in sorted(ratio.items(), key=lambda kv: -kv[1])
-                if r > ROBUST_RATIO]
+        """:func:`understated` of this fit's estimated parameters."""
+        return understated(self.std, self.robust(), self.estimates)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""

@@ -19,7 +19,7 @@ import math
 from html import escape
 from pathlib import Path
 
-from bondgraph.diagnose.result import LoopResult
+from bondgraph.diagnose.result import LoopResult, understated
 from bondgraph.report.evidence import confirmed_value
 from bondgraph.inference.robust import ROBUST_RATIO
 
@@ -240,10 +240,11 @@ def _parameters(result: LoopResult) -> list[str]:
               ("noise std", f.noise_estimates, "noise.")]
     declared = result.declared_graph.params if result.declared_graph is not None else None
     added = set() if declared is None else {n for n in f.estimates if n not in declared}
+    robust = getattr(f, "std_robust", None) or {}
     for kind, values, prefix in groups:
         for name, v in values.items():
             sd = f.std.get(prefix + name)
-            rb = f.robust().get(prefix + name)
+            rb = robust.get(prefix + name)
             rel = abs(sd / v) * 100 if sd is not None and v else None
             note = "on a bound" if name in f.at_bound else ""
             rows.append([name, kind, _num(v, ".6g"), _num(sd, ".3g"), _num(rb, ".3g"),
@@ -251,7 +252,7 @@ def _parameters(result: LoopResult) -> list[str]:
             classes.append("accepted" if name in added else "")
     table = _table(["name", "kind", "estimate", "Cramér-Rao std", "robust std",
                     "std / |estimate| [%]", "note"], rows, classes)
-    loose = f.understated()
+    loose = understated(f.std, robust, f.estimates)
     warn = (f'<p class="warnings">The robust (sandwich) std exceeds the Cramér-Rao std by more '
             f'than {ROBUST_RATIO:g} times for {escape(", ".join(loose))}: the innovations are still '
             f'serially correlated, so the Cramér-Rao std understates their uncertainty; quote '
