@@ -1741,7 +1741,9 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     s = ctx.settings
     placed = [(get_effect(c.effect, s.effects), c.target) for c in added]
     adm = admissibility(ctx, after, current.graph, placed) if comparable else None
-    d = decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable)
+    inner = [e.pname(t, p.name) for e, t in placed for p in e.params if p.interior]
+    d = decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
+               interior=inner)
     if d.accepted or not newly_boxed(current, after):
         return d
     free = switched_off(ctx, current, after)
@@ -1754,7 +1756,7 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     if not free:
         return d
     return decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
-                  box_free=free)
+                  box_free=free, interior=inner)
 
 
 def switched_off(ctx: Context, current: Fit, after: Fit) -> list[str]:
@@ -1819,7 +1821,9 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
         dof = max(1, len(set(reduced.params) - set(current.params)))
         d = decide(current, reduced, s.accept, dof=dof,
                    admissible=admissibility(ctx, reduced, current.graph, placed),
-                   comparable=reduced.converged is not False)
+                   comparable=reduced.converged is not False,
+                   interior=[e.pname(t, p.name) for e, t in placed for p in e.params
+                             if p.interior])
         if not d.accepted:
             ctx.log(f"  {label} without {what}: not accepted against the model before this "
                     f"step ({d.reason}): {what} kept")

@@ -122,6 +122,11 @@ class EffectParam:
     #: fixed box of a dimensionless fraction (e.g. (0, 1)); None: the loop
     #: sets the box around the start value
     bounds: tuple[float, float] | None = None
+    #: an estimate on a bound of this parameter's box is no finding of the
+    #: effect (a power law's exponent at the end of the exponents it covers:
+    #: the record asks for something beyond the effect's family), and the
+    #: accept rule refuses it (:func:`bondgraph.diagnose.accept.decide`)
+    interior: bool = False
 
 
 # ------------------------------------------------------------------ helpers

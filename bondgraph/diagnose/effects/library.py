@@ -19,7 +19,7 @@ from bondgraph.diagnose.effects.friction import (
     Viscous,
 )
 from bondgraph.diagnose.effects.hysteresis import BoucWen
-from bondgraph.diagnose.effects.laws import RCubic, RQuadratic, RSquareRoot
+from bondgraph.diagnose.effects.laws import RCubic, RPower, RQuadratic, RSquareRoot
 from bondgraph.diagnose.effects.sensors import (
     SensorGain,
     SensorLowPass,
@@ -67,6 +67,9 @@ DEFAULT_EFFECTS: tuple[Effect, ...] = (
     # a user's Silverbox declared as a series RLC circuit reads the output
     # as the capacitor's voltage: the cubic beside the C, not in its law
     CubicRestoring(),
+    # a user's oven (convection from its case, ΔT^1.25): the quadratic term
+    # left a misfit that a cold start of the room air then absorbed
+    RPower(),
 )
 
 #: effects of the library that the loop scores only when asked
