@@ -470,13 +470,7 @@ def at_family_edge(after: Fit, interior: Sequence[str]) -> str:
     ``interior``, :class:`~bondgraph.diagnose.effects.base.EffectParam`)
     that the refit ``after`` leaves on a bound of their box, with value and
     box ("" when none)."""
-    names = [n for n in interior if n in (after.at_bound or ())]
-    if not names:
-        return ""
-    model = after.model
-    lo, hi = model.bounds(names)
-    return ", ".join(f"{n} = {after.theta[model.param_index(n)]:.4g} (box [{a:.4g}, {b:.4g}])"
-                     for n, a, b in zip(names, lo, hi))
+    return _on_box_text(after, [n for n in interior if n in (after.at_bound or ())])
 
 
 def newly_boxed(current: Fit, after: Fit, exempt: Sequence[str] = ()) -> str:
@@ -493,7 +487,13 @@ def newly_boxed(current: Fit, after: Fit, exempt: Sequence[str] = ()) -> str:
     noise intensities on a bound (a process noise driven to zero by an
     effect that explains the model error) are not a compensation.
     """
-    names = [n for n in newly_boxed_names(current, after) if n not in exempt]
+    return _on_box_text(after, [n for n in newly_boxed_names(current, after)
+                                if n not in exempt])
+
+
+def _on_box_text(after: Fit, names: Sequence[str]) -> str:
+    """``name = value (box [lo, hi])`` of ``names`` in ``after``, comma
+    separated ("" for none)."""
     if not names:
         return ""
     model = after.model
