@@ -32,7 +32,7 @@ from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.effects import get_effect
 from bondgraph.diagnose.effects.library import OPTIONAL_EFFECTS
 from bondgraph.diagnose.loop import run_loop
-from bondgraph.diagnose.result import understated
+from bondgraph.diagnose.result import robust_of, understated
 from bondgraph.diagnose.runner import chosen_numerics as loop_chosen_numerics
 from bondgraph.diagnose.settings import (
     DEFAULT_HOLDOUT,
@@ -254,8 +254,7 @@ def run(args) -> int:
     hint = unexplained_hint(res, args.discover, graph, settings.effects)
     if hint:
         print(hint)
-    loose = understated(res.final.std, getattr(res.final, "std_robust", None) or {},
-                        res.final.estimates)
+    loose = understated(res.final.std, robust_of(res.final), res.final.estimates)
     if loose:
         print(f"note: the Cramér-Rao std understates the uncertainty of {', '.join(loose)} "
               f"(robust std that many times larger: the innovations are serially correlated); "

@@ -147,9 +147,9 @@ class Fit:
     carries (``warnings``: a declared parameter on its box and what the box
     costs), and the quantities along which the likelihood is flat where
     the scoring stopped, converged in every other direction (``flat``,
-    :attr:`bondgraph.inference.fisher.Scoring.flat`), and the robust
-    (sandwich) std by name where the scoring gave one (``std_robust``,
-    :func:`bondgraph.inference.robust.robust_std`)."""
+    :attr:`bondgraph.inference.fisher.Scoring.flat`), and, for the loop's
+    final model, the robust (sandwich) std by name (``std_robust``,
+    :func:`robust_std_of`)."""
 
     graph: BondGraph
     model: Model
@@ -403,16 +403,32 @@ def cr_std(F: np.ndarray, names: Sequence[str]) -> dict:
         return {n: None for n in names}
 
 
-def robust_by_name(F: np.ndarray | None, G: np.ndarray | None, names: Sequence[str]) -> dict:
-    """Robust (sandwich) standard deviations by name from the Fisher
-    information F (k, k), standing in for the Hessian, and the per-sample
-    scores G (N, k) (:func:`bondgraph.inference.robust.robust_std`; White
-    1982, Newey & West 1987); {} when either is missing or F is not
-    positive definite."""
+def robust_std_of(ctx: Context, fit: Fit) -> dict:
+    """Robust (sandwich) standard deviations of ``fit``'s parameters by name
+    (:func:`bondgraph.inference.robust.robust_std`; White 1982, Newey &
+    West 1987): the Fisher information, standing in for the Hessian, and
+    the per-sample scores from one batched UKF run at the estimate, with
+    the problem conditioned on the loop's current fit (its initial states
+    and noise levels held). {} where it cannot be computed; parameters on a
+    bound or without a Cramér-Rao std get none. For the final model only:
+    a run of k + 1 sets, not worth its cost on every refit."""
+    params = [n for n in fit.params if n not in fit.at_bound and fit.std.get(n) is not None]
+    if not params:
+        return {}
+    model = fit.model
+    idx = [model.param_index(n) for n in params]
+    lo, hi = bounds_around(model, params, fit.theta)
+    noise = noise_params(model)
+    scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
+    try:
+        got = fisher_fit(problem_for(ctx, model), fit.theta, idx, (lo, hi), 0, log_scale=scale,
+                         information=True, scores=True)
+    except (FloatingPointError, np.linalg.LinAlgError):
+        return {}
+    F, G = got[1], got[-1]
     if F is None or G is None:
         return {}
-    r = robust_std(F, G)
-    return {n: float(v) for n, v in zip(names, r) if np.isfinite(v)}
+    return {n: float(v) for n, v in zip(params, robust_std(F, G)) if np.isfinite(v)}
 
 
 # ----------------------------------------------------------------- fitting
@@ -461,15 +477,14 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     theta = clip_into_box(ctx, model, params, theta, what)
     iters = ctx.settings.search.fit_iterations if iterations is None else int(iterations)
     std: dict = {}
-    robust: dict = {}
     conv: tuple = (None, None, ())
     x0_est = {s: pb.prior.estimated[s] for s in x0_states(ctx, model) if s in pb.prior.estimated}
     noise_est = {o: pb.noise.held[o] for o in pb.noise.outputs(model) if o in pb.noise.held}
     if params and iters > 0:
         start_sigma = noise_start(pb, theta)
         theta = _settle_theta(ctx, pb, params, theta, iters, what, start_sigma)
-        theta, std, conv, x0_new, noise_new, robust = _maximize(ctx, pb, params, theta,
-                                                                iters, what, tolerance)
+        theta, std, conv, x0_new, noise_new = _maximize(ctx, pb, params, theta, iters, what,
+                                                        tolerance)
         x0_est.update(x0_new)
         noise_est.update(noise_new)
         _noise_bound_warning(ctx, what, noise_new, start_sigma, std)
@@ -478,8 +493,6 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     fit.converged, fit.iterations, fit.flat = conv
     fit.x0_est, fit.noise_est = x0_est, noise_est
     fit.at_bound = on_bound(model, params, theta)
-    fit.std_robust = {n: v for n, v in robust.items()
-                      if n not in fit.at_bound and fit.std.get(n) is not None}
     if fit.at_bound:
         ctx.log(f"  warning: {what}: estimate(s) on a bound of their box: "
                 f"{', '.join(f'{n} = {fit.theta[model.param_index(n)]:.4g}' for n in fit.at_bound)}"
@@ -506,16 +519,14 @@ def _settle_theta(ctx: Context, problem: Problem, params: list[str], theta: np.n
 
 
 def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarray, iters: int,
-              what: str, tolerance: float = 0.0
-              ) -> tuple[np.ndarray, dict, tuple, dict, dict, dict]:
+              what: str, tolerance: float = 0.0) -> tuple[np.ndarray, dict, tuple, dict, dict]:
     """Fisher scoring of ``params`` from ``theta`` (noise intensities in log
     scale), the initial states of :func:`x0_states` and the noise stds of
     the problem's estimated outputs jointly, L-BFGS-B (θ only) if it fails
     numerically; returns θ, the Cramér-Rao std (empty after the fallback;
     ``x0.<state>``, ``noise.<output>`` for the others), (converged,
     iterations, the quantities along which the likelihood is flat where it
-    stopped), the estimated initial states and noise stds by name, and the
-    robust std by name (:func:`robust_by_name`; empty after the fallback)."""
+    stopped), the estimated initial states and noise stds by name."""
     model = problem.model
     states = x0_states(ctx, model)
     noises = problem.noise.outputs(model)
@@ -527,7 +538,7 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
     noise = noise_params(model)
     scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
     try:
-        theta, F, conv, used, x0n, sig, flat, _, G = fisher_fit(
+        theta, F, conv, used, x0n, sig, flat, _, _ = fisher_fit(
             problem, theta, idx, (lo, hi), iters, log_scale=scale, tolerance=tolerance,
             states=states, noises=noises)
         names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]
@@ -548,8 +559,7 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
                              f"combination of them: collinearity index > 100); fix one, or "
                              f"use a record that excites them apart")
         return (theta, cr_std(F, names), (conv, used, flat),
-                {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig,
-                robust_by_name(F, G, names))
+                {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
         ctx.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
         crit = make_criterion(problem, params, theta, ctx.settings.evaluation.chunk)
@@ -557,7 +567,7 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
         theta = crit.theta(x[None, :])[0]
         std, flat = _information_at(problem, params, theta, idx, (lo, hi), scale)
-        return theta, std, (None, None, flat), {}, {}, {}
+        return theta, std, (None, None, flat), {}, {}
 
 
 def _information_at(problem: Problem, params: list[str], theta: np.ndarray, idx, box,

@@ -131,7 +131,7 @@ def make_criterion(problem: Problem, names: Sequence[str], base: np.ndarray,
 
 def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, iterations: int,
                *, log_scale, tolerance: float = 0.0, states: Sequence[str] = (),
-               noises: Sequence[str] = (), information: bool = True):
+               noises: Sequence[str] = (), information: bool = True, scores: bool = False):
     """Maximum-likelihood fit by Levenberg-damped Fisher scoring
     (:func:`bondgraph.inference.fisher.estimand_scoring`), the initial states
     ``states`` estimated jointly (:class:`~bondgraph.inference.estimand.Estimand`).
@@ -162,6 +162,8 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
     information : bool
         Compute the Fisher information at the result (False: ``F`` is None
         when the last iteration moved; one batched UKF run fewer).
+    scores : bool
+        Return the per-sample scores at the result too (the robust std).
 
     Returns
     -------
@@ -185,7 +187,7 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
         the same number as a UKF run of ``problem`` at ``theta`` when no
         state or noise std is estimated).
     scores : array (N, k + m + r) or None
-        Per-sample scores at the result (None with ``F``).
+        Per-sample scores at the result (None without ``scores`` or ``F``).
 
     Raises
     ------
@@ -204,7 +206,8 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
                                                 log_scale=scale, information=information))
     sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
     return (r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig, r.flat,
-            float(r.nll), r.scores)
+            float(r.nll),
+            r.derivatives.scores() if scores and r.derivatives is not None else None)
 
 
 def predicted_step_gain(problem: Problem, theta: np.ndarray, index: Sequence[int], box) -> float:

@@ -214,6 +214,12 @@ class AppliedEffect:
     spec: str | None = None
 
 
+def robust_of(summary) -> dict:
+    """A fit summary's robust std by name ({} when it has none: a summary
+    from before they existed, or a stand-in)."""
+    return getattr(summary, "std_robust", None) or {}
+
+
 def understated(std: dict, robust: dict, names) -> list[str]:
     """The ``names`` whose robust std (``robust``, by name) exceeds their
     Cramér-Rao std (``std``) by more than
@@ -282,14 +288,6 @@ class FitSummary:
     flat: list = field(default_factory=list)
     std_robust: dict = field(default_factory=dict)
 
-    def robust(self) -> dict:
-        """``std_robust`` ({} for a summary pickled before it existed)."""
-        return getattr(self, "std_robust", None) or {}
-
-    def understated(self) -> list[str]:
-        """:func:`understated` of this fit's estimated parameters."""
-        return understated(self.std, self.robust(), self.estimates)
-
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
         return to_jsonable({"model": self.model, "nll": self.nll, "aic": self.aic,
@@ -298,7 +296,7 @@ class FitSummary:
                             "at_bound": self.at_bound, "x0_estimates": self.x0_estimates,
                             "noise_estimates": self.noise_estimates, "flat": self.flat,
                             "estimates": self.estimates, "std": self.std,
-                            "std_robust": self.robust(), "residuals": self.residuals.to_dict()})
+                            "std_robust": robust_of(self), "residuals": self.residuals.to_dict()})
 
 
 @dataclass

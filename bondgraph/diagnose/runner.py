@@ -42,6 +42,7 @@ from bondgraph.diagnose.fit import (
     model_of,
     noise_params,
     parameter_std,
+    robust_std_of,
     planned_noise,
     problem_for,
 )
@@ -182,6 +183,7 @@ def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) 
             result.warnings.append(msg)
     if not current.std:
         current.std = parameter_std(ctx, current)
+    current.std_robust = robust_std_of(ctx, current)
     result.finished = True
     publish(ctx, result, initial, current, on_update)
     ctx.log(f"done in {time.perf_counter() - t0:.1f} s")

@@ -209,10 +209,10 @@ class Scoring:
         scoring converged in every other direction and still gained less
         than :data:`FLAT_GAIN` nats per iteration along these, which the
         record does not identify; empty when it converged in all of them.
-    scores : ndarray (N, k) or None
-        Per-sample scores at the result (:meth:`Derivatives.scores`; the
-        robust std, :func:`bondgraph.inference.robust.robust_std`); None
-        with ``F``.
+    derivatives : Derivatives or None
+        The derivatives at the result (None with ``F``); their per-sample
+        scores (:meth:`Derivatives.scores`) give the robust std
+        (:func:`bondgraph.inference.robust.robust_std`).
     """
 
     estimand: Estimand
@@ -222,7 +222,7 @@ class Scoring:
     iterations: int
     converged: bool
     flat: tuple = ()
-    scores: np.ndarray | None = None
+    derivatives: Derivatives | None = None
 
 
 #: the scoring of :func:`fisher_scoring` by default: only the relative NLL
@@ -361,7 +361,7 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
             return Scoring(est, nll, None, runs, it, converged, flat)
         D = estimand_derivatives(model, t, u, y, est, _steps(z, hi, width), P0, options)
         runs += 1
-    return Scoring(est, D.nll, D.F, runs, it, converged, flat, D.scores())
+    return Scoring(est, D.nll, D.F, runs, it, converged, flat, D)
 
 
 def scoring_step_gain(model, t, u, y, est: Estimand, lower, upper, P0,

@@ -19,7 +19,7 @@ import math
 from html import escape
 from pathlib import Path
 
-from bondgraph.diagnose.result import LoopResult, understated
+from bondgraph.diagnose.result import LoopResult, robust_of, understated
 from bondgraph.report.evidence import confirmed_value
 from bondgraph.inference.robust import ROBUST_RATIO
 
@@ -240,7 +240,7 @@ def _parameters(result: LoopResult) -> list[str]:
               ("noise std", f.noise_estimates, "noise.")]
     declared = result.declared_graph.params if result.declared_graph is not None else None
     added = set() if declared is None else {n for n in f.estimates if n not in declared}
-    robust = getattr(f, "std_robust", None) or {}
+    robust = robust_of(f)
     for kind, values, prefix in groups:
         for name, v in values.items():
             sd = f.std.get(prefix + name)

@@ -24,7 +24,7 @@ from bondgraph.core.atomic import OutputFolder
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.plugins import resolve
 from bondgraph.core.equations import derive
-from bondgraph.diagnose.result import LoopResult, understated
+from bondgraph.diagnose.result import LoopResult, robust_of, understated
 from bondgraph.inference.robust import ROBUST_RATIO
 from bondgraph.report.drawing import draw, layout
 from bondgraph.report.evidence import SHOWN, plot_evidence
@@ -524,7 +524,7 @@ def _md_accepted(result: LoopResult) -> list[str]:
                   f"among them is not the data's — another record may decide."]
     L += ["", "Parameters of the final model:", "",
           "| parameter | estimate | Cramér-Rao std | robust std |", "|---|---|---|---|"]
-    robust = getattr(result.final, "std_robust", None) or {}
+    robust = robust_of(result.final)
     for n, v in result.final.estimates.items():
         sd, rb = result.final.std.get(n), robust.get(n)
         L.append(f"| {n} | {v:.6g} | {_g3(sd)} | {_g3(rb)} |")
