@@ -85,6 +85,20 @@ def add_to_r_law(graph: BondGraph, el: R, term) -> None:
     el.law = el.law + (term(x) if callable(term) else term)
 
 
+def io_units(graph: BondGraph, el: R) -> tuple[str, str]:
+    """Units of the R's causal input x and output y (:func:`causal_input`)."""
+    eu, fu = element_units(graph, el)
+    return (eu, fu) if causal_input(graph, el) == "effort" else (fu, eu)
+
+
+def io_rms(graph: BondGraph, target, scales) -> tuple[float, float]:
+    """RMS of the R's causal input x and output y in the record (``scales``)."""
+    inp = causal_input(graph, graph.element(target.name))
+    x = scales.get("r_effort_rms" if inp == "effort" else "r_flow_rms", target.name)
+    y = scales.get("r_flow_rms" if inp == "effort" else "r_effort_rms", target.name)
+    return float(x), float(y)
+
+
 class _RLawTerm(Effect):
     """A term β·b(x) added to an R's law in its causal form."""
 
@@ -95,9 +109,7 @@ class _RLawTerm(Effect):
         return resistor_targets(graph)
 
     def shape_values(self, graph, target, scales):
-        el = graph.element(target.name)
-        table = "r_effort_rms" if causal_input(graph, el) == "effort" else "r_flow_rms"
-        return {"eps": 0.01 * scales.get(table, target.name)}
+        return {"eps": 0.01 * io_rms(graph, target, scales)[0]}
 
     def term(self, x, S: dict):
         """The basis function b(x)."""
@@ -106,9 +118,7 @@ class _RLawTerm(Effect):
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
         el = graph.element(target.name)
-        eu, fu = element_units(graph, el)
-        inp = causal_input(graph, el)
-        xu, yu = (eu, fu) if inp == "effort" else (fu, eu)
+        xu, yu = io_units(graph, el)
         shapes = self.shape_values(graph, target, scales or Scales())
         P = {}
         for spc in self.params:
@@ -129,10 +139,7 @@ class _RLawTerm(Effect):
     def box(self, graph, target, scales):
         """The term's output at the RMS input between 10 % and 50 % of the
         R's RMS output."""
-        el = graph.element(target.name)
-        inp = causal_input(graph, el)
-        x = scales.get("r_effort_rms" if inp == "effort" else "r_flow_rms", target.name)
-        y = scales.get("r_flow_rms" if inp == "effort" else "r_effort_rms", target.name)
+        x, y = io_rms(graph, target, scales)
         b = abs(float(self.term(sp.Float(x), {"eps": 0.01 * x})))
         return {self.params[0].name: (0.1 * y / b, 0.5 * y / b)}
 
@@ -208,20 +215,12 @@ class RPower(_Structural):
     def targets(self, graph):
         return resistor_targets(graph)
 
-    def _rms(self, graph, target, scales) -> tuple[float, float]:
-        """RMS of the R's causal input x and output y in the record."""
-        el = graph.element(target.name)
-        inp = causal_input(graph, el)
-        x = scales.get("r_effort_rms" if inp == "effort" else "r_flow_rms", target.name)
-        y = scales.get("r_flow_rms" if inp == "effort" else "r_effort_rms", target.name)
-        return float(x), float(y)
-
     def shape_values(self, graph, target, scales):
-        x, _ = self._rms(graph, target, scales)
+        x, _ = io_rms(graph, target, scales)
         return {"x_ref": x, "eps": 0.01 * x}
 
     def grid(self, graph, target, scales):
-        x, y = self._rms(graph, target, scales)
+        x, y = io_rms(graph, target, scales)
         g = y / x if x > 0 else 1.0
         return [{"beta": f * g, "n": n} for n in self.exponents for f in self.fractions]
 
@@ -236,8 +235,7 @@ class RPower(_Structural):
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
         el = graph.element(target.name)
-        eu, fu = element_units(graph, el)
-        xu, yu = (eu, fu) if causal_input(graph, el) == "effort" else (fu, eu)
+        xu, yu = io_units(graph, el)
         shapes = self.shape_values(graph, target, scales) if scales is not None else {}
         P = {}
         for spc in self.params:
