@@ -25,6 +25,7 @@ from bondgraph.inference.fisher import (
     estimand_scoring,
     flat_directions,
     scoring_step_gain,
+    scoring_steps,
 )
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.inference.options import Evaluation, ScoringOptions
@@ -208,6 +209,22 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
     return (r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig, r.flat,
             float(r.nll),
             r.derivatives.scores() if scores and r.derivatives is not None else None)
+
+
+def fisher_steps(problem: Problem, thetas: Sequence[np.ndarray], index: Sequence[int], box
+                 ) -> list[tuple[np.ndarray, float] | None]:
+    """One Fisher-scoring iteration over the parameters ``index`` (k) from
+    each start of ``thetas`` (each (n_theta,)), inside ``box`` (lower (k,),
+    upper (k,)), linear scale, with ``problem``'s prior, held noise levels and
+    filter, batched over the starts
+    (:func:`bondgraph.inference.fisher.scoring_steps`: two UKF runs in all);
+    per start ``(theta, nll)`` or None where the UKF fails at the start. The
+    same results as ``fisher_fit(..., 1, information=False)`` per start."""
+    starts = [_estimand(problem, np.asarray(th, float), index, problem.P0) for th in thetas]
+    t, u, y = problem.arrays
+    out = scoring_steps(problem.model, t, u, y, starts, box[0], box[1], problem.P0,
+                        options=problem.ukf, log_scale=np.zeros(len(index), bool))
+    return [None if o is None else (o[0].theta, float(o[1])) for o in out]
 
 
 def predicted_step_gain(problem: Problem, theta: np.ndarray, index: Sequence[int], box) -> float:

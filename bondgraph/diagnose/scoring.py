@@ -43,7 +43,13 @@ from scipy.stats import chi2
 from bondgraph.core import progress
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
 from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, problem_for
-from bondgraph.diagnose.inference_calls import Problem, fisher_fit, predicted_step_gain, run_ukf
+from bondgraph.diagnose.inference_calls import (
+    Problem,
+    fisher_fit,
+    fisher_steps,
+    predicted_step_gain,
+    run_ukf,
+)
 from bondgraph.diagnose.parallel import distributed, local_map, run_tasks
 from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.scales import operating_scales  # noqa: F401 (public name)
@@ -79,18 +85,22 @@ PROFILE_REACH = 4.0
 def noise_variants(model: Model, fit: Fit, base: np.ndarray, factors) -> list:
     """Copies of ``base`` (n_theta,) with the estimated noise intensities of
     ``fit`` (:func:`bondgraph.diagnose.fit.noise_params`) scaled by each
-    factor, clipped to their box; ``[base]`` if none is estimated."""
+    factor, clipped to their box, each distinct copy once (an intensity on
+    the bottom of its box, as after an effect that explains the record,
+    gives the same copy for every factor below 1: its filter runs would
+    repeat one another); ``[base]`` if none is estimated."""
     noise = noise_params(fit.model)
     names = [n for n in fit.params if n in noise and n in model.params]
     if not names:
         return [base]
-    out = []
+    out: list = []
     for f in factors:
         th = base.copy()
         for n in names:
             j = model.param_index(n)
             th[j] = float(np.clip(base[j] * f, model.lower[j], model.upper[j]))
-        out.append(th)
+        if not any(np.array_equal(th, o) for o in out):
+            out.append(th)
     return out
 
 
@@ -645,7 +655,8 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
     variant; NLLs ``net`` (n_sets,) of ``sets``) get one Fisher-scoring step
     over the declared estimated parameters alone, the effect's held at the
     grid value (a profile likelihood over the grid, Cox & Hinkley 1974,
-    §9.2 (iii)).
+    §9.2 (iii)), the starts' steps batched in two UKF runs
+    (:func:`~bondgraph.diagnose.inference_calls.fisher_steps`).
 
     Why: the declared fit has already compensated for the missing effect
     (a peak torque lowered to the level of a saturation), so with the
@@ -673,18 +684,13 @@ def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
         key = tuple(sorted(grid_of[j].items()))
         if np.isfinite(net[j]) and key not in first:
             first[key] = int(j)
-    pb = problem_for(ctx, model)
     idx = [model.param_index(p) for p in names]
-    lo, hi = model.bounds(names)
-    for j in list(first.values())[:n]:
-        try:
-            fitted = fisher_fit(pb, np.array(sets[j]), idx, (lo, hi), 1,
-                                log_scale=np.zeros(len(idx), bool), information=False)
-        except (FloatingPointError, np.linalg.LinAlgError):
-            continue
-        th, f = fitted[0], fitted[7]      # the NLL at th: no run of its own
-        if np.isfinite(f) and f < best:
-            best, th_best, i_best = f, th, j
+    starts = list(first.values())[:n]
+    steps = fisher_steps(problem_for(ctx, model), [np.array(sets[j]) for j in starts], idx,
+                         model.bounds(names))
+    for j, stepped in zip(starts, steps):
+        if stepped is not None and np.isfinite(stepped[1]) and stepped[1] < best:
+            best, th_best, i_best = stepped[1], stepped[0], j
     return best, th_best, i_best
 
 
