@@ -892,7 +892,7 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
                 why = "the free run from the smoothed initial state fits the record worse " \
                       "than from the prior mean, which starts with a transient"
         # no smoothed start the prior allows, or a poor one: fit one to the outputs
-        xs = _fitted_start(ctx, problem, theta, (hold, u_sim), base, free, why)
+        xs = _fitted_start(ctx, problem, theta, (hold, u_sim), base, free, why, what)
         if xs is not base:
             return _better_start(ctx, problem, theta, (hold, u_sim), xs, base, y0=y0,
                                  y0_from=what)[0]
@@ -934,7 +934,8 @@ def startup_transient(y: np.ndarray, sim: np.ndarray | None) -> bool:
 
 
 def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple,
-                  x0: np.ndarray, states: Sequence[str], why: str | None) -> np.ndarray:
+                  x0: np.ndarray, states: Sequence[str], why: str | None,
+                  x0_is: str = "the prior mean") -> np.ndarray:
     """The initial state whose free run fits the record's outputs best:
     the states ``states`` (those nothing gives) by bounded nonlinear least
     squares (:func:`scipy.optimize.least_squares`, trust-region reflective,
@@ -955,9 +956,10 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
     the same method and hold as the error it starts), not
     :func:`~bondgraph.inference.output_error.output_error_fit`'s, whose
     simulation differs: the start must be the best for the error reported.
-    Returns ``x0`` itself when the fit fails or does not improve on
-    it. One line logged when ``why`` (the smoothed start's fault) is
-    given: why, and the start taken."""
+    ``x0`` is the start the fit moves from (the prior mean, or a smoothed
+    start: ``x0_is`` names it in the log). Returns ``x0`` itself when the
+    fit fails or does not improve on it. One line logged when ``why`` (the
+    smoothed start's fault) is given: why, and the start taken."""
     from scipy.optimize import least_squares
 
     y = problem.arrays[2]
@@ -987,12 +989,12 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
         if why:
             ctx.log(f"  {why}; fitting one to the outputs failed ({str(exc).splitlines()[0]}): "
-                    f"the free run starts from the prior mean")
+                    f"the free run starts from {x0_is}")
         return x0
     if not (np.all(np.isfinite(fit.x)) and fit.cost < 0.5 * float(r0 @ r0)):
         if why:
-            ctx.log(f"  {why}; the one fitted to the outputs does not improve on the prior "
-                    f"mean: the free run starts there")
+            ctx.log(f"  {why}; the one fitted to the outputs does not improve on {x0_is}: "
+                    f"the free run starts there")
         return x0
     xi = x0.copy()
     xi[idx] = x0[idx] + fit.x * sd
