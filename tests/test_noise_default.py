@@ -410,3 +410,37 @@ def test_sensitivity_of_a_sensor_without_a_noise_level_weighs_by_the_record_leve
     # 4.7e-4 of it on one machine, 3e-5 on another
     scale = np.sqrt(np.outer(np.diag(ref), np.diag(ref)))
     assert np.all(np.abs(F - ref) <= 1e-2 * scale)
+
+
+def test_a_noise_std_on_its_box_is_named_with_the_side_and_the_cause():
+    """A sensor noise std estimated to the top of its box (NOISE_BOX times
+    the sensor's level: a user's ball-screw graph without process noise,
+    1e-6 m declared, 0.01 m estimated) is the model's error, not the
+    sensor: the warning says so and, without process noise, where to
+    declare it; on the bottom of the box the variance went into the process
+    noise. Both lose their Cramér-Rao std."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.fit import _noise_bound_warning
+    from bondgraph.inference.estimand import NOISE_BOX
+
+    logs = []
+    ctx = SimpleNamespace(log=logs.append)
+    start = {"qm": 1e-6, "v": 0.1, "w": 0.2}
+    est = {"qm": 1e-6 * NOISE_BOX, "v": 0.1 / NOISE_BOX, "w": 0.3}
+    std = {"noise.qm": 1.0, "noise.v": 1.0, "noise.w": 0.01}
+    _noise_bound_warning(ctx, "the declared fit", est, start, std, process_noise=False)
+    assert std == {"noise.qm": None, "noise.v": None, "noise.w": 0.01}
+    assert logs == [
+        "  warning: the declared fit: measurement-noise std on the bottom of its box: v = 1e-05 "
+        "(not identified by the record beside the process noise; declare it in the record or "
+        "use noise='model')",
+        "  warning: the declared fit: measurement-noise std on the top of its box: qm = 0.01, "
+        "10000 times the sensor's level: not the sensor but the model's error, which the filter "
+        "reads as sensor noise (no process noise is declared: declare it on the states where "
+        "efforts or flows are unmodelled); declare the sensor's level in the record to hold it"]
+    logs.clear()
+    _noise_bound_warning(ctx, "a refit", {"qm": 0.01}, {"qm": 1e-6}, {}, process_noise=True)
+    assert logs[0].endswith("qm = 0.01, 10000 times the sensor's level: not the sensor but the "
+                            "model's error, which the filter reads as sensor noise; declare the "
+                            "sensor's level in the record to hold it")

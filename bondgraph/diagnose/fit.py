@@ -32,6 +32,7 @@ from bondgraph.diagnose.inference_calls import (
     lbfgsb_polish,
     make_criterion,
     make_problem,
+    no_process_noise,
     noise_parameters,
     plan_noise,
     robust_std,
@@ -297,18 +298,35 @@ def noise_start(problem: Problem, theta: np.ndarray) -> dict:
             for o in problem.noise.outputs(model)}
 
 
-def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: dict) -> None:
-    """Log a warning for estimated noise stds on a bound of their box (the
-    likelihood puts the output's variance elsewhere, e.g. into process noise);
-    their Cramér-Rao std becomes None."""
-    bad = [o for o, v in est.items() if o in start and start[o] > 0
-           and not start[o] / NOISE_BOX * (1 + 1e-6) < v < start[o] * NOISE_BOX * (1 - 1e-6)]
-    for o in bad:
+def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: dict,
+                         process_noise: bool = True) -> None:
+    """Log a warning for estimated noise stds on a bound of their box; their
+    Cramér-Rao std becomes None. On the bottom of the box the likelihood
+    puts the output's variance elsewhere (into process noise); on the top
+    the model's misfit sets it (without ``process_noise``, the filter's
+    prediction is the free run and its whole error reads as sensor noise)."""
+    lo = [o for o, v in est.items() if o in start and start[o] > 0
+          and not start[o] / NOISE_BOX * (1 + 1e-6) < v]
+    hi = [o for o, v in est.items() if o in start and start[o] > 0 and o not in lo
+          and not v < start[o] * NOISE_BOX * (1 - 1e-6)]
+    for o in lo + hi:
         std[f"noise.{o}"] = None
-    if bad:
-        ctx.log(f"  warning: {what}: measurement-noise std on a bound of its box: "
-                f"{', '.join(f'{o} = {est[o]:.3g}' for o in bad)} (not identified by the record "
-                f"beside the process noise; declare it in the record or use noise='model')")
+
+    def listed(outs):
+        return ", ".join(f"{o} = {est[o]:.3g}" for o in outs)
+
+    if lo:
+        ctx.log(f"  warning: {what}: measurement-noise std on the bottom of its box: "
+                f"{listed(lo)} (not identified by the record beside the process noise; "
+                f"declare it in the record or use noise='model')")
+    if hi:
+        where = ("the model's error, which the filter reads as sensor noise (no process noise "
+                 "is declared: declare it on the states where efforts or flows are "
+                 "unmodelled)") if not process_noise else \
+            "the model's error, which the filter reads as sensor noise"
+        ctx.log(f"  warning: {what}: measurement-noise std on the top of its box: "
+                f"{listed(hi)}, {NOISE_BOX:g} times the sensor's level: not the sensor but "
+                f"{where}; declare the sensor's level in the record to hold it")
 
 
 def planned_noise(problem: Problem, settings: LoopSettings,
@@ -487,7 +505,8 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
                                                         tolerance)
         x0_est.update(x0_new)
         noise_est.update(noise_new)
-        _noise_bound_warning(ctx, what, noise_new, start_sigma, std)
+        _noise_bound_warning(ctx, what, noise_new, start_sigma, std,
+                             not no_process_noise(model, theta))
     fitted = pb.conditioned_on(x0={**pb.prior.estimated, **x0_est}, noise_levels=noise_est)
     fit = evaluate_fit(ctx, fitted, graph, params, theta, what, std)
     fit.converged, fit.iterations, fit.flat = conv

@@ -16,7 +16,7 @@ import numpy as np
 
 from bondgraph.errors import NumericalError
 
-from bondgraph.inference.discretise import choose_discretisation
+from bondgraph.inference.discretise import choose_discretisation, no_process_noise
 from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, noise_plan
@@ -46,6 +46,7 @@ from bondgraph.numerics.integrators import simulate_batch
 # times / divided by NOISE_BOX), the problem's parts, the noise detector,
 # the robust std and the long-run variance (bondgraph.inference.robust)
 __all__ = ["FLAT_GAIN", "flat_directions", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem",
+           "no_process_noise",
            "choose_discretisation", "kernel_threads", "make_problem", "noise_parameters",
            "ROBUST_RATIO", "andrews_bandwidth", "long_run_variance", "robust_std"]
 
