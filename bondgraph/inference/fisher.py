@@ -420,7 +420,7 @@ def scoring_steps(model, t, u, y, starts: list[Estimand], lower, upper, P0, *,
             if _converged(D, z, L, free, 0.0, np.inf)[0]:
                 out[s] = (e, D.nll)
                 continue
-            alphas, cand = _candidates(z, _scoring_step(D, z, L, 1e-3, free), L, lo, hi)
+            _, cand = _candidates(z, _scoring_step(D, z, L, 1e-3, free), L, lo, hi)
         except (FloatingPointError, np.linalg.LinAlgError):
             continue
         out[s] = (e, D.nll)
