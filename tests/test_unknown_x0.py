@@ -387,7 +387,9 @@ def test_a_taken_smoothed_start_with_a_transient_is_refined_on_the_estimation_re
     y2 = b·e^(−2t) + 1, truth (a, b, e) = (2, −1, 0); smoothed start
     (1, −1, 0.3), e not declared; the least-squares a is
     2 − 0.3 Σe^(−t_k) / Σe^(−2t_k) (e held at 0.3), b = −1 exactly. On the
-    held-out record (``own=False``) the smoothed run is kept as it is."""
+    held-out record (``own=False``), and on the estimation record when no
+    validation record exists (it then judges the accept decision), the
+    smoothed run is kept as it is."""
     from types import SimpleNamespace
 
     from bondgraph.diagnose import fit as F
@@ -409,8 +411,8 @@ def test_a_taken_smoothed_start_with_a_transient_is_refined_on_the_estimation_re
                          model=SimpleNamespace(states=["a", "b", "e"]), prior=prior,
                          record=None, disc=SimpleNamespace(hold="zoh"))
     declared = SimpleNamespace(model=SimpleNamespace(states=["a", "b"]))
-    ctx = SimpleNamespace(log=logs.append, settings=None, problem=declared,
-                          log_once=lambda kind, msg: logs.append(msg))
+    ctx = SimpleNamespace(log=logs.append, settings=SimpleNamespace(validation="held-out"),
+                          problem=declared, log_once=lambda kind, msg: logs.append(msg))
     smoothed = run(None, None, None, None, xs)
     assert F.startup_transient(y, smoothed)
     got = F.free_run(ctx, pb, None)
@@ -422,4 +424,7 @@ def test_a_taken_smoothed_start_with_a_transient_is_refined_on_the_estimation_re
         "starts from the one fitted to the outputs")
     logs.clear()
     np.testing.assert_array_equal(F.free_run(ctx, pb, None, own=False), smoothed)
+    # without a validation record the estimation record judges: smoothed start kept
+    ctx.settings = SimpleNamespace(validation=None)
+    np.testing.assert_array_equal(F.free_run(ctx, pb, None), smoothed)
     assert logs == []

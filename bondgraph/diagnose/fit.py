@@ -874,7 +874,11 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
     start; a user's oven, whose temperatures start at the room's while its
     prior mean, heat 0 J, reads 0 °C: without process noise the smoother put
     its case at −4 °C, and the declared fit's error on its record read
-    0.2773). After a smoothed start only the declared graph's states
+    0.2773). A taken smoothed start is refined so only on the estimation
+    record and only when a validation record judges the accept decision: on
+    the record that judges, every model compared keeps the same rule (on
+    CED the refined start let a cold start be accepted on the start fitted
+    to the held-out record). After a smoothed start only the declared graph's states
     (``ctx.problem``'s model) are fitted, from the smoothed start: an
     effect's own state (a cold start's initial excess) fitted to a record's
     outputs fits that record's start, not the effect (on CED a cold start
@@ -894,7 +898,10 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
         y0, base, what = None, x0, "the prior mean"
         if xs is not x0:
             sim, taken = _better_start(ctx, problem, theta, (hold, u_sim), xs, x0, quiet=True)
-            if not startup_transient(problem.arrays[2], sim) or (taken and not own):
+            # a taken start is refined only where the record does not judge the
+            # accept decision: there every model it compares keeps the smoothed start
+            judged = not own or getattr(ctx.settings, "validation", None) is None
+            if not startup_transient(problem.arrays[2], sim) or (taken and judged):
                 return sim
             y0 = sim                # the better of the smoothed and prior-mean runs
             if taken:
