@@ -1743,7 +1743,7 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     s = ctx.settings
     placed = [(get_effect(c.effect, s.effects), c.target) for c in added]
     adm = admissibility(ctx, after, current.graph, placed) if comparable else None
-    inner = [e.pname(t, p.name) for e, t in placed for p in e.params if p.interior]
+    inner = interior_params(placed)
     d = decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
                interior=inner)
     if d.accepted or not newly_boxed(current, after):
@@ -1759,6 +1759,13 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
         return d
     return decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
                   box_free=free, interior=inner)
+
+
+def interior_params(placed: list) -> list[str]:
+    """The parameters of the placed effects ``placed`` ((effect, target)
+    pairs) that their effect declares ``interior`` (the accept rule refuses
+    one on a bound of its box, :func:`~bondgraph.diagnose.accept.at_family_edge`)."""
+    return [e.pname(t, p.name) for e, t in placed for p in e.params if p.interior]
 
 
 def switched_off(ctx: Context, current: Fit, after: Fit) -> list[str]:
@@ -1824,8 +1831,7 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
         d = decide(current, reduced, s.accept, dof=dof,
                    admissible=admissibility(ctx, reduced, current.graph, placed),
                    comparable=reduced.converged is not False,
-                   interior=[e.pname(t, p.name) for e, t in placed for p in e.params
-                             if p.interior])
+                   interior=interior_params(placed))
         if not d.accepted:
             ctx.log(f"  {label} without {what}: not accepted against the model before this "
                     f"step ({d.reason}): {what} kept")

@@ -125,13 +125,18 @@ def estimand_derivatives(model, t, u, y, est: Estimand, steps, P0,
     FloatingPointError
         If the UKF fails at the expansion point (its reason named).
     """
-    k = est.k
-    Z = np.repeat(est.value()[None, :], k + 1, axis=0)
-    Z[1:] += np.diag(np.asarray(steps, float))
-    th, x0s, R = est.expand(Z)
+    th, x0s, R = est.expand(_nudged(est.value(), steps))
     r = ukf_nll(model, t, u, y, th, x0s, est.prior_cov(P0), options=options, R=R, store=True)
     e0, S0, dE, dS = innovation_differences(r, steps)
     return _information(float(r.nll[0]), e0, S0, dE, dS)
+
+
+def _nudged(z: np.ndarray, steps) -> np.ndarray:
+    """The point ``z`` (k,) and its k copies nudged by ``steps`` (k,) along
+    each quantity in turn: (k + 1, k)."""
+    Z = np.repeat(np.asarray(z, float)[None, :], len(z) + 1, axis=0)
+    Z[1:] += np.diag(np.asarray(steps, float))
+    return Z
 
 
 def innovation_differences(r, steps) -> tuple:
@@ -328,12 +333,9 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
             D = estimand_derivatives(model, t, u, y, est.at(z), _steps(z, hi, width), P0,
                                      options)
             at, runs = z.copy(), runs + 1
-        free = ~pinned(D.grad, z, lo, hi)
-        converged, flat = _converged(D, z, L, free, sc.atol, gain)
+        converged, flat, alphas, cand = _proposal(D, z, L, lam, lo, hi, sc.atol, gain)
         if converged:
             break
-        step = _scoring_step(D, z, L, lam, free)
-        alphas, cand = _candidates(z, step, L, lo, hi)
         th, x0s, R = est.expand(cand)
         r = ukf_nll(model, t, u, y, th, x0s, est.prior_cov(P0), options=options, R=R)
         runs += 1
@@ -404,11 +406,7 @@ def scoring_steps(model, t, u, y, starts: list[Estimand], lower, upper, P0, *,
     k = starts[0].k
     ests = [e.at(np.clip(e.value(), lo, hi)) for e in starts]
     steps = [_steps(e.value(), hi, width) for e in ests]
-    nudged = []
-    for e, h in zip(ests, steps):
-        Z = np.repeat(e.value()[None, :], k + 1, axis=0)
-        Z[1:] += np.diag(h)
-        nudged.append(Z)
+    nudged = [_nudged(e.value(), h) for e, h in zip(ests, steps)]
     r = _batched_runs(model, t, u, y, ests, nudged, P0, options, store=True)
     out: list = [None] * len(ests)
     lines: dict = {}
@@ -416,11 +414,10 @@ def scoring_steps(model, t, u, y, starts: list[Estimand], lower, upper, P0, *,
         z = e.value()
         try:
             D = _information(*_block(r, s * (k + 1), k + 1, h))
-            free = ~pinned(D.grad, z, lo, hi)
-            if _converged(D, z, L, free, 0.0, np.inf)[0]:
+            converged, _, _, cand = _proposal(D, z, L, 1e-3, lo, hi, 0.0, np.inf)
+            if converged:
                 out[s] = (e, D.nll)
                 continue
-            _, cand = _candidates(z, _scoring_step(D, z, L, 1e-3, free), L, lo, hi)
         except (FloatingPointError, np.linalg.LinAlgError):
             continue
         out[s] = (e, D.nll)
@@ -467,6 +464,21 @@ class _RunView:
     reasons: list
     innovations: np.ndarray
     S: np.ndarray
+
+
+def _proposal(D: Derivatives, z, L, lam: float, lo, hi, atol: float, gain: float) -> tuple:
+    """One scoring iteration's proposal at ``z`` (k,) from its derivatives
+    ``D``: ``(converged, flat, alphas, cand)``, the convergence test
+    (:func:`_converged`, the parameters held on their bounds left out,
+    :func:`pinned`) and, unless converged, the line-search points of the
+    Levenberg-damped step (:func:`_scoring_step`, :func:`_candidates`;
+    None, None when converged)."""
+    free = ~pinned(D.grad, z, lo, hi)
+    converged, flat = _converged(D, z, L, free, atol, gain)
+    if converged:
+        return True, flat, None, None
+    alphas, cand = _candidates(z, _scoring_step(D, z, L, lam, free), L, lo, hi)
+    return False, flat, alphas, cand
 
 
 def scoring_step_gain(model, t, u, y, est: Estimand, lower, upper, P0,

@@ -99,6 +99,20 @@ def io_rms(graph: BondGraph, target, scales) -> tuple[float, float]:
     return float(x), float(y)
 
 
+def law_params(eff, graph: BondGraph, target, values: dict, shapes: dict, fallback: float,
+               bounds_of) -> dict:
+    """The parameters of ``eff``'s term at the R ``target`` added to
+    ``graph``, by local name: units from the R's causal input x and output y
+    (:func:`io_units`), start values from ``values``, else ``shapes``, else
+    ``fallback``, boxes ``bounds_of(spec)``."""
+    xu, yu = io_units(graph, graph.element(target.name))
+    return {spc.name: _new_param(graph, eff.pname(target, spc.name),
+                                 values.get(spc.name, shapes.get(spc.name, fallback)),
+                                 fill_unit(spc.unit, x=xu, y=yu), bounds_of(spc),
+                                 f"{spc.description} ({eff.title} of {target.name})")
+            for spc in eff.params}
+
+
 class _RLawTerm(Effect):
     """A term β·b(x) added to an R's law in its causal form."""
 
@@ -116,18 +130,11 @@ class _RLawTerm(Effect):
         raise NotImplementedError
 
     def apply(self, graph, target, values=None, scales=None):
-        values = dict(values or {})
-        el = graph.element(target.name)
-        xu, yu = io_units(graph, el)
         shapes = self.shape_values(graph, target, scales or Scales())
-        P = {}
-        for spc in self.params:
-            unit = fill_unit(spc.unit, x=xu, y=yu)
-            default = values.get(spc.name, shapes.get(spc.name, 0.0))
-            bounds = (-1e15, 1e15) if spc.estimated else (1e-15, 1e15)
-            P[spc.name] = _new_param(graph, self.pname(target, spc.name), default, unit, bounds,
-                                     f"{spc.description} ({self.title} of {target.name})")
-        add_to_r_law(graph, el, lambda x: P[self.params[0].name] * self.term(x, P))
+        P = law_params(self, graph, target, dict(values or {}), shapes, 0.0,
+                       lambda spc: (-1e15, 1e15) if spc.estimated else (1e-15, 1e15))
+        add_to_r_law(graph, graph.element(target.name),
+                     lambda x: P[self.params[0].name] * self.term(x, P))
         return P
 
     def basis(self, graph, target, scales):
@@ -233,17 +240,11 @@ class RPower(_Structural):
         return self.grid_span(graph, target, scales)
 
     def apply(self, graph, target, values=None, scales=None):
-        values = dict(values or {})
-        el = graph.element(target.name)
-        xu, yu = io_units(graph, el)
         shapes = self.shape_values(graph, target, scales) if scales is not None else {}
-        P = {}
-        for spc in self.params:
-            unit = fill_unit(spc.unit, x=xu, y=yu)
-            default = values.get(spc.name, shapes.get(spc.name, 1.0))
-            bounds = spc.bounds or ((0.0, 1e15) if spc.nonnegative else (1e-15, 1e15))
-            P[spc.name] = _new_param(graph, self.pname(target, spc.name), default, unit, bounds,
-                                     f"{spc.description} ({self.title} of {target.name})")
+        P = law_params(self, graph, target, dict(values or {}), shapes, 1.0,
+                       lambda spc: spc.bounds or ((0.0, 1e15) if spc.nonnegative
+                                                  else (1e-15, 1e15)))
         b, n, xr, ep = (P[k] for k in ("beta", "n", "x_ref", "eps"))
-        add_to_r_law(graph, el, lambda x: b * x * ((x**2 + ep**2) / xr**2) ** ((n - 1) / 2))
+        add_to_r_law(graph, graph.element(target.name),
+                     lambda x: b * x * ((x**2 + ep**2) / xr**2) ** ((n - 1) / 2))
         return P
