@@ -127,6 +127,18 @@ def test_user_graph_is_not_modified_and_effects_are_not_added_twice():
         apply_effect(h, "coulomb", ("junction", "v"), {"Fc": 1.0})
 
 
+@pytest.mark.parametrize("g0, expected", [(-8.02, -0.9), (5.0, 2.0), (0.3, 0.3)])
+def test_a_start_outside_the_effects_box_starts_on_its_edge(g0, expected):
+    """A score step's guess outside an effect's fixed box (the actuator
+    gain's g ∈ [−0.9, 2]) starts on the nearer edge; before, the effect
+    could not be applied ("default lies outside its bounds") and the
+    candidate was dropped."""
+    h = models.dc_motor_compliant().copy("aug")
+    P = apply_effect(h, "actuator_gain", ("source", "V"), {"g": g0})
+    assert P["g"].bounds == (-0.9, 2.0)
+    assert P["g"].default == expected
+
+
 def test_probe_model_at_neutral_values_equals_the_base_model():
     g = models.dc_motor_compliant()
     pg, cols = probe_graph(g, DEFAULT_EFFECTS, Scales(flow_rms={"w_L": 50.0, "w_m": 100.0},

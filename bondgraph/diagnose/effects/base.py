@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Mapping
 
+import numpy as np
 import sympy as sp
 
 from bondgraph.core import units as _units
@@ -232,9 +233,18 @@ def split_bond(graph: BondGraph, bond: Bond, kind: str, name: str) -> Junction:
 def _new_param(graph: BondGraph, name: str, default: float, unit: str, bounds, description: str,
                source: str = ADDED_BY) -> Parameter:
     """Declare an effect parameter (``GraphError`` if the graph has it: the
-    effect was added twice)."""
+    effect was added twice). A ``default`` outside the effect's fixed box
+    ``bounds`` starts on the box's nearer edge: the default is the score
+    test's guess, the box the effect's physics (a user's CED graph: the
+    actuator gain's score step gave g = −8.02 for g ∈ [−0.9, 2], and the
+    candidate, third of 37, was dropped as "cannot apply")."""
     if name in graph.params:
         raise GraphError(f"graph '{graph.name}' already has parameter '{name}': effect added twice?")
+    if bounds is not None and isinstance(default, (int, float)) and np.isfinite(default):
+        lo, hi = (-np.inf if bounds[0] is None else bounds[0],
+                  np.inf if bounds[1] is None else bounds[1])
+        if lo <= hi:
+            default = float(np.clip(default, lo, hi))
     return graph.param(name, default, unit, bounds, description, source)
 
 
