@@ -131,7 +131,7 @@ def test_a_switched_off_effect_goes_only_when_the_accept_rule_no_longer_wants_it
     else:
         assert fit is reduced and removed == [gone]
         assert d.accepted and d.lr == pytest.approx(2 * (current_nll - reduced_nll))
-        assert logs[-1].startswith("  r_sqrt @ damper switches coulomb @ v off and the record "
+        assert logs[-1].startswith("  r_sqrt @ damper puts coulomb @ v on its box and the record "
                                    "no longer wants it") and "removed" in logs[-1]
 
 

@@ -175,9 +175,9 @@ def test_an_earlier_effects_parameter_on_its_box_switches_it_off_and_does_not_re
                           log=logs.append)
     d = runner.decided(ctx, cur, after, 1, True, "cand")
     assert d.accepted and d.lr == pytest.approx(40.0) and beyond == []
-    assert logs == ["  cand: the refit moves c (of an effect accepted earlier) onto the box the "
-                    "effect library gave it: it switches that effect off, which is no reason to "
-                    "reject"]
+    assert logs == ["  cand: the refit moves c (of an effect accepted earlier) onto a bound of "
+                    "the box the effect library gave it (that effect switched off, or at the end "
+                    "of its range): the library's box, not the user's, is no reason to reject"]
     ctx.problem.model.params = ["m", "k", "c"]          # declared by the user
     d = runner.decided(ctx, cur, after, 1, True, "cand")
     assert not d.accepted and "the box, not the record, decides it" in d.reason

@@ -1751,8 +1751,9 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     free = switched_off(ctx, current, after)
     if free:
         ctx.log(f"  {label}: the refit moves {', '.join(free)} (of an effect accepted earlier) "
-                f"onto the box the effect library gave it: it switches that effect off, which "
-                f"is no reason to reject")
+                f"onto a bound of the box the effect library gave it (that effect switched off, "
+                f"or at the end of its range): the library's box, not the user's, is no reason "
+                f"to reject")
     if newly_boxed(current, after, exempt=free):
         free += [n for n in box_not_deciding(ctx, current, after, label) if n not in free]
     if not free:
@@ -1823,7 +1824,7 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
                       admissible=admissibility(ctx, fit, reduced.graph, [(eff, gone.target)]),
                       comparable=reduced.converged is not False and fit.converged is not False)
         if back.accepted:
-            ctx.log(f"  {label} switches {what} off, but it still passes the accept rule "
+            ctx.log(f"  {label} puts {what} on its box, but it still passes the accept rule "
                     f"given the others: kept")
             continue
         placed = [(get_effect(c.effect, s.effects), c.target) for c in added]
@@ -1836,7 +1837,7 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
             ctx.log(f"  {label} without {what}: not accepted against the model before this "
                     f"step ({d.reason}): {what} kept")
             continue
-        ctx.log(f"  {label} switches {what} off and the record no longer wants it ({back.reason}"
+        ctx.log(f"  {label} puts {what} on its box and the record no longer wants it ({back.reason}"
                 f" when it is added back): removed (NLL {fit.nll:.2f} -> {reduced.nll:.2f}, "
                 f"{result.metric} {back.error_after:.4g} -> {back.error_before:.4g})")
         fit, dec = reduced, d
