@@ -53,7 +53,7 @@ from bondgraph.diagnose.inference_calls import (
     output_error,
 )
 from bondgraph.diagnose.metric import metric_name
-from bondgraph.diagnose.parallel import distributed, run_tasks
+from bondgraph.diagnose.parallel import distributed, local_map, run_tasks
 from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, rank_of
 from bondgraph.diagnose.scoring import (
     conditional_score,
@@ -1223,9 +1223,14 @@ def pair_refits(ctx: Context, current: Fit, pairs: list[tuple], scales: Scales,
     """The joint refits of ``pairs`` (:func:`~bondgraph.diagnose.confirm.confirm_pair`,
     on the executor), each one that ended with a member on its box, not
     converged, above a member's own refit, or that has a structural member,
-    tried again from a member's refit (:func:`sequential_pair`)."""
+    tried again from a member's refit (:func:`sequential_pair`; the pairs'
+    second tries on threads of this process, :func:`local_map`: they read
+    the members' refits from ``ctx.cache``, and each depends only on its own
+    pair, so the results and the log's order are those of one after the
+    other)."""
     refits = run_tasks(ctx, _confirm_pair_task, (current, scales, f"{tag}_pair"), pairs)
-    return [sequential_pair(ctx, current, p, r, tag, scales) for p, r in zip(pairs, refits)]
+    return list(local_map(ctx, lambda c, z: sequential_pair(c, current, z[0], z[1], tag, scales),
+                          list(zip(pairs, refits))))
 
 
 #: a pair's joint refit that ends more than this many nats above a member's
