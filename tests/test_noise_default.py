@@ -276,13 +276,14 @@ def test_no_level_anywhere_is_a_clean_error():
         noise_plan(model, model.theta0, ["k"], [], np.full(1, np.nan), np.ones((50, 1)))
 
 
-@pytest.mark.parametrize("method,backend", [("rk4", "numba"), ("rk4", "numpy"), ("ros2", "numba")])
+@pytest.mark.parametrize("method,backend", [("rk4", "numba"), ("rk4", "numpy"), ("ros2", "numba"),
+                                            ("ros2", "numpy")])
 def test_the_fine_free_run_agrees_with_scipy(method, backend):
     """The loop's ``"fine"`` free run (the filter's method at 4 times its
     substeps, fixed-step, the input held linearly) against scipy's
     solve_ivp of the msd's hand equations with the same piecewise-linear
-    force (rtol 1e-10): within 1e-5 of the response's range with RK4
-    (compiled or numpy), 1e-3 with ROS2 (order 2, numpy)."""
+    force (rtol 1e-10): within 1e-5 of the response's range with RK4,
+    1e-3 with ROS2 (order 2), compiled or numpy."""
     from scipy.integrate import solve_ivp
 
     from bondgraph.diagnose.inference_calls import fine_free_run
@@ -302,6 +303,35 @@ def test_the_fine_free_run_agrees_with_scipy(method, backend):
     q = ref.y[1]
     assert y.shape == (t.size, 1)
     assert np.max(np.abs(y[:, 0] - q)) < {"rk4": 1e-5, "ros2": 1e-3}[method] * np.ptp(q)
+
+
+@pytest.mark.parametrize("hold", ["zoh", "linear"])
+def test_the_compiled_ros2_free_run_equals_the_numpy_steps(hold):
+    """The compiled ROS2 trajectory (``sim_numba.ros2_trajectory``, the
+    Jacobian at the start of each interval, frozen over its substeps) gives
+    the outputs of the numpy steps (``simulate_batch``) to rounding (W
+    inverted by elimination, not LAPACK), and NaN from the sample where the
+    state turns non-finite, as they do (a spring of k = -5e4 on a 1-D mass:
+    e^(224 t) overflows within the record)."""
+    from bondgraph.inference.prior import fixed_step_outputs
+    from bondgraph.numerics.integrators import simulate_batch
+
+    model = _bare_msd()
+    t = np.arange(0.0, 6.0, 0.02)
+    F = (5.0 * np.sin(3.0 * t) + 2.0 * (t > 1.0)).reshape(-1, 1)
+    x0 = np.array([0.05, -0.01])
+    for k in (TRUTH["k"], -5e4):
+        th = model.theta({**TRUTH, "k": k})
+        ref = simulate_batch(model, t, F, th[None, :], x0, method="ros2", substeps=3,
+                             hold=hold)[:, 0, :]
+        got = fixed_step_outputs(model, t, F, th, x0, "ros2", 3, hold)
+        assert got.shape == ref.shape == (t.size, 1)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+        ok = np.isfinite(ref)
+        assert ok.sum() > (10 if k < 0 else t.size - 1)
+        scale = np.max(np.abs(ref[ok]))
+        assert np.max(np.abs(got[ok] - ref[ok])) <= 1e-12 * scale
+    assert not np.isfinite(ref[-1]).any()          # the unstable spring overflowed
 
 
 def test_an_output_the_record_lacks_gets_no_noise_level(msd):

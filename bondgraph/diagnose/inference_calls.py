@@ -37,10 +37,9 @@ from bondgraph.inference.robust import (
     long_run_variance,
     robust_std,
 )
-from bondgraph.inference.prior import PriorSpec, rk4_outputs
+from bondgraph.inference.prior import PriorSpec, fixed_step_outputs
 from bondgraph.inference.ukf import UKFResult
 from bondgraph.inference.ukf_numba import threads as kernel_threads
-from bondgraph.numerics.integrators import simulate_batch
 
 # re-exported for the loop: the box of an estimated noise std (its start
 # times / divided by NOISE_BOX), the problem's parts, the noise detector,
@@ -72,19 +71,14 @@ def fine_free_run(problem: Problem, u: np.ndarray, hold: str, theta: np.ndarray,
     record). The discretisation check bounds the filter's own one-step
     error (0.1 σ per sample); four times finer divides it by 4⁴ = 256 (RK4)
     or 4² = 16 (ROS2), with the stability of the filter's method (ROS2 stays
-    L-stable on a stiff model). RK4 runs compiled where the prior's free run
-    would (:func:`bondgraph.inference.prior.rk4_outputs`, also the catalog
-    metrics' free run), else, and for ROS2, the numpy steps
+    L-stable on a stiff model). Compiled where the prior's free run would
+    (:func:`bondgraph.inference.prior.fixed_step_outputs`; RK4 is also the
+    catalog metrics' free run), else the numpy steps
     (:func:`bondgraph.numerics.integrators.simulate_batch`).
     """
     model, d = problem.model, problem.disc
-    t = problem.t
     sub = FINE_SUBSTEPS * int(d.substeps)
-    if d.method == "rk4":
-        return rk4_outputs(model, t, u, theta, x0, sub, hold, d.backend)
-    u = np.asarray(u, float).reshape(t.size, -1)
-    return simulate_batch(model, t, u, np.asarray(theta, float)[None, :], x0, method=d.method,
-                          substeps=sub, hold=hold)[:, 0, :]
+    return fixed_step_outputs(model, problem.t, u, theta, x0, d.method, sub, hold, d.backend)
 
 
 def make_executor(workers: int, scheduler: str | None):

@@ -93,6 +93,81 @@ def rk4_trajectory(kernels, t, u, hold: str, theta, x0, substeps: int) -> np.nda
     return xr
 
 
+def _ros2_trajectory_py(f, fj, t, u, hold, th, x0, nsub, xr, work):
+    """ROS2 (``nsub`` steps per interval, the Jacobian at the start of each
+    interval, frozen over its sub-steps, as
+    :func:`bondgraph.numerics.integrators.make_step`) from ``x0`` over the
+    record into ``xr`` (N, n_x), the inputs held as ``hold`` says;
+    ``work`` as :func:`_free_run_py`'s. A non-finite state stays in ``xr``
+    (the caller marks the run from there)."""
+    wk, ub, J, Winv, A, cols = work
+    n = x0.shape[0]
+    x, xt, k1, k2, F0, F1 = wk[0], wk[1], wk[2], wk[3], wk[6], wk[7]
+    for a in range(n):
+        x[a] = x0[a]
+        xr[0, a] = x0[a]
+    for k in range(t.shape[0] - 1):
+        h = (t[k + 1] - t[k]) / nsub
+        _held_input(u, k, 0.0, hold, ub)
+        _ros2_point(f, fj, x, u, k, hold, th, h, nsub, 1, (ub, xt, F0, F1, k1, k2),
+                    (J, Winv, A, cols))
+        for a in range(n):
+            xr[k + 1, a] = x[a]
+
+
+_ROS2_TRAJECTORY: list = []
+
+
+def _work_signature():
+    """numba types of the free-run kernels' work tuple (wk, ub, J, Winv, A, cols)."""
+    V, M = types.float64[::1], types.float64[:, ::1]
+    return types.Tuple((M, V, M, M, M, types.int64[::1]))
+
+
+def _work(n: int, n_u: int) -> tuple:
+    """The work tuple of :func:`_free_run_py` and :func:`_ros2_trajectory_py`
+    for ``n`` states and ``n_u`` input columns."""
+    return (np.zeros((8, n)), np.zeros(max(n_u, 1)), np.zeros((n, n)), np.zeros((n, n)),
+            np.zeros((n, 2 * n)), np.zeros(2 * n, dtype=np.int64))
+
+
+def ros2_trajectory_kernel():
+    """The compiled ROS2 trajectory kernel (:func:`ros2_trajectory`; compiled
+    once per installation, cached on disk, model independent).
+
+    Raises
+    ------
+    ImportError
+        numba is not installed.
+    """
+    def sig():
+        V, M = types.float64[::1], types.float64[:, ::1]
+        point = types.FunctionType(types.void(V, V, V, V))
+        jac = types.FunctionType(types.void(V, V, V, V, M))
+        return types.void(point, jac, V, M, types.int64, V, V, types.int64, M,
+                          _work_signature())
+    return _compiled_once(_ROS2_TRAJECTORY, _ros2_trajectory_py, sig, fastmath=FASTMATH)
+
+
+def ros2_trajectory(kernels, t, u, hold: str, theta, x0, substeps: int) -> np.ndarray:
+    """States (N, n_x) of the noise-free trajectory from ``x0`` by ROS2 with
+    ``substeps`` steps per sample interval (the Jacobian at the start of each
+    interval, frozen), the inputs ``u`` (N, n_u) held as ``hold`` says, with
+    a model's compiled point kernels: the compiled counterpart of
+    :func:`bondgraph.numerics.integrators.simulate_batch` with
+    ``method="ros2"`` (the linear algebra of W is the filter kernel's, so
+    states agree to rounding, not to the bit). Verwer et al. (1999)."""
+    c = np.ascontiguousarray
+    x0 = c(x0, dtype=float)
+    n = x0.size
+    xr = np.empty((np.asarray(t).size, n))
+    uk, code = kernel_inputs(u, hold)
+    ros2_trajectory_kernel()(kernels.f, kernels.f_dfdx, c(t, dtype=float), uk, code,
+                             c(theta, dtype=float), x0, int(substeps), xr,
+                             _work(n, uk.shape[1]))
+    return xr
+
+
 def _free_run_py(f, fj, t, u, hold, th, x0, method, nsub, acc, work):
     """Free run from ``x0`` over the record (``method`` 0: RK4, 1: ROS2 with
     the Jacobian at the start of each interval, frozen over its ``nsub``
@@ -141,9 +216,8 @@ def free_run_kernel():
         V, M = types.float64[::1], types.float64[:, ::1]
         point = types.FunctionType(types.void(V, V, V, V))
         jac = types.FunctionType(types.void(V, V, V, V, M))
-        work = types.Tuple((M, V, M, M, M, types.int64[::1]))
         return types.int64(point, jac, V, M, types.int64, V, V, types.int64, types.int64, V,
-                           work)
+                           _work_signature())
     return _compiled_once(_FREE_RUN, _free_run_py, sig, fastmath=FASTMATH)
 
 
@@ -179,9 +253,7 @@ def free_run_rms(kernels, t, u, hold: str, theta, x0, method: str,
     u, code = kernel_inputs(u, hold)
     count = free_run_kernel()(kernels.f, kernels.f_dfdx, c(t, dtype=float), u, code,
                               c(theta, dtype=float), x0, METHOD_CODES[method], int(substeps),
-                              acc, (np.zeros((8, n)), np.zeros(max(u.shape[1], 1)),
-                                    np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, 2 * n)),
-                                    np.zeros(2 * n, dtype=np.int64)))
+                              acc, _work(n, u.shape[1]))
     if count < np.size(t):
         return None
     return np.sqrt(acc / count) if count else np.zeros(n)
