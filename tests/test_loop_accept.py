@@ -864,3 +864,33 @@ def test_a_fit_that_falls_back_to_lbfgsb_still_reports_its_information(monkeypat
         # fallback's θ alone (measured: 6 % apart for m)
         assert f.std[n] == pytest.approx(scored.std[n], rel=0.1)
         assert abs(f.estimates()[n] - scored.estimates()[n]) < 3 * scored.std[n]
+
+
+def test_a_set_of_boxed_estimates_is_warned_about_once_per_loop():
+    """fit_model: the damping's box [0.1, 1] N s/m lies below the record's
+    c = 1.5, so every refit leaves c on its top and gives it no Cramér-Rao
+    std; the warning naming it is logged by the first refit only (a user's
+    CED graph repeated "b_m = 0.0001" in 25 confirmations), and another set
+    (k pinned too, its box [10, 40] below 50) is warned about again."""
+    from bondgraph.diagnose.fit import fit_model, model_of
+
+    g = mass_spring_damper()
+    g.params["c"].bounds = (0.1, 1.0)
+    g.params["c"].default = 0.5
+    logs = []
+    ctx = Context.on(_msd_record(), LoopSettings(params=["m", "k", "c"]), model_of(g),
+                     logs.append, False)
+    fits = [fit_model(ctx, g, ["k", "c"], None, f"fit {i}") for i in (1, 2)]
+    g.params["k"].bounds = (10.0, 40.0)
+    g.params["k"].default = 30.0
+    fits.append(fit_model(ctx, g, ["k", "c"], None, "fit 3"))
+    for f in fits:
+        assert "c" in f.at_bound and f.std["c"] is None
+        assert f.theta[f.model.param_index("c")] == pytest.approx(1.0)
+    assert fits[2].at_bound == ["k", "c"]
+    boxed = [s for s in logs if "estimate(s) on a bound of their box" in s]
+    assert boxed == [
+        "  warning: fit 1: estimate(s) on a bound of their box: c = 1 (no Cramér-Rao std; "
+        "widen the box or fix the parameter) (said once: the like is not logged again)",
+        "  warning: fit 3: estimate(s) on a bound of their box: k = 40, c = 1 (no Cramér-Rao "
+        "std; widen the box or fix the parameter) (said once: the like is not logged again)"]
