@@ -511,3 +511,23 @@ def test_nothing_accepted_is_told_apart_from_candidates_the_accept_rule_refused(
         "1 confirmed candidate(s) refused by the accept rule (coulomb @ v)")
     assert why([["c"]], list("abcda")) == (
         "4 confirmed candidate(s) refused by the accept rule (a, b, c, ...)")
+
+
+@pytest.mark.parametrize("gain, clause", [
+    (-4.46, "ended with a log-likelihood 4.46 nats lower, at k_b = 5.941)"),
+    (0.0, "ended with the same log-likelihood, at k_b = 5.941)"),
+    (3.5, None)])
+def test_the_gain_beyond_a_box_reads_as_a_gain(monkeypatch, gain, clause):
+    """gain_beyond_box: a refit with the box opened that ends no better
+    than the fit on the box (a user's CED graph: 4.46 nats worse, printed
+    as "gains nothing: -4.46 nats") says so in words; a real gain is
+    given as such."""
+    from bondgraph.diagnose import runner
+
+    monkeypatch.setattr(runner, "beyond_box", lambda *a, **k: (gain, {"k_b": 5.941}))
+    text = runner.gain_beyond_box(None, None, None, [])
+    if clause is None:
+        assert text == " (beyond the box the likelihood gains 3.5 nats, at k_b = 5.941)"
+    else:
+        assert text == (" (beyond the box the likelihood gains nothing: the refit with the box "
+                        "opened " + clause)

@@ -606,7 +606,10 @@ def gain_beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str]) 
     gain, values = r
     text = ", ".join(f"{n} = {v:.4g}" for n, v in values.items())
     if not gain > 0:    # the refit beyond the box ended no better than the fit on it
-        return f" (beyond the box the likelihood gains nothing: {gain:.3g} nats at {text})"
+        how = (f"a log-likelihood {-gain:.3g} nats lower" if gain < 0 else
+               "the same log-likelihood")
+        return (f" (beyond the box the likelihood gains nothing: the refit with the box opened "
+                f"ended with {how}, at {text})")
     return f" (beyond the box the likelihood gains {gain:.6g} nats, at {text})"
 
 
