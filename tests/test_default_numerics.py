@@ -326,6 +326,37 @@ def test_shared_reference_errors_equal_the_discretisation_check(record):
     assert got[0]["free_run_rss"] > 1.0 > got[1]["free_run_rss"]     # ROS2(1) vs RK4(2)
 
 
+def test_the_compiled_free_run_errors_equal_the_numpy_steps(record):
+    """The free runs of the discretisation choice (the free-run bias bound
+    of ``discretisation_errors``, the worst free-run error of
+    ``discretisation_check``) in the compiled trajectory kernels (backend
+    numba) give the numbers of the numpy steps (backend numpy) for RK4 and
+    ROS2 under both holds: to 1e-6 relative where the free run's error is
+    itself the difference of two close trajectories (RK4(2): rss below 1),
+    to 1e-9 elsewhere; the same reference either way."""
+    from bondgraph.inference.ukf import discretisation_check, discretisation_errors
+
+    _, exp = record
+    m = Model.from_graph(msd_graph())
+    p = make_problem(m, exp.segment(0, 500))
+    th = m.theta(TRUTH)
+    sig = np.array([NOISE["x"], NOISE["v"]])
+    for h in ("zoh", "linear"):
+        discs = {b: [Discretisation(meth, s, h, backend=b) for meth, s in
+                     (("ros2", 1), ("rk4", 2))] for b in ("numba", "numpy")}
+        got = {b: discretisation_errors(m, p.t, p.u, th, p.x0, d, sigma=sig, free_run=True)
+               for b, d in discs.items()}
+        for fast, slow in zip(got["numba"], got["numpy"]):
+            assert fast["reference"] == slow["reference"]
+            rtol = 1e-9 if fast["free_run_rss"] > 1.0 else 1e-6
+            assert fast["free_run_rss"] == pytest.approx(slow["free_run_rss"], rel=rtol)
+        assert got["numba"][0]["free_run_rss"] > 1.0 > got["numba"][1]["free_run_rss"]
+        fast, slow = (discretisation_check(m, p.t, p.u, th, p.x0, discs[b][0], sigma=sig)
+                      for b in ("numba", "numpy"))
+        np.testing.assert_allclose(fast["free_run"], slow["free_run"], rtol=1e-9)
+        assert np.all(fast["free_run"] > 0.01)
+
+
 def test_a_simulated_record_declares_how_its_inputs_were_held(tmp_path):
     """Experiment.from_simulation writes the simulation's hold into the
     sidecar (columns.<input>.hold), so the default hold of a later fit is the

@@ -728,9 +728,10 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
     hold of ``disc`` (:func:`bondgraph.numerics.integrators.hold_inputs`). The
     one-step output error is compared with ``sigma`` (default
     ``meas_std(theta)``). The one-step transitions of all samples run as one
-    batch (per distinct sample interval); the RK4 reference runs in the
-    compiled kernel (:func:`bondgraph.inference.sim_numba.rk4_trajectory`)
-    when ``disc.backend`` is numba.
+    batch (per distinct sample interval); the reference and the free run
+    run in the compiled kernels (:func:`bondgraph.inference.sim_numba.rk4_trajectory`,
+    :func:`~bondgraph.inference.sim_numba.ros2_trajectory`) when
+    ``disc.backend`` is numba.
 
     Parameters
     ----------
@@ -779,12 +780,8 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
             axis=0, initial=0.0))
         free = np.full(model.n_y, np.nan)
         if free_run:
-            free = np.zeros(model.n_y)
-            xf = x
-            for k in range(t.size - 1):
-                uk, duk = held.interval(k)
-                xf = step(xf, uk, th, t[k + 1] - t[k], duk)
-                free = np.maximum(free, np.abs(model.h(xf, u[k + 1], th)[0] - yr[k]) / sig)
+            dev = np.abs(_free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig))
+            free = np.max(dev, axis=0, initial=0.0)
             free = np.where(np.isfinite(free), free, np.inf)
     return dict(one_step=one, free_run=free, reference=ref)
 
@@ -861,20 +858,37 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
             held = hold_inputs(u, disc.hold)
             y1 = model.h(_one_steps(step, xr, held, th, t), u[1:], th)
             err = np.max(np.abs(y1 - yr) / sig, axis=0, initial=0.0)
-            rss = _free_run_rss(model, step, held, t, u, th, x, yr, sig) if free_run else np.nan
+            rss = (_free_run_rss(model, disc, step, held, t, u, th, x, yr, sig) if free_run
+                   else np.nan)
             out.append(dict(one_step=np.where(np.isnan(err), np.inf, err),
                             free_run_rss=rss, reference=ref))
     return out
 
 
-def _free_run_rss(model, step, held, t, u, th, x, yr, sig) -> float:
+def _free_run_rss(model, disc, step, held, t, u, th, x, yr, sig) -> float:
     """Root sum of squares of (y_free − y_ref)/σ over the record (inf if not finite)."""
-    xf, ss = x, 0.0
-    for k in range(t.size - 1):
-        uk, duk = held.interval(k)
-        xf = step(xf, uk, th, t[k + 1] - t[k], duk)
-        ss += float(np.sum(((model.h(xf, u[k + 1], th)[0] - yr[k]) / sig) ** 2))
+    d = _free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig)
+    ss = float(np.sum(d ** 2))
     return float(np.sqrt(ss)) if np.isfinite(ss) else float("inf")
+
+
+def _free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig) -> np.ndarray:
+    """(y_free − y_ref)/σ (N − 1, n_y) of the free run of ``disc`` from ``x``
+    against the reference outputs ``yr`` of samples 1..N−1: compiled when
+    ``disc.backend`` is numba (:func:`_compiled_run`; the numpy steps took
+    0.2-1 ms a sample, the choice of a long record's discretisation tries
+    several), else ``step`` sample by sample (the same steps; ROS2 agrees
+    to rounding)."""
+    X = (_compiled_run(model, t, u, disc.hold, th, x, disc.method, disc.substeps)
+         if disc.backend == "numba" else None)
+    if X is None:
+        xs, xf = [], x
+        for k in range(t.size - 1):
+            uk, duk = held.interval(k)
+            xf = step(xf, uk, th, t[k + 1] - t[k], duk)
+            xs.append(xf)
+        X = np.concatenate([x] + xs)
+    return (model.h(X[1:], u[1:], th) - yr) / sig
 
 
 def _one_steps(step: Callable, xr: np.ndarray, held, th: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -900,9 +914,9 @@ def _reference_trajectory(model, t, u, hold, th, x, method, substeps, backend):
     :func:`discretisation_check`: ``method`` with ``substeps`` and the inputs
     ``u`` held as ``hold`` says, or by default RK4 when its trajectory is
     finite and agrees with RK4 at half the substeps
-    (:data:`REFERENCE_AGREEMENT`), else ROS2 (L-stable); RK4 in the compiled
-    kernel when ``backend`` is numba (:func:`_compiled_rk4`); ``(None,
-    None)`` if none is finite.
+    (:data:`REFERENCE_AGREEMENT`), else ROS2 (L-stable); either in the
+    compiled kernels when ``backend`` is numba (:func:`_compiled_run`);
+    ``(None, None)`` if none is finite.
 
     The agreement test catches an RK4 at the edge of its stability region:
     on a stiff belt-creep model (12 states, 40 Hz) RK4 with 8 and 16
@@ -924,8 +938,8 @@ def _reference_trajectory(model, t, u, hold, th, x, method, substeps, backend):
 def _trajectory(model, t, u, hold, held, th, x, method, substeps, backend) -> np.ndarray:
     """States (N, n_x) from ``x`` (1, n_x) by ``method`` with ``substeps``
     (:func:`_reference_trajectory`'s run)."""
-    xr = (_compiled_rk4(model, t, u, hold, th, x, substeps)
-          if method == "rk4" and backend == "numba" else None)
+    xr = (_compiled_run(model, t, u, hold, th, x, method, substeps)
+          if backend == "numba" else None)
     if xr is not None:
         return xr
     rstep = make_step(model, method, substeps)
@@ -947,11 +961,13 @@ def _agree(fine: np.ndarray, coarse: np.ndarray) -> bool:
     return bool(np.all(np.max(np.abs(fine - coarse), axis=0) <= REFERENCE_AGREEMENT * scale))
 
 
-def _compiled_rk4(model, t, u, hold, th, x, substeps) -> np.ndarray | None:
-    """The RK4 reference (N, n_x) by the compiled trajectory kernel, or None
-    (numpy then) when numba, the model's kernels or the hold are
-    unavailable."""
-    if not (ukf_numba.numba is not None
+def _compiled_run(model, t, u, hold, th, x, method, substeps) -> np.ndarray | None:
+    """States (N, n_x) from ``x`` (1, n_x) by ``method`` ("rk4" or "ros2")
+    with ``substeps``, the inputs held as ``hold`` says, in the compiled
+    trajectory kernels (:func:`bondgraph.inference.sim_numba.rk4_trajectory`,
+    :func:`~bondgraph.inference.sim_numba.ros2_trajectory`), or None (numpy
+    then) when numba, the model's kernels or the hold are unavailable."""
+    if not (ukf_numba.numba is not None and method in ("rk4", "ros2")
             and (hold in ukf_numba.HOLD_CODES or is_per_input(hold))
             and hasattr(model, "module")):
         return None
@@ -959,7 +975,8 @@ def _compiled_rk4(model, t, u, hold, th, x, substeps) -> np.ndarray | None:
         kernels = point_kernels(model)
     except Exception:  # kernels that cannot be loaded: numpy
         return None
-    return sim_numba.rk4_trajectory(kernels, t, u, hold, th[0], x[0], substeps)
+    run = sim_numba.rk4_trajectory if method == "rk4" else sim_numba.ros2_trajectory
+    return run(kernels, t, u, hold, th[0], x[0], substeps)
 
 
 #: the discretisation guard's reference: RK4 with this many sub-steps per sample
