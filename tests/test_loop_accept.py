@@ -870,8 +870,8 @@ def test_a_set_of_boxed_estimates_is_warned_about_once_per_loop():
     """fit_model: the damping's box [0.1, 1] N s/m lies below the record's
     c = 1.5, so every refit leaves c on its top and gives it no Cramér-Rao
     std; the warning naming it is logged by the first refit only (a user's
-    CED graph repeated "b_m = 0.0001" in 25 confirmations), and another set
-    (k pinned too, its box [10, 40] below 50) is warned about again."""
+    CED graph repeated "b_m = 0.0001" in 25 confirmations); a parameter
+    newly on its box (k, its box [10, 40] below 50) is named alone."""
     from bondgraph.diagnose.fit import fit_model, model_of
 
     g = mass_spring_damper()
@@ -891,6 +891,6 @@ def test_a_set_of_boxed_estimates_is_warned_about_once_per_loop():
     boxed = [s for s in logs if "estimate(s) on a bound of their box" in s]
     assert boxed == [
         "  warning: fit 1: estimate(s) on a bound of their box: c = 1 (no Cramér-Rao std; "
-        "widen the box or fix the parameter) (said once: the like is not logged again)",
-        "  warning: fit 3: estimate(s) on a bound of their box: k = 40, c = 1 (no Cramér-Rao "
-        "std; widen the box or fix the parameter) (said once: the like is not logged again)"]
+        "widen the box or fix the parameter; said once per parameter)",
+        "  warning: fit 3: estimate(s) on a bound of their box: k = 40 (no Cramér-Rao std; "
+        "widen the box or fix the parameter; said once per parameter)"]

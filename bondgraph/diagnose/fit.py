@@ -513,13 +513,16 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     fit.x0_est, fit.noise_est = x0_est, noise_est
     fit.at_bound = on_bound(model, params, theta)
     if fit.at_bound:
-        # each set of boxed parameters said once per loop: a declared
-        # parameter the accepted fit left on its box is on it in every later
-        # refit (a user's CED graph: "b_m = 0.0001" in 25 lines)
-        values = ", ".join(f"{n} = {fit.theta[model.param_index(n)]:.4g}" for n in fit.at_bound)
-        ctx.log_once(f"boxed:{sorted(fit.at_bound)}",
-                     f"  warning: {what}: estimate(s) on a bound of their box: {values} (no "
-                     f"Cramér-Rao std; widen the box or fix the parameter)")
+        # each boxed parameter said once per loop: a declared parameter the
+        # accepted fit left on its box is on it in every later refit (a
+        # user's CED graph: "b_m = 0.0001" in 25 lines)
+        new = [n for n in fit.at_bound if f"boxed:{n}" not in ctx.said]
+        ctx.said.update(f"boxed:{n}" for n in new)
+        if new:
+            values = ", ".join(f"{n} = {fit.theta[model.param_index(n)]:.4g}" for n in new)
+            ctx.log(f"  warning: {what}: estimate(s) on a bound of their box: {values} (no "
+                    f"Cramér-Rao std; widen the box or fix the parameter; said once per "
+                    f"parameter)")
         for n in fit.at_bound:
             fit.std[n] = None
     return fit
