@@ -118,6 +118,14 @@ def _ros2_trajectory_py(f, fj, t, u, hold, th, x0, nsub, xr, work):
 _ROS2_TRAJECTORY: list = []
 
 
+def _point_types():
+    """numba types (vector, matrix, point kernel f, f with its Jacobian) of
+    the simulation kernels' signatures."""
+    V, M = types.float64[::1], types.float64[:, ::1]
+    return (V, M, types.FunctionType(types.void(V, V, V, V)),
+            types.FunctionType(types.void(V, V, V, V, M)))
+
+
 def _work_signature():
     """numba types of the free-run kernels' work tuple (wk, ub, J, Winv, A, cols)."""
     V, M = types.float64[::1], types.float64[:, ::1]
@@ -141,9 +149,7 @@ def ros2_trajectory_kernel():
         numba is not installed.
     """
     def sig():
-        V, M = types.float64[::1], types.float64[:, ::1]
-        point = types.FunctionType(types.void(V, V, V, V))
-        jac = types.FunctionType(types.void(V, V, V, V, M))
+        V, M, point, jac = _point_types()
         return types.void(point, jac, V, M, types.int64, V, V, types.int64, M,
                           _work_signature())
     return _compiled_once(_ROS2_TRAJECTORY, _ros2_trajectory_py, sig, fastmath=FASTMATH)
@@ -213,9 +219,7 @@ def free_run_kernel():
         numba is not installed.
     """
     def sig():
-        V, M = types.float64[::1], types.float64[:, ::1]
-        point = types.FunctionType(types.void(V, V, V, V))
-        jac = types.FunctionType(types.void(V, V, V, V, M))
+        V, M, point, jac = _point_types()
         return types.int64(point, jac, V, M, types.int64, V, V, types.int64, types.int64, V,
                            _work_signature())
     return _compiled_once(_FREE_RUN, _free_run_py, sig, fastmath=FASTMATH)
