@@ -618,9 +618,8 @@ def fixed_step_outputs(model, t, u, theta, x0, method: str, substeps: int, hold:
     if kernels is None:
         return simulate_batch(model, t, u, th[None, :], x0, method=method, substeps=substeps,
                               hold=hold)[:, 0, :]
-    run = sim_numba.rk4_trajectory if method == "rk4" else sim_numba.ros2_trajectory
-    X = run(kernels, t, u if model.n_u else np.zeros((np.size(t), 1)), hold, th,
-            np.asarray(x0, float), substeps)
+    X = sim_numba.trajectory(kernels, t, u if model.n_u else np.zeros((np.size(t), 1)), hold, th,
+                             np.asarray(x0, float), method, substeps)
     bad = ~np.isfinite(X).all(axis=1)
     if bad.any():
         X[int(np.argmax(bad)):] = np.nan

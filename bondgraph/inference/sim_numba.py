@@ -174,6 +174,13 @@ def ros2_trajectory(kernels, t, u, hold: str, theta, x0, substeps: int) -> np.nd
     return xr
 
 
+def trajectory(kernels, t, u, hold: str, theta, x0, method: str, substeps: int) -> np.ndarray:
+    """States (N, n_x) of the noise-free trajectory by ``method``: "rk4"
+    (:func:`rk4_trajectory`) or "ros2" (:func:`ros2_trajectory`)."""
+    run = rk4_trajectory if method == "rk4" else ros2_trajectory
+    return run(kernels, t, u, hold, theta, x0, substeps)
+
+
 def _free_run_py(f, fj, t, u, hold, th, x0, method, nsub, acc, work):
     """Free run from ``x0`` over the record (``method`` 0: RK4, 1: ROS2 with
     the Jacobian at the start of each interval, frozen over its ``nsub``

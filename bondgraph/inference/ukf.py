@@ -66,7 +66,7 @@ from bondgraph.core.progress import long_range
 from bondgraph.errors import BackendWarning, DataError, ModelError, OptionError
 from bondgraph.inference import sim_numba, ukf_numba
 from bondgraph.inference.options import Discretisation, UKFOptions, ukf_options
-from bondgraph.inference.prior import default_P0
+from bondgraph.inference.prior import default_P0, free_run_kernels
 from bondgraph.inference.sigma import (
     SigmaWeights,
     cholesky_batch,
@@ -75,7 +75,7 @@ from bondgraph.inference.sigma import (
     unscented_moments,
 )
 from bondgraph.numerics.compiled import point_kernels
-from bondgraph.numerics.integrators import hold_inputs, is_per_input, make_step
+from bondgraph.numerics.integrators import hold_inputs, make_step
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -964,19 +964,13 @@ def _agree(fine: np.ndarray, coarse: np.ndarray) -> bool:
 def _compiled_run(model, t, u, hold, th, x, method, substeps) -> np.ndarray | None:
     """States (N, n_x) from ``x`` (1, n_x) by ``method`` ("rk4" or "ros2")
     with ``substeps``, the inputs held as ``hold`` says, in the compiled
-    trajectory kernels (:func:`bondgraph.inference.sim_numba.rk4_trajectory`,
-    :func:`~bondgraph.inference.sim_numba.ros2_trajectory`), or None (numpy
-    then) when numba, the model's kernels or the hold are unavailable."""
-    if not (ukf_numba.numba is not None and method in ("rk4", "ros2")
-            and (hold in ukf_numba.HOLD_CODES or is_per_input(hold))
-            and hasattr(model, "module")):
+    trajectory kernels (:func:`bondgraph.inference.sim_numba.trajectory`), or
+    None (numpy then) when numba, the model's kernels or the hold are
+    unavailable (:func:`bondgraph.inference.prior.free_run_kernels`)."""
+    kernels = free_run_kernels(model, "numba", method, hold)
+    if kernels is None:
         return None
-    try:
-        kernels = point_kernels(model)
-    except Exception:  # kernels that cannot be loaded: numpy
-        return None
-    run = sim_numba.rk4_trajectory if method == "rk4" else sim_numba.ros2_trajectory
-    return run(kernels, t, u, hold, th[0], x[0], substeps)
+    return sim_numba.trajectory(kernels, t, u, hold, th[0], x[0], method, substeps)
 
 
 #: the discretisation guard's reference: RK4 with this many sub-steps per sample
