@@ -591,7 +591,10 @@ class _Deriver:
                 out += diff(Ws, s) * self.xdot[s]
             elif isinstance(s, Input) and s.derivative_of is None:
                 out += diff(Ws, s) * self._der_input(s)
-        return out
+        # the rates of the states W reaches are solved before this node (its
+        # edges in :meth:`dependency_graph`): a state declared by its rate
+        # (``BondGraph.state``, a lagged source value) is not left as d(z)/dt
+        return out.xreplace(solved)
 
     def solve(self) -> dict:
         G = self.dependency_graph()
@@ -851,6 +854,10 @@ def _derive(graph: BondGraph, causality: Causality | None, validate: bool) -> St
     outputs = [Output(s.name, A(s.expr), s.unit, s.description,
                       A(s.noise_std) if isinstance(s.noise_std, sp.Basic) else s.noise_std)
                for s in graph.sensors.values()]
+    for o in outputs:
+        leftover = [x for x in o.expr.free_symbols if x in d.eqs or x in d.dt_targets]
+        if leftover:  # pragma: no cover - guarded by the solver
+            raise CausalityError(f"internal: sensor '{o.name}' still depends on {leftover}")
     H_terms = _energy_terms(graph, causality, d, solved)
     P_src, P_diss = _powers(graph, solved)
     rate = _energy_rate(H_terms, d, f)
