@@ -314,6 +314,81 @@ def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypa
 
 
 
+TANKS_NOT_PASSIVE = '''
+from bondgraph.diagnose.effects.laws import add_to_r_law
+from test_unknown_x0 import tanks as declared
+
+
+def tanks():
+    """The tanks, the lower orifice's law with a fixed cubic term of the
+    wrong sign (no box: held): it produces power at the pressures the
+    record reaches."""
+    g = declared()
+    b = g.param("beta", -1e-13, "m^3/s/Pa^3", None, "cubic term, sign wrong")
+    add_to_r_law(g, g.elements["orifice2"], lambda x: b * x**3)
+    return g
+'''
+
+
+def test_a_declared_law_that_produces_power_stops_the_loop_with_code_2(tmp_path, monkeypatch,
+                                                                         capsys):
+    """A declared R law that produces power at its fit: no model the loop
+    could accept would be admissible, and every candidate was refused for
+    the declared law (a user's road load A + B v + C v² on a dyno, A fixed).
+    The loop stops with exit code 2 naming the law and what to do; with
+    --keep-going it goes on, says so, and refuses a candidate only for a
+    violation it adds or worsens."""
+    import json
+
+    from bondgraph.cli.main import main
+    from bondgraph.numerics.model import Model
+
+    m = Model.from_graph(tanks())
+    exp, _ = record(m, 1, 0.25, n=601)
+    exp.save(tmp_path / "est.csv")
+    (tmp_path / "tanks_np.py").write_text(TANKS_NOT_PASSIVE)
+    monkeypatch.chdir(tmp_path)
+    argv = ["loop", "--model", "tanks_np.py:tanks", "--data", "est.csv", "--max-steps", "1",
+            "--no-structural", "--quiet", "--params", "K1,K2"]
+    assert main(argv + ["--out", "rep"]) == 2
+    err = capsys.readouterr().err
+    assert "the declared model is not physically admissible at its fit: R 'orifice2' " \
+           "produces power" in err
+    assert "A·tanh(f/ε)" in err and "--keep-going" in err
+    assert not (tmp_path / "rep").exists()
+    assert main(argv + ["--out", "rep2", "--keep-going"]) == 0
+    rep = json.loads((tmp_path / "rep2" / "report.json").read_text())
+    (w,) = [w for w in rep["warnings"] if "not physically admissible" in w]
+    assert w.startswith("initial fit: the declared model is not physically admissible at its "
+                        "fit: R 'orifice2' produces power")
+    assert w.endswith("going on (--keep-going): a candidate is refused only for a violation it "
+                      "adds or worsens")
+
+
+def test_a_violation_the_compared_model_already_has_is_inherited(tank_run):
+    """without_inherited: the refit's violation at the element the model it
+    is compared with already violates is that model's while it is no more
+    than INHERITED_SLACK (1.1) times as large; a tenfold one, or one at
+    another element, stays."""
+    from bondgraph.numerics.admissible import INHERITED_SLACK, without_inherited
+
+    x, u = tank_run
+
+    def check(beta):
+        g, theta = _with_cubic(beta)
+        return check_admissible(g, derive(g), theta, x, u)
+
+    base, same, worse = check(-1e-13), check(-1.05e-13), check(-1e-12)
+    (v0,), (v1,), (v2,) = base.violations, same.violations, worse.violations
+    assert v0.element == v1.element == v2.element == "orifice2"
+    assert abs(v0.value) < abs(v1.value) <= INHERITED_SLACK * abs(v0.value) < abs(v2.value)
+    r = without_inherited(same, base)
+    assert r.ok and r.inherited == [v1] and r.checked == same.checked
+    r = without_inherited(worse, base)
+    assert r.violations == [v2] and r.inherited == []
+    assert without_inherited(worse, check(0.0)).violations == [v2]
+
+
 def test_a_pair_is_needed_only_when_it_beats_each_member_alone():
     """pair_needed: LR of the pair over each member's own refit, χ² with the
     other member's dof. NLLs: current 0, singles −10 and −12, pair −30:

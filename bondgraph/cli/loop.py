@@ -114,8 +114,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.set_defaults(method=None, substeps=None, hold=None)   # a case's own options unless given
     p.add_argument("--keep-going", action="store_true",
                    help="score effects even when the declared fit failed (physical parameters "
-                        "that never left their start values or sit on their boxes); by default "
-                        "the loop stops there with exit code 2 and names them")
+                        "that never left their start values or sit on their boxes) or breaks "
+                        "passivity (an R law that produces power); by default the loop stops "
+                        "there with exit code 2 and names them")
     p.add_argument("--add-effects", default=None, metavar="NAME,...",
                    help="effects of the library's optional part to score besides the default "
                         "library (bouc_wen)")

@@ -45,7 +45,7 @@ from bondgraph.diagnose.result import FitSummary
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import BondGraphError, NumericalError
 from bondgraph.core.equations import derive
-from bondgraph.numerics.admissible import Admissibility, check_admissible
+from bondgraph.numerics.admissible import Admissibility, check_admissible, without_inherited
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.integrators import join_hold, split_hold
 from bondgraph.numerics.simulate import simulate
@@ -821,7 +821,8 @@ def error_scale(problem: Problem, fit: Fit) -> np.ndarray:
     return np.where(np.isfinite(innov) & (innov > sig), innov, sig)
 
 
-def admissibility(ctx: Context, fit: Fit, before=None, placed=()) -> Admissibility:
+def admissibility(ctx: Context, fit: Fit, before=None, placed=(),
+                  against: Fit | None = None) -> Admissibility:
     """Whether ``fit``'s graph keeps what a bond graph promises at its
     estimates (every R dissipates, every C and I stores non-negative
     energy) over the range its filtered states visit on the record plus a
@@ -829,7 +830,22 @@ def admissibility(ctx: Context, fit: Fit, before=None, placed=()) -> Admissibili
     what the effects ``placed`` ((Effect, Target) pairs added to the graph
     ``before``) find at the refit beyond that
     (:meth:`~bondgraph.diagnose.effects.base.Effect.refit_violations`: a
-    discovered law's memory term by the dissipation inequality)."""
+    discovered law's memory term by the dissipation inequality). With
+    ``against`` (the fit ``fit`` is compared with), the violations that fit
+    already has are left out (:func:`~bondgraph.numerics.admissible.without_inherited`;
+    only a declared model the user let the loop go on with, ``--keep-going``,
+    has any)."""
+    adm = _admissibility(ctx, fit, before, placed)
+    if against is None or adm.ok:
+        return adm
+    key = ("admissibility", id(against), against.nll)
+    if key not in ctx.cache:
+        ctx.cache[key] = _admissibility(ctx, against, None, ())
+    return without_inherited(adm, ctx.cache[key])
+
+
+def _admissibility(ctx: Context, fit: Fit, before, placed) -> Admissibility:
+    """:func:`admissibility` without ``against``."""
     model = fit.model
     ss = getattr(model.module, "__state_space__", None) or derive(fit.graph)
     x = getattr(fit.ukf, "x_filt", None)

@@ -68,6 +68,7 @@ from bondgraph.diagnose.scoring import (
 from bondgraph.diagnose.screen import SCREEN_LEVEL, free_run_nrmse, global_output_error
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.inference.discretise import SUBSTEPS
+from bondgraph.numerics.admissible import MARGIN as ADMISSIBLE_MARGIN
 from bondgraph.numerics.integrators import split_hold
 from bondgraph.numerics.model import Model
 from bondgraph.errors import (
@@ -300,10 +301,33 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit,
         result.warnings.append(f"initial fit: {w}")
     adm = admissibility(ctx, initial)
     if not adm.ok:
-        ctx.log(f"warning: the declared model is not physically admissible at its fit: "
-                f"{adm.reason()}")
-        result.warnings.append(f"initial fit: not physically admissible: {adm.reason()}")
+        msg = declared_inadmissible(ctx, adm)
+        ctx.log(f"warning: {msg}")
+        result.warnings.append(f"initial fit: {msg}")
     return result
+
+
+def declared_inadmissible(ctx: Context, adm) -> str:
+    """The declared model's fit breaks what a bond graph promises (``adm``,
+    :func:`~bondgraph.diagnose.fit.admissibility`): no model the loop
+    accepts could keep it, so by default the loop stops
+    (:class:`DeclaredFitError`, exit code 2) naming the law, the range
+    checked and what to do; with ``on_failed_fit="continue"``
+    (``--keep-going``) the warning's text, and a candidate is then refused
+    only for a violation it adds or worsens
+    (:func:`~bondgraph.numerics.admissible.without_inherited`)."""
+    msg = (f"the declared model is not physically admissible at its fit: {adm.reason()}. "
+           f"The range checked is the one the record visits, widened by "
+           f"{100 * ADMISSIBLE_MARGIN:.0f} % of its span on each side and made to contain zero; "
+           f"rewrite that law so it dissipates (stores convexly) there, for example a constant "
+           f"term A of an effort law as A·tanh(f/ε), which changes sign with the flow, or "
+           f"narrow the box of the parameter that makes it produce power")
+    if ctx.settings.search.on_failed_fit == "stop":
+        raise DeclaredFitError(msg + "; no effect is scored",
+                               hint="bondgraph loop ... --keep-going scores effects anyway, "
+                                    "refusing a candidate only for a violation it adds")
+    return msg + ("; going on (--keep-going): a candidate is refused only for a violation it "
+                  "adds or worsens")
 
 
 def settings_summary(ctx: Context) -> dict:
@@ -1750,7 +1774,8 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     (:func:`bondgraph.diagnose.fit.admissibility`)."""
     s = ctx.settings
     placed = [(get_effect(c.effect, s.effects), c.target) for c in added]
-    adm = admissibility(ctx, after, current.graph, placed) if comparable else None
+    adm = admissibility(ctx, after, current.graph, placed, against=current) if comparable \
+        else None
     inner = interior_params(placed)
     d = decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
                interior=inner)
@@ -1829,7 +1854,8 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
             continue
         k = sum(1 for p in eff.params if p.estimated)
         back = decide(reduced, fit, s.accept, dof=max(k, 1),
-                      admissible=admissibility(ctx, fit, reduced.graph, [(eff, gone.target)]),
+                      admissible=admissibility(ctx, fit, reduced.graph, [(eff, gone.target)],
+                                               against=reduced),
                       comparable=reduced.converged is not False and fit.converged is not False)
         if back.accepted:
             ctx.log(f"  {label} puts {what} on its box, but it still passes the accept rule "
@@ -1838,7 +1864,8 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
         placed = [(get_effect(c.effect, s.effects), c.target) for c in added]
         dof = max(1, len(set(reduced.params) - set(current.params)))
         d = decide(current, reduced, s.accept, dof=dof,
-                   admissible=admissibility(ctx, reduced, current.graph, placed),
+                   admissible=admissibility(ctx, reduced, current.graph, placed,
+                                            against=current),
                    comparable=reduced.converged is not False,
                    interior=interior_params(placed))
         if not d.accepted:

@@ -188,7 +188,9 @@ class SearchOptions:
         output-error fit, :func:`bondgraph.diagnose.runner.stuck_parameters`): ``"stop"``
         (default) raises :class:`~bondgraph.errors.DeclaredFitError` (the
         command line exits with code 2 naming them), ``"continue"``
-        (``--keep-going``) warns and scores effects against it anyway.
+        (``--keep-going``) warns and scores effects against it anyway. The
+        same holds for a declared fit that is not physically admissible
+        (:func:`bondgraph.diagnose.runner.declared_inadmissible`).
     fit_iterations : int
         Fisher-scoring iterations of each warm-started re-estimation
         (L-BFGS-B if scoring fails).

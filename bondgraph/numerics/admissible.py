@@ -107,11 +107,15 @@ class Admissibility:
         Elements whose law was checked.
     unchecked : list of str
         Elements not checked, with the reason (``"name: reason"``).
+    inherited : list of Violation
+        Violations left out of ``violations`` because the model compared
+        with already has them (:func:`without_inherited`).
     """
 
     violations: list = field(default_factory=list)
     checked: list = field(default_factory=list)
     unchecked: list = field(default_factory=list)
+    inherited: list = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -121,6 +125,36 @@ class Admissibility:
     def reason(self) -> str:
         """One line naming every violation (empty when admissible)."""
         return "; ".join(str(v) for v in self.violations)
+
+
+#: a violation at an element the compared model already violates is that
+#: model's (inherited) while its power or stiffness is at most this factor
+#: larger in magnitude
+INHERITED_SLACK = 1.1
+
+
+def without_inherited(adm: Admissibility, base: Admissibility) -> Admissibility:
+    """``adm`` (a refit's check) without the violations that ``base`` (the
+    check of the model it is compared with) already has: the same element
+    and kind, no more than :data:`INHERITED_SLACK` times as large. A
+    candidate is refused for what it breaks, not for a declared law that
+    produced power before it was added (a user's road load A + B v + C v²,
+    its A fixed, produces power at negative speeds a dyno never visits:
+    every candidate was refused for it). A violation the refit makes worse,
+    or one at another element (a correction term that joins the declared
+    law's R-field under another name), stays.
+
+    Returns
+    -------
+    Admissibility
+        A copy; the left-out violations in ``inherited``.
+    """
+    had = {(v.element, v.kind): abs(v.value) for v in base.violations}
+    keep, old = [], []
+    for v in adm.violations:
+        ref = had.get((v.element, v.kind))
+        (old if ref is not None and abs(v.value) <= INHERITED_SLACK * ref else keep).append(v)
+    return Admissibility(keep, list(adm.checked), list(adm.unchecked), old)
 
 
 def check_admissible(graph: BondGraph, ss, theta: Mapping[str, float], x: np.ndarray,
