@@ -380,6 +380,24 @@ def test_a_simulated_record_declares_how_its_inputs_were_held(tmp_path):
     assert input_holds(F[:, None], ["F"])[0].hold == "linear"
 
 
+def test_heading_continues_the_estimates_drift_inside_its_boxes():
+    """Where an estimate that moved between two refits is heading: by the
+    same factor (positive values), inside the boxes (m in [0.5, 8]); a
+    parameter that did not move stays."""
+    from bondgraph.cli.estimate import heading
+    from bondgraph.numerics.model import Model
+
+    model = Model.from_graph(msd_graph())
+    idx = [model.param_index(n) for n in ("m", "k", "c")]
+    before, theta = model.theta0.copy(), model.theta0.copy()
+    before[idx], theta[idx] = [2.0, 50.0, 1.5], [1.0, 60.0, 1.5]
+    ahead = heading(model, before, theta)
+    assert ahead[idx] == pytest.approx([0.5, 72.0, 1.5])      # 1 * 1/2 -> the box's 0.5
+    theta[idx[0]] = 0.9
+    assert heading(model, before, theta)[idx[0]] == pytest.approx(0.5)
+    assert heading(model, theta, theta) == pytest.approx(theta)
+
+
 def test_fit_sim_redoes_a_fit_whose_rk4_step_fails_at_the_estimate(record, capsys,
                                                                    monkeypatch):
     """``--fit sim`` runs compiled RK4 at 4 times the chosen substeps and

@@ -34,8 +34,10 @@ from bondgraph.cli.common import (
     published,
 )
 from bondgraph.core.jsonsafe import to_jsonable
-from bondgraph.errors import EstimationError, IdentifiabilityWarning, UsageError
-from bondgraph.inference.discretise import check_discretisation, choose_discretisation
+from bondgraph.errors import (EstimationError, IdentifiabilityWarning, NumericalError,
+                              UsageError)
+from bondgraph.inference.discretise import (check_discretisation, choose_discretisation,
+                                            cost_rank)
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.options import FitOptions
@@ -189,11 +191,15 @@ def _fit(args, chosen, params, fit, states, paths):
     swarm's first population with the estimate in it, then the polish; the
     result, and its warnings, are then the refit's), checked again, at most
     :data:`MAX_REFITS` times (the estimate may move to where the new one
-    fails too: a fast lag's time constant on its box)."""
+    fails too: a fast lag's time constant on its box). From the second
+    check on, the estimate's drift between the last two fits is taken into
+    account (:func:`heading`): each refit had moved the estimate to where
+    the next finer step failed again."""
     log = None if args.quiet else _say
     problems = [pb for pb, _ in chosen]
     res = _estimate_quiet(problems, params, fit, states, log)
     agains: list = [None] * len(chosen)
+    before = None       # the estimate of the fit before the last refit
     # a local refit: the estimate moves by the discretisation's bias only
     # (the swarm's first population, the whole estimate (noise levels,
     # initial states too) in it, then the polish; a second full search cost
@@ -204,11 +210,13 @@ def _fit(args, chosen, params, fit, states, paths):
         for i, (_pb, choice) in enumerate(chosen):
             if choice is None or not np.isfinite(res.nll):
                 continue
-            agains[i], redo = _recheck(args, problems[i], res, _say_for(paths[i], paths))
+            ahead = None if before is None else heading(problems[i].model, before, res.theta)
+            agains[i], redo = _recheck(args, problems[i], res, _say_for(paths[i], paths), ahead)
             if redo:
                 problems[i], refit = problems[i].conditioned_on(disc=agains[i].disc), True
         if not refit:
             break
+        before = res.theta
         res = _estimate_quiet(problems, params, local, states, None, start=res.estimates)
     given = discretisation_given(args)
     choices = [dict(given=given, start=None if c is None else c.to_dict(),
@@ -218,25 +226,64 @@ def _fit(args, chosen, params, fit, states, paths):
     return res, problems
 
 
-def _recheck(args, problem, res, say):
+def heading(model, before: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Where an estimate that moved from ``before`` to ``theta`` (both
+    (n_theta,)) is heading: one more step of the same kind, by the same
+    factor where both values are positive (a time constant shrinking
+    towards its box keeps its sign), else by the same difference, inside
+    the parameters' boxes."""
+    b, t = np.asarray(before, float), np.asarray(theta, float)
+    with np.errstate(all="ignore"):
+        nxt = np.where((b > 0) & (t > 0), t * (t / np.where(b > 0, b, 1.0)), 2 * t - b)
+    nxt = np.where(np.isfinite(nxt), nxt, t)
+    return np.clip(nxt, model.lower, model.upper)
+
+
+def _recheck(args, problem, res, say, ahead: np.ndarray | None = None):
     """``(choice at the estimate, refit?)``: the discretisation chosen at
     the estimate with its noise levels; a refit when the start's fails
-    there and another was chosen (one line on ``say`` either way)."""
+    there and another was chosen (one line on ``say`` either way). With
+    ``ahead`` (:func:`heading`, after a refit that failed again), the
+    choice there is taken instead when it is finer and also meets the check
+    at the estimate: the refit then need not chase the estimate (a user's
+    fuel-flow lag of 1 s shrinking towards 0.05 s on 1 Hz records: rk4(1),
+    (2), (3), (4) each failed at the next estimate)."""
     levels = res.settings.get("noise_levels") or {}
     sigma = [float((levels.get(o) or {}).get("std", np.nan)) for o in problem.model.outputs]
-    again = choose_discretisation(problem, res.theta, given=discretisation_given(args),
-                                  sigma=sigma)
+    given = discretisation_given(args)
+    again = choose_discretisation(problem, res.theta, given=given, sigma=sigma)
     ok, now, bound = check_discretisation(problem, res.theta, sigma=again.sigma)
     if not ok and again.disc != problem.disc:
-        say(again.line(f"at the estimate (the start's {problem.disc.describe()} fails "
-                       f"there: {now:.2g} σ per sample, bias bound {bound:.2g} std; "
-                       f"refitting from the estimate)"))
-        return again, True
+        why = (f"the start's {problem.disc.describe()} fails {{}}: {now:.2g} σ per sample, "
+               f"bias bound {bound:.2g} std; refitting from the estimate")
+        further = _choice_ahead(problem, ahead, given, sigma, res.theta, again)
+        if further is None:
+            say(again.line(f"at the estimate ({why.format('there')})"))
+            return again, True
+        say(further.line(f"where the estimate is heading, the way it moved with the last refit "
+                         f"({why.format('at the estimate')})"))
+        return further, True
     say(f"discretisation at the estimate: {problem.disc.describe()} still within "
         f"({now:.2g} σ per sample" + (f", free-run bias bound {bound:.2g} std)"
                                      if np.isfinite(bound) else ")")
         if ok else again.line("at the estimate (no better candidate)"))
     return again, False
+
+
+def _choice_ahead(problem, ahead, given, sigma, theta, again):
+    """The discretisation chosen at ``ahead`` when it is costlier than
+    ``again`` (the choice at the estimate ``theta``) and meets the check at
+    ``theta`` too, else None."""
+    if ahead is None:
+        return None
+    try:
+        further = choose_discretisation(problem, ahead, given=given, sigma=sigma)
+        if not further.ok or cost_rank(further.disc) <= cost_rank(again.disc):
+            return None
+        ok = check_discretisation(problem, theta, further.disc, sigma=again.sigma)[0]
+    except (FloatingPointError, np.linalg.LinAlgError, NumericalError):
+        return None
+    return further if ok else None
 
 
 def _estimate_quiet(problem, params, fit, states, log, start=None):

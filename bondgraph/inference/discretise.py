@@ -79,6 +79,15 @@ SUBSTEPS = (1, 2, 3, 4, 6, 8, 12, 16)
 CANDIDATES = tuple(sorted(((m, s) for s in SUBSTEPS for m in ("ros2", "rk4")),
                           key=lambda c: (4 * c[1] if c[0] == "rk4" else 2 * c[1] + 2,
                                          c[1], c[0] != "ros2")))
+
+
+def cost_rank(disc) -> int:
+    """The place of ``disc``'s method and substeps in :data:`CANDIDATES`
+    (cheapest first); one past the last for a pair not among them."""
+    key = (disc.method, disc.substeps)
+    return CANDIDATES.index(key) if key in CANDIDATES else len(CANDIDATES)
+
+
 #: two successive steps of the same sign whose sizes differ by at most this
 #: fraction of the larger are one continuing variation (a sampled continuous signal)
 SIMILAR_STEP = 0.5
