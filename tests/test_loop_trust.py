@@ -257,6 +257,20 @@ def tanks():
 '''
 
 
+def _user_tanks_loop(tmp_path, monkeypatch, name: str, text: str, n: int) -> list[str]:
+    """A user's tanks graph file ``name`` (source ``text``) and an estimation
+    record of ``n`` samples in ``tmp_path`` (the working folder): the
+    ``bondgraph loop`` arguments of one quick step on them (no --params)."""
+    from bondgraph.numerics.model import Model
+
+    exp, _ = record(Model.from_graph(tanks()), 1, 0.25, n=n)
+    exp.save(tmp_path / "est.csv")
+    (tmp_path / name).write_text(text)
+    monkeypatch.chdir(tmp_path)
+    return ["loop", "--model", f"{name}:tanks", "--data", "est.csv",
+            "--max-steps", "1", "--no-structural", "--quiet"]
+
+
 def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypatch, capsys):
     """The record's truth K2 = 2.5e-6 lies outside the declared box
     [3e-7, 1e-6]: the likelihood fit puts K2 on the box's top, the second
@@ -271,15 +285,8 @@ def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypa
     import re
 
     from bondgraph.cli.main import main
-    from bondgraph.numerics.model import Model
 
-    m = Model.from_graph(tanks())
-    exp, _ = record(m, 1, 0.25, n=1201)
-    exp.save(tmp_path / "est.csv")
-    (tmp_path / "tanks_boxed.py").write_text(TANKS_BOXED)
-    monkeypatch.chdir(tmp_path)
-    argv = ["loop", "--model", "tanks_boxed.py:tanks", "--data", "est.csv", "--max-steps", "1",
-            "--no-structural", "--quiet"]
+    argv = _user_tanks_loop(tmp_path, monkeypatch, "tanks_boxed.py", TANKS_BOXED, 1201)
     rc = main(argv + ["--params", "K2", "--out", "rep"])
     err = capsys.readouterr().err
     assert rc == 2
@@ -341,15 +348,9 @@ def test_a_declared_law_that_produces_power_stops_the_loop_with_code_2(tmp_path,
     import json
 
     from bondgraph.cli.main import main
-    from bondgraph.numerics.model import Model
 
-    m = Model.from_graph(tanks())
-    exp, _ = record(m, 1, 0.25, n=601)
-    exp.save(tmp_path / "est.csv")
-    (tmp_path / "tanks_np.py").write_text(TANKS_NOT_PASSIVE)
-    monkeypatch.chdir(tmp_path)
-    argv = ["loop", "--model", "tanks_np.py:tanks", "--data", "est.csv", "--max-steps", "1",
-            "--no-structural", "--quiet", "--params", "K1,K2"]
+    argv = _user_tanks_loop(tmp_path, monkeypatch, "tanks_np.py", TANKS_NOT_PASSIVE, 601)
+    argv += ["--params", "K1,K2"]
     assert main(argv + ["--out", "rep"]) == 2
     err = capsys.readouterr().err
     assert "the declared model is not physically admissible at its fit: R 'orifice2' " \

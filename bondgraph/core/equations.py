@@ -855,7 +855,7 @@ def _derive(graph: BondGraph, causality: Causality | None, validate: bool) -> St
                       A(s.noise_std) if isinstance(s.noise_std, sp.Basic) else s.noise_std)
                for s in graph.sensors.values()]
     for o in outputs:
-        leftover = [x for x in o.expr.free_symbols if x in d.eqs or x in d.dt_targets]
+        leftover = _unsolved(d, o.expr)
         if leftover:  # pragma: no cover - guarded by the solver
             raise CausalityError(f"internal: sensor '{o.name}' still depends on {leftover}")
     H_terms = _energy_terms(graph, causality, d, solved)
@@ -876,12 +876,18 @@ def _derive(graph: BondGraph, causality: Causality | None, validate: bool) -> St
     return ss
 
 
+def _unsolved(d: _Deriver, ex: sp.Expr) -> list:
+    """The unknowns of ``d`` (port variables, derivative-causality targets)
+    still in ``ex``: none once solved."""
+    return [x for x in ex.free_symbols if x in d.eqs or x in d.dt_targets]
+
+
 def _state_derivatives(d: _Deriver, solved: dict) -> list[sp.Expr]:
     """f: the solved ẋ of every state, in states and inputs only."""
     f = []
     for s in d.states:
         ex = solved[d.xdot[s]]
-        leftover = [x for x in ex.free_symbols if x in d.eqs or x in d.dt_targets]
+        leftover = _unsolved(d, ex)
         if leftover:  # pragma: no cover - guarded by the solver
             raise CausalityError(f"internal: d{s.name}/dt still depends on {leftover}")
         f.append(ex)
