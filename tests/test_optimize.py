@@ -160,3 +160,18 @@ def test_options_validated_on_construction():
         de(sphere, [0.0], [1.0], evolution=EvolutionOptions(popsize=2), progress=False)
     assert Checkpointing("ck.npz").path.name == "ck.npz"
     assert EvolutionOptions(mutation=[0.4, 0.9]).mutation == (0.4, 0.9)
+
+
+def test_polish_beside_a_region_without_finite_values_reaches_the_minimum():
+    """A minimum 0.005 of the box from where the criterion has no value (an
+    explicit step that goes unstable below a time constant): L-BFGS-B's first
+    step from the far side lands there and its line search stopped where it
+    began (x stayed at the start). The rerun with a shorter first step
+    reaches the analytic minimum (0.1, 1)."""
+    def cliff(X):
+        x, y = X[:, 0], X[:, 1]
+        return np.where(x < 0.095, np.inf, ((x - 0.1) / 0.01) ** 2 + (y - 1.0) ** 2)
+
+    x, fx, nfev, _ = minimize_batched(cliff, [0.189, 1.2], [0.02, -10.0], [20.0, 10.0])
+    np.testing.assert_allclose(x, [0.1, 1.0], atol=1e-6)
+    assert fx < 1e-10 and nfev % 5 == 0         # 2k+1 = 5 sets per gradient call

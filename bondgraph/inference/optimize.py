@@ -550,6 +550,11 @@ def _de_start(ck: Path | None, fingerprint: Mapping[str, str]):
             [float(v) for v in d["history"]], float(d["best"]))
 
 
+#: the shortest first step (a fraction of the box width) of
+#: :func:`minimize_batched` after a step into a non-finite region
+MIN_REACH = 1e-4
+
+
 def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, *,
                      step: float = 1e-6, maxiter: int = 50, gtol: float = 1e-8,
                      ftol: float = 1e-10) -> tuple[np.ndarray, float, int, str]:
@@ -580,11 +585,22 @@ def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, 
     -----
     Works in normalised coordinates z = (x − lower)/(upper − lower); at a
     bound the difference uses the points inside the box (one-sided).
+
+    L-BFGS-B's first step has unit length in z: from a point near a bound
+    of a wide box it lands far away, where the criterion may have no finite
+    value (an explicit step that is unstable there). Its line search then
+    shrinks the step to nothing and reports convergence where it started.
+    When a run saw a non-finite value and gained nothing, it is run again
+    from the best point with the coordinates scaled so that its first step
+    (along the gradient) is 0.1, then 0.01, ... (down to :data:`MIN_REACH`)
+    of the box long; a run that saw a non-finite value and gained is run
+    again (its line search may have stopped it short).
     """
     lo, hi = _check_box(lower, upper)
     width = hi - lo
     k = lo.size
     nfev = [0]
+    failed = [False]        # a trial point of the current run had no finite value
     cache: dict = {}
 
     def fg(z):
@@ -599,6 +615,7 @@ def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, 
         nfev[0] += Zall.shape[0]
         f0 = f[0]
         if not np.isfinite(f0):
+            failed[0] = True
             out = (1e300, np.zeros(k))
         else:
             dz = (Zp - Zm)[np.arange(k), np.arange(k)]
@@ -617,11 +634,32 @@ def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, 
         return out
 
     z0 = np.clip((np.asarray(x0, float) - lo) / width, 0.0, 1.0)
-    r = minimize(fg, z0, jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * k,
-                 options=dict(maxiter=maxiter, gtol=gtol, ftol=ftol))
     f0 = fg(z0)[0]
-    z = np.clip(r.x, 0.0, 1.0)
-    fz = fg(z)[0]
-    if fz > f0:  # never return a worse point than the start
-        z, fz = z0, f0
-    return lo + z * width, float(fz), nfev[0], str(r.message)
+    z, fz, message = z0, f0, "not run"
+    reach, left = 1.0, maxiter
+    while left > 0:
+        failed[0] = False
+        # the first step of L-BFGS-B in a box is -gradient (to the box's
+        # edge): in w = (z - zc)/s it is s^2 |g| long in z
+        gmax = 0.0 if reach >= 1.0 else float(np.max(np.abs(fg(z)[1]), initial=0.0))
+        s = np.sqrt(reach / gmax) if gmax > 0 else 1.0
+        zc = z if s != 1.0 else np.zeros(k)
+
+        def fg_scaled(w, zc=zc, s=s):
+            f, g = fg(zc + s * np.asarray(w, float))
+            return f, s * g
+        r = minimize(fg_scaled, (z - zc) / s, jac=True, method="L-BFGS-B",
+                     bounds=list(zip(-zc / s, (1.0 - zc) / s)),
+                     options=dict(maxiter=left, gtol=gtol * s, ftol=ftol))
+        left -= max(int(r.nit), 1)
+        zn = np.clip(zc + s * r.x, 0.0, 1.0)
+        fn = fg(zn)[0]
+        gained = fn < fz - ftol * max(abs(fz), 1.0)
+        message = str(r.message)
+        if fn < fz:
+            z, fz = zn, fn
+        if not failed[0] or (not gained and reach < MIN_REACH * 1.5):
+            break
+        if not gained:
+            reach *= 0.1        # its first step fell where nothing is finite: a shorter one
+    return lo + z * width, float(fz), nfev[0], message
