@@ -36,7 +36,8 @@ from bondgraph.cli.common import (
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import (EstimationError, IdentifiabilityWarning, NumericalError,
                               UsageError)
-from bondgraph.inference.discretise import (check_discretisation, choose_discretisation,
+from bondgraph.inference.discretise import (HOLD_MARGIN, alternative_hold,
+                                            check_discretisation, choose_discretisation,
                                             cost_rank)
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
@@ -183,21 +184,37 @@ MAX_REFITS = 3
 
 def _fit(args, chosen, params, fit, states, paths):
     """``(result, problems)``: the estimation on the records' problems
-    ``chosen`` (``(problem, choice)`` each); where the discretisation was
-    chosen (``choice``), checked again at the estimate
-    (:func:`~bondgraph.cli.common.chosen_problem` with the fit's noise
-    levels) and, if the chosen one fails there on a record, refitted from
-    the estimate with the one chosen at the estimate (a local refit: the
-    swarm's first population with the estimate in it, then the polish; the
-    result, and its warnings, are then the refit's), checked again, at most
-    :data:`MAX_REFITS` times (the estimate may move to where the new one
-    fails too: a fast lag's time constant on its box). From the second
-    check on, the estimate's drift between the last two fits is taken into
-    account (:func:`heading`): each refit had moved the estimate to where
-    the next finer step failed again."""
+    ``chosen`` (``(problem, choice)`` each), refined where its
+    discretisation fails at the estimate (:func:`_refined`); where an
+    input's hold was chosen by an ambiguous shape, the fit under the other
+    hold too, and the likelier kept (:func:`_likelier_hold`)."""
     log = None if args.quiet else _say
     problems = [pb for pb, _ in chosen]
     res = _estimate_quiet(problems, params, fit, states, log)
+    res, problems, agains = _refined(args, chosen, problems, res, params, fit, states, paths)
+    res, problems, chosen, agains = _likelier_hold(args, chosen, problems, res, agains, params,
+                                                   fit, states, paths)
+    given = discretisation_given(args)
+    choices = [dict(given=given, start=None if c is None else c.to_dict(),
+                    estimate=None if a is None else a.to_dict())
+               for (_pb, c), a in zip(chosen, agains)]
+    res.settings["discretisation_choice"] = choices[0] if len(choices) == 1 else choices
+    return res, problems
+
+
+def _refined(args, chosen, problems, res, params, fit, states, paths):
+    """``(result, problems, choices at the estimate)``: where the
+    discretisation was chosen (``choice`` of ``chosen``), checked again at
+    the estimate (with the fit's noise levels) and, if the chosen one fails
+    there on a record, refitted from the estimate with the one chosen at the
+    estimate (a local refit: the swarm's first population with the estimate
+    in it, then the polish; the result, and its warnings, are then the
+    refit's), checked again, at most :data:`MAX_REFITS` times (the estimate
+    may move to where the new one fails too: a fast lag's time constant on
+    its box). From the second check on, the estimate's drift between the
+    last two fits is taken into account (:func:`heading`): each refit had
+    moved the estimate to where the next finer step failed again."""
+    problems = list(problems)
     agains: list = [None] * len(chosen)
     before = None       # the estimate of the fit before the last refit
     # a local refit: the estimate moves by the discretisation's bias only
@@ -211,19 +228,60 @@ def _fit(args, chosen, params, fit, states, paths):
             if choice is None or not np.isfinite(res.nll):
                 continue
             ahead = None if before is None else heading(problems[i].model, before, res.theta)
-            agains[i], redo = _recheck(args, problems[i], res, _say_for(paths[i], paths), ahead)
+            agains[i], redo = _recheck(args, problems[i], res, _say_for(paths[i], paths), ahead,
+                                       why=choice.hold_reason)
             if redo:
                 problems[i], refit = problems[i].conditioned_on(disc=agains[i].disc), True
         if not refit:
             break
         before = res.theta
         res = _estimate_quiet(problems, params, local, states, None, start=res.estimates)
-    given = discretisation_given(args)
-    choices = [dict(given=given, start=None if c is None else c.to_dict(),
-                    estimate=None if a is None else a.to_dict())
-               for (_pb, c), a in zip(chosen, agains)]
-    res.settings["discretisation_choice"] = choices[0] if len(choices) == 1 else choices
-    return res, problems
+    return res, problems, agains
+
+
+def _likelier_hold(args, chosen, problems, res, agains, params, fit, states, paths):
+    """``(result, problems, chosen, choices at the estimate)``: where an
+    input's hold was chosen by its shape without clear evidence
+    (:func:`~bondgraph.inference.discretise.alternative_hold`: a sequence that
+    jumps from sample to sample may be a held command or a sampled
+    continuous signal with noise) and the user gave no ``--hold``, the same
+    estimation again under the other hold (the discretisation chosen for it
+    at the start, refined at its estimate), and the fit with the lower NLL
+    kept (by more than :data:`HOLD_MARGIN`; else the shape's). Two lines
+    say why and which. Without an ambiguous input: the arguments."""
+    alts = [None if c is None else alternative_hold(c.inputs, pb.disc.hold)
+            for pb, c in chosen]
+    if "hold" in discretisation_given(args) or not np.isfinite(res.nll) \
+            or all(a is None for a in alts):
+        return res, problems, chosen, agains
+    vague = sorted({h.describe() for _pb, c in chosen if c is not None
+                    for h in c.inputs if h.ambiguous})
+    _say(f"input hold: the shape does not settle it ({'; '.join(vague)}): fitting under the "
+         f"other hold too, the likelihood decides (--hold to choose)")
+    why = "the likelihood of the fits under both holds (the shape is ambiguous)"
+    other = []
+    for (pb, c), alt, pth in zip(chosen, alts, paths):
+        if alt is None:
+            other.append((pb, c))
+            continue
+        c2 = choose_discretisation(pb, pb.theta, given=discretisation_given(args), hold=alt,
+                                   why=why)
+        _say_for(pth, paths)(c2.line("at the start θ, the other hold"))
+        other.append((pb.conditioned_on(disc=c2.disc), c2))
+    res2 = _estimate_quiet([pb for pb, _ in other], params,
+                           replace(fit, checkpoint=None, resume=False), states,
+                           None if args.quiet else _say)
+    res2, problems2, agains2 = _refined(args, other, [pb for pb, _ in other], res2, params, fit,
+                                        states, paths)
+    mine = "/".join(sorted({pb.disc.hold for pb in problems}))
+    theirs = "/".join(sorted({pb.disc.hold for pb in problems2}))
+    better = bool(np.isfinite(res2.nll) and res2.nll < res.nll - HOLD_MARGIN)
+    _say(f"input hold by likelihood: {theirs} NLL {res2.nll:.6g}, {mine} NLL {res.nll:.6g} "
+         f"(each fitted): {theirs if better else mine} kept"
+         + ("" if better else f" (the other is not lower by more than {HOLD_MARGIN:g} nat)"))
+    if not better:
+        return res, problems, chosen, agains
+    return res2, problems2, other, agains2
 
 
 def heading(model, before: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -239,7 +297,7 @@ def heading(model, before: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return np.clip(nxt, model.lower, model.upper)
 
 
-def _recheck(args, problem, res, say, ahead: np.ndarray | None = None):
+def _recheck(args, problem, res, say, ahead: np.ndarray | None = None, why: str | None = None):
     """``(choice at the estimate, refit?)``: the discretisation chosen at
     the estimate with its noise levels; a refit when the start's fails
     there and another was chosen (one line on ``say`` either way). With
@@ -247,16 +305,18 @@ def _recheck(args, problem, res, say, ahead: np.ndarray | None = None):
     choice there is taken instead when it is finer and also meets the check
     at the estimate: the refit then need not chase the estimate (a user's
     fuel-flow lag of 1 s shrinking towards 0.05 s on 1 Hz records: rk4(1),
-    (2), (3), (4) each failed at the next estimate)."""
+    (2), (3), (4) each failed at the next estimate). The problem's hold is
+    kept (``why`` its reason)."""
     levels = res.settings.get("noise_levels") or {}
     sigma = [float((levels.get(o) or {}).get("std", np.nan)) for o in problem.model.outputs]
     given = discretisation_given(args)
-    again = choose_discretisation(problem, res.theta, given=given, sigma=sigma)
+    hold = dict(hold=problem.disc.hold, why=why)
+    again = choose_discretisation(problem, res.theta, given=given, sigma=sigma, **hold)
     ok, now, bound = check_discretisation(problem, res.theta, sigma=again.sigma)
     if not ok and again.disc != problem.disc:
         why = (f"the start's {problem.disc.describe()} fails {{}}: {now:.2g} σ per sample, "
                f"bias bound {bound:.2g} std; refitting from the estimate")
-        further = _choice_ahead(problem, ahead, given, sigma, res.theta, again)
+        further = _choice_ahead(problem, ahead, given, sigma, res.theta, again, hold)
         if further is None:
             say(again.line(f"at the estimate ({why.format('there')})"))
             return again, True
@@ -270,14 +330,14 @@ def _recheck(args, problem, res, say, ahead: np.ndarray | None = None):
     return again, False
 
 
-def _choice_ahead(problem, ahead, given, sigma, theta, again):
-    """The discretisation chosen at ``ahead`` when it is costlier than
-    ``again`` (the choice at the estimate ``theta``) and meets the check at
-    ``theta`` too, else None."""
+def _choice_ahead(problem, ahead, given, sigma, theta, again, hold: dict):
+    """The discretisation chosen at ``ahead`` (with ``hold``: the problem's
+    hold and its reason) when it is costlier than ``again`` (the choice at
+    the estimate ``theta``) and meets the check at ``theta`` too, else None."""
     if ahead is None:
         return None
     try:
-        further = choose_discretisation(problem, ahead, given=given, sigma=sigma)
+        further = choose_discretisation(problem, ahead, given=given, sigma=sigma, **hold)
         if not further.ok or cost_rank(further.disc) <= cost_rank(again.disc):
             return None
         ok = check_discretisation(problem, theta, further.disc, sigma=again.sigma)[0]
