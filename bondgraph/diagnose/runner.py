@@ -67,7 +67,7 @@ from bondgraph.diagnose.scoring import (
 )
 from bondgraph.diagnose.screen import SCREEN_LEVEL, free_run_nrmse, global_output_error
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.inference.discretise import SUBSTEPS
+from bondgraph.inference.discretise import HOLD_MARGIN, SUBSTEPS, alternative_hold
 from bondgraph.numerics.admissible import MARGIN as ADMISSIBLE_MARGIN
 from bondgraph.numerics.integrators import split_hold
 from bondgraph.numerics.model import Model
@@ -162,6 +162,7 @@ def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) 
     s = ctx.settings
     with phase("fitting the declared model"):
         initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
+        initial, warn = likelier_hold(ctx, graph, initial, warn)
     _worse_than_mean(ctx, initial)
     result = new_result(ctx, graph, initial, warn)
     publish(ctx, result, initial, initial, on_update)
@@ -272,9 +273,14 @@ def chosen_numerics(graph: BondGraph, record, settings: LoopSettings, *,
     (log or print)(choice.line("at the declared start θ"))
     d = choice.disc
     hold = d.hold if set(split_hold(d.hold)) <= {"zoh", "linear"} else settings.free_run.hold
+    other = None if "hold" in given else alternative_hold(choice.inputs, d.hold)
+    if other is not None:
+        (log or print)(f"the input's shape does not settle its hold: the declared model is "
+                       f"fitted under the {other} hold too, the likelihood decides (--hold to "
+                       f"choose)")
     return replace(settings, ukf=replace(settings.ukf, method=d.method, substeps=d.substeps,
                                          hold=d.hold),
-                   search=replace(settings.search, auto_substeps=True),
+                   search=replace(settings.search, auto_substeps=True, other_hold=other),
                    free_run=replace(settings.free_run, hold=hold, method="fine"))
 
 
@@ -931,6 +937,54 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
     ctx.cache.clear()
     return initial_fit(ctx, graph, again=True), warn
+
+
+def likelier_hold(ctx: Context, graph: BondGraph, initial: Fit,
+                  warn: list[str]) -> tuple[Fit, list[str]]:
+    """The declared fit under ``settings.search.other_hold`` too (an input
+    whose shape is ambiguous, :func:`chosen_numerics`), with the
+    discretisation chosen for that hold at the declared fit; when its NLL is
+    lower by more than :data:`~bondgraph.inference.discretise.HOLD_MARGIN`,
+    the loop goes on under that hold (``ctx``'s problem and the filter's and
+    free runs' holds replaced) from that fit. One line says which and why.
+    A fit under the other hold that fails keeps the first.
+
+    Returns
+    -------
+    (Fit, list of str)
+        The declared fit and its discretisation warnings.
+    """
+    s = ctx.settings
+    other = s.search.other_hold
+    if other is None or not np.isfinite(initial.nll):
+        return initial, warn
+    mine = ctx.problem.disc.hold
+    why = "the likelihood of the declared fits under both holds (the shape is ambiguous)"
+    choice = choose_discretisation(ctx.problem, initial.theta, hold=other, why=why)
+    d = choice.disc
+    search = replace(s.search, other_hold=None)
+    alt = Context(ctx.problem.conditioned_on(disc=d),
+                  replace(s, ukf=replace(s.ukf, method=d.method, substeps=d.substeps, hold=other),
+                          free_run=replace(s.free_run, hold=other), search=search),
+                  ctx.log, ctx.progress, executor=ctx.executor)
+    ctx.log(choice.line("at the declared fit, the other hold"))
+    try:
+        fit2, warn2 = resolved_fit(alt, graph, initial_fit(alt, graph, again=True))
+    except (DeclaredFitError, NumericalError, np.linalg.LinAlgError) as exc:
+        ctx.log(f"input hold: the declared fit under the {other} hold failed ({exc}); "
+                f"{mine} kept")
+        ctx.settings = replace(s, search=search)
+        return initial, warn
+    better = bool(np.isfinite(fit2.nll) and fit2.nll < initial.nll - HOLD_MARGIN)
+    ctx.log(f"input hold by likelihood: {other} NLL {fit2.nll:.6g}, {mine} NLL "
+            f"{initial.nll:.6g} (each fitted): {other if better else mine} kept"
+            + ("" if better else f" (the other is not lower by more than {HOLD_MARGIN:g} nat)"))
+    if not better:
+        ctx.settings = replace(s, search=search)
+        return initial, warn
+    ctx.problem, ctx.settings = alt.problem, alt.settings
+    ctx.cache.clear()
+    return fit2, warn2
 
 
 def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,

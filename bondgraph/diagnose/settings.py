@@ -250,6 +250,13 @@ class SearchOptions:
         parameters, the effect's held, before the joint profile starts from
         the best of them (0: the joint profile starts from the frozen grid's
         best; :func:`bondgraph.diagnose.scoring.grid_starts`).
+    other_hold : str, optional
+        An input hold to fit the declared model under too, the likelier fit
+        (by more than :data:`~bondgraph.inference.discretise.HOLD_MARGIN`)
+        kept for the whole loop: set by
+        :func:`~bondgraph.diagnose.runner.chosen_numerics` when an input's
+        shape is ambiguous (:func:`~bondgraph.inference.discretise.alternative_hold`).
+        None (default): the filter's hold is kept.
     """
 
     max_steps: int = 4
@@ -266,6 +273,7 @@ class SearchOptions:
     structural_near_best: bool = False
     structural_refit: int = 2
     structural_starts: int = 3
+    other_hold: str | None = None
 
     def __post_init__(self):
         for name, minimum in (("max_steps", 0), ("fit_iterations", 0), ("confirm_top", 1),
@@ -275,6 +283,9 @@ class SearchOptions:
         _choice(self, "fit", ("nll", "sim"))
         _choice(self, "on_failed_fit", ("stop", "continue"))
         _choice(self, "structural", (True, False, "always"))
+        if self.other_hold is not None and not hold_within(self.other_hold, ("zoh", "linear")):
+            raise OptionError(f"SearchOptions.other_hold must be 'zoh', 'linear' or one of them "
+                              f"per input, got {self.other_hold!r}")
         _level(self, "structural_threshold", optional=True, closed=True)
         tol = self.confirm_tolerance
         if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not tol > 0:
