@@ -685,11 +685,7 @@ def choose_discretisation(problem, theta, *, given: Mapping | None = None, sigma
     if free_run is None:
         free_run = no_process_noise(model, th)
     inputs = input_holds(problem.u, model.inputs, declared_holds(problem.record, model.inputs))
-    if hold is not None and "hold" not in given:
-        split_hold(hold, len(inputs))
-        hold, reason = hold, why or "chosen by the caller"
-    else:
-        hold, reason = _hold_for(inputs, given)
+    hold, reason = _hold_for(inputs, given, hold, why)
     cands = [Discretisation(m, s, hold, problem.disc.backend) for m, s in _candidates(given)]
     disc, ok, tried = _first_within(problem, th, cands, sig, free_run, tolerance, bias_tolerance)
     return DiscretisationChoice(disc, ok, reason, inputs, tried, sig, free_run, given, tolerance,
@@ -771,9 +767,14 @@ def record_hold(problem) -> tuple[str, str]:
     return supported_hold(input_holds(problem.u, names, declared_holds(problem.record, names)))
 
 
-def _hold_for(inputs, given: dict) -> tuple[str, str]:
+def _hold_for(inputs, given: dict, hold: str | None = None,
+              why: str | None = None) -> tuple[str, str]:
     """The hold and its reason: given (noting a record that supports
-    another), else :func:`supported_hold`."""
+    another), else ``hold`` (chosen by other evidence, ``why``), else
+    :func:`supported_hold`."""
+    if "hold" not in given and hold is not None:
+        split_hold(hold, len(inputs))
+        return hold, why or "chosen by the caller"
     if "hold" not in given:
         return supported_hold(inputs)
     hold, reason = given["hold"], f"given (--hold {given['hold']})"

@@ -550,6 +550,53 @@ def _de_start(ck: Path | None, fingerprint: Mapping[str, str]):
             [float(v) for v in d["history"]], float(d["best"]))
 
 
+class _DifferencedCriterion:
+    """``fg(z) -> (f, gradient)`` of a batched criterion in normalised
+    coordinates z ∈ [0, 1]^k (x = lo + z·width), the gradient by central
+    differences of ``step`` (one-sided at a bound or beside a non-finite
+    value), the 2k + 1 points in one batched call; a non-finite f is 1e300
+    with a zero gradient and sets ``failed``. The last point is cached
+    (scipy asks for it twice). ``nfev`` counts the parameter sets."""
+
+    def __init__(self, fun, lo, width, step: float):
+        self.fun, self.lo, self.width, self.step = fun, lo, width, step
+        self.k = lo.size
+        self.nfev = 0
+        self.failed = False
+        self.cache: dict = {}
+
+    def __call__(self, z):
+        k, step = self.k, self.step
+        z = np.clip(np.asarray(z, float), 0.0, 1.0)
+        key = z.tobytes()
+        if key in self.cache:
+            return self.cache[key]
+        Zp = np.clip(z + step * np.eye(k), 0.0, 1.0)
+        Zm = np.clip(z - step * np.eye(k), 0.0, 1.0)
+        Zall = np.vstack([z[None], Zp, Zm])
+        f = _evaluate(self.fun, self.lo + Zall * self.width)
+        self.nfev += Zall.shape[0]
+        f0 = f[0]
+        if not np.isfinite(f0):
+            self.failed = True
+            out = (1e300, np.zeros(k))
+        else:
+            dz = (Zp - Zm)[np.arange(k), np.arange(k)]
+            fp, fm = f[1:k + 1], f[k + 1:]
+            g = np.zeros(k)
+            for i in range(k):
+                if np.isfinite(fp[i]) and np.isfinite(fm[i]) and dz[i] > 0:
+                    g[i] = (fp[i] - fm[i]) / dz[i]
+                elif np.isfinite(fp[i]) and Zp[i, i] > z[i]:
+                    g[i] = (fp[i] - f0) / (Zp[i, i] - z[i])
+                elif np.isfinite(fm[i]) and Zm[i, i] < z[i]:
+                    g[i] = (f0 - fm[i]) / (z[i] - Zm[i, i])
+            out = (float(f0), g)
+        self.cache.clear()
+        self.cache[key] = out
+        return out
+
+
 #: the shortest first step (a fraction of the box width) of
 #: :func:`minimize_batched` after a step into a non-finite region
 MIN_REACH = 1e-4
@@ -599,46 +646,13 @@ def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, 
     lo, hi = _check_box(lower, upper)
     width = hi - lo
     k = lo.size
-    nfev = [0]
-    failed = [False]        # a trial point of the current run had no finite value
-    cache: dict = {}
-
-    def fg(z):
-        z = np.clip(np.asarray(z, float), 0.0, 1.0)
-        key = z.tobytes()
-        if key in cache:
-            return cache[key]
-        Zp = np.clip(z + step * np.eye(k), 0.0, 1.0)
-        Zm = np.clip(z - step * np.eye(k), 0.0, 1.0)
-        Zall = np.vstack([z[None], Zp, Zm])
-        f = _evaluate(fun, lo + Zall * width)
-        nfev[0] += Zall.shape[0]
-        f0 = f[0]
-        if not np.isfinite(f0):
-            failed[0] = True
-            out = (1e300, np.zeros(k))
-        else:
-            dz = (Zp - Zm)[np.arange(k), np.arange(k)]
-            fp, fm = f[1:k + 1], f[k + 1:]
-            g = np.zeros(k)
-            for i in range(k):
-                if np.isfinite(fp[i]) and np.isfinite(fm[i]) and dz[i] > 0:
-                    g[i] = (fp[i] - fm[i]) / dz[i]
-                elif np.isfinite(fp[i]) and Zp[i, i] > z[i]:
-                    g[i] = (fp[i] - f0) / (Zp[i, i] - z[i])
-                elif np.isfinite(fm[i]) and Zm[i, i] < z[i]:
-                    g[i] = (f0 - fm[i]) / (z[i] - Zm[i, i])
-            out = (float(f0), g)
-        cache.clear()
-        cache[key] = out
-        return out
-
+    fg = _DifferencedCriterion(fun, lo, width, step)
     z0 = np.clip((np.asarray(x0, float) - lo) / width, 0.0, 1.0)
     f0 = fg(z0)[0]
     z, fz, message = z0, f0, "not run"
     reach, left = 1.0, maxiter
     while left > 0:
-        failed[0] = False
+        fg.failed = False
         # the first step of L-BFGS-B in a box is -gradient (to the box's
         # edge): in w = (z - zc)/s it is s^2 |g| long in z
         gmax = 0.0 if reach >= 1.0 else float(np.max(np.abs(fg(z)[1]), initial=0.0))
@@ -658,8 +672,8 @@ def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, 
         message = str(r.message)
         if fn < fz:
             z, fz = zn, fn
-        if not failed[0] or (not gained and reach < MIN_REACH * 1.5):
+        if not fg.failed or (not gained and reach < MIN_REACH * 1.5):
             break
         if not gained:
             reach *= 0.1        # its first step fell where nothing is finite: a shorter one
-    return lo + z * width, float(fz), nfev[0], message
+    return lo + z * width, float(fz), fg.nfev, message
