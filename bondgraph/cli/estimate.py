@@ -248,7 +248,8 @@ def _likelier_hold(args, chosen, problems, res, agains, params, fit, states, pat
     estimation again under the other hold (the discretisation chosen for it
     at the start, refined at its estimate), and the fit with the lower NLL
     kept (by more than :data:`HOLD_MARGIN`; else the shape's). Two lines
-    say why and which. Without an ambiguous input: the arguments."""
+    say why and which; a fit under the other hold that fails keeps the first.
+    Without an ambiguous input: the arguments."""
     alts = [None if c is None else alternative_hold(c.inputs, pb.disc.hold)
             for pb, c in chosen]
     if "hold" in discretisation_given(args) or not np.isfinite(res.nll) \
@@ -268,11 +269,15 @@ def _likelier_hold(args, chosen, problems, res, agains, params, fit, states, pat
                                    why=why)
         _say_for(pth, paths)(c2.line("at the start θ, the other hold"))
         other.append((pb.conditioned_on(disc=c2.disc), c2))
-    res2 = _estimate_quiet([pb for pb, _ in other], params,
-                           replace(fit, checkpoint=None, resume=False), states,
-                           None if args.quiet else _say)
-    res2, problems2, agains2 = _refined(args, other, [pb for pb, _ in other], res2, params, fit,
-                                        states, paths)
+    try:
+        res2 = _estimate_quiet([pb for pb, _ in other], params,
+                               replace(fit, checkpoint=None, resume=False), states,
+                               None if args.quiet else _say)
+        res2, problems2, agains2 = _refined(args, other, [pb for pb, _ in other], res2, params,
+                                            fit, states, paths)
+    except (EstimationError, NumericalError, np.linalg.LinAlgError) as exc:
+        _say(f"input hold: the fit under the other hold failed ({exc}); the shape's kept")
+        return res, problems, chosen, agains
     mine = "/".join(sorted({pb.disc.hold for pb in problems}))
     theirs = "/".join(sorted({pb.disc.hold for pb in problems2}))
     better = bool(np.isfinite(res2.nll) and res2.nll < res.nll - HOLD_MARGIN)
