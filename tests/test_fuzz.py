@@ -16,6 +16,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
@@ -274,3 +275,17 @@ def test_graph_fuzz_reaches_a_derivable_graph():
     g.validate()
     assert len(derive(g).states) == 2
     assert math.isfinite(g.params["m"].default)
+
+
+def test_a_source_without_a_value_is_refused_where_it_is_declared():
+    """The example the graph-builder fuzz found: ``g.Se("e0", None)`` was
+    accepted and ``validate`` then failed with an AttributeError inside the
+    symbol check; now the source refuses it, named."""
+    from bondgraph.errors import ElementError
+
+    g = BondGraph("fuzz", "")
+    with pytest.raises(ElementError, match="Se 'e0': no effort given"):
+        g.Se("e0", None)
+    with pytest.raises(ElementError, match="Sf 'f0': no flow given"):
+        g.MSf("f0", None)
+    assert not g.elements

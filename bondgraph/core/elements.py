@@ -192,6 +192,10 @@ class Source(OnePort):
 
     def __init__(self, name: str, value, *, modulated: bool = False, **kw):
         super().__init__(name, **kw)
+        if value is None:
+            what = self.variable
+            raise ElementError(f"{'Se' if what == 'effort' else 'Sf'} '{name}': no {what} given; "
+                               f"give a number, a parameter, an input or an expression")
         self.value = _as_expr(value)
         self.modulated = modulated
 
