@@ -133,37 +133,3 @@ def test_a_low_scored_true_friction_is_confirmed_before_a_look_alike_is_accepted
     assert abs(res.final.estimates["coulomb.v3.Fc"] - FC) < 0.005 * FC
     assert res.steps[0].error_after < 1.2 * floor
 
-
-
-def test_a_twin_is_confirmed_as_the_candidate_it_is_the_same_model_as():
-    """Twins (each other's equivalent, the same dof, score tests equal to
-    1e-9: the same law on the brake or the rolling resistance of one wheel
-    junction) are refitted once: the better-ranked one stands for the other,
-    in the same batch or confirmed earlier against the same fit. A score
-    that differs by 1e-6, another dof, or a signature the record tells apart
-    is not a twin."""
-    from types import SimpleNamespace
-
-    from bondgraph.diagnose.fit import Context
-    from bondgraph.diagnose.runner import _as_twin, twins_of
-
-    a, b = _cand("a", 100.0, None), _cand("b", 100.0 * (1 + 1e-12), None)
-    near, other_dof = _cand("c", 100.0 * (1 + 1e-6), None), _cand("d", 100.0, None)
-    apart = _cand("f", 100.0, None)
-    other_dof.dof = 2
-    a.equivalent = ["e @ b", "e @ c", "e @ d"]
-    b.equivalent, near.equivalent, other_dof.equivalent = ["e @ a"], ["e @ a"], ["e @ a"]
-    lines: list[str] = []
-    ctx = Context(None, LoopSettings(params=["m"]), log=lines.append)
-    current = SimpleNamespace(nll=12.5)
-    assert twins_of(ctx, current, [a, b, near, other_dof, apart]) == {"e @ b": a}
-    # a confirmed in an earlier round against the same fit stands for b
-    ctx.cache[("confirmed candidate", id(current), current.nll, "e @ a")] = a
-    ctx.cache[("confirmation", id(current), current.nll, "e @ a")] = object()
-    assert twins_of(ctx, current, [b]) == {"e @ b": a}
-    assert twins_of(ctx, SimpleNamespace(nll=3.0), [b]) == {}
-    a.confirmed_statistic, a.confirmed = 120.0, {"lr": 120.0}
-    _as_twin(ctx, current, b, a, None)
-    assert b.confirmed_statistic == 120.0 and b.confirmed == {"lr": 120.0, "twin_of": "e @ a"}
-    assert lines == ["  e @ b: the same model as e @ a (signatures indistinguishable, score "
-                     "tests equal to 1e-09): not refitted, its LR is 120.0"]

@@ -1778,16 +1778,11 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
     todo = sorted(signif, key=lambda c: c.rank_key)[:top]
     confirmed = []
     keys = [("confirmation", id(current), current.nll, c.label) for c in todo]  # lead check's
-    twins = twins_of(ctx, current, todo)
-    fresh = [(k, c) for k, c in zip(keys, todo) if k not in ctx.cache and c.label not in twins]
-    for (k, c), r in zip(fresh, run_tasks(ctx, _confirm_task, (current, scales, name),
+    fresh = [(k, c) for k, c in zip(keys, todo) if k not in ctx.cache]
+    for (k, _), r in zip(fresh, run_tasks(ctx, _confirm_task, (current, scales, name),
                                           [c for _, c in fresh])):
         ctx.cache[k] = r
-        ctx.cache[("confirmed candidate", id(current), current.nll, c.label)] = c
     for c, key in zip(todo, keys):
-        if c.label in twins:
-            _as_twin(ctx, current, c, twins[c.label], quiet)
-            continue
         r = ctx.cache[key]
         if r is None:
             continue
@@ -1804,54 +1799,6 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
                 f"(score test {c.statistic:.1f}), values {r.values} ({how}, "
                 f"{r.fit.iterations} iterations)")
     return merged_confirmations(ctx, confirmed)
-
-
-#: two candidates whose signatures the record cannot tell apart
-#: (``Candidate.equivalent``) and whose score tests agree to this relative
-#: difference, with the same degrees of freedom, are one model (:func:`twins_of`)
-TWIN_REL = 1e-9
-
-
-def twins_of(ctx: Context, current: Fit, ranked: list[Candidate]) -> dict[str, Candidate]:
-    """Twin label -> the candidate it is the same model as: each
-    candidate of ``ranked`` (best first) whose better-ranked twin is in
-    ``ranked`` or was confirmed against ``current`` already. Twins are
-    each other's ``equivalent`` (signatures correlated > 0.999) with the
-    same degrees of freedom and score tests equal to :data:`TWIN_REL`: the
-    same law at an equivalent place (a quadratic resistance on the brake or
-    on the rolling resistance of one wheel junction, or a quadratic drag at
-    that junction's flow). Their refits are one and the same (the default
-    case refitted three such twins, each to the same likelihood ratio
-    23616.2), so a twin is not refitted (:func:`_as_twin`)."""
-    def same(a: Candidate, b: Candidate) -> bool:
-        return (b.label in a.equivalent and a.dof == b.dof and np.isfinite(a.statistic)
-                and np.isfinite(b.statistic) and abs(a.statistic - b.statistic)
-                <= TWIN_REL * max(abs(a.statistic), abs(b.statistic), 1.0))
-    out: dict[str, Candidate] = {}
-    for i, c in enumerate(ranked):
-        earlier = [b for b in ranked[:i] if b.label not in out]
-        earlier += [ctx.cache[k] for k in [("confirmed candidate", id(current), current.nll, lab)
-                                           for lab in c.equivalent] if k in ctx.cache]
-        rep = next((b for b in earlier if b is not c and same(c, b)), None)
-        if rep is not None:
-            out[c.label] = rep
-    return out
-
-
-def _as_twin(ctx: Context, current: Fit, c: Candidate, rep: Candidate,
-             quiet: set | None) -> None:
-    """``c`` confirmed as its twin ``rep`` was (:func:`twins_of`): the same
-    likelihood ratio and record, marked ``twin_of``; not one of the
-    confirmed candidates a decision chooses from (``rep`` stands for it)."""
-    r = ctx.cache.get(("confirmation", id(current), current.nll, rep.label))
-    if r is None:
-        return
-    c.confirmed_statistic = rep.confirmed_statistic
-    c.confirmed = {**(rep.confirmed or {}), "twin_of": rep.label}
-    if c.label not in (quiet or ()):
-        ctx.log(f"  {c.label}: the same model as {rep.label} (signatures indistinguishable, "
-                f"score tests equal to {TWIN_REL:g}): not refitted, its LR is "
-                f"{rep.confirmed_statistic:.1f}")
 
 
 def _confirm_task(ctx: Context, shared, cand: Candidate) -> Confirmation | None:
