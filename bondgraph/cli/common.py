@@ -535,7 +535,8 @@ def problem_from_args(model, experiment, args, values=None) -> Problem:
 
 
 def chosen_problem(problem: Problem, args, theta=None, *, where: str = "at the start θ",
-                   sigma=None, say=None) -> tuple[Problem, DiscretisationChoice | None]:
+                   sigma=None, say=None, hold: str | None = None,
+                   why: str | None = None) -> tuple[Problem, DiscretisationChoice | None]:
     """``problem`` with the discretisation that its check accepts at
     ``theta`` (:func:`bondgraph.inference.discretise.choose_discretisation`):
     the options of ``--method``, ``--substeps``, ``--hold`` that the user
@@ -553,6 +554,10 @@ def chosen_problem(problem: Problem, args, theta=None, *, where: str = "at the s
     sigma : array (n_y,), optional
         Measurement-noise standard deviations (default: the problem's).
     say : callable, optional
+    hold, why : str, optional
+        A hold chosen by other evidence and why (the likelihood of fits
+        under both, :func:`bondgraph.inference.discretise.alternative_hold`),
+        used unless ``--hold`` was given.
 
     Returns
     -------
@@ -567,7 +572,7 @@ def chosen_problem(problem: Problem, args, theta=None, *, where: str = "at the s
     if len(given) == 3:
         return problem, None
     choice = choose_discretisation(problem, problem.theta if theta is None else theta,
-                                   given=given, sigma=sigma)
+                                   given=given, sigma=sigma, hold=hold, why=why)
     (say or _stderr)(choice.line(where))
     if choice.disc != problem.disc:
         problem = problem.conditioned_on(disc=choice.disc)

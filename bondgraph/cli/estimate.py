@@ -265,10 +265,8 @@ def _likelier_hold(args, chosen, problems, res, agains, params, fit, states, pat
         if alt is None:
             other.append((pb, c))
             continue
-        c2 = choose_discretisation(pb, pb.theta, given=discretisation_given(args), hold=alt,
-                                   why=why)
-        _say_for(pth, paths)(c2.line("at the start θ, the other hold"))
-        other.append((pb.conditioned_on(disc=c2.disc), c2))
+        other.append(chosen_problem(pb, args, where="at the start θ, the other hold",
+                                    say=_say_for(pth, paths), hold=alt, why=why))
     try:
         res2 = _estimate_quiet([pb for pb, _ in other], params,
                                replace(fit, checkpoint=None, resume=False), states,

@@ -271,17 +271,24 @@ def chosen_numerics(graph: BondGraph, record, settings: LoopSettings, *,
                      np.asarray(model.meas_std(problem.theta[None, :]), float)[0])
     choice = choose_discretisation(problem, problem.theta, given=given, sigma=sigma)
     (log or print)(choice.line("at the declared start θ"))
-    d = choice.disc
-    hold = d.hold if set(split_hold(d.hold)) <= {"zoh", "linear"} else settings.free_run.hold
-    other = None if "hold" in given else alternative_hold(choice.inputs, d.hold)
+    other = None if "hold" in given else alternative_hold(choice.inputs, choice.disc.hold)
     if other is not None:
         (log or print)(f"the input's shape does not settle its hold: the declared model is "
                        f"fitted under the {other} hold too, the likelihood decides (--hold to "
                        f"choose)")
+    s = with_discretisation(settings, choice.disc)
+    return replace(s, search=replace(s.search, auto_substeps=True, other_hold=other),
+                   free_run=replace(s.free_run, method="fine"))
+
+
+def with_discretisation(settings: LoopSettings, d) -> LoopSettings:
+    """``settings`` with the filter's method, substeps and hold of ``d`` (a
+    :class:`~bondgraph.inference.options.Discretisation`), the free runs
+    holding the inputs alike (unless that hold is not one they have)."""
+    hold = d.hold if set(split_hold(d.hold)) <= {"zoh", "linear"} else settings.free_run.hold
     return replace(settings, ukf=replace(settings.ukf, method=d.method, substeps=d.substeps,
                                          hold=d.hold),
-                   search=replace(settings.search, auto_substeps=True, other_hold=other),
-                   free_run=replace(settings.free_run, hold=hold, method="fine"))
+                   free_run=replace(settings.free_run, hold=hold))
 
 
 def new_result(ctx: Context, graph: BondGraph, initial: Fit,
@@ -961,11 +968,9 @@ def likelier_hold(ctx: Context, graph: BondGraph, initial: Fit,
     mine = ctx.problem.disc.hold
     why = "the likelihood of the declared fits under both holds (the shape is ambiguous)"
     choice = choose_discretisation(ctx.problem, initial.theta, hold=other, why=why)
-    d = choice.disc
     search = replace(s.search, other_hold=None)
-    alt = Context(ctx.problem.conditioned_on(disc=d),
-                  replace(s, ukf=replace(s.ukf, method=d.method, substeps=d.substeps, hold=other),
-                          free_run=replace(s.free_run, hold=other), search=search),
+    alt = Context(ctx.problem.conditioned_on(disc=choice.disc),
+                  replace(with_discretisation(s, choice.disc), search=search),
                   ctx.log, ctx.progress, executor=ctx.executor)
     ctx.log(choice.line("at the declared fit, the other hold"))
     try:

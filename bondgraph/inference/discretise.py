@@ -17,8 +17,9 @@ Two questions, answered from two kinds of evidence:
   digital command beside a sampled continuous signal gets a per-input hold
   (``"zoh,linear"``, :func:`supported_hold`). Where the shape is ambiguous
   (neither share reaches :data:`CLEAR_SHARE`), the fitted model's likelihood
-  decides: the estimate command fits under both holds
-  (:func:`alternative_hold`) and keeps the likelier.
+  decides: the estimate command fits under both holds, the loop fits its
+  declared model under both (:func:`alternative_hold`), and each keeps the
+  likelier.
 * **The step** (method and substeps). The candidates
   (:data:`CANDIDATES`, cheapest first) are compared with a fine RK4 reference
   of the same hold, one step from the reference state at every sample
@@ -54,9 +55,9 @@ from bondgraph.inference.ukf import discretisation_errors
 from bondgraph.numerics.integrators import is_per_input, join_hold, split_hold
 
 __all__ = ["BIAS_TOLERANCE", "CANDIDATES", "CLEAR_SHARE", "DECLARED_HOLDS", "HOLD_MARGIN",
-           "TOLERANCE",
-           "DiscretisationChoice", "InputHold", "alternative_hold", "check_discretisation",
-           "choose_discretisation", "declared_holds", "holds_against", "input_holds", "no_process_noise", "record_hold", "supported_hold"]
+           "TOLERANCE", "DiscretisationChoice", "InputHold", "alternative_hold",
+           "check_discretisation", "choose_discretisation", "declared_holds", "holds_against",
+           "input_holds", "no_process_noise", "record_hold", "supported_hold"]
 
 #: the largest accepted one-step discretisation error, in measurement-noise
 #: standard deviations per sample

@@ -597,9 +597,10 @@ class _DifferencedCriterion:
         return out
 
 
-#: the shortest first step (a fraction of the box width) of
-#: :func:`minimize_batched` after a step into a non-finite region
-MIN_REACH = 1e-4
+#: the lengths of the first step (fractions of the box width) of the runs of
+#: :func:`minimize_batched`: the first as L-BFGS-B takes it, the shorter ones
+#: after a run whose first step fell where the criterion has no finite value
+REACHES = (1.0, 0.1, 0.01, 1e-3, 1e-4)
 
 
 def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, *,
@@ -633,15 +634,15 @@ def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, 
     Works in normalised coordinates z = (x − lower)/(upper − lower); at a
     bound the difference uses the points inside the box (one-sided).
 
-    L-BFGS-B's first step has unit length in z: from a point near a bound
-    of a wide box it lands far away, where the criterion may have no finite
-    value (an explicit step that is unstable there). Its line search then
-    shrinks the step to nothing and reports convergence where it started.
-    When a run saw a non-finite value and gained nothing, it is run again
-    from the best point with the coordinates scaled so that its first step
-    (along the gradient) is 0.1, then 0.01, ... (down to :data:`MIN_REACH`)
-    of the box long; a run that saw a non-finite value and gained is run
-    again (its line search may have stopped it short).
+    In a box, L-BFGS-B's first step is the whole gradient projected onto the
+    box: from a point near a bound of a wide box it lands far away, where
+    the criterion may have no finite value (an explicit step that is
+    unstable there). Its line search then shrinks the step to nothing and
+    reports convergence where it started. When a run saw a non-finite value
+    and gained nothing, it is run again from the best point with the
+    coordinates scaled so that its first step is 0.1, then 0.01, ... of the
+    box long (:data:`REACHES`); a run that saw a non-finite value and gained
+    is run again (its line search may have stopped it short).
     """
     lo, hi = _check_box(lower, upper)
     width = hi - lo
@@ -650,13 +651,14 @@ def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, 
     z0 = np.clip((np.asarray(x0, float) - lo) / width, 0.0, 1.0)
     f0 = fg(z0)[0]
     z, fz, message = z0, f0, "not run"
-    reach, left = 1.0, maxiter
+    rung, left = 0, maxiter
     while left > 0:
         fg.failed = False
         # the first step of L-BFGS-B in a box is -gradient (to the box's
-        # edge): in w = (z - zc)/s it is s^2 |g| long in z
-        gmax = 0.0 if reach >= 1.0 else float(np.max(np.abs(fg(z)[1]), initial=0.0))
-        s = np.sqrt(reach / gmax) if gmax > 0 else 1.0
+        # edge): in w = (z - zc)/s it is s^2 |g| long in z; the first run
+        # in the plain coordinates (zc = 0, s = 1)
+        gmax = 0.0 if rung == 0 else float(np.max(np.abs(fg(z)[1]), initial=0.0))
+        s = np.sqrt(REACHES[rung] / gmax) if gmax > 0 else 1.0
         zc = z if s != 1.0 else np.zeros(k)
 
         def fg_scaled(w, zc=zc, s=s):
@@ -672,8 +674,8 @@ def minimize_batched(fun: Callable[[np.ndarray], np.ndarray], x0, lower, upper, 
         message = str(r.message)
         if fn < fz:
             z, fz = zn, fn
-        if not fg.failed or (not gained and reach < MIN_REACH * 1.5):
+        if not fg.failed or (not gained and rung + 1 == len(REACHES)):
             break
         if not gained:
-            reach *= 0.1        # its first step fell where nothing is finite: a shorter one
+            rung += 1           # its first step fell where nothing is finite: a shorter one
     return lo + z * width, float(fz), fg.nfev, message
