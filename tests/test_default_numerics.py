@@ -14,6 +14,7 @@ Cramér-Rao standard deviations of the truth.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,11 +28,13 @@ from bondgraph.errors import DataError, OptionError
 from bondgraph.inference.discretise import (
     CANDIDATES,
     CLEAR_SHARE,
+    HOLD_MARGIN,
     alternative_hold,
     choose_discretisation,
     declared_holds,
     holds_against,
     input_holds,
+    likelier_hold_at,
     supported_hold,
 )
 from bondgraph.inference.options import Discretisation
@@ -527,3 +530,77 @@ def test_the_loop_fits_the_declared_model_under_both_holds_of_an_ambiguous_input
     L, std = init["estimates"]["L"], init["std"]["L"]
     assert abs(L - LAG_TRUTH) < 3 * std and std < 0.1 * LAG_TRUTH
     assert init["metric"] < 0.1
+
+
+def _held_lag_record() -> Experiment:
+    """The lag driven by a held sequence of new values at every sample (an
+    ambiguous shape, as the lag record's), its flow by the exact zero-order
+    hold solution q(k+1) = u(k) + (q(k) - u(k)) exp(-dt/L) (hand-derived),
+    with noise LAG_NOISE: 601 samples at 1 Hz."""
+    rng = np.random.default_rng(6)
+    t = np.arange(601.0)
+    u = 1.0 + 0.8 * rng.standard_normal(t.size)
+    q = np.empty(t.size)
+    q[0] = u[0]
+    for k in range(t.size - 1):
+        q[k + 1] = u[k] + (q[k] - u[k]) * np.exp(-1.0 / LAG_TRUTH)
+    return Experiment.from_arrays(t, {"u": u, "q": q + LAG_NOISE * rng.standard_normal(t.size)})
+
+
+def test_the_likelihood_at_given_parameters_holds_each_record_as_it_was_made(lag_record):
+    """At the true L both demands' shapes are ambiguous and the shape holds
+    them zero-order; the filter's likelihood there keeps the zero-order hold
+    of the held sequence and takes the linear one of the sampled continuous
+    demand, each by far more than HOLD_MARGIN. Under its own hold the
+    filter's NLL is that of white noise of std LAG_NOISE within a few nats
+    (N/2 (1 + log 2π σ²) for the record's residual σ)."""
+    m = Model.from_graph(lag_graph())
+    th = m.theta({"L": LAG_TRUTH})
+    for exp, made in ((Experiment.load(lag_record), "linear"), (_held_lag_record(), "zoh")):
+        p = make_problem(m, exp)
+        c = choose_discretisation(p, th)
+        assert c.disc.hold == "zoh" and c.inputs[0].ambiguous
+        kept, line = likelier_hold_at(p, th, c)
+        assert kept.disc.hold == made and f"{made} kept" in line
+        nll = {h: float(p.conditioned_on(disc=replace(c.disc, hold=h, method="rk4",
+                                                      substeps=8)).nll(th).nll[0])
+               for h in ("zoh", "linear")}
+        other = "zoh" if made == "linear" else "linear"
+        assert nll[other] - nll[made] > 100 * HOLD_MARGIN
+        white = 0.5 * exp.t.size * (1 + np.log(2 * np.pi * LAG_NOISE ** 2))
+        assert nll[made] == pytest.approx(white, abs=15.0)
+    # a given hold is not second-guessed
+    p = make_problem(m, Experiment.load(lag_record))
+    c = choose_discretisation(p, th, given={"hold": "zoh"})
+    assert likelier_hold_at(p, th, c) == (c, None)
+
+
+def test_sensitivity_track_and_the_output_error_fit_hold_an_ambiguous_input_by_likelihood(
+        lag_record, tmp_path, capsys):
+    """The commands that work at given parameters (sensitivity, track)
+    compare the likelihoods there; ``estimate --fit sim`` fits under both
+    holds and compares the output-error likelihoods. On the lag record each
+    takes the linear hold, and the output-error L lands within 3 std of the
+    solve_ivp truth."""
+    spec = f"{Path(__file__)}:lag_graph"
+    assert main(["sensitivity", "--model", spec, "--data", str(lag_record), "--params", "L",
+                 "--out", str(tmp_path / "s"), "--no-plots"]) == 0
+    err = capsys.readouterr().err
+    assert "input hold by likelihood at the analysed θ: linear NLL" in err
+    sens = json.loads((tmp_path / "s" / "sensitivity.json").read_text())
+    assert sens["settings"]["discretisation_choice"]["chosen"]["hold"] == "linear"
+    assert main(["track", "--model", spec, "--data", str(lag_record), "--track", "L",
+                 "--out", str(tmp_path / "t"), "--no-plots"]) == 0
+    err = capsys.readouterr().err
+    assert "input hold by likelihood at the tracking start: linear NLL" in err
+    ch = json.loads((tmp_path / "t" / "changes.json").read_text())
+    assert ch["settings"]["ukf"]["hold"] == "linear"
+    assert main(["estimate", "--model", spec, "--data", str(lag_record), "--params", "L",
+                 "--fit", "sim", "--method", "rk4", "--substeps", "8",
+                 "--out", str(tmp_path / "e")]) == 0
+    err = capsys.readouterr().err
+    assert "input hold by output-error likelihood: linear NLL" in err and "linear kept" in err
+    res = json.loads((tmp_path / "e" / "result.json").read_text())
+    assert res["hold"] == "linear"
+    L, std = res["estimates"]["L"], res["std"]["L"]
+    assert abs(L - LAG_TRUTH) < 3 * std and std < 0.2 * LAG_TRUTH

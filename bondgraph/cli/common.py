@@ -26,6 +26,7 @@ from bondgraph.inference.discretise import (
     DiscretisationChoice,
     choose_discretisation,
     finer_grid_record,
+    likelier_hold_at,
 )
 from bondgraph.inference.options import (
     DEFAULT_BACKEND,
@@ -327,7 +328,8 @@ def solver_hold_argument(text: str) -> str:
 
 #: how a command that chooses its numerics fills in --method/--substeps/--hold
 _CHOSEN_HELP = ("what is not given is chosen: the hold the record declares (sidecar "
-                "columns.<input>.hold) or its inputs' shape supports, and the cheapest of "
+                "columns.<input>.hold) or its inputs' shape supports (where the shape is "
+                "ambiguous, the likelier of the two holds), and the cheapest of "
                 "ros2/rk4 with 1, 2, 3, 4, 6, 8, 12, 16 substeps whose one-step error is "
                 "within 0.1 measurement-noise std per sample (without process noise also: "
                 "whose free run bounds every estimate's bias by 0.5 Cramér-Rao std); one line "
@@ -535,8 +537,8 @@ def problem_from_args(model, experiment, args, values=None) -> Problem:
 
 
 def chosen_problem(problem: Problem, args, theta=None, *, where: str = "at the start θ",
-                   sigma=None, say=None, hold: str | None = None,
-                   why: str | None = None) -> tuple[Problem, DiscretisationChoice | None]:
+                   sigma=None, say=None, hold: str | None = None, why: str | None = None,
+                   likelihood: bool = False) -> tuple[Problem, DiscretisationChoice | None]:
     """``problem`` with the discretisation that its check accepts at
     ``theta`` (:func:`bondgraph.inference.discretise.choose_discretisation`):
     the options of ``--method``, ``--substeps``, ``--hold`` that the user
@@ -558,6 +560,11 @@ def chosen_problem(problem: Problem, args, theta=None, *, where: str = "at the s
         A hold chosen by other evidence and why (the likelihood of fits
         under both, :func:`bondgraph.inference.discretise.alternative_hold`),
         used unless ``--hold`` was given.
+    likelihood : bool
+        Where an input's shape is ambiguous and no ``--hold`` was given, the
+        hold whose filter is likelier at ``theta``
+        (:func:`bondgraph.inference.discretise.likelier_hold_at`; a second
+        line says which): for a command that works at given parameters.
 
     Returns
     -------
@@ -571,8 +578,12 @@ def chosen_problem(problem: Problem, args, theta=None, *, where: str = "at the s
     given = discretisation_given(args)
     if len(given) == 3:
         return problem, None
-    choice = choose_discretisation(problem, problem.theta if theta is None else theta,
-                                   given=given, sigma=sigma, hold=hold, why=why)
+    th = problem.theta if theta is None else theta
+    choice = choose_discretisation(problem, th, given=given, sigma=sigma, hold=hold, why=why)
+    if likelihood and hold is None:
+        choice, line = likelier_hold_at(problem, th, choice, sigma=sigma, where=where)
+        if line:
+            (say or _stderr)(line)
     (say or _stderr)(choice.line(where))
     if choice.disc != problem.disc:
         problem = problem.conditioned_on(disc=choice.disc)

@@ -36,11 +36,11 @@ from bondgraph.cli.common import (
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import (EstimationError, IdentifiabilityWarning, NumericalError,
                               UsageError)
-from bondgraph.inference.discretise import (HOLD_MARGIN, alternative_hold,
-                                            check_discretisation, choose_discretisation,
-                                            cost_rank)
+from bondgraph.inference.discretise import (alternative_hold, check_discretisation,
+                                            choose_discretisation, cost_rank, hold_verdict)
 from bondgraph.inference.estimate import estimate
-from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
+from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
+                                              output_error_nll)
 from bondgraph.inference.options import FitOptions
 from bondgraph.inference.ukf_numba import compile_in_background
 from bondgraph.report.estimation import plot_fit
@@ -127,7 +127,7 @@ def run(args) -> int:
         if len(paths) > 1:
             raise UsageError("--fit sim fits one record: give one --data, or leave --fit out "
                              "(the likelihood fits several records together)")
-        return run_output_error(args, chosen[0][0], params, folder, states)
+        return run_output_error(args, chosen[0], params, folder, states)
     fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
                      iterations=args.iterations, seed=args.seed, checkpoint=ck,
                      resume=args.resume, polish=not args.no_polish, stall_iterations=args.stall,
@@ -247,8 +247,9 @@ def _likelier_hold(args, chosen, problems, res, agains, params, fit, states, pat
     continuous signal with noise) and the user gave no ``--hold``, the same
     estimation again under the other hold (the discretisation chosen for it
     at the start, refined at its estimate), and the fit with the lower NLL
-    kept (by more than :data:`HOLD_MARGIN`; else the shape's). Two lines
-    say why and which; a fit under the other hold that fails keeps the first.
+    kept (by more than :data:`~bondgraph.inference.discretise.HOLD_MARGIN`;
+    else the shape's). Two lines say why and which; a fit under the other
+    hold that fails keeps the first.
     Without an ambiguous input: the arguments."""
     alts = [None if c is None else alternative_hold(c.inputs, pb.disc.hold)
             for pb, c in chosen]
@@ -278,10 +279,8 @@ def _likelier_hold(args, chosen, problems, res, agains, params, fit, states, pat
         return res, problems, chosen, agains
     mine = "/".join(sorted({pb.disc.hold for pb in problems}))
     theirs = "/".join(sorted({pb.disc.hold for pb in problems2}))
-    better = bool(np.isfinite(res2.nll) and res2.nll < res.nll - HOLD_MARGIN)
-    _say(f"input hold by likelihood: {theirs} NLL {res2.nll:.6g}, {mine} NLL {res.nll:.6g} "
-         f"(each fitted): {theirs if better else mine} kept"
-         + ("" if better else f" (the other is not lower by more than {HOLD_MARGIN:g} nat)"))
+    better, line = hold_verdict(theirs, res2.nll, mine, res.nll, note="(each fitted)")
+    _say(line)
     if not better:
         return res, problems, chosen, agains
     return res2, problems2, other, agains2
@@ -373,28 +372,24 @@ def _prepare_checkpoint(folder, resume: bool) -> None:
         shutil.copyfile(done, ck)
 
 
-def run_output_error(args, problem, params, folder, states) -> int:
+def run_output_error(args, chosen, params, folder, states) -> int:
     """``--fit sim``: the output-error fit
-    (:func:`bondgraph.inference.output_error.output_error_fit`) from the
-    model's defaults with ``--fixed`` and ``--x0``, the initial states of
-    ``--estimate-x0`` estimated too; writes ``result.json``. The output-error
-    criterion needs no noise level: ``--noise`` only decides what is
-    reported (the declared levels, or the RMS free-run error as the estimate
-    of an undeclared one)."""
+    (:func:`bondgraph.inference.output_error.output_error_fit`) on
+    ``chosen`` = ``(problem, choice)`` from the model's defaults with
+    ``--fixed`` and ``--x0``, the initial states of ``--estimate-x0``
+    estimated too (:func:`_sim_fit`; under both holds where an input's shape
+    is ambiguous, :func:`_likelier_sim`); writes ``result.json``. The
+    output-error criterion needs no noise level: ``--noise`` only decides
+    what is reported (the declared levels, or the RMS free-run error as the
+    estimate of an undeclared one)."""
+    r, problem = _likelier_sim(args, *chosen, params, states)
     model, exp, theta = problem.model, problem.record, problem.theta
-    t, u, y = problem.arrays
-    opts = sim_options(problem.disc)
-    r = output_error_fit(model, t, u, y, params, theta=theta, x0=problem.x0, x0_states=states,
-                         options=opts)
-    if opts.substeps is not None and not _sim_step_holds(problem, params, r):
-        r = output_error_fit(model, t, u, y, params, theta=theta, x0=problem.x0,
-                             x0_states=states, options=OutputErrorOptions(hold=opts.hold))
     noise = _sim_noise_levels(model, exp, r, theta, problem.noise.mode)
     doc = {"model": model.name, "data": str(args.data), "fit": "sim", "names": r.names,
            "estimates": r.estimates(), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,
            "rmse": dict(zip(model.outputs, r.rmse.tolist())), "nfev": r.nfev,
            "status": r.status, "message": r.message, "noise": args.noise,
-           "noise_levels": noise}
+           "noise_levels": noise, "hold": problem.disc.hold}
     text = json.dumps(to_jsonable(doc), indent=2, allow_nan=False)
     folder.publish(lambda d: (d / "result.json").write_text(text))
     rpath = folder.path / "result.json"
@@ -408,6 +403,54 @@ def run_output_error(args, problem, params, folder, states) -> int:
                                        for o, d in noise.items()))
     print(f"wrote {rpath}")
     return 0
+
+
+def _sim_fit(problem, params, states):
+    """The output-error fit of ``problem`` (its free runs as
+    :func:`sim_options` says; redone with LSODA when the chosen RK4 step
+    fails at the estimate, :func:`_sim_step_holds`)."""
+    t, u, y = problem.arrays
+    opts = sim_options(problem.disc)
+    r = output_error_fit(problem.model, t, u, y, params, theta=problem.theta, x0=problem.x0,
+                         x0_states=states, options=opts)
+    if opts.substeps is not None and not _sim_step_holds(problem, params, r):
+        r = output_error_fit(problem.model, t, u, y, params, theta=problem.theta,
+                             x0=problem.x0, x0_states=states,
+                             options=OutputErrorOptions(hold=opts.hold))
+    return r
+
+
+def _likelier_sim(args, problem, choice, params, states):
+    """``(result, problem)``: the output-error fit (:func:`_sim_fit`); where
+    an input's hold was chosen by an ambiguous shape
+    (:func:`~bondgraph.inference.discretise.alternative_hold`) and no
+    ``--hold`` given, the fit under the other hold too (its discretisation
+    chosen at the start), and the one whose output-error likelihood
+    (:func:`~bondgraph.inference.output_error.output_error_nll`) is lower by
+    more than :data:`~bondgraph.inference.discretise.HOLD_MARGIN` kept (else the shape's,
+    :func:`~bondgraph.inference.discretise.hold_verdict`); a fit under the
+    other hold that fails keeps the first. Two lines say why and which."""
+    r = _sim_fit(problem, params, states)
+    alt = None if choice is None else alternative_hold(choice.inputs, problem.disc.hold)
+    if alt is None or "hold" in discretisation_given(args):
+        return r, problem
+    vague = "; ".join(h.describe() for h in choice.inputs if h.ambiguous)
+    _say(f"input hold: the shape does not settle it ({vague}): fitting under the other hold "
+         f"too, the output-error likelihood decides (--hold to choose)")
+    why = "the output-error likelihood of the fits under both holds (the shape is ambiguous)"
+    other, _ = chosen_problem(problem, args, where="at the start θ, the other hold", hold=alt,
+                              why=why)
+    try:
+        r2 = _sim_fit(other, params, states)
+    except (NumericalError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        _say(f"input hold: the fit under the other hold failed ({exc}); the shape's kept")
+        return r, problem
+    y = problem.arrays[2]
+    mine, theirs = output_error_nll(y, r.rmse), output_error_nll(y, r2.rmse)
+    better, line = hold_verdict(other.disc.hold, theirs, problem.disc.hold, mine,
+                                criterion="output-error likelihood", note="(each fitted)")
+    _say(line)
+    return (r2, other) if better else (r, problem)
 
 
 def sim_options(disc) -> OutputErrorOptions:

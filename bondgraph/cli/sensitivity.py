@@ -102,7 +102,8 @@ def run(args) -> int:
 
     What of ``--method``, ``--substeps``, ``--hold`` is not given is chosen
     at the analysed θ (:func:`bondgraph.cli.common.chosen_problem`), one
-    line on stderr saying what and why."""
+    line on stderr saying what and why; an input whose shape is ambiguous
+    is held as the filter's likelihood at the analysed θ prefers."""
     model = load_model(args.model)
     exp = band_limited_record(load_record(args.data, model), model, args)
     if args.seconds is not None:
@@ -118,7 +119,7 @@ def run(args) -> int:
             raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
         values.update({k: float(v) for k, v in tp.items() if k in model.params})
     problem, choice = chosen_problem(problem_from_args(model, exp, args, values), args,
-                                     where="at the analysed θ")
+                                     where="at the analysed θ", likelihood=True)
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
     for o in outputs:
         model.output_index(o)

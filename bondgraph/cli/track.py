@@ -21,6 +21,7 @@ from bondgraph.cli.common import (
     add_model,
     add_overwrite,
     band_limited_record,
+    discretisation_given,
     load_record,
     output_folder,
     parse_names,
@@ -30,7 +31,14 @@ from bondgraph.cli.common import (
 )
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import DataError
-from bondgraph.inference.discretise import record_hold
+from bondgraph.inference.discretise import (
+    alternative_hold,
+    choose_discretisation,
+    declared_holds,
+    input_holds,
+    likelier_hold_at,
+    record_hold,
+)
 from bondgraph.inference.estimand import start_levels
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
 from bondgraph.inference.track import TrackingModel, check_tracked, choose_substeps, track
@@ -93,8 +101,9 @@ def configure(p: argparse.ArgumentParser) -> None:
             a.help = ("input over a sample interval: zoh, mean, linear, or one per input "
                       "comma-joined (zoh,linear). Default: the hold the record declares for "
                       "each input (sidecar columns.<input>.hold), else the one its samples "
-                      "support (a staircase zoh, a sampled continuous signal linear); one "
-                      "line on stderr")
+                      "support (a staircase zoh, a sampled continuous signal linear; where "
+                      "the shape is ambiguous, the hold whose filter is likelier at the "
+                      "tracking start); one line on stderr")
     p.add_argument("--no-plots", action="store_true")
 
 
@@ -149,6 +158,26 @@ def bare_levels(problem, levels: dict) -> tuple[dict, str]:
                  "the tracker estimates none): " + ", ".join(how)) if how else ""
 
 
+def tracking_hold(problem, args) -> tuple[str, str]:
+    """The inputs' hold for tracking without ``--hold``, and why: the one the
+    record declares or its inputs' shape supports
+    (:func:`~bondgraph.inference.discretise.record_hold`); where a shape is
+    ambiguous, the one whose filter is likelier at the tracking start
+    (:func:`~bondgraph.inference.discretise.likelier_hold_at`, each hold's
+    step chosen at that θ as ``--method``/``--substeps`` allow; one line on
+    stderr says which)."""
+    hold, why = record_hold(problem)
+    names = problem.model.inputs
+    inputs = input_holds(problem.u, names, declared_holds(problem.record, names))
+    if alternative_hold(inputs, hold) is None:
+        return hold, why
+    given = discretisation_given(args)
+    choice = choose_discretisation(problem, problem.theta, given=given, hold=hold, why=why)
+    kept, line = likelier_hold_at(problem, problem.theta, choice, where="at the tracking start")
+    print(line, file=sys.stderr)
+    return kept.disc.hold, kept.hold_reason
+
+
 def tracking_discretisation(problem, tm, std: dict, opts, method_free: bool):
     """``problem`` with the tracking filter's substeps chosen from the
     tracked record (:func:`~bondgraph.inference.track.choose_substeps`, one
@@ -194,7 +223,7 @@ def run(args) -> int:
     tm = TrackingModel.from_graph(graph, names, drift, start=start)
     std = {n: std[n] for n in names if n in std}
     if args.hold is None:               # the hold the record declares or supports
-        hold, why = record_hold(problem)
+        hold, why = tracking_hold(problem, args)
         print(f"input hold {hold} (chosen; --hold to give it): {why}", file=sys.stderr)
         problem = problem.conditioned_on(disc=replace(problem.disc, hold=hold))
     if args.substeps is None:           # the substeps the tracked record needs

@@ -67,7 +67,7 @@ from bondgraph.diagnose.scoring import (
 )
 from bondgraph.diagnose.screen import SCREEN_LEVEL, free_run_nrmse, global_output_error
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.inference.discretise import HOLD_MARGIN, SUBSTEPS, alternative_hold
+from bondgraph.inference.discretise import SUBSTEPS, alternative_hold, hold_verdict
 from bondgraph.numerics.admissible import MARGIN as ADMISSIBLE_MARGIN
 from bondgraph.numerics.integrators import split_hold
 from bondgraph.numerics.model import Model
@@ -980,10 +980,8 @@ def likelier_hold(ctx: Context, graph: BondGraph, initial: Fit,
                 f"{mine} kept")
         ctx.settings = replace(s, search=search)
         return initial, warn
-    better = bool(np.isfinite(fit2.nll) and fit2.nll < initial.nll - HOLD_MARGIN)
-    ctx.log(f"input hold by likelihood: {other} NLL {fit2.nll:.6g}, {mine} NLL "
-            f"{initial.nll:.6g} (each fitted): {other if better else mine} kept"
-            + ("" if better else f" (the other is not lower by more than {HOLD_MARGIN:g} nat)"))
+    better, line = hold_verdict(other, fit2.nll, mine, initial.nll, note="(each fitted)")
+    ctx.log(line)
     if not better:
         ctx.settings = replace(s, search=search)
         return initial, warn

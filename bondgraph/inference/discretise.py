@@ -43,21 +43,22 @@ Hairer, E., Wanner, G. (1996). Solving Ordinary Differential Equations II,
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from bondgraph.data.record_io import INPUT_HOLDS
-from bondgraph.errors import OptionError
+from bondgraph.errors import NumericalError, OptionError
 from bondgraph.inference.options import UKF_METHODS, Discretisation
 from bondgraph.inference.ukf import discretisation_errors
 from bondgraph.numerics.integrators import is_per_input, join_hold, split_hold
 
 __all__ = ["BIAS_TOLERANCE", "CANDIDATES", "CLEAR_SHARE", "DECLARED_HOLDS", "HOLD_MARGIN",
-           "TOLERANCE", "DiscretisationChoice", "InputHold", "alternative_hold",
+           "TOLERANCE", "DiscretisationChoice", "InputHold", "alternative_hold", "hold_verdict",
            "check_discretisation", "choose_discretisation", "declared_holds", "holds_against",
-           "input_holds", "no_process_noise", "record_hold", "supported_hold"]
+           "input_holds", "likelier_hold_at", "no_process_noise", "record_hold",
+           "supported_hold"]
 
 #: the largest accepted one-step discretisation error, in measurement-noise
 #: standard deviations per sample
@@ -691,6 +692,100 @@ def choose_discretisation(problem, theta, *, given: Mapping | None = None, sigma
     disc, ok, tried = _first_within(problem, th, cands, sig, free_run, tolerance, bias_tolerance)
     return DiscretisationChoice(disc, ok, reason, inputs, tried, sig, free_run, given, tolerance,
                                 bias_tolerance)
+
+
+def hold_verdict(other: str, other_nll: float, mine: str, mine_nll: float, *,
+                 criterion: str = "likelihood", where: str = "",
+                 note: str = "") -> tuple[bool, str]:
+    """Whether the model under the ``other`` hold is likelier than under
+    ``mine`` (its NLL ``other_nll`` finite and lower than ``mine_nll`` by
+    more than :data:`HOLD_MARGIN` nat), and the log line that says so:
+    ``"input hold by likelihood: linear NLL -1500.3, zoh NLL 28260.5 (each
+    fitted): linear kept"``.
+
+    Parameters
+    ----------
+    other, mine : str
+        The two holds (``mine``: the shape's).
+    other_nll, mine_nll : float
+        Their negative log-likelihoods [nat]; not finite counts as +inf.
+    criterion, where, note : str
+        Words of the line (``"output-error likelihood"``; ``"at the analysed
+        θ"``; ``"(each fitted)"``).
+
+    Returns
+    -------
+    (bool, str)
+    """
+    a = other_nll if np.isfinite(other_nll) else np.inf
+    b = mine_nll if np.isfinite(mine_nll) else np.inf
+    better = bool(np.isfinite(a) and a < b - HOLD_MARGIN)
+    close = "" if better or not a < b else (f" (the other is not lower by more than "
+                                             f"{HOLD_MARGIN:g} nat)")
+    return better, (f"input hold by {criterion}{' ' + where if where else ''}: {other} NLL "
+                    f"{other_nll:.6g}, {mine} NLL {mine_nll:.6g}{' ' + note if note else ''}: "
+                    f"{other if better else mine} kept{close}")
+
+
+def likelier_hold_at(problem, theta, choice: DiscretisationChoice, *, sigma=None,
+                     where: str = "at the analysed θ") -> tuple[DiscretisationChoice, str | None]:
+    """``choice``, or the choice under the other hold where an input's shape
+    is ambiguous: the filter's NLL at ``theta`` under ``choice`` and under
+    :func:`alternative_hold` (its step chosen as ``choice``'s was,
+    :func:`choose_discretisation`), the other kept when its NLL is lower by
+    more than :data:`HOLD_MARGIN` nat (or the first is not finite).
+
+    For a command that analyses or tracks a model at given parameters
+    (sensitivity, track), where the estimate command compares the fits
+    under both holds: the likelihood at those parameters is what their
+    result rests on. A run that fails counts as an infinite NLL.
+
+    Parameters
+    ----------
+    problem : Problem
+        The model bound to the record.
+    theta : array (n_theta,)
+        Where to compare (the analysed θ, the tracking start).
+    choice : DiscretisationChoice
+        What :func:`choose_discretisation` chose at ``theta``; nothing is
+        compared when its hold was given or no input is ambiguous.
+    sigma : array (n_y,), optional
+        As for :func:`choose_discretisation`.
+    where : str
+        For the reason and the line ("at the analysed θ").
+
+    Returns
+    -------
+    (DiscretisationChoice, str or None)
+        The kept choice (its ``hold_reason`` says why) and one line for the
+        log (None when nothing was compared).
+
+    Raises
+    ------
+    OptionError
+        As :func:`choose_discretisation`.
+    """
+    alt = None if "hold" in choice.given else alternative_hold(choice.inputs, choice.disc.hold)
+    if alt is None:
+        return choice, None
+    th = np.asarray(theta, float).reshape(-1)
+    why = f"the likelihood {where} under both holds (the shape is ambiguous)"
+    other = choose_discretisation(problem, th, given=choice.given, sigma=sigma,
+                                  tolerance=choice.tolerance,
+                                  bias_tolerance=choice.bias_tolerance,
+                                  free_run=choice.free_run, hold=alt, why=why)
+    nll = []
+    for c in (choice, other):
+        try:
+            with np.errstate(all="ignore"):
+                v = float(problem.conditioned_on(disc=c.disc).nll(th).nll[0])
+        except (FloatingPointError, np.linalg.LinAlgError, NumericalError):
+            v = float("inf")
+        nll.append(v if np.isfinite(v) else float("inf"))
+    better, line = hold_verdict(other.disc.hold, nll[1], choice.disc.hold, nll[0], where=where)
+    if better:
+        return other, line
+    return replace(choice, hold_reason=f"{choice.hold_reason}; kept by {why}"), line
 
 
 def _first_within(problem, th, cands, sig, free_run: bool, tolerance: float,

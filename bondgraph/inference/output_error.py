@@ -371,6 +371,34 @@ def output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=No
     return _result(prob, r, lo, hi)
 
 
+def output_error_nll(y: np.ndarray, rmse: np.ndarray) -> float:
+    """The Gaussian negative log-likelihood of an output-error fit with each
+    output's noise variance at its maximum-likelihood value, the mean square
+    free-run error: Σⱼ nⱼ/2 (1 + log 2π rmseⱼ²), nⱼ the measured samples of
+    output j; +inf when an output's error is not finite (the criterion with the
+    noise variance concentrated out: Ljung 1999, §7.4).
+
+    Parameters
+    ----------
+    y : array (N, n_y)
+        The record's outputs, NaN where not measured.
+    rmse : array (n_y,)
+        The fit's RMS free-run error per output (output units,
+        :attr:`OutputErrorResult.rmse`).
+
+    Returns
+    -------
+    float
+        In nat.
+    """
+    n = np.sum(np.isfinite(np.asarray(y, float)), axis=0)
+    r = np.asarray(rmse, float)
+    if not np.all(np.isfinite(r)):
+        return float("inf")
+    with np.errstate(divide="ignore"):
+        return float(np.sum(0.5 * n * (1.0 + np.log(2 * np.pi * r ** 2))))
+
+
 def _box(model, params, states, bounds):
     """Box (k,) of the estimated quantities."""
     if bounds is not None:
