@@ -407,8 +407,9 @@ def test_fit_sim_redoes_a_fit_whose_rk4_step_fails_at_the_estimate(record, capsy
                                                                    monkeypatch):
     """``--fit sim`` runs compiled RK4 at 4 times the chosen substeps and
     checks the chosen step at the estimate; where it fails there (here made
-    to fail: on this record RK4(1) passes everywhere) the fit is redone with
-    LSODA and the forward sensitivities, one line says so, and the result
+    to fail: on this record RK4(1) passes everywhere, and no finer RK4 step
+    is chosen there) the fit is redone with LSODA and the forward
+    sensitivities, one line says so, and the result
     is that fit's (the truth within 3 std). Where it passes, no line."""
     from bondgraph.cli import estimate as cli_estimate
 
@@ -426,7 +427,8 @@ def test_fit_sim_redoes_a_fit_whose_rk4_step_fails_at_the_estimate(record, capsy
     monkeypatch.setattr(cli_estimate, "check_discretisation", lambda *a, **k: (False, 0.3, 2.0))
     redone, err = fit("sim_lsoda")
     assert ("--fit sim: rk4(1), linear hold fails its check at the estimate (0.3 σ per sample, "
-            "free-run bias bound 2 std): refitting with LSODA") in err, err
+            "free-run bias bound 2 std)\n--fit sim: no RK4 step meets its check at the estimate: "
+            "refitting with LSODA") in err, err
     for p in ("m", "k", "c"):
         assert abs(redone["estimates"][p] - TRUTH[p]) < 3 * redone["std"][p]
         assert redone["estimates"][p] == pytest.approx(res["estimates"][p], rel=1e-5)
@@ -604,3 +606,28 @@ def test_sensitivity_track_and_the_output_error_fit_hold_an_ambiguous_input_by_l
     assert res["hold"] == "linear"
     L, std = res["estimates"]["L"], res["std"]["L"]
     assert abs(L - LAG_TRUTH) < 3 * std and std < 0.2 * LAG_TRUTH
+
+
+def test_fit_sim_continues_with_the_rk4_step_chosen_at_the_estimate(lag_record, tmp_path,
+                                                                    capsys):
+    """From L = 1 the chosen RK4(2) is within its check; at the estimate
+    (L near 0.08 s at 1 Hz, where RK4(2) is unstable) it is not: the step is
+    chosen again there and the fit continued with it, not redone with LSODA
+    (43 s before); L lands within 3 std of the solve_ivp truth, as the fit
+    with the step given (RK4(8))."""
+    spec = f"{Path(__file__)}:lag_graph"
+
+    def fit(out, *more):
+        assert main(["estimate", "--model", spec, "--data", str(lag_record), "--params", "L",
+                     "--fit", "sim", "--hold", "linear", *more, "--out", str(tmp_path / out),
+                     "--quiet"]) == 0
+        return json.loads((tmp_path / out / "result.json").read_text()), capsys.readouterr().err
+
+    res, err = fit("chosen")
+    assert "--fit sim: rk4(2), linear hold fails its check at the estimate" in err
+    assert "--fit sim: continuing from the estimate with rk4(8), linear hold" in err
+    assert "LSODA" not in err
+    given, _ = fit("given", "--method", "rk4", "--substeps", "8")
+    L, std = res["estimates"]["L"], res["std"]["L"]
+    assert abs(L - LAG_TRUTH) < 3 * std and std < 0.2 * LAG_TRUTH
+    assert L == pytest.approx(given["estimates"]["L"], rel=1e-4)
