@@ -414,7 +414,7 @@ def test_fit_sim_redoes_a_fit_whose_rk4_step_fails_at_the_estimate(record, capsy
     from bondgraph.cli import estimate as cli_estimate
 
     d, _ = record
-    Experiment.load(d / "rec.csv").segment(0, 1000, name="short").save(d / "short.csv")
+    Experiment.load(d / "rec.csv").segment(0, 500, name="short").save(d / "short.csv")
 
     def fit(out):
         assert main(["estimate", "--model", f"{Path(__file__)}:msd_graph", "--data",
