@@ -614,7 +614,8 @@ def test_fit_sim_continues_with_the_rk4_step_chosen_at_the_estimate(lag_record, 
     (L near 0.08 s at 1 Hz, where RK4(2) is unstable) it is not: the step is
     chosen again there and the fit continued with it, not redone with LSODA
     (43 s before); L lands within 3 std of the solve_ivp truth, as the fit
-    with the step given (RK4(8))."""
+    with the step given (RK4(8)). The initial state, which the record does
+    not give, is estimated with L."""
     spec = f"{Path(__file__)}:lag_graph"
 
     def fit(out, *more):
@@ -624,6 +625,11 @@ def test_fit_sim_continues_with_the_rk4_step_chosen_at_the_estimate(lag_record, 
         return json.loads((tmp_path / out / "result.json").read_text()), capsys.readouterr().err
 
     res, err = fit("chosen")
+    # the record gives no initial state: estimated (from the smoothed one), so
+    # the free-run error is the record's noise (from rest, as before: 0.040)
+    assert "the record gives no initial value of p_line: estimated" in err
+    assert "x0.p_line" in res["estimates"]
+    assert res["rmse"]["q"] == pytest.approx(LAG_NOISE, rel=0.05)
     assert "--fit sim: rk4(2), linear hold fails its check at the estimate" in err
     assert "--fit sim: continuing from the estimate with rk4(8), linear hold" in err
     assert "LSODA" not in err
