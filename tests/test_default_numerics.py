@@ -637,3 +637,32 @@ def test_fit_sim_continues_with_the_rk4_step_chosen_at_the_estimate(lag_record, 
     L, std = res["estimates"]["L"], res["std"]["L"]
     assert abs(L - LAG_TRUTH) < 3 * std and std < 0.2 * LAG_TRUTH
     assert L == pytest.approx(given["estimates"]["L"], rel=1e-4)
+
+
+def test_fit_sim_estimates_the_initial_states_the_record_does_not_give(lag_record, monkeypatch,
+                                                                       capsys):
+    """The lag record gives no initial state: ``--fit sim`` estimates it
+    with the parameters, started from the smoothed one. Without process
+    noise that is the least-squares start of the free run over the whole
+    record (the prior's pull aside): at L = 1 s, p0 = L·q0 with q0 =
+    Σ eₖ (yₖ − fₖ) / Σ eₖ², eₖ = exp(−tₖ/L), f the forced response from
+    rest by solve_ivp (hand-derived). Beyond SIM_X0_MAX unknown states the
+    prior mean is kept and --estimate-x0 named."""
+    from bondgraph.cli import estimate as cli_estimate
+
+    m = Model.from_graph(lag_graph())
+    exp = Experiment.load(lag_record)
+    p = make_problem(m, exp)
+    p = p.conditioned_on(disc=replace(p.disc, method="rk4", substeps=8, hold="linear"))
+    q, states = cli_estimate.sim_initial_states(p, [])
+    assert states == ["p_line"] and "no initial value of p_line: estimated" in \
+        capsys.readouterr().err
+    t, u, y = exp.t, exp["u"], exp["q"]
+    f = solve_ivp(lambda tt, x: np.interp(tt, t, u) - x, (0.0, t[-1]), [0.0], t_eval=t,
+                  rtol=1e-10, atol=1e-12, max_step=0.1).y[0]
+    e = np.exp(-t)
+    assert q.x0[0] == pytest.approx(np.sum(e * (y - f)) / np.sum(e * e), abs=2e-3)
+    assert cli_estimate.sim_initial_states(p, ["p_line"]) == (p, ["p_line"])
+    monkeypatch.setattr(cli_estimate, "SIM_X0_MAX", 0)
+    q, states = cli_estimate.sim_initial_states(p, [])
+    assert q is p and states == [] and "--estimate-x0 NAMES" in capsys.readouterr().err

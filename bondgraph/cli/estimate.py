@@ -407,6 +407,12 @@ def run_output_error(args, chosen, params, folder, states) -> int:
     return 0
 
 
+#: at most this many unknown initial states are estimated with the parameters
+#: by ``--fit sim`` (each is one more free run per Jacobian); beyond, the
+#: free runs start from the prior mean and one line names ``--estimate-x0``
+SIM_X0_MAX = 12
+
+
 def sim_initial_states(problem, states: list[str]):
     """``(problem, states)`` of an output-error fit: the initial states that
     nothing gives (:meth:`~bondgraph.inference.prior.PriorSpec.unknown`: no
@@ -415,10 +421,17 @@ def sim_initial_states(problem, states: list[str]):
     the prior mean where the smoother fails); one line says which. A free
     run from a guessed start carries its transient into the criterion: a
     fast lag at 1 Hz started at rest read a free-run RMS error (and an
-    estimated noise level) of 0.040 where the noise was 0.020."""
+    estimated noise level) of 0.040 where the noise was 0.020. More than
+    :data:`SIM_X0_MAX` such states are left at the prior mean (one line
+    names ``--estimate-x0``)."""
     model = problem.model
     unknown = [n for n in problem.prior.unknown(model, problem.record) if n not in states]
     if not unknown:
+        return problem, states
+    if len(unknown) > SIM_X0_MAX:
+        _say(f"--fit sim: the record gives no initial value of {len(unknown)} states: the free "
+             f"runs start from the prior mean ({problem.x0_rule}); --estimate-x0 NAMES "
+             f"estimates them with the parameters")
         return problem, states
     try:
         xs = problem.smoothed_initial_state(problem.theta)
