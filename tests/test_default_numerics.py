@@ -602,6 +602,10 @@ def test_sensitivity_track_and_the_output_error_fit_hold_an_ambiguous_input_by_l
                  "--out", str(tmp_path / "e")]) == 0
     err = capsys.readouterr().err
     assert "input hold by output-error likelihood: linear NLL" in err and "linear kept" in err
+    # the zero-order hold's estimate sits where RK4(8) is unstable: the given
+    # step is kept (the user's option wins) and that is said
+    assert "rk4(8), zoh hold fails its check at the estimate" in err
+    assert "the given --substeps kept" in err and "LSODA" not in err
     res = json.loads((tmp_path / "e" / "result.json").read_text())
     assert res["hold"] == "linear"
     L, std = res["estimates"]["L"], res["std"]["L"]

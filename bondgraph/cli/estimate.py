@@ -445,7 +445,7 @@ def sim_initial_states(problem, states: list[str]):
     return problem.conditioned_on(x0=x0), states + unknown
 
 
-def _sim_fit(problem, params, states):
+def _sim_fit(problem, params, states, given: bool = False):
     """``(result, problem)``: the output-error fit of ``problem`` (its free runs as
     :func:`sim_options` says). Where the chosen RK4 step fails at the
     estimate (:func:`_sim_step_holds`: the estimate moved where the model is
@@ -453,12 +453,13 @@ def _sim_fit(problem, params, states):
     estimate with it (:func:`_finer_rk4`), at most :data:`MAX_REFITS`
     times; LSODA with the forward sensitivities from the start when no RK4
     step meets the check (a fast lag at 1 Hz: the command took 3 s where the LSODA fit took
-    43 s)."""
+    43 s). With ``given`` (the user gave ``--substeps``) the step is kept
+    and a failed check only said."""
     t, u, y = problem.arrays
     r = output_error_fit(problem.model, t, u, y, params, theta=problem.theta, x0=problem.x0,
                          x0_states=states, options=sim_options(problem.disc))
     for i in range(MAX_REFITS + 1):
-        if problem.disc.method != "rk4" or _sim_step_holds(problem, params, r):
+        if problem.disc.method != "rk4" or _sim_step_holds(problem, params, r, given):
             return r, problem
         finer = None if i == MAX_REFITS else _finer_rk4(problem, params, r)
         if finer is None:
@@ -505,7 +506,8 @@ def _likelier_sim(args, problem, choice, params, states):
     more than :data:`~bondgraph.inference.discretise.HOLD_MARGIN` kept (else the shape's,
     :func:`~bondgraph.inference.discretise.hold_verdict`); a fit under the
     other hold that fails keeps the first. Two lines say why and which."""
-    r, fitted = _sim_fit(problem, params, states)
+    given = "substeps" in discretisation_given(args)
+    r, fitted = _sim_fit(problem, params, states, given)
     alt = None if choice is None else alternative_hold(choice.inputs, problem.disc.hold)
     if alt is None or "hold" in discretisation_given(args):
         return r, fitted
@@ -516,7 +518,7 @@ def _likelier_sim(args, problem, choice, params, states):
     other, _ = chosen_problem(problem, args, where="at the start θ, the other hold", hold=alt,
                               why=why)
     try:
-        r2, other = _sim_fit(other, params, states)
+        r2, other = _sim_fit(other, params, states, given)
     except (NumericalError, np.linalg.LinAlgError, FloatingPointError) as exc:
         _say(f"input hold: the fit under the other hold failed ({exc}); the shape's kept")
         return r, fitted
@@ -541,18 +543,21 @@ def sim_options(disc) -> OutputErrorOptions:
     return OutputErrorOptions(hold=disc.hold)
 
 
-def _sim_step_holds(problem, params, r) -> bool:
+def _sim_step_holds(problem, params, r, given: bool = False) -> bool:
     """Does the chosen RK4 step still meet its check (one-step error and
     free-run bias bound, :func:`check_discretisation`) at the output-error
     estimate ``r``? The fit's runs took 4 times its substeps, within
     whenever it is; if not (the estimate moved where the model is faster),
-    one line says so."""
+    one line says so. With ``given`` (the step is the user's) True after
+    that line: the user's options win."""
     ok, now, bound = check_discretisation(problem, _estimate_theta(problem, params, r),
                                           free_run=True)
     if not ok:
         _say(f"--fit sim: {problem.disc.describe()} fails its check at the estimate ({now:.2g} "
-             f"σ per sample, free-run bias bound {bound:.2g} std)")
-    return ok
+             f"σ per sample, free-run bias bound {bound:.2g} std)"
+             + ("; the given --substeps kept (leave it out to have the step chosen again at "
+                "the estimate)" if given else ""))
+    return ok or given
 
 
 def _sim_noise_levels(model, exp, r, theta, mode: str) -> dict:
