@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,8 @@ from bondgraph.data.experiments import get_experiment, run_experiment
 from bondgraph.data.records import Experiment
 from bondgraph.errors import ModelError, UsageError
 from bondgraph.export.params import read_params
-from bondgraph.numerics.simulate import METHODS, simulate, stiffness_report
+from bondgraph.inference.discretise import declared_holds, input_holds, supported_hold
+from bondgraph.numerics.simulate import FIXED_METHODS, METHODS, simulate, stiffness_report
 from bondgraph.report.plots import plot_record
 
 
@@ -50,10 +52,14 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rtol", type=float, default=1e-8)
     p.add_argument("--atol", type=float, default=1e-10)
     p.add_argument("--max-step", type=float, default=None, help="adaptive solvers' largest step")
-    p.add_argument("--hold", type=solver_hold_argument, default="linear", metavar="HOLD",
-                   help="sampled inputs between samples for adaptive solvers: linear or zoh, "
-                        "or one of them per input comma-joined in the model's input order "
-                        "(zoh,linear); the record written declares it per input")
+    p.add_argument("--hold", type=solver_hold_argument, default=None, metavar="HOLD",
+                   help="sampled inputs between samples: linear or zoh, or one of them per "
+                        "input comma-joined in the model's input order (zoh,linear); the "
+                        "record written declares it per input. Default: with a record CSV, "
+                        "the hold it declares for each input (sidecar columns.<input>.hold), "
+                        "else the one its samples support (a staircase zoh, a sampled "
+                        "continuous signal linear; one line says which); otherwise linear. "
+                        "The fixed-step methods (rk4, ros2) hold every input zero-order")
     p.add_argument("--noise", action="store_true",
                    help="write a noisy synthetic record: with a registered experiment its own "
                         "noise and seed (e.g. `bondgraph simulate mass_spring_damper -e "
@@ -69,6 +75,20 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", metavar="DIR", help="also write PNG plots to DIR")
     p.add_argument("--stiffness", action="store_true",
                    help="print the stiffness report and write OUTPUT.stiffness.json")
+
+
+def _record_hold(record, model, u) -> str:
+    """The hold of a record's inputs when ``--hold`` is not given: declared
+    by the record, else supported by each input's samples
+    (:func:`~bondgraph.inference.discretise.supported_hold`), as the
+    estimate and loop commands hold them; one line on stderr says which."""
+    names = model.inputs
+    if not names:
+        return "linear"
+    hold, why = supported_hold(input_holds(np.asarray(u, float).reshape(len(record.t), -1),
+                                           names, declared_holds(record, names)))
+    print(f"input hold {hold} (chosen; --hold to give it): {why}", file=sys.stderr)
+    return hold
 
 
 def run(args) -> int:
@@ -90,6 +110,8 @@ def run(args) -> int:
             if missing:
                 notes.append(f"inputs {', '.join(missing)} not in the record: model defaults")
             u = measured.inputs_for(model, defaults_ok=True)
+            if args.hold is None and args.method not in FIXED_METHODS:
+                args.hold = _record_hold(measured, model, u)
             x0 = {k: v for k, v in (measured.meta.get("x0") or {}).items() if k in model.states}
             stored = {}
             if args.record_params:
@@ -119,7 +141,7 @@ def run(args) -> int:
         theta = model.theta(overrides)
     res = simulate(model, t, u=u, x0=x0 or None, theta=theta, method=args.method,
                    rtol=args.rtol, atol=args.atol, substeps=args.substeps,
-                   max_step=args.max_step, hold=args.hold)
+                   max_step=args.max_step, hold=args.hold or "linear")
     out = Path(args.output or f"{model.name}_sim.csv")
     rec = _with_noise(res, args, out.stem) if args.noise else \
         Experiment.from_simulation(res, name=out.stem)
