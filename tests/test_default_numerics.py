@@ -427,8 +427,8 @@ def test_fit_sim_redoes_a_fit_whose_rk4_step_fails_at_the_estimate(record, capsy
     monkeypatch.setattr(cli_estimate, "check_discretisation", lambda *a, **k: (False, 0.3, 2.0))
     redone, err = fit("sim_lsoda")
     assert ("--fit sim: rk4(1), linear hold fails its check at the estimate (0.3 σ per sample, "
-            "free-run bias bound 2 std)\n--fit sim: no RK4 step meets its check at the estimate: "
-            "refitting with LSODA") in err, err
+            "free-run bias bound 2 std)\n--fit sim: no RK4 or ROS2 step meets its check at the "
+            "estimate: refitting with LSODA") in err, err
     for p in ("m", "k", "c"):
         assert abs(redone["estimates"][p] - TRUTH[p]) < 3 * redone["std"][p]
         assert redone["estimates"][p] == pytest.approx(res["estimates"][p], rel=1e-5)
@@ -697,3 +697,36 @@ def test_simulate_holds_a_records_inputs_as_its_samples_support(tmp_path, capsys
         capsys.readouterr().err
     np.testing.assert_allclose(runs["chosen"], q, atol=1e-6)
     assert np.max(np.abs(runs["linear"] - q)) > 0.05
+
+
+def test_fit_sim_takes_the_l_stable_step_where_the_model_is_stiff_at_the_estimate(
+        lag_record, tmp_path, capsys):
+    """Held zero-order, the lag record is fitted best by the fastest lag its
+    box allows (L near 0.02 s at 1 Hz: the flow is the last sample's
+    demand), where no RK4 step up to 16 substeps is stable: the fit
+    continues with the L-stable ROS2 chosen at the estimate (compiled, as
+    RK4's runs), not LSODA, and reaches the free-run error of the exact
+    zero-order-hold solution q(k+1) = u(k) + (q(k) − u(k)) exp(−1/L) fitted
+    by scipy's least_squares (hand-derived)."""
+    from scipy.optimize import least_squares
+
+    out = tmp_path / "zoh"
+    assert main(["estimate", "--model", f"{Path(__file__)}:lag_graph", "--data",
+                 str(lag_record), "--params", "L", "--fit", "sim", "--hold", "zoh", "--out",
+                 str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "--fit sim: continuing from the estimate with ros2(" in err and "LSODA" not in err
+    exp = Experiment.load(lag_record)
+    t, u, y = exp.t, exp["u"], exp["q"]
+
+    def exact(z):
+        q = np.empty(t.size)
+        q[0] = z[1]
+        for k in range(t.size - 1):
+            q[k + 1] = u[k] + (q[k] - u[k]) * np.exp(-1.0 / z[0])
+        return q - y
+
+    ref = least_squares(exact, [0.5, 0.8], bounds=([0.02, -10.0], [20.0, 10.0]))
+    res = json.loads((out / "result.json").read_text())
+    assert res["rmse"]["q"] == pytest.approx(np.sqrt(np.mean(ref.fun ** 2)), rel=1e-4)
+    assert res["estimates"]["L"] < 0.03 and ref.x[0] < 0.03

@@ -87,9 +87,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="criterion: the UKF negative log-likelihood (nll: process noise, "
                         "unmeasured disturbances, global search) or the free-run simulation "
                         "error by least squares (sim: a deterministic model, a local search "
-                        "from the defaults; compiled RK4 runs where RK4 is chosen, else LSODA "
-                        "with forward sensitivities; the initial states the record does not "
-                        "give are estimated too)")
+                        "from the defaults; compiled runs of the chosen RK4 or ROS2 step, "
+                        "chosen again at the estimate where it fails there, else LSODA with "
+                        "forward sensitivities; the initial states the record does not give "
+                        "are estimated too)")
     add_quiet(p)
 
 
@@ -445,48 +446,56 @@ def sim_initial_states(problem, states: list[str]):
     return problem.conditioned_on(x0=x0), states + unknown
 
 
-def _sim_fit(problem, params, states, given: bool = False):
-    """``(result, problem)``: the output-error fit of ``problem`` (its free runs as
-    :func:`sim_options` says). Where the chosen RK4 step fails at the
+def _sim_fit(problem, params, states, given: bool = False, method_free: bool = True):
+    """``(result, problem)``: the output-error fit of ``problem`` (its free
+    runs as :func:`sim_options` says). Where the chosen step fails at the
     estimate (:func:`_sim_step_holds`: the estimate moved where the model is
     faster), the step is chosen again there and the fit continued from the
-    estimate with it (:func:`_finer_rk4`), at most :data:`MAX_REFITS`
-    times; LSODA with the forward sensitivities from the start when no RK4
-    step meets the check (a fast lag at 1 Hz: the command took 3 s where the LSODA fit took
-    43 s). With ``given`` (the user gave ``--substeps``) the step is kept
-    and a failed check only said."""
+    estimate with it (:func:`_finer_step`; ROS2 where no RK4 step passes and
+    ``method_free``), at most :data:`MAX_REFITS` times; LSODA with the
+    forward sensitivities from the start when no step meets the check (a
+    fast lag at 1 Hz: the command took 3 s where the LSODA fit took 43 s).
+    With ``given`` (the user gave ``--substeps``) the step is kept and a
+    failed check only said."""
     t, u, y = problem.arrays
     r = output_error_fit(problem.model, t, u, y, params, theta=problem.theta, x0=problem.x0,
                          x0_states=states, options=sim_options(problem.disc))
     for i in range(MAX_REFITS + 1):
-        if problem.disc.method != "rk4" or _sim_step_holds(problem, params, r, given):
+        if _sim_step_holds(problem, params, r, given):
             return r, problem
-        finer = None if i == MAX_REFITS else _finer_rk4(problem, params, r)
+        finer = None if i == MAX_REFITS else _finer_step(problem, params, r, method_free)
         if finer is None:
             break
         _say(f"--fit sim: continuing from the estimate with {finer.describe()}")
         problem = problem.conditioned_on(disc=finer)
         r = output_error_fit(problem.model, t, u, y, params, theta=r.theta, x0=r.x0,
                              x0_states=states, options=sim_options(finer))
-    _say("--fit sim: no RK4 step meets its check at the estimate: refitting with LSODA and "
-         "the forward sensitivities")
+    _say(f"--fit sim: no {'RK4 or ROS2' if method_free else problem.disc.method.upper()} "
+         f"step meets its check at the estimate: refitting with LSODA and the forward "
+         f"sensitivities")
     return output_error_fit(problem.model, t, u, y, params, theta=problem.theta, x0=problem.x0,
                             x0_states=states, options=OutputErrorOptions(hold=problem.disc.hold)
                             ), problem
 
 
-def _finer_rk4(problem, params, r):
-    """The RK4 discretisation (the problem's hold) that
+def _finer_step(problem, params, r, method_free: bool = True):
+    """The discretisation (the problem's hold) that
     :func:`~bondgraph.inference.discretise.choose_discretisation` chooses at
-    the output-error estimate ``r``, when it meets the check with more
-    substeps than the problem's; else None."""
+    the output-error estimate ``r``: with the problem's method and more
+    substeps, else (``method_free``: the user gave no ``--method``) the
+    other method (ROS2 where the model became stiff); None when none meets
+    the check."""
     th = _estimate_theta(problem, params, r)
-    try:
-        c = choose_discretisation(problem, th, given={"method": "rk4", "hold": problem.disc.hold},
-                                  free_run=True)
-    except (FloatingPointError, np.linalg.LinAlgError, NumericalError):
-        return None
-    return c.disc if c.ok and c.disc.substeps > problem.disc.substeps else None
+    tries = [{"method": problem.disc.method}] + ([{}] if method_free else [])
+    for given in tries:
+        try:
+            c = choose_discretisation(problem, th, given={**given, "hold": problem.disc.hold},
+                                      free_run=True)
+        except (FloatingPointError, np.linalg.LinAlgError, NumericalError):
+            return None
+        if c.ok and c.disc != problem.disc:
+            return c.disc
+    return None
 
 
 def _estimate_theta(problem, params, r) -> np.ndarray:
@@ -507,7 +516,8 @@ def _likelier_sim(args, problem, choice, params, states):
     :func:`~bondgraph.inference.discretise.hold_verdict`); a fit under the
     other hold that fails keeps the first. Two lines say why and which."""
     given = "substeps" in discretisation_given(args)
-    r, fitted = _sim_fit(problem, params, states, given)
+    free = "method" not in discretisation_given(args)
+    r, fitted = _sim_fit(problem, params, states, given, free)
     alt = None if choice is None else alternative_hold(choice.inputs, problem.disc.hold)
     if alt is None or "hold" in discretisation_given(args):
         return r, fitted
@@ -518,7 +528,7 @@ def _likelier_sim(args, problem, choice, params, states):
     other, _ = chosen_problem(problem, args, where="at the start θ, the other hold", hold=alt,
                               why=why)
     try:
-        r2, other = _sim_fit(other, params, states, given)
+        r2, other = _sim_fit(other, params, states, given, free)
     except (NumericalError, np.linalg.LinAlgError, FloatingPointError) as exc:
         _say(f"input hold: the fit under the other hold failed ({exc}); the shape's kept")
         return r, fitted
@@ -531,20 +541,19 @@ def _likelier_sim(args, problem, choice, params, states):
 
 
 def sim_options(disc) -> OutputErrorOptions:
-    """The free runs of ``--fit sim``: where the chosen (or given)
-    discretisation is RK4, compiled fixed-step RK4 runs at 4 times its
+    """The free runs of ``--fit sim``: compiled fixed-step runs of the
+    chosen (or given) method, RK4 or ROS2 (a stiff model), at 4 times its
     substeps with forward-difference Jacobians, as the loop's free runs
     (the forward sensitivities by LSODA took over 15 min on the 65 062
     Silverbox samples, the compiled runs 1.2 s), checked at the estimate
-    (:func:`_sim_step_holds`); else (ROS2: a stiff model) LSODA with the
-    forward sensitivities. The input hold is the filter's."""
-    if disc.method == "rk4":
-        return OutputErrorOptions(hold=disc.hold, substeps=4 * int(disc.substeps))
-    return OutputErrorOptions(hold=disc.hold)
+    (:func:`_sim_step_holds`); four times finer divides the checked one-step
+    error by 256 (RK4) or 16 (ROS2). The input hold is the filter's."""
+    return OutputErrorOptions(hold=disc.hold, substeps=4 * int(disc.substeps),
+                              fixed_method=disc.method)
 
 
 def _sim_step_holds(problem, params, r, given: bool = False) -> bool:
-    """Does the chosen RK4 step still meet its check (one-step error and
+    """Does the chosen step still meet its check (one-step error and
     free-run bias bound, :func:`check_discretisation`) at the output-error
     estimate ``r``? The fit's runs took 4 times its substeps, within
     whenever it is; if not (the estimate moved where the model is faster),

@@ -10,8 +10,9 @@ Jacobian ∂ŷ/∂θ and ∂ŷ/∂x0 comes from the forward sensitivity equation
 Dickinson & Gelinas 1976), integrated by scipy's adaptive solvers, which
 restart at every change of a zero-order-held input (one ``solve_ivp`` per
 sample on a sampled record). With ``OutputErrorOptions(substeps=n)`` the
-free runs are the model's compiled fixed-step RK4 with ``n`` steps per
-sample interval (:func:`bondgraph.inference.sim_numba.rk4_trajectory`) and
+free runs are the model's compiled fixed-step RK4 (or, with
+``fixed_method="ros2"``, the L-stable ROS2 for a stiff model) with ``n``
+steps per sample interval (:func:`bondgraph.inference.sim_numba.trajectory`) and
 the Jacobian comes from forward differences of such runs, one per column
 (on the EMPS record of 4968 samples a few milliseconds per run instead of
 seconds); a model without compiled kernels, or a run that is not finite,
@@ -73,9 +74,12 @@ class OutputErrorOptions:
     max_nfev : int
         Most simulations of the least-squares search (>= 1).
     substeps : int or None
-        Fixed-step RK4 steps per sample interval of the compiled free runs,
-        the Jacobian by forward differences (module docstring); None (the
+        Fixed-step steps per sample interval of the compiled free runs, the
+        Jacobian by forward differences (module docstring); None (the
         default): ``method`` with the forward sensitivities.
+    fixed_method : {"rk4", "ros2"}
+        The fixed-step method of those runs: RK4, or ROS2 (L-stable, for a
+        stiff model; Verwer et al. 1999).
 
     Raises
     ------
@@ -94,9 +98,13 @@ class OutputErrorOptions:
     atol: float = 1e-10
     max_nfev: int = 100
     substeps: int | None = None
+    fixed_method: str = "rk4"
 
     def __post_init__(self):
         check_solver_fields(self)
+        if self.fixed_method not in ("rk4", "ros2"):
+            raise OptionError(f"OutputErrorOptions.fixed_method must be 'rk4' or 'ros2', got "
+                              f"{self.fixed_method!r}")
         for name, allow_none in (("max_nfev", False), ("substeps", True)):
             v = getattr(self, name)
             if v is None and allow_none:
@@ -212,8 +220,8 @@ UNSTABLE_RESIDUAL = 1e3
 
 
 class _FixedStepProblem(_Problem):
-    """:class:`_Problem` with compiled fixed-step RK4 free runs
-    (``substeps`` per sample interval) and a forward-difference Jacobian:
+    """:class:`_Problem` with compiled fixed-step free runs (``method`` RK4
+    or ROS2, ``substeps`` per sample interval) and a forward-difference Jacobian:
     column j from one more run with z_j moved by √ε · max(|z_j|, 1e-3 ·
     its box width, or 1e-3 without a box), inwards at an upper bound. A
     trial point whose run is not finite gets residuals
@@ -221,9 +229,9 @@ class _FixedStepProblem(_Problem):
     raises."""
 
     def __init__(self, model, t, u, y, params, states, theta, x0, sigma, solver: SolverOptions,
-                 *, kernels, substeps: int, box):
+                 *, kernels, substeps: int, box, method: str = "rk4"):
         super().__init__(model, t, u, y, params, states, theta, x0, sigma, solver)
-        self.kernels, self.substeps = kernels, int(substeps)
+        self.kernels, self.substeps, self.method = kernels, int(substeps), method
         self.u_run = (np.asarray(u, float).reshape(self.t.size, -1) if model.n_u
                       else np.zeros((self.t.size, 1)))
         self._zy = None
@@ -238,13 +246,13 @@ class _FixedStepProblem(_Problem):
         if self._zy is not None and np.array_equal(z, self._zy[0]):
             return self._zy[1]
         th, x0 = self.point(z)
-        X = sim_numba.rk4_trajectory(self.kernels, self.t, self.u_run, self.solver.hold, th, x0,
-                                     self.substeps)
+        X = sim_numba.trajectory(self.kernels, self.t, self.u_run, self.solver.hold, th, x0,
+                                 self.method, self.substeps)
         with np.errstate(all="ignore"):
             Y = np.asarray(self.model.h(X, self.u_run[:, :self.model.n_u], th[None, :]), float)
         if not np.isfinite(Y).all():
-            raise NumericalError(f"the fixed-step RK4 free run ({self.substeps} steps per "
-                                 f"sample) of model '{self.model.name}' is not finite")
+            raise NumericalError(f"the fixed-step {self.method.upper()} free run ({self.substeps} "
+                                 f"steps per sample) of model '{self.model.name}' is not finite")
         self._zy = (np.array(z, dtype=float), Y)
         return Y
 
@@ -281,10 +289,11 @@ def _problem_for(model, t, u, y, params, states, th, xi, sigma, opts, box) -> _P
     compiled kernels for its hold and the run at the start is finite; else
     the forward-sensitivity one."""
     args = (model, t, u, y, params, states, th, xi, np.asarray(sigma, float), opts.solver)
-    kernels = (free_run_kernels(model, "numba", "rk4", opts.hold)
+    kernels = (free_run_kernels(model, "numba", opts.fixed_method, opts.hold)
                if opts.substeps is not None else None)
     if kernels is not None:
-        prob = _FixedStepProblem(*args, kernels=kernels, substeps=opts.substeps, box=box)
+        prob = _FixedStepProblem(*args, kernels=kernels, substeps=opts.substeps, box=box,
+                                 method=opts.fixed_method)
         try:
             prob.outputs(np.concatenate([th[prob.pidx], xi[prob.sidx]]))
             return prob
