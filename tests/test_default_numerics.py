@@ -606,6 +606,15 @@ def test_sensitivity_track_and_the_output_error_fit_hold_an_ambiguous_input_by_l
     # step is kept (the user's option wins) and that is said
     assert "rk4(8), zoh hold fails its check at the estimate" in err
     assert "the given --substeps kept" in err and "LSODA" not in err
+    # the kept (linear) fit's step passes; held zero-order as given, the
+    # result itself says what its estimates rest on
+    assert json.loads((tmp_path / "e" / "result.json").read_text())["warnings"] == []
+    assert main(["estimate", "--model", spec, "--data", str(lag_record), "--params", "L",
+                 "--fit", "sim", "--method", "rk4", "--substeps", "8", "--hold", "zoh",
+                 "--out", str(tmp_path / "z")]) == 0
+    assert "warning: --fit sim: rk4(8), zoh hold fails its check" in capsys.readouterr().out
+    (w,) = json.loads((tmp_path / "z" / "result.json").read_text())["warnings"]
+    assert "the given --substeps kept" in w and "rest on it" in w
     res = json.loads((tmp_path / "e" / "result.json").read_text())
     assert res["hold"] == "linear"
     L, std = res["estimates"]["L"], res["std"]["L"]
@@ -631,7 +640,7 @@ def test_fit_sim_continues_with_the_rk4_step_chosen_at_the_estimate(lag_record, 
     res, err = fit("chosen")
     # the record gives no initial state: estimated (from the smoothed one), so
     # the free-run error is the record's noise (from rest, as before: 0.040)
-    assert "the record gives no initial value of p_line: estimated" in err
+    assert "the record gives no initial value of p_line: p_line estimated" in err
     assert "x0.p_line" in res["estimates"]
     assert res["rmse"]["q"] == pytest.approx(LAG_NOISE, rel=0.05)
     assert "--fit sim: rk4(2), linear hold fails its check at the estimate" in err
@@ -659,7 +668,7 @@ def test_fit_sim_estimates_the_initial_states_the_record_does_not_give(lag_recor
     p = make_problem(m, exp)
     p = p.conditioned_on(disc=replace(p.disc, method="rk4", substeps=8, hold="linear"))
     q, states = cli_estimate.sim_initial_states(p, [])
-    assert states == ["p_line"] and "no initial value of p_line: estimated" in \
+    assert states == ["p_line"] and "no initial value of p_line: p_line estimated" in \
         capsys.readouterr().err
     t, u, y = exp.t, exp["u"], exp["q"]
     f = solve_ivp(lambda tt, x: np.interp(tt, t, u) - x, (0.0, t[-1]), [0.0], t_eval=t,
@@ -730,3 +739,49 @@ def test_fit_sim_takes_the_l_stable_step_where_the_model_is_stiff_at_the_estimat
     res = json.loads((out / "result.json").read_text())
     assert res["rmse"]["q"] == pytest.approx(np.sqrt(np.mean(ref.fun ** 2)), rel=1e-4)
     assert res["estimates"]["L"] < 0.03 and ref.x[0] < 0.03
+
+
+def cart_graph() -> BondGraph:
+    """A mass with damping driven by a force, its velocity measured; the
+    position (an integrator of the velocity) is a state nothing measures."""
+    g = BondGraph("user_cart", "mass with damping, position state unmeasured")
+    F = g.input("F", "N", 0.0, "force")
+    m = g.param("m", 1.5, "kg", (0.1, 10.0), "mass")
+    c = g.param("c", 1.0, "N*s/m", (0.01, 10.0), "damping")
+    v = g.one("v")
+    g.connect(g.Se("drive", F), v)
+    g.connect(v, g.I("mass", m))
+    g.connect(v, g.R("damper", c))
+    g.displacement(v, name="x", unit="m")
+    g.sensor("vel", v.f, unit="m/s", noise_std=0.01)
+    return g
+
+
+def test_fit_sim_leaves_an_unseen_initial_state_alone_and_keeps_the_stds(tmp_path, capsys):
+    """The cart's record gives no initial state. Its momentum's initial
+    value is estimated; its position's is not seen by the velocity sensor
+    and is left alone (estimated, its zero Jacobian column made the whole
+    information singular and every std was lost). The record: the exact
+    zero-order-hold solution v(k+1) = F(k)/c + (v(k) − F(k)/c) exp(−c dt/m)
+    (hand-derived, m 2, c 1.5, v(0) 0.3 m/s) plus noise 0.01 m/s; m and c
+    land within 3 std of it."""
+    rng = np.random.default_rng(0)
+    t = np.arange(600) * 0.1
+    F = np.repeat(rng.uniform(-1, 1, 60), 10)
+    v = np.empty(t.size)
+    v[0] = 0.3
+    for k in range(t.size - 1):
+        v[k + 1] = F[k] / 1.5 + (v[k] - F[k] / 1.5) * np.exp(-1.5 / 2.0 * 0.1)
+    rec = tmp_path / "cart.csv"
+    np.savetxt(rec, np.c_[t, F, v + 0.01 * rng.standard_normal(t.size)], delimiter=",",
+               header="t [s],F [N],vel [m/s]", comments="")
+    out = tmp_path / "o"
+    assert main(["estimate", "--model", f"{Path(__file__)}:cart_graph", "--data", str(rec),
+                 "--params", "m,c", "--fit", "sim", "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "p_mass estimated with the parameters" in err
+    assert "x not seen by the outputs" in err
+    res = json.loads((out / "result.json").read_text())
+    assert "x0.x" not in res["estimates"]
+    for name, truth in (("m", 2.0), ("c", 1.5), ("x0.p_mass", 0.6)):
+        assert abs(res["estimates"][name] - truth) < 3 * res["std"][name]

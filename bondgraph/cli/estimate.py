@@ -40,7 +40,7 @@ from bondgraph.inference.discretise import (alternative_hold, check_discretisati
                                             choose_discretisation, cost_rank, hold_verdict)
 from bondgraph.inference.estimate import estimate
 from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
-                                              output_error_nll)
+                                              output_error_nll, seen_initial_states)
 from bondgraph.inference.options import FitOptions
 from bondgraph.inference.ukf_numba import compile_in_background
 from bondgraph.report.estimation import plot_fit
@@ -392,7 +392,7 @@ def run_output_error(args, chosen, params, folder, states) -> int:
            "estimates": r.estimates(), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,
            "rmse": dict(zip(model.outputs, r.rmse.tolist())), "nfev": r.nfev,
            "status": r.status, "message": r.message, "noise": args.noise,
-           "noise_levels": noise, "hold": problem.disc.hold}
+           "noise_levels": noise, "hold": problem.disc.hold, "warnings": list(r.warnings)}
     text = json.dumps(to_jsonable(doc), indent=2, allow_nan=False)
     folder.publish(lambda d: (d / "result.json").write_text(text))
     rpath = folder.path / "result.json"
@@ -404,6 +404,8 @@ def run_output_error(args, chosen, params, folder, states) -> int:
                                               zip(model.outputs, r.rmse)))
     print("noise levels: " + ", ".join(f"{o} {d['std']:.4g} ({d['how']})"
                                        for o, d in noise.items()))
+    for w in r.warnings:
+        print(f"warning: {w}")
     print(f"wrote {rpath}")
     return 0
 
@@ -441,9 +443,17 @@ def sim_initial_states(problem, states: list[str]):
         xs, start = problem.x0, "the prior mean (the smoother failed)"
     x0 = {n: float(xs[model.state_index(n)]) for n in unknown if np.isfinite(
         xs[model.state_index(n)])}
-    _say(f"--fit sim: the record gives no initial value of {', '.join(unknown)}: estimated "
-         f"with the parameters from {start} (--x0 to give it)")
-    return problem.conditioned_on(x0=x0), states + unknown
+    d = problem.disc
+    start_x = problem.conditioned_on(x0=x0).x0 if x0 else problem.x0
+    seen = seen_initial_states(model, problem.t, problem.u, problem.theta, start_x, unknown,
+                               method=d.method, substeps=d.substeps, hold=d.hold)
+    unseen = [n for n in unknown if n not in seen]
+    _say(f"--fit sim: the record gives no initial value of {', '.join(unknown)}: "
+         + (f"{', '.join(seen)} estimated with the parameters from {start}" if seen else "")
+         + ("; " if seen and unseen else "")
+         + (f"{', '.join(unseen)} not seen by the outputs (left at {start})" if unseen else "")
+         + " (--x0 to give it)")
+    return problem.conditioned_on(x0=x0), states + seen
 
 
 def _sim_fit(problem, params, states, given: bool = False, method_free: bool = True):
@@ -558,14 +568,18 @@ def _sim_step_holds(problem, params, r, given: bool = False) -> bool:
     estimate ``r``? The fit's runs took 4 times its substeps, within
     whenever it is; if not (the estimate moved where the model is faster),
     one line says so. With ``given`` (the step is the user's) True after
-    that line: the user's options win."""
+    that line, kept in ``r.warnings`` (result.json, the table): the user's
+    options win, and the result says what it rests on."""
     ok, now, bound = check_discretisation(problem, _estimate_theta(problem, params, r),
                                           free_run=True)
     if not ok:
-        _say(f"--fit sim: {problem.disc.describe()} fails its check at the estimate ({now:.2g} "
-             f"σ per sample, free-run bias bound {bound:.2g} std)"
-             + ("; the given --substeps kept (leave it out to have the step chosen again at "
-                "the estimate)" if given else ""))
+        line = (f"--fit sim: {problem.disc.describe()} fails its check at the estimate "
+                f"({now:.2g} σ per sample, free-run bias bound {bound:.2g} std)"
+                + ("; the given --substeps kept (leave it out to have the step chosen again "
+                   "at the estimate): the estimates and their std rest on it" if given else ""))
+        _say(line)
+        if given:
+            r.warnings.append(line)
     return ok or given
 
 

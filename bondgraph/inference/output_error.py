@@ -48,7 +48,7 @@ from bondgraph.errors import DataError, ModelError, NumericalError, OptionError
 from bondgraph.inference import sim_numba
 from bondgraph.inference.optimize import pso
 from bondgraph.inference.options import SwarmOptions
-from bondgraph.inference.prior import free_run_kernels
+from bondgraph.inference.prior import fixed_step_outputs, free_run_kernels
 from bondgraph.numerics.forward_sensitivity import (
     SolverOptions,
     check_solver_fields,
@@ -141,7 +141,8 @@ class OutputErrorResult:
         RMS free-run error of each output [output units].
     std : dict
         Name -> standard deviation from s² (JᵀJ)⁻¹, s² = 2 cost / (n − k)
-        (None where singular or on a bound).
+        (None where singular, on a bound, or not seen by the outputs: a
+        zero column of J, left out of the inverse).
     at_bound : list of str
         Estimates on a bound of their box.
     y_sim : ndarray (N, n_y)
@@ -151,6 +152,9 @@ class OutputErrorResult:
     status : int
         :func:`scipy.optimize.least_squares` status (> 0: converged).
     message : str
+    warnings : list of str
+        What the caller found wrong with the fit's numerics (a step that
+        fails its check at the estimate and was kept as given).
     """
 
     names: list
@@ -167,6 +171,7 @@ class OutputErrorResult:
     status: int
     message: str
     extra: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
 
     def estimates(self) -> dict:
         """Name -> estimate."""
@@ -408,6 +413,50 @@ def output_error_nll(y: np.ndarray, rmse: np.ndarray) -> float:
         return float(np.sum(0.5 * n * (1.0 + np.log(2 * np.pi * r ** 2))))
 
 
+def seen_initial_states(model, t, u, theta, x0, names: Sequence[str], *, method: str = "rk4",
+                        substeps: int = 1, hold: str = "zoh") -> list[str]:
+    """The states of ``names`` whose initial value the outputs see: the
+    noise-free fixed-step run (:func:`~bondgraph.inference.prior.fixed_step_outputs`)
+    from ``x0`` (n_x,) with that state moved by 1e-4 · max(|x0|, 1) differs
+    from the run from ``x0`` somewhere. An unmeasured integrator (a position
+    beside a measured velocity) is not seen: its initial value cannot be
+    estimated from the outputs, and a zero column would leave the fit's
+    information singular.
+
+    Parameters
+    ----------
+    model : Model
+    t : array (N,)
+    u : array (N, n_u)
+    theta : array (n_theta,)
+    x0 : array (n_x,)
+    names : sequence of str
+        States of ``model``.
+    method, substeps, hold :
+        The runs' fixed-step method, steps per sample and input hold.
+
+    Returns
+    -------
+    list of str
+        Those of ``names`` seen, in order (all of them when the base run is
+        not finite: nothing is decided from it).
+    """
+    x0 = np.asarray(x0, float)
+    base = fixed_step_outputs(model, t, u, theta, x0, method, substeps, hold)
+    if not np.isfinite(base).any():
+        return list(names)
+    out = []
+    for n in names:
+        j = model.state_index(n)
+        xj = x0.copy()
+        xj[j] += 1e-4 * max(abs(xj[j]), 1.0)
+        moved = fixed_step_outputs(model, t, u, theta, xj, method, substeps, hold)
+        with np.errstate(invalid="ignore"):
+            if np.any(moved != base) or not np.array_equal(np.isnan(moved), np.isnan(base)):
+                out.append(n)
+    return out
+
+
 def _box(model, params, states, bounds):
     """Box (k,) of the estimated quantities."""
     if bounds is not None:
@@ -430,13 +479,17 @@ def _result(prob: _Problem, r, lo, hi) -> OutputErrorResult:
           if v - a <= 1e-8 * w or b - v <= 1e-8 * w]
     n_res, k = int(prob.mask.sum()), r.x.size
     s2 = 2 * r.cost / max(n_res - k, 1)
+    J = np.asarray(r.jac, float)
+    # a quantity the outputs do not see (a zero column: an unmeasured
+    # integrator's initial value) has no std, and leaves the others theirs
+    seen = np.flatnonzero(np.any(J != 0.0, axis=0))
+    d = np.full(k, np.nan)
     try:
-        C = s2 * np.linalg.inv(r.jac.T @ r.jac)
-        d = np.diag(C)
-        std = {n: (float(np.sqrt(v)) if v > 0 and n not in at else None)
-               for n, v in zip(names, d)}
+        d[seen] = np.diag(s2 * np.linalg.inv(J[:, seen].T @ J[:, seen]))
     except np.linalg.LinAlgError:
-        std = {n: None for n in names}
+        pass
+    std = {n: (float(np.sqrt(v)) if v > 0 and n not in at else None)
+           for n, v in zip(names, d)}
     return OutputErrorResult(names, r.x.copy(), th, x0, float(r.cost), rmse, std, at, s.y,
                              int(r.nfev), int(r.njev or 0), int(r.status), str(r.message))
 
