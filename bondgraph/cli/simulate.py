@@ -17,7 +17,7 @@ from bondgraph.data.experiments import get_experiment, run_experiment
 from bondgraph.data.records import Experiment
 from bondgraph.errors import ModelError, UsageError
 from bondgraph.export.params import read_params
-from bondgraph.inference.discretise import declared_holds, input_holds, supported_hold
+from bondgraph.inference.discretise import record_input_holds, supported_hold
 from bondgraph.numerics.simulate import FIXED_METHODS, METHODS, simulate, stiffness_report
 from bondgraph.report.plots import plot_record
 
@@ -85,8 +85,8 @@ def _record_hold(record, model, u) -> str:
     names = model.inputs
     if not names:
         return "linear"
-    hold, why = supported_hold(input_holds(np.asarray(u, float).reshape(len(record.t), -1),
-                                           names, declared_holds(record, names)))
+    hold, why = supported_hold(record_input_holds(
+        record, names, np.asarray(u, float).reshape(len(record.t), -1)))
     print(f"input hold {hold} (chosen; --hold to give it): {why}", file=sys.stderr)
     return hold
 

@@ -34,10 +34,9 @@ from bondgraph.errors import DataError
 from bondgraph.inference.discretise import (
     alternative_hold,
     choose_discretisation,
-    declared_holds,
-    input_holds,
     likelier_hold_at,
-    record_hold,
+    record_input_holds,
+    supported_hold,
 )
 from bondgraph.inference.estimand import start_levels
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
@@ -161,14 +160,14 @@ def bare_levels(problem, levels: dict) -> tuple[dict, str]:
 def tracking_hold(problem, args) -> tuple[str, str]:
     """The inputs' hold for tracking without ``--hold``, and why: the one the
     record declares or its inputs' shape supports
-    (:func:`~bondgraph.inference.discretise.record_hold`); where a shape is
+    (:func:`~bondgraph.inference.discretise.record_input_holds`,
+    :func:`~bondgraph.inference.discretise.supported_hold`); where a shape is
     ambiguous, the one whose filter is likelier at the tracking start
     (:func:`~bondgraph.inference.discretise.likelier_hold_at`, each hold's
     step chosen at that θ as ``--method``/``--substeps`` allow; one line on
     stderr says which)."""
-    hold, why = record_hold(problem)
-    names = problem.model.inputs
-    inputs = input_holds(problem.u, names, declared_holds(problem.record, names))
+    inputs = record_input_holds(problem.record, problem.model.inputs, problem.u)
+    hold, why = supported_hold(inputs)
     if alternative_hold(inputs, hold) is None:
         return hold, why
     given = discretisation_given(args)

@@ -57,7 +57,7 @@ from bondgraph.numerics.integrators import is_per_input, join_hold, split_hold
 __all__ = ["BIAS_TOLERANCE", "CANDIDATES", "CLEAR_SHARE", "DECLARED_HOLDS", "HOLD_MARGIN",
            "TOLERANCE", "DiscretisationChoice", "InputHold", "alternative_hold", "hold_verdict",
            "check_discretisation", "choose_discretisation", "declared_holds", "holds_against",
-           "input_holds", "likelier_hold_at", "no_process_noise", "record_hold",
+           "input_holds", "likelier_hold_at", "no_process_noise", "record_hold", "record_input_holds",
            "supported_hold"]
 
 #: the largest accepted one-step discretisation error, in measurement-noise
@@ -414,7 +414,7 @@ def finer_grid_record(exp, inputs: Sequence[str]):
     u = np.column_stack([np.asarray(exp.columns[n], float) for n in names])
     if not np.isfinite(u).all():
         return exp, None
-    holds = input_holds(u, names, declared_holds(exp, names))
+    holds = record_input_holds(exp, names, u)
     chosen = [b for b in band_limits(exp.t, u, names, holds) if b.band_limited]
     if not chosen:
         return exp, None
@@ -686,7 +686,7 @@ def choose_discretisation(problem, theta, *, given: Mapping | None = None, sigma
     sig = comparison_sigma(problem, th, sigma)
     if free_run is None:
         free_run = no_process_noise(model, th)
-    inputs = input_holds(problem.u, model.inputs, declared_holds(problem.record, model.inputs))
+    inputs = record_input_holds(problem.record, model.inputs, problem.u)
     hold, reason = _hold_for(inputs, given, hold, why)
     cands = [Discretisation(m, s, hold, problem.disc.backend) for m, s in _candidates(given)]
     disc, ok, tried = _first_within(problem, th, cands, sig, free_run, tolerance, bias_tolerance)
@@ -859,8 +859,26 @@ def record_hold(problem) -> tuple[str, str]:
     -------
     (hold, reason) : (str, str)
     """
-    names = problem.model.inputs
-    return supported_hold(input_holds(problem.u, names, declared_holds(problem.record, names)))
+    return supported_hold(record_input_holds(problem.record, problem.model.inputs, problem.u))
+
+
+def record_input_holds(record, names: Sequence[str], u) -> list[InputHold]:
+    """Each input's evidence in a record: its declaration
+    (:func:`declared_holds`), else its shape (:func:`input_holds`).
+
+    Parameters
+    ----------
+    record : Experiment or None
+    names : sequence of str
+        The model's inputs, in order.
+    u : array (N, n_u)
+        Their samples.
+
+    Returns
+    -------
+    list of InputHold
+    """
+    return input_holds(u, names, declared_holds(record, names))
 
 
 def _hold_for(inputs, given: dict, hold: str | None = None,

@@ -59,10 +59,9 @@ from bondgraph.inference.discretise import (
     check_discretisation,
     choose_discretisation,
     comparison_sigma,
-    declared_holds,
     holds_against,
-    input_holds,
     no_process_noise,
+    record_input_holds,
     supported_hold,
 )
 from bondgraph.inference.optimize import de, minimize_batched, pso
@@ -1305,7 +1304,7 @@ def hold_warning(problem: Problem, hold: str) -> str | None:
     str or None
     """
     names = problem.model.inputs
-    inputs = input_holds(problem.u, names, declared_holds(problem.record, names))
+    inputs = record_input_holds(problem.record, names, problem.u)
     against = holds_against(inputs, hold)
     if not against:
         return None
