@@ -27,11 +27,11 @@ from scipy.integrate import solve_ivp
 
 from bondgraph import BondGraph
 from bondgraph.data.records import Experiment
-from bondgraph.diagnose.accept import decide, unidentified_effect
+from bondgraph.diagnose.accept import decide, robust_std_needed, unidentified_effect
 from bondgraph.diagnose.confirm import confirm
 from bondgraph.diagnose.effects import Target
 from bondgraph.diagnose.effects.laws import RPower, RQuadratic
-from bondgraph.diagnose.fit import Context, fit_model, model_of
+from bondgraph.diagnose.fit import Context, fit_model, model_of, robust_std_of
 from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.scales import operating_scales
 from bondgraph.diagnose.settings import AcceptRule, LoopSettings
@@ -172,6 +172,13 @@ def test_the_oven_takes_the_convection_law_with_its_exponent():
     assert std[r_name] < 0.1 * est[r_name]                 # ... yet determined
     assert pw.fit.nll < qd.fit.nll - 50                   # 120 nats here
     assert pw.fit.validation_metric < qd.fit.validation_metric
+    assert unidentified_effect(current, pw.fit) == ""
+    # the rule judges R by its sandwich std too (the runner computes it): the
+    # power law is the truth's, so its innovations are white and the sandwich
+    # std is the Cramér-Rao one within a few per cent: still determined
+    assert robust_std_needed(current, pw.fit) == [r_name]
+    pw.fit.std_robust = robust_std_of(ctx, pw.fit)
+    assert abs(pw.fit.std_robust[r_name] / std[r_name] - 1.0) < 0.2
     assert unidentified_effect(current, pw.fit) == ""
     rule = AcceptRule(criterion="aic", significance=0.05)
     inner = [RPower().pname(tgt, p.name) for p in RPower.params if p.interior]

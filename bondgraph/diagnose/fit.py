@@ -149,8 +149,9 @@ class Fit:
     costs), and the quantities along which the likelihood is flat where
     the scoring stopped, converged in every other direction (``flat``,
     :attr:`bondgraph.inference.fisher.Scoring.flat`), and, for the loop's
-    final model, the robust (sandwich) std by name (``std_robust``,
-    :func:`robust_std_of`)."""
+    final model and for a refit whose identification the accept rule judges
+    by it (:func:`bondgraph.diagnose.accept.robust_std_needed`), the robust
+    (sandwich) std by name (``std_robust``, :func:`robust_std_of`)."""
 
     graph: BondGraph
     model: Model
@@ -408,10 +409,37 @@ def noise_params(model: Model) -> set:
     return set(noise_parameters(model, model.theta0))
 
 
+#: eigenvalues of the unit-diagonal Fisher information below this fraction
+#: of the largest are its null space (singular to rounding): :func:`cr_std`
+SINGULAR_REL = 1e-12
+
+
 def cr_std(F: np.ndarray, names: Sequence[str]) -> dict:
     """Cramér-Rao standard deviations sqrt(diag(F⁻¹)) from the Fisher
     information F (k, k); None where F is singular or a variance is not
-    positive (Cramér 1946; Rao 1945)."""
+    positive (Cramér 1946; Rao 1945).
+
+    Where F is singular to rounding (an eigenvalue of its unit-diagonal
+    scaling below :data:`SINGULAR_REL` of the largest: two parallel dampers
+    the record sees only as their sum), its inverse is rounding noise, and
+    so were the stds read from it, the others' too (a mass's std 23 % apart
+    between two fits at the same estimate). Then the quantities that load on
+    the null space get None, and the others the std of the pseudo-inverse,
+    which is their bound with the unidentified combination left free: the
+    same as in the model reparametrised without it (Stoica & Marzetta 2001,
+    IEEE Trans. Signal Process. 49(1), 87-90)."""
+    F = np.asarray(F, float)
+    d = np.diag(F)
+    if F.size and np.all(np.isfinite(F)) and np.all(d > 0):
+        D = np.sqrt(d)
+        w, V = np.linalg.eigh(F / np.outer(D, D))
+        null = w < SINGULAR_REL * w[-1]
+        if null.any():
+            keep = ~null
+            C = (V[:, keep] / w[keep]) @ V[:, keep].T / np.outer(D, D)
+            loads = np.abs(V[:, null]).max(axis=1) > np.sqrt(SINGULAR_REL)
+            return {n: (None if lo or not c > 0 else float(np.sqrt(c)))
+                    for n, c, lo in zip(names, np.diag(C), loads)}
     try:
         C = np.linalg.inv(F)
         d = np.diag(C)
@@ -428,8 +456,10 @@ def robust_std_of(ctx: Context, fit: Fit) -> dict:
     the per-sample scores from one batched UKF run at the estimate, with
     the problem conditioned on the loop's current fit (its initial states
     and noise levels held). {} where it cannot be computed; parameters on a
-    bound or without a Cramér-Rao std get none. For the final model only:
-    a run of k + 1 sets, not worth its cost on every refit."""
+    bound or without a Cramér-Rao std get none. A run of k + 1 sets, not
+    worth its cost on every refit: for the final model, and for a refit
+    whose identification the accept rule judges by it
+    (:func:`bondgraph.diagnose.accept.robust_std_needed`)."""
     params = [n for n in fit.params if n not in fit.at_bound and fit.std.get(n) is not None]
     if not params:
         return {}

@@ -27,6 +27,7 @@ from bondgraph.diagnose.accept import (
     pair_needed,
     rank_confirmed,
     rejection,
+    robust_std_needed,
     significant,
 )
 from bondgraph.diagnose.confirm import Confirmation, confirm, confirm_pair, continued
@@ -1828,11 +1829,16 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     candidate was rejected in every later step for "the box, not the
     record". The admissibility of the refit includes
     what the ``added`` candidates' own effects find at it
-    (:func:`bondgraph.diagnose.fit.admissibility`)."""
+    (:func:`bondgraph.diagnose.fit.admissibility`). Where the refit's
+    identification of a parameter ``current`` identified hangs on its std
+    (:func:`bondgraph.diagnose.accept.robust_std_needed`), its robust
+    (sandwich) std is computed first (one batched filter run) and judges it."""
     s = ctx.settings
     placed = [(get_effect(c.effect, s.effects), c.target) for c in added]
     adm = admissibility(ctx, after, current.graph, placed, against=current) if comparable \
         else None
+    if comparable and robust_std_needed(current, after):
+        after.std_robust = {**after.std_robust, **robust_std_of(ctx, after)}
     inner = interior_params(placed)
     d = decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
                interior=inner)
