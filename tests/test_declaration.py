@@ -134,6 +134,22 @@ def test_two_port_without_explicit_port_and_reused_port():
         g.connect(g.one("j2"), tf.p1)
 
 
+def test_a_third_end_given_to_connect_is_refused_before_anything_is_bonded():
+    """connect(a, r, b) read b as the bond's name: a bond named after the
+    junction, b left unbonded, no error (a user chaining a -> R -> b, or a
+    GY between two junctions). Now refused, naming all three, and nothing
+    is bonded."""
+    g = bg.BondGraph("x")
+    a, b = g.one("a"), g.one("b")
+    r = g.R("r", 2.0)
+    with pytest.raises(errors.ConnectionError, match=r"connect\(a, r, b\): the third argument "
+                                                     r"is the bond's name"):
+        g.connect(a, r, b)
+    assert g.bonds == [] and r.port.bond is None
+    g.connect(a, r, "a to r")
+    assert [bd.name for bd in g.bonds] == ["a to r"]
+
+
 def test_bonding_two_absorbers_directly_is_refused():
     g = bg.BondGraph("x")
     with pytest.raises(errors.ConnectionError, match="through a 0- or 1-junction"):

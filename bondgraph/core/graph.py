@@ -452,8 +452,9 @@ class BondGraph:
         ------
         ConnectionError
             If a port is already bonded, a two-port is given without a
-            port, or both ends demand the same power direction (e.g. an I
-            bonded directly to a C: connect them through a junction).
+            port, both ends demand the same power direction (e.g. an I
+            bonded directly to a C: connect them through a junction), or
+            ``name`` is not a string (a third element: a bond has two ends).
 
         Notes
         -----
@@ -463,6 +464,13 @@ class BondGraph:
         modelling choice (it sets the signs of the junction sums), so write
         ``connect(a, b)`` in the direction of positive power.
         """
+        if name is not None and not isinstance(name, str):
+            raise ConnectionError(
+                f"connect({_label(a)}, {_label(b)}, {_label(name)}): the third argument is the "
+                f"bond's name (a string), not a third end: a bond joins two. To chain "
+                f"{_label(a)} -> {_label(b)} -> {_label(name)}, connect each pair (a two-port "
+                f"by its ports: connect(a, tf.p1), connect(tf.p2, b))",
+                elements=[_label(a), _label(b), _label(name)])
         pa = self._resolve(a)
         pb = self._resolve(b)
         for p in (pa, pb):
@@ -849,6 +857,16 @@ class BondGraph:
 
 #: A fragment is a bond graph with exposed ports, included by a parent graph.
 Fragment = BondGraph
+
+
+def _label(x) -> str:
+    """How an argument of :meth:`BondGraph.connect` reads in a message: a
+    port's label, an element's name, a string as given, else its repr."""
+    for attr in ("label", "name"):
+        v = getattr(x, attr, None)
+        if isinstance(v, str):
+            return v
+    return x if isinstance(x, str) else repr(x)
 
 
 def _xrep(v, subs):
