@@ -377,7 +377,9 @@ def unidentified_effect(current: Fit, after: Fit) -> str:
     user's geared motor (rotor and load inertias and frictions) the gain's
     refit read k_t 0.0517 ± 0.0031 with a sandwich std of 0.0009, and it is
     accepted; there the record does determine g, through the friction's
-    width, which the gain rescales."""
+    width, which the gain rescales (since the confirmation profiles that
+    width, :func:`bondgraph.diagnose.confirm.profiled_shape`, the loop
+    keeps a tenth of it and adds no gain)."""
     new, partners = _ridge(current, after)
     if not new or not partners:
         return undetermined(current, after)

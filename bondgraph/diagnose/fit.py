@@ -34,6 +34,7 @@ from bondgraph.diagnose.inference_calls import (
     make_problem,
     no_process_noise,
     noise_parameters,
+    one_step_errors,
     plan_noise,
     robust_std,
     run_ukf,
@@ -44,6 +45,7 @@ from bondgraph.diagnose.residuals import analyze
 from bondgraph.diagnose.result import FitSummary
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import BondGraphError, NumericalError
+from bondgraph.inference.discretise import SUBSTEPS
 from bondgraph.core.equations import derive
 from bondgraph.numerics.admissible import Admissibility, check_admissible, without_inherited
 from bondgraph.numerics.model import Model
@@ -1210,3 +1212,27 @@ def parameter_std(ctx: Context, fit: Fit) -> dict:
     except Exception as exc:
         ctx.log(f"  Cramér-Rao bounds unavailable ({str(exc).splitlines()[0]})")
         return {}
+
+
+#: the substeps :func:`recommended_substeps` tries: those of the first
+#: choice (:data:`bondgraph.inference.discretise.SUBSTEPS`, steps of 1.5 and
+#: 2), then 24 and 32 (one step per sample of ROS2 at 0.3 noise stds on the
+#: coast-down record needs 3 substeps, 0.088 σ, where the powers of two took
+#: 4: a quarter of every later filter run saved)
+SUBSTEP_LADDER = tuple(n for n in SUBSTEPS if n > 1) + (24, 32)
+
+
+def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[float, int | None]:
+    """``(worst, n)``: the filter's largest one-step discretisation error at
+    ``fit`` in noise stds per sample (:func:`~bondgraph.diagnose.fit.error_scale`),
+    and the fewest substeps of :data:`SUBSTEP_LADDER` (above the current
+    ones) that bring it to ``limit`` or below (None if the error is already
+    below, or none does)."""
+    pb = problem_for(ctx, fit.model)
+    sig, ref = error_scale(pb, fit), {}      # one fine reference for every substeps tried
+    worst = float(one_step_errors(pb, fit.theta, [pb.disc.substeps], sig, ref)[0])
+    if not worst > limit:
+        return worst, None
+    more = [n for n in SUBSTEP_LADDER if n > pb.disc.substeps]
+    errs = one_step_errors(pb, fit.theta, more, sig, ref) if more else []
+    return worst, next((n for n, e in zip(more, errs) if e <= limit), None)

@@ -46,11 +46,11 @@ from bondgraph.diagnose.fit import (
     robust_std_of,
     planned_noise,
     problem_for,
+    recommended_substeps,
 )
 from bondgraph.diagnose.inference_calls import (
     choose_discretisation,
     make_executor,
-    one_step_errors,
     output_error,
 )
 from bondgraph.diagnose.metric import metric_name
@@ -847,30 +847,6 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
     return [msg]
 
 
-#: the substeps :func:`recommended_substeps` tries: those of the first
-#: choice (:data:`bondgraph.inference.discretise.SUBSTEPS`, steps of 1.5 and
-#: 2), then 24 and 32 (one step per sample of ROS2 at 0.3 noise stds on the
-#: coast-down record needs 3 substeps, 0.088 σ, where the powers of two took
-#: 4: a quarter of every later filter run saved)
-SUBSTEP_LADDER = tuple(n for n in SUBSTEPS if n > 1) + (24, 32)
-
-
-def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[float, int | None]:
-    """``(worst, n)``: the filter's largest one-step discretisation error at
-    ``fit`` in noise stds per sample (:func:`~bondgraph.diagnose.fit.error_scale`),
-    and the fewest substeps of :data:`SUBSTEP_LADDER` (above the current
-    ones) that bring it to ``limit`` or below (None if the error is already
-    below, or none does)."""
-    pb = problem_for(ctx, fit.model)
-    sig, ref = error_scale(pb, fit), {}      # one fine reference for every substeps tried
-    worst = float(one_step_errors(pb, fit.theta, [pb.disc.substeps], sig, ref)[0])
-    if not worst > limit:
-        return worst, None
-    more = [n for n in SUBSTEP_LADDER if n > pb.disc.substeps]
-    errs = one_step_errors(pb, fit.theta, more, sig, ref) if more else []
-    return worst, next((n for n, e in zip(more, errs) if e <= limit), None)
-
-
 def fit_after_discretisation_check(ctx: Context, result: LoopResult, fit: Fit, label: str,
                                    judged: tuple | None = None) -> Fit | None:
     """The discretisation check at an accepted fit: an added effect can make
@@ -1089,7 +1065,7 @@ def accepted_pair(ctx: Context, result: LoopResult, current: Fit, scales: Scales
     done = [(pair, conf) for pair, conf in zip(pairs, refits) if conf is not None]
     for (a, b), conf in done:
         ctx.log(f"  confirmed pair {a.label} + {b.label}: LR "
-                f"{2 * (current.nll - conf.fit.nll):.1f} (k {len(conf.new_params)}, "
+                f"{2 * (current.nll - conf.fit.nll):.1f} (k {conf.dof}, "
                 f"{'converged' if conf.comparable else 'NOT converged'})")
     for pair, conf in rank_pairs(done):
         after = accepted_pair_fit(ctx, result, current, pair, conf, step)
@@ -1122,7 +1098,7 @@ def pair_before_single(ctx: Context, result: LoopResult, current: Fit, single: t
     scales, tag = pairing
     lead, lead_conf = single
     pool = [(c, r) for c, r in confirmed if r.comparable and np.isfinite(r.fit.nll)
-            and chi2.sf(2.0 * (current.nll - r.fit.nll), max(len(r.new_params), 1))
+            and chi2.sf(2.0 * (current.nll - r.fit.nll), max(r.dof, 1))
             < ctx.settings.accept.significance
             and not str((c.confirmed or {}).get("reason") or "").startswith(_UNUSABLE)]
     pool = sorted(pool, key=lambda z: z[1].fit.nll)[:PAIR_TOP]
@@ -1141,7 +1117,7 @@ def pair_before_single(ctx: Context, result: LoopResult, current: Fit, single: t
     for pair, conf in rank_pairs([(p, r) for p, r in zip(pairs, refits) if r is not None]):
         d, reason = pair_against_single(ctx, current, single, pair, conf)
         ctx.log(f"  pair {pair[0].label} + {pair[1].label}: LR "
-                f"{2 * (current.nll - conf.fit.nll):.1f} (k {len(conf.new_params)}), "
+                f"{2 * (current.nll - conf.fit.nll):.1f} (k {conf.dof}), "
                 + (f"not preferred: {reason}" if reason else "beats the single"))
         if not reason:
             return committed_pair(ctx, result, current, pair, conf, d, step)
@@ -1171,13 +1147,13 @@ def pair_against_single(ctx: Context, current: Fit, single: tuple, pair: tuple,
         return d, reason
     if lead in pair:
         d2 = decide(lead_conf.fit, conf.fit, ctx.settings.accept,
-                    dof=len(conf.new_params) - len(lead_conf.new_params),
+                    dof=conf.dof - lead_conf.dof,
                     comparable=conf.comparable)
         return d, (None if d2.accepted else f"added to {lead.label} alone: {d2.reason}")
     if not conf.fit.accept_metric <= lead_conf.fit.accept_metric:
         return d, (f"its error {conf.fit.accept_metric:.4g} is above {lead.label}'s alone "
                    f"({lead_conf.fit.accept_metric:.4g})")
-    if not conf.fit.nll + len(conf.new_params) < lead_conf.fit.nll + len(lead_conf.new_params):
+    if not conf.fit.nll + conf.dof < lead_conf.fit.nll + lead_conf.dof:
         return d, f"its penalised likelihood is not better than {lead.label}'s alone"
     return d, None
 
@@ -1300,7 +1276,7 @@ def rank_pairs(refits: list[tuple[tuple, Confirmation]]) -> list[tuple[tuple, Co
     current fit, Akaike's penalty, as :func:`rank_confirmed` orders
     singles)."""
     return sorted(refits, key=lambda z: (not z[1].comparable,
-                                         z[1].fit.nll + len(z[1].new_params)))
+                                         z[1].fit.nll + z[1].dof))
 
 
 def pair_refits(ctx: Context, current: Fit, pairs: list[tuple], scales: Scales,
@@ -1423,7 +1399,7 @@ def _two_steps(ctx: Context, first: tuple, second: Candidate, eff, tag: str):
             e.pname(c.target, p.name))]) for p in e.params if e.pname(c.target, p.name)
             in f.model.params})
     return Confirmation(f, values, list(one.new_params) + list(conf.new_params),
-                        comparable=conf.comparable)
+                        conf.comparable, {**one.shape, **conf.shape})
 
 
 def _confirm_pair_task(ctx: Context, shared, pair: tuple) -> Confirmation | None:
@@ -1464,12 +1440,12 @@ def judged_pair(ctx: Context, current: Fit, pair: tuple, conf: Confirmation):
     """
     s = ctx.settings
     after = conf.fit
-    d = decided(ctx, current, after, len(conf.new_params), conf.comparable,
+    d = decided(ctx, current, after, conf.dof, conf.comparable,
                 " + ".join(c.label for c in pair), pair)
     singles = [ctx.cache.get(("confirmation", id(current), current.nll, c.label)) for c in pair]
     reason = d.reason or pair_member_boxed(after, conf.new_params) or pair_needed(
         after, [None if r is None else r.fit for r in singles],
-        [0 if r is None else len(r.new_params) for r in singles], s.accept.significance)
+        [0 if r is None else r.dof for r in singles], s.accept.significance)
     return d, reason
 
 
@@ -1484,7 +1460,7 @@ def committed_pair(ctx: Context, result: LoopResult, current: Fit, pair: tuple,
     a, b = pair
     label = f"{a.label} + {b.label}"
     after = fit_after_discretisation_check(ctx, result, conf.fit, label,
-                                           (current, len(conf.new_params), conf.comparable,
+                                           (current, conf.dof, conf.comparable,
                                             pair))
     if after is None:
         result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: refitted at "
@@ -1694,7 +1670,7 @@ def merged_confirmations(ctx: Context, confirmed: list) -> list:
     record cannot tell from the lead marked and logged
     (:func:`~bondgraph.diagnose.accept.mark_ties`)."""
     ranked = rank_confirmed([(c.confirmed_statistic - 2 * c.dof, c, r) for c, r in confirmed])
-    tied = mark_ties([(c, r.fit, len(r.new_params)) for _, c, r in ranked],
+    tied = mark_ties([(c, r.fit, r.dof) for _, c, r in ranked],
                      ctx.settings.accept.tie_level)
     if tied:
         ctx.log(f"  the record cannot tell {ranked[0][1].label} from {', '.join(tied)} "
@@ -1791,7 +1767,7 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
         if r is None:
             continue
         c.confirmed_statistic = max(0.0, 2 * (current.nll - r.fit.nll))
-        c.confirmed = confirmed_record(current, r.fit, len(r.new_params), r.values,
+        c.confirmed = confirmed_record(current, r.fit, r.dof, r.values,
                                          ctx.settings.accept)
         c.confirmed["comparable"] = r.comparable
         confirmed.append((c, r))
@@ -1992,10 +1968,10 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
     for c, conf in confirmed:
         names = list(current.params) + conf.new_params
         after = conf.fit
-        d = decided(ctx, current, after, len(conf.new_params), conf.comparable, c.label, [c])
+        d = decided(ctx, current, after, conf.dof, conf.comparable, c.label, [c])
         tie = {k: v for k, v in (c.confirmed or {}).items()
                if k in ("tie_z", "tie_p", "comparable")}
-        c.confirmed = {**confirmed_record(current, after, len(conf.new_params), conf.values,
+        c.confirmed = {**confirmed_record(current, after, conf.dof, conf.values,
                                           s.accept, d), **tie}
         if d.accepted and pairing is not None:
             better = pair_before_single(ctx, result, current, (c, conf), confirmed, pairing,
@@ -2004,7 +1980,7 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
                 return better
         if d.accepted:
             after = fit_after_discretisation_check(ctx, result, after, c.label,
-                                                   (current, len(conf.new_params),
+                                                   (current, conf.dof,
                                                     conf.comparable, [c]))
             if after is None:
                 result.rejected.append(Rejection(step, c, "refitted at the finer step it no "

@@ -128,6 +128,12 @@ class EffectParam:
     #: the record asks for something beyond the effect's family), and the
     #: accept rule refuses it (:func:`bondgraph.diagnose.accept.decide`)
     interior: bool = False
+    #: factors of the data-driven shape value (``shape_values``) that a
+    #: confirmation refit tries beside it, for a fixed shape constant whose
+    #: value the record can tell (a tanh width of a sign function); the
+    #: width kept is counted as one more parameter of the effect
+    #: (:func:`bondgraph.diagnose.confirm.profiled_shape`)
+    profile: tuple[float, ...] = ()
 
 
 # ------------------------------------------------------------------ helpers

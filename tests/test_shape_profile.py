@@ -1,0 +1,111 @@
+"""A confirmation profiles the tanh width of a friction law's sign function
+(diagnose.confirm.profiled_shape): the width is a smoothing, not physics,
+and a record with many reversals can tell it. Too wide a width left a
+user's geared DC motor with a misfit at every reversal that the loop's next
+steps absorbed with a spurious speed-sensor gain. The kept width counts as
+one more degree of freedom.
+
+Record: a rotor J dω/dt = T − b ω − Fc tanh(ω/ε) on a multisine torque held
+over each sample, integrated by scipy (LSODA, rtol 1e-9), speed measured
+with noise 0.02 rad/s; the graph declares J and b only."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from bondgraph import BondGraph
+from bondgraph.data.records import Experiment
+from bondgraph.diagnose.confirm import confirm, confirm_pair
+from bondgraph.diagnose.effects import Target, get_effect
+from bondgraph.diagnose.fit import Context, fit_model, model_of
+from bondgraph.diagnose.result import Candidate
+from bondgraph.diagnose.scales import operating_scales
+from bondgraph.diagnose.settings import LoopSettings
+
+J, B, FC, NOISE, DT = 0.5, 0.1, 0.4, 0.02, 0.01
+
+
+def rotor() -> BondGraph:
+    g = BondGraph("rotor", "a rotor on a viscous bearing driven by a torque")
+    j = g.param("J", 0.4, "kg*m**2", (0.05, 5.0), "inertia")
+    b = g.param("b", 0.2, "N*m*s/rad", (0.001, 2.0), "viscous friction")
+    T = g.input("T", "N*m", 0.0, "torque")
+    w = g.one("w", domain="rotation")
+    g.connect(g.Se("motor", T), w)
+    g.connect(w, g.I("inertia", j))
+    g.connect(w, g.R("bearing", b))
+    g.sensor("w", w.f, unit="rad/s", noise_std=NOISE)
+    return g
+
+
+def torque(t):
+    return sum(a * np.sin(2 * np.pi * f * t + p)
+               for a, f, p in ((1.0, 0.13, 0.0), (0.6, 0.31, 1.0), (0.4, 0.77, 2.0)))
+
+
+def record(eps: float, n: int = 2000) -> Experiment:
+    """The rotor with Coulomb friction of tanh width ``eps`` [rad/s], the
+    torque held over each sample (the record's zero-order hold is exact)."""
+    rng = np.random.default_rng(3)
+    t = np.arange(n) * DT
+
+    def f(tt, x):
+        u = torque(np.floor(tt / DT + 1e-9) * DT)
+        return [(u - B * x[0] - FC * np.tanh(x[0] / eps)) / J]
+
+    X = solve_ivp(f, (0, t[-1]), [0.0], t_eval=t, method="LSODA", rtol=1e-9, atol=1e-12,
+                  max_step=DT / 4).y.T
+    y = X + NOISE * rng.standard_normal((n, 1))
+    return Experiment.from_arrays(t, model=model_of(rotor()), u=torque(t)[:, None], y=y,
+                                  name="rotor", noise_std={"w": NOISE})
+
+
+def confirmed(eps: float):
+    g = rotor()
+    ctx = Context.on(record(eps), LoopSettings(params=["J", "b"]), model_of(g),
+                     lambda s: None, False)
+    current = fit_model(ctx, g, ["J", "b"], None, "declared")
+    scales = operating_scales(ctx, current)
+    cand = Candidate("coulomb", "", Target("junction", "w"), "score", 500.0, 1, 0.0, 498.0,
+                     values={"Fc": 0.2})
+    width = get_effect("coulomb").shape_values(g, cand.target, scales)["eps"]
+    return ctx, current, scales, cand, width, confirm(ctx, current, cand, scales, "alone")
+
+
+@pytest.fixture(scope="module")
+def sharp():
+    """The truth's width 0.002 rad/s, a tenth of the data-driven one."""
+    return confirmed(0.002)
+
+
+def test_a_sharper_reversal_than_the_default_width_is_kept_and_counted(sharp):
+    _, current, _, _, width, conf = sharp
+    assert 0.02 < width < 0.03             # 2 % of the RMS speed (about 1.2 rad/s)
+    kept = conf.shape["coulomb.w.eps"]
+    assert kept == pytest.approx(conf.values["eps"])
+    assert kept in (pytest.approx(0.3 * width), pytest.approx(0.1 * width))
+    assert conf.dof == 2 and conf.new_params == ["coulomb.w.Fc"] and conf.comparable
+    # the graph the refit judged carries the width
+    assert float(conf.fit.graph.params["coulomb.w.eps"].default) == pytest.approx(kept)
+    est, std = conf.fit.estimates(), conf.fit.std
+    for name, truth in (("coulomb.w.Fc", FC), ("J", J), ("b", B)):
+        assert abs(est[name] - truth) < 3 * std[name], name
+    assert current.nll - conf.fit.nll > 1000
+
+
+def test_a_pair_keeps_a_members_width_and_counts_it(sharp):
+    ctx, current, scales, cand, _, conf = sharp
+    cand.confirmed = {"values": dict(conf.values)}
+    offset = Candidate("sensor_offset", "", Target("sensor", "w"), "score", 5.0, 1, 0.02, 3.0,
+                       values={"b": 0.0})
+    pair = confirm_pair(ctx, current, (cand, offset), scales, "pair")
+    assert pair.shape == {"coulomb.w.eps": pytest.approx(conf.shape["coulomb.w.eps"])}
+    assert pair.dof == 3
+
+
+def test_a_softer_reversal_keeps_the_data_driven_width():
+    _, _, _, _, width, conf = confirmed(0.05)
+    assert conf.shape == {} and conf.dof == 1
+    assert conf.values["eps"] == pytest.approx(width)
