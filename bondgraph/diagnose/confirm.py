@@ -148,52 +148,12 @@ def profiled_shape(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales:
     shaped = [p for p in eff.params if p.profile and p.name in conf.values]
     if not shaped or not conf.comparable or not np.isfinite(conf.fit.nll):
         return conf
-    base = eff.shape_values(fit.graph, cand.target, scales)
-    factors = sorted({k for p in shaped for k in p.profile} | {1.0}, reverse=True)
     names = list(fit.params) + list(conf.new_params)
-    built = {}
-    for k in factors:
-        g = fit.graph.copy(name)
-        try:
-            vals = {**conf.values, **{p.name: base[p.name] * k for p in shaped}}
-            P = eff.apply(g, cand.target, start_values(eff, cand, vals), scales)
-            widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
-                        if not eff.additive else {})
-            built[k] = (g, model_of(g), P)
-        except BondGraphError as exc:
-            ctx.log(f"  {cand.label}: width x{k:g} cannot be built: {str(exc).splitlines()[0]}")
-    # the narrowest law is the stiffest: the widths are compared at the
-    # substeps it needs (at the loop's step a narrow law's likelihood is
-    # its discretisation's, and the width the record asks for loses)
-    sub, n = ctx, None
-    k_min = min(built)
-    try:
-        g, model, _ = built[k_min]
-        at = fit_model(ctx, g, names, conf.fit.estimates(), f"{cand.label} at x{k_min:g}",
-                       model=model, iterations=0)
-        n = recommended_substeps(ctx, at)[1]
-    except BondGraphError:
-        pass
-    if n is not None:
-        sub = replace(ctx, problem=ctx.problem.conditioned_on(
-            disc=replace(ctx.problem.disc, substeps=n)), cache={})
-    fits, tried = {}, []
-    for k, (g, model, P) in built.items():
-        if k == 1.0 and sub is ctx:
-            fits[k] = conf.fit
-        else:
-            try:
-                f = fit_model(sub, g, names, conf.fit.estimates(),
-                              f"confirming {cand.label} at x{k:g} width", model=model,
-                              iterations=ctx.settings.search.confirm_iterations,
-                              tolerance=ctx.settings.search.confirm_tolerance)
-                fits[k] = continued(sub, g, f, cand.label)
-            except BondGraphError as exc:
-                tried.append(f"x{k:g} failed ({str(exc).splitlines()[0]})")
-                continue
-        f = fits[k]
-        tried.append(f"x{k:g} NLL {f.nll:.2f}" + ("" if f.converged is not False
-                                                  else " (not converged)"))
+    built = _width_models(ctx, fit, cand, eff, scales, name, conf, shaped)
+    if 1.0 not in built or len(built) < 2:
+        return conf
+    sub, n = _profile_context(ctx, built, names, conf, cand.label)
+    fits, tried = _width_refits(ctx, sub, built, names, conf, cand.label)
     ok = {k: f for k, f in fits.items() if f.converged is not False and np.isfinite(f.nll)}
     step = "" if n is None else f" at {n} substeps"
     if 1.0 not in ok or len(ok) < 2:
@@ -207,10 +167,18 @@ def profiled_shape(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales:
             f"({'; '.join(tried)}): "
             + (f"x{k_best:g} kept (LR {lr:.1f} on 1 degree of freedom)" if keep
                else "the data-driven value kept"))
-    if not keep:
-        return conf
-    g, model, P = built[k_best]
-    f = ok[k_best]
+    return _kept(ctx, sub, built[k_best], ok[k_best], names, conf, cand, eff, shaped,
+                 k_best) if keep else conf
+
+
+def _kept(ctx: Context, sub: Context, model_at: tuple, f: Fit, names: list,
+          conf: Confirmation, cand: Candidate, eff: Effect, shaped: list,
+          k_best: float) -> Confirmation:
+    """The confirmation at the kept width ``k_best`` (``model_at`` its
+    (graph, model, P), ``f`` its refit in ``sub``), refitted at the loop's
+    own step when ``sub`` had a finer one (where the other candidates are
+    judged); ``conf`` when that refit fails."""
+    g, model, P = model_at
     if sub is not ctx:      # back at the loop's step, where the others are judged
         try:
             f = continued(ctx, g, fit_model(
@@ -225,6 +193,76 @@ def profiled_shape(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales:
               for p in eff.params if p.name in P}
     return Confirmation(f, values, list(conf.new_params), f.converged is not False,
                         {P[p.name].name: values[p.name] for p in shaped})
+
+
+def _width_models(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales,
+                  name: str, conf: Confirmation, shaped: list) -> dict:
+    """The augmented graph, its model and its applied parameters at each
+    width factor of ``shaped`` (factor -> (graph, model, P)), started from
+    ``conf``'s values; a factor whose graph cannot be built is logged and
+    left out."""
+    base = eff.shape_values(fit.graph, cand.target, scales)
+    factors = sorted({k for p in shaped for k in p.profile} | {1.0}, reverse=True)
+    built = {}
+    for k in factors:
+        g = fit.graph.copy(name)
+        try:
+            vals = {**conf.values, **{p.name: base[p.name] * k for p in shaped}}
+            P = eff.apply(g, cand.target, start_values(eff, cand, vals), scales)
+            widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
+                        if not eff.additive else {})
+            built[k] = (g, model_of(g), P)
+        except BondGraphError as exc:
+            ctx.log(f"  {cand.label}: width x{k:g} cannot be built: {str(exc).splitlines()[0]}")
+    return built
+
+
+def _profile_context(ctx: Context, built: dict, names: list, conf: Confirmation,
+                     label: str) -> tuple:
+    """``(context, substeps)``: the loop's context with the substeps the
+    narrowest law needs at ``conf``'s estimates (its discretisation check,
+    :func:`~bondgraph.diagnose.fit.recommended_substeps`), or ``(ctx, None)``
+    when the loop's own suffice. The narrowest law is the stiffest: at the
+    loop's step its likelihood is its discretisation's, and the width the
+    record asks for loses."""
+    k_min = min(built)
+    g, model, _ = built[k_min]
+    try:
+        at = fit_model(ctx, g, names, conf.fit.estimates(), f"{label} at x{k_min:g}",
+                       model=model, iterations=0)
+        n = recommended_substeps(ctx, at)[1]
+    except BondGraphError:
+        n = None
+    if n is None:
+        return ctx, None
+    return replace(ctx, problem=ctx.problem.conditioned_on(
+        disc=replace(ctx.problem.disc, substeps=n)), cache={}), n
+
+
+def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Confirmation,
+                  label: str) -> tuple[dict, list]:
+    """Every parameter refitted in ``sub`` at each width of ``built``, from
+    ``conf``'s estimates and continued until converged (``conf`` itself at
+    the data-driven width when ``sub`` is the loop's context): factor ->
+    Fit, and one text per width for the log."""
+    fits, tried = {}, []
+    for k, (g, model, _) in built.items():
+        if k == 1.0 and sub is ctx:
+            fits[k] = conf.fit
+        else:
+            try:
+                f = fit_model(sub, g, names, conf.fit.estimates(),
+                              f"confirming {label} at x{k:g} width", model=model,
+                              iterations=ctx.settings.search.confirm_iterations,
+                              tolerance=ctx.settings.search.confirm_tolerance)
+                fits[k] = continued(sub, g, f, label)
+            except BondGraphError as exc:
+                tried.append(f"x{k:g} failed ({str(exc).splitlines()[0]})")
+                continue
+        f = fits[k]
+        tried.append(f"x{k:g} NLL {f.nll:.2f}" + ("" if f.converged is not False
+                                                  else " (not converged)"))
+    return fits, tried
 
 
 def chosen_refit(ctx: Context, graph, fits: list[Fit], label: str) -> Fit:
