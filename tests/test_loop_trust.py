@@ -607,3 +607,50 @@ def test_the_gain_beyond_a_box_reads_as_a_gain(monkeypatch, gain, clause):
     else:
         assert text == (" (beyond the box the likelihood gains nothing: the refit with the box "
                         "opened " + clause)
+
+
+def test_a_term_that_makes_a_bearing_a_source_at_low_speed_is_named():
+    """A rotor bearing b·ω + β·ω/(ω² + ε²)^¼ with β < 0 (a square-root term
+    the loop refitted beside a viscous friction on a user's geared motor):
+    the power into it, b ω² − |β| |ω|^1.5 (ε ≪ ω), is negative for
+    |ω| < (|β|/b)² = 4.6 rad/s, most negative at √ω = 0.75 |β|/b
+    (ω = 2.59 rad/s, −2.23e-4 W), while the widened range's largest power is
+    1.86 W (ω = 150 rad/s): 1.2e-4 of it, within the global tolerance. The
+    bearing's terms say it produces power there, and it is named."""
+    from bondgraph.numerics import admissible
+
+    b, beta, eps, J = 1e-4, -2.1448e-4, 0.01, 1e-3
+
+    def graph(beta):
+        g = BondGraph("bearing", "a rotor on a bearing")
+        bb = g.param("b", b, "N*m*s/rad", (1e-6, 1.0))
+        be = g.param("beta", beta, "N*m*(s/rad)**0.5", (-1.0, 1.0))
+        jj = g.param("J", J, "kg*m**2", (1e-5, 1.0))
+        w = g.one("w", domain="rotation")
+        g.connect(w, g.I("rotor", jj))
+        g.connect(w, g.R("bearing", effort=lambda f: bb * f + be * f / (f**2 + eps**2) ** 0.25))
+        g.sensor("w", w.f, unit="rad/s", noise_std=0.1)
+        return g, {"b": b, "beta": beta, "J": J}
+
+    omega = np.linspace(-100.0, 100.0, 201)
+    x = (J * omega)[:, None]                      # p = J ω
+    no_u = np.zeros((omega.size, 0))
+    g, th = graph(beta)
+    ss = derive(g)
+    r = check_admissible(g, ss, th, x, no_u)
+    (v,) = r.violations
+    assert (v.element, v.kind, v.what, v.variable) == ("bearing", "R", "produces power", "flow")
+    w0 = (0.75 * abs(beta) / b) ** 2
+    assert abs(abs(v.at) - w0) < 0.75                   # the grid's spacing: 300/400
+    assert v.value == pytest.approx(v.at * (b * v.at + beta * v.at / (v.at**2 + eps**2) ** 0.25),
+                                    rel=1e-9)
+    p0 = b * w0**2 - abs(beta) * w0**1.5
+    assert p0 == pytest.approx(-2.23e-4, rel=0.01) and v.value == pytest.approx(p0, rel=0.05)
+    top = 100.0 + MARGIN * 200.0                  # the range [-100, 100] widened by its span
+    p_top = top * (b * top + beta * top / (top**2 + eps**2) ** 0.25)
+    assert abs(p0) / p_top < admissible.TOLERANCE         # the global test alone passes
+    # a positive β dissipates everywhere; so does a viscous friction alone
+    g, th = graph(-beta)
+    assert check_admissible(g, derive(g), th, x, no_u).ok
+    g, th = graph(0.0)
+    assert check_admissible(g, derive(g), th, x, no_u).ok

@@ -55,8 +55,15 @@ GRID_POINTS = 401
 #: a power or stiffness below −TOLERANCE × (its largest magnitude on the
 #: range) is a violation; above it, the tails of the library's smooth laws
 #: (a softplus overflow's flow at a negative effort, a smoothed sign) and
-#: rounding
+#: rounding. An R field's power is also a violation where it is below
+#: −TOLERANCE × the gross power of its terms there (Σ |x·termᵢ(x)|: a term
+#: that produces power outweighs the ones that dissipate) and below
+#: −FLOOR × its largest magnitude (:func:`_r_worst`)
 TOLERANCE = 1e-3
+#: the smallest power, as a fraction of the largest on the range, that the
+#: local (gross-power) test counts: below it, rounding of terms that vanish
+#: together at x = 0
+FLOOR = 1e-9
 
 
 @dataclass(frozen=True)
@@ -287,6 +294,30 @@ def _worst(values: np.ndarray, where: np.ndarray) -> tuple[int, bool]:
     return i, bool(vals[i] < -TOLERANCE * scale)
 
 
+def _r_worst(power: np.ndarray, gross: np.ndarray) -> tuple[int, bool]:
+    """Index of the worst point of an R field's ``power`` (e·f summed over
+    its laws) and whether it is a violation: below −TOLERANCE × the largest
+    magnitude on the range (:func:`_worst`), or below −TOLERANCE × the
+    ``gross`` power there (the sum of its terms' |x·termᵢ(x)|) and below
+    −FLOOR × the largest magnitude. The second test sees a term that
+    produces power where the others are small: on a user's geared motor a
+    square-root term β·sgn(ω)√|ω| with β < 0 beside the rotor's viscous
+    friction b·ω made the bearing a source for |ω| < 4.6 rad/s, −3e-4 W
+    where the range's largest power is 1 W: within the global tolerance,
+    yet a law in the second and fourth quadrants there (KMR §4.1)."""
+    ok = np.isfinite(power) & np.isfinite(gross)
+    if not np.any(ok):
+        return 0, False
+    i, bad = _worst(power, power)
+    if bad:
+        return i, True
+    scale = float(np.max(np.abs(power[ok])))
+    local = ok & (power < -TOLERANCE * gross) & (power < -FLOOR * scale)
+    if not np.any(local):
+        return i, False
+    return int(np.argmin(np.where(local, power, np.inf))), True
+
+
 def _parallel_groups(graph: BondGraph, resistors: list) -> list[tuple[str, list]]:
     """The R elements whose laws are checked together: those on one
     1-junction written as effort laws (they share its flow: their efforts
@@ -316,11 +347,14 @@ def _check_r(env: _Env, junction: str, els: list, margin: float, out: Admissibil
     variable = "flow" if el0.form == "effort" else "effort"
     names = " + ".join(e.name for e in els)
     X = sp.Dummy("x")
-    total = sp.Integer(0)
+    total, terms = sp.Integer(0), []
     for el in els:
         port_var = el.f if el.form == "effort" else el.e
-        total += el.port.bond.sign_at(el) * el.law.xreplace({port_var: X})
+        law = el.port.bond.sign_at(el) * el.law.xreplace({port_var: X})
+        total += law
+        terms += list(sp.Add.make_args(sp.expand_mul(law)))
     power = sp.sympify(X * total)
+    gross = sp.Add(*[sp.Abs(X * t) for t in terms])
     others = [s for s in power.free_symbols if s != X and s not in env.params]
     b = el0.port.bond
     solved = env.ss.variable(b.f if el0.form == "effort" else b.e)
@@ -333,11 +367,14 @@ def _check_r(env: _Env, junction: str, els: list, margin: float, out: Admissibil
         grid = np.concatenate([xs, xs * (1.0 + margin)])
         p = np.concatenate([env.evaluate(power, at={X: xs}),
                             env.evaluate(power, at={X: xs * (1.0 + margin)})])
+        g = np.concatenate([env.evaluate(gross, at={X: xs}),
+                            env.evaluate(gross, at={X: xs * (1.0 + margin)})])
     else:
         grid = _widened(xs, margin)
         p = np.broadcast_to(env.evaluate(power, at={X: grid}), grid.shape)
+        g = np.broadcast_to(env.evaluate(gross, at={X: grid}), grid.shape)
     out.checked.extend(e.name for e in els)
-    i, bad = _worst(p, grid)
+    i, bad = _r_worst(p, g)
     if bad:
         where = f" (in parallel on junction '{junction}')" if len(els) > 1 else ""
         out.violations.append(Violation(names + where, "R", "produces power", variable,
