@@ -198,12 +198,15 @@ def _kept(ctx: Context, sub: Context, model_at: tuple, f: Fit, names: list,
 def _width_models(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales,
                   name: str, conf: Confirmation, shaped: list) -> dict:
     """The augmented graph, its model and its applied parameters at each
-    width factor of ``shaped`` (factor -> (graph, model, P)), started from
-    ``conf``'s values; a factor whose graph cannot be built is logged and
-    left out."""
+    width factor of ``shaped`` (factor -> (graph, model, P)): ``conf``'s own
+    at 1, the others started from ``conf``'s values; a factor whose graph
+    cannot be built is logged and left out."""
     base = eff.shape_values(fit.graph, cand.target, scales)
-    factors = sorted({k for p in shaped for k in p.profile} | {1.0}, reverse=True)
-    built = {}
+    factors = sorted({k for p in shaped for k in p.profile}, reverse=True)
+    g1 = conf.fit.graph         # the data-driven width: the confirmation's own model
+    built = {1.0: (g1, conf.fit.model, {p.name: g1.params[eff.pname(cand.target, p.name)]
+                                        for p in eff.params
+                                        if eff.pname(cand.target, p.name) in g1.params})}
     for k in factors:
         g = fit.graph.copy(name)
         try:
