@@ -846,10 +846,17 @@ def error_scale(problem: Problem, fit: Fit) -> np.ndarray:
     S = getattr(fit.ukf, "S", None)
     if S is None:
         return sig
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
+    with np.errstate(all="ignore"):
         d = np.sqrt(np.diagonal(np.asarray(S)[:, 0], axis1=-2, axis2=-1))
-        innov = np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=0)
+    ok = np.isfinite(d)
+    innov = np.full(d.shape[-1], np.nan)
+    # an output the record never has (an all-NaN column) keeps its noise std
+    # without numpy's "All-NaN slice" warning: a filter of warnings is
+    # process-wide and another task thread may restore it meanwhile
+    # (:func:`bondgraph.diagnose.parallel.local_map`)
+    cols = ok.any(axis=0)
+    if cols.any():
+        innov[cols] = np.nanmedian(np.where(ok, d, np.nan)[:, cols], axis=0)
     return np.where(np.isfinite(innov) & (innov > sig), innov, sig)
 
 
