@@ -354,6 +354,30 @@ def test_inputs_at_one_time_equal_the_array_evaluation(hold):
     assert np.array_equal(seg(t[7] + 0.02), [samples[7], 0.7, 0.0])
 
 
+@pytest.mark.parametrize("hold", ["linear", "zoh", "linear,zoh,linear"])
+def test_sampled_inputs_at_one_time_equal_numpy_interp_and_the_held_sample(hold):
+    """Without callables ``InputSignals.at`` is one search and one vector
+    expression (its sample table); its values are bit for bit
+    ``numpy.interp``'s (linear) and the last sample at or before the time
+    (zero-order), on an uneven grid of times with values over ten decades,
+    at the sample times, between them and outside the record."""
+    model = Model.load("toy_cvt")
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(0.01, 0.3, 300))
+    U = rng.standard_normal((t.size, 3)) * 10.0 ** rng.uniform(-5, 5, 3)
+    sig = InputSignals(model, t, U, hold=hold)
+    assert sig._table is not None
+    holds = hold.split(",") * (3 if "," not in hold else 1)
+    for tq in np.concatenate([rng.uniform(t[0] - 1, t[-1] + 1, 3000), t, [t[0] - 1, t[-1] + 1]]):
+        k = min(max(int(np.searchsorted(t, tq, side="right")) - 1, 0), t.size - 1)
+        ref = [float(np.interp(tq, t, U[:, j])) if h == "linear" else U[k, j]
+               for j, h in enumerate(holds)]
+        assert np.array_equal(sig.at(float(tq)), ref), tq
+    v = sig.at(float(t[3]))
+    v[:] = 0.0                                  # a fresh vector, not the table's row
+    assert np.array_equal(sig.at(float(t[3])), U[3])
+
+
 @pytest.mark.parametrize("method", ["BDF", "RK45"])
 def test_adaptive_solvers_on_the_compiled_point_kernels_equal_numpy(method):
     """``simulate(..., backend="numba")``: the adaptive solvers call the

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import math
 import time
+from bisect import bisect_right
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
@@ -176,6 +177,7 @@ class InputSignals:
             i, j = bad[0]
             raise DataError(f"input '{model.inputs[j]}' is {float(self.samples[i, j])!r} at sample {i} "
                             f"(t = {float(t[i])!r}); inputs must be finite")
+        self._table = self._sample_table()
 
     def _base_names(self) -> list[str]:
         """Inputs that are not ``der(.)`` inputs."""
@@ -329,9 +331,39 @@ class InputSignals:
         return lambda tq: float(vals[min(max(int(np.searchsorted(t, tq, side="right")) - 1, 0),
                                          last)])
 
+    def _sample_table(self) -> tuple | None:
+        """``(t list, samples (N, n_u), slopes (N-1, n_u))`` when every input
+        is a constant or a sampled array (no callable): :meth:`at` is then
+        one search and one vector expression. A linearly held column's slope
+        is numpy.interp's, (u[k+1] - u[k]) / (t[k+1] - t[k]); a column held
+        zero-order or constant has slope 0, so that ``slopes[k] * (tq - t[k])
+        + samples[k]`` is, column by column, the value of numpy.interp and of
+        the zero-order hold's search (the same floating-point operations).
+        None where some input is a callable."""
+        n_u = self.samples.shape[1]
+        if len(self._array_cols) + len(self._const_cols) != n_u or self.t.size < 2:
+            return None
+        slopes = np.zeros((self.t.size - 1, n_u))
+        lin = [j for j in self._array_cols if self.holds[j] == "linear"]
+        if lin:
+            s = self.samples[:, lin]
+            slopes[:, lin] = (s[1:] - s[:-1]) / np.diff(self.t)[:, None]
+            if not np.all(np.isfinite(slopes)):   # overflow: numpy.interp's own path
+                return None
+        return self.t.tolist(), self.samples, slopes
+
     def at(self, tq: float) -> np.ndarray:
         """Input vector (n_u,) at time ``tq``."""
-        return np.array([fn(tq) for fn in self._scalar])
+        table = self._table
+        if table is None:
+            return np.array([fn(tq) for fn in self._scalar])
+        tl, samples, slopes = table
+        k = bisect_right(tl, tq) - 1
+        if k < 0:
+            return samples[0].copy()
+        if k >= len(tl) - 1:
+            return samples[-1].copy()
+        return slopes[k] * (tq - tl[k]) + samples[k]
 
     def segment_input(self, a: int, hold: str) -> Callable[[float], np.ndarray]:
         """Input function of the segment starting at sample ``a``: the
