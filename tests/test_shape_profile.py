@@ -109,3 +109,35 @@ def test_a_softer_reversal_keeps_the_data_driven_width():
     _, _, _, _, width, conf = confirmed(0.05)
     assert conf.shape == {} and conf.dof == 1
     assert conf.values["eps"] == pytest.approx(width)
+
+
+@pytest.mark.parametrize("nlls, refitted", [
+    ((10.0, 12.0, 5.0), [1.0, 0.3]),            # x0.3 did not lower the NLL: x0.1 not refitted
+    ((10.0, 8.0, 9.0), [1.0, 0.3, 0.1]),        # x0.3 lowered it: x0.1 refitted
+    ((10.0, float("nan"), 9.0), [1.0, 0.3, 0.1]),   # a failed x0.3 settles nothing
+])
+def test_narrower_widths_stop_at_the_first_that_does_not_lower_the_nll(monkeypatch, nlls,
+                                                                       refitted):
+    """The widths are refitted from the widest down; once a converged refit
+    does not lower the lowest NLL so far, the narrower ones are not refitted
+    (the refits are stubs that return the given NLL per width)."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import confirm as C
+
+    calls = []
+    per = dict(zip((1.0, 0.3, 0.1), nlls))
+
+    def fake_fit(ctx, g, names, start, what, **kw):
+        calls.append(g)
+        return SimpleNamespace(nll=per[g], converged=True)
+
+    monkeypatch.setattr(C, "fit_model", fake_fit)
+    monkeypatch.setattr(C, "continued", lambda ctx, g, f, label: f)
+    ctx = SimpleNamespace(settings=LoopSettings([]))
+    sub = SimpleNamespace()               # another context: x1 is refitted too
+    built = {k: (k, None, None) for k in (1.0, 0.3, 0.1)}
+    conf = SimpleNamespace(fit=SimpleNamespace(estimates=lambda: {}))
+    fits, tried = C._width_refits(ctx, sub, built, [], conf, "coulomb @ w")
+    assert calls == refitted and list(fits) == refitted
+    assert any("not refitted" in t for t in tried) == (len(refitted) < 3)
