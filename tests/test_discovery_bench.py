@@ -43,9 +43,14 @@ def test_bench_cases_cover_the_acceptance():
     assert db.nrmse({"i": y}, clean) == pytest.approx(case.noise["i"] / np.std(y), rel=0.05)
 
 
+@pytest.mark.long
 def test_fast_case_closes_the_gap_on_the_test_record():
     """thermal_convection_node2 (node 2 loses h·ΔT^(4/3) to the ambient
-    beside its declared linear loss; ~12 s): the loop's final model, judged
+    beside its declared linear loss; 12 s when written, 81-106 s in the
+    suite on a machine 3-5 times slower, so ``pytest -m long``: the loop
+    with discovery accepting a law on a held-out record is in the default
+    run by tests/test_discover_loop.py, the bench's functions by the
+    other tests here): the loop's final model, judged
     on a test record the loop never sees, closes >= 90 % of the gap between
     the declared model's free-run error and the truth's own (the noise
     floor), with at most two effects, simulates and stays passive."""
