@@ -17,12 +17,12 @@ from bondgraph.diagnose.fit import (
     Context,
     Fit,
     bounds_around,
-    clip_into_box,
     criterion_for,
     fit_model,
     model_of,
     problem_for,
     recommended_substeps,
+    start_theta,
 )
 from bondgraph.diagnose.inference_calls import run_ukf
 from bondgraph.diagnose.result import Candidate
@@ -238,12 +238,8 @@ def _profile_context(ctx: Context, built: dict, names: list, conf: Confirmation,
         # the filter's run at conf's estimates is all the check reads (its
         # innovation std): no free runs, no validation record
         pb = problem_for(ctx, model)
-        theta = pb.theta.copy()
-        for k, v in conf.fit.estimates().items():
-            if k in model.params:
-                theta[model.param_index(k)] = v
-        theta = clip_into_box(ctx, model, [p for p in names if p in model.params], theta,
-                              f"{label} at x{k_min:g}")
+        theta = start_theta(ctx, pb, [p for p in names if p in model.params],
+                            conf.fit.estimates(), f"{label} at x{k_min:g}")
         res = run_ukf(pb, theta[None, :], store=True)
         n = (recommended_substeps(ctx, SimpleNamespace(model=model, theta=theta, ukf=res))[1]
              if np.isfinite(res.nll[0]) else None)

@@ -372,6 +372,18 @@ def bounds_around(model: Model, names: Sequence[str], theta: np.ndarray):
     return model.bounds(names)
 
 
+def start_theta(ctx: Context, problem: Problem, params: Sequence[str],
+                start: Mapping[str, float] | None, what: str) -> np.ndarray:
+    """``problem``'s θ (n_theta,) with the values of ``start`` its model has,
+    ``params`` clipped into their declared boxes (:func:`clip_into_box`)."""
+    model = problem.model
+    theta = problem.theta.copy()
+    for k, v in (start or {}).items():
+        if k in model.params:
+            theta[model.param_index(k)] = v
+    return clip_into_box(ctx, model, params, theta, what)
+
+
 def clip_into_box(ctx: Context, model: Model, names: Sequence[str], theta: np.ndarray,
                   what: str) -> np.ndarray:
     """``theta`` (n_theta,) with the values of ``names`` clipped into their
@@ -519,12 +531,8 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     """
     model = model or model_of(graph)
     pb = problem_for(ctx, model)
-    theta = pb.theta.copy()
-    for k, v in (start or {}).items():
-        if k in model.params:
-            theta[model.param_index(k)] = v
     params = [p for p in params if p in model.params]
-    theta = clip_into_box(ctx, model, params, theta, what)
+    theta = start_theta(ctx, pb, params, start, what)
     iters = ctx.settings.search.fit_iterations if iterations is None else int(iterations)
     std: dict = {}
     conv: tuple = (None, None, ())
