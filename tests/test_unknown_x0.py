@@ -7,6 +7,8 @@ the guessed initial level."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import sympy as sp
@@ -429,3 +431,23 @@ def test_a_taken_smoothed_start_with_a_transient_is_refined_on_the_estimation_re
     ctx.settings = SimpleNamespace(validation=None)
     np.testing.assert_array_equal(F.free_run(ctx, pb, None), smoothed)
     assert logs == []
+
+
+def test_startup_transient_of_a_run_that_failed_over_its_head_is_quiet():
+    """A free run with no finite value over the record's first tenth (it
+    failed there) has no start-up transient to judge, and says so without
+    numpy's "Mean of empty slice" warning (it reached a user's terminal
+    from a confirmation's free run on the EMPS record); a finite run is
+    judged by its mean squares as before."""
+    import bondgraph.diagnose.fit as F
+    y = np.sin(np.linspace(0.0, 20.0, 200))[:, None]
+    sim = y.copy()
+    sim[:20] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not F.startup_transient(y, sim)
+        sim = y + 0.1
+        sim[:20] += 0.9 * np.std(y)
+        assert F.startup_transient(y, sim)
+        sim[:20] = y[:20] + 0.1 * 1.9
+        assert not F.startup_transient(y, sim)

@@ -1004,6 +1004,14 @@ START_FIT_NFEV = 30
 START_HEAD, START_RATIO = 0.1, 2.0
 
 
+def _mean_square(e: np.ndarray) -> float:
+    """Mean of ``e``² over its finite entries (NaN when it has none,
+    without numpy's "Mean of empty slice" warning: a free run that failed
+    over a whole part of the record has no error there)."""
+    e = e[np.isfinite(e)]
+    return float(np.mean(e * e)) if e.size else float("nan")
+
+
 def startup_transient(y: np.ndarray, sim: np.ndarray | None) -> bool:
     """Whether the free run ``sim`` (N, n_y) of the record ``y`` (N, n_y;
     NaN where missing) starts with a transient its start caused: its RMS
@@ -1023,7 +1031,7 @@ def startup_transient(y: np.ndarray, sim: np.ndarray | None) -> bool:
     with np.errstate(all="ignore"):
         sd = np.nanstd(y, axis=0)
         e = (sim - y) / np.where(sd > 0, sd, 1.0)
-        head, tail = np.nanmean(e[:h] ** 2), np.nanmean(e[h:] ** 2)
+        head, tail = _mean_square(e[:h]), _mean_square(e[h:])
     if not (np.isfinite(head) and np.isfinite(tail)):
         return False
     return bool(head > START_RATIO ** 2 * tail)
