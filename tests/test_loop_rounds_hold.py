@@ -74,7 +74,7 @@ def test_confirmation_goes_on_in_rounds_until_one_is_accepted(monkeypatch):
         seen.append([c.label for c in batch])
         return [(c, None) for c in batch]
 
-    def fake_accept(ctx, result, current, confirmed, step, pairing=None):
+    def fake_accept(ctx, result, current, confirmed, step, pairing=None, refit=None):
         return "fit-e" if any(c.label == "e" for c, _ in confirmed) else None
 
     monkeypatch.setattr(runner, "confirm_best", fake_confirm)

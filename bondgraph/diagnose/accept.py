@@ -395,6 +395,17 @@ def unidentified_effect(current: Fit, after: Fit) -> str:
             f"them undetermined{why}")
 
 
+def unidentified_new(current: Fit, after: Fit) -> tuple[list[str], list[str]]:
+    """``(new, partners)``: the candidate's new parameters that the refit
+    ``after`` does not identify apart from parameters ``current``
+    identified, and those parameters, when that is why
+    :func:`unidentified_effect` refuses it (two empty lists otherwise)."""
+    new, partners = _ridge(current, after)
+    if not new or not partners or not unidentified_effect(current, after):
+        return [], []
+    return new, partners
+
+
 def _ridge(current: Fit, after: Fit, robust: bool = True) -> tuple[list[str], list[str]]:
     """The candidate's new parameters along a flat direction of ``after``
     and the parameters ``current`` identified that it leaves undetermined
@@ -651,7 +662,7 @@ def accepted_step(cand: Candidate, d: Decision, current: Fit, after: Fit, names:
                 cand.confirmed_statistic or cand.statistic, cand.p_value,
                 current.metric, after.metric, after.validation_metric is not None,
                 d.lr, d.lr_p_value, cand.target.kind, [n for n in names if n not in current.params],
-                list(cand.tied))
+                list(cand.tied), held=dict(cand.held))
 
 
 def applied_effect(eff: Effect, cand: Candidate, after: Fit) -> AppliedEffect:

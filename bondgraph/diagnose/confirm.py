@@ -110,6 +110,63 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
     return profiled_shape(ctx, fit, cand, eff, scales, name, conf)
 
 
+def confirm_held(ctx: Context, fit: Fit, cand: Candidate, conf: Confirmation, scales: Scales,
+                 name: str) -> Confirmation | None:
+    """Refit ``cand`` with its ``held`` parameters (local name -> value)
+    fixed and its other new parameters and every estimated one free, from
+    the estimates of ``conf`` (the candidate's refit with all its
+    parameters, whose flat direction the held ones were), its profiled
+    shape constants back at their data-driven values and profiled again
+    (:func:`profiled_shape`).
+
+    Parameters
+    ----------
+    ctx : Context
+    fit : Fit
+        The current model's fit.
+    cand : Candidate
+        A confirmed candidate with ``held`` set (:attr:`Candidate.held`).
+    conf : Confirmation
+        Its refit with every parameter estimated.
+    scales : Scales
+    name : str
+        Name of the augmented graph.
+
+    Returns
+    -------
+    Confirmation or None
+        None (logged) when the effect cannot be applied or the refit fails.
+    """
+    eff = get_effect(cand.effect, ctx.settings.effects)
+    g = fit.graph.copy(name)
+    base = eff.shape_values(fit.graph, cand.target, scales)
+    vals = {**conf.values, **{p.name: base[p.name] for p in eff.params
+                              if p.profile and p.name in base}}
+    try:
+        P = eff.apply(g, cand.target, start_values(eff, cand, vals), scales)
+    except BondGraphError as exc:
+        ctx.log(f"  cannot apply {cand.label}: {str(exc).splitlines()[0]}")
+        return None
+    new = [P[p.name].name for p in eff.params
+           if p.estimated and p.name in P and p.name not in cand.held]
+    held = {P[k].name for k in cand.held if k in P}
+    widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
+                if not eff.additive else {})
+    start = {k: v for k, v in conf.fit.estimates().items() if k not in held}
+    try:
+        f1 = chosen_refit(ctx, g, [fit_model(
+            ctx, g, list(fit.params) + new, start, f"confirming {cand.label}",
+            iterations=ctx.settings.search.confirm_iterations,
+            tolerance=ctx.settings.search.confirm_tolerance)], cand.label)
+    except BondGraphError as exc:
+        ctx.log(f"  confirmation of {cand.label} failed: {str(exc).splitlines()[0]}")
+        return None
+    values = {p.name: float(f1.theta[f1.model.param_index(P[p.name].name)])
+              for p in eff.params if p.name in P}
+    out = Confirmation(f1, values, new, comparable=f1.converged is not False)
+    return profiled_shape(ctx, fit, cand, eff, scales, name, out)
+
+
 def profiled_shape(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales,
                    name: str, conf: Confirmation) -> Confirmation:
     """The confirmation with the effect's profiled shape constants
@@ -388,7 +445,8 @@ def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
         widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
                     if not eff.additive else {})
         shape.update(shape_kept(eff, fit.graph, cand.target, scales, P, vals))
-        mine_of[cand.label] = [P[p.name] for p in eff.params if p.estimated and p.name in P]
+        mine_of[cand.label] = [P[p.name] for p in eff.params
+                               if p.estimated and p.name in P and p.name not in cand.held]
         new += [par.name for par in mine_of[cand.label]]
         values_of[cand.label] = {p.name: P[p.name].name for p in eff.params if p.name in P}
         start.update({P[k].name: float(v) for k, v in vals.items() if k in P})
@@ -438,6 +496,9 @@ def start_values(eff: Effect, cand: Candidate, values: dict | None = None) -> di
     its bounds (0, 0.207)") and the pair was never refitted."""
     values = dict(cand.values if values is None else values)
     for p in eff.params:
+        if p.name in cand.held:
+            values[p.name] = cand.held[p.name]
+            continue
         if p.name not in values:
             continue
         if eff.additive and p.nonnegative:

@@ -86,6 +86,12 @@ class Candidate:
         (after), ``error`` (free-run, record), ``validation_error``,
         ``whiteness``, ``values``, ``converged``, ``iterations``,
         ``at_bound``, and once decided ``accepted`` and ``reason``.
+    held : dict
+        Parameters of the effect held at their neutral value in its refit
+        (local name -> value): a candidate whose refit the record cannot
+        tell apart from the current model along these is refitted with its
+        other terms alone (:func:`bondgraph.diagnose.runner.held_retry`);
+        empty for every scored candidate.
     """
 
     effect: str
@@ -109,6 +115,7 @@ class Candidate:
     tied: list = field(default_factory=list)
     joint_step: dict = field(default_factory=dict)
     profiled: bool = True
+    held: dict = field(default_factory=dict)
 
     @property
     def rank_key(self) -> float:
@@ -117,8 +124,9 @@ class Candidate:
 
     @property
     def label(self) -> str:
-        """``"effect @ target"``."""
-        return f"{self.effect} @ {self.target.name}"
+        """``"effect @ target"`` (with ``" (dc = 0)"`` for its held parameters)."""
+        held = "".join(f" ({k} = {v:g})" for k, v in self.held.items())
+        return f"{self.effect} @ {self.target.name}{held}"
 
     def to_dict(self) -> dict:
         """JSON-ready fields plus ``label``."""
@@ -143,7 +151,9 @@ class Step:
     effects accepted earlier that this step removed (``removed``: switched
     off by it and no longer wanted by the accept rule,
     :func:`bondgraph.diagnose.runner.pruned`; the step's numbers are those
-    of the model without them)."""
+    of the model without them), and the effect's parameters held at their
+    neutral value (``held``, local name -> value,
+    :func:`bondgraph.diagnose.runner.held_retry`)."""
 
     effect: str
     attached_to: str
@@ -169,12 +179,14 @@ class Step:
     tied: list = field(default_factory=list)
     together_with: list = field(default_factory=list)
     removed: list = field(default_factory=list)
+    held: dict = field(default_factory=dict)
 
     def shown(self) -> str:
-        """The effect as the step tables show it: with its pair partners'
-        effects (their places in :meth:`shown_target`) and the effects it
-        removed."""
-        return (self.effect + "".join(f" + {w.split(' @ ')[0]}" for w in self.together_with)
+        """The effect as the step tables show it: with its parameters held
+        at 0 (:attr:`Candidate.held`), its pair partners' effects (their
+        places in :meth:`shown_target`) and the effects it removed."""
+        return (self.effect + "".join(f" ({k} = {v:g})" for k, v in self.held.items())
+                + "".join(f" + {w.split(' @ ')[0]}" for w in self.together_with)
                 + "".join(f" (removing {r})" for r in self.removed))
 
     def shown_target(self) -> str:

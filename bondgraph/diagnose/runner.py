@@ -29,8 +29,15 @@ from bondgraph.diagnose.accept import (
     rejection,
     robust_std_needed,
     significant,
+    unidentified_new,
 )
-from bondgraph.diagnose.confirm import Confirmation, confirm, confirm_pair, continued
+from bondgraph.diagnose.confirm import (
+    Confirmation,
+    confirm,
+    confirm_held,
+    confirm_pair,
+    continued,
+)
 from bondgraph.diagnose.effects import Scales, get_effect
 from bondgraph.diagnose.fit import (
     Context,
@@ -1097,10 +1104,13 @@ def pair_before_single(ctx: Context, result: LoopResult, current: Fit, single: t
     """
     scales, tag = pairing
     lead, lead_conf = single
+    # a candidate refitted with terms held (held_retry) stands for the whole one
+    held = {(c.effect, c.target.name) for c, _ in confirmed if c.held}
     pool = [(c, r) for c, r in confirmed if r.comparable and np.isfinite(r.fit.nll)
             and chi2.sf(2.0 * (current.nll - r.fit.nll), max(r.dof, 1))
             < ctx.settings.accept.significance
-            and not str((c.confirmed or {}).get("reason") or "").startswith(_UNUSABLE)]
+            and not str((c.confirmed or {}).get("reason") or "").startswith(_UNUSABLE)
+            and (c.held or (c.effect, c.target.name) not in held)]
     pool = sorted(pool, key=lambda z: z[1].fit.nll)[:PAIR_TOP]
     pairs = [(a, b) for i, (a, _) in enumerate(pool) for b, _ in pool[i + 1:]
              if a.target.name != b.target.name]
@@ -1625,7 +1635,8 @@ def confirm_in_rounds(ctx: Context, result: LoopResult, current: Fit, signif: li
             confirmed = merged_confirmations(ctx, held + confirmed)
             held = []
         after = accept_best(ctx, result, current, confirmed,
-                            step, pairing=(scales, name) if s.accept.pairs else None)
+                            step, pairing=(scales, name) if s.accept.pairs else None,
+                            refit=(scales, name))
         if after is not None:
             return after
     return None
@@ -1891,7 +1902,7 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
                                               if a is not gone and a not in removed], added, what)
         if reduced is None:
             continue
-        k = sum(1 for p in eff.params if p.estimated)
+        k = sum(1 for n in _param_names(eff, gone.target) if n in fit.params)  # held ones not
         back = decide(reduced, fit, s.accept, dof=max(k, 1),
                       admissible=admissibility(ctx, fit, reduced.graph, [(eff, gone.target)],
                                                against=reduced),
@@ -1956,16 +1967,23 @@ def _without(ctx: Context, result: LoopResult, fit: Fit, keep: list, added: Sequ
 
 def accept_best(ctx: Context, result: LoopResult, current: Fit,
                 confirmed: list[tuple[Candidate, Confirmation]], step: int,
-                pairing: tuple | None = None) -> Fit | None:
+                pairing: tuple | None = None, refit: tuple | None = None) -> Fit | None:
     """Accept the first confirmed candidate that passes
     :func:`bondgraph.diagnose.accept.decide` (its step, applied effect and
     Cramér-Rao std recorded); record and log the rejected ones before it.
     With ``pairing`` ``(scales, tag)`` and ``settings.accept.pairs``, a pair
     of significant confirmed candidates that beats it is accepted instead
-    (:func:`pair_before_single`). Returns the accepted fit, or None."""
+    (:func:`pair_before_single`). With ``refit`` ``(scales, tag)``, a
+    candidate refused because the record does not identify some of its
+    terms apart from the current model is judged next with those terms
+    held at 0 (:func:`held_retry`). Returns the accepted fit, or None."""
     s = ctx.settings
     crit = s.accept.criterion.upper()
-    for c, conf in confirmed:
+    confirmed = list(confirmed)
+    i = 0
+    while i < len(confirmed):
+        c, conf = confirmed[i]
+        i += 1
         names = list(current.params) + conf.new_params
         after = conf.fit
         d = decided(ctx, current, after, conf.dof, conf.comparable, c.label, [c])
@@ -2010,4 +2028,62 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
         ctx.log(f"reject {c.label} ({d.reason}): {crit} {d.criterion_before:.2f} -> "
                 f"{d.criterion_after:.2f}, whiteness {d.whiteness_before:.1f} -> "
                 f"{d.whiteness_after:.1f}, error {d.error_before:.4g} -> {d.error_after:.4g}")
+        retry = held_retry(ctx, current, c, conf, refit) if refit is not None else None
+        if retry is not None:
+            confirmed.insert(i, retry)
     return None
+
+
+def held_retry(ctx: Context, current: Fit, cand: Candidate, conf: Confirmation,
+               refit: tuple) -> tuple[Candidate, Confirmation] | None:
+    """The candidate ``cand`` refitted with the terms its refit ``conf``
+    leaves undetermined held at 0, to be judged in its place: ``(candidate,
+    confirmation)`` (the candidate a copy with :attr:`Candidate.held` set
+    and its degrees of freedom lowered), or None where this does not apply.
+
+    It applies to a refused additive effect (Σ βₖ bₖ, each β = 0
+    neutral, 0 inside its box) whose refit does not identify some of its
+    new parameters apart from parameters the current fit identified
+    (:func:`bondgraph.diagnose.accept.unidentified_new`), while others of
+    them remain: those are a smaller effect of the same family that the
+    record may determine. Whatever refused the refit (that rule, or one the
+    accept rule applies first), its verdict was taken at an arbitrary point
+    of the ridge: a Coulomb half-difference that a declared torque offset
+    absorbs made the R field a source at low speed (any dc ≠ 0 does, its
+    effort dc·tanh² being even in the speed). On a user's EMPS graph whose loop had
+    accepted a force offset, the direction-dependent friction's Coulomb
+    half-difference dc·tanh²(v/ε) is that offset wherever the drive moves,
+    and its viscous half-difference dv·v·tanh(v/ε) (the published
+    asymmetric model's 166.7 against 240.4 N s/m) was refused with it.
+    Only once per candidate (``cand.held`` empty); ``refit`` is
+    ``(scales, tag)`` of the step's refits."""
+    if cand.held:
+        return None
+    eff = get_effect(cand.effect, ctx.settings.effects)
+    if not eff.additive:
+        return None
+    flat, partners = unidentified_new(current, conf.fit)
+    local = {eff.pname(cand.target, p.name): p for p in eff.params if p.estimated}
+    held = [local[n] for n in flat if n in local]
+    rest = [n for n in conf.new_params if n in local and local[n] not in held]
+    if not held or not rest or any(p.bounds is not None and not p.bounds[0] <= 0.0 <= p.bounds[1]
+                                   for p in held):
+        return None
+    red = replace(cand, held={p.name: 0.0 for p in held}, dof=len(rest), confirmed=None,
+                  confirmed_statistic=None, tied=[])
+    ctx.log(f"  {cand.label}: refitted with {', '.join(p.name for p in held)} held at 0 (the "
+            f"record does not tell {', '.join(flat)} apart from {', '.join(partners)}): its "
+            f"other terms judged alone")
+    scales, tag = refit
+    r = confirm_held(ctx, current, red, conf, scales, tag)
+    if r is None:
+        return None
+    ctx.cache[("confirmation", id(current), current.nll, red.label)] = r    # as confirm_best's
+    red.confirmed_statistic = max(0.0, 2 * (current.nll - r.fit.nll))
+    red.confirmed = confirmed_record(current, r.fit, r.dof, r.values, ctx.settings.accept)
+    red.confirmed["comparable"] = r.comparable
+    how = ("converged" if r.fit.converged else
+           "NOT converged: not comparable" if r.fit.converged is False else "L-BFGS-B")
+    ctx.log(f"  confirmed {red.label}: LR {red.confirmed_statistic:.1f}, values {r.values} "
+            f"({how}, {r.fit.iterations} iterations)")
+    return red, r

@@ -1,0 +1,101 @@
+"""A refused candidate whose refit leaves some of its terms undetermined
+is refitted with those terms held at 0 and judged in its place
+(diagnose.runner.held_retry): on a user's EMPS graph whose loop had
+accepted a force offset, the direction-dependent friction was refused
+because its Coulomb half-difference dc·tanh²(v/ε) is that offset wherever
+the drive moves, and its viscous half-difference went with it.
+
+Record: a rotor J dω/dt = T − off − (b + dv·tanh(ω/ε)) ω (viscous friction
+b ± dv for either direction, a torque offset), a multisine torque held over
+each sample, integrated by scipy (LSODA, rtol 1e-9), speed measured with
+noise 0.02 rad/s; the graph declares J, b and the offset. The loop's library
+is the direction-dependent friction alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from bondgraph import BondGraph
+from bondgraph.data.records import Experiment
+from bondgraph.diagnose.effects import get_effect
+from bondgraph.diagnose.fit import model_of
+from bondgraph.diagnose.loop import LoopSettings, run_loop
+from bondgraph.diagnose.settings import SearchOptions
+
+J, B, DV, OFF, NOISE, DT = 0.5, 0.1, 0.04, 0.15, 0.02, 0.01
+
+
+def rotor() -> BondGraph:
+    g = BondGraph("rotor", "a rotor on a viscous bearing, a torque offset")
+    j = g.param("J", 0.4, "kg*m**2", (0.05, 5.0), "inertia")
+    b = g.param("b", 0.2, "N*m*s/rad", (0.001, 2.0), "viscous friction")
+    off = g.param("off", 0.0, "N*m", (-2.0, 2.0), "torque offset")
+    T = g.input("T", "N*m", 0.0, "torque")
+    w = g.one("w", domain="rotation")
+    g.connect(g.Se("motor", T), w)
+    g.connect(g.Se("offset", -off), w)
+    g.connect(w, g.I("inertia", j))
+    g.connect(w, g.R("bearing", b))
+    g.sensor("w", w.f, unit="rad/s", noise_std=NOISE)
+    return g
+
+
+def torque(t):
+    return sum(a * np.sin(2 * np.pi * f * t + p)
+               for a, f, p in ((1.0, 0.13, 0.0), (0.6, 0.31, 1.0), (0.4, 0.77, 2.0)))
+
+
+def record(n: int, shift: float, seed: int) -> Experiment:
+    """``n`` samples of the rotor, the torque's phase moved by ``shift`` s."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * DT
+
+    def f(tt, x):
+        u = torque(np.floor(tt / DT + 1e-9) * DT + shift)
+        return [(u - OFF - (B + DV * np.tanh(x[0] / 0.01)) * x[0]) / J]
+
+    X = solve_ivp(f, (0, t[-1]), [0.0], t_eval=t, method="LSODA", rtol=1e-9, atol=1e-12,
+                  max_step=DT / 4).y.T
+    y = X + NOISE * rng.standard_normal((n, 1))
+    return Experiment.from_arrays(t, model=model_of(rotor()), u=torque(t + shift)[:, None], y=y,
+                                  name="rotor", noise_std={"w": NOISE})
+
+
+@pytest.fixture(scope="module")
+def loop():
+    logs: list[str] = []
+    res = run_loop(rotor(), record(2000, 0.0, 3),
+                   LoopSettings(params=["J", "b", "off"], validation=record(1500, 7.3, 5),
+                                effects=[get_effect("asymmetric_friction")],
+                                search=SearchOptions(max_steps=1)),
+                   log=logs.append, progress=False)
+    return res, logs
+
+
+def test_the_viscous_half_difference_is_accepted_with_the_coulomb_one_held(loop):
+    res, logs = loop
+    (step,) = res.steps
+    assert (step.effect, step.attached_to, step.held) == ("asymmetric_friction", "w", {"dc": 0.0})
+    assert step.shown() == "asymmetric_friction (dc = 0)"
+    P = step.parameters
+    assert "asymmetric_friction.w.dc" not in P
+    for name, truth in (("asymmetric_friction.w.dv", DV), ("off", OFF), ("b", B), ("J", J)):
+        assert abs(P[name]["estimate"] - truth) < 3 * P[name]["std"], name
+    assert P["off"]["std"] < 1e-3              # the offset stays determined
+    # the augmented model re-applies the effect with dc = 0
+    (applied,) = res.applied
+    assert applied.values["dc"] == 0.0 and applied.values["dv"] == pytest.approx(
+        P["asymmetric_friction.w.dv"]["estimate"])
+    assert step.error_after < 0.2 * step.error_before
+
+
+def test_the_whole_effect_was_refused_first_and_said_why(loop):
+    res, logs = loop
+    (rej,) = [r for r in res.rejected if r.candidate.label == "asymmetric_friction @ w"]
+    assert rej.step == 1
+    assert any("  asymmetric_friction @ w: refitted with dc held at 0 (the record does not "
+               "tell asymmetric_friction.w.dc apart from off)" in s for s in logs)
+    full = rej.candidate.confirmed
+    assert full is not None and full["dof"] == 2
