@@ -99,3 +99,47 @@ def test_worth_profiling_compares_grid_plus_reach_times_the_predicted_gain_with_
     calls.clear()
     assert scoring.worth_profiling(ctx, fit, model, th, ["L"], 100.0 - crit / 2 - 1e-6, 1, 10)
     assert calls == []
+
+
+def test_a_grid_that_cannot_reach_the_steps_confirmations_is_not_profiled(monkeypatch):
+    """``confirm_bar``: with confirm_top 1 and confirm_rounds 2 a step
+    confirms at most two candidates, so the bar is the second-best score
+    (statistic − 2k) among the significant candidates scored before (family
+    10 at 0.01: p < 0.001; the insignificant and the failed ones do not
+    count). A grid LR of 50 (k 1) with a predicted NLL gain of 5 reaches
+    50 + 4·10 − 2 = 88: below a bar of 90 it is not profiled, above a bar
+    of 80 it is; a grid already above the bar needs no prediction; with
+    fewer significant candidates than confirmations there is no bar."""
+    from bondgraph.diagnose.result import Candidate
+    from bondgraph.diagnose.effects import Target
+
+    def cand(score, p):
+        return Candidate("e", "", Target("junction", "v"), "score", score + 2, 1, p, score)
+
+    settings = SimpleNamespace(accept=SimpleNamespace(significance=0.01),
+                               search=SimpleNamespace(confirm_top=1, confirm_rounds=2))
+    ctx = SimpleNamespace(settings=settings)
+    ahead = [cand(120.0, 1e-9), cand(95.0, 1e-6), cand(200.0, 0.5), cand(90.0, 1e-5),
+             cand(float("nan"), float("nan"))]
+    assert scoring.confirm_bar(ctx, ahead, 10) == 95.0
+    assert scoring.confirm_bar(ctx, ahead[:1], 10) == -np.inf
+    assert scoring.confirm_bar(ctx, ahead, 10**6) == -np.inf      # none significant then
+    calls = []
+
+    def gain(pb, th, idx, box):
+        calls.append(idx)
+        return 5.0
+
+    model = SimpleNamespace(params=["m", "L"], param_index=["m", "L"].index,
+                            bounds=lambda names: (np.zeros(len(names)), np.ones(len(names))))
+    fit = SimpleNamespace(nll=100.0, params=["m"], model=None)
+    monkeypatch.setattr(scoring, "noise_params", lambda m: set())
+    monkeypatch.setattr(scoring, "problem_for", lambda ctx, m: None)
+    monkeypatch.setattr(scoring, "predicted_step_gain", gain)
+    th = np.zeros(2)
+    assert not scoring.worth_profiling(ctx, fit, model, th, ["L"], 75.0, 1, 10, bar=90.0)
+    assert scoring.worth_profiling(ctx, fit, model, th, ["L"], 75.0, 1, 10, bar=80.0)
+    assert calls == [[0, 1]] * 2
+    calls.clear()
+    assert scoring.worth_profiling(ctx, fit, model, th, ["L"], 50.0, 1, 10, bar=90.0)
+    assert calls == []

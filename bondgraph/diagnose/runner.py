@@ -1735,7 +1735,7 @@ def gather_evidence(ctx: Context, current: Fit,
     best_expl = max([c.explained or 0.0 for c in cands] + [0.0])
     if s.search.structural and not structural_skipped(s, cands):
         cands += score_structural(ctx, current, scales, physical_fx, todo=early,
-                                  others=len(cands))
+                                  others=len(cands), ahead=cands)
     elif s.search.structural:
         ctx.log(f"  structural candidates not scored: an additive effect explains "
                 f"{100 * best_expl:.0f} % of the innovation energy")
@@ -1744,7 +1744,7 @@ def gather_evidence(ctx: Context, current: Fit,
             places = set().union(*(places_of(current.graph, c) for c in best))
             ctx.log(f"  ... except at the places of {', '.join(c.label for c in best)}")
             cands += score_structural(ctx, current, scales, physical_fx, places,
-                                      others=len(cands))
+                                      others=len(cands), ahead=cands)
     signif = significant(cands, s.accept.significance)
     if not signif and s.search.structural and resort_fx:
         ctx.log("  no physical effect is significant: scoring the last-resort "

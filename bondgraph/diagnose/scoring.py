@@ -574,7 +574,7 @@ def _line_sets(ctx: Context, probe: Probe, fit: Fit, cands: list[Candidate]):
 # ------------------------------------------------------------- structural
 def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
                      places: set | None = None, todo: list | None = None,
-                     others: int = 0) -> list[Candidate]:
+                     others: int = 0, ahead: list[Candidate] = ()) -> list[Candidate]:
     """Likelihood-ratio statistic of every structural effect of ``effects``
     at every place it can attach (and is not yet present; only the targets
     in ``places``, a set of (kind, name), if given), each from one batched
@@ -586,19 +586,24 @@ def score_structural(ctx: Context, fit: Fit, scales: Scales, effects,
     ``todo``: its result, when the caller started it earlier). ``others``:
     the candidates of the step already scored; with these the family of
     the step's significance test (Bonferroni) whose critical value decides
-    which grids are profiled (:func:`worth_profiling`; logged)."""
+    which grids are profiled (:func:`worth_profiling`; logged); ``ahead``:
+    those already scored, whose scores decide too: a grid that cannot
+    reach the step's confirmations is not profiled (:func:`confirm_bar`)."""
     if distributed(ctx):
         todo = structural_targets(fit, effects, places)
         ctx.log(f"  scoring {len(todo)} structural candidates on the Dask workers")
-        found = run_tasks(ctx, _structural_task, (fit, scales, others + len(todo)), todo)
+        family = others + len(todo)
+        found = run_tasks(ctx, _structural_task,
+                          (fit, scales, family, confirm_bar(ctx, ahead, family)), todo)
         return _not_profiled_note(ctx, [c for c in found if c is not None])
     if todo is None:
         todo = structural_todo(ctx, fit, scales, effects, places)
     family = others + len(todo)
+    bar = confirm_bar(ctx, ahead, family)
     try:
         found = list(progress.bar(
             local_map(ctx, lambda c, item: structural_candidate(c, fit, scales, *item,
-                                                                family=family), todo),
+                                                                family=family, bar=bar), todo),
             total=len(todo), desc="structural candidates", unit="cand", leave=False,
             disable=not ctx.progress))
     finally:
@@ -612,8 +617,30 @@ def _not_profiled_note(ctx: Context, cands: list[Candidate]) -> list[Candidate]:
     if n:
         ctx.log(f"  {n} of {len(cands)} structural candidates not profiled: their grid's "
                 f"likelihood ratio plus {PROFILE_REACH:g} times the gain a scoring step "
-                f"predicts stays below the critical χ² (their statistic is the grid's)")
+                f"predicts stays below the critical χ², or below the scores of as many "
+                f"candidates as the step confirms at most (their statistic is the grid's)")
     return cands
+
+
+def confirm_bar(ctx: Context, ahead, family: int) -> float:
+    """The score (statistic − 2k) a structural candidate must be able to
+    reach to be among a step's confirmations: that of the
+    ``confirm_top`` x ``confirm_rounds``-th best significant candidate of
+    ``ahead`` (the step's candidates already scored, significant at
+    ``settings.accept.significance`` / ``family``, Bonferroni), −inf when
+    there are fewer. The step confirms candidates best score first, at
+    most that many (:func:`bondgraph.diagnose.runner.confirm_in_rounds`),
+    so a candidate whose score stays below so many others' is never
+    confirmed; its profile would only refine a statistic no decision reads.
+    On the default coast-down record 20 structural candidates were
+    profiled in step 1, where nine additive ones scored above 23 000 and
+    the best structural one reached 22 563."""
+    s = ctx.settings
+    budget = int(s.search.confirm_top) * int(s.search.confirm_rounds)
+    level = s.accept.significance / max(family, 1)
+    scores = sorted((c.score for c in ahead
+                     if np.isfinite(c.score) and c.p_value < level), reverse=True)
+    return float(scores[budget - 1]) if budget >= 1 and len(scores) >= budget else -np.inf
 
 
 def structural_targets(fit: Fit, effects, places: set | None = None) -> list[tuple]:
@@ -643,9 +670,9 @@ def structural_todo(ctx: Context, fit: Fit, scales: Scales, effects,
 
 def _structural_task(ctx: Context, shared, item) -> Candidate | None:
     """:func:`structural_candidate` as a task of :func:`run_tasks`."""
-    fit, scales, family = shared
+    fit, scales, family, bar = shared
     eff, tgt = item
-    return structural_candidate(ctx, fit, scales, eff, tgt, family=family)
+    return structural_candidate(ctx, fit, scales, eff, tgt, family=family, bar=bar)
 
 
 def grid_starts(ctx: Context, fit: Fit, model: Model, sets: list, grid_of: list,
@@ -759,8 +786,8 @@ def build_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> tuple |
 
 
 def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt,
-                         built: tuple | None = None, family: int | None = None
-                         ) -> Candidate | None:
+                         built: tuple | None = None, family: int | None = None,
+                         bar: float = -np.inf) -> Candidate | None:
     """Build ``fit``'s graph plus ``eff`` at ``tgt`` (or take ``built``, what
     :func:`build_candidate` returned) and evaluate the NLL over
     the effect's grid × :data:`NOISE_FACTORS` (current estimates held) in one
@@ -770,7 +797,8 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt,
     result gives LR = 2 (NLL₀ − NLL₁), χ²(k) with k the effect's estimated
     parameters. With ``family`` (the number of candidates of the step's
     significance test) the scoring steps are taken only when
-    :func:`worth_profiling` says they could make the candidate significant;
+    :func:`worth_profiling` says they could make the candidate significant
+    and lift its score to ``bar`` (:func:`confirm_bar`);
     otherwise the statistic is the grid's (``profiled`` False). None
     (logged) if the effect cannot be
     built there; a failed candidate (:func:`failed_candidate`) if the UKF
@@ -802,7 +830,8 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt,
     search = ctx.settings.search
     profiling = search.structural_starts > 0 or search.structural_refit > 0
     if family is not None and profiling and not worth_profiling(
-            ctx, fit, model, np.array(sets[i0]), list(new.values()), float(net[i0]), k, family):
+            ctx, fit, model, np.array(sets[i0]), list(new.values()), float(net[i0]), k, family,
+            bar):
         values = dict(grid_of[i0])
         lr = max(0.0, 2 * (fit.nll - float(net[i0])))
         return Candidate(eff.name, eff.title, tgt, "likelihood ratio", lr, k,
@@ -827,7 +856,7 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt,
 
 
 def worth_profiling(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new: list[str],
-                    nll: float, k: int, family: int) -> bool:
+                    nll: float, k: int, family: int, bar: float = -np.inf) -> bool:
     """Whether a structural candidate's grid best ``theta`` (n_theta,; NLL
     ``nll``) is worth the scoring steps of :func:`grid_starts` and
     :func:`profile_declared` (about 60 filter runs of the record): its
@@ -841,7 +870,9 @@ def worth_profiling(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new
     :func:`bondgraph.diagnose.accept.significant`). A candidate below it
     cannot be significant unless its likelihood curves far from the
     quadratic model (:data:`PROFILE_REACH` says how far was seen); when
-    the prediction fails it is profiled.
+    the prediction fails it is profiled. Nor is one whose score, that
+    reach less 2k, stays below ``bar`` (:func:`confirm_bar`: the step
+    confirms at most as many candidates as score above it).
 
     Returns
     -------
@@ -849,7 +880,7 @@ def worth_profiling(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new
     """
     crit = float(chi2.isf(ctx.settings.accept.significance / max(family, 1), max(k, 1)))
     lr = 2.0 * (fit.nll - nll)
-    if lr >= crit:
+    if lr >= crit and lr - 2 * k >= bar:
         return True
     noise = noise_params(fit.model)
     names = [n for n in fit.params if n in model.params and n not in noise] + list(new)
@@ -861,7 +892,8 @@ def worth_profiling(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new
                                          [model.param_index(n) for n in names], (lo, hi))
     except (FloatingPointError, np.linalg.LinAlgError):
         return True
-    return not (np.isfinite(gain) and lr + PROFILE_REACH * max(gain, 0.0) < crit)
+    reach = lr + PROFILE_REACH * max(gain, 0.0)
+    return not (np.isfinite(gain) and (reach < crit or reach - 2 * k < bar))
 
 
 #: a parameter within this relative distance of an end of its span is on it
