@@ -119,7 +119,8 @@ def test_loop_free_run_error_is_the_models_not_the_guessed_initial_level(case):
 
 # both loops run with ``pytest -m long``: the default's (three rounds of confirmations, 2-4
 # min in CI's cold suite) and the skip rule's (an option, off by default; 159-185 s of the
-# suite on a 2-core machine 3-5 times slower than when it was written, CI near 30 minutes)
+# suite on a 2-core machine 3-5 times slower than when it was written, CI near 30 minutes);
+# the skip rule's decisions run by default in tests/test_structural_skip_rule.py (stubs)
 @pytest.mark.long
 @pytest.mark.parametrize("threshold", [0.5, None], ids=["skip_rule", "default"])
 def test_pump_saturation_found_after_the_additive_candidates_fail(threshold):
