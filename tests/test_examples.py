@@ -1,7 +1,8 @@
 """The short examples in examples/ run as a user runs them (a fresh process in
 an empty folder), and print what their docstrings promise. The long ones
 (estimate_emps.py: the EMPS record and a PSO; silverbox_user.py: a whole loop
-on Silverbox) are not run here: tests/test_loop.py runs their cases."""
+on Silverbox) are not run here: tests/test_loop.py runs their cases;
+emps_user.py's graph and record writer are checked, its loop is not run."""
 
 import re
 import subprocess
@@ -36,3 +37,38 @@ def test_track_user_graph_finds_the_damping_step(tmp_path):
     t, alarm, before, sb, after, sa = map(float, m.groups())
     assert 30.0 <= t <= 31.0 and t <= alarm <= 35.0
     assert abs(before - 1.5) <= 3 * sb + 1e-3 and abs(after - 3.0) <= 3 * sa + 1e-3
+
+
+def test_emps_user_graph_is_the_hand_derived_mass_on_viscous_friction(tmp_path):
+    """examples/emps_user.py (its loop is a 13-minute run, not run here):
+    the graph gives dp/dt = gtau·vir − Fv p/M, dq/dt = p/M, qm = q at
+    random points, and its CSV writer gives the estimation run's 24 841
+    samples (skipped without the data folder)."""
+    import importlib.util
+
+    import numpy as np
+
+    from bondgraph.numerics.model import Model
+
+    spec = importlib.util.spec_from_file_location("emps_user", EXAMPLES / "emps_user.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    m = Model.from_graph(mod.emps_user())
+    assert m.states == ["p_mass", "q"] and m.inputs == ["vir"] and m.outputs == ["qm"]
+    rng = np.random.default_rng(1)
+    x, u = rng.normal(size=(5, 2)), rng.normal(size=(5, 1))
+    th = np.tile(m.theta0, (5, 1))
+    th[:, m.param_index("M")] = rng.uniform(50, 150, 5)
+    th[:, m.param_index("Fv")] = rng.uniform(100, 300, 5)
+    gt, M, Fv = (th[:, m.param_index(n)] for n in ("gtau", "M", "Fv"))
+    np.testing.assert_allclose(m.f(x, u, th)[:, 0], gt * u[:, 0] - Fv * x[:, 0] / M, rtol=1e-12)
+    np.testing.assert_allclose(m.f(x, u, th)[:, 1], x[:, 0] / M, rtol=1e-12)
+    np.testing.assert_allclose(m.h(x, u, th)[:, 0], x[:, 1], rtol=1e-12)
+    from bondgraph.data.datasets import default_data_dir, find_local
+    root = default_data_dir()
+    if root is None or find_local("emps", "emps_estimation.csv", root) is None:
+        pytest.skip("the EMPS files are not in the data folder (../shared/data or BONDGRAPH_DATA)")
+    csv = mod.write_csv(tmp_path / "emps.csv")
+    data = np.loadtxt(csv, delimiter=",", skiprows=1)
+    assert data.shape == (24841, 3)
+    assert open(csv).readline() == "t [s],qm [m],vir [V]\n"

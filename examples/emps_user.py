@@ -1,0 +1,129 @@
+"""The EMPS record (Janot, Gautier & Brunot 2019) with the graph a user
+writes from the data's README, and the loop run as a new user runs it.
+
+The graph is the README's known physics without its friction:
+Se(gtau·vir) → 1-junction {I M, R Fv} → position q, the encoder ``qm``
+reading q; no noise level, no process noise, rough starts and wide boxes.
+The record is the estimation run (24 841 samples at 1 kHz) written as a
+CSV (``t, qm, vir``). Then::
+
+    bondgraph loop --model examples/emps_user.py:emps_user --data emps.csv --params M,Fv
+
+holds out the last 25 %, estimates the encoder noise from the record, fits
+M and Fv by output error and searches the effect library. Measured on
+2026-11-27 (775 s on a slow 2-core machine): a force offset, then Coulomb
+friction with a cubic viscous term (as a pair), then the direction-dependent
+viscous friction with its Coulomb half-difference held at 0 (that term is
+the offset wherever the drive moves; ``runner.held_retry``): dv = −36.94 ±
+0.19 N s/m against the published asymmetric model's (166.71 − 240.42)/2 =
+−36.86; held-out position NRMSE 0.1755 -> 0.01466; M 94.09 kg (published
+95.15).
+
+Usage::
+
+    # writes emps_user/emps.csv, runs the loop, prints a JSON summary
+    .venv/bin/python examples/emps_user.py --out emps_user
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bondgraph import BondGraph
+
+
+def emps_user() -> BondGraph:
+    """The EMPS drive as a mass on viscous friction, the way a user declares
+    it from the data's README: the drive force gtau·vir [N] (gtau known,
+    35.15 N/V), the moving mass M [kg] and viscous friction Fv [N s/m] with
+    rough starts and wide boxes, the encoder reading the position [m].
+
+    Hand-derived (p = M q̇)::
+
+        dp/dt = gtau·vir − Fv p/M,   dq/dt = p/M,   qm = q
+
+    Returns
+    -------
+    BondGraph
+    """
+    g = BondGraph("emps_user", "EMPS ball-screw drive, mass and viscous friction (user's graph)")
+    vir = g.input("vir", "V", 0.0, "drive command")
+    gtau = g.param("gtau", 35.15065, "N/V", (30.0, 40.0), "drive gain (known)")
+    M = g.param("M", 80.0, "kg", (10.0, 1000.0), "moving mass")
+    Fv = g.param("Fv", 100.0, "N*s/m", (1.0, 2000.0), "viscous friction")
+    v = g.one("v")
+    g.connect(g.Se("drive", gtau * vir), v)
+    g.connect(v, g.I("mass", M))
+    g.connect(v, g.R("viscous", Fv))
+    q = g.displacement(v, name="q", unit="m")
+    g.sensor("qm", q, unit="m", description="motor position (encoder)")
+    return g
+
+
+def write_csv(path: Path, data_dir: Path | None = None) -> Path:
+    """The estimation run as ``t [s],qm [m],vir [V]`` from the local data
+    folder (``../shared/data`` or ``BONDGRAPH_DATA``) or the publisher
+    (:func:`bondgraph.data.datasets.emps`, checksum verified).
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    DataError
+        The EMPS files are neither local nor downloadable.
+    """
+    from bondgraph.data.datasets import emps
+    rec = emps("estimation", data_dir)
+    t = np.asarray(rec.t, float)
+    qm, vir = (np.asarray(rec.columns[c], float) for c in ("qm", "vir"))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        f.write("t [s],qm [m],vir [V]\n")
+        for row in zip(t.tolist(), qm.tolist(), vir.tolist()):
+            f.write("%r,%r,%r\n" % row)
+    return path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="emps_user", help="folder for emps.csv and the loop report")
+    ap.add_argument("--max-steps", type=int, default=None,
+                    help="passed to bondgraph loop (default: the loop's own)")
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    csv = write_csv(out / "emps.csv")
+    cmd = [sys.executable, "-c", "from bondgraph.cli.main import main; raise SystemExit(main())",
+           "loop", "--model", f"{Path(__file__).resolve()}:emps_user", "--data", str(csv),
+           "--params", "M,Fv", "--out", str(out / "loop")]
+    if a.max_steps is not None:
+        cmd += ["--max-steps", str(a.max_steps)]
+    t0 = time.perf_counter()
+    rc = subprocess.call(cmd)
+    if rc != 0:
+        print(f"bondgraph loop exited with {rc}", file=sys.stderr)
+        return rc
+    report = json.loads((out / "loop" / "report.json").read_text())
+    last = report["steps"][-1]["parameters"] if report["steps"] else {}
+    print(json.dumps({
+        "loop_s": round(time.perf_counter() - t0, 1),
+        "accepted": [" + ".join([f"{s['effect']} @ {s['attached_to']}", *s.get("together_with", [])])
+                     for s in report["steps"]],
+        "validation_error_before": report["validation_error_before"],
+        "validation_error_after": report["validation_error_after"],
+        "estimates": {k: v["estimate"] for k, v in last.items()}}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
