@@ -77,18 +77,13 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
         None (logged) when the effect cannot be applied or the refit fails.
     """
     eff = get_effect(cand.effect, ctx.settings.effects)
-    g = fit.graph.copy(name)
-    try:
-        P = eff.apply(g, cand.target, start_values(eff, cand), scales)
-    except BondGraphError as exc:
-        ctx.log(f"  cannot apply {cand.label}: {str(exc).splitlines()[0]}")
+    built = _augmented(ctx, fit, cand, eff, scales, name)
+    if built is None:
         return None
-    new = [P[p.name].name for p in eff.params if p.estimated and p.name in P]
+    g, P, new = built
     start = {**fit.estimates(), **cand.profile}
     for n in fit.model.params:
         start.setdefault(n, float(fit.theta[fit.model.param_index(n)]))
-    widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
-                if not eff.additive else {})
     try:
         model = model_of(g)
         start = grid_refine(ctx, model, new, start)
@@ -104,6 +99,33 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
     except BondGraphError as exc:
         ctx.log(f"  confirmation of {cand.label} failed: {str(exc).splitlines()[0]}")
         return None
+    return _confirmed(ctx, fit, cand, eff, scales, name, P, new, f1)
+
+
+def _augmented(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales, name: str,
+               values: dict | None = None) -> tuple | None:
+    """``(graph, P, new)``: ``fit``'s graph plus ``eff`` at the candidate's
+    target (named ``name``) from ``values`` (default the candidate's;
+    :func:`start_values`), its parameters by local name and the full names
+    of the new estimated ones (the held ones not), boxes widened
+    (:func:`widen_boxes`); None (logged) when the effect cannot be applied."""
+    g = fit.graph.copy(name)
+    try:
+        P = eff.apply(g, cand.target, start_values(eff, cand, values), scales)
+    except BondGraphError as exc:
+        ctx.log(f"  cannot apply {cand.label}: {str(exc).splitlines()[0]}")
+        return None
+    new = [P[p.name].name for p in eff.params
+           if p.estimated and p.name in P and p.name not in cand.held]
+    widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
+                if not eff.additive else {})
+    return g, P, new
+
+
+def _confirmed(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales, name: str,
+               P: dict, new: list[str], f1: Fit) -> Confirmation:
+    """The :class:`Confirmation` of the refit ``f1`` (the effect's values
+    by local name), its shape constants profiled (:func:`profiled_shape`)."""
     values = {p.name: float(f1.theta[f1.model.param_index(P[p.name].name)])
               for p in eff.params if p.name in P}
     conf = Confirmation(f1, values, new, comparable=f1.converged is not False)
@@ -138,20 +160,14 @@ def confirm_held(ctx: Context, fit: Fit, cand: Candidate, conf: Confirmation, sc
         None (logged) when the effect cannot be applied or the refit fails.
     """
     eff = get_effect(cand.effect, ctx.settings.effects)
-    g = fit.graph.copy(name)
     base = eff.shape_values(fit.graph, cand.target, scales)
     vals = {**conf.values, **{p.name: base[p.name] for p in eff.params
                               if p.profile and p.name in base}}
-    try:
-        P = eff.apply(g, cand.target, start_values(eff, cand, vals), scales)
-    except BondGraphError as exc:
-        ctx.log(f"  cannot apply {cand.label}: {str(exc).splitlines()[0]}")
+    built = _augmented(ctx, fit, cand, eff, scales, name, vals)
+    if built is None:
         return None
-    new = [P[p.name].name for p in eff.params
-           if p.estimated and p.name in P and p.name not in cand.held]
+    g, P, new = built
     held = {P[k].name for k in cand.held if k in P}
-    widen_boxes(eff, P, eff.grid_span(fit.graph, cand.target, scales)
-                if not eff.additive else {})
     start = {k: v for k, v in conf.fit.estimates().items() if k not in held}
     try:
         f1 = chosen_refit(ctx, g, [fit_model(
@@ -161,10 +177,7 @@ def confirm_held(ctx: Context, fit: Fit, cand: Candidate, conf: Confirmation, sc
     except BondGraphError as exc:
         ctx.log(f"  confirmation of {cand.label} failed: {str(exc).splitlines()[0]}")
         return None
-    values = {p.name: float(f1.theta[f1.model.param_index(P[p.name].name)])
-              for p in eff.params if p.name in P}
-    out = Confirmation(f1, values, new, comparable=f1.converged is not False)
-    return profiled_shape(ctx, fit, cand, eff, scales, name, out)
+    return _confirmed(ctx, fit, cand, eff, scales, name, P, new, f1)
 
 
 def profiled_shape(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales,

@@ -1784,12 +1784,17 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
         confirmed.append((c, r))
         if c.label in (quiet or ()):
             continue
-        how = ("converged" if r.fit.converged else
-               "NOT converged: not comparable" if r.fit.converged is False else "L-BFGS-B")
+        how = _how(r.fit)
         ctx.log(f"  confirmed {c.label}: LR {c.confirmed_statistic:.1f} "
                 f"(score test {c.statistic:.1f}), values {r.values} ({how}, "
                 f"{r.fit.iterations} iterations)")
     return merged_confirmations(ctx, confirmed)
+
+
+def _how(fit: Fit) -> str:
+    """How a confirmation refit ended, as its log line says it."""
+    return ("converged" if fit.converged else
+            "NOT converged: not comparable" if fit.converged is False else "L-BFGS-B")
 
 
 def _confirm_task(ctx: Context, shared, cand: Candidate) -> Confirmation | None:
@@ -2082,8 +2087,7 @@ def held_retry(ctx: Context, current: Fit, cand: Candidate, conf: Confirmation,
     red.confirmed_statistic = max(0.0, 2 * (current.nll - r.fit.nll))
     red.confirmed = confirmed_record(current, r.fit, r.dof, r.values, ctx.settings.accept)
     red.confirmed["comparable"] = r.comparable
-    how = ("converged" if r.fit.converged else
-           "NOT converged: not comparable" if r.fit.converged is False else "L-BFGS-B")
+    how = _how(r.fit)
     ctx.log(f"  confirmed {red.label}: LR {red.confirmed_statistic:.1f}, values {r.values} "
             f"({how}, {r.fit.iterations} iterations)")
     return red, r
