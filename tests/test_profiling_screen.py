@@ -143,3 +143,70 @@ def test_a_grid_that_cannot_reach_the_steps_confirmations_is_not_profiled(monkey
     calls.clear()
     assert scoring.worth_profiling(ctx, fit, model, th, ["L"], 50.0, 1, 10, bar=90.0)
     assert calls == []
+
+
+def test_the_reach_of_a_profile_is_its_ratio_plus_four_predicted_gains(monkeypatch):
+    """``profile_reach``: LR 3107 at the profiled point, a next scoring step
+    predicting an NLL gain of 876 (LR 1752, the user's tanks' pump
+    saturation) reaches 3107 + 4·1752 = 10115; a converged profile (no gain
+    predicted) reaches its own LR; no profiling (``structural_refit`` 0) or a
+    failed prediction gives None. The prediction steps over the declared
+    parameters (noise excepted) and the effect's."""
+    calls = []
+
+    def gain_of(value):
+        def f(pb, th, idx, box):
+            calls.append(idx)
+            if value is None:
+                raise FloatingPointError("the UKF failed")
+            return value
+        return f
+
+    def ctx(refit):
+        return SimpleNamespace(settings=SimpleNamespace(search=SimpleNamespace(
+            structural_refit=refit)))
+
+    model = SimpleNamespace(params=["m", "c", "q", "L"], param_index=["m", "c", "q", "L"].index,
+                            bounds=lambda names: (np.zeros(len(names)), np.ones(len(names))))
+    fit = SimpleNamespace(params=["m", "c", "q"], model=None)
+    monkeypatch.setattr(scoring, "noise_params", lambda m: {"q"})
+    monkeypatch.setattr(scoring, "problem_for", lambda ctx, m: None)
+    th = np.zeros(4)
+    monkeypatch.setattr(scoring, "predicted_step_gain", gain_of(876.0))
+    assert scoring.profile_reach(ctx(2), fit, model, th, ["L"], 3107.0) == 3107.0 + 4 * 1752.0
+    assert calls == [[0, 1, 3]]
+    monkeypatch.setattr(scoring, "predicted_step_gain", gain_of(0.0))
+    assert scoring.profile_reach(ctx(2), fit, model, th, ["L"], 3107.0) == 3107.0
+    monkeypatch.setattr(scoring, "predicted_step_gain", gain_of(None))
+    assert scoring.profile_reach(ctx(2), fit, model, th, ["L"], 3107.0) is None
+    assert scoring.profile_reach(ctx(0), fit, model, th, ["L"], 3107.0) is None
+
+
+def test_an_unconfirmed_profile_whose_reach_nears_the_best_refit_is_confirmed_too():
+    """``within_reach``: the best confirmed refit LR 8179 (k 2: 8175 less
+    2k) sets the bar at 0.9·8175 = 7357.5. A structural candidate profiled
+    to 3107 (k 1) whose reach is 10115 is brought in; one whose reach is
+    7000 is not, nor an additive score of 7000; a score of 7400 is. At most
+    as many as were confirmed, best ranked first."""
+    from bondgraph.diagnose.effects import Target
+    from bondgraph.diagnose.result import Candidate
+    from bondgraph.diagnose.runner import reach_of, within_reach
+
+    def cand(name, stat, k=1, reach=None, lr=None):
+        c = Candidate(name, "", Target("junction", "v"), "score", stat, k, 0.0, stat - 2 * k,
+                      reach=reach)
+        c.confirmed_statistic = lr
+        return c
+
+    lead = cand("cold_start", 4201.0, 2, lr=8179.0)
+    other = cand("r_quadratic", 3914.0, lr=7639.0)
+    sat = cand("actuator_saturation", 3107.0, reach=10115.0)
+    short = cand("end_stop", 514.0, reach=7000.0)
+    score = cand("sensor_offset", 7000.0)
+    high = cand("source_offset", 7400.0)
+    assert reach_of(sat) == 10115.0 and reach_of(score) == 7000.0
+    assert reach_of(cand("x", 50.0, reach=20.0)) == 50.0       # a reach never lowers
+    confirmed = [(lead, None), (other, None)]
+    assert within_reach(confirmed, [high, short, score, sat]) == [high, sat]
+    assert within_reach(confirmed[:1], [high, short, score, sat]) == [high]
+    assert within_reach(confirmed, [short, score]) == []

@@ -117,24 +117,14 @@ def test_loop_free_run_error_is_the_models_not_the_guessed_initial_level(case):
     assert abs(res.initial.noise_estimates["p2"] - NOISE) < 3 * sd and sd < 1.0
 
 
-# both loops run with ``pytest -m long``: the default's (three rounds of confirmations, 2-4
-# min in CI's cold suite) and the skip rule's (an option, off by default; 159-185 s of the
-# suite on a 2-core machine 3-5 times slower than when it was written, CI near 30 minutes);
-# the skip rule's decisions run by default in tests/test_structural_skip_rule.py (stubs)
-# The default case fails, at 74a758a as at HEAD (found 2026-11-27): since ``cold_start``
-# joined the default library it leads the ranking (a warm-up excess on the pump's flow), the
-# saturation ranks 10th, beyond the nine refits of three rounds, and the pair fallback accepts
-# ``cold_start @ pump + r_quadratic @ orifice2`` (held-out NRMSE 0.3835 -> 0.3351); with
-# ``confirm_rounds=4`` the saturation is accepted in round 4 (0.3835 -> 0.04594). Which refits
-# come first once the rounds fail, singles or pairs, is the open question (closing note).
-_PAIR_BEFORE_SATURATION = pytest.mark.xfail(
-    strict=True, reason="the pair fallback accepts a look-alike before the 10th-ranked "
-                        "saturation is confirmed (see the comment above)")
-
-
+# both loops run with ``pytest -m long``: the default's (36 s alone) and the skip rule's (an
+# option, off by default; 159-185 s of the suite on a 2-core machine 3-5 times slower than when
+# it was written, CI near 30 minutes); the skip rule's decisions run by default in
+# tests/test_structural_skip_rule.py (stubs), the reach that brings the saturation forward in
+# tests/test_profiling_screen.py.
 @pytest.mark.long
 @pytest.mark.parametrize("threshold", [
-    0.5, pytest.param(None, marks=_PAIR_BEFORE_SATURATION)], ids=["skip_rule", "default"])
+    0.5, None], ids=["skip_rule", "default"])
 def test_pump_saturation_found_after_the_additive_candidates_fail(threshold):
     """The user's tanks, whose pump saturates (truth: the graph plus
     actuator_saturation at the pump, L = 2.5e-4 m^3/s, commands up to 4e-4);
@@ -145,9 +135,13 @@ def test_pump_saturation_found_after_the_additive_candidates_fail(threshold):
     is refused; the skipped structural candidates are then scored and the
     saturation is accepted with its level (measured on 5401-sample records:
     L 2.497e-4, held-out NRMSE 0.356 -> 0.046). By default (never skipped)
-    the saturation ranked 7th behind six additive candidates that all raise
-    the held-out error, and was accepted in the third round of confirmations
-    (it now ranks 10th: see the mark above)."""
+    the saturation ranks 10th (its profile, two scoring steps, stops at LR
+    3107) behind nine candidates whose refits all fail; its reach (3107 plus
+    4 times the 1752 its next scoring step predicts) comes within 10 % of the
+    first round's best refit (cold_start @ pump, 8179), so it is confirmed in
+    the first round and accepted (LR 13317, held-out 0.3835 -> 0.04594).
+    Before the reach (2026-11-27) the three rounds ended before it and the
+    pair fallback accepted cold_start + r_quadratic (0.3835 -> 0.3351)."""
     from bondgraph import SimulationOptions, apply_effect, synthesize
 
     recs = []

@@ -92,6 +92,14 @@ class Candidate:
         tell apart from the current model along these is refitted with its
         other terms alone (:func:`bondgraph.diagnose.runner.held_retry`);
         empty for every scored candidate.
+    reach : float or None
+        Profiled structural candidates: the likelihood ratio their refit
+        could reach, the statistic plus the predicted gain of the scoring
+        steps the profile did not take
+        (:func:`bondgraph.diagnose.scoring.profile_reach`); an unconfirmed
+        candidate whose reach comes near the best refit of its step is
+        confirmed too (:func:`bondgraph.diagnose.runner.within_reach`).
+        None for other candidates (their statistic is their reach).
     """
 
     effect: str
@@ -116,6 +124,7 @@ class Candidate:
     joint_step: dict = field(default_factory=dict)
     profiled: bool = True
     held: dict = field(default_factory=dict)
+    reach: float | None = None
 
     @property
     def rank_key(self) -> float:
