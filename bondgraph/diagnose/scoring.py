@@ -743,9 +743,11 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
 
     Returns
     -------
-    (nll, theta) or None
-        The profiled point when it improves on ``nll``; None when it does not,
-        when ``structural_refit`` is 0, or when the scoring fails.
+    (nll, theta, converged) or None
+        The profiled point when it improves on ``nll``, and whether the
+        scoring stopped by its convergence test (not by
+        ``structural_refit``); None when it does not improve, when
+        ``structural_refit`` is 0, or when the scoring fails.
     """
     iters = int(ctx.settings.search.structural_refit)
     names = [n for n in fit.params if n in model.params] + list(new)
@@ -763,7 +765,7 @@ def profile_declared(ctx: Context, fit: Fit, model: Model, new: list[str], theta
     except (FloatingPointError, np.linalg.LinAlgError):
         return None
     th, f = fitted[0], fitted[7]          # the NLL at th: no run of its own
-    return (f, th) if np.isfinite(f) and f < nll else None
+    return (f, th, bool(fitted[2])) if np.isfinite(f) and f < nll else None
 
 
 def build_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt) -> tuple | None:
@@ -844,9 +846,9 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt,
         declared = {n: float(th_best[model.param_index(n)]) for n in fit.params
                     if n in model.params}
     prof = profile_declared(ctx, fit, model, list(new.values()), th_best, best)
-    th = th_best
+    th, converged = th_best, False
     if prof is not None:
-        best, th = prof
+        best, th, converged = prof
         values.update({k: float(th[model.param_index(n)]) for k, n in new.items()})
         declared = {n: float(th[model.param_index(n)]) for n in fit.params if n in model.params}
     lr = max(0.0, 2 * (fit.nll - best))
@@ -854,7 +856,8 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt,
                      lr - 2 * k, None, values,
                      last_resort=getattr(eff, "last_resort", False), profile=declared,
                      limit_of=at_limits(eff, tgt, values, spans),
-                     reach=profile_reach(ctx, fit, model, th, list(new.values()), lr))
+                     reach=lr if converged else profile_reach(ctx, fit, model, th,
+                                                              list(new.values()), lr))
 
 
 def profile_reach(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new: list[str],
@@ -870,7 +873,8 @@ def profile_reach(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new: 
     profile that stopped short of its optimum has a reach far above its
     statistic (a user's two tanks: the pump saturation profiled to 3107,
     its next step predicting 1752 more, its refit reaching 13317; a profile
-    that converged, cold_start's 4201, predicts 6). None when there is
+    that converged, cold_start's 4201, predicts 6; one whose scoring
+    stopped by its convergence test is not asked). None when there is
     nothing to step over, no profiling (``structural_refit`` 0), or the
     prediction fails (:func:`bondgraph.diagnose.runner.within_reach` then
     uses the statistic)."""
