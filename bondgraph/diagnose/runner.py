@@ -1730,7 +1730,8 @@ def reach_of(cand: Candidate) -> float:
     for a structural candidate whose profile stopped short of its optimum
     the statistic plus the gain the scoring steps it did not take predict
     (:attr:`~bondgraph.diagnose.result.Candidate.reach`)."""
-    return max(cand.statistic, cand.reach) if cand.reach is not None else cand.statistic
+    reach = getattr(cand, "reach", None)      # stand-ins without one: the statistic
+    return max(cand.statistic, reach) if reach is not None else cand.statistic
 
 
 def gather_evidence(ctx: Context, current: Fit,
