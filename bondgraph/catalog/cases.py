@@ -198,7 +198,11 @@ def case_emps() -> LoopCase:
                      # the filter's substeps, compiled, as a user's graph gets
                      # (LSODA: the loop 61 s against 52 s, the same figures to the bit)
                      free_run=FreeRunOptions(method="fine"),
-                     search=SearchOptions(structural=False)),
+                     # the filter takes the substeps its discretisation check asks
+                     # for at each accepted fit: the profiled Coulomb width needs 8
+                     # (rk4(2) was 0.6-1.2 noise stds per sample off there, and a
+                     # fourth step, a force offset, was accepted; 93.6 s -> 170 s)
+                     search=SearchOptions(structural=False, auto_substeps=True)),
         ("coulomb", "v"))
 
 
