@@ -201,7 +201,7 @@ def case_emps() -> LoopCase:
                      # the filter takes the substeps its discretisation check asks
                      # for at each accepted fit: the profiled Coulomb width needs 8
                      # (rk4(2) was 0.6-1.2 noise stds per sample off there, and a
-                     # fourth step, a force offset, was accepted; 93.6 s -> 170 s)
+                     # fourth step, a force offset, was accepted; 93.6 s -> 163 s)
                      search=SearchOptions(structural=False, auto_substeps=True)),
         ("coulomb", "v"))
 

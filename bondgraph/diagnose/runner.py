@@ -1712,11 +1712,13 @@ def within_reach(confirmed: list, rest: list[Candidate]) -> list[Candidate]:
     two-mass drive the load's true Coulomb friction scored 1.851e6, fourth
     behind three Dahl frictions, yet its refit reaches 1.958e6, above their
     best 1.936e6; confirmed three at a time, a Dahl friction was accepted
-    first (and removed again by the backward step, :func:`pruned`). On the
-    bundled and real cases no unconfirmed candidate comes within reach. A
+    first (and removed again by the backward step, :func:`pruned`). A
     profiled structural candidate counts with its reach (:func:`reach_of`):
     on a user's two tanks the pump saturation, tenth by its profile (3107),
-    reaches 10116 against cold_start's refit 8179, and its refit 13317."""
+    reaches 10116 against cold_start's refit 8179, and its refit 13317. On
+    the bundled default the aerodynamic drag's look-alikes at the wheels'
+    R elements come within reach by their scores; on Silverbox and CED
+    nothing does."""
     stats = [c.confirmed_statistic - 2 * c.dof for c, _ in confirmed
              if c.confirmed_statistic is not None]
     if not stats or not rest or max(stats) <= 0:
