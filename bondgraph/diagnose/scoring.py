@@ -880,17 +880,36 @@ def profile_reach(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new: 
     uses the statistic)."""
     if ctx.settings.search.structural_refit <= 0:
         return None
+    try:
+        gain = step_lr_gain(ctx, fit, model, theta, new)
+    except (FloatingPointError, np.linalg.LinAlgError):
+        return None
+    if gain is None:
+        return None
+    return lr + PROFILE_REACH * gain if np.isfinite(gain) and gain > 0 else lr
+
+
+def step_lr_gain(ctx: Context, fit: Fit, model: Model, theta: np.ndarray,
+                 new: list[str]) -> float | None:
+    """The likelihood-ratio gain, 2·½gᵀF⁻¹g, one full Fisher-scoring step
+    over ``fit``'s estimated parameters (noise intensities excepted) and the
+    effect's ``new`` ones predicts from ``theta`` (n_theta,) of ``model``,
+    inside their boxes (one batched run of k + 1 sets,
+    :func:`~bondgraph.diagnose.inference_calls.predicted_step_gain`); None
+    when there is nothing to step over.
+
+    Raises
+    ------
+    FloatingPointError, numpy.linalg.LinAlgError
+        When the UKF or the scoring fails at ``theta``.
+    """
     noise = noise_params(fit.model)
     names = [n for n in fit.params if n in model.params and n not in noise] + list(new)
     if not names:
         return None
     lo, hi = model.bounds(names)
-    try:
-        gain = 2.0 * predicted_step_gain(problem_for(ctx, model), theta,
-                                         [model.param_index(n) for n in names], (lo, hi))
-    except (FloatingPointError, np.linalg.LinAlgError):
-        return None
-    return lr + PROFILE_REACH * gain if np.isfinite(gain) and gain > 0 else lr
+    return 2.0 * predicted_step_gain(problem_for(ctx, model), theta,
+                                     [model.param_index(n) for n in names], (lo, hi))
 
 
 def worth_profiling(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new: list[str],
@@ -920,16 +939,12 @@ def worth_profiling(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new
     lr = 2.0 * (fit.nll - nll)
     if lr >= crit and lr - 2 * k >= bar:
         return True
-    noise = noise_params(fit.model)
-    names = [n for n in fit.params if n in model.params and n not in noise] + list(new)
-    if not names:
-        return False
-    lo, hi = model.bounds(names)
     try:
-        gain = 2.0 * predicted_step_gain(problem_for(ctx, model), theta,
-                                         [model.param_index(n) for n in names], (lo, hi))
+        gain = step_lr_gain(ctx, fit, model, theta, new)
     except (FloatingPointError, np.linalg.LinAlgError):
         return True
+    if gain is None:
+        return False
     reach = lr + PROFILE_REACH * max(gain, 0.0)
     return not (np.isfinite(gain) and (reach < crit or reach - 2 * k < bar))
 
