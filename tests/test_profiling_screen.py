@@ -44,6 +44,20 @@ def _offset_problem():
     return model, pb
 
 
+def _stub_gain(calls: list):
+    """A stand-in factory for ``predicted_step_gain``: ``gain_of(value)``
+    returns that value (None: the UKF fails), recording the parameter
+    indices of each call in ``calls``."""
+    def gain_of(value):
+        def f(pb, th, idx, box):
+            calls.append(idx)
+            if value is None:
+                raise FloatingPointError("the UKF failed")
+            return value
+        return f
+    return gain_of
+
+
 def test_the_predicted_gain_of_a_scoring_step_is_exact_where_the_nll_is_quadratic():
     """½gᵀF⁻¹g at b = 0 against the decrease to the minimum of the exact
     quadratic through three filter runs at b = 0, ±0.05: g²/(2a) with
@@ -76,14 +90,7 @@ def test_worth_profiling_compares_grid_plus_reach_times_the_predicted_gain_with_
     crit = chi2.isf(0.01 / 10, 1)
     assert crit == pytest.approx(10.83, abs=0.01)
     calls = []
-
-    def gain_of(value):
-        def f(pb, th, idx, box):
-            calls.append(idx)
-            if value is None:
-                raise FloatingPointError("the UKF failed")
-            return value
-        return f
+    gain_of = _stub_gain(calls)
 
     ctx = SimpleNamespace(settings=SimpleNamespace(accept=SimpleNamespace(significance=0.01)))
     model = SimpleNamespace(params=["m", "c", "q", "L"], param_index=["m", "c", "q", "L"].index,
@@ -153,14 +160,7 @@ def test_the_reach_of_a_profile_is_its_ratio_plus_four_predicted_gains(monkeypat
     failed prediction gives None. The prediction steps over the declared
     parameters (noise excepted) and the effect's."""
     calls = []
-
-    def gain_of(value):
-        def f(pb, th, idx, box):
-            calls.append(idx)
-            if value is None:
-                raise FloatingPointError("the UKF failed")
-            return value
-        return f
+    gain_of = _stub_gain(calls)
 
     def ctx(refit):
         return SimpleNamespace(settings=SimpleNamespace(search=SimpleNamespace(
