@@ -10,6 +10,7 @@ from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
 import numpy as np
+import sympy as sp
 from scipy.stats import chi2
 
 from bondgraph.diagnose.effects import Effect, Scales, get_effect
@@ -18,6 +19,7 @@ from bondgraph.diagnose.fit import (
     Fit,
     bounds_around,
     criterion_for,
+    evaluate_fit,
     fit_model,
     model_of,
     problem_for,
@@ -77,15 +79,18 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
         None (logged) when the effect cannot be applied or the refit fails.
     """
     eff = get_effect(cand.effect, ctx.settings.effects)
-    built = _augmented(ctx, fit, cand, eff, scales, name)
+    try:
+        built = augmented_model(ctx, fit, cand, scales, name)
+    except BondGraphError as exc:
+        ctx.log(f"  confirmation of {cand.label} failed: {str(exc).splitlines()[0]}")
+        return None
     if built is None:
         return None
-    g, P, new = built
+    g, P, new, model = built
     start = {**fit.estimates(), **cand.profile}
     for n in fit.model.params:
         start.setdefault(n, float(fit.theta[fit.model.param_index(n)]))
     try:
-        model = model_of(g)
         start = grid_refine(ctx, model, new, start)
         starts = ([start] + score_line_starts(ctx, model, fit, cand, eff, P, start)
                   + natural_starts(eff, cand, P, new, start))
@@ -100,6 +105,110 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
         ctx.log(f"  confirmation of {cand.label} failed: {str(exc).splitlines()[0]}")
         return None
     return _confirmed(ctx, fit, cand, eff, scales, name, P, new, f1)
+
+
+def augmented_model(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
+                    name: str) -> tuple | None:
+    """``(graph, P, new, model)``: :func:`_augmented` at the candidate's
+    values and the graph's generated model, built once per candidate and
+    current fit in this process (kept in ``ctx.cache``); None (logged)
+    when the effect cannot be applied.
+
+    Raises
+    ------
+    BondGraphError
+        If the augmented graph cannot be derived (not kept: raised again
+        the next time)."""
+    key = ("augmented", id(fit), fit.nll, cand.label, name)
+    if key in ctx.cache:
+        return ctx.cache[key]
+    eff = get_effect(cand.effect, ctx.settings.effects)
+    built = _augmented(ctx, fit, cand, eff, scales, name)
+    if built is not None:
+        built = (*built, model_of(built[0]))
+    ctx.cache[key] = built
+    return built
+
+
+def same_model_key(model: Model, P: dict, new: list[str]) -> tuple:
+    """What a candidate's augmented model is, whatever its new parameters
+    are called: the state equations f, the outputs h, the process noise
+    and the parameters' boxes, its new estimated parameters ``new`` (full
+    names, in order) renamed ``_new0``, ``_new1``, ... and its other
+    parameters ``P`` (local name -> Parameter: shape constants, held
+    values) replaced by their values. Two candidates with equal keys are
+    one model (Karnopp, Margolis & Rosenberg: the equations, not the
+    drawing, are the model): a term added to either of two R elements on
+    one 1-junction whose laws the junction sums, a drag at the junction
+    and the same law at one of its resistors. Their refits from the same
+    current fit are one refit (:func:`confirm_same`)."""
+    ss = model.module.__state_space__
+    by_name = {str(p): p for p in ss.params}
+    fixed = {p.name: float(p.default) for p in P.values() if p.name not in new}
+    rename = {by_name[n]: sp.Symbol(f"_new{i}") for i, n in enumerate(new) if n in by_name}
+    rename.update({by_name[n]: sp.Float(v, 12) for n, v in fixed.items() if n in by_name})
+
+    def text(e) -> str:
+        return str(sp.sympify(e).xreplace(rename))
+
+    boxes = tuple((str(rename.get(p, p)), tuple(float(b) for b in (p.bounds or ())))
+                  for p in ss.params if p not in rename or str(p) in new)
+    return (tuple(str(x) for x in ss.states), tuple(str(u) for u in ss.inputs),
+            tuple(text(e) for e in ss.f),
+            tuple((o.name, text(o.expr), text(o.noise_std or 0)) for o in ss.outputs),
+            tuple(text(q or 0) for q in ss.process_noise), tuple(sorted(boxes)))
+
+
+def confirm_same(ctx: Context, fit: Fit, cand: Candidate, scales: Scales, name: str,
+                 rep: Candidate, conf: Confirmation) -> Confirmation | None:
+    """The confirmation of ``cand`` whose augmented model is ``rep``'s
+    (:func:`same_model_key`) from ``rep``'s refit ``conf``: ``rep``'s
+    estimates, std, initial states and noise levels under ``cand``'s names,
+    evaluated once on ``cand``'s own graph (its filter run, free runs,
+    residuals; what the accept rule then checks, its admissibility
+    included, is ``cand``'s). Refitted in full (:func:`confirm`) when the
+    refit profiled a shape constant, the names do not map, or the
+    evaluation does not reproduce ``rep``'s likelihood."""
+    try:
+        built = augmented_model(ctx, fit, cand, scales, name)
+        rep_built = augmented_model(ctx, fit, rep, scales, name)
+    except BondGraphError:
+        return confirm(ctx, fit, cand, scales, name)
+    if built is None or rep_built is None or conf.shape or len(built[2]) != len(rep_built[2]):
+        return confirm(ctx, fit, cand, scales, name)
+    g, P, new, model = built
+    names = dict(zip(rep_built[2], new))          # rep's new name -> cand's
+    back = {v: k for k, v in names.items()}
+    f0 = conf.fit
+    theta = np.array(model.theta(), dtype=float)   # its shape constants: the key's values
+    constants = {p.name for p in P.values()} - set(new)
+    for i, n in enumerate(model.params):
+        if back.get(n, n) in f0.model.params:
+            theta[i] = f0.theta[f0.model.param_index(back.get(n, n))]
+        elif n not in constants:
+            return confirm(ctx, fit, cand, scales, name)
+    pb = problem_for(ctx, model)
+    params = [names.get(n, n) for n in f0.params]
+    std = {names.get(k, k): v for k, v in f0.std.items()}
+    try:
+        fitted = pb.conditioned_on(x0={**pb.prior.estimated, **f0.x0_est},
+                                   noise_levels=f0.noise_est)
+        f1 = evaluate_fit(ctx, fitted, g, params, theta, f"confirming {cand.label}", std)
+    except BondGraphError:
+        return confirm(ctx, fit, cand, scales, name)
+    if not abs(f1.nll - f0.nll) <= 1e-6 * max(1.0, abs(f0.nll)):
+        ctx.log(f"  {cand.label}: its model evaluated at {rep.label}'s refit gives NLL "
+                f"{f1.nll:.6g}, not {f0.nll:.6g}: refitted in full")
+        return confirm(ctx, fit, cand, scales, name)
+    f1.converged, f1.iterations = f0.converged, f0.iterations
+    f1.flat = tuple(names.get(n, n) for n in f0.flat)
+    f1.x0_est, f1.noise_est = dict(f0.x0_est), dict(f0.noise_est)
+    f1.at_bound = [names.get(n, n) for n in f0.at_bound]
+    f1.warnings = list(f0.warnings)
+    eff = get_effect(cand.effect, ctx.settings.effects)
+    values = {p.name: float(f1.theta[model.param_index(P[p.name].name)])
+              for p in eff.params if p.name in P}
+    return Confirmation(f1, values, new, comparable=conf.comparable)
 
 
 def _augmented(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales, name: str,

@@ -33,10 +33,13 @@ from bondgraph.diagnose.accept import (
 )
 from bondgraph.diagnose.confirm import (
     Confirmation,
+    augmented_model,
     confirm,
     confirm_held,
     confirm_pair,
+    confirm_same,
     continued,
+    same_model_key,
 )
 from bondgraph.diagnose.effects import Scales, get_effect
 from bondgraph.diagnose.fit import (
@@ -1793,8 +1796,19 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
     confirmed = []
     keys = [("confirmation", id(current), current.nll, c.label) for c in todo]  # lead check's
     fresh = [(k, c) for k, c in zip(keys, todo) if k not in ctx.cache]
-    for (k, _), r in zip(fresh, run_tasks(ctx, _confirm_task, (current, scales, name),
-                                          [c for _, c in fresh])):
+    same = same_models(ctx, current, scales, name, [c for _, c in fresh])
+    first = [(k, c) for k, c in fresh if c.label not in same]
+    for (k, _), r in zip(first, run_tasks(ctx, _confirm_task, (current, scales, name),
+                                          [c for _, c in first])):
+        ctx.cache[k] = r
+    twins = [(k, c, same[c.label]) for k, c in fresh if c.label in same]
+    for k, c, rep in twins:
+        ctx.log(f"  {c.label}: the same model as {rep.label} (equal state equations, outputs "
+                f"and boxes): {rep.label}'s refit, evaluated on {c.label}'s graph")
+    items = [(c, rep, ctx.cache[("confirmation", id(current), current.nll, rep.label)])
+             for _, c, rep in twins]
+    for (k, _, _), r in zip(twins, run_tasks(ctx, _confirm_same_task, (current, scales, name),
+                                             items)):
         ctx.cache[k] = r
     for c, key in zip(todo, keys):
         r = ctx.cache[key]
@@ -1818,6 +1832,46 @@ def _how(fit: Fit) -> str:
     """How a confirmation refit ended, as its log line says it."""
     return ("converged" if fit.converged else
             "NOT converged: not comparable" if fit.converged is False else "L-BFGS-B")
+
+
+def same_models(ctx: Context, current: Fit, scales: Scales, name: str,
+                cands: list[Candidate]) -> dict:
+    """The candidates of ``cands`` (best first) whose augmented model is
+    that of a better-ranked one, or of one confirmed before against
+    ``current`` (:func:`~bondgraph.diagnose.confirm.same_model_key`), label
+    -> that one. Each model is refitted once: on the bundled vehicle a
+    quadratic law at the brake's R and at the rolling resistance's R and
+    the quadratic drag at the wheels' junction were three refits of one
+    model. A candidate whose graph cannot be built has no twin (its
+    confirmation says why)."""
+    out = {}
+    for c in cands:
+        try:
+            built = augmented_model(ctx, current, c, scales, name)
+        except BondGraphError:
+            continue
+        if built is None:
+            continue
+        key = ("model", id(current), current.nll, same_model_key(built[3], built[1], built[2]))
+        rep = ctx.cache.get(key)
+        if rep is None:
+            ctx.cache[key] = c
+        elif ctx.cache.get(("confirmation", id(current), current.nll, rep.label)) is not None \
+                or any(r is rep for r in cands):
+            out[c.label] = rep
+    return out
+
+
+def _confirm_same_task(ctx: Context, shared, item: tuple) -> Confirmation | None:
+    """:func:`bondgraph.diagnose.confirm.confirm_same` as a task of
+    :func:`bondgraph.diagnose.parallel.run_tasks` (``item``: the candidate,
+    its twin and the twin's confirmation; refitted in full when the twin's
+    failed)."""
+    current, scales, name = shared
+    cand, rep, conf = item
+    if conf is None:
+        return confirm(ctx, current, cand, scales, name)
+    return confirm_same(ctx, current, cand, scales, name, rep, conf)
 
 
 def _confirm_task(ctx: Context, shared, cand: Candidate) -> Confirmation | None:
