@@ -121,6 +121,12 @@ def test_the_twin_is_not_refitted_and_reaches_what_its_own_refit_reaches():
     # the quadratic drag c = 0.08 found at either resistor (0.0798 +- 0.0005)
     beta = [v for k, v in step.parameters.items() if k.endswith(".beta")]
     assert len(beta) == 1 and abs(beta[0]["estimate"] - C) < 3 * beta[0]["std"], beta
+    # the twin says whose model it is and takes no place among the pairs
+    by_label = {c.label: c for c in res.rankings[0]}
+    twin, rep = by_label["r_quadratic @ seal"], by_label["r_quadratic @ bearing"]
+    assert twin.same_as == rep.label and rep.label in twin.equivalent
+    assert rep in runner.pair_pool(res.rankings[0])
+    assert twin not in runner.pair_pool(res.rankings[0])
     # the reference: both refitted in full, as before
     res0, logs0, lr0 = run(dedupe=False)
     assert not [s for s in logs0 if "the same model as" in s]

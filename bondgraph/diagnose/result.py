@@ -100,6 +100,12 @@ class Candidate:
         candidate whose reach comes near the best refit of its step is
         confirmed too (:func:`bondgraph.diagnose.runner.within_reach`).
         None for other candidates (their statistic is their reach).
+    same_as : str or None
+        The better-ranked candidate whose augmented model this one's is
+        (:func:`bondgraph.diagnose.confirm.same_model_key`: a law at either
+        of two R elements on one 1-junction); its confirmation is that
+        one's refit evaluated on its own graph, and it takes no place of
+        its own among the pairs (a pair with it is the pair with that one).
     """
 
     effect: str
@@ -125,6 +131,7 @@ class Candidate:
     profiled: bool = True
     held: dict = field(default_factory=dict)
     reach: float | None = None
+    same_as: str | None = None
 
     @property
     def rank_key(self) -> float:

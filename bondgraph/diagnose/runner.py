@@ -1039,9 +1039,11 @@ def pair_pool(ranking: list[Candidate]) -> list[Candidate]:
     """The confirmed candidates of a step that a partner could complete: a
     usable refit (converged, admissible, simulating, finite) with a positive
     likelihood ratio, rejected on the evidence (criterion, likelihood ratio
-    or error); at most :data:`PAIR_TOP`, by decreasing likelihood ratio."""
+    or error), not the twin of a better-ranked one (``same_as``: a pair with
+    it is the pair with that one); at most :data:`PAIR_TOP`, by decreasing
+    likelihood ratio."""
     pool = [c for c in ranking if c.confirmed and c.confirmed.get("comparable", True)
-            and (c.confirmed_statistic or 0.0) > 0
+            and (c.confirmed_statistic or 0.0) > 0 and not getattr(c, "same_as", None)
             and not str(c.confirmed.get("reason") or "").startswith(_UNUSABLE)]
     return sorted(pool, key=lambda c: -c.confirmed_statistic)[:PAIR_TOP]
 
@@ -1091,7 +1093,8 @@ def pair_before_single(ctx: Context, result: LoopResult, current: Fit, single: t
     which passes the accept rule, is accepted: when two or more confirmed
     candidates at different places are each significant (their own refit's
     likelihood ratio over ``current`` at ``settings.accept.significance``;
-    at most :data:`PAIR_TOP`, by likelihood ratio), refit their pairs
+    at most :data:`PAIR_TOP`, by likelihood ratio, twins ``same_as`` a
+    better-ranked one left out), refit their pairs
     together and accept the best one (:func:`rank_pairs`) that beats the
     single (:func:`pair_against_single`: the pair's own tests, then the
     accept rule for the partner added to the single, or, for a pair without
@@ -1113,7 +1116,8 @@ def pair_before_single(ctx: Context, result: LoopResult, current: Fit, single: t
             and chi2.sf(2.0 * (current.nll - r.fit.nll), max(r.dof, 1))
             < ctx.settings.accept.significance
             and not str((c.confirmed or {}).get("reason") or "").startswith(_UNUSABLE)
-            and (c.held or (c.effect, c.target.name) not in held)]
+            and (c.held or (c.effect, c.target.name) not in held)
+            and not getattr(c, "same_as", None)]
     pool = sorted(pool, key=lambda z: z[1].fit.nll)[:PAIR_TOP]
     pairs = [(a, b) for i, (a, _) in enumerate(pool) for b, _ in pool[i + 1:]
              if a.target.name != b.target.name]
@@ -1803,6 +1807,9 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
         ctx.cache[k] = r
     twins = [(k, c, same[c.label]) for k, c in fresh if c.label in same]
     for k, c, rep in twins:
+        c.same_as = rep.label
+        c.equivalent += [rep.label] if rep.label not in c.equivalent else []
+        rep.equivalent += [c.label] if c.label not in rep.equivalent else []
         ctx.log(f"  {c.label}: the same model as {rep.label} (equal state equations, outputs "
                 f"and boxes): {rep.label}'s refit, evaluated on {c.label}'s graph")
     items = [(c, rep, ctx.cache[("confirmation", id(current), current.nll, rep.label)])
