@@ -111,8 +111,9 @@ def augmented_model(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
                     name: str) -> tuple | None:
     """``(graph, P, new, model)``: :func:`_augmented` at the candidate's
     values and the graph's generated model, built once per candidate and
-    current fit in this process (kept in ``ctx.cache``); None (logged)
-    when the effect cannot be applied.
+    current fit in this process (kept in ``ctx.cache`` until
+    :func:`bondgraph.diagnose.runner.confirm_best` has confirmed its
+    batch); None (logged) when the effect cannot be applied.
 
     Raises
     ------
@@ -139,9 +140,9 @@ def same_model_key(model: Model, P: dict, new: list[str]) -> tuple:
     values) replaced by their values. Two candidates with equal keys are
     one model (Karnopp, Margolis & Rosenberg: the equations, not the
     drawing, are the model): a term added to either of two R elements on
-    one 1-junction whose laws the junction sums, a drag at the junction
-    and the same law at one of its resistors. Their refits from the same
-    current fit are one refit (:func:`confirm_same`)."""
+    one 1-junction whose laws the junction sums (the same law with the
+    same box). Their refits from the same current fit are one refit
+    (:func:`confirm_same`)."""
     ss = model.module.__state_space__
     by_name = {str(p): p for p in ss.params}
     fixed = {p.name: float(p.default) for p in P.values() if p.name not in new}

@@ -1817,6 +1817,8 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
     for (k, _, _), r in zip(twins, run_tasks(ctx, _confirm_same_task, (current, scales, name),
                                              items)):
         ctx.cache[k] = r
+    for _, c in fresh:              # the built models are kept in their confirmations
+        ctx.cache.pop(("augmented", id(current), current.nll, c.label, name), None)
     for c, key in zip(todo, keys):
         r = ctx.cache[key]
         if r is None:
@@ -1847,10 +1849,9 @@ def same_models(ctx: Context, current: Fit, scales: Scales, name: str,
     that of a better-ranked one, or of one confirmed before against
     ``current`` (:func:`~bondgraph.diagnose.confirm.same_model_key`), label
     -> that one. Each model is refitted once: on the bundled vehicle a
-    quadratic law at the brake's R and at the rolling resistance's R and
-    the quadratic drag at the wheels' junction were three refits of one
-    model. A candidate whose graph cannot be built has no twin (its
-    confirmation says why)."""
+    quadratic law at the brake's R and at the rolling resistance's R were
+    two refits of one model (the cubic law too). A candidate whose graph
+    cannot be built has no twin (its confirmation says why)."""
     out = {}
     for c in cands:
         try:
