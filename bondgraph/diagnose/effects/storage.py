@@ -78,17 +78,35 @@ def _k_default(el: C) -> float:
     return abs(v) if v else 1.0
 
 
+#: the stop stiffness of :class:`EndStop`, in multiples of the storage's own
+#: stiffness: the data-driven value, and the factors of it a confirmation
+#: tries (a rubber bump stop is a few times its spring, not a wall)
+STOP_STIFFNESS = 100.0
+STOP_SOFTER = (0.3, 0.1, 0.03)
+
+
 class EndStop(_Structural):
-    """End stops (saturation) of a storage: a stiff one-sided spring beyond
-    ±q_max on the displacement of a C element. The stop is smooth
-    (softplus of width q_max/20), so it acts a little below its level: the
-    grid reaches beyond the largest displacement seen in the record."""
+    """End stops (saturation) of a storage: a one-sided spring beyond
+    ±q_max on the displacement of a C element, ``kstop`` times the
+    storage's own stiffness (:data:`STOP_STIFFNESS`, a stiff stop; its
+    confirmation also tries softer stops, :data:`STOP_SOFTER`, and keeps
+    the one the record prefers by a likelihood-ratio test,
+    :func:`bondgraph.diagnose.confirm.profiled_shape`: a quarter-car's
+    rubber bump stop, 5.6 times its spring, was fitted by a 100-times stop
+    beginning 0.0395 m out for a 0.03 m gap, and a cubic stiffness was
+    accepted next to make up the difference). The stop is smooth (softplus
+    of width q_max/20), so it acts a little below its level: the grid
+    reaches beyond the largest displacement seen in the record."""
 
     name = "end_stop"
     title = "end stops / saturation of a storage"
     target_kind = "storage"
     params = (EffectParam("qmax", "{q}", "free travel each side", nonnegative=True),
-              EffectParam("kstop", "", "stop stiffness", estimated=False))
+              EffectParam("kstop", "1", "stop stiffness / the storage's own stiffness",
+                          estimated=False, profile=STOP_SOFTER))
+
+    def shape_values(self, graph, target, scales):
+        return {"kstop": STOP_STIFFNESS}
 
     def targets(self, graph):
         return storage_targets(graph)
@@ -107,13 +125,16 @@ class EndStop(_Structural):
         qmax = _new_param(graph, self.pname(target, "qmax"), values.get("qmax", 1.0),
                           fill_unit("{q}", q=storage_unit(graph, el)), (1e-12, 1e12),
                           f"free travel of {target.name}")
-        ks = 100 * storage_stiffness(el)
+        kstop = _new_param(graph, self.pname(target, "kstop"),
+                           values.get("kstop", STOP_STIFFNESS), "", (1e-12, 1e12),
+                           f"stop stiffness of {target.name} / its own stiffness")
+        ks = kstop * storage_stiffness(el)
         q = el.q
         w = qmax / 20
         j = _force_on_storage(graph, el, f"{self.name}.{target.tag}.j")
         stop = ks * w * (softplus((q - qmax) / w) - softplus((-q - qmax) / w))
         graph.connect(graph.MSe(f"{self.name}.{target.tag}", -stop), j)
-        return {"qmax": qmax}
+        return {"qmax": qmax, "kstop": kstop}
 
 
 class Backlash(_Structural):
