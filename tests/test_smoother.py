@@ -155,27 +155,3 @@ def test_factor_of_collapsed_and_indefinite_covariances():
     np.testing.assert_allclose(L @ L.T, P, atol=1e-12)
     with pytest.raises(NumericalError, match="sample 7"):
         smoother._factor(np.full((2, 2), np.nan), 7)
-
-
-def test_gain_of_a_nearly_singular_predicted_covariance_is_the_pseudo_inverse_one():
-    """P⁻ with eigenvalues 1 and 1e-18 (a direction no process noise
-    reaches, collapsed to round-off; condition number 1e18 >= GAIN_COND) and
-    a cross-covariance C = A P⁻ carrying a round-off error of 1e-16: solving
-    P⁻ amplifies that error by 1e18 (a user's quarter-car got an initial
-    body momentum of -6.5e7 kg m/s); the gain is C (P⁻)⁺ over the
-    direction above 1e-12 of the largest, A projected on it, within 1e-12.
-    A well-conditioned P⁻ keeps the exact solve, batched or not."""
-    V = np.array([[np.cos(0.4), -np.sin(0.4)], [np.sin(0.4), np.cos(0.4)]])
-    Pm = V @ np.diag([1.0, 1e-18]) @ V.T
-    A = np.array([[0.9, 0.2], [-0.1, 0.7]])
-    C = A @ Pm + 1e-16 * np.array([[1.0, -2.0], [0.5, 1.5]])
-    proj = np.outer(V[:, 0], V[:, 0])
-    old = np.linalg.solve(Pm.T, C.T).T                     # the old gain: round-off amplified
-    assert np.abs(old - A @ proj).max() > 1.0
-    np.testing.assert_allclose(smoother._gain(Pm, C, 0), A @ proj, atol=1e-12)
-    np.testing.assert_allclose(smoother._gains(Pm[None], C[None], np.array([0]))[0], A @ proj,
-                               atol=1e-12)
-    P2 = V @ np.diag([1.0, 0.3]) @ V.T
-    C2 = A @ P2
-    np.testing.assert_allclose(smoother._gains(np.stack([P2, P2]), np.stack([C2, C2]),
-                                               np.array([0, 1])), np.stack([A, A]), atol=1e-14)
