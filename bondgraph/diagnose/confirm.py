@@ -407,28 +407,40 @@ def _width_models(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: 
 def _profile_context(ctx: Context, built: dict, names: list, conf: Confirmation,
                      label: str) -> tuple:
     """``(context, substeps)``: the loop's context with the substeps the
-    narrowest law needs at ``conf``'s estimates (its discretisation check,
-    :func:`~bondgraph.diagnose.fit.recommended_substeps`), or ``(ctx, None)``
-    when the loop's own suffice. The narrowest law is the stiffest: at the
-    loop's step its likelihood is its discretisation's, and the width the
-    record asks for loses."""
-    k_min = min(built)
-    _, model, _ = built[k_min]
+    stiffest law of the profile needs at ``conf``'s estimates (its
+    discretisation check, :func:`~bondgraph.diagnose.fit.recommended_substeps`),
+    or ``(ctx, None)`` when the loop's own suffice. The law's stiffness is
+    monotone in the factor, so the stiffest is at an end of the ladder: the
+    smallest factor of a tanh width (the narrowest law), the largest of an
+    end stop's stiffness (``kstop`` x1, its softer stops below); both ends
+    are checked. At the loop's step the stiffest law's likelihood is its
+    discretisation's, and the shape the record asks for loses."""
+    found = [n for k in sorted({min(built), max(built)})
+             if (n := _substeps_at(ctx, built[k][1], names, conf, f"{label} at x{k:g}"))
+             is not None]
+    if not found:
+        return ctx, None
+    n = max(found)
+    return replace(ctx, problem=ctx.problem.conditioned_on(
+        disc=replace(ctx.problem.disc, substeps=n)), cache={}), n
+
+
+def _substeps_at(ctx: Context, model: Model, names: list, conf: Confirmation,
+                 what: str) -> int | None:
+    """The substeps ``model`` needs at ``conf``'s estimates beyond the
+    loop's own (:func:`~bondgraph.diagnose.fit.recommended_substeps`), or
+    None when the loop's suffice or its filter fails there."""
     try:
         # the filter's run at conf's estimates is all the check reads (its
         # innovation std): no free runs, no validation record
         pb = problem_for(ctx, model)
         theta = start_theta(ctx, pb, [p for p in names if p in model.params],
-                            conf.fit.estimates(), f"{label} at x{k_min:g}")
+                            conf.fit.estimates(), what)
         res = run_ukf(pb, theta[None, :], store=True)
-        n = (recommended_substeps(ctx, SimpleNamespace(model=model, theta=theta, ukf=res))[1]
-             if np.isfinite(res.nll[0]) else None)
+        return (recommended_substeps(ctx, SimpleNamespace(model=model, theta=theta, ukf=res))[1]
+                if np.isfinite(res.nll[0]) else None)
     except BondGraphError:
-        n = None
-    if n is None:
-        return ctx, None
-    return replace(ctx, problem=ctx.problem.conditioned_on(
-        disc=replace(ctx.problem.disc, substeps=n)), cache={}), n
+        return None
 
 
 def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Confirmation,
