@@ -421,3 +421,51 @@ def test_an_adaptive_run_that_runs_away_stops_with_its_time(msd, method):
     t_stop = float(str(ei.value).split("near t = ")[1].split(" s")[0])
     assert t_stop == pytest.approx(t_exact, abs=0.1)
     assert "unstable" in str(ei.value)
+
+
+def test_lsoda_is_one_odepack_call_per_segment_with_solve_ivps_steps(msd):
+    """simulate(method="LSODA") runs ODEPACK's LSODA through odeint, one
+    call per zero-order-hold segment (:func:`lsoda_segment`). On a
+    staircase force (5 levels, each held 2 s) it takes the steps of scipy's
+    solve_ivp(method="LSODA") over the same segments (the same number of
+    right-hand-side calls) and meets the exact solution (matrix exponential
+    per segment) to its tolerance."""
+    m, k, c = 2.4, 60.0, 1.2
+    t = np.linspace(0.0, 10.0, 501)
+    F = np.repeat([1.0, -2.0, 0.5, 3.0, 0.0], 100)
+    F = np.append(F, F[-1])
+    res = simulate(msd, t, u=F[:, None], theta={"m": m, "k": k, "c": c}, method="LSODA",
+                   rtol=1e-6, atol=1e-9, hold="zoh")
+    A, B = msd_matrices(m, k, c)
+    ref, nfev, x = [np.zeros(2)], 0, np.zeros(2)
+    for a in range(0, 500, 100):
+        seg = t[a:a + 101]
+        ref.extend(exact_linear(A, B, x, F[a], seg)[1:])
+        sol = solve_ivp(lambda tq, xq: A @ xq + B * F[a], (seg[0], seg[-1]), x, method="LSODA",
+                        t_eval=seg, rtol=1e-6, atol=1e-9, jac=lambda tq, xq: A)
+        nfev += sol.nfev
+        x = ref[-1]
+    ref = np.array(ref)
+    assert res.stats["segments"] == 5 and res.stats["nfev"] == nfev
+    scale = np.abs(ref).max(axis=0)
+    assert np.max(np.abs(res.x - ref) / scale) < 1e-4
+
+
+@pytest.mark.filterwarnings("ignore::scipy.integrate.ODEintWarning")
+def test_lsoda_segment_returns_the_samples_reached_before_a_failure():
+    """y' = y², y(0) = 1 has the solution 1/(1 - t), which leaves every
+    bound at t = 1: the samples before it are returned, with status -1 and
+    LSODA's message; without a failure all samples come back."""
+    from bondgraph.numerics.simulate import lsoda_segment
+
+    ts = np.linspace(0.0, 2.0, 11)
+    with np.errstate(all="ignore"):
+        sol = lsoda_segment(lambda tq, y: y * y, lambda tq, y: np.array([[2.0 * y[0]]]), ts,
+                            np.array([1.0]), 1e-8, 1e-10)
+    assert sol.status == -1 and sol.message
+    np.testing.assert_array_equal(sol.t, ts[:5])      # t = 0 ... 0.8
+    np.testing.assert_allclose(sol.y[0], 1.0 / (1.0 - ts[:5]), rtol=1e-6)
+    ok = lsoda_segment(lambda tq, y: -y, lambda tq, y: -np.eye(1), ts, np.array([1.0]),
+                       1e-10, 1e-12)
+    assert ok.status == 0 and ok.y.shape == (1, 11) and ok.nfev > 0 and ok.njev == ok.nlu
+    np.testing.assert_allclose(ok.y[0], np.exp(-ts), rtol=1e-8)

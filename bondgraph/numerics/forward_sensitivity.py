@@ -37,7 +37,13 @@ from scipy.integrate import OdeSolver, solve_ivp
 from bondgraph.errors import DataError, NumericalError, OptionError, SensitivityError
 from bondgraph.numerics.integrators import hold_within
 from bondgraph.numerics.model import Model
-from bondgraph.numerics.simulate import InputSignals, Runaway, _vector, guard_rhs
+from bondgraph.numerics.simulate import (
+    InputSignals,
+    Runaway,
+    _vector,
+    guard_rhs,
+    lsoda_segment,
+)
 
 #: solve_ivp methods that get the Jacobian of the augmented system
 IMPLICIT_METHODS = ("BDF", "Radau", "LSODA")
@@ -464,7 +470,11 @@ def _integrate(model, t, sig, th, cols: _Columns, x_init, hold, kw):
             kw["jac"] = jac
         try:
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-                sol = solve_ivp(guard_rhs(rhs), (t[a], t[b]), z, t_eval=t[a:b + 1], **kw)
+                if kw["method"] == "LSODA":
+                    sol = lsoda_segment(guard_rhs(rhs), jac, t[a:b + 1], z, kw["rtol"],
+                                        kw["atol"], kw.get("max_step"))
+                else:
+                    sol = solve_ivp(guard_rhs(rhs), (t[a], t[b]), z, t_eval=t[a:b + 1], **kw)
         except Runaway as r:
             raise NumericalError(
                 f"forward sensitivity integration ({kw['method']}) of model '{model.name}' "
