@@ -59,6 +59,7 @@ from bondgraph.sensitivity.identifiability import (
     identifiability,
     orthogonal_ranking,
     recommend,
+    ridge_line,
     ukf_fisher,
 )
 from bondgraph.sensitivity.sobol import SobolOptions, _pow2, global_sensitivity
@@ -113,6 +114,8 @@ class SensitivityReport:
             lines.append(f"check: full rank {ck['full_rank']}, condition {ck['condition']:.3g}, "
                          f"collinearity index {ck['collinearity_index']:.3g}, max rel CRB "
                          f"{ck['max_rel_crb']:.2%}, max |corr| {ck['max_abs_corr']:.3f}")
+        if rec.get("ridge"):
+            lines.append(ridge_line(rec["ridge"]))
         nu = self.local.get("nuisance")
         if nu:
             lines.append("estimated with the parameters (Cramér-Rao std, nuisance of the "

@@ -55,6 +55,12 @@ CORR_MAX = 0.95
 PARALLEL_TOL = 1e-6
 #: relative eigenvalue of the normalised information below which it is singular
 RCOND = 1e-9
+#: a candidate set whose collinearity index γ exceeds this is reported as a
+#: ridge (:func:`ridge`): near-linear dependence (Brun et al. 2001: γ > 10-20)
+RIDGE_GAMMA = 20.0
+#: a parameter is named on a ridge when its relative change along it is at
+#: least this fraction of the largest one's
+RIDGE_LOADING = 0.2
 
 
 # -------------------------------------------------- UKF Fisher information
@@ -340,7 +346,8 @@ def recommend(F, names: Sequence[str], scale=None, *, rel_crb_max: float = REL_C
         ones; alone-with-the-set when it was tried for fixed ones), ``reason``),
         ``check`` (:func:`identifiability` of the selected set, summarised:
         ``full_rank, condition, collinearity_index, max_rel_crb,
-        max_abs_corr``), thresholds.
+        max_abs_corr``), ``ridge`` (:func:`ridge` of all candidates, or
+        None), thresholds.
     """
     names = list(names)
     k = len(names)
@@ -348,7 +355,8 @@ def recommend(F, names: Sequence[str], scale=None, *, rel_crb_max: float = REL_C
     Fs = 0.5 * (np.asarray(F, float) + np.asarray(F, float).T) * np.outer(s, s)
     limits = dict(corr_max=corr_max, rel_crb_max=rel_crb_max, parallel_tol=parallel_tol,
                   rcond=rcond)
-    partners = _partners(identifiability(F, names, s, **limits)["flags"])
+    full = identifiability(F, names, s, **limits)
+    partners = _partners(full["flags"])
     selected, decisions = _forward_selection(Fs, names, partners, limits)
     est = [names[i] for i in selected]
     check = identifiability(Fs[np.ix_(selected, selected)], est, None, **limits) \
@@ -364,10 +372,76 @@ def recommend(F, names: Sequence[str], scale=None, *, rel_crb_max: float = REL_C
     return dict(experiment=experiment, estimate=est,
                 fix=[d["param"] for d in decisions if d["decision"] == "fix"],
                 decisions=decisions, check=_check_summary(check, len(est)),
+                ridge=ridge(Fs, names, full, [names[i] for i in selected]),
                 thresholds=dict(rel_crb_max=rel_crb_max, corr_max=corr_max, rcond=rcond,
                                 parallel_tol=parallel_tol),
                 method="orthogonalised sensitivity ranking (Yao et al. 2003) with subset "
                        "selection on the relative Fisher information of the UKF likelihood")
+
+
+def ridge(Fs, names: Sequence[str], full: dict, estimated: Sequence[str]) -> dict | None:
+    """The direction along which the candidates are least identifiable
+    together, when their collinearity index γ exceeds :data:`RIDGE_GAMMA`:
+    the eigenvector of the relative information F̃ = diag(s) F diag(s) (k, k)
+    with the smallest eigenvalue, as relative changes dθ_j / s_j scaled to
+    a largest of +1. Masses, stiffnesses and dampings that all move by +1
+    are a scale symmetry: a record without a force or mass reference (a
+    quarter-car driven by the road's velocity, its body acceleration
+    measured) gives them only up to a common factor, and a parameter the
+    recommendation fixes on the ridge sets the scale of the others.
+
+    Parameters
+    ----------
+    Fs : array (k, k)
+        Relative information F̃.
+    names : sequence of str (k)
+    full : dict
+        :func:`identifiability` of all candidates (its ``collinearity_index``
+        and ``rel_std``).
+    estimated : sequence of str
+        The recommended parameters.
+
+    Returns
+    -------
+    dict or None
+        ``params`` (named on the ridge, |change| >= :data:`RIDGE_LOADING`
+        of the largest, largest first), ``direction`` ({name: change}),
+        ``collinearity_index``, ``rel_crb`` ({name: relative Cramér-Rao
+        bound with all candidates estimated}), ``fixed`` (those of
+        ``params`` the recommendation fixes); None when γ <= RIDGE_GAMMA or
+        fewer than two parameters are named.
+    """
+    gamma = float(full.get("collinearity_index", np.nan))
+    if len(names) < 2 or not np.all(np.isfinite(Fs)) or not gamma > RIDGE_GAMMA:
+        return None
+    _, V = np.linalg.eigh(0.5 * (Fs + Fs.T))
+    v = V[:, 0]
+    v = v / v[int(np.argmax(np.abs(v)))]
+    # largest change first; equal ones (a scale symmetry) in the candidates' order
+    order = sorted(range(len(names)), key=lambda i: (-round(abs(float(v[i])), 2), i))
+    named = [names[i] for i in order if abs(v[i]) >= RIDGE_LOADING]
+    if len(named) < 2:
+        return None
+    rel = dict(zip(names, np.asarray(full.get("rel_std", np.full(len(names), np.nan)), float)))
+    return dict(params=named, direction={names[i]: float(v[i]) for i in order},
+                collinearity_index=gamma, rel_crb={n: float(rel[n]) for n in named},
+                fixed=[n for n in named if n not in set(estimated)])
+
+
+def ridge_line(r: dict) -> str:
+    """One line for a user about :func:`ridge`'s result ``r``."""
+    moves = ", ".join(f"{n} {r['direction'][n]:+.2f}" for n in r["params"])
+    crb = [c for c in r["rel_crb"].values() if np.isfinite(c)]
+    text = (f"ridge: the record does not identify {', '.join(r['params'])} together "
+            f"(collinearity index {r['collinearity_index']:.3g}): the relative changes "
+            f"{moves} barely change the likelihood")
+    if crb:
+        text += f" (relative Cramér-Rao bounds up to {max(crb):.0%} with all estimated)"
+    if r["fixed"]:
+        text += (f"; fixing {', '.join(r['fixed'])} sets the scale of the others: their "
+                 f"estimates follow its value. Fix the one you know best instead "
+                 f"(estimate --fixed NAME=VALUE)")
+    return text
 
 
 def _partners(flags) -> dict[str, list[str]]:
