@@ -112,6 +112,29 @@ def test_de_path(msd_record):
     assert r.fixed == {"m": 2.5} and r.theta[m.param_index("m")] == 2.5
 
 
+def test_a_scale_symmetry_is_named_as_relative_changes():
+    """NLL curvature from relative sensitivities S (N, 3) with S @ (1, 1, 1)
+    = 0 at θ = (2, 50, 1.5): H = Jᵀ J with J = S / θ (model units). Scaling
+    all three by one factor changes nothing, so the unidentified direction
+    in relative changes is (1, 1, 1) exactly, whatever the box widths that
+    scale the reported one; a direction that is not a scale (one parameter
+    alone) is given as relative changes without that name."""
+    rng = np.random.default_rng(4)
+    S = rng.normal(size=(100, 3))
+    S[:, 2] = -(S[:, 0] + S[:, 1])
+    th = np.array([2.0, 50.0, 1.5])
+    H = (S / th).T @ (S / th)
+    cr = cramer_rao(H, ["m", "k", "c"], scale=np.array([10.0, 400.0, 4.0]), theta=th)
+    assert not cr["positive_definite"]
+    assert "as relative changes: m +1.00, k +1.00, c +1.00 (m, k, c scale together" \
+        in cr["warning"]
+    assert "relative changes" not in cramer_rao(H, ["m", "k", "c"], np.array([10.0, 400.0, 4.0]))[
+        "warning"]
+    H1 = np.diag([4.0, 1.0, 0.0])
+    one = cramer_rao(H1, ["m", "k", "c"], theta=th)
+    assert "as relative changes: c +1.00" in one["warning"] and "scale together" not in one["warning"]
+
+
 def test_hessian_and_unidentified_direction():
     H, f0, n = hessian_batched(lambda X: (X[:, 0] - 1) ** 2 + 3 * X[:, 0] * X[:, 1] + 5 * X[:, 1] ** 2,
                                np.array([0.5, 0.2]), np.array([1e-3, 1e-3]))
