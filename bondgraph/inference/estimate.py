@@ -511,9 +511,11 @@ SCALE_TOLERANCE = 0.1
 
 def _relative_direction(d: np.ndarray, theta, names) -> str:
     """The direction ``d`` (k,) in model units as relative changes at the
-    estimate ``theta`` (k,) (the largest +1; those of at least 0.1 named):
-    ``"; as relative changes: a +1.00, b +0.98 (they scale together)"``,
-    or "" without ``theta`` or with a zero parameter among the named."""
+    estimate ``theta`` (k,) (the largest +1; those of at least 0.1 named),
+    ``"; as relative changes: a +1.00, b +0.98"``, followed by ``" (a, b
+    scale together: ...)"`` when all named are within
+    :data:`SCALE_TOLERANCE` of +1; "" without ``theta``, or when a change
+    is not finite (a parameter at zero)."""
     if theta is None:
         return ""
     th = np.asarray(theta, float)
