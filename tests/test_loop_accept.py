@@ -460,6 +460,28 @@ def test_a_fit_names_the_parameters_the_record_does_not_identify_apart():
     assert unidentified(None, ["a"]) == ()
 
 
+def test_a_fits_scale_symmetry_is_named_whole_with_nuisance_rows():
+    """``fit.ridge_changes``: parameters θ = (2, 50, 1.5) whose relative
+    sensitivities sum to zero (S @ (1, 1, 1) = 0) and one noise std row
+    that is independent of them: the efficient information's weakest
+    direction as relative changes is (+1, +1, +1), named a scale symmetry;
+    a direction along one parameter near zero (a sensor offset) is not
+    reported (it would dominate any relative direction)."""
+    from bondgraph.diagnose.fit import ridge_changes
+
+    rng = np.random.default_rng(8)
+    S = rng.normal(size=(100, 4))
+    S[:, 2] = -(S[:, 0] + S[:, 1])
+    th = np.array([2.0, 50.0, 1.5])
+    J = np.column_stack([S[:, :3] / th, S[:, 3]])          # the last: a noise std
+    F = J.T @ J
+    text = ridge_changes(F, ["m", "k", "c"], th)
+    assert "m +1.00, k +1.00, c +1.00 (m, k, c scale together" in text
+    F2 = np.diag([4.0, 1.0, 1e-9, 2.0])
+    assert ridge_changes(F2, ["m", "k", "b"], np.array([2.0, 50.0, 1e-6])) == ""
+    assert ridge_changes(None, ["m", "k"], th[:2]) == ""
+
+
 def test_state_scaled_prior_in_the_loop():
     """p0_scale="state": the loop's prior is record_prior's (each state's
     free-run RMS times p0_rel), not 5 % of max(|x0|, 1); a sidecar's x0_std

@@ -36,6 +36,7 @@ from bondgraph.diagnose.inference_calls import (
     noise_parameters,
     one_step_errors,
     plan_noise,
+    relative_direction,
     robust_std,
     run_ukf,
     smoothed_initial_state,
@@ -619,11 +620,12 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
         else:
             flat = unidentified(F, names)
             if flat:
+                moves = ridge_changes(F, list(params), theta[idx])
                 ctx.log_once(f"unidentified:{sorted(flat)}",
                              f"  {what}: the record does not identify {', '.join(flat)} "
                              f"separately (the Fisher information is flat along a "
-                             f"combination of them: collinearity index > 100); fix one, or "
-                             f"use a record that excites them apart")
+                             f"combination of them: collinearity index > 100){moves}; fix "
+                             f"one, or use a record that excites them apart")
         return (theta, cr_std(F, names), (conv, used, flat),
                 {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
@@ -653,6 +655,47 @@ def _information_at(problem: Problem, params: list[str], theta: np.ndarray, idx,
     if F is None or not np.all(np.isfinite(F)):
         return {}, ()
     return cr_std(F, list(params)), unidentified(F, list(params))
+
+
+def ridge_changes(F: np.ndarray | None, params: list[str], values: np.ndarray) -> str:
+    """A fit's least identified direction among its parameters as relative
+    changes, for its log line (:func:`~bondgraph.inference.estimate.relative_direction`):
+    the weakest eigenvector of their efficient information (the initial
+    states' and noise stds' rows profiled out, F_pp − F_pn F_nn⁺ F_np) in
+    coordinates θ_i / abs(θ_i). The unit-diagonal loadings of
+    :func:`unidentified` name a scale symmetry only in part (a user's
+    quarter-car: "ms, ks, cs" of the five that scale together, ms, mu, ks,
+    kt, cs +1.00 each here).
+
+    Parameters
+    ----------
+    F : array (k + m, k + m) or None
+        The fit's Fisher information, its first k rows the parameters.
+    params : list of str (k)
+    values : array (k,)
+        The parameters' estimates.
+
+    Returns
+    -------
+    str
+        ``"; as relative changes: ... (... scale together: ...)"`` when the
+        direction is a scale symmetry, else "" (also when F is missing or
+        not finite, or a parameter is zero: a parameter near zero, a sensor
+        offset, would dominate any relative direction).
+    """
+    k = len(params)
+    th = np.asarray(values, float)
+    if F is None or k < 2 or th.shape != (k,) or not np.all(th != 0):
+        return ""
+    F = np.asarray(F, float)
+    if F.shape[0] < k or not np.all(np.isfinite(F)):
+        return ""
+    Fe = F[:k, :k]
+    if F.shape[0] > k:
+        Fe = Fe - F[:k, k:] @ np.linalg.pinv(F[k:, k:]) @ F[k:, :k]
+    sc = np.abs(th)
+    _, V = np.linalg.eigh(0.5 * (Fe + Fe.T) * np.outer(sc, sc))
+    return relative_direction(V[:, 0] * sc, th, params, scale_only=True)
 
 
 def unidentified(F: np.ndarray | None, names: list[str]) -> tuple:

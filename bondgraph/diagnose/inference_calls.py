@@ -17,7 +17,12 @@ import numpy as np
 from bondgraph.errors import NumericalError
 
 from bondgraph.inference.discretise import choose_discretisation, no_process_noise
-from bondgraph.inference.estimate import Criterion, cramer_rao, hessian_batched
+from bondgraph.inference.estimate import (
+    Criterion,
+    cramer_rao,
+    hessian_batched,
+    relative_direction,
+)
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.estimand import NOISE_BOX, Estimand, noise_parameters, noise_plan
 from bondgraph.inference.fisher import (
@@ -45,7 +50,7 @@ from bondgraph.inference.ukf_numba import threads as kernel_threads
 # times / divided by NOISE_BOX), the problem's parts, the noise detector,
 # the robust std and the long-run variance (bondgraph.inference.robust)
 __all__ = ["FLAT_GAIN", "flat_directions", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem",
-           "no_process_noise",
+           "no_process_noise", "relative_direction",
            "choose_discretisation", "kernel_threads", "make_problem", "noise_parameters",
            "ROBUST_RATIO", "andrews_bandwidth", "long_run_variance", "robust_std"]
 

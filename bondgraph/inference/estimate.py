@@ -487,7 +487,7 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
         out["warning"] = (f"Hessian of the NLL is not positive definite (smallest eigenvalue "
                           f"{lam[0]:.3g}, largest {lam[-1]:.3g}, in scaled coordinates): the "
                           f"direction {' '.join(terms)} (scaled coordinates) is not identified "
-                          f"by the data{_relative_direction(v * s, theta, names)}")
+                          f"by the data{relative_direction(v * s, theta, names)}")
         if conditional:
             _conditional_bounds(out, Hs, s, names, np.abs(v) > FLAT_COMPONENT, rcond)
         return out
@@ -509,13 +509,30 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
 SCALE_TOLERANCE = 0.1
 
 
-def _relative_direction(d: np.ndarray, theta, names) -> str:
-    """The direction ``d`` (k,) in model units as relative changes at the
-    estimate ``theta`` (k,) (the largest +1; those of at least 0.1 named),
-    ``"; as relative changes: a +1.00, b +0.98"``, followed by ``" (a, b
-    scale together: ...)"`` when all named are within
-    :data:`SCALE_TOLERANCE` of +1; "" without ``theta``, or when a change
-    is not finite (a parameter at zero)."""
+def relative_direction(d: np.ndarray, theta, names, scale_only: bool = False) -> str:
+    """An unidentified direction ``d`` (k,) in model units as relative
+    changes at the estimate ``theta`` (k,), for a user's message.
+
+    Parameters
+    ----------
+    d : array (k,)
+        The direction (e.g. the Hessian's or the Fisher information's
+        weakest eigenvector in model units).
+    theta : array (k,) or None
+        The estimate.
+    names : sequence of str (k)
+    scale_only : bool
+        Return "" unless the direction is a scale symmetry.
+
+    Returns
+    -------
+    str
+        ``"; as relative changes: a +1.00, b +0.98"`` (the largest +1, those
+        of at least 0.1 named, largest first), followed by ``" (a, b scale
+        together: ...)"`` when all named are within :data:`SCALE_TOLERANCE`
+        of +1; "" without ``theta``, or when a change is not finite (a
+        parameter at zero).
+    """
     if theta is None:
         return ""
     th = np.asarray(theta, float)
@@ -530,9 +547,9 @@ def _relative_direction(d: np.ndarray, theta, names) -> str:
     named = [i for i in order if abs(r[i]) >= 0.1]
     text = "; as relative changes: " + ", ".join(f"{names[i]} {r[i]:+.2f}" for i in named)
     if len(named) > 1 and np.all(np.abs(r[named] - 1.0) <= SCALE_TOLERANCE):
-        text += (f" ({', '.join(names[i] for i in named)} scale together: the record fixes "
-                 f"their ratios, not their size; --fixed one you know)")
-    return text
+        return text + (f" ({', '.join(names[i] for i in named)} scale together: the record "
+                       f"fixes their ratios, not their size; --fixed one you know)")
+    return "" if scale_only else text
 
 
 def _conditional_bounds(out: dict, Hs: np.ndarray, s: np.ndarray, names, flat: np.ndarray,
