@@ -691,10 +691,13 @@ def ridge_changes(F: np.ndarray | None, params: list[str], values: np.ndarray) -
     if F.shape[0] < k or not np.all(np.isfinite(F)):
         return ""
     Fe = F[:k, :k]
-    if F.shape[0] > k:
-        Fe = Fe - F[:k, k:] @ np.linalg.pinv(F[k:, k:]) @ F[k:, :k]
     sc = np.abs(th)
-    _, V = np.linalg.eigh(0.5 * (Fe + Fe.T) * np.outer(sc, sc))
+    try:                    # a message: it never stops the fit it describes
+        if F.shape[0] > k:
+            Fe = Fe - F[:k, k:] @ np.linalg.pinv(F[k:, k:]) @ F[k:, :k]
+        _, V = np.linalg.eigh(0.5 * (Fe + Fe.T) * np.outer(sc, sc))
+    except (np.linalg.LinAlgError, ValueError):
+        return ""
     return relative_direction(V[:, 0] * sc, th, params, scale_only=True)
 
 
