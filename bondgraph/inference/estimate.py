@@ -72,7 +72,7 @@ from bondgraph.inference.options import (
     fit_options,
 )
 from bondgraph.inference.problem import Problem
-from bondgraph.inference.fisher import innovation_differences
+from bondgraph.inference.fisher import innovation_differences, relative_changes
 from bondgraph.inference.robust import ROBUST_RATIO, sandwich, score_covariance, step_scores
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.ukf import (
@@ -542,9 +542,7 @@ def relative_direction(d: np.ndarray, theta, names, scale_only: bool = False) ->
         r = d / th
     if not np.all(np.isfinite(r)) or not np.any(r):
         return ""
-    r = r / r[int(np.argmax(np.abs(r)))]
-    order = sorted(range(r.size), key=lambda i: (-round(abs(float(r[i])), 2), i))
-    named = [i for i in order if abs(r[i]) >= 0.1]
+    r, named = relative_changes(r, 0.1)
     text = "; as relative changes: " + ", ".join(f"{names[i]} {r[i]:+.2f}" for i in named)
     if len(named) > 1 and np.all(np.abs(r[named] - 1.0) <= SCALE_TOLERANCE):
         return text + (f" ({', '.join(names[i] for i in named)} scale together: the record "

@@ -541,6 +541,20 @@ def _converged(D: Derivatives, x, L, free, atol: float, gain: float) -> tuple[bo
     return (True, flat) if flat and identified < atol else (False, ())
 
 
+def relative_changes(v: np.ndarray, floor: float) -> tuple[np.ndarray, list[int]]:
+    """A direction ``v`` (k,) scaled so that its largest component is +1,
+    and the indices whose scaled component is at least ``floor`` in size,
+    largest first (equal ones to two decimals in index order: the members
+    of a scale symmetry keep the parameters' order). Shared by the
+    messages that name an unidentified direction
+    (:func:`bondgraph.inference.estimate.relative_direction`,
+    :func:`bondgraph.sensitivity.identifiability.ridge`)."""
+    r = np.asarray(v, float)
+    r = r / r[int(np.argmax(np.abs(r)))]
+    order = sorted(range(r.size), key=lambda i: (-round(abs(float(r[i])), 2), i))
+    return r, [i for i in order if abs(r[i]) >= floor]
+
+
 def flat_directions(F: np.ndarray, grad: np.ndarray, free=None) -> tuple[tuple, float]:
     """The quantities along which an information F (k, k) is flat, and the
     NLL decrease ½ gᵀ F⁺ g a full scoring step predicts in the other

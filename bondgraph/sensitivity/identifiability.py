@@ -44,7 +44,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bondgraph.errors import SensitivityError
-from bondgraph.inference.fisher import Derivatives, derivatives
+from bondgraph.inference.fisher import Derivatives, derivatives, relative_changes
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf import default_P0
 
@@ -415,15 +415,12 @@ def ridge(Fs, names: Sequence[str], full: dict, estimated: Sequence[str]) -> dic
     if len(names) < 2 or not np.all(np.isfinite(Fs)) or not gamma > RIDGE_GAMMA:
         return None
     _, V = np.linalg.eigh(0.5 * (Fs + Fs.T))
-    v = V[:, 0]
-    v = v / v[int(np.argmax(np.abs(v)))]
-    # largest change first; equal ones (a scale symmetry) in the candidates' order
-    order = sorted(range(len(names)), key=lambda i: (-round(abs(float(v[i])), 2), i))
-    named = [names[i] for i in order if abs(v[i]) >= RIDGE_LOADING]
+    v, keep = relative_changes(V[:, 0], 0.0)
+    named = [names[i] for i in keep if abs(v[i]) >= RIDGE_LOADING]
     if len(named) < 2:
         return None
     rel = dict(zip(names, np.asarray(full.get("rel_std", np.full(len(names), np.nan)), float)))
-    return dict(params=named, direction={names[i]: float(v[i]) for i in order},
+    return dict(params=named, direction={names[i]: float(v[i]) for i in keep},
                 collinearity_index=gamma, rel_crb={n: float(rel[n]) for n in named},
                 fixed=[n for n in named if n not in set(estimated)])
 
