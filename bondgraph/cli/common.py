@@ -462,10 +462,14 @@ def published(folder: OutputFolder, staged: Iterable) -> list[Path]:
 
 def load_model(spec: str):
     """The :class:`~bondgraph.numerics.model.Model` named by ``--model``
-    (:meth:`~bondgraph.numerics.model.Model.from_spec`)."""
+    (:meth:`~bondgraph.numerics.model.Model.from_spec`); each law it evaluates
+    continued past its domain said in one line (``Model.domain_notes``)."""
     from bondgraph.numerics.model import Model
 
-    return Model.from_spec(spec)
+    model = Model.from_spec(spec)
+    for note in model.domain_notes:
+        _stderr(f"note: {note}")
+    return model
 
 
 def prior_spec(args) -> PriorSpec:

@@ -22,6 +22,7 @@ from bondgraph.cli.common import (
     add_overwrite,
     band_limited_record,
     discretisation_given,
+    load_model,
     load_record,
     output_folder,
     parse_names,
@@ -42,7 +43,6 @@ from bondgraph.inference.estimand import start_levels
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
 from bondgraph.inference.track import TrackingModel, check_tracked, choose_substeps, track
 from bondgraph.inference.ukf_numba import compile_in_background
-from bondgraph.numerics.model import Model
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.tracking import plot_track
 
@@ -201,7 +201,7 @@ def run(args) -> int:
     if getattr(args, "backend", "numba") == "numba":
         compile_in_background()     # the filter kernel, once per installation, beside the set-up
     graph = graph_builder(args.model)()
-    model = Model.from_spec(args.model)
+    model = load_model(args.model)
     names = parse_names(args.track, "--track")
     check_tracked(names, model)
     drift = parse_pairs(args.drift, "--drift")

@@ -30,6 +30,7 @@ from __future__ import annotations
 import sympy as sp
 from sympy.printing.c import C99CodePrinter
 
+from bondgraph.core import domains
 from bondgraph.core.codegen import RESERVED, _Gen, _Namer
 from bondgraph.core.equations import StateSpace
 
@@ -66,6 +67,9 @@ class _CPrinter(C99CodePrinter):
 
     def _print_sigmoid(self, expr):
         return f"bg_sigmoid({self._print(expr.args[0])})"
+
+    def _print_dpow(self, expr):
+        return domains.c_text(expr, self._print)
 
     def _print_Piecewise(self, expr):
         out = "NAN"

@@ -32,7 +32,7 @@ import textwrap
 
 import sympy as sp
 
-from bondgraph.core import vmath
+from bondgraph.core import domains, vmath
 from bondgraph.core.codegen import Shared, _free, _Gen, _Printer, live_definitions
 from bondgraph.core.equations import StateSpace, paused_gc
 
@@ -52,6 +52,9 @@ class _ScalarPrinter(_Printer):
 
     def _print_tanh(self, expr):
         return f"_tanh({self._print(expr.args[0])})"
+
+    def _print_dpow(self, expr):
+        return domains.scalar_text(expr, self._print)
 
     def _print_Piecewise(self, expr):
         out = "np.nan"

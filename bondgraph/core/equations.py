@@ -38,6 +38,7 @@ import sympy as sp
 
 from bondgraph.core import units as _units
 from bondgraph.core.causality import Causality, assign_causality
+from bondgraph.core.domains import extend_domains
 from bondgraph.core.elements import (
     GY,
     C,
@@ -170,6 +171,10 @@ class StateSpace:
         Storages eliminated by derivative causality.
     algebraic_loops : list of list of str
         Variables of each algebraic loop solved symbolically.
+    domain_notes : list of str
+        One line per power of a restricted domain that f or h evaluates
+        continued past it (:func:`bondgraph.core.domains.extend_domains`:
+        ``sqrt(q)`` taken as 0 where q < 0).
     """
 
     name: str
@@ -189,6 +194,7 @@ class StateSpace:
     derivative_elements: list[str] = field(default_factory=list)
     algebraic_loops: list[list[str]] = field(default_factory=list)
     solved: dict = field(default_factory=dict, repr=False)
+    domain_notes: list[str] = field(default_factory=list)
 
     # ------------------------------------------------------------ access
     @property
@@ -315,6 +321,7 @@ class StateSpace:
             lines.append(f"  d{s.name}/dt = {fi}")
         for o in self.outputs:
             lines.append(f"  {o.name} = {o.expr}")
+        lines += [f"  note: {n}" for n in self.domain_notes]
         return "\n".join(lines)
 
 
@@ -860,6 +867,8 @@ def _derive(graph: BondGraph, causality: Causality | None, validate: bool) -> St
             raise CausalityError(f"internal: sensor '{o.name}' still depends on {leftover}")
     H_terms = _energy_terms(graph, causality, d, solved)
     P_src, P_diss = _powers(graph, solved)
+    f, outputs, H_terms, (P_src, P_diss), solved, notes = _extended(
+        states, f, outputs, H_terms, (P_src, P_diss), solved)
     rate = _energy_rate(H_terms, d, f)
     inputs = list(graph.inputs.values()) + list(d.der_inputs.values())
     noise = []
@@ -871,9 +880,33 @@ def _derive(graph: BondGraph, causality: Causality | None, validate: bool) -> St
         states=states, inputs=inputs, params=list(graph.params.values()), f=f,
         outputs=outputs, energy=sp.Add(*H_terms), power_sources=P_src, power_dissipated=P_diss,
         energy_rate=rate, process_noise=noise, causality=causality,
-        derivative_elements=list(causality.derivative), algebraic_loops=d.loops, solved=solved)
+        derivative_elements=list(causality.derivative), algebraic_loops=d.loops, solved=solved,
+        domain_notes=notes)
     ss._alias = d.alias
     return ss
+
+
+def _extended(states, f, outputs, H_terms, powers, solved):
+    """f, the outputs, the energy terms, the powers and the solved variables
+    with every state-dependent power of a restricted domain continued past
+    it (:func:`bondgraph.core.domains.extend_domains`), and its notes (for
+    f and the outputs)."""
+    keys = list(solved)
+    exprs = (list(f) + [o.expr for o in outputs] + list(H_terms) + list(powers)
+             + [solved[k] for k in keys])
+    where = ([f"d{s.name}/dt" for s in states] + [o.name for o in outputs]
+             + [""] * (len(exprs) - len(f) - len(outputs)))
+    out, notes = extend_domains(exprs, states, where)
+    if not notes and out == exprs:
+        return f, outputs, H_terms, powers, solved, notes
+    it = iter(out)
+    f2 = [next(it) for _ in f]
+    for o in outputs:
+        o.expr = next(it)
+    H2 = [next(it) for _ in H_terms]
+    P2 = tuple(next(it) for _ in powers)
+    solved2 = {k: next(it) for k in keys}
+    return f2, outputs, H2, P2, solved2, notes
 
 
 def _unsolved(d: _Deriver, ex: sp.Expr) -> list:

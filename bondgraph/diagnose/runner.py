@@ -418,6 +418,8 @@ def initial_fit(ctx: Context, graph: BondGraph, again: bool = False) -> Fit:
     if not again:
         ctx.log(f"loop on model '{graph.name}', record '{ctx.problem.name}', estimating "
                 f"{', '.join(s.params)}")
+        for note in getattr(ctx.problem.model, "domain_notes", ()):
+            ctx.log(f"note: {note}")
     if not again and not graph.process_noise and not any(
             ss.process_noise is not None for ss in graph.signal_states.values()):
         ctx.log("warning: the filter model declares no process noise; model errors then "

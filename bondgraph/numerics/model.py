@@ -44,6 +44,9 @@ class Model:
         Parameter defaults.
     lower, upper : ndarray (n_theta,)
         Parameter bounds.
+    domain_notes : list of str
+        The laws evaluated continued past their domain (``sqrt(q)`` taken as
+        0 where q < 0; :mod:`bondgraph.core.domains`), one line each.
     """
 
     def __init__(self, module: types.ModuleType):
@@ -63,6 +66,8 @@ class Model:
         self.outputs = list(m.OUTPUTS)
         self.output_units = list(m.OUTPUT_UNITS)
         self.derivative_inputs = dict(getattr(m, "DERIVATIVE_INPUTS", {}))
+        #: laws evaluated continued past their domain (bondgraph.core.domains), one line each
+        self.domain_notes: list[str] = list(getattr(m, "DOMAIN_NOTES", ()))
         self.x0 = np.array(m.X0, dtype=float)
         self.u0 = np.array(m.INPUT_DEFAULTS, dtype=float)
         self.theta0 = np.array(m.PARAM_DEFAULTS, dtype=float)

@@ -1,0 +1,202 @@
+"""Laws of a restricted domain continued past it (bondgraph.core.domains).
+
+The reference is the hand-written Torricelli model of two cascaded tanks,
+dx1/dt = k4 u - k1 sqrt(x1), dx2/dt = k2 sqrt(x1) - k3 sqrt(x2), y = x2
+(Schoukens & Noël 2017, the cascaded-tanks benchmark's physical model), as a
+user writes it with plain ``sqrt``: inside the domain the generated code must
+give exactly these values and derivatives; outside it, finite values (the
+empty tank lets nothing out) where numpy gives NaN.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import sympy as sp
+from scipy.integrate import solve_ivp
+
+from bondgraph import BondGraph, derive
+from bondgraph.core.domains import dpow, extend_domains, nonnegative_by_form
+from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
+
+K = dict(k1=0.05, k2=0.06, k3=0.09, k4=0.056)
+
+
+def tanks(x0: float = 0.0) -> BondGraph:
+    g = BondGraph("domain_tanks", "cascaded tanks with square-root orifices")
+    u = g.input("u", "V", 0.0, "pump voltage")
+    k1, k2, k3, k4 = (g.param(n, v, "", (1e-3, 1.0)) for n, v in K.items())
+    t1 = g.zero("upper", domain="hydraulic")
+    g.connect(g.Sf("pump", k4 * u), t1)
+    c1 = g.C("tank1", 1.0)
+    g.connect(t1, c1)
+    g.connect(t1, g.R("orifice1", flow=lambda e: k1 * sp.sqrt(e)))
+    t2 = g.zero("lower", domain="hydraulic")
+    g.connect(g.Sf("jet", k2 * sp.sqrt(c1.q)), t2)
+    c2 = g.C("tank2", 1.0)
+    g.connect(t2, c2)
+    g.connect(t2, g.R("orifice2", flow=lambda e: k3 * sp.sqrt(e)))
+    g.set_process_noise(c1.q, 0.01)
+    g.set_process_noise(c2.q, 0.01)
+    g.sensor("y", c2.q, unit="V", noise_std=0.02)
+    return g
+
+
+def hand_f(x, u):
+    k1, k2, k3, k4 = K.values()
+    return np.array([k4 * u - k1 * np.sqrt(x[0]), k2 * np.sqrt(x[0]) - k3 * np.sqrt(x[1])])
+
+
+def hand_dfdx(x):
+    k1, k2, k3, _ = K.values()
+    return np.array([[-k1 / (2 * np.sqrt(x[0])), 0.0],
+                     [k2 / (2 * np.sqrt(x[0])), -k3 / (2 * np.sqrt(x[1]))]])
+
+
+@pytest.fixture(scope="module")
+def model():
+    return Model.from_graph(tanks())
+
+
+def test_forms_known_nonnegative_are_left_alone():
+    x, e, L, k = sp.symbols("x e L k", real=True)
+    for b in (x**2 + e**2, 1 + (x / L)**2, sp.Abs(x) * 3, (x - e)**2 + e**2,
+              sp.sqrt(x**2 + 1), sp.Max(x, 0)):
+        assert nonnegative_by_form(b), b
+    for b in (x, x - 1, k * x**2, x**3 + 1):
+        assert not nonnegative_by_form(b), b
+    exprs = [x * sp.sqrt(x**2 + e**2), sp.sqrt(k) * x, x / sp.sqrt(1 + (x / L)**2)]
+    out, notes = extend_domains(exprs, [x], ["a", "b", "c"])
+    assert out == exprs and notes == []         # nothing to continue (k is no state)
+
+
+def test_roots_are_continued_and_named():
+    x, y = sp.symbols("x y", real=True)
+    out, notes = extend_domains([sp.sqrt(x) + y**sp.Rational(1, 3), x**1.5],
+                                [x, y], ["dx/dt", "dy/dt"])
+    assert out[0] == dpow(x, sp.Rational(1, 2), 0) + dpow(y, sp.Rational(1, 3), -1)
+    assert out[1] == dpow(x, 1.5, 0)
+    assert len(notes) == 3 and any(n.startswith("sqrt(x) (in dx/dt)") for n in notes)
+    assert any("real root" in n for n in notes)
+    f = sp.lambdify([x, y], out[0], "numpy")
+    # inside: the power itself; below: 0 for the even root, the real cube root for the odd one
+    assert f(4.0, 8.0) == pytest.approx(4.0)
+    assert f(-4.0, -8.0) == pytest.approx(-2.0)
+    assert float(dpow(sp.Float(-8.0), sp.Rational(1, 3), -1).evalf()) == pytest.approx(-2.0)
+    # derivative of the continued law: its own continuation, 0 below an even root
+    assert sp.diff(out[0], x) == dpow(x, -sp.Rational(1, 2), 0) / 2
+    assert float(sp.diff(out[0], y).subs(y, -8.0)) == pytest.approx(1 / 12)
+
+
+def test_generated_code_is_the_hand_model_inside_and_finite_outside(model):
+    ss = derive(tanks())
+    assert len(ss.domain_notes) == 2 and "q_tank1 < 0" in ss.domain_notes[0]
+    assert "sqrt(q_tank1)" in str(ss.f[0])        # printed as the user wrote it
+    assert model.domain_notes == ss.domain_notes
+    inside = np.array([[5.0, 3.0], [0.3, 7.5]])
+    u = np.array([[2.0], [0.5]])
+    with np.errstate(all="raise"):               # no NaN, no division by zero, no warning
+        f = model.f(inside, u, model.theta0)
+        J = model.dfdx(inside, u, model.theta0)
+        outside = np.array([[-1.0, 2.0], [0.0, -3.0]])
+        fo = model.f(outside, u, model.theta0)
+        Jo = model.dfdx(outside, u, model.theta0)
+    for i in range(2):
+        np.testing.assert_allclose(f[i], hand_f(inside[i], u[i, 0]), rtol=1e-14)
+        np.testing.assert_allclose(J[i], hand_dfdx(inside[i]), rtol=1e-14)
+    k1, k2, k3, k4 = K.values()
+    np.testing.assert_allclose(fo, [[2 * k4, -k3 * np.sqrt(2.0)], [0.5 * k4, 0.0]], rtol=1e-14)
+    np.testing.assert_allclose(Jo, [[[0, 0], [0, -k3 / (2 * np.sqrt(2.0))]], [[0, 0], [0, 0]]],
+                               rtol=1e-14)
+
+
+@pytest.mark.parametrize("kind", ["numba", "c"])
+def test_compiled_point_kernels_agree_with_numpy(kind, monkeypatch):
+    """numba's conditional expressions and the C kernels' translation of them."""
+    from bondgraph.numerics import compiled, compiled_c
+
+    if kind == "c" and compiled_c.compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    monkeypatch.setenv(compiled.KERNELS_ENV, kind)
+    model = Model.from_graph(tanks())
+    k = compiled.point_kernels(model)
+    assert k.kind == kind
+    th = np.array(model.theta0)
+    for x in ([5.0, 3.0], [-1.0, 2.0], [0.0, -3.0]):
+        x = np.array(x)
+        u = np.array([2.0])
+        dx, J = np.zeros(2), np.zeros((2, 2))
+        k.f_dfdx(x, u, th, dx, J)
+        np.testing.assert_allclose(dx, model.f(x, u, th), rtol=1e-14)
+        np.testing.assert_allclose(J, model.dfdx(x, u, th), rtol=1e-14)
+
+
+def test_tanks_that_start_empty_simulate_as_scipy_integrates_the_hand_model(model):
+    """From empty tanks, where sqrt has an infinite derivative (BDF's Jacobian
+    was inf and scipy's LU raised), against solve_ivp of the hand model with
+    the level clipped at 0, the physical empty tank."""
+    t = np.arange(0.0, 400.0, 4.0)
+    u = 2.0 + np.sin(t / 40.0)
+    ref = solve_ivp(lambda tq, x: hand_f(np.maximum(x, 0.0), np.interp(tq, t, u)),
+                    (0, t[-1]), [0.0, 0.0], t_eval=t, method="LSODA", rtol=1e-10, atol=1e-12)
+    for method in ("BDF", "LSODA"):
+        sim = simulate(model, t, u[:, None], method=method, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(sim.x, ref.y.T, atol=2e-6, err_msg=method)
+    assert sim.x[-1, 0] > 1.0            # the tanks filled: not a trivial run
+
+
+def test_filter_with_an_unknown_initial_level_near_empty_gives_a_finite_likelihood(model):
+    """The filter's prior mean of an unknown level is the graph's X0 = 0 with a
+    spread of its scale: half its sigma points ask for sqrt of a negative
+    level. The likelihood is finite and the filter follows the levels."""
+    from bondgraph import ukf_nll
+
+    t = np.arange(0.0, 200.0, 4.0)
+    u = (2.0 + np.sin(t / 40.0))[:, None]
+    sim = simulate(model, t, u, x0=[0.5, 0.5], method="LSODA", rtol=1e-10, atol=1e-12)
+    y = sim.y + 0.02 * np.random.default_rng(3).standard_normal(sim.y.shape)
+    res = ukf_nll(model, t, u, y, model.theta0, x0=np.zeros(2), P0=np.eye(2) * 0.25,
+                  store="full")
+    assert np.isfinite(res.nll)
+    # and it tracks the levels: the last filtered state within 4 std of the truth
+    err = res.x_filt[-1, 0] - sim.x[-1]   # arrays (N, parameter sets, ...)
+    assert np.all(np.abs(err) < 4 * np.sqrt(np.diag(res.P_filt[-1, 0]))), (err, res.P_filt[-1, 0])
+
+
+def test_exported_c_source_gives_the_same_values(model, tmp_path):
+    """The C99 source of ``bondgraph export``/``generate`` (codegen_c), compiled
+    with the machine's C compiler: f and df/dx at states inside and outside
+    the domain equal the numpy module's."""
+    import subprocess
+
+    from bondgraph.core.codegen_c import generate_c_source
+    from bondgraph.numerics import compiled_c
+
+    cc = compiled_c.compiler()
+    if cc is None:
+        pytest.skip("no C compiler on this machine")
+    (tmp_path / "m.c").write_text(generate_c_source(derive(tanks())))
+    (tmp_path / "main.c").write_text('''#include <stdio.h>
+#include "m.c"
+int main(void) {
+    double xs[3][2] = {{5.0, 3.0}, {-1.0, 2.0}, {0.0, -3.0}};
+    double u[1] = {2.0}, f[2], J[4];
+    for (int i = 0; i < 3; ++i) {
+        bg_f(xs[i], u, BG_THETA0, f);
+        bg_dfdx(xs[i], u, BG_THETA0, J);
+        printf("%.17g %.17g %.17g %.17g %.17g %.17g\\n", f[0], f[1], J[0], J[1], J[2], J[3]);
+    }
+    return 0;
+}
+''')
+    exe = tmp_path / "main"
+    subprocess.run([cc[0], "-std=c99", "-O1", "-o", str(exe), str(tmp_path / "main.c"), "-lm"],
+                   check=True, cwd=tmp_path)
+    got = np.loadtxt(subprocess.run([str(exe)], check=True, capture_output=True,
+                                    text=True).stdout.splitlines())
+    x = np.array([[5.0, 3.0], [-1.0, 2.0], [0.0, -3.0]])
+    u = np.full((3, 1), 2.0)
+    np.testing.assert_allclose(got[:, :2], model.f(x, u, model.theta0), rtol=1e-15)
+    np.testing.assert_allclose(got[:, 2:], model.dfdx(x, u, model.theta0).reshape(3, 4),
+                               rtol=1e-15)
