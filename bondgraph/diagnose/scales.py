@@ -37,7 +37,8 @@ def operating_scales(ctx: Context, fit: Fit) -> Scales:
 
     def evaluate(expr):
         fn = sp.lambdify(args, expr, "numpy")
-        vals = fn(X.T, uT, fit.theta)
+        with np.errstate(all="ignore"):   # a law outside its domain (sqrt of a level < 0): NaN
+            vals = fn(X.T, uT, fit.theta)
         return np.broadcast_to(np.asarray(vals, dtype=float), t.shape)
 
     rates = _state_rates(model, X, u, fit.theta)
