@@ -200,3 +200,21 @@ int main(void) {
     np.testing.assert_allclose(got[:, :2], model.f(x, u, model.theta0), rtol=1e-15)
     np.testing.assert_allclose(got[:, 2:], model.dfdx(x, u, model.theta0).reshape(3, 4),
                                rtol=1e-15)
+
+
+def test_equilibrium_of_tanks_that_start_empty_is_found():
+    """``linearize`` at u = 3 from the graph's empty tanks, where the continued
+    square root is flat and a root search alone stalled ("dq_tank1/dt stays
+    0.168"): the hand equilibrium x1 = (k4 u / k1)², x2 = (k2 / k3)² x1 and its
+    poles −k1 / (2 √x1), −k3 / (2 √x2)."""
+    from bondgraph.export.linearize import linearize
+
+    lin = linearize(tanks(), at={"u": 3.0})
+    k1, k2, k3, k4 = K.values()
+    x1 = (k4 * 3.0 / k1) ** 2
+    x2 = (k2 / k3) ** 2 * x1
+    assert lin.equilibrium
+    np.testing.assert_allclose(lin.x, [x1, x2], rtol=1e-9)
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(lin.A).real),
+                               np.sort([-k1 / (2 * np.sqrt(x1)), -k3 / (2 * np.sqrt(x2))]),
+                               rtol=1e-9)

@@ -25,9 +25,10 @@ import numpy as np
 from scipy.optimize import root
 
 from bondgraph.core.graph import BondGraph
-from bondgraph.errors import ExportError
+from bondgraph.errors import BondGraphError, ExportError
 from bondgraph.export.params import model_graph
 from bondgraph.numerics.model import Model
+from bondgraph.numerics.simulate import simulate
 
 #: the generated functions a linearisation evaluates
 LINEAR_FUNCTIONS = ("f", "h", "dfdx", "dhdx", "dfdu", "dhdu")
@@ -164,7 +165,9 @@ def _split_point(m: Model, at: Mapping[str, float]) -> tuple[dict, dict]:
 def equilibrium(m: Model, u: np.ndarray, theta: np.ndarray, guess: np.ndarray,
                 tol: float = 1e-10) -> np.ndarray:
     """States x with f(x, u, θ) = 0 (``scipy.optimize.root``, Powell's hybrid
-    method with the generated Jacobian, then Levenberg-Marquardt).
+    method with the generated Jacobian, then Levenberg-Marquardt), from the
+    guess and then from the states free runs with the inputs held reach
+    (:func:`_relaxed_starts`).
 
     Parameters
     ----------
@@ -194,19 +197,43 @@ def equilibrium(m: Model, u: np.ndarray, theta: np.ndarray, guess: np.ndarray,
 
     scale = 1.0 + float(np.max(np.abs(fun(guess)))) if guess.size else 1.0
     best = guess
-    for method in ("hybr", "lm"):
-        with np.errstate(all="ignore"):
-            sol = root(fun, guess, jac=jac, method=method, tol=1e-14)
-        r = fun(sol.x)
-        if np.all(np.isfinite(r)) and np.max(np.abs(r), initial=0.0) <= tol * scale:
-            return sol.x
-        best = sol.x if np.all(np.isfinite(r)) else best
+    for start in _relaxed_starts(m, u, theta, guess):
+        for method in ("hybr", "lm"):
+            with np.errstate(all="ignore"):
+                sol = root(fun, start, jac=jac, method=method, tol=1e-14)
+            r = fun(sol.x)
+            if np.all(np.isfinite(r)) and np.max(np.abs(r), initial=0.0) <= tol * scale:
+                return sol.x
+            best = sol.x if np.all(np.isfinite(r)) else best
     r = fun(best)
     j = int(np.nanargmax(np.abs(r))) if r.size else 0
     raise ExportError(f"no equilibrium of model '{m.name}' found for the given inputs: "
                       f"d{m.states[j]}/dt stays {r[j]:.3g} (scipy.optimize.root)",
                       hint="give every state in --at (an operating point need not be an "
                            "equilibrium), or inputs that admit an equilibrium")
+
+
+#: horizons [s] of the free runs whose end states restart the equilibrium search
+RELAX_HORIZONS = (1.0, 10.0, 100.0, 1e3, 1e4, 1e5, 1e6)
+
+
+def _relaxed_starts(m: Model, u: np.ndarray, theta: np.ndarray, guess: np.ndarray):
+    """``guess``, then the states that a free run from it with the inputs held
+    at ``u`` reaches after each of :data:`RELAX_HORIZONS` (LSODA): a stable
+    equilibrium attracts them, where a root search from the guess can stall
+    (two tanks that start empty, where a square-root outflow law has no slope
+    to follow). Stops at the first run that fails."""
+    yield guess
+    x = guess
+    for T in RELAX_HORIZONS:
+        try:
+            with np.errstate(all="ignore"):
+                sim = simulate(m, np.array([0.0, T]), np.repeat(u[None, :], 2, axis=0),
+                               x0=x, theta=theta, method="LSODA", rtol=1e-8, atol=1e-10)
+        except BondGraphError:
+            return
+        x = sim.x[-1]
+        yield x
 
 
 def linearize(model: str | BondGraph | Model, at: Mapping[str, float] | None = None, *,
