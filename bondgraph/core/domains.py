@@ -40,6 +40,11 @@ from typing import Iterable
 import sympy as sp
 
 
+#: functions with a jump: :func:`bondgraph.core.equations.diff` takes their
+#: derivative as 0, :func:`extend_domains` notes each state-dependent one
+JUMPS = (sp.sign, sp.Heaviside)
+
+
 def nonnegative_by_form(e: sp.Expr) -> bool:
     """Whether ``e`` is non-negative for every real value of its symbols by
     its form: a non-negative number, an even power or an absolute value of
@@ -189,20 +194,32 @@ def extend_domains(exprs: Iterable[sp.Expr], states: Iterable[sp.Symbol],
     notes : list of str
         One per distinct rewritten power named in ``where``: ``"sqrt(q_tank1)
         (in dq_tank1/dt, dq_tank2/dt) is taken as 0, its value at the
-        boundary, where q_tank1 < 0: ..."``.
+        boundary, where q_tank1 < 0: ..."``; then one per state-dependent
+        jump (``sign(v)``, :data:`JUMPS`), whose derivative is taken as 0.
     """
     exprs = [sp.sympify(e) for e in exprs]
     where = list(where) if where is not None else [f"expression {i}" for i in range(len(exprs))]
     st = frozenset(states)
     found: dict = {}
+    jumps: dict = {}
     for i, e in enumerate(exprs):
-        if not isinstance(e, sp.Basic) or not e.has(sp.Pow):
+        if not isinstance(e, sp.Basic):
             continue
-        for p in e.atoms(sp.Pow):
-            if _candidate(p, st):
-                found.setdefault(p, []).append(where[i])
+        if e.has(sp.Pow):
+            for p in e.atoms(sp.Pow):
+                if _candidate(p, st):
+                    found.setdefault(p, []).append(where[i])
+        if where[i] and e.has(*JUMPS):
+            for j in e.atoms(*JUMPS):
+                if j.args[0].free_symbols & st:
+                    jumps.setdefault(j, []).append(where[i])
+    jump_notes = [f"{sp.sstr(j)} (in {', '.join(dict.fromkeys(w))}) jumps where "
+                  f"{sp.sstr(j.args[0])} = 0: its derivative is taken as 0 there too (the "
+                  f"Jacobian away from the jump); fixed-step filters may chatter across it, a "
+                  f"smooth law (bondgraph.core.smooth.smooth_sign, tanh(x/eps)) does not"
+                  for j, w in jumps.items()]
     if not found:
-        return exprs, []
+        return exprs, jump_notes
     # innermost first, so a rewritten inner power is inside its outer one's base
     order = sorted(found, key=sp.count_ops)
     rep: dict = {}
@@ -221,4 +238,4 @@ def extend_domains(exprs: Iterable[sp.Expr], states: Iterable[sp.Symbol],
         what = "its real root" if odd else "0, its value at the boundary"
         notes.append(f"{sp.sstr(p)} (in {uses}) is taken as {what}, where {sp.sstr(b)} < 0: "
                      f"numpy gives NaN there, where sigma points and solver steps may go")
-    return out, notes
+    return out, notes + jump_notes

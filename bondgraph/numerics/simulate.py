@@ -724,6 +724,23 @@ def lsoda_segment(rhs, jac, ts, x, rtol, atol, max_step=None) -> SimpleNamespace
                            else 0, njev=nje, nlu=nje)
 
 
+def _jump_hint(model) -> str:
+    """The hint for an adaptive solver that failed on a model whose laws
+    jump (``sign(v)``: its domain notes say which): at a jump where the
+    state sticks (Coulomb friction holding a mass at rest) the right-hand
+    side switches sign at every step and no step is small enough
+    (a Filippov solution, which adaptive solvers without event handling
+    cannot follow). Empty for a model without jumps."""
+    jumps = [n.split(" (in ", 1)[0] for n in getattr(model, "domain_notes", ())
+             if " jumps where " in n]
+    if not jumps:
+        return ""
+    return (f"the model's {', '.join(jumps)} jumps at 0, and a state that sticks there makes "
+            f"the right-hand side switch at every step, which adaptive solvers cannot follow: "
+            f"use a fixed-step method (method='rk4' or 'ros2' with substeps), or a smooth law "
+            f"(bondgraph.core.smooth.smooth_sign(x, eps) = tanh(x/eps))")
+
+
 def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels=None):
     n = t.size
     X = np.empty((n, model.n_x))
@@ -754,8 +771,9 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
             raise NumericalError(
                 f"{method} {r.why} for model '{model.name}' near t = {r.t:.6g} s "
                 f"(largest state there: '{model.states[j]}' = {r.x[j]:.6g})",
-                hint=("the solver cannot follow the model here: try another method "
-                      "(BDF, Radau, LSODA) or a max_step" if r.why.startswith("stalled") else
+                hint=(_jump_hint(model) or "the solver cannot follow the model here: try "
+                      "another method (BDF, Radau, LSODA) or a max_step"
+                      if r.why.startswith("stalled") else
                       "the parameters make the model unstable on this input (a state passed "
                       "1e100): check their values and signs")) from None
         for k in totals:
@@ -772,8 +790,8 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
             raise NumericalError(
                 f"{method} failed for model '{model.name}' near t = {t_fail:.6g} s: "
                 f"{sol.message} (largest state there: '{model.states[j]}' = {last[j]:.6g})",
-                hint="check the inputs and parameters; try method='Radau' or 'LSODA', "
-                     "looser tolerances, or max_step")
+                hint=_jump_hint(model) or "check the inputs and parameters; try "
+                     "method='Radau' or 'LSODA', looser tolerances, or max_step")
         X[a:b + 1] = sol.y.T
         if not np.all(np.isfinite(X[a:b + 1])):
             raise _nonfinite_error(model, t, X[:b + 1], method)
