@@ -276,3 +276,68 @@ def test_a_mass_that_sticks_names_the_jump_and_runs_fixed_step():
     # in the band, where it creeps by the chatter's bias only (6 mm in 10 s here)
     assert 0.04 <= q.min() and q.max() <= 0.16 and np.ptp(q) < 0.1 * (0.16 - 0.04)
     assert np.max(np.abs(sim.x[t > 10.0, 0])) <= 2 * 3.0 * 0.0025     # |p| within 2 Fc·h
+
+
+def log_store() -> BondGraph:
+    """A storage whose effort is a·ln(q): defined for q > 0 only, and no
+    finite value at the graph's X0 = 0 (nothing to continue it with)."""
+    g = BondGraph("domain_log", "a storage with a logarithmic law")
+    P = g.input("P", "W")
+    a = g.param("a", 2.0, "", (0.5, 10.0))
+    n = g.zero("n")
+    g.connect(g.Sf("heater", P), n)
+    store = g.C("store", effort=lambda q: a * sp.log(q))
+    g.connect(n, store)
+    g.connect(n, g.R("loss", 0.5))
+    g.sensor("T", store.e, unit="", noise_std=0.01)
+    return g
+
+
+@pytest.mark.parametrize("method", ["BDF", "LSODA", "rk4"])
+def test_a_start_outside_a_laws_domain_is_named_not_called_unstable(method):
+    """dq/dt = P − 2a·ln(q) is −∞ at q = 0: the solvers said "became
+    non-finite ... the parameters make the model unstable" (adaptive) or "the
+    step is too large" (rk4). The error names the derivative and the state;
+    from q = 1 the run goes to the hand equilibrium q = exp(P / 2a)."""
+    from bondgraph.errors import NumericalError
+
+    model = Model.from_graph(log_store())
+    t = np.arange(0.0, 30.0, 0.1)
+    u = np.ones((t.size, 1))
+    with pytest.raises(NumericalError) as err:
+        simulate(model, t, u, method=method)
+    assert "dq_store/dt" in str(err.value) and "q_store = 0" in str(err.value)
+    assert "not defined" in str(err.value) and "log" in err.value.hint
+    sim = simulate(model, t, u, x0=[1.0], method=method, substeps=20)
+    assert sim.x[-1, 0] == pytest.approx(np.exp(1.0 / 4.0), rel=1e-6)
+
+
+def test_simulate_command_takes_an_initial_state(tmp_path, monkeypatch, capsys):
+    """``bondgraph simulate --x0 NAME=VALUE``: the way to start a model inside
+    its laws' domain from the command line (the error above points to it)."""
+    import pandas as pd
+
+    from bondgraph.cli.main import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "logmod.py").write_text(
+        "import sympy as sp\nfrom bondgraph import BondGraph\n\n"
+        "def build():\n"
+        "    g = BondGraph('logmod', 'log storage')\n"
+        "    a = g.param('a', 2.0, '', (0.5, 10.0))\n"
+        "    n = g.zero('n')\n"
+        "    g.connect(g.Sf('heater', g.input('P', 'W')), n)\n"
+        "    s = g.C('store', effort=lambda q: a * sp.log(q))\n"
+        "    g.connect(n, s)\n"
+        "    g.connect(n, g.R('loss', 0.5))\n"
+        "    g.sensor('T', s.e)\n"
+        "    return g\n")
+    args = ["simulate", "logmod.py:build", "--duration", "30", "--dt", "0.1", "--input", "P=1",
+            "-o", "run.csv"]
+    assert main(args) != 0
+    assert "q_store = 0" in capsys.readouterr().err
+    assert main(args + ["--x0", "q_store=1"]) == 0
+    x = pd.read_csv(tmp_path / "run.csv")["state.q_store"].to_numpy()
+    assert x[0] == 1.0 and x[-1] == pytest.approx(np.exp(0.25), rel=1e-6)
+    assert main(args + ["--x0", "nope=1"]) != 0
+    assert "nope not a state" in capsys.readouterr().err

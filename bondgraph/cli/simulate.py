@@ -49,6 +49,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "(true_parameters or parameters) that the model has")
     p.add_argument("--input", action="append", metavar="NAME=VALUE",
                    help="constant input (model units) without --experiment")
+    p.add_argument("--x0", action="append", metavar="NAME=VALUE",
+                   help="initial state (model units; overrides the experiment's x0; default the "
+                        "model's X0)")
     p.add_argument("--rtol", type=float, default=1e-8)
     p.add_argument("--atol", type=float, default=1e-10)
     p.add_argument("--max-step", type=float, default=None, help="adaptive solvers' largest step")
@@ -139,6 +142,12 @@ def run(args) -> int:
         u = parse_pairs(args.input, "--input") or None
         x0 = None
         theta = model.theta(overrides)
+    given = parse_pairs(args.x0, "--x0")
+    unknown = [k for k in given if k not in model.states]
+    if unknown:
+        raise ModelError(f"--x0: {', '.join(unknown)} not a state of model '{model.name}' "
+                         f"(states: {', '.join(model.states)})")
+    x0 = {**(x0 or {}), **given}
     res = simulate(model, t, u=u, x0=x0 or None, theta=theta, method=args.method,
                    rtol=args.rtol, atol=args.atol, substeps=args.substeps,
                    max_step=args.max_step, hold=args.hold or "linear")

@@ -388,7 +388,7 @@ def predict(batch: FilterBatch, step: Callable, u: np.ndarray, dt: float, wts: S
         X = step(chi, u, batch.th_b, dt, du)
     fin = np.isfinite(X).all(axis=(1, 2))
     if not fin.all():
-        X = X[batch.drop(~fin, k, "non-finite state in the prediction (sigma point diverged)")]
+        X = X[batch.drop(~fin, k, ukf_numba.FAIL_REASONS[3])]
         if not batch.size:
             return
     x, P, _ = unscented_moments(X, wts)

@@ -117,7 +117,8 @@ LOG_2PI = float(np.log(2.0 * np.pi))
 FAIL_REASONS = {
     1: "posterior covariance P not positive definite",
     2: "prior covariance P not positive definite",
-    3: "non-finite state in the prediction (sigma point diverged)",
+    3: ("non-finite state in the prediction (a sigma point diverged, or a law is "
+        "not defined where a sigma point went: a log of, or a division by, a state near 0)"),
     4: "non-finite predicted output h(sigma point)",
     5: "innovation covariance S not positive definite",
 }

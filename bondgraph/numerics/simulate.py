@@ -570,6 +570,10 @@ def _fixed_step(model, t, U, th, x, method, substeps, progress):
             x = step(x, U[k:k + 1], th1, t[k + 1] - t[k])
             X[k + 1] = x[0]
             if not np.all(np.isfinite(x)):
+                d = np.asarray(model.f(X[k][None, :], U[k:k + 1], th1), dtype=float)[0]
+                if not np.all(np.isfinite(d)):      # not the step: a law undefined there
+                    raise _undefined_error(model, method, Runaway(
+                        t[k], X[k], "", component=int(np.argmin(np.isfinite(d)))))
                 raise _nonfinite_error(model, t, X[:k + 2], method,
                                        f" ({substeps} substeps per sample)")
     return X
@@ -644,19 +648,24 @@ STALL_CALLS = 50_000
 
 
 class Runaway(Exception):
-    """Raised inside the right-hand side to stop an adaptive solver."""
+    """Raised inside the right-hand side to stop an adaptive solver
+    (``component``: the derivative that was not finite at a finite state,
+    when that was the cause)."""
 
-    def __init__(self, tq: float, xq: np.ndarray, why: str):
+    def __init__(self, tq: float, xq: np.ndarray, why: str, component: int | None = None):
         super().__init__(why)
         self.t, self.x, self.why = float(tq), np.array(xq, dtype=float), why
+        self.component = component
 
 
 def guard_rhs(rhs):
     """``rhs(t, x)`` for ``scipy.integrate.solve_ivp`` that stops the
     solver by raising ``Runaway`` (its ``t``, ``x`` and ``why``) when the
-    state is non-finite or its squared norm passes ``RUNAWAY_NORM2``, or
-    when the solver has made ``STALL_CALLS`` calls without reaching a later
-    time than before."""
+    state is non-finite or its squared norm passes ``RUNAWAY_NORM2``, when
+    the derivative is not finite at a finite state (a law outside its
+    domain: log of a state at 0; ``component`` names it), or when the
+    solver has made ``STALL_CALLS`` calls without reaching a later time
+    than before."""
     seen = [-np.inf, 0]
 
     def g(tq, xq):
@@ -669,7 +678,13 @@ def guard_rhs(rhs):
             seen[1] += 1
             if seen[1] > STALL_CALLS:
                 raise Runaway(tq, xq, f"stalled ({STALL_CALLS} calls without advancing)")
-        return rhs(tq, xq)
+        d = rhs(tq, xq)
+        ok = np.isfinite(d)
+        if not ok.all():
+            k = int(np.argmin(ok))
+            raise Runaway(tq, xq, f"met a derivative that is not finite (component {k}: "
+                          f"{float(np.ravel(d)[k])!r}) at a finite state", component=k)
+        return d
     return g
 
 
@@ -724,6 +739,21 @@ def lsoda_segment(rhs, jac, ts, x, rtol, atol, max_step=None) -> SimpleNamespace
                            else 0, njev=nje, nlu=nje)
 
 
+def _undefined_error(model, method: str, r: Runaway) -> NumericalError:
+    """The error of a solver that met a derivative that is not finite at a
+    finite state (:func:`guard_rhs`): the state derivative, its value and
+    the state, and what usually causes it."""
+    k = r.component
+    name = model.states[k] if k < len(model.states) else f"component {k}"
+    at = ", ".join(f"{n} = {v:.6g}" for n, v in zip(model.states, r.x))
+    return NumericalError(
+        f"{method}: d{name}/dt of model '{model.name}' is not finite at t = {r.t:.6g} s, "
+        f"where the state is finite ({at}): a law is not defined there",
+        hint="a log or a division by a state at or below 0, or a power of a negative base "
+             "of a parameter or input; start inside the laws' domain (x0, --x0), check the "
+             "parameters' signs and the inputs, or write the law for the whole range")
+
+
 def _jump_hint(model) -> str:
     """The hint for an adaptive solver that failed on a model whose laws
     jump (``sign(v)``: its domain notes say which): at a jump where the
@@ -767,6 +797,8 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
                 else:
                     sol = solve_ivp(guard_rhs(rhs), (t[a], t[b]), x, t_eval=t[a:b + 1], **kw)
         except Runaway as r:
+            if r.component is not None:
+                raise _undefined_error(model, method, r) from None
             j = int(np.argmax(np.where(np.isfinite(r.x), np.abs(r.x), np.inf)))
             raise NumericalError(
                 f"{method} {r.why} for model '{model.name}' near t = {r.t:.6g} s "
@@ -793,6 +825,7 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
                 hint=_jump_hint(model) or "check the inputs and parameters; try "
                      "method='Radau' or 'LSODA', looser tolerances, or max_step")
         X[a:b + 1] = sol.y.T
+        X[a] = x        # the segment's start exactly (BDF's dense output gives it to rounding)
         if not np.all(np.isfinite(X[a:b + 1])):
             raise _nonfinite_error(model, t, X[:b + 1], method)
         x = X[b]
