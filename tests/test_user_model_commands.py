@@ -222,3 +222,29 @@ def test_track_holds_a_level_for_a_sensor_that_declares_none(user_dir, capsys):
     assert main(["track", "--model", "bare:build", "--data", "r3.csv", "--track", "c",
                  "--out", "trk3", "--no-plots", "--method", "rk4", "--substeps", "2"]) == 0
     assert "the innovations are larger than the model allows" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("law, said", [
+    ("k * np.sqrt(e)", "ufunc"),
+    ("k * math.sqrt(e)", "Cannot convert expression to float"),
+    ("k * e if e > 0 else 0", "truth value of Relational"),
+])
+def test_a_law_written_with_numpy_math_or_if_names_its_line_and_the_fix(user_dir, capsys,
+                                                                          law, said):
+    """numpy's, math's and Python's ``if`` errors on a sympy symbol name
+    neither the law nor the cause: the message gives the user's line, the
+    hint what to write."""
+    (user_dir / "badlaw.py").write_text(
+        "import math\nimport numpy as np\nfrom bondgraph import BondGraph\n\n"
+        "def build():\n"
+        "    g = BondGraph('badlaw', 'a tank')\n"
+        "    k = g.param('k', 0.05, '', (0.001, 1.0))\n"
+        "    n = g.zero('n')\n"
+        "    g.connect(g.Sf('pump', g.input('u', 'V')), n)\n"
+        "    g.connect(n, g.C('tank', 1.0))\n"
+        f"    g.connect(n, g.R('orifice', flow=lambda e: {law}))\n"
+        "    return g\n")
+    assert main(["equations", "badlaw.py:build"]) != 0
+    err = capsys.readouterr().err
+    assert said in err and "at badlaw.py:11 (g.connect(n, g.R('orifice'" in err
+    assert "sp.sqrt" in err and "sp.Piecewise" in err

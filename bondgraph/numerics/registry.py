@@ -92,13 +92,43 @@ def graph_builder(spec: str):
         except BondGraphError:
             raise
         except Exception as exc:
-            raise ModelError(f"building the graph with '{spec}' failed: "
-                             f"{type(exc).__name__}: {exc}") from exc
+            raise ModelError(f"building the graph with '{spec}' failed{_user_line(exc)}: "
+                             f"{type(exc).__name__}: {exc}", hint=_symbolic_hint(exc)) from exc
         if not isinstance(g, BondGraph):
             raise ModelError(f"'{spec}' returned {_a(type(g).__name__)}, not a BondGraph")
         g.source = spec
         return g
     return make
+
+
+#: words of the errors numpy, math and Python's ``if`` raise on a sympy symbol
+_NOT_SYMBOLIC = ("ufunc", "convert expression to float", "truth value of Relational",
+                 "cannot determine truth value")
+
+
+def _user_line(exc: BaseException) -> str:
+    """`` at FILE:LINE (source)``: the innermost frame of the builder's
+    traceback outside bondgraph, sympy and numpy (the user's line), or ''."""
+    import traceback
+
+    skip = (str(Path(__file__).resolve().parents[1]), "site-packages", "<frozen", "/lib/python")
+    for fr in reversed(traceback.extract_tb(exc.__traceback__)):
+        if not any(s in str(fr.filename) for s in skip):
+            code = f" ({fr.line.strip()})" if fr.line else ""
+            return f" at {Path(fr.filename).name}:{fr.lineno}{code}"
+    return ""
+
+
+def _symbolic_hint(exc: BaseException) -> str | None:
+    """What to write instead when a law used numpy, math or a Python ``if``
+    on the graph's sympy symbols (their errors name neither the law nor the
+    cause)."""
+    text = str(exc)
+    if isinstance(exc, TypeError) and any(w in text for w in _NOT_SYMBOLIC):
+        return ("laws are sympy expressions of the graph's symbols: write sp.sqrt, sp.exp, "
+                "sp.tanh ... (not numpy's or math's), and a branch as sp.Piecewise or "
+                "sp.Max/sp.Min (not a Python if)")
+    return None
 
 
 #: return annotations that cannot be a BondGraph
