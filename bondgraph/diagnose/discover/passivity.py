@@ -127,7 +127,11 @@ class PassivityReport:
 
 def _fn(expr, sym):
     f = sp.lambdify([sym], expr, "numpy")
-    return lambda z: np.broadcast_to(np.asarray(f(z), float), np.shape(z))
+
+    def value(z):
+        with np.errstate(all="ignore"):   # a user's sqrt(e) on the grid's e < 0: NaN
+            return np.broadcast_to(np.asarray(f(z), float), np.shape(z))
+    return value
 
 
 def _energy(psi: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -281,8 +285,9 @@ def _law_values(terms, law, values, own) -> np.ndarray:
     expr = sp.Add(*(sp.Float(tm.coef) * tm.basis for tm in terms))
     names = list(law.symbols)
     f = sp.lambdify([law.symbols[k] for k in names], expr, "numpy")
-    return np.broadcast_to(np.asarray(f(*[np.asarray(values[k], float) for k in names]), float),
-                           np.shape(values[own]))
+    with np.errstate(all="ignore"):
+        v = f(*[np.asarray(values[k], float) for k in names])
+    return np.broadcast_to(np.asarray(v, float), np.shape(values[own]))
 
 
 def _coupled_power(terms, law, values, own):
