@@ -359,6 +359,29 @@ def test_a_ridge_is_named_with_its_relative_changes_and_the_fixed_parameter():
     assert recommend(F[:2, :2], ["m", "k"], scale[:2])["ridge"] is None
 
 
+def test_the_correlations_of_a_ridge_are_one_flag_line():
+    """The pairwise |corr| > 0.95 of the ridge's members in one line after
+    it (a k-way scale symmetry gives k(k-1)/2 pairs); a correlation of a
+    parameter off the ridge keeps its own line."""
+    from bondgraph.sensitivity.analysis import flag_lines
+
+    fl = [{"type": "correlated", "params": ["k1", "k2"], "value": -1.0,
+           "message": "corr(k1, k2) = -1.000 (|corr| > 0.95)"},
+          {"type": "correlated", "params": ["k1", "k4"], "value": 0.994,
+           "message": "corr(k1, k4) = +0.994 (|corr| > 0.95)"},
+          {"type": "correlated", "params": ["k2", "k4"], "value": -0.996,
+           "message": "corr(k2, k4) = -0.996 (|corr| > 0.95)"},
+          {"type": "correlated", "params": ["k3", "w"], "value": 0.97,
+           "message": "corr(k3, w) = +0.970 (|corr| > 0.95)"},
+          {"type": "crb", "params": ["k4"], "value": 1.0, "message": "k4: relative CRB 100%"}]
+    ridge = {"params": ["k4", "k1", "k2"]}
+    assert flag_lines(fl, ridge) == [
+        "flag: corr(k3, w) = +0.970 (|corr| > 0.95)",
+        "flag: 3 pairwise correlations among k4, k1, k2 with |corr| 0.994 to 1.000 (the ridge "
+        "above)"]
+    assert flag_lines(fl) == [f"flag: {f['message']}" for f in fl[:4]]
+
+
 def _quarter_car() -> BondGraph:
     """Road velocity into the tyre spring, unsprung and sprung masses, the
     suspension spring and damper; body acceleration and deflection

@@ -123,12 +123,31 @@ class SensitivityReport:
                              f"{n} = {v:.4g} ± {s_:.3g}"
                              for n, v, s_ in zip(nu["names"], nu["values"], nu["std"])))
         fl = self.local.get("identifiability", {}).get("flags", [])
-        for f in fl:
-            if f["type"] in ("product", "ratio", "singular", "correlated", "no_sensitivity"):
-                lines.append(f"flag: {f['message']}")
+        lines += flag_lines(fl, rec.get("ridge"))
         if self.global_:
             lines += _sobol_lines(self.global_)
         return "\n".join(lines)
+
+
+def flag_lines(flags: list[dict], ridge: dict | None = None) -> list[str]:
+    """``flag: ...`` lines of the identifiability flags (products, ratios,
+    singular directions, correlations, parameters without sensitivity); the
+    pairwise correlations among the members of ``ridge`` (the line above
+    them) as one line: a k-way scale symmetry gives k(k-1)/2 pairs of
+    |corr| near 1, ten lines for the five of a quarter-car, which say
+    together what the ridge line says."""
+    members = set(ridge["params"]) if ridge else set()
+    on_ridge = [f for f in flags if f["type"] == "correlated" and members
+                and set(f["params"]) <= members]
+    out = [f"flag: {f['message']}" for f in flags
+           if f["type"] in ("product", "ratio", "singular", "correlated", "no_sensitivity")
+           and not any(f is g for g in on_ridge)]
+    if on_ridge:
+        c = [abs(float(f["value"])) for f in on_ridge]
+        names = sorted({n for f in on_ridge for n in f["params"]}, key=ridge["params"].index)
+        out.append(f"flag: {len(on_ridge)} pairwise correlations among {', '.join(names)} with "
+                   f"|corr| {min(c):.3f} to {max(c):.3f} (the ridge above)")
+    return out
 
 
 def _sobol_lines(g: dict) -> list[str]:
