@@ -916,3 +916,34 @@ def test_a_set_of_boxed_estimates_is_warned_about_once_per_loop():
         "widen the box or fix the parameter; said once per parameter)",
         "  warning: fit 3: estimate(s) on a bound of their box: k = 40 (no Cramér-Rao std; "
         "widen the box or fix the parameter; said once per parameter)"]
+
+
+def test_the_report_gives_a_scale_symmetry_whole():
+    """report.md's paragraph on what the record does not identify names the
+    unit-diagonal loadings (``flat``: ms, ks, cs of a quarter-car) and then
+    the whole combination as relative changes (``ridge``: all five); the
+    HTML warning the same; without a ridge text the paragraph is as before."""
+    from types import SimpleNamespace
+
+    from bondgraph.report.html import _warnings
+    from bondgraph.report.loop_report import _md_accepted
+
+    ridge = ("; as relative changes: ms +1.00, mu +1.00, ks +1.00, kt +1.00, cs +1.00 (ms, mu, "
+             "ks, kt, cs scale together: the record fixes their ratios, not their size; --fixed "
+             "one you know)")
+    step = SimpleNamespace(shown=lambda: "cubic", shown_target=lambda: "spring",
+                           error_before=1.0, error_after=0.5, nll_before=0.0, nll_after=-10.0,
+                           whiteness_before=50.0, whiteness_after=20.0, tied=None)
+
+    def result(r):
+        final = SimpleNamespace(estimates={"ms": 280.0}, std={"ms": 1.0}, std_robust={},
+                                flat=["ms", "ks", "cs"], ridge=r, at_bound=[])
+        return SimpleNamespace(steps=[step], final=final, warnings=[])
+
+    text = "\n".join(_md_accepted(result(ridge)))
+    assert "does not identify ms, ks, cs separately" in text
+    assert ("The combination, as relative changes at the estimates: ms +1.00, mu +1.00, ks +1.00, "
+            "kt +1.00, cs +1.00 (ms, mu, ks, kt, cs scale together") in text
+    assert "relative changes" not in "\n".join(_md_accepted(result("")))
+    html = "".join(_warnings(result(ridge)))
+    assert "ms, ks, cs; the combination, as relative changes: ms +1.00, mu +1.00" in html

@@ -6,6 +6,7 @@ the candidate's fit, and 2 (NLL₀ − NLL₁) its likelihood-ratio statistic
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
@@ -204,6 +205,7 @@ def confirm_same(ctx: Context, fit: Fit, cand: Candidate, scales: Scales, name: 
         return confirm(ctx, fit, cand, scales, name)
     f1.converged, f1.iterations = f0.converged, f0.iterations
     f1.flat = tuple(names.get(n, n) for n in f0.flat)
+    f1.ridge = _renamed(f0.ridge, names)
     f1.x0_est, f1.noise_est = dict(f0.x0_est), dict(f0.noise_est)
     f1.at_bound = [names.get(n, n) for n in f0.at_bound]
     f1.warnings = list(f0.warnings)
@@ -211,6 +213,16 @@ def confirm_same(ctx: Context, fit: Fit, cand: Candidate, scales: Scales, name: 
     values = {p.name: float(f1.theta[model.param_index(P[p.name].name)])
               for p in eff.params if p.name in P}
     return Confirmation(f1, values, new, comparable=conf.comparable)
+
+
+def _renamed(text: str, names: dict) -> str:
+    """``text`` with each whole parameter name of ``names`` (old -> new)
+    replaced (a same-model refit's ridge text in its own names)."""
+    if not text or not names:
+        return text or ""
+    pat = "|".join(rf"(?<![\w.]){re.escape(n)}(?![\w.])"
+                   for n in sorted(names, key=len, reverse=True))
+    return re.sub(pat, lambda m: names[m.group(0)], text)
 
 
 def _augmented(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales, name: str,

@@ -179,6 +179,9 @@ class Fit:
     warnings: list = field(default_factory=list)
     flat: tuple = ()
     std_robust: dict = field(default_factory=dict)
+    #: the unidentified combination as relative changes when it is a scale
+    #: symmetry (:func:`ridge_changes`: "; as relative changes: ms +1.00, ..."), else ""
+    ridge: str = ""
 
     @property
     def k(self) -> int:
@@ -209,7 +212,7 @@ class Fit:
                           self.residuals, self.sim_y, self.ukf.innovations[:, 0, :],
                           np.diagonal(S, axis1=1, axis2=2).copy(), list(self.at_bound),
                           self.validation_metric, dict(self.x0_est), dict(self.noise_est),
-                          list(self.flat), dict(self.std_robust))
+                          list(self.flat), dict(self.std_robust), self.ridge)
 
     @property
     def accept_metric(self) -> float:
@@ -536,7 +539,7 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     theta = start_theta(ctx, pb, params, start, what)
     iters = ctx.settings.search.fit_iterations if iterations is None else int(iterations)
     std: dict = {}
-    conv: tuple = (None, None, ())
+    conv: tuple = (None, None, (), "")
     x0_est = {s: pb.prior.estimated[s] for s in x0_states(ctx, model) if s in pb.prior.estimated}
     noise_est = {o: pb.noise.held[o] for o in pb.noise.outputs(model) if o in pb.noise.held}
     if params and iters > 0:
@@ -550,7 +553,7 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
                              not no_process_noise(model, theta))
     fitted = pb.conditioned_on(x0={**pb.prior.estimated, **x0_est}, noise_levels=noise_est)
     fit = evaluate_fit(ctx, fitted, graph, params, theta, what, std)
-    fit.converged, fit.iterations, fit.flat = conv
+    fit.converged, fit.iterations, fit.flat, fit.ridge = conv
     fit.x0_est, fit.noise_est = x0_est, noise_est
     fit.at_bound = on_bound(model, params, theta)
     if fit.at_bound:
@@ -612,6 +615,7 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
         # each set of parameters said once per loop: every refit of a
         # candidate repeats the declared fit's (a user's series RLC whose
         # record tells only L·C: 12 lines "does not identify L, Cc")
+        moves = ""
         if flat:
             ctx.log_once(f"flat:{sorted(flat)}",
                          f"  {what}: converged in the directions the record identifies; the "
@@ -626,7 +630,7 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
                              f"separately (the Fisher information is flat along a "
                              f"combination of them: collinearity index > 100){moves}; fix "
                              f"one, or use a record that excites them apart")
-        return (theta, cr_std(F, names), (conv, used, flat),
+        return (theta, cr_std(F, names), (conv, used, flat, moves),
                 {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
         ctx.log(f"  {what}: Fisher scoring failed ({exc}); falling back to L-BFGS-B")
@@ -635,7 +639,7 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
         x = lbfgsb_polish(crit, xs, lo, hi, iters)
         theta = crit.theta(x[None, :])[0]
         std, flat = _information_at(problem, params, theta, idx, (lo, hi), scale)
-        return theta, std, (None, None, flat), {}, {}
+        return theta, std, (None, None, flat, ""), {}, {}
 
 
 def _information_at(problem: Problem, params: list[str], theta: np.ndarray, idx, box,

@@ -291,6 +291,10 @@ class FitSummary:
         Quantities the record does not identify separately: the likelihood
         is flat along a combination of them where the fit stopped
         (:attr:`bondgraph.inference.fisher.Scoring.flat`).
+    ridge : str
+        That combination as relative changes when it is a scale symmetry
+        (:func:`bondgraph.diagnose.fit.ridge_changes`; "; as relative
+        changes: ..."), else "".
     std_robust : dict
         Robust (sandwich) standard deviations by name, where the fit gave
         them (:func:`bondgraph.inference.robust.robust_std`): larger than
@@ -315,6 +319,7 @@ class FitSummary:
     noise_estimates: dict = field(default_factory=dict)
     flat: list = field(default_factory=list)
     std_robust: dict = field(default_factory=dict)
+    ridge: str = ""
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
@@ -323,6 +328,7 @@ class FitSummary:
                             "validation_metric": self.validation_metric,
                             "at_bound": self.at_bound, "x0_estimates": self.x0_estimates,
                             "noise_estimates": self.noise_estimates, "flat": self.flat,
+                            "ridge": self.ridge,
                             "estimates": self.estimates, "std": self.std,
                             "std_robust": robust_of(self), "residuals": self.residuals.to_dict()})
 

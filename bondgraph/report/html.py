@@ -163,8 +163,11 @@ def _warnings(result: LoopResult) -> list[str]:
         items.append("estimates on a bound of their box (no Cramér-Rao std): "
                      + ", ".join(result.final.at_bound))
     if result.final is not None and getattr(result.final, "flat", None):
+        ridge = getattr(result.final, "ridge", "") or ""
         items.append("not identified separately by the record (the likelihood is flat along "
-                     "a combination of them): " + ", ".join(result.final.flat))
+                     "a combination of them): " + ", ".join(result.final.flat)
+                     + (f"; the combination, as relative changes: "
+                        f"{ridge.removeprefix('; as relative changes: ')}" if ridge else ""))
     if not items:
         return []
     li = "".join(f"<li>{escape(w)}</li>" for w in items)

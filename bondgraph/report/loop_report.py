@@ -537,10 +537,13 @@ def _md_accepted(result: LoopResult) -> list[str]:
               "the robust std (White 1982; Newey & West 1987)."]
     flat = getattr(result.final, "flat", None)
     if flat:
+        ridge = getattr(result.final, "ridge", "") or ""
+        whole = (f" The combination, as relative changes at the estimates: "
+                 f"{ridge.removeprefix('; as relative changes: ')}." if ridge else "")
         L += ["", f"The record does not identify {', '.join(flat)} separately: the likelihood "
               "is flat along a combination of them where the fit stopped (relative eigenvalue "
               "of the Fisher information below 1e-4), so their values above are one point of "
-              "a ridge; fix one of them, or add a record that excites them apart."]
+              f"a ridge; fix one of them, or add a record that excites them apart.{whole}"]
     return L
 
 
