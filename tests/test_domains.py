@@ -341,3 +341,35 @@ def test_simulate_command_takes_an_initial_state(tmp_path, monkeypatch, capsys):
     assert x[0] == 1.0 and x[-1] == pytest.approx(np.exp(0.25), rel=1e-6)
     assert main(args + ["--x0", "nope=1"]) != 0
     assert "nope not a state" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["numba", "c"])
+def test_an_odd_root_compiles_to_the_real_root(kind, monkeypatch):
+    """A spring whose force is the real cube root of its compression,
+    k·q**(1/3) (numpy's ** gives NaN below 0): the compiled kernels give
+    −k·|q|^(1/3) there, as numpy's module does, and the derivative
+    k/3·|q|^(−2/3) on both sides."""
+    from bondgraph.numerics import compiled, compiled_c
+
+    if kind == "c" and compiled_c.compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    monkeypatch.setenv(compiled.KERNELS_ENV, kind)
+    g = BondGraph("domain_cbrt", "mass on a cube-root spring")
+    k = g.param("k", 8.0, "N/m", (1.0, 100.0))
+    v = g.one("v")
+    g.connect(g.Se("push", g.input("F", "N")), v)
+    g.connect(v, g.I("mass", 1.0))
+    spring = g.C("spring", effort=lambda q: k * q ** sp.Rational(1, 3))
+    g.connect(v, spring)
+    g.sensor("x", spring.q)
+    model = Model.from_graph(g)
+    kern = compiled.point_kernels(model)
+    assert kern.kind == kind
+    th = np.array(model.theta0)
+    for q in (8.0, -8.0, 0.001):
+        x = np.array([0.0, q])
+        dx, J = np.zeros(2), np.zeros((2, 2))
+        kern.f_dfdx(x, np.array([0.0]), th, dx, J)
+        np.testing.assert_allclose(dx, [-8.0 * np.cbrt(q), 0.0], rtol=1e-14)
+        np.testing.assert_allclose(J[0, 1], -8.0 / 3.0 * abs(q) ** (-2 / 3), rtol=1e-12)
+        np.testing.assert_allclose(model.f(x, np.array([0.0]), th), dx, rtol=1e-14)

@@ -130,28 +130,30 @@ class dpow(sp.Function):
         return printer._print(sp.Pow(b, x, evaluate=False))
 
 
+def _conditional_text(expr: dpow, pr, sqrt: str, power: str, choose) -> str:
+    """``expr`` as nested conditional expressions of one language: ``sqrt``
+    and ``power`` its function names, ``choose(cond, a, b)`` its "a if cond
+    else b", ``pr`` printing the arguments."""
+    b, x, s = expr.args
+    tb, tx = pr(b), pr(x)
+    pos = f"{sqrt}({tb})" if x == sp.Rational(1, 2) else f"{power}({tb}, {tx})"
+    below = "0.0" if s == 0 else choose(f"({tb}) < 0", f"({pr(s)})*{power}(-({tb}), {tx})",
+                                        "0.0")
+    return choose(f"({tb}) > 0", pos, below)
+
+
 def scalar_text(expr: dpow, pr) -> str:
     """One point's code of ``expr`` as a conditional expression (numba point
     and column kernels; the C kernels translate it), ``pr`` printing its
     arguments."""
-    b, x, s = expr.args
-    tb, tx = pr(b), pr(x)
-    pos = f"np.sqrt({tb})" if x == sp.Rational(1, 2) else f"np.power({tb}, {tx})"
-    if s == 0:
-        return f"({pos} if {tb} > 0 else 0.0)"
-    neg = f"{pr(s)}*np.power(-({tb}), {tx})"
-    return f"({pos} if {tb} > 0 else ({neg} if {tb} < 0 else 0.0))"
+    return _conditional_text(expr, pr, "np.sqrt", "np.power",
+                             lambda c, a, b: f"({a} if {c} else {b})")
 
 
 def c_text(expr: dpow, pr) -> str:
     """C99 text of ``expr`` (conditional expressions), ``pr`` printing its
     arguments."""
-    b, x, s = expr.args
-    tb, tx = pr(b), pr(x)
-    pos = f"sqrt({tb})" if x == sp.Rational(1, 2) else f"pow({tb}, {tx})"
-    if s == 0:
-        return f"(({tb}) > 0 ? {pos} : 0.0)"
-    return f"(({tb}) > 0 ? {pos} : (({tb}) < 0 ? ({pr(s)})*pow(-({tb}), {tx}) : 0.0))"
+    return _conditional_text(expr, pr, "sqrt", "pow", lambda c, a, b: f"({c} ? {a} : {b})")
 
 
 def _continued(b: sp.Expr, x: sp.Expr) -> sp.Expr:
