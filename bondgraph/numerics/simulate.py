@@ -661,11 +661,13 @@ class Runaway(Exception):
 def guard_rhs(rhs):
     """``rhs(t, x)`` for ``scipy.integrate.solve_ivp`` that stops the
     solver by raising ``Runaway`` (its ``t``, ``x`` and ``why``) when the
-    state is non-finite or its squared norm passes ``RUNAWAY_NORM2``, when
-    the derivative is not finite at a finite state (a law outside its
-    domain: log of a state at 0; ``component`` names it), or when the
-    solver has made ``STALL_CALLS`` calls without reaching a later time
-    than before."""
+    state is non-finite or its squared norm passes ``RUNAWAY_NORM2``, or
+    when the solver has made ``STALL_CALLS`` calls without reaching a later
+    time than before. The first derivative that is not finite at a finite
+    state (a law outside its domain: log of a state at 0) is kept as
+    ``g.undefined`` (a ``Runaway`` whose ``component`` names it), not
+    raised: the solver may reject that trial step and go on; if it fails,
+    the caller names the law instead of the failure."""
     seen = [-np.inf, 0]
 
     def g(tq, xq):
@@ -679,12 +681,13 @@ def guard_rhs(rhs):
             if seen[1] > STALL_CALLS:
                 raise Runaway(tq, xq, f"stalled ({STALL_CALLS} calls without advancing)")
         d = rhs(tq, xq)
-        ok = np.isfinite(d)
-        if not ok.all():
+        if g.undefined is None and not np.all(ok := np.isfinite(d)):
+            # kept, not raised: a solver may reject the trial step and go on
             k = int(np.argmin(ok))
-            raise Runaway(tq, xq, f"met a derivative that is not finite (component {k}: "
-                          f"{float(np.ravel(d)[k])!r}) at a finite state", component=k)
+            g.undefined = Runaway(tq, xq, "met a derivative that is not finite at a finite "
+                                  "state", component=k)
         return d
+    g.undefined = None
     return g
 
 
@@ -790,15 +793,16 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
         rhs, jac = _point_rhs(model, kernels, th, sig.segment_input(a, sig.hold))
         if method in IMPLICIT_METHODS:
             kw["jac"] = jac
+        guarded = guard_rhs(rhs)
         try:
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                 if method == "LSODA":
-                    sol = lsoda_segment(guard_rhs(rhs), jac, t[a:b + 1], x, rtol, atol, max_step)
+                    sol = lsoda_segment(guarded, jac, t[a:b + 1], x, rtol, atol, max_step)
                 else:
-                    sol = solve_ivp(guard_rhs(rhs), (t[a], t[b]), x, t_eval=t[a:b + 1], **kw)
+                    sol = solve_ivp(guarded, (t[a], t[b]), x, t_eval=t[a:b + 1], **kw)
         except Runaway as r:
-            if r.component is not None:
-                raise _undefined_error(model, method, r) from None
+            if guarded.undefined is not None:
+                raise _undefined_error(model, method, guarded.undefined) from None
             j = int(np.argmax(np.where(np.isfinite(r.x), np.abs(r.x), np.inf)))
             raise NumericalError(
                 f"{method} {r.why} for model '{model.name}' near t = {r.t:.6g} s "
@@ -810,6 +814,9 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
                       "1e100): check their values and signs")) from None
         for k in totals:
             totals[k] += int(getattr(sol, k, 0) or 0)
+        if guarded.undefined is not None and (sol.status != 0 or sol.y.shape[1] != b - a + 1
+                                              or not np.all(np.isfinite(sol.y))):
+            raise _undefined_error(model, method, guarded.undefined)
         if sol.status != 0 or sol.y.shape[1] != b - a + 1:
             got = sol.y.shape[1]
             t_fail = float(sol.t[-1]) if got else float(t[a])
