@@ -10,6 +10,8 @@ empty tank lets nothing out) where numpy gives NaN.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import sympy as sp
@@ -373,3 +375,96 @@ def test_an_odd_root_compiles_to_the_real_root(kind, monkeypatch):
         np.testing.assert_allclose(dx, [-8.0 * np.cbrt(q), 0.0], rtol=1e-14)
         np.testing.assert_allclose(J[0, 1], -8.0 / 3.0 * abs(q) ** (-2 / 3), rtol=1e-12)
         np.testing.assert_allclose(model.f(x, np.array([0.0]), th), dx, rtol=1e-14)
+
+
+def test_a_trajectory_outside_a_continued_laws_domain_is_measured():
+    """The share of a trajectory's samples where a law continued with 0 is
+    outside its domain: an orifice k·sqrt(p2 − p1) between two tanks whose
+    flow reverses on 3 of 10 samples (30 %); the real cube root is the law
+    itself and is not counted; a share of 1 % or less is not named."""
+    from bondgraph.core.domains import continued_share
+
+    p1, p2, k, y = sp.symbols("p1 p2 k y", real=True)
+    (f,), _ = extend_domains([k * sp.sqrt(p2 - p1) + y ** sp.Rational(1, 3)], [p1, p2, y], ["f"])
+    a = np.arange(10.0)
+    b = a + np.where(a < 3, -1.0, 1.0)
+    got = continued_share([f], [p1, p2, k, y], [a, b, 0.5, -a])
+    assert got == [("sqrt(-p1 + p2)", "-p1 + p2", pytest.approx(0.3))]
+    b = a + np.where(a < 0.5, -1.0, 1.0)                   # 1 of 10: 10 %
+    assert continued_share([f], [p1, p2, k, y], [a, b, 0.5, -a])[0][2] == pytest.approx(0.1)
+    a = np.arange(200.0)
+    b = a + np.where(a < 2, -1.0, 1.0)                     # 2 of 200: 1 %, not named
+    assert continued_share([f], [p1, p2, k, y], [a, b, 0.5, -a]) == []
+
+
+TWO_TANKS = '''
+import sympy as sp
+from bondgraph import BondGraph
+
+
+def build(two_sided=False):
+    """Two tanks joined by an orifice, pumped into tank 2, tank 1 drained."""
+    g = BondGraph("tanks_r_truth" if two_sided else "tanks_r", "tank, orifice, tank")
+    u = g.input("u", "m^3/s", 0.0, "pump flow into tank 2")
+    k = g.param("k", 0.5, "", (0.01, 10.0))
+    k2 = g.param("k2", 0.3, "", (0.01, 10.0))
+    t1, t2 = g.zero("t1", domain="hydraulic"), g.zero("t2", domain="hydraulic")
+    c1, c2 = g.C("tank1", 1.0), g.C("tank2", 1.0)
+    g.connect(t1, c1)
+    g.connect(t2, c2)
+    g.connect(g.Sf("pump", u), t2)
+    o = g.one("o", domain="hydraulic")
+    g.connect(t2, o)
+    g.connect(o, t1)
+    law = ((lambda e: k * e / (e**2 + 1e-6) ** sp.Rational(1, 4)) if two_sided
+           else (lambda e: k * sp.sqrt(e)))
+    g.connect(o, g.R("orifice", flow=law))
+    g.connect(t1, g.R("drain", flow=lambda e: k2 * sp.sqrt(e)))
+    g.set_process_noise(c1.q, 0.01)
+    g.set_process_noise(c2.q, 0.01)
+    g.sensor("h1", c1.q, noise_std=0.01)
+    g.sensor("h2", c2.q, noise_std=0.01)
+    return g
+
+
+def truth():
+    return build(two_sided=True)
+'''
+
+
+def test_the_loop_warns_where_a_one_sided_law_meets_a_flow_that_reverses(tmp_path,
+                                                                         monkeypatch, capsys):
+    """The truth's orifice between two tanks passes flow both ways (tank 1
+    starts fuller); the user's graph says k·sqrt(p2 − p1), a check valve
+    below 0. The declared fit's filtered states put the level difference
+    below 0 on a fifth or more of the samples, and the loop says so, naming
+    the law and the two-sided form (log and report.json)."""
+    import json
+
+    from bondgraph.cli.main import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "tanks_r.py").write_text(TWO_TANKS)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import tanks_r
+
+    m = Model.from_graph(tanks_r.truth())
+    t = np.arange(0.0, 400.0, 1.0)
+    u = np.where((t // 50) % 2 == 0, 0.8, 0.0)[:, None]
+    sim = simulate(m, t, u, x0=[4.0, 0.5], method="LSODA", rtol=1e-9, atol=1e-11)
+    assert np.mean(sim.x[:, 1] < sim.x[:, 0]) > 0.05          # the flow does reverse
+    y = sim.y + 0.01 * np.random.default_rng(0).standard_normal(sim.y.shape)
+    cols = zip(t.tolist(), u[:, 0].tolist(), *y.T.tolist())
+    rows = "".join(f"{a!r},{b!r},{c!r},{d!r}\n" for a, b, c, d in cols)
+    (tmp_path / "tr.csv").write_text("t [s],u [m^3/s],h1,h2\n" + rows)
+    (tmp_path / "tr.json").write_text(json.dumps({"format": "bondgraph-experiment/1",
+                                                  "x0": {"q_tank1": 4.0, "q_tank2": 0.5}}))
+    assert main(["loop", "--model", "tanks_r.py:build", "--data", "tr.csv", "--params", "k,k2",
+                 "--out", "rep", "--max-steps", "0", "--holdout", "0", "--quiet"]) == 0
+    warn = [w for w in json.loads((tmp_path / "rep" / "report.json").read_text())["warnings"]
+            if "below 0" in w]
+    assert any(w.startswith("initial fit: the filtered states put -1.0*q_tank1 + 1.0*q_tank2 "
+                            "below 0 on ") and "sqrt(-1.0*q_tank1 + 1.0*q_tank2) is taken as 0"
+               in w and "k*sign(e)*sqrt(abs(e))" in w for w in warn), warn
+    share = float(re.search(r"on (\d+)% of", warn[-1]).group(1))
+    assert share >= 20

@@ -35,8 +35,9 @@ Association, Modelica.Fluid.Utilities.regRoot).
 
 from __future__ import annotations
 
-from typing import Iterable
+from typing import Iterable, Sequence
 
+import numpy as np
 import sympy as sp
 
 
@@ -241,3 +242,51 @@ def extend_domains(exprs: Iterable[sp.Expr], states: Iterable[sp.Symbol],
         notes.append(f"{sp.sstr(p)} (in {uses}) is taken as {what}, where {sp.sstr(b)} < 0: "
                      f"numpy gives NaN there, where sigma points and solver steps may go")
     return out, notes + jump_notes
+
+
+#: a continued law is named when the states put its base below 0 on more
+#: than this share of a record's samples (:func:`continued_share`)
+CONTINUED_SHARE = 0.01
+
+
+def continued_share(exprs: Iterable[sp.Expr], symbols: Sequence[sp.Symbol],
+                    values: Sequence) -> list[tuple[str, str, float]]:
+    """Where a record's trajectory sits outside the domain of the laws
+    that :func:`extend_domains` continued with 0 (even roots; an odd root's
+    real root is the law itself).
+
+    Parameters
+    ----------
+    exprs : iterable of sympy.Expr
+        Expressions holding ``dpow`` (the state derivatives and outputs).
+    symbols : sequence of sympy.Symbol
+        The symbols the bases may use (states, inputs, parameters).
+    values : sequence
+        One array (N,) or scalar per symbol: a trajectory (filtered states,
+        measured inputs) and the parameters.
+
+    Returns
+    -------
+    list of (law, base, share)
+        Each continued power whose base is below 0 at more than
+        :data:`CONTINUED_SHARE` of the samples where it is finite, as
+        printed (``"sqrt(p1 - p2)"``, ``"p1 - p2"``) with that share.
+    """
+    atoms: dict = {}
+    for e in exprs:
+        if isinstance(e, sp.Basic) and e.has(dpow):
+            for a in e.atoms(dpow):
+                if a.args[2] == 0:
+                    atoms.setdefault(a.args[0], a)
+    out = []
+    for b, a in atoms.items():
+        fn = sp.lambdify(list(symbols), b, "numpy")
+        with np.errstate(all="ignore"):
+            v = np.asarray(fn(*values), float).reshape(-1)
+        ok = np.isfinite(v)
+        if not ok.any():
+            continue
+        share = float(np.mean(v[ok] < 0))
+        if share > CONTINUED_SHARE:
+            out.append((sp.sstr(a), sp.sstr(b), share))
+    return out

@@ -19,6 +19,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 from scipy.stats import chi2
 
+from bondgraph.core.domains import continued_share, dpow
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (
     fine_free_run,
@@ -883,6 +884,33 @@ def noise_absorbing(ctx: Context, fit: Fit) -> list[str]:
                        f"its random walk over the record ({walk:.3g}) exceeds the state's own "
                        f"spread ({spread:.3g}); the noise absorbs the model's error")
     return out
+
+
+def continued_laws(ctx: Context, fit: Fit) -> list[str]:
+    """Laws of ``fit``'s graph continued with 0 past their domain
+    (:mod:`bondgraph.core.domains`: ``sqrt(e)`` taken as 0 for e < 0) whose
+    base the filtered states and the record's inputs put below 0 on more
+    than :data:`~bondgraph.core.domains.CONTINUED_SHARE` of the samples, as
+    warnings: there the model is a check valve where the user may have
+    meant a law for both signs (an orifice between two tanks whose flow
+    reverses)."""
+    x = getattr(fit.ukf, "x_filt", None)
+    if x is None:
+        return []
+    ss = derive(fit.graph)
+    exprs = list(ss.f) + list(ss.h)
+    if not any(getattr(e, "has", None) and e.has(dpow) for e in exprs):
+        return []
+    t, u, _ = problem_for(ctx, fit.model).arrays
+    X = np.asarray(x)[:, 0, :]
+    syms = list(ss.states) + list(ss.inputs) + list(ss.params)
+    vals = ([X[:, i] for i in range(X.shape[1])]
+            + [u[:, j] if u.size else np.zeros(len(t)) for j in range(len(ss.inputs))]
+            + [float(v) for v in fit.theta])
+    return [f"the filtered states put {base} below 0 on {share:.0%} of the samples, where "
+            f"{law} is taken as 0 (its domain ends there): if the law holds for both signs, "
+            f"write it so (k*sign(e)*sqrt(abs(e)) for an orifice whose flow reverses)"
+            for law, base, share in continued_share(exprs, syms, vals)]
 
 
 def error_scale(problem: Problem, fit: Fit) -> np.ndarray:

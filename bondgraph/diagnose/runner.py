@@ -46,6 +46,7 @@ from bondgraph.diagnose.fit import (
     Context,
     Fit,
     admissibility,
+    continued_laws,
     error_scale,
     noise_absorbing,
     fit_model,
@@ -320,7 +321,7 @@ def new_result(ctx: Context, graph: BondGraph, initial: Fit,
     result.warnings.extend(f"initial fit: {n} on a bound of its box (no Cramér-Rao std)"
                            for n in initial.at_bound)
     result.warnings.extend(initial.warnings)
-    for w in noise_absorbing(ctx, initial):
+    for w in noise_absorbing(ctx, initial) + continued_laws(ctx, initial):
         ctx.log(f"warning: initial fit: {w}")
         result.warnings.append(f"initial fit: {w}")
     adm = admissibility(ctx, initial)
