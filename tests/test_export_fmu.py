@@ -275,3 +275,26 @@ def test_loop_augmented_model_exports_and_matches(tmp_path):
     errors = _check_fmu(fmu, m, t, U, x0, m.theta0)
     for kind, err in errors.items():
         assert np.all(err < REL), f"augmented {kind}: relative errors {dict(zip(m.outputs, err))}"
+
+
+def test_a_cosimulation_stopped_by_a_jump_names_the_law(tmp_path):
+    """Coulomb friction written Fc·sign(v): a mass that sticks makes the
+    co-simulation's adaptive step give up; fmi2DoStep's error names the law
+    (config.h's BG_STEP_HINT) instead of "too many internal steps" alone. A
+    model without jumps gets no hint."""
+    import zipfile
+
+    from tests.test_domains import coulomb_msd
+
+    path = export_fmu(coulomb_msd(), tmp_path / "coulomb.fmu")
+    with zipfile.ZipFile(path) as zf:
+        assert "sign(p_mass/m) jumps at 0" in zf.read("sources/config.h").decode()
+    msgs = []
+    with pytest.raises(Exception):
+        simulate_fmu(str(path), stop_time=2.0, output_interval=0.01, start_values={"F": 5.0},
+                     logger=lambda *a: msgs.append(a[-1]))
+    text = b" ".join(m if isinstance(m, bytes) else str(m).encode() for m in msgs).decode()
+    assert "fmi2DoStep" in text and "sign(p_mass/m) jumps at 0" in text
+    plain = export_fmu("mass_spring_damper", tmp_path / "msd.fmu")
+    with zipfile.ZipFile(plain) as zf:
+        assert "BG_STEP_HINT" not in zf.read("sources/config.h").decode()

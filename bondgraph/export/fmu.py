@@ -27,6 +27,7 @@ pair under the importer's relative tolerance (``fmi2/fmu.c``).
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import platform
 import shutil
@@ -129,6 +130,21 @@ def platform_folder() -> tuple[str, str]:
     raise ExportError(f"FMI 2.0 has no binaries folder for the operating system {system!r}")
 
 
+def _step_hint(ss) -> str:
+    """``#define BG_STEP_HINT "..."`` for config.h when the model has laws
+    that jump (``sign(v)``, :data:`bondgraph.core.domains.JUMPS`): the
+    co-simulation's adaptive Dormand-Prince step cannot cross a jump where a
+    state sticks (Coulomb friction holding a mass), and its error then
+    names the law; '' otherwise."""
+    jumps = [n.split(" (in ", 1)[0] for n in ss.domain_notes if " jumps where " in n]
+    if not jumps:
+        return ""
+    text = (f"; the model's {', '.join(jumps)} jumps at 0, and a state that sticks there makes "
+            f"the derivative switch at every step: export a smooth law (tanh(x/eps)), or use "
+            f"Model Exchange with a fixed-step solver")
+    return f"#define BG_STEP_HINT {json.dumps(text)}\n"
+
+
 def export_fmu(model: str | BondGraph, path: str | Path, *,
                params: Mapping[str, float] | None = None,
                options: FMUOptions = FMUOptions()) -> Path:
@@ -184,7 +200,7 @@ def export_fmu(model: str | BondGraph, path: str | Path, *,
         for name in FMI2_FILES:
             shutil.copyfile(FMI2_DIR / name, src / name)
         (src / "model.c").write_text(c_source)
-        (src / "config.h").write_text(f'#define BG_GUID "{guid}"\n')
+        (src / "config.h").write_text(f'#define BG_GUID "{guid}"\n' + _step_hint(ss))
         binary = root / "binaries" / folder / f"{model_id}{suffix}"
         binary.parent.mkdir(parents=True)
         _compile(cc, src / "fmu.c", binary)

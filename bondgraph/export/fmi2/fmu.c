@@ -38,6 +38,10 @@
 #define VR_Y (NP + 2 * NX + NU)
 #define VR_END (NP + 2 * NX + NU + NY)
 #define MAX_STEPS 10000000L
+/* what config.h adds to a failed step's message: the model's laws that jump */
+#ifndef BG_STEP_HINT
+#define BG_STEP_HINT ""
+#endif
 
 typedef struct {
     double theta[DIM(NP)], x[DIM(NX)], u[DIM(NU)];
@@ -346,7 +350,8 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real t, fmi2Real H, fmi2Boolean noSet
     double h = s->h > 0 ? fmin(s->h, H) : H * 1e-3;
     bg_f(s->x, s->u, s->theta, k1);
     while (tend - tt > 1e-14 * fmax(1.0, fabs(tend))) {
-        if (++steps > MAX_STEPS) return unsupported(c, "fmi2DoStep: too many internal steps");
+        if (++steps > MAX_STEPS)
+            return unsupported(c, "fmi2DoStep: too many internal steps" BG_STEP_HINT);
         int last = tt + h >= tend;
         double hh = last ? tend - tt : h;
         double err = dopri_trial(s, hh, k1, xn, k7);
@@ -359,7 +364,8 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real t, fmi2Real H, fmi2Boolean noSet
         fac = fmin(5.0, fmax(0.2, isfinite(fac) ? fac : 0.2));
         h = hh * fac;
         if (h < 1e-14 * fmax(1.0, fabs(tt)))
-            return unsupported(c, "fmi2DoStep: step size underflow (a state is not finite?)");
+            return unsupported(c, "fmi2DoStep: step size underflow (a state is not finite?)"
+                               BG_STEP_HINT);
         if (err <= 1.0 && !last) s->h = h;
     }
     s->time = tend;
