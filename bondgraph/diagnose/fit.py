@@ -895,8 +895,8 @@ def continued_laws(ctx: Context, fit: Fit) -> list[str]:
     meant a law for both signs (an orifice between two tanks whose flow
     reverses)."""
     x = getattr(fit.ukf, "x_filt", None)
-    if x is None:
-        return []
+    if x is None or not getattr(fit.model, "domain_notes", None):
+        return []                   # no law continued: no derivation needed
     ss = derive(fit.graph)
     exprs = list(ss.f) + list(ss.h)
     if not any(getattr(e, "has", None) and e.has(dpow) for e in exprs):
