@@ -46,6 +46,16 @@ import sympy as sp
 JUMPS = (sp.sign, sp.Heaviside)
 
 
+#: what a domain note of a jump says after the law and where it stands (:func:`jump_laws`)
+JUMP_MARK = " jumps where "
+
+
+def jump_laws(notes) -> list[str]:
+    """The laws with a jump that domain notes name (``["sign(p_mass/m)"]``),
+    for the hints of a solver or an FMU that failed where a state sticks."""
+    return [n.split(" (in ", 1)[0] for n in notes if JUMP_MARK in n]
+
+
 def nonnegative_by_form(e: sp.Expr) -> bool:
     """Whether ``e`` is non-negative for every real value of its symbols by
     its form: a non-negative number, an even power or an absolute value of
@@ -216,7 +226,7 @@ def extend_domains(exprs: Iterable[sp.Expr], states: Iterable[sp.Symbol],
             for j in e.atoms(*JUMPS):
                 if j.args[0].free_symbols & st:
                     jumps.setdefault(j, []).append(where[i])
-    jump_notes = [f"{sp.sstr(j)} (in {', '.join(dict.fromkeys(w))}) jumps where "
+    jump_notes = [f"{sp.sstr(j)} (in {', '.join(dict.fromkeys(w))}){JUMP_MARK}"
                   f"{sp.sstr(j.args[0])} = 0: its derivative is taken as 0 there too (the "
                   f"Jacobian away from the jump); fixed-step filters may chatter across it, a "
                   f"smooth law (bondgraph.core.smooth.smooth_sign, tanh(x/eps)) does not"

@@ -42,6 +42,7 @@ from xml.etree import ElementTree as ET
 
 from bondgraph.core import units
 from bondgraph.core.codegen_c import generate_c_source
+from bondgraph.core.domains import jump_laws
 from bondgraph.core.equations import StateSpace, derive
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.symbols import identifier
@@ -136,7 +137,7 @@ def _step_hint(ss) -> str:
     co-simulation's adaptive Dormand-Prince step cannot cross a jump where a
     state sticks (Coulomb friction holding a mass), and its error then
     names the law; '' otherwise."""
-    jumps = [n.split(" (in ", 1)[0] for n in ss.domain_notes if " jumps where " in n]
+    jumps = jump_laws(ss.domain_notes)
     if not jumps:
         return ""
     text = (f"; the model's {', '.join(jumps)} jumps at 0, and a state that sticks there makes "

@@ -64,6 +64,7 @@ import numpy as np
 from scipy.integrate import ODEintWarning, odeint, solve_ivp
 
 from bondgraph.core import progress as _progress
+from bondgraph.core.domains import jump_laws
 from bondgraph.errors import DataError, ModelError, NumericalError, OptionError
 from bondgraph.numerics import integrators
 from bondgraph.numerics.integrators import split_hold
@@ -764,8 +765,7 @@ def _jump_hint(model) -> str:
     side switches sign at every step and no step is small enough
     (a Filippov solution, which adaptive solvers without event handling
     cannot follow). Empty for a model without jumps."""
-    jumps = [n.split(" (in ", 1)[0] for n in getattr(model, "domain_notes", ())
-             if " jumps where " in n]
+    jumps = jump_laws(getattr(model, "domain_notes", ()))
     if not jumps:
         return ""
     return (f"the model's {', '.join(jumps)} jumps at 0, and a state that sticks there makes "
