@@ -654,3 +654,114 @@ def test_a_term_that_makes_a_bearing_a_source_at_low_speed_is_named():
     assert check_admissible(g, derive(g), th, x, no_u).ok
     g, th = graph(0.0)
     assert check_admissible(g, derive(g), th, x, no_u).ok
+
+
+def _absorbing_case():
+    """A model of two states driven by the process-noise parameters w1 (the
+    first state) and w2 (the second), sensor noise s; a filtered record of
+    1024 samples at 4 s whose first state has spread 2 and second 0.5."""
+    t = np.arange(1024) * 4.0
+    model = SimpleNamespace(
+        outputs=["y"], states=["lower", "upper"], params=["w1", "w2", "s"],
+        param_index=lambda n: ["w1", "w2", "s"].index(n),
+        bounds=lambda names: (np.array([{"w1": 1e-6, "w2": 1e-3, "s": 1e-4}[n] for n in names]),
+                              np.array([1.0] * len(names))),
+        meas_std=lambda th: th[..., 2:3],
+        proc_std=lambda th: np.stack([th[..., 0], th[..., 1]], axis=-1))
+    x = np.zeros((t.size, 1, 2))
+    x[:, 0, 0] = 5.0 + 2.0 * np.sqrt(2) * np.sin(2 * np.pi * t / 256.0)   # 16 periods: std 2
+    x[:, 0, 1] = 3.0 + 0.5 * np.sqrt(2) * np.sin(2 * np.pi * t / 128.0)   # std 0.5
+    ctx = SimpleNamespace(problem=SimpleNamespace(arrays=(t, None, None),
+                                                  theta=np.array([0.01, 0.01, 0.02])))
+    fit = SimpleNamespace(model=model, theta=np.array([0.30, 0.02, 0.05]),
+                          ukf=SimpleNamespace(x_filt=x))
+    return ctx, fit
+
+
+def test_process_noise_floor_is_a_random_walk_of_one_percent_of_the_spread():
+    """Under the free-run likelihood each estimated process-noise intensity
+    is held where q·√T = 1 % of its state's spread: w1 (spread 2, T = 4092 s)
+    at 0.02/√4092 = 3.1265e-4; w2's own floor 0.005/√4092 = 7.82e-5 is below
+    its box (1e-3, the user's bound): held there; the sensor std s drives no
+    state and is left out. Only the first state's noise absorbs: 0.30·√4092
+    = 19.2 > 2 after a 30-fold growth; w2's walk 1.28 exceeds its spread
+    0.5 too, but it grew 2-fold only, under the factor 3."""
+    from bondgraph.diagnose.fit import process_noise_absorbing, process_noise_floor
+
+    ctx, fit = _absorbing_case()
+    floors = process_noise_floor(ctx, fit, ["w1", "w2", "s"])
+    assert set(floors) == {"w1", "w2"}
+    assert floors["w1"] == pytest.approx(0.01 * 2.0 / math.sqrt(4092.0), rel=1e-3)
+    assert floors["w2"] == 1e-3
+    (hit,) = process_noise_absorbing(ctx, fit)
+    assert hit[0] == "lower" and "grew from 0.01 to 0.3 per √s" in hit[1]
+    # a fitted intensity already below its floor is never raised
+    fit.theta = np.array([1e-5, 0.02, 0.05])
+    assert process_noise_floor(ctx, fit, ["w1"])["w1"] == pytest.approx(1e-5)
+
+
+def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypatch):
+    """``likelihood="auto"``: a declared fit whose process noise absorbs the
+    model's error is refitted with the intensities at their floor and the
+    record's declared sensor noise estimated; the switch is kept only if the
+    free run's error on the record does not grow, else settings and problem
+    are restored. Without absorption, or under noise='model', nothing
+    changes."""
+    from bondgraph.diagnose import runner
+    from bondgraph.inference.problem import NoiseSpec
+
+    ctx0, fit0 = _absorbing_case()
+
+    class _Problem:
+        def __init__(self, noise, fixed=None):
+            self.noise, self.fixed = noise, dict(fixed or {})
+            self.arrays = ctx0.problem.arrays[:2] + (np.full((1024, 1), 5.0),)
+            self.theta = ctx0.problem.theta
+
+        def with_fixed(self, fixed):
+            return _Problem(self.noise, {**self.fixed, **fixed})
+
+        def conditioned_on(self, noise_levels=None, noise_outputs=None):
+            return _Problem(self.noise.holding(noise_levels, noise_outputs), self.fixed)
+
+    def context(mode="auto", noise="auto"):
+        s = LoopSettings(["k", "w1", "w2", "s"], search=SearchOptions(likelihood=mode))
+        p = _Problem(NoiseSpec(noise, held={"y": 0.02} if noise == "auto" else {}))
+        return SimpleNamespace(settings=s, problem=p, cache={"stale": 1}, log=logs.append)
+
+    logs: list[str] = []
+    fit0.metric, fit0.sim_y, fit0.warnings = 0.31, np.full((1024, 1), 5.5), []
+    fit0.model.params = ["k", "w1", "w2", "s"]
+    fit0.estimates = lambda: {}
+    fit0.theta = np.array([0.30, 0.02, 0.05])
+    monkeypatch.setattr(runner, "noise_params", lambda model: {"w1", "w2", "s"})
+    refit = SimpleNamespace(metric=0.28, warnings=[])
+    monkeypatch.setattr(runner, "initial_fit", lambda ctx, graph, again=False: refit)
+    ctx = context()
+    assert runner.free_run_likelihood(ctx, None, fit0) is refit
+    s = ctx.settings
+    assert s.search.likelihood == "free_run" and s.params == ["k", "s"]
+    assert s.fixed["w1"] == pytest.approx(3.1265e-4, rel=1e-3) and s.fixed["w2"] == 1e-3
+    assert ctx.problem.fixed == s.fixed and ctx.cache == {}
+    # the declared 0.02 is released, started at the free run's RMS error 0.5
+    assert ctx.problem.noise.estimated == ("y",) and ctx.problem.noise.held["y"] == 0.5
+    assert refit.warnings[0].startswith("the process noise absorbs the model's error")
+    # a free-run fit whose error on the record grew: everything restored
+    refit.metric = 0.35
+    ctx = context()
+    before = ctx.problem
+    assert runner.free_run_likelihood(ctx, None, fit0) is fit0
+    assert ctx.problem is before and ctx.settings.params == ["k", "w1", "w2", "s"]
+    assert ctx.settings.search.likelihood == "one_step" and "w1" not in ctx.settings.fixed
+    # no absorption, or the graph's own noise levels: the one-step likelihood
+    for theta, noise in (([0.011, 0.011, 0.05], "auto"), ([0.30, 0.02, 0.05], "model")):
+        fit0.theta = np.array(theta)
+        ctx = context(noise=noise)
+        assert runner.free_run_likelihood(ctx, None, fit0) is fit0
+        assert ctx.settings.search.likelihood == "one_step" and "w1" not in ctx.settings.fixed
+    # asked for: switched without the evidence, and kept though the error grew
+    ctx = context(mode="free_run")
+    assert runner.free_run_likelihood(ctx, None, fit0) is refit
+    assert ctx.settings.search.likelihood == "free_run"
+    with pytest.raises(OptionError, match="likelihood"):
+        SearchOptions(likelihood="sim")

@@ -110,6 +110,12 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="declared fit: UKF likelihood (nll, default) or an output-error "
                         "(free-run least-squares) fit of the non-noise parameters first, "
                         "whose estimates start the likelihood fit (sim)")
+    p.add_argument("--likelihood", choices=("auto", "one-step", "free-run"), default=None,
+                   help="what the loop fits and judges by: the filter's one-step predictions "
+                        "with the estimated process noise (one-step), or the free run's errors, "
+                        "the process noise held at a floor (free-run); auto (default): "
+                        "one-step unless the declared fit's process noise absorbs the model's "
+                        "error")
     add_discretisation(p, chosen=False)          # with --backend
     p.set_defaults(method=None, substeps=None, hold=None)   # a case's own options unless given
     p.add_argument("--keep-going", action="store_true",
@@ -359,6 +365,7 @@ _OPTION_NAMES = {"LoopSettings.metric": "--metric", "LoopSettings.noise": "--noi
                  "AcceptRule.significance": "--significance",
                  "AcceptRule.metric_tolerance": "--metric-tolerance",
                  "SearchOptions.max_steps": "--max-steps", "SearchOptions.fit": "--fit",
+                 "SearchOptions.likelihood": "--likelihood",
                  "SearchOptions.structural": "--no-structural",
                  "SearchOptions.on_failed_fit": "--keep-going",
                  "PriorSpec.rel (--p0-rel)": "--p0-rel", "PriorSpec.scale (--p0)": "--p0",
@@ -429,10 +436,12 @@ def accept_rule(args, base: AcceptRule) -> AcceptRule:
 
 
 def search_options(args, base: SearchOptions) -> SearchOptions:
-    """``base`` with ``--max-steps``, ``--fit``, ``--no-structural`` and
+    """``base`` with ``--max-steps``, ``--fit``, ``--likelihood``, ``--no-structural`` and
     ``--keep-going`` where given (validated by :class:`SearchOptions`)."""
     return dataclasses.replace(
         base, max_steps=_given(args.max_steps, base.max_steps), fit=_given(args.fit, base.fit),
+        likelihood=(base.likelihood if args.likelihood is None
+                    else args.likelihood.replace("-", "_")),
         structural=False if args.no_structural else base.structural,
         on_failed_fit="continue" if args.keep_going else base.on_failed_fit)
 

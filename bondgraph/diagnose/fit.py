@@ -868,21 +868,81 @@ def noise_absorbing(ctx: Context, fit: Fit) -> list[str]:
             out.append(f"the measurement noise of {o} is estimated at {v:.3g}, below a third of "
                        f"the record's declaration {d:.3g}: the model's errors are passed to "
                        f"the process noise")
-    proc = getattr(model, "proc_std", None)
+    return out + [msg for _, msg in process_noise_absorbing(ctx, fit)]
+
+
+def state_spreads(ctx: Context, fit: Fit) -> tuple[np.ndarray, float] | None:
+    """``(spread (n_x,), span)``: the std of each state's filtered trajectory
+    in ``fit`` and the record's duration [s]; None without a stored filter
+    run or a record of two samples."""
     x = getattr(fit.ukf, "x_filt", None)
     t = ctx.problem.arrays[0]
-    if proc is None or x is None or len(t) < 2:
-        return out
+    if x is None or len(t) < 2:
+        return None
+    x = np.asarray(x)
+    return (np.array([float(np.nanstd(x[:, 0, i])) for i in range(x.shape[2])]),
+            float(t[-1] - t[0]))
+
+
+def process_noise_absorbing(ctx: Context, fit: Fit) -> list[tuple[str, str]]:
+    """``[(state, message)]``: the process-noise part of
+    :func:`noise_absorbing`, the states whose intensity grew more than
+    :data:`NOISE_FACTOR`-fold from its start and whose random walk over the
+    record exceeds the state's own spread."""
+    model, th = fit.model, fit.theta
+    proc = getattr(model, "proc_std", None)
+    spreads = state_spreads(ctx, fit)
+    if proc is None or spreads is None:
+        return []
+    spread, span = spreads
     q1 = np.asarray(proc(th[None, :]), float).reshape(-1)
     q0 = np.asarray(proc(ctx.problem.theta[None, :]), float).reshape(-1)
-    span = float(t[-1] - t[0])
+    out = []
     for i, st in enumerate(model.states):
-        spread = float(np.nanstd(np.asarray(x)[:, 0, i]))
         walk = q1[i] * np.sqrt(span)
-        if q1[i] > NOISE_FACTOR * q0[i] and walk > spread > 0:
-            out.append(f"the process noise of {st} grew from {q0[i]:.3g} to {q1[i]:.3g} per √s: "
-                       f"its random walk over the record ({walk:.3g}) exceeds the state's own "
-                       f"spread ({spread:.3g}); the noise absorbs the model's error")
+        if q1[i] > NOISE_FACTOR * q0[i] and walk > spread[i] > 0:
+            out.append((st, f"the process noise of {st} grew from {q0[i]:.3g} to {q1[i]:.3g} per "
+                            f"√s: its random walk over the record ({walk:.3g}) exceeds the "
+                            f"state's own spread ({spread[i]:.3g}); the noise absorbs the "
+                            f"model's error"))
+    return out
+
+
+#: under the free-run likelihood, a process-noise intensity is held where its
+#: random walk over the record is this share of its state's spread: small
+#: enough that the filter's prediction is the free run, not so small that its
+#: covariance loses rank (:func:`process_noise_floor`)
+FREE_RUN_SHARE = 0.01
+
+
+def process_noise_floor(ctx: Context, fit: Fit, names: Sequence[str]) -> dict:
+    """Name -> value of the process-noise intensity parameters among
+    ``names`` held for the free-run likelihood: each scaled down until the
+    random walk q·√T of every state it drives is :data:`FREE_RUN_SHARE` of
+    that state's spread in ``fit`` (never up; not below the lower end of
+    the parameter's box, the user's own bound). A parameter that drives no
+    state's process noise (a sensor-noise std) is left out."""
+    model, th = fit.model, fit.theta
+    proc = getattr(model, "proc_std", None)
+    spreads = state_spreads(ctx, fit)
+    if proc is None or spreads is None:
+        return {}
+    spread, span = spreads
+    q = np.asarray(proc(th[None, :]), float).reshape(-1)
+    out = {}
+    for n in names:
+        j = model.param_index(n)
+        bumped = th.copy()
+        bumped[j] = 2.0 * th[j] if th[j] != 0 else 1e-6
+        driven = np.abs(np.asarray(proc(bumped[None, :]), float).reshape(-1) - q) > 0
+        if not driven.any():
+            continue
+        ok = driven & (q > 0) & (spread > 0)
+        factor = min([FREE_RUN_SHARE * spread[i] / (q[i] * np.sqrt(span))
+                      for i in np.flatnonzero(ok)] or [1.0])
+        lo, _ = model.bounds([n])
+        value = float(th[j]) * min(factor, 1.0)
+        out[n] = float(max(value, lo[0])) if np.isfinite(lo[0]) else value
     return out
 
 

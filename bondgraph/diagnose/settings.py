@@ -180,7 +180,20 @@ class SearchOptions:
         :func:`bondgraph.inference.output_error.output_error_fit`) whose
         estimates then start the likelihood fit (``"sim"``; for a
         deterministic model whose likelihood fit starts far off). Effects are
-        always scored and confirmed by the likelihood.
+        scored and confirmed by the likelihood ``likelihood`` names.
+    likelihood : {"auto", "one_step", "free_run"}
+        The likelihood the loop fits and judges by. ``"one_step"``: the
+        UKF's one-step predictions with the process noise the fit estimates;
+        ``"free_run"``: the estimated process-noise intensities held at a
+        floor (their random walk 1 % of each state's spread), so that the
+        filter's prediction is the free run and the likelihood that of the
+        free-run errors the loop reports (the record's declared sensor noise
+        then estimated: it holds the model's error); ``"auto"`` (default):
+        one-step, unless the declared fit's process noise absorbs the
+        model's error (its random walk exceeds its state's spread,
+        :func:`bondgraph.diagnose.fit.process_noise_absorbing`) and the
+        free-run fit's error is not larger
+        (:func:`bondgraph.diagnose.runner.free_run_likelihood`).
     on_failed_fit : {"stop", "continue"}
         What the loop does when the declared fit did not happen (no physical
         parameter found an interior optimum: each never left its start value
@@ -261,6 +274,7 @@ class SearchOptions:
 
     max_steps: int = 4
     fit: str = "nll"
+    likelihood: str = "auto"
     on_failed_fit: str = "stop"
     fit_iterations: int = 10
     auto_substeps: bool = False
@@ -281,6 +295,7 @@ class SearchOptions:
                               ("structural_refit", 0), ("structural_starts", 0)):
             _integer(self, name, minimum)
         _choice(self, "fit", ("nll", "sim"))
+        _choice(self, "likelihood", ("auto", "one_step", "free_run"))
         _choice(self, "on_failed_fit", ("stop", "continue"))
         _choice(self, "structural", (True, False, "always"))
         if self.other_hold is not None and not hold_within(self.other_hold, ("zoh", "linear")):
