@@ -962,8 +962,8 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
     the one-step likelihood let the upper tank's process noise grow 30-fold
     and explain its overflow: no effect was accepted (held-out NRMSE 0.367);
     under the free-run likelihood the declared fit is at 0.320 and the loop
-    accepts the upper tank's capacity limit (0.296), then the sensor's
-    clipping and a pump lag (0.198)."""
+    accepts the upper tank's capacity limit (0.296), then a curved sensor
+    law where the record's tops flatten, and a pump lag (0.198)."""
     s = ctx.settings
     mode = s.search.likelihood
     if mode == "one_step":
