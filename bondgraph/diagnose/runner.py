@@ -986,17 +986,7 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
                 f"likelihood stays")
         return initial
     base_settings, base_problem = s, ctx.problem
-    ctx.settings = replace(s, params=[n for n in s.params if n not in floors],
-                           initial_params=None if s.initial_params is None else [
-                               n for n in s.initial_params if n not in floors],
-                           fixed={**s.fixed, **floors},
-                           search=replace(s.search, likelihood="free_run"))
-    problem = ctx.problem.with_fixed(floors)
-    if released:
-        problem = problem.conditioned_on(noise_levels=released, noise_outputs=list(
-            problem.noise.estimated) + [o for o in released if o not in problem.noise.estimated])
-    ctx.problem = problem
-    ctx.cache.clear()
+    _hold_for_free_run(ctx, floors, released)
     held = ", ".join(f"{n} = {v:.3g}" for n, v in floors.items())
     ctx.log(f"{why}: the loop fits and judges by the free-run likelihood (the filter's "
             f"prediction is the free run, as the error measure's)"
@@ -1027,6 +1017,25 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
            + f" (free-run error on the record {initial.metric:.4g} -> {again.metric:.4g})")
     again.warnings.insert(0, msg)
     return again
+
+
+def _hold_for_free_run(ctx: Context, floors: dict, released: dict) -> None:
+    """``ctx``'s settings and problem for the free-run likelihood: the
+    process-noise parameters ``floors`` (name -> value) fixed, out of
+    ``params`` and ``initial_params``; the measurement noises ``released``
+    (output -> start std) estimated; the problem cache cleared."""
+    s = ctx.settings
+    ctx.settings = replace(s, params=[n for n in s.params if n not in floors],
+                           initial_params=None if s.initial_params is None else [
+                               n for n in s.initial_params if n not in floors],
+                           fixed={**s.fixed, **floors},
+                           search=replace(s.search, likelihood="free_run"))
+    problem = ctx.problem.with_fixed(floors)
+    if released:
+        problem = problem.conditioned_on(noise_levels=released, noise_outputs=list(
+            problem.noise.estimated) + [o for o in released if o not in problem.noise.estimated])
+    ctx.problem = problem
+    ctx.cache.clear()
 
 
 def _released_noise(ctx: Context, fit: Fit) -> dict:
