@@ -680,8 +680,8 @@ def _absorbing_case():
 
 def test_process_noise_floor_is_a_random_walk_of_one_percent_of_the_spread():
     """Under the free-run likelihood each estimated process-noise intensity
-    is held where q·√T = 1 % of its state's spread: w1 (spread 2, T = 4092 s)
-    at 0.02/√4092 = 3.1265e-4; w2's own floor 0.005/√4092 = 7.82e-5 is below
+    is held where q·√T = 0.1 % of its state's spread: w1 (spread 2, T = 4092 s)
+    at 0.002/√4092 = 3.1265e-5; w2's own floor 0.0005/√4092 = 7.8e-6 is below
     its box (1e-3, the user's bound): held there; the sensor std s drives no
     state and is left out. Only the first state's noise absorbs: 0.30·√4092
     = 19.2 > 2 after a 30-fold growth; w2's walk 1.28 exceeds its spread
@@ -691,7 +691,7 @@ def test_process_noise_floor_is_a_random_walk_of_one_percent_of_the_spread():
     ctx, fit = _absorbing_case()
     floors = process_noise_floor(ctx, fit, ["w1", "w2", "s"])
     assert set(floors) == {"w1", "w2"}
-    assert floors["w1"] == pytest.approx(0.01 * 2.0 / math.sqrt(4092.0), rel=1e-3)
+    assert floors["w1"] == pytest.approx(1e-3 * 2.0 / math.sqrt(4092.0), rel=1e-3)
     assert floors["w2"] == 1e-3
     (hit,) = process_noise_absorbing(ctx, fit)
     assert hit[0] == "lower" and "grew from 0.01 to 0.3 per √s" in hit[1]
@@ -741,7 +741,7 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
     assert runner.free_run_likelihood(ctx, None, fit0) is refit
     s = ctx.settings
     assert s.search.likelihood == "free_run" and s.params == ["k", "s"]
-    assert s.fixed["w1"] == pytest.approx(3.1265e-4, rel=1e-3) and s.fixed["w2"] == 1e-3
+    assert s.fixed["w1"] == pytest.approx(3.1265e-5, rel=1e-3) and s.fixed["w2"] == 1e-3
     assert ctx.problem.fixed == s.fixed and ctx.cache == {}
     # the declared 0.02 is released, started at the free run's RMS error 0.5
     assert ctx.problem.noise.estimated == ("y",) and ctx.problem.noise.held["y"] == 0.5

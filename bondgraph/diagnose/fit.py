@@ -911,8 +911,13 @@ def process_noise_absorbing(ctx: Context, fit: Fit) -> list[tuple[str, str]]:
 #: under the free-run likelihood, a process-noise intensity is held where its
 #: random walk over the record is this share of its state's spread: small
 #: enough that the filter's prediction is the free run, not so small that its
-#: covariance loses rank (:func:`process_noise_floor`)
-FREE_RUN_SHARE = 0.01
+#: covariance loses rank (:func:`process_noise_floor`). Small enough, too, that
+#: a fit cannot make it large again by shrinking an unmeasured state along a
+#: scale symmetry: on a user's two tanks at 1 % the fit moved the pump gain
+#: 50-fold down to its box (the upper level 50 times smaller, its held noise
+#: 50 times larger relative to it) and the free run's error doubled
+FREE_RUN_SHARE = 1e-3
+FREE_RUN_SHARE = 1e-3
 
 
 def process_noise_floor(ctx: Context, fit: Fit, names: Sequence[str]) -> dict:

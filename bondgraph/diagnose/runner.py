@@ -948,7 +948,7 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
     (:func:`~bondgraph.diagnose.fit.process_noise_absorbing`): the
     process-noise intensities estimated with θ are held at a floor
     (:func:`~bondgraph.diagnose.fit.process_noise_floor`: their random walk
-    1 % of each state's spread), the measurement-noise stds the record
+    0.1 % of each state's spread), the measurement-noise stds the record
     declares are estimated instead (started at the free run's RMS error),
     and the declared model is refitted; every later fit, score test and
     likelihood ratio of the loop uses that problem. The filter's prediction

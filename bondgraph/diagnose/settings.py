@@ -185,7 +185,7 @@ class SearchOptions:
         The likelihood the loop fits and judges by. ``"one_step"``: the
         UKF's one-step predictions with the process noise the fit estimates;
         ``"free_run"``: the estimated process-noise intensities held at a
-        floor (their random walk 1 % of each state's spread), so that the
+        floor (their random walk 0.1 % of each state's spread), so that the
         filter's prediction is the free run and the likelihood that of the
         free-run errors the loop reports (the record's declared sensor noise
         then estimated: it holds the model's error); ``"auto"`` (default):
