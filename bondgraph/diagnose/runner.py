@@ -961,9 +961,9 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
     On a user's two tanks (cascaded-tanks benchmark, Schoukens & Noël 2017)
     the one-step likelihood let the upper tank's process noise grow 30-fold
     and explain its overflow: no effect was accepted (held-out NRMSE 0.367);
-    under the free-run likelihood the declared fit is at 0.320 and the loop
-    accepts the upper tank's capacity limit (0.296), then a curved sensor
-    law where the record's tops flatten, and a pump lag (0.198)."""
+    under the free-run likelihood the declared fit is at 0.324 and the loop
+    accepts the overflow of both tanks as a pair (0.294), then a cubic
+    sensor law with a pump rate limit (0.200)."""
     s = ctx.settings
     mode = s.search.likelihood
     if mode == "one_step":
