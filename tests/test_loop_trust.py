@@ -765,3 +765,13 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
     assert ctx.settings.search.likelihood == "free_run"
     with pytest.raises(OptionError, match="likelihood"):
         SearchOptions(likelihood="sim")
+
+
+def test_a_state_that_does_not_move_gives_its_noise_the_share_itself():
+    """A filtered state with no spread gives no scale: its driver's floor is
+    the fitted value times the share (never the absorbed value itself)."""
+    from bondgraph.diagnose.fit import FREE_RUN_SHARE, process_noise_floor
+
+    ctx, fit = _absorbing_case()
+    fit.ukf.x_filt[:, 0, 0] = 5.0
+    assert process_noise_floor(ctx, fit, ["w1"])["w1"] == pytest.approx(0.30 * FREE_RUN_SHARE)

@@ -917,7 +917,6 @@ def process_noise_absorbing(ctx: Context, fit: Fit) -> list[tuple[str, str]]:
 #: 50-fold down to its box (the upper level 50 times smaller, its held noise
 #: 50 times larger relative to it) and the free run's error doubled
 FREE_RUN_SHARE = 1e-3
-FREE_RUN_SHARE = 1e-3
 
 
 def process_noise_floor(ctx: Context, fit: Fit, names: Sequence[str]) -> dict:
@@ -925,8 +924,10 @@ def process_noise_floor(ctx: Context, fit: Fit, names: Sequence[str]) -> dict:
     ``names`` held for the free-run likelihood: each scaled down until the
     random walk q·√T of every state it drives is :data:`FREE_RUN_SHARE` of
     that state's spread in ``fit`` (never up; not below the lower end of
-    the parameter's box, the user's own bound). A parameter that drives no
-    state's process noise (a sensor-noise std) is left out."""
+    the parameter's box, the user's own bound; a state that does not move
+    in ``fit`` gives no spread: its driver is scaled by the share itself).
+    A parameter that drives no state's process noise (a sensor-noise std)
+    is left out."""
     model, th = fit.model, fit.theta
     proc = getattr(model, "proc_std", None)
     spreads = state_spreads(ctx, fit)
@@ -944,7 +945,7 @@ def process_noise_floor(ctx: Context, fit: Fit, names: Sequence[str]) -> dict:
             continue
         ok = driven & (q > 0) & (spread > 0)
         factor = min([FREE_RUN_SHARE * spread[i] / (q[i] * np.sqrt(span))
-                      for i in np.flatnonzero(ok)] or [1.0])
+                      for i in np.flatnonzero(ok)] or [FREE_RUN_SHARE])
         lo, _ = model.bounds([n])
         value = float(th[j]) * min(factor, 1.0)
         out[n] = float(max(value, lo[0])) if np.isfinite(lo[0]) else value

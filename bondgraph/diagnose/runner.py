@@ -991,7 +991,8 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
     ctx.log(f"{why}: the loop fits and judges by the free-run likelihood (the filter's "
             f"prediction is the free run, as the error measure's)"
             + (f"; process noise held at {held} (a random walk of "
-               f"{100 * FREE_RUN_SHARE:g} % of each state's spread)" if floors else "")
+               f"{100 * FREE_RUN_SHARE:g} % of each state's spread, not below its box)"
+               if floors else "")
             + (f"; the measurement noise of {', '.join(released)} estimated (it now holds the "
                f"model's error)" if released else "")
             + "; --likelihood one-step keeps the one-step likelihood")
