@@ -737,8 +737,9 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
     monkeypatch.setattr(runner, "noise_params", lambda model: {"w1", "w2", "s"})
     refit = SimpleNamespace(metric=0.28, warnings=[])
     monkeypatch.setattr(runner, "initial_fit", lambda ctx, graph, again=False: refit)
+    monkeypatch.setattr(runner, "resolved_fit", lambda ctx, graph, fit: (fit, ["checked"]))
     ctx = context()
-    assert runner.free_run_likelihood(ctx, None, fit0) is refit
+    assert runner.free_run_likelihood(ctx, None, fit0, []) == (refit, ["checked"])
     s = ctx.settings
     assert s.search.likelihood == "free_run" and s.params == ["k", "s"]
     assert s.fixed["w1"] == pytest.approx(3.1265e-5, rel=1e-3) and s.fixed["w2"] == 1e-3
@@ -750,18 +751,18 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
     refit.metric = 0.35
     ctx = context()
     before = ctx.problem
-    assert runner.free_run_likelihood(ctx, None, fit0) is fit0
+    assert runner.free_run_likelihood(ctx, None, fit0, []) == (fit0, [])
     assert ctx.problem is before and ctx.settings.params == ["k", "w1", "w2", "s"]
     assert ctx.settings.search.likelihood == "one_step" and "w1" not in ctx.settings.fixed
     # no absorption, or the graph's own noise levels: the one-step likelihood
     for theta, noise in (([0.011, 0.011, 0.05], "auto"), ([0.30, 0.02, 0.05], "model")):
         fit0.theta = np.array(theta)
         ctx = context(noise=noise)
-        assert runner.free_run_likelihood(ctx, None, fit0) is fit0
+        assert runner.free_run_likelihood(ctx, None, fit0, []) == (fit0, [])
         assert ctx.settings.search.likelihood == "one_step" and "w1" not in ctx.settings.fixed
     # asked for: switched without the evidence, and kept though the error grew
     ctx = context(mode="free_run")
-    assert runner.free_run_likelihood(ctx, None, fit0) is refit
+    assert runner.free_run_likelihood(ctx, None, fit0, []) == (refit, ["checked"])
     assert ctx.settings.search.likelihood == "free_run"
     with pytest.raises(OptionError, match="likelihood"):
         SearchOptions(likelihood="sim")

@@ -178,7 +178,7 @@ def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) 
     with phase("fitting the declared model"):
         initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
         initial, warn = likelier_hold(ctx, graph, initial, warn)
-        initial = free_run_likelihood(ctx, graph, initial)
+        initial, warn = free_run_likelihood(ctx, graph, initial, warn)
     _worse_than_mean(ctx, initial)
     result = new_result(ctx, graph, initial, warn)
     publish(ctx, result, initial, initial, on_update)
@@ -940,7 +940,8 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     return initial_fit(ctx, graph, again=True), warn
 
 
-def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
+def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit,
+                        warn: list[str]) -> tuple[Fit, list[str]]:
     """The declared fit under the likelihood the loop fits and judges by
     (``settings.search.likelihood``). ``"one_step"``: ``initial``.
     ``"free_run"``, or ``"auto"`` when the process noise of ``initial``
@@ -956,18 +957,18 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
     the free-run (output) errors, the error measure the loop reports (Ljung
     1999, ch. 7: the output-error predictor). Under ``"auto"`` the switch is
     kept only if the refit's free-run error on the record is not larger.
-    Said in the log and in the fit's warnings (the report).
+    Said in the log and in the fit's warnings (the report). Returns the fit
+    and the discretisation warnings (``warn``, or those of the check
+    repeated at the refit, :func:`resolved_fit`, which may refit it with
+    more substeps).
 
-    On a user's two tanks (cascaded-tanks benchmark, Schoukens & Noël 2017)
-    the one-step likelihood let the upper tank's process noise grow 30-fold
-    and explain its overflow: no effect was accepted (held-out NRMSE 0.367);
-    under the free-run likelihood the declared fit is at 0.324 and the loop
-    accepts the overflow of both tanks as a pair (0.294), then a cubic
-    sensor law with a pump rate limit (0.200)."""
+    A user's cascaded tanks (Schoukens & Noël 2017): one-step, the process
+    noise explained the overflow and nothing was accepted (held out 0.367);
+    free-run, both overflows were accepted as a pair (0.294), 0.200 after."""
     s = ctx.settings
     mode = s.search.likelihood
     if mode == "one_step":
-        return initial
+        return initial, warn
     absorbing = process_noise_absorbing(ctx, initial)
     if mode == "auto" and (not absorbing or ctx.problem.noise.mode == "model"):
         if absorbing:
@@ -975,7 +976,7 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
                     "needs the measurement noise estimated and noise='model' holds the "
                     "graph's own: the one-step likelihood stays")
         ctx.settings = replace(s, search=replace(s.search, likelihood="one_step"))
-        return initial
+        return initial, warn
     floors = process_noise_floor(ctx, initial, [n for n in s.params if n in noise_params(
         initial.model)])
     released = _released_noise(ctx, initial)
@@ -984,7 +985,7 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
     if not floors and not released:
         ctx.log(f"  {why}, but the graph's process noise is not estimated: the one-step "
                 f"likelihood stays")
-        return initial
+        return initial, warn
     base_settings, base_problem = s, ctx.problem
     _hold_for_free_run(ctx, floors, released)
     held = ", ".join(f"{n} = {v:.3g}" for n, v in floors.items())
@@ -1012,12 +1013,13 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit) -> Fit:
                 + ("it failed" if again is None else
                    f"free-run error {initial.metric:.4g} -> {again.metric:.4g}")
                 + "): the one-step likelihood stays")
-        return initial
+        return initial, warn
     msg = (f"{why}: fitted and judged by the free-run likelihood"
            + (f", process noise held at {held}" if floors else "")
            + f" (free-run error on the record {initial.metric:.4g} -> {again.metric:.4g})")
+    again, warn = resolved_fit(ctx, graph, again)    # the numerics checked at the refit
     again.warnings.insert(0, msg)
-    return again
+    return again, warn
 
 
 def _hold_for_free_run(ctx: Context, floors: dict, released: dict) -> None:
