@@ -469,3 +469,57 @@ def test_lsoda_segment_returns_the_samples_reached_before_a_failure():
                        1e-10, 1e-12)
     assert ok.status == 0 and ok.y.shape == (1, 11) and ok.nfev > 0 and ok.njev == ok.nlu
     np.testing.assert_allclose(ok.y[0], np.exp(-ts), rtol=1e-8)
+
+
+def test_the_compiled_right_hand_side_equals_the_python_guard_to_the_bit(monkeypatch):
+    """An adaptive solver on a model's C kernels calls one compiled
+    function per right-hand side (:func:`simulate.compiled_rhs`: the
+    guard's checks, the inputs over the sample table, the kernel). Its
+    trajectories equal those of the Python path (:func:`simulate.guard_rhs`
+    over :meth:`InputSignals.segment_input`) to the bit, with the same
+    number of calls, for every hold (zero-order, linear, one of each per
+    input, a constant input) and solver; and the guard's outcomes are the
+    same: a non-finite derivative at a finite state kept with its
+    component, a state that ran away raised."""
+    pytest.importorskip("numba")
+    from bondgraph.numerics import simulate as S
+    from bondgraph.numerics.compiled import point_kernels
+
+    model = Model.load("thermal_two_node")
+    if not hasattr(point_kernels(model).f, "__wrapper_address__"):
+        pytest.skip("no C compiler: the model's numba kernels take the Python path")
+    t = np.linspace(0.0, 4000.0, 801)
+    P = np.repeat(np.random.default_rng(0).uniform(0.0, 500.0, 16), 50)[:t.size]
+    P = np.append(P, np.full(t.size - P.size, P[-1]))
+    Ta = 20.0 + 5.0 * np.sin(2 * np.pi * t / 1500.0)
+    cases = [({"P": P, "T_a": Ta}, h) for h in ("zoh", "linear", "zoh,linear", "linear,zoh")]
+    cases.append(({"P": P, "T_a": 20.0}, "zoh"))
+    for u, hold in cases:
+        for method in ("LSODA", "BDF", "RK45"):
+            fast = simulate(model, t, u, method=method, hold=hold, backend="numba",
+                            rtol=1e-6, atol=1e-9)
+            with monkeypatch.context() as mp:
+                mp.setattr(S, "compiled_rhs", lambda *a, **k: None)
+                slow = simulate(model, t, u, method=method, hold=hold, backend="numba",
+                                rtol=1e-6, atol=1e-9)
+            assert np.ptp(fast.x[:, 0]) > 0
+            assert np.array_equal(fast.x, slow.x), (hold, method)
+            assert fast.stats["nfev"] == slow.stats["nfev"], (hold, method)
+    # the guard: k = inf makes dp/dt = F - k q - c v NaN at q = 0 (finite state)
+    msd = Model.load("mass_spring_damper")
+    th = msd.theta0.copy()
+    th[msd.param_index("k")] = np.inf
+    tt = np.linspace(0.0, 1.0, 11)
+    sig = InputSignals(msd, tt, np.ones((tt.size, 1)), hold="zoh")
+    kern = point_kernels(msd)
+    fast = S.compiled_rhs(kern, th, sig.segment_table(0, "zoh"), msd.n_x)
+    slow = S.guard_rhs(S._point_rhs(msd, kern, th, sig.segment_input(0, "zoh"))[0])
+    x = np.zeros(msd.n_x)
+    assert np.array_equal(fast(0.1, x), slow(0.1, x), equal_nan=True)
+    ip = msd.states.index("p_mass")
+    assert fast.undefined.component == slow.undefined.component == ip
+    for g in (fast, slow):
+        with pytest.raises(S.Runaway, match="became non-finite"):
+            g(0.2, np.array([np.nan, 0.0]))
+        with pytest.raises(S.Runaway, match="ran away"):
+            g(0.3, np.array([1e101, 0.0]))
