@@ -49,6 +49,12 @@ def registry():
     0.7 s (every command pays it once). Where the cache cannot be used
     (no writable folder, an entry another process is still writing) the
     registry is built from the definitions as without it."""
+    return new_registry()
+
+
+def new_registry():
+    """A pint ``UnitRegistry`` as :func:`registry` builds it: from pint's
+    disk cache, else (any error of the cache) from the definitions."""
     import pint
 
     try:
