@@ -338,7 +338,7 @@ def _table_rhs(address, tq, x, ts, samples, slopes, ua, held, th, u, out, state,
 def table_rhs():
     """The numba function :func:`_table_rhs` (compiled once per
     installation, cached on disk): an adaptive solver's call of a model's
-    C kernel costs one dispatch (about 2 µs) instead of the Python checks,
+    C kernel costs one dispatch (4 µs in all) instead of the Python checks,
     input interpolation and call of
     :func:`bondgraph.numerics.simulate.guard_rhs` (about 20 µs), with the
     same values to the bit (``tests/test_simulate.py``)."""

@@ -727,7 +727,10 @@ def compiled_rhs(kernels, th, table, n_x: int) -> Callable | None:
     from bondgraph.numerics import compiled_c as cc
 
     ts, samples, slopes, ua, held = table
-    call, addr = cc.table_rhs(), f.__wrapper_address__()
+    try:
+        call, addr = cc.table_rhs(), f.__wrapper_address__()
+    except Exception:  # numba cannot compile it here: the Python path, the same values
+        return None
     thc = np.ascontiguousarray(th, dtype=float)
     u, out = np.empty(samples.shape[1]), np.empty(n_x)
     state, limits = np.array([-np.inf, 0.0]), np.array([RUNAWAY_NORM2, float(STALL_CALLS)])
