@@ -747,6 +747,12 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
     # the declared 0.02 is released, started at the free run's RMS error 0.5
     assert ctx.problem.noise.estimated == ("y",) and ctx.problem.noise.held["y"] == 0.5
     assert refit.warnings[0].startswith("the process noise absorbs the model's error")
+    # judged after its discretisation check: a refit at more substeps whose
+    # error grew is not kept, though the coarser fit's fell
+    finer = SimpleNamespace(metric=0.35, warnings=[])
+    with monkeypatch.context() as mp:
+        mp.setattr(runner, "resolved_fit", lambda ctx, graph, fit: (finer, ["refitted"]))
+        assert runner.free_run_likelihood(context(), None, fit0, []) == (fit0, [])
     # a free-run fit whose error on the record grew: everything restored
     refit.metric = 0.35
     ctx = context()

@@ -998,7 +998,9 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit,
                f"model's error)" if released else "")
             + "; --likelihood one-step keeps the one-step likelihood")
     try:
-        again = initial_fit(ctx, graph, again=True)
+        # the discretisation checked at the refit before it is judged (more
+        # substeps and a refit if it fails): the fit compared is the fit kept
+        again, checked = resolved_fit(ctx, graph, initial_fit(ctx, graph, again=True))
     except DeclaredFitError as exc:
         if mode == "free_run":
             raise
@@ -1017,9 +1019,8 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit,
     msg = (f"{why}: fitted and judged by the free-run likelihood"
            + (f", process noise held at {held}" if floors else "")
            + f" (free-run error on the record {initial.metric:.4g} -> {again.metric:.4g})")
-    again, warn = resolved_fit(ctx, graph, again)    # the numerics checked at the refit
     again.warnings.insert(0, msg)
-    return again, warn
+    return again, checked
 
 
 def _hold_for_free_run(ctx: Context, floors: dict, released: dict) -> None:
