@@ -998,8 +998,7 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit,
                f"model's error)" if released else "")
             + "; --likelihood one-step keeps the one-step likelihood")
     try:
-        # the discretisation checked at the refit before it is judged (more
-        # substeps and a refit if it fails): the fit compared is the fit kept
+        # the numerics checked before the refit is judged: the fit compared is the fit kept
         again, checked = resolved_fit(ctx, graph, initial_fit(ctx, graph, again=True))
     except DeclaredFitError as exc:
         if mode == "free_run":

@@ -387,8 +387,7 @@ class InputSignals:
         ``"zoh"``, some with a per-input hold) are held at sample ``a``
         (callables and linearly held arrays still vary inside the segment);
         none: :meth:`at`."""
-        holds = self.holds if hold == self.hold else split_hold(hold, self.model.n_u)
-        cols = [j for j in self._array_cols if holds[j] == "zoh"]
+        cols = self._held_columns(hold)
         if not cols:
             return self.at
         ua = self.samples[a]
@@ -405,6 +404,11 @@ class InputSignals:
             return v
         return u_at
 
+    def _held_columns(self, hold: str) -> list[int]:
+        """The sampled-array inputs that ``hold`` holds zero-order."""
+        holds = self.holds if hold == self.hold else split_hold(hold, self.model.n_u)
+        return [j for j in self._array_cols if holds[j] == "zoh"]
+
     def segment_table(self, a: int, hold: str) -> tuple | None:
         """The input of :meth:`segment_input` as data for a compiled
         right-hand side (:func:`compiled_rhs`): ``(t (N,), samples (N, n_u),
@@ -415,8 +419,7 @@ class InputSignals:
             return None
         _, samples, slopes = self._table
         n_u = samples.shape[1]
-        holds = self.holds if hold == self.hold else split_hold(hold, self.model.n_u)
-        cols = [j for j in self._array_cols if holds[j] == "zoh"]
+        cols = self._held_columns(hold)
         held = np.zeros(n_u, dtype=np.int8)
         if cols:
             # every column held when no input varies inside the segment
@@ -679,6 +682,21 @@ class Runaway(Exception):
         self.component = component
 
 
+def _ran_away(tq, xq) -> Runaway:
+    """The state ``xq`` passed :data:`RUNAWAY_NORM2` or is not finite."""
+    return Runaway(tq, xq, "ran away" if np.all(np.isfinite(xq)) else "became non-finite")
+
+
+def _stalled(tq, xq) -> Runaway:
+    """:data:`STALL_CALLS` calls without the solver advancing."""
+    return Runaway(tq, xq, f"stalled ({STALL_CALLS} calls without advancing)")
+
+
+def _undefined(tq, xq, k: int) -> Runaway:
+    """Derivative ``k`` is not finite at the finite state ``xq``."""
+    return Runaway(tq, xq, "met a derivative that is not finite at a finite state", component=k)
+
+
 def guard_rhs(rhs):
     """``rhs(t, x)`` for ``scipy.integrate.solve_ivp`` that stops the
     solver by raising ``Runaway`` (its ``t``, ``x`` and ``why``) when the
@@ -694,19 +712,17 @@ def guard_rhs(rhs):
     def g(tq, xq):
         s = float(np.dot(xq, xq))
         if not s < RUNAWAY_NORM2:
-            raise Runaway(tq, xq, "ran away" if np.all(np.isfinite(xq)) else "became non-finite")
+            raise _ran_away(tq, xq)
         if tq > seen[0]:
             seen[0], seen[1] = tq, 0
         else:
             seen[1] += 1
             if seen[1] > STALL_CALLS:
-                raise Runaway(tq, xq, f"stalled ({STALL_CALLS} calls without advancing)")
+                raise _stalled(tq, xq)
         d = rhs(tq, xq)
         if g.undefined is None and not np.all(ok := np.isfinite(d)):
             # kept, not raised: a solver may reject the trial step and go on
-            k = int(np.argmin(ok))
-            g.undefined = Runaway(tq, xq, "met a derivative that is not finite at a finite "
-                                  "state", component=k)
+            g.undefined = _undefined(tq, xq, int(np.argmin(ok)))
         return d
     g.undefined = None
     return g
@@ -742,13 +758,11 @@ def compiled_rhs(kernels, th, table, n_x: int) -> Callable | None:
                     limits)
         if code:
             if code == cc.RHS_RUNAWAY:
-                raise Runaway(tq, xq, "ran away" if np.all(np.isfinite(xq)) else
-                              "became non-finite")
+                raise _ran_away(tq, xq)
             if code == cc.RHS_STALLED:
-                raise Runaway(tq, xq, f"stalled ({STALL_CALLS} calls without advancing)")
+                raise _stalled(tq, xq)
             if g.undefined is None:
-                g.undefined = Runaway(tq, xq, "met a derivative that is not finite at a "
-                                      "finite state", component=int(code - cc.RHS_UNDEFINED))
+                g.undefined = _undefined(tq, xq, int(code - cc.RHS_UNDEFINED))
         return out.copy()
     g.undefined = None
     return g
