@@ -770,6 +770,14 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
     ctx = context(mode="free_run")
     assert runner.free_run_likelihood(ctx, None, fit0, []) == (refit, ["checked"])
     assert ctx.settings.search.likelihood == "free_run"
+    assert "noise='model'" not in logs[-1]
+    # forced under noise='model': the graph's own sensor stds stay, and the log says
+    # the likelihood is then a weighted least squares of the free-run errors
+    ctx = context(mode="free_run", noise="model")
+    assert runner.free_run_likelihood(ctx, None, fit0, []) == (refit, ["checked"])
+    assert ctx.problem.noise.estimated == ()
+    assert "stays the graph's own (noise='model')" in logs[-1]
+    assert "weighted least squares" in logs[-1]
     with pytest.raises(OptionError, match="likelihood"):
         SearchOptions(likelihood="sim")
 

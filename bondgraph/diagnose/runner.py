@@ -996,6 +996,7 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit,
                if floors else "")
             + (f"; the measurement noise of {', '.join(released)} estimated (it now holds the "
                f"model's error)" if released else "")
+            + (_held_sensor_note(ctx) if not released else "")
             + "; --likelihood one-step keeps the one-step likelihood")
     try:
         # the numerics checked before the refit is judged: the fit compared is the fit kept
@@ -1039,6 +1040,19 @@ def _hold_for_free_run(ctx: Context, floors: dict, released: dict) -> None:
             problem.noise.estimated) + [o for o in released if o not in problem.noise.estimated])
     ctx.problem = problem
     ctx.cache.clear()
+
+
+def _held_sensor_note(ctx: Context) -> str:
+    """The clause of the free-run switch's log line for measurement noise it
+    does not estimate: under ``noise='model'`` the graph's own sensor stds
+    stay, so the free-run likelihood is a least-squares fit of the free-run
+    errors weighted by them (Ljung 1999, §7.3), not the output-error
+    likelihood with the noise level concentrated out; "" otherwise."""
+    if ctx.problem.noise.mode != "model":
+        return ""
+    return ("; the measurement noise stays the graph's own (noise='model'): the free-run "
+            "errors are weighed by those stds, a weighted least squares, not estimated "
+            "(--noise auto estimates them)")
 
 
 def _released_noise(ctx: Context, fit: Fit) -> dict:
