@@ -176,6 +176,29 @@ def test_residual_analysis_against_hand_computed_statistics():
     assert rep.top_regions(1)[0].eta2 >= sign.eta2 > 0.1
 
 
+def test_ljung_box_equals_statsmodels_on_a_long_correlated_series():
+    """residuals._ljung_box (one dot product a lag) gives statsmodels'
+    acorr_ljungbox statistic and p-value (which correlates the whole series
+    with itself): an MA(2) series of 18 600 samples with a non-zero mean
+    and NaNs (dropped), at 20 lags; a short white one at 10."""
+    from statsmodels.stats.diagnostic import acorr_ljungbox
+
+    from bondgraph.diagnose.residuals import _ljung_box
+
+    rng = np.random.default_rng(3)
+    e = rng.normal(size=18_600)
+    z = np.convolve(e, [1.0, 0.5, 0.2], "same") + 0.3
+    z[[5, 700]] = np.nan
+    for series, lags in ((z, 20), (rng.normal(size=60), 10)):
+        ok = series[np.isfinite(series)]
+        ref = acorr_ljungbox(ok - ok.mean(), lags=[lags], return_df=True)
+        q, p = _ljung_box(series, lags)
+        assert q == pytest.approx(ref["lb_stat"].iloc[0], rel=1e-12)
+        assert p == pytest.approx(ref["lb_pvalue"].iloc[0], rel=1e-9, abs=1e-300)
+    assert _ljung_box(z, 20)[0] > 1000          # MA(2): far from white
+    assert np.isnan(_ljung_box(np.ones(50), 5)[0]) and np.isnan(_ljung_box(z[:12], 10)[0])
+
+
 # ------------------------------------------------------------------ vehicle
 def test_bundled_default_via_cli_writes_the_report(tmp_path, monkeypatch, capsys):
     """`bondgraph loop` (the README's main job, no --out) on the bundled case:

@@ -1,7 +1,7 @@
 """Residual analysis of a fitted model: what the innovations say.
 
 For each output: bias, RMS, whiteness of the standardised innovations
-(Ljung-Box, statsmodels), normalised-innovation-squared (NIS) consistency,
+(Ljung-Box), normalised-innovation-squared (NIS) consistency,
 spectral peaks (Welch periodogram, scipy), and where in the record the
 residual is large: the correlation ratio η² of the squared standardised
 innovation over bins of each operating variable (states, inputs, outputs,
@@ -23,7 +23,6 @@ from typing import Any
 import numpy as np
 from scipy.signal import welch
 from scipy.stats import chi2
-from statsmodels.stats.diagnostic import acorr_ljungbox
 
 
 @dataclass
@@ -135,11 +134,23 @@ class ResidualReport:
 
 
 def _ljung_box(z: np.ndarray, lags: int) -> tuple[float, float]:
+    """The Ljung-Box statistic Q = n (n + 2) Σ_{k=1..h} r_k² / (n − k) of the
+    finite samples of ``z`` (n) at ``h = lags``, r_k the sample
+    autocorrelation (autocovariances of the demeaned series over n, as
+    statsmodels' ``acorr_ljungbox``), and its p-value under χ²(h) (Ljung &
+    Box 1978). Each r_k is one dot product, O(n h): statsmodels correlates
+    the whole series with itself (O(n²), 0.24 s a call on 18 600 samples).
+    NaN, NaN for fewer than h + 5 samples or a constant series."""
     z = z[np.isfinite(z)]
     if z.size < lags + 5 or np.std(z) == 0:
         return float("nan"), float("nan")
-    df = acorr_ljungbox(z - z.mean(), lags=[lags], return_df=True)
-    return float(df["lb_stat"].iloc[0]), float(df["lb_pvalue"].iloc[0])
+    x = z - z.mean()
+    x = x - x.mean()
+    n = x.size
+    c0 = float(np.dot(x, x))
+    r = np.array([np.dot(x[:-k], x[k:]) for k in range(1, lags + 1)]) / c0
+    q = float(n * (n + 2) * np.sum(r ** 2 / (n - np.arange(1, lags + 1))))
+    return q, float(chi2.sf(q, lags))
 
 
 def _peak(z: np.ndarray, fs: float) -> tuple[float, float]:
