@@ -155,3 +155,60 @@ def test_factor_of_collapsed_and_indefinite_covariances():
     np.testing.assert_allclose(L @ L.T, P, atol=1e-12)
     with pytest.raises(NumericalError, match="sample 7"):
         smoother._factor(np.full((2, 2), np.nan), 7)
+
+
+def test_batched_factors_equal_the_one_by_one_factors():
+    """smoother._factors (one stacked eigendecomposition) gives each
+    covariance the loaded Cholesky factorisation refuses the factor _factor
+    gives it alone: indefinite (rotated), collapsed to zero; a batch holding
+    non-finite ones
+    raises naming the latest of them, as the one-by-one loop did."""
+    from bondgraph.errors import NumericalError
+
+    from bondgraph.inference.sigma import cholesky_batch
+
+    mats = []
+    for a, lo in ((0.3, -1e-4), (1.1, -3e-3), (2.0, -0.5)):
+        V = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        mats.append(V @ np.diag([2.0 + a, lo]) @ V.T)
+    mats.append(np.zeros((2, 2)))
+    P, ks = np.array(mats), np.array([3, 8, 9, 12])
+    assert not cholesky_batch(P)[1].any()       # what the smoother hands on
+    L = smoother._factors(P, ks)
+    for j, k in enumerate(ks):
+        np.testing.assert_allclose(L[j], smoother._factor(P[j], int(k))[0], rtol=1e-13,
+                                   atol=1e-15)
+    np.testing.assert_array_equal(L[3], np.zeros((2, 2)))
+    bad = P.copy()
+    bad[[0, 2]] = np.nan
+    with pytest.raises(NumericalError, match="sample 9"):
+        smoother._factors(bad, ks)
+
+
+def test_compiled_recursion_equals_the_matrix_products():
+    """The backward recursion (compiled, sums in index order) equals numpy's
+    matrix products of the same formulas, sample by sample from the end
+    (Särkkä 2008, Algorithm 3.2), to round-off: 3 states, 2 000 samples,
+    contracting gains; the last sample keeps its filtered values."""
+    from bondgraph.inference.smoother import _recursion
+
+    rng = np.random.default_rng(5)
+    N, n = 2000, 3
+    xf = rng.normal(size=(N, n))
+    A = rng.normal(size=(N, n, n))
+    Pf = A @ np.swapaxes(A, 1, 2) + np.eye(n)
+    m = rng.normal(size=(N - 1, n))
+    B = rng.normal(size=(N - 1, n, n))
+    Pm = B @ np.swapaxes(B, 1, 2) + np.eye(n)
+    G = 0.3 * rng.normal(size=(N - 1, n, n))
+    xs, Ps = xf.copy(), Pf.copy()
+    for k in range(N - 2, -1, -1):
+        xs[k] = xf[k] + G[k] @ (xs[k + 1] - m[k])
+        Pk = Pf[k] + G[k] @ (Ps[k + 1] - Pm[k]) @ G[k].T
+        Ps[k] = 0.5 * (Pk + Pk.T)
+    xc, Pc = xf.copy(), Pf.copy()
+    _recursion(xf, Pf, m, Pm, G, xc, Pc)
+    assert np.allclose(xc, xs, rtol=1e-11, atol=1e-12)
+    assert np.allclose(Pc, Ps, rtol=1e-11, atol=1e-12)
+    assert np.array_equal(Pc, np.swapaxes(Pc, 1, 2))
+    assert np.array_equal(xc[-1], xf[-1]) and np.array_equal(Pc[-1], Pf[-1])

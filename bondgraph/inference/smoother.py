@@ -29,6 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from bondgraph.errors import NumericalError
 from bondgraph.inference.options import UKFOptions, ukf_options
@@ -210,6 +211,41 @@ def _factor(P: np.ndarray, k: int) -> np.ndarray:
                          f"definite")
 
 
+def _factors(P: np.ndarray, ks: np.ndarray) -> np.ndarray:
+    """:func:`_factor` of a batch (B, n, n) of filtered covariances
+    (samples ``ks`` (B,)) that the Cholesky factorisation refused: their
+    nearest positive definite matrices factored together (one stacked
+    eigendecomposition; without process noise most samples of a long
+    record can need it, 50 s of a user's loop on 18 600 samples one by
+    one); any the batch does not settle goes to :func:`_factor` one by one,
+    the latest sample first (its error names that sample).
+
+    Raises
+    ------
+    NumericalError
+        As :func:`_factor`.
+    """
+    S = 0.5 * (P + np.swapaxes(P, 1, 2))
+    L = np.zeros_like(P)
+    done = np.zeros(len(P), bool)
+    fin = np.flatnonzero(np.isfinite(S).all(axis=(1, 2)))
+    if fin.size:
+        w, V = np.linalg.eigh(S[fin])
+        top = w[:, -1]
+        zero = ~(top > np.finfo(float).tiny)
+        done[fin[zero]] = True               # known exactly: the zero factor
+        pos = fin[~zero]
+        if pos.size:
+            wf = np.maximum(w[~zero], EIG_FLOOR * top[~zero, None])
+            Vp = V[~zero]
+            Lp, ok, _ = cholesky_batch((Vp * wf[:, None, :]) @ np.swapaxes(Vp, 1, 2))
+            L[pos[ok]] = Lp[ok]
+            done[pos[ok]] = True
+    for j in np.flatnonzero(~done)[::-1]:
+        L[j] = _factor(P[j], int(ks[j]))[0]
+    return L
+
+
 #: intervals whose one-step predictions are propagated in one batch
 CHUNK = 4096
 
@@ -226,16 +262,55 @@ def _backward(model, t, u, th, xf, Pf, opts: UKFOptions):
     non-finite means and covariances from there back to the start, without
     numpy's overflow warnings: the callers check what they use."""
     N = t.size
-    xs, Ps = xf.copy(), Pf.copy()
+    xs, Ps = np.array(xf, float, order="C"), np.array(Pf, float, order="C")
     if N < 2:
         return xs, Ps
     m, Pm, G = _predictions(model, t, u, th, xf, Pf, opts)
-    with np.errstate(over="ignore", invalid="ignore"):
-        for k in range(N - 2, -1, -1):
-            xs[k] = xf[k] + G[k] @ (xs[k + 1] - m[k])
-            Pk = Pf[k] + G[k] @ (Ps[k + 1] - Pm[k]) @ G[k].T
-            Ps[k] = 0.5 * (Pk + Pk.T)
+    c = np.ascontiguousarray
+    _recursion(c(xf, float), c(Pf, float), c(m, float), c(Pm, float), c(G, float), xs, Ps)
     return xs, Ps
+
+
+@njit(cache=True, nogil=True)
+def _recursion(xf, Pf, m, Pm, G, xs, Ps):  # pragma: no cover - compiled
+    """The RTS recursion in place, k = N − 2 … 0 (``xs``, ``Ps`` hold the
+    filtered values (N, n), (N, n, n) on entry and the last sample's stay)::
+
+        x̂_k|N = x̂_k|k + G_k (x̂_k+1|N − m⁻_k)
+        P_k|N = sym(P_k|k + (G_k (P_k+1|N − P⁻_k)) G_kᵀ)
+
+    with ``m`` (N−1, n), ``Pm`` and ``G`` (N−1, n, n). Compiled: the loop
+    is sequential, and on a long record (18 600 samples of a 2-state model)
+    numpy's per-sample calls cost 17 µs a sample, 0.3 s a pass, where the
+    loop's fused uses a fraction of that. Sums run in index order; the
+    result agrees with numpy's matrix products to round-off (a few ulp)."""
+    N, n = xf.shape
+    d = np.empty(n)
+    A = np.empty((n, n))
+    for k in range(N - 2, -1, -1):
+        for i in range(n):
+            d[i] = xs[k + 1, i] - m[k, i]
+        for i in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += G[k, i, j] * d[j]
+            xs[k, i] = xf[k, i] + acc
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for l in range(n):
+                    acc += G[k, i, l] * (Ps[k + 1, l, j] - Pm[k, l, j])
+                A[i, j] = acc
+        for i in range(n):
+            for j in range(i + 1):
+                a = 0.0
+                b = 0.0
+                for l in range(n):
+                    a += A[i, l] * G[k, j, l]
+                    b += A[j, l] * G[k, i, l]
+                v = 0.5 * ((Pf[k, i, j] + a) + (Pf[k, j, i] + b))
+                Ps[k, i, j] = v
+                Ps[k, j, i] = v
 
 
 def _predictions(model, t, u, th, xf, Pf, opts: UKFOptions):
@@ -263,8 +338,8 @@ def _predictions(model, t, u, th, xf, Pf, opts: UKFOptions):
     for a in range(0, N - 1, CHUNK):
         ks = np.arange(a, min(a + CHUNK, N - 1))
         L, ok, _ = cholesky_batch(Pf[ks])
-        for j in np.flatnonzero(~ok)[::-1]:
-            L[j] = _factor(Pf[ks[j]], int(ks[j]))[0]
+        if not ok.all():
+            L[~ok] = _factors(Pf[ks[~ok]], ks[~ok])
         chi, cL = sigma_points(xf[ks], L, wts.c)
         for dt in np.unique(dts[ks]):
             sel = np.flatnonzero(dts[ks] == dt)
