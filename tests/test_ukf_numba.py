@@ -524,6 +524,38 @@ def test_collapsed_state_variance_is_known_not_a_failure(tmp_path, monkeypatch):
     assert_same(a, b)
 
 
+def test_a_few_refused_matrices_in_a_stack_get_the_single_calls_factors():
+    """cholesky_batch on 1 000 covariances of which a few numpy refuses
+    (indefinite by 1e-10, needing the diagonal loading; one negative
+    variance; one NaN): the factors, flags and loading count equal those of
+    factoring every matrix alone (numpy's single calls, the loading
+    retries by hand), bit for bit."""
+    from bondgraph.inference.sigma import _loaded_cholesky, cholesky_batch
+
+    rng = np.random.default_rng(11)
+    B = rng.normal(size=(1000, 3, 3))
+    A = B @ np.swapaxes(B, 1, 2) + 0.1 * np.eye(3)
+    V = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    for j in (7, 500, 501, 998):
+        A[j] = V @ np.diag([2.0, 1.0, -1e-10]) @ V.T
+    A[300, 1, 1] = -1.0
+    A[640, 0, 2] = np.nan
+    L, ok, nreg = cholesky_batch(A)
+    for b in range(len(A)):
+        if not np.isfinite(A[b]).all():
+            ref, good = None, False
+        else:
+            try:
+                ref, good = np.linalg.cholesky(A[b]), True
+            except np.linalg.LinAlgError:
+                ref = _loaded_cholesky(A[b])
+                good = ref is not None
+        assert ok[b] == good, b
+        np.testing.assert_array_equal(L[b], ref if good else np.eye(3))
+    assert not ok[300] and not ok[640] and ok[[7, 500, 501, 998]].all()
+    assert nreg == 4
+
+
 def test_semidefinite_factor_of_known_states():
     """cholesky_batch(known=True): exactly zero rows/columns are zero in L
     and L Lᵀ reproduces A (to the 1e-12 loading); an innovation covariance

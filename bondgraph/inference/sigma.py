@@ -160,12 +160,15 @@ def cholesky_batch(A: np.ndarray, regularise: bool = True, known: bool = False):
             pass
     L = np.zeros_like(A)
     nreg = 0
-    for b in np.flatnonzero(ok):
-        try:
-            L[b] = np.linalg.cholesky(A[b])
-            continue
-        except np.linalg.LinAlgError:
-            pass
+    refused: list = []
+    idx = np.flatnonzero(ok)
+    if ok.all() and idx.size > STACK_MIN:        # the whole stack was refused above
+        h = idx.size // 2
+        _stacked_cholesky(A, idx[:h], L, refused)
+        _stacked_cholesky(A, idx[h:], L, refused)
+    else:
+        _stacked_cholesky(A, idx, L, refused)
+    for b in sorted(refused):
         loaded = _loaded_cholesky(A[b], known) if regularise else None
         if loaded is None:
             ok[b] = False
@@ -174,6 +177,34 @@ def cholesky_batch(A: np.ndarray, regularise: bool = True, known: bool = False):
             nreg += 1
     L[~ok] = np.eye(A.shape[-1])
     return L, ok, nreg
+
+
+#: a stack of at most this many matrices that holds a refused one is
+#: factored one by one (:func:`_stacked_cholesky`)
+STACK_MIN = 16
+
+
+def _stacked_cholesky(A: np.ndarray, idx: np.ndarray, L: np.ndarray, refused: list) -> None:
+    """Cholesky factors of ``A[idx]`` into ``L[idx]``, the indices numpy
+    refuses appended to ``refused``: one stacked call, and where the stack
+    holds a refused matrix its halves apart (one by one below
+    :data:`STACK_MIN`), so that a few refused matrices among thousands cost
+    a few stacked calls, not a Python call each (numpy factors every matrix
+    of a stack alone: the factors are those of single calls)."""
+    if idx.size > STACK_MIN:
+        try:
+            L[idx] = np.linalg.cholesky(A[idx])
+            return
+        except np.linalg.LinAlgError:
+            h = idx.size // 2
+            _stacked_cholesky(A, idx[:h], L, refused)
+            _stacked_cholesky(A, idx[h:], L, refused)
+            return
+    for b in idx:
+        try:
+            L[b] = np.linalg.cholesky(A[b])
+        except np.linalg.LinAlgError:
+            refused.append(int(b))
 
 
 def _loaded_cholesky(A: np.ndarray, known: bool = False) -> np.ndarray | None:
