@@ -181,6 +181,61 @@ def sandwich(H: np.ndarray, J: np.ndarray) -> np.ndarray | None:
     return 0.5 * (C + C.T)
 
 
+def lr_scale(H: np.ndarray, G: np.ndarray, idx) -> tuple[float, np.ndarray] | None:
+    """How far serially correlated scores inflate the likelihood-ratio
+    statistic of the parameters ``idx`` (q of the k).
+
+    Where the model or its noise description is wrong, 2 (NLL₀ − NLL₁) of
+    nested models is not χ²(q) but Σ λ_j χ²₁ (independent), λ the
+    eigenvalues of [(H⁻¹)_qq]⁻¹ (H⁻¹ J H⁻¹)_qq, the tested block of the
+    robust covariance over that of the Cramér-Rao bound (Kent 1982; Vuong
+    1989, Theorem 3.3). The mean scale c = Σλ/q divides the statistic, and
+    LR/c is referred to χ²(q) (Satorra & Bentler 1994). A right model gives
+    J = H and c = 1; for q = 1, c is the squared ratio of the robust to the
+    Cramér-Rao std (:func:`robust_std`).
+
+    Parameters
+    ----------
+    H : array (k, k)
+        Hessian of the NLL at the larger model's estimate (or its Fisher
+        information).
+    G : array (N, k)
+        Its per-sample scores (:func:`step_scores`).
+    idx : sequence of int
+        The tested parameters' positions in H.
+
+    Returns
+    -------
+    (c, λ (q,)) or None
+        None when H is not positive definite (:func:`sandwich`) or the
+        tested block cannot be solved.
+
+    References
+    ----------
+    Kent, J. T. (1982). Robust properties of likelihood ratio tests.
+    Biometrika 69(1), 19-27. Vuong, Q. H. (1989). Likelihood ratio tests for
+    model selection and non-nested hypotheses. Econometrica 57(2), 307-333.
+    Satorra, A., Bentler, P. M. (1994). Corrections to test statistics and
+    standard errors in covariance structure analysis. In Latent Variables
+    Analysis (von Eye & Clogg, eds.), 399-419.
+    """
+    idx = list(idx)
+    V = sandwich(H, score_covariance(G))
+    if V is None or not idx:
+        return None
+    H = 0.5 * (np.asarray(H, float) + np.asarray(H, float).T)
+    d = np.sqrt(np.diag(H))
+    Hinv = np.linalg.inv(H / np.outer(d, d)) / np.outer(d, d)
+    A, B = Hinv[np.ix_(idx, idx)], V[np.ix_(idx, idx)]
+    try:
+        M = np.linalg.solve(A, B)
+    except np.linalg.LinAlgError:
+        return None
+    lam = np.sort(np.linalg.eigvals(M).real)
+    c = float(np.trace(M)) / len(idx)
+    return (c, lam) if np.isfinite(c) and c > 0 else None
+
+
 def robust_std(H: np.ndarray, G: np.ndarray) -> np.ndarray:
     """Robust (sandwich) standard deviations, (k,), NaN when H is not
     positive definite (:func:`sandwich` of H and :func:`score_covariance` of G)."""
