@@ -229,6 +229,9 @@ def test_bundled_default_via_cli_writes_the_report(tmp_path, monkeypatch, capsys
     # 0.322; from the first filtered state, as before, 2.545 -> 0.347)
     assert s0["error_after"] < 0.6 * s0["error_before"]
     assert s0["nll_after"] < s0["nll_before"]
+    # with the drag the model is right (whiteness 101 on 20 lags): its likelihood ratio
+    # needs no scaling for correlated innovations (measured 1.03)
+    assert s0["lr_scale"] == pytest.approx(1.0, abs=0.25) and s0["lr_robust_p_value"] < 1e-100
     c = s0["parameters"]["quadratic_drag.body.v.c"]
     # ½ ρ C_dA = 0.6 * 1.9 = 1.14 N s²/m² in the truth (its |v| smoothing differs)
     assert c["estimate"] == pytest.approx(1.14, rel=0.15) and c["std"] > 0
@@ -341,6 +344,9 @@ def test_emps_finds_coulomb_then_asymmetric_friction(tmp_path):
     assert res.settings["validation"] == "emps_validation_pulses_200Hz"
     assert s0.validated and s0.error_before > s0.error_after > s1.error_after
     assert s1.error_after < 5.98   # published symmetric cross-validation; measured 5.246
+    # the force residual stays serially correlated (the model still misses the flexibility):
+    # each likelihood ratio is inflated, its scale far above 1 (measured 28.3 and 8.46)
+    assert s0.lr_scale > 3 and s1.lr_scale > 3 and s1.lr_robust_p_value < 1e-10
     assert res.final.validation_metric == pytest.approx(s1.error_after)
     p = res.steps[1].parameters
     # viscous asymmetry: published Fv+ = 166.71, Fv- = 240.42 -> half difference -36.9

@@ -37,6 +37,7 @@ from bondgraph.diagnose.inference_calls import (
     noise_parameters,
     one_step_errors,
     plan_noise,
+    lr_scale,
     relative_direction,
     robust_std,
     run_ukf,
@@ -479,9 +480,55 @@ def robust_std_of(ctx: Context, fit: Fit) -> dict:
     worth its cost on every refit: for the final model, and for a refit
     whose identification the accept rule judges by it
     (:func:`bondgraph.diagnose.accept.robust_std_needed`)."""
+    got = _scores_at(ctx, fit)
+    if got is None:
+        return {}
+    params, F, G = got
+    return {n: float(v) for n, v in zip(params, robust_std(F, G)) if np.isfinite(v)}
+
+
+def robust_lr(ctx: Context, fit: Fit, new: list[str], lr: float, dof: int) -> dict:
+    """The likelihood ratio ``lr`` of an accepted refit ``fit`` against the
+    model before it, scaled for serially correlated innovations: divided by
+    the mean weight c of its limiting distribution, Σ λ_j χ²₁ (Kent 1982;
+    Satorra & Bentler 1994; :func:`bondgraph.inference.robust.lr_scale`),
+    from the block of ``fit``'s effect parameters ``new``, and referred to
+    χ²(``dof``) as the accept rule's test is. Information for the report
+    (the accept rule keeps the plain χ² test and judges by the error on
+    the held-out record, whose test allows for the correlation itself): on
+    a record whose innovations are far from white the plain p-value is
+    far too small. One batched UKF run of k + 1 sets at the estimate
+    (:func:`robust_std_of`'s).
+
+    Returns
+    -------
+    dict
+        ``scale`` (c), ``lr`` (lr / c), ``p_value``; {} where it cannot be
+        computed (an effect parameter on a bound or without a Cramér-Rao
+        std, a failed run, an information matrix that is not positive
+        definite).
+    """
+    if not (new and np.isfinite(lr)):
+        return {}
+    got = _scores_at(ctx, fit)
+    if got is None or not set(new) <= set(got[0]):
+        return {}
+    params, F, G = got
+    scaled = lr_scale(F, G, [params.index(n) for n in new])
+    if scaled is None:
+        return {}
+    c = scaled[0]
+    return {"scale": c, "lr": lr / c, "p_value": float(chi2.sf(lr / c, max(int(dof), 1)))}
+
+
+def _scores_at(ctx: Context, fit: Fit) -> tuple[list[str], np.ndarray, np.ndarray] | None:
+    """``(params, F (k, k), G (N, k))``: the Fisher information and the
+    per-sample scores of ``fit``'s parameters that are off their bounds and
+    have a Cramér-Rao std, from one stored batched run at the estimate;
+    None where there are none or it fails."""
     params = [n for n in fit.params if n not in fit.at_bound and fit.std.get(n) is not None]
     if not params:
-        return {}
+        return None
     model = fit.model
     idx = [model.param_index(n) for n in params]
     lo, hi = bounds_around(model, params, fit.theta)
@@ -491,11 +538,9 @@ def robust_std_of(ctx: Context, fit: Fit) -> dict:
         got = fisher_fit(problem_for(ctx, model), fit.theta, idx, (lo, hi), 0, log_scale=scale,
                          information=True, scores=True)
     except (FloatingPointError, np.linalg.LinAlgError):
-        return {}
+        return None
     F, G = got[1], got[-1]
-    if F is None or G is None:
-        return {}
-    return {n: float(v) for n, v in zip(params, robust_std(F, G)) if np.isfinite(v)}
+    return None if F is None or G is None else (params, F, G)
 
 
 # ----------------------------------------------------------------- fitting

@@ -40,6 +40,7 @@ from bondgraph.inference.robust import (
     ROBUST_RATIO,
     andrews_bandwidth,
     long_run_variance,
+    lr_scale,
     robust_std,
 )
 from bondgraph.inference.prior import PriorSpec, fixed_step_outputs
@@ -52,7 +53,7 @@ from bondgraph.inference.ukf_numba import threads as kernel_threads
 __all__ = ["FLAT_GAIN", "flat_directions", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem",
            "no_process_noise", "relative_direction",
            "choose_discretisation", "kernel_threads", "make_problem", "noise_parameters",
-           "ROBUST_RATIO", "andrews_bandwidth", "long_run_variance", "robust_std"]
+           "ROBUST_RATIO", "andrews_bandwidth", "long_run_variance", "lr_scale", "robust_std"]
 
 
 

@@ -196,6 +196,11 @@ class Step:
     together_with: list = field(default_factory=list)
     removed: list = field(default_factory=list)
     held: dict = field(default_factory=dict)
+    #: the likelihood ratio's scale for serially correlated innovations and
+    #: the p-value of ``lr`` divided by it (information; None where not
+    #: computed, :func:`bondgraph.diagnose.fit.robust_lr`)
+    lr_scale: float | None = None
+    lr_robust_p_value: float | None = None
 
     def shown(self) -> str:
         """The effect as the step tables show it: with its parameters held

@@ -57,6 +57,7 @@ from bondgraph.diagnose.fit import (
     model_of,
     noise_params,
     parameter_std,
+    robust_lr,
     robust_std_of,
     planned_noise,
     problem_for,
@@ -69,7 +70,7 @@ from bondgraph.diagnose.inference_calls import (
 )
 from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.parallel import distributed, local_map, run_tasks
-from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, rank_of
+from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, Step, rank_of
 from bondgraph.diagnose.scoring import (
     conditional_score,
     mark_limits,
@@ -1638,13 +1639,32 @@ def committed_pair(ctx: Context, result: LoopResult, current: Fit, pair: tuple,
     result.applied = [r for r in result.applied if r not in removed]
     for c in pair:
         result.applied.append(applied_effect(get_effect(c.effect, s.effects), c, after))
+    scaled = scaled_lr(ctx, st, after, conf.dof if not removed else None)
     boxed_after_accept(ctx, result, after, names, label)
     gone = "".join(f" (removing {r})" for r in st.removed)
     ctx.log(f"ACCEPT pair {label}{gone}: {result.metric} {d.error_before:.4g} -> "
             f"{d.error_after:.4g}, NLL {current.nll:.2f} -> {after.nll:.2f}, LR {d.lr:.1f} "
-            f"(p {d.lr_p_value:.2g}), error decrease z {d.error_z:.2f} (p {d.error_p_value:.2g}); "
-            f"each member needed")
+            f"(p {d.lr_p_value:.2g}{scaled}), error decrease z {d.error_z:.2f} "
+            f"(p {d.error_p_value:.2g}); each member needed")
     return after
+
+
+def scaled_lr(ctx: Context, st: Step, after: Fit, dof: int | None) -> str:
+    """The accepted step ``st``'s likelihood ratio scaled for serially
+    correlated innovations (:func:`~bondgraph.diagnose.fit.robust_lr`, at
+    its refit ``after``; ``dof`` that of its test, None: its effect
+    parameters), recorded on ``st`` (``lr_scale``, ``lr_robust_p_value``)
+    and as the log's clause ("" where it cannot be computed). On the EMPS
+    record with a user's graph (whiteness 370 000 where white innovations
+    give about 20) the Coulomb pair's LR 32 156 is scaled by 40.1 (to 801),
+    the default case's drag (a right model then) by 1.03."""
+    rob = robust_lr(ctx, after, st.effect_params, st.lr if st.lr is not None else np.nan,
+                    len(st.effect_params) if dof is None else dof)
+    if not rob:
+        return ""
+    st.lr_scale, st.lr_robust_p_value = rob["scale"], rob["p_value"]
+    return (f"; scaled by {rob['scale']:.3g} for correlated innovations: {rob['lr']:.1f}, "
+            f"p {rob['p_value']:.2g}")
 
 
 #: the structural candidates skipped for an additive lead are scored when the
@@ -2246,14 +2266,15 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
             result.applied = [a for a in result.applied if a not in removed]
             result.applied.append(applied_effect(get_effect(c.effect, s.effects), c, after))
             after.std = new_std
+            scaled = scaled_lr(ctx, result.steps[-1], after, conf.dof if not removed else None)
             boxed_after_accept(ctx, result, after, names, c.label)
             gone = "".join(f" (removing {r})" for r in result.steps[-1].removed)
             ctx.log(f"ACCEPT {c.label}{gone}: {result.metric} {d.error_before:.4g} -> "
                     f"{d.error_after:.4g}, NLL {current.nll:.2f} -> {after.nll:.2f}, {crit} "
                     f"{d.criterion_before:.2f} -> {d.criterion_after:.2f}, whiteness "
                     f"{d.whiteness_before:.1f} -> {d.whiteness_after:.1f} (information only), "
-                    f"LR {d.lr:.1f} (p {d.lr_p_value:.2g}), error decrease z {d.error_z:.2f} "
-                    f"(p {d.error_p_value:.2g})")
+                    f"LR {d.lr:.1f} (p {d.lr_p_value:.2g}{scaled}), error decrease z "
+                    f"{d.error_z:.2f} (p {d.error_p_value:.2g})")
             return after
         result.rejected.append(rejection(step, c, d))
         ctx.log(f"reject {c.label} ({d.reason}): {crit} {d.criterion_before:.2f} -> "
