@@ -947,3 +947,34 @@ def test_the_report_gives_a_scale_symmetry_whole():
     assert "relative changes" not in "\n".join(_md_accepted(result("")))
     html = "".join(_warnings(result(ridge)))
     assert "ms, ks, cs; the combination, as relative changes: ms +1.00, mu +1.00" in html
+
+
+def test_the_report_gives_the_scaled_likelihood_ratios_where_innovations_are_correlated():
+    """report.md: a paragraph with each step whose likelihood-ratio scale
+    exceeds ROBUST_RATIO (the EMPS pair's 32156.3 / 40.1 = 801.9); a step
+    scaled by 1.03 (a right model) is not in it, and no paragraph without
+    such a step. report.html: the Result table's column LR / scale."""
+    from types import SimpleNamespace
+
+    from bondgraph.report.html import _summary
+    from bondgraph.report.loop_report import _md_accepted
+
+    def step(lr, c, p):
+        return SimpleNamespace(shown=lambda: "coulomb", shown_target=lambda: "v",
+                               error_before=1.0, error_after=0.5, nll_before=0.0,
+                               nll_after=-lr / 2, whiteness_before=5e5, whiteness_after=4e5,
+                               tied=[], lr=lr, lr_scale=c, lr_robust_p_value=p)
+
+    final = SimpleNamespace(estimates={"Fc": 20.0}, std={"Fc": 0.1}, std_robust={},
+                            flat=None, at_bound=[], metric=0.5, validation_metric=None)
+    initial = SimpleNamespace(metric=1.0, validation_metric=None)
+    res = SimpleNamespace(steps=[step(77448.6, 1.03, 0.0), step(32156.3, 40.1, 2.6e-173)],
+                          final=final, initial=initial, warnings=[])
+    text = "\n".join(_md_accepted(res))
+    assert "step 2 LR 32156.3 / 40.1 = 801.9 (p 2.6e-173)" in text
+    assert "step 1 LR" not in text
+    res.steps = res.steps[:1]
+    assert "overstates its evidence" not in "\n".join(_md_accepted(res))
+    res.steps = [step(32156.3, 40.1, 2.6e-173), step(10.0, None, None)]
+    html = "".join(_summary(res))
+    assert "LR / scale (correlated innovations)" in html and "801.9 (÷ 40.1)" in html

@@ -190,11 +190,22 @@ def _summary(result: LoopResult) -> list[str]:
         rows = [[str(k), s.shown(),
                  s.shown_target(), _num(s.error_before), _num(s.error_after),
                  _num(s.nll_before, ".1f"), _num(s.nll_after, ".1f"),
-                 _num(s.lr, ".1f"), ", ".join(s.tied)]
+                 _num(s.lr, ".1f"), _scaled(s), ", ".join(s.tied)]
                 for k, s in enumerate(result.steps, 1)]
         parts.append(_table(["step", "effect", "attached to", "error before", "error after",
-                             "NLL before", "NLL after", "LR", "tied with (Vuong)"], rows))
+                             "NLL before", "NLL after", "LR", "LR / scale (correlated "
+                             "innovations)", "tied with (Vuong)"], rows))
     return _section("Result", parts, "result")
+
+
+def _scaled(step) -> tuple[str, str] | str:
+    """A step's likelihood ratio divided by its scale for correlated
+    innovations, with the scale (:func:`bondgraph.diagnose.fit.robust_lr`);
+    "-" where it was not computed."""
+    c = getattr(step, "lr_scale", None)
+    if c is None or step.lr is None or not math.isfinite(step.lr / c):
+        return "-"
+    return (f"{step.lr / c:.1f} (÷ {c:.3g})", repr(float(step.lr / c)))
 
 
 def graph_changes(before, after) -> set[str]:

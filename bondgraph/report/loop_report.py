@@ -517,6 +517,16 @@ def _md_accepted(result: LoopResult) -> list[str]:
         L.append(f"| {i} | {s.shown()} | {s.shown_target()} | {s.error_before:.4g} | "
                  f"{s.error_after:.4g} | {s.nll_before:.1f} | {s.nll_after:.1f} | "
                  f"{s.whiteness_before:.1f} | {s.whiteness_after:.1f} |")
+    inflated = [(i, s) for i, s in enumerate(result.steps, 1)
+                if (getattr(s, "lr_scale", None) or 0.0) > ROBUST_RATIO]
+    if inflated:
+        L += ["", "The innovations are serially correlated, so each step's likelihood ratio "
+              "overstates its evidence; divided by its scale (the mean weight of its limiting "
+              "distribution; Kent 1982, Satorra & Bentler 1994) and referred to χ²: "
+              + "; ".join(f"step {i} LR {s.lr:.1f} / {s.lr_scale:.3g} = "
+                          f"{s.lr / s.lr_scale:.1f} (p {s.lr_robust_p_value:.2g})"
+                          for i, s in inflated)
+              + ". The accept rule judges by the held-out error's own test."]
     for i, s in enumerate(result.steps, 1):
         if getattr(s, "tied", None):
             L += ["", f"Step {i}: the record cannot tell {s.effect} @ {s.attached_to} from "
