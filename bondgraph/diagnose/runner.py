@@ -996,8 +996,7 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit,
                f"{100 * FREE_RUN_SHARE:g} % of each state's spread, not below its box)"
                if floors else "")
             + (f"; the measurement noise of {', '.join(released)} estimated (it now holds the "
-               f"model's error)" if released else "")
-            + (_held_sensor_note(ctx) if not released else "")
+               f"model's error)" if released else _held_sensor_note(ctx))
             + "; --likelihood one-step keeps the one-step likelihood")
     try:
         # the numerics checked before the refit is judged: the fit compared is the fit kept
