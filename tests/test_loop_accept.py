@@ -975,6 +975,7 @@ def test_the_report_gives_the_scaled_likelihood_ratios_where_innovations_are_cor
     assert "step 1 LR" not in text
     res.steps = res.steps[:1]
     assert "overstates its evidence" not in "\n".join(_md_accepted(res))
-    res.steps = [step(32156.3, 40.1, 2.6e-173), step(10.0, None, None)]
+    res.steps = [step(32156.3, 40.1, 2.6e-173), step(10.0, None, None), step(104.9, 0.63, 1e-24)]
     html = "".join(_summary(res))
     assert "LR / scale (correlated innovations)" in html and "801.9 (÷ 40.1)" in html
+    assert "104.9 (scale 0.63)" in html      # a scale below 1 never strengthens the evidence

@@ -183,6 +183,37 @@ def test_scaled_lr_keeps_the_test_level_under_serially_correlated_scores():
     assert scaled / 300 < 0.15
 
 
+def test_robust_lr_divides_by_the_scale_but_never_strengthens_the_evidence(monkeypatch):
+    """diagnose.fit.robust_lr: with scores positively correlated (AR(1)
+    regressor and errors, ρ = 0.8) the ratio is divided by c > 1 and
+    referred to χ²(dof); with white errors of std 0.3 where the likelihood
+    assumes 1 (c about 0.09) the ratio and its p-value stay the plain ones,
+    the scale is still reported; an effect parameter the scores lack
+    gives {}."""
+    from scipy.stats import chi2
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import fit as fitmod
+    from bondgraph.inference.robust import lr_scale
+
+    rng = np.random.default_rng(4)
+    n = 2000
+    for rho in (0.8, 0.0):
+        X = np.column_stack([np.ones(n), _ar1(rng, n, 0.8)])
+        e = _ar1(rng, n, rho) if rho else 0.3 * rng.standard_normal(n)
+        H, G = X.T @ X, -X * e[:, None]
+        monkeypatch.setattr(fitmod, "_scores_at", lambda ctx, f: (["a", "b"], H, G))
+        c = lr_scale(H, G, [1])[0]
+        got = fitmod.robust_lr(None, SimpleNamespace(), ["b"], 50.0, 1)
+        assert got["scale"] == pytest.approx(c, rel=1e-12)
+        if rho > 0:
+            assert c > 2 and got["lr"] == pytest.approx(50.0 / c)
+        else:
+            assert c < 1 and got["lr"] == 50.0
+        assert got["p_value"] == pytest.approx(chi2.sf(got["lr"], 1))
+    assert fitmod.robust_lr(None, SimpleNamespace(), ["z"], 50.0, 1) == {}
+
+
 def test_step_scores_sum_to_the_gradient_of_a_gaussian_nll():
     """g_t of ½ Σ [ln det S + εᵀS⁻¹ε] against a central difference of each term."""
     rng = np.random.default_rng(5)

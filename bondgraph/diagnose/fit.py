@@ -500,13 +500,19 @@ def robust_lr(ctx: Context, fit: Fit, new: list[str], lr: float, dof: int) -> di
     far too small. One batched UKF run of k + 1 sets at the estimate
     (:func:`robust_std_of`'s).
 
+    The statistic is divided by max(c, 1): a scale below 1 (0.63 on a
+    user's cascaded tanks under the free-run likelihood, where the Fisher
+    information stands in for the Hessian of a misspecified fit and the
+    HAC estimate is biased low) would make the evidence look stronger than
+    the plain χ² test says, which this report never does.
+
     Returns
     -------
     dict
-        ``scale`` (c), ``lr`` (lr / c), ``p_value``; {} where it cannot be
-        computed (an effect parameter on a bound or without a Cramér-Rao
-        std, a failed run, an information matrix that is not positive
-        definite).
+        ``scale`` (c as estimated), ``lr`` (lr / max(c, 1)), ``p_value``;
+        {} where it cannot be computed (an effect parameter on a bound or
+        without a Cramér-Rao std, a failed run, an information matrix that
+        is not positive definite).
     """
     if not (new and np.isfinite(lr)):
         return {}
@@ -518,7 +524,8 @@ def robust_lr(ctx: Context, fit: Fit, new: list[str], lr: float, dof: int) -> di
     if scaled is None:
         return {}
     c = scaled[0]
-    return {"scale": c, "lr": lr / c, "p_value": float(chi2.sf(lr / c, max(int(dof), 1)))}
+    r = lr / max(c, 1.0)
+    return {"scale": c, "lr": r, "p_value": float(chi2.sf(r, max(int(dof), 1)))}
 
 
 def _scores_at(ctx: Context, fit: Fit) -> tuple[list[str], np.ndarray, np.ndarray] | None:

@@ -1656,12 +1656,15 @@ def scaled_lr(ctx: Context, st: Step, after: Fit, dof: int | None) -> str:
     and as the log's clause ("" where it cannot be computed). On the EMPS
     record with a user's graph (whiteness 370 000 where white innovations
     give about 20) the Coulomb pair's LR 32 156 is scaled by 40.1 (to 801),
-    the default case's drag (a right model then) by 1.03."""
+    the default case's drag (a right model then) by 1.03; a scale at or
+    below 1 leaves it (:func:`~bondgraph.diagnose.fit.robust_lr`)."""
     rob = robust_lr(ctx, after, st.effect_params, st.lr if st.lr is not None else np.nan,
                     len(st.effect_params) if dof is None else dof)
     if not rob:
         return ""
     st.lr_scale, st.lr_robust_p_value = rob["scale"], rob["p_value"]
+    if rob["scale"] <= 1.0:
+        return f"; not inflated by correlated innovations: scale {rob['scale']:.3g}"
     return (f"; scaled by {rob['scale']:.3g} for correlated innovations: {rob['lr']:.1f}, "
             f"p {rob['p_value']:.2g}")
 

@@ -200,12 +200,13 @@ def _summary(result: LoopResult) -> list[str]:
 
 def _scaled(step) -> tuple[str, str] | str:
     """A step's likelihood ratio divided by its scale for correlated
-    innovations, with the scale (:func:`bondgraph.diagnose.fit.robust_lr`);
-    "-" where it was not computed."""
+    innovations (at least 1), with the scale
+    (:func:`bondgraph.diagnose.fit.robust_lr`); "-" where it was not computed."""
     c = getattr(step, "lr_scale", None)
     if c is None or step.lr is None or not math.isfinite(step.lr / c):
         return "-"
-    return (f"{step.lr / c:.1f} (÷ {c:.3g})", repr(float(step.lr / c)))
+    x = step.lr / max(c, 1.0)           # a scale below 1 never strengthens the evidence
+    return (f"{x:.1f} (÷ {c:.3g})" if c > 1 else f"{x:.1f} (scale {c:.3g})", repr(float(x)))
 
 
 def graph_changes(before, after) -> set[str]:
