@@ -214,6 +214,41 @@ def test_robust_lr_divides_by_the_scale_but_never_strengthens_the_evidence(monke
     assert fitmod.robust_lr(None, SimpleNamespace(), ["z"], 50.0, 1) == {}
 
 
+def test_the_scaled_ratio_and_the_robust_std_of_one_fit_share_one_run(monkeypatch):
+    """diagnose.fit._scores_at keeps its run on the fit: robust_lr then
+    robust_std_of of the same fit, problem, parameters and θ make one
+    stored run; a changed θ or another problem makes a new one."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import fit as fitmod
+
+    rng = np.random.default_rng(2)
+    X = np.column_stack([np.ones(500), rng.standard_normal(500)])
+    G = -X * rng.standard_normal(500)[:, None]
+    runs = []
+
+    def fake_fisher_fit(pb, theta, idx, box, iters, **kw):
+        runs.append(pb)
+        return (theta, X.T @ X) + (None,) * 6 + (G,)
+
+    problems = [object()]
+    monkeypatch.setattr(fitmod, "fisher_fit", fake_fisher_fit)
+    monkeypatch.setattr(fitmod, "problem_for", lambda ctx, model: problems[0])
+    monkeypatch.setattr(fitmod, "bounds_around", lambda m, p, th: (np.zeros(2), np.ones(2)))
+    monkeypatch.setattr(fitmod, "noise_params", lambda m: set())
+    model = SimpleNamespace(param_index=lambda n: "ab".index(n))
+    f = SimpleNamespace(params=["a", "b"], at_bound=[], std={"a": 0.1, "b": 0.1},
+                        model=model, theta=np.array([1.0, 2.0]))
+    assert fitmod.robust_lr(None, f, ["b"], 40.0, 1)["scale"] > 0
+    assert set(fitmod.robust_std_of(None, f)) == {"a", "b"}
+    assert len(runs) == 1
+    f.theta = np.array([1.0, 2.5])
+    fitmod.robust_std_of(None, f)
+    problems[0] = object()
+    fitmod.robust_std_of(None, f)
+    assert len(runs) == 3
+
+
 def test_step_scores_sum_to_the_gradient_of_a_gaussian_nll():
     """g_t of ½ Σ [ln det S + εᵀS⁻¹ε] against a central difference of each term."""
     rng = np.random.default_rng(5)

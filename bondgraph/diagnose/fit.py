@@ -532,22 +532,32 @@ def _scores_at(ctx: Context, fit: Fit) -> tuple[list[str], np.ndarray, np.ndarra
     """``(params, F (k, k), G (N, k))``: the Fisher information and the
     per-sample scores of ``fit``'s parameters that are off their bounds and
     have a Cramér-Rao std, from one stored batched run at the estimate;
-    None where there are none or it fails."""
+    None where there are none or it fails. Kept on ``fit`` for the same
+    problem, parameters and θ: the accepted step's scaled likelihood ratio
+    (:func:`robust_lr`) and the robust std of the same fit (a refit judged
+    by it, or the final model) share the run."""
     params = [n for n in fit.params if n not in fit.at_bound and fit.std.get(n) is not None]
     if not params:
         return None
     model = fit.model
+    pb = problem_for(ctx, model)
+    key = (tuple(params), np.asarray(fit.theta, float).tobytes())
+    memo = getattr(fit, "_scores_memo", None)
+    if memo is not None and memo[0] is pb and memo[1] == key:
+        return memo[2]
     idx = [model.param_index(n) for n in params]
     lo, hi = bounds_around(model, params, fit.theta)
     noise = noise_params(model)
     scale = np.array([n in noise and lo[i] > 0 for i, n in enumerate(params)])
     try:
-        got = fisher_fit(problem_for(ctx, model), fit.theta, idx, (lo, hi), 0, log_scale=scale,
-                         information=True, scores=True)
+        got = fisher_fit(pb, fit.theta, idx, (lo, hi), 0, log_scale=scale, information=True,
+                         scores=True)
     except (FloatingPointError, np.linalg.LinAlgError):
-        return None
-    F, G = got[1], got[-1]
-    return None if F is None or G is None else (params, F, G)
+        got = None
+    F, G = (None, None) if got is None else (got[1], got[-1])
+    out = None if F is None or G is None else (params, F, G)
+    fit._scores_memo = (pb, key, out)
+    return out
 
 
 # ----------------------------------------------------------------- fitting
