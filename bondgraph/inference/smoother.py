@@ -191,39 +191,30 @@ def _factor(P: np.ndarray, k: int) -> np.ndarray:
     Raises
     ------
     NumericalError
-        A covariance that is not finite.
+        A covariance that is not finite, or not positive definite even so.
     """
     L, ok, _ = cholesky_batch(P[None])
     if ok[0]:
         return L
-    S = 0.5 * (P + P.T)
-    if np.all(np.isfinite(S)):
-        w, V = np.linalg.eigh(S)
-        if not w[-1] > np.finfo(float).tiny:
-            # the state is known exactly (without process noise a damped
-            # model forgets its initial state: P_k = Φᵏ P0 Φᵏᵀ underflows):
-            # the sigma points collapse onto the mean, the gain is 0
-            return np.zeros_like(P)[None]
-        L, ok, _ = cholesky_batch(((V * np.maximum(w, EIG_FLOOR * w[-1])) @ V.T)[None])
-        if ok[0]:
-            return L
-    raise NumericalError(f"smoother: filtered covariance at sample {k} is not positive "
-                         f"definite")
+    return _factors(P[None], np.array([k]))
 
 
 def _factors(P: np.ndarray, ks: np.ndarray) -> np.ndarray:
-    """:func:`_factor` of a batch (B, n, n) of filtered covariances
-    (samples ``ks`` (B,)) that the Cholesky factorisation refused: their
-    nearest positive definite matrices factored together (one stacked
-    eigendecomposition; without process noise most samples of a long
-    record can need it, 50 s of a user's loop on 18 600 samples one by
-    one); any the batch does not settle goes to :func:`_factor` one by one,
-    the latest sample first (its error names that sample).
+    """The factors of :func:`_factor` for a batch (B, n, n) of filtered
+    covariances (samples ``ks`` (B,)) that the Cholesky factorisation
+    refused: their nearest positive definite matrices factored together (one
+    stacked eigendecomposition; without process noise most samples of a long
+    record can need it, 50 s of a user's loop on 18 600 samples one by one),
+    the zero factor where no eigenvalue is positive (the state is known
+    exactly: without process noise a damped model forgets its initial
+    state, P_k = Φᵏ P0 Φᵏᵀ underflows; the sigma points collapse onto the
+    mean, the gain is 0).
 
     Raises
     ------
     NumericalError
-        As :func:`_factor`.
+        A covariance that is not finite, or not positive definite even so:
+        the latest such sample named.
     """
     S = 0.5 * (P + np.swapaxes(P, 1, 2))
     L = np.zeros_like(P)
@@ -241,8 +232,10 @@ def _factors(P: np.ndarray, ks: np.ndarray) -> np.ndarray:
             Lp, ok, _ = cholesky_batch((Vp * wf[:, None, :]) @ np.swapaxes(Vp, 1, 2))
             L[pos[ok]] = Lp[ok]
             done[pos[ok]] = True
-    for j in np.flatnonzero(~done)[::-1]:
-        L[j] = _factor(P[j], int(ks[j]))[0]
+    bad = np.flatnonzero(~done)
+    if bad.size:
+        raise NumericalError(f"smoother: filtered covariance at sample {int(ks[bad[-1]])} is "
+                             f"not positive definite")
     return L
 
 
