@@ -187,3 +187,30 @@ def test_swarm_fit_finds_the_global_basin_the_local_fit_misses(record, monkeypat
     with pytest.raises(ModelError, match="not finite"):
         swarm_output_error_fit(m, t, u, y, ["k"], theta=start, x0=x0, options=opts,
                                bounds=([1.0], [np.inf]))
+
+
+@pytest.mark.parametrize("values, runs, best", [
+    ((0.043, 0.0431, 9.0, 9.0), 2, 0.043),        # the first two agree
+    ((1.12, 0.043, 0.0431, 9.0), 3, 0.043),       # one missed the basin: a third run
+    ((1.12, 0.043, 0.5, 0.3), 4, 0.043),          # none agree: SWARM_RUNS, the best
+    ((np.inf, 0.2, 0.205, 9.0), 3, 0.2),          # a failed swarm does not count
+])
+def test_independent_swarms_run_until_two_agree(monkeypatch, values, runs, best):
+    """The stopping rule of the global output-error search: swarms with
+    seeds 0, 1, ... until two end within SWARM_AGREE of the best value, at
+    most SWARM_RUNS; the best is returned."""
+    from types import SimpleNamespace
+
+    from bondgraph.inference import output_error as oe
+    from bondgraph.inference.options import SwarmOptions
+
+    seeds = []
+
+    def scripted(fun, lo, hi, swarm, progress):
+        seeds.append(swarm.seed)
+        return SimpleNamespace(fun=values[swarm.seed], x=np.array([float(swarm.seed)]))
+
+    monkeypatch.setattr(oe, "pso", scripted)
+    assert oe.SWARM_RUNS == 4
+    r = oe._agreeing_swarms(None, np.zeros(1), np.ones(1), SwarmOptions(seed=0))
+    assert seeds == list(range(runs)) and r.fun == best

@@ -32,12 +32,14 @@ References
 Dickinson, R. P., Gelinas, R. J. (1976). Sensitivity analysis of ordinary
 differential equation systems. J. Comput. Phys. 21, 123-143. Ljung, L.
 (1999). System Identification: Theory for the User, 2nd ed. Prentice Hall.
+Boender, C. G. E., Rinnooy Kan, A. H. G. (1987). Bayesian stopping rules for
+multistart global optimization methods. Math. Programming 37, 59-80.
 """
 
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 from typing import Sequence
 
@@ -498,6 +500,11 @@ def _result(prob: _Problem, r, lo, hi) -> OutputErrorResult:
 #: searched by the swarm in log θ (a stiffness in [0.01, 100])
 LOG_SPAN = 10.0
 
+#: independent swarms at most in one global output-error fit (:func:`_agreeing_swarms`)
+SWARM_RUNS = 4
+#: two swarms agree when their best mean squared errors differ by less than this fraction
+SWARM_AGREE = 0.05
+
 
 def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=None,
                            bounds=None, sigma=None, options: OutputErrorOptions | None = None,
@@ -513,7 +520,10 @@ def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None,
     θ where the box is positive and spans :data:`LOG_SPAN` or more. The start
     is not one of its particles: seeded with a good local fit, the swarm
     gathered in that basin and stalled (a user's CED graph with |ω|: NRMSE
-    1.05 seeded, 0.29 not). Each particle's free run is the model's compiled
+    1.05 seeded, 0.29 not). Independent swarms (seeds ``swarm.seed``,
+    ``swarm.seed + 1``, ...) run until two of them agree on the best value
+    (:func:`_agreeing_swarms`: within :data:`SWARM_AGREE`, at most
+    :data:`SWARM_RUNS`). Each particle's free run is the model's compiled
     fixed-step RK4 (:func:`bondgraph.inference.sim_numba.rk4_trajectory`) or,
     without kernels, the batched numpy RK4
     (:func:`bondgraph.numerics.integrators.simulate_batch`); +inf if not finite.
@@ -541,8 +551,9 @@ def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None,
         Hold and fixed-step ``substeps`` of the free runs (default 4) and
         the local fit's settings.
     swarm : SwarmOptions, optional
-        Default: min(10 k, 60) particles, 100 iterations, stop after 20
-        iterations without a relative gain of 1e-6, seed 0.
+        Each swarm's settings. Default: min(10 k, 60) particles, 100
+        iterations, stop after 20 iterations without a relative gain of
+        1e-6, seed 0 (the first swarm's).
 
     Returns
     -------
@@ -582,14 +593,13 @@ def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None,
 
 
 def _swarm_best(crit, lo: np.ndarray, hi: np.ndarray, z0: np.ndarray, sw) -> np.ndarray:
-    """The better (k,) of the start ``z0`` and the swarm's best point of
-    ``crit`` in the box, searched in log θ where the box is positive and
-    spans :data:`LOG_SPAN` or more; NumericalError when neither a
-    particle's nor the start's run is finite."""
+    """The better (k,) of the start ``z0`` and the best point of independent
+    swarms of ``crit`` in the box (:func:`_agreeing_swarms`), searched in log
+    θ where the box is positive and spans :data:`LOG_SPAN` or more;
+    NumericalError when neither a particle's nor the start's run is finite."""
     logs = (lo > 0) & (hi >= LOG_SPAN * np.maximum(lo, 1e-300))
     zlo, zhi = np.where(logs, np.log(np.maximum(lo, 1e-300)), lo), np.where(logs, np.log(hi), hi)
-    res = pso(lambda Z: crit(np.where(logs, np.exp(Z), Z)), zlo, zhi, swarm=sw,
-              progress=False)
+    res = _agreeing_swarms(lambda Z: crit(np.where(logs, np.exp(Z), Z)), zlo, zhi, sw)
     f0 = float(crit(z0[None, :])[0])
     if not np.isfinite(res.fun):
         if np.isfinite(f0):
@@ -598,6 +608,32 @@ def _swarm_best(crit, lo: np.ndarray, hi: np.ndarray, z0: np.ndarray, sw) -> np.
                              f"'{crit.model.name}' in the box is finite")
     zb = np.clip(np.where(logs, np.exp(res.x), res.x), lo, hi)
     return zb if float(crit(zb[None, :])[0]) <= f0 else z0
+
+
+def _agreeing_swarms(fun, lo: np.ndarray, hi: np.ndarray, sw):
+    """The best of independent swarms (:func:`bondgraph.inference.optimize.pso`
+    with seeds ``sw.seed``, ``sw.seed + 1``, ...) of ``fun`` on the box
+    [lo, hi]: swarms are run until two of them end within
+    :data:`SWARM_AGREE` of the best value found, at most :data:`SWARM_RUNS`.
+
+    One swarm misses a narrow basin now and then: on a user's CED graph
+    (eight parameters, a sign-blind sensor, the real record u1) one seed in
+    six of a 60-particle swarm ended at NRMSE 1.06 (the record's mean)
+    where the others reached 0.29, and more particles did not change that
+    rate (120: one in six; 200 for 200 iterations: one in six short of the
+    best). Two independent runs that agree are the usual stopping rule of a
+    multistart search (the best value seen twice, a simple form of the
+    stopping rules of Boender & Rinnooy Kan 1987); both failing at one value
+    is rare (about one in thirty at that rate), a disagreement costs a third
+    run."""
+    runs = []
+    for r in range(SWARM_RUNS):
+        seed = None if sw.seed is None else int(sw.seed) + r
+        runs.append(pso(fun, lo, hi, swarm=replace(sw, seed=seed), progress=False))
+        fs = np.sort([x.fun for x in runs if np.isfinite(x.fun)])
+        if fs.size >= 2 and fs[1] <= fs[0] + SWARM_AGREE * abs(fs[0]):
+            break
+    return min(runs, key=lambda x: x.fun if np.isfinite(x.fun) else np.inf)
 
 
 class _SwarmCriterion:
