@@ -95,3 +95,78 @@ def test_the_rectifying_sensor_is_accepted_on_a_flat_ridge(tmp_path):
     flat = set(rep["final_fit"]["flat"])
     assert {"b_m", "k_b", "J_p"} <= flat
     assert "does not identify" in (out / "report.md").read_text()
+
+
+GRAPH_NO_SPRING = '''
+from bondgraph import BondGraph
+
+
+def ced_belt():
+    g = BondGraph("ced_belt", "two DC motors drive a pulley through a belt")
+    u = g.input("u", "V", 0.0, "sum of the motor voltages")
+    R = g.param("R", 1.0, "ohm", (0.01, 100.0), "armature resistance")
+    L = g.param("L", 0.05, "H", (1e-3, 1.0), "armature inductance")
+    km = g.param("km", 0.1, "N*m/A", (1e-3, 10.0), "torque constant")
+    kb = g.param("kb", 0.6, "N*m/rad", (1e-3, 100.0), "belt + spring stiffness")
+    J = g.param("J", 1e-3, "kg*m^2", (1e-5, 1.0), "pulley inertia")
+    b = g.param("b", 1e-3, "N*m*s/rad", (1e-6, 1.0), "pulley damping")
+    ks = g.param("ks", 1.0, "", (0.01, 100.0), "counter scale")
+    bm = g.param("bm", 0.05, "N*m*s/rad", (1e-4, 10.0), "motor damping")
+    i = g.one("i", domain="electrical")
+    g.connect(g.Se("drive", u), i)
+    g.connect(i, g.R("Ra", R))
+    g.connect(i, g.I("La", L))
+    gy = g.GY("motor", km)
+    g.connect(i, gy.p1)
+    wm = g.one("wm", domain="rotation")
+    g.connect(gy.p2, wm)
+    g.connect(wm, g.R("motor_friction", bm))
+    belt = g.zero("belt", domain="rotation")
+    g.connect(wm, belt)
+    g.connect(belt, g.C("belt_c", stiffness=kb))
+    wp = g.one("wp", domain="rotation")
+    g.connect(belt, wp)
+    g.connect(wp, g.I("pulley", J))
+    g.connect(wp, g.R("friction", b))
+    g.sensor("z", ks * wp.f, unit="", description="pulley speed (counter)")
+    return g
+'''
+
+
+def test_a_second_users_graph_finds_the_rectification_and_converges(tmp_path):
+    """Another user's graph of the same drive (the belt's compliance and the
+    spring as one, no pulley spring to ground, other starts, boxes and
+    parameter order: the swarm's draws follow the order), run
+    with no options but the step limit. Its linear fit is worse than the
+    record's mean (free-run NRMSE 1.01), so the rectifying sensor's score
+    at that fit is nothing: the output-error screen must find the basin
+    (one 60-particle swarm in six misses it: independent swarms until two
+    agree), and the refit along the five unidentified combinations must
+    converge (it crawled at 3 % of its scoring step for 120 iterations and
+    was refused as not comparable before the damping rose after short
+    steps). Reference: eq. (9) of the report with |.| gives RMS 0.166 over
+    u1 (NRMSE 0.11); this graph, fitted on the first three quarters, 0.29
+    there and 0.56 on the held-out quarter (1.38 before). Without either
+    change the step accepts another effect (source_lag, sensor_poly2)."""
+    # the user's CSV: the run u1 of the data set's CSV, its text as it is
+    # (six digits), a time column at Ts = 20 ms
+    import csv
+
+    with open(DATA / "ced" / "DATAPRBS.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    lines = ["t [s],u [V],z"] + [f"{k * 0.02:.2f},{r['u1']},{r['z1']}" for k, r in enumerate(rows)]
+    (tmp_path / "u1.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "ced_belt.py").write_text(GRAPH_NO_SPRING)
+    out = tmp_path / "out"
+    code = main(["loop", "--model", f"{tmp_path / 'ced_belt.py'}:ced_belt",
+                 "--data", str(tmp_path / "u1.csv"), "--max-steps", "1",
+                 "--out", str(out), "--quiet"])
+    assert code == 0
+    rep = json.loads((out / "report.json").read_text())
+    (s,) = rep["steps"]
+    assert (s["effect"], s["attached_to"]) == ("sensor_rectification", "z")
+    assert s["error_before"] == pytest.approx(1.379, abs=0.03)
+    assert s["error_after"] < 0.5 * s["error_before"]
+    assert s["estimation_error_after"] < 0.35
+    assert s["lr"] > 900
+    assert "rectification" in (out / "report.md").read_text()
