@@ -31,6 +31,43 @@ def test_derivative_causality_is_reported_and_eliminated():
     assert cz.stroke["w_m -> J_m"] == "w_m"  # I in derivative causality: receives flow
     ss = derive(g, causality=cz)
     assert [s.name for s in ss.states] == ["p_L_a", "p_J_L"]
+    # the note says what imposes it: the load inertia's flow through the gear
+    (note,) = cz.derivative_notes()
+    assert note.startswith("I 'J_m' is in derivative causality: its flow is imposed by "
+                           "I 'J_L' through TF 'gear', so it adds no state (2 of 3 storages")
+    assert f"note: {note}" in ss.describe()
+
+
+def test_a_belt_compliance_driven_by_a_motor_without_damping_is_named():
+    """A user's belt drive: armature R-L, a motor gyrator straight onto the
+    belt compliance (no rotor inertia or damping), the pulley inertia. By
+    hand: the motor torque k_m i is the belt's torque, so its deflection
+    k_m i / k_b is no state; two states (p_La, p_J) for three storages."""
+    g = bg.BondGraph("belt", "")
+    u = g.input("u", "V", 0.0)
+    i = g.one("i", domain="electrical")
+    g.connect(g.Se("drive", u), i)
+    g.connect(i, g.R("Ra", 1.0))
+    g.connect(i, g.I("La", 0.05))
+    gy = g.GY("motor", 0.1)
+    g.connect(i, gy.p1)
+    wm = g.one("wm", domain="rotation")
+    g.connect(gy.p2, wm)
+    belt = g.zero("belt", domain="rotation")
+    g.connect(wm, belt)
+    g.connect(belt, g.C("belt_c", stiffness=0.6))
+    wp = g.one("wp", domain="rotation")
+    g.connect(belt, wp)
+    g.connect(wp, g.I("J", 1e-3))
+    cz = assign_causality(g)
+    assert cz.derivative == ["belt_c"]
+    (note,) = cz.derivative_notes()
+    assert ("C 'belt_c' is in derivative causality: its effort is imposed by I 'La' through "
+            "GY 'motor', so it adds no state (2 of 3 storages are states)") in note
+    # with the motor's damping between them the belt has its state
+    g.connect(wm, g.R("bm", 0.05))
+    cz = assign_causality(g)
+    assert cz.derivative == [] and cz.derivative_notes() == []
 
 
 def test_a_lagged_source_drives_an_inertia_in_derivative_causality():

@@ -56,6 +56,9 @@ class Causality:
     order : list of (str, str)
         (element, step) in the order SCAP assigned them; step is "source",
         "storage", "derivative", "resistor" or "free bond".
+    imposed : dict
+        Storage in derivative causality -> the elements on the causal path
+        that imposed its conjugate variable, origin first (itself left out).
     """
 
     graph: BondGraph
@@ -63,6 +66,36 @@ class Causality:
     derivative: list[str] = field(default_factory=list)
     arbitrary: list[str] = field(default_factory=list)
     order: list[tuple[str, str]] = field(default_factory=list)
+    imposed: dict[str, list[str]] = field(default_factory=dict)
+
+    def derivative_notes(self) -> list[str]:
+        """One line per storage in derivative causality: what imposes its
+        effort (C) or flow (I), and that it adds no state. A storage in
+        derivative causality is a rigid tie, intended (a gear's two
+        inertias) or a sign that something is missing between it and what
+        imposes it (20-sim warns of it likewise): two DC
+        motors declared without rotor inertia or damping drive a belt
+        compliance with the torque k_m·i of the armature current, which
+        fixes the belt's deflection, and a belt drive of three storages has
+        two states (Karnopp, Margolis & Rosenberg, ch. 5: derivative
+        causality and its physical meaning)."""
+        out = []
+        n_st = sum(len(e.ports) if isinstance(e, (CField, IField)) else 1
+                   for e in self.graph.elements.values() if isinstance(e, (I, C, CField, IField)))
+        n_int = n_st - len(self.derivative)
+        for name in self.derivative:
+            el = self.graph.elements[name]
+            what = "flow" if isinstance(el, (I, IField)) else "effort"
+            path = [self.graph.elements[e] for e in self.imposed.get(name, [])]
+            src = [e for e in path if isinstance(e, (Source, I, C, CField, IField, R, RField))]
+            via = [e for e in path if e not in src and isinstance(e, TwoPort)]
+            by = " and ".join(f"{e.kind} '{e.name}'" for e in src) or "the graph"
+            thru = (" through " + ", ".join(f"{e.kind} '{e.name}'" for e in via)) if via else ""
+            out.append(f"{el.kind} '{name}' is in derivative causality: its {what} is imposed by "
+                       f"{by}{thru}, so it adds no state ({n_int} of {n_st} storages are "
+                       f"states); it is tied rigidly to them, and an inertia, compliance or "
+                       f"resistance between them would give it a state of its own")
+        return out
 
     def receives_effort(self, bond: Bond, element: Element) -> bool:
         """True if ``element`` (an end of ``bond``) has the causal stroke,
@@ -332,7 +365,13 @@ class _Scap:
                 if self.recv[b.name] != integral_recv.name and el.name not in derivative_set:
                     derivative.append(el.name)
                     derivative_set.add(el.name)
-        return Causality(g, dict(self.recv), derivative, arbitrary, self.order)
+        imposed = {}
+        for name in derivative:
+            els = []
+            for p in g.elements[name].ports:
+                els += [e for e in self._path(p.bond.name)[0] if e != name and e not in els]
+            imposed[name] = els
+        return Causality(g, dict(self.recv), derivative, arbitrary, self.order, imposed)
 
 
 def assign_causality(graph: BondGraph, *, validate: bool = True) -> Causality:

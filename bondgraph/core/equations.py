@@ -329,6 +329,7 @@ class StateSpace:
         for o in self.outputs:
             lines.append(f"  {o.name} = {o.expr}")
         lines += [f"  note: {n}" for n in self.domain_notes]
+        lines += [f"  note: {n}" for n in self.causality.derivative_notes()]
         return "\n".join(lines)
 
 

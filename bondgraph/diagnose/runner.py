@@ -13,6 +13,7 @@ import numpy as np
 from scipy.stats import chi2
 from typing import Callable, Sequence
 
+from bondgraph.core.causality import assign_causality
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.progress import phase
 from bondgraph.diagnose.accept import (
@@ -425,6 +426,8 @@ def initial_fit(ctx: Context, graph: BondGraph, again: bool = False) -> Fit:
         ctx.log(f"loop on model '{graph.name}', record '{ctx.problem.name}', estimating "
                 f"{', '.join(s.params)}")
         for note in getattr(ctx.problem.model, "domain_notes", ()):
+            ctx.log(f"note: {note}")
+        for note in assign_causality(graph).derivative_notes():
             ctx.log(f"note: {note}")
     if not again and not graph.process_noise and not any(
             ss.process_noise is not None for ss in graph.signal_states.values()):
