@@ -7,7 +7,6 @@ values can act."""
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 
 from bondgraph.inference.fisher import (
     _predicted_decrease,
@@ -110,19 +109,3 @@ def test_scoring_stops_on_a_flat_ridge_only_when_it_gains_little():
     # the identified part itself not converged: no stop
     d2 = SimpleNamespace(F=d.F, grad=S @ np.array([1.0, 1.0, 1.0]))
     assert _converged(d2, x, L, free, 1e-2, 0.0) == (False, ())
-
-
-def test_the_damping_rises_after_a_short_accepted_step():
-    """Levenberg-Marquardt: a step the line search cut to a tenth or less
-    raises λ (×10, at most SHORT_STEP_LAMBDA); a longer accepted step or a
-    decade move (alpha NaN) lowers it (÷3, at least 1e-6). The refit this
-    rule made converge is in tests/test_user_graph_ced.py."""
-    from bondgraph.inference.fisher import SHORT_STEP, SHORT_STEP_LAMBDA, _damping_after
-
-    assert _damping_after(1e-3, 0.03) == pytest.approx(1e-2)
-    assert _damping_after(1e-3, SHORT_STEP) == pytest.approx(1e-2)
-    assert _damping_after(SHORT_STEP_LAMBDA, 0.03) == SHORT_STEP_LAMBDA
-    assert _damping_after(3e-3, 0.25) == pytest.approx(1e-3)
-    assert _damping_after(3e-3, 2.0) == pytest.approx(1e-3)
-    assert _damping_after(3e-3, float("nan")) == pytest.approx(1e-3)
-    assert _damping_after(2e-6, 1.0) == 1e-6

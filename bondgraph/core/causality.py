@@ -365,13 +365,16 @@ class _Scap:
                 if self.recv[b.name] != integral_recv.name and el.name not in derivative_set:
                     derivative.append(el.name)
                     derivative_set.add(el.name)
-        imposed = {}
-        for name in derivative:
-            els = []
-            for p in g.elements[name].ports:
-                els += [e for e in self._path(p.bond.name)[0] if e != name and e not in els]
-            imposed[name] = els
-        return Causality(g, dict(self.recv), derivative, arbitrary, self.order, imposed)
+        return Causality(g, dict(self.recv), derivative, arbitrary, self.order,
+                         {n: self._imposing(n) for n in derivative})
+
+    def _imposing(self, name: str) -> list[str]:
+        """The elements on the causal paths that fixed the bonds of storage
+        ``name`` (in derivative causality), origin first, itself left out."""
+        els: list[str] = []
+        for p in self.g.elements[name].ports:
+            els += [e for e in self._path(p.bond.name)[0] if e != name and e not in els]
+        return els
 
 
 def assign_causality(graph: BondGraph, *, validate: bool = True) -> Causality:

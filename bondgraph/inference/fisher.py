@@ -351,7 +351,7 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
                 break
             continue
         z, nll, gain = cand[best], f_new, D.nll - f_new
-        lam = _damping_after(lam, alphas[best])
+        lam = max(lam / 3.0, 1e-6)
         if D.nll - f_new < sc.rtol * (1.0 + abs(f_new)):
             converged = True
             break
@@ -364,48 +364,6 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
         D = estimand_derivatives(model, t, u, y, est, _steps(z, hi, width), P0, options)
         runs += 1
     return Scoring(est, D.nll, D.F, runs, it, converged, flat, D)
-
-
-#: an accepted line-search step at most this fraction of the damped
-#: scoring step raises the damping (:func:`_damping_after`)
-SHORT_STEP = 0.1
-#: the damping an accepted short step raises λ to at most (three refused
-#: iterations below the 1e6 at which the scoring stops as stationary)
-SHORT_STEP_LAMBDA = 1e3
-
-
-def _damping_after(lam: float, alpha: float) -> float:
-    """The Levenberg damping λ after an accepted step of ``alpha`` times the
-    damped scoring step (NaN: a decade move of a scale quantity): ×10 when
-    ``alpha`` <= :data:`SHORT_STEP` (at most :data:`SHORT_STEP_LAMBDA`),
-    else ÷3 (at least 1e-6).
-
-    The step that the line search had to cut to a tenth or less gained a
-    small part of what the quadratic model predicted: the model holds only
-    within a shorter step, and the Levenberg-Marquardt rule then raises the
-    damping instead of lowering it (Marquardt 1963; Moré 1978, the ratio of
-    actual to predicted reduction). The damping λ diag F shortens most the
-    directions that the information barely identifies, where a long step
-    ran along a ridge and the line search kept 3 % of it. Lowering λ after
-    every accepted step sent the next step as far again: on a user's belt
-    drive graph with the rectifying sensor (the real CED record u1, nine
-    parameters, five combinations of them unidentified) the refit took
-    120 iterations at x0.03 of its step, gaining 0.05-0.2 nats each, and
-    ended "not converged" (LR 945.9, refused as not comparable); with this
-    rule it converged in 23 iterations (LR 946.4), and two competing
-    refits of the same step in 20 and 9 instead of 120 and 36. The three
-    real-record cases (Silverbox, CED, EMPS) keep every figure.
-
-    References
-    ----------
-    Marquardt, D. W. (1963). An algorithm for least-squares estimation of
-    nonlinear parameters. J. SIAM 11(2), 431-441. Moré, J. J. (1978). The
-    Levenberg-Marquardt algorithm: implementation and theory. Lecture Notes
-    in Mathematics 630, 105-116.
-    """
-    if alpha <= SHORT_STEP:           # NaN (a scale move) compares False
-        return min(lam * 10.0, SHORT_STEP_LAMBDA)
-    return max(lam / 3.0, 1e-6)
 
 
 def scoring_steps(model, t, u, y, starts: list[Estimand], lower, upper, P0, *,

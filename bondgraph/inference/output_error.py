@@ -520,13 +520,10 @@ def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None,
     θ where the box is positive and spans :data:`LOG_SPAN` or more. The start
     is not one of its particles: seeded with a good local fit, the swarm
     gathered in that basin and stalled (a user's CED graph with |ω|: NRMSE
-    1.05 seeded, 0.29 not). Independent swarms (seeds ``swarm.seed``,
-    ``swarm.seed + 1``, ...) run until two of them agree on the best value
-    (:func:`_agreeing_swarms`: within :data:`SWARM_AGREE`, at most
-    :data:`SWARM_RUNS`). Each particle's free run is the model's compiled
-    fixed-step RK4 (:func:`bondgraph.inference.sim_numba.rk4_trajectory`) or,
-    without kernels, the batched numpy RK4
-    (:func:`bondgraph.numerics.integrators.simulate_batch`); +inf if not finite.
+    1.05 seeded, 0.29 not). Swarms of seeds ``swarm.seed``, +1, ... run
+    until two agree on the best value (:func:`_agreeing_swarms`). A free run
+    is the compiled fixed-step RK4 (:func:`~bondgraph.inference.sim_numba.rk4_trajectory`)
+    or the batched numpy RK4 (:func:`~bondgraph.numerics.integrators.simulate_batch`).
 
     Parameters
     ----------
@@ -551,9 +548,8 @@ def swarm_output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None,
         Hold and fixed-step ``substeps`` of the free runs (default 4) and
         the local fit's settings.
     swarm : SwarmOptions, optional
-        Each swarm's settings. Default: min(10 k, 60) particles, 100
-        iterations, stop after 20 iterations without a relative gain of
-        1e-6, seed 0 (the first swarm's).
+        Each swarm's. Default: min(10 k, 60) particles, 100 iterations, stop
+        after 20 iterations without a relative gain of 1e-6, seed 0.
 
     Returns
     -------
