@@ -133,6 +133,7 @@ def ced_belt():
 '''
 
 
+@pytest.mark.long      # 55-70 s (its refits crawl, section "Left open"); CI's budget
 def test_a_second_users_graph_finds_the_rectification(tmp_path):
     """Another user's graph of the same drive (the belt's compliance and the
     spring as one, no pulley spring to ground, other starts, boxes and
