@@ -23,11 +23,13 @@ from bondgraph.diagnose.fit import (
     evaluate_fit,
     fit_model,
     model_of,
+    noise_params,
     problem_for,
     recommended_substeps,
     start_theta,
 )
-from bondgraph.diagnose.inference_calls import run_ukf
+from bondgraph.diagnose.inference_calls import make_criterion, run_ukf
+from bondgraph.inference.optimize import minimize_batched
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError
 from bondgraph.numerics.model import Model
@@ -535,18 +537,24 @@ def continued(ctx: Context, graph, fit: Fit, label: str) -> Fit:
     had converged there, up to the scoring's rounding (a user's oven graph:
     the declared fit's continuation converged 4.6e-5 nats above its start,
     was dropped, and the loop warned that every likelihood ratio was an
-    upper bound). A refit still not converged is
+    upper bound). A refit the scoring still has not converged is handed to
+    another optimiser (:func:`quasi_newton`) and the scoring run once more
+    from where it ends. A refit still not converged then is
     returned with ``converged`` False: the caller reports it as not
     comparable (a 178 s sensor low-pass on a 4 s record reached LR 713
     "NOT converged" on a user's two-tank record and was accepted over a
     converged saturation)."""
     total = fit.iterations or 0
-    for _ in range(CONTINUATIONS):
+    for n in range(CONTINUATIONS + 1):
         if fit.converged is not False:
             break
-        ctx.log(f"  {label}: refit not converged after {total} iterations; continuing")
+        ctx.log(f"  {label}: refit not converged after {total} iterations; continuing"
+                + (" with L-BFGS-B" if n == CONTINUATIONS else ""))
         try:
-            nxt = fit_model(ctx, graph, list(fit.params), fit.estimates(),
+            start = fit.estimates() if n < CONTINUATIONS else quasi_newton(ctx, fit, label)
+            if start is None:
+                break
+            nxt = fit_model(ctx, graph, list(fit.params), start,
                             f"continuing {label}", model=fit.model,
                             iterations=ctx.settings.search.confirm_iterations,
                             tolerance=ctx.settings.search.confirm_tolerance)
@@ -559,6 +567,49 @@ def continued(ctx: Context, graph, fit: Fit, label: str) -> Fit:
         fit = nxt
     fit.iterations = total if fit.iterations is not None else fit.iterations
     return fit
+
+
+#: L-BFGS-B iterations of :func:`quasi_newton`
+QUASI_NEWTON_ITERATIONS = 60
+
+
+def quasi_newton(ctx: Context, fit: Fit, label: str) -> dict | None:
+    """Where bounded L-BFGS-B (batched central-difference gradients,
+    :func:`bondgraph.inference.optimize.minimize_batched`; Byrd, Lu,
+    Nocedal & Zhu 1995) takes the physical and effect parameters of a refit
+    whose Fisher scoring did not converge, the noise intensities, initial
+    states and noise stds held at the refit's estimates: its estimates
+    there (name -> value), for the scoring to start from again; None when it
+    gains less than :data:`CONTINUE_SLACK` nats. The scoring's Levenberg-damped
+    step uses the expected information, which on a misspecified model's
+    curved ridge points poorly: a user's belt drive with a rectifying
+    sensor (nine parameters) took 3 % of it per iteration for 120
+    iterations, 0.05-0.2 nats each. A quasi-Newton method builds its
+    curvature from the gradients it meets instead.
+
+    References
+    ----------
+    Byrd, R. H., Lu, P., Nocedal, J., Zhu, C. (1995). A limited memory
+    algorithm for bound constrained optimization. SIAM J. Sci. Comput.
+    16(5), 1190-1208.
+    """
+    model = fit.model
+    noise = noise_params(model)
+    names = [n for n in fit.params if n not in noise]
+    if not names:
+        return None
+    pb = problem_for(ctx, model).conditioned_on(
+        x0={**problem_for(ctx, model).prior.estimated, **(fit.x0_est or {})},
+        noise_levels=dict(fit.noise_est or {}))
+    crit = make_criterion(pb, names, fit.theta, ctx.settings.evaluation.chunk)
+    lo, hi = bounds_around(model, names, fit.theta)
+    x0 = np.array([fit.theta[model.param_index(n)] for n in names])
+    x, f, nfev, _ = minimize_batched(crit, x0, lo, hi, maxiter=QUASI_NEWTON_ITERATIONS)
+    ctx.log(f"  {label}: L-BFGS-B over {len(names)} parameters (noise levels held): NLL "
+            f"{fit.nll:.3f} -> {f:.3f} ({nfev} parameter sets)")
+    if not f < fit.nll - CONTINUE_SLACK:
+        return None
+    return {**fit.estimates(), **dict(zip(names, (float(v) for v in x)))}
 
 
 def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
