@@ -29,9 +29,9 @@ from bondgraph.diagnose.fit import (
     start_theta,
 )
 from bondgraph.diagnose.inference_calls import make_criterion, run_ukf
-from bondgraph.inference.optimize import minimize_batched
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError
+from bondgraph.inference.optimize import minimize_batched
 from bondgraph.numerics.model import Model
 
 
@@ -578,14 +578,34 @@ def quasi_newton(ctx: Context, fit: Fit, label: str) -> dict | None:
     :func:`bondgraph.inference.optimize.minimize_batched`; Byrd, Lu,
     Nocedal & Zhu 1995) takes the physical and effect parameters of a refit
     whose Fisher scoring did not converge, the noise intensities, initial
-    states and noise stds held at the refit's estimates: its estimates
-    there (name -> value), for the scoring to start from again; None when it
-    gains less than :data:`CONTINUE_SLACK` nats. The scoring's Levenberg-damped
-    step uses the expected information, which on a misspecified model's
-    curved ridge points poorly: a user's belt drive with a rectifying
-    sensor (nine parameters) took 3 % of it per iteration for 120
-    iterations, 0.05-0.2 nats each. A quasi-Newton method builds its
+    states and noise stds held at the refit's estimates. The scoring's
+    Levenberg-damped step uses the expected information, which on a
+    misspecified model's curved ridge points poorly: a user's belt drive
+    with a rectifying sensor (nine parameters) took 3 % of it per iteration
+    for 120 iterations, 0.05-0.2 nats each. A quasi-Newton method builds its
     curvature from the gradients it meets instead.
+
+    Parameters
+    ----------
+    ctx : Context
+    fit : Fit
+        The refit (``fit.theta`` (n_theta,), its ``x0_est``, ``noise_est``).
+    label : str
+        Name of the refit in the log line.
+
+    Returns
+    -------
+    dict or None
+        Every estimate of ``fit`` by name, the moved parameters at
+        L-BFGS-B's result, for the scoring to start from again; None when
+        it gains less than :data:`CONTINUE_SLACK` nats over its start (or
+        every parameter is a noise intensity).
+
+    Raises
+    ------
+    BondGraphError
+        If the filter cannot be set up at the refit (its failures inside
+        the search count as an infinite NLL).
 
     References
     ----------
@@ -598,16 +618,17 @@ def quasi_newton(ctx: Context, fit: Fit, label: str) -> dict | None:
     names = [n for n in fit.params if n not in noise]
     if not names:
         return None
-    pb = problem_for(ctx, model).conditioned_on(
-        x0={**problem_for(ctx, model).prior.estimated, **(fit.x0_est or {})},
-        noise_levels=dict(fit.noise_est or {}))
+    base = problem_for(ctx, model)
+    pb = base.conditioned_on(x0={**base.prior.estimated, **(fit.x0_est or {})},
+                             noise_levels=dict(fit.noise_est or {}))
     crit = make_criterion(pb, names, fit.theta, ctx.settings.evaluation.chunk)
     lo, hi = bounds_around(model, names, fit.theta)
     x0 = np.array([fit.theta[model.param_index(n)] for n in names])
+    f0 = float(np.asarray(crit(x0[None, :]))[0])
     x, f, nfev, _ = minimize_batched(crit, x0, lo, hi, maxiter=QUASI_NEWTON_ITERATIONS)
     ctx.log(f"  {label}: L-BFGS-B over {len(names)} parameters (noise levels held): NLL "
-            f"{fit.nll:.3f} -> {f:.3f} ({nfev} parameter sets)")
-    if not f < fit.nll - CONTINUE_SLACK:
+            f"{f0:.3f} -> {f:.3f} ({nfev} parameter sets)")
+    if not f < f0 - CONTINUE_SLACK:
         return None
     return {**fit.estimates(), **dict(zip(names, (float(v) for v in x)))}
 
