@@ -64,7 +64,7 @@ is reported before and after but never vetoes.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 from scipy.stats import chi2, norm
@@ -269,7 +269,8 @@ class Decision:
 
 def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
            admissible: Admissibility | None = None, comparable: bool = True,
-           box_free: Sequence[str] = (), interior: Sequence[str] = ()) -> Decision:
+           box_free: Sequence[str] = (), interior: Sequence[str] = (),
+           searched: Mapping[str, float] | None = None) -> Decision:
     """Compare the candidate's refit ``after`` (``dof`` new parameters) with
     the ``current`` fit (module docstring for the rule).
 
@@ -295,6 +296,14 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
         The candidate's new parameters that its effect declares ``interior``:
         one on a bound of its box is a reason to reject
         (:func:`at_family_edge`).
+    searched : dict, optional
+        The candidate's new parameters on the edge of a search box (a box
+        the effect library set around the score test's estimate,
+        :meth:`~bondgraph.diagnose.effects.base.Effect.search_boxed`),
+        each mapped to what the likelihood gains beyond that box [nats], at
+        least :data:`~bondgraph.diagnose.runner.BOX_DECIDES`
+        (:func:`bondgraph.diagnose.runner.search_box_deciding`): a reason
+        to reject.
 
     Returns
     -------
@@ -303,7 +312,8 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
         "the refit is not physically admissible: ...", "the refitted model
         does not simulate: ...", "the refit is not finite", "the refit moves
         ... onto its box" (:func:`newly_boxed`), "the effect's ... ends on
-        its box" (:func:`at_family_edge`),
+        its box" (:func:`at_family_edge`), "the effect's ... ends on the
+        edge of the search box" (``searched``),
         "information criterion did not improve", "likelihood-ratio test not
         passed (LR l, p p)", "the error grew (a -> b)" (with "on the
         validation record" when it is that error), or "the error decrease is
@@ -322,7 +332,8 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     a0, a1 = getattr(current, "accept_errors", None), getattr(after, "accept_errors", None)
     if a0 is not None and a1 is not None and a0.shape == a1.shape:
         dz, dp = error_decrease_test(a0, a1)
-    reason = (_objection(current, after, lr, comparable, admissible, box_free, interior)
+    reason = (_objection(current, after, lr, comparable, admissible, box_free, interior,
+                         searched or {})
               or _failed_test(rule, (ic0, ic1), p, lr, (e0, e1), (dz, dp), where))
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
 
@@ -516,11 +527,11 @@ def _failed_test(rule: AcceptRule, ic: tuple, p: float, lr: float, err: tuple, d
 
 def _objection(current: Fit, after: Fit, lr: float, comparable: bool,
                admissible: Admissibility | None, box_free: Sequence[str],
-               interior: Sequence[str]) -> str | None:
+               interior: Sequence[str], searched: Mapping[str, float]) -> str | None:
     """The first of :func:`decide`'s tests of the refit as a model (before
     the statistics): converged, admissible, simulating, finite, no declared
-    parameter newly on its box, no ``interior`` one on its box, identified
-    (None: all pass)."""
+    parameter newly on its box, no ``interior`` one on its box, none on a
+    search box that decides it (``searched``), identified (None: all pass)."""
     unstable = getattr(after, "unstable", None)
     finite = [v for v in (after.nll, after.accept_metric, after.metric, after.validation_metric)
               if v is not None]
@@ -542,6 +553,12 @@ def _objection(current: Fit, after: Fit, lr: float, comparable: bool,
         return (f"the effect's {edge} ends on its box: the record asks for more than the "
                 f"effect's family covers (its likelihood ratio there is not χ², Self & "
                 f"Liang 1987)")
+    if searched:
+        text = _on_box_text(after, list(searched))
+        gain = max(searched.values())
+        return (f"the effect's {text} ends on the edge of the search box the loop set around "
+                f"the score test's estimate (no physical limit), and beyond it the likelihood "
+                f"gains {gain:.3g} nats: the box, not the record, decides it")
     return unidentified_effect(current, after) or None
 
 

@@ -349,6 +349,19 @@ class Effect:
         """
         raise NotImplementedError
 
+    def search_boxed(self) -> tuple[str, ...]:
+        """Local names of the estimated parameters whose box :meth:`apply`
+        sets around the start value it is given (the score test's estimate,
+        ±10 times it, :func:`_box`) rather than from the effect's physics.
+
+        Such a box is a search range, not a physical limit: an estimate on
+        its edge (the upper edge only for a ``nonnegative`` parameter, whose
+        0 is the effect switched off) is decided by the box, not by the
+        record, and the loop refuses the candidate when opening the box
+        gains the likelihood (:func:`bondgraph.diagnose.runner.search_box_deciding`).
+        The base class declares none (a user's effect sets its own boxes)."""
+        return ()
+
     def box(self, graph: BondGraph, target: Target, scales: Scales) -> dict[str, tuple[float, float]]:
         """The declared box of each estimated parameter, in its unit, from
         the graph (stiffness, inertia ...) and the data scales: the range of

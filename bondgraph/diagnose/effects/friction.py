@@ -71,6 +71,9 @@ class _JunctionLaw(Effect):
         """Basis functions of the law (one per estimated parameter)."""
         raise NotImplementedError
 
+    def search_boxed(self):
+        return tuple(p.name for p in self.params if p.estimated and p.bounds is None)
+
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
         j = graph.element(target.name)
@@ -231,6 +234,9 @@ class ConstantEffort(_JunctionLaw):
             if isinstance(j, One) and Target("junction", j.name) not in out:
                 out.append(Target("junction", j.name))
         return out
+
+    def search_boxed(self):
+        return ()
 
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})

@@ -55,6 +55,20 @@ class _SensorEffect(Effect):
         """Basis functions in ``y`` (one per estimated parameter)."""
         raise NotImplementedError
 
+    def param_box(self, spc, default: float) -> tuple[float, float]:
+        """The box :meth:`apply` gives the parameter ``spc`` started at
+        ``default``: [0, 1] for the fraction λ, ±1e9 for an offset or a
+        calibration coefficient, else ±10 |default| (:func:`_box`)."""
+        if spc.name == "lam":
+            return 0.0, 1.0
+        if spc.name == "b" or spc.name.startswith("c"):
+            return -1e9, 1e9
+        return _box(default or 1.0, spc)
+
+    def search_boxed(self):
+        return tuple(p.name for p in self.params if p.estimated and p.name != "lam"
+                     and p.name != "b" and not p.name.startswith("c"))
+
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
         sen = graph.sensors[target.name]
@@ -63,9 +77,7 @@ class _SensorEffect(Effect):
         for spc in self.params:
             default = values.get(spc.name, shapes.get(spc.name, 0.0))
             unit = fill_unit(spc.unit, y=sen.unit)
-            lo, hi = (0.0, 1.0) if spc.name == "lam" else _box(default or 1.0, spc)
-            if spc.name == "b" or spc.name.startswith("c"):
-                lo, hi = -1e9, 1e9
+            lo, hi = self.param_box(spc, default)
             P[spc.name] = _new_param(graph, self.pname(target, spc.name), default, unit, (lo, hi),
                                      f"{spc.description} ({self.title} of {target.name})")
         sen.expr = self.transform(sen.expr, P, P)
