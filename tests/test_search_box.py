@@ -77,12 +77,14 @@ def test_a_candidate_inside_its_search_box_is_accepted(declared):
 
 def test_zero_of_a_nonnegative_parameter_is_no_search_edge(declared):
     """A viscous coefficient on 0 (the effect switched off: a physical
-    limit) is not on a search edge; on its upper edge it is."""
-    _, d, cur, _ = declared
+    limit) is not on a search edge; on its upper edge it is; a declared
+    parameter on its box is never on one (its box is the user's)."""
+    ctx, _, _, _ = declared
     after, _ = _refit(declared, 0.02)
-    eff = get_effect("viscous")
-    placed = [(eff, eff.targets(d)[0])]
-    assert on_search_edge(placed, after) == [B]
+    assert on_search_edge(ctx, after, [B, "m", "k"]) == [B]
     after.theta = after.theta.copy()
     after.theta[after.model.param_index(B)] = 0.0
-    assert on_search_edge(placed, after) == []
+    assert on_search_edge(ctx, after, [B]) == []
+    after.at_bound = [B, "m"]
+    after.theta[after.model.param_index("m")] = after.model.bounds(["m"])[1][0]
+    assert on_search_edge(ctx, after, ["m"]) == []

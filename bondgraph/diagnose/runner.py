@@ -2061,16 +2061,21 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     its only objection is a parameter newly on its box, decided again with
     the parameters whose box does not decide the fit exempt
     (:func:`box_not_deciding`). A parameter of an effect the loop accepted
-    earlier (not of the declared graph) is always exempt: its box is the
+    earlier (not of the declared graph) is exempt: its box is the
     library's, not the user's physical knowledge (as
     :func:`boxed_after_accept` leaves it out), and a refit that puts it on
     its box switches that effect off in favour of the candidate, which is
-    what the record says (logged). On a user's two-mass drive whose load
+    what the record says (logged); unless it ends on the far edge of a
+    search box that decides the fit (:func:`search_box_deciding`: a box the
+    library set around a score's estimate is no end of the effect's
+    range). On a user's two-mass drive whose load
     has Coulomb friction, a Dahl friction accepted first at the gear
     refitted to its smallest rest stiffness once the load's Coulomb
     friction was added (held-out NRMSE 0.01702 -> 0.01365), and that
     candidate was rejected in every later step for "the box, not the
-    record". The admissibility of the refit includes
+    record". A decision that accepts is decided again when one of the
+    candidate's own new parameters ends on a search box that decides the
+    fit (``searched``). The admissibility of the refit includes
     what the ``added`` candidates' own effects find at it
     (:func:`bondgraph.diagnose.fit.admissibility`). Where the refit's
     identification of a parameter ``current`` identified hangs on its std
@@ -2083,66 +2088,96 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     if comparable and robust_std_needed(current, after):
         after.std_robust = {**after.std_robust, **robust_std_of(ctx, after)}
     inner = interior_params(placed)
-    d = decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
-               interior=inner)
-    if d.accepted:
-        searched = search_box_deciding(ctx, placed, after, label)
-        return d if not searched else decide(
-            current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
-            interior=inner, searched=searched)
-    if not newly_boxed(current, after):
+
+    def judge(free=(), searched=None):
+        return decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
+                      box_free=free, interior=inner, searched=searched)
+
+    d, free = judge(), []
+    if not d.accepted and newly_boxed(current, after):
+        free = switched_off(ctx, current, after)
+        pressed = search_box_deciding(ctx, on_search_edge(ctx, after, free), after, label)
+        free = [n for n in free if n not in pressed]
+        if free:
+            ctx.log(f"  {label}: the refit moves {', '.join(free)} (of an effect accepted earlier) "
+                    f"onto a bound of the box the effect library gave it (that effect switched "
+                    f"off, or at the end of its range): the library's box, not the user's, is no "
+                    f"reason to reject")
+        if newly_boxed(current, after, exempt=free + list(pressed)):
+            free += [n for n in box_not_deciding(ctx, current, after, label)
+                     if n not in free and n not in pressed]
+        if not free:
+            return d
+        d = judge(free)
+    if not d.accepted:
         return d
-    free = switched_off(ctx, current, after)
-    if free:
-        ctx.log(f"  {label}: the refit moves {', '.join(free)} (of an effect accepted earlier) "
-                f"onto a bound of the box the effect library gave it (that effect switched off, "
-                f"or at the end of its range): the library's box, not the user's, is no reason "
-                f"to reject")
-    if newly_boxed(current, after, exempt=free):
-        free += [n for n in box_not_deciding(ctx, current, after, label) if n not in free]
-    if not free:
-        return d
-    return decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
-                  box_free=free, interior=inner)
+    own = [e.pname(t, p.name) for e, t in placed for p in e.params]
+    searched = search_box_deciding(ctx, on_search_edge(ctx, after, own), after, label)
+    return judge(free, searched) if searched else d
 
 
-def on_search_edge(placed: list, after: Fit) -> list[str]:
-    """The parameters of the placed effects ``placed`` ((effect, target)
-    pairs) that the refit ``after`` leaves on the edge of a search box
-    (:meth:`~bondgraph.diagnose.effects.base.Effect.search_boxed`: a box
-    set around the score test's estimate): either edge, or the upper one
-    for a ``nonnegative`` parameter (its 0 switches the effect off, a
-    physical limit)."""
+def search_boxed_param(ctx: Context, name: str):
+    """The :class:`~bondgraph.diagnose.effects.base.EffectParam` of the
+    effect parameter ``name`` (``<effect>.<target>.<local>``,
+    :meth:`~bondgraph.diagnose.effects.base.Effect.pname`) when its effect
+    sets its box around a start value
+    (:meth:`~bondgraph.diagnose.effects.base.Effect.search_boxed`); None
+    for any other parameter (declared, of another effect, or of an effect
+    not in the loop's library)."""
+    head, _, rest = name.partition(".")
+    if not rest:
+        return None
+    try:
+        eff = get_effect(head, ctx.settings.effects)
+    except BondGraphError:
+        return None
+    local = name.rsplit(".", 1)[1]
+    if local not in eff.search_boxed():
+        return None
+    return next((p for p in eff.params if p.name == local), None)
+
+
+def on_search_edge(ctx: Context, after: Fit, names: Sequence[str]) -> list[str]:
+    """The effect parameters among ``names`` that the refit ``after`` leaves
+    on the edge of a search box (:func:`search_boxed_param`: a box set
+    around a score's estimate): either edge, or the upper one for a
+    ``nonnegative`` parameter (its 0 switches the effect off, a physical
+    limit)."""
     bound = set(after.at_bound or ())
     out = []
-    for e, t in placed:
-        for p in e.params:
-            n = e.pname(t, p.name)
-            if p.name not in e.search_boxed() or n not in bound or n not in after.model.params:
-                continue
-            lo, hi = after.model.bounds([n])
-            v = float(after.theta[after.model.param_index(n)])
-            if not p.nonnegative or hi[0] - v <= v - lo[0]:
-                out.append(n)
+    for n in names:
+        if n not in bound or n not in after.model.params:
+            continue
+        spc = search_boxed_param(ctx, n)
+        if spc is None:
+            continue
+        lo, hi = after.model.bounds([n])
+        v = float(after.theta[after.model.param_index(n)])
+        if not spc.nonnegative or hi[0] - v <= v - lo[0]:
+            out.append(n)
     return out
 
 
-def search_box_deciding(ctx: Context, placed: list, after: Fit, label: str) -> dict[str, float]:
-    """The parameters of :func:`on_search_edge` whose search box decides the
-    refit ``after``: opened :data:`BOX_OPENING`-fold on the side they sit on
+def search_box_deciding(ctx: Context, names: Sequence[str], after: Fit,
+                        label: str) -> dict[str, float]:
+    """The parameters ``names`` (on the edge of their search box,
+    :func:`on_search_edge`) whose search box decides the refit ``after``:
+    opened :data:`BOX_OPENING`-fold on the side they sit on
     (:func:`beyond_box`, one refit), the likelihood gains at least
-    :data:`BOX_DECIDES`; each mapped to that gain [nats] ({} when none is
-    on such an edge, the gain is smaller, or the refit fails). Logged.
+    :data:`BOX_DECIDES`; each mapped to that gain [nats] ({} when ``names``
+    is empty, the gain is smaller, or the refit fails). Logged.
 
     A search box is no physical knowledge: an estimate it stops is not one
     the record made. On a motor whose sensor gain g trades with the torque
     constant along a ridge, an optimiser that follows the ridge ends with g
     on its search box (−0.6, ten times the score's −0.06) and k_t 0.024
     (truth 0.060), and the held-out error still falls: such a candidate is
-    refused (:func:`bondgraph.diagnose.accept.decide`, ``searched``). A
-    parameter whose box the likelihood does not press against (a gain
-    below :data:`BOX_DECIDES` beyond it) is no reason to refuse."""
-    names = on_search_edge(placed, after)
+    refused (:func:`bondgraph.diagnose.accept.decide`, ``searched``), and
+    so is one that pushes an earlier effect's parameter there
+    (:func:`decided`). A parameter whose box the likelihood does not press
+    against (a gain below :data:`BOX_DECIDES` beyond it) is no reason to
+    refuse."""
+    names = list(names)
     if not names:
         return {}
     r = beyond_box(ctx, after.graph, after, list(after.params), only=names)
