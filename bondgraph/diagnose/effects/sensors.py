@@ -55,19 +55,24 @@ class _SensorEffect(Effect):
         """Basis functions in ``y`` (one per estimated parameter)."""
         raise NotImplementedError
 
-    def param_box(self, spc, default: float) -> tuple[float, float]:
-        """The box :meth:`apply` gives the parameter ``spc`` started at
-        ``default``: [0, 1] for the fraction λ, ±1e9 for an offset or a
-        calibration coefficient, else ±10 |default| (:func:`_box`)."""
+    @staticmethod
+    def fixed_box(spc) -> tuple[float, float] | None:
+        """The fixed box of the parameter ``spc``: [0, 1] for the fraction
+        λ, ±1e9 for an offset or a calibration coefficient; None for one
+        whose box is set around its start (:func:`_box`)."""
         if spc.name == "lam":
             return 0.0, 1.0
         if spc.name == "b" or spc.name.startswith("c"):
             return -1e9, 1e9
-        return _box(default or 1.0, spc)
+        return None
+
+    def param_box(self, spc, default: float) -> tuple[float, float]:
+        """The box :meth:`apply` gives the parameter ``spc`` started at
+        ``default``: its :meth:`fixed_box`, else ±10 |default| (:func:`_box`)."""
+        return self.fixed_box(spc) or _box(default or 1.0, spc)
 
     def search_boxed(self):
-        return tuple(p.name for p in self.params if p.estimated and p.name != "lam"
-                     and p.name != "b" and not p.name.startswith("c"))
+        return tuple(p.name for p in self.params if p.estimated and self.fixed_box(p) is None)
 
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
