@@ -135,6 +135,45 @@ def test_a_switched_off_effect_goes_only_when_the_accept_rule_no_longer_wants_it
                                    "no longer wants it") and "removed" in logs[-1]
 
 
+def test_a_reduced_refit_that_its_search_box_decides_is_not_taken(monkeypatch):
+    """pruned: the model without Coulomb friction would be taken (as the
+    removal case above, reduced NLL −99.9), but its square-root damper's
+    β ends on the edge of a search box that decides the fit: the reduced
+    refit is judged by the same rule as any candidate's refit
+    (runner.decided) and refused, and Coulomb friction is kept."""
+    declared, g1, g2 = _graphs()
+    P1 = ["m", "k", "c", "coulomb.v.Fc"]
+    lo = float(model_of(g2).bounds(["coulomb.v.Fc"])[0][0])
+    current = _fit(g1, {"coulomb.v.Fc": 0.2}, -50.0, P1)
+    after = _fit(g2, {"coulomb.v.Fc": lo, "r_sqrt.damper.beta": 0.4}, -100.0,
+                 P1 + ["r_sqrt.damper.beta"], ["coulomb.v.Fc"])
+    reduced_g = declared.copy("reduced")
+    get_effect("r_sqrt").apply(reduced_g, DAMPER, {"beta": 0.4, "eps": 0.01})
+    reduced = _fit(reduced_g, {"r_sqrt.damper.beta": 0.4}, -99.9,
+                   ["m", "k", "c", "r_sqrt.damper.beta"], ["r_sqrt.damper.beta"])
+    monkeypatch.setattr(runner, "_without", lambda *a: reduced)
+    monkeypatch.setattr(runner, "admissibility", lambda *a, **k: SimpleNamespace(ok=True))
+    edge = []
+    monkeypatch.setattr(runner, "on_search_edge",
+                        lambda ctx, fit, names: edge.append((fit, list(names)))
+                        or (["r_sqrt.damper.beta"] if fit is reduced else []))
+    monkeypatch.setattr(runner, "search_box_deciding",
+                        lambda ctx, names, fit, label: {n: 40.0 for n in names})
+    logs = []
+    ctx = SimpleNamespace(settings=SimpleNamespace(accept=AcceptRule(error_level=None),
+                                                   effects=None),
+                          problem=SimpleNamespace(model=SimpleNamespace(params=["m", "k", "c"])),
+                          log=logs.append)
+    gone = AppliedEffect("coulomb", V, {"Fc": 0.2, "eps": 0.05})
+    result = SimpleNamespace(declared_graph=declared, applied=[gone], metric="error")
+    added = [SimpleNamespace(effect="r_sqrt", target=DAMPER)]
+    fit, removed, d = runner.pruned(ctx, result, current, after, added, "r_sqrt @ damper")
+    assert fit is after and removed == [] and d is None
+    assert (reduced, ["r_sqrt.damper.beta", "r_sqrt.damper.eps"]) in edge
+    assert logs[-1].startswith("  r_sqrt @ damper without coulomb @ v: not accepted")
+    assert "search box" in logs[-1] and logs[-1].endswith("coulomb @ v kept")
+
+
 def test_nothing_is_refitted_when_no_earlier_effect_is_switched_off(monkeypatch):
     """pruned: a declared parameter newly on its box is the accept rule's
     business, not a removal; nothing is refitted."""

@@ -2220,9 +2220,11 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
     their values in ``after`` (boxes as in ``after``) and refitted
     (continued until it converges). The effect goes when adding it back to
     that refit would not pass :func:`~bondgraph.diagnose.accept.decide`
-    (its parameters as the dof) and the refit itself passes ``decide``
-    against ``current``, as any accepted model must (``added``'s
-    parameters less the removed ones as the dof, at least 1). This is the
+    (its parameters as the dof) and the refit itself passes
+    :func:`decided` against ``current``, as any accepted model must
+    (``added``'s parameters less the removed ones as the dof, at least 1;
+    its own parameters on a search box that decides the fit refuse it, as
+    they refuse any candidate's refit). This is the
     backward half of stepwise selection, with the forward half's rule
     (Efroymson 1960): an effect accepted first because the record's best
     candidate was not yet in the model is dropped once that candidate is.
@@ -2261,13 +2263,9 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
             ctx.log(f"  {label} puts {what} on its box, but it still passes the accept rule "
                     f"given the others: kept")
             continue
-        placed = [(get_effect(c.effect, s.effects), c.target) for c in added]
         dof = max(1, len(set(reduced.params) - set(current.params)))
-        d = decide(current, reduced, s.accept, dof=dof,
-                   admissible=admissibility(ctx, reduced, current.graph, placed,
-                                            against=current),
-                   comparable=reduced.converged is not False,
-                   interior=interior_params(placed))
+        d = decided(ctx, current, reduced, dof, reduced.converged is not False,
+                    f"{label} without {what}", added)
         if not d.accepted:
             ctx.log(f"  {label} without {what}: not accepted against the model before this "
                     f"step ({d.reason}): {what} kept")
