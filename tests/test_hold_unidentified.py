@@ -93,6 +93,83 @@ def test_a_parameter_without_a_box_is_held_where_the_record_cannot_tell_it(tmp_p
     assert e["c"] / e["k_u"] == pytest.approx(TRUTH["c"] / TRUTH["k_u"], rel=0.01)
 
 
+OVEN = '''
+from bondgraph import BondGraph
+
+
+def oven():
+    g = BondGraph("oven", "heating element and wall, losses to the room")
+    P = g.input("P", "W", 0.0, "heater power")
+    T0 = g.param("T0", 300.0, "K", description="reference temperature")
+    ce = g.param("C_e", 800.0, "J/K", (100.0, 5000.0), "element heat capacity")
+    cw = g.param("C_w", 2000.0, "J/K", (300.0, 30000.0), "wall heat capacity")
+    rew = g.param("R_ew", 0.05, "K/W", (0.005, 0.5), "element to wall")
+    rwa = g.param("R_wa", 0.1, "K/W", (0.01, 1.0), "wall to room")
+    n1 = g.zero("element", domain="thermal")
+    g.connect(g.Sf("heater", P / T0), n1)
+    g.connect(n1, g.C("C_element", ce / T0))
+    gap = g.one("gap", domain="thermal")
+    g.connect(n1, gap)
+    g.connect(gap, g.R("R_gap", T0 * rew))
+    n2 = g.zero("wall", domain="thermal")
+    g.connect(gap, n2)
+    g.connect(n2, g.C("C_wall", cw / T0))
+    g.connect(n2, g.R("R_loss", T0 * rwa))
+    g.sensor("T_e", n1.e, unit="K", noise_std=0.05)
+    g.sensor("T_w", n2.e, unit="K", noise_std=0.05)
+    return g
+'''
+
+OVEN_TRUTH = {"C_e": 800.0, "C_w": 3000.0, "R_ew": 0.04, "R_wa": 0.12}
+
+
+def _oven_record(path, n=1200, dt=4.0):
+    """The oven's own equations (temperature rises, hand-written),
+    C_e dT_e/dt = P - (T_e - T_w)/R_ew, C_w dT_w/dt = (T_e - T_w)/R_ew -
+    T_w/R_wa, heater steps every 300 s, by solve_ivp."""
+    c = OVEN_TRUTH
+    t = np.arange(n) * dt
+    levels = np.random.default_rng(11).uniform(0.0, 600.0, size=int(t[-1] // 300) + 2)
+
+    def P(s):
+        return levels[(np.asarray(s) // 300).astype(int)]
+
+    def f(s, z):
+        q = (z[0] - z[1]) / c["R_ew"]
+        return [(P(s) - q) / c["C_e"], (q - z[1] / c["R_wa"]) / c["C_w"]]
+
+    sol = solve_ivp(f, (0.0, t[-1]), [0.0, 0.0], t_eval=t, method="LSODA", rtol=1e-9,
+                    atol=1e-10, max_step=dt)
+    y = sol.y + 0.05 * np.random.default_rng(3).standard_normal(sol.y.shape)
+    with open(path, "w") as fh:
+        fh.write("t [s],P [W],T_e [K],T_w [K]\n")
+        for row in zip(t.tolist(), P(t).tolist(), y[0].tolist(), y[1].tolist()):
+            fh.write("%r,%r,%r,%r\n" % row)
+
+
+def test_a_known_value_the_declared_fit_moves_onto_its_box_is_held(tmp_path, monkeypatch):
+    """The oven's reference temperature T0 (declared without a box: a known
+    value) scales its entropy states and cancels from the temperatures:
+    the record cannot tell it, and only the filter's initial covariance (in
+    state units) depends on it, so the declared fit ran it onto the box
+    the toolkit set around it (30 K of [30, 3000]), with no Cramér-Rao std.
+    It is held at 300 K, and the heat capacities and resistances are the
+    truth within 3 Cramér-Rao std."""
+    _oven_record(tmp_path / "oven.csv")
+    (tmp_path / "oven_user.py").write_text(OVEN)
+    monkeypatch.chdir(tmp_path)
+    assert main(["loop", "--model", "oven_user.py:oven", "--data", "oven.csv", "--max-steps",
+                 "0", "--quiet", "--hold", "zoh", "--out", "held"]) == 0
+    log = (tmp_path / "held" / "loop.log").read_text()
+    assert "the declared fit moves T0 to 30, onto the box [30, 3000]" in log
+    assert "T0 was declared without a box (a known value): held at 300" in log
+    rep = json.loads((tmp_path / "held" / "report.json").read_text())
+    est, std = rep["initial_fit"]["estimates"], rep["initial_fit"]["std"]
+    assert "T0" not in est and rep["settings"]["fixed"] == {"T0": 300.0}
+    for p, v in OVEN_TRUTH.items():
+        assert abs(est[p] - v) < 3 * std[p], (p, est[p], std[p])
+
+
 def test_box_declared_and_the_option_is_checked():
     g = BondGraph("g")
     assert g.param("a", 1.0).box_declared is False

@@ -90,7 +90,8 @@ class Parameter(_MetaSymbol):
         Whether ``bounds`` was given. A parameter declared without a box is
         read as a known value: ``bondgraph loop`` without ``--params``
         holds it at its declared value when the record does not identify
-        it apart from others (LoopSettings.hold_unidentified).
+        it apart from others, or when the declared fit moves it onto a bound
+        of that default box (LoopSettings.hold_unidentified).
     """
 
     _meta_fields = ("default", "unit", "bounds", "description", "source", "box_declared")

@@ -483,7 +483,15 @@ def held_unidentified(ctx: Context, graph: BondGraph, fit: Fit,
     time, the largest loading on the flat directions first, the declared
     model refitted after each; each held parameter leaves
     ``ctx.settings.params`` for ``fixed`` and is named in the log and in the
-    messages (for the report). A scale symmetry (a motor
+    messages (for the report). So is one the declared fit leaves on a
+    bound of the box set around it (``default``/10 to ``default``·10, or
+    ±1 about a default that is not positive,
+    :class:`~bondgraph.core.symbols.Parameter`): a known value moved to the
+    end of that box is not estimated by the record, and a parameter the record
+    cannot tell apart runs there when only the filter's initial covariance
+    (in state units) depends on it (a user's thermal graph whose reference
+    temperature T0 scales the entropy states: T0 300 -> 30 K, its bound,
+    for 4.5 nats). A scale symmetry (a motor
     constant times the mass and friction it drives) leaves the likelihood
     flat along a ridge: a fit then stops anywhere on it, the parameters'
     values mean nothing apart (the EMPS drive declared with its known
@@ -493,14 +501,23 @@ def held_unidentified(ctx: Context, graph: BondGraph, fit: Fit,
     msgs = []
     for _ in range(len(s.hold_unidentified)):
         flat = [n for n in (fit.flat or ()) if n in s.hold_unidentified and n in s.params]
-        if not flat:
+        boxed = [n for n in (fit.at_bound or ()) if n in s.hold_unidentified and n in s.params]
+        if not flat and not boxed:
             break
-        name = flat[0]
+        name = (flat or boxed)[0]
         value = float(ctx.problem.theta[fit.model.param_index(name)])
-        msg = (f"the record does not identify {', '.join(fit.flat)} separately; {name} was "
-               f"declared without a box (a known value): held at {value:.6g}; the other "
-               f"estimates and their std assume that value (to estimate it, list it in "
-               f"--params with the others)")
+        if flat:
+            why = f"the record does not identify {', '.join(fit.flat)} separately"
+        else:
+            lo, hi = fit.model.bounds([name])
+            at = float(fit.theta[fit.model.param_index(name)])
+            why = (f"the declared fit moves {name} to {at:.6g}, onto the box [{lo[0]:.6g}, "
+                   f"{hi[0]:.6g}] the toolkit sets around a value declared without one (a "
+                   f"known value moved to the end of that box is no estimate the record "
+                   f"made)")
+        msg = (f"{why}; {name} was declared without a box (a known value): held at "
+               f"{value:.6g}; the other estimates and their std assume that value (to "
+               f"estimate it, declare its box in the graph and list it in --params)")
         ctx.log(f"  {msg}")
         s = replace(s, params=[n for n in s.params if n != name],
                     fixed={**s.fixed, name: value},

@@ -361,9 +361,10 @@ class LoopSettings:
         Parameters of ``params`` the loop holds at their current (declared
         or fixed) value when the declared fit does not identify them apart
         from others (they load on a flat direction of its Fisher
-        information, :func:`bondgraph.diagnose.fit.unidentified`): one at a
-        time, the largest loading first, the declared model refitted after
-        each, until none of them is flat; the log and the report say which.
+        information, :func:`bondgraph.diagnose.fit.unidentified`) or leaves
+        them on a bound of their box: one at a time, the largest loading
+        first, the declared model refitted after each, until none of them is
+        flat or on its box; the log and the report say which.
         ``bondgraph loop --model`` without ``--params`` passes the
         parameters declared without a box (known values: a motor constant
         beside the mass and friction it scales). Default: none.
