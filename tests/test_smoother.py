@@ -207,8 +207,65 @@ def test_compiled_recursion_equals_the_matrix_products():
         Pk = Pf[k] + G[k] @ (Ps[k + 1] - Pm[k]) @ G[k].T
         Ps[k] = 0.5 * (Pk + Pk.T)
     xc, Pc = xf.copy(), Pf.copy()
-    _recursion(xf, Pf, m, Pm, G, xc, Pc)
+    # (random gains and covariances: the divergence check off, floor inf)
+    assert _recursion(xf, Pf, m, Pm, G, xc, Pc, np.full(n, np.inf)) == 0
     assert np.allclose(xc, xs, rtol=1e-11, atol=1e-12)
     assert np.allclose(Pc, Ps, rtol=1e-11, atol=1e-12)
     assert np.array_equal(Pc, np.swapaxes(Pc, 1, 2))
     assert np.array_equal(xc[-1], xf[-1]) and np.array_equal(Pc[-1], Pf[-1])
+
+
+def test_a_backward_pass_that_diverges_restarts_from_the_filter():
+    """No process noise and a fast contracting mode (mass-spring-damper m 1,
+    k 1, c 20: time constants 0.05 s and 20 s, sampled every 0.01 s): the
+    smoother's gain is Φ⁻¹ there (a factor e^0.2 a sample), round-off grows
+    backwards, and the recursion overflowed to inf at every early sample.
+    Where a smoothed variance exceeds twice the filtered one the pass
+    restarts from the filtered posterior: every mean and covariance is
+    finite, the restarts are counted, the samples after the last restart
+    are the exact smoothed trajectory (with Q = 0, Φᵏ x̂0 + the forced
+    response, x̂0 the batch generalised least-squares estimate, computed
+    without any filter), and the smoothed states are nearer the truth than
+    the filtered ones (RMS and worst sample)."""
+    m = Model.load("mass_spring_damper")
+    th = m.theta(m=1.0, k=1.0, c=20.0)
+    dt, N = 0.01, 6000
+    t = np.arange(N) * dt
+    rng = np.random.default_rng(3)
+    u = rng.normal(0, 1, (N, 1))
+    R = np.diag([0.01, 0.01]) ** 2
+    opts = UKFOptions(method="rk4", substeps=2, backend="numpy")
+    Phi, Gam, H = _linear_maps(m, th, dt)
+    Rinv = np.linalg.inv(R)
+    x_true = np.array([0.3, 0.1])
+    x0, P0 = np.zeros(2), np.diag([1.0, 1.0])
+    forced, A = np.zeros(2), np.eye(2)
+    ys, info, rhs, As, fs = [], np.zeros((2, 2)), np.zeros(2), [], []
+    for k in range(N):
+        As.append(A.copy())
+        fs.append(forced.copy())
+        HA = H @ A
+        yk = H @ (A @ x_true + forced) + rng.normal(0, 1, 2) * np.sqrt(np.diag(R))
+        info += HA.T @ Rinv @ HA
+        rhs += HA.T @ Rinv @ (yk - H @ forced)
+        ys.append(yk)
+        forced = Phi @ forced + Gam @ u[k]
+        A = Phi @ A
+    P0i = np.linalg.inv(P0)
+    x0_ref = np.linalg.solve(info + P0i, rhs + P0i @ x0)
+    sm = rts_smooth(m, t, u, np.array(ys), th, x0, P0, options=opts, R=R)
+    assert np.all(np.isfinite(sm.x)) and np.all(np.isfinite(sm.P))
+    assert sm.restarts > 0
+    x_ref = np.array([a @ x0_ref + f for a, f in zip(As, fs)])
+    truth = np.array([a @ x_true + f for a, f in zip(As, fs)])
+    # smoothing halves the filter's error (0.00013, 0.00019 against 0.00032,
+    # 0.00039 RMS; the measurement noise is 0.01)
+    rms_s = np.sqrt(np.mean((sm.x - truth) ** 2, axis=0))
+    rms_f = np.sqrt(np.mean((sm.x_filt - truth) ** 2, axis=0))
+    assert np.all(rms_s < 0.6 * rms_f), (rms_s, rms_f)
+    assert np.all(np.abs(sm.x - truth).max(axis=0) < np.abs(sm.x_filt - truth).max(axis=0))
+    # the tail the recursion reached without a restart: the exact smoother
+    # (within 1e-4 of the measurement noise std: 1.7e-7 at most seen)
+    tail = slice(N - 200, N)
+    assert np.all(np.abs(sm.x[tail] - x_ref[tail]) < 1e-6), \
+        np.abs(sm.x[tail] - x_ref[tail]).max(axis=0)

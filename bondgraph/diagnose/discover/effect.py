@@ -58,6 +58,7 @@ likelihood ratio and accept rule choose.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -906,12 +907,18 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
         # the loop's estimated noise levels, where the record declares none
         opts = replace(opts, noise=dict(initial.noise_estimates))
     for port, at_sensor in [(n, False) for n in names] + [(n, True) for n in outs]:
-        try:
-            found.append(discover_effect(graph, record, port, params=values, sensor=at_sensor,
-                                         reconstruction=opts, discovery=discovery))
-        except BondGraphError as exc:      # a port the filter cannot serve: skip it
-            where = f"the output '{port}'" if at_sensor else f"'{port}'"
-            say(f"discovery at {where} skipped: {str(exc).splitlines()[0]}")
+        where = f"the output '{port}'" if at_sensor else f"'{port}'"
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                found.append(discover_effect(graph, record, port, params=values,
+                                             sensor=at_sensor, reconstruction=opts,
+                                             discovery=discovery))
+            except BondGraphError as exc:      # a port the filter cannot serve: skip it
+                say(f"discovery at {where} skipped: {str(exc).splitlines()[0]}")
+        note = warnings_note(caught)
+        if note:
+            say(f"  discovery at {where}: {note}")
     found = sorted((d for d in found if d.effect is not None),
                    key=lambda d: (d.law.kind == "output", -d.gain))
     if not found:
@@ -923,6 +930,22 @@ def discovered_effect(graph, record, settings, first, *, ports=None, log=None,
     for alt in best.alternatives:
         say(f"beside it, {alt.effect.name}: {alt.passivity.law.readable()}")
     return best
+
+
+def warnings_note(caught: list) -> str:
+    """One line for the warnings ``caught`` (``warnings.WarningMessage``)
+    while a port's law was sought (a smoother that overflows at a trial
+    noise intensity, scikit-learn's orthogonal matching pursuit stopping
+    on a dependent dictionary): how many, of which kinds, the first
+    message; "" when there were none. Discovery tries every port, and
+    those warnings, printed as they came, buried its result on a user's
+    oven graph (twenty lines of numpy and scikit-learn)."""
+    if not caught:
+        return ""
+    kinds = sorted({w.category.__name__ for w in caught})
+    first = str(caught[0].message).splitlines()[0]
+    return (f"{len(caught)} numerical warning(s) while reconstructing and regressing "
+            f"({', '.join(kinds)}; first: {first})")
 
 
 def law_alternatives(graph, found: list, params: dict,

@@ -506,22 +506,25 @@ def intensity_grid(problem, iq: int, q_grid: np.ndarray, proc: list[int],
     return th[int(np.argmin(nll))].copy(), nll.reshape(q_grid.size, factors.size).min(axis=1)
 
 
-#: a smoothed std of the walk above this many times the most its prior and
-#: intensity allow is no information but the rounding of a direction the
-#: record does not observe (seen: 5.8e79 or inf at the same port, by the
-#: last bit of the kernels' arithmetic)
-UNOBSERVED_FACTOR = 100.0
+#: a smoothed std of the walk above this share of the most its prior and
+#: intensity allow is no information: the record told it next to nothing
+#: (an unobserved direction; its smoothed std is that bound, or its
+#: rounding beyond it: 5.8e79 or inf was seen at the same port, by the last
+#: bit of the kernels' arithmetic, before the smoother restarted where it
+#: diverged). Observed ports of a thermal two-node record reach 0.07 of it,
+#: the unobserved ambient 1.0-1.4.
+UNOBSERVED_SHARE = 0.9
 
 
 def _walk_std(sm, problem, aug, q: float) -> np.ndarray:
     """The smoothed std (N,) of the walk ``aug.d``, inf where it exceeds
-    :data:`UNOBSERVED_FACTOR` times its prior bound: the std an integrated
+    :data:`UNOBSERVED_SHARE` of its prior bound: the std an integrated
     random walk reaches with no measurement, sqrt((σ_d0 + σ_r0 T)² + q² T³/3)
     at T = t - t0 (plus q² T, a plain walk's), σ_d0 and σ_r0 the prior's
-    stds of the walk and its rate. A smoother cannot be less certain than
-    its prior; beyond it the number is an unobserved direction's rounding
-    (finite on one build, inf on another), and ``discover_law`` refuses the
-    port either way."""
+    stds of the walk and its rate. A smoother that stays at its prior has
+    learnt nothing from the record there, and beyond it the number is an
+    unobserved direction's rounding (finite on one build, inf on another);
+    ``discover_law`` refuses the port either way."""
     i, ir = problem.model.states.index(aug.d), problem.model.states.index(aug.r)
     std = np.sqrt(np.maximum(sm.P[:, i, i], 0))
     T = problem.t - problem.t[0]
@@ -529,7 +532,7 @@ def _walk_std(sm, problem, aug, q: float) -> np.ndarray:
     bound = np.sqrt((np.sqrt(max(P0[i, i], 0.0)) + np.sqrt(max(P0[ir, ir], 0.0)) * T) ** 2
                     + q * q * (T + T ** 3 / 3.0))
     with np.errstate(invalid="ignore"):
-        return np.where(std <= UNOBSERVED_FACTOR * bound, std, np.inf)
+        return np.where(std <= UNOBSERVED_SHARE * bound, std, np.inf)
 
 
 def _assemble(g, model, aug, problem, sm, theta, qinfo) -> Reconstruction:
