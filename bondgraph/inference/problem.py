@@ -34,7 +34,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from bondgraph.errors import OptionError
+from bondgraph.errors import NumericalError, OptionError
 from bondgraph.inference.estimand import noise_parameters, record_noise_level
 from bondgraph.inference.options import NOISE_MODES, Discretisation, UKFOptions, ukf_options
 from bondgraph.inference.prior import PriorSpec
@@ -349,12 +349,21 @@ class Problem:
         Raises
         ------
         NumericalError
-            If the filter or the backward pass fails.
+            If the filter or the backward pass fails, or the backward pass
+            diverged and restarted from the filter (``Smoothed.restarts``:
+            no process noise through contracting dynamics): its x̂_0 would
+            then hold the record's start only, not the whole record.
         """
         th = np.asarray(theta, float)
         R = self.noise.covariance(self.model, th[None, :])
-        return rts_smooth(self.model, self.t, self.u, self.y, th, self.x0, self.P0,
-                          options=self.ukf, R=None if R is None else R[0]).x[0]
+        sm = rts_smooth(self.model, self.t, self.u, self.y, th, self.x0, self.P0,
+                        options=self.ukf, R=None if R is None else R[0])
+        if sm.restarts:
+            raise NumericalError(f"the smoother's backward pass diverged and restarted from the "
+                                 f"filter at {sm.restarts} samples (no process noise through "
+                                 f"contracting dynamics): no initial state given the whole "
+                                 f"record")
+        return sm.x[0]
 
     def discretisation_check(self, theta, *, substeps: int | None = None,
                              free_run: bool = True) -> dict:
