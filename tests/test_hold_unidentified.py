@@ -42,7 +42,7 @@ def drive():
 '''
 
 
-def _record(path, n=1500, dt=0.02, seed=0):
+def _record(path, n=1500, dt=0.02, seed=0, unit="V"):
     t = np.arange(n) * dt
     freqs = np.array([0.05, 0.13, 0.31, 0.7, 1.3])
 
@@ -56,7 +56,7 @@ def _record(path, n=1500, dt=0.02, seed=0):
     y = sol.y[0] + 0.01 * np.random.default_rng(seed).standard_normal(n)
     uu = u(t[:, None])
     with open(path, "w") as fh:
-        fh.write("t [s],u [V],vel [m/s]\n")
+        fh.write(f"t [s],u [{unit}],vel [m/s]\n")
         for row in zip(t.tolist(), uu.tolist(), y.tolist()):
             fh.write("%r,%r,%r\n" % row)
 
@@ -168,6 +168,54 @@ def test_a_known_value_the_declared_fit_moves_onto_its_box_is_held(tmp_path, mon
     assert "T0" not in est and rep["settings"]["fixed"] == {"T0": 300.0}
     for p, v in OVEN_TRUTH.items():
         assert abs(est[p] - v) < 3 * std[p], (p, est[p], std[p])
+    # holding it costs a few nats (the initial covariance's), no disagreement
+    held = next(w for w in rep["warnings"] if "held at 300" in w)
+    assert "(the declared fit's NLL" in held and "disagrees" not in held
+
+
+MASS = '''
+from bondgraph import BondGraph
+
+
+def mass():
+    g = BondGraph("mass", "a mass on a damper, pushed")
+    u = g.input("u", "N", 0.0, "force")
+    m = g.param("m", 0.1, "kg", None, "mass (a wrong datasheet value)")
+    c = g.param("c", 1.0, "N*s/m", (0.01, 100.0), "damping")
+    v = g.one("v")
+    g.connect(g.Se("push", u), v)
+    g.connect(v, g.I("body", m))
+    g.connect(v, g.R("damper", c))
+    g.sensor("vel", v.f, unit="m/s")
+    return g
+'''
+
+
+def test_a_known_value_the_record_contradicts_stays_estimated_and_said_so(tmp_path,
+                                                                          monkeypatch):
+    """A mass declared without a box at 0.1 kg where the record's is 1.5 kg
+    (the drive's record, 3 v̇ = 2u − 1.5 v, read as a force u [N]: m 1.5,
+    c 0.75): the declared fit runs m onto its box's top (1 kg). Held at
+    0.1 kg the declared fit would lose far more than χ²₁(1e-6)/2 nats (its
+    NLL −112 -> 1333, its held-out error 1.63): the record disagrees with the
+    declared value, so m stays estimated (on its box) and the log and the
+    report's warnings say so."""
+    _record(tmp_path / "rec.csv", unit="N")
+    (tmp_path / "mass_user.py").write_text(MASS)
+    monkeypatch.chdir(tmp_path)
+    assert main(["loop", "--model", "mass_user.py:mass", "--data", "rec.csv", "--max-steps", "0",
+                 "--quiet", "--hold", "linear", "--out", "held"]) == 0
+    log = (tmp_path / "held" / "loop.log").read_text()
+    line = next(ln for ln in log.splitlines() if "held at 0.1" in ln)
+    assert "but the declared fit moves it to 1, the end of the box" in line
+    before, after = (float(x) for x in
+                     line.split("the fit's NLL goes ")[1].split(" (")[0].split(" -> "))
+    assert after - before > 11.96
+    assert "the record disagrees with that value" in line and "m stays estimated" in line
+    rep = json.loads((tmp_path / "held" / "report.json").read_text())
+    assert rep["initial_fit"]["estimates"]["m"] == pytest.approx(1.0)
+    assert "m" not in rep["settings"]["fixed"]
+    assert any("m stays estimated" in w for w in rep["warnings"])
 
 
 def test_box_declared_and_the_option_is_checked():

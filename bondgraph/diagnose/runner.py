@@ -491,7 +491,10 @@ def held_unidentified(ctx: Context, graph: BondGraph, fit: Fit,
     cannot tell apart runs there when only the filter's initial covariance
     (in state units) depends on it (a user's thermal graph whose reference
     temperature T0 scales the entropy states: T0 300 -> 30 K, its bound,
-    for 4.5 nats). A scale symmetry (a motor
+    for 4.5 nats); unless holding it costs the declared fit more than
+    :data:`HOLD_DISAGREES` nats: the record then disagrees with the value
+    (or the graph lacks what it made up for), and it stays estimated, said
+    so in the log and the messages. A scale symmetry (a motor
     constant times the mass and friction it drives) leaves the likelihood
     flat along a ridge: a fit then stops anywhere on it, the parameters'
     values mean nothing apart (the EMPS drive declared with its known
@@ -518,15 +521,34 @@ def held_unidentified(ctx: Context, graph: BondGraph, fit: Fit,
         msg = (f"{why}; {name} was declared without a box (a known value): held at "
                f"{value:.6g}; the other estimates and their std assume that value (to "
                f"estimate it, declare its box in the graph and list it in --params)")
+        rest = tuple(n for n in s.hold_unidentified if n != name)
+        held = replace(s, params=[n for n in s.params if n != name],
+                       fixed={**s.fixed, name: value}, hold_unidentified=rest)
+        ctx.settings = held
+        refit = _declared(ctx, graph, list(held.params), start)
+        check_declared_fit(refit)
+        if not flat and refit.nll - fit.nll > HOLD_DISAGREES:
+            at = float(fit.theta[fit.model.param_index(name)])
+            msg = (f"{name} was declared without a box (a known value), but the declared fit "
+                   f"moves it to {at:.6g}, the end of the box the toolkit sets around it, and "
+                   f"held at {value:.6g} the fit's NLL goes {fit.nll:.2f} -> {refit.nll:.2f} "
+                   f"(more than {HOLD_DISAGREES:g}): the record disagrees with that value, or "
+                   f"the graph lacks what it made up for; {name} stays estimated (on its box: "
+                   f"check the value, or declare its box)")
+            s = ctx.settings = replace(s, hold_unidentified=rest)
+        else:
+            if not flat:
+                msg += f" (the declared fit's NLL {fit.nll:.2f} -> {refit.nll:.2f})"
+            s, fit = held, refit
         ctx.log(f"  {msg}")
-        s = replace(s, params=[n for n in s.params if n != name],
-                    fixed={**s.fixed, name: value},
-                    hold_unidentified=tuple(n for n in s.hold_unidentified if n != name))
-        ctx.settings = s
-        fit = _declared(ctx, graph, list(s.params), start)
-        check_declared_fit(fit)
         msgs.append(msg)
     return fit, msgs
+
+
+#: nats the declared fit may lose when a known value it moved onto its box
+#: is held; beyond, the record disagrees with the value and it stays
+#: estimated (χ²₁ at 1e-6, /2: :func:`held_unidentified`)
+HOLD_DISAGREES = 11.96
 
 
 def _declared_converged(ctx: Context, graph: BondGraph, fit: Fit) -> Fit:
