@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from bondgraph.errors import ModelError, NumericalError
 from bondgraph.numerics.integrators import rk4_stable_step
@@ -230,6 +229,8 @@ def _smoothed(t: np.ndarray, v: np.ndarray, pitch: np.ndarray, window: float):
     window length in samples."""
     dt = float(np.median(np.diff(t)))
     n_win = max(5, int(round(window / dt)) | 1)
+    from scipy.signal import savgol_filter   # deferred: not needed at import
+
     vs = savgol_filter(v, n_win, 3)
     dv = savgol_filter(v, n_win, 3, deriv=1, delta=dt)
     ps = savgol_filter(pitch, n_win, 3)

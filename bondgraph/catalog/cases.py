@@ -19,7 +19,6 @@ import functools
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.signal import resample
 
 from bondgraph.catalog.benchmarks import (
     CAMRY_HOT_FIT,
@@ -293,6 +292,8 @@ def _silverbox_signals(upsample: int) -> tuple[np.ndarray, np.ndarray, float]:
     u = full["V1"] - float(np.mean(tr["V1"]))
     y = full["V2"] - float(np.mean(tr["V2"]))
     ts = float(full.t[1] - full.t[0])
+    from scipy.signal import resample   # deferred: not needed at import
+
     return (u if upsample == 1 else resample(u, upsample * u.size)), y, ts
 
 

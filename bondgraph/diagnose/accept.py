@@ -67,8 +67,8 @@ from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
-from scipy.stats import chi2, norm
 
+from bondgraph.core.deferred import chi2, norm
 from bondgraph.diagnose.effects import BY_NAME, Effect
 from bondgraph.diagnose.fit import Fit, noise_params
 from bondgraph.diagnose.inference_calls import andrews_bandwidth, long_run_variance  # noqa: F401

@@ -12,8 +12,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import sympy as sp
-from scipy.stats import chi2
 
+from bondgraph.core.deferred import chi2
 from bondgraph.diagnose.effects import Effect, Scales, get_effect
 from bondgraph.diagnose.fit import (
     Context,

@@ -17,8 +17,8 @@ from types import SimpleNamespace
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-from scipy.stats import chi2
 
+from bondgraph.core.deferred import chi2
 from bondgraph.core.domains import continued_share, dpow
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.inference_calls import (

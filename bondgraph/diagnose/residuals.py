@@ -21,8 +21,8 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.signal import welch
-from scipy.stats import chi2
+
+from bondgraph.core.deferred import chi2
 
 
 @dataclass
@@ -157,6 +157,8 @@ def _peak(z: np.ndarray, fs: float) -> tuple[float, float]:
     z = z[np.isfinite(z)]
     if z.size < 32:
         return float("nan"), float("nan")
+    from scipy.signal import welch      # deferred: scipy.signal costs the command line's start
+
     f, p = welch(z - z.mean(), fs=fs, nperseg=min(256, z.size // 2))
     if p.size < 3:
         return float("nan"), float("nan")

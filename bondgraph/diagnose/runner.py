@@ -10,9 +10,9 @@ from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
-from scipy.stats import chi2
 from typing import Callable, Sequence
 
+from bondgraph.core.deferred import chi2
 from bondgraph.core.causality import assign_causality
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.progress import phase

@@ -38,8 +38,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
+from bondgraph.core.deferred import chi2
 from bondgraph.core import progress
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
 from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, problem_for

@@ -39,8 +39,8 @@ optimization. Proc. ICNN'95, 1942-1948.
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
 
+from bondgraph.core.deferred import chi2
 from bondgraph.diagnose.effects import get_effect
 from bondgraph.diagnose.fit import Context, Fit, noise_params
 from bondgraph.diagnose.metric import nrmse

@@ -70,8 +70,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from scipy import stats
 
+from bondgraph.core.deferred import stats
 from bondgraph.errors import OptionError
 
 #: a parameter update smaller than this fraction of its prior variance

@@ -37,7 +37,6 @@ Econometric Reviews 11(2), 143-172.
 from __future__ import annotations
 
 import numpy as np
-from statsmodels.stats.sandwich_covariance import S_hac_simple, weights_bartlett
 
 #: ratio of the robust to the Cramér-Rao std above which a result warns that
 #: its Cramér-Rao std understates the estimate's uncertainty (the model's
@@ -147,6 +146,9 @@ def score_covariance(G: np.ndarray, bandwidth: int | None = None) -> np.ndarray:
     """
     G = np.asarray(G, float)
     L = andrews_bandwidth(G) if bandwidth is None else int(bandwidth)
+    # deferred: statsmodels (and pandas under it) cost the command line's start ~0.7 s
+    from statsmodels.stats.sandwich_covariance import S_hac_simple, weights_bartlett
+
     return S_hac_simple(G, nlags=L, weights_func=weights_bartlett)
 
 

@@ -66,8 +66,8 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
-from scipy import stats
 
+from bondgraph.core.deferred import stats
 from bondgraph.core.augment import augment, tracked_parameters
 from bondgraph.errors import ModelError, NumericalError, OptionError
 from bondgraph.inference.changes import (

@@ -31,10 +31,10 @@ import hashlib
 import pickle
 import sys
 import types
+from importlib import metadata   # pint's version without importing pint (~0.4 s)
 from pathlib import Path
 
 import numpy as np
-import pint
 import sympy as sp
 
 from bondgraph.core import atomic
@@ -49,7 +49,7 @@ def code_version() -> str:
     """Digest of what derives and generates: the sources of
     :mod:`bondgraph.core` (read once per process), the versions of sympy,
     pint (units of derived states) and Python, and :data:`FORMAT`."""
-    versions = f"{FORMAT}|{sp.__version__}|{pint.__version__}|{sys.version_info[:3]}"
+    versions = f"{FORMAT}|{sp.__version__}|{metadata.version('pint')}|{sys.version_info[:3]}"
     h = hashlib.sha256(versions.encode())
     core = Path(atomic.__file__).parent
     for path in sorted(core.glob("*.py")):

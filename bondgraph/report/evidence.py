@@ -24,8 +24,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from matplotlib.patches import Patch
-from matplotlib.ticker import FuncFormatter
 
 from bondgraph.report.plots import pyplot
 
@@ -119,6 +117,8 @@ def _gap_axis(ax, gaps, xlabel: str) -> None:
     finite = [g for g in gaps if g is not None and np.isfinite(g)]
     right = max(finite + [LINEAR]) * 4
     ax.set_xlim(-0.3, right)
+    from matplotlib.ticker import FuncFormatter
+
     ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}" if v >= 0 else ""))
     ax.set_xlabel(xlabel, fontsize=8)
     ax.tick_params(axis="x", labelsize=8)
@@ -183,6 +183,8 @@ def _confirmations(ax, top, rows, acc) -> None:
 
 def _legend(top, refitted) -> list:
     """Legend handles of what the plot shows."""
+    from matplotlib.patches import Patch
+
     h = [Patch(color=ACCEPTED, label="accepted"), Patch(color=PLAIN, label="not accepted")]
     if refitted:
         h += [Patch(color=REJECTED, label="refit rejected"),

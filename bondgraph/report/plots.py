@@ -12,17 +12,18 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from bondgraph.data.binding import STATE_PREFIX
 from bondgraph.data.records import Experiment
 from bondgraph.errors import DataError
 from bondgraph.numerics.model import Model
 from bondgraph.numerics.simulate import SimResult
+
+if TYPE_CHECKING:   # matplotlib is imported where a plot is drawn (~0.8 s of the start)
+    from matplotlib.figure import Figure
 
 
 def pyplot():
@@ -155,6 +156,9 @@ def _group_figure(exp, sim, chunk: list[str], role: str, measured: bool, suptitl
     the simulated record's column of the same name is drawn over it."""
     n = len(chunk)
     stride = max(1, int(np.ceil(len(exp) / max_points)))
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(9.0, 1.9 * n + 0.9), dpi=dpi, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]

@@ -29,8 +29,6 @@ from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-from SALib.analyze import sobol as sobol_analyze
-from SALib.sample import sobol as sobol_sample
 
 from bondgraph.core.progress import bar as progress_bar
 from bondgraph.errors import SensitivityError
@@ -180,6 +178,8 @@ def sobol_indices(fun: Callable[[np.ndarray], np.ndarray], names: Sequence[str],
         raise SensitivityError("Sobol' indices need at least two parameters")
     Np = _pow2(o.N)
     problem = dict(num_vars=k, names=names, bounds=[[float(a), float(b)] for a, b in zip(lo, hi)])
+    from SALib.sample import sobol as sobol_sample   # deferred: SALib pulls in pandas, scipy.stats
+
     X = sobol_sample.sample(problem, Np, calc_second_order=o.second_order, seed=o.seed)
     t_wall = time.perf_counter()
     Y = _evaluate_chunks(fun, X, o.chunk, o.progress, desc, executor)
@@ -247,6 +247,8 @@ def _analyse_output(problem, yc, second_order, conf_level, num_resamples, seed) 
     their confidence half-widths, and the column's variance."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        from SALib.analyze import sobol as sobol_analyze
+
         Si = sobol_analyze.analyze(problem, yc, calc_second_order=second_order,
                                    conf_level=conf_level, num_resamples=num_resamples,
                                    seed=seed)

@@ -63,7 +63,6 @@ import warnings
 
 import numpy as np
 import sympy as sp
-from scipy.signal import lfilter
 from sklearn.linear_model import orthogonal_mp
 from pysindy.optimizers import STLSQ
 from sklearn.model_selection import GroupKFold
@@ -391,6 +390,8 @@ def lowpass(x, t, tau: float, initial: float | None = None) -> np.ndarray:
     a = np.exp(-h / tau)
     c = tau * -np.expm1(-h / tau) / h
     if np.allclose(h, h[0], rtol=1e-9, atol=0.0):
+        from scipy.signal import lfilter
+
         b = [1.0 - c[0], c[0] - a[0]]
         w, _ = lfilter(b, [1.0, -a[0]], x, zi=[w0 - b[0] * x[0]])
         return w
