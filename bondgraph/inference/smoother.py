@@ -12,6 +12,20 @@ covariance C_k between x_k and x_k+1::
     x̂_k|N = x̂_k|k + G_k (x̂_k+1|N − m⁻_k+1)
     P_k|N = P_k|k + G_k (P_k+1|N − P⁻_k+1) G_kᵀ
 
+The covariance is computed in the equal Joseph form of the unscented
+statistical linearisation (Φ_k = C_kᵀ P_k|k⁻¹, exact on the sigma points:
+Φ_k L_k is the central difference of the propagated points, L_k the
+Cholesky factor of P_k|k)::
+
+    P_k|N = M_k M_kᵀ + G_k (Q̃_k + P_k+1|N) G_kᵀ,   M_k = L_k − G_k Φ_k L_k
+
+where Q̃_k = P⁻_k+1 − Φ_k P_k|k Φ_kᵀ (the process noise and what the
+transition adds beyond its linearisation, the points' second differences)
+is computed without that subtraction. A sum of positive semi-definite
+terms: no cancellation of P_k|k against G P⁻ Gᵀ, which without process
+noise left a variance of round-off (samples with a smoothed std 60 times
+below the exact one, tests/test_smoother.py).
+
 x̂_0|N, P_0|N is the best estimate of the initial state the model and the
 whole record give (a start for estimating x0 jointly with θ).
 
@@ -263,13 +277,13 @@ def _backward(model, t, u, th, xf, Pf, opts: UKFOptions):
     xs, Ps = np.array(xf, float, order="C"), np.array(Pf, float, order="C")
     if N < 2:
         return xs, Ps, 0
-    m, Pm, G = _predictions(model, t, u, th, xf, Pf, opts)
+    m, G, M, Qe = _predictions(model, t, u, th, xf, Pf, opts)
     c = np.ascontiguousarray
     with np.errstate(all="ignore"):
         diag = np.diagonal(Pf, axis1=1, axis2=2)
         floor = RESTART_FLOOR * np.max(np.where(np.isfinite(diag), np.abs(diag), 0.0), axis=0)
-    restarts = _recursion(c(xf, float), c(Pf, float), c(m, float), c(Pm, float), c(G, float),
-                          xs, Ps, c(floor, float))
+    restarts = _recursion(c(xf, float), c(Pf, float), c(m, float), c(G, float), c(M, float),
+                          c(Qe, float), xs, Ps, c(floor, float))
     return xs, Ps, int(restarts)
 
 
@@ -282,24 +296,25 @@ RESTART_FLOOR = 1e-12
 
 
 @njit(cache=True, nogil=True)
-def _recursion(xf, Pf, m, Pm, G, xs, Ps, floor):  # pragma: no cover - compiled
+def _recursion(xf, Pf, m, G, M, Qe, xs, Ps, floor):  # pragma: no cover - compiled
     """The RTS recursion in place, k = N − 2 … 0 (``xs``, ``Ps`` hold the
     filtered values (N, n), (N, n, n) on entry and the last sample's stay)::
 
         x̂_k|N = x̂_k|k + G_k (x̂_k+1|N − m⁻_k)
-        P_k|N = sym(P_k|k + (G_k (P_k+1|N − P⁻_k)) G_kᵀ)
+        P_k|N = sym(M_k M_kᵀ + G_k (Q̃_k + P_k+1|N) G_kᵀ)
 
-    with ``m`` (N−1, n), ``Pm`` and ``G`` (N−1, n, n). Compiled because
-    the loop is sequential: numpy's per-sample products took 0.48 s over
-    18 600 samples of 3 states, this loop 0.0024 s. Sums run in index
-    order; the result agrees with numpy's matrix products to round-off.
+    with ``m`` (N−1, n), ``G``, ``M`` and ``Qe`` (Q̃) (N−1, n, n) (the
+    Joseph form, module docstring). Compiled because the loop is
+    sequential: numpy's per-sample products took 0.48 s over 18 600
+    samples of 3 states, this loop 0.0024 s. Sums run in index order; the
+    result agrees with numpy's matrix products to round-off.
 
-    A sample whose smoothed mean or covariance is not finite, or whose
+    A sample whose smoothed mean or covariance is not finite, whose
     smoothed variance of a state exceeds :data:`RESTART_GROWTH` times the
     filtered one plus ``floor`` (n,), or falls below −``floor`` (the
     smoother can only lower a variance, and never below 0), keeps its
-    filtered posterior, and the recursion goes on
-    from there: without process noise the gain of a contracting mode is
+    filtered posterior, and the recursion goes
+    on from there: without process noise the gain of a contracting mode is
     Φ⁻¹ (its factor above one per sample), which amplifies round-off until
     it overflows (a thermal node of time constant 25 s sampled every 2 s:
     1e183 after 1 100 samples of 2 880, every earlier sample inf). Returns
@@ -307,6 +322,7 @@ def _recursion(xf, Pf, m, Pm, G, xs, Ps, floor):  # pragma: no cover - compiled
     N, n = xf.shape
     d = np.empty(n)
     A = np.empty((n, n))
+    B = np.empty((n, n))
     restarts = 0
     for k in range(N - 2, -1, -1):
         for i in range(n):
@@ -318,18 +334,23 @@ def _recursion(xf, Pf, m, Pm, G, xs, Ps, floor):  # pragma: no cover - compiled
             xs[k, i] = xf[k, i] + acc
         for i in range(n):
             for j in range(n):
+                B[i, j] = Qe[k, i, j] + Ps[k + 1, i, j]
+        for i in range(n):
+            for j in range(n):
                 acc = 0.0
                 for l in range(n):
-                    acc += G[k, i, l] * (Ps[k + 1, l, j] - Pm[k, l, j])
+                    acc += G[k, i, l] * B[l, j]
                 A[i, j] = acc
         for i in range(n):
             for j in range(i + 1):
                 a = 0.0
                 b = 0.0
+                mm = 0.0
                 for l in range(n):
                     a += A[i, l] * G[k, j, l]
                     b += A[j, l] * G[k, i, l]
-                v = 0.5 * ((Pf[k, i, j] + a) + (Pf[k, j, i] + b))
+                    mm += M[k, i, l] * M[k, j, l]
+                v = mm + 0.5 * (a + b)
                 Ps[k, i, j] = v
                 Ps[k, j, i] = v
         bad = False
@@ -350,11 +371,16 @@ def _recursion(xf, Pf, m, Pm, G, xs, Ps, floor):  # pragma: no cover - compiled
 
 
 def _predictions(model, t, u, th, xf, Pf, opts: UKFOptions):
-    """``(m⁻ (N-1, n), P⁻ (N-1, n, n), G (N-1, n, n))``: for every interval
-    k the sigma points of (x̂_k|k, P_k|k) through the filter's own step and
-    input hold, their mean and covariance (+ the process noise) and the
-    smoother gain (:func:`_gain`), in batches of :data:`CHUNK` intervals of
-    equal length.
+    """``(m⁻ (N-1, n), G, M, Q̃ (N-1, n, n))``: for every interval k the
+    sigma points of (x̂_k|k, P_k|k) through the filter's own step and input
+    hold, their mean, the smoother gain (:func:`_gain`, from their
+    covariance + the process noise) and the Joseph form's factors (module
+    docstring): with D±_j the propagated points ±j less the central one,
+    Φ_k L_k has the columns (D+_j − D−_j)/(2c) (c = √(n+λ)), M = L − G Φ L,
+    and Q̃ = diag(q²)·dt + (w/2) Σ_j S_j S_jᵀ + (β − α²) μ μᵀ with
+    S_j = D+_j + D−_j and μ = w Σ_i D_i (the unscented covariance less
+    (ΦL)(ΦL)ᵀ, term by term); in batches of :data:`CHUNK` intervals of equal
+    length.
 
     Raises
     ------
@@ -369,7 +395,8 @@ def _predictions(model, t, u, th, xf, Pf, opts: UKFOptions):
     held = hold_inputs(u, opts.hold)
     with np.errstate(all="ignore"):
         q2 = np.asarray(model.proc_std(th[None, :]), float)[0] ** 2
-    m, Pm, G = np.empty((N - 1, n)), np.empty((N - 1, n, n)), np.empty((N - 1, n, n))
+    m, G = np.empty((N - 1, n)), np.empty((N - 1, n, n))
+    M, Qe = np.empty((N - 1, n, n)), np.empty((N - 1, n, n))
     dts = np.diff(t)
     for a in range(0, N - 1, CHUNK):
         ks = np.arange(a, min(a + CHUNK, N - 1))
@@ -385,10 +412,16 @@ def _predictions(model, t, u, th, xf, Pf, opts: UKFOptions):
                 X = step(chi[sel], held.start[k_sel][:, None, :], th[None, None, :], dt, du)
             mm, P, D = unscented_moments(X, wts)
             m[k_sel] = mm
-            Pm[k_sel] = P + np.diag(q2 * dt)
-            C = wts.w * (np.swapaxes(cL[sel], -1, -2) @ (D[:, :n] - D[:, n:]))
-            G[k_sel] = _gains(Pm[k_sel], C, k_sel)
-    return m, Pm, G
+            Q = np.diag(q2 * dt)
+            Dd = D[:, :n] - D[:, n:]                     # rows D+_j − D−_j
+            C = wts.w * (np.swapaxes(cL[sel], -1, -2) @ Dd)
+            G[k_sel] = _gains(P + Q, C, k_sel)
+            Sj = D[:, :n] + D[:, n:]
+            mu = wts.w * D.sum(axis=1)
+            Qe[k_sel] = (Q + 0.5 * wts.w * (np.swapaxes(Sj, 1, 2) @ Sj)
+                         + wts.center_cov * (mu[:, :, None] * mu[:, None, :]))
+            M[k_sel] = L[sel] - G[k_sel] @ ((wts.w * wts.c) * np.swapaxes(Dd, 1, 2))
+    return m, G, M, Qe
 
 
 def _gains(Pm: np.ndarray, C: np.ndarray, ks: np.ndarray) -> np.ndarray:
