@@ -93,6 +93,22 @@ def test_each_layer_imports_alone(layer):
     assert not bad, f"importing the {layer} layer loads {bad}"
 
 
+#: libraries a command needs only for some of its work, imported where they
+#: are used (bondgraph.core.deferred): together about 2 of the 4.8 s that
+#: ``import bondgraph.cli.loop`` took with them (2.7 s without, measured)
+DEFERRED = ("matplotlib", "statsmodels", "pandas", "scipy.stats", "scipy.signal", "SALib",
+            "pint", "sklearn", "pysindy")
+
+
+def test_the_commands_start_without_the_deferred_libraries():
+    """A fresh interpreter that imports every command's module (what
+    ``bondgraph loop``, ``estimate``, ``sensitivity``, ``track`` ... load
+    before their work starts) has imported none of :data:`DEFERRED`."""
+    loaded = _loaded_by(_layer_modules("cli"))
+    bad = sorted(m for m in loaded if m in DEFERRED or m.split(".")[0] in DEFERRED)
+    assert not bad, f"the command line imports {bad[:8]} at its start"
+
+
 def test_layer_list_matches_the_contract():
     """LAYERS above is the layers contract of pyproject.toml (so the import
     test checks the real rule)."""

@@ -12,8 +12,8 @@ from dataclasses import replace
 import numpy as np
 from typing import Callable, Sequence
 
-from bondgraph.core.deferred import chi2
 from bondgraph.core.causality import assign_causality
+from bondgraph.core.deferred import chi2
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.progress import phase
 from bondgraph.diagnose.accept import (

@@ -39,8 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bondgraph.core.deferred import chi2
 from bondgraph.core import progress
+from bondgraph.core.deferred import chi2
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
 from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, problem_for
 from bondgraph.diagnose.inference_calls import (

@@ -67,8 +67,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from bondgraph.core.deferred import stats
 from bondgraph.core.augment import augment, tracked_parameters
+from bondgraph.core.deferred import stats
 from bondgraph.errors import ModelError, NumericalError, OptionError
 from bondgraph.inference.changes import (
     first_alarm,
