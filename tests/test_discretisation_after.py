@@ -50,3 +50,8 @@ def test_accepted_stiff_effect_is_checked_and_refined():
     # approximation across the stop)
     assert biased > 10.0, (q, sd)
     assert abs(q2 - QMAX) / sd2 < biased / 4, (q2, sd2, biased)
+    # the step reports the refit the loop goes on with, not the coarser fit
+    # it replaced (a user's CED graph: 0.39 reported, 0.4516 the refit's)
+    st = res2.steps[0]
+    assert st.error_after == res2.final.metric, (st.error_after, res2.final.metric)
+    assert st.criterion_after == res2.final.aic and st.nll_after == res2.final.nll

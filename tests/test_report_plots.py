@@ -156,6 +156,41 @@ def test_failed_augmented_simulation_is_stated_on_the_fit_plot(loop_result, tmp_
     assert not any("failed" in t for t in _texts(figures[0]))
 
 
+def test_the_fit_plot_shows_the_held_out_record_beside_the_fitted_one(loop_result, tmp_path,
+                                                                     figures):
+    """With a validation record the fit plot has a second column: the
+    held-out record's measured outputs and both models' free runs there
+    (the arrays drawn are the summaries' own), each column titled with the
+    two models' errors on its record."""
+    res = copy.copy(loop_result)
+    top = res.rankings[0][0]
+    res.steps = [SimpleNamespace(effect=top.effect, attached_to=top.target.name)]
+    ny = res.measured.shape[1]
+    tv = res.time[-1] + 0.01 * np.arange(1, 41)
+    yv = np.linspace(0.0, 1.0, 40)[:, None] * np.ones(ny)
+    res.validation_time, res.validation_measured = tv, yv
+    res.initial, res.final = copy.copy(res.initial), copy.copy(res.final)
+    res.initial.validation_sim_y, res.initial.validation_metric = 2.0 * yv, 0.8123
+    res.final.validation_sim_y, res.final.validation_metric = 1.5 * yv, 0.2345
+    figures.clear()
+    loop_report._plot_fit(res, tmp_path)
+    (fig,) = figures
+    assert len(fig.axes) == 2 * ny
+    held = fig.axes[1]                         # row 0, column 1
+    lines = {ln.get_label(): ln for ln in held.get_lines()}
+    np.testing.assert_array_equal(lines["measured"].get_xdata(), tv)
+    np.testing.assert_array_equal(lines["declared model (fitted)"].get_ydata(), 2.0 * yv[:, 0])
+    np.testing.assert_array_equal(lines["augmented model"].get_ydata(), 1.5 * yv[:, 0])
+    assert held.get_title() == ("validation record (held out, not fitted)\n"
+                                "error 0.8123 -> 0.2345")
+    assert fig.axes[0].get_title() == ("estimation record (fitted)\nerror "
+                                       f"{res.initial.metric:.4g} -> {res.final.metric:.4g}")
+    # without a validation record: one column, as before
+    figures.clear()
+    loop_report._plot_fit(loop_result, tmp_path)
+    assert len(figures[0].axes) == ny
+
+
 def test_innovation_axes_carry_units(record, tmp_path, figures):
     model = Model.load("mass_spring_damper")
     pb = make_problem(model, record, prior=PriorSpec(scale="magnitude"), noise=NoiseSpec("model"),

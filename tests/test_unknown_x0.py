@@ -365,7 +365,8 @@ def test_a_filter_that_fails_on_the_validation_record_runs_at_finer_steps(monkey
                     "it runs at 8 substeps"]
     tried.clear(), logs.clear(), ok.clear()
     got = F.validation_run(ctx, vp, np.zeros(1))
-    assert tried == [2, 8, 32] and got == (float("inf"), None, "the filter fails (P not PD at 2)")
+    assert tried == [2, 8, 32] and got == (float("inf"), None, "the filter fails (P not PD at 2)",
+                                             None)
     assert logs == []
 
 

@@ -178,3 +178,65 @@ def test_a_second_users_graph_finds_the_rectification(tmp_path):
     assert step["effect"] == "sensor_rectification" and step["lr"] > 900
     assert step["error_before"] > 1.3 and step["error_after"] < 0.6
     assert step["estimation_error_before"] > 1.0 and step["estimation_error_after"] < 0.35
+
+
+GRAPH_KNOWN_INERTIA = '''
+from bondgraph import BondGraph
+
+
+def ced_norm():
+    g = BondGraph("ced_norm", "motor inertia, belt, pulley; the motor inertia normalises")
+    u = g.input("u", "V", 0.0, "sum of the motor voltages")
+    km = g.param("km", 10.0, "N*m/V", (0.1, 1000.0), "motor torque constant")
+    Jm = g.param("Jm", 1.0, "kg*m^2", None, "motor inertia (normalises)")
+    bm = g.param("bm", 5.0, "N*m*s", (0.01, 100.0), "motor damping")
+    kb = g.param("kb", 200.0, "N*m", (1.0, 1e4), "belt stiffness")
+    Jp = g.param("Jp", 1.0, "kg*m^2", (0.01, 100.0), "pulley inertia")
+    bp = g.param("bp", 0.5, "N*m*s", (0.001, 100.0), "pulley damping")
+    m = g.one("motor")
+    g.connect(g.Se("drive", km * u), m)
+    g.connect(m, g.I("Jmot", Jm))
+    g.connect(m, g.R("Rmot", bm))
+    belt = g.zero("belt")
+    g.connect(m, belt)
+    g.connect(belt, g.C("Cbelt", stiffness=kb))
+    p = g.one("pulley")
+    g.connect(belt, p)
+    J = g.I("Jpul", Jp)
+    g.connect(p, J)
+    g.connect(p, g.R("Rpul", bp))
+    g.sensor("z", J.f, unit="", description="pulley speed (pulse counter)")
+    return g
+'''
+
+
+def test_a_known_value_is_held_where_only_the_restarted_fit_shows_the_ridge(tmp_path):
+    """The drive's impedances and torque constant scale together (the
+    pulley speed stays), so the user declares the motor inertia without a
+    box: a known value that fixes the scale. The first declared fit on
+    the rectified record stops with bm on its box and no ridge in sight;
+    the output-error and global restarts then find the ridge along kb and
+    Jm, and Jm ran to the bottom of the box set around it (0.1) and stayed
+    there for the whole loop. The restarted fit is checked again: Jm is
+    held at 1, and the restarts run again without it."""
+    import csv
+
+    with open(DATA / "ced" / "DATAPRBS.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    lines = ["t [s],u [V],z"] + [f"{k * 0.02:.2f},{r['u1']},{r['z1']}" for k, r in enumerate(rows)]
+    (tmp_path / "u1.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "ced_norm.py").write_text(GRAPH_KNOWN_INERTIA)
+    out = tmp_path / "out"
+    code = main(["loop", "--model", f"{tmp_path / 'ced_norm.py'}:ced_norm",
+                 "--data", str(tmp_path / "u1.csv"), "--max-steps", "0",
+                 "--out", str(out), "--quiet"])
+    assert code == 0
+    log = (out / "loop.log").read_text()
+    held = log.index("Jm was declared without a box (a known value): held at 1")
+    # the hold came after the first restarts, and the restarts ran again without Jm
+    assert log.index("global output-error fit") < held
+    assert "searched globally by output error" in log[held:]
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["settings"]["fixed"] == {"Jm": 1.0}
+    assert "Jm" not in rep["initial_fit"]["estimates"]
+    assert any("held at 1" in w for w in rep["warnings"])

@@ -176,6 +176,8 @@ class Fit:
     validation_metric: float | None = None
     sim_errors: np.ndarray | None = None
     validation_errors: np.ndarray | None = None
+    #: the free run on the validation record (N_v, n_y), None without one or where it failed
+    validation_sim_y: np.ndarray | None = None
     noise_est: dict = field(default_factory=dict)
     unstable: str | None = None
     warnings: list = field(default_factory=list)
@@ -214,7 +216,8 @@ class Fit:
                           self.residuals, self.sim_y, self.ukf.innovations[:, 0, :],
                           np.diagonal(S, axis1=1, axis2=2).copy(), list(self.at_bound),
                           self.validation_metric, dict(self.x0_est), dict(self.noise_est),
-                          list(self.flat), dict(self.std_robust), self.ridge)
+                          list(self.flat), dict(self.std_robust), self.ridge,
+                          self.validation_sim_y)
 
     @property
     def accept_metric(self) -> float:
@@ -820,31 +823,32 @@ def evaluate_fit(ctx: Context, problem: Problem, graph: BondGraph, params: list[
     fit.sim_errors = metric_errors(ctx.settings, fit, record)
     trouble = free_run_trouble(sim_y, problem.arrays[2], model.outputs)
     if ctx.settings.validation is not None:
-        fit.validation_metric, fit.validation_errors, v_trouble = validation_run(ctx, problem,
-                                                                                 theta)
+        (fit.validation_metric, fit.validation_errors, v_trouble,
+         fit.validation_sim_y) = validation_run(ctx, problem, theta)
         trouble = trouble or (v_trouble and f"{v_trouble} on the validation record")
     fit.unstable = trouble
     return fit
 
 
-def validation_run(ctx: Context, problem: Problem,
-                   theta: np.ndarray) -> tuple[float, np.ndarray | None, str | None]:
+def validation_run(ctx: Context, problem: Problem, theta: np.ndarray
+                   ) -> tuple[float, np.ndarray | None, str | None, np.ndarray | None]:
     """The loop's metric on the validation record (``settings.validation``:
     the model runs freely with the record's inputs from its initial state,
-    :func:`free_run`), the standardised free-run errors (N, n_y) and why the
-    free run is not plausible there (:func:`free_run_trouble`); inf, None and
-    the reason if the filter or the free run fails there."""
+    :func:`free_run`), the standardised free-run errors (N, n_y), why the
+    free run is not plausible there (:func:`free_run_trouble`) and the free
+    run's outputs (N, n_y; None where it failed, the report draws them); inf,
+    None, the reason and None if the filter fails there."""
     vp = validation_problem(ctx, problem)
     res = run_ukf(vp, theta[None, :], store=True)
     if not np.isfinite(res.nll[0]):
         vp, res = _finer_filter(ctx, vp, theta, res)
     if not np.isfinite(res.nll[0]):
-        return float("inf"), None, f"the filter fails ({res.reasons[0]})"
+        return float("inf"), None, f"the filter fails ({res.reasons[0]})", None
     sim_y = free_run(ctx, vp, theta, own=False)
     view = SimpleNamespace(model=vp.model, theta=theta, ukf=res, sim_y=sim_y)
     rec = MetricRecord(vp.record)
     return (compute_metric(ctx.settings, view, rec), metric_errors(ctx.settings, view, rec),
-            free_run_trouble(sim_y, vp.arrays[2], vp.model.outputs))
+            free_run_trouble(sim_y, vp.arrays[2], vp.model.outputs), sim_y)
 
 
 #: substeps (times the problem's) at which a filter that fails on the

@@ -304,6 +304,9 @@ class FitSummary:
         Robust (sandwich) standard deviations by name, where the fit gave
         them (:func:`bondgraph.inference.robust.robust_std`): larger than
         ``std`` when the model's misfit is serially correlated.
+    validation_sim_y : array (N_v, n_y) or None
+        Free-run simulated outputs on the validation record (None without
+        one, or where the free run failed there).
     """
 
     model: str
@@ -325,6 +328,7 @@ class FitSummary:
     flat: list = field(default_factory=list)
     std_robust: dict = field(default_factory=dict)
     ridge: str = ""
+    validation_sim_y: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
@@ -412,6 +416,10 @@ class LoopResult:
         Sample times [s].
     measured : array (N, n_y)
         Measured outputs of the final model (NaN where missing).
+    validation_time : array (N_v,) or None
+        Sample times of the validation record [s] (None without one).
+    validation_measured : array (N_v, n_y) or None
+        Its measured outputs of the final model (NaN where missing).
     outputs, output_units : list of str
     finished : bool
         False for the partial results handed to ``on_update`` during the run.
@@ -445,6 +453,8 @@ class LoopResult:
     applied: list[AppliedEffect] = field(default_factory=list)
     time: np.ndarray | None = None
     measured: np.ndarray | None = None
+    validation_time: np.ndarray | None = None
+    validation_measured: np.ndarray | None = None
     outputs: list[str] = field(default_factory=list)
     output_units: list[str] = field(default_factory=list)
     finished: bool = False

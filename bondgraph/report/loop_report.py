@@ -279,6 +279,13 @@ def _plots(result: LoopResult, out: Path, cache: dict | None = None) -> list[str
     init, final, aug = result.initial, result.final, _augmented(result)
     shown = [result.time, result.measured, result.outputs, result.output_units, aug]
     fits = [init.sim_y is None, init.sim_y] + ([final.sim_y is None, final.sim_y] if aug else [])
+    if result.validation_time is not None:
+        shown += [result.validation_time, result.validation_measured]
+        fits += [init.validation_sim_y is None, init.validation_sim_y,
+                 init.validation_metric, init.metric]
+        if aug:
+            fits += [final.validation_sim_y is None, final.validation_sim_y,
+                     final.validation_metric, final.metric]
     inns = [init.innovations, init.innovation_var] + (
         [final.innovations, final.innovation_var] if aug else [])
     pngs = [_cached_png(cache, _digest("fit", *shown, *fits), out / "fit_before_after.png",
@@ -384,36 +391,62 @@ def _save(fig, path: Path) -> str:
 
 
 def _plot_fit(result: LoopResult, out: Path) -> str:
-    """Measured outputs vs the free-run simulations before and after; a
-    simulation that failed is said on the plot (not silently left out)."""
+    """Measured outputs vs the free-run simulations before and after, on
+    the estimation record and, where the loop had one, beside it on the
+    validation (held-out) record, each panel titled with the two models'
+    errors there; a simulation that failed is said on the plot (not
+    silently left out)."""
     plt = pyplot()
     init, final = result.initial, result.final
-    t, y = result.time, result.measured
-    ny = y.shape[1]
-    fig, axes = plt.subplots(ny, 1, figsize=(10, 2.4 * ny + 0.6), sharex=True, squeeze=False)
-    failed = [lab for fit, lab, shown in ((init, "declared model", True),
-                                          (final, "augmented model", _augmented(result)))
-              if shown and fit.sim_y is None]
-    for i in range(ny):
-        ax = axes[i, 0]
-        ax.plot(t, y[:, i], ".", ms=2, color="0.55", label="measured")
-        if init.sim_y is not None:
-            ax.plot(t, init.sim_y[:, i], lw=1.2, color="tab:red", label="declared model (fitted)")
-        if _augmented(result) and final.sim_y is not None:
-            ax.plot(t, final.sim_y[:, i], lw=1.2, color="tab:blue", label="augmented model")
-        if failed:
-            ax.text(0.5, 0.5, f"free-run simulation of the {' and the '.join(failed)} failed: "
-                    f"not drawn", transform=ax.transAxes, ha="center", va="center",
-                    fontsize=9, color="tab:red", bbox=dict(fc="white", ec="tab:red", alpha=0.9))
-        unit = result.output_units[i]
-        ax.set_ylabel(f"{result.outputs[i]}\n[{unit or '-'}]", fontsize=8)
-        ax.grid(alpha=0.3)
+    aug = _augmented(result)
+    panels = [(result.time, result.measured, init.sim_y, final.sim_y, init.metric,
+               final.metric, "estimation record (fitted)")]
+    if result.validation_time is not None and result.validation_measured is not None:
+        panels.append((result.validation_time, result.validation_measured,
+                       init.validation_sim_y, final.validation_sim_y, init.validation_metric,
+                       final.validation_metric, "validation record (held out, not fitted)"))
+    ny = result.measured.shape[1]
+    widths = [max(float(p[0][-1] - p[0][0]), 1e-9) if len(p[0]) > 1 else 1.0 for p in panels]
+    widths = [max(w, 0.3 * max(widths)) for w in widths]
+    fig, axes = plt.subplots(ny, len(panels), figsize=(10 + 2 * (len(panels) - 1),
+                                                       2.4 * ny + 0.8),
+                             sharey="row", squeeze=False, gridspec_kw={"width_ratios": widths})
+    failed_any = []
+    for j, (t, y, before, after, e0, e1, what) in enumerate(panels):
+        failed = [lab for sim, lab, shown in ((before, "declared model", True),
+                                              (after, "augmented model", aug))
+                  if shown and sim is None]
+        failed_any += [f for f in failed if f not in failed_any]
+        for i in range(ny):
+            ax = axes[i, j]
+            ax.plot(t, y[:, i], ".", ms=2, color="0.55", label="measured")
+            if before is not None:
+                ax.plot(t, before[:, i], lw=1.2, color="tab:red",
+                        label="declared model (fitted)")
+            if aug and after is not None:
+                ax.plot(t, after[:, i], lw=1.2, color="tab:blue", label="augmented model")
+            if failed:
+                ax.text(0.5, 0.5, f"free-run simulation of the {' and the '.join(failed)} "
+                        f"failed: not drawn", transform=ax.transAxes, ha="center",
+                        va="center", fontsize=9, color="tab:red",
+                        bbox=dict(fc="white", ec="tab:red", alpha=0.9))
+            if j == 0:
+                unit = result.output_units[i]
+                ax.set_ylabel(f"{result.outputs[i]}\n[{unit or '-'}]", fontsize=8)
+            ax.grid(alpha=0.3)
+        errors = f"error {_num(e0)}" + (f" -> {_num(e1)}" if aug else "")
+        axes[0, j].set_title(f"{what}\n{errors}", fontsize=9)
+        axes[-1, j].set_xlabel("t [s]")
     axes[0, 0].legend(fontsize=8, loc="best")
-    axes[-1, 0].set_xlabel("t [s]")
     fig.suptitle("Measured vs free-run simulation, before and after the loop"
-                 + (f" ({' and '.join(failed)}: simulation failed)" if failed else ""),
+                 + (f" ({' and '.join(failed_any)}: simulation failed)" if failed_any else ""),
                  fontsize=10)
     return _save(fig, out / "fit_before_after.png")
+
+
+def _num(v) -> str:
+    """A figure for a panel title: 4 significant digits, "n/a" for None."""
+    return "n/a" if v is None else f"{v:.4g}"
 
 
 def _plot_innovations(result: LoopResult, out: Path) -> str:
