@@ -522,7 +522,7 @@ def test_the_loop_fits_the_declared_model_under_both_holds_of_an_ambiguous_input
     the declared L within 3 std of the truth."""
     out = tmp_path / "rep"
     assert main(["loop", "--model", f"{Path(__file__)}:lag_graph", "--data", str(lag_record),
-                 "--params", "L", "--max-steps", "1", "--out", str(out)]) == 0
+                 "--params", "L", "--max-steps", "1", "--out", str(out), "--no-plots"]) == 0
     text = capsys.readouterr().out
     assert "fitted under the linear hold too" in text
     assert "input hold by likelihood: linear NLL" in text and "linear kept" in text

@@ -463,7 +463,8 @@ def test_the_loop_warns_where_a_one_sided_law_meets_a_flow_that_reverses(tmp_pat
     (tmp_path / "tr.json").write_text(json.dumps({"format": "bondgraph-experiment/1",
                                                   "x0": {"q_tank1": 4.0, "q_tank2": 0.5}}))
     assert main(["loop", "--model", "tanks_r.py:build", "--data", "tr.csv", "--params", "k,k2",
-                 "--out", "rep", "--max-steps", "0", "--holdout", "0", "--quiet"]) == 0
+                 "--out", "rep", "--max-steps", "0", "--holdout", "0", "--quiet",
+                 "--no-plots"]) == 0
     warn = [w for w in json.loads((tmp_path / "rep" / "report.json").read_text())["warnings"]
             if "below 0" in w]
     assert any(w.startswith("initial fit: the filtered states put -1.0*q_tank1 + 1.0*q_tank2 "

@@ -27,7 +27,8 @@ N_SAMPLES = 120
 
 EST = ["estimate", "--model", "mass_spring_damper", "--params", "m,k,c", "--quiet",
        "--method", "rk4", "--particles", "4", "--iterations", "1", "--no-polish", "--no-plots"]
-LOOP = ["loop", "--model", "mass_spring_damper", "--params", "m,k,c", "--quiet"]
+LOOP = ["loop", "--model", "mass_spring_damper", "--params", "m,k,c", "--quiet",
+        "--no-plots"]
 SENS = ["sensitivity", "--model", "mass_spring_damper", "--quiet", "--no-plots"]
 
 MODULES = {

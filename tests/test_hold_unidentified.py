@@ -67,10 +67,14 @@ def test_a_parameter_without_a_box_is_held_where_the_record_cannot_tell_it(tmp_p
     (tmp_path / "drive_user.py").write_text(GRAPH)
     monkeypatch.chdir(tmp_path)
     argv = ["loop", "--model", "drive_user.py:drive", "--data", "rec.csv", "--max-steps", "0",
-            "--quiet", "--hold", "linear"]
+            "--quiet", "--hold", "linear", "--no-plots"]
     assert main(argv + ["--out", "held"]) == 0
     log = (tmp_path / "held" / "loop.log").read_text()
     assert "k_u was declared without a box (a known value): held at 2" in log
+    # --no-plots: the report's text and tables, no PNG and no reference to one
+    assert not list((tmp_path / "held").glob("*.png"))
+    assert ".png" not in (tmp_path / "held" / "report.md").read_text()
+    assert ".png" not in (tmp_path / "held" / "report.html").read_text()
     rep = json.loads((tmp_path / "held" / "report.json").read_text())
     est, std = rep["initial_fit"]["estimates"], rep["initial_fit"]["std"]
     assert "k_u" not in est and rep["settings"]["fixed"] == {"k_u": 2.0}
@@ -159,7 +163,7 @@ def test_a_known_value_the_declared_fit_moves_onto_its_box_is_held(tmp_path, mon
     (tmp_path / "oven_user.py").write_text(OVEN)
     monkeypatch.chdir(tmp_path)
     assert main(["loop", "--model", "oven_user.py:oven", "--data", "oven.csv", "--max-steps",
-                 "0", "--quiet", "--hold", "zoh", "--out", "held"]) == 0
+                 "0", "--quiet", "--hold", "zoh", "--out", "held", "--no-plots"]) == 0
     log = (tmp_path / "held" / "loop.log").read_text()
     assert "the declared fit moves T0 to 30, onto the box [30, 3000]" in log
     assert "T0 was declared without a box (a known value): held at 300" in log
@@ -204,7 +208,7 @@ def test_a_known_value_the_record_contradicts_stays_estimated_and_said_so(tmp_pa
     (tmp_path / "mass_user.py").write_text(MASS)
     monkeypatch.chdir(tmp_path)
     assert main(["loop", "--model", "mass_user.py:mass", "--data", "rec.csv", "--max-steps", "0",
-                 "--quiet", "--hold", "linear", "--out", "held"]) == 0
+                 "--quiet", "--hold", "linear", "--out", "held", "--no-plots"]) == 0
     log = (tmp_path / "held" / "loop.log").read_text()
     line = next(ln for ln in log.splitlines() if "held at 0.1" in ln)
     assert "but the declared fit moves it to 1, the end of the box" in line

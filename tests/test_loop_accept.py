@@ -190,7 +190,8 @@ def test_loop_cli_numerics_validation_and_module_spec(tmp_path, monkeypatch):
     rc = main(["loop", "--model", "mymod:build", "--data", "est.csv", "--validate", "val.csv",
                "--params", "c,k", "--fixed", "m=2.0", "--x0", "p_mass=0.0",
                "--method", "rk4", "--substeps", "2", "--hold", "linear",
-               "--max-steps", "1", "--no-structural", "--out", "rep", "--quiet"])
+               "--max-steps", "1", "--no-structural", "--out", "rep", "--quiet",
+               "--no-plots"])
     assert rc == 0
     rep = json.loads((tmp_path / "rep" / "report.json").read_text())
     assert rep["settings"]["ukf"]["method"] == "rk4"
@@ -205,7 +206,7 @@ def test_loop_cli_numerics_validation_and_module_spec(tmp_path, monkeypatch):
     _msd_record(n=2000, dt=0.05).save(tmp_path / "long.csv")
     assert main(["loop", "--model", "mymod:build", "--data", "long.csv", "--params", "c",
                  "--fixed", "m=-2", "--max-steps", "1", "--no-structural", "--out", "rep2",
-                 "--quiet"]) == 2
+                 "--quiet", "--no-plots"]) == 2
 
 
 def test_true_effect_and_rank_of_truth():

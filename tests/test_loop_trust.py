@@ -268,7 +268,7 @@ def _user_tanks_loop(tmp_path, monkeypatch, name: str, text: str, n: int) -> lis
     (tmp_path / name).write_text(text)
     monkeypatch.chdir(tmp_path)
     return ["loop", "--model", f"{name}:tanks", "--data", "est.csv",
-            "--max-steps", "1", "--no-structural", "--quiet"]
+            "--max-steps", "1", "--no-structural", "--quiet", "--no-plots"]
 
 
 def test_a_declared_fit_on_its_box_stops_the_loop_with_code_2(tmp_path, monkeypatch, capsys):

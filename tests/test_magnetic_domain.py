@@ -101,7 +101,7 @@ def test_the_loop_finds_the_saturating_core_in_the_magnetic_domain(record, capsy
     d, floor = record
     out = d / "loop"
     rc = main(["loop", "--model", f"{Path(__file__)}:choke", "--data", str(d / "rec.csv"),
-               "--out", str(out), "--overwrite"])
+               "--out", str(out), "--overwrite", "--no-plots"])
     err = capsys.readouterr().err
     assert rc == 0, err[-2000:]
     rep = json.loads((out / "report.json").read_text())

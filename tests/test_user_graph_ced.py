@@ -80,7 +80,7 @@ def test_the_rectifying_sensor_is_accepted_on_a_flat_ridge(tmp_path):
     out = tmp_path / "out"
     code = main(["loop", "--model", f"{tmp_path / 'ced_user.py'}:ced_user",
                  "--data", str(tmp_path / "u1.csv"), "--max-steps", "1", "--no-structural",
-                 "--out", str(out), "--quiet"])
+                 "--out", str(out), "--quiet", "--no-plots"])
     assert code == 0
     rep = json.loads((out / "report.json").read_text())
     (s,) = rep["steps"]
@@ -165,7 +165,7 @@ def test_a_second_users_graph_finds_the_rectification(tmp_path):
     out = tmp_path / "out"
     code = main(["loop", "--model", f"{tmp_path / 'ced_belt.py'}:ced_belt",
                  "--data", str(tmp_path / "u1.csv"), "--max-steps", "1",
-                 "--out", str(out), "--quiet"])
+                 "--out", str(out), "--quiet", "--no-plots"])
     assert code == 0
     rep = json.loads((out / "report.json").read_text())
     first = rep["rankings"][0][0]
@@ -229,7 +229,7 @@ def test_a_known_value_is_held_where_only_the_restarted_fit_shows_the_ridge(tmp_
     out = tmp_path / "out"
     code = main(["loop", "--model", f"{tmp_path / 'ced_norm.py'}:ced_norm",
                  "--data", str(tmp_path / "u1.csv"), "--max-steps", "0",
-                 "--out", str(out), "--quiet"])
+                 "--out", str(out), "--quiet", "--no-plots"])
     assert code == 0
     log = (out / "loop.log").read_text()
     held = log.index("Jm was declared without a box (a known value): held at 1")

@@ -136,6 +136,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="local Dask worker processes that score the structural candidates and "
                         "run the confirmation refits, one candidate each (1: in process; the "
                         "result does not depend on it)")
+    p.add_argument("--no-plots", action="store_true",
+                   help="write report.md, report.html and report.json without the PNG plots "
+                        "(each version of the report is then written in a fraction of a "
+                        "second; for batch runs)")
     add_scheduler(p)
     add_quiet(p)
 
@@ -241,7 +245,7 @@ def run(args) -> int:
         print(f"bondgraph loop: ./{DEFAULT_OUT} holds an earlier report (kept); this one goes "
               f"to ./{out} (--out DIR to choose)")
     reporter = LoopReporter(out, echo=None if args.quiet else print,
-                            overwrite=args.overwrite)
+                            overwrite=args.overwrite, plots=not args.no_plots)
     res = run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
                    on_update=reporter.update)
     if args.discover:
@@ -331,7 +335,8 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'"
          + (f" and {len(best.alternatives)} alternative(s)" if best.alternatives else ""))
     settings = with_discovered(settings, *best.effects())
-    reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True)
+    reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True,
+                            plots=not args.no_plots)
 
     def update(result):
         result.discovery = discovery_plot(best.accepted_in(result), result)

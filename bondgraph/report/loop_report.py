@@ -56,6 +56,9 @@ class LoopReporter:
         Also print each log line with it (e.g. ``print``).
     overwrite : bool
         Replace a non-empty ``out_dir`` (otherwise refused).
+    plots : bool
+        Draw the PNG plots (default); False writes the report's text, tables
+        and generated code only (``bondgraph loop --no-plots``).
 
     Raises
     ------
@@ -64,8 +67,9 @@ class LoopReporter:
         raised here, before the loop runs.
     """
 
-    def __init__(self, out_dir, echo=None, *, overwrite: bool = False):
+    def __init__(self, out_dir, echo=None, *, overwrite: bool = False, plots: bool = True):
         self.folder = OutputFolder(out_dir, overwrite=overwrite)
+        self.plots = plots
         self.out = Path(out_dir)
         self.echo = echo
         self.log_path = self.folder.work_dir() / "loop.log"
@@ -85,15 +89,16 @@ class LoopReporter:
         one, later log lines are appended to the published ``loop.log``."""
         def version(folder: Path) -> None:
             shutil.copyfile(self.log_path, folder / "loop.log")
-            write(result, folder, final=self.out, cache=self.cache)
+            write(result, folder, final=self.out, cache=self.cache, plots=self.plots)
         self.folder.publish(version)
         if result.finished:
             self.log_path = self.out / "loop.log"
             self.folder.remove_work_dir()
 
 
-def write(result: LoopResult, out, *, final=None, cache: dict | None = None) -> None:
-    """Write ``report.md``, the PNGs, (once an effect is accepted) the
+def write(result: LoopResult, out, *, final=None, cache: dict | None = None,
+          plots: bool = True) -> None:
+    """Write ``report.md``, the PNGs (unless not ``plots``), (once an effect is accepted) the
     augmented model with its generated code, and ``report.json`` last, into
     ``out``; ``final`` is where the folder will be published (named in the
     generated code; default ``out``). ``cache`` (a dict kept between the
@@ -113,7 +118,7 @@ def write(result: LoopResult, out, *, final=None, cache: dict | None = None) -> 
         if not_reapplied(result) and result.final_graph is not None:
             (out / AUGMENTED_PICKLE).write_bytes(pickle.dumps(result.final_graph))
         _write_generated(result, out, Path(final) if final is not None else out, cache)
-    pngs = _plots(result, out, cache) + _graph_plots(result, out, cache)
+    pngs = _plots(result, out, cache) + _graph_plots(result, out, cache) if plots else []
     (out / "report.md").write_text(markdown(result, pngs))
     (out / "report.html").write_text(page(result, out, pngs))
     (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
