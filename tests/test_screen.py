@@ -89,6 +89,16 @@ def test_the_screen_finds_the_rectifying_sensor_behind_a_failed_declared_fit():
     assert res.final.validation_metric < 0.25 * res.initial.validation_metric
     est = res.final.estimates
     assert est["m"] == pytest.approx(M, rel=0.05) and est["k"] == pytest.approx(K, rel=0.05)
+    # the report names the screen's test, not the score test it replaced,
+    # and leaves out the score test's share for it
+    from bondgraph.report.loop_report import _md_ranking
+
+    (rect,) = [c for c in res.rankings[0] if c.effect == "sensor_rectification"]
+    assert rect.screened and rect.kind == "score"
+    row = next(r for r in _md_ranking(1, res.rankings[0]) if r.startswith("| sensor_rect"))
+    assert row.startswith(f"| {rect.label} | output-error LR (screen) | {rect.statistic:.1f} |")
+    assert row.split("|")[6].strip() == "-"
+    assert not any(c.screened for c in res.rankings[0] if c is not rect)
 
 
 @pytest.mark.long

@@ -245,7 +245,7 @@ def run(args) -> int:
         print(f"bondgraph loop: ./{DEFAULT_OUT} holds an earlier report (kept); this one goes "
               f"to ./{out} (--out DIR to choose)")
     reporter = LoopReporter(out, echo=None if args.quiet else print,
-                            overwrite=args.overwrite, plots=not args.no_plots)
+                            overwrite=args.overwrite, plots=not getattr(args, "no_plots", False))
     res = run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
                    on_update=reporter.update)
     if args.discover:
@@ -336,7 +336,7 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
          + (f" and {len(best.alternatives)} alternative(s)" if best.alternatives else ""))
     settings = with_discovered(settings, *best.effects())
     reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True,
-                            plots=not args.no_plots)
+                            plots=not getattr(args, "no_plots", False))
 
     def update(result):
         result.discovery = discovery_plot(best.accepted_in(result), result)

@@ -106,6 +106,12 @@ class Candidate:
         of two R elements on one 1-junction); its confirmation is that
         one's refit evaluated on its own graph, and it takes no place of
         its own among the pairs (a pair with it is the pair with that one).
+    screened : bool
+        Its statistic is the output-error likelihood ratio of the screen
+        (the physical parameters refitted with it by a global output-error
+        search, :func:`bondgraph.diagnose.screen.output_error_screen`), which
+        raised it above its score test's; ``explained`` stays the score
+        test's share.
     """
 
     effect: str
@@ -132,6 +138,13 @@ class Candidate:
     held: dict = field(default_factory=dict)
     reach: float | None = None
     same_as: str | None = None
+    screened: bool = False
+
+    @property
+    def test(self) -> str:
+        """The test behind ``statistic``, as the report names it: ``kind``,
+        or "output-error LR (screen)" for a :attr:`screened` candidate."""
+        return "output-error LR (screen)" if self.screened else self.kind
 
     @property
     def rank_key(self) -> float:

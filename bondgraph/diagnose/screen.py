@@ -102,6 +102,7 @@ def output_error_screen(ctx: Context, probe, fit: Fit, cands: list[Candidate]) -
         if lr <= cand.statistic:
             continue
         cand.statistic, cand.p_value = lr, float(chi2.sf(lr, cand.dof))
+        cand.screened = True
         cand.score = lr - 2 * cand.dof
         cand.values.update(best[0])
         cand.profile = {k: float(v) for k, v in best[1].estimates().items()}

@@ -291,9 +291,10 @@ def _ranking_rows(ranking, accepted) -> tuple[list, list]:
             verdict = f"failed: {c.failed}"
         tie = (f"p {conf['tie_p']:.2g} vs the lead" if "tie_p" in conf else
                ", ".join(c.tied))
-        rows.append([c.label, c.kind, _num(c.statistic, ".1f"), str(c.dof),
+        rows.append([c.label, c.test, _num(c.statistic, ".1f"), str(c.dof),
                      _num(c.p_value, ".2g"), _num(c.score, ".1f"), _num(c.score - best, ".4g"),
-                     _num(None if c.explained is None else 100 * c.explained, ".1f"),
+                     _num(None if c.explained is None or c.screened else 100 * c.explained,
+                          ".1f"),
                      _num(confirmed_value(c), ".1f"), tie, ", ".join(c.equivalent), verdict])
         classes.append("accepted" if (c.effect, c.target.name) == accepted else
                        "rejected" if conf.get("accepted") is False else "")

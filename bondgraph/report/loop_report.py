@@ -605,12 +605,13 @@ def _md_ranking(k: int, ranking) -> list[str]:
          "| candidate | test | χ² | k | p-value | explained | indistinguishable from |",
          "|---|---|---|---|---|---|---|"]
     for c in ranking[:10]:
-        ex = f"{100 * c.explained:.1f} %" if c.explained is not None else "-"
+        # a screened candidate's statistic is not the score test whose share this is
+        ex = f"{100 * c.explained:.1f} %" if c.explained is not None and not c.screened else "-"
         eq = ", ".join(c.equivalent) if c.equivalent else ""
         if c.failed:
-            L.append(f"| {c.label} | {c.kind} | failed | {c.dof} | - | - | {c.failed} |")
+            L.append(f"| {c.label} | {c.test} | failed | {c.dof} | - | - | {c.failed} |")
             continue
-        L.append(f"| {c.label} | {c.kind} | {c.statistic:.1f} | {c.dof} | {c.p_value:.2g} "
+        L.append(f"| {c.label} | {c.test} | {c.statistic:.1f} | {c.dof} | {c.p_value:.2g} "
                  f"| {ex} | {eq} |")
     L.append("")
     return L
