@@ -235,12 +235,17 @@ def conditioned(ctx: Context, fit: Fit):
 
 def held_out(experiment, s: LoopSettings):
     """``(record, settings)`` with the last ``s.holdout`` of the record as the
-    validation record when none is given (the rest is fitted)."""
+    validation record when none is given (the rest is fitted). The
+    validation part's ``meta["follows"]`` names the fitted part: it
+    continues that record, so its free run may start from the state the
+    fitted part's filter ends in (:func:`bondgraph.diagnose.fit.validation_run`)."""
     if s.validation is not None or not s.holdout:
         return experiment, s
     n = len(experiment.t)
     cut = int(round(n * (1.0 - s.holdout)))
-    return experiment.segment(0, cut), replace(s, validation=experiment.segment(cut))
+    est, val = experiment.segment(0, cut), experiment.segment(cut)
+    val.meta["follows"] = est.name
+    return est, replace(s, validation=val)
 
 
 def chosen_numerics(graph: BondGraph, record, settings: LoopSettings, *,
