@@ -357,6 +357,39 @@ def test_augmented_model_rebuilds_in_memory_graph_with_user_effect(tmp_path, mon
     assert len(derive(g).states) == 2
 
 
+def test_augmented_model_carries_the_values_the_loop_held(tmp_path):
+    """``--fixed m=2.5`` and a default taken ``--from`` a fit (c = 0.7 in
+    the graph the loop ran on) are not in the declared source: the written
+    ``augmented_model.py`` applies them (``HELD``) beside the estimates, so
+    its graph has the values the loop fitted with (the source's m = 1 and
+    c = 1 came back before)."""
+    import importlib.util
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.effects import Target
+    from bondgraph.report.loop_report import augmented_source
+    from tests.test_holdout_continues import msd
+
+    ran = msd()
+    ran.params["c"].default = 0.7                  # as --from sets it
+    result = SimpleNamespace(
+        model="msd_user", source="tests.test_holdout_continues:msd", declared_graph=ran,
+        applied=[SimpleNamespace(effect="sensor_offset", target=Target("sensor", "x"),
+                                 values={"b": 0.01}, spec=None)],
+        final=SimpleNamespace(estimates={"k": 41.5, "sensor_offset.x.b": 0.01}),
+        settings={"fixed": {"m": 2.5}})
+    (tmp_path / "aug.py").write_text(augmented_source(result))
+    spec = importlib.util.spec_from_file_location("aug_held", tmp_path / "aug.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.HELD == {"m": 2.5, "c": 0.7}
+    g = mod.build()
+    values = {n: p.default for n, p in g.params.items()}
+    assert values["m"] == 2.5 and values["c"] == 0.7 and values["k"] == 41.5
+    assert values["sensor_offset.x.b"] == 0.01
+    assert msd().params["m"].default == 1.0          # the source itself is unchanged
+
+
 def test_score_groups_reports_failed_columns():
     """A candidate whose nudged filter runs all failed is reported failed
     with the reason; the others get their LM statistic (hand computed: one

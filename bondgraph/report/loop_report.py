@@ -185,7 +185,8 @@ def augmented_source(result: LoopResult) -> str:
     rebuilds the user's graph (:func:`declared_import`) and applies the
     accepted effects in order with their values (a user-supplied effect by
     its recorded ``module:Class``), then the final estimates
-    (``ESTIMATES``) as defaults; when an effect cannot be re-applied from
+    (``ESTIMATES``) and the values the loop held the other parameters at
+    (``HELD``, :func:`held_values`) as defaults; when an effect cannot be re-applied from
     its class (:func:`not_reapplied`), ``build()`` loads the final graph
     from its pickle instead."""
     lines = [f'"""Augmented declared model written by `bondgraph loop`.',
@@ -215,15 +216,39 @@ def augmented_source(result: LoopResult) -> str:
         eff = repr(a.effect) if a.spec is None else f"resolve({a.spec!r})()"
         lines.append(f"    apply_effect(g, {eff}, Target({a.target.kind!r}, "
                      f"{a.target.name!r}), {vals!r})")
-    lines += ["    for name, value in ESTIMATES.items():",
+    held = held_values(result)
+    lines += ["    for name, value in {**HELD, **ESTIMATES}.items():",
               "        g.params[name].default = value",
               "    return g", "",
               "",
               "#: parameter estimates of the final fit (applied as defaults by build())",
               "ESTIMATES = {"]
     lines += [f"    {k!r}: {float(v)!r}," for k, v in result.final.estimates.items()]
+    lines += ["}", "",
+              "#: the values the loop held the declared graph's other parameters at (--fixed,",
+              "#: a known value held, --from a fit, or the declared default); applied as",
+              "#: defaults by build(), so that the model is the one the loop fitted",
+              "HELD = {"]
+    lines += [f"    {k!r}: {v!r}," for k, v in held.items()]
     lines += ["}", ""]
     return "\n".join(lines)
+
+
+def held_values(result: LoopResult) -> dict[str, float]:
+    """The values of the declared graph's parameters the loop did not
+    estimate, as it held them: ``settings["fixed"]`` (``--fixed``, a known
+    value held where the record cannot tell it,
+    :func:`bondgraph.diagnose.runner.held_unidentified`), else the default
+    of the declared graph the loop ran on (``--from`` sets those). The
+    augmented model's ``build()`` rebuilds the declared graph from its
+    source, whose defaults need not be these: a drive run with ``--fixed
+    m=2.5`` gave an ``augmented_model.py`` with the source's mass."""
+    fixed = dict((getattr(result, "settings", None) or {}).get("fixed") or {})
+    graph = getattr(result, "declared_graph", None)
+    est = set(result.final.estimates)
+    if graph is None:
+        return {n: float(v) for n, v in fixed.items() if n not in est}
+    return {n: float(fixed.get(n, p.default)) for n, p in graph.params.items() if n not in est}
 
 
 def _augmented_name(result: LoopResult) -> str:
