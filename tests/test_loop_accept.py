@@ -2,6 +2,7 @@
 (issue 11), against hand-derived numbers."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -357,27 +358,6 @@ def test_augmented_model_rebuilds_in_memory_graph_with_user_effect(tmp_path, mon
     assert len(derive(g).states) == 2
 
 
-MSD_SOURCE = '''
-from bondgraph import BondGraph
-
-
-def msd():
-    g = BondGraph("msd_user", "a mass on a spring and a damper, pushed")
-    f = g.input("F", "N", 0.0, "force")
-    m = g.param("m", 1.0, "kg", (0.1, 10.0), "mass")
-    k = g.param("k", 30.0, "N/m", (1.0, 500.0), "stiffness")
-    c = g.param("c", 1.0, "N*s/m", (0.01, 10.0), "damping")
-    v = g.one("v")
-    g.connect(g.Se("push", f), v)
-    g.connect(v, g.I("mass", m))
-    spring = g.C("spring", stiffness=k)
-    g.connect(v, spring)
-    g.connect(v, g.R("damper", c))
-    g.sensor("x", spring.q, unit="m", noise_std=0.01, description="position")
-    return g
-'''
-
-
 def test_augmented_model_carries_the_values_the_loop_held(tmp_path):
     """``--fixed m=2.5`` and a default taken ``--from`` a fit (c = 0.7 in
     the graph the loop ran on) are not in the declared source: the written
@@ -391,8 +371,9 @@ def test_augmented_model_carries_the_values_the_loop_held(tmp_path):
     from bondgraph.diagnose.effects import Target
     from bondgraph.report.loop_report import augmented_source
 
-    (tmp_path / "msd_src.py").write_text(MSD_SOURCE)
-    source = f"{tmp_path / 'msd_src.py'}:msd"
+    # the user's graph of tests/test_holdout_continues.py, by its file (a
+    # plain pytest does not import the tests folder as a package)
+    source = f"{Path(__file__).with_name('test_holdout_continues.py')}:msd"
     msd = resolve(source)
     ran = msd()
     ran.params["c"].default = 0.7                  # as --from sets it

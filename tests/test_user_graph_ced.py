@@ -97,6 +97,17 @@ def test_the_rectifying_sensor_is_accepted_on_a_flat_ridge(tmp_path):
     assert "does not identify" in (out / "report.md").read_text()
 
 
+def _user_csv(path: Path) -> None:
+    """The user's CSV: the run u1 of the data set's CSV, its text as it is
+    (six digits), a time column at Ts = 20 ms."""
+    import csv
+
+    with open(DATA / "ced" / "DATAPRBS.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    lines = ["t [s],u [V],z"] + [f"{k * 0.02:.2f},{r['u1']},{r['z1']}" for k, r in enumerate(rows)]
+    path.write_text("\n".join(lines) + "\n")
+
+
 GRAPH_NO_SPRING = '''
 from bondgraph import BondGraph
 
@@ -153,14 +164,7 @@ def test_a_second_users_graph_finds_the_rectification(tmp_path):
     converge, and the rectification is accepted: held-out NRMSE 1.38 ->
     0.545. Reference: eq. (9) of the report with |.| gives RMS 0.166 over
     u1 (NRMSE 0.11)."""
-    # the user's CSV: the run u1 of the data set's CSV, its text as it is
-    # (six digits), a time column at Ts = 20 ms
-    import csv
-
-    with open(DATA / "ced" / "DATAPRBS.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    lines = ["t [s],u [V],z"] + [f"{k * 0.02:.2f},{r['u1']},{r['z1']}" for k, r in enumerate(rows)]
-    (tmp_path / "u1.csv").write_text("\n".join(lines) + "\n")
+    _user_csv(tmp_path / "u1.csv")
     (tmp_path / "ced_belt.py").write_text(GRAPH_NO_SPRING)
     out = tmp_path / "out"
     code = main(["loop", "--model", f"{tmp_path / 'ced_belt.py'}:ced_belt",
@@ -219,12 +223,7 @@ def test_a_known_value_is_held_where_only_the_restarted_fit_shows_the_ridge(tmp_
     Jm, and Jm ran to the bottom of the box set around it (0.1) and stayed
     there for the whole loop. The restarted fit is checked again: Jm is
     held at 1, and the restarts run again without it."""
-    import csv
-
-    with open(DATA / "ced" / "DATAPRBS.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    lines = ["t [s],u [V],z"] + [f"{k * 0.02:.2f},{r['u1']},{r['z1']}" for k, r in enumerate(rows)]
-    (tmp_path / "u1.csv").write_text("\n".join(lines) + "\n")
+    _user_csv(tmp_path / "u1.csv")
     (tmp_path / "ced_norm.py").write_text(GRAPH_KNOWN_INERTIA)
     out = tmp_path / "out"
     code = main(["loop", "--model", f"{tmp_path / 'ced_norm.py'}:ced_norm",
