@@ -285,3 +285,28 @@ def test_a_model_the_compiler_refuses_falls_back_to_numba(tmp_path, monkeypatch)
     assert r.returncode == 0, r.stderr
     assert r.stdout.splitlines()[0] == "numba"
     assert "refused" in r.stdout and "numba compiles them" in r.stdout
+
+
+def test_the_translation_index_names_the_library_the_translation_does(tmp_path, monkeypatch):
+    """A numba source's library found through the on-disk index (no
+    translation) is the one its C translation names; another source gets
+    another entry; an index that does not name a library is not trusted."""
+    monkeypatch.setenv(compiled.CACHE_ENV, str(tmp_path / "cache"))
+    monkeypatch.setattr(compiled, "_C_LIBRARIES", {})
+    model = Model.load(MODELS[0])
+    src = compiled.kernel_source_path(model)
+    a, b = tmp_path / "a.py", tmp_path / "b.py"
+    a.write_text(src.read_text())
+    b.write_text(src.read_text() + "\n# another source\n")
+    truth = compiled_c.library_path(compiled._c_text(a), tmp_path / "cache", "a")
+    assert compiled._c_library(a) == truth
+    (entry,) = (tmp_path / "cache" / "c" / "index").iterdir()
+    assert entry.read_text() == truth.name
+    calls = []
+    monkeypatch.setattr(compiled, "_c_text", lambda p: calls.append(p) or "x")
+    monkeypatch.setattr(compiled, "_C_LIBRARIES", {})
+    assert compiled._c_library(a) == truth and calls == []       # from the index
+    assert compiled._c_library(b) != truth and calls == [b]      # its own entry
+    entry.write_text("../elsewhere")
+    monkeypatch.setattr(compiled, "_C_LIBRARIES", {})
+    assert compiled._c_library(a) == compiled_c.library_path("x", tmp_path / "cache", "a")
