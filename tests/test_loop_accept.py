@@ -1018,3 +1018,36 @@ def test_the_report_gives_the_scaled_likelihood_ratios_where_innovations_are_cor
     html = "".join(_summary(res))
     assert "LR / scale (correlated innovations)" in html and "801.9 (÷ 40.1)" in html
     assert "104.9 (scale 0.63)" in html      # a scale below 1 never strengthens the evidence
+
+
+def test_a_process_noise_intensity_on_its_floor_is_not_a_box_to_widen():
+    """fit_model: a random walk on the momentum whose box starts above what
+    the record asks for (0.24 N/√s fitted in a box from 1e-6) ends on the
+    floor of its box; the log says so instead
+    of advising to widen the box (the default coast-down loop's q_grade at
+    1e-5; a physical parameter on its box still gets that advice:
+    test_a_set_of_boxed_estimates_is_warned_about_once_per_loop).
+    The detector: a process-noise intensity moves proc_std, not meas_std;
+    a sensor's noise std does the other."""
+    from bondgraph.diagnose.fit import fit_model, model_of, process_noise_at_floor
+
+    g = mass_spring_damper()
+    q = g.param("q_p", 1.0, "N/s^0.5", (0.5, 10.0), "random walk of the momentum")
+    g.set_process_noise("p_mass", q)
+    s = g.param("s_x", 0.002, "m", (1e-4, 0.1), "position sensor noise")
+    g.sensors["x"].noise_std = s
+    logs = []
+    m = model_of(g)
+    th = m.theta0.copy()
+    th[m.param_index("q_p")], th[m.param_index("s_x")] = 0.5, 1e-4
+    assert process_noise_at_floor(m, ["q_p", "s_x", "c"], th) == ["q_p"]
+    th[m.param_index("q_p")] = 10.0         # the top of its box: not a floor
+    assert process_noise_at_floor(m, ["q_p"], th) == []
+    ctx = Context.on(_msd_record(), LoopSettings(params=["k", "c", "q_p"]), m, logs.append, False)
+    f = fit_model(ctx, g, ["k", "c", "q_p"], None, "fit")
+    assert f.at_bound == ["q_p"]
+    assert f.theta[m.param_index("q_p")] == pytest.approx(0.5)
+    boxed = [s for s in logs if "box" in s]
+    assert boxed == [
+        "  fit: process-noise intensity on the floor of its box: q_p = 0.5 (the record asks "
+        "for no random walk there; no Cramér-Rao std; said once per parameter)"]

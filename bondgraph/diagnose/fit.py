@@ -424,6 +424,36 @@ def on_bound(model: Model, names: Sequence[str], theta: np.ndarray,
     return out
 
 
+def process_noise_at_floor(model: Model, names: Sequence[str], theta: np.ndarray) -> list[str]:
+    """Those of ``names`` that are process-noise intensities (noise
+    intensities, :func:`noise_params`, that move ``proc_std`` and not
+    ``meas_std``) on the lower bound of their box in ``theta``
+    (:func:`on_bound`): a random walk the record does not ask for, not a
+    box too narrow (a coast-down's grade noise q_grade at 1e-5 once the
+    drag explains the deceleration). A sensor noise on its floor is not
+    among them: a model that fits below the sensor's noise is suspect."""
+    noise, out = noise_params(model), []
+    th = np.asarray(theta, float)
+    for n in names:
+        if n not in noise or not on_bound(model, [n], th):
+            continue
+        (a,), (b,) = model.bounds([n])
+        j = model.param_index(n)
+        v = float(th[j])
+        if not (np.isfinite(a) and (not np.isfinite(b) or v - a <= b - v)):
+            continue
+        t1 = th.copy()
+        t1[j] = v * 1.1 if v != 0 else 0.1
+        with np.errstate(all="ignore"):
+            moves_q = not np.allclose(np.asarray(model.proc_std(t1), float),
+                                      np.asarray(model.proc_std(th), float), atol=0.0)
+            moves_r = not np.allclose(np.asarray(model.meas_std(t1), float),
+                                      np.asarray(model.meas_std(th), float), atol=0.0)
+        if moves_q and not moves_r:
+            out.append(n)
+    return out
+
+
 def noise_params(model: Model) -> set:
     """Names of the noise-intensity parameters of ``model`` (scale
     parameters of the filter: fitted in log scale, profiled by decades when
@@ -638,10 +668,18 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
         # user's CED graph: "b_m = 0.0001" in 25 lines)
         new = [n for n in fit.at_bound if f"boxed:{n}" not in ctx.said]
         ctx.said.update(f"boxed:{n}" for n in new)
-        if new:
-            values = ", ".join(f"{n} = {fit.theta[model.param_index(n)]:.4g}" for n in new)
+        floor = process_noise_at_floor(model, new, fit.theta)
+        rest = [n for n in new if n not in floor]
+        if rest:
+            values = ", ".join(f"{n} = {fit.theta[model.param_index(n)]:.4g}" for n in rest)
             ctx.log(f"  warning: {what}: estimate(s) on a bound of their box: {values} (no "
                     f"Cramér-Rao std; widen the box or fix the parameter; said once per "
+                    f"parameter)")
+        if floor:
+            values = ", ".join(f"{n} = {fit.theta[model.param_index(n)]:.4g}" for n in floor)
+            ctx.log(f"  {what}: process-noise intensit{'y' if len(floor) == 1 else 'ies'} on "
+                    f"the floor of {'its' if len(floor) == 1 else 'their'} box: {values} (the "
+                    f"record asks for no random walk there; no Cramér-Rao std; said once per "
                     f"parameter)")
         for n in fit.at_bound:
             fit.std[n] = None
