@@ -99,3 +99,43 @@ def test_the_whole_effect_was_refused_first_and_said_why(loop):
                "tell asymmetric_friction.w.dc apart from off)" in s for s in logs)
     full = rej.candidate.confirmed
     assert full is not None and full["dof"] == 2
+
+
+def test_a_ridge_that_ends_on_the_search_box_is_a_ridge_too():
+    """runner.ridge_to_search_edge: the Coulomb half-difference dc, whose
+    search box the loop set (±20 times the score's estimate), left on that
+    box by a refit whose Fisher information is flat along dc and the offset
+    (the offset's Cramér-Rao std stays small: on its box dc has none) is
+    named with the offset as its partner, so held_retry holds it at 0 (a
+    user's EMPS graph: dc ran to −13.36 N, the edge, along the offset). Not
+    when dc sits inside its box, nor when the flat direction leaves out
+    every parameter the current fit identified."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.effects import apply_effect
+    from bondgraph.diagnose.fit import Context
+    from bondgraph.diagnose.runner import ridge_to_search_edge
+
+    g = rotor()
+    eff = get_effect("asymmetric_friction")
+    P = apply_effect(g, eff, eff.targets(g)[0], {"dc": 0.1, "dv": 0.01})
+    dc, dv = P["dc"].name, P["dv"].name
+    g.params[dc].bounds, g.params[dv].bounds = (-2.0, 2.0), (-0.2, 0.2)
+    m = model_of(g)
+    settings = LoopSettings(params=["J", "b", "off"], effects=[eff])
+    ctx = Context.on(record(200, 0.0, 3), settings, m, lambda s: None, False)
+    th = m.theta0.copy()
+    th[m.param_index(dc)] = -2.0
+    current = SimpleNamespace(params=["J", "b", "off"], flat=())
+    after = SimpleNamespace(model=m, theta=th, params=["J", "b", "off", dc, dv],
+                            at_bound=[dc], flat=("off", dc))
+    assert ridge_to_search_edge(ctx, current, after, [dc, dv]) == ([dc], ["off"])
+    # the current fit did not identify the offset either: the declared fit's affair
+    assert ridge_to_search_edge(ctx, SimpleNamespace(params=current.params, flat=("off",)),
+                                after, [dc, dv]) == ([], [])
+    inside = th.copy()
+    inside[m.param_index(dc)] = -1.0
+    assert ridge_to_search_edge(ctx, current, SimpleNamespace(
+        **{**vars(after), "theta": inside, "at_bound": []}), [dc, dv]) == ([], [])
+    assert ridge_to_search_edge(ctx, current, SimpleNamespace(**{**vars(after), "flat": (dc,)}),
+                                [dc, dv]) == ([], [])

@@ -2463,6 +2463,27 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
     return None
 
 
+def ridge_to_search_edge(ctx: Context, current: Fit, after: Fit,
+                         new_params: Sequence[str]) -> tuple[list[str], list[str]]:
+    """``(new, partners)``: the candidate's ``new_params`` that its refit
+    ``after`` leaves on the edge of their search box (:func:`on_search_edge`)
+    along a flat direction of its Fisher information (``after.flat``, the
+    collinearity analysis over every estimated parameter, those on a box
+    included), and the parameters ``current`` identified (not in
+    ``current.flat``) along the same direction; two empty lists when either
+    is empty. The optimiser followed a ridge until a box that is no
+    physical knowledge stopped it: the record does not tell those new
+    parameters apart from the partners, as :func:`unidentified_new` finds
+    where the ridge stays inside the boxes (there the partners' Cramér-Rao
+    std grows; here the parameter on the box has none and the partners'
+    stays small)."""
+    flat = set(after.flat or ())
+    edge = [n for n in on_search_edge(ctx, after, list(new_params)) if n in flat]
+    had = set(current.flat or ())
+    partners = [n for n in after.params if n in current.params and n in flat and n not in had]
+    return (edge, partners) if edge and partners else ([], [])
+
+
 def held_retry(ctx: Context, current: Fit, cand: Candidate, conf: Confirmation,
                refit: tuple) -> tuple[Candidate, Confirmation] | None:
     """The candidate ``cand`` refitted with the terms its refit ``conf``
@@ -2484,6 +2505,12 @@ def held_retry(ctx: Context, current: Fit, cand: Candidate, conf: Confirmation,
     half-difference dc·tanh²(v/ε) is that offset wherever the drive moves,
     and its viscous half-difference dv·v·tanh(v/ε) (the published
     asymmetric model's 166.7 against 240.4 N s/m) was refused with it.
+    Where the optimiser followed that ridge to the edge of the half-difference's
+    search box (:func:`ridge_to_search_edge`: on the box the parameter has no
+    std, so the offset's stays small and :func:`unidentified_new` sees no
+    ridge), the same applies: on that EMPS graph after a Coulomb friction and
+    a cubic viscous term, dc ran to −13.36 N (the box's edge) along the
+    offset, and the refusal took the viscous half-difference with it.
     Only once per candidate (``cand.held`` empty); ``refit`` is
     ``(scales, tag)`` of the step's refits."""
     if cand.held:
@@ -2492,6 +2519,8 @@ def held_retry(ctx: Context, current: Fit, cand: Candidate, conf: Confirmation,
     if not eff.additive:
         return None
     flat, partners = unidentified_new(current, conf.fit)
+    if not flat:
+        flat, partners = ridge_to_search_edge(ctx, current, conf.fit, conf.new_params)
     local = {eff.pname(cand.target, p.name): p for p in eff.params if p.estimated}
     held = [local[n] for n in flat if n in local]
     rest = [n for n in conf.new_params if n in local and local[n] not in held]
