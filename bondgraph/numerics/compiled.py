@@ -350,8 +350,8 @@ def _c_text(path: Path) -> str:
 
 
 #: the library of each numba source translated in this process, by
-#: :func:`_c_source_key`
-_C_LIBRARIES: dict[str, Path] = {}
+#: :func:`_c_source_key` and cache folder
+_C_LIBRARIES: dict[tuple[str, str], Path] = {}
 
 
 @functools.lru_cache(maxsize=1)
@@ -380,10 +380,10 @@ def _c_library(path: Path) -> Path:
     (``c/index/`` of the cache directory) that maps the source's hash to
     the library's name."""
     key = _c_source_key(path)
-    got = _C_LIBRARIES.get(key)
+    base = cache_dir() / "c"
+    got = _C_LIBRARIES.get((key, str(base)))
     if got is not None:
         return got
-    base = cache_dir() / "c"
     index = base / "index" / f"{key}.txt"
     try:
         name = index.read_text().strip()
@@ -400,7 +400,7 @@ def _c_library(path: Path) -> Path:
             os.replace(tmp, index)
         except OSError:     # a read-only cache: translate again next time
             pass
-    _C_LIBRARIES[key] = lib
+    _C_LIBRARIES[(key, str(base))] = lib
     return lib
 
 
