@@ -1047,6 +1047,7 @@ def test_a_process_noise_intensity_on_its_floor_is_not_a_box_to_widen():
     f = fit_model(ctx, g, ["k", "c", "q_p"], None, "fit")
     assert f.at_bound == ["q_p"]
     assert f.theta[m.param_index("q_p")] == pytest.approx(0.5)
+    assert f.summary().noise_floor == ["q_p"]       # the report says it without a warning
     boxed = [s for s in logs if "box" in s]
     assert boxed == [
         "  fit: process-noise intensity on the floor of its box: q_p = 0.5 (the record asks "

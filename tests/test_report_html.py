@@ -270,3 +270,19 @@ def test_report_html_opens_in_chromium(browser, report):
     if os.environ.get("BONDGRAPH_KEEP_SCREENSHOT"):
         import matplotlib.image
         matplotlib.image.imsave(os.environ["BONDGRAPH_KEEP_SCREENSHOT"], shot)
+
+
+def test_a_process_noise_floor_is_no_warning():
+    """html._warnings: an estimate on its box is a warning, a process-noise
+    intensity on the floor of its box (FitSummary.noise_floor) is not (the
+    default coast-down's q_grade once the drag is accepted)."""
+    from types import SimpleNamespace
+
+    from bondgraph.report.html import _warnings
+
+    final = SimpleNamespace(at_bound=["q_grade", "c"], noise_floor=["q_grade"], flat=[])
+    (block,) = _warnings(SimpleNamespace(warnings=[], final=final))
+    assert "estimates on a bound of their box (no Cramér-Rao std): c</li>" in block
+    assert "q_grade" not in block
+    final.at_bound = ["q_grade"]
+    assert _warnings(SimpleNamespace(warnings=[], final=final)) == []

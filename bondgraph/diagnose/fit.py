@@ -218,7 +218,8 @@ class Fit:
                           np.diagonal(S, axis1=1, axis2=2).copy(), list(self.at_bound),
                           self.validation_metric, dict(self.x0_est), dict(self.noise_est),
                           list(self.flat), dict(self.std_robust), self.ridge,
-                          self.validation_sim_y)
+                          self.validation_sim_y,
+                          process_noise_at_floor(self.model, list(self.at_bound), self.theta))
 
     @property
     def accept_metric(self) -> float:

@@ -297,6 +297,10 @@ class FitSummary:
         One-step UKF innovations and their variances (diagonal of S).
     at_bound : list of str
         Estimates on a bound of their box (their std is None).
+    noise_floor : list of str
+        Those of ``at_bound`` that are process-noise intensities on the
+        floor of their box (:func:`bondgraph.diagnose.fit.process_noise_at_floor`):
+        a random walk the record does not ask for, no warning.
     validation_metric : float or None
         The metric on the validation record (None without one).
     x0_estimates : dict
@@ -342,13 +346,15 @@ class FitSummary:
     std_robust: dict = field(default_factory=dict)
     ridge: str = ""
     validation_sim_y: np.ndarray | None = None
+    noise_floor: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
         return to_jsonable({"model": self.model, "nll": self.nll, "aic": self.aic,
                             "bic": self.bic, "metric": self.metric, "whiteness": self.whiteness,
                             "validation_metric": self.validation_metric,
-                            "at_bound": self.at_bound, "x0_estimates": self.x0_estimates,
+                            "at_bound": self.at_bound, "noise_floor": self.noise_floor,
+                            "x0_estimates": self.x0_estimates,
                             "noise_estimates": self.noise_estimates, "flat": self.flat,
                             "ridge": self.ridge,
                             "estimates": self.estimates, "std": self.std,

@@ -156,12 +156,15 @@ def _table(heads: list[str], rows: list, classes: list[str] | None = None) -> st
 
 
 def _warnings(result: LoopResult) -> list[str]:
-    """The warnings first: the result's, the final estimates on a bound and
-    those the record does not identify separately."""
+    """The warnings first: the result's, the final estimates on a bound
+    (a process-noise intensity on the floor of its box is none: the record
+    asks for no random walk there) and those the record does not identify
+    separately."""
     items = list(result.warnings)
-    if result.final is not None and result.final.at_bound:
-        items.append("estimates on a bound of their box (no Cramér-Rao std): "
-                     + ", ".join(result.final.at_bound))
+    boxed = [] if result.final is None else [
+        n for n in result.final.at_bound if n not in getattr(result.final, "noise_floor", ())]
+    if boxed:
+        items.append("estimates on a bound of their box (no Cramér-Rao std): " + ", ".join(boxed))
     if result.final is not None and getattr(result.final, "flat", None):
         ridge = getattr(result.final, "ridge", "") or ""
         items.append("not identified separately by the record (the likelihood is flat along "
@@ -261,7 +264,9 @@ def _parameters(result: LoopResult) -> list[str]:
             sd = f.std.get(prefix + name)
             rb = robust.get(prefix + name)
             rel = abs(sd / v) * 100 if sd is not None and v else None
-            note = "on a bound" if name in f.at_bound else ""
+            note = ("on the floor of its box (no random walk asked for)"
+                    if prefix + name in getattr(f, "noise_floor", ()) else
+                    "on a bound" if name in f.at_bound else "")
             rows.append([name, kind, _num(v, ".6g"), _num(sd, ".3g"), _num(rb, ".3g"),
                          _num(rel, ".3g"), note])
             classes.append("accepted" if name in added else "")
