@@ -1021,10 +1021,10 @@ def test_the_report_gives_the_scaled_likelihood_ratios_where_innovations_are_cor
 
 
 def test_a_process_noise_intensity_on_its_floor_is_not_a_box_to_widen():
-    """fit_model: a random walk on the momentum whose box starts above what
-    the record asks for (0.24 N/√s fitted in a box from 1e-6) ends on the
-    floor of its box; the log says so instead
-    of advising to widen the box (the default coast-down loop's q_grade at
+    """fit_model: a random walk on the momentum whose box [0.5, 10] N/√s
+    starts above what the record asks for (0.24 N/√s where the box reached
+    down to 1e-6) ends on the floor of its box; the log says so instead of
+    advising to widen the box (the default coast-down loop's q_grade at
     1e-5; a physical parameter on its box still gets that advice:
     test_a_set_of_boxed_estimates_is_warned_about_once_per_loop).
     The detector: a process-noise intensity moves proc_std, not meas_std;
