@@ -427,12 +427,12 @@ def on_bound(model: Model, names: Sequence[str], theta: np.ndarray,
 
 def process_noise_at_floor(model: Model, names: Sequence[str], theta: np.ndarray) -> list[str]:
     """Those of ``names`` that are process-noise intensities (noise
-    intensities, :func:`noise_params`, that move ``proc_std`` and not
-    ``meas_std``) on the lower bound of their box in ``theta``
-    (:func:`on_bound`): a random walk the record does not ask for, not a
-    box too narrow (a coast-down's grade noise q_grade at 1e-5 once the
-    drag explains the deceleration). A sensor noise on its floor is not
-    among them: a model that fits below the sensor's noise is suspect."""
+    intensities, :func:`noise_params`, that leave ``meas_std`` unchanged)
+    on the lower bound of their box in ``theta`` (:func:`on_bound`): a
+    random walk the record does not ask for, not a box too narrow (a
+    coast-down's grade noise q_grade at 1e-5 once the drag explains the
+    deceleration). A sensor noise on its floor is not among them: a model
+    that fits below the sensor's noise is suspect."""
     noise, out = noise_params(model), []
     th = np.asarray(theta, float)
     for n in names:
@@ -442,15 +442,13 @@ def process_noise_at_floor(model: Model, names: Sequence[str], theta: np.ndarray
         j = model.param_index(n)
         v = float(th[j])
         if not (np.isfinite(a) and (not np.isfinite(b) or v - a <= b - v)):
-            continue
+            continue                # on its upper bound
         t1 = th.copy()
         t1[j] = v * 1.1 if v != 0 else 0.1
         with np.errstate(all="ignore"):
-            moves_q = not np.allclose(np.asarray(model.proc_std(t1), float),
-                                      np.asarray(model.proc_std(th), float), atol=0.0)
-            moves_r = not np.allclose(np.asarray(model.meas_std(t1), float),
-                                      np.asarray(model.meas_std(th), float), atol=0.0)
-        if moves_q and not moves_r:
+            sensor = not np.allclose(np.asarray(model.meas_std(t1), float),
+                                     np.asarray(model.meas_std(th), float), atol=0.0)
+        if not sensor:
             out.append(n)
     return out
 
