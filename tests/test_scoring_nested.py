@@ -5,6 +5,7 @@ The Gram matrices are built from explicit signature columns, so the
 correlations are known by construction."""
 
 import numpy as np
+import pytest
 from scipy.stats import chi2
 
 from bondgraph.diagnose.effects import Target
@@ -55,3 +56,33 @@ def test_absorbed_when_signature_in_the_estimated_span():
     a, b = _cand("viscous", "v", 0.1, 1), _cand("coulomb", "v", 50.0, 1)
     mark_equivalent([a, b], col_of, An, [0])
     assert a.absorbed and not b.absorbed
+
+
+def test_the_one_sided_score_keeps_a_signed_estimate_nonnegative():
+    """scoring._one_sided: the energy explained with the one-step estimates
+    β = −coefficient of the signed columns kept >= 0 equals the bounded
+    least squares of scipy (lsq_linear) on the same columns, where the
+    unconstrained fit asks for a negative β; unchanged where it does not.
+    Columns: 0 an estimated parameter (free), 1 and 2 an effect's, 1 signed."""
+    from scipy.optimize import lsq_linear
+
+    from bondgraph.diagnose.scoring import _one_sided
+
+    rng = np.random.default_rng(4)
+    G = rng.normal(size=(300, 3))
+    for coef, signed in (((0.5, 1.0, 0.3), [0]), ((0.5, 1.0, -0.3), [0]),
+                         ((0.5, 1.0, 1.0), [0, 1]), ((0.5, -1.0, 0.2), [0])):
+        # the innovation e ≈ −G·(−β): a positive coefficient is a negative β
+        e = G @ np.array(coef) + 0.3 * rng.normal(size=300)
+        A, b = G.T @ G, G.T @ e
+        energy, sol = _one_sided(A, b, np.ones(3), [0], [1, 2], signed)
+        ub = np.full(3, np.inf)
+        for i in signed:
+            ub[1 + i] = 0.0                 # β = −coefficient >= 0
+        ref = lsq_linear(G, e, bounds=(np.full(3, -np.inf), ub), tol=1e-12)
+        assert energy == pytest.approx(e @ e - np.sum((G @ ref.x - e) ** 2), rel=1e-9)
+        np.testing.assert_allclose(sol, ref.x, atol=1e-9)
+        if all(coef[1 + i] <= 0 for i in signed):
+            # nothing asks for a negative β: the two-sided fit itself
+            free = np.linalg.lstsq(G, e, rcond=None)[0]
+            np.testing.assert_allclose(sol, free, atol=1e-9)
