@@ -406,7 +406,7 @@ def test_score_groups_reports_failed_columns():
             ProbeColumn("p2", "sensor_offset", Target("sensor", "x"), 0, None)]
     ctx = Context(None, LoopSettings(params=[]), lambda s: None)
     An = np.eye(3)                        # nuisance, coulomb, offset: orthonormal
-    bn = np.array([1.0, 3.0, 0.0])
+    bn = np.array([1.0, -3.0, 0.0])       # coulomb's one-step estimate β = 3 >= 0
     out, col_of = score_groups(ctx, cols, 1, An, bn, np.ones(3), 20.0,
                                {1: "posterior covariance P not positive definite"})
     by = {c.effect: c for c in out}
