@@ -11,15 +11,15 @@ CSV (``t, qm, vir``). Then::
 
 holds out the last 25 %, estimates the encoder noise from the record, fits
 M and Fv by output error and searches the effect library. Measured on
-2026-11-29 (666 s on a slow 2-core machine): a force offset, then Coulomb
-friction with a cubic viscous term (as a pair), then the direction-dependent
-viscous friction with its Coulomb half-difference held at 0 (that term is
-the offset wherever the drive moves; ``runner.held_retry``, which also
-catches the refit that follows that ridge to its search box's edge): dv =
-−36.78 ± 0.19 N s/m (robust std 3.6: the innovations stay serially
-correlated) against the published asymmetric model's (166.71 − 240.42)/2 =
-−36.86; held-out position NRMSE 0.1755 -> 0.01391; M 94.20 kg (published
-95.15).
+2026-11-29 (944 s on a 2-core machine): a force offset, then Coulomb
+friction, then the direction-dependent viscous friction with its Coulomb
+half-difference held at 0 (that term is the offset wherever the drive
+moves; its full refit crawled along that ridge without converging,
+``runner.ridge_crawl`` and ``runner.held_first``) as a pair with a cubic
+encoder term: dv = −38.83 N s/m (Cramér-Rao std 0.31, robust std 5.0: the
+innovations stay serially correlated) against the published asymmetric
+model's (166.71 − 240.42)/2 = −36.86; Fc 20.06 N (published 20.14 / 20.63);
+held-out position NRMSE 0.1755 -> 0.0126; M 95.41 kg (published 95.15).
 
 Usage::
 

@@ -139,3 +139,30 @@ def test_a_ridge_that_ends_on_the_search_box_is_a_ridge_too():
         **{**vars(after), "theta": inside, "at_bound": []}), [dc, dv]) == ([], [])
     assert ridge_to_search_edge(ctx, current, SimpleNamespace(**{**vars(after), "flat": (dc,)}),
                                 [dc, dv]) == ([], [])
+
+
+def test_a_refit_that_crawls_along_the_ridge_holds_the_terms_that_lead_it():
+    """runner.ridge_crawl: a refit that stopped unconverged with its Fisher
+    information flat along dc, the offset and dv (ordered by loading, as
+    fisher.flat_directions names them) holds dc, which loads on the flat
+    direction more than the offset the current fit identified; dv, loading
+    less, is judged. When the partner leads, the new term that loads most is
+    held. Nothing for a converged refit, for a direction without a new term
+    or without a parameter the current fit identified."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.runner import ridge_crawl
+
+    current = SimpleNamespace(params=["J", "b", "off"], flat=())
+    crawl = SimpleNamespace(converged=False, flat=("dc", "off", "dv"))
+    assert ridge_crawl(current, crawl, ["dc", "dv"]) == (["dc"], ["off"])
+    lead = SimpleNamespace(converged=False, flat=("off", "dv", "dc"))
+    assert ridge_crawl(current, lead, ["dc", "dv"]) == (["dv"], ["off"])
+    assert ridge_crawl(current, SimpleNamespace(converged=True, flat=crawl.flat),
+                       ["dc", "dv"]) == ([], [])
+    assert ridge_crawl(current, SimpleNamespace(converged=None, flat=crawl.flat),
+                       ["dc", "dv"]) == ([], [])
+    assert ridge_crawl(current, SimpleNamespace(converged=False, flat=("off", "b")),
+                       ["dc", "dv"]) == ([], [])
+    assert ridge_crawl(SimpleNamespace(params=current.params, flat=("off",)), crawl,
+                       ["dc", "dv"]) == ([], [])

@@ -1886,6 +1886,7 @@ def confirm_in_rounds(ctx: Context, result: LoopResult, current: Fit, signif: li
         if held:
             confirmed = merged_confirmations(ctx, held + confirmed)
             held = []
+        confirmed = held_first(ctx, current, confirmed, (scales, name))
         after = accept_best(ctx, result, current, confirmed,
                             step, pairing=(scales, name) if s.accept.pairs else None,
                             refit=(scales, name))
@@ -2484,6 +2485,58 @@ def ridge_to_search_edge(ctx: Context, current: Fit, after: Fit,
     return (edge, partners) if edge and partners else ([], [])
 
 
+def ridge_crawl(current: Fit, after: Fit,
+                new_params: Sequence[str]) -> tuple[list[str], list[str]]:
+    """``(held, partners)`` for a refit ``after`` that did not converge
+    (``converged`` False) while its Fisher information is flat along some of
+    the candidate's ``new_params`` together with parameters ``current``
+    identified (not in ``current.flat``): the optimiser was crawling along a
+    ridge that those parameters span, and whatever point it stopped at
+    decides nothing. ``held``: the new parameters that lead the flat
+    direction, those loading on it more than any partner (``after.flat``
+    is ordered by loading, :func:`bondgraph.inference.fisher.flat_directions`),
+    else the new one that loads most; two empty lists when the refit
+    converged or the direction has no new parameter or no partner. On a
+    user's EMPS graph with a force offset accepted, the direction-dependent
+    friction's refit crawled for 112 iterations along dc, F0, dv (dc's
+    Coulomb half-difference is the offset wherever the drive moves), not
+    comparable, and a quadratic encoder term was accepted before it."""
+    if after.converged is not False:
+        return [], []
+    order = list(after.flat or ())
+    had = set(current.flat or ())
+    partners = [n for n in order if n in current.params and n not in had]
+    new = [n for n in order if n in new_params]
+    if not new or not partners:
+        return [], []
+    first = order.index(partners[0])
+    lead = [n for n in new if order.index(n) < first]
+    return (lead or new[:1]), partners
+
+
+def held_first(ctx: Context, current: Fit, confirmed: list, refit: tuple) -> list:
+    """``confirmed`` ((candidate, confirmation) pairs, best first) with the
+    held refit (:func:`held_retry`) of each candidate whose refit crawled
+    along a ridge it shares with the current model (:func:`ridge_crawl`)
+    ranked among them (:func:`~bondgraph.diagnose.accept.rank_confirmed`)
+    before the accept rule decides: such a refit is not comparable and ranks
+    last, so a comparable candidate of a lower likelihood ratio would be
+    accepted before its held form is ever judged."""
+    extra = []
+    for c, conf in confirmed:
+        if conf is None or conf.comparable or getattr(c, "held", None) \
+                or not ridge_crawl(current, conf.fit, conf.new_params)[0]:
+            continue
+        retry = held_retry(ctx, current, c, conf, refit)
+        if retry is not None:
+            extra.append(retry)
+    if not extra:
+        return confirmed
+    ranked = rank_confirmed([(c.confirmed_statistic - 2 * c.dof, c, r)
+                             for c, r in confirmed + extra])
+    return [(c, r) for _, c, r in ranked]
+
+
 def held_retry(ctx: Context, current: Fit, cand: Candidate, conf: Confirmation,
                refit: tuple) -> tuple[Candidate, Confirmation] | None:
     """The candidate ``cand`` refitted with the terms its refit ``conf``
@@ -2511,16 +2564,25 @@ def held_retry(ctx: Context, current: Fit, cand: Candidate, conf: Confirmation,
     ridge), the same applies: on that EMPS graph after a Coulomb friction and
     a cubic viscous term, dc ran to −13.36 N (the box's edge) along the
     offset, and the refusal took the viscous half-difference with it.
-    Only once per candidate (``cand.held`` empty); ``refit`` is
-    ``(scales, tag)`` of the step's refits."""
+    A refit that crawled along such a ridge without converging
+    (:func:`ridge_crawl`) is held the same way (:func:`held_first` does it
+    before the decision).
+    Only once per candidate (``cand.held`` empty) and current fit;
+    ``refit`` is ``(scales, tag)`` of the step's refits."""
     if cand.held:
         return None
     eff = get_effect(cand.effect, ctx.settings.effects)
     if not eff.additive:
         return None
+    once = ("held retry", id(current), current.nll, cand.label)
+    if once in ctx.cache:
+        return None
+    ctx.cache[once] = True
     flat, partners = unidentified_new(current, conf.fit)
     if not flat:
         flat, partners = ridge_to_search_edge(ctx, current, conf.fit, conf.new_params)
+    if not flat:
+        flat, partners = ridge_crawl(current, conf.fit, conf.new_params)
     local = {eff.pname(cand.target, p.name): p for p in eff.params if p.estimated}
     held = [local[n] for n in flat if n in local]
     rest = [n for n in conf.new_params if n in local and local[n] not in held]
