@@ -35,6 +35,7 @@ from bondgraph.diagnose.inference_calls import (
     lr_scale,
     make_criterion,
     make_problem,
+    moves_meas_std,
     no_process_noise,
     noise_parameters,
     one_step_errors,
@@ -427,7 +428,8 @@ def on_bound(model: Model, names: Sequence[str], theta: np.ndarray,
 
 def process_noise_at_floor(model: Model, names: Sequence[str], theta: np.ndarray) -> list[str]:
     """Those of ``names`` that are process-noise intensities (noise
-    intensities, :func:`noise_params`, that leave ``meas_std`` unchanged)
+    intensities, :func:`noise_params`, that leave ``meas_std`` unchanged:
+    :func:`~bondgraph.inference.estimand.moves_meas_std`)
     on the lower bound of their box in ``theta`` (:func:`on_bound`): a
     random walk the record does not ask for, not a box too narrow (a
     coast-down's grade noise q_grade at 1e-5 once the drag explains the
@@ -443,12 +445,7 @@ def process_noise_at_floor(model: Model, names: Sequence[str], theta: np.ndarray
         v = float(th[j])
         if not (np.isfinite(a) and (not np.isfinite(b) or v - a <= b - v)):
             continue                # on its upper bound
-        t1 = th.copy()
-        t1[j] = v * 1.1 if v != 0 else 0.1
-        with np.errstate(all="ignore"):
-            sensor = not np.allclose(np.asarray(model.meas_std(t1), float),
-                                     np.asarray(model.meas_std(th), float), atol=0.0)
-        if not sensor:
+        if not moves_meas_std(model, th, n):
             out.append(n)
     return out
 

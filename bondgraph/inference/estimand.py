@@ -203,6 +203,25 @@ class Estimand:
         return np.array(par + [False] * len(self.states) + [True] * len(self.noises), dtype=bool)
 
 
+def moves_meas_std(model, theta, name: str, *, rel: float = 0.1) -> bool:
+    """Whether moving the parameter ``name`` by ``rel`` (relative; to
+    ``rel`` from 0) changes ``model.meas_std`` at ``theta`` (n_theta,): a
+    sensor's noise std, where a noise intensity that does not is a process
+    noise (of :func:`noise_parameters`, the two kinds told apart).
+
+    Returns
+    -------
+    bool
+    """
+    th = np.asarray(theta, float)
+    j = model.param_index(name)
+    t1 = th.copy()
+    t1[j] = th[j] * (1 + rel) if th[j] != 0 else rel
+    with np.errstate(all="ignore"):
+        return not np.allclose(np.asarray(model.meas_std(t1), float),
+                               np.asarray(model.meas_std(th), float), rtol=0.0, atol=0.0)
+
+
 def noise_parameters(model, theta, x=None, u=None, *, rel: float = 0.1) -> list[str]:
     """Parameters that change the noise intensities (``proc_std`` or
     ``meas_std``) but neither ``f`` nor ``h``: the noise intensities of the

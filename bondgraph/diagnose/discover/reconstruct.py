@@ -43,7 +43,7 @@ from bondgraph.core.elements import C, I, One, Zero
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.effects.base import junction_units
 from bondgraph.errors import GraphError, NumericalError, OptionError
-from bondgraph.inference.estimand import noise_parameters
+from bondgraph.inference.estimand import moves_meas_std, noise_parameters
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.prior import PriorSpec
 from bondgraph.inference.problem import NoiseSpec, make_problem
@@ -453,16 +453,7 @@ def process_noise(base: Model, theta: np.ndarray, opts: ReconstructOptions) -> l
     if tuple(opts.noise_factors) == (1.0,):
         return []
     th = np.asarray(theta, float)
-    out = []
-    with np.errstate(all="ignore"):
-        r0 = np.asarray(base.meas_std(th), float)
-        for name in noise_parameters(base, th):
-            j = base.param_index(name)
-            t1 = th.copy()
-            t1[j] = th[j] * 1.1 if th[j] != 0 else 0.1
-            if np.allclose(np.asarray(base.meas_std(t1), float), r0, rtol=0.0, atol=0.0):
-                out.append(name)
-    return out
+    return [n for n in noise_parameters(base, th) if not moves_meas_std(base, th, n)]
 
 
 def intensity_grid(problem, iq: int, q_grid: np.ndarray, proc: list[int],
