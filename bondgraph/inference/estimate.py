@@ -783,10 +783,14 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     plan, crit = _joint(problems, params, bounds, R, x0_states, fit, Q, log)
     lo, hi = plan.lo, plan.hi
     try:
-        opt = _global_search(crit, lo, hi, fit, _start(crit, plan, start))
-        x_best, f_best, pol = _polish(crit, opt, lo, hi, fit)
+        x_start = _start(crit, plan, start)
+        slo, shi = sampled_box(crit.model, plan, lo, hi, x_start, log)
+        opt = _global_search(crit, slo, shi, fit, x_start)
+        x_best, f_best, pol = _polish(crit, opt, slo, shi, fit)
+        x_best, f_best, slo, shi = _beyond_sampled(crit, (x_best, f_best, pol), (slo, shi),
+                                                   (lo, hi), fit, log)
         warn_list = _bound_warnings(crit.params, x_best, lo, hi)
-        H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list)
+        H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list, scale_box=(slo, shi))
         disc = _discretisation_at(crit, x_best, f_best, fit, problems[0].ukf, warn_list)
     finally:
         crit.close()
@@ -1092,6 +1096,103 @@ def _swarm_size(fit: FitOptions, k: int) -> int:
     return int(fit.particles) if fit.particles else 10 * k
 
 
+#: a parameter box wider than this many times its start's magnitude is too
+#: wide for a swarm to sample (an effect's offset or calibration term in
+#: (-1e9, 1e9), a lag's time constant in (1e-9, 1e9)): :func:`sampled_box`
+TOO_WIDE = 1e6
+#: the region the swarm samples instead: the start ×/÷ SAMPLED (a positive
+#: box) or the start ± SAMPLED times its magnitude (the effect library's own
+#: search box, :func:`bondgraph.diagnose.effects.base._box`)
+SAMPLED = 10.0
+#: times the polish may widen a sampled region whose edge the estimate reached
+WIDENINGS = 4
+
+
+def sampled_box(model, plan, lo, hi, x_start, log=None) -> tuple[np.ndarray, np.ndarray]:
+    """The region ``(lower, upper)`` (search coordinates, like ``lo``/``hi``)
+    the swarm samples and the polish starts in: the box ``lo``/``hi``,
+    except for a parameter whose box is more than :data:`TOO_WIDE` times
+    wider than its start's magnitude: that one is sampled around its start
+    (its value in ``x_start``, else the problem's θ), within ×/÷
+    :data:`SAMPLED` of it for a box of one sign, ± :data:`SAMPLED` times its
+    magnitude otherwise (:func:`_beyond_sampled` lets the estimate leave it,
+    within the box). A swarm spread uniformly over (-1e9, 1e9) puts every
+    particle but the start at an absurd value: on the EMPS record, a force
+    offset's box (the effect library's) left ``bondgraph estimate`` stuck
+    from its fourth iteration at NLL -31 540 with the sensor noise on the
+    top of its box (the whole output's spread), against -100 164 from a
+    box of ±30 N. One line to ``log`` names each such parameter; a start
+    of 0 cannot be sampled around: where its box is wider than
+    :data:`TOO_WIDE` itself, a line says to give it a box."""
+    names = list(plan.params)
+    k = len(names)
+    centre = (np.asarray(x_start, float)[:k] if x_start is not None
+              else np.asarray(plan.base, float)[model.param_indices(names)])
+    slo, shi = np.array(lo, float), np.array(hi, float)
+    around, unknown = [], []
+    for i, n in enumerate(names):
+        c, width = float(centre[i]), float(hi[i] - lo[i])
+        if not width > TOO_WIDE * abs(c):
+            continue
+        if c == 0.0 or not np.isfinite(c):
+            if width > TOO_WIDE:        # a start of 0 in (-1, 1) is nothing to say
+                unknown.append(n)
+            continue
+        if lo[i] >= 0.0 or hi[i] <= 0.0:
+            a, b = sorted((c / SAMPLED, c * SAMPLED))
+        else:
+            a, b = c - SAMPLED * abs(c), c + SAMPLED * abs(c)
+        slo[i], shi[i] = max(lo[i], a), min(hi[i], b)
+        around.append(f"{n} in [{slo[i]:.4g}, {shi[i]:.4g}] (box [{lo[i]:.4g}, {hi[i]:.4g}])")
+    if log and around:
+        log(f"box too wide to sample: the swarm searches {'; '.join(around)} around the "
+            f"start; the estimate may leave that region within the box")
+    if log and unknown:
+        log(f"box too wide to sample around a start of 0: {', '.join(unknown)} (give "
+            f"{'it' if len(unknown) == 1 else 'them'} a box of the plausible values, or a "
+            f"start of the right magnitude)")
+    return slo, shi
+
+
+def _beyond_sampled(crit, found: tuple, sampled: tuple, box: tuple, fit: FitOptions, log=None):
+    """``(x, f, lower, upper)``: the polished estimate ``found`` = ``(x, f,
+    polish summary)`` polished again (L-BFGS-B, :func:`minimize_batched`)
+    where it sits on an edge of the sampled region ``sampled`` that lies
+    inside the box ``box`` (:func:`sampled_box`), that edge moved
+    :data:`SAMPLED` times further out (within the box), at most
+    :data:`WIDENINGS` times; kept where the NLL does not rise. The polish
+    summary's ``nfev`` counts the extra runs."""
+    x, f, pol = found
+    slo, shi = (np.array(a, float) for a in sampled)
+    lo, hi = box
+    if not fit.polish or not np.isfinite(f):
+        return x, f, slo, shi
+    for _ in range(WIDENINGS):
+        width = shi - slo
+        low = (x - slo <= 1e-6 * width) & (slo > lo)
+        high = (shi - x <= 1e-6 * width) & (shi < hi)
+        if not (low.any() or high.any()):
+            break
+        pos = lo >= 0.0
+        for i in np.flatnonzero(low):
+            slo[i] = max(lo[i], slo[i] / SAMPLED if pos[i] and slo[i] > 0 else
+                         slo[i] - (SAMPLED - 1.0) * width[i])
+        for i in np.flatnonzero(high):
+            shi[i] = min(hi[i], shi[i] * SAMPLED if pos[i] and shi[i] > 0 else
+                         shi[i] + (SAMPLED - 1.0) * width[i])
+        if log:
+            log("the estimate reached the edge of the sampled region of "
+                + ", ".join(crit.params[i] for i in np.flatnonzero(low | high))
+                + ": polishing again in a wider one")
+        xp, fp, nfp, _msg = minimize_batched(crit, x, slo, shi, maxiter=fit.polish_maxiter)
+        pol["nfev"] = pol.get("nfev", 0) + nfp
+        if not fp <= f:
+            break
+        x, f = xp, fp
+        pol["nll_after"] = fp
+    return x, f, slo, shi
+
+
 def _global_search(crit, lo, hi, fit: FitOptions, start):
     """The optimizer's run (:func:`pso` or :func:`de`) over the box; its
     checkpoint carries the problem's fingerprint
@@ -1148,14 +1249,18 @@ def _bound_warnings(params, x, lo, hi) -> list[str]:
             f"the Cramér-Rao bound does not apply there"]
 
 
-def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list):
+def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list,
+                scale_box: tuple | None = None):
     """Hessian of the NLL and Cramér-Rao bounds at the estimate, and the
     robust std (:func:`_robust_at`).
 
     A first pass with steps of 1e-4 of the parameter (or box) scale; when it
     is positive definite, a second pass with steps of 0.1 standard deviation,
     where the NLL changes by O(0.01) nats (truncation and rounding balanced).
-    Appends the warnings to ``warn_list``.
+    Appends the warnings to ``warn_list``. ``scale_box`` (lower, upper):
+    the region whose widths scale the coordinates (default the box ``lo``,
+    ``hi``; the sampled region of :func:`sampled_box`: a box of ±1e9 made
+    every other direction look flat beside it).
     """
     k = x_best.size
     H = np.full((k, k), np.nan)
@@ -1166,7 +1271,7 @@ def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list):
         return H, cr
     if not fit.hessian:
         return H, cr
-    width = hi - lo
+    width = hi - lo if scale_box is None else scale_box[1] - scale_box[0]
     mag = np.where(np.abs(x_best) > 0, np.abs(x_best), width)
     H, _, _ = hessian_batched(crit, x_best, 1e-4 * np.minimum(mag, width))
     cr = cramer_rao(H, crit.params, width, conditional=True, theta=x_best)
