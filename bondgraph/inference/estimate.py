@@ -783,12 +783,7 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     plan, crit = _joint(problems, params, bounds, R, x0_states, fit, Q, log)
     lo, hi = plan.lo, plan.hi
     try:
-        x_start = _start(crit, plan, start)
-        slo, shi = sampled_box(crit.model, plan, lo, hi, x_start, log)
-        opt = _global_search(crit, slo, shi, fit, x_start)
-        x_best, f_best, pol = _polish(crit, opt, slo, shi, fit)
-        x_best, f_best, slo, shi = _beyond_sampled(crit, (x_best, f_best, pol), (slo, shi),
-                                                   (lo, hi), fit, log)
+        opt, x_best, f_best, pol, (slo, shi) = _search(crit, plan, fit, start, log)
         warn_list = _bound_warnings(crit.params, x_best, lo, hi)
         H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list, scale_box=(slo, shi))
         disc = _discretisation_at(crit, x_best, f_best, fit, problems[0].ukf, warn_list)
@@ -1191,6 +1186,21 @@ def _beyond_sampled(crit, found: tuple, sampled: tuple, box: tuple, fit: FitOpti
         x, f = xp, fp
         pol["nll_after"] = fp
     return x, f, slo, shi
+
+
+def _search(crit, plan, fit: FitOptions, start, log):
+    """``(optimizer result, x, f, polish summary, (lower, upper))``: the
+    global search over the region the swarm samples (:func:`sampled_box`),
+    the polish from its best point (:func:`_polish`), and again beyond that
+    region's edges where the estimate reached them (:func:`_beyond_sampled`);
+    ``(lower, upper)`` the region at the end (search coordinates)."""
+    x_start = _start(crit, plan, start)
+    slo, shi = sampled_box(crit.model, plan, plan.lo, plan.hi, x_start, log)
+    opt = _global_search(crit, slo, shi, fit, x_start)
+    x_best, f_best, pol = _polish(crit, opt, slo, shi, fit)
+    x_best, f_best, slo, shi = _beyond_sampled(crit, (x_best, f_best, pol), (slo, shi),
+                                               (plan.lo, plan.hi), fit, log)
+    return opt, x_best, f_best, pol, (slo, shi)
 
 
 def _global_search(crit, lo, hi, fit: FitOptions, start):
