@@ -363,7 +363,8 @@ def test_augmented_model_carries_the_values_the_loop_held(tmp_path):
     the graph the loop ran on) are not in the declared source: the written
     ``augmented_model.py`` applies them (``HELD``) beside the estimates, so
     its graph has the values the loop fitted with (the source's m = 1 and
-    c = 1 came back before)."""
+    c = 1 came back before). What the loop did not estimate is a known value
+    there: ``bondgraph estimate`` without ``--params`` estimates ``ESTIMATES``."""
     import importlib.util
     from types import SimpleNamespace
 
@@ -393,6 +394,12 @@ def test_augmented_model_carries_the_values_the_loop_held(tmp_path):
     assert values["m"] == 2.5 and values["c"] == 0.7 and values["k"] == 41.5
     assert values["sensor_offset.x.b"] == 0.01
     assert msd().params["m"].default == 1.0          # the source itself is unchanged
+    # what the loop held is a known value: estimate's default is what it estimated
+    assert {n for n, p in g.params.items() if p.box_declared} == {"k", "sensor_offset.x.b"}
+    from bondgraph.cli.common import default_params
+    from bondgraph.numerics.model import Model
+    assert default_params(f"{tmp_path / 'aug.py'}:build", Model.from_graph(g),
+                          "estimate") == ["k", "sensor_offset.x.b"]
 
 
 def test_score_groups_reports_failed_columns():

@@ -186,7 +186,11 @@ def augmented_source(result: LoopResult) -> str:
     accepted effects in order with their values (a user-supplied effect by
     its recorded ``module:Class``), then the final estimates
     (``ESTIMATES``) and the values the loop held the other parameters at
-    (``HELD``, :func:`held_values`) as defaults; when an effect cannot be re-applied from
+    (``HELD``, :func:`held_values`) as defaults, every parameter not in
+    ``ESTIMATES`` marked as declared without a box (a known value: ``bondgraph
+    estimate`` and ``sensitivity`` without ``--params`` then estimate what the
+    loop estimated, not an effect's shape width or a term it held at 0,
+    :func:`bondgraph.cli.common.default_params`); when an effect cannot be re-applied from
     its class (:func:`not_reapplied`), ``build()`` loads the final graph
     from its pickle instead."""
     lines = [f'"""Augmented declared model written by `bondgraph loop`.',
@@ -219,6 +223,10 @@ def augmented_source(result: LoopResult) -> str:
     held = held_values(result)
     lines += ["    for name, value in {**HELD, **ESTIMATES}.items():",
               "        g.params[name].default = value",
+              "    for name, p in g.params.items():",
+              "        # what the loop did not estimate is a known value here: bondgraph",
+              "        # estimate and sensitivity estimate ESTIMATES' parameters by default",
+              "        p.box_declared = p.box_declared and name in ESTIMATES",
               "    return g", "",
               "",
               "#: parameter estimates of the final fit (applied as defaults by build())",
