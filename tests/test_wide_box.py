@@ -108,3 +108,24 @@ def test_the_sampled_region_rules():
     np.testing.assert_allclose(shi, [0.02 * SAMPLED, -3.0 + 3.0 * SAMPLED, 10.0, 1e9, 1.0])
     assert len(lines) == 2 and "tau in [0.002, 0.2]" in lines[0] and "k in" not in lines[0]
     assert lines[1].startswith("box too wide to sample around a start of 0: z")
+
+
+def test_the_swarm_holds_the_declared_values(record):
+    """Without a start the swarm holds the problem's own values (the
+    declared defaults) as a particle: its best is never worse than them. The
+    defaults at the truth, six particles and no iteration or polish: the
+    search ends at the defaults' NLL (the UKF's at those values, computed
+    apart); five random particles alone were all worse."""
+    g = drive(TRUTH["F0"])
+    for n, v in TRUTH.items():
+        g.params[n].default = v
+    m = Model.from_graph(g)
+    pb = make_problem(m, record, prior=PriorSpec(x0=np.zeros(1), P0=np.diag([1e-6])),
+                      noise=NoiseSpec("model"), ukf=UKFOptions(method="rk4", substeps=2,
+                                                              hold="zoh"))
+    at_defaults = float(pb.nll(m.theta0).nll[0])
+    r = estimate(pb, ["M", "Fv", "F0"],
+                 fit=FitOptions(particles=6, iterations=0, seed=1, polish=False,
+                                hessian=False, progress=False))
+    assert r.nll_optimizer == pytest.approx(at_defaults, rel=1e-12)
+    np.testing.assert_allclose(r.estimates, [TRUTH[n] for n in r.params])

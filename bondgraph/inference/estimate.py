@@ -956,8 +956,17 @@ def _start(crit: Criterion, plan: _Plan, start):
     """The optimizer's start (search coordinates): ``start`` (k user
     parameters) completed with the current values of the other estimated
     quantities, or every estimated quantity when ``start`` has them all (a
-    result's ``estimates``); None without ``start``."""
-    if start is None or plan.est is None:
+    result's ``estimates``); without ``start``, the problem's own values
+    (the declared defaults, the noise levels' starts). The swarm holds it
+    as a particle, so the search never ends worse than the values it was
+    given: on the EMPS pulses run the loop's final model (its estimates as
+    defaults) was left out of the swarm, whose best after 8080 evaluations
+    was NLL -39 084; the polish from there reached -135 671."""
+    if start is None:
+        if plan.est is None:
+            return np.asarray(plan.base, float)[crit.model.param_indices(plan.params)]
+        return crit.to_search(plan.est.value())[0]
+    if plan.est is None:
         return start
     z = plan.est.value()
     s = np.asarray(start, float).reshape(-1)
