@@ -959,9 +959,8 @@ def _start(crit: Criterion, plan: _Plan, start):
     result's ``estimates``); without ``start``, the problem's own values
     (the declared defaults, the noise levels' starts). The swarm holds it
     as a particle, so the search never ends worse than the values it was
-    given: on the EMPS pulses run the loop's final model (its estimates as
-    defaults) was left out of the swarm, whose best after 8080 evaluations
-    was NLL -39 084; the polish from there reached -135 671."""
+    given (a user's declared values, or a loop's estimates in its
+    ``augmented_model.py``); before, no particle was there."""
     if start is None:
         if plan.est is None:
             return np.asarray(plan.base, float)[crit.model.param_indices(plan.params)]
