@@ -1120,7 +1120,7 @@ def sampled_box(model, plan, lo, hi, x_start, log=None) -> tuple[np.ndarray, np.
     :data:`SAMPLED` of it for a box of one sign, ± :data:`SAMPLED` times its
     magnitude otherwise (:func:`_beyond_sampled` lets the estimate leave it,
     within the box). A swarm spread uniformly over (-1e9, 1e9) puts every
-    particle but the start at an absurd value: on the EMPS record, a force
+    particle at an absurd value: on the EMPS record, a force
     offset's box (the effect library's) left ``bondgraph estimate`` stuck
     from its fourth iteration at NLL -31 540 with the sensor noise on the
     top of its box (the whole output's spread), against -100 164 from a
