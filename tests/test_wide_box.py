@@ -129,3 +129,19 @@ def test_the_swarm_holds_the_declared_values(record):
                                 hessian=False, progress=False))
     assert r.nll_optimizer == pytest.approx(at_defaults, rel=1e-12)
     np.testing.assert_allclose(r.estimates, [TRUTH[n] for n in r.params])
+
+
+def test_an_estimate_left_on_the_sampled_edge_is_a_warning():
+    """An estimate that stays on an edge of the sampled region inside the
+    box (the polish could not widen it further) is not a minimum: it is
+    said, like an estimate on the box's bound; off the edge, or on an edge
+    that is the box's own, the sampled-region warning is not given."""
+    from bondgraph.inference.estimate import _bound_warnings
+
+    lo, hi = np.array([-1e9, 0.1]), np.array([1e9, 10.0])
+    sampled = (np.array([-11.0, 0.1]), np.array([9.0, 10.0]))
+    (w,) = _bound_warnings(["F0", "M"], np.array([-11.0, 2.0]), lo, hi, sampled=sampled)
+    assert w.startswith("estimate on the edge of the region the swarm sampled for F0 ")
+    assert _bound_warnings(["F0", "M"], np.array([-4.0, 2.0]), lo, hi, sampled=sampled) == []
+    (w,) = _bound_warnings(["F0", "M"], np.array([-4.0, 10.0]), lo, hi, sampled=sampled)
+    assert w.startswith("estimate at the bound of the search box for M")

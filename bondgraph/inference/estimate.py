@@ -784,7 +784,7 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     lo, hi = plan.lo, plan.hi
     try:
         opt, x_best, f_best, pol, (slo, shi) = _search(crit, plan, fit, start, log)
-        warn_list = _bound_warnings(crit.params, x_best, lo, hi)
+        warn_list = _bound_warnings(crit.params, x_best, lo, hi, sampled=(slo, shi))
         H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list, scale_box=(slo, shi))
         disc = _discretisation_at(crit, x_best, f_best, fit, problems[0].ukf, warn_list)
     finally:
@@ -1172,8 +1172,7 @@ def _beyond_sampled(crit, found: tuple, sampled: tuple, box: tuple, fit: FitOpti
         return x, f, slo, shi
     for _ in range(WIDENINGS):
         width = shi - slo
-        low = (x - slo <= 1e-6 * width) & (slo > lo)
-        high = (shi - x <= 1e-6 * width) & (shi < hi)
+        low, high = _sampled_edges(x, (slo, shi), box)
         if not (low.any() or high.any()):
             break
         pos = lo >= 0.0
@@ -1194,6 +1193,16 @@ def _beyond_sampled(crit, found: tuple, sampled: tuple, box: tuple, fit: FitOpti
         x, f = xp, fp
         pol["nll_after"] = fp
     return x, f, slo, shi
+
+
+def _sampled_edges(x, sampled: tuple, box: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Masks (k,) of the coordinates of ``x`` on the lower and on the upper
+    edge of the sampled region ``sampled`` (within 1e-6 of its width) where
+    that edge lies inside the box ``box``."""
+    (slo, shi), (lo, hi) = sampled, box
+    width = shi - slo
+    return ((x - slo <= 1e-6 * width) & (slo > lo),
+            (shi - x <= 1e-6 * width) & (shi < hi))
 
 
 def _search(crit, plan, fit: FitOptions, start, log):
@@ -1259,12 +1268,25 @@ def _at_bound(params, x, lo, hi) -> list[str]:
     return [p for i, p in enumerate(params) if rel_pos[i] < 1e-6 or rel_pos[i] > 1 - 1e-6]
 
 
-def _bound_warnings(params, x, lo, hi) -> list[str]:
+def _bound_warnings(params, x, lo, hi, sampled: tuple | None = None) -> list[str]:
+    """The warnings of an estimate ``x`` on the bound of its box ``lo``,
+    ``hi``, and (``sampled``, the region of :func:`sampled_box` at the end)
+    on an edge of that region inside the box, which the polish could not
+    widen further: not a minimum either."""
+    out = []
     at_bound = _at_bound(params, x, lo, hi)
-    if not at_bound:
-        return []
-    return [f"estimate at the bound of the search box for {', '.join(at_bound)}; "
-            f"the Cramér-Rao bound does not apply there"]
+    if at_bound:
+        out.append(f"estimate at the bound of the search box for {', '.join(at_bound)}; "
+                   f"the Cramér-Rao bound does not apply there")
+    if sampled is not None:
+        low, high = _sampled_edges(x, sampled, (lo, hi))
+        edge = [params[i] for i in np.flatnonzero(low | high)]
+        if edge:
+            out.append(f"estimate on the edge of the region the swarm sampled for "
+                       f"{', '.join(edge)} (inside the box, widened {WIDENINGS} times): not a "
+                       f"minimum, the Cramér-Rao bound does not apply; give "
+                       f"{'it' if len(edge) == 1 else 'them'} a box of the plausible values")
+    return out
 
 
 def _hessian_at(crit, x_best, f_best, lo, hi, fit: FitOptions, warn_list: list,
