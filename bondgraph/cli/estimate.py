@@ -38,7 +38,7 @@ from bondgraph.errors import (EstimationError, IdentifiabilityWarning, Numerical
                               UsageError)
 from bondgraph.inference.discretise import (alternative_hold, check_discretisation,
                                             choose_discretisation, cost_rank, hold_verdict)
-from bondgraph.inference.estimate import estimate
+from bondgraph.inference.estimate import estimate, start_levels_profiled
 from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
                                               output_error_nll, seen_initial_states)
 from bondgraph.inference.options import FitOptions
@@ -122,9 +122,10 @@ def run(args) -> int:
                            overwrite=args.overwrite or args.resume)
     ck = (Path(args.checkpoint) if args.checkpoint
           else folder.work_dir(create=False) / "checkpoint.npz")
-    chosen = [chosen_problem(problem_from_args(model, exp, args), args, say=_say_for(pth, paths))
-              for pth, exp in zip(paths, exps)]
     states = estimated_states(model, args)
+    chosen = [_chosen_at_start(args, problem_from_args(model, exp, args), params, states,
+                               _say_for(pth, paths))
+              for pth, exp in zip(paths, exps)]
     if args.fit == "sim":
         if len(paths) > 1:
             raise UsageError("--fit sim fits one record: give one --data, or leave --fit out "
@@ -158,6 +159,48 @@ def run(args) -> int:
     for pth in [folder.path / "result.json", *published(folder, pngs)]:
         print(f"wrote {pth}")
     return 0
+
+
+#: a noise level profiled at the start this many times above the one the
+#: start's discretisation check used is checked against again
+#: (:func:`_chosen_at_start`)
+PROFILED_ABOVE = 3.0
+
+
+def _chosen_at_start(args, problem, params, states, say):
+    """``(problem, choice)``: the discretisation chosen at the start θ
+    (:func:`chosen_problem`), and chosen again against the noise levels
+    profiled there (:func:`~bondgraph.inference.estimate.start_levels_profiled`)
+    where the estimation estimates a level that the first check took
+    :data:`PROFILED_ABOVE` or more times lower (a level nothing declares is
+    checked against the record's second differences, a quantised sensor's
+    resolution: the EMPS encoder's 1.5e-8 m asked for RK4 with 16 substeps
+    where the model's one-step misfit at the start is 4e-3 m and one
+    substep meets the check). The estimate is checked again with its own
+    levels (:func:`_refined`): a fit that gets closer than the start's
+    misfit refits with a finer step. One line says which was chosen."""
+    lines: list[str] = []
+    pb, choice = chosen_problem(problem, args, say=lines.append)
+    if choice is None or args.fit == "sim":
+        for ln in lines:
+            say(ln)
+        return pb, choice
+    try:
+        levels = start_levels_profiled(pb, params, x0_states=states)
+    except (EstimationError, NumericalError, FloatingPointError, np.linalg.LinAlgError):
+        levels = np.full(problem.model.n_y, np.nan)
+    used = np.asarray(choice.sigma, float).reshape(-1)
+    above = np.isfinite(levels) & (~np.isfinite(used) | (levels > PROFILED_ABOVE * used))
+    if not above.any():
+        for ln in lines:
+            say(ln)
+        return pb, choice
+    sigma = np.where(above, levels, used)
+    outs = problem.model.outputs
+    where = ("at the start θ, against the noise levels profiled there ("
+             + ", ".join(f"{outs[j]} {levels[j]:.3g}, not {used[j]:.3g}"
+                         for j in np.flatnonzero(above)) + ")")
+    return chosen_problem(problem, args, sigma=sigma, where=where, say=say)
 
 
 def _say_for(path, paths):
