@@ -379,6 +379,20 @@ def test_initial_state_from_the_record(msd_record):
     assert r.nll != pytest.approx(ukf_nll(m, t, u, y, r.theta, m.x0, P0, options=UKF).nll[0])
 
 
+def test_curvatures_of_different_sizes_are_not_an_unidentified_direction():
+    """A Hessian whose curvatures differ by 1e10 (a noise level fitted to
+    1e-5 of its signal beside the parameters) with a correlation of -0.1 is
+    positive definite: its bounds are its inverse (numpy); a correlation of
+    1 - 1e-9 is a direction the data do not identify, whatever the scales."""
+    H = np.array([[1e10, 1e4], [1e4, 1.0]])
+    cr = cramer_rao(H, ["a", "b"], scale=np.array([10.0, 18.0]))
+    assert cr["positive_definite"] and cr["warning"] is None
+    np.testing.assert_allclose(cr["cov"], np.linalg.inv(H), rtol=1e-10)
+    c = 1e5 * (1.0 - 1e-9)
+    bad = cramer_rao(np.array([[1e10, c], [c, 1.0]]), ["a", "b"], scale=np.array([10.0, 18.0]))
+    assert not bad["positive_definite"] and "not identified" in bad["warning"]
+
+
 def test_bounds_of_the_others_when_a_parameter_sits_on_its_box():
     """estimate._on_box: a Hessian that is not positive definite because the
     NLL still falls beyond the box of the parameter on it (negative

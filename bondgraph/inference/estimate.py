@@ -484,8 +484,8 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
     Hs = 0.5 * (Hs + Hs.T)
     lam, V = np.linalg.eigh(Hs)
     out["eigenvalues"] = lam
-    if lam[0] <= rcond * max(abs(lam[-1]), 1e-300):
-        v = V[:, 0]
+    flat, v = _flat_direction(Hs, lam, V, rcond)
+    if flat:
         order = np.argsort(-np.abs(v))
         terms = [f"{v[i]:+.2f}·{names[i]}" for i in order if abs(v[i]) > 0.1]
         out["warning"] = (f"Hessian of the NLL is not positive definite (smallest eigenvalue "
@@ -495,8 +495,9 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
         if conditional:
             _conditional_bounds(out, Hs, s, names, np.abs(v) > FLAT_COMPONENT, rcond)
         return out
-    cov_s = (V / lam) @ V.T
-    cov = cov_s * np.outer(s, s)
+    d = 1.0 / np.sqrt(np.diag(Hs))               # the inverse in unit-curvature coordinates
+    lj, Vj = np.linalg.eigh(Hs * np.outer(d, d))
+    cov = ((Vj / lj) @ Vj.T) * np.outer(d * s, d * s)
     std = np.sqrt(np.diag(cov))
     corr = cov / np.outer(std, std)
     out.update(std=std, cov=cov, corr=corr, positive_definite=True)
@@ -506,6 +507,33 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
         out["warning"] = "nearly unidentified: " + ", ".join(
             f"corr({a}, {b}) = {c:+.4f}" for a, b, c in strong)
     return out
+
+
+def _flat_direction(Hs: np.ndarray, lam: np.ndarray, V: np.ndarray,
+                    rcond: float) -> tuple[bool, np.ndarray]:
+    """``(flat, v)``: whether the Hessian ``Hs`` (k, k; eigenvalues ``lam``
+    ascending, eigenvectors ``V``) leaves a direction unidentified, and that
+    direction (k,, unit length, in Hs's coordinates).
+
+    Not positive definite where an eigenvalue is not positive (Sylvester's
+    inertia: whatever the scaling) or, with every curvature positive, where
+    the Hessian scaled to unit curvatures (Jacobi scaling, H as a
+    correlation matrix: van der Sluis 1969) has an eigenvalue below
+    ``rcond`` times its largest: a near-collinearity of the parameters'
+    effects, whatever their units. The box-scaled eigenvalues alone took a
+    spread of curvatures for one: a noise level fitted to 1e-5 of its
+    signal has a curvature 1e-7 of the parameters' in box coordinates and
+    was called "not identified" while its relative std was 1 %."""
+    diag = np.diag(Hs)
+    if lam[0] <= 0.0 or not (diag > 0).all():
+        small = lam[0] <= rcond * max(abs(lam[-1]), 1e-300)
+        return bool(small), V[:, 0]
+    d = 1.0 / np.sqrt(diag)
+    lj, Vj = np.linalg.eigh(Hs * np.outer(d, d))
+    if lj[0] > rcond * max(abs(lj[-1]), 1e-300):
+        return False, V[:, 0]
+    v = Vj[:, 0] * d
+    return True, v / np.linalg.norm(v)
 
 
 #: relative changes along an unidentified direction that agree within this
@@ -563,11 +591,13 @@ def _conditional_bounds(out: dict, Hs: np.ndarray, s: np.ndarray, names, flat: n
     keep = np.flatnonzero(~flat)
     if keep.size == 0:
         return
-    sub = Hs[np.ix_(keep, keep)]
-    lam, V = np.linalg.eigh(0.5 * (sub + sub.T))
-    if lam[0] <= rcond * max(abs(lam[-1]), 1e-300):
+    sub = 0.5 * (Hs[np.ix_(keep, keep)] + Hs[np.ix_(keep, keep)].T)
+    lam, V = np.linalg.eigh(sub)
+    if _flat_direction(sub, lam, V, rcond)[0]:
         return
-    cov = ((V / lam) @ V.T) * np.outer(s[keep], s[keep])
+    d = 1.0 / np.sqrt(np.diag(sub))
+    lj, Vj = np.linalg.eigh(sub * np.outer(d, d))
+    cov = ((Vj / lj) @ Vj.T) * np.outer(d * s[keep], d * s[keep])
     std = np.sqrt(np.diag(cov))
     out["std"][keep] = std
     out["cov"][np.ix_(keep, keep)] = cov
