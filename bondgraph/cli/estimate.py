@@ -167,7 +167,8 @@ def run(args) -> int:
 PROFILED_ABOVE = 3.0
 
 
-def _chosen_at_start(args, problem, params, states, say):
+def _chosen_at_start(args, problem, params, states, say, *, hold: str | None = None,
+                     why: str | None = None, where: str = "at the start θ"):
     """``(problem, choice)``: the discretisation chosen at the start θ
     (:func:`chosen_problem`), and chosen again against the noise levels
     profiled there (:func:`~bondgraph.inference.estimate.start_levels_profiled`)
@@ -178,9 +179,10 @@ def _chosen_at_start(args, problem, params, states, say):
     where the model's one-step misfit at the start is 4e-3 m and one
     substep meets the check). The estimate is checked again with its own
     levels (:func:`_refined`): a fit that gets closer than the start's
-    misfit refits with a finer step. One line says which was chosen."""
+    misfit refits with a finer step. One line says which was chosen
+    (``where`` begins it; ``hold``, ``why``: :func:`chosen_problem`'s)."""
     lines: list[str] = []
-    pb, choice = chosen_problem(problem, args, say=lines.append)
+    pb, choice = chosen_problem(problem, args, say=lines.append, hold=hold, why=why, where=where)
     if choice is None or args.fit == "sim":
         for ln in lines:
             say(ln)
@@ -197,10 +199,10 @@ def _chosen_at_start(args, problem, params, states, say):
         return pb, choice
     sigma = np.where(above, levels, used)
     outs = problem.model.outputs
-    where = ("at the start θ, against the noise levels profiled there ("
+    where = (f"{where}, against the noise levels profiled there ("
              + ", ".join(f"{outs[j]} {levels[j]:.3g}, not {used[j]:.3g}"
                          for j in np.flatnonzero(above)) + ")")
-    return chosen_problem(problem, args, sigma=sigma, where=where, say=say)
+    return chosen_problem(problem, args, sigma=sigma, where=where, say=say, hold=hold, why=why)
 
 
 def _say_for(path, paths):
@@ -311,8 +313,8 @@ def _likelier_hold(args, chosen, problems, res, agains, params, fit, states, pat
         if alt is None:
             other.append((pb, c))
             continue
-        other.append(chosen_problem(pb, args, where="at the start θ, the other hold",
-                                    say=_say_for(pth, paths), hold=alt, why=why))
+        other.append(_chosen_at_start(args, pb, params, states, _say_for(pth, paths),
+                                      hold=alt, why=why, where="at the start θ, the other hold"))
     try:
         res2 = _estimate_quiet([pb for pb, _ in other], params,
                                replace(fit, checkpoint=None, resume=False), states,
