@@ -239,3 +239,49 @@ def test_a_known_value_is_held_where_only_the_restarted_fit_shows_the_ridge(tmp_
     assert rep["settings"]["fixed"] == {"Jm": 1.0}
     assert "Jm" not in rep["initial_fit"]["estimates"]
     assert any("held at 1" in w for w in rep["warnings"])
+
+
+def test_estimate_searches_again_where_its_nll_lived_on_the_step(tmp_path, capsys):
+    """`bondgraph estimate` with no options on the user's graph and u1: the
+    start's RK4(1) passes its check against the profiled noise level, but
+    the estimate it reaches sits where a stiff armature mode makes the
+    filter's NLL depend on the step (535.65 with RK4(1), 1444.67 with
+    RK4(40)): the NLL guard names 2 substeps and the search runs again
+    (there again, then with 4). The result passes its own guard (its NLL
+    within 1e-3 of RK4(40)'s, an independent reference run here) and is
+    no worse than the fit the old start choice (RK4(2) from the first)
+    reached, 551.96."""
+    from bondgraph.cli.common import load_record
+    from bondgraph.inference.options import UKFOptions
+    from bondgraph.inference.prior import PriorSpec
+    from bondgraph.inference.problem import make_problem
+    from bondgraph.inference.ukf import ukf_nll
+    from bondgraph.cli.common import load_model
+
+    _user_csv(tmp_path / "u1.csv")
+    (tmp_path / "ced_user.py").write_text(GRAPH)
+    out = tmp_path / "est"
+    code = main(["estimate", "--model", f"{tmp_path / 'ced_user.py'}:ced_user",
+                 "--data", str(tmp_path / "u1.csv"), "--out", str(out), "--no-plots"])
+    assert code == 0
+    err = capsys.readouterr().err
+    assert "an estimate that lives on the step's error: searching again): rk4(2)" in err, err
+    res = json.loads((out / "result.json").read_text())
+    assert res["settings"]["ukf"]["substeps"] > 1
+    guard = res["settings"]["discretisation"]["nll_guard"]
+    assert guard["ok"], guard
+    assert res["nll"] < 551.97
+    ukf = res["settings"]["ukf"]
+    model = load_model(f"{tmp_path / 'ced_user.py'}:ced_user")
+    pb = make_problem(model, load_record(tmp_path / "u1.csv", model),
+                      prior=PriorSpec(x0=np.array(res["settings"]["x0"]),
+                                      P0=np.array(res["settings"]["P0"])))
+    est = dict(zip(res["params"], res["estimates"]))
+    th = pb.theta.copy()
+    for n, v in est.items():
+        if n in model.params:
+            th[model.param_index(n)] = v
+    R = np.diag([est["noise.z"] ** 2])
+    ref = ukf_nll(model, pb.t, pb.u, pb.y, th[None], pb.x0, pb.P0, R=R,
+                  options=UKFOptions(method="rk4", substeps=40, hold=ukf["hold"])).nll[0]
+    assert abs(res["nll"] - ref) <= 1e-3 * abs(ref), (res["nll"], ref)

@@ -35,7 +35,7 @@ from bondgraph.cli.common import (
 )
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import (EstimationError, IdentifiabilityWarning, NumericalError,
-                              UsageError)
+                              OptionError, UsageError)
 from bondgraph.inference.discretise import (alternative_hold, check_discretisation,
                                             choose_discretisation, cost_rank, hold_verdict)
 from bondgraph.inference.estimate import estimate, start_levels_profiled
@@ -260,7 +260,10 @@ def _refined(args, chosen, problems, res, params, fit, states, paths):
     may move to where the new one fails too: a fast lag's time constant on
     its box). From the second check on, the estimate's drift between the
     last two fits is taken into account (:func:`heading`): each refit had
-    moved the estimate to where the next finer step failed again."""
+    moved the estimate to where the next finer step failed again. Where the
+    NLL guard failed instead (:func:`_guard_choice`), the whole search runs
+    again with the finer step: the estimate lived on the coarse step's
+    error and is no start."""
     problems = list(problems)
     agains: list = [None] * len(chosen)
     before = None       # the estimate of the fit before the last refit
@@ -270,7 +273,7 @@ def _refined(args, chosen, problems, res, params, fit, states, paths):
     # as much as the first)
     local = replace(fit, resume=False, iterations=0) if fit.polish else replace(fit, resume=False)
     for _ in range(MAX_REFITS):
-        refit = False
+        refit, anew = False, False
         for i, (_pb, choice) in enumerate(chosen):
             if choice is None or not np.isfinite(res.nll):
                 continue
@@ -279,10 +282,14 @@ def _refined(args, chosen, problems, res, params, fit, states, paths):
                                        why=choice.hold_reason)
             if redo:
                 problems[i], refit = problems[i].conditioned_on(disc=agains[i].disc), True
+                anew = anew or redo == "anew"
         if not refit:
             break
         before = res.theta
-        res = _estimate_quiet(problems, params, local, states, None, start=res.estimates)
+        if anew:        # the estimate lived on the step's error: no start to polish
+            res = _estimate_quiet(problems, params, replace(fit, resume=False), states, None)
+        else:
+            res = _estimate_quiet(problems, params, local, states, None, start=res.estimates)
     return res, problems, agains
 
 
@@ -347,9 +354,12 @@ def heading(model, before: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 
 def _recheck(args, problem, res, say, ahead: np.ndarray | None = None, why: str | None = None):
-    """``(choice at the estimate, refit?)``: the discretisation chosen at
-    the estimate with its noise levels; a refit when the start's fails
-    there and another was chosen (one line on ``say`` either way). With
+    """``(choice at the estimate, refit)``: the discretisation chosen at
+    the estimate with its noise levels; ``refit`` True (a refit from the
+    estimate) when the start's fails there and another was chosen,
+    ``"anew"`` (the search again) when it passes but the NLL guard names
+    finer substeps (:func:`_guard_choice`), else False (one line on
+    ``say`` either way). With
     ``ahead`` (:func:`heading`, after a refit that failed again), the
     choice there is taken instead when it is finer and also meets the check
     at the estimate: the refit then need not chase the estimate (a user's
@@ -362,6 +372,10 @@ def _recheck(args, problem, res, say, ahead: np.ndarray | None = None, why: str 
     hold = dict(hold=problem.disc.hold, why=why)
     again = choose_discretisation(problem, res.theta, given=given, sigma=sigma, **hold)
     ok, now, bound = check_discretisation(problem, res.theta, sigma=again.sigma)
+    if ok:
+        guarded = _guard_choice(problem, res, given, sigma, hold, now, say)
+        if guarded is not None:
+            return guarded, "anew"
     if not ok and again.disc != problem.disc:
         why = (f"the start's {problem.disc.describe()} fails {{}}: {now:.2g} σ per sample, "
                f"bias bound {bound:.2g} std; refitting from the estimate")
@@ -377,6 +391,40 @@ def _recheck(args, problem, res, say, ahead: np.ndarray | None = None, why: str 
                                      if np.isfinite(bound) else ")")
         if ok else again.line("at the estimate (no better candidate)"))
     return again, False
+
+
+def _guard_choice(problem, res, given: dict, sigma, hold: dict, now: float, say):
+    """The discretisation to refit with when the estimate's step passes its
+    check (``now`` σ per sample) but the NLL guard
+    (:func:`bondgraph.inference.ukf.nll_guard`, in ``res.settings``) finds
+    its NLL more than 1e-3 relative from RK4(40)'s and names the substeps
+    that agree: the filter's covariance propagation, not the free run that
+    the check follows, feels the step. A user's CED graph on its PRBS
+    record: RK4(1) passed at 0.0016 σ per sample, its NLL 535.65 against
+    1444.67 with 2 substeps: an estimate that lived on the step's error
+    (a stiff armature mode whose covariance RK4(1) decays too slowly, a
+    process noise the graph does not have); the search runs again with it
+    (:func:`_refined`), not from that estimate. None when the guard agrees,
+    names no substeps, or the user gave ``--substeps``; one line on
+    ``say`` otherwise."""
+    guard = (res.settings.get("discretisation") or {}).get("nll_guard") or {}
+    needed = guard.get("substeps_needed")
+    if guard.get("ok", True) or not needed or "substeps" in given:
+        return None
+    fixed = dict(given, method=problem.disc.method, substeps=int(needed))
+    try:
+        choice = choose_discretisation(problem, res.theta, given=fixed, sigma=sigma, **hold)
+    except (OptionError, FloatingPointError, np.linalg.LinAlgError, NumericalError):
+        return None
+    if choice.disc == problem.disc:
+        return None
+    choice = replace(choice, given=dict(given))
+    say(choice.line(f"at the estimate (the start's {problem.disc.describe()} passes its check, "
+                    f"{now:.2g} σ per sample, but its NLL {guard['nll']:.6g} is "
+                    f"{guard['rel_diff']:.2g} relative from {guard['reference']}'s "
+                    f"{guard['nll_reference']:.6g}; an estimate that lives on the step's "
+                    f"error: searching again)"))
+    return choice
 
 
 def _choice_ahead(problem, ahead, given, sigma, theta, again, hold: dict):
