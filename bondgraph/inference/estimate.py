@@ -5,8 +5,9 @@
     criterion   θ (S, k) -> NLL (S,)       one batched UKF run (bondgraph.inference.ukf)
     optimizer   pso | de                   (bondgraph.inference.optimize), whole population per call
     start       the declared values; each estimated noise level profiled there (decades)
-    polish      the levels profiled again, Levenberg-damped Fisher scoring (one record),
-                then bounded L-BFGS-B, central-difference gradients in one batched call
+    polish      the levels profiled again, Levenberg-damped Fisher scoring (summed over
+                the records), then bounded L-BFGS-B, central-difference gradients in one
+                batched call
     Hessian     central differences of the NLL, all 1 + 2k² points in one batched call
     Cramér-Rao  cov = H⁻¹ (H: observed Fisher information), std = sqrt(diag), correlation
 
@@ -76,7 +77,8 @@ from bondgraph.inference.options import (
     fit_options,
 )
 from bondgraph.inference.problem import Problem
-from bondgraph.inference.fisher import estimand_scoring, innovation_differences, relative_changes
+from bondgraph.inference.fisher import (estimand_scoring, innovation_differences, joint_scoring,
+                                        relative_changes)
 from bondgraph.inference.robust import ROBUST_RATIO, sandwich, score_covariance, step_scores
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.ukf import (
@@ -1461,34 +1463,41 @@ SCORING_ITERATIONS = 30
 
 def _scored(crit, x, f, lo, hi) -> tuple[np.ndarray, float, dict]:
     """``(x, f, summary)``: Levenberg-damped Fisher scoring
-    (:func:`bondgraph.inference.fisher.estimand_scoring`) from ``x``
+    (:func:`bondgraph.inference.fisher.estimand_scoring`; on several
+    records :func:`~bondgraph.inference.fisher.joint_scoring`) from ``x``
     (search coordinates, NLL ``f``) within ``lo``/``hi``, kept where the
     criterion finds it lower; ``x``, ``f`` otherwise, and for what scoring
-    does not cover (several records, a given Q or R). The summary: the
-    scoring's runs, iterations, whether it converged, the NLL after (empty
-    when not run)."""
-    if isinstance(crit, JointCriterion) or crit.Q is not None or crit.R is not None:
+    does not cover (a given Q or R). The summary: the scoring's runs,
+    iterations, whether it converged, the NLL after (empty when not run)."""
+    members = list(getattr(crit, "members", [crit]))
+    if any(m.Q is not None or m.R is not None for m in members):
         return x, f, {}
-    if isinstance(crit, EstimandCriterion):
-        est = crit.est.at(crit.to_value(x[None])[0])
+    estimand = isinstance(members[0], EstimandCriterion)
+    if estimand:
+        z0 = crit.to_value(x[None])[0]
         lo_v, hi_v = crit.to_value(lo[None])[0], crit.to_value(hi[None])[0]
-        log_scale = crit.log | ((lo_v > 0) & (hi_v > 100 * lo_v))
+        log_scale = members[0].log | ((lo_v > 0) & (hi_v > 100 * lo_v))
     else:
-        est = Estimand(crit.model, list(crit.params), theta=crit.theta(x[None])[0], x0=crit.x0)
         lo_v, hi_v = np.asarray(lo, float), np.asarray(hi, float)
         log_scale = (lo_v > 0) & (hi_v > 100 * lo_v)
+    records = [(m.model, m.t, m.u, m.y,
+                m.est.at(z0) if estimand else
+                Estimand(m.model, list(m.params), theta=m.theta(x[None])[0], x0=m.x0),
+                m.P0, m.options) for m in members]
+    options = ScoringOptions(max_iter=SCORING_ITERATIONS,
+                             log_scale=tuple(bool(v) for v in log_scale), information=False)
     try:
         with np.errstate(all="ignore"):
-            r = estimand_scoring(crit.model, crit.t, crit.u, crit.y, est, lo_v, hi_v, crit.P0,
-                                 options=crit.options,
-                                 scoring=ScoringOptions(max_iter=SCORING_ITERATIONS,
-                                                        log_scale=tuple(bool(v) for v in log_scale),
-                                                        information=False))
+            if len(records) == 1:
+                mo, t, u, y, est, P0, opts = records[0]
+                r = estimand_scoring(mo, t, u, y, est, lo_v, hi_v, P0, options=opts,
+                                     scoring=options)
+            else:
+                r = joint_scoring(records, lo_v, hi_v, scoring=options)
     except (FloatingPointError, np.linalg.LinAlgError, NumericalError):
         return x, f, {}
     z = r.estimand.value()
-    xs = crit.to_search(z[None])[0] if isinstance(crit, EstimandCriterion) else z
-    xs = np.clip(xs, lo, hi)
+    xs = np.clip(crit.to_search(z[None])[0] if estimand else z, lo, hi)
     fs = float(crit(xs[None])[0])
     summary = dict(runs=int(r.runs), iterations=int(r.iterations), converged=bool(r.converged),
                    nll_after=fs)

@@ -28,7 +28,8 @@ in stochastic grey-box models. Automatica 40(2), 225-237.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Sequence
 
 import numpy as np
 
@@ -317,6 +318,71 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
         ``scoring`` is not a :class:`~bondgraph.inference.options.ScoringOptions`.
     """
     sc = scoring_options(scoring)
+
+    def derive(e: Estimand, steps) -> Derivatives:
+        return estimand_derivatives(model, t, u, y, e, steps, P0, options)
+
+    def line(cand) -> np.ndarray:
+        th, x0s, R = est.expand(cand)
+        return ukf_nll(model, t, u, y, th, x0s, est.prior_cov(P0), options=options, R=R).nll
+
+    return _scoring_loop(est, derive, line, lower, upper, sc)
+
+
+def joint_scoring(records: Sequence[tuple], lower, upper, *,
+                  scoring: ScoringOptions | None = None) -> Scoring:
+    """:func:`estimand_scoring` on several records of one model: the NLL,
+    gradient and Fisher information summed over the records (independent
+    experiments), each record with its own initial state and prior.
+
+    Parameters
+    ----------
+    records : sequence of (model, t, u, y, est, P0, options)
+        One per record: its arrays, its :class:`Estimand` (the same names
+        and values but for its own initial state), its prior covariance and
+        filter options.
+    lower, upper : arrays (k,)
+        The shared box.
+    scoring : ScoringOptions, optional
+
+    Returns
+    -------
+    Scoring
+        ``estimand`` the first record's at the result (the values are
+        shared); ``derivatives`` None.
+
+    Raises
+    ------
+    FloatingPointError
+        If the UKF fails at the start on a record.
+    """
+    sc = scoring_options(scoring)
+    recs = list(records)
+
+    def derive(e: Estimand, steps) -> Derivatives:
+        z = e.value()
+        parts = [estimand_derivatives(m, t, u, y, own.at(z), steps, P0, opts)
+                 for m, t, u, y, own, P0, opts in recs]
+        first = parts[0]
+        return Derivatives(float(sum(d.nll for d in parts)), first.eps, first.S, first.dE,
+                           first.dS, np.sum([d.grad for d in parts], axis=0),
+                           np.sum([d.F for d in parts], axis=0))
+
+    def line(cand) -> np.ndarray:
+        out = np.zeros(len(cand))
+        for m, t, u, y, own, P0, opts in recs:
+            th, x0s, R = own.expand(cand)
+            out += ukf_nll(m, t, u, y, th, x0s, own.prior_cov(P0), options=opts, R=R).nll
+        return out
+
+    r = _scoring_loop(recs[0][4], derive, line, lower, upper, sc)
+    return replace(r, derivatives=None)
+
+
+def _scoring_loop(est: Estimand, derive, line, lower, upper, sc: ScoringOptions) -> Scoring:
+    """The iterations of :func:`estimand_scoring` on the criterion of
+    ``derive(est, steps) -> Derivatives`` and ``line(cand (c, k)) -> NLL
+    (c,)``."""
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
     z = np.clip(est.value(), lo, hi)
     log_scale = sc.log_scale
@@ -330,17 +396,15 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
     at, D = None, None
     for it in range(1, sc.max_iter + 1):
         if at is None or not np.array_equal(at, z):
-            D = estimand_derivatives(model, t, u, y, est.at(z), _steps(z, hi, width), P0,
-                                     options)
+            D = derive(est.at(z), _steps(z, hi, width))
             at, runs = z.copy(), runs + 1
         converged, flat, alphas, cand = _proposal(D, z, L, lam, lo, hi, sc.atol, gain)
         if converged:
             break
-        th, x0s, R = est.expand(cand)
-        r = ukf_nll(model, t, u, y, th, x0s, est.prior_cov(P0), options=options, R=R)
+        nll_c = line(cand)
         runs += 1
-        best = int(np.argmin(np.where(np.isfinite(r.nll), r.nll, np.inf)))
-        f_new = float(r.nll[best])
+        best = int(np.argmin(np.where(np.isfinite(nll_c), nll_c, np.inf)))
+        f_new = float(nll_c[best])
         if sc.log:
             how = f"step x{alphas[best]:g}" if np.isfinite(alphas[best]) else "scale move"
             sc.log(f"    scoring {it}: NLL {D.nll:.3f} -> {f_new:.3f} ({how})")
@@ -361,7 +425,7 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
     if at is None or not np.array_equal(at, z):
         if not sc.information and at is not None:
             return Scoring(est, nll, None, runs, it, converged, flat)
-        D = estimand_derivatives(model, t, u, y, est, _steps(z, hi, width), P0, options)
+        D = derive(est, _steps(z, hi, width))
         runs += 1
     return Scoring(est, D.nll, D.F, runs, it, converged, flat, D)
 
