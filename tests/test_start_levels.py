@@ -180,3 +180,34 @@ def test_scoring_on_two_copies_of_a_record_is_the_scoring_on_one(record):
     np.testing.assert_allclose(two.F / unit, 2 * one.F / unit, atol=1e-3)
     for p, truth in TRUTH.items():
         assert abs(one.estimand.values()[p] - truth) < 1e-3 * truth
+
+
+def test_sensitivity_analysis_takes_the_information_at_the_profiled_level(record):
+    """`analyse` (bondgraph sensitivity) at the declared values: the
+    noise level it holds is the profiled one (the second differences' start
+    made the information 1e7 times too large on EMPS), and its Fisher
+    information of M and Fv is JᵀJ/σ² with J the free run's output
+    sensitivities (central differences of scipy's DOP853 runs) and σ that
+    level: with no process noise and the initial state known, the
+    innovations are the free run's errors."""
+    from bondgraph.sensitivity.analysis import analyse
+
+    _, exp, t, _ = record
+    pb = _problem(exp)
+    rep = analyse(pb, ["M", "Fv"])
+    nuis = rep.local["nuisance"]
+    assert nuis["names"] == ["noise.vm"]
+    sigma = nuis["values"][0]
+    np.testing.assert_allclose(sigma, start_levels_profiled(pb, ["M", "Fv"])[0], rtol=1e-12)
+    assert any("profiled" in n for n in rep.settings["noise_notes"])
+    J = []
+    for p in ("M", "Fv"):
+        h = 1e-5 * DECLARED[p]
+        hi = free_run(t, **{**DECLARED, p: DECLARED[p] + h})
+        lo = free_run(t, **{**DECLARED, p: DECLARED[p] - h})
+        J.append((hi - lo) / (2 * h))
+    J = np.array(J).T
+    F_ref = J.T @ J / sigma ** 2
+    F = np.asarray(rep.local["fisher"], float)
+    np.testing.assert_allclose(np.sqrt(np.diag(np.linalg.inv(F))),
+                               np.sqrt(np.diag(np.linalg.inv(F_ref))), rtol=0.05)

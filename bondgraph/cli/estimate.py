@@ -22,6 +22,7 @@ from bondgraph.cli.common import (
     add_quiet,
     add_scheduler,
     band_limited_record,
+    chosen_at_levels,
     chosen_problem,
     default_params,
     discretisation_given,
@@ -38,7 +39,7 @@ from bondgraph.errors import (EstimationError, IdentifiabilityWarning, Numerical
                               OptionError, UsageError)
 from bondgraph.inference.discretise import (alternative_hold, check_discretisation,
                                             choose_discretisation, cost_rank, hold_verdict)
-from bondgraph.inference.estimate import estimate, start_levels_profiled
+from bondgraph.inference.estimate import estimate
 from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
                                               output_error_nll, seen_initial_states)
 from bondgraph.inference.options import FitOptions
@@ -161,48 +162,16 @@ def run(args) -> int:
     return 0
 
 
-#: a noise level profiled at the start this many times above the one the
-#: start's discretisation check used is checked against again
-#: (:func:`_chosen_at_start`)
-PROFILED_ABOVE = 3.0
-
-
 def _chosen_at_start(args, problem, params, states, say, *, hold: str | None = None,
                      why: str | None = None, where: str = "at the start θ"):
-    """``(problem, choice)``: the discretisation chosen at the start θ
-    (:func:`chosen_problem`), and chosen again against the noise levels
-    profiled there (:func:`~bondgraph.inference.estimate.start_levels_profiled`)
-    where the estimation estimates a level that the first check took
-    :data:`PROFILED_ABOVE` or more times lower (a level nothing declares is
-    checked against the record's second differences, a quantised sensor's
-    resolution: the EMPS encoder's 1.5e-8 m asked for RK4 with 16 substeps
-    where the model's one-step misfit at the start is 4e-3 m and one
-    substep meets the check). The estimate is checked again with its own
-    levels (:func:`_refined`): a fit that gets closer than the start's
-    misfit refits with a finer step. One line says which was chosen
-    (``where`` begins it; ``hold``, ``why``: :func:`chosen_problem`'s)."""
-    lines: list[str] = []
-    pb, choice = chosen_problem(problem, args, say=lines.append, hold=hold, why=why, where=where)
-    if choice is None or args.fit == "sim":
-        for ln in lines:
-            say(ln)
-        return pb, choice
-    try:
-        levels = start_levels_profiled(pb, params, x0_states=states)
-    except (EstimationError, NumericalError, FloatingPointError, np.linalg.LinAlgError):
-        levels = np.full(problem.model.n_y, np.nan)
-    used = np.asarray(choice.sigma, float).reshape(-1)
-    above = np.isfinite(levels) & (~np.isfinite(used) | (levels > PROFILED_ABOVE * used))
-    if not above.any():
-        for ln in lines:
-            say(ln)
-        return pb, choice
-    sigma = np.where(above, levels, used)
-    outs = problem.model.outputs
-    where = (f"{where}, against the noise levels profiled there ("
-             + ", ".join(f"{outs[j]} {levels[j]:.3g}, not {used[j]:.3g}"
-                         for j in np.flatnonzero(above)) + ")")
-    return chosen_problem(problem, args, sigma=sigma, where=where, say=say, hold=hold, why=why)
+    """:func:`~bondgraph.cli.common.chosen_at_levels` for the estimation
+    of ``params`` (with the initial states ``states``): the start's
+    discretisation checked against the noise levels profiled there. The
+    estimate is checked again with its own levels (:func:`_refined`): a
+    fit that gets closer than the start's misfit refits with a finer
+    step. ``--fit sim`` estimates no level: the first choice stands."""
+    return chosen_at_levels(args, problem, params, states, say, hold=hold, why=why,
+                            where=where, profile=args.fit != "sim")
 
 
 def _say_for(path, paths):

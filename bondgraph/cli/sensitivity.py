@@ -19,7 +19,7 @@ from bondgraph.cli.common import (
     add_quiet,
     add_scheduler,
     band_limited_record,
-    chosen_problem,
+    chosen_at_levels,
     default_params,
     estimated_states,
     load_model,
@@ -33,7 +33,7 @@ from bondgraph.cli.common import (
 )
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.executor import Executor
-from bondgraph.numerics.forward_sensitivity import free_parameters
+from bondgraph.numerics.forward_sensitivity import check_params, free_parameters
 from bondgraph.report.sensitivity import plot_report
 from bondgraph.sensitivity.analysis import LocalOptions, analyse
 from bondgraph.sensitivity.sobol import SobolOptions
@@ -86,6 +86,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_quiet(p)
 
 
+def _line(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
 def _default_params(spec: str, model) -> list[str] | None:
     """The candidates without ``--params``: what ``bondgraph estimate`` fits
     without it (:func:`~bondgraph.cli.common.default_params`: the
@@ -101,9 +105,11 @@ def run(args) -> int:
     """Analyse, write ``sensitivity.json`` and the PNGs; print the table.
 
     What of ``--method``, ``--substeps``, ``--hold`` is not given is chosen
-    at the analysed θ (:func:`bondgraph.cli.common.chosen_problem`), one
-    line on stderr saying what and why; an input whose shape is ambiguous
-    is held as the filter's likelihood at the analysed θ prefers."""
+    at the analysed θ (:func:`bondgraph.cli.common.chosen_problem`), against
+    the noise levels profiled there where a level is estimated
+    (:func:`bondgraph.cli.common.chosen_at_levels`), one line on stderr
+    saying what and why; an input whose shape is ambiguous is held as the
+    filter's likelihood at the analysed θ prefers."""
     model = load_model(args.model)
     exp = band_limited_record(load_record(args.data, model), model, args)
     if args.seconds is not None:
@@ -118,8 +124,9 @@ def run(args) -> int:
         if not tp:
             raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
         values.update({k: float(v) for k, v in tp.items() if k in model.params})
-    problem, choice = chosen_problem(problem_from_args(model, exp, args, values), args,
-                                     where="at the analysed θ", likelihood=True)
+    problem, choice = chosen_at_levels(
+        args, problem_from_args(model, exp, args, values), params or check_params(model, None),
+        estimated_states(model, args), _line, where="at the analysed θ", likelihood=True)
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
     for o in outputs:
         model.output_index(o)

@@ -1385,7 +1385,12 @@ def start_levels_profiled(problem: Problem, params: Sequence[str], *,
     """
     model = problem.model
     out = np.full(model.n_y, np.nan)
-    plan, crit = _joint([problem], params, None, None, x0_states, fit_options(None), None, None)
+    # the problem's fixed values (a sensitivity analysis at the truth) are
+    # the point, not quantities withheld from the estimation
+    free = [p for p in params if p not in problem.fixed]
+    if not free:
+        return out
+    plan, crit = _joint([problem], free, None, None, x0_states, fit_options(None), None, None)
     try:
         if plan.est is None:
             return out
