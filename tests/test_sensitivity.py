@@ -436,3 +436,32 @@ def test_the_quarter_cars_scale_symmetry_is_named_whole():
         assert r["direction"][n] == pytest.approx(1.0, abs=0.02)
     assert r["fixed"] and set(r["fixed"]) == set(rep.recommendation["fix"])
     assert "ridge: the record does not identify" in rep.table()
+
+
+def test_an_unbounded_box_is_no_scale_of_a_nonzero_value():
+    """analysis_scale: a force offset of 0.76 in the effect library's box
+    (-1e9, 1e9) is scaled by 0.76, not by the box's width 2e9 (its
+    sensitivity then 1e9 times its own outranked every physical parameter
+    on the EMPS pulses run); at exactly 0 the width stays the scale, and a
+    value nearly 0 beside a box that states a scale takes the box's width
+    (parameter_scale)."""
+    from bondgraph.core.graph import BondGraph
+    from bondgraph.numerics.model import Model
+    from bondgraph.sensitivity.analysis import analysis_scale
+
+    g = BondGraph("scales", "mass on friction with an offset and a bias")
+    u = g.input("u", "N", 0.0, "force")
+    M = g.param("M", 2.0, "kg", (0.1, 10.0), "mass")
+    F0 = g.param("F0", 0.76, "N", (-1e9, 1e9), "force offset")
+    b = g.param("b", 1e-12, "m/s", (-1.0, 1.0), "sensor bias")
+    v = g.one("v")
+    g.connect(g.Se("drive", u), v)
+    g.connect(g.Se("offset", F0), v)
+    g.connect(v, g.I("mass", M))
+    g.connect(v, g.R("friction", 3.0))
+    g.sensor("vm", v.f + b, unit="m/s", noise_std=0.01)
+    m = Model.from_graph(g)
+    th = m.theta({})
+    np.testing.assert_allclose(analysis_scale(m, ["M", "F0", "b"], th), [2.0, 0.76, 2.0])
+    th0 = m.theta({"F0": 0.0})
+    np.testing.assert_allclose(analysis_scale(m, ["F0"], th0), [2e9])
