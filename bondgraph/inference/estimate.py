@@ -77,8 +77,8 @@ from bondgraph.inference.options import (
     fit_options,
 )
 from bondgraph.inference.problem import Problem
-from bondgraph.inference.fisher import (estimand_scoring, innovation_differences, joint_scoring,
-                                        relative_changes)
+from bondgraph.inference.fisher import (estimand_scoring, innovation_differences, jacobi_pinv,
+                                        joint_scoring, relative_changes)
 from bondgraph.inference.robust import ROBUST_RATIO, sandwich, score_covariance, step_scores
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.ukf import (
@@ -497,9 +497,7 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
         if conditional:
             _conditional_bounds(out, Hs, s, names, np.abs(v) > FLAT_COMPONENT, rcond)
         return out
-    d = 1.0 / np.sqrt(np.diag(Hs))               # the inverse in unit-curvature coordinates
-    lj, Vj = np.linalg.eigh(Hs * np.outer(d, d))
-    cov = ((Vj / lj) @ Vj.T) * np.outer(d * s, d * s)
+    cov = jacobi_pinv(Hs) * np.outer(s, s)      # inverted in unit-curvature coordinates
     std = np.sqrt(np.diag(cov))
     corr = cov / np.outer(std, std)
     out.update(std=std, cov=cov, corr=corr, positive_definite=True)
@@ -597,9 +595,7 @@ def _conditional_bounds(out: dict, Hs: np.ndarray, s: np.ndarray, names, flat: n
     lam, V = np.linalg.eigh(sub)
     if _flat_direction(sub, lam, V, rcond)[0]:
         return
-    d = 1.0 / np.sqrt(np.diag(sub))
-    lj, Vj = np.linalg.eigh(sub * np.outer(d, d))
-    cov = ((Vj / lj) @ Vj.T) * np.outer(d * s[keep], d * s[keep])
+    cov = jacobi_pinv(sub) * np.outer(s[keep], s[keep])
     std = np.sqrt(np.diag(cov))
     out["std"][keep] = std
     out["cov"][np.ix_(keep, keep)] = cov
