@@ -127,6 +127,73 @@ def _discretisation_fields(obj) -> None:
     if obj.backend == "numba" and importlib.util.find_spec("numba") is None:
         raise OptionError(f"{type(obj).__name__}.backend = 'numba' but numba is not installed "
                           f"(pip install numba, or backend='numpy')")
+    _set(obj, "refine", _refine_runs(type(obj).__name__, obj.refine))
+
+
+def _refine_runs(owner: str, runs) -> tuple:
+    """``runs`` as a canonical tuple of ``(start, stop, substeps)`` int
+    triples, sorted, each ``0 <= start < stop`` and ``substeps >= 1``, not
+    overlapping.
+
+    Raises
+    ------
+    OptionError
+        Any other value (named).
+    """
+    out = []
+    try:
+        for r in runs or ():
+            a, b, n = (int(v) for v in r)
+            if not (len(r) == 3 and 0 <= a < b and n >= 1
+                    and all(float(v) == int(v) for v in r)):
+                raise ValueError
+            out.append((a, b, n))
+    except (TypeError, ValueError):
+        raise OptionError(f"{owner}.refine = {runs!r} must be (start, stop, substeps) triples "
+                          f"of integers, 0 <= start < stop, substeps >= 1") from None
+    out.sort()
+    if any(p[1] > q[0] for p, q in zip(out, out[1:])):
+        raise OptionError(f"{owner}.refine: the runs {out!r} overlap")
+    return tuple(out)
+
+
+def interval_substeps(obj, intervals: int) -> np.ndarray:
+    """The substeps of each of ``intervals`` sample intervals (intervals,)
+    int64 of a :class:`Discretisation` or :class:`UKFOptions` ``obj``:
+    ``substeps``, and in a run of ``refine`` the larger of it and the run's.
+
+    Raises
+    ------
+    OptionError
+        A run beyond the record's last interval (a refinement made for
+        another record).
+    """
+    out = np.full(max(int(intervals), 0), obj.substeps, dtype=np.int64)
+    for a, b, n in obj.refine:
+        if b > out.size:
+            raise OptionError(f"the refined substeps {n} on intervals {a}..{b - 1} reach beyond "
+                              f"the record's {out.size} intervals: they were chosen for another "
+                              f"record")
+        np.maximum(out[a:b], n, out=out[a:b])
+    return out
+
+
+def most_substeps(obj) -> int:
+    """The largest substeps of any interval of ``obj`` (``substeps`` and
+    its refined runs)."""
+    return max([obj.substeps] + [n for _, _, n in obj.refine])
+
+
+def refine_text(obj) -> str:
+    """``", 4 on 12 of the intervals (3 runs)"``: the refinement of
+    ``obj`` for log lines ("" without one)."""
+    runs = [r for r in obj.refine if r[2] > obj.substeps]
+    if not runs:
+        return ""
+    counts = sorted({n for _, _, n in runs})
+    k = sum(b - a for a, b, _ in runs)
+    return (f"; {'/'.join(map(str, counts))} on {k} intervals "
+            f"({len(runs)} run{'s' if len(runs) > 1 else ''})")
 
 
 @dataclass(frozen=True)
@@ -149,6 +216,15 @@ class Discretisation:
         per input joined by commas (``"zoh,linear"``) holds each input its own way.
     backend : {"numba", "numpy"}
         Compiled kernels or the numpy reference (equal to rounding).
+    refine : tuple of (start, stop, substeps)
+        Runs of sample intervals ``start <= k < stop`` (interval k goes from
+        sample k to k + 1 of the record it was chosen for) stepped with
+        more substeps than ``substeps``: a record whose stiff or
+        non-smooth stretches (a friction law's zero crossings, an end
+        stop's contact) are short takes the fine step there only
+        (:func:`bondgraph.inference.discretise.refined_runs`). The UKF and
+        its smoother read it; whatever does not (a free run, another
+        record: :meth:`uniform`) takes the largest substeps throughout.
 
     Raises
     ------
@@ -167,6 +243,7 @@ class Discretisation:
     substeps: int = 1
     hold: str = "zoh"
     backend: str = DEFAULT_BACKEND
+    refine: tuple = ()
 
     def __post_init__(self):
         _discretisation_fields(self)
@@ -175,12 +252,26 @@ class Discretisation:
         """The discretisation of the prior's free run: at least
         :data:`FREE_RUN_MIN_SUBSTEPS` steps per sample (a free run has no
         measurement update to pull a coarse step back; the toolkit's one
-        place for that rule)."""
-        return replace(self, substeps=max(self.substeps, FREE_RUN_MIN_SUBSTEPS))
+        place for that rule), and the largest substeps of a refinement
+        throughout."""
+        u = self.uniform()
+        return replace(u, substeps=max(u.substeps, FREE_RUN_MIN_SUBSTEPS))
+
+    def uniform(self) -> "Discretisation":
+        """This discretisation without its refined runs, at their largest
+        substeps throughout (what another record, or a step that does not
+        read the runs, takes)."""
+        if not self.refine:
+            return self
+        return replace(self, substeps=most_substeps(self), refine=())
+
+    def interval_substeps(self, intervals: int) -> np.ndarray:
+        """Substeps per interval (intervals,): :func:`interval_substeps`."""
+        return interval_substeps(self, intervals)
 
     def describe(self) -> str:
         """``"ros2(2), zoh hold"``: for log lines."""
-        return f"{self.method}({self.substeps}), {self.hold} hold"
+        return f"{self.method}({self.substeps}{refine_text(self)}), {self.hold} hold"
 
     def to_dict(self) -> dict:
         """The value as a plain dict (JSON-able)."""
@@ -206,6 +297,9 @@ class UKFOptions:
         (:mod:`bondgraph.numerics.integrators`).
     substeps : int
         Integration steps per sample interval (>= 1).
+    refine : tuple of (start, stop, substeps)
+        Runs of intervals stepped with more substeps
+        (:attr:`Discretisation.refine`); the record must have them.
     jacobian : {"mean", "sigma"}
         ROS2 only: df/dx once per parameter set at the central sigma point,
         shared by its sigma points (a W-method, second order for any J), or
@@ -250,6 +344,7 @@ class UKFOptions:
     jacobian: str = "mean"
     hold: str = "zoh"
     backend: str = DEFAULT_BACKEND
+    refine: tuple = ()
 
     def __post_init__(self):
         _real(self, "alpha", positive=True)
@@ -262,12 +357,17 @@ class UKFOptions:
     def discretisation(self) -> Discretisation:
         """The :class:`Discretisation` of these options (method, substeps,
         hold, backend)."""
-        return Discretisation(self.method, self.substeps, self.hold, self.backend)
+        return Discretisation(self.method, self.substeps, self.hold, self.backend, self.refine)
 
     def with_discretisation(self, disc: Discretisation) -> "UKFOptions":
         """These options with the discretisation ``disc``."""
         return replace(self, method=disc.method, substeps=disc.substeps, hold=disc.hold,
-                       backend=disc.backend)
+                       backend=disc.backend, refine=disc.refine)
+
+    def uniform(self) -> "UKFOptions":
+        """These options at the largest substeps throughout
+        (:meth:`Discretisation.uniform`)."""
+        return self.with_discretisation(self.discretisation.uniform()) if self.refine else self
 
     def to_dict(self) -> dict:
         """The options as a plain dict (JSON-able)."""

@@ -44,6 +44,7 @@ from bondgraph.inference.ukf import (
     UKFResult,
     discretisation_check,
     discretisation_errors,
+    sigma_point_errors,
     ukf_nll,
 )
 from bondgraph.numerics.model import Model
@@ -315,10 +316,12 @@ class Problem:
         """The same model and policies on another record (a validation
         record): its own initial state and state scales
         (:meth:`PriorSpec.on_other_record`), those of ``scales`` (name ->
-        scale on ``record``, of the model this one modifies) inherited."""
+        scale on ``record``, of the model this one modifies) inherited; a
+        refined discretisation (chosen for this record's intervals) at its
+        largest substeps throughout (:meth:`UKFOptions.uniform`)."""
         return make_problem(self.model, record,
                             prior=self.prior.on_other_record().inheriting(scales or {}),
-                            noise=self.noise, ukf=self.ukf, fixed=self.fixed,
+                            noise=self.noise, ukf=self.ukf.uniform(), fixed=self.fixed,
                             defaults_ok=self.defaults_ok)
 
     # ------------------------------------------------------------ evaluations
@@ -389,6 +392,20 @@ class Problem:
         errs = discretisation_errors(self.model, self.t, self.u, theta, self.x0, discs,
                                      sigma=sig, cache=cache)
         return np.array([float(np.max(e["one_step"], initial=0.0)) for e in errs])
+
+    def interval_errors(self, theta, substeps: Sequence[int], *, sigma=None) -> np.ndarray | None:
+        """Each interval's one-step output error (k, N − 1) at the filter's
+        own sigma points with each of ``substeps`` (k,) at ``theta``
+        (n_theta,), in units of ``sigma`` (default :meth:`noise_scale`):
+        :func:`bondgraph.inference.ukf.sigma_point_errors` along this
+        problem's filter at ``theta``; None when that filter fails."""
+        th = np.asarray(theta, float)
+        res = self.nll(th[None, :], store="full")
+        if not np.isfinite(res.nll[0]):
+            return None
+        sig = self.noise_scale(th) if sigma is None else sigma
+        return sigma_point_errors(self.model, self.t, self.u, th, res.x_filt[:, 0],
+                                  res.P_filt[:, 0], self.ukf, substeps, sig)
 
     def noise_scale(self, theta) -> np.ndarray:
         """The measurement-noise std of each output (n_y,) that errors are
@@ -468,8 +485,9 @@ def make_problem(model, record, *, prior: PriorSpec | None = None,
     ModelError
         A fixed parameter the model does not have (named).
     OptionError
-        Options of the wrong type, or a per-input hold whose length is not
-        the model's number of inputs (the inputs named).
+        Options of the wrong type, a per-input hold whose length is not
+        the model's number of inputs (the inputs named), or refined runs
+        (``ukf.refine``) beyond the record's intervals.
     """
     model = Model.from_spec(model)
     rec = as_record(record)
@@ -489,6 +507,10 @@ def make_problem(model, record, *, prior: PriorSpec | None = None,
     if arrays is None:        # the problem's own copies, never the record's arrays
         t, u, y = (np.array(a, dtype=float) for a in (t, u, y))
     rec = None if isinstance(rec, tuple) else rec
+    if ukf.refine and ukf.refine[-1][1] > t.size - 1:
+        raise OptionError(f"UKFOptions.refine reaches interval {ukf.refine[-1][1] - 1}, beyond "
+                          f"the record's {t.size - 1} intervals: it was chosen for another "
+                          f"record (UKFOptions.uniform() takes its largest substeps throughout)")
     fixed = {k: float(v) for k, v in (fixed or {}).items()}
     theta = model.theta(fixed)                  # ModelError naming an unknown parameter
     x0, rule = prior.mean(model, rec)

@@ -48,15 +48,15 @@ import numpy as np
 from numba import njit
 
 from bondgraph.errors import NumericalError
-from bondgraph.inference.options import UKFOptions, ukf_options
+from bondgraph.inference.options import UKFOptions, interval_substeps, ukf_options
 from bondgraph.inference.sigma import (
     cholesky_batch,
     merwe_weights,
     sigma_points,
     unscented_moments,
 )
-from bondgraph.inference.ukf import ROS2_JACOBIAN, ukf_nll
-from bondgraph.numerics.integrators import hold_inputs, make_step
+from bondgraph.inference.ukf import interval_steps, ukf_nll
+from bondgraph.numerics.integrators import hold_inputs
 
 
 @dataclass
@@ -392,7 +392,9 @@ def _predictions(model, t, u, th, xf, Pf, opts: UKFOptions):
     """
     n, N = model.n_x, t.size
     wts = merwe_weights(n, opts.alpha, opts.beta, opts.kappa)
-    step = make_step(model, opts.method, opts.substeps, jacobian=ROS2_JACOBIAN[opts.jacobian])
+    step_of = interval_steps(model, opts, N - 1)
+    per = (interval_substeps(opts, N - 1) if opts.refine
+           else np.full(N - 1, opts.substeps, dtype=np.int64))
     held = hold_inputs(u, opts.hold)
     with np.errstate(all="ignore"):
         q2 = np.asarray(model.proc_std(th[None, :]), float)[0] ** 2
@@ -405,12 +407,13 @@ def _predictions(model, t, u, th, xf, Pf, opts: UKFOptions):
         if not ok.all():
             L[~ok] = _factors(Pf[ks[~ok]], ks[~ok])
         chi, cL = sigma_points(xf[ks], L, wts.c)
-        for dt in np.unique(dts[ks]):
-            sel = np.flatnonzero(dts[ks] == dt)
+        for dt, nsub in sorted(set(zip(dts[ks].tolist(), per[ks].tolist()))):
+            sel = np.flatnonzero((dts[ks] == dt) & (per[ks] == nsub))
             k_sel = ks[sel]
             du = None if held.change is None else held.change[k_sel][:, None, :]
             with np.errstate(all="ignore"):
-                X = step(chi[sel], held.start[k_sel][:, None, :], th[None, None, :], dt, du)
+                X = step_of(int(k_sel[0]))(chi[sel], held.start[k_sel][:, None, :],
+                                           th[None, None, :], dt, du)
             mm, P, D = unscented_moments(X, wts)
             m[k_sel] = mm
             Q = np.diag(q2 * dt)

@@ -58,14 +58,14 @@ import time
 import warnings
 from collections import Counter
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from bondgraph.core.progress import long_range
 from bondgraph.errors import BackendWarning, DataError, ModelError, OptionError
 from bondgraph.inference import sim_numba, ukf_numba
-from bondgraph.inference.options import Discretisation, UKFOptions, ukf_options
+from bondgraph.inference.options import Discretisation, UKFOptions, interval_substeps, ukf_options
 from bondgraph.inference.prior import default_P0, free_run_kernels
 from bondgraph.inference.sigma import (
     SigmaWeights,
@@ -609,7 +609,7 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | No
     t, u, y = _check_inputs(model, t, u, y)
     th = _check_theta(model, theta)
     wts = merwe_weights(model.n_x, opts.alpha, opts.beta, opts.kappa)
-    step = make_step(model, opts.method, opts.substeps, jacobian=_ROS2_JACOBIAN[opts.jacobian])
+    step = interval_steps(model, opts, t.size - 1)
     u_held = hold_inputs(u, opts.hold)
     batch = FilterBatch(model, t, th, *_priors(model, th.shape[0], x0, P0, Q, R))
     kept = FilterStorage(t.size, th.shape[0], model, full=store == "full") if store else None
@@ -630,15 +630,36 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | No
     return res
 
 
-def _filter_numpy(model, batch: FilterBatch, step: Callable, t, u, u_held, y,
+def interval_steps(model, opts: UKFOptions, intervals: int) -> Callable[[int], Callable]:
+    """``step_of(k)``: the transition of the filter over interval k (of
+    ``intervals``; :func:`bondgraph.numerics.integrators.make_step` with
+    ``opts``' method, Jacobian and the interval's substeps: ``substeps``, or
+    a refined run's, :attr:`~bondgraph.inference.options.UKFOptions.refine`).
+
+    Raises
+    ------
+    OptionError
+        A refined run beyond the record (:func:`~bondgraph.inference.options.interval_substeps`).
+    """
+    jac = _ROS2_JACOBIAN[opts.jacobian]
+    if not opts.refine:
+        step = make_step(model, opts.method, opts.substeps, jacobian=jac)
+        return lambda k: step
+    per = interval_substeps(opts, intervals)
+    steps = {int(n): make_step(model, opts.method, int(n), jacobian=jac) for n in np.unique(per)}
+    return lambda k: steps[int(per[k])]
+
+
+def _filter_numpy(model, batch: FilterBatch, step_of: Callable, t, u, u_held, y,
                   wts: SigmaWeights, kept: "FilterStorage | None") -> None:
     """The numpy filter over the record (predict/update per sample for the
-    whole batch), filling ``batch`` and ``kept``."""
+    whole batch; ``step_of(k)`` the transition over interval k,
+    :func:`interval_steps`), filling ``batch`` and ``kept``."""
     dts = np.diff(t)
     for k in long_range(t.size, f"UKF pass: {batch.nll.size} parameter sets x {t.size} samples"):
         if k > 0 and batch.size:
             u_k, du_k = u_held.interval(k - 1)
-            predict(batch, step, u_k, dts[k - 1], wts, k, du_k)
+            predict(batch, step_of(k - 1), u_k, dts[k - 1], wts, k, du_k)
         if not batch.size:
             break
         if np.isfinite(y[k]).any():
@@ -764,7 +785,7 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
     x = (model.x0 if x0 is None else np.asarray(x0, float))[None, :]
     disc = Discretisation() if disc is None else disc
     hold = disc.hold
-    step = make_step(model, disc.method, disc.substeps)
+    step = _disc_steps(model, disc, t.size - 1)
     held = hold_inputs(u, hold)
     with np.errstate(all="ignore"):
         xr, ref = _reference_trajectory(model, t, u, hold, th, x, reference_method,
@@ -854,7 +875,7 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
                                 reference=None))
                 continue
             yr = model.h(xr[1:], u[1:], th)
-            step = make_step(model, disc.method, disc.substeps)
+            step = _disc_steps(model, disc, t.size - 1)
             held = hold_inputs(u, disc.hold)
             y1 = model.h(_one_steps(step, xr, held, th, t), u[1:], th)
             err = np.max(np.abs(y1 - yr) / sig, axis=0, initial=0.0)
@@ -875,32 +896,154 @@ def _free_run_rss(model, disc, step, held, t, u, th, x, yr, sig) -> float:
 def _free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig) -> np.ndarray:
     """(y_free − y_ref)/σ (N − 1, n_y) of the free run of ``disc`` from ``x``
     against the reference outputs ``yr`` of samples 1..N−1: compiled when
-    ``disc.backend`` is numba (:func:`_compiled_run`; the numpy steps took
-    0.2-1 ms a sample, the choice of a long record's discretisation tries
-    several), else ``step`` sample by sample (the same steps; ROS2 agrees
-    to rounding)."""
-    X = (_compiled_run(model, t, u, disc.hold, th, x, disc.method, disc.substeps)
-         if disc.backend == "numba" else None)
+    ``disc.backend`` is numba (:func:`_compiled_run`, a refined
+    discretisation's runs one stretch of equal substeps at a time; the
+    numpy steps took 0.2-1 ms a sample, the choice of a long record's
+    discretisation tries several), else ``step`` (:func:`_disc_steps`)
+    sample by sample (the same steps; ROS2 agrees to rounding)."""
+    X = (_compiled_stretches(model, t, u, disc, th, x) if disc.backend == "numba" else None)
     if X is None:
         xs, xf = [], x
         for k in range(t.size - 1):
             uk, duk = held.interval(k)
-            xf = step(xf, uk, th, t[k + 1] - t[k], duk)
+            xf = step.of(k)(xf, uk, th, t[k + 1] - t[k], duk)
             xs.append(xf)
         X = np.concatenate([x] + xs)
     return (model.h(X[1:], u[1:], th) - yr) / sig
 
 
-def _one_steps(step: Callable, xr: np.ndarray, held, th: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """States (N-1, n_x) one ``step`` after each reference state ``xr[k]``
-    (k < N-1), over its own interval: one batched call per distinct
-    interval length (the same arithmetic as a call per sample)."""
+class _DiscSteps:
+    """The steps of a discretisation over a record's intervals: ``of(k)``
+    the transition over interval k, ``per`` the substeps of each interval
+    (None: ``disc.substeps`` throughout)."""
+
+    def __init__(self, model, disc: Discretisation, intervals: int):
+        self.per = disc.interval_substeps(intervals) if disc.refine else None
+        counts = [disc.substeps] if self.per is None else np.unique(self.per)
+        self.steps = {int(n): make_step(model, disc.method, int(n)) for n in counts}
+        self.substeps = disc.substeps
+
+    def of(self, k: int) -> Callable:
+        return self.steps[self.substeps if self.per is None else int(self.per[k])]
+
+
+def _disc_steps(model, disc: Discretisation, intervals: int) -> _DiscSteps:
+    """:class:`_DiscSteps` of ``disc`` over ``intervals`` intervals."""
+    return _DiscSteps(model, disc, intervals)
+
+
+def _compiled_stretches(model, t, u, disc: Discretisation, th, x) -> np.ndarray | None:
+    """:func:`_compiled_run` of ``disc`` over the record, a refined
+    discretisation's intervals one stretch of equal substeps at a time
+    (each stretch from the state the one before it ended in)."""
+    if not disc.refine:
+        return _compiled_run(model, t, u, disc.hold, th, x, disc.method, disc.substeps)
+    per = disc.interval_substeps(t.size - 1)
+    cuts = np.flatnonzero(np.diff(per)) + 1
+    parts, xs = [x[0][None, :]], x
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, per.size]):
+        X = _compiled_run(model, t[a:b + 1], u[a:b + 1], disc.hold, th, xs, disc.method,
+                          int(per[a]))
+        if X is None:
+            return None
+        parts.append(X[1:])
+        xs = X[-1:]
+    return np.concatenate(parts)
+
+
+def _one_steps(step: _DiscSteps, xr: np.ndarray, held, th: np.ndarray,
+               t: np.ndarray) -> np.ndarray:
+    """States (N-1, n_x) one step (``step.of(k)``) after each reference state
+    ``xr[k]`` (k < N-1), over its own interval: one batched call per
+    distinct interval length and substeps (the same arithmetic as a call
+    per sample)."""
     dts = np.diff(t)
     out = np.empty((dts.size, xr.shape[1]))
+    per = np.full(dts.size, step.substeps) if step.per is None else step.per
     for dt in np.unique(dts):
-        ks = np.flatnonzero(dts == dt)
-        du = None if held.change is None else held.change[ks]
-        out[ks] = step(xr[ks], held.start[ks], th, dt, du)
+        for n in np.unique(per[dts == dt]):
+            ks = np.flatnonzero((dts == dt) & (per == n))
+            du = None if held.change is None else held.change[ks]
+            out[ks] = step.of(int(ks[0]))(xr[ks], held.start[ks], th, dt, du)
+    return out
+
+
+#: the reference of :func:`sigma_point_errors`: the filter's method at this
+#: many times the largest substeps under test
+SIGMA_REFERENCE_FACTOR = 8
+#: intervals per batch of :func:`sigma_point_errors` (memory bound)
+SIGMA_CHUNK = 2048
+
+
+def sigma_point_errors(model, t, u, theta, x_filt, P_filt, options: UKFOptions,
+                       substeps: Sequence[int], sigma) -> np.ndarray:
+    """Each interval's one-step output error at the filter's own sigma points.
+
+    The posterior sigma points at every sample k < N − 1 (the filtered
+    means ``x_filt`` and covariances ``P_filt`` of a stored run, the
+    filter's weights) go over interval k with each of ``substeps`` and
+    with a fine reference (the filter's method at
+    :data:`SIGMA_REFERENCE_FACTOR` times the largest of ``substeps``), the
+    inputs held as ``options`` say; the error of an interval is the
+    largest over its sigma points and the outputs of |Δh|/σ at sample
+    k + 1. Unlike :func:`discretisation_check`, measured along a
+    noise-free trajectory, this sees where the filter's sigma points
+    meet a stiff or non-smooth stretch (a friction law's zero crossing
+    that the mean passes by but its spread reaches).
+
+    Parameters
+    ----------
+    model : Model
+    t : array (N,)
+    u : array (N, n_u)
+    theta : array (n_theta,)
+    x_filt : array (N, n_x)
+    P_filt : array (N, n_x, n_x)
+    options : UKFOptions
+        The filter's sigma-point scaling, method, Jacobian and hold.
+    substeps : sequence of int (k,)
+    sigma : array (n_y,)
+        Output scale (noise std); an output with σ = inf is left out.
+
+    Returns
+    -------
+    ndarray (k, N − 1)
+        Errors in units of σ; inf where a propagation is not finite or a
+        posterior covariance cannot be factored.
+    """
+    opts = ukf_options(options)
+    t = np.asarray(t, float)
+    u = np.asarray(u, float).reshape(t.size, -1)
+    th = np.asarray(theta, float)[None, :]
+    sig = np.broadcast_to(np.asarray(sigma, float), (model.n_y,))
+    wts = merwe_weights(model.n_x, opts.alpha, opts.beta, opts.kappa)
+    jac = _ROS2_JACOBIAN[opts.jacobian]
+    counts = [int(n) for n in substeps]
+    steps = [make_step(model, opts.method, n, jacobian=jac) for n in counts]
+    ref_step = make_step(model, opts.method, SIGMA_REFERENCE_FACTOR * max(counts), jacobian=jac)
+    held = hold_inputs(u, opts.hold)
+    M, B = t.size - 1, 2 * model.n_x + 1
+    out = np.full((len(counts), M), np.inf)
+    dts = np.diff(t)
+    with np.errstate(all="ignore"):
+        for a in range(0, M, SIGMA_CHUNK):
+            ks = np.arange(a, min(a + SIGMA_CHUNK, M))
+            L, ok, _ = cholesky_batch(np.asarray(P_filt[ks], float), known=True)
+            chi, _ = sigma_points(np.asarray(x_filt[ks], float), L, wts.c)
+            for dt in np.unique(dts[ks]):
+                sel = np.flatnonzero((dts[ks] == dt) & ok)
+                if not sel.size:
+                    continue
+                k_sel = ks[sel]
+                X = chi[sel].reshape(-1, model.n_x)
+                U = np.repeat(held.start[k_sel], B, axis=0)
+                dU = None if held.change is None else np.repeat(held.change[k_sel], B, axis=0)
+                u1 = np.repeat(u[k_sel + 1], B, axis=0)
+                y_ref = model.h(ref_step(X, U, th, dt, dU), u1, th)
+                for i, step in enumerate(steps):
+                    d = np.abs(model.h(step(X, U, th, dt, dU), u1, th) - y_ref) / sig
+                    d = np.where(np.isnan(d), np.inf, d).max(axis=1).reshape(sel.size, B)
+                    out[i, k_sel] = d.max(axis=1)
     return out
 
 
@@ -1016,7 +1159,7 @@ def nll_guard(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | 
         return float(ukf_nll(model, t, u, y, th, x0, P0, options=o, Q=Q, R=R).nll[0])
 
     value = at(opts) if nll is None else float(nll)
-    ref = at(replace(opts, method="rk4", substeps=GUARD_SUBSTEPS))
+    ref = at(replace(opts, method="rk4", substeps=GUARD_SUBSTEPS, refine=()))
     out = dict(nll=value, nll_reference=ref, rel_diff=_rel_diff(value, ref), ok=True,
                substeps_needed=None, tried={}, reference=f"rk4({GUARD_SUBSTEPS})")
     out["ok"] = bool(out["rel_diff"] <= GUARD_REL)

@@ -101,6 +101,7 @@ import numpy as np
 
 from bondgraph.core.codegen_numba import padded_points
 from bondgraph.core.progress import announced
+from bondgraph.inference.options import interval_substeps
 from bondgraph.numerics.compiled import ahead_workers, cache_dir
 from bondgraph.numerics.integrators import GAMMA, hold_inputs, is_per_input, split_hold
 
@@ -175,8 +176,10 @@ Work = namedtuple("Work", ["L", "D", "mean", "cov", "xs", "xt", "k1", "k2",
                            "YTf"])
 
 
-#: the record as the kernel takes it: t (N,), u (N, n_u), y (N, n_y)
-Record = namedtuple("Record", ["t", "u", "y"])
+#: the record as the kernel takes it: t (N,), u (N, n_u), y (N, n_y), ns
+#: (N,): the substeps of the interval from each sample to the next (the
+#: last entry unused; :func:`interval_counts`)
+Record = namedtuple("Record", ["t", "u", "y", "ns"])
 #: the parameter sets of one kernel call, one row each (A sets): th
 #: (A, n_theta), x0 (A, n_x), P0 (A, n_x, n_x), q2 (A, n_x); Rd (A, n_y) or
 #: one shared row, R and Q (A, ., .) or one shared matrix (codes use_R,
@@ -741,12 +744,12 @@ def _rk4_shared(fcols, u, k, hold, th, h, nsub, wk):
 
 
 @_jit_inline
-def _transition(fns, u, k, th, dt, ip, wk):
+def _transition(fns, u, k, th, dt, nsub, ip, wk):
     """Every sigma point (the columns of wk.XT) through the transition over
-    interval k, in place (:func:`bondgraph.numerics.integrators.make_step`);
+    interval k (``nsub`` substeps), in place (:func:`bondgraph.numerics.integrators.make_step`);
     ``fns``: the model's point kernels (:func:`point_fns`)."""
     f, _, fj, fcols, _ = fns
-    method, nsub, jac, hold = ip[0], ip[1], ip[2], ip[3]
+    method, jac, hold = ip[0], ip[2], ip[3]
     h = dt / nsub
     n = wk.XT.shape[0]
     npt = 2 * n + 1
@@ -780,9 +783,10 @@ def _transition(fns, u, k, th, dt, ip, wk):
 
 # ------------------------------------------------------------ predict / update
 @_jit_inline
-def _predict(fns, x, P, u, k, th, dt, q2, Q, opts, wk):
-    """Prediction over interval k (to sample k + 1) in place; 0 or a failure
-    code (``fns``: :func:`point_fns`; ``opts``: (ip, fp) of :func:`_kernel_py`)."""
+def _predict(fns, x, P, u, k, th, dt, nsub, q2, Q, opts, wk):
+    """Prediction over interval k (to sample k + 1, ``nsub`` substeps) in
+    place; 0 or a failure code (``fns``: :func:`point_fns`; ``opts``: (ip,
+    fp) of :func:`_kernel_py`)."""
     ip, fp = opts
     n = x.shape[0]
     r = _chol(P, n, wk.L, True, wk.skip)
@@ -790,7 +794,7 @@ def _predict(fns, x, P, u, k, th, dt, q2, Q, opts, wk):
         return 1
     wk.nreg[0] += r == 2
     _sigma(x, wk.L, fp[0], wk.XT)
-    _transition(fns, u, k, th, dt, ip, wk)
+    _transition(fns, u, k, th, dt, nsub, ip, wk)
     if not _all_finite(wk.XT, n, 2 * n + 1):
         return 3
     _moments(wk.XT, n, fp[1], fp[2], x, P, wk.D)
@@ -994,7 +998,7 @@ def _filter_one(a, fns, rec, sets, opts, out, st, buf, ibuf):
     storage into ``st`` (:func:`_store_arrays`). ``fns``: :func:`point_fns`;
     ``opts``: (ip, fp) (:func:`_kernel_py`); ``buf``, ``ibuf``: the set's
     rows of the work buffers."""
-    t, u, y = rec
+    t, u, y, ns = rec
     th, x0, P0, q2, Rd, R, Q, act = sets
     ip = opts[0]
     out_f, out_i = out
@@ -1021,7 +1025,8 @@ def _filter_one(a, fns, rec, sets, opts, out, st, buf, ibuf):
             yk[j] = y[k, j]
         code = 0
         if k > 0:
-            code = _predict(fns, x, P, u, k - 1, tha, t[k] - t[k - 1], q2a, Qa, opts, wk)
+            code = _predict(fns, x, P, u, k - 1, tha, t[k] - t[k - 1], ns[k - 1], q2a, Qa,
+                            opts, wk)
         if code == 0 and _any_finite(yk):
             term, maha, m, code = _update(hcols, x, P, tha, uk, yk, Rda, Ra, opts, wk)
             if code == 0:
@@ -1073,7 +1078,7 @@ def _signature():
     # f_cols and h_cols take flat vectors, like the point kernels
     fns = types.Tuple((point, point, jac, point, point))
     store = types.Tuple((A3, A4, A3, A3, A3, A4, M, M))
-    return types.void(fns, types.NamedTuple((V, M, M), Record),
+    return types.void(fns, types.NamedTuple((V, M, M, I), Record),
                       types.NamedTuple((M, M, A3, M, M, A3, A3, I), Sets), types.Tuple((I, V)),
                       types.NamedTuple((V, IM), Outputs), store, types.Tuple((M, IM)))
 
@@ -1292,6 +1297,16 @@ def _store_arrays(kept) -> tuple:
             kept.nll_terms, kept.nis)
 
 
+def interval_counts(opts, samples: int) -> np.ndarray:
+    """The kernel's ``ns`` (samples,) int64: the substeps of the interval
+    from each sample to the next (:func:`bondgraph.inference.options.interval_substeps`
+    of ``opts``; the last entry, no interval, ``opts.substeps``)."""
+    ns = np.full(max(int(samples), 1), opts.substeps, dtype=np.int64)
+    if opts.refine and samples > 1:
+        ns[:-1] = interval_substeps(opts, samples - 1)
+    return ns
+
+
 def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
     """Filter the active sets of ``batch`` (a
     :class:`bondgraph.inference.ukf.FilterBatch` after its start checks) with
@@ -1327,7 +1342,9 @@ def run(kernels, t, u, y, batch, opts, wts, kept) -> float:
     out_f, out_i = np.empty(A), np.empty((A, 3), dtype=np.int64)
     per_set = [c(batch.th, dtype=float), c(batch.x, dtype=float), c(batch.P, dtype=float),
                c(batch.q2, dtype=float)]
-    fns, rec = point_fns(kernels), Record(c(t, dtype=float), c(u, dtype=float), c(y, dtype=float))
+    fns = point_fns(kernels)
+    rec = Record(c(t, dtype=float), c(u, dtype=float), c(y, dtype=float),
+                 interval_counts(opts, t.size))
     nf, ni = _work_size(n, ny, u.shape[1], batch.th.shape[1])
     act, st = c(batch.act, dtype=np.int64), _store_arrays(kept)
     T = min(threads(), A)
@@ -1408,7 +1425,9 @@ class StepKernel:
         self._mean = np.array([h == "mean" for h in holds], dtype=bool)
         self._lin = np.array([h == "linear" for h in holds], dtype=bool)
         self.t, self.u, self.y = np.zeros(2), u0, np.full((2, ny), np.nan)
-        self.recs = (Record(self.t[1:], self.u[1:], self.y[1:]), Record(self.t, self.u, self.y))
+        ns = np.full(2, opts.substeps, dtype=np.int64)
+        self.recs = (Record(self.t[1:], self.u[1:], self.y[1:], ns[1:]),
+                     Record(self.t, self.u, self.y, ns))
         R = c(batch.R, dtype=float) if batch.R is not None else np.zeros((1, ny, ny))
         Rd = c(batch.Rd, dtype=float) if batch.Rd is not None else np.zeros((1, ny))
         Q = c(batch.Q, dtype=float) if batch.Q is not None else np.zeros((1, n, n))
