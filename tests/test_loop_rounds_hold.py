@@ -1,6 +1,7 @@
 """The free run's input hold (``LoopSettings.free_run.hold``) and confirmation in
 rounds (``LoopSettings.search.confirm_rounds``), against hand-derived references."""
 
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -145,6 +146,8 @@ def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
     calls = []
     monkeypatch.setattr(runner, "recommended_substeps", lambda ctx, fit, limit=0.1:
                         (6.7, 16) if ctx.problem.disc.substeps == 1 else (0.05, None))
+    monkeypatch.setattr(runner, "refined_discretisation", lambda ctx, fit, n:
+                        (replace(ctx.problem.disc, substeps=n), ""))
     monkeypatch.setattr(runner, "initial_fit",
                         lambda ctx, graph, again=False: calls.append(ctx.problem.disc.substeps) or "refit")
     model = Model.from_graph(mass_spring_damper())
@@ -159,6 +162,32 @@ def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
         assert (warn[0].startswith("auto_substeps: ") and "takes 16 substeps" in warn[0]
                 if auto else "use --substeps 16" in warn[0])
         assert (ctx.problem.disc.substeps, calls) == ((16, [16]) if auto else (1, []))
+
+
+def test_auto_substeps_adopts_refined_runs_and_says_where(monkeypatch):
+    """Where the refinement meets the check (:func:`refined_discretisation`),
+    the loop keeps its substeps and takes the recommended ones on the runs
+    of intervals that need them: the problem carries the runs, the refit
+    runs on it, and the line says where."""
+    runs = ((3, 9, 16),)
+    note = " on the 6 of 19 intervals that need them"
+    seen = []
+    monkeypatch.setattr(runner, "recommended_substeps", lambda ctx, fit, limit=0.1:
+                        (6.7, 16) if not ctx.problem.disc.refine else (0.05, None))
+    monkeypatch.setattr(runner, "refined_discretisation", lambda ctx, fit, n:
+                        (replace(ctx.problem.disc, refine=runs), note))
+    monkeypatch.setattr(runner, "initial_fit", lambda ctx, graph, again=False:
+                        seen.append(ctx.problem.disc) or "refit")
+    model = Model.from_graph(mass_spring_damper())
+    exp = Experiment.from_arrays(np.arange(20) * 0.05, model=model, u=np.zeros((20, 1)),
+                                 y=np.zeros((20, 2)), name="rest")
+    ctx = Context.on(exp, LoopSettings(params=[], search=SearchOptions(auto_substeps=True)), model,
+                     lambda s: None, False)
+    fit, warn = runner.resolved_fit(ctx, None, "declared")
+    assert fit == "refit" and f"takes 16 substeps per sample{note} from the declared" in warn[0]
+    assert ctx.problem.disc.substeps == 1 and ctx.problem.disc.refine == runs
+    assert seen == [ctx.problem.disc]
+    assert ctx.problem.disc.interval_substeps(19).tolist() == [1] * 3 + [16] * 6 + [1] * 10
 
 
 def test_discretisation_error_is_measured_in_the_innovation_std_when_it_is_larger():

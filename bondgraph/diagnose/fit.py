@@ -38,6 +38,7 @@ from bondgraph.diagnose.inference_calls import (
     moves_meas_std,
     no_process_noise,
     noise_parameters,
+    interval_errors,
     one_step_errors,
     plan_noise,
     relative_direction,
@@ -50,7 +51,8 @@ from bondgraph.diagnose.residuals import analyze
 from bondgraph.diagnose.result import FitSummary
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import BondGraphError, NumericalError
-from bondgraph.inference.discretise import SUBSTEPS
+from bondgraph.inference.discretise import REFINE_MARGIN, SUBSTEPS, refined_runs
+from bondgraph.inference.options import Discretisation, most_substeps
 from bondgraph.core.equations import derive
 from bondgraph.numerics.admissible import Admissibility, check_admissible, without_inherited
 from bondgraph.numerics.model import Model
@@ -935,7 +937,7 @@ def continued_state(ctx: Context, problem: Problem, vp: Problem, theta: np.ndarr
         return None
     hold, u2 = sim_inputs(ctx.settings, vp.disc.hold, np.vstack([u[-1:], uv[:1]]))
     uk, duk = hold_inputs(u2, hold).interval(0)
-    step = make_step(model, vp.disc.method, FINE_SUBSTEPS * int(vp.disc.substeps))
+    step = make_step(model, vp.disc.method, FINE_SUBSTEPS * most_substeps(vp.disc))
     th = np.asarray(theta, float)[None, :]
     with np.errstate(all="ignore"):
         x1 = step(x[None, :], uk[None], th, float(tv[0] - t[-1]),
@@ -1575,3 +1577,66 @@ def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[fl
     more = [n for n in SUBSTEP_LADDER if n > pb.disc.substeps]
     errs = one_step_errors(pb, fit.theta, more, sig, ref) if more else []
     return worst, next((n for n, e in zip(more, errs) if e <= limit), None)
+
+
+#: a refined discretisation is taken where its intervals' substeps average
+#: at most this share of the uniform choice's (:func:`refined_discretisation`)
+REFINE_SHARE = 0.75
+#: the largest one-step error of an interval at the filter's sigma points
+#: that the refinement leaves, in noise stds (a third of the check's 0.1:
+#: the uniform choice leaves most intervals far below it)
+REFINE_LIMIT = 0.03
+#: ... and where its NLL at the fit is within this many nats of the uniform
+#: choice's (the likelihood ratio of one degree of freedom at 5 % is 3.84)
+REFINE_NLL_TOL = 0.25
+#: the margins (intervals either side) tried in turn
+REFINE_MARGINS = (REFINE_MARGIN, 4 * REFINE_MARGIN)
+
+
+def refined_discretisation(ctx: Context, fit: Fit, n: int,
+                           limit: float = REFINE_LIMIT) -> tuple[Discretisation, str]:
+    """``(discretisation, note)``: what the filter takes where
+    :func:`recommended_substeps` asks for ``n`` substeps at ``fit``: the
+    current substeps with ``n`` or fewer on the intervals that need them
+    (:func:`bondgraph.inference.discretise.refined_runs`, each interval's
+    own error at the filter's sigma points within ``limit``,
+    :meth:`Problem.interval_errors`, with a margin either side), where that
+    saves at least a quarter of the filter's steps
+    (:data:`REFINE_SHARE`) and its NLL at ``fit`` agrees with ``n``
+    substeps throughout within :data:`REFINE_NLL_TOL` (the sigma points
+    meet the refined stretches where the reference does; a wider margin is
+    tried before giving up, :data:`REFINE_MARGINS`); else ``n`` throughout.
+    ``note`` says which, for the log line (empty for ``n`` throughout)."""
+    pb = problem_for(ctx, fit.model)
+    d = pb.disc
+    uniform = replace(d, substeps=int(n))
+    M = pb.t.size - 1
+    ladder = [d.substeps] + [k for k in SUBSTEP_LADDER if d.substeps < k <= n]
+    if M < 2 * REFINE_MARGIN + 2 or len(ladder) < 2:
+        return uniform, ""
+    with np.errstate(all="ignore"):
+        errors = interval_errors(pb, fit.theta, ladder, error_scale(pb, fit))
+    if errors is None:
+        return uniform, ""
+    base = d.interval_substeps(M) if d.refine else None
+    full = float(np.mean(uniform.interval_substeps(M)))
+    nll_uniform = None
+    for margin in REFINE_MARGINS:
+        runs = refined_runs(errors, ladder, limit, margin=margin, base=base)
+        if not runs:
+            return uniform, ""
+        cand = replace(d, refine=runs)
+        per = cand.interval_substeps(M)
+        if float(np.mean(per)) > REFINE_SHARE * full:
+            return uniform, ""
+        if nll_uniform is None:
+            nll_uniform = float(run_ukf(pb.conditioned_on(disc=uniform),
+                                        fit.theta[None, :]).nll[0])
+        nll = float(run_ukf(pb.conditioned_on(disc=cand), fit.theta[None, :]).nll[0])
+        if np.isfinite(nll_uniform) and abs(nll - nll_uniform) <= REFINE_NLL_TOL:
+            k = int(np.count_nonzero(per > d.substeps))
+            return cand, (f" on the {k} of {M} intervals that need them ({len(runs)} "
+                          f"run{'s' if len(runs) > 1 else ''}, {margin} intervals either side; "
+                          f"{d.substeps} elsewhere: the NLL at the fit {nll:.2f}, "
+                          f"{nll_uniform:.2f} with {n} throughout)")
+    return uniform, ""

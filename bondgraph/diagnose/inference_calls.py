@@ -34,7 +34,7 @@ from bondgraph.inference.fisher import (
     scoring_steps,
 )
 from bondgraph.inference.optimize import minimize_batched
-from bondgraph.inference.options import Evaluation, ScoringOptions
+from bondgraph.inference.options import Evaluation, ScoringOptions, most_substeps
 from bondgraph.inference.output_error import OutputErrorOptions, output_error_fit
 from bondgraph.inference.problem import NoiseSpec, Problem, make_problem
 from bondgraph.inference.robust import (
@@ -85,7 +85,7 @@ def fine_free_run(problem: Problem, u: np.ndarray, hold: str, theta: np.ndarray,
     (:func:`bondgraph.numerics.integrators.simulate_batch`).
     """
     model, d = problem.model, problem.disc
-    sub = FINE_SUBSTEPS * int(d.substeps)
+    sub = FINE_SUBSTEPS * most_substeps(d)
     return fixed_step_outputs(model, problem.t, u, theta, x0, d.method, sub, hold, d.backend)
 
 
@@ -306,13 +306,22 @@ def output_error(problem: Problem, names: Sequence[str], theta: np.ndarray):
     held input: one ``solve_ivp`` per sample) the fit took 14 s by LSODA."""
     t, u, y = problem.arrays
     hold = problem.disc.hold
-    fine = OutputErrorOptions(hold=hold, substeps=FINE_SUBSTEPS * int(problem.disc.substeps))
+    fine = OutputErrorOptions(hold=hold, substeps=FINE_SUBSTEPS * most_substeps(problem.disc))
     try:
         return output_error_fit(problem.model, t, u, y, list(names), theta=theta,
                                 x0=problem.x0, options=fine)
     except NumericalError:
         return output_error_fit(problem.model, t, u, y, list(names), theta=theta,
                                 x0=problem.x0, options=OutputErrorOptions(hold=hold))
+
+
+def interval_errors(problem: Problem, theta: np.ndarray, substeps,
+                    sigma=None) -> np.ndarray | None:
+    """:meth:`Problem.interval_errors`: each interval's one-step
+    discretisation error (k, N − 1) at the filter's sigma points with each
+    of ``substeps`` (k,), in units of ``sigma`` (n_y,); None when the
+    filter fails."""
+    return problem.interval_errors(theta, substeps, sigma=sigma)
 
 
 def one_step_errors(problem: Problem, theta: np.ndarray, substeps, sigma=None,

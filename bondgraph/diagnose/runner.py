@@ -64,6 +64,7 @@ from bondgraph.diagnose.fit import (
     planned_noise,
     problem_for,
     recommended_substeps,
+    refined_discretisation,
     validation_problem,
 )
 from bondgraph.diagnose.inference_calls import (
@@ -908,7 +909,8 @@ def check_declared_fit(fit: Fit) -> None:
 
 def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
                          checked: tuple[float, int | None] | None = None,
-                         where: str = "the declared fit", adopt: bool = False) -> list[str]:
+                         where: str = "the declared fit", adopt: bool = False,
+                         how: str = "") -> list[str]:
     """The filter's discretisation error at ``fit`` (``where``: the declared
     fit, or an accepted one)
     (:func:`bondgraph.inference.ukf.discretisation_check` with the loop's
@@ -919,7 +921,8 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
     :data:`SUBSTEP_LADDER` that bring it below (``checked``: the result of
     :func:`recommended_substeps` if already known): a warning recommending
     them, or with ``adopt`` (``auto_substeps``, a recommendation found) the
-    note that the loop takes them from here on."""
+    note that the loop takes them from here on (``how``: where, the note of
+    :func:`~bondgraph.diagnose.fit.refined_discretisation`)."""
     worst, rec = recommended_substeps(ctx, fit, limit) if checked is None else checked
     if not worst > limit:
         return []
@@ -927,8 +930,8 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
     error = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} "
              f"noise stds per sample at {where}")
     if adopt and rec:
-        msg = (f"auto_substeps: {error}; the filter takes {rec} substeps per sample from "
-               f"{where} on")
+        msg = (f"auto_substeps: {error}; the filter takes {rec} substeps per sample{how} "
+               f"from {where} on")
         ctx.log(msg)
         return [msg]
     msg = (f"{error} (a model error that biases the fit and the "
@@ -938,6 +941,19 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
              "SearchOptions(auto_substeps=True))")
     ctx.log("warning: " + msg)
     return [msg]
+
+
+def _adopted(ctx: Context, fit: Fit, checked: tuple[float, int | None],
+             auto: bool) -> tuple:
+    """``(discretisation, note)`` the loop takes when ``auto`` and
+    :func:`recommended_substeps` (``checked``) found substeps that meet the
+    check: those on the intervals that need them, or throughout
+    (:func:`~bondgraph.diagnose.fit.refined_discretisation`); else
+    ``(None, "")``."""
+    worst, n = checked
+    if not (auto and n is not None and worst > 0.1):
+        return None, ""
+    return refined_discretisation(ctx, fit, n)
 
 
 def fit_after_discretisation_check(
@@ -968,14 +984,15 @@ def fit_after_discretisation_check(
     2 substeps, the model the loop went on with, read 0.4516), else None."""
     checked = recommended_substeps(ctx, fit)
     auto = ctx.settings.search.auto_substeps
+    disc, how = _adopted(ctx, fit, checked, auto)
     warn = check_discretisation(ctx, fit, checked=checked, where=f"the fit with {label}",
-                                adopt=auto)
+                                adopt=auto, how=how)
     result.warnings.extend(warn)
     n = checked[1]
     if not (warn and auto) or n is None:
         return fit, None
     before = ctx.problem
-    ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
+    ctx.problem = ctx.problem.conditioned_on(disc=disc)
     ctx.cache.clear()
     refit = fit_model(ctx, fit.graph, list(fit.params), fit.estimates(),
                       f"{label} at {n} substeps", model=fit.model)
@@ -1013,11 +1030,12 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     refitted (logged)."""
     checked = recommended_substeps(ctx, initial)
     auto = ctx.settings.search.auto_substeps
-    warn = check_discretisation(ctx, initial, checked=checked, adopt=auto)
+    disc, how = _adopted(ctx, initial, checked, auto)
+    warn = check_discretisation(ctx, initial, checked=checked, adopt=auto, how=how)
     n = checked[1]
     if not (warn and auto) or n is None:
         return initial, warn
-    ctx.problem = ctx.problem.conditioned_on(disc=replace(ctx.problem.disc, substeps=n))
+    ctx.problem = ctx.problem.conditioned_on(disc=disc)
     ctx.cache.clear()
     return initial_fit(ctx, graph, again=True), warn
 

@@ -46,6 +46,7 @@ from bondgraph.diagnose.fit import Context, Fit, noise_params
 from bondgraph.diagnose.metric import nrmse
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError
+from bondgraph.inference.options import most_substeps
 from bondgraph.inference.output_error import OutputErrorOptions, swarm_output_error_fit
 
 #: free-run NRMSE of the current fit from which the screen runs (0.8: the
@@ -143,7 +144,7 @@ def global_output_error(ctx: Context, model, problem, phys: list[str], theta: np
     :class:`~bondgraph.inference.output_error.OutputErrorResult`, or None
     (logged) when the fit fails."""
     d = problem.disc
-    sub = int(d.substeps) * (1 if d.method == "rk4" else 2)
+    sub = most_substeps(d) * (1 if d.method == "rk4" else 2)
     opts = OutputErrorOptions(hold=d.hold, substeps=max(sub, 1))
     t, u, y = problem.t, problem.u, problem.y
     try:
