@@ -355,7 +355,8 @@ def test_options_validated_on_construction(msd_record):
                  fit=FitOptions(particles=4, iterations=1, progress=False, polish=False,
                                 hessian=False, check_discretisation=False))
     assert r.settings["ukf"] == dict(alpha=1.0, beta=2.0, kappa=0.0, method="rk4", substeps=2,
-                                     jacobian="mean", hold="zoh", backend=DEFAULT_BACKEND)
+                                     jacobian="mean", hold="zoh", backend=DEFAULT_BACKEND,
+                                     refine=())
     assert r.settings["particles"] == 4 and r.evaluations == 4 * 2
     json.loads(r.to_json())
 

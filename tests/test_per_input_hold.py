@@ -272,3 +272,8 @@ def test_the_report_says_how_each_input_was_held():
                               "zoh,linear (P zoh, T_a linear); free runs the filter's method at "
                               "4x its substeps, input hold zoh,linear.")
     assert LoopResult("m", None, None, "e", "aic", {}).numerics() is None
+    refined = LoopResult("m", None, None, "e", "aic",
+                         {"ukf": {"method": "rk4", "substeps": 2, "hold": "zoh",
+                                  "refine": [[3, 9, 8], [20, 22, 16], [30, 31, 2]]}})
+    assert refined.numerics() == ("Numerics: UKF with rk4(2; up to 16 on 8 intervals) per "
+                                  "sample at the start, input hold zoh.")

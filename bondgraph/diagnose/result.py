@@ -496,8 +496,11 @@ class LoopResult:
         parts = hold.split(",")
         each = (" (" + ", ".join(f"{n} {h}" for n, h in zip(names, parts)) + ")"
                 if len(parts) > 1 and len(parts) == len(names) else "")
-        line = (f"Numerics: UKF with {u.get('method')}({u.get('substeps')}) per sample at the "
-                f"start, input hold {hold}{each}")
+        runs = [r for r in u.get("refine") or () if r[2] > int(u.get("substeps") or 1)]
+        more = (f"; up to {max(r[2] for r in runs)} on {sum(r[1] - r[0] for r in runs)} "
+                f"intervals" if runs else "")
+        line = (f"Numerics: UKF with {u.get('method')}({u.get('substeps')}{more}) per sample at "
+                f"the start, input hold {hold}{each}")
         if fr:
             how = ("the filter's method at 4x its substeps" if fr.get("method") == "fine"
                    else f"solve_ivp {fr.get('method')}")
