@@ -101,11 +101,11 @@ def refined_runs(errors, ladder: Sequence[int], limit: float = TOLERANCE, *,
     error there is within ``limit``, held over ``margin`` intervals either
     side; the runs of intervals that take more than ``ladder[0]``.
 
-    A record's discretisation error is rarely spread over it: the EMPS
-    drive's Coulomb friction at RK4(2) exceeds 0.1 noise std on 19 of its
-    4967 intervals (its velocity's zero crossings), the coast-down
-    vehicle's ROS2(1) on 1 of 1600. One step count for the whole record,
-    the worst interval's, makes every other interval pay for them.
+    A record's discretisation error is often not spread over it: at the
+    filter's sigma points the EMPS drive's Coulomb friction at RK4(2)
+    exceeds 0.1 noise std on 46 of its 4967 intervals (around its
+    velocity's zero crossings). One step count for the whole record, the
+    worst interval's, makes every other interval pay for them.
 
     Parameters
     ----------
