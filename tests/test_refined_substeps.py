@@ -249,3 +249,18 @@ def test_sigma_point_errors_against_solve_ivp():
             y_rk4 = m.h(m.module.fx(s[None], dt, u[k], th, 1), u[k + 1], th[None])[0]
             worst = max(worst, float(np.max(np.abs(y_rk4 - y_ref) / sig)))
         assert got[0, k] == pytest.approx(worst, rel=1e-4)
+
+
+def test_the_tracking_filter_takes_refined_runs_throughout():
+    """The tracker filters parts of a record and streams samples: a
+    refinement made for a record's intervals is taken at its largest
+    substeps throughout."""
+    from bondgraph.catalog.reference import mass_spring_damper
+    from bondgraph.inference.options import TrackOptions
+    from bondgraph.inference.track import TrackingModel, filter_options
+
+    tm = TrackingModel.from_graph(mass_spring_damper(), ["c"])
+    opts = UKFOptions(method="rk4", substeps=2, refine=((3, 9, 8),))
+    for match in (False, True):
+        got = filter_options(opts, tm, TrackOptions(match_spread=match))
+        assert (got.substeps, got.refine, got.kappa) == (8, (), -1.0 if match else 0.0)

@@ -222,7 +222,11 @@ def tracking_prior(problem, tm: TrackingModel, start: Mapping[str, float] | None
 
 def filter_options(ukf: UKFOptions, tm: TrackingModel, options: TrackOptions) -> UKFOptions:
     """The UKF options of the tracking filter: the problem's, with κ' = κ − k
-    when ``options.match_spread`` (:class:`~bondgraph.inference.options.TrackOptions`)."""
+    when ``options.match_spread`` (:class:`~bondgraph.inference.options.TrackOptions`),
+    a refinement at its largest substeps throughout (:meth:`UKFOptions.uniform`:
+    the tracker filters parts of the record and streams samples, whose
+    intervals are not the record's)."""
+    ukf = ukf.uniform()
     if not options.match_spread:
         return ukf
     return replace(ukf, kappa=ukf.kappa - len(tm.tracked))
@@ -1056,7 +1060,7 @@ class Tracker:
         from bondgraph.inference.ukf import FilterBatch, ROS2_JACOBIAN
         from bondgraph.numerics.integrators import make_step
 
-        self.tm, self.opts = tm, ukf_options(ukf)
+        self.tm, self.opts = tm, ukf_options(ukf).uniform()     # no record: no refined runs
         m = tm.model
         self.wts = merwe_weights(m.n_x, self.opts.alpha, self.opts.beta, self.opts.kappa)
         self.step = make_step(m, self.opts.method, self.opts.substeps,
