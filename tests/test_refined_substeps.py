@@ -264,3 +264,24 @@ def test_the_tracking_filter_takes_refined_runs_throughout():
     for match in (False, True):
         got = filter_options(opts, tm, TrackOptions(match_spread=match))
         assert (got.substeps, got.refine, got.kappa) == (8, (), -1.0 if match else 0.0)
+
+
+def test_refined_runs_with_uneven_intervals_and_a_linear_hold():
+    """Sample intervals of three lengths, the first-order hold (each stage
+    sees the input at its own time): the compiled kernel and the numpy
+    filter agree, stored filtered states too; the smoother runs over it."""
+    m, t, u, y = _motor_record(N=70)
+    t = np.cumsum(np.r_[0.0, np.tile([0.002, 0.003, 0.0015], 23)])
+    th = np.array([m.theta0, 0.9 * m.theta0])
+    x0, P0 = np.zeros(m.n_x), np.diag([1e-4, 1e-8, 1e-4, 1e-6])
+    kw = dict(method="rk4", substeps=2, hold="linear", refine=((5, 17, 6), (40, 44, 12)))
+    a = ukf_nll(m, t, u, y, th, x0, P0, store=True, options=UKFOptions(backend="numpy", **kw))
+    b = ukf_nll(m, t, u, y, th, x0, P0, store=True, options=UKFOptions(backend="numba", **kw))
+    assert b.settings["backend_used"] == "numba" and np.isfinite(a.nll).all()
+    np.testing.assert_allclose(b.nll, a.nll, rtol=1e-9)
+    np.testing.assert_allclose(b.x_filt, a.x_filt, rtol=1e-8, atol=1e-12)
+    plain = ukf_nll(m, t, u, y, th, x0, P0, options=UKFOptions(method="rk4", substeps=2,
+                                                               hold="linear"))
+    assert np.all(np.abs(plain.nll - b.nll) > 1e-9 * np.abs(b.nll))
+    sm = rts_smooth(m, t, u, y, m.theta0, x0, P0, options=UKFOptions(**kw))
+    assert np.isfinite(sm.x).all() and sm.x.shape == (70, m.n_x)
