@@ -48,7 +48,7 @@ import numpy as np
 from numba import njit
 
 from bondgraph.errors import NumericalError
-from bondgraph.inference.options import UKFOptions, interval_substeps, ukf_options
+from bondgraph.inference.options import UKFOptions, ukf_options
 from bondgraph.inference.sigma import (
     cholesky_batch,
     merwe_weights,
@@ -393,8 +393,7 @@ def _predictions(model, t, u, th, xf, Pf, opts: UKFOptions):
     n, N = model.n_x, t.size
     wts = merwe_weights(n, opts.alpha, opts.beta, opts.kappa)
     step_of = interval_steps(model, opts, N - 1)
-    per = (interval_substeps(opts, N - 1) if opts.refine
-           else np.full(N - 1, opts.substeps, dtype=np.int64))
+    per = step_of.per
     held = hold_inputs(u, opts.hold)
     with np.errstate(all="ignore"):
         q2 = np.asarray(model.proc_std(th[None, :]), float)[0] ** 2

@@ -630,27 +630,38 @@ def ukf_nll(model, t, u, y, theta, x0=None, P0=None, *, options: UKFOptions | No
     return res
 
 
-def interval_steps(model, opts: UKFOptions, intervals: int) -> Callable[[int], Callable]:
-    """``step_of(k)``: the transition of the filter over interval k (of
-    ``intervals``; :func:`bondgraph.numerics.integrators.make_step` with
-    ``opts``' method, Jacobian and the interval's substeps: ``substeps``, or
-    a refined run's, :attr:`~bondgraph.inference.options.UKFOptions.refine`).
+class IntervalSteps:
+    """The transitions over a record's intervals of ``opts`` (a UKFOptions
+    or Discretisation: method, substeps, refined runs): ``self(k)`` the
+    step over interval k (:func:`bondgraph.numerics.integrators.make_step`
+    with ``jacobian``); ``per`` (intervals,) the substeps of each interval
+    (:func:`~bondgraph.inference.options.interval_substeps`)."""
+
+    def __init__(self, model, opts, intervals: int, jacobian: str = "once"):
+        self.per = interval_substeps(opts, intervals)
+        self.steps = {int(n): make_step(model, opts.method, int(n), jacobian=jacobian)
+                      for n in set(self.per.tolist()) | {int(opts.substeps)}}
+
+    def __call__(self, k: int) -> Callable:
+        return self.steps[int(self.per[k])]
+
+
+def interval_steps(model, opts, intervals: int) -> IntervalSteps:
+    """:class:`IntervalSteps` of ``opts`` (UKFOptions: its method, Jacobian,
+    substeps and refined runs, :attr:`~bondgraph.inference.options.UKFOptions.refine`;
+    a Discretisation: make_step's Jacobian once per step) over
+    ``intervals`` intervals.
 
     Raises
     ------
     OptionError
         A refined run beyond the record (:func:`~bondgraph.inference.options.interval_substeps`).
     """
-    jac = _ROS2_JACOBIAN[opts.jacobian]
-    if not opts.refine:
-        step = make_step(model, opts.method, opts.substeps, jacobian=jac)
-        return lambda k: step
-    per = interval_substeps(opts, intervals)
-    steps = {int(n): make_step(model, opts.method, int(n), jacobian=jac) for n in np.unique(per)}
-    return lambda k: steps[int(per[k])]
+    jac = _ROS2_JACOBIAN[opts.jacobian] if hasattr(opts, "jacobian") else "once"
+    return IntervalSteps(model, opts, intervals, jac)
 
 
-def _filter_numpy(model, batch: FilterBatch, step_of: Callable, t, u, u_held, y,
+def _filter_numpy(model, batch: FilterBatch, step_of: IntervalSteps, t, u, u_held, y,
                   wts: SigmaWeights, kept: "FilterStorage | None") -> None:
     """The numpy filter over the record (predict/update per sample for the
     whole batch; ``step_of(k)`` the transition over interval k,
@@ -785,7 +796,7 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
     x = (model.x0 if x0 is None else np.asarray(x0, float))[None, :]
     disc = Discretisation() if disc is None else disc
     hold = disc.hold
-    step = _disc_steps(model, disc, t.size - 1)
+    step = interval_steps(model, disc, t.size - 1)
     held = hold_inputs(u, hold)
     with np.errstate(all="ignore"):
         xr, ref = _reference_trajectory(model, t, u, hold, th, x, reference_method,
@@ -875,7 +886,7 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
                                 reference=None))
                 continue
             yr = model.h(xr[1:], u[1:], th)
-            step = _disc_steps(model, disc, t.size - 1)
+            step = interval_steps(model, disc, t.size - 1)
             held = hold_inputs(u, disc.hold)
             y1 = model.h(_one_steps(step, xr, held, th, t), u[1:], th)
             err = np.max(np.abs(y1 - yr) / sig, axis=0, initial=0.0)
@@ -899,37 +910,17 @@ def _free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig) -> np.nd
     ``disc.backend`` is numba (:func:`_compiled_run`, a refined
     discretisation's runs one stretch of equal substeps at a time; the
     numpy steps took 0.2-1 ms a sample, the choice of a long record's
-    discretisation tries several), else ``step`` (:func:`_disc_steps`)
+    discretisation tries several), else ``step`` (:func:`interval_steps`)
     sample by sample (the same steps; ROS2 agrees to rounding)."""
     X = (_compiled_stretches(model, t, u, disc, th, x) if disc.backend == "numba" else None)
     if X is None:
         xs, xf = [], x
         for k in range(t.size - 1):
             uk, duk = held.interval(k)
-            xf = step.of(k)(xf, uk, th, t[k + 1] - t[k], duk)
+            xf = step(k)(xf, uk, th, t[k + 1] - t[k], duk)
             xs.append(xf)
         X = np.concatenate([x] + xs)
     return (model.h(X[1:], u[1:], th) - yr) / sig
-
-
-class _DiscSteps:
-    """The steps of a discretisation over a record's intervals: ``of(k)``
-    the transition over interval k, ``per`` the substeps of each interval
-    (None: ``disc.substeps`` throughout)."""
-
-    def __init__(self, model, disc: Discretisation, intervals: int):
-        self.per = disc.interval_substeps(intervals) if disc.refine else None
-        counts = [disc.substeps] if self.per is None else np.unique(self.per)
-        self.steps = {int(n): make_step(model, disc.method, int(n)) for n in counts}
-        self.substeps = disc.substeps
-
-    def of(self, k: int) -> Callable:
-        return self.steps[self.substeps if self.per is None else int(self.per[k])]
-
-
-def _disc_steps(model, disc: Discretisation, intervals: int) -> _DiscSteps:
-    """:class:`_DiscSteps` of ``disc`` over ``intervals`` intervals."""
-    return _DiscSteps(model, disc, intervals)
 
 
 def _compiled_stretches(model, t, u, disc: Discretisation, th, x) -> np.ndarray | None:
@@ -951,20 +942,20 @@ def _compiled_stretches(model, t, u, disc: Discretisation, th, x) -> np.ndarray 
     return np.concatenate(parts)
 
 
-def _one_steps(step: _DiscSteps, xr: np.ndarray, held, th: np.ndarray,
+def _one_steps(step: IntervalSteps, xr: np.ndarray, held, th: np.ndarray,
                t: np.ndarray) -> np.ndarray:
-    """States (N-1, n_x) one step (``step.of(k)``) after each reference state
+    """States (N-1, n_x) one step (``step(k)``) after each reference state
     ``xr[k]`` (k < N-1), over its own interval: one batched call per
     distinct interval length and substeps (the same arithmetic as a call
     per sample)."""
     dts = np.diff(t)
     out = np.empty((dts.size, xr.shape[1]))
-    per = np.full(dts.size, step.substeps) if step.per is None else step.per
+    per = step.per
     for dt in np.unique(dts):
         for n in np.unique(per[dts == dt]):
             ks = np.flatnonzero((dts == dt) & (per == n))
             du = None if held.change is None else held.change[ks]
-            out[ks] = step.of(int(ks[0]))(xr[ks], held.start[ks], th, dt, du)
+            out[ks] = step(int(ks[0]))(xr[ks], held.start[ks], th, dt, du)
     return out
 
 
