@@ -220,6 +220,11 @@ def test_refined_runs_by_hand():
     E2 = E.copy()
     E2[2, 7] = 0.2                       # no rung meets the limit at interval 7
     assert refined_runs(E2, [1, 2, 4], lim) is None
+    # errors that do not fall with every substep: interval 3 meets the limit
+    # at 1 and 4 substeps, not at 2, which its neighbour 2 needs: it takes 4
+    E3 = E.copy()
+    E3[1, 3] = 0.2
+    assert refined_runs(E3, [1, 2, 4], lim, margin=1) == ((0, 4, 4), (6, 9, 4))
 
 
 def test_sigma_point_errors_against_solve_ivp():

@@ -1593,22 +1593,25 @@ REFINE_NLL_TOL = 0.25
 REFINE_MARGINS = (REFINE_MARGIN, 4 * REFINE_MARGIN)
 
 
-def refined_discretisation(ctx: Context, fit: Fit, n: int,
-                           limit: float = REFINE_LIMIT) -> tuple[Discretisation, str]:
+def refined_discretisation(ctx: Context, fit: Fit, n: int, limit: float = REFINE_LIMIT,
+                           check: float = 0.1) -> tuple[Discretisation, str]:
     """``(discretisation, note)``: what the filter takes where
     :func:`recommended_substeps` asks for ``n`` substeps at ``fit``: the
     current substeps with ``n`` or fewer on the intervals that need them
     (:func:`bondgraph.inference.discretise.refined_runs`, each interval's
-    own error at the filter's sigma points within ``limit``,
+    own error at the filter's sigma points within ``limit`` and along the
+    check's reference trajectory within ``check``,
     :meth:`Problem.interval_errors`, with a margin either side), where that
     saves at least a quarter of the filter's steps
     (:data:`REFINE_SHARE`) and its NLL at ``fit`` agrees with ``n``
     substeps throughout within :data:`REFINE_NLL_TOL` (errors spread thinly
     over the whole record add up in the NLL where no interval reaches the
     limit: on the coast-down record ROS2(1) is 16 nats from ROS2(3); a
-    wider margin is tried before giving up, :data:`REFINE_MARGINS`); else
-    ``n`` throughout. ``note`` says which, for the log line (empty for ``n``
-    throughout)."""
+    wider margin is tried before giving up, :data:`REFINE_MARGINS`), and
+    where the refined discretisation meets the loop's own check
+    (:func:`recommended_substeps`'s largest error within ``check``: the
+    loop never goes on with numerics that fail it); else ``n`` throughout.
+    ``note`` says which, for the log line (empty for ``n`` throughout)."""
     pb = problem_for(ctx, fit.model)
     d = pb.disc
     uniform = replace(d, substeps=int(n))
@@ -1616,15 +1619,18 @@ def refined_discretisation(ctx: Context, fit: Fit, n: int,
     ladder = [d.substeps] + [k for k in SUBSTEP_LADDER if d.substeps < k <= n]
     if M < 2 * REFINE_MARGIN + 2 or len(ladder) < 2:
         return uniform, ""
+    sig = error_scale(pb, fit)
     with np.errstate(all="ignore"):
-        errors = interval_errors(pb, fit.theta, ladder, error_scale(pb, fit))
-    if errors is None:
+        both = interval_errors(pb, fit.theta, ladder, sig)
+    if both is None:
         return uniform, ""
+    # an interval meets both rules where the larger of the two ratios is <= 1
+    errors = np.maximum(both[0] / limit, both[1] / check)
     base = d.interval_substeps(M) if d.refine else None
     full = float(np.mean(uniform.interval_substeps(M)))
     nll_uniform = None
     for margin in REFINE_MARGINS:
-        runs = refined_runs(errors, ladder, limit, margin=margin, base=base)
+        runs = refined_runs(errors, ladder, 1.0, margin=margin, base=base)
         if not runs:
             return uniform, ""
         cand = replace(d, refine=runs)
@@ -1634,8 +1640,10 @@ def refined_discretisation(ctx: Context, fit: Fit, n: int,
         if nll_uniform is None:
             nll_uniform = float(run_ukf(pb.conditioned_on(disc=uniform),
                                         fit.theta[None, :]).nll[0])
-        nll = float(run_ukf(pb.conditioned_on(disc=cand), fit.theta[None, :]).nll[0])
-        if np.isfinite(nll_uniform) and abs(nll - nll_uniform) <= REFINE_NLL_TOL:
+        refined = pb.conditioned_on(disc=cand)
+        nll = float(run_ukf(refined, fit.theta[None, :]).nll[0])
+        if (np.isfinite(nll_uniform) and abs(nll - nll_uniform) <= REFINE_NLL_TOL
+                and one_step_errors(refined, fit.theta, [d.substeps], sig)[0] <= check):
             k = int(np.count_nonzero(per > d.substeps))
             return cand, (f" on the {k} of {M} intervals that need them ({len(runs)} "
                           f"run{'s' if len(runs) > 1 else ''}, {margin} intervals either side; "

@@ -315,12 +315,11 @@ def output_error(problem: Problem, names: Sequence[str], theta: np.ndarray):
                                 x0=problem.x0, options=OutputErrorOptions(hold=hold))
 
 
-def interval_errors(problem: Problem, theta: np.ndarray, substeps,
-                    sigma=None) -> np.ndarray | None:
+def interval_errors(problem: Problem, theta: np.ndarray, substeps, sigma=None):
     """:meth:`Problem.interval_errors`: each interval's one-step
-    discretisation error (k, N − 1) at the filter's sigma points with each
-    of ``substeps`` (k,), in units of ``sigma`` (n_y,); None when the
-    filter fails."""
+    discretisation error (k, N − 1) with each of ``substeps`` (k,), at the
+    filter's sigma points and along the check's reference trajectory, in
+    units of ``sigma`` (n_y,); None when the filter fails."""
     return problem.interval_errors(theta, substeps, sigma=sigma)
 
 

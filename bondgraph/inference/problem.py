@@ -393,19 +393,26 @@ class Problem:
                                      sigma=sig, cache=cache)
         return np.array([float(np.max(e["one_step"], initial=0.0)) for e in errs])
 
-    def interval_errors(self, theta, substeps: Sequence[int], *, sigma=None) -> np.ndarray | None:
-        """Each interval's one-step output error (k, N − 1) at the filter's
-        own sigma points with each of ``substeps`` (k,) at ``theta``
-        (n_theta,), in units of ``sigma`` (default :meth:`noise_scale`):
-        :func:`bondgraph.inference.ukf.sigma_point_errors` along this
-        problem's filter at ``theta``; None when that filter fails."""
+    def interval_errors(self, theta, substeps: Sequence[int], *,
+                        sigma=None) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each interval's one-step output error (k, N − 1) with each of
+        ``substeps`` (k,) throughout at ``theta`` (n_theta,), in units of
+        ``sigma`` (default :meth:`noise_scale`): at the filter's own sigma
+        points (:func:`bondgraph.inference.ukf.sigma_point_errors` along
+        this problem's filter at ``theta``), and along the reference
+        trajectory of the discretisation check
+        (:func:`~bondgraph.inference.ukf.discretisation_errors`' ``intervals``,
+        from the prior mean). None when the filter fails."""
         th = np.asarray(theta, float)
         res = self.nll(th[None, :], store="full")
         if not np.isfinite(res.nll[0]):
             return None
         sig = self.noise_scale(th) if sigma is None else sigma
-        return sigma_point_errors(self.model, self.t, self.u, th, res.x_filt[:, 0],
-                                  res.P_filt[:, 0], self.ukf, substeps, sig)
+        at_sigma = sigma_point_errors(self.model, self.t, self.u, th, res.x_filt[:, 0],
+                                      res.P_filt[:, 0], self.ukf, substeps, sig)
+        discs = [replace(self.disc, substeps=int(n), refine=()) for n in substeps]
+        along = discretisation_errors(self.model, self.t, self.u, th, self.x0, discs, sigma=sig)
+        return at_sigma, np.array([e["intervals"] for e in along]).reshape(at_sigma.shape)
 
     def noise_scale(self, theta) -> np.ndarray:
         """The measurement-noise std of each output (n_y,) that errors are

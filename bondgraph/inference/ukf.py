@@ -852,7 +852,8 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
     -------
     list of dict
         Per candidate: ``one_step`` (n_y,), the max over samples of |Δy|/σ
-        for one step from the reference state; ``free_run_rss``, the root
+        for one step from the reference state, ``intervals`` (N − 1,) the
+        max over outputs of each sample's; ``free_run_rss``, the root
         sum over samples and outputs of (Δy/σ)² of the free run against the
         reference (NaN without ``free_run``); ``reference``, the reference
         method (None when none was finite: the errors are inf). A value that
@@ -883,17 +884,17 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
             xr, ref = refs[disc.hold]
             if ref is None:
                 out.append(dict(one_step=np.full(model.n_y, np.inf), free_run_rss=np.inf,
-                                reference=None))
+                                reference=None, intervals=np.full(t.size - 1, np.inf)))
                 continue
             yr = model.h(xr[1:], u[1:], th)
             step = interval_steps(model, disc, t.size - 1)
             held = hold_inputs(u, disc.hold)
-            y1 = model.h(_one_steps(step, xr, held, th, t), u[1:], th)
-            err = np.max(np.abs(y1 - yr) / sig, axis=0, initial=0.0)
+            dev = np.abs(model.h(_one_steps(step, xr, held, th, t), u[1:], th) - yr) / sig
+            dev = np.where(np.isnan(dev), np.inf, dev)
             rss = (_free_run_rss(model, disc, step, held, t, u, th, x, yr, sig) if free_run
                    else np.nan)
-            out.append(dict(one_step=np.where(np.isnan(err), np.inf, err),
-                            free_run_rss=rss, reference=ref))
+            out.append(dict(one_step=np.max(dev, axis=0, initial=0.0), free_run_rss=rss,
+                            reference=ref, intervals=np.max(dev, axis=1, initial=0.0)))
     return out
 
 
