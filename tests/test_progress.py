@@ -260,3 +260,50 @@ def test_a_long_silent_phase_keeps_one_line_and_adds_dots(capsys):
     assert re.fullmatch(r"  \.\.\. a refit \([01] s\)( \.){0,3}", lines[1]), lines[1]
     assert re.fullmatch(r"  \.\.\. step 2: confirming \([12] s\)( \.)*", lines[2]), lines[2]
     assert got.err.endswith("\n")
+
+
+def test_the_estimation_names_each_of_its_stages_for_the_watchdog(monkeypatch):
+    """``estimate`` runs its stages inside named phases, so a log or a pipe
+    reads what a long stretch is doing instead of "working" (a user's EMPS
+    estimate: 110 s of "... working" while the swarm ran): the start's
+    noise levels, the global search with its population and iterations
+    (10 k particles by default), the polish, the Hessian, the check at the
+    estimate, in that order."""
+    import warnings
+
+    import numpy as np
+
+    from bondgraph.errors import IdentifiabilityWarning
+    from bondgraph.inference.estimate import estimate, search_text
+    from bondgraph.inference.options import FitOptions, UKFOptions
+    from bondgraph.inference.prior import PriorSpec
+    from bondgraph.inference.problem import NoiseSpec, make_problem
+    from bondgraph.numerics.model import Model
+
+    entered = []
+    real = progress.phase
+
+    def recording(what):
+        entered.append(what)
+        return real(what)
+    monkeypatch.setattr(progress, "phase", recording)
+    m = Model.load("mass_spring_damper")
+    t = np.arange(120) * 0.02
+    u = np.repeat(np.random.default_rng(1).normal(0.0, 20.0, 6), 20)[:, None]
+    y = np.zeros((t.size, m.n_y))           # the stages, not the numbers, are tested
+    pb = make_problem(m, (t, u, y), prior=PriorSpec(P0=np.diag([1e-8, 1e-10])),
+                      noise=NoiseSpec("auto"), ukf=UKFOptions(method="rk4", substeps=1))
+    fit = FitOptions(iterations=2, seed=0, progress=False)
+    with warnings.catch_warnings():         # a record of zeros: its fit's warnings are not tested
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        estimate(pb, ["k", "c"], fit=fit)
+    k = 2 + m.n_y                           # k, c and each output's noise level
+    assert search_text(fit, k) == (f"global search over {k} quantities (particle swarm, "
+                                   f"{10 * k} particles, up to 2 iterations)")
+    assert search_text(FitOptions(optimizer="de", iterations=0), 3) == (
+        "global search over 3 quantities (differential evolution, 30 members, its first "
+        "population only)")
+    assert entered == ["profiling the start's noise levels", search_text(fit, k),
+                       "polishing the search's best point (Fisher scoring, then L-BFGS-B)",
+                       "the Hessian and the standard errors at the estimate",
+                       "checking the filter's discretisation at the estimate"], entered

@@ -34,6 +34,7 @@ from bondgraph.cli.common import (
     problem_from_args,
     published,
 )
+from bondgraph.core import progress
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import (EstimationError, IdentifiabilityWarning, NumericalError,
                               OptionError, UsageError)
@@ -113,9 +114,10 @@ def run(args) -> int:
     """
     if args.fit != "sim" and args.backend == "numba":
         compile_in_background()     # the filter kernel, once per installation, beside the set-up
-    model = load_model(args.model)
     paths = list(args.data)
-    exps = [band_limited_record(load_record(pth, model), model, args) for pth in paths]
+    with progress.phase("loading the model and the records"):
+        model = load_model(args.model)
+        exps = [band_limited_record(load_record(pth, model), model, args) for pth in paths]
     params = (parse_params(args.params, model) if args.params
               else default_params(args.model, model, "estimate"))
     stems = "_".join(Path(pth).stem for pth in paths)
@@ -170,8 +172,9 @@ def _chosen_at_start(args, problem, params, states, say, *, hold: str | None = N
     estimate is checked again with its own levels (:func:`_refined`): a
     fit that gets closer than the start's misfit refits with a finer
     step. ``--fit sim`` estimates no level: the first choice stands."""
-    return chosen_at_levels(args, problem, params, states, say, hold=hold, why=why,
-                            where=where, profile=args.fit != "sim")
+    with progress.phase(f"choosing the filter's discretisation {where}"):
+        return chosen_at_levels(args, problem, params, states, say, hold=hold, why=why,
+                                where=where, profile=args.fit != "sim")
 
 
 def _say_for(path, paths):
@@ -185,13 +188,14 @@ def _say_for(path, paths):
 def _plots(model, exps, res, problems, paths, d: Path) -> list:
     """The fit plots (:func:`plot_fit`): one pair per record, prefixed with
     the record's file name when there are several."""
-    if len(exps) == 1:
-        return list(plot_fit(model, exps[0], res, d, P0=problems[0].P0))
-    out = []
-    for pth, exp, pb in zip(paths, exps, problems):
-        out += plot_fit(model, exp, res, d, x0=pb.x0, P0=pb.P0, options=pb.ukf,
-                        prefix=f"{Path(pth).stem}_")
-    return out
+    with progress.phase("drawing the fit plots (a filter and a smoother pass per record)"):
+        if len(exps) == 1:
+            return list(plot_fit(model, exps[0], res, d, P0=problems[0].P0))
+        out = []
+        for pth, exp, pb in zip(paths, exps, problems):
+            out += plot_fit(model, exp, res, d, x0=pb.x0, P0=pb.P0, options=pb.ukf,
+                            prefix=f"{Path(pth).stem}_")
+        return out
 
 
 #: refits of an estimate after its discretisation failed at the estimate
@@ -247,18 +251,24 @@ def _refined(args, chosen, problems, res, params, fit, states, paths):
             if choice is None or not np.isfinite(res.nll):
                 continue
             ahead = None if before is None else heading(problems[i].model, before, res.theta)
-            agains[i], redo = _recheck(args, problems[i], res, _say_for(paths[i], paths), ahead,
-                                       why=choice.hold_reason)
+            with progress.phase("checking the filter's discretisation at the estimate"):
+                agains[i], redo = _recheck(args, problems[i], res, _say_for(paths[i], paths),
+                                           ahead, why=choice.hold_reason)
             if redo:
                 problems[i], refit = problems[i].conditioned_on(disc=agains[i].disc), True
                 anew = anew or redo == "anew"
         if not refit:
             break
         before = res.theta
+        steps = ", ".join(sorted({pb.disc.describe() for pb in problems}))
         if anew:        # the estimate lived on the step's error: no start to polish
-            res = _estimate_quiet(problems, params, replace(fit, resume=False), states, None)
+            with progress.phase(f"estimating again with {steps} (the search anew)"):
+                res = _estimate_quiet(problems, params, replace(fit, resume=False), states,
+                                      None)
         else:
-            res = _estimate_quiet(problems, params, local, states, None, start=res.estimates)
+            with progress.phase(f"refitting from the estimate with {steps}"):
+                res = _estimate_quiet(problems, params, local, states, None,
+                                      start=res.estimates)
     return res, problems, agains
 
 
@@ -292,9 +302,10 @@ def _likelier_hold(args, chosen, problems, res, agains, params, fit, states, pat
         other.append(_chosen_at_start(args, pb, params, states, _say_for(pth, paths),
                                       hold=alt, why=why, where="at the start θ, the other hold"))
     try:
-        res2 = _estimate_quiet([pb for pb, _ in other], params,
-                               replace(fit, checkpoint=None, resume=False), states,
-                               None if args.quiet else _say)
+        with progress.phase("estimating under the other input hold"):
+            res2 = _estimate_quiet([pb for pb, _ in other], params,
+                                   replace(fit, checkpoint=None, resume=False), states,
+                                   None if args.quiet else _say)
         res2, problems2, agains2 = _refined(args, other, [pb for pb, _ in other], res2, params,
                                             fit, states, paths)
     except (EstimationError, NumericalError, np.linalg.LinAlgError) as exc:

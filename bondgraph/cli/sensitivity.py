@@ -31,6 +31,7 @@ from bondgraph.cli.common import (
     published,
     unused_folder,
 )
+from bondgraph.core import progress
 from bondgraph.errors import SensitivityError
 from bondgraph.inference.executor import Executor
 from bondgraph.numerics.forward_sensitivity import check_params, free_parameters
@@ -110,8 +111,9 @@ def run(args) -> int:
     (:func:`bondgraph.cli.common.chosen_at_levels`), one line on stderr
     saying what and why; an input whose shape is ambiguous is held as the
     filter's likelihood at the analysed θ prefers."""
-    model = load_model(args.model)
-    exp = band_limited_record(load_record(args.data, model), model, args)
+    with progress.phase("loading the model and the record"):
+        model = load_model(args.model)
+        exp = band_limited_record(load_record(args.data, model), model, args)
     if args.seconds is not None:
         n = int(np.searchsorted(exp.t, exp.t[0] + args.seconds, side="right"))
         if n < 2:
@@ -124,9 +126,11 @@ def run(args) -> int:
         if not tp:
             raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
         values.update({k: float(v) for k, v in tp.items() if k in model.params})
-    problem, choice = chosen_at_levels(
-        args, problem_from_args(model, exp, args, values), params or check_params(model, None),
-        estimated_states(model, args), _line, where="at the analysed θ", likelihood=True)
+    with progress.phase("choosing the filter's discretisation at the analysed θ"):
+        problem, choice = chosen_at_levels(
+            args, problem_from_args(model, exp, args, values),
+            params or check_params(model, None), estimated_states(model, args), _line,
+            where="at the analysed θ", likelihood=True)
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
     for o in outputs:
         model.output_index(o)
@@ -141,15 +145,17 @@ def run(args) -> int:
         N=args.global_N, outputs=tuple(outputs), box_rel=args.box_rel, chunk=args.chunk,
         seed=args.seed, progress=not args.quiet, nll_transform=args.nll_transform,
         workers=args.workers, scheduler=args.scheduler)
-    rep = analyse(problem, params, local=local, sobol=sobol,
-                  x0_states=estimated_states(model, args),
-                  fixed=list(parse_pairs(args.fixed, "--fixed")), log=log)
+    with progress.phase("the sensitivity analysis"):
+        rep = analyse(problem, params, local=local, sobol=sobol,
+                      x0_states=estimated_states(model, args),
+                      fixed=list(parse_pairs(args.fixed, "--fixed")), log=log)
     rep.settings["data"] = str(args.data)
     rep.settings["discretisation_choice"] = None if choice is None else choice.to_dict()
     rep.settings["wall_s"] = time.perf_counter() - t0
 
     def version(d: Path) -> list:
-        pngs = [] if args.no_plots else list(plot_report(rep, d))
+        with progress.phase("drawing the plots"):
+            pngs = [] if args.no_plots else list(plot_report(rep, d))
         rep.to_json(d / "sensitivity.json")      # last
         return pngs
     pngs = folder.publish(version)

@@ -30,6 +30,7 @@ from bondgraph.cli.common import (
     problem_from_args,
     published,
 )
+from bondgraph.core import progress
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
 from bondgraph.errors import DataError
 from bondgraph.inference.discretise import (
@@ -200,8 +201,9 @@ def run(args) -> int:
     """Track, detect, write the folder, print the summary."""
     if getattr(args, "backend", "numba") == "numba":
         compile_in_background()     # the filter kernel, once per installation, beside the set-up
-    graph = graph_builder(args.model)()
-    model = load_model(args.model)
+    with progress.phase("loading the model"):
+        graph = graph_builder(args.model)()
+        model = load_model(args.model)
     names = parse_names(args.track, "--track")
     check_tracked(names, model)
     drift = parse_pairs(args.drift, "--drift")
@@ -226,8 +228,11 @@ def run(args) -> int:
         print(f"input hold {hold} (chosen; --hold to give it): {why}", file=sys.stderr)
         problem = problem.conditioned_on(disc=replace(problem.disc, hold=hold))
     if args.substeps is None:           # the substeps the tracked record needs
-        problem = tracking_discretisation(problem, tm, std, opts, args.method is None)
-    res = track(problem, tm, std=std, options=opts)
+        with progress.phase("choosing the tracking filter's substeps"):
+            problem = tracking_discretisation(problem, tm, std, opts, args.method is None)
+    with progress.phase(f"tracking {', '.join(names)} (the filter, the smoother, the change "
+                        f"tests)"):
+        res = track(problem, tm, std=std, options=opts)
     truth = dict((exp.meta or {}).get("true_parameters") or {})
     for name, column in ((exp.meta or {}).get("schedules") or {}).items():
         truth[name] = exp[column]        # a parameter that changes: its time series
@@ -237,7 +242,8 @@ def run(args) -> int:
         (d / "changes.json").write_text(json.dumps(to_jsonable(
             {"threshold": res.threshold, "settings": res.settings,
              "changes": [c.to_dict() for c in res.changes]}), indent=2, allow_nan=False) + "\n")
-        pngs = [] if args.no_plots else plot_track(res, d, truth=truth)
+        with progress.phase("drawing the plots"):
+            pngs = [] if args.no_plots else plot_track(res, d, truth=truth)
         return [d / "track.csv", d / "changes.json", *pngs]
     written = folder.publish(version)
     print(summary(res))

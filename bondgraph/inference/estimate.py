@@ -818,8 +818,11 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     try:
         opt, x_best, f_best, pol, (slo, shi) = _search(crit, plan, fit, start, log)
         warn_list = _bound_warnings(crit.params, x_best, lo, hi, sampled=(slo, shi))
-        H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list, scale_box=(slo, shi))
-        disc = _discretisation_at(crit, x_best, f_best, fit, problems[0].ukf, warn_list)
+        with progress.phase("the Hessian and the standard errors at the estimate"):
+            H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list,
+                                scale_box=(slo, shi))
+        with progress.phase("checking the filter's discretisation at the estimate"):
+            disc = _discretisation_at(crit, x_best, f_best, fit, problems[0].ukf, warn_list)
     finally:
         crit.close()
     for w in warn_list:
@@ -1246,10 +1249,13 @@ def _search(crit, plan, fit: FitOptions, start, log):
     ``(lower, upper)`` the region at the end (search coordinates)."""
     x_start = _start(crit, plan, start)
     if start is None or np.asarray(start).size == len(plan.params):
-        x_start = profiled_levels(crit, x_start, plan.lo, plan.hi, log)
+        with progress.phase("profiling the start's noise levels"):
+            x_start = profiled_levels(crit, x_start, plan.lo, plan.hi, log)
     slo, shi = sampled_box(crit.model, plan, plan.lo, plan.hi, x_start, log)
-    opt = _global_search(crit, slo, shi, fit, x_start)
-    x_best, f_best, pol = _polish(crit, opt, slo, shi, fit)
+    with progress.phase(search_text(fit, slo.size)):
+        opt = _global_search(crit, slo, shi, fit, x_start)
+    with progress.phase("polishing the search's best point (Fisher scoring, then L-BFGS-B)"):
+        x_best, f_best, pol = _polish(crit, opt, slo, shi, fit)
     x_best, f_best, slo, shi = _beyond_sampled(crit, (x_best, f_best, pol), (slo, shi),
                                                (plan.lo, plan.hi), fit, log)
     return opt, x_best, f_best, pol, (slo, shi)
@@ -1398,6 +1404,20 @@ def start_levels_profiled(problem: Problem, params: Sequence[str], *,
         if n.startswith(NOISE_PREFIX):
             out[model.output_index(n[len(NOISE_PREFIX):])] = z[j]
     return out
+
+
+def search_text(fit: FitOptions, k: int) -> str:
+    """What the global search of ``fit`` over ``k`` quantities does, in
+    words (the :func:`bondgraph.core.progress.phase` that names it in a
+    log): the optimizer, its population and its iterations."""
+    S = _swarm_size(fit, k)
+    if fit.optimizer == "pso":
+        who = f"particle swarm, {S} particles"
+    else:
+        who = f"differential evolution, {max(1, S // k) * k} members"
+    its = "its first population only" if fit.iterations == 0 else \
+        f"up to {fit.iterations} iterations"
+    return f"global search over {k} quantities ({who}, {its})"
 
 
 def _global_search(crit, lo, hi, fit: FitOptions, start):
