@@ -131,6 +131,29 @@ def test_nan_in_outputs_only_when_missing_not_allowed(tmp_path):
     raises(p2, "empty cell", line=4, column="x", allow_missing=False)
 
 
+
+def test_the_commands_say_which_output_samples_are_missing(tmp_path, msd):
+    """``load_record`` (every command's ``--data``) says, one line per
+    output, how many samples are missing and where, instead of leaving the
+    gap to be found in the numbers; a complete column says nothing."""
+    from bondgraph.cli.common import load_record
+
+    rows = "".join(f"{0.1 * i:.1f},1,{'' if i in (2, 3, 5) else 0},{'NaN' if i == 7 else 0}\n"
+                   for i in range(9))
+    said = []
+    exp = load_record(write(tmp_path, "t,F,x,v\n" + rows), msd, said.append)
+    assert np.isnan(exp["x"][[2, 3, 5]]).all() and np.isnan(exp["v"][7])
+    assert said == [
+        "rec.csv: 3 of 9 samples of output 'x' missing (empty or NaN; from t = 0.2 s to 0.5 s): "
+        "the filter skips its measurement update there and the errors leave them out",
+        "rec.csv: 1 of 9 samples of output 'v' missing (empty or NaN; at t = 0.7 s): the filter "
+        "skips its measurement update there and the errors leave it out"]
+    said.clear()
+    load_record(write(tmp_path, "t,F,x,v\n0,1,0,0\n0.1,1,0,0\n", name="full.csv"), msd,
+                said.append)
+    assert said == []
+
+
 def test_non_monotonic_repeated_time_and_gaps(tmp_path):
     raises(write(tmp_path, "t,F\n0,1\n0.2,1\n0.1,1\n0.3,1\n"), "decreasing time", line=4,
            column="t")

@@ -16,6 +16,7 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterable
 
+import numpy as np
 
 from bondgraph.core.atomic import OutputFolder, is_empty_dir
 from bondgraph.core.equations import derive
@@ -404,10 +405,12 @@ def output_folder(path, args, option: str = "--out", *,
     return OutputFolder(path, overwrite=overwrite, option=option)
 
 
-def load_record(path, model) -> Experiment:
+def load_record(path, model, say=None) -> Experiment:
     """The record of ``--data`` (:meth:`Experiment.load`), with a
     :class:`~bondgraph.errors.ColumnWarning` for columns that match none of
-    the model's names while some of its outputs are absent. ``model`` is a
+    the model's names while some of its outputs are absent, and one line on
+    ``say`` (default stderr) per output with missing samples
+    (:func:`missing_note`). ``model`` is a
     :class:`~bondgraph.numerics.model.Model` or a
     :class:`~bondgraph.core.graph.BondGraph` (its sensors are the outputs;
     derived for its state names only when an output is absent).
@@ -418,6 +421,9 @@ def load_record(path, model) -> Experiment:
         A defect of the file or its sidecar (file, line and column named).
     """
     exp = Experiment.load(path)
+    outputs = model.sensors if isinstance(model, BondGraph) else model.outputs
+    for line in missing_note(exp, outputs, Path(path).name):
+        (say or _stderr)(line)
     if isinstance(model, BondGraph):
         if all(o in exp.columns for o in model.sensors):
             return exp
@@ -426,6 +432,33 @@ def load_record(path, model) -> Experiment:
                                 states=[str(x) for x in derive(model).states])
     exp.check_columns(model)
     return exp
+
+
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def missing_note(exp: Experiment, outputs, name: str) -> list[str]:
+    """One line per output of ``outputs`` whose column in ``exp`` has
+    missing samples (an empty cell or NaN, docs/data_format.md): how many,
+    of how many, and the times of the first and last. The filter skips its
+    measurement update at a missing sample (its likelihood leaves the
+    sample out) and the free-run errors leave it out; a user who did not
+    mean the gap reads it here instead of finding it in the numbers."""
+    lines = []
+    for o in outputs:
+        col = exp.columns.get(o)
+        if col is None:
+            continue
+        miss = np.flatnonzero(np.isnan(np.asarray(col, float)))
+        if miss.size == 0:
+            continue
+        where = (f"at t = {exp.t[miss[0]]:.6g} s" if miss.size == 1 else
+                 f"from t = {exp.t[miss[0]]:.6g} s to {exp.t[miss[-1]]:.6g} s")
+        lines.append(f"{name}: {miss.size} of {len(exp)} samples of output '{o}' missing "
+                     f"(empty or NaN; {where}): the filter skips its measurement update "
+                     f"there and the errors leave {'it' if miss.size == 1 else 'them'} out")
+    return lines
 
 
 def band_limited_record(exp: Experiment, model, args, say=None) -> Experiment:
@@ -621,8 +654,6 @@ def chosen_at_levels(args, problem, params, states, say, *, hold: str | None = N
     OptionError
         As :func:`chosen_problem`.
     """
-    import numpy as np
-
     from bondgraph.errors import EstimationError, NumericalError
     from bondgraph.inference.estimate import start_levels_profiled
 

@@ -213,7 +213,8 @@ def run(args) -> int:
         if not args.data:
             raise ModelError("--model needs --data FILE.csv (the measured record)")
         graph = graph_builder(args.model)()
-        record = band_limited_record(load_record(args.data, graph), graph, args, say=_said)
+        record = band_limited_record(load_record(args.data, graph, _said), graph, args,
+                                     say=_said)
         params = parse_params(args.params) if args.params else list(graph.params)
         # without --params, a parameter declared without a box is a known
         # value: held where the record cannot tell it from others
@@ -398,7 +399,8 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     fixed = parse_pairs(args.fixed, "--fixed")
     x0 = parse_pairs(args.x0, "--x0")
     states = loop_states(graph, args.estimate_x0) if args.estimate_x0 else base.estimate_x0
-    validation = (band_limited_record(load_record(args.validate, graph), graph, args, say=_said)
+    validation = (band_limited_record(load_record(args.validate, graph, _said), graph, args,
+                                         say=_said)
                   if args.validate else base.validation)
     holdout = args.holdout
     if args.model and not args.validate and holdout is None:
