@@ -210,6 +210,31 @@ def test_loop_cli_numerics_validation_and_module_spec(tmp_path, monkeypatch):
                  "--quiet", "--no-plots"]) == 2
 
 
+
+def test_a_record_without_an_input_column_is_refused_by_the_loop(tmp_path, monkeypatch, capsys):
+    """The loop's --data and --validate records must hold the graph's
+    inputs, as the estimate's must: a validation record without the force
+    column was filtered and simulated with the force held at 0, and the
+    loop judged effects on that record without a word (exit 0). Now exit 2
+    and the estimate's message: the file, line 1, the missing column."""
+    from bondgraph.cli.main import main
+
+    rec = _msd_record(seed=0)
+    rec.save(tmp_path / "est.csv")
+    bare = Experiment(t=rec.t, columns={k: v for k, v in rec.columns.items() if k != "F"},
+                      units={k: v for k, v in rec.units.items() if k != "F"}, meta={})
+    bare.save(tmp_path / "val.csv")
+    (tmp_path / "mymod.py").write_text(MYMOD)
+    monkeypatch.chdir(tmp_path)
+    for args in (["--data", "val.csv"], ["--data", "est.csv", "--validate", "val.csv"]):
+        rc = main(["loop", "--model", "mymod:build", *args, "--max-steps", "0", "--out", "rep",
+                   "--quiet", "--no-plots"])
+        err = capsys.readouterr().err
+        assert rc == 2, err
+        assert "val.csv, line 1, column 'F': missing column(s) 'F' needed by model 'my_msd'" in err
+        assert not (tmp_path / "rep").exists()
+
+
 def test_true_effect_and_rank_of_truth():
     from bondgraph.diagnose.cases import LoopCase, TrueEffect
     from bondgraph.diagnose.result import rank_of

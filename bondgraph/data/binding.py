@@ -215,6 +215,28 @@ def missing_inputs(exp, model) -> list[str]:
     return out
 
 
+def require_inputs(exp, model) -> None:
+    """Raise when the record ``exp`` lacks an input of ``model`` (a Model,
+    or anything with ``name``, ``inputs`` and ``derivative_inputs``):
+    every missing column named, with the remedy.
+
+    Raises
+    ------
+    DataError
+        Line 1, the first missing column.
+    """
+    missing = missing_inputs(exp, model)
+    if missing:
+        raise DataError(
+            f"missing column(s) {join_names(missing)} needed by model '{model.name}' "
+            f"(its inputs: {', '.join(model.inputs)}; the record has: "
+            f"{', '.join(exp.columns) or 'no columns'})",
+            path=exp._where(), line=1, column=missing[0],
+            hint="add the column(s) to the record (a constant input: a column of its value); "
+                 "from Python, inputs_for(model, defaults_ok=True) holds them at the model's "
+                 "defaults")
+
+
 def inputs_for(exp, model, defaults_ok: bool = False) -> np.ndarray:
     """Input array for a model, in the model's units.
 
@@ -246,17 +268,8 @@ def inputs_for(exp, model, defaults_ok: bool = False) -> np.ndarray:
         of the wrong dimension.
     """
     mdl = _as_model(model)
-    where = exp._where()
-    missing = missing_inputs(exp, mdl)
-    if missing and not defaults_ok:
-        raise DataError(
-            f"missing column(s) {join_names(missing)} needed by model '{mdl.name}' "
-            f"(its inputs: {', '.join(mdl.inputs)}; the record has: "
-            f"{', '.join(exp.columns) or 'no columns'})",
-            path=where, line=1, column=missing[0],
-            hint="add the column(s) to the record (a constant input: a column of its value); "
-                 "from Python, inputs_for(model, defaults_ok=True) holds them at the model's "
-                 "defaults")
+    if not defaults_ok:
+        require_inputs(exp, mdl)
     n = len(exp)
     U = np.empty((n, mdl.n_u))
     base: dict[str, np.ndarray] = {}
