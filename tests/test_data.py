@@ -138,7 +138,7 @@ def test_the_commands_say_which_output_samples_are_missing(tmp_path, msd):
     gap to be found in the numbers; a complete column says nothing."""
     from bondgraph.cli.common import load_record
 
-    rows = "".join(f"{0.1 * i:.1f},1,{'' if i in (2, 3, 5) else 0},{'NaN' if i == 7 else 0}\n"
+    rows = "".join(f"{0.1 * i:.1f},1,{'' if i in (2, 3, 5) else i},{'NaN' if i == 7 else -i}\n"
                    for i in range(9))
     said = []
     exp = load_record(write(tmp_path, "t,F,x,v\n" + rows), msd, said.append)
@@ -149,9 +149,31 @@ def test_the_commands_say_which_output_samples_are_missing(tmp_path, msd):
         "rec.csv: 1 of 9 samples of output 'v' missing (empty or NaN; at t = 0.7 s): the filter "
         "skips its measurement update there and the errors leave it out"]
     said.clear()
-    load_record(write(tmp_path, "t,F,x,v\n0,1,0,0\n0.1,1,0,0\n", name="full.csv"), msd,
+    load_record(write(tmp_path, "t,F,x,v\n0,1,0,0\n0.1,1,1,1\n", name="full.csv"), msd,
                 said.append)
     assert said == []
+
+
+
+def test_the_commands_refuse_an_output_without_information(tmp_path, msd):
+    """An output column with no finite sample, or one value throughout
+    (a disconnected sensor) with no declared noise level, is refused where
+    the record is read, naming the file and the column; a constant column
+    whose noise level the sidecar declares stays (it says the output
+    stayed within its noise)."""
+    from bondgraph.cli.common import load_record
+
+    rows = "".join(f"{0.1 * i:.1f},1,{0.5 if i else ''},{0.1 * i}\n" for i in range(5))
+    with pytest.raises(DataError, match=r"output 'x' reads 0.5 m at every sample") as ei:
+        load_record(write(tmp_path, "t,F,x [m],v\n" + rows), msd, lambda m: None)
+    assert (ei.value.line, ei.value.column) == (1, "x")
+    empty = "".join(f"{0.1 * i:.1f},1,,{0.1 * i}\n" for i in range(5))
+    with pytest.raises(DataError, match=r"output 'x' has no sample"):
+        load_record(write(tmp_path, "t,F,x,v\n" + empty, name="e.csv"), msd, lambda m: None)
+    side = {"columns": {"x": {"noise_std": 0.01}}}
+    exp = load_record(write(tmp_path, "t,F,x [m],v\n" + rows, name="d.csv", sidecar=side), msd,
+                      lambda m: None)
+    assert np.nanmax(exp["x"]) == 0.5
 
 
 def test_non_monotonic_repeated_time_and_gaps(tmp_path):

@@ -23,7 +23,7 @@ from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
 from bondgraph.data.binding import require_inputs
 from bondgraph.data.records import Experiment
-from bondgraph.errors import OptionError
+from bondgraph.errors import DataError, OptionError
 from bondgraph.inference.discretise import (
     DiscretisationChoice,
     choose_discretisation,
@@ -429,6 +429,7 @@ def load_record(path, model, say=None) -> Experiment:
         require_inputs(exp, SimpleNamespace(name=model.name, inputs=list(model.inputs),
                                             derivative_inputs={}))
     outputs = model.sensors if isinstance(model, BondGraph) else model.outputs
+    require_information(exp, outputs)
     for line in missing_note(exp, outputs, Path(path).name):
         (say or _stderr)(line)
     if isinstance(model, BondGraph):
@@ -443,6 +444,40 @@ def load_record(path, model, say=None) -> Experiment:
 
 def _stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
+
+
+def require_information(exp: Experiment, outputs) -> None:
+    """Refuse a record whose column for one of ``outputs`` holds no
+    finite sample, or one value throughout with no noise level declared
+    (sidecar ``noise_std``): nothing to fit or judge, and its noise level
+    cannot be seen (the loop failed later with "no output has a positive
+    measurement-noise level ... (got [inf])"). A constant column with a
+    declared level stays: the record then says the output stayed within
+    its noise.
+
+    Raises
+    ------
+    DataError
+        Naming the file, the column, and what it holds.
+    """
+    for o in outputs:
+        col = exp.columns.get(o)
+        if col is None:
+            continue
+        vals = np.asarray(col, float)
+        ok = vals[np.isfinite(vals)]
+        if ok.size == 0:
+            raise DataError(f"output '{o}' has no sample: every cell of its column is empty or "
+                            f"NaN", path=exp._where(), line=1, column=o,
+                            hint="fill the column with the measurement, or drop it from the "
+                                 "record and the sensor from the graph")
+        if ok.size > 1 and np.all(ok == ok[0]) and o not in exp.noise_std:
+            unit = exp.units.get(o)
+            raise DataError(f"output '{o}' reads {ok[0]:.6g}{' ' + unit if unit else ''} at every "
+                            f"sample: a constant measurement holds nothing to fit or to judge a "
+                            f"model by, and no noise level", path=exp._where(), line=1, column=o,
+                            hint="check the column (a disconnected sensor, a wrong channel); "
+                                 "drop it from the record and the sensor from the graph")
 
 
 def missing_note(exp: Experiment, outputs, name: str) -> list[str]:
