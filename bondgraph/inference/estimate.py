@@ -818,11 +818,8 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     try:
         opt, x_best, f_best, pol, (slo, shi) = _search(crit, plan, fit, start, log)
         warn_list = _bound_warnings(crit.params, x_best, lo, hi, sampled=(slo, shi))
-        with progress.phase("the Hessian and the standard errors at the estimate"):
-            H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list,
-                                scale_box=(slo, shi))
-        with progress.phase("checking the filter's discretisation at the estimate"):
-            disc = _discretisation_at(crit, x_best, f_best, fit, problems[0].ukf, warn_list)
+        H, cr, disc = _checked_at(crit, (x_best, f_best), (lo, hi), (slo, shi), fit,
+                                  problems[0].ukf, warn_list)
     finally:
         crit.close()
     for w in warn_list:
@@ -830,6 +827,22 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     z_best, lo_v, hi_v, H, cr = _to_values(crit, x_best, lo, hi, H, cr)
     found = _Found(opt, z_best, f_best, pol, H, cr, lo_v, hi_v, warn_list, disc)
     return _result(problems, plan, crit, fit, found, Q, R, time.perf_counter() - t_start)
+
+
+
+def _checked_at(crit, best, box, sampled, fit: FitOptions, ukf: UKFOptions, warn_list: list):
+    """``(H, cr, disc)`` at the estimate ``best`` = ``(x, f)``: the Hessian
+    and the standard errors (:func:`_hessian_at`, within ``box`` = ``(lo,
+    hi)``, scaled by the ``sampled`` region), then the filter's
+    discretisation there (:func:`_discretisation_at`), each a named
+    :func:`bondgraph.core.progress.phase`; warnings appended to
+    ``warn_list``."""
+    (x_best, f_best), (lo, hi) = best, box
+    with progress.phase("the Hessian and the standard errors at the estimate"):
+        H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list, scale_box=sampled)
+    with progress.phase("checking the filter's discretisation at the estimate"):
+        disc = _discretisation_at(crit, x_best, f_best, fit, ukf, warn_list)
+    return H, cr, disc
 
 
 def _problems(problem, x0_states) -> list[Problem]:
