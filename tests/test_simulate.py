@@ -304,6 +304,12 @@ def test_cli_simulate(tmp_path, capsys):
     assert main(["simulate", "mass_spring_damper", "-e", str(out), "--params", str(fit),
                  "-o", str(a)]) == 2
     assert "has no parameter(s) k2" in capsys.readouterr().err
+    # a value outside the model's box is simulated as given, and said (m's box: [0.5, 8])
+    assert main(["simulate", "mass_spring_damper", "--duration", "1", "--param", "m=-2",
+                 "--param", "k=40", "-o", str(a)]) == 0
+    said = capsys.readouterr().out
+    assert "note: m = -2 is outside the model's box [0.5, 8] for it: simulated as given" in said
+    assert "k = 40" not in said
 
 
 def test_cli_simulate_noise_writes_the_experiments_record(tmp_path, capsys):

@@ -103,7 +103,7 @@ def run(args) -> int:
     model = load_model(args.model)
     overrides = {**fitted_values(args.params, model), **parse_pairs(args.param, "--param")}
     measured = None
-    notes = []
+    notes = _box_notes(model, overrides)
     if args.experiment:
         path = Path(args.experiment)
         if path.suffix.lower() in (".csv", ".json") or path.exists():
@@ -174,6 +174,21 @@ def run(args) -> int:
         for pth in paths:
             print(f"wrote {pth}")
     return 0
+
+
+
+def _box_notes(model, values: dict) -> list[str]:
+    """A note for each given parameter value outside the model's box for it
+    (the declared box, or the decade either side of a default declared
+    without one; simulated as given: a what-if is the user's to ask, but a
+    typo of a sign or a decade should not pass unsaid)."""
+    notes = []
+    for name, v in values.items():
+        lo, hi = (float(b[0]) for b in model.bounds([name]))
+        if not lo <= v <= hi:
+            notes.append(f"{name} = {v:g} is outside the model's box [{lo:g}, {hi:g}] for it: "
+                         f"simulated as given")
+    return notes
 
 
 def fitted_values(path: str | None, model) -> dict[str, float]:
