@@ -155,8 +155,9 @@ def test_loop_takes_its_start_values_from_a_fit_on_another_record(user_dir, caps
 
     res["estimates"][0] = 900.0                       # k's box is [5, 500]
     (user_dir / "est" / "result.json").write_text(json.dumps(res))
-    rec = Experiment.from_arrays(np.arange(0.0, 1.0, 0.01), {"F": np.ones(100), "x": np.zeros(100),
-                                 "v": np.zeros(100)}, units={"F": "N", "x": "m", "v": "m/s"},
+    tr = np.arange(0.0, 1.0, 0.01)          # (a constant output is refused when read)
+    rec = Experiment.from_arrays(tr, {"F": np.ones(100), "x": 0.01 * np.sin(tr),
+                                 "v": 0.01 * np.cos(tr)}, units={"F": "N", "x": "m", "v": "m/s"},
                                  roles={"F": "input", "x": "output", "v": "output"}, name="r")
     rec.save(user_dir / "r.csv")
     assert main(["loop", "--model", "usermod:build", "--data", "r.csv", "--from",
