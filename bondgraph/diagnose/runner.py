@@ -1229,9 +1229,9 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
         The new current fit and the outcome (:data:`ACCEPTED`,
         :data:`NONE_ACCEPTED`, :data:`NOTHING_SIGNIFICANT`).
     """
-    scales = operating_scales(ctx, current)
     t_ev = time.perf_counter()
     with phase(f"step {step}: scoring the candidates"):
+        scales = operating_scales(ctx, current)
         ranking, signif = gather_evidence(ctx, current, scales)
     result.rankings.append(ranking)
     if ctx.settings.true_effect is not None:
