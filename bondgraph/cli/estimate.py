@@ -188,7 +188,7 @@ def _say_for(path, paths):
 def _plots(model, exps, res, problems, paths, d: Path) -> list:
     """The fit plots (:func:`plot_fit`): one pair per record, prefixed with
     the record's file name when there are several."""
-    with progress.phase("drawing the fit plots (a filter and a smoother pass per record)"):
+    with progress.phase("drawing the fit plots (a filter pass per record)"):
         if len(exps) == 1:
             return list(plot_fit(model, exps[0], res, d, P0=problems[0].P0))
         out = []

@@ -176,7 +176,6 @@ def run(args) -> int:
     return 0
 
 
-
 def _box_notes(model, values: dict) -> list[str]:
     """A note for each given parameter value outside the model's box for it
     (the declared box, or the decade either side of a default declared

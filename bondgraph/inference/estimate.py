@@ -829,7 +829,6 @@ def estimate(problem: Problem, params: Sequence[str], *, fit: FitOptions | None 
     return _result(problems, plan, crit, fit, found, Q, R, time.perf_counter() - t_start)
 
 
-
 def _checked_at(crit, best, box, sampled, fit: FitOptions, ukf: UKFOptions, warn_list: list):
     """``(H, cr, disc)`` at the estimate ``best`` = ``(x, f)``: the Hessian
     and the standard errors (:func:`_hessian_at`, within ``box`` = ``(lo,
