@@ -693,6 +693,14 @@ def test_holdout_splits_the_record():
     from bondgraph.errors import OptionError
     with pytest.raises(OptionError, match="holdout"):
         LoopSettings(params=[], holdout=1.5)
+    # a held-out part of fewer than 10 samples judges nothing: refused before any fit,
+    # naming the sizes (a 30-sample record's last quarter: 8 samples)
+    short = exp.segment(0, 30, name="short")
+    with pytest.raises(OptionError, match="leaves 8 samples to judge by and 22 to fit: at least "
+                                          "10 each") as ei:
+        run_loop(mass_spring_damper(), short, LoopSettings(params=["k", "c"], holdout=0.25),
+                 log=lambda s: None, progress=False)
+    assert "--holdout 0" in ei.value.hint
 
 
 def test_error_decrease_test_variance_and_calibration():

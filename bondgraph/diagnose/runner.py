@@ -234,16 +234,35 @@ def conditioned(ctx: Context, fit: Fit):
         ctx.problem = base
 
 
+#: the fewest samples a held-out part may have: fewer judge nothing (a
+#: 10-sample record's last quarter, 2 samples, read an error of 2e-8 before
+#: and after)
+MIN_HELD_OUT = 10
+
+
 def held_out(experiment, s: LoopSettings):
     """``(record, settings)`` with the last ``s.holdout`` of the record as the
     validation record when none is given (the rest is fitted). The
     validation part's ``meta["follows"]`` names the fitted part: it
     continues that record, so its free run may start from the state the
-    fitted part's filter ends in (:func:`bondgraph.diagnose.fit.validation_run`)."""
+    fitted part's filter ends in (:func:`bondgraph.diagnose.fit.validation_run`).
+
+    Raises
+    ------
+    OptionError
+        The held-out part or the fitted part would have fewer than
+        :data:`MIN_HELD_OUT` samples (the sizes and the remedies named).
+    """
     if s.validation is not None or not s.holdout:
         return experiment, s
     n = len(experiment.t)
     cut = int(round(n * (1.0 - s.holdout)))
+    if min(cut, n - cut) < MIN_HELD_OUT:
+        raise OptionError(
+            f"holdout {s.holdout:g} of the {n}-sample record '{experiment.name}' leaves "
+            f"{n - cut} samples to judge by and {cut} to fit: at least {MIN_HELD_OUT} each",
+            hint="give a longer record, a validation record (--validate), or fit and judge "
+                 "on the whole record (--holdout 0)")
     est, val = experiment.segment(0, cut), experiment.segment(cut)
     val.meta["follows"] = est.name
     return est, replace(s, validation=val)
