@@ -93,6 +93,16 @@ def _csv_variants(d: Path, good: Path) -> None:
     write("header_only", head, [])
     write("true_text", head, body, dict(side, true_parameters={"m": "heavy", "k": 60.0}))
     write("dt_text", head, body, dict(side, dt="0.01 s"))
+    cols = head.split(",")
+    ix, iF = cols.index("x [m]"), next(i for i, c in enumerate(cols) if c.startswith("F"))
+
+    def with_x(value):
+        return [",".join(value if i == ix else c for i, c in enumerate(r.split(","))) for r in body]
+    write("no_input", ",".join(c for i, c in enumerate(cols) if i != iF),
+          [",".join(c for i, c in enumerate(r.split(",")) if i != iF) for r in body])
+    write("const_x", head, with_x("0.5"))                        # a disconnected sensor
+    write("empty_x", head, with_x(""))                           # a column with no sample
+    write("short", head, body[:10], side)                        # 10 samples: 2 held out
     (d / "broken_json.csv").write_text("\n".join(lines) + "\n")
     (d / "broken_json.json").write_text("{ not json")
     (d / "empty.csv").write_text("")
@@ -236,6 +246,16 @@ CATALOGUE = [
      ["dt_text.json", "dt", "0.01 s"]),
     ("data", [*EST, "--data", "{d}/broken_json.csv", "--out", "{d}/d12"], ["broken_json.json"]),
     ("data", ["plot", "{d}/no_such_record.csv", "-o", "{d}/pl"], ["no_such_record.csv"]),
+    ("data", [*LOOP, "--data", "{d}/good.csv", "--validate", "{d}/no_input.csv",
+              "--out", "{d}/d13"], ["no_input.csv", "column 'F'", "missing column(s) 'F'"]),
+    ("data", [*LOOP, "--data", "{d}/no_input.csv", "--out", "{d}/d14"],
+     ["no_input.csv", "column 'F'", "missing column(s) 'F'"]),
+    ("data", [*EST, "--data", "{d}/const_x.csv", "--out", "{d}/d15"],
+     ["const_x.csv", "column 'x'", "reads 0.5 m at every sample"]),
+    ("data", [*LOOP, "--data", "{d}/empty_x.csv", "--out", "{d}/d16"],
+     ["empty_x.csv", "column 'x'", "has no sample"]),
+    ("data", [*LOOP, "--data", "{d}/short.csv", "--out", "{d}/d17"],
+     ["10-sample record", "leaves 2 samples to judge by", "--holdout 0"]),
     # -- output folders (issue 3, 5)
     ("output", [*EST, "--data", "{d}/good.csv", "--out", "{d}/full"],
      ["--out", "full", "not empty", "--overwrite"]),

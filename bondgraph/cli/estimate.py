@@ -30,6 +30,7 @@ from bondgraph.cli.common import (
     load_model,
     load_record,
     output_folder,
+    parse_pairs,
     parse_params,
     problem_from_args,
     published,
@@ -40,7 +41,7 @@ from bondgraph.errors import (EstimationError, IdentifiabilityWarning, Numerical
                               OptionError, UsageError)
 from bondgraph.inference.discretise import (alternative_hold, check_discretisation,
                                             choose_discretisation, cost_rank, hold_verdict)
-from bondgraph.inference.estimate import estimate
+from bondgraph.inference.estimate import check_not_fixed, estimate
 from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
                                               output_error_nll, seen_initial_states)
 from bondgraph.inference.options import FitOptions
@@ -120,6 +121,7 @@ def run(args) -> int:
         exps = [band_limited_record(load_record(pth, model), model, args) for pth in paths]
     params = (parse_params(args.params, model) if args.params
               else default_params(args.model, model, "estimate"))
+    check_not_fixed(params, parse_pairs(args.fixed, "--fixed"))   # before any work
     stems = "_".join(Path(pth).stem for pth in paths)
     folder = output_folder(args.out or f"estimate_{model.name}_{stems}", args,
                            overwrite=args.overwrite or args.resume)

@@ -1114,6 +1114,20 @@ def _settings(fit: FitOptions, problem: Problem, Q, R, k: int, disc) -> dict:
                 x0_rule=problem.x0_rule, discretisation=disc)
 
 
+def check_not_fixed(params: Sequence[str], fixed) -> None:
+    """Raise when a parameter to estimate is also given a fixed value.
+
+    Raises
+    ------
+    ModelError
+        The parameters both fixed and estimated named.
+    """
+    both = sorted(set(fixed or {}) & set(params))
+    if both:
+        raise ModelError(f"parameter(s) {', '.join(both)} both fixed and estimated",
+                         hint="leave them out of --params, or out of --fixed")
+
+
 def _search_box(model, params, fixed, bounds):
     """``(params, lower, upper)`` of an estimation, checked against the
     problem's ``fixed`` values."""
@@ -1123,9 +1137,7 @@ def _search_box(model, params, fixed, bounds):
     if len(set(params)) != len(params):
         raise OptionError(f"parameter listed twice in {params}")
     model.param_indices(params)                    # ModelError for unknown names
-    both = sorted(set(fixed or {}) & set(params))
-    if both:
-        raise ModelError(f"parameter(s) {', '.join(both)} both fixed and estimated")
+    check_not_fixed(params, fixed)
     lo, hi = model.bounds(params)
     for name, (a, b) in (bounds or {}).items():
         if name not in params:
