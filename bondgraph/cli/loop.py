@@ -238,7 +238,8 @@ def run(args) -> int:
     unknown = [n for n in settings.params if n not in graph.params]
     if unknown:                      # before the numerics are chosen (seconds on a long record)
         raise ModelError(f"graph '{graph.name}' has no parameter(s) "
-                         f"{', '.join(repr(n) for n in unknown)} (known: {', '.join(graph.params)})")
+                         f"{', '.join(repr(n) for n in unknown)} "
+                         f"(known: {', '.join(graph.params)})")
     if args.model:
         settings = chosen_numerics(args, graph, record, settings)
     if args.model and not args.validate and args.holdout is None:
