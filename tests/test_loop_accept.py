@@ -1092,3 +1092,21 @@ def test_a_process_noise_intensity_on_its_floor_is_not_a_box_to_widen():
     assert boxed == [
         "  fit: process-noise intensity on the floor of its box: q_p = 0.5 (the record asks "
         "for no random walk there; no Cramér-Rao std; said once per parameter)"]
+
+
+def test_the_report_names_the_records_their_samples_and_the_missing_ones():
+    """report.md and report.html begin with the record fitted and the one
+    that judged (its name from the settings), each with its samples and
+    each output's missing samples (NaN in the measured arrays)."""
+    from bondgraph.diagnose.result import LoopResult
+
+    y = np.ones((6, 2))
+    y[[1, 4], 0] = np.nan
+    yv = np.ones((3, 2))
+    yv[2, 1] = np.nan
+    res = LoopResult("msd", None, "est", "NRMSE", "aic", {"validation": "val"},
+                     time=np.arange(6.0), measured=y, validation_time=np.arange(3.0),
+                     validation_measured=yv, outputs=["x", "v"])
+    assert res.records() == ("Record: `est` (6 samples; x: 2 missing). Validation record: `val` "
+                             "(3 samples; v: 1 missing), not fitted.")
+    assert LoopResult("m", None, "r", "e", "aic", {}).records() == "Record: `r`."

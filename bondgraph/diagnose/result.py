@@ -483,6 +483,26 @@ class LoopResult:
     declared_graph: BondGraph | None = None
     discovery: DiscoveryPlot | None = None
 
+    def records(self) -> str:
+        """Which records the loop fitted and judged on, one sentence: the
+        estimation record's name and samples, the validation record's (held
+        out or given), and each output's missing samples (NaN in
+        :attr:`measured`, :attr:`validation_measured`). report.md and
+        report.html say it alike."""
+        def part(name, t, y) -> str:
+            if t is None:
+                return f"`{name}`"
+            miss = [] if y is None else [
+                f"{o}: {int(n)} missing" for o, n in
+                zip(self.outputs or [], np.isnan(np.asarray(y, float)).sum(axis=0)) if n]
+            return f"`{name}` ({len(t)} samples{'; ' + ', '.join(miss) if miss else ''})"
+        line = f"Record: {part(self.record, self.time, self.measured)}."
+        val = (self.settings or {}).get("validation")
+        if val:
+            held = part(val, self.validation_time, self.validation_measured)
+            line += f" Validation record: {held}, not fitted."
+        return line
+
     def numerics(self) -> str | None:
         """How the models were stepped, one sentence: the filter's method,
         substeps and input hold at the start (each input's by name for a

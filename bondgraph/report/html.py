@@ -86,7 +86,7 @@ def page(result: LoopResult, out, pngs: list[str]) -> str:
     out = Path(out)
     images = {p: _img(out / p) for p in pngs}
     body = [f"<h1>Residual-tracing report: {escape(result.model)}</h1>",
-            f"<p>Record: <code>{escape(str(result.record))}</code>. Metric: "
+            f"<p>{_code(result.records())} Metric: "
             f"{escape(result.metric)}. Criterion: {escape(result.criterion.upper())}.</p>"]
     if result.numerics():
         body.append(f"<p>{escape(result.numerics())}</p>")
@@ -115,6 +115,12 @@ def page(result: LoopResult, out, pngs: list[str]) -> str:
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<title>Loop report: {escape(result.model)}</title><style>{STYLE}</style></head>"
             "<body>\n" + "\n".join(body) + f"\n<script>{SCRIPT}</script>\n</body></html>\n")
+
+
+def _code(text: str) -> str:
+    """``text`` escaped, its markdown code spans (`...`) as <code>."""
+    parts = escape(text).split("`")
+    return "".join(f"<code>{t}</code>" if i % 2 else t for i, t in enumerate(parts))
 
 
 def _img(path: Path) -> str:

@@ -520,7 +520,7 @@ def markdown(result: LoopResult, pngs: list[str]) -> str:
     parameters, every step's evidence, the final residuals, the plots and
     the rejected candidates."""
     L = [f"# Residual-tracing report: {result.model}", ""]
-    L.append(f"Record: `{result.record}`. Metric: {result.metric}. "
+    L.append(f"{result.records()} Metric: {result.metric}. "
              f"Criterion: {result.criterion.upper()}.")
     L.append("")
     if result.numerics():
