@@ -233,6 +233,12 @@ def test_a_record_without_an_input_column_is_refused_by_the_loop(tmp_path, monke
         assert rc == 2, err
         assert "val.csv, line 1, column 'F': missing column(s) 'F' needed by model 'my_msd'" in err
         assert not (tmp_path / "rep").exists()
+    # the library refuses it too (run_loop, before any fit): a Python user's record
+    from bondgraph.errors import DataError
+
+    with pytest.raises(DataError, match="missing column"):
+        run_loop(mass_spring_damper(), rec, LoopSettings(params=["c"], validation=bare),
+                 log=lambda s: None, progress=False)
 
 
 def test_true_effect_and_rank_of_truth():

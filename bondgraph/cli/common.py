@@ -21,7 +21,6 @@ import numpy as np
 from bondgraph.core.atomic import OutputFolder, is_empty_dir
 from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
-from bondgraph.data.binding import require_inputs
 from bondgraph.data.records import Experiment
 from bondgraph.errors import DataError, OptionError
 from bondgraph.inference.discretise import (
@@ -422,12 +421,6 @@ def load_record(path, model, say=None) -> Experiment:
         A defect of the file or its sidecar (file, line and column named).
     """
     exp = Experiment.load(path)
-    if isinstance(model, BondGraph):
-        # a graph's inputs are its own (a model's der(.) inputs come with
-        # its derivation; Model.inputs_for names those): one the record
-        # lacks would be held at its default without a word
-        require_inputs(exp, SimpleNamespace(name=model.name, inputs=list(model.inputs),
-                                            derivative_inputs={}))
     outputs = model.sensors if isinstance(model, BondGraph) else model.outputs
     require_information(exp, outputs)
     for line in missing_note(exp, outputs, Path(path).name):
@@ -440,10 +433,6 @@ def load_record(path, model, say=None) -> Experiment:
                                 states=[str(x) for x in derive(model).states])
     exp.check_columns(model)
     return exp
-
-
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def require_information(exp: Experiment, outputs) -> None:

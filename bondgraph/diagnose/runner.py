@@ -8,6 +8,7 @@ import copy
 import time
 from contextlib import contextmanager
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 from typing import Callable, Sequence
@@ -16,6 +17,7 @@ from bondgraph.core.causality import assign_causality
 from bondgraph.core.deferred import chi2
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.progress import phase
+from bondgraph.data.binding import require_inputs
 from bondgraph.diagnose.accept import (
     Decision,
     accepted_step,
@@ -163,6 +165,7 @@ def run_loop(graph: BondGraph, experiment, settings: LoopSettings, *,
     if missing:
         raise ModelError(f"graph '{graph.name}' has no parameter(s) {missing} "
                          f"(known: {', '.join(graph.params)})")
+    records_hold_inputs(graph, experiment, settings)
     experiment, s = held_out(experiment, settings)
     t0 = time.perf_counter()
     stamped = _stamped(log if log is not None else print, t0)
@@ -232,6 +235,25 @@ def conditioned(ctx: Context, fit: Fit):
         yield
     finally:
         ctx.problem = base
+
+
+def records_hold_inputs(graph: BondGraph, experiment, s: LoopSettings) -> None:
+    """Refuse a record, or the validation record of ``s``, that lacks one
+    of the declared graph's input columns: the loop's problems hold an
+    input the record lacks at its default (a candidate's own inputs), and a
+    validation record without the drive column was filtered and simulated
+    with the drive at 0 and judged the effects without a word.
+
+    Raises
+    ------
+    DataError
+        The record, line 1, every missing column named
+        (:func:`bondgraph.data.binding.require_inputs`).
+    """
+    need = SimpleNamespace(name=graph.name, inputs=list(graph.inputs), derivative_inputs={})
+    for rec in (experiment, s.validation):
+        if rec is not None:
+            require_inputs(rec, need)
 
 
 #: the fewest samples a held-out part may have: fewer judge nothing (a
@@ -308,6 +330,7 @@ def chosen_numerics(graph: BondGraph, record, settings: LoopSettings, *,
     given = dict(given or {})
     if len(given) == 3:
         return settings
+    records_hold_inputs(graph, record, settings)
     est, s = held_out(record, settings)
     problem = loop_problem(model_of(graph), est, s)
     model = problem.model
