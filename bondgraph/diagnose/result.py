@@ -501,6 +501,10 @@ class LoopResult:
         if val:
             held = part(val, self.validation_time, self.validation_measured)
             line += f" Validation record: {held}, not fitted."
+            n = int(((self.settings or {}).get("free_run") or {}).get("init_samples") or 0)
+            if n:
+                line += (f" Its free runs start from its first {n} samples only and are "
+                         f"judged on the samples after them.")
         return line
 
     def numerics(self) -> str | None:

@@ -331,12 +331,29 @@ class FreeRunOptions:
         model's input order (``"zoh,linear"``), or ``"filter"``, the filter's own hold
         (``ukf.hold``), so that the free-run error judges the model as the
         likelihood fitted it (:func:`bondgraph.diagnose.fit.sim_inputs`).
+    init_samples : int
+        0 (default): the free run on the record that judges (the held-out
+        part or ``--validate``) starts where the loop's rule puts it
+        (:func:`bondgraph.diagnose.fit.free_run`: the smoothed start
+        x̂_0|N given that whole record, or the state the fitted part's
+        filter ends in). N > 0: the benchmark protocol of nonlinear system
+        identification (nonlinearbenchmark.org, the ``n_init`` of its
+        ``nonlinear_benchmarks`` package: EMPS gives 20): the start is the
+        smoothed initial state given the record's first N samples only, so
+        the judging record's later samples cannot move the start to cancel
+        a model's misfit (:func:`bondgraph.diagnose.fit.window_start`), and
+        the free-run error that judges runs over the samples after them.
     """
 
     method: str = "LSODA"
     hold: str = "linear"
+    init_samples: int = 0
 
     def __post_init__(self):
+        if isinstance(self.init_samples, bool) or not isinstance(self.init_samples, int) \
+                or self.init_samples < 0 or self.init_samples == 1:
+            raise OptionError(f"FreeRunOptions.init_samples must be 0 (the loop's start rule) "
+                              f"or an integer of at least 2 samples, got {self.init_samples!r}")
         _choice(self, "method", FREE_RUN_METHODS)
         if not (self.hold == "filter" or hold_within(self.hold, ("linear", "zoh"))):
             _choice(self, "hold", FREE_RUN_HOLDS)
