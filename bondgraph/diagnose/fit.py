@@ -1348,8 +1348,8 @@ def window_start(ctx: Context, problem: Problem, theta: np.ndarray, n: int) -> n
     head = replace(problem, t=problem.t[:n], u=problem.u[:n], y=problem.y[:n], ukf=ukf)
     xs, why = _smoothed_start(head, theta, problem.x0)
     if xs is problem.x0:
-        ctx.log(f"  {problem.name}: no start from its first {n} samples"
-                f"{' (' + why + ')' if why else ''}: the free run starts at the prior mean")
+        ctx.log_once("window start", f"  {problem.name}: no start from its first {n} samples"
+                     f"{' (' + why + ')' if why else ''}: the free run starts at the prior mean")
     return xs
 
 
