@@ -72,3 +72,7 @@ def test_emps_user_graph_is_the_hand_derived_mass_on_viscous_friction(tmp_path):
     data = np.loadtxt(csv, delimiter=",", skiprows=1)
     assert data.shape == (24841, 3)
     assert open(csv).readline() == "t [s],qm [m],vir [V]\n"
+    # --protocol's force-pulse run: the same columns, its own drive command
+    pulses = np.loadtxt(mod.write_csv(tmp_path / "pulses.csv", which="validation"),
+                        delimiter=",", skiprows=1)
+    assert pulses.shape == (24841, 3) and not np.allclose(pulses[:, 2], data[:, 2])
