@@ -418,7 +418,11 @@ def test_pair_pool_keeps_usable_refits_rejected_on_evidence():
                cand("d", 700.0, "the refit did not converge (120 iterations)", False),
                cand("e", 0.0, "likelihood-ratio test not passed"),
                cand("f", 10.0, "information criterion did not improve"),
-               cand("g", 5.0, "the refitted model does not simulate: ...")]
+               cand("g", 5.0, "the refitted model does not simulate: ..."),
+               # no partner lets the record identify what it cannot tell from
+               # the current model's parameters: every pair with it is refused so
+               cand("h", 1e4, "the record does not identify af.dc, af.dv apart from F0 (the "
+                              "likelihood is flat along a combination of them): ...")]
     assert [c.label for c in pair_pool(ranking)] == ["c", "a", "f"]
 
 

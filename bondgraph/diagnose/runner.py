@@ -1312,16 +1312,28 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
 #: the best confirmed candidates whose pairs are refitted when no single one
 #: passes the accept rule (at most PAIR_TOP·(PAIR_TOP − 1)/2 refits)
 PAIR_TOP = 3
-#: rejections that no partner can mend: the refit itself is unusable
+#: rejections that no partner can mend: the refit itself is unusable, or the
+#: record does not identify the candidate's terms apart from the current
+#: model's parameters (:func:`bondgraph.diagnose.accept.unidentified_effect`):
+#: a partner's parameters only lower the information about those terms given
+#: the others (a Schur complement of the Fisher information shrinks as
+#: nuisance parameters are added), so a pair with it leaves them undetermined
+#: too. On the EMPS benchmark's protocol with a user's graph, five pairs led by
+#: the direction-dependent friction (its Coulomb half-difference is the
+#: force offset wherever the drive moves) took 366 of the loop's 1159 s and
+#: were all refused (three crawled along that ridge without converging, two
+#: produced power)
 _UNUSABLE = ("the refit did not converge", "the refit is not physically admissible",
-             "the refitted model does not simulate", "the refit is not finite")
+             "the refitted model does not simulate", "the refit is not finite",
+             "the record does not identify")
 
 
 def pair_pool(ranking: list[Candidate]) -> list[Candidate]:
     """The confirmed candidates of a step that a partner could complete: a
     usable refit (converged, admissible, simulating, finite) with a positive
     likelihood ratio, rejected on the evidence (criterion, likelihood ratio
-    or error), not the twin of a better-ranked one (``same_as``: a pair with
+    or error; not for terms the record does not identify apart from the
+    current model, :data:`_UNUSABLE`), not the twin of a better-ranked one (``same_as``: a pair with
     it is the pair with that one); at most :data:`PAIR_TOP`, by decreasing
     likelihood ratio."""
     pool = [c for c in ranking if c.confirmed and c.confirmed.get("comparable", True)
