@@ -93,21 +93,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--significance", type=float, default=None)
     p.add_argument("--no-structural", action="store_true",
                    help="score only additive effects (faster)")
-    p.add_argument("--validate", default=None, metavar="FILE", action=Once,
-                   remedy="the loop judges on one held-out record",
-                   help="held-out record (CSV): the accept decision and the report's error "
-                        "before/after use the free-run error on it")
-    p.add_argument("--holdout", type=float, default=None, metavar="FRACTION",
-                   help="without --validate: the last FRACTION of the record is held out as "
-                        "the validation record (the fits use the rest; default "
-                        f"{DEFAULT_HOLDOUT} for --model/--data, 0 for a bundled case)")
-    p.add_argument("--init-samples", type=int, default=None, metavar="N",
-                   help="the free run on the record that judges (held out or --validate) "
-                        "starts from its first N samples only, as benchmark protocols ask "
-                        "(EMPS: 20); default: the smoothed start given that whole record")
-    p.add_argument("--metric-tolerance", type=float, default=None,
-                   help="accept an effect only if the error grows by at most this factor "
-                        "(default 1.0: it may not rise)")
+    _judging_options(p)
     add_estimation_scope(p)            # --fixed --x0 --p0-rel --p0 --estimate-x0 --noise
     p.set_defaults(p0_rel=None, noise=None, p0=None)   # the case's own P0 policy and noise
     p.add_argument("--fit", choices=("nll", "sim"), default=None,
@@ -146,6 +132,26 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "second; for batch runs)")
     add_scheduler(p)
     add_quiet(p)
+
+
+def _judging_options(p: argparse.ArgumentParser) -> None:
+    """The record that judges and how: ``--validate``, ``--holdout``,
+    ``--init-samples``, ``--metric-tolerance``."""
+    p.add_argument("--validate", default=None, metavar="FILE", action=Once,
+                   remedy="the loop judges on one held-out record",
+                   help="held-out record (CSV): the accept decision and the report's error "
+                        "before/after use the free-run error on it")
+    p.add_argument("--holdout", type=float, default=None, metavar="FRACTION",
+                   help="without --validate: the last FRACTION of the record is held out as "
+                        "the validation record (the fits use the rest; default "
+                        f"{DEFAULT_HOLDOUT} for --model/--data, 0 for a bundled case)")
+    p.add_argument("--init-samples", type=int, default=None, metavar="N",
+                   help="the free run on the record that judges (held out or --validate) "
+                        "starts from its first N samples only, as benchmark protocols ask "
+                        "(EMPS: 20); default: the smoothed start given that whole record")
+    p.add_argument("--metric-tolerance", type=float, default=None,
+                   help="accept an effect only if the error grows by at most this factor "
+                        "(default 1.0: it may not rise)")
 
 
 def from_result(graph, path: str, params: str | None):

@@ -895,7 +895,7 @@ def validation_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
     if not np.isfinite(res.nll[0]):
         return float("inf"), None, f"the filter fails ({res.reasons[0]})", None
     sim_y = free_run(ctx, vp, theta, own=False)
-    n_init = ctx.settings.free_run.init_samples
+    n_init = init_samples(ctx)
     xc = None if n_init else continued_state(ctx, problem, vp, theta, filtered)
     if xc is not None:
         held = sim_inputs(ctx.settings, vp.disc.hold, vp.arrays[1])
@@ -1290,7 +1290,7 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
     x0 = problem.x0
     unknown = problem.prior.unknown(model, problem.record)
     free = [n for n in unknown if not own or n not in problem.prior.estimated]
-    n_init = ctx.settings.free_run.init_samples
+    n_init = init_samples(ctx)
     if free and not own and n_init:
         return _free_run_from(ctx, problem, theta, (hold, u_sim),
                               window_start(ctx, problem, theta, n_init))
@@ -1326,6 +1326,12 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
         if y0 is not None:
             return y0
     return _free_run_from(ctx, problem, theta, (hold, u_sim), x0)
+
+
+def init_samples(ctx: Context) -> int:
+    """``settings.free_run.init_samples`` (0 where the context's settings
+    have no free-run options: a bare context of a caller or a test)."""
+    return int(getattr(getattr(ctx.settings, "free_run", None), "init_samples", 0) or 0)
 
 
 def window_start(ctx: Context, problem: Problem, theta: np.ndarray, n: int) -> np.ndarray:
