@@ -140,3 +140,28 @@ def test_the_report_says_how_the_validation_record_was_judged():
     assert res.records() == ("Record: `est`. Validation record: `val`, not fitted. Its free "
                              "runs start from its first 20 samples only and are judged on the "
                              "samples after them.")
+
+
+def test_a_held_out_part_is_not_continued_under_the_window_rule(records):
+    """The held-out last part continues the fitted part (``meta["follows"]``),
+    but with ``init_samples`` its start comes from its own first samples
+    only, as a separate record's: the run ``validation_run`` returns is the
+    one from :func:`window_start`, not from the fitted part's last state."""
+    from bondgraph.diagnose.runner import held_out
+    est, _ = records
+    s = LoopSettings(params=["M", "Fv"], holdout=0.25, free_run=FreeRunOptions(init_samples=20),
+                     ukf=UKFOptions(method="rk4", substeps=2, hold="linear"))
+    fitted, s = held_out(est, s)
+    assert s.validation.meta["follows"] == fitted.name
+    model = Model.from_graph(drive())
+    ctx = F.Context.on(fitted, s, model, log=lambda _m: None, progress=False)
+    theta = model.theta({"M": M, "Fv": FV})
+    res = F.run_ukf(ctx.problem, theta[None, :], store=True)
+    vp = F.validation_problem(ctx, ctx.problem)
+    _m, _e, _t, sim = F.validation_run(ctx, ctx.problem, theta, filtered=res)
+    held = F.sim_inputs(ctx.settings, vp.disc.hold, vp.arrays[1])
+    ref = F._free_run_from(ctx, vp, theta, held, F.window_start(ctx, vp, theta, 20))
+    np.testing.assert_allclose(sim, ref, rtol=0, atol=1e-12)
+    xc = F.continued_state(ctx, ctx.problem, vp, theta, res)
+    cont = F._free_run_from(ctx, vp, theta, held, xc)
+    assert np.max(np.abs(cont - ref)) > 10 * NOISE     # the continued run is another run
