@@ -244,6 +244,46 @@ def test_partners_are_screened_only_where_the_current_fit_cannot_simulate(monkey
     assert seen == [screen]
 
 
+def test_a_partner_the_record_does_not_determine_is_not_paired(monkeypatch):
+    """partners_of: a partner significant given the lead whose own refit
+    the record does not determine apart from the current model
+    (accept.unidentified_effect says why) is left out, as pair_pool leaves
+    such a candidate out; one it determines is kept."""
+    from contextlib import nullcontext
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import runner
+
+    def cand(label, place):
+        return SimpleNamespace(label=label, target=SimpleNamespace(name=place), statistic=50.0,
+                               dof=1, rank_key=(label,), values={"b": 1.0}, confirmed=None)
+
+    good, ridge = cand("good @ y", "y"), cand("ridge @ z", "z")
+    monkeypatch.setattr(runner, "conditioned", lambda ctx, fit: nullcontext())
+    monkeypatch.setattr(runner, "score_additive",
+                        lambda ctx, fit, scales, effects, screen=True: [good, ridge])
+    monkeypatch.setattr(runner, "attachable", lambda graph, cands, effects: cands)
+    monkeypatch.setattr(runner, "significant", lambda cands, level: cands)
+    fits = {"good @ y": SimpleNamespace(name="g"), "ridge @ z": SimpleNamespace(name="r")}
+    monkeypatch.setattr(runner, "confirm", lambda ctx, current, c, scales, tag:
+                        SimpleNamespace(fit=fits[c.label]))
+    monkeypatch.setattr(runner, "unidentified_effect", lambda current, after: (
+        "the record does not identify ridge.b apart from F0" if after.name == "r" else ""))
+    y = np.sin(np.linspace(0.0, 20.0, 400))[:, None]
+    current = SimpleNamespace(nll=1.0, sim_y=y.copy(), graph=None)
+    lead = SimpleNamespace(label="lead @ x", target=SimpleNamespace(name="x"))
+    settings = SimpleNamespace(effects=[], search=SimpleNamespace(structural=False),
+                               accept=SimpleNamespace(significance=0.01))
+    said = []
+    ctx = SimpleNamespace(settings=settings, problem=SimpleNamespace(arrays=(None, None, y)),
+                          cache={("confirmation", id(current), 1.0, "lead @ x"):
+                                 SimpleNamespace(fit=SimpleNamespace(sim_y=y))},
+                          log=said.append)
+    assert runner.partners_of(ctx, current, lead, [], None, "t") == [good]
+    assert said[-1] == ("  ridge @ z is not paired: the record does not identify ridge.b "
+                        "apart from F0")
+
+
 def test_pair_step_shown_with_each_member_at_its_place():
     """A pair's step row names both effects in the effect column and both
     places in the attached-to column, in the same order (it read

@@ -33,6 +33,7 @@ from bondgraph.diagnose.accept import (
     rejection,
     robust_std_needed,
     significant,
+    unidentified_effect,
     unidentified_new,
 )
 from bondgraph.diagnose.confirm import (
@@ -1520,7 +1521,10 @@ def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidat
     noise levels) at the other places, Bonferroni over them; at most
     :data:`PAIR_TOP`, those already in ``pool`` left out. Each is confirmed
     alone against ``current`` (its own refit, which
-    :func:`~bondgraph.diagnose.accept.pair_needed` compares the pair with).
+    :func:`~bondgraph.diagnose.accept.pair_needed` compares the pair with);
+    one whose own refit the record does not determine apart from the
+    current model (:func:`~bondgraph.diagnose.accept.unidentified_effect`)
+    is left out, as the pool leaves it out (:data:`_UNUSABLE`).
 
     A partner of an interacting pair can be invisible against the declared
     fit: two overflows into one measured collector, the declared orifices
@@ -1557,9 +1561,14 @@ def partners_of(ctx: Context, current: Fit, lead: Candidate, pool: list[Candidat
         key = ("confirmation", id(current), current.nll, c.label)
         if key not in ctx.cache:
             ctx.cache[key] = confirm(ctx, current, c, scales, f"{tag}_alone")
-        if ctx.cache[key] is not None:
-            c.confirmed = {"values": dict(c.values)}
-            out.append(c)
+        if ctx.cache[key] is None:
+            continue
+        if why := unidentified_effect(current, ctx.cache[key].fit):
+            # as in the pool (_UNUSABLE): no partner mends what its own refit leaves undetermined
+            ctx.log(f"  {c.label} is not paired: {why}")
+            continue
+        c.confirmed = {"values": dict(c.values)}
+        out.append(c)
     return out
 
 
