@@ -28,9 +28,9 @@ force-pulse run, the state set from its first 20 samples
     bondgraph loop --model examples/emps_user.py:emps_user --data emps.csv \
         --validate pulses.csv --params M,Fv --init-samples 20
 
-Measured on 2026-11-30 (1159 s): a force offset, Coulomb friction
-(Fc 26.8 N) and a cubic viscous term; pulses-run position NRMSE
-1.23 -> 0.1799 -> 0.1076 -> 0.0696, M 96.3 kg. Without
+Measured on 2026-11-30 (1159-1256 s): a force offset, Coulomb friction
+(Fc 26.8 N) and a cubic viscous term; pulses-run position NRMSE over the
+samples after the window 1.232 -> 0.18 -> 0.1077 -> 0.06969, M 96.3 kg. Without
 ``--init-samples`` the pulses run's start is smoothed over the whole run,
 which lets a constant cancel the offset-only model's misfit: Coulomb
 friction is then refused (0.06151 -> 0.06461).
