@@ -165,3 +165,21 @@ def test_a_held_out_part_is_not_continued_under_the_window_rule(records):
     xc = F.continued_state(ctx, ctx.problem, vp, theta, res)
     cont = F._free_run_from(ctx, vp, theta, held, xc)
     assert np.max(np.abs(cont - ref)) > 10 * NOISE     # the continued run is another run
+
+
+def test_a_window_needs_a_record_that_judges_and_samples_after_it(records):
+    from bondgraph.diagnose.runner import MIN_HELD_OUT, held_out
+    est, val = records
+    base = dict(params=["M", "Fv"], ukf=UKFOptions(method="rk4", substeps=2, hold="linear"))
+    with pytest.raises(OptionError, match=r"--init-samples\) 20 .* holdout 0 and no validation"):
+        held_out(est, LoopSettings(**base, free_run=FreeRunOptions(init_samples=20)))
+    n = len(val.t) - MIN_HELD_OUT + 1
+    with pytest.raises(OptionError, match=rf"leaves {MIN_HELD_OUT - 1} of the {len(val.t)}-sample"):
+        held_out(est, LoopSettings(**base, validation=val,
+                                   free_run=FreeRunOptions(init_samples=n)))
+    # the held-out quarter of the record (250 samples) is checked the same way
+    with pytest.raises(OptionError, match="leaves 0 of the 250-sample validation record"):
+        held_out(est, LoopSettings(**base, holdout=0.25, free_run=FreeRunOptions(init_samples=300)))
+    ok = LoopSettings(**base, validation=val, free_run=FreeRunOptions(init_samples=20))
+    assert held_out(est, ok) == (est, ok)
+    assert FreeRunOptions(init_samples=np.int64(20)).init_samples == 20

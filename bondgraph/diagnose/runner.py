@@ -277,7 +277,7 @@ def held_out(experiment, s: LoopSettings):
         :data:`MIN_HELD_OUT` samples (the sizes and the remedies named).
     """
     if s.validation is not None or not s.holdout:
-        return experiment, s
+        return experiment, window_fits(s)
     n = len(experiment.t)
     cut = int(round(n * (1.0 - s.holdout)))
     if min(cut, n - cut) < MIN_HELD_OUT:
@@ -288,7 +288,37 @@ def held_out(experiment, s: LoopSettings):
                  "on the whole record (--holdout 0)")
     est, val = experiment.segment(0, cut), experiment.segment(cut)
     val.meta["follows"] = est.name
-    return est, replace(s, validation=val)
+    return est, window_fits(replace(s, validation=val))
+
+
+def window_fits(s: LoopSettings) -> LoopSettings:
+    """``s`` when its free-run window (``s.free_run.init_samples``, the
+    benchmark protocol's first samples of the record that judges) leaves
+    at least :data:`MIN_HELD_OUT` samples of that record to judge by.
+
+    Raises
+    ------
+    OptionError
+        A window without a record that judges (``holdout`` 0 and no
+        ``validation``: the loop then judges on the fitted record, whose
+        start is fitted with θ), or one that leaves fewer samples (the
+        sizes named).
+    """
+    n = s.free_run.init_samples
+    if not n:
+        return s
+    if s.validation is None:
+        raise OptionError(f"init_samples (--init-samples) {n} sets the start of the record that "
+                          f"judges, and with holdout 0 and no validation record there is none",
+                          hint="give --validate FILE or --holdout FRACTION, or leave "
+                               "--init-samples out")
+    size = len(s.validation.t)
+    if size - n < MIN_HELD_OUT:
+        raise OptionError(f"init_samples (--init-samples) {n} leaves {max(size - n, 0)} of the "
+                          f"{size}-sample validation record '{s.validation.name}' to judge by: "
+                          f"at least {MIN_HELD_OUT}",
+                          hint="a smaller window, or a longer validation record")
+    return s
 
 
 def chosen_numerics(graph: BondGraph, record, settings: LoopSettings, *,

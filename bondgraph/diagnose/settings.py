@@ -350,7 +350,8 @@ class FreeRunOptions:
     init_samples: int = 0
 
     def __post_init__(self):
-        if isinstance(self.init_samples, bool) or not isinstance(self.init_samples, int) \
+        if isinstance(self.init_samples, bool) \
+                or not isinstance(self.init_samples, numbers.Integral) \
                 or self.init_samples < 0 or self.init_samples == 1:
             raise OptionError(f"FreeRunOptions.init_samples must be 0 (the loop's start rule) "
                               f"or an integer of at least 2 samples, got {self.init_samples!r}")
