@@ -183,3 +183,15 @@ def test_a_window_needs_a_record_that_judges_and_samples_after_it(records):
     ok = LoopSettings(**base, validation=val, free_run=FreeRunOptions(init_samples=20))
     assert held_out(est, ok) == (est, ok)
     assert FreeRunOptions(init_samples=np.int64(20)).init_samples == 20
+
+
+def test_unknown_parameters_are_refused_with_their_names_quoted(records):
+    """run_loop and the command line refuse them alike (runner.require_params),
+    the command line before the numerics are chosen."""
+    from bondgraph.diagnose.runner import require_params, run_loop
+    from bondgraph.errors import ModelError
+    with pytest.raises(ModelError, match=r"has no parameter\(s\) 'Mx', 'k' \(known: M, Fv\)"):
+        require_params(drive(), ["M", "Mx", "k"])
+    est, _ = records
+    with pytest.raises(ModelError, match=r"no parameter\(s\) 'Mx'"):
+        run_loop(drive(), est, LoopSettings(params=["M", "Mx"]), log=lambda _m: None)

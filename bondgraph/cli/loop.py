@@ -33,7 +33,7 @@ from bondgraph.diagnose.effects import get_effect
 from bondgraph.diagnose.effects.library import OPTIONAL_EFFECTS
 from bondgraph.diagnose.loop import run_loop
 from bondgraph.diagnose.result import robust_of, understated
-from bondgraph.diagnose.runner import chosen_numerics as loop_chosen_numerics
+from bondgraph.diagnose.runner import chosen_numerics as loop_chosen_numerics, require_params
 from bondgraph.diagnose.settings import (
     DEFAULT_HOLDOUT,
     AcceptRule,
@@ -245,11 +245,7 @@ def run(args) -> int:
             base = dataclasses.replace(base, params=refitted(graph, args.from_result),
                                        hold_unidentified=())
     settings = loop_settings(args, base, graph)
-    unknown = [n for n in settings.params if n not in graph.params]
-    if unknown:                      # before the numerics are chosen (seconds on a long record)
-        raise ModelError(f"graph '{graph.name}' has no parameter(s) "
-                         f"{', '.join(repr(n) for n in unknown)} "
-                         f"(known: {', '.join(graph.params)})")
+    require_params(graph, settings.params)   # before the numerics (seconds on a long record)
     if args.model:
         settings = chosen_numerics(args, graph, record, settings)
     if args.model and not args.validate and args.holdout is None:

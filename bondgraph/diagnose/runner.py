@@ -162,10 +162,7 @@ def run_loop(graph: BondGraph, experiment, settings: LoopSettings, *,
     """
     if not isinstance(settings, LoopSettings):
         raise OptionError(f"run_loop needs a LoopSettings, got {type(settings).__name__}")
-    missing = [p for p in settings.params if p not in set(graph.params)]
-    if missing:
-        raise ModelError(f"graph '{graph.name}' has no parameter(s) {missing} "
-                         f"(known: {', '.join(graph.params)})")
+    require_params(graph, settings.params)
     records_hold_inputs(graph, experiment, settings)
     experiment, s = held_out(experiment, settings)
     t0 = time.perf_counter()
@@ -236,6 +233,21 @@ def conditioned(ctx: Context, fit: Fit):
         yield
     finally:
         ctx.problem = base
+
+
+def require_params(graph: BondGraph, params: Sequence[str]) -> None:
+    """Refuse parameters to estimate that ``graph`` does not declare.
+
+    Raises
+    ------
+    ModelError
+        The unknown names quoted, and the graph's own.
+    """
+    unknown = [n for n in params if n not in set(graph.params)]
+    if unknown:
+        raise ModelError(f"graph '{graph.name}' has no parameter(s) "
+                         f"{', '.join(repr(n) for n in unknown)} "
+                         f"(known: {', '.join(graph.params)})")
 
 
 def records_hold_inputs(graph: BondGraph, experiment, s: LoopSettings) -> None:
