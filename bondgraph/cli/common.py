@@ -215,14 +215,16 @@ ONE_RECORD = ("run it once per record (`bondgraph estimate --data A --data B` fi
 
 
 def add_data(p: argparse.ArgumentParser, *, required: bool = True,
-             several: bool = False, remedy: str = ONE_RECORD) -> None:
+             several: bool = False, remedy: str = ONE_RECORD, help: str | None = None) -> None:
     """``--data``: the record (``several``: repeatable, a list of records;
-    else a second ``--data`` is refused with ``remedy``, :class:`Once`)."""
+    else a second ``--data`` is refused with ``remedy``, :class:`Once`);
+    ``help`` replaces the fitting commands' help text."""
     if several:
         p.add_argument("--data", required=required, action="append", metavar="DATA",
-                       help="record CSV with optional JSON sidecar (docs/data_format.md); "
-                            "repeat for several records of the same system: one parameter "
-                            "set fitted to all, each record its own initial state")
+                       help=help or "record CSV with optional JSON sidecar "
+                                    "(docs/data_format.md); repeat for several records of the "
+                                    "same system: one parameter set fitted to all, each record "
+                                    "its own initial state")
         return
     p.add_argument("--data", required=required, action=Once, remedy=remedy,
                    help="record CSV with optional JSON sidecar (docs/data_format.md)")

@@ -80,6 +80,52 @@ def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float
     return out
 
 
+def read_noise_levels(path: str | Path) -> dict[str, float]:
+    """Measurement-noise levels of a fit: what :func:`read_params` leaves out.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``result.json`` of ``bondgraph estimate`` (its ``noise.<output>``
+        estimates, and the levels it held, ``settings.noise_levels``) or
+        ``report.json`` of ``bondgraph loop`` (the final fit's estimated
+        levels, ``final_fit.noise_estimates``, and the held ones,
+        ``settings.noise_levels``).
+
+    Returns
+    -------
+    dict
+        ``output -> std`` (output units); the estimates over the held
+        levels; {} when the file has none.
+
+    Raises
+    ------
+    ExportError
+        As :func:`read_params` (the file is read by it first).
+    """
+    read_params(path)                       # the same errors for a bad file
+    doc = from_jsonable(json.loads(Path(path).read_text()))
+    held = (doc.get("settings") or {}).get("noise_levels") or {}
+    out = {}
+    for o, v in held.items():               # estimate: {"std": .., "how": ..}; loop: a number
+        v = v.get("std") if isinstance(v, dict) else v
+        out[str(o)] = v
+    if isinstance(doc.get("final_fit"), dict):
+        out.update((doc["final_fit"].get("noise_estimates") or {}))
+    else:
+        out.update({n[len("noise."):]: v for n, v in zip(doc["params"], doc["estimates"])
+                    if str(n).startswith("noise.")})
+    levels = {}
+    for o, v in out.items():
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            continue
+        if math.isfinite(f) and f > 0:
+            levels[str(o)] = f
+    return levels
+
+
 def model_graph(spec: str | BondGraph, params: Mapping[str, float] | None = None) -> BondGraph:
     """The graph named by ``spec`` with ``params`` as its parameter defaults.
 

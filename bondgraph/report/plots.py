@@ -195,3 +195,59 @@ def _draw_column(ax, exp, sim, c: str, role: str, measured: bool, stride: int,
     if gaps:
         ax.set_title(f"{int(np.isnan(exp.columns[c]).sum())} missing samples",
                      fontsize="small", loc="right")
+
+
+def plot_comparison(comp, path: str | Path, *, dpi: int = 110, max_points: int = 20000) -> Path:
+    """One PNG of a model's free run against a record
+    (:class:`bondgraph.diagnose.compare.Comparison`): per output, the
+    measured samples and the simulated line (the samples before the judged
+    window shaded), and below it the error, titled with the RMS error,
+    the NRMSE and MATLAB ``compare``'s NRMSE fit.
+
+    Parameters
+    ----------
+    comp : Comparison
+    path : str or Path
+        The PNG file (its folder is created).
+    dpi, max_points : int
+        Resolution; longer records are decimated (every k-th sample).
+
+    Returns
+    -------
+    Path
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    n = len(comp.outputs)
+    stride = max(1, int(np.ceil(comp.t.size / max_points)))
+    t = comp.t[::stride]
+    fig = Figure(figsize=(9.0, 2.6 * n + 0.9), dpi=dpi, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2 * n, 1, sharex=True, squeeze=False,
+                        gridspec_kw={"height_ratios": [3, 1] * n})[:, 0]
+    fig.suptitle(f"{comp.record}: free run against the record (mean NRMSE {comp.metric:.4g})")
+    for j, (o, unit) in enumerate(zip(comp.outputs, comp.units)):
+        ax, ae = axes[2 * j], axes[2 * j + 1]
+        y = comp.y[::stride, j]
+        ax.plot(t, y, ".", ms=2.0, color="C0", label="measured")
+        if comp.sim_y is not None:
+            s = comp.sim_y[::stride, j]
+            ax.plot(t, s, "-", lw=1.2, color="C3", label="simulated")
+            ae.plot(t, y - s, "-", lw=0.8, color="C2")
+        if comp.judged_from:
+            for a in (ax, ae):
+                a.axvspan(comp.t[0], comp.t[comp.judged_from - 1], color="0.85", lw=0,
+                          label="sets the start" if a is ax else None)
+        ax.set_title(f"RMS error {comp.rms[j]:.4g} {unit or ''}, NRMSE {comp.nrmse[j]:.4g}, "
+                     f"fit {comp.fit_percent[j]:.1f} %", fontsize="small", loc="right")
+        ax.set_ylabel(_label(o, unit))
+        ae.set_ylabel("error")
+        for a in (ax, ae):
+            a.grid(True, alpha=0.3)
+        ax.legend(loc="best", fontsize="small")
+    axes[-1].set_xlabel("t [s]")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path

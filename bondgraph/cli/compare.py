@@ -1,0 +1,131 @@
+"""``bondgraph compare``: a fitted model judged on records it was not fitted
+to: free-run error and one-step-ahead NLL per record, as the loop judges its
+held-out record (:func:`bondgraph.diagnose.compare.compare`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from bondgraph.cli.common import (add_data, add_discretisation, add_model, add_overwrite,
+                                  add_quiet, discretisation_given, load_record, output_folder,
+                                  parse_pairs, published)
+from bondgraph.core.jsonsafe import to_jsonable
+from bondgraph.diagnose.compare import compare
+from bondgraph.errors import ExportError
+from bondgraph.export.params import model_graph, read_noise_levels, read_params
+from bondgraph.numerics.registry import graph_builder
+from bondgraph.report.plots import plot_comparison
+
+#: the example line of ``bondgraph compare --help``
+EXAMPLE = ("bondgraph compare door.py:door --data test.csv --params "
+           "estimate_door_closer_push/result.json")
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    """Options of ``bondgraph compare``."""
+    add_model(p, positional=True)
+    add_data(p, several=True,
+             help="record CSV to judge the model on (optional JSON sidecar, "
+                  "docs/data_format.md); repeat for several records, each judged alone")
+    p.add_argument("--params", default=None, metavar="JSON",
+                   help="parameter values and noise levels of a fit: `bondgraph estimate`'s "
+                        "result.json or a loop's report.json (its final fit; with a loop's "
+                        "report give its augmented_model.py:build as the model); default: "
+                        "the graph's own values")
+    p.add_argument("--param", action="append", metavar="NAME=VALUE",
+                   help="parameter value over --params (model units)")
+    p.add_argument("--init-samples", type=int, default=0, metavar="N",
+                   help="the free run starts from the smoothed state given the record's first "
+                        "N samples only, and the errors run over the rest, as benchmark "
+                        "protocols ask (EMPS: 20); default 0: the loop's rule (the record's "
+                        "own initial state, else the smoothed state given the whole record)")
+    add_discretisation(p)
+    p.add_argument("--out", default=None,
+                   help="output folder (default compare_<model>_<records>): compare.json, "
+                        "one CSV (measured, simulated, error) and one PNG per record")
+    p.add_argument("--no-plots", action="store_true", help="write no PNG")
+    add_overwrite(p)
+    add_quiet(p)
+
+
+def run(args) -> int:
+    """Run ``bondgraph compare`` (see :func:`configure`): print one table
+    row per record and output, write the folder."""
+    values = read_params(args.params) if args.params else {}
+    levels = read_noise_levels(args.params) if args.params else {}
+    graph = graph_builder(args.model)()
+    unknown = sorted(set(values) - set(graph.params))
+    if unknown:
+        raise ExportError(f"--params {args.params}: model '{graph.name}' has no parameter(s) "
+                          f"{', '.join(unknown)} (its parameters: {', '.join(graph.params)})",
+                          hint="a loop's report.json goes with its augmented_model.py:build")
+    values.update(parse_pairs(args.param, "--param"))
+    graph = model_graph(graph, values)
+    say = (lambda m: None) if args.quiet else print
+    records = [load_record(pth, graph, say) for pth in args.data]
+    stems = "_".join(Path(pth).stem for pth in args.data)
+    folder = output_folder(args.out or f"compare_{graph.name}_{stems}", args)
+    comps = compare(graph, records, noise=levels, init_samples=args.init_samples,
+                    given=discretisation_given(args), log=say, progress=not args.quiet)
+    print(table(comps))
+    for c in comps:
+        if c.trouble:
+            print(f"WARNING: {c.record}: {c.trouble}")
+        if c.filter_failure:
+            print(f"WARNING: {c.record}: the filter fails ({c.filter_failure}): NLL inf")
+    doc = {"model": args.model, "params": args.params, "values": values,
+           "init_samples": args.init_samples, "records": [c.to_json() for c in comps]}
+
+    def version(d: Path) -> list:
+        files = []
+        for c, pth in zip(comps, args.data):
+            stem = Path(pth).stem
+            files.append(_write_csv(c, d / f"{stem}_compare.csv"))
+            if not args.no_plots:
+                files.append(plot_comparison(c, d / f"{stem}_compare.png"))
+        (d / "compare.json").write_text(json.dumps(to_jsonable(doc), indent=1) + "\n")
+        return files
+    files = folder.publish(version)
+    for pth in [folder.path / "compare.json", *published(folder, files)]:
+        print(f"wrote {pth}")
+    return 0
+
+
+def table(comps) -> str:
+    """The comparisons as a Markdown table: one row per record and output."""
+    rows = ["| record | output | RMS error | NRMSE | fit % | NLL / measurement | judged |",
+            "|---|---|---|---|---|---|---|"]
+    for c in comps:
+        per = c.nll / max(c.n_obs, 1)
+        for j, o in enumerate(c.outputs):
+            rows.append(f"| {c.record} | {o} | {c.rms[j]:.4g} {c.units[j] or ''} | "
+                        f"{c.nrmse[j]:.4g} | {c.fit_percent[j]:.1f} | "
+                        f"{per:.4g} | {_judged(c)} |")
+    return "\n".join(rows)
+
+
+def _judged(c) -> str:
+    """Which samples a comparison's errors run over (in words)."""
+    n = c.t.size
+    return f"samples {c.judged_from}-{n - 1}" if c.judged_from else f"all {n} samples"
+
+
+def _write_csv(c, path: Path) -> Path:
+    """``t [s]``, then per output the measured, simulated and error columns
+    (output units; empty where missing or where the run failed)."""
+    cols, head = [c.t], ["t [s]"]
+    sim = c.sim_y if c.sim_y is not None else np.full_like(c.y, np.nan)
+    for j, (o, u) in enumerate(zip(c.outputs, c.units)):
+        unit = f" [{u}]" if u else ""
+        cols += [c.y[:, j], sim[:, j], c.y[:, j] - sim[:, j]]
+        head += [f"{o}{unit}", f"{o}.simulated{unit}", f"{o}.error{unit}"]
+    data = np.column_stack(cols)
+    lines = [",".join(head)]
+    for row in data:
+        lines.append(",".join("" if not np.isfinite(v) else repr(float(v)) for v in row))
+    path.write_text("\n".join(lines) + "\n")
+    return path

@@ -1,0 +1,314 @@
+"""A fitted model judged on records it was not fitted to: free-run
+(simulation) error and one-step-ahead likelihood, as the loop judges its
+held-out record.
+
+The comparison of prediction-error validation (Ljung 1999, §16.6; MATLAB's
+``compare``): the model runs freely from an initial state with the record's
+measured inputs, and its outputs are compared with the measured ones. The
+start is the loop's rule for a record that judges
+(:func:`bondgraph.diagnose.fit.free_run`: the record's own initial state
+where it gives one, else the RTS-smoothed x̂_0|N given the whole record, or
+one fitted to its outputs where the smoother fails), or with
+``init_samples`` = n the smoothed state given the record's first n samples
+only, the error over the rest (the benchmark protocol of
+nonlinearbenchmark.org, :func:`bondgraph.diagnose.fit.window_start`). The
+numerics are those the loop chooses for a user's graph
+(:func:`bondgraph.diagnose.runner.chosen_numerics`), so a figure here is the
+one ``bondgraph loop`` reports for the same model on the same record.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from bondgraph.core.graph import BondGraph
+from bondgraph.diagnose.fit import Context, free_run, free_run_trouble, loop_problem, model_of
+from bondgraph.diagnose.inference_calls import run_ukf
+from bondgraph.diagnose.metric import nrmse
+from bondgraph.diagnose.runner import MIN_HELD_OUT, chosen_numerics
+from bondgraph.diagnose.settings import FreeRunOptions, LoopSettings
+from bondgraph.errors import OptionError
+from bondgraph.inference.problem import NoiseSpec
+
+@dataclass
+class Comparison:
+    """One record's comparison (:func:`compare`).
+
+    Attributes
+    ----------
+    record : str
+        The record's name.
+    outputs, units : list of str
+        The model's outputs (n_y) and their units.
+    t : ndarray (N,)
+        Times [s].
+    y : ndarray (N, n_y)
+        Measured outputs (model units; NaN where missing).
+    sim_y : ndarray (N, n_y) or None
+        The free run; None where it failed.
+    judged_from : int
+        First sample the errors run over (``init_samples``; 0: all).
+    rms : ndarray (n_y,)
+        RMS free-run error per output (output units; inf where the run failed).
+    nrmse : ndarray (n_y,)
+        RMS error over the std of the measurement, per output.
+    fit_percent : ndarray (n_y,)
+        100 (1 − ‖y − ŷ‖ / ‖y − ȳ‖): MATLAB ``compare``'s NRMSE fit (100 %
+        a perfect run, 0 % the measurement's mean, negative worse).
+    metric : float
+        The loop's error measure: the mean of ``nrmse`` over the outputs
+        (:func:`bondgraph.diagnose.metric.nrmse`).
+    nll : float
+        Negative log-likelihood of the record under the model's UKF
+        (one-step-ahead predictions; inf where the filter fails).
+    n_obs : int
+        Scalar measurements the NLL sums over.
+    start : str
+        How the free run's initial state was set (in words).
+    noise : dict
+        Output -> (measurement-noise std the filter used, where it came from).
+    numerics : str
+        The filter's and free run's discretisation (one line).
+    trouble : str or None
+        Why the free run does not show a model that simulates
+        (:func:`bondgraph.diagnose.fit.free_run_trouble`), or None.
+    filter_failure : str or None
+        Why the filter failed, or None.
+    """
+
+    record: str
+    outputs: list
+    units: list
+    t: np.ndarray
+    y: np.ndarray
+    sim_y: np.ndarray | None
+    judged_from: int
+    rms: np.ndarray
+    nrmse: np.ndarray
+    fit_percent: np.ndarray
+    metric: float
+    nll: float
+    n_obs: int
+    start: str
+    noise: dict = field(default_factory=dict)
+    numerics: str = ""
+    trouble: str | None = None
+    filter_failure: str | None = None
+
+    def to_json(self) -> dict:
+        """The comparison as JSON-ready values (arrays left out but the
+        per-output figures)."""
+        return {"record": self.record, "metric": self.metric, "nll": self.nll,
+                "n_obs": self.n_obs, "judged_from": self.judged_from, "start": self.start,
+                "numerics": self.numerics, "trouble": self.trouble,
+                "filter_failure": self.filter_failure,
+                "outputs": {o: {"unit": u, "rms": float(r), "nrmse": float(n),
+                                "fit_percent": float(f), "noise_std": self.noise[o][0],
+                                "noise_from": self.noise[o][1]}
+                            for o, u, r, n, f in zip(self.outputs, self.units, self.rms,
+                                                     self.nrmse, self.fit_percent)}}
+
+
+def output_errors(y: np.ndarray, sim_y: np.ndarray | None, first: int = 0
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RMS error (n_y,), NRMSE (n_y,) and NRMSE fit in % (n_y,) of the free
+    run ``sim_y`` (N, n_y) against ``y`` (N, n_y; NaN where missing) over the
+    samples from ``first`` on; inf (and −inf %) for an output whose run failed
+    or is not finite where it is measured. The std and mean of an output are
+    those of its judged samples."""
+    n_y = y.shape[1]
+    rms, nr, fit = np.full(n_y, np.inf), np.full(n_y, np.inf), np.full(n_y, -np.inf)
+    if sim_y is None:
+        return rms, nr, fit
+    ys, ss = np.asarray(y, float)[first:], np.asarray(sim_y, float)[first:]
+    for j in range(n_y):
+        seen = np.isfinite(ys[:, j])
+        if seen.sum() < 2 or not np.all(np.isfinite(ss[seen, j])):
+            continue
+        e = ys[seen, j] - ss[seen, j]
+        rms[j] = float(np.sqrt(np.mean(e * e)))
+        sd = float(np.std(ys[seen, j]))
+        nr[j] = rms[j] / (sd if sd > 0 else 1.0)
+        dev = float(np.linalg.norm(ys[seen, j] - ys[seen, j].mean()))
+        fit[j] = 100.0 * (1.0 - float(np.linalg.norm(e)) / (dev if dev > 0 else 1.0))
+    return rms, nr, fit
+
+
+def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] | None = None,
+            init_samples: int = 0, given: Mapping[str, object] | None = None,
+            log: Callable[[str], None] = print, progress: bool = False) -> list[Comparison]:
+    """Judge ``graph`` (its parameter defaults: set them from a fit with
+    :func:`bondgraph.export.params.model_graph`) on each of ``records``.
+
+    For each record: the numerics the loop chooses for a user's graph at
+    these parameters (:func:`bondgraph.diagnose.runner.chosen_numerics`:
+    the filter's method, substeps and input hold its discretisation check
+    accepts; free runs by the same method 4 times finer); the measurement
+    noise held at the record's declaration, else at ``noise`` (a fit's
+    estimates), else profiled on the record at these parameters
+    (:func:`bondgraph.inference.estimate.start_levels_profiled`); the UKF's
+    NLL; the free run from the loop's start for a record that judges
+    (:func:`bondgraph.diagnose.fit.free_run`, or the first ``init_samples``
+    samples' smoothed state, :func:`bondgraph.diagnose.fit.window_start`)
+    and its errors (:func:`output_errors`).
+
+    Parameters
+    ----------
+    graph : BondGraph
+    records : sequence of Experiment
+    noise : mapping, optional
+        Output -> measurement-noise std (output units), e.g. a fit's
+        estimates (:func:`bondgraph.export.params.read_noise_levels`).
+    init_samples : int
+        0 (default): the loop's start rule; n > 0: the start given the first
+        n samples, the errors over the rest.
+    given : mapping, optional
+        Discretisation fields the caller fixes (``method``, ``substeps``,
+        ``hold``).
+    log : callable
+        Gets one line per choice (numerics, noise levels, fallbacks).
+    progress : bool
+        Progress bars of the long steps.
+
+    Returns
+    -------
+    list of Comparison
+        One per record, in order.
+
+    Raises
+    ------
+    OptionError
+        ``init_samples`` negative, 1, not an integer, or leaving fewer than
+        :data:`~bondgraph.diagnose.runner.MIN_HELD_OUT` samples of a record;
+        a noise level that is not a finite number > 0; no record.
+    DataError
+        A record that does not fit the model (its inputs or outputs absent).
+    """
+    try:
+        n_init = FreeRunOptions(init_samples=init_samples).init_samples
+    except OptionError as exc:
+        raise OptionError(str(exc).replace("FreeRunOptions.init_samples", "--init-samples")) \
+            from None
+    if not records:
+        raise OptionError("compare needs at least one record")
+    levels = _checked_levels(noise or {})
+    out = []
+    for rec in records:
+        if n_init and len(rec.t) - n_init < MIN_HELD_OUT:
+            raise OptionError(f"--init-samples {n_init} leaves {len(rec.t) - n_init} samples of "
+                              f"record '{rec.name}' ({len(rec.t)} samples) to judge by: at "
+                              f"least {MIN_HELD_OUT}")
+        out.append(_compare_one(graph, rec, levels, n_init, dict(given or {}), log, progress))
+    return out
+
+
+def _checked_levels(levels: Mapping[str, float]) -> dict:
+    """``levels`` as floats, each finite and > 0 (an OptionError names one
+    that is not)."""
+    out = {}
+    for o, v in levels.items():
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            f = float("nan")
+        if not (np.isfinite(f) and f > 0):
+            raise OptionError(f"measurement-noise std of '{o}' must be a finite number > 0, "
+                              f"got {v!r}")
+        out[str(o)] = f
+    return out
+
+
+def _compare_one(graph, rec, levels: dict, n_init: int, given: dict, log, progress
+                 ) -> Comparison:
+    """:func:`compare` on one record."""
+    lines: list[str] = []
+    settings = chosen_numerics(graph, rec, LoopSettings(params=[]), given=given,
+                               log=lines.append)
+    numerics = lines[0] if lines else "the filter's options as given"
+    for ln in lines:
+        log(f"{rec.name}: {ln}")
+    settings = replace(settings, free_run=replace(settings.free_run, init_samples=n_init))
+    model = model_of(graph)
+    problem = loop_problem(model, rec, settings)
+    held, said = _noise_levels(problem, rec, levels)
+    problem = replace(problem, noise=NoiseSpec("auto").holding(
+        {o: v for o, (v, _) in held.items()}))
+    log(f"{rec.name}: measurement-noise std "
+        + ", ".join(f"{o} {v:.4g} ({why})" for o, (v, why) in held.items()))
+    for ln in said:
+        log(f"{rec.name}: {ln}")
+    theta = problem.theta
+    res = run_ukf(problem, theta[None, :])
+    nll = float(res.nll[0])
+    failure = None if np.isfinite(nll) else str(res.reasons[0])
+    ctx = Context(problem, settings, log=lambda m: log(f"{rec.name}:{m}"), progress=progress)
+    sim_y = free_run(ctx, problem, theta, own=False)
+    t, _, y = problem.arrays
+    rms, nr, fit = output_errors(y, sim_y, n_init)
+    judged = y.copy()
+    judged[:n_init] = np.nan
+    metric = nrmse(judged, sim_y) if sim_y is not None else float("inf")
+    return Comparison(
+        record=rec.name, outputs=list(model.outputs), units=list(model.output_units),
+        t=np.asarray(t, float), y=np.asarray(y, float), sim_y=sim_y, judged_from=n_init,
+        rms=rms, nrmse=nr, fit_percent=fit, metric=float(metric), nll=nll,
+        n_obs=int(np.isfinite(y).sum()), start=_start_text(problem, n_init),
+        noise=held, numerics=numerics, trouble=free_run_trouble(sim_y, y, model.outputs),
+        filter_failure=failure)
+
+
+def _start_text(problem, n_init: int) -> str:
+    """How :func:`bondgraph.diagnose.fit.free_run` sets the free run's
+    initial state on ``problem``'s record (in words)."""
+    unknown = problem.prior.unknown(problem.model, problem.record)
+    if not unknown:
+        return "the record's own initial state (state columns or sidecar x0)"
+    given = [s for s in problem.model.states if s not in unknown]
+    what = (f"the smoothed state given its first {n_init} samples (errors over the rest)"
+            if n_init else "the smoothed state given the whole record (the loop's rule; a "
+                           "start fitted to the outputs where the smoother fails, logged)")
+    return what + (f"; {', '.join(given)} from the record" if given else "")
+
+
+def _noise_levels(problem, rec, levels: dict) -> tuple[dict, list[str]]:
+    """Output -> (std, source) for every output of ``problem``'s model: the
+    record's declaration, else ``levels``, else profiled at the problem's θ
+    (:func:`bondgraph.inference.estimate.start_levels_profiled`), else the
+    graph's own sensor noise; and the lines to log."""
+    from bondgraph.errors import EstimationError, NumericalError
+    from bondgraph.inference.estimate import start_levels_profiled
+
+    model = problem.model
+    declared = np.asarray(rec.noise_std_for(model), float)
+    own = np.asarray(model.meas_std(problem.theta[None, :]), float)[0]
+    held, todo = {}, []
+    for j, o in enumerate(model.outputs):
+        if np.isfinite(declared[j]) and declared[j] > 0:
+            held[o] = (float(declared[j]), "the record's declaration")
+        elif o in levels:
+            held[o] = (levels[o], "the fit's estimate")
+        else:
+            todo.append(j)
+    said = []
+    if todo:
+        free = [p for p in model.params if p not in problem.fixed][:1]
+        prof = np.full(model.n_y, np.nan)
+        if free:
+            try:
+                prof = start_levels_profiled(
+                    replace(problem, noise=NoiseSpec("auto").holding(
+                        {o: v for o, (v, _) in held.items()})), free)
+            except (EstimationError, NumericalError, FloatingPointError,
+                    np.linalg.LinAlgError) as exc:
+                said.append(f"profiling the noise levels failed ({str(exc).splitlines()[0]}): "
+                            f"the graph's own levels are used")
+        for j in todo:
+            o = model.outputs[j]
+            if np.isfinite(prof[j]) and prof[j] > 0:
+                held[o] = (float(prof[j]), "profiled on this record at these parameters")
+            else:
+                held[o] = (float(own[j]), "the graph's sensor noise")
+    return {o: held[o] for o in model.outputs}, said

@@ -1,0 +1,220 @@
+"""``bondgraph compare``: a fitted model judged on a record it was not
+fitted to (:func:`bondgraph.diagnose.compare.compare`).
+
+The reference is the truth the records were simulated from: a mass on
+viscous friction pushed by a multisine force plus a constant force offset,
+integrated by scipy's solve_ivp at tight tolerances, the position measured
+with 1 mm Gaussian noise whose draw the tests know. The errors, the NRMSE
+fit and the NLL are checked against numbers computed here by hand: the RMS
+of the known noise draw, of the difference of two scipy runs, and the
+entropy of the noise (an exact model's one-step NLL per measurement
+approaches ½ log(2πσ²) + ½).
+"""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from bondgraph import BondGraph
+from bondgraph.data.records import Experiment
+from bondgraph.diagnose.compare import compare, output_errors
+from bondgraph.errors import OptionError
+from bondgraph.export.params import read_noise_levels
+
+M, FV, F0, NOISE, DT, N = 2.0, 4.0, 0.5, 1e-3, 0.01, 1000
+Q0, V0 = 0.1, 0.2
+
+
+def drive(offset: bool = False) -> BondGraph:
+    g = BondGraph("drive_cmp" + ("_offset" if offset else ""), "a mass on viscous friction")
+    f = g.input("F", "N", 0.0, "force")
+    m = g.param("M", M, "kg", (0.1, 10.0), "mass")
+    c = g.param("Fv", FV, "N*s/m", (0.01, 100.0), "viscous friction")
+    v = g.one("v")
+    g.connect(g.Se("push", f), v)
+    if offset:
+        g.connect(g.Se("offset", g.param("F0", F0, "N", (-5.0, 5.0), "force offset")), v)
+    g.connect(v, g.I("mass", m))
+    g.connect(v, g.R("friction", c))
+    q = g.displacement(v, name="q", unit="m")
+    g.sensor("qm", q, unit="m", noise_std=0.05, description="position")
+    return g
+
+
+def _force(t):
+    fr = np.array([0.13, 0.41, 0.97])
+    return 3.0 * np.sum(np.sin(2 * np.pi * fr * np.asarray(t)[..., None] + np.arange(3)), axis=-1)
+
+
+def _truth(offset: float, x0=(Q0, V0)):
+    t = np.arange(N) * DT
+    sol = solve_ivp(lambda tt, z: [z[1], (_force(tt) + offset - FV * z[1]) / M], (0.0, t[-1]),
+                    list(x0), t_eval=t, rtol=1e-11, atol=1e-13)
+    return t, sol.y[0]
+
+
+def _write(path, t, y, sidecar=None):
+    with open(path, "w") as fh:
+        fh.write("t [s],F [N],qm [m]\n")
+        for row in zip(t.tolist(), _force(t).tolist(), y.tolist()):
+            fh.write("%r,%r,%r\n" % row)
+    if sidecar is not None:
+        path.with_suffix(".json").write_text(json.dumps({"format": "bondgraph-experiment/1",
+                                                         **sidecar}))
+    return Experiment.load(path)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("compare")
+    t, q = _truth(F0)
+    noise = NOISE * np.random.default_rng(7).standard_normal(N)
+    known = _write(d / "known.csv", t, q + noise, {"x0": {"q": Q0, "p_mass": M * V0}})
+    unknown = _write(d / "unknown.csv", t, q + noise)
+    return {"dir": d, "t": t, "q": q, "noise": noise, "known": known, "unknown": unknown}
+
+
+def _one(graph, rec, **kw):
+    kw.setdefault("noise", {"qm": NOISE})
+    return compare(graph, [rec], log=lambda _m: None, **kw)[0]
+
+
+def test_the_true_model_from_the_records_start_reads_the_noise_draw(data):
+    c = _one(drive(offset=True), data["known"])
+    assert c.start.startswith("the record's own initial state")
+    rms_noise = float(np.sqrt(np.mean(data["noise"] ** 2)))
+    assert c.rms[0] == pytest.approx(rms_noise, rel=2e-3)
+    y = data["q"] + data["noise"]
+    assert c.nrmse[0] == pytest.approx(rms_noise / np.std(y), rel=2e-3)
+    fit = 100 * (1 - np.linalg.norm(data["noise"]) / np.linalg.norm(y - y.mean()))
+    assert c.fit_percent[0] == pytest.approx(fit, abs=0.01)
+    assert c.metric == pytest.approx(c.nrmse[0], rel=1e-12)
+    # one-step NLL per measurement of an exact model: the noise's entropy
+    # ½ log(2πσ²) + ½ (the draw's own variance in place of σ²), plus the
+    # state's own spread in each innovation's variance (the prior's, which
+    # shrinks as the record goes on: 0.02 nats per measurement here)
+    entropy = 0.5 * math.log(2 * math.pi * NOISE ** 2) + 0.5 * rms_noise ** 2 / NOISE ** 2
+    assert 0 < c.nll / c.n_obs - entropy < 0.03
+    assert c.trouble is None and c.filter_failure is None
+
+
+def test_a_model_without_the_offset_reads_its_misfit_by_hand(data):
+    c = _one(drive(), data["known"])
+    t, q_no = _truth(0.0)
+    e = data["q"] + data["noise"] - q_no
+    assert c.rms[0] == pytest.approx(float(np.sqrt(np.mean(e ** 2))), rel=1e-3)
+    assert c.rms[0] > 50 * NOISE
+    # the free run holds the sampled force linearly between samples (scipy's
+    # truth has it continuous): 4e-5 m apart at most over the 10 s
+    np.testing.assert_allclose(c.sim_y[:, 0], q_no, rtol=0, atol=0.1 * NOISE)
+
+
+def test_without_a_given_start_the_smoothed_one_and_the_window(data):
+    true = _one(drive(offset=True), data["unknown"])
+    assert "whole record" in true.start
+    assert true.rms[0] < 1.2 * NOISE
+    w = _one(drive(offset=True), data["unknown"], init_samples=20)
+    assert w.judged_from == 20 and "first 20 samples" in w.start
+    # the window's start is the truth to within what 0.2 s of 1 mm noise
+    # tells: the velocity's std σ/(dt·√(n(n²−1)/12)) = 3.9 mm/s leaves a
+    # lasting position offset of about that times M/Fv = 0.5 s, 2 mm
+    v_std = NOISE / (DT * math.sqrt(20 * (20 ** 2 - 1) / 12))
+    assert w.rms[0] < NOISE + 1.5 * v_std * M / FV
+    e = w.y[20:, 0] - w.sim_y[20:, 0]
+    assert w.rms[0] == pytest.approx(float(np.sqrt(np.mean(e ** 2))), rel=1e-12)
+    # a model without the offset: the whole record's start cancels part of
+    # its misfit, the window's cannot
+    whole, win = (_one(drive(), data["unknown"], init_samples=n) for n in (0, 20))
+    assert win.rms[0] > 1.5 * whole.rms[0]
+
+
+def test_noise_levels_the_record_declares_win_and_undeclared_ones_are_profiled(data, tmp_path):
+    t = data["t"]
+    y = data["q"] + data["noise"]
+    declared = _write(tmp_path / "declared.csv", t, y,
+                      {"x0": {"q": Q0, "p_mass": M * V0},
+                       "columns": {"qm": {"unit": "m", "role": "output", "noise_std": 2e-3}}})
+    c = _one(drive(offset=True), declared, noise={"qm": 0.5})
+    assert c.noise["qm"] == (pytest.approx(2e-3), "the record's declaration")
+    c = _one(drive(offset=True), data["known"], noise={})
+    level, why = c.noise["qm"]
+    assert why.startswith("profiled") and level == pytest.approx(NOISE, rel=0.2)
+
+
+def test_output_errors_by_hand():
+    y = np.array([[1.0, 2.0], [2.0, np.nan], [4.0, 1.0], [3.0, 5.0]])
+    s = np.array([[1.5, 2.0], [2.0, 9.0], [3.0, 1.0], [3.0, np.inf]])
+    rms, nr, fit = output_errors(y, s)
+    assert rms[0] == pytest.approx(math.sqrt((0.25 + 0 + 1 + 0) / 4))
+    assert nr[0] == pytest.approx(rms[0] / np.std([1, 2, 4, 3]))
+    assert fit[0] == pytest.approx(100 * (1 - math.sqrt(1.25) / math.sqrt(5.0)))
+    assert rms[1] == np.inf and fit[1] == -np.inf     # not finite where measured
+    rms, _, _ = output_errors(y, s, first=2)
+    assert rms[0] == pytest.approx(math.sqrt(0.5))
+    assert np.all(output_errors(y, None)[0] == np.inf)
+
+
+@pytest.mark.parametrize("bad", [1, -2, 2.5, True])
+def test_a_bad_window_is_refused_naming_the_option(data, bad):
+    with pytest.raises(OptionError, match="--init-samples"):
+        _one(drive(), data["known"], init_samples=bad)
+
+
+def test_a_window_that_leaves_too_few_samples_is_refused(data):
+    with pytest.raises(OptionError, match="leaves 5 samples"):
+        _one(drive(), data["known"], init_samples=N - 5)
+
+
+def test_noise_levels_are_read_from_an_estimate_and_a_loop_report(tmp_path):
+    est = tmp_path / "result.json"
+    est.write_text(json.dumps({"params": ["M", "noise.qm"], "estimates": [2.0, 0.003],
+                               "settings": {"noise_levels": {"v": {"std": 0.1, "how": "held"}}}}))
+    assert read_noise_levels(est) == {"v": 0.1, "qm": 0.003}
+    rep = tmp_path / "report.json"
+    rep.write_text(json.dumps({"final_fit": {"estimates": {"M": 2.0},
+                                             "noise_estimates": {"qm": 0.004}},
+                               "settings": {"noise_levels": {"v": 0.2}}}))
+    assert read_noise_levels(rep) == {"v": 0.2, "qm": 0.004}
+
+
+GRAPH_FILE = '''
+import sys
+sys.path.insert(0, {tests!r})
+from test_compare import drive
+
+def user():
+    return drive()
+'''
+
+
+def test_the_command_writes_the_table_and_the_files(data, tmp_path, capsys):
+    from bondgraph.cli.main import main
+    import os
+    (tmp_path / "user_drive.py").write_text(GRAPH_FILE.format(tests=os.path.dirname(__file__)))
+    res = tmp_path / "result.json"
+    res.write_text(json.dumps({"params": ["M", "Fv", "noise.qm"],
+                               "estimates": [M, FV, NOISE], "fixed": {}}))
+    out = tmp_path / "cmp"
+    spec = f"{tmp_path / 'user_drive.py'}:user"
+    code = main(["compare", spec, "--data", str(data["dir"] / "known.csv"),
+                 "--params", str(res), "--out", str(out), "--quiet"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "| known | qm |" in text
+    doc = json.loads((out / "compare.json").read_text())
+    rec = doc["records"][0]
+    assert rec["outputs"]["qm"]["noise_from"] == "the fit's estimate"
+    ref = _one(drive(), data["known"])
+    assert rec["metric"] == pytest.approx(ref.metric, rel=1e-9)
+    head = (out / "known_compare.csv").read_text().splitlines()[0]
+    assert head == "t [s],qm [m],qm.simulated [m],qm.error [m]"
+    assert (out / "known_compare.png").stat().st_size > 10000
+    # a parameter the graph does not have is named
+    res.write_text(json.dumps({"params": ["Mass"], "estimates": [1.0]}))
+    code = main(["compare", spec, "--data", str(data["dir"] / "known.csv"), "--params",
+                 str(res), "--out", str(tmp_path / "cmp2"), "--quiet"])
+    assert code == 2
+    assert "Mass" in capsys.readouterr().err
