@@ -66,6 +66,7 @@ _export("bondgraph.sensitivity.sobol", "SobolOptions")
 _export("bondgraph.diagnose.effects", "Effect", "apply_effect")
 _export("bondgraph.diagnose.loop", "AcceptRule", "FreeRunOptions", "LoopResult", "LoopSettings",
         "SearchOptions", "chosen_numerics", "run_loop")
+_export("bondgraph.diagnose.compare", "Comparison", "compare")
 _export("bondgraph.diagnose.cases", "LoopCase", "SimulationOptions", "TrueEffect",
         "synthesize")
 
