@@ -218,3 +218,40 @@ def test_the_command_writes_the_table_and_the_files(data, tmp_path, capsys):
                  str(res), "--out", str(tmp_path / "cmp2"), "--quiet"])
     assert code == 2
     assert "Mass" in capsys.readouterr().err
+
+
+def test_a_step_whose_nll_is_off_takes_the_substeps_that_agree(data, monkeypatch):
+    """The NLL guard of :func:`bondgraph.inference.ukf.nll_guard`, on a
+    filter whose NLL is 100 + 10/s² at s substeps (the check's choice
+    forced to rk4(1)): RK4(40) reads 100.00625; 1e-3 relative of it needs
+    10/s² − 10/1600 <= 0.1, s >= 10, so the doubling 1, 2, 4, 8 stops at 16."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import compare as C
+    from bondgraph.diagnose.fit import loop_problem, model_of
+    from bondgraph.diagnose.settings import LoopSettings
+    from bondgraph.inference.options import Discretisation, UKFOptions
+
+    class Coarse:
+        disc, ok = Discretisation(method="rk4", substeps=1, hold="linear"), True
+
+        def line(self, where=""):
+            return f"discretisation {where}: rk4(1) (forced by the test)"
+    monkeypatch.setattr(C, "choose_discretisation", lambda *a, **k: Coarse())
+    monkeypatch.setattr(C, "run_ukf", lambda p, th: SimpleNamespace(
+        nll=np.array([100.0 + 10.0 / p.disc.substeps ** 2])))
+    problem = loop_problem(model_of(drive()), data["known"], LoopSettings(
+        params=[], ukf=UKFOptions(method="rk4", substeps=1, hold="linear")))
+    chosen, lines = C._numerics(problem, problem.theta, {}, [NOISE])
+    assert (chosen.disc.method, chosen.disc.substeps) == ("rk4", 16)
+    assert "rk4(1)'s NLL 110 is 0.1 relative from rk4(40)'s 100.006" in lines[-1]
+    # --substeps given: the user's step is kept
+    kept, _ = C._numerics(problem, problem.theta, {"substeps": 1}, [NOISE])
+    assert kept.disc.substeps == 1
+    # ROS2 whose NLL no doubling brings to RK4(40)'s: the reference is taken
+    Coarse.disc = Discretisation(method="ros2", substeps=1, hold="linear")
+    monkeypatch.setattr(C, "run_ukf", lambda p, th: SimpleNamespace(
+        nll=np.array([100.0 + (p.disc.method == "rk4")])))
+    ref, lines = C._numerics(problem, problem.theta, {}, [NOISE])
+    assert (ref.disc.method, ref.disc.substeps) == ("rk4", 40)
+    assert "no finer step of it agrees" in lines[-1]

@@ -1,6 +1,7 @@
 """``bondgraph compare``: a fitted model judged on records it was not fitted
-to: free-run error and one-step-ahead NLL per record, as the loop judges its
-held-out record (:func:`bondgraph.diagnose.compare.compare`)."""
+to: free-run error per record and output (and in compare.json the
+one-step-ahead NLL), as the loop judges its held-out record
+(:func:`bondgraph.diagnose.compare.compare`)."""
 
 from __future__ import annotations
 
@@ -96,15 +97,15 @@ def run(args) -> int:
 
 
 def table(comps) -> str:
-    """The comparisons as a Markdown table: one row per record and output."""
-    rows = ["| record | output | RMS error | NRMSE | fit % | NLL / measurement | judged |",
-            "|---|---|---|---|---|---|---|"]
+    """The comparisons as a Markdown table: one row per record and output
+    (the NLL, whose prior depends on the parameters, is in compare.json)."""
+    rows = ["| record | output | RMS error | NRMSE | fit % | judged |",
+            "|---|---|---|---|---|---|"]
     for c in comps:
-        per = c.nll / max(c.n_obs, 1)
         for j, o in enumerate(c.outputs):
-            rows.append(f"| {c.record} | {o} | {c.rms[j]:.4g} {c.units[j] or ''} | "
-                        f"{c.nrmse[j]:.4g} | {c.fit_percent[j]:.1f} | "
-                        f"{per:.4g} | {_judged(c)} |")
+            unit = f" {c.units[j]}" if c.units[j] else ""
+            rows.append(f"| {c.record} | {o} | {c.rms[j]:.4g}{unit} | {c.nrmse[j]:.4g} | "
+                        f"{c.fit_percent[j]:.1f} | {_judged(c)} |")
     return "\n".join(rows)
 
 

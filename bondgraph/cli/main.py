@@ -29,7 +29,7 @@ COMMANDS: dict[str, str] = {
     "simulate": "simulate a model / experiment to CSV",
     "plot": "plot a simulation or experiment CSV to PNGs",
     "estimate": "maximum-likelihood estimation (UKF + PSO/DE)",
-    "compare": "a fitted model on records it was not fitted to: free-run error and NLL per record",
+    "compare": "a fitted model on records it was not fitted to: free-run error per record and output",
     "sensitivity": "local and global sensitivity, identifiability",
     "track": "track parameters over a record (augmented-state UKF) and detect their changes",
     "export": "a standalone FMI 2.0 FMU (Model Exchange and Co-Simulation) of a model",

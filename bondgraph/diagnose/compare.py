@@ -31,7 +31,9 @@ from bondgraph.diagnose.metric import nrmse
 from bondgraph.diagnose.runner import MIN_HELD_OUT, chosen_numerics
 from bondgraph.diagnose.settings import FreeRunOptions, LoopSettings
 from bondgraph.errors import OptionError
+from bondgraph.inference.discretise import choose_discretisation
 from bondgraph.inference.problem import NoiseSpec
+from bondgraph.inference.ukf import GUARD_REL, GUARD_SUBSTEPS
 
 @dataclass
 class Comparison:
@@ -63,7 +65,14 @@ class Comparison:
         (:func:`bondgraph.diagnose.metric.nrmse`).
     nll : float
         Negative log-likelihood of the record under the model's UKF
-        (one-step-ahead predictions; inf where the filter fails).
+        (one-step-ahead predictions; inf where the filter fails). The prior
+        spread of an initial state the record does not give is the state's
+        scale along the record under these parameters
+        (:class:`~bondgraph.inference.prior.PriorSpec`); a fit's own NLL
+        took the scales at its start values, so on the fitted record the
+        two differ where the fit moved the states' scales (a user's CED
+        graph whose estimate barely moves: 1416.7 here against the
+        estimate's 551.8).
     n_obs : int
         Scalar measurements the NLL sums over.
     start : str
@@ -224,27 +233,27 @@ def _checked_levels(levels: Mapping[str, float]) -> dict:
 def _compare_one(graph, rec, levels: dict, n_init: int, given: dict, log, progress
                  ) -> Comparison:
     """:func:`compare` on one record."""
-    lines: list[str] = []
+    say = (lambda m: log(f"{rec.name}: {m.strip()}"))
     settings = chosen_numerics(graph, rec, LoopSettings(params=[]), given=given,
-                               log=lines.append)
-    numerics = lines[0] if lines else "the filter's options as given"
-    for ln in lines:
-        log(f"{rec.name}: {ln}")
+                               log=lambda _m: None)
     settings = replace(settings, free_run=replace(settings.free_run, init_samples=n_init))
     model = model_of(graph)
     problem = loop_problem(model, rec, settings)
     held, said = _noise_levels(problem, rec, levels)
     problem = replace(problem, noise=NoiseSpec("auto").holding(
         {o: v for o, (v, _) in held.items()}))
-    log(f"{rec.name}: measurement-noise std "
-        + ", ".join(f"{o} {v:.4g} ({why})" for o, (v, why) in held.items()))
+    say("measurement-noise std " + ", ".join(f"{o} {v:.4g} ({why})"
+                                             for o, (v, why) in held.items()))
     for ln in said:
-        log(f"{rec.name}: {ln}")
+        say(ln)
     theta = problem.theta
+    problem, numerics = _numerics(problem, theta, given, [held[o][0] for o in model.outputs])
+    for ln in numerics:
+        say(ln)
     res = run_ukf(problem, theta[None, :])
     nll = float(res.nll[0])
     failure = None if np.isfinite(nll) else str(res.reasons[0])
-    ctx = Context(problem, settings, log=lambda m: log(f"{rec.name}:{m}"), progress=progress)
+    ctx = Context(problem, settings, log=say, progress=progress)
     sim_y = free_run(ctx, problem, theta, own=False)
     t, _, y = problem.arrays
     rms, nr, fit = output_errors(y, sim_y, n_init)
@@ -256,8 +265,57 @@ def _compare_one(graph, rec, levels: dict, n_init: int, given: dict, log, progre
         t=np.asarray(t, float), y=np.asarray(y, float), sim_y=sim_y, judged_from=n_init,
         rms=rms, nrmse=nr, fit_percent=fit, metric=float(metric), nll=nll,
         n_obs=int(np.isfinite(y).sum()), start=_start_text(problem, n_init),
-        noise=held, numerics=numerics, trouble=free_run_trouble(sim_y, y, model.outputs),
-        filter_failure=failure)
+        noise=held, numerics=" ".join(numerics),
+        trouble=free_run_trouble(sim_y, y, model.outputs), filter_failure=failure)
+
+
+def _numerics(problem, theta: np.ndarray, given: dict, sigma: list) -> tuple:
+    """``(problem, lines)``: ``problem`` with the discretisation its check
+    accepts at ``theta`` against the noise levels ``sigma`` (n_y,)
+    (:func:`bondgraph.inference.discretise.choose_discretisation`; the
+    fields the user ``given`` kept), then with the substeps whose NLL agrees
+    with RK4's at :data:`~bondgraph.inference.ukf.GUARD_SUBSTEPS` substeps to
+    :data:`~bondgraph.inference.ukf.GUARD_REL` (the NLL guard of
+    :func:`bondgraph.inference.ukf.nll_guard`: the filter's covariance
+    propagation can feel a step that the check, which follows the free
+    run, passes: a user's CED graph's stiff armature mode), unless
+    ``--substeps`` is given; the reference itself where no doubling agrees.
+    The lines say what was chosen."""
+    lines = []
+    if len(given) < 3:
+        choice = choose_discretisation(problem, theta, given=given, sigma=sigma)
+        lines.append(choice.line("at these parameters and noise levels"))
+        if choice.disc != problem.disc:
+            problem = problem.conditioned_on(disc=choice.disc)
+    if "substeps" in given:
+        return problem, lines
+
+    def nll_of(p) -> float:
+        return float(run_ukf(p, theta[None, :]).nll[0])
+
+    def apart(a: float, b: float) -> float:
+        if not (np.isfinite(a) and np.isfinite(b)):
+            return 0.0 if a == b else np.inf
+        return abs(a - b) / max(abs(b), 1e-300)
+
+    disc = replace(problem.disc, refine=())
+    ref_p = problem.conditioned_on(disc=replace(disc, method="rk4", substeps=GUARD_SUBSTEPS))
+    now, ref = nll_of(problem), nll_of(ref_p)
+    if apart(now, ref) <= GUARD_REL or not np.isfinite(ref):
+        return problem, lines
+    s = disc.substeps
+    while s < GUARD_SUBSTEPS:
+        s = min(2 * s, GUARD_SUBSTEPS)
+        p = problem.conditioned_on(disc=replace(disc, substeps=s))
+        if apart(nll_of(p), ref) <= GUARD_REL:
+            lines.append(f"{disc.method}({disc.substeps})'s NLL {now:.6g} is {apart(now, ref):.2g} "
+                         f"relative from rk4({GUARD_SUBSTEPS})'s {ref:.6g}: the filter takes "
+                         f"{disc.method}({s}), whose NLL agrees")
+            return p, lines
+    lines.append(f"{disc.method}({disc.substeps})'s NLL {now:.6g} is {apart(now, ref):.2g} "
+                 f"relative from rk4({GUARD_SUBSTEPS})'s {ref:.6g}, and no finer step of it "
+                 f"agrees: the filter takes rk4({GUARD_SUBSTEPS})")
+    return ref_p, lines
 
 
 def _start_text(problem, n_init: int) -> str:
