@@ -255,3 +255,34 @@ def test_a_step_whose_nll_is_off_takes_the_substeps_that_agree(data, monkeypatch
     ref, lines = C._numerics(problem, problem.theta, {}, [NOISE])
     assert (ref.disc.method, ref.disc.substeps) == ("rk4", 40)
     assert "no finer step of it agrees" in lines[-1]
+
+
+def test_a_noise_level_that_is_not_positive_is_refused_naming_the_output(data):
+    with pytest.raises(OptionError, match="'qm' must be a finite number > 0"):
+        _one(drive(), data["known"], noise={"qm": 0.0})
+
+
+def test_a_record_on_a_finer_grid_counts_its_window_in_samples(data):
+    """A band-limited input's record is filtered on a grid twice as fine
+    (the outputs at every other point): 20 samples of it span 39 points, and
+    the errors run over its samples after the 20th."""
+    from bondgraph.diagnose.fit import samples_after, window_points
+    from bondgraph.diagnose.runner import window_fits
+    from bondgraph.diagnose.settings import FreeRunOptions, LoopSettings
+
+    rec = data["unknown"]
+    tm = 0.5 * (rec.t[1:] + rec.t[:-1])
+    fine = rec.on_finer_grid({"F": _force(tm)}, linear=["F"])
+    assert len(fine.t) == 2 * N - 1
+    assert window_points(fine, 20) == 39 and window_points(rec, 20) == 20
+    assert samples_after(fine, 20) == N - 20 == samples_after(rec, 20)
+    w = _one(drive(offset=True), fine, init_samples=20)
+    assert w.judged_from == 39 and w.window == 20
+    e = (w.y - w.sim_y)[39:, 0]
+    e = e[np.isfinite(e)]
+    assert e.size == N - 20
+    assert w.rms[0] == pytest.approx(float(np.sqrt(np.mean(e ** 2))), rel=1e-12)
+    # the loop's check of its window counts samples too
+    with pytest.raises(OptionError, match="leaves 5 of the 1000-sample"):
+        window_fits(LoopSettings(params=[], validation=fine,
+                                 free_run=FreeRunOptions(init_samples=N - 5)))

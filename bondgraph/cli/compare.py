@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from bondgraph.cli.common import (add_data, add_discretisation, add_model, add_overwrite,
-                                  add_quiet, discretisation_given, load_record, output_folder,
-                                  parse_pairs, published)
+                                  add_quiet, band_limited_record, discretisation_given,
+                                  load_record, output_folder, parse_pairs, published)
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.compare import compare
 from bondgraph.errors import ExportError
@@ -67,7 +67,9 @@ def run(args) -> int:
     values.update(parse_pairs(args.param, "--param"))
     graph = model_graph(graph, values)
     say = (lambda m: None) if args.quiet else print
-    records = [load_record(pth, graph, say) for pth in args.data]
+    # filtered on a finer grid where an input is band-limited (as estimate and loop do)
+    records = [band_limited_record(load_record(pth, graph, say), graph, args, say)
+               for pth in args.data]
     stems = "_".join(Path(pth).stem for pth in args.data)
     folder = output_folder(args.out or f"compare_{graph.name}_{stems}", args)
     comps = compare(graph, records, noise=levels, init_samples=args.init_samples,
@@ -111,8 +113,7 @@ def table(comps) -> str:
 
 def _judged(c) -> str:
     """Which samples a comparison's errors run over (in words)."""
-    n = c.t.size
-    return f"samples {c.judged_from}-{n - 1}" if c.judged_from else f"all {n} samples"
+    return f"after the first {c.window} samples" if c.window else "all samples"
 
 
 def _write_csv(c, path: Path) -> Path:

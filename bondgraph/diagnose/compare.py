@@ -25,7 +25,8 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from bondgraph.core.graph import BondGraph
-from bondgraph.diagnose.fit import Context, free_run, free_run_trouble, loop_problem, model_of
+from bondgraph.diagnose.fit import (Context, free_run, free_run_trouble, init_samples,
+                                    loop_problem, model_of, samples_after)
 from bondgraph.diagnose.inference_calls import run_ukf
 from bondgraph.diagnose.metric import nrmse
 from bondgraph.diagnose.runner import MIN_HELD_OUT, chosen_numerics
@@ -52,7 +53,9 @@ class Comparison:
     sim_y : ndarray (N, n_y) or None
         The free run; None where it failed.
     judged_from : int
-        First sample the errors run over (``init_samples``; 0: all).
+        First sample the errors run over (``init_samples``; 0: all; on a
+        record filtered on a finer grid, the grid point after the window's
+        last sample).
     rms : ndarray (n_y,)
         RMS free-run error per output (output units; inf where the run failed).
     nrmse : ndarray (n_y,)
@@ -86,6 +89,9 @@ class Comparison:
         (:func:`bondgraph.diagnose.fit.free_run_trouble`), or None.
     filter_failure : str or None
         Why the filter failed, or None.
+    window : int
+        The record's first samples that set the start (``init_samples``;
+        0: the loop's rule).
     """
 
     record: str
@@ -106,12 +112,14 @@ class Comparison:
     numerics: str = ""
     trouble: str | None = None
     filter_failure: str | None = None
+    window: int = 0
 
     def to_json(self) -> dict:
         """The comparison as JSON-ready values (arrays left out but the
         per-output figures)."""
         return {"record": self.record, "metric": self.metric, "nll": self.nll,
-                "n_obs": self.n_obs, "judged_from": self.judged_from, "start": self.start,
+                "n_obs": self.n_obs, "init_samples": self.window,
+                "judged_from": self.judged_from, "start": self.start,
                 "numerics": self.numerics, "trouble": self.trouble,
                 "filter_failure": self.filter_failure,
                 "outputs": {o: {"unit": u, "rms": float(r), "nrmse": float(n),
@@ -203,40 +211,25 @@ def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] |
             from None
     if not records:
         raise OptionError("compare needs at least one record")
-    levels = _checked_levels(noise or {})
+    levels = dict(NoiseSpec("auto", held=noise or {}).held)    # each > 0 and finite
     out = []
     for rec in records:
-        if n_init and len(rec.t) - n_init < MIN_HELD_OUT:
-            raise OptionError(f"--init-samples {n_init} leaves {len(rec.t) - n_init} samples of "
-                              f"record '{rec.name}' ({len(rec.t)} samples) to judge by: at "
-                              f"least {MIN_HELD_OUT}")
+        left = samples_after(rec, n_init)       # a finer grid's points not counted
+        if n_init and left < MIN_HELD_OUT:
+            raise OptionError(f"--init-samples {n_init} leaves {left} samples of record "
+                              f"'{rec.name}' ({samples_after(rec, 0)} samples) to judge by: "
+                              f"at least {MIN_HELD_OUT}")
         out.append(_compare_one(graph, rec, levels, n_init, dict(given or {}), log, progress))
     return out
 
 
-def _checked_levels(levels: Mapping[str, float]) -> dict:
-    """``levels`` as floats, each finite and > 0 (an OptionError names one
-    that is not)."""
-    out = {}
-    for o, v in levels.items():
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            f = float("nan")
-        if not (np.isfinite(f) and f > 0):
-            raise OptionError(f"measurement-noise std of '{o}' must be a finite number > 0, "
-                              f"got {v!r}")
-        out[str(o)] = f
-    return out
-
-
-def _compare_one(graph, rec, levels: dict, n_init: int, given: dict, log, progress
+def _compare_one(graph, rec, levels: dict, n_samples: int, given: dict, log, progress
                  ) -> Comparison:
-    """:func:`compare` on one record."""
+    """:func:`compare` on one record; its first ``n_samples`` set the start."""
     say = (lambda m: log(f"{rec.name}: {m.strip()}"))
     settings = chosen_numerics(graph, rec, LoopSettings(params=[]), given=given,
                                log=lambda _m: None)
-    settings = replace(settings, free_run=replace(settings.free_run, init_samples=n_init))
+    settings = replace(settings, free_run=replace(settings.free_run, init_samples=n_samples))
     model = model_of(graph)
     problem = loop_problem(model, rec, settings)
     held, said = _noise_levels(problem, rec, levels)
@@ -255,6 +248,7 @@ def _compare_one(graph, rec, levels: dict, n_init: int, given: dict, log, progre
     failure = None if np.isfinite(nll) else str(res.reasons[0])
     ctx = Context(problem, settings, log=say, progress=progress)
     sim_y = free_run(ctx, problem, theta, own=False)
+    n_init = init_samples(ctx, rec)             # the grid points of those samples
     t, _, y = problem.arrays
     rms, nr, fit = output_errors(y, sim_y, n_init)
     judged = y.copy()
@@ -264,9 +258,10 @@ def _compare_one(graph, rec, levels: dict, n_init: int, given: dict, log, progre
         record=rec.name, outputs=list(model.outputs), units=list(model.output_units),
         t=np.asarray(t, float), y=np.asarray(y, float), sim_y=sim_y, judged_from=n_init,
         rms=rms, nrmse=nr, fit_percent=fit, metric=float(metric), nll=nll,
-        n_obs=int(np.isfinite(y).sum()), start=_start_text(problem, n_init),
+        n_obs=int(np.isfinite(y).sum()), start=_start_text(problem, n_samples),
         noise=held, numerics=" ".join(numerics),
-        trouble=free_run_trouble(sim_y, y, model.outputs), filter_failure=failure)
+        trouble=free_run_trouble(sim_y, y, model.outputs), filter_failure=failure,
+        window=n_samples)
 
 
 def _numerics(problem, theta: np.ndarray, given: dict, sigma: list) -> tuple:

@@ -895,7 +895,7 @@ def validation_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
     if not np.isfinite(res.nll[0]):
         return float("inf"), None, f"the filter fails ({res.reasons[0]})", None
     sim_y = free_run(ctx, vp, theta, own=False)
-    n_init = init_samples(ctx)
+    n_init = init_samples(ctx, vp.record)
     xc = None if n_init else continued_state(ctx, problem, vp, theta, filtered)
     if xc is not None:
         held = sim_inputs(ctx.settings, vp.disc.hold, vp.arrays[1])
@@ -1290,7 +1290,7 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
     x0 = problem.x0
     unknown = problem.prior.unknown(model, problem.record)
     free = [n for n in unknown if not own or n not in problem.prior.estimated]
-    n_init = init_samples(ctx)
+    n_init = init_samples(ctx, problem.record)
     if free and not own and n_init:
         return _free_run_from(ctx, problem, theta, (hold, u_sim),
                               window_start(ctx, problem, theta, n_init))
@@ -1328,10 +1328,37 @@ def free_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
     return _free_run_from(ctx, problem, theta, (hold, u_sim), x0)
 
 
-def init_samples(ctx: Context) -> int:
+def init_samples(ctx: Context, record=None) -> int:
     """``settings.free_run.init_samples`` (0 where the context's settings
-    have no free-run options: a bare context of a caller or a test)."""
-    return int(getattr(getattr(ctx.settings, "free_run", None), "init_samples", 0) or 0)
+    have no free-run options: a bare context of a caller or a test), as the
+    points of ``record`` those first samples span (:func:`window_points`)."""
+    n = int(getattr(getattr(ctx.settings, "free_run", None), "init_samples", 0) or 0)
+    return window_points(record, n)
+
+
+def _grid_factor(record) -> int:
+    """How many grid points ``record`` has per sample interval: f for a
+    record filtered on a grid f times finer than its samples
+    (``meta["finer_grid"]``, :meth:`~bondgraph.data.records.Experiment.finer_grid`:
+    band-limited inputs interpolated, the outputs at every f-th point), else 1."""
+    grid = ((getattr(record, "meta", None) or {}).get("finer_grid") or {})
+    return max(int(grid.get("factor", 1)), 1)
+
+
+def window_points(record, n: int) -> int:
+    """The points of ``record`` that its first ``n`` samples span: ``n``, or
+    (n − 1)·f + 1 on a record on a grid f times finer than its samples
+    (:func:`_grid_factor`; a window of 20 samples counted in grid points
+    would set the start from 10)."""
+    f = _grid_factor(record)
+    return (n - 1) * f + 1 if n and f > 1 else n
+
+
+def samples_after(record, n: int) -> int:
+    """The samples of ``record`` after its first ``n`` (grid points of a
+    finer grid, :func:`_grid_factor`, not counted)."""
+    f = _grid_factor(record)
+    return max((len(record.t) - window_points(record, n) + f - 1) // f, 0)
 
 
 def window_start(ctx: Context, problem: Problem, theta: np.ndarray, n: int) -> np.ndarray:

@@ -50,6 +50,7 @@ from bondgraph.diagnose.effects import Scales, get_effect
 from bondgraph.diagnose.fit import (
     Context,
     Fit,
+    samples_after,
     admissibility,
     continued_laws,
     error_scale,
@@ -324,9 +325,10 @@ def window_fits(s: LoopSettings) -> LoopSettings:
                           f"judges, and with holdout 0 and no validation record there is none",
                           hint="give --validate FILE or --holdout FRACTION, or leave "
                                "--init-samples out")
-    size = len(s.validation.t)
-    if size - n < MIN_HELD_OUT:
-        raise OptionError(f"init_samples (--init-samples) {n} leaves {max(size - n, 0)} of the "
+    left = samples_after(s.validation, n)
+    if left < MIN_HELD_OUT:
+        size = samples_after(s.validation, 0)
+        raise OptionError(f"init_samples (--init-samples) {n} leaves {left} of the "
                           f"{size}-sample validation record '{s.validation.name}' to judge by: "
                           f"at least {MIN_HELD_OUT}",
                           hint="a smaller window, or a longer validation record")
