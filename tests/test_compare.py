@@ -286,3 +286,27 @@ def test_a_record_on_a_finer_grid_counts_its_window_in_samples(data):
     with pytest.raises(OptionError, match="leaves 5 of the 1000-sample"):
         window_fits(LoopSettings(params=[], validation=fine,
                                  free_run=FreeRunOptions(init_samples=N - 5)))
+
+
+def test_an_output_error_fit_is_judged_from_its_result(data, tmp_path, capsys):
+    """``bondgraph estimate --fit sim`` writes its own result format (names,
+    estimates by name, the noise levels it reports); compare reads it: the
+    offset model fitted on the record with the known start reads the noise
+    on the record whose start it does not know."""
+    import os
+
+    from bondgraph.cli.main import main
+    (tmp_path / "user_drive.py").write_text(GRAPH_FILE.format(tests=os.path.dirname(__file__))
+                                            .replace("drive()", "drive(offset=True)"))
+    spec = f"{tmp_path / 'user_drive.py'}:user"
+    est = tmp_path / "est"
+    assert main(["estimate", "--model", spec, "--data", str(data["dir"] / "known.csv"),
+                 "--fit", "sim", "--params", "M,Fv,F0", "--out", str(est), "--quiet"]) == 0
+    assert "bondgraph compare" in capsys.readouterr().out
+    out = tmp_path / "cmp"
+    assert main(["compare", spec, "--data", str(data["dir"] / "unknown.csv"), "--params",
+                 str(est / "result.json"), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    rec = json.loads((out / "compare.json").read_text())["records"][0]
+    assert rec["outputs"]["qm"]["noise_from"] == "the fit's estimate"
+    assert rec["outputs"]["qm"]["noise_std"] == pytest.approx(NOISE, rel=0.1)
+    assert rec["outputs"]["qm"]["rms"] < 1.2 * NOISE

@@ -163,6 +163,8 @@ def run(args) -> int:
     print(res.table())
     for pth in [folder.path / "result.json", *published(folder, pngs)]:
         print(f"wrote {pth}")
+    print(f"on a record it was not fitted to: bondgraph compare {args.model} --data OTHER.csv "
+          f"--params {folder.path / 'result.json'}")
     return 0
 
 
@@ -464,7 +466,7 @@ def run_output_error(args, chosen, params, folder, states) -> int:
     model, exp, theta = problem.model, problem.record, problem.theta
     noise = _sim_noise_levels(model, exp, r, theta, problem.noise.mode)
     doc = {"model": model.name, "data": str(args.data), "fit": "sim", "names": r.names,
-           "estimates": r.estimates(), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,
+           "estimates": r.estimates(), "fixed": dict(problem.fixed), "std": r.std, "at_bound": r.at_bound, "cost": r.cost,
            "rmse": dict(zip(model.outputs, r.rmse.tolist())), "nfev": r.nfev,
            "status": r.status, "message": r.message, "noise": args.noise,
            "noise_levels": noise, "hold": problem.disc.hold, "warnings": list(r.warnings)}
@@ -482,6 +484,8 @@ def run_output_error(args, chosen, params, folder, states) -> int:
     for w in r.warnings:
         print(f"warning: {w}")
     print(f"wrote {rpath}")
+    print(f"on a record it was not fitted to: bondgraph compare {args.model} --data OTHER.csv "
+          f"--params {rpath}")
     return 0
 
 

@@ -284,6 +284,9 @@ def run(args) -> int:
               f"the report's parameter table gives the robust std")
     print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots, "
           f"augmented_model.py)")
+    if args.model:
+        print(f"on a record of another day: bondgraph compare {out / 'augmented_model.py'}:build "
+              f"--data OTHER.csv --params {out / 'report.json'}")
     return 0
 
 

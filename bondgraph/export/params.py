@@ -27,8 +27,8 @@ def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float
     ----------
     path : str or Path
         ``result.json`` of ``bondgraph estimate`` (the estimates by name and
-        the fixed values) or ``report.json`` of ``bondgraph loop`` (the final
-        fit's estimates).
+        the fixed values; of ``--fit sim`` too) or ``report.json`` of
+        ``bondgraph loop`` (the final fit's estimates).
     estimated : bool
         Only the quantities the fit estimated (a result's fixed values left
         out).
@@ -56,6 +56,10 @@ def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float
     if isinstance(doc, dict) and isinstance(doc.get("final_fit"), dict) \
             and isinstance(doc["final_fit"].get("estimates"), dict):
         values = dict(doc["final_fit"]["estimates"])
+    elif isinstance(doc, dict) and doc.get("fit") == "sim" \
+            and isinstance(doc.get("estimates"), dict):       # estimate --fit sim
+        values = {**({} if estimated else dict(doc.get("fixed") or {})),
+                  **dict(doc["estimates"])}
     elif isinstance(doc, dict) and isinstance(doc.get("params"), list) \
             and isinstance(doc.get("estimates"), list):
         if len(doc["params"]) != len(doc["estimates"]):
@@ -87,7 +91,9 @@ def read_noise_levels(path: str | Path) -> dict[str, float]:
     ----------
     path : str or Path
         ``result.json`` of ``bondgraph estimate`` (its ``noise.<output>``
-        estimates, and the levels it held, ``settings.noise_levels``) or
+        estimates, and the levels it held, ``settings.noise_levels``; with
+        ``--fit sim``, ``noise_levels``: the declared levels or the RMS
+        free-run errors) or
         ``report.json`` of ``bondgraph loop`` (the final fit's estimated
         levels, ``final_fit.noise_estimates``, and the held ones,
         ``settings.noise_levels``).
@@ -105,14 +111,14 @@ def read_noise_levels(path: str | Path) -> dict[str, float]:
     """
     read_params(path)                       # the same errors for a bad file
     doc = from_jsonable(json.loads(Path(path).read_text()))
-    held = (doc.get("settings") or {}).get("noise_levels") or {}
+    held = (doc.get("settings") or {}).get("noise_levels") or doc.get("noise_levels") or {}
     out = {}
     for o, v in held.items():               # estimate: {"std": .., "how": ..}; loop: a number
         v = v.get("std") if isinstance(v, dict) else v
         out[str(o)] = v
     if isinstance(doc.get("final_fit"), dict):
         out.update((doc["final_fit"].get("noise_estimates") or {}))
-    else:
+    elif isinstance(doc.get("params"), list):
         out.update({n[len("noise."):]: v for n, v in zip(doc["params"], doc["estimates"])
                     if str(n).startswith("noise.")})
     levels = {}
