@@ -155,6 +155,10 @@ def test_output_errors_by_hand():
     rms, _, _ = output_errors(y, s, first=2)
     assert rms[0] == pytest.approx(math.sqrt(0.5))
     assert np.all(output_errors(y, None)[0] == np.inf)
+    # an output the record does not measure: NaN, not an error
+    y[:, 1] = np.nan
+    rms, nr, fit = output_errors(y, s)
+    assert np.isnan([rms[1], nr[1], fit[1]]).all() and np.isfinite(rms[0])
 
 
 @pytest.mark.parametrize("bad", [1, -2, 2.5, True])

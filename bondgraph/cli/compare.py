@@ -106,6 +106,9 @@ def table(comps) -> str:
     for c in comps:
         for j, o in enumerate(c.outputs):
             unit = f" {c.units[j]}" if c.units[j] else ""
+            if np.isnan(c.rms[j]):
+                rows.append(f"| {c.record} | {o} | not in the record | | | |")
+                continue
             rows.append(f"| {c.record} | {o} | {c.rms[j]:.4g}{unit} | {c.nrmse[j]:.4g} | "
                         f"{c.fit_percent[j]:.1f} | {_judged(c)} |")
     return "\n".join(rows)

@@ -134,16 +134,20 @@ def output_errors(y: np.ndarray, sim_y: np.ndarray | None, first: int = 0
     """RMS error (n_y,), NRMSE (n_y,) and NRMSE fit in % (n_y,) of the free
     run ``sim_y`` (N, n_y) against ``y`` (N, n_y; NaN where missing) over the
     samples from ``first`` on; inf (and −inf %) for an output whose run failed
-    or is not finite where it is measured. The std and mean of an output are
-    those of its judged samples."""
+    or is not finite where it is measured; NaN for an output the record
+    measures at fewer than two of those samples (a sensor the record lacks).
+    The std and mean of an output are those of its judged samples."""
     n_y = y.shape[1]
     rms, nr, fit = np.full(n_y, np.inf), np.full(n_y, np.inf), np.full(n_y, -np.inf)
+    ys = np.asarray(y, float)[first:]
+    unseen = np.isfinite(ys).sum(axis=0) < 2
+    rms[unseen], nr[unseen], fit[unseen] = np.nan, np.nan, np.nan
     if sim_y is None:
         return rms, nr, fit
-    ys, ss = np.asarray(y, float)[first:], np.asarray(sim_y, float)[first:]
+    ss = np.asarray(sim_y, float)[first:]
     for j in range(n_y):
         seen = np.isfinite(ys[:, j])
-        if seen.sum() < 2 or not np.all(np.isfinite(ss[seen, j])):
+        if unseen[j] or not np.all(np.isfinite(ss[seen, j])):
             continue
         e = ys[seen, j] - ss[seen, j]
         rms[j] = float(np.sqrt(np.mean(e * e)))

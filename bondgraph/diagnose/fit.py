@@ -1339,7 +1339,7 @@ def init_samples(ctx: Context, record=None) -> int:
 def _grid_factor(record) -> int:
     """How many grid points ``record`` has per sample interval: f for a
     record filtered on a grid f times finer than its samples
-    (``meta["finer_grid"]``, :meth:`~bondgraph.data.records.Experiment.finer_grid`:
+    (``meta["finer_grid"]``, :meth:`~bondgraph.data.records.Experiment.on_finer_grid`:
     band-limited inputs interpolated, the outputs at every f-th point), else 1."""
     grid = ((getattr(record, "meta", None) or {}).get("finer_grid") or {})
     return max(int(grid.get("factor", 1)), 1)

@@ -239,7 +239,8 @@ def plot_comparison(comp, path: str | Path, *, dpi: int = 110, max_points: int =
             for a in (ax, ae):
                 a.axvspan(comp.t[0], comp.t[comp.judged_from - 1], color="0.85", lw=0,
                           label="sets the start" if a is ax else None)
-        ax.set_title(f"RMS error {comp.rms[j]:.4g}{' ' + unit if unit else ''}, "
+        ax.set_title("not in the record" if np.isnan(comp.rms[j]) else
+                     f"RMS error {comp.rms[j]:.4g}{' ' + unit if unit else ''}, "
                      f"NRMSE {comp.nrmse[j]:.4g}, "
                      f"fit {comp.fit_percent[j]:.1f} %", fontsize="small", loc="right")
         ax.set_ylabel(_label(o, unit))
