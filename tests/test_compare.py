@@ -92,6 +92,7 @@ def test_the_true_model_from_the_records_start_reads_the_noise_draw(data):
     fit = 100 * (1 - np.linalg.norm(data["noise"]) / np.linalg.norm(y - y.mean()))
     assert c.fit_percent[0] == pytest.approx(fit, abs=0.01)
     assert c.metric == pytest.approx(c.nrmse[0], rel=1e-12)
+    assert c.bias[0] == pytest.approx(float(np.mean(data["noise"])), abs=2e-3 * NOISE)
     # one-step NLL per measurement of an exact model: the noise's entropy
     # ½ log(2πσ²) + ½ (the draw's own variance in place of σ²), plus the
     # state's own spread in each innovation's variance (the prior's, which
@@ -107,6 +108,7 @@ def test_a_model_without_the_offset_reads_its_misfit_by_hand(data):
     e = data["q"] + data["noise"] - q_no
     assert c.rms[0] == pytest.approx(float(np.sqrt(np.mean(e ** 2))), rel=1e-3)
     assert c.rms[0] > 50 * NOISE
+    assert c.bias[0] == pytest.approx(float(np.mean(e)), rel=1e-3)
     # the free run holds the sampled force linearly between samples (scipy's
     # truth has it continuous): 4e-5 m apart at most over the 10 s
     np.testing.assert_allclose(c.sim_y[:, 0], q_no, rtol=0, atol=0.1 * NOISE)

@@ -101,16 +101,16 @@ def run(args) -> int:
 def table(comps) -> str:
     """The comparisons as a Markdown table: one row per record and output
     (the NLL, whose prior depends on the parameters, is in compare.json)."""
-    rows = ["| record | output | RMS error | NRMSE | fit % | judged |",
-            "|---|---|---|---|---|---|"]
+    rows = ["| record | output | RMS error | mean error | NRMSE | fit % | judged |",
+            "|---|---|---|---|---|---|---|"]
     for c in comps:
         for j, o in enumerate(c.outputs):
             unit = f" {c.units[j]}" if c.units[j] else ""
             if np.isnan(c.rms[j]):
-                rows.append(f"| {c.record} | {o} | not in the record | | | |")
+                rows.append(f"| {c.record} | {o} | not in the record | | | | |")
                 continue
-            rows.append(f"| {c.record} | {o} | {c.rms[j]:.4g}{unit} | {c.nrmse[j]:.4g} | "
-                        f"{c.fit_percent[j]:.1f} | {_judged(c)} |")
+            rows.append(f"| {c.record} | {o} | {c.rms[j]:.4g}{unit} | {c.bias[j]:.3g}{unit} | "
+                        f"{c.nrmse[j]:.4g} | {c.fit_percent[j]:.1f} | {_judged(c)} |")
     return "\n".join(rows)
 
 

@@ -60,6 +60,11 @@ class Comparison:
         RMS free-run error per output (output units; inf where the run failed).
     nrmse : ndarray (n_y,)
         RMS error over the std of the measurement, per output.
+    bias : ndarray (n_y,)
+        Mean error y − ŷ per output over the judged samples (output units;
+        a model that stays below the record reads positive: a cold
+        engine's extra fuel); NaN where the run failed or the output is not
+        measured.
     fit_percent : ndarray (n_y,)
         100 (1 − ‖y − ŷ‖ / ‖y − ȳ‖): MATLAB ``compare``'s NRMSE fit (100 %
         a perfect run, 0 % the measurement's mean, negative worse).
@@ -104,6 +109,7 @@ class Comparison:
     rms: np.ndarray
     nrmse: np.ndarray
     fit_percent: np.ndarray
+    bias: np.ndarray
     metric: float
     nll: float
     n_obs: int
@@ -123,10 +129,11 @@ class Comparison:
                 "numerics": self.numerics, "trouble": self.trouble,
                 "filter_failure": self.filter_failure,
                 "outputs": {o: {"unit": u, "rms": float(r), "nrmse": float(n),
-                                "fit_percent": float(f), "noise_std": self.noise[o][0],
-                                "noise_from": self.noise[o][1]}
-                            for o, u, r, n, f in zip(self.outputs, self.units, self.rms,
-                                                     self.nrmse, self.fit_percent)}}
+                                "fit_percent": float(f), "bias": float(b),
+                                "noise_std": self.noise[o][0], "noise_from": self.noise[o][1]}
+                            for o, u, r, n, f, b in zip(self.outputs, self.units, self.rms,
+                                                        self.nrmse, self.fit_percent,
+                                                        self.bias)}}
 
 
 def output_errors(y: np.ndarray, sim_y: np.ndarray | None, first: int = 0
@@ -156,6 +163,23 @@ def output_errors(y: np.ndarray, sim_y: np.ndarray | None, first: int = 0
         dev = float(np.linalg.norm(ys[seen, j] - ys[seen, j].mean()))
         fit[j] = 100.0 * (1.0 - float(np.linalg.norm(e)) / (dev if dev > 0 else 1.0))
     return rms, nr, fit
+
+
+def mean_errors(y: np.ndarray, sim_y: np.ndarray | None, first: int = 0) -> np.ndarray:
+    """Mean error y − ŷ (n_y,) of the free run ``sim_y`` (N, n_y) against
+    ``y`` (N, n_y; NaN where missing) over the samples from ``first`` on;
+    NaN for an output measured at none of them, or where the run failed or
+    is not finite where measured."""
+    ys = np.asarray(y, float)[first:]
+    out = np.full(ys.shape[1], np.nan)
+    if sim_y is None:
+        return out
+    e = ys - np.asarray(sim_y, float)[first:]
+    for j in range(ys.shape[1]):
+        seen = np.isfinite(ys[:, j])
+        if seen.any() and np.all(np.isfinite(e[seen, j])):
+            out[j] = float(np.mean(e[seen, j]))
+    return out
 
 
 def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] | None = None,
@@ -261,7 +285,8 @@ def _compare_one(graph, rec, levels: dict, n_samples: int, given: dict, log, pro
     return Comparison(
         record=rec.name, outputs=list(model.outputs), units=list(model.output_units),
         t=np.asarray(t, float), y=np.asarray(y, float), sim_y=sim_y, judged_from=n_init,
-        rms=rms, nrmse=nr, fit_percent=fit, metric=float(metric), nll=nll,
+        rms=rms, nrmse=nr, fit_percent=fit, bias=mean_errors(y, sim_y, n_init), metric=float(metric),
+        nll=nll,
         n_obs=int(np.isfinite(y).sum()), start=_start_text(problem, n_samples),
         noise=held, numerics=" ".join(numerics),
         trouble=free_run_trouble(sim_y, y, model.outputs), filter_failure=failure,
