@@ -316,3 +316,9 @@ def test_an_output_error_fit_is_judged_from_its_result(data, tmp_path, capsys):
     assert rec["outputs"]["qm"]["noise_from"] == "the fit's estimate"
     assert rec["outputs"]["qm"]["noise_std"] == pytest.approx(NOISE, rel=0.1)
     assert rec["outputs"]["qm"]["rms"] < 1.2 * NOISE
+
+
+def test_records_of_the_same_name_keep_their_own_files():
+    from bondgraph.cli.compare import _stems
+    assert _stems(["a/run.csv", "b/run.csv", "c/other.csv", "d/run.csv"]) == \
+        ["run", "run-2", "other", "run-3"]

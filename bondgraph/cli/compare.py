@@ -16,9 +16,7 @@ from bondgraph.cli.common import (add_data, add_discretisation, add_model, add_o
                                   load_record, output_folder, parse_pairs, published)
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.compare import compare
-from bondgraph.errors import ExportError
 from bondgraph.export.params import model_graph, read_noise_levels, read_params
-from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.plots import plot_comparison
 
 #: the example line of ``bondgraph compare --help``
@@ -58,14 +56,8 @@ def run(args) -> int:
     row per record and output, write the folder."""
     values = read_params(args.params) if args.params else {}
     levels = read_noise_levels(args.params) if args.params else {}
-    graph = graph_builder(args.model)()
-    unknown = sorted(set(values) - set(graph.params))
-    if unknown:
-        raise ExportError(f"--params {args.params}: model '{graph.name}' has no parameter(s) "
-                          f"{', '.join(unknown)} (its parameters: {', '.join(graph.params)})",
-                          hint="a loop's report.json goes with its augmented_model.py:build")
     values.update(parse_pairs(args.param, "--param"))
-    graph = model_graph(graph, values)
+    graph = model_graph(args.model, values)     # an unknown parameter named, ExportError
     say = (lambda m: None) if args.quiet else print
     # filtered on a finer grid where an input is band-limited (as estimate and loop do)
     records = [band_limited_record(load_record(pth, graph, say), graph, args, say)
@@ -85,8 +77,7 @@ def run(args) -> int:
 
     def version(d: Path) -> list:
         files = []
-        for c, pth in zip(comps, args.data):
-            stem = Path(pth).stem
+        for c, stem in zip(comps, _stems(args.data)):
             files.append(_write_csv(c, d / f"{stem}_compare.csv"))
             if not args.no_plots:
                 files.append(plot_comparison(c, d / f"{stem}_compare.png"))
@@ -96,6 +87,17 @@ def run(args) -> int:
     for pth in [folder.path / "compare.json", *published(folder, files)]:
         print(f"wrote {pth}")
     return 0
+
+
+def _stems(paths) -> list[str]:
+    """The file-name stem of each record, numbered where two are alike
+    (``a/run.csv`` and ``b/run.csv``: ``run``, ``run-2``)."""
+    out, seen = [], {}
+    for pth in paths:
+        stem = Path(pth).stem
+        seen[stem] = seen.get(stem, 0) + 1
+        out.append(stem if seen[stem] == 1 else f"{stem}-{seen[stem]}")
+    return out
 
 
 def table(comps) -> str:
