@@ -12,9 +12,12 @@ one fitted to its outputs where the smoother fails), or with
 ``init_samples`` = n the smoothed state given the record's first n samples
 only, the error over the rest (the benchmark protocol of
 nonlinearbenchmark.org, :func:`bondgraph.diagnose.fit.window_start`). The
-numerics are those the loop chooses for a user's graph
-(:func:`bondgraph.diagnose.runner.chosen_numerics`), so a figure here is the
-one ``bondgraph loop`` reports for the same model on the same record.
+input hold and the free runs' method are those the loop chooses for a
+user's graph (:func:`bondgraph.diagnose.runner.chosen_numerics`), the
+filter's step is chosen again against the noise levels held here and
+checked by the NLL guard; on the records tried a free-run figure here is
+the one ``bondgraph loop`` reported for the same model on the same record,
+to the digit (EMPS pulses run 0.06151, CED u2 0.5065).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from bondgraph.errors import OptionError
 from bondgraph.inference.discretise import choose_discretisation
 from bondgraph.inference.problem import NoiseSpec
 from bondgraph.inference.ukf import GUARD_REL, GUARD_SUBSTEPS
+
 
 @dataclass
 class Comparison:
@@ -359,8 +363,11 @@ def _noise_levels(problem, rec, levels: dict) -> tuple[dict, list[str]]:
     """Output -> (std, source) for every output of ``problem``'s model: the
     record's declaration, else ``levels``, else profiled at the problem's θ
     (:func:`bondgraph.inference.estimate.start_levels_profiled`), else the
-    graph's own sensor noise; and the lines to log."""
+    graph's own sensor noise, else the level the record's second
+    differences show (:func:`bondgraph.inference.estimand.record_noise_level`);
+    and the lines to log."""
     from bondgraph.errors import EstimationError, NumericalError
+    from bondgraph.inference.estimand import record_noise_level
     from bondgraph.inference.estimate import start_levels_profiled
 
     model = problem.model
@@ -391,6 +398,11 @@ def _noise_levels(problem, rec, levels: dict) -> tuple[dict, list[str]]:
             o = model.outputs[j]
             if np.isfinite(prof[j]) and prof[j] > 0:
                 held[o] = (float(prof[j]), "profiled on this record at these parameters")
-            else:
+            elif np.isfinite(own[j]) and own[j] > 0:
                 held[o] = (float(own[j]), "the graph's sensor noise")
+            else:
+                seen = float(record_noise_level(problem.arrays[2][:, j:j + 1])[0])
+                held[o] = ((seen, "seen in the record's second differences")
+                           if np.isfinite(seen) and seen > 0 else
+                           (1.0, "1 output unit: nothing gives one"))
     return {o: held[o] for o in model.outputs}, said
