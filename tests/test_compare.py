@@ -322,3 +322,59 @@ def test_records_of_the_same_name_keep_their_own_files():
     from bondgraph.cli.compare import _stems
     assert _stems(["a/run.csv", "b/run.csv", "c/other.csv", "d/run.csv"]) == \
         ["run", "run-2", "other", "run-3"]
+
+
+def test_the_nll_on_the_fitted_record_is_the_estimates_own(data, tmp_path):
+    """The prior spread of the initial states comes from the graph at its
+    declared values, as the fit took it: on the record it was fitted to, the
+    comparison's NLL is the estimate's (to the NLL guard's 1e-3; the step is
+    chosen again here)."""
+    import os
+
+    from bondgraph.cli.main import main
+    (tmp_path / "user_drive.py").write_text(GRAPH_FILE.format(tests=os.path.dirname(__file__))
+                                            .replace("drive()", "drive(offset=True)"))
+    spec = f"{tmp_path / 'user_drive.py'}:user"
+    est = tmp_path / "est"
+    assert main(["estimate", "--model", spec, "--data", str(data["dir"] / "unknown.csv"),
+                 "--params", "M,Fv,F0", "--iterations", "20", "--out", str(est),
+                 "--quiet", "--no-plots"]) == 0
+    res = json.loads((est / "result.json").read_text())
+    out = tmp_path / "cmp"
+    assert main(["compare", spec, "--data", str(data["dir"] / "unknown.csv"), "--params",
+                 str(est / "result.json"), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    rec = json.loads((out / "compare.json").read_text())["records"][0]
+    assert rec["nll"] == pytest.approx(res["nll"], rel=1e-3)
+
+
+def test_a_loop_folder_is_judged_before_and_after(data, tmp_path, capsys):
+    """``bondgraph compare LOOP_FOLDER --data ...``: the declared fit and the
+    final model on each record; on the record the loop judged by, the two
+    figures are the loop's own before and after."""
+    import os
+
+    from bondgraph.cli.main import main
+    (tmp_path / "user_drive.py").write_text(GRAPH_FILE.format(tests=os.path.dirname(__file__)))
+    spec = f"{tmp_path / 'user_drive.py'}:user"
+    loop = tmp_path / "loop"
+    assert main(["loop", "--model", spec, "--data", str(data["dir"] / "known.csv"),
+                 "--validate", str(data["dir"] / "unknown.csv"), "--params", "M,Fv",
+                 "--max-steps", "1", "--no-structural", "--out", str(loop), "--quiet",
+                 "--no-plots"]) == 0
+    report = json.loads((loop / "report.json").read_text())
+    assert report["steps"], "the loop found the offset"
+    capsys.readouterr()
+    out = tmp_path / "cmp"
+    assert main(["compare", str(loop), "--data", str(data["dir"] / "unknown.csv"),
+                 "--out", str(out), "--quiet"]) == 0
+    assert "before -> after" in capsys.readouterr().out
+    doc = json.loads((out / "compare.json").read_text())
+    before, after = doc["before"][0], doc["after"][0]
+    assert before["metric"] == pytest.approx(report["validation_error_before"], rel=1e-3)
+    assert after["metric"] == pytest.approx(report["validation_error_after"], rel=1e-3)
+    assert after["outputs"]["qm"]["rms"] < 1.2 * NOISE < before["outputs"]["qm"]["rms"]
+    head = (out / "unknown_compare.csv").read_text().splitlines()[0]
+    assert head.endswith("qm.simulated_before [m]")
+    # a loop folder carries its own parameters
+    assert main(["compare", str(loop), "--data", str(data["dir"] / "unknown.csv"),
+                 "--params", str(loop / "report.json"), "--out", str(tmp_path / "c2")]) == 2

@@ -1,6 +1,6 @@
 """``bondgraph compare``: a fitted model judged on records it was not fitted
-to: free-run error per record and output (and in compare.json the
-one-step-ahead NLL), as the loop judges its held-out record
+to: free-run error per record and output and the record's one-step-ahead
+NLL, as the loop judges its held-out record
 (:func:`bondgraph.diagnose.compare.compare`)."""
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from bondgraph.cli.common import (add_data, add_discretisation, add_model, add_o
                                   load_record, output_folder, parse_pairs, published)
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.compare import compare
+from bondgraph.errors import UsageError
 from bondgraph.export.params import model_graph, read_noise_levels, read_params
 from bondgraph.report.plots import plot_comparison
 
@@ -34,7 +35,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="parameter values and noise levels of a fit: `bondgraph estimate`'s "
                         "result.json or a loop's report.json (its final fit; with a loop's "
                         "report give its augmented_model.py:build as the model); default: "
-                        "the graph's own values")
+                        "the graph's own values. A loop's report folder as the model "
+                        "(`bondgraph compare bondgraph-report --data other.csv`) judges its "
+                        "declared fit and its final model, before and after")
     p.add_argument("--param", action="append", metavar="NAME=VALUE",
                    help="parameter value over --params (model units)")
     p.add_argument("--init-samples", type=int, default=0, metavar="N",
@@ -53,11 +56,16 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     """Run ``bondgraph compare`` (see :func:`configure`): print one table
-    row per record and output, write the folder."""
+    row per record and output, write the folder. A loop's report folder as
+    the model: the declared fit and the final model, before and after
+    (:func:`run_loop_folder`)."""
+    if is_loop_folder(args.model):
+        return run_loop_folder(args)
     values = read_params(args.params) if args.params else {}
     levels = read_noise_levels(args.params) if args.params else {}
     values.update(parse_pairs(args.param, "--param"))
     graph = model_graph(args.model, values)     # an unknown parameter named, ExportError
+    declared = model_graph(args.model)          # its declared values: the fit's state scales
     say = (lambda m: None) if args.quiet else print
     # filtered on a finer grid where an input is band-limited (as estimate and loop do)
     records = [band_limited_record(load_record(pth, graph, say), graph, args, say)
@@ -65,7 +73,8 @@ def run(args) -> int:
     stems = "_".join(Path(pth).stem for pth in args.data)
     folder = output_folder(args.out or f"compare_{graph.name}_{stems}", args)
     comps = compare(graph, records, noise=levels, init_samples=args.init_samples,
-                    given=discretisation_given(args), log=say, progress=not args.quiet)
+                    given=discretisation_given(args), scales_from=declared, log=say,
+                    progress=not args.quiet)
     print(table(comps))
     for c in comps:
         if c.trouble:
@@ -89,6 +98,97 @@ def run(args) -> int:
     return 0
 
 
+def is_loop_folder(spec: str) -> bool:
+    """Whether ``spec`` names a loop's report folder (report.json and
+    augmented_model.py in it)."""
+    d = Path(spec)
+    return d.is_dir() and (d / "report.json").is_file() and (d / "augmented_model.py").is_file()
+
+
+def loop_graphs(folder: Path) -> tuple:
+    """``(before, after, declared)``: the declared graph at the loop's
+    initial fit (its held values, then the initial fit's estimates) and the
+    final model (``augmented_model.py:build``), each with its noise levels
+    (:func:`~bondgraph.export.params.read_noise_levels`), and the declared
+    graph at its declared values (whose state scales the loop's priors took).
+
+    Raises
+    ------
+    ExportError, ModelError
+        An unreadable report, or a model that cannot be built.
+    """
+    from bondgraph.core.plugins import resolve
+
+    report, module = folder / "report.json", folder / "augmented_model.py"
+    declared = resolve(f"{module}:_declared")
+    held = dict(resolve(f"{module}:HELD") or {})
+    g0 = declared()
+    before = model_graph(g0, {**{k: v for k, v in held.items() if k in g0.params},
+                              **read_params(report, initial=True)})
+    after = model_graph(f"{module}:build")
+    return ((before, read_noise_levels(report, initial=True)),
+            (after, read_noise_levels(report)), g0)
+
+
+def run_loop_folder(args) -> int:
+    """``bondgraph compare LOOP_FOLDER --data ...``: the declared fit and the
+    loop's final model judged on each record, before and after side by
+    side (:func:`loop_table`); compare.json holds both, each record's CSV
+    both runs, its PNG both over the record."""
+    if args.params or args.param:
+        raise UsageError("a loop's report folder gives its own parameters: leave out --params "
+                         "and --param (or give augmented_model.py:build and --params "
+                         "report.json)")
+    folder_in = Path(args.model)
+    (g0, n0), (g1, n1), declared = loop_graphs(folder_in)
+    say = (lambda m: None) if args.quiet else print
+    records = [band_limited_record(load_record(pth, g1, say), g1, args, say)
+               for pth in args.data]
+    out = output_folder(args.out or f"compare_{folder_in.name}_"
+                        + "_".join(_stems(args.data)), args)
+    kw = dict(init_samples=args.init_samples, given=discretisation_given(args),
+              scales_from=declared, progress=not args.quiet)
+    before = compare(g0, records, noise=n0, log=lambda m: say(f"before: {m}"), **kw)
+    after = compare(g1, records, noise=n1, log=lambda m: say(f"after: {m}"), **kw)
+    print(loop_table(before, after))
+    for c in before + after:
+        if c.trouble:
+            print(f"WARNING: {c.record} ({'after' if c in after else 'before'}): {c.trouble}")
+    doc = {"loop": str(folder_in), "init_samples": args.init_samples,
+           "before": [c.to_json() for c in before], "after": [c.to_json() for c in after]}
+
+    def version(d: Path) -> list:
+        files = []
+        for c0, c1, stem in zip(before, after, _stems(args.data)):
+            files.append(_write_csv(c1, d / f"{stem}_compare.csv", before=c0))
+            if not args.no_plots:
+                files.append(plot_comparison(c1, d / f"{stem}_compare.png", before=c0))
+        (d / "compare.json").write_text(json.dumps(to_jsonable(doc), indent=1) + "\n")
+        return files
+    files = out.publish(version)
+    for pth in [out.path / "compare.json", *published(out, files)]:
+        print(f"wrote {pth}")
+    return 0
+
+
+def loop_table(before, after) -> str:
+    """Two comparisons of the same records (the declared fit's and the
+    final model's) as one Markdown table, before -> after per record and
+    output."""
+    rows = ["| record | output | RMS error before -> after | NRMSE before -> after | "
+            "fit % before -> after |", "|---|---|---|---|---|"]
+    for c0, c1 in zip(before, after):
+        for j, o in enumerate(c1.outputs):
+            unit = f" {c1.units[j]}" if c1.units[j] else ""
+            if np.isnan(c1.rms[j]):
+                rows.append(f"| {c1.record} | {o} | not in the record | | |")
+                continue
+            rows.append(f"| {c1.record} | {o} | {c0.rms[j]:.4g} -> {c1.rms[j]:.4g}{unit} | "
+                        f"{c0.nrmse[j]:.4g} -> {c1.nrmse[j]:.4g} | "
+                        f"{c0.fit_percent[j]:.1f} -> {c1.fit_percent[j]:.1f} |")
+    return "\n".join(rows)
+
+
 def _stems(paths) -> list[str]:
     """The file-name stem of each record, numbered where two are alike
     (``a/run.csv`` and ``b/run.csv``: ``run``, ``run-2``)."""
@@ -102,17 +202,18 @@ def _stems(paths) -> list[str]:
 
 def table(comps) -> str:
     """The comparisons as a Markdown table: one row per record and output
-    (the NLL, whose prior depends on the parameters, is in compare.json)."""
-    rows = ["| record | output | RMS error | mean error | NRMSE | fit % | judged |",
-            "|---|---|---|---|---|---|---|"]
+    (the NLL is the record's, over all its outputs)."""
+    rows = ["| record | output | RMS error | mean error | NRMSE | fit % | judged | NLL |",
+            "|---|---|---|---|---|---|---|---|"]
     for c in comps:
         for j, o in enumerate(c.outputs):
             unit = f" {c.units[j]}" if c.units[j] else ""
             if np.isnan(c.rms[j]):
-                rows.append(f"| {c.record} | {o} | not in the record | | | | |")
+                rows.append(f"| {c.record} | {o} | not in the record | | | | | |")
                 continue
             rows.append(f"| {c.record} | {o} | {c.rms[j]:.4g}{unit} | {c.bias[j]:.3g}{unit} | "
-                        f"{c.nrmse[j]:.4g} | {c.fit_percent[j]:.1f} | {_judged(c)} |")
+                        f"{c.nrmse[j]:.4g} | {c.fit_percent[j]:.1f} | {_judged(c)} | "
+                        f"{c.nll:.8g} |")
     return "\n".join(rows)
 
 
@@ -121,15 +222,22 @@ def _judged(c) -> str:
     return f"after the first {c.window} samples" if c.window else "all samples"
 
 
-def _write_csv(c, path: Path) -> Path:
+def _write_csv(c, path: Path, before=None) -> Path:
     """``t [s]``, then per output the measured, simulated and error columns
-    (output units; empty where missing or where the run failed)."""
+    (output units; empty where missing or where the run failed); with
+    ``before`` (the declared fit's comparison of the same record), its
+    simulated column too."""
     cols, head = [c.t], ["t [s]"]
-    sim = c.sim_y if c.sim_y is not None else np.full_like(c.y, np.nan)
+
+    def sim(x):
+        return x.sim_y if x.sim_y is not None else np.full_like(x.y, np.nan)
     for j, (o, u) in enumerate(zip(c.outputs, c.units)):
         unit = f" [{u}]" if u else ""
-        cols += [c.y[:, j], sim[:, j], c.y[:, j] - sim[:, j]]
+        cols += [c.y[:, j], sim(c)[:, j], c.y[:, j] - sim(c)[:, j]]
         head += [f"{o}{unit}", f"{o}.simulated{unit}", f"{o}.error{unit}"]
+        if before is not None:
+            cols.append(sim(before)[:, j])
+            head.append(f"{o}.simulated_before{unit}")
     data = np.column_stack(cols)
     lines = [",".join(head)]
     for row in data:

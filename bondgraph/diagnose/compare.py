@@ -78,13 +78,13 @@ class Comparison:
     nll : float
         Negative log-likelihood of the record under the model's UKF
         (one-step-ahead predictions; inf where the filter fails). The prior
-        spread of an initial state the record does not give is the state's
-        scale along the record under these parameters
-        (:class:`~bondgraph.inference.prior.PriorSpec`); a fit's own NLL
-        took the scales at its start values, so on the fitted record the
-        two differ where the fit moved the states' scales (a user's CED
-        graph whose estimate barely moves: 1416.7 here against the
-        estimate's 551.8).
+        spread of an initial state is the state's scale along the record
+        under ``scales_from`` (:func:`compare`), as a fit took it at its
+        start values: on the fitted record it is the fit's own NLL (a
+        user's door: -8192.861066596097 both; the CED user graph 551.99
+        against 551.82, ROS2(1) against RK4(4)). With the scales at the
+        fitted values instead, a fit whose states barely move read 1416.7
+        there.
     n_obs : int
         Scalar measurements the NLL sums over.
     start : str
@@ -188,7 +188,8 @@ def mean_errors(y: np.ndarray, sim_y: np.ndarray | None, first: int = 0) -> np.n
 
 def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] | None = None,
             init_samples: int = 0, given: Mapping[str, object] | None = None,
-            log: Callable[[str], None] = print, progress: bool = False) -> list[Comparison]:
+            scales_from: BondGraph | None = None, log: Callable[[str], None] = print,
+            progress: bool = False) -> list[Comparison]:
     """Judge ``graph`` (its parameter defaults: set them from a fit with
     :func:`bondgraph.export.params.model_graph`) on each of ``records``.
 
@@ -217,6 +218,14 @@ def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] |
     given : mapping, optional
         Discretisation fields the caller fixes (``method``, ``substeps``,
         ``hold``).
+    scales_from : BondGraph, optional
+        The graph whose state scales on each record set the prior spread of
+        the initial states (:meth:`~bondgraph.inference.problem.Problem.with_model`:
+        the states it shares with ``graph`` inherit them): the declared graph
+        at its declared values, as the loop and ``estimate`` take them, so
+        that the start and the NLL are the loop's and the fit's (a declared
+        fit whose states barely move scales them to nothing, and its start
+        is then pinned to the prior mean). Default: ``graph`` itself.
     log : callable
         Gets one line per choice (numerics, noise levels, fallbacks).
     progress : bool
@@ -251,12 +260,13 @@ def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] |
             raise OptionError(f"--init-samples {n_init} leaves {left} samples of record "
                               f"'{rec.name}' ({samples_after(rec, 0)} samples) to judge by: "
                               f"at least {MIN_HELD_OUT}")
-        out.append(_compare_one(graph, rec, levels, n_init, dict(given or {}), log, progress))
+        out.append(_compare_one(graph, rec, levels, n_init, dict(given or {}), log, progress,
+                                scales_from))
     return out
 
 
-def _compare_one(graph, rec, levels: dict, n_samples: int, given: dict, log, progress
-                 ) -> Comparison:
+def _compare_one(graph, rec, levels: dict, n_samples: int, given: dict, log, progress,
+                 scales_from=None) -> Comparison:
     """:func:`compare` on one record; its first ``n_samples`` set the start."""
     say = (lambda m: log(f"{rec.name}: {m.strip()}"))
     settings = chosen_numerics(graph, rec, LoopSettings(params=[]), given=given,
@@ -264,6 +274,8 @@ def _compare_one(graph, rec, levels: dict, n_samples: int, given: dict, log, pro
     settings = replace(settings, free_run=replace(settings.free_run, init_samples=n_samples))
     model = model_of(graph)
     problem = loop_problem(model, rec, settings)
+    if scales_from is not None:                 # the declared graph's scales, inherited
+        problem = loop_problem(model_of(scales_from), rec, settings).with_model(model)
     held, said = _noise_levels(problem, rec, levels)
     problem = replace(problem, noise=NoiseSpec("auto").holding(
         {o: v for o, (v, _) in held.items()}))

@@ -20,7 +20,8 @@ from bondgraph.errors import ExportError
 from bondgraph.numerics import registry
 
 
-def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float]:
+def read_params(path: str | Path, *, estimated: bool = False,
+                initial: bool = False) -> dict[str, float]:
     """Parameter values from an estimation result or a loop report.
 
     Parameters
@@ -32,6 +33,9 @@ def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float
     estimated : bool
         Only the quantities the fit estimated (a result's fixed values left
         out).
+    initial : bool
+        From a loop's report, its initial fit (the declared graph's,
+        ``initial_fit.estimates``) instead of the final one.
 
     Returns
     -------
@@ -44,7 +48,8 @@ def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float
     ------
     ExportError
         The file is missing, not JSON, of neither format, or holds a value
-        that is not a finite number (the parameter is named).
+        that is not a finite number (the parameter is named); ``initial``
+        with a file that is not a loop's report.
     """
     path = Path(path)
     try:
@@ -53,9 +58,13 @@ def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float
         raise ExportError(f"parameter file {path} does not exist") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ExportError(f"parameter file {path} is not JSON: {exc}") from None
-    if isinstance(doc, dict) and isinstance(doc.get("final_fit"), dict) \
-            and isinstance(doc["final_fit"].get("estimates"), dict):
-        values = dict(doc["final_fit"]["estimates"])
+    which = "initial_fit" if initial else "final_fit"
+    if isinstance(doc, dict) and isinstance(doc.get(which), dict) \
+            and isinstance(doc[which].get("estimates"), dict):
+        values = dict(doc[which]["estimates"])
+    elif initial:
+        raise ExportError(f"{path} is not a `bondgraph loop` report.json: it holds no initial "
+                          f"fit (initial_fit.estimates)")
     elif isinstance(doc, dict) and doc.get("fit") == "sim" \
             and isinstance(doc.get("estimates"), dict):       # estimate --fit sim
         values = {**({} if estimated else dict(doc.get("fixed") or {})),
@@ -84,7 +93,7 @@ def read_params(path: str | Path, *, estimated: bool = False) -> dict[str, float
     return out
 
 
-def read_noise_levels(path: str | Path) -> dict[str, float]:
+def read_noise_levels(path: str | Path, *, initial: bool = False) -> dict[str, float]:
     """Measurement-noise levels of a fit: what :func:`read_params` leaves out.
 
     Parameters
@@ -97,6 +106,9 @@ def read_noise_levels(path: str | Path) -> dict[str, float]:
         ``report.json`` of ``bondgraph loop`` (the final fit's estimated
         levels, ``final_fit.noise_estimates``, and the held ones,
         ``settings.noise_levels``).
+    initial : bool
+        From a loop's report, its initial fit's levels instead of the final
+        fit's.
 
     Returns
     -------
@@ -109,15 +121,16 @@ def read_noise_levels(path: str | Path) -> dict[str, float]:
     ExportError
         As :func:`read_params` (the file is read by it first).
     """
-    read_params(path)                       # the same errors for a bad file
+    read_params(path, initial=initial)      # the same errors for a bad file
     doc = from_jsonable(json.loads(Path(path).read_text()))
     held = (doc.get("settings") or {}).get("noise_levels") or doc.get("noise_levels") or {}
     out = {}
     for o, v in held.items():               # estimate: {"std": .., "how": ..}; loop: a number
         v = v.get("std") if isinstance(v, dict) else v
         out[str(o)] = v
-    if isinstance(doc.get("final_fit"), dict):
-        out.update((doc["final_fit"].get("noise_estimates") or {}))
+    which = "initial_fit" if initial else "final_fit"
+    if isinstance(doc.get(which), dict):
+        out.update((doc[which].get("noise_estimates") or {}))
     elif isinstance(doc.get("params"), list):
         out.update({n[len("noise."):]: v for n, v in zip(doc["params"], doc["estimates"])
                     if str(n).startswith("noise.")})

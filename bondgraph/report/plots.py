@@ -197,7 +197,8 @@ def _draw_column(ax, exp, sim, c: str, role: str, measured: bool, stride: int,
                      fontsize="small", loc="right")
 
 
-def plot_comparison(comp, path: str | Path, *, dpi: int = 110, max_points: int = 20000) -> Path:
+def plot_comparison(comp, path: str | Path, *, before=None, dpi: int = 110,
+                    max_points: int = 20000) -> Path:
     """One PNG of a model's free run against a record
     (:class:`bondgraph.diagnose.compare.Comparison`): per output, the
     measured samples and the simulated line (the samples before the judged
@@ -209,6 +210,9 @@ def plot_comparison(comp, path: str | Path, *, dpi: int = 110, max_points: int =
     comp : Comparison
     path : str or Path
         The PNG file (its folder is created).
+    before : Comparison, optional
+        Another model's comparison on the same record (a loop's declared
+        fit), drawn grey and dashed with its error.
     dpi, max_points : int
         Resolution; longer records are decimated (every k-th sample).
 
@@ -231,9 +235,15 @@ def plot_comparison(comp, path: str | Path, *, dpi: int = 110, max_points: int =
         ax, ae = axes[2 * j], axes[2 * j + 1]
         y = comp.y[::stride, j]
         ax.plot(t, y, ".", ms=2.0, color="C0", label="measured")
+        if before is not None and before.sim_y is not None:
+            b = before.sim_y[::stride, j]
+            ax.plot(t, b, "--", lw=1.0, color="0.45",
+                    label=f"before (RMS {before.rms[j]:.4g})")
+            ae.plot(t, y - b, "--", lw=0.8, color="0.45")
         if comp.sim_y is not None:
             s = comp.sim_y[::stride, j]
-            ax.plot(t, s, "-", lw=1.2, color="C3", label="simulated")
+            ax.plot(t, s, "-", lw=1.2, color="C3", label="simulated" if before is None
+                    else "after")
             ae.plot(t, y - s, "-", lw=0.8, color="C2")
         if comp.judged_from:
             for a in (ax, ae):
