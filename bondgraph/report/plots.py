@@ -230,7 +230,9 @@ def plot_comparison(comp, path: str | Path, *, before=None, dpi: int = 110,
     FigureCanvasAgg(fig)
     axes = fig.subplots(2 * n, 1, sharex=True, squeeze=False,
                         gridspec_kw={"height_ratios": [3, 1] * n})[:, 0]
-    fig.suptitle(f"{comp.record}: free run against the record (mean NRMSE {comp.metric:.4g})")
+    fig.suptitle(f"{comp.record}: free run against the record (mean NRMSE "
+                 + (f"{before.metric:.4g} before, {comp.metric:.4g} after)" if before is not None
+                    else f"{comp.metric:.4g})"))
     for j, (o, unit) in enumerate(zip(comp.outputs, comp.units)):
         ax, ae = axes[2 * j], axes[2 * j + 1]
         y = comp.y[::stride, j]
