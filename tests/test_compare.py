@@ -378,3 +378,16 @@ def test_a_loop_folder_is_judged_before_and_after(data, tmp_path, capsys):
     # a loop folder carries its own parameters
     assert main(["compare", str(loop), "--data", str(data["dir"] / "unknown.csv"),
                  "--params", str(loop / "report.json"), "--out", str(tmp_path / "c2")]) == 2
+
+
+def test_a_run_that_does_not_simulate_is_named_with_its_model(capsys):
+    from types import SimpleNamespace
+
+    from bondgraph.cli.compare import _warnings
+    bad = SimpleNamespace(record="u2", trouble="the free run of z is not finite",
+                          filter_failure=None)
+    good = SimpleNamespace(record="u2", trouble=None, filter_failure="sample 3: P not PD")
+    _warnings([("before", bad), ("after", good)])
+    out = capsys.readouterr().out.splitlines()
+    assert out == ["WARNING: u2 (before): the free run of z is not finite",
+                   "WARNING: u2 (after): the filter fails (sample 3: P not PD): NLL inf"]

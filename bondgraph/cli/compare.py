@@ -67,29 +67,48 @@ def run(args) -> int:
     graph = model_graph(args.model, values)     # an unknown parameter named, ExportError
     declared = model_graph(args.model)          # its declared values: the fit's state scales
     say = (lambda m: None) if args.quiet else print
-    # filtered on a finer grid where an input is band-limited (as estimate and loop do)
-    records = [band_limited_record(load_record(pth, graph, say), graph, args, say)
-               for pth in args.data]
-    stems = "_".join(Path(pth).stem for pth in args.data)
-    folder = output_folder(args.out or f"compare_{graph.name}_{stems}", args)
+    records = _records(args, graph, say)
+    folder = output_folder(args.out or f"compare_{graph.name}_" + "_".join(_stems(args.data)),
+                           args)
     comps = compare(graph, records, noise=levels, init_samples=args.init_samples,
                     given=discretisation_given(args), scales_from=declared, log=say,
                     progress=not args.quiet)
     print(table(comps))
-    for c in comps:
-        if c.trouble:
-            print(f"WARNING: {c.record}: {c.trouble}")
-        if c.filter_failure:
-            print(f"WARNING: {c.record}: the filter fails ({c.filter_failure}): NLL inf")
+    _warnings([("", c) for c in comps])
     doc = {"model": args.model, "params": args.params, "values": values,
            "init_samples": args.init_samples, "records": [c.to_json() for c in comps]}
+    return _publish(folder, doc, args, [(c, None) for c in comps])
 
+
+def _records(args, graph, say) -> list:
+    """The records of ``--data`` for ``graph``, each on a finer grid where an
+    input is band-limited (as estimate and loop filter them)."""
+    return [band_limited_record(load_record(pth, graph, say), graph, args, say)
+            for pth in args.data]
+
+
+def _warnings(labelled) -> None:
+    """A line for each comparison (label, Comparison) whose free run does
+    not show a model that simulates, or whose filter fails."""
+    for label, c in labelled:
+        name = f"{c.record}{f' ({label})' if label else ''}"
+        if c.trouble:
+            print(f"WARNING: {name}: {c.trouble}")
+        if c.filter_failure:
+            print(f"WARNING: {name}: the filter fails ({c.filter_failure}): NLL inf")
+
+
+def _publish(folder, doc: dict, args, runs) -> int:
+    """Write ``folder`` as one version: compare.json (``doc``), and per
+    record (``runs``: (comparison, the "before" comparison or None), in
+    ``--data`` order) its CSV and, unless ``--no-plots``, its PNG; print
+    the paths."""
     def version(d: Path) -> list:
         files = []
-        for c, stem in zip(comps, _stems(args.data)):
-            files.append(_write_csv(c, d / f"{stem}_compare.csv"))
+        for (c, c0), stem in zip(runs, _stems(args.data)):
+            files.append(_write_csv(c, d / f"{stem}_compare.csv", before=c0))
             if not args.no_plots:
-                files.append(plot_comparison(c, d / f"{stem}_compare.png"))
+                files.append(plot_comparison(c, d / f"{stem}_compare.png", before=c0))
         (d / "compare.json").write_text(json.dumps(to_jsonable(doc), indent=1) + "\n")
         return files
     files = folder.publish(version)
@@ -142,33 +161,18 @@ def run_loop_folder(args) -> int:
     folder_in = Path(args.model)
     (g0, n0), (g1, n1), declared = loop_graphs(folder_in)
     say = (lambda m: None) if args.quiet else print
-    records = [band_limited_record(load_record(pth, g1, say), g1, args, say)
-               for pth in args.data]
-    out = output_folder(args.out or f"compare_{folder_in.name}_"
-                        + "_".join(_stems(args.data)), args)
+    records = _records(args, g1, say)
+    out = output_folder(args.out or f"compare_{folder_in.name}_" + "_".join(_stems(args.data)),
+                        args)
     kw = dict(init_samples=args.init_samples, given=discretisation_given(args),
               scales_from=declared, progress=not args.quiet)
     before = compare(g0, records, noise=n0, log=lambda m: say(f"before: {m}"), **kw)
     after = compare(g1, records, noise=n1, log=lambda m: say(f"after: {m}"), **kw)
     print(loop_table(before, after))
-    for c in before + after:
-        if c.trouble:
-            print(f"WARNING: {c.record} ({'after' if c in after else 'before'}): {c.trouble}")
+    _warnings([("before", c) for c in before] + [("after", c) for c in after])
     doc = {"loop": str(folder_in), "init_samples": args.init_samples,
            "before": [c.to_json() for c in before], "after": [c.to_json() for c in after]}
-
-    def version(d: Path) -> list:
-        files = []
-        for c0, c1, stem in zip(before, after, _stems(args.data)):
-            files.append(_write_csv(c1, d / f"{stem}_compare.csv", before=c0))
-            if not args.no_plots:
-                files.append(plot_comparison(c1, d / f"{stem}_compare.png", before=c0))
-        (d / "compare.json").write_text(json.dumps(to_jsonable(doc), indent=1) + "\n")
-        return files
-    files = out.publish(version)
-    for pth in [out.path / "compare.json", *published(out, files)]:
-        print(f"wrote {pth}")
-    return 0
+    return _publish(out, doc, args, list(zip(after, before)))
 
 
 def loop_table(before, after) -> str:
