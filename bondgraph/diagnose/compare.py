@@ -40,7 +40,7 @@ from bondgraph.inference.problem import NoiseSpec
 from bondgraph.inference.ukf import GUARD_REL, GUARD_SUBSTEPS
 
 
-@dataclass
+@dataclass(eq=False)
 class Comparison:
     """One record's comparison (:func:`compare`).
 
@@ -273,8 +273,9 @@ def _compare_one(graph, rec, levels: dict, n_samples: int, given: dict, log, pro
                                log=lambda _m: None)
     settings = replace(settings, free_run=replace(settings.free_run, init_samples=n_samples))
     model = model_of(graph)
-    problem = loop_problem(model, rec, settings)
-    if scales_from is not None:                 # the declared graph's scales, inherited
+    if scales_from is None:
+        problem = loop_problem(model, rec, settings)
+    else:                                       # the declared graph's scales, inherited
         problem = loop_problem(model_of(scales_from), rec, settings).with_model(model)
     held, said = _noise_levels(problem, rec, levels)
     problem = replace(problem, noise=NoiseSpec("auto").holding(
