@@ -244,6 +244,7 @@ def test_a_step_whose_nll_is_off_takes_the_substeps_that_agree(data, monkeypatch
         def line(self, where=""):
             return f"discretisation {where}: rk4(1) (forced by the test)"
     monkeypatch.setattr(C, "choose_discretisation", lambda *a, **k: Coarse())
+    monkeypatch.setattr(C, "likelier_hold_at", lambda p, th, choice, **k: (choice, None))
     monkeypatch.setattr(C, "run_ukf", lambda p, th: SimpleNamespace(
         nll=np.array([100.0 + 10.0 / p.disc.substeps ** 2])))
     problem = loop_problem(model_of(drive()), data["known"], LoopSettings(

@@ -35,7 +35,7 @@ from bondgraph.diagnose.metric import nrmse
 from bondgraph.diagnose.runner import MIN_HELD_OUT, chosen_numerics
 from bondgraph.diagnose.settings import FreeRunOptions, LoopSettings
 from bondgraph.errors import OptionError
-from bondgraph.inference.discretise import choose_discretisation
+from bondgraph.inference.discretise import choose_discretisation, likelier_hold_at
 from bondgraph.inference.problem import NoiseSpec
 from bondgraph.inference.ukf import GUARD_REL, GUARD_SUBSTEPS
 
@@ -314,7 +314,10 @@ def _numerics(problem, theta: np.ndarray, given: dict, sigma: list) -> tuple:
     """``(problem, lines)``: ``problem`` with the discretisation its check
     accepts at ``theta`` against the noise levels ``sigma`` (n_y,)
     (:func:`bondgraph.inference.discretise.choose_discretisation`; the
-    fields the user ``given`` kept), then with the substeps whose NLL agrees
+    fields the user ``given`` kept; where an input's shape leaves its hold
+    ambiguous, the hold under which the filter is likelier at ``theta``,
+    :func:`~bondgraph.inference.discretise.likelier_hold_at`, as
+    sensitivity and track take it), then with the substeps whose NLL agrees
     with RK4's at :data:`~bondgraph.inference.ukf.GUARD_SUBSTEPS` substeps to
     :data:`~bondgraph.inference.ukf.GUARD_REL` (the NLL guard of
     :func:`bondgraph.inference.ukf.nll_guard`: the filter's covariance
@@ -324,8 +327,12 @@ def _numerics(problem, theta: np.ndarray, given: dict, sigma: list) -> tuple:
     The lines say what was chosen."""
     lines = []
     if len(given) < 3:
+        where = "at these parameters and noise levels"
         choice = choose_discretisation(problem, theta, given=given, sigma=sigma)
-        lines.append(choice.line("at these parameters and noise levels"))
+        if "hold" not in given:     # an ambiguous input's shape: the likelier hold here
+            choice, line = likelier_hold_at(problem, theta, choice, sigma=sigma, where=where)
+            lines += [line] if line else []
+        lines.append(choice.line(where))
         if choice.disc != problem.disc:
             problem = problem.conditioned_on(disc=choice.disc)
     if "substeps" in given:
