@@ -325,7 +325,7 @@ def test_records_of_the_same_name_keep_their_own_files():
         ["run", "run-2", "other", "run-3"]
 
 
-def test_the_nll_on_the_fitted_record_is_the_estimates_own(data, tmp_path):
+def test_the_nll_on_the_fitted_record_is_the_estimates_own(data, tmp_path, capsys):
     """The prior spread of the initial states comes from the graph at its
     declared values, as the fit took it: on the record it was fitted to, the
     comparison's NLL is the estimate's (to the NLL guard's 1e-3; the step is
@@ -341,6 +341,9 @@ def test_the_nll_on_the_fitted_record_is_the_estimates_own(data, tmp_path):
                  "--params", "M,Fv,F0", "--iterations", "20", "--out", str(est),
                  "--quiet", "--no-plots"]) == 0
     res = json.loads((est / "result.json").read_text())
+    said = capsys.readouterr().out
+    assert "free run at the estimate on unknown: RMS error qm" in said
+    assert "WARNING: the estimate does not simulate" not in said
     out = tmp_path / "cmp"
     assert main(["compare", spec, "--data", str(data["dir"] / "unknown.csv"), "--params",
                  str(est / "result.json"), "--out", str(out), "--quiet", "--no-plots"]) == 0
@@ -392,3 +395,20 @@ def test_a_run_that_does_not_simulate_is_named_with_its_model(capsys):
     out = capsys.readouterr().out.splitlines()
     assert out == ["WARNING: u2 (before): the free run of z is not finite",
                    "WARNING: u2 (after): the filter fails (sample 3: P not PD): NLL inf"]
+
+
+def test_an_estimate_that_does_not_simulate_its_record_says_so(data, tmp_path, capsys):
+    """A likelihood fit that the noise levels carry: the friction held 50
+    times too high, the mass barely moves, NRMSE near 1; ``estimate`` ends
+    with a warning that names the loop and ``--fit sim``."""
+    import os
+
+    from bondgraph.cli.main import main
+    (tmp_path / "user_drive.py").write_text(GRAPH_FILE.format(tests=os.path.dirname(__file__)))
+    assert main(["estimate", "--model", f"{tmp_path / 'user_drive.py'}:user", "--data",
+                 str(data["dir"] / "known.csv"), "--params", "M", "--fixed", "Fv=100",
+                 "--iterations", "10", "--out", str(tmp_path / "est"), "--quiet",
+                 "--no-plots"]) == 0
+    said = capsys.readouterr().out
+    assert "WARNING: the estimate does not simulate known (NRMSE" in said
+    assert "`--fit sim` fits the free run" in said

@@ -37,8 +37,8 @@ from bondgraph.cli.common import (
 )
 from bondgraph.core import progress
 from bondgraph.core.jsonsafe import to_jsonable
-from bondgraph.errors import (EstimationError, IdentifiabilityWarning, NumericalError,
-                              OptionError, UsageError)
+from bondgraph.errors import (BondGraphError, EstimationError, IdentifiabilityWarning,
+                              NumericalError, OptionError, UsageError)
 from bondgraph.inference.discretise import (alternative_hold, check_discretisation,
                                             choose_discretisation, cost_rank, hold_verdict)
 from bondgraph.inference.estimate import check_not_fixed, estimate
@@ -163,9 +163,41 @@ def run(args) -> int:
     print(res.table())
     for pth in [folder.path / "result.json", *published(folder, pngs)]:
         print(f"wrote {pth}")
+    free_run_lines(args, exps, folder.path / "result.json")
     print(f"on a record it was not fitted to: bondgraph compare {args.model} --data OTHER.csv "
           f"--params {folder.path / 'result.json'}")
     return 0
+
+
+def free_run_lines(args, exps, result: Path) -> None:
+    """How the estimate simulates: one line per fitted record with its
+    free-run error (:func:`bondgraph.diagnose.compare.compare`, from the
+    smoothed start as the loop judges a record), and a warning where the
+    mean NRMSE reaches :data:`~bondgraph.diagnose.screen.SCREEN_LEVEL`: a
+    likelihood fit can explain a record by its noise levels and leave a
+    model that does not follow it (a user's CED graph: NRMSE 0.99, fit
+    1 %). The estimate is already published; a failure here is one line."""
+    from bondgraph.diagnose.compare import compare
+    from bondgraph.diagnose.screen import SCREEN_LEVEL
+    from bondgraph.export.params import model_graph, read_noise_levels, read_params
+
+    try:
+        graph = model_graph(args.model, read_params(result))
+        comps = compare(graph, exps, noise=read_noise_levels(result),
+                        scales_from=model_graph(args.model), log=lambda _m: None)
+    except (BondGraphError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        print(f"free run at the estimate: not computed ({str(exc).splitlines()[0]})")
+        return
+    for c in comps:
+        errs = ", ".join(f"{o} {r:.4g}{' ' + u if u else ''} (fit {f:.1f} %)"
+                         for o, u, r, f in zip(c.outputs, c.units, c.rms, c.fit_percent)
+                         if np.isfinite(r))
+        print(f"free run at the estimate on {c.record}: RMS error {errs}; NRMSE {c.metric:.4g}")
+        if c.metric >= SCREEN_LEVEL:
+            print(f"WARNING: the estimate does not simulate {c.record} (NRMSE {c.metric:.3g} >= "
+                  f"{SCREEN_LEVEL}): the noise levels explain it; the model lacks an effect "
+                  f"(`bondgraph loop` looks for it) or its parameters are in another basin "
+                  f"(`--fit sim` fits the free run)")
 
 
 def _chosen_at_start(args, problem, params, states, say, *, hold: str | None = None,
