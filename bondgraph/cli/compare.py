@@ -152,7 +152,7 @@ def loop_graphs(folder: Path) -> tuple:
 def run_loop_folder(args) -> int:
     """``bondgraph compare LOOP_FOLDER --data ...``: the declared fit and the
     loop's final model judged on each record, before and after side by
-    side (:func:`loop_table`); compare.json holds both, each record's CSV
+    side (:func:`table`); compare.json holds both, each record's CSV
     both runs, its PNG both over the record."""
     if args.params or args.param:
         raise UsageError("a loop's report folder gives its own parameters: leave out --params "
@@ -168,29 +168,11 @@ def run_loop_folder(args) -> int:
               scales_from=declared, progress=not args.quiet)
     before = compare(g0, records, noise=n0, log=lambda m: say(f"before: {m}"), **kw)
     after = compare(g1, records, noise=n1, log=lambda m: say(f"after: {m}"), **kw)
-    print(loop_table(before, after))
+    print(table(after, before))
     _warnings([("before", c) for c in before] + [("after", c) for c in after])
     doc = {"loop": str(folder_in), "init_samples": args.init_samples,
            "before": [c.to_json() for c in before], "after": [c.to_json() for c in after]}
     return _publish(out, doc, args, list(zip(after, before)))
-
-
-def loop_table(before, after) -> str:
-    """Two comparisons of the same records (the declared fit's and the
-    final model's) as one Markdown table, before -> after per record and
-    output."""
-    rows = ["| record | output | RMS error before -> after | NRMSE before -> after | "
-            "fit % before -> after |", "|---|---|---|---|---|"]
-    for c0, c1 in zip(before, after):
-        for j, o in enumerate(c1.outputs):
-            unit = f" {c1.units[j]}" if c1.units[j] else ""
-            if np.isnan(c1.rms[j]):
-                rows.append(f"| {c1.record} | {o} | not in the record | | |")
-                continue
-            rows.append(f"| {c1.record} | {o} | {c0.rms[j]:.4g} -> {c1.rms[j]:.4g}{unit} | "
-                        f"{c0.nrmse[j]:.4g} -> {c1.nrmse[j]:.4g} | "
-                        f"{c0.fit_percent[j]:.1f} -> {c1.fit_percent[j]:.1f} |")
-    return "\n".join(rows)
 
 
 def _stems(paths) -> list[str]:
@@ -204,20 +186,32 @@ def _stems(paths) -> list[str]:
     return out
 
 
-def table(comps) -> str:
-    """The comparisons as a Markdown table: one row per record and output
-    (the NLL is the record's, over all its outputs)."""
-    rows = ["| record | output | RMS error | mean error | NRMSE | fit % | judged | NLL |",
-            "|---|---|---|---|---|---|---|---|"]
-    for c in comps:
+def table(comps, before=None) -> str:
+    """The comparisons as a Markdown table, one row per record and output:
+    RMS and mean error, NRMSE, fit %, the judged samples and the record's
+    NLL; with ``before`` (the declared fit's comparisons of the same
+    records, a loop folder), RMS error, NRMSE and fit % before -> after."""
+    if before is None:
+        head = "| record | output | RMS error | mean error | NRMSE | fit % | judged | NLL |"
+    else:
+        head = ("| record | output | RMS error before -> after | NRMSE before -> after | "
+                "fit % before -> after |")
+    n = head.count("|") - 1
+    rows = [head, "|" + "---|" * n]
+    for k, c in enumerate(comps):
+        c0 = None if before is None else before[k]
         for j, o in enumerate(c.outputs):
             unit = f" {c.units[j]}" if c.units[j] else ""
             if np.isnan(c.rms[j]):
-                rows.append(f"| {c.record} | {o} | not in the record | | | | | |")
-                continue
-            rows.append(f"| {c.record} | {o} | {c.rms[j]:.4g}{unit} | {c.bias[j]:.3g}{unit} | "
-                        f"{c.nrmse[j]:.4g} | {c.fit_percent[j]:.1f} | {_judged(c)} | "
-                        f"{c.nll:.8g} |")
+                rows.append(f"| {c.record} | {o} | not in the record |" + " |" * (n - 3))
+            elif c0 is None:
+                rows.append(f"| {c.record} | {o} | {c.rms[j]:.4g}{unit} | "
+                            f"{c.bias[j]:.3g}{unit} | {c.nrmse[j]:.4g} | "
+                            f"{c.fit_percent[j]:.1f} | {_judged(c)} | {c.nll:.8g} |")
+            else:
+                rows.append(f"| {c.record} | {o} | {c0.rms[j]:.4g} -> {c.rms[j]:.4g}{unit} | "
+                            f"{c0.nrmse[j]:.4g} -> {c.nrmse[j]:.4g} | "
+                            f"{c0.fit_percent[j]:.1f} -> {c.fit_percent[j]:.1f} |")
     return "\n".join(rows)
 
 
