@@ -137,10 +137,11 @@ def configure(p: argparse.ArgumentParser) -> None:
 def _judging_options(p: argparse.ArgumentParser) -> None:
     """The record that judges and how: ``--validate``, ``--holdout``,
     ``--init-samples``, ``--metric-tolerance``."""
-    p.add_argument("--validate", default=None, metavar="FILE", action=Once,
-                   remedy="the loop judges on one held-out record",
+    p.add_argument("--validate", default=None, metavar="FILE", action="append",
                    help="held-out record (CSV): the accept decision and the report's error "
-                        "before/after use the free-run error on it")
+                        "before/after use the free-run error on it; given again, each further "
+                        "record judges too (an accepted model simulates on each and its error "
+                        "grows on none)")
     p.add_argument("--holdout", type=float, default=None, metavar="FRACTION",
                    help="without --validate: the last FRACTION of the record is held out as "
                         "the validation record (the fits use the rest; default "
@@ -268,6 +269,9 @@ def run(args) -> int:
         val = res.settings.get("validation") or "held out"
         print(f"  on the validation record ({val}): before {res.initial.validation_metric:.4g}   "
               f"after {res.final.validation_metric:.4g}")
+        for rec, before, after in res.more_validation():
+            b = "-" if before is None else f"{before:.4g}"
+            print(f"  on the validation record ({rec}): before {b}   after {after:.4g}")
         print(f"  on the estimation record ({res.record}): before {res.initial.metric:.4g}   "
               f"after {res.final.metric:.4g}")
     else:
@@ -381,6 +385,7 @@ def loop_states(graph, text: str) -> list[str]:
 #: validation names the option the user typed)
 _OPTION_NAMES = {"LoopSettings.metric": "--metric", "LoopSettings.noise": "--noise",
                  "LoopSettings.holdout": "--holdout", "LoopSettings.validation": "--validate",
+                 "LoopSettings.more_validation": "--validate",
                  "FreeRunOptions.init_samples": "--init-samples",
                  "AcceptRule.criterion": "--criterion",
                  "AcceptRule.significance": "--significance",
@@ -414,9 +419,14 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     fixed = parse_pairs(args.fixed, "--fixed")
     x0 = parse_pairs(args.x0, "--x0")
     states = loop_states(graph, args.estimate_x0) if args.estimate_x0 else base.estimate_x0
-    validation = (band_limited_record(load_record(args.validate, graph, _said), graph, args,
-                                         say=_said)
-                  if args.validate else base.validation)
+    judging = [band_limited_record(load_record(f, graph, _said), graph, args, say=_said)
+               for f in (args.validate or [])]
+    names = [r.name for r in judging]
+    for f, r in zip(args.validate or [], judging):
+        if names.count(r.name) > 1:      # two files of one name: the paths tell them apart
+            r.meta["name"] = str(f)
+    validation = judging[0] if judging else base.validation
+    more = tuple(judging[1:]) if judging else base.more_validation
     holdout = args.holdout
     if args.model and not args.validate and holdout is None:
         holdout = DEFAULT_HOLDOUT
@@ -433,6 +443,7 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
             base, fixed={**base.fixed, **fixed} if fixed else base.fixed,
             estimate_x0=states, metric=_given(args.metric, base.metric), effects=effects,
             noise=_given(args.noise, base.noise), validation=validation,
+            more_validation=more,
             holdout=_given(None if holdout is None else float(holdout), base.holdout),
             accept=accept_rule(args, base.accept), search=search_options(args, base.search),
             prior=dataclasses.replace(

@@ -12,7 +12,7 @@ A candidate is accepted when, after re-estimating all parameters,
    the record visits plus a margin,
    :func:`bondgraph.numerics.admissible.check_admissible`), and it simulates:
    its free run is finite and stays in the plausible range on the record
-   *and* on the validation record (:func:`bondgraph.diagnose.fit.free_run_trouble`;
+   *and* on every validation record (:func:`bondgraph.diagnose.fit.free_run_trouble`;
    a model whose free run diverges on the record it was fitted on is refused
    even when its error on the held-out part falls); the record identifies
    the effect's own parameters apart from the parameters the current fit
@@ -27,7 +27,9 @@ A candidate is accepted when, after re-estimating all parameters,
    (Wilks 1938);
 4. the free-run error (on the validation record if there is one, else on
    the record) does not grow by more than the factor ``accept.metric_tolerance``
-   (1.0: it may not rise);
+   (1.0: it may not rise), nor does it on any further validation record
+   (``more_validation``, ``--validate`` given again: a model the loop
+   accepts is never worse on a record it was judged on);
 5. the decrease of that free-run error exceeds its own sampling
    uncertainty (``accept.error_level``, default 0.05; None: no such test): a
    one-sided Diebold-Mariano test (Diebold & Mariano 1995) on the paired
@@ -37,7 +39,8 @@ A candidate is accepted when, after re-estimating all parameters,
    rule) of its random part 2 Σ_i Δ_ti e1_ti given the change of the output
    Δ = ŷ0 − ŷ1 (:func:`error_decrease_test`), so that the autocorrelation of
    free-run errors does not overstate its precision and a decrease confined
-   to one episode is not counted as its own noise.
+   to one episode is not counted as its own noise. With further validation
+   records their errors are stacked below the first's (:func:`pooled_errors`).
 
 Why test 5: the likelihood-ratio test is computed by the discretised UKF.
 Where its integrator (ROS2 with few substeps) has a systematic error, the
@@ -329,12 +332,17 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     p = float(chi2.sf(lr, max(int(dof), 1))) if np.isfinite(lr) else float("nan")
     where = " on the validation record" if after.validation_metric is not None else ""
     dz, dp = float("nan"), float("nan")
-    a0, a1 = getattr(current, "accept_errors", None), getattr(after, "accept_errors", None)
-    if a0 is not None and a1 is not None and a0.shape == a1.shape:
+    a0, a1 = pooled_errors(current, after)
+    if a0 is not None:
         dz, dp = error_decrease_test(a0, a1)
+    if getattr(after, "more_metrics", None):
+        where_dm = " over the validation records"
+    else:
+        where_dm = where
     reason = (_objection(current, after, lr, comparable, admissible, box_free, interior,
                          searched or {})
-              or _failed_test(rule, (ic0, ic1), p, lr, (e0, e1), (dz, dp), where))
+              or _failed_test(rule, (ic0, ic1), p, lr, (e0, e1), (dz, dp), where,
+                              _grown_elsewhere(rule, current, after), where_dm))
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
 
 
@@ -507,11 +515,14 @@ def _relative(after: Fit, name: str, robust: bool) -> float:
 
 
 def _failed_test(rule: AcceptRule, ic: tuple, p: float, lr: float, err: tuple, dm: tuple,
-                 where: str) -> str | None:
+                 where: str, grown_elsewhere: str | None = None,
+                 where_dm: str | None = None) -> str | None:
     """The first of :func:`decide`'s statistical tests that fails (None:
     all pass): the information criterion ``ic`` (before, after), the
     likelihood ratio ``lr`` (p-value ``p``), the error ``err`` (before,
-    after) and its decrease test ``dm`` (z, p)."""
+    after), its growth on a further validation record (``grown_elsewhere``,
+    :func:`_grown_elsewhere`) and its decrease test ``dm`` (z, p; on the
+    records ``where_dm`` names, default ``where``)."""
     (ic0, ic1), (e0, e1), (dz, dp) = ic, err, dm
     if not ic1 < ic0:
         return "information criterion did not improve"
@@ -519,9 +530,42 @@ def _failed_test(rule: AcceptRule, ic: tuple, p: float, lr: float, err: tuple, d
         return f"likelihood-ratio test not passed (LR {lr:.3g}, p {p:.2g})"
     if np.isfinite(e0) and not e1 <= rule.metric_tolerance * e0:
         return f"the error grew{where} ({e0:.4g} -> {e1:.4g})"
+    if grown_elsewhere:
+        return grown_elsewhere
     if rule.error_level is not None and np.isfinite(dp) and not dp < rule.error_level:
-        return (f"the error decrease{where} is within its uncertainty ({e0:.4g} -> "
-                f"{e1:.4g}, z {dz:.2f}, p {dp:.2g})")
+        return (f"the error decrease{where if where_dm is None else where_dm} is within its "
+                f"uncertainty ({e0:.4g} -> {e1:.4g}, z {dz:.2f}, p {dp:.2g})")
+    return None
+
+
+def pooled_errors(current: Fit, after: Fit) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The per-sample standardised free-run errors (M, n_y) of ``current``
+    and ``after`` that the error-decrease test pairs: those behind
+    :attr:`~bondgraph.diagnose.fit.Fit.accept_metric`, then, stacked below,
+    those on each further validation record (``more_errors``) where both
+    fits have them; (None, None) where the first pair is missing."""
+    a0, a1 = getattr(current, "accept_errors", None), getattr(after, "accept_errors", None)
+    if a0 is None or a1 is None or a0.shape != a1.shape:
+        return None, None
+    more0, more1 = getattr(current, "more_errors", {}), getattr(after, "more_errors", {})
+    pairs = [(more0.get(k), more1.get(k)) for k in more1]
+    pairs = [(b0, b1) for b0, b1 in pairs if b0 is not None and b1 is not None
+             and b0.shape == b1.shape]
+    if not pairs:
+        return a0, a1
+    return (np.vstack([a0, *(b0 for b0, _ in pairs)]),
+            np.vstack([a1, *(b1 for _, b1 in pairs)]))
+
+
+def _grown_elsewhere(rule: AcceptRule, current: Fit, after: Fit) -> str | None:
+    """"the error grew on the validation record 'r' (a -> b)" for the first
+    further validation record (``more_metrics``) whose free-run error grows
+    by more than ``rule.metric_tolerance``; None where none does."""
+    before = getattr(current, "more_metrics", {})
+    for name, e1 in getattr(after, "more_metrics", {}).items():
+        e0 = before.get(name, float("nan"))
+        if np.isfinite(e0) and not e1 <= rule.metric_tolerance * e0:
+            return f"the error grew on the validation record '{name}' ({e0:.4g} -> {e1:.4g})"
     return None
 
 
@@ -533,7 +577,8 @@ def _objection(current: Fit, after: Fit, lr: float, comparable: bool,
     parameter newly on its box, no ``interior`` one on its box, none on a
     search box that decides it (``searched``), identified (None: all pass)."""
     unstable = getattr(after, "unstable", None)
-    finite = [v for v in (after.nll, after.accept_metric, after.metric, after.validation_metric)
+    finite = [v for v in (after.nll, after.accept_metric, after.metric, after.validation_metric,
+                          *getattr(after, "more_metrics", {}).values())
               if v is not None]
     if not comparable:
         return (f"the refit did not converge ({after.iterations} iterations): its likelihood "
@@ -545,6 +590,8 @@ def _objection(current: Fit, after: Fit, lr: float, comparable: bool,
     if not all(np.isfinite(v) for v in finite):
         val = "" if after.validation_metric is None else \
             f", on the validation record {after.validation_metric:.4g}"
+        val += "".join(f", on '{k}' {v:.4g}"
+                       for k, v in getattr(after, "more_metrics", {}).items())
         return (f"the refit is not finite (NLL {after.nll:.4g}, error on the record "
                 f"{after.metric:.4g}{val})")
     if pinned := newly_boxed(current, after, exempt=box_free):
@@ -679,7 +726,9 @@ def accepted_step(cand: Candidate, d: Decision, current: Fit, after: Fit, names:
                 cand.confirmed_statistic or cand.statistic, cand.p_value,
                 current.metric, after.metric, after.validation_metric is not None,
                 d.lr, d.lr_p_value, cand.target.kind, [n for n in names if n not in current.params],
-                list(cand.tied), held=dict(cand.held))
+                list(cand.tied), held=dict(cand.held),
+                more_errors={k: [current.more_metrics.get(k), v]
+                             for k, v in after.more_metrics.items()})
 
 
 def applied_effect(eff: Effect, cand: Candidate, after: Fit) -> AppliedEffect:

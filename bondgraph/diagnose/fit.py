@@ -182,6 +182,11 @@ class Fit:
     validation_errors: np.ndarray | None = None
     #: the free run on the validation record (N_v, n_y), None without one or where it failed
     validation_sim_y: np.ndarray | None = None
+    #: the free-run error on each further validation record
+    #: (``settings.more_validation``), record name -> error
+    more_metrics: dict = field(default_factory=dict)
+    #: ... and its per-sample standardised errors (N_r, n_y), None where the free run failed
+    more_errors: dict = field(default_factory=dict)
     noise_est: dict = field(default_factory=dict)
     unstable: str | None = None
     warnings: list = field(default_factory=list)
@@ -222,7 +227,8 @@ class Fit:
                           self.validation_metric, dict(self.x0_est), dict(self.noise_est),
                           list(self.flat), dict(self.std_robust), self.ridge,
                           self.validation_sim_y,
-                          process_noise_at_floor(self.model, list(self.at_bound), self.theta))
+                          process_noise_at_floor(self.model, list(self.at_bound), self.theta),
+                          dict(self.more_metrics))
 
     @property
     def accept_metric(self) -> float:
@@ -265,21 +271,30 @@ def problem_for(ctx: Context, model: Model) -> Problem:
     return _cached(ctx, ("problem", model), base, lambda: base.with_model(model))
 
 
-def validation_problem(ctx: Context, problem: Problem) -> Problem:
-    """``problem`` on the validation record (``settings.validation``): its own
+def validation_problem(ctx: Context, problem: Problem, which: int = 0) -> Problem:
+    """``problem`` on the validation record (``settings.validation``; with
+    ``which`` = i > 0 the i-th of ``settings.more_validation``): its own
     initial state, the loop's covariance policy (:meth:`Problem.on_record`;
-    cached per model, :func:`_cached`). A candidate's problem inherits the
-    state scales of the loop's problem on that record, as it does on the
-    estimation record (:meth:`Problem.with_model`)."""
+    cached per model and record, :func:`_cached`). A candidate's problem
+    inherits the state scales of the loop's problem on that record, as it
+    does on the estimation record (:meth:`Problem.with_model`)."""
     base = ctx.problem
+    record = validation_records(ctx.settings)[which]
 
     def build() -> Problem:
         if problem.model is base.model:
-            return problem.on_record(ctx.settings.validation)
-        return problem.on_record(ctx.settings.validation,
-                                 validation_problem(ctx, base).scales)
+            return problem.on_record(record)
+        return problem.on_record(record, validation_problem(ctx, base, which).scales)
 
-    return _cached(ctx, ("validation", problem.model), problem, build)
+    return _cached(ctx, (f"validation{which or ''}", problem.model), problem, build)
+
+
+def validation_records(settings) -> list:
+    """The records that judge the accept decision: ``settings.validation``
+    and then ``settings.more_validation`` (empty without a validation record)."""
+    if getattr(settings, "validation", None) is None:
+        return []
+    return [settings.validation, *getattr(settings, "more_validation", ())]
 
 
 def _cached(ctx: Context, key: tuple, base: Problem, build) -> Problem:
@@ -863,14 +878,20 @@ def evaluate_fit(ctx: Context, problem: Problem, graph: BondGraph, params: list[
         (fit.validation_metric, fit.validation_errors, v_trouble,
          fit.validation_sim_y) = validation_run(ctx, problem, theta, filtered=res)
         trouble = trouble or (v_trouble and f"{v_trouble} on the validation record")
+    for i, rec in enumerate(validation_records(ctx.settings)[1:], start=1):
+        m, errors, v_trouble, _ = validation_run(ctx, problem, theta, which=i)
+        fit.more_metrics[rec.name], fit.more_errors[rec.name] = m, errors
+        trouble = trouble or (v_trouble and f"{v_trouble} on the validation record "
+                                            f"'{rec.name}'")
     fit.unstable = trouble
     return fit
 
 
 def validation_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
-                   filtered=None
+                   filtered=None, which: int = 0
                    ) -> tuple[float, np.ndarray | None, str | None, np.ndarray | None]:
-    """The loop's metric on the validation record (``settings.validation``:
+    """The loop's metric on the validation record (``settings.validation``,
+    or with ``which`` = i > 0 the i-th of ``settings.more_validation``:
     the model runs freely with the record's inputs from its initial state,
     :func:`free_run`), the standardised free-run errors (N, n_y), why the
     free run is not plausible there (:func:`free_run_trouble`) and the free
@@ -888,7 +909,7 @@ def validation_run(ctx: Context, problem: Problem, theta: np.ndarray, *,
     first n samples (:func:`window_start`), not continued, and the free-run
     metric and its per-sample errors run over the samples after them (the
     benchmark protocol)."""
-    vp = validation_problem(ctx, problem)
+    vp = validation_problem(ctx, problem, which)
     res = run_ukf(vp, theta[None, :], store=True)
     if not np.isfinite(res.nll[0]):
         vp, res = _finer_filter(ctx, vp, theta, res)

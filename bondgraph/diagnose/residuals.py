@@ -253,7 +253,8 @@ def _output_residuals(model, i: int, e: np.ndarray, z: np.ndarray, lags: int, dt
         d = y[:, i] - sim_y[:, i]
         okd = np.isfinite(d)
         if okd.any():
-            o.sim_rms = float(np.sqrt(np.mean(d[okd] ** 2)))
+            with np.errstate(over="ignore"):      # a diverging free run: inf
+                o.sim_rms = float(np.sqrt(np.mean(d[okd] ** 2)))
             o.sim_bias = float(d[okd].mean())
     return o
 

@@ -214,6 +214,9 @@ class Step:
     #: computed, :func:`bondgraph.diagnose.fit.robust_lr`)
     lr_scale: float | None = None
     lr_robust_p_value: float | None = None
+    #: the error on each further validation record before and after
+    #: (record name -> [before, after]; ``LoopSettings.more_validation``)
+    more_errors: dict = field(default_factory=dict)
 
     def shown(self) -> str:
         """The effect as the step tables show it: with its parameters held
@@ -324,6 +327,9 @@ class FitSummary:
     validation_sim_y : array (N_v, n_y) or None
         Free-run simulated outputs on the validation record (None without
         one, or where the free run failed there).
+    more_metrics : dict
+        The metric on each further validation record (record name -> value;
+        ``LoopSettings.more_validation``).
     """
 
     model: str
@@ -347,12 +353,14 @@ class FitSummary:
     ridge: str = ""
     validation_sim_y: np.ndarray | None = None
     noise_floor: list = field(default_factory=list)
+    more_metrics: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
         return to_jsonable({"model": self.model, "nll": self.nll, "aic": self.aic,
                             "bic": self.bic, "metric": self.metric, "whiteness": self.whiteness,
                             "validation_metric": self.validation_metric,
+                            "more_validation_metrics": self.more_metrics,
                             "at_bound": self.at_bound, "noise_floor": self.noise_floor,
                             "x0_estimates": self.x0_estimates,
                             "noise_estimates": self.noise_estimates, "flat": self.flat,
@@ -501,11 +509,24 @@ class LoopResult:
         if val:
             held = part(val, self.validation_time, self.validation_measured)
             line += f" Validation record: {held}, not fitted."
+            more = list((self.settings or {}).get("more_validation") or [])
+            if more:
+                line += (f" Further validation records, not fitted: "
+                         f"{', '.join(f'`{m}`' for m in more)}; the accepted model's error "
+                         f"grows on none of them.")
             n = int(((self.settings or {}).get("free_run") or {}).get("init_samples") or 0)
             if n:
                 line += (f" Its free runs start from its first {n} samples only and are "
                          f"judged on the samples after them.")
         return line
+
+    def more_validation(self) -> list[tuple[str, float | None, float]]:
+        """``(record, before, after)``: the error on each further validation
+        record (``LoopSettings.more_validation``) of the declared fit and of
+        the final model, in the order given; empty without them."""
+        before = self.initial.more_metrics if self.initial is not None else {}
+        after = self.final.more_metrics if self.final is not None else {}
+        return [(k, before.get(k), v) for k, v in after.items()]
 
     def numerics(self) -> str | None:
         """How the models were stepped, one sentence: the filter's method,
@@ -573,6 +594,9 @@ class LoopResult:
             "error_before": self.initial.metric, "error_after": self.final.metric,
             "validation_error_before": self.initial.validation_metric,
             "validation_error_after": self.final.validation_metric,
+            "more_validation_errors": {
+                k: {"before": self.initial.more_metrics.get(k), "after": v}
+                for k, v in self.final.more_metrics.items()},
             "steps": [dict(vars(s)) for s in self.steps],
             "rejected": [r.to_dict() for r in self.rejected],
             "rankings": [[c.to_dict() for c in r[:ranked]] for r in self.rankings],

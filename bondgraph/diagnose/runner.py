@@ -265,7 +265,7 @@ def records_hold_inputs(graph: BondGraph, experiment, s: LoopSettings) -> None:
         (:func:`bondgraph.data.binding.require_inputs`).
     """
     need = SimpleNamespace(name=graph.name, inputs=list(graph.inputs), derivative_inputs={})
-    for rec in (experiment, s.validation):
+    for rec in (experiment, s.validation, *s.more_validation):
         if rec is not None:
             require_inputs(rec, need)
 
@@ -325,13 +325,14 @@ def window_fits(s: LoopSettings) -> LoopSettings:
                           f"judges, and with holdout 0 and no validation record there is none",
                           hint="give --validate FILE or --holdout FRACTION, or leave "
                                "--init-samples out")
-    left = samples_after(s.validation, n)
-    if left < MIN_HELD_OUT:
-        size = samples_after(s.validation, 0)
-        raise OptionError(f"init_samples (--init-samples) {n} leaves {left} of the "
-                          f"{size}-sample validation record '{s.validation.name}' to judge by: "
-                          f"at least {MIN_HELD_OUT}",
-                          hint="a smaller window, or a longer validation record")
+    for rec in (s.validation, *s.more_validation):
+        left = samples_after(rec, n)
+        if left < MIN_HELD_OUT:
+            size = samples_after(rec, 0)
+            raise OptionError(f"init_samples (--init-samples) {n} leaves {left} of the "
+                              f"{size}-sample validation record '{rec.name}' to judge by: "
+                              f"at least {MIN_HELD_OUT}",
+                              hint="a smaller window, or a longer validation record")
     return s
 
 

@@ -405,6 +405,13 @@ class LoopSettings:
     validation : Experiment, optional
         A held-out record: the accept decision compares the free-run error on
         it (from its own initial state, :func:`bondgraph.diagnose.fit.free_run`).
+    more_validation : sequence of Experiment
+        Further held-out records (``--validate`` given more than once; beside
+        ``validation`` or the held-out part): an accepted model simulates on each, its free-run
+        error grows on none of them, and their per-sample errors join the
+        validation record's in the error-decrease test
+        (:func:`bondgraph.diagnose.accept.decide`). Names differ from each
+        other and from ``validation``'s.
     holdout : float
         Without ``validation``: the fraction of the record, at its end, held
         out as the validation record (0: none; the fits use the rest; its
@@ -460,6 +467,7 @@ class LoopSettings:
     metric: Metric = "nrmse_sim"
     metric_name: str | None = None
     validation: Experiment | None = None
+    more_validation: Sequence[Experiment] = ()
     holdout: float = 0.0
     noise: str = "auto"
     true_effect: TrueEffect | tuple[str, str] | None = None
@@ -486,6 +494,7 @@ class LoopSettings:
         if self.validation is not None and not isinstance(self.validation, Experiment):
             raise OptionError(f"LoopSettings.validation must be an Experiment or None, got "
                               f"{type(self.validation).__name__}")
+        self._check_more_validation()
         for name, cls in (("accept", AcceptRule), ("search", SearchOptions),
                           ("prior", PriorSpec), ("ukf", UKFOptions),
                           ("free_run", FreeRunOptions), ("evaluation", Evaluation)):
@@ -495,6 +504,27 @@ class LoopSettings:
         if self.evaluation.chunk is None:      # the loop's filters always run in batches
             object.__setattr__(self, "evaluation", replace(self.evaluation, chunk=LOOP_CHUNK))
         scheduler_address(self.evaluation.scheduler)   # a malformed address fails here
+
+    def _check_more_validation(self) -> None:
+        """``more_validation`` as a tuple of Experiments with names of their
+        own, and only beside ``validation``."""
+        more = self.more_validation
+        if isinstance(more, Experiment) or not isinstance(more, (list, tuple)) \
+                or not all(isinstance(r, Experiment) for r in more):
+            raise OptionError(f"LoopSettings.more_validation must be a sequence of Experiments, "
+                              f"got {more!r:.80}")
+        object.__setattr__(self, "more_validation", tuple(more))
+        if more and self.validation is None and not self.holdout:
+            raise OptionError("LoopSettings.more_validation needs a first record that judges: "
+                              "a validation record (LoopSettings.validation) or a held-out "
+                              "part (LoopSettings.holdout)")
+        first = [self.validation] if more and self.validation is not None else []
+        names = [r.name for r in first + list(more)]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise OptionError(f"the validation records must have names of their own: "
+                              f"{', '.join(repr(n) for n in twice)} given more than once",
+                              hint="rename the records (Experiment.name) or give each file once")
 
     def summary(self) -> dict:
         """Every option as a report records it (JSON-able): plain values as
@@ -519,6 +549,8 @@ def _summarised(name: str, v):
         return [e.name for e in v]
     if name == "validation":
         return None if v is None else v.name
+    if name == "more_validation":
+        return [r.name for r in v]
     if name == "metric" and callable(v):
         return getattr(v, "name", getattr(v, "__name__", "custom metric"))
     if name == "true_effect" and v is not None:

@@ -190,6 +190,10 @@ def _summary(result: LoopResult) -> list[str]:
         line = (f"Error on the validation record before: <b>{i.validation_metric:.4g}</b>, "
                 f"after: <b>{f.validation_metric:.4g}</b> (estimation record: "
                 f"{i.metric:.4g} &rarr; {f.metric:.4g}).")
+        more = result.more_validation()
+        if more:
+            line += "<br>Further validation records: " + "; ".join(
+                f"{escape(k)} {'-' if b is None else f'{b:.4g}'} &rarr; {a:.4g}" for k, b, a in more) + "."
     else:
         line = f"Error before: <b>{i.metric:.4g}</b>, after: <b>{f.metric:.4g}</b>."
     parts = [f'<p class="big">{line}</p>']

@@ -556,6 +556,10 @@ def _md_errors(result: LoopResult) -> list[str]:
         L = [f"**Error on the validation record before: {i.validation_metric:.4g}; after: "
              f"{f.validation_metric:.4g}** (on the estimation record: {i.metric:.4g} -> "
              f"{f.metric:.4g}).", ""]
+        more = result.more_validation()
+        if more:
+            L[-1:] = ["On the further validation records: " + "; ".join(
+                f"`{k}` {_num(b)} -> {a:.4g}" for k, b, a in more) + ".", ""]
     else:
         L = [f"**Error before: {i.metric:.4g}; after: {f.metric:.4g}.**", ""]
     for w in result.warnings:
