@@ -72,6 +72,12 @@ def test_a_further_record_is_judged_before_and_after(records, tmp_path, capsys):
     assert rep["settings"]["more_validation"] == ["more"]
     said = capsys.readouterr().out
     assert f"on the validation record (more): before {errs['before']:.4g}" in said
+    cell = f"{errs['before']:.4g} -> {errs['after']:.4g}"
+    assert f"error on more |" in said and cell in said            # the step table
+    md = (tmp_path / "loop" / "report.md").read_text()
+    assert f"`more` {cell}" in md and "Further validation records, not fitted: `more`" in md
+    html = (tmp_path / "loop" / "report.html").read_text()
+    assert "error on more" in html and cell.replace("->", "&rarr;") in html
 
 
 def test_a_further_record_the_effect_makes_worse_vetoes_it(records, tmp_path):

@@ -569,15 +569,21 @@ class LoopResult:
     def table(self) -> str:
         """Markdown table of the accepted steps (error = :attr:`metric`; with
         a validation record, the validation error and the estimation
-        record's error beside it)."""
+        record's error beside it; with further validation records, one
+        column each, "before -> after")."""
         val = any(s.validated for s in self.steps)
+        more = list(dict.fromkeys(k for s in self.steps for k in s.more_errors))
         head = ("| step | effect | attached to | validation error before | validation error after "
                 "| estimation error before | estimation error after |" if val else
                 "| step | effect | attached to | error before | error after |")
-        rows = [head + " NLL before | NLL after |", "|---" * (9 if val else 7) + "|"]
+        head += "".join(f" error on {k} |" for k in more)
+        rows = [head + " NLL before | NLL after |",
+                "|---" * ((9 if val else 7) + len(more)) + "|"]
         for i, s in enumerate(self.steps, 1):
             est = (f" {_num(s.estimation_error_before)} | {_num(s.estimation_error_after)} |"
                    if val else "")
+            est += "".join(" {} -> {} |".format(*(_num(v) for v in s.more_errors.get(k, (None,) * 2)))
+                           for k in more)
             rows.append(f"| {i} | {s.shown()} | {s.shown_target()} | {s.error_before:.4g} | "
                         f"{s.error_after:.4g} |{est} {s.nll_before:.1f} | {s.nll_after:.1f} |")
         return "\n".join(rows)

@@ -200,15 +200,25 @@ def _summary(result: LoopResult) -> list[str]:
     if not result.steps:
         parts.append(f"<p>No effect accepted: {escape(result.none_accepted())}.</p>")
     else:
+        more = list(dict.fromkeys(k for s in result.steps for k in s.more_errors))
         rows = [[str(k), s.shown(),
                  s.shown_target(), _num(s.error_before), _num(s.error_after),
+                 *(_arrow(s.more_errors.get(m)) for m in more),
                  _num(s.nll_before, ".1f"), _num(s.nll_after, ".1f"),
                  _num(s.lr, ".1f"), _scaled(s), ", ".join(s.tied)]
                 for k, s in enumerate(result.steps, 1)]
         parts.append(_table(["step", "effect", "attached to", "error before", "error after",
+                             *(f"error on {m}" for m in more),
                              "NLL before", "NLL after", "LR", "LR / scale (correlated "
                              "innovations)", "tied with (Vuong)"], rows))
     return _section("Result", parts, "result")
+
+
+def _arrow(pair) -> str:
+    """"before → after" of a step's error on a further validation record
+    ("-" for a value not at hand)."""
+    b, a = pair if pair else (None, None)
+    return " → ".join("-" if v is None else f"{v:.4g}" for v in (b, a))
 
 
 def _scaled(step) -> tuple[str, str] | str:
