@@ -187,6 +187,8 @@ class Fit:
     more_metrics: dict = field(default_factory=dict)
     #: ... and its per-sample standardised errors (N_r, n_y), None where the free run failed
     more_errors: dict = field(default_factory=dict)
+    #: ... and the free run's outputs (N_r, n_y), None where it failed
+    more_sim_y: dict = field(default_factory=dict)
     noise_est: dict = field(default_factory=dict)
     unstable: str | None = None
     warnings: list = field(default_factory=list)
@@ -228,7 +230,7 @@ class Fit:
                           list(self.flat), dict(self.std_robust), self.ridge,
                           self.validation_sim_y,
                           process_noise_at_floor(self.model, list(self.at_bound), self.theta),
-                          dict(self.more_metrics))
+                          dict(self.more_metrics), dict(self.more_sim_y))
 
     @property
     def accept_metric(self) -> float:
@@ -879,8 +881,9 @@ def evaluate_fit(ctx: Context, problem: Problem, graph: BondGraph, params: list[
          fit.validation_sim_y) = validation_run(ctx, problem, theta, filtered=res)
         trouble = trouble or (v_trouble and f"{v_trouble} on the validation record")
     for i, rec in enumerate(validation_records(ctx.settings)[1:], start=1):
-        m, errors, v_trouble, _ = validation_run(ctx, problem, theta, which=i)
+        m, errors, v_trouble, sim = validation_run(ctx, problem, theta, which=i)
         fit.more_metrics[rec.name], fit.more_errors[rec.name] = m, errors
+        fit.more_sim_y[rec.name] = sim
         trouble = trouble or (v_trouble and f"{v_trouble} on the validation record "
                                             f"'{rec.name}'")
     fit.unstable = trouble

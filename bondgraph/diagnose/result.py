@@ -330,6 +330,9 @@ class FitSummary:
     more_metrics : dict
         The metric on each further validation record (record name -> value;
         ``LoopSettings.more_validation``).
+    more_sim_y : dict
+        The free run's outputs (N_r, n_y) on each further validation record
+        (record name -> array, None where it failed).
     """
 
     model: str
@@ -354,6 +357,7 @@ class FitSummary:
     validation_sim_y: np.ndarray | None = None
     noise_floor: list = field(default_factory=list)
     more_metrics: dict = field(default_factory=dict)
+    more_sim_y: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays)."""
@@ -447,6 +451,9 @@ class LoopResult:
         Sample times of the validation record [s] (None without one).
     validation_measured : array (N_v, n_y) or None
         Its measured outputs of the final model (NaN where missing).
+    more_measured : dict
+        Each further validation record's sample times [s] (N_r,) and
+        measured outputs (N_r, n_y), record name -> (t, y).
     outputs, output_units : list of str
     finished : bool
         False for the partial results handed to ``on_update`` during the run.
@@ -482,6 +489,7 @@ class LoopResult:
     measured: np.ndarray | None = None
     validation_time: np.ndarray | None = None
     validation_measured: np.ndarray | None = None
+    more_measured: dict = field(default_factory=dict)
     outputs: list[str] = field(default_factory=list)
     output_units: list[str] = field(default_factory=list)
     finished: bool = False

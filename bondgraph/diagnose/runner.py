@@ -508,6 +508,9 @@ def publish(ctx: Context, result: LoopResult, initial: Fit, current: Fit,
     if ctx.settings.validation is not None:
         tv, _, yv = validation_problem(ctx, problem).arrays
         result.validation_time, result.validation_measured = tv, yv
+        for i, rec in enumerate(ctx.settings.more_validation, start=1):
+            tm, _, ym = validation_problem(ctx, problem, i).arrays
+            result.more_measured[rec.name] = (tm, ym)
     result.outputs = list(current.model.outputs)
     result.output_units = list(current.model.output_units)
     if on_update is not None:

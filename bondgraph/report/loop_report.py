@@ -324,6 +324,11 @@ def _plots(result: LoopResult, out: Path, cache: dict | None = None) -> list[str
         if aug:
             fits += [final.validation_sim_y is None, final.validation_sim_y,
                      final.validation_metric, final.metric]
+    for name, (t, y) in result.more_measured.items():
+        shown += [name, t, y]
+        for fit in (init, final) if aug else (init,):
+            sim = fit.more_sim_y.get(name)
+            fits += [sim is None, sim, fit.more_metrics.get(name)]
     inns = [init.innovations, init.innovation_var] + (
         [final.innovations, final.innovation_var] if aug else [])
     pngs = [_cached_png(cache, _digest("fit", *shown, *fits), out / "fit_before_after.png",
@@ -431,8 +436,8 @@ def _save(fig, path: Path) -> str:
 def _plot_fit(result: LoopResult, out: Path) -> str:
     """Measured outputs vs the free-run simulations before and after, on
     the estimation record and, where the loop had one, beside it on the
-    validation (held-out) record, each panel titled with the two models'
-    errors there; a simulation that failed is said on the plot (not
+    validation (held-out) record and each further validation record, each
+    panel titled with the two models' errors there; a simulation that failed is said on the plot (not
     silently left out)."""
     plt = pyplot()
     init, final = result.initial, result.final
@@ -442,7 +447,13 @@ def _plot_fit(result: LoopResult, out: Path) -> str:
     if result.validation_time is not None and result.validation_measured is not None:
         panels.append((result.validation_time, result.validation_measured,
                        init.validation_sim_y, final.validation_sim_y, init.validation_metric,
-                       final.validation_metric, "validation record (held out, not fitted)"))
+                       final.validation_metric,
+                       f"validation record {(result.settings or {}).get('validation') or ''} "
+                       f"(held out, not fitted)".replace("  ", " ")))
+    for name, (t, y) in result.more_measured.items():
+        panels.append((t, y, init.more_sim_y.get(name), final.more_sim_y.get(name),
+                       init.more_metrics.get(name), final.more_metrics.get(name),
+                       f"validation record {name} (not fitted)"))
     ny = result.measured.shape[1]
     widths = [max(float(p[0][-1] - p[0][0]), 1e-9) if len(p[0]) > 1 else 1.0 for p in panels]
     widths = [max(w, 0.3 * max(widths)) for w in widths]
