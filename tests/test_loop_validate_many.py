@@ -143,3 +143,30 @@ def test_further_validation_records_are_checked_as_settings(records):
         LoopSettings(params=["M"], validation=val, more_validation=[val])
     with pytest.raises(OptionError, match="sequence of Experiments"):
         LoopSettings(params=["M"], validation=val, more_validation=more)
+
+
+def test_holdout_and_validate_together_judge_on_both(records):
+    """``--holdout 0.25 --validate more.csv``: the held-out quarter is the
+    first record that judges, the file beside it (``held_out`` cuts it)."""
+    from bondgraph.cli.loop import loop_settings
+    from bondgraph.cli.main import command_parser
+    from bondgraph.data.records import Experiment
+    from bondgraph.diagnose.runner import held_out
+    from bondgraph.diagnose.settings import LoopSettings
+    from test_compare import drive
+
+    d = records["dir"]
+    args = command_parser("loop").parse_args(
+        ["--model", "m", "--data", str(d / "est.csv"), "--holdout", "0.25",
+         "--validate", str(d / "more.csv")])
+    s = loop_settings(args, LoopSettings(params=["M", "Fv"]), drive())
+    assert s.validation is None and [r.name for r in s.more_validation] == ["more"]
+    est, s2 = held_out(Experiment.load(d / "est.csv"), s)
+    assert len(est.t) == 750 and s2.validation.name == "est[750:]"
+    assert [r.name for r in s2.more_validation] == ["more"]
+    # without --holdout the first file judges first, as before
+    args = command_parser("loop").parse_args(
+        ["--model", "m", "--data", str(d / "est.csv"), "--validate", str(d / "val.csv"),
+         "--validate", str(d / "more.csv")])
+    s = loop_settings(args, LoopSettings(params=["M", "Fv"]), drive())
+    assert s.validation.name == "val" and [r.name for r in s.more_validation] == ["more"]

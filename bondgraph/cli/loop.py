@@ -143,9 +143,10 @@ def _judging_options(p: argparse.ArgumentParser) -> None:
                         "record judges too (an accepted model simulates on each and its error "
                         "grows on none)")
     p.add_argument("--holdout", type=float, default=None, metavar="FRACTION",
-                   help="without --validate: the last FRACTION of the record is held out as "
-                        "the validation record (the fits use the rest; default "
-                        f"{DEFAULT_HOLDOUT} for --model/--data, 0 for a bundled case)")
+                   help="the last FRACTION of the record is held out as the validation record "
+                        "(the fits use the rest; default without --validate "
+                        f"{DEFAULT_HOLDOUT} for --model/--data, 0 for a bundled case); with "
+                        "--validate the files judge beside it")
     p.add_argument("--init-samples", type=int, default=None, metavar="N",
                    help="the free run on the record that judges (held out or --validate) "
                         "starts from its first N samples only, as benchmark protocols ask "
@@ -427,6 +428,8 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
             r.meta["name"] = str(f)
     validation = judging[0] if judging else base.validation
     more = tuple(judging[1:]) if judging else base.more_validation
+    if judging and args.holdout:         # the held-out part judges first, the files beside it
+        validation, more = None, tuple(judging)
     holdout = args.holdout
     if args.model and not args.validate and holdout is None:
         holdout = DEFAULT_HOLDOUT
