@@ -134,6 +134,24 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_quiet(p)
 
 
+def _print_errors(name: str, res) -> None:
+    """The summary's error lines: before and after on each validation record
+    (the first, then each further ``--validate`` record) and on the
+    estimation record, or on the record alone without a validation record."""
+    print(f"{name}: {res.metric}")
+    if res.final.validation_metric is None:
+        print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
+        return
+    val = res.settings.get("validation") or "held out"
+    print(f"  on the validation record ({val}): before {res.initial.validation_metric:.4g}   "
+          f"after {res.final.validation_metric:.4g}")
+    for rec, before, after in res.more_validation():
+        b = "-" if before is None else f"{before:.4g}"
+        print(f"  on the validation record ({rec}): before {b}   after {after:.4g}")
+    print(f"  on the estimation record ({res.record}): before {res.initial.metric:.4g}   "
+          f"after {res.final.metric:.4g}")
+
+
 def _judging_options(p: argparse.ArgumentParser) -> None:
     """The record that judges and how: ``--validate``, ``--holdout``,
     ``--init-samples``, ``--metric-tolerance``."""
@@ -265,18 +283,7 @@ def run(args) -> int:
     if args.discover:
         res = _with_discovery(args, graph, record, settings, res, out)
     print()
-    print(f"{name}: {res.metric}")
-    if res.final.validation_metric is not None:
-        val = res.settings.get("validation") or "held out"
-        print(f"  on the validation record ({val}): before {res.initial.validation_metric:.4g}   "
-              f"after {res.final.validation_metric:.4g}")
-        for rec, before, after in res.more_validation():
-            b = "-" if before is None else f"{before:.4g}"
-            print(f"  on the validation record ({rec}): before {b}   after {after:.4g}")
-        print(f"  on the estimation record ({res.record}): before {res.initial.metric:.4g}   "
-              f"after {res.final.metric:.4g}")
-    else:
-        print(f"  before: {res.initial.metric:.4g}   after: {res.final.metric:.4g}")
+    _print_errors(name, res)
     print(res.table() if res.steps else f"  no effect accepted: {res.none_accepted()}"
           + ("; the reasons are in report.md" if res.rejected else ""))
     hint = unexplained_hint(res, args.discover, graph, settings.effects)

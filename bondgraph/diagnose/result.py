@@ -532,8 +532,8 @@ class LoopResult:
         """``(record, before, after)``: the error on each further validation
         record (``LoopSettings.more_validation``) of the declared fit and of
         the final model, in the order given; empty without them."""
-        before = self.initial.more_metrics if self.initial is not None else {}
-        after = self.final.more_metrics if self.final is not None else {}
+        before = getattr(self.initial, "more_metrics", None) or {}
+        after = getattr(self.final, "more_metrics", None) or {}
         return [(k, before.get(k), v) for k, v in after.items()]
 
     def numerics(self) -> str | None:
@@ -580,7 +580,7 @@ class LoopResult:
         record's error beside it; with further validation records, one
         column each, "before -> after")."""
         val = any(s.validated for s in self.steps)
-        more = list(dict.fromkeys(k for s in self.steps for k in s.more_errors))
+        more = list(dict.fromkeys(k for s in self.steps for k in getattr(s, "more_errors", {})))
         head = ("| step | effect | attached to | validation error before | validation error after "
                 "| estimation error before | estimation error after |" if val else
                 "| step | effect | attached to | error before | error after |")

@@ -200,7 +200,7 @@ def _summary(result: LoopResult) -> list[str]:
     if not result.steps:
         parts.append(f"<p>No effect accepted: {escape(result.none_accepted())}.</p>")
     else:
-        more = list(dict.fromkeys(k for s in result.steps for k in s.more_errors))
+        more = list(dict.fromkeys(k for s in result.steps for k in getattr(s, "more_errors", {})))
         rows = [[str(k), s.shown(),
                  s.shown_target(), _num(s.error_before), _num(s.error_after),
                  *(_arrow(s.more_errors.get(m)) for m in more),

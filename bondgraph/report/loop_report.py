@@ -324,11 +324,11 @@ def _plots(result: LoopResult, out: Path, cache: dict | None = None) -> list[str
         if aug:
             fits += [final.validation_sim_y is None, final.validation_sim_y,
                      final.validation_metric, final.metric]
-    for name, (t, y) in result.more_measured.items():
+    for name, (t, y) in getattr(result, "more_measured", {}).items():
         shown += [name, t, y]
         for fit in (init, final) if aug else (init,):
-            sim = fit.more_sim_y.get(name)
-            fits += [sim is None, sim, fit.more_metrics.get(name)]
+            sim = getattr(fit, "more_sim_y", {}).get(name)
+            fits += [sim is None, sim, getattr(fit, "more_metrics", {}).get(name)]
     inns = [init.innovations, init.innovation_var] + (
         [final.innovations, final.innovation_var] if aug else [])
     pngs = [_cached_png(cache, _digest("fit", *shown, *fits), out / "fit_before_after.png",
@@ -450,7 +450,7 @@ def _plot_fit(result: LoopResult, out: Path) -> str:
                        final.validation_metric,
                        f"validation record {(result.settings or {}).get('validation') or ''} "
                        f"(held out, not fitted)".replace("  ", " ")))
-    for name, (t, y) in result.more_measured.items():
+    for name, (t, y) in getattr(result, "more_measured", {}).items():
         panels.append((t, y, init.more_sim_y.get(name), final.more_sim_y.get(name),
                        init.more_metrics.get(name), final.more_metrics.get(name),
                        f"validation record {name} (not fitted)"))
