@@ -349,7 +349,7 @@ def test_a_filter_that_fails_on_the_validation_record_runs_at_finer_steps(monkey
                                reasons=[None if good else f"P not PD at {pb.disc.substeps}"])
 
     monkeypatch.setattr(F, "run_ukf", run)
-    monkeypatch.setattr(F, "validation_problem", lambda ctx, pb: Pb(2))
+    monkeypatch.setattr(F, "validation_problem", lambda ctx, pb, which=0: Pb(2))
     monkeypatch.setattr(F, "free_run", lambda ctx, vp, th, own: ("run at", vp.disc.substeps))
     monkeypatch.setattr(F, "compute_metric", lambda s, view, rec: view.sim_y)
     monkeypatch.setattr(F, "metric_errors", lambda s, view, rec: None)
