@@ -170,3 +170,42 @@ def test_holdout_and_validate_together_judge_on_both(records):
          "--validate", str(d / "more.csv")])
     s = loop_settings(args, LoopSettings(params=["M", "Fv"]), drive())
     assert s.validation.name == "val" and [r.name for r in s.more_validation] == ["more"]
+
+
+def test_estimate_judges_its_fit_on_the_records_of_validate(records, tmp_path, capsys):
+    """``bondgraph estimate --validate more.csv``: the true graph (with the
+    offset) fitted on est.csv reads the noise draw of a record it was not
+    fitted to (another start, another draw), as ``bondgraph compare`` does."""
+    from bondgraph.cli.main import main
+
+    d = records["dir"]
+    (tmp_path / "user_drive.py").write_text(
+        GRAPH_FILE.format(tests=os.path.dirname(__file__)).replace("drive()", "drive(offset=True)"))
+    spec = f"{tmp_path / 'user_drive.py'}:user"
+    est = tmp_path / "est"
+    base = ["estimate", "--model", spec, "--data", str(d / "est.csv"), "--params", "M,Fv,F0",
+            "--iterations", "20", "--no-plots", "--quiet"]
+    # refused before the fit: a window without a record to judge, one the record cannot hold
+    assert main(base + ["--init-samples", "20", "--out", str(est)]) == 2
+    assert "give --validate FILE" in capsys.readouterr().err
+    assert main(base + ["--validate", str(d / "more.csv"), "--init-samples", "995",
+                        "--out", str(est)]) == 2
+    assert "leaves 5 samples of record 'more'" in capsys.readouterr().err
+    assert not est.exists()
+    assert main(base + ["--validate", str(d / "more.csv"), "--out", str(est)]) == 0
+    said = capsys.readouterr().out
+    assert "the estimate on the records it was not fitted to (--validate):" in said
+    doc = json.loads((est / "validation" / "compare.json").read_text())
+    rec = doc["records"][0]
+    q, noise = records["more"]
+    assert rec["record"] == "more"
+    assert rec["outputs"]["qm"]["rms"] == pytest.approx(float(np.sqrt(np.mean(noise ** 2))),
+                                                        rel=0.05)
+    assert (est / "validation" / "more_compare.csv").is_file()
+    assert f"| more | qm | {rec['outputs']['qm']['rms']:.4g}" in said
+    # the same figure as the command that judges a fit on its own
+    out = tmp_path / "cmp"
+    assert main(["compare", spec, "--data", str(d / "more.csv"), "--params",
+                 str(est / "result.json"), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    again = json.loads((out / "compare.json").read_text())["records"][0]
+    assert again["outputs"]["qm"]["rms"] == pytest.approx(rec["outputs"]["qm"]["rms"], rel=1e-9)

@@ -77,7 +77,7 @@ def run(args) -> int:
     _warnings([("", c) for c in comps])
     doc = {"model": args.model, "params": args.params, "values": values,
            "init_samples": args.init_samples, "records": [c.to_json() for c in comps]}
-    return _publish(folder, doc, args, [(c, None) for c in comps])
+    return publish(folder, doc, args, [(c, None) for c in comps])
 
 
 def _records(args, graph, say) -> list:
@@ -98,7 +98,7 @@ def _warnings(labelled) -> None:
             print(f"WARNING: {name}: the filter fails ({c.filter_failure}): NLL inf")
 
 
-def _publish(folder, doc: dict, args, runs) -> int:
+def publish(folder, doc: dict, args, runs) -> int:
     """Write ``folder`` as one version: compare.json (``doc``), and per
     record (``runs``: (comparison, the "before" comparison or None), in
     ``--data`` order) its CSV and, unless ``--no-plots``, its PNG; print
@@ -172,7 +172,7 @@ def run_loop_folder(args) -> int:
     _warnings([("before", c) for c in before] + [("after", c) for c in after])
     doc = {"loop": str(folder_in), "init_samples": args.init_samples,
            "before": [c.to_json() for c in before], "after": [c.to_json() for c in after]}
-    return _publish(out, doc, args, list(zip(after, before)))
+    return publish(out, doc, args, list(zip(after, before)))
 
 
 def _stems(paths) -> list[str]:

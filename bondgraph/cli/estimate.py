@@ -10,6 +10,7 @@ import sys
 import warnings
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -63,6 +64,16 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "or its directory). Default: those the graph declares with a box (one "
                         "declared without a box is a known value, held), or all when none has "
                         "one; one line on stderr")
+    p.add_argument("--validate", action="append", metavar="FILE",
+                   help="a record the estimate is not fitted to: at the end its free run there "
+                        "is judged as `bondgraph compare` judges it (RMS error, NRMSE, fit %%; "
+                        "compare.json, a CSV and a plot per record in OUT/validation); repeat "
+                        "for more records")
+    p.add_argument("--init-samples", type=int, default=0, metavar="N",
+                   help="with --validate: the free run on each such record starts from the "
+                        "smoothed state given its first N samples, the errors over the rest "
+                        "(benchmark protocols: Silverbox 50, EMPS 20); default 0: the record's "
+                        "own initial state, else the smoothed state given the whole record")
     p.add_argument("--optimizer", choices=("pso", "de"), default="pso")
     p.add_argument("--particles", type=int, default=None, help="swarm / population size (10 k)")
     p.add_argument("--iterations", type=int, default=100)
@@ -119,6 +130,9 @@ def run(args) -> int:
     with progress.phase("loading the model and the records"):
         model = load_model(args.model)
         exps = [band_limited_record(load_record(pth, model), model, args) for pth in paths]
+        vals = [band_limited_record(load_record(pth, model), model, args)
+                for pth in args.validate or []]      # a bad file refused before the fit
+    _check_judging(args, vals)
     params = (parse_params(args.params, model) if args.params
               else default_params(args.model, model, "estimate"))
     check_not_fixed(params, parse_pairs(args.fixed, "--fixed"))   # before any work
@@ -135,7 +149,9 @@ def run(args) -> int:
         if len(paths) > 1:
             raise UsageError("--fit sim fits one record: give one --data, or leave --fit out "
                              "(the likelihood fits several records together)")
-        return run_output_error(args, chosen[0], params, folder, states)
+        code = run_output_error(args, chosen[0], params, folder, states)
+        judged_elsewhere(args, vals, folder.path)
+        return code
     fit = FitOptions(optimizer=args.optimizer, particles=args.particles,
                      iterations=args.iterations, seed=args.seed, checkpoint=ck,
                      resume=args.resume, polish=not args.no_polish, stall_iterations=args.stall,
@@ -164,9 +180,61 @@ def run(args) -> int:
     for pth in [folder.path / "result.json", *published(folder, pngs)]:
         print(f"wrote {pth}")
     free_run_lines(args, exps, folder.path / "result.json")
-    print(f"on a record it was not fitted to: bondgraph compare {args.model} --data OTHER.csv "
-          f"--params {folder.path / 'result.json'}")
+    judged_elsewhere(args, vals, folder.path)
     return 0
+
+
+def _check_judging(args, vals) -> None:
+    """Refuse ``--init-samples`` without ``--validate``, or a window that
+    leaves a ``--validate`` record too few samples, before the fit.
+
+    Raises
+    ------
+    UsageError, OptionError
+    """
+    from bondgraph.diagnose.compare import check_window
+
+    if args.init_samples and not vals:
+        raise UsageError("--init-samples sets where the free run on a --validate record starts; "
+                         "give --validate FILE, or leave --init-samples out")
+    check_window(vals, args.init_samples)
+
+
+def judged_elsewhere(args, vals, out: Path) -> None:
+    """The estimate (``out/result.json``) judged on the records of
+    ``--validate`` (``vals``, loaded before the fit), as ``bondgraph
+    compare`` judges a model (:func:`bondgraph.diagnose.compare.compare`:
+    the free run from the record's own initial state, else the smoothed
+    one, or from its first ``--init-samples`` samples; the fit's noise
+    levels): its table and warnings, and compare.json, a CSV and a plot per
+    record in ``out/validation``. Without ``--validate``, the line that
+    says how. The estimate is already published: a failure here is one
+    line."""
+    from bondgraph.cli.compare import _warnings, publish, table
+    from bondgraph.diagnose.compare import compare
+    from bondgraph.export.params import model_graph, read_noise_levels, read_params
+
+    result = out / "result.json"
+    if not vals:
+        print(f"on a record it was not fitted to: bondgraph compare {args.model} --data OTHER.csv "
+              f"--params {result} (or --validate OTHER.csv here)")
+        return
+    try:
+        values = read_params(result)
+        comps = compare(model_graph(args.model, values), vals, noise=read_noise_levels(result),
+                        init_samples=args.init_samples, scales_from=model_graph(args.model),
+                        log=lambda _m: None, progress=not args.quiet)
+    except (BondGraphError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        print(f"the records of --validate: not judged ({str(exc).splitlines()[0]})")
+        return
+    print("the estimate on the records it was not fitted to (--validate):")
+    print(table(comps))
+    _warnings([("", c) for c in comps])
+    doc = {"model": args.model, "params": str(result), "values": values,
+           "init_samples": args.init_samples, "records": [c.to_json() for c in comps]}
+    publish(output_folder(out / "validation", args, overwrite=True), doc,
+            SimpleNamespace(data=args.validate, no_plots=args.no_plots),
+            [(c, None) for c in comps])
 
 
 def free_run_lines(args, exps, result: Path) -> None:
@@ -516,8 +584,6 @@ def run_output_error(args, chosen, params, folder, states) -> int:
     for w in r.warnings:
         print(f"warning: {w}")
     print(f"wrote {rpath}")
-    print(f"on a record it was not fitted to: bondgraph compare {args.model} --data OTHER.csv "
-          f"--params {rpath}")
     return 0
 
 

@@ -245,24 +245,37 @@ def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] |
     DataError
         A record that does not fit the model (its inputs or outputs absent).
     """
+    if not records:
+        raise OptionError("compare needs at least one record")
+    n_init = check_window(records, init_samples)
+    levels = dict(NoiseSpec("auto", held=noise or {}).held)    # each > 0 and finite
+    return [_compare_one(graph, rec, levels, n_init, dict(given or {}), log, progress,
+                         scales_from) for rec in records]
+
+
+def check_window(records: Sequence, init_samples: int) -> int:
+    """``init_samples`` (``--init-samples``) when it leaves each of
+    ``records`` at least :data:`~bondgraph.diagnose.runner.MIN_HELD_OUT`
+    samples to judge by (a finer grid's points not counted).
+
+    Raises
+    ------
+    OptionError
+        A negative or non-integer window, or one that leaves a record too
+        few samples (the record and its size named).
+    """
     try:
         n_init = FreeRunOptions(init_samples=init_samples).init_samples
     except OptionError as exc:
         raise OptionError(str(exc).replace("FreeRunOptions.init_samples", "--init-samples")) \
             from None
-    if not records:
-        raise OptionError("compare needs at least one record")
-    levels = dict(NoiseSpec("auto", held=noise or {}).held)    # each > 0 and finite
-    out = []
     for rec in records:
-        left = samples_after(rec, n_init)       # a finer grid's points not counted
+        left = samples_after(rec, n_init)
         if n_init and left < MIN_HELD_OUT:
             raise OptionError(f"--init-samples {n_init} leaves {left} samples of record "
                               f"'{rec.name}' ({samples_after(rec, 0)} samples) to judge by: "
                               f"at least {MIN_HELD_OUT}")
-        out.append(_compare_one(graph, rec, levels, n_init, dict(given or {}), log, progress,
-                                scales_from))
-    return out
+    return n_init
 
 
 def _compare_one(graph, rec, levels: dict, n_samples: int, given: dict, log, progress,
