@@ -39,6 +39,7 @@ values.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -249,13 +250,29 @@ class _Env:
         """``expr`` at the trajectory's values, the symbols of ``at``
         (symbol -> array) at those instead; broadcast to one array."""
         at = at or {}
-        syms = sorted(expr.free_symbols, key=lambda s: s.name)
-        fn = sp.lambdify(syms, expr, "numpy")
+        syms = tuple(sorted(expr.free_symbols, key=lambda s: s.name))
+        fn = _numpy_function(syms, expr)
         args = [at[s] if s in at else self.values[s] for s in syms]
         with np.errstate(all="ignore"):
             val = np.asarray(fn(*args), dtype=float)
         shapes = [np.shape(a) for a in args] + [val.shape]
         return np.broadcast_to(val, np.broadcast_shapes(*shapes)).astype(float)
+
+
+#: the port variable x of :func:`_check_r`'s power x·Σ sᵢ φᵢ(x): one symbol
+#: for every check, so that the same laws give the same expressions (and
+#: :func:`_numpy_function` makes each once)
+_PORT = sp.Dummy("x")
+
+
+@lru_cache(maxsize=1024)
+def _numpy_function(syms: tuple, expr: sp.Expr):
+    """``expr`` as a numpy function of ``syms`` (``sympy.lambdify``), made
+    once per expression: every refit of the loop checks the same laws with
+    other values, and lambdify's preprocessing of a law with ``Abs`` and
+    ``tanh`` (sympy's assumptions on each substituted symbol) cost 0.4 s
+    per check (6.5 s of the EMPS loop's 46 s under cProfile)."""
+    return sp.lambdify(syms, expr, "numpy")
 
 
 def _widened(v: np.ndarray, margin: float) -> np.ndarray:
@@ -346,7 +363,7 @@ def _check_r(env: _Env, junction: str, els: list, margin: float, out: Admissibil
     el0 = els[0]
     variable = "flow" if el0.form == "effort" else "effort"
     names = " + ".join(e.name for e in els)
-    X = sp.Dummy("x")
+    X = _PORT
     total, terms = sp.Integer(0), []
     for el in els:
         port_var = el.f if el.form == "effort" else el.e
