@@ -760,6 +760,8 @@ def confirmed_record(current: Fit, after: Fit, dof: int, values: dict, rule: Acc
            "whiteness": after.residuals.whiteness, "values": dict(values),
            "converged": after.converged, "iterations": after.iterations,
            "at_bound": list(after.at_bound)}
+    if getattr(after, "more_metrics", None):
+        rec["more_validation_errors"] = dict(after.more_metrics)
     if d is not None:
         rec.update(accepted=d.accepted, reason=d.reason,
                    error_z=None if not np.isfinite(d.error_z) else d.error_z,

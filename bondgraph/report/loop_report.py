@@ -586,6 +586,7 @@ def _md_refit(c) -> str:
     if not r:
         return ""
     v = f", validation error {r['validation_error']:.4g}" if r.get("validation_error") else ""
+    v += "".join(f", on {k} {e:.4g}" for k, e in (r.get("more_validation_errors") or {}).items())
     return (f" (refit: LR {r['lr']:.1f}, criterion {r['criterion']:.2f}, error "
             f"{r['error']:.4g}{v})")
 
