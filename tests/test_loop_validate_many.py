@@ -127,6 +127,12 @@ def test_decide_pools_the_further_records_and_vetoes_a_growth_on_any():
     # a further record the after model cannot be judged on is not paired
     after.more_metrics, after.more_errors = {"b": 0.1}, {"b": None}
     assert pooled_errors(cur, after)[0].shape == (400, 1)
+    # a pooled decrease within the noise names every record's errors
+    after.more_metrics, after.more_errors = {"b": 0.799}, {"b": e_noise}
+    cur.more_errors = {"b": e_noise + 0.001}
+    d = decide(cur, after, AcceptRule())
+    assert d.reason.startswith("the error decrease over the validation records is within its "
+                               "uncertainty (0.5 -> 0.499, 'b' 0.8 -> 0.799, z ")
 
 
 def test_further_validation_records_are_checked_as_settings(records):

@@ -335,10 +335,12 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     a0, a1 = pooled_errors(current, after)
     if a0 is not None:
         dz, dp = error_decrease_test(a0, a1)
-    if getattr(after, "more_metrics", None):
-        where_dm = " over the validation records"
-    else:
-        where_dm = where
+    where_dm = where
+    if getattr(after, "more_metrics", None):       # the test pooled every validation record
+        before = getattr(current, "more_metrics", {})
+        where_dm = (" over the validation records", "".join(
+            f", '{k}' {before.get(k, float('nan')):.4g} -> {v:.4g}"
+            for k, v in after.more_metrics.items()))
     reason = (_objection(current, after, lr, comparable, admissible, box_free, interior,
                          searched or {})
               or _failed_test(rule, (ic0, ic1), p, lr, (e0, e1), (dz, dp), where,
@@ -516,13 +518,14 @@ def _relative(after: Fit, name: str, robust: bool) -> float:
 
 def _failed_test(rule: AcceptRule, ic: tuple, p: float, lr: float, err: tuple, dm: tuple,
                  where: str, grown_elsewhere: str | None = None,
-                 where_dm: str | None = None) -> str | None:
+                 where_dm: str | tuple | None = None) -> str | None:
     """The first of :func:`decide`'s statistical tests that fails (None:
     all pass): the information criterion ``ic`` (before, after), the
     likelihood ratio ``lr`` (p-value ``p``), the error ``err`` (before,
     after), its growth on a further validation record (``grown_elsewhere``,
     :func:`_grown_elsewhere`) and its decrease test ``dm`` (z, p; on the
-    records ``where_dm`` names, default ``where``)."""
+    records ``where_dm`` names, default ``where``; a pair (where, the
+    further records' errors) when the test pooled them)."""
     (ic0, ic1), (e0, e1), (dz, dp) = ic, err, dm
     if not ic1 < ic0:
         return "information criterion did not improve"
@@ -533,8 +536,10 @@ def _failed_test(rule: AcceptRule, ic: tuple, p: float, lr: float, err: tuple, d
     if grown_elsewhere:
         return grown_elsewhere
     if rule.error_level is not None and np.isfinite(dp) and not dp < rule.error_level:
-        return (f"the error decrease{where if where_dm is None else where_dm} is within its "
-                f"uncertainty ({e0:.4g} -> {e1:.4g}, z {dz:.2f}, p {dp:.2g})")
+        place, more = ((where_dm, "") if isinstance(where_dm, str) else
+                       (where, "") if where_dm is None else where_dm)
+        return (f"the error decrease{place} is within its uncertainty ({e0:.4g} -> "
+                f"{e1:.4g}{more}, z {dz:.2f}, p {dp:.2g})")
     return None
 
 
