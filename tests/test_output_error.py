@@ -222,3 +222,22 @@ def test_independent_swarms_run_until_two_agree(monkeypatch, values, runs, best)
     assert oe.SWARM_RUNS == 4
     r = oe._agreeing_swarms(None, np.zeros(1), np.ones(1), SwarmOptions(seed=0))
     assert seeds == list(range(runs)) and r.fun == best
+
+
+def test_an_output_without_a_sample_is_left_out_not_nan(record):
+    """An output the record lacks (NaN throughout) takes no part: without
+    given noise levels its scale was nanstd's NaN (with a warning), now the
+    fit is that of the measured output alone, and its RMS error is NaN."""
+    import warnings
+
+    m, t, u, y, truth, x0 = record
+    y2 = y.copy()
+    y2[:, 1] = np.nan
+    start = m.theta(m=2.0, k=60.0, c=1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = output_error_fit(m, t, u, y2, ["m", "k", "c"], theta=start, x0=x0)
+    alone = output_error_fit(m, t, u, y2, ["m", "k", "c"], theta=start, x0=x0,
+                             sigma=np.array([np.std(y[:, 0]), 1.0]))
+    np.testing.assert_allclose(r.x, alone.x, rtol=1e-9)
+    assert np.isnan(r.rmse[1]) and r.rmse[0] == pytest.approx(0.002, rel=0.2)

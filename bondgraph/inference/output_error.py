@@ -309,6 +309,15 @@ def _problem_for(model, t, u, y, params, states, th, xi, sigma, opts, box) -> _P
     return _Problem(*args)
 
 
+def _spread(y: np.ndarray) -> float:
+    """The std of an output's measured samples, 1.0 where it has fewer than
+    two or none spread (an output the record lacks: NaN throughout, whose
+    ``nanstd`` is NaN and would scale its residuals to NaN)."""
+    ok = y[np.isfinite(y)]
+    s = float(np.std(ok)) if ok.size >= 2 else 0.0
+    return s if s > 0 else 1.0
+
+
 def output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=None,
                      x0_states: Sequence[str] = (), bounds=None, sigma=None,
                      options: OutputErrorOptions | None = None) -> OutputErrorResult:
@@ -375,7 +384,7 @@ def output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=No
     th = np.array(model.theta0 if theta is None else theta, dtype=float)
     xi = np.array(model.x0 if x0 is None else x0, dtype=float)
     if sigma is None:
-        sigma = np.array([np.nanstd(y[:, i]) or 1.0 for i in range(model.n_y)])
+        sigma = np.array([_spread(y[:, i]) for i in range(model.n_y)])
     lo, hi = _box(model, params, states, bounds)
     prob = _problem_for(model, t, u, y, params, states, th, xi, sigma, opts, (lo, hi))
     z0 = np.concatenate([th[prob.pidx], xi[prob.sidx]])
@@ -475,7 +484,9 @@ def _result(prob: _Problem, r, lo, hi) -> OutputErrorResult:
     th, x0 = prob.point(r.x)
     s = prob.sens(r.x)
     err = s.y - prob.y
-    rmse = np.sqrt(np.nanmean(err ** 2, axis=0))
+    seen = np.isfinite(err).sum(axis=0)
+    rmse = np.full(err.shape[1], np.nan)      # an output without a sample: NaN, no warning
+    rmse[seen > 0] = np.sqrt(np.nanmean(err[:, seen > 0] ** 2, axis=0))
     width = np.where(np.isfinite(hi - lo), hi - lo, np.maximum(np.abs(r.x), 1e-300))
     at = [n for n, v, a, b, w in zip(names, r.x, lo, hi, width)
           if v - a <= 1e-8 * w or b - v <= 1e-8 * w]
