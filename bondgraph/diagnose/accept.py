@@ -335,16 +335,13 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
     a0, a1 = pooled_errors(current, after)
     if a0 is not None:
         dz, dp = error_decrease_test(a0, a1)
-    where_dm = where
-    if getattr(after, "more_metrics", None):       # the test pooled every validation record
-        before = getattr(current, "more_metrics", {})
-        where_dm = (" over the validation records", "".join(
-            f", '{k}' {before.get(k, float('nan')):.4g} -> {v:.4g}"
-            for k, v in after.more_metrics.items()))
+    before = getattr(current, "more_metrics", {})
+    pooled = "".join(f", '{k}' {before.get(k, float('nan')):.4g} -> {v:.4g}"
+                     for k, v in getattr(after, "more_metrics", {}).items())
     reason = (_objection(current, after, lr, comparable, admissible, box_free, interior,
                          searched or {})
               or _failed_test(rule, (ic0, ic1), p, lr, (e0, e1), (dz, dp), where,
-                              _grown_elsewhere(rule, current, after), where_dm))
+                              _grown_elsewhere(rule, current, after), pooled))
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
 
 
@@ -518,14 +515,14 @@ def _relative(after: Fit, name: str, robust: bool) -> float:
 
 def _failed_test(rule: AcceptRule, ic: tuple, p: float, lr: float, err: tuple, dm: tuple,
                  where: str, grown_elsewhere: str | None = None,
-                 where_dm: str | tuple | None = None) -> str | None:
+                 pooled: str = "") -> str | None:
     """The first of :func:`decide`'s statistical tests that fails (None:
     all pass): the information criterion ``ic`` (before, after), the
     likelihood ratio ``lr`` (p-value ``p``), the error ``err`` (before,
     after), its growth on a further validation record (``grown_elsewhere``,
-    :func:`_grown_elsewhere`) and its decrease test ``dm`` (z, p; on the
-    records ``where_dm`` names, default ``where``; a pair (where, the
-    further records' errors) when the test pooled them)."""
+    :func:`_grown_elsewhere`) and its decrease test ``dm`` (z, p; ``pooled``:
+    the further validation records' errors before and after, ", 'b' 0.8 ->
+    0.799", when the test pooled them)."""
     (ic0, ic1), (e0, e1), (dz, dp) = ic, err, dm
     if not ic1 < ic0:
         return "information criterion did not improve"
@@ -536,10 +533,9 @@ def _failed_test(rule: AcceptRule, ic: tuple, p: float, lr: float, err: tuple, d
     if grown_elsewhere:
         return grown_elsewhere
     if rule.error_level is not None and np.isfinite(dp) and not dp < rule.error_level:
-        place, more = ((where_dm, "") if isinstance(where_dm, str) else
-                       (where, "") if where_dm is None else where_dm)
+        place = " over the validation records" if pooled else where
         return (f"the error decrease{place} is within its uncertainty ({e0:.4g} -> "
-                f"{e1:.4g}{more}, z {dz:.2f}, p {dp:.2g})")
+                f"{e1:.4g}{pooled}, z {dz:.2f}, p {dp:.2g})")
     return None
 
 
