@@ -211,8 +211,6 @@ def judged_elsewhere(args, vals, out: Path) -> None:
     says how. The estimate is already published: a failure here is one
     line."""
     from bondgraph.cli.compare import _warnings, publish, table
-    from bondgraph.diagnose.compare import compare
-    from bondgraph.export.params import model_graph, read_noise_levels, read_params
 
     result = out / "result.json"
     if not vals:
@@ -220,10 +218,7 @@ def judged_elsewhere(args, vals, out: Path) -> None:
               f"--params {result} (or --validate OTHER.csv here)")
         return
     try:
-        values = read_params(result)
-        comps = compare(model_graph(args.model, values), vals, noise=read_noise_levels(result),
-                        init_samples=args.init_samples, scales_from=model_graph(args.model),
-                        log=lambda _m: None, progress=not args.quiet)
+        comps, values = _compared(args, vals, result, args.init_samples, progress=not args.quiet)
     except (BondGraphError, FloatingPointError, np.linalg.LinAlgError) as exc:
         print(f"the records of --validate: not judged ({str(exc).splitlines()[0]})")
         return
@@ -237,6 +232,27 @@ def judged_elsewhere(args, vals, out: Path) -> None:
             [(c, None) for c in comps])
 
 
+def _compared(args, records, result: Path, init_samples: int = 0,
+              progress: bool = False) -> tuple[list, dict]:
+    """``(comparisons, values)``: the model at the estimate (``result``'s
+    values and noise levels) run freely over ``records`` by
+    :func:`bondgraph.diagnose.compare.compare`, the prior's state scales from
+    the declared graph as the fit took them.
+
+    Raises
+    ------
+    BondGraphError, FloatingPointError, numpy.linalg.LinAlgError
+    """
+    from bondgraph.diagnose.compare import compare
+    from bondgraph.export.params import model_graph, read_noise_levels, read_params
+
+    values = read_params(result)
+    comps = compare(model_graph(args.model, values), records, noise=read_noise_levels(result),
+                    init_samples=init_samples, scales_from=model_graph(args.model),
+                    log=lambda _m: None, progress=progress)
+    return comps, values
+
+
 def free_run_lines(args, exps, result: Path) -> None:
     """How the estimate simulates: one line per fitted record with its
     free-run error (:func:`bondgraph.diagnose.compare.compare`, from the
@@ -245,14 +261,10 @@ def free_run_lines(args, exps, result: Path) -> None:
     likelihood fit can explain a record by its noise levels and leave a
     model that does not follow it (a user's CED graph: NRMSE 0.99, fit
     1 %). The estimate is already published; a failure here is one line."""
-    from bondgraph.diagnose.compare import compare
     from bondgraph.diagnose.screen import SCREEN_LEVEL
-    from bondgraph.export.params import model_graph, read_noise_levels, read_params
 
     try:
-        graph = model_graph(args.model, read_params(result))
-        comps = compare(graph, exps, noise=read_noise_levels(result),
-                        scales_from=model_graph(args.model), log=lambda _m: None)
+        comps, _ = _compared(args, exps, result)
     except (BondGraphError, FloatingPointError, np.linalg.LinAlgError) as exc:
         print(f"free run at the estimate: not computed ({str(exc).splitlines()[0]})")
         return
