@@ -659,20 +659,8 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     params = [p for p in params if p in model.params]
     theta = start_theta(ctx, pb, params, start, what)
     iters = ctx.settings.search.fit_iterations if iterations is None else int(iterations)
-    std: dict = {}
-    conv: tuple = (None, None, (), "")
-    x0_est = {s: pb.prior.estimated[s] for s in x0_states(ctx, model) if s in pb.prior.estimated}
-    noise_est = {o: pb.noise.held[o] for o in pb.noise.outputs(model) if o in pb.noise.held}
-    if params and iters > 0:
-        start_sigma = noise_start(pb, theta)
-        theta = _settle_theta(ctx, pb, params, theta, iters, what, start_sigma)
-        theta, std, conv, x0_new, noise_new = _maximize(ctx, pb, params, theta, iters, what,
-                                                        tolerance)
-        x0_est.update(x0_new)
-        noise_est.update(noise_new)
-        _noise_bound_warning(ctx, what, noise_new, start_sigma, std,
-                             not no_process_noise(model, theta))
-    fitted = pb.conditioned_on(x0={**pb.prior.estimated, **x0_est}, noise_levels=noise_est)
+    fitted, theta, std, conv, x0_est, noise_est = _fitted(ctx, pb, params, theta, iters, what,
+                                                          tolerance)
     fit = evaluate_fit(ctx, fitted, graph, params, theta, what, std)
     fit.converged, fit.iterations, fit.flat, fit.ridge = conv
     fit.x0_est, fit.noise_est = x0_est, noise_est
@@ -699,6 +687,68 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
         for n in fit.at_bound:
             fit.std[n] = None
     return fit
+
+
+def _fitted(ctx: Context, pb: Problem, params: list[str], theta: np.ndarray, iters: int,
+            what: str, tolerance: float = 0.0) -> tuple:
+    """The likelihood fit of :func:`fit_model` without its evaluation:
+    ``(problem conditioned on the estimated initial states and noise stds,
+    θ, std, (converged, iterations, flat, ridge), x0_est, noise_est)``."""
+    model = pb.model
+    std: dict = {}
+    conv: tuple = (None, None, (), "")
+    x0_est = {s: pb.prior.estimated[s] for s in x0_states(ctx, model) if s in pb.prior.estimated}
+    noise_est = {o: pb.noise.held[o] for o in pb.noise.outputs(model) if o in pb.noise.held}
+    if params and iters > 0:
+        start_sigma = noise_start(pb, theta)
+        theta = _settle_theta(ctx, pb, params, theta, iters, what, start_sigma)
+        theta, std, conv, x0_new, noise_new = _maximize(ctx, pb, params, theta, iters, what,
+                                                        tolerance)
+        x0_est.update(x0_new)
+        noise_est.update(noise_new)
+        _noise_bound_warning(ctx, what, noise_new, start_sigma, std,
+                             not no_process_noise(model, theta))
+    fitted = pb.conditioned_on(x0={**pb.prior.estimated, **x0_est}, noise_levels=noise_est)
+    return fitted, theta, std, conv, x0_est, noise_est
+
+
+def likelihood_fit(ctx: Context, model: Model, params: list[str], theta: np.ndarray,
+                   what: str) -> tuple[np.ndarray, float, dict]:
+    """The maximum-likelihood fit of ``params`` of ``model`` from ``theta``
+    as :func:`fit_model` makes it (``settings.search.fit_iterations`` of
+    Fisher scoring with the initial states and noise stds), without the free
+    runs and residual analysis of a :class:`Fit`: for comparing a model's
+    likelihood under other filter options (the loop's final check of the
+    input holds, :func:`bondgraph.diagnose.runner.hold_at_final`).
+
+    Parameters
+    ----------
+    ctx : Context
+        Its problem carries the filter options compared.
+    model : Model
+    params : list of str
+    theta : array (n_theta,)
+        The start.
+    what : str
+        Name of the fit in log lines.
+
+    Returns
+    -------
+    (theta, nll, std) : (array (n_theta,), float, dict)
+        The estimate, its NLL [nat] (inf when the filter fails there) and
+        the Cramér-Rao std by name.
+
+    Raises
+    ------
+    NumericalError
+        The filter fails at the start.
+    """
+    pb = problem_for(ctx, model)
+    params = [p for p in params if p in model.params]
+    fitted, theta, std, *_ = _fitted(ctx, pb, params, np.asarray(theta, float).copy(),
+                                     ctx.settings.search.fit_iterations, what)
+    nll = float(run_ukf(fitted, theta[None, :]).nll[0])
+    return theta, (nll if np.isfinite(nll) else float("inf")), std
 
 
 def _settle_theta(ctx: Context, problem: Problem, params: list[str], theta: np.ndarray,

@@ -270,6 +270,17 @@ class SearchOptions:
         :func:`~bondgraph.diagnose.runner.chosen_numerics` when an input's
         shape is ambiguous (:func:`~bondgraph.inference.discretise.alternative_hold`).
         None (default): the filter's hold is kept.
+    check_hold : bool
+        At the end, refit the final model with each input whose hold its
+        shape chose held the other way (zero-order <-> linear), and warn
+        when the record is likelier so by more than
+        :data:`~bondgraph.inference.discretise.HOLD_CHECK_MARGIN` nats
+        (:func:`~bondgraph.diagnose.runner.hold_at_final`): the shape cannot
+        tell a held command whose steps vary smoothly from a sampled
+        continuous signal, and the declared fit's likelihood cannot settle it
+        while the model lacks an effect. Set by
+        :func:`~bondgraph.diagnose.runner.chosen_numerics` unless the hold is
+        given; False (default): no check.
     """
 
     max_steps: int = 4
@@ -288,6 +299,7 @@ class SearchOptions:
     structural_refit: int = 2
     structural_starts: int = 3
     other_hold: str | None = None
+    check_hold: bool = False
 
     def __post_init__(self):
         for name, minimum in (("max_steps", 0), ("fit_iterations", 0), ("confirm_top", 1),
