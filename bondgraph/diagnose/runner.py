@@ -1375,9 +1375,10 @@ def _other_hold_warning(ctx: Context, fit: Fit, problem, name: str, mine: str, f
                 f"be fitted ({str(exc).splitlines()[0]}); not compared")
         return None
     better = hold_verdict(flipped, nll, mine, fit.nll, margin=HOLD_CHECK_MARGIN)[0]
-    ctx.log(f"input hold of '{name}' at the final model: {flipped} NLL {nll:.6g}, {mine} (its "
-            f"shape's) NLL {fit.nll:.6g}, each fitted" + (f": the record prefers {flipped}"
-                                                          if better else ""))
+    them = (f"{flipped} NLL {nll:.6g}" if np.isfinite(nll) else
+            f"the filter fails under {flipped}")
+    ctx.log(f"input hold of '{name}' at the final model: {them}, {mine} (its shape's) NLL "
+            f"{fit.nll:.6g}, each fitted" + (f": the record prefers {flipped}" if better else ""))
     if not better:
         return None
     moved = _moved_most(fit, theta, std)
