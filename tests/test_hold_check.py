@@ -11,9 +11,11 @@ Both shapes read "linear". Under it the held record's fit puts M 42
 Cramér-Rao std off the truth; the check refits under zero-order, finds the
 record 749 nats likelier and says so with the estimates that move (M back
 within 3 std of the truth). The continuous record is likelier under its
-shape's hold: no warning.
+shape's hold: no warning. ``bondgraph estimate`` checks the same at its
+estimate (M 65 std off under linear, 879 nats, the noise std estimated).
 """
 
+import json
 import os
 import sys
 
@@ -98,3 +100,47 @@ def test_a_given_hold_is_not_checked(tmp_path):
     assert not s.search.check_hold
     assert not any("input hold of" in m for m in logs)
     assert not any("likelier with input" in w for w in res.warnings)
+
+
+def _estimate(tmp_path, rec_path, *more):
+    from bondgraph.cli.main import main
+    out = tmp_path / "est"
+    rc = main(["estimate", "--model", f"{os.path.dirname(__file__)}/test_compare.py:drive",
+               "--data", str(rec_path), "--params", "M,Fv", "--out", str(out), "--no-plots",
+               "--quiet", *more])
+    assert rc == 0
+    return json.loads((out / "result.json").read_text())
+
+
+def test_estimate_names_a_held_force_whose_shape_reads_continuous(tmp_path, capsys):
+    """The estimate under the shape's linear hold puts M 65 std off (with
+    the noise std estimated); refitted from it under zero-order the record
+    is 879 nats likelier and M within 3 std of the truth. The result keeps
+    the shape's estimate and says so."""
+    _held_record(tmp_path)
+    res = _estimate(tmp_path, tmp_path / "held.csv")
+    err = capsys.readouterr().err
+    line = next(m for m in err.splitlines() if m.startswith("input hold of 'F' at the estimate"))
+    zoh = float(line.split("zoh NLL ")[1].split(",")[0])
+    lin = float(line.split("(its shape's) NLL ")[1].split(",")[0])
+    assert lin - zoh > 500 and line.endswith("the record prefers zoh")
+    assert res["settings"]["ukf"]["hold"] == "linear"        # the result is the shape's
+    m_lin = res["estimates"][res["params"].index("M")]
+    assert abs(m_lin - M) > 20 * res["std"][res["params"].index("M")]
+    warning = next(w for w in res["warnings"] if "likelier with input 'F' held zoh" in w)
+    m_zoh = float(warning.split("under it M ")[1].split(" ")[0])
+    assert abs(m_zoh - M) < 3 * 0.0003, m_zoh
+    assert "--hold zoh" in warning and "bondgraph loop" in warning
+
+
+def test_estimate_keeps_quiet_on_a_continuous_force(tmp_path, capsys):
+    t, q = _truth(0.0)
+    _write(tmp_path / "cont.csv", t, q + NOISE * np.random.default_rng(6).standard_normal(len(t)))
+    res = _estimate(tmp_path, tmp_path / "cont.csv")
+    err = capsys.readouterr().err
+    line = next(m for m in err.splitlines() if m.startswith("input hold of 'F' at the estimate"))
+    assert not line.endswith("prefers zoh")
+    assert not any("likelier with input" in w for w in res["warnings"])
+    # a given hold: nothing checked
+    _estimate(tmp_path, tmp_path / "cont.csv", "--hold", "linear", "--overwrite")
+    assert "input hold of" not in capsys.readouterr().err

@@ -40,8 +40,11 @@ from bondgraph.core import progress
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.errors import (BondGraphError, EstimationError, IdentifiabilityWarning,
                               NumericalError, OptionError, UsageError)
-from bondgraph.inference.discretise import (alternative_hold, check_discretisation,
-                                            choose_discretisation, cost_rank, hold_verdict)
+from bondgraph.inference.discretise import (HOLD_CHECK_MARGIN, alternative_hold,
+                                            check_discretisation, choose_discretisation,
+                                            cost_rank, hold_verdict, moved_most,
+                                            other_hold_warning)
+from bondgraph.numerics.integrators import join_hold, split_hold
 from bondgraph.inference.estimate import check_not_fixed, estimate
 from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
                                               output_error_nll, seen_initial_states)
@@ -330,6 +333,7 @@ def _fit(args, chosen, params, fit, states, paths):
     res, problems, agains = _refined(args, chosen, problems, res, params, fit, states, paths)
     res, problems, chosen, agains = _likelier_hold(args, chosen, problems, res, agains, params,
                                                    fit, states, paths)
+    _hold_checked(args, chosen, problems, res, params, fit, states)
     given = discretisation_given(args)
     choices = [dict(given=given, start=None if c is None else c.to_dict(),
                     estimate=None if a is None else a.to_dict())
@@ -434,6 +438,67 @@ def _likelier_hold(args, chosen, problems, res, agains, params, fit, states, pat
     if not better:
         return res, problems, chosen, agains
     return res2, problems2, other, agains2
+
+
+def _hold_checked(args, chosen, problems, res, params, fit, states) -> None:
+    """Each input whose hold its shape chose clearly on every record (not
+    declared, not ambiguous: those fits were compared already) held the
+    other way, the estimate refitted from itself (the swarm's first
+    population with the estimate in it, then the polish; the step chosen
+    for that hold at the estimate), and a warning in ``res.warnings`` (the
+    table, result.json) when the record is likelier so by more than
+    :data:`~bondgraph.inference.discretise.HOLD_CHECK_MARGIN` nats. The
+    result is not changed: a model that lacks an effect can be likelier
+    under the wrong hold (a choke without its core's saturation, driven by
+    held voltage steps, was likelier under linear), which ``bondgraph loop``
+    tells apart by checking at its final model. Nothing when ``--hold`` is
+    given or the fit failed."""
+    if "hold" in discretisation_given(args) or not np.isfinite(res.nll) \
+            or any(c is None for _pb, c in chosen):
+        return
+    model = problems[0].model
+    levels = res.settings.get("noise_levels") or {}
+    sigma = [float((levels.get(o) or {}).get("std", np.nan)) for o in model.outputs]
+    local = replace(fit, checkpoint=None, resume=False,
+                    **({"iterations": 0} if fit.polish else {}))
+    for j, name in enumerate(model.inputs):
+        evidence = [c.inputs[j] for _pb, c in chosen]
+        holds = [list(split_hold(pb.disc.hold, model.n_u)) for pb in problems]
+        mine = {h[j] for h in holds}
+        if any(h.source != "shape" or h.hold is None or h.ambiguous for h in evidence) \
+                or len(mine) != 1 or not mine <= {"zoh", "linear"}:
+            continue
+        mine = mine.pop()
+        flipped = "linear" if mine == "zoh" else "zoh"
+        why = f"the likelihood under the other hold of '{name}'"
+        try:
+            with progress.phase(f"refitting with input '{name}' held {flipped} (the hold check)"):
+                other = []
+                for pb, h in zip(problems, holds):
+                    hold = join_hold(h[:j] + [flipped] + h[j + 1:])
+                    c = choose_discretisation(pb, res.theta, sigma=sigma, hold=hold, why=why)
+                    other.append(pb.conditioned_on(disc=c.disc))
+                res2 = _estimate_quiet(other, params, local, states, None, start=res.estimates)
+        except (EstimationError, NumericalError, OptionError, np.linalg.LinAlgError) as exc:
+            _say(f"input hold of '{name}': the fit under the {flipped} hold failed "
+                 f"({str(exc).splitlines()[0]}); not compared")
+            continue
+        better = hold_verdict(flipped, res2.nll, mine, res.nll, margin=HOLD_CHECK_MARGIN)[0]
+        them = (f"{flipped} NLL {res2.nll:.6g}" if np.isfinite(res2.nll) else
+                f"the fit fails under {flipped}")
+        _say(f"input hold of '{name}' at the estimate: {them}, {mine} (its shape's) NLL "
+             f"{res.nll:.6g}, each fitted" + (f": the record prefers {flipped}" if better else ""))
+        if not better:
+            continue
+        std = {p: float(v) for p, v in zip(res.params, res.std)}
+        moves = moved_most(res.params, res2.estimate_dict(), res.estimate_dict(), std)
+        res.warnings.append(other_hold_warning(
+            name, flipped, mine, res2.nll, res.nll, "refitted from the estimate", moves,
+            f"If so, declare its hold (the record's sidecar: columns.{name}.hold = "
+            f"\"{flipped}\") or give --hold "
+            f"{join_hold(holds[0][:j] + [flipped] + holds[0][j + 1:])}; "
+            f"if not, the model may lack an effect that the other hold imitates: `bondgraph "
+            f"loop` checks the hold at its final model"))
 
 
 def heading(model, before: np.ndarray, theta: np.ndarray) -> np.ndarray:

@@ -97,6 +97,8 @@ from bondgraph.inference.discretise import (
     SUBSTEPS,
     alternative_hold,
     hold_verdict,
+    moved_most,
+    other_hold_warning,
     record_input_holds,
 )
 from bondgraph.numerics.admissible import MARGIN as ADMISSIBLE_MARGIN
@@ -1381,34 +1383,15 @@ def _other_hold_warning(ctx: Context, fit: Fit, problem, name: str, mine: str, f
             f"{fit.nll:.6g}, each fitted" + (f": the record prefers {flipped}" if better else ""))
     if not better:
         return None
-    moved = _moved_most(fit, theta, std)
-    return (f"the record is {fit.nll - nll:.0f} nats likelier with input '{name}' held {flipped} "
-            f"than {mine} as its shape says (the final model fitted under each: NLL {nll:.6g} "
-            f"against {fit.nll:.6g}){moved}. '{name}' may be a command held over each sample "
-            f"whose steps vary smoothly (or a sampled signal that looks held); the estimates and "
-            f"the effects found under {mine} can be off. Declare the hold (the record's "
-            f"sidecar: columns.{name}.hold = \"{flipped}\") or run again with --hold "
-            f"{other}, and compare")
-
-
-def _moved_most(fit: Fit, theta: np.ndarray, std: dict, n: int = 3) -> str:
-    """``"; under it M 2.0003 (was 2.021, 42 std)"`` for the (at most
-    ``n``) estimates that moved most in their Cramér-Rao std, "" when none
-    moved by more than 3."""
-    moves = []
-    for name in fit.params:
-        sd = fit.std.get(name) or std.get(name)
-        if not sd or not np.isfinite(sd) or sd <= 0:
-            continue
-        i = fit.model.param_index(name)
-        z = abs(theta[i] - fit.theta[i]) / sd
-        if z > 3:
-            moves.append((z, name, theta[i], fit.theta[i]))
-    moves.sort(reverse=True)
-    if not moves:
-        return ""
-    return "; under it " + ", ".join(f"{nm} {new:.5g} (was {old:.5g}, {z:.0f} std)"
-                                     for z, nm, new, old in moves[:n])
+    names = fit.params
+    moves = moved_most(names, {n: theta[fit.model.param_index(n)] for n in names},
+                       {n: fit.theta[fit.model.param_index(n)] for n in names},
+                       {n: fit.std.get(n) or std.get(n) for n in names})
+    return other_hold_warning(
+        name, flipped, mine, nll, fit.nll, "the final model fitted under each", moves,
+        f"The estimates and the effects found under {mine} can be off: declare the hold (the "
+        f"record's sidecar: columns.{name}.hold = \"{flipped}\") or run again with --hold "
+        f"{other}, and compare")
 
 
 def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,

@@ -58,7 +58,8 @@ __all__ = ["BIAS_TOLERANCE", "CANDIDATES", "CLEAR_SHARE", "DECLARED_HOLDS", "HOL
            "HOLD_MARGIN",
            "TOLERANCE", "DiscretisationChoice", "InputHold", "alternative_hold", "hold_verdict",
            "check_discretisation", "choose_discretisation", "declared_holds", "holds_against",
-           "input_holds", "likelier_hold_at", "no_process_noise", "record_hold", "record_input_holds",
+           "input_holds", "likelier_hold_at", "moved_most", "no_process_noise",
+           "other_hold_warning", "record_hold", "record_input_holds",
            "refined_runs", "supported_hold"]
 
 #: the largest accepted one-step discretisation error, in measurement-noise
@@ -809,6 +810,39 @@ def hold_verdict(other: str, other_nll: float, mine: str, mine_nll: float, *,
     return better, (f"input hold by {criterion}{' ' + where if where else ''}: {other} NLL "
                     f"{other_nll:.6g}, {mine} NLL {mine_nll:.6g}{' ' + note if note else ''}: "
                     f"{other if better else mine} kept{close}")
+
+
+def moved_most(names: Sequence[str], new: Mapping[str, float], old: Mapping[str, float],
+               std: Mapping[str, float | None], n: int = 3, least: float = 3.0) -> str:
+    """``"M 2.0003 (was 2.021, 42 std), Fv 4 (was 3.9978, 9 std)"``: the (at
+    most ``n``) estimates that moved most from ``old`` to ``new`` in their
+    Cramér-Rao std (``std``; names without a positive finite std are left
+    out), those that moved by more than ``least``; "" when none did."""
+    moves = []
+    for name in names:
+        sd = std.get(name)
+        if name not in new or name not in old or not sd or not np.isfinite(sd) or sd <= 0:
+            continue
+        z = abs(float(new[name]) - float(old[name])) / float(sd)
+        if z > least:
+            moves.append((z, name, float(new[name]), float(old[name])))
+    moves.sort(reverse=True)
+    return ", ".join(f"{nm} {a:.5g} (was {b:.5g}, {z:.0f} std)" for z, nm, a, b in moves[:n])
+
+
+def other_hold_warning(name: str, flipped: str, mine: str, nll_other: float, nll_mine: float,
+                       how: str, moves: str, advice: str) -> str:
+    """The warning that a record is likelier with input ``name`` held
+    ``flipped`` than ``mine``, as its shape says: the NLL gap, both NLLs
+    (``how`` they were fitted), the estimates that move (:func:`moved_most`)
+    and ``advice``. The loop's final check
+    (:func:`bondgraph.diagnose.runner.hold_at_final`) and ``bondgraph
+    estimate``'s both say it so."""
+    return (f"the record is {nll_mine - nll_other:.0f} nats likelier with input '{name}' held "
+            f"{flipped} than {mine} as its shape says ({how}: NLL {nll_other:.6g} against "
+            f"{nll_mine:.6g}){'; under it ' + moves if moves else ''}. '{name}' may be a command "
+            f"held over each sample whose steps vary smoothly (or a sampled signal that looks "
+            f"held). {advice}")
 
 
 def likelier_hold_at(problem, theta, choice: DiscretisationChoice, *, sigma=None,
