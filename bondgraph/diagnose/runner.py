@@ -2509,7 +2509,8 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
            added: Sequence[Candidate], label: str):
     """The accepted refit ``after`` (``current`` plus the ``added``
     candidates) without the earlier effects it switches off
-    (:func:`switched_off`), when the loop's own accept rule no longer
+    (:func:`switched_off`) or leaves indistinguishable from 0
+    (:func:`insignificant_earlier`), when the loop's own accept rule no longer
     wants them: each such effect is removed, the model rebuilt from the
     declared graph with the other applied effects and the ``added`` ones at
     their values in ``after`` (boxes as in ``after``) and refitted
@@ -2537,14 +2538,17 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
         nothing was removed: ``after`` itself).
     """
     off = set(switched_off(ctx, current, after))
-    if not off or result.declared_graph is None:
+    weak = insignificant_earlier(ctx, result, after)
+    if (not off and not weak) or result.declared_graph is None:
         return after, [], None
     s = ctx.settings
     fit, removed, dec = after, [], None
-    for gone in [a for a in result.applied
-                 if off & set(_param_names(get_effect(a.effect, s.effects), a.target))]:
+    for gone in [a for a in result.applied if id(a) in weak
+                 or off & set(_param_names(get_effect(a.effect, s.effects), a.target))]:
         eff = get_effect(gone.effect, s.effects)
         what = f"{gone.effect} @ {gone.target.name}"
+        does = (f"leaves {what} indistinguishable from 0 ({weak[id(gone)]})" if id(gone) in weak
+                else f"puts {what} on its box")
         reduced = _without(ctx, result, fit, [a for a in result.applied
                                               if a is not gone and a not in removed], added, what)
         if reduced is None:
@@ -2555,8 +2559,8 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
                                                against=reduced),
                       comparable=reduced.converged is not False and fit.converged is not False)
         if back.accepted:
-            ctx.log(f"  {label} puts {what} on its box, but it still passes the accept rule "
-                    f"given the others: kept")
+            ctx.log(f"  {label} {does}, but it still passes the accept rule given the "
+                    f"others: kept")
             continue
         dof = max(1, len(set(reduced.params) - set(current.params)))
         d = decided(ctx, current, reduced, dof, reduced.converged is not False,
@@ -2565,12 +2569,53 @@ def pruned(ctx: Context, result: LoopResult, current: Fit, after: Fit,
             ctx.log(f"  {label} without {what}: not accepted against the model before this "
                     f"step ({d.reason}): {what} kept")
             continue
-        ctx.log(f"  {label} puts {what} on its box and the record no longer wants it ({back.reason}"
+        ctx.log(f"  {label} {does} and the record no longer wants it ({back.reason}"
                 f" when it is added back): removed (NLL {fit.nll:.2f} -> {reduced.nll:.2f}, "
                 f"{result.metric} {back.error_after:.4g} -> {back.error_before:.4g})")
         fit, dec = reduced, d
         removed.append(gone)
     return fit, removed, dec
+
+
+def insignificant_earlier(ctx: Context, result: LoopResult, after: Fit) -> dict[int, str]:
+    """The additive effects accepted earlier (``result.applied``; their
+    estimated parameters are amplitudes whose 0 switches the effect off)
+    that the refit ``after`` leaves indistinguishable from 0: the Wald
+    statistic Σ (β_i / σ_i)² of their estimated parameters in ``after``
+    (Cramér-Rao std) below the χ²(k) quantile at the accept rule's
+    significance. Such an effect was accepted because the record's best
+    candidate was not yet in the model (a user's cart on Coulomb friction:
+    a square-root damper accepted first, its β = 0.018 ± 0.0106 once the
+    Coulomb term is in, z 1.7), and :func:`pruned` asks the accept rule
+    whether the record still wants it. An effect with a parameter without a
+    finite std is left to the box rule (:func:`switched_off`).
+
+    Returns
+    -------
+    dict
+        ``id(applied effect)`` -> ``"Wald χ² 2.91 on 1 degree of freedom,
+        p 0.088"``.
+    """
+    s = ctx.settings
+    out = {}
+    for a in result.applied:
+        eff = get_effect(a.effect, s.effects)
+        if not eff.additive:
+            continue
+        names = [eff.pname(a.target, p.name) for p in eff.params if p.estimated]
+        names = [n for n in names if n in after.params]
+        if not names:
+            continue
+        idx = [after.model.param_index(n) for n in names]
+        sd = [after.std.get(n) for n in names]
+        if any(v is None or not np.isfinite(v) or v <= 0 for v in sd):
+            continue
+        w = float(sum((after.theta[i] / v) ** 2 for i, v in zip(idx, sd)))
+        k = len(names)
+        if w < float(chi2.ppf(1.0 - s.accept.significance, k)):
+            out[id(a)] = (f"Wald χ² {w:.3g} on {k} degree{'s' if k > 1 else ''} of freedom, "
+                          f"p {float(chi2.sf(w, k)):.2g}")
+    return out
 
 
 def _param_names(eff, target) -> list[str]:
