@@ -169,6 +169,7 @@ def run(args) -> int:
             folder.remove_work_dir()      # nothing worth resuming
         raise
     res.settings["data"] = str(paths[0]) if len(paths) == 1 else [str(p) for p in paths]
+    _glitches(model, exps, res, problems, paths)
 
     def version(d: Path) -> list:
         pngs = [] if args.no_plots else _plots(model, exps, res, problems, paths, d)
@@ -185,6 +186,31 @@ def run(args) -> int:
     free_run_lines(args, exps, folder.path / "result.json")
     judged_elsewhere(args, vals, folder.path)
     return 0
+
+
+def _glitches(model, exps, res, problems, paths) -> None:
+    """Isolated outliers in the innovations at the estimate, on each record
+    (:func:`~bondgraph.diagnose.residuals.innovation_outlier_warnings`: a
+    sensor's single-sample glitches inflate the estimated noise level and
+    every std), added to ``res.warnings`` (the table, result.json). One
+    filter pass per record; nothing when the fit failed."""
+    from bondgraph.diagnose.residuals import innovation_outlier_warnings
+    from bondgraph.inference.ukf import ukf_nll
+    from bondgraph.report.estimation import filter_of
+
+    if not np.isfinite(res.nll):
+        return
+    for pth, exp, pb in zip(paths, exps, problems):
+        x0, P0, R = filter_of(model, res, np.asarray(pb.x0, float), np.asarray(pb.P0, float))
+        t, u, y = pb.arrays
+        try:
+            with np.errstate(all="ignore"):
+                r = ukf_nll(model, t, u, y, res.theta[None, :], x0, P0, options=pb.ukf, R=R,
+                            store=True)
+        except (NumericalError, FloatingPointError, np.linalg.LinAlgError):
+            continue
+        where = Path(pth).name if len(paths) > 1 else ""
+        res.warnings += innovation_outlier_warnings(r, model.outputs, t, where)
 
 
 def _check_judging(args, vals) -> None:
