@@ -80,6 +80,10 @@ def test_the_loop_names_the_glitches_on_both_parts_of_the_record(tmp_path, capsy
     assert "from the filter's prediction" in warn[0]
     assert _times(warn[1]) == [round(k * 0.01, 6) for k in GLITCHES if k >= cut]
     assert "from the free run" in warn[1]
+    # repeated under the summary, where a user reads the result
+    tail = capsys.readouterr().out.split("no effect accepted")[1]
+    assert [line[len("warning: "):] for line in tail.splitlines()
+            if line.startswith("warning: ")] == warn
 
 
 def test_estimate_names_the_glitches_and_a_clean_record_has_none(tmp_path):

@@ -286,6 +286,8 @@ def run(args) -> int:
     _print_errors(name, res)
     print(res.table() if res.steps else f"  no effect accepted: {res.none_accepted()}"
           + ("; the reasons are in report.md" if res.rejected else ""))
+    for w in getattr(res, "final_checks", ()):
+        print(f"warning: {w}")
     hint = unexplained_hint(res, args.discover, graph, settings.effects)
     if hint:
         print(hint)

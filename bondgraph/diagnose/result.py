@@ -470,6 +470,11 @@ class LoopResult:
     discovery : DiscoveryPlot or None
         When discovery ran (:func:`bondgraph.diagnose.discover.effect.loop_with_discovery`,
         ``bondgraph loop --discover``): the reconstruction against the law.
+    final_checks : list of str
+        The warnings of the checks at the final model (the input holds,
+        :func:`bondgraph.diagnose.runner.hold_at_final`; a sensor's
+        glitches, :func:`bondgraph.diagnose.runner.glitches`), also in
+        ``warnings``: the command line repeats them under its summary.
     """
 
     model: str
@@ -498,6 +503,7 @@ class LoopResult:
     truth_ranks: list = field(default_factory=list)
     declared_graph: BondGraph | None = None
     discovery: DiscoveryPlot | None = None
+    final_checks: list[str] = field(default_factory=list)
 
     def records(self) -> str:
         """Which records the loop fitted and judged on, one sentence: the

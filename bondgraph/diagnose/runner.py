@@ -225,6 +225,7 @@ def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) 
     for w in glitches(ctx, result, current):
         ctx.log(f"warning: {w}")
         result.warnings.append(w)
+        result.final_checks.append(w)
     result.finished = True
     publish(ctx, result, initial, current, on_update)
     ctx.log(f"done in {time.perf_counter() - t0:.1f} s")
@@ -1385,6 +1386,7 @@ def hold_at_final(ctx: Context, result: LoopResult, fit: Fit) -> None:
         if warning:
             ctx.log(f"warning: {warning}")
             result.warnings.append(warning)
+            result.final_checks.append(warning)
 
 
 def _other_hold_warning(ctx: Context, fit: Fit, problem, name: str, mine: str, flipped: str,
