@@ -27,6 +27,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy.integrate import solve_ivp
 
 from bondgraph import BondGraph
@@ -104,3 +105,42 @@ def test_an_effect_made_insignificant_by_a_later_one_is_removed(tmp_path, capsys
     assert [(s["effect"], s["attached_to"], s["removed"]) for s in rep["steps"]] == [
         ("r_sqrt", "friction", []), ("coulomb", "v", ["r_sqrt @ friction"])]
     assert "coulomb @ v leaves r_sqrt @ friction indistinguishable from 0 (Wald χ²" in text
+
+
+def test_the_reach_is_scaled_by_a_round_whose_refits_beat_their_scores():
+    """``within_reach`` with the 30 s record's step-1 round as stand-ins:
+    ratios 3.62, 3.22, 2.86 (median 3.22); the power law ends on its box and
+    the Dahl friction's refit gives its parameters no std, so the bar is 0.9
+    × (6441.6 − 2) = 5795.6: the Coulomb term (2064.4 × 3.22 − 2 = 6649) is
+    in, r_quadratic (5702) is not. No usable refit, or one refit below its
+    score: nothing is scaled."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.confirm import Confirmation
+    from bondgraph.diagnose.effects import Target
+    from bondgraph.diagnose.result import Candidate
+    from bondgraph.diagnose.runner import underprediction, within_reach
+
+    def cand(name, stat, k=1, lr=None):
+        c = Candidate(name, "", Target("junction", "v"), "score", stat, k, 0.0, stat - 2 * k)
+        c.confirmed_statistic = lr
+        return c
+
+    def conf(new, std=None, at_bound=()):
+        fit = SimpleNamespace(at_bound=list(at_bound), std=std or {n: 0.1 for n in new})
+        return Confirmation(fit, {}, list(new), True)
+
+    power = (cand("r_power", 2355.8, 2, 8524.0),
+             conf(["r_power.friction.beta", "r_power.friction.n"],
+                  at_bound=["r_power.friction.n"]))
+    dahl = (cand("dahl", 2328.9, 2, 7503.3),
+            conf(["dahl.v.Fc", "dahl.v.sigma"], std={"dahl.v.Fc": None, "dahl.v.sigma": None}))
+    damper = (cand("r_sqrt", 2253.1, 1, 6441.6), conf(["r_sqrt.friction.beta"]))
+    coulomb, quad = cand("coulomb", 2064.4), cand("r_quadratic", 1770.4)
+    rho, usable = underprediction([power, dahl, damper])
+    assert rho == pytest.approx(7503.3 / 2328.9) and usable == pytest.approx(6439.6)
+    assert within_reach([power, dahl, damper], [coulomb, quad]) == [coulomb]
+    assert within_reach([power, dahl], [coulomb, quad]) == []          # none usable
+    short = (cand("sensor_gain", 7000.0, 1, 6441.6), conf(["sensor_gain.y.k"]))
+    assert underprediction([power, dahl, damper, short])[0] == 1.0
+    assert within_reach([power, dahl, damper, short], [coulomb, quad]) == []

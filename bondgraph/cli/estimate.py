@@ -44,12 +44,12 @@ from bondgraph.inference.discretise import (HOLD_CHECK_MARGIN, alternative_hold,
                                             check_discretisation, choose_discretisation,
                                             cost_rank, hold_verdict, moved_most,
                                             other_hold_warning)
-from bondgraph.numerics.integrators import join_hold, split_hold
 from bondgraph.inference.estimate import check_not_fixed, estimate
 from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
                                               output_error_nll, seen_initial_states)
 from bondgraph.inference.options import FitOptions
 from bondgraph.inference.ukf_numba import compile_in_background
+from bondgraph.numerics.integrators import join_hold, split_hold
 from bondgraph.report.estimation import plot_fit
 
 
@@ -169,7 +169,7 @@ def run(args) -> int:
             folder.remove_work_dir()      # nothing worth resuming
         raise
     res.settings["data"] = str(paths[0]) if len(paths) == 1 else [str(p) for p in paths]
-    _glitches(model, exps, res, problems, paths)
+    _glitches(model, res, problems, paths)
 
     def version(d: Path) -> list:
         pngs = [] if args.no_plots else _plots(model, exps, res, problems, paths, d)
@@ -188,7 +188,7 @@ def run(args) -> int:
     return 0
 
 
-def _glitches(model, exps, res, problems, paths) -> None:
+def _glitches(model, res, problems, paths) -> None:
     """Isolated outliers in the innovations at the estimate, on each record
     (:func:`~bondgraph.diagnose.residuals.innovation_outlier_warnings`: a
     sensor's single-sample glitches inflate the estimated noise level and
@@ -200,7 +200,7 @@ def _glitches(model, exps, res, problems, paths) -> None:
 
     if not np.isfinite(res.nll):
         return
-    for pth, exp, pb in zip(paths, exps, problems):
+    for pth, pb in zip(paths, problems):
         x0, P0, R = filter_of(model, res, np.asarray(pb.x0, float), np.asarray(pb.P0, float))
         t, u, y = pb.arrays
         try:

@@ -367,8 +367,8 @@ def chosen_numerics(graph: BondGraph, record, settings: LoopSettings, *,
     and the check repeated at the declared fit and at every accepted one
     (``SearchOptions(auto_substeps=True)``), and, unless the hold is given,
     each input whose shape chose its hold checked at the final model under
-    the other hold (``SearchOptions(check_hold=True)``, :func:`hold_at_final`). Call it before :func:`run_loop`
-    on your own record: ``settings``' own filter options are otherwise taken
+    the other hold (``SearchOptions(check_hold=True)``,
+    :func:`hold_at_final`). Call it before :func:`run_loop` on your own record: ``settings``' own filter options are otherwise taken
     literally (``UKFOptions()``: ROS2 with one step per sample, zero-order
     hold).
 
@@ -1337,18 +1337,17 @@ def glitches(ctx: Context, result: LoopResult, fit: Fit) -> list[str]:
     0.01 m/s): the noise estimate 0.085 m/s and every std 8 times too wide,
     until the glitches are named."""
     out = outlier_warnings(fit.residuals, ctx.problem.t, ctx.problem.name)
+    runs = []
     if fit.validation_sim_y is not None and result.validation_measured is not None:
-        yv = np.asarray(result.validation_measured, float)
-        out += free_run_outlier_warnings(yv - np.asarray(fit.validation_sim_y)[: len(yv)],
-                                         fit.model.outputs, result.validation_time,
-                                         validation_records(ctx.settings)[0].name)
+        runs.append((validation_records(ctx.settings)[0].name, result.validation_time,
+                     result.validation_measured, fit.validation_sim_y))
     for rec in ctx.settings.more_validation:
-        sim = fit.more_sim_y.get(rec.name)
-        if sim is not None and rec.name in result.more_measured:
-            tm, ym = result.more_measured[rec.name]
-            ym = np.asarray(ym, float)
-            out += free_run_outlier_warnings(ym - np.asarray(sim)[: len(ym)], fit.model.outputs,
-                                             tm, rec.name)
+        if fit.more_sim_y.get(rec.name) is not None and rec.name in result.more_measured:
+            runs.append((rec.name, *result.more_measured[rec.name], fit.more_sim_y[rec.name]))
+    for name, t, y, sim in runs:
+        y, sim = np.asarray(y, float), np.asarray(sim, float)
+        n = min(len(y), len(sim), len(t))
+        out += free_run_outlier_warnings(y[:n] - sim[:n], fit.model.outputs, t[:n], name)
     return out
 
 
@@ -1370,8 +1369,9 @@ def hold_at_final(ctx: Context, result: LoopResult, fit: Fit) -> None:
     choke without its core's saturation was likelier under the wrong hold);
     the final model is where the evidence is best. A mass under a multisine
     force held zero-order over each 10 ms sample: the shape says linear, the
-    fit under it puts M 42 std off, and zero-order is 744 nats likelier.
-    """
+    declared fit under it puts M 42 std off, and zero-order is 749 nats
+    likelier (with steps allowed the loop adds an input delay of half a
+    sample instead, and the two holds are then within 8 nats: no warning)."""
     if not ctx.settings.search.check_hold or not np.isfinite(fit.nll):
         return
     problem = problem_for(ctx, fit.model)
@@ -2246,7 +2246,7 @@ def underprediction(confirmed: list) -> tuple[float, float]:
     when any refit falls short of its score), and the best likelihood ratio
     less 2k among the usable refits (converged, every new parameter with a
     Cramér-Rao std and off the bounds of its box: those the accept rule can
-    take), else among all.
+    take); ρ is 1 (nothing scaled) when no refit is usable.
 
     A score is the likelihood ratio's local approximation at the current
     model; far from it a round's scores can all fall short of their refits
@@ -2269,16 +2269,17 @@ def underprediction(confirmed: list) -> tuple[float, float]:
             continue
         if c.statistic > 0 and lr > 0:
             ratios.append(lr / c.statistic)
+        if conf is None:            # no refit to judge by (stand-ins)
+            continue
         boxed = set(getattr(conf.fit, "at_bound", ()) or ()) & set(conf.new_params)
         std = getattr(conf.fit, "std", None) or {}
         identified = all(std.get(n) is not None and np.isfinite(std[n]) and std[n] > 0
                          for n in conf.new_params)
         if conf.comparable and not boxed and identified:
             usable.append(lr - 2 * c.dof)
-    rho = float(np.median(ratios)) if ratios and min(ratios) >= 1.0 else 1.0
-    stats = [c.confirmed_statistic - 2 * c.dof for c, _ in confirmed
-             if c.confirmed_statistic is not None]
-    return rho, (max(usable) if usable else max(stats, default=0.0))
+    if not usable or not ratios or min(ratios) < 1.0:
+        return 1.0, max(usable, default=0.0)
+    return float(np.median(ratios)), max(usable)
 
 
 def reach_of(cand: Candidate) -> float:
