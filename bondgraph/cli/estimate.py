@@ -42,8 +42,8 @@ from bondgraph.errors import (BondGraphError, EstimationError, IdentifiabilityWa
                               NumericalError, OptionError, UsageError)
 from bondgraph.inference.discretise import (HOLD_CHECK_MARGIN, alternative_hold,
                                             check_discretisation, choose_discretisation,
-                                            cost_rank, hold_verdict, moved_most,
-                                            other_hold_warning)
+                                            cost_rank, hold_check_line, hold_verdict,
+                                            moved_most, other_hold_warning)
 from bondgraph.inference.estimate import check_not_fixed, estimate
 from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
                                               output_error_nll, seen_initial_states)
@@ -510,10 +510,7 @@ def _hold_checked(args, chosen, problems, res, params, fit, states) -> None:
                  f"({str(exc).splitlines()[0]}); not compared")
             continue
         better = hold_verdict(flipped, res2.nll, mine, res.nll, margin=HOLD_CHECK_MARGIN)[0]
-        them = (f"{flipped} NLL {res2.nll:.6g}" if np.isfinite(res2.nll) else
-                f"the fit fails under {flipped}")
-        _say(f"input hold of '{name}' at the estimate: {them}, {mine} (its shape's) NLL "
-             f"{res.nll:.6g}, each fitted" + (f": the record prefers {flipped}" if better else ""))
+        _say(hold_check_line(name, "at the estimate", flipped, res2.nll, mine, res.nll, better))
         if not better:
             continue
         std = {p: float(v) for p, v in zip(res.params, res.std)}

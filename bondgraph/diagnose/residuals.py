@@ -49,11 +49,6 @@ class OutputResiduals:
         innovation and its power over the median power.
     sim_rms : float or None
         RMS of the free-run simulation error, if a simulation was given.
-    outliers : list of int
-        Samples whose innovation is an isolated outlier
-        (:func:`isolated_outliers`), largest first.
-    outlier_z : float
-        The largest of them in robust std (NaN without any).
     """
 
     name: str
@@ -70,8 +65,6 @@ class OutputResiduals:
     peak_ratio: float
     sim_rms: float | None = None
     sim_bias: float | None = None
-    outliers: list = field(default_factory=list)
-    outlier_z: float = float("nan")
 
 
 @dataclass
@@ -300,16 +293,6 @@ def isolated_outliers(z) -> tuple[np.ndarray, float]:
     return ok[hit], float(r[hit[0]])
 
 
-def outlier_warnings(report: "ResidualReport", t, where: str = "") -> list[str]:
-    """One warning per output of ``report`` with isolated outliers in its
-    innovations (:attr:`OutputResiduals.outliers`): how many, when (the
-    first five times of ``t`` (N,) [s]), how large, what they do to the fit
-    and how to leave them out (an empty cell is a missing sample the filter
-    skips). ``where`` names the record ("" for none)."""
-    return [_outlier_text(o.name, o.outliers, o.outlier_z, t, where, "the filter's prediction")
-            for o in report.outputs if o.outliers]
-
-
 def standardised_innovations(ukf, p: int = 0) -> np.ndarray:
     """The innovations of parameter set ``p`` of a stored UKF run over
     their predicted std, ε_k / sqrt(S_k,ii) (N, n_y); NaN where nothing was
@@ -320,14 +303,19 @@ def standardised_innovations(ukf, p: int = 0) -> np.ndarray:
 
 
 def innovation_outlier_warnings(ukf, names, t, where: str = "", p: int = 0) -> list[str]:
-    """:func:`outlier_warnings` from a stored UKF run (parameter set ``p``)
-    without the rest of :func:`analyze` (``bondgraph estimate``)."""
+    """One warning per output with isolated outliers
+    (:func:`isolated_outliers`) in the standardised innovations of a stored
+    UKF run (parameter set ``p``): how many, when (the first five times of
+    ``t`` (N,) [s]), how large, what they do to the fit and how to leave
+    them out (an empty cell is a missing sample the filter skips). ``names``
+    are the outputs, ``where`` the record ("" for none). Computed on demand
+    (the loop's final model, an estimate), not in every :func:`analyze`."""
     return _column_outliers(standardised_innovations(ukf, p), names, t, where,
                             "the filter's prediction")
 
 
 def free_run_outlier_warnings(errors, names, t, where: str = "") -> list[str]:
-    """:func:`outlier_warnings` for the free-run errors ``errors`` (N, n_y)
+    """:func:`innovation_outlier_warnings` for the free-run errors ``errors`` (N, n_y)
     (measured minus simulated, NaN where nothing was measured) of a record
     the filter does not run on (the loop's held-out record): a glitch there
     moves the error the accept rule judges by."""
@@ -348,7 +336,7 @@ def _column_outliers(values, names, t, where: str, against: str) -> list[str]:
 
 
 def _outlier_text(name: str, idx, largest: float, t, where: str, against: str) -> str:
-    """The warning of :func:`outlier_warnings`."""
+    """The warning of :func:`innovation_outlier_warnings`."""
     t = np.asarray(t, float)
     n = len(idx)
     when = ", ".join(f"{t[k]:.6g}" for k in sorted(idx)[:5]) + (", ..." if n > 5 else "")
@@ -380,8 +368,6 @@ def _output_residuals(model, i: int, e: np.ndarray, z: np.ndarray, lags: int, dt
     fpk, ratio = _peak(z, 1.0 / dt)
     o = OutputResiduals(name, model.output_units[i], n, bias, rms, bias / se if se > 0 else 0.0,
                         q, pv, lags, float(np.nanmean(z[ok] ** 2)), fpk, ratio)
-    idx, largest = isolated_outliers(z)
-    o.outliers, o.outlier_z = [int(k) for k in idx], largest
     if sim_y is not None:
         d = y[:, i] - sim_y[:, i]
         okd = np.isfinite(d)

@@ -80,7 +80,7 @@ from bondgraph.diagnose.inference_calls import (
 )
 from bondgraph.diagnose.metric import metric_name
 from bondgraph.diagnose.parallel import distributed, local_map, run_tasks
-from bondgraph.diagnose.residuals import free_run_outlier_warnings, outlier_warnings
+from bondgraph.diagnose.residuals import free_run_outlier_warnings, innovation_outlier_warnings
 from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, Step, rank_of
 from bondgraph.diagnose.scoring import (
     conditional_score,
@@ -98,6 +98,7 @@ from bondgraph.inference.discretise import (
     HOLD_CHECK_MARGIN,
     SUBSTEPS,
     alternative_hold,
+    hold_check_line,
     hold_verdict,
     moved_most,
     other_hold_warning,
@@ -1330,13 +1331,15 @@ def likelier_hold(ctx: Context, graph: BondGraph, initial: Fit,
 
 def glitches(ctx: Context, result: LoopResult, fit: Fit) -> list[str]:
     """Warnings of isolated outliers at the final model: in its innovations
-    on the estimation record (:func:`~bondgraph.diagnose.residuals.outlier_warnings`)
+    on the estimation record (:func:`~bondgraph.diagnose.residuals.innovation_outlier_warnings`)
     and in its free-run errors on each validation record
     (:func:`~bondgraph.diagnose.residuals.free_run_outlier_warnings`). A
     user's cart whose 100 Hz speed sensor has six 2 m/s glitches (noise
     0.01 m/s): the noise estimate 0.085 m/s and every std 8 times too wide,
     until the glitches are named."""
-    out = outlier_warnings(fit.residuals, ctx.problem.t, ctx.problem.name)
+    stored = getattr(fit.ukf, "innovations", None) is not None
+    out = innovation_outlier_warnings(fit.ukf, fit.model.outputs, ctx.problem.t,
+                                      ctx.problem.name) if stored else []
     runs = []
     if fit.validation_sim_y is not None and result.validation_measured is not None:
         runs.append((validation_records(ctx.settings)[0].name, result.validation_time,
@@ -1408,10 +1411,7 @@ def _other_hold_warning(ctx: Context, fit: Fit, problem, name: str, mine: str, f
                 f"be fitted ({str(exc).splitlines()[0]}); not compared")
         return None
     better = hold_verdict(flipped, nll, mine, fit.nll, margin=HOLD_CHECK_MARGIN)[0]
-    them = (f"{flipped} NLL {nll:.6g}" if np.isfinite(nll) else
-            f"the filter fails under {flipped}")
-    ctx.log(f"input hold of '{name}' at the final model: {them}, {mine} (its shape's) NLL "
-            f"{fit.nll:.6g}, each fitted" + (f": the record prefers {flipped}" if better else ""))
+    ctx.log(hold_check_line(name, "at the final model", flipped, nll, mine, fit.nll, better))
     if not better:
         return None
     names = fit.params
