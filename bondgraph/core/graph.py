@@ -812,7 +812,8 @@ class BondGraph:
         bu = self.bond_units()
         for b in self.bonds:
             eu, fu = bu[b.name]
-            if eu is not None and fu is not None and not _units.is_power(eu, fu):
+            if eu is not None and fu is not None and not _units.is_power(eu, fu) \
+                    and not _units.is_pseudo_power(eu, fu):
                 raise UnitMismatchError(
                     f"bond '{b.name}': effort [{eu}] x flow [{fu}] is not a power [W]",
                     elements=[b.tail.element.name, b.head.element.name], bonds=[b.name],
@@ -848,11 +849,30 @@ class BondGraph:
             bonds = [b.name for b in self.bonds_of(el)]
             raise UnitMismatchError(
                 f"{el.kind} '{el.name}': {what} has dimension {have}, the bond needs "
-                f"[{want}] = {_units.dimensionality(want)}", elements=[el.name], bonds=bonds)
+                f"[{want}] = {_units.dimensionality(want)}", elements=[el.name], bonds=bonds,
+                hint=_thermal_hint(self, el, have))
 
     def __repr__(self) -> str:
         return (f"<BondGraph {self.name}: {len(self.elements)} elements, {len(self.bonds)} bonds, "
                 f"{len(self.params)} parameters>")
+
+
+def _thermal_hint(graph: BondGraph, el: Element, have) -> str | None:
+    """The hint of a unit mismatch on a true thermal bond (temperature and
+    entropy flow) whose element is written for the pseudo bond graph
+    (temperature and heat flow: a heat capacity in J/K, a thermal
+    resistance in K/W), else None."""
+    bu = graph.bond_units()
+    units = [bu.get(b.name, (None, None)) for b in graph.bonds_of(el)]
+    if not any(e and f and _units.same_dimension(e, "K") and _units.same_dimension(f, "W/K")
+               for e, f in units):
+        return None
+    pseudo = {"J/K", "K/W", "W/K", "K*s/W", "W*s/K"}
+    if not any(have == _units.dimensionality(u) for u in pseudo):
+        return None
+    return ("the junctions' domain 'thermal' is the true bond graph (temperature and entropy "
+            "flow in W/K); for temperature and heat flow in W (a heat capacity in J/K, a "
+            "thermal resistance in K/W) declare domain='heat', the pseudo bond graph")
 
 
 #: A fragment is a bond graph with exposed ports, included by a parent graph.

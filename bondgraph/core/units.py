@@ -1,7 +1,8 @@
 """Units: parsing, dimension checks and conversion factors (via ``pint``).
 
 Units are optional everywhere. Where they are given, the toolkit checks that
-effort x flow is a power on every bond, that both ends of a bond agree, and
+effort x flow is a power on every bond (or, on a pseudo bond graph of heat
+transfer, temperature x heat flow), that both ends of a bond agree, and
 data loaders convert columns to the units a model expects.
 
 Radians are dimensionless (pint's convention), so ``N*m`` x ``rad/s`` is ``W``.
@@ -29,13 +30,20 @@ _EXPONENT = re.compile(r"\s*(\()?\s*([-+]?\s*(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)
 #: Rosenberg, *System Dynamics*, Table 1.1 / ch. 2); magnetic: magnetomotive
 #: force and flux rate (a reluctance is a C on the flux, the coil a GY of its
 #: turns); chemical: chemical potential and molar flow (Borutzky 2010,
-#: *Bond Graph Methodology*, §2.6). Effort x flow is a power in each.
+#: *Bond Graph Methodology*, §2.6). Effort x flow is a power in each but
+#: ``heat``: the pseudo bond graph of heat transfer (Karnopp, Margolis &
+#: Rosenberg, ch. 12; 20-sim's thermal library), temperature and heat flow,
+#: whose product is not a power; its C is a heat capacity [J/K], its R a
+#: thermal resistance [K/W], and an R's e·f >= 0 still says that heat flows
+#: from hot to cold. ``thermal`` is the true bond graph: temperature and
+#: entropy flow.
 DOMAINS: dict[str, tuple[str, str]] = {
     "translation": ("N", "m/s"),
     "rotation": ("N*m", "rad/s"),
     "electrical": ("V", "A"),
     "hydraulic": ("Pa", "m^3/s"),
     "thermal": ("K", "W/K"),
+    "heat": ("K", "W"),
     "magnetic": ("A", "Wb/s"),
     "chemical": ("J/mol", "mol/s"),
 }
@@ -140,6 +148,15 @@ def is_power(effort_unit: str, flow_unit: str) -> bool:
     """True if ``effort_unit * flow_unit`` has the dimension of watts."""
     q = parse(effort_unit) * parse(flow_unit)
     return q.dimensionality == parse("W").dimensionality
+
+
+@functools.lru_cache(maxsize=4096)
+def is_pseudo_power(effort_unit: str, flow_unit: str) -> bool:
+    """True if ``effort_unit`` is a temperature and ``flow_unit`` a power: the
+    bond of a pseudo bond graph of heat transfer (temperature and heat flow,
+    domain ``heat``; Karnopp, Margolis & Rosenberg, *System Dynamics*, ch. 12)."""
+    return (parse(effort_unit).dimensionality == parse("K").dimensionality
+            and parse(flow_unit).dimensionality == parse("W").dimensionality)
 
 
 def product(*units: str) -> str:
