@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import sympy as sp
 
-from bondgraph.core.elements import C, I, One, R, Source
+from bondgraph.core.elements import C, I, One, R, Source, Zero
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.effects import Scales
 from bondgraph.diagnose.fit import Context, Fit, problem_for
@@ -21,7 +21,8 @@ def operating_scales(ctx: Context, fit: Fit) -> Scales:
     -------
     Scales
         RMS and maximum of every 1-junction's flow, RMS of the net effort on
-        its inertia, maximum, largest rate and mean power of every source, maximum, RMS
+        its inertia, least value and RMS of every 0-junction's effort, maximum,
+        least value, largest rate and mean power of every source, maximum, RMS
         and peak of every stored quantity, RMS of every R's effort and flow,
         maximum of every input, RMS of every measured output, the record
         duration and median sample interval. A quantity that cannot be
@@ -82,6 +83,7 @@ def _element_scales(sc: Scales, name: str, el, ss, evaluate, X, t, rates) -> Non
     elif isinstance(el, Source):
         v = evaluate(ss.variable(el.value))
         sc.source_max[name] = float(np.nanmax(np.abs(v)))
+        sc.source_min[name] = float(np.nanmin(v))
         if t.size > 1:
             sc.source_rate[name] = float(np.nanmax(np.abs(np.diff(v) / np.diff(t))))
         sc.source_power[name] = float(np.nanmean(np.abs(evaluate(ss.variable(el.e * el.f)))))
@@ -95,6 +97,10 @@ def _element_scales(sc: Scales, name: str, el, ss, evaluate, X, t, rates) -> Non
         sc.storage_max[name] = float(np.nanmax(np.abs(p)))
         sc.storage_rms[name] = rms(p)
         sc.storage_peak[name] = float(np.nanmax(p))
+    elif isinstance(el, Zero):
+        v = evaluate(ss.variable(el.e))
+        sc.effort_min[name] = float(np.nanmin(v))
+        sc.effort_rms[name] = rms(v)
     elif isinstance(el, R):
         sc.r_effort_rms[name] = rms(evaluate(ss.variable(el.e)))
         sc.r_flow_rms[name] = rms(evaluate(ss.variable(el.f)))

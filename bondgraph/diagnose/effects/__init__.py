@@ -68,7 +68,7 @@ from bondgraph.diagnose.effects.friction import (
     Viscous,
 )
 from bondgraph.diagnose.effects.hysteresis import BoucWen, bouc_wen_rate
-from bondgraph.diagnose.effects.laws import RCubic, RQuadratic, RSquareRoot, add_to_r_law
+from bondgraph.diagnose.effects.laws import Radiation, RCubic, RQuadratic, RSquareRoot, add_to_r_law
 from bondgraph.diagnose.effects.library import (
     BY_NAME,
     DEFAULT_EFFECTS,
@@ -114,6 +114,7 @@ __all__ = [
     "EffectParam",
     "InductorSaturation",
     "EndStop", "InputDelay", "OPTIONAL_EFFECTS", "ProbeColumn", "QuadraticDrag", "RCubic", "RQuadratic",
+    "Radiation",
     "RSquareRoot", "Scales", "SensorGain", "SensorLowPass", "SensorOffset", "SensorPolynomial2",
     "SensorPolynomial3", "SensorQuantisation", "SensorRectification", "Slip", "SourceLag",
     "SourceOffset", "SourceRateLimit", "Stribeck", "Target", "Viscous", "add_to_r_law",

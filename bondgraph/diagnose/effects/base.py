@@ -74,6 +74,11 @@ class Scales:
     source_power : dict
         Source name -> mean |e·f| of its bond over the record (the power it
         delivers, in W when the graph has units).
+    effort_min, effort_rms : dict
+        0-junction name -> least value and RMS of its effort over the record
+        (an absolute temperature stays far above 0).
+    source_min : dict
+        Source name -> least value over the record.
     duration, dt : float
         Record length and median sample interval [s].
     """
@@ -91,6 +96,9 @@ class Scales:
     storage_peak: dict = field(default_factory=dict)
     source_rate: dict = field(default_factory=dict)
     source_power: dict = field(default_factory=dict)
+    effort_min: dict = field(default_factory=dict)
+    effort_rms: dict = field(default_factory=dict)
+    source_min: dict = field(default_factory=dict)
     duration: float = 1.0
     dt: float = 0.01
 

@@ -28,21 +28,31 @@ elsewhere: :class:`RPower` estimates the exponent,
 with x_ref the RMS of x in the record, so that β keeps the unit of a linear
 coefficient whatever n is.
 
+Heat that a surface radiates to another, Q = εσA·(T₁⁴ − T₂⁴) (Stefan-Boltzmann),
+is not a law of the R's effort ΔT = T₁ − T₂ alone: :class:`Radiation` adds it to a
+thermal resistance between two absolute temperatures of a pseudo bond graph
+(temperature and heat flow, domain ``heat``), written with their sum
+s = T₁ + T₂ as β·ΔT·s·(s² + ΔT²)/2, which is T₁⁴ − T₂⁴ whichever way the bond
+points.
+
 Sign convention: power into the R, so β > 0 adds dissipation.
 
 References
 ----------
 Karnopp, Margolis & Rosenberg, *System Dynamics*, 5th ed., §4.1 (nonlinear
-resistances, causality of R elements) and §11 (orifice flow Q = C_d A
-√(2Δp/ρ)).
+resistances, causality of R elements), §11 (orifice flow Q = C_d A
+√(2Δp/ρ)) and ch. 12 (pseudo bond graphs of heat transfer); Incropera &
+DeWitt, *Fundamentals of Heat and Mass Transfer*, §1.2.3 (radiation
+exchange of a small surface with its surroundings, q = εσA(T⁴ − T_sur⁴)).
 """
 
 from __future__ import annotations
 
 import sympy as sp
 
+from bondgraph.core import units as _units
 from bondgraph.core.causality import assign_causality
-from bondgraph.core.elements import R
+from bondgraph.core.elements import R, One, Se, Zero
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.effects.base import (
     Effect,
@@ -248,3 +258,106 @@ class RPower(_Structural):
         add_to_r_law(graph, graph.element(target.name),
                      lambda x: b * x * ((x**2 + ep**2) / xr**2) ** ((n - 1) / 2))
         return P
+
+
+#: the least temperature [K] both sides of a radiating resistance keep over
+#: the record for :class:`Radiation` to attach: the efforts are absolute
+#: temperatures (a graph in temperature rises above a reference, or in °C,
+#: reaches 0 or stays far below this)
+ABSOLUTE_TEMPERATURE = 100.0
+
+
+class Radiation(_RLawTerm):
+    """Thermal radiation beside a thermal resistance: the heat flow gains
+    β·(T₁⁴ − T₂⁴) (Stefan-Boltzmann; β = εσA for a small surface in large
+    surroundings, σ = 5.670e-8 W/(m² K⁴)), written as β·x·s·(s² + x²)/2 with
+    x = T₁ − T₂ the R's effort and s = T₁ + T₂ (module docstring).
+
+    Attaches to an R of a pseudo bond graph of heat transfer (effort a
+    temperature, flow a heat flow in W; domain ``heat``) that receives its
+    effort (f = law(ΔT)), on a 1-junction with just two other bonds, to
+    0-junctions or effort sources: T₁ and T₂ are their efforts. Scored only
+    where both stay above :data:`ABSOLUTE_TEMPERATURE` over the record (the
+    law needs absolute temperatures). β >= 0: radiation carries heat from
+    hot to cold (s > 0), so the term is passive.
+    """
+
+    name = "radiation"
+    title = "thermal radiation (T⁴ law) beside a thermal resistance"
+    params = (EffectParam("beta", "{y}/{x}^4", "radiative coefficient εσA", nonnegative=True),)
+
+    def targets(self, graph):
+        return [t for t in resistor_targets(graph) if self.sides(graph, t) is not None]
+
+    def sides(self, graph: BondGraph, target) -> tuple | None:
+        """``((T₁, where₁), (T₂, where₂))``: the efforts on either side of
+        the R ``target`` (expressions) and where they are read (``("junction",
+        name)`` or ``("source", name)``), or None where the effect does not
+        attach (class docstring)."""
+        el = graph.element(target.name)
+        if not isinstance(el, R) or el.port.bond is None:
+            return None
+        eu, fu = element_units(graph, el)
+        if not (eu and fu and _units.is_pseudo_power(eu, fu)):
+            return None
+        if causal_input(graph, el) != "effort":
+            return None
+        j = el.port.bond.other(el.port).element
+        if not isinstance(j, One) or len(j.ports) != 3:
+            return None
+        out = []
+        for p in j.ports:
+            other = p.bond.other(p).element if p.bond is not None else None
+            if other is el:
+                continue
+            if isinstance(other, Zero):
+                out.append((other.e, ("junction", other.name)))
+            elif isinstance(other, Se):
+                out.append((other.value, ("source", other.name)))
+            else:
+                return None
+        return tuple(out) if len(out) == 2 else None
+
+    def _sum(self, graph, target):
+        (a, _), (b, _) = self.sides(graph, target)
+        return a + b
+
+    def absolute(self, graph, target, scales) -> bool:
+        """Both sides stay above :data:`ABSOLUTE_TEMPERATURE` over the record."""
+        lows = []
+        for _, (kind, name) in self.sides(graph, target):
+            table = scales.effort_min if kind == "junction" else scales.source_min
+            lows.append(table.get(name, float("nan")))
+        return all(v > ABSOLUTE_TEMPERATURE for v in lows)
+
+    def shape_values(self, graph, target, scales):
+        return {}
+
+    def term(self, x, S):
+        s = S["s"]
+        return x * s * (s**2 + x**2) / 2
+
+    def basis(self, graph, target, scales):
+        if not self.absolute(graph, target, scales):
+            return []
+        el = graph.element(target.name)
+        return [self.term(el.e, {"s": self._sum(graph, target)})]
+
+    def apply(self, graph, target, values=None, scales=None):
+        s = self._sum(graph, target)
+        P = law_params(self, graph, target, dict(values or {}), {}, 0.0,
+                       lambda spc: (0.0, 1e15))
+        add_to_r_law(graph, graph.element(target.name),
+                     lambda x: P["beta"] * self.term(x, {"s": s}))
+        return P
+
+    def box(self, graph, target, scales):
+        """The term at the R's RMS temperature difference and the sides'
+        RMS temperatures between 10 % and 50 % of the R's RMS heat flow."""
+        x, y = io_rms(graph, target, scales)
+        s = 0.0
+        for _, (kind, name) in self.sides(graph, target):
+            s += (scales.get("effort_rms", name) if kind == "junction"
+                  else scales.get("source_max", name))
+        b = abs(float(self.term(sp.Float(x), {"s": sp.Float(s)})))
+        return {"beta": (0.1 * y / b, 0.5 * y / b)}

@@ -19,7 +19,7 @@ from bondgraph.diagnose.effects.friction import (
     Viscous,
 )
 from bondgraph.diagnose.effects.hysteresis import BoucWen
-from bondgraph.diagnose.effects.laws import RCubic, RPower, RQuadratic, RSquareRoot
+from bondgraph.diagnose.effects.laws import Radiation, RCubic, RPower, RQuadratic, RSquareRoot
 from bondgraph.diagnose.effects.sensors import (
     SensorGain,
     SensorLowPass,
@@ -70,6 +70,11 @@ DEFAULT_EFFECTS: tuple[Effect, ...] = (
     # a user's oven (convection from its case, ΔT^1.25): the quadratic term
     # left a misfit that a cold start of the room air then absorbed
     RPower(),
+    # a user's heated block in the pseudo bond graph of heat transfer: its
+    # radiation to the room, εσA(T⁴ − T_a⁴), which no law of ΔT alone gives,
+    # left a power law whose misfit an actuator gain of -0.79 and a
+    # capacity limit then absorbed (the heat capacity at a seventh of its value)
+    Radiation(),
 )
 
 #: effects of the library that the loop scores only when asked
