@@ -16,7 +16,7 @@ from scipy.integrate import solve_ivp
 
 from bondgraph import BondGraph
 from bondgraph.cli.main import main
-from bondgraph.core.units import DOMAINS, is_power
+from bondgraph.core.units import DOMAINS, is_power, is_pseudo_power
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose.fit import model_of
 
@@ -46,7 +46,9 @@ def choke() -> BondGraph:
 
 def test_magnetic_and_chemical_domains_carry_power():
     assert DOMAINS["magnetic"] == ("A", "Wb/s") and DOMAINS["chemical"] == ("J/mol", "mol/s")
-    assert all(is_power(*units) for units in DOMAINS.values())
+    # every domain but the pseudo bond graph of heat transfer (temperature x heat flow)
+    assert all(is_power(*units) for d, units in DOMAINS.items() if d != "heat")
+    assert is_pseudo_power(*DOMAINS["heat"]) and not is_power(*DOMAINS["heat"])
     g = choke()
     core = g.element("core")
     assert (core.effort_unit, core.flow_unit) == ("A", "Wb/s")
