@@ -18,6 +18,7 @@ steps, 276 s).
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import sympy as sp
 from scipy.integrate import solve_ivp
 
@@ -28,6 +29,7 @@ from bondgraph.diagnose.effects import Radiation, Scales, Target
 from bondgraph.diagnose.fit import model_of
 from bondgraph.diagnose.runner import chosen_numerics, run_loop
 from bondgraph.diagnose.settings import LoopSettings
+from bondgraph.errors import GraphError
 
 C_TH, H = 800.0, 1.5
 KS = 0.9 * 5.670e-8 * 0.05           # εσA [W/K⁴]
@@ -116,6 +118,45 @@ def test_the_law_is_stefan_boltzmanns_and_attaches_to_absolute_heat_graphs_only(
     rises = Scales(effort_min={"block": 0.2, "room": 0.0})
     assert len(eff.basis(block(), Target("resistor", "conv"), absolute)) == 1
     assert eff.basis(block(), Target("resistor", "conv"), rises) == []
+
+
+def test_it_attaches_where_the_resistance_carries_heat_from_one_side_to_the_other():
+    """Between two heat capacities (a 1-junction with one bond in and one
+    out) the term is β·(T₁⁴ − T₂⁴) in both state equations; an ambient
+    source bonded straight onto the 1-junction points into it, as every
+    source does, so the R's effort is T₂ + T_a there, not a difference:
+    no radiation (and a clear error when asked for)."""
+    g = BondGraph("two", "block and case")
+    p = g.input("P", "W", 0.0, "heater")
+    ta = g.input("T_a", "K", T_ROOM, "room")
+    c1 = g.param("C1", 800.0, "J/K", (100.0, 5000.0), "block")
+    c2 = g.param("C2", 2000.0, "J/K", (100.0, 20000.0), "case")
+    h12 = g.param("h12", 5.0, "W/K", (0.05, 50.0), "block to case")
+    h2 = g.param("h2", 1.5, "W/K", (0.05, 20.0), "case to room")
+    n1, n2 = g.zero("n1", domain="heat"), g.zero("n2", domain="heat")
+    g.connect(g.Sf("heater", p), n1)
+    g.connect(n1, g.C("m1", c1))
+    g.connect(n2, g.C("m2", c2))
+    p12 = g.one("p12", domain="heat")
+    g.connect(n1, p12)
+    g.connect(p12, g.R("r12", 1 / h12))
+    g.connect(p12, n2)
+    p2a = g.one("p2a", domain="heat")
+    g.connect(n2, p2a)
+    g.connect(p2a, g.R("r2a", 1 / h2))
+    g.connect(p2a, g.Se("ambient", ta))
+    g.sensor("T1", n1.e, unit="K", noise_std=NOISE)
+    eff = Radiation()
+    assert eff.targets(g) == [Target("resistor", "r12")]
+    with pytest.raises(GraphError, match="radiation cannot attach at R 'r2a'"):
+        eff.apply(g.copy("bad"), Target("resistor", "r2a"), {"beta": 1e-9})
+    eff.apply(g, Target("resistor", "r12"), {"beta": 1e-9})
+    m = model_of(g)
+    th = m.theta(C1=800.0, C2=2000.0, h12=5.0, h2=1.5, **{"radiation.r12.beta": 1e-9})
+    T1, T2, Ta = 450.0, 330.0, 290.0
+    dq = m.f(np.array([[800.0 * T1, 2000.0 * T2]]), np.array([[100.0, Ta]]), th[None])[0]
+    q12 = 5.0 * (T1 - T2) + 1e-9 * (T1**4 - T2**4)
+    np.testing.assert_allclose(dq, [100.0 - q12, q12 - 1.5 * (T2 + Ta)], rtol=1e-12)
 
 
 def test_the_loop_finds_the_radiation_of_a_heated_block():

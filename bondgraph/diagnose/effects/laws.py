@@ -52,18 +52,19 @@ import sympy as sp
 
 from bondgraph.core import units as _units
 from bondgraph.core.causality import assign_causality
-from bondgraph.core.elements import R, One, Se, Zero
+from bondgraph.core.elements import One, R, Se, Zero
 from bondgraph.core.graph import BondGraph
 from bondgraph.diagnose.effects.base import (
     Effect,
     EffectParam,
     Scales,
-    _Structural,
     _new_param,
+    _Structural,
     element_units,
     fill_unit,
     resistor_targets,
 )
+from bondgraph.errors import GraphError
 
 
 def causal_input(graph: BondGraph, el: R) -> str:
@@ -276,7 +277,9 @@ class Radiation(_RLawTerm):
     Attaches to an R of a pseudo bond graph of heat transfer (effort a
     temperature, flow a heat flow in W; domain ``heat``) that receives its
     effort (f = law(ΔT)), on a 1-junction with just two other bonds, to
-    0-junctions or effort sources: T₁ and T₂ are their efforts. Scored only
+    0-junctions or effort sources, one pointing into the junction and one
+    out of it (a path for the heat: the R's effort is then ±(T₁ − T₂)):
+    T₁ and T₂ are their efforts. Scored only
     where both stay above :data:`ABSOLUTE_TEMPERATURE` over the record (the
     law needs absolute temperatures). β >= 0: radiation carries heat from
     hot to cold (s > 0), so the term is passive.
@@ -305,7 +308,7 @@ class Radiation(_RLawTerm):
         j = el.port.bond.other(el.port).element
         if not isinstance(j, One) or len(j.ports) != 3:
             return None
-        out = []
+        out, into = [], []
         for p in j.ports:
             other = p.bond.other(p).element if p.bond is not None else None
             if other is el:
@@ -316,10 +319,22 @@ class Radiation(_RLawTerm):
                 out.append((other.value, ("source", other.name)))
             else:
                 return None
-        return tuple(out) if len(out) == 2 else None
+            into.append(p.bond.head is p)
+        # a path through the junction (one bond in, one out): the R's effort
+        # is then ±(T₁ − T₂); two bonds in would make it T₁ + T₂
+        if len(out) != 2 or into[0] == into[1]:
+            return None
+        return tuple(out)
 
     def _sum(self, graph, target):
-        (a, _), (b, _) = self.sides(graph, target)
+        sides = self.sides(graph, target)
+        if sides is None:
+            raise GraphError(
+                f"radiation cannot attach at R '{target.name}': it needs an R of a pseudo bond "
+                f"graph of heat transfer (effort a temperature, flow a heat flow in W) that "
+                f"receives its effort, on a 1-junction with one bond in from a 0-junction or "
+                f"effort source and one out to another")
+        (a, _), (b, _) = sides
         return a + b
 
     def absolute(self, graph, target, scales) -> bool:
