@@ -290,6 +290,12 @@ class Radiation(_RLawTerm):
     params = (EffectParam("beta", "{y}/{x}^4", "radiative coefficient εσA", nonnegative=True),)
 
     def targets(self, graph):
+        # one pass over the bonds' units first: a graph with no heat bond (every
+        # graph but a pseudo bond graph of heat transfer) is done without
+        # looking at each R (its units, its causality)
+        if not any(e and f and _units.is_pseudo_power(e, f)
+                   for e, f in graph.bond_units().values()):
+            return []
         return [t for t in resistor_targets(graph) if self.sides(graph, t) is not None]
 
     def sides(self, graph: BondGraph, target) -> tuple | None:
