@@ -69,6 +69,11 @@ def test_header_parsing():
     assert parse_header(" der(r) [(m/rad)/s] ") == ("der(r)", "(m/rad)/s")
     assert parse_header("throttle [1]") == ("throttle", "1")
     assert parse_header("z") == ("z", None)
+    # a unit in parentheses after a space (spreadsheets, loggers); not a name's own parentheses
+    assert parse_header("Force (N)") == ("Force", "N")
+    assert parse_header("v (km/h)") == ("v", "km/h")
+    assert parse_header("speed (filtered)") == ("speed (filtered)", None)
+    assert parse_header("y(1)") == ("y(1)", None)
 
 
 def test_trailing_comma_and_quoted_header(tmp_path):
@@ -86,10 +91,33 @@ def test_time_in_ms_is_converted(tmp_path):
     np.testing.assert_allclose(exp.t, [0, 0.01, 0.02])
 
 
+def test_time_column_names_and_separators(tmp_path):
+    """What spreadsheets and data loggers write: ``time``/``Time (s)``/``time_ms`` as the
+    first column, units in parentheses, ``;`` or tab separators with decimal commas."""
+    exp = Experiment.load(write(tmp_path, "Time (s);Force (N);x (mm)\n0,0;1,5;2\n"
+                                          "0,01;1,5;2,5\n0,02;-1,0;3\n"))
+    np.testing.assert_array_equal(exp.t, [0.0, 0.01, 0.02])
+    np.testing.assert_array_equal(exp["Force"], [1.5, 1.5, -1.0])
+    assert exp.units["x"] == "mm"
+    exp = Experiment.load(write(tmp_path, "time_ms\tF\n0\t1.5\n10\t2\n20\t3\n", name="b.csv"))
+    np.testing.assert_allclose(exp.t, [0.0, 0.01, 0.02])
+    # a sidecar naming the time column as the file does; its unit converts
+    p = write(tmp_path, "time,F\n0,1\n1,2\n2,3\n", name="c.csv",
+              sidecar={"columns": {"time": {"unit": "min"}, "F": {"role": "input"}}})
+    exp = Experiment.load(p)
+    np.testing.assert_allclose(exp.t, [0.0, 60.0, 120.0])
+    # a cell with both separators is not a number
+    raises(write(tmp_path, "t;F\n0;1,000.5\n1;2\n", name="d.csv"), "non-numeric cell '1,000.5'",
+           line=2, column="F")
+
+
 # ------------------------------------------------------ every error kind
 def test_missing_t(tmp_path):
-    raises(write(tmp_path, "time,F\n0,1\n1,2\n"), "first column must be the time 't'",
-           line=1, column="time")
+    raises(write(tmp_path, "clock,F\n0,1\n1,2\n"), "first column must be the time 't'",
+           line=1, column="clock")
+    # 'time' elsewhere than first is a signal, and the first column is not a time
+    raises(write(tmp_path, "F,time\n0,1\n1,2\n", name="e.csv"),
+           "first column must be the time 't'", line=1, column="F")
     raises(write(tmp_path, "F,t\n0,1\n1,2\n"), "must be the first column", line=1, column="t")
 
 

@@ -9,7 +9,9 @@ specified in ``docs/data_format.md``. In short:
   s unless the header says otherwise, e.g. ``t [ms]``); headers may carry a
   unit in brackets, ``v_gnss [m/s]``; an empty cell in an output column is a
   missing sample. A trailing comma at the end of every line is accepted (the
-  CED benchmark files have one).
+  CED benchmark files have one). What spreadsheets write is read too: a
+  first column ``time``/``Time (s)``/``time_ms``, units in parentheses
+  (``Force (N)``), ``;`` or tab separators with decimal commas.
 * **JSON sidecar** (same stem, ``.json``; optional): ``format:
   "bondgraph-experiment/1"``, ``name, model, truth_model, description, dt,
   columns: {col: {unit, role, noise_std, hold}}, true_parameters, x0, noise,
@@ -59,6 +61,12 @@ INPUT_HOLDS = ("zoh", "linear")
 GAP_FACTOR = 1.5
 
 _HEADER_RE = re.compile(r"^(?P<name>[^\[\]]*?)\s*(?:\[(?P<unit>[^\[\]]*)\])?\s*$")
+#: a unit in parentheses after a space, as spreadsheets and logging tools write
+#: it: ``Force (N)``, ``Time (s)`` (``y(1)``, without the space, stays a name)
+_PAREN_RE = re.compile(r"^(?P<name>[^()\[\]]*?\S)\s+\((?P<unit>[^()\[\]]*)\)\s*$")
+#: names read as the time column when first (case-insensitive), with an
+#: optional unit suffix (``time_s``, ``t_ms``)
+_TIME_RE = re.compile(r"^(?:t|time)(?:_(?P<unit>s|ms|us|min|h))?$", re.IGNORECASE)
 
 
 def parse_header(cell: str) -> tuple[str, str | None]:
@@ -66,13 +74,27 @@ def parse_header(cell: str) -> tuple[str, str | None]:
 
     A header without brackets gives unit ``None`` (unspecified: the column is
     taken to be in the model's units). ``[1]`` or ``[]`` means dimensionless.
+    A unit in parentheses after a space, ``"Force (N)"``, is read the same way.
     """
-    m = _HEADER_RE.match(cell.strip())
+    cell = cell.strip().strip('"').strip()
+    m = _PAREN_RE.match(cell)
+    if m is not None and _is_unit(m.group("unit")):
+        return m.group("name").strip(), m.group("unit").strip()
+    m = _HEADER_RE.match(cell)
     if m is None:
-        return cell.strip(), None
+        return cell, None
     name = m.group("name").strip().strip('"').strip()
     unit = m.group("unit")
     return name, (unit.strip() if unit is not None else None)
+
+
+def _is_unit(text: str) -> bool:
+    """Whether pint reads ``text`` as a unit (``"N"``, ``"m/s"``; not ``"filtered"``)."""
+    try:
+        _units.parse(text.strip())
+    except Exception:
+        return False
+    return bool(text.strip())
 
 
 def format_header(name: str, unit: str | None) -> str:
@@ -266,13 +288,19 @@ def _read_columns(path: Path, meta: Mapping, allow_missing: bool) -> tuple:
     units by name (header, else sidecar ``meta``), the file line of each
     sample and the header's line."""
     where, side = str(path), str(path.with_suffix(".json"))
-    header, header_line, rows, lines = _read_csv_rows(path)
-    parsed, trailing = _parse_header_row(header, where, header_line)
+    header, header_line, rows, lines, delimiter = _read_csv_rows(path)
+    parsed, trailing, time_name = _parse_header_row(header, where, header_line)
     names = [p[0] for p in parsed]
     _check_row_lengths(rows, lines, len(names), trailing, where)
     line_arr = np.asarray(lines)
     cells = np.array(rows, dtype=str)
+    if delimiter != ",":
+        # ``1,5;2,25``: a decimal comma (the lists of spreadsheets set to a
+        # European locale); a cell with both ``.`` and ``,`` stays non-numeric
+        cells = np.where(np.char.find(cells, ".") < 0, np.char.replace(cells, ",", "."), cells)
     side_cols = (meta.get("columns") or {}) if meta else {}
+    if time_name != "t" and time_name in side_cols and "t" not in side_cols:
+        side_cols["t"] = side_cols.pop(time_name)
     units = _column_units(parsed, side_cols, where, side, header_line)
     roles = {nm: (side_cols.get(nm) or {}).get("role") for nm in names}
     data: dict[str, np.ndarray] = {}
@@ -384,17 +412,34 @@ def sidecar_text(meta: Mapping, name: str, units: Mapping, names: list[str]) -> 
 
 
 # ------------------------------------------------------------- internals
-def _read_csv_rows(path: Path) -> tuple[list[str], int, list[list[str]], list[int]]:
-    """The header row, its line, the data rows and their lines (blank lines
-    skipped; a UTF-8 byte-order mark is dropped).
+def _delimiter(path: Path) -> str:
+    """The cell separator: ``,``, or ``;`` or a tab where the header line
+    has no comma (the first non-blank line decides)."""
+    with open(path, newline="", encoding="utf-8-sig") as fh:
+        for line in fh:
+            if line.strip():
+                if "," in line:
+                    return ","
+                if ";" in line:
+                    return ";"
+                if "\t" in line:
+                    return "\t"
+                return ","
+    return ","
+
+
+def _read_csv_rows(path: Path) -> tuple[list[str], int, list[list[str]], list[int], str]:
+    """The header row, its line, the data rows, their lines and the cell
+    separator (blank lines skipped; a UTF-8 byte-order mark is dropped).
 
     Raises
     ------
     DataError
         An empty file.
     """
+    delimiter = _delimiter(path)
     with open(path, newline="", encoding="utf-8-sig") as fh:
-        reader = csv.reader(fh)
+        reader = csv.reader(fh, delimiter=delimiter)
         rows: list[list[str]] = []
         lines: list[int] = []
         header: list[str] | None = None
@@ -410,13 +455,15 @@ def _read_csv_rows(path: Path) -> tuple[list[str], int, list[list[str]], list[in
             lines.append(reader.line_num)
     if header is None:
         raise DataError("empty file: no header line", path=str(path))
-    return header, header_line, rows, lines
+    return header, header_line, rows, lines, delimiter
 
 
 def _parse_header_row(header: list[str], where: str,
-                      header_line: int) -> tuple[list[tuple[str, str | None]], bool]:
-    """``(name, unit)`` per header cell and whether the lines end in a
-    trailing comma (an empty last header cell).
+                      header_line: int) -> tuple[list[tuple[str, str | None]], bool, str]:
+    """``(name, unit)`` per header cell, whether the lines end in a trailing
+    comma (an empty last header cell) and the time column's name in the file.
+    A first column named ``time`` (any case) or ``t_<unit>``/``time_<unit>``
+    (``s, ms, us, min, h``) is the time ``t``.
 
     Raises
     ------
@@ -427,6 +474,12 @@ def _parse_header_row(header: list[str], where: str,
     if trailing:
         header = header[:-1]
     parsed = [parse_header(h) for h in header]
+    time_name = parsed[0][0]
+    tm = _TIME_RE.match(time_name)
+    if tm is not None and time_name != "t" and "t" not in [p[0] for p in parsed[1:]]:
+        # ``time``, ``Time (s)``, ``time_ms``: the time column under another name
+        unit = parsed[0][1] if parsed[0][1] is not None else tm.group("unit")
+        parsed[0] = ("t", unit)
     names = [p[0] for p in parsed]
     for j, nm in enumerate(names):
         if not nm:
@@ -441,8 +494,9 @@ def _parse_header_row(header: list[str], where: str,
                             path=where, line=header_line, column="t")
         raise DataError(f"first column must be the time 't', found '{names[0]}'",
                         path=where, line=header_line, column=names[0],
-                        hint="name the time column 't' (unit in brackets, e.g. 't [s]')")
-    return parsed, trailing
+                        hint="name the time column 't' or 'time' (unit in brackets, "
+                             "e.g. 't [s]')")
+    return parsed, trailing, time_name
 
 
 def _check_row_lengths(rows: list[list[str]], lines: list[int], ncol: int, trailing: bool,
