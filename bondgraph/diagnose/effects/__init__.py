@@ -104,6 +104,7 @@ from bondgraph.diagnose.effects.storage import (
     CubicStiffness,
     EndStop,
     InductorSaturation,
+    SeriesRC,
     add_to_storage_law,
 )
 
@@ -116,7 +117,8 @@ __all__ = [
     "EndStop", "InputDelay", "OPTIONAL_EFFECTS", "ProbeColumn", "QuadraticDrag", "RCubic", "RQuadratic",
     "Radiation",
     "RSquareRoot", "Scales", "SensorGain", "SensorLowPass", "SensorOffset", "SensorPolynomial2",
-    "SensorPolynomial3", "SensorQuantisation", "SensorRectification", "Slip", "SourceLag",
+    "SensorPolynomial3", "SensorQuantisation", "SensorRectification", "SeriesRC", "Slip",
+    "SourceLag",
     "SourceOffset", "SourceRateLimit", "Stribeck", "Target", "Viscous", "add_to_r_law",
     "add_to_storage_law", "apply_effect", "element_units", "fill_unit", "flow_junctions",
     "get_effect", "input_sources", "input_targets", "junction_units", "mechanical",

@@ -46,6 +46,7 @@ from bondgraph.diagnose.effects.storage import (
     CubicStiffness,
     EndStop,
     InductorSaturation,
+    SeriesRC,
 )
 from bondgraph.errors import GraphError
 
@@ -75,6 +76,10 @@ DEFAULT_EFFECTS: tuple[Effect, ...] = (
     # left a power law whose misfit an actuator gain of -0.79 and a
     # capacity limit then absorbed (the heat capacity at a seventh of its value)
     Radiation(),
+    # a user's battery cell declared with one RC pair, the cell having two:
+    # a nonlinear OCV term, a cold start of the current and a dead zone
+    # stood in for the slow relaxation
+    SeriesRC(),
 )
 
 #: effects of the library that the loop scores only when asked

@@ -37,13 +37,15 @@ from __future__ import annotations
 
 import sympy as sp
 
-from bondgraph.core.elements import C, I, Zero
+from bondgraph.core import units as _units
+from bondgraph.core.elements import C, I, One, R, Zero
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.smooth import softplus
 from bondgraph.diagnose.effects.base import (
     Effect,
     EffectParam,
     Scales,
+    Target,
     _electrical,
     _in_integral_causality,
     _new_param,
@@ -51,13 +53,16 @@ from bondgraph.diagnose.effects.base import (
     default_value,
     element_units,
     fill_unit,
-    mechanical,
     inductor_targets,
+    junction_units,
+    log_grid,
+    mechanical,
     split_bond,
-    storage_stiffness,
     state_storage_targets,
+    storage_stiffness,
     storage_targets,
 )
+from bondgraph.errors import GraphError
 
 
 def storage_unit(graph: BondGraph, el: C) -> str:
@@ -442,3 +447,111 @@ class InductorSaturation(Effect):
         a = abs(default_value(el.inertance)) if el.inertance is not None else 0.0
         g = 1.0 / a if a else 1.0
         return {"k3": (0.05 * g / m**2, 1.0 * g / m**2)}
+
+
+#: domains whose 1-junctions sum potentials along a path, where an RC pair in
+#: series is a relaxation the model may lack (a cell's diffusion, a Foster
+#: network's stage); in mechanics the same pair (a Maxwell element) is what
+#: :class:`~bondgraph.diagnose.effects.coupling.Compliance` and Dahl's
+#: friction cover
+RELAXATION_DOMAINS = ("electrical", "heat")
+
+
+def _relaxation_domain(graph: BondGraph, j) -> str | None:
+    """``"electrical"`` or ``"heat"`` for a junction of those domains (its
+    declared domain, else its bonds' units: a current as flow, or a
+    temperature x heat-flow bond), None otherwise."""
+    if j.domain is not None:
+        return j.domain if j.domain in RELAXATION_DOMAINS else None
+    eu, fu = junction_units(graph, j)
+    if not (eu and fu):
+        return None
+    try:
+        if _units.same_dimension(fu, "A") and _units.same_dimension(eu, "V"):
+            return "electrical"
+        if _units.is_pseudo_power(eu, fu):
+            return "heat"
+    except Exception:
+        return None
+    return None
+
+
+class SeriesRC(_Structural):
+    """An RC pair in series with a path's resistance: a 0-junction with a
+    resistance R and a capacitance C = τ/R spliced onto the 1-junction
+    (a Voigt stage), whose effort e = q·R/τ, dq/dt = f − q/τ, adds to the
+    path's efforts: R·f in a steady flow, nothing at a sudden change.
+
+    What it stands for: the second (third ...) RC pair of a battery cell's
+    Thevenin model (solid-phase diffusion beside the charge transfer;
+    Plett 2015, §2.10; Hu, Li & Peng 2012 compare one to three pairs), a
+    capacitor's dielectric absorption, a stage of a Foster network of a
+    thermal impedance (a heat path's slow layer; JEDEC JESD51-14). It
+    attaches to a 1-junction of the electrical or heat domain
+    (:data:`RELAXATION_DOMAINS`) that carries an R (a series path with
+    a loss), once per junction. R >= 0 (at 0 the pair vanishes) and
+    τ > 0 keep it passive: its R dissipates, its C stores q²/(2C) >= 0.
+    Structural (a new state): scored over a grid of τ (half a sample to
+    a tenth of the record) and of R (0.3 to 3 times the junction's own
+    resistance, its R's RMS effort over RMS flow).
+    """
+
+    name = "series_rc"
+    title = "added RC pair in series (a relaxation)"
+    target_kind = "junction"
+    params = (EffectParam("R", "{effort}/{flow}", "resistance of the pair", nonnegative=True),
+              EffectParam("tau", "s", "time constant R·C of the pair", nonnegative=True))
+
+    def targets(self, graph):
+        out = []
+        for name in sorted(graph.elements):
+            el = graph.elements[name]
+            if not isinstance(el, One) or name.startswith(f"{self.name}."):
+                continue
+            if _relaxation_domain(graph, el) is None:
+                continue
+            if any(isinstance(p.bond.other(p).element, R) for p in el.ports
+                   if p.bond is not None):
+                out.append(Target("junction", name))
+        return out
+
+    def _resistance(self, graph, target, scales) -> float:
+        """The junction's own resistance scale: the largest RMS effort over
+        RMS flow of its R elements (1.0 when the record gives none)."""
+        j = graph.element(target.name)
+        vals = []
+        for p in j.ports:
+            other = p.bond.other(p).element if p.bond is not None else None
+            if isinstance(other, R):
+                e = scales.r_effort_rms.get(other.name)
+                f = scales.r_flow_rms.get(other.name)
+                if e and f and e > 0 and f > 0:
+                    vals.append(float(e) / float(f))
+        return max(vals) if vals else 1.0
+
+    def grid(self, graph, target, scales):
+        r = self._resistance(graph, target, scales)
+        taus = log_grid(0.5 * scales.dt, 0.1 * scales.duration, 8)
+        return [{"R": r * k, "tau": t} for t in taus for k in (0.3, 1.0, 3.0)]
+
+    def box(self, graph, target, scales):
+        r = self._resistance(graph, target, scales)
+        return {"R": (0.1 * r, 3.0 * r), "tau": (2 * scales.dt, 0.05 * scales.duration)}
+
+    def apply(self, graph, target, values=None, scales=None):
+        values = dict(values or {})
+        j = graph.element(target.name)
+        if not isinstance(j, One):
+            raise GraphError(f"series_rc attaches to a 1-junction, not '{target.name}'")
+        eu, fu = junction_units(graph, j)
+        tag = f"{self.name}.{target.tag}"
+        Rp = _new_param(graph, self.pname(target, "R"), values.get("R", 1.0),
+                        fill_unit("{effort}/{flow}", effort=eu, flow=fu), (0.0, 1e15),
+                        f"resistance of the RC pair added in series at {target.name}")
+        tau = _new_param(graph, self.pname(target, "tau"), values.get("tau", 1.0), "s",
+                         (1e-9, 1e12), f"time constant of the RC pair at {target.name}")
+        z = graph.zero(f"{tag}.j", domain=j.domain)
+        graph.connect(j, z)
+        graph.connect(z, graph.C(f"{tag}.C", tau / Rp))
+        graph.connect(z, graph.R(f"{tag}.R", Rp))
+        return {"R": Rp, "tau": tau}
