@@ -111,6 +111,23 @@ def test_time_column_names_and_separators(tmp_path):
            line=2, column="F")
 
 
+def test_columns_renamed_as_read_with_their_sidecar_entries(tmp_path):
+    """``Experiment.load(path, columns={file: model})``: values, units and the
+    sidecar's description (by the file's names) follow the new name; the
+    column order is kept."""
+    p = write(tmp_path, "t,Current [mA],Voltage\n0,1,3.7\n1,2,3.6\n", name="log.csv",
+              sidecar={"columns": {"Voltage": {"unit": "V", "role": "output",
+                                               "noise_std": 0.002},
+                                   "Current": {"role": "input"}}})
+    exp = Experiment.load(p, columns={"Current": "I", "Voltage": "V"})
+    assert list(exp.columns) == ["I", "V"]
+    np.testing.assert_array_equal(exp["V"], [3.7, 3.6])
+    assert exp.units == {"I": "mA", "V": "V"}
+    assert exp.roles["I"] == "input" and exp.noise_std == {"V": 0.002}
+    raises(p, "no column 'Volt' to rename", line=1, column="Volt", columns={"Volt": "V"})
+    raises(p, "time column is not renamed", line=1, column="t", columns={"t": "time"})
+
+
 # ------------------------------------------------------ every error kind
 def test_missing_t(tmp_path):
     raises(write(tmp_path, "clock,F\n0,1\n1,2\n"), "first column must be the time 't'",

@@ -325,6 +325,28 @@ def test_misspelt_column_is_a_warning_naming_the_closest_name(d, capsys):
     assert "warning" not in capsys.readouterr().err
 
 
+def test_columns_renamed_as_they_are_read(d, capsys):
+    """`--columns xpos=x` reads a logger's name as the model's output: the
+    estimate equals that of the record whose column is named x; the warning
+    about the unmatched column names the option; a rename of a column the
+    file lacks, or onto another column's name, is refused naming it."""
+    assert _run([*EST, "--data", "{d}/xpos.csv", "--out", "{d}/r0"], d) == 0
+    assert "--columns COLUMN=NAME" in capsys.readouterr().err
+    assert _run([*EST, "--data", "{d}/xpos.csv", "--columns", "xpos=x", "--out", "{d}/r1"],
+                d) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert _run([*EST, "--data", "{d}/good.csv", "--out", "{d}/r2"], d) == 0
+    a, b = (json.loads((d / r / "result.json").read_text()) for r in ("r1", "r2"))
+    assert a["estimates"] == b["estimates"]
+    assert _run([*EST, "--data", "{d}/xpos.csv", "--columns", "pos=x", "--out", "{d}/r3"],
+                d) == 2
+    assert "no column 'pos' to rename to 'x'" in capsys.readouterr().err
+    assert _run([*EST, "--data", "{d}/good.csv", "--columns", "v=x", "--out", "{d}/r4"], d) == 2
+    assert "two columns named 'x'" in capsys.readouterr().err
+    assert _run([*EST, "--data", "{d}/good.csv", "--columns", "v", "--out", "{d}/r5"], d) == 2
+    assert "COLUMN=NAME" in capsys.readouterr().err
+
+
 @pytest.mark.filterwarnings("error::RuntimeWarning")
 def test_loop_on_a_record_without_one_output_runs(d, capsys):
     """Issue item 1: `cut -d, -f1-3` of the record (t, F, x; no v, no

@@ -107,6 +107,36 @@ def parse_names(text: str | None, option: str) -> list[str]:
     return names
 
 
+def parse_renames(text: str | None, option: str = "--columns") -> dict[str, str]:
+    """``file=model`` pairs, comma-separated (``Current=I,Voltage=V``).
+
+    Raises
+    ------
+    OptionError
+        An item without ``=``, an empty name, a column named twice.
+    """
+    out: dict[str, str] = {}
+    for item in (text or "").split(","):
+        if not item.strip():
+            continue
+        old, sep, new = (x.strip() for x in item.partition("="))
+        if not sep or not old or not new:
+            raise OptionError(f"{option} expects COLUMN=NAME pairs separated by commas (the "
+                              f"record's column, the model's name), got '{item.strip()}'")
+        if old in out:
+            raise OptionError(f"{option}: column '{old}' renamed twice")
+        out[old] = new
+    return out
+
+
+def add_columns(p: argparse.ArgumentParser) -> None:
+    """``--columns``: the record's columns renamed to the model's names."""
+    p.add_argument("--columns", default=None, metavar="COLUMN=NAME,...",
+                   help="rename the records' columns to the model's input, output or state "
+                        "names as they are read (e.g. Current=I,Voltage=V: a logger's names); "
+                        "every record of the command")
+
+
 def parse_params(text: str, model=None) -> list[str]:
     """Parameters of ``--params``: ``a,b,c`` or ``recommended:<sensitivity.json>``
     (the set recommended by :func:`bondgraph.sensitivity.analysis.recommended_params`).
@@ -219,6 +249,7 @@ def add_data(p: argparse.ArgumentParser, *, required: bool = True,
     """``--data``: the record (``several``: repeatable, a list of records;
     else a second ``--data`` is refused with ``remedy``, :class:`Once`);
     ``help`` replaces the fitting commands' help text."""
+    add_columns(p)
     if several:
         p.add_argument("--data", required=required, action="append", metavar="DATA",
                        help=help or "record CSV with optional JSON sidecar "
@@ -407,8 +438,9 @@ def output_folder(path, args, option: str = "--out", *,
     return OutputFolder(path, overwrite=overwrite, option=option)
 
 
-def load_record(path, model, say=None) -> Experiment:
-    """The record of ``--data`` (:meth:`Experiment.load`), with a
+def load_record(path, model, say=None, columns: str | dict | None = None) -> Experiment:
+    """The record of ``--data`` (:meth:`Experiment.load`; ``columns``: the
+    ``--columns`` text or its ``{file: model}`` renames), with a
     :class:`~bondgraph.errors.ColumnWarning` for columns that match none of
     the model's names while some of its outputs are absent, and one line on
     ``say`` (default stderr) per output with missing samples
@@ -422,7 +454,8 @@ def load_record(path, model, say=None) -> Experiment:
     DataError
         A defect of the file or its sidecar (file, line and column named).
     """
-    exp = Experiment.load(path)
+    renames = columns if isinstance(columns, dict) else parse_renames(columns)
+    exp = Experiment.load(path, columns=renames or None)
     outputs = model.sensors if isinstance(model, BondGraph) else model.outputs
     require_information(exp, outputs)
     for line in missing_note(exp, outputs, Path(path).name):

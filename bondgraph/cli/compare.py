@@ -83,7 +83,7 @@ def run(args) -> int:
 def _records(args, graph, say) -> list:
     """The records of ``--data`` for ``graph``, each on a finer grid where an
     input is band-limited (as estimate and loop filter them)."""
-    return [band_limited_record(load_record(pth, graph, say), graph, args, say)
+    return [band_limited_record(load_record(pth, graph, say, args.columns), graph, args, say)
             for pth in args.data]
 
 

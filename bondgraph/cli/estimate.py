@@ -132,8 +132,9 @@ def run(args) -> int:
     paths = list(args.data)
     with progress.phase("loading the model and the records"):
         model = load_model(args.model)
-        exps = [band_limited_record(load_record(pth, model), model, args) for pth in paths]
-        vals = [band_limited_record(load_record(pth, model), model, args)
+        exps = [band_limited_record(load_record(pth, model, columns=args.columns), model, args)
+                for pth in paths]
+        vals = [band_limited_record(load_record(pth, model, columns=args.columns), model, args)
                 for pth in args.validate or []]      # a bad file refused before the fit
     _check_judging(args, vals)
     params = (parse_params(args.params, model) if args.params

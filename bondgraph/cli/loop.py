@@ -14,6 +14,7 @@ from types import SimpleNamespace
 from bondgraph.cli.common import (
     MODEL_HELP,
     Once,
+    add_columns,
     add_discretisation,
     add_estimation_scope,
     add_overwrite,
@@ -71,6 +72,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--data", action=Once, remedy=ONE_RECORD,
                    help="record (CSV in the experiment format, see docs/data_format.md)")
+    add_columns(p)
     p.add_argument("--params", help="comma-separated parameters to estimate (default: the "
                                     "case's, or all parameters of the model; one declared "
                                     "without a box is then held at its value where the "
@@ -243,8 +245,8 @@ def run(args) -> int:
         if not args.data:
             raise ModelError("--model needs --data FILE.csv (the measured record)")
         graph = graph_builder(args.model)()
-        record = band_limited_record(load_record(args.data, graph, _said), graph, args,
-                                     say=_said)
+        record = band_limited_record(load_record(args.data, graph, _said, args.columns),
+                                     graph, args, say=_said)
         params = parse_params(args.params) if args.params else list(graph.params)
         # without --params, a parameter declared without a box is a known
         # value: held where the record cannot tell it from others
@@ -429,7 +431,8 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     fixed = parse_pairs(args.fixed, "--fixed")
     x0 = parse_pairs(args.x0, "--x0")
     states = loop_states(graph, args.estimate_x0) if args.estimate_x0 else base.estimate_x0
-    judging = [band_limited_record(load_record(f, graph, _said), graph, args, say=_said)
+    judging = [band_limited_record(load_record(f, graph, _said, args.columns), graph, args,
+                                   say=_said)
                for f in (args.validate or [])]
     names = [r.name for r in judging]
     for f, r in zip(args.validate or [], judging):

@@ -211,7 +211,8 @@ def run(args) -> int:
     levels = {k[len("noise."):]: v for k, v in values.items() if k.startswith("noise.")}
     values = {k: v for k, v in values.items() if k in model.params}
     folder = output_folder(args.out, args)
-    exp = band_limited_record(load_record(args.data, model), model, args)
+    exp = band_limited_record(load_record(args.data, model, columns=args.columns), model,
+                              args)
     problem = problem_from_args(model, exp, args, values=values)
     held, line = bare_levels(problem, levels)
     if held:

@@ -420,7 +420,9 @@ def check_columns(exp, model, *, stacklevel: int = 2) -> list[str]:
         f"{exp._where() or exp.name}: column(s) {join_names(extra)} match no input, "
         f"output or state of model '{mdl.name}' and are ignored, while its output(s) "
         f"{join_names(absent)} are not in the record"
-        + (f"; closest model names: {close}" if close else ""), ColumnWarning,
+        + (f"; closest model names: {close}" if close else "")
+        + "; rename columns as they are read with --columns COLUMN=NAME,... (from Python, "
+          "Experiment.load(path, columns={COLUMN: NAME}))", ColumnWarning,
         stacklevel=stacklevel)
     return extra
 

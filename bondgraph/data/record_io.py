@@ -218,7 +218,8 @@ def check_meta(meta: Mapping, path: str | None = None) -> None:
 
 # --------------------------------------------------------------- reading
 def read_record(path: str | Path, *, allow_missing: bool = True,
-                gap_factor: float | None = GAP_FACTOR) -> dict[str, Any]:
+                gap_factor: float | None = GAP_FACTOR,
+                columns: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Read a CSV record and its JSON sidecar (if present): the fields of an
     :class:`~bondgraph.data.records.Experiment` (what
     :meth:`~bondgraph.data.records.Experiment.load` builds it from).
@@ -233,6 +234,10 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
     gap_factor : float or None
         Time steps above ``gap_factor`` x the median step are gaps
         (``None`` disables the check).
+    columns : dict, optional
+        ``{name in the file: name in the model}``: columns renamed after
+        reading (a logger's ``Current`` as the model's input ``I``); the
+        sidecar describes them by their names in the file.
 
     Returns
     -------
@@ -256,6 +261,8 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
     side = str(path.with_suffix(".json"))
     meta = _read_sidecar(path)
     names, data, units, line_arr, header_line = _read_columns(path, meta, allow_missing)
+    if columns:
+        names = _renamed(names, data, units, meta, columns, where, header_line)
     t = data.pop("t")
     t_unit = units.pop("t")
     if t_unit is not None:
@@ -281,6 +288,46 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
                             f"{med:.6g} s", path=side)
     return {"t": t, "columns": data, "units": units, "meta": meta, "path": path,
             "lines": line_arr}
+
+
+def _renamed(names: list[str], data: dict, units: dict, meta: Mapping,
+             columns: Mapping[str, str], where: str, header_line: int) -> list[str]:
+    """``names`` with each ``columns`` key replaced by its value, and the
+    same done in place to ``data``, ``units`` and the sidecar's column
+    entries (``meta``).
+
+    Raises
+    ------
+    DataError
+        A column to rename that the file lacks, the time column, a new name
+        that is empty or that another column already has.
+    """
+    for old, new in columns.items():
+        if old not in names:
+            raise DataError(f"no column '{old}' to rename to '{new}' (the record has: "
+                            f"{', '.join(n for n in names if n != 't')})", path=where,
+                            line=header_line, column=old)
+        if old == "t" or new == "t":
+            raise DataError("the time column is not renamed", path=where, line=header_line,
+                            column=old)
+    out = [columns.get(n, n) for n in names]
+    for new in set(columns.values()):
+        if not new or out.count(new) > 1:
+            raise DataError(f"renaming gives two columns named '{new}'" if new
+                            else "a column renamed to an empty name", path=where,
+                            line=header_line, column=new or None)
+    side = (meta.get("columns") or {}) if meta else {}
+    for old, new in columns.items():
+        data[new] = data.pop(old)
+        units[new] = units.pop(old, None)
+        if old in side:
+            side[new] = side.pop(old)
+    order = {n: i for i, n in enumerate(out)}
+    for table in (data, units):
+        items = sorted(table.items(), key=lambda kv: order.get(kv[0], len(order)))
+        table.clear()
+        table.update(items)
+    return out
 
 
 def _read_columns(path: Path, meta: Mapping, allow_missing: bool) -> tuple:

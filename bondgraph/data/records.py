@@ -252,7 +252,8 @@ class Experiment:
 
     @classmethod
     def load(cls, path: str | Path, *, allow_missing: bool = True,
-             gap_factor: float | None = GAP_FACTOR) -> "Experiment":
+             gap_factor: float | None = GAP_FACTOR,
+             columns: Mapping[str, str] | None = None) -> "Experiment":
         """Read a CSV record and its JSON sidecar (if present).
 
         Parameters
@@ -266,6 +267,10 @@ class Experiment:
         gap_factor : float or None
             Time steps above ``gap_factor`` x the median step are gaps
             (``None`` disables the check).
+        columns : dict, optional
+            ``{name in the file: name in the model}``: columns renamed as
+            they are read (``{"Current": "I"}``; the command line's
+            ``--columns Current=I``).
 
         Returns
         -------
@@ -282,7 +287,7 @@ class Experiment:
             time, a sidecar of the wrong format or inconsistent with the CSV.
         """
         return cls(**record_io.read_record(path, allow_missing=allow_missing,
-                                           gap_factor=gap_factor))
+                                           gap_factor=gap_factor, columns=columns))
 
     # -------------------------------------------------------------- save
     def save(self, path: str | Path, *, precision: int | None = None,
