@@ -105,6 +105,40 @@ def test_the_pair_adds_a_relaxing_effort_in_series():
     assert lo[0] >= 0.0
 
 
+def test_a_foster_stage_on_a_heat_path():
+    """On a pseudo bond graph of heat transfer (a die, a resistance to the
+    room), the pair is a Foster stage: the die's temperature simulates the
+    hand-written two-stage network (scipy) to 1e-6 K."""
+    c, r1, r2, c2, ta = 8.0, 0.6, 0.9, 300.0, 298.15
+    g = BondGraph("chip", "a die on a heat sink")
+    power = g.input("P", "W", 0.0)
+    node = g.zero("die_node", domain="heat")
+    g.connect(g.Sf("losses", power), node)
+    g.connect(node, g.C("die", g.param("C_j", c, "J/K")))
+    path = g.one("path", domain="heat")
+    g.connect(node, path)
+    g.connect(path, g.R("sink", g.param("R_th", r1, "K/W")))
+    room = g.zero("room", domain="heat")
+    g.connect(path, room)
+    g.connect(g.Se("ambient", g.param("T_a", ta, "K")), room)
+    g.sensor("T", node.e, unit="K")
+    assert SeriesRC().targets(g) == [Target("junction", "path")]
+    SeriesRC().apply(g, Target("junction", "path"), {"R": r2, "tau": r2 * c2})
+    t = np.arange(0.0, 2001.0)
+    p = np.where((t // 150) % 2 == 0, 20.0, 5.0)
+
+    def f(tt, x):
+        tj, v2 = x[0] / c, x[1] / c2
+        q = (tj - ta - v2) / r1
+        return [p[min(int(tt), len(p) - 1)] - q, q - v2 / r2]
+
+    ref = solve_ivp(f, (0.0, t[-1]), [c * ta, 0.0], t_eval=t, method="LSODA", rtol=1e-11,
+                    atol=1e-11, max_step=0.5).y[0] / c
+    sim = simulate(model_of(g), t, u=p[:, None], x0={"q_die": c * ta}, method="LSODA",
+                   rtol=1e-11, atol=1e-11, hold="zoh")
+    np.testing.assert_allclose(sim.y[:, 0], ref, atol=1e-6)
+
+
 def test_where_the_pair_attaches():
     """Once per 1-junction of the electrical or heat domain that carries an
     R; not on a mechanical graph (there a spring-damper in series is the
