@@ -33,7 +33,7 @@ from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.effects import get_effect
 from bondgraph.diagnose.effects.library import OPTIONAL_EFFECTS
 from bondgraph.diagnose.loop import run_loop
-from bondgraph.diagnose.result import robust_of, understated
+from bondgraph.diagnose.result import moved_declared, moved_text, robust_of, understated
 from bondgraph.diagnose.runner import chosen_numerics as loop_chosen_numerics, require_params
 from bondgraph.diagnose.settings import (
     DEFAULT_HOLDOUT,
@@ -293,6 +293,9 @@ def run(args) -> int:
     hint = unexplained_hint(res, args.discover, graph, settings.effects)
     if hint:
         print(hint)
+    moved = moved_text(moved_declared(res))
+    if moved:
+        print(f"note: {moved}")
     loose = understated(res.final.std, robust_of(res.final), res.final.estimates)
     if loose:
         print(f"note: the Cramér-Rao std understates the uncertainty of {', '.join(loose)} "

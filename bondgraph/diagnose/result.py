@@ -280,6 +280,67 @@ def understated(std: dict, robust: dict, names) -> list[str]:
             if r > ROBUST_RATIO]
 
 
+#: a declared parameter the accepted effects moved by more than this fraction
+#: of its declared-fit value ... (:func:`moved_declared`)
+MOVED_REL = 0.25
+#: ... and by more than this many of its std (the largest of the declared
+#: fit's and the final fit's Cramér-Rao and robust std)
+MOVED_STD = 10.0
+
+
+def moved_declared(result) -> list[tuple[str, float, float]]:
+    """``(name, declared fit's value, final value)`` of the declared
+    physical parameters (not the noise levels of its sensors and process
+    noise) that the accepted effects moved by more than :data:`MOVED_REL` of
+    their value and :data:`MOVED_STD` std ([] when no effect was accepted).
+
+    Where the declared fit compensated for the missing effect (a rolling
+    resistance that stood in for the aerodynamic drag) that is the
+    correction; where the library lacks the law, an effect that rescales the
+    model can stand in for it and take the declared parameters with it: a
+    user's heated block whose radiation the library did not have took a
+    power law, a capacity limit and an actuator gain of -0.86 on its
+    heater, and its heat capacity went from 800 to 112 J/K, each step
+    lowering the held-out error. The report names such moves; the user
+    knows the values."""
+    if not result.steps or result.initial is None or result.final is None:
+        return []
+    g = result.declared_graph
+    noise: set = set()
+    if g is not None:
+        for ex in [*g.process_noise.values(), *(s.noise_std for s in g.sensors.values())]:
+            noise |= {str(x) for x in getattr(ex, "free_symbols", ())}
+    declared = set(g.params) if g is not None else set(result.initial.estimates)
+    r0, r1 = robust_of(result.initial), robust_of(result.final)
+    out = []
+    for n, v0 in result.initial.estimates.items():
+        v1 = result.final.estimates.get(n)
+        if n not in declared or n in noise or v1 is None or not v0:
+            continue
+        if not (np.isfinite(v0) and np.isfinite(v1)):
+            continue
+        sds = [x for x in (result.initial.std.get(n), r0.get(n), result.final.std.get(n),
+                           r1.get(n)) if x is not None and np.isfinite(x)]
+        shift = abs(v1 - v0)
+        if shift > MOVED_REL * abs(v0) and shift > MOVED_STD * max(sds, default=0.0):
+            out.append((n, float(v0), float(v1)))
+    return out
+
+
+def moved_text(moves: list[tuple[str, float, float]]) -> str:
+    """One sentence on :func:`moved_declared`'s moves ("" for none)."""
+    if not moves:
+        return ""
+    items = ", ".join(f"{n} {a:.4g} -> {b:.4g} ({100 * (b - a) / abs(a):+.0f} %)"
+                      for n, a, b in moves)
+    return (f"the accepted effects moved declared parameters far from the declared fit "
+            f"(by more than {100 * MOVED_REL:.0f} % and {MOVED_STD:g} std): {items}. Where the "
+            f"declared fit compensated for the missing effect, that is the correction; where "
+            f"you know a value, compare: an effect that rescales the model (a gain, a limit) "
+            f"can stand in for a law the library lacks. Hold a known value (--fixed NAME=VALUE) "
+            f"and run again to see")
+
+
 @dataclass
 class FitSummary:
     """One fitted model as the report sees it.

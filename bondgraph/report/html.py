@@ -19,7 +19,13 @@ import math
 from html import escape
 from pathlib import Path
 
-from bondgraph.diagnose.result import LoopResult, robust_of, understated
+from bondgraph.diagnose.result import (
+    LoopResult,
+    moved_declared,
+    moved_text,
+    robust_of,
+    understated,
+)
 from bondgraph.report.evidence import confirmed_value
 from bondgraph.inference.robust import ROBUST_RATIO
 
@@ -297,6 +303,9 @@ def _parameters(result: LoopResult) -> list[str]:
             f'than {ROBUST_RATIO:g} times for {escape(", ".join(loose))}: the innovations are still '
             f'serially correlated, so the Cramér-Rao std understates their uncertainty; quote '
             f'the robust std.</p>' if loose else "")
+    moved = moved_text(moved_declared(result))
+    if moved:
+        warn += f'<p class="warnings">{escape(moved[0].upper() + moved[1:])}.</p>'
     return _section("Parameters of the final model",
                     [table, warn, '<p class="muted">Rows in green: parameters of the accepted '
                      'effects.</p>' if added else ""], "parameters")

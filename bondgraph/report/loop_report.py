@@ -24,7 +24,13 @@ from bondgraph.core.atomic import OutputFolder
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.plugins import resolve
 from bondgraph.core.equations import derive
-from bondgraph.diagnose.result import LoopResult, robust_of, understated
+from bondgraph.diagnose.result import (
+    LoopResult,
+    moved_declared,
+    moved_text,
+    robust_of,
+    understated,
+)
 from bondgraph.inference.robust import ROBUST_RATIO
 from bondgraph.report.drawing import draw, layout
 from bondgraph.report.evidence import SHOWN, plot_evidence
@@ -632,6 +638,9 @@ def _md_accepted(result: LoopResult) -> list[str]:
               "still serially correlated (an effect it lacks, or noise levels that do not "
               "describe the misfit), so the Cramér-Rao std understates their uncertainty; quote "
               "the robust std (White 1982; Newey & West 1987)."]
+    moved = moved_text(moved_declared(result))
+    if moved:
+        L += ["", moved[0].upper() + moved[1:] + "."]
     flat = getattr(result.final, "flat", None)
     if flat:
         ridge = getattr(result.final, "ridge", "") or ""
