@@ -303,24 +303,26 @@ def moved_declared(result) -> list[tuple[str, float, float]]:
     heater, and its heat capacity went from 800 to 112 J/K, each step
     lowering the held-out error. The report names such moves; the user
     knows the values."""
-    if not result.steps or result.initial is None or result.final is None:
+    initial, final = getattr(result, "initial", None), getattr(result, "final", None)
+    if not getattr(result, "steps", None) or not all(
+            hasattr(f, a) for f in (initial, final) for a in ("estimates", "std")):
         return []
-    g = result.declared_graph
+    g = getattr(result, "declared_graph", None)
     noise: set = set()
     if g is not None:
         for ex in [*g.process_noise.values(), *(s.noise_std for s in g.sensors.values())]:
             noise |= {str(x) for x in getattr(ex, "free_symbols", ())}
-    declared = set(g.params) if g is not None else set(result.initial.estimates)
-    r0, r1 = robust_of(result.initial), robust_of(result.final)
+    declared = set(g.params) if g is not None else set(initial.estimates)
+    r0, r1 = robust_of(initial), robust_of(final)
     out = []
-    for n, v0 in result.initial.estimates.items():
-        v1 = result.final.estimates.get(n)
+    for n, v0 in initial.estimates.items():
+        v1 = final.estimates.get(n)
         if n not in declared or n in noise or v1 is None or not v0:
             continue
         if not (np.isfinite(v0) and np.isfinite(v1)):
             continue
-        sds = [x for x in (result.initial.std.get(n), r0.get(n), result.final.std.get(n),
-                           r1.get(n)) if x is not None and np.isfinite(x)]
+        sds = [x for x in (initial.std.get(n), r0.get(n), final.std.get(n), r1.get(n))
+               if x is not None and np.isfinite(x)]
         shift = abs(v1 - v0)
         if shift > MOVED_REL * abs(v0) and shift > MOVED_STD * max(sds, default=0.0):
             out.append((n, float(v0), float(v1)))
