@@ -106,9 +106,12 @@ def test_time_column_names_and_separators(tmp_path):
               sidecar={"columns": {"time": {"unit": "min"}, "F": {"role": "input"}}})
     exp = Experiment.load(p)
     np.testing.assert_allclose(exp.t, [0.0, 60.0, 120.0])
-    # a cell with both separators is not a number
+    # decimal commas only in a file that writes no point: elsewhere a comma is a
+    # thousands separator, not a number the reader guesses at
     raises(write(tmp_path, "t;F\n0;1,000.5\n1;2\n", name="d.csv"), "non-numeric cell '1,000.5'",
            line=2, column="F")
+    raises(write(tmp_path, "t\tF\n0.0\t1,234\n1.0\t2\n", name="f.csv"),
+           "non-numeric cell '1,234'", line=2, column="F")
 
 
 def test_columns_renamed_as_read_with_their_sidecar_entries(tmp_path):

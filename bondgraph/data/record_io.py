@@ -341,10 +341,12 @@ def _read_columns(path: Path, meta: Mapping, allow_missing: bool) -> tuple:
     _check_row_lengths(rows, lines, len(names), trailing, where)
     line_arr = np.asarray(lines)
     cells = np.array(rows, dtype=str)
-    if delimiter != ",":
-        # ``1,5;2,25``: a decimal comma (the lists of spreadsheets set to a
-        # European locale); a cell with both ``.`` and ``,`` stays non-numeric
-        cells = np.where(np.char.find(cells, ".") < 0, np.char.replace(cells, ",", "."), cells)
+    if delimiter != "," and not np.any(np.char.find(cells, ".") >= 0):
+        # ``1,5;2,25``: decimal commas (the lists of spreadsheets set to a
+        # European locale), only where no cell of the file has a point: in a
+        # file that writes points, ``1,234`` is a thousands separator and
+        # stays non-numeric, as does ``1.234,5``
+        cells = np.char.replace(cells, ",", ".")
     side_cols = (meta.get("columns") or {}) if meta else {}
     if time_name != "t" and time_name in side_cols and "t" not in side_cols:
         side_cols["t"] = side_cols.pop(time_name)
