@@ -317,14 +317,9 @@ def _renamed(names: list[str], data: dict, units: dict, meta: Mapping,
                             else "a column renamed to an empty name", path=where,
                             line=header_line, column=new or None)
     side = (meta.get("columns") or {}) if meta else {}
-    for old, new in columns.items():
-        data[new] = data.pop(old)
-        units[new] = units.pop(old, None)
-        if old in side:
-            side[new] = side.pop(old)
-    order = {n: i for i, n in enumerate(out)}
-    for table in (data, units):
-        items = sorted(table.items(), key=lambda kv: order.get(kv[0], len(order)))
+    for table in (data, units, side):
+        # rebuilt in place under the new names, in the file's order
+        items = [(columns.get(k, k), v) for k, v in table.items()]
         table.clear()
         table.update(items)
     return out
