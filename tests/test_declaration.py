@@ -303,3 +303,27 @@ def test_nonlinear_laws_and_sensor_on_displacement_of_a_junction():
     assert sp.simplify(ss.rhs("p_m") - expect) == 0
     assert sp.simplify(ss.rhs("q_v") - p / 1.5) == 0
     assert sp.simplify(ss.energy - (p**2 / 3 + k3 * q**4 / 4)) == 0
+
+
+@pytest.mark.parametrize("written, remedy", [
+    ("rotational", "domain='rotation'"),
+    ("Electric", "domain='electrical'"),
+    ("translational", "domain='translation'"),
+    ("mechanical", "domain='translation' (a linear motion) or domain='rotation' (a shaft)"),
+])
+def test_a_misspelt_domain_names_the_one_meant(written, remedy):
+    from bondgraph.errors import ElementError
+
+    g = bg.BondGraph("misspelt")
+    with pytest.raises(ElementError, match="unknown domain") as err:
+        g.one("shaft", domain=written)
+    assert err.value.hint == remedy
+    assert list(err.value.elements) == ["shaft"]
+
+
+def test_an_unknown_domain_without_a_near_name_gets_the_list_only():
+    from bondgraph.errors import ElementError
+
+    with pytest.raises(ElementError, match="known: translation, rotation") as err:
+        bg.BondGraph("odd").zero("j", domain="xyz")
+    assert err.value.hint is None

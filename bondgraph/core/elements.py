@@ -497,6 +497,31 @@ class MGY(GY):
 
 
 # -------------------------------------------------------------------- junctions
+#: the names other tools give the domains (20-sim's and Modelica's libraries,
+#: textbooks): what a user writes first
+DOMAIN_ALIASES = {"translational": "translation", "linear": "translation",
+                  "rotational": "rotation", "rotary": "rotation", "electric": "electrical",
+                  "fluid": "hydraulic", "hydraulics": "hydraulic", "heat_flow": "heat",
+                  "magnetics": "magnetic"}
+
+
+def domain_suggestion(domain: str, known) -> str | None:
+    """The remedy for a misspelt ``domain``: the known domain it most likely
+    means, an alias of :data:`DOMAIN_ALIASES` (case ignored) or the closest
+    name (:func:`difflib.get_close_matches`); both mechanical ones for
+    'mechanical'; None when nothing is near."""
+    import difflib
+
+    key = str(domain).strip().lower()
+    if key in ("mechanical", "mechanics"):
+        return "domain='translation' (a linear motion) or domain='rotation' (a shaft)"
+    near = key if key in known else DOMAIN_ALIASES.get(key)
+    if near not in known:
+        close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
+        near = close[0] if close else None
+    return f"domain='{near}'" if near else None
+
+
 class Junction(Element):
     """0- or 1-junction; any number of bonds (at least two)."""
 
@@ -508,8 +533,10 @@ class Junction(Element):
             from bondgraph.core.units import DOMAINS
 
             if domain not in DOMAINS:
+                near = domain_suggestion(domain, DOMAINS)
                 raise ElementError(f"junction '{name}': unknown domain '{domain}' "
-                                 f"(known: {', '.join(DOMAINS)})")
+                                   f"(known: {', '.join(DOMAINS)})", elements=[name],
+                                   hint=near)
             e_u, f_u = DOMAINS[domain]
             self.effort_unit = self.effort_unit or e_u
             self.flow_unit = self.flow_unit or f_u
