@@ -118,6 +118,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--add-effects", default=None, metavar="NAME,...",
                    help="effects of the library's optional part to score besides the default "
                         "library (bouc_wen)")
+    p.add_argument("--skip-effects", default=None, metavar="NAME,...",
+                   help="effects of the library not to score: names or patterns (sensor_* "
+                        "when the sensors are calibrated: their offsets, gains and curves "
+                        "are then not offered as look-alikes of a missing law, nor does "
+                        "--discover seek a law at a sensor); `bondgraph models --effects` "
+                        "lists the effects")
     p.add_argument("--discover", action="store_true",
                    help="when no physical effect is accepted, or the accepted ones leave "
                         "innovations that are not white: reconstruct the effort (flow) "
@@ -333,6 +339,31 @@ def unexplained_hint(res, discovered: bool, graph=None, effects=()) -> str | Non
     return msg
 
 
+def skipped_effects(effects, patterns) -> tuple:
+    """``effects`` without those whose name matches one of ``patterns`` (a
+    name, or a shell pattern such as ``sensor_*``, :func:`fnmatch.fnmatchcase`).
+
+    Raises
+    ------
+    OptionError
+        A pattern that matches no effect of ``effects`` (the names listed),
+        or patterns that leave no effect to score.
+    """
+    import fnmatch
+
+    names = [e.name for e in effects]
+    for pat in patterns:
+        if not fnmatch.filter(names, pat):
+            raise OptionError(f"--skip-effects: '{pat}' matches no effect the loop scores "
+                              f"(the effects: {', '.join(names)})",
+                              hint="give an effect's name or a pattern such as sensor_*")
+    kept = tuple(e for e in effects
+                 if not any(fnmatch.fnmatchcase(e.name, pat) for pat in patterns))
+    if not kept:
+        raise OptionError(f"--skip-effects {','.join(patterns)} leaves no effect to score")
+    return kept
+
+
 def optional_left(graph, effects) -> dict[str, list[str]]:
     """The optional effects of the library
     (:data:`~bondgraph.diagnose.effects.library.OPTIONAL_EFFECTS`: scored
@@ -363,7 +394,11 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     )
 
     echo = (lambda _m: None) if args.quiet else print
-    best = discovered_effect(graph, record, settings, res, log=echo)
+    # sensors whose every library effect --skip-effects left out get no
+    # discovered output law either: the user said they are calibrated
+    calibrated = not any(getattr(e, "target_kind", None) == "sensor" for e in settings.effects)
+    best = discovered_effect(graph, record, settings, res, log=echo,
+                             sensors=() if calibrated else None)
     if best is None:
         return res
     echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'"
@@ -456,6 +491,8 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
         have = {e.name for e in effects}
         effects = tuple(effects) + tuple(get_effect(n) for n in parse_names(
             args.add_effects, "--add-effects") if n not in have)
+    if args.skip_effects:
+        effects = skipped_effects(effects, parse_names(args.skip_effects, "--skip-effects"))
     try:
         return dataclasses.replace(
             base, fixed={**base.fixed, **fixed} if fixed else base.fixed,
