@@ -1648,9 +1648,10 @@ def pair_screened_out(ctx: Context, current: Fit, pair: tuple, single: tuple,
     member of such a pair is never screened out (its score needs its grid,
     on a fit with the other). A structural partner of the single is scored
     by its grid at the single's refit, profiled where it could be
-    significant (:func:`score_given`: the statistic the next step reads). A user's DC motor with Coulomb friction:
-    ``r_power @ b_rot`` beside the confirmed ``coulomb @ rotor`` was
-    refitted as a pair (22 of the run's 111 s) to gain 0.9 in LR."""
+    significant (:func:`score_given`: the statistic the next step reads).
+    A user's DC motor with Coulomb friction: ``r_power @ b_rot`` beside the
+    confirmed ``coulomb @ rotor`` was refitted as a pair (22 of the run's
+    107 s) to gain 0.9 in LR; its grid at the Coulomb refit scores 0."""
     a, b = pair
     level = ctx.settings.accept.significance
     lead, conf = single
@@ -1671,9 +1672,10 @@ def score_given(ctx: Context, fit: Fit, cand: Candidate, scales: Scales) -> Cand
     :func:`partners_of` scores): an additive effect by one probe run of
     :func:`~bondgraph.diagnose.scoring.score_additive`, a structural one by
     its grid at ``cand``'s place alone
-    (:func:`~bondgraph.diagnose.scoring.score_structural`, profiled when it
-    could be significant). None when structural effects are not scored
-    (``--no-structural``), or when the target is not among those scored."""
+    (:func:`~bondgraph.diagnose.scoring.structural_candidate` in a family of
+    one, profiled when it could be significant). None when structural
+    effects are not scored (``--no-structural``), when the target is not
+    among those scored or the candidate cannot be built there."""
     eff = get_effect(cand.effect, ctx.settings.effects)
     if not (eff.additive or ctx.settings.search.structural):
         return None
