@@ -217,3 +217,23 @@ def test_simulation_options_validated_on_construction():
     with pytest.raises(OptionError, match="simulation must be a SimulationOptions, got dict"):
         synthesize(models.mass_spring_damper(), models.mass_spring_damper(), np.arange(3.0),
                    {}, {}, {}, 0, "x", "", simulation={"hold": "zoh"})
+
+
+def test_an_effect_does_not_attach_to_what_it_added_itself():
+    """A gain error of the gain error's own source, (1 + g1 + g1 g2) u, is a
+    reparametrisation of the first (the likelihood flat along g1, g2): the
+    effect counts as present there; another effect may still attach."""
+    from bondgraph.catalog.reference import mass_spring_damper
+    from bondgraph.diagnose.effects import get_effect
+    from bondgraph.diagnose.effects.library import apply_effect
+
+    g = mass_spring_damper()
+    gain = get_effect("actuator_gain")
+    (first,) = gain.targets(g)
+    assert not gain.present(g, first)
+    apply_effect(g, gain, first, {"g": 0.1})
+    names = {t.name: gain.present(g, t) for t in gain.targets(g)}
+    assert names == {"force": True, "actuator_gain.force": True}
+    lag = get_effect("source_lag")
+    assert {t.name: lag.present(g, t) for t in lag.targets(g)} == {
+        "force": False, "actuator_gain.force": False}
