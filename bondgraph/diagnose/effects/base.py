@@ -410,8 +410,8 @@ class Effect:
         ``target`` is part of what this effect added (its elements are named
         ``<effect>.<place>...``): the same effect on its own fragment is a
         reparametrisation of the one there (a gain error of the gain error's
-        source, (1 + g₁ + g₁g₂)·u, flat along g₁, g₂), which a diode-clamped
-        RC network's loop scored at χ² 382 with the first gain on its box."""
+        source, (1 + g₁ + g₁g₂)·u, flat along g₁, g₂; a diode-clamped RC
+        network's loop scored it at χ² 382 and 775 in two steps)."""
         if str(target.name).startswith(f"{self.name}."):
             return True
         return any(self.pname(target, p.name) in graph.params for p in self.params)
