@@ -273,6 +273,10 @@ def run(args) -> int:
             base = dataclasses.replace(base, params=refitted(graph, args.from_result),
                                        hold_unidentified=())
     settings = loop_settings(args, base, graph)
+    if args.skip_effects and not args.quiet:
+        kept = {e.name for e in settings.effects}
+        print(f"bondgraph loop: not scored (--skip-effects): "
+              f"{', '.join(e.name for e in base.effects if e.name not in kept)}")
     require_params(graph, settings.params)   # before the numerics (seconds on a long record)
     if args.model:
         settings = chosen_numerics(args, graph, record, settings)
