@@ -27,14 +27,10 @@ from bondgraph.diagnose.runner import run_loop
 from bondgraph.diagnose.settings import LoopSettings, SearchOptions
 from bondgraph.inference.options import UKFOptions
 
-M, K, C, FC = 2.0, 50.0, 1.5, 2.0
-NOISE = {"x": 0.002, "v": 0.01}
-T = np.arange(0.0, 30.0, 0.01)
+# the mass-spring-damper, its multisine force, noise and time grid of the pair tests
+from test_loop_pair_first import NOISE, C, K, M, T, force  # noqa: E402
 
-
-def force(t, ph):
-    return (15 * np.sin(2 * np.pi * 0.3 * t + ph) + 10 * np.sin(2 * np.pi * 1.1 * t + 1 + ph)
-            + 5 * np.sin(2 * np.pi * 2.3 * t + 2 + ph))
+FC = 2.0
 
 
 def record(seed: int, ph: float) -> Experiment:
