@@ -51,11 +51,17 @@ def test_discovery_seeks_no_law_at_sensors_the_user_ruled_out(monkeypatch):
         return None
 
     monkeypatch.setattr(disc, "discovered_effect", fake)
-    args = argparse.Namespace(quiet=True)
     for argv, want in ((("--skip-effects", "sensor_*"), ()), (("--skip-effects", "coulomb"), None)):
         s = settings(*argv)
+        args = argparse.Namespace(quiet=True, skip_effects=argv[1])
         assert cli_loop._with_discovery(args, mass_spring_damper(), None, s, "res", None) == "res"
         assert seen["sensors"] == want
+    # a case whose own library has no sensor effect, without --skip-effects: sensors as before
+    s = LoopSettings(params=["m"], effects=tuple(e for e in DEFAULT_EFFECTS
+                                                 if e.target_kind != "sensor"))
+    args = argparse.Namespace(quiet=True, skip_effects=None)
+    assert cli_loop._with_discovery(args, mass_spring_damper(), None, s, "res", None) == "res"
+    assert seen["sensors"] is None
 
 
 def test_models_lists_the_effect_library(capsys):

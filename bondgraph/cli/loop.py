@@ -400,7 +400,8 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     echo = (lambda _m: None) if args.quiet else print
     # sensors whose every library effect --skip-effects left out get no
     # discovered output law either: the user said they are calibrated
-    calibrated = not any(getattr(e, "target_kind", None) == "sensor" for e in settings.effects)
+    calibrated = bool(getattr(args, "skip_effects", None)) and not any(
+        getattr(e, "target_kind", None) == "sensor" for e in settings.effects)
     best = discovered_effect(graph, record, settings, res, log=echo,
                              sensors=() if calibrated else None)
     if best is None:
