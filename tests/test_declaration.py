@@ -231,6 +231,60 @@ def test_parameter_unit_must_fit_bond():
     g2.validate()
 
 
+def _piston(hydraulic_on_p1: bool, modulus: str = "A"):
+    """A pump-fed chamber driving a mass through a piston of area A [m^2]."""
+    g = bg.BondGraph("piston")
+    a = g.param("A", 2e-3, "m^2")
+    ch = g.zero("chamber", domain="hydraulic")
+    rod = g.one("rod", domain="translation")
+    g.connect(g.Sf("pump", 1e-4), ch)
+    g.connect(ch, g.C("oil", g.param("C_h", 1e-12, "m^3/Pa")))
+    g.connect(rod, g.I("mass", g.param("M", 50.0, "kg")))
+    tf = g.TF("piston", a if modulus == "A" else 1 / a)
+    if hydraulic_on_p1:
+        g.connect(ch, tf.p1)
+        g.connect(tf.p2, rod)
+    else:
+        g.connect(rod, tf.p1)
+        g.connect(tf.p2, ch)
+    return g
+
+
+def test_transformer_modulus_must_fit_its_bonds():
+    # e1 = m e2: with the chamber on p1, Pa = m N needs m in 1/m^2, not the
+    # area: the slip is named with both remedies
+    with pytest.raises(errors.UnitMismatchError) as e:
+        _piston(hydraulic_on_p1=True).validate()
+    msg = str(e.value)
+    assert "TF 'piston'" in msg and "[length] ** 2" in msg and "1 / [length] ** 2" in msg
+    assert "connect p1 to 'rod' and p2 to 'chamber'" in msg and "1/(A)" in msg
+    # either remedy passes: the ports swapped (F = A p, Q = A v) or 1/A
+    _piston(hydraulic_on_p1=False).validate()
+    _piston(hydraulic_on_p1=True, modulus="1/A").validate()
+
+
+def test_gyrator_modulus_must_fit_its_bonds():
+    def motor(unit):
+        g = bg.BondGraph("motor")
+        el = g.one("armature", domain="electrical")
+        me = g.one("rotor", domain="rotation")
+        g.connect(g.Se("supply", 12.0), el)
+        g.connect(el, g.I("L", g.param("L", 5e-3, "H")))
+        gy = g.GY("motor", g.param("k_m", 0.05, unit))
+        g.connect(el, gy.p1)
+        g.connect(gy.p2, me)
+        g.connect(me, g.I("J", g.param("J", 1e-4, "kg*m^2")))
+        return g
+    motor("V*s/rad").validate()          # e1 = r f2: V = (V s/rad)(rad/s)
+    motor("N*m/A").validate()            # the same dimension
+    with pytest.raises(errors.UnitMismatchError) as e:
+        motor("rad/(V*s)").validate()    # the inverse
+    assert "GY 'motor'" in str(e.value) and "1/(k_m)" in str(e.value)
+    with pytest.raises(errors.UnitMismatchError, match="GY 'motor'.*needs") as e:
+        motor("m").validate()
+    assert "check the modulus' parameter units" in str(e.value)
+
+
 def _wheel(J_default):
     f = bg.Fragment("wheel")
     J = f.param("J", J_default, "kg*m^2", description="wheel inertia")

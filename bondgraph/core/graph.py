@@ -840,6 +840,56 @@ class BondGraph:
             elif isinstance(el, Source):
                 self._check_expr_unit(el, el.value, eu if el.variable == "effort" else fu,
                                       el.variable)
+        for el in self._sorted_elements():
+            if isinstance(el, TwoPort):
+                self._check_modulus_unit(el, bu)
+
+    def _check_modulus_unit(self, el: TwoPort, bu: dict) -> None:
+        """The dimension of a two-port's modulus against the bonds at its
+        ports: a TF's m = e1/e2 (= f2/f1), a GY's r = e1/f2 (= e2/f1)
+        (Karnopp, Margolis & Rosenberg, ch. 2). A TF whose modulus is the
+        inverse of what its bonds need (a piston area A declared with the
+        hydraulic side on p1, where e1 = m e2 needs 1/A) is the common slip:
+        the message says to swap the ports or invert the modulus. Skipped
+        where a unit is unknown (a symbol without unit, a bond whose units
+        no junction or element declares)."""
+        if any(p.bond is None for p in el.ports):
+            return
+        (e1, f1), (e2, f2) = (bu[p.bond.name] for p in el.ports)
+        is_tf = isinstance(el, TF)
+        num, den = (e1, e2) if is_tf else (e1, f2)
+        if num is None or den is None:
+            return
+        try:
+            have = expr_unit(el.modulus)
+        except UnitMismatchError:
+            return              # a sum of mixed dimensions: said by the expression checks
+        if have is None:
+            return
+        want = _units.quotient(num, den)
+        if have == _units.dimensionality(want):
+            return
+        law = "e1 = m·e2, f2 = m·f1" if is_tf else "e1 = r·f2, e2 = r·f1"
+
+        def side(p) -> str:
+            e, f = bu[p.bond.name]
+            return f"{p.label} on '{_other_end(p)}' ({e}, {f})"
+
+        inverse = have == _units.dimensionality(_units.quotient(den, num))
+        if inverse and is_tf:
+            hint = (f"the modulus is the inverse of what these bonds need: connect p1 to "
+                    f"'{_other_end(el.p2)}' and p2 to '{_other_end(el.p1)}' (the modulus "
+                    f"then reads e1 = m·e2 from that side), or declare the modulus as "
+                    f"1/({el.modulus})")
+        elif inverse:
+            hint = f"the modulus is the inverse of what these bonds need: 1/({el.modulus})"
+        else:
+            hint = "check the modulus' parameter units and the domains at both ports"
+        raise UnitMismatchError(
+            f"{el.kind} '{el.name}': modulus {el.modulus} has dimension {have}, but {law} "
+            f"between {side(el.p1)} and {side(el.p2)} needs [{want}] = "
+            f"{_units.dimensionality(want)}", elements=[el.name],
+            bonds=[p.bond.name for p in el.ports], hint=hint)
 
     def _check_expr_unit(self, el: Element, expr: sp.Expr, want: str, what: str) -> None:
         have = expr_unit(expr)
@@ -873,6 +923,12 @@ def _thermal_hint(graph: BondGraph, el: Element, have) -> str | None:
     return ("the junctions' domain 'thermal' is the true bond graph (temperature and entropy "
             "flow in W/K); for temperature and heat flow in W (a heat capacity in J/K, a "
             "thermal resistance in K/W) declare domain='heat', the pseudo bond graph")
+
+
+def _other_end(port: Port) -> str:
+    """Name of the element at the other end of ``port``'s bond."""
+    b = port.bond
+    return b.other(port).element.name
 
 
 #: A fragment is a bond graph with exposed ports, included by a parent graph.
