@@ -429,6 +429,32 @@ def test_an_adaptive_run_that_runs_away_stops_with_its_time(msd, method):
     assert "unstable" in str(ei.value)
 
 
+@pytest.mark.parametrize("method", ["LSODA", "BDF"])
+def test_an_adaptive_run_that_crawls_stops_and_names_the_fast_mode(msd, method):
+    """A mass-spring-damper whose mass is off by ten orders of magnitude
+    (m 1e-10 kg, k 1e4 N/m: ω = sqrt(k/m) = 1e7 rad/s, damping ratio
+    c/(2 sqrt(k m)) = 5e-4 with c 1e-6 N s/m) sampled at 1 kHz: an adaptive
+    solver must resolve every oscillation, some 10⁵ calls per sample, and
+    would run for hours on a long record. It stops after CRAWL_CALLS calls
+    that did not advance one sample, the fastest mode named from the
+    generated Jacobian: ω (to 1 %), its damping ratio and ω·dt."""
+    th = dict(zip(msd.params, msd.theta0), m=1e-10, k=1e4, c=1e-6)
+    t = np.arange(0.0, 10.0, 1e-3)
+    with pytest.raises(NumericalError, match=rf"{method} crawled \(20000 calls") as ei:
+        simulate(msd, t, np.ones((t.size, 1)), theta=th, method=method)
+    msg = str(ei.value)
+    omega = float(msg.split("fastest mode there is ")[1].split(" rad/s")[0])
+    assert omega == pytest.approx(1e7, rel=0.01)
+    ratio = float(msg.split("damping ratio ")[1].split(")")[0])
+    assert ratio == pytest.approx(5e-4, rel=0.05)
+    assert "1e+04 times the sampling rate" in msg and "units" in msg
+    t_stop = float(msg.split("near t = ")[1].split(" s")[0])
+    assert t_stop < 1e-3     # within the first sample interval, not after hours
+    # the same model at a sane mass is no crawl: 10 s at 1 kHz, exact steady state
+    ok = simulate(msd, t, np.ones((t.size, 1)), theta=dict(th, m=1.0, c=50.0), method=method)
+    assert ok.x[-1, 1] == pytest.approx(1.0 / 1e4, rel=1e-6)
+
+
 def test_lsoda_is_one_odepack_call_per_segment_with_solve_ivps_steps(msd):
     """simulate(method="LSODA") runs ODEPACK's LSODA through odeint, one
     call per zero-order-hold segment (:func:`lsoda_segment`). On a

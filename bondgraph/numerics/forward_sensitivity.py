@@ -41,6 +41,7 @@ from bondgraph.numerics.simulate import (
     InputSignals,
     Runaway,
     _vector,
+    crawl_hint,
     guard_rhs,
     lsoda_segment,
 )
@@ -464,6 +465,7 @@ def _integrate(model, t, sig, th, cols: _Columns, x_init, hold, kw):
     z = np.concatenate([x_init, S0.ravel()])
     Z[0] = z
     totals = {"nfev": 0, "njev": 0, "nlu": 0}
+    dt = float(np.median(np.diff(t))) if N > 1 else None
     for a, b in segments:
         rhs, jac = _augmented_system(model, th, cols, sig.segment_input(a, hold))
         if kw["method"] in IMPLICIT_METHODS:
@@ -471,16 +473,18 @@ def _integrate(model, t, sig, th, cols: _Columns, x_init, hold, kw):
         try:
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                 if kw["method"] == "LSODA":
-                    sol = lsoda_segment(guard_rhs(rhs), jac, t[a:b + 1], z, kw["rtol"],
+                    sol = lsoda_segment(guard_rhs(rhs, dt), jac, t[a:b + 1], z, kw["rtol"],
                                         kw["atol"], kw.get("max_step"))
                 else:
-                    sol = solve_ivp(guard_rhs(rhs), (t[a], t[b]), z, t_eval=t[a:b + 1], **kw)
+                    sol = solve_ivp(guard_rhs(rhs, dt), (t[a], t[b]), z, t_eval=t[a:b + 1],
+                                    **kw)
         except Runaway as r:
             raise NumericalError(
                 f"forward sensitivity integration ({kw['method']}) of model '{model.name}' "
                 f"{r.why} near t = {r.t:.6g} s",
-                hint="the parameters make the model unstable on this input, or the solver "
-                     "cannot follow it: check them; try method='LSODA' or 'Radau'") from None
+                hint=crawl_hint(model, jac, r.t, r.x, dt) if r.why.startswith("crawled") else
+                "the parameters make the model unstable on this input, or the solver "
+                "cannot follow it: check them; try method='LSODA' or 'Radau'") from None
         for key in totals:
             totals[key] += int(getattr(sol, key, 0) or 0)
         if sol.status != 0 or sol.y.shape[1] != b - a + 1 or not np.isfinite(sol.y).all():

@@ -669,6 +669,13 @@ RUNAWAY_NORM2 = 1e200
 #: Right-hand-side calls without the solver reaching a later time than
 #: before; a step that needs this many has stalled.
 STALL_CALLS = 50_000
+#: Right-hand-side calls in which an adaptive solver must advance at least
+#: one sample interval; one that does not crawls: it resolves a fast, lightly
+#: damped mode far above the sampling (a user's piston with its area
+#: inverted: a 1e8 rad/s oil-column mode sampled at 1 kHz, LSODA at 25 s for
+#: 30 samples, an output-error fit silent for minutes). Stick-slip friction
+#: with a narrow tanh takes some hundreds per interval at its reversals.
+CRAWL_CALLS = 20_000
 
 
 class Runaway(Exception):
@@ -692,22 +699,66 @@ def _stalled(tq, xq) -> Runaway:
     return Runaway(tq, xq, f"stalled ({STALL_CALLS} calls without advancing)")
 
 
+def _crawling(tq, xq, dt: float) -> Runaway:
+    """:data:`CRAWL_CALLS` calls advancing less than one sample interval."""
+    return Runaway(tq, xq, f"crawled ({CRAWL_CALLS} calls advancing less than one sample "
+                           f"interval of {dt:.4g} s)")
+
+
+def crawl_hint(model, jac, tq: float, xq, dt: float) -> str:
+    """What makes an adaptive solver crawl at ``(tq, xq)``: the fastest mode
+    of the Jacobian ``jac(t, x)`` there against the sampling interval
+    ``dt``, and what to check."""
+    try:
+        ev = np.linalg.eigvals(np.asarray(jac(tq, xq), dtype=float)[:model.n_x, :model.n_x])
+        lam = ev[int(np.argmax(np.abs(ev)))]
+        kind = (f"oscillating, damping ratio {-lam.real / abs(lam):.2g}" if lam.imag != 0
+                else "real")
+        fast = (f"its fastest mode there is {abs(lam):.3g} rad/s ({kind}), "
+                f"{abs(lam) * dt:.3g} times the sampling rate 1/dt; ")
+    except Exception:       # no Jacobian here: the advice stands without the figure
+        fast = ""
+    return (f"the model is far too fast for its sampling at these parameters: {fast}check "
+            f"the parameters' values and units (a compliance, mass or a transformer's modulus "
+            f"off by orders of magnitude), or simulate with a fixed step (method='rk4' or "
+            f"'ros2' with substeps)")
+
+
 def _undefined(tq, xq, k: int) -> Runaway:
     """Derivative ``k`` is not finite at the finite state ``xq``."""
     return Runaway(tq, xq, "met a derivative that is not finite at a finite state", component=k)
 
 
-def guard_rhs(rhs):
+def _crawl_guard(dt: float | None) -> Callable[[float, np.ndarray], None]:
+    """A check called with every right-hand-side evaluation that raises
+    :func:`_crawling` when :data:`CRAWL_CALLS` calls in a row advanced the
+    furthest time reached by less than ``dt`` (no check for ``dt`` None)."""
+    mark = [0, -np.inf, -np.inf]        # calls, furthest t, furthest t at the last check
+
+    def check(tq, xq):
+        mark[0] += 1
+        mark[1] = max(mark[1], tq)
+        if mark[0] >= CRAWL_CALLS:
+            if mark[1] - mark[2] < dt:
+                raise _crawling(tq, xq, dt)
+            mark[0], mark[2] = 0, mark[1]
+    return (lambda tq, xq: None) if not dt or not np.isfinite(dt) else check
+
+
+def guard_rhs(rhs, dt: float | None = None):
     """``rhs(t, x)`` for ``scipy.integrate.solve_ivp`` that stops the
     solver by raising ``Runaway`` (its ``t``, ``x`` and ``why``) when the
-    state is non-finite or its squared norm passes ``RUNAWAY_NORM2``, or
-    when the solver has made ``STALL_CALLS`` calls without reaching a later
-    time than before. The first derivative that is not finite at a finite
-    state (a law outside its domain: log of a state at 0) is kept as
-    ``g.undefined`` (a ``Runaway`` whose ``component`` names it), not
-    raised: the solver may reject that trial step and go on; if it fails,
-    the caller names the law instead of the failure."""
+    state is non-finite or its squared norm passes ``RUNAWAY_NORM2``, when
+    the solver has made ``STALL_CALLS`` calls without reaching a later
+    time than before, or (with the sampling interval ``dt``) when
+    ``CRAWL_CALLS`` calls advanced it less than ``dt``. The first derivative
+    that is not finite at a finite state (a law outside its domain: log of
+    a state at 0) is kept as ``g.undefined`` (a ``Runaway`` whose
+    ``component`` names it), not raised: the solver may reject that trial
+    step and go on; if it fails, the caller names the law instead of the
+    failure."""
     seen = [-np.inf, 0]
+    crawl = _crawl_guard(dt)
 
     def g(tq, xq):
         s = float(np.dot(xq, xq))
@@ -719,6 +770,7 @@ def guard_rhs(rhs):
             seen[1] += 1
             if seen[1] > STALL_CALLS:
                 raise _stalled(tq, xq)
+        crawl(tq, xq)
         d = rhs(tq, xq)
         if g.undefined is None and not np.all(ok := np.isfinite(d)):
             # kept, not raised: a solver may reject the trial step and go on
@@ -728,7 +780,7 @@ def guard_rhs(rhs):
     return g
 
 
-def compiled_rhs(kernels, th, table, n_x: int) -> Callable | None:
+def compiled_rhs(kernels, th, table, n_x: int, dt: float | None = None) -> Callable | None:
     """The guarded right-hand side of :func:`guard_rhs` over the point
     kernels ``kernels`` at ``th`` and the segment's input ``table``
     (:meth:`InputSignals.segment_table`) as one compiled call per
@@ -751,9 +803,11 @@ def compiled_rhs(kernels, th, table, n_x: int) -> Callable | None:
     u, out = np.empty(samples.shape[1]), np.empty(n_x)
     state, limits = np.array([-np.inf, 0.0]), np.array([RUNAWAY_NORM2, float(STALL_CALLS)])
     ts = np.ascontiguousarray(ts, dtype=float)
+    crawl = _crawl_guard(dt)
 
     def g(tq, xq):
         xq = np.ascontiguousarray(xq, dtype=float)
+        crawl(tq, xq)
         code = call(addr, float(tq), xq, ts, samples, slopes, ua, held, thc, u, out, state,
                     limits)
         if code:
@@ -863,6 +917,7 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
     else:
         segments = [(0, n - 1)]
     totals = {"nfev": 0, "njev": 0, "nlu": 0}
+    dt = float(np.median(np.diff(t))) if n > 1 else None
     x = np.array(x0, dtype=float)
     X[0] = x
     for a, b in segments:
@@ -870,8 +925,8 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
         if method in IMPLICIT_METHODS:
             kw["jac"] = jac
         guarded = None if kernels is None else compiled_rhs(
-            kernels, th, sig.segment_table(a, sig.hold), model.n_x)
-        guarded = guarded or guard_rhs(rhs)
+            kernels, th, sig.segment_table(a, sig.hold), model.n_x, dt)
+        guarded = guarded or guard_rhs(rhs, dt)
         try:
             with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                 if method == "LSODA":
@@ -885,7 +940,8 @@ def _solve_ivp(model, t, sig: InputSignals, th, x0, method, tols, stats, kernels
             raise NumericalError(
                 f"{method} {r.why} for model '{model.name}' near t = {r.t:.6g} s "
                 f"(largest state there: '{model.states[j]}' = {r.x[j]:.6g})",
-                hint=(_jump_hint(model) or "the solver cannot follow the model here: try "
+                hint=(crawl_hint(model, jac, r.t, r.x, dt) if r.why.startswith("crawled") else
+                      _jump_hint(model) or "the solver cannot follow the model here: try "
                       "another method (BDF, Radau, LSODA) or a max_step"
                       if r.why.startswith("stalled") else
                       "the parameters make the model unstable on this input (a state passed "
