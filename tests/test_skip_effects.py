@@ -41,6 +41,16 @@ def test_a_pattern_that_matches_nothing_is_refused_with_the_names():
         settings("--skip-effects", "*")
 
 
+def test_the_whole_library_list_but_one_leaves_that_one():
+    """The names of `bondgraph models --effects` copied whole, one left
+    out: the optional ones among them (scored only with --add-effects) are
+    no mistake, and the loop scores the one left."""
+    every = [e.name for e in DEFAULT_EFFECTS] + [e.name for e in cli_loop.OPTIONAL_EFFECTS]
+    assert "bouc_wen" in every
+    s = settings("--skip-effects", ",".join(n for n in every if n != "cubic_stiffness"))
+    assert [e.name for e in s.effects] == ["cubic_stiffness"]
+
+
 def test_discovery_seeks_no_law_at_sensors_the_user_ruled_out(monkeypatch):
     from bondgraph.diagnose.discover import effect as disc
 

@@ -350,14 +350,19 @@ def skipped_effects(effects, patterns) -> tuple:
     Raises
     ------
     OptionError
-        A pattern that matches no effect of ``effects`` (the names listed),
-        or patterns that leave no effect to score.
+        A pattern that matches no effect of ``effects`` nor an optional one
+        of the library (the names listed), or patterns that leave no effect
+        to score.
     """
     import fnmatch
 
     names = [e.name for e in effects]
+    # an optional effect not asked for (--add-effects) is not scored anyway:
+    # skipping it is no mistake (the list of `bondgraph models --effects`
+    # copied whole)
+    optional = [e.name for e in OPTIONAL_EFFECTS]
     for pat in patterns:
-        if not fnmatch.filter(names, pat):
+        if not fnmatch.filter(names, pat) and not fnmatch.filter(optional, pat):
             raise OptionError(f"--skip-effects: '{pat}' matches no effect the loop scores "
                               f"(the effects: {', '.join(names)})",
                               hint="give an effect's name or a pattern such as sensor_*")
