@@ -180,6 +180,12 @@ def test_cli_linearize_writes_npz_poles_and_bode(tmp_path, capsys):
     assert (tmp_path / "ht.png").stat().st_size > 5000
     for p in np.linalg.eigvals(A):
         assert f"{p.real:.6g}" in text
+    # a name without the suffix gets it: np.load and the plot beside it expect it
+    assert main(["linearize", "hydraulic_tanks", "--at", "Q=1e-4", "-o",
+                 str(tmp_path / "lin1")]) == 0
+    assert f"wrote {tmp_path / 'lin1.npz'}" in capsys.readouterr().out
+    np.testing.assert_allclose(np.load(tmp_path / "lin1.npz")["A"], A, rtol=1e-12)
+    assert not (tmp_path / "lin1").exists() and (tmp_path / "lin1.png").exists()
 
 
 def test_cli_linearize_at_an_estimates_values(tmp_path, capsys):

@@ -37,6 +37,8 @@ def run(args) -> int:
     params = read_params(args.params) if args.params else None
     lin = linearize(args.model, parse_pairs(args.at, "--at"), params=params)
     out = Path(args.output or f"{lin.model}_linear.npz")
+    if out.suffix != ".npz":        # np.load and the Bode plot beside it expect it
+        out = out.with_name(out.name + ".npz")
     lin.save(out)
     where = "equilibrium" if lin.equilibrium else "operating point"
     print(f"{lin.model}: {len(lin.states)} states, {len(lin.inputs)} inputs, "

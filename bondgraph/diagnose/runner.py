@@ -1451,7 +1451,8 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
                 f"already, or it cannot attach)")
     ctx.log(f"step {step}: {len(ranking)} candidates scored in "
             f"{time.perf_counter() - t_ev:.1f} s; best: " + "; ".join(
-                f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})" for c in ranking[:5]))
+                f"{c.label} (χ²={c.statistic:.1f}, k={c.dof})"
+                for c in [c for c in ranking if not c.failed][:5]))
     failed = [c for c in ranking if c.failed]
     if failed:
         ctx.log(f"  {len(failed)} candidate(s) could not be scored (filter failed): " + "; ".join(
