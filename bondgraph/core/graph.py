@@ -877,10 +877,11 @@ class BondGraph:
 
         inverse = have == _units.dimensionality(_units.quotient(den, num))
         if inverse and is_tf:
-            hint = (f"the modulus is the inverse of what these bonds need: connect p1 to "
-                    f"'{_other_end(el.p2)}' and p2 to '{_other_end(el.p1)}' (the modulus "
-                    f"then reads e1 = m·e2 from that side), or declare the modulus as "
-                    f"1/({el.modulus})")
+            hint = (f"the modulus is the inverse of what these bonds need: declare it as "
+                    f"1/({el.modulus}) (the power direction kept), or connect p1 to "
+                    f"'{_other_end(el.p2)}' and p2 to '{_other_end(el.p1)}' (e1 = m·e2 then "
+                    f"reads from that side, and the bonds' power direction, hence the sign "
+                    f"of the flow through the two-port, is reversed)")
         elif inverse:
             hint = f"the modulus is the inverse of what these bonds need: 1/({el.modulus})"
         else:
