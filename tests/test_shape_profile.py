@@ -111,14 +111,28 @@ def test_a_softer_reversal_keeps_the_data_driven_width():
     assert conf.values["eps"] == pytest.approx(width)
 
 
+def test_a_much_softer_reversal_keeps_the_wider_width():
+    """The truth's width three times the data-driven one: x3 is tried
+    first and kept (a law too sharp biases the level and the damping beside
+    it), and the narrower widths are not refitted."""
+    _, current, _, _, width, conf = confirmed(0.075)
+    assert conf.shape == {"coulomb.w.eps": pytest.approx(3.0 * width)} and conf.dof == 2
+    est, std = conf.fit.estimates(), conf.fit.std
+    for name, truth in (("coulomb.w.Fc", FC), ("J", J), ("b", B)):
+        assert abs(est[name] - truth) < 3 * std[name], name
+
+
 @pytest.mark.parametrize("nlls, refitted", [
     ((10.0, 12.0, 5.0), [1.0, 0.3]),            # x0.3 did not lower the NLL: x0.1 not refitted
     ((10.0, 8.0, 9.0), [1.0, 0.3, 0.1]),        # x0.3 lowered it: x0.1 refitted
     ((10.0, float("nan"), 9.0), [1.0, 0.3, 0.1]),   # a failed x0.3 settles nothing
+    ((10.0, 12.0, 5.0, 9.0), [3.0, 1.0]),       # the wider x3 first: x1 did not lower it
+    ((10.0, 12.0, 5.0, 11.0), [3.0, 1.0, 0.3]),  # x1 lowered it: narrower on
 ])
 def test_narrower_widths_stop_at_the_first_that_does_not_lower_the_nll(monkeypatch, nlls,
                                                                        refitted):
-    """The widths are refitted from the widest down; once a converged refit
+    """The widths are refitted from the widest down (x3 before the
+    data-driven x1, whatever order they were built in); once a converged refit
     does not lower the lowest NLL so far, the narrower ones are not refitted
     (the refits are stubs that return the given NLL per width)."""
     from types import SimpleNamespace
@@ -126,7 +140,7 @@ def test_narrower_widths_stop_at_the_first_that_does_not_lower_the_nll(monkeypat
     from bondgraph.diagnose import confirm as C
 
     calls = []
-    per = dict(zip((1.0, 0.3, 0.1), nlls))
+    per = dict(zip((1.0, 0.3, 0.1, 3.0), nlls))
 
     def fake_fit(ctx, g, names, start, what, **kw):
         calls.append(g)
@@ -136,8 +150,9 @@ def test_narrower_widths_stop_at_the_first_that_does_not_lower_the_nll(monkeypat
     monkeypatch.setattr(C, "continued", lambda ctx, g, f, label: f)
     ctx = SimpleNamespace(settings=LoopSettings([]))
     sub = SimpleNamespace()               # another context: x1 is refitted too
-    built = {k: (k, None, None) for k in (1.0, 0.3, 0.1)}
+    # the data-driven width first, as _width_models builds them
+    built = {k: (k, None, None) for k in per}
     conf = SimpleNamespace(fit=SimpleNamespace(estimates=lambda: {}))
     fits, tried = C._width_refits(ctx, sub, built, [], conf, "coulomb @ w")
     assert calls == refitted and list(fits) == refitted
-    assert any("not refitted" in t for t in tried) == (len(refitted) < 3)
+    assert any("not refitted" in t for t in tried) == (len(refitted) < len(per))

@@ -126,7 +126,8 @@ def _effect_section(effect, graphs, optional: bool) -> list[str]:
         box = f"[{p.bounds[0]:g}, {p.bounds[1]:g}]" if p.bounds else "from the data"
         unit = (p.unit or "1").replace("{", "(").replace("}", ")").replace("|", "\\|")
         how = ("yes" if p.estimated else "no (shape)" if not p.profile else
-               "profiled at " + ", ".join(f"x{k:g}" for k in (1.0,) + tuple(p.profile)))
+               "profiled at " + ", ".join(f"x{k:g}" for k in sorted({1.0, *p.profile},
+                                                                    reverse=True)))
         lines.append(f"| `{p.name}` | {unit} | {how} "
                      f"| {box} | {p.description} |")
     app = _first_application(effect, graphs)

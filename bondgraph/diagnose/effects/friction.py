@@ -41,14 +41,17 @@ from bondgraph.diagnose.effects.base import (
 )
 
 #: factors of a friction law's tanh width (2 % of the junction's RMS flow)
-#: that a confirmation also tries: the width is a smoothing of sign(v), not
-#: physics, and too wide a one leaves a Coulomb level that the record's
-#: reversals contradict for other effects to absorb (a user's geared DC
-#: motor, Coulomb friction at the load: with the width at 2 % the loop added
-#: a spurious speed-sensor gain that moved the motor constant 30 %; at 0.2 %
-#: Coulomb friction alone, held-out error 0.00698 against 0.00709 with four
-#: more effects)
-SIGN_WIDTHS = (0.3, 0.1)
+#: that a confirmation also tries (the widest first; the likelihood ratio
+#: decides, :func:`bondgraph.diagnose.confirm.profiled_shape`): the width is
+#: a smoothing of sign(v), not physics, and too wide a one leaves a Coulomb
+#: level that the record's reversals contradict for other effects to absorb
+#: (a user's geared DC motor, Coulomb friction at the load: with the width at
+#: 2 % the loop added a spurious speed-sensor gain that moved the motor
+#: constant 30 %; at 0.2 % Coulomb friction alone, held-out error 0.00698
+#: against 0.00709 with four more effects); too narrow a one biases the
+#: level and the damping beside it (a hydraulic piston's seal friction
+#: reversing over 4 %: F_c 7 % low at 2 %, 3 % high at 6 %)
+SIGN_WIDTHS = (3.0, 0.3, 0.1)
 
 
 class _JunctionLaw(Effect):
