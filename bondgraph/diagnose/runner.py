@@ -2491,7 +2491,8 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
 
     def judge(free=(), searched=None):
         return decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
-                      box_free=free, interior=inner, searched=searched)
+                      box_free=free, interior=inner, searched=searched,
+                      known=s.hold_unidentified)
 
     d, free = judge(), []
     if not d.accepted and newly_boxed(current, after):
