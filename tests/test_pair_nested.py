@@ -60,6 +60,9 @@ def test_a_pair_started_from_a_members_refit_ends_no_worse_than_it():
     assert own.fit.nll < current.nll - 100          # the friction is there
     fc = own.values["Fc"]
     assert abs(fc - FC) < 0.1 * FC
+    # the member's confirmed values (its kept tanh width among them) go with it,
+    # as the runner records them (confirmed_record)
+    coulomb.confirmed = {"values": dict(own.values)}
     # from the member's refit, the offset at 0: the start is that refit's point
     nested = confirm_pair(ctx, current, (coulomb, offset), scales, "nested", base=own.fit,
                           off=offset)

@@ -112,9 +112,8 @@ def test_a_softer_reversal_keeps_the_data_driven_width():
 
 
 def test_a_much_softer_reversal_keeps_the_wider_width():
-    """The truth's width three times the data-driven one: x3 is tried
-    first and kept (a law too sharp biases the level and the damping beside
-    it), and the narrower widths are not refitted."""
+    """The truth's width three times the data-driven one: x3 is kept (a
+    law too sharp biases the level and the damping beside it)."""
     _, current, _, _, width, conf = confirmed(0.075)
     assert conf.shape == {"coulomb.w.eps": pytest.approx(3.0 * width)} and conf.dof == 2
     est, std = conf.fit.estimates(), conf.fit.std
@@ -126,13 +125,14 @@ def test_a_much_softer_reversal_keeps_the_wider_width():
     ((10.0, 12.0, 5.0), [1.0, 0.3]),            # x0.3 did not lower the NLL: x0.1 not refitted
     ((10.0, 8.0, 9.0), [1.0, 0.3, 0.1]),        # x0.3 lowered it: x0.1 refitted
     ((10.0, float("nan"), 9.0), [1.0, 0.3, 0.1]),   # a failed x0.3 settles nothing
-    ((10.0, 12.0, 5.0, 9.0), [3.0, 1.0]),       # the wider x3 first: x1 did not lower it
-    ((10.0, 12.0, 5.0, 11.0), [3.0, 1.0, 0.3]),  # x1 lowered it: narrower on
+    ((10.0, 12.0, 5.0, 9.0), [1.0, 3.0, 0.3]),  # x3 lower than x1: the narrower side stops
+    ((10.0, 8.0, 9.0, 9.5), [1.0, 3.0, 0.3, 0.1]),  # ... and goes on where x0.3 is lower still
 ])
 def test_narrower_widths_stop_at_the_first_that_does_not_lower_the_nll(monkeypatch, nlls,
                                                                        refitted):
-    """The widths are refitted from the widest down (x3 before the
-    data-driven x1, whatever order they were built in); once a converged refit
+    """The widths are refitted from the data-driven x1 outwards on each
+    side (x3; x0.3, x0.1), whatever order they were built in; on a side, once a
+    converged refit
     does not lower the lowest NLL so far, the narrower ones are not refitted
     (the refits are stubs that return the given NLL per width)."""
     from types import SimpleNamespace

@@ -468,16 +468,21 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
     """Every parameter refitted in ``sub`` at each width of ``built``, from
     ``conf``'s estimates and continued until converged (``conf`` itself at
     the data-driven width when ``sub`` is the loop's context): factor ->
-    Fit, and one text per width for the log. The widths are taken from the
-    widest down, and a narrower one is not refitted once a converged refit
-    did not lower the lowest NLL of the wider ones: a width narrower than
-    the one the record prefers fits it worse still (a refit is the costliest
-    part of a confirmation, the finer substeps of the narrowest law make it
-    costlier; on a user's four-mass chain the profiles took 69 s of a 96 s
-    loop step)."""
-    fits, tried, best = {}, [], np.inf
-    widths = sorted(built.items(), key=lambda kw: -kw[0])    # the widest first
-    for i, (k, (g, model, _)) in enumerate(widths):
+    Fit, and one text per width for the log. From the data-driven width
+    outwards on each side, the wider ones (x3) and the narrower ones (x0.3,
+    then x0.1); on a side, a width further out is not refitted once a
+    converged refit did not lower the lowest NLL so far (x1's included): a
+    width beyond the one the record prefers fits it worse still (a refit is
+    the costliest part of a confirmation, the finer substeps of the
+    narrowest law make it costlier; on a user's four-mass chain the
+    profiles took 69 s of a 96 s loop step). Each side has its own stop: a
+    record can prefer a wider law than x1's yet a narrower one still more
+    (a mass-spring-damper's Coulomb friction at a fifth of the data-driven
+    width: x3 below x1, x0.3 below both)."""
+    fits, tried = {}, []
+
+    def refit(k: float) -> Fit | None:
+        g, model, _ = built[k]
         if k == 1.0 and sub is ctx:
             fits[k] = conf.fit
         else:
@@ -489,17 +494,26 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
                 fits[k] = continued(sub, g, f, label)
             except BondGraphError as exc:
                 tried.append(f"x{k:g} failed ({str(exc).splitlines()[0]})")
-                continue
+                return None
         f = fits[k]
         tried.append(f"x{k:g} NLL {f.nll:.2f}" + ("" if f.converged is not False
                                                   else " (not converged)"))
-        if f.converged is False or not np.isfinite(f.nll):
-            continue
-        if f.nll >= best and i + 1 < len(widths):
-            tried.append(", ".join(f"x{n:g}" for n, _ in widths[i + 1:])
-                         + f" not refitted (x{k:g} did not lower the NLL)")
-            break
-        best = min(best, f.nll)
+        return f if f.converged is not False and np.isfinite(f.nll) else None
+
+    one = refit(1.0) if 1.0 in built else None
+    start = one.nll if one is not None else np.inf
+    for side in (sorted(k for k in built if k > 1.0),
+                 sorted((k for k in built if k < 1.0), reverse=True)):
+        best = start
+        for i, k in enumerate(side):
+            f = refit(k)
+            if f is None:
+                continue
+            if f.nll >= best and i + 1 < len(side):
+                tried.append(", ".join(f"x{n:g}" for n in side[i + 1:])
+                             + f" not refitted (x{k:g} did not lower the NLL)")
+                break
+            best = min(best, f.nll)
     return fits, tried
 
 
