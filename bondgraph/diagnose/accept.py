@@ -317,11 +317,9 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
         (:func:`bondgraph.diagnose.runner.search_box_deciding`): a reason
         to reject.
     known : sequence of str
-        Parameters the user declared without a box (known values the loop
-        estimates only where the record asks, ``LoopSettings.hold_unidentified``):
-        one the refit moves along a direction it does not identify apart
-        from the candidate's new parameters is a reason to reject
-        (:func:`moved_known_value`).
+        Parameters declared without a box (``LoopSettings.hold_unidentified``):
+        one the refit moves along a ridge with the candidate's new parameters
+        is a reason to reject (:func:`moved_known_value`).
 
     Returns
     -------

@@ -2492,7 +2492,7 @@ def decided(ctx: Context, current: Fit, after: Fit, dof: int, comparable: bool,
     def judge(free=(), searched=None):
         return decide(current, after, s.accept, dof=dof, admissible=adm, comparable=comparable,
                       box_free=free, interior=inner, searched=searched,
-                      known=s.hold_unidentified)
+                      known=getattr(s, "hold_unidentified", ()))
 
     d, free = judge(), []
     if not d.accepted and newly_boxed(current, after):
