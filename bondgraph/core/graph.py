@@ -850,7 +850,8 @@ class BondGraph:
         (Karnopp, Margolis & Rosenberg, ch. 2). A TF whose modulus is the
         inverse of what its bonds need (a piston area A declared with the
         hydraulic side on p1, where e1 = m e2 needs 1/A) is the common slip:
-        the message says to swap the ports or invert the modulus. Skipped
+        the message says to invert the modulus, or to swap the ports (which
+        reverses the positive direction of the flow through it). Skipped
         where a unit is unknown (a symbol without unit, a bond whose units
         no junction or element declares)."""
         if any(p.bond is None for p in el.ports):

@@ -325,7 +325,7 @@ def profiled_shape(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales:
     a piston's seal friction reversing over 4 % of the RMS speed, fitted at
     2 %, left the Coulomb level 7 % low and the damping 15 % high, and the
     tracker of the leakage on that model raised a false alarm and found
-    the leak's change 1.9 s late (at x3: the level within 3 %, the change
+    the leak's change 1.9 s late (at x3: the level 3 % high, the change
     found 12 ms after it happened).
 
     Parameters

@@ -41,8 +41,8 @@ from bondgraph.diagnose.effects.base import (
 )
 
 #: factors of a friction law's tanh width (2 % of the junction's RMS flow)
-#: that a confirmation also tries (the widest first; the likelihood ratio
-#: decides, :func:`bondgraph.diagnose.confirm.profiled_shape`): the width is
+#: that a confirmation also tries (from x1 outwards on each side; the
+#: likelihood ratio decides, :func:`bondgraph.diagnose.confirm.profiled_shape`): the width is
 #: a smoothing of sign(v), not physics, and too wide a one leaves a Coulomb
 #: level that the record's reversals contradict for other effects to absorb
 #: (a user's geared DC motor, Coulomb friction at the load: with the width at
