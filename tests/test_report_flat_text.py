@@ -38,5 +38,9 @@ def test_a_loose_or_undetermined_parameter_keeps_the_ridge_warning():
         assert text.startswith("The record does not identify M, c, noise.x") and \
             "one point of a ridge" in text
     assert flat_text(final(flat=()), ROBUST) == ""
-    # the noise levels alone (no estimate of their own here): the warning stands
-    assert "one point of a ridge" in flat_text(final(flat=("noise.x", "noise.p")), ROBUST)
+    # a flat parameter without an estimate, or a scale combination found
+    # along the direction: the warning stands
+    assert "one point of a ridge" in flat_text(final(flat=("M", "ks")), ROBUST)
+    scaled = SimpleNamespace(flat=FLAT, ridge="; as relative changes: M +1.00, k +1.00",
+                             estimates=EST, std=STD)
+    assert "one point of a ridge" in flat_text(scaled, ROBUST)

@@ -655,9 +655,10 @@ NARROW_RIDGE_REL = 0.01
 def flat_text(final, robust: dict) -> str:
     """The report's paragraph on the parameters the final fit's Fisher
     information does not identify apart (``final.flat``; "" when none).
-    Where every such parameter with an estimate is still determined to
-    within :data:`NARROW_RIDGE_REL` of its value (its Cramér-Rao and robust
-    std, ``robust``), the paragraph says the sensitivities are nearly
+    Where every such parameter (the noise levels and initial states aside)
+    is still determined to within :data:`NARROW_RIDGE_REL` of its value (its
+    Cramér-Rao and robust std, ``robust``) and no scale combination was
+    found along it (``final.ridge``), the paragraph says the sensitivities are nearly
     collinear yet the record's signal-to-noise determines each: the
     relative eigenvalue test (below 1e-4 at a unit diagonal) is a property
     of the directions, not of how well this record pins them (a pump-fed
@@ -670,9 +671,10 @@ def flat_text(final, robust: dict) -> str:
     whole = (f" The combination, as relative changes at the estimates: "
              f"{ridge.removeprefix('; as relative changes: ')}." if ridge else "")
     est, std = final.estimates, final.std or {}
-    rel = [max(std.get(n) or np.inf, robust.get(n) or 0.0) / abs(est[n])
-           for n in flat if n in est and est[n]]
-    if rel and max(rel) < NARROW_RIDGE_REL:
+    names = [n for n in flat if not n.startswith(("noise.", "x0."))]
+    rel = [max(std.get(n) or np.inf, robust.get(n) or 0.0) / abs(est[n]) if est.get(n)
+           else np.inf for n in names]
+    if rel and max(rel) < NARROW_RIDGE_REL and not ridge:
         return (f"The sensitivities of {', '.join(flat)} are nearly collinear (relative "
                 f"eigenvalue of the Fisher information below 1e-4), yet this record determines "
                 f"each to within {max(rel):.2%} of its value (the stds above): the ridge is "
