@@ -641,49 +641,16 @@ def _md_accepted(result: LoopResult) -> list[str]:
     moved = moved_text(moved_declared(result))
     if moved:
         L += ["", moved[0].upper() + moved[1:] + "."]
-    if text := flat_text(result.final, robust):
-        L += ["", text]
+    flat = getattr(result.final, "flat", None)
+    if flat:
+        ridge = getattr(result.final, "ridge", "") or ""
+        whole = (f" The combination, as relative changes at the estimates: "
+                 f"{ridge.removeprefix('; as relative changes: ')}." if ridge else "")
+        L += ["", f"The record does not identify {', '.join(flat)} separately: the likelihood "
+              "is flat along a combination of them where the fit stopped (relative eigenvalue "
+              "of the Fisher information below 1e-4), so their values above are one point of "
+              f"a ridge; fix one of them, or add a record that excites them apart.{whole}"]
     return L
-
-
-#: relative std (the larger of Cramér-Rao and robust) below which every
-#: parameter on a flat direction is still determined by the record: the
-#: ridge is narrow, not flat (:func:`flat_text`)
-NARROW_RIDGE_REL = 0.01
-
-
-def flat_text(final, robust: dict) -> str:
-    """The report's paragraph on the parameters the final fit's Fisher
-    information does not identify apart (``final.flat``; "" when none).
-    Where every such parameter (the noise levels and initial states aside)
-    is still determined to within :data:`NARROW_RIDGE_REL` of its value (its
-    Cramér-Rao and robust std, ``robust``) and no scale combination was
-    found along it (``final.ridge``), the paragraph says the sensitivities are nearly
-    collinear yet the record's signal-to-noise determines each: the
-    relative eigenvalue test (below 1e-4 at a unit diagonal) is a property
-    of the directions, not of how well this record pins them (a pump-fed
-    piston at 1 kHz: M, c, k, R_l, C_h and the Coulomb level "not
-    identified separately" beside stds of 1e-4 of their values)."""
-    flat = getattr(final, "flat", None)
-    if not flat:
-        return ""
-    ridge = getattr(final, "ridge", "") or ""
-    whole = (f" The combination, as relative changes at the estimates: "
-             f"{ridge.removeprefix('; as relative changes: ')}." if ridge else "")
-    est, std = final.estimates, final.std or {}
-    names = [n for n in flat if not n.startswith(("noise.", "x0."))]
-    rel = [max(std.get(n) or np.inf, robust.get(n) or 0.0) / abs(est[n]) if est.get(n)
-           else np.inf for n in names]
-    if rel and max(rel) < NARROW_RIDGE_REL and not ridge:
-        return (f"The sensitivities of {', '.join(flat)} are nearly collinear (relative "
-                f"eigenvalue of the Fisher information below 1e-4), yet this record determines "
-                f"each to within {max(rel):.2%} of its value (the stds above): the ridge is "
-                f"narrow at its signal-to-noise ratio; a record with less excitation or more "
-                f"noise may not tell them apart.{whole}")
-    return (f"The record does not identify {', '.join(flat)} separately: the likelihood "
-            "is flat along a combination of them where the fit stopped (relative eigenvalue "
-            "of the Fisher information below 1e-4), so their values above are one point of "
-            f"a ridge; fix one of them, or add a record that excites them apart.{whole}")
 
 
 def _g3(v) -> str:
