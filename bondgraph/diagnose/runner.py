@@ -1040,7 +1040,10 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
         return []
     o = ctx.problem.ukf
     error = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} "
-             f"noise stds per sample at {where}")
+             f"noise stds per sample at {where}" if np.isfinite(worst) or o.method != "rk4" else
+             f"{o.method}({o.substeps}) is unstable at {where} (a fast mode of the model "
+             f"outside RK4's stability region: it grows every deviation from the "
+             f"trajectory; ROS2 is L-stable)")
     if adopt and rec:
         msg = (f"auto_substeps: {error}; the filter takes {rec} substeps per sample{how} "
                f"from {where} on")

@@ -602,6 +602,14 @@ def holds_against(inputs: Sequence[InputHold], hold: str) -> list[InputHold]:
             and ("zoh" if fh == "zoh" else "linear") != h.hold]
 
 
+def _error_text(disc: Discretisation, error: float) -> str:
+    """A one-step error for a line: ``"0.061 σ"``; an RK4 step's infinite
+    one (:func:`bondgraph.inference.ukf.rk4_unstable`) named."""
+    if disc.method == "rk4" and error == np.inf:
+        return "unstable (a fast mode outside RK4's stability region, or not finite)"
+    return f"{error:.2g} σ"
+
+
 @dataclass(frozen=True)
 class DiscretisationChoice:
     """The discretisation chosen for a problem at one θ, and the evidence.
@@ -669,7 +677,7 @@ class DiscretisationChoice:
         1.2e-05 σ <= 0.1 σ per sample, free-run bias bound 0.0033 <= 0.5 std
         (ros2(1): 0.061 σ, bound 2.4e+02); hold: F: linear (...)"``.
         """
-        others = [f"{d.method}({d.substeps}): {np.max(e, initial=0):.2g} σ"
+        others = [f"{d.method}({d.substeps}): {_error_text(d, np.max(e, initial=0))}"
                   + (f", bound {r:.2g}" if np.isfinite(r) or r == np.inf else "")
                   for d, e, r in self.tried if d != self.disc][:3]
         verdict = "within" if self.ok else "the best tried, NOT within"
@@ -918,6 +926,17 @@ def likelier_hold_at(problem, theta, choice: DiscretisationChoice, *, sigma=None
     return replace(choice, hold_reason=f"{choice.hold_reason}; kept by {why}"), line
 
 
+def _once(fn):
+    """``fn`` called at most once; later calls return its first result."""
+    memo = []
+
+    def call():
+        if not memo:
+            memo.append(fn())
+        return memo[0]
+    return call
+
+
 def _first_within(problem, th, cands, sig, free_run: bool, tolerance: float,
                   bias_tolerance: float) -> tuple[Discretisation, bool, list]:
     """``(disc, ok, tried)``: the first candidate within both criteria (the
@@ -926,11 +945,12 @@ def _first_within(problem, th, cands, sig, free_run: bool, tolerance: float,
     model = problem.model
     cache: dict = {}
     tried = []
+    states = _once(lambda: problem.filtered_states(th))
     for chunk in (cands[:2], cands[2:6], cands[6:]):     # stop early on the cheap ones
         if not chunk:
             continue
         errs = discretisation_errors(model, problem.t, problem.u, th, problem.x0, chunk,
-                                     sigma=sig, cache=cache)
+                                     sigma=sig, cache=cache, states=states)
         for d, r in zip(chunk, errs):
             one, rss = r["one_step"], float("nan")
             step_ok = np.max(one, initial=0.0) <= tolerance
@@ -963,7 +983,8 @@ def check_discretisation(problem, theta, disc: Discretisation | None = None, *, 
     if free_run is None:
         free_run = no_process_noise(problem.model, th)
     r = discretisation_errors(problem.model, problem.t, problem.u, th, problem.x0, [disc],
-                              sigma=sig, free_run=free_run)[0]
+                              sigma=sig, free_run=free_run,
+                              states=lambda: problem.filtered_states(th))[0]
     one = float(np.max(r["one_step"], initial=0.0))
     rss = float(r["free_run_rss"])
     return bool(one <= tolerance and (not free_run or rss <= bias_tolerance)), one, rss

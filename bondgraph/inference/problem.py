@@ -378,6 +378,25 @@ class Problem:
         return discretisation_check(self.model, self.t, self.u, theta, self.x0, disc=d,
                                     sigma=self.noise_scale(theta), free_run=free_run)
 
+    def filtered_states(self, theta) -> np.ndarray | None:
+        """The filter's state estimates x̂_k|k (N, n_x) at ``theta``
+        (n_theta,) by ROS2 (L-stable) with the problem's substeps and hold,
+        or None where the filter fails: where the states go when they
+        follow the record (:func:`bondgraph.inference.ukf.discretisation_errors`
+        judges an RK4 step's stability there too)."""
+        th = np.asarray(theta, float).reshape(1, -1)
+        p = self if self.disc.method == "ros2" else self.conditioned_on(
+            disc=replace(self.disc, method="ros2"))
+        try:
+            with np.errstate(all="ignore"):
+                res = p.nll(th, store=True)
+        except (FloatingPointError, np.linalg.LinAlgError, NumericalError):
+            return None
+        if not np.isfinite(res.nll[0]) or res.x_filt is None:
+            return None
+        x = res.x_filt[:, 0]
+        return x if np.isfinite(x).all() else None
+
     def one_step_errors(self, theta, substeps: Sequence[int], *, sigma=None,
                         cache: dict | None = None) -> np.ndarray:
         """The largest one-step output error over outputs and samples of the
@@ -390,7 +409,8 @@ class Problem:
         discs = [replace(self.disc, substeps=int(n)) for n in substeps]
         sig = self.noise_scale(theta) if sigma is None else sigma
         errs = discretisation_errors(self.model, self.t, self.u, theta, self.x0, discs,
-                                     sigma=sig, cache=cache)
+                                     sigma=sig, cache=cache,
+                                     states=lambda: self.filtered_states(theta))
         return np.array([float(np.max(e["one_step"], initial=0.0)) for e in errs])
 
     def interval_errors(self, theta, substeps: Sequence[int], *,
@@ -411,7 +431,8 @@ class Problem:
         at_sigma = sigma_point_errors(self.model, self.t, self.u, th, res.x_filt[:, 0],
                                       res.P_filt[:, 0], self.ukf, substeps, sig)
         discs = [replace(self.disc, substeps=int(n), refine=()) for n in substeps]
-        along = discretisation_errors(self.model, self.t, self.u, th, self.x0, discs, sigma=sig)
+        along = discretisation_errors(self.model, self.t, self.u, th, self.x0, discs, sigma=sig,
+                                      states=res.x_filt[:, 0])
         return at_sigma, np.array([e["intervals"] for e in along]).reshape(at_sigma.shape)
 
     def noise_scale(self, theta) -> np.ndarray:
