@@ -126,3 +126,80 @@ def test_the_default_choice_is_stable(problem):
     ref = Discretisation(method="ros2", substeps=32, hold=d.hold, backend=d.backend)
     assert float(problem.conditioned_on(disc=d).nll(th).nll[0]) == pytest.approx(
         float(problem.conditioned_on(disc=ref).nll(th).nll[0]), abs=1.0)
+
+
+# --- a friction law's stiff mode, only at velocity reversals -------------------
+
+FC, EPS, MASS, DT_F = 2.0, 0.01, 1.0, 0.05
+F_NOISE = 0.1         # m/s: a coarse tachometer
+
+
+def friction_graph() -> BondGraph:
+    """A user's mass with a smooth Coulomb friction F = F_c·tanh(v/ε) and a
+    weak viscous damper, force-driven, its velocity measured at 20 Hz."""
+    import sympy as sp
+
+    g = BondGraph("user_tanh_friction", "A mass with smooth Coulomb friction, force-driven.")
+    m = g.param("m", MASS, "kg", (0.1, 10.0), "mass")
+    fc = g.param("Fc", FC, "N", (0.1, 20.0), "Coulomb friction force")
+    b = g.param("b", 0.1, "N*s/m", (0.01, 10.0), "viscous damper")
+    v = g.one("v", domain="translation")
+    g.connect(g.Se("push", g.input("F", "N", 0.0, "applied force")), v)
+    mass = g.I("mass", m)
+    g.connect(v, mass)
+    g.connect(v, g.R("viscous", b))
+    g.connect(v, g.R("coulomb", effort=lambda f: fc * sp.tanh(f / EPS)))
+    g.set_process_noise(mass.p, 0.02)
+    g.sensor("v", v.f, unit="m/s", noise_std=F_NOISE)
+    return g
+
+
+@pytest.fixture(scope="module")
+def friction_problem():
+    """60 s at 20 Hz, simulated by scipy (Radau, rtol 1e-10) from the
+    hand-written equation m·v' = F − F_c·tanh(v/ε) − b·v; the force
+    reverses the mass every 2.5 s."""
+    t = np.arange(1201) * DT_F
+
+    def push(tt):
+        return 5.0 * np.sin(2 * np.pi * 0.2 * np.asarray(tt, float))
+
+    def rhs(tt, z):
+        vv = z[0] / MASS
+        return [float(push(tt)) - FC * np.tanh(vv / EPS) - 0.1 * vv]
+
+    sol = solve_ivp(rhs, (0, t[-1]), [0.0], t_eval=t, method="Radau", rtol=1e-10, atol=1e-12)
+    rng = np.random.default_rng(5)
+    exp = Experiment.from_arrays(
+        t, {"F": push(t), "v": sol.y[0] / MASS + F_NOISE * rng.standard_normal(t.size)},
+        units={"F": "N", "v": "m/s"}, roles={"F": "input", "v": "output"},
+        noise_std={"v": F_NOISE}, name="friction_rec")
+    return make_problem(Model.from_graph(friction_graph()), exp)
+
+
+def test_a_friction_reversal_asks_for_the_substeps_of_its_stiff_mode(friction_problem,
+                                                                     monkeypatch):
+    """The Jacobian at v = 0 is −F_c/(ε·m) = −200 1/s (hand-derived), z = −10
+    per sample at 20 Hz: RK4 needs 4 substeps there, and only within the few
+    samples of each reversal (every sample's modes are taken: a sparse
+    subset can miss them). Without the rule the one-step check takes 3 (a
+    coarse tachometer's noise hides the reversal's one-step error)."""
+    lam = -FC / (EPS * MASS)
+    need = next(n for n in range(1, 64) if rk4_growth(lam * DT_F / n) <= 1.0)
+    assert need == 4
+    pb, th = friction_problem, friction_problem.model.theta0
+    chosen = choose_discretisation(pb, th, given={"method": "rk4", "hold": "linear"})
+    assert chosen.ok and chosen.disc.substeps >= need, chosen.line()
+    assert "rk4(3): unstable" in chosen.line(), chosen.line()
+    monkeypatch.setattr(ukf_mod, "rk4_unstable", lambda modes, h: np.zeros(np.size(h), bool))
+    blind = choose_discretisation(pb, th, given={"method": "rk4", "hold": "linear"})
+    assert blind.ok and blind.disc.substeps < need, blind.line()
+    monkeypatch.undo()
+
+    def nll(method, n):
+        d = Discretisation(method=method, substeps=n, hold="linear", backend=pb.disc.backend)
+        return float(pb.conditioned_on(disc=d).nll(th).nll[0])
+
+    # the chosen step's likelihood agrees with RK4's at 4 times its substeps
+    n = chosen.disc.substeps
+    assert nll("rk4", n) == pytest.approx(nll("rk4", 4 * n), abs=0.5)

@@ -918,9 +918,11 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
 
 #: the most Jacobians whose eigenvalues :func:`reference_modes` takes along a
 #: record (evenly spread; every interval is judged by the nearest one), and
-#: the most scalar operations their eigenvalues may cost (n_x³ each)
-MODE_POINTS = 400
-MODE_FLOPS = 2e8
+#: the most scalar operations their eigenvalues may cost (n_x³ each): every
+#: sample of a small model's record (a friction law's stiff mode lasts the
+#: few samples of a reversal), some hundreds of a large one's
+MODE_POINTS = 200_000
+MODE_FLOPS = 5e8
 
 
 def reference_modes(model, xr: np.ndarray, held, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
