@@ -1749,7 +1749,9 @@ def _step_message(problem: Problem, theta, ukf: UKFOptions, worst: float, sigma,
     :data:`BIAS_TOLERANCE` std): the step is the cause (the check's
     reference holds the input alike); the fix is the cheapest method and
     substeps within, with the filter's hold."""
-    what = (f"{worst:.2g} measurement-noise standard deviations per sample" if bound is None
+    what = ("unbounded: the step is unstable on a fast mode of the model (outside RK4's "
+            "stability region)" if ukf.method == "rk4" and worst == np.inf and bound is None
+            else f"{worst:.2g} measurement-noise standard deviations per sample" if bound is None
             else f"{worst:.2g} measurement-noise standard deviations per sample, but without "
                  f"process noise the filter predicts by the free run, whose error may bias an "
                  f"estimate by up to {bound:.2g} Cramér-Rao standard deviations")

@@ -786,7 +786,8 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
     -------
     dict
         ``one_step (n_y,)``: max over samples of |Δy|/σ for one step from
-        the reference state; ``free_run (n_y,)``: max |Δy|/σ of the free
+        the reference state (inf where an RK4 step is unstable on a mode of
+        the Jacobian there, :func:`rk4_unstable`); ``free_run (n_y,)``: max |Δy|/σ of the free
         run (accumulated error, an upper bound of what process noise has to
         absorb); ``reference``: the reference used.
     """
@@ -807,9 +808,11 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
         sig = (np.asarray(model.meas_std(th), float)[0] if sigma is None
                else np.broadcast_to(np.asarray(sigma, float), (model.n_y,)))
         yr = model.h(xr[1:], u[1:], th)
-        one = np.maximum(np.zeros(model.n_y), np.max(
-            np.abs(model.h(_one_steps(step, xr, held, th, t), u[1:], th) - yr) / sig,
-            axis=0, initial=0.0))
+        dev = np.abs(model.h(_one_steps(step, xr, held, th, t), u[1:], th) - yr) / sig
+        if disc.method == "rk4":        # as discretisation_errors: an unstable step
+            dev[rk4_unstable(reference_modes(model, xr, held, th), np.diff(t) / step.per)] = \
+                np.inf
+        one = np.maximum(np.zeros(model.n_y), np.max(dev, axis=0, initial=0.0))
         free = np.full(model.n_y, np.nan)
         if free_run:
             dev = np.abs(_free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig))
