@@ -602,11 +602,16 @@ def holds_against(inputs: Sequence[InputHold], hold: str) -> list[InputHold]:
             and ("zoh" if fh == "zoh" else "linear") != h.hold]
 
 
+#: how a line names an RK4 step whose one-step error is infinite
+#: (:func:`bondgraph.inference.ukf.rk4_unstable`), the first time
+UNSTABLE = "unstable (a fast mode outside RK4's stability region, or not finite)"
+
+
 def _error_text(disc: Discretisation, error: float) -> str:
     """A one-step error for a line: ``"0.061 σ"``; an RK4 step's infinite
-    one (:func:`bondgraph.inference.ukf.rk4_unstable`) named."""
+    one named (:data:`UNSTABLE`)."""
     if disc.method == "rk4" and error == np.inf:
-        return "unstable (a fast mode outside RK4's stability region, or not finite)"
+        return UNSTABLE
     return f"{error:.2g} σ"
 
 
@@ -680,6 +685,8 @@ class DiscretisationChoice:
         others = [f"{d.method}({d.substeps}): {_error_text(d, np.max(e, initial=0))}"
                   + (f", bound {r:.2g}" if np.isfinite(r) or r == np.inf else "")
                   for d, e, r in self.tried if d != self.disc][:3]
+        others = [o if i == next((j for j, x in enumerate(others) if UNSTABLE in x), None)
+                  else o.replace(UNSTABLE, "unstable") for i, o in enumerate(others)]
         verdict = "within" if self.ok else "the best tried, NOT within"
         fixed = (" [given: " + ", ".join(f"--{k} {v}" for k, v in self.given.items()) + "]"
                  if self.given else "")
