@@ -943,7 +943,8 @@ def reference_modes(model, xr: np.ndarray, held, th: np.ndarray) -> tuple[np.nda
         try:
             J = np.asarray(model.dfdx(xr[ks], held.start[ks], np.repeat(th, ks.size, axis=0)),
                            float)[:, :n, :n]
-        except (FloatingPointError, ValueError, ZeroDivisionError, OverflowError):
+        except (FloatingPointError, ValueError, ZeroDivisionError, OverflowError,
+                AttributeError):        # no Jacobian: no modes, the one-step error stands
             return ks, ev
         ok = np.isfinite(J).all(axis=(1, 2))
         if ok.any():
