@@ -538,6 +538,15 @@ def heading(model, before: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return np.clip(nxt, model.lower, model.upper)
 
 
+
+def _step_error(problem, error: float) -> str:
+    """A discretisation's one-step error for a line: "0.3 σ per sample", or
+    an RK4 step's infinite one named unstable (its check's stability rule,
+    :func:`bondgraph.inference.ukf.rk4_unstable`)."""
+    if problem.disc.method == "rk4" and error == np.inf:
+        return "unstable (a fast mode outside RK4's stability region)"
+    return f"{error:.2g} σ per sample"
+
 def _recheck(args, problem, res, say, ahead: np.ndarray | None = None, why: str | None = None):
     """``(choice at the estimate, refit)``: the discretisation chosen at
     the estimate with its noise levels; ``refit`` True (a refit from the
@@ -562,7 +571,7 @@ def _recheck(args, problem, res, say, ahead: np.ndarray | None = None, why: str 
         if guarded is not None:
             return guarded, "anew"
     if not ok and again.disc != problem.disc:
-        why = (f"the start's {problem.disc.describe()} fails {{}}: {now:.2g} σ per sample, "
+        why = (f"the start's {problem.disc.describe()} fails {{}}: {_step_error(problem, now)}, "
                f"bias bound {bound:.2g} std; refitting from the estimate")
         further = _choice_ahead(problem, ahead, given, sigma, res.theta, again, hold)
         if further is None:
@@ -852,7 +861,7 @@ def _sim_step_holds(problem, params, r, given: bool = False) -> bool:
                                           free_run=True)
     if not ok:
         line = (f"--fit sim: {problem.disc.describe()} fails its check at the estimate "
-                f"({now:.2g} σ per sample, free-run bias bound {bound:.2g} std)"
+                f"({_step_error(problem, now)}, free-run bias bound {bound:.2g} std)"
                 + ("; the given --substeps kept (leave it out to have the step chosen again "
                    "at the estimate): the estimates and their std rest on it" if given else ""))
         _say(line)

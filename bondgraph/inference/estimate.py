@@ -1822,8 +1822,9 @@ def _guard_message(guard: dict, ukf: UKFOptions) -> str:
     need = (f"{ukf.method} needs {guard['substeps_needed']} substeps to agree (--substeps "
             f"{guard['substeps_needed']})"
             if guard["substeps_needed"] else
-            f"{ukf.method} does not agree even with {GUARD_SUBSTEPS} substeps (use method='rk4' "
-            f"with {GUARD_SUBSTEPS}: --method rk4 --substeps {GUARD_SUBSTEPS})")
+            f"{ukf.method} does not agree even with {GUARD_SUBSTEPS} substeps (use "
+            f"{guard['reference']}: --method {guard['reference'].split('(')[0]} --substeps "
+            f"{GUARD_SUBSTEPS})")
     return (f"NLL at the estimate with {ukf.method}({ukf.substeps}) and the {ukf.hold} hold is "
             f"{guard['nll']:.10g}, {guard['rel_diff']:.2g} relative from the "
             f"{guard['reference']} reference {guard['nll_reference']:.10g} with the same hold "
