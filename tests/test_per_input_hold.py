@@ -277,3 +277,10 @@ def test_the_report_says_how_each_input_was_held():
                                   "refine": [[3, 9, 8], [20, 22, 16], [30, 31, 2]]}})
     assert refined.numerics() == ("Numerics: UKF with rk4(2; up to 16 on 8 intervals) per "
                                   "sample at the start, input hold zoh.")
+    moved = LoopResult("m", None, None, "e", "aic",
+                       {"ukf": {"method": "rk4", "substeps": 1, "hold": "zoh"},
+                        "ukf_final": {"method": "rk4", "substeps": 3, "hold": "zoh",
+                                      "refine": []}})
+    assert moved.numerics() == ("Numerics: UKF with rk4(1) per sample at the start, input hold "
+                                "zoh; rk4(3) at the end (the discretisation check at an "
+                                "accepted fit).")

@@ -608,8 +608,9 @@ class LoopResult:
     def numerics(self) -> str | None:
         """How the models were stepped, one sentence: the filter's method,
         substeps and input hold at the start (each input's by name for a
-        per-input hold) and the free runs' solver and hold; None without
-        them. report.md and report.html say it alike."""
+        per-input hold), those at the end where an accepted fit's check
+        changed them (``settings["ukf_final"]``), and the free runs' solver
+        and hold; None without them. report.md and report.html say it alike."""
         u, fr = (self.settings or {}).get("ukf"), (self.settings or {}).get("free_run")
         if not u:
             return None
@@ -623,6 +624,11 @@ class LoopResult:
                 f"intervals" if runs else "")
         line = (f"Numerics: UKF with {u.get('method')}({u.get('substeps')}{more}) per sample at "
                 f"the start, input hold {hold}{each}")
+        end = (self.settings or {}).get("ukf_final")
+        if end:
+            line += (f"; {end.get('method')}({end.get('substeps')}"
+                     + (" on the intervals that need them" if end.get("refine") else "")
+                     + ") at the end (the discretisation check at an accepted fit)")
         if fr:
             how = ("the filter's method at 4x its substeps" if fr.get("method") == "fine"
                    else f"solve_ivp {fr.get('method')}")

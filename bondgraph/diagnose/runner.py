@@ -227,6 +227,8 @@ def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) 
         ctx.log(f"warning: {w}")
         result.warnings.append(w)
         result.final_checks.append(w)
+    if ctx.problem.ukf.to_dict() != result.settings.get("ukf"):
+        result.settings["ukf_final"] = ctx.problem.ukf.to_dict()   # auto_substeps moved it
     result.finished = True
     publish(ctx, result, initial, current, on_update)
     ctx.log(f"done in {time.perf_counter() - t0:.1f} s")
