@@ -43,7 +43,7 @@ from bondgraph.errors import (BondGraphError, EstimationError, IdentifiabilityWa
 from bondgraph.inference.discretise import (HOLD_CHECK_MARGIN, alternative_hold,
                                             check_discretisation, choose_discretisation,
                                             cost_rank, hold_check_line, hold_verdict,
-                                            moved_most, other_hold_warning)
+                                            moved_most, other_hold_warning, step_error)
 from bondgraph.inference.estimate import check_not_fixed, estimate
 from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
                                               output_error_nll, seen_initial_states)
@@ -539,14 +539,6 @@ def heading(model, before: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 
 
-def _step_error(problem, error: float) -> str:
-    """A discretisation's one-step error for a line: "0.3 σ per sample", or
-    an RK4 step's infinite one named unstable (its check's stability rule,
-    :func:`bondgraph.inference.ukf.rk4_unstable`)."""
-    if problem.disc.method == "rk4" and error == np.inf:
-        return "unstable (a fast mode outside RK4's stability region)"
-    return f"{error:.2g} σ per sample"
-
 def _recheck(args, problem, res, say, ahead: np.ndarray | None = None, why: str | None = None):
     """``(choice at the estimate, refit)``: the discretisation chosen at
     the estimate with its noise levels; ``refit`` True (a refit from the
@@ -571,7 +563,8 @@ def _recheck(args, problem, res, say, ahead: np.ndarray | None = None, why: str 
         if guarded is not None:
             return guarded, "anew"
     if not ok and again.disc != problem.disc:
-        why = (f"the start's {problem.disc.describe()} fails {{}}: {_step_error(problem, now)}, "
+        now_text = step_error(problem.disc.method, now, "σ per sample")
+        why = (f"the start's {problem.disc.describe()} fails {{}}: {now_text}, "
                f"bias bound {bound:.2g} std; refitting from the estimate")
         further = _choice_ahead(problem, ahead, given, sigma, res.theta, again, hold)
         if further is None:
@@ -861,7 +854,8 @@ def _sim_step_holds(problem, params, r, given: bool = False) -> bool:
                                           free_run=True)
     if not ok:
         line = (f"--fit sim: {problem.disc.describe()} fails its check at the estimate "
-                f"({_step_error(problem, now)}, free-run bias bound {bound:.2g} std)"
+                f"({step_error(problem.disc.method, now, 'σ per sample')}, free-run bias bound "
+                f"{bound:.2g} std)"
                 + ("; the given --substeps kept (leave it out to have the step chosen again "
                    "at the estimate): the estimates and their std rest on it" if given else ""))
         _say(line)

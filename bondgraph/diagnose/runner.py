@@ -103,6 +103,7 @@ from bondgraph.inference.discretise import (
     moved_most,
     other_hold_warning,
     record_input_holds,
+    step_error,
 )
 from bondgraph.numerics.admissible import MARGIN as ADMISSIBLE_MARGIN
 from bondgraph.numerics.integrators import join_hold, split_hold
@@ -1041,11 +1042,8 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
     if not worst > limit:
         return []
     o = ctx.problem.ukf
-    error = (f"discretisation error of {o.method}({o.substeps}) is {worst:.2g} "
-             f"noise stds per sample at {where}" if np.isfinite(worst) or o.method != "rk4" else
-             f"{o.method}({o.substeps}) is unstable at {where} (a fast mode of the model "
-             f"outside RK4's stability region: it grows every deviation from the "
-             f"trajectory; ROS2 is L-stable)")
+    error = (f"discretisation error of {o.method}({o.substeps}) is "
+             f"{step_error(o.method, worst, 'noise stds per sample')} at {where}")
     if adopt and rec:
         msg = (f"auto_substeps: {error}; the filter takes {rec} substeps per sample{how} "
                f"from {where} on")

@@ -607,12 +607,13 @@ def holds_against(inputs: Sequence[InputHold], hold: str) -> list[InputHold]:
 UNSTABLE = "unstable (a fast mode outside RK4's stability region, or not finite)"
 
 
-def _error_text(disc: Discretisation, error: float) -> str:
-    """A one-step error for a line: ``"0.061 σ"``; an RK4 step's infinite
-    one named (:data:`UNSTABLE`)."""
-    if disc.method == "rk4" and error == np.inf:
+def step_error(method: str, error: float, unit: str = "σ") -> str:
+    """A one-step discretisation error for a line: ``"0.061 σ"`` (``unit``
+    after the number); an RK4 step's infinite one named unstable
+    (:data:`UNSTABLE`). Every command's line says it this way."""
+    if method == "rk4" and error == np.inf:
         return UNSTABLE
-    return f"{error:.2g} σ"
+    return f"{error:.2g} {unit}"
 
 
 @dataclass(frozen=True)
@@ -682,7 +683,7 @@ class DiscretisationChoice:
         1.2e-05 σ <= 0.1 σ per sample, free-run bias bound 0.0033 <= 0.5 std
         (ros2(1): 0.061 σ, bound 2.4e+02); hold: F: linear (...)"``.
         """
-        others = [f"{d.method}({d.substeps}): {_error_text(d, np.max(e, initial=0))}"
+        others = [f"{d.method}({d.substeps}): {step_error(d.method, np.max(e, initial=0))}"
                   + (f", bound {r:.2g}" if np.isfinite(r) or r == np.inf else "")
                   for d, e, r in self.tried if d != self.disc][:3]
         others = [o if i == next((j for j, x in enumerate(others) if UNSTABLE in x), None)

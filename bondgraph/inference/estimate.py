@@ -66,6 +66,7 @@ from bondgraph.inference.discretise import (
     holds_against,
     no_process_noise,
     record_input_holds,
+    step_error,
     supported_hold,
 )
 from bondgraph.inference.optimize import de, minimize_batched, pso
@@ -1749,10 +1750,8 @@ def _step_message(problem: Problem, theta, ukf: UKFOptions, worst: float, sigma,
     :data:`BIAS_TOLERANCE` std): the step is the cause (the check's
     reference holds the input alike); the fix is the cheapest method and
     substeps within, with the filter's hold."""
-    what = ("unbounded: the step is unstable on a fast mode of the model (outside RK4's "
-            "stability region)" if ukf.method == "rk4" and worst == np.inf and bound is None
-            else f"{worst:.2g} measurement-noise standard deviations per sample" if bound is None
-            else f"{worst:.2g} measurement-noise standard deviations per sample, but without "
+    what = (step_error(ukf.method, worst, "measurement-noise standard deviations per sample")
+            if bound is None else f"{worst:.2g} measurement-noise standard deviations per sample, but without "
                  f"process noise the filter predicts by the free run, whose error may bias an "
                  f"estimate by up to {bound:.2g} Cramér-Rao standard deviations")
     text = (f"discretisation error of {ukf.method}({ukf.substeps}) with the {ukf.hold} hold is "

@@ -75,7 +75,7 @@ from bondgraph.inference.sigma import (
     unscented_moments,
 )
 from bondgraph.numerics.compiled import point_kernels
-from bondgraph.numerics.integrators import hold_inputs, make_step
+from bondgraph.numerics.integrators import hold_inputs, make_step, rk4_growth
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -969,8 +969,8 @@ def rk4_unstable(modes: tuple[np.ndarray, np.ndarray], h: np.ndarray) -> np.ndar
     """Intervals (N − 1,) bool where an RK4 substep of length ``h`` (N − 1,)
     [s] puts a decaying or undamped mode of ``modes`` (:func:`reference_modes`;
     each interval judged by the nearest sample) outside RK4's stability
-    region, |R(hλ)| > 1 with R(z) = 1 + z + z²/2 + z³/6 + z⁴/24 (Hairer &
-    Wanner 1996, IV.2): the step then amplifies every deviation from the
+    region, |R(hλ)| > 1 (:func:`bondgraph.numerics.integrators.rk4_growth`;
+    Hairer & Wanner 1996, IV.2): the step then amplifies every deviation from the
     reference — the filter's sigma points, the process noise — by |R| per
     substep, which a one-step error measured from the reference itself does
     not show. A coast-down graph's tire-slip mode at λ·dt = −10.3 (40 Hz):
@@ -986,9 +986,7 @@ def rk4_unstable(modes: tuple[np.ndarray, np.ndarray], h: np.ndarray) -> np.ndar
     hi = np.minimum(np.searchsorted(ks, k), ks.size - 1)
     lo = np.maximum(hi - 1, 0)
     nearest = np.where(np.abs(ks[lo] - k) <= np.abs(ks[hi] - k), lo, hi)
-    z = h[:, None] * lam[nearest]
-    R = 1 + z + z ** 2 / 2 + z ** 3 / 6 + z ** 4 / 24
-    return np.abs(R).max(axis=1, initial=0.0) > 1.0 + 1e-9
+    return rk4_growth(h[:, None] * lam[nearest]).max(axis=1, initial=0.0) > 1.0 + 1e-9
 
 
 def _free_run_rss(model, disc, step, held, t, u, th, x, yr, sig) -> float:
