@@ -1708,7 +1708,7 @@ def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
     except OptionError:
         pass
     dc = discretisation_check(crit.model, crit.t, crit.u, th_best, x0, ukf.discretisation,
-                              sigma=sigma)
+                              sigma=sigma, states=lambda: crit.problem.filtered_states(th_best))
     worst = float(np.max(dc["one_step"]))
     hold = hold_warning(crit.problem, ukf.hold)
     if hold:

@@ -376,7 +376,8 @@ class Problem:
         in measurement-noise standard deviations."""
         d = self.disc if substeps is None else replace(self.disc, substeps=int(substeps))
         return discretisation_check(self.model, self.t, self.u, theta, self.x0, disc=d,
-                                    sigma=self.noise_scale(theta), free_run=free_run)
+                                    sigma=self.noise_scale(theta), free_run=free_run,
+                                    states=lambda: self.filtered_states(theta))
 
     def filtered_states(self, theta) -> np.ndarray | None:
         """The filter's state estimates x̂_k|k (N, n_x) at ``theta``

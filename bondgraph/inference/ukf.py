@@ -747,7 +747,7 @@ def nll_from_innovations(innovations: np.ndarray, S: np.ndarray) -> np.ndarray:
 
 def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | None = None, *,
                          reference_substeps: int = 32, reference_method: str | None = None,
-                         sigma=None, free_run: bool = True) -> dict:
+                         sigma=None, free_run: bool = True, states=None) -> dict:
     """Error of the filter's discretisation along a noise-free trajectory, in
     units of the measurement-noise standard deviation.
 
@@ -781,6 +781,9 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
         Output scale of the comparison (default the measurement-noise std).
     free_run : bool
         Also propagate the free run (sequential; False: ``free_run`` is NaN).
+    states : array (N, n_x) or callable, optional
+        The filter's states, where an RK4 step must be stable too (as for
+        :func:`discretisation_errors`).
 
     Returns
     -------
@@ -810,8 +813,8 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
         yr = model.h(xr[1:], u[1:], th)
         dev = np.abs(model.h(_one_steps(step, xr, held, th, t), u[1:], th) - yr) / sig
         if disc.method == "rk4":        # as discretisation_errors: an unstable step
-            dev[rk4_unstable(reference_modes(model, xr, held, th), np.diff(t) / step.per)] = \
-                np.inf
+            dev[_unstable_intervals(model, {}, hold, xr, states, held, th,
+                                    np.diff(t) / step.per)] = np.inf
         one = np.maximum(np.zeros(model.n_y), np.max(dev, axis=0, initial=0.0))
         free = np.full(model.n_y, np.nan)
         if free_run:
