@@ -206,3 +206,22 @@ def test_a_friction_reversal_asks_for_the_substeps_of_its_stiff_mode(friction_pr
     # the chosen step's likelihood agrees with RK4's at 4 times its substeps
     n = chosen.disc.substeps
     assert nll("rk4", n) == pytest.approx(nll("rk4", 4 * n), abs=0.5)
+
+
+def test_the_stable_substeps_of_the_maxwell_mode(problem):
+    """:meth:`Problem.rk4_stable_substeps` (what a loop's confirmation
+    refits a stiff candidate with) gives the hand-derived 4 from one
+    substep, None where the step is already stable and for ROS2 (L-stable):
+    z = −99·0.1/n is −3.3 at n = 3, outside RK4's region, and −2.475 at 4."""
+    th = problem.model.theta0
+
+    def at(method, n):
+        d = Discretisation(method=method, substeps=n, hold="linear",
+                           backend=problem.disc.backend)
+        return problem.conditioned_on(disc=d).rk4_stable_substeps(th)
+
+    assert rk4_growth(-99.0 * DT / 3) > 1.0 >= rk4_growth(-99.0 * DT / 4)
+    assert at("rk4", 1) == 4
+    assert at("rk4", 3) == 4
+    assert at("rk4", 4) is None
+    assert at("ros2", 1) is None

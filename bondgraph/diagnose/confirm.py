@@ -30,7 +30,7 @@ from bondgraph.diagnose.fit import (
 )
 from bondgraph.diagnose.inference_calls import make_criterion, run_ukf
 from bondgraph.diagnose.result import Candidate
-from bondgraph.errors import BondGraphError
+from bondgraph.errors import BondGraphError, NumericalError
 from bondgraph.inference.optimize import minimize_batched
 from bondgraph.numerics.model import Model
 
@@ -100,15 +100,11 @@ def confirm(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
                   + natural_starts(eff, cand, P, new, start))
         # all parameters re-adjust (the nuisance ones absorbed part of the
         # missing effect): the confirmed fit is the candidate's final fit
-        fits = [fit_model(ctx, g, list(fit.params) + new, s0, f"confirming {cand.label}",
-                          model=model, iterations=ctx.settings.search.confirm_iterations,
-                          tolerance=ctx.settings.search.confirm_tolerance)
-                for s0 in starts]
-        f1 = chosen_refit(ctx, g, fits, cand.label)
+        sub, f1 = stable_refit(ctx, g, list(fit.params) + new, starts, cand.label, model, fit)
     except BondGraphError as exc:
         ctx.log(f"  confirmation of {cand.label} failed: {str(exc).splitlines()[0]}")
         return None
-    return _confirmed(ctx, fit, cand, eff, scales, name, P, new, f1)
+    return _confirmed(sub, fit, cand, eff, scales, name, P, new, f1)
 
 
 def augmented_model(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
@@ -295,14 +291,12 @@ def confirm_held(ctx: Context, fit: Fit, cand: Candidate, conf: Confirmation, sc
     held = {P[k].name for k in cand.held if k in P}
     start = {k: v for k, v in conf.fit.estimates().items() if k not in held}
     try:
-        f1 = chosen_refit(ctx, g, [fit_model(
-            ctx, g, list(fit.params) + new, start, f"confirming {cand.label}",
-            iterations=ctx.settings.search.confirm_iterations,
-            tolerance=ctx.settings.search.confirm_tolerance)], cand.label)
+        sub, f1 = stable_refit(ctx, g, list(fit.params) + new, [start], cand.label,
+                               model_of(g), fit)
     except BondGraphError as exc:
         ctx.log(f"  confirmation of {cand.label} failed: {str(exc).splitlines()[0]}")
         return None
-    return _confirmed(ctx, fit, cand, eff, scales, name, P, new, f1)
+    return _confirmed(sub, fit, cand, eff, scales, name, P, new, f1)
 
 
 def profiled_shape(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales,
@@ -381,9 +375,17 @@ def _kept(ctx: Context, sub: Context, model_at: tuple, f: Fit, names: list,
     """The confirmation at the kept width ``k_best`` (``model_at`` its
     (graph, model, P), ``f`` its refit in ``sub``), refitted at the loop's
     own step when ``sub`` had a finer one (where the other candidates are
-    judged); ``conf`` when that refit fails."""
+    judged) and the loop's step keeps an RK4 filter stable for the kept law
+    there (:func:`stable_context`; else ``f`` stays, at ``sub``'s step: a
+    narrower tanh is a stiffer law, and a user's mass whose friction
+    reverses over a third of the data-driven width, sampled at 20 Hz, was
+    refitted at RK4(1) with its mode at z = −7.8); ``conf`` when that refit
+    fails."""
     g, model, P = model_at
-    if sub is not ctx:      # back at the loop's step, where the others are judged
+    if sub is not ctx and _unstable_at(ctx, model, names, f, f"{cand.label} at x{k_best:g}"):
+        ctx.log(f"  {cand.label}: the loop's step is unstable for the law at x{k_best:g} width: "
+                f"its refit at {sub.problem.disc.describe().split(',')[0]} kept")
+    elif sub is not ctx:    # back at the loop's step, where the others are judged
         try:
             f = continued(ctx, g, fit_model(
                 ctx, g, names, f.estimates(), f"confirming {cand.label} at x{k_best:g} width",
@@ -397,6 +399,17 @@ def _kept(ctx: Context, sub: Context, model_at: tuple, f: Fit, names: list,
               for p in eff.params if p.name in P}
     return Confirmation(f, values, list(conf.new_params), f.converged is not False,
                         {P[p.name].name: values[p.name] for p in shaped})
+
+
+def _unstable_at(ctx: Context, model: Model, names: list, f: Fit, label: str) -> bool:
+    """Whether an RK4 filter at the loop's step is unstable for ``model`` at
+    ``f``'s estimates (:func:`stable_context`)."""
+    try:
+        sub, _ = stable_context(ctx, model, names, f.estimates(), label, "the refit",
+                                _substeps_of(ctx), states_of(f, model))
+    except NumericalError:
+        return True
+    return sub is not ctx
 
 
 def _width_models(ctx: Context, fit: Fit, cand: Candidate, eff: Effect, scales: Scales,
@@ -516,6 +529,130 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
                 break
             best = min(best, f.nll)
     return fits, tried
+
+
+def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
+                 model: Model, current: Fit | None = None) -> tuple[Context, Fit]:
+    """``(context, fit)``: the confirmation's refit of ``names`` from each of
+    ``starts`` (:func:`chosen_refit`) in ``ctx``, or, where an RK4 filter at
+    the loop's substeps is unstable for ``model`` at the first start or at
+    the refit (:func:`stable_context`), in a context with the substeps that
+    make it stable, the refit done again there from the same starts, once:
+    a refit whose law is unstable again at its end (stiffer still), or
+    needs more than :data:`STABLE_FACTOR` times the loop's substeps there,
+    is returned not converged, so not comparable (on that record a Padé
+    input delay shrinking towards none chased RK4(2), (3), (4) refit after
+    refit, and was refused for its free run all the same). The first start
+    is judged along ``current``'s filtered states (the current model's fit:
+    an additive effect keeps its states), the refit along its own
+    (:func:`states_of`), else along the filter's by ROS2.
+
+    The candidate brings the stiff law, so the step the loop chose for the
+    model without it need not hold for it: at an unstable step the NLL is
+    rough in the parameters and the scoring stops on it (a user's EMPS
+    graph at 1 kHz: a Stribeck refit at RK4(1) ended 17 000 nats above the
+    model without the effect, "converged", after 111 s). The refit is
+    judged against the current model's NLL at the loop's step, as an
+    accepted fit refitted at the substeps its check asks for is
+    (:func:`bondgraph.diagnose.runner.fit_after_discretisation_check`,
+    which then gives the loop that step).
+
+    Raises
+    ------
+    NumericalError
+        At the first start the law needs more than :data:`STABLE_FACTOR`
+        times the loop's substeps (its fast mode is beyond what the
+        record's sampling resolves: that Stribeck law's start needed
+        RK4(16), and refitted at the stable steps its level rose until
+        it needed RK4(64), 780 s, and its model failed the held-out
+        record); the caller reports the confirmation as failed.
+    """
+    base = _substeps_of(ctx)
+    sub, why = stable_context(ctx, model, names, starts[0], label, "its start", base,
+                              None if current is None else states_of(current, model))
+    if why:
+        ctx.log(f"  {label}: {why}: refitted with {sub.problem.disc.describe().split(',')[0]}")
+    f1 = None
+    for again in (True, False):
+        fits = [fit_model(sub, graph, names, s0, f"confirming {label}", model=model,
+                          iterations=sub.settings.search.confirm_iterations,
+                          tolerance=sub.settings.search.confirm_tolerance) for s0 in starts]
+        f1 = chosen_refit(sub, graph, fits, label)
+        try:
+            nxt, why = stable_context(sub, model, names, f1.estimates(), label, "its refit",
+                                      base, states_of(f1, model))
+        except NumericalError as exc:
+            nxt, why = None, str(exc)
+        if nxt is sub:
+            break
+        if nxt is None or not again:    # the law stiffened again: not chased further
+            ctx.log(f"  {label}: {why}: not comparable")
+            f1.converged = False
+            break
+        ctx.log(f"  {label}: {why}: refitted with {nxt.problem.disc.describe().split(',')[0]}")
+        sub = nxt
+    return sub, f1
+
+
+#: the most substeps a confirmation's refit takes to keep an RK4 filter
+#: stable for the candidate's law, as a multiple of the loop's own
+#: (:func:`stable_refit`)
+STABLE_FACTOR = 8
+
+
+def _substeps_of(ctx: Context) -> int:
+    """The loop filter's largest substeps per interval."""
+    d = ctx.problem.disc
+    return max([int(d.substeps)] + [int(n) for _, _, n in d.refine])
+
+
+def states_of(fit: Fit, model: Model) -> np.ndarray | None:
+    """``fit``'s filtered state estimates (N, n_x) where they are finite and
+    ``model`` has as many states (an additive effect's model has the
+    current one's), else None."""
+    x = getattr(getattr(fit, "ukf", None), "x_filt", None)
+    if x is None or np.ndim(x) != 3 or x.shape[2] != len(model.states):
+        return None
+    x = np.asarray(x[:, 0, :], float)
+    return x if np.isfinite(x).all() else None
+
+
+def stable_context(ctx: Context, model: Model, names: list, values: dict, label: str,
+                   where: str, base: int, states=None) -> tuple[Context, str]:
+    """``(context, why)``: ``ctx`` with the fewest substeps at which its RK4
+    filter keeps ``model``'s modes inside the stability region along the
+    filter's state estimates at ``values`` (:meth:`Problem.rk4_stable_substeps`)
+    and a clause saying why; ``(ctx, "")`` when its own are stable, its
+    method is ROS2, or the check cannot be made there. ``states`` (N, n_x):
+    where the filter's states go (a fit's own estimates, :func:`states_of`);
+    default the filter's by ROS2 at ``values`` (one more filter pass).
+
+    Raises
+    ------
+    NumericalError
+        No substeps up to 64, or none up to :data:`STABLE_FACTOR` times
+        ``base`` (the loop's), are stable there.
+    """
+    try:
+        pb = problem_for(ctx, model)
+        theta = start_theta(ctx, pb, [p for p in names if p in model.params], values, label)
+        n = pb.rk4_stable_substeps(theta, states)
+    except BondGraphError:
+        return ctx, ""
+    if n is None:
+        return ctx, ""
+    k = pb.disc.describe().split(",")[0]
+    if n == 0 or n > STABLE_FACTOR * base:
+        need = "no RK4 up to 64 substeps is stable" if n == 0 else f"it needs rk4({n})"
+        raise NumericalError(
+            f"the filter's {k} is unstable at {where} (a fast mode of the law outside RK4's "
+            f"stability region) and {need}, more than {STABLE_FACTOR} times the loop's "
+            f"substeps: the law is stiffer than the record's sampling resolves (--method ros2 "
+            f"steps it stably)")
+    return replace(ctx, problem=ctx.problem.conditioned_on(
+        disc=replace(ctx.problem.disc, substeps=n, refine=())), cache={}), (
+        f"the filter's {k} is unstable at {where} (a fast mode of the law outside RK4's "
+        f"stability region; stable from rk4({n}))")
 
 
 def chosen_refit(ctx: Context, graph, fits: list[Fit], label: str) -> Fit:
@@ -698,11 +835,7 @@ def confirm_pair(ctx: Context, fit: Fit, pair: tuple, scales: Scales,
             start[par.name] = float(np.clip(0.0, lo, hi))
     label = " + ".join(c.label for c in pair)
     try:
-        model = model_of(g)
-        f1 = fit_model(ctx, g, list(fit.params) + new, start, f"confirming {label}",
-                       model=model, iterations=ctx.settings.search.confirm_iterations,
-                       tolerance=ctx.settings.search.confirm_tolerance)
-        f1 = continued(ctx, g, f1, label)
+        _, f1 = stable_refit(ctx, g, list(fit.params) + new, [start], label, model_of(g), fit)
     except BondGraphError as exc:
         ctx.log(f"  confirmation of {label} failed: {str(exc).splitlines()[0]}")
         return None

@@ -44,6 +44,7 @@ from bondgraph.inference.ukf import (
     UKFResult,
     discretisation_check,
     discretisation_errors,
+    rk4_stable_substeps,
     sigma_point_errors,
     ukf_nll,
 )
@@ -397,6 +398,18 @@ class Problem:
             return None
         x = res.x_filt[:, 0]
         return x if np.isfinite(x).all() else None
+
+    def rk4_stable_substeps(self, theta, states=None) -> int | None:
+        """The fewest substeps at which the problem's RK4 filter is stable
+        along ``states`` (N, n_x; default its own state estimates at
+        ``theta`` (n_theta,) by ROS2, :meth:`filtered_states`):
+        :func:`bondgraph.inference.ukf.rk4_stable_substeps` — None when its
+        own substeps are (or its method is ROS2, or the filter fails there),
+        0 when none up to 64 is."""
+        if self.disc.method != "rk4":
+            return None
+        x = states if states is not None else self.filtered_states(theta)
+        return rk4_stable_substeps(self.model, self.t, self.u, self.disc, theta, x)
 
     def one_step_errors(self, theta, substeps: Sequence[int], *, sigma=None,
                         cache: dict | None = None) -> np.ndarray:

@@ -992,6 +992,57 @@ def rk4_unstable(modes: tuple[np.ndarray, np.ndarray], h: np.ndarray) -> np.ndar
     return rk4_growth(h[:, None] * lam[nearest]).max(axis=1, initial=0.0) > 1.0 + 1e-9
 
 
+#: the substeps :func:`rk4_stable_substeps` tries, beyond the current ones
+STABLE_SUBSTEPS = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
+
+
+def rk4_stable_substeps(model, t, u, disc, theta, states) -> int | None:
+    """The fewest substeps per interval, throughout, at which an RK4 filter
+    step keeps every decaying or undamped mode of the state equations'
+    Jacobian inside its stability region (:func:`rk4_unstable`) along
+    ``states`` (N, n_x): None when ``disc``'s own (its refined runs
+    included) already do, or its method is not RK4 (ROS2 is L-stable);
+    ``0`` when none of :data:`STABLE_SUBSTEPS` does.
+
+    A stiff law a candidate brings (a Stribeck or Coulomb friction's
+    narrow tanh at a large level) can put its mode outside the stability
+    region of the step the model without it needed: the filter's NLL is
+    then the unstable step's, rough in the parameters, and the Fisher
+    scoring stops on it (a user's EMPS graph at 1 kHz, RK4(1): a Stribeck
+    refit of ds = 1026 N over a 0.7 mm/s width, mode ≈ −1e4 1/s, ended
+    17 000 nats above the model without it, its line searches refused at
+    every damping).
+
+    Parameters
+    ----------
+    model : Model
+    t : array (N,) [s]
+    u : array (N, n_u)
+    disc : Discretisation or UKFOptions
+        Its ``method``, ``substeps``, refined runs and ``hold``.
+    theta : array (n_theta,)
+    states : array (N, n_x) or None
+        Where the filter's states go (e.g. its estimates by an L-stable
+        method, :meth:`bondgraph.inference.problem.Problem.filtered_states`);
+        None: not judged (None returned).
+
+    Returns
+    -------
+    int or None
+    """
+    if disc.method != "rk4" or states is None or t.size < 2:
+        return None
+    held = hold_inputs(u, disc.hold)
+    th = np.asarray(theta, float).reshape(1, -1)
+    modes = reference_modes(model, np.asarray(states, float), held, th)
+    dt = np.diff(t)
+    per = interval_substeps(disc, t.size - 1)
+    if not rk4_unstable(modes, dt / per).any():
+        return None
+    return next((n for n in STABLE_SUBSTEPS if n > int(np.max(per))
+                 and not rk4_unstable(modes, dt / n).any()), 0)
+
+
 def _free_run_rss(model, disc, step, held, t, u, th, x, yr, sig) -> float:
     """Root sum of squares of (y_free − y_ref)/σ over the record (inf if not finite)."""
     d = _free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig)
