@@ -17,9 +17,11 @@ the filter is unstable and the likelihood is the step's, not the model's.
 from __future__ import annotations
 
 import re
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import sympy as sp
 from scipy.integrate import solve_ivp
 
 from bondgraph import BondGraph
@@ -29,7 +31,9 @@ from bondgraph.diagnose.effects import get_effect
 from bondgraph.diagnose.fit import model_of
 from bondgraph.diagnose.loop import LoopSettings, run_loop
 from bondgraph.diagnose.settings import SearchOptions
+from bondgraph.errors import NumericalError
 from bondgraph.inference.options import UKFOptions
+from bondgraph.inference.problem import make_problem
 
 FC, EPS, MASS, B, DT, NOISE = 2.0, 0.01, 1.0, 0.1, 0.05, 0.02
 
@@ -105,3 +109,26 @@ def test_the_kept_width_is_judged_at_a_stable_step():
     res0, logs0 = run(stable=False)
     (step0,) = res0.steps
     assert step0.nll_after > profiled_nll(logs0, "0.3") + 10.0
+
+
+def test_a_law_stiffer_than_the_sampling_is_not_refitted(monkeypatch):
+    """:func:`confirm.stable_context` at the loop's RK4(1) on the friction
+    record's model with Coulomb friction declared at the truth: stable from
+    4 substeps (z = −10 at one, hand-derived above), so with a limit of 2
+    times the loop's substeps the confirmation is refused with the reason
+    and the remedy; with the law's level at 1 % (mode −2 1/s) the loop's
+    step stands."""
+    g = user_mass()
+    fc = g.param("Fc", FC, "N", (0.001, 20.0), "Coulomb friction")
+    g.connect(g.element("v"), g.R("coulomb", effort=lambda f: fc * sp.tanh(f / EPS)))
+    model = model_of(g)
+    pb = make_problem(model, record(1201, 1),
+                      ukf=UKFOptions(method="rk4", substeps=1, hold="linear"))
+    logs: list[str] = []
+    ctx = SimpleNamespace(problem=pb, cache={}, log=logs.append)
+    monkeypatch.setattr(confirm, "STABLE_FACTOR", 2)
+    with pytest.raises(NumericalError, match=r"needs rk4\(4\).*--method ros2"):
+        confirm.stable_context(ctx, model, ["m", "b", "Fc"], {}, "coulomb @ v", "its start", 1)
+    same, why = confirm.stable_context(ctx, model, ["m", "b", "Fc"], {"Fc": 0.01 * FC},
+                                       "coulomb @ v", "its start", 1)
+    assert same is ctx and why == ""

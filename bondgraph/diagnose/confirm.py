@@ -537,7 +537,7 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
     ``starts`` (:func:`chosen_refit`) in ``ctx``, or, where an RK4 filter at
     the loop's substeps is unstable for ``model`` at the first start or at
     the refit (:func:`stable_context`), in a context with the substeps that
-    make it stable, the refit done again there from the same starts, once:
+    make it stable, the refit done (again) there from the same starts, once:
     a refit whose law is unstable again at its end (stiffer still), or
     needs more than :data:`STABLE_FACTOR` times the loop's substeps there,
     is returned not converged, so not comparable (on that record a Padé
@@ -573,7 +573,7 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
     if why:
         ctx.log(f"  {label}: {why}: refitted with {sub.problem.disc.describe().split(',')[0]}")
     f1 = None
-    for again in (True, False):
+    for again in (sub is ctx, False):       # refitted at a stabler step once at most
         fits = [fit_model(sub, graph, names, s0, f"confirming {label}", model=model,
                           iterations=sub.settings.search.confirm_iterations,
                           tolerance=sub.settings.search.confirm_tolerance) for s0 in starts]
