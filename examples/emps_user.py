@@ -11,15 +11,20 @@ CSV (``t, qm, vir``). Then::
 
 holds out the last 25 %, estimates the encoder noise from the record, fits
 M and Fv by output error and searches the effect library. Measured on
-2026-11-29 (944 s on a 2-core machine): a force offset, then Coulomb
+2026-12-01 (700 s on a 2-core machine): a force offset, then Coulomb
 friction, then the direction-dependent viscous friction with its Coulomb
 half-difference held at 0 (that term is the offset wherever the drive
 moves; its full refit crawled along that ridge without converging,
-``runner.ridge_crawl`` and ``runner.held_first``) as a pair with a cubic
-encoder term: dv = −38.83 N s/m (Cramér-Rao std 0.31, robust std 5.0: the
-innovations stay serially correlated) against the published asymmetric
-model's (166.71 − 240.42)/2 = −36.86; Fc 20.06 N (published 20.14 / 20.63);
-held-out position NRMSE 0.1755 -> 0.0126; M 95.41 kg (published 95.15).
+``runner.ridge_crawl`` and ``runner.held_first``): dv = −37.94 N s/m
+(Cramér-Rao std 0.17; the innovations stay serially correlated, the
+robust std is larger) against the published asymmetric model's
+(166.71 − 240.42)/2 = −36.86; Fc 20.04 N (published 20.14 / 20.63);
+held-out position NRMSE 0.1755 -> 0.01319; M 93.81 kg (published 95.15).
+A Stribeck candidate's law there needs RK4 with 16 substeps at its start
+(the loop's is one) and is not refitted (``confirm.stable_refit``; its
+refit at the unstable step had taken 111-520 s and ended 17 000 nats above
+the model without it). On 2026-11-29 (944 s) a fourth step added a cubic
+encoder term beside the direction-dependent friction (held-out 0.0126).
 
 The benchmark's own protocol fits the estimation run and judges on the
 force-pulse run, the state set from its first 20 samples
