@@ -32,6 +32,7 @@ from bondgraph.diagnose.inference_calls import make_criterion, run_ukf
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError, NumericalError
 from bondgraph.inference.optimize import minimize_batched
+from bondgraph.inference.options import most_substeps
 from bondgraph.numerics.model import Model
 
 
@@ -384,7 +385,7 @@ def _kept(ctx: Context, sub: Context, model_at: tuple, f: Fit, names: list,
     g, model, P = model_at
     if sub is not ctx and _unstable_at(ctx, model, names, f, f"{cand.label} at x{k_best:g}"):
         ctx.log(f"  {cand.label}: the loop's step is unstable for the law at x{k_best:g} width: "
-                f"its refit at {sub.problem.disc.describe().split(',')[0]} kept")
+                f"its refit at {_step_name(sub.problem.disc)} kept")
     elif sub is not ctx:    # back at the loop's step, where the others are judged
         try:
             f = continued(ctx, g, fit_model(
@@ -406,7 +407,7 @@ def _unstable_at(ctx: Context, model: Model, names: list, f: Fit, label: str) ->
     ``f``'s estimates (:func:`stable_context`)."""
     try:
         sub, _ = stable_context(ctx, model, names, f.estimates(), label, "the refit",
-                                _substeps_of(ctx), states_of(f, model))
+                                most_substeps(ctx.problem.disc), states_of(f, model))
     except NumericalError:
         return True
     return sub is not ctx
@@ -567,11 +568,11 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
         it needed RK4(64), 780 s, and its model failed the held-out
         record); the caller reports the confirmation as failed.
     """
-    base = _substeps_of(ctx)
+    base = most_substeps(ctx.problem.disc)
     sub, why = stable_context(ctx, model, names, starts[0], label, "its start", base,
                               None if current is None else states_of(current, model))
     if why:
-        ctx.log(f"  {label}: {why}: refitted with {sub.problem.disc.describe().split(',')[0]}")
+        ctx.log(f"  {label}: {why}: refitted with {_step_name(sub.problem.disc)}")
     f1 = None
     for again in (sub is ctx, False):       # refitted at a stabler step once at most
         fits = [fit_model(sub, graph, names, s0, f"confirming {label}", model=model,
@@ -589,7 +590,7 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
             ctx.log(f"  {label}: {why}: not comparable")
             f1.converged = False
             break
-        ctx.log(f"  {label}: {why}: refitted with {nxt.problem.disc.describe().split(',')[0]}")
+        ctx.log(f"  {label}: {why}: refitted with {_step_name(nxt.problem.disc)}")
         sub = nxt
     return sub, f1
 
@@ -600,10 +601,9 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
 STABLE_FACTOR = 8
 
 
-def _substeps_of(ctx: Context) -> int:
-    """The loop filter's largest substeps per interval."""
-    d = ctx.problem.disc
-    return max([int(d.substeps)] + [int(n) for _, _, n in d.refine])
+def _step_name(disc) -> str:
+    """``"rk4(4)"``: a discretisation's method and substeps, for log lines."""
+    return disc.describe().split(",")[0]
 
 
 def states_of(fit: Fit, model: Model) -> np.ndarray | None:
@@ -641,18 +641,16 @@ def stable_context(ctx: Context, model: Model, names: list, values: dict, label:
         return ctx, ""
     if n is None:
         return ctx, ""
-    k = pb.disc.describe().split(",")[0]
+    unstable = (f"the filter's {_step_name(pb.disc)} is unstable at {where} (a fast mode of "
+                f"the law outside RK4's stability region")
     if n == 0 or n > STABLE_FACTOR * base:
         need = "no RK4 up to 64 substeps is stable" if n == 0 else f"it needs rk4({n})"
         raise NumericalError(
-            f"the filter's {k} is unstable at {where} (a fast mode of the law outside RK4's "
-            f"stability region) and {need}, more than {STABLE_FACTOR} times the loop's "
-            f"substeps: the law is stiffer than the record's sampling resolves (--method ros2 "
-            f"steps it stably)")
+            f"{unstable}) and {need}, more than {STABLE_FACTOR} times the loop's substeps: the "
+            f"law is stiffer than the record's sampling resolves (--method ros2 steps it stably)")
     return replace(ctx, problem=ctx.problem.conditioned_on(
         disc=replace(ctx.problem.disc, substeps=n, refine=())), cache={}), (
-        f"the filter's {k} is unstable at {where} (a fast mode of the law outside RK4's "
-        f"stability region; stable from rk4({n}))")
+        f"{unstable}; stable from rk4({n}))")
 
 
 def chosen_refit(ctx: Context, graph, fits: list[Fit], label: str) -> Fit:
