@@ -26,8 +26,11 @@ from bondgraph.errors import DataError, OptionError
 from bondgraph.inference.discretise import (
     DiscretisationChoice,
     choose_discretisation,
+    declared_holds,
     finer_grid_record,
     likelier_hold_at,
+    oversampling,
+    record_input_holds,
 )
 from bondgraph.inference.options import (
     DEFAULT_BACKEND,
@@ -337,7 +340,24 @@ def add_discretisation(p: argparse.ArgumentParser, *, chosen: bool = True) -> No
                         "from a continuous signal); one per input, comma-joined in the "
                         "model's input order, holds each its own way (zoh,linear). Default: "
                         + (_CHOSEN_HELP if chosen else dflt))
+    p.add_argument("--decimate", type=positive_int, default=1, metavar="K",
+                   help="fit every K-th sample of each record, for a record sampled far faster "
+                        "than its model needs (each filter pass steps every sample): inputs "
+                        "held zero-order averaged over each interval, the others "
+                        "point-sampled; estimates limited by the measurement noise come out "
+                        "about sqrt(K) wider (default 1: every sample)")
     add_backend(p)
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (argparse's error names the option)."""
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if k < 1:
+        raise argparse.ArgumentTypeError(f"{k} is below 1")
+    return k
 
 
 def hold_argument(text: str) -> str:
@@ -525,6 +545,73 @@ def missing_note(exp: Experiment, outputs, name: str) -> list[str]:
                      f"(empty or NaN; {where}): the filter skips its measurement update "
                      f"there and the errors leave {'it' if miss.size == 1 else 'them'} out")
     return lines
+
+
+#: a record this long gets a line on ``--decimate`` where it is oversampled
+#: (each filter pass steps every sample)
+LONG_RECORD = 10_000
+
+
+def filtered_record(exp: Experiment, model, args, say=None) -> Experiment:
+    """The record a command filters: ``exp`` on every ``--decimate``-th
+    sample (:func:`decimated_record`), then on a grid twice as fine where an
+    input is band-limited (:func:`band_limited_record`)."""
+    return band_limited_record(decimated_record(exp, model, args, say), model, args, say)
+
+
+def decimated_record(exp: Experiment, model, args, say=None) -> Experiment:
+    """``exp`` on every K-th sample, K = ``args.decimate``
+    (:meth:`~bondgraph.data.records.Experiment.decimated`): the inputs held
+    zero-order (``--hold``, else the record's declaration or the input's
+    shape, :func:`~bondgraph.inference.discretise.record_input_holds`)
+    averaged over each interval, the others point-sampled; one line on
+    ``say`` (default stderr) says so. K = 1: ``exp``, with a line on
+    ``--decimate`` when it has :data:`LONG_RECORD` samples or more and its
+    inputs and outputs are oversampled (:func:`_oversampled_note`).
+
+    Raises
+    ------
+    DataError
+        Fewer than 2 samples kept.
+    """
+    k = getattr(args, "decimate", 1) or 1
+    tell = say or _stderr
+    if k == 1:
+        if len(exp) >= LONG_RECORD and not getattr(args, "quiet", False):
+            _oversampled_note(exp, model, tell)
+        return exp
+    names = [n for n in model.inputs if n in exp.columns]
+    if getattr(args, "hold", None) is not None:
+        given = dict(zip(model.inputs, split_hold(args.hold, len(model.inputs))))
+        held = {n: given[n] for n in names}
+    else:
+        u = np.column_stack([np.asarray(exp.columns[n], float) for n in names]) if names \
+            else np.zeros((len(exp), 0))
+        held = ({h.name: h.hold for h in record_input_holds(exp, names, u)}
+                if np.isfinite(u).all() else declared_holds(exp, names))
+    means = [n for n in names if held.get(n) in (None, "zoh")]
+    out = exp.decimated(k, means=means)
+    points = [n for n in names if n not in means]
+    said = ([f"{', '.join(means)} averaged over each interval (held zero-order)"] if means
+            else []) + [f"{', '.join(points + ['the outputs'])} point-sampled"]
+    tell(f"{exp.name}: decimated x{k} ({len(exp)} -> {len(out)} samples, {exp.dt:.3g} s -> "
+         f"{out.dt:.3g} s): {'; '.join(said)}")
+    return out
+
+
+def _oversampled_note(exp: Experiment, model, tell) -> None:
+    """One line on ``--decimate`` when ``exp``'s inputs and outputs hold
+    next to nothing above 1/K of the Nyquist frequency
+    (:func:`~bondgraph.inference.discretise.oversampling`)."""
+    outputs = model.sensors if isinstance(model, BondGraph) else model.outputs
+    names = [n for n in [*model.inputs, *outputs] if n in exp.columns]
+    k, share = oversampling(exp.t, [exp.columns[n] for n in names])
+    if k > 1:
+        tell(f"{exp.name}: {len(exp)} samples at {exp.dt:.3g} s, and its "
+             f"{', '.join(names)} hold {share:.1g} of their power above 1/{k} of the Nyquist "
+             f"frequency: each filter pass steps every sample; --decimate {k} fits every "
+             f"{k}th sample, each pass in about 1/{k} of the time (inputs averaged over each "
+             f"interval; estimates limited by the measurement noise about sqrt({k}) wider)")
 
 
 def band_limited_record(exp: Experiment, model, args, say=None) -> Experiment:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from bondgraph.cli.common import (add_data, add_discretisation, add_model, add_overwrite,
-                                  add_quiet, band_limited_record, discretisation_given,
+                                  add_quiet, discretisation_given, filtered_record,
                                   load_record, output_folder, parse_pairs, published)
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.compare import compare
@@ -83,7 +83,7 @@ def run(args) -> int:
 def _records(args, graph, say) -> list:
     """The records of ``--data`` for ``graph``, each on a finer grid where an
     input is band-limited (as estimate and loop filter them)."""
-    return [band_limited_record(load_record(pth, graph, say, args.columns), graph, args, say)
+    return [filtered_record(load_record(pth, graph, say, args.columns), graph, args, say)
             for pth in args.data]
 
 

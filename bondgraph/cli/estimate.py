@@ -22,12 +22,12 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
-    band_limited_record,
     chosen_at_levels,
     chosen_problem,
     default_params,
     discretisation_given,
     estimated_states,
+    filtered_record,
     load_model,
     load_record,
     output_folder,
@@ -132,9 +132,9 @@ def run(args) -> int:
     paths = list(args.data)
     with progress.phase("loading the model and the records"):
         model = load_model(args.model)
-        exps = [band_limited_record(load_record(pth, model, columns=args.columns), model, args)
+        exps = [filtered_record(load_record(pth, model, columns=args.columns), model, args)
                 for pth in paths]
-        vals = [band_limited_record(load_record(pth, model, columns=args.columns), model, args)
+        vals = [filtered_record(load_record(pth, model, columns=args.columns), model, args)
                 for pth in args.validate or []]      # a bad file refused before the fit
     _check_judging(args, vals)
     params = (parse_params(args.params, model) if args.params

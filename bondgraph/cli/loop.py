@@ -20,8 +20,8 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
-    band_limited_record,
     discretisation_given,
+    filtered_record,
     load_record,
     parse_names,
     parse_pairs,
@@ -237,6 +237,17 @@ def refitted(graph, path: str) -> list[str]:
     return names
 
 
+def _require_model_for_data(args) -> None:
+    """Refuse ``--data`` or ``--decimate`` without ``--model`` (a bundled
+    case brings its own record)."""
+    if getattr(args, "decimate", 1) > 1 and not args.model:
+        raise UsageError(f"--decimate {args.decimate} applies to a --model/--data record; a "
+                         f"bundled case filters its record as its protocol says")
+    if args.data and not args.model:
+        raise UsageError(f"--data {args.data} needs --model (the model to fit to it); without "
+                         f"both, a bundled case runs")
+
+
 def run(args) -> int:
     """Run the loop on ``--model``/``--data`` or a bundled case; write the report."""
     if args.case == "list":
@@ -244,15 +255,13 @@ def run(args) -> int:
             print(f"{name:24s} {spec}")
         return 0
     compile_in_background()     # the filter kernel, once per installation, beside the set-up
-    if args.data and not args.model:
-        raise UsageError(f"--data {args.data} needs --model (the model to fit to it); without "
-                         f"both, a bundled case runs")
+    _require_model_for_data(args)
     if args.model:
         if not args.data:
             raise ModelError("--model needs --data FILE.csv (the measured record)")
         graph = graph_builder(args.model)()
-        record = band_limited_record(load_record(args.data, graph, _said, args.columns),
-                                     graph, args, say=_said)
+        record = filtered_record(load_record(args.data, graph, _said, args.columns),
+                                 graph, args, say=_said)
         params = parse_params(args.params) if args.params else list(graph.params)
         # without --params, a parameter declared without a box is a known
         # value: held where the record cannot tell it from others
@@ -479,8 +488,8 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     fixed = parse_pairs(args.fixed, "--fixed")
     x0 = parse_pairs(args.x0, "--x0")
     states = loop_states(graph, args.estimate_x0) if args.estimate_x0 else base.estimate_x0
-    judging = [band_limited_record(load_record(f, graph, _said, args.columns), graph, args,
-                                   say=_said)
+    judging = [filtered_record(load_record(f, graph, _said, args.columns), graph, args,
+                               say=_said)
                for f in (args.validate or [])]
     names = [r.name for r in judging]
     for f, r in zip(args.validate or [], judging):

@@ -18,10 +18,10 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
-    band_limited_record,
     chosen_at_levels,
     default_params,
     estimated_states,
+    filtered_record,
     load_model,
     load_record,
     output_folder,
@@ -113,8 +113,8 @@ def run(args) -> int:
     filter's likelihood at the analysed θ prefers."""
     with progress.phase("loading the model and the record"):
         model = load_model(args.model)
-        exp = band_limited_record(load_record(args.data, model, columns=args.columns), model,
-                                  args)
+        exp = filtered_record(load_record(args.data, model, columns=args.columns), model,
+                              args)
     if args.seconds is not None:
         n = int(np.searchsorted(exp.t, exp.t[0] + args.seconds, side="right"))
         if n < 2:

@@ -20,8 +20,8 @@ from bondgraph.cli.common import (
     add_initial_state,
     add_model,
     add_overwrite,
-    band_limited_record,
     discretisation_given,
+    filtered_record,
     load_model,
     load_record,
     output_folder,
@@ -211,8 +211,8 @@ def run(args) -> int:
     levels = {k[len("noise."):]: v for k, v in values.items() if k.startswith("noise.")}
     values = {k: v for k, v in values.items() if k in model.params}
     folder = output_folder(args.out, args)
-    exp = band_limited_record(load_record(args.data, model, columns=args.columns), model,
-                              args)
+    exp = filtered_record(load_record(args.data, model, columns=args.columns), model,
+                          args)
     problem = problem_from_args(model, exp, args, values=values)
     held, line = bare_levels(problem, levels)
     if held:

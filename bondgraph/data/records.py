@@ -429,6 +429,76 @@ class Experiment:
         meta["name"] = self.name
         return Experiment(t=t, columns=cols, units=dict(self.units), meta=meta, path=None)
 
+    def decimated(self, factor: int, *, means: Sequence[str] = ()) -> "Experiment":
+        """Every ``factor``-th sample as a new record, for a record sampled
+        far faster than its model needs (each filter pass steps every sample).
+
+        The samples kept are 0, K, 2K, ... (K = ``factor``); a tail shorter
+        than K intervals is dropped. A column of ``means`` (an input held
+        zero-order) takes over each coarse interval the time-weighted mean of
+        the values it held over the K fine intervals in it: the held value
+        with the same impulse (∫u dt), which a zero-order hold at the coarse
+        step then holds (the rule of the EMPS protocol's decimation, Janot et
+        al. 2019); its hold is declared ``"zoh"`` (sidecar
+        ``columns.<name>.hold``). Every other column (outputs, states, inputs
+        held linearly) is point-sampled: a model's likelihood of the kept
+        samples is exactly that of the subsampled record, and the
+        measurement noise of a sample is unchanged (so estimates limited by
+        that noise come out about √K wider). ``meta["decimated"]`` records
+        the factor, the averaged columns and the original length.
+
+        Parameters
+        ----------
+        factor : int
+            K >= 1 (1: this record itself).
+        means : sequence of str
+            Columns held zero-order, averaged over each interval.
+
+        Returns
+        -------
+        Experiment
+            (N − 1) // K + 1 samples, ``dt`` K times the original.
+
+        Raises
+        ------
+        DataError
+            K not a positive integer, fewer than 2 samples kept, or a name of
+            ``means`` that is not a column.
+        """
+        if isinstance(factor, bool) or int(factor) != factor or factor < 1:
+            raise DataError(f"decimated: the factor is a positive integer, got {factor!r}",
+                            path=self._where())
+        k = int(factor)
+        if k == 1:
+            return self
+        m = (self.t.size - 1) // k + 1
+        if m < 2:
+            raise DataError(f"decimated x{k}: {self.t.size} samples keep {m}; need >= 2 samples",
+                            path=self._where())
+        unknown = sorted(set(means) - set(self.columns))
+        if unknown:
+            raise DataError(f"decimated: no column(s) {', '.join(unknown)}", path=self._where())
+        idx = np.arange(m) * k
+        w = np.diff(self.t)[: (m - 1) * k].reshape(m - 1, k)
+        cols = {}
+        for c, v in self.columns.items():
+            v = np.asarray(v)
+            out = v[idx].copy()
+            if c in means:
+                blocks = np.asarray(v[: (m - 1) * k], float).reshape(m - 1, k)
+                out[:-1] = (blocks * w).sum(axis=1) / w.sum(axis=1)
+            cols[c] = out
+        meta = copy.deepcopy(self.meta)
+        if meta.get("dt"):
+            meta["dt"] = float(meta["dt"]) * k
+        info = meta.setdefault("columns", {})
+        for c in means:
+            info.setdefault(c, {})["hold"] = "zoh"
+        meta["decimated"] = {"factor": k, "means": list(means), "samples": int(self.t.size)}
+        meta["name"] = self.name
+        return Experiment(t=self.t[idx].copy(), columns=cols, units=dict(self.units), meta=meta,
+                          path=None, lines=None if self.lines is None else self.lines[idx])
+
     def to_dataframe(self):
         """A pandas DataFrame with ``t`` and every column (headers with units)."""
         import pandas as pd

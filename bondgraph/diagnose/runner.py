@@ -484,16 +484,19 @@ def declared_inadmissible(ctx: Context, adm) -> str:
 def settings_summary(ctx: Context) -> dict:
     """What a report records of the run's options: the search options
     (:meth:`LoopSettings.summary`) with the problem's filter options and
-    noise levels as the loop resolved them, and ``finer_grid`` when the
+    noise levels as the loop resolved them, ``finer_grid`` when the
     record was filtered on a grid twice as fine (a band-limited input,
-    :meth:`~bondgraph.data.records.Experiment.on_finer_grid`)."""
+    :meth:`~bondgraph.data.records.Experiment.on_finer_grid`) and
+    ``decimated`` when it was fitted on every K-th sample
+    (:meth:`~bondgraph.data.records.Experiment.decimated`)."""
     noise = ctx.problem.noise
     out = {**ctx.settings.summary(), "ukf": ctx.problem.ukf.to_dict(),
            "noise": noise.mode, "noise_levels": dict(noise.held),
            "noise_outputs": list(noise.estimated)}
-    grid = (getattr(getattr(ctx.problem, "record", None), "meta", None) or {}).get("finer_grid")
-    if grid:
-        out["finer_grid"] = grid
+    meta = getattr(getattr(ctx.problem, "record", None), "meta", None) or {}
+    for key in ("finer_grid", "decimated"):
+        if meta.get(key):
+            out[key] = meta[key]
     return out
 
 

@@ -473,6 +473,58 @@ def band_limits(t, u, names: Sequence[str], holds: Sequence[InputHold]) -> list[
     return out
 
 
+#: the largest share of a signal's power above 1/K of the Nyquist frequency
+#: for the record to count as K times oversampled (:func:`oversampling`)
+OVERSAMPLED_SHARE = 1e-3
+
+
+def oversampling(t, columns, factors: Sequence[int] = (10, 5, 4, 2)) -> tuple[int, float]:
+    """How many times faster than its content a record was sampled: the
+    largest K of ``factors`` for which every column's power above 1/K of the
+    Nyquist frequency is below :data:`OVERSAMPLED_SHARE` of its own (Welch
+    spectra of the linearly detrended columns), and that worst share; (1,
+    share at the smallest K) when none qualifies, (1, nan) on a grid whose
+    steps vary by more than 0.1 %, with fewer than 256 samples or a column
+    not finite. A proxy for
+    "the system is slower than the sampling": the outputs hold nothing a
+    coarser grid could not resolve, and measurement noise counts against it
+    (a white floor spreads over the whole band).
+
+    Parameters
+    ----------
+    t : array (N,)
+    columns : sequence of arrays (N,)
+        The record's inputs and outputs.
+    factors : sequence of int
+        Candidates K, tried from the largest.
+
+    Returns
+    -------
+    (int, float)
+    """
+    from scipy.signal import detrend, welch
+
+    t = np.asarray(t, float)
+    dt = np.diff(t)
+    cols = [np.asarray(c, float) for c in columns]
+    if (t.size < 256 or not cols or np.ptp(dt) > 1e-3 * np.median(dt)
+            or not all(np.isfinite(c).all() for c in cols)):
+        return 1, float("nan")
+    spectra = []
+    for c in cols:
+        f, P = welch(detrend(c), nperseg=min(c.size, 4096))
+        if np.sum(P) > 0:
+            spectra.append((f, P / np.sum(P)))
+    if not spectra:
+        return 1, float("nan")
+    worst = float("nan")
+    for k in sorted(factors, reverse=True):
+        worst = max(float(np.sum(P[f >= 0.5 / k])) for f, P in spectra)
+        if worst < OVERSAMPLED_SHARE:
+            return int(k), worst
+    return 1, worst
+
+
 def finer_grid_record(exp, inputs: Sequence[str]):
     """``(record, why)``: ``exp`` and None, or, when an input is band-limited
     with content where the linear hold misses its values between samples

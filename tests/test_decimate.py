@@ -1,0 +1,154 @@
+"""A record sampled far faster than its model needs, fitted on every K-th
+sample (``Experiment.decimated``, ``--decimate K``): inputs held zero-order
+averaged over each coarse interval (the same impulse), the others
+point-sampled (the likelihood is exactly the subsampled record's).
+
+References: block means and point samples by hand on a non-uniform grid; a
+mass with viscous friction driven by a force that changes at every 1 ms
+sample, simulated exactly by scipy's zero-order-hold discretisation
+(``scipy.signal.cont2discrete``), estimated within 3 Cramér-Rao std on the
+record decimated x10, where the point-sampled force (the input's values
+at the kept samples only) puts the mass and the friction hundreds of std off."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy.signal import cont2discrete
+
+from bondgraph.cli.main import main
+from bondgraph.data.records import Experiment
+from bondgraph.errors import DataError
+
+
+def test_block_means_and_point_samples_by_hand():
+    t = np.array([0.0, 0.1, 0.3, 0.4, 0.6, 0.7, 1.0, 1.1])     # non-uniform
+    F = np.array([1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0])
+    x = np.arange(8.0)
+    rec = Experiment.from_arrays(t, {"F": F, "x": x}, roles={"F": "input", "x": "output"},
+                                 name="r")
+    rec.meta["dt"] = 0.1
+    d = rec.decimated(3, means=["F"])
+    # kept samples 0, 3, 6; the sample 7 (less than a whole interval) dropped
+    np.testing.assert_array_equal(d.t, [0.0, 0.4, 1.0])
+    np.testing.assert_array_equal(d["x"], [0.0, 3.0, 6.0])
+    # the value held over [0, 0.4): (1 * 0.1 + 2 * 0.2 + 4 * 0.1) / 0.4; over
+    # [0.4, 1.0): (8 * 0.2 + 16 * 0.1 + 32 * 0.3) / 0.6; the last sample's own
+    np.testing.assert_allclose(d["F"], [0.9 / 0.4, 12.8 / 0.6, 64.0])
+    assert d.meta["columns"]["F"]["hold"] == "zoh"
+    assert d.meta["decimated"] == {"factor": 3, "means": ["F"], "samples": 8}
+    assert d.name == "r" and d.meta["dt"] == pytest.approx(0.3)
+    assert rec.decimated(1) is rec
+    with pytest.raises(DataError, match="factor"):
+        rec.decimated(0)
+    with pytest.raises(DataError, match="2 samples"):
+        rec.decimated(8)
+    with pytest.raises(DataError, match="no column"):
+        rec.decimated(2, means=["G"])
+
+
+M, C, DT, STD = 2.0, 4.0, 1e-3, 0.005
+
+MODEL = '''
+from bondgraph import BondGraph
+
+
+def build():
+    g = BondGraph("cart", "a mass with viscous friction")
+    F = g.input("F", "N", 0.0, "force")
+    m = g.param("m", 1.0, "kg", (0.1, 20.0), "mass")
+    c = g.param("c", 2.0, "N*s/m", (0.01, 50.0), "viscous friction")
+    v = g.one("v")
+    g.connect(g.Se("force", F), v)
+    g.connect(v, g.I("mass", m))
+    g.connect(v, g.R("friction", c))
+    g.sensor("v", v.f, unit="m/s")
+    return g
+'''
+
+
+@pytest.fixture(scope="module")
+def fast_record(tmp_path_factory):
+    """10 s at 1 kHz: the force a slow sine plus a new random value at every
+    sample (held zero-order), the speed exact at the samples (zero-order
+    hold discretisation of m v' = F - c v), noise 5 mm/s."""
+    n = 10_001
+    t = np.arange(n) * DT
+    rng = np.random.default_rng(3)
+    F = 5.0 * np.sin(2 * np.pi * 0.3 * t) + rng.normal(0.0, 10.0, n)
+    Ad, Bd, *_ = cont2discrete((np.array([[-C / M]]), np.array([[1.0 / M]]),
+                                np.eye(1), np.zeros((1, 1))), DT, method="zoh")
+    v = np.zeros(n)
+    for i in range(n - 1):
+        v[i + 1] = Ad[0, 0] * v[i] + Bd[0, 0] * F[i]
+    d = tmp_path_factory.mktemp("dec")
+    Experiment.from_arrays(t, {"F": F, "v": v + rng.normal(0.0, STD, n)},
+                           units={"F": "N", "v": "m/s"}, roles={"F": "input", "v": "output"},
+                           noise_std={"v": STD}, name="cart").save(d / "cart.csv")
+    (d / "cart.py").write_text(MODEL)
+    return d
+
+
+def _fit(d, monkeypatch, capsys, *extra):
+    monkeypatch.chdir(d)
+    out = "est" + "_".join(a.strip("-") for a in extra)
+    assert main(["estimate", "--model", "cart.py:build", "--data", "cart.csv", "--params",
+                 "m,c", "--hold", "zoh", "--out", out, "--overwrite", *extra]) == 0
+    res = json.loads((d / out / "result.json").read_text())
+    return ({p: (e, s) for p, e, s in zip(res["params"], res["estimates"], res["std"])},
+            capsys.readouterr().err)
+
+
+def test_estimate_on_every_tenth_sample(fast_record, monkeypatch, capsys):
+    d = fast_record
+    full, _ = _fit(d, monkeypatch, capsys)
+    dec, err = _fit(d, monkeypatch, capsys, "--decimate", "10")
+    assert "cart: decimated x10 (10001 -> 1001 samples" in err
+    assert "F averaged over each interval" in err
+    for res in (full, dec):
+        for p, truth in (("m", M), ("c", C)):
+            assert abs(res[p][0] - truth) < 3 * res[p][1], (p, res)
+    # a tenth of the speed samples: the noise-limited stds about sqrt(10) wider
+    for p in ("m", "c"):
+        assert 2.0 < dec[p][1] / full[p][1] < 5.0, (p, dec, full)
+
+
+def test_point_sampled_force_is_far_off(fast_record, monkeypatch, capsys):
+    """The reason for the block mean: the force's value at the kept samples
+    alone (held over the 10 ms) misses the impulse of the other nine."""
+    d = fast_record
+    Experiment.load(d / "cart.csv").decimated(10).save(d / "points.csv")
+    monkeypatch.chdir(d)
+    assert main(["estimate", "--model", "cart.py:build", "--data", "points.csv", "--params",
+                 "m,c", "--hold", "zoh", "--out", "points", "--overwrite"]) == 0
+    res = json.loads((d / "points" / "result.json").read_text())
+    m, std = res["estimates"][res["params"].index("m")], res["std"][res["params"].index("m")]
+    assert abs(m - M) > 10 * std, (m, std)
+
+
+def test_bad_factors_are_refused(capsys):
+    assert main(["estimate", "--model", "m.py:f", "--data", "r.csv", "--decimate", "0"]) == 2
+    assert "--decimate: 0 is below 1" in capsys.readouterr().err
+    assert main(["loop", "--decimate", "5"]) == 2
+    assert "--decimate 5 applies to a --model/--data record" in capsys.readouterr().err
+
+
+def test_oversampling_reads_the_spectra():
+    """A slow multisine (to 1/40 of the sampling rate) is ten times
+    oversampled; white noise and a staircase changing at every other
+    sample are not; nor is a grid with gaps."""
+    from bondgraph.inference.discretise import oversampling
+
+    t = np.arange(20_000) * 1e-3
+    slow = np.sin(2 * np.pi * 3.0 * t) + 0.5 * np.sin(2 * np.pi * 25.0 * t + 1.0)
+    k, share = oversampling(t, [slow, 0.3 * np.sin(2 * np.pi * 3.0 * t) ** 3])
+    assert k == 10 and share < 1e-3
+    # content at 25 Hz of 1 kHz sits above 1/20 of the Nyquist frequency
+    assert oversampling(t, [slow], factors=(20,))[0] == 1
+    noise = np.random.default_rng(0).normal(size=t.size)
+    assert oversampling(t, [slow, noise])[0] == 1
+    assert oversampling(t, [np.repeat(np.sign(noise[::2]), 2)])[0] == 1
+    gaps = t.copy()
+    gaps[5000:] += 0.5
+    k, share = oversampling(gaps, [slow])
+    assert k == 1 and np.isnan(share)
