@@ -26,6 +26,12 @@ refit at the unstable step had taken 111-520 s and ended 17 000 nats above
 the model without it). On 2026-11-29 (944 s) a fourth step added a cubic
 encoder term beside the direction-dependent friction (held-out 0.0126).
 
+The record is sampled ten times faster than its content (the command says
+so in one line); with ``--decimate 10`` the loop fits every tenth sample,
+the current averaged over each 10 ms (2026-12-01: 263 s; the
+direction-dependent friction, then Coulomb; held-out 0.1738 -> 0.01647,
+M 92.65 kg, Fc 20.11 N; docs/data_format.md).
+
 The benchmark's own protocol fits the estimation run and judges on the
 force-pulse run, the state set from its first 20 samples
 (``--protocol`` writes that run as ``pulses.csv`` too and runs this)::
