@@ -132,3 +132,35 @@ def test_a_law_stiffer_than_the_sampling_is_not_refitted(monkeypatch):
     same, why = confirm.stable_context(ctx, model, ["m", "b", "Fc"], {"Fc": 0.01 * FC},
                                        "coulomb @ v", "its start", 1)
     assert same is ctx and why == ""
+
+
+def test_the_robust_std_of_a_stable_refit_is_computed_at_its_step():
+    """A fit made at a step stable for its law (``Fit.step``, set by
+    :func:`confirm.stable_refit`) has its robust (sandwich) std computed
+    there (``fit.fit_context``), as the accept rule's identification test
+    reads it: the Coulomb model at the truth on the friction record gives at
+    RK4(4) the std of RK4(16) within 2 % (the step-converged reference);
+    at the loop's RK4(1), unstable at a reversal, F_c's is 24 % off."""
+    from dataclasses import replace
+
+    from bondgraph.diagnose.fit import Context, robust_std_of
+
+    g = user_mass()
+    fc = g.param("Fc", FC, "N", (0.001, 20.0), "Coulomb friction")
+    g.connect(g.element("v"), g.R("coulomb", effort=lambda f: fc * sp.tanh(f / EPS)))
+    model = model_of(g)
+    pb = make_problem(model, record(1201, 1),
+                      ukf=UKFOptions(method="rk4", substeps=1, hold="linear"))
+    ctx = Context(problem=pb, settings=LoopSettings(params=["m", "b"]), log=lambda s: None)
+
+    def robust(substeps):
+        fit = SimpleNamespace(params=["m", "b", "Fc"], at_bound=[], model=model,
+                              std={"m": 1.0, "b": 1.0, "Fc": 1.0},
+                              theta=model.theta({"m": MASS, "b": B, "Fc": FC}),
+                              step=substeps and replace(pb.disc, substeps=substeps, refine=()))
+        return robust_std_of(ctx, fit)
+
+    ref, four, loop = robust(16), robust(4), robust(None)
+    for p in ("m", "b", "Fc"):
+        assert four[p] == pytest.approx(ref[p], rel=0.02), (p, four, ref)
+    assert abs(loop["Fc"] / ref["Fc"] - 1) > 0.1, (loop, ref)

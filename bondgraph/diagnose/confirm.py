@@ -592,6 +592,8 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
             break
         ctx.log(f"  {label}: {why}: refitted with {_step_name(nxt.problem.disc)}")
         sub = nxt
+    if sub is not ctx:
+        f1.step = sub.problem.disc      # what is computed again at the fit is computed there
     return sub, f1
 
 

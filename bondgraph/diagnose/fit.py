@@ -197,6 +197,11 @@ class Fit:
     #: the unidentified combination as relative changes when it is a scale
     #: symmetry (:func:`ridge_changes`: "; as relative changes: ms +1.00, ..."), else ""
     ridge: str = ""
+    #: the discretisation the fit was made at where it is not the loop's (a
+    #: confirmation refitted at a step stable for its law,
+    #: :func:`bondgraph.diagnose.confirm.stable_refit`); None: the loop's.
+    #: What is computed again at the fit (:func:`fit_context`) uses it.
+    step: Any = None
 
     @property
     def k(self) -> int:
@@ -261,6 +266,25 @@ def loop_problem(model: Model, experiment, settings: LoopSettings,
     return make_problem(model, experiment, prior=settings.prior,
                         noise=NoiseSpec(settings.noise) if noise is None else noise,
                         ukf=settings.ukf, fixed=settings.fixed, defaults_ok=True)
+
+
+def fit_context(ctx: Context, fit: Fit) -> Context:
+    """``ctx``, or, where ``fit`` was made at another discretisation than the
+    loop's (``fit.step``: a confirmation refitted at a step stable for its
+    law), ``ctx`` with that step (cached in ``ctx.cache`` per step): what is
+    computed again at the fit (its robust std and scores, the scores of a
+    pair's partner given it) is computed where its filter is stable, not at
+    the loop's step, where the law's fast mode makes the likelihood rough
+    (:func:`bondgraph.diagnose.confirm.stable_context`)."""
+    step = getattr(fit, "step", None)
+    if step is None or step == ctx.problem.disc:
+        return ctx
+    hit = ctx.cache.get(("fit_step", step))
+    if hit is not None and hit[0] is ctx.problem:
+        return hit[1]
+    sub = replace(ctx, problem=ctx.problem.conditioned_on(disc=step), cache={})
+    ctx.cache[("fit_step", step)] = (ctx.problem, sub)
+    return sub
 
 
 def problem_for(ctx: Context, model: Model) -> Problem:
@@ -589,8 +613,9 @@ def robust_lr(ctx: Context, fit: Fit, new: list[str], lr: float, dof: int) -> di
 def _scores_at(ctx: Context, fit: Fit) -> tuple[list[str], np.ndarray, np.ndarray] | None:
     """``(params, F (k, k), G (N, k))``: the Fisher information and the
     per-sample scores of ``fit``'s parameters that are off their bounds and
-    have a Cramér-Rao std, from one stored batched run at the estimate;
-    None where there are none or it fails. Kept on ``fit`` for the same
+    have a Cramér-Rao std, from one stored batched run at the estimate (at
+    the fit's own step, :func:`fit_context`); None where there are none or
+    it fails. Kept on ``fit`` for the same
     problem, parameters and θ: the accepted step's scaled likelihood ratio
     (:func:`robust_lr`) and the robust std of the same fit (a refit judged
     by it, or the final model) share the run."""
@@ -598,7 +623,7 @@ def _scores_at(ctx: Context, fit: Fit) -> tuple[list[str], np.ndarray, np.ndarra
     if not params:
         return None
     model = fit.model
-    pb = problem_for(ctx, model)
+    pb = problem_for(fit_context(ctx, fit), model)
     key = (tuple(params), np.asarray(fit.theta, float).tobytes())
     memo = getattr(fit, "_scores_memo", None)
     if memo is not None and memo[0] is pb and memo[1] == key:

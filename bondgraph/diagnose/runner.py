@@ -56,6 +56,7 @@ from bondgraph.diagnose.fit import (
     error_scale,
     FREE_RUN_SHARE,
     noise_absorbing,
+    fit_context,
     fit_model,
     likelihood_fit,
     process_noise_absorbing,
@@ -1686,6 +1687,7 @@ def score_given(ctx: Context, fit: Fit, cand: Candidate, scales: Scales) -> Cand
     eff = get_effect(cand.effect, ctx.settings.effects)
     if not (eff.additive or ctx.settings.search.structural):
         return None
+    ctx = fit_context(ctx, fit)     # a refit at a step stable for its law: scored there
     try:
         with conditioned(ctx, fit):
             if eff.additive:
