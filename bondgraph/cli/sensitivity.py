@@ -164,6 +164,7 @@ def run(args) -> int:
     print(rep.table())
     for p in [path, *published(folder, pngs)]:
         print(f"wrote {p}")
-    print(f"estimate these with: bondgraph estimate --model {args.model} --data {args.data} "
+    dec = f" --decimate {args.decimate}" if getattr(args, "decimate", 1) > 1 else ""
+    print(f"estimate these with: bondgraph estimate --model {args.model} --data {args.data}{dec} "
           f"--params recommended:{path}")
     return 0
