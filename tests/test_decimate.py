@@ -152,3 +152,23 @@ def test_oversampling_reads_the_spectra():
     gaps[5000:] += 0.5
     k, share = oversampling(gaps, [slow])
     assert k == 1 and np.isnan(share)
+
+
+def test_a_protocols_window_keeps_its_time_span():
+    """``--init-samples 20`` (EMPS: 20 ms at 1 kHz) with ``--decimate 10``:
+    the 3 coarse samples at 0, 10 and 20 ms span the same 19 intervals of
+    the original record (ceil(19 / 10) + 1); said in one line."""
+    from types import SimpleNamespace
+
+    from bondgraph.cli.common import decimated_window
+
+    said = []
+    args = SimpleNamespace(decimate=10, init_samples=20)
+    decimated_window(args, said.append)
+    assert args.init_samples == 3
+    assert said == ["--init-samples 20 counts the record's own samples: 3 samples of the record "
+                    "decimated x10 span the same time"]
+    for k, n, m in ((5, 50, 11), (1, 20, 20), (10, 0, 0), (10, None, None)):
+        args = SimpleNamespace(decimate=k, init_samples=n)
+        decimated_window(args, said.append)
+        assert args.init_samples == m

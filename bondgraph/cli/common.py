@@ -559,6 +559,21 @@ def filtered_record(exp: Experiment, model, args, say=None) -> Experiment:
     return band_limited_record(decimated_record(exp, model, args, say), model, args, say)
 
 
+def decimated_window(args, say=None) -> None:
+    """``--init-samples N`` with ``--decimate K``: N counts the record's own
+    samples (a benchmark protocol's window, EMPS: the first 20 at 1 kHz),
+    so it becomes the decimated record's samples that span the same time,
+    ceil((N − 1)/K) + 1, set on ``args`` and said in one line on ``say``
+    (default stderr)."""
+    k, n = getattr(args, "decimate", 1) or 1, getattr(args, "init_samples", None)
+    if k == 1 or not n:
+        return
+    m = -(-(n - 1) // k) + 1
+    (say or _stderr)(f"--init-samples {n} counts the record's own samples: {m} samples of the "
+                     f"record decimated x{k} span the same time")
+    args.init_samples = m
+
+
 def decimated_record(exp: Experiment, model, args, say=None) -> Experiment:
     """``exp`` on every K-th sample, K = ``args.decimate``
     (:meth:`~bondgraph.data.records.Experiment.decimated`): the inputs held

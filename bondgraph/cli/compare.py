@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from bondgraph.cli.common import (add_data, add_discretisation, add_model, add_overwrite,
-                                  add_quiet, discretisation_given, filtered_record,
-                                  load_record, output_folder, parse_pairs, published)
+                                  add_quiet, decimated_window, discretisation_given,
+                                  filtered_record, load_record, output_folder, parse_pairs,
+                                  published)
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.compare import compare
 from bondgraph.errors import UsageError
@@ -83,6 +84,7 @@ def run(args) -> int:
 def _records(args, graph, say) -> list:
     """The records of ``--data`` for ``graph``, each on a finer grid where an
     input is band-limited (as estimate and loop filter them)."""
+    decimated_window(args, say)
     return [filtered_record(load_record(pth, graph, say, args.columns), graph, args, say)
             for pth in args.data]
 

@@ -24,6 +24,7 @@ from bondgraph.cli.common import (
     add_scheduler,
     chosen_at_levels,
     chosen_problem,
+    decimated_window,
     default_params,
     discretisation_given,
     estimated_states,
@@ -132,6 +133,7 @@ def run(args) -> int:
     paths = list(args.data)
     with progress.phase("loading the model and the records"):
         model = load_model(args.model)
+        decimated_window(args)
         exps = [filtered_record(load_record(pth, model, columns=args.columns), model, args)
                 for pth in paths]
         vals = [filtered_record(load_record(pth, model, columns=args.columns), model, args)

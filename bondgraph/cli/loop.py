@@ -262,6 +262,7 @@ def run(args) -> int:
         graph = graph_builder(args.model)()
         record = filtered_record(load_record(args.data, graph, _said, args.columns),
                                  graph, args, say=_said)
+        decimated_window(args, _said)
         params = parse_params(args.params) if args.params else list(graph.params)
         # without --params, a parameter declared without a box is a known
         # value: held where the record cannot tell it from others
