@@ -172,3 +172,24 @@ def test_a_protocols_window_keeps_its_time_span():
         args = SimpleNamespace(decimate=k, init_samples=n)
         decimated_window(args, said.append)
         assert args.init_samples == m
+
+
+def test_the_emps_protocols_decimation():
+    """On the real EMPS record the block means are the protocol's own
+    (``catalog.benchmarks.emps_arrays``: vir averaged over each 5 ms, the
+    position point-sampled), up to the record's clock jitter (4e-5 of a
+    step) in the time weights."""
+    from bondgraph.catalog.benchmarks import emps_arrays
+    from bondgraph.data import datasets as D
+
+    data = D.default_data_dir()
+    if data is None or not (data / "emps").is_dir():
+        pytest.skip("real data sets absent: set BONDGRAPH_DATA or provide ../shared/data")
+    exp = D.emps("estimation")
+    t, u, y = emps_arrays(exp, decimate=5)
+    d = exp.decimated(5, means=["vir"])
+    n = t.size
+    assert len(d) == n + 1          # and the last sample, whose interval the record lacks
+    np.testing.assert_array_equal(d.t[:n], t)
+    np.testing.assert_array_equal(d["qm"][:n], y[:, 0])
+    np.testing.assert_allclose(d["vir"][:n], u[:, 0], rtol=1e-4, atol=1e-6 * np.ptp(u))
