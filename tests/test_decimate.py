@@ -193,3 +193,34 @@ def test_the_emps_protocols_decimation():
     np.testing.assert_array_equal(d.t[:n], t)
     np.testing.assert_array_equal(d["qm"][:n], y[:, 0])
     np.testing.assert_allclose(d["vir"][:n], u[:, 0], rtol=1e-4, atol=1e-6 * np.ptp(u))
+
+
+def test_the_report_says_the_record_was_decimated():
+    """report.md's and report.html's record sentence (``LoopResult.records``)
+    names the decimation the settings record (``runner.settings_summary``)."""
+    from bondgraph.diagnose.result import LoopResult
+
+    res = LoopResult("m", "", "emps[0:1864]", "NRMSE", "AIC",
+                     {"decimated": {"factor": 10, "means": ["vir"], "samples": 24841}})
+    assert res.records() == ("Record: `emps[0:1864]`. The records are every 10th sample of "
+                             "their files (vir averaged over each interval, the rest "
+                             "point-sampled; --decimate).")
+    assert "every" not in LoopResult("m", "", "r", "NRMSE", "AIC", {}).records()
+
+
+def test_the_loop_fits_the_decimated_record(fast_record, monkeypatch, capsys):
+    """``bondgraph loop --model ... --decimate 10``: the declared fit on every
+    tenth sample (m, c within 3 std of the truth), the report says so."""
+    d = fast_record
+    monkeypatch.chdir(d)
+    assert main(["loop", "--model", "cart.py:build", "--data", "cart.csv", "--params", "m,c",
+                 "--hold", "zoh", "--decimate", "10", "--max-steps", "0", "--out", "loop10",
+                 "--overwrite", "--no-plots", "--quiet"]) == 0
+    assert "bondgraph loop: cart: decimated x10 (10001 -> 1001 samples" in capsys.readouterr().out
+    rep = json.loads((d / "loop10" / "report.json").read_text())
+    assert rep["settings"]["decimated"] == {"factor": 10, "means": ["F"], "samples": 10001}
+    report = (d / "loop10" / "report.md").read_text()
+    assert "every 10th sample of their files (F averaged" in report
+    fit = rep["final_fit"]       # the first 75 % of the decimated record
+    for p, truth in (("m", M), ("c", C)):
+        assert abs(fit["estimates"][p] - truth) < 3 * fit["std"][p], (p, fit["estimates"])

@@ -20,6 +20,7 @@ from bondgraph.cli.common import (
     add_overwrite,
     add_quiet,
     add_scheduler,
+    decimated_window,
     discretisation_given,
     filtered_record,
     load_record,

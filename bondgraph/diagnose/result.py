@@ -595,7 +595,26 @@ class LoopResult:
             if n:
                 line += (f" Its free runs start from its first {n} samples only and are "
                          f"judged on the samples after them.")
-        return line
+        return line + self._grid_note()
+
+    def _grid_note(self) -> str:
+        """What was done to the file's samples before the loop
+        (``settings["decimated"]``, ``settings["finer_grid"]``,
+        :func:`bondgraph.diagnose.runner.settings_summary`), one sentence or
+        ""."""
+        settings = self.settings or {}
+        dec, fine = settings.get("decimated"), settings.get("finer_grid")
+        out = ""
+        if dec:
+            means = list(dec.get("means") or [])
+            out += (f" The records are every {dec['factor']}th sample of their files"
+                    + (f" ({', '.join(means)} averaged over each interval, the rest "
+                       f"point-sampled; --decimate)" if means else " (point-sampled; --decimate)")
+                    + ".")
+        if fine:
+            out += (f" Filtered on a grid {fine.get('factor', 2)} times finer than the samples "
+                    f"({', '.join(fine.get('interpolated') or [])} interpolated band-limited).")
+        return out
 
     def more_validation(self) -> list[tuple[str, float | None, float]]:
         """``(record, before, after)``: the error on each further validation
