@@ -164,3 +164,34 @@ def test_the_robust_std_of_a_stable_refit_is_computed_at_its_step():
     for p in ("m", "b", "Fc"):
         assert four[p] == pytest.approx(ref[p], rel=0.02), (p, four, ref)
     assert abs(loop["Fc"] / ref["Fc"] - 1) > 0.1, (loop, ref)
+
+
+def test_an_unconverged_refit_is_not_continued_at_an_unstable_step(monkeypatch):
+    """:func:`confirm._unstable_unconverged`: a confirmation's best refit that
+    has not converged, at the Coulomb level of the truth (RK4(1) unstable,
+    stable from 4 substeps, hand-derived above), moves to RK4(4) before it
+    is continued; a converged one, or one at 1 % of the level (stable at
+    RK4(1)), does not; beyond the limit it is not comparable."""
+    from bondgraph.diagnose.fit import Context
+
+    g = user_mass()
+    fc = g.param("Fc", FC, "N", (0.001, 20.0), "Coulomb friction")
+    g.connect(g.element("v"), g.R("coulomb", effort=lambda f: fc * sp.tanh(f / EPS)))
+    model = model_of(g)
+    pb = make_problem(model, record(1201, 1),
+                      ukf=UKFOptions(method="rk4", substeps=1, hold="linear"))
+    ctx = Context(problem=pb, settings=LoopSettings(params=["m", "b"]), log=lambda s: None)
+
+    def refit(level, converged=False, nll=-100.0):
+        return SimpleNamespace(nll=nll, converged=converged, ukf=None,
+                               estimates=lambda: {"m": MASS, "b": B, "Fc": level})
+
+    names = ["m", "b", "Fc"]
+    nxt, why = confirm._unstable_unconverged(ctx, model, names, [refit(0.01 * FC, nll=-50.0),
+                                                                 refit(FC)], "c", 1)
+    assert nxt.problem.disc.substeps == 4 and "stable from rk4(4)" in why
+    assert confirm._unstable_unconverged(ctx, model, names, [refit(FC, True)], "c", 1) is None
+    assert confirm._unstable_unconverged(ctx, model, names, [refit(0.01 * FC)], "c", 1) is None
+    monkeypatch.setattr(confirm, "STABLE_FACTOR", 2)
+    nxt, why = confirm._unstable_unconverged(ctx, model, names, [refit(FC)], "c", 1)
+    assert nxt is None and "needs rk4(4)" in why

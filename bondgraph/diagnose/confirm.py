@@ -537,8 +537,10 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
     """``(context, fit)``: the confirmation's refit of ``names`` from each of
     ``starts`` (:func:`chosen_refit`) in ``ctx``, or, where an RK4 filter at
     the loop's substeps is unstable for ``model`` at the first start or at
-    the refit (:func:`stable_context`), in a context with the substeps that
-    make it stable, the refit done (again) there from the same starts, once:
+    the refit (:func:`stable_context`; a refit that has not converged is
+    checked before it is continued, :func:`_unstable_unconverged`), in a
+    context with the substeps that make it stable, the refit done (again)
+    there from the same starts, once:
     a refit whose law is unstable again at its end (stiffer still), or
     needs more than :data:`STABLE_FACTOR` times the loop's substeps there,
     is returned not converged, so not comparable (on that record a Padé
@@ -578,6 +580,18 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
         fits = [fit_model(sub, graph, names, s0, f"confirming {label}", model=model,
                           iterations=sub.settings.search.confirm_iterations,
                           tolerance=sub.settings.search.confirm_tolerance) for s0 in starts]
+        early = _unstable_unconverged(sub, model, names, fits, label, base) if again else None
+        if early is not None:   # not continued on the step's rough likelihood
+            nxt, why = early
+            if nxt is None:
+                f1 = min(fits, key=_nll_key)
+                ctx.log(f"  {label}: {why}: not comparable")
+                f1.converged = False
+                break
+            ctx.log(f"  {label}: {why} (not converged there): refitted with "
+                    f"{_step_name(nxt.problem.disc)}")
+            sub = nxt
+            continue
         f1 = chosen_refit(sub, graph, fits, label)
         try:
             nxt, why = stable_context(sub, model, names, f1.estimates(), label, "its refit",
@@ -606,6 +620,34 @@ STABLE_FACTOR = 8
 def _step_name(disc) -> str:
     """``"rk4(4)"``: a discretisation's method and substeps, for log lines."""
     return disc.describe().split(",")[0]
+
+
+def _nll_key(fit: Fit) -> float:
+    """A fit's NLL for ``min``, a non-finite one last."""
+    return fit.nll if np.isfinite(fit.nll) else np.inf
+
+
+def _unstable_unconverged(ctx: Context, model: Model, names: list, fits: list, label: str,
+                          base: int) -> tuple | None:
+    """``(context, why)`` when the best of a confirmation's ``fits`` did not
+    converge and the loop's RK4 step is unstable for the law at it
+    (:func:`stable_context` along its own states): continuing it there
+    (:func:`continued`, up to three more rounds and L-BFGS-B) would crawl on
+    the step's rough likelihood, so the refit moves to the stable step
+    first (a user's EMPS graph at 100 Hz: a square-root damper continued to
+    80 iterations at RK4(1), then found unstable and refitted at RK4(8)).
+    ``(None, why)`` where no step up to :data:`STABLE_FACTOR` times ``base``
+    is stable there; None where it converged, is stable, or cannot be
+    checked."""
+    best = min(fits, key=_nll_key)
+    if best.converged is not False or not np.isfinite(best.nll):
+        return None
+    try:
+        nxt, why = stable_context(ctx, model, names, best.estimates(), label, "its refit",
+                                  base, states_of(best, model))
+    except NumericalError as exc:
+        return None, str(exc)
+    return None if nxt is ctx else (nxt, why)
 
 
 def states_of(fit: Fit, model: Model) -> np.ndarray | None:
