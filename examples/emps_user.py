@@ -28,7 +28,8 @@ encoder term beside the direction-dependent friction (held-out 0.0126).
 
 The record is sampled ten times faster than its content (the command says
 so in one line); with ``--decimate 10`` the loop fits every tenth sample,
-the current averaged over each 10 ms (2026-12-01: 263 s; the
+the current averaged over each 10 ms (2026-12-01: 240 s, the full record
+590 s with the same steps as above; the
 direction-dependent friction, then Coulomb; held-out 0.1738 -> 0.01647,
 M 92.65 kg, Fc 20.11 N; docs/data_format.md).
 
