@@ -166,6 +166,8 @@ def test_a_protocols_window_keeps_its_time_span():
     args = SimpleNamespace(decimate=10, init_samples=20)
     decimated_window(args, said.append)
     assert args.init_samples == 3
+    decimated_window(args, said.append)         # once: a second call leaves it
+    assert args.init_samples == 3 and len(said) == 1
     assert said == ["--init-samples 20 counts the record's own samples: 3 samples of the record "
                     "decimated x10 span the same time"]
     for k, n, m in ((5, 50, 11), (1, 20, 20), (10, 0, 0), (10, None, None)):

@@ -566,12 +566,12 @@ def decimated_window(args, say=None) -> None:
     ceil((N − 1)/K) + 1, set on ``args`` and said in one line on ``say``
     (default stderr)."""
     k, n = getattr(args, "decimate", 1) or 1, getattr(args, "init_samples", None)
-    if k == 1 or not n:
+    if k == 1 or not n or getattr(args, "window_decimated", False):
         return
     m = -(-(n - 1) // k) + 1
     (say or _stderr)(f"--init-samples {n} counts the record's own samples: {m} samples of the "
                      f"record decimated x{k} span the same time")
-    args.init_samples = m
+    args.init_samples, args.window_decimated = m, True      # once, however often called
 
 
 def decimated_record(exp: Experiment, model, args, say=None) -> Experiment:
