@@ -226,3 +226,29 @@ def test_the_loop_fits_the_decimated_record(fast_record, monkeypatch, capsys):
     fit = rep["final_fit"]       # the first 75 % of the decimated record
     for p, truth in (("m", M), ("c", C)):
         assert abs(fit["estimates"][p] - truth) < 3 * fit["std"][p], (p, fit["estimates"])
+
+
+def test_compare_and_track_filter_the_decimated_record(fast_record, monkeypatch, capsys):
+    """``bondgraph compare`` and ``bondgraph track`` with ``--decimate 10``:
+    each says it and works on the 1001 kept samples (an estimate at the
+    truth judged: its free-run error at the noise level)."""
+    import csv
+
+    d = fast_record
+    monkeypatch.chdir(d)
+    assert main(["compare", "cart.py:build", "--data", "cart.csv", "--param", f"m={M}",
+                 "--param", f"c={C}", "--hold", "zoh", "--decimate", "10", "--out", "cmp10",
+                 "--overwrite"]) == 0
+    out = capsys.readouterr()
+    assert "cart: decimated x10 (10001 -> 1001 samples" in out.out + out.err
+    (rec,) = json.loads((d / "cmp10" / "compare.json").read_text())["records"]
+    assert rec["n_obs"] == 1001
+    v = Experiment.load(d / "cart.csv").decimated(10)["v"]
+    assert rec["metric"] == pytest.approx(STD / np.std(v), rel=0.1)   # the noise, nothing else
+    assert main(["track", "--model", "cart.py:build", "--data", "cart.csv", "--track", "c",
+                 "--fixed", f"m={M},c={C}", "--hold", "zoh", "--decimate", "10", "--out",
+                 "tr10", "--overwrite"]) == 0
+    out = capsys.readouterr()
+    assert "cart: decimated x10 (10001 -> 1001 samples" in out.out + out.err
+    with open(d / "tr10" / "track.csv") as fh:
+        assert sum(1 for _ in csv.reader(fh)) == 1001 + 1
