@@ -286,3 +286,17 @@ def test_a_process_noise_floor_is_no_warning():
     assert "q_grade" not in block
     final.at_bound = ["q_grade"]
     assert _warnings(SimpleNamespace(warnings=[], final=final)) == []
+
+
+def test_the_ridge_sentence_says_how_far_each_parameter_is_known():
+    """report.md's not-identified sentence gives each flat parameter's robust
+    std as a share of its value (loop_report._ridge_width), what the accept
+    rule's identification test reads: Fv 41.4 of 207 is 20 %, Fc 2 of -20
+    is 10 %; β has no robust std and is left out."""
+    from bondgraph.report.loop_report import _ridge_width
+
+    text = _ridge_width(["Fv", "Fc", "beta"], {"Fv": 41.4, "Fc": 2.0},
+                        {"Fv": 207.0, "Fc": -20.0, "beta": 1.0})
+    assert text == (" Their robust std as a share of their values: Fv 20 %, Fc 10 % (the accept "
+                    "rule counts a parameter known within 10% as determined).")
+    assert _ridge_width(["beta"], {}, {"beta": 1.0}) == ""

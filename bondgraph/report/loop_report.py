@@ -24,6 +24,7 @@ from bondgraph.core.atomic import OutputFolder
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.plugins import resolve
 from bondgraph.core.equations import derive
+from bondgraph.diagnose.accept import UNDETERMINED_REL
 from bondgraph.diagnose.result import (
     LoopResult,
     moved_declared,
@@ -649,8 +650,22 @@ def _md_accepted(result: LoopResult) -> list[str]:
         L += ["", f"The record does not identify {', '.join(flat)} separately: the likelihood "
               "is flat along a combination of them where the fit stopped (relative eigenvalue "
               "of the Fisher information below 1e-4), so their values above are one point of "
-              f"a ridge; fix one of them, or add a record that excites them apart.{whole}"]
+              f"a ridge; fix one of them, or add a record that excites them apart.{whole}"
+              + _ridge_width(flat, robust, result.final.estimates)]
     return L
+
+
+def _ridge_width(flat, robust: dict, estimates: dict) -> str:
+    """How far along the ridge each of ``flat`` is known: its robust std as a
+    share of its value, where it has one (the accept rule counts a parameter
+    within :data:`~bondgraph.diagnose.accept.UNDETERMINED_REL` of its value
+    as determined however flat the information is); "" when none has one."""
+    shares = [f"{n} {100 * robust[n] / abs(estimates[n]):.3g} %" for n in flat
+              if robust.get(n) is not None and estimates.get(n)]
+    if not shares:
+        return ""
+    return (f" Their robust std as a share of their values: {', '.join(shares)} (the accept "
+            f"rule counts a parameter known within {UNDETERMINED_REL:.0%} as determined).")
 
 
 def _g3(v) -> str:
