@@ -111,19 +111,26 @@ def test_the_kept_width_is_judged_at_a_stable_step():
     assert step0.nll_after > profiled_nll(logs0, "0.3") + 10.0
 
 
-def test_a_law_stiffer_than_the_sampling_is_not_refitted(monkeypatch):
+@pytest.fixture(scope="module")
+def coulomb():
+    """``(model, problem)``: the user's graph with Coulomb friction declared
+    at the truth, on the friction record, filtered at the loop's RK4(1)."""
+    g = user_mass()
+    fc = g.param("Fc", FC, "N", (0.001, 20.0), "Coulomb friction")
+    g.connect(g.element("v"), g.R("coulomb", effort=lambda f: fc * sp.tanh(f / EPS)))
+    model = model_of(g)
+    return model, make_problem(model, record(1201, 1),
+                               ukf=UKFOptions(method="rk4", substeps=1, hold="linear"))
+
+
+def test_a_law_stiffer_than_the_sampling_is_not_refitted(coulomb, monkeypatch):
     """:func:`confirm.stable_context` at the loop's RK4(1) on the friction
     record's model with Coulomb friction declared at the truth: stable from
     4 substeps (z = −10 at one, hand-derived above), so with a limit of 2
     times the loop's substeps the confirmation is refused with the reason
     and the remedy; with the law's level at 1 % (mode −2 1/s) the loop's
     step stands."""
-    g = user_mass()
-    fc = g.param("Fc", FC, "N", (0.001, 20.0), "Coulomb friction")
-    g.connect(g.element("v"), g.R("coulomb", effort=lambda f: fc * sp.tanh(f / EPS)))
-    model = model_of(g)
-    pb = make_problem(model, record(1201, 1),
-                      ukf=UKFOptions(method="rk4", substeps=1, hold="linear"))
+    model, pb = coulomb
     logs: list[str] = []
     ctx = SimpleNamespace(problem=pb, cache={}, log=logs.append)
     monkeypatch.setattr(confirm, "STABLE_FACTOR", 2)
@@ -134,7 +141,7 @@ def test_a_law_stiffer_than_the_sampling_is_not_refitted(monkeypatch):
     assert same is ctx and why == ""
 
 
-def test_the_robust_std_of_a_stable_refit_is_computed_at_its_step():
+def test_the_robust_std_of_a_stable_refit_is_computed_at_its_step(coulomb):
     """A fit made at a step stable for its law (``Fit.step``, set by
     :func:`confirm.stable_refit`) has its robust (sandwich) std computed
     there (``fit.fit_context``), as the accept rule's identification test
@@ -145,12 +152,7 @@ def test_the_robust_std_of_a_stable_refit_is_computed_at_its_step():
 
     from bondgraph.diagnose.fit import Context, robust_std_of
 
-    g = user_mass()
-    fc = g.param("Fc", FC, "N", (0.001, 20.0), "Coulomb friction")
-    g.connect(g.element("v"), g.R("coulomb", effort=lambda f: fc * sp.tanh(f / EPS)))
-    model = model_of(g)
-    pb = make_problem(model, record(1201, 1),
-                      ukf=UKFOptions(method="rk4", substeps=1, hold="linear"))
+    model, pb = coulomb
     ctx = Context(problem=pb, settings=LoopSettings(params=["m", "b"]), log=lambda s: None)
 
     def robust(substeps):
@@ -166,7 +168,7 @@ def test_the_robust_std_of_a_stable_refit_is_computed_at_its_step():
     assert abs(loop["Fc"] / ref["Fc"] - 1) > 0.1, (loop, ref)
 
 
-def test_an_unconverged_refit_is_not_continued_at_an_unstable_step(monkeypatch):
+def test_an_unconverged_refit_is_not_continued_at_an_unstable_step(coulomb, monkeypatch):
     """:func:`confirm._unstable_unconverged`: a confirmation's best refit that
     has not converged, at the Coulomb level of the truth (RK4(1) unstable,
     stable from 4 substeps, hand-derived above), moves to RK4(4) before it
@@ -174,12 +176,7 @@ def test_an_unconverged_refit_is_not_continued_at_an_unstable_step(monkeypatch):
     RK4(1)), does not; beyond the limit it is not comparable."""
     from bondgraph.diagnose.fit import Context
 
-    g = user_mass()
-    fc = g.param("Fc", FC, "N", (0.001, 20.0), "Coulomb friction")
-    g.connect(g.element("v"), g.R("coulomb", effort=lambda f: fc * sp.tanh(f / EPS)))
-    model = model_of(g)
-    pb = make_problem(model, record(1201, 1),
-                      ukf=UKFOptions(method="rk4", substeps=1, hold="linear"))
+    model, pb = coulomb
     ctx = Context(problem=pb, settings=LoopSettings(params=["m", "b"]), log=lambda s: None)
 
     def refit(level, converged=False, nll=-100.0):
