@@ -252,3 +252,12 @@ def test_compare_and_track_filter_the_decimated_record(fast_record, monkeypatch,
     assert "cart: decimated x10 (10001 -> 1001 samples" in out.out + out.err
     with open(d / "tr10" / "track.csv") as fh:
         assert sum(1 for _ in csv.reader(fh)) == 1001 + 1
+
+
+def test_ordinals_in_the_lines():
+    """``data.records.ordinal``, which the decimation lines use (every 2nd
+    sample, not "2th")."""
+    from bondgraph.data.records import ordinal
+
+    assert [ordinal(k) for k in (1, 2, 3, 4, 10, 11, 12, 13, 21, 22, 112)] == [
+        "1st", "2nd", "3rd", "4th", "10th", "11th", "12th", "13th", "21st", "22nd", "112th"]

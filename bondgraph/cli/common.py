@@ -21,7 +21,7 @@ import numpy as np
 from bondgraph.core.atomic import OutputFolder, is_empty_dir
 from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
-from bondgraph.data.records import Experiment
+from bondgraph.data.records import Experiment, ordinal
 from bondgraph.errors import DataError, OptionError
 from bondgraph.inference.discretise import (
     DiscretisationChoice,
@@ -625,7 +625,7 @@ def _oversampled_note(exp: Experiment, model, tell) -> None:
         tell(f"{exp.name}: {len(exp)} samples at {exp.dt:.3g} s, and its "
              f"{', '.join(names)} hold {share:.1g} of their power above 1/{k} of the Nyquist "
              f"frequency: each filter pass steps every sample; --decimate {k} fits every "
-             f"{k}th sample, each pass in about 1/{k} of the time (inputs averaged over each "
+             f"{ordinal(k)} sample, each pass in about 1/{k} of the time (inputs averaged over each "
              f"interval; estimates limited by the measurement noise about sqrt({k}) wider)")
 
 

@@ -30,6 +30,13 @@ from bondgraph.numerics.integrators import split_hold
 
 
 # --------------------------------------------------------------- the class
+def ordinal(k: int) -> str:
+    """``k`` as an English ordinal: 1st, 2nd, 3rd, 4th, 10th, 11th, 22nd."""
+    k = int(k)
+    suffix = "th" if 10 <= k % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
+    return f"{k}{suffix}"
+
+
 @dataclass
 class Experiment:
     """A measured or synthetic record: time, named columns, units, metadata.

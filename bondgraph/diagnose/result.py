@@ -11,6 +11,7 @@ import numpy as np
 
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.jsonsafe import to_jsonable
+from bondgraph.data.records import ordinal
 from bondgraph.diagnose.effects import Target
 from bondgraph.diagnose.inference_calls import ROBUST_RATIO
 from bondgraph.diagnose.residuals import ResidualReport
@@ -607,7 +608,7 @@ class LoopResult:
         out = ""
         if dec:
             means = list(dec.get("means") or [])
-            out += (f" The records are every {dec['factor']}th sample of their files"
+            out += (f" The records are every {ordinal(dec['factor'])} sample of their files"
                     + (f" ({', '.join(means)} averaged over each interval, the rest "
                        f"point-sampled; --decimate)" if means else " (point-sampled; --decimate)")
                     + ".")

@@ -485,10 +485,9 @@ def oversampling(t, columns, factors: Sequence[int] = (10, 5, 4, 2)) -> tuple[in
     spectra of the linearly detrended columns), and that worst share; (1,
     share at the smallest K) when none qualifies, (1, nan) on a grid whose
     steps vary by more than 0.1 %, with fewer than 256 samples or a column
-    not finite. A proxy for
-    "the system is slower than the sampling": the outputs hold nothing a
-    coarser grid could not resolve, and measurement noise counts against it
-    (a white floor spreads over the whole band).
+    not finite. A proxy for "the system is slower than the sampling": the
+    outputs hold nothing a coarser grid could not resolve, and measurement
+    noise counts against it (a white floor spreads over the whole band).
 
     Parameters
     ----------
