@@ -261,3 +261,24 @@ def test_ordinals_in_the_lines():
 
     assert [ordinal(k) for k in (1, 2, 3, 4, 10, 11, 12, 13, 21, 22, 112)] == [
         "1st", "2nd", "3rd", "4th", "10th", "11th", "12th", "13th", "21st", "22nd", "112th"]
+
+
+def test_a_point_sampled_input_with_fast_content_is_warned_about():
+    """``--decimate`` point-samples an input held linearly; where it has
+    content above the decimated record's Nyquist frequency (a 40 Hz tone at
+    1 kHz, decimated x20: Nyquist 25 Hz) one warning line says it aliases and
+    what to do; a slow input gets none."""
+    from types import SimpleNamespace
+
+    from bondgraph.cli.common import decimated_record
+
+    t = np.arange(4000) * 1e-3
+    model = SimpleNamespace(inputs=["F", "G"], outputs=["x"])
+    rec = Experiment.from_arrays(t, {"F": np.sin(2 * np.pi * 40 * t), "G": np.sin(t),
+                                     "x": np.cos(t)},
+                                 roles={"F": "input", "G": "input", "x": "output"}, name="r")
+    said = []
+    out = decimated_record(rec, model, SimpleNamespace(decimate=20, hold="linear"), said.append)
+    assert len(out) == 200 and said[0].startswith("r: decimated x20 (4000 -> 200 samples")
+    (warn,) = said[1:]
+    assert warn.startswith("warning: r: input 'F' holds") and "aliases" in warn

@@ -611,6 +611,12 @@ def decimated_record(exp: Experiment, model, args, say=None) -> Experiment:
             else []) + [f"{', '.join(points + ['the outputs'])} point-sampled"]
     tell(f"{exp.name}: decimated x{k} ({len(exp)} -> {len(out)} samples, {exp.dt:.3g} s -> "
          f"{out.dt:.3g} s): {'; '.join(said)}")
+    for n in points:        # a point-sampled input with content the coarse grid cannot hold
+        fits, share = oversampling(exp.t, [exp.columns[n]], factors=(k,))
+        if fits < k and np.isfinite(share):
+            tell(f"warning: {exp.name}: input '{n}' holds {share:.2g} of its power above the "
+                 f"decimated record's Nyquist frequency; point-sampled, that content aliases "
+                 f"into the fit (--hold zoh averages it over each interval; or a smaller K)")
     return out
 
 
