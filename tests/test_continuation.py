@@ -64,3 +64,34 @@ def test_lbfgsb_that_gains_nothing_leaves_the_refit_as_it_was():
     ref = fit_model(ctx, g, list(TRUTH), START, "reference", iterations=200)
     assert confirm.quasi_newton(ctx, ref, "msd") is None
     assert any("msd: L-BFGS-B over 3 parameters" in ln for ln in lines)
+
+
+def test_a_declared_fit_on_a_bound_short_of_an_interior_optimum_goes_on_from_it():
+    """A declared fit that stopped with the damping on the bottom of its
+    box, c = 0.1 in [0.1, 20] (the scoring evaluated there only: the kind
+    of stop a projected step makes when the likelihood first falls along
+    the bound), is no verdict on the box: the refit with the box opened
+    ends inside it (c near 1.5), so the loop refits the declared model in
+    the declared boxes from there and goes on from that fit
+    (:func:`bondgraph.diagnose.runner._declared_fit_verdict`), logged, with
+    no warning about a box. Reference: the fit by Fisher scoring run to
+    convergence from START (NLL within 0.01 nats, each parameter within
+    0.1 of its Cramér-Rao std) and the truth (3 std)."""
+    from bondgraph.diagnose import runner
+
+    lines: list = []
+    g, ctx = _context(lines)
+    ref = fit_model(ctx, g, list(TRUTH), START, "reference", iterations=200)
+    assert ref.converged and not ref.at_bound
+    on_box = fit_model(ctx, g, list(TRUTH), {**START, "c": 0.1}, "initial fit", iterations=0)
+    assert on_box.at_bound == ["c"] and on_box.nll > ref.nll + 100.0
+    got = runner._declared_fit_verdict(ctx, g, on_box, list(TRUTH), [], ["c"])
+    assert got is not on_box and not got.at_bound
+    assert any("the refit with the box opened ended inside the declared box (c = " in ln
+               and "the declared fit goes on from there" in ln for ln in lines), lines
+    assert not any("warning: declared fit" in ln for ln in lines), lines
+    assert abs(got.nll - ref.nll) < 0.01, (got.nll, ref.nll)
+    est, want = got.estimates(), ref.estimates()
+    for n, v in TRUTH.items():
+        assert abs(est[n] - want[n]) < 0.1 * ref.std[n], (n, est[n], want[n], ref.std[n])
+        assert abs(est[n] - v) < 3 * ref.std[n], (n, est[n], v, ref.std[n])

@@ -593,24 +593,34 @@ def test_nothing_accepted_is_told_apart_from_candidates_the_accept_rule_refused(
         "4 confirmed candidate(s) refused by the accept rule (a, b, c, ...)")
 
 
-@pytest.mark.parametrize("gain, clause", [
-    (-4.46, "ended with a log-likelihood 4.46 nats lower, at k_b = 5.941)"),
-    (0.0, "ended with the same log-likelihood, at k_b = 5.941)"),
-    (3.5, None)])
-def test_the_gain_beyond_a_box_reads_as_a_gain(monkeypatch, gain, clause):
+@pytest.mark.parametrize("gain, lower, clause", [
+    (-4.46, 10.0, "beyond the box the likelihood gains nothing: the refit with the box opened "
+                  "ended with a log-likelihood 4.46 nats lower, at k_b = 5.941)"),
+    (0.0, 10.0, "beyond the box the likelihood gains nothing: the refit with the box opened "
+                "ended with the same log-likelihood, at k_b = 5.941)"),
+    (3.5, 10.0, "beyond the box the likelihood gains 3.5 nats, at k_b = 5.941)"),
+    (3.5, 1.0, "the refit with the box opened ended inside the declared box, 3.5 nats "
+               "likelier, at k_b = 5.941: the fit on the box had not reached the box's "
+               "optimum)")])
+def test_the_gain_beyond_a_box_reads_as_a_gain(monkeypatch, gain, lower, clause):
     """gain_beyond_box: a refit with the box opened that ends no better
     than the fit on the box (a user's CED graph: 4.46 nats worse, printed
     as "gains nothing: -4.46 nats") says so in words; a real gain is
-    given as such."""
+    given as such; a refit that ended better *inside* the declared box
+    [lower, 100] (a user's two-mass EMPS graph: a friction "on" its bound
+    0.1 whose opened refit ended at 794.6 in [0.1, 2000], 781 nats
+    likelier) says the fit on the box was not the box's optimum."""
+    from types import SimpleNamespace
+
     from bondgraph.diagnose import runner
 
-    monkeypatch.setattr(runner, "beyond_box", lambda *a, **k: (gain, {"k_b": 5.941}))
-    text = runner.gain_beyond_box(None, None, None, [])
-    if clause is None:
-        assert text == " (beyond the box the likelihood gains 3.5 nats, at k_b = 5.941)"
-    else:
-        assert text == (" (beyond the box the likelihood gains nothing: the refit with the box "
-                        "opened " + clause)
+    model = SimpleNamespace(param_index=lambda n: 0, bounds=lambda names: ([lower], [100.0]))
+    fit = SimpleNamespace(nll=-100.0, theta=np.array([10.0 if lower == 10.0 else 100.0]),
+                          model=model)
+    beyond = SimpleNamespace(nll=-100.0 - gain, theta=np.array([5.941]))
+    monkeypatch.setattr(runner, "beyond_fit", lambda *a, **k: (beyond, ["k_b"]))
+    assert runner.gain_beyond_box(None, None, fit, []) == " (" + clause
+    assert runner.ended_inside(fit, beyond, ["k_b"]) is (lower == 1.0)
 
 
 def test_a_term_that_makes_a_bearing_a_source_at_low_speed_is_named():
