@@ -1066,6 +1066,9 @@ def test_the_report_gives_a_scale_symmetry_whole():
 
     text = "\n".join(_md_accepted(result(ridge)))
     assert "does not identify ms, ks, cs separately" in text
+    # what to do: which parameters to fix is what the sensitivity command recommends
+    assert ("fix one of them (`bondgraph sensitivity` ranks the parameters and recommends a set "
+            "to estimate)") in text
     assert ("The combination, as relative changes at the estimates: ms +1.00, mu +1.00, ks +1.00, "
             "kt +1.00, cs +1.00 (ms, mu, ks, kt, cs scale together") in text
     assert "relative changes" not in "\n".join(_md_accepted(result("")))

@@ -833,7 +833,8 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
                              f"  {what}: the record does not identify {', '.join(flat)} "
                              f"separately (the Fisher information is flat along a "
                              f"combination of them: collinearity index > 100){moves}; fix "
-                             f"one, or use a record that excites them apart")
+                             f"one (bondgraph sensitivity recommends which to estimate), or "
+                             f"use a record that excites them apart")
         return (theta, cr_std(F, names), (conv, used, flat, moves),
                 {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:

@@ -650,7 +650,8 @@ def _md_accepted(result: LoopResult) -> list[str]:
         L += ["", f"The record does not identify {', '.join(flat)} separately: the likelihood "
               "is flat along a combination of them where the fit stopped (relative eigenvalue "
               "of the Fisher information below 1e-4), so their values above are one point of "
-              f"a ridge; fix one of them, or add a record that excites them apart.{whole}"
+              "a ridge; fix one of them (`bondgraph sensitivity` ranks the parameters and "
+              f"recommends a set to estimate), or add a record that excites them apart.{whole}"
               + _ridge_width(flat, robust, result.final.estimates)]
     return L
 
