@@ -706,7 +706,7 @@ def chosen_refit(ctx: Context, graph, fits: list[Fit], label: str) -> Fit:
     a user's CED graph the rectifying sensor's refit from the output-error
     screen's start crawled for 120 iterations, LR 922 and rising, and the
     effect was refused as not comparable)."""
-    best = min(fits, key=lambda f: f.nll if np.isfinite(f.nll) else np.inf)
+    best = min(fits, key=_nll_key)
     f1 = continued(ctx, graph, best, label)
     if f1.converged is not False:
         return f1

@@ -840,9 +840,9 @@ def _declared_fit_verdict(ctx: Context, graph: BondGraph, fit: Fit, names: list[
     opened = beyond_fit(ctx, graph, fit, names)
     better = _inside_optimum(ctx, graph, fit, names, opened)
     if better is not None:
-        moved = {n for n in unmoved if better.theta[better.model.param_index(n)]
-                 != fit.theta[fit.model.param_index(n)]}
-        fit, unmoved = better, [n for n in unmoved if n not in moved]
+        unmoved = [n for n in unmoved if better.theta[better.model.param_index(n)]
+                   == fit.theta[fit.model.param_index(n)]]
+        fit = better
         boxed = [n for n in physical_parameters(fit, names) if n in fit.at_bound]
         if not (unmoved or boxed):
             return fit
@@ -876,7 +876,7 @@ def _inside_optimum(ctx: Context, graph: BondGraph, fit: Fit, names: list[str],
     if opened is None or not ended_inside(fit, *opened):
         return None
     beyond, boxed = opened
-    where = ", ".join(f"{n} = {beyond.theta[fit.model.param_index(n)]:.4g}" for n in boxed)
+    where = _values_text(fit, beyond, boxed)
     try:
         again = fit_model(ctx, graph.copy(graph.name), names, beyond.estimates(), "initial fit",
                           model=fit.model)
@@ -935,7 +935,7 @@ def _beyond_text(fit: Fit, opened: tuple[Fit, list[str]] | None) -> str:
         return ""
     beyond, boxed = opened
     gain = float(fit.nll - beyond.nll)
-    text = ", ".join(f"{n} = {beyond.theta[fit.model.param_index(n)]:.4g}" for n in boxed)
+    text = _values_text(fit, beyond, boxed)
     if not gain > 0:    # the refit beyond the box ended no better than the fit on it
         how = (f"a log-likelihood {-gain:.3g} nats lower" if gain < 0 else
                "the same log-likelihood")
@@ -945,6 +945,12 @@ def _beyond_text(fit: Fit, opened: tuple[Fit, list[str]] | None) -> str:
         return (f" (the refit with the box opened ended inside the declared box, {gain:.6g} nats "
                 f"likelier, at {text}: the fit on the box had not reached the box's optimum)")
     return f" (beyond the box the likelihood gains {gain:.6g} nats, at {text})"
+
+
+def _values_text(fit: Fit, beyond: Fit, boxed: list[str]) -> str:
+    """The values the opened-box refit ``beyond`` reached for ``boxed``
+    ("K2 = 2.51e-06, ...")."""
+    return ", ".join(f"{n} = {beyond.theta[fit.model.param_index(n)]:.4g}" for n in boxed)
 
 
 def beyond_box(ctx: Context, graph: BondGraph, fit: Fit, names: list[str],
