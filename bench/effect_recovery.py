@@ -348,7 +348,7 @@ def finer_if_needed(ctx, r):
     what ``auto_substeps`` does with an accepted effect), if the filter's
     one-step discretisation error there exceeds 0.1 noise std; else as it
     is. Returns (confirmation, substeps used)."""
-    n = recommended_substeps(ctx, r.fit)[1]
+    n = recommended_substeps(ctx, r.fit).n
     if n is None:
         return r, ctx.problem.disc.substeps
     finer = replace(ctx, problem=ctx.problem.conditioned_on(

@@ -25,7 +25,7 @@ def test_cold_start_is_scored_by_default():
     cold-start record found it only with --add-effects): a record that
     starts warm gives it a likelihood ratio near 0, and the accept rule's
     held-out error refuses it where it only fits a start transient (CED,
-    step 3: LR 30.3, the validation error 0.1055 -> 0.1143, rejected)."""
+    step 3: LR 28.8, the validation error 0.1042 -> 0.1137, rejected)."""
     assert isinstance(get_effect("cold_start"), ColdStart)
     assert "cold_start" in BY_NAME
     assert "cold_start" in {e.name for e in DEFAULT_EFFECTS}

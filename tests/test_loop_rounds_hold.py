@@ -14,7 +14,8 @@ from bondgraph.catalog.cases import EmpsForceError
 from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.data.records import Experiment
 from bondgraph.diagnose import runner
-from bondgraph.diagnose.fit import Context, free_run, sim_inputs
+from bondgraph.diagnose import fit as fit_module
+from bondgraph.diagnose.fit import Context, StepCheck, free_run, sim_inputs
 from bondgraph.diagnose.settings import FreeRunOptions, LoopSettings, SearchOptions
 from bondgraph.errors import OptionError
 from bondgraph.inference.options import UKFOptions
@@ -145,8 +146,8 @@ def test_auto_substeps_adopts_the_recommended_substeps(monkeypatch):
     the loop carry them), said in one line; without it the loop only warns."""
     calls = []
     monkeypatch.setattr(runner, "recommended_substeps", lambda ctx, fit, limit=0.1:
-                        (6.7, 16) if ctx.problem.disc.substeps == 1 else (0.05, None))
-    monkeypatch.setattr(runner, "refined_discretisation", lambda ctx, fit, n:
+                        StepCheck(6.7, 16) if ctx.problem.disc.substeps == 1 else StepCheck(0.05))
+    monkeypatch.setattr(fit_module, "refined_discretisation", lambda ctx, fit, n:
                         (replace(ctx.problem.disc, substeps=n), ""))
     monkeypatch.setattr(runner, "initial_fit",
                         lambda ctx, graph, again=False: calls.append(ctx.problem.disc.substeps) or "refit")
@@ -173,8 +174,8 @@ def test_auto_substeps_adopts_refined_runs_and_says_where(monkeypatch):
     note = " on the 6 of 19 intervals that need them"
     seen = []
     monkeypatch.setattr(runner, "recommended_substeps", lambda ctx, fit, limit=0.1:
-                        (6.7, 16) if not ctx.problem.disc.refine else (0.05, None))
-    monkeypatch.setattr(runner, "refined_discretisation", lambda ctx, fit, n:
+                        StepCheck(6.7, 16) if not ctx.problem.disc.refine else StepCheck(0.05))
+    monkeypatch.setattr(fit_module, "refined_discretisation", lambda ctx, fit, n:
                         (replace(ctx.problem.disc, refine=runs), note))
     monkeypatch.setattr(runner, "initial_fit", lambda ctx, graph, again=False:
                         seen.append(ctx.problem.disc) or "refit")

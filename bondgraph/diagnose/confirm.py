@@ -471,7 +471,7 @@ def _substeps_at(ctx: Context, model: Model, names: list, conf: Confirmation,
         theta = start_theta(ctx, pb, [p for p in names if p in model.params],
                             conf.fit.estimates(), what)
         res = run_ukf(pb, theta[None, :], store=True)
-        return (recommended_substeps(ctx, SimpleNamespace(model=model, theta=theta, ukf=res))[1]
+        return (recommended_substeps(ctx, SimpleNamespace(model=model, theta=theta, ukf=res)).n
                 if np.isfinite(res.nll[0]) else None)
     except BondGraphError:
         return None

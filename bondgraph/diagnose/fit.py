@@ -39,8 +39,8 @@ from bondgraph.diagnose.inference_calls import (
     moves_meas_std,
     no_process_noise,
     noise_parameters,
-    one_step_errors,
     plan_noise,
+    step_errors,
     relative_direction,
     robust_std,
     run_ukf,
@@ -51,7 +51,8 @@ from bondgraph.diagnose.residuals import analyze
 from bondgraph.diagnose.result import FitSummary
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import BondGraphError, NumericalError
-from bondgraph.inference.discretise import REFINE_MARGIN, SUBSTEPS, refined_runs
+from bondgraph.inference.discretise import (BIAS_TOLERANCE, REFINE_MARGIN, SUBSTEPS, refined_runs,
+                                            step_cost)
 from bondgraph.inference.options import Discretisation, most_substeps
 from bondgraph.core.equations import derive
 from bondgraph.numerics.admissible import Admissibility, check_admissible, without_inherited
@@ -1734,20 +1735,168 @@ def parameter_std(ctx: Context, fit: Fit) -> dict:
 SUBSTEP_LADDER = tuple(n for n in SUBSTEPS if n > 1) + (24, 32)
 
 
-def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> tuple[float, int | None]:
-    """``(worst, n)``: the filter's largest one-step discretisation error at
-    ``fit`` in noise stds per sample (:func:`~bondgraph.diagnose.fit.error_scale`),
-    and the fewest substeps of :data:`SUBSTEP_LADDER` (above the current
-    ones) that bring it to ``limit`` or below (None if the error is already
-    below, or none does)."""
+@dataclass(frozen=True)
+class StepCheck:
+    """The loop's discretisation check at a fit (:func:`recommended_substeps`).
+
+    Attributes
+    ----------
+    worst : float
+        The filter's largest one-step output error [noise stds per sample].
+    n : int or None
+        The fewest substeps of :data:`SUBSTEP_LADDER` (above the current
+        ones) within the check; None when it passes already or none does.
+    bias : float
+        The free run's bias bound [Cramér-Rao std] where the filter has no
+        process noise (it then predicts by the free run, and a one-step
+        error of a few hundredths of σ adds up over the record: a
+        mass-spring-damper at ω·dt = 0.25, ROS2(8) 0.068 σ per sample,
+        bias bound 35.7, its stiffness estimated 33 std off); NaN where it
+        has (not a criterion).
+    limit, bias_limit : float
+        The check's bounds.
+    one_step_only : bool
+        No substeps of the ladder bring the bias bound within: ``n`` is the
+        fewest within the one-step bound alone (the bound is an upper bound
+        of the bias, and more substeps still lower it).
+    """
+
+    worst: float
+    n: int | None = None
+    bias: float = float("nan")
+    limit: float = 0.1
+    bias_limit: float = BIAS_TOLERANCE
+    one_step_only: bool = False
+
+    @property
+    def failed(self) -> bool:
+        """The current discretisation is outside the check."""
+        return bool(self.worst > self.limit or self.bias > self.bias_limit)
+
+    def text(self) -> str:
+        """``", its free-run bias bound 35.7 Cramér-Rao std"`` where that
+        fails the check, else empty."""
+        if not self.bias > self.bias_limit:
+            return ""
+        out = (f" and its free-run bias bound {self.bias:.3g} Cramér-Rao std (above "
+               f"{self.bias_limit:g}: without process noise the filter predicts by the free run")
+        return out + (f"; no substeps up to {SUBSTEP_LADDER[-1]} bring it within)"
+                      if self.one_step_only else ")")
+
+
+def first_within(pb: Problem, theta: np.ndarray, discs: list, sig: np.ndarray, ref: dict,
+                 free: bool, limit: float = 0.1,
+                 bias: float = BIAS_TOLERANCE) -> tuple[Discretisation | None, list]:
+    """``(disc, one_step)``: the first of ``discs`` whose one-step error at
+    ``theta`` is within ``limit`` noise stds per sample and, with ``free``
+    (no process noise), whose free-run bias bound is within ``bias``
+    Cramér-Rao std (computed only for those within the first), or None;
+    and every candidate's one-step error."""
+    ones = [o for o, _ in step_errors(pb, theta, discs, sig, ref)] if discs else []
+    for d, o in zip(discs, ones):
+        if o <= limit and (not free or step_errors(pb, theta, [d], sig, ref, True)[0][1] <= bias):
+            return d, ones
+    return None, ones
+
+
+def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> StepCheck:
+    """The discretisation check at ``fit`` (:class:`StepCheck`): the
+    filter's largest one-step discretisation error in noise stds per sample
+    (:func:`~bondgraph.diagnose.fit.error_scale`), where the filter has no
+    process noise its free-run bias bound too (the criteria of
+    :func:`bondgraph.inference.discretise.choose_discretisation`), and the
+    fewest substeps of :data:`SUBSTEP_LADDER` (above the current ones) that
+    bring both within (None if they are already, or none does; where none
+    brings the bias bound within, those within the one-step bound alone if
+    the current ones are not, :attr:`StepCheck.one_step_only`)."""
     pb = problem_for(ctx, fit.model)
     sig, ref = error_scale(pb, fit), {}      # one fine reference for every substeps tried
-    worst = float(one_step_errors(pb, fit.theta, [pb.disc.substeps], sig, ref)[0])
-    if not worst > limit:
-        return worst, None
-    more = [n for n in SUBSTEP_LADDER if n > pb.disc.substeps]
-    errs = one_step_errors(pb, fit.theta, more, sig, ref) if more else []
-    return worst, next((n for n, e in zip(more, errs) if e <= limit), None)
+    free = no_process_noise(pb.model, fit.theta)
+    worst, bias = step_errors(pb, fit.theta, [pb.disc], sig, ref, free)[0]
+    check = StepCheck(worst, None, bias if free else float("nan"), limit)
+    if not check.failed:
+        return check
+    more = [replace(pb.disc, substeps=n) for n in SUBSTEP_LADDER if n > pb.disc.substeps]
+    found, ones = first_within(pb, fit.theta, more, sig, ref, free, limit)
+    if found is None and free and worst > limit:    # the one-step bound alone, as without
+        n = next((d.substeps for d, o in zip(more, ones) if o <= limit), None)
+        return replace(check, n=n, one_step_only=True)
+    return replace(check, n=None if found is None else found.substeps,
+                   one_step_only=found is None and free)
+
+
+def disc_cost(disc: Discretisation, intervals: int) -> float:
+    """``disc``'s cost per sample in f evaluations
+    (:func:`~bondgraph.inference.discretise.step_cost`) over ``intervals``
+    sample intervals: a refinement's mean substeps."""
+    mean = float(np.mean(disc.interval_substeps(intervals))) if disc.refine else disc.substeps
+    return step_cost(disc.method, mean)
+
+
+def other_method_step(ctx: Context, fit: Fit, below: float,
+                      limit: float = 0.1) -> Discretisation | None:
+    """With ``settings.search.auto_method``: the other method (RK4 for ROS2,
+    ROS2 for RK4) with the fewest substeps (1, then
+    :data:`SUBSTEP_LADDER`) whose one-step discretisation error at ``fit`` is
+    within ``limit`` noise stds per sample and, without process noise, whose
+    free-run bias bound is within the check's (as :func:`recommended_substeps`
+    measures them, :func:`first_within`) and whose cost per sample
+    (:func:`~bondgraph.inference.discretise.step_cost`) is below ``below``;
+    uniform (no refinement), the hold and backend kept. None when the method
+    may not change, or none is cheaper and within. A step RK4 cannot take
+    (a fast mode outside its stability region) is not finite and fails the
+    check. The order of an RK4 step (4) makes it the cheaper one where the
+    error, not the stiffness, sets ROS2's substeps: on the CED drive with its
+    sensor low-pass at 17 ms, ROS2 needed 16 substeps per 20 ms sample (0.095
+    σ), RK4 3 (0.06 σ)."""
+    if not ctx.settings.search.auto_method:
+        return None
+    pb = problem_for(ctx, fit.model)
+    d = pb.disc
+    other = {"ros2": "rk4", "rk4": "ros2"}.get(d.method)
+    ladder = [n for n in (1,) + SUBSTEP_LADDER if step_cost(other, n) < below] if other else []
+    if not ladder:
+        return None
+    discs = [replace(d, method=other, substeps=int(n), refine=()) for n in ladder]
+    with np.errstate(all="ignore"):
+        found, _ = first_within(pb, fit.theta, discs, error_scale(pb, fit), {},
+                                no_process_noise(pb.model, fit.theta), limit)
+    return found
+
+
+def adopted_discretisation(ctx: Context, fit: Fit,
+                           check: StepCheck) -> tuple[Discretisation | None, str]:
+    """``(discretisation, text)`` the loop takes when the check at ``fit``
+    fails (``check``, :func:`recommended_substeps`: ``check.n`` substeps of
+    the current method within it, None if none): ``n`` on the intervals that
+    need them or throughout (:func:`refined_discretisation`), or the other
+    method where it meets the check at a lower cost per sample, or at any
+    cost where ``n`` meets the one-step bound alone
+    (:attr:`StepCheck.one_step_only`) (:func:`other_method_step`, with
+    ``settings.search.auto_method``); ``text`` says what (``"16 substeps per
+    sample"``, ``"rk4 with 3 substeps per sample in place of ros2 ..."``).
+    ``(None, "")`` when neither meets the check."""
+    n = check.n
+    disc, how = refined_discretisation(ctx, fit, n) if n is not None else (None, "")
+    text = f"{n} substeps per sample{how}" if disc is not None else ""
+    if not ctx.settings.search.auto_method:
+        return disc, text
+    pb = problem_for(ctx, fit.model)
+    M = pb.t.size - 1
+    below = np.inf if disc is None or check.one_step_only else disc_cost(disc, M)
+    alt = other_method_step(ctx, fit, below)
+    if alt is None:
+        return disc, text
+    d = pb.disc
+    instead = (f"{d.method}({n}) {disc_cost(disc, M):g}"
+               + (", within the one-step bound only" if check.one_step_only else "")
+               if disc is not None
+               else f"{d.method} not within the check with {SUBSTEP_LADDER[-1]} substeps")
+    return alt, (f"{alt.method} with {alt.substeps} substep{'s' if alt.substeps > 1 else ''} "
+                 f"per sample in place of {d.method}, the "
+                 f"{'more accurate' if disc is not None and check.one_step_only else 'cheaper'}"
+                 f" step within the check ({disc_cost(alt, M):g} f evaluations per sample; "
+                 f"{instead})")
 
 
 #: a refined discretisation is taken where its intervals' substeps average
@@ -1814,7 +1963,8 @@ def refined_discretisation(ctx: Context, fit: Fit, n: int, limit: float = REFINE
         refined = pb.conditioned_on(disc=cand)
         nll = float(run_ukf(refined, fit.theta[None, :]).nll[0])
         if (np.isfinite(nll_uniform) and abs(nll - nll_uniform) <= REFINE_NLL_TOL
-                and one_step_errors(refined, fit.theta, [d.substeps], sig)[0] <= check):
+                and first_within(pb, fit.theta, [cand], sig, {},
+                                 no_process_noise(pb.model, fit.theta), check)[0] is not None):
             k = int(np.count_nonzero(per > d.substeps))
             return cand, (f" on the {k} of {M} intervals that need them ({len(runs)} "
                           f"run{'s' if len(runs) > 1 else ''}, {margin} intervals either side; "

@@ -323,6 +323,13 @@ def interval_errors(problem: Problem, theta: np.ndarray, substeps, sigma=None):
     return problem.interval_errors(theta, substeps, sigma=sigma)
 
 
+def step_errors(problem: Problem, theta: np.ndarray, discs, sigma=None,
+                cache: dict | None = None, free_run: bool = False) -> list[tuple[float, float]]:
+    """:meth:`Problem.step_errors`: ``(one_step, bias)`` of each of
+    ``discs``, the free-run bias bound NaN without ``free_run``."""
+    return problem.step_errors(theta, discs, sigma=sigma, cache=cache, free_run=free_run)
+
+
 def one_step_errors(problem: Problem, theta: np.ndarray, substeps, sigma=None,
                     cache: dict | None = None) -> np.ndarray:
     """:meth:`Problem.one_step_errors`: the largest one-step discretisation

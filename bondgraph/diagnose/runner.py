@@ -70,7 +70,9 @@ from bondgraph.diagnose.fit import (
     planned_noise,
     problem_for,
     recommended_substeps,
-    refined_discretisation,
+    adopted_discretisation,
+    StepCheck,
+    SUBSTEP_LADDER,
     validation_problem,
     validation_records,
 )
@@ -416,6 +418,7 @@ def chosen_numerics(graph: BondGraph, record, settings: LoopSettings, *,
                        f"choose)")
     s = with_discretisation(settings, choice.disc)
     return replace(s, search=replace(s.search, auto_substeps=True, other_hold=other,
+                                     auto_method="method" not in given,
                                      check_hold="hold" not in given),
                    free_run=replace(s.free_run, method="fine"))
 
@@ -1130,52 +1133,56 @@ def check_declared_fit(fit: Fit) -> None:
 
 
 def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
-                         checked: tuple[float, int | None] | None = None,
-                         where: str = "the declared fit", adopt: bool = False,
-                         how: str = "") -> list[str]:
+                         checked: StepCheck | None = None,
+                         where: str = "the declared fit", taken: str = "") -> list[str]:
     """The filter's discretisation error at ``fit`` (``where``: the declared
     fit, or an accepted one)
     (:func:`bondgraph.inference.ukf.discretisation_check` with the loop's
     method, substeps and hold) in noise stds per sample (the larger of the
     measurement noise and the filter's innovation std,
-    :func:`~bondgraph.diagnose.fit.error_scale`); above
-    ``limit`` one line (logged and returned) with the fewest substeps of
-    :data:`SUBSTEP_LADDER` that bring it below (``checked``: the result of
+    :func:`~bondgraph.diagnose.fit.error_scale`), and without process
+    noise its free-run bias bound; above ``limit`` (or the bound above its
+    own, :class:`~bondgraph.diagnose.fit.StepCheck`) one line (logged and
+    returned) with the fewest substeps of
+    :data:`SUBSTEP_LADDER` that bring it within (``checked``: the result of
     :func:`recommended_substeps` if already known): a warning recommending
-    them, or with ``adopt`` (``auto_substeps``, a recommendation found) the
-    note that the loop takes them from here on (``how``: where, the note of
-    :func:`~bondgraph.diagnose.fit.refined_discretisation`)."""
-    worst, rec = recommended_substeps(ctx, fit, limit) if checked is None else checked
-    if not worst > limit:
+    them, or with ``taken`` (``auto_substeps``: what the loop adopts,
+    :func:`~bondgraph.diagnose.fit.adopted_discretisation`'s text) the note
+    that the loop takes it from here on."""
+    checked = recommended_substeps(ctx, fit, limit) if checked is None else checked
+    if not checked.failed:
         return []
+    rec = checked.n
     o = ctx.problem.ukf
     error = (f"discretisation error of {o.method}({o.substeps}) is "
-             f"{step_error(o.method, worst, 'noise stds per sample')} at {where}")
-    if adopt and rec:
-        msg = (f"auto_substeps: {error}; the filter takes {rec} substeps per sample{how} "
-               f"from {where} on")
+             f"{step_error(o.method, checked.worst, 'noise stds per sample')}{checked.text()} "
+             f"at {where}")
+    if taken:
+        msg = f"auto_substeps: {error}; the filter takes {taken} from {where} on"
         ctx.log(msg)
         return [msg]
+    other = "rk4" if o.method == "ros2" else "ros2"
     msg = (f"{error} (a model error that biases the fit and the "
-           f"scores); " + (f"use --substeps {rec}" if rec else "use --method rk4 and more "
-                           "substeps, or a shorter sample interval")
+           f"scores); " + (f"use --substeps {rec}" if rec else
+                           f"{o.method} is not within it with {SUBSTEP_LADDER[-1]} substeps: "
+                           f"use --method {other} and more substeps, or a shorter sample "
+                           f"interval")
            + " (from Python: chosen_numerics(graph, record, settings) before run_loop, or "
-             "SearchOptions(auto_substeps=True))")
+             "SearchOptions(auto_substeps=True, auto_method=True))")
     ctx.log("warning: " + msg)
     return [msg]
 
 
-def _adopted(ctx: Context, fit: Fit, checked: tuple[float, int | None],
-             auto: bool) -> tuple:
-    """``(discretisation, note)`` the loop takes when ``auto`` and
-    :func:`recommended_substeps` (``checked``) found substeps that meet the
-    check: those on the intervals that need them, or throughout
-    (:func:`~bondgraph.diagnose.fit.refined_discretisation`); else
+def _adopted(ctx: Context, fit: Fit, checked: StepCheck, auto: bool) -> tuple:
+    """``(discretisation, text)`` the loop takes when ``auto`` and the
+    check failed (``checked``, :func:`recommended_substeps`): those
+    substeps on the intervals that need them or throughout, or the other
+    method where it is cheaper
+    (:func:`~bondgraph.diagnose.fit.adopted_discretisation`); else
     ``(None, "")``."""
-    worst, n = checked
-    if not (auto and n is not None and worst > 0.1):
+    if not (auto and checked.failed):
         return None, ""
-    return refined_discretisation(ctx, fit, n)
+    return adopted_discretisation(ctx, fit, checked)
 
 
 def fit_after_discretisation_check(
@@ -1205,27 +1212,26 @@ def fit_after_discretisation_check(
     CED graph reported a held-out error 0.39 for a low-pass whose refit at
     2 substeps, the model the loop went on with, read 0.4516), else None."""
     checked = recommended_substeps(ctx, fit)
-    auto = ctx.settings.search.auto_substeps
-    disc, how = _adopted(ctx, fit, checked, auto)
+    disc, taken = _adopted(ctx, fit, checked, ctx.settings.search.auto_substeps)
     warn = check_discretisation(ctx, fit, checked=checked, where=f"the fit with {label}",
-                                adopt=auto, how=how)
+                                taken=taken)
     result.warnings.extend(warn)
-    n = checked[1]
-    if not (warn and auto) or n is None:
+    if disc is None:
         return fit, None
     before = ctx.problem
     ctx.problem = ctx.problem.conditioned_on(disc=disc)
     ctx.cache.clear()
-    refit = fit_model(ctx, fit.graph, list(fit.params), fit.estimates(),
-                      f"{label} at {n} substeps", model=fit.model)
+    at = f"{label} at {disc.method}({disc.substeps})"
+    refit = fit_model(ctx, fit.graph, list(fit.params), fit.estimates(), at, model=fit.model)
     if judged is not None:
         current, dof, comparable, added = judged
-        d = decided(ctx, current, refit, dof, comparable, f"{label} at {n} substeps", added)
+        d = decided(ctx, current, refit, dof, comparable, at, added)
         if not d.accepted:
-            msg = (f"{label} refitted at {n} substeps no longer passes the accept rule "
-                   f"({d.reason}; error {d.error_before:.4g} -> {d.error_after:.4g}): its "
-                   f"acceptance rested on the coarser discretisation; not accepted, the "
-                   f"filter keeps {before.disc.substeps} substeps")
+            msg = (f"{label} refitted at {disc.method}({disc.substeps}) no longer passes the "
+                   f"accept rule ({d.reason}; error {d.error_before:.4g} -> "
+                   f"{d.error_after:.4g}): its acceptance rested on the coarser "
+                   f"discretisation; not accepted, the filter keeps "
+                   f"{before.disc.method}({before.disc.substeps})")
             ctx.log("reject " + msg)
             result.warnings.append(msg)
             ctx.problem = before
@@ -1236,8 +1242,8 @@ def fit_after_discretisation_check(
     trouble = refit.unstable or (None if adm.ok else f"not physically admissible: "
                                                      f"{adm.reason()}")
     if trouble:     # accepted at the coarser step; the finer one disagrees
-        msg = (f"the fit with {label} refitted at {n} substeps {trouble}: its acceptance "
-               f"rested on the coarser discretisation")
+        msg = (f"the fit with {label} refitted at {disc.method}({disc.substeps}) {trouble}: "
+               f"its acceptance rested on the coarser discretisation")
         ctx.log("warning: " + msg)
         result.warnings.append(msg)
     return refit, None
@@ -1251,11 +1257,9 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     judges the model, not its discretisation) and the declared model is
     refitted (logged)."""
     checked = recommended_substeps(ctx, initial)
-    auto = ctx.settings.search.auto_substeps
-    disc, how = _adopted(ctx, initial, checked, auto)
-    warn = check_discretisation(ctx, initial, checked=checked, adopt=auto, how=how)
-    n = checked[1]
-    if not (warn and auto) or n is None:
+    disc, taken = _adopted(ctx, initial, checked, ctx.settings.search.auto_substeps)
+    warn = check_discretisation(ctx, initial, checked=checked, taken=taken)
+    if disc is None:
         return initial, warn
     ctx.problem = ctx.problem.conditioned_on(disc=disc)
     ctx.cache.clear()

@@ -212,6 +212,14 @@ class SearchOptions:
         filter's one-step discretisation error at the declared fit, or at an
         accepted fit, exceeds 0.1 measurement-noise std (that model is then
         refitted); default False: only warn.
+    auto_method : bool
+        With ``auto_substeps``, the other method (ROS2 or RK4) may be
+        adopted in place of more substeps of the current one, where its
+        fewest substeps that meet the check cost fewer f evaluations per
+        sample (:func:`~bondgraph.diagnose.fit.adopted_discretisation`; a
+        user's CED graph: ROS2 needed 16 substeps where RK4 met the check
+        with 3). Set by :func:`~bondgraph.diagnose.runner.chosen_numerics`
+        unless the method is given; default False: the method stays.
     confirm_top : int
         Candidates confirmed by a real fit per round.
     confirm_rounds : int
@@ -289,6 +297,7 @@ class SearchOptions:
     on_failed_fit: str = "stop"
     fit_iterations: int = 10
     auto_substeps: bool = False
+    auto_method: bool = False
     confirm_top: int = 3
     confirm_rounds: int = 3
     confirm_iterations: int = 40

@@ -1,0 +1,83 @@
+"""The loop's discretisation check at a fit (runner.resolved_fit,
+fit.recommended_substeps) on a filter without process noise, and the
+method it may adopt (``SearchOptions(auto_method=True)``, set by
+``chosen_numerics`` unless the user gives ``--method``).
+
+A mass-spring-damper without process noise, sampled at ω·dt = 0.25 with
+precise sensors (the truth simulated by BDF, inputs held). Without process
+noise the filter predicts by the free run, and a one-step error of a few
+hundredths of a noise std adds up over the record: ROS2 with 8 substeps
+(0.068 σ per sample, within the one-step bound 0.1) estimates the stiffness
+many Cramér-Rao std off. The check bounds the free run's bias too (as the
+first choice of ``choose_discretisation`` does); ROS2 is not within it at 32
+substeps (the loop takes 8, within the one-step bound, and says so), RK4
+is within it at 2 (and cheaper), and its estimates land within 3 std."""
+
+import numpy as np
+
+from bondgraph.catalog.reference import mass_spring_damper
+from bondgraph.diagnose import runner
+from bondgraph.diagnose.cases import SimulationOptions, synthesize
+from bondgraph.diagnose.fit import Context
+from bondgraph.diagnose.settings import LoopSettings, SearchOptions
+from bondgraph.inference.discretise import step_cost
+from bondgraph.inference.options import UKFOptions
+from bondgraph.numerics.model import Model
+
+TRUTH = {"k": 50.0, "c": 1.5}
+
+
+def _record():
+    t = np.arange(800) * 0.05
+    F = sum(a * np.sin(2 * np.pi * f * t + j) for j, (f, a) in
+            enumerate(zip([0.3, 0.7, 1.1], [6.0, 4.0, 3.0])))
+    return synthesize(mass_spring_damper(), mass_spring_damper(), t, {"F": F}, {}, {}, 7,
+                      "multisine", "", simulation=SimulationOptions(hold="zoh"))
+
+
+def _declared(search: SearchOptions, ukf: UKFOptions = UKFOptions()):
+    graph = mass_spring_damper()
+    ctx = Context.on(_record(), LoopSettings(params=["k", "c"], ukf=ukf, search=search),
+                     Model.from_graph(graph), lambda line: None, False)
+    fit, warn = runner.resolved_fit(ctx, graph, runner.initial_fit(ctx, graph))
+    return ctx.problem.disc, fit, warn
+
+
+def _std_off(fit, name):
+    return (fit.estimates()[name] - TRUTH[name]) / fit.std[name]
+
+
+def test_the_one_step_bound_alone_lets_a_biased_fit_through():
+    # ROS2(8): 0.068 noise stds per sample, the stiffness ~33 std off
+    disc, fit, warn = _declared(SearchOptions(), UKFOptions(method="ros2", substeps=8))
+    assert "free-run bias bound" in warn[0] and "0.068 noise stds" in warn[0], warn
+    assert abs(_std_off(fit, "k")) > 10.0, fit.estimates()
+
+
+def test_without_a_method_change_the_one_step_bound_alone_is_met_and_said():
+    # no substeps of ROS2 up to 32 bring the bias bound within (2.27 at 32):
+    # the fewest within the one-step bound are taken, as before, and the line says so
+    disc, fit, warn = _declared(SearchOptions(auto_substeps=True))
+    assert (disc.method, disc.substeps) == ("ros2", 8)
+    assert "no substeps up to 32 bring it within" in warn[0], warn
+    assert "the filter takes 8 substeps per sample" in warn[0]
+
+
+def test_the_cheaper_method_within_the_check_is_adopted():
+    disc, fit, warn = _declared(SearchOptions(auto_substeps=True, auto_method=True))
+    assert (disc.method, disc.substeps) == ("rk4", 2), disc
+    assert step_cost("rk4", 2) < step_cost("ros2", 32)
+    assert warn[0].startswith("auto_substeps: ") and "rk4 with 2 substeps per sample in place " \
+        "of ros2, the more accurate step within the check" in warn[0], warn
+    assert "ros2(8) 18, within the one-step bound only" in warn[0]
+    for name in TRUTH:
+        assert abs(_std_off(fit, name)) < 3.0, (name, fit.estimates(), fit.std)
+
+
+def test_a_method_within_the_one_step_bound_alone_is_not_taken():
+    # RK4(1): one-step 0.0017 σ, but its free-run bias bound (0.885) is above 0.5
+    disc, fit, warn = _declared(SearchOptions(auto_substeps=True, auto_method=True),
+                                UKFOptions(method="rk4", substeps=1))
+    assert (disc.method, disc.substeps) == ("rk4", 2), disc
+    assert "0.0017 noise stds per sample and its free-run bias bound 0.885" in warn[0], warn
+    assert "takes 2 substeps per sample" in warn[0]
