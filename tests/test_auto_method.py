@@ -81,3 +81,24 @@ def test_a_method_within_the_one_step_bound_alone_is_not_taken():
     assert (disc.method, disc.substeps) == ("rk4", 2), disc
     assert "0.0017 noise stds per sample and its free-run bias bound 0.885" in warn[0], warn
     assert "takes 2 substeps per sample" in warn[0]
+
+
+def test_the_bias_bound_applies_where_the_filter_predicts_by_the_free_run():
+    """:func:`predicts_by_free_run`: no process noise, or the loop's free-run
+    likelihood (its process noise held at a floor), not a filter whose
+    process noise is estimated under the one-step likelihood."""
+    from bondgraph.diagnose.fit import predicts_by_free_run
+
+    def ctx_for(graph, likelihood):
+        return Context.on(_record(), LoopSettings(params=["k"], search=SearchOptions(
+            likelihood=likelihood)), Model.from_graph(graph), lambda line: None, False)
+
+    noisy = mass_spring_damper()
+    noisy.set_process_noise("p_mass", 0.01)
+    got = {}
+    for name, graph in (("none", mass_spring_damper()), ("noisy", noisy)):
+        for likelihood in ("one_step", "free_run"):
+            ctx = ctx_for(graph, likelihood)
+            got[name, likelihood] = predicts_by_free_run(ctx, ctx.problem, ctx.problem.theta)
+    assert got == {("none", "one_step"): True, ("none", "free_run"): True,
+                   ("noisy", "one_step"): False, ("noisy", "free_run"): True}

@@ -1747,8 +1747,9 @@ class StepCheck:
         The fewest substeps of :data:`SUBSTEP_LADDER` (above the current
         ones) within the check; None when it passes already or none does.
     bias : float
-        The free run's bias bound [Cramér-Rao std] where the filter has no
-        process noise (it then predicts by the free run, and a one-step
+        The free run's bias bound [Cramér-Rao std] where the filter predicts
+        by the free run (:func:`predicts_by_free_run`: no process noise, or
+        the free-run likelihood's floor), and a one-step
         error of a few hundredths of σ adds up over the record: a
         mass-spring-damper at ω·dt = 0.25, ROS2(8) 0.068 σ per sample,
         bias bound 35.7, its stiffness estimated 33 std off); NaN where it
@@ -1784,12 +1785,20 @@ class StepCheck:
                       if self.one_step_only else ")")
 
 
+def predicts_by_free_run(ctx: Context, pb: Problem, theta: np.ndarray) -> bool:
+    """The filter of ``pb`` at ``theta`` predicts by the free run: it has no
+    process noise, or the loop fits by the free-run likelihood (its process
+    noise held at a floor, :func:`process_noise_floor`); the discretisation
+    check then bounds the free run's bias too (:class:`StepCheck`)."""
+    return ctx.settings.search.likelihood == "free_run" or no_process_noise(pb.model, theta)
+
+
 def first_within(pb: Problem, theta: np.ndarray, discs: list, sig: np.ndarray, ref: dict,
                  free: bool, limit: float = 0.1,
                  bias: float = BIAS_TOLERANCE) -> tuple[Discretisation | None, list]:
     """``(disc, one_step)``: the first of ``discs`` whose one-step error at
     ``theta`` is within ``limit`` noise stds per sample and, with ``free``
-    (no process noise), whose free-run bias bound is within ``bias``
+    (:func:`predicts_by_free_run`), whose free-run bias bound is within ``bias``
     Cramér-Rao std (computed only for those within the first), or None;
     and every candidate's one-step error."""
     ones = [o for o, _ in step_errors(pb, theta, discs, sig, ref)] if discs else []
@@ -1802,8 +1811,9 @@ def first_within(pb: Problem, theta: np.ndarray, discs: list, sig: np.ndarray, r
 def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> StepCheck:
     """The discretisation check at ``fit`` (:class:`StepCheck`): the
     filter's largest one-step discretisation error in noise stds per sample
-    (:func:`~bondgraph.diagnose.fit.error_scale`), where the filter has no
-    process noise its free-run bias bound too (the criteria of
+    (:func:`~bondgraph.diagnose.fit.error_scale`), where the filter predicts
+    by the free run (:func:`predicts_by_free_run`) its free-run bias bound
+    too (the criteria of
     :func:`bondgraph.inference.discretise.choose_discretisation`), and the
     fewest substeps of :data:`SUBSTEP_LADDER` (above the current ones) that
     bring both within (None if they are already, or none does; where none
@@ -1811,7 +1821,7 @@ def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> StepChec
     the current ones are not, :attr:`StepCheck.one_step_only`)."""
     pb = problem_for(ctx, fit.model)
     sig, ref = error_scale(pb, fit), {}      # one fine reference for every substeps tried
-    free = no_process_noise(pb.model, fit.theta)
+    free = predicts_by_free_run(ctx, pb, fit.theta)
     worst, bias = step_errors(pb, fit.theta, [pb.disc], sig, ref, free)[0]
     check = StepCheck(worst, None, bias if free else float("nan"), limit)
     if not check.failed:
@@ -1838,7 +1848,8 @@ def other_method_step(ctx: Context, fit: Fit, below: float,
     """With ``settings.search.auto_method``: the other method (RK4 for ROS2,
     ROS2 for RK4) with the fewest substeps (1, then
     :data:`SUBSTEP_LADDER`) whose one-step discretisation error at ``fit`` is
-    within ``limit`` noise stds per sample and, without process noise, whose
+    within ``limit`` noise stds per sample and, where the filter predicts by
+    the free run, whose
     free-run bias bound is within the check's (as :func:`recommended_substeps`
     measures them, :func:`first_within`) and whose cost per sample
     (:func:`~bondgraph.inference.discretise.step_cost`) is below ``below``;
@@ -1860,7 +1871,7 @@ def other_method_step(ctx: Context, fit: Fit, below: float,
     discs = [replace(d, method=other, substeps=int(n), refine=()) for n in ladder]
     with np.errstate(all="ignore"):
         found, _ = first_within(pb, fit.theta, discs, error_scale(pb, fit), {},
-                                no_process_noise(pb.model, fit.theta), limit)
+                                predicts_by_free_run(ctx, pb, fit.theta), limit)
     return found
 
 
@@ -1964,7 +1975,7 @@ def refined_discretisation(ctx: Context, fit: Fit, n: int, limit: float = REFINE
         nll = float(run_ukf(refined, fit.theta[None, :]).nll[0])
         if (np.isfinite(nll_uniform) and abs(nll - nll_uniform) <= REFINE_NLL_TOL
                 and first_within(pb, fit.theta, [cand], sig, {},
-                                 no_process_noise(pb.model, fit.theta), check)[0] is not None):
+                                 predicts_by_free_run(ctx, pb, fit.theta), check)[0] is not None):
             k = int(np.count_nonzero(per > d.substeps))
             return cand, (f" on the {k} of {M} intervals that need them ({len(runs)} "
                           f"run{'s' if len(runs) > 1 else ''}, {margin} intervals either side; "
