@@ -1747,13 +1747,15 @@ class StepCheck:
         The fewest substeps of :data:`SUBSTEP_LADDER` (above the current
         ones) within the check; None when it passes already or none does.
     bias : float
-        The free run's bias bound [Cramér-Rao std] where the filter predicts
-        by the free run (:func:`predicts_by_free_run`: no process noise, or
-        the free-run likelihood's floor), and a one-step
-        error of a few hundredths of σ adds up over the record: a
-        mass-spring-damper at ω·dt = 0.25, ROS2(8) 0.068 σ per sample,
-        bias bound 35.7, its stiffness estimated 33 std off); NaN where it
-        has (not a criterion).
+        The free run's bias [Cramér-Rao std] where the filter predicts by
+        the free run (:func:`predicts_by_free_run`: no process noise, or
+        the free-run likelihood's floor); NaN where it does not (not a
+        criterion). Its output error projected onto the sensitivities of
+        the parameters the fit estimates (:func:`bias_directions`; the
+        error's whole norm where the fit does not say), a bound of each
+        one's shift. A one-step error of a few hundredths of σ adds up over
+        the record: a mass-spring-damper at ω·dt = 0.25, ROS2(8) 0.068 σ
+        per sample, bias 35.4, its stiffness estimated 34 std off.
     limit, bias_limit : float
         The check's bounds.
     one_step_only : bool
@@ -1793,17 +1795,43 @@ def predicts_by_free_run(ctx: Context, pb: Problem, theta: np.ndarray) -> bool:
     return ctx.settings.search.likelihood == "free_run" or no_process_noise(pb.model, theta)
 
 
+#: the forward-difference step of the free-run bias's sensitivities, relative
+#: to a parameter's magnitude (or, at 0, to its box's width)
+SENSITIVITY_STEP = 1e-6
+
+
+def bias_directions(pb: Problem, fit) -> np.ndarray | None:
+    """The steps (p, n_theta) along which :func:`first_within` projects the
+    free run's error: one per parameter ``fit`` estimates that the model has
+    (:data:`SENSITIVITY_STEP` of its magnitude, of its box's width at 0);
+    None when ``fit`` does not say what it estimates (the bias is then the
+    bound, the error's whole norm)."""
+    names = [n for n in (getattr(fit, "params", None) or []) if n in pb.model.params]
+    if not names:
+        return None
+    th = np.asarray(fit.theta, float)
+    lo, hi = pb.model.bounds(names)
+    out = np.zeros((len(names), th.size))
+    for i, (n, a, b) in enumerate(zip(names, lo, hi)):
+        j = pb.model.params.index(n)
+        width = b - a if np.isfinite(b - a) and b > a else 1.0
+        out[i, j] = SENSITIVITY_STEP * (abs(th[j]) if th[j] != 0 else width)
+    return out
+
+
 def first_within(pb: Problem, theta: np.ndarray, discs: list, sig: np.ndarray, ref: dict,
-                 free: bool, limit: float = 0.1,
-                 bias: float = BIAS_TOLERANCE) -> tuple[Discretisation | None, list]:
+                 free: bool, limit: float = 0.1, bias: float = BIAS_TOLERANCE,
+                 directions=None) -> tuple[Discretisation | None, list]:
     """``(disc, one_step)``: the first of ``discs`` whose one-step error at
     ``theta`` is within ``limit`` noise stds per sample and, with ``free``
-    (:func:`predicts_by_free_run`), whose free-run bias bound is within ``bias``
-    Cramér-Rao std (computed only for those within the first), or None;
-    and every candidate's one-step error."""
+    (:func:`predicts_by_free_run`), whose free-run bias is within ``bias``
+    Cramér-Rao std (computed only for those within the first; projected
+    onto the sensitivities along ``directions``, :func:`bias_directions`),
+    or None; and every candidate's one-step error."""
     ones = [o for o, _ in step_errors(pb, theta, discs, sig, ref)] if discs else []
     for d, o in zip(discs, ones):
-        if o <= limit and (not free or step_errors(pb, theta, [d], sig, ref, True)[0][1] <= bias):
+        if o <= limit and (not free or step_errors(pb, theta, [d], sig, ref, True,
+                                                   directions)[0][1] <= bias):
             return d, ones
     return None, ones
 
@@ -1822,12 +1850,13 @@ def recommended_substeps(ctx: Context, fit: Fit, limit: float = 0.1) -> StepChec
     pb = problem_for(ctx, fit.model)
     sig, ref = error_scale(pb, fit), {}      # one fine reference for every substeps tried
     free = predicts_by_free_run(ctx, pb, fit.theta)
-    worst, bias = step_errors(pb, fit.theta, [pb.disc], sig, ref, free)[0]
+    dirs = bias_directions(pb, fit) if free else None
+    worst, bias = step_errors(pb, fit.theta, [pb.disc], sig, ref, free, dirs)[0]
     check = StepCheck(worst, None, bias if free else float("nan"), limit)
     if not check.failed:
         return check
     more = [replace(pb.disc, substeps=n) for n in SUBSTEP_LADDER if n > pb.disc.substeps]
-    found, ones = first_within(pb, fit.theta, more, sig, ref, free, limit)
+    found, ones = first_within(pb, fit.theta, more, sig, ref, free, limit, directions=dirs)
     if found is None and free and worst > limit:    # the one-step bound alone, as without
         n = next((d.substeps for d, o in zip(more, ones) if o <= limit), None)
         return replace(check, n=n, one_step_only=True)
@@ -1871,7 +1900,8 @@ def other_method_step(ctx: Context, fit: Fit, below: float,
     discs = [replace(d, method=other, substeps=int(n), refine=()) for n in ladder]
     with np.errstate(all="ignore"):
         found, _ = first_within(pb, fit.theta, discs, error_scale(pb, fit), {},
-                                predicts_by_free_run(ctx, pb, fit.theta), limit)
+                                predicts_by_free_run(ctx, pb, fit.theta), limit,
+                                directions=bias_directions(pb, fit))
     return found
 
 
@@ -1975,7 +2005,8 @@ def refined_discretisation(ctx: Context, fit: Fit, n: int, limit: float = REFINE
         nll = float(run_ukf(refined, fit.theta[None, :]).nll[0])
         if (np.isfinite(nll_uniform) and abs(nll - nll_uniform) <= REFINE_NLL_TOL
                 and first_within(pb, fit.theta, [cand], sig, {},
-                                 predicts_by_free_run(ctx, pb, fit.theta), check)[0] is not None):
+                                 predicts_by_free_run(ctx, pb, fit.theta), check,
+                                 directions=bias_directions(pb, fit))[0] is not None):
             k = int(np.count_nonzero(per > d.substeps))
             return cand, (f" on the {k} of {M} intervals that need them ({len(runs)} "
                           f"run{'s' if len(runs) > 1 else ''}, {margin} intervals either side; "

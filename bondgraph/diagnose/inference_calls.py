@@ -324,10 +324,13 @@ def interval_errors(problem: Problem, theta: np.ndarray, substeps, sigma=None):
 
 
 def step_errors(problem: Problem, theta: np.ndarray, discs, sigma=None,
-                cache: dict | None = None, free_run: bool = False) -> list[tuple[float, float]]:
+                cache: dict | None = None, free_run: bool = False,
+                directions=None) -> list[tuple[float, float]]:
     """:meth:`Problem.step_errors`: ``(one_step, bias)`` of each of
-    ``discs``, the free-run bias bound NaN without ``free_run``."""
-    return problem.step_errors(theta, discs, sigma=sigma, cache=cache, free_run=free_run)
+    ``discs``, the free-run bias (along ``directions``) NaN without
+    ``free_run``."""
+    return problem.step_errors(theta, discs, sigma=sigma, cache=cache, free_run=free_run,
+                               directions=directions)
 
 
 def one_step_errors(problem: Problem, theta: np.ndarray, substeps, sigma=None,

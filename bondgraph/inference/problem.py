@@ -428,20 +428,23 @@ class Problem:
         return np.array([float(np.max(e["one_step"], initial=0.0)) for e in errs])
 
     def step_errors(self, theta, discs: Sequence, *, sigma=None, cache: dict | None = None,
-                    free_run: bool = False) -> list[tuple[float, float]]:
+                    free_run: bool = False, directions=None) -> list[tuple[float, float]]:
         """``(one_step, bias)`` of each discretisation of ``discs`` at
         ``theta``: the largest one-step output error over outputs and samples
         in units of ``sigma`` (default :meth:`noise_scale`) and, with
-        ``free_run``, the free run's bias bound in Cramér-Rao std (the root
-        sum of squares of its output error in σ; NaN without), against one
-        fine reference shared by all of them
+        ``free_run``, the free run's bias in Cramér-Rao std (its output
+        error in σ projected onto the sensitivities along ``directions``
+        (p, n_theta), the estimated parameters' steps; without them the
+        bound, the root sum of squares; NaN without ``free_run``), against
+        one fine reference shared by all of them
         (:func:`bondgraph.inference.ukf.discretisation_errors`, ``cache``
         keeps it). inf where no reference is finite."""
         sig = self.noise_scale(theta) if sigma is None else sigma
         errs = discretisation_errors(self.model, self.t, self.u, theta, self.x0, list(discs),
                                      sigma=sig, cache=cache, free_run=free_run,
-                                     states=lambda: self.filtered_states(theta))
-        return [(float(np.max(e["one_step"], initial=0.0)), float(e["free_run_rss"]))
+                                     states=lambda: self.filtered_states(theta),
+                                     directions=directions)
+        return [(float(np.max(e["one_step"], initial=0.0)), float(e["free_run_bias"]))
                 for e in errs]
 
     def interval_errors(self, theta, substeps: Sequence[int], *,

@@ -826,7 +826,7 @@ def discretisation_check(model, t, u, theta, x0=None, disc: Discretisation | Non
 
 def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run: bool = False,
                           reference_substeps: int = 32, cache: dict | None = None,
-                          states=None) -> list[dict]:
+                          states=None, directions=None) -> list[dict]:
     """The errors of :func:`discretisation_check` for several discretisations
     at once: the fine reference is propagated once per input hold and shared
     by every candidate with that hold (``one_step`` are the same numbers as
@@ -862,6 +862,13 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
         which follow the record where the model's free run from x0 does not
         (a coast-down model without drag coasts faster than its record, and
         its tire-slip mode quickens as the speed falls).
+    directions : array (p, n_theta), optional
+        Steps of the estimated parameters (one row each, absolute): with
+        ``free_run``, ``free_run_bias`` is the free run's error projected
+        onto the output sensitivities along them (forward differences of
+        the reference's outputs), the linearised bias of an output-error
+        estimate of those parameters in Cramér-Rao std, ``‖P e‖`` of the
+        Notes (the bound ``‖e‖`` counts error no parameter can absorb).
 
     Returns
     -------
@@ -871,7 +878,8 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
         unstable, :func:`rk4_unstable`), ``intervals`` (N − 1,) the
         max over outputs of each sample's; ``free_run_rss``, the root
         sum over samples and outputs of (Δy/σ)² of the free run against the
-        reference (NaN without ``free_run``); ``reference``, the reference
+        reference (NaN without ``free_run``); ``free_run_bias``, its
+        projection (``directions``; else ``free_run_rss``); ``reference``, the reference
         method (None when none was finite: the errors are inf). A value that
         is not finite is inf.
 
@@ -892,8 +900,55 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
            else np.broadcast_to(np.asarray(sigma, float), (model.n_y,)))
     refs = {} if cache is None else cache
     with np.errstate(all="ignore"):
-        return [_candidate_errors(model, disc, refs, t, u, th, x, sig, free_run,
-                                  reference_substeps, states) for disc in discs]
+        out = [_candidate_errors(model, disc, refs, t, u, th, x, sig, free_run,
+                                 reference_substeps, states) for disc in discs]
+        for disc, r in zip(discs, out):
+            r["free_run_bias"] = r["free_run_rss"]
+            if free_run and directions is not None and np.isfinite(r["free_run_rss"]) \
+                    and r.get("deviations") is not None:
+                J = _output_sensitivities(model, refs, disc.hold, t, u, th, x, sig,
+                                          np.asarray(directions, float), reference_substeps,
+                                          disc.backend)
+                r["free_run_bias"] = _projected_norm(r["deviations"], J)
+    return out
+
+
+def _output_sensitivities(model, refs: dict, hold: str, t, u, th, x, sig, directions,
+                          substeps: int, backend: str) -> np.ndarray | None:
+    """The reference's output sensitivities ((N − 1)·n_y, p) in σ units along
+    each row of ``directions`` (forward differences of the reference run by
+    its own method; kept in ``refs`` under ``("sensitivities", hold)``);
+    None without a reference."""
+    key = ("sensitivities", hold)
+    if key not in refs:
+        xr, ref = refs[hold]
+        if ref is None:
+            refs[key] = None
+            return None
+        held = hold_inputs(u, hold)
+        y0 = model.h(xr[1:], u[1:], th)
+        cols = []
+        for d in directions:
+            xd = _trajectory(model, t, u, hold, held, th + d[None, :], x, ref, substeps, backend)
+            scale = float(np.linalg.norm(d))
+            cols.append(((model.h(xd[1:], u[1:], th + d[None, :]) - y0) / sig).ravel()
+                        * (1.0 / scale if scale > 0 else 0.0))
+        refs[key] = np.stack(cols, axis=1) if cols else None
+    return refs[key]
+
+
+def _projected_norm(dev: np.ndarray, J: np.ndarray | None) -> float:
+    """‖P e‖: the norm of ``dev`` (M, n_y), raveled, projected onto the span
+    of the finite columns of ``J`` (M·n_y, p) (least squares); 0 without
+    any."""
+    e = np.nan_to_num(np.asarray(dev, float).ravel(), nan=0.0, posinf=0.0, neginf=0.0)
+    if J is None:
+        return 0.0
+    J = J[:, np.isfinite(J).all(axis=0) & (np.abs(J).sum(axis=0) > 0)]
+    if J.shape[1] == 0:
+        return 0.0
+    coef = np.linalg.lstsq(J, e, rcond=None)[0]
+    return float(np.linalg.norm(J @ coef))
 
 
 def _candidate_errors(model, disc, refs: dict, t, u, th, x, sig, free_run: bool,
@@ -915,10 +970,14 @@ def _candidate_errors(model, disc, refs: dict, t, u, th, x, sig, free_run: bool,
     if disc.method == "rk4":
         dev[_unstable_intervals(model, refs, disc.hold, xr, states, held, th,
                                 np.diff(t) / step.per)] = np.inf
-    rss = (_free_run_rss(model, disc, step, held, t, u, th, x, yr, sig) if free_run
-           else np.nan)
+    free = (_free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig) if free_run
+            else None)
+    rss = np.nan
+    if free is not None:
+        ss = float(np.sum(free ** 2))
+        rss = float(np.sqrt(ss)) if np.isfinite(ss) else float("inf")
     return dict(one_step=np.max(dev, axis=0, initial=0.0), free_run_rss=rss, reference=ref,
-                intervals=np.max(dev, axis=1, initial=0.0))
+                intervals=np.max(dev, axis=1, initial=0.0), deviations=free)
 
 
 def _unstable_intervals(model, refs: dict, hold: str, xr, states, held, th, h) -> np.ndarray:
@@ -1041,13 +1100,6 @@ def rk4_stable_substeps(model, t, u, disc, theta, states) -> int | None:
         return None
     return next((n for n in STABLE_SUBSTEPS if n > int(np.max(per))
                  and not rk4_unstable(modes, dt / n).any()), 0)
-
-
-def _free_run_rss(model, disc, step, held, t, u, th, x, yr, sig) -> float:
-    """Root sum of squares of (y_free − y_ref)/σ over the record (inf if not finite)."""
-    d = _free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig)
-    ss = float(np.sum(d ** 2))
-    return float(np.sqrt(ss)) if np.isfinite(ss) else float("inf")
 
 
 def _free_run_deviations(model, disc, step, held, t, u, th, x, yr, sig) -> np.ndarray:
