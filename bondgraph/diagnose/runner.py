@@ -1152,7 +1152,7 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
     checked = recommended_substeps(ctx, fit, limit) if checked is None else checked
     if not checked.failed:
         return []
-    rec = checked.n
+    rec = checked.n_unbiased or checked.n
     o = ctx.problem.ukf
     error = (f"discretisation error of {o.method}({o.substeps}) is "
              f"{step_error(o.method, checked.worst, 'noise stds per sample')}{checked.text()} "
@@ -1180,7 +1180,7 @@ def _adopted(ctx: Context, fit: Fit, checked: StepCheck, auto: bool) -> tuple:
     method where it is cheaper
     (:func:`~bondgraph.diagnose.fit.adopted_discretisation`); else
     ``(None, "")``."""
-    if not (auto and checked.failed):
+    if not (auto and checked.step_failed):
         return None, ""
     return adopted_discretisation(ctx, fit, checked)
 
