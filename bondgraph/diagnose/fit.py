@@ -1916,8 +1916,9 @@ def adopted_discretisation(ctx: Context, fit: Fit,
     the current method within it, None if none): ``n`` on the intervals that
     need them or throughout (:func:`refined_discretisation`), or the other
     method where it meets the check at a lower cost per sample
-    (:func:`other_method_step`, with ``settings.search.auto_method``); ``text`` says what (``"16 substeps per
-    sample"``, ``"rk4 with 3 substeps per sample in place of ros2 ..."``).
+    (:func:`other_method_step`, with ``settings.search.auto_method``);
+    ``text`` says what (``"16 substeps per sample"``, ``"rk4 with 3
+    substeps per sample in place of ros2 ..."``).
     ``(None, "")`` when neither meets the check."""
     n = check.n
     disc, how = refined_discretisation(ctx, fit, n) if n is not None else (None, "")

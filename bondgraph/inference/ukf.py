@@ -863,12 +863,9 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
         (a coast-down model without drag coasts faster than its record, and
         its tire-slip mode quickens as the speed falls).
     directions : array (p, n_theta), optional
-        Steps of the estimated parameters (one row each, absolute): with
-        ``free_run``, ``free_run_bias`` is the free run's error projected
-        onto the output sensitivities along them (forward differences of
-        the reference's outputs), the linearised bias of an output-error
-        estimate of those parameters in Cramér-Rao std, ``‖P e‖`` of the
-        Notes (the bound ``‖e‖`` counts error no parameter can absorb).
+        Steps of the estimated parameters: with ``free_run``,
+        ``free_run_bias`` is ``‖P e‖`` of the Notes, the error projected on
+        the reference's output sensitivities along them (differences).
 
     Returns
     -------
@@ -903,14 +900,22 @@ def discretisation_errors(model, t, u, theta, x0, discs, *, sigma=None, free_run
         out = [_candidate_errors(model, disc, refs, t, u, th, x, sig, free_run,
                                  reference_substeps, states) for disc in discs]
         for disc, r in zip(discs, out):
-            r["free_run_bias"] = r["free_run_rss"]
-            if free_run and directions is not None and np.isfinite(r["free_run_rss"]) \
-                    and r.get("deviations") is not None:
-                J = _output_sensitivities(model, refs, disc.hold, t, u, th, x, sig,
-                                          np.asarray(directions, float), reference_substeps,
-                                          disc.backend)
-                r["free_run_bias"] = _projected_norm(r["deviations"], J)
+            r["free_run_bias"] = _free_run_bias(model, refs, disc, r, (t, u, th, x, sig),
+                                                directions, reference_substeps)
     return out
+
+
+def _free_run_bias(model, refs: dict, disc, r: dict, run: tuple, directions,
+                   substeps: int) -> float:
+    """``free_run_bias`` of one candidate's entry ``r`` of
+    :func:`discretisation_errors`: its free-run deviations projected onto
+    the sensitivities along ``directions`` (``run`` = (t, u, θ, x0, σ)),
+    else its ``free_run_rss``."""
+    if directions is None or r.get("deviations") is None or not np.isfinite(r["free_run_rss"]):
+        return r["free_run_rss"]
+    J = _output_sensitivities(model, refs, disc.hold, *run, np.asarray(directions, float),
+                              substeps, disc.backend)
+    return _projected_norm(r["deviations"], J)
 
 
 def _output_sensitivities(model, refs: dict, hold: str, t, u, th, x, sig, directions,
