@@ -242,9 +242,10 @@ def case_ced() -> LoopCase:
         # check asks for (ROS2 with one step is 6.7 noise stds off per sample
         # at the declared fit, enough to pull the likelihood fit onto the box
         # edges), or RK4 where that meets the check for fewer f evaluations
-        # (auto_method: RK4(3) after the low-pass where ROS2 needed 16 substeps,
-        # 45 -> 38 s, the same effects), and the confirmation goes on in rounds, so that a candidate
-        # scoring below others that raise the error is still tried.
+        # (auto_method: RK4(3) after the low-pass where ROS2 needed 16
+        # substeps, 45 -> 35 s, the same effects), and the confirmation goes
+        # on in rounds, so that a candidate scoring below others that raise
+        # the error is still tried.
         # noise "model": the figures were established with the graph's speed-sensor
         # noise (the record declares none; "auto" would estimate it)
         LoopSettings(["R_a", "b_m", "k_b", "k_y", "q_T"], noise="model", metric="rmse_sim",

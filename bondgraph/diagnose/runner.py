@@ -1162,13 +1162,15 @@ def check_discretisation(ctx: Context, fit: Fit, limit: float = 0.1,
         ctx.log(msg)
         return [msg]
     other = "rk4" if o.method == "ros2" else "ros2"
-    msg = (f"{error} (a model error that biases the fit and the "
-           f"scores); " + (f"use --substeps {rec}" if rec else
-                           f"{o.method} is not within it with {SUBSTEP_LADDER[-1]} substeps: "
-                           f"use --method {other} and more substeps, or a shorter sample "
-                           f"interval")
-           + " (from Python: chosen_numerics(graph, record, settings) before run_loop, or "
-             "SearchOptions(auto_substeps=True, auto_method=True))")
+    advice = (f"use --substeps {rec}" if rec else
+              f"{o.method} is not within it with {SUBSTEP_LADDER[-1]} substeps: use --method "
+              f"{other} and more substeps, or a shorter sample interval")
+    if checked.step_failed:
+        advice += (" (from Python: chosen_numerics(graph, record, settings) before run_loop, "
+                   "or SearchOptions(auto_substeps=True, auto_method=True))")
+    else:       # the bias alone: what the loop says, not what it adopts substeps for
+        advice += " for estimates the discretisation does not move"
+    msg = f"{error} (a model error that biases the fit and the scores); {advice}"
     ctx.log("warning: " + msg)
     return [msg]
 

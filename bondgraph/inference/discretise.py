@@ -77,13 +77,6 @@ DECLARED_HOLDS = INPUT_HOLDS
 #: the p-th power: where 4 is the first power of two within, 3 often is, at
 #: three quarters of the cost)
 SUBSTEPS = (1, 2, 3, 4, 6, 8, 12, 16)
-#: (method, substeps) candidates in order of cost per sample, counted in f
-#: evaluations: RK4 4 per substep, ROS2 2 per substep and one Jacobian (with
-#: its factorisation, about 2 more) per sample; on a tie the fewer substeps
-#: first (RK4(2) before ROS2(3): the order of the powers of two is kept, so a
-#: step they chose is still chosen unless a cheaper one passes), and of ROS2(1)
-#: and RK4(1) ROS2 first (L-stable: a stiff model's step that RK4 cannot take
-#: is not finite and fails the check, so the list serves stiff models too)
 
 
 def step_cost(method: str, substeps: float) -> float:
@@ -94,6 +87,13 @@ def step_cost(method: str, substeps: float) -> float:
     return 4.0 * substeps if method == "rk4" else 2.0 * substeps + 2.0
 
 
+#: (method, substeps) candidates in order of cost per sample, counted in f
+#: evaluations: RK4 4 per substep, ROS2 2 per substep and one Jacobian (with
+#: its factorisation, about 2 more) per sample; on a tie the fewer substeps
+#: first (RK4(2) before ROS2(3): the order of the powers of two is kept, so a
+#: step they chose is still chosen unless a cheaper one passes), and of ROS2(1)
+#: and RK4(1) ROS2 first (L-stable: a stiff model's step that RK4 cannot take
+#: is not finite and fails the check, so the list serves stiff models too)
 CANDIDATES = tuple(sorted(((m, s) for s in SUBSTEPS for m in ("ros2", "rk4")),
                           key=lambda c: (step_cost(*c), c[1], c[0] != "ros2")))
 

@@ -421,11 +421,7 @@ class Problem:
         keeps it for later calls at the same θ). Returns (k,); inf where no
         reference is finite."""
         discs = [replace(self.disc, substeps=int(n)) for n in substeps]
-        sig = self.noise_scale(theta) if sigma is None else sigma
-        errs = discretisation_errors(self.model, self.t, self.u, theta, self.x0, discs,
-                                     sigma=sig, cache=cache,
-                                     states=lambda: self.filtered_states(theta))
-        return np.array([float(np.max(e["one_step"], initial=0.0)) for e in errs])
+        return np.array([o for o, _ in self.step_errors(theta, discs, sigma=sigma, cache=cache)])
 
     def step_errors(self, theta, discs: Sequence, *, sigma=None, cache: dict | None = None,
                     free_run: bool = False, directions=None) -> list[tuple[float, float]]:

@@ -915,6 +915,8 @@ def _free_run_bias(model, refs: dict, disc, r: dict, run: tuple, directions,
         return r["free_run_rss"]
     J = _output_sensitivities(model, refs, disc.hold, *run, np.asarray(directions, float),
                               substeps, disc.backend)
+    if J is None or not np.isfinite(J).all():      # no sensitivities: the bound, not 0
+        return r["free_run_rss"]
     return _projected_norm(r["deviations"], J)
 
 
@@ -922,9 +924,9 @@ def _output_sensitivities(model, refs: dict, hold: str, t, u, th, x, sig, direct
                           substeps: int, backend: str) -> np.ndarray | None:
     """The reference's output sensitivities ((N − 1)·n_y, p) in σ units along
     each row of ``directions`` (forward differences of the reference run by
-    its own method; kept in ``refs`` under ``("sensitivities", hold)``);
-    None without a reference."""
-    key = ("sensitivities", hold)
+    its own method; kept in ``refs`` under ``("sensitivities", hold)`` and
+    the directions); None without a reference."""
+    key = ("sensitivities", hold, directions.tobytes())
     if key not in refs:
         xr, ref = refs[hold]
         if ref is None:
@@ -944,8 +946,8 @@ def _output_sensitivities(model, refs: dict, hold: str, t, u, th, x, sig, direct
 
 def _projected_norm(dev: np.ndarray, J: np.ndarray | None) -> float:
     """‖P e‖: the norm of ``dev`` (M, n_y), raveled, projected onto the span
-    of the finite columns of ``J`` (M·n_y, p) (least squares); 0 without
-    any."""
+    of the nonzero columns of ``J`` (M·n_y, p) (least squares); 0 without
+    any (no estimated parameter moves the outputs)."""
     e = np.nan_to_num(np.asarray(dev, float).ravel(), nan=0.0, posinf=0.0, neginf=0.0)
     if J is None:
         return 0.0
