@@ -76,3 +76,51 @@ def test_emps_user_graph_is_the_hand_derived_mass_on_viscous_friction(tmp_path):
     pulses = np.loadtxt(mod.write_csv(tmp_path / "pulses.csv", which="validation"),
                         delimiter=",", skiprows=1)
     assert pulses.shape == (24841, 3) and not np.allclose(pulses[:, 2], data[:, 2])
+
+
+def test_ced_user_graph_is_the_hand_derived_motor_belt_pulley(tmp_path):
+    """examples/ced_user.py (its loop and comparison run about a minute, not
+    run here): the graph gives, with ω_m = p_Jm/J_m, ω_p = p_Jp/J_p and the
+    armature current (u − k_m ω_m)/R_a, dp_Jm/dt = k_m (u − k_m ω_m)/R_a −
+    b_m ω_m − k_b q, dq/dt = ω_m − ω_p, dp_Jp/dt = k_b q − b_p ω_p and
+    z = ω_p at random points; its CSV writer and its eq. (9) reference
+    reproduce the data README's table (0.166, 1.14, 0.246 on the three PRBS
+    runs; skipped without the data folder)."""
+    import importlib.util
+
+    import numpy as np
+
+    from bondgraph.numerics.model import Model
+
+    spec = importlib.util.spec_from_file_location("ced_user", EXAMPLES / "ced_user.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    m = Model.from_graph(mod.ced_user())
+    assert sorted(m.states) == ["p_Jm", "p_Jp", "q_kb"] and m.inputs == ["u"]
+    assert m.outputs == ["z"]
+    rng = np.random.default_rng(2)
+    x, u = rng.normal(size=(6, 3)), rng.normal(size=(6, 1))
+    th = np.tile(m.theta0, (6, 1))
+    for name, lo, hi in (("Ra", 0.5, 2), ("km", 0.1, 2), ("Jm", 0.01, 1), ("bm", 0.01, 1),
+                         ("kb", 1, 50), ("Jp", 0.01, 1), ("bp", 0.01, 1)):
+        th[:, m.param_index(name)] = rng.uniform(lo, hi, 6)
+    P = {n: th[:, m.param_index(n)] for n in ("Ra", "km", "Jm", "bm", "kb", "Jp", "bp")}
+    s = {n: x[:, m.states.index(n)] for n in m.states}
+    wm, wp = s["p_Jm"] / P["Jm"], s["p_Jp"] / P["Jp"]
+    want = {"p_Jm": P["km"] * (u[:, 0] - P["km"] * wm) / P["Ra"] - P["bm"] * wm
+            - P["kb"] * s["q_kb"],
+            "q_kb": wm - wp, "p_Jp": P["kb"] * s["q_kb"] - P["bp"] * wp}
+    f = m.f(x, u, th)
+    for n, w in want.items():
+        np.testing.assert_allclose(f[:, m.states.index(n)], w, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(m.h(x, u, th)[:, 0], wp, rtol=1e-12)
+    from bondgraph.data.datasets import default_data_dir, find_local
+    root = default_data_dir()
+    if root is None or find_local("ced", "DATAPRBS.csv", root) is None:
+        pytest.skip("the CED files are not in the data folder (../shared/data or BONDGRAPH_DATA)")
+    csvs = mod.write_csvs(tmp_path)
+    data = np.loadtxt(csvs["prbs1"], delimiter=",", skiprows=1)
+    assert data.shape == (500, 3) and open(csvs["prbs1"]).readline() == "t [s],u [V],z\n"
+    assert np.allclose(np.diff(data[:, 0]), 0.02) and set(np.unique(data[:, 1])) == {-1.0, 1.0}
+    got = [mod.eq9_rms(csvs[k]) for k in ("prbs1", "prbs2", "prbs3")]
+    np.testing.assert_allclose(got, [0.166, 1.14, 0.246], atol=0.006)
