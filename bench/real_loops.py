@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import os
 import subprocess
 import sys
@@ -58,11 +59,17 @@ def run_case(name: str, extra: list[str], out: Path, env: dict) -> dict:
             "validation_after": rep["validation_error_after"],
             "discretisation_warnings": [w for w in rep.get("warnings", [])
                                         if w.startswith("discretisation error")],
-            "substeps_adopted": [w.split(" substeps per sample")[0].rsplit(" ", 1)[-1]
-                                 + (" on the intervals that need them"
-                                    if "intervals that need them" in w else "")
-                                 for w in rep.get("warnings", [])
+            "substeps_adopted": [_adopted(w) for w in rep.get("warnings", [])
                                  if w.startswith("auto_substeps:")]}
+
+
+def _adopted(line: str) -> str:
+    """What an ``auto_substeps:`` line of the report adopted: ``"3"`` (the
+    substeps of the same method), ``"rk4(1)"`` (the other method and its
+    substeps), with " on the intervals that need them" for a refined grid."""
+    m = re.search(r"takes (?:(\w+) with )?(\d+) substeps? per sample", line)
+    what = "?" if m is None else (f"{m.group(1)}({m.group(2)})" if m.group(1) else m.group(2))
+    return what + (" on the intervals that need them" if "intervals that need them" in line else "")
 
 
 def main() -> None:
