@@ -226,6 +226,40 @@ def test_the_command_writes_the_table_and_the_files(data, tmp_path, capsys):
     assert "Mass" in capsys.readouterr().err
 
 
+def test_a_file_without_time_column_is_judged_at_the_given_dt(data, tmp_path, capsys):
+    """The record written as a published benchmark file is (no time
+    column, a logger's column names, a trailing comma), read with ``--dt``
+    and ``--columns``: the same table as the record with its time column."""
+    from bondgraph.cli.main import main
+    import os
+    (tmp_path / "user_drive.py").write_text(GRAPH_FILE.format(tests=os.path.dirname(__file__)))
+    res = tmp_path / "result.json"
+    res.write_text(json.dumps({"params": ["M", "Fv", "noise.qm"],
+                               "estimates": [M, FV, NOISE], "fixed": {}}))
+    y = data["q"] + data["noise"]
+    bare = tmp_path / "bare.csv"
+    with open(bare, "w") as fh:
+        fh.write('"force","pos",\n')
+        for row in zip(_force(data["t"]).tolist(), y.tolist()):
+            fh.write("%r,%r,\n" % row)
+    spec = f"{tmp_path / 'user_drive.py'}:user"
+    docs = []
+    for name, extra in (("unknown.csv", []), ("bare.csv", ["--dt", str(DT), "--columns",
+                                                            "force=F,pos=qm"])):
+        path = data["dir"] / name if name == "unknown.csv" else bare
+        out = tmp_path / name.replace(".csv", "_out")
+        assert main(["compare", spec, "--data", str(path), "--params", str(res), "--out",
+                     str(out), "--quiet", "--no-plots", *extra]) == 0
+        docs.append(json.loads((out / "compare.json").read_text())["records"][0])
+    assert docs[1]["outputs"]["qm"]["rms"] == pytest.approx(docs[0]["outputs"]["qm"]["rms"],
+                                                            rel=1e-12)
+    assert docs[1]["nll"] == pytest.approx(docs[0]["nll"], rel=1e-12)
+    # without --dt the error says how to read such a file
+    assert main(["compare", spec, "--data", str(bare), "--params", str(res), "--out",
+                 str(tmp_path / "no_dt"), "--quiet", "--no-plots"]) == 2
+    assert "--dt SECONDS" in capsys.readouterr().err
+
+
 def test_a_step_whose_nll_is_off_takes_the_substeps_that_agree(data, monkeypatch):
     """The NLL guard of :func:`bondgraph.inference.ukf.nll_guard`, on a
     filter whose NLL is 100 + 10/s² at s substeps (the check's choice

@@ -141,6 +141,30 @@ def test_missing_t(tmp_path):
     raises(write(tmp_path, "F,t\n0,1\n1,2\n"), "must be the first column", line=1, column="t")
 
 
+def test_a_file_without_time_column_is_read_at_a_given_interval(tmp_path):
+    """Published files often have no time column (Silverbox, CED: "u1,z1,"
+    with a trailing comma): with the interval given (``dt``, the command
+    line's ``--dt``, or the sidecar's ``dt``) the samples are at k dt; a
+    file with a time column must agree with it; without one the error
+    names both ways."""
+    p = write(tmp_path, '"z1","u1",\n0.5,1,\n0.25,-1,\n0.125,1,\n')
+    err = raises(p, "first column must be the time 't'", line=1, column="z1")
+    assert "--dt SECONDS" in str(err) and '"dt" in the record\'s JSON sidecar' in str(err)
+    exp = Experiment.load(p, dt=0.02, columns={"u1": "F"})
+    np.testing.assert_array_equal(exp.t, [0.0, 0.02, 0.04])
+    assert list(exp.columns) == ["z1", "F"] and exp.meta["dt"] == 0.02
+    np.testing.assert_array_equal(exp["z1"], [0.5, 0.25, 0.125])
+    assert exp.meta["columns"]["t"] == {"unit": "s", "role": "time"}
+    side = write(tmp_path, "u,y\n1,2\n3,4\n", name="side.csv", sidecar={"dt": 0.5})
+    np.testing.assert_array_equal(Experiment.load(side).t, [0.0, 0.5])
+    # with a time column, dt must agree with its median step (within 1 %)
+    np.testing.assert_array_equal(Experiment.load(write(tmp_path, GOOD), dt=0.1).t,
+                                  [0, 0.1, 0.2, 0.3])
+    raises(write(tmp_path, GOOD), r"dt = 0.2 s, but the median time step is 0.1 s", dt=0.2)
+    for bad in (0.0, -1.0, float("nan")):
+        raises(p, "is not a positive number of seconds", dt=bad)
+
+
 def test_non_numeric_cell(tmp_path):
     raises(write(tmp_path, "t,F,x\n0,1,2\n0.1,1,2\n0.2,abc,2\n"), "non-numeric cell 'abc'",
            line=4, column="F")

@@ -133,11 +133,17 @@ def parse_renames(text: str | None, option: str = "--columns") -> dict[str, str]
 
 
 def add_columns(p: argparse.ArgumentParser) -> None:
-    """``--columns``: the record's columns renamed to the model's names."""
+    """``--columns``: the record's columns renamed to the model's names;
+    ``--dt``: the sample interval of records without a time column."""
     p.add_argument("--columns", default=None, metavar="COLUMN=NAME,...",
                    help="rename the records' columns to the model's input, output or state "
                         "names as they are read (e.g. Current=I,Voltage=V: a logger's names); "
                         "every record of the command")
+    p.add_argument("--dt", type=float, default=None, metavar="SECONDS",
+                   help="sample interval of the records: a file without a time column "
+                        "(published benchmark files often have none) is read with t = k dt; "
+                        "one with a time column must agree with it; every record of the "
+                        "command (default: the time column, or the sidecar's dt)")
 
 
 def parse_params(text: str, model=None) -> list[str]:
@@ -458,9 +464,11 @@ def output_folder(path, args, option: str = "--out", *,
     return OutputFolder(path, overwrite=overwrite, option=option)
 
 
-def load_record(path, model, say=None, columns: str | dict | None = None) -> Experiment:
+def load_record(path, model, say=None, columns: str | dict | None = None,
+                dt: float | None = None) -> Experiment:
     """The record of ``--data`` (:meth:`Experiment.load`; ``columns``: the
-    ``--columns`` text or its ``{file: model}`` renames), with a
+    ``--columns`` text or its ``{file: model}`` renames; ``dt``: ``--dt``,
+    the sample interval of a file without a time column), with a
     :class:`~bondgraph.errors.ColumnWarning` for columns that match none of
     the model's names while some of its outputs are absent, and one line on
     ``say`` (default stderr) per output with missing samples
@@ -475,7 +483,7 @@ def load_record(path, model, say=None, columns: str | dict | None = None) -> Exp
         A defect of the file or its sidecar (file, line and column named).
     """
     renames = columns if isinstance(columns, dict) else parse_renames(columns)
-    exp = Experiment.load(path, columns=renames or None)
+    exp = Experiment.load(path, columns=renames or None, dt=dt)
     outputs = model.sensors if isinstance(model, BondGraph) else model.outputs
     require_information(exp, outputs)
     for line in missing_note(exp, outputs, Path(path).name):

@@ -85,7 +85,7 @@ def _records(args, graph, say) -> list:
     """The records of ``--data`` for ``graph``, each on a finer grid where an
     input is band-limited (as estimate and loop filter them)."""
     decimated_window(args, say)
-    return [filtered_record(load_record(pth, graph, say, args.columns), graph, args, say)
+    return [filtered_record(load_record(pth, graph, say, args.columns, args.dt), graph, args, say)
             for pth in args.data]
 
 

@@ -134,9 +134,10 @@ def run(args) -> int:
     with progress.phase("loading the model and the records"):
         model = load_model(args.model)
         decimated_window(args)
-        exps = [filtered_record(load_record(pth, model, columns=args.columns), model, args)
-                for pth in paths]
-        vals = [filtered_record(load_record(pth, model, columns=args.columns), model, args)
+        exps = [filtered_record(load_record(pth, model, columns=args.columns, dt=args.dt),
+                                model, args) for pth in paths]
+        vals = [filtered_record(load_record(pth, model, columns=args.columns, dt=args.dt),
+                                model, args)
                 for pth in args.validate or []]      # a bad file refused before the fit
     _check_judging(args, vals)
     params = (parse_params(args.params, model) if args.params

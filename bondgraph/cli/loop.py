@@ -261,7 +261,7 @@ def run(args) -> int:
         if not args.data:
             raise ModelError("--model needs --data FILE.csv (the measured record)")
         graph = graph_builder(args.model)()
-        record = filtered_record(load_record(args.data, graph, _said, args.columns),
+        record = filtered_record(load_record(args.data, graph, _said, args.columns, args.dt),
                                  graph, args, say=_said)
         decimated_window(args, _said)
         params = parse_params(args.params) if args.params else list(graph.params)
@@ -490,7 +490,7 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     fixed = parse_pairs(args.fixed, "--fixed")
     x0 = parse_pairs(args.x0, "--x0")
     states = loop_states(graph, args.estimate_x0) if args.estimate_x0 else base.estimate_x0
-    judging = [filtered_record(load_record(f, graph, _said, args.columns), graph, args,
+    judging = [filtered_record(load_record(f, graph, _said, args.columns, args.dt), graph, args,
                                say=_said)
                for f in (args.validate or [])]
     names = [r.name for r in judging]

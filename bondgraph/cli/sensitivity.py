@@ -113,8 +113,8 @@ def run(args) -> int:
     filter's likelihood at the analysed θ prefers."""
     with progress.phase("loading the model and the record"):
         model = load_model(args.model)
-        exp = filtered_record(load_record(args.data, model, columns=args.columns), model,
-                              args)
+        exp = filtered_record(load_record(args.data, model, columns=args.columns, dt=args.dt),
+                              model, args)
     if args.seconds is not None:
         n = int(np.searchsorted(exp.t, exp.t[0] + args.seconds, side="right"))
         if n < 2:

@@ -211,7 +211,7 @@ def run(args) -> int:
     levels = {k[len("noise."):]: v for k, v in values.items() if k.startswith("noise.")}
     values = {k: v for k, v in values.items() if k in model.params}
     folder = output_folder(args.out, args)
-    exp = filtered_record(load_record(args.data, model, columns=args.columns), model,
+    exp = filtered_record(load_record(args.data, model, columns=args.columns, dt=args.dt), model,
                           args)
     problem = problem_from_args(model, exp, args, values=values)
     held, line = bare_levels(problem, levels)

@@ -219,7 +219,8 @@ def check_meta(meta: Mapping, path: str | None = None) -> None:
 # --------------------------------------------------------------- reading
 def read_record(path: str | Path, *, allow_missing: bool = True,
                 gap_factor: float | None = GAP_FACTOR,
-                columns: Mapping[str, str] | None = None) -> dict[str, Any]:
+                columns: Mapping[str, str] | None = None,
+                dt: float | None = None) -> dict[str, Any]:
     """Read a CSV record and its JSON sidecar (if present): the fields of an
     :class:`~bondgraph.data.records.Experiment` (what
     :meth:`~bondgraph.data.records.Experiment.load` builds it from).
@@ -238,6 +239,12 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
         ``{name in the file: name in the model}``: columns renamed after
         reading (a logger's ``Current`` as the model's input ``I``); the
         sidecar describes them by their names in the file.
+    dt : float, optional
+        The sample interval [s] (the command line's ``--dt``; else the
+        sidecar's ``dt``). A file without a time column (published
+        benchmark files often have none: Silverbox, CED) is read with
+        ``t = k dt`` from 0; a file with one must agree with it (its median
+        step within 1 %).
 
     Returns
     -------
@@ -250,7 +257,8 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
     ------
     DataError
         Naming the file, line and column (:meth:`Experiment.load
-        <bondgraph.data.records.Experiment.load>` lists the defects).
+        <bondgraph.data.records.Experiment.load>` lists the defects); a
+        ``dt`` that is not a positive finite number.
     """
     path = Path(path)
     if path.suffix.lower() == ".json":
@@ -260,6 +268,11 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
         raise DataError("no such file", path=where)
     side = str(path.with_suffix(".json"))
     meta = _read_sidecar(path)
+    if dt is not None:
+        if not (isinstance(dt, (int, float)) and np.isfinite(dt) and dt > 0):
+            raise DataError(f"the sample interval dt = {dt!r} is not a positive number of "
+                            f"seconds", path=where)
+        meta = dict(meta or {}, dt=float(dt))
     names, data, units, line_arr, header_line = _read_columns(path, meta, allow_missing)
     if columns:
         names = _renamed(names, data, units, meta, columns, where, header_line)
@@ -281,11 +294,13 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
             entry["role"] = "time"
         info[nm] = entry
     check_meta(meta, side)
-    if meta.get("dt"):
+    if meta.get("dt") and t.size > 1:
         med = float(np.median(np.diff(t)))
         if abs(med - float(meta["dt"])) > 0.01 * float(meta["dt"]):
-            raise DataError(f"sidecar dt = {meta['dt']} s but the median time step is "
-                            f"{med:.6g} s", path=side)
+            given = (f"the sample interval given, dt = {dt} s," if dt is not None
+                     else f"sidecar dt = {meta['dt']} s")
+            raise DataError(f"{given} but the median time step is {med:.6g} s",
+                            path=where if dt is not None else side)
     return {"t": t, "columns": data, "units": units, "meta": meta, "path": path,
             "lines": line_arr}
 
@@ -331,7 +346,9 @@ def _read_columns(path: Path, meta: Mapping, allow_missing: bool) -> tuple:
     sample and the header's line."""
     where, side = str(path), str(path.with_suffix(".json"))
     header, header_line, rows, lines, delimiter = _read_csv_rows(path)
-    parsed, trailing, time_name = _parse_header_row(header, where, header_line)
+    dt = float(meta["dt"]) if meta and meta.get("dt") else None
+    parsed, trailing, time_name = _parse_header_row(header, where, header_line,
+                                                    timeless=dt is not None)
     names = [p[0] for p in parsed]
     _check_row_lengths(rows, lines, len(names), trailing, where)
     line_arr = np.asarray(lines)
@@ -351,6 +368,11 @@ def _read_columns(path: Path, meta: Mapping, allow_missing: bool) -> tuple:
     for j, nm in enumerate(names):
         data[nm] = _column_values(np.char.strip(cells[:, j]), nm, roles.get(nm),
                                   allow_missing, where, line_arr)
+    if not time_name:
+        # no time column: the samples at k dt (the given sample interval)
+        names = ["t", *names]
+        data = {"t": np.arange(line_arr.size) * dt, **data}
+        units = {"t": "s", **units}
     return names, data, units, line_arr, header_line
 
 
@@ -502,17 +524,19 @@ def _read_csv_rows(path: Path) -> tuple[list[str], int, list[list[str]], list[in
     return header, header_line, rows, lines, delimiter
 
 
-def _parse_header_row(header: list[str], where: str,
-                      header_line: int) -> tuple[list[tuple[str, str | None]], bool, str]:
+def _parse_header_row(header: list[str], where: str, header_line: int,
+                      timeless: bool = False) -> tuple[list[tuple[str, str | None]], bool, str]:
     """``(name, unit)`` per header cell, whether the lines end in a trailing
-    comma (an empty last header cell) and the time column's name in the file.
-    A first column named ``time`` (any case) or ``t_<unit>``/``time_<unit>``
-    (``s, ms, us, min, h``) is the time ``t``.
+    comma (an empty last header cell) and the time column's name in the file
+    ("" when ``timeless`` (a sample interval is given) and the file has
+    none). A first column named ``time`` (any case) or
+    ``t_<unit>``/``time_<unit>`` (``s, ms, us, min, h``) is the time ``t``.
 
     Raises
     ------
     DataError
-        Empty or duplicate names, ``t`` missing or not first.
+        Empty or duplicate names, ``t`` not first, or missing without
+        ``timeless``.
     """
     trailing = len(header) > 1 and header[-1].strip() == ""
     if trailing:
@@ -536,10 +560,14 @@ def _parse_header_row(header: list[str], where: str,
         if "t" in names:
             raise DataError(f"'t' must be the first column (it is column {names.index('t') + 1})",
                             path=where, line=header_line, column="t")
+        if timeless:
+            return parsed, trailing, ""
         raise DataError(f"first column must be the time 't', found '{names[0]}'",
                         path=where, line=header_line, column=names[0],
                         hint="name the time column 't' or 'time' (unit in brackets, "
-                             "e.g. 't [s]')")
+                             "e.g. 't [s]'); for a file without one (sampled at a fixed "
+                             "interval) give the interval: --dt SECONDS on the command line, "
+                             "or \"dt\" in the record's JSON sidecar")
     return parsed, trailing, time_name
 
 

@@ -260,7 +260,8 @@ class Experiment:
     @classmethod
     def load(cls, path: str | Path, *, allow_missing: bool = True,
              gap_factor: float | None = GAP_FACTOR,
-             columns: Mapping[str, str] | None = None) -> "Experiment":
+             columns: Mapping[str, str] | None = None,
+             dt: float | None = None) -> "Experiment":
         """Read a CSV record and its JSON sidecar (if present).
 
         Parameters
@@ -278,6 +279,10 @@ class Experiment:
             ``{name in the file: name in the model}``: columns renamed as
             they are read (``{"Current": "I"}``; the command line's
             ``--columns Current=I``).
+        dt : float, optional
+            Sample interval [s] (the command line's ``--dt``; else the
+            sidecar's ``dt``): a file without a time column is read with
+            ``t = k dt``; one with a time column must agree with it.
 
         Returns
         -------
@@ -291,10 +296,11 @@ class Experiment:
             cells, NaN/inf in time or inputs, NaN in any column when
             ``allow_missing`` is False, inf anywhere, non-increasing or
             repeated time, gaps, unknown units, a time unit that is not a
-            time, a sidecar of the wrong format or inconsistent with the CSV.
+            time, a sidecar of the wrong format or inconsistent with the CSV,
+            a ``dt`` the time column contradicts.
         """
         return cls(**record_io.read_record(path, allow_missing=allow_missing,
-                                           gap_factor=gap_factor, columns=columns))
+                                           gap_factor=gap_factor, columns=columns, dt=dt))
 
     # -------------------------------------------------------------- save
     def save(self, path: str | Path, *, precision: int | None = None,
