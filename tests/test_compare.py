@@ -258,6 +258,13 @@ def test_a_file_without_time_column_is_judged_at_the_given_dt(data, tmp_path, ca
     assert main(["compare", spec, "--data", str(bare), "--params", str(res), "--out",
                  str(tmp_path / "no_dt"), "--quiet", "--no-plots"]) == 2
     assert "--dt SECONDS" in capsys.readouterr().err
+    # the loop's closing line passes the options that read its record on to compare
+    from types import SimpleNamespace
+
+    from bondgraph.cli.loop import another_day
+    line = another_day(SimpleNamespace(columns="force=F,pos=qm", dt=DT), tmp_path)
+    assert f"--data OTHER.csv --columns force=F,pos=qm --dt {DT} --params" in line
+    assert "--columns" not in another_day(SimpleNamespace(columns=None, dt=None), tmp_path)
 
 
 def test_a_step_whose_nll_is_off_takes_the_substeps_that_agree(data, monkeypatch):

@@ -325,9 +325,18 @@ def run(args) -> int:
     print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots, "
           f"augmented_model.py)")
     if args.model:
-        print(f"on a record of another day: bondgraph compare {out / 'augmented_model.py'}:build "
-              f"--data OTHER.csv --params {out / 'report.json'}")
+        print(another_day(args, out))
     return 0
+
+
+def another_day(args, out: Path) -> str:
+    """The line that says how to judge the final model on another record:
+    ``bondgraph compare`` with the options that read this record
+    (``--columns``, ``--dt``), which read the other day's too."""
+    read = "".join(f" --{o} {v}" for o, v in (("columns", args.columns), ("dt", args.dt))
+                   if v is not None)
+    return (f"on a record of another day: bondgraph compare {out / 'augmented_model.py'}:build "
+            f"--data OTHER.csv{read} --params {out / 'report.json'}")
 
 
 def unexplained_hint(res, discovered: bool, graph=None, effects=()) -> str | None:

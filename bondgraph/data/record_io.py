@@ -269,10 +269,7 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
     side = str(path.with_suffix(".json"))
     meta = _read_sidecar(path)
     if dt is not None:
-        if not (isinstance(dt, (int, float)) and np.isfinite(dt) and dt > 0):
-            raise DataError(f"the sample interval dt = {dt!r} is not a positive number of "
-                            f"seconds", path=where)
-        meta = dict(meta or {}, dt=float(dt))
+        meta = dict(meta or {}, dt=_given_dt(dt, where))
     names, data, units, line_arr, header_line = _read_columns(path, meta, allow_missing)
     if columns:
         names = _renamed(names, data, units, meta, columns, where, header_line)
@@ -295,14 +292,38 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
         info[nm] = entry
     check_meta(meta, side)
     if meta.get("dt") and t.size > 1:
-        med = float(np.median(np.diff(t)))
-        if abs(med - float(meta["dt"])) > 0.01 * float(meta["dt"]):
-            given = (f"the sample interval given, dt = {dt} s," if dt is not None
-                     else f"sidecar dt = {meta['dt']} s")
-            raise DataError(f"{given} but the median time step is {med:.6g} s",
-                            path=where if dt is not None else side)
+        _check_dt(t, float(meta["dt"]), dt is not None, where if dt is not None else side)
     return {"t": t, "columns": data, "units": units, "meta": meta, "path": path,
             "lines": line_arr}
+
+
+def _given_dt(dt, where: str) -> float:
+    """``dt`` (a sample interval given to :func:`read_record`) as a float.
+
+    Raises
+    ------
+    DataError
+        ``dt`` is not a positive finite number.
+    """
+    if not (isinstance(dt, (int, float)) and np.isfinite(dt) and dt > 0):
+        raise DataError(f"the sample interval dt = {dt!r} is not a positive number of seconds",
+                        path=where)
+    return float(dt)
+
+
+def _check_dt(t: np.ndarray, dt: float, given: bool, where: str) -> None:
+    """Refuse a time column whose median step differs from ``dt`` by more
+    than 1 % (``given``: ``dt`` came from the caller, else the sidecar).
+
+    Raises
+    ------
+    DataError
+        Naming ``where`` (the CSV for a given ``dt``, else the sidecar).
+    """
+    med = float(np.median(np.diff(t)))
+    if abs(med - dt) > 0.01 * dt:
+        what = f"the sample interval given, dt = {dt:g} s," if given else f"sidecar dt = {dt:g} s"
+        raise DataError(f"{what} but the median time step is {med:.6g} s", path=where)
 
 
 def _renamed(names: list[str], data: dict, units: dict, meta: Mapping,
