@@ -265,6 +265,12 @@ def test_a_file_without_time_column_is_judged_at_the_given_dt(data, tmp_path, ca
     line = another_day(SimpleNamespace(columns="force=F,pos=qm", dt=DT), tmp_path)
     assert f"--data OTHER.csv --columns force=F,pos=qm --dt {DT} --params" in line
     assert "--columns" not in another_day(SimpleNamespace(columns=None, dt=None), tmp_path)
+    # and so does estimate's
+    assert main(["estimate", "--model", spec, "--data", str(bare), "--dt", str(DT), "--columns",
+                 "force=F,pos=qm", "--params", "M,Fv", "--out", str(tmp_path / "est"),
+                 "--quiet"]) == 0
+    assert f"--data OTHER.csv --columns force=F,pos=qm --dt {DT} --params" in \
+        capsys.readouterr().out
 
 
 def test_a_step_whose_nll_is_off_takes_the_substeps_that_agree(data, monkeypatch):

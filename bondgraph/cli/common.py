@@ -146,6 +146,16 @@ def add_columns(p: argparse.ArgumentParser) -> None:
                         "command (default: the time column, or the sidecar's dt)")
 
 
+def reading_options(args) -> str:
+    """The options that read the command's records (``--columns``,
+    ``--dt``) as command-line text (" --columns A=a --dt 0.02"; "" when
+    none was given): a line that tells the user how to run another command
+    on another record passes them on."""
+    return "".join(f" --{o} {v}" for o, v in (("columns", getattr(args, "columns", None)),
+                                               ("dt", getattr(args, "dt", None)))
+                   if v is not None)
+
+
 def parse_params(text: str, model=None) -> list[str]:
     """Parameters of ``--params``: ``a,b,c`` or ``recommended:<sensitivity.json>``
     (the set recommended by :func:`bondgraph.sensitivity.analysis.recommended_params`).

@@ -36,6 +36,7 @@ from bondgraph.cli.common import (
     parse_params,
     problem_from_args,
     published,
+    reading_options,
 )
 from bondgraph.core import progress
 from bondgraph.core.jsonsafe import to_jsonable
@@ -247,8 +248,8 @@ def judged_elsewhere(args, vals, out: Path) -> None:
 
     result = out / "result.json"
     if not vals:
-        print(f"on a record it was not fitted to: bondgraph compare {args.model} --data OTHER.csv "
-              f"--params {result} (or --validate OTHER.csv here)")
+        print(f"on a record it was not fitted to: bondgraph compare {args.model} --data OTHER.csv"
+              f"{reading_options(args)} --params {result} (or --validate OTHER.csv here)")
         return
     try:
         comps, values = _compared(args, vals, result, args.init_samples, progress=not args.quiet)

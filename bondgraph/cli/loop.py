@@ -27,6 +27,7 @@ from bondgraph.cli.common import (
     parse_names,
     parse_pairs,
     parse_params,
+    reading_options,
     unused_folder,
 )
 from bondgraph.core.equations import derive
@@ -333,10 +334,8 @@ def another_day(args, out: Path) -> str:
     """The line that says how to judge the final model on another record:
     ``bondgraph compare`` with the options that read this record
     (``--columns``, ``--dt``), which read the other day's too."""
-    read = "".join(f" --{o} {v}" for o, v in (("columns", args.columns), ("dt", args.dt))
-                   if v is not None)
     return (f"on a record of another day: bondgraph compare {out / 'augmented_model.py'}:build "
-            f"--data OTHER.csv{read} --params {out / 'report.json'}")
+            f"--data OTHER.csv{reading_options(args)} --params {out / 'report.json'}")
 
 
 def unexplained_hint(res, discovered: bool, graph=None, effects=()) -> str | None:
