@@ -109,3 +109,52 @@ def test_scoring_stops_on_a_flat_ridge_only_when_it_gains_little():
     # the identified part itself not converged: no stop
     d2 = SimpleNamespace(F=d.F, grad=S @ np.array([1.0, 1.0, 1.0]))
     assert _converged(d2, x, L, free, 1e-2, 0.0) == (False, ())
+
+
+def test_the_line_search_runs_its_other_points_only_when_the_full_steps_disappoint():
+    """:func:`bondgraph.inference.fisher._line_search` on the quadratic
+    NLL(θ) = NLL₀ + gᵀΔ + ½ ΔᵀFΔ (the model its ratio test compares with):
+    the scoring step is exact there, so the first batch (α 1 and 2) gains
+    all the model predicts and the six damped points and the decade moves
+    are not run (one batch); on an NLL that rises along the step, or falls
+    five times faster than the model says (the model wrong), the rest is
+    run too (two batches). The decrease of the quadratic model is checked
+    by hand."""
+    from bondgraph.inference.fisher import (FIRST_ALPHAS, _candidates, _line_search,
+                                            _model_decrease, _scoring_step)
+
+    F = np.array([[2.0, 0.5], [0.5, 1.0]])
+    g = np.array([1.0, -2.0])
+    z = np.array([1.0, 3.0])
+    L = np.array([False, True])                      # the second in log θ: decade moves
+    d = SimpleNamespace(F=F, grad=g, nll=10.0)
+    step = _scoring_step(d, z, L, 0.0)
+    alphas, cand = _candidates(z, step, L, np.full(2, 1e-3), np.full(2, 1e3))
+    assert len(cand) == 6 + 4 and set(FIRST_ALPHAS) <= set(alphas)
+
+    def quad(c):
+        dl = np.array([c[0] - z[0], np.log(c[1] / z[1])])
+        gz, Fz = g * np.array([1.0, z[1]]), F * np.outer([1.0, z[1]], [1.0, z[1]])
+        return 10.0 + gz @ dl + 0.5 * dl @ Fz @ dl
+
+    full = cand[list(alphas).index(1.0)]
+    assert abs(_model_decrease(d, z, full, L) - (10.0 - quad(full))) < 1e-12
+    assert 10.0 - quad(full) > 0.5                   # a real decrease to compare with
+    calls = []
+
+    def line(rows, f=quad):
+        calls.append(len(rows))
+        return np.array([f(r) for r in rows])
+
+    nll, runs = _line_search(line, d, z, L, alphas, cand)
+    assert runs == 1 and calls == [2]
+    assert np.isfinite(nll).sum() == 2 and np.nanmin(nll) == quad(full)
+    calls.clear()
+    nll, runs = _line_search(lambda rows: line(rows, lambda c: 20.0 - quad(c)), d, z, L,
+                             alphas, cand)
+    assert runs == 2 and calls == [2, 8] and np.isfinite(nll).all()
+    # a gain far above the model's (the step far too short): the rest too
+    calls.clear()
+    nll, runs = _line_search(lambda rows: line(rows, lambda c: 10.0 - 5.0 * (10.0 - quad(c))),
+                             d, z, L, alphas, cand)
+    assert runs == 2 and calls == [2, 8]

@@ -296,8 +296,11 @@ def estimand_scoring(model, t, u, y, est: Estimand, lower, upper, P0, *,
     scoring within the box [lower, upper] (k,).
 
     Each iteration: one batched UKF run for the derivatives (k + 1 sets) and
-    one for a line search over damped steps (6 sets, plus decade moves of
-    the log-scale quantities). Stops when a step improves the NLL by less
+    a line search over damped steps (6 sets, plus decade moves of the
+    log-scale quantities), the full and the doubled step first and the rest
+    only when these two gain less than half, or more than four times, the
+    decrease the quadratic model predicts (:func:`_line_search`). Stops when
+    a step improves the NLL by less
     than ``rtol (1 + |NLL|)``, when the predicted decrease of a full step is
     below ``atol`` nats (converged), or after ``max_iter`` iterations
     (``scoring``: :class:`~bondgraph.inference.options.ScoringOptions`,
@@ -401,8 +404,8 @@ def _scoring_loop(est: Estimand, derive, line, lower, upper, sc: ScoringOptions)
         converged, flat, alphas, cand = _proposal(D, z, L, lam, lo, hi, sc.atol, gain)
         if converged:
             break
-        nll_c = line(cand)
-        runs += 1
+        nll_c, n_runs = _line_search(line, D, z, L, alphas, cand)
+        runs += n_runs
         best = int(np.argmin(np.where(np.isfinite(nll_c), nll_c, np.inf)))
         f_new = float(nll_c[best])
         if sc.log:
@@ -750,6 +753,63 @@ def _scoring_step(D: Derivatives, x, L, lam: float, free=None) -> np.ndarray:
     except np.linalg.LinAlgError:
         step[free] = -jacobi_solve(F, grad, lstsq=True)
     return step
+
+
+#: the line-search points tried first (the full and the doubled step);
+#: the others follow only when the better of these gains less than
+#: :data:`FIRST_POINTS_RATIO` of the NLL decrease the quadratic model
+#: predicts for the full step (:func:`_line_search`)
+FIRST_ALPHAS = (1.0, 2.0)
+FIRST_POINTS_RATIO = 0.5
+#: ... nor when it gains more than this many times the prediction: the step
+#: was far too short (a scale parameter whose curvature the expected
+#: information overstates), where a decade move may gain more
+FIRST_POINTS_HIGH = 4.0
+
+
+def _line_search(line, D: Derivatives, z, L, alphas, cand) -> tuple[np.ndarray, int]:
+    """The NLL (c,) at the line-search points ``cand`` (c, k) of
+    :func:`_candidates` (``alphas`` (c,): their step multiples, NaN for the
+    scale moves) and the batched runs spent: first the points of
+    :data:`FIRST_ALPHAS`; when the better of them gains between
+    :data:`FIRST_POINTS_RATIO` and :data:`FIRST_POINTS_HIGH` times what the
+    quadratic model of the NLL at ``z`` (``D``: its gradient and Fisher
+    information, in log θ for ``L``) predicts for the full step (a
+    trust-region ratio test, Nocedal & Wright 2006, §4.1), the others are
+    left at inf, not run; else (a step the model mispredicts: too long, or
+    far too short, as for a noise intensity whose curvature the expected
+    information overstates, where a decade move may win) they are run too.
+    Without the upper bound the bundled CED case's rectifying sensor took
+    13 scoring iterations instead of 5. Near an optimum and along a ridge the full or the doubled step
+    wins (the bundled loop: 43 of 73 line searches), and a search costs
+    one batch of two points instead of six damped steps and four decade
+    moves per scale parameter."""
+    nll = np.full(len(cand), np.inf)
+    first = np.flatnonzero(np.isin(alphas, FIRST_ALPHAS))
+    if first.size == 0 or first.size == len(cand) or 1.0 not in alphas[first]:
+        return np.asarray(line(cand), float), 1
+    nll[first] = line(cand[first])
+    fin = np.where(np.isfinite(nll[first]), nll[first], np.inf)
+    gain = D.nll - float(np.min(fin))
+    pred = _model_decrease(D, z, cand[int(np.flatnonzero(alphas == 1.0)[0])], L)
+    if np.isfinite(gain) and 0 < pred < np.inf and \
+            FIRST_POINTS_RATIO * pred <= gain <= FIRST_POINTS_HIGH * pred:
+        return nll, 1
+    rest = np.setdiff1d(np.arange(len(cand)), first)
+    nll[rest] = line(cand[rest])
+    return nll, 2
+
+
+def _model_decrease(D: Derivatives, z, c, L) -> float:
+    """The NLL decrease −(gᵀΔ + ½ ΔᵀFΔ) the quadratic model at ``z`` (k,)
+    predicts for the point ``c`` (k,), Δ = c − z (in log θ for the scale
+    parameters ``L``)."""
+    jac = np.where(L, z, 1.0)
+    d = np.where(L, np.log(np.maximum(c, 1e-300)) - np.log(np.maximum(z, 1e-300)), c - z)
+    g = D.grad * jac
+    F = D.F * np.outer(jac, jac)
+    v = -(float(g @ d) + 0.5 * float(d @ F @ d))
+    return v if np.isfinite(v) else float("inf")
 
 
 def _candidates(x, step, L, lo, hi) -> tuple[np.ndarray, np.ndarray]:
