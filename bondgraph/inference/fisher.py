@@ -481,25 +481,30 @@ def scoring_steps(model, t, u, y, starts: list[Estimand], lower, upper, P0, *,
         z = e.value()
         try:
             D = _information(*_block(r, s * (k + 1), k + 1, h))
-            converged, _, _, cand = _proposal(D, z, L, 1e-3, lo, hi, 0.0, np.inf)
+            converged, _, alphas, cand = _proposal(D, z, L, 1e-3, lo, hi, 0.0, np.inf)
             if converged:
                 out[s] = (e, D.nll)
                 continue
         except (FloatingPointError, np.linalg.LinAlgError):
             continue
         out[s] = (e, D.nll)
-        lines[s] = cand
+        lines[s] = (cand, alphas, D, z)
     if lines:
         order = list(lines)
         r = _batched_runs(model, t, u, y, [ests[s] for s in order],
-                          [lines[s] for s in order], P0, options)
+                          [lines[s][0] for s in order], P0, options)
         a = 0
         for s in order:
-            nll = r.nll[a:a + len(lines[s])]
-            a += len(lines[s])
+            cand, alphas, D, z = lines[s]
+            nll = np.array(r.nll[a:a + len(cand)], float)
+            a += len(cand)
+            # the point the iteration's staged search would take
+            # (:func:`_line_search`): every point is run here, in one batch
+            if _first_points_suffice(nll, D, z, L, alphas, cand):
+                nll[~np.isin(alphas, FIRST_ALPHAS)] = np.inf
             best = int(np.argmin(np.where(np.isfinite(nll), nll, np.inf)))
             if np.isfinite(nll[best]) and nll[best] < out[s][1]:
-                out[s] = (ests[s].at(lines[s][best]), float(nll[best]))
+                out[s] = (ests[s].at(cand[best]), float(nll[best]))
     return out
 
 
@@ -789,15 +794,24 @@ def _line_search(line, D: Derivatives, z, L, alphas, cand) -> tuple[np.ndarray, 
     if first.size == 0 or first.size == len(cand) or 1.0 not in alphas[first]:
         return np.asarray(line(cand), float), 1
     nll[first] = line(cand[first])
-    fin = np.where(np.isfinite(nll[first]), nll[first], np.inf)
-    gain = D.nll - float(np.min(fin))
-    pred = _model_decrease(D, z, cand[int(np.flatnonzero(alphas == 1.0)[0])], L)
-    if np.isfinite(gain) and 0 < pred < np.inf and \
-            FIRST_POINTS_RATIO * pred <= gain <= FIRST_POINTS_HIGH * pred:
+    if _first_points_suffice(nll, D, z, L, alphas, cand):
         return nll, 1
     rest = np.setdiff1d(np.arange(len(cand)), first)
     nll[rest] = line(cand[rest])
     return nll, 2
+
+
+def _first_points_suffice(nll, D: Derivatives, z, L, alphas, cand) -> bool:
+    """Whether the best NLL of ``nll`` (c,) at the points of
+    :data:`FIRST_ALPHAS` passes :func:`_line_search`'s ratio test (False
+    when the search has no full step)."""
+    first = np.isin(alphas, FIRST_ALPHAS)
+    if not first.any() or 1.0 not in alphas[first]:
+        return False
+    gain = D.nll - float(np.min(np.where(np.isfinite(nll[first]), nll[first], np.inf)))
+    pred = _model_decrease(D, z, cand[int(np.flatnonzero(alphas == 1.0)[0])], L)
+    return bool(np.isfinite(gain) and 0 < pred < np.inf
+                and FIRST_POINTS_RATIO * pred <= gain <= FIRST_POINTS_HIGH * pred)
 
 
 def _model_decrease(D: Derivatives, z, c, L) -> float:
