@@ -146,15 +146,20 @@ def test_the_line_search_runs_its_other_points_only_when_the_full_steps_disappoi
         calls.append(len(rows))
         return np.array([f(r) for r in rows])
 
-    nll, runs = _line_search(line, d, z, L, alphas, cand)
+    nll, runs = _line_search(line, d, z, L, alphas, cand, 1e-6)
     assert runs == 1 and calls == [2]
     assert np.isfinite(nll).sum() == 2 and np.nanmin(nll) == quad(full)
     calls.clear()
     nll, runs = _line_search(lambda rows: line(rows, lambda c: 20.0 - quad(c)), d, z, L,
-                             alphas, cand)
+                             alphas, cand, 1e-6)
     assert runs == 2 and calls == [2, 8] and np.isfinite(nll).all()
     # a gain far above the model's (the step far too short): the rest too
     calls.clear()
     nll, runs = _line_search(lambda rows: line(rows, lambda c: 10.0 - 5.0 * (10.0 - quad(c))),
-                             d, z, L, alphas, cand)
+                             d, z, L, alphas, cand, 1e-6)
+    assert runs == 2 and calls == [2, 8]
+    # a gain that would end the scoring (3.12 nats below the relative stop,
+    # here rtol 0.5 of 1 + |NLL| = 7.9) is taken only from every point
+    calls.clear()
+    nll, runs = _line_search(line, d, z, L, alphas, cand, 0.5)
     assert runs == 2 and calls == [2, 8]

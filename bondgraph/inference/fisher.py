@@ -404,7 +404,7 @@ def _scoring_loop(est: Estimand, derive, line, lower, upper, sc: ScoringOptions)
         converged, flat, alphas, cand = _proposal(D, z, L, lam, lo, hi, sc.atol, gain)
         if converged:
             break
-        nll_c, n_runs = _line_search(line, D, z, L, alphas, cand)
+        nll_c, n_runs = _line_search(line, D, z, L, alphas, cand, sc.rtol)
         runs += n_runs
         best = int(np.argmin(np.where(np.isfinite(nll_c), nll_c, np.inf)))
         f_new = float(nll_c[best])
@@ -500,7 +500,7 @@ def scoring_steps(model, t, u, y, starts: list[Estimand], lower, upper, P0, *,
             a += len(cand)
             # the point the iteration's staged search would take
             # (:func:`_line_search`): every point is run here, in one batch
-            if _first_points_suffice(nll, D, z, L, alphas, cand):
+            if _first_points_suffice(nll, D, z, L, alphas, cand, ScoringOptions().rtol):
                 nll[~np.isin(alphas, FIRST_ALPHAS)] = np.inf
             best = int(np.argmin(np.where(np.isfinite(nll), nll, np.inf)))
             if np.isfinite(nll[best]) and nll[best] < out[s][1]:
@@ -772,7 +772,8 @@ FIRST_POINTS_RATIO = 0.5
 FIRST_POINTS_HIGH = 4.0
 
 
-def _line_search(line, D: Derivatives, z, L, alphas, cand) -> tuple[np.ndarray, int]:
+def _line_search(line, D: Derivatives, z, L, alphas, cand,
+                 rtol: float) -> tuple[np.ndarray, int]:
     """The NLL (c,) at the line-search points ``cand`` (c, k) of
     :func:`_candidates` (``alphas`` (c,): their step multiples, NaN for the
     scale moves) and the batched runs spent: first the points of
@@ -788,30 +789,37 @@ def _line_search(line, D: Derivatives, z, L, alphas, cand) -> tuple[np.ndarray, 
     (the bundled loop: 43 of 73 line searches), and a search then costs
     one batch of two points instead of six damped steps and four decade
     moves per scale parameter; without the upper bound the bundled CED
-    case's rectifying sensor took 13 scoring iterations instead of 5."""
+    case's rectifying sensor took 13 scoring iterations instead of 5. A
+    gain small enough to end the scoring (below ``rtol`` (1 + |NLL|), the
+    relative stop, or :data:`FLAT_GAIN`, the ridge test's) is never taken
+    from the first points alone: the scoring stops only on what every
+    point gave."""
     nll = np.full(len(cand), np.inf)
     first = np.flatnonzero(np.isin(alphas, FIRST_ALPHAS))
     if first.size == 0 or first.size == len(cand) or 1.0 not in alphas[first]:
         return np.asarray(line(cand), float), 1
     nll[first] = line(cand[first])
-    if _first_points_suffice(nll, D, z, L, alphas, cand):
+    if _first_points_suffice(nll, D, z, L, alphas, cand, rtol):
         return nll, 1
     rest = np.setdiff1d(np.arange(len(cand)), first)
     nll[rest] = line(cand[rest])
     return nll, 2
 
 
-def _first_points_suffice(nll, D: Derivatives, z, L, alphas, cand) -> bool:
+def _first_points_suffice(nll, D: Derivatives, z, L, alphas, cand, rtol: float) -> bool:
     """Whether the best NLL of ``nll`` (c,) at the points of
-    :data:`FIRST_ALPHAS` passes :func:`_line_search`'s ratio test (False
-    when the search has no full step)."""
+    :data:`FIRST_ALPHAS` passes :func:`_line_search`'s ratio test and
+    gains more than would end the scoring (False when the search has no
+    full step)."""
     first = np.isin(alphas, FIRST_ALPHAS)
     if not first.any() or 1.0 not in alphas[first]:
         return False
-    gain = D.nll - float(np.min(np.where(np.isfinite(nll[first]), nll[first], np.inf)))
+    f = float(np.min(np.where(np.isfinite(nll[first]), nll[first], np.inf)))
+    gain = D.nll - f
+    if not (np.isfinite(gain) and gain >= max(FLAT_GAIN, rtol * (1.0 + abs(f)))):
+        return False
     pred = _model_decrease(D, z, cand[int(np.flatnonzero(alphas == 1.0)[0])], L)
-    return bool(np.isfinite(gain) and 0 < pred < np.inf
-                and FIRST_POINTS_RATIO * pred <= gain <= FIRST_POINTS_HIGH * pred)
+    return bool(0 < pred < np.inf and FIRST_POINTS_RATIO * pred <= gain <= FIRST_POINTS_HIGH * pred)
 
 
 def _model_decrease(D: Derivatives, z, c, L) -> float:
