@@ -166,3 +166,26 @@ def test_a_refit_that_crawls_along_the_ridge_holds_the_terms_that_lead_it():
                        ["dc", "dv"]) == ([], [])
     assert ridge_crawl(SimpleNamespace(params=current.params, flat=("off",)), crawl,
                        ["dc", "dv"]) == ([], [])
+
+
+def test_the_held_refit_also_starts_where_the_effect_vanishes():
+    """confirm.nested_start: the held refit's second start is the current
+    model's estimates with the effect's remaining terms at 0 (the model
+    without it, so the refit can end no worse than that model): on a user's
+    EMPS graph the first start, the full refit's estimates with dc dropped,
+    lay 41 N off in force and its refit ran away to a law RK4 no longer
+    stepped. None where a term's box excludes 0."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.confirm import nested_start
+    from bondgraph.diagnose.effects import apply_effect
+
+    g = rotor()
+    eff = get_effect("asymmetric_friction")
+    P = apply_effect(g, eff, eff.targets(g)[0], {"dc": 0.1, "dv": 0.01})
+    dv = P["dv"].name
+    g.params[dv].bounds = (-0.2, 0.2)
+    current = SimpleNamespace(estimates=lambda: {"J": 0.52, "b": 0.11, "off": 0.149})
+    assert nested_start(current, P, [dv]) == [{"J": 0.52, "b": 0.11, "off": 0.149, dv: 0.0}]
+    g.params[dv].bounds = (0.001, 0.2)
+    assert nested_start(current, P, [dv]) == []
