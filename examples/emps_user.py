@@ -20,6 +20,11 @@ moves; its full refit crawled along that ridge without converging,
 robust std is larger) against the published asymmetric model's
 (166.71 − 240.42)/2 = −36.86; Fc 20.04 N (published 20.14 / 20.63);
 held-out position NRMSE 0.1755 -> 0.01319; M 93.81 kg (published 95.15).
+Again on 2026-12-01 after the staged line search (383 s): the same three
+steps, dv = −37.96, Fc 20.04 N, M 93.80 kg, held out 0.01319 (the held
+refit also starts where the effect vanishes, ``confirm.nested_start``:
+from the full refit's estimates alone it ran away to dv = +645, a law RK4(1)
+no longer steps, and a quadratic encoder term was taken instead, 0.01878).
 A Stribeck candidate's law there needs RK4 with 16 substeps at its start
 (the loop's is one) and is not refitted (``confirm.stable_refit``; its
 refit at the unstable step had taken 111-520 s and ended 17 000 nats above

@@ -271,6 +271,24 @@ def test_a_file_without_time_column_is_judged_at_the_given_dt(data, tmp_path, ca
                  "--quiet"]) == 0
     assert f"--data OTHER.csv --columns force=F,pos=qm --dt {DT} --params" in \
         capsys.readouterr().out
+    # simulate reads the bare file the same way: the same time grid and outputs
+    sims = []
+    for path, extra in ((data["dir"] / "unknown.csv", []),
+                        (bare, ["--dt", str(DT), "--columns", "force=F,pos=qm"])):
+        csv = tmp_path / f"sim_{path.stem}.csv"
+        assert main(["simulate", spec, "--experiment", str(path), "--params", str(res),
+                     "-o", str(csv), *extra]) == 0
+        sims.append(np.loadtxt(csv, delimiter=",", skiprows=1))
+    assert sims[1].shape == sims[0].shape and sims[0].shape[0] == data["t"].size
+    assert np.allclose(sims[1], sims[0], rtol=1e-12, atol=1e-15)
+    capsys.readouterr()
+    assert main(["simulate", spec, "--experiment", str(bare), "-o",
+                 str(tmp_path / "x.csv")]) == 2
+    assert "--dt SECONDS" in capsys.readouterr().err
+    assert main(["simulate", spec, "--dt", "0", "-o", str(tmp_path / "x.csv")]) == 2
+    assert "--dt 0: the sample interval must be positive" in capsys.readouterr().err
+    assert main(["simulate", spec, "--columns", "force=F", "-o", str(tmp_path / "x.csv")]) == 2
+    assert "--columns renames the columns of a record CSV" in capsys.readouterr().err
 
 
 def test_a_step_whose_nll_is_off_takes_the_substeps_that_agree(data, monkeypatch):

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bondgraph.cli.common import add_model, load_model, parse_pairs, solver_hold_argument
+from bondgraph.cli.common import (add_model, load_model, parse_pairs, parse_renames,
+                                  solver_hold_argument)
 from bondgraph.core import atomic
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.data.experiments import get_experiment, run_experiment
@@ -26,6 +27,10 @@ from bondgraph.report.plots import plot_record
 EXAMPLE = "bondgraph simulate mass_spring_damper --experiment msd_force_step --noise -o msd_force_step.csv"
 
 
+#: the sample interval [s] of a simulation without a record
+DEFAULT_DT = 0.025
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph simulate``."""
     add_model(p, positional=True)
@@ -37,8 +42,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--substeps", type=int, default=1, help="rk4/ros2 steps per sample")
     p.add_argument("--duration", type=float, default=10.0,
                    help="record length [s] without --experiment")
-    p.add_argument("--dt", type=float, default=0.025,
-                   help="sample interval [s] without --experiment")
+    p.add_argument("--dt", type=float, default=None, metavar="SECONDS",
+                   help="sample interval [s]: without --experiment the grid's (default "
+                        f"{DEFAULT_DT}); with a record CSV, that of a file without a time "
+                        "column (read with t = k dt; a time column must agree with it)")
+    p.add_argument("--columns", default=None, metavar="COLUMN=NAME,...",
+                   help="with a record CSV: its columns renamed to the model's input, output "
+                        "or state names as they are read (e.g. Current=I: a logger's names)")
     p.add_argument("--param", action="append", metavar="NAME=VALUE", help="parameter override")
     p.add_argument("--params", default=None, metavar="JSON",
                    help="parameter values of a fit: `bondgraph estimate`'s result.json or a "
@@ -100,6 +110,8 @@ def run(args) -> int:
         return _noisy_record(args)
     if args.noise_std and not args.noise:
         raise UsageError("--noise-std needs --noise")
+    if args.dt is not None and not args.dt > 0:
+        raise UsageError(f"--dt {args.dt:g}: the sample interval must be positive (seconds)")
     model = load_model(args.model)
     overrides = {**fitted_values(args.params, model), **parse_pairs(args.param, "--param")}
     measured = None
@@ -107,7 +119,8 @@ def run(args) -> int:
     if args.experiment:
         path = Path(args.experiment)
         if path.suffix.lower() in (".csv", ".json") or path.exists():
-            measured = Experiment.load(path)
+            measured = Experiment.load(path, columns=parse_renames(args.columns) or None,
+                                       dt=args.dt)
             t = measured.t
             missing = measured.missing_inputs(model)
             if missing:
@@ -125,6 +138,9 @@ def run(args) -> int:
                     notes.append("the record stores no parameters of this model")
             theta = model.theta({**stored, **overrides})
         else:
+            if args.columns:
+                raise UsageError("--columns renames the columns of a record CSV; "
+                                 f"'{args.experiment}' is not a file")
             spec = get_experiment(args.experiment)
             n = int(round(spec.duration / spec.dt)) + 1
             t = np.arange(n) * spec.dt
@@ -137,8 +153,12 @@ def run(args) -> int:
             params = {k: v for k, v in spec.params.items() if k in model.params}
             theta = model.theta({**params, **overrides})
     else:
-        n = int(round(args.duration / args.dt)) + 1
-        t = np.arange(n) * args.dt
+        if args.columns:
+            raise UsageError("--columns renames the columns of a record CSV: give it with "
+                             "--experiment FILE")
+        dt = DEFAULT_DT if args.dt is None else args.dt
+        n = int(round(args.duration / dt)) + 1
+        t = np.arange(n) * dt
         u = parse_pairs(args.input, "--input") or None
         x0 = None
         theta = model.theta(overrides)
