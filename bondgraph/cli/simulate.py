@@ -104,6 +104,29 @@ def _record_hold(record, model, u) -> str:
     return hold
 
 
+def _on_record(args, path: Path, model, overrides: dict, notes: list) -> tuple:
+    """``(measured, t, u, x0, theta)`` of a simulation on the record CSV at
+    ``path`` (read with ``--columns`` and ``--dt``): its time grid and inputs
+    (model defaults for the absent ones, noted), the hold its inputs declare
+    (into ``args.hold`` unless given), its initial state and, with
+    ``--record-params``, its stored parameters under ``overrides``."""
+    measured = Experiment.load(path, columns=parse_renames(args.columns) or None, dt=args.dt)
+    missing = measured.missing_inputs(model)
+    if missing:
+        notes.append(f"inputs {', '.join(missing)} not in the record: model defaults")
+    u = measured.inputs_for(model, defaults_ok=True)
+    if args.hold is None and args.method not in FIXED_METHODS:
+        args.hold = _record_hold(measured, model, u)
+    x0 = {k: v for k, v in (measured.meta.get("x0") or {}).items() if k in model.states}
+    stored = {}
+    if args.record_params:
+        stored = (measured.meta.get("true_parameters") or measured.meta.get("parameters") or {})
+        stored = {k: v for k, v in stored.items() if k in model.params}
+        if not stored:
+            notes.append("the record stores no parameters of this model")
+    return measured, measured.t, u, x0, model.theta({**stored, **overrides})
+
+
 def run(args) -> int:
     """Run ``bondgraph simulate`` (see :func:`configure`)."""
     if args.noise and _registered_experiment(args.experiment):
@@ -119,24 +142,7 @@ def run(args) -> int:
     if args.experiment:
         path = Path(args.experiment)
         if path.suffix.lower() in (".csv", ".json") or path.exists():
-            measured = Experiment.load(path, columns=parse_renames(args.columns) or None,
-                                       dt=args.dt)
-            t = measured.t
-            missing = measured.missing_inputs(model)
-            if missing:
-                notes.append(f"inputs {', '.join(missing)} not in the record: model defaults")
-            u = measured.inputs_for(model, defaults_ok=True)
-            if args.hold is None and args.method not in FIXED_METHODS:
-                args.hold = _record_hold(measured, model, u)
-            x0 = {k: v for k, v in (measured.meta.get("x0") or {}).items() if k in model.states}
-            stored = {}
-            if args.record_params:
-                stored = (measured.meta.get("true_parameters") or measured.meta.get("parameters")
-                          or {})
-                stored = {k: v for k, v in stored.items() if k in model.params}
-                if not stored:
-                    notes.append("the record stores no parameters of this model")
-            theta = model.theta({**stored, **overrides})
+            measured, t, u, x0, theta = _on_record(args, path, model, overrides, notes)
         else:
             if args.columns:
                 raise UsageError("--columns renames the columns of a record CSV; "
