@@ -192,3 +192,35 @@ def test_an_unconverged_refit_is_not_continued_at_an_unstable_step(coulomb, monk
     monkeypatch.setattr(confirm, "STABLE_FACTOR", 2)
     nxt, why = confirm._unstable_unconverged(ctx, model, names, [refit(FC)], "c", 1)
     assert nxt is None and "needs rk4(4)" in why
+
+
+def test_a_refit_beyond_the_limit_yields_to_another_starts_stable_refit(coulomb, monkeypatch):
+    """:func:`confirm._beyond_the_limit`: the best refit ended at the Coulomb
+    level of the truth, where RK4(1) is unstable and, with a limit of 2 times
+    the loop's substeps, beyond it (stable from 4, hand-derived above); a
+    converged refit from another start at 1 % of the level (mode −2 1/s,
+    stable at RK4(1)) is judged instead, its NLL as it was. Without such a
+    refit (none converged, or only unstable ones) the best is not
+    comparable, with the reason logged."""
+    from bondgraph.diagnose.fit import Context
+
+    model, pb = coulomb
+    logs: list[str] = []
+    ctx = Context(problem=pb, settings=LoopSettings(params=["m", "b"]), log=logs.append)
+    monkeypatch.setattr(confirm, "STABLE_FACTOR", 2)
+
+    def refit(level, converged=True, nll=-100.0):
+        return SimpleNamespace(nll=nll, converged=converged, ukf=None,
+                               estimates=lambda: {"m": MASS, "b": B, "Fc": level})
+
+    names = ["m", "b", "Fc"]
+    best, other = refit(FC), refit(0.01 * FC, nll=-50.0)
+    got = confirm._beyond_the_limit(ctx, model, names, [best, other], best, "c", "why", 1)
+    assert got is other and got.converged is True and got.nll == -50.0
+    assert any("the converged refit from another start, stable at the loop's step (NLL -50.00 "
+               "against -100.00)" in s for s in logs), logs
+    for others in ([refit(0.01 * FC, converged=False)], [refit(1.5 * FC)], []):
+        best = refit(FC)
+        got = confirm._beyond_the_limit(ctx, model, names, [best, *others], best, "c", "why", 1)
+        assert got is best and got.converged is False
+    assert logs[-1] == "  c: why: not comparable"

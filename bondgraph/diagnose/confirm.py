@@ -605,9 +605,8 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
         if early is not None:   # not continued on the step's rough likelihood
             nxt, why = early
             if nxt is None:
-                f1 = min(fits, key=_nll_key)
-                ctx.log(f"  {label}: {why}: not comparable")
-                f1.converged = False
+                f1 = _beyond_the_limit(sub, model, names, fits, min(fits, key=_nll_key), label,
+                                       why, base)
                 break
             ctx.log(f"  {label}: {why} (not converged there): refitted with "
                     f"{_step_name(nxt.problem.disc)}")
@@ -621,7 +620,10 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
             nxt, why = None, str(exc)
         if nxt is sub:
             break
-        if nxt is None or not again:    # the law stiffened again: not chased further
+        if nxt is None:
+            f1 = _beyond_the_limit(sub, model, names, fits, f1, label, why, base)
+            break
+        if not again:    # the law stiffened again: not chased further
             ctx.log(f"  {label}: {why}: not comparable")
             f1.converged = False
             break
@@ -630,6 +632,51 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
     if sub is not ctx:
         f1.step = sub.problem.disc      # what is computed again at the fit is computed there
     return sub, f1
+
+
+def _beyond_the_limit(ctx: Context, model: Model, names: list, fits: list, best: Fit,
+                      label: str, why: str, base: int) -> Fit:
+    """``best``, the chosen refit among ``fits``, ended where no RK4 step up
+    to :data:`STABLE_FACTOR` times ``base`` is stable (``why``): another
+    start's converged refit that the step of ``ctx`` keeps stable
+    (:func:`_stable_alternative`), else ``best`` marked not converged, so
+    not comparable (logged)."""
+    alt = _stable_alternative(ctx, model, names, fits, best, label, why, base)
+    if alt is not None:
+        return alt
+    ctx.log(f"  {label}: {why}: not comparable")
+    best.converged = False
+    return best
+
+
+def _stable_alternative(ctx: Context, model: Model, names: list, fits: list, best: Fit,
+                        label: str, why: str, base: int) -> Fit | None:
+    """The converged refit of lowest NLL among ``fits`` (one per start) other
+    than ``best``, whose end the step of ``ctx`` keeps stable
+    (:func:`stable_context` along its own states), when ``best`` ended where
+    no step up to :data:`STABLE_FACTOR` times ``base`` is (``why``: that
+    verdict); None when there is none (logged when there is). The
+    likelihood at an unstable step is the step's, not the model's: a refit
+    that ran into such a law may show an NLL no sound refit can reach, and a
+    refit from another start that stayed where the step is sound is the
+    comparable one (a user's EMPS graph: the held direction-dependent
+    friction from the full refit's estimates ran to a viscous half-difference
+    of +645 N s/m, where RK4(1) needs 48 substeps; from where the effect
+    vanishes it converged at −38)."""
+    done = sorted((f for f in fits if f is not best and f.converged is not False
+                   and np.isfinite(f.nll)), key=lambda f: f.nll)
+    for f in done:
+        try:
+            nxt, _ = stable_context(ctx, model, names, f.estimates(), label, "its refit", base,
+                                    states_of(f, model))
+        except NumericalError:
+            continue
+        if nxt is ctx:
+            ctx.log(f"  {label}: the refit from the best start is not comparable ({why}); the "
+                    f"converged refit from another start, stable at the loop's step (NLL "
+                    f"{f.nll:.2f} against {best.nll:.2f}), is judged instead")
+            return f
+    return None
 
 
 #: the most substeps a confirmation's refit takes to keep an RK4 filter
