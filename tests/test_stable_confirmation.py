@@ -217,7 +217,7 @@ def test_a_refit_beyond_the_limit_yields_to_another_starts_stable_refit(coulomb,
     best, other = refit(FC), refit(0.01 * FC, nll=-50.0)
     got = confirm._beyond_the_limit(ctx, model, names, [best, other], best, "c", "why", 1)
     assert got is other and got.converged is True and got.nll == -50.0
-    assert any("the converged refit from another start, stable at the loop's step (NLL -50.00 "
+    assert any("the converged refit from another start, stable at rk4(1) (NLL -50.00 "
                "against -100.00)" in s for s in logs), logs
     for others in ([refit(0.01 * FC, converged=False)], [refit(1.5 * FC)], []):
         best = refit(FC)

@@ -673,8 +673,9 @@ def _stable_alternative(ctx: Context, model: Model, names: list, fits: list, bes
             continue
         if nxt is ctx:
             ctx.log(f"  {label}: the refit from the best start is not comparable ({why}); the "
-                    f"converged refit from another start, stable at the loop's step (NLL "
-                    f"{f.nll:.2f} against {best.nll:.2f}), is judged instead")
+                    f"converged refit from another start, stable at "
+                    f"{_step_name(ctx.problem.disc)} (NLL {f.nll:.2f} against {best.nll:.2f}), "
+                    f"is judged instead")
             return f
     return None
 
