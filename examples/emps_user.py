@@ -36,7 +36,10 @@ so in one line); with ``--decimate 10`` the loop fits every tenth sample,
 the current averaged over each 10 ms (2026-12-01: 240 s, the full record
 590 s with the same steps as above; the
 direction-dependent friction, then Coulomb; held-out 0.1738 -> 0.01647,
-M 92.65 kg, Fc 20.11 N; docs/data_format.md).
+M 92.65 kg, Fc 20.11 N; docs/data_format.md). Later the same day, 103 s:
+the direction-dependent friction, then a rate limit of the drive, then
+Coulomb, held out 0.01286, M 90.74 kg, Fc 20.08 N (before the staged line
+search a cold-start term came third, 0.01207).
 
 The benchmark's own protocol fits the estimation run and judges on the
 force-pulse run, the state set from its first 20 samples
