@@ -133,3 +133,69 @@ def test_the_twin_is_not_refitted_and_reaches_what_its_own_refit_reaches():
     assert lr["r_quadratic @ seal"] == pytest.approx(lr0["r_quadratic @ seal"], rel=1e-3)
     assert res0.steps[0].attached_to == step.attached_to
     assert res0.steps[0].error_after == pytest.approx(step.error_after, rel=1e-9)
+
+
+def _key_at(graph: BondGraph, effect: str, target: Target, new_boxes: bool) -> tuple:
+    g = graph.copy(f"{graph.name}_{effect}_{target.name}")
+    eff = get_effect(effect)
+    P = eff.apply(g, target, {}, Scales())
+    new = [P[p.name].name for p in eff.params if p.estimated and p.name in P]
+    return same_model_key(model_of(g), P, new, new_boxes=new_boxes)
+
+
+def test_a_drag_at_the_junction_is_the_law_at_its_resistor_in_another_box():
+    """A quadratic drag c >= 0 at the rotor's junction and a quadratic law
+    of either sign at the bearing's resistor give one likelihood (the
+    junction sums the efforts; the same smoothing width), searched over
+    different boxes: equal keys without the new parameters' boxes, not with
+    them. In the loop the law's refit (c = 0.08 > 0, inside the drag's box)
+    is the drag's too: one refit, the same likelihood ratio as refitting
+    both (:func:`bondgraph.diagnose.confirm.refit_inside`); a refit at a
+    negative value is not the drag's."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose.confirm import refit_inside
+
+    g = rotor()
+    drag, law = Target("junction", "w"), Target("resistor", "bearing")
+    assert _key_at(g, "quadratic_drag", drag, False) == _key_at(g, "r_quadratic", law, False)
+    assert _key_at(g, "quadratic_drag", drag, True) != _key_at(g, "r_quadratic", law, True)
+
+    def loop(dedupe: bool):
+        logs: list[str] = []
+        settings = LoopSettings(params=["J", "b1", "b2"], validation=record(1000, 7.3, 5),
+                                effects=[get_effect("r_quadratic"), get_effect("quadratic_drag")],
+                                search=SearchOptions(max_steps=1, structural=False))
+        with pytest.MonkeyPatch.context() as mp:
+            if not dedupe:
+                mp.setattr(runner, "same_models", lambda *a, **k: {})
+            res = run_loop(rotor(), record(1500, 0.0, 3), settings, log=logs.append,
+                           progress=False)
+        lr = {s.split("confirmed ")[1].split(":")[0]: float(s.split("LR ")[1].split()[0])
+              for s in logs if "] " in s and s.split("] ", 1)[1].startswith("  confirmed ")}
+        return res, logs, lr
+
+    res, logs, lr = loop(True)
+    twins = [s for s in logs if "quadratic_drag @ w: the same model as r_quadratic @ " in s
+             or "the same model as quadratic_drag @ w" in s]
+    assert twins, [s for s in logs if "same model" in s]
+    assert "refitted in full" not in " ".join(s for s in logs if "quadratic_drag @ w" in s)
+    assert len({lr[k] for k in lr if "quadratic" in k}) == 1, lr
+    res0, _, lr0 = loop(False)
+    assert lr["quadratic_drag @ w"] == pytest.approx(lr0["quadratic_drag @ w"], rel=1e-3)
+    assert res0.steps[0].error_after == pytest.approx(res.steps[0].error_after, rel=1e-6)
+    # a refit at a negative value (on no bound of its own box) is not one of
+    # a nonnegative box; at a positive value inside it, it is, unless unconverged
+    box = (lambda lo, hi: SimpleNamespace(bounds=lambda names: (np.array([lo]), np.array([hi])),
+                                          param_index=lambda n: 0))
+    f0 = SimpleNamespace(model=box(-1.0, 2.0), theta=np.array([-0.01]), converged=True,
+                         at_bound=[])
+    assert not refit_inside(f0, box(0.0, 2.0), {"beta": "c"})
+    assert refit_inside(f0, box(-1.0, 2.0), {"beta": "c"})      # equal boxes: as before
+    f0.theta = np.array([0.5])
+    assert refit_inside(f0, box(0.0, 2.0), {"beta": "c"})
+    f0.at_bound = ["beta"]
+    assert refit_inside(f0, box(-1.0, 2.0), {"beta": "c"})
+    assert not refit_inside(f0, box(0.0, 2.0), {"beta": "c"})
+    f0.at_bound, f0.converged = [], False
+    assert not refit_inside(f0, box(0.0, 2.0), {"beta": "c"})

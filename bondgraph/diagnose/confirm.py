@@ -132,7 +132,7 @@ def augmented_model(ctx: Context, fit: Fit, cand: Candidate, scales: Scales,
     return built
 
 
-def same_model_key(model: Model, P: dict, new: list[str]) -> tuple:
+def same_model_key(model: Model, P: dict, new: list[str], new_boxes: bool = True) -> tuple:
     """What a candidate's augmented model is, whatever its new parameters
     are called: the state equations f, the outputs h, the process noise
     and the parameters' boxes, its new estimated parameters ``new`` (full
@@ -143,7 +143,11 @@ def same_model_key(model: Model, P: dict, new: list[str]) -> tuple:
     drawing, are the model): a term added to either of two R elements on
     one 1-junction whose laws the junction sums (the same law with the
     same box). Their refits from the same current fit are one refit
-    (:func:`confirm_same`)."""
+    (:func:`confirm_same`). With ``new_boxes`` False the new parameters'
+    boxes are left out: a quadratic drag (c >= 0) at a junction and a
+    quadratic law of either sign at a resistor on it are one likelihood,
+    searched over different boxes (:func:`confirm_same` then reuses a refit
+    only where it lies inside the other's box)."""
     ss = model.module.__state_space__
     by_name = {str(p): p for p in ss.params}
     fixed = {p.name: float(p.default) for p in P.values() if p.name not in new}
@@ -154,7 +158,7 @@ def same_model_key(model: Model, P: dict, new: list[str]) -> tuple:
         return str(sp.sympify(e).xreplace(rename))
 
     boxes = tuple((str(rename.get(p, p)), tuple(float(b) for b in (p.bounds or ())))
-                  for p in ss.params if p not in rename or str(p) in new)
+                  for p in ss.params if p not in rename or (new_boxes and str(p) in new))
     return (tuple(str(x) for x in ss.states), tuple(str(u) for u in ss.inputs),
             tuple(text(e) for e in ss.f),
             tuple((o.name, text(o.expr), text(o.noise_std or 0)) for o in ss.outputs),
@@ -169,8 +173,9 @@ def confirm_same(ctx: Context, fit: Fit, cand: Candidate, scales: Scales, name: 
     evaluated once on ``cand``'s own graph (its filter run, free runs,
     residuals; what the accept rule then checks, its admissibility
     included, is ``cand``'s). Refitted in full (:func:`confirm`) when the
-    refit profiled a shape constant, the names do not map, or the
-    evaluation does not reproduce ``rep``'s likelihood."""
+    refit profiled a shape constant, the names do not map, the refit is
+    not one of ``cand``'s boxes (:func:`refit_inside`), or the evaluation
+    does not reproduce ``rep``'s likelihood."""
     try:
         built = augmented_model(ctx, fit, cand, scales, name)
         rep_built = augmented_model(ctx, fit, rep, scales, name)
@@ -182,6 +187,10 @@ def confirm_same(ctx: Context, fit: Fit, cand: Candidate, scales: Scales, name: 
     names = dict(zip(rep_built[2], new))          # rep's new name -> cand's
     back = {v: k for k, v in names.items()}
     f0 = conf.fit
+    if not refit_inside(f0, model, names):
+        ctx.log(f"  {cand.label}: {rep.label}'s refit lies on its box or outside "
+                f"{cand.label}'s: refitted in full")
+        return confirm(ctx, fit, cand, scales, name)
     theta = np.array(model.theta(), dtype=float)   # its shape constants: the key's values
     constants = {p.name for p in P.values()} - set(new)
     for i, n in enumerate(model.params):
@@ -212,6 +221,28 @@ def confirm_same(ctx: Context, fit: Fit, cand: Candidate, scales: Scales, name: 
     values = {p.name: float(f1.theta[model.param_index(P[p.name].name)])
               for p in eff.params if p.name in P}
     return Confirmation(f1, values, new, comparable=conf.comparable)
+
+
+def refit_inside(f0: Fit, model: Model, names: dict) -> bool:
+    """Whether the refit ``f0`` of one candidate is a refit of another
+    whose augmented model (``model``) has the same likelihood
+    (:func:`same_model_key` without the new parameters' boxes; ``names``:
+    the first's new parameter names -> the other's): for each new
+    parameter the two boxes are equal, or the refit converged with the
+    value strictly inside its own box (not on a bound) and inside the
+    other's, an interior optimum of the likelihood the other's search
+    would stop at too. A quadratic drag c >= 0 at a junction refitted at
+    c = 1.14 is the quadratic law of either sign at a resistor on it; a law
+    of either sign refitted at β < 0 is not the drag's refit."""
+    for n, m in names.items():
+        lo0, hi0 = f0.model.bounds([n])
+        lo1, hi1 = model.bounds([m])
+        if lo0[0] == lo1[0] and hi0[0] == hi1[0]:
+            continue
+        v = float(f0.theta[f0.model.param_index(n)])
+        if f0.converged is False or n in f0.at_bound or not lo1[0] < v < hi1[0]:
+            return False
+    return True
 
 
 def _renamed(text: str, names: dict) -> str:

@@ -2493,8 +2493,8 @@ def confirm_best(ctx: Context, current: Fit, signif: list[Candidate], scales: Sc
         c.same_as = rep.label
         c.equivalent += [rep.label] if rep.label not in c.equivalent else []
         rep.equivalent += [c.label] if c.label not in rep.equivalent else []
-        ctx.log(f"  {c.label}: the same model as {rep.label} (equal state equations, outputs "
-                f"and boxes): {rep.label}'s refit, evaluated on {c.label}'s graph")
+        ctx.log(f"  {c.label}: the same model as {rep.label} (equal state equations and "
+                f"outputs): {rep.label}'s refit, evaluated on {c.label}'s graph")
     items = [(c, rep, ctx.cache[("confirmation", id(current), current.nll, rep.label)])
              for _, c, rep in twins]
     for (k, _, _), r in zip(twins, run_tasks(ctx, _confirm_same_task, (current, scales, name),
@@ -2533,8 +2533,12 @@ def same_models(ctx: Context, current: Fit, scales: Scales, name: str,
     ``current`` (:func:`~bondgraph.diagnose.confirm.same_model_key`), label
     -> that one. Each model is refitted once: on the bundled vehicle a
     quadratic law at the brake's R and at the rolling resistance's R were
-    two refits of one model (the cubic law too). A candidate whose graph
-    cannot be built has no twin (its confirmation says why)."""
+    two refits of one model (the cubic law too). The new parameters' boxes
+    do not count here (a quadratic drag c >= 0 at the junction is that law
+    too); :func:`~bondgraph.diagnose.confirm.confirm_same` refits a twin in
+    full where its representative's refit is not one of its boxes. A
+    candidate whose graph cannot be built has no twin (its confirmation
+    says why)."""
     out = {}
     for c in cands:
         try:
@@ -2543,7 +2547,8 @@ def same_models(ctx: Context, current: Fit, scales: Scales, name: str,
             continue
         if built is None:
             continue
-        key = ("model", id(current), current.nll, same_model_key(built[3], built[1], built[2]))
+        key = ("model", id(current), current.nll,
+               same_model_key(built[3], built[1], built[2], new_boxes=False))
         rep = ctx.cache.get(key)
         if rep is None:
             ctx.cache[key] = c
