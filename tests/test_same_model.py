@@ -96,10 +96,10 @@ def test_a_resistor_on_another_flow_is_another_model():
     assert key(g, "r_quadratic", "bearing") != key(g, "r_quadratic", "seal")
 
 
-def run(dedupe: bool = True):
+def run(dedupe: bool = True, effects=("r_quadratic",)):
     logs: list[str] = []
     settings = LoopSettings(params=["J", "b1", "b2"], validation=record(1000, 7.3, 5),
-                            effects=[get_effect("r_quadratic")],
+                            effects=[get_effect(e) for e in effects],
                             search=SearchOptions(max_steps=1, structural=False))
     with pytest.MonkeyPatch.context() as mp:
         if not dedupe:
@@ -161,27 +161,14 @@ def test_a_drag_at_the_junction_is_the_law_at_its_resistor_in_another_box():
     assert _key_at(g, "quadratic_drag", drag, False) == _key_at(g, "r_quadratic", law, False)
     assert _key_at(g, "quadratic_drag", drag, True) != _key_at(g, "r_quadratic", law, True)
 
-    def loop(dedupe: bool):
-        logs: list[str] = []
-        settings = LoopSettings(params=["J", "b1", "b2"], validation=record(1000, 7.3, 5),
-                                effects=[get_effect("r_quadratic"), get_effect("quadratic_drag")],
-                                search=SearchOptions(max_steps=1, structural=False))
-        with pytest.MonkeyPatch.context() as mp:
-            if not dedupe:
-                mp.setattr(runner, "same_models", lambda *a, **k: {})
-            res = run_loop(rotor(), record(1500, 0.0, 3), settings, log=logs.append,
-                           progress=False)
-        lr = {s.split("confirmed ")[1].split(":")[0]: float(s.split("LR ")[1].split()[0])
-              for s in logs if "] " in s and s.split("] ", 1)[1].startswith("  confirmed ")}
-        return res, logs, lr
-
-    res, logs, lr = loop(True)
+    both = ("r_quadratic", "quadratic_drag")
+    res, logs, lr = run(True, both)
     twins = [s for s in logs if "quadratic_drag @ w: the same model as r_quadratic @ " in s
              or "the same model as quadratic_drag @ w" in s]
     assert twins, [s for s in logs if "same model" in s]
     assert "refitted in full" not in " ".join(s for s in logs if "quadratic_drag @ w" in s)
     assert len({lr[k] for k in lr if "quadratic" in k}) == 1, lr
-    res0, _, lr0 = loop(False)
+    res0, _, lr0 = run(False, both)
     assert lr["quadratic_drag @ w"] == pytest.approx(lr0["quadratic_drag @ w"], rel=1e-3)
     assert res0.steps[0].error_after == pytest.approx(res.steps[0].error_after, rel=1e-6)
     # a refit at a negative value (on no bound of its own box) is not one of
