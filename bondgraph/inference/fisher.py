@@ -417,9 +417,9 @@ def _scoring_loop(est: Estimand, derive, line, lower, upper, sc: ScoringOptions)
                 converged = True    # no step improves: a stationary point within the box
                 break
             continue
+        lam, predicted = _damping(lam, D, z, L, alphas, cand, nll_c)
         z, nll, gain = cand[best], f_new, D.nll - f_new
-        lam = max(lam / 3.0, 1e-6)
-        if D.nll - f_new < sc.rtol * (1.0 + abs(f_new)):
+        if predicted and D.nll - f_new < sc.rtol * (1.0 + abs(f_new)):
             converged = True
             break
     # information at the final point
@@ -770,6 +770,41 @@ FIRST_POINTS_RATIO = 0.5
 #: was far too short (a scale parameter whose curvature the expected
 #: information overstates), where a decade move may gain more
 FIRST_POINTS_HIGH = 4.0
+
+
+#: ratio of the full step's NLL decrease to the quadratic model's
+#: prediction below which the next step is damped harder (Levenberg λ times
+#: :data:`DAMPING_UP`; above it λ / 3), and the largest λ this reaches
+DAMPING_RATIO = 0.25
+DAMPING_UP = 10.0
+DAMPING_MAX = 1e4
+
+
+def _damping(lam: float, D: Derivatives, z, L, alphas, cand, nll) -> tuple[float, bool]:
+    """``(λ, predicted)``: the Levenberg λ of the next scoring iteration
+    after a step that lowered the NLL, and whether the quadratic model
+    predicted the step (only then may a small gain end the scoring, or a
+    step cut short by the line search would stop it before the optimum):
+    λ / 3 (at least 1e-6) when the full step gained at
+    least :data:`DAMPING_RATIO` of what the quadratic model at ``z``
+    predicts for it (:func:`_model_decrease`) or a full or longer step won,
+    else λ x :data:`DAMPING_UP` (at most :data:`DAMPING_MAX`): the trust-region
+    rule of Levenberg-Marquardt methods (Moré 1978; Nocedal & Wright 2006,
+    Algorithm 4.1), with ``nll`` (c,) the line search's values at
+    ``cand`` (c, k) (``alphas`` (c,)). Without it the damping fell after
+    every successful step, also where only a short fraction of the step
+    gained (the likelihood curved along a ridge the expected information
+    barely sees): the scoring then proposed ever longer steps along the
+    ridge, of which 3 % was taken, for dozens of iterations (the Silverbox
+    user graph's ``r_power @ damper``: 43 iterations, 1.5 nats each)."""
+    full = np.flatnonzero(alphas == 1.0)
+    best = int(np.argmin(np.where(np.isfinite(nll), nll, np.inf)))
+    if full.size and not alphas[best] >= 1.0:
+        pred = _model_decrease(D, z, cand[full[0]], L)
+        f1 = float(nll[full[0]])
+        if 0 < pred < np.inf and not (np.isfinite(f1) and D.nll - f1 >= DAMPING_RATIO * pred):
+            return min(max(lam, 1e-6) * DAMPING_UP, DAMPING_MAX), False
+    return max(lam / 3.0, 1e-6), True
 
 
 def _line_search(line, D: Derivatives, z, L, alphas, cand,
