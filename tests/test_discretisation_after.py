@@ -55,3 +55,43 @@ def test_accepted_stiff_effect_is_checked_and_refined():
     st = res2.steps[0]
     assert st.error_after == res2.final.metric, (st.error_after, res2.final.metric)
     assert st.criterion_after == res2.final.aic and st.nll_after == res2.final.nll
+
+
+def test_the_finer_refit_is_continued_until_it_converges(monkeypatch):
+    """The refit at the finer step is judged converged or not at all: it is
+    continued (confirm.continued) before the accept rule reads it, and one
+    still not converged is not comparable, so the step is rejected and the
+    filter keeps its substeps (the user's EMPS graph on every tenth sample
+    accepted a Coulomb friction on a ROS2 refit stopped after ten
+    iterations, and rejected it after the scoring's damping changed where
+    the ten ended)."""
+    import dataclasses
+
+    from bondgraph.diagnose import runner
+
+    seen = []
+    orig = runner.continued
+
+    def recorded(ctx, graph, fit, label):
+        out = orig(ctx, graph, fit, label)
+        seen.append((label, out.converged))
+        return out
+
+    monkeypatch.setattr(runner, "continued", recorded)
+    res, q, sd = _loop(True)
+    finer = [c for label, c in seen if label.startswith("end_stop @ spring") and " at ros2(" in label]
+    assert finer == [True], seen
+
+    def stalled(ctx, graph, fit, label):     # only the refit at the finer step
+        out = orig(ctx, graph, fit, label)
+        return dataclasses.replace(out, converged=False) if " at ros2(" in label else out
+
+    monkeypatch.setattr(runner, "continued", stalled)
+    res = run_loop(mass_spring_damper(), _record(), LoopSettings(
+        params=["k", "c"], effects=[get_effect("end_stop")],
+        ukf=UKFOptions(method="ros2", substeps=4, alpha=1.0),
+        search=SearchOptions(max_steps=1, auto_substeps=True)), log=lambda s: None,
+        progress=False)
+    assert not res.steps
+    why = [w for w in res.warnings if "refitted at ros2(" in w and "no longer passes" in w]
+    assert why and "not comparable" in why[0], res.warnings

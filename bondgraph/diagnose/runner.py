@@ -1205,7 +1205,14 @@ def fit_after_discretisation_check(
     user CED graph a pair's held-out error 0.2667 at 2 RK4 substeps became
     0.4975 at 4, above the 0.4706 it replaced) is rejected (logged, in
     ``result.warnings``), the filter's substeps restored, and None returned:
-    the acceptance rested on the coarser discretisation.
+    the acceptance rested on the coarser discretisation. That refit is
+    continued until it converges (:func:`~bondgraph.diagnose.confirm.continued`;
+    one still not converged is not comparable), as a confirmation is: the
+    decision judged whatever ten iterations reached (the user's EMPS graph
+    on every tenth sample: Coulomb friction refitted at ROS2(1), not
+    converged, NLL −10164.6 and held out 0.01286 before the trust-region
+    damping, −10369.3 and 0.0384 after; accepted, then rejected, by where
+    the iterations stopped).
 
     Returns ``(fit, decision)``: the fit to continue from, or None
     (rejected); and with ``judged``, when the fit was refitted, the
@@ -1227,7 +1234,9 @@ def fit_after_discretisation_check(
     refit = fit_model(ctx, fit.graph, list(fit.params), fit.estimates(), at, model=fit.model)
     if judged is not None:
         current, dof, comparable, added = judged
-        d = decided(ctx, current, refit, dof, comparable, at, added)
+        refit = continued(ctx, fit.graph, refit, at)
+        d = decided(ctx, current, refit, dof, comparable and refit.converged is not False, at,
+                    added)
         if not d.accepted:
             msg = (f"{label} refitted at {disc.method}({disc.substeps}) no longer passes the "
                    f"accept rule ({d.reason}; error {d.error_before:.4g} -> "

@@ -418,7 +418,8 @@ def _scoring_loop(est: Estimand, derive, line, lower, upper, sc: ScoringOptions)
                 break
             continue
         lam, predicted = _damping(lam, D, z, L, alphas, cand, nll_c)
-        z, nll, gain = cand[best], f_new, D.nll - f_new
+        # the ridge test (:func:`_converged`) reads only a predicted step's gain
+        z, nll, gain = cand[best], f_new, (D.nll - f_new if predicted else np.inf)
         if predicted and D.nll - f_new < sc.rtol * (1.0 + abs(f_new)):
             converged = True
             break
@@ -783,8 +784,11 @@ DAMPING_MAX = 1e4
 def _damping(lam: float, D: Derivatives, z, L, alphas, cand, nll) -> tuple[float, bool]:
     """``(λ, predicted)``: the Levenberg λ of the next scoring iteration
     after a step that lowered the NLL, and whether the quadratic model
-    predicted the step (only then may a small gain end the scoring, or a
-    step cut short by the line search would stop it before the optimum):
+    predicted the step (only then may a small gain end the scoring, by the
+    relative stop or the ridge test, or a step cut short by the line
+    search would stop it before the optimum: the 38th session's damping
+    after a short step stopped a sensor gain trading with a torque
+    constant 130-150 nats short, docs/background/loop.md):
     λ / 3 (at least 1e-6) when the full step gained at
     least :data:`DAMPING_RATIO` of what the quadratic model at ``z``
     predicts for it (:func:`_model_decrease`) or a full or longer step won,
