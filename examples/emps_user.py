@@ -29,7 +29,10 @@ A Stribeck candidate's law there needs RK4 with 16 substeps at its start
 (the loop's is one) and is not refitted (``confirm.stable_refit``; its
 refit at the unstable step had taken 111-520 s and ended 17 000 nats above
 the model without it). On 2026-11-29 (944 s) a fourth step added a cubic
-encoder term beside the direction-dependent friction (held-out 0.0126).
+encoder term beside the direction-dependent friction (held-out 0.0126),
+and so again on 2026-12-01 after the trust-region damping of the scoring
+(247 s): offset, Coulomb, dv = −37.62, then ``sensor_poly3 @ qm``, held out
+0.01269, M 95.44 kg, Fc 20.12 N.
 
 The record is sampled ten times faster than its content (the command says
 so in one line); with ``--decimate 10`` the loop fits every tenth sample,
@@ -39,7 +42,11 @@ direction-dependent friction, then Coulomb; held-out 0.1738 -> 0.01647,
 M 92.65 kg, Fc 20.11 N; docs/data_format.md). Later the same day, 103 s:
 the direction-dependent friction, then a rate limit of the drive, then
 Coulomb, held out 0.01286, M 90.74 kg, Fc 20.08 N (before the staged line
-search a cold-start term came third, 0.01207).
+search a cold-start term came third, 0.01207). That Coulomb step rested on
+a refit at ROS2(1) stopped after ten iterations; the loop now continues
+such a refit until it converges, where Coulomb friction no longer passes
+(held out 0.03425 -> 0.02477, z 0.94), and takes Dahl friction instead:
+held out 0.02174, 81 s.
 
 The benchmark's own protocol fits the estimation run and judges on the
 force-pulse run, the state set from its first 20 samples
