@@ -162,10 +162,11 @@ def test_a_second_users_graph_finds_the_rectification(tmp_path):
     (38th session). L-BFGS-B from where the scoring stopped
     (:func:`bondgraph.diagnose.confirm.quasi_newton`) let the scoring
     converge, and the rectification was accepted: held-out NRMSE 1.38 ->
-    0.545. Since the trust-region damping of the scoring (65th session)
-    the refit converges by itself (35 iterations, LR 946.4; the flat
-    combinations named) and held out 1.376 -> 0.365, estimation record
-    1.01 -> 0.291. Reference: eq. (9) of the report with |.| gives RMS
+    0.545. Since the scoring's later changes (the staged line search,
+    63rd session; the trust-region damping, 65th) the refit converges by
+    itself, without the handoff (65th session: 35 iterations, LR 946.4,
+    the flat combinations named; held out 1.376 -> 0.365, estimation
+    record 1.01 -> 0.291). Reference: eq. (9) of the report with |.| gives RMS
     0.166 over u1 (NRMSE 0.11)."""
     _user_csv(tmp_path / "u1.csv")
     (tmp_path / "ced_belt.py").write_text(GRAPH_NO_SPRING)
