@@ -28,16 +28,16 @@ def test_damping_by_hand():
     cand = np.array([[2.0, 0.0], [1.0, 0.0], [4.0, 0.0]])
     assert fisher._model_decrease(D, z, cand[0], L) == pytest.approx(2.0)
     # the full step gains 1 nat (ratio 0.5 >= 0.25): λ / 3
-    lam, predicted = _damping(3e-3, D, z, L, alphas, cand, np.array([9.0, 9.5, 9.8]))
+    lam, predicted = _damping(3e-3, D, z, L, alphas, cand, np.array([9.0, 9.5, 9.8]), 0)
     assert (lam, predicted) == (pytest.approx(1e-3), True)
     # ... never below 1e-6
-    assert _damping(1e-6, D, z, L, alphas, cand, np.array([9.0, 9.5, 9.8])) == (pytest.approx(1e-6), True)
+    assert _damping(1e-6, D, z, L, alphas, cand, np.array([9.0, 9.5, 9.8]), 0) == (pytest.approx(1e-6), True)
     # the full step gains 0.2 nat (ratio 0.1) and the half step wins: λ x 10
-    assert _damping(1e-3, D, z, L, alphas, cand, np.array([9.8, 9.0, 11.0])) == (pytest.approx(1e-2), False)
+    assert _damping(1e-3, D, z, L, alphas, cand, np.array([9.8, 9.0, 11.0]), 1) == (pytest.approx(1e-2), False)
     # the full step is not finite: λ x 10, at most DAMPING_MAX
-    assert _damping(5e3, D, z, L, alphas, cand, np.array([np.inf, 9.9, np.inf])) == (fisher.DAMPING_MAX, False)
+    assert _damping(5e3, D, z, L, alphas, cand, np.array([np.inf, 9.9, np.inf]), 1) == (fisher.DAMPING_MAX, False)
     # the doubled step wins although the full one gained little: the step was too short, λ / 3
-    assert _damping(3e-3, D, z, L, alphas, cand, np.array([9.8, 9.9, 9.0])) == (pytest.approx(1e-3), True)
+    assert _damping(3e-3, D, z, L, alphas, cand, np.array([9.8, 9.9, 9.0]), 2) == (pytest.approx(1e-3), True)
 
 
 class _Point:

@@ -417,7 +417,7 @@ def _scoring_loop(est: Estimand, derive, line, lower, upper, sc: ScoringOptions)
                 converged = True    # no step improves: a stationary point within the box
                 break
             continue
-        lam, predicted = _damping(lam, D, z, L, alphas, cand, nll_c)
+        lam, predicted = _damping(lam, D, z, L, alphas, cand, nll_c, best)
         # the ridge test (:func:`_converged`) reads only a predicted step's gain
         z, nll, gain = cand[best], f_new, (D.nll - f_new if predicted else np.inf)
         if predicted and D.nll - f_new < sc.rtol * (1.0 + abs(f_new)):
@@ -781,7 +781,8 @@ DAMPING_UP = 10.0
 DAMPING_MAX = 1e4
 
 
-def _damping(lam: float, D: Derivatives, z, L, alphas, cand, nll) -> tuple[float, bool]:
+def _damping(lam: float, D: Derivatives, z, L, alphas, cand, nll,
+             best: int) -> tuple[float, bool]:
     """``(λ, predicted)``: the Levenberg λ of the next scoring iteration
     after a step that lowered the NLL, and whether the quadratic model
     predicted the step (only then may a small gain end the scoring, by the
@@ -795,14 +796,14 @@ def _damping(lam: float, D: Derivatives, z, L, alphas, cand, nll) -> tuple[float
     else λ x :data:`DAMPING_UP` (at most :data:`DAMPING_MAX`): the trust-region
     rule of Levenberg-Marquardt methods (Moré 1978; Nocedal & Wright 2006,
     Algorithm 4.1), with ``nll`` (c,) the line search's values at
-    ``cand`` (c, k) (``alphas`` (c,)). Without it the damping fell after
+    ``cand`` (c, k) (``alphas`` (c,)) and ``best`` the index of the point
+    it took. Without it the damping fell after
     every successful step, also where only a short fraction of the step
     gained (the likelihood curved along a ridge the expected information
     barely sees): the scoring then proposed ever longer steps along the
     ridge, of which 3 % was taken, for dozens of iterations (the Silverbox
     user graph's ``r_power @ damper``: 43 iterations, 1.5 nats each)."""
     full = np.flatnonzero(alphas == 1.0)
-    best = int(np.argmin(np.where(np.isfinite(nll), nll, np.inf)))
     if full.size and not alphas[best] >= 1.0:
         pred = _model_decrease(D, z, cand[full[0]], L)
         f1 = float(nll[full[0]])
