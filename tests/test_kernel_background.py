@@ -75,3 +75,51 @@ def test_no_child_when_the_cache_folder_cannot_be_made(fresh, monkeypatch):
     monkeypatch.setenv("BONDGRAPH_CACHE_DIR", str(blocker / "cache"))
     assert not ukf_numba.compile_in_background()
     assert FakeChild.made == []
+
+
+def test_work_queued_while_compiling_runs_during_the_wait_at_low_priority(fresh, monkeypatch):
+    """ukf_numba.while_compiling: the task starts when kernel() begins to
+    wait for the child (not before), runs while it waits (the fake child's
+    wait returns only after the task has started), sees its event set when
+    the wait ends, and runs at nice 19 on Linux."""
+    import os
+    import threading
+    started, seen = threading.Event(), {}
+
+    def wait_for_task(self):
+        assert started.wait(10), "the task did not start while kernel() waited"
+        self.waited, self.running = True, False
+        return 0
+
+    monkeypatch.setattr(FakeChild, "wait", wait_for_task)
+
+    def task(done):
+        seen["done_at_start"] = done.is_set()
+        if sys.platform.startswith("linux"):
+            seen["nice"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        started.set()
+        seen["done_after"] = done.wait(10)
+
+    assert not ukf_numba.while_compiling(task)          # no child: no wait to fill
+    assert ukf_numba.compile_in_background()
+    assert ukf_numba.while_compiling(task)
+    assert not started.is_set()                         # queued, not started
+    ukf_numba.kernel()
+    for _ in range(100):
+        if "done_after" in seen:
+            break
+        threading.Event().wait(0.05)
+    assert seen["done_at_start"] is False and seen["done_after"] is True
+    if sys.platform.startswith("linux"):
+        assert seen["nice"] == 19
+    assert ukf_numba._WAITERS == []
+    assert not ukf_numba.while_compiling(task)          # the kernel is loaded now
+
+
+def test_a_task_is_dropped_when_the_child_finished_before_the_wait(fresh):
+    ran = []
+    assert ukf_numba.compile_in_background()
+    assert ukf_numba.while_compiling(lambda done: ran.append(1))
+    FakeChild.made[0].running = False                   # done before anyone waited
+    ukf_numba.kernel()
+    assert ran == [] and ukf_numba._WAITERS == []

@@ -86,6 +86,7 @@ from bondgraph.diagnose.parallel import distributed, local_map, run_tasks
 from bondgraph.diagnose.residuals import free_run_outlier_warnings, innovation_outlier_warnings
 from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, Step, rank_of
 from bondgraph.diagnose.scoring import (
+    compile_first_step_ahead,
     conditional_score,
     mark_limits,
     operating_scales,
@@ -198,6 +199,7 @@ def run_loop(graph: BondGraph, experiment, settings: LoopSettings, *,
 def _run(ctx: Context, graph: BondGraph, t0: float, on_update: OnUpdate | None) -> LoopResult:
     """The loop's steps (:func:`run_loop`)."""
     s = ctx.settings
+    compile_first_step_ahead(ctx, graph)    # a first run: while the filter kernel compiles
     with phase("fitting the declared model"):
         initial, warn = resolved_fit(ctx, graph, initial_fit(ctx, graph))
         initial, warn = likelier_hold(ctx, graph, initial, warn)

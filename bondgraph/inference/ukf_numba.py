@@ -1088,6 +1088,8 @@ _KERNEL: list = []
 #: the child process compiling the kernel into numba's cache
 #: (:func:`compile_in_background`), while it runs
 _BACKGROUND: list = []
+#: work to overlap with this process's wait for that child (:func:`while_compiling`)
+_WAITERS: list = []
 
 
 @contextlib.contextmanager
@@ -1145,6 +1147,61 @@ def compile_in_background() -> bool:
     return True
 
 
+def while_compiling(task) -> bool:
+    """Run ``task(done)`` on a daemon thread while this process waits for
+    the kernel's background compile (:func:`compile_in_background`), from
+    the moment :func:`kernel` starts waiting; ``done`` is a
+    :class:`threading.Event` set when the wait ends, after which the task
+    should stop soon (the process needs its cores again). On a first run
+    the process waits there for about 10-20 s with one core idle (the
+    loop's first fit needs the kernel); the loop compiles its first step's
+    candidate kernels in that time
+    (:func:`bondgraph.diagnose.scoring.compile_first_step_ahead`).
+
+    Parameters
+    ----------
+    task : callable
+        ``task(done)``; its exceptions are its own (not raised here).
+
+    Returns
+    -------
+    bool
+        Whether the task was queued: False when no background compile is
+        pending (the kernel is loaded, in numba's cache, or compiled in
+        this process): then there is no wait to fill.
+    """
+    with _LOCK:
+        if not _BACKGROUND or _KERNEL:
+            return False
+        _WAITERS.append(task)
+        return True
+
+
+def _start_waiters() -> threading.Event:
+    """Start the tasks of :func:`while_compiling` (each once) on daemon
+    threads; the event to set when the wait ends."""
+    done = threading.Event()
+    for task in _WAITERS:
+        threading.Thread(target=_quiet_task, args=(task, done), daemon=True,
+                         name="bondgraph-while-compiling").start()
+    _WAITERS.clear()
+    return done
+
+
+def _quiet_task(task, done) -> None:
+    """``task(done)`` at the lowest CPU priority (on Linux the thread's
+    nice value, which the processes it starts inherit), so that it takes
+    only the core the wait leaves idle and never slows the compile waited
+    for; a failure only loses the time it would have saved."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    try:
+        task(done)
+    except Exception:  # noqa: BLE001 - work ahead of need; the need itself reports
+        pass
+
+
 def _stop_background(child) -> None:
     """At exit: a background compile this process no longer waits for stops
     (numba writes its cache files whole, by rename)."""
@@ -1171,9 +1228,12 @@ def kernel() -> tuple[object, float]:
         if _BACKGROUND:
             child = _BACKGROUND.pop()
             if child.poll() is None:
+                done = _start_waiters()
                 with announced("compiling the fused UKF kernel (in the background since the "
                                "command started)", note="once per installation: numba caches it"):
                     child.wait()
+                done.set()
+            _WAITERS.clear()
         with _first_class_quiet(), announced("compiling the fused UKF kernel",
                                              note="once per installation: numba caches it"):
             k = numba.njit(_signature(), cache=True, nogil=True,

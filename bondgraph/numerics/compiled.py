@@ -473,6 +473,42 @@ def compile_ahead(models) -> int:
     return len(todo)
 
 
+def build_ahead(model) -> bool:
+    """Build the C library of ``model``'s point kernels into the disk cache
+    in the calling thread, without loading it and without this module's
+    lock (work ahead of need, on a thread of its own:
+    :func:`point_kernels` later finds the library built;
+    :func:`compile_ahead` is for kernels needed soon, in use order).
+
+    Parameters
+    ----------
+    model : Model
+
+    Returns
+    -------
+    bool
+        Whether a library was built: False when the kernels are not the C
+        compiler's (:func:`kernel_kind`), are built or loaded already, or
+        fail (:func:`point_kernels` builds them again when they are needed
+        and reports why).
+    """
+    if numba is None or kernel_kind() != "c":
+        return False
+    path = kernel_source_path(model)
+    if path is None or f"c:{path}" in _LOADED:
+        return False
+    try:
+        if not path.exists():
+            _write_source(model, path)
+        lib = _c_library(path)
+        if lib.exists():
+            return False
+        compiled_c.build(_c_text(path), lib)
+    except Exception:  # noqa: BLE001 - point_kernels reports it when the kernels are needed
+        return False
+    return True
+
+
 def _in_cache(path: Path, listed: dict) -> bool:
     """Whether the kernel source ``path`` has a numba index in its cache
     folder, from one listing of that folder per ``listed`` (source folder ->
