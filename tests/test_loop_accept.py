@@ -494,6 +494,26 @@ def _two_dampers():
     return g
 
 
+def test_a_ridge_is_named_once_and_not_again_with_a_candidates_names_beside_it():
+    """fit.say_ridge: a set of parameters the record does not identify is
+    logged once per loop, and not again for a refit whose set contains it
+    or two of its names (a candidate's confirmation meets the declared
+    fit's ridge with its own parameters beside it, or along part of it);
+    a ridge that shares at most one name with those said, or the other
+    kind of ridge, is logged."""
+    from bondgraph.diagnose.fit import say_ridge
+
+    logs = []
+    ctx = Context(None, LoopSettings(params=["k"]), log=logs.append, progress=False)
+    say_ridge(ctx, "unidentified", ["c", "c2", "m"], "A")
+    say_ridge(ctx, "unidentified", ["c2", "c", "m", "dahl.v.sigma"], "B")   # contains A's
+    say_ridge(ctx, "unidentified", ["c", "m", "beta"], "B2")               # two of A's
+    say_ridge(ctx, "unidentified", ["c2"], "B3")                           # within A's
+    say_ridge(ctx, "unidentified", ["k", "c"], "C")                        # one of A's
+    say_ridge(ctx, "flat", ["c", "c2", "m"], "D")                          # the other kind
+    assert [m.split(" (said once")[0] for m in logs] == ["A", "C", "D"]
+
+
 def test_a_fit_names_the_parameters_the_record_does_not_identify_apart():
     """Two parallel dampers: (c + c2)·v is all the record shows, so the
     information is singular along c - c2 and the fit names c and c2 (and

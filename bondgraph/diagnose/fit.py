@@ -645,6 +645,28 @@ def _scores_at(ctx: Context, fit: Fit) -> tuple[list[str], np.ndarray, np.ndarra
 
 
 # ----------------------------------------------------------------- fitting
+def say_ridge(ctx: Context, kind: str, names, msg: str) -> None:
+    """Log ``msg`` about the parameters ``names`` (a ridge of the
+    likelihood, ``kind`` "flat" or "unidentified") once per loop
+    (:meth:`Context.log_once`), and not at all when a ridge of the same
+    kind said before already names them, or two of them: every refit of a
+    candidate meets the declared fit's ridge again, with its own
+    parameters beside it or along part of it (a user's series RLC whose
+    record tells only L·C: 12 lines "does not identify L, Cc"; a user's CED
+    graph, whose declared fit named seven motor, belt and pulley
+    parameters: 36 such lines over ten confirmations, each naming three to
+    nine of them). A candidate whose own parameter is not identified apart
+    from the current model's is refused as such, with its own line
+    (:mod:`bondgraph.diagnose.accept`)."""
+    key = set(names)
+    for said in ctx.said:
+        if said.startswith(f"{kind}:"):
+            known = set(said[len(kind) + 1:].split("|"))
+            if key <= known or len(key & known) >= 2:
+                return
+    ctx.log_once(f"{kind}:{'|'.join(sorted(key))}", msg)
+
+
 def fit_model(ctx: Context, graph: BondGraph, params: list[str],
               start: Mapping[str, float] | None, what: str, model: Model | None = None,
               iterations: int | None = None, tolerance: float = 0.0) -> Fit:
@@ -817,25 +839,22 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
             problem, theta, idx, (lo, hi), iters, log_scale=scale, tolerance=tolerance,
             states=states, noises=noises)
         names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]
-        # each set of parameters said once per loop: every refit of a
-        # candidate repeats the declared fit's (a user's series RLC whose
-        # record tells only L·C: 12 lines "does not identify L, Cc")
         moves = ""
         if flat:
-            ctx.log_once(f"flat:{sorted(flat)}",
-                         f"  {what}: converged in the directions the record identifies; the "
-                         f"likelihood is flat along {', '.join(flat)} together (gaining < "
-                         f"{FLAT_GAIN:g} nats per iteration): not identified by this record")
+            say_ridge(ctx, "flat", flat,
+                      f"  {what}: converged in the directions the record identifies; the "
+                      f"likelihood is flat along {', '.join(flat)} together (gaining < "
+                      f"{FLAT_GAIN:g} nats per iteration): not identified by this record")
         else:
             flat = unidentified(F, names)
             if flat:
                 moves = ridge_changes(F, list(params), theta[idx])
-                ctx.log_once(f"unidentified:{sorted(flat)}",
-                             f"  {what}: the record does not identify {', '.join(flat)} "
-                             f"separately (the Fisher information is flat along a "
-                             f"combination of them: collinearity index > 100){moves}; fix "
-                             f"one (bondgraph sensitivity recommends which to estimate), or "
-                             f"use a record that excites them apart")
+                say_ridge(ctx, "unidentified", flat,
+                          f"  {what}: the record does not identify {', '.join(flat)} "
+                          f"separately (the Fisher information is flat along a "
+                          f"combination of them: collinearity index > 100){moves}; fix "
+                          f"one (bondgraph sensitivity recommends which to estimate), or "
+                          f"use a record that excites them apart")
         return (theta, cr_std(F, names), (conv, used, flat, moves),
                 {s_: float(x0n[model.state_index(s_)]) for s_ in states}, sig)
     except (FloatingPointError, np.linalg.LinAlgError) as exc:
