@@ -86,3 +86,34 @@ def test_the_one_sided_score_keeps_a_signed_estimate_nonnegative():
             # nothing asks for a negative β: the two-sided fit itself
             free = np.linalg.lstsq(G, e, rcond=None)[0]
             np.testing.assert_allclose(sol, free, atol=1e-9)
+
+
+def test_a_signature_whose_smaller_nudge_failed_is_the_larger_nudges_without_a_warning():
+    """scoring.signatures: forward differences of the innovations (N=50,
+    n_y=1); a column whose smaller nudge failed throughout (NaN) takes the
+    larger nudge's difference quotient, one whose larger nudge failed takes
+    the smaller's, one nonlinear (the two differ by more than 5 %) the
+    smaller's; numpy's all-NaN warning does not reach the user."""
+    import warnings
+
+    from bondgraph.diagnose.scoring import LADDER, signatures
+
+    rng = np.random.default_rng(1)
+    eps0 = rng.standard_normal((50, 1))
+    lin, curved = rng.standard_normal((50, 1)), rng.standard_normal((50, 1))
+    deltas = np.array([0.1, 0.1, 0.1])
+    D = np.empty((2, 3, 50, 1))
+    for l_, f in enumerate(LADDER[:2]):
+        d = deltas[0] * f
+        D[l_, 0] = eps0 + d * lin
+        D[l_, 1] = eps0 + d * lin
+        D[l_, 2] = eps0 + d * curved + (d * curved) ** 2 * 10.0
+    D[1, 0] = np.nan                      # the smaller nudge of column 0 failed
+    D[0, 1] = np.nan                      # the larger nudge of column 1 failed
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        J = signatures(eps0, D, np.empty((0, 50, 1)), deltas, [])
+    np.testing.assert_allclose(J[:, :, 0], lin, rtol=1e-9)
+    np.testing.assert_allclose(J[:, :, 1], lin, rtol=1e-9)
+    small = deltas[2] * LADDER[1]
+    np.testing.assert_allclose(J[:, :, 2], curved + small * curved ** 2 * 10.0, rtol=1e-9)

@@ -346,8 +346,10 @@ def signatures(eps0, D, Dn, deltas, nuis_delta) -> np.ndarray:
     for c in range(D.shape[1]):
         j_big = (D[0, c] - eps0) / (deltas[c] * LADDER[0])
         j_small = (D[1, c] - eps0) / (deltas[c] * LADDER[1])
-        use_small = ~np.all(np.isfinite(j_big)) or (
-            np.nanmax(np.abs(j_big - j_small)) > 0.05 * np.nanmax(np.abs(j_small)) + 1e-300)
+        # a smaller nudge that failed throughout (NaN) is not compared: the
+        # larger one stands (numpy's nanmax would warn on the user's terminal)
+        use_small = ~np.all(np.isfinite(j_big)) or (np.isfinite(j_small).any() and (
+            np.nanmax(np.abs(j_big - j_small)) > 0.05 * np.nanmax(np.abs(j_small)) + 1e-300))
         J[:, :, nn + c] = j_small if use_small else j_big
     return J
 
