@@ -22,7 +22,8 @@ Examples (about 30 min in all on a 2-core machine):
   arrow and multisine test sets [mV];
 * ``silverbox_rlc`` -- the same with ``--graph rlc``, a series RLC circuit;
 * ``ced`` -- ``examples/ced_user.py``: another user's belt drive, RMS on the
-  three PRBS runs.
+  three PRBS runs; ``ced_unif`` the same graph fitted on the first
+  uniform-amplitude run (``--runs unif``), RMS on all five runs.
 
 They read ``../shared/data`` (or ``BONDGRAPH_DATA``); an example whose data
 is absent is reported as skipped with the reason.
@@ -53,6 +54,7 @@ EXAMPLES = {
     "silverbox": ("silverbox_user.py", []),
     "silverbox_rlc": ("silverbox_user.py", ["--graph", "rlc"]),
     "ced": ("ced_user.py", []),
+    "ced_unif": ("ced_user.py", ["--runs", "unif"]),
 }
 #: a figure that moved by more than this relative amount is a change
 RTOL = 0.01
