@@ -736,7 +736,7 @@ def compile_first_step_ahead(ctx: Context, graph) -> bool:
     scoring. Measured on the bundled default case with fresh caches (four
     runs each, alternating): step 1 scored in 10.9-14.2 s instead of
     17.2-18.7 s, the first fit 2 s later (the compile waited for shares the
-    machine), the whole run 54.5-63.3 s instead of 62.1-70.1 s. Only with
+    machine), the whole run 54.5-66.5 s instead of 62.1-70.1 s. Only with
     the C compiler's kernels (:func:`~bondgraph.numerics.compiled.kernel_kind`)
     and the numba backend, structural candidates scored in process and not
     skipped by a threshold; the probe model of the additive candidates
