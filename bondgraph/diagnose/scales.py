@@ -14,6 +14,14 @@ from bondgraph.diagnose.effects import Scales
 from bondgraph.diagnose.fit import Context, Fit, problem_for
 
 
+def record_scales(t: np.ndarray) -> Scales:
+    """The scales a record's sample times (N,) [s] give alone: its duration
+    and median sample interval (1 where they cannot be measured); every
+    per-element scale empty, where the effects fall back to 1."""
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    return Scales(duration=(float(t[-1] - t[0]) or 1.0) if t.size else 1.0, dt=dt)
+
+
 def operating_scales(ctx: Context, fit: Fit) -> Scales:
     """Data-driven scales of the effects along the filtered states of ``fit``.
 
@@ -32,7 +40,7 @@ def operating_scales(ctx: Context, fit: Fit) -> Scales:
     model = fit.model
     t, u, y = problem_for(ctx, model).arrays
     X = fit.ukf.x_filt[:, 0, :]
-    sc = Scales(duration=float(t[-1] - t[0]) or 1.0, dt=float(np.median(np.diff(t))))
+    sc = record_scales(t)
     args = (list(ss.states), list(ss.inputs), list(ss.params))
     uT = u.T if u.size else np.zeros((0, t.size))
 

@@ -54,6 +54,7 @@ from bondgraph.diagnose.inference_calls import (
 from bondgraph.diagnose.parallel import distributed, local_map, run_tasks
 from bondgraph.diagnose.result import Candidate
 from bondgraph.diagnose.scales import operating_scales  # noqa: F401 (public name)
+from bondgraph.diagnose.scales import record_scales
 from bondgraph.diagnose.screen import output_error_screen
 from bondgraph.errors import BondGraphError
 from bondgraph.inference.ukf_numba import while_compiling
@@ -754,9 +755,7 @@ def compile_first_step_ahead(ctx: Context, graph) -> bool:
             or kernel_kind() != "c":
         return False
     effects = [e for e in s.effects if not getattr(e, "last_resort", False)]
-    t = ctx.problem.t
-    scales = Scales(duration=float(t[-1] - t[0]) or 1.0, dt=float(np.median(np.diff(t)))
-                    if t.size > 1 else 1.0)
+    scales = record_scales(ctx.problem.t)
     quiet = Context(ctx.problem, s, log=lambda msg: None, progress=False)
     return while_compiling(lambda done: _ahead_of_need(quiet, graph, scales, effects, done))
 

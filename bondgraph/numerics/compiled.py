@@ -500,11 +500,22 @@ def build_ahead(model) -> bool:
     try:
         if not path.exists():
             _write_source(model, path)
+    except Exception:  # noqa: BLE001 - point_kernels reports it when the kernels are needed
+        return False
+    return _build_c(path)
+
+
+def _build_c(path: Path) -> bool:
+    """Build the C library of the numba source ``path`` into the cache unless
+    it is there; whether it was built (a failure is left to
+    :func:`point_kernels`, which builds it again when it is needed and
+    reports why)."""
+    try:
         lib = _c_library(path)
         if lib.exists():
             return False
         compiled_c.build(_c_text(path), lib)
-    except Exception:  # noqa: BLE001 - point_kernels reports it when the kernels are needed
+    except Exception:  # noqa: BLE001 - the caller's own compile reports it
         return False
     return True
 
@@ -666,12 +677,7 @@ class _Ahead:
                     return
                 path = self.queue.pop()
                 self.running[i] = path
-            try:
-                lib = _c_library(Path(path))
-                if not lib.exists():
-                    compiled_c.build(_c_text(Path(path)), lib)
-            except Exception:  # noqa: BLE001 - the caller's own compile reports it
-                pass
+            _build_c(Path(path))
             with self.cond:
                 self.running.pop(i, None)
                 self.cond.notify_all()
