@@ -458,14 +458,21 @@ def clip_into_box(ctx: Context, model: Model, names: Sequence[str], theta: np.nd
 
 def on_bound(model: Model, names: Sequence[str], theta: np.ndarray,
              rel: float = 1e-6) -> list[str]:
-    """Names whose value in ``theta`` lies within ``rel`` of its box's width
-    (or of its own magnitude, for an unbounded side) of a bound of its box."""
+    """Names whose value in ``theta`` lies within ``rel`` of a bound of its
+    box, relative to the smaller of the box's width and the magnitude there
+    (the largest of the value's, the model's default's and that bound's):
+    a box far wider than the value carries no scale (an effect's nominal
+    box [0, 1e15] of a damping coefficient 1e-5 is not "on" 0, which a
+    tolerance of the width, 1e9, said; nor an unbounded side)."""
     lo, hi = model.bounds(names)
     out = []
     for n, a, b in zip(names, lo, hi):
-        v = float(theta[model.param_index(n)])
-        tol = rel * (b - a if np.isfinite(b - a) else max(abs(v), 1e-300))
-        if (np.isfinite(a) and v - a <= tol) or (np.isfinite(b) and b - v <= tol):
+        j = model.param_index(n)
+        v = float(theta[j])
+        mag = max(abs(v), abs(float(model.theta0[j])), 1e-300)
+        width = b - a if np.isfinite(b - a) else np.inf
+        if ((np.isfinite(a) and v - a <= rel * min(width, max(mag, abs(a))))
+                or (np.isfinite(b) and b - v <= rel * min(width, max(mag, abs(b))))):
             out.append(n)
     return out
 

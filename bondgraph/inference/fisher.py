@@ -393,13 +393,14 @@ def _scoring_loop(est: Estimand, derive, line, lower, upper, sc: ScoringOptions)
         log_scale = (lo > 0) & (hi > 100 * lo)
     L = np.asarray(log_scale, dtype=bool)
     width = np.maximum(hi - lo, 1e-300)
+    start = z.copy()
     runs, lam, converged, it, nll, gain, flat = 0, 1e-3, False, 0, None, np.inf, ()
     # the derivatives at z are kept: after a refused step, and at the end
     # when z did not move, they are not computed again (the same UKF run)
     at, D = None, None
     for it in range(1, sc.max_iter + 1):
         if at is None or not np.array_equal(at, z):
-            D = derive(est.at(z), _steps(z, hi, width))
+            D = derive(est.at(z), _steps(z, hi, width, start))
             at, runs = z.copy(), runs + 1
         converged, flat, alphas, cand = _proposal(D, z, L, lam, lo, hi, sc.atol, gain)
         if converged:
@@ -429,7 +430,7 @@ def _scoring_loop(est: Estimand, derive, line, lower, upper, sc: ScoringOptions)
     if at is None or not np.array_equal(at, z):
         if not sc.information and at is not None:
             return Scoring(est, nll, None, runs, it, converged, flat)
-        D = derive(est, _steps(z, hi, width))
+        D = derive(est, _steps(z, hi, width, start))
         runs += 1
     return Scoring(est, D.nll, D.F, runs, it, converged, flat, D)
 
@@ -593,7 +594,9 @@ def pinned(grad: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> n
     problems with simple constraints. SIAM J. Control Optim. 20(2), 221-246.
     """
     x, lo, hi = (np.asarray(a, float) for a in (x, lo, hi))
-    tol = 1e-12 * np.maximum(np.abs(hi - lo), 1e-300)
+    # within 1e-12 of the box's width, or of the value where the box is far
+    # wider (an effect's nominal [0, 1e15] pinned a stiffness of 3.84 on 0)
+    tol = 1e-12 * np.maximum(np.minimum(np.abs(hi - lo), np.maximum(np.abs(x), 1.0)), 1e-300)
     return ((x <= lo + tol) & (grad > 0)) | ((x >= hi - tol) & (grad < 0))
 
 
@@ -735,9 +738,38 @@ def _jacobi(F: np.ndarray) -> np.ndarray:
     return np.where((d > 0) & np.isfinite(d), d, 1.0)
 
 
-def _steps(x, hi, width) -> np.ndarray:
-    """Forward-difference steps 1e-6 max(|x|, 1e-3 width), downwards near the upper bound."""
-    steps = 1e-6 * np.maximum(np.abs(x), 1e-3 * width)
+def typical_magnitude(start, width) -> np.ndarray:
+    """The magnitude below which a finite-difference step stops shrinking
+    with the value (Dennis & Schnabel 1983, §5.4's typical θ): 1e-3 of the
+    box's width, but at most 1000 times the value at the start (1 at a
+    start of 0). A box far wider than the value carries no scale: an
+    effect's nominal box [0, 1e15] gave a stiffness 3.84 steps of 1e6, its
+    derivatives garbage and the parameter never moved.
+
+    Parameters
+    ----------
+    start, width : arrays (k,)
+        The values at the start and the boxes' widths (same units).
+
+    Returns
+    -------
+    array (k,)
+
+    References
+    ----------
+    Dennis, J. E., Schnabel, R. B. (1983). Numerical Methods for
+    Unconstrained Optimization and Nonlinear Equations. Prentice-Hall.
+    """
+    z0 = np.abs(np.asarray(start, float))
+    return np.minimum(1e-3 * np.asarray(width, float), np.where(z0 > 0, 1e3 * z0, 1.0))
+
+
+def _steps(x, hi, width, start=None) -> np.ndarray:
+    """Forward-difference steps 1e-6 max(|x|, typical), downwards near the
+    upper bound (typical: :func:`typical_magnitude` of ``start``, default
+    ``x``, and the box's ``width``)."""
+    typical = typical_magnitude(x if start is None else start, width)
+    steps = 1e-6 * np.maximum(np.abs(x), typical)
     return np.where(x + steps > hi, -steps, steps)
 
 

@@ -48,6 +48,7 @@ from scipy.optimize import least_squares
 
 from bondgraph.errors import DataError, ModelError, NumericalError, OptionError
 from bondgraph.inference import sim_numba
+from bondgraph.inference.fisher import typical_magnitude
 from bondgraph.inference.optimize import pso
 from bondgraph.inference.options import SwarmOptions
 from bondgraph.inference.prior import fixed_step_outputs, free_run_kernels
@@ -230,7 +231,10 @@ class _FixedStepProblem(_Problem):
     """:class:`_Problem` with compiled fixed-step free runs (``method`` RK4
     or ROS2, ``substeps`` per sample interval) and a forward-difference Jacobian:
     column j from one more run with z_j moved by √ε · max(|z_j|, 1e-3 ·
-    its box width, or 1e-3 without a box), inwards at an upper bound. A
+    its box width, or 1e-3 without a box), inwards at an upper bound; that
+    width's share at most 1000 times the start's |z_j|
+    (:func:`~bondgraph.inference.fisher.typical_magnitude`: an effect's
+    nominal box [0, 1e15] moved a damping coefficient of 1e-5 to 1.5e4). A
     trial point whose run is not finite gets residuals
     :data:`UNSTABLE_RESIDUAL` (the search steps back); at the start it
     raises."""
@@ -244,7 +248,8 @@ class _FixedStepProblem(_Problem):
         self._zy = None
         lo, hi = (np.asarray(b, float) for b in box)
         width = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
-        self.lo, self.hi, self.typical = lo, hi, 1e-3 * width
+        z0 = np.concatenate([np.asarray(theta, float)[self.pidx], np.asarray(x0, float)[self.sidx]])
+        self.lo, self.hi, self.typical = lo, hi, typical_magnitude(z0, width)
 
     def outputs(self, z) -> np.ndarray:
         """Free-run outputs (N, n_y) at z (the last one cached: least_squares
@@ -281,14 +286,28 @@ class _FixedStepProblem(_Problem):
         for j in range(z.size):
             h = np.sqrt(np.finfo(float).eps) * max(abs(z[j]), self.typical[j])
             h = -h if z[j] + h > self.hi[j] else h
-            zj = z.copy()
-            zj[j] += h
-            J[:, :, j] = (self.outputs(zj) - Y0) / h
+            J[:, :, j] = self._column(z, j, h, Y0)
         self._zy = (z, Y0)
         k = len(self.pidx)
         self._s = SimpleNamespace(y=Y0, dydtheta=J[:, :, :k], dydx0=J[:, :, k:])
         self._z = z
         return self._s
+
+
+    def _column(self, z, j: int, h: float, Y0: np.ndarray) -> np.ndarray:
+        """The forward difference of the outputs along z_j by ``h``, or by
+        ``-h`` where the run at ``z_j + h`` is not finite and ``z_j - h`` is
+        inside the box (a run at the edge of stability); NumericalError when
+        neither is."""
+        zj = z.copy()
+        zj[j] += h
+        try:
+            return (self.outputs(zj) - Y0) / h
+        except NumericalError:
+            if not self.lo[j] <= z[j] - h <= self.hi[j]:
+                raise
+        zj[j] = z[j] - h
+        return (self.outputs(zj) - Y0) / -h
 
 
 def _problem_for(model, t, u, y, params, states, th, xi, sigma, opts, box) -> _Problem:

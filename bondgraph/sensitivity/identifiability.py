@@ -44,7 +44,12 @@ from typing import Any, Sequence
 import numpy as np
 
 from bondgraph.errors import SensitivityError
-from bondgraph.inference.fisher import Derivatives, derivatives, relative_changes
+from bondgraph.inference.fisher import (
+    Derivatives,
+    derivatives,
+    relative_changes,
+    typical_magnitude,
+)
 from bondgraph.inference.options import UKFOptions
 from bondgraph.inference.ukf import default_P0
 
@@ -102,7 +107,7 @@ def ukf_fisher(model, t, u, y, theta, params: Sequence[str], x0=None, P0=None,
     lo, hi = model.lower[idx], model.upper[idx]
     width = np.maximum(hi - lo, 1e-300)
     xv = th[idx]
-    steps = rel_step * np.maximum(np.abs(xv), 1e-3 * width)
+    steps = rel_step * np.maximum(np.abs(xv), typical_magnitude(xv, width))
     steps = np.where((xv + steps > hi) & (xv - steps >= lo), -steps, steps)
     return derivatives(model, t, u, y, th, idx, steps, x0a, P0a, options)
 
