@@ -405,7 +405,7 @@ def test_augmented_model_carries_the_values_the_loop_held(tmp_path):
     from types import SimpleNamespace
 
     from bondgraph.core.plugins import resolve
-    from bondgraph.diagnose.effects import Target
+    from bondgraph.diagnose.effects import Target, apply_effect
     from bondgraph.report.loop_report import augmented_source
 
     # the user's graph of tests/test_holdout_continues.py, by its file (a
@@ -414,8 +414,13 @@ def test_augmented_model_carries_the_values_the_loop_held(tmp_path):
     msd = resolve(source)
     ran = msd()
     ran.params["c"].default = 0.7                  # as --from sets it
+    # the loop's final graph: the effect's box from the record's scales, not
+    # the library's nominal one
+    final = ran.copy("msd_user_final")
+    apply_effect(final, "sensor_offset", Target("sensor", "x"), {"b": 0.01})
+    final.params["sensor_offset.x.b"].bounds = (-0.05, 0.05)
     result = SimpleNamespace(
-        model="msd_user", source=source, declared_graph=ran,
+        model="msd_user", source=source, declared_graph=ran, final_graph=final,
         applied=[SimpleNamespace(effect="sensor_offset", target=Target("sensor", "x"),
                                  values={"b": 0.01}, spec=None)],
         final=SimpleNamespace(estimates={"k": 41.5, "sensor_offset.x.b": 0.01}),
@@ -429,6 +434,10 @@ def test_augmented_model_carries_the_values_the_loop_held(tmp_path):
     values = {n: p.default for n, p in g.params.items()}
     assert values["m"] == 2.5 and values["c"] == 0.7 and values["k"] == 41.5
     assert values["sensor_offset.x.b"] == 0.01
+    # the effect's box is the one the loop fitted it in; the declared ones stay
+    assert mod.BOUNDS == {"sensor_offset.x.b": (-0.05, 0.05)}
+    assert g.params["sensor_offset.x.b"].bounds == (-0.05, 0.05)
+    assert g.params["k"].bounds == msd().params["k"].bounds
     assert msd().params["m"].default == 1.0          # the source itself is unchanged
     # what the loop held is a known value: estimate's default is what it estimated
     assert {n for n, p in g.params.items() if p.box_declared} == {"k", "sensor_offset.x.b"}

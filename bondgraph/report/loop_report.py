@@ -230,6 +230,8 @@ def augmented_source(result: LoopResult) -> str:
     held = held_values(result)
     lines += ["    for name, value in {**HELD, **ESTIMATES}.items():",
               "        g.params[name].default = value",
+              "    for name, box in BOUNDS.items():",
+              "        g.params[name].bounds = box",
               "    for name, p in g.params.items():",
               "        # what the loop did not estimate is a known value here: bondgraph",
               "        # estimate and sensitivity estimate ESTIMATES' parameters by default",
@@ -245,8 +247,27 @@ def augmented_source(result: LoopResult) -> str:
               "#: defaults by build(), so that the model is the one the loop fitted",
               "HELD = {"]
     lines += [f"    {k!r}: {v!r}," for k, v in held.items()]
+    lines += ["}", "",
+              "#: the boxes the loop fitted the effects' parameters in (from the record's",
+              "#: scales; the effect library's own are nominal, such as [0, 1e15]); applied",
+              "#: by build()",
+              "BOUNDS = {"]
+    lines += [f"    {k!r}: {v!r}," for k, v in effect_boxes(result).items()]
     lines += ["}", ""]
     return "\n".join(lines)
+
+
+def effect_boxes(result: LoopResult) -> dict[str, tuple[float, float]]:
+    """The boxes of the accepted effects' parameters in the loop's final
+    graph (``result.final_graph``: the parameters the declared graph
+    ``result.declared_graph`` does not have), as ``(lower, upper)`` floats;
+    empty when the result lacks either graph."""
+    final = getattr(result, "final_graph", None)
+    declared = getattr(result, "declared_graph", None)
+    if final is None or declared is None:
+        return {}
+    return {n: (float(p.bounds[0]), float(p.bounds[1])) for n, p in final.params.items()
+            if n not in declared.params}
 
 
 def held_values(result: LoopResult) -> dict[str, float]:
