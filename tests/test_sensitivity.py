@@ -465,3 +465,22 @@ def test_an_unbounded_box_is_no_scale_of_a_nonzero_value():
     np.testing.assert_allclose(analysis_scale(m, ["M", "F0", "b"], th), [2.0, 0.76, 2.0])
     th0 = m.theta({"F0": 0.0})
     np.testing.assert_allclose(analysis_scale(m, ["F0"], th0), [2e9])
+
+
+def test_table_columns_fit_long_parameter_names():
+    """An effect's parameter (``cubic_stiffness.spring.k3``, 25 characters)
+    does not run into the decision column: every row's decision starts where
+    the header's does."""
+    from bondgraph.sensitivity.analysis import SensitivityReport
+
+    names = ["m", "cubic_stiffness.spring.k3", "sensor_poly3.V2.c2"]
+    decisions = [dict(rank=i + 1, param=n, decision="estimate", rel_crb=0.01 * (i + 1),
+                      reason="by hand") for i, n in enumerate(names)]
+    rep = SensitivityReport(model="g", experiment="rec", params=names, theta={}, scale=[],
+                            local={}, recommendation=dict(estimate=names, decisions=decisions))
+    lines = rep.table().splitlines()
+    col = lines[1].index("decision")
+    rows = [ln for ln in lines if ln.strip().startswith(("1 ", "2 ", "3 "))]
+    assert len(rows) == 3
+    for ln, n in zip(rows, names):
+        assert ln[col:col + 8] == "estimate" and ln[:col].split()[1] == n

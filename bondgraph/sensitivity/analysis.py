@@ -102,13 +102,16 @@ class SensitivityReport:
         """Plain-text table of the recommendation."""
         rec = self.recommendation
         lines = [f"{self.model} on {self.experiment}: {len(self.params)} candidates, "
-                 f"recommended {len(rec['estimate'])}: {', '.join(rec['estimate']) or '-'}",
-                 f"{'rank':>4}  {'parameter':<14}{'decision':<10}{'rel CRB':>9}  reason",
-                 "-" * 78]
+                 f"recommended {len(rec['estimate'])}: {', '.join(rec['estimate']) or '-'}"]
+        # the name column as wide as the longest name (an effect's parameter,
+        # cubic_stiffness.spring.k3, ran into the decision)
+        w = max([14] + [len(d["param"]) + 2 for d in rec["decisions"]])
+        lines += [f"{'rank':>4}  {'parameter':<{w}}{'decision':<10}{'rel CRB':>9}  reason",
+                  "-" * (w + 64)]
         for d in rec["decisions"]:
             rc = d.get("rel_crb")
             rcs = f"{rc:>9.2%}" if rc is not None and np.isfinite(rc) else f"{'-':>9}"
-            lines.append(f"{d['rank']:>4}  {d['param']:<14}{d['decision']:<10}{rcs}  "
+            lines.append(f"{d['rank']:>4}  {d['param']:<{w}}{d['decision']:<10}{rcs}  "
                          f"{d['reason']}")
         ck = rec.get("check")
         if ck:
