@@ -794,7 +794,7 @@ def stuck_parameters(ctx: Context, fit: Fit, names: list[str], start: dict | Non
     unmoved = [] if boxes_only else [
         n for n, a, b in zip(phys, lo, hi)
         if abs(fit.theta[model.param_index(n)] - np.clip(theta0[model.param_index(n)], a, b))
-        <= 1e-9 * max(abs(theta0[model.param_index(n)]), 1e-300) and not pinned(fit, n)]
+        <= 1e-9 * max(abs(theta0[model.param_index(n)]), 1e-300) and not pinned_by_record(fit, n)]
     return unmoved, [n for n in phys if n in fit.at_bound]
 
 
@@ -803,7 +803,7 @@ def stuck_parameters(ctx: Context, fit: Fit, names: list[str], start: dict | Non
 PINNED_REL = 0.1
 
 
-def pinned(fit: Fit, name: str) -> bool:
+def pinned_by_record(fit: Fit, name: str) -> bool:
     """``fit``'s Cramér-Rao std of ``name`` is finite and below
     :data:`PINNED_REL` of its value: the record determines it there."""
     std = fit.std.get(name)

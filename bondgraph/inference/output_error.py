@@ -293,7 +293,6 @@ class _FixedStepProblem(_Problem):
         self._z = z
         return self._s
 
-
     def _column(self, z, j: int, h: float, Y0: np.ndarray) -> np.ndarray:
         """The forward difference of the outputs along z_j by ``h``, or by
         ``-h`` where the run at ``z_j + h`` is not finite and ``z_j - h`` is
