@@ -81,7 +81,12 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "own initial state, else the smoothed state given the whole record")
     p.add_argument("--optimizer", choices=("pso", "de"), default="pso")
     p.add_argument("--particles", type=int, default=None, help="swarm / population size (10 k)")
-    p.add_argument("--iterations", type=int, default=100)
+    p.add_argument("--iterations", type=int, default=100,
+                   help="iterations of the global search (default 100); 0: its first population "
+                        "only (the start is one of it), then the polish (Fisher scoring, "
+                        "L-BFGS-B): for a start that is already a fit, such as a loop's "
+                        "augmented_model.py (a user's Silverbox model on 16 384 samples: 2 min "
+                        "against 9, the same NLL within 1 nat)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None,
                    help="output directory (default estimate_<model>_<data>); refused when not "
