@@ -1553,9 +1553,15 @@ def _scored(crit, x, f, lo, hi) -> tuple[np.ndarray, float, dict]:
 
 
 def _at_bound(params, x, lo, hi) -> list[str]:
-    """Parameters whose estimate is within 1e-6 of the box width of a bound."""
-    rel_pos = (x - lo) / (hi - lo)
-    return [p for i, p in enumerate(params) if rel_pos[i] < 1e-6 or rel_pos[i] > 1 - 1e-6]
+    """Parameters whose estimate is within 1e-6 of a bound, relative to the
+    smaller of the box's width and the magnitude there (the estimate's or
+    the bound's): a box far wider than the value carries no scale (a mass
+    of 5.5e-6 s² in a user's box (0, 1e9) is not "at" 0)."""
+    x, lo, hi = (np.asarray(a, float) for a in (x, lo, hi))
+    width = hi - lo
+    near_lo = x - lo <= 1e-6 * np.minimum(width, np.maximum(np.abs(x), np.abs(lo)))
+    near_hi = hi - x <= 1e-6 * np.minimum(width, np.maximum(np.abs(x), np.abs(hi)))
+    return [p for i, p in enumerate(params) if near_lo[i] or near_hi[i]]
 
 
 def _bound_warnings(params, x, lo, hi, sampled: tuple | None = None) -> list[str]:
