@@ -147,28 +147,25 @@ def msd():
 
 
 def _wide_case(tmp_path) -> dict:
-    """The record (``rec.csv``, simulated by scipy) and the graph file
-    (``wide.py``) of the (0, 1e9) boxes in ``tmp_path``; the truth."""
+    """The record (``rec.csv``) and the graph file (``wide.py``) of the
+    (0, 1e9) boxes in ``tmp_path``; the truth. The record is
+    tests/test_holdout_continues.py's: a multisine force, integrated by
+    scipy at tight tolerances, position measured with noise 0.01 m."""
     from scipy.integrate import solve_ivp
 
-    truth = {"m": 1.0, "k": 40.0, "c": 0.8}
-    t = np.arange(1000) * 0.02
-    fr = np.array([0.11, 0.37, 0.83, 1.3])
+    from tests.test_holdout_continues import DT, NOISE, TRUTH, N, _force
 
-    def force(tt):
-        return np.sum(np.sin(2 * np.pi * fr * np.asarray(tt)[..., None] + np.arange(4)), axis=-1)
-
-    def rhs(tt, z):
-        return [z[1], (force(tt) - truth["c"] * z[1] - truth["k"] * z[0]) / truth["m"]]
-
-    sol = solve_ivp(rhs, (0.0, t[-1]), [0.05, 0.0], t_eval=t, rtol=1e-10, atol=1e-12)
-    y = sol.y[0] + 0.01 * np.random.default_rng(4).standard_normal(t.size)
+    m, k, c = TRUTH["m"], TRUTH["k"], TRUTH["c"]
+    t = np.arange(N) * DT
+    sol = solve_ivp(lambda tt, z: [z[1], (_force(tt) - c * z[1] - k * z[0]) / m],
+                    (0.0, t[-1]), [0.05, 0.0], t_eval=t, rtol=1e-10, atol=1e-12)
+    y = sol.y[0] + NOISE * np.random.default_rng(4).standard_normal(N)
     with open(tmp_path / "rec.csv", "w") as fh:
         fh.write("t [s],F [N],x [m]\n")
-        for row in zip(t.tolist(), force(t).tolist(), y.tolist()):
+        for row in zip(t.tolist(), _force(t).tolist(), y.tolist()):
             fh.write("%r,%r,%r\n" % row)
     (tmp_path / "wide.py").write_text(WIDE_GRAPH)
-    return truth
+    return dict(TRUTH)
 
 
 def test_estimate_at_bound_takes_the_values_scale(tmp_path, monkeypatch, capsys):

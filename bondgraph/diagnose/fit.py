@@ -53,6 +53,7 @@ from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.errors import BondGraphError, NumericalError
 from bondgraph.inference.discretise import (BIAS_TOLERANCE, REFINE_MARGIN, SUBSTEPS, refined_runs,
                                             step_cost)
+from bondgraph.inference.fisher import near_bound
 from bondgraph.inference.options import Discretisation, most_substeps
 from bondgraph.core.equations import derive
 from bondgraph.numerics.admissible import Admissibility, check_admissible, without_inherited
@@ -460,21 +461,17 @@ def on_bound(model: Model, names: Sequence[str], theta: np.ndarray,
              rel: float = 1e-6) -> list[str]:
     """Names whose value in ``theta`` lies within ``rel`` of a bound of its
     box, relative to the smaller of the box's width and the magnitude there
-    (the largest of the value's, the model's default's and that bound's):
+    (the largest of the value's, the model's default's and that bound's;
+    :func:`~bondgraph.inference.fisher.near_bound`):
     a box far wider than the value carries no scale (an effect's nominal
     box [0, 1e15] of a damping coefficient 1e-5 is not "on" 0, which a
     tolerance of the width, 1e9, said; nor an unbounded side)."""
     lo, hi = model.bounds(names)
-    out = []
-    for n, a, b in zip(names, lo, hi):
-        j = model.param_index(n)
-        v = float(theta[j])
-        mag = max(abs(v), abs(float(model.theta0[j])), 1e-300)
-        width = b - a if np.isfinite(b - a) else np.inf
-        if ((np.isfinite(a) and v - a <= rel * min(width, max(mag, abs(a))))
-                or (np.isfinite(b) and b - v <= rel * min(width, max(mag, abs(b))))):
-            out.append(n)
-    return out
+    idx = [model.param_index(n) for n in names]
+    v = np.asarray(theta, float)[idx]
+    mag = np.maximum(np.maximum(np.abs(v), np.abs(model.theta0[idx])), 1e-300)
+    near_lo, near_hi = near_bound(v, lo, hi, rel, mag)
+    return [n for n, a, b in zip(names, near_lo, near_hi) if a or b]
 
 
 def process_noise_at_floor(model: Model, names: Sequence[str], theta: np.ndarray) -> list[str]:

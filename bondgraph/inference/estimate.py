@@ -79,7 +79,7 @@ from bondgraph.inference.options import (
 )
 from bondgraph.inference.problem import Problem
 from bondgraph.inference.fisher import (estimand_scoring, innovation_differences, jacobi_pinv,
-                                        joint_scoring, relative_changes)
+                                        joint_scoring, near_bound, relative_changes)
 from bondgraph.inference.robust import ROBUST_RATIO, sandwich, score_covariance, step_scores
 from bondgraph.inference.executor import Executor
 from bondgraph.inference.ukf import (
@@ -1557,10 +1557,7 @@ def _at_bound(params, x, lo, hi) -> list[str]:
     smaller of the box's width and the magnitude there (the estimate's or
     the bound's): a box far wider than the value carries no scale (a mass
     of 5.5e-6 s² in a user's box (0, 1e9) is not "at" 0)."""
-    x, lo, hi = (np.asarray(a, float) for a in (x, lo, hi))
-    width = hi - lo
-    near_lo = x - lo <= 1e-6 * np.minimum(width, np.maximum(np.abs(x), np.abs(lo)))
-    near_hi = hi - x <= 1e-6 * np.minimum(width, np.maximum(np.abs(x), np.abs(hi)))
+    near_lo, near_hi = near_bound(x, lo, hi)
     return [p for i, p in enumerate(params) if near_lo[i] or near_hi[i]]
 
 

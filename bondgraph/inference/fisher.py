@@ -764,6 +764,36 @@ def typical_magnitude(start, width) -> np.ndarray:
     return np.minimum(1e-3 * np.asarray(width, float), np.where(z0 > 0, 1e3 * z0, 1.0))
 
 
+def near_bound(x, lo, hi, rel: float = 1e-6, magnitude=None) -> tuple[np.ndarray, np.ndarray]:
+    """Masks (k,) of the values ``x`` within ``rel`` of their finite lower
+    and of their finite upper bound, relative to the smaller of the box's
+    width and the magnitude there (the larger of ``magnitude``, default
+    ``|x|``, and that bound's): a box far wider than the value carries no
+    scale (a mass of 5.5e-6 s² in a box (0, 1e9) is not "at" 0, which 1e-6
+    of the width said). Shared by the estimate's and the loop's "on a
+    bound" (:func:`bondgraph.inference.estimate._at_bound`,
+    :func:`bondgraph.diagnose.fit.on_bound`).
+
+    Parameters
+    ----------
+    x, lo, hi : arrays (k,)
+        Values and their box (bounds may be infinite: that side is never near).
+    rel : float
+    magnitude : array (k,), optional
+
+    Returns
+    -------
+    (near_lo, near_hi) : bool arrays (k,)
+    """
+    x, lo, hi = (np.asarray(a, float) for a in (x, lo, hi))
+    mag = np.abs(x) if magnitude is None else np.asarray(magnitude, float)
+    width = hi - lo
+    with np.errstate(invalid="ignore"):
+        near_lo = np.isfinite(lo) & (x - lo <= rel * np.minimum(width, np.maximum(mag, np.abs(lo))))
+        near_hi = np.isfinite(hi) & (hi - x <= rel * np.minimum(width, np.maximum(mag, np.abs(hi))))
+    return near_lo, near_hi
+
+
 def _steps(x, hi, width, start=None) -> np.ndarray:
     """Forward-difference steps 1e-6 max(|x|, typical), downwards near the
     upper bound (typical: :func:`typical_magnitude` of ``start``, default
