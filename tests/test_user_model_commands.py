@@ -102,6 +102,9 @@ def test_every_command_takes_module_function_and_file_function(user_dir, capsys)
             in capsys.readouterr().err)
     doc = json.loads((user_dir / "sens_default" / "sensitivity.json").read_text())
     assert doc["params"] == ["k", "c"]
+    # the output-error information (and the sensitivity plot) weighed by the
+    # record's declared noise levels, kept in the report
+    assert doc["local"]["output_error"]["sigma"] == pytest.approx([0.004, 0.01])
 
     assert main(["sensitivity", "--model", "usermod:build", "--data", "rec.csv",
                  "--params", "k,c,m", "--out", "sens", "--no-plots"]) == 0
@@ -249,3 +252,33 @@ def test_a_law_written_with_numpy_math_or_if_names_its_line_and_the_fix(user_dir
     err = capsys.readouterr().err
     assert said in err and "at badlaw.py:11 (g.connect(n, g.R('orifice'" in err
     assert "sp.sqrt" in err and "sp.Piecewise" in err
+
+
+def test_a_folder_named_generated_beside_the_model_file_does_not_shadow_the_package(tmp_path):
+    """A loop's output folder holds its augmented model's code in ``generated/``
+    beside ``augmented_model.py``; a user's project may have such a folder too.
+    Importing a model file puts its folder first on the import path, where
+    that folder (a namespace package) shadowed the toolkit's own generated
+    package under an editable install: ``bondgraph sensitivity`` on a loop's
+    augmented model crashed drawing its plot (``generated_dir``: 'expected
+    str ... not NoneType'). Checked in a fresh interpreter, where the package
+    is not imported yet."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "loop_out"
+    (out / "generated").mkdir(parents=True)
+    (out / "generated" / "other_model.py").write_text("X = 1\n")
+    (out / "usermod.py").write_text(MYMOD)
+    code = ("from bondgraph.core.plugins import resolve\n"
+            "from bondgraph.numerics import registry\n"
+            "from bondgraph.numerics.model import Model\n"
+            "resolve('loop_out/usermod.py:build')\n"
+            "print(registry.generated_dir())\n"
+            "print(Model.load('mass_spring_damper').name)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=300)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.split()
+    assert Path(lines[0]) == GENERATED
+    assert lines[1] == "mass_spring_damper"

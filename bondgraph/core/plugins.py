@@ -105,6 +105,19 @@ def registered(kind: str) -> dict[str, str]:
     return out
 
 
+def _pin_generated() -> None:
+    """Import the registered packages of generated code (group
+    ``bondgraph.generated``) before a user's folder goes first on the import
+    path. A folder of the same name there (a loop's output folder holds its
+    augmented model's code in ``generated/``; a user's project may have one)
+    would otherwise shadow the package: as a namespace package under an
+    editable install, or as the user's own package."""
+    try:
+        registered("generated")
+    except ModelError:
+        pass  # said where the package is used (registry.generated_dir)
+
+
 def _import_file(path: Path):
     """Import a Python file as a module named after its stem (its folder goes on
     the import path, so that it can import its neighbours)."""
@@ -112,6 +125,7 @@ def _import_file(path: Path):
     name = path.stem
     folder = str(path.parent)
     if folder not in sys.path:
+        _pin_generated()
         sys.path.insert(0, folder)
     spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None:
@@ -151,6 +165,7 @@ def resolve(spec: str) -> Any:
     else:
         cwd = str(Path.cwd())
         if cwd not in sys.path and "" not in sys.path:
+            _pin_generated()
             sys.path.insert(0, cwd)
         try:
             mod = importlib.import_module(modname)

@@ -182,7 +182,13 @@ def generated_dir() -> Path:
     if not pkgs:
         raise ModelError("no package for generated code is registered (entry point group "
                          "'bondgraph.generated')")
-    mod = importlib.import_module(pkgs[sorted(pkgs)[0]])
+    name = pkgs[sorted(pkgs)[0]]
+    mod = importlib.import_module(name)
+    if getattr(mod, "__file__", None) is None:
+        where = ", ".join(str(p) for p in getattr(mod, "__path__", []))
+        raise ModelError(f"the package '{name}' of generated code is shadowed by a folder of "
+                         f"that name on the import path ({where}): run from another folder, "
+                         f"or rename that folder")
     return Path(mod.__file__).parent
 
 

@@ -6,8 +6,6 @@ from pathlib import Path
 
 import numpy as np
 
-from bondgraph.errors import ModelError
-from bondgraph.numerics.model import Model
 from bondgraph.report.plots import pyplot
 from bondgraph.sensitivity.analysis import SensitivityReport
 
@@ -163,10 +161,10 @@ def _sensitivities(plt, report: SensitivityReport, title: str, p: Path) -> Path:
     strongest parameters, one axis per output."""
     names = report.params
     s = report.sensitivities
-    try:
-        sigma = np.asarray(Model.load(report.model).meas_std(s.theta), float)
-    except ModelError:
-        sigma = np.ones(len(s.outputs))
+    # the noise levels that weighed the output-error information (a model
+    # from a file has no registered name to look its sensors up by)
+    oe = (report.local or {}).get("output_error") or {}
+    sigma = np.asarray(oe.get("sigma", np.ones(len(s.outputs))), float)
     Z = s.scaled(sigma)
     ny = len(s.outputs)
     strength = np.sqrt(np.nansum(Z ** 2, axis=(0, 1)))

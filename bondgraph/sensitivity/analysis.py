@@ -500,7 +500,8 @@ def _output_error(an: _Analysis, local: dict, lo: LocalOptions) -> Sensitivities
         flags=ident_oe["flags"], collinearity_index=ident_oe["collinearity_index"],
         rms_scaled=np.sqrt(np.sum(Zm ** 2, axis=0)
                            / np.maximum(mask.sum(axis=0), 1)[:, None]).T,
-        outputs=list(model.outputs), solver=sens.stats)
+        outputs=list(model.outputs), sigma=np.asarray(sigma, float).tolist(),
+        solver=sens.stats)
     return sens
 
 
