@@ -212,6 +212,15 @@ def test_track_holds_a_level_for_a_sensor_that_declares_none(user_dir, capsys):
     head = (user_dir / "trk" / "track.csv").read_text().splitlines()[0].split(",")
     est, sd = rows[-1, head.index("c")], rows[-1, head.index("c.std")]
     assert abs(est - 1.5) < 3 * sd, (est, sd)
+    assert "sits on its box" not in captured.out
+    # a box far wider than the value (0.01 .. 1e4) carries no scale: c = 1.5 is
+    # not "on" it (1e-3 of the width, 10, said so for the whole record)
+    (user_dir / "bare_wide.py").write_text(BARE.replace(
+        "    return bare_msd_graph()",
+        "    g = bare_msd_graph()\n    g.params['c'].bounds = (0.01, 1e4)\n    return g"))
+    assert main(["track", "--model", "bare_wide:build", "--data", "r.csv", "--track", "c",
+                 "--out", "trk_wide", "--no-plots", "--method", "rk4", "--substeps", "2"]) == 0
+    assert "sits on its box" not in capsys.readouterr().out
     # a truth the graph lacks (a cubic spring, 20 % of the linear force at 0.1 m), its
     # first 9 s: within one GLR window (10 s) the warning could never fire; in 20 it does
     rhs3 = lambda s, x: [x[1] / 2.0, np.interp(s, t, f) - 50.0 * x[0] - 1000.0 * x[0] ** 3

@@ -105,6 +105,8 @@ def test_output_error_fixed_step_fit_in_a_nominal_box(record, monkeypatch):
     est = r.estimates()
     assert est["c"] == pytest.approx(TRUTH["c"], rel=0.05)
     assert est["k"] == pytest.approx(TRUTH["k"], rel=0.01)
+    # nor are they "at" a bound (within 1e-8 of the width, 1e7, said so)
+    assert r.at_bound == []
 
 
 def test_a_pinned_parameter_that_never_moved_is_not_stuck():

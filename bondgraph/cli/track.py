@@ -41,6 +41,7 @@ from bondgraph.inference.discretise import (
     supported_hold,
 )
 from bondgraph.inference.estimand import start_levels
+from bondgraph.inference.fisher import near_bound
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
 from bondgraph.inference.track import TrackingModel, check_tracked, choose_substeps, track
 from bondgraph.inference.ukf_numba import compile_in_background
@@ -331,8 +332,8 @@ def summary(res) -> str:
         lo, hi = res.settings.get("boxes", {}).get(n, (None, None))
         if lo is None:
             continue
-        on = np.mean((res.estimate[:, i] - lo < 1e-3 * (hi - lo))
-                     | (hi - res.estimate[:, i] < 1e-3 * (hi - lo)))
+        near_lo, near_hi = near_bound(res.estimate[:, i], lo, hi, rel=1e-3)
+        on = np.mean(near_lo | near_hi)
         if on > 0.05:
             lines.append(f"warning: {n} sits on its box [{lo:g}, {hi:g}] for {100 * on:.0f} % "
                          f"of the record: the box, or the model, is wrong there")

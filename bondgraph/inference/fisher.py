@@ -770,9 +770,12 @@ def near_bound(x, lo, hi, rel: float = 1e-6, magnitude=None) -> tuple[np.ndarray
     width and the magnitude there (the larger of ``magnitude``, default
     ``|x|``, and that bound's): a box far wider than the value carries no
     scale (a mass of 5.5e-6 s² in a box (0, 1e9) is not "at" 0, which 1e-6
-    of the width said). Shared by the estimate's and the loop's "on a
-    bound" (:func:`bondgraph.inference.estimate._at_bound`,
-    :func:`bondgraph.diagnose.fit.on_bound`).
+    of the width said). Shared by the estimate's, the loop's, the
+    output-error fit's and the tracker's "on a bound"
+    (:func:`bondgraph.inference.estimate._at_bound`,
+    :func:`bondgraph.diagnose.fit.on_bound`,
+    :class:`~bondgraph.inference.output_error.OutputErrorResult`'s
+    ``at_bound``, ``bondgraph track``'s "sits on its box" warning).
 
     Parameters
     ----------

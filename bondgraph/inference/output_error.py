@@ -48,7 +48,7 @@ from scipy.optimize import least_squares
 
 from bondgraph.errors import DataError, ModelError, NumericalError, OptionError
 from bondgraph.inference import sim_numba
-from bondgraph.inference.fisher import typical_magnitude
+from bondgraph.inference.fisher import near_bound, typical_magnitude
 from bondgraph.inference.optimize import pso
 from bondgraph.inference.options import SwarmOptions
 from bondgraph.inference.prior import fixed_step_outputs, free_run_kernels
@@ -505,9 +505,8 @@ def _result(prob: _Problem, r, lo, hi) -> OutputErrorResult:
     seen = np.isfinite(err).sum(axis=0)
     rmse = np.full(err.shape[1], np.nan)      # an output without a sample: NaN, no warning
     rmse[seen > 0] = np.sqrt(np.nanmean(err[:, seen > 0] ** 2, axis=0))
-    width = np.where(np.isfinite(hi - lo), hi - lo, np.maximum(np.abs(r.x), 1e-300))
-    at = [n for n, v, a, b, w in zip(names, r.x, lo, hi, width)
-          if v - a <= 1e-8 * w or b - v <= 1e-8 * w]
+    near_lo, near_hi = near_bound(r.x, lo, hi, rel=1e-8)
+    at = [n for n, a, b in zip(names, near_lo, near_hi) if a or b]
     n_res, k = int(prob.mask.sum()), r.x.size
     s2 = 2 * r.cost / max(n_res - k, 1)
     J = np.asarray(r.jac, float)
