@@ -495,6 +495,68 @@ def test_a_correction_beside_a_declared_resistor_is_judged_with_it():
     assert v.value == pytest.approx((200.0 - 300.0) * v.at**2, rel=1e-12)
 
 
+def _drive(dc: float, spring: bool):
+    """A rotor (Coulomb friction 0.2 N m, tanh width 0.2 rad/s) behind a
+    screw (r = 0.01 m/rad) moving a load (viscous friction 10 N s/m and a
+    direction-dependent Coulomb term dc·tanh²(v/0.002)), rigidly, or with
+    a spring between the screw and the load."""
+    g = BondGraph("drive", "rotor, screw, load")
+    Fv = g.param("Fv", 10.0, "N*s/m", (1.0, 100.0))
+    d = g.param("dc", dc, "N", (-100.0, 100.0))
+    Tc = g.param("Tc", 0.2, "N*m", (0.0, 10.0))
+    wm, v = g.one("wm"), g.one("v")
+    g.connect(wm, g.I("rotor", 1e-4))
+    g.connect(wm, g.R("coulomb", effort=lambda w: Tc * sp.tanh(w / 0.2)))
+    screw = g.TF("screw", 0.01)
+    g.connect(wm, screw.p1)
+    if spring:
+        z = g.zero("z")
+        g.connect(screw.p2, z)
+        g.connect(z, g.C("belt", 1e-6))
+        g.connect(z, v)
+    else:
+        g.connect(screw.p2, v)
+    g.connect(v, g.I("load", 1.0))
+    g.connect(v, g.R("visc", Fv))
+    g.connect(v, g.R("asym", effort=lambda f: d * sp.tanh(f / 0.002) ** 2))
+    g.sensor("vel", v.f, unit="m/s", noise_std=0.01)
+    return g, {"Fv": 10.0, "dc": dc, "Tc": 0.2}
+
+
+def test_resistors_on_rigidly_tied_junctions_are_judged_together():
+    """A direction-dependent Coulomb term dc·tanh² at the load produces
+    power alone (dc·v < 0 on one side) and needs the symmetric Coulomb level
+    it modifies, which a user's graph may put at the rotor behind a rigid
+    screw (an EMPS graph: Coulomb friction at the rotor was refused beside
+    the load's asymmetric friction, "produces power"). With the load's
+    velocity v and the rotor's ω = v/r tied, the drive's Rs absorb
+    r ω·0.2 tanh(ω/0.2) + 10 v² + dc tanh²(v/0.002) v, which is >= 0 for
+    dc = 5 < 20 N (the Coulomb level at the load) and not for dc = 30.
+    With a spring between screw and load the flows are not tied: the load's
+    Rs are judged alone and the term is refused."""
+    v = np.linspace(-0.1, 0.1, 41)
+    g, th = _drive(5.0, spring=False)
+    ss = derive(g)
+    assert [s.name for s in ss.states] == ["p_load"]
+    r = check_admissible(g, ss, th, v[:, None], np.zeros((41, 0)))   # p = m v, m = 1
+    assert r.ok and sorted(r.checked) == ["asym", "coulomb", "load", "visc"]
+    g, th = _drive(30.0, spring=False)
+    (bad,) = check_admissible(g, derive(g), th, v[:, None], np.zeros((41, 0))).violations
+    assert bad.element == ("asym + visc + coulomb (on junctions 'v', 'wm', whose flows are "
+                           "rigidly tied)")
+    # at the worst flow: (20 − 30) |v| + 10 v² with tanh ≈ ±1 (v >> 0.002 m/s)
+    assert bad.at < 0 and bad.value == pytest.approx(-10.0 * abs(bad.at) + 10.0 * bad.at**2,
+                                                      rel=1e-6)
+    g, th = _drive(5.0, spring=True)
+    ss = derive(g)
+    names = [s.name for s in ss.states]
+    x = np.zeros((41, len(names)))
+    x[:, names.index("p_load")] = v
+    x[:, names.index("p_rotor")] = np.linspace(0.003, -0.001, 41) * 1e-4
+    (bad,) = check_admissible(g, ss, th, x, np.zeros((41, 0))).violations
+    assert bad.element == "asym + visc (in parallel on junction 'v')"
+
+
 def test_a_refit_that_pins_a_declared_parameter_on_its_box_is_refused():
     """A candidate's refit that moves a declared physical parameter from
     inside its box onto a bound is compensating (the box decides it, and

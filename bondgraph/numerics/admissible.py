@@ -9,7 +9,10 @@ visits.
   law lies in the first and third quadrants). R elements in parallel on one
   junction that share x (effort laws on a 1-junction, flow laws on a
   0-junction) are checked as one R-field: x·Σφᵢ(x) >= 0, so that a
-  correction term beside a declared law is judged with it.
+  correction term beside a declared law is judged with it; so are the Rs
+  of junctions whose variables are rigidly tied along the trajectory
+  (x_j = k_j x: 1-junctions bonded directly or through a transformer with
+  no storage between them), Σ_j k_j x·φ_j(k_j x) >= 0.
 - Every C and I element in integral causality stores its energy convexly:
   dΨ/dq >= 0 for a capacitance e = Ψ(q) (dΦ/dp >= 0 for an inertia
   f = Φ(p)) over the range of its state, so that its stored energy
@@ -218,8 +221,8 @@ def check_admissible(graph: BondGraph, ss, theta: Mapping[str, float], x: np.nda
     out = Admissibility()
     resistors = [graph.elements[n] for n in sorted(graph.elements)
                  if isinstance(graph.elements[n], R)]
-    for junction, els in _parallel_groups(graph, resistors):
-        _check_r(env, junction, els, margin, out)
+    for junctions, members in _tied(env, _parallel_groups(graph, resistors)):
+        _check_r(env, junctions, members, margin, out)
     for name in sorted(graph.elements):
         el = graph.elements[name]
         if isinstance(el, R):
@@ -355,23 +358,82 @@ def _parallel_groups(graph: BondGraph, resistors: list) -> list[tuple[str, list]
     return [(key[1] if key[0] != "R" else "", els) for key, els in groups.items()]
 
 
-def _check_r(env: _Env, junction: str, els: list, margin: float, out: Admissibility) -> None:
-    """x·Σ sᵢ φᵢ(x) >= 0 for the R laws ``els`` sharing the variable x (the
-    flow for effort laws, the effort for flow laws; sᵢ = +1 when the bond's
-    half-arrow points into the R, −1 otherwise): the power they absorb
-    together."""
+def _shared(env: _Env, els: list):
+    """The variable a group of :func:`_parallel_groups` shares (its first
+    R's flow for effort laws, effort for flow laws) as solved from the
+    states and inputs, and its values along the trajectory (None where it
+    is not a function of them alone)."""
+    b = els[0].port.bond
+    solved = env.ss.variable(b.f if els[0].form == "effort" else b.e)
+    if not env.known(solved) or env.n == 0:
+        return solved, None
+    return solved, np.broadcast_to(env.evaluate(solved), (env.n,))
+
+
+#: two groups' shared variables are rigidly tied when one is a constant
+#: multiple of the other at every sample, within this fraction of its size
+TIED = 1e-9
+
+
+def _tied(env: _Env, groups: list) -> list[tuple[list, list]]:
+    """The groups of :func:`_parallel_groups` joined where their shared
+    variables are rigidly tied along the trajectory, x_j = k_j x: the flows
+    of two 1-junctions bonded directly or through a transformer with no
+    storage between them (a motor's rotor and the load behind a ball
+    screw; one inertia then in derivative causality). Their Rs are one
+    R-field at the common variable, Σ_j k_j x·φ_j(k_j x) >= 0: a
+    direction-dependent friction at the load, which needs the Coulomb level
+    it modifies, is judged with that Coulomb friction at the rotor (a
+    user's EMPS graph: refused as "produces power" while the drive as a
+    whole dissipated). Returns ``[(junction names, [(els, k), ...])]``,
+    each first member with k = 1."""
+    values = [(_shared(env, els)[1], els[0].form) for _, els in groups]
+    owner = list(range(len(groups)))
+    ratio = [1.0] * len(groups)
+    for j, (xj, form) in enumerate(values):
+        for i in range(j):
+            xi = values[i][0]
+            if owner[i] != i or xj is None or xi is None or values[i][1] != form \
+                    or not groups[i][0] or not groups[j][0]:
+                continue
+            ii = float(xi @ xi)
+            k = float(xi @ xj) / ii if ii > 0 else 0.0
+            if k != 0.0 and np.all(np.isfinite(xj)) and \
+                    np.max(np.abs(xj - k * xi)) <= TIED * np.max(np.abs(xj)):
+                owner[j], ratio[j] = i, k
+                break
+    out = []
+    for i, (junction, els) in enumerate(groups):
+        if owner[i] != i:
+            continue
+        tied = [j for j in range(i + 1, len(groups)) if owner[j] == i]
+        out.append(([junction] + [groups[j][0] for j in tied],
+                    [(els, 1.0)] + [(groups[j][1], ratio[j]) for j in tied]))
+    return out
+
+
+def _check_r(env: _Env, junctions: list, members: list, margin: float,
+             out: Admissibility) -> None:
+    """x·Σ sᵢ φᵢ(x) >= 0 for the R laws of ``members`` (``[(els, k)]``: the
+    laws ``els`` read k·x) sharing the variable x (the flow for effort
+    laws, the effort for flow laws; sᵢ = +1 when the bond's half-arrow
+    points into the R, −1 otherwise): the power they absorb together,
+    Σ k x·φ(k x) for the members tied to the first one (:func:`_tied`)."""
+    els = [e for group, _ in members for e in group]
     el0 = els[0]
     variable = "flow" if el0.form == "effort" else "effort"
     names = " + ".join(e.name for e in els)
     X = _PORT
-    total, terms = sp.Integer(0), []
-    for el in els:
-        port_var = el.f if el.form == "effort" else el.e
-        law = el.port.bond.sign_at(el) * el.law.xreplace({port_var: X})
-        total += law
-        terms += list(sp.Add.make_args(sp.expand_mul(law)))
-    power = sp.sympify(X * total)
-    gross = sp.Add(*[sp.Abs(X * t) for t in terms])
+    power, terms = sp.Integer(0), []
+    for group, k in members:
+        kx = X if k == 1.0 else sp.Float(k) * X
+        for el in group:
+            port_var = el.f if el.form == "effort" else el.e
+            law = el.port.bond.sign_at(el) * el.law.xreplace({port_var: kx})
+            power += kx * law
+            terms += [kx * t for t in sp.Add.make_args(sp.expand_mul(law))]
+    power = sp.sympify(power)
+    gross = sp.Add(*[sp.Abs(t) for t in terms])
     others = [s for s in power.free_symbols if s != X and s not in env.params]
     b = el0.port.bond
     solved = env.ss.variable(b.f if el0.form == "effort" else b.e)
@@ -393,7 +455,12 @@ def _check_r(env: _Env, junction: str, els: list, margin: float, out: Admissibil
     out.checked.extend(e.name for e in els)
     i, bad = _r_worst(p, g)
     if bad:
-        where = f" (in parallel on junction '{junction}')" if len(els) > 1 else ""
+        named = [j for j in junctions if j]
+        where = ("" if len(els) == 1 else
+                 f" (in parallel on junction '{named[0]}')" if len(named) == 1 and
+                 len(members) == 1 else
+                 f" (on junctions {', '.join(repr(j) for j in named)}, whose {variable}s are "
+                 f"rigidly tied)")
         out.violations.append(Violation(names + where, "R", "produces power", variable,
                                         float(grid[i]), float(p[i]),
                                         (float(np.min(xs)), float(np.max(xs)))))
