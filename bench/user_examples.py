@@ -17,7 +17,8 @@ Examples (about 30 min in all on a 2-core machine):
 
 * ``emps`` -- ``examples/emps_user.py``: the user's EMPS graph, held-out
   position NRMSE; ``emps_x10`` the same on every tenth sample
-  (``--decimate 10``);
+  (``--decimate 10``); ``emps_screw`` another user's graph of it (rotor,
+  ball screw, load) on every tenth sample;
 * ``silverbox`` -- ``examples/silverbox_user.py``: a mass-spring-damper,
   arrow and multisine test sets [mV];
 * ``silverbox_rlc`` -- the same with ``--graph rlc``, a series RLC circuit;
@@ -51,6 +52,7 @@ RESULT = Path(__file__).with_name("results") / "user_examples.json"
 EXAMPLES = {
     "emps": ("emps_user.py", []),
     "emps_x10": ("emps_user.py", ["--decimate", "10"]),
+    "emps_screw": ("emps_user.py", ["--graph", "screw", "--decimate", "10"]),
     "silverbox": ("silverbox_user.py", []),
     "silverbox_rlc": ("silverbox_user.py", ["--graph", "rlc"]),
     "ced": ("ced_user.py", []),

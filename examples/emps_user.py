@@ -70,6 +70,7 @@ Usage::
     .venv/bin/python examples/emps_user.py --decimate 10 --out emps_user_x10
     # the benchmark's protocol (also writes emps_user/pulses.csv)
     .venv/bin/python examples/emps_user.py --protocol --out emps_protocol
+    .venv/bin/python examples/emps_user.py --graph screw --decimate 10 --out emps_screw
 """
 
 from __future__ import annotations
@@ -114,6 +115,42 @@ def emps_user() -> BondGraph:
     return g
 
 
+def emps_screw() -> BondGraph:
+    """Another user's EMPS graph: the motor's rotor (inertia Jm) drives the
+    load (mass M, viscous friction Fv) through the ball screw, a
+    transformer of lead r per radian, rigidly: the rotor's inertia takes
+    derivative causality (the graph says so) and adds its reflected mass
+    Jm/r² to M. The drive torque gtau·r·vir; gtau and r declared without a
+    box (known values), Jm, M and Fv with rough starts and wide boxes.
+
+    Hand-derived (p = M v, ω = v/r)::
+
+        dp/dt = (gtau·vir − Fv p/M) / (1 + Jm/(M r²)),   dq/dt = p/M,   qm = q
+
+    Returns
+    -------
+    BondGraph
+    """
+    g = BondGraph("emps_screw", "EMPS drive: rotor, ball screw, load (user's graph)")
+    vir = g.input("vir", "V", 0.0, "drive command")
+    gtau = g.param("gtau", 35.15065, "N/V", None, "drive gain (known)")
+    Jm = g.param("Jm", 1e-4, "kg*m^2", (1e-6, 1e-1), "rotor inertia")
+    r = g.param("r", 0.005 / 6.283, "m/rad", None, "screw lead per radian (known)")
+    M = g.param("M", 80.0, "kg", (10.0, 1000.0), "load mass")
+    Fv = g.param("Fv", 100.0, "N*s/m", (1.0, 2000.0), "viscous friction")
+    wm, v = g.one("wm"), g.one("v")
+    g.connect(g.Se("drive", gtau * r * vir), wm)
+    g.connect(wm, g.I("rotor", Jm))
+    screw = g.TF("screw", r)
+    g.connect(wm, screw.p1)
+    g.connect(screw.p2, v)
+    g.connect(v, g.I("load", M))
+    g.connect(v, g.R("viscous", Fv))
+    q = g.displacement(v, name="q", unit="m")
+    g.sensor("qm", q, unit="m", description="load position (encoder)")
+    return g
+
+
 def write_csv(path: Path, data_dir: Path | None = None, which: str = "estimation") -> Path:
     """The run ``which`` (``"estimation"``, or ``"validation"``: the
     force-pulse run) as ``t [s],qm [m],vir [V]`` from the local data
@@ -154,12 +191,17 @@ def main(argv=None) -> int:
     ap.add_argument("--decimate", type=int, default=None,
                     help="passed to bondgraph loop: fit every K-th sample (the record is ten "
                          "times oversampled; 10 takes 240 s instead of 590 s)")
+    ap.add_argument("--graph", choices=("mass", "screw"), default="mass",
+                    help="the user's graph: a mass on viscous friction (emps_user, M and Fv "
+                         "estimated), or rotor, screw and load (emps_screw, the loop's default "
+                         "parameters)")
     a = ap.parse_args(argv)
     out = Path(a.out)
     csv = write_csv(out / "emps.csv")
+    fn, params = ("emps_user", ["--params", "M,Fv"]) if a.graph == "mass" else ("emps_screw", [])
     cmd = [sys.executable, "-c", "from bondgraph.cli.main import main; raise SystemExit(main())",
-           "loop", "--model", f"{Path(__file__).resolve()}:emps_user", "--data", str(csv),
-           "--params", "M,Fv", "--out", str(out / "loop")]
+           "loop", "--model", f"{Path(__file__).resolve()}:{fn}", "--data", str(csv),
+           *params, "--out", str(out / "loop")]
     if a.protocol:
         pulses = write_csv(out / "pulses.csv", which="validation")
         cmd += ["--validate", str(pulses), "--init-samples", "20"]

@@ -64,6 +64,19 @@ def test_emps_user_graph_is_the_hand_derived_mass_on_viscous_friction(tmp_path):
     np.testing.assert_allclose(m.f(x, u, th)[:, 0], gt * u[:, 0] - Fv * x[:, 0] / M, rtol=1e-12)
     np.testing.assert_allclose(m.f(x, u, th)[:, 1], x[:, 0] / M, rtol=1e-12)
     np.testing.assert_allclose(m.h(x, u, th)[:, 0], x[:, 1], rtol=1e-12)
+    # --graph screw: rotor, screw (lead r per radian) and load, rigidly: the
+    # rotor's inertia reflected into the load, dp/dt = (gtau·vir − Fv p/M) /
+    # (1 + Jm/(M r²)), one momentum state
+    s = Model.from_graph(mod.emps_screw())
+    assert s.states == ["p_load", "q"] and s.inputs == ["vir"] and s.outputs == ["qm"]
+    th = np.tile(s.theta0, (5, 1))
+    th[:, s.param_index("Jm")] = rng.uniform(1e-5, 1e-3, 5)
+    th[:, s.param_index("M")] = rng.uniform(50, 150, 5)
+    gt, Jm, r, M, Fv = (th[:, s.param_index(n)] for n in ("gtau", "Jm", "r", "M", "Fv"))
+    np.testing.assert_allclose(s.f(x, u, th)[:, 0],
+                               (gt * u[:, 0] - Fv * x[:, 0] / M) / (1 + Jm / (M * r**2)),
+                               rtol=1e-12)
+    np.testing.assert_allclose(s.f(x, u, th)[:, 1], x[:, 0] / M, rtol=1e-12)
     from bondgraph.data.datasets import default_data_dir, find_local
     root = default_data_dir()
     if root is None or find_local("emps", "emps_estimation.csv", root) is None:
