@@ -291,3 +291,72 @@ def test_a_folder_named_generated_beside_the_model_file_does_not_shadow_the_pack
     lines = run.stdout.split()
     assert Path(lines[0]) == GENERATED
     assert lines[1] == "mass_spring_damper"
+
+
+STATIC = '''
+from bondgraph import BondGraph
+
+
+def build():
+    g = BondGraph("static_user", "an imposed speed on a damper; a power meter")
+    v = g.input("v", "m/s", 0.0, "imposed speed")
+    c = g.param("c", 3.0, "N*s/m", (0.1, 30.0), "damping")
+    p0 = g.param("p0", 1.0, "W", (-10.0, 10.0), "meter offset")
+    j = g.one("j")
+    drive = g.MSf("drive", v)
+    g.connect(drive, j)
+    g.connect(j, g.R("damper", c))
+    g.sensor("P", p0 + drive.e * v, unit="W", noise_std=0.5)
+    return g
+'''
+
+
+def test_a_graph_without_a_state_is_estimated_as_the_static_model_it_is(user_dir, capsys):
+    """A user's graph whose outputs are algebraic functions of its inputs
+    (an imposed speed on a damper, a power meter P = p0 + c v²; a Camry
+    graph whose dyno imposes the speed) has no state: estimate, compare and
+    loop failed ("sigma points need a state dimension >= 1"). It gets an
+    inert state (registry.with_a_state) and the filter's likelihood is the
+    static one: the estimates are the least-squares solution of
+    P = p0 + c v² (numpy), their Cramér-Rao std its σ √diag((XᵀX)⁻¹) at
+    the noise level's estimate (the RMS residual)."""
+    (user_dir / "static_user.py").write_text(STATIC)
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 40.0, 0.1)
+    v = 2.0 * np.sin(0.7 * t) + rng.normal(0.0, 0.5, t.size)
+    P = 0.8 + 4.0 * v**2 + rng.normal(0.0, 0.5, t.size)
+    Experiment.from_arrays(t, {"v": v, "P": P}, units={"v": "m/s", "P": "W"},
+                           roles={"v": "input", "P": "output"},
+                           name="meter").save(user_dir / "meter.csv")
+    assert main(["estimate", "--model", "static_user:build", "--data", "meter.csv",
+                 "--out", "est", "--quiet", "--no-plots"]) == 0
+    res = json.loads((user_dir / "est" / "result.json").read_text())
+    est, std = dict(zip(res["params"], res["estimates"])), dict(zip(res["params"], res["std"]))
+    X = np.column_stack([np.ones_like(v), v**2])
+    (p0, c), *_ = np.linalg.lstsq(X, P, rcond=None)
+    rms = np.sqrt(np.mean((P - X @ [p0, c]) ** 2))      # the noise level's MLE
+    sd = rms * np.sqrt(np.diag(np.linalg.inv(X.T @ X)))
+    assert est["c"] == pytest.approx(c, rel=1e-5)
+    assert est["p0"] == pytest.approx(p0, rel=1e-4)
+    assert est["noise.P"] == pytest.approx(rms, rel=1e-4)
+    assert std["c"] == pytest.approx(sd[1], rel=1e-3)
+    assert std["p0"] == pytest.approx(sd[0], rel=1e-3)
+    assert main(["compare", "static_user:build", "--data", "meter.csv", "--params",
+                 "est/result.json", "--out", "cmp", "--no-plots"]) == 0
+    out = capsys.readouterr().out
+    assert f"| meter | P | {rms:.4g} W |" in out, out
+    assert main(["loop", "--model", "static_user:build", "--data", "meter.csv", "--out", "lp",
+                 "--max-steps", "0", "--no-plots", "--quiet"]) == 0
+    # from Python, the graph as built: the error says what to do
+    import importlib
+
+    from bondgraph.errors import ModelError
+    from bondgraph.inference.problem import make_problem
+    from bondgraph.numerics.model import Model
+    from bondgraph.numerics.registry import STATIC_STATE, with_a_state
+
+    bare = importlib.import_module("static_user").build()
+    with pytest.raises(ModelError, match="has no state") as err:
+        make_problem(Model.from_graph(bare), Experiment.load(user_dir / "meter.csv"))
+    assert "with_a_state" in err.value.hint
+    assert Model.from_graph(with_a_state(bare)).states == [STATIC_STATE]

@@ -39,6 +39,12 @@ from bondgraph.core.graph import Bond, BondGraph
 from bondgraph.errors import CausalConflictError, join_names
 
 
+#: the inert signal state a graph without a state of its own is given by
+#: :func:`bondgraph.numerics.registry.with_a_state` (named in
+#: :meth:`Causality.derivative_notes`)
+STATIC_STATE = "static_hold"
+
+
 @dataclass
 class Causality:
     """Result of SCAP.
@@ -95,6 +101,10 @@ class Causality:
                        f"{by}{thru}, so it adds no state ({n_int} of {n_st} storages are "
                        f"states); it is tied rigidly to them, and an inertia, compliance or "
                        f"resistance between them would give it a state of its own")
+        if n_int == 0 and STATIC_STATE in self.graph.signal_states:
+            out.append(f"no storage is a state: the outputs are algebraic functions of the "
+                       f"inputs (a static model); '{STATIC_STATE}' is an inert state added for "
+                       f"the filter and the free runs, which need one (it changes no output)")
         return out
 
     def receives_effort(self, bond: Bond, element: Element) -> bool:

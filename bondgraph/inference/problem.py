@@ -34,7 +34,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from bondgraph.errors import NumericalError, OptionError
+from bondgraph.errors import ModelError, NumericalError, OptionError
 from bondgraph.inference.estimand import noise_parameters, record_noise_level
 from bondgraph.inference.options import NOISE_MODES, Discretisation, UKFOptions, ukf_options
 from bondgraph.inference.prior import PriorSpec
@@ -500,6 +500,18 @@ def _record_arrays(model, record, defaults_ok: bool):
     return t, u, record.outputs_for(model)
 
 
+def _with_states(model: Model) -> Model:
+    """``model``, which must have a state: the filter's sigma points need
+    one (ModelError naming the remedy otherwise)."""
+    if model.n_x == 0:
+        raise ModelError(f"model '{model.name}' has no state (its outputs are algebraic "
+                         f"functions of its inputs: every storage in derivative causality); "
+                         f"the filter needs one",
+                         hint="build it with bondgraph.numerics.registry.with_a_state(graph), "
+                              "which adds an inert state (the commands do so themselves)")
+    return model
+
+
 def make_problem(model, record, *, prior: PriorSpec | None = None,
                  noise: NoiseSpec | None = None, ukf: UKFOptions | None = None,
                  fixed: Mapping[str, float] | None = None, arrays=None,
@@ -541,13 +553,14 @@ def make_problem(model, record, *, prior: PriorSpec | None = None,
     DataError
         A record that cannot be read or bound to the model (units, columns).
     ModelError
-        A fixed parameter the model does not have (named).
+        A fixed parameter the model does not have (named), or a model
+        without a state (:func:`bondgraph.numerics.registry.with_a_state`).
     OptionError
         Options of the wrong type, a per-input hold whose length is not
         the model's number of inputs (the inputs named), or refined runs
         (``ukf.refine``) beyond the record's intervals.
     """
-    model = Model.from_spec(model)
+    model = _with_states(Model.from_spec(model))
     rec = as_record(record)
     prior = PriorSpec() if prior is None else prior
     if noise is None:       # bare arrays declare no level: the graph's own

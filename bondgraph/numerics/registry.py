@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from bondgraph.core import plugins
+from bondgraph.core.causality import STATIC_STATE
 from bondgraph.core.codegen import generate_source
 from bondgraph.core.codegen_c import generate_c_source
 from bondgraph.core.codegen_numba import generate_numba_source
@@ -97,8 +98,43 @@ def graph_builder(spec: str):
         if not isinstance(g, BondGraph):
             raise ModelError(f"'{spec}' returned {_a(type(g).__name__)}, not a BondGraph")
         g.source = spec
-        return g
+        return with_a_state(g)
     return make
+
+
+def with_a_state(graph: BondGraph) -> BondGraph:
+    """``graph`` itself, given an inert signal state z (dz/dt = 0, z(0) = 0,
+    read by no law; named :data:`STATIC_STATE`) where it has no state of
+    its own: every storage in derivative causality, no signal state (a
+    dyno that imposes the measured speed on the vehicle's inertia, the fuel
+    flow an algebraic function of the wheel power). Its outputs are then
+    algebraic functions of its inputs; the filter's sigma points, the
+    smoother and the free runs need a state dimension (a user's static
+    Camry graph: "sigma points need a state dimension >= 1" from estimate,
+    compare, sensitivity and loop). z changes no output: the likelihood is
+    the static model's (innovations y − h(u), covariance R), and an effect
+    the loop adds (a thermal state) brings states of its own. The state's
+    description says why it is there.
+
+    Returns
+    -------
+    BondGraph
+        ``graph`` (changed in place when it had no state).
+    """
+    from bondgraph.core.causality import assign_causality
+    from bondgraph.core.elements import C, CField, I, IField
+
+    if graph.signal_states:
+        return graph
+    storages = sum(len(e.ports) if isinstance(e, (CField, IField)) else 1
+                   for e in graph.elements.values() if isinstance(e, (I, C, CField, IField)))
+    if storages > len(assign_causality(graph).derivative):
+        return graph
+    graph.state(STATIC_STATE, rhs=0, unit="1", initial=0.0,
+                description="inert state: the graph has no state of its own (its outputs are "
+                            "algebraic functions of its inputs), and the filter and the free "
+                            "runs need one; it changes no output")
+    return graph
 
 
 #: words of the errors numpy, math and Python's ``if`` raise on a sympy symbol
