@@ -360,3 +360,30 @@ def test_a_graph_without_a_state_is_estimated_as_the_static_model_it_is(user_dir
         make_problem(Model.from_graph(bare), Experiment.load(user_dir / "meter.csv"))
     assert "with_a_state" in err.value.hint
     assert Model.from_graph(with_a_state(bare)).states == [STATIC_STATE]
+
+
+def test_global_sensitivity_of_a_sensor_without_a_noise_level(user_dir, capsys):
+    """sensitivity --global on a user's sensor declared without a noise
+    level (meas_std 0): the local analysis estimates the level, but the
+    Sobol' sample ran the filter with the sensor's own 0 ("every evaluation
+    of 'NLL' is non-finite"). It holds the analysis' level now: every
+    evaluation finite on a record simulated with scipy (truth m 2, k 50,
+    c 1.5, noise 0.004 m)."""
+    from scipy.integrate import solve_ivp
+
+    (user_dir / "bare.py").write_text(BARE)
+    t = np.arange(0.0, 10.0, 0.01)
+    f = 5.0 * (np.sin(2 * t) + np.sign(np.sin(0.7 * t)))
+    rhs = lambda s, x: [x[1] / 2.0, np.interp(s, t, f) - 50.0 * x[0] - 1.5 * x[1] / 2.0]
+    q = solve_ivp(rhs, (0.0, t[-1]), [0.0, 0.0], t_eval=t, rtol=1e-10, atol=1e-12,
+                  max_step=0.005).y[0]
+    y = q + 0.004 * np.random.default_rng(3).standard_normal(t.size)
+    Experiment.from_arrays(t, {"F": f, "x": y}, units={"F": "N", "x": "m"},
+                           roles={"F": "input", "x": "output"}, name="bare",
+                           meta={"columns": {"F": {"hold": "linear"}}}).save(user_dir / "r.csv")
+    assert main(["sensitivity", "--model", "bare:build", "--data", "r.csv", "--global", "16",
+                 "--out", "sg", "--no-plots", "--quiet", "--method", "rk4", "--substeps",
+                 "2"]) == 0, capsys.readouterr().err
+    g = json.loads((user_dir / "sg" / "sensitivity.json").read_text())["global"]
+    assert g["evaluations"] == 16 * (2 * 3 + 2) and g["failed"] == {"NLL": 0}
+    assert all(np.isfinite(g["indices"]["NLL"]["ST"]))

@@ -338,10 +338,18 @@ def _report(an: _Analysis, scale, local, recommendation, glob, sens,
 
 
 def _global(an: _Analysis, options: SobolOptions) -> dict:
-    """Sobol' indices of the NLL (:func:`bondgraph.sensitivity.sobol.global_sensitivity`)."""
+    """Sobol' indices of the NLL (:func:`bondgraph.sensitivity.sobol.global_sensitivity`),
+    the estimated noise levels held at the analysis' levels."""
     t0 = time.perf_counter()
     an.say(f"Sobol' indices: N = {_pow2(options.N)} ...")
-    glob = global_sensitivity(an.problem, an.params, options)
+    pb, est = an.problem, an.estimand
+    if est is not None and est.noises:
+        # the estimated noise levels held where the local analysis has them
+        # (profiled at θ): the problem's own are the sensors' declarations,
+        # 0 for a user's sensor without one (every NLL was non-finite)
+        pb = pb.conditioned_on(noise_levels={
+            o: float(est.sigma[pb.model.output_index(o)]) for o in est.noises})
+    glob = global_sensitivity(pb, an.params, options)
     an.timing["global_s"] = time.perf_counter() - t0
     return glob
 
