@@ -555,6 +555,13 @@ def test_resistors_on_rigidly_tied_junctions_are_judged_together():
     x[:, names.index("p_rotor")] = np.linspace(0.003, -0.001, 41) * 1e-4
     (bad,) = check_admissible(g, ss, th, x, np.zeros((41, 0))).violations
     assert bad.element == "asym + visc (in parallel on junction 'v')"
+    # two samples of two flows may be proportional by chance (ω = 100 v here):
+    # not taken for a tie
+    x2 = np.zeros((2, len(names)))
+    x2[:, names.index("p_load")] = [0.1, -0.1]
+    x2[:, names.index("p_rotor")] = [1e-3, -1e-3]                 # ω = p / 1e-4
+    (bad,) = check_admissible(g, ss, th, x2, np.zeros((2, 0))).violations
+    assert bad.element == "asym + visc (in parallel on junction 'v')"
 
 
 def test_a_refit_that_pins_a_declared_parameter_on_its_box_is_refused():

@@ -373,6 +373,9 @@ def _shared(env: _Env, els: list):
 #: two groups' shared variables are rigidly tied when one is a constant
 #: multiple of the other at every sample, within this fraction of its size
 TIED = 1e-9
+#: ... over at least this many samples where it is not 0 (two values of any
+#: two variables are proportional)
+TIED_SAMPLES = 3
 
 
 def _tied(env: _Env, groups: list) -> list[tuple[list, list]]:
@@ -397,7 +400,7 @@ def _tied(env: _Env, groups: list) -> list[tuple[list, list]]:
                     or not groups[i][0] or not groups[j][0]:
                 continue
             ii = float(xi @ xi)
-            k = float(xi @ xj) / ii if ii > 0 else 0.0
+            k = float(xi @ xj) / ii if np.count_nonzero(xi) >= TIED_SAMPLES else 0.0
             if k != 0.0 and np.all(np.isfinite(xj)) and \
                     np.max(np.abs(xj - k * xi)) <= TIED * np.max(np.abs(xj)):
                 owner[j], ratio[j] = i, k
