@@ -73,3 +73,18 @@ def test_a_wrong_unit_on_a_heat_bond_is_still_refused():
     # a heat capacity in J (not J/K) does not fit the bond temperature/heat flow
     with pytest.raises(UnitMismatchError, match="C 'mass'"):
         block("heat", capacity_unit="J").validate()
+
+
+def test_a_heater_declared_in_watts_on_a_thermal_junction_names_the_heat_domain():
+    """A heat flow source [W] on a true thermal junction (flow: entropy
+    flow [W/K]): the unit error's remedy names the heat domain too (a
+    user's heated block: the heater was the first element checked, and the
+    error came without it)."""
+    g = BondGraph("heater_only", "a heater on a thermal node")
+    p = g.input("P", "W", 0.0, "heater power")
+    node = g.zero("node", domain="thermal")
+    g.connect(g.Sf("heater", p), node)
+    g.connect(node, g.C("mass", g.param("C_th", 2.7, "J/K^2", (0.1, 100.0), "")))
+    with pytest.raises(UnitMismatchError, match="Sf 'heater'") as exc:
+        g.validate()
+    assert "domain='heat'" in exc.value.hint

@@ -919,7 +919,7 @@ def _thermal_hint(graph: BondGraph, el: Element, have) -> str | None:
     if not any(e and f and _units.same_dimension(e, "K") and _units.same_dimension(f, "W/K")
                for e, f in units):
         return None
-    pseudo = {"J/K", "K/W", "W/K", "K*s/W", "W*s/K"}
+    pseudo = {"J/K", "K/W", "W/K", "K*s/W", "W*s/K", "W"}    # "W": a heat flow (a heater)
     if not any(have == _units.dimensionality(u) for u in pseudo):
         return None
     return ("the junctions' domain 'thermal' is the true bond graph (temperature and entropy "
