@@ -347,6 +347,13 @@ def test_a_graph_without_a_state_is_estimated_as_the_static_model_it_is(user_dir
     assert f"| meter | P | {rms:.4g} W |" in out, out
     assert main(["loop", "--model", "static_user:build", "--data", "meter.csv", "--out", "lp",
                  "--max-steps", "0", "--no-plots", "--quiet"]) == 0
+    # linearised: the inert state is no dynamics (no pole at 0): D alone, dP/dv = 2 c v
+    assert main(["linearize", "static_user:build", "--params", "est/result.json",
+                 "--at", "v=2", "-o", "lin.npz", "--no-plot"]) == 0
+    assert "poles: none (no state" in capsys.readouterr().out
+    lin = np.load(user_dir / "lin.npz")
+    assert lin["A"].shape == (0, 0) and lin["C"].shape == (1, 0)
+    assert lin["D"][0, 0] == pytest.approx(2 * est["c"] * 2.0, rel=1e-9)
     # from Python, the graph as built: the error says what to do
     import importlib
 

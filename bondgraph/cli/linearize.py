@@ -47,7 +47,8 @@ def run(args) -> int:
         print(f"  {name} = {value:.10g}")
     for name, value in zip(lin.inputs, lin.u):
         print(f"  {name} = {value:.10g}")
-    print("poles [1/s]:")
+    print("poles [1/s]:" if lin.states else
+          "poles: none (no state: the outputs are algebraic functions of the inputs, D alone)")
     for p in lin.poles():
         print(f"  {p.real:.6g} {'+' if p.imag >= 0 else '-'} {abs(p.imag):.6g}j")
     print(f"wrote {out}")

@@ -24,6 +24,7 @@ from typing import Mapping
 import numpy as np
 from scipy.optimize import root
 
+from bondgraph.core.causality import STATIC_STATE
 from bondgraph.core.graph import BondGraph
 from bondgraph.errors import BondGraphError, ExportError
 from bondgraph.export.params import model_graph
@@ -287,8 +288,12 @@ def linearize(model: str | BondGraph | Model, at: Mapping[str, float] | None = N
         if not np.all(np.isfinite(M)):
             raise ExportError(f"the Jacobian {name} of model '{m.name}' is not finite at the "
                               f"operating point (x = {x.tolist()}, u = {u.tolist()})")
-    return Linearization(model=m.name, A=mats["dfdx"], B=mats["dfdu"], C=mats["dhdx"],
-                         D=mats["dhdu"], states=tuple(m.states), inputs=tuple(m.inputs),
-                         outputs=tuple(m.outputs), x=x, u=u, theta=theta, y=y0,
+    # the inert state a graph without a state of its own is given
+    # (registry.with_a_state) is no dynamics of the system: its pole at 0 left out
+    keep = [i for i, s in enumerate(m.states) if s != STATIC_STATE]
+    A, B, C = mats["dfdx"][np.ix_(keep, keep)], mats["dfdu"][keep], mats["dhdx"][:, keep]
+    return Linearization(model=m.name, A=A, B=B, C=C, D=mats["dhdu"],
+                         states=tuple(m.states[i] for i in keep), inputs=tuple(m.inputs),
+                         outputs=tuple(m.outputs), x=x[keep], u=u, theta=theta, y=y0,
                          equilibrium=solved,
                          residual=float(np.max(np.abs(f0), initial=0.0)))
