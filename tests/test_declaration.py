@@ -231,6 +231,27 @@ def test_parameter_unit_must_fit_bond():
     g2.validate()
 
 
+def test_a_sensor_unit_must_fit_its_expression():
+    """A sensor declared in N that reads a translation junction's flow
+    [m/s] is refused naming the sensor (a record's column in N was bound
+    to it); m/s, km/h (the same dimension) or no unit pass, and a sensor
+    on a junction without a domain (units unknown) is not judged."""
+    def graph(unit, domain="translation"):
+        g = bg.BondGraph("s")
+        j = g.one("j", domain=domain)
+        g.connect(g.Se("src", g.input("F", "N")), j)
+        g.connect(j, g.I("mass", g.param("m", 1.0, "kg")))
+        g.sensor("v", 2 * j.f, unit=unit)
+        return g
+
+    with pytest.raises(errors.UnitMismatchError, match="sensor 'v'") as exc:
+        graph("N").validate()
+    assert "m/s" in exc.value.hint
+    for ok in ("m/s", "km/h", None):
+        graph(ok).validate()
+    graph("N", domain=None).validate()
+
+
 def _piston(hydraulic_on_p1: bool, modulus: str = "A"):
     """A pump-fed chamber driving a mass through a piston of area A [m^2]."""
     g = bg.BondGraph("piston")

@@ -843,6 +843,45 @@ class BondGraph:
         for el in self._sorted_elements():
             if isinstance(el, TwoPort):
                 self._check_modulus_unit(el, bu)
+        for sn in sorted(self.sensors):
+            self._check_sensor_unit(self.sensors[sn], bu)
+
+    def _var_unit(self, var: Var, bu: dict) -> str | None:
+        """The unit of a port or junction variable: its bond's effort or
+        flow unit (a junction's common variable: any of its bonds'); None
+        for a two-port's or where no unit is known."""
+        owner = self.elements.get(var.owner)
+        if owner is None or (not isinstance(owner, Junction) and len(owner.ports) != 1):
+            return None
+        for p in owner.ports:
+            if p.bond is not None:
+                eu, fu = bu.get(p.bond.name, (None, None))
+                return eu if var.var_kind == "effort" else fu
+        return None
+
+    def _check_sensor_unit(self, sensor, bu: dict) -> None:
+        """A sensor's declared unit against the dimension of its expression
+        (port variables in their bonds' units): a velocity declared in N was
+        accepted, and a record's column in N then bound to it."""
+        if not sensor.unit:
+            return
+        subs = {}
+        for v in sensor.expr.free_symbols:
+            if isinstance(v, Var):
+                u = self._var_unit(v, bu)
+                subs[v] = Input(f"{v.name}__unit", u) if u else v
+        try:
+            have = expr_unit(sensor.expr.xreplace(subs))
+        except UnitMismatchError:
+            return              # a sum of mixed dimensions: the expression checks say so
+        if have is None or have == _units.dimensionality(sensor.unit):
+            return
+        raise UnitMismatchError(
+            f"sensor '{sensor.name}': its expression {sensor.expr} has dimension {have}, but "
+            f"it is declared in [{sensor.unit}] = {_units.dimensionality(sensor.unit)}",
+            elements=[sensor.name],
+            hint="declare the unit of what the expression reads (a flow on a translation "
+                 "junction is in m/s), or scale the expression to the declared unit")
 
     def _check_modulus_unit(self, el: TwoPort, bu: dict) -> None:
         """The dimension of a two-port's modulus against the bonds at its
