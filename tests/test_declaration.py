@@ -189,6 +189,15 @@ def test_duplicate_names():
     g.I("m", 1)
     with pytest.raises(errors.DuplicateNameError):
         g.I("m", 2)
+    # a parameter, an input and a state do not share a name: `--params F`,
+    # `--fixed F=`, a record's column F would read differently
+    g.input("F", "N")
+    with pytest.raises(errors.DuplicateNameError, match="parameter 'F' has the name of input"):
+        g.param("F", 1.0)
+    with pytest.raises(errors.DuplicateNameError, match="input 'a' has the name of parameter"):
+        g.input("a")
+    with pytest.raises(errors.DuplicateNameError, match="state 'F' has the name of input"):
+        g.state("F")
 
 
 def test_bond_units_must_make_power():

@@ -322,6 +322,15 @@ class BondGraph:
                                    f"non-empty string without white space)")
         if name in table:
             raise DuplicateNameError(f"graph '{self.name}': {what} '{name}' declared twice")
+        symbols = {"parameter": self.params, "input": self.inputs, "state": self.signal_states}
+        if what in symbols:
+            for kind, other in symbols.items():
+                if kind != what and name in other:
+                    raise DuplicateNameError(
+                        f"graph '{self.name}': {what} '{name}' has the name of {kind} "
+                        f"'{name}': parameters, inputs and states need names of their own "
+                        f"(the command line, the records and the reports refer to them by "
+                        f"name)", hint=f"rename the {what}")
 
     # ----------------------------------------------------------- elements
     def add(self, element: Element) -> Element:
