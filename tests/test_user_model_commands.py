@@ -177,6 +177,26 @@ def build():
 '''
 
 
+def _bare_record(user_dir, seconds: float):
+    """``bare.py`` (:data:`BARE`) and ``r.csv``: its truth (m 2, k 50, c 1.5)
+    simulated with scipy over ``seconds`` at 100 Hz, a square wave plus a
+    sine pushing, the position measured with noise 0.004 m (no level
+    declared). Returns t, the force, the true and the measured position."""
+    from scipy.integrate import solve_ivp
+
+    (user_dir / "bare.py").write_text(BARE)
+    t = np.arange(0.0, seconds, 0.01)
+    f = 5.0 * (np.sin(2 * t) + np.sign(np.sin(0.7 * t)))
+    rhs = lambda s, x: [x[1] / 2.0, np.interp(s, t, f) - 50.0 * x[0] - 1.5 * x[1] / 2.0]
+    q = solve_ivp(rhs, (0.0, t[-1]), [0.0, 0.0], t_eval=t, rtol=1e-10, atol=1e-12,
+                  max_step=0.005).y[0]
+    y = q + 0.004 * np.random.default_rng(3).standard_normal(t.size)
+    Experiment.from_arrays(t, {"F": f, "x": y}, units={"F": "N", "x": "m"},
+                           roles={"F": "input", "x": "output"}, name="bare",
+                           meta={"columns": {"F": {"hold": "linear"}}}).save(user_dir / "r.csv")
+    return t, f, q, y
+
+
 def test_track_holds_a_level_for_a_sensor_that_declares_none(user_dir, capsys):
     """track on a user's sensor declared without a noise level, on a record
     that declares none: the tracker estimates no level, so the filter
@@ -189,16 +209,7 @@ def test_track_holds_a_level_for_a_sensor_that_declares_none(user_dir, capsys):
     window (where it could never fire), raised."""
     from scipy.integrate import solve_ivp
 
-    (user_dir / "bare.py").write_text(BARE)
-    t = np.arange(0.0, 20.0, 0.01)
-    f = 5.0 * (np.sin(2 * t) + np.sign(np.sin(0.7 * t)))
-    rhs = lambda s, x: [x[1] / 2.0, np.interp(s, t, f) - 50.0 * x[0] - 1.5 * x[1] / 2.0]
-    q = solve_ivp(rhs, (0.0, t[-1]), [0.0, 0.0], t_eval=t, rtol=1e-10, atol=1e-12,
-                  max_step=0.005).y[0]
-    y = q + 0.004 * np.random.default_rng(3).standard_normal(t.size)
-    Experiment.from_arrays(t, {"F": f, "x": y}, units={"F": "N", "x": "m"},
-                           roles={"F": "input", "x": "output"}, name="bare",
-                           meta={"columns": {"F": {"hold": "linear"}}}).save(user_dir / "r.csv")
+    t, f, q, y = _bare_record(user_dir, 20.0)
     assert main(["track", "--model", "bare:build", "--data", "r.csv", "--track", "c",
                  "--out", "trk", "--no-plots", "--method", "rk4", "--substeps", "2"]) == 0
     captured = capsys.readouterr()
@@ -376,18 +387,7 @@ def test_global_sensitivity_of_a_sensor_without_a_noise_level(user_dir, capsys):
     of 'NLL' is non-finite"). It holds the analysis' level now: every
     evaluation finite on a record simulated with scipy (truth m 2, k 50,
     c 1.5, noise 0.004 m)."""
-    from scipy.integrate import solve_ivp
-
-    (user_dir / "bare.py").write_text(BARE)
-    t = np.arange(0.0, 10.0, 0.01)
-    f = 5.0 * (np.sin(2 * t) + np.sign(np.sin(0.7 * t)))
-    rhs = lambda s, x: [x[1] / 2.0, np.interp(s, t, f) - 50.0 * x[0] - 1.5 * x[1] / 2.0]
-    q = solve_ivp(rhs, (0.0, t[-1]), [0.0, 0.0], t_eval=t, rtol=1e-10, atol=1e-12,
-                  max_step=0.005).y[0]
-    y = q + 0.004 * np.random.default_rng(3).standard_normal(t.size)
-    Experiment.from_arrays(t, {"F": f, "x": y}, units={"F": "N", "x": "m"},
-                           roles={"F": "input", "x": "output"}, name="bare",
-                           meta={"columns": {"F": {"hold": "linear"}}}).save(user_dir / "r.csv")
+    _bare_record(user_dir, 10.0)
     assert main(["sensitivity", "--model", "bare:build", "--data", "r.csv", "--global", "16",
                  "--out", "sg", "--no-plots", "--quiet", "--method", "rk4", "--substeps",
                  "2"]) == 0, capsys.readouterr().err
