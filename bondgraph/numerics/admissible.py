@@ -358,16 +358,16 @@ def _parallel_groups(graph: BondGraph, resistors: list) -> list[tuple[str, list]
     return [(key[1] if key[0] != "R" else "", els) for key, els in groups.items()]
 
 
-def _shared(env: _Env, els: list):
-    """The variable a group of :func:`_parallel_groups` shares (its first
-    R's flow for effort laws, effort for flow laws) as solved from the
-    states and inputs, and its values along the trajectory (None where it
-    is not a function of them alone)."""
+def _shared(env: _Env, els: list) -> np.ndarray | None:
+    """The values along the trajectory of the variable a group of
+    :func:`_parallel_groups` shares (its first R's flow for effort laws,
+    effort for flow laws); None where it is not a function of the states
+    and inputs alone."""
     b = els[0].port.bond
     solved = env.ss.variable(b.f if els[0].form == "effort" else b.e)
     if not env.known(solved) or env.n == 0:
-        return solved, None
-    return solved, np.broadcast_to(env.evaluate(solved), (env.n,))
+        return None
+    return np.broadcast_to(env.evaluate(solved), (env.n,))
 
 
 #: two groups' shared variables are rigidly tied when one is a constant
@@ -390,7 +390,7 @@ def _tied(env: _Env, groups: list) -> list[tuple[list, list]]:
     user's EMPS graph: refused as "produces power" while the drive as a
     whole dissipated). Returns ``[(junction names, [(els, k), ...])]``,
     each first member with k = 1."""
-    values = [(_shared(env, els)[1], els[0].form) for _, els in groups]
+    values = [(_shared(env, els), els[0].form) for _, els in groups]
     owner = list(range(len(groups)))
     ratio = [1.0] * len(groups)
     for j, (xj, form) in enumerate(values):
