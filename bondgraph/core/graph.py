@@ -874,11 +874,18 @@ class BondGraph:
         accepted, and a record's column in N then bound to it."""
         if not sensor.unit:
             return
+        # each symbol by name with this graph's own declaration of its unit:
+        # sympy takes equal-named symbols for one, and an expression may hold
+        # the object of another graph (its unit with it)
+        units = {p.name: p.unit for p in self.params.values()}
+        units.update({u.name: u.unit for u in self.inputs.values()})
+        units.update({z.name: z.unit for z in self.all_states()})
         subs = {}
         for v in sensor.expr.free_symbols:
-            if isinstance(v, Var):
-                u = self._var_unit(v, bu)
-                subs[v] = Input(f"{v.name}__unit", u) if u else v
+            u = self._var_unit(v, bu) if isinstance(v, Var) else units.get(v.name)
+            if not u:
+                return          # a unit unknown: not judged
+            subs[v] = Input(f"{v.name}__unit", u)
         try:
             have = expr_unit(sensor.expr.xreplace(subs))
         except UnitMismatchError:
