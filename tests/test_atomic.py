@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -154,3 +155,43 @@ def test_default_folder_is_numbered_past_earlier_results(tmp_path):
     (tmp_path / "bondgraph-report-3").write_text("a file, not a folder")
     assert unused_folder(base) == tmp_path / "bondgraph-report-4"
     assert (base / "report.md").read_text() == "1"
+
+
+def test_compare_and_estimate_defaults_keep_an_earlier_result(tmp_path, capsys):
+    """``bondgraph compare`` and ``estimate`` without --out: a second run
+    goes to ``-2`` and says so on stderr (it was refused as "not empty":
+    the same command run twice failed); ``--out`` is taken as given;
+    ``--resume`` without --out finds the folder whose checkpoint it resumes
+    (the working folder of an interrupted run, or a published one)."""
+    from types import SimpleNamespace
+
+    from bondgraph.cli.common import default_out
+
+    base = tmp_path / "compare_door_test"
+    run = SimpleNamespace(out=None, quiet=False)
+    assert default_out(run, base, "compare") == base
+    base.mkdir()
+    (base / "compare.json").write_text("{}")
+    assert default_out(run, base, "compare") == tmp_path / "compare_door_test-2"
+    assert "bondgraph compare: ./" + str(base) + " holds an earlier result (kept); this one " \
+           "goes to ./" + str(tmp_path / "compare_door_test-2") in capsys.readouterr().err
+    assert default_out(SimpleNamespace(out="x", quiet=False), base, "compare") == Path("x")
+    assert default_out(SimpleNamespace(out=None, quiet=True), base, "compare").name \
+        == "compare_door_test-2" and capsys.readouterr().err == ""
+    # estimate --resume: base finished (result, no checkpoint), base-2
+    # interrupted (its checkpoint in .base-2.work), base-3 never started
+    est = tmp_path / "estimate_msd_rec"
+    est.mkdir()
+    (est / "result.json").write_text("{}")
+    work = tmp_path / ".estimate_msd_rec-2.work"
+    work.mkdir()
+    (work / "checkpoint.npz").write_bytes(b"")
+    resume = SimpleNamespace(out=None, quiet=False, resume=True)
+    assert default_out(resume, est, "estimate") == tmp_path / "estimate_msd_rec-2"
+    (est / "checkpoint.npz").write_bytes(b"")
+    assert default_out(resume, est, "estimate") == tmp_path / "estimate_msd_rec-2"
+    (work / "checkpoint.npz").unlink()
+    work.rmdir()
+    assert default_out(resume, est, "estimate") == est      # the published checkpoint
+    fresh = SimpleNamespace(out=None, quiet=True, resume=False)
+    assert default_out(fresh, est, "estimate") == tmp_path / "estimate_msd_rec-2"

@@ -459,6 +459,54 @@ def unused_folder(base) -> Path:
     return path
 
 
+def default_out(args, base, command: str) -> Path:
+    """``--out`` when given, else the command's default folder ``base`` made
+    :func:`unused_folder` (an earlier result there is kept, said in one line
+    on stderr unless ``--quiet``). With ``--resume`` (``bondgraph
+    estimate``) the default is the last of ``base``, ``base-2``, ... that
+    holds a checkpoint (in its working folder or published), else ``base``:
+    the run it resumes went there.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command's arguments (``out``; ``resume`` and ``quiet`` if any).
+    base : path
+        The default folder, e.g. ``compare_door_test``.
+    command : str
+        The command's name for the line, e.g. ``"compare"``.
+
+    Returns
+    -------
+    Path
+    """
+    if args.out:
+        return Path(args.out)
+    base = Path(base)
+    if getattr(args, "resume", False):
+        held = [p for p in _numbered(base)
+                if (p.with_name(f".{p.name}.work") / "checkpoint.npz").exists()
+                or (p / "checkpoint.npz").exists()]
+        return held[-1] if held else base
+    path = unused_folder(base)
+    if path != base and not getattr(args, "quiet", False):
+        print(f"bondgraph {command}: ./{base} holds an earlier result (kept); this one goes to "
+              f"./{path} (--out DIR to choose)", file=sys.stderr)
+    return path
+
+
+def _numbered(base: Path) -> list[Path]:
+    """``base``, ``base-2``, ``base-3``, ... as long as the folder or its
+    working folder exists (``base`` always)."""
+    out, k = [base], 2
+    while True:
+        p = base.with_name(f"{base.name}-{k}")
+        if not (p.exists() or p.with_name(f".{p.name}.work").exists()):
+            return out
+        out.append(p)
+        k += 1
+
+
 def output_folder(path, args, option: str = "--out", *,
                   overwrite: bool | None = None) -> OutputFolder:
     """The command's output folder (:class:`bondgraph.core.atomic.OutputFolder`),

@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from bondgraph.cli.common import (add_data, add_discretisation, add_model, add_overwrite,
-                                  add_quiet, decimated_window, discretisation_given,
+                                  add_quiet, decimated_window, default_out,
+                                  discretisation_given,
                                   filtered_record, load_record, output_folder, parse_pairs,
                                   published)
 from bondgraph.core.jsonsafe import to_jsonable
@@ -48,8 +49,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "own initial state, else the smoothed state given the whole record)")
     add_discretisation(p)
     p.add_argument("--out", default=None,
-                   help="output folder (default compare_<model>_<records>): compare.json, "
-                        "one CSV (measured, simulated, error) and one PNG per record")
+                   help="output folder (default compare_<model>_<records>, numbered -2, -3, "
+                        "... when it holds an earlier result; an explicit --out is refused "
+                        "when not empty, unless --overwrite): compare.json, one CSV (measured, simulated, error) and one PNG per record")
     p.add_argument("--no-plots", action="store_true", help="write no PNG")
     add_overwrite(p)
     add_quiet(p)
@@ -69,8 +71,8 @@ def run(args) -> int:
     declared = model_graph(args.model)          # its declared values: the fit's state scales
     say = (lambda m: None) if args.quiet else print
     records = _records(args, graph, say)
-    folder = output_folder(args.out or f"compare_{graph.name}_" + "_".join(_stems(args.data)),
-                           args)
+    folder = output_folder(default_out(args, f"compare_{graph.name}_"
+                                       + "_".join(_stems(args.data)), "compare"), args)
     comps = compare(graph, records, noise=levels, init_samples=args.init_samples,
                     given=discretisation_given(args), scales_from=declared, log=say,
                     progress=not args.quiet)
@@ -164,8 +166,8 @@ def run_loop_folder(args) -> int:
     (g0, n0), (g1, n1), declared = loop_graphs(folder_in)
     say = (lambda m: None) if args.quiet else print
     records = _records(args, g1, say)
-    out = output_folder(args.out or f"compare_{folder_in.name}_" + "_".join(_stems(args.data)),
-                        args)
+    out = output_folder(default_out(args, f"compare_{folder_in.name}_"
+                                    + "_".join(_stems(args.data)), "compare"), args)
     kw = dict(init_samples=args.init_samples, given=discretisation_given(args),
               scales_from=declared, progress=not args.quiet)
     before = compare(g0, records, noise=n0, log=lambda m: say(f"before: {m}"), **kw)

@@ -23,6 +23,7 @@ from bondgraph.cli.common import (
     add_quiet,
     add_scheduler,
     chosen_at_levels,
+    default_out,
     chosen_problem,
     decimated_window,
     default_params,
@@ -89,8 +90,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "against 9, the same NLL within 1 nat)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None,
-                   help="output directory (default estimate_<model>_<data>); refused when not "
-                        "empty, unless --overwrite")
+                   help="output directory (default estimate_<model>_<data>, numbered -2, -3, "
+                        "... when it holds an earlier result; with --resume the last one "
+                        "holding a checkpoint); an explicit --out is refused when not empty, "
+                        "unless --overwrite")
     add_overwrite(p)
     p.add_argument("--checkpoint", default=None,
                    help="checkpoint file (default .<out>.work/checkpoint.npz beside --out while "
@@ -150,8 +153,8 @@ def run(args) -> int:
               else default_params(args.model, model, "estimate"))
     check_not_fixed(params, parse_pairs(args.fixed, "--fixed"))   # before any work
     stems = "_".join(Path(pth).stem for pth in paths)
-    folder = output_folder(args.out or f"estimate_{model.name}_{stems}", args,
-                           overwrite=args.overwrite or args.resume)
+    folder = output_folder(default_out(args, f"estimate_{model.name}_{stems}", "estimate"),
+                           args, overwrite=args.overwrite or args.resume)
     ck = (Path(args.checkpoint) if args.checkpoint
           else folder.work_dir(create=False) / "checkpoint.npz")
     states = estimated_states(model, args)

@@ -29,7 +29,7 @@ from bondgraph.cli.common import (
     parse_pairs,
     problem_from_args,
     published,
-    unused_folder,
+    default_out,
 )
 from bondgraph.core import progress
 from bondgraph.errors import SensitivityError
@@ -135,8 +135,8 @@ def run(args) -> int:
     outputs = [s.strip() for s in args.outputs.split(",") if s.strip()]
     for o in outputs:
         model.output_index(o)
-    folder = output_folder(args.out or unused_folder(
-        f"sensitivity_{model.name}_{Path(args.data).stem}"), args)
+    folder = output_folder(default_out(args, f"sensitivity_{model.name}_{Path(args.data).stem}",
+                                       "sensitivity"), args)
     log = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     Executor(args.workers, args.scheduler)   # a bad --workers/--scheduler fails before any work
