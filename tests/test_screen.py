@@ -192,3 +192,47 @@ def test_an_earlier_effects_parameter_on_its_box_switches_it_off_and_does_not_re
     d = runner.decided(ctx, cur, after, 1, True, "cand")
     assert not d.accepted and "the box, not the record, decides it" in d.reason
     assert beyond == [1]
+
+
+def test_a_pair_over_its_lead_single_takes_the_same_box_exemption(monkeypatch):
+    """runner.pair_against_single: adding the partner to the lead single's
+    refit is judged by runner.decided, with the exemption of a declared
+    parameter whose box does not decide the fit. On a user's cascaded-tanks
+    graph (the benchmark's record), a pair's refit put the lower tank's
+    area on its box; opening the box gained 0.0155 nats, "the box does not
+    decide the fit" was logged for the pair, and the same pair was then
+    refused "added to end_stop @ lower_C alone: the refit moves a2 = 10
+    onto its box: the box, not the record, decides it". Here c plays a2:
+    inside its box in the lead's refit (NLL 90), on it in the pair's (80,
+    one new parameter: LR 20): preferred when the box does not decide,
+    refused naming the box when it does."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import runner
+
+    m = Model.load("mass_spring_damper")
+    lo = float(m.bounds(["c"])[0][0])
+    cur = _fit(m, m.theta(m=2.0, k=50.0, c=1.0), [], 100.0)
+    lead_fit = _fit(m, m.theta(m=2.0, k=50.0, c=0.9), [], 90.0)
+    pair_fit = _fit(m, m.theta(m=2.0, k=50.0, c=lo), ["c"], 80.0)
+    lead = SimpleNamespace(label="lead @ a")
+    partner = SimpleNamespace(label="partner @ b", effect="offset", target="b")
+    single = (lead, SimpleNamespace(fit=lead_fit, dof=1))
+    conf = SimpleNamespace(fit=pair_fit, dof=2, comparable=True)
+    monkeypatch.setattr(runner, "judged_pair", lambda *a: ("passed", None))
+    monkeypatch.setattr(runner, "admissibility", lambda *a, **k: SimpleNamespace(ok=True))
+    monkeypatch.setattr(runner, "get_effect", lambda *a: SimpleNamespace(params=[]))
+    monkeypatch.setattr(runner, "interior_params", lambda placed: [])
+    free = []
+    monkeypatch.setattr(runner, "box_not_deciding", lambda ctx, c, a, label: list(free))
+    ctx = SimpleNamespace(settings=SimpleNamespace(accept=AcceptRule(error_level=None),
+                                                   effects=[]),
+                          problem=SimpleNamespace(model=SimpleNamespace(params=["m", "k", "c"])),
+                          log=lambda m: None)
+    d, reason = runner.pair_against_single(ctx, cur, single, (lead, partner), conf)
+    assert reason == (f"added to lead @ a alone: the refit moves c = {lo:.4g} (box "
+                      f"[{lo:.4g}, {float(m.bounds(['c'])[1][0]):.4g}]) onto its box: the box, "
+                      f"not the record, decides it")
+    free.append("c")
+    d, reason = runner.pair_against_single(ctx, cur, single, (lead, partner), conf)
+    assert reason is None and d == "passed"

@@ -1040,7 +1040,10 @@ def box_not_deciding(ctx: Context, current: Fit, after: Fit, label: str) -> list
     names = newly_boxed_names(current, after)
     if not names:
         return []
-    r = beyond_box(ctx, after.graph, after, list(after.params), only=names)
+    key = ("beyond the box", id(after), after.nll, tuple(names))
+    if key not in ctx.cache:     # one refit per fit and parameters: a pair is judged twice
+        ctx.cache[key] = beyond_box(ctx, after.graph, after, list(after.params), only=names)
+    r = ctx.cache[key]
     if r is None or not r[0] < BOX_DECIDES:
         return []
     ctx.log(f"  {label}: {', '.join(names)} on the box it declared, but beyond it the "
@@ -1752,8 +1755,9 @@ def pair_against_single(ctx: Context, current: Fit, single: tuple, pair: tuple,
     ``(candidate, confirmation)`` that passed alone (:func:`pair_before_single`):
     the pair's own tests against ``current`` (:func:`judged_pair`), then,
     when the single is a member, the accept rule for adding the partner to
-    the single's refit (:func:`~bondgraph.diagnose.accept.decide` with the
-    single's fit as the current one: the rule the next step would apply),
+    the single's refit (:func:`decided` with the single's fit as the current
+    one: the rule the next step would apply, with its exemption of a box
+    that does not decide the fit),
     else (another pair, the single a look-alike of both) a free-run error
     not above the single's and a better Akaike-penalised likelihood.
 
@@ -1768,9 +1772,9 @@ def pair_against_single(ctx: Context, current: Fit, single: tuple, pair: tuple,
     if reason:
         return d, reason
     if lead in pair:
-        d2 = decide(lead_conf.fit, conf.fit, ctx.settings.accept,
-                    dof=conf.dof - lead_conf.dof,
-                    comparable=conf.comparable)
+        partner = [c for c in pair if c is not lead]
+        d2 = decided(ctx, lead_conf.fit, conf.fit, conf.dof - lead_conf.dof, conf.comparable,
+                     f"{partner[0].label} added to {lead.label}", partner)
         return d, (None if d2.accepted else f"added to {lead.label} alone: {d2.reason}")
     if not conf.fit.accept_metric <= lead_conf.fit.accept_metric:
         return d, (f"its error {conf.fit.accept_metric:.4g} is above {lead.label}'s alone "
