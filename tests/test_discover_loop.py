@@ -169,6 +169,8 @@ def test_the_command_lines_discover_option_runs_the_loop_again_with_the_law(tmp_
     assert [(s.effect, s.attached_to) for s in res.steps] == [("discovered", "v")]
     assert res.final.validation_metric < 0.1 * first.final.validation_metric
     assert (tmp_path / "report" / "report.md").exists()
+    assert not (tmp_path / "report-discover").exists()      # republished in report/
+    assert "discovered" in (tmp_path / "report" / "loop.log").read_text()
     # the report shows the reconstruction against the accepted law
     assert res.discovery is not None and res.discovery.accepted
     md = (tmp_path / "report" / "report.md").read_text()
@@ -193,3 +195,68 @@ def test_the_command_lines_discover_option_runs_the_loop_again_with_the_law(tmp_
     # its defaults are the final estimates
     for n, v in res.final.estimates.items():
         assert g.params[n].default == pytest.approx(v, rel=1e-12)
+
+
+def _loop_result(validation, metric=1.0, more=None):
+    from types import SimpleNamespace
+
+    final = SimpleNamespace(validation_metric=validation, metric=metric,
+                            more_metrics=dict(more or {}))
+    return SimpleNamespace(final=final, warnings=[])
+
+
+def test_the_loop_with_discovered_laws_replaces_the_first_only_when_better():
+    """discovery_not_better: the second loop (from the declared graph, with
+    the discovered laws beside the library) replaces the first only when
+    its final free-run error on the judging record is lower and it is no
+    worse on any further validation record; without a validation record
+    the estimation record's error judges. A user's cascaded tanks (the
+    benchmark's record) with --discover ended at 0.1865 held out where the
+    library alone had reached 0.1217, and that model was the one kept."""
+    from bondgraph.diagnose.discover.effect import discovery_not_better
+
+    lib = _loop_result(0.1217, more={"val": 0.40})
+    assert discovery_not_better(lib, _loop_result(0.1865)) == (
+        "the loop with the discovered law(s) ends at 0.1865 on the validation record, the "
+        "library's at 0.1217: the library's model stands")
+    assert discovery_not_better(lib, _loop_result(0.1217)) is not None     # a tie keeps the first
+    assert discovery_not_better(lib, _loop_result(float("nan"))) is not None
+    assert discovery_not_better(lib, _loop_result(0.10, more={"val": 0.39})) is None
+    assert discovery_not_better(lib, _loop_result(0.10, more={"val": 0.41})) == (
+        "the loop with the discovered law(s) ends at 0.41 on the validation record 'val', the "
+        "library's at 0.4: the library's model stands")
+    # no validation record: the estimation record's error
+    assert discovery_not_better(_loop_result(None, 0.3), _loop_result(None, 0.2)) is None
+    assert "on the estimation record, the library's at 0.2" in discovery_not_better(
+        _loop_result(None, 0.2), _loop_result(None, 0.3))
+
+
+def test_a_worse_discovery_loop_leaves_the_first_report(tmp_path, monkeypatch):
+    """cli/loop._with_discovery: the second loop reports into
+    ``<out>-discover`` while it runs; when it ends no better, the first
+    loop's report stays in ``out``, untouched, the first result is returned
+    with the reason among its warnings and said in one line."""
+    from types import SimpleNamespace
+
+    from bondgraph.cli import loop as cli_loop
+    from bondgraph.diagnose.discover import effect as eff
+
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "report.md").write_text("the first loop's report")
+    best = SimpleNamespace(law=SimpleNamespace(port="v"), alternatives=[],
+                           effects=lambda: [], accepted_in=lambda r: None)
+    monkeypatch.setattr(eff, "discovered_effect", lambda *a, **k: best)
+    monkeypatch.setattr(eff, "with_discovered", lambda s, *e: s)
+    monkeypatch.setattr(cli_loop, "run_loop", lambda *a, **k: _loop_result(0.1865))
+    lines = []
+    monkeypatch.setattr("builtins.print", lambda *a, **k: lines.append(" ".join(map(str, a))))
+    first = _loop_result(0.1217)
+    res = cli_loop._with_discovery(SimpleNamespace(quiet=False), mass_spring_damper(), None,
+                                   LoopSettings(params=["k"]), first, out)
+    assert res is first and (out / "report.md").read_text() == "the first loop's report"
+    assert first.warnings == ["the loop with the discovered law(s) ends at 0.1865 on the "
+                              "validation record, the library's at 0.1217: the library's model "
+                              "stands"]
+    assert any(line.startswith("bondgraph loop: the loop with the discovered law(s) ends at "
+                               "0.1865") and "report-discover" in line for line in lines)

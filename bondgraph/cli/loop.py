@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import re
+import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -413,10 +414,14 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
     physical effect (or the accepted ones leave coloured innovations) and a
     port gave a passive law
     (:func:`bondgraph.diagnose.discover.effect.discovered_effect`), the
-    loop run again with that law and its alternatives as effects (its
-    report replaces the first one in ``out``)."""
+    loop run again with that law and its alternatives as effects, its report
+    in ``<out>-discover`` while it runs; when its final model is better
+    (:func:`~bondgraph.diagnose.discover.effect.discovery_not_better`) its
+    report replaces the first one in ``out``, else the first stands and the
+    second stays beside it (said in one line)."""
     from bondgraph.diagnose.discover.effect import (
         discovered_effect,
+        discovery_not_better,
         discovery_plot,
         with_discovered,
     )
@@ -430,18 +435,31 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
                              sensors=() if calibrated else None)
     if best is None:
         return res
+    side = unused_folder(out.with_name(f"{out.name}-discover"))
     echo(f"bondgraph loop: the loop again, with the law discovered at '{best.law.port}'"
-         + (f" and {len(best.alternatives)} alternative(s)" if best.alternatives else ""))
+         + (f" and {len(best.alternatives)} alternative(s)" if best.alternatives else "")
+         + f" (its report in ./{side} until it is judged against the first)")
     settings = with_discovered(settings, *best.effects())
-    reporter = LoopReporter(out, echo=None if args.quiet else print, overwrite=True,
-                            plots=not getattr(args, "no_plots", False))
+    plots = not getattr(args, "no_plots", False)
+    reporter = LoopReporter(side, echo=None if args.quiet else print, plots=plots)
 
     def update(result):
         result.discovery = discovery_plot(best.accepted_in(result), result)
         reporter.update(result)
 
-    return run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
-                    on_update=update)
+    again = run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
+                     on_update=update)
+    why = discovery_not_better(res, again)
+    if why is not None:
+        echo(f"bondgraph loop: {why} (its report: ./{out}; the discovery run's: ./{side})")
+        res.warnings.append(why)
+        return res
+    final = LoopReporter(out, overwrite=True, plots=plots)
+    final.log_path.write_text("".join(p.read_text() for p in (out / "loop.log", side / "loop.log")
+                                      if p.exists()))
+    final.update(again)          # the report in out, its generated code naming out
+    shutil.rmtree(side)
+    return again
 
 
 def loop_states(graph, text: str) -> list[str]:
