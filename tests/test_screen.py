@@ -236,3 +236,45 @@ def test_a_pair_over_its_lead_single_takes_the_same_box_exemption(monkeypatch):
     free.append("c")
     d, reason = runner.pair_against_single(ctx, cur, single, (lead, partner), conf)
     assert reason is None and d == "passed"
+
+
+def test_refits_of_one_effect_with_equal_likelihood_at_two_places_are_twins():
+    """runner.rescaled_twins: a converged refit of the same effect at
+    another place, as many new parameters, whose NLL equals a better-ranked
+    one's within 1e-4 nats, is its twin (same_as, equivalent, logged) and
+    leaves the pair pool (runner.pair_pool); another effect, a different
+    NLL, a refit that did not converge or one that left the effect off
+    (LR <= 1) is not. A user's geared drive: Coulomb friction on the motor
+    shaft and on the load shaft refitted to one likelihood (a rigid gear
+    ties the shafts' speeds), and the pair of the two was refitted too."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import runner
+
+    def cand(effect, place, lr, dof=2):
+        return SimpleNamespace(effect=effect, target=SimpleNamespace(name=place), dof=dof,
+                               label=f"{effect} @ {place}", same_as=None, equivalent=[],
+                               confirmed_statistic=lr, confirmed={"comparable": True})
+
+    def refit(nll, ok=True):
+        return SimpleNamespace(fit=SimpleNamespace(nll=nll), comparable=ok)
+
+    lead = cand("coulomb", "w_m", 440.6)
+    twin = cand("coulomb", "w_L", 440.6)
+    other = cand("viscous", "w_L", 440.6)
+    near = cand("coulomb", "w_x", 440.4)
+    loose = cand("coulomb", "w_y", 440.6)
+    off_a, off_b = cand("dahl", "w_m", 0.3), cand("dahl", "w_L", 0.3)
+    logs = []
+    ctx = SimpleNamespace(log=logs.append)
+    ranked = [(lead, refit(-2157.34)), (twin, refit(-2157.34005)), (other, refit(-2157.34)),
+              (near, refit(-2157.24)), (loose, refit(-2157.34, ok=False)),
+              (off_a, refit(-1936.0)), (off_b, refit(-1936.0))]
+    runner.rescaled_twins(ctx, ranked)
+    assert twin.same_as == "coulomb @ w_m" and twin.equivalent == ["coulomb @ w_m"]
+    assert lead.equivalent == ["coulomb @ w_L"] and lead.same_as is None
+    assert [c.same_as for c in (other, near, loose, off_a, off_b)] == [None] * 5
+    assert logs == ["  coulomb @ w_L: the same model as coulomb @ w_m with its parameters "
+                    "rescaled (equal refitted likelihood, NLL -2157.340050: the places are "
+                    "rigidly tied); no pair with it is refitted"]
+    assert twin not in runner.pair_pool([lead, twin, other, near])

@@ -2363,12 +2363,49 @@ def merged_confirmations(ctx: Context, confirmed: list) -> list:
     record cannot tell from the lead marked and logged
     (:func:`~bondgraph.diagnose.accept.mark_ties`)."""
     ranked = rank_confirmed([(c.confirmed_statistic - 2 * c.dof, c, r) for c, r in confirmed])
+    rescaled_twins(ctx, [(c, r) for _, c, r in ranked])
     tied = mark_ties([(c, r.fit, r.dof) for _, c, r in ranked],
                      ctx.settings.accept.tie_level)
     if tied:
         ctx.log(f"  the record cannot tell {ranked[0][1].label} from {', '.join(tied)} "
                 f"(Vuong's test, p >= {ctx.settings.accept.tie_level:g}): reported as tied")
     return [(c, r) for _, c, r in ranked]
+
+
+#: two converged refits of one effect at two places whose NLLs differ by at
+#: most this [nats] (plus 1e-9 of the NLL) are one model (:func:`rescaled_twins`)
+TWIN_NLL = 1e-4
+
+
+def rescaled_twins(ctx: Context, ranked: list) -> None:
+    """Mark, among (candidate, refit) pairs best first, the later refit of
+    the same effect with as many new parameters at another place whose
+    converged NLL equals an earlier one's (within :data:`TWIN_NLL`; a
+    likelihood ratio above 1: not an effect both refits left off) as its
+    twin (``same_as``, ``equivalent``; logged): the same model with its
+    parameters rescaled, as an effect is on either side of a rigid
+    transmission (a gear without compliance ties the two shafts' speeds by
+    its ratio: Coulomb friction on the motor shaft is Coulomb friction on
+    the load shaft, its level times the ratio). Symbolic comparison
+    (:func:`same_models`) does not see a rescaling. A pair of twins is one
+    effect twice (its parameters not identified apart), so the pairs leave
+    twins out (:func:`pair_pool`): on a user's geared drive the two shafts'
+    Coulomb frictions refitted to LR 440.6 each and then as a pair."""
+    for i, (c, r) in enumerate(ranked):
+        if (getattr(c, "same_as", None) or not r.comparable or not np.isfinite(r.fit.nll)
+                or not (c.confirmed_statistic or 0.0) > 1.0):    # an effect the refit left off
+            continue
+        for a, q in ranked[:i]:
+            if (a.effect == c.effect and a.target.name != c.target.name and a.dof == c.dof
+                    and q.comparable and not getattr(a, "same_as", None)
+                    and abs(q.fit.nll - r.fit.nll) <= TWIN_NLL + 1e-9 * abs(q.fit.nll)):
+                c.same_as = a.label
+                c.equivalent += [a.label] if a.label not in c.equivalent else []
+                a.equivalent += [c.label] if c.label not in a.equivalent else []
+                ctx.log(f"  {c.label}: the same model as {a.label} with its parameters "
+                        f"rescaled (equal refitted likelihood, NLL {r.fit.nll:.6f}: the "
+                        f"places are rigidly tied); no pair with it is refitted")
+                break
 
 
 #: an unconfirmed candidate whose statistic (less 2k) reaches this fraction of
