@@ -177,12 +177,14 @@ def parse_params(text: str, model=None) -> list[str]:
     return parse_names(text, "--params")
 
 
-def default_params(spec: str, model, command: str) -> list[str]:
+def default_params(spec: str, model, command: str, fixed=()) -> list[str]:
     """The parameters a command estimates without ``--params``: those the
     graph declares with a box (``Parameter.box_declared``; a parameter
     declared without one is a known value, held at it, as ``bondgraph loop``
     holds it where the record cannot tell it apart), or all of the model's
-    when none has a box. One line on stderr says which, and which are held.
+    when none has a box; never one of ``fixed`` (``--fixed``: without it,
+    ``--fixed m=2.5`` and no ``--params`` was refused as "m both fixed and
+    estimated"). One line on stderr says which, and which are held.
 
     Parameters
     ----------
@@ -192,20 +194,26 @@ def default_params(spec: str, model, command: str) -> list[str]:
         The model built from it (its parameters, in order).
     command : str
         The command's name, for the line.
+    fixed : collection of str
+        The parameters ``--fixed`` holds.
     """
     from bondgraph.numerics.registry import graph_builder
 
     declared = graph_builder(spec)().params
     boxed = [n for n in model.params
              if n in declared and getattr(declared[n], "box_declared", True)]
-    names = boxed or list(model.params)
-    held = [n for n in model.params if n not in names]
+    names = [n for n in boxed or list(model.params) if n not in fixed]
+    held = [n for n in model.params if n not in names and n not in fixed]
     verb = "analysing" if command == "sensitivity" else "estimating"
-    print(f"bondgraph {command}: no --params: {verb} "
-          + (f"the {len(names)} parameters declared with a box ({', '.join(names)}); held at "
-             f"their declared values (declared without a box: known): {', '.join(held)}"
-             if held else f"all {len(names)} parameters ({', '.join(names)})")
-          + "; --params to choose", file=sys.stderr)
+    what = (f"the {len(names)} parameters declared with a box" if boxed else
+            f"all {len(names)} parameters") + f" ({', '.join(names)})"
+    if fixed:
+        what = what.replace("all ", "") + f"; held at --fixed: {', '.join(fixed)}"
+    if held:
+        what += (f"; held at their declared values (declared without a box: known): "
+                 f"{', '.join(held)}")
+    print(f"bondgraph {command}: no --params: {verb} {what}; --params to choose",
+          file=sys.stderr)
     return names
 
 

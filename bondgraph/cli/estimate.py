@@ -48,6 +48,7 @@ from bondgraph.inference.discretise import (HOLD_CHECK_MARGIN, alternative_hold,
                                             cost_rank, hold_check_line, hold_verdict,
                                             moved_most, other_hold_warning, step_error)
 from bondgraph.inference.estimate import check_not_fixed, estimate
+from bondgraph.inference.estimand import noise_parameters
 from bondgraph.inference.output_error import (OutputErrorOptions, output_error_fit,
                                               output_error_nll, seen_initial_states)
 from bondgraph.inference.options import FitOptions
@@ -150,7 +151,8 @@ def run(args) -> int:
                 for pth in args.validate or []]      # a bad file refused before the fit
     _check_judging(args, vals)
     params = (parse_params(args.params, model) if args.params
-              else default_params(args.model, model, "estimate"))
+              else default_params(args.model, model, "estimate",
+                                  parse_pairs(args.fixed, "--fixed")))
     check_not_fixed(params, parse_pairs(args.fixed, "--fixed"))   # before any work
     stems = "_".join(Path(pth).stem for pth in paths)
     folder = output_folder(default_out(args, f"estimate_{model.name}_{stems}", "estimate"),
@@ -666,6 +668,21 @@ def _prepare_checkpoint(folder, resume: bool) -> None:
         shutil.copyfile(done, ck)
 
 
+def _without_noise_levels(problem, params: list[str]) -> list[str]:
+    """``params`` less the noise levels (process-noise intensities, sensor
+    noise stds: :func:`~bondgraph.inference.estimand.noise_parameters`),
+    which the output-error criterion does not see: the least-squares fit
+    moved them anywhere (a user's tanks: a process-noise intensity from 0.01
+    to 0.69, printed as an estimate). One line says they are held."""
+    noise = set(noise_parameters(problem.model, problem.theta))
+    held = [p for p in params if p in noise]
+    if held:
+        vals = ", ".join(f"{p} = {problem.theta[problem.model.param_index(p)]:.4g}" for p in held)
+        _say(f"--fit sim: {', '.join(held)} are noise levels, which the free-run criterion does "
+             f"not see: held ({vals}); the RMS free-run error is reported as the noise level")
+    return [p for p in params if p not in noise]
+
+
 def run_output_error(args, chosen, params, folder, states) -> int:
     """``--fit sim``: the output-error fit
     (:func:`bondgraph.inference.output_error.output_error_fit`) on
@@ -677,6 +694,7 @@ def run_output_error(args, chosen, params, folder, states) -> int:
     what is reported (the declared levels, or the RMS free-run error as the
     estimate of an undeclared one)."""
     problem, states = sim_initial_states(*chosen[:1], states)
+    params = _without_noise_levels(problem, params)
     r, problem = _likelier_sim(args, problem, chosen[1], params, states)
     model, exp, theta = problem.model, problem.record, problem.theta
     noise = _sim_noise_levels(model, exp, r, theta, problem.noise.mode)

@@ -91,14 +91,14 @@ def _line(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def _default_params(spec: str, model) -> list[str] | None:
+def _default_params(spec: str, model, fixed=()) -> list[str] | None:
     """The candidates without ``--params``: what ``bondgraph estimate`` fits
     without it (:func:`~bondgraph.cli.common.default_params`: the
     parameters declared with a box; one declared without one is a known
     value), those with a proper box; None (every parameter with a proper
     box) when that leaves none."""
     free = set(free_parameters(model))
-    names = [n for n in default_params(spec, model, "sensitivity") if n in free]
+    names = [n for n in default_params(spec, model, "sensitivity", fixed) if n in free]
     return names or None
 
 
@@ -120,7 +120,8 @@ def run(args) -> int:
         if n < 2:
             raise SensitivityError(f"--seconds {args.seconds} leaves fewer than 2 samples")
         exp = exp.segment(0, n, name=exp.name)
-    params = parse_names(args.params, "--params") or _default_params(args.model, model)
+    params = parse_names(args.params, "--params") or _default_params(
+        args.model, model, parse_pairs(args.fixed, "--fixed"))
     values = {}
     if args.at_truth:
         tp = (exp.meta or {}).get("true_parameters") or {}
