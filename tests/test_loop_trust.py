@@ -873,3 +873,33 @@ def test_a_state_that_does_not_move_gives_its_noise_the_share_itself():
     ctx, fit = _absorbing_case()
     fit.ukf.x_filt[:, 0, 0] = 5.0
     assert process_noise_floor(ctx, fit, ["w1"])["w1"] == pytest.approx(0.30 * FREE_RUN_SHARE)
+
+
+def test_a_fixed_value_is_not_estimated_by_the_loop(tmp_path, monkeypatch, capsys):
+    """`bondgraph loop --fixed K2=...` without --params: K2 leaves the
+    estimated set and the loop holds it (it was estimated from the fixed
+    value without a word: a user's tanks, --fixed k4=0.05, ended at
+    0.0463); with --params naming it too, exit code 2 naming it, as
+    `bondgraph estimate` does; run_loop refuses the same settings."""
+    from bondgraph.cli import loop as cli_loop
+    from bondgraph.cli.main import main
+    from bondgraph.diagnose.runner import run_loop
+    from bondgraph.errors import ModelError
+
+    argv = _user_tanks_loop(tmp_path, monkeypatch, "tanks_fixed.py", TANKS_BOXED, 301)
+    seen = []
+
+    def stop(graph, record, settings, **kw):
+        seen.append(settings)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_loop, "run_loop", stop)
+    main(argv + ["--fixed", "K2=2.5e-6", "--out", "rep"])    # "interrupted" at the loop
+    (s,) = seen
+    assert "K2" not in s.params and s.fixed["K2"] == 2.5e-6 and "K1" in s.params
+    capsys.readouterr()
+    assert main(argv + ["--fixed", "K2=2.5e-6", "--params", "K1,K2", "--out", "rep2"]) == 2
+    assert "parameter(s) K2 both fixed and estimated" in capsys.readouterr().err
+    with pytest.raises(ModelError, match="K2 both fixed and estimated"):
+        run_loop(tanks(), None, LoopSettings(params=["K1", "K2"], fixed={"K2": 2.5e-6}),
+                 log=lambda m: None, progress=False)

@@ -266,7 +266,9 @@ def run(args) -> int:
         record = filtered_record(load_record(args.data, graph, _said, args.columns, args.dt),
                                  graph, args, say=_said)
         decimated_window(args, _said)
-        params = parse_params(args.params) if args.params else list(graph.params)
+        fixed = parse_pairs(args.fixed, "--fixed")      # known values: not estimated
+        params = parse_params(args.params) if args.params else [n for n in graph.params
+                                                                 if n not in fixed]
         # without --params, a parameter declared without a box is a known
         # value: held where the record cannot tell it from others
         hold = () if args.params else tuple(
@@ -290,7 +292,7 @@ def run(args) -> int:
         kept = {e.name for e in settings.effects}
         print(f"bondgraph loop: not scored (--skip-effects): "
               f"{', '.join(e.name for e in base.effects if e.name not in kept)}")
-    require_params(graph, settings.params)   # before the numerics (seconds on a long record)
+    require_params(graph, settings.params, settings.fixed)  # before the numerics
     if args.model:
         settings = chosen_numerics(args, graph, record, settings)
     if args.model and not args.validate and args.holdout is None:
@@ -543,6 +545,7 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
     try:
         return dataclasses.replace(
             base, fixed={**base.fixed, **fixed} if fixed else base.fixed,
+            params=base.params if args.params else [n for n in base.params if n not in fixed],
             estimate_x0=states, metric=_given(args.metric, base.metric), effects=effects,
             noise=_given(args.noise, base.noise), validation=validation,
             more_validation=more,

@@ -109,6 +109,7 @@ from bondgraph.inference.discretise import (
     record_input_holds,
     step_error,
 )
+from bondgraph.inference.estimate import check_not_fixed
 from bondgraph.numerics.admissible import MARGIN as ADMISSIBLE_MARGIN
 from bondgraph.numerics.integrators import join_hold, split_hold
 from bondgraph.numerics.model import Model
@@ -180,7 +181,7 @@ def run_loop(graph: BondGraph, experiment, settings: LoopSettings, *,
     """
     if not isinstance(settings, LoopSettings):
         raise OptionError(f"run_loop needs a LoopSettings, got {type(settings).__name__}")
-    require_params(graph, settings.params)
+    require_params(graph, settings.params, settings.fixed)
     records_hold_inputs(graph, experiment, settings)
     experiment, s = held_out(experiment, settings)
     t0 = time.perf_counter()
@@ -262,19 +263,24 @@ def conditioned(ctx: Context, fit: Fit):
         ctx.problem = base
 
 
-def require_params(graph: BondGraph, params: Sequence[str]) -> None:
-    """Refuse parameters to estimate that ``graph`` does not declare.
+def require_params(graph: BondGraph, params: Sequence[str], fixed=()) -> None:
+    """Refuse parameters to estimate that ``graph`` does not declare, or
+    that ``fixed`` (the loop's known values) holds: the loop estimated such
+    a parameter from its fixed value without a word (``--fixed k4=0.05``
+    without ``--params``: k4 ended at 0.0463).
 
     Raises
     ------
     ModelError
-        The unknown names quoted, and the graph's own.
+        The unknown names quoted, and the graph's own; the names both fixed
+        and estimated.
     """
     unknown = [n for n in params if n not in set(graph.params)]
     if unknown:
         raise ModelError(f"graph '{graph.name}' has no parameter(s) "
                          f"{', '.join(repr(n) for n in unknown)} "
                          f"(known: {', '.join(graph.params)})")
+    check_not_fixed(params, fixed)
 
 
 def records_hold_inputs(graph: BondGraph, experiment, s: LoopSettings) -> None:
