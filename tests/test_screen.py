@@ -274,7 +274,7 @@ def test_refits_of_one_effect_with_equal_likelihood_at_two_places_are_twins():
     assert twin.same_as == "coulomb @ w_m" and twin.equivalent == ["coulomb @ w_m"]
     assert lead.equivalent == ["coulomb @ w_L"] and lead.same_as is None
     assert [c.same_as for c in (other, near, loose, off_a, off_b)] == [None] * 5
-    assert logs == ["  coulomb @ w_L: the same model as coulomb @ w_m with its parameters "
-                    "rescaled (equal refitted likelihood, NLL -2157.340050: the places are "
-                    "rigidly tied); no pair with it is refitted"]
+    assert logs == ["  coulomb @ w_L: the same model as coulomb @ w_m up to its parameters' "
+                    "scale (equal refitted likelihood, NLL -2157.340050: the places share "
+                    "their variable or are rigidly tied); no pair with it is refitted"]
     assert twin not in runner.pair_pool([lead, twin, other, near])

@@ -2408,9 +2408,10 @@ def rescaled_twins(ctx: Context, ranked: list) -> None:
                 c.same_as = a.label
                 c.equivalent += [a.label] if a.label not in c.equivalent else []
                 a.equivalent += [c.label] if c.label not in a.equivalent else []
-                ctx.log(f"  {c.label}: the same model as {a.label} with its parameters "
-                        f"rescaled (equal refitted likelihood, NLL {r.fit.nll:.6f}: the "
-                        f"places are rigidly tied); no pair with it is refitted")
+                ctx.log(f"  {c.label}: the same model as {a.label} up to its parameters' "
+                        f"scale (equal refitted likelihood, NLL {r.fit.nll:.6f}: the places "
+                        f"share their variable or are rigidly tied); no pair with it is "
+                        f"refitted")
                 break
 
 
