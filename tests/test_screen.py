@@ -244,9 +244,10 @@ def test_refits_of_one_effect_with_equal_likelihood_at_two_places_are_twins():
     one's within 1e-4 nats, is its twin (same_as, equivalent, logged) and
     leaves the pair pool (runner.pair_pool); another effect, a different
     NLL, a refit that did not converge or one that left the effect off
-    (LR <= 1) is not. A user's geared drive: Coulomb friction on the motor
-    shaft and on the load shaft refitted to one likelihood (a rigid gear
-    ties the shafts' speeds), and the pair of the two was refitted too."""
+    (LR <= 1) is not. The discovery bench's geared drive: Coulomb friction
+    on the motor shaft and on the load shaft refitted to one likelihood (a
+    rigid gear ties the shafts' speeds), and the pair of the two was
+    refitted too."""
     from types import SimpleNamespace
 
     from bondgraph.diagnose import runner

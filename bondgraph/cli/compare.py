@@ -51,7 +51,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None,
                    help="output folder (default compare_<model>_<records>, numbered -2, -3, "
                         "... when it holds an earlier result; an explicit --out is refused "
-                        "when not empty, unless --overwrite): compare.json, one CSV (measured, simulated, error) and one PNG per record")
+                        "when not empty, unless --overwrite): compare.json, one CSV "
+                        "(measured, simulated, error) and one PNG per record")
     p.add_argument("--no-plots", action="store_true", help="write no PNG")
     add_overwrite(p)
     add_quiet(p)

@@ -19,6 +19,7 @@ from bondgraph.cli.common import (
     add_quiet,
     add_scheduler,
     chosen_at_levels,
+    default_out,
     default_params,
     estimated_states,
     filtered_record,
@@ -29,7 +30,6 @@ from bondgraph.cli.common import (
     parse_pairs,
     problem_from_args,
     published,
-    default_out,
 )
 from bondgraph.core import progress
 from bondgraph.errors import SensitivityError

@@ -2395,8 +2395,10 @@ def rescaled_twins(ctx: Context, ranked: list) -> None:
     the load shaft, its level times the ratio). Symbolic comparison
     (:func:`same_models`) does not see a rescaling. A pair of twins is one
     effect twice (its parameters not identified apart), so the pairs leave
-    twins out (:func:`pair_pool`): on a user's geared drive the two shafts'
-    Coulomb frictions refitted to LR 440.6 each and then as a pair."""
+    twins out (:func:`pair_pool`): on the discovery bench's geared drive
+    (``gear_brush_drop``) the two shafts' Coulomb frictions refitted to LR
+    440.6 each and then as a pair; on a user's EMPS graph with the rotor
+    behind the ball screw, the load's and the rotor's asymmetric friction."""
     for i, (c, r) in enumerate(ranked):
         if (getattr(c, "same_as", None) or not r.comparable or not np.isfinite(r.fit.nll)
                 or not (c.confirmed_statistic or 0.0) > 1.0):    # an effect the refit left off
