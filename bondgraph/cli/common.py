@@ -458,13 +458,16 @@ def unused_folder(base) -> Path:
     Path
         A folder that does not exist or is empty.
     """
-    base = Path(base)
-    k = 1
-    path = base
-    while path.exists() and not is_empty_dir(path):
+    return next(p for p in _numbered_names(Path(base)) if not p.exists() or is_empty_dir(p))
+
+
+def _numbered_names(base: Path):
+    """``base``, ``base-2``, ``base-3``, ... (endless)."""
+    yield base
+    k = 2
+    while True:
+        yield base.with_name(f"{base.name}-{k}")
         k += 1
-        path = base.with_name(f"{base.name}-{k}")
-    return path
 
 
 def default_out(args, base, command: str) -> Path:
@@ -504,15 +507,14 @@ def default_out(args, base, command: str) -> Path:
 
 
 def _numbered(base: Path) -> list[Path]:
-    """``base``, ``base-2``, ``base-3``, ... as long as the folder or its
-    working folder exists (``base`` always)."""
-    out, k = [base], 2
-    while True:
-        p = base.with_name(f"{base.name}-{k}")
+    """:func:`_numbered_names` as long as the folder or its working folder
+    exists (``base`` always)."""
+    names = _numbered_names(base)
+    out = [next(names)]
+    for p in names:
         if not (p.exists() or p.with_name(f".{p.name}.work").exists()):
             return out
         out.append(p)
-        k += 1
 
 
 def output_folder(path, args, option: str = "--out", *,
