@@ -132,6 +132,42 @@ def test_glr_threshold_false_alarm_rate_bound_on_white_noise():
     assert onsets <= N / T               # the union bound: at most 20 expected
 
 
+def test_clipped_glr_ignores_one_spike_and_still_detects_a_shift():
+    """Huber's ψ on the GLR: one sample adds at most c²/2 nats. The spike has
+    the shape a fuel sensor's 1 s spike gave on the Camry record (s = -7.5,
+    then +4.1 as the filter pulls back); the shift is 1 std from sample 300."""
+    M, c = 50, 3.0
+    spike = np.zeros(200)
+    spike[100], spike[101] = -7.5, 4.1
+    g, _ = glr_mean_jump(spike, M)
+    assert g[100] == pytest.approx(7.5 ** 2 / 2)           # the plain test: 28.1 nats
+    gc, _ = glr_mean_jump(spike, M, clip=c)
+    assert gc.max() == pytest.approx(c * c / 2)             # 4.5 nats, under any threshold
+    h = glr_threshold(10 * 3600.0, 1.0, M)                  # one false alarm per 10 h at 1 Hz
+    assert h > c * c / 2 and g[100] > h
+    rng = np.random.default_rng(3)
+    s = rng.normal(0.0, 1.0, 600)
+    s[300:] += 1.0
+    first = [int(np.flatnonzero(glr_mean_jump(s, M, clip=cl)[0] > h)[0]) for cl in (None, c)]
+    assert 300 <= first[1] <= first[0] + 3                  # detected, at most 3 samples later
+    with pytest.raises(OptionError, match="clip"):
+        glr_mean_jump(s, M, clip=0.0)
+
+
+def test_a_logit_prior_is_never_wider_than_its_box():
+    """std_of: first order (σ_p / g'(z)) while that is below π/√3, the std of
+    z = logit of a parameter uniform over its box; wider is capped."""
+    tm = TrackingModel.from_graph(mass_spring_damper(), ["c"])
+    tp = tm.tracked[0]
+    lo, hi = tp.lower, tp.upper
+    p = lo + 0.3 * (hi - lo)
+    slope = (p - lo) * (hi - p) / (hi - lo)
+    assert float(tp.std_of(p, 0.01 * slope)) == pytest.approx(0.01)
+    assert float(tp.std_of(p, 100 * slope)) == pytest.approx(np.pi / np.sqrt(3))
+    z = stats.logistic.rvs(size=200_000, random_state=1)    # p uniform over the box
+    assert np.std(z) == pytest.approx(np.pi / np.sqrt(3), rel=0.01)
+
+
 # ---------------------------------------------------------------- the tracker
 @pytest.fixture(scope="module")
 def tracking_model():
@@ -256,7 +292,7 @@ def test_drift_intensity_estimated_by_maximum_likelihood():
     assert abs(q - q_true) <= 3 * sd
 
 
-def test_track_command_writes_table_changes_and_plots(tmp_path, capsys):
+def test_track_command_writes_table_changes_and_plots(tmp_path, capsys, monkeypatch):
     import json
 
     from bondgraph.cli.main import main
@@ -288,6 +324,13 @@ def test_track_command_writes_table_changes_and_plots(tmp_path, capsys):
     frac = 100 * obs.mean()
     assert f"observable {frac:.3g} % of the record; not observable 0-" in text
     assert (out / "track_c.png").stat().st_size > 1000
+    monkeypatch.chdir(tmp_path)          # without --out: track_<model>_<record>, as estimate
+    assert main(["track", "--model", "mass_spring_damper", "--data", str(path), "--track", "c",
+                 "--method", "rk4", "--substeps", "2", "--hold", "zoh", "--backend", "numpy",
+                 "--no-plots"]) == 0
+    default, = tmp_path.glob("track_*_msd_step")
+    again = json.loads((default / "changes.json").read_text())["changes"]
+    assert [c["index"] for c in again] == [c["index"] for c in changes]
     code = main(["track", "--model", "mass_spring_damper", "--data", str(path), "--track",
                  "cc", "--out", str(tmp_path / "o2")])
     assert code == 2

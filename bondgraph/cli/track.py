@@ -20,6 +20,7 @@ from bondgraph.cli.common import (
     add_initial_state,
     add_model,
     add_overwrite,
+    default_out,
     discretisation_given,
     filtered_record,
     load_model,
@@ -81,7 +82,15 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "fraction of the prior variance (default 0.5)")
     p.add_argument("--prior-rel", type=float, default=0.1,
                    help="prior std of a tracked parameter relative to its start (default 0.1)")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--glr-clip", type=float, default=3.0,
+                   help="the change detector's standardised parameter updates are clipped to "
+                        "± this before its sums (default 3: one sample adds at most 4.5 nats, "
+                        "a sensor's single spike raises no alarm, a change shows as a run of "
+                        "samples; 0: the plain Gaussian GLR)")
+    p.add_argument("--out", default=None,
+                   help="output directory (default track_<model>_<data>, numbered -2, -3, "
+                        "... when it holds an earlier result); an explicit --out is refused "
+                        "when not empty, unless --overwrite")
     add_overwrite(p)
     add_fixed(p)
     add_initial_state(p)
@@ -211,7 +220,8 @@ def run(args) -> int:
     values, std = _from_result(args.from_result) if args.from_result else ({}, {})
     levels = {k[len("noise."):]: v for k, v in values.items() if k.startswith("noise.")}
     values = {k: v for k, v in values.items() if k in model.params}
-    folder = output_folder(args.out, args)
+    folder = output_folder(default_out(args, f"track_{model.name}_{Path(args.data).stem}",
+                                       "track"), args)
     exp = filtered_record(load_record(args.data, model, columns=args.columns, dt=args.dt), model,
                           args)
     problem = problem_from_args(model, exp, args, values=values)
@@ -221,7 +231,8 @@ def run(args) -> int:
         problem = problem.conditioned_on(noise_levels=held)
     opts = TrackOptions(prior_rel=args.prior_rel, window_s=args.window,
                         false_alarm_hours=args.false_alarm_hours or None,
-                        observable_s=args.observable_s, observable_ratio=args.observable_ratio)
+                        observable_s=args.observable_s, observable_ratio=args.observable_ratio,
+                        glr_clip=args.glr_clip or None)
     start = {n: float(problem.theta[model.param_index(n)]) for n in names}
     tm = TrackingModel.from_graph(graph, names, drift, start=start)
     std = {n: std[n] for n in names if n in std}

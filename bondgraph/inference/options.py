@@ -813,6 +813,13 @@ class TrackOptions:
         information as the prior, Ham & Brown 1983's normalised covariance
         as the degree of observability). Where it is not observable, the
         change detector raises no alarm for it.
+    glr_clip : float or None
+        The detector's standardised increments are clipped to ±glr_clip
+        (> 0; default 3) before the GLR sums
+        (:func:`bondgraph.inference.changes.glr_mean_jump`): one sample
+        adds at most glr_clip²/2 nats, so a single outlier (a sensor's
+        spike) raises no alarm; a change shows as a run of samples. None:
+        the plain Gaussian GLR (a single sample past √(2h) alarms).
 
     Raises
     ------
@@ -835,6 +842,7 @@ class TrackOptions:
     holdoff_s: float | None = None
     observable_s: float | None = None
     observable_ratio: float = 0.5
+    glr_clip: float | None = 3.0
 
     def __post_init__(self):
         _real(self, "prior_rel", positive=True)
@@ -853,6 +861,8 @@ class TrackOptions:
         if self.observable_s is not None:
             _real(self, "observable_s", positive=True)
         _real(self, "observable_ratio", positive=True)
+        if self.glr_clip is not None:
+            _real(self, "glr_clip", positive=True)
         if not self.observable_ratio < 1.0:
             raise OptionError("TrackOptions.observable_ratio must be < 1 (a posterior to prior "
                               f"variance ratio), got {self.observable_ratio}")

@@ -543,7 +543,7 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
                 watched[:holdoff] = np.nan
             obs = observable_mask(seg.info, sigma0, ow, opts.observable_ratio)
             watched[~obs] = np.nan       # not observable there: its updates are noise
-            alarm, seg.G = first_alarm(watched, h, window, allowed=obs)
+            alarm, seg.G = first_alarm(watched, h, window, allowed=obs, clip=opts.glr_clip)
         elif h is None:
             alarm = None
         segs.append(seg)
@@ -609,7 +609,7 @@ def _first_pass(tm, rec, th, prior, ukf, R, detector, opts):
         watched[~obs] = np.nan
         allowed = obs.copy()
         allowed[:a - lo] = False            # judged with the previous chunk already
-        alarm, G = first_alarm(watched, h, window, allowed=allowed)
+        alarm, G = first_alarm(watched, h, window, allowed=allowed, clip=opts.glr_clip)
         part.G = G[a - lo:]
         alarm = None if alarm is None else (alarm[0] + lo, alarm[1] + lo, *alarm[2:])
         parts.append(part)
@@ -666,7 +666,9 @@ def _states_prior(tm, P0) -> np.ndarray:
 
 def _reset(tm, c: int, x, P, std, opts: TrackOptions, P_start) -> np.ndarray:
     """P at a restart: the tracked parameter ``c``'s variance reset
-    (``opts.reset_rel`` of its value, at least its prior rule) and its cross
+    (``opts.reset_rel`` of its value, at least its prior rule; a logit
+    state's at most the box's own spread,
+    :data:`~bondgraph.core.augment.LOGIT_UNIFORM_STD`) and its cross
     covariances zero; with ``P_start``, the original states' prior
     covariance added (their estimates went through the samples between
     the change and its detection with the old value). A logit state is
@@ -680,7 +682,7 @@ def _reset(tm, c: int, x, P, std, opts: TrackOptions, P_start) -> np.ndarray:
     P = P.copy()
     P[i, :] = 0.0
     P[:, i] = 0.0
-    P[i, i] = (sd / abs(float(tp.slope(x[i])))) ** 2
+    P[i, i] = float(tp.std_of(p, sd)) ** 2     # at most the box's own spread (logit)
     return P if P_start is None else P + P_start
 
 
