@@ -154,6 +154,30 @@ def test_clipped_glr_ignores_one_spike_and_still_detects_a_shift():
         glr_mean_jump(s, M, clip=0.0)
 
 
+def test_serial_inflation_is_the_long_run_variance_and_ignores_a_jump():
+    """λ of white noise is 1; of an AR(1) with φ = 0.6 and unit variance its
+    long-run variance (1 + φ)/(1 − φ) = 4 (Hamilton 1994, eq. 7.2.8); a
+    jump of the mean by 5 std in the middle changes neither (it moves one
+    difference of block sums)."""
+    from bondgraph.inference.changes import INFLATION_MIN, serial_inflation
+
+    rng = np.random.default_rng(5)
+    N, phi = 20_000, 0.6
+    white = rng.normal(0.0, 1.0, N)
+    ar = np.empty(N)
+    ar[0] = white[0]
+    for k in range(1, N):                   # stationary, unit variance
+        ar[k] = phi * ar[k - 1] + np.sqrt(1 - phi * phi) * white[k]
+    lam = serial_inflation(ar, 500)
+    assert lam == pytest.approx((1 + phi) / (1 - phi), rel=0.35)
+    jump = np.where(np.arange(N) >= N // 2, 5.0, 0.0)
+    assert serial_inflation(ar + jump, 500) == pytest.approx(lam, rel=0.2)
+    assert serial_inflation(white, 500) == 1.0
+    assert serial_inflation(white + jump, 500) == 1.0
+    assert serial_inflation(1.3 * white, 500) == 1.0 < INFLATION_MIN      # under 2: as is
+    assert serial_inflation(ar[:100], 500) == 1.0                 # too few blocks: as is
+
+
 def test_a_logit_prior_is_never_wider_than_its_box():
     """std_of: first order (σ_p / g'(z)) while that is below π/√3, the std of
     z = logit of a parameter uniform over its box; wider is capped."""
@@ -521,7 +545,8 @@ def test_substeps_chosen_from_the_tracked_record_remove_false_changes_and_bias()
     substeps until the Richardson estimate of a 2 s window's log-likelihood
     error is within one sampling std. Against the truth c = 1.5 (scipy's
     solve_ivp): with ROS2(2) false changes and c 50 std off at the end
-    (measured: 5 changes, 1.3762 +- 0.0025); with the chosen substeps
+    (measured: 5 changes, 1.3762 +- 0.0025; the step's error correlates the
+    updates, and the calibrated test reports fewer); with the chosen substeps
     (measured: 32; 16 still 1.87 window std from 32) no change and c within
     3 std over the whole record after 10 s (measured: at most 2.03)."""
     from dataclasses import replace
@@ -538,9 +563,12 @@ def test_substeps_chosen_from_the_tracked_record_remove_false_changes_and_bias()
     tm = TrackingModel.from_graph(mass_spring_damper(), ["c"], {"c": 1e-3})
     opts = TrackOptions(false_alarm_hours=10.0, smooth=False)
     pr = make_problem(base, (t, F, y), ukf=UKFOptions(method="ros2", substeps=2))
-    coarse = track(pr, tm, options=opts)
+    coarse = track(pr, tm, options=replace(opts, calibrate=False))
     assert len(coarse.changes) >= 3
     assert abs(coarse.estimate[-1, 0] - 1.5) > 10 * coarse.std[-1, 0]
+    calibrated = track(pr, tm, options=opts)      # the step's error correlates the updates:
+    assert calibrated.settings["inflation"]["c"] >= 2.0     # the test calibrated to it
+    assert len(calibrated.changes) < len(coarse.changes)
     choice = choose_substeps(pr, tm, options=opts)
     assert choice.ok and choice.substeps in (16, 32)
     assert choice.error[2] > 100.0 and choice.error[choice.substeps] <= 1.0

@@ -87,6 +87,12 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "± this before its sums (default 3: one sample adds at most 4.5 nats, "
                         "a sensor's single spike raises no alarm, a change shows as a run of "
                         "samples; 0: the plain Gaussian GLR)")
+    p.add_argument("--no-calibrate", dest="calibrate", action="store_false",
+                   help="leave the change detector as the threshold assumes: by default, "
+                        "where a parameter's standardised updates are serially correlated on "
+                        "the record (their sums vary at least twice as much as white noise's: "
+                        "the model's error), they are divided by the square root of that "
+                        "factor so that --false-alarm-hours holds (one line says so)")
     p.add_argument("--out", default=None,
                    help="output directory (default track_<model>_<data>, numbered -2, -3, "
                         "... when it holds an earlier result); an explicit --out is refused "
@@ -232,7 +238,7 @@ def run(args) -> int:
     opts = TrackOptions(prior_rel=args.prior_rel, window_s=args.window,
                         false_alarm_hours=args.false_alarm_hours or None,
                         observable_s=args.observable_s, observable_ratio=args.observable_ratio,
-                        glr_clip=args.glr_clip or None)
+                        glr_clip=args.glr_clip or None, calibrate=args.calibrate)
     start = {n: float(problem.theta[model.param_index(n)]) for n in names}
     tm = TrackingModel.from_graph(graph, names, drift, start=start)
     std = {n: std[n] for n in names if n in std}
@@ -322,6 +328,14 @@ def summary(res) -> str:
              f"({res.t.size} samples), NLL {res.nll:.6g}",
              "threshold: " + ("none (no detection)" if res.threshold is None
                               else f"{res.threshold:.4g}")]
+    for n, lam in (res.settings.get("inflation") or {}).items():
+        if lam > 1.0:
+            lines.append(f"  {n}: its updates are serially correlated on this record (their sums "
+                         f"vary {lam:.3g} times as much as white noise's: the model's error, "
+                         f"which the test would read as changes); the test takes them divided "
+                         f"by {np.sqrt(lam):.3g}, a change must be that much larger to be seen "
+                         f"(--no-calibrate: as they are); `bondgraph loop` finds what the model "
+                         f"lacks")
     for i, n in enumerate(res.names):
         lines.append(f"  {n:>16s}: start {res.estimate[0, i]:.6g} ± {res.std[0, i]:.3g}, "
                      f"end {res.estimate[-1, i]:.6g} ± {res.std[-1, i]:.3g} {res.units[i]}")

@@ -820,6 +820,13 @@ class TrackOptions:
         adds at most glr_clip²/2 nats, so a single outlier (a sensor's
         spike) raises no alarm; a change shows as a run of samples. None:
         the plain Gaussian GLR (a single sample past √(2h) alarms).
+    calibrate : bool
+        Divide each parameter's standardised updates by √λ, λ the factor by
+        which their sums vary more than a white sequence's on this record
+        (:func:`bondgraph.inference.changes.serial_inflation`; from 2 on,
+        else 1), so that the false-alarm rate holds where the model's error
+        makes them serially correlated. One more filter pass over the
+        record. False: the test as the threshold assumes.
 
     Raises
     ------
@@ -843,6 +850,7 @@ class TrackOptions:
     observable_s: float | None = None
     observable_ratio: float = 0.5
     glr_clip: float | None = 3.0
+    calibrate: bool = True
 
     def __post_init__(self):
         _real(self, "prior_rel", positive=True)
@@ -863,6 +871,7 @@ class TrackOptions:
         _real(self, "observable_ratio", positive=True)
         if self.glr_clip is not None:
             _real(self, "glr_clip", positive=True)
+        _flag(self, "calibrate")
         if not self.observable_ratio < 1.0:
             raise OptionError("TrackOptions.observable_ratio must be < 1 (a posterior to prior "
                               f"variance ratio), got {self.observable_ratio}")

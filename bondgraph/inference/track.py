@@ -75,6 +75,7 @@ from bondgraph.inference.changes import (
     glr_threshold,
     information_gain,
     observable_mask,
+    serial_inflation,
     standardised_increments,
 )
 from bondgraph.inference.options import TrackOptions, UKFOptions, _checked
@@ -455,8 +456,12 @@ def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = Non
     -----
     The method: the augmented-state UKF (Jazwinski 1970), the windowed GLR
     test of :mod:`bondgraph.inference.changes` (Basseville & Nikiforov
-    1993), restart at the estimated change time (Willsky & Jones 1976) and
-    the unscented RTS smoother per segment (Särkkä 2008).
+    1993) on the clipped updates, restart at the estimated change time
+    (Willsky & Jones 1976) and the unscented RTS smoother per segment
+    (Särkkä 2008). Where the updates of that pass are serially correlated
+    (``options.calibrate``, :func:`~bondgraph.inference.changes.serial_inflation`
+    >= 2), the record is tracked once more with them divided by √λ
+    (``settings["inflation"]``).
     """
     opts = _checked(options, TrackOptions, "track options")
     x0, P0, th = tracking_prior(problem, tm, start, std, opts.prior_rel)
@@ -468,15 +473,25 @@ def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = Non
     window, obs_window = opts.samples(dt)
     h = (None if opts.false_alarm_hours is None else
          glr_threshold(opts.false_alarm_hours * 3600.0, dt, window, len(tm.tracked)))
-    segs, changes = _segments(tm, (t, u, y), th, (x0, P0), ukf, R, h, window, opts, std)
-    res = _stitch(tm, t, segs, changes, h)
     sigma0 = reference_std(tm, x0, opts)
+    lam = np.ones(len(tm.tracked))
+    segs, changes = _segments(tm, (t, u, y), th, (x0, P0), ukf, R, (h, lam), window, opts, std)
+    res = _stitch(tm, t, segs, changes, h)
+    if h is not None and opts.calibrate:    # the updates' own spread, the changes restarted
+        obs = observable_mask(res.information, sigma0, obs_window, opts.observable_ratio)
+        lam = np.array([serial_inflation(np.where(obs[:, c], res.increments[:, c], np.nan),
+                                         window) for c in range(lam.size)])
+        if np.any(lam > 1.0):               # once more, the test calibrated to it
+            segs, changes = _segments(tm, (t, u, y), th, (x0, P0), ukf, R, (h, lam), window,
+                                      opts, std)
+            res = _stitch(tm, t, segs, changes, h)
     res.observable = observable_mask(res.information, sigma0, obs_window, opts.observable_ratio)
     if opts.smooth:
         res.smoothed, res.smoothed_std = _smoothed(tm, t, u, th, segs, ukf)
     res.settings = dict(ukf=ukf.to_dict(), track=opts.to_dict(), window=window, dt=dt,
                         theta=dict(zip(tm.model.params, th.tolist())),
                         sigma0=dict(zip(tm.names, sigma0.tolist())),
+                        inflation=dict(zip(tm.names, lam.tolist())),
                         boxes={tp.name: (tp.lower, tp.upper) for tp in tm.tracked
                                if tp.transform == "logit"})
     return res
@@ -516,9 +531,14 @@ def reference_std(tm: TrackingModel, x0, options: TrackOptions) -> np.ndarray:
     return np.array(out)
 
 
-def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
-    """The filter over the record, restarted at each detected change."""
+def _segments(tm, rec, th, prior, ukf, R, detector, window, opts, std):
+    """The filter over the record, restarted at each detected change.
+    ``detector`` is ``(h, lam)``: the threshold (None: no detection) and
+    each parameter's serial inflation (its updates divided by √λ before the
+    test)."""
     t, u, y = rec
+    h, lam = detector
+    unit = 1.0 / np.sqrt(lam)
     holdoff = window if opts.holdoff_s is None else int(round(opts.holdoff_s / (
         np.median(np.diff(t)) if t.size > 1 else 1.0)))
     dt = np.median(np.diff(t)) if t.size > 1 else 1.0
@@ -528,7 +548,7 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
     while True:
         if not segs and h is not None:  # to the first alarm only: filtered again from there
             seg, alarm, obs = _first_pass(tm, (t, u, y), th, prior, ukf, R,
-                                          (h, window, ow, sigma0), opts)
+                                          (h, window, ow, sigma0, unit), opts)
         else:
             seg = _filter_segment(tm, (t, u, y), th, prior, ukf, R, s0)
         if changed is not None:         # once more, from the change time, centred on
@@ -538,7 +558,7 @@ def _segments(tm, rec, th, prior, ukf, R, h, window, opts, std):
             prior = (x, _reset(tm, changed, x, prior[1], std, opts, None))
             seg = _filter_segment(tm, (t, u, y), th, prior, ukf, R, s0)
         if segs and h is not None:
-            watched = seg.S.copy()
+            watched = seg.S * unit
             if segs:                     # a restart: skip the re-estimation's transient
                 watched[:holdoff] = np.nan
             obs = observable_mask(seg.info, sigma0, ow, opts.observable_ratio)
@@ -582,13 +602,14 @@ def _first_pass(tm, rec, th, prior, ukf, R, detector, opts):
     are trailing; the samples after the alarm are filtered again from the
     change anyway.
 
-    ``detector`` is ``(h, window, ow, sigma0)`` (threshold, GLR window,
-    observability window, reference std). Returns the segment (``G``
+    ``detector`` is ``(h, window, ow, sigma0, unit)`` (threshold, GLR
+    window, observability window, reference std, the factor of each
+    parameter's updates, 1/√λ). Returns the segment (``G``
     filled, ``end`` unset), the first alarm (:func:`first_alarm`'s, sample
     indices from 0) or None, and the observability mask (N_seg, k).
     """
     t, u, y = rec
-    h, window, ow, sigma0 = detector
+    h, window, ow, sigma0, unit = detector
     dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
     step = max(int(round(CHUNK_S / dt)), 4 * max(window, ow), 2)
     parts, a, alarm = [], 0, None
@@ -605,7 +626,7 @@ def _first_pass(tm, rec, th, prior, ukf, R, detector, opts):
         lo = parts[-1].start if parts else 0
         info = np.concatenate([p.info for p in parts[-1:]] + [part.info])
         obs = observable_mask(info, sigma0, ow, opts.observable_ratio)
-        watched = np.concatenate([p.S for p in parts[-1:]] + [part.S])
+        watched = np.concatenate([p.S for p in parts[-1:]] + [part.S]) * unit
         watched[~obs] = np.nan
         allowed = obs.copy()
         allowed[:a - lo] = False            # judged with the previous chunk already
