@@ -788,3 +788,66 @@ def test_fit_sim_leaves_an_unseen_initial_state_alone_and_keeps_the_stds(tmp_pat
     assert "x0.x" not in res["estimates"]
     for name, truth in (("m", 2.0), ("c", 1.5), ("x0.p_mass", 0.6)):
         assert abs(res["estimates"][name] - truth) < 3 * res["std"][name]
+
+
+def floor_msd_graph() -> BondGraph:
+    """A user's linear mass-spring-damper with a process noise q on the
+    momentum and the position sensor's noise level s estimated, its box
+    floor 1e-5 m."""
+    g = BondGraph("user_msd_floor", "msd, process noise on the momentum, sensor level free")
+    m = g.param("m", 1.0, "kg", (0.5, 8.0), "mass")
+    k = g.param("k", 40.0, "N/m", (5.0, 500.0), "spring")
+    c = g.param("c", 1.0, "N*s/m", (0.1, 20.0), "damping")
+    q = g.param("q", 1.0, "", (0.01, 100.0), "process noise [N sqrt(s)]")
+    s = g.param("s", 1e-3, "m", (1e-5, 1.0), "position sensor noise")
+    F = g.input("F", "N", 0.0, "force")
+    v = g.one("v", domain="translation")
+    g.connect(g.Se("force", F), v)
+    mass = g.I("mass", m)
+    g.connect(v, mass)
+    spring = g.C("spring", stiffness=k)
+    g.connect(v, spring)
+    g.connect(v, g.R("damper", c))
+    g.set_process_noise(mass.p, q)
+    g.sensor("x", spring.q, unit="m", noise_std=s, description="position")
+    return g
+
+
+def test_a_step_measured_in_a_level_on_its_floor_is_said_in_the_output_unit():
+    """A record of a Duffing oscillator (x'' = F − 40x − 300x³ − v, scipy,
+    sensor noise 1e-9 m) fitted with the linear graph and its process noise:
+    the noise explains the cubic, and the sensor's level ends on its box's
+    floor (1e-5 m). The step error of RK4(1) at 20 Hz is then stated in
+    metres against that floor, with the sensor noise it would be within 0.1
+    std of (ten times the error), not as a step chosen against the box's
+    level."""
+    import re
+
+    from bondgraph.inference.estimate import estimate
+    from bondgraph.inference.options import UKFOptions
+
+    dt, t = 0.05, np.arange(0.0, 30.0, 0.05)
+    rng = np.random.default_rng(0)
+    Fk = rng.normal(0.0, 20.0, t.size)
+
+    def rhs(tt, z):
+        x, v = z
+        return [v, Fk[min(int(tt / dt), t.size - 1)] - 40 * x - 300 * x ** 3 - v]
+
+    sol = solve_ivp(rhs, (0.0, t[-1]), [0.0, 0.0], t_eval=t, max_step=0.01, rtol=1e-9,
+                    atol=1e-12)
+    y = sol.y[0] + rng.normal(0.0, 1e-9, t.size)
+    model = Model.from_graph(floor_msd_graph())
+    pb = make_problem(model, Experiment.from_arrays(t, model=model, u=Fk[:, None],
+                                                    y=y[:, None]),
+                      ukf=UKFOptions(method="rk4", substeps=1, hold="zoh"))
+    with pytest.warns(Warning):
+        res = estimate(pb, ["m", "k", "c", "q", "s"])
+    assert res.estimates[res.params.index("s")] == pytest.approx(1e-5)
+    text, = [w for w in res.warnings if w.startswith("discretisation error")]
+    err, times = re.search(r"is ([0-9.e+-]+) m per sample on x at the estimate, ([0-9.e+-]+) "
+                           r"times its noise level s = 1e-05 m, which sits on the lower bound",
+                           text).groups()
+    assert float(err) == pytest.approx(float(times) * 1e-5, rel=0.05) and float(times) > 0.1
+    assert f"for a sensor noise of {10 * float(err):.2g} m or more" in text
+    assert "--fixed s=VALUE" in text and "substeps=" not in text

@@ -54,6 +54,7 @@ from bondgraph.inference.estimand import (
     NOISE_PREFIX,
     X0_PREFIX,
     Estimand,
+    noise_parameters,
     plan_estimand,
     x0_state_names,
 )
@@ -841,8 +842,36 @@ def _checked_at(crit, best, box, sampled, fit: FitOptions, ukf: UKFOptions, warn
     with progress.phase("the Hessian and the standard errors at the estimate"):
         H, cr = _hessian_at(crit, x_best, f_best, lo, hi, fit, warn_list, scale_box=sampled)
     with progress.phase("checking the filter's discretisation at the estimate"):
-        disc = _discretisation_at(crit, x_best, f_best, fit, ukf, warn_list)
+        disc = _discretisation_at(crit, x_best, f_best, fit, ukf, warn_list,
+                                  floor=_levels_on_floor(crit, x_best, lo, hi))
     return H, cr, disc
+
+
+def _levels_on_floor(crit, x, lo, hi) -> dict[int, str]:
+    """The estimated measurement-noise levels on the lower bound of their
+    box at ``x``, by the output they are the level of: ``noise.<output>``,
+    or a parameter that moves that output's ``meas_std`` (and neither f
+    nor h). Levels the box sets, not the record."""
+    near_lo, _ = near_bound(x, lo, hi)
+    on = [p for i, p in enumerate(crit.params) if near_lo[i]]
+    if not on:
+        return {}
+    one = crit.members[0] if isinstance(crit, JointCriterion) else crit
+    model = one.problem.model
+    th = np.asarray(one.problem_at(x)[0], float)
+    noise = set(noise_parameters(model, th))
+    out = {}
+    for p in on:
+        if p.startswith(NOISE_PREFIX):
+            out[model.output_index(p[len(NOISE_PREFIX):])] = p
+        elif p in noise:
+            th2 = th.copy()
+            th2[model.param_index(p)] *= 2.0
+            with np.errstate(all="ignore"):
+                moved = np.asarray(model.meas_std(th2[None, :]), float).reshape(-1) != \
+                    np.asarray(model.meas_std(th[None, :]), float).reshape(-1)
+            out.update({int(j): p for j in np.flatnonzero(moved)})
+    return out
 
 
 def _problems(problem, x0_states) -> list[Problem]:
@@ -1690,18 +1719,22 @@ def _on_box(cr: dict, H: np.ndarray, width: np.ndarray, names, held: list[str]) 
 
 
 def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
-                       warn_list: list) -> dict | None:
+                       warn_list: list, floor: dict | None = None) -> dict | None:
     """:func:`discretisation_check` at the estimate (summary dict, or None);
     a warning above 0.1 measurement-noise standard deviations per sample
     naming the step as the cause and the cheapest discretisation within
     (:func:`bondgraph.inference.discretise.choose_discretisation` with the
     filter's hold and noise levels); a warning when the filter's hold
     contradicts what the record supports (:func:`hold_warning`); the NLL
-    guard's (:func:`nll_guard`)."""
+    guard's (:func:`nll_guard`). ``floor``: the outputs whose
+    measurement-noise level sits on the lower bound of its box
+    (:func:`_levels_on_floor`); where the worst one is such an output, the
+    warning gives the error in the output's unit and the sensor noise it
+    would be within for, not a step chosen against the box's level."""
     if not (fit.check_discretisation and np.isfinite(f_best)):
         return None
     if isinstance(crit, JointCriterion):
-        return _joint_discretisation_at(crit, x_best, fit, warn_list)
+        return _joint_discretisation_at(crit, x_best, fit, warn_list, floor)
     th_best, x0, P0, R = crit.problem_at(x_best)
     # the filter's levels at the estimate (estimated or declared), else
     # meas_std(θ), else the level seen in the record
@@ -1717,7 +1750,12 @@ def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
     if hold:
         warn_list.append(hold)
     if worst > 0.1:
-        warn_list.append(_step_message(crit.problem, th_best, ukf, worst, sigma))
+        j = int(np.argmax(dc["one_step"]))
+        if floor and j in floor:
+            warn_list.append(_floor_message(crit.model, ukf, worst, float(sigma[j]), j,
+                                            floor[j]))
+        else:
+            warn_list.append(_step_message(crit.problem, th_best, ukf, worst, sigma))
     elif no_process_noise(crit.model, th_best):
         _, _, bound = check_discretisation(crit.problem, th_best, ukf.discretisation,
                                            sigma=sigma, free_run=True)
@@ -1732,7 +1770,7 @@ def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
 
 
 def _joint_discretisation_at(crit: JointCriterion, x_best, fit: FitOptions,
-                             warn_list: list) -> dict:
+                             warn_list: list, floor: dict | None = None) -> dict:
     """:func:`_discretisation_at` on each record of a joint estimate, at its
     own NLL there: ``{"records": {name: summary}}``; each warning prefixed
     with its record's name."""
@@ -1741,9 +1779,26 @@ def _joint_discretisation_at(crit: JointCriterion, x_best, fit: FitOptions,
     for name, m in zip(names, crit.members):
         own: list = []
         f = float(m(np.atleast_2d(x_best))[0])
-        out[name] = _discretisation_at(m, x_best, f, fit, m.options, own)
+        out[name] = _discretisation_at(m, x_best, f, fit, m.options, own, floor)
         warn_list.extend(f"{name}: {w}" for w in own)
     return dict(records=out)
+
+
+def _floor_message(model, ukf: UKFOptions, worst: float, sigma: float, j: int,
+                   level: str) -> str:
+    """The warning of a discretisation error above 0.1 σ per sample where σ
+    is a level ``level`` on the lower bound of its box (output ``j``): the
+    process noise explains the record, so σ says nothing of the sensor;
+    the error in the output's unit, the sensor noise it is within 0.1 std
+    of, and the option that lets the step be chosen against the sensor."""
+    err, unit = worst * sigma, model.output_units[j]
+    return (f"discretisation error of {ukf.method}({ukf.substeps}) with the {ukf.hold} hold is "
+            f"{err:.2g} {unit} per sample on {model.outputs[j]} at the estimate, {worst:.2g} "
+            f"times its noise level {level} = {sigma:.2g} {unit}, which sits on the lower bound "
+            f"of its box: the process noise explains the record, and the box, not the record, "
+            f"sets that level. The step is within 0.1 noise std for a sensor noise of "
+            f"{10 * err:.2g} {unit} or more; hold the level at the sensor's known noise "
+            f"(--fixed {level}=VALUE) to have the step checked and chosen against it")
 
 
 def _step_message(problem: Problem, theta, ukf: UKFOptions, worst: float, sigma,
