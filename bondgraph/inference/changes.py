@@ -43,10 +43,10 @@ assumes the s_i white, which they are when the model describes the record.
 When it lacks an effect, the filter pulls the parameter one way while the
 operating point lasts and back after: the EMPS drive's Coulomb friction,
 tracked over the 25 s estimation run with a graph that has no
-direction-dependent friction, has updates with a lag-1 correlation of
-0.66, whose sums over 1 s vary about 10 times as much as white noise's,
-and the test raised three alarms in 25 s (one, 23.06 -> 23.13 N, no change
-at all). The tracker estimates that factor λ from the updates of its pass
+direction-dependent friction (at the published values), has updates with
+a lag-1 correlation of about 0.66, whose sums vary about 8 times as much
+as white noise's (λ 7.9), and the test raised three alarms in 25 s (one,
+20.24 -> 20.31 N, no change at all). The tracker estimates that factor λ from the updates of its pass
 over the record (restarted at the changes it found: after a real change
 the updates of a filter not restarted stay far from 0 to the end), from
 the differences of the sums of consecutive blocks of B samples, their

@@ -1751,7 +1751,7 @@ def _discretisation_at(crit, x_best, f_best, fit: FitOptions, ukf: UKFOptions,
         warn_list.append(hold)
     if worst > 0.1:
         j = int(np.argmax(dc["one_step"]))
-        if floor and j in floor:
+        if floor and j in floor and sigma is not None:
             warn_list.append(_floor_message(crit.model, ukf, worst, float(sigma[j]), j,
                                             floor[j]))
         else:
