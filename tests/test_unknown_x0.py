@@ -266,6 +266,48 @@ def test_a_start_the_smoother_cannot_give_is_fitted_to_the_outputs(monkeypatch):
     assert logs == []
 
 
+def test_the_fitted_start_is_searched_with_the_compiled_run_and_judged_by_the_loops_own(
+        monkeypatch):
+    """_fitted_start's least squares runs the compiled fixed-step free run
+    (fine_free_run) where it agrees with the loop's own at the start it moves
+    from: the loop's own (LSODA) then runs twice, there and at the end, and
+    judges. Where the two disagree (here by 0.01 output std), the loop's own
+    polishes the start found, in at most START_POLISH_NFEV iterations. The
+    record and truth of the test above (a0 = 2, b0 = -1): both recover it to
+    1e-6."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import fit as F
+
+    t = np.linspace(0.0, 3.0, 61)
+    own_runs = []
+
+    def run(x0):
+        return np.stack([x0[0] * np.exp(-t), x0[1] * np.exp(-2 * t) + 1.0], axis=1)
+
+    def own(ctx, pb, th, held, x0, quiet=False):
+        own_runs.append(1)
+        return run(x0)
+
+    y = run(np.array([2.0, -1.0]))
+    monkeypatch.setattr(F, "_free_run_from", own)
+    ctx = SimpleNamespace(log=lambda m: None, log_once=lambda kind, msg: None,
+                          settings=SimpleNamespace(free_run=SimpleNamespace(method="LSODA")))
+    x0 = np.zeros(2)
+    pb = SimpleNamespace(arrays=(t, None, y), x0=x0, P0=np.diag([0.01, 0.05]) ** 2,
+                         model=SimpleNamespace(states=["a", "b"]))
+    for offset, most in ((0.0, 2), (0.01 * np.std(y[:, 0]), None)):
+        own_runs.clear()
+        monkeypatch.setattr(F, "fine_free_run", lambda pb, u, hold, th, x: run(x) + offset)
+        got = F._fitted_start(ctx, pb, None, (None, None), x0, ["a", "b"], "")
+        np.testing.assert_allclose(got, [2.0, -1.0], atol=1e-6)
+        if most is not None:
+            assert len(own_runs) == most
+        else:                   # r0, then the polish: its steps and difference Jacobians
+            assert 2 < len(own_runs) <= 1 + (1 + 2) * F.START_POLISH_NFEV
+            assert len(own_runs) < F.START_FIT_NFEV
+
+
 def test_a_smoothed_start_that_fits_worse_than_the_prior_mean_gives_way_to_a_fitted_one(
         monkeypatch):
     """free_run: a smoothed start inside the prior's gate whose free run fits

@@ -1512,6 +1512,13 @@ def window_start(ctx: Context, problem: Problem, theta: np.ndarray, n: int) -> n
 
 #: most free runs of the output-error fit of an initial state (:func:`_fitted_start`)
 START_FIT_NFEV = 30
+#: that fit runs the compiled fixed-step free run (:func:`fine_free_run`) where,
+#: from the start it moves from, its residuals agree with the loop's own free
+#: run's within this RMS (in output std): the LSODA runs with a Python
+#: right-hand side were 89 % of a discovery loop's time; where they differ
+#: more, the loop's own run polishes the start found, with at most
+#: START_POLISH_NFEV runs
+FAST_START_AGREEMENT, START_POLISH_NFEV = 1e-3, 5
 #: a free run starts with a transient when its RMS error over the first
 #: START_HEAD of the record exceeds START_RATIO times that over the rest
 START_HEAD, START_RATIO = 0.1, 2.0
@@ -1557,8 +1564,8 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
     the states ``states`` (those nothing gives) by bounded nonlinear least
     squares (:func:`scipy.optimize.least_squares`, trust-region reflective,
     forward-difference Jacobian, at most :data:`START_FIT_NFEV` runs) on the
-    free-run error of :func:`_free_run_from` over the whole record, each
-    output weighted by its std (the NRMSE's weights); the others stay at
+    free-run error over the whole record, each output weighted by its std
+    (the NRMSE's weights; :func:`_start_residuals`); the others stay at
     the prior mean ``x0``. This is the initial-condition estimate of
     prediction-error validation (Ljung 1999, §14.3; MATLAB's ``compare``
     estimates it by default). Used when the RTS-smoothed start is
@@ -1569,57 +1576,118 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
     prior mean (at rest) then charged the model a start-up transient that
     was not its own: a Stribeck refit's held-out error read 0.064 where
     the Coulomb model it was judged against read 0.0097 from a smoothed
-    start. The runs are the loop's own free run (:func:`_free_run_from`,
-    the same method and hold as the error it starts), not
-    :func:`~bondgraph.inference.output_error.output_error_fit`'s, whose
-    simulation differs: the start must be the best for the error reported.
-    ``x0`` is the start the fit moves from (the prior mean, or a smoothed
-    start: ``x0_is`` names it in the log). Returns ``x0`` itself when the
-    fit fails or does not improve on it. One line logged when ``why`` (the
-    smoothed start's fault) is given: why, and the start taken."""
-    from scipy.optimize import least_squares
-
-    y = problem.arrays[2]
-    mask = np.isfinite(y)
-    if not mask.any():
-        return x0
-    scale = np.array([np.nanstd(y[:, i]) if mask[:, i].sum() > 1 else 1.0
-                      for i in range(y.shape[1])])
-    scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+    start. The runs are the loop's own free run
+    (:func:`_free_run_from`, the same method and hold as the error it
+    starts): the start must be the best for the error reported; the search
+    runs the compiled fixed-step one (:func:`fine_free_run`), and the
+    loop's own polishes and judges the start it finds
+    (:func:`_start_search`). ``x0`` is the start the fit
+    moves from (the prior mean, or a smoothed start: ``x0_is`` names it in
+    the log). Returns ``x0`` itself when the fit fails or does not improve
+    on it. One line logged when ``why`` (the smoothed start's fault) is
+    given: why, and the start taken."""
     idx = [problem.model.states.index(n) for n in states]
-    sd = np.sqrt(np.maximum(np.diag(problem.P0)[idx], 1e-300))
-
-    def residuals(z):
-        xi = x0.copy()
-        xi[idx] = x0[idx] + z * sd
-        with np.errstate(all="ignore"):
-            sim = _free_run_from(ctx, problem, theta, held, xi, quiet=True)
-        if sim is None:
-            return np.full(int(mask.sum()), 1e6)
-        r = ((sim - y) / scale)[mask]
-        return np.where(np.isfinite(r), r, 1e6)
-
+    residuals = _start_residuals(ctx, problem, theta, held, x0, idx)
+    if residuals is None:
+        return x0
     r0 = residuals(np.zeros(len(idx)))
     try:
-        fit = least_squares(residuals, np.zeros(len(idx)), method="trf", x_scale="jac",
-                            max_nfev=START_FIT_NFEV)
+        z, cost, runs = _start_search(ctx, residuals, len(idx), r0)
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
         if why:
             ctx.log(f"  {why}; fitting one to the outputs failed ({str(exc).splitlines()[0]}): "
                     f"the free run starts from {x0_is}")
         return x0
-    if not (np.all(np.isfinite(fit.x)) and fit.cost < 0.5 * float(r0 @ r0)):
+    if not (np.all(np.isfinite(z)) and cost < 0.5 * float(r0 @ r0)):
         if why:
             ctx.log(f"  {why}; the one fitted to the outputs does not improve on {x0_is}: "
                     f"the free run starts there")
         return x0
     xi = x0.copy()
-    xi[idx] = x0[idx] + fit.x * sd
+    xi[idx] = x0[idx] + z * _prior_sd(problem, idx)
     if why:
         ctx.log_once(f"fitted start: {why.split(' (')[0]}",
                      f"  {why}; the free run starts from the one fitted to the outputs "
-                     f"{prior_distance_text(problem, xi)} (output error, {fit.nfev} runs)")
+                     f"{prior_distance_text(problem, xi)} (output error, {runs} runs)")
     return xi
+
+
+def _start_search(ctx: Context, residuals, n: int, r0: np.ndarray) -> tuple:
+    """``(z, cost, runs)`` of :func:`_fitted_start`'s least squares from
+    z = 0 (``r0``: the loop's own run's residuals there): where the
+    compiled fixed-step run (``residuals(z, True)``) is finite at 0, the
+    search runs it (:data:`START_FIT_NFEV`); its end is taken as it is
+    where that run agrees with the loop's own at 0 within
+    :data:`FAST_START_AGREEMENT` or the loop's own fails there, else the
+    loop's own polishes it (:data:`START_POLISH_NFEV`). Without it, the
+    loop's own searches from 0. ``cost`` is ½‖r‖² of the loop's own run.
+
+    Raises
+    ------
+    ValueError, LinAlgError, FloatingPointError
+        The least squares fails.
+    """
+    from scipy.optimize import least_squares
+
+    z, runs, most = np.zeros(n), 0, START_FIT_NFEV
+    own = getattr(getattr(getattr(ctx, "settings", None), "free_run", None), "method", None)
+    rf = residuals(z, True) if own != "fine" else None
+    if rf is not None and np.all(np.abs(rf) < 1e6):
+        fit = least_squares(lambda v: residuals(v, True), z, method="trf", x_scale="jac",
+                            max_nfev=START_FIT_NFEV)
+        if np.all(np.isfinite(fit.x)):
+            z, runs, most = fit.x, fit.nfev, START_POLISH_NFEV
+            if np.any(np.abs(r0) >= 1e6) or _rms(rf - r0) <= FAST_START_AGREEMENT:
+                r = residuals(z)
+                return z, 0.5 * float(r @ r), runs + 1
+    fit = least_squares(residuals, z, method="trf", x_scale="jac", max_nfev=most)
+    return fit.x, fit.cost, runs + fit.nfev
+
+
+def _rms(r: np.ndarray) -> float:
+    """RMS of a residual vector (inf where it is not finite or empty)."""
+    r = np.asarray(r, float)
+    return float(np.sqrt(np.mean(r * r))) if r.size and np.all(np.isfinite(r)) else np.inf
+
+
+def _prior_sd(problem: Problem, idx) -> np.ndarray:
+    """The prior std of the states ``idx`` (the unit of the start's search)."""
+    return np.sqrt(np.maximum(np.diag(problem.P0)[idx], 1e-300))
+
+
+def _start_residuals(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple,
+                     x0: np.ndarray, idx: list):
+    """``residuals(z, fast=False)`` of :func:`_fitted_start`: the free-run
+    error on the measured samples from ``x0`` with the states ``idx`` moved
+    by ``z`` prior std, each output over its std (1e6 where the run fails
+    or is not finite); the loop's own free run (:func:`_free_run_from`), or
+    with ``fast`` the compiled fixed-step one (:func:`fine_free_run`).
+    None when nothing is measured."""
+    y = problem.arrays[2]
+    mask = np.isfinite(y)
+    if not mask.any():
+        return None
+    scale = np.array([np.nanstd(y[:, i]) if mask[:, i].sum() > 1 else 1.0
+                      for i in range(y.shape[1])])
+    scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+    sd = _prior_sd(problem, idx)
+
+    def residuals(z, fast: bool = False):
+        xi = x0.copy()
+        xi[idx] = x0[idx] + z * sd
+        with np.errstate(all="ignore"):
+            if fast:
+                try:
+                    sim = fine_free_run(problem, held[1], held[0], theta, xi)
+                except Exception:   # a model the compiled run cannot step
+                    sim = None
+            else:
+                sim = _free_run_from(ctx, problem, theta, held, xi, quiet=True)
+        if sim is None:
+            return np.full(int(mask.sum()), 1e6)
+        r = ((sim - y) / scale)[mask]
+        return np.where(np.isfinite(r), r, 1e6)
+    return residuals
 
 
 def _free_run_from(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple,
