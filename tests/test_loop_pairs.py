@@ -159,22 +159,33 @@ def test_each_single_overflow_is_refused_and_the_partner_shows_given_the_lead(ca
 
 
 def test_the_lockstep_record_cannot_split_the_overflows(case):
-    """On the lockstep record the true pair is refitted (the best pair) and
-    refused on the held-out error: the record cannot split the overflow
-    between the two tanks and their orifices (measured 0.521 -> 0.413,
-    z 1.41, p 0.079). What the loop may accept instead is tank 2's overflow
-    with the collector's, a look-alike the held-out record supports
-    (measured 0.521 -> 0.199, z 5.73; with sympy 1.14 / numpy 2.4, where
-    the earlier code-generation order refused it too): any accepted step
-    must lower the held-out error significantly, and it is never the true
-    pair."""
-    res, _, lines, _ = case
+    """On the lockstep record (Q2 = 0.9 Q1) the true pair is refitted (the
+    best pair), but the record cannot split the overflow between the two
+    tanks and their orifices. Either the held-out error refuses the pair
+    (measured until 2026-12-02: 0.521 -> 0.413, z 1.41, p 0.079), or, with
+    the held-out record's start fitted by the compiled run's least squares
+    that converges (0.5232 -> 0.363, z 2.89, p 0.002; the start's LSODA
+    search had stopped on its own difference noise), it is accepted with
+    the split wrong: the fitted levels off the truth's by more than 10 % in
+    opposite directions (0.0829 and 0.0502 against 0.0696 and 0.0621) and
+    the held-out error over ten times the truth's own (0.0119). What else the
+    loop may accept is tank 2's overflow with the collector's, a look-alike
+    the held-out record supports (measured 0.521 -> 0.199, z 5.73): any
+    accepted step must lower the held-out error significantly."""
+    res, qmax, lines, floor = case
     true_pair = "capacity_limit @ tank2_C + capacity_limit @ tank1_C"
     refused = [ln for ln in lines if f"reject pair {true_pair}" in ln]
-    assert refused and "the error decrease on the validation record is within" in refused[0]
+    true_steps = [st for st in res.steps if {st.attached_to, *[
+        lab.split(" @ ")[1] for lab in st.together_with]} == {"tank1_C", "tank2_C"}]
+    assert bool(refused) != bool(true_steps)
+    if refused:
+        assert "the error decrease on the validation record is within" in refused[0]
+    else:
+        est = res.final.estimates
+        rel = {el: est[f"capacity_limit.{el}.qmax"] / qmax[el] - 1 for el in qmax}
+        assert min(abs(r) for r in rel.values()) > 0.1 and np.prod(list(rel.values())) < 0
+        assert true_steps[0].error_after > 10 * floor
     for st in res.steps:
-        assert {st.attached_to, *[lab.split(" @ ")[1] for lab in st.together_with]} != \
-            {"tank1_C", "tank2_C"}
         assert st.error_after < st.error_before
     accepts = [ln for ln in lines if "] ACCEPT " in ln]
     assert len(accepts) == len(res.steps)
