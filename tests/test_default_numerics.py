@@ -50,8 +50,10 @@ PHASE = np.array([0.3, 1.1, 2.0, 0.7, 2.9, 1.6])
 
 
 def msd_graph(name: str = "user_msd_numerics", m0: float = 1.6, k0: float = 40.0,
-              c0: float = 1.0) -> BondGraph:
-    """The user's graph (defaults away from the truth: the fit starts there)."""
+              c0: float = 1.0, floor: float | None = None) -> BondGraph:
+    """The user's graph (defaults away from the truth: the fit starts there).
+    With ``floor``: a process noise q on the momentum and only the position
+    measured, its noise level s estimated in the box (floor, 1)."""
     g = BondGraph(name, "Mass-spring-damper driven by a force F.")
     m = g.param("m", m0, "kg", (0.5, 8.0), "mass")
     k = g.param("k", k0, "N/m", (5.0, 500.0), "spring stiffness")
@@ -59,10 +61,16 @@ def msd_graph(name: str = "user_msd_numerics", m0: float = 1.6, k0: float = 40.0
     F = g.input("F", "N", 0.0, "applied force")
     v = g.one("v", domain="translation")
     g.connect(g.Se("force", F), v)
-    g.connect(v, g.I("mass", m))
+    mass = g.I("mass", m)
+    g.connect(v, mass)
     spring = g.C("spring", stiffness=k)
     g.connect(v, spring)
     g.connect(v, g.R("damper", c))
+    if floor is not None:
+        g.set_process_noise(mass.p, g.param("q", 1.0, "", (0.01, 100.0), "process noise"))
+        s = g.param("s", 1e-3, "m", (floor, 1.0), "position sensor noise")
+        g.sensor("x", spring.q, unit="m", noise_std=s, description="position")
+        return g
     g.sensor("x", spring.q, unit="m", noise_std=NOISE["x"], description="position")
     g.sensor("v", v.f, unit="m/s", noise_std=NOISE["v"], description="velocity")
     return g
@@ -790,29 +798,6 @@ def test_fit_sim_leaves_an_unseen_initial_state_alone_and_keeps_the_stds(tmp_pat
         assert abs(res["estimates"][name] - truth) < 3 * res["std"][name]
 
 
-def floor_msd_graph() -> BondGraph:
-    """A user's linear mass-spring-damper with a process noise q on the
-    momentum and the position sensor's noise level s estimated, its box
-    floor 1e-5 m."""
-    g = BondGraph("user_msd_floor", "msd, process noise on the momentum, sensor level free")
-    m = g.param("m", 1.0, "kg", (0.5, 8.0), "mass")
-    k = g.param("k", 40.0, "N/m", (5.0, 500.0), "spring")
-    c = g.param("c", 1.0, "N*s/m", (0.1, 20.0), "damping")
-    q = g.param("q", 1.0, "", (0.01, 100.0), "process noise [N sqrt(s)]")
-    s = g.param("s", 1e-3, "m", (1e-5, 1.0), "position sensor noise")
-    F = g.input("F", "N", 0.0, "force")
-    v = g.one("v", domain="translation")
-    g.connect(g.Se("force", F), v)
-    mass = g.I("mass", m)
-    g.connect(v, mass)
-    spring = g.C("spring", stiffness=k)
-    g.connect(v, spring)
-    g.connect(v, g.R("damper", c))
-    g.set_process_noise(mass.p, q)
-    g.sensor("x", spring.q, unit="m", noise_std=s, description="position")
-    return g
-
-
 def test_a_step_measured_in_a_level_on_its_floor_is_said_in_the_output_unit():
     """A record of a Duffing oscillator (x'' = F − 40x − 300x³ − v, scipy,
     sensor noise 1e-9 m) fitted with the linear graph and its process noise:
@@ -837,7 +822,7 @@ def test_a_step_measured_in_a_level_on_its_floor_is_said_in_the_output_unit():
     sol = solve_ivp(rhs, (0.0, t[-1]), [0.0, 0.0], t_eval=t, max_step=0.01, rtol=1e-9,
                     atol=1e-12)
     y = sol.y[0] + rng.normal(0.0, 1e-9, t.size)
-    model = Model.from_graph(floor_msd_graph())
+    model = Model.from_graph(msd_graph("user_msd_floor", 1.0, 40.0, 1.0, floor=1e-5))
     pb = make_problem(model, Experiment.from_arrays(t, model=model, u=Fk[:, None],
                                                     y=y[:, None]),
                       ukf=UKFOptions(method="rk4", substeps=1, hold="zoh"))
