@@ -22,7 +22,11 @@ which the filter read as a change of mu (12 std off at 10 s).
    detector at one false alarm per 10 h: the number of false alarms.
 5. Speed on one core: the batch tracker (detection, isolation; with and without the
    RTS smoother) as a multiple of real time on the puncture record, and the streaming
-   ``Tracker.update`` (compiled one-sample step) per sample.
+   ``Tracker.update`` (compiled one-sample step, with on-line change detection) per sample.
+6. On-line: cases 1-3 replayed sample by sample through the streaming ``Tracker`` (its
+   change detection, no look-ahead): its changes against the batch tracker's (the same
+   change sample, alarm and parameter?), the time from the alarm to the attribution
+   (``attributed_time``), and the cost per sample.
 
 Usage: .venv/bin/python bench/tracking.py [--hours 1.0]
 The last line is JSON; it is also written to bench/results/tracking.json.
@@ -125,6 +129,28 @@ def speed(pr, tm, seconds, repeats=7):
     return out
 
 
+def online(pr, tm, res):
+    """The record replayed through the streaming tracker with the batch run's
+    options: its changes, whether the first equals the batch's (change sample,
+    alarm sample, parameter), the attribution's delay after the alarm and the
+    cost per sample."""
+    trk = Tracker.from_problem(pr, tm, options=TrackOptions(false_alarm_hours=10.0))
+    t, u, y = pr.t, pr.u, pr.y
+    t0 = time.perf_counter()
+    for k in range(t.size):
+        trk.update(t[k], u[k], y[k])
+    wall = time.perf_counter() - t0
+    key = [(c.index, c.alarm_index, c.parameter) for c in res.changes[:1]]
+    first = trk.changes[0] if trk.changes else None
+    return dict(changes=[c.to_dict() for c in trk.changes],
+                first_as_batch=key == [(c.index, c.alarm_index, c.parameter)
+                                       for c in trk.changes[:1]],
+                attribution_delay_s=(first.attributed_time - first.alarm_time) if first else None,
+                after_vs_batch=(first.after / res.changes[0].after - 1.0)
+                if first and res.changes else None,
+                us_per_sample=1e6 * wall / t.size)
+
+
 def false_alarms(hours):
     n = max(1, int(round(hours * 6)))
     alarms, total = [], 0.0
@@ -148,6 +174,7 @@ def main():
     out["puncture"] = judged(res, exp, "r_dyn_r", 30.0, 10.0)
     out["puncture"]["front_flagged"] = any(c.parameter == "r_dyn_f" for c in res.changes)
     out["puncture"]["substeps"], out["puncture"]["discretisation"] = choice.substeps, choice.line()
+    out["puncture"]["online"] = online(pr, tm, res)
     print("puncture:", {k: v for k, v in out["puncture"].items() if k != "changes"}, flush=True)
     out["speed"] = speed(pr, tm, float(pr.t[-1] - pr.t[0]))
     print("speed:", out["speed"], flush=True)
@@ -155,6 +182,7 @@ def main():
     res = track(pr, tm, options=TrackOptions(false_alarm_hours=10.0))
     out["gravel"] = judged(res, exp, "f_r", 20.0, 20.0)
     out["gravel"]["substeps"], out["gravel"]["discretisation"] = choice.substeps, choice.line()
+    out["gravel"]["online"] = online(pr, tm, res)
     print("gravel:", {k: v for k, v in out["gravel"].items() if k != "changes"}, flush=True)
     exp, pr, tm, choice = setup(E.friction_drop(), ["mu", "r_dyn_r", "f_r"])
     res = track(pr, tm, options=TrackOptions(false_alarm_hours=10.0))
@@ -166,6 +194,7 @@ def main():
         out["friction"]["after_s"][f"{dt_after:g}"] = dict(
             estimate=float(res.estimate[i, 0]), std=float(res.std[i, 0]),
             z=float((res.estimate[i, 0] - exp["true.mu"][i]) / res.std[i, 0]))
+    out["friction"]["online"] = online(pr, tm, res)
     print("friction:", {k: v for k, v in out["friction"].items() if k != "changes"}, flush=True)
     exp, pr, tm, choice = setup(E.puncture(), ["mu", "r_dyn_r"])     # no hard traction: mu unseen
     res = track(pr, tm, options=TrackOptions(false_alarm_hours=10.0))

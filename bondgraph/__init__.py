@@ -60,6 +60,8 @@ _export("bondgraph.inference.problem", "NoiseSpec", "Problem", "make_problem")
 _export("bondgraph.inference.ukf", "UKFResult", "ukf_nll")
 _export("bondgraph.inference.optimize", "de", "pso")
 _export("bondgraph.inference.estimate", "EstimationResult", "Stage", "estimate", "two_stage")
+_export("bondgraph.inference.options", "TrackOptions")
+_export("bondgraph.inference.track", "Change", "TrackResult", "Tracker", "TrackingModel", "track")
 # sensitivity, diagnosis
 _export("bondgraph.sensitivity.analysis", "LocalOptions", "analyse")
 _export("bondgraph.sensitivity.sobol", "SobolOptions")

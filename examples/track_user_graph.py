@@ -1,7 +1,9 @@
 """Track a parameter of your own bond graph and detect when it changes.
 
-A damper whose coefficient doubles at t = 30 s (simulated here); replace
-``build`` and the record with your own graph and data.
+A damper whose coefficient doubles at t = 30 s (simulated here): the batch
+tracker over the whole record, then the streaming tracker fed one sample at a
+time, as on-line (its alarm raised at the sample that shows the change).
+Replace ``build`` and the record with your own graph and data.
 
 Run: .venv/bin/python examples/track_user_graph.py
 """
@@ -49,10 +51,17 @@ def main():
     for ch in res.changes:
         print(f"change of {ch.parameter} at t = {ch.time:.2f} s (alarm {ch.alarm_time:.2f} s): "
               f"{ch.before:.4f} ± {ch.before_std:.2g} -> {ch.after:.4f} ± {ch.after_std:.2g}")
-    trk = Tracker.from_problem(problem, tm)                         # one sample at a time
-    for k in range(200):
+    # on-line: one sample at a time as they arrive, the same test (one false alarm per 10 h)
+    trk = Tracker.from_problem(problem, tm, options=TrackOptions(false_alarm_hours=10.0))
+    for k in range(t.size):
         est, sd = trk.update(t[k], F[k], y[k])
-    print(f"streaming after 2 s: c = {est[0]:.4f} ± {sd[0]:.2g}")
+        if k == 200:
+            print(f"streaming after 2 s: c = {est[0]:.4f} ± {sd[0]:.2g}")
+        if trk.alarm is not None:                                   # raised at this sample
+            ch = trk.alarm
+            print(f"on-line at t = {t[k]:.2f} s: {ch.parameter} changed at {ch.time:.2f} s: "
+                  f"{ch.before:.4f} -> {est[0]:.4f} ± {sd[0]:.2g}")
+    print(f"streaming at the end: c = {est[0]:.4f} ± {sd[0]:.2g}")
 
 
 if __name__ == "__main__":

@@ -37,6 +37,12 @@ def test_track_user_graph_finds_the_damping_step(tmp_path):
     t, alarm, before, sb, after, sa = map(float, m.groups())
     assert 30.0 <= t <= 31.0 and t <= alarm <= 35.0
     assert abs(before - 1.5) <= 3 * sb + 1e-3 and abs(after - 3.0) <= 3 * sa + 1e-3
+    # the streaming tracker raises its alarm on-line at the batch tracker's alarm sample,
+    # for the same change time, once, and ends at the batch's re-estimate
+    online = re.findall(r"on-line at t = ([\d.]+) s: c changed at ([\d.]+) s", out)
+    assert [tuple(map(float, o)) for o in online] == [(alarm, t)]
+    end, = map(float, re.search(r"streaming at the end: c = ([\d.]+)", out).groups())
+    assert end == pytest.approx(after, abs=2e-4)
 
 
 def test_emps_user_graph_is_the_hand_derived_mass_on_viscous_friction(tmp_path):

@@ -44,7 +44,13 @@ from bondgraph.inference.discretise import (
 from bondgraph.inference.estimand import start_levels
 from bondgraph.inference.fisher import near_bound
 from bondgraph.inference.options import NOISE_MODES, TrackOptions
-from bondgraph.inference.track import TrackingModel, check_tracked, choose_substeps, track
+from bondgraph.inference.track import (
+    Tracker,
+    TrackingModel,
+    check_tracked,
+    choose_substeps,
+    track,
+)
 from bondgraph.inference.ukf_numba import compile_in_background
 from bondgraph.numerics.registry import graph_builder
 from bondgraph.report.tracking import plot_track
@@ -93,6 +99,11 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "the record (their sums vary at least twice as much as white noise's: "
                         "the model's error), they are divided by the square root of that "
                         "factor so that --false-alarm-hours holds (one line says so)")
+    p.add_argument("--online", action="store_true",
+                   help="also replay the record through the streaming tracker, one sample at "
+                        "a time as they would arrive (no look-ahead; the serial inflation this "
+                        "record's pass measured): its changes, when each was raised and when "
+                        "attributed, into the summary and changes_online.json")
     p.add_argument("--out", default=None,
                    help="output directory (default track_<model>_<data>, numbered -2, -3, "
                         "... when it holds an earlier result); an explicit --out is refused "
@@ -252,6 +263,10 @@ def run(args) -> int:
     with progress.phase(f"tracking {', '.join(names)} (the filter, the smoother, the change "
                         f"tests)"):
         res = track(problem, tm, std=std, options=opts)
+    online = None
+    if args.online and opts.false_alarm_hours is not None:
+        with progress.phase("replaying the record on-line (the streaming tracker)"):
+            online = online_changes(problem, tm, std, opts, res)
     truth = dict((exp.meta or {}).get("true_parameters") or {})
     for name, column in ((exp.meta or {}).get("schedules") or {}).items():
         truth[name] = exp[column]        # a parameter that changes: its time series
@@ -261,14 +276,58 @@ def run(args) -> int:
         (d / "changes.json").write_text(json.dumps(to_jsonable(
             {"threshold": res.threshold, "settings": res.settings,
              "changes": [c.to_dict() for c in res.changes]}), indent=2, allow_nan=False) + "\n")
+        extra = []
+        if online is not None:
+            (d / "changes_online.json").write_text(json.dumps(to_jsonable(
+                {"threshold": res.threshold, "inflation": res.settings.get("inflation"),
+                 "changes": [c.to_dict() for c in online]}), indent=2, allow_nan=False) + "\n")
+            extra.append(d / "changes_online.json")
         with progress.phase("drawing the plots"):
             pngs = [] if args.no_plots else plot_track(res, d, truth=truth)
-        return [d / "track.csv", d / "changes.json", *pngs]
+        return [d / "track.csv", d / "changes.json", *extra, *pngs]
     written = folder.publish(version)
     print(summary(res))
+    if online is not None:
+        print(online_summary(online, res))
+    elif args.online:
+        print("--online: no change detection (--false-alarm-hours 0): nothing to replay")
     for pth in published(folder, written):
         print(f"wrote {pth}")
     return 0
+
+
+def online_changes(problem, tm, std: dict, opts: TrackOptions, res) -> list:
+    """The changes the streaming tracker (:class:`~bondgraph.inference.track.Tracker`,
+    on-line detection) raises on ``problem``'s record fed one sample at a
+    time, with the batch run ``res``'s serial inflation of each parameter's
+    updates (an on-line tracker has no second pass to measure it)."""
+    trk = Tracker.from_problem(problem, tm, std=std, options=opts,
+                               inflation=res.settings.get("inflation"))
+    t, u, y = problem.t, problem.u, problem.y
+    for k in range(t.size):
+        trk.update(t[k], u[k], y[k])
+    return trk.changes
+
+
+def online_summary(online: list, res) -> str:
+    """What the replay found, beside the batch tracker's changes: each
+    change with its alarm and attribution times, and whether the batch run
+    has it (the same change sample and parameter)."""
+    batch = {(c.index, c.parameter) for c in res.changes}
+    lines = [f"on-line (the streaming tracker, each sample as it arrives): {len(online)} "
+             f"change(s)"]
+    for c in online:
+        same = "as the batch run" if (c.index, c.parameter) in batch else "not in the batch run"
+        lines.append(f"  t = {c.time:.6g} s: {c.parameter} raised at {c.alarm_time:.6g} s "
+                     f"(by {c.detected}'s updates), attributed at {c.attributed_time:.6g} s: "
+                     f"{c.before:.6g} -> {c.after:.6g} ± {c.after_std:.3g} ({same})")
+    missed = [c for c in res.changes if (c.index, c.parameter) not in
+              {(o.index, o.parameter) for o in online}]
+    for c in missed:
+        lines.append(f"  the batch run's change of {c.parameter} at {c.time:.6g} s is not "
+                     f"found on-line (the batch attributes with the samples after the alarm, "
+                     f"and restarts centred on the segment's end)")
+    return "\n".join(lines)
 
 
 def _write_csv(path: Path, cols: dict) -> None:

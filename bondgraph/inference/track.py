@@ -49,7 +49,8 @@ Estimates and std in the parameter's unit: p̂ = g(ẑ) and σ_p = |g'(ẑ)| σ_
 
 The streaming :class:`Tracker` runs the same predict/update steps
 (:func:`bondgraph.inference.ukf.predict`, :func:`~bondgraph.inference.ukf.update`)
-one sample at a time.
+one sample at a time, and the same change detection as each sample arrives
+(:class:`OnlineWatch`: what it cannot do without the future is said there).
 
 References
 ----------
@@ -62,8 +63,9 @@ Särkkä, S. (2008). Unscented Rauch-Tung-Striebel smoother. IEEE TAC 53(3).
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import asdict, dataclass, field, replace
-from typing import Mapping, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -71,6 +73,7 @@ from bondgraph.core.augment import augment, tracked_parameters
 from bondgraph.core.deferred import stats
 from bondgraph.errors import ModelError, NumericalError, OptionError
 from bondgraph.inference.changes import (
+    INFO_FLOOR,
     first_alarm,
     glr_threshold,
     information_gain,
@@ -261,6 +264,11 @@ class Change:
         Parameter -> negative log-likelihood of those samples [nats] with
         that parameter restarted at ĵ, minus the smallest (0 for
         ``parameter``); parameters not observable at ĵ are left out.
+    attributed_time : float or None
+        The streaming :class:`Tracker`: the time [s] of the sample at which
+        the change was attributed and the filter restarted (at the alarm
+        or up to one window after it, :meth:`Tracker._attribute`); None
+        from :func:`track`, which attributes with the whole record at hand.
     """
 
     parameter: str
@@ -276,6 +284,7 @@ class Change:
     before_std: float = np.nan
     after: float = np.nan
     after_std: float = np.nan
+    attributed_time: float | None = None
 
     def to_dict(self) -> dict:
         """Plain dict (JSON-able through :mod:`bondgraph.core.jsonsafe`)."""
@@ -1068,16 +1077,39 @@ class Tracker:
         attributes ``information`` (k,) [1/unit²] and ``observable`` (k,)
         hold the sample's values (:meth:`from_problem` sets it as
         :func:`track` does). Default: not tested.
+    watch : OnlineWatch, optional
+        Change detection on-line (needs ``observe``; :meth:`from_problem`
+        sets both from the :class:`~bondgraph.inference.options.TrackOptions`
+        unless its ``false_alarm_hours`` is None). After each update:
+        ``statistic`` (k,) the GLR statistic [nats]; ``suspected`` an alarm
+        whose parameter is not yet decided (or None); ``alarm`` the
+        :class:`Change` attributed at this sample (or None), also appended
+        to ``changes``. Default: no detection.
+
+    Raises
+    ------
+    NumericalError
+        The filter cannot start (the reason named).
+    OptionError
+        ``watch`` without ``observe``.
 
     Examples
     --------
     >>> trk = Tracker.from_problem(problem, tm)            # doctest: +SKIP
     >>> for k in range(N):                                  # doctest: +SKIP
     ...     est, sd = trk.update(t[k], u[k], y[k])
+    ...     if trk.alarm is not None:
+    ...         print(trk.alarm.parameter, trk.alarm.time)
+
+    References
+    ----------
+    Basseville & Nikiforov (1993), §2.4.3 (the windowed GLR); Willsky &
+    Jones (1976) (restart at the change time, the change isolated by
+    likelihood).
     """
 
     def __init__(self, tm: TrackingModel, theta, x0, P0, *, ukf: UKFOptions | None = None,
-                 R=None, observe: tuple | None = None):
+                 R=None, observe: tuple | None = None, watch: "OnlineWatch | None" = None):
         from bondgraph.inference.options import ukf_options
         from bondgraph.inference.sigma import merwe_weights
         from bondgraph.inference.ukf import FilterBatch, ROS2_JACOBIAN
@@ -1108,6 +1140,16 @@ class Tracker:
             self._need = np.asarray(sigma0, float) ** 2, 1.0 / float(ratio) - 1.0
             self._ring, self._sum = np.zeros((max(1, int(window)), len(idx))), np.zeros(len(idx))
             self.observable = np.zeros(len(idx), bool)
+        self._z, self._R, self.watch = np.asarray(x0, float)[idx].copy(), R, watch
+        self.changes: list[Change] = []
+        self.alarm: Change | None = None
+        self.suspected: _Suspected | None = None
+        self.statistic = np.zeros(len(idx))
+        if watch is not None:
+            if observe is None:
+                raise OptionError("Tracker: change detection (watch) needs the observability "
+                                  "test (observe): Tracker.from_problem sets both")
+            self._det = _OnlineDetector(watch, len(idx))
 
     def _compiled_step(self, m):
         """The compiled one-sample step (:class:`~bondgraph.inference.ukf_numba.StepKernel`)
@@ -1124,18 +1166,48 @@ class Tracker:
 
     @classmethod
     def from_problem(cls, problem, tm: TrackingModel, *, start=None, std=None, drift=None,
-                     options: TrackOptions | None = None) -> "Tracker":
+                     options: TrackOptions | None = None,
+                     inflation: Mapping[str, float] | None = None) -> "Tracker":
         """A tracker with the prior, parameters, noise and options that
-        :func:`track` uses for ``problem`` (same arguments)."""
+        :func:`track` uses for ``problem`` (same arguments), detecting
+        changes on-line unless ``options.false_alarm_hours`` is None
+        (:class:`OnlineWatch`). ``inflation``: parameter -> λ, the serial
+        inflation of its updates (:func:`~bondgraph.inference.changes.serial_inflation`;
+        ``settings["inflation"]`` of a :func:`track` run on a recorded
+        drive): an on-line tracker has no second pass to measure it; default
+        1 (white updates).
+
+        Raises
+        ------
+        ModelError
+            ``inflation`` names a parameter not tracked.
+        OptionError
+            A λ that is not a finite number >= 1.
+        """
         opts = _checked(options, TrackOptions, "track options")
         x0, P0, th = tracking_prior(problem, tm, start, std, opts.prior_rel)
         th = th if not drift else tm.theta(dict(zip(problem.model.params, problem.theta)), drift)
         R = problem.noise.covariance(tm.model, th[None, :])
         t = problem.t
         dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-        observe = (reference_std(tm, x0, opts), opts.samples(dt)[1], opts.observable_ratio)
+        window, ow = opts.samples(dt)
+        observe = (reference_std(tm, x0, opts), ow, opts.observable_ratio)
+        watch = None
+        if opts.false_alarm_hours is not None:
+            lam = np.ones(len(tm.tracked))
+            for name, v in dict(inflation or {}).items():
+                tm._spec(name)
+                if not (np.isfinite(v) and v >= 1.0):
+                    raise OptionError(f"Tracker: inflation of '{name}' must be a number >= 1, "
+                                      f"got {v!r}")
+                lam[tm.names.index(name)] = float(v)
+            holdoff = window if opts.holdoff_s is None else int(round(opts.holdoff_s / dt))
+            watch = OnlineWatch(glr_threshold(opts.false_alarm_hours * 3600.0, dt, window,
+                                              len(tm.tracked)),
+                                window, holdoff, 1.0 / np.sqrt(lam), opts, dict(std or {}),
+                                _states_prior(tm, P0))
         return cls(tm, th, x0, P0, ukf=filter_options(problem.ukf, tm, opts),
-                   R=None if R is None else R[0], observe=observe)
+                   R=None if R is None else R[0], observe=observe, watch=watch)
 
     def update(self, t: float, u, y) -> tuple[np.ndarray, np.ndarray]:
         """Filter one sample.
@@ -1152,7 +1224,9 @@ class Tracker:
         Returns
         -------
         (estimate (k,), std (k,))
-            The tracked parameters after the update (parameter units).
+            The tracked parameters after the update (parameter units); at
+            a sample where a change is attributed (``alarm``), the restarted
+            filter's.
 
         Raises
         ------
@@ -1180,10 +1254,140 @@ class Tracker:
                 raise NumericalError(f"the tracker fails: {b.reasons[0]}")
         z, Pz = b.x[0][self._idx], b.P[0][self._idx, self._idx]
         est, slope = self._transform(z)
-        self._observe(t - self._t if self.k > 0 else 0.0, Pz, slope)
+        dt = t - self._t if self.k > 0 else 0.0
+        s = self._increment(z, Pz, dt)      # before _observe moves the previous variance on
+        self._observe(dt, Pz, slope)
         self.k, self._u, self._t = self.k + 1, u, float(t)
         sz = np.sqrt(np.maximum(Pz, 0.0))
-        return est, 0.5 * np.abs(self._transform(z + sz)[0] - self._transform(z - sz)[0])
+        sd = 0.5 * np.abs(self._transform(z + sz)[0] - self._transform(z - sz)[0])
+        self.alarm = None
+        if self.watch is not None:
+            est, sd = self._detect(float(t), u, y, s, est, sd)
+        return est, sd
+
+    def _increment(self, z, Pz, dt: float) -> np.ndarray:
+        """The standardised update of each tracked state at this sample (k,)
+        (:func:`~bondgraph.inference.changes.standardised_increments`, one
+        sample), NaN where it carried no information."""
+        Pm = self._Pz + self._q2 * dt
+        v = Pm - Pz
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (z - self._z) / np.sqrt(v)
+        self._z = np.array(z, float)
+        return np.where(v > INFO_FLOOR * np.maximum(Pm, np.finfo(float).tiny), s, np.nan)
+
+    def _watched(self, s, k: int) -> np.ndarray:
+        """What the detector adds for sample ``k`` (k,): the updates times
+        1/√λ, NaN in a restart's holdoff and where not observable, clipped
+        (as :func:`track`'s test)."""
+        w, d = self.watch, self._det
+        row = np.array(s, float) * w.unit
+        if d.restarted and k - d.seg0 < w.holdoff:
+            row[:] = np.nan
+        row[~self.observable] = np.nan
+        c = w.options.glr_clip
+        return row if c is None else np.clip(row, -c, c)
+
+    def _detect(self, t: float, u, y, s, est, sd):
+        """The on-line GLR test at the sample just filtered; at an alarm,
+        the change attributed (:meth:`_attribute`). Returns the tracked
+        estimates and std at this sample (after a restart, the restarted
+        filter's)."""
+        d, w, k = self._det, self.watch, self.k - 1
+        b = self.batch
+        d.hist.append(_Kept(k, t, u.copy(), y.copy(), b.x[0].copy(), b.P[0].copy(),
+                            est, sd, self.observable.copy()))
+        if self.suspected is not None:
+            return self._attribute(est, sd)
+        g, L = d.push(self._watched(s, k), self.observable)
+        self.statistic = g
+        hit = g > w.h
+        if hit.any() and len(self.changes) < w.options.max_changes:
+            c0 = int(np.argmax(np.where(hit, g, -np.inf)))
+            kept = {e.k: e for e in d.hist}
+            cidx = min(max(k - int(L[c0]) + 1, d.seg0 + 2, min(kept) + 1), k)
+            if cidx - 1 in kept:            # else at a segment's first sample: nothing to restart
+                e0 = kept[cidx - 1]
+                ok = [c for c in range(len(self.tm.tracked)) if e0.obs[c]] or [c0]
+                self.suspected = _Suspected(self.tm.names[c0], cidx, k, float(kept[cidx].t), t,
+                                            float(g[c0]), ok)
+                return self._attribute(est, sd)
+        if self.changes:                    # the re-estimate since the last change
+            c = self.tm.names.index(self.changes[-1].parameter)
+            self.changes[-1].after, self.changes[-1].after_std = float(est[c]), float(sd[c])
+        return est, sd
+
+    def _attribute(self, est, sd):
+        """Which parameter changed (:func:`_isolate`, a restart per observable
+        candidate over the kept samples from the change to now), checked
+        at 0, 1, 2, 4, ... samples after the alarm: decided once the best
+        explains them better than every other by more than the threshold h
+        [nats], or one window after the alarm (:func:`track`'s look-ahead),
+        then :meth:`_restart`. Until then the estimates are the unrestarted
+        filter's."""
+        p, w, tm, k = self.suspected, self.watch, self.tm, self.k - 1
+        m = k - p.alarm_index
+        if m < p.due and m < w.window:
+            return est, sd
+        kept = {e.k: e for e in self._det.hist}
+        span = [kept[i] for i in range(p.index - 1, k + 1)]
+        t, u = np.array([e.t for e in span]), np.stack([e.u for e in span])
+        y = np.stack([e.y for e in span])
+        y[0] = np.nan                       # its update is already in the prior
+        x, P = span[0].x.copy(), span[0].P.copy()
+        c, iso = _isolate(tm, (t, u, y), self.batch.th[0], (x, P), self.opts, self._R,
+                          (0, t.size), lambda i: _reset(tm, i, x, P, w.std, w.options,
+                                                        w.P_start), p.candidates)
+        margin = min([v for n, v in iso.items() if n != tm.names[c]], default=np.inf)
+        if margin <= w.h and m < w.window:
+            p.due = max(1, 2 * m)
+            return est, sd
+        return self._restart(span, (t, u, y), (x, P), c, iso)
+
+    def _restart(self, span: list, rec, prior, c: int, iso: dict):
+        """The filter restarted at the suspected change (its sample ``span[0]``
+        + 1) with parameter ``c``'s variance reset, as :func:`track` restarts
+        (twice: the second pass centred on the first's value now), over the
+        kept samples ``span`` (``rec``: their arrays, the first output
+        masked; ``prior``: the filtered mean and covariance at the first);
+        the change appended to ``changes`` and set as ``alarm``."""
+        w, tm, p, th = self.watch, self.tm, self.suspected, self.batch.th[0]
+        x, P = prior
+        prior = (x, _reset(tm, c, x, P, w.std, w.options, w.P_start))
+        seg = _filter_segment(tm, rec, th, prior, self.opts, self._R, 0)
+        i = int(tm.state_indices[c])        # once more, centred on what that pass found
+        x2 = prior[0].copy()
+        x2[i] = seg.x[-1, i]
+        prior = (x2, _reset(tm, c, x2, prior[1], w.std, w.options, None))
+        seg = _filter_segment(tm, rec, th, prior, self.opts, self._R, 0)
+        e0 = span[0]
+        est, sd = self._resume(seg, span, p.index - 1)
+        ch = Change(tm.names[c], p.index, p.alarm_index, p.time, p.alarm_time, p.statistic,
+                    w.h, p.detected, iso, before=float(e0.est[c]), before_std=float(e0.sd[c]),
+                    after=float(est[c]), after_std=float(sd[c]),
+                    attributed_time=float(span[-1].t))
+        self.changes.append(ch)
+        self.alarm, self.suspected = ch, None
+        return est, sd
+
+    def _resume(self, seg: _Segment, span: list, s0: int):
+        """The filter, the observability test and the detector from the
+        restarted segment ``seg`` (over the kept samples ``span``, from
+        sample ``s0``) on, as :func:`track` watches a restarted segment.
+        Returns the estimates and std at the last sample (k,)."""
+        b, d, idx = self.batch, self._det, self._idx
+        b.x[0][:], b.P[0][:] = seg.x[-1], seg.P[-1]
+        self._z, self._Pz = seg.x[-1][idx].copy(), seg.P[-1][idx, idx].copy()
+        self._ring[:], self._sum[:] = 0.0, 0.0
+        d.restart(s0)
+        est, sd = self.tm.values(seg.x, seg.P)
+        for r, e in enumerate(span):
+            self.information = seg.info[r]
+            self._push_observed(s0 + r)
+            self.statistic, _ = d.push(self._watched(seg.S[r], s0 + r), self.observable)
+            d.hist.append(_Kept(e.k, e.t, e.u, e.y, seg.x[r], seg.P[r], est[r], sd[r],
+                                self.observable.copy()))
+        return est[-1], sd[-1]
 
     def _transform(self, z):
         """p(z) and dp/dz of every tracked parameter at once (k,)
@@ -1205,8 +1409,125 @@ class Tracker:
             info = (1.0 / np.maximum(Pz, tiny) - 1.0 / np.maximum(Pm, tiny)) / slope ** 2
         self.information = np.where(np.isfinite(info) & (info > 0), info, 0.0)
         self._Pz = Pz
+        self._push_observed(self.k)
+
+    def _push_observed(self, k: int) -> None:
+        """``information`` into the trailing window of the observability
+        test at sample ``k`` and ``observable`` updated (with ``observe``)."""
         if self.observable is not None:
-            r = self.k % len(self._ring)
+            r = k % len(self._ring)
             self._sum += self.information - self._ring[r]
             self._ring[r] = self.information
             self.observable = self._need[0] * self._sum >= self._need[1]
+
+
+class _Kept(NamedTuple):
+    """A sample the on-line detector keeps to restart from: index, time,
+    inputs, outputs, the filtered mean and covariance, the tracked
+    estimates and std and the observability there."""
+    k: int
+    t: float
+    u: np.ndarray
+    y: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    est: np.ndarray
+    sd: np.ndarray
+    obs: np.ndarray
+
+
+@dataclass
+class _Suspected:
+    """An alarm not yet attributed (:meth:`Tracker._attribute`): the
+    parameter whose updates raised it, the change's sample and the alarm's,
+    their times, the statistic, the candidate columns, and the next check
+    (samples after the alarm)."""
+    detected: str
+    index: int
+    alarm_index: int
+    time: float
+    alarm_time: float
+    statistic: float
+    candidates: list
+    due: int = 0
+
+
+@dataclass
+class OnlineWatch:
+    """Change detection of the streaming :class:`Tracker`, as :func:`track`
+    detects (:meth:`Tracker.from_problem` makes it from the same
+    :class:`~bondgraph.inference.options.TrackOptions`): the windowed GLR
+    test of the clipped standardised updates
+    (:mod:`bondgraph.inference.changes`) evaluated at each sample as it
+    arrives. At an alarm the changed parameter is chosen by likelihood over
+    the samples from the estimated change time on, as they come: decided as
+    soon as restarting one parameter explains them better than restarting
+    any other by more than h, at the latest one window after the alarm
+    (:func:`track` always takes that window; it has the record at hand).
+    Then the filter restarts at the change time from the samples it keeps
+    (the last 2 ``window`` + 3) and runs to the current sample, re-centred
+    on that restart's value there (:func:`track`: at its segment's end). So
+    up to the first alarm the statistic and the alarm are :func:`track`'s;
+    after it the two may differ. An on-line tracker has no second pass to
+    measure the serial inflation of the updates: ``unit`` (1/√λ) is given.
+
+    Attributes
+    ----------
+    h : float
+        Threshold [nats] (:func:`~bondgraph.inference.changes.glr_threshold`).
+    window : int
+        GLR window M [samples].
+    holdoff : int
+        Samples of a restarted segment not watched.
+    unit : ndarray (k,)
+        Each tracked parameter's updates are multiplied by it (1/√λ).
+    options : TrackOptions
+        ``reset_rel``, ``prior_rel``, ``glr_clip``, ``max_changes``.
+    std : dict
+        Prior std by parameter [its unit] (the restart's rule, :func:`track`'s ``std``).
+    P_start : ndarray (n_x, n_x)
+        The original states' prior covariance, added at a restart.
+    """
+
+    h: float
+    window: int
+    holdoff: int
+    unit: np.ndarray
+    options: TrackOptions
+    std: dict
+    P_start: np.ndarray
+
+
+class _OnlineDetector:
+    """The on-line detector's state: the watched values of the current
+    segment's last ``window`` samples (a ring), the segment's start, and the
+    kept samples (:class:`_Kept`)."""
+
+    def __init__(self, watch: OnlineWatch, k: int):
+        self.M = max(1, int(watch.window))
+        self.ring, self.pos, self.count = np.full((self.M, k), np.nan), 0, 0
+        self.seg0, self.restarted = 0, False
+        self.hist: deque = deque(maxlen=2 * self.M + 3)   # from a change to its attribution
+
+    def restart(self, s0: int) -> None:
+        """A new segment from sample ``s0``: the window emptied, the kept
+        samples from ``s0`` on to be appended again."""
+        self.ring[:], self.pos, self.count = np.nan, 0, 0
+        self.seg0, self.restarted = s0, True
+        while self.hist and self.hist[-1].k >= s0:
+            self.hist.pop()
+
+    def push(self, row, allowed) -> tuple[np.ndarray, np.ndarray]:
+        """Add a sample's watched values (k,); the GLR statistic g (k,) over
+        the window's trailing sums (:func:`~bondgraph.inference.changes.glr_mean_jump`
+        at the newest sample, 0 where not ``allowed``) and the length L (k,)
+        of each maximising window (the change at the newest sample − L + 1)."""
+        self.ring[self.pos] = row
+        self.pos, self.count = (self.pos + 1) % self.M, min(self.count + 1, self.M)
+        W = self.ring[(self.pos - 1 - np.arange(self.count)) % self.M]    # newest first
+        ok = np.isfinite(W)
+        C, n = np.cumsum(np.where(ok, W, 0.0), axis=0), np.cumsum(ok, axis=0)
+        val = np.where(n > 0, C * C / (2.0 * np.maximum(n, 1)), 0.0)
+        L = np.argmax(val, axis=0)          # the first maximum: the shorter window
+        g = val[L, np.arange(val.shape[1])]
+        return np.where(allowed, g, 0.0), L + 1
