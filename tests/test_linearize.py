@@ -5,6 +5,8 @@ model's small-signal response (solve_ivp), and the command."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy import signal
@@ -139,6 +141,48 @@ def test_frequency_response_matches_small_signal_simulation(w):
                   for i in range(len(lin.outputs))])
     np.testing.assert_allclose(measured, G, rtol=5e-5)
     np.testing.assert_allclose(lin.freqresp([w])[0, :, 0], G, rtol=1e-12)
+
+
+def torricelli_tank() -> BondGraph:
+    """One tank of area a fed by Q, drained by a square-root orifice:
+    dq/dt = Q - k sqrt(q/a). Equilibrium (hand-derived) q* = a (Q/k)^2,
+    where A = -k / (2 a sqrt(q*/a)) = -k^2 / (2 a Q)."""
+    g = BondGraph("torricelli_tank", "A tank with a square-root orifice.")
+    Q = g.input("Q", "m^3/s", 0.0, "inflow")
+    a = g.param("a", 0.5, "m^2")
+    k = g.param("k", 0.02, "m^2.5/s")
+    t = g.zero("tank")                      # the level as effort: q / a [m]
+    g.connect(g.Sf("inflow", Q), t)
+    g.connect(t, g.C("C_tank", a))
+    g.connect(t, g.R("orifice", flow=lambda h: k * h ** 0.5))
+    g.sensor("h", t.e, unit="m")
+    return g
+
+
+def test_a_law_on_its_domains_boundary_is_said(tmp_path, capsys):
+    """At an empty tank (the default inflow 0) the orifice's sqrt sits on
+    its boundary: its slope is infinite there, the continued law's 0, and a
+    pole at 0 would be reported as the tank's; the linearisation says so. At
+    an inflow the equilibrium is inside the domain: A is the hand-derived
+    -k^2 / (2 a Q), no warning."""
+    from bondgraph.cli.main import main
+
+    empty = linearize(torricelli_tank())
+    assert np.allclose(empty.x, 0.0) and empty.A[0, 0] == 0.0
+    w, = empty.warnings
+    assert "(q_C_tank/a)**0.5 sits on the boundary of its domain" in w and "q_C_tank/a > 0" in w
+    Q, a, k = 1e-3, 0.5, 0.02
+    lin = linearize(torricelli_tank(), {"Q": Q})
+    assert lin.warnings == ()
+    assert lin.x[0] == pytest.approx(a * (Q / k) ** 2, rel=1e-9)
+    assert lin.A[0, 0] == pytest.approx(-k ** 2 / (2 * a * Q), rel=1e-7)
+    monkey = tmp_path / "tank_mod.py"
+    monkey.write_text("import sys\nsys.path.insert(0, %r)\n"
+                      "from test_linearize import torricelli_tank\n" % str(Path(__file__).parent))
+    assert main(["linearize", f"{monkey}:torricelli_tank", "-o",
+                 str(tmp_path / "t.npz"), "--no-plot"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: (q_C_tank/a)**0.5 sits on the boundary" in err
 
 
 def test_to_control_and_no_equilibrium():

@@ -5,6 +5,7 @@ equilibrium (:func:`bondgraph.export.linearize.linearize`), written as
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from bondgraph.cli.common import add_model, parse_pairs
@@ -51,6 +52,8 @@ def run(args) -> int:
           "poles: none (no state: the outputs are algebraic functions of the inputs, D alone)")
     for p in lin.poles():
         print(f"  {p.real:.6g} {'+' if p.imag >= 0 else '-'} {abs(p.imag):.6g}j")
+    for w in lin.warnings:
+        print(f"warning: {w}", file=sys.stderr)
     print(f"wrote {out}")
     if not args.no_plot:
         png = bode_plot(lin, out.with_suffix(".png"))

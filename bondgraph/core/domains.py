@@ -300,3 +300,44 @@ def continued_share(exprs: Iterable[sp.Expr], symbols: Sequence[sp.Symbol],
         if share > CONTINUED_SHARE:
             out.append((sp.sstr(a), sp.sstr(b), share))
     return out
+
+
+def laws_at_their_boundary(exprs: Iterable[sp.Expr], symbols: Sequence[sp.Symbol],
+                           values: Sequence[float], tol: float) -> list[tuple[str, str]]:
+    """The continued powers of exponent below 1 whose base is at 0 at a
+    point: there the law's slope is infinite (a square-root orifice at an
+    empty tank, a Hertzian contact just touching, ``x**0.5``), and the
+    continued law's derivative (:class:`dpow`, 0 at the boundary) is not
+    the limit of the law's from inside its domain, so a Jacobian taken there
+    describes no small motion about the point (a linearisation's poles at 0).
+
+    Parameters
+    ----------
+    exprs : iterable of sympy.Expr
+        Expressions holding ``dpow`` (the state derivatives and outputs).
+    symbols : sequence of sympy.Symbol
+        The symbols the bases may use.
+    values : sequence of float
+        One value per symbol: the point.
+    tol : float
+        |base| <= tol counts as at the boundary (>= 0; the caller's scale).
+
+    Returns
+    -------
+    list of (law, base)
+        As printed (``"sqrt(q_tank)"``, ``"q_tank"``), each law once.
+    """
+    atoms: dict = {}
+    for e in exprs:
+        if isinstance(e, sp.Basic) and e.has(dpow):
+            for a in e.atoms(dpow):
+                x = a.args[1]
+                if x.is_number and float(x) < 1.0:
+                    atoms.setdefault(a.args[0], a)
+    out = []
+    for b, a in atoms.items():
+        with np.errstate(all="ignore"):
+            v = float(sp.lambdify(list(symbols), b, "numpy")(*values))
+        if np.isfinite(v) and abs(v) <= tol:
+            out.append((sp.sstr(a), sp.sstr(b)))
+    return out

@@ -25,6 +25,8 @@ import numpy as np
 from scipy.optimize import root
 
 from bondgraph.core.causality import STATIC_STATE
+from bondgraph.core.domains import laws_at_their_boundary
+from bondgraph.core.equations import derive
 from bondgraph.core.graph import BondGraph
 from bondgraph.errors import BondGraphError, ExportError
 from bondgraph.export.params import model_graph
@@ -59,6 +61,9 @@ class Linearization:
         Whether the states were solved from f(x, u, θ) = 0.
     residual : float
         max |f(x, u, θ)| at the point (0 up to round-off at an equilibrium).
+    warnings : tuple of str
+        What makes the matrices doubtful at this point (a law on the boundary
+        of its domain, :func:`boundary_warnings`), one line each.
     """
 
     model: str
@@ -75,6 +80,7 @@ class Linearization:
     y: np.ndarray
     equilibrium: bool
     residual: float
+    warnings: tuple = ()
 
     def poles(self) -> np.ndarray:
         """Eigenvalues of A [1/s], shape (n_x,), sorted by real part."""
@@ -292,8 +298,30 @@ def linearize(model: str | BondGraph | Model, at: Mapping[str, float] | None = N
     # (registry.with_a_state) is no dynamics of the system: its pole at 0 left out
     keep = [i for i, s in enumerate(m.states) if s != STATIC_STATE]
     A, B, C = mats["dfdx"][np.ix_(keep, keep)], mats["dfdu"][keep], mats["dhdx"][:, keep]
+    warn = () if isinstance(model, Model) else boundary_warnings(m, model, params, x, u, theta)
     return Linearization(model=m.name, A=A, B=B, C=C, D=mats["dhdu"],
                          states=tuple(m.states[i] for i in keep), inputs=tuple(m.inputs),
                          outputs=tuple(m.outputs), x=x[keep], u=u, theta=theta, y=y0,
                          equilibrium=solved,
-                         residual=float(np.max(np.abs(f0), initial=0.0)))
+                         residual=float(np.max(np.abs(f0), initial=0.0)), warnings=warn)
+
+
+def boundary_warnings(m: Model, model, params, x, u, theta) -> tuple:
+    """One line per law continued past its domain (:mod:`bondgraph.core.domains`)
+    whose base is 0 at the point (x, u, θ) and whose slope is infinite there
+    (:func:`~bondgraph.core.domains.laws_at_their_boundary`: |base| within
+    1e-9 of the point's largest state or input): the Jacobian there is the
+    continuation's, not the law's. Empty when the model continues no law."""
+    if not m.domain_notes:
+        return ()
+    ss = derive(model_graph(model, params))
+    syms = list(ss.states) + list(ss.inputs) + list(ss.params)
+    scale = max(float(np.max(np.abs(x), initial=0.0)), float(np.max(np.abs(u), initial=0.0)))
+    at = laws_at_their_boundary(list(ss.f) + list(ss.h), syms,
+                                [*map(float, x), *map(float, u), *map(float, theta)],
+                                1e-9 * scale if scale > 0 else 1e-300)
+    return tuple(f"{law} sits on the boundary of its domain at this point ({base} = 0), where "
+                 f"its slope is infinite; the Jacobian takes the continued law's (0 there), "
+                 f"so A, B, C, D do not describe "
+                 f"small motions about this point: linearise where {base} > 0 (--at with "
+                 f"inputs or states that put it there)" for law, base in at)
