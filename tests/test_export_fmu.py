@@ -234,6 +234,18 @@ def test_cli_export_with_estimate_result(tmp_path, capsys):
     assert _rel_error(res["v_C"][:, None], ref.y[:, [1]])[0] < REL
 
 
+def test_cli_export_without_fmu_writes_the_graphs_name(tmp_path, capsys, monkeypatch):
+    """Without --fmu the FMU is MODEL.fmu (the graph's name) in the current
+    folder, as linearize writes MODEL_linear.npz; its model description
+    names the model."""
+    from bondgraph.cli.main import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", "rlc_circuit"]) == 0
+    assert "wrote rlc_circuit.fmu" in capsys.readouterr().out
+    assert fmpy.read_model_description("rlc_circuit.fmu").modelName == "rlc_circuit"
+
+
 def test_loop_augmented_model_exports_and_matches(tmp_path):
     """The loop's augmented model of the default case (vehicle_coastdown_noaero
     + quadratic_drag @ body.v, as `bondgraph loop` accepts it), written by the

@@ -8,7 +8,7 @@ import argparse
 from bondgraph.cli.common import add_model
 from bondgraph.errors import UsageError
 from bondgraph.export.fmu import FMUOptions, export_fmu
-from bondgraph.export.params import read_params
+from bondgraph.export.params import model_graph, read_params
 
 
 EXAMPLE = "bondgraph export mass_spring_damper --fmu msd.fmu"
@@ -17,8 +17,9 @@ EXAMPLE = "bondgraph export mass_spring_damper --fmu msd.fmu"
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph export``."""
     add_model(p, positional=True)
-    p.add_argument("--fmu", required=True, metavar="OUT.fmu",
-                   help="the FMU to write (FMI 2.0, Model Exchange and Co-Simulation)")
+    p.add_argument("--fmu", default=None, metavar="OUT.fmu",
+                   help="the FMU to write (FMI 2.0, Model Exchange and Co-Simulation; default "
+                        "MODEL.fmu, the graph's name, in the current folder)")
     p.add_argument("--params", metavar="JSON",
                    help="estimated parameters: `bondgraph estimate`'s result.json or "
                         "`bondgraph loop`'s report.json (with its augmented_model.py:build)")
@@ -33,9 +34,11 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     """Write the FMU (see :func:`configure`)."""
+    params = read_params(args.params) if args.params else None
+    if args.fmu is None:                # the graph's name, as linearize's MODEL_linear.npz
+        args.fmu = f"{model_graph(args.model, params).name}.fmu"
     if not args.fmu.endswith(".fmu"):
         raise UsageError(f"--fmu {args.fmu}: the file name must end in .fmu")
-    params = read_params(args.params) if args.params else None
     options = FMUOptions(compiler=args.compiler, tolerance=args.tolerance,
                          stop_time=args.stop_time)
     path = export_fmu(args.model, args.fmu, params=params, options=options)
