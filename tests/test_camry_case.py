@@ -11,6 +11,8 @@ the output, z 1.19: a decrease confined to the first 20 s). On the held-out
 hot UDDS 61811012 the declared parameters read 0.409 cm³/s before and 0.408
 after. Skipped without ../shared/data."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -93,6 +95,12 @@ def test_loop_accepts_the_cold_start():
                                          if k in m.params}))
     assert before == pytest.approx(0.409, abs=0.003)
     assert after == pytest.approx(0.408, abs=0.003)
+    # the case's held-out line (`bondgraph loop --case camry_cold` prints it): the final
+    # graph, cold start included, at its final fit on that hot start reads the same
+    line = case.held_out(res)
+    got = [float(v) for v in re.findall(r"(?:before|after) ([\d.]+)", line)]
+    assert "hot UDDS 61811012" in line and got[0] == pytest.approx(before, rel=1e-3)
+    assert got[1] == pytest.approx(0.408, abs=0.003)
 
 
 @needs_data

@@ -311,6 +311,8 @@ def run(args) -> int:
         res = _with_discovery(args, graph, record, settings, res, out)
     print()
     _print_errors(name, res)
+    if not args.model and case.held_out is not None:
+        print(case.held_out(res))
     print(res.table() if res.steps else f"  no effect accepted: {res.none_accepted()}"
           + ("; the reasons are in report.md" if res.rejected else ""))
     for w in getattr(res, "final_checks", ()):

@@ -53,6 +53,12 @@ class LoopCase:
     :class:`~bondgraph.diagnose.settings.LoopSettings`, its ``params`` the
     parameters to estimate), and (for synthetic cases) the effect the truth
     has (a :class:`TrueEffect`; a ``(kind, target)`` tuple is converted).
+    ``held_out``, optional: ``held_out(result) -> str``, one line the
+    command prints after the loop (a :class:`~bondgraph.diagnose.result.LoopResult`):
+    the declared and the final model on a record the case holds out where
+    the loop cannot judge by it (a real case whose effect only one record
+    shows: the Camry's cold start, judged on the cold bag, checked on a
+    hot test where it must change nothing).
 
     Raises
     ------
@@ -66,6 +72,7 @@ class LoopCase:
     record: Callable[[], Any]
     settings: LoopSettings
     true_effect: TrueEffect | None = None
+    held_out: Callable[[Any], str] | None = None
 
     def __post_init__(self):
         if not isinstance(self.settings, LoopSettings):
