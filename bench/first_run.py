@@ -10,7 +10,7 @@ included: ``cpu_s``, the steadier figure on a shared machine), the time at
 which each of the loop's stages was printed, and the longest silence (no
 byte on stdout or stderr: the pipes are read as the bytes arrive, so the dot
 an announced compile appends counts), and the loop's figures (free-run NRMSE before and
-after: a speed-up must not change them). Targets: first run <= 60 s,
+after, on the held-out run where the case has one: a speed-up must not change them). Targets: first run <= 60 s,
 warm <= 10 s, nothing silent for more than 2 s. Last line JSON.
 
 Usage: python bench/first_run.py [--keep DIR]
@@ -87,7 +87,7 @@ def run_once(env: dict, out: Path) -> dict:
         stages[name] = None if hit is None else round(hit, 1)
     before = next((text[-100:] for t, text in reversed(lines) if t <= at), "(start)")
     fig = next((m.groups() for _, text in lines
-                if (m := re.search(r"before: ([0-9.]+)\s+after: ([0-9.]+)", text))), None)
+                if (m := re.search(r"before:? ([0-9.]+)\s+after:? ([0-9.]+)", text))), None)
     return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "stages_s": stages,
             "longest_silence_s": round(silence, 1), "silent_after": before,
             "nrmse_before_after": None if fig is None else [float(v) for v in fig]}
