@@ -310,8 +310,17 @@ def run(args) -> int:
     if args.discover:
         res = _with_discovery(args, graph, record, settings, res, out)
     print()
+    _print_summary(args, res, name, None if args.model else case, (graph, settings), out)
+    return 0
+
+
+def _print_summary(args, res, name: str, case, declared: tuple, out: Path) -> None:
+    """The summary after the loop: the errors (and a bundled case's own
+    held-out line), the steps, the final checks and notes, where the report
+    is and (a user's model) how to judge it on another record."""
+    graph, settings = declared
     _print_errors(name, res)
-    if not args.model and case.held_out is not None:
+    if case is not None and case.held_out is not None:
         print(case.held_out(res))
     print(res.table() if res.steps else f"  no effect accepted: {res.none_accepted()}"
           + ("; the reasons are in report.md" if res.rejected else ""))
@@ -332,7 +341,6 @@ def run(args) -> int:
           f"augmented_model.py)")
     if args.model:
         print(another_day(args, out))
-    return 0
 
 
 def another_day(args, out: Path) -> str:

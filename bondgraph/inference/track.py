@@ -158,8 +158,8 @@ class TrackingModel:
 
     def values(self, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Parameter estimates and std (..., k) from state means (..., n_x)
-        and covariances (..., n_x, n_x): p = g(z), σ_p = |g(z + σ_z) − g(z − σ_z)| / 2
-        (|g'(z)| σ_z to first order; near a bound of the box, where the
+        and covariances (..., n_x, n_x): p = g(z), ``σ_p = |g(z + σ_z) − g(z − σ_z)| / 2``
+        (``|g'(z)| σ_z`` to first order; near a bound of the box, where the
         logit's slope vanishes, the secant keeps the spread the state still
         has instead of reporting a parameter known exactly)."""
         idx = self.state_indices
