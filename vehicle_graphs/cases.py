@@ -170,15 +170,22 @@ def vehicle_slip_declared() -> BondGraph:
     return full_vehicle("vehicle_full")
 
 
+#: the throttle steps (time [s], throttle) of the driving cases' record, and
+#: of their held-out run (other levels at other times)
+DRIVING_STEPS = ((2.0, 0.35), (9.0, 0.7), (16.0, 0.2), (22.0, 0.9))
+HELD_OUT_STEPS = ((2.0, 0.6), (8.0, 0.25), (14.0, 0.85), (21.0, 0.45))
+
+
 def driving_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
-                   duration: float = 30.0, **truth_params: float):
+                   duration: float = 30.0, throttle_steps=DRIVING_STEPS, **truth_params: float):
     """A synthetic driving record: ``truth`` (a full vehicle graph in High
     range, e.g. the declared one plus an effect by
-    :func:`bondgraph.apply_effect`) driven by throttle steps 0.35, 0.7, 0.2,
-    0.9 at 2, 9, 16 and 22 s for ``duration`` [s] at 40 Hz from its
-    equilibrium, parameters ``TRUE_DRIVING`` with ``truth_params`` over them;
-    the outputs of ``declared`` are recorded with its sensors' noise, drawn
-    with ``seed`` (:func:`bondgraph.diagnose.cases.synthesize`).
+    :func:`bondgraph.apply_effect`) driven by ``throttle_steps`` (default
+    :data:`DRIVING_STEPS`: 0.35, 0.7, 0.2, 0.9 at 2, 9, 16 and 22 s) for
+    ``duration`` [s] at 40 Hz from its equilibrium, parameters
+    ``TRUE_DRIVING`` with ``truth_params`` over them; the outputs of
+    ``declared`` are recorded with its sensors' noise, drawn with ``seed``
+    (:func:`bondgraph.diagnose.cases.synthesize`).
 
     Returns
     -------
@@ -189,11 +196,20 @@ def driving_record(truth: BondGraph, declared: BondGraph, name: str, seed: int,
     th = tm.theta({k: v for k, v in params.items() if k in tm.params})
     x0 = initial_state(tm, th)
     t = np.arange(0.0, duration + 1e-9, 0.025)
-    throttle = steps([(2.0, 0.35), (9.0, 0.7), (16.0, 0.2), (22.0, 0.9)])
+    throttle = steps(list(throttle_steps))
     inputs = {"throttle": throttle, "brake": lambda tt: np.zeros_like(tt)}
     return synthesize(truth, declared, t, inputs, x0, params, seed, name,
                       f"throttle steps in High range, {duration} s at 40 Hz, simulated from "
                       f"'{truth.name}'", truth_model=tm)
+
+
+def driving_held_out(truth: BondGraph, declared: BondGraph, name: str, seed: int,
+                     **truth_params: float):
+    """The validation record of a driving case: the same vehicle driven by
+    other throttle steps (:data:`HELD_OUT_STEPS`) with its own noise, named
+    ``<name>_run2``; the loop judges and reports on it, never fitting it."""
+    return driving_record(truth, declared, f"{name}_run2", seed,
+                          throttle_steps=HELD_OUT_STEPS, **truth_params)
 
 
 #: truth belt-creep coefficient of the belt-slip case [N m s/rad]: 8 gives a
@@ -211,18 +227,22 @@ def case_slip() -> LoopCase:
     # the other parameters are known (stage 1 of the protocol: rolling
     # resistance, drag, dynamic radius, pitch offset; the rest from the table)
     fixed = {k: v for k, v in TRUE_DRIVING.items() if k not in params}
+    truth = full_vehicle("truth_belt_slip", VehicleEffects(belt_slip=True))
     return LoopCase(
         "vehicle_belt_slip",
         "Driving record (throttle steps, High range) of a vehicle whose CVT belt creeps on "
-        "the secondary sheave; the declared full filter model has a rigid belt.",
+        "the secondary sheave; the declared full filter model has a rigid belt. Held out: a "
+        "run with other throttle steps.",
         declared_builder(vehicle_slip_declared),
-        lambda: driving_record(full_vehicle("truth_belt_slip", VehicleEffects(belt_slip=True)),
-                               vehicle_slip_declared(), "throttle_steps_belt_slip", seed=104,
-                               c_bs=BELT_CREEP),
+        lambda: driving_record(truth, vehicle_slip_declared(), "throttle_steps_belt_slip",
+                               seed=104, c_bs=BELT_CREEP),
         # the driving record too: ros2(1) is 0.21 noise std per sample at the
         # declared fit and at the fit with the slip, ros2(4) 0.06
         LoopSettings(params, metric="nrmse_sim", fixed=fixed,
-                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK}), search=COASTDOWN_SEARCH),
+                     prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK}), search=COASTDOWN_SEARCH,
+                     validation=driving_held_out(truth, vehicle_slip_declared(),
+                                                 "throttle_steps_belt_slip", seed=204,
+                                                 c_bs=BELT_CREEP)),
         ("slip", "cvt.belt.p2 -> cvt.w_s"))
 
 
@@ -261,11 +281,15 @@ def case_engine_saturation() -> LoopCase:
         "vehicle_engine_saturation",
         "Driving record (throttle steps, High range) of a vehicle whose engine torque "
         f"saturates smoothly at {level:.1f} N m ({ENGINE_SATURATION:.0%} of the peak "
-        "torque); the declared full filter model has the unsaturated torque map.",
+        "torque); the declared full filter model has the unsaturated torque map. Held out: "
+        "a run with other throttle steps.",
         declared_builder(vehicle_slip_declared),
         lambda: driving_record(engine_saturation_truth(), vehicle_slip_declared(),
                                 "throttle_steps_engine_saturation", seed=105),
         LoopSettings(params, metric="nrmse_sim", fixed=fixed,
                      prior=PriorSpec(x0_std={"theta_g": LEVEL_TRACK}),
-                     search=SearchOptions(on_failed_fit="continue", auto_substeps=True)),
+                     search=SearchOptions(on_failed_fit="continue", auto_substeps=True),
+                     validation=driving_held_out(engine_saturation_truth(),
+                                                 vehicle_slip_declared(),
+                                                 "throttle_steps_engine_saturation", seed=205)),
         TrueEffect("actuator_saturation", ENGINE_TORQUE[1], {"L": level}))
