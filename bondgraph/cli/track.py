@@ -101,9 +101,10 @@ def configure(p: argparse.ArgumentParser) -> None:
                         "factor so that --false-alarm-hours holds (one line says so)")
     p.add_argument("--online", action="store_true",
                    help="also replay the record through the streaming tracker, one sample at "
-                        "a time as they would arrive (no look-ahead; the serial inflation this "
-                        "record's pass measured): its changes, when each was raised and when "
-                        "attributed, into the summary and changes_online.json")
+                        "a time as they would arrive (each change decided from the samples up "
+                        "to that moment; the serial inflation this record's pass measured): "
+                        "its changes, when each was raised and when attributed, into the "
+                        "summary and changes_online.json")
     p.add_argument("--out", default=None,
                    help="output directory (default track_<model>_<data>, numbered -2, -3, "
                         "... when it holds an earlier result); an explicit --out is refused "
@@ -325,8 +326,10 @@ def online_summary(online: list, res) -> str:
               {(o.index, o.parameter) for o in online}]
     for c in missed:
         lines.append(f"  the batch run's change of {c.parameter} at {c.time:.6g} s is not "
-                     f"found on-line (the batch attributes with the samples after the alarm, "
-                     f"and restarts centred on the segment's end)")
+                     f"found on-line (the batch attributes with a whole window after the alarm "
+                     f"and restarts centred on the segment's end; the stream decides as soon "
+                     f"as one restart explains the samples by more than the threshold, "
+                     f"centred there)")
     return "\n".join(lines)
 
 
