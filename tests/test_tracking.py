@@ -295,6 +295,21 @@ def _streamed(trk, t, u, y):
 
 
 ONLINE = UKFOptions(method="ros2", substeps=2, backend="numba")
+#: the detector as both trackers run it in the on-line tests (no second pass)
+ONLINE_OPTS = TrackOptions(false_alarm_hours=10.0, smooth=False, calibrate=False)
+
+
+def _batch_and_stream(tm, seed, c_after=None, **stream):
+    """The batch tracker and the streaming one (``stream``: more arguments of
+    :meth:`Tracker.from_problem`) on :func:`msd_record`; returns the problem,
+    the batch result, the tracker, its statistic and alarm samples."""
+    from bondgraph.inference.track import Tracker
+
+    base, t, F, y = msd_record(seed=seed, c_after=c_after)
+    pr = make_problem(base, (t, F, y), ukf=ONLINE)
+    batch = track(pr, tm, options=ONLINE_OPTS)
+    trk = Tracker.from_problem(pr, tm, options=ONLINE_OPTS, **stream)
+    return pr, batch, trk, *_streamed(trk, t, F, y)
 
 
 def test_online_detection_finds_the_batch_trackers_change(tracking_model):
@@ -303,14 +318,7 @@ def test_online_detection_finds_the_batch_trackers_change(tracking_model):
     same change sample, alarm and parameter, and after the restart the
     same re-estimate (the batch centres its restart on the record's end,
     the stream on the alarm: measured 8e-7 relative)."""
-    from bondgraph.inference.track import Tracker
-
-    base, t, F, y = msd_record(seed=4, c_after=2.5)
-    pr = make_problem(base, (t, F, y), ukf=ONLINE)
-    opts = TrackOptions(false_alarm_hours=10.0, smooth=False, calibrate=False)
-    batch = track(pr, tracking_model, options=opts)
-    trk = Tracker.from_problem(pr, tracking_model, options=opts)
-    G, alarms = _streamed(trk, t, F, y)
+    _, batch, trk, G, alarms = _batch_and_stream(tracking_model, 4, 2.5)
     ch, = batch.changes
     on, = trk.changes
     assert 0.0 <= ch.time - T_CHANGE < 0.5               # the next force step shows it
@@ -360,15 +368,9 @@ def test_online_detection_attributes_the_change_among_two_parameters():
     restart of k by more than the threshold, within one window after the
     alarm (the batch tracker's look-ahead). Measured: raised by k's updates
     at 30.09 s, attributed to c at 30.13 s (margin 22.3 nats, h 20.6)."""
-    from bondgraph.inference.track import Tracker
-
     tm = TrackingModel.from_graph(mass_spring_damper(), ["c", "k"])
-    base, t, F, y = msd_record(seed=4, c_after=2.5)
-    pr = make_problem(base, (t, F, y), ukf=ONLINE)
-    opts = TrackOptions(false_alarm_hours=10.0, smooth=False, calibrate=False)
-    batch = track(pr, tm, options=opts)
-    trk = Tracker.from_problem(pr, tm, options=opts)
-    G, alarms = _streamed(trk, t, F, y)
+    pr, batch, trk, G, alarms = _batch_and_stream(tm, 4, 2.5)
+    t, opts = pr.t, ONLINE_OPTS
     ch, on = batch.changes[0], trk.changes[0]
     assert (on.index, on.alarm_index, on.parameter) == (ch.index, ch.alarm_index, "c")
     assert on.detected == ch.detected

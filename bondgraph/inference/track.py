@@ -73,7 +73,6 @@ from bondgraph.core.augment import augment, tracked_parameters
 from bondgraph.core.deferred import stats
 from bondgraph.errors import ModelError, NumericalError, OptionError
 from bondgraph.inference.changes import (
-    INFO_FLOOR,
     first_alarm,
     glr_threshold,
     information_gain,
@@ -1269,12 +1268,11 @@ class Tracker:
         """The standardised update of each tracked state at this sample (k,)
         (:func:`~bondgraph.inference.changes.standardised_increments`, one
         sample), NaN where it carried no information."""
-        Pm = self._Pz + self._q2 * dt
-        v = Pm - Pz
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (z - self._z) / np.sqrt(v)
+        s = np.array([standardised_increments(z[c:c + 1], Pz[c:c + 1], self._z[c], self._Pz[c],
+                                              self._q2[c:c + 1] * dt)[0]
+                      for c in range(z.size)])
         self._z = np.array(z, float)
-        return np.where(v > INFO_FLOOR * np.maximum(Pm, np.finfo(float).tiny), s, np.nan)
+        return s
 
     def _watched(self, s, k: int) -> np.ndarray:
         """What the detector adds for sample ``k`` (k,): the updates times
