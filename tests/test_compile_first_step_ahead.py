@@ -76,3 +76,34 @@ def test_building_ahead_stops_when_the_wait_ends(cache):
     scoring._ahead_of_need(ctx, mass_spring_damper(), Scales(duration=12.0, dt=0.01),
                            [get_effect(e) for e in EFFECTS], done)
     assert not list(cache.rglob("*.so"))
+
+
+def test_work_ahead_of_a_step_stops_at_once_on_a_warm_cache(cache, monkeypatch):
+    """compile_step_ahead's thread (warm_stop): on a cold cache it builds every
+    candidate's kernels; once they are built, it stops after the first
+    candidate (a warm run pays one candidate's derivation, not the step's)."""
+    graph = mass_spring_damper()
+    effects = [get_effect(e) for e in EFFECTS]
+    ctx = Context(None, LoopSettings(params=["k"]), log=lambda msg: None, progress=False)
+    built = []
+    real = scoring.build_candidate
+
+    def counted(*a, **k):
+        built.append(a[-1].name)
+        return real(*a, **k)
+
+    monkeypatch.setattr(scoring, "build_candidate", counted)
+    scales = Scales(duration=12.0, dt=0.01)
+    scoring._ahead_of_need(ctx, graph, scales, effects, threading.Event(), warm_stop=True)
+    assert len(built) == 4 and len(list(cache.rglob("*.so"))) == 4
+    built.clear()
+    scoring._ahead_of_need(ctx, graph, scales, effects, threading.Event(), warm_stop=True)
+    assert len(built) == 1
+
+
+def test_no_work_ahead_of_the_last_step():
+    from bondgraph.diagnose.runner import next_step_ahead
+    ctx = Context(None, LoopSettings(params=["k"]), log=lambda msg: None, progress=False)
+    last = ctx.settings.search.max_steps
+    assert next_step_ahead(ctx, None, [object()], None, "t", last) is None
+    assert next_step_ahead(ctx, None, [], None, "t", 1) is None

@@ -45,6 +45,7 @@ from bondgraph.diagnose.confirm import (
     confirm_same,
     continued,
     same_model_key,
+    start_values,
 )
 from bondgraph.diagnose.effects import Scales, get_effect
 from bondgraph.diagnose.fit import (
@@ -87,6 +88,7 @@ from bondgraph.diagnose.residuals import free_run_outlier_warnings, innovation_o
 from bondgraph.diagnose.result import Candidate, LoopResult, Rejection, Step, rank_of
 from bondgraph.diagnose.scoring import (
     compile_first_step_ahead,
+    compile_step_ahead,
     conditional_score,
     mark_limits,
     operating_scales,
@@ -1619,14 +1621,42 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     tag = f"{name}_step{len(result.steps) + 1}"
     if structural_skipped(ctx.settings, ranking):
         signif = significant_after_lead_check(ctx, result, current, signif, scales, tag)
-    with phase(f"step {step}: confirming the best candidates by refits"):
-        after = confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
-        if after is None and structural_skipped(ctx.settings, result.rankings[-1]) \
-                and not any(c.kind != "score" for c in result.rankings[-1]):
-            after = accepted_among_skipped_structurals(ctx, result, current, scales, tag, step)
-        if after is None and ctx.settings.accept.pairs:
-            after = accepted_pair(ctx, result, current, scales, tag, step)
+    ahead = next_step_ahead(ctx, current, signif, scales, tag, step)
+    try:
+        with phase(f"step {step}: confirming the best candidates by refits"):
+            after = confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
+            if after is None and structural_skipped(ctx.settings, result.rankings[-1]) \
+                    and not any(c.kind != "score" for c in result.rankings[-1]):
+                after = accepted_among_skipped_structurals(ctx, result, current, scales, tag,
+                                                           step)
+            if after is None and ctx.settings.accept.pairs:
+                after = accepted_pair(ctx, result, current, scales, tag, step)
+    finally:
+        if ahead is not None:
+            ahead.set()
     return (after, ACCEPTED) if after is not None else (current, NONE_ACCEPTED)
+
+
+def next_step_ahead(ctx: Context, current: Fit, signif: list[Candidate], scales: Scales,
+                    tag: str, step: int):
+    """While step ``step`` confirms its candidates, compile the next step's
+    structural candidates on the graph it most likely accepts: ``current``'s
+    plus the best-scored significant candidate, named ``tag`` as the step's
+    refits name their graphs (the kernels' cache key holds the model's name,
+    not its values; :func:`bondgraph.diagnose.scoring.compile_step_ahead`).
+    Returns the event that stops the work, or None (the last step, or
+    nothing to do)."""
+    s = ctx.settings
+    if step >= s.search.max_steps or not signif:
+        return None
+    best = max(signif, key=lambda c: c.score)
+    eff = get_effect(best.effect, s.effects)
+    g = current.graph.copy(tag)
+    try:
+        eff.apply(g, best.target, start_values(eff, best), scales)
+    except BondGraphError:
+        return None
+    return compile_step_ahead(ctx, g)
 
 
 #: the best confirmed candidates whose pairs are refitted when no single one
