@@ -447,6 +447,20 @@ def test_a_loop_folder_is_judged_before_and_after(data, tmp_path, capsys):
     # a loop folder carries its own parameters
     assert main(["compare", str(loop), "--data", str(data["dir"] / "unknown.csv"),
                  "--params", str(loop / "report.json"), "--out", str(tmp_path / "c2")]) == 2
+    # the final model as the loop's closing line names it reads the loop's figure too:
+    # its initial states' priors from the declared graph's scales (cli.compare.scales_graph)
+    assert main(["compare", f"{loop / 'augmented_model.py'}:build", "--data",
+                 str(data["dir"] / "unknown.csv"), "--params", str(loop / "report.json"),
+                 "--out", str(tmp_path / "c3"), "--quiet"]) == 0
+    alone = json.loads((tmp_path / "c3" / "compare.json").read_text())["records"][0]
+    assert alone["metric"] == pytest.approx(report["validation_error_after"], rel=1e-3)
+    from bondgraph.cli.compare import scales_graph
+    g = scales_graph(f"{loop / 'augmented_model.py'}:build")
+    final = {s["effect"] for s in report["steps"]}
+    assert g.name == drive().name and not any(e in n for n in g.params for e in final)
+    assert g.params["M"].default == drive().params["M"].default != \
+        report["final_fit"]["estimates"]["M"]
+    assert scales_graph(spec).params["M"].default == drive().params["M"].default
 
 
 def test_a_run_that_does_not_simulate_is_named_with_its_model(capsys):
