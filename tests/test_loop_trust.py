@@ -467,6 +467,36 @@ def test_noise_that_absorbs_the_model_error_is_named():
     assert noise_absorbing(ctx, fit)[0].startswith("the measurement noise of y is estimated at")
 
 
+def test_estimate_names_process_noise_that_absorbs_the_model_error():
+    """``bondgraph estimate`` says it too (cli.estimate.absorbing_warnings,
+    from its stored filter run at the estimate): the same two tanks, the
+    random walk 0.30·√4092 = 19.2 against the level's spread of 2; the
+    upper tank's noise grew only 1.1-fold: not named."""
+    from bondgraph.cli.estimate import absorbing_warnings
+
+    t = np.arange(1024) * 4.0
+    level = 5.0 + 2.0 * np.sqrt(2) * np.sin(2 * np.pi * t / 400.0)     # std 2
+    model = SimpleNamespace(states=["lower", "upper"],
+                            proc_std=lambda th: np.stack([th[..., 0], th[..., 1]], axis=-1))
+    x = np.zeros((t.size, 1, 2))
+    x[:, 0, 0], x[:, 0, 1] = level, 3.0 + 0.1 * np.sin(t)
+    problem = SimpleNamespace(arrays=(t, None, None), theta=np.array([0.01, 0.01]))
+    run = SimpleNamespace(x_filt=x)
+    w = absorbing_warnings(model, problem, SimpleNamespace(theta=np.array([0.30, 0.011])), run)
+    assert len(w) == 1 and w[0].startswith(
+        "the process noise of lower grew from 0.01 to 0.3 per √s: its random walk over the "
+        "record (19.2) exceeds the state's own spread (2); the noise absorbs the model's error: "
+        "the estimates are those of a model the noise explains")
+    # the lower level's noise at its start: not named; the upper one's 30-fold up, its
+    # walk beyond its spread (0.07): named, with the record it was seen on
+    w = absorbing_warnings(model, problem, SimpleNamespace(theta=np.array([0.0095, 0.3])), run,
+                           "r1.csv")
+    assert len(w) == 1 and w[0].startswith("the process noise of upper grew from 0.01 to 0.3")
+    assert " on r1.csv: " in w[0]
+    assert absorbing_warnings(model, problem, SimpleNamespace(theta=np.array([0.01, 0.01])),
+                              run) == []
+
+
 def test_a_correction_beside_a_declared_resistor_is_judged_with_it():
     """EMPS's asymmetric friction adds dv·v (dv = −36.9 N s/m) beside the
     viscous friction Fv·v (Fv ≈ 200) on the same 1-junction: alone it would

@@ -226,6 +226,31 @@ def _glitches(model, res, problems, paths) -> None:
             continue
         where = Path(pth).name if len(paths) > 1 else ""
         res.warnings += innovation_outlier_warnings(r, model.outputs, t, where)
+        res.warnings += absorbing_warnings(model, pb, res, r, where)
+
+
+def absorbing_warnings(model, problem, res, run, where: str = "") -> list[str]:
+    """A warning per state whose process noise absorbs the model's error at
+    the estimate (:func:`bondgraph.diagnose.fit.absorbing_states`: its
+    intensity grew more than threefold from the start and its random walk
+    over the record exceeds the state's filtered spread): the likelihood
+    then explains the record by noise and the physical parameters need not
+    fit it (a user's two tanks: the upper tank's noise 69-fold up, the
+    sensor noise on its floor, the pump gain four times the free-run fit's).
+    ``run``: the stored filter run at the estimate on ``problem``'s record."""
+    from bondgraph.diagnose.fit import absorbing_states
+
+    x = getattr(run, "x_filt", None)
+    t = problem.arrays[0]
+    if x is None or len(t) < 2:
+        return []
+    x = np.asarray(x)
+    spread = np.array([float(np.nanstd(x[:, 0, i])) for i in range(x.shape[2])])
+    found = absorbing_states(model, problem.theta, res.theta, spread, float(t[-1] - t[0]))
+    on = f" on {where}" if where else ""
+    return [f"{msg}{on}: the estimates are those of a model the noise explains, not of one "
+            f"that simulates the record (--fit sim fits the free run; bondgraph loop fits and "
+            f"judges by it where the noise absorbs the error)" for _, msg in found]
 
 
 def _check_judging(args, vals) -> None:

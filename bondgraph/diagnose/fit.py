@@ -1196,14 +1196,26 @@ def process_noise_absorbing(ctx: Context, fit: Fit) -> list[tuple[str, str]]:
     :func:`noise_absorbing`, the states whose intensity grew more than
     :data:`NOISE_FACTOR`-fold from its start and whose random walk over the
     record exceeds the state's own spread."""
-    model, th = fit.model, fit.theta
-    proc = getattr(model, "proc_std", None)
     spreads = state_spreads(ctx, fit)
-    if proc is None or spreads is None:
+    if spreads is None:
         return []
-    spread, span = spreads
-    q1 = np.asarray(proc(th[None, :]), float).reshape(-1)
-    q0 = np.asarray(proc(ctx.problem.theta[None, :]), float).reshape(-1)
+    return absorbing_states(fit.model, ctx.problem.theta, fit.theta, *spreads)
+
+
+def absorbing_states(model: Model, start: np.ndarray, theta: np.ndarray, spread: np.ndarray,
+                     span: float) -> list[tuple[str, str]]:
+    """``[(state, message)]``: the states whose process-noise intensity
+    (``model.proc_std``, state unit/√s) grew more than :data:`NOISE_FACTOR`-fold
+    from ``start`` to ``theta`` (each (n_theta,)) and whose random walk over
+    the record, q·√``span`` (``span`` its duration [s]), exceeds the state's
+    own spread ``spread`` (n_x,: the std of its filtered trajectory at
+    ``theta``); empty for a model without process noise
+    (:func:`process_noise_absorbing`; ``bondgraph estimate`` warns with it)."""
+    proc = getattr(model, "proc_std", None)
+    if proc is None:
+        return []
+    q1 = np.asarray(proc(np.asarray(theta, float)[None, :]), float).reshape(-1)
+    q0 = np.asarray(proc(np.asarray(start, float)[None, :]), float).reshape(-1)
     out = []
     for i, st in enumerate(model.states):
         walk = q1[i] * np.sqrt(span)
