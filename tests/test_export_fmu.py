@@ -244,6 +244,10 @@ def test_cli_export_without_fmu_writes_the_graphs_name(tmp_path, capsys, monkeyp
     assert main(["export", "rlc_circuit"]) == 0
     assert "wrote rlc_circuit.fmu" in capsys.readouterr().out
     assert fmpy.read_model_description("rlc_circuit.fmu").modelName == "rlc_circuit"
+    # --fmu alone, as its help reads (a user's `export MODEL --params R --fmu`): the same
+    (tmp_path / "rlc_circuit.fmu").unlink()
+    assert main(["export", "rlc_circuit", "--fmu"]) == 0
+    assert "wrote rlc_circuit.fmu" in capsys.readouterr().out
 
 
 def test_loop_augmented_model_exports_and_matches(tmp_path):

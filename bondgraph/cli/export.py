@@ -17,9 +17,9 @@ EXAMPLE = "bondgraph export mass_spring_damper --fmu msd.fmu"
 def configure(p: argparse.ArgumentParser) -> None:
     """Options of ``bondgraph export``."""
     add_model(p, positional=True)
-    p.add_argument("--fmu", default=None, metavar="OUT.fmu",
-                   help="the FMU to write (FMI 2.0, Model Exchange and Co-Simulation; default "
-                        "MODEL.fmu, the graph's name, in the current folder)")
+    p.add_argument("--fmu", default=None, nargs="?", const=None, metavar="OUT.fmu",
+                   help="the FMU to write (FMI 2.0, Model Exchange and Co-Simulation; default, "
+                        "or --fmu alone: MODEL.fmu, the graph's name, in the current folder)")
     p.add_argument("--params", metavar="JSON",
                    help="estimated parameters: `bondgraph estimate`'s result.json or "
                         "`bondgraph loop`'s report.json (with its augmented_model.py:build)")
