@@ -176,6 +176,16 @@ def test_serial_inflation_is_the_long_run_variance_and_ignores_a_jump():
     assert serial_inflation(white + jump, 500) == 1.0
     assert serial_inflation(1.3 * white, 500) == 1.0 < INFLATION_MIN      # under 2: as is
     assert serial_inflation(ar[:100], 500) == 1.0                 # too few blocks: as is
+    # under 2 but serially correlated (lag-1 autocorrelation within the blocks 0.3, z ~ 40):
+    # applied. AR(1), φ = 0.3: long-run variance (1 + φ)/(1 − φ) = 1.86
+    weak = np.empty(N)
+    weak[0] = white[0]
+    for k in range(1, N):
+        weak[k] = 0.3 * weak[k - 1] + np.sqrt(1 - 0.09) * white[k]
+    assert serial_inflation(weak, 500) == pytest.approx(1.3 / 0.7, rel=0.35)
+    assert 1.0 < serial_inflation(weak, 500) < INFLATION_MIN
+    assert serial_inflation(weak + jump, 500) == pytest.approx(serial_inflation(weak, 500),
+                                                               rel=0.2)
 
 
 def test_a_logit_prior_is_never_wider_than_its_box():

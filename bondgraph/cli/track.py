@@ -96,9 +96,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false",
                    help="leave the change detector as the threshold assumes: by default, "
                         "where a parameter's standardised updates are serially correlated on "
-                        "the record (their sums vary at least twice as much as white noise's: "
-                        "the model's error), they are divided by the square root of that "
-                        "factor so that --false-alarm-hours holds (one line says so)")
+                        "the record (their sums vary at least twice as much as white noise's, "
+                        "or more and their lag-1 autocorrelation shows it: the model's error), "
+                        "they are divided by the square root of that factor so that "
+                        "--false-alarm-hours holds (one line says so)")
     p.add_argument("--online", action="store_true",
                    help="also replay the record through the streaming tracker, one sample at "
                         "a time as they would arrive (each change decided from the samples up "
