@@ -1649,12 +1649,12 @@ def next_step_ahead(ctx: Context, current: Fit, signif: list[Candidate], scales:
     s = ctx.settings
     if step >= s.search.max_steps or not signif:
         return None
-    best = max(signif, key=lambda c: c.score)
-    eff = get_effect(best.effect, s.effects)
-    g = current.graph.copy(tag)
     try:
+        best = max(signif, key=lambda c: c.score)
+        eff = get_effect(best.effect, s.effects)
+        g = current.graph.copy(tag)
         eff.apply(g, best.target, start_values(eff, best), scales)
-    except BondGraphError:
+    except Exception:   # noqa: BLE001 - work ahead of need: the step goes on without it
         return None
     return compile_step_ahead(ctx, g)
 
