@@ -262,9 +262,17 @@ def test_a_file_without_time_column_is_judged_at_the_given_dt(data, tmp_path, ca
     from types import SimpleNamespace
 
     from bondgraph.cli.loop import another_day
-    line = another_day(SimpleNamespace(columns="force=F,pos=qm", dt=DT), tmp_path)
-    assert f"--data OTHER.csv --columns force=F,pos=qm --dt {DT} --params" in line
-    assert "--columns" not in another_day(SimpleNamespace(columns=None, dt=None), tmp_path)
+    line = another_day(SimpleNamespace(columns="force=F,pos=qm", dt=DT, model=spec), tmp_path)
+    # no augmented_model.py (no effect accepted): the declared model at the report's estimates
+    assert f"compare {spec} --data OTHER.csv --columns force=F,pos=qm --dt {DT} --params " \
+        f"{tmp_path / 'report.json'}" in line
+    assert "--columns" not in another_day(SimpleNamespace(columns=None, dt=None, model=spec),
+                                          tmp_path)
+    # with it: the report folder, before and after (a file that is not there never named)
+    (tmp_path / "augmented_model.py").write_text("")
+    line = another_day(SimpleNamespace(columns="force=F,pos=qm", dt=DT, model=spec), tmp_path)
+    assert f"compare {tmp_path} --data OTHER.csv --columns force=F,pos=qm --dt {DT} (" in line
+    (tmp_path / "augmented_model.py").unlink()
     # and so does estimate's
     assert main(["estimate", "--model", spec, "--data", str(bare), "--dt", str(DT), "--columns",
                  "force=F,pos=qm", "--params", "M,Fv", "--out", str(tmp_path / "est"),

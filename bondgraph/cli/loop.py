@@ -337,8 +337,8 @@ def _print_summary(args, res, name: str, case, declared: tuple, out: Path) -> No
         print(f"note: the Cramér-Rao std understates the uncertainty of {', '.join(loose)} "
               f"(robust std that many times larger: the innovations are serially correlated); "
               f"the report's parameter table gives the robust std")
-    print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots, "
-          f"augmented_model.py)")
+    augmented = ", augmented_model.py" if (out / "augmented_model.py").is_file() else ""
+    print(f"report: {out / 'report.html'} (and report.md, report.json, PNG plots{augmented})")
     if args.model:
         print(another_day(args, out))
 
@@ -346,9 +346,17 @@ def _print_summary(args, res, name: str, case, declared: tuple, out: Path) -> No
 def another_day(args, out: Path) -> str:
     """The line that says how to judge the final model on another record:
     ``bondgraph compare`` with the options that read this record
-    (``--columns``, ``--dt``), which read the other day's too."""
-    return (f"on a record of another day: bondgraph compare {out / 'augmented_model.py'}:build "
-            f"--data OTHER.csv{reading_options(args)} --params {out / 'report.json'}")
+    (``--columns``, ``--dt``), which read the other day's too: the report
+    folder (the declared fit and the final model, before -> after) where the
+    loop wrote ``augmented_model.py``, else (no effect accepted, no such
+    file) the declared model at the report's estimates."""
+    reading = reading_options(args)
+    if (out / "augmented_model.py").is_file():
+        return (f"on a record of another day: bondgraph compare {out} --data OTHER.csv{reading} "
+                f"(the declared fit and the final model, before -> after)")
+    return (f"on a record of another day: bondgraph compare {args.model} --data "
+            f"OTHER.csv{reading} --params {out / 'report.json'} (no effect accepted: the "
+            f"declared model at its fit)")
 
 
 def unexplained_hint(res, discovered: bool, graph=None, effects=()) -> str | None:
