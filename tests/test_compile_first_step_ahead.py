@@ -107,3 +107,28 @@ def test_no_work_ahead_of_the_last_step():
     last = ctx.settings.search.max_steps
     assert next_step_ahead(ctx, None, [object()], None, "t", last) is None
     assert next_step_ahead(ctx, None, [], None, "t", 1) is None
+
+
+def test_the_next_steps_candidates_compile_on_a_thread(cache):
+    """compile_step_ahead: a thread builds every structural candidate's kernels of
+    the graph it is given (the one the step most likely accepts) until told to
+    stop; without the C compiler's conditions (a structural threshold) nothing."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    effects = [get_effect(e) for e in EFFECTS]
+    problem = SimpleNamespace(disc=SimpleNamespace(backend="numba"),
+                              t=np.linspace(0.0, 12.0, 1201))
+    s = LoopSettings(params=["k"], effects=effects)
+    ctx = Context(problem, s, log=lambda msg: None, progress=False)
+    done = scoring.compile_step_ahead(ctx, mass_spring_damper())
+    assert done is not None
+    for _ in range(600):                        # at most a minute
+        if len(list(cache.rglob("*.so"))) == 4:
+            break
+        threading.Event().wait(0.1)
+    done.set()
+    assert len(list(cache.rglob("*.so"))) == 4
+    off = Context(problem, replace(s, search=replace(s.search, structural_threshold=0.5)),
+                  log=lambda msg: None, progress=False)
+    assert scoring.compile_step_ahead(off, mass_spring_damper()) is None

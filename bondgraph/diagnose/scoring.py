@@ -756,15 +756,27 @@ def compile_first_step_ahead(ctx: Context, graph) -> bool:
         Whether the work was queued (False without a background compile
         to wait for: a warm run).
     """
+    work = _ahead_work(ctx)
+    if work is None:
+        return False
+    quiet, scales, effects = work
+    return while_compiling(lambda done: _ahead_of_need(quiet, graph, scales, effects, done))
+
+
+def _ahead_work(ctx: Context) -> tuple | None:
+    """``(quiet context, scales, effects)`` for compiling structural
+    candidates ahead of need, or None where that does not apply: structural
+    candidates scored in process and not skipped by a threshold, the numba
+    backend and the C compiler's kernels (:func:`compile_first_step_ahead`,
+    :func:`compile_step_ahead`)."""
     s = ctx.settings
     if not s.search.structural or s.search.structural_threshold is not None \
             or distributed(ctx) or ctx.problem.disc.backend != "numba" \
             or kernel_kind() != "c":
-        return False
+        return None
     effects = [e for e in s.effects if not getattr(e, "last_resort", False)]
-    scales = record_scales(ctx.problem.t)
     quiet = Context(ctx.problem, s, log=lambda msg: None, progress=False)
-    return while_compiling(lambda done: _ahead_of_need(quiet, graph, scales, effects, done))
+    return quiet, record_scales(ctx.problem.t), effects
 
 
 def compile_step_ahead(ctx: Context, graph) -> threading.Event | None:
@@ -780,17 +792,13 @@ def compile_step_ahead(ctx: Context, graph) -> threading.Event | None:
     step (the bundled default case: step 2 scored its 80 candidates in
     17.2 s against 7.5 s warm), while the first step's confirmations
     (about 8 s) left a core partly idle."""
-    s = ctx.settings
-    if not s.search.structural or s.search.structural_threshold is not None \
-            or distributed(ctx) or ctx.problem.disc.backend != "numba" \
-            or kernel_kind() != "c":
+    work = _ahead_work(ctx)
+    if work is None:
         return None
-    effects = [e for e in s.effects if not getattr(e, "last_resort", False)]
-    quiet = Context(ctx.problem, s, log=lambda msg: None, progress=False)
+    quiet, scales, effects = work
     done = threading.Event()
     threading.Thread(target=_ahead_of_need, name="bondgraph-ahead", daemon=True,
-                     args=(quiet, graph, record_scales(ctx.problem.t), effects, done, True)
-                     ).start()
+                     args=(quiet, graph, scales, effects, done, True)).start()
     return done
 
 
