@@ -266,6 +266,50 @@ def test_a_start_the_smoother_cannot_give_is_fitted_to_the_outputs(monkeypatch):
     assert logs == []
 
 
+def test_a_prior_mean_on_a_laws_kink_does_not_hold_the_fitted_start(monkeypatch):
+    """A prior mean on the boundary of a law's domain (empty tanks under
+    outflows a·√q) is a kink where the free-run error rises for any small
+    step: the least squares from it stops there, and the start is searched
+    again from points one (half, a quarter) prior std off along each state,
+    round after round while one lowers the error (_restarted_search). By
+    hand: y1 = (a − √a⁺)·e^(−t), y2 = (b − √b⁺)·e^(−2t) + 1 (√ of the
+    positive part), the record made at a = φ² = 2.618 (a − √a = 1) and
+    b = 4 (b − √b = 2), the prior mean (0, 0) with std (2, 2): a step of
+    1e-7 either way raises the error, the search from 0 alone stays there,
+    and the restarted one recovers (φ², 4) to 1e-6."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import fit as F
+
+    t = np.linspace(0.0, 3.0, 61)
+
+    def g(v):
+        return v - np.sqrt(max(v, 0.0))
+
+    def run(ctx, pb, th, held, x0, quiet=False):
+        return np.stack([g(x0[0]) * np.exp(-t), g(x0[1]) * np.exp(-2 * t) + 1.0], axis=1)
+
+    truth = np.array([((1 + np.sqrt(5)) / 2) ** 2, 4.0])
+    y = run(None, None, None, None, truth)
+    monkeypatch.setattr(F, "_free_run_from", run)
+    logs = []
+    ctx = SimpleNamespace(log=logs.append, log_once=lambda kind, msg: logs.append(msg))
+    x0 = np.zeros(2)
+    pb = SimpleNamespace(arrays=(t, None, y), x0=x0, P0=np.diag([2.0, 2.0]) ** 2,
+                         model=SimpleNamespace(states=["a", "b"]))
+    residuals = F._start_residuals(ctx, pb, None, None, x0, [0, 1])
+    r0 = residuals(np.zeros(2))
+    for step in ([1e-7, 0.0], [-1e-7, 0.0], [0.0, 1e-7], [0.0, -1e-7]):
+        r = residuals(np.array(step))
+        assert r @ r > r0 @ r0
+    z, cost, _ = F._start_search(ctx, residuals, 2, r0)
+    assert np.all(z == 0.0) and cost == pytest.approx(0.5 * float(r0 @ r0))
+    got = F._fitted_start(ctx, pb, None, None, x0, ["a", "b"], "smoothed initial state far")
+    np.testing.assert_allclose(got, truth, atol=1e-6)
+    assert len(logs) == 1 and "the free run starts from the one fitted to the outputs " \
+        "(b = 4, a = 2.618)" in logs[0]
+
+
 def test_the_fitted_start_is_searched_with_the_compiled_run_and_judged_by_the_loops_own(
         monkeypatch):
     """_fitted_start's least squares runs the compiled fixed-step free run
