@@ -270,8 +270,9 @@ def test_a_prior_mean_on_a_laws_kink_does_not_hold_the_fitted_start(monkeypatch)
     """A prior mean on the boundary of a law's domain (empty tanks under
     outflows a·√q) is a kink where the free-run error rises for any small
     step: the least squares from it stops there, and the start is searched
-    again from points one (half, a quarter) prior std off along each state,
-    round after round while one lowers the error (_restarted_search). By
+    again from where a sweep of steps of one (half, a quarter) prior std
+    along each state in turn leads while they lower the error
+    (_restarted_search). By
     hand: y1 = (a − √a⁺)·e^(−t), y2 = (b − √b⁺)·e^(−2t) + 1 (√ of the
     positive part), the record made at a = φ² = 2.618 (a − √a = 1) and
     b = 4 (b − √b = 2), the prior mean (0, 0) with std (2, 2): a step of
