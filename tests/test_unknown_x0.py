@@ -277,7 +277,9 @@ def test_a_prior_mean_on_a_laws_kink_does_not_hold_the_fitted_start(monkeypatch)
     positive part), the record made at a = φ² = 2.618 (a − √a = 1) and
     b = 4 (b − √b = 2), the prior mean (0, 0) with std (2, 2): a step of
     1e-7 either way raises the error, the search from 0 alone stays there,
-    and the restarted one recovers (φ², 4) to 1e-6."""
+    and the restarted one recovers (φ², 4) to 1e-6. With a smooth first
+    output (a·e^(−t), a = 2) the search from 0 fits a and leaves b within
+    STUCK_START of 0: the sweep from its end recovers (2, 4)."""
     from types import SimpleNamespace
 
     from bondgraph.diagnose import fit as F
@@ -309,6 +311,19 @@ def test_a_prior_mean_on_a_laws_kink_does_not_hold_the_fitted_start(monkeypatch)
     np.testing.assert_allclose(got, truth, atol=1e-6)
     assert len(logs) == 1 and "the free run starts from the one fitted to the outputs " \
         "(b = 4, a = 2.618)" in logs[0]
+    # a smooth y1 = a·e^(−t) beside the kinked b: the search from 0 fits a
+    # (the error falls) and leaves b on its kink; the sweep from there frees b
+    monkeypatch.setattr(F, "_free_run_from", lambda ctx, pb, th, held, x0, quiet=False: np.stack(
+        [x0[0] * np.exp(-t), g(x0[1]) * np.exp(-2 * t) + 1.0], axis=1))
+    truth = np.array([2.0, 4.0])
+    pb.arrays = (t, None, F._free_run_from(None, None, None, None, truth))
+    residuals = F._start_residuals(ctx, pb, None, None, x0, [0, 1])
+    r0 = residuals(np.zeros(2))
+    z, cost, _ = F._start_search(ctx, residuals, 2, r0)
+    assert z[0] == pytest.approx(1.0, abs=1e-6) and abs(z[1]) < F.STUCK_START
+    assert cost < 0.5 * float(r0 @ r0)
+    got = F._fitted_start(ctx, pb, None, None, x0, ["a", "b"], "smoothed initial state far")
+    np.testing.assert_allclose(got, truth, atol=1e-6)
 
 
 def test_the_fitted_start_is_searched_with_the_compiled_run_and_judged_by_the_loops_own(

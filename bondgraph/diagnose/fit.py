@@ -1605,8 +1605,10 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
     r0 = residuals(np.zeros(len(idx)))
     try:
         z, cost, runs = _start_search(ctx, residuals, len(idx), r0)
-        if not (np.all(np.isfinite(z)) and cost < 0.5 * float(r0 @ r0)):
-            z, cost, runs = _restarted_search(ctx, residuals, len(idx), r0, (z, cost, runs))
+        improved = bool(np.all(np.isfinite(z)) and cost < 0.5 * float(r0 @ r0))
+        if not improved or np.any(np.abs(z) < STUCK_START):
+            z, cost, runs = _restarted_search(ctx, residuals, len(idx), r0, (z, cost, runs),
+                                              improved)
     except (ValueError, np.linalg.LinAlgError, FloatingPointError) as exc:
         if why:
             ctx.log(f"  {why}; fitting one to the outputs failed ({str(exc).splitlines()[0]}): "
@@ -1631,12 +1633,19 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
 RESTART_STEPS = (1.0, 0.5, 0.25)
 #: at most this many sweeps of :func:`_restarted_search`
 RESTART_ROUNDS = 3
+#: a state the fitted start's least squares moved by less than this many
+#: prior std from the prior mean is taken as held there by a kink
+#: (:func:`_restarted_search`)
+STUCK_START = 1e-6
 
 
-def _restarted_search(ctx: Context, residuals, n: int, r0: np.ndarray, first: tuple) -> tuple:
+def _restarted_search(ctx: Context, residuals, n: int, r0: np.ndarray, first: tuple,
+                      improved: bool = False) -> tuple:
     """``(z, cost, runs)``: :func:`_fitted_start`'s least squares again,
     where the search from z = 0 (``first``, its ``(z, cost, runs)``) did
-    not lower the error, from the point an exploratory sweep reaches
+    not lower the error or left a state within :data:`STUCK_START` of its
+    prior mean (``improved``: it lowered the error; the sweep then starts
+    from its end), from the point an exploratory sweep reaches
     (Hooke & Jeeves 1961): along each state in turn, a step of one prior
     std either way (where neither lowers the error, half and a quarter of
     it, :data:`RESTART_STEPS`) is kept where it lowers the error (the
@@ -1648,11 +1657,14 @@ def _restarted_search(ctx: Context, residuals, n: int, r0: np.ndarray, first: tu
     a·√q: a step of 1e-7 prior std along the lower tank's level raised the
     error, one of 0.1 lowered it; the search stopped at 0 after 19 runs,
     and the held-out free run from empty tanks read NRMSE 0.427 where a
-    start at the record's level reads 0.209). ``first`` is returned where
-    no sweep lowers the error."""
+    start at the record's level reads 0.209); a search that moves the other
+    states stays on the kink of one. ``first`` is returned where no sweep
+    lowers the error."""
     fast = residuals(np.zeros(n), True)
     fast = fast is not None and bool(np.all(np.abs(fast) < 1e6))
-    z, cost, runs, found = np.zeros(n), 0.5 * float(r0 @ r0), first[2], False
+    z, cost = (np.asarray(first[0], float), first[1]) if improved else \
+        (np.zeros(n), 0.5 * float(r0 @ r0))
+    runs, found = first[2], False
     for _ in range(RESTART_ROUNDS):
         zs, cs, k = _sweep(residuals, z, cost, fast)
         runs += k
