@@ -1573,9 +1573,10 @@ def _fitted_start(ctx: Context, problem: Problem, theta: np.ndarray, held: tuple
                   x0: np.ndarray, states: Sequence[str], why: str | None,
                   x0_is: str = "the prior mean") -> np.ndarray:
     """The initial state whose free run fits the record's outputs best:
-    the states ``states`` (those nothing gives) by bounded nonlinear least
+    the states ``states`` (those nothing gives) by nonlinear least
     squares (:func:`scipy.optimize.least_squares`, trust-region reflective,
-    forward-difference Jacobian, at most :data:`START_FIT_NFEV` runs) on the
+    forward-difference Jacobian, at most :data:`START_FIT_NFEV` runs; started
+    again off a kink that holds the prior mean, :func:`_restarted_search`) on the
     free-run error over the whole record, each output weighted by its std
     (the NRMSE's weights; :func:`_start_residuals`); the others stay at
     the prior mean ``x0``. This is the initial-condition estimate of
@@ -1645,8 +1646,9 @@ def _restarted_search(ctx: Context, residuals, n: int, r0: np.ndarray, first: tu
     where the search from z = 0 (``first``, its ``(z, cost, runs)``) did
     not lower the error or left a state within :data:`STUCK_START` of its
     prior mean (``improved``: it lowered the error; the sweep then starts
-    from its end), from the point an exploratory sweep reaches
-    (Hooke & Jeeves 1961): along each state in turn, a step of one prior
+    from its end and runs along those states only), from the point an
+    exploratory sweep reaches (Hooke & Jeeves 1961): along each state in
+    turn, a step of one prior
     std either way (where neither lowers the error, half and a quarter of
     it, :data:`RESTART_STEPS`) is kept where it lowers the error (the
     compiled run where it runs, else the loop's own); at most
@@ -1664,9 +1666,10 @@ def _restarted_search(ctx: Context, residuals, n: int, r0: np.ndarray, first: tu
     fast = fast is not None and bool(np.all(np.abs(fast) < 1e6))
     z, cost = (np.asarray(first[0], float), first[1]) if improved else \
         (np.zeros(n), 0.5 * float(r0 @ r0))
+    axes = np.flatnonzero(np.abs(z) < STUCK_START) if improved else np.arange(n)
     runs, found = first[2], False
     for _ in range(RESTART_ROUNDS):
-        zs, cs, k = _sweep(residuals, z, cost, fast)
+        zs, _, k = _sweep(residuals, z, cost, fast, axes)
         runs += k
         if zs is None:
             break
@@ -1678,12 +1681,12 @@ def _restarted_search(ctx: Context, residuals, n: int, r0: np.ndarray, first: tu
     return (z, cost, runs) if found else (first[0], first[1], runs)
 
 
-def _sweep(residuals, z: np.ndarray, cost: float, fast: bool) -> tuple:
+def _sweep(residuals, z: np.ndarray, cost: float, fast: bool, axes) -> tuple:
     """``(z', cost', runs)``: :func:`_restarted_search`'s exploratory sweep
-    from ``z`` (its error ``cost`` = ½‖r‖²); z' None where no step lowers
-    the error."""
+    from ``z`` (its error ``cost`` = ½‖r‖²) along the states ``axes``; z'
+    None where no step lowers the error."""
     z, runs, moved = z.copy(), 0, False
-    for i in range(len(z)):
+    for i in axes:
         for h in RESTART_STEPS:
             best = None
             for step in (h, -h):
