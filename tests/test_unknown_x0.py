@@ -223,6 +223,20 @@ def test_a_smoothed_start_whose_distance_overflows_is_not_used(monkeypatch):
     assert "inf prior std from the prior mean" in why
 
 
+def _start_case(t, y, sd):
+    """``(ctx, logs, problem, x0)`` of a by-hand fitted-start test: a
+    context whose lines go to ``logs``, a problem of states a, b with record
+    ``(t, y)``, prior mean 0 and prior std ``sd``."""
+    from types import SimpleNamespace
+
+    logs = []
+    ctx = SimpleNamespace(log=logs.append, log_once=lambda kind, msg: logs.append(msg))
+    x0 = np.zeros(2)
+    pb = SimpleNamespace(arrays=(t, None, y), x0=x0, P0=np.diag(sd) ** 2,
+                         model=SimpleNamespace(states=["a", "b"]))
+    return ctx, logs, pb, x0
+
+
 def test_a_start_the_smoother_cannot_give_is_fitted_to_the_outputs(monkeypatch):
     """Where the smoothed start is refused, the free run starts from the
     initial state whose run fits the outputs best (least squares on the
@@ -231,7 +245,6 @@ def test_a_start_the_smoother_cannot_give_is_fitted_to_the_outputs(monkeypatch):
     (0.01, 0.05): the fit recovers the truth to 1e-6 (the outputs are
     linear in the start), one line says why and where. A free run that
     always fails gives nothing better: the prior mean is kept and said."""
-    from types import SimpleNamespace
 
     from bondgraph.diagnose import fit as F
 
@@ -243,11 +256,7 @@ def test_a_start_the_smoother_cannot_give_is_fitted_to_the_outputs(monkeypatch):
     y = run(None, None, None, None, np.array([2.0, -1.0]))
     y[5, 0] = np.nan                                     # a missing sample is left out
     monkeypatch.setattr(F, "_free_run_from", run)
-    logs = []
-    ctx = SimpleNamespace(log=logs.append, log_once=lambda kind, msg: logs.append(msg))
-    x0 = np.zeros(2)
-    pb = SimpleNamespace(arrays=(t, None, y), x0=x0, P0=np.diag([0.01, 0.05]) ** 2,
-                         model=SimpleNamespace(states=["a", "b"]))
+    ctx, logs, pb, x0 = _start_case(t, y, [0.01, 0.05])
     got = F._fitted_start(ctx, pb, None, None, x0, ["a", "b"], "smoothed initial state far")
     np.testing.assert_allclose(got, [2.0, -1.0], atol=1e-6)
     assert len(logs) == 1 and logs[0].startswith(
@@ -280,7 +289,6 @@ def test_a_prior_mean_on_a_laws_kink_does_not_hold_the_fitted_start(monkeypatch)
     and the restarted one recovers (φ², 4) to 1e-6. With a smooth first
     output (a·e^(−t), a = 2) the search from 0 fits a and leaves b within
     STUCK_START of 0: the sweep from its end recovers (2, 4)."""
-    from types import SimpleNamespace
 
     from bondgraph.diagnose import fit as F
 
@@ -295,11 +303,7 @@ def test_a_prior_mean_on_a_laws_kink_does_not_hold_the_fitted_start(monkeypatch)
     truth = np.array([((1 + np.sqrt(5)) / 2) ** 2, 4.0])
     y = run(None, None, None, None, truth)
     monkeypatch.setattr(F, "_free_run_from", run)
-    logs = []
-    ctx = SimpleNamespace(log=logs.append, log_once=lambda kind, msg: logs.append(msg))
-    x0 = np.zeros(2)
-    pb = SimpleNamespace(arrays=(t, None, y), x0=x0, P0=np.diag([2.0, 2.0]) ** 2,
-                         model=SimpleNamespace(states=["a", "b"]))
+    ctx, logs, pb, x0 = _start_case(t, y, [2.0, 2.0])
     residuals = F._start_residuals(ctx, pb, None, None, x0, [0, 1])
     r0 = residuals(np.zeros(2))
     for step in ([1e-7, 0.0], [-1e-7, 0.0], [0.0, 1e-7], [0.0, -1e-7]):
