@@ -46,7 +46,10 @@ search a cold-start term came third, 0.01207). That Coulomb step rested on
 a refit at ROS2(1) stopped after ten iterations; the loop now continues
 such a refit until it converges, where Coulomb friction no longer passes
 (held out 0.03425 -> 0.02477, z 0.94), and takes Dahl friction instead:
-held out 0.02174, 81 s.
+held out 0.02174, 81 s. On 2026-12-03, once a method change must meet
+every bound the substeps it replaces meet (``fit.adopted_discretisation``),
+133 s: the direction-dependent friction, then Coulomb (Fc 20.26 N);
+held out 0.01809, M 92.63 kg, Fv 205.5 (published 203.5).
 
 The benchmark's own protocol fits the estimation run and judges on the
 force-pulse run, the state set from its first 20 samples
@@ -122,6 +125,17 @@ def emps_screw() -> BondGraph:
     derivative causality (the graph says so) and adds its reflected mass
     Jm/r² to M. The drive torque gtau·r·vir; gtau and r declared without a
     box (known values), Jm, M and Fv with rough starts and wide boxes.
+
+    With ``--graph screw --decimate 10`` (2026-12-03, 299 s): the
+    direction-dependent friction, Coulomb friction at the load (Fc 20.18 N;
+    published 20.39), then a slip at the screw; held-out position NRMSE
+    0.1747 -> 0.01464, M 90.63 kg, Fv 206.4 (203.5), dv = -34.1 (-36.9). The
+    record does not tell Jm from M (only M + Jm/r² acts; the loop says so),
+    and Jm ends on its floor. Before, the check after Coulomb's acceptance
+    swapped RK4(6) for ROS2(1), within the one-step bound but not the bias
+    bound RK4(6) met; Coulomb's refit there failed the held-out test and the
+    loop went on with a rate limit, a quadratic damper and Dahl friction:
+    held out 0.01710, Fv 622, 392 s.
 
     Hand-derived (p = M v, ω = v/r)::
 
