@@ -131,6 +131,27 @@ def test_columns_renamed_as_read_with_their_sidecar_entries(tmp_path):
     raises(p, "time column is not renamed", line=1, column="t", columns={"t": "time"})
 
 
+def test_a_unit_given_with_the_new_name_replaces_the_files(tmp_path):
+    """ANL's D3 dyno files write cm³/s as ``[ccps]``, which pint reads as
+    centi-counts per second (1/time): converted to the model's cm³/s the
+    column is refused, with the remedy; a unit in brackets after the new
+    name (``--columns Fuel=fuel[cm^3/s]``) replaces the file's, and the
+    values convert by it (mph to m/s: 0.44704 exactly). A unit pint does not
+    know is refused in either place, naming the column."""
+    p = write(tmp_path, "Time[s],Fuel[ccps],Spd[mph],x [zzz]\n0,1.5,10,1\n1,2.0,20,2\n")
+    raises(p, "unit 'zzz'", line=1, column="x")
+    exp = Experiment.load(p, columns={"Fuel": "fuel [cm^3/s]", "Spd[mph]": "v",
+                                      "x": "x[mm]"})
+    assert exp.units == {"fuel": "cm^3/s", "v": "mph", "x": "mm"}
+    np.testing.assert_array_equal(exp["fuel"], [1.5, 2.0])
+    np.testing.assert_allclose(convert(exp["v"], exp.units["v"], "m/s"), [4.4704, 8.9408])
+    np.testing.assert_allclose(convert(exp["fuel"], "cm^3/s", "l/h"), [5.4, 7.2])
+    with pytest.raises(DataError, match=r"'ccps' \(1 / \[time\]\) cannot be converted") as ei:
+        convert([1.5], "ccps", "cm^3/s")
+    assert "--columns COLUMN=NAME[UNIT]" in str(ei.value)
+    raises(p, "unit 'qqq'", line=1, column="Fuel", columns={"Fuel": "fuel [qqq]", "x": "x[m]"})
+
+
 # ------------------------------------------------------ every error kind
 def test_missing_t(tmp_path):
     raises(write(tmp_path, "clock,F\n0,1\n1,2\n"), "first column must be the time 't'",

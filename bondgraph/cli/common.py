@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -138,6 +139,8 @@ def add_columns(p: argparse.ArgumentParser) -> None:
     p.add_argument("--columns", default=None, metavar="COLUMN=NAME,...",
                    help="rename the records' columns to the model's input, output or state "
                         "names as they are read (e.g. Current=I,Voltage=V: a logger's names); "
+                        "a unit in brackets after the new name replaces the file's "
+                        "(Fuel=fuel[cm^3/s]: a logger's abbreviation pint reads otherwise); "
                         "every record of the command")
     p.add_argument("--dt", type=float, default=None, metavar="SECONDS",
                    help="sample interval of the records: a file without a time column "
@@ -150,9 +153,11 @@ def reading_options(args) -> str:
     """The options that read the command's records (``--columns``,
     ``--dt``) as command-line text (" --columns A=a --dt 0.02"; "" when
     none was given): a line that tells the user how to run another command
-    on another record passes them on."""
-    return "".join(f" --{o} {v}" for o, v in (("columns", getattr(args, "columns", None)),
-                                               ("dt", getattr(args, "dt", None)))
+    on another record passes them on, quoted for a POSIX shell where needed
+    (a unit in brackets: ``--columns 'Fuel=fuel[cm^3/s]'``)."""
+    return "".join(f" --{o} {shlex.quote(str(v))}"
+                   for o, v in (("columns", getattr(args, "columns", None)),
+                                ("dt", getattr(args, "dt", None)))
                    if v is not None)
 
 

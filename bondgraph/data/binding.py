@@ -71,7 +71,10 @@ def convert(values: np.ndarray, from_unit: str | None, to_unit: str | None, *,
         raise DataError(
             f"unit '{from_unit}' ({q_from.dimensionality}) cannot be converted to "
             f"'{to_unit or '1'}' ({q_to.dimensionality}) for {what}",
-            path=path, line=1, column=column)
+            path=path, line=1, column=column,
+            hint="if the record's unit text means another unit (a logger's abbreviation "
+                 "that pint reads otherwise), give the unit where the column is renamed: "
+                 "--columns COLUMN=NAME[UNIT] (Python: columns={'COLUMN': 'NAME [UNIT]'})")
     ureg = _units.registry()
     try:
         if q_from._ok_for_muldiv() and q_to._ok_for_muldiv():

@@ -238,7 +238,12 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
     columns : dict, optional
         ``{name in the file: name in the model}``: columns renamed after
         reading (a logger's ``Current`` as the model's input ``I``); the
-        sidecar describes them by their names in the file.
+        sidecar describes them by their names in the file. A new name may
+        carry the column's unit in brackets (``{"Eng_FuelFlow[ccps]":
+        "fuel [cm^3/s]"}``): it replaces the unit the file writes, for a
+        logger's abbreviation that pint reads as another unit (``ccps``,
+        cm³/s in ANL's D3 files, is centi-counts per second to pint) or
+        does not know.
     dt : float, optional
         The sample interval [s] (the command line's ``--dt``; else the
         sidecar's ``dt``). A file without a time column (published
@@ -270,7 +275,10 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
     meta = _read_sidecar(path)
     if dt is not None:
         meta = dict(meta or {}, dt=_given_dt(dt, where))
-    names, data, units, line_arr, header_line = _read_columns(path, meta, allow_missing)
+    given = {parse_header(old)[0]: parse_header(new) for old, new in (columns or {}).items()}
+    columns = {old: nu[0] for old, nu in given.items()}
+    names, data, units, line_arr, header_line = _read_columns(
+        path, meta, allow_missing, {old: nu[1] for old, nu in given.items() if nu[1] is not None})
     if columns:
         names = _renamed(names, data, units, meta, columns, where, header_line)
     t = data.pop("t")
@@ -361,10 +369,12 @@ def _renamed(names: list[str], data: dict, units: dict, meta: Mapping,
     return out
 
 
-def _read_columns(path: Path, meta: Mapping, allow_missing: bool) -> tuple:
+def _read_columns(path: Path, meta: Mapping, allow_missing: bool,
+                  given: Mapping[str, str] | None = None) -> tuple:
     """The CSV's column names, values by name (``t`` included, file units),
-    units by name (header, else sidecar ``meta``), the file line of each
-    sample and the header's line."""
+    units by name (``given`` by the file's names, else the header's, else
+    the sidecar ``meta``'s), the file line of each sample and the header's
+    line."""
     where, side = str(path), str(path.with_suffix(".json"))
     header, header_line, rows, lines, delimiter = _read_csv_rows(path)
     dt = float(meta["dt"]) if meta and meta.get("dt") else None
@@ -383,7 +393,7 @@ def _read_columns(path: Path, meta: Mapping, allow_missing: bool) -> tuple:
     side_cols = (meta.get("columns") or {}) if meta else {}
     if time_name != "t" and time_name in side_cols and "t" not in side_cols:
         side_cols["t"] = side_cols.pop(time_name)
-    units = _column_units(parsed, side_cols, where, side, header_line)
+    units = _column_units(parsed, side_cols, where, side, header_line, given or {})
     roles = {nm: (side_cols.get(nm) or {}).get("role") for nm in names}
     data: dict[str, np.ndarray] = {}
     for j, nm in enumerate(names):
@@ -617,8 +627,10 @@ def _check_row_lengths(rows: list[list[str]], lines: list[int], ncol: int, trail
 
 
 def _column_units(parsed: list[tuple[str, str | None]], side_cols: Mapping, where: str,
-                  side: str, header_line: int) -> dict[str, str | None]:
-    """Unit of each column: the header's, else the sidecar's.
+                  side: str, header_line: int,
+                  given: Mapping[str, str]) -> dict[str, str | None]:
+    """Unit of each column: the one ``given`` with its new name (by the
+    file's name), else the header's, else the sidecar's.
 
     Raises
     ------
@@ -633,6 +645,10 @@ def _column_units(parsed: list[tuple[str, str | None]], side_cols: Mapping, wher
                             path=side, column=cname)
     units: dict[str, str | None] = {}
     for (nm, unit) in parsed:
+        if nm in given:
+            check_unit(given[nm], where, nm)
+            units[nm] = given[nm]
+            continue
         side_unit = (side_cols.get(nm) or {}).get("unit")
         if unit is not None and side_unit is not None and unit != side_unit:
             try:
