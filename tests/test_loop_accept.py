@@ -72,6 +72,51 @@ def test_the_error_may_not_rise_by_default_and_validation_decides():
     assert not d.accepted and d.reason.startswith("the refit is not finite")
 
 
+def test_a_refusal_by_the_held_out_part_says_when_the_fitted_part_gained():
+    """A warm-up's excess (3 noise std decaying over 60 samples) at the
+    start of the estimation record, absent from the held-out end: the
+    effect that explains it leaves the validation error as it was, and is
+    refused there (the rule is kept); the refusal adds the estimation
+    record's significant fall (one-sided Diebold-Mariano z 9.11 for these
+    errors), and the summary says once what that can mean and what to do.
+    Without that fall (an effect that changes nothing) or without a
+    validation record, the reason is as before."""
+    from types import SimpleNamespace as NS
+
+    from bondgraph.diagnose.result import FITTED_PART_ONLY, LoopResult
+
+    noise = np.random.default_rng(3).standard_normal(1000)
+    warm = noise + 3.0 * np.exp(-np.arange(1000.0) / 60.0)
+    z, _ = error_decrease_test(warm[:, None], noise[:, None])
+    assert z == pytest.approx(9.1107, abs=1e-4)
+
+    def fit(nll, errors, validation):
+        f = _fit(nll, 3, 50.0, float(np.sqrt(np.mean(errors ** 2))), validation=validation)
+        f.sim_errors = errors[:, None]
+        return f
+
+    s = AcceptRule()
+    cur = fit(-1000.0, warm, 0.80)
+    d = decide(cur, fit(-1100.0, noise, 0.8003), s)
+    assert not d.accepted and d.reason == (
+        "the error grew on the validation record (0.8 -> 0.8003); on the estimation record its "
+        "error fell (1.132 -> 1.007, z 9.11)")
+    same = noise + 0.02 * np.random.default_rng(4).standard_normal(1000)
+    d = decide(fit(-1000.0, noise, 0.80), fit(-1100.0, same, 0.8003), s)
+    assert d.reason == "the error grew on the validation record (0.8 -> 0.8003)"
+    d = decide(fit(-1000.0, warm, None), fit(-1100.0, noise, None), s)
+    assert d.accepted
+    summary = LoopResult.none_accepted(NS(rankings=[["c"]], rejected=[
+        NS(candidate=NS(label="cold_start @ injector"),
+           reason=f"... {FITTED_PART_ONLY} (1 -> 0.9)"),
+        NS(candidate=NS(label="offset @ v"), reason="likelihood-ratio test not passed")]))
+    assert summary.startswith("2 confirmed candidate(s) refused by the accept rule "
+                              "(cold_start @ injector, offset @ v); the validation record "
+                              "refused cold_start @ injector although the estimation record's "
+                              "error fell significantly")
+    assert "(--validate FILE), or fit and judge the whole record (--holdout 0)" in summary
+
+
 def test_confirmed_record_keeps_the_refit_numbers():
     s = AcceptRule()
     cur, aft = _fit(-100.0, 2, 50.0, 1.0), _fit(-110.0, 3, 70.0, 0.5)

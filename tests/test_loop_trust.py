@@ -681,7 +681,7 @@ def test_nothing_accepted_is_told_apart_from_candidates_the_accept_rule_refused(
     from bondgraph.diagnose.result import LoopResult
 
     def why(rankings, labels):
-        rejected = [NS(candidate=NS(label=x)) for x in labels]
+        rejected = [NS(candidate=NS(label=x), reason="") for x in labels]
         return LoopResult.none_accepted(NS(rankings=rankings, rejected=rejected))
 
     assert why([], []) == "no step ran"

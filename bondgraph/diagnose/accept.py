@@ -83,7 +83,8 @@ from bondgraph.core.deferred import chi2, norm
 from bondgraph.diagnose.effects import BY_NAME, Effect
 from bondgraph.diagnose.fit import Fit, noise_params
 from bondgraph.diagnose.inference_calls import andrews_bandwidth, long_run_variance  # noqa: F401
-from bondgraph.diagnose.result import AppliedEffect, Candidate, Rejection, Step
+from bondgraph.diagnose.result import (FITTED_PART_ONLY, AppliedEffect, Candidate, Rejection,
+                                       Step)
 from bondgraph.diagnose.settings import AcceptRule
 from bondgraph.numerics.admissible import Admissibility
 
@@ -357,7 +358,35 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
               or _failed_test(rule, (ic0, ic1), p, lr, (e0, e1), (dz, dp), where,
                               _grown_elsewhere(rule, current, after)
                               or grown_on_estimation(rule, current, after), pooled))
+    if reason is not None and where and reason.startswith(("the error grew" + where,
+                                                           "the error decrease" + where)):
+        reason += fitted_part_only(current, after)
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
+
+
+def fitted_part_only(current: Fit, after: Fit) -> str:
+    """Where a validation record refused the refit ``after`` on its error:
+    "; on the estimation record its error fell (a -> b, z z)" when that fall
+    is significant (the one-sided Diebold-Mariano test of
+    :func:`error_decrease_test`, p < :data:`ESTIMATION_GROWTH_LEVEL`); ""
+    otherwise.
+
+    The contrast has two readings that the record alone cannot tell apart:
+    the effect fits the estimation record's peculiarities (what the
+    validation record is there to refuse), or it acts only where the
+    validation record does not reach: a transient at the start of a record
+    (a cold engine's warm-up) is absent from the held-out end of the same
+    record, which can then neither confirm nor refuse it. The loop's
+    summary says so once (:meth:`~bondgraph.diagnose.result.LoopResult.none_accepted`)."""
+    e0, e1 = current.metric, after.metric
+    a0, a1 = getattr(current, "sim_errors", None), getattr(after, "sim_errors", None)
+    if (a0 is None or a1 is None or np.shape(a0) != np.shape(a1)
+            or not (np.isfinite(e0) and np.isfinite(e1) and e1 < e0)):
+        return ""
+    z, p = error_decrease_test(a0, a1)
+    if not (np.isfinite(p) and p < ESTIMATION_GROWTH_LEVEL):
+        return ""
+    return f"{FITTED_PART_ONLY} ({e0:.4g} -> {e1:.4g}, z {z:.2f})"
 
 
 #: relative move of a known value (declared without a box) along a flat

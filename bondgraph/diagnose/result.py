@@ -234,6 +234,12 @@ class Step:
             f" + {w.split(' @ ', 1)[1]}" if " @ " in w else "" for w in self.together_with)
 
 
+#: the phrase :func:`bondgraph.diagnose.accept.fitted_part_only` adds to a
+#: refusal by the validation record's error (:meth:`LoopResult.none_accepted`
+#: finds it there)
+FITTED_PART_ONLY = "; on the estimation record its error fell"
+
+
 @dataclass
 class Rejection:
     """A confirmed candidate that was not accepted, with the reason."""
@@ -659,15 +665,29 @@ class LoopResult:
         """Why no effect was accepted (for a result without steps), one
         phrase: "no step ran"; "N confirmed candidate(s) refused by the
         accept rule (the first three named)", their reasons in
-        :attr:`rejected`; or "nothing significant left". The command's
+        :attr:`rejected`, and where the validation record refused some
+        whose error fell significantly on the estimation record
+        (:func:`~bondgraph.diagnose.accept.fitted_part_only`), what that
+        means and what to do; or "nothing significant left". The command's
         summary, report.md and report.html say it alike."""
         if not self.rankings:
             return "no step ran"
         refused = list(dict.fromkeys(r.candidate.label for r in self.rejected))
-        if refused:
-            named = ", ".join(refused[:3]) + (", ..." if len(refused) > 3 else "")
-            return f"{len(refused)} confirmed candidate(s) refused by the accept rule ({named})"
-        return "nothing significant left"
+        if not refused:
+            return "nothing significant left"
+        named = ", ".join(refused[:3]) + (", ..." if len(refused) > 3 else "")
+        text = f"{len(refused)} confirmed candidate(s) refused by the accept rule ({named})"
+        only = list(dict.fromkeys(r.candidate.label for r in self.rejected
+                                  if FITTED_PART_ONLY in r.reason))
+        if only:
+            text += (f"; the validation record refused {', '.join(only[:3])}"
+                     f"{', ...' if len(only) > 3 else ''} although the estimation record's "
+                     f"error fell significantly: such an effect fits that record's "
+                     f"peculiarities, or acts only where the validation record does not reach "
+                     f"(a transient at the start of a record, such as a warm-up, is absent from "
+                     f"its held-out end); judge it on a record where it acts (--validate FILE), "
+                     f"or fit and judge the whole record (--holdout 0)")
+        return text
 
     def table(self) -> str:
         """Markdown table of the accepted steps (error = :attr:`metric`; with
