@@ -739,8 +739,12 @@ def test_track_takes_rk4_where_ros2_does_not_converge(monkeypatch, method_free):
 def test_the_window_a_parameter_needs_to_be_observable():
     """cli.track.needed_window: σ₀² Ī W >= 1/ρ − 1 solved for W (hand
     computed: σ₀ 0.1, Ī 2 per sample, ρ 0.5: W = 1 / (0.01 · 2) = 50
-    samples, 5 s at dt 0.1 s); a record that holds less than that in all
-    says it cannot be tracked from it."""
+    samples, 5 s at dt 0.1 s), the option a quarter above it rounded up to
+    two digits (6.3 s: at 5 s itself half the windows of an even record fall
+    short; a user's Camry graph on 1 Hz, told "--observable-s 4.8e+02",
+    stayed 0 % observable there, its windows at 0.9956 of the bound); a
+    record that holds less than that in all says it cannot be tracked from
+    it."""
     from types import SimpleNamespace
 
     from bondgraph.cli.track import needed_window
@@ -749,7 +753,7 @@ def test_the_window_a_parameter_needs_to_be_observable():
         return SimpleNamespace(t=np.arange(n) * 0.1, information=np.full((n, 1), 2.0),
                                units=["kg"], settings={"sigma0": {"m": 0.1}, "dt": 0.1,
                                                        "track": {"observable_ratio": 0.5}})
-    assert "observable over windows of about 5 s (--observable-s 5;" in needed_window(
+    assert "observable over windows of about 5 s (--observable-s 6.3;" in needed_window(
         res(400), "m", 0)
     assert "not trackable from this record" in needed_window(res(30), "m", 0)
     assert needed_window(SimpleNamespace(settings={}, information=None), "m", 0) == ""

@@ -374,8 +374,12 @@ def needed_window(res, name: str, i: int) -> str:
                 f"{s0:.3g} {res.units[i]} (--prior-rel of its start): not trackable from this "
                 f"record")
     w = need / (s0 ** 2 * mean) * dt
+    # the option a quarter above the mean's window, rounded up to 2 digits:
+    # at the mean's own window, half the windows of an even record fall short
+    top = 10.0 ** (np.floor(np.log10(1.25 * w)) - 1)
+    give = float(np.ceil(1.25 * w / top) * top)
     return (f"; at this record's mean information it would be observable over windows of "
-            f"about {w:.2g} s (--observable-s {w:.2g}; changes then need --window of at least "
+            f"about {w:.2g} s (--observable-s {give:g}; changes then need --window of at least "
             f"that)")
 
 

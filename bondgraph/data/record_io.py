@@ -290,6 +290,7 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
             raise DataError(f"time unit '{t_unit}' is not a time", path=where,
                             line=header_line, column="t") from None
     check_time(t, path=where, lines=line_arr, gap_factor=gap_factor)
+    t = t + 0.0     # a logger's "-0.0" is 0 (not "-0 s" in every line that names a time)
     meta = meta or {}
     info = meta.setdefault("columns", {})
     for nm in names:
