@@ -91,7 +91,7 @@ def test_a_further_record_the_effect_makes_worse_vetoes_it(records, tmp_path):
     refused = next(r for r in rep["rejected"] if "'still'" in r["reason"])
     assert refused["confirmed"]["more_validation_errors"]["still"] > errs["before"]
     grew = next(r for r in reasons if "'still'" in r)
-    before, after = (float(v) for v in grew.split("(")[1].rstrip(")").split(" -> "))
+    before, after = (float(v) for v in grew.split("(")[1].split(")")[0].split(" -> "))
     assert before == pytest.approx(errs["before"], rel=1e-3) and after > before
 
 

@@ -238,12 +238,8 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
     columns : dict, optional
         ``{name in the file: name in the model}``: columns renamed after
         reading (a logger's ``Current`` as the model's input ``I``); the
-        sidecar describes them by their names in the file. A new name may
-        carry the column's unit in brackets (``{"Eng_FuelFlow[ccps]":
-        "fuel [cm^3/s]"}``): it replaces the unit the file writes, for a
-        logger's abbreviation that pint reads as another unit (``ccps``,
-        cm³/s in ANL's D3 files, is centi-counts per second to pint) or
-        does not know.
+        sidecar describes them by their names in the file. A unit in
+        brackets after the new name replaces the file's (:func:`_column_units`).
     dt : float, optional
         The sample interval [s] (the command line's ``--dt``; else the
         sidecar's ``dt``). A file without a time column (published
@@ -281,16 +277,7 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
         path, meta, allow_missing, {old: nu[1] for old, nu in given.items() if nu[1] is not None})
     if columns:
         names = _renamed(names, data, units, meta, columns, where, header_line)
-    t = data.pop("t")
-    t_unit = units.pop("t")
-    if t_unit is not None:
-        try:
-            t = convert(t, t_unit, "s", path=where, column="t", what="time")
-        except DataError:
-            raise DataError(f"time unit '{t_unit}' is not a time", path=where,
-                            line=header_line, column="t") from None
-    check_time(t, path=where, lines=line_arr, gap_factor=gap_factor)
-    t = t + 0.0     # a logger's "-0.0" is 0 (not "-0 s" in every line that names a time)
+    t = _time_column(data.pop("t"), units.pop("t"), where, header_line, line_arr, gap_factor)
     meta = meta or {}
     info = meta.setdefault("columns", {})
     for nm in names:
@@ -304,6 +291,26 @@ def read_record(path: str | Path, *, allow_missing: bool = True,
         _check_dt(t, float(meta["dt"]), dt is not None, where if dt is not None else side)
     return {"t": t, "columns": data, "units": units, "meta": meta, "path": path,
             "lines": line_arr}
+
+
+def _time_column(t: np.ndarray, t_unit: str | None, where: str, header_line: int,
+                 lines: np.ndarray, gap_factor: float | None) -> np.ndarray:
+    """The time column ``t`` (N,) in seconds, checked (:func:`check_time`);
+    a logger's "-0.0" is 0 (not "-0 s" in every line that names a time).
+
+    Raises
+    ------
+    DataError
+        A time unit that is not a time; the checks of :func:`check_time`.
+    """
+    if t_unit is not None:
+        try:
+            t = convert(t, t_unit, "s", path=where, column="t", what="time")
+        except DataError:
+            raise DataError(f"time unit '{t_unit}' is not a time", path=where,
+                            line=header_line, column="t") from None
+    check_time(t, path=where, lines=lines, gap_factor=gap_factor)
+    return t + 0.0
 
 
 def _given_dt(dt, where: str) -> float:
@@ -631,7 +638,10 @@ def _column_units(parsed: list[tuple[str, str | None]], side_cols: Mapping, wher
                   side: str, header_line: int,
                   given: Mapping[str, str]) -> dict[str, str | None]:
     """Unit of each column: the one ``given`` with its new name (by the
-    file's name), else the header's, else the sidecar's.
+    file's name), else the header's, else the sidecar's. A unit given
+    replaces the file's: a logger's abbreviation that pint reads as another
+    unit (``ccps``, cm³/s in ANL's D3 files, is centi-counts per second to
+    pint) or does not know.
 
     Raises
     ------

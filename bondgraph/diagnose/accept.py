@@ -330,14 +330,13 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
         does not simulate: ...", "the refit is not finite", "the refit moves
         ... onto its box" (:func:`newly_boxed`), "the effect's ... ends on
         its box" (:func:`at_family_edge`), "the effect's ... ends on the
-        edge of the search box" (``searched``),
-        "information criterion did not improve", "likelihood-ratio test not
-        passed (LR l, p p)", "the error grew (a -> b)" (with "on the
-        validation record" when it is that error), or "the error decrease is
-        within its uncertainty (a -> b, z z, p p)". ``error_z`` and
+        edge of the search box" (``searched``), "information criterion did
+        not improve", "likelihood-ratio test not passed (LR l, p p)", "the
+        error grew (a -> b)" (with "on the validation record" when it is
+        that error), or "the error decrease is within its uncertainty (a ->
+        b, z z, p p)" (:func:`fitted_part_only`). ``error_z`` and
         ``error_p_value`` are the Diebold-Mariano statistic and p-value
-        (:func:`error_decrease_test`; NaN when either fit lacks per-sample
-        errors).
+        (:func:`error_decrease_test`; NaN without per-sample errors).
     """
     ic0, ic1 = current.information(rule.criterion), after.information(rule.criterion)
     w0, w1 = current.residuals.whiteness, after.residuals.whiteness
@@ -358,18 +357,17 @@ def decide(current: Fit, after: Fit, rule: AcceptRule, dof: int = 1,
               or _failed_test(rule, (ic0, ic1), p, lr, (e0, e1), (dz, dp), where,
                               _grown_elsewhere(rule, current, after)
                               or grown_on_estimation(rule, current, after), pooled))
-    if reason is not None and where and reason.startswith(("the error grew" + where,
-                                                           "the error decrease" + where)):
-        reason += fitted_part_only(current, after)
+    reason = fitted_part_only(current, after, reason, where)
     return Decision(reason is None, reason, ic0, ic1, w0, w1, e0, e1, lr, p, dz, dp)
 
 
-def fitted_part_only(current: Fit, after: Fit) -> str:
-    """Where a validation record refused the refit ``after`` on its error:
-    "; on the estimation record its error fell (a -> b, z z)" when that fall
-    is significant (the one-sided Diebold-Mariano test of
-    :func:`error_decrease_test`, p < :data:`ESTIMATION_GROWTH_LEVEL`); ""
-    otherwise.
+def fitted_part_only(current: Fit, after: Fit, reason: str | None,
+                     where: str) -> str | None:
+    """:func:`decide`'s ``reason``, and where a validation record refused the
+    refit ``after`` on its error (``where``: " on the validation record")
+    "; on the estimation record its error fell (a -> b, z z)" after it when
+    that fall is significant (the one-sided Diebold-Mariano test of
+    :func:`error_decrease_test`, p < :data:`ESTIMATION_GROWTH_LEVEL`).
 
     The contrast has two readings that the record alone cannot tell apart:
     the effect fits the estimation record's peculiarities (what the
@@ -378,15 +376,18 @@ def fitted_part_only(current: Fit, after: Fit) -> str:
     (a cold engine's warm-up) is absent from the held-out end of the same
     record, which can then neither confirm nor refuse it. The loop's
     summary says so once (:meth:`~bondgraph.diagnose.result.LoopResult.none_accepted`)."""
+    if not (reason and where and reason.startswith(("the error grew" + where,
+                                                    "the error decrease" + where))):
+        return reason
     e0, e1 = current.metric, after.metric
     a0, a1 = getattr(current, "sim_errors", None), getattr(after, "sim_errors", None)
     if (a0 is None or a1 is None or np.shape(a0) != np.shape(a1)
             or not (np.isfinite(e0) and np.isfinite(e1) and e1 < e0)):
-        return ""
+        return reason
     z, p = error_decrease_test(a0, a1)
     if not (np.isfinite(p) and p < ESTIMATION_GROWTH_LEVEL):
-        return ""
-    return f"{FITTED_PART_ONLY} ({e0:.4g} -> {e1:.4g}, z {z:.2f})"
+        return reason
+    return f"{reason}{FITTED_PART_ONLY} ({e0:.4g} -> {e1:.4g}, z {z:.2f})"
 
 
 #: relative move of a known value (declared without a box) along a flat
