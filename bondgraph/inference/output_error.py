@@ -409,8 +409,9 @@ def output_error_fit(model, t, u, y, params: Sequence[str], *, theta=None, x0=No
     bad = [n for n, v, a, b in zip(params + states, z0, lo, hi) if not a <= v <= b]
     if bad:
         raise ModelError(f"output_error_fit: start outside its box: {', '.join(bad)}")
-    r = least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=(lo, hi), method="trf",
-                      x_scale="jac", max_nfev=opts.max_nfev)
+    with np.errstate(over="ignore"):    # a far trial step's huge residuals: its cost is inf
+        r = least_squares(prob.residuals, z0, jac=prob.jacobian, bounds=(lo, hi),
+                          method="trf", x_scale="jac", max_nfev=opts.max_nfev)
     return _result(prob, r, lo, hi)
 
 
