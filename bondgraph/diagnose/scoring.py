@@ -36,7 +36,7 @@ distribution of the likelihood ratio. Ann. Math. Stat. 9, 60-62. Akaike, H.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -979,7 +979,7 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt,
         for thv in noise_variants(model, fit, th, NOISE_FACTORS):
             sets.append(thv)
             grid_of.append(vals)
-    r = run_ukf(problem_for(ctx, model), np.array(sets))
+    ctx, r = finer_if_failed(ctx, model, np.array(sets), f"{eff.name} @ {tgt.name}")
     k = sum(1 for p in eff.params if p.estimated)
     if not np.any(np.isfinite(r.nll)):
         return failed_candidate(eff, tgt, "likelihood ratio", k, str(r.reasons[0]))
@@ -1015,6 +1015,40 @@ def structural_candidate(ctx: Context, fit: Fit, scales: Scales, eff, tgt,
                      limit_of=at_limits(eff, tgt, values, spans),
                      reach=lr if converged else profile_reach(ctx, fit, model, th,
                                                               list(new.values()), lr))
+
+
+#: the factors by which a structural candidate's RK4 substeps grow when its
+#: filter fails at every point of its grid (:func:`finer_if_failed`)
+FINER_FACTORS = (2, 4, 8)
+
+
+def finer_if_failed(ctx: Context, model: Model, sets: np.ndarray, label: str):
+    """``(context, result)``: the batched UKF run of ``model`` at the
+    parameter sets ``sets`` (n_sets, n_theta) with ``ctx``'s filter; where it
+    fails at every set and the filter is RK4, run again with 2, 4, then 8
+    times its substeps until one set runs (logged), and that context with
+    it. A candidate that brings a stiff element (a compliance or an end stop
+    at its grid's stiffness) can put a mode outside RK4's stability region
+    at the step the model without it needed; unscored, it could not compete
+    (a user's CVT driveline at 20 Hz: the compliance and the slip behind the
+    belt, an end stop on the shaft and Dahl friction in its twist all failed
+    at the second sample). The confirmation refits choose their own stable
+    substeps (:func:`bondgraph.diagnose.confirm.stable_context`)."""
+    r = run_ukf(problem_for(ctx, model), sets)
+    disc = ctx.problem.disc if ctx.problem is not None else None
+    if np.any(np.isfinite(r.nll)) or disc is None or disc.method != "rk4":
+        return ctx, r
+    for factor in FINER_FACTORS:
+        n = factor * int(disc.substeps)
+        finer = replace(ctx, problem=ctx.problem.conditioned_on(
+            disc=replace(disc, substeps=n, refine=())), cache={})
+        rf = run_ukf(problem_for(finer, model), sets)
+        if np.any(np.isfinite(rf.nll)):
+            ctx.log(f"  {label}: the filter fails at every point of its grid with "
+                    f"rk4({disc.substeps}) ({str(r.reasons[0]).splitlines()[0]}); scored with "
+                    f"rk4({n})")
+            return finer, rf
+    return ctx, r
 
 
 def profile_reach(ctx: Context, fit: Fit, model: Model, theta: np.ndarray, new: list[str],
