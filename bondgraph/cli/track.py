@@ -316,10 +316,13 @@ def online_summary(online: list, res) -> str:
     change with its alarm and attribution times, and whether the batch run
     has it (the same change sample and parameter)."""
     batch = {(c.index, c.parameter) for c in res.changes}
-    lines = [f"on-line (the streaming tracker, each sample as it arrives): {len(online)} "
-             f"change(s)"]
+    first = sum(1 for c in online if c.at_start)
+    lines = [f"on-line (the streaming tracker, each sample as it arrives): {len(online) - first}"
+             f" change(s)" + (f" and {first} at the start" if first else "")]
     for c in online:
         same = "as the batch run" if (c.index, c.parameter) in batch else "not in the batch run"
+        same += "; at the start: within the first window after it became observable" \
+            if c.at_start else ""
         lines.append(f"  t = {c.time:.6g} s: {c.parameter} raised at {c.alarm_time:.6g} s "
                      f"(by {c.detected}'s updates), attributed at {c.attributed_time:.6g} s: "
                      f"{c.before:.6g} -> {c.after:.6g} ± {c.after_std:.3g} ({same})")
@@ -429,9 +432,18 @@ def summary(res) -> str:
         if on > 0.05:
             lines.append(f"warning: {n} sits on its box [{lo:g}, {hi:g}] for {100 * on:.0f} % "
                          f"of the record: the box, or the model, is wrong there")
-    lines.append(f"{len(res.changes)} change(s)")
+    start = [c for c in res.changes if c.at_start]
+    for c in start:
+        lines.append(f"at the start: {c.parameter} {c.before:.6g} ± {c.before_std:.3g} -> "
+                     f"{c.after:.6g} ± {c.after_std:.3g} from {c.time:.6g} s (alarm "
+                     f"{c.alarm_time:.6g} s, GLR {c.statistic:.4g}), within the detector's first "
+                     f"window after it became observable: the record's first informative "
+                     f"samples disagree with the start value (a prior that does not hold on "
+                     f"this record, or a change early in it); not counted as a change")
+    lines.append(f"{len(res.changes) - len(start)} change(s)")
     for c in res.changes:
-        lines.append(f"  t = {c.time:.6g} s (alarm {c.alarm_time:.6g} s): {c.parameter} "
-                     f"{c.before:.6g} ± {c.before_std:.3g} -> {c.after:.6g} ± {c.after_std:.3g}"
-                     f" (GLR {c.statistic:.4g})")
+        if not c.at_start:
+            lines.append(f"  t = {c.time:.6g} s (alarm {c.alarm_time:.6g} s): {c.parameter} "
+                         f"{c.before:.6g} ± {c.before_std:.3g} -> {c.after:.6g} ± "
+                         f"{c.after_std:.3g} (GLR {c.statistic:.4g})")
     return "\n".join(lines)

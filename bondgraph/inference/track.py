@@ -268,6 +268,12 @@ class Change:
         the change was attributed and the filter restarted (at the alarm
         or up to one window after it, :meth:`Tracker._attribute`); None
         from :func:`track`, which attributes with the whole record at hand.
+    at_start : bool
+        The record's first change, its onset within the detector's window of
+        the sample its parameter first became observable: the detector cannot
+        tell it from a start value (the prior, e.g. ``bondgraph track
+        --from``'s estimate from another record) that does not hold on this
+        record (:func:`mark_at_start`).
     """
 
     parameter: str
@@ -284,6 +290,7 @@ class Change:
     after: float = np.nan
     after_std: float = np.nan
     attributed_time: float | None = None
+    at_start: bool = False
 
     def to_dict(self) -> dict:
         """Plain dict (JSON-able through :mod:`bondgraph.core.jsonsafe`)."""
@@ -412,6 +419,32 @@ class TrackResult:
                 for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))]
 
 
+def mark_at_start(changes: Sequence[Change], names: Sequence[str],
+                  observable: np.ndarray | None, window: int) -> None:
+    """Set :attr:`Change.at_start` on the first of ``changes`` when its
+    onset (``index``) lies within ``window`` samples (the GLR window) of the
+    first sample at which its parameter (one of ``names``) is observable
+    (``observable``, (N, k)), or before it: the detector sums a window to
+    decide, and a jump inside the first window of informative samples is
+    not told from a start value (the prior) that does not hold on the
+    record. A user's CVT driveline tracked with its loop's Coulomb level
+    (148.6 ± 0.27 N, the Cramér-Rao std on another record) raised a change
+    at 4.8 s to 149.1 N, as the level became observable at 4.95 s, before
+    the real one (150 -> 250 N at 100 s)."""
+    if not changes or observable is None:
+        return
+    first = changes[0]
+    seen = np.flatnonzero(np.asarray(observable, bool)[:, list(names).index(first.parameter)])
+    first.at_start = _within_first_window(int(seen[0]) if seen.size else -1, first.index, window)
+
+
+def _within_first_window(first_observable: int, onset: int, window: int) -> bool:
+    """Whether a change with onset ``onset`` (its sample) lies within
+    ``window`` samples of the sample its parameter first became observable
+    (-1: not before the onset), or before it (:func:`mark_at_start`)."""
+    return first_observable < 0 or onset - 1 - first_observable <= window
+
+
 # ------------------------------------------------------------------ batch tracker
 @dataclass
 class _Segment:
@@ -494,6 +527,7 @@ def track(problem, tm: TrackingModel, *, start: Mapping[str, float] | None = Non
                                       opts, std)
             res = _stitch(tm, t, segs, changes, h)
     res.observable = observable_mask(res.information, sigma0, obs_window, opts.observable_ratio)
+    mark_at_start(res.changes, res.names, res.observable, window)
     if opts.smooth:
         res.smoothed, res.smoothed_std = _smoothed(tm, t, u, th, segs, ukf)
     res.settings = dict(ukf=ukf.to_dict(), track=opts.to_dict(), window=window, dt=dt,
@@ -1139,6 +1173,8 @@ class Tracker:
             self._need = np.asarray(sigma0, float) ** 2, 1.0 / float(ratio) - 1.0
             self._ring, self._sum = np.zeros((max(1, int(window)), len(idx))), np.zeros(len(idx))
             self.observable = np.zeros(len(idx), bool)
+        #: the sample at which each parameter first became observable (-1: not yet)
+        self._first_observable = np.full(len(idx), -1)
         self._z, self._R, self.watch = np.asarray(x0, float)[idx].copy(), R, watch
         self.changes: list[Change] = []
         self.alarm: Change | None = None
@@ -1364,6 +1400,8 @@ class Tracker:
                     w.h, p.detected, iso, before=float(e0.est[c]), before_std=float(e0.sd[c]),
                     after=float(est[c]), after_std=float(sd[c]),
                     attributed_time=float(span[-1].t))
+        ch.at_start = not self.changes and _within_first_window(
+            int(self._first_observable[c]), p.index, w.window)
         self.changes.append(ch)
         self.alarm, self.suspected = ch, None
         return est, sd
@@ -1417,6 +1455,7 @@ class Tracker:
             self._sum += self.information - self._ring[r]
             self._ring[r] = self.information
             self.observable = self._need[0] * self._sum >= self._need[1]
+            self._first_observable[self.observable & (self._first_observable < 0)] = k
 
 
 class _Kept(NamedTuple):
