@@ -4,9 +4,11 @@ DE), writing ``result.json`` and PNG fit plots."""
 from __future__ import annotations
 
 import argparse
+import contextvars
 import json
 import shutil
 import sys
+import time
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -196,6 +198,12 @@ def run(args) -> int:
     if not args.checkpoint:
         folder.remove_work_dir()
     print(res.table())
+    work = res.settings.get("estimation_work")
+    if work:
+        print(f"the estimation in all: {work['fits']} fits (the search, its refits where the "
+              f"discretisation or the input hold changed at the estimate), "
+              f"{work['evaluations']} evaluations, {work['wall_s']:.1f} s; the line above "
+              f"counts the last fit's")
     for pth in [folder.path / "result.json", *published(folder, pngs)]:
         print(f"wrote {pth}")
     free_run_lines(args, exps, folder.path / "result.json")
@@ -396,11 +404,19 @@ def _fit(args, chosen, params, fit, states, paths):
     hold too, and the likelier kept (:func:`_likelier_hold`)."""
     log = None if args.quiet else _say
     problems = [pb for pb, _ in chosen]
-    res = _estimate_quiet(problems, params, fit, states, log)
-    res, problems, agains = _refined(args, chosen, problems, res, params, fit, states, paths)
-    res, problems, chosen, agains = _likelier_hold(args, chosen, problems, res, agains, params,
-                                                   fit, states, paths)
-    _hold_checked(args, chosen, problems, res, params, fit, states)
+    t0, token = time.perf_counter(), _SPENT.set([])
+    try:
+        res = _estimate_quiet(problems, params, fit, states, log)
+        res, problems, agains = _refined(args, chosen, problems, res, params, fit, states, paths)
+        res, problems, chosen, agains = _likelier_hold(args, chosen, problems, res, agains,
+                                                       params, fit, states, paths)
+        _hold_checked(args, chosen, problems, res, params, fit, states)
+        spent = _SPENT.get()
+    finally:
+        _SPENT.reset(token)
+    if len(spent) > 1:
+        res.settings["estimation_work"] = dict(fits=len(spent), evaluations=int(sum(spent)),
+                                               wall_s=round(time.perf_counter() - t0, 2))
     given = discretisation_given(args)
     choices = [dict(given=given, start=None if c is None else c.to_dict(),
                     estimate=None if a is None else a.to_dict())
@@ -670,13 +686,24 @@ def _choice_ahead(problem, ahead, given, sigma, theta, again, hold: dict):
     return further if ok else None
 
 
+#: the evaluations of each :func:`_estimate_quiet` of the running :func:`_fit`
+#: (its search, the refits at the estimate's discretisation, the other input hold)
+_SPENT: contextvars.ContextVar = contextvars.ContextVar("bondgraph_estimate_spent",
+                                                        default=None)
+
+
 def _estimate_quiet(problem, params, fit, states, log, start=None):
     """:func:`estimate` without its :class:`IdentifiabilityWarning` s (the
-    table prints the result's warnings)."""
+    table prints the result's warnings); its evaluations counted in
+    :data:`_SPENT` while :func:`_fit` runs."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
         one = problem[0] if isinstance(problem, list) and len(problem) == 1 else problem
-        return estimate(one, params, fit=fit, x0_states=states, log=log, start=start)
+        res = estimate(one, params, fit=fit, x0_states=states, log=log, start=start)
+    spent = _SPENT.get()
+    if spent is not None:
+        spent.append(int(res.evaluations_total))
+    return res
 
 
 def _say(msg: str) -> None:
@@ -736,7 +763,7 @@ def run_output_error(args, chosen, params, folder, states) -> int:
         sd = r.std.get(n)
         print(f"{n:24s} {r.estimates()[n]:.6g}" + (f" ± {sd:.3g}" if sd is not None else
                                                     " (on a bound)" if n in r.at_bound else ""))
-    print(f"free-run RMS error: " + ", ".join(f"{o} {v:.4g}" for o, v in
+    print("free-run RMS error: " + ", ".join(f"{o} {v:.4g}" for o, v in
                                               zip(model.outputs, r.rmse)))
     print("noise levels: " + ", ".join(f"{o} {d['std']:.4g} ({d['how']})"
                                        for o, d in noise.items()))
