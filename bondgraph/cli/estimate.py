@@ -197,6 +197,18 @@ def run(args) -> int:
     pngs = folder.publish(version)
     if not args.checkpoint:
         folder.remove_work_dir()
+    _print_table(res)
+    for pth in [folder.path / "result.json", *published(folder, pngs)]:
+        print(f"wrote {pth}")
+    free_run_lines(args, exps, folder.path / "result.json")
+    judged_elsewhere(args, vals, folder.path)
+    return 0
+
+
+def _print_table(res) -> None:
+    """The estimate's table; where it was refitted, a line with the
+    estimation's fits, evaluations and seconds in all (the table counts the
+    last fit's: ``settings["estimation_work"]``, :func:`_fit`)."""
     print(res.table())
     work = res.settings.get("estimation_work")
     if work:
@@ -204,11 +216,6 @@ def run(args) -> int:
               f"discretisation or the input hold changed at the estimate), "
               f"{work['evaluations']} evaluations, {work['wall_s']:.1f} s; the line above "
               f"counts the last fit's")
-    for pth in [folder.path / "result.json", *published(folder, pngs)]:
-        print(f"wrote {pth}")
-    free_run_lines(args, exps, folder.path / "result.json")
-    judged_elsewhere(args, vals, folder.path)
-    return 0
 
 
 def _glitches(model, res, problems, paths) -> None:
