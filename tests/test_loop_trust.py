@@ -21,7 +21,7 @@ from bondgraph.diagnose.fit import Fit, free_run_trouble
 from bondgraph.diagnose.residuals import ResidualReport
 from bondgraph.diagnose.settings import AcceptRule, LoopSettings, SearchOptions
 from bondgraph.errors import ModelError, OptionError
-from bondgraph.numerics.admissible import MARGIN, check_admissible
+from bondgraph.numerics.admissible import ESCAPES, MARGIN, check_admissible
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_unknown_x0 import TRUTH, record, tanks  # noqa: E402
@@ -93,42 +93,69 @@ def test_a_negative_cubic_orifice_term_produces_power_and_is_named(tank_run):
     assert check_admissible(g, derive(g), theta, x, u).ok
 
 
-def test_a_softening_spring_past_its_turning_point_has_negative_stiffness():
-    """A mass on a spring e = k q − β q³: dΨ/dq = k − 3β q² < 0 for
-    q² > k/(3β). Visited q in [−0.5, 1], widened to [−0.875, 1.375]: with
-    k = 1, β = 0.3 the stiffness turns negative at q = 1.054, worst at the
-    top (1 − 0.9·1.375² = −0.70); with β = 0.1 (turning point 1.83) it does
-    not. A preloaded spring F₀ + k q (less energy than at 0 just below 0)
-    is admissible."""
-    def graph(beta, preload=0.0):
-        g = BondGraph("soft", "mass on a softening spring")
-        k = g.param("k", 1.0, "N/m", (0.1, 10.0))
-        bb = g.param("b", beta, "N/m^3", (0.0, 10.0))
+def test_a_spring_whose_effort_reverses_past_its_well_is_refused():
+    """A mass on a spring e = k q − β q³ (k = 1), visited q in [−0.5, 1],
+    widened to [−0.875, 1.375]. Its stored energy H = q²/2 − β q⁴/4 has
+    its well at 0; the effort restores (H rises away from the well) up to
+    the barrier's top q² = k/β. With β = 0.6 the top, 1.291, lies inside:
+    refused, worst at the range's end, e = 1.375 − 0.6·1.375³ = −0.1848.
+    With β = 0.3 the stiffness k − 3β q² is negative past 1.054 but the
+    effort restores to 1.826: admissible (the old convexity rule refused it,
+    and with it a pendulum's m g l sin θ past 90°: here sin q visited to
+    2.2, widened to 2.875 < π, passes; visited to 2.6, widened past π, it
+    does not). A preloaded spring F₀ + k q (its well below the range)
+    passes; a negative spring −q does not."""
+    def graph(law, params):
+        g = BondGraph("soft", "mass on a spring")
+        syms = {n: g.param(n, v, "", (-10.0, 10.0)) for n, v in params.items()}
         m = g.param("m", 1.0, "kg", (0.1, 10.0))
         j = g.one("v", domain="translation")
         g.connect(j, g.I("mass", m))
-        g.connect(j, g.C("spring", effort=lambda q: preload + k * q - bb * q**3))
+        g.connect(j, g.C("spring", effort=lambda q: law(q, syms)))
         g.sensor("pos_v", j.f, unit="m/s", noise_std=0.01)
-        return g, {"k": 1.0, "b": beta, "m": 1.0}
+        return g, {**params, "m": 1.0}
 
-    q = np.linspace(-0.5, 1.0, 50)
-    g, th = graph(0.3)
-    ss = derive(g)
-    order = [s.name for s in ss.states]
-    x = np.zeros((q.size, 2))
-    x[:, order.index("q_spring")] = q
-    no_u = np.zeros((q.size, 0))
-    r = check_admissible(g, ss, th, x, no_u)
-    (v,) = r.violations
-    assert (v.element, v.kind, v.variable) == ("spring", "C", "q_spring")
-    assert v.what == "has a negative stiffness (its stored energy is not convex)"
+    def check(law, params, top=1.0):
+        g, th = graph(law, params)
+        ss = derive(g)
+        q = np.linspace(-0.5, top, 50)
+        x = np.zeros((q.size, 2))
+        x[:, [s.name for s in ss.states].index("q_spring")] = q
+        return check_admissible(g, ss, th, x, np.zeros((q.size, 0)))
+
+    def cubic(q, p):
+        return p["k"] * q - p["b"] * q**3
+
+    (v,) = check(cubic, {"k": 1.0, "b": 0.6}).violations
+    assert (v.element, v.kind, v.variable, v.what) == ("spring", "C", "q_spring", ESCAPES)
     top = 1.0 + MARGIN * 1.5                      # span 1.5, widened by MARGIN
-    assert v.at == pytest.approx(top, abs=0.01)   # the last interval's midpoint
-    assert v.value == pytest.approx(1.0 - 0.9 * v.at**2, rel=1e-4)   # the secant slope
-    g, th = graph(0.1)
-    assert check_admissible(g, derive(g), th, x, no_u).ok
-    g, th = graph(0.0, preload=5.0)
-    assert check_admissible(g, derive(g), th, x, no_u).ok
+    assert v.at == pytest.approx(top) and v.value == pytest.approx(top - 0.6 * top**3, rel=1e-9)
+    assert check(cubic, {"k": 1.0, "b": 0.3}).ok
+    assert check(lambda q, p: p["k"] * sp.sin(q), {"k": 1.0}, top=2.2).ok
+    (v,) = check(lambda q, p: p["k"] * sp.sin(q), {"k": 1.0}, top=2.6).violations
+    assert v.at > np.pi and v.value < 0
+    assert check(lambda q, p: p["F0"] + p["k"] * q, {"F0": 5.0, "k": 1.0}).ok
+    assert not check(lambda q, p: -p["k"] * q, {"k": 1.0}).ok
+
+
+def test_an_inertia_whose_flow_falls_with_its_momentum_is_refused():
+    """An I law f = p/m − β p³ keeps the convexity rule (kinetic energy has
+    no barrier to pass): m = 1, β = 0.3, p in [−0.5, 1] widened to
+    [−0.875, 1.375]: dΦ/dp = 1 − 0.9 p² < 0 past 1.054, worst at the top."""
+    g = BondGraph("soft_mass", "a mass whose flow saturates")
+    b = g.param("b", 0.3, "", (0.0, 10.0))
+    j = g.one("v", domain="translation")
+    g.connect(j, g.I("mass", flow=lambda p: p - b * p**3))
+    g.connect(j, g.C("spring", g.param("c", 1.0, "m/N", (0.1, 10.0))))
+    g.sensor("pos_v", j.f, unit="m/s", noise_std=0.01)
+    ss = derive(g)
+    p = np.linspace(-0.5, 1.0, 50)
+    x = np.zeros((p.size, 2))
+    x[:, [s.name for s in ss.states].index("p_mass")] = p
+    (v,) = check_admissible(g, ss, {"b": 0.3, "c": 1.0}, x, np.zeros((p.size, 0))).violations
+    assert (v.element, v.kind) == ("mass", "I")
+    assert v.what == "has a negative stiffness (its stored energy is not convex)"
+    assert v.value == pytest.approx(1.0 - 0.9 * v.at**2, rel=1e-3) and v.value < 0
 
 
 def test_admissibility_input_errors(tank_run):

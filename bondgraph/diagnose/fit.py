@@ -1725,14 +1725,16 @@ def _start_search(ctx: Context, residuals, n: int, r0: np.ndarray,
     own = getattr(getattr(getattr(ctx, "settings", None), "free_run", None), "method", None)
     rf = residuals(z, True) if own != "fine" else None
     if rf is not None and np.all(np.abs(rf) < 1e6):
-        fit = least_squares(lambda v: residuals(v, True), z, method="trf", x_scale="jac",
-                            max_nfev=START_FIT_NFEV)
+        with np.errstate(over="ignore"):    # a far trial step's residuals: its cost is inf
+            fit = least_squares(lambda v: residuals(v, True), z, method="trf", x_scale="jac",
+                                max_nfev=START_FIT_NFEV)
         if np.all(np.isfinite(fit.x)):
             z, runs, most = fit.x, fit.nfev, START_POLISH_NFEV
             if np.any(np.abs(r0) >= 1e6) or _rms(rf - r0) <= FAST_START_AGREEMENT:
                 r = residuals(z)
                 return z, 0.5 * float(r @ r), runs + 1
-    fit = least_squares(residuals, z, method="trf", x_scale="jac", max_nfev=most)
+    with np.errstate(over="ignore"):
+        fit = least_squares(residuals, z, method="trf", x_scale="jac", max_nfev=most)
     return fit.x, fit.cost, runs + fit.nfev
 
 

@@ -54,7 +54,6 @@ from bondgraph.diagnose.fit import (
     samples_after,
     admissibility,
     continued_laws,
-    error_scale,
     FREE_RUN_SHARE,
     noise_absorbing,
     fit_context,
@@ -102,7 +101,6 @@ from bondgraph.diagnose.screen import SCREEN_LEVEL, free_run_nrmse, global_outpu
 from bondgraph.diagnose.settings import LoopSettings
 from bondgraph.inference.discretise import (
     HOLD_CHECK_MARGIN,
-    SUBSTEPS,
     alternative_hold,
     hold_check_line,
     hold_verdict,
@@ -484,7 +482,7 @@ def declared_inadmissible(ctx: Context, adm) -> str:
     msg = (f"the declared model is not physically admissible at its fit: {adm.reason()}. "
            f"The range checked is the one the record visits, widened by "
            f"{100 * ADMISSIBLE_MARGIN:.0f} % of its span on each side and made to contain zero; "
-           f"rewrite that law so it dissipates (stores convexly) there, for example a constant "
+           f"rewrite that law so it dissipates (its storage restores towards its well) there, for example a constant "
            f"term A of an effort law as A·tanh(f/ε), which changes sign with the flow, or "
            f"narrow the box of the parameter that makes it produce power")
     if ctx.settings.search.on_failed_fit == "stop":

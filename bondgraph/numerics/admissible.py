@@ -13,14 +13,22 @@ visits.
   of junctions whose variables are rigidly tied along the trajectory
   (x_j = k_j x: 1-junctions bonded directly or through a transformer with
   no storage between them), Σ_j k_j x·φ_j(k_j x) >= 0.
-- Every C and I element in integral causality stores its energy convexly:
-  dΨ/dq >= 0 for a capacitance e = Ψ(q) (dΦ/dp >= 0 for an inertia
-  f = Φ(p)) over the range of its state, so that its stored energy
-  H(q) = ∫Ψ dq is convex there, bounded below and a valid storage function
-  (KMR §4.2-4.3; Willems 1972). Convexity, not H(q) >= H(0): a preloaded
-  spring e = F₀ + k q (a CVT's springs) stores less than at q = 0 just
-  below 0 and is as passive as any; a softening spring k q − β q³ past its
-  turning point q² > k/(3β) is not (its equilibrium there is unstable).
+- Every C element in integral causality stores its energy in one well: its
+  effort e = Ψ(q) restores towards the lowest point of its stored energy
+  H(q) = ∫Ψ dq over the range of its state (Ψ >= 0 to the well's right,
+  <= 0 to its left), so that H rises away from the well, bounded below by
+  it: a valid storage function that no state can run away from over a
+  barrier (KMR §4.2-4.3; Willems 1972). A preloaded spring e = F₀ + k q (a
+  CVT's springs; its well below the range) passes, as does a potential
+  energy that is not convex: a pendulum's m g l sin θ past 90°, a
+  softening spring k q − β q³ past its turning point q² = k/(3β) while it
+  still restores (a user's swing arm, gravity declared as a linear spring:
+  the cubic term's refit, −0.175 θ³ beside 1.19 θ, has a negative stiffness
+  past 1.5 rad, as the truth has past π/2; refused as "not convex", the
+  loop took Dahl friction instead, held out 0.108 against 0.023). Past the
+  barrier's top, q² > k/β, or for a negative spring, it does not. Every I
+  element's Φ(p) has dΦ/dp >= 0 (a convex kinetic energy: a mass or an
+  inductance is positive everywhere).
 
 "The range a record visits" is the interval of the element's variable along
 a state trajectory (the filtered states of a fit) widened by ``margin`` of
@@ -80,15 +88,15 @@ class Violation:
         The element's name.
     kind : {"R", "C", "I"}
     what : str
-        ``"produces power"`` (R) or ``"has a negative stiffness (its stored
-        energy is not convex)"`` (C, I).
+        ``"produces power"`` (R), :data:`ESCAPES` (C) or ``"has a negative
+        stiffness (its stored energy is not convex)"`` (I).
     variable : str
         The law's input: ``"flow"``/``"effort"`` (R) or the state's name.
     at : float
         The value of that variable where the violation is worst [its unit].
     value : float
-        The power [W] (e·f, in the graph's units) or the stiffness dΨ/dq
-        there (< 0).
+        The power [W] (e·f, in the graph's units), the C's effort there
+        (pushing away from its well) or the I's dΦ/dp there (< 0).
     visited : (float, float)
         The range of the variable along the trajectory.
     """
@@ -470,8 +478,10 @@ def _check_r(env: _Env, junctions: list, members: list, margin: float,
 
 
 def _check_storage(env: _Env, el, margin: float, out: Admissibility) -> None:
-    """dΨ/dq >= 0 over the widened range of the element's state (secant
-    slopes of the law on the grid): a convex stored energy."""
+    """An I law's dΦ/dp >= 0 (secant slopes on the grid: a convex kinetic
+    energy); a C law's effort Ψ(q) restoring towards the well of its stored
+    energy H = ∫Ψ dq over the widened range of its state
+    (:func:`_escape`)."""
     state = el.state
     if state not in env.values or env.n == 0:
         out.unchecked.append(f"{el.name}: no state of its own (derivative causality)")
@@ -483,12 +493,48 @@ def _check_storage(env: _Env, el, margin: float, out: Admissibility) -> None:
     qs = env.values[state]
     grid = _widened(qs, margin)
     law_g = np.broadcast_to(env.evaluate(law, at={state: grid}), grid.shape)
+    out.checked.append(el.name)
+    visited = (float(np.min(qs)), float(np.max(qs)))
+    if el.kind == "C":
+        i, bad = _escape(grid, law_g)
+        if bad:
+            out.violations.append(Violation(el.name, el.kind, ESCAPES, state.name,
+                                            float(grid[i]), float(law_g[i]), visited))
+        return
     mid = 0.5 * (grid[1:] + grid[:-1])
     stiffness = np.diff(law_g) / np.diff(grid)
-    out.checked.append(el.name)
     i, bad = _worst(stiffness, mid)
     if bad:
         out.violations.append(Violation(el.name, el.kind, "has a negative stiffness "
                                         "(its stored energy is not convex)", state.name,
-                                        float(mid[i]), float(stiffness[i]),
-                                        (float(np.min(qs)), float(np.max(qs)))))
+                                        float(mid[i]), float(stiffness[i]), visited))
+
+
+#: what a C law whose effort reverses past its well breaks (:func:`_escape`)
+ESCAPES = ("has an effort that reverses past the well of its stored energy (beyond it the "
+           "energy falls: the state runs away)")
+
+
+def _escape(grid: np.ndarray, effort: np.ndarray) -> tuple[int, bool]:
+    """Whether a C law's ``effort`` Ψ on ``grid``, an ascending grid of its
+    state (about GRID_POINTS,), pushes away from the well of its stored energy
+    H = ∫Ψ dq anywhere: H is to rise on both sides of its lowest point on
+    the grid, Ψ >= 0 to its right and <= 0 to its left, up to −TOLERANCE ×
+    the largest |Ψ|. Returns the index of the worst such point and whether
+    there is one. A preloaded spring (Ψ > 0 throughout: the well lies
+    beyond the range) passes; so does a pendulum's m g l sin θ past 90° or
+    a softening spring past its turning point while it still restores (a
+    stiffness < 0 there, but no energy below the well's); a negative spring,
+    or a softening one past the top of its barrier (k q − β q³ beyond
+    q² = k/β), does not."""
+    ok = np.isfinite(effort)
+    if not np.any(ok):
+        return 0, False
+    psi = np.where(ok, effort, 0.0)
+    H = np.concatenate([[0.0], np.cumsum(0.5 * (psi[1:] + psi[:-1]) * np.diff(grid))])
+    m = int(np.argmin(H))
+    tol = TOLERANCE * float(np.max(np.abs(psi)))
+    away = np.where(np.arange(psi.size) > m, -psi, psi)     # < 0 where it restores
+    away[m] = -np.inf
+    i = int(np.argmax(away))
+    return i, bool(away[i] > tol)
