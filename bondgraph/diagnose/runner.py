@@ -482,7 +482,8 @@ def declared_inadmissible(ctx: Context, adm) -> str:
     msg = (f"the declared model is not physically admissible at its fit: {adm.reason()}. "
            f"The range checked is the one the record visits, widened by "
            f"{100 * ADMISSIBLE_MARGIN:.0f} % of its span on each side and made to contain zero; "
-           f"rewrite that law so it dissipates (its storage restores towards its well) there, for example a constant "
+           f"rewrite that law so it dissipates (its storage restores towards its well) "
+           f"there, for example a constant "
            f"term A of an effort law as A·tanh(f/ε), which changes sign with the flow, or "
            f"narrow the box of the parameter that makes it produce power")
     if ctx.settings.search.on_failed_fit == "stop":

@@ -33,8 +33,9 @@ So the loop's own admissibility check
 alone or in parallel with the declared ones on the junction; a C law
 restores towards its energy's well, an I law keeps a non-negative slope)
 judges the law at every refitted value: a refit that makes the R part
-produce power or the storage push away from its well is refused with the element named (the equations are those of a single
-modulated source, the attachment of issue 29's first version).
+produce power or the storage push away from its well is refused with the
+element named (the equations are those of a single modulated source, the
+attachment of issue 29's first version).
 
 Each coefficient ``c_k`` is a parameter (``discovered.<port>.c<k>``, unit:
 the port's effort over the basis' unit, so the graph's unit check holds).
