@@ -144,3 +144,24 @@ def test_estimate_keeps_quiet_on_a_continuous_force(tmp_path, capsys):
     # a given hold: nothing checked
     _estimate(tmp_path, tmp_path / "cont.csv", "--hold", "linear", "--overwrite")
     assert "input hold of" not in capsys.readouterr().err
+
+
+def test_a_hold_warning_of_a_model_far_from_white_says_the_misfit_weighs_in():
+    """:func:`runner._misfit_clause`: the final model's Ljung-Box sum above
+    10 times its degrees of freedom (a user's swing arm without its gravity
+    law: 7.4e4 against about 20) adds that the misfit weighs in both holds'
+    likelihoods; near white (38.6 against 20, a CVT driveline's final model)
+    or without residuals it adds nothing."""
+    from types import SimpleNamespace as NS
+
+    from bondgraph.diagnose.runner import FAR_FROM_WHITE, _misfit_clause
+
+    def fit(w, dof=20.0):
+        return NS(residuals=NS(whiteness=w, whiteness_dof=dof))
+
+    clause = _misfit_clause(fit(7.408e4))
+    assert clause.startswith("; but the final model's innovations are far from white "
+                             "(whiteness 7.41e+04, about 20 if white)")
+    assert _misfit_clause(fit(38.6)) == "" and _misfit_clause(NS(residuals=None)) == ""
+    assert _misfit_clause(fit(FAR_FROM_WHITE * 20.0)) == ""
+    assert _misfit_clause(fit(FAR_FROM_WHITE * 20.0 + 1.0)) != ""
