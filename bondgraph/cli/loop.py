@@ -31,6 +31,7 @@ from bondgraph.cli.common import (
     reading_options,
     unused_folder,
 )
+from bondgraph.core import progress
 from bondgraph.core.equations import derive
 from bondgraph.diagnose.cases import get_case, registered_cases
 from bondgraph.diagnose.effects import get_effect
@@ -276,7 +277,8 @@ def run(args) -> int:
         base = LoopSettings(params=params, hold_unidentified=hold)
         name = graph.name
     else:
-        case = get_case(args.case or DEFAULT_CASE)
+        with progress.phase(f"building the bundled case '{args.case or DEFAULT_CASE}'"):
+            case = get_case(args.case or DEFAULT_CASE)
         print(f"bondgraph loop: bundled case '{case.name}': {case.description}")
         graph = case.declared()
         record = case.record()
