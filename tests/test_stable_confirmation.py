@@ -224,3 +224,33 @@ def test_a_refit_beyond_the_limit_yields_to_another_starts_stable_refit(coulomb,
         got = confirm._beyond_the_limit(ctx, model, names, [best, *others], best, "c", "why", 1)
         assert got is best and got.converged is False
     assert logs[-1] == "  c: why: not comparable"
+
+
+def test_a_width_refit_far_above_the_best_is_not_continued(coulomb):
+    """:func:`confirm._out_of_reach`: a width's refit that stopped at its
+    iteration limit is continued only while :data:`confirm.WIDTH_REACH_STEPS`
+    scoring steps of the gain one full step predicts from it could bring it
+    below the best width's NLL: here the Coulomb model at a start 20 % off the
+    truth's level, its predicted gain g from the problem (one batched run);
+    the bar just below nll − 20 g is out of reach (the clause names both
+    numbers), just above is not; a converged refit, or no bar, is never cut."""
+    from bondgraph.diagnose.fit import Context
+    from bondgraph.diagnose.inference_calls import predicted_step_gain
+
+    model, pb = coulomb
+    ctx = Context(problem=pb, settings=LoopSettings(params=["m", "b"]), log=lambda s: None)
+    names = ["m", "b", "Fc"]
+    theta = model.theta({"m": MASS, "b": B, "Fc": 1.2 * FC})
+    nll = float(confirm.run_ukf(pb, theta[None, :]).nll[0])
+    gain = predicted_step_gain(pb, theta, [model.param_index(n) for n in names],
+                               model.bounds(names))
+    assert gain > 0.1
+    fit = SimpleNamespace(converged=False, nll=nll, model=model, params=names, theta=theta)
+    edge = nll - confirm.WIDTH_REACH_STEPS * gain
+    why = confirm._out_of_reach(ctx, fit, edge - 1e-6 * abs(edge))
+    assert why.startswith(f"; {nll - edge + 1e-6 * abs(edge):.3g} nats above the best width, "
+                          f"its next scoring step predicts {gain:.3g}: not continued")
+    assert confirm._out_of_reach(ctx, fit, edge + 1e-6 * abs(edge)) == ""
+    assert confirm._out_of_reach(ctx, fit, np.inf) == ""
+    fit.converged = True
+    assert confirm._out_of_reach(ctx, fit, edge - 1.0) == ""

@@ -28,7 +28,7 @@ from bondgraph.diagnose.fit import (
     recommended_substeps,
     start_theta,
 )
-from bondgraph.diagnose.inference_calls import make_criterion, run_ukf
+from bondgraph.diagnose.inference_calls import make_criterion, predicted_step_gain, run_ukf
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError, NumericalError
 from bondgraph.inference.optimize import minimize_batched
@@ -548,8 +548,9 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
     49600, the filter's two substeps not resolving the sharper law)."""
     fits, tried = {}, []
 
-    def refit(k: float) -> Fit | None:
+    def refit(k: float, bar: float = np.inf) -> Fit | None:
         g, model, _ = built[k]
+        reach = ""
         if k == 1.0 and sub is ctx:
             fits[k] = conf.fit
         else:
@@ -558,13 +559,14 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
                               f"confirming {label} at x{k:g} width", model=model,
                               iterations=ctx.settings.search.confirm_iterations,
                               tolerance=ctx.settings.search.confirm_tolerance)
-                fits[k] = continued(sub, g, f, label)
+                reach = _out_of_reach(sub, f, bar)
+                fits[k] = f if reach else continued(sub, g, f, label)
             except BondGraphError as exc:
                 tried.append(f"x{k:g} failed ({str(exc).splitlines()[0]})")
                 return None
         f = fits[k]
         tried.append(f"x{k:g} NLL {f.nll:.2f}" + ("" if f.converged is not False
-                                                  else " (not converged)"))
+                                                  else f" (not converged{reach})"))
         return f if f.converged is not False and np.isfinite(f.nll) else None
 
     one = refit(1.0) if 1.0 in built else None
@@ -573,7 +575,7 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
                  sorted((k for k in built if k < 1.0), reverse=True)):
         best = start
         for i, k in enumerate(side):
-            f = refit(k)
+            f = refit(k, best)
             if f is None:
                 continue
             if f.nll >= best and i + 1 < len(side):
@@ -582,6 +584,40 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
                 break
             best = min(best, f.nll)
     return fits, tried
+
+
+#: a width's refit that stopped at its iteration limit is continued only if
+#: this many of the scoring steps it would take next, each gaining what one
+#: full step predicts from where it stopped, could bring it below the best
+#: width's NLL so far (:func:`_out_of_reach`)
+WIDTH_REACH_STEPS = 20
+
+
+def _out_of_reach(ctx: Context, fit: Fit, bar: float) -> str:
+    """A clause when ``fit`` (a width's refit, not converged) sits above
+    ``bar``, the best width's NLL so far on its side, by more than
+    :data:`WIDTH_REACH_STEPS` times the NLL decrease one full scoring step
+    from it predicts (:func:`~bondgraph.diagnose.inference_calls.predicted_step_gain`,
+    one batched run): continuing it cannot make it the kept width, and its
+    continuation is the costliest part of a profile (a user's CVT
+    driveline: the Coulomb law at x3 its width, 71 nats above x1, was
+    continued through 120 scoring iterations and L-BFGS-B's 1020 sets).
+    "" when it converged, ``bar`` is not finite, it is within reach or the
+    prediction fails."""
+    if fit.converged is not False or not np.isfinite(bar) or not np.isfinite(fit.nll) \
+            or fit.nll <= bar:
+        return ""
+    model = fit.model
+    idx = [model.param_index(n) for n in fit.params]
+    try:
+        gain = predicted_step_gain(problem_for(ctx, model), fit.theta, idx,
+                                   model.bounds(list(fit.params)))
+    except (BondGraphError, FloatingPointError, np.linalg.LinAlgError, ValueError):
+        return ""
+    if not np.isfinite(gain) or fit.nll - WIDTH_REACH_STEPS * max(gain, 0.0) <= bar:
+        return ""
+    return (f"; {fit.nll - bar:.3g} nats above the best width, its next scoring step "
+            f"predicts {gain:.3g}: not continued")
 
 
 def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
