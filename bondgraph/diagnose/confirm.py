@@ -600,7 +600,7 @@ def _out_of_reach(ctx: Context, fit: Fit, bar: float) -> str:
     from it predicts (:func:`~bondgraph.diagnose.inference_calls.predicted_step_gain`,
     one batched run): continuing it cannot make it the kept width, and its
     continuation is the costliest part of a profile (a user's CVT
-    driveline: the Coulomb law at x3 its width, 71 nats above x1, was
+    driveline: the Coulomb law at three times its width, 71 nats above x1, was
     continued through 120 scoring iterations and L-BFGS-B's 1020 sets).
     "" when it converged, ``bar`` is not finite, it is within reach or the
     prediction fails."""
