@@ -16,6 +16,7 @@ import sympy as sp
 from bondgraph.core.deferred import chi2
 from bondgraph.diagnose.effects import Effect, Scales, get_effect
 from bondgraph.diagnose.fit import (
+    at_step,
     Context,
     Fit,
     bounds_around,
@@ -507,8 +508,7 @@ def _profile_context(ctx: Context, built: dict, names: list, conf: Confirmation,
     if not found:
         return ctx, None
     n = max(found)
-    return replace(ctx, problem=ctx.problem.conditioned_on(
-        disc=replace(ctx.problem.disc, substeps=n)), cache={}), n
+    return at_step(ctx, replace(ctx.problem.disc, substeps=n)), n
 
 
 def _substeps_at(ctx: Context, model: Model, names: list, conf: Confirmation,
@@ -828,8 +828,7 @@ def stable_context(ctx: Context, model: Model, names: list, values: dict, label:
         raise NumericalError(
             f"{unstable}) and {need}, more than {STABLE_FACTOR} times the loop's substeps: the "
             f"law is stiffer than the record's sampling resolves (--method ros2 steps it stably)")
-    return replace(ctx, problem=ctx.problem.conditioned_on(
-        disc=replace(ctx.problem.disc, substeps=n, refine=())), cache={}), (
+    return at_step(ctx, replace(ctx.problem.disc, substeps=n, refine=())), (
         f"{unstable}; stable from rk4({n}))")
 
 

@@ -270,6 +270,16 @@ def loop_problem(model: Model, experiment, settings: LoopSettings,
                         ukf=settings.ukf, fixed=settings.fixed, defaults_ok=True)
 
 
+def at_step(ctx: Context, disc) -> Context:
+    """``ctx`` with its problem filtered at the discretisation ``disc`` (a
+    :class:`~bondgraph.inference.options.Discretisation`) and a cache of its
+    own: where a fit, a confirmation or a candidate's scoring runs at a step
+    other than the loop's (:func:`fit_context`,
+    :func:`bondgraph.diagnose.confirm.stable_context`,
+    :func:`bondgraph.diagnose.scoring.finer_if_failed`)."""
+    return replace(ctx, problem=ctx.problem.conditioned_on(disc=disc), cache={})
+
+
 def fit_context(ctx: Context, fit: Fit) -> Context:
     """``ctx``, or, where ``fit`` was made at another discretisation than the
     loop's (``fit.step``: a confirmation refitted at a step stable for its
@@ -284,7 +294,7 @@ def fit_context(ctx: Context, fit: Fit) -> Context:
     hit = ctx.cache.get(("fit_step", step))
     if hit is not None and hit[0] is ctx.problem:
         return hit[1]
-    sub = replace(ctx, problem=ctx.problem.conditioned_on(disc=step), cache={})
+    sub = at_step(ctx, step)
     ctx.cache[("fit_step", step)] = (ctx.problem, sub)
     return sub
 

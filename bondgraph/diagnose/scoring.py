@@ -44,7 +44,8 @@ import numpy as np
 from bondgraph.core import progress
 from bondgraph.core.deferred import chi2
 from bondgraph.diagnose.effects import Scales, get_effect, probe_graph
-from bondgraph.diagnose.fit import Context, Fit, model_of, noise_params, problem_for
+from bondgraph.diagnose.fit import (Context, Fit, at_step, model_of, noise_params,
+                                    problem_for)
 from bondgraph.diagnose.inference_calls import (
     Problem,
     fisher_fit,
@@ -1040,8 +1041,7 @@ def finer_if_failed(ctx: Context, model: Model, sets: np.ndarray, label: str):
         return ctx, r
     for factor in FINER_FACTORS:
         n = factor * int(disc.substeps)
-        finer = replace(ctx, problem=ctx.problem.conditioned_on(
-            disc=replace(disc, substeps=n, refine=())), cache={})
+        finer = at_step(ctx, replace(disc, substeps=n, refine=()))
         rf = run_ukf(problem_for(finer, model), sets)
         if np.any(np.isfinite(rf.nll)):
             ctx.log(f"  {label}: the filter fails at every point of its grid with "
