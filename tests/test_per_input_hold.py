@@ -283,4 +283,5 @@ def test_the_report_says_how_each_input_was_held():
                                       "refine": []}})
     assert moved.numerics() == ("Numerics: UKF with rk4(1) per sample at the start, input hold "
                                 "zoh; rk4(3) at the end (the discretisation check at an "
-                                "accepted fit).")
+                                "accepted fit, or the final estimates refitted within its "
+                                "free-run bias bound).")

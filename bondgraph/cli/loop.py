@@ -327,7 +327,7 @@ def _print_summary(args, res, name: str, case, declared: tuple, out: Path) -> No
     print(res.table() if res.steps else f"  no effect accepted: {res.none_accepted()}"
           + ("; the reasons are in report.md" if res.rejected else ""))
     for w in getattr(res, "final_checks", ()):
-        print(f"warning: {w}")
+        print(w if w.startswith("note: ") else f"warning: {w}")
     hint = unexplained_hint(res, args.discover, graph, settings.effects)
     if hint:
         print(hint)

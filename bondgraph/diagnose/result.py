@@ -544,7 +544,10 @@ class LoopResult:
         The warnings of the checks at the final model (the input holds,
         :func:`bondgraph.diagnose.runner.hold_at_final`; a sensor's
         glitches, :func:`bondgraph.diagnose.runner.glitches`), also in
-        ``warnings``: the command line repeats them under its summary.
+        ``warnings``: the command line repeats them under its summary; and
+        the final estimates' refit within the free-run bias bound
+        (:func:`bondgraph.diagnose.runner.unbiased_final`), a ``"note: "``
+        where it was kept.
     """
 
     model: str
@@ -654,7 +657,8 @@ class LoopResult:
         if end:
             line += (f"; {end.get('method')}({end.get('substeps')}"
                      + (" on the intervals that need them" if end.get("refine") else "")
-                     + ") at the end (the discretisation check at an accepted fit)")
+                     + ") at the end (the discretisation check at an accepted fit, or the "
+                       "final estimates refitted within its free-run bias bound)")
         if fr:
             how = ("the filter's method at 4x its substeps" if fr.get("method") == "fine"
                    else f"solve_ivp {fr.get('method')}")

@@ -363,10 +363,11 @@ class Problem:
         sm = rts_smooth(self.model, self.t, self.u, self.y, th, self.x0, self.P0,
                         options=self.ukf, R=None if R is None else R[0])
         if sm.restarts:
+            many = "s" if sm.restarts != 1 else ""
             raise NumericalError(f"the smoother's backward pass diverged and restarted from the "
-                                 f"filter at {sm.restarts} samples (no process noise through "
-                                 f"contracting dynamics): no initial state given the whole "
-                                 f"record")
+                                 f"filter at {sm.restarts} sample{many} (no process noise "
+                                 f"through contracting dynamics): no initial state given the "
+                                 f"whole record")
         return sm.x[0]
 
     def discretisation_check(self, theta, *, substeps: int | None = None,
