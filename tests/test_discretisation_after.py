@@ -95,3 +95,46 @@ def test_the_finer_refit_is_continued_until_it_converges(monkeypatch):
     assert not res.steps
     why = [w for w in res.warnings if "refitted at ros2(" in w and "no longer passes" in w]
     assert why and "not comparable" in why[0], res.warnings
+
+
+def test_the_check_at_an_accepted_fit_reads_its_own_noise_levels(monkeypatch):
+    """The check at an accepted fit measures the discretisation error in
+    that fit's own measurement-noise stds, not the previous fit's (which the
+    loop still holds then): on a user's Silverbox graph the first accepted
+    step's check read a free-run bias bound of 5.93 std where the final
+    check, at the same model with its own noise levels, read about 106; on a
+    user's CED graph a quadratic armature resistance read "within" at
+    RK4(2), and 0.11 noise stds per sample (above 0.1) with its own."""
+    import traceback
+
+    from bondgraph.diagnose import runner
+    from bondgraph.diagnose.fit import problem_for
+
+    seen = []
+    orig = runner.recommended_substeps
+
+    def recorded(ctx, fit, *a, **k):
+        at = [f.name for f in traceback.extract_stack()]
+        if "fit_after_discretisation_check" in at:      # not the declared fit's own
+            scale = problem_for(ctx, fit.model).noise_scale(fit.theta)
+            seen.append((np.ravel(scale), [fit.noise_est.get(y) for y in fit.model.outputs]))
+        return orig(ctx, fit, *a, **k)
+
+    monkeypatch.setattr(runner, "recommended_substeps", recorded)
+    rec = _record()
+    for col in rec.meta["columns"].values():    # undeclared: the loop estimates it
+        col.pop("noise_std", None)
+    res = run_loop(mass_spring_damper(), rec, LoopSettings(
+        params=["k", "c"], effects=[get_effect("end_stop")],
+        ukf=UKFOptions(method="ros2", substeps=4, alpha=1.0),
+        search=SearchOptions(max_steps=1)), log=lambda s: None, progress=False)
+    assert [s.effect for s in res.steps] == ["end_stop"]
+    assert seen
+    # measured: the end stop's refit estimates 0.00225, 0.0150 (the truth
+    # 0.002, 0.01); the declared fit it replaced, which the loop held until
+    # then, 0.0588, 0.438 (its noise absorbed the missing stop)
+    assert len(seen) == 1
+    scale, own = seen[0]
+    assert None not in own, "the accepted fit estimates the measurement noise"
+    assert np.allclose(scale, own, rtol=1e-9), (scale, own)
+    assert np.all(scale < 0.05), scale
