@@ -202,3 +202,27 @@ def test_the_final_estimates_are_refitted_within_the_bias_bound():
                            got)
     assert runner.unbiased_final(got["ctx"], result, kept) is kept
     assert got["ctx"].problem.disc.substeps == 1
+
+
+def test_the_summary_says_when_no_substeps_bring_the_bias_within():
+    """ROS2(8) at ω·dt = 0.05: within the one-step bound, its free-run bias
+    bound above 0.5 Cramér-Rao std at every substeps up to 32 (the test
+    above). The accepted steps' warnings said so; the final summary
+    (``result.final_checks``) now says it too, with the bound, and keeps the
+    estimates (nothing to refit them at)."""
+    from types import SimpleNamespace
+
+    got = {}
+    disc, fit, warn = _declared(SearchOptions(auto_substeps=True),
+                                UKFOptions(method="ros2", substeps=8), out=got)
+    assert (disc.method, disc.substeps) == ("ros2", 8), disc
+    bias = float(re.search(r"free-run bias bound ([0-9.]+) ", warn[0]).group(1))
+    result = SimpleNamespace(warnings=[], final_checks=[])
+    assert runner.unbiased_final(got["ctx"], result, fit) is fit
+    assert got["ctx"].problem.disc.substeps == 8
+    assert result.final_checks == result.warnings and len(result.warnings) == 1, result
+    said = result.final_checks[0]
+    assert said.startswith(f"final estimates: the free-run bias bound at ros2(8) is {bias:.3g} "
+                           f"Cramér-Rao std (above 0.5) and no substeps up to 32 bring it "
+                           f"within"), said
+    assert "--method rk4" in said

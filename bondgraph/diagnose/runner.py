@@ -1319,16 +1319,28 @@ def unbiased_final(ctx: Context, result: LoopResult, current: Fit) -> Fit:
 
     The refit is kept only where it converges, simulates, is physically
     admissible and its free-run error is not larger on the record or on
-    any validation record; else ``current`` (said, with why).
+    any validation record; else ``current`` (said, with why). Where no
+    substeps of :data:`SUBSTEP_LADDER` bring the bias within, a warning
+    says so (in ``result.final_checks`` too) and ``current`` is kept.
     """
     if not ctx.settings.search.auto_substeps:
         return current
     checked = recommended_substeps(ctx, current)
     n = checked.n_unbiased
-    if checked.step_failed or not checked.bias > checked.bias_limit or n is None:
-        return current
     before, d = ctx.problem, ctx.problem.disc
     coarse = f"{d.method}({d.substeps})"
+    if checked.step_failed or not checked.bias > checked.bias_limit:
+        return current
+    if n is None:       # the summary says it too, not only the accepted steps' warnings
+        msg = (f"final estimates: the free-run bias bound at {coarse} is {checked.bias:.3g} "
+               f"Cramér-Rao std (above {checked.bias_limit:g}) and no substeps up to "
+               f"{SUBSTEP_LADDER[-1]} bring it within: the estimates may be off by up to that "
+               f"(try --method {'rk4' if d.method == 'ros2' else 'ros2'} or a shorter "
+               f"sample interval)")
+        ctx.log("warning: " + msg)
+        result.warnings.append(msg)
+        result.final_checks.append(msg)
+        return current
     ctx.problem = before.conditioned_on(disc=replace(d, substeps=int(n), refine=()))
     ctx.cache.clear()
     at = f"the final model at {d.method}({n})"
