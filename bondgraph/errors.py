@@ -204,6 +204,17 @@ class FilterDivergenceError(NumericalError):
         super().__init__(message, hint=hint)
 
 
+class SmootherRestartError(NumericalError):
+    """The RTS smoother's backward pass diverged and restarted from the
+    filter (no process noise through contracting dynamics): there is no
+    initial state given the whole record. Expected for such models, not a
+    failure of the fit; ``restarts`` is the number of samples it restarted at."""
+
+    def __init__(self, message: str, *, restarts: int = 0, hint: str | None = None):
+        self.restarts = restarts
+        super().__init__(message, hint=hint)
+
+
 class EstimationError(NumericalError):
     """An estimation found no parameter set with a finite negative
     log-likelihood: every evaluation failed (the causes are listed)."""

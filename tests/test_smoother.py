@@ -331,3 +331,34 @@ def test_joseph_form_equals_the_subtracting_form_on_a_nonlinear_model():
     # 3.5e-12 on one 2-core machine (its BLAS), 9e-9 of itself: the atol is of the states' scale
     np.testing.assert_allclose(sm.x, xs, rtol=1e-9, atol=1e-10 * np.abs(xs).max())
     np.testing.assert_allclose(sm.P, Ps, rtol=1e-7, atol=1e-14)
+
+
+def test_a_restarted_backward_pass_gives_no_initial_state_and_says_why():
+    """The same fast contracting mode through a Problem: x̂_0|N would hold
+    the record's first samples only, so ``Problem.smoothed_initial_state``
+    raises SmootherRestartError (a NumericalError) with the restarts
+    counted, worded as the expected condition it is without process noise
+    (the loop's log printed it as "smoothed initial state unavailable" on
+    every such run, which read like a failure)."""
+    from bondgraph.errors import NumericalError, SmootherRestartError
+    from bondgraph.inference.problem import PriorSpec, make_problem
+
+    m = Model.load("mass_spring_damper")
+    th = m.theta(m=1.0, k=1.0, c=20.0)
+    dt, N = 0.01, 6000
+    t = np.arange(N) * dt
+    rng = np.random.default_rng(3)
+    u = rng.normal(0, 1, (N, 1))
+    Phi, Gam, H = _linear_maps(m, th, dt)
+    R = np.diag([0.01, 0.01]) ** 2
+    ys = _batch_reference(Phi, Gam, H, R, u, np.array([0.3, 0.1]), np.zeros(2),
+                          np.eye(2), rng)[0]
+    pb = make_problem(m, (t, u, ys), prior=PriorSpec(x0=np.zeros(2), P0=np.eye(2)),
+                      ukf=UKFOptions(method="rk4", substeps=2, backend="numpy"))
+    with pytest.raises(SmootherRestartError) as info:
+        pb.smoothed_initial_state(th)
+    assert isinstance(info.value, NumericalError) and info.value.restarts > 0
+    said = str(info.value)
+    assert said.startswith("without process noise the smoother gives no initial state")
+    assert f"restarted from the filter at {info.value.restarts} sample" in said
+    assert "unavailable" not in said and "diverged" not in said

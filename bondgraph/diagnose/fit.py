@@ -50,7 +50,7 @@ from bondgraph.diagnose.metric import compute_metric, metric_errors, nrmse
 from bondgraph.diagnose.residuals import analyze
 from bondgraph.diagnose.result import FitSummary
 from bondgraph.diagnose.settings import LoopSettings
-from bondgraph.errors import BondGraphError, NumericalError
+from bondgraph.errors import BondGraphError, NumericalError, SmootherRestartError
 from bondgraph.inference.discretise import (BIAS_TOLERANCE, REFINE_MARGIN, SUBSTEPS, refined_runs,
                                             step_cost)
 from bondgraph.inference.fisher import near_bound
@@ -1877,6 +1877,8 @@ def _smoothed_start(problem: Problem, theta: np.ndarray,
     although from the prior mean it fits the record."""
     try:
         xs = smoothed_initial_state(problem, theta)
+    except SmootherRestartError as exc:     # expected without process noise: said as such
+        return fallback, str(exc).splitlines()[0]
     except BondGraphError as exc:
         return fallback, f"smoothed initial state unavailable ({str(exc).splitlines()[0]})"
     if not np.all(np.isfinite(xs)):

@@ -34,7 +34,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from bondgraph.errors import ModelError, NumericalError, OptionError
+from bondgraph.errors import ModelError, NumericalError, OptionError, SmootherRestartError
 from bondgraph.inference.estimand import noise_parameters, record_noise_level
 from bondgraph.inference.options import NOISE_MODES, Discretisation, UKFOptions, ukf_options
 from bondgraph.inference.prior import PriorSpec
@@ -353,10 +353,12 @@ class Problem:
         Raises
         ------
         NumericalError
-            If the filter or the backward pass fails, or the backward pass
-            diverged and restarted from the filter (``Smoothed.restarts``:
-            no process noise through contracting dynamics): its x̂_0 would
-            then hold the record's start only, not the whole record.
+            If the filter or the backward pass fails.
+        SmootherRestartError
+            (a NumericalError) If the backward pass diverged and restarted
+            from the filter (``Smoothed.restarts``: no process noise through
+            contracting dynamics): its x̂_0 would then hold the record's
+            start only, not the whole record.
         """
         th = np.asarray(theta, float)
         R = self.noise.covariance(self.model, th[None, :])
@@ -364,10 +366,10 @@ class Problem:
                         options=self.ukf, R=None if R is None else R[0])
         if sm.restarts:
             many = "s" if sm.restarts != 1 else ""
-            raise NumericalError(f"the smoother's backward pass diverged and restarted from the "
-                                 f"filter at {sm.restarts} sample{many} (no process noise "
-                                 f"through contracting dynamics): no initial state given the "
-                                 f"whole record")
+            raise SmootherRestartError(
+                f"without process noise the smoother gives no initial state given the whole "
+                f"record here (its backward pass through contracting dynamics restarted from "
+                f"the filter at {sm.restarts} sample{many})", restarts=int(sm.restarts))
         return sm.x[0]
 
     def discretisation_check(self, theta, *, substeps: int | None = None,
