@@ -127,6 +127,11 @@ def test_a_much_softer_reversal_keeps_the_wider_width():
     ((10.0, float("nan"), 9.0), [1.0, 0.3, 0.1]),   # a failed x0.3 settles nothing
     ((10.0, 12.0, 5.0, 9.0), [1.0, 3.0, 0.3]),  # x3 lower than x1: the narrower side stops
     ((10.0, 8.0, 9.0, 9.5), [1.0, 3.0, 0.3, 0.1]),  # ... and goes on where x0.3 is lower still
+    # a flat profile: x0.3 lowers x1's NLL by 0.02 (less than 0.1 of the 3.3
+    # nats the keep test needs at 0.01): x0.1 not refitted
+    ((10.0, 9.98, 5.0), [1.0, 0.3]),
+    ((10.0, 9.5, 5.0), [1.0, 0.3, 0.1]),          # 0.5 nats: not flat, x0.1 refitted
+    ((10.0, 9.98, 5.0, 9.9), [1.0, 3.0, 0.3]),   # x3 0.1 lower, x0.3 0.08 below it: flat
 ])
 def test_narrower_widths_stop_at_the_first_that_does_not_lower_the_nll(monkeypatch, nlls,
                                                                        refitted):
@@ -156,3 +161,5 @@ def test_narrower_widths_stop_at_the_first_that_does_not_lower_the_nll(monkeypat
     fits, tried = C._width_refits(ctx, sub, built, [], conf, "coulomb @ w")
     assert calls == refitted and list(fits) == refitted
     assert any("not refitted" in t for t in tried) == (len(refitted) < len(per))
+    assert any("the profile is flat there" in t for t in tried) == (
+        len(refitted) < len(per) and 0 < nlls[0] - min(per[k] for k in refitted) < 0.33), tried

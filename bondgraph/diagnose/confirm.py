@@ -537,7 +537,9 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
     Fit, and one text per width for the log. From the data-driven width
     outwards on each side, the wider ones (x3) and the narrower ones (x0.3,
     then x0.1); on a side, a width further out is not refitted once a
-    converged refit did not lower the lowest NLL so far (x1's included): a
+    converged refit did not lower the lowest NLL so far (x1's included), or
+    lowered it by less than :data:`FLAT_PROFILE` of what the keep test
+    needs (the profile is flat there): a
     width beyond the one the record prefers fits it worse still (a refit is
     the costliest part of a confirmation, the finer substeps of the
     narrowest law make it costlier; on a user's four-mass chain the
@@ -571,6 +573,7 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
 
     one = refit(1.0) if 1.0 in built else None
     start = one.nll if one is not None else np.inf
+    flat = FLAT_PROFILE * float(chi2.isf(ctx.settings.accept.significance, 1)) / 2.0
     for side in (sorted(k for k in built if k > 1.0),
                  sorted((k for k in built if k < 1.0), reverse=True)):
         best = start
@@ -578,12 +581,24 @@ def _width_refits(ctx: Context, sub: Context, built: dict, names: list, conf: Co
             f = refit(k, best)
             if f is None:
                 continue
-            if f.nll >= best and i + 1 < len(side):
+            if f.nll >= best - flat and i + 1 < len(side):
+                why = ("did not lower the NLL" if f.nll >= best else
+                       f"lowered the NLL by {best - f.nll:.2g} only: the profile is flat there")
                 tried.append(", ".join(f"x{n:g}" for n in side[i + 1:])
-                             + f" not refitted (x{k:g} did not lower the NLL)")
+                             + f" not refitted (x{k:g} {why})")
                 break
             best = min(best, f.nll)
     return fits, tried
+
+
+#: a width's refit that lowers the lowest NLL of its side by less than this
+#: fraction of the half critical value of the width's likelihood-ratio test
+#: (χ²(1) at ``settings.accept.significance``: 0.33 nats at 0.01) ends its
+#: side: the profile is flat there, and the next width, a factor 3 further
+#: out, would have to gain ten times as much for the keep test to notice (a
+#: user's fan motor: Coulomb friction at x3, x0.3 and x0.1 within 0.1 nats
+#: of x1, three candidates, each refit 3-5 s at RK4(8))
+FLAT_PROFILE = 0.1
 
 
 #: a width's refit that stopped at its iteration limit is continued only if
