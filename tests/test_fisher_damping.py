@@ -10,6 +10,7 @@ from scipy.optimize import minimize
 
 from bondgraph.inference import fisher
 from bondgraph.inference.fisher import Derivatives, _damping, _scoring_loop
+from bondgraph.errors import OptionError
 from bondgraph.inference.options import ScoringOptions
 
 
@@ -91,3 +92,30 @@ def test_trust_region_damping_needs_fewer_iterations(c, monkeypatch):
         assert r.nll == pytest.approx(ref.fun, abs=1e-3)      # ScoringOptions.atol
     # c = 10: 14 against 18 iterations; c = 100: 17 against 30
     assert new.iterations < 0.8 * old.iterations
+
+
+def test_a_stop_callback_ends_the_scoring_where_it_says_not_converged():
+    """``ScoringOptions.stop(estimand, nll)`` is asked after every accepted
+    step: the scoring of the misspecified Rosenbrock ends at the first
+    iterate it accepts (here: within 0.3 of BFGS's minimum in both
+    coordinates), not converged, with that iterate's NLL; without it the
+    scoring goes on to the minimum."""
+    nll, derive = _misspecified(10.0)
+    ref = minimize(nll, [-1.2, 1.0], method="BFGS", options={"gtol": 1e-10}).x
+    seen = []
+
+    def near(e, f):
+        seen.append((e.z.copy(), f))
+        return bool(np.all(np.abs(e.z - ref) < 0.3))
+
+    sc = ScoringOptions(max_iter=200, log_scale=[False, False], stop=near)
+    r = _scoring_loop(_Point([-1.2, 1.0]), derive, nll, [-5, -5], [5, 5], sc)
+    full = _scoring_loop(_Point([-1.2, 1.0]), derive, nll, [-5, -5], [5, 5],
+                         ScoringOptions(max_iter=200, log_scale=[False, False]))
+    assert not r.converged and full.converged
+    assert np.all(np.abs(seen[-1][0] - ref) < 0.3)
+    assert not any(np.all(np.abs(z - ref) < 0.3) for z, _ in seen[:-1])
+    assert r.nll == pytest.approx(nll(seen[-1][0])) and r.nll == seen[-1][1]
+    assert len(seen) <= r.iterations < full.iterations    # refused steps count too
+    with pytest.raises(OptionError, match="ScoringOptions.stop must be callable"):
+        ScoringOptions(stop=3)

@@ -163,3 +163,55 @@ def test_narrower_widths_stop_at_the_first_that_does_not_lower_the_nll(monkeypat
     assert any("not refitted" in t for t in tried) == (len(refitted) < len(per))
     assert any("the profile is flat there" in t for t in tried) == (
         len(refitted) < len(per) and 0 < nlls[0] - min(per[k] for k in refitted) < 0.33), tried
+
+
+def test_a_later_start_that_reaches_an_earlier_optimum_is_not_refitted_to_the_end(monkeypatch):
+    """``confirm.refits_from_starts``: the first start's refit converges
+    (θ (1, 2), Cramér-Rao std 0.1, 0.2); the second start's scoring is
+    asked, after each accepted step, whether to stop: an iterate more than
+    1 std off in a parameter goes on, one within 1 std of each with an NLL
+    not 0.1 nats below the optimum's ends it, and that refit is left out
+    (logged); the third start, whose iterate stays 2 std off, is kept. A
+    start whose earlier refits did not converge is never stopped (the
+    refits are stubs that replay the given iterates)."""
+    from types import SimpleNamespace
+
+    from bondgraph.diagnose import confirm as C
+
+    model = SimpleNamespace(param_index=lambda n: {"a": 0, "b": 1}[n])
+    path = {0: [], 1: [((1.5, 2.0), 10.2), ((1.05, 2.1), 10.05)], 2: [((1.2, 2.4), 10.5)]}
+    stopped = []
+
+    def fake_fit(ctx, g, names, start, what, model=None, iterations=None, tolerance=0.0,
+                 stop=None):
+        j = start["j"]
+        end = ((1.0, 2.0), 10.0) if j == 0 else path[j][-1]
+        for z, f in path[j]:
+            if stop is not None and stop(SimpleNamespace(theta=np.array(z)), f):
+                stopped.append(j)
+                end = (z, f)
+                break
+        return SimpleNamespace(nll=end[1], theta=np.array(end[0]), converged=conv[j],
+                               std={"a": 0.1, "b": 0.2}, model=model, iterations=len(path[j]))
+
+    monkeypatch.setattr(C, "fit_model", fake_fit)
+    lines = []
+    ctx = SimpleNamespace(settings=LoopSettings([]), log=lines.append)
+    conv = {0: True, 1: True, 2: True}
+    fits = C.refits_from_starts(ctx, None, ["a", "b"], [{"j": j} for j in range(3)],
+                                "coulomb @ w", model)
+    assert stopped == [1] and [f.nll for f in fits] == [10.0, 10.5]
+    assert lines == ["  coulomb @ w: the refit from start 2 reached the optimum of start 1 "
+                     "(within 1 Cramér-Rao std of each estimate, after 2 iterations): not "
+                     "continued"]
+    stopped.clear()
+    conv = {0: False, 1: True, 2: True}      # nothing converged to stop at
+    fits = C.refits_from_starts(ctx, None, ["a", "b"], [{"j": j} for j in range(2)],
+                                "coulomb @ w", model)
+    assert stopped == [] and len(fits) == 2
+    # an iterate below the optimum by more than 0.1 nats goes on
+    conv = {0: True, 1: True, 2: True}
+    path[1] = [((1.05, 2.1), 9.85)]
+    fits = C.refits_from_starts(ctx, None, ["a", "b"], [{"j": j} for j in range(2)],
+                                "coulomb @ w", model)
+    assert stopped == [] and [f.nll for f in fits] == [10.0, 9.85]

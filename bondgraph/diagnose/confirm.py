@@ -680,9 +680,7 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
         ctx.log(f"  {label}: {why}: refitted with {_step_name(sub.problem.disc)}")
     f1 = None
     for again in (sub is ctx, False):       # refitted at a stabler step once at most
-        fits = [fit_model(sub, graph, names, s0, f"confirming {label}", model=model,
-                          iterations=sub.settings.search.confirm_iterations,
-                          tolerance=sub.settings.search.confirm_tolerance) for s0 in starts]
+        fits = refits_from_starts(sub, graph, names, starts, label, model)
         early = _unstable_unconverged(sub, model, names, fits, label, base) if again else None
         if early is not None:   # not continued on the step's rough likelihood
             nxt, why = early
@@ -714,6 +712,72 @@ def stable_refit(ctx: Context, graph, names: list, starts: list, label: str,
     if sub is not ctx:
         f1.step = sub.problem.disc      # what is computed again at the fit is computed there
     return sub, f1
+
+
+#: a later start's scoring is ended where its iterate lies within this many
+#: Cramér-Rao std of an earlier start's converged optimum in every estimated
+#: parameter (:func:`refits_from_starts`)
+MERGE_STD = 1.0
+#: ... and its NLL is not below that optimum's by more than this [nats]
+MERGE_NATS = 0.1
+
+
+def refits_from_starts(ctx: Context, graph, names: list, starts: list, label: str,
+                       model: Model) -> list[Fit]:
+    """The confirmation's refits of ``names`` from each of ``starts`` in
+    turn (``settings.search.confirm_iterations``, ``confirm_tolerance``),
+    less those that run into an earlier start's optimum: a later start's
+    scoring is ended once its iterate lies within :data:`MERGE_STD`
+    Cramér-Rao std of an earlier start's converged estimates in every
+    estimated parameter, with an NLL not below theirs by more than
+    :data:`MERGE_NATS` nats, and that refit is left out (logged): the
+    scoring from there ends where the earlier one did, whose NLL, within
+    about half a nat per parameter of the iterate's, is the lower. A
+    confirmation refits from up to four starts, and on a user's fan motor
+    the three starts of a Coulomb friction's refit all converged to within
+    1e-4 of one another, 17 iterations of 0.7 s each."""
+    fits: list[Fit] = []
+    origin: list[int] = []          # the start of each refit kept
+    for j, s0 in enumerate(starts):
+        hit: list = []
+        f = fit_model(ctx, graph, names, s0, f"confirming {label}", model=model,
+                      iterations=ctx.settings.search.confirm_iterations,
+                      tolerance=ctx.settings.search.confirm_tolerance,
+                      stop=_merging(fits, names, model, hit) if fits else None)
+        if hit:
+            ctx.log(f"  {label}: the refit from start {j + 1} reached the optimum of start "
+                    f"{origin[hit[0]] + 1} (within {MERGE_STD:g} Cramér-Rao std of each "
+                    f"estimate, after {f.iterations} iterations): not continued")
+            continue
+        fits.append(f)
+        origin.append(j)
+    return fits
+
+
+def _merging(fits: list[Fit], names: list, model: Model, hit: list):
+    """``stop(estimand, nll)`` of :func:`refits_from_starts`: True (the
+    index of the start reached appended to ``hit``) where the iterate is
+    within :data:`MERGE_STD` std of a converged fit of ``fits`` with all
+    its std known; None when there is no such fit."""
+    idx = [model.param_index(n) for n in names]
+    refs = []
+    for k, f in enumerate(fits):
+        sd = [(f.std or {}).get(n) for n in names]
+        if f.converged is False or not np.isfinite(f.nll) or any(
+                s is None or not np.isfinite(s) or s <= 0 for s in sd):
+            continue
+        refs.append((k, f.nll, np.asarray(f.theta, float)[idx], np.array(sd, float)))
+    if not refs:
+        return None
+
+    def stop(est, nll: float) -> bool:
+        th = np.asarray(est.theta, float)[idx]
+        for k, nll_r, th_r, sd_r in refs:
+            if nll >= nll_r - MERGE_NATS and np.all(np.abs(th - th_r) <= MERGE_STD * sd_r):
+                hit.append(k)
+                return True
+        return False
+    return stop
 
 
 def _beyond_the_limit(ctx: Context, model: Model, names: list, fits: list, best: Fit,

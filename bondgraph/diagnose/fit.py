@@ -683,7 +683,7 @@ def say_ridge(ctx: Context, kind: str, names, msg: str) -> None:
 
 def fit_model(ctx: Context, graph: BondGraph, params: list[str],
               start: Mapping[str, float] | None, what: str, model: Model | None = None,
-              iterations: int | None = None, tolerance: float = 0.0) -> Fit:
+              iterations: int | None = None, tolerance: float = 0.0, stop=None) -> Fit:
     """Warm-started maximum-likelihood fit of ``params``, everything else fixed.
 
     Parameters
@@ -703,6 +703,9 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
         0: evaluate at the start).
     tolerance : float
         Convergence of the scoring [nats] (:func:`~bondgraph.diagnose.inference_calls.fisher_fit`).
+    stop : callable, optional
+        ``stop(estimand, nll)``: True ends the scoring there, not converged
+        (:func:`~bondgraph.diagnose.inference_calls.fisher_fit`).
 
     Returns
     -------
@@ -722,7 +725,7 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
     theta = start_theta(ctx, pb, params, start, what)
     iters = ctx.settings.search.fit_iterations if iterations is None else int(iterations)
     fitted, theta, std, conv, x0_est, noise_est = _fitted(ctx, pb, params, theta, iters, what,
-                                                          tolerance)
+                                                          tolerance, stop)
     fit = evaluate_fit(ctx, fitted, graph, params, theta, what, std)
     fit.converged, fit.iterations, fit.flat, fit.ridge = conv
     fit.x0_est, fit.noise_est = x0_est, noise_est
@@ -752,7 +755,7 @@ def fit_model(ctx: Context, graph: BondGraph, params: list[str],
 
 
 def _fitted(ctx: Context, pb: Problem, params: list[str], theta: np.ndarray, iters: int,
-            what: str, tolerance: float = 0.0) -> tuple:
+            what: str, tolerance: float = 0.0, stop=None) -> tuple:
     """The likelihood fit of :func:`fit_model` without its evaluation:
     ``(problem conditioned on the estimated initial states and noise stds,
     θ, std, (converged, iterations, flat, ridge), x0_est, noise_est)``."""
@@ -765,7 +768,7 @@ def _fitted(ctx: Context, pb: Problem, params: list[str], theta: np.ndarray, ite
         start_sigma = noise_start(pb, theta)
         theta = _settle_theta(ctx, pb, params, theta, iters, what, start_sigma)
         theta, std, conv, x0_new, noise_new = _maximize(ctx, pb, params, theta, iters, what,
-                                                        tolerance)
+                                                        tolerance, stop)
         x0_est.update(x0_new)
         noise_est.update(noise_new)
         _noise_bound_warning(ctx, what, noise_new, start_sigma, std,
@@ -830,7 +833,8 @@ def _settle_theta(ctx: Context, problem: Problem, params: list[str], theta: np.n
 
 
 def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarray, iters: int,
-              what: str, tolerance: float = 0.0) -> tuple[np.ndarray, dict, tuple, dict, dict]:
+              what: str, tolerance: float = 0.0,
+              stop=None) -> tuple[np.ndarray, dict, tuple, dict, dict]:
     """Fisher scoring of ``params`` from ``theta`` (noise intensities in log
     scale), the initial states of :func:`x0_states` and the noise stds of
     the problem's estimated outputs jointly, L-BFGS-B (θ only) if it fails
@@ -851,7 +855,7 @@ def _maximize(ctx: Context, problem: Problem, params: list[str], theta: np.ndarr
     try:
         theta, F, conv, used, x0n, sig, flat, _, _ = fisher_fit(
             problem, theta, idx, (lo, hi), iters, log_scale=scale, tolerance=tolerance,
-            states=states, noises=noises)
+            states=states, noises=noises, stop=stop)
         names = list(params) + [f"x0.{s_}" for s_ in states] + [f"noise.{o}" for o in noises]
         moves = ""
         if flat:

@@ -135,7 +135,8 @@ def make_criterion(problem: Problem, names: Sequence[str], base: np.ndarray,
 
 def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, iterations: int,
                *, log_scale, tolerance: float = 0.0, states: Sequence[str] = (),
-               noises: Sequence[str] = (), information: bool = True, scores: bool = False):
+               noises: Sequence[str] = (), information: bool = True, scores: bool = False,
+               stop=None):
     """Maximum-likelihood fit by Levenberg-damped Fisher scoring
     (:func:`bondgraph.inference.fisher.estimand_scoring`), the initial states
     ``states`` estimated jointly (:class:`~bondgraph.inference.estimand.Estimand`).
@@ -168,6 +169,8 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
         when the last iteration moved; one batched UKF run fewer).
     scores : bool
         Return the per-sample scores at the result too (the robust std).
+    stop : callable, optional
+        ``stop(estimand, nll)``: True ends it there (:class:`ScoringOptions`).
 
     Returns
     -------
@@ -175,21 +178,19 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
     F : array (k + m + r, k + m + r) or None
         Fisher information at the result (parameters, states, noise stds).
     converged : bool
-        Stopped by a convergence criterion rather than by ``iterations``.
+        Stopped by a convergence criterion (not by ``iterations`` or ``stop``).
     used : int
         Iterations used.
-    x0 : array (n_x,)
-        The initial state (the estimated entries moved).
-    sigma : dict
-        The estimated noise stds by output.
+    x0 : array (n_x,), sigma : dict
+        The initial state (the estimated entries moved); the estimated noise
+        stds by output.
     flat : tuple of str
         The quantities along which the likelihood is flat where the scoring
         stopped, converged in every other direction
         (:attr:`bondgraph.inference.fisher.Scoring.flat`; empty otherwise).
     nll : float
-        The NLL at the result [nats] (from the scoring's own last run there:
-        the same number as a UKF run of ``problem`` at ``theta`` when no
-        state or noise std is estimated).
+        The NLL at the result [nats] (the scoring's own last run there: a UKF
+        run of ``problem`` at ``theta`` when no state or noise std is estimated).
     scores : array (N, k + m + r) or None
         Per-sample scores at the result (None without ``scores`` or ``F``).
 
@@ -206,7 +207,7 @@ def fisher_fit(problem: Problem, theta: np.ndarray, index: Sequence[int], box, i
                             np.ones(len(noises), bool)])
     t, u, y = problem.arrays
     r = estimand_scoring(model, t, u, y, est, lo, hi, P0, options=problem.ukf,
-                         scoring=ScoringOptions(max_iter=iterations, atol=tolerance,
+                         scoring=ScoringOptions(max_iter=iterations, atol=tolerance, stop=stop,
                                                 log_scale=scale, information=information))
     sig = {o: float(r.estimand.sigma[model.output_index(o)]) for o in noises}
     return (r.estimand.theta, r.F, r.converged, r.iterations, r.estimand.x0, sig, r.flat,

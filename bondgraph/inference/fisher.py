@@ -424,6 +424,8 @@ def _scoring_loop(est: Estimand, derive, line, lower, upper, sc: ScoringOptions)
         if predicted and D.nll - f_new < sc.rtol * (1.0 + abs(f_new)):
             converged = True
             break
+        if sc.stop is not None and sc.stop(est.at(z), nll):
+            break                       # not converged: the caller knows where it heads
     # information at the final point
     est = est.at(z)
     flat = tuple(est.names[i] for i in flat)

@@ -688,6 +688,11 @@ class ScoringOptions:
         to (False: one batched UKF run fewer; ``F`` is then None).
     log : callable, optional
         ``log(line)`` for progress lines.
+    stop : callable, optional
+        ``stop(estimand, nll) -> bool``, asked after every accepted step:
+        True ends the scoring there, not converged (a caller that knows
+        where the iterations are heading: another start's converged
+        optimum).
 
     Raises
     ------
@@ -706,6 +711,7 @@ class ScoringOptions:
     log_scale: tuple[bool, ...] | None = None
     information: bool = True
     log: Callable[[str], None] | None = None
+    stop: Callable[..., bool] | None = None
 
     def __post_init__(self):
         _integer(self, "max_iter", 0)
@@ -714,6 +720,8 @@ class ScoringOptions:
         _flag(self, "information")
         if self.log is not None and not callable(self.log):
             raise OptionError(f"ScoringOptions.log must be callable or None, got {self.log!r}")
+        if self.stop is not None and not callable(self.stop):
+            raise OptionError(f"ScoringOptions.stop must be callable or None, got {self.stop!r}")
         if self.log_scale is not None:
             L = np.asarray(self.log_scale)
             if L.ndim != 1:
