@@ -53,6 +53,7 @@ EXAMPLES = {
     "emps": ("emps_user.py", []),
     "emps_x10": ("emps_user.py", ["--decimate", "10"]),
     "emps_screw": ("emps_user.py", ["--graph", "screw", "--decimate", "10"]),
+    "emps_closed": ("emps_user.py", ["--graph", "closed", "--decimate", "10"]),
     "silverbox": ("silverbox_user.py", []),
     "silverbox_rlc": ("silverbox_user.py", ["--graph", "rlc"]),
     "ced": ("ced_user.py", []),

@@ -83,6 +83,20 @@ def test_emps_user_graph_is_the_hand_derived_mass_on_viscous_friction(tmp_path):
                                (gt * u[:, 0] - Fv * x[:, 0] / M) / (1 + Jm / (M * r**2)),
                                rtol=1e-12)
     np.testing.assert_allclose(s.f(x, u, th)[:, 1], x[:, 0] / M, rtol=1e-12)
+    # --graph closed: the reference qg is the input, the PD controller
+    # ν = kp·kv·(qg − q) − kv·p/M a modulated source gtau·ν that reads the
+    # states, ν measured beside q
+    c = Model.from_graph(mod.emps_closed())
+    assert c.states == ["p_mass", "q"] and c.inputs == ["qg"] and c.outputs == ["qm", "vir"]
+    th = np.tile(c.theta0, (5, 1))
+    th[:, c.param_index("M")] = rng.uniform(50, 150, 5)
+    th[:, c.param_index("Fv")] = rng.uniform(100, 300, 5)
+    th[:, c.param_index("kv")] = rng.uniform(200, 300, 5)
+    gt, kp, kv, M, Fv = (th[:, c.param_index(n)] for n in ("gtau", "kp", "kv", "M", "Fv"))
+    nu = kp * kv * (u[:, 0] - x[:, 1]) - kv * x[:, 0] / M
+    np.testing.assert_allclose(c.f(x, u, th)[:, 0], gt * nu - Fv * x[:, 0] / M, rtol=1e-12)
+    np.testing.assert_allclose(c.f(x, u, th)[:, 1], x[:, 0] / M, rtol=1e-12)
+    np.testing.assert_allclose(c.h(x, u, th), np.column_stack([x[:, 1], nu]), rtol=1e-12)
     from bondgraph.data.datasets import default_data_dir, find_local
     root = default_data_dir()
     if root is None or find_local("emps", "emps_estimation.csv", root) is None:
@@ -95,6 +109,11 @@ def test_emps_user_graph_is_the_hand_derived_mass_on_viscous_friction(tmp_path):
     pulses = np.loadtxt(mod.write_csv(tmp_path / "pulses.csv", which="validation"),
                         delimiter=",", skiprows=1)
     assert pulses.shape == (24841, 3) and not np.allclose(pulses[:, 2], data[:, 2])
+    # the closed-loop graph's record: the reference first, the same qm and vir
+    ref = mod.write_csv(tmp_path / "closed.csv", reference=True)
+    assert open(ref).readline() == "t [s],qg [m],qm [m],vir [V]\n"
+    closed = np.loadtxt(ref, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(closed[:, [0, 2, 3]], data)
 
 
 def test_ced_user_graph_is_the_hand_derived_motor_belt_pulley(tmp_path):
