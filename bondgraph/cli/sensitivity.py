@@ -32,7 +32,7 @@ from bondgraph.cli.common import (
     published,
 )
 from bondgraph.core import progress
-from bondgraph.errors import SensitivityError
+from bondgraph.errors import OptionError, SensitivityError
 from bondgraph.inference.executor import Executor
 from bondgraph.numerics.forward_sensitivity import check_params, free_parameters
 from bondgraph.report.sensitivity import plot_report
@@ -74,6 +74,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_estimation_scope(p)
     p.add_argument("--at-truth", action="store_true",
                    help="analyse at the record's true parameters (synthetic records)")
+    p.add_argument("--at", default=None, metavar="RESULT.json",
+                   help="analyse at the estimates of a `bondgraph estimate` result.json or a "
+                        "`bondgraph loop` report.json (its final model's: pass that model, "
+                        "REPORT_DIR/augmented_model.py:build) instead of the graph's declared "
+                        "values; --fixed still wins")
     p.add_argument("--seconds", type=float, default=None, help="use only the first SECONDS")
     add_discretisation(p)
     p.add_argument("--rel-crb", type=float, default=REL_CRB_MAX,
@@ -122,12 +127,8 @@ def run(args) -> int:
         exp = exp.segment(0, n, name=exp.name)
     params = parse_names(args.params, "--params") or _default_params(
         args.model, model, parse_pairs(args.fixed, "--fixed"))
-    values = {}
-    if args.at_truth:
-        tp = (exp.meta or {}).get("true_parameters") or {}
-        if not tp:
-            raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
-        values.update({k: float(v) for k, v in tp.items() if k in model.params})
+    values = _truth_values(args, exp, model)
+    model = _model_at(args, model)
     with progress.phase("choosing the filter's discretisation at the analysed θ"):
         problem, choice = chosen_at_levels(
             args, problem_from_args(model, exp, args, values),
@@ -168,4 +169,66 @@ def run(args) -> int:
     dec = f" --decimate {args.decimate}" if getattr(args, "decimate", 1) > 1 else ""
     print(f"estimate these with: bondgraph estimate --model {args.model} --data {args.data}{dec} "
           f"--params recommended:{path}")
+    misfit = rep.settings.get("misfit") or {}
+    if misfit and args.at is None and not args.at_truth:
+        print(f"note: at the graph's declared values the model misses the record by more than "
+              f"its noise ({', '.join(f'{o}: {r:.3g} times its level' for o, r in misfit.items())}"
+              f"); the ranking above is that misfit's: fit first (bondgraph estimate ... --out "
+              f"FIT) and analyse at the fit with --at FIT/result.json")
     return 0
+
+
+def _truth_values(args, exp, model) -> dict:
+    """The record's true parameters (``--at-truth``; else none), as values
+    over the graph's declared ones (``--fixed`` goes over them,
+    :func:`~bondgraph.cli.common.problem_from_args`).
+
+    Raises
+    ------
+    OptionError
+        ``--at`` with ``--at-truth``.
+    SensitivityError
+        A record without true parameters.
+    """
+    if args.at is not None and args.at_truth:
+        raise OptionError("--at and --at-truth both give the analysed θ: pass one")
+    if not args.at_truth:
+        return {}
+    tp = (exp.meta or {}).get("true_parameters") or {}
+    if not tp:
+        raise SensitivityError(f"--at-truth: the record {args.data} has no true_parameters")
+    return {k: float(v) for k, v in tp.items() if k in model.params}
+
+
+def _model_at(args, model):
+    """``model``, or with ``--at`` the graph's model with the estimates of
+    that result or loop report as its defaults
+    (:func:`bondgraph.export.params.read_params`): the analysed θ is then
+    a start like the declared one, so the noise levels the analysis
+    estimates are profiled there as at any start (fixed values would be
+    the point of the analysis and keep the record's levels); one line on
+    stderr names the values.
+
+    Raises
+    ------
+    SensitivityError
+        Estimates of parameters the model does not have (named; a loop's
+        report goes with its ``augmented_model.py:build``).
+    ExportError
+        The file is not a result or a report.
+    """
+    if args.at is None:
+        return model
+    from bondgraph.export.params import model_graph, read_params
+    from bondgraph.numerics.model import Model
+
+    values = read_params(args.at)
+    unknown = [n for n in values if n not in model.params]
+    if unknown:
+        raise SensitivityError(
+            f"--at {args.at}: {', '.join(unknown)} not parameters of '{model.name}' (a loop's "
+            f"report holds its final model's estimates: analyse that model, --model "
+            f"REPORT_DIR/augmented_model.py:build)")
+    _line(f"analysed at the estimates of {args.at}: "
+          + ", ".join(f"{n} = {v:.6g}" for n, v in values.items()))
+    return Model.from_graph(model_graph(args.model, values))
