@@ -250,3 +250,35 @@ def test_cli_linearize_at_an_estimates_values(tmp_path, capsys):
     C1, C2, R12, R2 = 1e-4, 2e-4, 2e5, 1e5
     A = [[-1 / (R12 * C1), 1 / (R12 * C2)], [1 / (R12 * C1), -(1 / R12 + 1 / R2) / C2]]
     np.testing.assert_allclose(np.load(out)["A"], A, rtol=1e-12)
+
+
+def damped_mass() -> BondGraph:
+    """A mass m on a damper c pushed by F, its position q measured: at a
+    constant F = 0 every position at rest is an equilibrium. Hand-derived
+    (p = m v): dp/dt = F − c p/m, dq/dt = p/m, so A = [[−c/m, 0], [1/m, 0]],
+    singular, its null direction q."""
+    g = BondGraph("damped_mass", "A mass on a damper, pushed; its position measured.")
+    F = g.input("F", "N", 0.0)
+    m, c = g.param("m", 2.0, "kg"), g.param("c", 3.0, "N*s/m")
+    v = g.one("v", domain="translation")
+    g.connect(g.Se("push", F), v)
+    g.connect(v, g.I("mass", m))
+    g.connect(v, g.R("damper", c))
+    q = g.displacement(v, name="q", unit="m")
+    g.sensor("x", q, unit="m")
+    return g
+
+
+def test_an_equilibrium_that_is_not_isolated_is_said():
+    """The solved equilibrium of a damped mass lies on a continuum (any
+    position at rest): A is the hand-derived singular one and the warning
+    names the position; where the user gave the position the search ended
+    there and nothing is said; an isolated equilibrium (the RLC circuit)
+    says nothing either."""
+    lin = linearize(damped_mass())
+    np.testing.assert_allclose(lin.A, [[-1.5, 0.0], [0.5, 0.0]], rtol=1e-12)
+    w, = lin.warnings
+    assert "the equilibrium is not isolated" in w and "along q are equilibria" in w
+    at = linearize(damped_mass(), {"q": 0.25})
+    assert at.x.tolist() == [0.0, 0.25] and at.warnings == ()
+    assert linearize("rlc_circuit", {"V": 2.0}).warnings == ()

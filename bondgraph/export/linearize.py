@@ -299,11 +299,54 @@ def linearize(model: str | BondGraph | Model, at: Mapping[str, float] | None = N
     keep = [i for i, s in enumerate(m.states) if s != STATIC_STATE]
     A, B, C = mats["dfdx"][np.ix_(keep, keep)], mats["dfdu"][keep], mats["dhdx"][:, keep]
     warn = () if isinstance(model, Model) else boundary_warnings(m, model, params, x, u, theta)
+    if solved and not warn:
+        warn = continuum_warning([m.states[i] for i in keep], A, x[keep], given=xs)
     return Linearization(model=m.name, A=A, B=B, C=C, D=mats["dhdu"],
                          states=tuple(m.states[i] for i in keep), inputs=tuple(m.inputs),
                          outputs=tuple(m.outputs), x=x[keep], u=u, theta=theta, y=y0,
                          equilibrium=solved,
                          residual=float(np.max(np.abs(f0), initial=0.0)), warnings=warn)
+
+
+#: A at an equilibrium whose smallest singular value is below this fraction
+#: of its largest is singular: the equilibrium is not isolated
+#: (:func:`continuum_warning`)
+NULL_REL = 1e-10
+
+
+def continuum_warning(states: list[str], A: np.ndarray, x: np.ndarray,
+                      given: Mapping[str, float] | None = None) -> tuple:
+    """One line when the Jacobian A (n_x, n_x) at a solved equilibrium is
+    singular (its smallest singular value below :data:`NULL_REL` of its
+    largest): the equilibria for the inputs then form a continuum (a
+    position behind a free mass; a friction state that holds any force
+    at rest, balanced by a controller's position error), a pole at 0
+    belongs to it, and the point found is where the search from the start
+    ended, not one the system picks. The line names the states that move
+    along it (components of the null direction at least 1 % of the
+    largest) and how to choose the point. Empty otherwise, and when the
+    search ended where the user put each of those states (``given``, name
+    -> value; ``x`` (n_x,), the equilibrium found).
+
+    Examples: a user's EMPS drive in its position loop with Dahl friction
+    and a drive lag, linearised at qg = 0.1 m: the search ended with the
+    friction state at 507.6 N (its Fc 3.8 N) and q 0.33 mm short of qg,
+    one of the rest states along (q, the lag's state, the friction's)."""
+    if A.size == 0:
+        return ()
+    _, sv, vt = np.linalg.svd(A)
+    if not sv[0] > 0 or sv[-1] > NULL_REL * sv[0]:
+        return ()
+    v = np.abs(vt[-1])
+    names = [states[i] for i in np.argsort(-v) if v[i] >= 0.01 * v.max()]
+    given = dict(given or {})
+    if all(n in given and abs(x[states.index(n)] - given[n]) <= 1e-9 * (1 + abs(given[n]))
+           for n in names):
+        return ()
+    return (f"the equilibrium is not isolated: A is singular (a pole at 0), and states along "
+            f"{', '.join(names)} are equilibria for these inputs too; the one above is where the "
+            f"search from its start ended. Give every state in --at for the point you mean (the "
+            f"search then does not run)",)
 
 
 def boundary_warnings(m: Model, model, params, x, u, theta) -> tuple:
