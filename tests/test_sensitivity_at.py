@@ -1,4 +1,4 @@
-"""``bondgraph sensitivity --at RESULT``: the analysis at a fit's estimates
+"""``bondgraph sensitivity --from RESULT``: the analysis at a fit's estimates
 instead of the graph's declared values, and the note that says when the
 declared values miss the record by far more than its noise.
 
@@ -101,8 +101,8 @@ def test_declared_values_far_from_the_record_are_named_and_at_a_fit_the_bounds_a
     # how to analyse at a fit
     assert d["settings"]["misfit"]["vel"] > 10
     assert "note: at the graph's declared values the model misses the record" in out
-    assert "--at FIT/result.json" in out
-    assert _sens(folder, "at_fit", "--at", str(folder / "result.json")) == 0
+    assert "--from FIT/result.json" in out
+    assert _sens(folder, "at_fit", "--from", str(folder / "result.json")) == 0
     out = capsys.readouterr().out
     d = json.loads((folder / "at_fit" / "sensitivity.json").read_text())
     assert d["theta"] == pytest.approx({"m": TRUTH["m"], "c": TRUTH["c"]}, rel=1e-12)
@@ -119,9 +119,9 @@ def test_at_a_report_of_another_model_or_with_at_truth_is_refused_with_the_names
     report = folder / "report.json"
     report.write_text(json.dumps({"final_fit": {"estimates": {
         "m": 3.0, "c": 1.5, "coulomb.v.Fc": 0.2}}}))
-    assert _sens(folder, "bad", "--at", str(report)) == 2
+    assert _sens(folder, "bad", "--from", str(report)) == 2
     err = capsys.readouterr().err
     assert "coulomb.v.Fc not parameters of 'drive'" in err
     assert "augmented_model.py:build" in err
-    assert _sens(folder, "both", "--at", str(folder / "result.json"), "--at-truth") == 2
-    assert "--at and --at-truth" in capsys.readouterr().err
+    assert _sens(folder, "both", "--from", str(folder / "result.json"), "--at-truth") == 2
+    assert "--from and --at-truth" in capsys.readouterr().err

@@ -74,11 +74,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     add_estimation_scope(p)
     p.add_argument("--at-truth", action="store_true",
                    help="analyse at the record's true parameters (synthetic records)")
-    p.add_argument("--at", default=None, metavar="RESULT.json",
+    p.add_argument("--from", dest="from_result", default=None, metavar="JSON",
                    help="analyse at the estimates of a `bondgraph estimate` result.json or a "
                         "`bondgraph loop` report.json (its final model's: pass that model, "
                         "REPORT_DIR/augmented_model.py:build) instead of the graph's declared "
-                        "values; --fixed still wins")
+                        "values, as `loop --from` and `track --from` start from them; --fixed "
+                        "still wins")
     p.add_argument("--seconds", type=float, default=None, help="use only the first SECONDS")
     add_discretisation(p)
     p.add_argument("--rel-crb", type=float, default=REL_CRB_MAX,
@@ -170,11 +171,11 @@ def run(args) -> int:
     print(f"estimate these with: bondgraph estimate --model {args.model} --data {args.data}{dec} "
           f"--params recommended:{path}")
     misfit = rep.settings.get("misfit") or {}
-    if misfit and args.at is None and not args.at_truth:
+    if misfit and args.from_result is None and not args.at_truth:
         print(f"note: at the graph's declared values the model misses the record by more than "
               f"its noise ({', '.join(f'{o}: {r:.3g} times its level' for o, r in misfit.items())}"
               f"); the ranking above is that misfit's: fit first (bondgraph estimate ... --out "
-              f"FIT) and analyse at the fit with --at FIT/result.json")
+              f"FIT) and analyse at the fit with --from FIT/result.json")
     return 0
 
 
@@ -186,12 +187,12 @@ def _truth_values(args, exp, model) -> dict:
     Raises
     ------
     OptionError
-        ``--at`` with ``--at-truth``.
+        ``--from`` with ``--at-truth``.
     SensitivityError
         A record without true parameters.
     """
-    if args.at is not None and args.at_truth:
-        raise OptionError("--at and --at-truth both give the analysed θ: pass one")
+    if args.from_result is not None and args.at_truth:
+        raise OptionError("--from and --at-truth both give the analysed θ: pass one")
     if not args.at_truth:
         return {}
     tp = (exp.meta or {}).get("true_parameters") or {}
@@ -201,7 +202,7 @@ def _truth_values(args, exp, model) -> dict:
 
 
 def _model_at(args, model):
-    """``model``, or with ``--at`` the graph's model with the estimates of
+    """``model``, or with ``--from`` the graph's model with the estimates of
     that result or loop report as its defaults
     (:func:`bondgraph.export.params.read_params`): the analysed θ is then
     a start like the declared one, so the noise levels the analysis
@@ -217,18 +218,18 @@ def _model_at(args, model):
     ExportError
         The file is not a result or a report.
     """
-    if args.at is None:
+    if args.from_result is None:
         return model
     from bondgraph.export.params import model_graph, read_params
     from bondgraph.numerics.model import Model
 
-    values = read_params(args.at)
+    values = read_params(args.from_result)
     unknown = [n for n in values if n not in model.params]
     if unknown:
         raise SensitivityError(
-            f"--at {args.at}: {', '.join(unknown)} not parameters of '{model.name}' (a loop's "
+            f"--from {args.from_result}: {', '.join(unknown)} not parameters of '{model.name}' (a loop's "
             f"report holds its final model's estimates: analyse that model, --model "
             f"REPORT_DIR/augmented_model.py:build)")
-    _line(f"analysed at the estimates of {args.at}: "
+    _line(f"analysed at the estimates of {args.from_result}: "
           + ", ".join(f"{n} = {v:.6g}" for n, v in values.items()))
     return Model.from_graph(model_graph(args.model, values))
