@@ -227,9 +227,9 @@ def _model_at(args, model):
     unknown = [n for n in values if n not in model.params]
     if unknown:
         raise SensitivityError(
-            f"--from {args.from_result}: {', '.join(unknown)} not parameters of '{model.name}' (a loop's "
-            f"report holds its final model's estimates: analyse that model, --model "
-            f"REPORT_DIR/augmented_model.py:build)")
+            f"--from {args.from_result}: {', '.join(unknown)} not parameters of "
+            f"'{model.name}' (a loop's report holds its final model's estimates: analyse that "
+            f"model, --model REPORT_DIR/augmented_model.py:build)")
     _line(f"analysed at the estimates of {args.from_result}: "
           + ", ".join(f"{n} = {v:.6g}" for n, v in values.items()))
     return Model.from_graph(model_graph(args.model, values))
