@@ -655,6 +655,21 @@ def test_track_from_an_estimate_result_or_a_loop_report(tmp_path):
     bad.write_text(json.dumps({"something": 1}))
     with pytest.raises(DataError, match="neither a `bondgraph estimate` result.json nor"):
         _from_result(bad)
+    # the fit's measurement-noise levels, held for the outputs nothing else
+    # gives one: an estimate's noise.<output>, a loop report's estimated
+    # levels (final_fit.noise_estimates) over the ones it held (before, a
+    # report's were not read: the record's second differences were held)
+    from bondgraph.cli.track import _from_levels
+
+    est.write_text(json.dumps({"params": ["c", "noise.x"], "estimates": [1.6, 0.002],
+                               "std": [0.01, 1e-4]}))
+    assert _from_levels(est) == {"x": 0.002}
+    rep.write_text(json.dumps({
+        "final_fit": {"estimates": {"c": 1.7}, "noise_estimates": {"x": 0.003}},
+        "settings": {"noise_levels": {"x": 0.05, "v": 0.01}}}))
+    assert _from_levels(rep) == {"x": 0.003, "v": 0.01}
+    with pytest.raises(DataError, match="--from .*other.json"):
+        _from_levels(bad)
 
 
 def test_substeps_chosen_from_the_tracked_record_remove_false_changes_and_bias():

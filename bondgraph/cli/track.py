@@ -33,7 +33,7 @@ from bondgraph.cli.common import (
 )
 from bondgraph.core import progress
 from bondgraph.core.jsonsafe import from_jsonable, to_jsonable
-from bondgraph.errors import DataError
+from bondgraph.errors import DataError, ExportError
 from bondgraph.inference.discretise import (
     alternative_hold,
     choose_discretisation,
@@ -156,6 +156,29 @@ def _from_result(path) -> tuple[dict, dict]:
                         f"`bondgraph loop` report.json ({type(exc).__name__}: {exc})") from None
 
 
+def _from_levels(path) -> dict:
+    """The measurement-noise levels (output -> std) of ``--from``'s fit,
+    estimated or held (:func:`bondgraph.export.params.read_noise_levels`:
+    an estimate's ``noise.<output>``, a loop report's
+    ``final_fit.noise_estimates``); before, a loop's were not read and a
+    user's closed-loop EMPS graph was tracked against the record's
+    second-difference levels (drive command 0.040 V against the fit's
+    0.066 V): Fv ran onto its box in 0.2 s.
+
+    Raises
+    ------
+    DataError
+        The file is neither a result nor a report.
+    """
+    from bondgraph.export.params import read_noise_levels
+
+    try:
+        return {o: float(v) for o, v in read_noise_levels(path).items()
+                if v is not None and np.isfinite(float(v))}
+    except ExportError as exc:
+        raise DataError(f"--from {path}: {exc}") from None
+
+
 def bare_levels(problem, levels: dict) -> tuple[dict, str]:
     """Measurement-noise stds to hold for the outputs that nothing gives
     one (the sensor declares none, ``meas_std`` 0, and the record declares
@@ -237,7 +260,10 @@ def run(args) -> int:
     check_tracked(names, model)
     drift = parse_pairs(args.drift, "--drift")
     values, std = _from_result(args.from_result) if args.from_result else ({}, {})
-    levels = {k[len("noise."):]: v for k, v in values.items() if k.startswith("noise.")}
+    # the fit's measurement-noise levels, estimated or held (a loop's report
+    # keeps them apart from the estimates, ``final_fit.noise_estimates``):
+    # held for the outputs nothing else gives one (:func:`bare_levels`)
+    levels = _from_levels(args.from_result) if args.from_result else {}
     values = {k: v for k, v in values.items() if k in model.params}
     folder = output_folder(default_out(args, f"track_{model.name}_{Path(args.data).stem}",
                                        "track"), args)
