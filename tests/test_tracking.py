@@ -226,6 +226,38 @@ def test_step_in_damping_detected_and_reestimated(tracking_model):
     assert abs(res.smoothed[k, 0] - 1.5) <= 3 * res.smoothed_std[k, 0]
 
 
+def test_a_restart_the_added_state_covariance_breaks_falls_back_to_the_reset_alone(
+        tracking_model, monkeypatch):
+    """At a change the tracker restarts with the original states' prior
+    covariance added (``track._reset`` with ``P_start``); where that filter
+    fails (a stiff law, e.g. Dahl friction, stepped outside RK4's stability
+    region by sigma points spread over the states' scales: a user's
+    closed-loop drive ended "the tracking filter fails" at the restart's
+    first sample), the restart is taken with the changed parameter's
+    variance reset alone (``track._restarted``). Injected here by a
+    non-finite added covariance: the result is the one of a tracker that
+    adds none, and the change is found and re-estimated (truth by the
+    generated model's simulation, c 1.5 -> 3.0 at 30 s)."""
+    from bondgraph.inference import track as T
+
+    base, t, F, y = msd_record(seed=1, c_after=3.0)
+    pr = make_problem(base, (t, F, y), ukf=UKF)
+    opts = TrackOptions(false_alarm_hours=10.0, smooth=False)
+    n = base.n_x
+    monkeypatch.setattr(T, "_states_prior", lambda tm, P0: np.zeros_like(P0))
+    ref = track(pr, tracking_model, options=opts)
+    broken = np.zeros((n + 1, n + 1))
+    broken[:n, :n] = np.nan
+    monkeypatch.setattr(T, "_states_prior", lambda tm, P0: broken)
+    res = track(pr, tracking_model, options=opts)
+    assert [(c.parameter, c.index) for c in res.changes] == \
+        [(c.parameter, c.index) for c in ref.changes] == [("c", ref.changes[0].index)]
+    np.testing.assert_array_equal(res.estimate, ref.estimate)
+    np.testing.assert_array_equal(res.std, ref.std)
+    ch = res.changes[0]
+    assert abs(ch.time - T_CHANGE) <= 0.2 and abs(ch.after - 3.0) <= 3 * ch.after_std
+
+
 @pytest.mark.parametrize("seed, c_after", [(1, 3.0), (2, None)])
 def test_first_pass_in_chunks_equals_one_pass_to_the_end(tracking_model, monkeypatch, seed,
                                                          c_after):

@@ -586,13 +586,15 @@ def _segments(tm, rec, th, prior, ukf, R, detector, window, opts, std):
     dt = np.median(np.diff(t)) if t.size > 1 else 1.0
     ow, sigma0 = opts.samples(dt)[1], reference_std(tm, prior[0], opts)
     s0, segs, changes = 0, [], []
-    changed, P_start = None, _states_prior(tm, prior[1])
+    changed, P_start, bare = None, _states_prior(tm, prior[1]), prior
     while True:
         if not segs and h is not None:  # to the first alarm only: filtered again from there
             seg, alarm, obs = _first_pass(tm, (t, u, y), th, prior, ukf, R,
                                           (h, window, ow, sigma0, unit), opts)
-        else:
+        elif changed is None:
             seg = _filter_segment(tm, (t, u, y), th, prior, ukf, R, s0)
+        else:
+            seg, prior = _restarted(tm, (t, u, y), th, prior, bare, ukf, R, s0)
         if changed is not None:         # once more, from the change time, centred on
             i = int(tm.state_indices[changed])      # what the first pass found
             x = prior[0].copy()
@@ -625,7 +627,31 @@ def _segments(tm, rec, th, prior, ukf, R, detector, window, opts, std):
         changes.append(Change(tm.names[c], cidx, s0 + ka, float(t[cidx]), float(t[s0 + ka]),
                               g, h, tm.names[c0], iso))
         prior = (x, _reset(tm, c, x, P, std, opts, P_start))
+        bare = (x, _reset(tm, c, x, P, std, opts, None))
         s0, changed = cidx - 1, c
+
+
+def _restarted(tm, rec, th, prior, bare, ukf, R, s0) -> tuple:
+    """``(segment, prior)``: the filter restarted at a change from
+    ``prior`` (the original states' prior covariance added,
+    :func:`_reset`), or, where that filter fails, from ``bare`` (only the
+    changed parameter's variance reset). The added covariance spreads the
+    sigma points over the states' whole scales, where a stiff law can take
+    a step outside RK4's stability region: a user's closed-loop drive with
+    Dahl friction (rest stiffness 33 000 N/m against Fc 3.8 N) had its
+    friction state spread over hundreds of newtons at a restart, and the
+    command ended with "the tracking filter fails" at the restart's first
+    sample.
+
+    Raises
+    ------
+    NumericalError
+        The filter fails from ``bare`` too.
+    """
+    try:
+        return _filter_segment(tm, rec, th, prior, ukf, R, s0), prior
+    except NumericalError:
+        return _filter_segment(tm, rec, th, bare, ukf, R, s0), bare
 
 
 #: the first pass of :func:`track` filters chunks of this length [s] (at least
