@@ -191,9 +191,14 @@ def emps_closed() -> BondGraph:
     than the published model's: Coulomb 11.2 N, Dahl 3.8 N and the
     square-root term (5.7 N at 1 cm/s) with Fv 81 N s/m give about 21.5 N at
     1 cm/s, the published model 22.4 N (Fc 20.4 N, Fv 203.5 N s/m). The
-    force-pulse run is no
-    validation record for this graph: its pulses enter the drive command
-    behind the controller, which the graph does not have.
+    force-pulse run is no validation record for this graph: its pulses
+    enter the drive command behind the controller, which the graph does
+    not have. The other commands on this graph: ``bondgraph sensitivity``
+    at the declared values reads a misfit (the drive command's noise level
+    profiled 46 times up) and says so, ``--from`` a fit analyses there;
+    ``bondgraph track --from`` the loop's report tracks Fv at RK4(4), no
+    change; ``bondgraph linearize --at qg=0.1`` warns that the rest state
+    is one of a continuum (the Dahl force held at rest).
 
     Hand-derived (p = M q̇, ν = kp·kv·(qg − q) − kv·p/M)::
 

@@ -163,7 +163,7 @@ def _from_levels(path) -> dict:
     ``final_fit.noise_estimates``); before, a loop's were not read and a
     user's closed-loop EMPS graph was tracked against the record's
     second-difference levels (drive command 0.040 V against the fit's
-    0.066 V): Fv ran onto its box in 0.2 s.
+    0.066 V).
 
     Raises
     ------

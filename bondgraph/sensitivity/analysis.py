@@ -225,9 +225,9 @@ class _Analysis:
     say: Callable
     timing: dict
     estimand: Any = None
-    #: output -> how many times the level it started from its noise level
-    #: rose where profiled at θ, for the outputs it rose at least
-    #: :data:`MISFIT_RATIO` times (:func:`_profiled_levels`)
+    #: output -> the factor by which its noise level, profiled at θ, rose
+    #: over the level it started from, where that is at least
+    #: :data:`MISFIT_RATIO` (:func:`_profiled_levels`)
     misfit: dict = field(default_factory=dict)
 
     @property
