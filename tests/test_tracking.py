@@ -804,6 +804,13 @@ def test_the_window_a_parameter_needs_to_be_observable():
         res(400), "m", 0)
     assert "not trackable from this record" in needed_window(res(30), "m", 0)
     assert needed_window(SimpleNamespace(settings={}, information=None), "m", 0) == ""
+    # the typical sample's information, not the mean's: a few samples of
+    # extreme information (a parameter pinned on its box) do not shrink the
+    # window (the mean's here: 1e-37 s)
+    spiky = res(400)
+    spiky.information[:3] = 1e40
+    assert "observable over windows of about 5 s (--observable-s 6.3;" in needed_window(
+        spiky, "m", 0)
 
 
 def test_a_start_value_the_record_disagrees_with_is_no_change():
