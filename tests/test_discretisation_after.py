@@ -138,3 +138,51 @@ def test_the_check_at_an_accepted_fit_reads_its_own_noise_levels(monkeypatch):
     assert None not in own, "the accepted fit estimates the measurement noise"
     assert np.allclose(scale, own, rtol=1e-9), (scale, own)
     assert np.all(scale < 0.05), scale
+
+
+def test_a_filter_that_fails_at_the_adopted_step_falls_back_or_rejects(monkeypatch):
+    """The check at an accepted fit follows one trajectory; the filter's
+    sigma points can go where the step it adopts is not stable (a user's
+    CED graph with Dahl friction: RK4(3) adopted in place of ROS2(16), the
+    filter non-finite at its second sample, and the loop ended with an
+    error). Injected here: with ``auto_method`` the end stop's check adopts
+    RK4(1) in place of ROS2(24); where the refit at RK4 fails, it is refitted
+    at ROS2's own substeps, and the step is the one the loop takes without
+    ``auto_method`` (the same estimate to the bit); where every refit fails,
+    the effect is rejected with the reason and the loop ends normally."""
+    from bondgraph.diagnose import runner
+    from bondgraph.errors import NumericalError
+
+    orig = runner.fit_model
+    where = [" at rk4("]
+
+    def failing(ctx, graph, params, theta, what, **k):
+        if any(w in what for w in where):
+            raise NumericalError(f"{what}: the UKF failed at the fitted parameters (sample 2 "
+                                 f"(t = 0.02 s): non-finite state in the prediction)")
+        return orig(ctx, graph, params, theta, what, **k)
+
+    def loop(auto_method):
+        log = []
+        res = run_loop(mass_spring_damper(), _record(), LoopSettings(
+            params=["k", "c"], effects=[get_effect("end_stop")],
+            ukf=UKFOptions(method="ros2", substeps=4, alpha=1.0),
+            search=SearchOptions(max_steps=1, auto_substeps=True, auto_method=auto_method)),
+            log=log.append, progress=False)
+        return res, "\n".join(log)
+
+    monkeypatch.setattr(runner, "fit_model", failing)
+    res, log = loop(True)
+    assert "in place of ros2" in log            # the check adopted the other method
+    assert "the filter fails at rk4(1): the UKF failed at the fitted parameters" in log
+    assert "refitted at ros2(24) instead" in log
+    ref, _ = loop(False)
+    assert [s.effect for s in res.steps] == [s.effect for s in ref.steps] == ["end_stop"]
+    q = res.steps[0].parameters["end_stop.spring.qmax"]
+    assert q == ref.steps[0].parameters["end_stop.spring.qmax"]
+    assert abs(q["estimate"] - QMAX) < 5 * q["std"]
+    where.append(" at ros2(")                   # no step runs: rejected, not an error
+    res, log = loop(True)
+    assert not res.steps
+    why, = [w for w in res.warnings if "cannot be refitted" in w]
+    assert "rk4(1)" in why and "ros2(24)" in why and "the filter keeps ros2(4)" in why

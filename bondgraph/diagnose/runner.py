@@ -71,6 +71,7 @@ from bondgraph.diagnose.fit import (
     problem_for,
     recommended_substeps,
     adopted_discretisation,
+    refined_discretisation,
     StepCheck,
     SUBSTEP_LADDER,
     validation_problem,
@@ -1267,10 +1268,10 @@ def fit_after_discretisation_check(
     if disc is None:
         return fit, None
     before = ctx.problem
-    ctx.problem = ctx.problem.conditioned_on(disc=disc)
-    ctx.cache.clear()
+    refit, disc = _refit_at_adopted(ctx, result, fit, label, disc, checked)
+    if refit is None:
+        return (None, None) if judged is not None else (fit, None)
     at = f"{label} at {disc.method}({disc.substeps})"
-    refit = fit_model(ctx, fit.graph, list(fit.params), fit.estimates(), at, model=fit.model)
     if judged is not None:
         current, dof, comparable, added = judged
         refit = continued(ctx, fit.graph, refit, at)
@@ -1297,6 +1298,48 @@ def fit_after_discretisation_check(
         ctx.log("warning: " + msg)
         result.warnings.append(msg)
     return refit, None
+
+
+def _refit_at_adopted(ctx: Context, result: LoopResult, fit: Fit, label: str, disc,
+                      checked: StepCheck) -> tuple:
+    """``(refit, discretisation)``: ``fit`` refitted (warm start) with the
+    filter at ``disc``, the discretisation the check at ``fit`` adopted
+    (``ctx.problem`` left at it); where the filter fails there and ``disc``
+    is the other method, at the current method's substeps the check asks
+    for (``checked.n``, :func:`~bondgraph.diagnose.fit.refined_discretisation`);
+    ``(None, None)`` with the filter restored and a warning (logged, in
+    ``result.warnings``) when it fails at each. The check follows one
+    trajectory; the filter's sigma points can go where the adopted step is
+    not stable (a user's CED graph with Dahl friction at the motor: RK4(3)
+    adopted in place of ROS2(16) for a source lag with a cubic sensor term,
+    the filter non-finite at its second sample; the loop ended there with
+    an error and the pair's step was lost)."""
+    before = ctx.problem
+    tried, todo = [], [disc]
+    while todo:
+        d = todo.pop(0)
+        ctx.problem = before.conditioned_on(disc=d)
+        ctx.cache.clear()
+        at = f"{label} at {d.method}({d.substeps})"
+        try:
+            return fit_model(ctx, fit.graph, list(fit.params), fit.estimates(), at,
+                             model=fit.model), d
+        except NumericalError as exc:
+            why = str(exc).splitlines()[0]
+            tried.append(f"{d.method}({d.substeps}): {why.removeprefix(at + ': ')}")
+        ctx.problem = before
+        ctx.cache.clear()
+        if d is disc and d.method != before.disc.method and checked.n is not None:
+            same = refined_discretisation(ctx, fit, checked.n)[0]
+            ctx.log(f"  the fit with {label}: the filter fails at {tried[-1]}; refitted at "
+                    f"{same.method}({same.substeps}) instead")
+            todo.append(same)
+    msg = (f"the fit with {label} cannot be refitted at the step its discretisation check "
+           f"asks for (the filter fails at {'; at '.join(tried)}): not accepted, the filter "
+           f"keeps {before.disc.method}({before.disc.substeps})")
+    ctx.log("reject " + msg)
+    result.warnings.append(msg)
+    return None, None
 
 
 def unbiased_final(ctx: Context, result: LoopResult, current: Fit) -> Fit:
