@@ -186,3 +186,45 @@ def test_a_filter_that_fails_at_the_adopted_step_falls_back_or_rejects(monkeypat
     assert not res.steps
     why, = [w for w in res.warnings if "cannot be refitted" in w]
     assert "rk4(1)" in why and "ros2(24)" in why and "the filter keeps ros2(4)" in why
+
+
+def test_a_filter_that_fails_at_the_step_the_declared_fit_adopts_falls_back(monkeypatch):
+    """The same at the declared fit (runner.resolved_fit): on every fourth
+    sample at ROS2(1) its check adopts RK4(1) in place of ROS2(12); where the
+    declared refit at RK4 fails it is refitted at ROS2's own substeps, the
+    fit the loop takes without ``auto_method`` (the same NLL and estimates);
+    where that fails too the loop goes on from the declared fit at the step
+    it had, with a warning, instead of ending with an error."""
+    from bondgraph.diagnose import runner
+    from bondgraph.errors import NumericalError
+
+    orig = runner.initial_fit
+    fail = ["rk4"]
+
+    def failing(ctx, graph, again=False):
+        if again and ctx.problem.disc.method in fail:
+            raise NumericalError("the UKF failed at the fitted parameters (sample 2: "
+                                 "non-finite state in the prediction)")
+        return orig(ctx, graph, again=again)
+
+    def loop(auto_method):
+        log = []
+        res = run_loop(mass_spring_damper(), _record().decimated(4), LoopSettings(
+            params=["k", "c"], effects=[get_effect("end_stop")],
+            ukf=UKFOptions(method="ros2", substeps=1, alpha=1.0),
+            search=SearchOptions(max_steps=0, auto_substeps=True, auto_method=auto_method)),
+            log=log.append, progress=False)
+        return res, "\n".join(log)
+
+    monkeypatch.setattr(runner, "initial_fit", failing)
+    res, log = loop(True)
+    assert "rk4 with 1 substep per sample in place of ros2" in log
+    assert "the declared fit: the filter fails at rk4(1)" in log and "refitted at ros2(" in log
+    ref, _ = loop(False)
+    assert res.initial.nll == ref.initial.nll
+    assert res.initial.estimates == ref.initial.estimates
+    fail.append("ros2")
+    res, log = loop(True)
+    why, = [w for w in res.warnings if "cannot be refitted" in w]
+    assert why.startswith("the declared fit cannot be refitted") and "keeps ros2(1)" in why
+    assert res.initial is not None and np.isfinite(res.initial.nll)

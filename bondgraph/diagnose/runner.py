@@ -1268,7 +1268,10 @@ def fit_after_discretisation_check(
     if disc is None:
         return fit, None
     before = ctx.problem
-    refit, disc = _refit_at_adopted(ctx, result, fit, label, disc, checked)
+    refit, disc = _refit_at_adopted(
+        ctx, result.warnings, fit, label, disc, checked,
+        lambda at: fit_model(ctx, fit.graph, list(fit.params), fit.estimates(), at,
+                             model=fit.model))
     if refit is None:
         return (None, None) if judged is not None else (fit, None)
     at = f"{label} at {disc.method}({disc.substeps})"
@@ -1300,15 +1303,16 @@ def fit_after_discretisation_check(
     return refit, None
 
 
-def _refit_at_adopted(ctx: Context, result: LoopResult, fit: Fit, label: str, disc,
-                      checked: StepCheck) -> tuple:
-    """``(refit, discretisation)``: ``fit`` refitted (warm start) with the
-    filter at ``disc``, the discretisation the check at ``fit`` adopted
-    (``ctx.problem`` left at it); where the filter fails there and ``disc``
-    is the other method, at the current method's substeps the check asks
-    for (``checked.n``, :func:`~bondgraph.diagnose.fit.refined_discretisation`);
-    ``(None, None)`` with the filter restored and a warning (logged, in
-    ``result.warnings``) when it fails at each. The check follows one
+def _refit_at_adopted(ctx: Context, warnings: list, fit: Fit, label: str, disc,
+                      checked: StepCheck, refit) -> tuple:
+    """``(refit, discretisation)``: ``refit(at)`` (``fit`` refitted, ``at``
+    its label) with the filter at ``disc``, the discretisation the check at
+    ``fit`` adopted (``ctx.problem`` left at it); where the filter fails
+    there and ``disc`` is the other method, at the current method's
+    substeps the check asks for (``checked.n``,
+    :func:`~bondgraph.diagnose.fit.refined_discretisation`); ``(None,
+    None)`` with the filter restored and a warning (logged, appended to
+    ``warnings``) when it fails at each. The check follows one
     trajectory; the filter's sigma points can go where the adopted step is
     not stable (a user's CED graph with Dahl friction at the motor: RK4(3)
     adopted in place of ROS2(16) for a source lag with a cubic sensor term,
@@ -1322,8 +1326,7 @@ def _refit_at_adopted(ctx: Context, result: LoopResult, fit: Fit, label: str, di
         ctx.cache.clear()
         at = f"{label} at {d.method}({d.substeps})"
         try:
-            return fit_model(ctx, fit.graph, list(fit.params), fit.estimates(), at,
-                             model=fit.model), d
+            return refit(at), d
         except NumericalError as exc:
             why = str(exc).splitlines()[0]
             tried.append(f"{d.method}({d.substeps}): {why.removeprefix(at + ': ')}")
@@ -1331,14 +1334,17 @@ def _refit_at_adopted(ctx: Context, result: LoopResult, fit: Fit, label: str, di
         ctx.cache.clear()
         if d is disc and d.method != before.disc.method and checked.n is not None:
             same = refined_discretisation(ctx, fit, checked.n)[0]
-            ctx.log(f"  the fit with {label}: the filter fails at {tried[-1]}; refitted at "
+            ctx.log(f"  {'the declared fit' if label == DECLARED else f'the fit with {label}'}"
+                    f": the filter fails at {tried[-1]}; refitted at "
                     f"{same.method}({same.substeps}) instead")
             todo.append(same)
-    msg = (f"the fit with {label} cannot be refitted at the step its discretisation check "
-           f"asks for (the filter fails at {'; at '.join(tried)}): not accepted, the filter "
-           f"keeps {before.disc.method}({before.disc.substeps})")
-    ctx.log("reject " + msg)
-    result.warnings.append(msg)
+    declared = label == DECLARED
+    msg = (f"{'the declared fit' if declared else f'the fit with {label}'} cannot be refitted "
+           f"at the step its discretisation check asks for (the filter fails at "
+           f"{'; at '.join(tried)}): {'' if declared else 'not accepted, '}the filter keeps "
+           f"{before.disc.method}({before.disc.substeps})")
+    ctx.log(("warning: " if declared else "reject ") + msg)
+    warnings.append(msg)
     return None, None
 
 
@@ -1467,9 +1473,13 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     warn = check_discretisation(ctx, initial, checked=checked, taken=taken)
     if disc is None:
         return initial, warn
-    ctx.problem = ctx.problem.conditioned_on(disc=disc)
-    ctx.cache.clear()
-    return initial_fit(ctx, graph, again=True), warn
+    refit, _ = _refit_at_adopted(ctx, warn, initial, DECLARED, disc, checked,
+                                 lambda at: initial_fit(ctx, graph, again=True))
+    return (initial if refit is None else refit), warn
+
+
+#: the label of the declared fit in :func:`_refit_at_adopted`
+DECLARED = "the declared fit"
 
 
 def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit,
