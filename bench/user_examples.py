@@ -58,6 +58,7 @@ EXAMPLES = {
     "silverbox_rlc": ("silverbox_user.py", ["--graph", "rlc"]),
     "ced": ("ced_user.py", []),
     "ced_unif": ("ced_user.py", ["--runs", "unif"]),
+    "ced_abs": ("ced_user.py", ["--graph", "abs"]),
 }
 #: a figure that moved by more than this relative amount is a change
 RTOL = 0.01

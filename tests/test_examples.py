@@ -152,6 +152,11 @@ def test_ced_user_graph_is_the_hand_derived_motor_belt_pulley(tmp_path):
     for n, w in want.items():
         np.testing.assert_allclose(f[:, m.states.index(n)], w, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(m.h(x, u, th)[:, 0], wp, rtol=1e-12)
+    # --graph abs: the same state equations, the sign-blind counter |ω_p|
+    a = Model.from_graph(mod.ced_abs())
+    assert a.states == m.states and a.params == m.params
+    np.testing.assert_allclose(a.f(x, u, th), f, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.h(x, u, th)[:, 0], np.abs(wp), rtol=1e-12)
     from bondgraph.data.datasets import default_data_dir, find_local
     root = default_data_dir()
     if root is None or find_local("ced", "DATAPRBS.csv", root) is None:
