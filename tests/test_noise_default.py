@@ -444,7 +444,7 @@ def test_sensitivity_of_a_sensor_without_a_noise_level_weighs_by_the_record_leve
 
 def test_a_noise_std_on_its_box_is_named_with_the_side_and_the_cause():
     """A sensor noise std estimated to the top of its box (NOISE_BOX times
-    the sensor's level: a user's ball-screw graph without process noise,
+    the level the fit started from: a user's ball-screw graph without process noise,
     1e-6 m declared, 0.01 m estimated) is the model's error, not the
     sensor: the warning says so and, without process noise, where to
     declare it; on the bottom of the box the variance went into the process
@@ -466,11 +466,15 @@ def test_a_noise_std_on_its_box_is_named_with_the_side_and_the_cause():
         "(not identified by the record beside the process noise; declare it in the record or "
         "use noise='model')",
         "  warning: the declared fit: measurement-noise std on the top of its box: qm = 0.01, "
-        "10000 times the sensor's level: not the sensor but the model's error, which the filter "
-        "reads as sensor noise (no process noise is declared: declare it on the states where "
-        "efforts or flows are unmodelled); declare the sensor's level in the record to hold it"]
+        "10000 times the level the fit started from (1e-06): not the sensor but the model's "
+        "error, which the filter reads as sensor noise (no process noise is declared: declare "
+        "it on the states where efforts or flows are unmodelled); declare the sensor's level in "
+        "the record to hold it"]
     logs.clear()
     _noise_bound_warning(ctx, "a refit", {"qm": 0.01}, {"qm": 1e-6}, {}, process_noise=True)
-    assert logs[0].endswith("qm = 0.01, 10000 times the sensor's level: not the sensor but the "
-                            "model's error, which the filter reads as sensor noise; declare the "
-                            "sensor's level in the record to hold it")
+    # a refit's box is centred on the fit it refits, not the record's level:
+    # the line names that start (a user's closed-loop graph read "10000 times
+    # the sensor's level" for a previous fit's 1.79e-07, the record's 0.040)
+    assert logs[0].endswith("qm = 0.01, 10000 times the level the fit started from (1e-06): not "
+                            "the sensor but the model's error, which the filter reads as sensor "
+                            "noise; declare the sensor's level in the record to hold it")

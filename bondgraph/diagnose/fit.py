@@ -385,6 +385,9 @@ def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: d
     def listed(outs):
         return ", ".join(f"{o} = {est[o]:.3g}" for o in outs)
 
+    def started(outs):      # the box's centre: the record's level, or a previous fit's
+        return ", ".join(f"{start[o]:.3g}" for o in outs)
+
     if lo:
         ctx.log(f"  warning: {what}: measurement-noise std on the bottom of its box: "
                 f"{listed(lo)} (not identified by the record beside the process noise; "
@@ -395,8 +398,9 @@ def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: d
                  "unmodelled)") if not process_noise else \
             "the model's error, which the filter reads as sensor noise"
         ctx.log(f"  warning: {what}: measurement-noise std on the top of its box: "
-                f"{listed(hi)}, {NOISE_BOX:g} times the sensor's level: not the sensor but "
-                f"{where}; declare the sensor's level in the record to hold it")
+                f"{listed(hi)}, {NOISE_BOX:g} times the level the fit started from "
+                f"({started(hi)}): not the sensor but {where}; declare the sensor's level in "
+                f"the record to hold it")
 
 
 def planned_noise(problem: Problem, settings: LoopSettings,
