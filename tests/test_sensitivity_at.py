@@ -14,6 +14,8 @@ output error's).
 """
 
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,27 +23,15 @@ from scipy.integrate import solve_ivp
 
 from bondgraph.cli.main import main
 
-TRUTH = {"k_u": 2.0, "m": 3.0, "c": 1.5}
+sys.path.insert(0, str(Path(__file__).parent))
+# the graph, the truth and the record of the known-value test (scipy, a
+# continuous multisine force, noise 0.01 m/s)
+from test_hold_unidentified import GRAPH as KNOWN_GRAPH, TRUTH, _record  # noqa: E402
+
 SIGMA = 0.01
 FREQS = np.array([0.05, 0.13, 0.31, 0.7, 1.3])
-
-GRAPH = '''
-from bondgraph import BondGraph
-
-
-def drive():
-    g = BondGraph("drive", "mass and damper behind an actuator constant")
-    u = g.input("u", "V", 0.0, "command")
-    k_u = g.param("k_u", 2.0, "N/V", None, "actuator constant (datasheet)")
-    m = g.param("m", 0.3, "kg", (0.1, 100.0), "mass")
-    c = g.param("c", 10.0, "N*s/m", (0.01, 100.0), "damping")
-    v = g.one("v")
-    g.connect(g.Se("act", k_u * u), v)
-    g.connect(v, g.I("mass", m))
-    g.connect(v, g.R("damper", c))
-    g.sensor("vel", v.f, unit="m/s")
-    return g
-'''
+#: the same graph, its declared values far from the record's (m 0.3, c 10)
+GRAPH = KNOWN_GRAPH.replace('"m", 2.0,', '"m", 0.3,').replace('"c", 1.0,', '"c", 10.0,')
 
 
 def _u(t):
@@ -57,13 +47,8 @@ def _velocity(t, m, c):
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
     d = tmp_path_factory.mktemp("sens_at")
-    t = np.arange(1500) * 0.02
-    y = _velocity(t, TRUTH["m"], TRUTH["c"])
-    y = y + SIGMA * np.random.default_rng(0).standard_normal(t.size)
-    with open(d / "rec.csv", "w") as fh:
-        fh.write("t [s],u [V],vel [m/s]\n")
-        for row in zip(t.tolist(), _u(t).tolist(), y.tolist()):
-            fh.write("%r,%r,%r\n" % row)
+    _record(d / "rec.csv")
+    assert '"m", 0.3,' in GRAPH and '"c", 10.0,' in GRAPH    # the starts replaced
     (d / "drive_user.py").write_text(GRAPH)
     (d / "result.json").write_text(json.dumps(
         {"params": ["m", "c"], "estimates": [TRUTH["m"], TRUTH["c"]], "fixed": {"k_u": 2.0}}))
