@@ -7,6 +7,7 @@ recommended substeps: the bias falls from 26 to 4 std (the truth simulated
 by BDF at rtol 1e-8, inputs held)."""
 
 import numpy as np
+import pytest
 
 from bondgraph.catalog.reference import mass_spring_damper
 from bondgraph.diagnose.cases import SimulationOptions, synthesize
@@ -140,6 +141,20 @@ def test_the_check_at_an_accepted_fit_reads_its_own_noise_levels(monkeypatch):
     assert np.all(scale < 0.05), scale
 
 
+def _logged_loop(record, substeps, max_steps, auto_method):
+    """The loop on the mass-spring-damper with the end stop as candidate,
+    ROS2(``substeps``), ``auto_substeps`` and ``auto_method`` as given: its
+    result and its log as one text."""
+    log = []
+    res = run_loop(mass_spring_damper(), record, LoopSettings(
+        params=["k", "c"], effects=[get_effect("end_stop")],
+        ukf=UKFOptions(method="ros2", substeps=substeps, alpha=1.0),
+        search=SearchOptions(max_steps=max_steps, auto_substeps=True,
+                             auto_method=auto_method)),
+        log=log.append, progress=False)
+    return res, "\n".join(log)
+
+
 def test_a_filter_that_fails_at_the_adopted_step_falls_back_or_rejects(monkeypatch):
     """The check at an accepted fit follows one trajectory; the filter's
     sigma points can go where the step it adopts is not stable (a user's
@@ -162,27 +177,18 @@ def test_a_filter_that_fails_at_the_adopted_step_falls_back_or_rejects(monkeypat
                                  f"(t = 0.02 s): non-finite state in the prediction)")
         return orig(ctx, graph, params, theta, what, **k)
 
-    def loop(auto_method):
-        log = []
-        res = run_loop(mass_spring_damper(), _record(), LoopSettings(
-            params=["k", "c"], effects=[get_effect("end_stop")],
-            ukf=UKFOptions(method="ros2", substeps=4, alpha=1.0),
-            search=SearchOptions(max_steps=1, auto_substeps=True, auto_method=auto_method)),
-            log=log.append, progress=False)
-        return res, "\n".join(log)
-
     monkeypatch.setattr(runner, "fit_model", failing)
-    res, log = loop(True)
+    res, log = _logged_loop(_record(), 4, 1, True)
     assert "in place of ros2" in log            # the check adopted the other method
     assert "the filter fails at rk4(1): the UKF failed at the fitted parameters" in log
     assert "refitted at ros2(24) instead" in log
-    ref, _ = loop(False)
+    ref, _ = _logged_loop(_record(), 4, 1, False)
     assert [s.effect for s in res.steps] == [s.effect for s in ref.steps] == ["end_stop"]
     q = res.steps[0].parameters["end_stop.spring.qmax"]
     assert q == ref.steps[0].parameters["end_stop.spring.qmax"]
     assert abs(q["estimate"] - QMAX) < 5 * q["std"]
     where.append(" at ros2(")                   # no step runs: rejected, not an error
-    res, log = loop(True)
+    res, log = _logged_loop(_record(), 4, 1, True)
     assert not res.steps
     why, = [w for w in res.warnings if "cannot be refitted" in w]
     assert "rk4(1)" in why and "ros2(24)" in why and "the filter keeps ros2(4)" in why
@@ -193,8 +199,8 @@ def test_a_filter_that_fails_at_the_step_the_declared_fit_adopts_falls_back(monk
     sample at ROS2(1) its check adopts RK4(1) in place of ROS2(12); where the
     declared refit at RK4 fails it is refitted at ROS2's own substeps, the
     fit the loop takes without ``auto_method`` (the same NLL and estimates);
-    where that fails too the loop goes on from the declared fit at the step
-    it had, with a warning, instead of ending with an error."""
+    where that fails too the loop stops with the steps and the reasons
+    named: it does not go on with numerics that fail their own check."""
     from bondgraph.diagnose import runner
     from bondgraph.errors import NumericalError
 
@@ -207,24 +213,17 @@ def test_a_filter_that_fails_at_the_step_the_declared_fit_adopts_falls_back(monk
                                  "non-finite state in the prediction)")
         return orig(ctx, graph, again=again)
 
-    def loop(auto_method):
-        log = []
-        res = run_loop(mass_spring_damper(), _record().decimated(4), LoopSettings(
-            params=["k", "c"], effects=[get_effect("end_stop")],
-            ukf=UKFOptions(method="ros2", substeps=1, alpha=1.0),
-            search=SearchOptions(max_steps=0, auto_substeps=True, auto_method=auto_method)),
-            log=log.append, progress=False)
-        return res, "\n".join(log)
-
     monkeypatch.setattr(runner, "initial_fit", failing)
-    res, log = loop(True)
+    rec = _record().decimated(4)
+    res, log = _logged_loop(rec, 1, 0, True)
     assert "rk4 with 1 substep per sample in place of ros2" in log
     assert "the declared fit: the filter fails at rk4(1)" in log and "refitted at ros2(" in log
-    ref, _ = loop(False)
+    ref, _ = _logged_loop(rec, 1, 0, False)
     assert res.initial.nll == ref.initial.nll
     assert res.initial.estimates == ref.initial.estimates
     fail.append("ros2")
-    res, log = loop(True)
-    why, = [w for w in res.warnings if "cannot be refitted" in w]
-    assert why.startswith("the declared fit cannot be refitted") and "keeps ros2(1)" in why
-    assert res.initial is not None and np.isfinite(res.initial.nll)
+    with pytest.raises(NumericalError) as err:
+        _logged_loop(rec, 1, 0, True)
+    msg = str(err.value)
+    assert msg.startswith("the declared fit cannot be refitted at the step its discretisation")
+    assert "rk4(1)" in msg and "ros2(12)" in msg and "--method and --substeps" in msg

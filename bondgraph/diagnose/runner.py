@@ -1311,8 +1311,9 @@ def _refit_at_adopted(ctx: Context, warnings: list, fit: Fit, label: str, disc,
     there and ``disc`` is the other method, at the current method's
     substeps the check asks for (``checked.n``,
     :func:`~bondgraph.diagnose.fit.refined_discretisation`); ``(None,
-    None)`` with the filter restored and a warning (logged, appended to
-    ``warnings``) when it fails at each. The check follows one
+    None)`` with the filter restored and the reason appended to
+    ``warnings`` (logged as a rejection, but for the declared fit, whose
+    caller stops the loop) when it fails at each. The check follows one
     trajectory; the filter's sigma points can go where the adopted step is
     not stable (a user's CED graph with Dahl friction at the motor: RK4(3)
     adopted in place of ROS2(16) for a source lag with a cubic sensor term,
@@ -1338,12 +1339,12 @@ def _refit_at_adopted(ctx: Context, warnings: list, fit: Fit, label: str, disc,
                     f": the filter fails at {tried[-1]}; refitted at "
                     f"{same.method}({same.substeps}) instead")
             todo.append(same)
-    declared = label == DECLARED
-    msg = (f"{'the declared fit' if declared else f'the fit with {label}'} cannot be refitted "
-           f"at the step its discretisation check asks for (the filter fails at "
-           f"{'; at '.join(tried)}): {'' if declared else 'not accepted, '}the filter keeps "
-           f"{before.disc.method}({before.disc.substeps})")
-    ctx.log(("warning: " if declared else "reject ") + msg)
+    what = "the declared fit" if label == DECLARED else f"the fit with {label}"
+    msg = (f"{what} cannot be refitted at the step its discretisation check asks for (the "
+           f"filter fails at {'; at '.join(tried)})")
+    if label != DECLARED:       # the declared fit's caller raises it
+        msg += f": not accepted, the filter keeps {before.disc.method}({before.disc.substeps})"
+        ctx.log("reject " + msg)
     warnings.append(msg)
     return None, None
 
@@ -1467,7 +1468,10 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
     declared fit exceeds 0.1 measurement-noise std per sample takes the
     recommended substeps (for the rest of the loop: the likelihood then
     judges the model, not its discretisation) and the declared model is
-    refitted (logged)."""
+    refitted (logged); where the filter fails at the adopted step and at the
+    current method's own substeps (:func:`_refit_at_adopted`), the loop
+    stops (:class:`~bondgraph.errors.NumericalError`, the steps and reasons
+    named) rather than go on with numerics that fail their own check."""
     checked = recommended_substeps(ctx, initial)
     disc, taken = _adopted(ctx, initial, checked, ctx.settings.search.auto_substeps)
     warn = check_discretisation(ctx, initial, checked=checked, taken=taken)
@@ -1475,7 +1479,11 @@ def resolved_fit(ctx: Context, graph: BondGraph, initial: Fit) -> tuple[Fit, lis
         return initial, warn
     refit, _ = _refit_at_adopted(ctx, warn, initial, DECLARED, disc, checked,
                                  lambda at: initial_fit(ctx, graph, again=True))
-    return (initial if refit is None else refit), warn
+    if refit is None:       # no numerics within the check that the filter can run
+        raise NumericalError(f"{warn[-1]}: the loop does not go on with numerics that fail "
+                             f"their own check; give --method and --substeps the filter runs "
+                             f"at, or declare process noise on the stiff states")
+    return refit, warn
 
 
 #: the label of the declared fit in :func:`_refit_at_adopted`
