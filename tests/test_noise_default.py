@@ -457,24 +457,65 @@ def test_a_noise_std_on_its_box_is_named_with_the_side_and_the_cause():
     logs = []
     ctx = SimpleNamespace(log=logs.append)
     start = {"qm": 1e-6, "v": 0.1, "w": 0.2}
+    boxes = {o: (v / NOISE_BOX, v * NOISE_BOX, v, True) for o, v in start.items()}
     est = {"qm": 1e-6 * NOISE_BOX, "v": 0.1 / NOISE_BOX, "w": 0.3}
     std = {"noise.qm": 1.0, "noise.v": 1.0, "noise.w": 0.01}
-    _noise_bound_warning(ctx, "the declared fit", est, start, std, process_noise=False)
+    _noise_bound_warning(ctx, "the declared fit", est, boxes, std, process_noise=False)
     assert std == {"noise.qm": None, "noise.v": None, "noise.w": 0.01}
     assert logs == [
         "  warning: the declared fit: measurement-noise std on the bottom of its box: v = 1e-05 "
         "(not identified by the record beside the process noise; declare it in the record or "
         "use noise='model')",
         "  warning: the declared fit: measurement-noise std on the top of its box: qm = 0.01, "
-        "10000 times the level the fit started from (1e-06): not the sensor but the model's "
+        "10000 times the record's level (1e-06): not the sensor but the model's "
         "error, which the filter reads as sensor noise (no process noise is declared: declare "
         "it on the states where efforts or flows are unmodelled); declare the sensor's level in "
         "the record to hold it"]
     logs.clear()
-    _noise_bound_warning(ctx, "a refit", {"qm": 0.01}, {"qm": 1e-6}, {}, process_noise=True)
-    # a refit's box is centred on the fit it refits, not the record's level:
-    # the line names that start (a user's closed-loop graph read "10000 times
-    # the sensor's level" for a previous fit's 1.79e-07, the record's 0.040)
+    _noise_bound_warning(ctx, "a refit", {"qm": 0.01}, {"qm": (1e-10, 0.01, 1e-6, False)}, {},
+                         process_noise=True)
+    # a box not kept on the record's level (a problem made without one) is
+    # centred on the fit's start, and the line names that start
     assert logs[0].endswith("qm = 0.01, 10000 times the level the fit started from (1e-06): not "
                             "the sensor but the model's error, which the filter reads as sensor "
                             "noise; declare the sensor's level in the record to hold it")
+
+def test_a_refit_from_a_drifted_noise_level_reaches_the_records_level_again():
+    """The loop's refits start from the previous fit's noise estimate. A
+    box ×/÷ NOISE_BOX around that start drifted away from the record one
+    refit at a time (a user's closed-loop graph: a level on the bottom of
+    its box, refitted twice, ended at 1.79e-11 V and could no longer reach
+    the record's 0.040 V). The planned noise keeps the record's level as
+    the box's centre: a refit started 1e5 below the truth returns to it
+    (within 3 Cramér-Rao std of the std the record was drawn with); the
+    box centred on the start ends on its top, a factor 10 short."""
+    from dataclasses import replace
+
+    from bondgraph.diagnose.fit import noise_boxes, noise_start, planned_noise
+    from bondgraph.diagnose.inference_calls import fisher_fit
+    from bondgraph.diagnose.settings import LoopSettings
+
+    model = _bare_msd()
+    sd = 0.004
+    exp = _record(model, sd=np.array([sd]), seed=3)
+    settings = LoopSettings(params=["k"], ukf=UKF)
+    _, spec = planned_noise(make_problem(model, exp, noise=NoiseSpec("auto"), ukf=UKF),
+                            settings, log=lambda _m: None)
+    assert spec.outputs(model) == ["x"] and spec.centre["x"] == spec.held["x"]
+    base = make_problem(model, exp, prior=PriorSpec(scale="magnitude"), noise=spec, ukf=UKF)
+    drifted = base.conditioned_on(noise_levels={"x": sd / 1e5})
+    assert drifted.noise.centre == spec.centre           # kept over the refits' levels
+    j = [model.param_index("k")]
+    box = model.bounds(["k"])
+    found = {}
+    centred_on_start = replace(drifted, noise=replace(drifted.noise, centre={}))
+    for name, pb in (("anchored", drifted), ("start", centred_on_start)):
+        th, F, conv, _, _, sig, *_ = fisher_fit(pb, model.theta0, j, box, 40,
+                                                log_scale=[False], noises=["x"])
+        found[name] = (sig["x"], F)
+    s, F = found["anchored"]
+    crb = np.sqrt(np.linalg.inv(F)[-1, -1])              # noise std last
+    assert abs(s - sd) < 3 * crb, (s, sd, crb)
+    (lo, hi, centre, of_record), = noise_boxes(drifted, noise_start(drifted, model.theta0)).values()
+    assert of_record and centre == spec.centre["x"] and lo == pytest.approx(sd / 1e5)
+    assert found["start"][0] == pytest.approx(sd / 1e5 * 1e4, rel=1e-6)   # its box's top

@@ -361,32 +361,52 @@ def x0_states(ctx: Context, model: Model) -> list[str]:
 
 def noise_start(problem: Problem, theta: np.ndarray) -> dict:
     """Output -> start of its estimated noise std in a fit (the held level,
-    else ``meas_std(θ)``): the centre of its box (×/÷ NOISE_BOX)."""
+    else ``meas_std(θ)``)."""
     model = problem.model
     meas = np.asarray(model.meas_std(theta[None, :]), float)[0]
     return {o: float(problem.noise.held.get(o, meas[model.output_index(o)]))
             for o in problem.noise.outputs(model)}
 
 
-def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: dict,
+def noise_boxes(problem: Problem, start: dict) -> dict:
+    """Output -> ``(lower, upper, centre, of the record)`` of its estimated
+    noise std's box in a fit from ``start`` (:func:`noise_start`): ×/÷
+    NOISE_BOX around the record's level where the problem keeps it
+    (:attr:`NoiseSpec.centre`), else around the start; reaching the start
+    (:meth:`~bondgraph.inference.estimand.Estimand.bounds`)."""
+    out = {}
+    for o, s in start.items():
+        c = problem.noise.centre.get(o)
+        ctr = s if c is None else c
+        out[o] = (min(ctr / NOISE_BOX, s), max(ctr * NOISE_BOX, s), ctr, c is not None)
+    return out
+
+
+def _noise_bound_warning(ctx: Context, what: str, est: dict, boxes: dict, std: dict,
                          process_noise: bool = True) -> None:
-    """Log a warning for estimated noise stds on a bound of their box; their
-    Cramér-Rao std becomes None. On the bottom of the box the likelihood
-    puts the output's variance elsewhere (into process noise); on the top
-    the model's misfit sets it (without ``process_noise``, the filter's
-    prediction is the free run and its whole error reads as sensor noise)."""
-    lo = [o for o, v in est.items() if o in start and start[o] > 0
-          and not start[o] / NOISE_BOX * (1 + 1e-6) < v]
-    hi = [o for o, v in est.items() if o in start and start[o] > 0 and o not in lo
-          and not v < start[o] * NOISE_BOX * (1 - 1e-6)]
+    """Log a warning for estimated noise stds on a bound of their box
+    (``boxes``: :func:`noise_boxes`); their Cramér-Rao std becomes None. On
+    the bottom of the box the likelihood puts the output's variance
+    elsewhere (into process noise); on the top the model's misfit sets it
+    (without ``process_noise``, the filter's prediction is the free run and
+    its whole error reads as sensor noise)."""
+    box = {o: b for o, b in boxes.items() if o in est and b[0] > 0}
+    lo = [o for o in box if not box[o][0] * (1 + 1e-6) < est[o]]
+    hi = [o for o in box if o not in lo and not est[o] < box[o][1] * (1 - 1e-6)]
     for o in lo + hi:
         std[f"noise.{o}"] = None
 
     def listed(outs):
         return ", ".join(f"{o} = {est[o]:.3g}" for o in outs)
 
-    def started(outs):      # the box's centre: the record's level, or a previous fit's
-        return ", ".join(f"{start[o]:.3g}" for o in outs)
+    def centred(outs):      # the box's centre: the record's level, or the fit's start
+        rec = [o for o in outs if box[o][3]]
+        parts = [f"{NOISE_BOX:g} times the record's level ("
+                 + ", ".join(f"{box[o][2]:.3g}" for o in rec) + ")"] if rec else []
+        if len(rec) < len(outs):
+            parts.append(f"{NOISE_BOX:g} times the level the fit started from ("
+                         + ", ".join(f"{box[o][2]:.3g}" for o in outs if o not in rec) + ")")
+        return "; ".join(parts)
 
     if lo:
         ctx.log(f"  warning: {what}: measurement-noise std on the bottom of its box: "
@@ -398,9 +418,8 @@ def _noise_bound_warning(ctx: Context, what: str, est: dict, start: dict, std: d
                  "unmodelled)") if not process_noise else \
             "the model's error, which the filter reads as sensor noise"
         ctx.log(f"  warning: {what}: measurement-noise std on the top of its box: "
-                f"{listed(hi)}, {NOISE_BOX:g} times the level the fit started from "
-                f"({started(hi)}): not the sensor but {where}; declare the sensor's level in "
-                f"the record to hold it")
+                f"{listed(hi)}, {centred(hi)}: not the sensor but {where}; declare the "
+                f"sensor's level in the record to hold it")
 
 
 def planned_noise(problem: Problem, settings: LoopSettings,
@@ -426,7 +445,10 @@ def planned_noise(problem: Problem, settings: LoopSettings,
             f"{o} = {v:.4g}" for o, v in held.items() if o not in outs))
     for note in notes or ["noise levels: the model's own (nothing to estimate or hold)"]:
         log(note)
-    return add, NoiseSpec("auto", held=held, estimated=outs)
+    # the record's level stays the centre of an estimated level's box in
+    # every refit (a refit starts from the earlier fit's estimate)
+    return add, NoiseSpec("auto", held=held, estimated=outs,
+                          centre={o: held[o] for o in outs if o in held})
 
 
 def criterion_for(ctx: Context, model: Model, names: Sequence[str], base: np.ndarray):
@@ -775,7 +797,7 @@ def _fitted(ctx: Context, pb: Problem, params: list[str], theta: np.ndarray, ite
                                                         tolerance, stop)
         x0_est.update(x0_new)
         noise_est.update(noise_new)
-        _noise_bound_warning(ctx, what, noise_new, start_sigma, std,
+        _noise_bound_warning(ctx, what, noise_new, noise_boxes(pb, start_sigma), std,
                              not no_process_noise(model, theta))
     fitted = pb.conditioned_on(x0={**pb.prior.estimated, **x0_est}, noise_levels=noise_est)
     return fitted, theta, std, conv, x0_est, noise_est

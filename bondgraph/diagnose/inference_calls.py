@@ -254,11 +254,13 @@ def _estimand(problem: Problem, theta: np.ndarray, index: Sequence[int], P0: np.
     """The :class:`~bondgraph.inference.estimand.Estimand` of the parameters
     ``index`` at ``theta`` (and the initial states ``states``, the noise stds
     of ``noises``) on ``problem``: its prior mean, the initial states scaled
-    by the prior ``P0`` (n_x, n_x), its held noise levels."""
+    by the prior ``P0`` (n_x, n_x), its held noise levels and the centres
+    of the estimated ones' boxes."""
     model = problem.model
     return Estimand(model, [model.params[j] for j in index], states=list(states), theta=theta,
                     x0=problem.x0, x0_scale=np.sqrt(np.maximum(np.diag(P0), 1e-300)),
-                    noises=list(noises), sigma=problem.noise.sigma(model))
+                    noises=list(noises), sigma=problem.noise.sigma(model),
+                    sigma_centre=problem.noise.centres(model))
 
 
 def lbfgsb_polish(crit: Criterion, x: np.ndarray, lower, upper, iterations: int) -> np.ndarray:

@@ -69,6 +69,9 @@ class Estimand:
     x0_scale : ndarray (n_x,)
         Spread of each initial state (the prior's std): sets the box of an
         estimated one.
+    sigma_centre : ndarray (n_y,), optional
+        The centre of an estimated noise std's box (the record's level; NaN
+        or None: the std's current value).
     """
 
     model: object
@@ -79,6 +82,7 @@ class Estimand:
     x0: np.ndarray = None
     sigma: np.ndarray = None
     x0_scale: np.ndarray = None
+    sigma_centre: np.ndarray = None
 
     def __post_init__(self):
         m = self.model
@@ -185,13 +189,19 @@ class Estimand:
         """Box (k,) of every estimated quantity: the parameters' boxes
         (``lower``/``upper`` of the parameters, default the model's), an
         initial state ± :data:`X0_BOX` of its spread around its current value,
-        a noise std within a factor :data:`NOISE_BOX` of its current value."""
+        a noise std within a factor :data:`NOISE_BOX` of its box's centre
+        (``sigma_centre``, else its current value), reaching the current
+        value where that lies outside."""
         if lower is None or upper is None:
             lower, upper = self.model.bounds(self.params)
         xs, ss = self.x0[self.s_idx], self.x0_scale[self.s_idx]
         sg = self.sigma[self.n_idx]
-        lo = np.concatenate([np.asarray(lower, float), xs - X0_BOX * ss, sg / NOISE_BOX])
-        hi = np.concatenate([np.asarray(upper, float), xs + X0_BOX * ss, sg * NOISE_BOX])
+        c = sg if self.sigma_centre is None else np.asarray(self.sigma_centre, float)[self.n_idx]
+        c = np.where(np.isfinite(c) & (c > 0), c, sg)
+        lo = np.concatenate([np.asarray(lower, float), xs - X0_BOX * ss,
+                             np.minimum(c / NOISE_BOX, sg)])
+        hi = np.concatenate([np.asarray(upper, float), xs + X0_BOX * ss,
+                             np.maximum(c * NOISE_BOX, sg)])
         return lo, hi
 
     def log_scale(self, noise_params: Sequence[str] = ()) -> np.ndarray:

@@ -95,11 +95,19 @@ class NoiseSpec:
         units); the others come from ``meas_std(θ)``.
     estimated : sequence of str
         Outputs whose noise std a fit estimates with θ (``noise.<output>``).
+    centre : dict
+        Output -> the centre of its estimated level's box (×/÷
+        :data:`~bondgraph.inference.estimand.NOISE_BOX`): the level the
+        first fit started from (the record's). A refit's box reaches it
+        whatever the earlier fits estimated, so that the box does not
+        drift away from the record's level one refit at a time. An output
+        without one has its box centred on the level the fit starts from.
 
     Raises
     ------
     OptionError
-        An unknown mode, or a held level that is not a finite number > 0.
+        An unknown mode, or a held level or centre that is not a finite
+        number > 0.
 
     Notes
     -----
@@ -111,24 +119,31 @@ class NoiseSpec:
     mode: str = "auto"
     held: Mapping[str, float] = field(default_factory=dict)
     estimated: tuple = ()
+    centre: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         if self.mode not in NOISE_MODES:
             raise OptionError(f"NoiseSpec.mode (--noise) must be one of "
                               f"{', '.join(NOISE_MODES)}, got {self.mode!r}")
-        held = {}
-        for o, v in dict(self.held or {}).items():
-            v = float(v)
-            if not np.isfinite(v) or v <= 0:
-                raise OptionError(f"held measurement-noise std of '{o}' must be a finite "
-                                  f"number > 0, got {v!r}")
-            held[str(o)] = v
-        object.__setattr__(self, "held", held)
+        for name, what in (("held", "held measurement-noise std"),
+                           ("centre", "centre of the measurement-noise box")):
+            levels = {}
+            for o, v in dict(getattr(self, name) or {}).items():
+                v = float(v)
+                if not np.isfinite(v) or v <= 0:
+                    raise OptionError(f"{what} of '{o}' must be a finite number > 0, "
+                                      f"got {v!r}")
+                levels[str(o)] = v
+            object.__setattr__(self, name, levels)
         object.__setattr__(self, "estimated", tuple(str(o) for o in self.estimated))
 
     def sigma(self, model) -> np.ndarray:
         """The held stds (n_y,) in ``model``'s output order, NaN where not held."""
         return np.array([float(self.held.get(o, np.nan)) for o in model.outputs])
+
+    def centres(self, model) -> np.ndarray:
+        """The boxes' centres (n_y,) in ``model``'s output order, NaN where none."""
+        return np.array([float(self.centre.get(o, np.nan)) for o in model.outputs])
 
     def covariance(self, model, thetas) -> np.ndarray | None:
         """The filter's R (P, n_y, n_y) with the held levels
