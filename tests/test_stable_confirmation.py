@@ -254,3 +254,38 @@ def test_a_width_refit_far_above_the_best_is_not_continued(coulomb):
     assert confirm._out_of_reach(ctx, fit, np.inf) == ""
     fit.converged = True
     assert confirm._out_of_reach(ctx, fit, edge - 1.0) == ""
+
+
+def test_a_refit_that_stiffened_onto_its_box_is_refitted_once_more(coulomb, monkeypatch):
+    """:func:`confirm._after_refit`: a confirmation refit that ended at the
+    Coulomb level of the truth, where the loop's RK4(1) is unstable (stable
+    from 4 substeps, hand-derived above), is refitted at RK4(4) when it was
+    the first refit; after an earlier move to a stabler step it is not
+    comparable (its law stiffened again), unless it ended with an estimate
+    on its box, where the law can stiffen no further: then once more, and
+    not a third time."""
+    from bondgraph.diagnose.fit import Context
+
+    model, pb = coulomb
+    logs: list[str] = []
+    ctx = Context(problem=pb, settings=LoopSettings(params=["m", "b"]), log=logs.append)
+    names = ["m", "b", "Fc"]
+
+    def after(at_bound, again, boxed):
+        f = SimpleNamespace(nll=-100.0, converged=True, ukf=None, at_bound=at_bound,
+                            estimates=lambda: {"m": MASS, "b": B, "Fc": FC})
+        monkeypatch.setattr(confirm, "chosen_refit", lambda *a: f)
+        got, nxt = confirm._after_refit(ctx, None, model, names, [f], "c", 1, again, boxed)
+        assert got is f
+        return f, nxt, logs[-1]
+
+    f, nxt, said = after([], True, True)
+    assert nxt.problem.disc.substeps == 4 and f.converged is True
+    assert said.endswith("stable from rk4(4)): refitted with rk4(4)"), said
+    f, nxt, said = after(["Fc"], False, True)
+    assert nxt.problem.disc.substeps == 4 and f.converged is True
+    assert "stable from rk4(4)), with Fc on its box, where the law stiffens no further: " \
+           "refitted with rk4(4)" in said, said
+    for at_bound, boxed in (([], True), (["Fc"], False), (["not_estimated"], True)):
+        f, nxt, said = after(at_bound, False, boxed)
+        assert nxt is None and f.converged is False and said.endswith(": not comparable")
