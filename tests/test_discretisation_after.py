@@ -192,6 +192,10 @@ def test_a_filter_that_fails_at_the_adopted_step_falls_back_or_rejects(monkeypat
     assert not res.steps
     why, = [w for w in res.warnings if "cannot be refitted" in w]
     assert "rk4(1)" in why and "ros2(24)" in why and "the filter keeps ros2(4)" in why
+    # the rejection the report lists gives the same cause, not a failed accept rule
+    rej, = [r for r in res.rejected if r.candidate.effect == "end_stop"]
+    assert rej.reason.startswith("it cannot be refitted at the step its discretisation check "
+                                 "asks for (the filter fails there"), rej.reason
 
 
 def test_a_filter_that_fails_at_the_step_the_declared_fit_adopts_falls_back(monkeypatch):

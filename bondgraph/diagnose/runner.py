@@ -2342,6 +2342,17 @@ def judged_pair(ctx: Context, current: Fit, pair: tuple, conf: Confirmation):
     return d, reason
 
 
+def finer_step_reason(finer) -> str:
+    """The rejection's reason where :func:`fit_after_discretisation_check`
+    gave no fit: its refit at the step the check asks for failed the accept
+    rule (``finer``, that decision), or could not be made (None: the filter
+    fails there; the warning names the steps tried)."""
+    if finer is not None:
+        return f"refitted at the finer step it no longer passes the accept rule ({finer.reason})"
+    return ("it cannot be refitted at the step its discretisation check asks for (the filter "
+            "fails there; the warning names the steps tried)")
+
+
 def committed_pair(ctx: Context, result: LoopResult, current: Fit, pair: tuple,
                    conf: Confirmation, d, step: int) -> Fit | None:
     """Record the accepted ``pair`` (refit ``conf``, decision ``d``) as one
@@ -2356,8 +2367,8 @@ def committed_pair(ctx: Context, result: LoopResult, current: Fit, pair: tuple,
                                                   (current, conf.dof, conf.comparable,
                                                    pair))
     if after is None:
-        result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: refitted at "
-                                         f"the finer step it no longer passes",
+        result.rejected.append(Rejection(step, a, f"as a pair with {b.label}: "
+                                         f"{finer_step_reason(finer)}",
                                          d.criterion_after, d.whiteness_after))
         return None
     d = finer or d
@@ -3230,8 +3241,7 @@ def accept_best(ctx: Context, result: LoopResult, current: Fit,
                                                           (current, conf.dof,
                                                            conf.comparable, [c]))
             if after is None:
-                result.rejected.append(Rejection(step, c, "refitted at the finer step it no "
-                                                 "longer passes the accept rule",
+                result.rejected.append(Rejection(step, c, finer_step_reason(finer),
                                                  d.criterion_after, d.whiteness_after))
                 continue
             d = finer or d
