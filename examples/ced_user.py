@@ -86,12 +86,16 @@ def ced_abs() -> BondGraph:
     """Another user's CED graph: :func:`ced_user` with the README's
     sign-blind pulse counter declared, the output z = |ω_p| (``sp.Abs``).
 
-    With ``--graph abs`` (2026-12-04, 126-162 s): a sensor low-pass, Dahl
-    friction at the motor, a source lag with a cubic sensor term (a pair),
-    then a quadratic drag at the pulley; held-out quarter 0.3656 ->
-    0.09848; RMS on the runs it never saw, prbs2 1.155 -> 0.8736, prbs3
-    0.2588 -> 0.1084 (``ced_user`` after its own loop: 0.887, 0.1277;
-    eq. (9) with the rectification: 1.137, 0.2463). Before the loop refitted at the current method's own
+    With ``--graph abs`` (2026-12-04, 44-58 s): a sensor low-pass, a
+    quadratic armature law, a source lag, then Dahl friction at the motor;
+    held-out quarter 0.3656 -> 0.1004; RMS on the runs it never saw, prbs2
+    1.155 -> 0.4663, prbs3 0.2588 -> 0.2351 (``ced_user`` after its own
+    loop: 0.6349, 0.114; eq. (9) with the rectification: 1.137, 0.2463).
+    Before the noise levels' boxes stayed on the record's level in every
+    refit (``NoiseSpec.centre``; 126-162 s): the low-pass, Dahl friction, a
+    source lag with a cubic sensor term (a pair), a quadratic drag at the
+    pulley; held out 0.09848, prbs2 0.8736, prbs3 0.1084. Before the loop
+    refitted at the current method's own
     substeps where the filter fails at the other method's adopted step
     (``runner._refit_at_adopted``), this run ended with an error after 73 s:
     RK4(3) adopted in place of ROS2(16) for the pair, the filter non-finite
