@@ -68,6 +68,7 @@ from bondgraph.diagnose.fit import (
     robust_lr,
     robust_std_of,
     planned_noise,
+    predicts_by_free_run,
     problem_for,
     recommended_substeps,
     adopted_discretisation,
@@ -1119,9 +1120,11 @@ def global_start(ctx: Context, fit: Fit, names: list[str]) -> dict | None:
     search (:func:`bondgraph.diagnose.screen.global_output_error`: a particle
     swarm over the declared boxes of the physical parameters of ``names``,
     then least squares from the better of its best and ``fit``'s estimates)
-    when the model has
-    no process noise (its likelihood is then the output-error one, up to the
-    filter's initial-state correction) and ``fit``'s free run is poor (NRMSE
+    when the filter
+    predicts by the free run (no process noise, or the free-run likelihood's
+    floor, :func:`~bondgraph.diagnose.fit.predicts_by_free_run`: its
+    likelihood is then the output-error one, up to the filter's
+    initial-state correction) and ``fit``'s free run is poor (NRMSE
     at least :data:`~bondgraph.diagnose.screen.SCREEN_LEVEL`): a local fit
     from the declared defaults can settle in a basin whose free run is worse
     than the record's mean (a user's CED graph with its rectifying sensor
@@ -1135,16 +1138,23 @@ def global_start(ctx: Context, fit: Fit, names: list[str]) -> dict | None:
     pb = problem_for(ctx, fit.model)
     level = free_run_nrmse(fit, pb.y)
     phys = [n for n in names if n not in noise and n in fit.model.params]
-    if noise or not phys or level < SCREEN_LEVEL:
+    if not predicts_by_free_run(ctx, pb, fit.theta) or not phys or level < SCREEN_LEVEL:
         return None
     ctx.log(f"  the declared fit's free run is poor (NRMSE {level:.3g} >= {SCREEN_LEVEL}) and "
-            f"the model has no process noise: {', '.join(phys)} searched globally by output "
-            f"error, then the likelihood from there")
+            f"the filter predicts by it ({_free_run_why(ctx)}): {', '.join(phys)} searched "
+            f"globally by output error, then the likelihood from there")
     r = global_output_error(ctx, fit.model, pb, phys, fit.theta)
     if r is None:
         return None
     ctx.log(f"  global output-error fit: {_oe_summary(r)}")
     return r.estimates()
+
+
+def _free_run_why(ctx: Context) -> str:
+    """Why the filter predicts by the free run (:func:`predicts_by_free_run`)."""
+    if ctx.settings.search.likelihood == "free_run":
+        return "the loop fits by the free-run likelihood, the process noise held at its floor"
+    return "the model has no process noise"
 
 
 def check_declared_fit(fit: Fit) -> None:

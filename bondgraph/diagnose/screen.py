@@ -11,9 +11,12 @@ nothing (the user CED graph: its score test 0.56, rank 22 of 39). The
 effect shows only after the physical parameters move to another basin
 together with it.
 
-So when the model has no process noise (the output-error likelihood is then
-the model's own; a vehicle case with a grade process noise ranked a rectifying
-sensor above its true offset by it) and the free-run NRMSE of the current fit
+So when the filter predicts by the free run (the model has no process noise,
+or the loop fits by the free-run likelihood with the process noise held at
+its floor, :func:`~bondgraph.diagnose.fit.predicts_by_free_run`: the
+output-error likelihood is then the model's own; a vehicle case with a
+grade process noise ranked a rectifying sensor above its true offset by it)
+and the free-run NRMSE of the current fit
 (mean over the outputs of
 RMS(error)/std(measured)) is at least :data:`SCREEN_LEVEL`, each additive
 candidate with natural values (a full rectification, ...;
@@ -42,7 +45,7 @@ import numpy as np
 
 from bondgraph.core.deferred import chi2
 from bondgraph.diagnose.effects import get_effect
-from bondgraph.diagnose.fit import Context, Fit, noise_params
+from bondgraph.diagnose.fit import Context, Fit, noise_params, predicts_by_free_run, problem_for
 from bondgraph.diagnose.metric import nrmse
 from bondgraph.diagnose.result import Candidate
 from bondgraph.errors import BondGraphError
@@ -74,8 +77,8 @@ def output_error_screen(ctx: Context, probe, fit: Fit, cands: list[Candidate]) -
     :data:`SCREEN_LEVEL` or no candidate has natural values. Logs one line
     per candidate it raises."""
     noise = noise_params(fit.model)
-    if noise:       # process noise: the output-error likelihood is not the model's
-        return
+    if not predicts_by_free_run(ctx, problem_for(ctx, fit.model), fit.theta):
+        return      # process noise: the output-error likelihood is not the model's
     y = probe.y
     level = free_run_nrmse(fit, y)
     todo = [c for c in cands if not c.failed and _natural(ctx, c)]
