@@ -851,11 +851,12 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
     from bondgraph.inference.problem import NoiseSpec
 
     ctx0, fit0 = _absorbing_case()
+    Y = 5.0 + 2.0 * np.sin(np.arange(1024.0))[:, None]     # the record's output, std 1.41
 
     class _Problem:
         def __init__(self, noise, fixed=None):
             self.noise, self.fixed = noise, dict(fixed or {})
-            self.arrays = ctx0.problem.arrays[:2] + (np.full((1024, 1), 5.0),)
+            self.arrays = ctx0.problem.arrays[:2] + (Y,)
             self.theta = ctx0.problem.theta
 
         def with_fixed(self, fixed):
@@ -870,7 +871,7 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
         return SimpleNamespace(settings=s, problem=p, cache={"stale": 1}, log=logs.append)
 
     logs: list[str] = []
-    fit0.metric, fit0.sim_y, fit0.warnings = 0.31, np.full((1024, 1), 5.5), []
+    fit0.metric, fit0.sim_y, fit0.warnings = 0.31, Y + 0.5, []       # NRMSE 0.35
     fit0.model.params = ["k", "w1", "w2", "s"]
     fit0.estimates = lambda: {}
     fit0.theta = np.array([0.30, 0.02, 0.05])
@@ -900,6 +901,15 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
     assert runner.free_run_likelihood(ctx, None, fit0, []) == (fit0, [])
     assert ctx.problem is before and ctx.settings.params == ["k", "w1", "w2", "s"]
     assert ctx.settings.search.likelihood == "one_step" and "w1" not in ctx.settings.fixed
+    # neither free run describes the record (NRMSE 0.8 or more each): the
+    # free-run likelihood is kept though its error grew, for the screen
+    fit0.sim_y, refit.sim_y = Y + 1.2, Y + 1.3
+    ctx = context()
+    assert runner.free_run_likelihood(ctx, None, fit0, []) == (refit, ["checked"])
+    assert ctx.settings.search.likelihood == "free_run"
+    assert any("neither the one-step fit's free run nor the free-run fit's describes the record "
+               "(NRMSE 0.8485, 0.9192, each >= 0.8)" in m for m in logs), logs
+    fit0.sim_y = Y + 0.5
     # no absorption, or the graph's own noise levels: the one-step likelihood
     for theta, noise in (([0.011, 0.011, 0.05], "auto"), ([0.30, 0.02, 0.05], "model")):
         fit0.theta = np.array(theta)
