@@ -455,7 +455,7 @@ def test_a_noise_std_on_its_box_is_named_with_the_side_and_the_cause():
     from bondgraph.inference.estimand import NOISE_BOX
 
     logs = []
-    ctx = SimpleNamespace(log=logs.append)
+    ctx = SimpleNamespace(log=logs.append, said=set())
     start = {"qm": 1e-6, "v": 0.1, "w": 0.2}
     boxes = {o: (v / NOISE_BOX, v * NOISE_BOX, v, True) for o, v in start.items()}
     est = {"qm": 1e-6 * NOISE_BOX, "v": 0.1 / NOISE_BOX, "w": 0.3}
@@ -465,20 +465,27 @@ def test_a_noise_std_on_its_box_is_named_with_the_side_and_the_cause():
     assert logs == [
         "  warning: the declared fit: measurement-noise std on the bottom of its box: v = 1e-05 "
         "(not identified by the record beside the process noise; declare it in the record or "
-        "use noise='model')",
+        "use noise='model'; said once per output)",
         "  warning: the declared fit: measurement-noise std on the top of its box: qm = 0.01, "
         "10000 times the record's level (1e-06): not the sensor but the model's "
         "error, which the filter reads as sensor noise (no process noise is declared: declare "
         "it on the states where efforts or flows are unmodelled); declare the sensor's level in "
-        "the record to hold it"]
+        "the record to hold it (said once per output)"]
+    # a refit that ends there again is not said again, its std still dropped
     logs.clear()
+    std = {"noise.qm": 1.0, "noise.v": 1.0}
+    _noise_bound_warning(ctx, "a refit", est, boxes, std, process_noise=False)
+    assert logs == [] and std == {"noise.qm": None, "noise.v": None}
+    ctx.said.clear()
     _noise_bound_warning(ctx, "a refit", {"qm": 0.01}, {"qm": (1e-10, 0.01, 1e-6, False)}, {},
                          process_noise=True)
     # a box not kept on the record's level (a problem made without one) is
     # centred on the fit's start, and the line names that start
     assert logs[0].endswith("qm = 0.01, 10000 times the level the fit started from (1e-06): not "
                             "the sensor but the model's error, which the filter reads as sensor "
-                            "noise; declare the sensor's level in the record to hold it")
+                            "noise; declare the sensor's level in the record to hold it (said "
+                            "once per output)")
+
 
 def test_a_refit_from_a_drifted_noise_level_reaches_the_records_level_again():
     """The loop's refits start from the previous fit's noise estimate. A

@@ -389,12 +389,19 @@ def _noise_bound_warning(ctx: Context, what: str, est: dict, boxes: dict, std: d
     the bottom of the box the likelihood puts the output's variance
     elsewhere (into process noise); on the top the model's misfit sets it
     (without ``process_noise``, the filter's prediction is the free run and
-    its whole error reads as sensor noise)."""
+    its whole error reads as sensor noise). Each output and side is said
+    once per loop (``ctx.said``): a level on the bottom of its box is there
+    in every refit (a user's closed-loop EMPS graph: 40 lines)."""
     box = {o: b for o, b in boxes.items() if o in est and b[0] > 0}
     lo = [o for o in box if not box[o][0] * (1 + 1e-6) < est[o]]
     hi = [o for o in box if o not in lo and not est[o] < box[o][1] * (1 - 1e-6)]
     for o in lo + hi:
         std[f"noise.{o}"] = None
+    said = getattr(ctx, "said", None)
+    if said is not None:        # each output and side said once per loop (every refit repeats it)
+        lo = [o for o in lo if f"noise-low:{o}" not in said]
+        hi = [o for o in hi if f"noise-high:{o}" not in said]
+        said.update([f"noise-low:{o}" for o in lo] + [f"noise-high:{o}" for o in hi])
 
     def listed(outs):
         return ", ".join(f"{o} = {est[o]:.3g}" for o in outs)
@@ -411,7 +418,7 @@ def _noise_bound_warning(ctx: Context, what: str, est: dict, boxes: dict, std: d
     if lo:
         ctx.log(f"  warning: {what}: measurement-noise std on the bottom of its box: "
                 f"{listed(lo)} (not identified by the record beside the process noise; "
-                f"declare it in the record or use noise='model')")
+                f"declare it in the record or use noise='model'; said once per output)")
     if hi:
         where = ("the model's error, which the filter reads as sensor noise (no process noise "
                  "is declared: declare it on the states where efforts or flows are "
@@ -419,7 +426,7 @@ def _noise_bound_warning(ctx: Context, what: str, est: dict, boxes: dict, std: d
             "the model's error, which the filter reads as sensor noise"
         ctx.log(f"  warning: {what}: measurement-noise std on the top of its box: "
                 f"{listed(hi)}, {centred(hi)}: not the sensor but {where}; declare the "
-                f"sensor's level in the record to hold it")
+                f"sensor's level in the record to hold it (said once per output)")
 
 
 def planned_noise(problem: Problem, settings: LoopSettings,
