@@ -842,10 +842,11 @@ def test_process_noise_floor_is_a_random_walk_of_one_percent_of_the_spread():
 
 def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypatch):
     """``likelihood="auto"``: a declared fit whose process noise absorbs the
-    model's error is refitted with the intensities at their floor and the
-    record's declared sensor noise estimated; the switch is kept only if the
-    free run's error on the record does not grow, else settings and problem
-    are restored. Without absorption, or under noise='model', nothing
+    model's error, or whose process noise is estimated at all (the loop
+    judges by the free run), is refitted with the intensities at their
+    floor and the record's declared sensor noise estimated; the switch is
+    kept only if the free run's error on the record does not grow, else
+    settings and problem are restored. Under noise='model' nothing
     changes."""
     from bondgraph.diagnose import runner
     from bondgraph.inference.problem import NoiseSpec
@@ -911,11 +912,23 @@ def test_the_loop_switches_to_the_free_run_likelihood_only_on_evidence(monkeypat
                "(NRMSE 0.8485, 0.9192, each >= 0.8)" in m for m in logs), logs
     fit0.sim_y = Y + 0.5
     # no absorption, or the graph's own noise levels: the one-step likelihood
+    # (without absorption the free-run fit is tried all the same, the
+    # process noise being estimated, and not kept: its error grew)
     for theta, noise in (([0.011, 0.011, 0.05], "auto"), ([0.30, 0.02, 0.05], "model")):
         fit0.theta = np.array(theta)
         ctx = context(noise=noise)
         assert runner.free_run_likelihood(ctx, None, fit0, []) == (fit0, [])
         assert ctx.settings.search.likelihood == "one_step" and "w1" not in ctx.settings.fixed
+    assert any(m.startswith("the process noise is estimated and the loop judges by the free "
+                            "run (the one-step fit's free-run error on the record 0.31)")
+               for m in logs), logs
+    # ... and kept where the free-run fit's error on the record is lower
+    refit.metric = 0.28
+    fit0.theta = np.array([0.011, 0.011, 0.05])
+    ctx = context()
+    assert runner.free_run_likelihood(ctx, None, fit0, []) == (refit, ["checked"])
+    assert ctx.settings.search.likelihood == "free_run" and "w1" in ctx.settings.fixed
+    refit.metric = 0.35
     # asked for: switched without the evidence, and kept though the error grew
     ctx = context(mode="free_run")
     assert runner.free_run_likelihood(ctx, None, fit0, []) == (refit, ["checked"])
