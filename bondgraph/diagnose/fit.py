@@ -30,6 +30,7 @@ from bondgraph.diagnose.inference_calls import (
     NoiseSpec,
     Problem,
     fisher_fit,
+    noise_box,
     hessian_cramer_rao,
     interval_errors,
     lbfgsb_polish,
@@ -378,7 +379,7 @@ def noise_boxes(problem: Problem, start: dict) -> dict:
     for o, s in start.items():
         c = problem.noise.centre.get(o)
         ctr = s if c is None else c
-        out[o] = (min(ctr / NOISE_BOX, s), max(ctr * NOISE_BOX, s), ctr, c is not None)
+        out[o] = (*(float(v) for v in noise_box(ctr, s)), ctr, c is not None)
     return out
 
 

@@ -24,8 +24,8 @@ from bondgraph.inference.estimate import (
     relative_direction,
 )
 from bondgraph.inference.executor import Executor
-from bondgraph.inference.estimand import (NOISE_BOX, Estimand, moves_meas_std, noise_parameters,
-                                          noise_plan)
+from bondgraph.inference.estimand import (NOISE_BOX, Estimand, moves_meas_std, noise_box,
+                                          noise_parameters, noise_plan)
 from bondgraph.inference.fisher import (
     FLAT_GAIN,
     estimand_scoring,
@@ -54,7 +54,7 @@ from bondgraph.inference.ukf_numba import threads as kernel_threads
 __all__ = ["FLAT_GAIN", "flat_directions", "NOISE_BOX", "NoiseSpec", "PriorSpec", "Problem",
            "no_process_noise", "relative_direction",
            "choose_discretisation", "kernel_threads", "make_problem", "moves_meas_std",
-           "noise_parameters",
+           "noise_box", "noise_parameters",
            "ROBUST_RATIO", "andrews_bandwidth", "long_run_variance", "lr_scale", "robust_std"]
 
 

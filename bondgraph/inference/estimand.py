@@ -197,11 +197,9 @@ class Estimand:
         xs, ss = self.x0[self.s_idx], self.x0_scale[self.s_idx]
         sg = self.sigma[self.n_idx]
         c = sg if self.sigma_centre is None else np.asarray(self.sigma_centre, float)[self.n_idx]
-        c = np.where(np.isfinite(c) & (c > 0), c, sg)
-        lo = np.concatenate([np.asarray(lower, float), xs - X0_BOX * ss,
-                             np.minimum(c / NOISE_BOX, sg)])
-        hi = np.concatenate([np.asarray(upper, float), xs + X0_BOX * ss,
-                             np.maximum(c * NOISE_BOX, sg)])
+        n_lo, n_hi = noise_box(np.where(np.isfinite(c) & (c > 0), c, sg), sg)
+        lo = np.concatenate([np.asarray(lower, float), xs - X0_BOX * ss, n_lo])
+        hi = np.concatenate([np.asarray(upper, float), xs + X0_BOX * ss, n_hi])
         return lo, hi
 
     def log_scale(self, noise_params: Sequence[str] = ()) -> np.ndarray:
@@ -211,6 +209,13 @@ class Estimand:
         np_set = set(noise_params)
         par = [n in np_set and lo[i] > 0 for i, n in enumerate(self.params)]
         return np.array(par + [False] * len(self.states) + [True] * len(self.noises), dtype=bool)
+
+
+def noise_box(centre, start):
+    """The box ``(lower, upper)`` of an estimated noise std: ×/÷
+    :data:`NOISE_BOX` around ``centre`` (the record's level), reaching
+    ``start`` (the fit's start) where that lies outside. Arrays or floats."""
+    return np.minimum(centre / NOISE_BOX, start), np.maximum(centre * NOISE_BOX, start)
 
 
 def moves_meas_std(model, theta, name: str, *, rel: float = 0.1) -> bool:
