@@ -300,3 +300,59 @@ def test_the_ridge_sentence_says_how_far_each_parameter_is_known():
     assert text == (" Their robust std as a share of their values: Fv 20 %, Fc 10 % (the accept "
                     "rule counts a parameter known within 10% as determined).")
     assert _ridge_width(["beta"], {}, {"beta": 1.0}) == ""
+
+
+def test_an_intermediate_report_is_written_beside_the_loop_from_a_copy(report, tmp_path,
+                                                                       monkeypatch):
+    """LoopReporter.update writes an intermediate version on a thread of its
+    own from a copy of the result: what the loop changes after the call is
+    not in it, its files are those the loop's own thread writes (byte for
+    byte, the log aside), and a failure is raised by the next update."""
+    import copy
+    import threading
+
+    from bondgraph.errors import OutputError
+    from bondgraph.report import loop_report
+
+    res = copy.deepcopy(report[1])
+    res.finished = False
+    threads = []
+    original = loop_report.write
+
+    def spy(*a, **k):
+        threads.append(threading.current_thread().name)
+        return original(*a, **k)
+
+    monkeypatch.setattr(loop_report, "write", spy)
+    beside = LoopReporter(tmp_path / "beside")
+    beside.update(res)
+    res.warnings.append("LATE: after the update")
+    beside.wait()
+    inline = LoopReporter(tmp_path / "inline", background=False)
+    inline.update(res)
+    assert threads == ["loop-report", "MainThread"]
+    a, b = tmp_path / "beside", tmp_path / "inline"
+    names = sorted(p.name for p in a.iterdir())
+    assert names == sorted(p.name for p in b.iterdir()) and "fit_before_after.png" in names
+    assert "LATE" not in (a / "report.json").read_text()
+    assert "LATE" in (b / "report.json").read_text()
+    res.warnings.pop()
+    inline2 = LoopReporter(tmp_path / "inline2", background=False)
+    inline2.update(res)
+    for n in names:
+        if (a / n).is_file() and n != "loop.log" and n != "augmented_model.py":
+            assert (a / n).read_bytes() == (tmp_path / "inline2" / n).read_bytes(), n
+
+    def fail(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(loop_report, "write", fail)
+    beside.update(res)                     # returns at once; the writer fails
+    with pytest.raises(OutputError, match="No space left on device"):
+        beside.update(res)
+    monkeypatch.setattr(loop_report, "write", spy)
+    beside.update(res)
+    beside.wait()
+    res.finished = True
+    beside.update(res)
+    assert json.loads((a / "report.json").read_text())["finished"] is True

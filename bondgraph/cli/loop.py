@@ -307,8 +307,11 @@ def run(args) -> int:
               f"to ./{out} (--out DIR to choose)")
     reporter = LoopReporter(out, echo=None if args.quiet else print,
                             overwrite=args.overwrite, plots=not getattr(args, "no_plots", False))
-    res = run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
-                   on_update=reporter.update)
+    try:
+        res = run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
+                       on_update=reporter.update)
+    finally:    # stopped by an error: the intermediate report being written completes
+        reporter.wait(raise_failure=False)
     if args.discover:
         res = _with_discovery(args, graph, record, settings, res, out)
     print()
@@ -469,8 +472,11 @@ def _with_discovery(args, graph, record, settings, res, out: Path):
         result.discovery = discovery_plot(best.accepted_in(result), result)
         reporter.update(result)
 
-    again = run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
-                     on_update=update)
+    try:
+        again = run_loop(graph, record, settings, log=reporter.log, progress=not args.quiet,
+                         on_update=update)
+    finally:
+        reporter.wait(raise_failure=False)
     why = discovery_not_better(res, again)
     if why is not None:
         echo(f"bondgraph loop: {why} (its report: ./{out}; the discovery run's: ./{side})")

@@ -11,11 +11,13 @@ initial and final fits, and the residual analyses.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import inspect
 import json
 import pickle
 import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +57,14 @@ class LoopReporter:
     working folder ``.<out>.work`` beside it (and to ``echo``); each version
     of the report carries a copy of the log up to that point.
 
+    An intermediate version is written on a thread of its own from a copy
+    of the result (its generated code derived first, on the caller's
+    thread: sympy stays on one thread), while the loop goes on: its plots
+    took 1.6 s and 2.1 s of the bundled default loop's 32 s on the loop's
+    thread. The next :meth:`update` (and :meth:`wait`) waits for it and
+    raises what it raised; the thread is not a daemon, so a run that stops
+    on an error or Ctrl-C still finishes the version it was writing.
+
     Parameters
     ----------
     out_dir : path
@@ -66,6 +76,9 @@ class LoopReporter:
     plots : bool
         Draw the PNG plots (default); False writes the report's text, tables
         and generated code only (``bondgraph loop --no-plots``).
+    background : bool
+        Write the intermediate versions on a thread of their own (default);
+        False writes every version before :meth:`update` returns.
 
     Raises
     ------
@@ -74,9 +87,13 @@ class LoopReporter:
         raised here, before the loop runs.
     """
 
-    def __init__(self, out_dir, echo=None, *, overwrite: bool = False, plots: bool = True):
+    def __init__(self, out_dir, echo=None, *, overwrite: bool = False, plots: bool = True,
+                 background: bool = True):
         self.folder = OutputFolder(out_dir, overwrite=overwrite)
         self.plots = plots
+        self.background = background
+        self._writer: threading.Thread | None = None
+        self._failed: BaseException | None = None
         self.out = Path(out_dir)
         self.echo = echo
         self.log_path = self.folder.work_dir() / "loop.log"
@@ -92,8 +109,61 @@ class LoopReporter:
             fh.write(line + "\n")
 
     def update(self, result: LoopResult) -> None:
-        """Publish the report of the loop's (partial) result; after the final
-        one, later log lines are appended to the published ``loop.log``."""
+        """Publish the report of the loop's (partial) result: an intermediate
+        one on a thread of its own (see the class), the final one
+        (``result.finished``) before returning; after the final one, later
+        log lines are appended to the published ``loop.log``.
+
+        Raises
+        ------
+        OutputError
+            This version could not be published, or (for an intermediate
+            one) the intermediate one written before it (a final version
+            that is published supersedes it).
+        """
+        failed = self._join()
+        if result.finished or not self.background:
+            self._publish(result)
+            return
+        if failed is not None:
+            raise failed
+        if result.applied:      # derived here: sympy is not used from two threads
+            _generated_text(result, self.out, self.cache)
+        # the loop goes on changing ``result``; its graphs are never changed,
+        # and kept (not copied), their pickles key the cached code and plots
+        graphs = (result.declared_graph, result.final_graph)
+        snapshot = copy.deepcopy(result, {id(g): g for g in graphs if g is not None})
+        self._writer = threading.Thread(target=self._publish_caught, args=(snapshot,),
+                                        name="loop-report")
+        self._writer.start()
+
+    def wait(self, *, raise_failure: bool = True) -> None:
+        """Wait for an intermediate version being written (:meth:`update`);
+        raise what its writing raised (unless not ``raise_failure``: a loop
+        that stopped on an error of its own waits so, its report complete
+        before that error is said)."""
+        failed = self._join()
+        if failed is not None and raise_failure:
+            raise failed
+
+    def _join(self) -> BaseException | None:
+        """Wait for the writer thread; what it raised (then forgotten)."""
+        if self._writer is not None:
+            self._writer.join()
+            self._writer = None
+        failed, self._failed = self._failed, None
+        return failed
+
+    def _publish_caught(self, result: LoopResult) -> None:
+        """:meth:`_publish` on the writer thread, its exception kept for
+        :meth:`wait`."""
+        try:
+            self._publish(result)
+        except BaseException as exc:      # noqa: BLE001 -- re-raised by wait()
+            self._failed = exc
+
+    def _publish(self, result: LoopResult) -> None:
+        """Write and swap in one version of the report of ``result``."""
         def version(folder: Path) -> None:
             shutil.copyfile(self.log_path, folder / "loop.log")
             write(result, folder, final=self.out, cache=self.cache, plots=self.plots)
@@ -296,9 +366,15 @@ def _write_generated(result: LoopResult, out: Path, final: Path, cache: dict) ->
     in ``out/generated``; its source is named as ``final/augmented_model.py``
     (the text from ``cache`` when the final graph, its estimates and
     ``final`` are those of an earlier version)."""
-    name = _augmented_name(result)
     gen = out / "generated"
     gen.mkdir(exist_ok=True)
+    (gen / f"{_augmented_name(result)}.py").write_text(_generated_text(result, final, cache))
+
+
+def _generated_text(result: LoopResult, final: Path, cache: dict) -> str:
+    """The generated code of :func:`_write_generated` (derived, or from
+    ``cache``, where it is kept)."""
+    name = _augmented_name(result)
     key = ("generated", _digest(pickle.dumps(result.final_graph), name, str(final),
                                 sorted(result.final.estimates.items())))
     if key not in cache:
@@ -308,7 +384,7 @@ def _write_generated(result: LoopResult, out: Path, final: Path, cache: dict) ->
                 g.params[k].default = float(v)
         cache[key] = generate_source(derive(g), source=f"{final / 'augmented_model.py'}:build",
                                      command="bondgraph loop (see report.md)")
-    (gen / f"{name}.py").write_text(cache[key])
+    return cache[key]
 
 
 def _digest(*parts) -> str:
