@@ -86,12 +86,20 @@ def ced_abs() -> BondGraph:
     """Another user's CED graph: :func:`ced_user` with the README's
     sign-blind pulse counter declared, the output z = |ω_p| (``sp.Abs``).
 
-    With ``--graph abs`` (2026-12-04, 44-58 s): a sensor low-pass, a
-    quadratic armature law, a source lag, then Dahl friction at the motor;
-    held-out quarter 0.3656 -> 0.1004; RMS on the runs it never saw, prbs2
-    1.155 -> 0.4663, prbs3 0.2588 -> 0.2351 (``ced_user`` after its own
-    loop: 0.6349, 0.114; eq. (9) with the rectification: 1.137, 0.2463).
-    Before the noise levels' boxes stayed on the record's level in every
+    With ``--graph abs`` (2026-12-05, 53-67 s): a sensor low-pass, a
+    square-root law of the motor's friction, a power-law pulley friction
+    with a source lag (a pair), a quadratic sensor term with asymmetric
+    motor friction (a pair); held-out quarter 0.3656 -> 0.1109; RMS on the
+    runs it never saw, prbs2 1.155 -> 0.8673, prbs3 0.2588 -> 0.1043
+    (``ced_user`` after its own loop: 0.6349, 0.114; eq. (9) with the
+    rectification: 1.137, 0.2463). The quadratic, cubic and power-law
+    armature laws ranked first; each ended on the edge of the box the
+    loop set around its start, and opened it ran to the new edge (15.3,
+    15.8, 15.6 nats): refused as the box's, not the record's
+    (``Effect.search_boxed``). Before that (2026-12-04, 44-58 s) the
+    quadratic armature law was accepted there (β 5.25 on its edge), then
+    a source lag and Dahl friction: held out 0.1004, prbs2 0.4663, prbs3
+    0.2351. Before the noise levels' boxes stayed on the record's level in every
     refit (``NoiseSpec.centre``; 126-162 s): the low-pass, Dahl friction, a
     source lag with a cubic sensor term (a pair), a quadratic drag at the
     pulley; held out 0.09848, prbs2 0.8736, prbs3 0.1084. Before the loop

@@ -88,3 +88,39 @@ def test_zero_of_a_nonnegative_parameter_is_no_search_edge(declared):
     after.at_bound = [B, "m"]
     after.theta[after.model.param_index("m")] = after.model.bounds(["m"])[1][0]
     assert on_search_edge(ctx, after, ["m"]) == []
+
+
+def test_an_r_law_term_its_confirmation_box_stops_is_refused_too(declared):
+    """A quadratic damper law β·v|v| (an additive effect whose apply sets no
+    box): the confirmation's box is ±20 times its start
+    (confirm.widen_boxes). Started at β = 0.001 the refit ends on the box's
+    edge, 0.02; the record (a linear 0.5 N s/m missing) asks for far more,
+    so opening the box gains the likelihood and the candidate is refused.
+    Before, only the friction and sensor effects declared such boxes
+    (Effect.search_boxed), and this candidate was accepted on its edge; so
+    were structural effects (a power law's β on the top of its grid's
+    reach)."""
+    from bondgraph.diagnose.confirm import widen_boxes
+
+    ctx, d, cur, lines = declared
+    eff = get_effect("r_quadratic")
+    target = next(t for t in eff.targets(d) if t.name == "damper")
+    assert eff.search_boxed() == ("beta",)
+    g = d.copy("msd_rquad")
+    P = apply_effect(g, eff, target, {"beta": 0.001})
+    widen_boxes(eff, P)
+    name = P["beta"].name
+    assert g.params[name].bounds == pytest.approx((-0.02, 0.02))
+    after = fit_model(ctx, g, ["m", "k", name], {**cur.estimates(), name: 0.001}, "refit")
+    assert after.at_bound == [name] and after.estimates()[name] == pytest.approx(0.02)
+    assert on_search_edge(ctx, after, [name, "m", "k"]) == [name]
+    # a structural effect's box is its start x/÷ 100 within its grid's reach: a
+    # search box too; a parameter with a declared box (an exponent) is not
+    assert get_effect("r_power").search_boxed() == ("beta",)
+    assert get_effect("dahl").search_boxed() == ("Fc", "sigma")
+    assert get_effect("sensor_rectification").search_boxed() == ()
+    cand = Candidate("r_quadratic", "quadratic law", target, "score", 100.0, 1, 0.0, 98.0,
+                     values={"beta": 0.001})
+    d1 = decided(ctx, cur, after, 1, True, "r_quadratic @ damper", [cand])
+    assert not d1.accepted
+    assert f"{name} = 0.02 (box [-0.02, 0.02]) ends on the edge of the search box" in d1.reason

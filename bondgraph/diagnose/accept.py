@@ -721,8 +721,9 @@ def _objection(current: Fit, after: Fit, lr: float, comparable: bool,
         text = _on_box_text(after, list(searched))
         gain = max(searched.values())
         return (f"the effect's {text} ends on the edge of the search box the loop set around "
-                f"the score test's estimate (no physical limit), and beyond it the likelihood "
-                f"gains {gain:.3g} nats: the box, not the record, decides it")
+                f"its start (the score test's estimate, within the reach of the effect's grid; "
+                f"no physical limit), and beyond it the likelihood gains {gain:.3g} nats: the "
+                f"box, not the record, decides it")
     return unidentified_effect(current, after) or None
 
 

@@ -3050,7 +3050,8 @@ def search_boxed_param(ctx: Context, name: str):
 def on_search_edge(ctx: Context, after: Fit, names: Sequence[str]) -> list[str]:
     """The effect parameters among ``names`` that the refit ``after`` leaves
     on the edge of a search box (:func:`search_boxed_param`: a box set
-    around a score's estimate): either edge, or the upper one for a
+    around a score's estimate, or a structural effect's start ×/÷ 100
+    within its grid's reach): either edge, or the upper one for a
     ``nonnegative`` parameter (its 0 switches the effect off, a physical
     limit)."""
     bound = set(after.at_bound or ())

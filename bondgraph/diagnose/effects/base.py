@@ -367,8 +367,18 @@ class Effect:
         0 is the effect switched off) is decided by the box, not by the
         record, and the loop refuses the candidate when opening the box
         gains the likelihood (:func:`bondgraph.diagnose.runner.search_box_deciding`).
-        The base class declares none (a user's effect sets its own boxes)."""
-        return ()
+
+        The base class names, for an additive effect, every estimated
+        parameter without declared ``bounds``: its confirmation refits set
+        that box to ±20 times the start, whatever :meth:`apply` set
+        (:func:`bondgraph.diagnose.confirm.widen_boxes`). A quadratic
+        armature law on a user's belt drive (CED) was accepted with β on
+        that edge (5.25, 20 times its start; opened, it ran to the new edge)
+        while a pair refit ending on a box was refused. A structural effect
+        names them too (:meth:`_Structural.search_boxed`)."""
+        if not self.additive:
+            return ()
+        return tuple(p.name for p in self.params if p.estimated and p.bounds is None)
 
     def box(self, graph: BondGraph, target: Target, scales: Scales) -> dict[str, tuple[float, float]]:
         """The declared box of each estimated parameter, in its unit, from
@@ -440,6 +450,18 @@ class _Structural(Effect):
     additive = False
     #: how far beyond its grid a positive parameter may move when refitted
     GRID_REACH = 4.0
+
+    def search_boxed(self) -> tuple[str, ...]:
+        """Every estimated parameter without declared ``bounds``: its
+        confirmation refits set its box to the start ×/÷ 100 within the
+        grid's reach (:func:`bondgraph.diagnose.confirm.widen_boxes`,
+        :meth:`grid_span`), no physical limit. An edge where the effect
+        fades out (a lag of no length, a limit never reached) is no reason
+        to refuse: there the likelihood gains nothing beyond it
+        (:func:`bondgraph.diagnose.runner.search_box_deciding`). On a user's
+        belt drive (CED) a power-law armature term was accepted with β on
+        the top of its grid's reach; opened, it gained 15.6 nats."""
+        return tuple(p.name for p in self.params if p.estimated and p.bounds is None)
 
     def grid(self, graph, target, scales) -> list[dict[str, float]]:
         """Values of the estimated parameters to evaluate (a list of dicts)."""

@@ -74,9 +74,6 @@ class _JunctionLaw(Effect):
         """Basis functions of the law (one per estimated parameter)."""
         raise NotImplementedError
 
-    def search_boxed(self):
-        return tuple(p.name for p in self.params if p.estimated and p.bounds is None)
-
     def apply(self, graph, target, values=None, scales=None):
         values = dict(values or {})
         j = graph.element(target.name)
