@@ -1563,8 +1563,7 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit,
     except DeclaredFitError as exc:
         if mode == "free_run":
             raise
-        ctx.log(f"  the declared fit under the free-run likelihood failed: "
-                f"{str(exc).splitlines()[0]}")
+        ctx.log(f"  the declared fit under the free-run likelihood failed: {_line(exc)}")
         again = None
     if again is None or (mode == "auto" and not again.metric <= initial.metric
                          and not _neither_describes(ctx, initial, again)):
@@ -1581,6 +1580,11 @@ def free_run_likelihood(ctx: Context, graph: BondGraph, initial: Fit,
            + f" (free-run error on the record {initial.metric:.4g} -> {again.metric:.4g})")
     again.warnings.insert(0, msg)
     return again, checked
+
+
+def _line(exc: Exception) -> str:
+    """The first line of ``exc``'s message."""
+    return str(exc).splitlines()[0]
 
 
 #: the built-in error measures of a free run: where the loop judges by one
