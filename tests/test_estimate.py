@@ -145,6 +145,16 @@ def test_hessian_and_unidentified_direction():
     np.testing.assert_allclose(cr["cov"], np.linalg.inv(H), rtol=1e-10)
     bad = cramer_rao(np.array([[1.0, 1.0], [1.0, 1.0]]), ["a", "b"])
     assert not bad["positive_definite"] and "0.71·a" in bad["warning"] and "0.71·b" in bad["warning"]
+    assert "not positive definite (smallest eigenvalue" in bad["warning"]
+    # every curvature positive, the correlation 1 - 1e-7: nearly singular, not "not positive
+    # definite"; the unit-curvature eigenvalues are 1 -+ r, their ratio (1 - r)/(1 + r) = 5e-8
+    r = 1.0 - 1e-7
+    D = np.diag([100.0, 200.0])
+    near = cramer_rao(D @ np.array([[1.0, r], [r, 1.0]]) @ D, ["a", "b"])
+    assert not near["positive_definite"]
+    assert near["warning"].startswith("Hessian of the NLL is nearly singular (every curvature "
+                                      "positive, but scaled to unit curvatures its smallest "
+                                      "eigenvalue is 5e-08 of its largest, below 1e-06)")
     # conditional bounds: c is not identified (no curvature); the bounds of a
     # and b with c held are the inverse of their 2x2 block, 1/7 [[2, -1], [-1, 4]]
     H3 = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 0.0]])

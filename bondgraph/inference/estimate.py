@@ -492,8 +492,7 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
     if flat:
         order = np.argsort(-np.abs(v))
         terms = [f"{v[i]:+.2f}·{names[i]}" for i in order if abs(v[i]) > 0.1]
-        out["warning"] = (f"Hessian of the NLL is not positive definite (smallest eigenvalue "
-                          f"{lam[0]:.3g}, largest {lam[-1]:.3g}, in scaled coordinates): the "
+        out["warning"] = (f"Hessian of the NLL is {_singular_text(Hs, lam, rcond)}: the "
                           f"direction {' '.join(terms)} (scaled coordinates) is not identified "
                           f"by the data{relative_direction(v * s, theta, names)}")
         if conditional:
@@ -509,6 +508,23 @@ def cramer_rao(H: np.ndarray, names: Sequence[str], scale=None, rcond: float = 1
         out["warning"] = "nearly unidentified: " + ", ".join(
             f"corr({a}, {b}) = {c:+.4f}" for a, b, c in strong)
     return out
+
+
+def _singular_text(Hs: np.ndarray, lam: np.ndarray, rcond: float) -> str:
+    """How the Hessian ``Hs`` (k, k; eigenvalues ``lam`` ascending) fails
+    :func:`_flat_direction`'s test, for a user: "not positive definite"
+    where an eigenvalue is not positive; else "nearly singular" with its
+    smallest eigenvalue at unit curvatures relative to its largest (every
+    curvature is positive there, so "not positive definite" next to a
+    positive smallest eigenvalue read as a contradiction)."""
+    diag = np.diag(Hs)
+    if lam[0] <= 0.0 or not (diag > 0).all():
+        return (f"not positive definite (smallest eigenvalue {lam[0]:.3g}, largest "
+                f"{lam[-1]:.3g}, in scaled coordinates)")
+    d = 1.0 / np.sqrt(diag)
+    lj = np.linalg.eigvalsh(Hs * np.outer(d, d))
+    return (f"nearly singular (every curvature positive, but scaled to unit curvatures its "
+            f"smallest eigenvalue is {lj[0] / lj[-1]:.2g} of its largest, below {rcond:.0e})")
 
 
 def _flat_direction(Hs: np.ndarray, lam: np.ndarray, V: np.ndarray,
