@@ -99,6 +99,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--significance", type=float, default=None)
     p.add_argument("--no-structural", action="store_true",
                    help="score only additive effects (faster)")
+    p.add_argument("--no-replace", action="store_true",
+                   help="after an accepted step, do not refit earlier effects' rivals at "
+                        "their places (the replacement step)")
     _judging_options(p)
     add_estimation_scope(p)            # --fixed --x0 --p0-rel --p0 --estimate-x0 --noise
     p.set_defaults(p0_rel=None, noise=None, p0=None)   # the case's own P0 policy and noise
@@ -594,11 +597,12 @@ def loop_settings(args, base: LoopSettings, graph) -> LoopSettings:
 
 def accept_rule(args, base: AcceptRule) -> AcceptRule:
     """``base`` with ``--criterion``, ``--significance``, ``--metric-tolerance``
-    where given (validated by :class:`AcceptRule`)."""
+    and ``--no-replace`` where given (validated by :class:`AcceptRule`)."""
     tolerance = None if args.metric_tolerance is None else float(args.metric_tolerance)
     return dataclasses.replace(base, criterion=args.criterion,
                                significance=_given(args.significance, base.significance),
-                               metric_tolerance=_given(tolerance, base.metric_tolerance))
+                               metric_tolerance=_given(tolerance, base.metric_tolerance),
+                               replace=base.replace and not getattr(args, "no_replace", False))
 
 
 def search_options(args, base: SearchOptions) -> SearchOptions:

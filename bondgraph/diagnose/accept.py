@@ -216,10 +216,10 @@ def mark_ties(confirmed: list, level: float) -> list[str]:
     if len(confirmed) < 2 or level <= 0:
         return []
     lead, fa, ka = confirmed[0]
-    la = _terms(fa)
+    la = per_sample_nll(fa)
     out = []
     for c, fb, kb in confirmed[1:]:
-        lb = _terms(fb)
+        lb = per_sample_nll(fb)
         if la is None or lb is None or la.shape != lb.shape:
             continue
         z, p = vuong_test(la, lb, ka, kb)
@@ -253,8 +253,9 @@ def rank_confirmed(confirmed: list) -> list:
     return sorted(confirmed, key=lambda z: (not getattr(z[2], "comparable", True), -z[0]))
 
 
-def _terms(fit: Fit) -> np.ndarray | None:
-    """Per-sample NLL terms (N,) of a fit's stored UKF run, or None."""
+def per_sample_nll(fit: Fit) -> np.ndarray | None:
+    """Per-sample NLL terms (N,) of a fit's stored UKF run [nats], or None
+    (the terms :func:`vuong_test` compares)."""
     t = getattr(fit.ukf, "nll_terms", None)
     return None if t is None else np.asarray(t, dtype=float)[:, 0]
 

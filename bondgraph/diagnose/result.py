@@ -210,6 +210,11 @@ class Step:
     together_with: list = field(default_factory=list)
     removed: list = field(default_factory=list)
     held: dict = field(default_factory=dict)
+    #: effects accepted earlier that this step's refit replaced by a rival
+    #: at their place ("r_cubic @ Rwall by radiation";
+    #: :func:`bondgraph.diagnose.runner.replaced_earlier`): the step's numbers
+    #: are those of the model with the rival
+    replaced: list = field(default_factory=list)
     #: the likelihood ratio's scale for serially correlated innovations and
     #: the p-value of ``lr`` divided by it (information; None where not
     #: computed, :func:`bondgraph.diagnose.fit.robust_lr`)
@@ -222,10 +227,12 @@ class Step:
     def shown(self) -> str:
         """The effect as the step tables show it: with its parameters held
         at 0 (:attr:`Candidate.held`), its pair partners' effects (their
-        places in :meth:`shown_target`) and the effects it removed."""
+        places in :meth:`shown_target`), the effects it removed and those it
+        replaced by a rival."""
         return (self.effect + "".join(f" ({k} = {v:g})" for k, v in self.held.items())
                 + "".join(f" + {w.split(' @ ')[0]}" for w in self.together_with)
-                + "".join(f" (removing {r})" for r in self.removed))
+                + "".join(f" (removing {r})" for r in self.removed)
+                + "".join(f" (replacing {r})" for r in getattr(self, "replaced", ())))
 
     def shown_target(self) -> str:
         """Where the step tables say the effect attached: with its pair

@@ -31,10 +31,12 @@ from bondgraph.diagnose.accept import (
     pair_needed,
     rank_confirmed,
     rejection,
+    per_sample_nll,
     robust_std_needed,
     significant,
     unidentified_effect,
     unidentified_new,
+    vuong_test,
 )
 from bondgraph.diagnose.confirm import (
     Confirmation,
@@ -45,7 +47,9 @@ from bondgraph.diagnose.confirm import (
     confirm_same,
     continued,
     same_model_key,
+    stable_refit,
     start_values,
+    widen_boxes,
 )
 from bondgraph.diagnose.effects import Scales, get_effect
 from bondgraph.diagnose.fit import (
@@ -1890,6 +1894,7 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
     if structural_skipped(ctx.settings, ranking):
         signif = significant_after_lead_check(ctx, result, current, signif, scales, tag)
     ahead = next_step_ahead(ctx, current, signif, scales, tag, step)
+    earlier = {id(a) for a in result.applied}
     try:
         with phase(f"step {step}: confirming the best candidates by refits"):
             after = confirm_in_rounds(ctx, result, current, signif, scales, tag, step)
@@ -1899,6 +1904,8 @@ def run_step(ctx: Context, result: LoopResult, current: Fit, step: int,
                                                            step)
             if after is None and ctx.settings.accept.pairs:
                 after = accepted_pair(ctx, result, current, scales, tag, step)
+            if after is not None and earlier:
+                after = replaced_earlier(ctx, result, current, after, earlier, scales, tag)
     finally:
         if ahead is not None:
             ahead.set()
@@ -3267,6 +3274,194 @@ def _without(ctx: Context, result: LoopResult, fit: Fit, keep: list, added: Sequ
     except BondGraphError as exc:
         ctx.log(f"  the model without {what} could not be refitted: {str(exc).splitlines()[0]}")
         return None
+
+
+#: rivals of an earlier effect refitted in its place after an accepted step
+#: (:func:`replaced_earlier`): at most this many, by their confirmed
+#: likelihood ratio at the effect's own step
+REPLACE_TOP = 2
+#: ... each of them with a confirmed likelihood ratio at that step of at least
+#: this share of the effect's own (a rival the record then told apart by more
+#: is not refitted)
+REPLACE_SHARE = 0.8
+
+
+def replaced_earlier(ctx: Context, result: LoopResult, current: Fit, after: Fit,
+                     earlier: set, scales: Scales, tag: str) -> Fit:
+    """After a step accepted ``after`` (``current`` plus the step's effects),
+    each effect accepted at an earlier step (``result.applied`` entries whose
+    ``id`` is in ``earlier``) is refitted replaced by its rivals
+    (:func:`rivals_of`: the other laws confirmed at its place in its step);
+    the best rival refit that the record prefers to ``after``
+    (:func:`swap_refused`) takes its place: ``result.applied`` and the
+    step's record (``Step.replaced``, its numbers those of the new fit) are
+    updated, and the new fit returned (``after`` when none is).
+
+    An effect is chosen against the model of its own step. Where a later
+    step adds what that model lacked, a rival can fit better than the chosen
+    law; once a law is at a place, no later step scores another one there.
+    This is the replacement half of stepwise selection (Miller 2002,
+    *Subset selection in regression*, sec. 3.5). A user's oven graph
+    (radiation beside the wall's conduction and a thermocouple lag, neither
+    declared): a cubic wall law was accepted by 7912 against radiation's
+    7621 while the lag was missing; with the lag in, the radiation law's
+    refit is 6762 nats better, and without the replacement the loop went on
+    to accept a heater offset and an ambient saturation that compensate the
+    wrong law.
+    """
+    s = ctx.settings
+    if not s.accept.replace or result.declared_graph is None or not result.steps:
+        return after
+    step_new = [(a.effect, a.target) for a in result.applied if id(a) not in earlier]
+    for old in [a for a in result.applied if id(a) in earlier]:
+        best = None
+        for alt in rivals_of(result, old):
+            label = f"{alt.label} in place of {old.effect} @ {old.target.name}"
+            swapped = _swap_refit(ctx, result, after, old, alt, scales, f"{tag}_swap", label)
+            if swapped is None:
+                continue
+            why, d, cands = swap_refused(ctx, result, current, after, swapped, alt, step_new)
+            if why:
+                ctx.log(f"  {label}: kept {old.effect} ({why})")
+            elif best is None or swapped.nll < best[0].nll:
+                best = (swapped, alt, d, cands, label)
+        if best is not None:
+            after = _committed_swap(ctx, result, current, after, old, best) or after
+    return after
+
+
+def rivals_of(result: LoopResult, old) -> list[Candidate]:
+    """The rivals of the applied effect ``old`` (:func:`replaced_earlier`):
+    in the last ranking where ``old`` was confirmed, the other effects at its
+    place whose refit was usable (converged, not refused as
+    :data:`_UNUSABLE`) and reached :data:`REPLACE_SHARE` of its likelihood
+    ratio, not one an earlier replacement took out (the record preferred its
+    rival then); at most :data:`REPLACE_TOP`, best (LR - 2k) first."""
+    out = {r.split(" by ")[0] for st in result.steps for r in getattr(st, "replaced", ())}
+    for ranking in reversed(result.rankings):
+        own = [c for c in ranking if c.effect == old.effect and c.target == old.target
+               and c.confirmed_statistic is not None]
+        if not own:
+            continue
+        lr = own[0].confirmed_statistic
+        pool = [c for c in ranking if c.target == old.target and c.effect != old.effect
+                and c.confirmed and c.confirmed.get("comparable", True)
+                and c.confirmed_statistic is not None and lr > 0
+                and c.confirmed_statistic >= REPLACE_SHARE * lr
+                and not getattr(c, "same_as", None) and c.label not in out
+                and not str(c.confirmed.get("reason") or "").startswith(_UNUSABLE)]
+        return sorted(pool, key=lambda c: -(c.confirmed_statistic - 2 * c.dof))[:REPLACE_TOP]
+    return []
+
+
+def _swap_refit(ctx: Context, result: LoopResult, fit: Fit, old, alt: Candidate,
+                scales: Scales, name: str, label: str) -> Fit | None:
+    """The declared graph with every applied effect but ``old`` at its value
+    in ``fit`` (boxes as there) and ``alt`` from its confirmed values (boxes
+    as its confirmation set them, :func:`~bondgraph.diagnose.confirm.widen_boxes`),
+    every parameter refitted (:func:`~bondgraph.diagnose.confirm.stable_refit`);
+    None (logged) when it cannot be built or fitted."""
+    s = ctx.settings
+    g = result.declared_graph.copy(name)
+    vals = dict(zip(fit.model.params, fit.theta.tolist()))
+    try:
+        for a in result.applied:
+            if a is not old:
+                eff = get_effect(a.effect, s.effects)
+                eff.apply(g, a.target, {p.name: vals[n] for p, n in
+                                        zip(eff.params, _param_names(eff, a.target)) if n in vals})
+        for n, prm in g.params.items():
+            if n in fit.graph.params:
+                prm.bounds = fit.graph.params[n].bounds
+        eff = get_effect(alt.effect, s.effects)
+        start_alt = start_values(eff, alt, {**alt.values,
+                                            **(alt.confirmed or {}).get("values", {})})
+        P = eff.apply(g, alt.target, start_alt, scales)
+        widen_boxes(eff, P, eff.grid_span(fit.graph, alt.target, scales)
+                    if not eff.additive else {})
+        new = [P[p.name].name for p in eff.params
+               if p.estimated and p.name in P and p.name not in alt.held]
+        start = {n: v for n, v in vals.items() if n in g.params}
+        start.update({P[k].name: float(v) for k, v in start_alt.items() if k in P})
+        names = [n for n in fit.params if n in g.params] + new
+        _, refit = stable_refit(ctx, g, names, [start], label, model_of(g), fit)
+        return refit
+    except BondGraphError as exc:
+        ctx.log(f"  {label} could not be refitted: {str(exc).splitlines()[0]}")
+        return None
+
+
+def swap_refused(ctx: Context, result: LoopResult, current: Fit, after: Fit, swapped: Fit,
+                 alt: Candidate, step_new: list) -> tuple[str | None, Decision | None, list]:
+    """Why the refit ``swapped`` (a rival in an earlier effect's place,
+    :func:`replaced_earlier`) does not replace ``after``, or None: it must
+    have converged; predict the record better by Vuong's (1989) test of the
+    two non-nested models (one-sided at ``settings.accept.significance``,
+    Akaike-corrected, Newey-West variance: :func:`~bondgraph.diagnose.accept.vuong_test`);
+    have a free-run error on the record and on the judging record no larger
+    than ``after``'s (a replacement is never worse on a record it is judged
+    on); and pass the accept rule against ``current``, the model before the
+    step, as any accepted model must (:func:`decided`, with the step's
+    effects, ``step_new`` ((effect, target) pairs), and ``alt`` as the
+    added candidates). Returns (reason, decision, added candidates)."""
+    s = ctx.settings
+    if swapped.converged is False:
+        return "its refit did not converge", None, []
+    la, lb = per_sample_nll(swapped), per_sample_nll(after)
+    if la is None or lb is None or la.shape != lb.shape:
+        return "no per-sample likelihood to compare", None, []
+    z, p = vuong_test(la, lb, len(swapped.params), len(after.params))
+    if not (np.isfinite(z) and z > 0 and p / 2 < s.accept.significance):
+        return (f"the record does not prefer it: Vuong's z {z:.2f}, NLL {after.nll:.2f} -> "
+                f"{swapped.nll:.2f}"), None, []
+    for what, a, b in (("held-out", after.accept_metric, swapped.accept_metric),
+                       ("record's", after.metric, swapped.metric)):
+        if not b <= a:
+            return f"its {what} error {a:.4g} -> {b:.4g} is not lower", None, []
+    ranking = result.rankings[-1] if result.rankings else []
+    cands = [c for c in ranking if (c.effect, c.target) in step_new] + [alt]
+    dof = max(1, len(set(swapped.params) - set(current.params)))
+    d = decided(ctx, current, swapped, dof, True, alt.label, cands)
+    if not d.accepted:
+        return f"against the model before this step: {d.reason}", d, cands
+    return None, d, cands
+
+
+def _committed_swap(ctx: Context, result: LoopResult, current: Fit, after: Fit, old,
+                    best: tuple) -> Fit | None:
+    """Replace ``old`` by the rival of ``best`` ``(fit, candidate, decision,
+    added candidates, label)`` (:func:`replaced_earlier`): the fit after the
+    discretisation check (None, logged, when it no longer passes there),
+    ``result.applied`` and the step's record updated, logged."""
+    swapped, alt, d, cands, label = best
+    dof = max(1, len(set(swapped.params) - set(current.params)))
+    fit, finer = fit_after_discretisation_check(ctx, result, swapped, label,
+                                                (current, dof, True, cands))
+    if fit is None:
+        ctx.log(f"  {label}: kept {old.effect} ({finer_step_reason(finer)})")
+        return None
+    d = finer or d
+    std = parameter_std(ctx, fit)
+    fit.std = std
+    result.applied = [applied_effect(get_effect(alt.effect, ctx.settings.effects), alt, fit)
+                      if a is old else a for a in result.applied]
+    for a in result.applied:       # the others' values are the new fit's too
+        eff = get_effect(a.effect, ctx.settings.effects)
+        a.values.update({p.name: float(fit.theta[fit.model.param_index(n)]) for p, n in
+                         zip(eff.params, _param_names(eff, a.target)) if n in fit.model.params})
+    st = result.steps[-1]
+    st.replaced.append(f"{old.effect} @ {old.target.name} by {alt.effect}")
+    st.error_after, st.nll_after, st.estimation_error_after = d.error_after, fit.nll, fit.metric
+    st.criterion_after, st.whiteness_after = d.criterion_after, d.whiteness_after
+    st.lr, st.lr_p_value = d.lr, d.lr_p_value
+    st.parameters = {n: {"estimate": float(fit.theta[fit.model.param_index(n)]),
+                         "std": std.get(n)} for n in fit.params}
+    st.more_errors = {k: [current.more_metrics.get(k), v] for k, v in fit.more_metrics.items()}
+    ctx.log(f"REPLACE {old.effect} @ {old.target.name} by {alt.label}: NLL {after.nll:.2f} -> "
+            f"{fit.nll:.2f}, {result.metric} {after.accept_metric:.4g} -> "
+            f"{fit.accept_metric:.4g} (the record prefers it now that the later effects are "
+            f"in)")
+    return fit
 
 
 def accept_best(ctx: Context, result: LoopResult, current: Fit,

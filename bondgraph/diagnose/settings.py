@@ -144,6 +144,11 @@ class AcceptRule:
         passes but two or more are each significant, accept instead a pair
         that beats it (:func:`bondgraph.diagnose.runner.pair_before_single`).
         Default True.
+    replace : bool
+        After each accepted step, refit each effect accepted at an earlier
+        step with its place's rivals of that step in its stead (the other
+        laws confirmed there) and take a rival that the record now prefers
+        (:func:`bondgraph.diagnose.runner.replaced_earlier`). Default True.
     """
 
     criterion: str = "aic"
@@ -152,6 +157,7 @@ class AcceptRule:
     metric_tolerance: float = 1.0
     error_level: float | None = 0.05
     pairs: bool = True
+    replace: bool = True
 
     def __post_init__(self):
         _choice(self, "criterion", CRITERIA)
@@ -162,6 +168,7 @@ class AcceptRule:
         if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not tol > 0:
             raise OptionError(f"AcceptRule.metric_tolerance must be > 0, got {tol!r}")
         _choice(self, "pairs", (True, False))
+        _choice(self, "replace", (True, False))
 
 
 @dataclass(frozen=True)
