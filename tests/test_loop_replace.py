@@ -115,3 +115,47 @@ def test_without_the_replacement_the_cubic_law_stays_and_judges_worse(loops):
     # held out: the replaced model is never worse, here four times better
     assert res.final.validation_metric < 0.3 * kept.final.validation_metric
     assert res.final.metric < kept.final.metric
+
+
+def _cand(effect, kind, name, lr, **kw):
+    """A confirmed candidate of a step's ranking (its refit's LR ``lr``)."""
+    from bondgraph.diagnose.result import Candidate
+    kw.setdefault("confirmed", {"comparable": True})
+    return Candidate(effect, effect, Target(kind, name), "score", lr, 1, 0.0, lr,
+                     confirmed_statistic=lr, **kw)
+
+
+def test_the_rivals_are_close_refits_at_its_place_or_closer_ones_elsewhere():
+    """:func:`rivals_of` on a hand-made ranking: at the effect's place a
+    refit within 80 % of its likelihood ratio, elsewhere within 95 %; not a
+    look-alike of it (``equivalent``), not a refit that did not converge or
+    was unusable, not at a place another applied effect holds, not the
+    effect an earlier replacement took out; the two best by LR - 2k."""
+    from bondgraph.diagnose.result import AppliedEffect, LoopResult, Step
+    from bondgraph.diagnose.runner import rivals_of
+    lead = _cand("sensor_lowpass", "sensor", "T", 1000.0, equivalent=["sensor_gain @ T"])
+    ranking = [
+        lead,
+        _cand("source_lag", "source", "heater", 960.0),             # elsewhere, 96 %: a rival
+        _cand("source_lag", "source", "ambient", 940.0),            # elsewhere, 94 %: no
+        _cand("sensor_poly2", "sensor", "T", 850.0),                # its place, 85 %: a rival
+        _cand("sensor_gain", "sensor", "T", 990.0),                 # a look-alike: no
+        _cand("sensor_poly3", "sensor", "T", 900.0,
+              confirmed={"comparable": False}),                     # not converged: no
+        _cand("sensor_offset", "sensor", "T", 995.0,
+              confirmed={"comparable": True,
+                         "reason": "the refit is not physically admissible"}),
+        _cand("r_cubic", "resistor", "Rwall", 999.0),               # held by radiation: no
+        _cand("sensor_rate", "sensor", "T", 790.0),                 # its place, 79 %: no
+    ]
+    res = LoopResult("oven", None, None, "nrmse", "aic", {}, rankings=[ranking, []])
+    old = AppliedEffect("sensor_lowpass", Target("sensor", "T"), {"tau": 20.0})
+    res.applied = [old, AppliedEffect("radiation", Target("resistor", "Rwall"), {"beta": 1e-9})]
+    assert [c.label for c in rivals_of(res, old)] == ["source_lag @ heater", "sensor_poly2 @ T"]
+    # a rival an earlier replacement took out is not tried again
+    step = Step("radiation", "Rwall", "nrmse", *[0.0] * 10, {}, 0.0, 0.0)
+    step.replaced = ["source_lag @ heater by sensor_lowpass"]
+    res.steps = [step]
+    assert [c.label for c in rivals_of(res, old)] == ["sensor_poly2 @ T"]
+    # an effect no ranking confirmed has no rivals
+    assert rivals_of(res, AppliedEffect("coulomb", Target("junction", "v"), {})) == []

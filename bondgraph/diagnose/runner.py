@@ -47,7 +47,6 @@ from bondgraph.diagnose.confirm import (
     confirm_same,
     continued,
     same_model_key,
-    stable_refit,
     start_values,
     widen_boxes,
 )
@@ -3282,8 +3281,11 @@ def _without(ctx: Context, result: LoopResult, fit: Fit, keep: list, added: Sequ
 REPLACE_TOP = 2
 #: ... each of them with a confirmed likelihood ratio at that step of at least
 #: this share of the effect's own (a rival the record then told apart by more
-#: is not refitted)
+#: is not refitted): at the effect's place
 REPLACE_SHARE = 0.8
+#: ... and at another place (a sensor's low-pass and a source's lag: two
+#: places for one linear lag)
+REPLACE_SHARE_ELSEWHERE = 0.95
 
 
 def replaced_earlier(ctx: Context, result: LoopResult, current: Fit, after: Fit,
@@ -3332,23 +3334,29 @@ def replaced_earlier(ctx: Context, result: LoopResult, current: Fit, after: Fit,
 
 def rivals_of(result: LoopResult, old) -> list[Candidate]:
     """The rivals of the applied effect ``old`` (:func:`replaced_earlier`):
-    in the last ranking where ``old`` was confirmed, the other effects at its
-    place whose refit was usable (converged, not refused as
-    :data:`_UNUSABLE`) and reached :data:`REPLACE_SHARE` of its likelihood
-    ratio, not one an earlier replacement took out (the record preferred its
-    rival then); at most :data:`REPLACE_TOP`, best (LR - 2k) first."""
+    in the last ranking where ``old`` was confirmed, the other effects whose
+    refit was usable (converged, not refused as :data:`_UNUSABLE`) and
+    reached :data:`REPLACE_SHARE` of its likelihood ratio at its place, or
+    :data:`REPLACE_SHARE_ELSEWHERE` at another place (not a twin or a
+    signature look-alike, ``same_as``, ``equivalent``: the same model), not
+    one an earlier replacement took out (the record preferred its rival
+    then), none at a place another applied effect holds; at most
+    :data:`REPLACE_TOP`, best (LR - 2k) first."""
     out = {r.split(" by ")[0] for st in result.steps for r in getattr(st, "replaced", ())}
+    held = {a.target for a in result.applied if a is not old}
     for ranking in reversed(result.rankings):
         own = [c for c in ranking if c.effect == old.effect and c.target == old.target
                and c.confirmed_statistic is not None]
         if not own:
             continue
-        lr = own[0].confirmed_statistic
-        pool = [c for c in ranking if c.target == old.target and c.effect != old.effect
+        lr, me = own[0].confirmed_statistic, own[0]
+        pool = [c for c in ranking if c is not me and c.target not in held
                 and c.confirmed and c.confirmed.get("comparable", True)
                 and c.confirmed_statistic is not None and lr > 0
-                and c.confirmed_statistic >= REPLACE_SHARE * lr
+                and c.confirmed_statistic >= lr * (REPLACE_SHARE if c.target == old.target
+                                                   else REPLACE_SHARE_ELSEWHERE)
                 and not getattr(c, "same_as", None) and c.label not in out
+                and c.label not in me.equivalent and me.label not in c.equivalent
                 and not str(c.confirmed.get("reason") or "").startswith(_UNUSABLE)]
         return sorted(pool, key=lambda c: -(c.confirmed_statistic - 2 * c.dof))[:REPLACE_TOP]
     return []
@@ -3359,8 +3367,9 @@ def _swap_refit(ctx: Context, result: LoopResult, fit: Fit, old, alt: Candidate,
     """The declared graph with every applied effect but ``old`` at its value
     in ``fit`` (boxes as there) and ``alt`` from its confirmed values (boxes
     as its confirmation set them, :func:`~bondgraph.diagnose.confirm.widen_boxes`),
-    every parameter refitted (:func:`~bondgraph.diagnose.confirm.stable_refit`);
-    None (logged) when it cannot be built or fitted."""
+    every parameter refitted (at most ``settings.search.confirm_iterations``
+    scoring iterations, at the loop's discretisation); None (logged) when it
+    cannot be built or fitted."""
     s = ctx.settings
     g = result.declared_graph.copy(name)
     vals = dict(zip(fit.model.params, fit.theta.tolist()))
@@ -3384,8 +3393,13 @@ def _swap_refit(ctx: Context, result: LoopResult, fit: Fit, old, alt: Candidate,
         start = {n: v for n, v in vals.items() if n in g.params}
         start.update({P[k].name: float(v) for k, v in start_alt.items() if k in P})
         names = [n for n in fit.params if n in g.params] + new
-        _, refit = stable_refit(ctx, g, names, [start], label, model_of(g), fit)
-        return refit
+        # one refit of the confirmations' length, not continued: a rival that
+        # has not converged by then is refused anyway (on a user's CED graph a
+        # power-law armature term in a square-root motor friction's place
+        # crawled 15 s through its continuations to be refused)
+        return fit_model(ctx, g, names, start, label, model=model_of(g),
+                         iterations=s.search.confirm_iterations,
+                         tolerance=s.search.confirm_tolerance)
     except BondGraphError as exc:
         ctx.log(f"  {label} could not be refitted: {str(exc).splitlines()[0]}")
         return None

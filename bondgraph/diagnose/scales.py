@@ -64,6 +64,23 @@ def operating_scales(ctx: Context, fit: Fit) -> Scales:
     return sc
 
 
+#: the least values of the scales (``effort_min``, ``source_min``) leave out
+#: this share of the record's first samples (:func:`settled`)
+SETTLE_SHARE = 0.01
+
+
+def settled(n: int) -> int:
+    """The first sample of ``n`` that the least values of the scales count:
+    the filter's first samples carry its prior where the record does not
+    observe a state directly, not the record (a user's oven with a
+    thermocouple lag: the block's heat at sample 0 was the graph's default
+    0, a block at 0 K, and the radiation law, which needs absolute
+    temperatures above 100 K, was not scored at the step that needed it).
+    :data:`SETTLE_SHARE` of the samples, at least 1 (none of fewer than
+    100)."""
+    return 0 if n < 100 else max(1, int(round(SETTLE_SHARE * n)))
+
+
 def _state_rates(model, X: np.ndarray, u: np.ndarray, theta: np.ndarray) -> dict:
     """dx/dt (N,) of every state along the filtered states, by name (empty
     if f cannot be evaluated)."""
@@ -91,7 +108,7 @@ def _element_scales(sc: Scales, name: str, el, ss, evaluate, X, t, rates) -> Non
     elif isinstance(el, Source):
         v = evaluate(ss.variable(el.value))
         sc.source_max[name] = float(np.nanmax(np.abs(v)))
-        sc.source_min[name] = float(np.nanmin(v))
+        sc.source_min[name] = float(np.nanmin(v[settled(v.size):]))
         if t.size > 1:
             sc.source_rate[name] = float(np.nanmax(np.abs(np.diff(v) / np.diff(t))))
         sc.source_power[name] = float(np.nanmean(np.abs(evaluate(ss.variable(el.e * el.f)))))
@@ -107,7 +124,7 @@ def _element_scales(sc: Scales, name: str, el, ss, evaluate, X, t, rates) -> Non
         sc.storage_peak[name] = float(np.nanmax(p))
     elif isinstance(el, Zero):
         v = evaluate(ss.variable(el.e))
-        sc.effort_min[name] = float(np.nanmin(v))
+        sc.effort_min[name] = float(np.nanmin(v[settled(v.size):]))
         sc.effort_rms[name] = rms(v)
     elif isinstance(el, R):
         sc.r_effort_rms[name] = rms(evaluate(ss.variable(el.e)))

@@ -76,9 +76,11 @@ class Scales:
         delivers, in W when the graph has units).
     effort_min, effort_rms : dict
         0-junction name -> least value and RMS of its effort over the record
-        (an absolute temperature stays far above 0).
+        (an absolute temperature stays far above 0; the least value after
+        the filter's start, :func:`bondgraph.diagnose.scales.settled`).
     source_min : dict
-        Source name -> least value over the record.
+        Source name -> least value over the record (after the filter's
+        start).
     duration, dt : float
         Record length and median sample interval [s].
     """
