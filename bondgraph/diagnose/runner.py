@@ -3245,6 +3245,27 @@ def _param_names(eff, target) -> list[str]:
     return [eff.pname(target, p.name) for p in eff.params]
 
 
+def _rebuilt(ctx: Context, result: LoopResult, fit: Fit, effects: list, name: str) -> BondGraph:
+    """The declared graph (named ``name``) with ``effects`` ((effect name,
+    target) pairs) applied at their values in ``fit`` and every parameter
+    ``fit``'s graph has boxed as there (:func:`_without`, :func:`_swap_refit`).
+
+    Raises
+    ------
+    BondGraphError
+        If an effect cannot be applied."""
+    g = result.declared_graph.copy(name)
+    vals = dict(zip(fit.model.params, fit.theta.tolist()))
+    for effect, target in effects:
+        eff = get_effect(effect, ctx.settings.effects)
+        eff.apply(g, target, {p.name: vals[n] for p, n in
+                              zip(eff.params, _param_names(eff, target)) if n in vals})
+    for n, prm in g.params.items():
+        if n in fit.graph.params:
+            prm.bounds = fit.graph.params[n].bounds
+    return g
+
+
 def _without(ctx: Context, result: LoopResult, fit: Fit, keep: list, added: Sequence[Candidate],
              what: str) -> Fit | None:
     """The declared graph with the applied effects ``keep`` and the ``added``
@@ -3252,17 +3273,10 @@ def _without(ctx: Context, result: LoopResult, fit: Fit, keep: list, added: Sequ
     ``fit``, refitted from ``fit``'s estimates (:func:`pruned`); None
     (logged) when it cannot be built or fitted."""
     s = ctx.settings
-    g = result.declared_graph.copy(f"{fit.graph.name}__without")
     vals = dict(zip(fit.model.params, fit.theta.tolist()))
     try:
-        for name, target in ([(a.effect, a.target) for a in keep]
-                             + [(c.effect, c.target) for c in added]):
-            eff = get_effect(name, s.effects)
-            eff.apply(g, target, {p.name: vals[n] for p, n in
-                                  zip(eff.params, _param_names(eff, target)) if n in vals})
-        for n, prm in g.params.items():
-            if n in fit.graph.params:
-                prm.bounds = fit.graph.params[n].bounds
+        g = _rebuilt(ctx, result, fit, [(a.effect, a.target) for a in keep]
+                     + [(c.effect, c.target) for c in added], f"{fit.graph.name}__without")
         model = model_of(g)
         names = [n for n in fit.params if n in model.params]
         start = {n: v for n, v in vals.items() if n in model.params}
@@ -3371,17 +3385,10 @@ def _swap_refit(ctx: Context, result: LoopResult, fit: Fit, old, alt: Candidate,
     scoring iterations, at the loop's discretisation); None (logged) when it
     cannot be built or fitted."""
     s = ctx.settings
-    g = result.declared_graph.copy(name)
     vals = dict(zip(fit.model.params, fit.theta.tolist()))
     try:
-        for a in result.applied:
-            if a is not old:
-                eff = get_effect(a.effect, s.effects)
-                eff.apply(g, a.target, {p.name: vals[n] for p, n in
-                                        zip(eff.params, _param_names(eff, a.target)) if n in vals})
-        for n, prm in g.params.items():
-            if n in fit.graph.params:
-                prm.bounds = fit.graph.params[n].bounds
+        g = _rebuilt(ctx, result, fit, [(a.effect, a.target) for a in result.applied
+                                        if a is not old], name)
         eff = get_effect(alt.effect, s.effects)
         start_alt = start_values(eff, alt, {**alt.values,
                                             **(alt.confirmed or {}).get("values", {})})
