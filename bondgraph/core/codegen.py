@@ -34,7 +34,7 @@ from pathlib import Path
 import sympy as sp
 from sympy.printing.numpy import NumPyPrinter
 
-from bondgraph.core.equations import StateSpace, paused_gc
+from bondgraph.core.equations import StateSpace, expand_stored_energy, paused_gc
 from bondgraph.core.symbols import identifier
 from bondgraph.errors import CodegenError
 
@@ -698,8 +698,8 @@ OUTPUT_UNITS = {_fmt_list(o.unit for o in ss.outputs)}
                          "power_dissipated.")]
         # the tree method: these sums grow with the graph (one term per
         # storage or resistor), and sympy's minus-sign test sorts them
-        return [self.function(name, "x, u, theta", doc, [("_out", [((), ex)], ())], "_out",
-                              tree=True)
+        return [self.function(name, "x, u, theta", doc,
+                              [("_out", [((), expand_stored_energy(ex))], ())], "_out", tree=True)
                 for name, ex, doc in energy_specs if name in functions]
 
     def _noise_functions(self) -> list[str]:

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import networkx as nx
+import numpy as np
 import sympy as sp
 
 from bondgraph.core import units as _units
@@ -942,6 +943,71 @@ def _state_derivatives(d: _Deriver, solved: dict) -> list[sp.Expr]:
     return f
 
 
+#: Gauss-Legendre nodes of :class:`StoredEnergy`'s quadrature
+ENERGY_NODES = 32
+
+
+class StoredEnergy(sp.Function):
+    """H(q) = ∫₀^q Ψ(s) ds of a storage law Ψ that sympy cannot integrate
+    in closed form (a softplus dead zone, a user's tabulated-looking law):
+    ``StoredEnergy(q, Lambda(s, Ψ(s)))``.
+
+    Its derivative is the law itself (∂H/∂q = Ψ(q)), so the energy rate
+    by the chain rule stays exactly the sources' power minus the
+    dissipation; its value is printed as a Gauss-Legendre quadrature of
+    :data:`ENERGY_NODES` nodes (:meth:`quadrature`; exact for a
+    polynomial law of degree < 64, Davis & Rabinowitz, *Methods of
+    Numerical Integration*, 1984, ch. 2.7).
+    """
+
+    nargs = 2
+
+    def fdiff(self, argindex=1):
+        if argindex != 1:  # the law's body is not a function of q
+            raise sp.ArgumentIndexError(self, argindex)
+        q, law = self.args
+        return law(q)
+
+    def quadrature(self) -> sp.Expr:
+        """The energy as Σ wᵢ q/2 Ψ(q (1 + xᵢ)/2) over the Gauss-Legendre
+        nodes xᵢ and weights wᵢ on [−1, 1]."""
+        q, law = self.args
+        x, w = np.polynomial.legendre.leggauss(ENERGY_NODES)
+        return sp.Add(*(sp.Float(wi / 2) * q * law(sp.Float((xi + 1) / 2) * q)
+                        for xi, wi in zip(x, w)))
+
+
+def stored_energy(law: sp.Expr, state: sp.Symbol) -> sp.Expr:
+    """∫₀^state law d(state) in closed form, else a :class:`StoredEnergy`.
+
+    Parameters
+    ----------
+    law : sympy.Expr
+        A storage's constitutive law in its state (effort of a C's
+        displacement, flow of an I's momentum).
+    state : sympy.Symbol
+
+    Returns
+    -------
+    sympy.Expr
+        The potential (co-)energy, zero at state 0.
+    """
+    s = sp.Dummy("s", real=True)
+    body = law.xreplace({state: s})
+    energy = sp.integrate(body, (s, 0, state))
+    if energy.has(sp.Integral):
+        return StoredEnergy(state, sp.Lambda(s, body))
+    return energy
+
+
+def expand_stored_energy(expr: sp.Expr) -> sp.Expr:
+    """``expr`` with every :class:`StoredEnergy` replaced by its quadrature
+    (for printing as code)."""
+    if not expr.has(StoredEnergy):
+        return expr
+    return expr.replace(lambda e: isinstance(e, StoredEnergy), lambda e: e.quadrature())
+
+
 def _energy_terms(graph: BondGraph, causality: Causality, d: _Deriver,
                   solved: dict) -> list[sp.Expr]:
     """Stored energy, one term per storage (differentiated term by term in
@@ -953,8 +1019,7 @@ def _energy_terms(graph: BondGraph, causality: Causality, d: _Deriver,
         if isinstance(el, (I, C)):
             energy = el.energy
             if energy is None:
-                s = sp.Dummy("s", real=True)
-                energy = sp.integrate(el.law.xreplace({el.state: s}), (s, 0, el.state))
+                energy = stored_energy(el.law, el.state)
             if el.name in causality.derivative:
                 W = [v[0] for v in d.dt_targets.values() if v[1] == el.name][0]
                 energy = energy.xreplace({el.state: W.xreplace(solved)})

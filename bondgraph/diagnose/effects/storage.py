@@ -142,14 +142,44 @@ class EndStop(_Structural):
         return {"qmax": qmax, "kstop": kstop}
 
 
+#: the edge width of :class:`Backlash`'s dead zone, in multiples of its half
+#: gap: the data-driven value, and the factors of it a confirmation tries
+#: (:func:`bondgraph.diagnose.confirm.profiled_shape`)
+BACKLASH_EDGE = 0.3
+BACKLASH_EDGE_FACTORS = (3.0, 0.3, 0.1)
+
+
 class Backlash(_Structural):
-    """Backlash (dead zone) in a compliance of a mechanical domain:
-    e = k (q - g tanh(q/g))."""
+    """Backlash (dead zone) in a compliance of a mechanical domain: no
+    effort while |q| < g, the compliance's own law beyond it,
+
+        e = k w [softplus((q − g)/w) − softplus((−q − g)/w)],   w = s g,
+
+    a dead zone whose edges are rounded over the width w (s = 0.3 of the
+    half gap, and the confirmation tries 0.9, 0.09 and 0.03 of it: the
+    record's reversals tell a worn gear's soft take-up from a sharp one).
+    The law is odd and increasing in q, so the compliance's energy stays
+    positive. A gear pair's dead-zone model without the impact dynamics
+    (Nordin & Gutman, "Controlling mechanical systems with backlash — a
+    survey", Automatica 38, 2002).
+
+    Before 2026-12 the law was k (q − g tanh(q/g)), which is cubic near
+    q = 0 and transmits a quarter of k·g at the edge: on a user's
+    two-mass drive with a sharp 15 mrad gap, the loop found the gap
+    (15.8 mrad) but needed Dahl and Coulomb friction beside it, and still
+    left 6 times the sensor noise on the motor speed of another record; a
+    sharp dead zone alone left 5 times less error on the estimation record.
+    """
 
     name = "backlash"
     title = "backlash / dead zone of a compliance"
     target_kind = "storage"
-    params = (EffectParam("gap", "{q}", "half gap", nonnegative=True),)
+    params = (EffectParam("gap", "{q}", "half gap", nonnegative=True),
+              EffectParam("edge", "1", "edge width / half gap", estimated=False,
+                          profile=BACKLASH_EDGE_FACTORS))
+
+    def shape_values(self, graph, target, scales):
+        return {"edge": BACKLASH_EDGE}
 
     def targets(self, graph):
         return [t for t in storage_targets(graph)
@@ -169,10 +199,15 @@ class Backlash(_Structural):
         g_ = _new_param(graph, self.pname(target, "gap"), values.get("gap", 1.0),
                         fill_unit("{q}", q=storage_unit(graph, el)), (1e-12, 1e12),
                         f"half gap of {target.name}")
+        s_ = _new_param(graph, self.pname(target, "edge"), values.get("edge", BACKLASH_EDGE),
+                        "", (1e-12, 1e12), f"edge width of {target.name}'s gap / its half gap")
         k = storage_stiffness(el)
+        q = el.q
+        w = s_ * g_
+        dead = w * (softplus((q - g_) / w) - softplus((-q - g_) / w))
         j = _force_on_storage(graph, el, f"{self.name}.{target.tag}.j")
-        graph.connect(graph.MSe(f"{self.name}.{target.tag}", k * g_ * sp.tanh(el.q / g_)), j)
-        return {"gap": g_}
+        graph.connect(graph.MSe(f"{self.name}.{target.tag}", k * (q - dead)), j)
+        return {"gap": g_, "edge": s_}
 
 
 class CapacityLimit(_Structural):
