@@ -40,7 +40,7 @@ import sympy as sp
 from bondgraph.core import units as _units
 from bondgraph.core.elements import C, I, One, R, Zero
 from bondgraph.core.graph import BondGraph
-from bondgraph.core.smooth import softplus
+from bondgraph.core.smooth import sigmoid, softplus
 from bondgraph.diagnose.effects.base import (
     Effect,
     EffectParam,
@@ -62,6 +62,7 @@ from bondgraph.diagnose.effects.base import (
     storage_stiffness,
     storage_targets,
 )
+from bondgraph.diagnose.effects.laws import causal_input
 from bondgraph.errors import GraphError
 
 
@@ -159,7 +160,10 @@ class Backlash(_Structural):
     half gap, and the confirmation tries 0.9, 0.09 and 0.03 of it: the
     record's reversals tell a worn gear's soft take-up from a sharp one).
     The law is odd and increasing in q, so the compliance's energy stays
-    positive. A gear pair's dead-zone model without the impact dynamics
+    positive. A damper beside the compliance (an R on the 1-junction of
+    its bond, a junction without inertia, the R given its flow) is gated
+    by the dead zone's slope σ((q − g)/w) + σ((−q − g)/w): no torque
+    through the open gap. A gear pair's dead-zone model without the impact dynamics
     (Nordin & Gutman, "Controlling mechanical systems with backlash — a
     survey", Automatica 38, 2002).
 
@@ -205,9 +209,40 @@ class Backlash(_Structural):
         q = el.q
         w = s_ * g_
         dead = w * (softplus((q - g_) / w) - softplus((-q - g_) / w))
+        _gate_contact_dampers(graph, el, sigmoid((q - g_) / w) + sigmoid((-q - g_) / w))
         j = _force_on_storage(graph, el, f"{self.name}.{target.tag}.j")
         graph.connect(graph.MSe(f"{self.name}.{target.tag}", k * (q - dead)), j)
         return {"gap": g_, "edge": s_}
+
+
+def _gate_contact_dampers(graph: BondGraph, el: C, contact) -> list[str]:
+    """Multiply the law of every R beside the C element ``el`` (on the
+    1-junction of its bond: the same relative flow) that SCAP gives its
+    flow, e = φ(f), by ``contact`` (between 0 and 1: the slope of the dead
+    zone), so that a shaft's damping, like its spring, transmits no effort
+    while the gap is open (Nordin & Gutman 2002, the dead-zone model). The
+    power e·f = contact·f·φ(f) keeps φ's sign: the R still dissipates.
+    An R that receives its effort is left alone (gating its flow law would
+    lock the gap instead of opening it). Only a junction without an I
+    element is the compliance's own (a shaft's twist, a coupling's
+    deflection): on a mass's junction (a spring to the ground) an R is as
+    likely the mass's friction, which no gap interrupts. Returns the gated
+    R's names."""
+    bond = el.port.bond
+    j = bond.other(el.port).element if bond is not None else None
+    if not isinstance(j, One):
+        return []
+    around = [b.other(next(p for p in j.ports if p.bond is b)).element
+              for b in graph.bonds_of(j)]
+    if any(isinstance(x, I) or getattr(x, "kind", None) == "I" for x in around):
+        return []
+    gated = []
+    for r in around:
+        if not isinstance(r, R) or r.form != "effort" or causal_input(graph, r) != "flow":
+            continue
+        r.law, r.resistance = contact * r.law, None
+        gated.append(r.name)
+    return gated
 
 
 class CapacityLimit(_Structural):
