@@ -5,9 +5,9 @@ without a closed-form energy still builds (:class:`bondgraph.core.equations.Stor
 The truth is a motor torque driving a rotor (J1 0.01 kg m², b1 0.005 N m s),
 a shaft (k 20 N m/rad, c 0.05 N m s) with a sharp dead zone of half gap
 15 mrad (neither its spring nor its damper transmits torque while the gap
-is open: Nordin & Gutman's dead-zone model), and a load (J2 0.05 kg m², b2 0.02 N m s); written here by hand
-and integrated with scipy's LSODA (rtol 1e-8, steps of at most 0.2 ms), a
-multisine torque of 0.1-4 Hz, both speeds measured at 200 Hz with N(0,
+is open: Nordin & Gutman's dead-zone model), and a load (J2 0.05 kg m²,
+b2 0.02 N m s); written here by hand and integrated with scipy's LSODA
+(rtol 1e-8, steps of at most 0.2 ms), a multisine torque of 0.1-4 Hz, both speeds measured at 200 Hz with N(0,
 0.02 rad/s) noise. The user's graph declares a linear shaft.
 """
 
