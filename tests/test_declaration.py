@@ -411,3 +411,22 @@ def test_an_unknown_domain_without_a_near_name_gets_the_list_only():
     with pytest.raises(ElementError, match="known: translation, rotation") as err:
         bg.BondGraph("odd").zero("j", domain="xyz")
     assert err.value.hint is None
+
+
+@pytest.mark.parametrize("kind, written, meant", [
+    ("C", "capacitance", "compliance"), ("I", "mass", "inertance"), ("R", "damping", "resistance"),
+])
+def test_an_argument_of_another_tool_names_the_element_and_the_one_meant(kind, written, meant):
+    """C(capacitance=...) raised Python's bare TypeError from the base class;
+    the error now names the element, what its class takes and the remedy."""
+    from bondgraph.errors import ElementError
+
+    g = bg.BondGraph("words")
+    with pytest.raises(ElementError, match=f"{kind} 'x': unknown argument\\(s\\) {written};") as err:
+        getattr(g, kind)("x", **{written: 1.0})
+    assert meant in str(err.value).split("takes")[1]
+    assert err.value.hint == f"{meant}= in place of {written}="
+    assert list(err.value.elements) == ["x"]
+    with pytest.raises(ElementError, match="unknown argument\\(s\\) colour; R takes") as err:
+        g.R("y", 1.0, colour="red")
+    assert err.value.hint is None

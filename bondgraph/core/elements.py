@@ -54,6 +54,33 @@ def local_state_name(element_name: str, letter: str, index: int | None = None) -
     return f"{letter}_{element_name}{suffix}"
 
 
+#: what users of other tools call an element's argument -> this toolkit's name
+_SYNONYMS = {"capacitance": "compliance", "capacity": "compliance", "spring": "stiffness",
+             "inductance": "inertance", "mass": "inertance", "inertia": "inertance",
+             "damping": "resistance", "ratio": "modulus", "gain": "modulus"}
+
+
+def _unknown_arguments(cls: type, name: str, unknown: dict) -> tuple[str, str | None]:
+    """The message for keyword arguments an element's class does not take
+    (the element, the arguments, what the class takes) and the hint (the
+    argument likely meant, or None)."""
+    import inspect
+
+    takes = []
+    for klass in cls.__mro__:
+        init = klass.__dict__.get("__init__")
+        if init is None:
+            continue
+        for p in inspect.signature(init).parameters.values():
+            if p.name not in ("self", "name") and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) \
+                    and p.name not in takes:
+                takes.append(p.name)
+    hints = [f"{_SYNONYMS[k]}= in place of {k}=" for k in sorted(unknown)
+             if _SYNONYMS.get(k) in takes]
+    return (f"{cls.__name__} '{name}': unknown argument(s) {', '.join(sorted(unknown))}; "
+            f"{cls.__name__} takes {', '.join(takes)}", "; ".join(hints) or None)
+
+
 def _as_expr(value) -> sp.Expr:
     if isinstance(value, sp.Basic):
         return value
@@ -108,9 +135,12 @@ class Element:
     n_ports: int | None = 1
 
     def __init__(self, name: str, *, effort_unit: str | None = None,
-                 flow_unit: str | None = None, description: str = ""):
+                 flow_unit: str | None = None, description: str = "", **unknown):
         if not isinstance(name, str) or not name or any(c.isspace() for c in name) or "->" in name:
             raise InvalidNameError(f"invalid element name {name!r}: use a non-empty name without spaces")
+        if unknown:
+            text, hint = _unknown_arguments(type(self), name, unknown)
+            raise ElementError(text, elements=[name], hint=hint)
         self.name = name
         self.description = description
         self.effort_unit = effort_unit
