@@ -422,7 +422,8 @@ def test_an_argument_of_another_tool_names_the_element_and_the_one_meant(kind, w
     from bondgraph.errors import ElementError
 
     g = bg.BondGraph("words")
-    with pytest.raises(ElementError, match=f"{kind} 'x': unknown argument\\(s\\) {written};") as err:
+    said = f"{kind} 'x': unknown argument\\(s\\) {written};"
+    with pytest.raises(ElementError, match=said) as err:
         getattr(g, kind)("x", **{written: 1.0})
     assert meant in str(err.value).split("takes")[1]
     assert err.value.hint == f"{meant}= in place of {written}="
