@@ -280,12 +280,26 @@ def nudge_sizes(probe: Probe, fit: Fit, dt: float) -> tuple[np.ndarray, list]:
     H0 = pm.h(xs, us, base)
     deltas = []
     for j in probe.idx:
-        th = base.copy()
-        th[j] = 1.0
-        dF = np.nanmax(np.abs((pm.f(xs, us, th) - F0) * dt / xscale))
-        dH = np.nanmax(np.abs((pm.h(xs, us, th) - H0) / yscale))
-        sens = max(dF, dH, 1e-300)
-        deltas.append(1e-3 / sens)
+        # the term is linear in its coefficient: the change at a value v
+        # scales with v. At v = 1 a term of tiny SI magnitude (k3·q³ of an
+        # accumulator, q ~ 1e-3 m³, beside 1e7 Pa) is below the rounding
+        # of f and h, the change exactly 0, and the nudge was 1e297, which
+        # the filter could not run: v grows until the change shows
+        v, sens = 1.0, 0.0
+        for _ in range(50):
+            th = base.copy()
+            th[j] = v
+            with np.errstate(all="ignore"):
+                change = max(np.nanmax(np.abs((pm.f(xs, us, th) - F0) * dt / xscale)),
+                             np.nanmax(np.abs((pm.h(xs, us, th) - H0) / yscale)))
+            if not np.isfinite(change):
+                v *= 1e-8               # an overflow: a smaller value
+                continue
+            sens = change / v
+            if change > 1e-9:
+                break
+            v *= 1e8
+        deltas.append(1e-3 / sens if sens > 0 else 1e-3)
     return np.array(deltas), nuis_delta
 
 
