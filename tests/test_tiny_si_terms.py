@@ -16,7 +16,6 @@ LSODA, the pressure measured at 10 Hz with N(0, 0.2 bar) noise.
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from scipy.integrate import solve_ivp
 
 from bondgraph import BondGraph
