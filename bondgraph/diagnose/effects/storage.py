@@ -38,6 +38,7 @@ from __future__ import annotations
 import sympy as sp
 
 from bondgraph.core import units as _units
+from bondgraph.core.causality import assign_causality
 from bondgraph.core.elements import C, I, One, R, Zero
 from bondgraph.core.graph import BondGraph
 from bondgraph.core.smooth import sigmoid, softplus
@@ -62,7 +63,6 @@ from bondgraph.diagnose.effects.base import (
     storage_stiffness,
     storage_targets,
 )
-from bondgraph.diagnose.effects.laws import causal_input
 from bondgraph.errors import GraphError
 
 
@@ -236,9 +236,11 @@ def _gate_contact_dampers(graph: BondGraph, el: C, contact) -> list[str]:
               for b in graph.bonds_of(j)]
     if any(isinstance(x, I) or getattr(x, "kind", None) == "I" for x in around):
         return []
+    rs = [r for r in around if isinstance(r, R) and r.form == "effort"]
+    cz = assign_causality(graph, validate=False) if rs else None
     gated = []
-    for r in around:
-        if not isinstance(r, R) or r.form != "effort" or causal_input(graph, r) != "flow":
+    for r in rs:
+        if cz.receives_effort(r.port.bond, r):
             continue
         r.law, r.resistance = contact * r.law, None
         gated.append(r.name)
