@@ -414,20 +414,47 @@ def test_an_unknown_domain_without_a_near_name_gets_the_list_only():
 
 
 @pytest.mark.parametrize("kind, written, meant", [
-    ("C", "capacitance", "compliance"), ("I", "mass", "inertance"), ("R", "damping", "resistance"),
+    ("C", "spring", "stiffness"), ("TF", "ratio", "modulus"), ("GY", "gain", "modulus"),
 ])
 def test_an_argument_of_another_tool_names_the_element_and_the_one_meant(kind, written, meant):
-    """C(capacitance=...) raised Python's bare TypeError from the base class;
+    """C(spring=...) raised Python's bare TypeError from the base class;
     the error now names the element, what its class takes and the remedy."""
     from bondgraph.errors import ElementError
 
     g = bg.BondGraph("words")
     said = f"{kind} 'x': unknown argument\\(s\\) {written};"
     with pytest.raises(ElementError, match=said) as err:
-        getattr(g, kind)("x", **{written: 1.0})
+        if kind == "C":
+            g.C("x", **{written: 1.0})
+        else:
+            getattr(g, kind)("x", 2.0, **{written: 1.0})
     assert meant in str(err.value).split("takes")[1]
     assert err.value.hint == f"{meant}= in place of {written}="
     assert list(err.value.elements) == ["x"]
     with pytest.raises(ElementError, match="unknown argument\\(s\\) colour; R takes") as err:
         g.R("y", 1.0, colour="red")
     assert err.value.hint is None
+
+
+@pytest.mark.parametrize("kind, written, meant", [
+    ("C", "capacitance", "compliance"), ("C", "capacity", "compliance"),
+    ("I", "inductance", "inertance"), ("I", "mass", "inertance"), ("I", "inertia", "inertance"),
+    ("R", "damping", "resistance"),
+])
+def test_a_name_of_the_same_parameter_is_taken_as_it(kind, written, meant):
+    """C(capacitance=2e-6) is C(compliance=2e-6): the same law and energy
+    (e = q/C, q²/2C); given under both names it is refused, named."""
+    from bondgraph.errors import ElementError
+
+    g = bg.BondGraph("words")
+    a = getattr(g, kind)("a", **{written: 2e-6})
+    b = getattr(g, kind)("b", **{meant: 2e-6})
+    assert getattr(a, meant) == getattr(b, meant) == sp.Float(2e-6)
+    if kind != "R":
+        va, vb = a.state, b.state
+        assert sp.simplify(a.law.subs(va, 1) - b.law.subs(vb, 1)) == 0
+        assert sp.simplify(a.energy.subs(va, 3) - b.energy.subs(vb, 3)) == 0
+        assert float(a.law.subs(va, 1)) == pytest.approx(5e5)
+    with pytest.raises(ElementError, match=f"{kind} 'c': {meant} given twice") as err:
+        getattr(g, kind)("c", 1.0, **{written: 2.0})
+    assert list(err.value.elements) == ["c"]

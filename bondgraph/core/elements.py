@@ -59,6 +59,31 @@ _SYNONYMS = {"capacitance": "compliance", "capacity": "compliance", "spring": "s
              "inductance": "inertance", "mass": "inertance", "inertia": "inertance",
              "damping": "resistance", "ratio": "modulus", "gain": "modulus"}
 
+#: the names of other tools and of the domains for exactly an element's own
+#: parameter, taken as it (``C(capacitance=...)`` is ``C(compliance=...)``)
+ALIASES = {"C": {"capacitance": "compliance", "capacity": "compliance"},
+           "I": {"inductance": "inertance", "mass": "inertance", "inertia": "inertance"},
+           "R": {"damping": "resistance"}}
+
+
+def _aliased(kind: str, name: str, value, kw: dict):
+    """``value`` (the element's own parameter, or None) or the one given by
+    an alias of it in ``kw`` (:data:`ALIASES`, popped from ``kw``).
+
+    Raises
+    ------
+    ElementError
+        The parameter given twice, under its name and an alias (or two
+        aliases).
+    """
+    for alias, own in ALIASES[kind].items():
+        if alias in kw:
+            if value is not None:
+                raise ElementError(f"{kind} '{name}': {own} given twice ({alias}= is {own}=)",
+                                   elements=[name])
+            value = kw.pop(alias)
+    return value
+
 
 def _unknown_arguments(cls: type, name: str, unknown: dict) -> tuple[str, str | None]:
     """The message for keyword arguments an element's class does not take
@@ -265,7 +290,8 @@ class I(OnePort):  # noqa: E742 - bond-graph name
     ----------
     name : str
     inertance : expr, optional
-        Linear inertance I (mass, inertia, inductance).
+        Linear inertance I (mass, inertia, inductance; ``inductance=``,
+        ``mass=`` or ``inertia=`` may stand for ``inertance=``).
     flow : callable, optional
         Nonlinear law ``flow(p) -> f``.
     energy : callable, optional
@@ -283,6 +309,7 @@ class I(OnePort):  # noqa: E742 - bond-graph name
 
     def __init__(self, name: str, inertance=None, *, flow: Callable | None = None,
                  energy: Callable | None = None, initial: float = 0.0, priority: int = 0, **kw):
+        inertance = _aliased("I", name, inertance, kw)
         super().__init__(name, **kw)
         self.state = StateVar(local_state_name(name, "p"), "momentum", name, initial=initial)
         self.priority = priority
@@ -334,7 +361,8 @@ class C(OnePort):
     ----------
     name : str
     compliance : expr, optional
-        Linear compliance C (e = q/C).
+        Linear compliance C (e = q/C; ``capacitance=`` or ``capacity=`` may
+        stand for ``compliance=``).
     stiffness : expr, optional
         Linear stiffness k (e = k q); alternative to ``compliance``.
     effort : callable, optional
@@ -353,6 +381,7 @@ class C(OnePort):
     def __init__(self, name: str, compliance=None, *, stiffness=None,
                  effort: Callable | None = None, energy: Callable | None = None,
                  initial: float = 0.0, priority: int = 0, **kw):
+        compliance = _aliased("C", name, compliance, kw)
         super().__init__(name, **kw)
         self.state = StateVar(local_state_name(name, "q"), "displacement", name, initial=initial)
         self.priority = priority
@@ -409,7 +438,7 @@ class R(OnePort):
     ----------
     name : str
     resistance : expr, optional
-        Linear resistance.
+        Linear resistance (``damping=`` may stand for ``resistance=``).
     effort : callable, optional
         ``effort(f) -> e`` (resistance form), e.g. ``lambda v: Fc*tanh(v/eps)``.
     flow : callable, optional
@@ -427,6 +456,7 @@ class R(OnePort):
 
     def __init__(self, name: str, resistance=None, *, effort: Callable | None = None,
                  flow: Callable | None = None, **kw):
+        resistance = _aliased("R", name, resistance, kw)
         super().__init__(name, **kw)
         given = [v is not None for v in (resistance, effort, flow)]
         if sum(given) != 1:
