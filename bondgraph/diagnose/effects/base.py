@@ -279,7 +279,22 @@ def reach_guards(bounds, default: float) -> tuple:
     moves it to 1e3 times beyond the start. A user's hydraulic hose: the
     score test put a cubic stiffness at 4e20 Pa/m⁹ (its volume ~1e-5 m³),
     the guard ±1e15 clipped the start, and the refit's box (±20 times the
-    start) ended at 2e16, where the refit stopped on the box edge."""
+    start) ended at 2e16, where the refit stopped on the box edge.
+
+    Parameters
+    ----------
+    bounds : (lower, upper)
+        The effect's fixed box, in the parameter's unit; an edge may be
+        None (unbounded).
+    default : float
+        The start value, in the same unit.
+
+    Returns
+    -------
+    tuple
+        ``(lower, upper)``: ``bounds`` with a guard the start lies beyond
+        moved past it (the other edges as given).
+    """
     lo, hi = bounds
     if hi is not None and abs(hi) >= GUARD and default > hi:
         hi = 1e3 * default
