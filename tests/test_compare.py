@@ -499,3 +499,38 @@ def test_an_estimate_that_does_not_simulate_its_record_says_so(data, tmp_path, c
     said = capsys.readouterr().out
     assert "WARNING: the estimate does not simulate known (NRMSE" in said
     assert "`--fit sim` fits the free run" in said
+
+
+def test_initial_states_a_fit_estimated_start_the_comparison_on_its_record(data, tmp_path,
+                                                                          capsys):
+    """A fit with ``--estimate-x0 all``: on the record it was fitted to, the
+    comparison starts where the fit did (the line says so) and its NLL is
+    the estimate's (before, the filter started from the prior and the NLL
+    differed: a user's hydraulic record under way read 122407 in the fit);
+    on a copy of that record under another name the prior's start stays."""
+    import os
+    import shutil
+
+    from bondgraph.cli.main import main
+    (tmp_path / "user_drive.py").write_text(GRAPH_FILE.format(tests=os.path.dirname(__file__))
+                                            .replace("drive()", "drive(offset=True)"))
+    spec = f"{tmp_path / 'user_drive.py'}:user"
+    est = tmp_path / "est"
+    rec = data["dir"] / "unknown.csv"
+    assert main(["estimate", "--model", spec, "--data", str(rec), "--params", "M,Fv,F0",
+                 "--estimate-x0", "all", "--iterations", "20", "--out", str(est),
+                 "--quiet", "--no-plots"]) == 0
+    res = json.loads((est / "result.json").read_text())
+    assert any(n.startswith("x0.") for n in res["params"])
+    capsys.readouterr()
+    other = tmp_path / "again.csv"
+    shutil.copyfile(rec, other)
+    out = tmp_path / "cmp"
+    assert main(["compare", spec, "--data", str(rec), "--data", str(other), "--params",
+                 str(est / "result.json"), "--out", str(out), "--no-plots"]) == 0
+    said = capsys.readouterr().out
+    assert "unknown: initial states as the fit estimated them on this record" in said
+    assert "again: initial states as the fit estimated them" not in said
+    fitted, copied = json.loads((out / "compare.json").read_text())["records"]
+    assert fitted["nll"] == pytest.approx(res["nll"], rel=1e-3)
+    assert copied["nll"] != pytest.approx(res["nll"], rel=1e-3)

@@ -19,7 +19,8 @@ from bondgraph.cli.common import (add_data, add_discretisation, add_model, add_o
 from bondgraph.core.jsonsafe import to_jsonable
 from bondgraph.diagnose.compare import compare
 from bondgraph.errors import ModelError, UsageError
-from bondgraph.export.params import model_graph, read_noise_levels, read_params
+from bondgraph.export.params import (model_graph, read_initial_states, read_noise_levels,
+                                     read_params)
 from bondgraph.report.plots import plot_comparison
 
 #: the example line of ``bondgraph compare --help``
@@ -76,12 +77,24 @@ def run(args) -> int:
                                        + "_".join(_stems(args.data)), "compare"), args)
     comps = compare(graph, records, noise=levels, init_samples=args.init_samples,
                     given=discretisation_given(args), scales_from=declared, log=say,
-                    progress=not args.quiet)
+                    progress=not args.quiet, initial_states=_fitted_starts(args))
     print(table(comps))
     _warnings([("", c) for c in comps])
     doc = {"model": args.model, "params": args.params, "values": values,
            "init_samples": args.init_samples, "records": [c.to_json() for c in comps]}
     return publish(folder, doc, args, [(c, None) for c in comps])
+
+
+def _fitted_starts(args) -> list:
+    """For each record of ``--data``, the initial states ``--params``' fit
+    estimated on it (``--estimate-x0``; state -> value), else None: on the
+    record it was fitted to, the comparison starts where the fit did."""
+    if not args.params:
+        return [None] * len(args.data)
+    fitted, x0 = read_initial_states(args.params)
+    if fitted is None:
+        return [None] * len(args.data)
+    return [x0 if Path(p).resolve() == fitted.resolve() else None for p in args.data]
 
 
 def scales_graph(spec: str):

@@ -189,7 +189,9 @@ def mean_errors(y: np.ndarray, sim_y: np.ndarray | None, first: int = 0) -> np.n
 def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] | None = None,
             init_samples: int = 0, given: Mapping[str, object] | None = None,
             scales_from: BondGraph | None = None, log: Callable[[str], None] = print,
-            progress: bool = False) -> list[Comparison]:
+            progress: bool = False,
+            initial_states: Sequence[Mapping[str, float] | None] | None = None
+            ) -> list[Comparison]:
     """Judge ``graph`` (its parameter defaults: set them from a fit with
     :func:`bondgraph.export.params.model_graph`) on each of ``records``.
 
@@ -230,6 +232,12 @@ def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] |
         Gets one line per choice (numerics, noise levels, fallbacks).
     progress : bool
         Progress bars of the long steps.
+    initial_states : sequence, optional
+        For each record, initial states a fit estimated on it (state ->
+        value, ``--estimate-x0``) or None: the filter and the free run start
+        there, held at a token spread, as the fit's NLL took them (from the
+        prior instead, the NLL on the fitted record differed from the
+        fit's).
 
     Returns
     -------
@@ -249,8 +257,12 @@ def compare(graph: BondGraph, records: Sequence, *, noise: Mapping[str, float] |
         raise OptionError("compare needs at least one record")
     n_init = check_window(records, init_samples)
     levels = dict(NoiseSpec("auto", held=noise or {}).held)    # each > 0 and finite
+    starts = list(initial_states or [None] * len(records))
+    if len(starts) != len(records):
+        raise OptionError(f"compare: {len(starts)} sets of initial states for "
+                          f"{len(records)} records")
     return [_compare_one(graph, rec, levels, n_init, dict(given or {}), log, progress,
-                         scales_from) for rec in records]
+                         scales_from, x0) for rec, x0 in zip(records, starts)]
 
 
 def check_window(records: Sequence, init_samples: int) -> int:
@@ -279,8 +291,9 @@ def check_window(records: Sequence, init_samples: int) -> int:
 
 
 def _compare_one(graph, rec, levels: dict, n_samples: int, given: dict, log, progress,
-                 scales_from=None) -> Comparison:
-    """:func:`compare` on one record; its first ``n_samples`` set the start."""
+                 scales_from=None, x0: Mapping[str, float] | None = None) -> Comparison:
+    """:func:`compare` on one record; its first ``n_samples`` set the start
+    (``x0``: initial states a fit estimated on it, held there)."""
     say = (lambda m: log(f"{rec.name}: {m.strip()}"))
     settings = chosen_numerics(graph, rec, LoopSettings(params=[]), given=given,
                                log=lambda _m: None)
@@ -290,6 +303,11 @@ def _compare_one(graph, rec, levels: dict, n_samples: int, given: dict, log, pro
         problem = loop_problem(model, rec, settings)
     else:                                       # the declared graph's scales, inherited
         problem = loop_problem(model_of(scales_from), rec, settings).with_model(model)
+    if x0:
+        problem = problem.conditioned_on(x0={n: v for n, v in x0.items()
+                                             if n in model.states})
+        say("initial states as the fit estimated them on this record: "
+            + ", ".join(f"{n} = {v:.6g}" for n, v in x0.items()))
     held, said = _noise_levels(problem, rec, levels)
     problem = replace(problem, noise=NoiseSpec("auto").holding(
         {o: v for o, (v, _) in held.items()}))

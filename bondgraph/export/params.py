@@ -145,6 +145,39 @@ def read_noise_levels(path: str | Path, *, initial: bool = False) -> dict[str, f
     return levels
 
 
+def read_initial_states(path: str | Path) -> tuple[Path | None, dict[str, float]]:
+    """The initial states a fit estimated with θ (``--estimate-x0``) and the
+    record they belong to: what :func:`read_params` leaves out besides the
+    noise levels.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``result.json`` of ``bondgraph estimate``.
+
+    Returns
+    -------
+    (Path or None, dict)
+        The record the fit was made on (None when it was fitted on several,
+        or the file does not say) and ``state -> value`` (state units) of
+        its estimated initial states ({} when there are none, or the file
+        is a loop's report).
+
+    Raises
+    ------
+    ExportError
+        As :func:`read_params` (the file is read by it first).
+    """
+    read_params(path)                       # the same errors for a bad file
+    doc = from_jsonable(json.loads(Path(path).read_text()))
+    data = (doc.get("settings") or {}).get("data")
+    if not isinstance(doc.get("params"), list) or not isinstance(data, str):
+        return None, {}
+    x0 = {n[len("x0."):]: float(v) for n, v in zip(doc["params"], doc["estimates"])
+          if str(n).startswith("x0.") and math.isfinite(float(v))}
+    return (Path(data) if x0 else None), x0
+
+
 def model_graph(spec: str | BondGraph, params: Mapping[str, float] | None = None) -> BondGraph:
     """The graph named by ``spec`` with ``params`` as its parameter defaults.
 
