@@ -247,8 +247,11 @@ def test_a_known_value_is_held_where_the_fit_shows_the_ridge(tmp_path):
 
 
 def test_estimate_searches_again_where_its_nll_lived_on_the_step(tmp_path, capsys):
-    """`bondgraph estimate` with no options on the user's graph and u1: the
-    start's RK4(1) passes its check against the profiled noise level, but
+    """`bondgraph estimate` on the user's graph and u1 with the initial
+    states at the prior (``--estimate-x0 none``: without process noise the
+    command estimates them by default, and its fit then does not reach the
+    place this test is about): the start's RK4(1) passes its check against
+    the profiled noise level, but
     the estimate it reaches sits where a stiff armature mode makes the
     filter's NLL depend on the step (535.65 with RK4(1), 1444.67 with
     RK4(40)): the NLL guard names 2 substeps and the search runs again.
@@ -270,7 +273,8 @@ def test_estimate_searches_again_where_its_nll_lived_on_the_step(tmp_path, capsy
     (tmp_path / "ced_user.py").write_text(GRAPH)
     out = tmp_path / "est"
     code = main(["estimate", "--model", f"{tmp_path / 'ced_user.py'}:ced_user",
-                 "--data", str(tmp_path / "u1.csv"), "--out", str(out), "--no-plots"])
+                 "--data", str(tmp_path / "u1.csv"), "--out", str(out), "--no-plots",
+                 "--estimate-x0", "none"])
     assert code == 0
     err = capsys.readouterr().err
     assert "an estimate that lives on the step's error: searching again): rk4(2)" in err, err

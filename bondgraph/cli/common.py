@@ -325,8 +325,10 @@ def add_estimation_scope(p: argparse.ArgumentParser) -> None:
     add_initial_state(p)
     p.add_argument("--estimate-x0", default=None, metavar="STATES",
                    help="initial states estimated jointly with the parameters (comma-separated "
-                        "state names, or all); their prior shrinks to a token spread, so the "
-                        "likelihood is conditional on them")
+                        "state names, all, or none); their prior shrinks to a token spread, so "
+                        "the likelihood is conditional on them (estimate: where the model "
+                        "declares no process noise, by default the states the record gives no "
+                        "initial value of and the outputs see; none keeps them at the prior)")
     p.add_argument("--noise", choices=NOISE_MODES, default="auto",
                    help="measurement-noise levels: auto (default) holds an output's noise std "
                         "at the record's declaration (sidecar noise_std) and estimates the "
@@ -336,7 +338,8 @@ def add_estimation_scope(p: argparse.ArgumentParser) -> None:
 
 
 def estimated_states(model, args) -> list[str]:
-    """The initial states of ``--estimate-x0`` (``all``: every state).
+    """The initial states of ``--estimate-x0`` (``all``: every state;
+    ``none``: none).
 
     Raises
     ------
@@ -346,7 +349,7 @@ def estimated_states(model, args) -> list[str]:
     from bondgraph.inference.estimand import x0_state_names
 
     text = getattr(args, "estimate_x0", None)
-    if not text:
+    if not text or text.strip().lower() == "none":
         return []
     return x0_state_names(model, parse_names(text, "--estimate-x0"))
 
