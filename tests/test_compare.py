@@ -502,12 +502,13 @@ def test_an_estimate_that_does_not_simulate_its_record_says_so(data, tmp_path, c
 
 
 def test_initial_states_a_fit_estimated_start_the_comparison_on_its_record(data, tmp_path,
-                                                                          capsys):
+                                                                          capsys, monkeypatch):
     """A fit with ``--estimate-x0 all``: on the record it was fitted to, the
     comparison starts where the fit did (the line says so) and its NLL is
     the estimate's (before, the filter started from the prior and the NLL
-    differed: a user's hydraulic record under way read 122407 in the fit);
-    on a copy of that record under another name the prior's start stays."""
+    differed: a user's hydraulic record under way read 124550 against the
+    fit's 122407); on a copy of that record under another name, or under
+    the same relative name in another folder, the prior's start stays."""
     import os
     import shutil
 
@@ -516,17 +517,17 @@ def test_initial_states_a_fit_estimated_start_the_comparison_on_its_record(data,
                                             .replace("drive()", "drive(offset=True)"))
     spec = f"{tmp_path / 'user_drive.py'}:user"
     est = tmp_path / "est"
-    rec = data["dir"] / "unknown.csv"
-    assert main(["estimate", "--model", spec, "--data", str(rec), "--params", "M,Fv,F0",
+    monkeypatch.chdir(data["dir"])          # the fit names its record relatively
+    assert main(["estimate", "--model", spec, "--data", "unknown.csv", "--params", "M,Fv,F0",
                  "--estimate-x0", "all", "--iterations", "20", "--out", str(est),
                  "--quiet", "--no-plots"]) == 0
     res = json.loads((est / "result.json").read_text())
     assert any(n.startswith("x0.") for n in res["params"])
     capsys.readouterr()
     other = tmp_path / "again.csv"
-    shutil.copyfile(rec, other)
+    shutil.copyfile(data["dir"] / "unknown.csv", other)
     out = tmp_path / "cmp"
-    assert main(["compare", spec, "--data", str(rec), "--data", str(other), "--params",
+    assert main(["compare", spec, "--data", "unknown.csv", "--data", str(other), "--params",
                  str(est / "result.json"), "--out", str(out), "--no-plots"]) == 0
     said = capsys.readouterr().out
     assert "unknown: initial states as the fit estimated them on this record" in said
@@ -534,3 +535,10 @@ def test_initial_states_a_fit_estimated_start_the_comparison_on_its_record(data,
     fitted, copied = json.loads((out / "compare.json").read_text())["records"]
     assert fitted["nll"] == pytest.approx(res["nll"], rel=1e-3)
     assert copied["nll"] != pytest.approx(res["nll"], rel=1e-3)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.copyfile(data["dir"] / "unknown.csv", elsewhere / "unknown.csv")
+    monkeypatch.chdir(elsewhere)
+    assert main(["compare", spec, "--data", "unknown.csv", "--params",
+                 str(est / "result.json"), "--out", str(tmp_path / "cmp2"), "--no-plots"]) == 0
+    assert "initial states as the fit estimated them" not in capsys.readouterr().out

@@ -187,7 +187,7 @@ def run(args) -> int:
         if not args.checkpoint:
             folder.remove_work_dir()      # nothing worth resuming
         raise
-    res.settings["data"] = str(paths[0]) if len(paths) == 1 else [str(p) for p in paths]
+    _record_paths(res, paths)
     _glitches(model, res, problems, paths)
 
     def version(d: Path) -> list:
@@ -205,6 +205,16 @@ def run(args) -> int:
     free_run_lines(args, exps, folder.path / "result.json")
     judged_elsewhere(args, vals, folder.path)
     return 0
+
+
+def _record_paths(res, paths) -> None:
+    """The records of the fit in ``res.settings``: ``data`` as given, and
+    for one record ``data_path``, its absolute path, by which ``bondgraph
+    compare`` finds the record the estimated initial states belong to
+    (:func:`bondgraph.export.params.read_initial_states`)."""
+    res.settings["data"] = str(paths[0]) if len(paths) == 1 else [str(p) for p in paths]
+    if len(paths) == 1:
+        res.settings["data_path"] = str(Path(paths[0]).resolve())
 
 
 def _print_table(res) -> None:
@@ -815,10 +825,8 @@ def sim_initial_states(problem, states: list[str]):
         xs, start = problem.x0, "the prior mean (the smoother failed)"
     x0 = {n: float(xs[model.state_index(n)]) for n in unknown if np.isfinite(
         xs[model.state_index(n)])}
-    d = problem.disc
     start_x = problem.conditioned_on(x0=x0).x0 if x0 else problem.x0
-    seen = seen_initial_states(model, problem.t, problem.u, problem.theta, start_x, unknown,
-                               method=d.method, substeps=d.substeps, hold=d.hold)
+    seen = _seen(problem, unknown, start_x)
     unseen = [n for n in unknown if n not in seen]
     _say(f"--fit sim: the record gives no initial value of {', '.join(unknown)}: "
          + (f"{', '.join(seen)} estimated with the parameters from {start}" if seen else "")
@@ -870,10 +878,8 @@ def filter_initial_states(args, chosen: list, states: list[str]) -> list[str]:
     unknown = [n for n in problem.prior.unknown(model, problem.record) if n not in states]
     if not unknown or len(unknown) > SIM_X0_MAX:
         return states
-    d = problem.disc
     try:
-        seen = seen_initial_states(model, problem.t, problem.u, problem.theta, problem.x0,
-                                   unknown, method=d.method, substeps=d.substeps, hold=d.hold)
+        seen = _seen(problem, unknown, problem.x0)
     except (NumericalError, FloatingPointError, np.linalg.LinAlgError):
         return states
     if seen:
@@ -881,6 +887,15 @@ def filter_initial_states(args, chosen: list, states: list[str]) -> list[str]:
              f"no process noise (the filter predicts by the free run): estimated with the "
              f"parameters (--x0 NAME=VALUE gives one; --estimate-x0 none keeps the prior)")
     return states + seen
+
+
+def _seen(problem, unknown: list[str], start_x) -> list[str]:
+    """The states of ``unknown`` whose initial value ``problem``'s outputs
+    see from ``start_x`` (:func:`seen_initial_states`, by the problem's own
+    step and hold)."""
+    d = problem.disc
+    return seen_initial_states(problem.model, problem.t, problem.u, problem.theta, start_x,
+                               unknown, method=d.method, substeps=d.substeps, hold=d.hold)
 
 
 def _sim_fit(problem, params, states, given: bool = False, method_free: bool = True):

@@ -158,8 +158,9 @@ def read_initial_states(path: str | Path) -> tuple[Path | None, dict[str, float]
     Returns
     -------
     (Path or None, dict)
-        The record the fit was made on (None when it was fitted on several,
-        or the file does not say) and ``state -> value`` (state units) of
+        The record the fit was made on, by its absolute path
+        (``settings.data_path``; None when it was fitted on several, or the
+        file does not say) and ``state -> value`` (state units) of
         its estimated initial states ({} when there are none, or the file
         is a loop's report).
 
@@ -170,7 +171,9 @@ def read_initial_states(path: str | Path) -> tuple[Path | None, dict[str, float]
     """
     read_params(path)                       # the same errors for a bad file
     doc = from_jsonable(json.loads(Path(path).read_text()))
-    data = (doc.get("settings") or {}).get("data")
+    # the record's absolute path: a relative one ("rec.csv") would match another
+    # folder's record of that name where compare runs elsewhere
+    data = (doc.get("settings") or {}).get("data_path")
     if not isinstance(doc.get("params"), list) or not isinstance(data, str):
         return None, {}
     x0 = {n[len("x0."):]: float(v) for n, v in zip(doc["params"], doc["estimates"])
